@@ -1,0 +1,3 @@
+from megalut_cli.cli import main
+
+main()

@@ -1,0 +1,273 @@
+"""FITS catalogs and images: fast bulk I/O (fitsio), provenance header cards, safe writes.
+
+Catalogs are handled in memory as :class:`astropy.table.Table` objects (one row per
+stamp/galaxy). Every file written here carries ``DATE``, ``CREATOR``, a format name and
+version (``MLFORMAT``/``MLFMTVER``), any extra cards (seeds, model hash, ...) and the
+``HISTORY`` of the processing chain, one card per step with its command line.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import fitsio
+import numpy as np
+from astropy.table import Table
+
+from megalut_cli.atomic import atomic_output
+from megalut_cli.errors import InputError
+from megalut_cli.provenance import CREATOR, command_line, utc_now
+
+#: Header keywords managed here and never copied from an input header.
+_MANAGED = {"DATE", "CREATOR", "MLFORMAT", "MLFMTVER", "HISTORY", "EXTNAME"}
+_HISTORY_WIDTH = 70
+
+
+def _open_error(path: str | os.PathLike, err: Exception) -> InputError:
+    del err  # cfitsio's own messages are long and cryptic
+    return InputError(f"{path}: not a readable FITS file (truncated or not FITS)")
+
+
+def _check_exists(path: str | os.PathLike) -> None:
+    if not Path(path).is_file():
+        raise InputError(f"{path}: no such file")
+
+
+def _table_ext(fits: fitsio.FITS, path: str | os.PathLike) -> int:
+    for i, hdu in enumerate(fits):
+        if hdu.get_exttype() in ("BINARY_TBL", "ASCII_TBL"):
+            return i
+    raise InputError(f"{path}: no table extension (is this a catalog?)")
+
+
+def _native(arr: np.ndarray) -> np.ndarray:
+    """Convert a (big-endian) structured array read from FITS to native byte order."""
+    if arr.dtype.names is None:
+        return arr.astype(arr.dtype.newbyteorder("="), copy=False)
+    dt = np.dtype([(n, arr.dtype[n].newbyteorder("=")) for n in arr.dtype.names])
+    return arr.astype(dt, copy=False)
+
+
+def catalog_info(path: str | os.PathLike) -> tuple[int, list[str], dict[str, Any]]:
+    """Return ``(n_rows, column_names, header)`` of a catalog without reading its rows."""
+    _check_exists(path)
+    try:
+        with fitsio.FITS(str(path)) as f:
+            ext = _table_ext(f, path)
+            hdu = f[ext]
+            return hdu.get_nrows(), list(hdu.get_colnames()), _header_dict(hdu.read_header())
+    except InputError:
+        raise
+    except (OSError, ValueError) as err:
+        raise _open_error(path, err) from None
+
+
+_STRUCTURAL = re.compile(r"^(XTENSION|SIMPLE|EXTEND|BITPIX|NAXIS\d*|PCOUNT|GCOUNT|TFIELDS|T(TYPE|FORM|UNIT|DIM|NULL|SCAL|ZERO)\d+)$")
+
+
+def _header_dict(hdr: fitsio.FITSHDR) -> dict[str, Any]:
+    """Header as a dict of user-level cards (structural keywords left out)."""
+    out: dict[str, Any] = {}
+    for rec in hdr.records():
+        name = rec.get("name")
+        if not name or name in ("COMMENT", "CONTINUE") or _STRUCTURAL.match(name):
+            continue
+        if name == "HISTORY":
+            out.setdefault("HISTORY", []).append(str(rec.get("value", "")))
+        else:
+            out[name] = rec.get("value")
+    return out
+
+
+def read_catalog(
+    path: str | os.PathLike,
+    columns: Sequence[str] | None = None,
+    rows: slice | None = None,
+) -> Table:
+    """Read a FITS catalog (first table extension) as an astropy Table.
+
+    ``table.meta`` holds the header as a dict (``HISTORY`` as a list of strings).
+    Missing ``columns`` are reported all at once.
+    """
+    _check_exists(path)
+    try:
+        with fitsio.FITS(str(path)) as f:
+            ext = _table_ext(f, path)
+            hdu = f[ext]
+            if columns is not None:
+                require_columns(hdu.get_colnames(), columns, path)
+            nrows = hdu.get_nrows()
+            kwargs: dict[str, Any] = {}
+            if columns is not None:
+                kwargs["columns"] = list(columns)
+            if rows is not None:
+                start, stop, _ = rows.indices(nrows)
+                kwargs["rows"] = np.arange(start, stop)
+            data = hdu.read(**kwargs) if nrows else None
+            header = _header_dict(hdu.read_header())
+            if data is None:
+                names = list(columns) if columns is not None else hdu.get_colnames()
+                dtype = hdu.get_rec_dtype()[0]
+                data = np.zeros(0, dtype=[(n, dtype[n]) for n in names])
+    except InputError:
+        raise
+    except (OSError, ValueError) as err:
+        raise _open_error(path, err) from None
+    table = Table(_native(data), copy=False)
+    table.meta.update(header)
+    return table
+
+
+def iter_catalog(
+    path: str | os.PathLike, chunk_rows: int, columns: Sequence[str] | None = None
+) -> Iterator[Table]:
+    """Yield successive row chunks of a catalog (memory bounded by ``chunk_rows``)."""
+    n, names, _ = catalog_info(path)
+    if columns is not None:
+        require_columns(names, columns, path)
+    for start in range(0, max(n, 1), chunk_rows):
+        yield read_catalog(path, columns=columns, rows=slice(start, min(start + chunk_rows, n)))
+
+
+def require_columns(
+    available: Iterable[str], needed: Iterable[str], where: str | os.PathLike = "catalog"
+) -> None:
+    """Raise one :class:`InputError` naming every column of ``needed`` not in ``available``."""
+    have = set(available)
+    missing = [c for c in needed if c not in have]
+    if missing:
+        raise InputError(f"{where}: missing column(s) {', '.join(missing)}")
+
+
+def _history_cards(lines: Iterable[str]) -> list[dict[str, Any]]:
+    cards = []
+    for line in lines:
+        line = str(line)
+        for i in range(0, max(len(line), 1), _HISTORY_WIDTH):
+            cards.append({"name": "HISTORY", "value": line[i : i + _HISTORY_WIDTH]})
+    return cards
+
+
+def header_cards(
+    fmt: str,
+    fmt_version: str = "1.0",
+    cards: Mapping[str, Any] | None = None,
+    history: Sequence[str] | None = None,
+    command: str | None = None,
+) -> list[dict[str, Any]]:
+    """Header records: DATE, CREATOR, format, extra ``cards`` and HISTORY (+ this command).
+
+    ``cards`` values may be ``(value, comment)`` pairs. ``history`` holds earlier steps
+    (e.g. an input's ``meta['HISTORY']``); the current command line is appended.
+    """
+    recs: list[dict[str, Any]] = [
+        {"name": "DATE", "value": utc_now(), "comment": "UTC date of file creation"},
+        {"name": "CREATOR", "value": CREATOR, "comment": "software that wrote this file"},
+        {"name": "MLFORMAT", "value": fmt, "comment": "megalut file format"},
+        {"name": "MLFMTVER", "value": fmt_version, "comment": "megalut file format version"},
+    ]
+    for key, val in (cards or {}).items():
+        key = key.upper()
+        if key in _MANAGED:
+            continue
+        comment = ""
+        if isinstance(val, tuple):
+            val, comment = val
+        if isinstance(val, (np.integer, np.floating, np.bool_)):
+            val = val.item()
+        if val is None:
+            continue
+        if isinstance(val, str) and len(val) > 68:
+            val = val[:68]
+        recs.append({"name": key[:8], "value": val, "comment": comment})
+    steps = list(history or []) + [command if command is not None else command_line()]
+    recs.extend(_history_cards(steps))
+    return recs
+
+
+def _to_structured(table: Table | Mapping[str, np.ndarray]) -> np.ndarray:
+    if isinstance(table, Table):
+        cols = {name: np.asarray(table[name]) for name in table.colnames}
+    else:
+        cols = {name: np.asarray(v) for name, v in table.items()}
+    lengths = {len(v) for v in cols.values()}
+    if len(lengths) > 1:
+        raise ValueError(f"columns of unequal length: {sorted(lengths)}")
+    n = lengths.pop() if lengths else 0
+    dtype = []
+    for name, v in cols.items():
+        if v.dtype.kind == "U":
+            v = np.char.encode(v, "ascii")
+            cols[name] = v
+        if v.dtype.kind == "b":
+            v = v.astype(np.int16)  # FITS logical columns are awkward for most readers
+            cols[name] = v
+        dtype.append((name, v.dtype, v.shape[1:]) if v.ndim > 1 else (name, v.dtype))
+    arr = np.empty(n, dtype=dtype)
+    for name, v in cols.items():
+        arr[name] = v
+    return arr
+
+
+def write_catalog(
+    path: str | os.PathLike,
+    table: Table | Mapping[str, np.ndarray],
+    *,
+    fmt: str,
+    fmt_version: str = "1.0",
+    overwrite: bool = False,
+    cards: Mapping[str, Any] | None = None,
+    history: Sequence[str] | None = None,
+    extname: str = "CATALOG",
+) -> Path:
+    """Write a catalog atomically as a FITS binary table with provenance cards."""
+    arr = _to_structured(table)
+    recs = header_cards(fmt, fmt_version, cards, history)
+    with atomic_output(path, overwrite) as tmp:
+        fitsio.write(str(tmp), arr, header=recs, extname=extname, clobber=True)
+    return Path(path)
+
+
+def read_image(path: str | os.PathLike, ext: int | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    """Read a FITS image (the first HDU holding one unless ``ext`` is given) and its header."""
+    _check_exists(path)
+    try:
+        with fitsio.FITS(str(path)) as f:
+            if ext is None:
+                ext = next(
+                    (i for i, h in enumerate(f) if h.get_exttype() == "IMAGE_HDU" and h.has_data()),
+                    None,
+                )
+                if ext is None:
+                    raise InputError(f"{path}: no image in this FITS file")
+            hdu = f[ext]
+            data = hdu.read()
+            header = _header_dict(hdu.read_header())
+    except InputError:
+        raise
+    except (OSError, ValueError, IndexError) as err:
+        raise _open_error(path, err) from None
+    if data is None or data.ndim != 2:
+        raise InputError(f"{path}: expected a 2-D image")
+    return _native(data), header
+
+
+def write_image(
+    path: str | os.PathLike,
+    image: np.ndarray,
+    *,
+    fmt: str,
+    fmt_version: str = "1.0",
+    overwrite: bool = False,
+    cards: Mapping[str, Any] | None = None,
+    history: Sequence[str] | None = None,
+) -> Path:
+    """Write a 2-D image atomically with provenance cards."""
+    recs = header_cards(fmt, fmt_version, cards, history)
+    with atomic_output(path, overwrite) as tmp:
+        fitsio.write(str(tmp), np.ascontiguousarray(image), header=recs, clobber=True)
+    return Path(path)

@@ -1,0 +1,12 @@
+"""`megalut evaluate` (not built yet: issue #4)."""
+
+from __future__ import annotations
+
+import click
+
+
+@click.command("evaluate", short_help="(not built yet)", context_settings={"ignore_unknown_options": True})
+@click.argument("args", nargs=-1, type=click.UNPROCESSED)
+def command(args: tuple[str, ...]) -> None:
+    """Not built yet (issue #4): exits with status 1."""
+    raise click.ClickException("'megalut evaluate' is not built yet (issue #4)")

@@ -1,0 +1,58 @@
+"""The ``flags`` bitmask of megalut catalogs: bit names, values and an explainer.
+
+A row with ``flags != 0`` has NaN features (and, after ``predict``, NaN estimates and
+zero weights). Bits combine, e.g. 1 | 16 = 17.
+"""
+
+from __future__ import annotations
+
+#: HSM FindAdaptiveMom did not converge (or raised).
+HSM_FAILED = 1 << 0
+#: Adaptive-moment centroid more than the allowed distance from the stamp centre.
+CENTROID_SHIFT = 1 << 1
+#: Adaptive-moment flux (amplitude) is not positive.
+NEGATIVE_FLUX = 1 << 2
+#: The stamp does not lie entirely inside the image.
+STAMP_OFF_IMAGE = 1 << 3
+#: The stamp contains NaN or infinite pixels.
+BAD_PIXELS = 1 << 4
+#: The sky noise estimate (``skymad``) is zero or not finite.
+BAD_SKY = 1 << 5
+#: The PSF stamp could not be measured.
+PSF_FAILED = 1 << 6
+#: ``predict``: an input feature of the model is missing or not finite on this row.
+BAD_FEATURES = 1 << 7
+
+FLAG_NAMES: dict[int, str] = {
+    HSM_FAILED: "HSM_FAILED",
+    CENTROID_SHIFT: "CENTROID_SHIFT",
+    NEGATIVE_FLUX: "NEGATIVE_FLUX",
+    STAMP_OFF_IMAGE: "STAMP_OFF_IMAGE",
+    BAD_PIXELS: "BAD_PIXELS",
+    BAD_SKY: "BAD_SKY",
+    PSF_FAILED: "PSF_FAILED",
+    BAD_FEATURES: "BAD_FEATURES",
+}
+
+FLAG_DESCRIPTIONS: dict[int, str] = {
+    HSM_FAILED: "HSM adaptive moments failed",
+    CENTROID_SHIFT: "adaptive-moment centroid too far from the stamp centre",
+    NEGATIVE_FLUX: "adaptive-moment flux not positive",
+    STAMP_OFF_IMAGE: "stamp not entirely inside the image",
+    BAD_PIXELS: "NaN or infinite pixels in the stamp",
+    BAD_SKY: "sky noise (skymad) zero or not finite",
+    PSF_FAILED: "PSF stamp could not be measured",
+    BAD_FEATURES: "model input features missing or not finite",
+}
+
+
+def explain(value: int) -> list[str]:
+    """Names of the bits set in ``value`` (unknown bits as ``BIT<n>``)."""
+    value = int(value)
+    names = []
+    bit = 0
+    while value >> bit:
+        if (value >> bit) & 1:
+            names.append(FLAG_NAMES.get(1 << bit, f"BIT{bit}"))
+        bit += 1
+    return names

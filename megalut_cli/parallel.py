@@ -1,0 +1,127 @@
+"""Mapping independent work units over a local process pool or a Dask cluster.
+
+The library never manages workers itself: it maps a top-level function over a list of
+work units through a :class:`concurrent.futures.Executor` — a process pool for ``-j N``,
+or the executor of a Dask ``distributed.Client`` for ``--scheduler``. Work units carry
+their own seeds, so results are identical whatever the engine and the number of workers.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any, TypeVar
+
+from megalut_cli.errors import ConfigError, MegalutError
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
+def resolve_nproc(nproc: int) -> int:
+    """``nproc <= 0`` means all cores."""
+    return os.cpu_count() or 1 if nproc <= 0 else nproc
+
+
+@contextlib.contextmanager
+def _single_threaded_children() -> Iterator[None]:
+    old = {k: os.environ.get(k) for k in _THREAD_VARS}
+    os.environ.update({k: "1" for k in _THREAD_VARS})
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _dask_client(scheduler: str) -> Any:
+    try:
+        from distributed import Client
+    except ImportError:
+        raise MegalutError(
+            "--scheduler needs Dask: pip install 'megalut-cli[dask]'"
+        ) from None
+    try:
+        if "://" in scheduler:
+            return Client(scheduler, timeout="30s")
+        if Path(scheduler).is_file():
+            return Client(scheduler_file=scheduler, timeout="30s")
+    except (OSError, TimeoutError) as err:
+        raise MegalutError(f"cannot reach the Dask scheduler at {scheduler}: {err}") from None
+    raise ConfigError(
+        f"--scheduler {scheduler!r} is neither an address (tcp://host:port) nor a scheduler file"
+    )
+
+
+@contextlib.contextmanager
+def executor(nproc: int = 1, scheduler: str | None = None) -> Iterator[Executor | None]:
+    """An executor for ``-j nproc`` or ``--scheduler``; ``None`` means run in this process.
+
+    Local workers are started with the ``spawn`` method and one BLAS thread each.
+    """
+    if scheduler:
+        client = _dask_client(scheduler)
+        try:
+            log.info("running on Dask cluster %s", scheduler)
+            yield client.get_executor(pure=False)
+        finally:
+            client.close()
+        return
+    n = resolve_nproc(nproc)
+    if n == 1:
+        yield None
+        return
+    with _single_threaded_children():
+        pool = ProcessPoolExecutor(max_workers=n, mp_context=get_context("spawn"))
+    try:
+        log.info("running on %d local worker processes", n)
+        yield pool
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def map_units(
+    func: Callable[..., T],
+    units: Sequence[Any],
+    pool: Executor | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> list[T]:
+    """Apply ``func`` to every unit, in this process or on ``pool``; results in unit order.
+
+    ``progress(n)`` is called with the number of units just finished.
+    """
+    results: list[Any] = [None] * len(units)
+    if pool is None:
+        for i, unit in enumerate(units):
+            results[i] = func(unit)
+            if progress:
+                progress(1)
+        return results
+    futures = {pool.submit(func, unit): i for i, unit in enumerate(units)}
+    try:
+        for fut in as_completed(futures):
+            results[futures[fut]] = fut.result()
+            if progress:
+                progress(1)
+    except BaseException:
+        for fut in futures:
+            fut.cancel()
+        raise
+    return results
+
+
+def chunk_ranges(n: int, n_chunks: int) -> list[tuple[int, int]]:
+    """Split ``range(n)`` into ``n_chunks`` contiguous (start, stop) ranges of near-equal size."""
+    n_chunks = max(1, min(n_chunks, n)) if n else 1
+    bounds = [round(i * n / n_chunks) for i in range(n_chunks + 1)]
+    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a] or [(0, 0)]

@@ -1,0 +1,53 @@
+"""Provenance recorded in every output: software versions, command line, dates."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import os
+import shlex
+import sys
+from pathlib import Path
+
+from megalut_cli import __version__
+
+CREATOR = f"megalut {__version__}"
+
+
+def utc_now() -> str:
+    """Current UTC time in ISO format (``SOURCE_DATE_EPOCH`` is honoured for reproducible files)."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    if epoch is not None:
+        when = _dt.datetime.fromtimestamp(int(epoch), tz=_dt.timezone.utc)
+    else:
+        when = _dt.datetime.now(tz=_dt.timezone.utc)
+    return when.replace(microsecond=0, tzinfo=None).isoformat()
+
+
+def command_line() -> str:
+    """The command line of this process, as a shell-quoted string."""
+    prog = Path(sys.argv[0]).name if sys.argv else "megalut"
+    return " ".join([prog, *(shlex.quote(a) for a in sys.argv[1:])])
+
+
+def software_versions() -> dict[str, str]:
+    """Versions of the libraries that shape results."""
+    versions = {"megalut": __version__, "python": sys.version.split()[0]}
+    for name in ("numpy", "scipy", "galsim", "astropy", "fitsio", "h5py"):
+        mod = sys.modules.get(name)
+        if mod is None:
+            try:
+                mod = __import__(name)
+            except ImportError:  # pragma: no cover - all are dependencies
+                continue
+        versions[name] = getattr(mod, "__version__", "unknown")
+    return versions
+
+
+def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    """Hex sha256 digest of a file."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()

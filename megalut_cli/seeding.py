@@ -1,0 +1,25 @@
+"""Seeds per work unit, so that results never depend on the engine or worker count.
+
+Every random draw of megalut comes from a generator built here from the user's seed and
+a tuple of integer keys naming the unit (a stream id, a case index, a member index...).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Stream ids keep independent uses of one user seed apart.
+STREAM_SIMULATE = 1
+STREAM_TRAIN = 2
+STREAM_SPLIT = 3
+
+
+def rng_for(seed: int, *keys: int) -> np.random.Generator:
+    """A numpy Generator for the unit named by ``keys`` under the user's ``seed``."""
+    return np.random.default_rng(np.random.SeedSequence(entropy=int(seed), spawn_key=tuple(int(k) for k in keys)))
+
+
+def int_seed_for(seed: int, *keys: int) -> int:
+    """A 31-bit positive integer seed (e.g. for ``galsim.BaseDeviate``) for the unit ``keys``."""
+    state = np.random.SeedSequence(entropy=int(seed), spawn_key=tuple(int(k) for k in keys))
+    return int(state.generate_state(1, dtype=np.uint32)[0] >> 1) + 1
