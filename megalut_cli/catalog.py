@@ -33,8 +33,11 @@ def _open_error(path: str | os.PathLike, err: Exception) -> InputError:
 
 
 def _check_exists(path: str | os.PathLike) -> None:
-    if not Path(path).is_file():
+    p = Path(path)
+    if not p.is_file():
         raise InputError(f"{path}: no such file")
+    if p.stat().st_size % 2880:  # FITS files are made of 2880-byte blocks
+        raise InputError(f"{path}: not a readable FITS file (truncated or not FITS)")
 
 
 def _table_ext(fits: fitsio.FITS, path: str | os.PathLike) -> int:

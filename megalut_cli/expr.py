@@ -57,7 +57,7 @@ def _parse(expr: str) -> ast.AST:
     # ``&``, ``|`` and ``~`` bind like ``and``, ``or`` and ``not`` (looser than comparisons),
     # so that "snr > 10 & adamom_sigma > 1.5" means what it says. The grammar has no
     # strings, so a plain replacement is safe.
-    text = expr.strip().replace("&", " and ").replace("|", " or ").replace("~", " not ")
+    text = expr.strip().replace("&", " and ").replace("|", " or ").replace("~", " not ").strip()
     try:
         return ast.parse(text, mode="eval").body
     except SyntaxError as err:
@@ -66,11 +66,13 @@ def _parse(expr: str) -> ast.AST:
 
 def columns_used(expr: str) -> list[str]:
     """Column names an expression refers to, in order of appearance."""
+    nodes = [
+        n for n in ast.walk(_parse(expr)) if isinstance(n, ast.Name) and n.id not in _FUNCS and n.id not in _AGGS
+    ]
     names: list[str] = []
-    for node in ast.walk(_parse(expr)):
-        if isinstance(node, ast.Name) and node.id not in _FUNCS and node.id not in _AGGS:
-            if node.id not in names:
-                names.append(node.id)
+    for node in sorted(nodes, key=lambda n: n.col_offset):
+        if node.id not in names:
+            names.append(node.id)
     return names
 
 

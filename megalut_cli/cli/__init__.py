@@ -62,7 +62,11 @@ def _setup_logging(verbose: int, quiet: int) -> None:
     )
 
 
-@click.group(cls=MegalutGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(
+    cls=MegalutGroup,
+    context_settings={"help_option_names": ["-h", "--help"]},
+    short_help="Weak-lensing shear measurement with machine learning.",
+)
 @click.version_option(__version__, "--version", prog_name="megalut")
 @click.option("-v", "--verbose", count=True, help="More log output (repeatable).")
 @click.option("-q", "--quiet", count=True, help="Less log output (repeatable).")

@@ -1,0 +1,146 @@
+"""Foundation: catalogs, safe writes, provenance, seeds, executors, expressions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from astropy.table import Table
+
+from megalut_cli import catalog, expr, flags, parallel, seeding
+from megalut_cli.atomic import atomic_output
+from megalut_cli.errors import ConfigError, InputError, MegalutError
+
+
+def _table(n: int = 7) -> Table:
+    rng = np.random.default_rng(0)
+    return Table({"case": np.arange(n) // 2, "x": rng.normal(size=n), "v": rng.normal(size=(n, 3))})
+
+
+def test_catalog_round_trip_with_provenance(tmp_path):
+    path = tmp_path / "c.fits"
+    catalog.write_catalog(path, _table(), fmt="megalut.test", cards={"SEED": (42, "seed")}, history=["step one"])
+    back = catalog.read_catalog(path)
+    np.testing.assert_array_equal(back["x"], _table()["x"])
+    np.testing.assert_array_equal(back["v"], _table()["v"])
+    assert back.meta["MLFORMAT"] == "megalut.test"
+    assert back.meta["SEED"] == 42
+    assert back.meta["CREATOR"].startswith("megalut ")
+    assert back.meta["HISTORY"][0] == "step one" and len(back.meta["HISTORY"]) >= 2
+    assert "TTYPE1" not in back.meta
+
+
+def test_catalog_chunks_and_columns(tmp_path):
+    path = tmp_path / "c.fits"
+    catalog.write_catalog(path, _table(7), fmt="megalut.test")
+    chunks = list(catalog.iter_catalog(path, 3, columns=["x"]))
+    assert [len(c) for c in chunks] == [3, 3, 1]
+    np.testing.assert_array_equal(np.concatenate([c["x"] for c in chunks]), _table(7)["x"])
+    with pytest.raises(InputError, match="missing column.*zz, yy"):
+        catalog.read_catalog(path, columns=["x", "zz", "yy"])
+
+
+def test_catalog_refuses_overwrite_and_bad_files(tmp_path):
+    path = tmp_path / "c.fits"
+    catalog.write_catalog(path, _table(), fmt="megalut.test")
+    with pytest.raises(MegalutError, match="--overwrite"):
+        catalog.write_catalog(path, _table(), fmt="megalut.test")
+    bad = tmp_path / "bad.fits"
+    bad.write_bytes(path.read_bytes()[:4000])
+    with pytest.raises(InputError, match="not a readable FITS"):
+        catalog.read_catalog(bad)
+    with pytest.raises(InputError, match="no such file"):
+        catalog.read_catalog(tmp_path / "nope.fits")
+
+
+def test_atomic_output_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "out.fits"
+    with pytest.raises(RuntimeError):
+        with atomic_output(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("interrupted")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_seeds_depend_on_keys_only():
+    a = seeding.rng_for(3, 1, 5).normal(size=4)
+    b = seeding.rng_for(3, 1, 5).normal(size=4)
+    c = seeding.rng_for(3, 1, 6).normal(size=4)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, c)
+    assert 0 < seeding.int_seed_for(3, 1, 5) < 2**31
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+def test_process_pool_gives_ordered_results():
+    with parallel.executor(nproc=2) as pool:
+        assert pool is not None
+        assert parallel.map_units(_square, list(range(9)), pool) == [i * i for i in range(9)]
+    with parallel.executor(nproc=1) as pool:
+        assert pool is None
+
+
+def test_bad_scheduler_is_config_error(tmp_path):
+    pytest.importorskip("distributed")
+    with pytest.raises(ConfigError, match="neither an address"):
+        with parallel.executor(scheduler=str(tmp_path / "missing.json")):
+            pass
+
+
+def test_chunk_ranges_cover_everything():
+    assert parallel.chunk_ranges(10, 3) == [(0, 3), (3, 7), (7, 10)]
+    assert parallel.chunk_ranges(2, 5) == [(0, 1), (1, 2)]
+
+
+COLS = {
+    "snr": np.array([5.0, 12, 20, np.nan, 30]),
+    "s": np.array([1.0, 2, 2, 1, 3]),
+    "case": np.array([0, 0, 1, 1, 2]),
+    "tru": np.array([1.0, 1, 2, 2, 3]),
+}
+
+
+def test_row_expressions_with_ampersand_precedence():
+    np.testing.assert_array_equal(
+        expr.evaluate_rows("snr > 10 & s > 1.5", COLS), [False, True, True, False, True]
+    )
+    np.testing.assert_array_equal(expr.evaluate_rows("~(snr > 10) | s >= 3", COLS), [True, False, False, True, True])
+    assert expr.columns_used("log10(snr) > 1 & s < 2") == ["snr", "s"]
+
+
+def test_case_expressions():
+    ids, sel = expr.evaluate_cases("mean(snr) > 10 & tru < 3", COLS, COLS["case"])
+    np.testing.assert_array_equal(ids, [0, 1, 2])
+    np.testing.assert_array_equal(sel, [False, True, False])
+    _, sel = expr.evaluate_cases("median(snr) >= 12", COLS, COLS["case"])
+    np.testing.assert_array_equal(sel, [False, True, True])
+    _, sel = expr.evaluate_cases("count(snr) == 2", COLS, COLS["case"])
+    np.testing.assert_array_equal(sel, [True, False, False])
+
+
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ("snr >", "malformed"),
+        ("__import__('os').system('true')", "unsupported|unknown function"),
+        ("snr.real > 1", "unsupported"),
+        ("mean(snr) > 1", "only allowed in case"),
+        ("foo > 1", "unknown column"),
+        ("snr + 1", "not a condition"),
+    ],
+)
+def test_bad_expressions_are_config_errors(bad, message):
+    with pytest.raises(ConfigError, match=message):
+        expr.evaluate_rows(bad, COLS)
+
+
+def test_case_expression_rejects_varying_bare_column():
+    with pytest.raises(ConfigError, match="varies within cases"):
+        expr.evaluate_cases("s > 1", COLS, COLS["case"])
+
+
+def test_flags_explain():
+    assert flags.explain(flags.HSM_FAILED | flags.BAD_PIXELS) == ["HSM_FAILED", "BAD_PIXELS"]
+    assert flags.explain(0) == []
