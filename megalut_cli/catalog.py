@@ -62,7 +62,7 @@ def catalog_info(path: str | os.PathLike) -> tuple[int, list[str], dict[str, Any
         with fitsio.FITS(str(path)) as f:
             ext = _table_ext(f, path)
             hdu = f[ext]
-            return hdu.get_nrows(), list(hdu.get_colnames()), _header_dict(hdu.read_header())
+            return hdu.get_nrows(), list(hdu.get_colnames()), header_dict(hdu.read_header())
     except InputError:
         raise
     except (OSError, ValueError) as err:
@@ -72,7 +72,7 @@ def catalog_info(path: str | os.PathLike) -> tuple[int, list[str], dict[str, Any
 _STRUCTURAL = re.compile(r"^(XTENSION|SIMPLE|EXTEND|BITPIX|NAXIS\d*|PCOUNT|GCOUNT|TFIELDS|T(TYPE|FORM|UNIT|DIM|NULL|SCAL|ZERO)\d+)$")
 
 
-def _header_dict(hdr: fitsio.FITSHDR) -> dict[str, Any]:
+def header_dict(hdr: fitsio.FITSHDR) -> dict[str, Any]:
     """Header as a dict of user-level cards (structural keywords left out)."""
     out: dict[str, Any] = {}
     for rec in hdr.records():
@@ -111,7 +111,7 @@ def read_catalog(
                 start, stop, _ = rows.indices(nrows)
                 kwargs["rows"] = np.arange(start, stop)
             data = hdu.read(**kwargs) if nrows else None
-            header = _header_dict(hdu.read_header())
+            header = header_dict(hdu.read_header())
             if data is None:
                 names = list(columns) if columns is not None else hdu.get_colnames()
                 dtype = hdu.get_rec_dtype()[0]
@@ -249,7 +249,7 @@ def read_image(path: str | os.PathLike, ext: int | None = None) -> tuple[np.ndar
                     raise InputError(f"{path}: no image in this FITS file")
             hdu = f[ext]
             data = hdu.read()
-            header = _header_dict(hdu.read_header())
+            header = header_dict(hdu.read_header())
     except InputError:
         raise
     except (OSError, ValueError, IndexError) as err:

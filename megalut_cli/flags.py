@@ -16,7 +16,7 @@ NEGATIVE_FLUX = 1 << 2
 STAMP_OFF_IMAGE = 1 << 3
 #: The stamp contains NaN or infinite pixels.
 BAD_PIXELS = 1 << 4
-#: The sky noise estimate (``skymad``) is zero or not finite.
+#: The sky noise estimate (``skymad``) is not finite (zero is allowed: noiseless images).
 BAD_SKY = 1 << 5
 #: The PSF stamp could not be measured.
 PSF_FAILED = 1 << 6
@@ -40,7 +40,7 @@ FLAG_DESCRIPTIONS: dict[int, str] = {
     NEGATIVE_FLUX: "adaptive-moment flux not positive",
     STAMP_OFF_IMAGE: "stamp not entirely inside the image",
     BAD_PIXELS: "NaN or infinite pixels in the stamp",
-    BAD_SKY: "sky noise (skymad) zero or not finite",
+    BAD_SKY: "sky noise (skymad) not finite",
     PSF_FAILED: "PSF stamp could not be measured",
     BAD_FEATURES: "model input features missing or not finite",
 }

@@ -1,12 +1,95 @@
-"""`megalut measure` (not built yet: issue #2)."""
+"""`megalut measure`: adaptive-moment features of every stamp of a FITS image."""
 
 from __future__ import annotations
 
 import click
 
+from megalut_cli.cli.options import execution_options, output_option, overwrite_option
 
-@click.command("measure", short_help="(not built yet)", context_settings={"ignore_unknown_options": True})
-@click.argument("args", nargs=-1, type=click.UNPROCESSED)
-def command(args: tuple[str, ...]) -> None:
-    """Not built yet (issue #2): exits with status 1."""
-    raise click.ClickException("'megalut measure' is not built yet (issue #2)")
+
+@click.command(
+    "measure",
+    short_help="Measure adaptive-moment features on a FITS image of stamps.",
+)
+@click.argument("stamps", type=click.Path(exists=True, dir_okay=False))
+@click.argument("catalog", required=False, type=click.Path(exists=True, dir_okay=False))
+@output_option("Features catalog to write (FITS table, format megalut.features).")
+@click.option(
+    "--stamp-size",
+    type=click.IntRange(min=3),
+    default=None,
+    help="Stamp size in pixels [default: the image's STAMPSZ header card].",
+)
+@click.option(
+    "--origin",
+    type=click.Choice(["0", "1"]),
+    default="1",
+    show_default=True,
+    help="Coordinate of the first pixel's centre in the catalog's x, y (1: FITS, 0: GREAT3).",
+)
+@click.option(
+    "--gain",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Gain in e-/ADU: S/N from the CCD equation (paper Eq. 8) "
+    "[default: none, sky-limited S/N of Eq. 10].",
+)
+@click.option(
+    "--psf",
+    "psf",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="FITS image of PSF stamps: a grid like STAMPS (one PSF per row), or one PSF "
+    "(single stamp, or the first of a star grid); adds psf_adamom_g1, psf_adamom_g2, "
+    "psf_adamom_sigma, psf_adamom_rho4.",
+)
+@execution_options
+@overwrite_option
+def command(
+    stamps: str,
+    catalog: str | None,
+    output: str,
+    stamp_size: int | None,
+    origin: str,
+    gain: float | None,
+    psf: str | None,
+    nproc: int,
+    scheduler: str | None,
+    overwrite: bool,
+) -> None:
+    """Measure the paper's features (Sect. 4) on each stamp of STAMPS.
+
+    Stamps are located by the centres x, y of CATALOG (FITS 1-based unless --origin 0),
+    whose columns are all passed through; without CATALOG, stamp k is taken in grid order
+    (column k mod n_x, row k div n_x from the lower-left pixel; as many stamps as the
+    header card NSTAMPS says, else the whole grid) and gets one output row with its
+    centre x, y. Adds adamom_flux, adamom_g1, adamom_g2, adamom_sigma,
+    adamom_rho4, adamom_x, adamom_y (GalSim HSM FindAdaptiveMom), adamom_logflux, skymad
+    (1.4826 MAD of the stamp-edge pixels), snr (Eq. 8 with --gain, else Eq. 10) and a
+    flags bitmask; flagged stamps (HSM failure, centroid more than min(10, S/4) pixels
+    from the stamp centre, non-positive flux, stamp off the image, NaN pixels) have NaN
+    features.
+
+    \b
+    Example:
+      megalut simulate examples/fiducial/vp.toml -o cat.fits --stamps stamps.fits
+      megalut measure stamps.fits cat.fits -o features.fits -j 2
+      megalut measure image.fits galaxies.fits -o f.fits --stamp-size 48 --origin 0 \\
+          --psf starfield.fits
+    """
+    from megalut_cli.cli.options import progress
+    from megalut_cli.measure.measure import measure_file
+
+    measure_file(
+        stamps,
+        catalog,
+        output,
+        stamp_size=stamp_size,
+        origin=int(origin),
+        gain=gain,
+        psf_path=psf,
+        nproc=nproc,
+        scheduler=scheduler,
+        overwrite=overwrite,
+        progress=progress,
+    )

@@ -1,0 +1,10 @@
+"""Feature measurement on stamps (paper Sect. 4).
+
+:mod:`.features` measures stacks of stamps (HSM adaptive moments, ``skymad``, S/N,
+flags); :mod:`.stamps` locates stamps in FITS images; :mod:`.measure` runs
+``megalut measure`` on files, in parallel.
+"""
+
+from megalut_cli.measure.features import FEATURE_COLUMNS, measure_stamps
+
+__all__ = ["FEATURE_COLUMNS", "measure_stamps"]

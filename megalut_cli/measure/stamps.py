@@ -1,0 +1,176 @@
+"""Locating square stamps in a big FITS image, and reading them.
+
+Coordinates are FITS-like: pixel ``(1, 1)`` is the centre of the image's first
+(lower-left) pixel, ``x`` runs along the image's last numpy axis and ``y`` along the
+first. A stamp is given by the 1-based ``(x, y)`` of its lower-left pixel (its *origin*).
+
+* From a catalog of stamp centres ``x, y`` (1-based, or 0-based with ``origin=0`` as in
+  GREAT3): the lower-left pixel is ``floor(x1 - S/2 + 0.5)`` where ``x1`` is the 1-based
+  centre. This maps both the true centre of a stamp (``32.5`` for ``S = 64``) and GalSim's
+  nominal centre (``33``) to the same stamp.
+* In grid order (no catalog): stamp ``k`` sits at grid column ``k mod n_x`` and grid row
+  ``k div n_x``, counted from the image's first pixel, with ``n_x = width // S``; an
+  ``NSTAMPS`` header card limits the number of stamps (a partly filled last row).
+
+Stamps not entirely inside the image are reported (``inside`` mask) rather than read.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import fitsio
+import numpy as np
+
+from megalut_cli.catalog import header_dict
+from megalut_cli.errors import ConfigError, InputError
+
+#: Header card holding the stamp size of an image of stamps.
+STAMP_SIZE_CARD = "STAMPSZ"
+
+#: Tolerance making ``floor`` robust to centres stored as e.g. 32.49999999.
+_EPS = 1e-6
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """Where an image lives in a FITS file, its shape ``(ny, nx)`` and header."""
+
+    path: str
+    ext: int
+    shape: tuple[int, int]
+    header: dict[str, Any]
+
+
+def _unreadable(path: str | os.PathLike) -> InputError:
+    return InputError(f"{path}: not a readable FITS file (truncated or not FITS)")
+
+
+def image_info(path: str | os.PathLike, ext: int | None = None) -> ImageInfo:
+    """Locate the image HDU of ``path`` (first with data unless ``ext``) and check it is whole.
+
+    Raises :class:`InputError` for a missing, non-FITS or truncated file, or no 2-D image.
+    """
+    if not os.path.isfile(path):
+        raise InputError(f"{path}: no such file")
+    try:
+        with fitsio.FITS(str(path)) as f:
+            if ext is None:
+                ext = next(
+                    (i for i, h in enumerate(f) if h.get_exttype() == "IMAGE_HDU" and h.has_data()),
+                    None,
+                )
+                if ext is None:
+                    raise InputError(f"{path}: no image in this FITS file")
+            hdu = f[ext]
+            if hdu.get_exttype() != "IMAGE_HDU":
+                raise InputError(f"{path}: HDU {ext} is not an image")
+            dims = hdu.get_dims()
+            if len(dims) != 2:
+                raise InputError(f"{path}: expected a 2-D image, got {len(dims)} dimension(s)")
+            header = header_dict(hdu.read_header())
+            hinfo = hdu.get_info()
+            nbytes = abs(int(hinfo["img_type"])) // 8 * int(dims[0]) * int(dims[1])
+            data_end = int(hinfo["data_start"]) + nbytes
+            compressed = bool(hinfo["is_compressed_image"])
+    except InputError:
+        raise
+    except (OSError, ValueError, IndexError):
+        raise _unreadable(path) from None
+    if not compressed and data_end > os.path.getsize(path):
+        raise InputError(f"{path}: truncated FITS file (image data incomplete)")
+    return ImageInfo(str(path), int(ext), (int(dims[0]), int(dims[1])), header)
+
+
+def read_rows(info: ImageInfo, y0: int, y1: int) -> np.ndarray:
+    """Read image rows ``y0 .. y1 - 1`` (0-based numpy indices) as float64."""
+    try:
+        with fitsio.FITS(info.path) as f:
+            data = f[info.ext][y0:y1, :]
+    except (OSError, ValueError):
+        raise _unreadable(info.path) from None
+    return np.asarray(data, dtype=np.float64)
+
+
+def stamp_size_of(
+    info: ImageInfo, stamp_size: int | None, where: str = "--stamp-size"
+) -> int:
+    """The stamp size: ``stamp_size`` if given, else the image's ``STAMPSZ`` header card."""
+    if stamp_size is None:
+        card = info.header.get(STAMP_SIZE_CARD)
+        if card is None:
+            raise ConfigError(
+                f"{info.path}: stamp size unknown: give {where} or a {STAMP_SIZE_CARD} header card"
+            )
+        try:
+            value = float(card)
+        except (TypeError, ValueError):
+            value = float("nan")
+        if isinstance(card, bool) or not value.is_integer():
+            raise InputError(f"{info.path}: bad {STAMP_SIZE_CARD} header card {card!r}")
+        stamp_size = int(value)
+    if stamp_size < 3:
+        raise ConfigError(f"stamp size must be at least 3 pixels, got {stamp_size}")
+    return int(stamp_size)
+
+
+def check_grid(info: ImageInfo, stamp_size: int) -> tuple[int, int]:
+    """``(n_y, n_x)`` stamps of the grid; an error if ``stamp_size`` does not divide the image."""
+    ny, nx = info.shape
+    if ny % stamp_size or nx % stamp_size:
+        raise InputError(
+            f"{info.path}: stamp size {stamp_size} does not divide the {nx}x{ny} image"
+        )
+    return ny // stamp_size, nx // stamp_size
+
+
+def grid_origins(n_y: int, n_x: int, stamp_size: int) -> np.ndarray:
+    """1-based lower-left ``(x, y)`` of the ``n_y * n_x`` stamps of a grid, in grid order."""
+    k = np.arange(n_y * n_x, dtype=np.int64)
+    return np.column_stack([(k % n_x) * stamp_size + 1, (k // n_x) * stamp_size + 1])
+
+
+def catalog_origins(
+    x: np.ndarray, y: np.ndarray, stamp_size: int, origin: int = 1
+) -> np.ndarray:
+    """1-based lower-left ``(x, y)`` of the stamps centred at catalog positions ``x, y``.
+
+    ``origin`` is the coordinate of the first pixel's centre in the catalog (1: FITS,
+    0: numpy/GREAT3). Non-finite centres give the origin ``INT64_MIN`` (never inside).
+    """
+    if origin not in (0, 1):
+        raise ConfigError(f"--origin must be 0 or 1, got {origin}")
+    xy = np.column_stack([np.asarray(x, np.float64), np.asarray(y, np.float64)]) + (1 - origin)
+    ll = np.floor(xy - stamp_size / 2.0 + 0.5 + _EPS)
+    bad = ~np.isfinite(ll).all(axis=1)
+    out = np.empty(ll.shape, dtype=np.int64)
+    out[~bad] = ll[~bad].astype(np.int64)
+    out[bad] = np.iinfo(np.int64).min
+    return out
+
+
+def inside(origins: np.ndarray, stamp_size: int, shape: tuple[int, int]) -> np.ndarray:
+    """Mask of stamps lying entirely inside an image of ``shape`` ``(ny, nx)``."""
+    ny, nx = shape
+    ox, oy = origins[:, 0], origins[:, 1]
+    return (ox >= 1) & (oy >= 1) & (ox + stamp_size - 1 <= nx) & (oy + stamp_size - 1 <= ny)
+
+
+def cut_stamps(
+    rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int
+) -> np.ndarray:
+    """Cut stamps ``(n, S, S)`` from a block of image ``rows`` whose first row is ``row0`` (0-based)."""
+    n = len(origins)
+    out = np.empty((n, stamp_size, stamp_size), dtype=np.float64)
+    for i, (ox, oy) in enumerate(origins):
+        y = int(oy) - 1 - row0
+        x = int(ox) - 1
+        out[i] = rows[y : y + stamp_size, x : x + stamp_size]
+    return out
+
+
+def stamp_centres(origins: np.ndarray, stamp_size: int) -> np.ndarray:
+    """True centres (1-based ``x, y``) of stamps with the given lower-left pixels."""
+    return origins.astype(np.float64) + (stamp_size - 1) / 2.0

@@ -1,0 +1,417 @@
+"""PSFs of the simulations, in pixel units (the simulator draws with ``scale=1``).
+
+A PSF is described by a spec: a TOML table of scalars with a ``type`` and its
+parameters (see the "PSF" section of ``docs/config.md``):
+
+``gaussian``
+    ``sigma`` or ``fwhm`` (pixels), optional ``g1, g2`` (reduced shear, |g| < 1).
+``moffat``
+    ``beta`` and one of ``fwhm``/``half_light_radius`` (pixels), optional ``trunc``
+    (pixels, 0 = none) and ``g1, g2``.
+``field``
+    The variable PSF of the paper's Sect. 6, at field position ``x, y`` in [0, 1]: an
+    elliptical Gaussian with ``e1 = e1_min + (e1_max - e1_min) x`` (default -0.25 to
+    0.25), ``e2 = e2_min + (e2_max - e2_min) y`` (default 0 to 0.25) and ``sigma =
+    sigma_mean + sigma_slope (x + y - 1)`` (default 2 + 0.25 (x + y - 1)); (e1, e2) is
+    applied as GalSim's reduced shear g, which preserves the area, so ``sigma`` stays the
+    azimuthally averaged standard deviation.
+``euclid``
+    The Euclid-VIS-like PSF of Sect. 7.1.2: GalSim OpticalPSFs (``diam`` 1.2 m,
+    ``obscuration`` 0.29, ``nstruts`` 6) at ``lam_min`` to ``lam_max`` (550-900 nm) in
+    ``lam_step`` (50 nm) steps, drawn ``oversampling`` (5) times finer than the
+    ``pixel_scale`` (0.1 arcsec) on ``size`` (64) pixels, stacked with photon-count
+    weights of a stellar spectrum, and interpolated. The paper's Pickles G5V template is
+    not available here: a blackbody of ``temperature`` (5800 K) in photon counts
+    (``B_lambda * lambda / hc``) stands in for it; over 550-900 nm the two differ by
+    a smooth tilt of a few per cent, a negligible change of the stacked PSF.
+``stamp``
+    A PSF read from a FITS image of a star (``path``, optional ``hdu``): a GalSim
+    InterpolatedImage with flux 1. With ``stamp_size``, the image is a grid of star
+    stamps (e.g. a GREAT3 ``starfield_image``, 3x3) and ``index`` (default 0) picks one,
+    in grid order from the lower-left. ``pixel_scale`` is the star image's pixel in
+    simulation pixels (default 1). ``interpolant`` is GalSim's x interpolant (default
+    quintic).
+
+Truth values ``tru_psf_g1, tru_psf_g2, tru_psf_sigma`` (sigma in pixels) are analytic
+for the Gaussian types; otherwise ``g1, g2`` are analytic (shear applied to a round
+profile) and ``sigma`` is HSM's adaptive-moment sigma on a well-sampled image of the
+profile without pixel response; the ``euclid`` and ``stamp`` truths are HSM measurements
+on the 5x oversampled image and on the star image.
+
+Star images already contain the pixel response: see :func:`psf_includes_pixel`.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import galsim
+import numpy as np
+
+from megalut_cli.errors import ConfigError, InputError
+
+#: Truth columns returned by :func:`make_psf`.
+TRUTH_COLUMNS = ("tru_psf_g1", "tru_psf_g2", "tru_psf_sigma")
+
+_INTERPOLANTS = ("quintic", "cubic", "linear", "lanczos3", "lanczos5", "lanczos7", "lanczos15")
+
+# Allowed keys per type: (required, optional with defaults). Keys in REQUIRED_ONE_OF
+# groups need exactly one member.
+_OPTIONAL: dict[str, dict[str, Any]] = {
+    "gaussian": {"sigma": None, "fwhm": None, "g1": 0.0, "g2": 0.0},
+    "moffat": {"beta": None, "fwhm": None, "half_light_radius": None, "trunc": 0.0, "g1": 0.0, "g2": 0.0},
+    "field": {
+        "e1_min": -0.25,
+        "e1_max": 0.25,
+        "e2_min": 0.0,
+        "e2_max": 0.25,
+        "sigma_mean": 2.0,
+        "sigma_slope": 0.25,
+    },
+    "euclid": {
+        "diam": 1.2,
+        "obscuration": 0.29,
+        "nstruts": 6,
+        "lam_min": 550.0,
+        "lam_max": 900.0,
+        "lam_step": 50.0,
+        "pixel_scale": 0.1,
+        "oversampling": 5,
+        "size": 64,
+        "temperature": 5800.0,
+    },
+    "stamp": {
+        "path": None,
+        "hdu": None,
+        "stamp_size": None,
+        "index": 0,
+        "pixel_scale": 1.0,
+        "interpolant": "quintic",
+        "includes_pixel": None,
+    },
+}
+_ONE_OF: dict[str, tuple[tuple[str, ...], ...]] = {
+    "gaussian": (("sigma", "fwhm"),),
+    "moffat": (("fwhm", "half_light_radius"),),
+}
+_REQUIRED: dict[str, tuple[str, ...]] = {"moffat": ("beta",), "stamp": ("path",)}
+
+PSF_TYPES = tuple(_OPTIONAL)
+
+
+def _key(where: str, k: str) -> str:
+    return f"{where}.{k}" if where else k
+
+
+def _number(spec: Mapping[str, Any], k: str, where: str) -> float:
+    v = spec[k]
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise ConfigError(f"{_key(where, k)}: expected a number, got {v!r}")
+    v = float(v)
+    if not math.isfinite(v):
+        raise ConfigError(f"{_key(where, k)}: must be finite, got {v}")
+    return v
+
+
+def _positive(spec: Mapping[str, Any], k: str, where: str) -> float:
+    v = _number(spec, k, where)
+    if v <= 0:
+        raise ConfigError(f"{_key(where, k)}: must be > 0, got {v}")
+    return v
+
+
+def _integer(spec: Mapping[str, Any], k: str, where: str, minimum: int) -> int:
+    v = _number(spec, k, where)
+    if not v.is_integer() or v < minimum:
+        raise ConfigError(f"{_key(where, k)}: must be an integer >= {minimum}, got {spec[k]!r}")
+    return int(v)
+
+
+def _check_shear(g1: float, g2: float, where: str, what: str = "g1, g2") -> None:
+    if math.hypot(g1, g2) >= 1.0:
+        raise ConfigError(f"{where}: the PSF ellipticity |({what})| must be < 1, got ({g1}, {g2})")
+
+
+def _full(spec: Mapping[str, Any]) -> dict[str, Any]:
+    """The spec with defaults filled in (assumes a validated spec)."""
+    t = spec["type"]
+    out = dict(_OPTIONAL[t])
+    out.update({k: v for k, v in spec.items() if k != "type"})
+    out["type"] = t
+    return out
+
+
+def validate_psf_config(spec: Mapping[str, Any], where: str = "psf") -> None:
+    """Check a PSF spec; raise :class:`ConfigError` naming the bad key.
+
+    ``where`` prefixes key names in messages (``psf.sigma``). For ``stamp``, a missing
+    file is an :class:`InputError`.
+    """
+    if not isinstance(spec, Mapping):
+        raise ConfigError(f"{where}: expected a table")
+    t = spec.get("type")
+    if t is None:
+        raise ConfigError(f"{_key(where, 'type')}: missing")
+    if t not in _OPTIONAL:
+        raise ConfigError(
+            f"{_key(where, 'type')}: unknown PSF type {t!r} (choose from {', '.join(PSF_TYPES)})"
+        )
+    allowed = set(_OPTIONAL[t]) | {"type"}
+    unknown = sorted(set(spec) - allowed)
+    if unknown:
+        raise ConfigError(
+            f"{_key(where, unknown[0])}: unknown key for PSF type {t!r} "
+            f"(allowed: {', '.join(sorted(allowed - {'type'}))})"
+        )
+    for k in _REQUIRED.get(t, ()):
+        if k not in spec:
+            raise ConfigError(f"{_key(where, k)}: missing (required by PSF type {t!r})")
+    for group in _ONE_OF.get(t, ()):
+        given = [k for k in group if k in spec]
+        if len(given) != 1:
+            raise ConfigError(
+                f"{_key(where, group[0])}: PSF type {t!r} needs exactly one of "
+                f"{' or '.join(group)}, got {', '.join(given) if given else 'none'}"
+            )
+    s = _full(spec)
+    if t in ("gaussian", "moffat"):
+        for k in ("sigma", "fwhm", "half_light_radius"):
+            if k in spec:
+                _positive(spec, k, where)
+        _check_shear(_number(s, "g1", where), _number(s, "g2", where), where)
+    if t == "moffat":
+        beta = _positive(spec, "beta", where)
+        trunc = _number(s, "trunc", where)
+        if trunc < 0:
+            raise ConfigError(f"{_key(where, 'trunc')}: must be >= 0, got {trunc}")
+        if beta <= 1.1 and trunc == 0:
+            raise ConfigError(f"{_key(where, 'beta')}: must be > 1.1 without trunc, got {beta}")
+    elif t == "field":
+        for k in ("e1_min", "e1_max", "e2_min", "e2_max", "sigma_mean", "sigma_slope"):
+            _number(s, k, where)
+        for x in (0.0, 1.0):
+            for y in (0.0, 1.0):
+                e1, e2, sigma = field_psf_params(s, x, y)
+                _check_shear(e1, e2, where, "e1, e2")
+                if sigma <= 0:
+                    raise ConfigError(
+                        f"{_key(where, 'sigma_mean')}: the field PSF sigma must stay > 0 over "
+                        f"the field, got {sigma} at x={x}, y={y}"
+                    )
+    elif t == "euclid":
+        for k in ("diam", "lam_min", "lam_max", "lam_step", "pixel_scale", "temperature"):
+            _positive(s, k, where)
+        obsc = _number(s, "obscuration", where)
+        if not 0 <= obsc < 1:
+            raise ConfigError(f"{_key(where, 'obscuration')}: must be in [0, 1), got {obsc}")
+        _integer(s, "nstruts", where, 0)
+        _integer(s, "oversampling", where, 1)
+        _integer(s, "size", where, 8)
+        if s["lam_max"] < s["lam_min"]:
+            raise ConfigError(f"{_key(where, 'lam_max')}: must be >= lam_min")
+    elif t == "stamp":
+        path = s["path"]
+        if not isinstance(path, (str, os.PathLike)) or not str(path):
+            raise ConfigError(f"{_key(where, 'path')}: expected a file path, got {path!r}")
+        if not os.path.isfile(path):
+            raise InputError(f"{_key(where, 'path')}: {path}: no such file")
+        if s["hdu"] is not None:
+            _integer(s, "hdu", where, 0)
+        if s["stamp_size"] is not None:
+            _integer(s, "stamp_size", where, 3)
+        _integer(s, "index", where, 0)
+        _positive(s, "pixel_scale", where)
+        if s["interpolant"] not in _INTERPOLANTS:
+            raise ConfigError(
+                f"{_key(where, 'interpolant')}: unknown interpolant {s['interpolant']!r} "
+                f"(choose from {', '.join(_INTERPOLANTS)})"
+            )
+        if s["includes_pixel"] is not None and not isinstance(s["includes_pixel"], bool):
+            raise ConfigError(f"{_key(where, 'includes_pixel')}: expected true or false")
+
+
+def psf_varies(spec: Mapping[str, Any]) -> bool:
+    """Whether the PSF depends on the field position (``field`` type)."""
+    return spec.get("type") == "field"
+
+
+def psf_includes_pixel(spec: Mapping[str, Any]) -> bool:
+    """Whether the PSF profile already contains the pixel response.
+
+    True for ``stamp`` PSFs sampled like the simulation (``pixel_scale`` 1, a star image
+    is an effective PSF), unless ``includes_pixel`` says otherwise: such PSFs must be drawn
+    with ``method="no_pixel"``. False for every other type (draw with ``method="auto"``).
+    """
+    if spec.get("type") != "stamp":
+        return False
+    flag = spec.get("includes_pixel")
+    if flag is not None:
+        return bool(flag)
+    return float(spec.get("pixel_scale", 1.0)) == 1.0
+
+
+def field_psf_params(spec: Mapping[str, Any], field_x: float, field_y: float) -> tuple[float, float, float]:
+    """``(e1, e2, sigma)`` of the Sect. 6 toy PSF at field position ``(x, y)``."""
+    s = {**_OPTIONAL["field"], **{k: v for k, v in spec.items() if k != "type"}}
+    e1 = s["e1_min"] + (s["e1_max"] - s["e1_min"]) * field_x
+    e2 = s["e2_min"] + (s["e2_max"] - s["e2_min"]) * field_y
+    sigma = s["sigma_mean"] + s["sigma_slope"] * (field_x + field_y - 1.0)
+    return float(e1), float(e2), float(sigma)
+
+
+def _hashable(spec: Mapping[str, Any]) -> tuple[tuple[str, Any], ...]:
+    return tuple(sorted((k, str(v) if isinstance(v, os.PathLike) else v) for k, v in spec.items()))
+
+
+def _hsm_truth(image: galsim.Image, scale: float) -> tuple[float, float, float]:
+    """``(g1, g2, sigma)`` from HSM on ``image``, sigma converted by ``scale`` to pixels."""
+    res = galsim.hsm.FindAdaptiveMom(image, strict=False)
+    if res.moments_status != 0:
+        raise ConfigError(f"psf: HSM could not measure the PSF ({res.error_message.strip()})")
+    return float(res.observed_shape.g1), float(res.observed_shape.g2), float(res.moments_sigma * scale)
+
+
+@functools.lru_cache(maxsize=64)
+def _moffat_sigma(beta: float, fwhm: float | None, hlr: float | None, trunc: float) -> float:
+    """Adaptive-moment sigma (pixels) of a round Moffat, on a 10x oversampled image."""
+    prof = galsim.Moffat(beta=beta, fwhm=fwhm, half_light_radius=hlr, trunc=trunc)
+    scale = prof.calculateFWHM() / 10.0
+    img = prof.drawImage(nx=256, ny=256, scale=scale, method="no_pixel")
+    return _hsm_truth(img, scale)[2]
+
+
+def _gaussian(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float]]:
+    s = _full(spec)
+    prof = galsim.Gaussian(sigma=s["sigma"], fwhm=s["fwhm"])
+    sigma = float(prof.sigma)
+    g1, g2 = float(s["g1"]), float(s["g2"])
+    if g1 or g2:
+        prof = prof.shear(g1=g1, g2=g2)
+    return prof, {"tru_psf_g1": g1, "tru_psf_g2": g2, "tru_psf_sigma": sigma}
+
+
+def _moffat(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float]]:
+    s = _full(spec)
+    beta, trunc = float(s["beta"]), float(s["trunc"])
+    fwhm = None if s["fwhm"] is None else float(s["fwhm"])
+    hlr = None if s["half_light_radius"] is None else float(s["half_light_radius"])
+    prof = galsim.Moffat(beta=beta, fwhm=fwhm, half_light_radius=hlr, trunc=trunc)
+    g1, g2 = float(s["g1"]), float(s["g2"])
+    if g1 or g2:
+        prof = prof.shear(g1=g1, g2=g2)
+    sigma = _moffat_sigma(beta, fwhm, hlr, trunc)
+    return prof, {"tru_psf_g1": g1, "tru_psf_g2": g2, "tru_psf_sigma": sigma}
+
+
+def _field(spec: Mapping[str, Any], x: float, y: float) -> tuple[galsim.GSObject, dict[str, float]]:
+    e1, e2, sigma = field_psf_params(spec, x, y)
+    if sigma <= 0 or math.hypot(e1, e2) >= 1:
+        raise ConfigError(
+            f"psf: the field PSF is undefined at x={x}, y={y} (sigma={sigma}, e1={e1}, e2={e2})"
+        )
+    prof = galsim.Gaussian(sigma=sigma).shear(g1=e1, g2=e2)
+    return prof, {"tru_psf_g1": e1, "tru_psf_g2": e2, "tru_psf_sigma": sigma}
+
+
+def blackbody_photons(lam_nm: np.ndarray, temperature: float) -> np.ndarray:
+    """Photon counts per unit wavelength of a blackbody (arbitrary normalisation)."""
+    h, c, k = 6.62607015e-34, 2.99792458e8, 1.380649e-23
+    lam = np.asarray(lam_nm, dtype=np.float64) * 1e-9
+    # B_lambda ~ lam^-5 / (exp(hc / lam k T) - 1); photons: times lam / (h c).
+    return lam**-4 / np.expm1(h * c / (lam * k * temperature))
+
+
+@functools.lru_cache(maxsize=8)
+def _euclid_cached(key: tuple[tuple[str, Any], ...]) -> tuple[galsim.GSObject, tuple[float, float, float]]:
+    s = dict(key)
+    over = int(s["oversampling"])
+    fine = float(s["pixel_scale"]) / over  # arcsec per fine pixel
+    n = int(s["size"]) * over
+    lams = np.arange(float(s["lam_min"]), float(s["lam_max"]) + 1e-9, float(s["lam_step"]))
+    weights = blackbody_photons(lams, float(s["temperature"]))
+    weights /= weights.sum()
+    stack = np.zeros((n, n))
+    mono = galsim.ImageD(n, n, scale=fine)
+    for lam, w in zip(lams, weights):
+        psf = galsim.OpticalPSF(
+            lam=float(lam),
+            diam=float(s["diam"]),
+            obscuration=float(s["obscuration"]),
+            nstruts=int(s["nstruts"]),
+            scale_unit=galsim.arcsec,
+        )
+        psf.drawImage(image=mono)  # sampled on the fine grid (fine-pixel response included)
+        stack += w * mono.array
+    stack /= stack.sum()
+    image = galsim.ImageD(stack, scale=1.0 / over)  # in simulation pixels
+    prof = galsim.InterpolatedImage(image, flux=1.0)
+    g1, g2, sigma = _hsm_truth(galsim.ImageD(stack), 1.0 / over)
+    return prof, (g1, g2, sigma)
+
+
+def _euclid(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float]]:
+    prof, (g1, g2, sigma) = _euclid_cached(_hashable(_full(spec)))
+    return prof, {"tru_psf_g1": g1, "tru_psf_g2": g2, "tru_psf_sigma": sigma}
+
+
+@functools.lru_cache(maxsize=32)
+def _stamp_cached(key: tuple[tuple[str, Any], ...]) -> tuple[galsim.GSObject, tuple[float, float, float]]:
+    from megalut_cli.measure.stamps import check_grid, image_info, read_rows
+
+    s = dict(key)
+    path = str(s["path"])
+    info = image_info(path, None if s["hdu"] is None else int(s["hdu"]))
+    ny, nx = info.shape
+    if s["stamp_size"] is None:
+        if int(s["index"]) != 0:
+            raise ConfigError("psf.index: needs psf.stamp_size (the image is one star)")
+        star = read_rows(info, 0, ny)
+    else:
+        size = int(s["stamp_size"])
+        n_y, n_x = check_grid(info, size)
+        k = int(s["index"])
+        if k >= n_x * n_y:
+            raise ConfigError(f"psf.index: {k} is beyond the {n_x}x{n_y} grid of stars in {path}")
+        row, col = divmod(k, n_x)
+        star = read_rows(info, row * size, (row + 1) * size)[:, col * size : (col + 1) * size]
+    if not np.isfinite(star).all():
+        raise InputError(f"{path}: the PSF star stamp has NaN or infinite pixels")
+    if not star.sum() > 0:
+        raise InputError(f"{path}: the PSF star stamp has no positive flux")
+    scale = float(s["pixel_scale"])
+    image = galsim.ImageD(np.ascontiguousarray(star), scale=scale)
+    prof = galsim.InterpolatedImage(image, x_interpolant=str(s["interpolant"]), flux=1.0)
+    g1, g2, sigma = _hsm_truth(galsim.ImageD(np.ascontiguousarray(star)), scale)
+    return prof, (g1, g2, sigma)
+
+
+def _stamp(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float]]:
+    prof, (g1, g2, sigma) = _stamp_cached(_hashable(_full(spec)))
+    return prof, {"tru_psf_g1": g1, "tru_psf_g2": g2, "tru_psf_sigma": sigma}
+
+
+def make_psf(
+    spec: Mapping[str, Any], field_x: float, field_y: float
+) -> tuple[galsim.GSObject, dict[str, float]]:
+    """The PSF profile (pixel units, flux 1) at field position ``(x, y)`` and its truth.
+
+    Returns ``(profile, {"tru_psf_g1": ..., "tru_psf_g2": ..., "tru_psf_sigma": ...})``.
+    Costly PSFs (``euclid``, ``stamp``) are built once per process and cached.
+    """
+    validate_psf_config(spec)
+    t = spec.get("type")
+    if t == "gaussian":
+        return _gaussian(spec)
+    if t == "moffat":
+        return _moffat(spec)
+    if t == "field":
+        return _field(spec, float(field_x), float(field_y))
+    if t == "euclid":
+        return _euclid(spec)
+    if t == "stamp":
+        return _stamp(spec)
+    raise ConfigError(f"psf.type: unknown PSF type {t!r}")  # unreachable after validation

@@ -1,0 +1,129 @@
+"""`megalut measure`: help, outputs, exit codes on bad input, engines."""
+
+from __future__ import annotations
+
+import galsim
+import numpy as np
+import pytest
+
+from megalut_cli.catalog import read_catalog, write_catalog, write_image
+from megalut_cli.measure.features import FEATURE_COLUMNS
+
+S = 32
+NX, NY = 3, 2
+
+
+@pytest.fixture
+def data(tmp_path):
+    """A 3x2 grid of noisy galaxies, its catalog (with a truth column) and a PSF image."""
+    big = galsim.ImageF(NX * S, NY * S, scale=1.0)
+    xs, ys = [], []
+    for k in range(NX * NY):
+        i, j = k % NX, k // NX
+        b = galsim.BoundsI(i * S + 1, (i + 1) * S, j * S + 1, (j + 1) * S)
+        galsim.Gaussian(sigma=1.5 + 0.2 * k, flux=800.0).drawImage(big[b])
+        xs.append(b.true_center.x)
+        ys.append(b.true_center.y)
+    arr = big.array + np.random.default_rng(5).normal(0.0, 1.0, big.array.shape)
+    write_image(tmp_path / "stamps.fits", arr, fmt="megalut.stamps", cards={"STAMPSZ": S})
+    write_image(tmp_path / "nocard.fits", arr, fmt="megalut.stamps")
+    write_catalog(
+        tmp_path / "cat.fits",
+        {"x": np.array(xs), "y": np.array(ys), "tru_rad": np.arange(NX * NY, dtype=float)},
+        fmt="megalut.catalog",
+        cards={"SEED": 12},
+        history=["megalut simulate tp.toml -o cat.fits"],
+    )
+    psf = galsim.Gaussian(sigma=2.0).drawImage(nx=S, ny=S, scale=1.0)
+    write_image(tmp_path / "psf.fits", psf.array, fmt="test")
+    return tmp_path
+
+
+def test_help(runner, cli):
+    result = runner.invoke(cli, ["measure", "--help"])
+    assert result.exit_code == 0
+    for opt in ("--stamp-size", "--origin", "--gain", "--psf", "--nproc", "--scheduler", "--overwrite"):
+        assert opt in result.output
+    assert "Example" in result.output
+
+
+def test_measure_with_catalog(runner, cli, data):
+    out = data / "f.fits"
+    result = runner.invoke(
+        cli, ["measure", str(data / "stamps.fits"), str(data / "cat.fits"), "-o", str(out),
+              "--gain", "3.1", "--psf", str(data / "psf.fits")]
+    )
+    assert result.exit_code == 0, result.output
+    t = read_catalog(out)
+    assert t.colnames[:3] == ["x", "y", "tru_rad"]
+    for c in FEATURE_COLUMNS + ("psf_adamom_g1", "psf_adamom_g2", "psf_adamom_sigma", "psf_adamom_rho4"):
+        assert c in t.colnames
+    assert (t["flags"] == 0).all()
+    assert np.all(np.diff(t["adamom_sigma"]) > 0)  # sizes grow with k
+    assert t.meta["MLFORMAT"] == "megalut.features"
+    assert t.meta["SEED"] == 12 and t.meta["GAIN"] == 3.1
+    assert t.meta["HISTORY"][0] == "megalut simulate tp.toml -o cat.fits"
+    assert any("measure" in h for h in t.meta["HISTORY"][1:])
+
+
+def test_grid_order_and_stamp_size_option(runner, cli, data):
+    result = runner.invoke(
+        cli, ["measure", str(data / "nocard.fits"), "-o", str(data / "f.fits"), "--stamp-size", str(S)]
+    )
+    assert result.exit_code == 0, result.output
+    t = read_catalog(data / "f.fits")
+    assert len(t) == NX * NY and np.all(np.diff(t["adamom_sigma"]) > 0)
+
+
+def test_parallel_engines_give_identical_results(runner, cli, data):
+    args = ["measure", str(data / "stamps.fits"), str(data / "cat.fits")]
+    assert runner.invoke(cli, [*args, "-o", str(data / "a.fits")]).exit_code == 0
+    result = runner.invoke(cli, [*args, "-o", str(data / "b.fits"), "-j", "2"])
+    assert result.exit_code == 0, result.output
+    a, b = read_catalog(data / "a.fits"), read_catalog(data / "b.fits")
+    for c in a.colnames:
+        np.testing.assert_array_equal(np.asarray(a[c]), np.asarray(b[c]))
+
+
+def _fails(runner, cli, args, code, *words):
+    result = runner.invoke(cli, args)
+    assert result.exit_code == code, result.output
+    text = result.output + (result.stderr if hasattr(result, "stderr") else "")
+    assert "Traceback" not in text
+    for w in words:
+        assert w in text, text
+    return text
+
+
+def test_bad_inputs(runner, cli, data):
+    out = str(data / "out.fits")
+    raw = (data / "stamps.fits").read_bytes()
+    (data / "trunc.fits").write_bytes(raw[: len(raw) - 3000])
+    _fails(runner, cli, ["measure", str(data / "trunc.fits"), "-o", out], 1, "trunc.fits", "truncated")
+    (data / "junk.fits").write_text("SIMPLE = garbage\n" * 300)
+    _fails(runner, cli, ["measure", str(data / "junk.fits"), "-o", out], 1, "junk.fits", "FITS")
+    write_catalog(data / "noxy.fits", {"ra": np.zeros(3), "dec": np.zeros(3)}, fmt="test")
+    _fails(runner, cli, ["measure", str(data / "stamps.fits"), str(data / "noxy.fits"), "-o", out],
+           1, "noxy.fits", "x, y")
+    _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", out, "--stamp-size", "40"],
+           1, "does not divide")
+    _fails(runner, cli, ["measure", str(data / "nocard.fits"), "-o", out], 2, "STAMPSZ", "--stamp-size")
+    _fails(runner, cli, ["measure", str(data / "stamps.fits"), str(data / "stamps.fits"), "-o", out],
+           1, "no table")
+    _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", out, "--gain", "-1"], 2)
+    _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", out, "--origin", "2"], 2)
+    _fails(runner, cli, ["measure", str(data / "missing.fits"), "-o", out], 2)
+    _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", out, "-j", "2",
+                         "--scheduler", "tcp://localhost:1"], 2)
+    assert not (data / "out.fits").exists()
+    assert [p.name for p in data.iterdir() if p.name.startswith(".")] == []  # no temp files left
+
+
+def test_refuses_to_overwrite(runner, cli, data):
+    out = data / "f.fits"
+    out.write_text("precious")
+    _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", str(out)], 1, "--overwrite")
+    assert out.read_text() == "precious"
+    result = runner.invoke(cli, ["measure", str(data / "stamps.fits"), "-o", str(out), "--overwrite"])
+    assert result.exit_code == 0, result.output
+    assert len(read_catalog(out)) == NX * NY
