@@ -1,0 +1,672 @@
+"""Simulation configuration: TOML loading, ``key=value`` overrides and validation.
+
+The reference of every key is ``docs/config.md``. :func:`load_config` returns a
+:class:`SimConfig` whose parts are plain, picklable data (distributions, numbers and the
+input-catalog columns already read), so that work units can carry it to any worker.
+Every problem is reported as one :class:`~megalut_cli.errors.ConfigError` naming the key.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import logging
+import math
+import os
+import re
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.sim.distributions import (
+    DIST_TYPES,
+    CatalogColumn,
+    Distribution,
+    is_distribution_table,
+    parse_distribution,
+)
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+log = logging.getLogger("megalut")
+
+#: Parameter groups that can be redrawn for every realization (else once per case).
+VARY_GROUPS = ("shear", "galaxy", "angle", "psf")
+SNC_MODES = ("ring", "pairs", "none")
+PROFILES = ("sersic", "gaussian")
+NOISE_TYPES = ("gaussian", "ccd", "none")
+FLUX_KEYS = ("flux", "sb", "mag")
+#: GalSim's Sersic index range.
+SERSIC_N_RANGE = (0.3, 6.2)
+
+_TOP_KEYS = {
+    "description",
+    "structure",
+    "shear",
+    "galaxy",
+    "psf",
+    "noise",
+    "instrument",
+    "field",
+    "catalog",
+    "gsparams",
+}
+#: GalSim GSParams settable in [gsparams] (accuracy/speed of the rendering).
+GSPARAMS_KEYS = {
+    "folding_threshold": float,
+    "maxk_threshold": float,
+    "kvalue_accuracy": float,
+    "xvalue_accuracy": float,
+    "stepk_minimum_hlr": float,
+    "minimum_fft_size": int,
+    "maximum_fft_size": int,
+}
+_STRUCTURE_KEYS = {
+    "n_cases",
+    "n_realizations",
+    "per_realization",
+    "snc",
+    "stamp_size",
+    "offset",
+    "n_x",
+}
+_GALAXY_KEYS = {"profile", "sersicn", "sersicn_step", "rad", "ellipticity", "angle", *FLUX_KEYS}
+_NOISE_KEYS = {"type", "sigma", "sky_mag", "read_noise", "override_sigma"}
+_INSTRUMENT_KEYS = {"pixel_scale", "exptime", "gain", "zeropoint"}
+_CATALOG_KEYS = {"path", "select", "hdu"}
+
+
+@dataclass(frozen=True)
+class StructureSpec:
+    """Cases x realizations, what varies per realization, shape-noise cancellation."""
+
+    n_cases: int
+    n_realizations: int
+    per_realization: frozenset[str]
+    snc: str
+    stamp_size: int
+    offset: float
+    n_x: int | None = None
+
+    @property
+    def group_size(self) -> int:
+        """Realizations sharing their per-realization parameters (an SNC group)."""
+        return {"ring": self.n_realizations, "pairs": 2, "none": 1}[self.snc]
+
+    @property
+    def n_groups(self) -> int:
+        return self.n_realizations // self.group_size
+
+    @property
+    def n_stamps(self) -> int:
+        return self.n_cases * self.n_realizations
+
+    @property
+    def grid_nx(self) -> int:
+        """Stamps per row of the grid image (``n_x``, default ceil(sqrt(N)))."""
+        return self.n_x if self.n_x else max(1, math.ceil(math.sqrt(self.n_stamps)))
+
+    def varies(self, group: str) -> bool:
+        """Whether ``group`` is redrawn per realization (``galaxy`` implies ``angle``)."""
+        return group in self.per_realization or (group == "angle" and "galaxy" in self.per_realization)
+
+
+@dataclass(frozen=True)
+class GalaxySpec:
+    profile: str
+    params: dict[str, Distribution]  # rad, sersicn, flux|sb|mag, ellipticity (draw order)
+    angle: Distribution  # position angle, degrees
+    flux_mode: str
+    sersicn_step: float
+
+
+@dataclass(frozen=True)
+class NoiseSpec:
+    type: str
+    params: dict[str, Distribution]  # sigma | sky_mag, read_noise
+    override_sigma: float | None = None
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """A validated simulation configuration (picklable)."""
+
+    path: str
+    sha256: str
+    raw: dict[str, Any]
+    overrides: tuple[str, ...]
+    structure: StructureSpec
+    shear: dict[str, Distribution]
+    field: dict[str, Distribution] | None
+    psf: dict[str, Any]  # scalars and Distribution objects, resolved per case
+    psf_varies: bool
+    galaxy: GalaxySpec
+    noise: NoiseSpec
+    instrument: dict[str, float]
+    catalog_rows: int = 0
+    catalog_path: str | None = None
+    gsparams: dict[str, float] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> str:
+        """The effective configuration (overrides applied) as JSON text."""
+        return json.dumps(self.raw, sort_keys=True, default=str)
+
+    def with_structure(self, **changes: Any) -> SimConfig:
+        return replace(self, structure=replace(self.structure, **changes))
+
+    @property
+    def gain(self) -> float | None:
+        """The gain (e-/ADU) when the noise is CCD-like, else None (SNR by Eq. 10)."""
+        if self.noise.type == "ccd" and self.noise.override_sigma is None:
+            return self.instrument["gain"]
+        return None
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``"galaxy.rad.max=6"`` -> (["galaxy", "rad", "max"], 6); values are TOML values
+    (``psf.type=moffat`` gives the string ``"moffat"``)."""
+    if "=" not in text:
+        raise ConfigError(f"override {text!r}: expected KEY=VALUE (e.g. noise.sigma=0.5)")
+    key, value = text.split("=", 1)
+    key = key.strip()
+    parts = key.split(".")
+    if not key or any(not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_-]*", p) for p in parts):
+        raise ConfigError(f"override {text!r}: bad key {key!r} (expected dotted names)")
+    value = value.strip()
+    try:
+        parsed = tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        parsed = value  # bare words are strings
+    return parts, parsed
+
+
+def apply_overrides(raw: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
+    """Return a copy of ``raw`` with dotted ``key=value`` overrides applied."""
+    out = copy.deepcopy(raw)
+    for text in overrides:
+        parts, value = parse_override(text)
+        node = out
+        for i, p in enumerate(parts[:-1]):
+            child = node.get(p)
+            if child is None:
+                child = node[p] = {}
+            if not isinstance(child, dict):
+                where = ".".join(parts[: i + 1])
+                raise ConfigError(f"override {text!r}: {where} is not a table")
+            node = child
+        node[parts[-1]] = value
+    return out
+
+
+def read_toml(path: str | os.PathLike) -> tuple[dict[str, Any], str]:
+    """Parse a TOML file; return ``(data, sha256 of its bytes)``."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such file")
+    data = p.read_bytes()
+    try:
+        raw = tomllib.loads(data.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise ConfigError(f"{p}: not a text (UTF-8) TOML file") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{p}: invalid TOML ({err})") from None
+    return raw, hashlib.sha256(data).hexdigest()
+
+
+def load_config(
+    path: str | os.PathLike,
+    overrides: Sequence[str] = (),
+    n_cases: int | None = None,
+    n_realizations: int | None = None,
+) -> SimConfig:
+    """Read, override and validate a simulation config file."""
+    raw, sha = read_toml(path)
+    raw = apply_overrides(raw, overrides)
+    structure = raw.setdefault("structure", {}) if isinstance(raw.get("structure", {}), dict) else None
+    if structure is None:
+        raise ConfigError("structure: expected a table")
+    if n_cases is not None:
+        structure["n_cases"] = int(n_cases)
+    if n_realizations is not None:
+        structure["n_realizations"] = int(n_realizations)
+    return validate_config(raw, path=str(path), sha256=sha, overrides=tuple(overrides))
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _table(raw: Mapping[str, Any], name: str, allowed: set[str] | None, required: bool = False) -> dict[str, Any]:
+    value = raw.get(name)
+    if value is None:
+        if required:
+            raise ConfigError(f"{name}: missing [{name}] table")
+        return {}
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{name}: expected a table, got {value!r}")
+    if allowed is not None:
+        unknown = sorted(set(value) - allowed)
+        if unknown:
+            raise ConfigError(
+                f"{name}.{unknown[0]}: unknown key (allowed: {', '.join(sorted(allowed))})"
+            )
+    return dict(value)
+
+
+def _int(value: Any, key: str, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        else:
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+    if value < minimum:
+        raise ConfigError(f"{key}: must be >= {minimum}, got {value}")
+    return int(value)
+
+
+def _float(value: Any, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{key}: expected a number, got {value!r}")
+    if not math.isfinite(value):
+        raise ConfigError(f"{key}: must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _choice(value: Any, key: str, choices: Sequence[str]) -> str:
+    if value not in choices:
+        raise ConfigError(f"{key}: unknown value {value!r} (expected one of {', '.join(choices)})")
+    return str(value)
+
+
+def _parse_structure(raw: Mapping[str, Any]) -> StructureSpec:
+    t = _table(raw, "structure", _STRUCTURE_KEYS, required=True)
+    for k in ("n_cases", "n_realizations"):
+        if k not in t:
+            raise ConfigError(f"structure.{k}: missing")
+    n_cases = _int(t["n_cases"], "structure.n_cases", 1)
+    n_rea = _int(t["n_realizations"], "structure.n_realizations", 1)
+    per = t.get("per_realization", ["angle"])
+    if isinstance(per, str):
+        per = [per]
+    if not isinstance(per, list) or not all(isinstance(p, str) for p in per):
+        raise ConfigError("structure.per_realization: expected a list of names")
+    for p in per:
+        _choice(p, "structure.per_realization", VARY_GROUPS)
+    snc = _choice(t.get("snc", "none"), "structure.snc", SNC_MODES)
+    if snc == "pairs" and n_rea % 2:
+        raise ConfigError(
+            f"structure.n_realizations: snc = 'pairs' needs an even number, got {n_rea}"
+        )
+    stamp = _int(t.get("stamp_size", 64), "structure.stamp_size", 8)
+    if stamp > 4096:
+        raise ConfigError(f"structure.stamp_size: {stamp} is too large (max 4096)")
+    offset = _float(t.get("offset", 0.5), "structure.offset")
+    if offset < 0 or offset > stamp / 4:
+        raise ConfigError(f"structure.offset: must be in [0, stamp_size/4], got {offset}")
+    n_x = t.get("n_x")
+    if n_x is not None:
+        n_x = _int(n_x, "structure.n_x", 1)
+    return StructureSpec(n_cases, n_rea, frozenset(per), snc, stamp, offset, n_x)
+
+
+def _dists(table: Mapping[str, Any], prefix: str, keys: Sequence[str]) -> dict[str, Distribution]:
+    return {k: parse_distribution(table[k], f"{prefix}.{k}") for k in keys if k in table}
+
+
+def _parse_instrument(raw: Mapping[str, Any]) -> dict[str, float]:
+    t = _table(raw, "instrument", _INSTRUMENT_KEYS)
+    out = {}
+    for k, v in t.items():
+        out[k] = _float(v, f"instrument.{k}")
+        if k != "zeropoint" and out[k] <= 0:
+            raise ConfigError(f"instrument.{k}: must be > 0, got {out[k]}")
+    return out
+
+
+def _need_instrument(instrument: Mapping[str, float], keys: Sequence[str], why: str) -> None:
+    for k in keys:
+        if k not in instrument:
+            raise ConfigError(f"instrument.{k}: missing (needed by {why})")
+
+
+def _parse_galaxy(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> GalaxySpec:
+    t = _table(raw, "galaxy", _GALAXY_KEYS, required=True)
+    profile = _choice(t.get("profile", "sersic"), "galaxy.profile", PROFILES)
+    if "rad" not in t:
+        raise ConfigError("galaxy.rad: missing (half-light radius in pixels)")
+    given = [k for k in FLUX_KEYS if k in t]
+    if len(given) != 1:
+        raise ConfigError(
+            "galaxy.flux: give exactly one of galaxy.flux, galaxy.sb (surface brightness) "
+            f"or galaxy.mag (got {', '.join(given) or 'none'})"
+        )
+    flux_mode = given[0]
+    if flux_mode == "mag":
+        _need_instrument(instrument, ("zeropoint", "exptime", "gain"), "galaxy.mag")
+    if profile == "sersic":
+        if "sersicn" not in t:
+            raise ConfigError("galaxy.sersicn: missing (Sersic index)")
+    elif "sersicn" in t:
+        raise ConfigError("galaxy.sersicn: only for profile = 'sersic'")
+    step = _float(t.get("sersicn_step", 0.1), "galaxy.sersicn_step")
+    if step < 0:
+        raise ConfigError(f"galaxy.sersicn_step: must be >= 0, got {step}")
+    keys = ["rad", "sersicn", flux_mode]
+    params = _dists(t, "galaxy", keys)
+    params["ellipticity"] = parse_distribution(t.get("ellipticity", 0.0), "galaxy.ellipticity")
+    angle = parse_distribution(
+        t.get("angle", {"type": "uniform", "min": 0.0, "max": 180.0}), "galaxy.angle"
+    )
+    return GalaxySpec(profile, params, angle, flux_mode, step)
+
+
+def _parse_noise(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> NoiseSpec:
+    t = _table(raw, "noise", _NOISE_KEYS, required=True)
+    kind = _choice(t.get("type"), "noise.type", NOISE_TYPES)
+    allowed = {"gaussian": {"sigma"}, "ccd": {"sky_mag", "read_noise"}, "none": set()}[kind]
+    extra = sorted(set(t) - allowed - {"type", "override_sigma"})
+    if extra:
+        raise ConfigError(f"noise.{extra[0]}: not a key of noise type {kind!r}")
+    if kind == "gaussian":
+        if "sigma" not in t:
+            raise ConfigError("noise.sigma: missing (standard deviation in ADU)")
+        params = _dists(t, "noise", ["sigma"])
+    elif kind == "ccd":
+        if "sky_mag" not in t:
+            raise ConfigError("noise.sky_mag: missing (sky brightness in mag per arcsec^2)")
+        _need_instrument(instrument, ("pixel_scale", "exptime", "gain", "zeropoint"), "noise type 'ccd'")
+        params = {
+            "sky_mag": parse_distribution(t["sky_mag"], "noise.sky_mag"),
+            "read_noise": parse_distribution(t.get("read_noise", 0.0), "noise.read_noise"),
+        }
+    else:
+        params = {}
+    override = t.get("override_sigma")
+    if override is not None:
+        override = _float(override, "noise.override_sigma")
+        if override < 0:
+            raise ConfigError(f"noise.override_sigma: must be >= 0, got {override}")
+    return NoiseSpec(kind, params, override)
+
+
+def _parse_gsparams(raw: Mapping[str, Any]) -> dict[str, float]:
+    t = _table(raw, "gsparams", set(GSPARAMS_KEYS))
+    out: dict[str, float] = {}
+    for k, v in t.items():
+        if GSPARAMS_KEYS[k] is int:
+            out[k] = _int(v, f"gsparams.{k}", 16)
+        else:
+            out[k] = _float(v, f"gsparams.{k}")
+            upper = math.inf if k == "stepk_minimum_hlr" else 1.0
+            if not 0 < out[k] < upper:
+                raise ConfigError(f"gsparams.{k}: must be in (0, {upper:g}), got {out[k]}")
+    if out:
+        import galsim
+
+        try:
+            galsim.GSParams(**out)
+        except (ValueError, TypeError, galsim.GalSimError) as err:
+            raise ConfigError(f"gsparams: {err}") from None
+    return out
+
+
+def _parse_psf(raw: Mapping[str, Any], config_path: str) -> dict[str, Any]:
+    t = _table(raw, "psf", None, required=True)
+    if "type" not in t:
+        raise ConfigError("psf.type: missing")
+    if t["type"] == "stamp" and "path" in t:  # a star image: same lookup as catalog.path
+        t["path"] = str(_resolve_path(t["path"], "psf.path", config_path))
+    spec: dict[str, Any] = {}
+    for k, v in t.items():
+        if k != "type" and is_distribution_table(v) and v.get("type") in DIST_TYPES:
+            spec[k] = parse_distribution(v, f"psf.{k}")
+        else:
+            spec[k] = v
+    return spec
+
+
+def _resolve_path(text: Any, key: str, config_path: str) -> Path:
+    if not isinstance(text, str) or not text:
+        raise ConfigError(f"{key}: expected a file path")
+    p = Path(text).expanduser()
+    if p.is_absolute():
+        candidates = [p]
+    else:
+        candidates = [Path.cwd() / p, Path(config_path).resolve().parent / p]
+    for c in candidates:
+        if c.is_file():
+            return c.resolve()
+    raise InputError(
+        f"{key}: file {text!r} not found (looked in the current folder and beside the config)"
+    )
+
+
+def _catalog_dists(parts: Mapping[str, Mapping[str, Any]]) -> list[tuple[str, str, CatalogColumn]]:
+    found = []
+    for part, dists in parts.items():
+        for name, d in dists.items():
+            if isinstance(d, CatalogColumn):
+                found.append((part, name, d))
+    return found
+
+
+def _element_columns(expr_cols: Sequence[str], table: Any) -> dict[str, np.ndarray]:
+    cols: dict[str, np.ndarray] = {}
+    for name in expr_cols:
+        if name in table.colnames:
+            arr = np.asarray(table[name])
+            if arr.ndim != 1:
+                raise ConfigError(
+                    f"catalog.select: {name!r} is an array column; use {name}_0, {name}_1, ..."
+                )
+            cols[name] = arr
+            continue
+        m = re.fullmatch(r"(.+)_(\d+)", name)
+        if m and m.group(1) in table.colnames:
+            arr = np.asarray(table[m.group(1)])
+            i = int(m.group(2))
+            if arr.ndim == 2 and i < arr.shape[1]:
+                cols[name] = arr[:, i]
+                continue
+        raise ConfigError(f"catalog.select: unknown column {name!r}")
+    return cols
+
+
+def _load_catalog(
+    raw: Mapping[str, Any], config_path: str, parts: dict[str, dict[str, Any]]
+) -> tuple[int, str | None]:
+    """Read the [catalog] columns used by ``catalog`` distributions; attach their data."""
+    from megalut_cli.catalog import read_catalog
+    from megalut_cli.expr import columns_used, evaluate_rows
+
+    t = _table(raw, "catalog", _CATALOG_KEYS)
+    found = _catalog_dists(parts)
+    if not found:
+        if t:
+            log.warning("[catalog] given but no parameter has type = 'catalog'; ignored")
+        return 0, None
+    if not t:
+        raise ConfigError(f"{found[0][2].key}: type 'catalog' needs a [catalog] table with a path")
+    if "hdu" in t:
+        log.warning("catalog.hdu is ignored: the first table extension is read")
+    path = _resolve_path(t.get("path"), "catalog.path", config_path)
+    select = t.get("select")
+    expr_cols: list[str] = []
+    if select is not None:
+        if not isinstance(select, str):
+            raise ConfigError("catalog.select: expected an expression string")
+        expr_cols = columns_used(select)
+    from megalut_cli.catalog import catalog_info
+
+    _, names, _ = catalog_info(path)
+    needed = {d.column for _, _, d in found}
+    for name in expr_cols:
+        m = re.fullmatch(r"(.+)_(\d+)", name)
+        needed.add(m.group(1) if (m and name not in names and m.group(1) in names) else name)
+    for _, _, d in found:
+        if d.column not in names:
+            raise ConfigError(f"{d.key}.column: no column {d.column!r} in {path}")
+    unknown = sorted(n for n in needed if n not in names)
+    if unknown:
+        raise ConfigError(f"catalog.select: unknown column {unknown[0]!r}")
+    table = read_catalog(path, columns=sorted(needed))
+    n = len(table)
+    mask = np.ones(n, dtype=bool)
+    if select is not None:
+        mask = np.asarray(evaluate_rows(select, _element_columns(expr_cols, table), n), dtype=bool)
+    values: dict[tuple[str, str], np.ndarray] = {}
+    for part, name, d in found:
+        arr = np.asarray(table[d.column])
+        if arr.dtype.kind not in "fiu":
+            raise ConfigError(f"{d.key}.column: {d.column!r} is not numeric")
+        if arr.ndim == 2:
+            if d.element is None:
+                raise ConfigError(
+                    f"{d.key}.element: {d.column!r} is an array column of {arr.shape[1]} values; "
+                    "give element = INDEX (0-based)"
+                )
+            if d.element >= arr.shape[1]:
+                raise ConfigError(
+                    f"{d.key}.element: {d.element} out of range for {d.column!r} "
+                    f"({arr.shape[1]} values)"
+                )
+            arr = arr[:, d.element]
+        elif arr.ndim != 1:
+            raise ConfigError(f"{d.key}.column: {d.column!r} has an unsupported shape")
+        elif d.element is not None:
+            raise ConfigError(f"{d.key}.element: {d.column!r} is not an array column")
+        values[(part, name)] = arr.astype(float) * d.scale + d.offset
+    finite = np.all([np.isfinite(v) for v in values.values()], axis=0)
+    bad = int(np.sum(mask & ~finite))
+    if bad:
+        log.warning("%s: %d selected row(s) with non-finite values skipped", path, bad)
+    mask &= finite
+    if not mask.any():
+        raise ConfigError(f"catalog.select: no usable row left in {path}")
+    for part, name, d in found:
+        parts[part][name] = d.with_data(values[(part, name)][mask])
+    log.info("catalog %s: sampling from %d of %d rows", path, int(mask.sum()), n)
+    return int(mask.sum()), str(path)
+
+
+def _check_range(d: Distribution, lo: float | None, hi: float | None, what: str, strict_lo: bool = False) -> None:
+    a, b = d.bounds()
+    if lo is not None and (a <= lo if strict_lo else a < lo):
+        rel = ">" if strict_lo else ">="
+        raise ConfigError(f"{d.key}: {what} must be {rel} {lo}, but values reach {a:g}")
+    if hi is not None and b > hi:
+        raise ConfigError(f"{d.key}: {what} must be <= {hi}, but values reach {b:g}")
+
+
+def round_sersicn(n: np.ndarray, step: float) -> np.ndarray:
+    """Round Sersic indices to multiples of ``step`` (GalSim caches profiles per index)."""
+    if step <= 0:
+        return np.asarray(n, dtype=float)
+    return np.round(np.round(np.asarray(n) / step) * step, 10)
+
+
+def validate_config(
+    raw: Mapping[str, Any], path: str = "<config>", sha256: str = "", overrides: tuple[str, ...] = ()
+) -> SimConfig:
+    """Validate a parsed config mapping; return a :class:`SimConfig`."""
+    if not isinstance(raw, Mapping):
+        raise ConfigError("config: expected a table")
+    unknown = sorted(set(raw) - _TOP_KEYS)
+    if unknown:
+        raise ConfigError(f"{unknown[0]}: unknown table or key (allowed: {', '.join(sorted(_TOP_KEYS))})")
+    if "description" in raw and not isinstance(raw["description"], str):
+        raise ConfigError("description: expected a string")
+    structure = _parse_structure(raw)
+    instrument = _parse_instrument(raw)
+    shear_t = _table(raw, "shear", {"g1", "g2"})
+    shear = _dists(shear_t, "shear", ["g1", "g2"])
+    galaxy = _parse_galaxy(raw, instrument)
+    noise = _parse_noise(raw, instrument)
+    psf = _parse_psf(raw, path)
+    gsparams = _parse_gsparams(raw)
+    field_t = _table(raw, "field", {"x", "y"})
+    field_d = _dists(field_t, "field", ["x", "y"]) if field_t else None
+    if field_d is not None and len(field_d) != 2:
+        raise ConfigError(f"field.{'y' if 'x' in field_d else 'x'}: missing")
+
+    psf_dists = {k: v for k, v in psf.items() if isinstance(v, Distribution)}
+    parts: dict[str, dict[str, Any]] = {
+        "shear": shear,
+        "field": field_d or {},
+        "psf": psf_dists,
+        "galaxy": galaxy.params,
+        "angle": {"angle": galaxy.angle},
+        "noise": noise.params,
+    }
+    n_rows, cat_path = _load_catalog(raw, path, parts)
+    psf.update(parts["psf"])
+    galaxy = replace(galaxy, angle=parts["angle"]["angle"])
+    if field_d is not None:
+        field_d = parts["field"]
+
+    # Ranges
+    g = galaxy.params
+    _check_range(g["rad"], 0.0, None, "the half-light radius", strict_lo=True)
+    if galaxy.flux_mode in ("flux", "sb"):
+        _check_range(g[galaxy.flux_mode], 0.0, None, "the flux" if galaxy.flux_mode == "flux" else "the surface brightness")
+    _check_range(g["ellipticity"], 0.0, None, "the ellipticity modulus")
+    a, b = g["ellipticity"].bounds()
+    if b >= 1.0:
+        raise ConfigError(f"galaxy.ellipticity: the modulus must be < 1, but values reach {b:g}")
+    if "sersicn" in g:
+        lo, hi = (float(round_sersicn(np.array(v), galaxy.sersicn_step)) for v in g["sersicn"].bounds())
+        if lo < SERSIC_N_RANGE[0] or hi > SERSIC_N_RANGE[1]:
+            raise ConfigError(
+                f"galaxy.sersicn: GalSim supports {SERSIC_N_RANGE[0]} <= n <= {SERSIC_N_RANGE[1]}, "
+                f"but values reach [{lo:g}, {hi:g}]"
+            )
+    gmax = [max(abs(x) for x in d.bounds()) for d in shear.values()]
+    if gmax and math.hypot(*gmax, 0.0) >= 1.0:
+        raise ConfigError("shear: the reduced shear |g| must stay < 1")
+    if "sigma" in noise.params:
+        _check_range(noise.params["sigma"], 0.0, None, "the noise sigma")
+    if "read_noise" in noise.params:
+        _check_range(noise.params["read_noise"], 0.0, None, "the read noise")
+
+    # PSF: validated by the PSF module on both ends of every distribution.
+    from megalut_cli.sim import psf as psf_mod
+
+    for end in (0, 1):
+        spec = {k: (v.bounds()[end] if isinstance(v, Distribution) else v) for k, v in psf.items()}
+        psf_mod.validate_psf_config(spec)
+    varies = bool(psf_mod.psf_varies({k: (v.bounds()[0] if isinstance(v, Distribution) else v) for k, v in psf.items()}))
+    if varies and field_d is None:
+        field_d = {
+            "x": parse_distribution({"type": "uniform", "min": 0.0, "max": 1.0}, "field.x"),
+            "y": parse_distribution({"type": "uniform", "min": 0.0, "max": 1.0}, "field.y"),
+        }
+
+    return SimConfig(
+        path=path,
+        sha256=sha256,
+        raw=json.loads(json.dumps(raw, default=str)),
+        overrides=overrides,
+        structure=structure,
+        shear=shear,
+        field=field_d,
+        psf=psf,
+        psf_varies=varies,
+        galaxy=galaxy,
+        noise=noise,
+        instrument=instrument,
+        catalog_rows=n_rows,
+        catalog_path=cat_path,
+        gsparams=gsparams,
+    )

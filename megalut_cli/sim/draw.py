@@ -1,0 +1,213 @@
+"""Drawing a work unit: a contiguous chunk of cases, in any process.
+
+:func:`draw_unit` is the top-level function mapped over workers. It draws every stamp of
+its cases (galaxy convolved with the PSF, pixel response included, centred on the stamp
+centre plus the sub-pixel offset), adds the noise seeded per (case, realization), and
+returns the truth columns, plus the measured features (``measure``) and/or the stamps
+(``keep_stamps``). Profiles are reused within a case (one Sersic per galaxy, one PSF per
+case) and image buffers are reused between stamps.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+
+import galsim
+import numpy as np
+
+from megalut_cli.errors import MegalutError
+from megalut_cli.sim.config import SimConfig
+from megalut_cli.sim.galaxies import base_profile, make_gsparams, shaped
+from megalut_cli.sim.structure import draw_case
+
+#: Stamps measured at once when the images are not kept (bounds the memory of a unit).
+MEASURE_BATCH = 1024
+
+_PSF_CACHE: dict[str, tuple[galsim.GSObject, dict[str, float]]] = {}
+_PSF_CACHE_MAX = 512
+
+
+@dataclass(frozen=True)
+class WorkUnit:
+    """Plain, picklable description of a chunk of cases to draw."""
+
+    config: SimConfig
+    seed: int
+    case_start: int
+    case_stop: int
+    n_x: int
+    keep_stamps: bool = False
+    measure: bool = False
+
+
+def psf_includes_pixel(spec: dict[str, Any]) -> bool:
+    """Whether the PSF profile already holds the pixel response (then draw with no_pixel)."""
+    from megalut_cli.sim import psf as psf_mod
+
+    return bool(psf_mod.psf_includes_pixel(spec))
+
+
+def get_psf(
+    spec: dict[str, Any],
+    field_x: float,
+    field_y: float,
+    varies: bool,
+    gsparams: dict[str, float] | None = None,
+) -> tuple[galsim.GSObject, dict[str, float]]:
+    """The PSF (pixel units) and its truth, cached per process (PSFs can be costly)."""
+    from megalut_cli.sim.psf import make_psf
+
+    key = json.dumps([spec, gsparams or {}], sort_keys=True, default=str)
+    if varies:
+        key += f"|{field_x!r}|{field_y!r}"
+    hit = _PSF_CACHE.get(key)
+    if hit is None:
+        if len(_PSF_CACHE) >= _PSF_CACHE_MAX:
+            _PSF_CACHE.clear()
+        psf, truth = make_psf(spec, field_x, field_y)
+        if gsparams:
+            psf = psf.withGSParams(make_gsparams(gsparams))
+        hit = _PSF_CACHE[key] = (psf, dict(truth))
+    return hit
+
+
+def stamp_origins(index: np.ndarray, n_x: int, stamp_size: int) -> np.ndarray:
+    """FITS 1-based (x, y) of the lower-left pixel of grid stamps ``index``."""
+    index = np.asarray(index, dtype=np.int64)
+    return np.stack([(index % n_x) * stamp_size + 1, (index // n_x) * stamp_size + 1], axis=1).astype(float)
+
+
+def stamp_centres(index: np.ndarray, n_x: int, stamp_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """FITS 1-based (x, y) centres of grid stamps ``index``."""
+    o = stamp_origins(index, n_x, stamp_size)
+    half = (stamp_size - 1) / 2.0
+    return o[:, 0] + half, o[:, 1] + half
+
+
+class _Measurer:
+    """Accumulates stamps and measures them in batches."""
+
+    def __init__(self, gain: float | None):
+        from megalut_cli.measure.features import measure_stamps
+
+        self._measure = measure_stamps
+        self.gain = gain
+        self.parts: list[dict[str, np.ndarray]] = []
+
+    def __call__(self, stamps: np.ndarray, origins: np.ndarray) -> None:
+        if len(stamps):
+            self.parts.append(self._measure(stamps, origins=origins, gain=self.gain))
+
+    def columns(self) -> dict[str, np.ndarray]:
+        if not self.parts:
+            return {}
+        names = list(self.parts[0])
+        return {k: np.concatenate([p[k] for p in self.parts]) for k in names}
+
+
+def _single_threaded_galsim() -> None:
+    """GalSim's OpenMP threads only slow small stamps down (busy waiting on shared
+    cores: noise generation measured 10-50x slower); parallelism is across work units."""
+    global _THREADS_SET
+    if not _THREADS_SET:
+        galsim.set_omp_threads(1)
+        _THREADS_SET = True
+
+
+_THREADS_SET = False
+
+
+def draw_unit(unit: WorkUnit) -> dict[str, Any]:
+    """Draw (and measure) the cases ``[case_start, case_stop)`` of ``unit``.
+
+    Returns ``{"columns": {name: array}, "stamps": array (n, S, S) or None}`` with one
+    row per stamp, ordered by case then realization.
+    """
+    _single_threaded_galsim()
+    cfg = unit.config
+    s = cfg.structure
+    S, n_rea = s.stamp_size, s.n_realizations
+    n_cases = unit.case_stop - unit.case_start
+    n_total = n_cases * n_rea
+    first = unit.case_start * n_rea
+    gal = cfg.galaxy
+
+    keep = unit.keep_stamps
+    render = keep or unit.measure  # else: truth only, nothing to draw
+    nbuf = n_total if keep else (min(MEASURE_BATCH, n_total) if unit.measure else 0)
+    stamps = np.empty((max(nbuf, 1), S, S), dtype=np.float32)
+    measurer = _Measurer(cfg.gain) if unit.measure else None
+    image = galsim.ImageF(S, S, scale=1.0)
+    gsp = make_gsparams(cfg.gsparams)
+    conv_gsp = gsp if cfg.gsparams else None  # else GalSim combines the components' own
+
+    truth_parts: list[dict[str, np.ndarray]] = []
+    fill = 0  # stamps in the buffer
+    buf_first = first  # global index of stamps[0]
+    for case in range(unit.case_start, unit.case_stop):
+        d = draw_case(cfg, unit.seed, case)
+        t = d.truth
+        psf_truths: list[dict[str, float]] = []  # one per PSF draw (psf_index order)
+        last_gal, last_psf = -1, -1
+        base = psf = None
+        for k in range(n_rea):
+            gi = int(d.galaxy_index[k])
+            if gi != last_gal:
+                base = base_profile(
+                    gal.profile, t["tru_rad"][k], t["tru_flux"][k],
+                    t["tru_sersicn"][k] if "tru_sersicn" in t else None,
+                    gsp,
+                )
+                last_gal = gi
+            pi = int(d.psf_index[k])
+            if pi != last_psf:
+                spec, fx, fy = d.psf_specs[pi]
+                psf, ptruth = get_psf(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
+                # A star-image PSF already holds the pixel response.
+                method = "no_pixel" if psf_includes_pixel(spec) else "auto"
+                psf_truths.append(ptruth)
+                last_psf = pi
+            if not render:
+                continue
+            gal_k = shaped(base, t["tru_e1"][k], t["tru_e2"][k], t["tru_g1"][k], t["tru_g2"][k])
+            obj = galsim.Convolve(gal_k, psf, gsparams=conv_gsp)
+            try:
+                obj.drawImage(image=image, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method)
+            except galsim.GalSimFFTSizeError as err:
+                raise MegalutError(
+                    f"case {case}, realization {k}: FFT too large for GalSim ({err.size}^2 pixels); "
+                    "raise gsparams.maximum_fft_size or gsparams.folding_threshold"
+                ) from None
+            except (galsim.GalSimError, MemoryError) as err:
+                raise MegalutError(f"case {case}, realization {k}: GalSim could not draw the stamp ({err})") from None
+            d.noise.add(image, int(d.noise_seeds[k]))
+            stamps[fill] = image.array
+            fill += 1
+            if not keep and measurer is not None and fill == nbuf:
+                idx = np.arange(buf_first, buf_first + fill)
+                measurer(stamps[:fill], stamp_origins(idx, unit.n_x, S))
+                buf_first += fill
+                fill = 0
+        cols = {
+            "case": np.full(n_rea, case, dtype=np.int64),
+            "rea": np.arange(n_rea, dtype=np.int64),
+        }
+        cols.update(t)
+        for name in psf_truths[0]:
+            cols[name] = np.array([p[name] for p in psf_truths], dtype=float)[d.psf_index]
+        truth_parts.append(cols)
+
+    if measurer is not None and fill:
+        idx = np.arange(buf_first, buf_first + fill)
+        if keep:
+            for a in range(0, fill, MEASURE_BATCH):
+                b = min(a + MEASURE_BATCH, fill)
+                measurer(stamps[a:b], stamp_origins(idx[a:b], unit.n_x, S))
+        else:
+            measurer(stamps[:fill], stamp_origins(idx, unit.n_x, S))
+    columns = {k: np.concatenate([p[k] for p in truth_parts]) for k in truth_parts[0]} if truth_parts else {}
+    if measurer is not None:
+        columns.update(measurer.columns())
+    return {"columns": columns, "stamps": stamps[:n_total] if keep else None}

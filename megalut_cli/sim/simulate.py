@@ -1,0 +1,205 @@
+"""``megalut simulate``: draw a configured set of stamps in parallel, write the catalog.
+
+The cases are split into work units (contiguous chunks of cases) mapped over the
+executor of :mod:`megalut_cli.parallel`; every random draw is seeded per case, so the
+catalog is identical for any ``-j`` or Dask cluster. Outputs:
+
+- the catalog (``megalut.simulation``): one row per stamp, ordered by case then
+  realization, with ``case, rea, x, y``, all ``tru_*`` truth and, with ``measure``, the
+  features of :mod:`megalut_cli.measure.features`; a second HDU ``CONFIG`` holds the
+  effective configuration as JSON;
+- optionally the stamps (``megalut.stamps``): a FITS image grid, stamp ``k`` at grid
+  column ``k mod n_x`` and row ``k div n_x`` from the first (lower-left) pixel.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import fitsio
+import numpy as np
+
+from megalut_cli.atomic import atomic_output, check_output
+from megalut_cli.catalog import write_catalog, write_image
+from megalut_cli.errors import MegalutError
+from megalut_cli.parallel import chunk_ranges, executor, map_units, resolve_nproc
+from megalut_cli.sim.config import SimConfig
+from megalut_cli.sim.draw import WorkUnit, draw_unit, stamp_centres
+
+log = logging.getLogger("megalut")
+
+CATALOG_FORMAT = "megalut.simulation"
+STAMPS_FORMAT = "megalut.stamps"
+#: Stamps per work unit aimed at (a unit holds whole cases).
+UNIT_STAMPS = 2048
+#: Largest image written with --stamps (pixels; 4 GiB in float32): fail early, not out of memory.
+MAX_STAMP_PIXELS = 2**30
+
+
+@dataclass
+class SimulationResult:
+    n_stamps: int
+    n_cases: int
+    n_realizations: int
+    seconds: float
+    catalog: Path
+    stamps: Path | None
+
+    @property
+    def stamps_per_second(self) -> float:
+        return self.n_stamps / self.seconds if self.seconds > 0 else math.inf
+
+
+def _workers(nproc: int, scheduler: str | None) -> int:
+    return 8 if scheduler else resolve_nproc(nproc)
+
+
+def n_work_units(config: SimConfig, nproc: int = 1, scheduler: str | None = None) -> int:
+    """How many work units :func:`simulate` will map (e.g. to size a progress bar)."""
+    s = config.structure
+    n_units = max(math.ceil(s.n_stamps / UNIT_STAMPS), 4 * _workers(nproc, scheduler))
+    return min(n_units, s.n_cases)
+
+
+def make_units(
+    config: SimConfig, seed: int, nproc: int, scheduler: str | None, keep_stamps: bool, measure: bool
+) -> list[WorkUnit]:
+    """Split the cases into work units of about ``UNIT_STAMPS`` stamps (whole cases)."""
+    s = config.structure
+    n_units = n_work_units(config, nproc, scheduler)
+    return [
+        WorkUnit(config, seed, a, b, s.grid_nx, keep_stamps, measure)
+        for a, b in chunk_ranges(s.n_cases, n_units)
+    ]
+
+
+def _cards(config: SimConfig, seed: int, measured: bool) -> dict[str, Any]:
+    s = config.structure
+    cards: dict[str, Any] = {
+        "SEED": (seed, "seed of every random draw (megalut simulate --seed)"),
+        "NCASES": (s.n_cases, "number of cases"),
+        "NREA": (s.n_realizations, "realizations per case"),
+        "STAMPSZ": (s.stamp_size, "stamp size in pixels"),
+        "NSTAMPX": (s.grid_nx, "stamps per row of the stamp grid"),
+        "SNC": (s.snc, "shape-noise cancellation"),
+        "NOISE": (config.noise.type if config.noise.override_sigma is None else "gaussian", "noise model"),
+        "GAIN": (config.gain, "gain e-/ADU (CCD noise)"),
+        "MEASURED": (bool(measured), "features measured while simulating"),
+        "CFGFILE": (Path(config.path).name, "simulation config file"),
+        "CFGSHA": (config.sha256, "sha256 of the config file"),
+    }
+    if config.overrides:
+        cards["CFGOVR"] = (" ".join(config.overrides), "config overrides (full set in CONFIG HDU)")
+    return cards
+
+
+def _config_table(config: SimConfig) -> np.ndarray:
+    text = config.to_json()
+    arr = np.zeros(1, dtype=[("config_json", f"S{max(len(text), 1)}"), ("config_sha256", "S64")])
+    arr["config_json"] = text.encode("ascii", "backslashreplace")
+    arr["config_sha256"] = config.sha256.encode("ascii")
+    return arr
+
+
+def _assemble(results: list[dict[str, Any]]) -> dict[str, np.ndarray]:
+    names = list(results[0]["columns"])
+    for r in results[1:]:
+        if list(r["columns"]) != names:
+            raise MegalutError("internal error: work units returned different columns")
+    return {k: np.concatenate([r["columns"][k] for r in results]) for k in names}
+
+
+def _order(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """case, rea, x, y, truth (sorted), then features in their given order."""
+    first = [c for c in ("case", "rea", "x", "y") if c in columns]
+    truth = sorted(c for c in columns if c.startswith("tru_"))
+    rest = [c for c in columns if c not in first and c not in truth]
+    return {c: columns[c] for c in first + truth + rest}
+
+
+def simulate(
+    config: SimConfig,
+    output: str | os.PathLike,
+    stamps: str | os.PathLike | None = None,
+    measure: bool = False,
+    seed: int = 1,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    overwrite: bool = False,
+    progress: Callable[[int], None] | None = None,
+) -> SimulationResult:
+    """Simulate the configured stamps; write the catalog (and the stamp grid image).
+
+    ``progress(n)`` is called as work units finish (:func:`n_work_units` in all).
+    """
+    out = check_output(output, overwrite)
+    st = check_output(stamps, overwrite) if stamps is not None else None
+    if st is not None and st.resolve() == out.resolve():
+        raise MegalutError("--stamps and -o must be different files")
+    s = config.structure
+    if st is not None:
+        n_y = math.ceil(s.n_stamps / s.grid_nx)
+        pixels = n_y * s.grid_nx * s.stamp_size**2
+        if pixels > MAX_STAMP_PIXELS:
+            raise MegalutError(
+                f"--stamps: the image would have {pixels:.3g} pixels; lower --n-cases/--n-realizations "
+                "or use --measure without --stamps"
+            )
+    if st is None and not measure:
+        log.info("neither --stamps nor --measure: writing the truth catalog only (nothing drawn)")
+    workers = _workers(nproc, scheduler)
+    units = make_units(config, seed, nproc, scheduler, st is not None, measure)
+    log.info(
+        "simulating %d cases x %d realizations = %d stamps of %d px in %d work units",
+        s.n_cases, s.n_realizations, s.n_stamps, s.stamp_size, len(units),
+    )
+    t0 = time.perf_counter()
+    image = None
+    if st is not None:
+        n_y = math.ceil(s.n_stamps / s.grid_nx)
+        image = np.zeros((n_y * s.stamp_size, s.grid_nx * s.stamp_size), dtype=np.float32)
+    results: list[dict[str, Any]] = []
+    with executor(nproc, scheduler) as pool:
+        # With stamps, go in batches of units so that the unit images are freed early.
+        batch = len(units) if st is None else max(8, 4 * workers)
+        for i in range(0, len(units), batch):
+            part = map_units(draw_unit, units[i : i + batch], pool, progress)
+            for unit, res in zip(units[i : i + batch], part):
+                if image is not None:
+                    _paste(image, res.pop("stamps"), unit.case_start * s.n_realizations, s.grid_nx, s.stamp_size)
+                results.append(res)
+    seconds = time.perf_counter() - t0
+    columns = _assemble(results)
+    n = len(columns["case"])
+    x, y = stamp_centres(np.arange(n), s.grid_nx, s.stamp_size)
+    columns["x"], columns["y"] = x, y
+    columns = _order(columns)
+    cards = _cards(config, seed, measure)
+    with contextlib.ExitStack() as stack:
+        tmp_cat = stack.enter_context(atomic_output(out, overwrite))
+        tmp_st = stack.enter_context(atomic_output(st, overwrite)) if st is not None else None
+        if tmp_st is not None and image is not None:
+            st_cards = {k: v for k, v in cards.items() if k not in ("MEASURED",)}
+            st_cards["NSTAMPS"] = (n, "number of stamps in the grid")
+            write_image(tmp_st, image, fmt=STAMPS_FORMAT, cards=st_cards, overwrite=True)
+        write_catalog(tmp_cat, columns, fmt=CATALOG_FORMAT, cards=cards, overwrite=True)
+        with fitsio.FITS(str(tmp_cat), "rw") as f:
+            f.write(_config_table(config), extname="CONFIG")
+    log.info("%d stamps in %.1f s (%.1f stamps/s)", n, seconds, n / seconds if seconds else math.inf)
+    return SimulationResult(n, s.n_cases, s.n_realizations, seconds, out, st)
+
+
+def _paste(image: np.ndarray, stamps: np.ndarray, first: int, n_x: int, size: int) -> None:
+    """Copy stamps ``first, first+1, ...`` into their places in the grid image."""
+    for i, stamp in enumerate(stamps):
+        k = first + i
+        r, c = divmod(k, n_x)
+        image[r * size : (r + 1) * size, c * size : (c + 1) * size] = stamp

@@ -1,0 +1,138 @@
+"""The cases x realizations structure: which parameters are drawn once per case and which
+per realization, shape-noise cancellation (SNC), sub-pixel offsets.
+
+Per case ``c`` every draw comes from three generators seeded by ``(seed, c)`` (through
+:func:`megalut_cli.seeding.rng_for`): one for the case-level parameters, one for the
+per-realization parameters and one for offsets and noise seeds. The result therefore
+never depends on how cases are split into work units, and lowering ``n_realizations``
+keeps the galaxies of each case.
+
+SNC groups: with ``snc = "ring"`` all realizations of a case form one group whose
+position angles are ``theta_k = theta_0 + k * 180 deg / n`` (so the intrinsic ellipticities
+sum exactly to zero); with ``"pairs"`` consecutive realizations ``2j, 2j+1`` form groups
+rotated by 90 deg; with ``"none"`` every realization is its own group. Per-realization
+parameters are drawn once per group.
+
+The paper's structures (Figs. 4-6):
+
+- shear training (Fig. 4): ``per_realization = ["angle"]``, ``snc = "ring"``;
+- weight training (Fig. 5): ``per_realization = ["galaxy"]`` (one shear per case);
+- ellipticity pretraining (Fig. 6): ``per_realization = []``, no ``[shear]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from megalut_cli.seeding import STREAM_SIMULATE, rng_for
+from megalut_cli.sim.config import SimConfig, round_sersicn
+from megalut_cli.sim.distributions import Distribution, sample_level
+from megalut_cli.sim.galaxies import ellipticity_components, galaxy_fluxes, mag_from_flux
+from megalut_cli.sim.noise import StampNoise, make_noise
+
+#: Sub-keys of rng_for(seed, STREAM_SIMULATE, case, KEY).
+_CASE_KEY, _REA_KEY, _NOISE_KEY = 0, 1, 2
+
+
+@dataclass
+class CaseDraw:
+    """Everything drawn for one case; per-realization arrays have length n_realizations."""
+
+    case: int
+    truth: dict[str, np.ndarray]
+    galaxy_index: np.ndarray  # realization -> index of its galaxy (0..)
+    psf_index: np.ndarray  # realization -> index into psf_specs
+    psf_specs: list[tuple[dict[str, Any], float, float]]  # (scalar spec, field x, field y)
+    noise: StampNoise
+    noise_seeds: np.ndarray
+    offsets: np.ndarray  # (n, 2) pixels
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def ring_angles(theta0: np.ndarray, n_rea: int, group_size: int) -> np.ndarray:
+    """Position angles (deg) of realizations ``k``: ``theta0[k // gs] + (k % gs) * 180 / gs``."""
+    k = np.arange(n_rea)
+    return np.asarray(theta0, dtype=float)[k // group_size] + (k % group_size) * (180.0 / group_size)
+
+
+def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
+    """Draw all parameters of case ``case``."""
+    s = config.structure
+    n, gs, ng = s.n_realizations, s.group_size, s.n_groups
+    group_of = np.arange(n) // gs
+    rng_case = rng_for(seed, STREAM_SIMULATE, case, _CASE_KEY)
+    rng_rea = rng_for(seed, STREAM_SIMULATE, case, _REA_KEY)
+    rng_noise = rng_for(seed, STREAM_SIMULATE, case, _NOISE_KEY)
+    nrows = config.catalog_rows
+
+    def level(group: str, dists: dict[str, Distribution]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """Samples per realization and the realization -> draw index map."""
+        if not dists:
+            return {}, np.zeros(n, dtype=np.int64)
+        if s.varies(group):
+            vals = sample_level(dists, rng_rea, ng, nrows)
+            return {k: v[group_of] for k, v in vals.items()}, group_of
+        vals = sample_level(dists, rng_case, 1, nrows)
+        return {k: np.repeat(v, n) for k, v in vals.items()}, np.zeros(n, dtype=np.int64)
+
+    truth: dict[str, np.ndarray] = {}
+    shear, _ = level("shear", config.shear)
+    truth["tru_g1"] = shear.get("g1", np.zeros(n))
+    truth["tru_g2"] = shear.get("g2", np.zeros(n))
+
+    # Field position and PSF parameters: one level ("psf").
+    psf_dists = {k: v for k, v in config.psf.items() if isinstance(v, Distribution)}
+    field_vals, field_idx = level("psf", config.field or {})
+    psf_vals, psf_idx = level("psf", psf_dists)
+    psf_index = field_idx if config.field else psf_idx
+    if config.field:
+        truth["tru_field_x"] = field_vals["x"]
+        truth["tru_field_y"] = field_vals["y"]
+    specs: list[tuple[dict[str, Any], float, float]] = []
+    # psf_index is non-decreasing: the first realization of each draw
+    firsts = np.searchsorted(psf_index, np.arange(int(psf_index.max()) + 1))
+    for k in firsts.tolist():
+        spec = {key: (float(psf_vals[key][k]) if key in psf_vals else val) for key, val in config.psf.items()}
+        fx = float(field_vals["x"][k]) if config.field else 0.0
+        fy = float(field_vals["y"][k]) if config.field else 0.0
+        specs.append((spec, fx, fy))
+
+    # Galaxy.
+    gal = config.galaxy
+    gvals, gal_index = level("galaxy", gal.params)
+    rad = gvals["rad"]
+    truth["tru_rad"] = rad
+    if "sersicn" in gvals:
+        truth["tru_sersicn"] = round_sersicn(gvals["sersicn"], gal.sersicn_step)
+    flux = galaxy_fluxes(gal.flux_mode, gvals[gal.flux_mode], rad, config.instrument)
+    truth["tru_flux"] = flux
+    truth["tru_sb"] = flux / (np.pi * rad**2)
+    inst = config.instrument
+    if gal.flux_mode == "mag":
+        truth["tru_mag"] = gvals["mag"]
+    elif all(k in inst for k in ("zeropoint", "exptime", "gain")):
+        truth["tru_mag"] = mag_from_flux(flux, inst["zeropoint"], inst["exptime"], inst["gain"])
+
+    # Position angle: per group (with SNC rotations within the group) or per case.
+    if s.varies("angle"):
+        theta0 = gal.angle.sample(rng_rea, ng)
+    else:
+        theta0 = np.repeat(gal.angle.sample(rng_case, 1), ng)
+    theta = ring_angles(theta0, n, gs)
+    ell = gvals["ellipticity"]
+    e1, e2 = ellipticity_components(ell, theta)
+    truth["tru_e1"], truth["tru_e2"] = e1, e2
+    truth["tru_ell"], truth["tru_theta"] = ell, np.mod(theta, 180.0)
+
+    # Noise (per case), offsets and noise seeds (per realization).
+    drawn = sample_level(config.noise.params, rng_case, 1, nrows)
+    nparams = {k: float(v[0]) for k, v in drawn.items()}
+    noise = make_noise(config.noise.type, nparams, config.instrument, config.noise.override_sigma)
+    truth["tru_sky_sigma"] = np.full(n, noise.sky_sigma)
+    offsets = rng_noise.uniform(-s.offset, s.offset, (n, 2)) if s.offset > 0 else np.zeros((n, 2))
+    truth["tru_dx"], truth["tru_dy"] = offsets[:, 0], offsets[:, 1]
+    seeds = rng_noise.integers(1, 2**31 - 1, n)
+    return CaseDraw(case, truth, gal_index, psf_index, specs, noise, seeds, offsets)
