@@ -24,10 +24,22 @@ def utc_now() -> str:
     return when.replace(microsecond=0, tzinfo=None).isoformat()
 
 
+_COMMAND: list[str] | None = None
+
+
+def set_command_line(argv: list[str]) -> None:
+    """Record the command being run (the CLI calls this; defaults to ``sys.argv``)."""
+    global _COMMAND
+    _COMMAND = list(argv)
+
+
 def command_line() -> str:
     """The command line of this process, as a shell-quoted string."""
-    prog = Path(sys.argv[0]).name if sys.argv else "megalut"
-    return " ".join([prog, *(shlex.quote(a) for a in sys.argv[1:])])
+    if _COMMAND is not None:
+        argv = _COMMAND
+    else:
+        argv = [Path(sys.argv[0]).name if sys.argv else "python", *sys.argv[1:]]
+    return " ".join([argv[0], *(shlex.quote(a) for a in argv[1:])])
 
 
 def software_versions() -> dict[str, str]:

@@ -16,12 +16,18 @@ import click
 
 from megalut_cli import __version__
 from megalut_cli.errors import MegalutError
+from megalut_cli.provenance import set_command_line
 
 log = logging.getLogger("megalut")
 
 
 class MegalutGroup(click.Group):
     """A group that reports library errors as one clear line instead of a traceback."""
+
+    def main(self, args: Any = None, prog_name: str | None = None, **kwargs: Any) -> Any:
+        argv = list(args) if args is not None else sys.argv[1:]
+        set_command_line(["megalut", *argv])  # recorded in every output's HISTORY
+        return super().main(args=args, prog_name=prog_name, **kwargs)
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return list(self.commands)  # the order of the data flow, not alphabetical

@@ -1,12 +1,126 @@
-"""`megalut evaluate` (not built yet: issue #4)."""
+"""`megalut evaluate`: multiplicative and additive shear biases of a prediction catalog."""
 
 from __future__ import annotations
 
 import click
 
+from megalut_cli.cli.options import overwrite_option, parse_list
 
-@click.command("evaluate", short_help="(not built yet)", context_settings={"ignore_unknown_options": True})
-@click.argument("args", nargs=-1, type=click.UNPROCESSED)
-def command(args: tuple[str, ...]) -> None:
-    """Not built yet (issue #4): exits with status 1."""
-    raise click.ClickException("'megalut evaluate' is not built yet (issue #4)")
+#: Exit code of ``--fail-above`` when the Stage IV requirement does not hold.
+EXIT_OUT_OF_TOLERANCE = 3
+
+
+@click.command(
+    "evaluate",
+    short_help="Measure shear biases m and c (overall, PSF frame, conditional).",
+)
+@click.argument("shears", type=click.Path(exists=True, dir_okay=False))
+@click.option(
+    "--by",
+    metavar="COL,COL",
+    default=None,
+    help="Conditional biases in equal-population bins of these columns (true or measured), "
+    "e.g. tru_rad,tru_sersicn,snr.",
+)
+@click.option(
+    "--bins", type=click.IntRange(1, 1000), default=5, show_default=True, help="Number of bins for --by."
+)
+@click.option(
+    "--select",
+    metavar="EXPR",
+    default=None,
+    help="Keep only the rows (realizations) where EXPR holds, e.g. \"snr > 10 & adamom_sigma > 1.5\" "
+    "(studies selection biases).",
+)
+@click.option(
+    "--select-cases",
+    metavar="EXPR",
+    default=None,
+    help="Keep only the cases where EXPR of per-case aggregates holds, e.g. \"mean(snr) > 10\".",
+)
+@click.option(
+    "--json", "json_path", type=click.Path(dir_okay=False), default=None,
+    help="Write all results (and per-case averages) to this JSON file (layout: docs/evaluate.md).",
+)
+@click.option(
+    "--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
+    help="Draw residual and conditional-bias panels into this .png/.pdf/.svg (needs the 'plot' extra).",
+)
+@click.option(
+    "--fail-above",
+    is_flag=True,
+    help=f"Exit with status {EXIT_OUT_OF_TOLERANCE} when the Stage IV requirement (|m| < 2e-3, "
+    "|c| < 2e-4 for every component) does not hold, on the weighted results when the catalog "
+    "has weights, else on the unweighted ones.",
+)
+@overwrite_option
+def command(
+    shears: str,
+    by: str | None,
+    bins: int,
+    select: str | None,
+    select_cases: str | None,
+    json_path: str | None,
+    plot_path: str | None,
+    fail_above: bool,
+    overwrite: bool,
+) -> None:
+    """Measure the shear biases of SHEARS.fits, a catalog with truth and predictions.
+
+    SHEARS.fits needs the columns case, tru_g1, tru_g2 and pre_g1, pre_g2 (from
+    'megalut predict'); with pre_g1_w, pre_g2_w a weighted analysis is added. Rows with
+    flags != 0 or NaN estimates are left out. The estimates of each case are averaged
+    (unweighted, and weighted), and a line fitted over cases, <g_est> - g = m g + c, gives
+    m and c with 1-sigma errors from the scatter of the residuals (ordinary least squares,
+    every case counting the same). With PSF ellipticity columns (tru_psf_g1/g2, else
+    psf_adamom_g1/g2) the biases are also given in the PSF frame (plus, cross), as in
+    GREAT3, with its Q_c metric.
+
+    The table goes to stdout; exit status 0, or 1 for bad input, 2 for bad options, and
+    with --fail-above 3 when the Stage IV requirement does not hold.
+
+    \b
+    Example:
+      megalut evaluate shears.fits
+      megalut evaluate shears.fits --by tru_rad,tru_sersicn,snr --bins 5 --plot biases.png
+      megalut evaluate shears.fits --select "snr > 10 & adamom_sigma > 1.5" --json biases.json
+      megalut evaluate shears.fits --fail-above || echo "biases out of tolerance"
+    """
+    from megalut_cli.atomic import check_output
+    from megalut_cli.shear.evaluate import evaluate_catalog, format_table, requirement_met
+
+    by_cols = parse_list(by, "--by column list")
+    for path in (json_path, plot_path):
+        if path is not None:
+            check_output(path, overwrite)
+    if json_path is not None and plot_path is not None and json_path == plot_path:
+        raise click.UsageError("--json and --plot must name different files")
+    if plot_path is not None:
+        from megalut_cli.shear.plots import check_plot_output
+
+        check_plot_output(plot_path)
+
+    result = evaluate_catalog(shears, by=by_cols, bins=bins, select=select, select_cases=select_cases)
+    click.echo(format_table(result))
+    if json_path is not None:
+        _write_json(json_path, result, overwrite)
+    if plot_path is not None:
+        from megalut_cli.shear.plots import plot_evaluation
+
+        plot_evaluation(result, plot_path, overwrite)
+    if fail_above and not requirement_met(result):
+        click.echo(
+            f"megalut: bias out of tolerance ({'; '.join(result['requirement']['failures'])})", err=True
+        )
+        click.get_current_context().exit(EXIT_OUT_OF_TOLERANCE)
+
+
+def _write_json(path: str, result: dict, overwrite: bool) -> None:
+    import json
+
+    from megalut_cli.atomic import atomic_output
+
+    with atomic_output(path, overwrite) as tmp:
+        with open(tmp, "w") as f:
+            json.dump(result, f, indent=1, allow_nan=False)
+            f.write("\n")

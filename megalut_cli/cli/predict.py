@@ -1,12 +1,67 @@
-"""`megalut predict` (not built yet: issue #4)."""
+"""`megalut predict`: shear estimates and weights for a feature catalog."""
 
 from __future__ import annotations
 
+import logging
+
 import click
 
+from megalut_cli.cli.options import execution_options, output_option, overwrite_option
 
-@click.command("predict", short_help="(not built yet)", context_settings={"ignore_unknown_options": True})
-@click.argument("args", nargs=-1, type=click.UNPROCESSED)
-def command(args: tuple[str, ...]) -> None:
-    """Not built yet (issue #4): exits with status 1."""
-    raise click.ClickException("'megalut predict' is not built yet (issue #4)")
+
+@click.command("predict", short_help="Apply a trained model: add pre_g1, pre_g2 (and weights).")
+@click.argument("features", type=click.Path(exists=True, dir_okay=False))
+@click.option(
+    "--model", "model_path", required=True, type=click.Path(exists=True, dir_okay=False),
+    help="Trained model (HDF5 from train-point / train-weight).",
+)
+@output_option("Output catalog: all input columns plus the predictions.")
+@click.option(
+    "--col", "col", multiple=True, metavar="FEATURE=COLUMN",
+    help="Read the model feature FEATURE from the catalog column COLUMN (repeatable), "
+    "e.g. --col adamom_g1=E1.",
+)
+@click.option(
+    "--chunk-rows", type=click.IntRange(1000), default=250_000, show_default=True,
+    help="Rows per chunk (memory bound and unit of work).",
+)
+@execution_options
+@overwrite_option
+def command(
+    features: str,
+    model_path: str,
+    output: str,
+    col: tuple[str, ...],
+    chunk_rows: int,
+    nproc: int,
+    scheduler: str | None,
+    overwrite: bool,
+) -> None:
+    """Predict shear estimates for every row of FEATURES.fits with a trained model.
+
+    Adds pre_g1, pre_g2 (committee means of the point estimators) and, when the model
+    has weight committees, pre_g1_w, pre_g2_w. Rows whose features failed (flags != 0 or a
+    non-finite feature) get NaN estimates, weight 0 and the BAD_FEATURES flag (128) in
+    'flags'. The catalog is streamed in chunks; the header records the model's sha256
+    (MODELSHA).
+
+    \b
+    Example:
+      megalut predict vo.fits --model model.h5 -o shears.fits
+      megalut predict mycat.fits --model model.h5 -o shears.fits --col adamom_g1=E1 --col adamom_g2=E2 -j 4
+    """
+    from megalut_cli.catalog import catalog_info
+    from megalut_cli.cli.options import progress
+    from megalut_cli.shear.predict import parse_column_map, predict_catalog
+
+    column_map = parse_column_map(col)
+    n_rows = catalog_info(features)[0]
+    with progress("predict", n_rows) as update:
+        report = predict_catalog(
+            features, model_path, output, column_map=column_map, nproc=nproc, scheduler=scheduler,
+            overwrite=overwrite, chunk_rows=chunk_rows, progress=update,
+        )
+    logging.getLogger("megalut").info(
+        "wrote %s: %d rows, %s (%d with failed features)",
+        report.output, report.n_rows, ", ".join(report.columns), report.n_failed,
+    )

@@ -1,0 +1,290 @@
+"""Training one network: scipy BFGS / L-BFGS with the analytic gradient and mini-batches.
+
+Paper Sect. 3.4: parameters start from N(0, 0.1) (or near-identity, or an earlier model);
+a random "batch" of a fraction of the training cases (25 %) is optimised for a number of
+iterations (30), then the next random batch, and so on. The cost on the validation set is
+monitored after every iteration and the parameters with the lowest validation cost are
+kept. Every random draw comes from the member's own seed, so a member trains identically in
+any process.
+
+``gradient="fd"`` replaces the analytic gradient by scipy's finite differences (what the
+original implementation did); it exists for the benchmark only.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import minimize
+
+from megalut_cli.nn import costs
+from megalut_cli.nn.data import CaseData
+from megalut_cli.nn.network import Network
+from megalut_cli.seeding import rng_for
+
+log = logging.getLogger("megalut.train")
+
+OPTIMIZERS = ("bfgs", "lbfgs")
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """How to train one member."""
+
+    cost: str = "msb"
+    iterations: int = 1000
+    batch_fraction: float = 0.25
+    batch_iterations: int = 30
+    optimizer: str = "bfgs"
+    gradient: str = "analytic"
+    valid_every: int = 1
+    max_stalls: int = 3
+    dtype: str = "float64"
+
+    def __post_init__(self) -> None:
+        if self.cost not in costs.COSTS:
+            raise ValueError(f"unknown cost {self.cost!r}")
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"unknown optimizer {self.optimizer!r}")
+        if self.dtype not in ("float64", "float32"):
+            raise ValueError(f"unknown dtype {self.dtype!r}")
+        if self.gradient not in ("analytic", "fd"):
+            raise ValueError(f"unknown gradient {self.gradient!r}")
+        if not 0.0 < self.batch_fraction <= 1.0:
+            raise ValueError("batch_fraction must be in (0, 1]")
+        if self.iterations < 0 or self.batch_iterations < 1 or self.valid_every < 1:
+            raise ValueError("iterations must be >= 0, batch_iterations and valid_every >= 1")
+
+
+class Objective:
+    """A cost of a network on a set of cases, as a function of the flat parameters.
+
+    ``x`` are raw features, normalised here with ``in_loc``/``in_scale``; ``j`` picks the
+    target (and point-estimate) column. The optimiser sees the cost divided by
+    ``cost_scale**2`` (the targets' spread) so that its tolerances do not depend on units.
+    """
+
+    def __init__(
+        self,
+        net: Network,
+        cost: str,
+        data: CaseData,
+        j: int,
+        in_loc: np.ndarray,
+        in_scale: np.ndarray,
+        cost_scale: float = 1.0,
+        dtype: str = "float64",
+    ) -> None:
+        self.net = net
+        self.cost = cost
+        self.xt = np.ascontiguousarray(((data.x - in_loc) / in_scale).T, dtype=dtype)
+        self.groups = costs.Groups(data.case, data.n_cases)
+        self.n = self.groups.n
+        self.t = np.ascontiguousarray(data.targets[:, j])
+        self.t_row = np.ascontiguousarray(data.row_targets[:, j])
+        self.point = None if data.point is None else np.ascontiguousarray(data.point[:, j])
+        if cost == "mswb" and self.point is None:
+            raise ValueError("MSWB needs point estimates")
+        self.norm = 1.0 / float(cost_scale) ** 2
+        self.n_evals = 0
+        self._work: list[list[np.ndarray]] | None = None
+
+    def _cost(self, out: np.ndarray) -> tuple[float, np.ndarray]:
+        if self.cost == "msb":
+            return costs.msb(out, self.groups, self.n, self.t)
+        if self.cost == "mse":
+            return costs.mse(out, self.groups, self.n, self.t_row)
+        return costs.mswb(out, self.point, self.groups, self.n, self.t)
+
+    def value(self, params: np.ndarray) -> float:
+        """The cost (in the targets' units squared)."""
+        self.n_evals += 1
+        return self._cost(self.net.forward(params, self.xt))[0]
+
+    def value_and_grad(self, params: np.ndarray) -> tuple[float, np.ndarray]:
+        """The cost and its analytic gradient (in the targets' units squared)."""
+        self.n_evals += 1
+        out, cache = self.net.forward_cached(params, self.xt, self._work)
+        self._work = cache
+        cost, g_out = self._cost(out)
+        return cost, self.net.backward(params, out, cache, g_out)
+
+    def scaled(self, params: np.ndarray) -> float:
+        return self.value(params) * self.norm
+
+    def scaled_with_grad(self, params: np.ndarray) -> tuple[float, np.ndarray]:
+        c, g = self.value_and_grad(params)
+        return c * self.norm, g * self.norm
+
+
+@dataclass
+class MemberTask:
+    """Everything needed to train one committee member (plain, picklable data)."""
+
+    label: str
+    net: Network
+    settings: TrainSettings
+    train: CaseData
+    valid: CaseData | None  # None: monitor on the full training set
+    j: int
+    in_loc: np.ndarray
+    in_scale: np.ndarray
+    seed: int
+    keys: tuple[int, ...]
+    init_params: np.ndarray | None = None
+    init_scheme: str = "normal"
+    init_sigma: float = 0.1
+    identity_feature: int = 0
+    cost_scale: float = 1.0
+    log_level: int = logging.INFO
+    prior_history: np.ndarray | None = None
+
+
+@dataclass
+class MemberResult:
+    """A trained member: parameters kept (lowest validation cost) and its record."""
+
+    label: str
+    params: np.ndarray
+    seed: int
+    keys: tuple[int, ...]
+    train_cost: float
+    valid_cost: float
+    n_iter: int
+    best_iter: int
+    history: np.ndarray  # (n_iter_total, 2): batch training cost, validation cost
+    times: np.ndarray = field(default_factory=lambda: np.zeros(0))  # wall seconds since start, per iteration
+    cpu_times: np.ndarray = field(default_factory=lambda: np.zeros(0))  # CPU seconds since start
+    n_evals: int = 0
+    elapsed: float = 0.0
+
+
+def _ensure_worker_logging(level: int) -> None:
+    """In a fresh local worker process, send progress lines to stderr like the parent does."""
+    root = logging.getLogger()
+    if multiprocessing.parent_process() is not None and not root.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("megalut: %(message)s"))
+        root.addHandler(handler)
+        root.setLevel(level)
+
+
+def initial_params(task: MemberTask, rng: np.random.Generator) -> np.ndarray:
+    if task.init_params is not None:
+        return np.array(task.init_params, dtype=np.float64)
+    if task.init_scheme == "identity":
+        return task.net.init_identity(rng, task.identity_feature, task.in_loc, task.in_scale)
+    return task.net.init_normal(rng, task.init_sigma)
+
+
+class _Monitor:
+    """Records the cost after every optimiser iteration and keeps the best-validation parameters."""
+
+    def __init__(
+        self, monitor: Objective, params: np.ndarray, settings: TrainSettings, t0: float, cpu0: float
+    ) -> None:
+        self.monitor = monitor
+        self.settings = settings
+        self.t0 = t0
+        self.best_valid = monitor.value(params)
+        self.best_params = params.copy()
+        self.best_iter = 0
+        self.it = 0
+        self.rows: list[tuple[float, float]] = []
+        self.times: list[float] = []
+        self.cpu_times: list[float] = []
+        self.cpu0 = cpu0
+        self.batch_norm = 1.0
+
+    def __call__(self, intermediate_result: Any) -> None:  # scipy's callback protocol
+        self.it += 1
+        x = intermediate_result.x
+        v = np.nan
+        if self.it % self.settings.valid_every == 0 or self.it == self.settings.iterations:
+            v = self.monitor.value(x)
+            if v < self.best_valid or not np.isfinite(self.best_valid):
+                self.best_valid, self.best_params, self.best_iter = v, np.array(x, copy=True), self.it
+        self.rows.append((float(intermediate_result.fun) / self.batch_norm, v))
+        self.times.append(time.perf_counter() - self.t0)
+        self.cpu_times.append(time.process_time() - self.cpu0)
+
+
+def train_member(task: MemberTask) -> MemberResult:
+    """Train one network (a work unit: top-level, deterministic given its seed and keys)."""
+    _ensure_worker_logging(task.log_level)
+    s = task.settings
+    rng = rng_for(task.seed, *task.keys)
+    params = initial_params(task, rng)
+    t0, cpu0 = time.perf_counter(), time.process_time()
+
+    def make(data: CaseData) -> Objective:
+        return Objective(task.net, s.cost, data, task.j, task.in_loc, task.in_scale, task.cost_scale, s.dtype)
+
+    full = make(task.train)
+    mon = _Monitor(full if task.valid is None else make(task.valid), params, s, t0, cpu0)
+    n_cases = task.train.n_cases
+    bsize = n_cases if s.batch_fraction >= 1.0 else min(n_cases, max(1, int(round(s.batch_fraction * n_cases))))
+    stalls = 0
+    n_evals = 0
+    if s.optimizer == "bfgs":
+        method, opts = "BFGS", {"gtol": 1e-12}
+    else:
+        method, opts = "L-BFGS-B", {"gtol": 1e-12, "ftol": 1e-15}
+    while mon.it < s.iterations:
+        if bsize < n_cases:
+            obj = make(task.train.subset(np.sort(rng.choice(n_cases, size=bsize, replace=False))))
+        else:
+            obj = full
+        mon.batch_norm = obj.norm
+        before_it, before_evals = mon.it, obj.n_evals
+        fun, jac = (obj.scaled_with_grad, True) if s.gradient == "analytic" else (obj.scaled, None)
+        res = minimize(
+            fun, params, jac=jac, method=method, callback=mon,
+            options={**opts, "maxiter": min(s.batch_iterations, s.iterations - mon.it)},
+        )
+        n_evals += obj.n_evals - before_evals
+        if np.all(np.isfinite(res.x)):
+            params = np.asarray(res.x, dtype=np.float64)
+        last = mon.rows[-1] if mon.rows else (np.nan, np.nan)
+        log.info(
+            "%s: iteration %d/%d, batch %s %.4e, valid %.4e (best %.4e at %d)",
+            task.label, mon.it, s.iterations, s.cost, last[0], last[1], mon.best_valid, mon.best_iter,
+        )
+        if mon.it == before_it:
+            stalls += 1
+            if stalls >= s.max_stalls:
+                log.info("%s: the optimiser made no progress on %d batches; stopping", task.label, stalls)
+                break
+        else:
+            stalls = 0
+    best_params, best_valid, best_iter, rows, times = (
+        mon.best_params, mon.best_valid, mon.best_iter, mon.rows, mon.times,
+    )
+    train_cost = full.value(best_params)
+    history = np.asarray(rows, dtype=np.float64).reshape(-1, 2)
+    if task.prior_history is not None and len(task.prior_history):
+        history = np.vstack([np.asarray(task.prior_history, dtype=np.float64).reshape(-1, 2), history])
+        offset = len(task.prior_history)
+    else:
+        offset = 0
+    return MemberResult(
+        label=task.label,
+        params=best_params,
+        seed=task.seed,
+        keys=task.keys,
+        train_cost=float(train_cost),
+        valid_cost=float(best_valid),
+        n_iter=len(history),
+        best_iter=best_iter + offset,
+        history=history,
+        times=np.asarray(times),
+        cpu_times=np.asarray(mon.cpu_times),
+        n_evals=n_evals,
+        elapsed=time.perf_counter() - t0,
+    )

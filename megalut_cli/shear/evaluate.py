@@ -1,0 +1,616 @@
+"""Shear-bias analysis of a catalog of predictions with truth (``megalut evaluate``).
+
+The catalog needs ``case, tru_g1, tru_g2`` and ``pre_g1, pre_g2``; with ``pre_g1_w,
+pre_g2_w`` a weighted analysis is added. Rows with ``flags != 0`` or a non-finite estimate
+(or true shear) count with weight 0, i.e. not at all. For every component the estimates
+of each case are averaged (unweighted, and weighted) and ``m, c`` are fitted over cases
+(:func:`megalut_cli.shear.bias.fit_bias`: OLS, errors from the residual scatter).
+
+PSF frame: with PSF ellipticity columns (``tru_psf_g1, tru_psf_g2``, else
+``psf_adamom_g1, psf_adamom_g2``) the per-case averages of estimates and true shears are
+also rotated by ``-2 theta``, ``theta = 0.5 atan2(psf_g2, psf_g1)`` of the case's PSF (the
+mean PSF ellipticity over its rows), giving the ``plus`` and ``cross`` components (GREAT3
+convention, paper Sect. 2.2). Rotating case averages is what GREAT3 does; it equals
+rotating every row when the PSF is the same for all rows of a case, as it is in megalut
+simulations.
+
+Conditional biases (``by``): equal-population bins of any column, over the rows used;
+in each bin the rows of each case are averaged and the line fitted over cases.
+
+Catalogs are read in row chunks: memory grows with the number of cases (and with the
+``by`` columns, whose values are needed to place the bin edges), not with the rows.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from megalut_cli import expr as _expr
+from megalut_cli.catalog import catalog_info, iter_catalog, read_catalog
+from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.shear.bias import (
+    GREAT3_SIGMA2_MIN_GROUND,
+    STAGE_IV_C,
+    STAGE_IV_M,
+    BiasFit,
+    fit_bias,
+    psf_angle,
+    q_c,
+)
+from megalut_cli.shear.conditional import assign_bins, equal_population_edges
+
+log = logging.getLogger(__name__)
+
+TRUTH_COLUMNS = ("case", "tru_g1", "tru_g2")
+ESTIMATE_COLUMNS = ("pre_g1", "pre_g2")
+WEIGHT_COLUMNS = ("pre_g1_w", "pre_g2_w")
+#: PSF ellipticity columns, in order of preference.
+PSF_COLUMNS = (("tru_psf_g1", "tru_psf_g2"), ("psf_adamom_g1", "psf_adamom_g2"))
+COMPONENTS = ("g1", "g2", "plus", "cross")
+SCHEMES = ("unweighted", "weighted")
+#: Rows read at a time.
+CHUNK_ROWS = 500_000
+#: Format name of the JSON written by ``megalut evaluate --json``.
+JSON_FORMAT = "megalut.evaluation"
+JSON_FORMAT_VERSION = "1.0"
+
+
+# --------------------------------------------------------------------------- planning
+
+
+@dataclass
+class _Plan:
+    source: str
+    weighted: bool
+    psf: tuple[str, str] | None
+    by: list[str]
+    select: str | None
+    select_cases: str | None
+    columns: list[str] = field(default_factory=list)
+    has_flags: bool = False
+    selected_cases: np.ndarray | None = None
+
+    @property
+    def schemes(self) -> tuple[str, ...]:
+        return SCHEMES if self.weighted else SCHEMES[:1]
+
+
+def _make_plan(
+    colnames: Sequence[str],
+    source: str,
+    by: Sequence[str] | None,
+    select: str | None,
+    select_cases: str | None,
+) -> _Plan:
+    have = set(colnames)
+    missing = [c for c in (*TRUTH_COLUMNS, *ESTIMATE_COLUMNS) if c not in have]
+    if missing:
+        raise InputError(
+            f"{source}: evaluate needs the true shear of each case (columns case, tru_g1, tru_g2) "
+            f"and the estimates from 'megalut predict' (pre_g1, pre_g2); missing: {', '.join(missing)}"
+        )
+    weighted = all(c in have for c in WEIGHT_COLUMNS)
+    if not weighted and any(c in have for c in WEIGHT_COLUMNS):
+        log.warning("%s: only one of %s present; weighted analysis skipped", source, ", ".join(WEIGHT_COLUMNS))
+    psf = next((pair for pair in PSF_COLUMNS if all(c in have for c in pair)), None)
+    by = list(dict.fromkeys(by or []))
+    unknown = [c for c in by if c not in have]
+    if unknown:
+        raise ConfigError(f"--by: no column {', '.join(unknown)} in {source}")
+    if select is not None:
+        _expr.check_expression(select, list(colnames))
+    if select_cases is not None:
+        _expr.check_expression(select_cases, list(colnames), case_mode=True)
+    plan = _Plan(source, weighted, psf, by, select, select_cases, has_flags="flags" in have)
+    cols = [*TRUTH_COLUMNS, *ESTIMATE_COLUMNS]
+    if weighted:
+        cols += WEIGHT_COLUMNS
+    if plan.has_flags:
+        cols.append("flags")
+    if psf:
+        cols += psf
+    cols += by
+    if select is not None:
+        cols += _expr.columns_used(select)
+    plan.columns = list(dict.fromkeys(c for c in cols if c in have))
+    return plan
+
+
+# --------------------------------------------------------------------------- per-chunk rows
+
+
+@dataclass
+class _Rows:
+    case: np.ndarray
+    selected: np.ndarray
+    valid: dict[str, np.ndarray]  # "g1", "g2": usable estimate on this row
+    tru: dict[str, np.ndarray]  # NaN-free (0 where not valid)
+    pre: dict[str, np.ndarray]
+    weight: dict[tuple[str, str], np.ndarray]  # (scheme, comp) -> weight (0 = row not used)
+    psf: tuple[np.ndarray, np.ndarray] | None
+
+
+def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
+    case = np.asarray(chunk["case"])
+    if case.dtype.kind not in "iu":
+        if case.dtype.kind == "f" and np.all(np.isfinite(case)) and np.all(case == np.round(case)):
+            case = case.astype(np.int64)
+        else:
+            raise InputError(f"{plan.source}: column 'case' must hold integer case ids")
+    n = case.size
+    selected = np.ones(n, dtype=bool)
+    if plan.select is not None:
+        selected &= _expr.evaluate_rows(plan.select, chunk, n)
+    if plan.selected_cases is not None:
+        selected &= np.isin(case, plan.selected_cases)
+    base = selected.copy()
+    if plan.has_flags:
+        base &= np.asarray(chunk["flags"]) == 0
+    valid, tru, pre, weight = {}, {}, {}, {}
+    for comp in ("g1", "g2"):
+        t = np.asarray(chunk[f"tru_{comp}"], dtype=float)
+        p = np.asarray(chunk[f"pre_{comp}"], dtype=float)
+        ok = base & np.isfinite(t) & np.isfinite(p)
+        valid[comp] = ok
+        tru[comp] = np.where(ok, t, 0.0)
+        pre[comp] = np.where(ok, p, 0.0)
+        weight[("unweighted", comp)] = ok.astype(float)
+        if plan.weighted:
+            wcol = f"pre_{comp}_w"
+            w = np.asarray(chunk[wcol], dtype=float)
+            bad = ok & (w < 0)
+            if np.any(bad):
+                raise InputError(f"{plan.source}: column {wcol} has {int(bad.sum())} negative weight(s)")
+            weight[("weighted", comp)] = np.where(ok & np.isfinite(w) & (w > 0), w, 0.0)
+    psf = None
+    if plan.psf is not None:
+        psf = (np.asarray(chunk[plan.psf[0]], dtype=float), np.asarray(chunk[plan.psf[1]], dtype=float))
+    return _Rows(case, selected, valid, tru, pre, weight, psf)
+
+
+# --------------------------------------------------------------------------- group sums
+
+
+class _GroupSums:
+    """Sums of row quantities per (bin, case), accumulated over chunks."""
+
+    def __init__(self, names: Sequence[str]):
+        self.names = list(names)
+        self._bins: list[np.ndarray] = []
+        self._cases: list[np.ndarray] = []
+        self._sums: list[np.ndarray] = []
+
+    def add(self, case: np.ndarray, values: Mapping[str, np.ndarray], bin_idx: np.ndarray | None = None) -> None:
+        if bin_idx is not None:
+            keep = bin_idx >= 0
+            case, bin_idx = case[keep], bin_idx[keep]
+            values = {k: v[keep] for k, v in values.items()}
+        else:
+            bin_idx = np.zeros(case.size, dtype=np.int64)
+        if case.size == 0:
+            return
+        ids, inv = np.unique(case, return_inverse=True)
+        key = bin_idx * ids.size + inv.ravel()
+        size = int(bin_idx.max() + 1) * ids.size
+        present = np.flatnonzero(np.bincount(key, minlength=size))
+        self._bins.append(present // ids.size)
+        self._cases.append(ids[present % ids.size])
+        self._sums.append(np.stack([np.bincount(key, weights=values[k], minlength=size)[present] for k in self.names]))
+
+    def result(self) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """``(bins, cases, {name: sums})`` with one entry per (bin, case) present."""
+        if not self._cases:
+            empty = np.zeros(0)
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), {k: empty for k in self.names}
+        bins = np.concatenate(self._bins)
+        cases = np.concatenate(self._cases)
+        sums = np.concatenate(self._sums, axis=1)
+        ids, cinv = np.unique(cases, return_inverse=True)
+        keys, inv = np.unique(bins * ids.size + cinv.ravel(), return_inverse=True)
+        inv = inv.ravel()
+        out = {k: np.bincount(inv, weights=sums[i], minlength=keys.size) for i, k in enumerate(self.names)}
+        return keys // ids.size, ids[keys % ids.size], out
+
+
+def _sum_names(schemes: Sequence[str]) -> list[str]:
+    names = []
+    for s in schemes:
+        for comp in ("g1", "g2"):
+            names += [f"{s}:w:{comp}", f"{s}:wpre:{comp}", f"{s}:wtru:{comp}", f"{s}:n:{comp}"]
+        names.append(f"{s}:n:both")
+    return names
+
+
+def _row_values(rows: _Rows, schemes: Sequence[str]) -> dict[str, np.ndarray]:
+    vals: dict[str, np.ndarray] = {}
+    for s in schemes:
+        for comp in ("g1", "g2"):
+            w = rows.weight[(s, comp)]
+            vals[f"{s}:w:{comp}"] = w
+            vals[f"{s}:wpre:{comp}"] = w * rows.pre[comp]
+            vals[f"{s}:wtru:{comp}"] = w * rows.tru[comp]
+            vals[f"{s}:n:{comp}"] = (w > 0).astype(float)
+        vals[f"{s}:n:both"] = ((rows.weight[(s, "g1")] > 0) & (rows.weight[(s, "g2")] > 0)).astype(float)
+    return vals
+
+
+# --------------------------------------------------------------------------- fits
+
+
+def _case_estimates(
+    sums: Mapping[str, np.ndarray], scheme: str, theta: np.ndarray | None
+) -> dict[str, dict[str, np.ndarray]]:
+    """Per-case true and estimated averages (NaN where the case has no usable row) and row counts."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for comp in ("g1", "g2"):
+            w = sums[f"{scheme}:w:{comp}"]
+            use = w > 0
+            out[comp] = {
+                "tru": np.where(use, sums[f"{scheme}:wtru:{comp}"] / w, np.nan),
+                "pre": np.where(use, sums[f"{scheme}:wpre:{comp}"] / w, np.nan),
+                "n_rows": np.where(use, sums[f"{scheme}:n:{comp}"], 0.0),
+            }
+    if theta is not None:
+        cos2, sin2 = np.cos(2 * theta), np.sin(2 * theta)
+        n_both = sums[f"{scheme}:n:both"]
+        for kind in ("tru", "pre"):
+            a, b = out["g1"][kind], out["g2"][kind]
+            out.setdefault("plus", {})[kind] = a * cos2 + b * sin2
+            out.setdefault("cross", {})[kind] = -a * sin2 + b * cos2
+        use = np.isfinite(out["plus"]["pre"])
+        out["plus"]["n_rows"] = np.where(use, n_both, 0.0)
+        out["cross"]["n_rows"] = out["plus"]["n_rows"]
+    return out
+
+
+def _fit_components(per_case: Mapping[str, Mapping[str, np.ndarray]]) -> dict[str, BiasFit]:
+    fits = {}
+    for comp, d in per_case.items():
+        use = np.isfinite(d["pre"]) & np.isfinite(d["tru"])
+        fits[comp] = fit_bias(d["tru"][use], d["pre"][use], n_rows=int(d["n_rows"][use].sum()))
+    return fits
+
+
+def _spread(x: np.ndarray) -> bool:
+    x = x[np.isfinite(x)]
+    return x.size > 1 and np.ptp(x) > 1e-12 + 1e-9 * float(np.max(np.abs(x)))
+
+
+def _json_list(a: np.ndarray) -> list[Any]:
+    return [None if not math.isfinite(v) else (int(v) if float(v).is_integer() and abs(v) < 2**53 else float(v))
+            for v in np.asarray(a, dtype=float)]
+
+
+# --------------------------------------------------------------------------- main entry
+
+
+def _iter_path(path: str | os.PathLike, plan: _Plan, chunk_rows: int) -> Iterator[Mapping[str, np.ndarray]]:
+    for table in iter_catalog(path, chunk_rows, plan.columns):
+        yield {c: np.asarray(table[c]) for c in plan.columns}
+
+
+def evaluate_catalog(
+    path: str | os.PathLike,
+    *,
+    by: Sequence[str] | None = None,
+    bins: int = 5,
+    select: str | None = None,
+    select_cases: str | None = None,
+    chunk_rows: int = CHUNK_ROWS,
+) -> dict[str, Any]:
+    """Evaluate the shear biases of the catalog at ``path``; returns a JSON-ready dict.
+
+    ``by``: columns for conditional biases in ``bins`` equal-population bins; ``select``:
+    row selection expression (:func:`megalut_cli.expr.evaluate_rows`); ``select_cases``:
+    case selection on per-case aggregates (:func:`megalut_cli.expr.evaluate_cases`),
+    e.g. ``"mean(snr) > 10"`` as in paper Fig. 12. See :func:`evaluate_columns`.
+    """
+    _, names, _ = catalog_info(path)
+    plan = _make_plan(names, str(path), by, select, select_cases)
+    if select_cases is not None:
+        used = [c for c in _expr.columns_used(select_cases) if c in names]
+        t = read_catalog(path, columns=list(dict.fromkeys(["case", *used])))
+        ids, mask = _expr.evaluate_cases(select_cases, {c: np.asarray(t[c]) for c in t.colnames}, np.asarray(t["case"]))
+        plan.selected_cases = ids[mask]
+        del t
+    result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins)
+    result["input"] = str(path)
+    return result
+
+
+def evaluate_columns(
+    columns: Mapping[str, np.ndarray],
+    *,
+    by: Sequence[str] | None = None,
+    bins: int = 5,
+    select: str | None = None,
+    select_cases: str | None = None,
+    source: str = "catalog",
+) -> dict[str, Any]:
+    """Evaluate in-memory columns (a dict of arrays or an astropy Table), as :func:`evaluate_catalog`.
+
+    The result holds, for ``"unweighted"`` and (with weight columns) ``"weighted"``, a
+    dict per component (``g1, g2`` and ``plus, cross`` with PSF columns) with ``m, m_err,
+    c, c_err, n_cases, n_rows``; ``"conditional"`` when ``by`` is given; ``"requirement"``
+    (Stage IV check), ``"q_c"`` (GREAT3 metric), ``"per_case"`` averages and row counts.
+    """
+    names = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
+    plan = _make_plan(names, source, by, select, select_cases)
+    data = {c: np.asarray(columns[c]) for c in plan.columns}
+    if select_cases is not None:
+        cols = {c: np.asarray(columns[c]) for c in _expr.columns_used(select_cases) if c in names}
+        ids, mask = _expr.evaluate_cases(select_cases, cols, np.asarray(columns["case"]))
+        plan.selected_cases = ids[mask]
+    result = _evaluate(lambda: iter([data]), plan, bins)
+    result["input"] = source
+    return result
+
+
+def _evaluate(chunks: Any, plan: _Plan, n_bins: int) -> dict[str, Any]:
+    """Two passes over ``chunks()`` when ``plan.by`` (bin edges first), else one."""
+    schemes = plan.schemes
+    # Pass 1 (conditional biases only): values of the 'by' columns on the rows used.
+    edges: dict[str, np.ndarray] = {}
+    by_values: dict[str, list[np.ndarray]] = {c: [] for c in plan.by}
+    if plan.by:
+        for chunk in chunks():
+            rows = _rows(chunk, plan)
+            used = rows.valid["g1"] | rows.valid["g2"]
+            for c in plan.by:
+                by_values[c].append(np.asarray(chunk[c], dtype=float)[used])
+        for c in plan.by:
+            vals = np.concatenate(by_values[c]) if by_values[c] else np.zeros(0)
+            if vals.size:
+                edges[c] = equal_population_edges(vals, n_bins, c)
+                by_values[c] = [vals]
+
+    # Pass 2: per-(bin, case) sums.
+    names = _sum_names(schemes)
+    overall = _GroupSums(names)
+    conditional = {c: _GroupSums(names) for c in edges}
+    psf_sums = _GroupSums(["psf1", "psf2", "npsf"]) if plan.psf else None
+    n_total = n_selected = n_valid = 0
+    for chunk in chunks():
+        rows = _rows(chunk, plan)
+        n_total += rows.case.size
+        n_selected += int(rows.selected.sum())
+        n_valid += int((rows.valid["g1"] | rows.valid["g2"]).sum())
+        vals = _row_values(rows, schemes)
+        overall.add(rows.case, vals)
+        for c, g in conditional.items():
+            g.add(rows.case, vals, assign_bins(np.asarray(chunk[c], dtype=float), edges[c]))
+        if psf_sums is not None and rows.psf is not None:
+            ok = np.isfinite(rows.psf[0]) & np.isfinite(rows.psf[1])
+            psf_sums.add(rows.case, {"psf1": np.where(ok, rows.psf[0], 0.0), "psf2": np.where(ok, rows.psf[1], 0.0),
+                                     "npsf": ok.astype(float)})
+
+    _check_usable(plan, n_total, n_selected, n_valid)
+    _, case_ids, sums = overall.result()
+
+    theta_of: dict[int, float] = {}
+    theta = None
+    psf_round = False
+    if psf_sums is not None:
+        _, pcases, psums = psf_sums.result()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            th = psf_angle(psums["psf1"] / psums["npsf"], psums["psf2"] / psums["npsf"])
+        theta_of = dict(zip(pcases.tolist(), th.tolist()))
+        theta = np.array([theta_of.get(int(k), np.nan) for k in case_ids])
+        psf_round = bool(np.all((psums["psf1"] == 0) & (psums["psf2"] == 0)))
+        if psf_round:
+            log.info("the PSF is round in every case: the PSF frame is the pixel frame")
+
+    per_case = {s: _case_estimates(sums, s, theta) for s in schemes}
+    _check_cases(plan, per_case["unweighted"], case_ids)
+    if plan.weighted and not np.any(sums["weighted:w:g1"] > 0) and not np.any(sums["weighted:w:g2"] > 0):
+        raise InputError(f"{plan.source}: the weights {', '.join(WEIGHT_COLUMNS)} are zero on every usable row")
+
+    result: dict[str, Any] = {
+        "format": JSON_FORMAT,
+        "format_version": JSON_FORMAT_VERSION,
+        "input": plan.source,
+        "n_rows": n_total,
+        "n_selected": n_selected,
+        "n_valid": n_valid,
+        "select": plan.select,
+        "select_cases": plan.select_cases,
+        "psf_frame": {"columns": list(plan.psf), "round": psf_round} if plan.psf else None,
+        "weights": list(WEIGHT_COLUMNS) if plan.weighted else None,
+    }
+    fits = {s: _fit_components(per_case[s]) for s in schemes}
+    for s in schemes:
+        result[s] = {comp: fits[s][comp].as_dict() for comp in COMPONENTS if comp in fits[s]}
+        for comp, f in fits[s].items():
+            if not math.isfinite(f.m):
+                log.warning("%s %s: m and c undetermined (%d case(s) with usable rows, or no spread in the "
+                            "true shear)", s, comp, f.n_cases)
+    result["requirement"] = _requirement(fits, schemes)
+    frame = ("plus", "cross") if plan.psf else ("g1", "g2")
+    result["q_c"] = {
+        "frame": "psf" if plan.psf else "pixel",
+        "sigma2_min": GREAT3_SIGMA2_MIN_GROUND,
+        **{s: _json_q(q_c(fits[s][frame[0]].m, fits[s][frame[0]].c, fits[s][frame[1]].m, fits[s][frame[1]].c))
+           for s in schemes},
+    }
+    if plan.by:
+        result["conditional"] = {}
+        for c in plan.by:
+            if c not in edges:
+                log.warning("--by %s: no usable row has a value", c)
+                result["conditional"][c] = {"edges": [], "bins": []}
+                continue
+            result["conditional"][c] = _conditional(conditional[c], edges[c], by_values[c][0], schemes, theta_of)
+    result["per_case"] = {
+        "case": [int(k) for k in case_ids],
+        **({"psf_theta": _json_list(theta)} if theta is not None else {}),
+        **{s: {comp: {k: _json_list(v) for k, v in d.items()} for comp, d in per_case[s].items()} for s in schemes},
+    }
+    return result
+
+
+def _json_q(q: float) -> float | None:
+    return q if math.isfinite(q) else None
+
+
+def _check_usable(plan: _Plan, n_total: int, n_selected: int, n_valid: int) -> None:
+    if n_total == 0:
+        raise InputError(f"{plan.source}: the catalog has no rows")
+    if n_selected == 0:
+        what = " and ".join(f"{o} {e!r}" for o, e in (("--select", plan.select), ("--select-cases", plan.select_cases))
+                            if e is not None)
+        raise InputError(f"{plan.source}: no row passes {what}")
+    if n_valid == 0:
+        raise InputError(
+            f"{plan.source}: all {n_selected} rows failed (flags != 0 or NaN estimates); nothing to evaluate"
+        )
+
+
+def _check_cases(plan: _Plan, per_case: Mapping[str, Mapping[str, np.ndarray]], case_ids: np.ndarray) -> None:
+    usable = np.isfinite(per_case["g1"]["pre"]) | np.isfinite(per_case["g2"]["pre"])
+    if usable.sum() < 2:
+        which = f" (case {int(case_ids[usable][0])})" if usable.any() else ""
+        raise InputError(
+            f"{plan.source}: only one case{which} has usable rows; m and c need several cases "
+            "with different true shears"
+        )
+    if not (_spread(per_case["g1"]["tru"]) or _spread(per_case["g2"]["tru"])):
+        g1 = np.nanmean(per_case["g1"]["tru"])
+        g2 = np.nanmean(per_case["g2"]["tru"])
+        raise InputError(
+            f"{plan.source}: the true shear is the same in every case (tru_g1={g1:g}, tru_g2={g2:g}); "
+            "no lever arm to fit m"
+        )
+
+
+def _requirement(fits: Mapping[str, Mapping[str, BiasFit]], schemes: Sequence[str]) -> dict[str, Any]:
+    scheme = schemes[-1]  # weighted when present
+    failures = []
+    for comp, f in fits[scheme].items():
+        if not (math.isfinite(f.m) and math.isfinite(f.c)):
+            failures.append(f"{comp}: m, c undetermined")
+            continue
+        if abs(f.m) >= STAGE_IV_M:
+            failures.append(f"{comp}: |m| = {abs(f.m):.2e}")
+        if abs(f.c) >= STAGE_IV_C:
+            failures.append(f"{comp}: |c| = {abs(f.c):.2e}")
+    return {"m": STAGE_IV_M, "c": STAGE_IV_C, "applies_to": scheme, "met": not failures, "failures": failures}
+
+
+def _conditional(
+    sums: _GroupSums,
+    edges: np.ndarray,
+    values: np.ndarray,
+    schemes: Sequence[str],
+    theta_of: Mapping[int, float],
+) -> dict[str, Any]:
+    bins, cases, s = sums.result()
+    value_bin = assign_bins(values, edges)
+    out_bins = []
+    for k in range(edges.size - 1):
+        sel = bins == k
+        sub = {name: v[sel] for name, v in s.items()}
+        theta = np.array([theta_of.get(int(c), np.nan) for c in cases[sel]]) if theta_of else None
+        in_bin = values[value_bin == k]
+        entry: dict[str, Any] = {
+            "lo": float(edges[k]),
+            "hi": float(edges[k + 1]),
+            "center": float(np.median(in_bin)) if in_bin.size else None,
+            "n_rows": int(in_bin.size),
+        }
+        for scheme in schemes:
+            fits = _fit_components(_case_estimates(sub, scheme, theta))
+            entry[scheme] = {comp: fits[comp].as_dict() for comp in COMPONENTS if comp in fits}
+        out_bins.append(entry)
+    return {"edges": [float(e) for e in edges], "bins": out_bins}
+
+
+# --------------------------------------------------------------------------- reporting
+
+
+def requirement_met(result: Mapping[str, Any]) -> bool:
+    """Whether the Stage IV requirement holds (weighted results when present, else unweighted)."""
+    return bool(result["requirement"]["met"])
+
+
+def _pm(v: float | None, e: float | None) -> str:
+    if v is None:
+        return f"{'undetermined':>21}"
+    err = f"{e:.1e}" if e is not None else "  n/a  "
+    return f"{v:+.2e} ± {err}"
+
+
+def _pm_short(v: float | None, e: float | None) -> str:
+    if v is None:
+        return f"{'n/a':^17}"
+    return f"{v:+.1e}±{e:.1e}" if e is not None else f"{v:+.1e}±  n/a  "
+
+
+def _ok(fit: Mapping[str, Any]) -> str:
+    m, c = fit["m"], fit["c"]
+    if m is None or c is None:
+        return "?"
+    return "ok" if abs(m) < STAGE_IV_M and abs(c) < STAGE_IV_C else "OUT"
+
+
+def format_table(result: Mapping[str, Any]) -> str:
+    """A readable text report of an evaluation result."""
+    lines = [f"shear biases of {result['input']}"]
+    lines.append(
+        f"rows: {result['n_rows']} in catalog, {result['n_selected']} selected, {result['n_valid']} usable "
+        "(flags == 0, finite estimates)"
+    )
+    if result.get("select"):
+        lines.append(f"row selection: {result['select']}")
+    if result.get("select_cases"):
+        lines.append(f"case selection: {result['select_cases']}")
+    if result.get("psf_frame"):
+        note = " (round PSF in every case: same as g1, g2)" if result["psf_frame"].get("round") else ""
+        lines.append(f"PSF frame (plus, cross) from {', '.join(result['psf_frame']['columns'])}{note}")
+    lines.append(f"Stage IV requirement: |m| < {STAGE_IV_M:.0e}, |c| < {STAGE_IV_C:.0e}")
+    header = f"  {'':6}{'m':^22}   {'c':^22}  {'cases':>6} {'rows':>10}  req"
+    for scheme in SCHEMES:
+        if scheme not in result:
+            continue
+        lines += ["", f"{scheme} (per-case {'weighted ' if scheme == 'weighted' else ''}averages)", header]
+        for comp, f in result[scheme].items():
+            lines.append(
+                f"  {comp:6}{_pm(f['m'], f['m_err']):>22}   {_pm(f['c'], f['c_err']):>22}  "
+                f"{f['n_cases']:>6} {f['n_rows']:>10}  {_ok(f)}"
+            )
+    q = result.get("q_c")
+    if q:
+        frame = "+/x" if q["frame"] == "psf" else "1/2"
+        vals = ", ".join(f"{s} {q[s]:.1f}" if q.get(s) is not None else f"{s} n/a" for s in SCHEMES if s in q)
+        lines += ["", f"GREAT3 Q_c ({frame} frame, sigma2_min={q['sigma2_min']:g}): {vals}"]
+    req = result["requirement"]
+    verdict = "met" if req["met"] else "NOT met (" + "; ".join(req["failures"]) + ")"
+    lines.append(f"Stage IV requirement on {req['applies_to']} results: {verdict}")
+    for col, cond in (result.get("conditional") or {}).items():
+        for scheme in SCHEMES:
+            if not cond["bins"] or scheme not in cond["bins"][0]:
+                continue
+            comps = list(cond["bins"][0][scheme])
+            lines += ["", f"conditional biases by {col} ({len(cond['bins'])} equal-population bins, {scheme})"]
+            for frame in (comps[:2], comps[2:]):
+                if not frame:
+                    continue
+                head = f"  {'range':^23} {'rows':>9} {'cases':>6}"
+                for comp in frame:
+                    head += f"  {'m_' + comp:^17} {'c_' + comp:^17}"
+                lines.append(head)
+                for b in cond["bins"]:
+                    f0 = b[scheme][frame[0]]
+                    row = f"  [{b['lo']:10.4g},{b['hi']:10.4g}] {b['n_rows']:>9} {f0['n_cases']:>6}"
+                    for comp in frame:
+                        f = b[scheme][comp]
+                        row += f"  {_pm_short(f['m'], f['m_err'])} {_pm_short(f['c'], f['c_err'])}"
+                    lines.append(row)
+    return "\n".join(lines)

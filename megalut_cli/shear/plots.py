@@ -1,0 +1,141 @@
+"""Figures of ``megalut evaluate --plot`` (matplotlib, the optional ``plot`` extra).
+
+Top: residuals ``<g_est> - g`` of every case against its true shear, one panel per
+component (``g1, g2`` and, with PSF columns, ``plus, cross``), unweighted then weighted
+(paper Figs. 13, 14 and 19), with the fitted line and ``m, c`` annotated. The shaded band
+is the Stage IV requirement, ``|m g + c| < 2e-3 |g| + 2e-4``. Further rows: conditional
+``m`` and ``c`` per equal-population bin of each ``--by`` column with 1-sigma error bars
+(horizontal bars span the bin), against the bands ``|m| < 2e-3`` and ``|c| < 2e-4``
+(paper Figs. 12 and 15).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from megalut_cli.atomic import atomic_output
+from megalut_cli.errors import MegalutError
+from megalut_cli.shear.bias import STAGE_IV_C, STAGE_IV_M
+
+_LABELS = {"g1": "g_1", "g2": "g_2", "plus": "g_+", "cross": r"g_\times"}
+_COLORS = {"g1": "C0", "g2": "C1", "plus": "C2", "cross": "C3"}
+_FORMATS = {".png": "png", ".pdf": "pdf", ".svg": "svg"}
+
+
+def _figure_class() -> Any:
+    try:
+        from matplotlib.figure import Figure
+    except ImportError:
+        raise MegalutError("--plot needs matplotlib: pip install 'megalut-cli[plot]'") from None
+    return Figure
+
+
+def check_plot_output(path: str | os.PathLike) -> None:
+    """Fail early when matplotlib is missing or the file type is not supported."""
+    _figure_class()
+    if Path(path).suffix.lower() not in _FORMATS:
+        raise MegalutError(f"{path}: plot file must end in {', '.join(_FORMATS)}")
+
+
+def _arr(values: Any) -> np.ndarray:
+    return np.array([np.nan if v is None else v for v in values], dtype=float)
+
+
+def _fmt(v: float | None, e: float | None) -> str:
+    if v is None:
+        return "n/a"
+    return f"{v:+.2e} ± {e:.1e}" if e is not None else f"{v:+.2e}"
+
+
+def _residual_panel(ax: Any, per_case: Mapping[str, Any], fit: Mapping[str, Any], comp: str, scheme: str) -> None:
+    tru, pre = _arr(per_case["tru"]), _arr(per_case["pre"])
+    ok = np.isfinite(tru) & np.isfinite(pre)
+    tru, res = tru[ok], pre[ok] - tru[ok]
+    lim = max(float(np.max(np.abs(tru))) if tru.size else 0.1, 1e-3) * 1.1
+    g = np.linspace(-lim, lim, 50)
+    ax.fill_between(g, -(STAGE_IV_M * np.abs(g) + STAGE_IV_C), STAGE_IV_M * np.abs(g) + STAGE_IV_C,
+                    color="0.85", lw=0, label="Stage IV")
+    ax.axhline(0.0, color="0.5", lw=0.6)
+    ax.plot(tru, res, ".", ms=3, color=_COLORS[comp], alpha=0.7)
+    if fit["m"] is not None:
+        ax.plot(g, fit["m"] * g + fit["c"], "-", color="k", lw=1)
+    ax.set_xlim(-lim, lim)
+    lab = _LABELS[comp]
+    ax.set_xlabel(f"true ${lab}$")
+    ax.set_ylabel(rf"$\langle\hat{{{lab}}}\rangle - {lab}$")
+    ax.set_title(f"{scheme} ${lab}$", fontsize=9)
+    ax.text(0.03, 0.97, f"m = {_fmt(fit['m'], fit['m_err'])}\nc = {_fmt(fit['c'], fit['c_err'])}\n"
+            f"{fit['n_cases']} cases", transform=ax.transAxes, va="top", fontsize=7, family="monospace",
+            bbox={"facecolor": "white", "alpha": 0.8, "lw": 0})
+    ax.tick_params(labelsize=7)
+    ax.ticklabel_format(axis="y", style="sci", scilimits=(-2, 2))
+
+
+def _conditional_panel(
+    ax: Any, col: str, cond: Mapping[str, Any], scheme: str, key: str, comps: list[str]
+) -> None:
+    tol = STAGE_IV_M if key == "m" else STAGE_IV_C
+    ax.axhspan(-tol, tol, color="0.85", lw=0)
+    ax.axhline(0.0, color="0.5", lw=0.6)
+    bins = cond["bins"]
+    if bins:
+        lo, hi = _arr(b["lo"] for b in bins), _arr(b["hi"] for b in bins)
+        center = _arr(b["center"] for b in bins)
+        for k, comp in enumerate(comps):
+            y = _arr(b[scheme][comp][key] for b in bins)
+            e = _arr(b[scheme][comp][f"{key}_err"] for b in bins)
+            x = center + (k - (len(comps) - 1) / 2) * 0.06 * (hi - lo)  # side by side within the bin
+            ax.errorbar(x, y, yerr=np.where(np.isfinite(e), e, 0.0),
+                        xerr=[np.maximum(x - lo, 0), np.maximum(hi - x, 0)], fmt="o", ms=3, lw=0.8,
+                        elinewidth=0.8, color=_COLORS[comp], label=f"${_LABELS[comp]}$")
+        ax.legend(fontsize=6, loc="best")
+    ax.set_xlabel(col)
+    ax.set_ylabel(key)
+    ax.set_title(f"{scheme} {key} by {col}", fontsize=9)
+    ax.tick_params(labelsize=7)
+    ax.ticklabel_format(axis="y", style="sci", scilimits=(-2, 2))
+
+
+def plot_evaluation(result: Mapping[str, Any], path: str | os.PathLike, overwrite: bool = False) -> Path:
+    """Draw the evaluation figure of ``result`` (from :mod:`.evaluate`) into ``path`` (png/pdf/svg)."""
+    check_plot_output(path)
+    Figure = _figure_class()
+    schemes = [s for s in ("unweighted", "weighted") if s in result]
+    comps = list(result[schemes[0]])
+    if (result.get("psf_frame") or {}).get("round"):  # the PSF frame repeats g1, g2: not drawn
+        comps = [c for c in comps if c not in ("plus", "cross")]
+    conditional = result.get("conditional") or {}
+    panels = [(scheme, comp) for scheme in schemes for comp in comps]
+    ncols = max(2 * len(schemes), min(len(panels), 4))
+    res_rows = -(-len(panels) // ncols)
+    nrows = res_rows + len(conditional)
+    fig = Figure(figsize=(3.2 * ncols, 2.9 * nrows), layout="constrained")
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    for i, (scheme, comp) in enumerate(panels):
+        _residual_panel(axes[i // ncols][i % ncols], result["per_case"][scheme][comp], result[scheme][comp],
+                        comp, scheme)
+    for i in range(len(panels), res_rows * ncols):
+        axes[i // ncols][i % ncols].set_visible(False)
+    for r, (col, cond) in enumerate(conditional.items(), start=res_rows):
+        k = 0
+        for scheme in schemes:
+            for key in ("m", "c"):
+                _conditional_panel(axes[r][k], col, cond, scheme, key, comps)
+                k += 1
+        for j in range(k, ncols):
+            axes[r][j].set_visible(False)
+    req = result["requirement"]
+    fig.suptitle(
+        f"{Path(str(result.get('input', ''))).name}: Stage IV |m| < {STAGE_IV_M:.0e}, |c| < {STAGE_IV_C:.0e} "
+        f"({req['applies_to']}: {'met' if req['met'] else 'NOT met'})",
+        fontsize=10,
+    )
+    fmt = _FORMATS[Path(path).suffix.lower()]
+    with atomic_output(path, overwrite) as tmp:
+        fig.savefig(tmp, format=fmt, dpi=100)
+    return Path(path)

@@ -1,0 +1,274 @@
+"""Applying a trained shear model to a feature catalog (``megalut predict``).
+
+For every point committee of the model (target ``tru_X``) the output gains ``pre_X``, the
+committee mean, and for every weight committee ``pre_X_w``. Rows whose features failed
+(``flags != 0``, or any model feature not finite) get NaN estimates, weight 0, and
+:data:`megalut_cli.flags.BAD_FEATURES` OR-ed into ``flags`` (created when absent). All input
+columns pass through unchanged.
+
+The catalog is streamed in row chunks: the main process reads a chunk, sends the feature
+matrix to a worker (or evaluates it itself), and appends the chunk with its predictions to
+a temporary FITS file, renamed into place at the end. At most a few chunks are in flight,
+so memory is bounded by the chunk size, not by the catalog. Workers (``-j``, Dask) load
+the model once per process from its path (which must be readable there).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections import deque
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import Executor, Future
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import fitsio
+import numpy as np
+
+from megalut_cli import flags as _flags
+from megalut_cli.atomic import atomic_output, check_output
+from megalut_cli.catalog import catalog_info, header_cards, iter_catalog
+from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.nn.model import ShearModel, prediction_column
+from megalut_cli.parallel import executor, resolve_nproc
+
+log = logging.getLogger(__name__)
+
+#: Rows per chunk (work unit).
+CHUNK_ROWS = 250_000
+FORMAT = "megalut.predictions"
+FORMAT_VERSION = "1.0"
+
+
+def parse_column_map(items: Sequence[str]) -> dict[str, str]:
+    """``["adamom_g1=E1", ...]`` -> ``{"adamom_g1": "E1"}`` (feature -> catalog column)."""
+    out: dict[str, str] = {}
+    for item in items:
+        feat, sep, col = item.partition("=")
+        feat, col = feat.strip(), col.strip()
+        if not sep or not feat or not col:
+            raise ConfigError(f"--col {item!r}: expected FEATURE=COLUMN, e.g. adamom_g1=E1")
+        if feat in out and out[feat] != col:
+            raise ConfigError(f"--col: feature {feat!r} mapped twice")
+        out[feat] = col
+    return out
+
+
+def resolve_columns(
+    features: Sequence[str], available: Sequence[str], column_map: Mapping[str, str] | None, where: str
+) -> dict[str, str]:
+    """Catalog column of every model feature, checking everything at once.
+
+    Raises :class:`ConfigError` for a ``--col`` naming something that is not a feature,
+    and :class:`InputError` listing every feature without a column.
+    """
+    column_map = dict(column_map or {})
+    unknown = [f for f in column_map if f not in features]
+    if unknown:
+        raise ConfigError(
+            f"--col {', '.join(unknown)}: not a feature of the model (its features: {', '.join(features)})"
+        )
+    have = set(available)
+    resolved = {f: column_map.get(f, f) for f in features}
+    missing = [f if resolved[f] == f else f"{f} (--col {f}={resolved[f]})" for f in features if resolved[f] not in have]
+    if missing:
+        raise InputError(
+            f"{where}: missing column(s) for model feature(s) {', '.join(missing)}; "
+            "map differently named columns with --col FEATURE=COLUMN"
+        )
+    return resolved
+
+
+# --------------------------------------------------------------------------- core
+
+
+def predict_arrays(model: Any, x: np.ndarray, flags_in: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Predictions for a feature matrix ``x`` (rows x ``model.features``, in that order).
+
+    Returns the ``pre_*`` columns (float64) and ``flags`` (input flags, or zeros, with
+    ``BAD_FEATURES`` set on failed rows).
+    """
+    x = np.asarray(x, dtype=np.float64)
+    n = x.shape[0]
+    good = np.all(np.isfinite(x), axis=1)
+    if flags_in is None:
+        flags_out = np.zeros(n, dtype=np.int32)
+    else:  # at least 16 bits, so that BAD_FEATURES (128) fits
+        flags_out = np.asarray(flags_in).astype(np.promote_types(np.asarray(flags_in).dtype, np.int16))
+    if flags_in is not None:
+        good &= flags_out == 0
+    flags_out[~good] |= _flags.BAD_FEATURES
+    xg = x[good] if not good.all() else x
+    index = {f: i for i, f in enumerate(model.features)}
+    out: dict[str, np.ndarray] = {}
+    for is_weight, committees in ((False, model.point), (True, model.weight)):
+        for committee in committees.values():
+            cols = [index[f] for f in committee.features]
+            sub = xg if cols == list(range(x.shape[1])) else xg[:, cols]
+            values = np.full(n, 0.0 if is_weight else np.nan)
+            pred = np.asarray(committee.predict(np.ascontiguousarray(sub)), dtype=np.float64)
+            if is_weight:
+                pred = np.where(np.isfinite(pred), pred, 0.0)
+            values[good] = pred
+            out[prediction_column(committee.target, "weight" if is_weight else "point")] = values
+    out["flags"] = flags_out
+    return out
+
+
+def predict_columns(
+    model: Any, columns: Mapping[str, np.ndarray], column_map: Mapping[str, str] | None = None
+) -> dict[str, np.ndarray]:
+    """In-memory prediction: the new columns (``pre_*`` and ``flags``) for a dict/Table of columns."""
+    names = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
+    resolved = resolve_columns(model.features, names, column_map, "catalog")
+    x = np.column_stack([np.asarray(columns[resolved[f]], dtype=np.float64) for f in model.features])
+    return predict_arrays(model, x, np.asarray(columns["flags"]) if "flags" in names else None)
+
+
+_MODELS: dict[str, Any] = {}
+
+
+def _load_model(path: str, sha256: str | None = None) -> Any:
+    """The model at ``path``, loaded once per process (and checked against ``sha256``)."""
+    model = _MODELS.get(str(path))
+    if model is None or (sha256 and model.sha256 != sha256):
+        model = ShearModel.load(path)
+        if sha256 and model.sha256 != sha256:
+            raise InputError(f"{path}: the model changed during the run (sha256 differs)")
+        _MODELS.clear()
+        _MODELS[str(path)] = model
+    return model
+
+
+def _predict_unit(unit: tuple[str, str, np.ndarray, np.ndarray | None]) -> dict[str, np.ndarray]:
+    """Work unit: ``(model_path, model_sha256, X, flags)`` -> prediction columns."""
+    path, sha, x, flg = unit
+    return predict_arrays(_load_model(path, sha), x, flg)
+
+
+def _ordered(
+    func: Callable[[Any], Any], units: Iterator[Any], pool: Executor | None, window: int
+) -> Iterator[tuple[Any, Any]]:
+    """``(key, func(unit))`` for ``(key, unit)`` pairs, in order, at most ``window`` in flight."""
+    if pool is None:
+        for key, unit in units:
+            yield key, func(unit)
+        return
+    pending: deque[tuple[Any, Future]] = deque()
+    try:
+        for key, unit in units:
+            pending.append((key, pool.submit(func, unit)))
+            if len(pending) >= window:
+                u, fut = pending.popleft()
+                yield u, fut.result()
+        while pending:
+            u, fut = pending.popleft()
+            yield u, fut.result()
+    finally:
+        for _, fut in pending:
+            fut.cancel()
+
+
+@dataclass
+class PredictReport:
+    """What ``predict_catalog`` did."""
+
+    output: Path
+    n_rows: int
+    n_failed: int
+    columns: list[str]
+    model_sha256: str
+
+
+def _fits_field(name: str, col: np.ndarray) -> tuple:
+    """Field of a column as FITS stores it back (unicode as ASCII bytes, booleans as int16)."""
+    base = col.dtype
+    if base.kind == "U":
+        base = np.dtype(f"S{max(base.itemsize // 4, 1)}")
+    elif base.kind == "b":
+        base = np.dtype(np.int16)
+    return (name, base, col.shape[1:]) if col.ndim > 1 else (name, base)
+
+
+def _output_dtype(table: Any, new_cols: Sequence[str]) -> np.dtype:
+    """Input columns (as FITS stores them), prediction columns as float64, then ``flags``."""
+    fields = [(c, np.float64) if c in new_cols else _fits_field(c, np.asarray(table[c])) for c in table.colnames]
+    fields += [(c, np.float64) for c in new_cols if c not in table.colnames]
+    if "flags" not in table.colnames:
+        fields.append(("flags", np.int32))
+    else:  # as predict_arrays: at least 16 bits for BAD_FEATURES
+        fields = [(c, np.promote_types(f[0], np.int16)) if c == "flags" else (c, *f) for c, *f in fields]
+    return np.dtype(fields)
+
+
+def predict_catalog(
+    features_path: str | os.PathLike,
+    model_path: str | os.PathLike,
+    output: str | os.PathLike,
+    *,
+    column_map: Mapping[str, str] | None = None,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    overwrite: bool = False,
+    chunk_rows: int = CHUNK_ROWS,
+    progress: Callable[[int], None] | None = None,
+) -> PredictReport:
+    """Predict shears for every row of ``features_path`` into ``output`` (see module doc).
+
+    ``progress(n)`` is called with the number of rows just written.
+    """
+    check_output(output, overwrite)
+    if Path(output).resolve() == Path(features_path).resolve():
+        raise ConfigError("the output must not be the input catalog")
+    n_rows, names, header = catalog_info(features_path)
+    abs_model = str(Path(model_path).resolve())
+    model = ShearModel.load(abs_model)  # always fresh here; workers reuse it by hash
+    _MODELS.clear()
+    _MODELS[abs_model] = model
+    resolved = resolve_columns(model.features, names, column_map, str(features_path))
+    has_flags = "flags" in names
+    new_cols = [prediction_column(c.target, c.kind) for c in model.point.values()]
+    new_cols += [prediction_column(c.target, c.kind) for c in model.weight.values()]
+    replaced = [c for c in new_cols if c in names]
+    if replaced:
+        log.warning("%s: replacing existing column(s) %s", features_path, ", ".join(replaced))
+    cards = {k: v for k, v in header.items() if k != "HISTORY"}
+    cards["MODELSHA"] = (model.sha256, "sha256 of the model file")
+    cards["MODEL"] = (Path(model_path).name[:68], "model file")
+    recs = header_cards(FORMAT, FORMAT_VERSION, cards, header.get("HISTORY"))
+    feature_cols = [resolved[f] for f in model.features]
+    n_failed = 0
+
+    def units() -> Iterator[tuple[Any, tuple]]:
+        for table in iter_catalog(features_path, chunk_rows):
+            x = np.column_stack([np.asarray(table[c], dtype=np.float64) for c in feature_cols]) if len(table) else \
+                np.zeros((0, len(feature_cols)))
+            flg = np.asarray(table["flags"]) if has_flags else None
+            yield table, (abs_model, model.sha256, x, flg)
+
+    with executor(nproc, scheduler) as pool:
+        window = 2 * resolve_nproc(nproc) if scheduler is None else 16
+        with atomic_output(output, overwrite) as tmp, fitsio.FITS(str(tmp), "rw", clobber=True) as fits:
+            dtype = None
+            for table, pred in _ordered(_predict_unit, units(), pool, window):
+                if dtype is None:
+                    dtype = _output_dtype(table, new_cols)
+                arr = np.zeros(len(table), dtype=dtype)
+                for c in table.colnames:
+                    if c not in pred:
+                        col = np.asarray(table[c])
+                        arr[c] = np.char.encode(col, "ascii") if col.dtype.kind == "U" else col
+                for c, v in pred.items():
+                    arr[c] = v
+                n_failed += int(np.count_nonzero(pred["flags"] & _flags.BAD_FEATURES))
+                if len(fits) < 2:
+                    fits.write(arr, header=recs, extname="CATALOG")
+                else:
+                    fits[-1].append(arr)
+                if progress is not None:
+                    progress(len(table))
+    if n_failed:
+        log.info("%d of %d rows have failed features (NaN estimates, flag BAD_FEATURES)", n_failed, n_rows)
+    return PredictReport(Path(output), n_rows, n_failed, new_cols, model.sha256)

@@ -1,0 +1,452 @@
+"""Library entry points of ``megalut train-point`` and ``megalut train-weight``.
+
+:func:`train_point` trains one committee of point estimators per target with the MSB cost
+(paper Sect. 5.1), optionally continuing from an earlier model (pretraining, Sect. 6).
+:func:`train_weight` predicts the point estimates of a model on a weight-training catalog
+and trains one committee of weight networks per target with the MSWB cost (Sect. 5.2); the
+written model holds both. Neither needs GalSim or click.
+
+Masked realizations: rows with ``flags != 0`` (when the column exists), with a non-finite
+feature, (for weights) with a non-finite point estimate or outside ``select``. Cases left
+without any valid realization are dropped with a warning; an error is raised when fewer
+than two cases remain.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import AbstractContextManager
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from megalut_cli.atomic import check_output
+from megalut_cli.catalog import catalog_info, read_catalog, require_columns
+from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.expr import check_expression, columns_used, evaluate_cases, evaluate_rows
+from megalut_cli.nn import normalization as norm
+from megalut_cli.nn.committee import CommitteeSpec, train_committees
+from megalut_cli.nn.data import CaseData, build_cases, split_cases, valid_rows
+from megalut_cli.nn.model import Committee, ShearModel, component_name
+from megalut_cli.nn.network import Network
+from megalut_cli.nn.train import OPTIMIZERS, TrainSettings
+from megalut_cli.parallel import executor
+from megalut_cli.provenance import command_line, sha256_file, software_versions
+from megalut_cli.seeding import STREAM_SPLIT, rng_for
+
+log = logging.getLogger("megalut")
+
+#: The paper's five input features (Sect. 5.3).
+DEFAULT_FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]
+DEFAULT_TARGETS = ["tru_g1", "tru_g2"]
+DEFAULT_POINT_HIDDEN = (5, 5)
+DEFAULT_WEIGHT_HIDDEN = (5,)
+DEFAULT_POINT_ITERATIONS = 1000
+DEFAULT_WEIGHT_ITERATIONS = 300
+
+ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
+
+
+@dataclass
+class TrainOptions:
+    """Settings shared by point and weight training."""
+
+    members: int = 8
+    iterations: int = DEFAULT_POINT_ITERATIONS
+    batch_fraction: float = 0.25
+    batch_iterations: int = 30
+    optimizer: str = "bfgs"
+    normalization: str = "minmax"
+    valid_fraction: float = 0.2
+    seed: int = 1
+    dtype: str = "float64"
+    keep: int | None = None
+
+    def check(self) -> None:
+        if self.members < 1:
+            raise ConfigError("--members must be at least 1")
+        if self.keep is not None and not 1 <= self.keep <= self.members:
+            raise ConfigError("--keep must be between 1 and --members")
+        if self.iterations < 1:
+            raise ConfigError("--iterations must be at least 1")
+        if not 0.0 < self.batch_fraction <= 1.0:
+            raise ConfigError("--batch-fraction must be in (0, 1]")
+        if self.batch_iterations < 1:
+            raise ConfigError("--batch-iterations must be at least 1")
+        if not 0.0 <= self.valid_fraction < 1.0:
+            raise ConfigError("--valid-fraction must be in [0, 1)")
+        if self.optimizer not in OPTIMIZERS:
+            raise ConfigError(f"unknown optimizer {self.optimizer!r} (choose from {', '.join(OPTIMIZERS)})")
+        if self.normalization not in norm.METHODS:
+            raise ConfigError(f"unknown normalisation {self.normalization!r}")
+        if self.dtype not in ("float64", "float32"):
+            raise ConfigError(f"unknown precision {self.dtype!r}")
+
+
+@contextlib.contextmanager
+def _no_progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
+    done = 0
+
+    def update(n: int) -> None:
+        nonlocal done
+        done += n
+        log.info("%s: %d/%d", label, done, length)
+
+    yield update
+
+
+def _unique(items: Sequence[str], what: str) -> list[str]:
+    items = [str(i) for i in items]
+    dup = sorted({i for i in items if items.count(i) > 1})
+    if dup:
+        raise ConfigError(f"duplicate {what}: {', '.join(dup)}")
+    if not items:
+        raise ConfigError(f"no {what} given")
+    return items
+
+
+def _read_columns(path: str | os.PathLike, required: Sequence[str], optional: Sequence[str] = ()) -> dict[str, np.ndarray]:
+    _, names, _ = catalog_info(path)
+    require_columns(names, required, path)
+    use = list(dict.fromkeys([*required, *(c for c in optional if c in names)]))
+    table = read_catalog(path, columns=use)
+    return {c: np.asarray(table[c]) for c in use}
+
+
+def _available(path: str | os.PathLike) -> list[str]:
+    return catalog_info(path)[1]
+
+
+def _select_cases(columns: Mapping[str, np.ndarray], ok: np.ndarray, expr: str, where: str) -> np.ndarray:
+    """Restrict ``ok`` to the cases selected by a case expression (evaluated on valid rows)."""
+    if not ok.any():
+        return ok
+    sub = {c: np.asarray(columns[c])[ok] for c in columns_used(expr)}
+    ids, sel = evaluate_cases(expr, sub, np.asarray(columns["case"])[ok])
+    if not sel.any():
+        raise ConfigError(f"--select-cases {expr!r} selects no case of {where}")
+    log.info("%s: --select-cases keeps %d of %d cases", where, int(sel.sum()), len(ids))
+    return ok & np.isin(columns["case"], ids[sel])
+
+
+def _load_cases(
+    path: str | os.PathLike,
+    features: Sequence[str],
+    targets: Sequence[str],
+    *,
+    constant_targets: bool,
+    select_cases: str | None = None,
+    select_rows: str | None = None,
+    point_model: ShearModel | None = None,
+) -> CaseData:
+    """Read a catalog and group it into cases (see the module docstring for masking)."""
+    names = _available(path)
+    extra = []
+    for expr, case_mode in ((select_cases, True), (select_rows, False)):
+        if expr:
+            check_expression(expr, names, case_mode=case_mode)
+            extra += columns_used(expr)
+    point_features = point_model.features if point_model is not None else []
+    required = list(dict.fromkeys(["case", *features, *point_features, *targets]))
+    columns = _read_columns(path, required, ["flags", *extra])
+    n = len(columns["case"])
+    ok = valid_rows(columns, list(dict.fromkeys([*features, *point_features])), n)
+    point = None
+    if point_model is not None:
+        point = {}
+        for t in targets:
+            comm = point_model.point[t]
+            x = np.column_stack([np.asarray(columns[f], dtype=np.float64) for f in comm.features])
+            point[t] = comm.predict(x)
+            ok &= np.isfinite(point[t])
+    if select_rows:
+        sel = evaluate_rows(select_rows, {c: columns[c] for c in columns_used(select_rows)}, n)
+        if not sel.any():
+            raise ConfigError(f"--select {select_rows!r} selects no row of {path}")
+        log.info("%s: --select keeps %d of %d rows", path, int(sel.sum()), n)
+        ok &= sel
+    if select_cases:
+        ok = _select_cases(columns, ok, select_cases, str(path))
+    data = build_cases(
+        columns, features, targets, ok, where=str(path), constant_targets=constant_targets, point=point
+    )
+    log.info(
+        "%s: %d cases, %d valid realizations (%d masked)",
+        path, data.n_cases, data.n_rows, int(np.isin(columns["case"], data.case_ids).sum()) - data.n_rows,
+    )
+    return data
+
+
+def _split(data: CaseData, valid_path: str | None, valid_data: CaseData | None, opts: TrainOptions) -> tuple[CaseData, CaseData | None, str]:
+    if valid_path is not None:
+        return data, valid_data, str(valid_path)
+    if opts.valid_fraction <= 0:
+        log.warning("no validation set (--valid-fraction 0): members are monitored and selected on the training set")
+        return data, None, "training set"
+    tr, va = split_cases(data.n_cases, opts.valid_fraction, rng_for(opts.seed, STREAM_SPLIT))
+    if len(tr) < 2:
+        raise InputError(
+            f"only {data.n_cases} cases: too few to hold out a validation fraction; use --valid FILE or --valid-fraction 0"
+        )
+    log.info("holding out %d of %d cases for validation (--valid-fraction %g)", len(va), data.n_cases, opts.valid_fraction)
+    return data.subset(tr), data.subset(va), f"held-out fraction {opts.valid_fraction:g}"
+
+
+def _identity_feature(target: str, features: Sequence[str]) -> int:
+    comp = component_name(target)
+    candidates = [comp] + (["g" + comp[1:]] if comp.startswith("e") else [])
+    for c in candidates:
+        for i, f in enumerate(features):
+            if f == c or f.endswith("_" + c):
+                return i
+    return 0
+
+
+def _input(path: str | os.PathLike) -> dict[str, str]:
+    return {"path": str(path), "sha256": sha256_file(path)}
+
+
+def _spread(values: np.ndarray) -> float:
+    s = float(np.std(values))
+    return s if np.isfinite(s) and s > 0 else 1.0
+
+
+def train_point(
+    train: str | os.PathLike,
+    output: str | os.PathLike,
+    *,
+    features: Sequence[str] | None = None,
+    targets: Sequence[str] | None = None,
+    valid: str | os.PathLike | None = None,
+    hidden: Sequence[int] | None = None,
+    cost: str = "msb",
+    select_cases: str | None = None,
+    init_from: str | os.PathLike | None = None,
+    init_scheme: str = "normal",
+    options: TrainOptions | None = None,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    overwrite: bool = False,
+    progress: ProgressFactory | None = None,
+) -> ShearModel:
+    """Train point-estimate committees (one per target) and write the model to ``output``."""
+    opts = options or TrainOptions()
+    opts.check()
+    out = check_output(output, overwrite)
+    if cost not in ("msb", "mse"):
+        raise ConfigError(f"unknown cost {cost!r} for point estimates (choose msb or mse)")
+    if init_scheme not in ("normal", "identity"):
+        raise ConfigError(f"unknown initialisation {init_scheme!r}")
+    if select_cases is not None:
+        check_expression(select_cases, None, case_mode=True)
+    targets = _unique(targets or DEFAULT_TARGETS, "targets")
+    init_model = ShearModel.load(init_from) if init_from is not None else None
+    init_comms: dict[str, Committee] = {}
+    if init_model is not None:
+        available = list(init_model.point.values())
+        if not available:
+            raise InputError(f"{init_from}: the model has no point committee to start from")
+        for i, t in enumerate(targets):
+            src = init_model.point.get(t) or (available[i] if i < len(available) else None)
+            if src is None:
+                raise InputError(f"{init_from}: no committee to initialise target {t} from")
+            if src.target != t:
+                log.info("initialising %s from the %s committee of %s", t, src.target, init_from)
+            init_comms[t] = src
+    if features is None:
+        features = next(iter(init_comms.values())).features if init_comms else DEFAULT_FEATURES
+    features = _unique(features, "features")
+    for src in init_comms.values():
+        if src.features != features:
+            raise InputError(
+                f"{init_from}: the {src.target} committee's features ({', '.join(src.features)}) "
+                f"do not match the features ({', '.join(features)})"
+            )
+        if hidden is not None and tuple(hidden) != src.hidden:
+            raise ConfigError(
+                f"--hidden {','.join(map(str, hidden))} differs from the architecture of {init_from} "
+                f"({','.join(map(str, src.hidden))}); leave --hidden out to continue that model"
+            )
+    overlap = sorted(set(features) & set(targets))
+    if overlap:
+        raise ConfigError(f"column(s) {', '.join(overlap)} cannot be both a feature and a target")
+    hidden = tuple(hidden) if hidden is not None else (
+        next(iter(init_comms.values())).hidden if init_comms else DEFAULT_POINT_HIDDEN
+    )
+    if any(h < 1 for h in hidden):
+        raise ConfigError("--hidden sizes must be positive integers")
+
+    constant = cost != "mse"
+    data = _load_cases(train, features, targets, constant_targets=constant, select_cases=select_cases)
+    vdata = None
+    if valid is not None:
+        vdata = _load_cases(valid, features, targets, constant_targets=constant, select_cases=select_cases)
+    tdata, vdata, valid_desc = _split(data, valid, vdata, opts)
+
+    specs = []
+    for j, t in enumerate(targets):
+        src = init_comms.get(t)
+        if src is not None:
+            in_loc, in_scale, out_loc, out_scale = src.in_loc, src.in_scale, src.out_loc, src.out_scale
+            method = src.normalization
+            ranked = sorted(range(len(src.members)), key=lambda k: (not src.members[k].selected, k))
+            init_members = [src.members[k] for k in ranked]
+        else:
+            in_loc, in_scale = norm.fit(tdata.x, opts.normalization, features)
+            method = opts.normalization
+            out_loc = float(np.mean(tdata.targets[:, j]))
+            out_scale = _spread(tdata.targets[:, j])
+            init_members = None
+        net = Network(len(features), hidden, "identity", out_loc, out_scale)
+        training = {
+            **asdict(opts),
+            "command": "train-point",
+            "cost": cost,
+            "select_cases": select_cases,
+            "validation": valid_desc,
+            "init_from": str(init_from) if init_from is not None else None,
+            "init_scheme": "model" if src is not None else init_scheme,
+            "n_train_cases": tdata.n_cases,
+            "n_train_rows": tdata.n_rows,
+            "n_valid_cases": vdata.n_cases if vdata is not None else 0,
+            "n_valid_rows": vdata.n_rows if vdata is not None else 0,
+        }
+        specs.append(
+            CommitteeSpec(
+                kind="point", target=t, j=j, net=net, in_loc=in_loc, in_scale=in_scale, train=tdata,
+                valid=vdata, members=opts.members, keep=opts.keep, cost_scale=out_scale,
+                init_scheme=init_scheme, identity_feature=_identity_feature(t, features),
+                init_members=init_members, normalization=method, training=training,
+            )
+        )
+    settings = TrainSettings(
+        cost=cost, iterations=opts.iterations, batch_fraction=opts.batch_fraction,
+        batch_iterations=opts.batch_iterations, optimizer=opts.optimizer, dtype=opts.dtype,
+    )
+    inputs = {"train": _input(train)}
+    if valid is not None:
+        inputs["valid"] = _input(valid)
+    if init_model is not None:
+        inputs["init_from"] = {"path": str(init_from), "sha256": init_model.sha256}
+    committees = _run(specs, settings, opts.seed, nproc, scheduler, progress)
+    prov: dict[str, Any] = {
+        "command": "train-point",
+        "argv": command_line(),
+        "versions": software_versions(),
+        "inputs": inputs,
+        "seed": opts.seed,
+    }
+    if init_model is not None:
+        prov["parent"] = init_model.provenance
+    model = ShearModel(point=committees, provenance=prov)
+    model.save(out, overwrite=overwrite)
+    log.info("wrote %s (sha256 %s)", out, model.sha256[:12])
+    return model
+
+
+def _run(
+    specs: Sequence[CommitteeSpec],
+    settings: TrainSettings,
+    seed: int,
+    nproc: int,
+    scheduler: str | None,
+    progress: ProgressFactory | None,
+) -> dict[str, Committee]:
+    n_units = sum(s.members for s in specs)
+    log.info(
+        "training %d committee(s) x %d members, %d iterations each (%s, batches of %g of the cases x %d iterations)",
+        len(specs), specs[0].members, settings.iterations, settings.cost, settings.batch_fraction,
+        settings.batch_iterations,
+    )
+    with executor(nproc, scheduler) as pool, (progress or _no_progress)("members trained", n_units) as update:
+        return train_committees(specs, settings, seed, pool, update)
+
+
+def train_weight(
+    train: str | os.PathLike,
+    model: str | os.PathLike,
+    output: str | os.PathLike,
+    *,
+    features: Sequence[str] | None = None,
+    hidden: Sequence[int] | None = None,
+    select: str | None = None,
+    valid: str | os.PathLike | None = None,
+    options: TrainOptions | None = None,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    overwrite: bool = False,
+    progress: ProgressFactory | None = None,
+) -> ShearModel:
+    """Train weight committees (MSWB) for every point committee of ``model``; write both to ``output``."""
+    opts = options or TrainOptions(iterations=DEFAULT_WEIGHT_ITERATIONS)
+    opts.check()
+    out = check_output(output, overwrite)
+    if Path(out).resolve() == Path(model).resolve():
+        raise ConfigError(f"-o {output} would replace the input model; choose another output file")
+    if select is not None:
+        check_expression(select, None, case_mode=False)
+    point_model = ShearModel.load(model)
+    if not point_model.point:
+        raise InputError(f"{model}: the model has no point committee")
+    targets = list(point_model.point)
+    features = _unique(features if features is not None else point_model.features, "features")
+    overlap = sorted(set(features) & set(targets))
+    if overlap:
+        raise ConfigError(f"column(s) {', '.join(overlap)} cannot be both a feature and a target")
+    hidden = tuple(hidden) if hidden is not None else DEFAULT_WEIGHT_HIDDEN
+    if any(h < 1 for h in hidden):
+        raise ConfigError("--hidden sizes must be positive integers")
+
+    data = _load_cases(train, features, targets, constant_targets=True, select_rows=select, point_model=point_model)
+    vdata = None
+    if valid is not None:
+        vdata = _load_cases(valid, features, targets, constant_targets=True, select_rows=select, point_model=point_model)
+    tdata, vdata, valid_desc = _split(data, valid, vdata, opts)
+    in_loc, in_scale = norm.fit(tdata.x, opts.normalization, features)
+    specs = []
+    for j, t in enumerate(targets):
+        net = Network(len(features), hidden, "sigmoid4")
+        training = {
+            **asdict(opts),
+            "command": "train-weight",
+            "cost": "mswb",
+            "select": select,
+            "validation": valid_desc,
+            "point_model_sha256": point_model.sha256,
+            "n_train_cases": tdata.n_cases,
+            "n_train_rows": tdata.n_rows,
+            "n_valid_cases": vdata.n_cases if vdata is not None else 0,
+            "n_valid_rows": vdata.n_rows if vdata is not None else 0,
+        }
+        specs.append(
+            CommitteeSpec(
+                kind="weight", target=t, j=j, net=net, in_loc=in_loc, in_scale=in_scale, train=tdata,
+                valid=vdata, members=opts.members, keep=opts.keep, cost_scale=_spread(tdata.targets[:, j]),
+                normalization=opts.normalization, training=training,
+            )
+        )
+    settings = TrainSettings(
+        cost="mswb", iterations=opts.iterations, batch_fraction=opts.batch_fraction,
+        batch_iterations=opts.batch_iterations, optimizer=opts.optimizer, dtype=opts.dtype,
+    )
+    committees = _run(specs, settings, opts.seed, nproc, scheduler, progress)
+    inputs = {"train": _input(train), "model": {"path": str(model), "sha256": point_model.sha256}}
+    if valid is not None:
+        inputs["valid"] = _input(valid)
+    prov = {
+        "command": "train-weight",
+        "argv": command_line(),
+        "versions": software_versions(),
+        "inputs": inputs,
+        "seed": opts.seed,
+        "parent": point_model.provenance,
+    }
+    result = ShearModel(point=point_model.point, weight=committees, provenance=prov)
+    result.save(out, overwrite=overwrite)
+    log.info("wrote %s (sha256 %s)", out, result.sha256[:12])
+    return result

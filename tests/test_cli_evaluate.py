@@ -1,0 +1,136 @@
+"""`megalut evaluate`: help, outputs, exit codes 0/1/2/3."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_shear_evaluate import _png_size, synthetic
+
+from megalut_cli.catalog import write_catalog
+
+
+@pytest.fixture
+def shears(tmp_path):
+    """A prediction catalog with weights and PSF columns and a clear multiplicative bias."""
+    path = tmp_path / "shears.fits"
+    write_catalog(path, synthetic(seed=7, m=(0.02, 0.0), sigma=0.05, weights=True, psf=True), fmt="megalut.predictions")
+    return path
+
+
+@pytest.fixture
+def perfect(tmp_path):
+    path = tmp_path / "perfect.fits"
+    write_catalog(path, synthetic(seed=7, sigma=0.0, n_cases=20, n_rea=5), fmt="megalut.predictions")
+    return path
+
+
+def test_help(runner, cli):
+    result = runner.invoke(cli, ["evaluate", "--help"])
+    assert result.exit_code == 0
+    for word in ("--by", "--bins", "--select", "--json", "--plot", "--fail-above", "Example", "status"):
+        assert word in result.output
+
+
+def test_table_json_and_plot(runner, cli, shears, tmp_path):
+    js, png = tmp_path / "out.json", tmp_path / "out.png"
+    result = runner.invoke(
+        cli, ["evaluate", str(shears), "--by", "tru_rad,snr", "--bins", "3", "--json", str(js), "--plot", str(png)]
+    )
+    assert result.exit_code == 0, result.output
+    assert "unweighted" in result.stdout and "plus" in result.stdout and "conditional biases by snr" in result.stdout
+    data = json.loads(js.read_text())
+    for scheme in ("unweighted", "weighted"):
+        assert set(data[scheme]) == {"g1", "g2", "plus", "cross"}
+        for fit in data[scheme].values():
+            assert set(fit) == {"m", "m_err", "c", "c_err", "n_cases", "n_rows"}
+    assert abs(data["weighted"]["g1"]["m"] - 0.02) < 3 * data["weighted"]["g1"]["m_err"]
+    assert len(data["conditional"]["tru_rad"]["bins"]) == 3
+    assert set(data["conditional"]["snr"]["bins"][0]["weighted"]) == {"g1", "g2", "plus", "cross"}
+    assert len(data["per_case"]["case"]) == 100
+    w, h = _png_size(png)
+    assert w > 800 and h > 800
+
+
+def test_fail_above_exit_codes(runner, cli, shears, perfect):
+    result = runner.invoke(cli, ["evaluate", str(shears), "--fail-above"])
+    assert result.exit_code == 3
+    assert "bias out of tolerance" in result.stderr
+    assert runner.invoke(cli, ["evaluate", str(shears)]).exit_code == 0  # only reported without the flag
+    assert runner.invoke(cli, ["evaluate", str(perfect), "--fail-above"]).exit_code == 0
+
+
+def test_select_changes_rows(runner, cli, shears, tmp_path):
+    js = tmp_path / "sel.json"
+    result = runner.invoke(cli, ["evaluate", str(shears), "--select", "snr > 10 & tru_rad > 1.5", "--json", str(js)])
+    assert result.exit_code == 0, result.output
+    data = json.loads(js.read_text())
+    assert 0 < data["n_selected"] < data["n_rows"]
+
+
+def test_refuses_to_overwrite(runner, cli, shears, tmp_path):
+    js = tmp_path / "out.json"
+    js.write_text("keep")
+    result = runner.invoke(cli, ["evaluate", str(shears), "--json", str(js)])
+    assert result.exit_code == 1 and "--overwrite" in result.output + result.stderr
+    assert js.read_text() == "keep"
+    assert runner.invoke(cli, ["evaluate", str(shears), "--json", str(js), "--overwrite"]).exit_code == 0
+    assert json.loads(js.read_text())["format"] == "megalut.evaluation"
+
+
+def _errline(result) -> str:
+    text = (result.stderr or result.output).strip()
+    assert "Traceback" not in text
+    return text
+
+
+@pytest.mark.parametrize(
+    "mutate, code, message",
+    [
+        (lambda d: (d.pop("tru_g1"), d.pop("tru_g2")), 1, "evaluate needs the true shear"),
+        (lambda d: d["flags"].fill(4), 1, "rows failed"),
+        (lambda d: d["case"].fill(3), 1, "only one case"),
+        (lambda d: (d["tru_g1"].fill(0.01), d["tru_g2"].fill(0.0)), 1, "no lever arm"),
+    ],
+)
+def test_bad_catalogs(runner, cli, tmp_path, mutate, code, message):
+    d = synthetic(seed=1, n_cases=10, n_rea=5)
+    mutate(d)
+    path = tmp_path / "bad.fits"
+    write_catalog(path, d, fmt="megalut.predictions")
+    js = tmp_path / "never.json"
+    result = runner.invoke(cli, ["evaluate", str(path), "--json", str(js)])
+    assert result.exit_code == code
+    err = _errline(result)
+    assert message in err and len(err.splitlines()) == 1
+    assert not js.exists()
+
+
+def test_unreadable_and_bad_options(runner, cli, shears, tmp_path):
+    junk = tmp_path / "junk.fits"
+    junk.write_bytes(b"not a fits file" * 10)
+    result = runner.invoke(cli, ["evaluate", str(junk)])
+    assert result.exit_code == 1 and "not a readable FITS file" in _errline(result)
+    assert runner.invoke(cli, ["evaluate", str(tmp_path / "missing.fits")]).exit_code == 2
+    result = runner.invoke(cli, ["evaluate", str(shears), "--by", "nope"])
+    assert result.exit_code == 2 and "nope" in _errline(result)
+    assert runner.invoke(cli, ["evaluate", str(shears), "--bins", "0"]).exit_code == 2
+    result = runner.invoke(cli, ["evaluate", str(shears), "--select", "snr >"])
+    assert result.exit_code == 2
+    result = runner.invoke(cli, ["evaluate", str(shears), "--plot", str(tmp_path / "x.jpg")])
+    assert result.exit_code == 1 and ".png" in _errline(result)
+
+
+def test_nan_in_json_is_null(runner, cli, tmp_path):
+    """A component without spread in its true shear is reported as null, not NaN (valid JSON)."""
+    d = synthetic(seed=2, n_cases=10, n_rea=5)
+    d["tru_g2"] = np.zeros_like(d["tru_g2"])
+    path = tmp_path / "g1only.fits"
+    write_catalog(path, d, fmt="megalut.predictions")
+    js = tmp_path / "g1only.json"
+    result = runner.invoke(cli, ["evaluate", str(path), "--json", str(js)])
+    assert result.exit_code == 0, result.output
+    data = json.loads(js.read_text())
+    assert data["unweighted"]["g2"]["m"] is None and data["unweighted"]["g1"]["m"] is not None
+    assert "undetermined" in result.stdout

@@ -1,0 +1,263 @@
+"""The predict library: predictions match an independent forward pass, failed rows, streaming."""
+
+from __future__ import annotations
+
+import threading
+import time
+import tracemalloc
+from concurrent.futures import ThreadPoolExecutor
+
+import fitsio
+import numpy as np
+import pytest
+
+from megalut_cli import flags
+from megalut_cli.catalog import read_catalog, write_catalog
+from megalut_cli.errors import ConfigError, InputError, MegalutError
+from megalut_cli.nn.model import Committee, Member, ShearModel
+from megalut_cli.provenance import sha256_file
+from megalut_cli.shear import predict as P
+
+FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]
+
+
+def make_committee(kind: str, target: str, features: list[str], hidden=(5, 5), n_members=3, seed=0) -> Committee:
+    rng = np.random.default_rng(seed)
+    sizes = [len(features), *hidden, 1]
+    members = [
+        Member(layers=[(rng.normal(0, 0.7, (i, o)), rng.normal(0, 0.2, o)) for i, o in zip(sizes[:-1], sizes[1:])])
+        for _ in range(n_members)
+    ]
+    return Committee(
+        kind, target, features, hidden,
+        in_loc=rng.normal(0, 0.5, len(features)), in_scale=rng.uniform(0.5, 2.0, len(features)),
+        members=members, out_loc=0.01, out_scale=0.3,
+    )
+
+
+def make_model(path, weights: bool = True, seed: int = 0) -> ShearModel:
+    point = {t: make_committee("point", t, FEATURES, seed=seed + i) for i, t in enumerate(("tru_g1", "tru_g2"))}
+    weight = {}
+    if weights:  # weight committees may use other features: the model needs their union
+        wf = [*FEATURES[2:], "snr"]
+        weight = {t: make_committee("weight", t, wf, hidden=(4,), seed=seed + 10 + i)
+                  for i, t in enumerate(("tru_g1", "tru_g2"))}
+    model = ShearModel(point, weight)
+    model.save(path)
+    return model
+
+
+def manual_predict(c: Committee, x: np.ndarray) -> np.ndarray:
+    """Independent forward pass: mean over members of the plain layer-by-layer formula."""
+    outs = []
+    for mem in c.members:
+        a = (x - c.in_loc) / c.in_scale
+        for w, b in mem.layers[:-1]:
+            a = np.tanh(a @ w + b)
+        z = a @ mem.layers[-1][0][:, 0] + mem.layers[-1][1][0]
+        outs.append(c.out_loc + c.out_scale * z if c.kind == "point" else 1.0 / (1.0 + np.exp(-4.0 * z)))
+    return np.mean(outs, axis=0)
+
+
+def features_catalog(n: int = 1000, seed: int = 1) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    d = {
+        "case": np.arange(n) // 10,
+        "adamom_g1": rng.normal(0, 0.2, n),
+        "adamom_g2": rng.normal(0, 0.2, n),
+        "adamom_sigma": rng.uniform(1, 4, n),
+        "adamom_flux": rng.uniform(10, 100, n),
+        "adamom_rho4": rng.uniform(1.8, 2.4, n),
+        "snr": rng.uniform(5, 50, n),
+        "name": np.array([f"g{i % 7}" for i in range(n)]),
+        "vec": rng.normal(size=(n, 3)),
+        "flags": np.zeros(n, dtype=np.int32),
+    }
+    return d
+
+
+@pytest.fixture
+def model_path(tmp_path):
+    path = tmp_path / "model.h5"
+    make_model(path)
+    return path
+
+
+def test_predictions_match_independent_forward_pass(tmp_path, model_path):
+    d = features_catalog()
+    src = tmp_path / "f.fits"
+    write_catalog(src, d, fmt="megalut.features", cards={"SEED": (42, "simulation seed")})
+    out = tmp_path / "p.fits"
+    report = P.predict_catalog(src, model_path, out, chunk_rows=137)
+    assert report.columns == ["pre_g1", "pre_g2", "pre_g1_w", "pre_g2_w"] and report.n_failed == 0
+    t = read_catalog(out)
+    model = ShearModel.load(model_path)
+    x = np.column_stack([d[f] for f in FEATURES])
+    for target, comm in model.point.items():
+        np.testing.assert_allclose(t[P.prediction_column(target)], manual_predict(comm, x), rtol=1e-12, atol=1e-14)
+    xw = np.column_stack([d[f] for f in [*FEATURES[2:], "snr"]])
+    for target, comm in model.weight.items():
+        w = np.asarray(t[P.prediction_column(target, "weight")])
+        np.testing.assert_allclose(w, manual_predict(comm, xw), rtol=1e-12)
+        assert np.all((w > 0) & (w < 1))
+    # Every input column passes through unchanged; provenance in the header.
+    for c in d:
+        assert np.array_equal(np.asarray(t[c]), d[c]), c
+    assert t.meta["MODELSHA"] == sha256_file(model_path) == report.model_sha256
+    assert t.meta["MLFORMAT"] == "megalut.predictions" and t.meta["SEED"] == 42
+
+
+def test_failed_rows_get_nan_zero_weight_and_flag(tmp_path, model_path):
+    d = features_catalog(200)
+    d["adamom_rho4"][3] = np.nan
+    d["snr"][4] = np.inf  # a weight-only feature also fails the row
+    d["flags"][5] = flags.HSM_FAILED  # flagged upstream, features still finite
+    src, out = tmp_path / "f.fits", tmp_path / "p.fits"
+    write_catalog(src, d, fmt="megalut.features")
+    report = P.predict_catalog(src, model_path, out)
+    t = read_catalog(out)
+    bad = [3, 4, 5]
+    assert report.n_failed == 3
+    for c in ("pre_g1", "pre_g2"):
+        assert np.all(np.isnan(t[c][bad])) and np.all(np.isfinite(np.delete(np.asarray(t[c]), bad)))
+    for c in ("pre_g1_w", "pre_g2_w"):
+        assert np.all(t[c][bad] == 0.0) and np.all(np.delete(np.asarray(t[c]), bad) > 0)
+    assert t["flags"][3] == flags.BAD_FEATURES and t["flags"][4] == flags.BAD_FEATURES
+    assert t["flags"][5] == flags.HSM_FAILED | flags.BAD_FEATURES
+    assert np.count_nonzero(t["flags"]) == 3
+
+
+def test_flags_column_created_and_column_map(tmp_path, model_path):
+    d = features_catalog(300)
+    del d["flags"]
+    d["E1"] = d.pop("adamom_g1")
+    d["adamom_g1"] = np.full(300, 99.0)  # a decoy with the feature's name: --col wins
+    src, out = tmp_path / "f.fits", tmp_path / "p.fits"
+    write_catalog(src, d, fmt="megalut.features")
+    P.predict_catalog(src, model_path, out, column_map={"adamom_g1": "E1"})
+    t = read_catalog(out)
+    assert t["flags"].dtype == np.int32 and not np.any(t["flags"])
+    model = ShearModel.load(model_path)
+    x = np.column_stack([d["E1"], *(d[f] for f in FEATURES[1:])])
+    np.testing.assert_allclose(t["pre_g1"], manual_predict(model.point["tru_g1"], x), rtol=1e-12)
+
+
+def test_missing_features_listed_at_once(tmp_path, model_path):
+    d = features_catalog(50)
+    for c in ("adamom_g1", "adamom_rho4", "snr"):
+        del d[c]
+    src = tmp_path / "f.fits"
+    write_catalog(src, d, fmt="megalut.features")
+    with pytest.raises(InputError) as err:
+        P.predict_catalog(src, model_path, tmp_path / "p.fits")
+    msg = str(err.value)
+    assert all(c in msg for c in ("adamom_g1", "adamom_rho4", "snr", "--col")) and "\n" not in msg
+    with pytest.raises(InputError, match=r"adamom_g1 \(--col adamom_g1=E1\)"):
+        P.predict_catalog(src, model_path, tmp_path / "p.fits", column_map={"adamom_g1": "E1"})
+    with pytest.raises(ConfigError, match="not a feature of the model"):
+        P.predict_catalog(src, model_path, tmp_path / "p.fits", column_map={"size": "adamom_sigma"})
+    with pytest.raises(ConfigError, match="FEATURE=COLUMN"):
+        P.parse_column_map(["adamom_g1"])
+    assert not (tmp_path / "p.fits").exists()
+
+
+def test_parallel_equals_serial(tmp_path, model_path):
+    """Same chunks: bit-identical whatever the engine; other chunk sizes: equal to rounding."""
+    d = features_catalog(3000)
+    d["adamom_g2"][::97] = np.nan
+    src = tmp_path / "f.fits"
+    write_catalog(src, d, fmt="megalut.features")
+    P.predict_catalog(src, model_path, tmp_path / "serial.fits", chunk_rows=250)
+    P.predict_catalog(src, model_path, tmp_path / "pool.fits", chunk_rows=250, nproc=2)
+    P.predict_catalog(src, model_path, tmp_path / "big.fits", chunk_rows=5000)
+    a, b = fitsio.read(tmp_path / "serial.fits"), fitsio.read(tmp_path / "pool.fits")
+    c = fitsio.read(tmp_path / "big.fits")
+    assert a.dtype == b.dtype == c.dtype
+    for name in a.dtype.names:
+        np.testing.assert_array_equal(a[name], b[name])
+        if a[name].dtype.kind == "f":
+            np.testing.assert_allclose(a[name], c[name], rtol=1e-13, atol=1e-16)
+        else:
+            np.testing.assert_array_equal(a[name], c[name])
+
+
+def test_ordered_window_bounds_work_in_flight():
+    active, peak, lock = 0, 0, threading.Lock()
+
+    def work(x: int) -> int:
+        nonlocal active, peak
+        with lock:
+            active += 1
+            peak = max(peak, active)
+        time.sleep(0.002)
+        with lock:
+            active -= 1
+        return x * x
+
+    consumed = []
+    with ThreadPoolExecutor(8) as pool:
+        for key, res in P._ordered(work, ((i, i) for i in range(60)), pool, window=3):
+            consumed.append((key, res))
+    assert consumed == [(i, i * i) for i in range(60)]
+    assert peak <= 3
+
+
+def test_memory_is_bounded_by_chunks(tmp_path, model_path):
+    n = 300_000
+    rng = np.random.default_rng(0)
+    d = {f: rng.uniform(1, 2, n) for f in [*FEATURES, "snr"]}
+    src = tmp_path / "big.fits"
+    write_catalog(src, d, fmt="megalut.features")
+    full = n * (len(d) + 5) * 8  # the catalog with its predictions, in bytes (~26 MB)
+    tracemalloc.start()
+    try:
+        P.predict_catalog(src, model_path, tmp_path / "p.fits", chunk_rows=5000)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < full / 4, (peak, full)  # about 3 MB with 5000-row chunks, whatever n
+    assert fitsio.FITS(str(tmp_path / "p.fits"))[1].get_nrows() == n
+
+
+def test_empty_catalog_and_overwrite(tmp_path, model_path):
+    d = {k: v[:0] for k, v in features_catalog(10).items()}
+    src, out = tmp_path / "f.fits", tmp_path / "p.fits"
+    write_catalog(src, d, fmt="megalut.features")
+    P.predict_catalog(src, model_path, out)
+    t = read_catalog(out)
+    assert len(t) == 0 and "pre_g2_w" in t.colnames
+    with pytest.raises(MegalutError, match="--overwrite"):
+        P.predict_catalog(src, model_path, out)
+    P.predict_catalog(src, model_path, out, overwrite=True)
+
+
+def test_predict_columns_in_memory(model_path):
+    model = ShearModel.load(model_path)
+    d = features_catalog(20)
+    new = P.predict_columns(model, d)
+    assert set(new) == {"pre_g1", "pre_g2", "pre_g1_w", "pre_g2_w", "flags"}
+    x = np.column_stack([d[f] for f in FEATURES])
+    np.testing.assert_allclose(new["pre_g2"], manual_predict(model.point["tru_g2"], x), rtol=1e-12)
+
+
+def test_not_a_model(tmp_path):
+    d = features_catalog(10)
+    src = tmp_path / "f.fits"
+    write_catalog(src, d, fmt="megalut.features")
+    junk = tmp_path / "model.h5"
+    junk.write_bytes(b"nope" * 100)
+    with pytest.raises(InputError, match="model"):
+        P.predict_catalog(src, junk, tmp_path / "p.fits")
+
+
+def test_narrow_flags_column_is_widened(tmp_path, model_path):
+    d = features_catalog(30)
+    d["flags"] = np.zeros(30, dtype=np.uint8)
+    d["flags"][2] = flags.CENTROID_SHIFT
+    d["adamom_g1"][3] = np.nan
+    src, out = tmp_path / "f.fits", tmp_path / "p.fits"
+    write_catalog(src, d, fmt="megalut.features")
+    P.predict_catalog(src, model_path, out)
+    f = np.asarray(read_catalog(out)["flags"])
+    assert f.dtype.itemsize >= 2
+    assert f[2] == flags.CENTROID_SHIFT | flags.BAD_FEATURES and f[3] == flags.BAD_FEATURES
