@@ -571,8 +571,10 @@ def format_table(result: Mapping[str, Any]) -> str:
         lines.append(f"row selection: {result['select']}")
     if result.get("select_cases"):
         lines.append(f"case selection: {result['select_cases']}")
+    round_psf = bool(result.get("psf_frame") and result["psf_frame"].get("round"))
+    hidden = ("plus", "cross") if round_psf else ()  # identical to g1, g2: kept in JSON only
     if result.get("psf_frame"):
-        note = " (round PSF in every case: same as g1, g2)" if result["psf_frame"].get("round") else ""
+        note = " (round PSF in every case: same as g1, g2, not repeated)" if round_psf else ""
         lines.append(f"PSF frame (plus, cross) from {', '.join(result['psf_frame']['columns'])}{note}")
     lines.append(f"Stage IV requirement: |m| < {STAGE_IV_M:.0e}, |c| < {STAGE_IV_C:.0e}")
     header = f"  {'':6}{'m':^22}   {'c':^22}  {'cases':>6} {'rows':>10}  req"
@@ -581,6 +583,8 @@ def format_table(result: Mapping[str, Any]) -> str:
             continue
         lines += ["", f"{scheme} (per-case {'weighted ' if scheme == 'weighted' else ''}averages)", header]
         for comp, f in result[scheme].items():
+            if comp in hidden:
+                continue
             lines.append(
                 f"  {comp:6}{_pm(f['m'], f['m_err']):>22}   {_pm(f['c'], f['c_err']):>22}  "
                 f"{f['n_cases']:>6} {f['n_rows']:>10}  {_ok(f)}"
@@ -600,7 +604,7 @@ def format_table(result: Mapping[str, Any]) -> str:
             comps = list(cond["bins"][0][scheme])
             lines += ["", f"conditional biases by {col} ({len(cond['bins'])} equal-population bins, {scheme})"]
             for frame in (comps[:2], comps[2:]):
-                if not frame:
+                if not frame or frame[0] in hidden:
                     continue
                 head = f"  {'range':^23} {'rows':>9} {'cases':>6}"
                 for comp in frame:
