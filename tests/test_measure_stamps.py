@@ -130,9 +130,14 @@ def test_catalog_centres_find_the_special_stamp(tmp_path, origin):
 
 
 def test_wrong_origin_shifts_stamps(tmp_path):
-    """0-based centres read as 1-based cut stamps one pixel lower-left."""
+    """0-based centres read as 1-based cut stamps one pixel lower-left.
+
+    (True centres: GalSim's nominal 0-based centres misread as 1-based sit half a pixel
+    below the true centre, which is GREAT3's own integer-centre convention and finds the
+    grid stamp, see test_great3_integer_centres_find_grid_stamps.)
+    """
     path, centres = _grid_image(tmp_path)
-    xy = np.floor(centres)  # 0-based nominal centres
+    xy = centres - 1.0  # 0-based true centres
     write_catalog(tmp_path / "cat.fits", {"x": xy[:, 0], "y": xy[:, 1]}, fmt="test")
     right = measure_file(path, tmp_path / "cat.fits", tmp_path / "a.fits", origin=0)
     wrong = measure_file(path, tmp_path / "cat.fits", tmp_path / "b.fits", origin=1)
@@ -144,6 +149,20 @@ def test_wrong_origin_shifts_stamps(tmp_path):
     np.testing.assert_allclose(
         right["adamom_x"][~first_col_or_row], wrong["adamom_x"][~first_col_or_row], atol=1e-3
     )
+
+
+def test_great3_integer_centres_find_grid_stamps():
+    """GREAT3 writes x = column S + (S - 1) // 2 (23, 71, ... for S = 48), half a pixel
+    below the true centre; with true and GalSim nominal centres, all give the grid stamp."""
+    col = np.arange(4)
+    for centre in (col * 48 + 23.0, col * 48 + 23.5, col * 48 + 24.0):
+        o = catalog_origins(centre, centre[::-1], 48, 0)
+        np.testing.assert_array_equal(o[:, 0], col * 48 + 1)
+        np.testing.assert_array_equal(o[:, 1], col[::-1] * 48 + 1)
+    # 1-based, odd stamps: half a pixel either side of the true centre 3 (S = 5)
+    np.testing.assert_array_equal(catalog_origins(np.array([2.5, 3.5]), np.array([3.0, 3.0]), 5, 1), [[1, 1], [1, 1]])
+    # off the grid, the half-way rule keeps the lower candidate
+    np.testing.assert_array_equal(catalog_origins(np.array([30.0]), np.array([30.0]), 48, 0), [[7, 7]])
 
 
 def test_off_image_stamps_are_flagged_not_fatal(tmp_path):

@@ -53,6 +53,23 @@ EXIT_OUT_OF_TOLERANCE = 3
     "|c| < 2e-4 for every component) does not hold, on the weighted results when the catalog "
     "has weights, else on the unweighted ones.",
 )
+@click.option(
+    "--great3-truth",
+    "great3_truth",
+    type=click.Path(exists=True, file_okay=False),
+    default=None,
+    help="Truth folder of a GREAT3 constant-shear branch (shear_params-SSS, "
+    "starshape_parameters-SSS-0; truth/ of 'simulate --great3'): SHEARS is then a submission "
+    "(subfield g1 g2 per line) or a predictions catalog with subfield or GREAT3 ID, and the "
+    "cases are its subfields.",
+)
+@click.option(
+    "--sigma2-min",
+    type=click.FloatRange(min=0),
+    default=4.0,
+    show_default=True,
+    help="Damping term of the GREAT3 Q_c metric: 4 for ground branches, 1 for space.",
+)
 @overwrite_option
 def command(
     shears: str,
@@ -63,6 +80,8 @@ def command(
     json_path: str | None,
     plot_path: str | None,
     fail_above: bool,
+    great3_truth: str | None,
+    sigma2_min: float,
     overwrite: bool,
 ) -> None:
     """Measure the shear biases of SHEARS.fits, a catalog with truth and predictions.
@@ -76,6 +95,11 @@ def command(
     psf_adamom_g1/g2) the biases are also given in the PSF frame (plus, cross), as in
     GREAT3, with its Q_c metric.
 
+    With --great3-truth, SHEARS is evaluated against a GREAT3 constant-shear branch:
+    a submission file (one 'subfield g1 g2' line per subfield) or a predictions catalog
+    whose rows carry a subfield (column subfield, or GREAT3 ID = 1e6 subfield + ...);
+    the subfields are the cases, the truth's starshape parameters give the PSF frame.
+
     The table goes to stdout; exit status 0, or 1 for bad input, 2 for bad options, and
     with --fail-above 3 when the Stage IV requirement does not hold.
 
@@ -85,6 +109,7 @@ def command(
       megalut evaluate shears.fits --by tru_rad,tru_sersicn,snr --bins 5 --plot biases.png
       megalut evaluate shears.fits --select "snr > 10 & adamom_sigma > 1.5" --json biases.json
       megalut evaluate shears.fits --fail-above || echo "biases out of tolerance"
+      megalut evaluate submission.txt --great3-truth branch/truth --sigma2-min 1
     """
     from megalut_cli.atomic import check_output
     from megalut_cli.shear.evaluate import evaluate_catalog, format_table, requirement_met
@@ -100,7 +125,14 @@ def command(
 
         check_plot_output(plot_path)
 
-    result = evaluate_catalog(shears, by=by_cols, bins=bins, select=select, select_cases=select_cases)
+    if great3_truth is not None:
+        from megalut_cli.great3.evaluate import evaluate_branch
+
+        result = evaluate_branch(shears, great3_truth, sigma2_min=sigma2_min, by=by_cols, bins=bins,
+                                 select=select, select_cases=select_cases)
+    else:
+        result = evaluate_catalog(shears, by=by_cols, bins=bins, select=select, select_cases=select_cases,
+                                  sigma2_min=sigma2_min)
     click.echo(format_table(result))
     if json_path is not None:
         _write_json(json_path, result, overwrite)

@@ -40,8 +40,16 @@ from megalut_cli.cli.options import execution_options, output_option, overwrite_
     type=click.Path(exists=True, dir_okay=False),
     default=None,
     help="FITS image of PSF stamps: a grid like STAMPS (one PSF per row), or one PSF "
-    "(single stamp, or the first of a star grid); adds psf_adamom_g1, psf_adamom_g2, "
-    "psf_adamom_sigma, psf_adamom_rho4.",
+    "(single stamp, or the lower-left star of a star grid such as GREAT3's starfield_image); "
+    "adds psf_adamom_g1, psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4.",
+)
+@click.option(
+    "--stars/--no-stars",
+    default=None,
+    help="STAMPS is a star field: one row per star with psf_adamom_flux, psf_adamom_g1, "
+    "psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4, psf_adamom_x, psf_adamom_y, flags "
+    "[default: for files named starfield_image-*; a square one without --stamp-size or "
+    "STAMPSZ card is a 3x3 grid].",
 )
 @execution_options
 @overwrite_option
@@ -53,6 +61,7 @@ def command(
     origin: str,
     gain: float | None,
     psf: str | None,
+    stars: bool | None,
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
@@ -60,6 +69,7 @@ def command(
     """Measure the paper's features (Sect. 4) on each stamp of STAMPS.
 
     Stamps are located by the centres x, y of CATALOG (FITS 1-based unless --origin 0),
+    a FITS table or a text file with '# name' header lines (GREAT3's galaxy_catalog-SSS.txt),
     whose columns are all passed through; without CATALOG, stamp k is taken in grid order
     (column k mod n_x, row k div n_x from the lower-left pixel; as many stamps as the
     header card NSTAMPS says, else the whole grid) and gets one output row with its
@@ -74,8 +84,9 @@ def command(
     Example:
       megalut simulate examples/fiducial/vp.toml -o cat.fits --stamps stamps.fits
       megalut measure stamps.fits cat.fits -o features.fits -j 2
-      megalut measure image.fits galaxies.fits -o f.fits --stamp-size 48 --origin 0 \\
-          --psf starfield.fits
+      megalut measure image-000-0.fits galaxy_catalog-000.txt -o f.fits --stamp-size 48 \\
+          --origin 0 --psf starfield_image-000-0.fits
+      megalut measure starfield_image-000-0.fits -o stars.fits --stamp-size 48
     """
     from megalut_cli.cli.options import progress
     from megalut_cli.measure.measure import measure_file
@@ -92,4 +103,5 @@ def command(
         scheduler=scheduler,
         overwrite=overwrite,
         progress=progress,
+        stars=stars,
     )

@@ -31,6 +31,15 @@ from megalut_cli.cli.options import (
     is_flag=True,
     help="Measure the features right after drawing (no image kept): the way to make large training sets.",
 )
+@click.option(
+    "--great3",
+    "great3_dir",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Also write a GREAT3-layout branch into this folder: each case is a subfield "
+    "(image-SSS-0.fits, galaxy_catalog-SSS.fits/.txt, starfield_image-SSS-0.fits, truth/); "
+    "see docs/great3.md. Not with --stamps.",
+)
 @click.option("--n-cases", type=click.IntRange(min=1), default=None, help="Override structure.n_cases.")
 @click.option(
     "--n-realizations", type=click.IntRange(min=1), default=None, help="Override structure.n_realizations."
@@ -44,6 +53,7 @@ def command(
     output: str,
     stamps: str | None,
     measure: bool,
+    great3_dir: str | None,
     n_cases: int | None,
     n_realizations: int | None,
     seed: int,
@@ -59,6 +69,10 @@ def command(
     `snr`, `flags`) measured exactly as `megalut measure` would on the --stamps image.
     Without --stamps or --measure only the truth is written (nothing is drawn).
 
+    With --great3 DIR, every case becomes a GREAT3 subfield whose realizations fill the
+    grid of its image (n_x per row, default sqrt(n_realizations)); the catalog then also
+    has `subfield` and the GREAT3 `ID`, and `x, y` are centres in the subfield images.
+
     KEY=VALUE arguments override config keys (dotted names, TOML values), e.g.
     `noise.sigma=0.1` or `galaxy.rad='{type="uniform", min=1, max=4}'`.
     --n-cases and --n-realizations scale a paper-sized config down.
@@ -68,11 +82,24 @@ def command(
       megalut simulate examples/fiducial/tp.toml -o tp.fits --measure --n-cases 50 --n-realizations 200 -j 4
       megalut simulate examples/fiducial/vo.toml -o vo.fits --stamps vo-stamps.fits --n-cases 2 --n-realizations 100
       megalut simulate examples/varpsf/pretrain.toml -o pre.fits --measure noise.sigma=0.2 --n-cases 100
+      megalut simulate examples/great3/branch.toml -o branch.fits --great3 branch/ --n-cases 20
     """
     from megalut_cli.sim.config import load_config
     from megalut_cli.sim.simulate import n_work_units, simulate
 
     cfg = load_config(config, overrides, n_cases=n_cases, n_realizations=n_realizations)
+    if great3_dir is not None:
+        if stamps is not None:
+            raise click.UsageError("--great3 writes the subfield images itself: do not give --stamps")
+        from megalut_cli.great3.sim import check_branch_output, simulate_branch
+
+        check_branch_output(great3_dir, overwrite)
+        with progress("simulate", cfg.structure.n_cases) as update:
+            simulate_branch(
+                cfg, great3_dir, output, measure=measure, seed=seed, nproc=nproc,
+                scheduler=scheduler, overwrite=overwrite, progress=update,
+            )
+        return
     with progress("simulate", n_work_units(cfg, nproc, scheduler)) as update:
         simulate(
             cfg,

@@ -21,6 +21,15 @@ PSF images (``--psf``):
 In the last two cases every row gets the same PSF features. A per-row PSF stamp that
 cannot be measured sets the ``PSF_FAILED`` flag; a single PSF that cannot be measured is
 an error.
+
+Catalogs may be FITS tables or text files with ``# name`` header lines (GREAT3's
+``galaxy_catalog-SSS.txt``; :func:`megalut_cli.great3.layout.read_text_catalog`). A
+catalog whose centres form a regular grid with a spacing that is not a multiple of the
+stamp size, or whose centres all fall off the image, is an error naming the file.
+
+Star fields (``stars``, automatic for images named ``starfield_image-*``, e.g. GREAT3's
+3x3 grids of PSF stamps) are measured star by star into ``psf_adamom_*`` columns (see
+:data:`STAR_COLUMNS`); a star field without any measurable star is an error.
 """
 
 from __future__ import annotations
@@ -65,9 +74,19 @@ log = logging.getLogger(__name__)
 #: Output format name of ``megalut measure`` catalogs.
 FORMAT = "megalut.features"
 FORMAT_VERSION = "1.0"
+#: Output format name of star-field measurements.
+STARS_FORMAT = "megalut.stars"
 
 #: PSF feature columns (from the galaxy features of the PSF stamps).
 PSF_COLUMNS: tuple[str, ...] = ("psf_adamom_g1", "psf_adamom_g2", "psf_adamom_sigma", "psf_adamom_rho4")
+
+#: Columns of a star-field measurement (``stars``): the features of each star.
+STAR_COLUMNS: tuple[str, ...] = (
+    "psf_adamom_flux", "psf_adamom_g1", "psf_adamom_g2", "psf_adamom_sigma", "psf_adamom_rho4",
+    "psf_adamom_x", "psf_adamom_y",
+)
+#: File-name prefixes of star fields measured star by star without ``stars=True``.
+STARFIELD_PREFIXES = ("starfield_image", "deep_starfield_image")
 
 #: Stamps per work unit (about 0.3 s of HSM each at 64x64 pixels).
 CHUNK_STAMPS = 1000
@@ -168,6 +187,10 @@ def _single_psf(path: str, size_hint: int) -> dict[str, float]:
             f"{path}: a {nx}x{ny} PSF image is neither square, a grid of {size}-pixel stamps, "
             "nor a grid like the galaxy image"
         )
+    if not np.all(np.isfinite(stamp)):
+        raise InputError(f"{path}: the PSF stamp has NaN or infinite pixels")
+    if not stamp.sum() > 0:
+        raise InputError(f"{path}: the PSF stamp is empty (no star)")
     res = measure_stamps(stamp[None])
     if res["flags"][0]:
         raise InputError(
@@ -216,6 +239,48 @@ def _n_grid_stamps(info: ImageInfo, n_grid: int) -> int:
     return card
 
 
+def _read_positions_catalog(path: str | os.PathLike) -> Table:
+    """A FITS catalog, or a text catalog with ``# name`` header lines, holding ``x, y``."""
+    from megalut_cli.great3.layout import is_fits_file, read_text_catalog
+
+    if is_fits_file(path):
+        n_rows, names, _ = catalog_info(path)
+        require_columns(names, ["x", "y"], path)
+        if n_rows == 0:
+            raise InputError(f"{path}: the catalog has no rows")
+        return read_catalog(path)
+    table = read_text_catalog(path)
+    require_columns(table.colnames, ["x", "y"], path)
+    if len(table) == 0:
+        raise InputError(f"{path}: the catalog has no rows")
+    return table
+
+
+def _grid_step(v: np.ndarray) -> tuple[float | None, int, bool]:
+    """``(step, n_unique, regular)`` of the distinct values of ``v`` (step None if < 3:
+    two values always look like a regular grid)."""
+    u = np.unique(np.round(v[np.isfinite(v)], 6))
+    if u.size < 3:
+        return None, int(u.size), True
+    d = np.diff(u)
+    step = float(d.min())
+    return step, int(u.size), bool(np.allclose(d / step, np.round(d / step), rtol=0, atol=1e-6))
+
+
+def _check_spacing(x: np.ndarray, y: np.ndarray, size: int, path: str) -> None:
+    """Error if the centres form a full regular grid whose spacing is not a multiple of ``size``."""
+    sx, nx, rx = _grid_step(x)
+    sy, ny, ry = _grid_step(y)
+    if not (rx and ry) or nx * ny != len(x):
+        return  # not a full regular grid: nothing to compare
+    for name, step in (("x", sx), ("y", sy)):
+        if step is not None and abs(step / size - round(step / size)) > 1e-6:
+            raise InputError(
+                f"{path}: the catalog centres form a grid {step:g} pixels apart in {name}, which "
+                f"does not match the stamp size {size} (wrong --stamp-size?)"
+            )
+
+
 def _catalog_positions(table: Table, path: str) -> tuple[np.ndarray, np.ndarray]:
     require_columns(table.colnames, ["x", "y"], path)
     bad = [c for c in ("x", "y") if np.asarray(table[c]).dtype.kind not in "iuf" or np.ndim(table[c]) != 1]
@@ -236,14 +301,16 @@ def measure_file(
     scheduler: str | None = None,
     overwrite: bool = False,
     progress: ProgressFactory | None = None,
+    stars: bool | None = None,
 ) -> Table:
     """Measure every stamp of ``stamps_path`` and write the features catalog ``output``.
 
     Args:
         stamps_path: FITS image of stamps.
-        catalog_path: FITS catalog with stamp centres ``x, y`` (all its columns are passed
-            through), or None for grid order (then ``x, y`` centres are added; the
-            image's ``NSTAMPS`` card, if any, gives the number of stamps).
+        catalog_path: FITS or text (``# name`` header lines) catalog with stamp centres
+            ``x, y`` (all its columns are passed through), or None for grid order (then
+            ``x, y`` centres are added; the image's ``NSTAMPS`` card, if any, gives the
+            number of stamps).
         output: features catalog to write (format ``megalut.features``).
         stamp_size: stamp size in pixels; None reads the image's ``STAMPSZ`` card.
         origin: 1 if catalog centres are FITS 1-based, 0 if 0-based (GREAT3).
@@ -252,6 +319,10 @@ def measure_file(
         nproc, scheduler: local worker processes, or a Dask scheduler address/file.
         overwrite: replace ``output`` if it exists.
         progress: a ``progress(label, length)`` context manager yielding ``update(n)``.
+        stars: measure a star field star by star into :data:`STAR_COLUMNS` (format
+            ``megalut.stars``); None: when the file name starts with ``starfield_image``.
+            Without ``stamp_size`` or a ``STAMPSZ`` card, a square star field is taken
+            as GREAT3's 3x3 grid.
 
     Returns:
         The table written.
@@ -263,6 +334,15 @@ def measure_file(
         raise ConfigError(f"--origin must be 0 or 1, got {origin}")
     stamps_path = str(stamps_path)
     info = image_info(stamps_path)
+    if stars is None:
+        stars = os.path.basename(stamps_path).startswith(STARFIELD_PREFIXES)
+        if stars:
+            log.info("%s: a star field: measuring its stars into psf_adamom_* columns", stamps_path)
+    if stars and psf_path is not None:
+        raise ConfigError("--psf does not apply to a star field (its stars are the PSF)")
+    if stars and stamp_size is None and info.header.get("STAMPSZ") is None and info.shape[0] == info.shape[1]:
+        stamp_size = info.shape[0] // 3  # GREAT3: a 3x3 grid of stars
+        log.info("%s: no stamp size given: a 3x3 grid of %d-pixel stars", stamps_path, stamp_size)
     size = stamp_size_of(info, stamp_size)
     if stamp_size is not None and info.header.get("STAMPSZ") not in (None, stamp_size):
         log.warning(
@@ -272,13 +352,15 @@ def measure_file(
     n_y, n_x = check_grid(info, size)
 
     if catalog_path is not None:
-        n_rows, names, _ = catalog_info(catalog_path)
-        require_columns(names, ["x", "y"], catalog_path)
-        if n_rows == 0:
-            raise InputError(f"{catalog_path}: the catalog has no rows")
-        table = read_catalog(catalog_path)
+        table = _read_positions_catalog(catalog_path)
         x, y = _catalog_positions(table, str(catalog_path))
+        _check_spacing(x, y, size, str(catalog_path))
         origins = catalog_origins(x, y, size, origin)
+        if not inside(origins, size, info.shape).any():
+            raise InputError(
+                f"{catalog_path}: no stamp centre falls on {stamps_path} ({n_x}x{n_y} stamps of "
+                f"{size} pixels; wrong --origin or --stamp-size?)"
+            )
         history = table.meta.get("HISTORY")
         cards = {k: v for k, v in table.meta.items() if k not in ("HISTORY", "COMMENT")}
     else:
@@ -305,6 +387,9 @@ def measure_file(
         psf = _psf_features(psf_path, info, origins, size, nproc, scheduler, progress)
         feats["flags"] |= psf.pop("flags")
 
+    if stars:
+        return _write_stars(stamps_path, table, feats, output, overwrite, size, origin if catalog_path else 1, cards, history)
+
     new_cols = list(FEATURE_COLUMNS) + (list(PSF_COLUMNS) if psf is not None else [])
     replaced = [c for c in new_cols if c in table.colnames]
     if replaced:
@@ -328,4 +413,42 @@ def measure_file(
     )
     write_catalog(output, table, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history)
     log.info("wrote %s (%d rows)", output, len(table))
+    return table
+
+
+def _write_stars(
+    path: str,
+    table: Table,
+    feats: dict[str, np.ndarray],
+    output: str | os.PathLike,
+    overwrite: bool,
+    size: int,
+    origin: int,
+    cards: dict[str, Any],
+    history: list[str] | None,
+) -> Table:
+    """Write the star-by-star PSF features of a star field (format ``megalut.stars``)."""
+    good = feats["flags"] == 0
+    if not good.any():
+        raise InputError(f"{path}: no star could be measured (a star field without stars?)")
+    if "star" not in table.colnames:
+        table["star"] = np.arange(len(table), dtype=np.int64)
+    replaced = [c for c in (*STAR_COLUMNS, "flags") if c in table.colnames]
+    if replaced:
+        log.warning("replacing existing column(s) %s", ", ".join(replaced))
+        table.remove_columns(replaced)
+    for c in STAR_COLUMNS:
+        table[c] = feats[c[len("psf_"):]]
+    table["flags"] = feats["flags"]
+    if not good.all():
+        log.warning("%s: %d of %d star stamp(s) could not be measured: flagged", path, int((~good).sum()), len(good))
+    cards.update(
+        {
+            "STAMPSZ": (size, "stamp size [pixels]"),
+            "XYORIGIN": (origin, "coordinate of the first pixel in x, y"),
+            "NSTARS": (int(good.sum()), "stars measured"),
+        }
+    )
+    write_catalog(output, table, fmt=STARS_FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history)
+    log.info("wrote %s (%d stars)", output, len(table))
     return table

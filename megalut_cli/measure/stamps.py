@@ -7,7 +7,12 @@ first. A stamp is given by the 1-based ``(x, y)`` of its lower-left pixel (its *
 * From a catalog of stamp centres ``x, y`` (1-based, or 0-based with ``origin=0`` as in
   GREAT3): the lower-left pixel is ``floor(x1 - S/2 + 0.5)`` where ``x1`` is the 1-based
   centre. This maps both the true centre of a stamp (``32.5`` for ``S = 64``) and GalSim's
-  nominal centre (``33``) to the same stamp.
+  nominal centre (``33``) to the same stamp. A centre exactly half-way between two
+  candidate stamps (an integer centre of an even stamp, half a pixel below the true
+  centre: GREAT3's ``x = column S + (S - 1) // 2``, e.g. 23 for the first 48-pixel stamp)
+  goes to the candidate that lies on the image's grid of stamps (lower-left pixel at
+  ``1 + k S``); so GREAT3's integer centres, true centres and GalSim's nominal centres
+  all find the same grid stamp.
 * In grid order (no catalog): stamp ``k`` sits at grid column ``k mod n_x`` and grid row
   ``k div n_x``, counted from the image's first pixel, with ``n_x = width // S``; an
   ``NSTAMPS`` header card limits the number of stamps (a partly filled last row).
@@ -138,12 +143,20 @@ def catalog_origins(
     """1-based lower-left ``(x, y)`` of the stamps centred at catalog positions ``x, y``.
 
     ``origin`` is the coordinate of the first pixel's centre in the catalog (1: FITS,
-    0: numpy/GREAT3). Non-finite centres give the origin ``INT64_MIN`` (never inside).
+    0: numpy/GREAT3). A centre half-way between two stamps goes to the one on the grid
+    of ``stamp_size`` stamps from pixel 1 (see the module docstring). Non-finite centres
+    give the origin ``INT64_MIN`` (never inside).
     """
     if origin not in (0, 1):
         raise ConfigError(f"--origin must be 0 or 1, got {origin}")
     xy = np.column_stack([np.asarray(x, np.float64), np.asarray(y, np.float64)]) + (1 - origin)
-    ll = np.floor(xy - stamp_size / 2.0 + 0.5 + _EPS)
+    t = xy - stamp_size / 2.0 + 0.5
+    ll = np.floor(t + _EPS)
+    with np.errstate(invalid="ignore"):
+        # Exactly half-way between candidates ll and ll + 1: prefer the one on the grid.
+        halfway = np.abs(t - ll - 0.5) < _EPS
+        on_grid_up = np.mod(ll, stamp_size) == 0  # (ll + 1) - 1 is a multiple of S
+        ll = np.where(halfway & on_grid_up, ll + 1, ll)
     bad = ~np.isfinite(ll).all(axis=1)
     out = np.empty(ll.shape, dtype=np.int64)
     out[~bad] = ll[~bad].astype(np.int64)

@@ -305,13 +305,15 @@ def evaluate_catalog(
     select: str | None = None,
     select_cases: str | None = None,
     chunk_rows: int = CHUNK_ROWS,
+    sigma2_min: float = GREAT3_SIGMA2_MIN_GROUND,
 ) -> dict[str, Any]:
     """Evaluate the shear biases of the catalog at ``path``; returns a JSON-ready dict.
 
     ``by``: columns for conditional biases in ``bins`` equal-population bins; ``select``:
     row selection expression (:func:`megalut_cli.expr.evaluate_rows`); ``select_cases``:
     case selection on per-case aggregates (:func:`megalut_cli.expr.evaluate_cases`),
-    e.g. ``"mean(snr) > 10"`` as in paper Fig. 12. See :func:`evaluate_columns`.
+    e.g. ``"mean(snr) > 10"`` as in paper Fig. 12; ``sigma2_min``: the ``Q_c`` damping
+    term (4 ground, 1 space). See :func:`evaluate_columns`.
     """
     _, names, _ = catalog_info(path)
     plan = _make_plan(names, str(path), by, select, select_cases)
@@ -321,7 +323,7 @@ def evaluate_catalog(
         ids, mask = _expr.evaluate_cases(select_cases, {c: np.asarray(t[c]) for c in t.colnames}, np.asarray(t["case"]))
         plan.selected_cases = ids[mask]
         del t
-    result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins)
+    result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins, sigma2_min)
     result["input"] = str(path)
     return result
 
@@ -334,6 +336,7 @@ def evaluate_columns(
     select: str | None = None,
     select_cases: str | None = None,
     source: str = "catalog",
+    sigma2_min: float = GREAT3_SIGMA2_MIN_GROUND,
 ) -> dict[str, Any]:
     """Evaluate in-memory columns (a dict of arrays or an astropy Table), as :func:`evaluate_catalog`.
 
@@ -349,12 +352,12 @@ def evaluate_columns(
         cols = {c: np.asarray(columns[c]) for c in _expr.columns_used(select_cases) if c in names}
         ids, mask = _expr.evaluate_cases(select_cases, cols, np.asarray(columns["case"]))
         plan.selected_cases = ids[mask]
-    result = _evaluate(lambda: iter([data]), plan, bins)
+    result = _evaluate(lambda: iter([data]), plan, bins, sigma2_min)
     result["input"] = source
     return result
 
 
-def _evaluate(chunks: Any, plan: _Plan, n_bins: int) -> dict[str, Any]:
+def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_SIGMA2_MIN_GROUND) -> dict[str, Any]:
     """Two passes over ``chunks()`` when ``plan.by`` (bin edges first), else one."""
     schemes = plan.schemes
     # Pass 1 (conditional biases only): values of the 'by' columns on the rows used.
@@ -436,8 +439,9 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int) -> dict[str, Any]:
     frame = ("plus", "cross") if plan.psf else ("g1", "g2")
     result["q_c"] = {
         "frame": "psf" if plan.psf else "pixel",
-        "sigma2_min": GREAT3_SIGMA2_MIN_GROUND,
-        **{s: _json_q(q_c(fits[s][frame[0]].m, fits[s][frame[0]].c, fits[s][frame[1]].m, fits[s][frame[1]].c))
+        "sigma2_min": float(sigma2_min),
+        **{s: _json_q(q_c(fits[s][frame[0]].m, fits[s][frame[0]].c, fits[s][frame[1]].m, fits[s][frame[1]].c,
+                          sigma2_min=sigma2_min))
            for s in schemes},
     }
     if plan.by:

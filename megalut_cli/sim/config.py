@@ -42,7 +42,7 @@ log = logging.getLogger("megalut")
 #: Parameter groups that can be redrawn for every realization (else once per case).
 VARY_GROUPS = ("shear", "galaxy", "angle", "psf")
 SNC_MODES = ("ring", "pairs", "none")
-PROFILES = ("sersic", "gaussian")
+PROFILES = ("sersic", "gaussian", "real")
 NOISE_TYPES = ("gaussian", "ccd", "none")
 FLUX_KEYS = ("flux", "sb", "mag")
 #: GalSim's Sersic index range.
@@ -80,6 +80,11 @@ _STRUCTURE_KEYS = {
     "n_x",
 }
 _GALAXY_KEYS = {"profile", "sersicn", "sersicn_step", "rad", "ellipticity", "angle", *FLUX_KEYS}
+#: Keys of real galaxies (profile = "real") from a GalSim RealGalaxyCatalog.
+_REAL_KEYS = {"real_catalog", "real_dir", "pixel_scale", "index", "real_select", "hst_noise"}
+#: What to do with the HST noise of real galaxies (see docs/config.md).
+HST_NOISE_MODES = ("symmetrize", "whiten", "keep")
+_GALAXY_KEYS |= _REAL_KEYS
 _NOISE_KEYS = {"type", "sigma", "sky_mag", "read_noise", "override_sigma"}
 _INSTRUMENT_KEYS = {"pixel_scale", "exptime", "gain", "zeropoint"}
 _CATALOG_KEYS = {"path", "select", "hdu"}
@@ -127,6 +132,8 @@ class GalaxySpec:
     angle: Distribution  # position angle, degrees
     flux_mode: str
     sersicn_step: float
+    #: profile "real": {"catalog": file, "dir": image folder, "pixel_scale": arcsec/pixel}
+    real: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -341,9 +348,88 @@ def _need_instrument(instrument: Mapping[str, float], keys: Sequence[str], why: 
             raise ConfigError(f"instrument.{k}: missing (needed by {why})")
 
 
-def _parse_galaxy(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> GalaxySpec:
+def _real_rows(select: Any, cat: Path) -> list[int]:
+    """Rows of the RealGalaxyCatalog ``cat`` where the expression ``select`` holds."""
+    from megalut_cli.catalog import catalog_info, read_catalog
+    from megalut_cli.expr import check_expression, columns_used, evaluate_rows
+
+    if not isinstance(select, str) or not select.strip():
+        raise ConfigError("galaxy.real_select: expected an expression string, e.g. \"MAG < 24\"")
+    _, names, _ = catalog_info(cat)
+    try:
+        check_expression(select, names)
+    except ConfigError as err:
+        raise ConfigError(f"galaxy.real_select: {err}") from None
+    used = columns_used(select)
+    table = read_catalog(cat, columns=used)
+    mask = np.asarray(evaluate_rows(select, {c: np.asarray(table[c]) for c in used}, len(table)), dtype=bool)
+    if not mask.any():
+        raise ConfigError(f"galaxy.real_select: no galaxy of {cat.name} passes {select!r}")
+    log.info("galaxy.real_select: %d of %d galaxies of %s", int(mask.sum()), len(mask), cat.name)
+    return [int(i) for i in np.flatnonzero(mask)]
+
+
+def _parse_real_galaxy(t: dict[str, Any], instrument: Mapping[str, float], config_path: str) -> GalaxySpec:
+    """``profile = "real"``: galaxies of a GalSim RealGalaxyCatalog (HST images)."""
+    for k in ("rad", "sersicn", "sersicn_step", "ellipticity", "sb"):
+        if k in t:
+            raise ConfigError(
+                f"galaxy.{k}: not a key of profile 'real' (size, shape and profile come from the HST images)"
+            )
+    for k in ("real_catalog", "pixel_scale"):
+        if k not in t:
+            what = "the RealGalaxyCatalog FITS file" if k == "real_catalog" else "arcsec per simulation pixel"
+            raise ConfigError(f"galaxy.{k}: missing (required by profile 'real': {what})")
+    cat = _resolve_path(t["real_catalog"], "galaxy.real_catalog", config_path)
+    if "real_dir" in t:
+        if not isinstance(t["real_dir"], str) or not t["real_dir"]:
+            raise ConfigError("galaxy.real_dir: expected a folder path")
+        d = Path(t["real_dir"]).expanduser()
+        if not d.is_absolute():
+            cands = [Path.cwd() / d, Path(config_path).resolve().parent / d]
+            d = next((c for c in cands if c.is_dir()), cands[0])
+        if not d.is_dir():
+            raise InputError(f"galaxy.real_dir: folder {t['real_dir']!r} not found")
+        real_dir = str(d.resolve())
+    else:
+        real_dir = str(cat.parent)
+    scale = _float(t["pixel_scale"], "galaxy.pixel_scale")
+    if scale <= 0:
+        raise ConfigError(f"galaxy.pixel_scale: must be > 0, got {scale}")
+    from megalut_cli.sim.galaxies import real_galaxy_catalog
+
+    n_obj = real_galaxy_catalog(str(cat), real_dir).nobjects
+    given = [k for k in ("flux", "mag") if k in t]
+    if len(given) != 1:
+        raise ConfigError(f"galaxy.flux: profile 'real' needs exactly one of galaxy.flux or galaxy.mag (got {', '.join(given) or 'none'})")
+    flux_mode = given[0]
+    if flux_mode == "mag":
+        _need_instrument(instrument, ("zeropoint", "exptime", "gain"), "galaxy.mag")
+    index = t.get("index", "random")
+    if "real_select" in t:
+        if "index" in t:
+            raise ConfigError("galaxy.real_select: give either galaxy.index or galaxy.real_select")
+        index = {"type": "grid", "values": _real_rows(t["real_select"], cat)}
+    elif index == "random":
+        index = {"type": "grid", "values": list(range(n_obj))}
+    params = {"index": parse_distribution(index, "galaxy.index"), flux_mode: parse_distribution(t[flux_mode], f"galaxy.{flux_mode}")}
+    lo, hi = params["index"].bounds()
+    if lo < 0 or hi > n_obj - 1 or any(float(v) != int(v) for v in (lo, hi)):
+        raise ConfigError(f"galaxy.index: must be integers in [0, {n_obj - 1}] (the rows of {cat.name}), got [{lo:g}, {hi:g}]")
+    angle = parse_distribution(t.get("angle", {"type": "uniform", "min": 0.0, "max": 180.0}), "galaxy.angle")
+    hst_noise = _choice(t.get("hst_noise", "symmetrize"), "galaxy.hst_noise", HST_NOISE_MODES)
+    real = {"catalog": str(cat), "dir": real_dir, "pixel_scale": scale, "n_objects": int(n_obj), "hst_noise": hst_noise}
+    return GalaxySpec("real", params, angle, flux_mode, 0.0, real)
+
+
+def _parse_galaxy(raw: Mapping[str, Any], instrument: Mapping[str, float], config_path: str = "<config>") -> GalaxySpec:
     t = _table(raw, "galaxy", _GALAXY_KEYS, required=True)
     profile = _choice(t.get("profile", "sersic"), "galaxy.profile", PROFILES)
+    if profile == "real":
+        return _parse_real_galaxy(t, instrument, config_path)
+    extra = sorted(set(t) & _REAL_KEYS)
+    if extra:
+        raise ConfigError(f"galaxy.{extra[0]}: only for profile = 'real'")
     if "rad" not in t:
         raise ConfigError("galaxy.rad: missing (half-light radius in pixels)")
     given = [k for k in FLUX_KEYS if k in t]
@@ -372,8 +458,58 @@ def _parse_galaxy(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> Ga
     return GalaxySpec(profile, params, angle, flux_mode, step)
 
 
-def _parse_noise(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> NoiseSpec:
+_MEASURED_KEYS = {"type", "path", "column", "statistic", "select", "scale"}
+MEASURED_STATISTICS = ("median", "mean")
+
+
+def is_measured(value: Any) -> bool:
+    """Whether a parameter value is a ``{type = "measured", ...}`` table."""
+    return isinstance(value, Mapping) and value.get("type") == "measured"
+
+
+def measured_value(value: Mapping[str, Any], key: str, config_path: str) -> float:
+    """A value measured on data: ``statistic`` (median) of ``column`` (skymad) of the
+    catalog ``path`` (FITS, or text with ``# name`` lines), over the rows passing
+    ``select`` with a finite value, times ``scale`` (1)."""
+    from megalut_cli.expr import check_expression, columns_used, evaluate_rows
+    from megalut_cli.great3.layout import read_any_catalog
+
+    unknown = sorted(set(value) - _MEASURED_KEYS)
+    if unknown:
+        raise ConfigError(f"{key}.{unknown[0]}: unknown key (allowed: {', '.join(sorted(_MEASURED_KEYS - {'type'}))})")
+    path = _resolve_path(value.get("path"), f"{key}.path", config_path)
+    column = value.get("column", "skymad")
+    if not isinstance(column, str) or not column:
+        raise ConfigError(f"{key}.column: expected a column name, got {column!r}")
+    statistic = _choice(value.get("statistic", "median"), f"{key}.statistic", MEASURED_STATISTICS)
+    scale = _float(value.get("scale", 1.0), f"{key}.scale")
+    select = value.get("select")
+    if select is not None and not isinstance(select, str):
+        raise ConfigError(f"{key}.select: expected an expression string")
+    table = read_any_catalog(path)
+    if column not in table.colnames:
+        raise ConfigError(f"{key}.column: no column {column!r} in {path}")
+    v = np.asarray(table[column], dtype=float)
+    if v.ndim != 1:
+        raise ConfigError(f"{key}.column: {column!r} is not a scalar column")
+    mask = np.isfinite(v)
+    if select is not None:
+        check_expression(select, list(table.colnames))
+        cols = {c: np.asarray(table[c]) for c in columns_used(select)}
+        mask &= np.asarray(evaluate_rows(select, cols, len(v)), dtype=bool)
+    if not mask.any():
+        raise ConfigError(f"{key}: no row of {path} with a finite {column}" + (f" passing {select!r}" if select else ""))
+    out = float((np.median if statistic == "median" else np.mean)(v[mask])) * scale
+    if not (math.isfinite(out) and out >= 0):
+        raise ConfigError(f"{key}: the measured value {out!r} is not a valid noise level")
+    log.info("%s = %g: %s of %s over %d row(s) of %s", key, out, statistic, column, int(mask.sum()), path)
+    return out
+
+
+def _parse_noise(raw: Mapping[str, Any], instrument: Mapping[str, float], config_path: str = "<config>") -> NoiseSpec:
     t = _table(raw, "noise", _NOISE_KEYS, required=True)
+    if is_measured(t.get("sigma")):
+        t["sigma"] = measured_value(t["sigma"], "noise.sigma", config_path)
     kind = _choice(t.get("type"), "noise.type", NOISE_TYPES)
     allowed = {"gaussian": {"sigma"}, "ccd": {"sky_mag", "read_noise"}, "none": set()}[kind]
     extra = sorted(set(t) - allowed - {"type", "override_sigma"})
@@ -428,6 +564,17 @@ def _parse_psf(raw: Mapping[str, Any], config_path: str) -> dict[str, Any]:
         raise ConfigError("psf.type: missing")
     if t["type"] == "stamp" and "path" in t:  # a star image: same lookup as catalog.path
         t["path"] = str(_resolve_path(t["path"], "psf.path", config_path))
+    if t["type"] == "stamp" and t.get("index") == "random":  # one star of the grid per case
+        if t.get("stamp_size") is None or "path" not in t:
+            raise ConfigError("psf.index: 'random' needs psf.path and psf.stamp_size (a grid of stars)")
+        from megalut_cli.sim.psf import star_grid_size
+
+        if isinstance(t["stamp_size"], bool) or not isinstance(t["stamp_size"], int) or t["stamp_size"] < 3:
+            raise ConfigError(f"psf.stamp_size: must be an integer >= 3, got {t['stamp_size']!r}")
+        n = star_grid_size(t["path"], t.get("hdu"), t["stamp_size"])
+        t["index"] = {"type": "grid", "values": list(range(n))}
+    elif isinstance(t.get("index"), str):
+        raise ConfigError(f"psf.index: expected an integer, a distribution or 'random', got {t['index']!r}")
     spec: dict[str, Any] = {}
     for k, v in t.items():
         if k != "type" and is_distribution_table(v) and v.get("type") in DIST_TYPES:
@@ -592,8 +739,13 @@ def validate_config(
     instrument = _parse_instrument(raw)
     shear_t = _table(raw, "shear", {"g1", "g2"})
     shear = _dists(shear_t, "shear", ["g1", "g2"])
-    galaxy = _parse_galaxy(raw, instrument)
-    noise = _parse_noise(raw, instrument)
+    galaxy = _parse_galaxy(raw, instrument, path)
+    noise = _parse_noise(raw, instrument, path)
+    if galaxy.real is not None and galaxy.real["hst_noise"] != "keep" and noise.type == "ccd" and noise.override_sigma is None:
+        raise ConfigError(
+            f"galaxy.hst_noise: {galaxy.real['hst_noise']!r} needs noise.type = 'gaussian' (the added noise "
+            "makes up the rest of the variance); or set galaxy.hst_noise = 'keep'"
+        )
     psf = _parse_psf(raw, path)
     gsparams = _parse_gsparams(raw)
     field_t = _table(raw, "field", {"x", "y"})
@@ -618,13 +770,15 @@ def validate_config(
 
     # Ranges
     g = galaxy.params
-    _check_range(g["rad"], 0.0, None, "the half-light radius", strict_lo=True)
+    if "rad" in g:
+        _check_range(g["rad"], 0.0, None, "the half-light radius", strict_lo=True)
     if galaxy.flux_mode in ("flux", "sb"):
         _check_range(g[galaxy.flux_mode], 0.0, None, "the flux" if galaxy.flux_mode == "flux" else "the surface brightness")
-    _check_range(g["ellipticity"], 0.0, None, "the ellipticity modulus")
-    a, b = g["ellipticity"].bounds()
-    if b >= 1.0:
-        raise ConfigError(f"galaxy.ellipticity: the modulus must be < 1, but values reach {b:g}")
+    if "ellipticity" in g:
+        _check_range(g["ellipticity"], 0.0, None, "the ellipticity modulus")
+        a, b = g["ellipticity"].bounds()
+        if b >= 1.0:
+            raise ConfigError(f"galaxy.ellipticity: the modulus must be < 1, but values reach {b:g}")
     if "sersicn" in g:
         lo, hi = (float(round_sersicn(np.array(v), galaxy.sersicn_step)) for v in g["sersicn"].bounds())
         if lo < SERSIC_N_RANGE[0] or hi > SERSIC_N_RANGE[1]:

@@ -19,7 +19,15 @@ import numpy as np
 
 from megalut_cli.errors import MegalutError
 from megalut_cli.sim.config import SimConfig
-from megalut_cli.sim.galaxies import base_profile, make_gsparams, shaped
+from megalut_cli.sim.galaxies import (
+    base_profile,
+    make_gsparams,
+    real_footprint,
+    real_noise,
+    real_profile,
+    rotated,
+    shaped,
+)
 from megalut_cli.sim.structure import draw_case
 
 #: Stamps measured at once when the images are not kept (bounds the memory of a unit).
@@ -119,6 +127,42 @@ def _single_threaded_galsim() -> None:
 _THREADS_SET = False
 
 
+#: Fewest padding-only pixels of a stamp to measure the variance of its HST noise on.
+_MIN_PAD_PIXELS = 200
+
+
+def _process_hst_noise(
+    image: galsim.Image, clean: np.ndarray, d: Any, k: int, t: dict[str, np.ndarray], real: dict[str, Any],
+    psf: galsim.GSObject, psf_sigma: float, method: str, gsp: galsim.GSParams, mode: str,
+) -> float:
+    """Symmetrize (order 4) or whiten the HST noise of a drawn real galaxy, then add Gaussian
+    noise up to the case's sigma; returns the variance of the processed HST noise
+    (``tru_hst_noise_var``; above sigma^2 no Gaussian noise is added).
+
+    ``clean`` is the same galaxy drawn without noise padding: outside its HST footprint
+    (plus 3 PSF sigmas), ``image - clean`` is pure padding noise, whose variance calibrates
+    the noise model (its shape comes from :func:`megalut_cli.sim.galaxies.real_noise`).
+    """
+    seed = int(d.noise_seeds[k])
+    index = int(t["tru_real_index"][k])
+    kernel = psf if method == "no_pixel" else galsim.Convolve(psf, galsim.Pixel(1.0))
+    cn = real_noise(real, index, t["tru_flux"][k], d.extra["theta"][k],
+                    t["tru_g1"][k], t["tru_g2"][k], kernel, (seed * 69069 + 1) % 2147483647 + 1, gsp)
+    n = image.array.shape[0]
+    yy, xx = np.mgrid[:n, :n] - (n - 1) / 2.0
+    r_fp = real_footprint(real, index) + 3.0 * psf_sigma + 2.0
+    outside = np.hypot(xx - d.offsets[k, 0], yy - d.offsets[k, 1]) > r_fp
+    if outside.sum() >= _MIN_PAD_PIXELS:
+        v = float(np.var((image.array - clean)[outside].astype(np.float64)))
+        if v > 0:
+            cn = cn.withVariance(v)
+    var = float(cn.whitenImage(image) if mode == "whiten" else cn.symmetrizeImage(image, order=4))
+    rest = d.noise.sky_sigma**2 - var
+    if rest > 0:
+        image.addNoise(galsim.GaussianNoise(galsim.BaseDeviate(seed), sigma=float(np.sqrt(rest))))
+    return var
+
+
 def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     """Draw (and measure) the cases ``[case_start, case_stop)`` of ``unit``.
 
@@ -144,22 +188,36 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     conv_gsp = gsp if cfg.gsparams else None  # else GalSim combines the components' own
 
     truth_parts: list[dict[str, np.ndarray]] = []
+    # Real galaxies: pad with HST noise over the stamp, symmetrize (or whiten) it, add the
+    # rest of the noise.
+    hst_mode = gal.real.get("hst_noise", "keep") if gal.profile == "real" and render else "keep"
+    if cfg.noise.type == "none" and cfg.noise.override_sigma is None:
+        hst_mode = "keep"  # noiseless stamps: the HST noise stays in the galaxy's own footprint
+    pad = S * 1.5 + 4.0 if hst_mode != "keep" else 0.0
+    scratch = galsim.ImageF(S, S, scale=1.0)
+    base0 = None
     fill = 0  # stamps in the buffer
     buf_first = first  # global index of stamps[0]
     for case in range(unit.case_start, unit.case_stop):
         d = draw_case(cfg, unit.seed, case)
         t = d.truth
+        hst_var = np.zeros(n_rea) if hst_mode != "keep" else None
         psf_truths: list[dict[str, float]] = []  # one per PSF draw (psf_index order)
         last_gal, last_psf = -1, -1
         base = psf = None
         for k in range(n_rea):
             gi = int(d.galaxy_index[k])
-            if gi != last_gal:
-                base = base_profile(
-                    gal.profile, t["tru_rad"][k], t["tru_flux"][k],
-                    t["tru_sersicn"][k] if "tru_sersicn" in t else None,
-                    gsp,
-                )
+            if gi != last_gal and render:
+                if gal.profile == "real":
+                    base = real_profile(gal.real, int(t["tru_real_index"][k]), t["tru_flux"][k], gsp, pad)
+                    if pad:
+                        base0 = real_profile(gal.real, int(t["tru_real_index"][k]), t["tru_flux"][k], gsp)
+                else:
+                    base = base_profile(
+                        gal.profile, t["tru_rad"][k], t["tru_flux"][k],
+                        t["tru_sersicn"][k] if "tru_sersicn" in t else None,
+                        gsp,
+                    )
                 last_gal = gi
             pi = int(d.psf_index[k])
             if pi != last_psf:
@@ -171,7 +229,10 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                 last_psf = pi
             if not render:
                 continue
-            gal_k = shaped(base, t["tru_e1"][k], t["tru_e2"][k], t["tru_g1"][k], t["tru_g2"][k])
+            if gal.profile == "real":  # real galaxies: rotated by the position angle, then lensed
+                gal_k = rotated(base, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k])
+            else:
+                gal_k = shaped(base, t["tru_e1"][k], t["tru_e2"][k], t["tru_g1"][k], t["tru_g2"][k])
             obj = galsim.Convolve(gal_k, psf, gsparams=conv_gsp)
             try:
                 obj.drawImage(image=image, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method)
@@ -182,7 +243,14 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                 ) from None
             except (galsim.GalSimError, MemoryError) as err:
                 raise MegalutError(f"case {case}, realization {k}: GalSim could not draw the stamp ({err})") from None
-            d.noise.add(image, int(d.noise_seeds[k]))
+            if hst_var is not None and d.noise.kind != "none":
+                clean = galsim.Convolve(
+                    rotated(base0, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k]), psf, gsparams=conv_gsp
+                ).drawImage(image=scratch, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method).array
+                hst_var[k] = _process_hst_noise(image, clean, d, k, t, gal.real, psf, psf_truths[-1]["tru_psf_sigma"],
+                                                method, gsp, hst_mode)
+            else:
+                d.noise.add(image, int(d.noise_seeds[k]))
             stamps[fill] = image.array
             fill += 1
             if not keep and measurer is not None and fill == nbuf:
@@ -195,6 +263,8 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
             "rea": np.arange(n_rea, dtype=np.int64),
         }
         cols.update(t)
+        if hst_var is not None:
+            cols["tru_hst_noise_var"] = hst_var
         for name in psf_truths[0]:
             cols[name] = np.array([p[name] for p in psf_truths], dtype=float)[d.psf_index]
         truth_parts.append(cols)

@@ -28,7 +28,9 @@ parameters (see the "PSF" section of ``docs/config.md``):
     A PSF read from a FITS image of a star (``path``, optional ``hdu``): a GalSim
     InterpolatedImage with flux 1. With ``stamp_size``, the image is a grid of star
     stamps (e.g. a GREAT3 ``starfield_image``, 3x3) and ``index`` (default 0) picks one,
-    in grid order from the lower-left. ``pixel_scale`` is the star image's pixel in
+    in grid order from the lower-left; ``index = "random"`` (or any distribution, e.g.
+    ``{type = "grid", values = [0, 4, 8]}``) picks one per case (per realization with
+    ``"psf"`` in ``structure.per_realization``), as the paper does for GREAT3 (Sect. 8.2). ``pixel_scale`` is the star image's pixel in
     simulation pixels (default 1). ``interpolant`` is GalSim's x interpolant (default
     quintic).
 
@@ -223,7 +225,13 @@ def validate_psf_config(spec: Mapping[str, Any], where: str = "psf") -> None:
             _integer(s, "hdu", where, 0)
         if s["stamp_size"] is not None:
             _integer(s, "stamp_size", where, 3)
-        _integer(s, "index", where, 0)
+        index = _integer(s, "index", where, 0)
+        n_stars = star_grid_size(path, s["hdu"], s["stamp_size"], where)
+        if index >= n_stars:
+            raise ConfigError(
+                f"{_key(where, 'index')}: {index} is beyond the {n_stars} star(s) of {path} "
+                "(0-based, in grid order from the lower-left)"
+            )
         _positive(s, "pixel_scale", where)
         if s["interpolant"] not in _INTERPOLANTS:
             raise ConfigError(
@@ -232,6 +240,26 @@ def validate_psf_config(spec: Mapping[str, Any], where: str = "psf") -> None:
             )
         if s["includes_pixel"] is not None and not isinstance(s["includes_pixel"], bool):
             raise ConfigError(f"{_key(where, 'includes_pixel')}: expected true or false")
+
+
+@functools.lru_cache(maxsize=64)
+def _star_grid(path: str, hdu: int | None, stamp_size: int | None) -> tuple[int, int]:
+    from megalut_cli.measure.stamps import check_grid, image_info
+
+    info = image_info(path, hdu)
+    if stamp_size is None:
+        return 1, 1
+    return check_grid(info, stamp_size)
+
+
+def star_grid_size(path: str | os.PathLike, hdu: Any = None, stamp_size: Any = None, where: str = "psf") -> int:
+    """Number of stars in a ``stamp`` PSF image: 1 without ``stamp_size``, else the grid's."""
+    try:
+        n_y, n_x = _star_grid(str(path), None if hdu is None else int(hdu),
+                              None if stamp_size is None else int(stamp_size))
+    except InputError as err:
+        raise InputError(f"{_key(where, 'path')}: {err}") from None
+    return n_y * n_x
 
 
 def psf_varies(spec: Mapping[str, Any]) -> bool:

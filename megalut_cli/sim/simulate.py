@@ -178,6 +178,7 @@ def simulate(
                 results.append(res)
     seconds = time.perf_counter() - t0
     columns = _assemble(results)
+    warn_hst_noise(columns)
     n = len(columns["case"])
     x, y = stamp_centres(np.arange(n), s.grid_nx, s.stamp_size)
     columns["x"], columns["y"] = x, y
@@ -195,6 +196,19 @@ def simulate(
             f.write(_config_table(config), extname="CONFIG")
     log.info("%d stamps in %.1f s (%.1f stamps/s)", n, seconds, n / seconds if seconds else math.inf)
     return SimulationResult(n, s.n_cases, s.n_realizations, seconds, out, st)
+
+
+def warn_hst_noise(columns: dict[str, np.ndarray]) -> None:
+    """Warn about real-galaxy stamps whose own HST noise exceeds the requested noise."""
+    if "tru_hst_noise_var" not in columns:
+        return
+    over = int(np.sum(columns["tru_hst_noise_var"] > columns["tru_sky_sigma"] ** 2))
+    if over:
+        log.warning(
+            "%d of %d real-galaxy stamps carry more (symmetrized) HST noise than noise.sigma^2: their noise "
+            "is higher than asked (column tru_hst_noise_var); lower the fluxes, raise noise.sigma or select "
+            "brighter galaxies (galaxy.real_select)", over, len(columns["tru_hst_noise_var"]),
+        )
 
 
 def _paste(image: np.ndarray, stamps: np.ndarray, first: int, n_x: int, size: int) -> None:

@@ -49,7 +49,7 @@ class CaseDraw:
     noise: StampNoise
     noise_seeds: np.ndarray
     offsets: np.ndarray  # (n, 2) pixels
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)  # "theta": position angles (deg, not reduced)
 
 
 def ring_angles(theta0: np.ndarray, n_rea: int, group_size: int) -> np.ndarray:
@@ -103,7 +103,12 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     # Galaxy.
     gal = config.galaxy
     gvals, gal_index = level("galaxy", gal.params)
-    rad = gvals["rad"]
+    if gal.profile == "real":  # size and shape come from the HST image: NaN truth
+        truth["tru_real_index"] = np.round(gvals["index"]).astype(np.int64)
+        rad = np.full(n, np.nan)
+        gvals["ellipticity"] = np.full(n, np.nan)
+    else:
+        rad = gvals["rad"]
     truth["tru_rad"] = rad
     if "sersicn" in gvals:
         truth["tru_sersicn"] = round_sersicn(gvals["sersicn"], gal.sersicn_step)
@@ -135,4 +140,4 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     offsets = rng_noise.uniform(-s.offset, s.offset, (n, 2)) if s.offset > 0 else np.zeros((n, 2))
     truth["tru_dx"], truth["tru_dy"] = offsets[:, 0], offsets[:, 1]
     seeds = rng_noise.integers(1, 2**31 - 1, n)
-    return CaseDraw(case, truth, gal_index, psf_index, specs, noise, seeds, offsets)
+    return CaseDraw(case, truth, gal_index, psf_index, specs, noise, seeds, offsets, {"theta": theta})
