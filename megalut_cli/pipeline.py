@@ -1,0 +1,774 @@
+"""``megalut run``: a whole shear-calibration pipeline from one TOML file.
+
+A pipeline file (reference: ``docs/pipeline.md``) names three simulation sets — ``tp``
+(point-estimator training, Fig. 4 structure), ``tw`` (weight training, Fig. 5) and ``vo``
+(overall validation) — and the settings of the training, prediction and evaluation steps.
+:func:`run_pipeline` runs, in a work folder:
+
+====================  ================================  =========================
+step                  does                              writes
+====================  ================================  =========================
+``simulate-tp``       simulate + measure the TP set     ``tp.fits``
+``simulate-tw``       simulate + measure the TW set     ``tw.fits``
+``simulate-vo``       simulate + measure the VO set     ``vo.fits``
+``train-point``       point committees (MSB) on TP      ``point.h5``
+``train-weight``      weight committees (MSWB) on TW    ``model.h5``
+``predict``           estimates and weights on VO       ``vo-shears.fits``
+``evaluate``          m, c unweighted and weighted      ``evaluation.json`` (+ ``.png``)
+====================  ================================  =========================
+
+``manifest.json`` in the work folder records, for every finished step, a key (sha256 of
+its parameters, the sha256 of its input files and the megalut version) and the sha256,
+size and modification time of its outputs. With ``skip_existing`` a step is skipped when
+its key is unchanged and its outputs are still those recorded; any change (a config
+value, a seed, an upstream product) re-runs the step and, through the input hashes,
+everything downstream. The execution engine (``-j``, Dask) is not part of the key: the
+results do not depend on it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import hashlib
+import importlib.resources
+import json
+import logging
+import math
+import os
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import AbstractContextManager
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from megalut_cli import __version__
+from megalut_cli.atomic import atomic_output
+from megalut_cli.errors import ConfigError, InputError, MegalutError
+from megalut_cli.provenance import sha256_file, utc_now
+from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, validate_config
+from megalut_cli.training import DEFAULT_FEATURES, TrainOptions
+
+log = logging.getLogger("megalut")
+
+#: The embedded default pipeline (package data).
+DEFAULT_PIPELINE = "default_pipeline.toml"
+DEFAULT_WORKDIR = "megalut-run"
+MANIFEST = "manifest.json"
+MANIFEST_FORMAT = "megalut.run-manifest"
+MANIFEST_VERSION = "1.0"
+EVALUATION_JSON = "evaluation.json"
+EVALUATION_PNG = "evaluation.png"
+SET_NAMES = ("tp", "tw", "vo")
+#: Seeds of the sets when the file gives none (all different).
+DEFAULT_SET_SEEDS = {"tp": 1, "tw": 2, "vo": 3}
+
+_TOP_KEYS = {"description", "scale", "simulation", "sets", "train_point", "train_weight", "evaluate"}
+_SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed", "scale_by"}
+#: How ``scale`` shrinks a set: the exponents of ``scale`` for (n_cases, n_realizations).
+SCALE_BY = {"both": (0.5, 0.5), "cases": (1.0, 0.0), "realizations": (0.0, 1.0)}
+_TRAIN_COMMON = {
+    "features", "hidden", "members", "keep", "iterations", "batch_fraction", "batch_iterations",
+    "normalization", "optimizer", "precision", "valid_fraction", "seed",
+}
+_TRAIN_POINT_KEYS = _TRAIN_COMMON | {"targets", "cost", "select_cases", "init"}
+_TRAIN_WEIGHT_KEYS = _TRAIN_COMMON | {"select"}
+_EVALUATE_KEYS = {"by", "bins", "select", "select_cases", "plot"}
+
+ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
+
+
+# --------------------------------------------------------------------------- specification
+
+
+@dataclass(frozen=True)
+class SetSpec:
+    """One simulated set: its validated config and seed."""
+
+    name: str
+    config: SimConfig
+    seed: int
+    source: str  # where the config comes from, for the logs
+
+    @property
+    def product(self) -> str:
+        return f"{self.name}.fits"
+
+
+@dataclass(frozen=True)
+class TrainPointSpec:
+    features: list[str]
+    targets: list[str]
+    hidden: list[int]
+    cost: str
+    select_cases: str | None
+    init: str
+    options: TrainOptions
+
+
+@dataclass(frozen=True)
+class TrainWeightSpec:
+    features: list[str] | None  # None: those of the point model
+    hidden: list[int]
+    select: str | None
+    options: TrainOptions
+
+
+@dataclass(frozen=True)
+class EvaluateSpec:
+    by: list[str]
+    bins: int
+    select: str | None
+    select_cases: str | None
+    plot: bool
+
+
+@dataclass(frozen=True)
+class Pipeline:
+    """A validated pipeline file (overrides and scale applied)."""
+
+    path: str
+    sha256: str
+    overrides: tuple[str, ...]
+    raw: dict[str, Any]
+    description: str
+    scale: float
+    sets: dict[str, SetSpec]
+    train_point: TrainPointSpec
+    train_weight: TrainWeightSpec
+    evaluate: EvaluateSpec
+    columns: dict[str, list[str]] = field(default_factory=dict)  # set -> columns it will have
+
+
+class _Table:
+    """Typed, key-checked access to one table of the pipeline file (errors name the key)."""
+
+    def __init__(self, data: Any, where: str, allowed: set[str] | None = None) -> None:
+        if data is None:
+            data = {}
+        if not isinstance(data, Mapping):
+            raise ConfigError(f"{where}: expected a table, got {data!r}")
+        self.data, self.where = dict(data), where
+        if allowed is not None:
+            unknown = sorted(set(self.data) - allowed)
+            if unknown:
+                raise ConfigError(f"{self.key(unknown[0])}: unknown key (allowed: {', '.join(sorted(allowed))})")
+
+    def key(self, name: str) -> str:
+        return f"{self.where}.{name}" if self.where else name
+
+    def get_int(self, name: str, default: int | None, minimum: int) -> int | None:
+        v = self.data.get(name, default)
+        if v is None:
+            return None
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise ConfigError(f"{self.key(name)}: expected an integer, got {v!r}")
+        if v < minimum:
+            raise ConfigError(f"{self.key(name)}: must be >= {minimum}, got {v}")
+        return int(v)
+
+    def get_float(self, name: str, default: float, lo: float, hi: float, lo_open: bool = False,
+              hi_open: bool = False) -> float:
+        v = self.data.get(name, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ConfigError(f"{self.key(name)}: expected a finite number, got {v!r}")
+        if v < lo or v > hi or (lo_open and v == lo) or (hi_open and v == hi):
+            interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+            raise ConfigError(f"{self.key(name)}: must be in {interval}, got {v!r}")
+        return float(v)
+
+    def get_str(self, name: str, default: str | None, choices: Sequence[str] | None = None) -> str | None:
+        v = self.data.get(name, default)
+        if v is None:
+            return None
+        if not isinstance(v, str) or not v.strip():
+            raise ConfigError(f"{self.key(name)}: expected a non-empty string, got {v!r}")
+        if choices is not None and v not in choices:
+            raise ConfigError(f"{self.key(name)}: unknown value {v!r} (expected one of {', '.join(choices)})")
+        return v
+
+    def get_bool(self, name: str, default: bool) -> bool:
+        v = self.data.get(name, default)
+        if not isinstance(v, bool):
+            raise ConfigError(f"{self.key(name)}: expected true or false, got {v!r}")
+        return v
+
+    def get_str_list(self, name: str, default: Sequence[str] | None, allow_empty: bool = False) -> list[str] | None:
+        v = self.data.get(name, default)
+        if v is None:
+            return None
+        if isinstance(v, str):
+            v = [s.strip() for s in v.split(",") if s.strip()]
+        if not isinstance(v, (list, tuple)) or not all(isinstance(s, str) and s for s in v):
+            raise ConfigError(f"{self.key(name)}: expected a list of names, got {v!r}")
+        if not v and not allow_empty:
+            raise ConfigError(f"{self.key(name)}: the list is empty")
+        dup = sorted({s for s in v if list(v).count(s) > 1})
+        if dup:
+            raise ConfigError(f"{self.key(name)}: {dup[0]!r} given twice")
+        return list(v)
+
+    def get_int_list(self, name: str, default: Sequence[int]) -> list[int]:
+        v = self.data.get(name, default)
+        if isinstance(v, int) and not isinstance(v, bool):
+            v = [v]
+        if (not isinstance(v, (list, tuple)) or not v
+                or not all(isinstance(i, int) and not isinstance(i, bool) and i > 0 for i in v)):
+            raise ConfigError(f"{self.key(name)}: expected a list of positive integers, got {v!r}")
+        return list(v)
+
+
+def _merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """Deep-merge ``over`` into a copy of ``base``; a table with a ``type`` key replaces, not merges."""
+    out = copy.deepcopy(dict(base))
+    for k, v in over.items():
+        if isinstance(v, Mapping) and "type" not in v and isinstance(out.get(k), Mapping):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def scaled_size(n: int, factor: float, minimum: int, even: bool = False) -> int:
+    """``n`` times ``factor``, rounded, at least ``minimum`` (and even when ``even``)."""
+    m = max(minimum, round(n * factor))
+    if even:
+        m = max(2, 2 * round(m / 2))
+    return int(m)
+
+
+def _sha_text(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _resolve(text: str, key: str, base: Path | None) -> Path:
+    p = Path(text).expanduser()
+    if not p.is_absolute():
+        if base is None:
+            raise ConfigError(f"{key}: a relative path needs a pipeline file to be relative to")
+        p = base / p
+    if not p.is_file():
+        raise InputError(f"{key}: no such file {str(p)!r}")
+    return p
+
+
+def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | None, scale: float,
+              pipeline_path: str, base_dir: Path | None, pipeline_sha: str) -> SetSpec:
+    t = _Table(raw.get(name), f"sets.{name}", _SET_KEYS)
+    if "config" in t.data:
+        cfg_path = _resolve(t.get_str("config", None) or "", t.key("config"), base_dir)
+        try:
+            sim_raw, sha = read_toml(cfg_path)
+        except MegalutError as err:
+            raise type(err)(f"{t.key('config')}: {err}") from None
+        where, source = str(cfg_path), str(cfg_path)
+    elif base_sim is not None:
+        sim_raw, sha = copy.deepcopy(dict(base_sim)), pipeline_sha
+        where, source = f"{pipeline_path}#sets.{name}", "[simulation]"
+    else:
+        raise ConfigError(f"sets.{name}.config: missing (a simulation config file, or a [simulation] table)")
+    over = t.data.get("simulation")
+    if over is not None:
+        if not isinstance(over, Mapping):
+            raise ConfigError(f"{t.key('simulation')}: expected a table")
+        sim_raw = _merge(sim_raw, over)
+        source += f" + sets.{name}.simulation"
+    structure = sim_raw.get("structure")
+    if structure is None:
+        structure = sim_raw["structure"] = {}
+    if not isinstance(structure, dict):
+        raise ConfigError(f"sets.{name}: structure: expected a table")
+    for k in ("n_cases", "n_realizations"):
+        v = t.get_int(k, None, 1)
+        if v is not None:
+            structure[k] = v
+    seed = t.get_int("seed", DEFAULT_SET_SEEDS[name], 0)
+    scale_by = t.get_str("scale_by", "both", tuple(SCALE_BY)) or "both"
+    try:
+        config = validate_config(sim_raw, path=where, sha256=sha)
+    except MegalutError as err:
+        raise type(err)(f"sets.{name}: {err}") from None
+    if scale != 1.0:
+        s = config.structure
+        a, b = SCALE_BY[scale_by]
+        sizes = {
+            "n_cases": scaled_size(s.n_cases, scale**a, 2),
+            "n_realizations": scaled_size(s.n_realizations, scale**b, 1, even=s.snc == "pairs"),
+        }
+        raw_scaled = copy.deepcopy(config.raw)
+        raw_scaled["structure"].update(sizes)
+        config = replace(config.with_structure(**sizes), raw=raw_scaled)
+    if config.structure.n_cases < 2:
+        raise ConfigError(f"sets.{name}.n_cases: at least 2 cases are needed, got {config.structure.n_cases}")
+    return SetSpec(name, config, int(seed), source)
+
+
+def _train_options(t: _Table, iterations: int, seed: int) -> TrainOptions:
+    opts = TrainOptions(
+        members=t.get_int("members", 8, 1),
+        iterations=t.get_int("iterations", iterations, 1),
+        batch_fraction=t.get_float("batch_fraction", 0.25, 0.0, 1.0, lo_open=True),
+        batch_iterations=t.get_int("batch_iterations", 30, 1),
+        optimizer=t.get_str("optimizer", "bfgs", ("bfgs", "lbfgs")),
+        normalization=t.get_str("normalization", "minmax", ("minmax", "robust")),
+        valid_fraction=t.get_float("valid_fraction", 0.2, 0.0, 1.0, hi_open=True),
+        seed=t.get_int("seed", seed, 0),
+        dtype=t.get_str("precision", "float64", ("float64", "float32")),
+        keep=t.get_int("keep", None, 1),
+    )
+    if opts.keep is not None and opts.keep > opts.members:
+        raise ConfigError(f"{t.key('keep')}: must be <= {t.key('members')} ({opts.members}), got {opts.keep}")
+    return opts
+
+
+def _expression(t: _Table, name: str, case_mode: bool) -> str | None:
+    from megalut_cli.expr import check_expression
+
+    expr = t.get_str(name, None)
+    if expr is not None:
+        try:
+            check_expression(expr, None, case_mode=case_mode)
+        except MegalutError as err:
+            raise ConfigError(f"{t.key(name)}: {err}") from None
+    return expr
+
+
+def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str = "",
+                   overrides: Sequence[str] = (), base_dir: Path | None = None) -> Pipeline:
+    """Validate a parsed pipeline mapping (after ``key=value`` overrides)."""
+    raw = apply_overrides(dict(raw), overrides)
+    top = _Table(raw, "", _TOP_KEYS)
+    description = top.data.get("description", "")
+    if not isinstance(description, str):
+        raise ConfigError("description: expected a string")
+    scale = top.get_float("scale", 1.0, 0.0, math.inf, lo_open=True)
+    base_sim = top.data.get("simulation")
+    if base_sim is not None and not isinstance(base_sim, Mapping):
+        raise ConfigError("simulation: expected a table (a simulation config, see docs/config.md)")
+    sets_t = _Table(top.data.get("sets"), "sets", set(SET_NAMES))
+    missing = [n for n in SET_NAMES if n not in sets_t.data]
+    if missing:
+        raise ConfigError(f"sets.{missing[0]}: missing (a pipeline needs the sets {', '.join(SET_NAMES)})")
+    sets = {n: _load_set(n, sets_t.data, base_sim, scale, path, base_dir, sha256) for n in SET_NAMES}
+    seen: dict[int, str] = {}
+    for n, s in sets.items():
+        if s.seed in seen:
+            raise ConfigError(
+                f"sets.{n}.seed: {s.seed} is also the seed of sets.{seen[s.seed]}; "
+                "every set needs its own seed (the paper draws them independently)"
+            )
+        seen[s.seed] = n
+
+    tp = _Table(top.data.get("train_point"), "train_point", _TRAIN_POINT_KEYS)
+    point = TrainPointSpec(
+        features=tp.get_str_list("features", DEFAULT_FEATURES) or [],
+        targets=tp.get_str_list("targets", ["tru_g1", "tru_g2"]) or [],
+        hidden=tp.get_int_list("hidden", [5, 5]),
+        cost=tp.get_str("cost", "msb", ("msb", "mse")) or "msb",
+        select_cases=_expression(tp, "select_cases", True),
+        init=tp.get_str("init", "normal", ("normal", "identity")) or "normal",
+        options=_train_options(tp, 1000, 1),
+    )
+    overlap = sorted(set(point.features) & set(point.targets))
+    if overlap:
+        raise ConfigError(f"train_point.features: {overlap[0]!r} is also a target")
+    tw = _Table(top.data.get("train_weight"), "train_weight", _TRAIN_WEIGHT_KEYS)
+    weight = TrainWeightSpec(
+        features=tw.get_str_list("features", None),
+        hidden=tw.get_int_list("hidden", [5]),
+        select=_expression(tw, "select", False),
+        options=_train_options(tw, 300, 2),
+    )
+    ev = _Table(top.data.get("evaluate"), "evaluate", _EVALUATE_KEYS)
+    evaluate = EvaluateSpec(
+        by=ev.get_str_list("by", [], allow_empty=True) or [],
+        bins=ev.get_int("bins", 5, 1) or 5,
+        select=_expression(ev, "select", False),
+        select_cases=_expression(ev, "select_cases", True),
+        plot=ev.get_bool("plot", True),
+    )
+    pipe = Pipeline(
+        path=path, sha256=sha256, overrides=tuple(overrides), raw=json.loads(json.dumps(raw, default=str)),
+        description=description, scale=scale, sets=sets, train_point=point, train_weight=weight,
+        evaluate=evaluate,
+    )
+    _check_columns(pipe)
+    return pipe
+
+
+def _probe_columns(spec: SetSpec) -> list[str]:
+    """The columns the set's catalog will have: draw and measure its first case once."""
+    from megalut_cli.sim.draw import WorkUnit, draw_unit
+
+    s = spec.config.structure
+    small = spec.config.with_structure(n_cases=1, n_realizations=2 if s.snc == "pairs" else 1)
+    try:
+        cols = draw_unit(WorkUnit(small, spec.seed, 0, 1, 1, False, True))["columns"]
+    except MegalutError as err:
+        raise type(err)(f"sets.{spec.name}: {err}") from None
+    return ["x", "y", *cols]
+
+
+def _require(names: Sequence[str], available: Sequence[str], key: str, where: str) -> None:
+    missing = [n for n in names if n not in available]
+    if missing:
+        raise ConfigError(f"{key}: no column {', '.join(map(repr, missing))} in the {where} catalog")
+
+
+def _check_columns(pipe: Pipeline) -> None:
+    """Check every column the steps use against what the simulations will produce."""
+    from megalut_cli.expr import check_expression
+
+    cols = {n: _probe_columns(s) for n, s in pipe.sets.items()}
+    pipe.columns.update(cols)
+    tp, tw, ev = pipe.train_point, pipe.train_weight, pipe.evaluate
+    if not {"tru_g1", "tru_g2"} <= set(tp.targets):
+        raise ConfigError("train_point.targets: the pipeline evaluates shear: the targets must include tru_g1, tru_g2")
+    needs = [  # (key, columns, the sets that must have them)
+        ("train_point.features", tp.features, ("tp", "tw", "vo")),  # trained on tp, predicted on tw, vo
+        ("train_point.targets", tp.targets, ("tp", "tw")),
+        ("train_weight.features", tw.features or [], ("tw", "vo")),
+        ("sets.vo", ["case", "tru_g1", "tru_g2"], ("vo",)),
+    ]
+    for key, names, where in needs:
+        for name in where:
+            _require(names, cols[name], key, name)
+    predicted = cols["vo"] + ["pre_g1", "pre_g2", "pre_g1_w", "pre_g2_w"]
+    _require(ev.by, predicted, "evaluate.by", "vo")
+    checks = [
+        (tp.select_cases, cols["tp"], True, "train_point.select_cases"),
+        (tw.select, cols["tw"], False, "train_weight.select"),
+        (ev.select, predicted, False, "evaluate.select"),
+        (ev.select_cases, predicted, True, "evaluate.select_cases"),
+    ]
+    for expr, available, case_mode, key in checks:
+        if expr is not None:
+            try:
+                check_expression(expr, available, case_mode=case_mode)
+            except MegalutError as err:
+                raise ConfigError(f"{key}: {err}") from None
+
+
+def default_pipeline_text() -> str:
+    """The text of the embedded default pipeline."""
+    return importlib.resources.files("megalut_cli").joinpath("data", DEFAULT_PIPELINE).read_text()
+
+
+def load_pipeline(path: str | os.PathLike | None = None, overrides: Sequence[str] = ()) -> Pipeline:
+    """Read and validate a pipeline file (``None``: the embedded default)."""
+    if path is None:
+        ref = importlib.resources.files("megalut_cli").joinpath("data", DEFAULT_PIPELINE)
+        with importlib.resources.as_file(ref) as p:
+            raw, sha = read_toml(p)
+        return parse_pipeline(raw, f"<default {DEFAULT_PIPELINE}>", sha, overrides, None)
+    raw, sha = read_toml(path)
+    return parse_pipeline(raw, str(path), sha, overrides, Path(path).resolve().parent)
+
+
+# --------------------------------------------------------------------------- steps
+
+
+@dataclass
+class Step:
+    """One step: products in the work folder, inputs (upstream products), parameters."""
+
+    name: str
+    outputs: list[str]
+    inputs: list[str]
+    params: dict[str, Any]
+    action: Callable[[Path, bool], None]  # (workdir, overwrite)
+    summary: str = ""
+
+
+@dataclass
+class StepReport:
+    name: str
+    status: str  # "ran" or "skipped"
+    seconds: float
+
+
+@dataclass
+class RunResult:
+    """What :func:`run_pipeline` did and the evaluation it ends with."""
+
+    workdir: Path
+    evaluation: dict[str, Any]
+    steps: list[StepReport]
+    seconds: float
+
+
+@contextlib.contextmanager
+def _quiet_progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
+    del label, length
+    yield lambda n: None
+
+
+def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
+                progress: ProgressFactory | None = None) -> list[Step]:
+    """The steps of ``pipe`` in execution order."""
+    prog = progress or _quiet_progress
+    steps: list[Step] = []
+
+    def sim_step(spec: SetSpec) -> Step:
+        from megalut_cli.sim.simulate import n_work_units, simulate
+
+        def action(wd: Path, overwrite: bool) -> None:
+            with prog(f"simulate {spec.name}", n_work_units(spec.config, nproc, scheduler)) as update:
+                simulate(spec.config, wd / spec.product, measure=True, seed=spec.seed, nproc=nproc,
+                         scheduler=scheduler, overwrite=overwrite, progress=update)
+
+        s = spec.config.structure
+        extra = {}
+        if spec.config.catalog_path:
+            extra["catalog_sha256"] = sha256_file(spec.config.catalog_path)
+        psf_path = spec.config.psf.get("path")
+        if isinstance(psf_path, str) and Path(psf_path).is_file():
+            extra["psf_sha256"] = sha256_file(psf_path)
+        return Step(
+            f"simulate-{spec.name}", [spec.product], [],
+            {"config": json.loads(spec.config.to_json()), "seed": spec.seed, "measure": True, **extra},
+            action,
+            f"{s.n_cases} cases x {s.n_realizations} realizations = {s.n_stamps} stamps, seed {spec.seed}, "
+            f"snc {s.snc} ({spec.source})",
+        )
+
+    for name in SET_NAMES:
+        steps.append(sim_step(pipe.sets[name]))
+
+    tp = pipe.train_point
+
+    def train_point_action(wd: Path, overwrite: bool) -> None:
+        from megalut_cli.training import train_point
+
+        train_point(wd / "tp.fits", wd / "point.h5", features=tp.features, targets=tp.targets, hidden=tp.hidden,
+                    cost=tp.cost, select_cases=tp.select_cases, init_scheme=tp.init, options=tp.options,
+                    nproc=nproc, scheduler=scheduler, overwrite=overwrite, progress=progress)
+
+    steps.append(Step(
+        "train-point", ["point.h5"], ["tp.fits"],
+        {"features": tp.features, "targets": tp.targets, "hidden": tp.hidden, "cost": tp.cost,
+         "select_cases": tp.select_cases, "init": tp.init, "options": asdict(tp.options)},
+        train_point_action,
+        f"{tp.options.members} members x {len(tp.targets)} targets, hidden {tp.hidden}, "
+        f"{tp.options.iterations} iterations, select_cases {tp.select_cases!r}, seed {tp.options.seed}",
+    ))
+    tw = pipe.train_weight
+
+    def train_weight_action(wd: Path, overwrite: bool) -> None:
+        from megalut_cli.training import train_weight
+
+        train_weight(wd / "tw.fits", wd / "point.h5", wd / "model.h5", features=tw.features, hidden=tw.hidden,
+                     select=tw.select, options=tw.options, nproc=nproc, scheduler=scheduler,
+                     overwrite=overwrite, progress=progress)
+
+    steps.append(Step(
+        "train-weight", ["model.h5"], ["tw.fits", "point.h5"],
+        {"features": tw.features, "hidden": tw.hidden, "select": tw.select,
+         "options": asdict(tw.options)},
+        train_weight_action,
+        f"{tw.options.members} members, hidden {tw.hidden}, {tw.options.iterations} iterations, "
+        f"select {tw.select!r}, seed {tw.options.seed}",
+    ))
+
+    def predict_action(wd: Path, overwrite: bool) -> None:
+        from megalut_cli.catalog import catalog_info
+        from megalut_cli.shear.predict import predict_catalog
+
+        with prog("predict", catalog_info(wd / "vo.fits")[0]) as update:
+            predict_catalog(wd / "vo.fits", wd / "model.h5", wd / "vo-shears.fits", nproc=nproc,
+                            scheduler=scheduler, overwrite=overwrite, progress=update)
+
+    steps.append(Step("predict", ["vo-shears.fits"], ["vo.fits", "model.h5"], {}, predict_action,
+                      "point estimates and weights on vo.fits"))
+
+    ev = pipe.evaluate
+    plot = ev.plot and _have_matplotlib()
+    if ev.plot and not plot:
+        log.info("matplotlib is not installed: no %s (pip install 'megalut-cli[plot]')", EVALUATION_PNG)
+
+    def evaluate_action(wd: Path, overwrite: bool) -> None:
+        from megalut_cli.shear.evaluate import evaluate_catalog
+
+        result = evaluate_catalog(wd / "vo-shears.fits", by=ev.by or None, bins=ev.bins, select=ev.select,
+                                  select_cases=ev.select_cases)
+        write_json(wd / EVALUATION_JSON, result, overwrite)
+        if plot:
+            from megalut_cli.shear.plots import plot_evaluation
+
+            plot_evaluation(result, wd / EVALUATION_PNG, overwrite)
+        else:  # no figure of an earlier run left beside this evaluation
+            (wd / EVALUATION_PNG).unlink(missing_ok=True)
+
+    steps.append(Step(
+        "evaluate", [EVALUATION_JSON] + ([EVALUATION_PNG] if plot else []), ["vo-shears.fits"],
+        {"by": ev.by, "bins": ev.bins, "select": ev.select, "select_cases": ev.select_cases, "plot": plot},
+        evaluate_action,
+        f"m, c on vo-shears.fits{f' by {ev.by}' if ev.by else ''}",
+    ))
+    return steps
+
+
+def _have_matplotlib() -> bool:
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def write_json(path: str | os.PathLike, obj: Any, overwrite: bool = False) -> None:
+    """Write ``obj`` as indented JSON, atomically (temp file, then rename)."""
+    with atomic_output(path, overwrite) as tmp:
+        tmp.write_text(json.dumps(obj, indent=1, allow_nan=False) + "\n")
+
+
+# --------------------------------------------------------------------------- manifest
+
+
+class Manifest:
+    """``manifest.json``: the key and output fingerprints of every finished step."""
+
+    def __init__(self, path: Path, pipeline: Pipeline) -> None:
+        self.path = path
+        self.pipeline = pipeline
+        self.steps: dict[str, Any] = {}
+        if path.is_file():
+            try:
+                data = json.loads(path.read_text())
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+                log.warning("%s: unreadable, every step will run", path)
+                data = {}
+            if isinstance(data, dict) and data.get("format") == MANIFEST_FORMAT and isinstance(data.get("steps"), dict):
+                self.steps = data["steps"]
+
+    @staticmethod
+    def fingerprint(path: Path) -> dict[str, Any]:
+        st = path.stat()
+        return {"sha256": sha256_file(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+    def current_sha(self, step: str, workdir: Path, name: str) -> str | None:
+        """The sha256 of product ``name`` if it is still what ``step`` recorded, else None."""
+        p = workdir / name
+        rec = (self.steps.get(step) or {}).get("outputs", {}).get(name)
+        if not p.is_file() or not isinstance(rec, dict):
+            return None
+        st = p.stat()
+        if rec.get("size") == st.st_size and rec.get("mtime_ns") == st.st_mtime_ns:
+            return rec.get("sha256")  # unchanged since recorded (as make/git assume)
+        sha = sha256_file(p)
+        return sha if sha == rec.get("sha256") else None
+
+    def record(self, step: Step, key: str, inputs: Mapping[str, str], outputs: Mapping[str, dict[str, Any]],
+               seconds: float) -> None:
+        self.steps[step.name] = {
+            "key": key,
+            "params": step.params,
+            "inputs": dict(inputs),
+            "outputs": dict(outputs),
+            "seconds": round(seconds, 3),
+            "finished": utc_now(),
+        }
+        self.save()
+
+    def save(self) -> None:
+        p = self.pipeline
+        data = {
+            "format": MANIFEST_FORMAT,
+            "format_version": MANIFEST_VERSION,
+            "megalut": __version__,
+            "pipeline": {"path": p.path, "sha256": p.sha256, "overrides": list(p.overrides), "effective": p.raw},
+            "steps": self.steps,
+        }
+        write_json(self.path, data, overwrite=True)
+
+
+def step_key(step: Step, input_shas: Mapping[str, str]) -> str:
+    """The identity of a step's work: parameters, input contents, megalut version."""
+    return _sha_text({"step": step.name, "params": step.params, "inputs": dict(input_shas), "megalut": __version__})
+
+
+# --------------------------------------------------------------------------- running
+
+
+def products(steps: Sequence[Step]) -> list[str]:
+    return [o for s in steps for o in s.outputs]
+
+
+def check_workdir(workdir: Path, steps: Sequence[Step], skip_existing: bool, overwrite: bool) -> None:
+    """Fail early: a file where the folder should be, or products there without a flag."""
+    if workdir.exists() and not workdir.is_dir():
+        raise MegalutError(f"--workdir {workdir}: exists and is not a folder")
+    if skip_existing or overwrite:
+        return
+    for name in dict.fromkeys([*products(steps), EVALUATION_PNG, MANIFEST]):
+        if (workdir / name).exists():
+            raise MegalutError(
+                f"{workdir / name} exists; use --skip-existing to reuse the up-to-date products "
+                "or --overwrite to redo every step"
+            )
+
+
+def run_pipeline(
+    pipe: Pipeline,
+    workdir: str | os.PathLike = DEFAULT_WORKDIR,
+    *,
+    skip_existing: bool = False,
+    overwrite: bool = False,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    progress: ProgressFactory | None = None,
+) -> RunResult:
+    """Run (or bring up to date) every step of ``pipe`` in ``workdir``; return the evaluation."""
+    wd = Path(workdir)
+    steps = build_steps(pipe, nproc, scheduler, progress)
+    check_workdir(wd, steps, skip_existing, overwrite)
+    wd.mkdir(parents=True, exist_ok=True)
+    manifest = Manifest(wd / MANIFEST, pipe)
+    if not skip_existing:
+        manifest.steps = {}
+    log.info("pipeline %s -> %s", pipe.path, wd)
+    t_start = time.perf_counter()
+    shas: dict[str, str] = {}
+    reports: list[StepReport] = []
+    for i, step in enumerate(steps, 1):
+        label = f"[{i}/{len(steps)}] {step.name}"
+        inputs = {name: shas[name] for name in step.inputs}
+        key = step_key(step, inputs)
+        if skip_existing:
+            rec = manifest.steps.get(step.name) or {}
+            current = {o: manifest.current_sha(step.name, wd, o) for o in step.outputs}
+            if rec.get("key") == key and all(current.values()):
+                shas.update({o: s for o, s in current.items() if s})
+                log.info("%s: up to date, skipped", label)
+                reports.append(StepReport(step.name, "skipped", 0.0))
+                continue
+            reason = "parameters or inputs changed" if rec.get("key") not in (None, key) else (
+                "not run yet" if not rec else "products missing or changed")
+            log.info("%s: %s: %s", label, reason, step.summary)
+        else:
+            log.info("%s: %s", label, step.summary)
+        manifest.steps.pop(step.name, None)
+        t0 = time.perf_counter()
+        step.action(wd, overwrite or skip_existing)
+        seconds = time.perf_counter() - t0
+        outputs = {o: Manifest.fingerprint(wd / o) for o in step.outputs}
+        shas.update({o: f["sha256"] for o, f in outputs.items()})
+        manifest.record(step, key, inputs, outputs, seconds)
+        log.info("%s: done in %.1f s", label, seconds)
+        reports.append(StepReport(step.name, "ran", seconds))
+    total = time.perf_counter() - t_start
+    evaluation = json.loads((wd / EVALUATION_JSON).read_text())
+    log.info("pipeline finished in %.1f s (%s)", total,
+             ", ".join(f"{r.name} {r.seconds:.0f} s" if r.status == "ran" else f"{r.name} skipped" for r in reports))
+    return RunResult(wd, evaluation, reports, total)
+
+
+def format_summary(result: RunResult) -> str:
+    """The evaluation table, then where the products are."""
+    from megalut_cli.shear.evaluate import format_table
+
+    lines = [format_table(result.evaluation), ""]
+    files = [EVALUATION_JSON] + ([EVALUATION_PNG] if (result.workdir / EVALUATION_PNG).is_file() else [])
+    lines.append(f"products in {result.workdir}/: {', '.join(files)}, {MANIFEST} (and the catalogs and models)")
+    return "\n".join(lines)
