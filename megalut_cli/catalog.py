@@ -47,6 +47,16 @@ def _table_ext(fits: fitsio.FITS, path: str | os.PathLike) -> int:
     raise InputError(f"{path}: no table extension (is this a catalog?)")
 
 
+def image_ext(fits: fitsio.FITS, path: str | os.PathLike, ext: int | None = None) -> int:
+    """``ext``, or else the index of the first image HDU of ``fits`` that holds data."""
+    if ext is not None:
+        return ext
+    found = next((i for i, h in enumerate(fits) if h.get_exttype() == "IMAGE_HDU" and h.has_data()), None)
+    if found is None:
+        raise InputError(f"{path}: no image in this FITS file")
+    return found
+
+
 def _native(arr: np.ndarray) -> np.ndarray:
     """Convert a (big-endian) structured array read from FITS to native byte order."""
     if arr.dtype.names is None:
@@ -240,14 +250,7 @@ def read_image(path: str | os.PathLike, ext: int | None = None) -> tuple[np.ndar
     _check_exists(path)
     try:
         with fitsio.FITS(str(path)) as f:
-            if ext is None:
-                ext = next(
-                    (i for i, h in enumerate(f) if h.get_exttype() == "IMAGE_HDU" and h.has_data()),
-                    None,
-                )
-                if ext is None:
-                    raise InputError(f"{path}: no image in this FITS file")
-            hdu = f[ext]
+            hdu = f[image_ext(f, path, ext)]
             data = hdu.read()
             header = header_dict(hdu.read_header())
     except InputError:

@@ -87,6 +87,13 @@ class TrainOptions:
         if self.dtype not in ("float64", "float32"):
             raise ConfigError(f"unknown precision {self.dtype!r}")
 
+    def settings(self, cost: str) -> TrainSettings:
+        """How to train each member with ``cost``."""
+        return TrainSettings(
+            cost=cost, iterations=self.iterations, batch_fraction=self.batch_fraction,
+            batch_iterations=self.batch_iterations, optimizer=self.optimizer, dtype=self.dtype,
+        )
+
 
 @contextlib.contextmanager
 def _no_progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
@@ -182,9 +189,19 @@ def _load_cases(
     return data
 
 
-def _split(data: CaseData, valid_path: str | None, valid_data: CaseData | None, opts: TrainOptions) -> tuple[CaseData, CaseData | None, str]:
-    if valid_path is not None:
-        return data, valid_data, str(valid_path)
+def _load_split(
+    train: str | os.PathLike,
+    valid: str | os.PathLike | None,
+    opts: TrainOptions,
+    features: Sequence[str],
+    targets: Sequence[str],
+    **load: Any,
+) -> tuple[CaseData, CaseData | None, str]:
+    """Training and validation cases: from ``valid``, or a held-out fraction of ``train``;
+    and a description of the validation set. ``load`` goes to :func:`_load_cases`."""
+    data = _load_cases(train, features, targets, **load)
+    if valid is not None:
+        return data, _load_cases(valid, features, targets, **load), str(valid)
     if opts.valid_fraction <= 0:
         log.warning("no validation set (--valid-fraction 0): members are monitored and selected on the training set")
         return data, None, "training set"
@@ -214,6 +231,53 @@ def _input(path: str | os.PathLike) -> dict[str, str]:
 def _spread(values: np.ndarray) -> float:
     s = float(np.std(values))
     return s if np.isfinite(s) and s > 0 else 1.0
+
+
+def _training_record(
+    opts: TrainOptions,
+    command: str,
+    cost: str,
+    valid_desc: str,
+    tdata: CaseData,
+    vdata: CaseData | None,
+    **extra: Any,
+) -> dict[str, Any]:
+    """What a committee records of its training: the options, the data sizes and ``extra``."""
+    return {
+        **asdict(opts),
+        "command": command,
+        "cost": cost,
+        **extra,
+        "validation": valid_desc,
+        "n_train_cases": tdata.n_cases,
+        "n_train_rows": tdata.n_rows,
+        "n_valid_cases": vdata.n_cases if vdata is not None else 0,
+        "n_valid_rows": vdata.n_rows if vdata is not None else 0,
+    }
+
+
+def _check_architecture(features: Sequence[str], targets: Sequence[str], hidden: Sequence[int]) -> None:
+    overlap = sorted(set(features) & set(targets))
+    if overlap:
+        raise ConfigError(f"column(s) {', '.join(overlap)} cannot be both a feature and a target")
+    if any(h < 1 for h in hidden):
+        raise ConfigError("--hidden sizes must be positive integers")
+
+
+def _provenance(
+    command: str, inputs: dict[str, Any], seed: int, parent: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    """The provenance of a trained model: command line, versions, inputs, seed (and parent model)."""
+    prov: dict[str, Any] = {
+        "command": command,
+        "argv": command_line(),
+        "versions": software_versions(),
+        "inputs": inputs,
+        "seed": seed,
+    }
+    if parent is not None:
+        prov["parent"] = parent
+    return prov
 
 
 def train_point(
@@ -272,21 +336,14 @@ def train_point(
                 f"--hidden {','.join(map(str, hidden))} differs from the architecture of {init_from} "
                 f"({','.join(map(str, src.hidden))}); leave --hidden out to continue that model"
             )
-    overlap = sorted(set(features) & set(targets))
-    if overlap:
-        raise ConfigError(f"column(s) {', '.join(overlap)} cannot be both a feature and a target")
     hidden = tuple(hidden) if hidden is not None else (
         next(iter(init_comms.values())).hidden if init_comms else DEFAULT_POINT_HIDDEN
     )
-    if any(h < 1 for h in hidden):
-        raise ConfigError("--hidden sizes must be positive integers")
+    _check_architecture(features, targets, hidden)
 
-    constant = cost != "mse"
-    data = _load_cases(train, features, targets, constant_targets=constant, select_cases=select_cases)
-    vdata = None
-    if valid is not None:
-        vdata = _load_cases(valid, features, targets, constant_targets=constant, select_cases=select_cases)
-    tdata, vdata, valid_desc = _split(data, valid, vdata, opts)
+    tdata, vdata, valid_desc = _load_split(
+        train, valid, opts, features, targets, constant_targets=cost != "mse", select_cases=select_cases
+    )
 
     specs = []
     for j, t in enumerate(targets):
@@ -303,19 +360,12 @@ def train_point(
             out_scale = _spread(tdata.targets[:, j])
             init_members = None
         net = Network(len(features), hidden, "identity", out_loc, out_scale)
-        training = {
-            **asdict(opts),
-            "command": "train-point",
-            "cost": cost,
-            "select_cases": select_cases,
-            "validation": valid_desc,
-            "init_from": str(init_from) if init_from is not None else None,
-            "init_scheme": "model" if src is not None else init_scheme,
-            "n_train_cases": tdata.n_cases,
-            "n_train_rows": tdata.n_rows,
-            "n_valid_cases": vdata.n_cases if vdata is not None else 0,
-            "n_valid_rows": vdata.n_rows if vdata is not None else 0,
-        }
+        training = _training_record(
+            opts, "train-point", cost, valid_desc, tdata, vdata,
+            select_cases=select_cases,
+            init_from=str(init_from) if init_from is not None else None,
+            init_scheme="model" if src is not None else init_scheme,
+        )
         specs.append(
             CommitteeSpec(
                 kind="point", target=t, j=j, net=net, in_loc=in_loc, in_scale=in_scale, train=tdata,
@@ -324,25 +374,14 @@ def train_point(
                 init_members=init_members, normalization=method, training=training,
             )
         )
-    settings = TrainSettings(
-        cost=cost, iterations=opts.iterations, batch_fraction=opts.batch_fraction,
-        batch_iterations=opts.batch_iterations, optimizer=opts.optimizer, dtype=opts.dtype,
-    )
+    settings = opts.settings(cost)
     inputs = {"train": _input(train)}
     if valid is not None:
         inputs["valid"] = _input(valid)
     if init_model is not None:
         inputs["init_from"] = {"path": str(init_from), "sha256": init_model.sha256}
     committees = _run(specs, settings, opts.seed, nproc, scheduler, progress)
-    prov: dict[str, Any] = {
-        "command": "train-point",
-        "argv": command_line(),
-        "versions": software_versions(),
-        "inputs": inputs,
-        "seed": opts.seed,
-    }
-    if init_model is not None:
-        prov["parent"] = init_model.provenance
+    prov = _provenance("train-point", inputs, opts.seed, init_model.provenance if init_model is not None else None)
     model = ShearModel(point=committees, provenance=prov)
     model.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, model.sha256[:12])
@@ -395,34 +434,20 @@ def train_weight(
         raise InputError(f"{model}: the model has no point committee")
     targets = list(point_model.point)
     features = _unique(features if features is not None else point_model.features, "features")
-    overlap = sorted(set(features) & set(targets))
-    if overlap:
-        raise ConfigError(f"column(s) {', '.join(overlap)} cannot be both a feature and a target")
     hidden = tuple(hidden) if hidden is not None else DEFAULT_WEIGHT_HIDDEN
-    if any(h < 1 for h in hidden):
-        raise ConfigError("--hidden sizes must be positive integers")
+    _check_architecture(features, targets, hidden)
 
-    data = _load_cases(train, features, targets, constant_targets=True, select_rows=select, point_model=point_model)
-    vdata = None
-    if valid is not None:
-        vdata = _load_cases(valid, features, targets, constant_targets=True, select_rows=select, point_model=point_model)
-    tdata, vdata, valid_desc = _split(data, valid, vdata, opts)
+    tdata, vdata, valid_desc = _load_split(
+        train, valid, opts, features, targets, constant_targets=True, select_rows=select, point_model=point_model
+    )
     in_loc, in_scale = norm.fit(tdata.x, opts.normalization, features)
     specs = []
     for j, t in enumerate(targets):
         net = Network(len(features), hidden, "sigmoid4")
-        training = {
-            **asdict(opts),
-            "command": "train-weight",
-            "cost": "mswb",
-            "select": select,
-            "validation": valid_desc,
-            "point_model_sha256": point_model.sha256,
-            "n_train_cases": tdata.n_cases,
-            "n_train_rows": tdata.n_rows,
-            "n_valid_cases": vdata.n_cases if vdata is not None else 0,
-            "n_valid_rows": vdata.n_rows if vdata is not None else 0,
-        }
+        training = _training_record(
+            opts, "train-weight", "mswb", valid_desc, tdata, vdata,
+            select=select, point_model_sha256=point_model.sha256,
+        )
         specs.append(
             CommitteeSpec(
                 kind="weight", target=t, j=j, net=net, in_loc=in_loc, in_scale=in_scale, train=tdata,
@@ -430,22 +455,12 @@ def train_weight(
                 normalization=opts.normalization, training=training,
             )
         )
-    settings = TrainSettings(
-        cost="mswb", iterations=opts.iterations, batch_fraction=opts.batch_fraction,
-        batch_iterations=opts.batch_iterations, optimizer=opts.optimizer, dtype=opts.dtype,
-    )
+    settings = opts.settings("mswb")
     committees = _run(specs, settings, opts.seed, nproc, scheduler, progress)
     inputs = {"train": _input(train), "model": {"path": str(model), "sha256": point_model.sha256}}
     if valid is not None:
         inputs["valid"] = _input(valid)
-    prov = {
-        "command": "train-weight",
-        "argv": command_line(),
-        "versions": software_versions(),
-        "inputs": inputs,
-        "seed": opts.seed,
-        "parent": point_model.provenance,
-    }
+    prov = _provenance("train-weight", inputs, opts.seed, point_model.provenance)
     result = ShearModel(point=point_model.point, weight=committees, provenance=prov)
     result.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, result.sha256[:12])

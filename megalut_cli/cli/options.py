@@ -61,6 +61,95 @@ def execution_options(f: F) -> F:
     return wrapper
 
 
+def _stack(*decorators: Callable[[F], F]) -> Callable[[F], F]:
+    """Apply option decorators so that they appear in ``--help`` in the order given."""
+
+    def decorate(f: F) -> F:
+        for d in reversed(decorators):
+            f = d(f)
+        return f
+
+    return decorate
+
+
+# Options of train-point and train-weight, in three groups so that each command keeps its
+# own order of options in --help; ``pass_train_options`` gathers their values.
+
+
+def validation_options(valid_help: str) -> Callable[[F], F]:
+    """``--valid FILE`` and ``--valid-fraction`` of the training commands."""
+    return _stack(
+        click.option("--valid", type=click.Path(exists=True, dir_okay=False), default=None, help=valid_help),
+        click.option(
+            "--valid-fraction",
+            type=click.FloatRange(0.0, 1.0, max_open=True),
+            default=0.2,
+            help="Fraction of the training cases held out for validation when no --valid is given (0: none).",
+        ),
+    )
+
+
+def committee_options(iterations_default: int) -> Callable[[F], F]:
+    """``--members``, ``--keep``, ``--iterations``, ``--batch-fraction``, ``--batch-iterations``."""
+    return _stack(
+        click.option("--members", type=click.IntRange(1), default=8, help="Networks per committee."),
+        click.option(
+            "--keep", type=click.IntRange(1), default=None, help="Members kept (lowest validation cost). [default: half]"
+        ),
+        click.option(
+            "--iterations", type=click.IntRange(1), default=iterations_default, help="Optimizer iterations per member."
+        ),
+        click.option(
+            "--batch-fraction",
+            type=click.FloatRange(0.0, 1.0, min_open=True),
+            default=0.25,
+            help="Fraction of the training cases in each mini-batch (1: full batch).",
+        ),
+        click.option("--batch-iterations", type=click.IntRange(1), default=30, help="Iterations on each mini-batch."),
+    )
+
+
+def optimizer_options(f: F) -> F:
+    """``--normalization``, ``--optimizer``, ``--precision`` and ``--seed`` of the training commands."""
+    return _stack(
+        click.option(
+            "--normalization",
+            type=click.Choice(["minmax", "robust"]),
+            default="minmax",
+            help="Input scaling: training range to [-1, 1] (paper), or 1st-99th percentile to [-1, 1].",
+        ),
+        click.option("--optimizer", type=click.Choice(["bfgs", "lbfgs"]), default="bfgs", help="scipy optimizer."),
+        click.option(
+            "--precision",
+            type=click.Choice(["float64", "float32"]),
+            default="float64",
+            help="Arithmetic of the network passes during training (float32 is about twice as fast).",
+        ),
+        seed_option(1, "Seed of the random draws (initial parameters, mini-batches, validation split)."),
+    )(f)
+
+
+#: Parameters of the training option groups that are fields of ``TrainOptions`` as they are
+#: (``--precision`` is its ``dtype``).
+_TRAIN_OPTION_FIELDS = (
+    "members", "keep", "iterations", "batch_fraction", "batch_iterations", "valid_fraction",
+    "normalization", "optimizer", "seed",
+)
+
+
+def pass_train_options(f: Callable[..., Any]) -> F:
+    """Pass the values of the training option groups to ``f`` as one ``options: TrainOptions``."""
+
+    @functools.wraps(f)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from megalut_cli.training import TrainOptions
+
+        options = TrainOptions(dtype=kwargs.pop("precision"), **{k: kwargs.pop(k) for k in _TRAIN_OPTION_FIELDS})
+        return f(*args, options=options, **kwargs)
+
+    return wrapper
+
+
 def parse_list(value: str | None, what: str = "list") -> list[str] | None:
     """Split a comma-separated option value (``a,b,c``)."""
     if value is None:

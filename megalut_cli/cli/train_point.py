@@ -2,17 +2,25 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import click
 
 from megalut_cli.cli.options import (
+    committee_options,
     execution_options,
+    optimizer_options,
     output_option,
     overwrite_option,
     parse_int_list,
     parse_list,
+    pass_train_options,
     progress,
-    seed_option,
+    validation_options,
 )
+
+if TYPE_CHECKING:
+    from megalut_cli.training import TrainOptions
 
 _DEFAULT_FEATURES = "adamom_g1, adamom_g2, adamom_sigma, adamom_flux, adamom_rho4"
 
@@ -31,29 +39,11 @@ _DEFAULT_FEATURES = "adamom_g1, adamom_g2, adamom_sigma, adamom_flux, adamom_rho
     help=f"Input feature columns. [default: {_DEFAULT_FEATURES}, or those of --init-from]",
 )
 @click.option("--targets", default="tru_g1,tru_g2", metavar="A,B", help="Target columns, one committee each.")
-@click.option(
-    "--valid",
-    type=click.Path(exists=True, dir_okay=False),
-    default=None,
-    help="Validation catalog (monitoring and member selection). Default: hold out --valid-fraction of the cases.",
-)
-@click.option(
-    "--valid-fraction",
-    type=click.FloatRange(0.0, 1.0, max_open=True),
-    default=0.2,
-    help="Fraction of the training cases held out for validation when no --valid is given (0: none).",
+@validation_options(
+    "Validation catalog (monitoring and member selection). Default: hold out --valid-fraction of the cases."
 )
 @click.option("--hidden", default=None, metavar="N,N", help="Hidden layer sizes. [default: 5,5, or those of --init-from]")
-@click.option("--members", type=click.IntRange(1), default=8, help="Networks per committee.")
-@click.option("--keep", type=click.IntRange(1), default=None, help="Members kept (lowest validation cost). [default: half]")
-@click.option("--iterations", type=click.IntRange(1), default=1000, help="Optimizer iterations per member.")
-@click.option(
-    "--batch-fraction",
-    type=click.FloatRange(0.0, 1.0, min_open=True),
-    default=0.25,
-    help="Fraction of the training cases in each mini-batch (1: full batch).",
-)
-@click.option("--batch-iterations", type=click.IntRange(1), default=30, help="Iterations on each mini-batch.")
+@committee_options(iterations_default=1000)
 @click.option("--cost", type=click.Choice(["msb", "mse"]), default="msb", help="Cost function (MSE only for comparison).")
 @click.option(
     "--select-cases",
@@ -75,43 +65,22 @@ _DEFAULT_FEATURES = "adamom_g1, adamom_g2, adamom_sigma, adamom_flux, adamom_rho
     default="normal",
     help="Starting parameters: N(0, 0.1), or near-identity on the matching feature (adamom_g1 for tru_g1).",
 )
-@click.option(
-    "--normalization",
-    type=click.Choice(["minmax", "robust"]),
-    default="minmax",
-    help="Input scaling: training range to [-1, 1] (paper), or 1st-99th percentile to [-1, 1].",
-)
-@click.option("--optimizer", type=click.Choice(["bfgs", "lbfgs"]), default="bfgs", help="scipy optimizer.")
-@click.option(
-    "--precision",
-    type=click.Choice(["float64", "float32"]),
-    default="float64",
-    help="Arithmetic of the network passes during training (float32 is about twice as fast).",
-)
-@seed_option(1, "Seed of the random draws (initial parameters, mini-batches, validation split).")
+@optimizer_options
 @execution_options
 @overwrite_option
+@pass_train_options
 def command(
     train: str,
     output: str,
     features: str | None,
     targets: str,
     valid: str | None,
-    valid_fraction: float,
     hidden: str | None,
-    members: int,
-    keep: int | None,
-    iterations: int,
-    batch_fraction: float,
-    batch_iterations: int,
     cost: str,
     select_cases: str | None,
     init_from: str | None,
     init_scheme: str,
-    normalization: str,
-    optimizer: str,
-    precision: str,
-    seed: int,
+    options: TrainOptions,
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
@@ -132,20 +101,8 @@ def command(
       megalut train-point tp.fits -o model.h5 --init-from pre.h5 --iterations 300
       megalut train-point toy.fits -o toy.h5 --features d --targets tru_theta --hidden 5
     """
-    from megalut_cli.training import TrainOptions, train_point
+    from megalut_cli.training import train_point
 
-    opts = TrainOptions(
-        members=members,
-        iterations=iterations,
-        batch_fraction=batch_fraction,
-        batch_iterations=batch_iterations,
-        optimizer=optimizer,
-        normalization=normalization,
-        valid_fraction=valid_fraction,
-        seed=seed,
-        dtype=precision,
-        keep=keep,
-    )
     train_point(
         train,
         output,
@@ -157,7 +114,7 @@ def command(
         select_cases=select_cases,
         init_from=init_from,
         init_scheme=init_scheme,
-        options=opts,
+        options=options,
         nproc=nproc,
         scheduler=scheduler,
         overwrite=overwrite,

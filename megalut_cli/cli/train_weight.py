@@ -2,17 +2,25 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import click
 
 from megalut_cli.cli.options import (
+    committee_options,
     execution_options,
+    optimizer_options,
     output_option,
     overwrite_option,
     parse_int_list,
     parse_list,
+    pass_train_options,
     progress,
-    seed_option,
+    validation_options,
 )
+
+if TYPE_CHECKING:
+    from megalut_cli.training import TrainOptions
 
 
 @click.command(
@@ -35,68 +43,27 @@ from megalut_cli.cli.options import (
     help="Input feature columns of the weight networks. [default: all features of the point model]",
 )
 @click.option("--hidden", default="5", metavar="N,N", help="Hidden layer sizes.")
-@click.option("--members", type=click.IntRange(1), default=8, help="Networks per committee.")
-@click.option("--keep", type=click.IntRange(1), default=None, help="Members kept (lowest validation cost). [default: half]")
-@click.option("--iterations", type=click.IntRange(1), default=300, help="Optimizer iterations per member.")
-@click.option(
-    "--batch-fraction",
-    type=click.FloatRange(0.0, 1.0, min_open=True),
-    default=0.25,
-    help="Fraction of the training cases in each mini-batch (1: full batch).",
-)
-@click.option("--batch-iterations", type=click.IntRange(1), default=30, help="Iterations on each mini-batch.")
+@committee_options(iterations_default=300)
 @click.option(
     "--select",
     metavar="EXPR",
     default=None,
     help='Selection function on realizations; rows outside get no weight, e.g. "snr > 10 & adamom_sigma > 1.5".',
 )
-@click.option(
-    "--valid",
-    type=click.Path(exists=True, dir_okay=False),
-    default=None,
-    help="Validation catalog. Default: hold out --valid-fraction of the cases.",
-)
-@click.option(
-    "--valid-fraction",
-    type=click.FloatRange(0.0, 1.0, max_open=True),
-    default=0.2,
-    help="Fraction of the training cases held out for validation when no --valid is given (0: none).",
-)
-@click.option(
-    "--normalization",
-    type=click.Choice(["minmax", "robust"]),
-    default="minmax",
-    help="Input scaling: training range to [-1, 1] (paper), or 1st-99th percentile to [-1, 1].",
-)
-@click.option("--optimizer", type=click.Choice(["bfgs", "lbfgs"]), default="bfgs", help="scipy optimizer.")
-@click.option(
-    "--precision",
-    type=click.Choice(["float64", "float32"]),
-    default="float64",
-    help="Arithmetic of the network passes during training (float32 is about twice as fast).",
-)
-@seed_option(1, "Seed of the random draws (initial parameters, mini-batches, validation split).")
+@validation_options("Validation catalog. Default: hold out --valid-fraction of the cases.")
+@optimizer_options
 @execution_options
 @overwrite_option
+@pass_train_options
 def command(
     train: str,
     model: str,
     output: str,
     features: str | None,
     hidden: str,
-    members: int,
-    keep: int | None,
-    iterations: int,
-    batch_fraction: float,
-    batch_iterations: int,
     select: str | None,
     valid: str | None,
-    valid_fraction: float,
-    normalization: str,
-    optimizer: str,
-    precision: str,
-    seed: int,
+    options: TrainOptions,
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
@@ -115,20 +82,8 @@ def command(
     Example:
       megalut train-weight tw.fits --model model.h5 -o model_w.h5 --select "snr > 10" -j 4
     """
-    from megalut_cli.training import TrainOptions, train_weight
+    from megalut_cli.training import train_weight
 
-    opts = TrainOptions(
-        members=members,
-        iterations=iterations,
-        batch_fraction=batch_fraction,
-        batch_iterations=batch_iterations,
-        optimizer=optimizer,
-        normalization=normalization,
-        valid_fraction=valid_fraction,
-        seed=seed,
-        dtype=precision,
-        keep=keep,
-    )
     train_weight(
         train,
         model,
@@ -137,7 +92,7 @@ def command(
         hidden=parse_int_list(hidden, "--hidden"),
         select=select,
         valid=valid,
-        options=opts,
+        options=options,
         nproc=nproc,
         scheduler=scheduler,
         overwrite=overwrite,

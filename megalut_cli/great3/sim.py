@@ -44,7 +44,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import fitsio
 import galsim
 import numpy as np
 
@@ -52,7 +51,7 @@ from megalut_cli.atomic import atomic_output, check_output
 from megalut_cli.catalog import write_catalog, write_image
 from megalut_cli.errors import ConfigError, MegalutError
 from megalut_cli.great3 import layout as L
-from megalut_cli.parallel import executor, map_units, resolve_nproc
+from megalut_cli.parallel import executor, map_units
 from megalut_cli.seeding import STREAM_SIMULATE, rng_for
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, get_psf, psf_includes_pixel
@@ -234,11 +233,11 @@ def simulate_branch(
     ``progress(1)`` is called as each subfield is drawn (``n_cases`` in all).
     """
     from megalut_cli.sim.simulate import (
-        CATALOG_FORMAT,
         _cards,
-        _config_table,
         _order,
+        _workers,
         warn_hst_noise,
+        write_simulation_catalog,
     )
 
     out = check_output(output, overwrite)
@@ -246,7 +245,7 @@ def simulate_branch(
     n_x, n_y = check_config(config)
     s = config.structure
     size = s.stamp_size
-    workers = 8 if scheduler else resolve_nproc(nproc)
+    workers = _workers(nproc, scheduler)
     jobs = [
         {"unit": WorkUnit(config, seed, c, c + 1, n_x, keep_stamps=True, measure=False),
          "n_x": n_x, "n_y": n_y, "measure": measure}
@@ -290,9 +289,7 @@ def simulate_branch(
         cards["NSTAMPX"] = (n_x, "stamps per row of each subfield image")
         cards["LAYOUT"] = ("great3", "files written by --great3")
         with atomic_output(out, overwrite) as tmp_cat:
-            write_catalog(tmp_cat, columns, fmt=CATALOG_FORMAT, cards=cards, overwrite=True)
-            with fitsio.FITS(str(tmp_cat), "rw") as f:
-                f.write(_config_table(config), extname="CONFIG")
+            write_simulation_catalog(tmp_cat, columns, config, cards)
             check_branch_output(final, overwrite)  # appeared while we worked?
             _move_into(tmp_dir, final)
     finally:

@@ -27,7 +27,6 @@ import math
 
 import galsim
 import numpy as np
-from scipy.stats import median_abs_deviation
 
 from megalut_cli import flags as fl
 
@@ -83,7 +82,10 @@ def edge_pixels(stamps: np.ndarray) -> np.ndarray:
 def sky_mad(stamps: np.ndarray) -> np.ndarray:
     """Eq. 7: ``1.4826 * median(|xi - median(xi)|)`` over the edge pixels of each stamp."""
     edges = edge_pixels(np.asarray(stamps, dtype=np.float64))
-    return MAD_TO_SIGMA * median_abs_deviation(edges, axis=1, scale=1.0, nan_policy="propagate")
+    # What scipy.stats.median_abs_deviation(edges, axis=1) computes (NaN propagates),
+    # without importing scipy.stats (~0.5 s in every worker process).
+    mad = np.median(np.abs(edges - np.median(edges, axis=1, keepdims=True)), axis=1)
+    return MAD_TO_SIGMA * mad
 
 
 def effective_area(sigma: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ from typing import Any
 import fitsio
 import numpy as np
 
-from megalut_cli.catalog import header_dict
+from megalut_cli.catalog import header_dict, image_ext
 from megalut_cli.errors import ConfigError, InputError
 
 #: Header card holding the stamp size of an image of stamps.
@@ -62,13 +62,7 @@ def image_info(path: str | os.PathLike, ext: int | None = None) -> ImageInfo:
         raise InputError(f"{path}: no such file")
     try:
         with fitsio.FITS(str(path)) as f:
-            if ext is None:
-                ext = next(
-                    (i for i, h in enumerate(f) if h.get_exttype() == "IMAGE_HDU" and h.has_data()),
-                    None,
-                )
-                if ext is None:
-                    raise InputError(f"{path}: no image in this FITS file")
+            ext = image_ext(f, path, ext)
             hdu = f[ext]
             if hdu.get_exttype() != "IMAGE_HDU":
                 raise InputError(f"{path}: HDU {ext} is not an image")

@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from megalut_cli.errors import ConfigError
 
@@ -99,6 +98,8 @@ class Normal(Distribution):
         a = (self.min - self.mean) / self.sigma
         b = (self.max - self.mean) / self.sigma
         u = rng.random(n)
+        from scipy import stats  # only here: importing scipy.stats costs every worker ~0.5 s
+
         out = stats.truncnorm.ppf(u, a, b, loc=self.mean, scale=self.sigma)
         return np.clip(out, self.min, self.max)
 

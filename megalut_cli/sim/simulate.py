@@ -109,6 +109,16 @@ def _config_table(config: SimConfig) -> np.ndarray:
     return arr
 
 
+def write_simulation_catalog(
+    path: str | os.PathLike, columns: dict[str, np.ndarray], config: SimConfig, cards: dict[str, Any]
+) -> None:
+    """Write (replace) a ``megalut.simulation`` catalog at ``path``, the effective
+    configuration in its ``CONFIG`` HDU; meant for the temporary file of ``atomic_output``."""
+    write_catalog(path, columns, fmt=CATALOG_FORMAT, cards=cards, overwrite=True)
+    with fitsio.FITS(str(path), "rw") as f:
+        f.write(_config_table(config), extname="CONFIG")
+
+
 def _assemble(results: list[dict[str, Any]]) -> dict[str, np.ndarray]:
     names = list(results[0]["columns"])
     for r in results[1:]:
@@ -191,9 +201,7 @@ def simulate(
             st_cards = {k: v for k, v in cards.items() if k not in ("MEASURED",)}
             st_cards["NSTAMPS"] = (n, "number of stamps in the grid")
             write_image(tmp_st, image, fmt=STAMPS_FORMAT, cards=st_cards, overwrite=True)
-        write_catalog(tmp_cat, columns, fmt=CATALOG_FORMAT, cards=cards, overwrite=True)
-        with fitsio.FITS(str(tmp_cat), "rw") as f:
-            f.write(_config_table(config), extname="CONFIG")
+        write_simulation_catalog(tmp_cat, columns, config, cards)
     log.info("%d stamps in %.1f s (%.1f stamps/s)", n, seconds, n / seconds if seconds else math.inf)
     return SimulationResult(n, s.n_cases, s.n_realizations, seconds, out, st)
 
