@@ -2,28 +2,40 @@
 
 A pipeline file (reference: ``docs/pipeline.md``) names three simulation sets — ``tp``
 (point-estimator training, Fig. 4 structure), ``tw`` (weight training, Fig. 5) and ``vo``
-(overall validation) — and the settings of the training, prediction and evaluation steps.
+(overall validation) — and optionally ``pretrain`` (low-noise ellipticity pretraining,
+Fig. 6 structure, paper Sect. 6) and ``vp`` (point-estimator validation, Fig. 4
+structure), with the settings of the training, prediction and evaluation steps.
 :func:`run_pipeline` runs, in a work folder:
 
-====================  ================================  =========================
-step                  does                              writes
-====================  ================================  =========================
-``simulate-tp``       simulate + measure the TP set     ``tp.fits``
-``simulate-tw``       simulate + measure the TW set     ``tw.fits``
-``simulate-vo``       simulate + measure the VO set     ``vo.fits``
-``train-point``       point committees (MSB) on TP      ``point.h5``
-``train-weight``      weight committees (MSWB) on TW    ``model.h5``
-``predict``           estimates and weights on VO       ``vo-shears.fits``
-``evaluate``          m, c unweighted and weighted      ``evaluation.json`` (+ ``.png``)
-====================  ================================  =========================
+====================  ==================================  =========================
+step                  does                                writes
+====================  ==================================  =========================
+``simulate-<set>``    simulate + measure a set            ``<set>.fits``
+``pretrain-point``    point committees on ``pretrain``    ``pretrain.h5``
+                      (targets ``tru_e1, tru_e2``)
+``train-point``       point committees (MSB) on TP,       ``point.h5``
+                      continuing ``pretrain.h5`` if any
+``predict-vp``        point estimates on VP               ``vp-shears.fits``
+``evaluate-vp``       m, c of the point estimates         ``evaluation-vp.json``
+``train-weight``      weight committees (MSWB) on TW      ``model.h5``
+``predict``           estimates and weights on VO         ``vo-shears.fits``
+``evaluate``          m, c unweighted and weighted        ``evaluation.json`` (+ ``.png``)
+====================  ==================================  =========================
+
+A pipeline with a ``name`` writes the products of every step after the simulations to
+the subfolder ``<name>/`` of the work folder (steps ``<name>/train-point``...), so that
+several pipelines sharing the same sets (the feature setups of Sect. 6, the selections of
+Sect. 7) run in one work folder and simulate the sets once. ``extends = "base.toml"``
+makes a pipeline file a set of changes to another.
 
 ``manifest.json`` in the work folder records, for every finished step, a key (sha256 of
 its parameters, the sha256 of its input files and the megalut version) and the sha256,
 size and modification time of its outputs. With ``skip_existing`` a step is skipped when
 its key is unchanged and its outputs are still those recorded; any change (a config
 value, a seed, an upstream product) re-runs the step and, through the input hashes,
-everything downstream. The execution engine (``-j``, Dask) is not part of the key: the
-results do not depend on it.
+everything downstream. A step whose key is that of a finished step of another pipeline
+in the same folder copies that step's products instead of redoing the work. The
+execution engine (``-j``, Dask) is not part of the key: the results do not depend on it.
 """
 
 from __future__ import annotations
@@ -36,6 +48,8 @@ import json
 import logging
 import math
 import os
+import re
+import shutil
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager
@@ -60,11 +74,28 @@ MANIFEST_FORMAT = "megalut.run-manifest"
 MANIFEST_VERSION = "1.0"
 EVALUATION_JSON = "evaluation.json"
 EVALUATION_PNG = "evaluation.png"
+EVALUATION_VP_JSON = "evaluation-vp.json"
+EVALUATION_VP_PNG = "evaluation-vp.png"
+#: The sets every pipeline has.
 SET_NAMES = ("tp", "tw", "vo")
+#: Optional sets: ellipticity pretraining (Sect. 6) and point-estimator validation.
+OPTIONAL_SETS = ("pretrain", "vp")
+#: Every set, in the order of the simulation steps.
+ALL_SETS = ("pretrain", "tp", "tw", "vo", "vp")
 #: Seeds of the sets when the file gives none (all different).
-DEFAULT_SET_SEEDS = {"tp": 1, "tw": 2, "vo": 3}
+DEFAULT_SET_SEEDS = {"tp": 1, "tw": 2, "vo": 3, "pretrain": 4, "vp": 5}
+#: Targets of the ellipticity pretraining (paper Sect. 4.4 and 6).
+PRETRAIN_TARGETS = ["tru_e1", "tru_e2"]
+#: Case selection of the VP evaluation unless the file says otherwise (paper Figs. 12, 10).
+VP_SELECT_CASES = "mean(snr) > 10"
+#: How deep ``extends`` chains may go.
+MAX_EXTENDS = 8
+_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")  # no ".": never a product's name
 
-_TOP_KEYS = {"description", "scale", "simulation", "sets", "train_point", "train_weight", "evaluate"}
+_TOP_KEYS = {
+    "description", "name", "scale", "simulation", "sets", "pretrain", "train_point", "train_weight",
+    "evaluate", "evaluate_vp",
+}
 _SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed", "scale_by"}
 #: How ``scale`` shrinks a set: the exponents of ``scale`` for (n_cases, n_realizations).
 SCALE_BY = {"both": (0.5, 0.5), "cases": (1.0, 0.0), "realizations": (0.0, 1.0)}
@@ -74,6 +105,8 @@ _TRAIN_COMMON = {
 }
 _TRAIN_POINT_KEYS = _TRAIN_COMMON | {"targets", "cost", "select_cases", "init"}
 _TRAIN_WEIGHT_KEYS = _TRAIN_COMMON | {"select"}
+#: Pretraining continues into train_point: same features and architecture.
+_PRETRAIN_KEYS = (_TRAIN_COMMON - {"features", "hidden"}) | {"targets", "cost", "select_cases", "init"}
 _EVALUATE_KEYS = {"by", "bins", "select", "select_cases", "plot"}
 
 ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
@@ -101,6 +134,20 @@ class TrainPointSpec:
     features: list[str]
     targets: list[str]
     hidden: list[int]
+    cost: str
+    select_cases: str | None
+    init: str
+    options: TrainOptions
+
+
+@dataclass(frozen=True)
+class PretrainSpec:
+    """Pretraining of the point estimators on the ``pretrain`` set (paper Sect. 6).
+
+    Its features and hidden layers are those of ``train_point``, which continues from it.
+    """
+
+    targets: list[str]
     cost: str
     select_cases: str | None
     init: str
@@ -139,6 +186,13 @@ class Pipeline:
     train_weight: TrainWeightSpec
     evaluate: EvaluateSpec
     columns: dict[str, list[str]] = field(default_factory=dict)  # set -> columns it will have
+    name: str = ""  # products of the steps after the simulations go to <workdir>/<name>/
+    pretrain: PretrainSpec | None = None  # with the set "pretrain"
+    evaluate_vp: EvaluateSpec | None = None  # with the set "vp"
+
+    def product(self, base: str) -> str:
+        """Where a product of a training, prediction or evaluation step goes in the work folder."""
+        return f"{self.name}/{base}" if self.name else base
 
 
 class _Table:
@@ -322,10 +376,13 @@ def _train_options(t: _Table, iterations: int, seed: int) -> TrainOptions:
     return opts
 
 
-def _expression(t: _Table, name: str, case_mode: bool) -> str | None:
+def _expression(t: _Table, name: str, case_mode: bool, default: str | None = None) -> str | None:
+    """A selection expression, syntax-checked (columns are checked later); ``""`` means none."""
     from megalut_cli.expr import check_expression
 
-    expr = t.get_str(name, None)
+    if t.data.get(name) == "":
+        return None
+    expr = t.get_str(name, default)
     if expr is not None:
         try:
             check_expression(expr, None, case_mode=case_mode)
@@ -334,23 +391,63 @@ def _expression(t: _Table, name: str, case_mode: bool) -> str | None:
     return expr
 
 
+def _evaluate_spec(t: _Table, select_cases: str | None) -> EvaluateSpec:
+    return EvaluateSpec(
+        by=t.get_str_list("by", [], allow_empty=True) or [],
+        bins=t.get_int("bins", 5, 1) or 5,
+        select=_expression(t, "select", False),
+        select_cases=_expression(t, "select_cases", True, select_cases),
+        plot=t.get_bool("plot", True),
+    )
+
+
+def _pretrain_spec(top: _Table, has_set: bool) -> PretrainSpec | None:
+    if not has_set:
+        if top.data.get("pretrain") is not None:
+            raise ConfigError("pretrain: there is no set to pretrain on: add a [sets.pretrain] table")
+        return None
+    t = _Table(top.data.get("pretrain"), "pretrain")
+    for k in ("features", "hidden"):
+        if k in t.data:
+            raise ConfigError(
+                f"pretrain.{k}: the pretraining uses the features and hidden layers of [train_point], "
+                "which continues from it; set them there"
+            )
+    _Table(t.data, "pretrain", _PRETRAIN_KEYS)
+    return PretrainSpec(
+        targets=t.get_str_list("targets", PRETRAIN_TARGETS) or [],
+        cost=t.get_str("cost", "msb", ("msb", "mse")) or "msb",
+        select_cases=_expression(t, "select_cases", True),
+        init=t.get_str("init", "normal", ("normal", "identity")) or "normal",
+        options=_train_options(t, 1000, 3),
+    )
+
+
 def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str = "",
                    overrides: Sequence[str] = (), base_dir: Path | None = None) -> Pipeline:
     """Validate a parsed pipeline mapping (after ``key=value`` overrides)."""
     raw = apply_overrides(dict(raw), overrides)
+    if "extends" in raw:
+        raise ConfigError("extends: only a pipeline file can extend another (not an override or a mapping)")
     top = _Table(raw, "", _TOP_KEYS)
     description = top.data.get("description", "")
     if not isinstance(description, str):
         raise ConfigError("description: expected a string")
+    name = top.data.get("name", "")
+    if not isinstance(name, str) or (name and not _NAME_RE.fullmatch(name)):
+        raise ConfigError(
+            f"name: expected a folder name (letters, digits, '_', '-'; at most 64), got {name!r}"
+        )
     scale = top.get_float("scale", 1.0, 0.0, math.inf, lo_open=True)
     base_sim = top.data.get("simulation")
     if base_sim is not None and not isinstance(base_sim, Mapping):
         raise ConfigError("simulation: expected a table (a simulation config, see docs/config.md)")
-    sets_t = _Table(top.data.get("sets"), "sets", set(SET_NAMES))
+    sets_t = _Table(top.data.get("sets"), "sets", set(ALL_SETS))
     missing = [n for n in SET_NAMES if n not in sets_t.data]
     if missing:
         raise ConfigError(f"sets.{missing[0]}: missing (a pipeline needs the sets {', '.join(SET_NAMES)})")
-    sets = {n: _load_set(n, sets_t.data, base_sim, scale, path, base_dir, sha256) for n in SET_NAMES}
+    sets = {n: _load_set(n, sets_t.data, base_sim, scale, path, base_dir, sha256) for n in ALL_SETS
+            if n in sets_t.data}
     seen: dict[int, str] = {}
     for n, s in sets.items():
         if s.seed in seen:
@@ -360,6 +457,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
             )
         seen[s.seed] = n
 
+    pretrain = _pretrain_spec(top, "pretrain" in sets)
     tp = _Table(top.data.get("train_point"), "train_point", _TRAIN_POINT_KEYS)
     point = TrainPointSpec(
         features=tp.get_str_list("features", DEFAULT_FEATURES) or [],
@@ -373,6 +471,8 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     overlap = sorted(set(point.features) & set(point.targets))
     if overlap:
         raise ConfigError(f"train_point.features: {overlap[0]!r} is also a target")
+    if pretrain is not None:
+        _check_pretrain(pretrain, point, sets["pretrain"])
     tw = _Table(top.data.get("train_weight"), "train_weight", _TRAIN_WEIGHT_KEYS)
     weight = TrainWeightSpec(
         features=tw.get_str_list("features", None),
@@ -380,21 +480,40 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         select=_expression(tw, "select", False),
         options=_train_options(tw, 300, 2),
     )
-    ev = _Table(top.data.get("evaluate"), "evaluate", _EVALUATE_KEYS)
-    evaluate = EvaluateSpec(
-        by=ev.get_str_list("by", [], allow_empty=True) or [],
-        bins=ev.get_int("bins", 5, 1) or 5,
-        select=_expression(ev, "select", False),
-        select_cases=_expression(ev, "select_cases", True),
-        plot=ev.get_bool("plot", True),
-    )
+    evaluate = _evaluate_spec(_Table(top.data.get("evaluate"), "evaluate", _EVALUATE_KEYS), None)
+    evaluate_vp = None
+    if "vp" in sets:
+        evaluate_vp = _evaluate_spec(_Table(top.data.get("evaluate_vp"), "evaluate_vp", _EVALUATE_KEYS),
+                                     VP_SELECT_CASES)
+    elif top.data.get("evaluate_vp") is not None:
+        raise ConfigError("evaluate_vp: there is no set to evaluate: add a [sets.vp] table")
     pipe = Pipeline(
         path=path, sha256=sha256, overrides=tuple(overrides), raw=json.loads(json.dumps(raw, default=str)),
         description=description, scale=scale, sets=sets, train_point=point, train_weight=weight,
-        evaluate=evaluate,
+        evaluate=evaluate, name=name, pretrain=pretrain, evaluate_vp=evaluate_vp,
     )
     _check_columns(pipe)
     return pipe
+
+
+def _check_pretrain(pre: PretrainSpec, point: TrainPointSpec, spec: SetSpec) -> None:
+    """The pretrained committees must fit train_point, which starts from them (by name, else by position)."""
+    for i, t in enumerate(point.targets):
+        if t not in pre.targets and i >= len(pre.targets):
+            raise ConfigError(
+                f"pretrain.targets: no committee to start train_point's {t} from "
+                f"({len(pre.targets)} pretraining target(s) for {len(point.targets)})"
+            )
+    overlap = sorted(set(point.features) & set(pre.targets))
+    if overlap:
+        raise ConfigError(f"pretrain.targets: {overlap[0]!r} is also a feature of train_point")
+    s = spec.config.structure
+    varying = [t for t in pre.targets if t in ("tru_e1", "tru_e2", "tru_theta")]  # change with the angle
+    if pre.cost == "msb" and varying and (s.varies("angle") or s.snc != "none"):
+        raise ConfigError(
+            f"sets.pretrain: the target {varying[0]} changes within a case (rotated realizations) but the "
+            "MSB cost needs one value per case: use per_realization = [] and snc = \"none\" (Fig. 6 structure)"
+        )
 
 
 def _probe_columns(spec: SetSpec) -> list[str]:
@@ -431,6 +550,17 @@ def _check_columns(pipe: Pipeline) -> None:
         ("train_weight.features", tw.features or [], ("tw", "vo")),
         ("sets.vo", ["case", "tru_g1", "tru_g2"], ("vo",)),
     ]
+    pre, evp = pipe.pretrain, pipe.evaluate_vp
+    if pre is not None:
+        needs += [
+            ("train_point.features", tp.features, ("pretrain",)),
+            ("pretrain.targets", pre.targets, ("pretrain",)),
+        ]
+    if evp is not None:
+        needs += [
+            ("train_point.features", tp.features, ("vp",)),
+            ("sets.vp", ["case", "tru_g1", "tru_g2"], ("vp",)),
+        ]
     for key, names, where in needs:
         for name in where:
             _require(names, cols[name], key, name)
@@ -442,6 +572,15 @@ def _check_columns(pipe: Pipeline) -> None:
         (ev.select, predicted, False, "evaluate.select"),
         (ev.select_cases, predicted, True, "evaluate.select_cases"),
     ]
+    if pre is not None:
+        checks.append((pre.select_cases, cols["pretrain"], True, "pretrain.select_cases"))
+    if evp is not None:
+        vp_predicted = cols["vp"] + ["pre_g1", "pre_g2"]  # point estimates only: no weights on VP
+        _require(evp.by, vp_predicted, "evaluate_vp.by", "vp")
+        checks += [
+            (evp.select, vp_predicted, False, "evaluate_vp.select"),
+            (evp.select_cases, vp_predicted, True, "evaluate_vp.select_cases"),
+        ]
     for expr, available, case_mode, key in checks:
         if expr is not None:
             try:
@@ -455,6 +594,44 @@ def default_pipeline_text() -> str:
     return importlib.resources.files("megalut_cli").joinpath("data", DEFAULT_PIPELINE).read_text()
 
 
+def _absolute_configs(raw: dict[str, Any], base_dir: Path) -> None:
+    """Make the relative ``sets.*.config`` paths of an extended file relative to nothing."""
+    sets = raw.get("sets")
+    if not isinstance(sets, dict):
+        return
+    for table in sets.values():
+        if isinstance(table, dict) and isinstance(table.get("config"), str) and table["config"].strip():
+            p = Path(table["config"]).expanduser()
+            if not p.is_absolute():
+                table["config"] = str(base_dir / p)
+
+
+def read_pipeline_file(path: str | os.PathLike, _chain: tuple[Path, ...] = ()) -> tuple[dict[str, Any], str]:
+    """Parse a pipeline file, merged over the file it ``extends`` (recursively); return (raw, sha256).
+
+    The sha256 covers every file of the chain. Relative set configs of an extended file
+    stay relative to that file.
+    """
+    p = Path(path).resolve()
+    raw, sha = read_toml(p)
+    base = raw.pop("extends", None)
+    if base is None:
+        return raw, sha
+    if not isinstance(base, str) or not base.strip():
+        raise ConfigError(f"{path}: extends: expected the path of a pipeline file, got {base!r}")
+    base_path = (p.parent / Path(base).expanduser()).resolve()
+    if base_path == p or base_path in _chain:
+        cycle = " -> ".join(x.name for x in (*_chain, p, base_path))
+        raise ConfigError(f"{path}: extends: {base!r} makes a cycle ({cycle})")
+    if len(_chain) >= MAX_EXTENDS:
+        raise ConfigError(f"{path}: extends: more than {MAX_EXTENDS} files in the chain")
+    if not base_path.is_file():
+        raise InputError(f"{path}: extends: no such file {str(base_path)!r}")
+    base_raw, base_sha = read_pipeline_file(base_path, (*_chain, p))
+    _absolute_configs(base_raw, base_path.parent)
+    return _merge(base_raw, raw), _sha_text([base_sha, sha])
+
+
 def load_pipeline(path: str | os.PathLike | None = None, overrides: Sequence[str] = ()) -> Pipeline:
     """Read and validate a pipeline file (``None``: the embedded default)."""
     if path is None:
@@ -462,7 +639,7 @@ def load_pipeline(path: str | os.PathLike | None = None, overrides: Sequence[str
         with importlib.resources.as_file(ref) as p:
             raw, sha = read_toml(p)
         return parse_pipeline(raw, f"<default {DEFAULT_PIPELINE}>", sha, overrides, None)
-    raw, sha = read_toml(path)
+    raw, sha = read_pipeline_file(path)
     return parse_pipeline(raw, str(path), sha, overrides, Path(path).resolve().parent)
 
 
@@ -471,7 +648,12 @@ def load_pipeline(path: str | os.PathLike | None = None, overrides: Sequence[str
 
 @dataclass
 class Step:
-    """One step: products in the work folder, inputs (upstream products), parameters."""
+    """One step: products in the work folder, inputs (upstream products), parameters.
+
+    ``prefix`` (``"<name>/"`` of a named pipeline, else ``""``) starts the step's name
+    and its products; the step's key is computed without it, so that the same work
+    gets the same key in any pipeline.
+    """
 
     name: str
     outputs: list[str]
@@ -479,12 +661,13 @@ class Step:
     params: dict[str, Any]
     action: Callable[[Path, bool], None]  # (workdir, overwrite)
     summary: str = ""
+    prefix: str = ""
 
 
 @dataclass
 class StepReport:
     name: str
-    status: str  # "ran" or "skipped"
+    status: str  # "ran", "skipped" or "copied" (the products of the same work in another pipeline)
     seconds: float
 
 
@@ -496,6 +679,8 @@ class RunResult:
     evaluation: dict[str, Any]
     steps: list[StepReport]
     seconds: float
+    evaluation_vp: dict[str, Any] | None = None
+    prefix: str = ""  # where the step products are, relative to workdir ("" or "<name>/")
 
 
 @contextlib.contextmanager
@@ -508,7 +693,13 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
                 progress: ProgressFactory | None = None) -> list[Step]:
     """The steps of ``pipe`` in execution order."""
     prog = progress or _quiet_progress
+    prefix = f"{pipe.name}/" if pipe.name else ""
+    out = pipe.product
     steps: list[Step] = []
+
+    def add(name: str, outputs: list[str], inputs: list[str], params: dict[str, Any],
+            action: Callable[[Path, bool], None], summary: str) -> None:
+        steps.append(Step(prefix + name, outputs, inputs, params, action, summary, prefix))
 
     def sim_step(spec: SetSpec) -> Step:
         from megalut_cli.sim.simulate import n_work_units, simulate
@@ -525,7 +716,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         psf_path = spec.config.psf.get("path")
         if isinstance(psf_path, str) and Path(psf_path).is_file():
             extra["psf_sha256"] = sha256_file(psf_path)
-        return Step(
+        return Step(  # shared by every pipeline of the work folder: no prefix
             f"simulate-{spec.name}", [spec.product], [],
             {"config": json.loads(spec.config.to_json()), "seed": spec.seed, "measure": True, **extra},
             action,
@@ -533,79 +724,105 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
             f"snc {s.snc} ({spec.source})",
         )
 
-    for name in SET_NAMES:
-        steps.append(sim_step(pipe.sets[name]))
+    for name in ALL_SETS:
+        if name in pipe.sets:
+            steps.append(sim_step(pipe.sets[name]))
 
-    tp = pipe.train_point
+    tp, pre = pipe.train_point, pipe.pretrain
+    if pre is not None:
+
+        def pretrain_action(wd: Path, overwrite: bool) -> None:
+            from megalut_cli.training import train_point
+
+            train_point(wd / "pretrain.fits", wd / out("pretrain.h5"), features=tp.features, targets=pre.targets,
+                        hidden=tp.hidden, cost=pre.cost, select_cases=pre.select_cases, init_scheme=pre.init,
+                        options=pre.options, nproc=nproc, scheduler=scheduler, overwrite=overwrite,
+                        progress=progress)
+
+        add("pretrain-point", [out("pretrain.h5")], ["pretrain.fits"],
+            {"features": tp.features, "targets": pre.targets, "hidden": tp.hidden, "cost": pre.cost,
+             "select_cases": pre.select_cases, "init": pre.init, "options": asdict(pre.options)},
+            pretrain_action,
+            f"{pre.options.members} members x {len(pre.targets)} targets ({', '.join(pre.targets)}), hidden "
+            f"{tp.hidden}, {pre.options.iterations} iterations, select_cases {pre.select_cases!r}, "
+            f"seed {pre.options.seed}")
 
     def train_point_action(wd: Path, overwrite: bool) -> None:
         from megalut_cli.training import train_point
 
-        train_point(wd / "tp.fits", wd / "point.h5", features=tp.features, targets=tp.targets, hidden=tp.hidden,
-                    cost=tp.cost, select_cases=tp.select_cases, init_scheme=tp.init, options=tp.options,
-                    nproc=nproc, scheduler=scheduler, overwrite=overwrite, progress=progress)
+        init_from = wd / out("pretrain.h5") if pre is not None else None
+        train_point(wd / "tp.fits", wd / out("point.h5"), features=tp.features, targets=tp.targets,
+                    hidden=tp.hidden, cost=tp.cost, select_cases=tp.select_cases, init_from=init_from,
+                    init_scheme=tp.init, options=tp.options, nproc=nproc, scheduler=scheduler,
+                    overwrite=overwrite, progress=progress)
 
-    steps.append(Step(
-        "train-point", ["point.h5"], ["tp.fits"],
+    add("train-point", [out("point.h5")], ["tp.fits"] + ([out("pretrain.h5")] if pre is not None else []),
         {"features": tp.features, "targets": tp.targets, "hidden": tp.hidden, "cost": tp.cost,
-         "select_cases": tp.select_cases, "init": tp.init, "options": asdict(tp.options)},
+         "select_cases": tp.select_cases, "init": "pretrain.h5" if pre is not None else tp.init,
+         "options": asdict(tp.options)},
         train_point_action,
         f"{tp.options.members} members x {len(tp.targets)} targets, hidden {tp.hidden}, "
-        f"{tp.options.iterations} iterations, select_cases {tp.select_cases!r}, seed {tp.options.seed}",
-    ))
+        f"{tp.options.iterations} iterations, select_cases {tp.select_cases!r}, seed {tp.options.seed}"
+        + (", starting from pretrain.h5" if pre is not None else ""))
+
+    def predict_step(name: str, catalog: str, model: str, shears: str, summary: str) -> None:
+        def action(wd: Path, overwrite: bool) -> None:
+            from megalut_cli.catalog import catalog_info
+            from megalut_cli.shear.predict import predict_catalog
+
+            with prog(name, catalog_info(wd / catalog)[0]) as update:
+                predict_catalog(wd / catalog, wd / out(model), wd / out(shears), nproc=nproc,
+                                scheduler=scheduler, overwrite=overwrite, progress=update)
+
+        add(name, [out(shears)], [catalog, out(model)], {}, action, summary)
+
+    def evaluate_step(name: str, ev: EvaluateSpec, shears: str, json_name: str, png_name: str,
+                      what: str) -> None:
+        plot = ev.plot and _have_matplotlib()
+        if ev.plot and not plot:
+            log.info("matplotlib is not installed: no %s (pip install 'megalut-cli[plot]')", png_name)
+
+        def action(wd: Path, overwrite: bool) -> None:
+            from megalut_cli.shear.evaluate import evaluate_catalog
+
+            result = evaluate_catalog(wd / out(shears), by=ev.by or None, bins=ev.bins, select=ev.select,
+                                      select_cases=ev.select_cases)
+            write_json(wd / out(json_name), result, overwrite)
+            if plot:
+                from megalut_cli.shear.plots import plot_evaluation
+
+                plot_evaluation(result, wd / out(png_name), overwrite)
+            else:  # no figure of an earlier run left beside this evaluation
+                (wd / out(png_name)).unlink(missing_ok=True)
+
+        add(name, [out(json_name)] + ([out(png_name)] if plot else []), [out(shears)],
+            {"by": ev.by, "bins": ev.bins, "select": ev.select, "select_cases": ev.select_cases, "plot": plot},
+            action,
+            f"{what} on {shears}{f' by {ev.by}' if ev.by else ''}"
+            f"{f', select {ev.select!r}' if ev.select else ''}"
+            f"{f', select_cases {ev.select_cases!r}' if ev.select_cases else ''}")
+
+    if pipe.evaluate_vp is not None:
+        predict_step("predict-vp", "vp.fits", "point.h5", "vp-shears.fits", "point estimates on vp.fits")
+        evaluate_step("evaluate-vp", pipe.evaluate_vp, "vp-shears.fits", EVALUATION_VP_JSON, EVALUATION_VP_PNG,
+                      "m, c of the point estimates (unweighted)")
+
     tw = pipe.train_weight
 
     def train_weight_action(wd: Path, overwrite: bool) -> None:
         from megalut_cli.training import train_weight
 
-        train_weight(wd / "tw.fits", wd / "point.h5", wd / "model.h5", features=tw.features, hidden=tw.hidden,
-                     select=tw.select, options=tw.options, nproc=nproc, scheduler=scheduler,
+        train_weight(wd / "tw.fits", wd / out("point.h5"), wd / out("model.h5"), features=tw.features,
+                     hidden=tw.hidden, select=tw.select, options=tw.options, nproc=nproc, scheduler=scheduler,
                      overwrite=overwrite, progress=progress)
 
-    steps.append(Step(
-        "train-weight", ["model.h5"], ["tw.fits", "point.h5"],
-        {"features": tw.features, "hidden": tw.hidden, "select": tw.select,
-         "options": asdict(tw.options)},
+    add("train-weight", [out("model.h5")], ["tw.fits", out("point.h5")],
+        {"features": tw.features, "hidden": tw.hidden, "select": tw.select, "options": asdict(tw.options)},
         train_weight_action,
         f"{tw.options.members} members, hidden {tw.hidden}, {tw.options.iterations} iterations, "
-        f"select {tw.select!r}, seed {tw.options.seed}",
-    ))
-
-    def predict_action(wd: Path, overwrite: bool) -> None:
-        from megalut_cli.catalog import catalog_info
-        from megalut_cli.shear.predict import predict_catalog
-
-        with prog("predict", catalog_info(wd / "vo.fits")[0]) as update:
-            predict_catalog(wd / "vo.fits", wd / "model.h5", wd / "vo-shears.fits", nproc=nproc,
-                            scheduler=scheduler, overwrite=overwrite, progress=update)
-
-    steps.append(Step("predict", ["vo-shears.fits"], ["vo.fits", "model.h5"], {}, predict_action,
-                      "point estimates and weights on vo.fits"))
-
-    ev = pipe.evaluate
-    plot = ev.plot and _have_matplotlib()
-    if ev.plot and not plot:
-        log.info("matplotlib is not installed: no %s (pip install 'megalut-cli[plot]')", EVALUATION_PNG)
-
-    def evaluate_action(wd: Path, overwrite: bool) -> None:
-        from megalut_cli.shear.evaluate import evaluate_catalog
-
-        result = evaluate_catalog(wd / "vo-shears.fits", by=ev.by or None, bins=ev.bins, select=ev.select,
-                                  select_cases=ev.select_cases)
-        write_json(wd / EVALUATION_JSON, result, overwrite)
-        if plot:
-            from megalut_cli.shear.plots import plot_evaluation
-
-            plot_evaluation(result, wd / EVALUATION_PNG, overwrite)
-        else:  # no figure of an earlier run left beside this evaluation
-            (wd / EVALUATION_PNG).unlink(missing_ok=True)
-
-    steps.append(Step(
-        "evaluate", [EVALUATION_JSON] + ([EVALUATION_PNG] if plot else []), ["vo-shears.fits"],
-        {"by": ev.by, "bins": ev.bins, "select": ev.select, "select_cases": ev.select_cases, "plot": plot},
-        evaluate_action,
-        f"m, c on vo-shears.fits{f' by {ev.by}' if ev.by else ''}",
-    ))
+        f"select {tw.select!r}, seed {tw.options.seed}")
+    predict_step("predict", "vo.fits", "model.h5", "vo-shears.fits", "point estimates and weights on vo.fits")
+    evaluate_step("evaluate", pipe.evaluate, "vo-shears.fits", EVALUATION_JSON, EVALUATION_PNG, "m, c")
     return steps
 
 
@@ -633,6 +850,7 @@ class Manifest:
         self.path = path
         self.pipeline = pipeline
         self.steps: dict[str, Any] = {}
+        self.pipelines: dict[str, Any] = {}  # name ("" unnamed) -> the last pipeline of that name run here
         if path.is_file():
             try:
                 data = json.loads(path.read_text())
@@ -641,6 +859,8 @@ class Manifest:
                 data = {}
             if isinstance(data, dict) and data.get("format") == MANIFEST_FORMAT and isinstance(data.get("steps"), dict):
                 self.steps = data["steps"]
+                if isinstance(data.get("pipelines"), dict):
+                    self.pipelines = data["pipelines"]
 
     @staticmethod
     def fingerprint(path: Path) -> dict[str, Any]:
@@ -659,8 +879,18 @@ class Manifest:
         sha = sha256_file(p)
         return sha if sha == rec.get("sha256") else None
 
+    def same_work(self, step: Step, key: str, workdir: Path) -> tuple[str, dict[str, str]] | None:
+        """Another step with this key whose products are intact: (its name, our product -> its product)."""
+        for other, rec in self.steps.items():
+            if other == step.name or not isinstance(rec, dict) or rec.get("key") != key:
+                continue
+            theirs = list(rec.get("outputs") or {})
+            if len(theirs) == len(step.outputs) and all(self.current_sha(other, workdir, o) for o in theirs):
+                return other, dict(zip(step.outputs, theirs))
+        return None
+
     def record(self, step: Step, key: str, inputs: Mapping[str, str], outputs: Mapping[str, dict[str, Any]],
-               seconds: float) -> None:
+               seconds: float, copied_from: str | None = None) -> None:
         self.steps[step.name] = {
             "key": key,
             "params": step.params,
@@ -669,23 +899,34 @@ class Manifest:
             "seconds": round(seconds, 3),
             "finished": utc_now(),
         }
+        if copied_from is not None:
+            self.steps[step.name]["copied_from"] = copied_from
         self.save()
 
     def save(self) -> None:
         p = self.pipeline
+        this = {"path": p.path, "sha256": p.sha256, "overrides": list(p.overrides), "effective": p.raw}
+        self.pipelines[p.name] = this
         data = {
             "format": MANIFEST_FORMAT,
             "format_version": MANIFEST_VERSION,
             "megalut": __version__,
-            "pipeline": {"path": p.path, "sha256": p.sha256, "overrides": list(p.overrides), "effective": p.raw},
+            "pipeline": this,  # the last one run here
+            "pipelines": self.pipelines,
             "steps": self.steps,
         }
         write_json(self.path, data, overwrite=True)
 
 
+def _unprefix(name: str, prefix: str) -> str:
+    return name[len(prefix):] if prefix and name.startswith(prefix) else name
+
+
 def step_key(step: Step, input_shas: Mapping[str, str]) -> str:
-    """The identity of a step's work: parameters, input contents, megalut version."""
-    return _sha_text({"step": step.name, "params": step.params, "inputs": dict(input_shas), "megalut": __version__})
+    """The identity of a step's work: parameters, input contents, megalut version (no pipeline name)."""
+    inputs = {_unprefix(n, step.prefix): s for n, s in input_shas.items()}
+    return _sha_text({"step": _unprefix(step.name, step.prefix), "params": step.params, "inputs": inputs,
+                      "megalut": __version__})
 
 
 # --------------------------------------------------------------------------- running
@@ -701,12 +942,20 @@ def check_workdir(workdir: Path, steps: Sequence[Step], skip_existing: bool, ove
         raise MegalutError(f"--workdir {workdir}: exists and is not a folder")
     if skip_existing or overwrite:
         return
-    for name in dict.fromkeys([*products(steps), EVALUATION_PNG, MANIFEST]):
+    prefix = next((s.prefix for s in steps if s.prefix), "")
+    pngs = [prefix + EVALUATION_PNG, prefix + EVALUATION_VP_PNG]
+    for name in dict.fromkeys([*products(steps), *pngs, MANIFEST]):
         if (workdir / name).exists():
             raise MegalutError(
                 f"{workdir / name} exists; use --skip-existing to reuse the up-to-date products "
                 "or --overwrite to redo every step"
             )
+
+
+def _copy_products(wd: Path, mapping: Mapping[str, str]) -> None:
+    for ours, theirs in mapping.items():
+        with atomic_output(wd / ours, overwrite=True) as tmp:
+            shutil.copyfile(wd / theirs, tmp)
 
 
 def run_pipeline(
@@ -724,10 +973,13 @@ def run_pipeline(
     steps = build_steps(pipe, nproc, scheduler, progress)
     check_workdir(wd, steps, skip_existing, overwrite)
     wd.mkdir(parents=True, exist_ok=True)
+    if pipe.name:
+        (wd / pipe.name).mkdir(exist_ok=True)
     manifest = Manifest(wd / MANIFEST, pipe)
-    if not skip_existing:
-        manifest.steps = {}
-    log.info("pipeline %s -> %s", pipe.path, wd)
+    if not skip_existing:  # every step of this pipeline runs; other pipelines' records stay
+        for step in steps:
+            manifest.steps.pop(step.name, None)
+    log.info("pipeline %s -> %s", pipe.path, wd / pipe.name if pipe.name else wd)
     t_start = time.perf_counter()
     shas: dict[str, str] = {}
     reports: list[StepReport] = []
@@ -735,6 +987,7 @@ def run_pipeline(
         label = f"[{i}/{len(steps)}] {step.name}"
         inputs = {name: shas[name] for name in step.inputs}
         key = step_key(step, inputs)
+        donor = None
         if skip_existing:
             rec = manifest.steps.get(step.name) or {}
             current = {o: manifest.current_sha(step.name, wd, o) for o in step.outputs}
@@ -743,32 +996,50 @@ def run_pipeline(
                 log.info("%s: up to date, skipped", label)
                 reports.append(StepReport(step.name, "skipped", 0.0))
                 continue
+            donor = manifest.same_work(step, key, wd)
             reason = "parameters or inputs changed" if rec.get("key") not in (None, key) else (
                 "not run yet" if not rec else "products missing or changed")
-            log.info("%s: %s: %s", label, reason, step.summary)
+            if donor is None:
+                log.info("%s: %s: %s", label, reason, step.summary)
         else:
             log.info("%s: %s", label, step.summary)
         manifest.steps.pop(step.name, None)
         t0 = time.perf_counter()
-        step.action(wd, overwrite or skip_existing)
+        if donor is not None:
+            log.info("%s: the same work as %s: copying its products", label, donor[0])
+            _copy_products(wd, donor[1])
+        else:
+            step.action(wd, overwrite or skip_existing)
         seconds = time.perf_counter() - t0
         outputs = {o: Manifest.fingerprint(wd / o) for o in step.outputs}
         shas.update({o: f["sha256"] for o, f in outputs.items()})
-        manifest.record(step, key, inputs, outputs, seconds)
+        manifest.record(step, key, inputs, outputs, seconds, donor[0] if donor else None)
         log.info("%s: done in %.1f s", label, seconds)
-        reports.append(StepReport(step.name, "ran", seconds))
+        reports.append(StepReport(step.name, "copied" if donor else "ran", seconds))
     total = time.perf_counter() - t_start
-    evaluation = json.loads((wd / EVALUATION_JSON).read_text())
+    evaluation = json.loads((wd / pipe.product(EVALUATION_JSON)).read_text())
+    evaluation_vp = None
+    if pipe.evaluate_vp is not None:
+        evaluation_vp = json.loads((wd / pipe.product(EVALUATION_VP_JSON)).read_text())
     log.info("pipeline finished in %.1f s (%s)", total,
-             ", ".join(f"{r.name} {r.seconds:.0f} s" if r.status == "ran" else f"{r.name} skipped" for r in reports))
-    return RunResult(wd, evaluation, reports, total)
+             ", ".join(f"{r.name} {r.seconds:.0f} s" if r.status == "ran" else f"{r.name} {r.status}"
+                       for r in reports))
+    return RunResult(wd, evaluation, reports, total, evaluation_vp, f"{pipe.name}/" if pipe.name else "")
 
 
 def format_summary(result: RunResult) -> str:
-    """The evaluation table, then where the products are."""
+    """The evaluation table(s), then where the products are."""
     from megalut_cli.shear.evaluate import format_table
 
-    lines = [format_table(result.evaluation), ""]
-    files = [EVALUATION_JSON] + ([EVALUATION_PNG] if (result.workdir / EVALUATION_PNG).is_file() else [])
+    lines = []
+    if result.evaluation_vp is not None:
+        lines += [f"== VP: point estimates ({result.prefix}{EVALUATION_VP_JSON}) ==",
+                  format_table(result.evaluation_vp), "",
+                  f"== VO: overall validation ({result.prefix}{EVALUATION_JSON}) =="]
+    lines += [format_table(result.evaluation), ""]
+    names = [EVALUATION_JSON, EVALUATION_PNG]
+    if result.evaluation_vp is not None:
+        names += [EVALUATION_VP_JSON, EVALUATION_VP_PNG]
+    files = [result.prefix + n for n in names if (result.workdir / (result.prefix + n)).is_file()]
     lines.append(f"products in {result.workdir}/: {', '.join(files)}, {MANIFEST} (and the catalogs and models)")
     return "\n".join(lines)

@@ -47,12 +47,16 @@ def command(
 
     The steps: simulate and measure the point-training (tp), weight-training (tw) and
     validation (vo) sets, train-point on tp, train-weight on tw, predict on vo, evaluate.
-    Every product goes to --workdir (tp.fits, tw.fits, vo.fits, point.h5, model.h5,
-    vo-shears.fits, evaluation.json, evaluation.png with matplotlib) with a
-    manifest.json recording each step's parameters and input hashes, which
-    --skip-existing uses to redo only what changed (--overwrite redoes every step).
-    The m, c table (unweighted and weighted) is printed at the end; logs and step
-    timings go to stderr.
+    Optional sets add steps: "pretrain" (low-noise ellipticity pretraining, which
+    train-point continues, paper Sect. 6) and "vp" (point estimates of point.h5 on it,
+    evaluated unweighted into evaluation-vp.json). Every product goes to --workdir
+    (tp.fits, tw.fits, vo.fits, point.h5, model.h5, vo-shears.fits, evaluation.json,
+    evaluation.png with matplotlib) with a manifest.json recording each step's
+    parameters and input hashes, which --skip-existing uses to redo only what changed
+    (--overwrite redoes every step). A pipeline with a `name` puts its training and
+    evaluation products in that subfolder, so that pipelines sharing their sets run in
+    one --workdir and simulate them once. The m, c table (unweighted and weighted) is
+    printed at the end; logs and step timings go to stderr.
 
     The default is the paper's fiducial setup (Sect. 5) scaled down to about 10 minutes on
     2 cores. KEY=VALUE arguments override pipeline keys (dotted names, TOML values), e.g.
@@ -65,6 +69,7 @@ def command(
       megalut run --print-default > my-pipeline.toml
       megalut run examples/fiducial/pipeline.toml scale=0.001 --workdir fid -j 4
       megalut run examples/fiducial/pipeline.toml scale=0.001 --workdir fid --skip-existing train_weight.iterations=500
+      megalut run examples/varpsf/pipeline-field.toml scale=0.001 --workdir varpsf --skip-existing
     """
     from megalut_cli import pipeline as pl
     from megalut_cli.cli.options import progress
