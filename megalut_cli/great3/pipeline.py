@@ -509,7 +509,7 @@ def _check_measurement(feats: Any, files: Mapping[str, Path], strict: bool) -> N
             log.warning("%s: %d galaxy stamp(s) %s: flagged, left out", files["image"], k, what)
 
 
-def _relabel(path: Path, target: str, component: int) -> Any:
+def _relabel(path: Path, component: int) -> Any:
     """The single point committee of ``path`` as the shear estimator of ``component``."""
     from megalut_cli.nn.model import ShearModel
 
@@ -535,7 +535,7 @@ def _train(pipe: BranchPipeline, subfield: int, tp_path: Path, tw_path: Path, sc
         train_point(tp_path, e_path, features=component_features(pt.features, i), targets=[pt.targets[i - 1]],
                     hidden=pt.hidden, cost=pt.cost, select_cases=pt.select_cases, init_scheme=pt.init,
                     options=replace(pt.options, seed=subfield_seed(pt.options.seed, subfield, i)))
-        _relabel(e_path, pt.targets[i - 1], i).save(g_path, overwrite=True)
+        _relabel(e_path, i).save(g_path, overwrite=True)
         model = train_weight(tw_path, g_path, w_path, features=component_features(pw.features, i), hidden=pw.hidden,
                              select=pw.select, options=replace(pw.options, seed=subfield_seed(pw.options.seed, subfield, i)))
         point.update(model.point)
