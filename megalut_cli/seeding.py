@@ -12,6 +12,8 @@ import numpy as np
 STREAM_SIMULATE = 1
 STREAM_TRAIN = 2
 STREAM_SPLIT = 3
+#: Per-subfield seeds of a GREAT3 branch pipeline (``megalut run`` on a ``[branch]`` file).
+STREAM_SUBFIELD = 4
 
 
 def rng_for(seed: int, *keys: int) -> np.random.Generator:

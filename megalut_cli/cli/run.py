@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import click
@@ -29,6 +30,12 @@ from megalut_cli.cli.options import execution_options, overwrite_option
     "re-run the others, replacing their products.",
 )
 @click.option(
+    "--keep-going",
+    is_flag=True,
+    help="GREAT3 branch pipelines: when a subfield fails, report it and complete the others "
+    "(the products hold them; the exit status is still 1).",
+)
+@click.option(
     "--print-default", is_flag=True, help="Print the embedded default pipeline (to copy and edit) and exit."
 )
 @execution_options
@@ -38,6 +45,7 @@ def command(
     overrides: tuple[str, ...],
     workdir: str,
     skip_existing: bool,
+    keep_going: bool,
     print_default: bool,
     nproc: int,
     scheduler: str | None,
@@ -63,6 +71,14 @@ def command(
     scale=0.01 (the fraction of the stamps of every set), sets.vo.seed=7 or
     train_point.iterations=300. The file format is in docs/pipeline.md.
 
+    A pipeline file with a [branch] table runs a GREAT3-layout branch instead (paper
+    Sect. 8; docs/great3.md): per subfield (the work units of -j/--scheduler), measure
+    the galaxies and stars, simulate point- and weight-training sets with the subfield's
+    stars and noise, train, predict; then write the per-galaxy catalog shears.fits, the
+    constant-shear submission submission.txt (subfield g1 g2) and, with the branch's
+    truth, evaluation.json (m, c, Q_c). --keep-going completes the other subfields
+    when one fails.
+
     \b
     Examples:
       megalut run -j 2
@@ -70,6 +86,7 @@ def command(
       megalut run examples/fiducial/pipeline.toml scale=0.001 --workdir fid -j 4
       megalut run examples/fiducial/pipeline.toml scale=0.001 --workdir fid --skip-existing train_weight.iterations=500
       megalut run examples/varpsf/pipeline-field.toml scale=0.001 --workdir varpsf --skip-existing
+      megalut run examples/great3/pipeline.toml branch.path=rgc --workdir rgc-run -j 2 --keep-going
     """
     from megalut_cli import pipeline as pl
     from megalut_cli.cli.options import progress
@@ -81,6 +98,11 @@ def command(
         overrides, pipeline = (pipeline, *overrides), None  # `megalut run scale=0.5`
     if pipeline is not None and not Path(pipeline).is_file():
         raise click.BadParameter(f"{pipeline!r}: no such file", param_hint="PIPELINE.toml")
+    if pipeline is not None and _branch_pipeline(pipeline, workdir, overrides, skip_existing, overwrite, keep_going,
+                                                 nproc, scheduler):
+        return
+    if keep_going:
+        logging.getLogger("megalut").info("--keep-going applies to GREAT3 branch pipelines only: ignored")
     pipe = pl.load_pipeline(pipeline, overrides)
     result = pl.run_pipeline(
         pipe,
@@ -92,3 +114,21 @@ def command(
         progress=progress,
     )
     click.echo(pl.format_summary(result))
+
+
+def _branch_pipeline(pipeline: str, workdir: str, overrides: tuple[str, ...], skip_existing: bool, overwrite: bool,
+                     keep_going: bool, nproc: int, scheduler: str | None) -> bool:
+    """Run ``pipeline`` if it is a GREAT3 branch pipeline (a [branch] table); False otherwise."""
+    from megalut_cli.cli.options import progress
+    from megalut_cli.great3 import pipeline as g3
+
+    if not g3.is_branch_pipeline(pipeline):
+        return False
+    pipe = g3.load_branch_pipeline(pipeline, overrides)
+    result = g3.run_branch(pipe, workdir, skip_existing=skip_existing, overwrite=overwrite, keep_going=keep_going,
+                           nproc=nproc, scheduler=scheduler, progress=progress)
+    click.echo(g3.format_summary(result))
+    error = g3.failure_error(result)
+    if error is not None:
+        raise error
+    return True
