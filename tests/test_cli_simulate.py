@@ -154,7 +154,7 @@ def test_n_cases_override_keeps_first_cases(runner, cli, tmp_path):
 
 
 SIM_EXAMPLES = sorted(
-    p.relative_to(EXAMPLES) for p in EXAMPLES.glob("*/*.toml") if p.name != "pipeline.toml"
+    p.relative_to(EXAMPLES) for p in EXAMPLES.glob("*/*.toml") if not p.name.startswith("pipeline")
 )
 
 
