@@ -12,7 +12,7 @@ EXIT_OUT_OF_TOLERANCE = 3
 
 @click.command(
     "evaluate",
-    short_help="Measure shear biases m and c (overall, PSF frame, conditional).",
+    short_help="Measure shear biases m and c, overall and conditional.",
 )
 @click.argument("shears", type=click.Path(exists=True, dir_okay=False))
 @click.option(

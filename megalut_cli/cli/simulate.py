@@ -15,7 +15,7 @@ from megalut_cli.cli.options import (
 
 @click.command(
     "simulate",
-    short_help="Simulate galaxy stamps with known shear (truth and feature catalog).",
+    short_help="Simulate galaxy stamps with known shear.",
 )
 @click.argument("config", type=click.Path(exists=True, dir_okay=False))
 @click.argument("overrides", nargs=-1, metavar="[KEY=VALUE]...")
