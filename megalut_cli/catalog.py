@@ -138,12 +138,30 @@ def read_catalog(
 def iter_catalog(
     path: str | os.PathLike, chunk_rows: int, columns: Sequence[str] | None = None
 ) -> Iterator[Table]:
-    """Yield successive row chunks of a catalog (memory bounded by ``chunk_rows``)."""
-    n, names, _ = catalog_info(path)
-    if columns is not None:
-        require_columns(names, columns, path)
-    for start in range(0, max(n, 1), chunk_rows):
-        yield read_catalog(path, columns=columns, rows=slice(start, min(start + chunk_rows, n)))
+    """Yield successive row chunks of a catalog (memory bounded by ``chunk_rows``).
+
+    The file is opened and its header read once; each chunk is a contiguous row slice.
+    """
+    _check_exists(path)
+    try:
+        with fitsio.FITS(str(path)) as f:
+            hdu = f[_table_ext(f, path)]
+            if columns is not None:
+                require_columns(hdu.get_colnames(), columns, path)
+            n = hdu.get_nrows()
+            header = header_dict(hdu.read_header())
+            if n == 0:
+                yield read_catalog(path, columns=columns)
+                return
+            view = hdu[list(columns)] if columns is not None else hdu
+            for start in range(0, n, chunk_rows):
+                table = Table(_native(view[start : min(start + chunk_rows, n)]), copy=False)
+                table.meta.update(header)
+                yield table
+    except InputError:
+        raise
+    except (OSError, ValueError) as err:
+        raise _open_error(path, err) from None
 
 
 def require_columns(
