@@ -195,7 +195,7 @@ class Pipeline:
         return f"{self.name}/{base}" if self.name else base
 
 
-class _Table:
+class ConfigTable:
     """Typed, key-checked access to one table of the pipeline file (errors name the key)."""
 
     def __init__(self, data: Any, where: str, allowed: set[str] | None = None) -> None:
@@ -273,12 +273,12 @@ class _Table:
         return list(v)
 
 
-def _merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+def merge_tables(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
     """Deep-merge ``over`` into a copy of ``base``; a table with a ``type`` key replaces, not merges."""
     out = copy.deepcopy(dict(base))
     for k, v in over.items():
         if isinstance(v, Mapping) and "type" not in v and isinstance(out.get(k), Mapping):
-            out[k] = _merge(out[k], v)
+            out[k] = merge_tables(out[k], v)
         else:
             out[k] = copy.deepcopy(v)
     return out
@@ -309,7 +309,7 @@ def _resolve(text: str, key: str, base: Path | None) -> Path:
 
 def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | None, scale: float,
               pipeline_path: str, base_dir: Path | None, pipeline_sha: str) -> SetSpec:
-    t = _Table(raw.get(name), f"sets.{name}", _SET_KEYS)
+    t = ConfigTable(raw.get(name), f"sets.{name}", _SET_KEYS)
     if "config" in t.data:
         cfg_path = _resolve(t.get_str("config", None) or "", t.key("config"), base_dir)
         try:
@@ -326,7 +326,7 @@ def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | N
     if over is not None:
         if not isinstance(over, Mapping):
             raise ConfigError(f"{t.key('simulation')}: expected a table")
-        sim_raw = _merge(sim_raw, over)
+        sim_raw = merge_tables(sim_raw, over)
         source += f" + sets.{name}.simulation"
     structure = sim_raw.get("structure")
     if structure is None:
@@ -358,7 +358,7 @@ def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | N
     return SetSpec(name, config, int(seed), source)
 
 
-def _train_options(t: _Table, iterations: int, seed: int) -> TrainOptions:
+def train_options_from(t: ConfigTable, iterations: int, seed: int) -> TrainOptions:
     opts = TrainOptions(
         members=t.get_int("members", 8, 1),
         iterations=t.get_int("iterations", iterations, 1),
@@ -376,7 +376,7 @@ def _train_options(t: _Table, iterations: int, seed: int) -> TrainOptions:
     return opts
 
 
-def _expression(t: _Table, name: str, case_mode: bool, default: str | None = None) -> str | None:
+def selection_expression(t: ConfigTable, name: str, case_mode: bool, default: str | None = None) -> str | None:
     """A selection expression, syntax-checked (columns are checked later); ``""`` means none."""
     from megalut_cli.expr import check_expression
 
@@ -391,35 +391,35 @@ def _expression(t: _Table, name: str, case_mode: bool, default: str | None = Non
     return expr
 
 
-def _evaluate_spec(t: _Table, select_cases: str | None) -> EvaluateSpec:
+def _evaluate_spec(t: ConfigTable, select_cases: str | None) -> EvaluateSpec:
     return EvaluateSpec(
         by=t.get_str_list("by", [], allow_empty=True) or [],
         bins=t.get_int("bins", 5, 1) or 5,
-        select=_expression(t, "select", False),
-        select_cases=_expression(t, "select_cases", True, select_cases),
+        select=selection_expression(t, "select", False),
+        select_cases=selection_expression(t, "select_cases", True, select_cases),
         plot=t.get_bool("plot", True),
     )
 
 
-def _pretrain_spec(top: _Table, has_set: bool) -> PretrainSpec | None:
+def _pretrain_spec(top: ConfigTable, has_set: bool) -> PretrainSpec | None:
     if not has_set:
         if top.data.get("pretrain") is not None:
             raise ConfigError("pretrain: there is no set to pretrain on: add a [sets.pretrain] table")
         return None
-    t = _Table(top.data.get("pretrain"), "pretrain")
+    t = ConfigTable(top.data.get("pretrain"), "pretrain")
     for k in ("features", "hidden"):
         if k in t.data:
             raise ConfigError(
                 f"pretrain.{k}: the pretraining uses the features and hidden layers of [train_point], "
                 "which continues from it; set them there"
             )
-    _Table(t.data, "pretrain", _PRETRAIN_KEYS)
+    ConfigTable(t.data, "pretrain", _PRETRAIN_KEYS)
     return PretrainSpec(
         targets=t.get_str_list("targets", PRETRAIN_TARGETS) or [],
         cost=t.get_str("cost", "msb", ("msb", "mse")) or "msb",
-        select_cases=_expression(t, "select_cases", True),
+        select_cases=selection_expression(t, "select_cases", True),
         init=t.get_str("init", "normal", ("normal", "identity")) or "normal",
-        options=_train_options(t, 1000, 3),
+        options=train_options_from(t, 1000, 3),
     )
 
 
@@ -429,7 +429,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     raw = apply_overrides(dict(raw), overrides)
     if "extends" in raw:
         raise ConfigError("extends: only a pipeline file can extend another (not an override or a mapping)")
-    top = _Table(raw, "", _TOP_KEYS)
+    top = ConfigTable(raw, "", _TOP_KEYS)
     description = top.data.get("description", "")
     if not isinstance(description, str):
         raise ConfigError("description: expected a string")
@@ -442,7 +442,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     base_sim = top.data.get("simulation")
     if base_sim is not None and not isinstance(base_sim, Mapping):
         raise ConfigError("simulation: expected a table (a simulation config, see docs/config.md)")
-    sets_t = _Table(top.data.get("sets"), "sets", set(ALL_SETS))
+    sets_t = ConfigTable(top.data.get("sets"), "sets", set(ALL_SETS))
     missing = [n for n in SET_NAMES if n not in sets_t.data]
     if missing:
         raise ConfigError(f"sets.{missing[0]}: missing (a pipeline needs the sets {', '.join(SET_NAMES)})")
@@ -458,32 +458,32 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         seen[s.seed] = n
 
     pretrain = _pretrain_spec(top, "pretrain" in sets)
-    tp = _Table(top.data.get("train_point"), "train_point", _TRAIN_POINT_KEYS)
+    tp = ConfigTable(top.data.get("train_point"), "train_point", _TRAIN_POINT_KEYS)
     point = TrainPointSpec(
         features=tp.get_str_list("features", DEFAULT_FEATURES) or [],
         targets=tp.get_str_list("targets", ["tru_g1", "tru_g2"]) or [],
         hidden=tp.get_int_list("hidden", [5, 5]),
         cost=tp.get_str("cost", "msb", ("msb", "mse")) or "msb",
-        select_cases=_expression(tp, "select_cases", True),
+        select_cases=selection_expression(tp, "select_cases", True),
         init=tp.get_str("init", "normal", ("normal", "identity")) or "normal",
-        options=_train_options(tp, 1000, 1),
+        options=train_options_from(tp, 1000, 1),
     )
     overlap = sorted(set(point.features) & set(point.targets))
     if overlap:
         raise ConfigError(f"train_point.features: {overlap[0]!r} is also a target")
     if pretrain is not None:
         _check_pretrain(pretrain, point, sets["pretrain"])
-    tw = _Table(top.data.get("train_weight"), "train_weight", _TRAIN_WEIGHT_KEYS)
+    tw = ConfigTable(top.data.get("train_weight"), "train_weight", _TRAIN_WEIGHT_KEYS)
     weight = TrainWeightSpec(
         features=tw.get_str_list("features", None),
         hidden=tw.get_int_list("hidden", [5]),
-        select=_expression(tw, "select", False),
-        options=_train_options(tw, 300, 2),
+        select=selection_expression(tw, "select", False),
+        options=train_options_from(tw, 300, 2),
     )
-    evaluate = _evaluate_spec(_Table(top.data.get("evaluate"), "evaluate", _EVALUATE_KEYS), None)
+    evaluate = _evaluate_spec(ConfigTable(top.data.get("evaluate"), "evaluate", _EVALUATE_KEYS), None)
     evaluate_vp = None
     if "vp" in sets:
-        evaluate_vp = _evaluate_spec(_Table(top.data.get("evaluate_vp"), "evaluate_vp", _EVALUATE_KEYS),
+        evaluate_vp = _evaluate_spec(ConfigTable(top.data.get("evaluate_vp"), "evaluate_vp", _EVALUATE_KEYS),
                                      VP_SELECT_CASES)
     elif top.data.get("evaluate_vp") is not None:
         raise ConfigError("evaluate_vp: there is no set to evaluate: add a [sets.vp] table")
@@ -629,7 +629,7 @@ def read_pipeline_file(path: str | os.PathLike, _chain: tuple[Path, ...] = ()) -
         raise InputError(f"{path}: extends: no such file {str(base_path)!r}")
     base_raw, base_sha = read_pipeline_file(base_path, (*_chain, p))
     _absolute_configs(base_raw, base_path.parent)
-    return _merge(base_raw, raw), _sha_text([base_sha, sha])
+    return merge_tables(base_raw, raw), _sha_text([base_sha, sha])
 
 
 def load_pipeline(path: str | os.PathLike | None = None, overrides: Sequence[str] = ()) -> Pipeline:

@@ -244,10 +244,10 @@ def _find_path(text: str, key: str, base_dir: Path | None, want_dir: bool) -> Pa
 
 
 def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, pipe_path: str) -> SetTemplate:
-    from megalut_cli.pipeline import _merge, _Table
+    from megalut_cli.pipeline import ConfigTable, merge_tables
     from megalut_cli.sim.config import read_toml
 
-    t = _Table(top.data.get(name), name, _SET_KEYS)
+    t = ConfigTable(top.data.get(name), name, _SET_KEYS)
     if "config" in t.data:
         cfg = _find_path(t.get_str("config", None) or "", t.key("config"), base_dir, want_dir=False)
         raw, _ = read_toml(cfg)
@@ -258,7 +258,7 @@ def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, 
     if over is not None:
         if not isinstance(over, Mapping):
             raise ConfigError(f"{t.key('simulation')}: expected a table")
-        raw = _merge(raw, over)
+        raw = merge_tables(raw, over)
         source += f" + {name}.simulation"
     structure = raw.setdefault("structure", {})
     if not isinstance(structure, dict):
@@ -310,16 +310,16 @@ def _check_features(names: Sequence[str], key: str) -> None:
 def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str = "",
                           overrides: Sequence[str] = (), base_dir: Path | None = None) -> BranchPipeline:
     """Validate a parsed branch pipeline (after ``key=value`` overrides); check the branch folder."""
-    from megalut_cli.pipeline import _expression, _Table, _train_options
+    from megalut_cli.pipeline import ConfigTable, selection_expression, train_options_from
     from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND, GREAT3_SIGMA2_MIN_SPACE
     from megalut_cli.sim.config import apply_overrides
 
     raw = apply_overrides(dict(raw), overrides)
-    top = _Table(raw, "", _TOP_KEYS)
+    top = ConfigTable(raw, "", _TOP_KEYS)
     description = top.data.get("description", "")
     if not isinstance(description, str):
         raise ConfigError("description: expected a string")
-    b = _Table(top.data.get("branch"), "branch", _BRANCH_KEYS)
+    b = ConfigTable(top.data.get("branch"), "branch", _BRANCH_KEYS)
     if "path" not in b.data:
         raise ConfigError("branch.path: missing (the branch folder, in the GREAT3 layout)")
     branch_dir = _find_path(b.get_str("path", None) or "", "branch.path", base_dir, want_dir=True)
@@ -357,7 +357,7 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
     if sets["tp"].seed == sets["tw"].seed:
         raise ConfigError(f"tw.seed: {sets['tw'].seed} is also the seed of tp; every set needs its own seed")
 
-    tp = _Table(top.data.get("train_point"), "train_point", _POINT_KEYS)
+    tp = ConfigTable(top.data.get("train_point"), "train_point", _POINT_KEYS)
     targets = tp.get_str_list("targets", list(TARGET_CHOICES[0])) or []
     if tuple(targets) not in TARGET_CHOICES:
         raise ConfigError(
@@ -369,20 +369,20 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
         targets=targets,
         hidden=tp.get_int_list("hidden", [5, 5]),
         cost=tp.get_str("cost", "msb", ("msb", "mse")) or "msb",
-        select_cases=_expression(tp, "select_cases", True),
+        select_cases=selection_expression(tp, "select_cases", True),
         init=tp.get_str("init", "normal", ("normal", "identity")) or "normal",
-        options=_train_options(tp, 1000, DEFAULT_SEEDS["train_point"]),
+        options=train_options_from(tp, 1000, DEFAULT_SEEDS["train_point"]),
     )
     _check_features(point.features, "train_point.features")
-    tw = _Table(top.data.get("train_weight"), "train_weight", _WEIGHT_KEYS)
+    tw = ConfigTable(top.data.get("train_weight"), "train_weight", _WEIGHT_KEYS)
     weight = TrainWeightSpec(
         features=tw.get_str_list("features", point.features) or [],
         hidden=tw.get_int_list("hidden", [5, 5]),  # "for all estimators ... two hidden layers" (Sect. 8.2)
-        select=_expression(tw, "select", False),
-        options=_train_options(tw, 300, DEFAULT_SEEDS["train_weight"]),
+        select=selection_expression(tw, "select", False),
+        options=train_options_from(tw, 300, DEFAULT_SEEDS["train_weight"]),
     )
     _check_features(weight.features, "train_weight.features")
-    out = _Table(top.data.get("output"), "output", _OUTPUT_KEYS)
+    out = ConfigTable(top.data.get("output"), "output", _OUTPUT_KEYS)
     pipe = BranchPipeline(
         path=path, sha256=sha256, overrides=tuple(overrides), raw=json.loads(json.dumps(raw, default=str)),
         description=description, branch_dir=branch_dir, kind=kind, stamp_size=int(size), epoch=int(epoch),
