@@ -8,7 +8,9 @@ Grammar: numbers, column names, ``+ - * / ** %``, comparisons (chainable), ``& |
 isfinite isnan`` plus, in case expressions, the aggregates ``mean median min max sum
 std count frac`` (``frac(x)`` is the fraction of rows where ``x`` holds). Aggregates skip
 non-finite values. A bare column in a case expression must be constant within each case
-(a true parameter such as ``tru_rad``).
+(a true parameter such as ``tru_rad``). Numeric expressions (no comparison) are
+quantities, e.g. for the ``--by`` of ``megalut evaluate``: ``sqrt(tru_e1**2 + tru_e2**2)``
+per row, ``mean(snr)`` per case.
 """
 
 from __future__ import annotations
@@ -212,6 +214,47 @@ def evaluate_cases(
     if out.dtype != bool:
         raise ConfigError(f"case selection {expr!r} is not a condition (use <, >, ==, ...)")
     return ids, np.broadcast_to(out, ids.shape).copy()
+
+
+def uses_aggregate(expr: str) -> bool:
+    """Whether ``expr`` calls a per-case aggregate (``mean(snr)``): then it is a case expression."""
+    return any(
+        isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id in _AGGS for n in ast.walk(_parse(expr))
+    )
+
+
+def check_quantity(expr: str, available: list[str] | None = None) -> bool:
+    """Validate a numeric expression (not a condition); returns whether it is a case expression."""
+    case_mode = uses_aggregate(expr)
+    check_expression(expr, available, case_mode=case_mode)
+    node = _parse(expr)
+    cond = isinstance(node, (ast.Compare, ast.BoolOp)) or (
+        isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.Not, ast.Invert))
+    ) or (isinstance(node, ast.Call) and getattr(node.func, "id", "") in ("isfinite", "isnan"))
+    if cond:
+        raise ConfigError(f"expression {expr!r} is a condition, not a quantity")
+    return case_mode
+
+
+def _numeric(out: np.ndarray, expr: str) -> np.ndarray:
+    if out.dtype == bool:
+        raise ConfigError(f"expression {expr!r} is a condition, not a quantity")
+    return np.asarray(out, dtype=float)
+
+
+def evaluate_row_values(expr: str, columns: Mapping[str, np.ndarray], n_rows: int) -> np.ndarray:
+    """Value of the numeric row expression ``expr`` (e.g. ``sqrt(tru_e1**2 + tru_e2**2)``) on each row."""
+    out = _Evaluator(expr, columns, None, 0).eval(_parse(expr))
+    return np.broadcast_to(_numeric(out, expr), (n_rows,)).copy()
+
+
+def evaluate_case_values(
+    expr: str, columns: Mapping[str, np.ndarray], case: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Value of the numeric case expression ``expr`` (e.g. ``mean(snr)``); returns ``(unique_case_ids, values)``."""
+    ids, index = np.unique(np.asarray(case), return_inverse=True)
+    out = _Evaluator(expr, columns, index.ravel(), len(ids)).eval(_parse(expr))
+    return ids, np.broadcast_to(_numeric(out, expr), ids.shape).copy()
 
 
 def check_expression(expr: str, available: list[str] | None = None, case_mode: bool = False) -> None:

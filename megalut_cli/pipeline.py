@@ -538,6 +538,7 @@ def _require(names: Sequence[str], available: Sequence[str], key: str, where: st
 def _check_columns(pipe: Pipeline) -> None:
     """Check every column the steps use against what the simulations will produce."""
     from megalut_cli.expr import check_expression
+    from megalut_cli.shear.evaluate import check_by
 
     cols = {n: _probe_columns(s) for n, s in pipe.sets.items()}
     pipe.columns.update(cols)
@@ -565,7 +566,7 @@ def _check_columns(pipe: Pipeline) -> None:
         for name in where:
             _require(names, cols[name], key, name)
     predicted = cols["vo"] + ["pre_g1", "pre_g2", "pre_g1_w", "pre_g2_w"]
-    _require(ev.by, predicted, "evaluate.by", "vo")
+    check_by(ev.by, predicted, "evaluate.by", "the vo catalog")
     checks = [
         (tp.select_cases, cols["tp"], True, "train_point.select_cases"),
         (tw.select, cols["tw"], False, "train_weight.select"),
@@ -576,7 +577,7 @@ def _check_columns(pipe: Pipeline) -> None:
         checks.append((pre.select_cases, cols["pretrain"], True, "pretrain.select_cases"))
     if evp is not None:
         vp_predicted = cols["vp"] + ["pre_g1", "pre_g2"]  # point estimates only: no weights on VP
-        _require(evp.by, vp_predicted, "evaluate_vp.by", "vp")
+        check_by(evp.by, vp_predicted, "evaluate_vp.by", "the vp catalog")
         checks += [
             (evp.select, vp_predicted, False, "evaluate_vp.select"),
             (evp.select_cases, vp_predicted, True, "evaluate_vp.select_cases"),

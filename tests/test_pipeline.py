@@ -117,7 +117,7 @@ def test_set_tables_merge_and_typed_tables_replace(tmp_path: Path) -> None:
         ("train_point.select_cases='mean(nope) > 1'", "unknown column(s) nope", ConfigError),
         ("train_weight.select='snr > 10 & adamom_size > 1'", "train_weight.select", ConfigError),
         ("train_weight.batch_fraction=0", "train_weight.batch_fraction: must be in (0, 1]", ConfigError),
-        ('evaluate.by=["nope"]', "evaluate.by: no column 'nope'", ConfigError),
+        ('evaluate.by=["nope"]', "evaluate.by: no column nope", ConfigError),
         ("evaluate.plot=3", "evaluate.plot: expected true or false", ConfigError),
         ("scale=0", "scale: must be in (0, inf]", ConfigError),
         ("scale=nan", "scale: expected a finite number", ConfigError),

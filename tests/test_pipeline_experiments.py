@@ -173,7 +173,7 @@ def test_extends_merges_and_keeps_relative_configs(tmp_path: Path) -> None:
         ("evaluate.select='mean(snr) > 1'", "evaluate.select: "),
         ("evaluate_vp.select_cases='mean(nope) > 1'", "evaluate_vp.select_cases: "),
         ("evaluate_vp.select='pre_g1_w > 0'", "evaluate_vp.select: "),  # no weights on VP
-        ('evaluate_vp.by=["nope"]', "evaluate_vp.by: no column 'nope' in the vp catalog"),
+        ('evaluate_vp.by=["nope"]', "evaluate_vp.by: no column nope in the vp catalog"),
         ("evaluate_vp.bogus=1", "evaluate_vp.bogus: unknown key"),
         ("pretrain.select_cases='mean(nope) > 1'", "pretrain.select_cases: "),
         ('pretrain.features=["adamom_g1"]', "pretrain.features: the pretraining uses the features and hidden"),
@@ -215,7 +215,8 @@ def test_step_without_its_set(tmp_path: Path, override: str, message: str) -> No
 
 def test_old_pipelines_parse_with_the_same_steps_and_keys() -> None:
     """Pipeline files without the new keys: the same steps, products and manifest keys as before."""
-    for pipe in (load_pipeline(None), load_pipeline(EXAMPLES / "fiducial" / "pipeline.toml", ["scale=0.001"])):
+    models = EXAMPLES.parent / "models"
+    for pipe in (load_pipeline(None), load_pipeline(models / "fiducial-pipeline.toml", ["scale=0.001"])):
         assert pipe.name == "" and pipe.pretrain is None and pipe.evaluate_vp is None
         assert set(pipe.sets) == {"tp", "tw", "vo"}
         steps = build_steps(pipe)
@@ -228,6 +229,14 @@ def test_old_pipelines_parse_with_the_same_steps_and_keys() -> None:
             old = _sha_text({"step": step.name, "params": step.params, "inputs": inputs, "megalut": __version__})
             assert step_key(step, inputs) == old, step.name  # manifests written before stay valid
         assert step.params.keys() == {"by", "bins", "select", "select_cases", "plot"}
+
+
+def test_fiducial_example_validates_point_estimates_on_vp_as_fig_12() -> None:
+    pipe = load_pipeline(EXAMPLES / "fiducial" / "pipeline.toml")
+    assert (pipe.sets["vp"].config.structure.n_cases, pipe.sets["vp"].config.structure.n_realizations) == (5000, 10000)
+    assert pipe.evaluate_vp is not None and pipe.evaluate_vp.select_cases == "mean(snr) > 10"
+    assert pipe.evaluate_vp.by[0] == "mean(snr)"  # bins of whole cases by their average S/N
+    assert {"simulate-vp", "predict-vp", "evaluate-vp"} <= {s.name for s in build_steps(pipe)}
 
 
 def test_example_pipelines_of_sects_6_and_7() -> None:

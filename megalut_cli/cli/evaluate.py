@@ -19,8 +19,9 @@ EXIT_OUT_OF_TOLERANCE = 3
     "--by",
     metavar="COL,COL",
     default=None,
-    help="Conditional biases in equal-population bins of these columns (true or measured), "
-    "e.g. tru_rad,tru_sersicn,snr.",
+    help="Conditional biases in equal-population bins of these columns (true or measured) or "
+    "quantities, e.g. tru_rad,tru_sersicn,snr; 'mean(snr)' bins whole cases by their average S/N "
+    "(paper Fig. 12), 'sqrt(tru_e1**2+tru_e2**2)' bins rows by |e|.",
 )
 @click.option(
     "--bins", type=click.IntRange(1, 1000), default=5, show_default=True, help="Number of bins for --by."
@@ -107,6 +108,7 @@ def command(
     Example:
       megalut evaluate shears.fits
       megalut evaluate shears.fits --by tru_rad,tru_sersicn,snr --bins 5 --plot biases.png
+      megalut evaluate vp-shears.fits --select-cases "mean(snr) > 10" --by "mean(snr),tru_rad,tru_sersicn"
       megalut evaluate shears.fits --select "snr > 10 & adamom_sigma > 1.5" --json biases.json
       megalut evaluate shears.fits --fail-above || echo "biases out of tolerance"
       megalut evaluate submission.txt --great3-truth branch/truth --sigma2-min 1

@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -34,7 +34,7 @@ import numpy as np
 
 from megalut_cli import expr as _expr
 from megalut_cli.catalog import catalog_info, iter_catalog, read_catalog
-from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.shear.bias import (
     GREAT3_SIGMA2_MIN_GROUND,
     STAGE_IV_C,
@@ -76,10 +76,33 @@ class _Plan:
     columns: list[str] = field(default_factory=list)
     has_flags: bool = False
     selected_cases: np.ndarray | None = None
+    by_kind: dict[str, str] = field(default_factory=dict)  # "column", "row" or "case" (see check_by)
+    case_by: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # expr -> (case ids, values)
 
     @property
     def schemes(self) -> tuple[str, ...]:
         return SCHEMES if self.weighted else SCHEMES[:1]
+
+
+def check_by(by: Sequence[str], available: Sequence[str], key: str = "--by", where: str = "the catalog") -> dict[str, str]:
+    """Kind of each ``by`` entry: ``"column"``, ``"row"`` (numeric row expression such as
+    ``sqrt(tru_e1**2 + tru_e2**2)``) or ``"case"`` (per-case aggregate such as ``mean(snr)``,
+    the paper's binning by average S/N per case). Raises :class:`ConfigError` naming ``key``."""
+    have = set(available)
+    kinds: dict[str, str] = {}
+    unknown = [c for c in by if c not in have and c.isidentifier()]
+    if unknown:
+        raise ConfigError(f"{key}: no column {', '.join(unknown)} in {where}")
+    for c in by:
+        if c in have:
+            kinds[c] = "column"
+            continue
+        try:
+            case_mode = _expr.check_quantity(c, list(available))
+        except MegalutError as err:
+            raise ConfigError(f"{key}: {err}") from None
+        kinds[c] = "case" if case_mode else "row"
+    return kinds
 
 
 def _make_plan(
@@ -101,14 +124,12 @@ def _make_plan(
         log.warning("%s: only one of %s present; weighted analysis skipped", source, ", ".join(WEIGHT_COLUMNS))
     psf = next((pair for pair in PSF_COLUMNS if all(c in have for c in pair)), None)
     by = list(dict.fromkeys(by or []))
-    unknown = [c for c in by if c not in have]
-    if unknown:
-        raise ConfigError(f"--by: no column {', '.join(unknown)} in {source}")
+    by_kind = check_by(by, list(colnames), "--by", source)
     if select is not None:
         _expr.check_expression(select, list(colnames))
     if select_cases is not None:
         _expr.check_expression(select_cases, list(colnames), case_mode=True)
-    plan = _Plan(source, weighted, psf, by, select, select_cases, has_flags="flags" in have)
+    plan = _Plan(source, weighted, psf, by, select, select_cases, has_flags="flags" in have, by_kind=by_kind)
     cols = [*TRUTH_COLUMNS, *ESTIMATE_COLUMNS]
     if weighted:
         cols += WEIGHT_COLUMNS
@@ -116,7 +137,8 @@ def _make_plan(
         cols.append("flags")
     if psf:
         cols += psf
-    cols += by
+    for c in by:
+        cols += [c] if by_kind[c] == "column" else _expr.columns_used(c) if by_kind[c] == "row" else []
     if select is not None:
         cols += _expr.columns_used(select)
     plan.columns = list(dict.fromkeys(c for c in cols if c in have))
@@ -317,12 +339,7 @@ def evaluate_catalog(
     """
     _, names, _ = catalog_info(path)
     plan = _make_plan(names, str(path), by, select, select_cases)
-    if select_cases is not None:
-        used = [c for c in _expr.columns_used(select_cases) if c in names]
-        t = read_catalog(path, columns=list(dict.fromkeys(["case", *used])))
-        ids, mask = _expr.evaluate_cases(select_cases, {c: np.asarray(t[c]) for c in t.colnames}, np.asarray(t["case"]))
-        plan.selected_cases = ids[mask]
-        del t
+    _prepare_cases(plan, lambda cols: _read_columns(path, cols))
     result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins, sigma2_min)
     result["input"] = str(path)
     return result
@@ -348,13 +365,47 @@ def evaluate_columns(
     names = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
     plan = _make_plan(names, source, by, select, select_cases)
     data = {c: np.asarray(columns[c]) for c in plan.columns}
-    if select_cases is not None:
-        cols = {c: np.asarray(columns[c]) for c in _expr.columns_used(select_cases) if c in names}
-        ids, mask = _expr.evaluate_cases(select_cases, cols, np.asarray(columns["case"]))
-        plan.selected_cases = ids[mask]
+    _prepare_cases(plan, lambda cols: {c: np.asarray(columns[c]) for c in cols})
     result = _evaluate(lambda: iter([data]), plan, bins, sigma2_min)
     result["input"] = source
     return result
+
+
+def _read_columns(path: str | os.PathLike, columns: list[str]) -> dict[str, np.ndarray]:
+    t = read_catalog(path, columns=columns)
+    return {c: np.asarray(t[c]) for c in t.colnames}
+
+
+def _prepare_cases(plan: _Plan, read: Callable[[list[str]], Mapping[str, np.ndarray]]) -> None:
+    """Per-case aggregates, over all rows of each case: the cases kept by ``select_cases``
+    and the values of the per-case ``by`` expressions. ``read(columns)`` returns whole columns."""
+    exprs = ([plan.select_cases] if plan.select_cases is not None else []) + [
+        c for c in plan.by if plan.by_kind.get(c) == "case"
+    ]
+    if not exprs:
+        return
+    cols = read(list(dict.fromkeys(["case", *(c for e in exprs for c in _expr.columns_used(e))])))
+    case = np.asarray(cols["case"])
+    if plan.select_cases is not None:
+        ids, mask = _expr.evaluate_cases(plan.select_cases, cols, case)
+        plan.selected_cases = ids[mask]
+    for c in exprs[1 if plan.select_cases is not None else 0 :]:
+        plan.case_by[c] = _expr.evaluate_case_values(c, cols, case)
+
+
+def _by_values(chunk: Mapping[str, np.ndarray], plan: _Plan, c: str, n: int) -> np.ndarray:
+    """Values of the ``by`` entry ``c`` on the rows of ``chunk`` (a case's value for per-case entries)."""
+    kind = plan.by_kind.get(c, "column")
+    if kind == "column":
+        return np.asarray(chunk[c], dtype=float)
+    if kind == "row":
+        return _expr.evaluate_row_values(c, chunk, n)
+    ids, values = plan.case_by[c]
+    if ids.size == 0:
+        return np.full(n, np.nan)
+    case = np.asarray(chunk["case"])
+    pos = np.clip(np.searchsorted(ids, case), 0, ids.size - 1)
+    return np.where(ids[pos] == case, values[pos], np.nan)
 
 
 def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_SIGMA2_MIN_GROUND) -> dict[str, Any]:
@@ -368,7 +419,7 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
             rows = _rows(chunk, plan)
             used = rows.valid["g1"] | rows.valid["g2"]
             for c in plan.by:
-                by_values[c].append(np.asarray(chunk[c], dtype=float)[used])
+                by_values[c].append(_by_values(chunk, plan, c, rows.case.size)[used])
         for c in plan.by:
             vals = np.concatenate(by_values[c]) if by_values[c] else np.zeros(0)
             if vals.size:
@@ -389,7 +440,7 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
         vals = _row_values(rows, schemes)
         overall.add(rows.case, vals)
         for c, g in conditional.items():
-            g.add(rows.case, vals, assign_bins(np.asarray(chunk[c], dtype=float), edges[c]))
+            g.add(rows.case, vals, assign_bins(_by_values(chunk, plan, c, rows.case.size), edges[c]))
         if psf_sums is not None and rows.psf is not None:
             ok = np.isfinite(rows.psf[0]) & np.isfinite(rows.psf[1])
             psf_sums.add(rows.case, {"psf1": np.where(ok, rows.psf[0], 0.0), "psf2": np.where(ok, rows.psf[1], 0.0),
