@@ -11,7 +11,10 @@ single-epoch branches):
     columns ``x, y, ID``: the 0-indexed stamp centres as GREAT3 writes them,
     ``x = column S + (S - 1) // 2`` (the true centre ``column S + (S - 1) / 2`` rounded
     down, e.g. 23, 71, ... for ``S = 48``), and ``ID = 1e6 subfield + 1e3 column + row``;
-    the text file has one ``# name`` header line per column, then one row per galaxy;
+    the text file has one ``# name`` header line per column, then one row per galaxy
+    (GREAT3 writes every value with ``numpy.savetxt``'s ``%.18e``, IDs included);
+    variable-PSF branches add ``x_tile_index, y_tile_index, tile_x_pos_deg,
+    tile_y_pos_deg, x_field_true_deg, y_field_true_deg``;
 ``starfield_image-SSS-E.fits``
     a 3 x 3 grid of noiseless PSF stamps of the same size, the lower-left one exactly
     centred (at the true centre of its stamp), the others offset by up to a pixel;
@@ -184,8 +187,9 @@ def is_fits_file(path: str | os.PathLike) -> bool:
         raise InputError(f"{path}: no such file") from None
 
 
-#: Columns read as integers from text catalogs (when their values are integral).
-INTEGER_COLUMNS = ("ID", "id", "subfield", "case", "rea", "flags")
+#: Columns read as integers from text catalogs (when their values are integral): GREAT3
+#: writes every column with numpy.savetxt's default ``%.18e``, IDs and tile indices too.
+INTEGER_COLUMNS = ("ID", "id", "subfield", "case", "rea", "flags", "x_tile_index", "y_tile_index")
 
 
 def read_text_catalog(path: str | os.PathLike) -> Table:
@@ -497,9 +501,15 @@ _YAML_ITEM = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)\s*:\s*([-+]?(?:\d+\.?\d*|\.\d
 
 
 def read_dict_file(path: str | os.PathLike) -> dict[str, float]:
-    """A GREAT3 parameter file: ``.txt`` (``# keys`` line, values line) or simple ``.yaml``."""
+    """A GREAT3 parameter file: ``.txt`` (``writeDict``: a ``# key key ...`` line, one line
+    of values) or simple ``.yaml`` (block or flow style); errors name the file."""
     p = Path(path)
-    text = p.read_text()
+    try:
+        text = p.read_text()
+    except FileNotFoundError:
+        raise InputError(f"{p}: no such file") from None
+    except (OSError, UnicodeDecodeError):
+        raise InputError(f"{p}: not a readable text parameter file") from None
     if p.suffix == ".yaml":
         out = {k: float(v.replace(".nan", "nan").replace(".inf", "inf")) for k, v in _YAML_ITEM.findall(text)}
         if not out:
