@@ -62,12 +62,12 @@ def test_example_pipeline_has_paper_sizes_and_scales() -> None:
     path = FIDUCIAL / "pipeline.toml"
     pipe = load_pipeline(path)
     sizes = {n: (s.config.structure.n_cases, s.config.structure.n_realizations) for n, s in pipe.sets.items()}
-    assert sizes == {"tp": (5000, 2000), "tw": (200, 100000), "vo": (200, 100000)}
+    assert sizes == {"tp": (5000, 2000), "vp": (5000, 10000), "tw": (200, 100000), "vo": (200, 100000)}
     assert pipe.sets["tw"].config.structure.snc == "none"
     assert pipe.train_point.select_cases == "mean(snr) > 10"
     small = load_pipeline(path, ["scale=0.01"])
     sizes = {n: (s.config.structure.n_cases, s.config.structure.n_realizations) for n, s in small.sets.items()}
-    assert sizes == {"tp": (500, 200), "tw": (200, 1000), "vo": (200, 1000)}
+    assert sizes == {"tp": (500, 200), "vp": (500, 1000), "tw": (200, 1000), "vo": (200, 1000)}
     # the galaxy of every TP case does not change with the scale (seeded per case)
     assert small.sets["tp"].seed == pipe.sets["tp"].seed
 
