@@ -53,6 +53,19 @@ def test_table_json_and_plot(runner, cli, shears, tmp_path):
     assert w > 800 and h > 800
 
 
+def test_by_case_average_and_expression(runner, cli, shears, tmp_path):
+    js, png = tmp_path / "q.json", tmp_path / "q.png"
+    result = runner.invoke(cli, ["evaluate", str(shears), "--by", "mean(snr),snr*2", "--bins", "2",
+                                 "--select-cases", "mean(snr) > 0", "--json", str(js), "--plot", str(png)])
+    assert result.exit_code == 0, result.output
+    assert "conditional biases by mean(snr)" in result.stdout
+    cond = json.loads(js.read_text())["conditional"]
+    assert set(cond) == {"mean(snr)", "snr*2"} and len(cond["mean(snr)"]["bins"]) == 2
+    assert png.stat().st_size > 0
+    result = runner.invoke(cli, ["evaluate", str(shears), "--by", "mean(snr) > 3"])
+    assert result.exit_code == 2 and "is a condition" in _errline(result)
+
+
 def test_fail_above_exit_codes(runner, cli, shears, perfect):
     result = runner.invoke(cli, ["evaluate", str(shears), "--fail-above"])
     assert result.exit_code == 3
