@@ -204,13 +204,16 @@ def evaluate_rows(expr: str, columns: Mapping[str, np.ndarray], n_rows: int | No
     return np.broadcast_to(out, (n_rows,)).copy()
 
 
+def _eval_per_case(expr: str, columns: Mapping[str, np.ndarray], case: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    ids, index = np.unique(np.asarray(case), return_inverse=True)
+    return ids, _Evaluator(expr, columns, index.ravel(), len(ids)).eval(_parse(expr))
+
+
 def evaluate_cases(
     expr: str, columns: Mapping[str, np.ndarray], case: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Evaluate a case expression; returns ``(unique_case_ids, selected_mask)``."""
-    node = _parse(expr)
-    ids, index = np.unique(np.asarray(case), return_inverse=True)
-    out = _Evaluator(expr, columns, index.ravel(), len(ids)).eval(node)
+    ids, out = _eval_per_case(expr, columns, case)
     if out.dtype != bool:
         raise ConfigError(f"case selection {expr!r} is not a condition (use <, >, ==, ...)")
     return ids, np.broadcast_to(out, ids.shape).copy()
@@ -252,8 +255,7 @@ def evaluate_case_values(
     expr: str, columns: Mapping[str, np.ndarray], case: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Value of the numeric case expression ``expr`` (e.g. ``mean(snr)``); returns ``(unique_case_ids, values)``."""
-    ids, index = np.unique(np.asarray(case), return_inverse=True)
-    out = _Evaluator(expr, columns, index.ravel(), len(ids)).eval(_parse(expr))
+    ids, out = _eval_per_case(expr, columns, case)
     return ids, np.broadcast_to(_numeric(out, expr), ids.shape).copy()
 
 

@@ -379,9 +379,8 @@ def _read_columns(path: str | os.PathLike, columns: list[str]) -> dict[str, np.n
 def _prepare_cases(plan: _Plan, read: Callable[[list[str]], Mapping[str, np.ndarray]]) -> None:
     """Per-case aggregates, over all rows of each case: the cases kept by ``select_cases``
     and the values of the per-case ``by`` expressions. ``read(columns)`` returns whole columns."""
-    exprs = ([plan.select_cases] if plan.select_cases is not None else []) + [
-        c for c in plan.by if plan.by_kind.get(c) == "case"
-    ]
+    case_by = [c for c in plan.by if plan.by_kind.get(c) == "case"]
+    exprs = ([plan.select_cases] if plan.select_cases is not None else []) + case_by
     if not exprs:
         return
     cols = read(list(dict.fromkeys(["case", *(c for e in exprs for c in _expr.columns_used(e))])))
@@ -389,7 +388,7 @@ def _prepare_cases(plan: _Plan, read: Callable[[list[str]], Mapping[str, np.ndar
     if plan.select_cases is not None:
         ids, mask = _expr.evaluate_cases(plan.select_cases, cols, case)
         plan.selected_cases = ids[mask]
-    for c in exprs[1 if plan.select_cases is not None else 0 :]:
+    for c in case_by:
         plan.case_by[c] = _expr.evaluate_case_values(c, cols, case)
 
 
