@@ -233,9 +233,9 @@ def simulate_branch(
     ``progress(1)`` is called as each subfield is drawn (``n_cases`` in all).
     """
     from megalut_cli.sim.simulate import (
-        _cards,
-        _order,
-        _workers,
+        expected_workers,
+        order_columns,
+        simulation_cards,
         warn_hst_noise,
         write_simulation_catalog,
     )
@@ -245,7 +245,7 @@ def simulate_branch(
     n_x, n_y = check_config(config)
     s = config.structure
     size = s.stamp_size
-    workers = _workers(nproc, scheduler)
+    workers = expected_workers(nproc, scheduler)
     jobs = [
         {"unit": WorkUnit(config, seed, c, c + 1, n_x, keep_stamps=True, measure=False),
          "n_x": n_x, "n_y": n_y, "measure": measure}
@@ -279,13 +279,13 @@ def simulate_branch(
         columns["y"] = np.tile(g["row"] * size + (size + 1) / 2.0, n_sub)
         columns["subfield"] = columns["case"].copy()
         columns["ID"] = L.galaxy_ids(columns["case"], np.tile(g["column"], n_sub), np.tile(g["row"], n_sub))
-        columns = _order(columns)
+        columns = order_columns(columns)
         first = {c: columns.pop(c) for c in ("case", "rea", "subfield", "ID", "x", "y")}
         columns = {**first, **columns}
         g1 = columns["tru_g1"].reshape(n_sub, -1)[:, 0]
         g2 = columns["tru_g2"].reshape(n_sub, -1)[:, 0]
         L.write_truth(tmp_dir / TRUTH_DIR, np.arange(n_sub), g1, g2, shapes[:, 0], shapes[:, 1])
-        cards = _cards(config, seed, measure)
+        cards = simulation_cards(config, seed, measure)
         cards["NSTAMPX"] = (n_x, "stamps per row of each subfield image")
         cards["LAYOUT"] = ("great3", "files written by --great3")
         with atomic_output(out, overwrite) as tmp_cat:

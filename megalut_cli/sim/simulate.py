@@ -58,14 +58,15 @@ class SimulationResult:
         return self.n_stamps / self.seconds if self.seconds > 0 else math.inf
 
 
-def _workers(nproc: int, scheduler: str | None) -> int:
+def expected_workers(nproc: int, scheduler: str | None) -> int:
+    """Workers to plan work units for: -j, or 8 for a Dask scheduler (its size is not known here)."""
     return 8 if scheduler else resolve_nproc(nproc)
 
 
 def n_work_units(config: SimConfig, nproc: int = 1, scheduler: str | None = None) -> int:
     """How many work units :func:`simulate` will map (e.g. to size a progress bar)."""
     s = config.structure
-    n_units = max(math.ceil(s.n_stamps / UNIT_STAMPS), 4 * _workers(nproc, scheduler))
+    n_units = max(math.ceil(s.n_stamps / UNIT_STAMPS), 4 * expected_workers(nproc, scheduler))
     return min(n_units, s.n_cases)
 
 
@@ -81,7 +82,8 @@ def make_units(
     ]
 
 
-def _cards(config: SimConfig, seed: int, measured: bool) -> dict[str, Any]:
+def simulation_cards(config: SimConfig, seed: int, measured: bool) -> dict[str, Any]:
+    """Header cards of a simulated catalog: seed, structure and config provenance."""
     s = config.structure
     cards: dict[str, Any] = {
         "SEED": (seed, "seed of every random draw (megalut simulate --seed)"),
@@ -127,7 +129,7 @@ def _assemble(results: list[dict[str, Any]]) -> dict[str, np.ndarray]:
     return {k: np.concatenate([r["columns"][k] for r in results]) for k in names}
 
 
-def _order(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+def order_columns(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """case, rea, x, y, truth (sorted), then features in their given order."""
     first = [c for c in ("case", "rea", "x", "y") if c in columns]
     truth = sorted(c for c in columns if c.startswith("tru_"))
@@ -165,7 +167,7 @@ def simulate(
             )
     if st is None and not measure:
         log.info("neither --stamps nor --measure: writing the truth catalog only (nothing drawn)")
-    workers = _workers(nproc, scheduler)
+    workers = expected_workers(nproc, scheduler)
     units = make_units(config, seed, nproc, scheduler, st is not None, measure)
     log.info(
         "simulating %d cases x %d realizations = %d stamps of %d px in %d work units",
@@ -192,8 +194,8 @@ def simulate(
     n = len(columns["case"])
     x, y = stamp_centres(np.arange(n), s.grid_nx, s.stamp_size)
     columns["x"], columns["y"] = x, y
-    columns = _order(columns)
-    cards = _cards(config, seed, measure)
+    columns = order_columns(columns)
+    cards = simulation_cards(config, seed, measure)
     with contextlib.ExitStack() as stack:
         tmp_cat = stack.enter_context(atomic_output(out, overwrite))
         tmp_st = stack.enter_context(atomic_output(st, overwrite)) if st is not None else None
