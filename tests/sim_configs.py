@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-COSMOS = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "cosmos" / "real_galaxy_catalog_23.5_example_fits.fits"
+COSMOS = Path(__file__).resolve().parents[1] / "examples" / "data" / "cosmos" / "real_galaxy_catalog_23.5_example_fits.fits"
 
 TINY = """
 description = "tiny test set"

@@ -100,7 +100,7 @@ def test_refuses_overwrite(runner, cli, tmp_path):
 
 
 def test_missing_catalog_file_exit_1(runner, cli, tmp_path):
-    text = (EXAMPLES / "euclid" / "vo.toml").read_text().replace("../shared/data/cosmos/", "nowhere/")
+    text = (EXAMPLES / "euclid" / "vo.toml").read_text().replace("../data/cosmos/", "nowhere/")
     cfg = write(tmp_path, text, name="vo.toml")
     r = runner.invoke(cli, ["simulate", str(cfg), "-o", str(tmp_path / "c.fits"), "--n-cases", "1"])
     assert r.exit_code == 1 and "catalog.path" in _err(r)

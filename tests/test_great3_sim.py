@@ -14,7 +14,7 @@ from megalut_cli.catalog import read_catalog, write_catalog, write_image
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.sim.config import load_config
 
-COSMOS_DIR = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "cosmos"
+COSMOS_DIR = Path(__file__).resolve().parents[1] / "examples" / "data" / "cosmos"
 RGC = COSMOS_DIR / "real_galaxy_catalog_26_extension_example.fits"
 needs_cosmos = pytest.mark.skipif(not RGC.is_file(), reason="COSMOS example data not available")
 
