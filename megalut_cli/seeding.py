@@ -14,6 +14,8 @@ STREAM_TRAIN = 2
 STREAM_SPLIT = 3
 #: Per-subfield seeds of a GREAT3 branch pipeline (``megalut run`` on a ``[branch]`` file).
 STREAM_SUBFIELD = 4
+#: Resampling of paired bootstrap errors (``megalut evaluate --twin``).
+STREAM_BOOTSTRAP = 5
 
 
 def rng_for(seed: int, *keys: int) -> np.random.Generator:

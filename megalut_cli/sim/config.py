@@ -28,6 +28,7 @@ from megalut_cli.sim.distributions import (
     DIST_TYPES,
     CatalogColumn,
     Distribution,
+    Grid,
     is_distribution_table,
     parse_distribution,
 )
@@ -81,9 +82,14 @@ _STRUCTURE_KEYS = {
 }
 _GALAXY_KEYS = {"profile", "sersicn", "sersicn_step", "rad", "ellipticity", "angle", *FLUX_KEYS}
 #: Keys of real galaxies (profile = "real") from a GalSim RealGalaxyCatalog.
-_REAL_KEYS = {"real_catalog", "real_dir", "pixel_scale", "index", "real_select", "hst_noise"}
+_REAL_KEYS = {"real_catalog", "real_dir", "pixel_scale", "index", "real_select", "hst_noise", "twin", "twin_catalog",
+              "real_order"}
 #: What to do with the HST noise of real galaxies (see docs/config.md).
 HST_NOISE_MODES = ("symmetrize", "whiten", "keep")
+#: What to draw in place of each real galaxy: itself, or its Sérsic twin (docs/realgal.md).
+TWIN_MODES = ("none", "sersic")
+#: How real galaxies are assigned to SNC groups: drawn at random, or each in turn.
+REAL_ORDERS = ("random", "each")
 _GALAXY_KEYS |= _REAL_KEYS
 _NOISE_KEYS = {"type", "sigma", "sky_mag", "read_noise", "override_sigma"}
 _INSTRUMENT_KEYS = {"pixel_scale", "exptime", "gain", "zeropoint"}
@@ -369,6 +375,27 @@ def _real_rows(select: Any, cat: Path) -> list[int]:
     return [int(i) for i in np.flatnonzero(mask)]
 
 
+def _parse_twin(t: Mapping[str, Any], config_path: str, index: Distribution) -> dict[str, Any]:
+    """``galaxy.twin`` and ``galaxy.twin_catalog``: draw each real galaxy's Sérsic twin."""
+    twin = _choice(t.get("twin", "none"), "galaxy.twin", TWIN_MODES)
+    if "twin_catalog" not in t:
+        if twin != "none":
+            raise ConfigError("galaxy.twin_catalog: missing (required by galaxy.twin = 'sersic': the Sérsic-twin FITS table)")
+        return {"twin": twin}
+    path = str(_resolve_path(t["twin_catalog"], "galaxy.twin_catalog", config_path))
+    if twin != "none":
+        from megalut_cli.sim.twins import load_twins
+
+        twins = load_twins(path)
+        lo, hi = index.bounds()
+        values = getattr(index, "values", None)
+        rows = [int(v) for v in values] if values is not None else list(range(int(lo), int(hi) + 1))
+        absent = [r for r in rows if r not in twins]
+        if absent:
+            raise ConfigError(f"galaxy.twin_catalog: {path}: no twin for real-catalog row(s) {absent[:5]}")
+    return {"twin": twin, "twin_catalog": path}
+
+
 def _parse_real_galaxy(t: dict[str, Any], instrument: Mapping[str, float], config_path: str) -> GalaxySpec:
     """``profile = "real"``: galaxies of a GalSim RealGalaxyCatalog (HST images)."""
     for k in ("rad", "sersicn", "sersicn_step", "ellipticity", "sb"):
@@ -419,6 +446,12 @@ def _parse_real_galaxy(t: dict[str, Any], instrument: Mapping[str, float], confi
     angle = parse_distribution(t.get("angle", {"type": "uniform", "min": 0.0, "max": 180.0}), "galaxy.angle")
     hst_noise = _choice(t.get("hst_noise", "symmetrize"), "galaxy.hst_noise", HST_NOISE_MODES)
     real = {"catalog": str(cat), "dir": real_dir, "pixel_scale": scale, "n_objects": int(n_obj), "hst_noise": hst_noise}
+    real.update(_parse_twin(t, config_path, params["index"]))
+    real["order"] = _choice(t.get("real_order", "random"), "galaxy.real_order", REAL_ORDERS)
+    if real["order"] == "each":
+        if not isinstance(params["index"], Grid):
+            raise ConfigError("galaxy.real_order: 'each' needs galaxy.real_select or a grid of galaxy.index values")
+        real["rows"] = tuple(int(v) for v in params["index"].values)
     return GalaxySpec("real", params, angle, flux_mode, 0.0, real)
 
 

@@ -29,6 +29,7 @@ from megalut_cli.sim.galaxies import (
     shaped,
 )
 from megalut_cli.sim.structure import draw_case
+from megalut_cli.sim.twins import real_twin, twin_truth
 
 #: Stamps measured at once when the images are not kept (bounds the memory of a unit).
 MEASURE_BATCH = 1024
@@ -134,6 +135,7 @@ _MIN_PAD_PIXELS = 200
 def _process_hst_noise(
     image: galsim.Image, clean: np.ndarray, d: Any, k: int, t: dict[str, np.ndarray], real: dict[str, Any],
     psf: galsim.GSObject, psf_sigma: float, method: str, gsp: galsim.GSParams, mode: str,
+    twin: galsim.GSObject | None = None,
 ) -> float:
     """Symmetrize (order 4) or whiten the HST noise of a drawn real galaxy, then add Gaussian
     noise up to the case's sigma; returns the variance of the processed HST noise
@@ -142,6 +144,8 @@ def _process_hst_noise(
     ``clean`` is the same galaxy drawn without noise padding: outside its HST footprint
     (plus 3 PSF sigmas), ``image - clean`` is pure padding noise, whose variance calibrates
     the noise model (its shape comes from :func:`megalut_cli.sim.galaxies.real_noise`).
+    With ``twin`` (its Sérsic twin, PSF-convolved), the twin replaces the galaxy and gets a
+    fresh realization of that noise model before the same symmetrization and Gaussian noise.
     """
     seed = int(d.noise_seeds[k])
     index = int(t["tru_real_index"][k])
@@ -156,6 +160,9 @@ def _process_hst_noise(
         v = float(np.var((image.array - clean)[outside].astype(np.float64)))
         if v > 0:
             cn = cn.withVariance(v)
+    if twin is not None:
+        twin.drawImage(image=image, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method)
+        image.addNoise(cn.copy(rng=galsim.BaseDeviate((seed * 48271 + 7) % 2147483647 + 1)))
     var = float(cn.whitenImage(image) if mode == "whiten" else cn.symmetrizeImage(image, order=4))
     rest = d.noise.sky_sigma**2 - var
     if rest > 0:
@@ -195,7 +202,8 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
         hst_mode = "keep"  # noiseless stamps: the HST noise stays in the galaxy's own footprint
     pad = S * 1.5 + 4.0 if hst_mode != "keep" else 0.0
     scratch = galsim.ImageF(S, S, scale=1.0)
-    base0 = None
+    base0 = twin_base = None
+    twin_mode = gal.profile == "real" and render and gal.real.get("twin", "none") != "none"
     fill = 0  # stamps in the buffer
     buf_first = first  # global index of stamps[0]
     for case in range(unit.case_start, unit.case_stop):
@@ -212,6 +220,8 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                     base = real_profile(gal.real, int(t["tru_real_index"][k]), t["tru_flux"][k], gsp, pad)
                     if pad:
                         base0 = real_profile(gal.real, int(t["tru_real_index"][k]), t["tru_flux"][k], gsp)
+                    if twin_mode:  # its Sersic twin, drawn in its place (docs/realgal.md)
+                        twin_base = real_twin(gal.real, int(t["tru_real_index"][k]), t["tru_flux"][k], gsp)
                 else:
                     base = base_profile(
                         gal.profile, t["tru_rad"][k], t["tru_flux"][k],
@@ -229,8 +239,10 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                 last_psf = pi
             if not render:
                 continue
+            hst_k = hst_var is not None and d.noise.kind != "none"
             if gal.profile == "real":  # real galaxies: rotated by the position angle, then lensed
-                gal_k = rotated(base, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k])
+                # (a twin replaces its galaxy here, or after the HST-noise measurement)
+                gal_k = rotated(twin_base if twin_mode and not hst_k else base, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k])
             else:
                 gal_k = shaped(base, t["tru_e1"][k], t["tru_e2"][k], t["tru_g1"][k], t["tru_g2"][k])
             obj = galsim.Convolve(gal_k, psf, gsparams=conv_gsp)
@@ -243,12 +255,14 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                 ) from None
             except (galsim.GalSimError, MemoryError) as err:
                 raise MegalutError(f"case {case}, realization {k}: GalSim could not draw the stamp ({err})") from None
-            if hst_var is not None and d.noise.kind != "none":
+            if hst_k:
                 clean = galsim.Convolve(
                     rotated(base0, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k]), psf, gsparams=conv_gsp
                 ).drawImage(image=scratch, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method).array
+                twin_k = None if twin_base is None else galsim.Convolve(
+                    rotated(twin_base, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k]), psf, gsparams=conv_gsp)
                 hst_var[k] = _process_hst_noise(image, clean, d, k, t, gal.real, psf, psf_truths[-1]["tru_psf_sigma"],
-                                                method, gsp, hst_mode)
+                                                method, gsp, hst_mode, twin_k)
             else:
                 d.noise.add(image, int(d.noise_seeds[k]))
             stamps[fill] = image.array
@@ -265,6 +279,8 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
         cols.update(t)
         if hst_var is not None:
             cols["tru_hst_noise_var"] = hst_var
+        if gal.profile == "real" and "twin_catalog" in gal.real:
+            cols.update(twin_truth(gal.real, t["tru_real_index"]))
         for name in psf_truths[0]:
             cols[name] = np.array([p[name] for p in psf_truths], dtype=float)[d.psf_index]
         truth_parts.append(cols)

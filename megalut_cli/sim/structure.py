@@ -105,6 +105,9 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     gvals, gal_index = level("galaxy", gal.params)
     if gal.profile == "real":  # size and shape come from the HST image: NaN truth
         truth["tru_real_index"] = np.round(gvals["index"]).astype(np.int64)
+        if gal.real.get("order") == "each":  # SNC group g (or case g): galaxy g (mod N)
+            rows = np.asarray(gal.real["rows"], dtype=np.int64)
+            truth["tru_real_index"] = rows[(group_of if s.varies("galaxy") else np.full(n, case)) % len(rows)]
         rad = np.full(n, np.nan)
         gvals["ellipticity"] = np.full(n, np.nan)
     else:

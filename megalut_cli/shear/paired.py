@@ -1,0 +1,229 @@
+"""Paired shear biases of two sets drawn with common random numbers (real galaxies and
+their Sérsic twins): m and c of each, and their difference with errors from a paired
+bootstrap over galaxies.
+
+Both sets hold the same rows (same case = shear, galaxy, rotation, offset, noise seeds).
+Each set is reduced to sums per (case, galaxy) of ``w``, ``w * g_est`` and ``w * g_true``
+(``w`` = 1, or the predicted weight; rows with a non-finite estimate or a non-zero flag
+count with ``w = 0``). A resample draws galaxies with replacement; a galaxy drawn ``k``
+times counts ``k`` times in every case, in both sets. Per resample and set, the per-case
+means give m and c by the same ordinary least squares over cases as
+:func:`megalut_cli.shear.bias.fit_bias`; the spread of ``m_a - m_b`` over resamples is the
+error of the difference, which therefore keeps the correlation that the common galaxies,
+shears and noise give the two sets.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from megalut_cli.errors import InputError
+from megalut_cli.seeding import STREAM_BOOTSTRAP, rng_for
+
+#: Columns that must agree row by row between paired catalogs.
+PAIRING_COLUMNS = ("case", "rea", "tru_g1", "tru_g2")
+#: Default bootstrap resamples.
+N_BOOTSTRAP = 1000
+
+
+def _group_sums(
+    cell: np.ndarray, n_cells: int, g_true: np.ndarray, g_est: np.ndarray, weight: np.ndarray
+) -> np.ndarray:
+    """``(3, n_cells)`` sums of ``w``, ``w g_est``, ``w g_true`` per cell (invalid rows: w = 0)."""
+    ok = np.isfinite(g_est) & np.isfinite(weight) & (weight > 0)
+    w = np.where(ok, weight, 0.0)
+    return np.stack([
+        np.bincount(cell, weights=w, minlength=n_cells),
+        np.bincount(cell, weights=np.where(ok, w * g_est, 0.0), minlength=n_cells),
+        np.bincount(cell, weights=np.where(ok, w * g_true, 0.0), minlength=n_cells),
+    ])
+
+
+def _fit_columns(sums: np.ndarray, counts: np.ndarray, n_cases: int, n_gal: int) -> tuple[np.ndarray, np.ndarray]:
+    """m and c (one per row of ``counts``, galaxy multiplicities) of per-case means."""
+    s = sums.reshape(3, n_cases, n_gal) @ counts.T  # (3, n_cases, B)
+    ok = s[0] > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x = np.where(ok, s[2] / np.where(ok, s[0], 1.0), 0.0)
+        y = np.where(ok, s[1] / np.where(ok, s[0], 1.0), 0.0) - x
+        n = ok.sum(axis=0)
+        xm = x.sum(axis=0) / n
+        ym = y.sum(axis=0) / n
+        dx = np.where(ok, x - xm, 0.0)
+        m = (dx * (y - ym)).sum(axis=0) / (dx * dx).sum(axis=0)
+        c = ym - m * xm
+    bad = n < 3
+    return np.where(bad, np.nan, m), np.where(bad, np.nan, c)
+
+
+def paired_bias(
+    galaxy: np.ndarray,
+    case: np.ndarray,
+    g_true: np.ndarray,
+    est_a: np.ndarray,
+    est_b: np.ndarray,
+    weight_a: np.ndarray | None = None,
+    weight_b: np.ndarray | None = None,
+    n_boot: int = N_BOOTSTRAP,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """m, c of sets ``a`` and ``b`` (one shear component, rows paired) and ``m_a - m_b``,
+    ``c_a - c_b``, with 1-sigma errors from a paired bootstrap over galaxies.
+
+    ``galaxy`` and ``case`` are the ids shared by the paired rows. Returns a JSON-ready dict:
+    ``m_a, m_a_err, c_a, c_a_err, m_b, ..., dm, dm_err, dc, dc_err, n_galaxies, n_cases,
+    n_rows_a, n_rows_b, n_boot``. Values that cannot be determined are None.
+    """
+    gal_ids, gi = np.unique(np.asarray(galaxy), return_inverse=True)
+    case_ids, ci = np.unique(np.asarray(case), return_inverse=True)
+    n_gal, n_cases = gal_ids.size, case_ids.size
+    cell = ci.ravel() * n_gal + gi.ravel()
+    g_true = np.asarray(g_true, dtype=float)
+    ones = np.ones(g_true.size)
+    wa = ones if weight_a is None else np.asarray(weight_a, dtype=float)
+    wb = ones if weight_b is None else np.asarray(weight_b, dtype=float)
+    sums_a = _group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_a, dtype=float), wa)
+    sums_b = _group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_b, dtype=float), wb)
+    rng = rng_for(seed, STREAM_BOOTSTRAP)
+    counts = np.vstack([np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)])
+    m_a, c_a = _fit_columns(sums_a, counts, n_cases, n_gal)
+    m_b, c_b = _fit_columns(sums_b, counts, n_cases, n_gal)
+    out: dict[str, Any] = {}
+    for name, v in (("m_a", m_a), ("c_a", c_a), ("m_b", m_b), ("c_b", c_b), ("dm", m_a - m_b), ("dc", c_a - c_b)):
+        boot = v[1:][np.isfinite(v[1:])]
+        out[name] = _num(v[0])
+        out[f"{name}_err"] = _num(np.std(boot, ddof=1)) if boot.size > 1 else None
+    out.update(n_galaxies=int(n_gal), n_cases=int(n_cases), n_boot=int(n_boot),
+               n_rows_a=int(np.count_nonzero(np.isfinite(est_a) & (wa > 0))),
+               n_rows_b=int(np.count_nonzero(np.isfinite(est_b) & (wb > 0))))
+    return out
+
+
+def _num(x: float) -> float | None:
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def check_pairing(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray], names: tuple[str, str],
+                  galaxy_column: str) -> None:
+    """Raise one :class:`InputError` line unless ``a`` and ``b`` are row-by-row paired."""
+    na, nb = len(a["case"]), len(b["case"])
+    if na != nb:
+        raise InputError(f"{names[0]} and {names[1]} are not paired: {na} rows against {nb}")
+    for col in (*PAIRING_COLUMNS, galaxy_column):
+        x, y = np.asarray(a[col]), np.asarray(b[col])
+        same = (x == y) | (np.isnan(x) & np.isnan(y)) if x.dtype.kind == "f" else x == y
+        diff = np.flatnonzero(~same)
+        if diff.size:
+            r = int(diff[0])
+            raise InputError(f"{names[0]} and {names[1]} are not paired: column {col} differs at row {r} "
+                             f"({x[r]!r} against {y[r]!r}; simulate both from one config and seed)")
+
+
+def group_bins(values: np.ndarray, galaxy: np.ndarray, case: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """Equal-population bins of (case, galaxy) groups by the group mean of ``values``
+    (pairs and rotations stay together). Returns ``(bin index per row, bin edges)``;
+    rows of groups with no finite value get -1."""
+    _, gi = np.unique(np.asarray(galaxy), return_inverse=True)
+    _, ci = np.unique(np.asarray(case), return_inverse=True)
+    key = ci.ravel() * (gi.max() + 1) + gi.ravel()
+    keys, inv = np.unique(key, return_inverse=True)
+    v = np.asarray(values, dtype=float)
+    ok = np.isfinite(v)
+    num = np.bincount(inv.ravel(), weights=np.where(ok, v, 0.0), minlength=keys.size)
+    den = np.bincount(inv.ravel(), weights=ok.astype(float), minlength=keys.size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gm = num / den
+    finite = np.isfinite(gm)
+    if not finite.any():
+        return np.full(v.size, -1, dtype=np.int64), np.zeros(0)
+    edges = np.quantile(gm[finite], np.linspace(0.0, 1.0, n_bins + 1))
+    idx = np.clip(np.searchsorted(edges, gm, side="right") - 1, 0, n_bins - 1)
+    idx = np.where(finite, idx, -1)
+    return idx[inv.ravel()], edges
+
+
+def paired_evaluation(
+    a: Mapping[str, np.ndarray],
+    b: Mapping[str, np.ndarray],
+    galaxy_column: str = "tru_real_index",
+    by: Mapping[str, np.ndarray] | None = None,
+    n_bins: int = 3,
+    n_boot: int = N_BOOTSTRAP,
+    seed: int = 0,
+    names: Sequence[str] = ("real", "twin"),
+) -> dict[str, Any]:
+    """Paired biases of catalogs ``a`` and ``b`` (columns as arrays; checked to be paired),
+    unweighted and, when both have ``pre_g1_w, pre_g2_w``, weighted; overall and in
+    ``n_bins`` equal-population bins of each quantity of ``by`` (values per row, averaged
+    over both sets and per (case, galaxy)). JSON-ready; layout in ``docs/realgal.md``."""
+    check_pairing(a, b, (names[0], names[1]), galaxy_column)
+    gal, case = np.asarray(a[galaxy_column]), np.asarray(a["case"])
+    schemes = ["unweighted"] + (["weighted"] if all(f"pre_g{i}_w" in t for t in (a, b) for i in (1, 2)) else [])
+
+    def valid(t: Mapping[str, np.ndarray], comp: str) -> np.ndarray:
+        ok = np.isfinite(np.asarray(t[f"pre_{comp}"], dtype=float))
+        return ok & (np.asarray(t["flags"]) == 0) if "flags" in t else ok
+
+    def evaluate(rows: np.ndarray) -> dict[str, Any]:
+        res: dict[str, Any] = {}
+        if not rows.any():
+            return res
+        for scheme in schemes:
+            res[scheme] = {}
+            for comp in ("g1", "g2"):
+                wa = valid(a, comp).astype(float)
+                wb = valid(b, comp).astype(float)
+                if scheme == "weighted":
+                    wa = wa * np.nan_to_num(np.asarray(a[f"pre_{comp}_w"], dtype=float))
+                    wb = wb * np.nan_to_num(np.asarray(b[f"pre_{comp}_w"], dtype=float))
+                res[scheme][comp] = paired_bias(
+                    gal[rows], case[rows], np.asarray(a[f"tru_{comp}"], dtype=float)[rows],
+                    np.asarray(a[f"pre_{comp}"], dtype=float)[rows], np.asarray(b[f"pre_{comp}"], dtype=float)[rows],
+                    wa[rows], wb[rows], n_boot=n_boot, seed=seed)
+        return res
+
+    result: dict[str, Any] = {"names": list(names), "galaxy_column": galaxy_column, "n_boot": int(n_boot),
+                              "seed": int(seed), "overall": evaluate(np.ones(case.size, dtype=bool)), "by": {}}
+    for label, values in (by or {}).items():
+        idx, edges = group_bins(values, gal, case, n_bins)
+        result["by"][label] = {
+            "edges": [float(e) for e in edges],
+            "bins": [evaluate(idx == k) for k in range(len(edges) - 1)],
+        }
+    return result
+
+
+def _pm(v: float | None, e: float | None) -> str:
+    if v is None:
+        return f"{'n/a':>21}"
+    return f"{v:+.2e} ± {e:.1e}" if e is not None else f"{v:+.2e}         "
+
+
+def format_paired(result: Mapping[str, Any]) -> str:
+    """Plain-text table of :func:`paired_evaluation`'s result."""
+    a, b = result["names"]
+    lines = []
+
+    def block(res: Mapping[str, Any], title: str) -> None:
+        for scheme, comps in res.items():
+            first = next(iter(comps.values()))
+            lines.append(f"{title}{scheme} ({first['n_galaxies']} galaxies, {first['n_cases']} cases, "
+                         f"paired bootstrap of {first['n_boot']})")
+            lines.append(f"{'':6}{'m_' + a:>22}{'m_' + b:>24}{'m_' + a + ' - m_' + b:>24}{'c_' + a + ' - c_' + b:>24}")
+            for comp, r in comps.items():
+                lines.append(f"  {comp:4}{_pm(r['m_a'], r['m_a_err']):>22}{_pm(r['m_b'], r['m_b_err']):>24}"
+                             f"{_pm(r['dm'], r['dm_err']):>24}{_pm(r['dc'], r['dc_err']):>24}")
+            lines.append("")
+
+    block(result["overall"], "")
+    if not result["overall"]:
+        lines.append("no rows")
+    for label, info in result["by"].items():
+        for k, res in enumerate(info["bins"]):
+            lo, hi = info["edges"][k], info["edges"][k + 1]
+            block(res, f"{label} in [{lo:.3g}, {hi:.3g}]: ")
+    return "\n".join(lines).rstrip() + "\n"
