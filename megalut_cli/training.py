@@ -34,6 +34,7 @@ from megalut_cli.nn.committee import CommitteeSpec, train_committees
 from megalut_cli.nn.data import CaseData, build_cases, split_cases, valid_rows
 from megalut_cli.nn.model import Committee, ShearModel, component_name
 from megalut_cli.nn.network import Network
+from megalut_cli.nn.population import training_population
 from megalut_cli.nn.train import OPTIMIZERS, TrainSettings
 from megalut_cli.parallel import executor
 from megalut_cli.provenance import command_line, sha256_file, software_versions
@@ -275,6 +276,10 @@ def _provenance(
         "inputs": inputs,
         "seed": seed,
     }
+    train = inputs.get("train", {}).get("path")
+    population = training_population(train) if train else None
+    if population is not None:
+        prov["population"] = population
     if parent is not None:
         prov["parent"] = parent
     return prov

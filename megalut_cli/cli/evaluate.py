@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from megalut_cli.cli.options import overwrite_option, parse_list
+from megalut_cli.cli.options import overwrite_option, parse_list, seed_option
 
 #: Exit code of ``--fail-above`` when the Stage IV requirement does not hold.
 EXIT_OUT_OF_TOLERANCE = 3
@@ -71,6 +71,17 @@ EXIT_OUT_OF_TOLERANCE = 3
     show_default=True,
     help="Damping term of the GREAT3 Q_c metric: 4 for ground branches, 1 for space.",
 )
+@click.option(
+    "--twin", "twin_path", type=click.Path(exists=True, dir_okay=False), default=None,
+    help="Paired evaluation: SHEARS holds real galaxies and TWIN their Sersic twins, simulated from one "
+    "config and seed; prints m, c of both and m_real - m_twin with paired-bootstrap errors over galaxies "
+    "(docs/realgal.md).",
+)
+@click.option(
+    "--bootstrap", "n_boot", type=click.IntRange(10, 100000), default=1000, show_default=True,
+    help="Bootstrap resamples of galaxies for --twin.",
+)
+@seed_option(0, "Seed of the --twin bootstrap resampling.")
 @overwrite_option
 def command(
     shears: str,
@@ -83,6 +94,9 @@ def command(
     fail_above: bool,
     great3_truth: str | None,
     sigma2_min: float,
+    twin_path: str | None,
+    n_boot: int,
+    seed: int,
     overwrite: bool,
 ) -> None:
     """Measure the shear biases of SHEARS.fits, a catalog with truth and predictions.
@@ -112,6 +126,7 @@ def command(
       megalut evaluate shears.fits --select "snr > 10 & adamom_sigma > 1.5" --json biases.json
       megalut evaluate shears.fits --fail-above || echo "biases out of tolerance"
       megalut evaluate submission.txt --great3-truth branch/truth --sigma2-min 1
+      megalut evaluate real-shears.fits --twin twin-shears.fits --by "tru_twin_rad/tru_psf_sigma,snr"
     """
     from megalut_cli.atomic import check_output
     from megalut_cli.shear.evaluate import evaluate_catalog, format_table, requirement_met
@@ -127,6 +142,12 @@ def command(
 
         check_plot_output(plot_path)
 
+    if twin_path is not None:
+        _evaluate_twin(shears, twin_path, by_cols, bins, n_boot, seed, json_path, overwrite,
+                       other=[name for name, v in (("--great3-truth", great3_truth), ("--select", select),
+                              ("--select-cases", select_cases), ("--plot", plot_path), ("--fail-above", fail_above))
+                              if v])
+        return
     if great3_truth is not None:
         from megalut_cli.great3.evaluate import evaluate_branch
 
@@ -147,6 +168,19 @@ def command(
             f"megalut: bias out of tolerance ({'; '.join(result['requirement']['failures'])})", err=True
         )
         click.get_current_context().exit(EXIT_OUT_OF_TOLERANCE)
+
+
+def _evaluate_twin(shears: str, twin: str, by: list[str] | None, bins: int, n_boot: int, seed: int,
+                   json_path: str | None, overwrite: bool, other: list[str]) -> None:
+    """The paired real-vs-twin evaluation of ``--twin``."""
+    from megalut_cli.shear.paired import evaluate_paired_catalogs, format_paired
+
+    if other:
+        raise click.UsageError(f"{other[0]} does not apply with --twin")
+    result = evaluate_paired_catalogs(shears, twin, by=by, n_bins=bins, n_boot=n_boot, seed=seed)
+    click.echo(format_paired(result), nl=False)
+    if json_path is not None:
+        _write_json(json_path, result, overwrite)
 
 
 def _write_json(path: str, result: dict, overwrite: bool) -> None:

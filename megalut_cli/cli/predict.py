@@ -43,7 +43,8 @@ def command(
     has weight committees, pre_g1_w, pre_g2_w. Rows whose features failed (flags != 0 or a
     non-finite feature) get NaN estimates, weight 0 and the BAD_FEATURES flag (128) in
     'flags'. The catalog is streamed in chunks; the header records the model's sha256
-    (MODELSHA).
+    (MODELSHA). The model's training population and its recorded bias on real galaxies
+    (when it carries one) are logged at info level.
 
     \b
     Example:
@@ -52,9 +53,13 @@ def command(
     """
     from megalut_cli.catalog import catalog_info
     from megalut_cli.cli.options import progress
+    from megalut_cli.nn.model import ShearModel
+    from megalut_cli.nn.population import model_report
     from megalut_cli.shear.predict import parse_column_map, predict_catalog
 
     column_map = parse_column_map(col)
+    for line in model_report(ShearModel.load(model_path)):
+        logging.getLogger("megalut").info("%s", line)
     n_rows = catalog_info(features)[0]
     with progress("predict", n_rows) as update:
         report = predict_catalog(

@@ -283,6 +283,8 @@ class ShearModel:
         self.point: dict[str, Committee] = dict(point or {})
         self.weight: dict[str, Committee] = dict(weight or {})
         self.provenance: dict[str, Any] = dict(provenance or {})
+        #: Recorded validations, e.g. ``real_galaxy_bias`` (``megalut_cli.nn.population``).
+        self.validation: dict[str, Any] = {}
         self.sha256 = ""
         self.uuid = ""
         self.created = ""
@@ -328,6 +330,10 @@ class ShearModel:
                 prov = f.create_group("provenance")
                 for key, val in self.provenance.items():
                     prov.attrs[key] = val if isinstance(val, str) else json.dumps(val, sort_keys=True)
+                if self.validation:
+                    val_group = f.create_group("validation")
+                    for key, val in self.validation.items():
+                        val_group.attrs[key] = json.dumps(val, sort_keys=True)
         self.sha256 = sha256_file(path)
 
     @classmethod
@@ -374,6 +380,8 @@ class ShearModel:
                             model.provenance[key] = json.loads(val)
                         except json.JSONDecodeError:
                             model.provenance[key] = val
+                for key, val in f["validation"].attrs.items() if "validation" in f else ():
+                    model.validation[key] = json.loads(val.decode() if isinstance(val, bytes) else str(val))
                 model.uuid = _attr(f, "uuid", "")
                 model.created = _attr(f, "created", "")
         except InputError:

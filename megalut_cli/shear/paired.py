@@ -227,3 +227,44 @@ def format_paired(result: Mapping[str, Any]) -> str:
             lo, hi = info["edges"][k], info["edges"][k + 1]
             block(res, f"{label} in [{lo:.3g}, {hi:.3g}]: ")
     return "\n".join(lines).rstrip() + "\n"
+
+
+def evaluate_paired_catalogs(
+    path_a: str, path_b: str, by: Sequence[str] | None = None, n_bins: int = 3, n_boot: int = N_BOOTSTRAP,
+    seed: int = 0, galaxy_column: str = "tru_real_index",
+) -> dict[str, Any]:
+    """:func:`paired_evaluation` of two prediction catalogs (e.g. ``real_shears.fits`` and
+    ``twin_shears.fits``). ``by`` holds columns or numeric row expressions (e.g.
+    ``tru_twin_rad/tru_psf_sigma``); their values are averaged over both catalogs."""
+    from megalut_cli import expr as _expr
+    from megalut_cli.catalog import catalog_info, read_catalog
+    from megalut_cli.errors import ConfigError
+    from megalut_cli.shear.evaluate import check_by
+
+    names_a, names_b = catalog_info(path_a)[1], catalog_info(path_b)[1]
+    common = [c for c in names_a if c in set(names_b)]
+    need = [*PAIRING_COLUMNS, galaxy_column, "pre_g1", "pre_g2"]
+    for path, names in ((path_a, names_a), (path_b, names_b)):
+        missing = [c for c in need if c not in names]
+        if missing:
+            raise InputError(f"{path}: missing column(s) {', '.join(missing)} (a prediction catalog of a "
+                             "real-galaxy or twin set)")
+    kinds = check_by(list(by or []), common, where=f"both {path_a} and {path_b}")
+    if "case" in kinds.values():
+        bad = next(c for c, k in kinds.items() if k == "case")
+        raise ConfigError(f"--by: {bad!r}: per-case aggregates do not apply with --twin (groups are binned by "
+                          "their mean already)")
+    used = {c for c in kinds if kinds[c] == "column"} | {u for c in kinds if kinds[c] == "row"
+                                                         for u in _expr.columns_used(c)}
+    extra = [c for c in ("flags", "pre_g1_w", "pre_g2_w") if c in common]
+    cols = list(dict.fromkeys(need + extra + sorted(used)))
+    ta, tb = read_catalog(path_a, columns=cols), read_catalog(path_b, columns=cols)
+    a = {c: np.asarray(ta[c]) for c in cols}
+    b = {c: np.asarray(tb[c]) for c in cols}
+    check_pairing(a, b, (str(path_a), str(path_b)), galaxy_column)
+    values = {}
+    for c in by or []:
+        va = _expr.evaluate_row_values(c, a, len(ta)) if kinds[c] == "row" else np.asarray(a[c], dtype=float)
+        vb = _expr.evaluate_row_values(c, b, len(tb)) if kinds[c] == "row" else np.asarray(b[c], dtype=float)
+        values[c] = 0.5 * (va + vb)
+    return paired_evaluation(a, b, galaxy_column, values, n_bins, n_boot, seed, names=("real", "twin"))

@@ -1,0 +1,124 @@
+"""What a model was trained on, and the biases recorded for it (told by ``megalut predict``).
+
+The training population comes from the training catalog's ``CONFIG`` HDU (written by
+``simulate``): the ``[galaxy]``, ``[psf]`` and ``[noise]`` tables of the effective
+configuration, stored in the model's ``/provenance`` ``population`` attribute. A model
+bias measured on real galaxies (``megalut evaluate --twin``) is stored with
+:func:`record_real_bias` in the ``/validation`` ``real_galaxy_bias`` attribute
+(``docs/model-format.md``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from megalut_cli.errors import InputError
+
+#: Attribute of ``/validation`` holding the recorded model bias on real galaxies (JSON).
+REAL_BIAS_ATTR = "real_galaxy_bias"
+#: Keys a real-galaxy bias record must hold.
+REAL_BIAS_KEYS = ("dm_g1", "dm_g1_err", "dm_g2", "dm_g2_err", "scheme", "setup", "command")
+
+
+def training_population(catalog: str | os.PathLike) -> dict[str, Any] | None:
+    """The population of a simulated training catalog (its config's galaxy, PSF and noise
+    tables, and the config file name), or None when the catalog has no ``CONFIG`` HDU."""
+    import fitsio
+
+    try:
+        with fitsio.FITS(str(catalog)) as f:
+            if "CONFIG" not in f:
+                return None
+            row = f["CONFIG"].read()[0]
+    except (OSError, ValueError):
+        return None
+    try:
+        text = row["config_json"]
+        raw = json.loads(text.decode("ascii") if isinstance(text, bytes) else str(text))
+    except (ValueError, UnicodeDecodeError):
+        return None
+    pop = {k: raw.get(k, {}) for k in ("galaxy", "psf", "noise")}
+    pop["config"] = Path(str(catalog)).name
+    pop["description"] = raw.get("description", "")
+    pop["summary"] = population_summary(pop)
+    return pop
+
+
+def _value(v: Any) -> str:
+    if isinstance(v, Mapping):
+        t = v.get("type", "")
+        if t == "uniform":
+            return f"U({v.get('min')}, {v.get('max')})"
+        if t == "constant":
+            return str(v.get("value"))
+        return t or "?"
+    return str(v)
+
+
+def population_summary(pop: Mapping[str, Any]) -> str:
+    """One line: galaxy profile (or real catalog and twin mode), PSF type and size, noise."""
+    gal, psf, noise = pop.get("galaxy", {}), pop.get("psf", {}), pop.get("noise", {})
+    profile = gal.get("profile", "sersic")
+    if profile == "real":
+        g = f"real galaxies of {Path(str(gal.get('real_catalog', '?'))).name}"
+        if gal.get("twin", "none") != "none":
+            g = f"Sersic twins of {g}"
+    elif profile == "sersic":
+        g = f"Sersic galaxies (n {_value(gal.get('sersicn', '?'))}, rad {_value(gal.get('rad', '?'))} px)"
+    else:
+        g = f"{profile} galaxies"
+    p = f"{psf.get('type', '?')} PSF" + "".join(
+        f" {k} {_value(psf[k])}" for k in ("sigma", "fwhm", "beta") if k in psf)
+    n = f"{noise.get('type', '?')} noise" + (f" sigma {_value(noise['sigma'])}" if "sigma" in noise else "")
+    return f"{g}; {p}; {n}"
+
+
+def model_report(model: Any) -> list[str]:
+    """Lines telling what ``model`` (a ShearModel) was trained on and its recorded biases."""
+    lines = []
+    prov = model.provenance
+    chain = [prov] + ([prov["parent"]] if isinstance(prov.get("parent"), Mapping) else [])
+    for p in chain:
+        pop = p.get("population")
+        what = "point estimates" if p.get("command") == "train-point" else "weights"
+        if isinstance(pop, Mapping):
+            lines.append(f"model {what} trained on: {pop.get('summary') or population_summary(pop)} ({pop.get('config')})")
+        elif p.get("command"):
+            lines.append(f"model {what}: training population not recorded in the model file")
+    rec = model.validation.get(REAL_BIAS_ATTR)
+    if isinstance(rec, Mapping):
+        lines.append(
+            f"recorded model bias on real galaxies ({rec.get('setup')}, {rec.get('scheme')}): "
+            f"m_real - m_twin = {rec.get('dm_g1'):+.2e} ± {rec.get('dm_g1_err'):.1e} (g1), "
+            f"{rec.get('dm_g2'):+.2e} ± {rec.get('dm_g2_err'):.1e} (g2)")
+    else:
+        lines.append("no model bias on real galaxies recorded for this model (docs/realgal.md)")
+    return lines
+
+
+def record_real_bias(model_path: str | os.PathLike, record: Mapping[str, Any]) -> None:
+    """Store ``record`` (keys :data:`REAL_BIAS_KEYS`) as the model's real-galaxy bias,
+    in place but atomically (a modified copy replaces the file)."""
+    import h5py
+
+    missing = [k for k in REAL_BIAS_KEYS if k not in record]
+    if missing:
+        raise InputError(f"real-galaxy bias record: missing {', '.join(missing)}")
+    src = Path(model_path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{src.name}.", suffix=".tmp", dir=src.parent)
+    os.close(fd)
+    try:
+        shutil.copyfile(src, tmp)
+        with h5py.File(tmp, "a") as f:
+            g = f.require_group("validation")
+            g.attrs[REAL_BIAS_ATTR] = json.dumps(dict(record), sort_keys=True)
+        os.replace(tmp, src)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
