@@ -69,3 +69,33 @@ def test_failed_rows_are_nan():
     assert set(out) == set(MORPHOLOGY_COLUMNS)
     assert np.isnan(out["morph_conc"][1])
     assert np.isnan(out["morph_conc"][0])  # no light: 0/0
+
+
+def test_simulate_measure_and_training_use_them(tmp_path, runner, cli):
+    """simulate --measure --morphology equals measure --morphology on the stamps, and
+    train-point takes the new columns as features."""
+    from sim_configs import write
+
+    from megalut_cli.catalog import read_catalog
+    from megalut_cli.nn.model import ShearModel
+
+    cfg = write(tmp_path, replace={"n_cases = 3": "n_cases = 6"})
+    args = ["simulate", str(cfg), "--seed", "2"]
+    res = runner.invoke(cli, [*args, "-o", str(tmp_path / "m.fits"), "--measure", "--morphology"])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(cli, [*args, "-o", str(tmp_path / "c.fits"), "--stamps", str(tmp_path / "s.fits")])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(cli, ["measure", str(tmp_path / "s.fits"), str(tmp_path / "c.fits"), "-o",
+                              str(tmp_path / "f.fits"), "--morphology"])
+    assert res.exit_code == 0, res.output
+    a, b = read_catalog(tmp_path / "m.fits"), read_catalog(tmp_path / "f.fits")
+    for c in MORPHOLOGY_COLUMNS:
+        assert np.isfinite(a[c]).mean() > 0.9
+        np.testing.assert_allclose(a[c], b[c], rtol=1e-10, equal_nan=True)
+    res = runner.invoke(cli, ["simulate", str(cfg), "-o", str(tmp_path / "x.fits"), "--morphology"])
+    assert res.exit_code == 2 and "--morphology needs --measure" in res.output
+    feats = "adamom_g1,adamom_g2,adamom_sigma,adamom_flux,adamom_rho4,morph_conc,morph_size_ratio"
+    res = runner.invoke(cli, ["train-point", str(tmp_path / "m.fits"), "-o", str(tmp_path / "model.h5"),
+                              "--features", feats, "--members", "1", "--iterations", "3", "--hidden", "3"])
+    assert res.exit_code == 0, res.output
+    assert ShearModel.load(tmp_path / "model.h5").point["tru_g1"].features == feats.split(",")

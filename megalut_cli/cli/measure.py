@@ -51,6 +51,12 @@ from megalut_cli.cli.options import execution_options, output_option, overwrite_
     "[default: for files named starfield_image-*; a square one without --stamp-size or "
     "STAMPSZ card is a 3x3 grid].",
 )
+@click.option(
+    "--morphology",
+    is_flag=True,
+    help="Also the morphology features morph_conc, morph_conc_inner, morph_size_ratio (light inside "
+    "Gaussian windows of 0.5, 1, 2 times the adaptive ellipse; docs/realgal.md).",
+)
 @execution_options
 @overwrite_option
 def command(
@@ -62,6 +68,7 @@ def command(
     gain: float | None,
     psf: str | None,
     stars: bool | None,
+    morphology: bool,
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
@@ -78,7 +85,7 @@ def command(
     (1.4826 MAD of the stamp-edge pixels), snr (Eq. 8 with --gain, else Eq. 10) and a
     flags bitmask; flagged stamps (HSM failure, centroid more than min(10, S/4) pixels
     from the stamp centre, non-positive flux, stamp off the image, NaN pixels) have NaN
-    features.
+    features. With --morphology, morph_conc, morph_conc_inner and morph_size_ratio are added.
 
     \b
     Example:
@@ -104,4 +111,5 @@ def command(
         overwrite=overwrite,
         progress=progress,
         stars=stars,
+        morphology=morphology,
     )

@@ -32,6 +32,12 @@ from megalut_cli.cli.options import (
     help="Measure the features right after drawing (no image kept): the way to make large training sets.",
 )
 @click.option(
+    "--morphology",
+    is_flag=True,
+    help="With --measure: also the morphology features morph_conc, morph_conc_inner, morph_size_ratio "
+    "(light inside Gaussian windows of 0.5, 1, 2 times the adaptive ellipse; docs/realgal.md).",
+)
+@click.option(
     "--great3",
     "great3_dir",
     type=click.Path(file_okay=False),
@@ -53,6 +59,7 @@ def command(
     output: str,
     stamps: str | None,
     measure: bool,
+    morphology: bool,
     great3_dir: str | None,
     n_cases: int | None,
     n_realizations: int | None,
@@ -88,6 +95,8 @@ def command(
     from megalut_cli.sim.simulate import n_work_units, simulate
 
     cfg = load_config(config, overrides, n_cases=n_cases, n_realizations=n_realizations)
+    if morphology and (not measure or great3_dir is not None):
+        raise click.UsageError("--morphology needs --measure (and not --great3)")
     if great3_dir is not None:
         if stamps is not None:
             raise click.UsageError("--great3 writes the subfield images itself: do not give --stamps")
@@ -106,6 +115,7 @@ def command(
             output,
             stamps=stamps,
             measure=measure,
+            morphology=morphology,
             seed=seed,
             nproc=nproc,
             scheduler=scheduler,

@@ -55,6 +55,7 @@ from megalut_cli.measure.features import (
     default_max_shift,
     measure_stamps,
 )
+from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS, morphology_of_measured
 from megalut_cli.measure.stamps import (
     ImageInfo,
     catalog_origins,
@@ -103,7 +104,10 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
     y1 = int(origins[:, 1].max()) - 1 + size
     rows = read_rows(info, y0, y1)
     stamps = cut_stamps(rows, y0, origins, size)
-    return measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"])
+    feats = measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"])
+    if unit.get("morphology"):
+        feats.update(morphology_of_measured(stamps, origins, feats))
+    return feats
 
 
 def _units(
@@ -136,10 +140,13 @@ def _run_units(
     scheduler: str | None,
     progress: ProgressFactory | None,
     label: str,
+    morphology: bool = False,
 ) -> dict[str, np.ndarray]:
-    """Measure stamps at ``origins``; stamps off the image get STAMP_OFF_IMAGE and NaN."""
+    """Measure stamps at ``origins``; stamps off the image get STAMP_OFF_IMAGE and NaN.
+    With ``morphology``, the :data:`MORPHOLOGY_COLUMNS` too."""
     n = len(origins)
-    out = {c: np.full(n, np.nan) for c in FEATURE_COLUMNS if c != "flags"}
+    names = FEATURE_COLUMNS + (MORPHOLOGY_COLUMNS if morphology else ())
+    out = {c: np.full(n, np.nan) for c in names if c != "flags"}
     out["flags"] = np.zeros(n, dtype=np.int32)
     ok = inside(origins, size, info.shape)
     out["flags"][~ok] |= fl.STAMP_OFF_IMAGE
@@ -150,6 +157,8 @@ def _run_units(
         return out
     workers = 2 if scheduler else resolve_nproc(nproc)
     units, pieces = _units(info, origins[idx], size, gain, workers)
+    for unit in units:
+        unit["morphology"] = morphology
     sizes = [len(p) for p in pieces]
     bar = progress(label, len(idx)) if progress else contextlib.nullcontext(None)
     t0 = time.perf_counter()
@@ -302,6 +311,7 @@ def measure_file(
     overwrite: bool = False,
     progress: ProgressFactory | None = None,
     stars: bool | None = None,
+    morphology: bool = False,
 ) -> Table:
     """Measure every stamp of ``stamps_path`` and write the features catalog ``output``.
 
@@ -323,6 +333,7 @@ def measure_file(
             ``megalut.stars``); None: when the file name starts with ``starfield_image``.
             Without ``stamp_size`` or a ``STAMPSZ`` card, a square star field is taken
             as GREAT3's 3x3 grid.
+        morphology: also measure :data:`MORPHOLOGY_COLUMNS` (``measure/morphology.py``).
 
     Returns:
         The table written.
@@ -381,7 +392,9 @@ def measure_file(
         psf_path = str(psf_path)
         image_info(psf_path)  # fail early on a bad PSF file, before the long measurement
 
-    feats = _run_units(info, origins, size, gain, nproc, scheduler, progress, "measuring stamps")
+    if stars and morphology:
+        raise ConfigError("--morphology does not apply to a star field")
+    feats = _run_units(info, origins, size, gain, nproc, scheduler, progress, "measuring stamps", morphology)
     psf = None
     if psf_path is not None:
         psf = _psf_features(psf_path, info, origins, size, nproc, scheduler, progress)
@@ -390,12 +403,13 @@ def measure_file(
     if stars:
         return _write_stars(stamps_path, table, feats, output, overwrite, size, origin if catalog_path else 1, cards, history)
 
-    new_cols = list(FEATURE_COLUMNS) + (list(PSF_COLUMNS) if psf is not None else [])
+    feature_cols = list(FEATURE_COLUMNS) + (list(MORPHOLOGY_COLUMNS) if morphology else [])
+    new_cols = feature_cols + (list(PSF_COLUMNS) if psf is not None else [])
     replaced = [c for c in new_cols if c in table.colnames]
     if replaced:
         log.warning("replacing existing column(s) %s", ", ".join(replaced))
         table.remove_columns(replaced)
-    for c in FEATURE_COLUMNS:
+    for c in feature_cols:
         table[c] = feats[c]
     if psf is not None:
         for c in PSF_COLUMNS:

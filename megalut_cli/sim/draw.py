@@ -49,6 +49,7 @@ class WorkUnit:
     n_x: int
     keep_stamps: bool = False
     measure: bool = False
+    morphology: bool = False  # with measure: also the morph_* features (measure/morphology.py)
 
 
 def psf_includes_pixel(spec: dict[str, Any]) -> bool:
@@ -98,16 +99,22 @@ def stamp_centres(index: np.ndarray, n_x: int, stamp_size: int) -> tuple[np.ndar
 class _Measurer:
     """Accumulates stamps and measures them in batches."""
 
-    def __init__(self, gain: float | None):
+    def __init__(self, gain: float | None, morphology: bool = False):
         from megalut_cli.measure.features import measure_stamps
 
         self._measure = measure_stamps
         self.gain = gain
+        self.morphology = morphology
         self.parts: list[dict[str, np.ndarray]] = []
 
     def __call__(self, stamps: np.ndarray, origins: np.ndarray) -> None:
         if len(stamps):
-            self.parts.append(self._measure(stamps, origins=origins, gain=self.gain))
+            feats = self._measure(stamps, origins=origins, gain=self.gain)
+            if self.morphology:
+                from megalut_cli.measure.morphology import morphology_of_measured
+
+                feats.update(morphology_of_measured(stamps, origins, feats))
+            self.parts.append(feats)
 
     def columns(self) -> dict[str, np.ndarray]:
         if not self.parts:
@@ -189,7 +196,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     render = keep or unit.measure  # else: truth only, nothing to draw
     nbuf = n_total if keep else (min(MEASURE_BATCH, n_total) if unit.measure else 0)
     stamps = np.empty((max(nbuf, 1), S, S), dtype=np.float32)
-    measurer = _Measurer(cfg.gain) if unit.measure else None
+    measurer = _Measurer(cfg.gain, unit.morphology) if unit.measure else None
     image = galsim.ImageF(S, S, scale=1.0)
     gsp = make_gsparams(cfg.gsparams)
     conv_gsp = gsp if cfg.gsparams else None  # else GalSim combines the components' own

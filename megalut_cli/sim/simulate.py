@@ -71,13 +71,14 @@ def n_work_units(config: SimConfig, nproc: int = 1, scheduler: str | None = None
 
 
 def make_units(
-    config: SimConfig, seed: int, nproc: int, scheduler: str | None, keep_stamps: bool, measure: bool
+    config: SimConfig, seed: int, nproc: int, scheduler: str | None, keep_stamps: bool, measure: bool,
+    morphology: bool = False,
 ) -> list[WorkUnit]:
     """Split the cases into work units of about ``UNIT_STAMPS`` stamps (whole cases)."""
     s = config.structure
     n_units = n_work_units(config, nproc, scheduler)
     return [
-        WorkUnit(config, seed, a, b, s.grid_nx, keep_stamps, measure)
+        WorkUnit(config, seed, a, b, s.grid_nx, keep_stamps, measure, morphology)
         for a, b in chunk_ranges(s.n_cases, n_units)
     ]
 
@@ -147,8 +148,10 @@ def simulate(
     scheduler: str | None = None,
     overwrite: bool = False,
     progress: Callable[[int], None] | None = None,
+    morphology: bool = False,
 ) -> SimulationResult:
     """Simulate the configured stamps; write the catalog (and the stamp grid image).
+    With ``measure`` and ``morphology``, the ``morph_*`` features are measured too.
 
     ``progress(n)`` is called as work units finish (:func:`n_work_units` in all).
     """
@@ -168,7 +171,7 @@ def simulate(
     if st is None and not measure:
         log.info("neither --stamps nor --measure: writing the truth catalog only (nothing drawn)")
     workers = expected_workers(nproc, scheduler)
-    units = make_units(config, seed, nproc, scheduler, st is not None, measure)
+    units = make_units(config, seed, nproc, scheduler, st is not None, measure, morphology and measure)
     log.info(
         "simulating %d cases x %d realizations = %d stamps of %d px in %d work units",
         s.n_cases, s.n_realizations, s.n_stamps, s.stamp_size, len(units),
