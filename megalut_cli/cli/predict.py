@@ -58,8 +58,6 @@ def command(
     from megalut_cli.shear.predict import parse_column_map, predict_catalog
 
     column_map = parse_column_map(col)
-    for line in model_report(ShearModel.load(model_path)):
-        logging.getLogger("megalut").info("%s", line)
     n_rows = catalog_info(features)[0]
     with progress("predict", n_rows) as update:
         report = predict_catalog(
@@ -70,3 +68,5 @@ def command(
         "wrote %s: %d rows, %s (%d with failed features)",
         report.output, report.n_rows, ", ".join(report.columns), report.n_failed,
     )
+    for line in model_report(ShearModel.load(model_path)):  # what the model was trained on
+        logging.getLogger("megalut").info("%s", line)
