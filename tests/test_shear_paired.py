@@ -106,3 +106,34 @@ def test_mismatched_catalogs_one_line():
         check_pairing(a, b, ("real.fits", "twin.fits"), "gal")
     with pytest.raises(InputError, match="24 rows against 6"):
         check_pairing(a, {k: v[:6] for k, v in b.items()}, ("real.fits", "twin.fits"), "gal")
+
+
+def test_cli_twin(tmp_path, runner, cli):
+    """evaluate --twin prints the paired table and JSON; mismatched catalogs and options
+    that do not apply give one error line."""
+    import json
+
+    from megalut_cli.catalog import write_catalog
+
+    a, b = synthetic_pair(2, n_gal=20, n_shear=8)
+    for t in (a, b):
+        t["tru_real_index"] = t.pop("gal")
+    write_catalog(tmp_path / "real.fits", a, fmt="test")
+    write_catalog(tmp_path / "twin.fits", b, fmt="test")
+    args = ["evaluate", str(tmp_path / "real.fits"), "--twin", str(tmp_path / "twin.fits"), "--bootstrap", "100"]
+    res = runner.invoke(cli, [*args, "--json", str(tmp_path / "p.json"), "--by", "abs(tru_g1)", "--bins", "2"])
+    assert res.exit_code == 0, res.output
+    assert "m_real - m_twin" in res.output and "abs(tru_g1) in [" in res.output
+    out = json.loads((tmp_path / "p.json").read_text())
+    assert out["overall"]["weighted"]["g1"]["n_galaxies"] == 20
+    assert len(out["by"]["abs(tru_g1)"]["bins"]) == 2
+    bad = dict(b, rea=b["rea"][::-1].copy())
+    write_catalog(tmp_path / "bad.fits", bad, fmt="test")
+    res = runner.invoke(cli, ["evaluate", str(tmp_path / "real.fits"), "--twin", str(tmp_path / "bad.fits")])
+    assert res.exit_code == 1
+    lines = (res.stderr if hasattr(res, "stderr") and res.stderr else res.output).strip().splitlines()
+    assert len(lines) == 1 and "not paired: column rea differs at row 0" in lines[0]
+    res = runner.invoke(cli, [*args, "--plot", str(tmp_path / "x.png")])
+    assert res.exit_code == 2 and "--plot does not apply with --twin" in res.output
+    res = runner.invoke(cli, [*args, "--by", "mean(snr)"])
+    assert res.exit_code == 2
