@@ -81,3 +81,18 @@ def test_old_model_without_population(tmp_path):
     lines = model_report(ShearModel.load(tmp_path / "old.h5"))
     assert lines[-1].startswith("no model bias on real galaxies recorded")
     assert all("trained on" not in line for line in lines)
+
+
+def test_population_recorded_afterwards_from_a_config(tmp_path):
+    from pathlib import Path
+
+    from test_shear_predict import make_model
+
+    from megalut_cli.nn.population import population_from_config, record_population
+
+    tp = Path(__file__).resolve().parents[1] / "examples" / "fiducial" / "tp.toml"
+    make_model(tmp_path / "old.h5")
+    record_population(tmp_path / "old.h5", population_from_config(tp))
+    lines = model_report(ShearModel.load(tmp_path / "old.h5"))
+    assert any(line.endswith("trained on: Sersic galaxies (n grid, rad U(2.0, 8.0) px); gaussian PSF sigma 2.0; "
+                             "gaussian noise sigma 1.0 (tp.toml)") for line in lines), lines

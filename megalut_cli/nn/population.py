@@ -102,22 +102,44 @@ def model_report(model: Any) -> list[str]:
     return lines
 
 
+def population_from_config(config_path: str | os.PathLike) -> dict[str, Any]:
+    """The population of a simulation config file (for models whose training catalog is gone)."""
+    from megalut_cli.sim.config import read_toml
+
+    raw, _ = read_toml(config_path)
+    pop = {k: raw.get(k, {}) for k in ("galaxy", "psf", "noise")}
+    pop["config"] = Path(str(config_path)).name
+    pop["description"] = raw.get("description", "")
+    pop["summary"] = population_summary(pop)
+    return pop
+
+
 def record_real_bias(model_path: str | os.PathLike, record: Mapping[str, Any]) -> None:
     """Store ``record`` (keys :data:`REAL_BIAS_KEYS`) as the model's real-galaxy bias,
     in place but atomically (a modified copy replaces the file)."""
-    import h5py
-
     missing = [k for k in REAL_BIAS_KEYS if k not in record]
     if missing:
         raise InputError(f"real-galaxy bias record: missing {', '.join(missing)}")
+    _set_json_attr(model_path, "validation", REAL_BIAS_ATTR, dict(record))
+
+
+def record_population(model_path: str | os.PathLike, population: Mapping[str, Any]) -> None:
+    """Store ``population`` as the training population of a model that lacks one
+    (``/provenance`` ``population``), in place but atomically."""
+    _set_json_attr(model_path, "provenance", "population", dict(population))
+
+
+def _set_json_attr(model_path: str | os.PathLike, group: str, key: str, value: Any) -> None:
+    """Set the JSON attribute ``key`` of ``group`` in a copy of the model file, then rename it."""
+    import h5py
+
     src = Path(model_path)
     fd, tmp = tempfile.mkstemp(prefix=f".{src.name}.", suffix=".tmp", dir=src.parent)
     os.close(fd)
     try:
         shutil.copyfile(src, tmp)
         with h5py.File(tmp, "a") as f:
-            g = f.require_group("validation")
-            g.attrs[REAL_BIAS_ATTR] = json.dumps(dict(record), sort_keys=True)
+            f.require_group(group).attrs[key] = json.dumps(value, sort_keys=True)
         os.replace(tmp, src)
     finally:
         if os.path.exists(tmp):
