@@ -96,3 +96,19 @@ def test_population_recorded_afterwards_from_a_config(tmp_path):
     lines = model_report(ShearModel.load(tmp_path / "old.h5"))
     assert any(line.endswith("trained on: Sersic galaxies (n grid, rad U(2.0, 8.0) px); gaussian PSF sigma 2.0; "
                              "gaussian noise sigma 1.0 (tp.toml)") for line in lines), lines
+
+
+def test_population_of_a_weight_trained_model_and_its_parent(tmp_path):
+    import shutil
+    from pathlib import Path
+
+    from megalut_cli.nn.population import population_from_config, record_population
+
+    root = Path(__file__).resolve().parents[1]
+    shutil.copyfile(root / "models" / "fiducial.h5", tmp_path / "m.h5")
+    record_population(tmp_path / "m.h5", population_from_config(root / "models" / "fiducial-pipeline.toml"))
+    model = ShearModel.load(tmp_path / "m.h5")
+    assert model.provenance["parent"]["population"] == model.provenance["population"]
+    lines = model_report(model)
+    assert lines[0].startswith("model weights trained on: Sersic galaxies (n grid, rad U(2.0, 8.0) px)")
+    assert lines[1].startswith("model point estimates trained on: Sersic galaxies")

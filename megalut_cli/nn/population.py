@@ -103,10 +103,13 @@ def model_report(model: Any) -> list[str]:
 
 
 def population_from_config(config_path: str | os.PathLike) -> dict[str, Any]:
-    """The population of a simulation config file (for models whose training catalog is gone)."""
+    """The population of a simulation config file, or of the ``[simulation]`` table of a
+    pipeline file (for models whose training catalog is gone)."""
     from megalut_cli.sim.config import read_toml
 
     raw, _ = read_toml(config_path)
+    if "galaxy" not in raw and isinstance(raw.get("simulation"), Mapping):
+        raw = {**raw["simulation"], "description": raw.get("description", "")}
     pop = {k: raw.get(k, {}) for k in ("galaxy", "psf", "noise")}
     pop["config"] = Path(str(config_path)).name
     pop["description"] = raw.get("description", "")
@@ -124,13 +127,41 @@ def record_real_bias(model_path: str | os.PathLike, record: Mapping[str, Any]) -
 
 
 def record_population(model_path: str | os.PathLike, population: Mapping[str, Any]) -> None:
-    """Store ``population`` as the training population of a model that lacks one
-    (``/provenance`` ``population``), in place but atomically."""
-    _set_json_attr(model_path, "provenance", "population", dict(population))
+    """Store ``population`` as the training population of a model that lacks one, for its
+    weights and its point estimates alike (``/provenance`` ``population`` and the
+    ``parent`` provenance's), in place but atomically: for models whose sets all come
+    from one simulation, such as those of ``megalut run``."""
+
+    def update(prov: dict[str, Any]) -> None:
+        prov["population"] = dict(population)
+        parent = prov.get("parent")
+        if isinstance(parent, str):
+            parent = json.loads(parent)
+        if isinstance(parent, dict):
+            update(parent)
+            prov["parent"] = json.dumps(parent, sort_keys=True)
+
+    def edit(f: Any) -> None:
+        prov = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.require_group("provenance").attrs.items()}
+        update(prov)
+        f["provenance"].attrs["population"] = json.dumps(dict(population), sort_keys=True)
+        if "parent" in prov:
+            f["provenance"].attrs["parent"] = prov["parent"]
+
+    _edit_model(model_path, edit)
 
 
 def _set_json_attr(model_path: str | os.PathLike, group: str, key: str, value: Any) -> None:
     """Set the JSON attribute ``key`` of ``group`` in a copy of the model file, then rename it."""
+
+    def edit(f: Any) -> None:
+        f.require_group(group).attrs[key] = json.dumps(value, sort_keys=True)
+
+    _edit_model(model_path, edit)
+
+
+def _edit_model(model_path: str | os.PathLike, edit: Any) -> None:
+    """Apply ``edit(h5py.File)`` to a copy of the model file, then rename the copy over it."""
     import h5py
 
     src = Path(model_path)
@@ -139,7 +170,7 @@ def _set_json_attr(model_path: str | os.PathLike, group: str, key: str, value: A
     try:
         shutil.copyfile(src, tmp)
         with h5py.File(tmp, "a") as f:
-            f.require_group(group).attrs[key] = json.dumps(value, sort_keys=True)
+            edit(f)
         os.replace(tmp, src)
     finally:
         if os.path.exists(tmp):
