@@ -40,9 +40,10 @@ def test_real_vs_twin_paired_bias(tmp_path):
             r = res["overall"][scheme][comp]
             assert r["n_galaxies"] == 30 and r["n_cases"] == 8
             assert all(np.isfinite(r[k]) for k in ("m_a", "m_b", "dm", "dm_err", "m_b_err"))
-            # Common random numbers: the shared shears, shapes, rotations and noise cancel in
-            # the difference, whose error is far below that of either bias.
-            assert r["dm_err"] < 0.5 * r["m_b_err"]
+            # Common random numbers: the shared shears, rotations and most of the noise cancel
+            # in the difference, whose error is below that of the twins' own bias (0.6-0.7
+            # times it in the recorded 40-shear run).
+            assert r["dm_err"] < 0.9 * r["m_b_err"]
             # The model bias on real galaxies is percent-level, not tens of per cent.
             assert abs(r["dm"]) < 0.05 + 3 * r["dm_err"]
     bins = res["by"]["tru_twin_rad/tru_psf_sigma"]["bins"]
