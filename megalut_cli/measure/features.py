@@ -206,7 +206,10 @@ def measure_stamps(
     moments = np.full((n, 7), np.nan)
     if finite.any():
         measure = fast_moments if engine == "fast" else galsim_moments
-        moments[finite] = measure(stamps[finite], guess)
+        if finite.all():  # no copy of the stack
+            moments[:] = measure(stamps, guess)
+        else:
+            moments[finite] = measure(stamps[finite], guess)
     measured = np.isfinite(moments).all(axis=1)
     flags[finite & ~measured] |= fl.HSM_FAILED  # status != 0, or NaN results
 
