@@ -10,11 +10,12 @@ one run and repeated, timing CPU time of this process (one core; the machine may
   strict=False)`` loop, HSM only;
 * ``measure_file``: the whole ``megalut measure`` on the FITS grid (fast engine, -j 1).
 
-Then where the fast engine's time goes (HSM kernel, sky MAD, the rest), and the floor:
-pixel visits of the HSM window per iteration times iterations, GalSim's exp per visit
-against the port's cost per visit. Run::
+Then where the fast engine's time goes (HSM kernel, sky MAD, the rest), the floor
+(pixel visits of the HSM window per iteration times iterations, GalSim's exp per visit
+against the port's cost per visit), and numba's first-call cost in fresh processes with a
+cold and a warm cache (``NUMBA_CACHE_DIR`` in a temporary folder). Run::
 
-    python benchmarks/bench_measure.py [--n 4000] [--repeat 5] [--stamps GRID.fits]
+    PYTHONPATH=. python benchmarks/bench_measure.py [--n 4000] [--repeat 5] [--stamps GRID.fits]
 """
 
 from __future__ import annotations
@@ -93,13 +94,43 @@ def window_pixels(res, nsig2: float, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
+FIRST_CALL = """
+import resource, time
+def cpu():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+c0 = cpu()
+import numpy as np
+from megalut_cli.measure.adamom import adaptive_moments
+c1 = cpu()
+adaptive_moments(np.random.default_rng(0).normal(size=(2, 64, 64)))
+print(c1 - c0, cpu() - c1)
+"""
+
+
+def first_call_costs(repeat: int) -> None:
+    """CPU seconds to import, then to run the first call, in fresh processes."""
+    print("\nfirst call in a fresh process, CPU seconds (import numpy+numba+adamom / first call):")
+    for _ in range(repeat):
+        with tempfile.TemporaryDirectory() as cache:
+            env = dict(os.environ, NUMBA_CACHE_DIR=cache, PYTHONPATH=str(ROOT))
+            for label in ("cold cache", "warm cache"):
+                out = subprocess.run([sys.executable, "-c", FIRST_CALL], env=env, check=True,
+                                     capture_output=True, text=True).stdout.split()
+                print(f"  {label}: {float(out[0]):.2f} / {float(out[1]):.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=4000, help="stamps to simulate")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--stamps", type=Path, help="an existing grid (STAMPSZ card) instead")
+    ap.add_argument("--first-call-only", action="store_true", help="only the compile/cache costs")
     args = ap.parse_args()
+    if args.first_call_only:
+        first_call_costs(args.repeat)
+        return
 
     with tempfile.TemporaryDirectory() as tmp:
         grid = args.stamps
@@ -163,6 +194,7 @@ def main() -> None:
         all_visits = visits * res.n_iter.sum() / res.n_iter[ok].sum()
         print(f"  per pixel visit (approx.): kernel {kernel / all_visits * 1e9:.2f} ns, "
               f"exact_exp {exact / all_visits * 1e9:.2f} ns, plain loop {loop_t / all_visits * 1e9:.2f} ns")
+    first_call_costs(2)
 
 
 if __name__ == "__main__":
