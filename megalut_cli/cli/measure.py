@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import click
 
-from megalut_cli.cli.options import engine_option, execution_options, output_option, overwrite_option
+from megalut_cli.cli.options import (
+    engine_option,
+    execution_options,
+    output_option,
+    overwrite_option,
+)
 
 
 @click.command(

@@ -32,8 +32,8 @@ from megalut_cli.catalog import write_catalog, write_image
 from megalut_cli.engine import DEFAULT_ENGINE, check_engine
 from megalut_cli.errors import MegalutError
 from megalut_cli.parallel import chunk_ranges, executor, map_units, resolve_nproc
-from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim import render
+from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, stamp_centres
 
 log = logging.getLogger("megalut")
