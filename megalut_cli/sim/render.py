@@ -127,8 +127,17 @@ def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialTable:
 
 @njit(cache=True)
 def _radial_value(q2: float, table: int, params: np.ndarray, coef: np.ndarray, offsets: np.ndarray) -> float:
-    """F(q) of table ``table`` (-1: Gaussian of sigma 1) at ``q2 = q^2``."""
-    if table < 0:
+    """F(q) of table ``table`` at ``q2 = q^2``; Gaussians of sigma 1: -2 round (GalSim's
+    exact separable fill), -1 transformed (zero beyond ``params[-1, 1]``, quadratic below
+    ``params[-1, 0]``, as SBGaussian's fill with a Jacobian)."""
+    if table == -2:
+        return math.exp(-0.5 * q2)
+    if table == -1:
+        g = params[params.shape[0] - 1]
+        if q2 > g[1]:
+            return 0.0
+        if q2 < g[0]:
+            return 1.0 - 0.5 * q2 * (1.0 - 0.25 * q2)
         return math.exp(-0.5 * q2)
     p = params[table]
     if q2 < p[2]:
@@ -277,7 +286,8 @@ class StampRenderer:
             maxk = np.array([t.maxk for t in tables])[table] * inv_r0
             size = r0
         else:
-            table = np.full(m, -1)
+            # Round Gaussians are filled separably (exact exp); transformed ones with cutoffs.
+            table = np.where((e1 == 0) & (e2 == 0) & (g1 == 0) & (g2 == 0), -2, -1)
             tables = []
             sigma = rad / _GAUSSIAN_HLR_FACTOR
             r_fold = max(math.sqrt(-2.0 * math.log(gsp.folding_threshold)), gsp.stepk_minimum_hlr * _GAUSSIAN_HLR_FACTOR)
@@ -337,7 +347,7 @@ class StampRenderer:
                 f"({size * size * 24 / 1024**3:.2f} GB) > gsparams.maximum_fft_size = "
                 f"{info.gsparams.maximum_fft_size}; raise gsparams.maximum_fft_size or gsparams.folding_threshold"
             )
-        params, coef, offsets = _stack_tables(tables)
+        params, coef, offsets = _stack_tables(tables, info.gsparams)
         S = self.stamp_size
         stamps = np.empty((m, S, S), dtype=np.float32)
         grids = np.stack([n_fft, n_k], axis=1)
@@ -406,11 +416,13 @@ def _shear_matrix(g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
     return mat
 
 
-def _stack_tables(tables: list[RadialTable]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Radial tables as flat arrays for the numba kernel: (params, coefficients, offsets)."""
-    if not tables:
-        return np.zeros((1, 8)), np.zeros((1, 4)), np.zeros(2, dtype=np.int64)
-    params = np.stack([t.params for t in tables])
-    coef = np.concatenate([t.coef for t in tables])
+def _stack_tables(tables: list[RadialTable], gsparams: galsim.GSParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Radial tables as flat arrays for the numba kernel: (params, coefficients, offsets);
+    the last row of params holds the Gaussian's q^2 limits (SBGaussian.cpp)."""
+    gauss = np.zeros(8)
+    gauss[0] = (gsparams.kvalue_accuracy * 48.0) ** (1.0 / 3.0)
+    gauss[1] = -2.0 * math.log(gsparams.kvalue_accuracy)
+    params = np.stack([t.params for t in tables] + [gauss])
+    coef = np.concatenate([t.coef for t in tables]) if tables else np.zeros((1, 4))
     offsets = np.concatenate([[0], np.cumsum([len(t.coef) for t in tables])]).astype(np.int64)
     return params, coef, offsets
