@@ -58,6 +58,12 @@ class RadialTable:
     params: np.ndarray  # u0, h, q2_min, kd2, kd4, q2_asym, a, b
     coef: np.ndarray  # (intervals, 4): cubic coefficients in t = (u - u_i) / h, constant first
 
+    def kvalue(self, q: np.ndarray) -> np.ndarray:
+        """F(q) (flux 1, scale radius 1) as the renderer evaluates it."""
+        params, coef, offsets = _stack_tables([self], galsim.GSParams())
+        q = np.asarray(q, dtype=float)
+        return np.array([_radial_value(float(x * x), 0, params, coef, offsets) for x in q.ravel()]).reshape(q.shape)
+
 
 _SERSIC_TABLES: OrderedDict[tuple[float, galsim.GSParams], RadialTable] = OrderedDict()
 
