@@ -105,17 +105,20 @@ def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialTable:
     kmin = (gsp.kvalue_accuracy / kd6) ** (1.0 / 6.0)
     h = gsp.table_spacing * math.sqrt(math.sqrt(gsp.kvalue_accuracy / 10.0))
     u0 = math.log(kmin) - 0.001
-    n_int = int(math.ceil((math.log(_SERSIC_TABLE_END) - u0) / h)) + 1
-    knots = u0 + h * np.arange(n_int + 1)
-    # Four samples per interval fix its cubic (interval 0 starts at kmin: below, a quartic).
-    ts = np.array([0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0])
-    lo = np.maximum(knots[:-1], math.log(kmin) + 1e-9)
+    knots = [u0]  # accumulated as GalSim does (logk += dlogk)
+    while knots[-1] < math.log(_SERSIC_TABLE_END) + h:
+        knots.append(knots[-1] + h)
+    knots = np.array(knots)
+    n_int = len(knots) - 1
+    # Four interior samples per interval fix its cubic (interval 0 starts at kmin: below it,
+    # the quartic; the last knot of GalSim's table already belongs to the asymptote).
+    ts = np.array([0.05, 0.35, 0.65, 0.95])
+    lo = np.maximum(knots[:-1], math.log(kmin))
     us = lo[:, None] + ts[None, :] * (knots[1:] - lo)[:, None]
     vals = f_q2(np.exp(us.ravel())).reshape(us.shape)
     t_samples = (us - knots[:-1, None]) / h
-    coef = np.empty((n_int, 4))
-    for i in range(n_int):
-        coef[i] = np.linalg.solve(np.vander(t_samples[i], 4, increasing=True), vals[i])
+    vander = t_samples[:, :, None] ** np.arange(4)
+    coef = np.linalg.solve(vander, vals[:, :, None])[:, :, 0]
     # High-k asymptote F q^2 = a + b / q, fitted beyond GalSim's table.
     qa = np.array([1.2 * _SERSIC_TABLE_END, 1.5 * _SERSIC_TABLE_END])
     fa = f_q2(qa)
