@@ -10,7 +10,7 @@ from megalut_cli.catalog import write_image
 from megalut_cli.errors import MegalutError
 from megalut_cli.sim.draw import get_psf
 from megalut_cli.sim.galaxies import base_profile, make_gsparams, shaped
-from megalut_cli.sim.psf import make_psf, psf_includes_pixel
+from megalut_cli.sim.psf import psf_includes_pixel
 from megalut_cli.sim.render import StampRenderer, can_render, fft_grid
 
 TOLERANCE = 1e-5  # of the peak pixel
