@@ -1,0 +1,437 @@
+"""Batched k-space rendering of parametric galaxies, pixel for pixel as GalSim's drawImage.
+
+:class:`StampRenderer` draws many Sersic or Gaussian galaxies (sheared by their intrinsic
+ellipticity, then by the lensing shear, convolved with one PSF and the pixel, at sub-pixel
+offsets) the way ``galsim.Convolve(gal, psf).drawImage(image, offset=..., method=...)``
+does: same FFT grid (N, Nk) per stamp, same k-values, same wrapping, same centring. It
+only skips GalSim's per-stamp Python objects and per-stamp FFTs: the galaxy k-values come
+from a table of GalSim's own radial k-profile, the PSF x pixel k-image is cached per grid,
+and one inverse FFT runs per batch of stamps sharing a grid. See ``docs/render.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from collections.abc import Hashable
+from dataclasses import dataclass
+
+import galsim
+import numpy as np
+import scipy.fft
+from numba import njit
+
+from megalut_cli.errors import MegalutError
+
+#: Galaxy profiles the renderer draws (others go through GalSim).
+PROFILES = ("sersic", "gaussian")
+
+#: Most bytes of complex k-images held at once (bounds the stamps per FFT batch).
+BATCH_BYTES = 64 * 2**20
+#: Most stamps per FFT batch.
+MAX_BATCH = 256
+
+_GAUSSIAN_HLR_FACTOR = 1.1774100225154747  # galsim.Gaussian._hlr_factor: hlr / sigma
+_SERSIC_CACHE_MAX = 64  # distinct (n, GSParams) radial tables kept per process
+_KIMAGE_CACHE_MAX = 32  # PSF x pixel k-images kept per renderer
+_PSF_CACHE_MAX = 512  # PSF summaries (stepk, maxk, GSParams) kept per renderer
+# Sersic k-profiles: GalSim tabulates them up to k r0 = 500, then uses a k^-2, k^-3 asymptote.
+_SERSIC_TABLE_END = 500.0
+
+
+def can_render(profile: str) -> bool:
+    """Whether :class:`StampRenderer` draws galaxies of this profile (else use GalSim)."""
+    return profile in PROFILES
+
+
+@dataclass(frozen=True)
+class RadialTable:
+    """GalSim's radial k-profile F(q) (flux 1) of a Sersic of scale radius 1, as it evaluates
+    it: quartic below ``q2_min``, piecewise cubic in ``u = log q`` of ``F q^2`` (one cubic per
+    interval of GalSim's own table, reconstructed exactly), ``(a + b / q) / q^2`` from
+    ``q2_asym`` on; plus the profile's stepk, maxk (scale radius 1) and hlr / r0."""
+
+    n: float
+    stepk: float
+    maxk: float
+    hlr_factor: float
+    params: np.ndarray  # u0, h, q2_min, kd2, kd4, q2_asym, a, b
+    coef: np.ndarray  # (intervals, 4): cubic coefficients in t = (u - u_i) / h, constant first
+
+    def kvalue(self, q: np.ndarray) -> np.ndarray:
+        """F(q) (flux 1, scale radius 1) as the renderer evaluates it."""
+        params, coef, offsets = _stack_tables([self], galsim.GSParams())
+        q = np.asarray(q, dtype=float)
+        return np.array([_radial_value(float(x * x), 0, params, coef, offsets) for x in q.ravel()]).reshape(q.shape)
+
+
+_SERSIC_TABLES: OrderedDict[tuple[float, galsim.GSParams], RadialTable] = OrderedDict()
+
+
+def sersic_table(n: float, gsparams: galsim.GSParams) -> RadialTable:
+    """The :class:`RadialTable` of Sersic index ``n`` (cached per process, LRU).
+
+    A new ``n`` costs what it costs GalSim (~30 ms: its SersicInfo Hankel transforms) plus
+    ~10 ms of k-value samples; gridded indices are built once per process.
+    """
+    key = (float(n), gsparams)
+    hit = _SERSIC_TABLES.get(key)
+    if hit is not None:
+        _SERSIC_TABLES.move_to_end(key)
+        return hit
+    table = _build_sersic_table(float(n), gsparams)
+    _SERSIC_TABLES[key] = table
+    while len(_SERSIC_TABLES) > _SERSIC_CACHE_MAX:
+        _SERSIC_TABLES.popitem(last=False)
+    return table
+
+
+def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialTable:
+    try:
+        unit = galsim.Sersic(n, scale_radius=1.0, gsparams=gsp)
+        stepk, maxk = float(unit.stepk), float(unit.maxk)
+    except (galsim.GalSimError, RuntimeError) as err:
+        raise MegalutError(f"Sersic n={n}: GalSim cannot build the profile ({err})") from None
+    hlr_factor = float(galsim.Sersic(n, half_light_radius=1.0, gsparams=gsp).calculateHLRFactor())
+
+    def f_q2(q: np.ndarray) -> np.ndarray:  # F(q) q^2, as GalSim evaluates it
+        return np.array([unit.kValue(float(x), 0.0).real for x in q]) * q * q
+
+    # GalSim's table (SBSersic.cpp, SersicInfo::buildFT): knots at log(kmin) - 0.001 + i dlogk.
+    g2n = math.gamma(2.0 * n)
+    kd2 = -math.gamma(4.0 * n) / (4.0 * g2n)
+    kd4 = math.gamma(6.0 * n) / (64.0 * g2n)
+    kd6 = math.gamma(8.0 * n) / (2304.0 * g2n)
+    kmin = (gsp.kvalue_accuracy / kd6) ** (1.0 / 6.0)
+    h = gsp.table_spacing * math.sqrt(math.sqrt(gsp.kvalue_accuracy / 10.0))
+    u0 = math.log(kmin) - 0.001
+    knots = [u0]  # accumulated as GalSim does (logk += dlogk)
+    while knots[-1] < math.log(_SERSIC_TABLE_END) + h:
+        knots.append(knots[-1] + h)
+    knots = np.array(knots)
+    n_int = len(knots) - 1
+    # Four interior samples per interval fix its cubic (interval 0 starts at kmin: below it,
+    # the quartic; the last knot of GalSim's table already belongs to the asymptote).
+    ts = np.array([0.05, 0.35, 0.65, 0.95])
+    lo = np.maximum(knots[:-1], math.log(kmin))
+    us = lo[:, None] + ts[None, :] * (knots[1:] - lo)[:, None]
+    vals = f_q2(np.exp(us.ravel())).reshape(us.shape)
+    t_samples = (us - knots[:-1, None]) / h
+    vander = t_samples[:, :, None] ** np.arange(4)
+    coef = np.linalg.solve(vander, vals[:, :, None])[:, :, 0]
+    # High-k asymptote F q^2 = a + b / q, fitted beyond GalSim's table.
+    qa = np.array([1.2 * _SERSIC_TABLE_END, 1.5 * _SERSIC_TABLE_END])
+    fa = f_q2(qa)
+    b = (fa[0] - fa[1]) / (1.0 / qa[0] - 1.0 / qa[1])
+    a = fa[0] - b / qa[0]
+    # GalSim's table ends where the asymptote became accurate: the first interval from which
+    # on every sample follows it.
+    asym = np.abs(vals - (a + b / np.exp(us))) <= 1e-12 * np.abs(vals)
+    tail = np.logical_and.accumulate(asym.all(axis=1)[::-1])[::-1]
+    first = int(np.argmax(tail)) if tail.any() else n_int
+    q2_asym = math.exp(2.0 * knots[first]) if first < n_int else math.inf
+    params = np.array([u0, h, kmin * kmin, kd2, kd4, q2_asym, a, b])
+    return RadialTable(n, stepk, maxk, hlr_factor, params, np.ascontiguousarray(coef[:max(first, 1)]))
+
+
+@njit(cache=True)
+def _radial_value(q2: float, table: int, params: np.ndarray, coef: np.ndarray, offsets: np.ndarray) -> float:
+    """F(q) of table ``table`` at ``q2 = q^2``; Gaussians of sigma 1: -2 round (GalSim's
+    exact separable fill), -1 transformed (zero beyond ``params[-1, 1]``, quadratic below
+    ``params[-1, 0]``, as SBGaussian's fill with a Jacobian)."""
+    if table == -2:
+        return math.exp(-0.5 * q2)
+    if table == -1:
+        g = params[params.shape[0] - 1]
+        if q2 > g[1]:
+            return 0.0
+        if q2 < g[0]:
+            return 1.0 - 0.5 * q2 * (1.0 - 0.25 * q2)
+        return math.exp(-0.5 * q2)
+    p = params[table]
+    if q2 < p[2]:
+        return 1.0 + q2 * (p[3] + q2 * p[4])
+    if q2 >= p[5]:
+        q = math.sqrt(q2)
+        return (p[6] + p[7] / q) / q2
+    x = (0.5 * math.log(q2) - p[0]) / p[1]
+    i = int(x)
+    last = offsets[table + 1] - offsets[table] - 1
+    if i > last:
+        i = last
+    t = x - i
+    c = coef[offsets[table] + i]
+    return (c[0] + t * (c[1] + t * (c[2] + t * c[3]))) / q2
+
+
+@njit(cache=True)
+def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table, params, coef, offsets):
+    """Galaxy x PSF x pixel x phase k-values of each stamp, wrapped onto its FFT grid.
+
+    ``out[s]`` (N, N/2+1) receives the sum over GalSim's (Nk+1) x (Nk/2+1) k-image (rows
+    ky = -Nk/2..Nk/2, columns kx = 0..Nk/2), folded as GalSim's Hermitian wrap does and
+    weighted so that numpy's inverse real FFT of ``out[s]`` equals GalSim's real image.
+    """
+    half = n_k // 2
+    n_half = n_fft // 2
+    m = out.shape[0]
+    phx = np.empty(half + 1, dtype=np.complex128)
+    phy = np.empty(n_k + 1, dtype=np.complex128)
+    for s in range(m):
+        out[s, :, :] = 0
+        for i in range(half + 1):
+            a = -i * dk * shift_x[s]
+            phx[i] = complex(math.cos(a), math.sin(a))
+        for j in range(n_k + 1):
+            a = -(j - half) * dk * shift_y[s]
+            phy[j] = complex(math.cos(a), math.sin(a))
+        a00, a01, a10, a11 = amat[s, 0], amat[s, 1], amat[s, 2], amat[s, 3]
+        f = flux[s]
+        tab = table[s]
+        for j in range(n_k + 1):
+            ky = (j - half) * dk
+            for i in range(half + 1):
+                kx = i * dk
+                qx = a00 * kx + a01 * ky
+                qy = a10 * kx + a11 * ky
+                val = f * _radial_value(qx * qx + qy * qy, tab, params, coef, offsets) * kpsf[j, i] * phx[i] * phy[j]
+                # Fold (i, j - half) onto the N grid; columns beyond N/2 by conjugation.
+                cx = i % n_fft
+                row = (j - half) % n_fft
+                if cx > n_half:
+                    cx = n_fft - cx
+                    row = (n_fft - row) % n_fft
+                    val = val.conjugate()
+                w = 1.0 if i == 0 else 2.0
+                if cx != 0 and cx != n_half:
+                    w *= 0.5
+                out[s, row, cx] += w * val
+
+
+@dataclass
+class _PsfInfo:
+    profile: galsim.GSObject  # PSF (x pixel unless "no_pixel"), with the drawing GSParams
+    gsparams: galsim.GSParams
+    stepk: float  # of the PSF alone
+    maxk: float
+    pixel_stepk: float  # 0 for "no_pixel"
+    pixel_maxk: float
+
+
+class StampRenderer:
+    """Draws batches of parametric galaxies convolved with one PSF, as GalSim's drawImage would.
+
+    ``gsparams`` is the config's ``[gsparams]`` table (GSParams keyword arguments); empty
+    or None: GalSim's defaults combined with the PSF's own, as ``galsim.Convolve`` does.
+    """
+
+    def __init__(self, stamp_size: int, gsparams: dict[str, float] | None = None):
+        if int(stamp_size) < 1:
+            raise MegalutError(f"stamp size must be >= 1, got {stamp_size}")
+        self.stamp_size = int(stamp_size)
+        self.gsparams = dict(gsparams or {})
+        self._gsp = galsim.GSParams(**self.gsparams) if self.gsparams else None
+        self._psfs: OrderedDict[tuple[Hashable, str], _PsfInfo] = OrderedDict()
+        self._kimages: OrderedDict[tuple[Hashable, str, int, int], np.ndarray] = OrderedDict()
+
+    # -- PSF --------------------------------------------------------------------------------
+    def _psf_info(self, psf: galsim.GSObject, psf_key: Hashable, method: str) -> _PsfInfo:
+        key = (psf_key, method)
+        hit = self._psfs.get(key)
+        if hit is not None:
+            self._psfs.move_to_end(key)
+            return hit
+        if method not in ("auto", "no_pixel"):
+            raise MegalutError(f"renderer: unknown drawing method {method!r} (auto or no_pixel)")
+        gsp = self._gsp or galsim.GSParams.combine([galsim.GSParams(), psf.gsparams])
+        psf_g = psf.withGSParams(gsp)
+        if method == "auto":
+            pixel = galsim.Pixel(1.0, gsparams=gsp)
+            profile = galsim.Convolve(psf_g, pixel, gsparams=gsp)
+            pix_stepk, pix_maxk = float(pixel.stepk), float(pixel.maxk)
+        else:
+            profile, pix_stepk, pix_maxk = psf_g, 0.0, math.inf
+        info = _PsfInfo(profile, gsp, float(psf_g.stepk), float(psf_g.maxk), pix_stepk, pix_maxk)
+        self._psfs[key] = info
+        while len(self._psfs) > _PSF_CACHE_MAX:
+            self._psfs.popitem(last=False)
+        return info
+
+    def _psf_kimage(self, info: _PsfInfo, psf_key: Hashable, method: str, n_fft: int, n_k: int) -> np.ndarray:
+        key = (psf_key, method, n_fft, n_k)
+        hit = self._kimages.get(key)
+        if hit is not None:
+            self._kimages.move_to_end(key)
+            return hit
+        half = n_k // 2
+        image = galsim.ImageCD(galsim.BoundsI(0, half, -half, half), scale=2.0 * np.pi / n_fft)
+        info.profile.drawKImage(image=image, recenter=False)
+        kimage = np.ascontiguousarray(image.array)
+        self._kimages[key] = kimage
+        while len(self._kimages) > _KIMAGE_CACHE_MAX:
+            self._kimages.popitem(last=False)
+        return kimage
+
+    # -- geometry ---------------------------------------------------------------------------
+    def _geometry(self, info: _PsfInfo, profile: str, rad, sersicn, e1, e2, g1, g2, dx, dy):
+        """Per-stamp arrays: (N, Nk, k-transform matrix, table index, shifts, tables)."""
+        if not can_render(profile):
+            raise MegalutError(f"renderer: cannot draw galaxy profile {profile!r} (only {', '.join(PROFILES)})")
+        gsp = info.gsparams
+        S = self.stamp_size
+        rad = np.atleast_1d(np.asarray(rad, dtype=float))
+        m = len(rad)
+        e1, e2, g1, g2, dx, dy = (np.broadcast_to(np.asarray(v, dtype=float), (m,)) for v in (e1, e2, g1, g2, dx, dy))
+        if profile == "sersic":
+            if sersicn is None:
+                raise MegalutError("renderer: Sersic galaxies need sersicn")
+            ns = np.broadcast_to(np.asarray(sersicn, dtype=float), (m,))
+            uniq, table = np.unique(ns, return_inverse=True)
+            tables = [sersic_table(float(n), gsp) for n in uniq]
+            hlr_factor = np.array([t.hlr_factor for t in tables])[table]
+            r0 = rad / hlr_factor  # Sersic scale radius, as galsim.Sersic computes it
+            inv_r0 = 1.0 / r0
+            stepk = np.array([t.stepk for t in tables])[table] * inv_r0
+            maxk = np.array([t.maxk for t in tables])[table] * inv_r0
+            size = r0
+        else:
+            # Round Gaussians are filled separably (exact exp); transformed ones with cutoffs.
+            table = np.where((e1 == 0) & (e2 == 0) & (g1 == 0) & (g2 == 0), -2, -1)
+            tables = []
+            sigma = rad / _GAUSSIAN_HLR_FACTOR
+            r_fold = max(math.sqrt(-2.0 * math.log(gsp.folding_threshold)), gsp.stepk_minimum_hlr * _GAUSSIAN_HLR_FACTOR)
+            maxk = math.sqrt(-2.0 * math.log(gsp.maxk_threshold)) / sigma
+            stepk = math.pi / (r_fold * sigma)
+            size = sigma
+        jac = _shear_jacobian(e1, e2, g1, g2)
+        # Transformation: maxk / minor, stepk / major (galsim/transform.py).
+        h1 = np.hypot(jac[:, 0, 0] + jac[:, 1, 1], jac[:, 0, 1] - jac[:, 1, 0])
+        h2 = np.hypot(jac[:, 0, 0] - jac[:, 1, 1], jac[:, 0, 1] + jac[:, 1, 0])
+        major, minor = 0.5 * np.abs(h1 + h2), 0.5 * np.abs(h1 - h2)
+        gal_stepk, gal_maxk = stepk / major, maxk / minor
+        # Convolution with the PSF, shift by the offset (+ centring), convolution with the pixel.
+        stepk_c = (gal_stepk**-2 + info.stepk**-2) ** -0.5
+        maxk_c = np.minimum(gal_maxk, info.maxk)
+        sx = dx - 0.5 if S % 2 == 0 else dx.copy()
+        sy = dy - 0.5 if S % 2 == 0 else dy.copy()
+        dr = np.hypot(sx, sy)
+        shifted = (sx != 0.0) | (sy != 0.0)
+        stepk_c = np.where(shifted, math.pi / (math.pi / stepk_c + dr), stepk_c)
+        if info.pixel_stepk > 0:
+            stepk_c = (stepk_c**-2 + info.pixel_stepk**-2) ** -0.5
+            maxk_c = np.minimum(maxk_c, info.pixel_maxk)
+        n_fft, n_k = fft_grid(stepk_c, maxk_c, S, gsp)
+        # q = |A k| in units of the profile's radius: A = size J^T.
+        amat = np.empty((m, 4))
+        amat[:, 0], amat[:, 1] = jac[:, 0, 0] * size, jac[:, 1, 0] * size
+        amat[:, 2], amat[:, 3] = jac[:, 0, 1] * size, jac[:, 1, 1] * size
+        return n_fft, n_k, amat, table.astype(np.int64), sx + S // 2, sy + S // 2, tables
+
+    def grid_sizes(self, psf: galsim.GSObject, psf_key: Hashable, method: str, profile: str,
+                   rad, sersicn, e1, e2, g1, g2, dx, dy) -> tuple[np.ndarray, np.ndarray]:
+        """GalSim's FFT sizes (N, Nk) for these stamps (``drawFFT_makeKImage``)."""
+        info = self._psf_info(psf, psf_key, method)
+        n_fft, n_k, *_ = self._geometry(info, profile, rad, sersicn, e1, e2, g1, g2, dx, dy)
+        return n_fft, n_k
+
+    # -- drawing ----------------------------------------------------------------------------
+    def draw(self, psf: galsim.GSObject, psf_key: Hashable, method: str, profile: str,
+             rad, flux, sersicn, e1, e2, g1, g2, dx, dy) -> np.ndarray:
+        """Noiseless stamps (m, S, S) float32 of ``profile`` galaxies of half-light radius
+        ``rad`` (pixels), ``flux``, index ``sersicn`` (None for Gaussians), intrinsic shape
+        (e1, e2) then shear (g1, g2), offset (dx, dy) pixels from the stamp centre, convolved
+        with ``psf`` (and the pixel unless ``method`` is "no_pixel").
+
+        ``psf_key`` names the PSF for the caches: pass the same key only for the same PSF.
+        """
+        info = self._psf_info(psf, psf_key, method)
+        n_fft, n_k, amat, table, shx, shy, tables = self._geometry(info, profile, rad, sersicn, e1, e2, g1, g2, dx, dy)
+        m = len(n_fft)
+        flux = np.broadcast_to(np.asarray(flux, dtype=float), (m,))
+        too_big = n_k > info.gsparams.maximum_fft_size
+        if too_big.any():
+            size = int(n_k[too_big].max())
+            raise MegalutError(
+                f"drawFFT requires a very large FFT: {size} x {size} "
+                f"({size * size * 24 / 1024**3:.2f} GB) > gsparams.maximum_fft_size = "
+                f"{info.gsparams.maximum_fft_size}; raise gsparams.maximum_fft_size or gsparams.folding_threshold"
+            )
+        params, coef, offsets = _stack_tables(tables, info.gsparams)
+        S = self.stamp_size
+        stamps = np.empty((m, S, S), dtype=np.float32)
+        grids = np.stack([n_fft, n_k], axis=1)
+        for n_f, n_kk in np.unique(grids, axis=0):
+            idx = np.flatnonzero((n_fft == n_f) & (n_k == n_kk))
+            kpsf = self._psf_kimage(info, psf_key, method, int(n_f), int(n_kk))
+            per = int(n_f) * (int(n_f) // 2 + 1) * 8
+            batch = max(1, min(MAX_BATCH, BATCH_BYTES // per))
+            buf = np.empty((min(batch, len(idx)), int(n_f), int(n_f) // 2 + 1), dtype=np.complex64)
+            for a in range(0, len(idx), batch):
+                sel = idx[a:a + batch]
+                kbuf = buf[:len(sel)]
+                _fill_kimages(kbuf, kpsf, int(n_f), int(n_kk), 2.0 * np.pi / int(n_f), amat[sel], flux[sel],
+                              shx[sel], shy[sel], table[sel], params, coef, offsets)
+                stamps[sel] = inverse_fft_window(kbuf, int(n_f), S)
+        return stamps
+
+
+def inverse_fft_window(kimages: np.ndarray, n_fft: int, size: int) -> np.ndarray:
+    """The first ``size`` x ``size`` pixels of the inverse real FFTs of ``kimages`` (m, N,
+    N/2+1): the y transform keeps only ``size`` rows before the x transform."""
+    rows = scipy.fft.ifft(kimages, axis=1, workers=1)[:, :size, :]
+    return scipy.fft.irfft(rows, n=n_fft, axis=2, workers=1)[:, :, :size]
+
+
+def fft_grid(stepk: np.ndarray, maxk: np.ndarray, stamp_size: int, gsparams: galsim.GSParams
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """GalSim's FFT sizes (N, Nk) for profiles of ``stepk``, ``maxk`` (pixel scale 1) drawn
+    on a ``stamp_size`` image (``GSObject.getGoodImageSize``, ``drawFFT_makeKImage``)."""
+    stepk = np.asarray(stepk, dtype=float)
+    n_good = np.ceil(2.0 * np.pi / stepk * (1.0 - 1.0e-12)).astype(np.int64)
+    n_good = 2 * ((n_good + 1) // 2)
+    n_good = np.maximum(n_good, stamp_size)  # the image itself: 2 max|bounds| or its size
+    uniq, inv = np.unique(n_good, return_inverse=True)
+    good = np.array([galsim.Image.good_fft_size(int(v)) for v in uniq], dtype=np.int64)
+    n_fft = np.maximum(good[inv], int(gsparams.minimum_fft_size))
+    dk = 2.0 * np.pi / n_fft
+    maxk = np.broadcast_to(np.asarray(maxk, dtype=float), n_fft.shape)
+    with np.errstate(over="ignore", invalid="ignore"):
+        n_k = np.where(n_fft * dk / 2 > maxk, n_fft, np.ceil(maxk / dk).astype(np.int64) * 2)
+    return n_fft.reshape(stepk.shape), n_k.reshape(stepk.shape)
+
+
+def _shear_jacobian(e1: np.ndarray, e2: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
+    """(m, 2, 2) Jacobians of shear (e1, e2) then shear (g1, g2), as GalSim composes them."""
+    je, jg = _shear_matrix(e1, e2), _shear_matrix(g1, g2)
+    jac = np.einsum("mij,mjk->mik", jg, je)
+    only_e = (g1 == 0) & (g2 == 0)
+    jac[only_e] = je[only_e]
+    only_g = (e1 == 0) & (e2 == 0)
+    jac[only_g] = jg[only_g]
+    return jac
+
+
+def _shear_matrix(g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
+    """``galsim.Shear(g1=g1, g2=g2).getMatrix()`` for arrays (identity where g = 0)."""
+    g = np.abs(g1 + 1j * g2)
+    if np.any(g >= 1.0):
+        raise MegalutError(f"renderer: shear or ellipticity modulus must be < 1, got {float(g.max())}")
+    norm = np.sqrt(1.0 - g**2)
+    mat = np.empty((len(g1), 2, 2))
+    mat[:, 0, 0] = (1.0 + g1) / norm
+    mat[:, 0, 1] = g2 / norm
+    mat[:, 1, 0] = g2 / norm
+    mat[:, 1, 1] = (1.0 - g1) / norm
+    return mat
+
+
+def _stack_tables(tables: list[RadialTable], gsparams: galsim.GSParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Radial tables as flat arrays for the numba kernel: (params, coefficients, offsets);
+    the last row of params holds the Gaussian's q^2 limits (SBGaussian.cpp)."""
+    gauss = np.zeros(8)
+    gauss[0] = (gsparams.kvalue_accuracy * 48.0) ** (1.0 / 3.0)
+    gauss[1] = -2.0 * math.log(gsparams.kvalue_accuracy)
+    params = np.stack([t.params for t in tables] + [gauss])
+    coef = np.concatenate([t.coef for t in tables]) if tables else np.zeros((1, 4))
+    offsets = np.concatenate([[0], np.cumsum([len(t.coef) for t in tables])]).astype(np.int64)
+    return params, coef, offsets
