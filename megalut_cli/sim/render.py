@@ -62,7 +62,7 @@ class RadialTable:
         """F(q) (flux 1, scale radius 1) as the renderer evaluates it."""
         params, coef, offsets = _stack_tables([self], galsim.GSParams())
         q = np.asarray(q, dtype=float)
-        return np.array([_radial_value(float(x * x), 0, params, coef, offsets) for x in q.ravel()]).reshape(q.shape)
+        return _radial_values(q.ravel() ** 2, 0, params, coef, offsets).reshape(q.shape)
 
 
 _SERSIC_TABLES: OrderedDict[tuple[float, galsim.GSParams], RadialTable] = OrderedDict()
@@ -134,34 +134,44 @@ def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialTable:
     return RadialTable(n, stepk, maxk, hlr_factor, params, np.ascontiguousarray(coef[:max(first, 1)]))
 
 
+@njit(cache=True, inline="always")
+def _radial(q2: float, kind: int, p: np.ndarray, coef: np.ndarray, first: int, last: int) -> float:
+    """F(q) at ``q2 = q^2``: kind 0 a Sersic table (``p`` its params, its cubics
+    ``coef[first:last + 1]``); Gaussians of sigma 1: kind -2 round (GalSim's exact separable
+    fill), kind -1 transformed (zero beyond ``p[1]``, quadratic below ``p[0]``, as
+    SBGaussian's fill with a Jacobian)."""
+    if kind == 0:
+        if q2 < p[2]:
+            return 1.0 + q2 * (p[3] + q2 * p[4])
+        if q2 >= p[5]:
+            q = math.sqrt(q2)
+            return (p[6] + p[7] / q) / q2
+        x = (0.5 * math.log(q2) - p[0]) / p[1]
+        i = int(x)
+        t = x - i
+        i += first
+        if i > last:
+            i = last
+        return (coef[i, 0] + t * (coef[i, 1] + t * (coef[i, 2] + t * coef[i, 3]))) / q2
+    if kind == -2:
+        return math.exp(-0.5 * q2)
+    if q2 > p[1]:
+        return 0.0
+    if q2 < p[0]:
+        return 1.0 - 0.5 * q2 * (1.0 - 0.25 * q2)
+    return math.exp(-0.5 * q2)
+
+
 @njit(cache=True)
-def _radial_value(q2: float, table: int, params: np.ndarray, coef: np.ndarray, offsets: np.ndarray) -> float:
-    """F(q) of table ``table`` at ``q2 = q^2``; Gaussians of sigma 1: -2 round (GalSim's
-    exact separable fill), -1 transformed (zero beyond ``params[-1, 1]``, quadratic below
-    ``params[-1, 0]``, as SBGaussian's fill with a Jacobian)."""
-    if table == -2:
-        return math.exp(-0.5 * q2)
-    if table == -1:
-        g = params[params.shape[0] - 1]
-        if q2 > g[1]:
-            return 0.0
-        if q2 < g[0]:
-            return 1.0 - 0.5 * q2 * (1.0 - 0.25 * q2)
-        return math.exp(-0.5 * q2)
-    p = params[table]
-    if q2 < p[2]:
-        return 1.0 + q2 * (p[3] + q2 * p[4])
-    if q2 >= p[5]:
-        q = math.sqrt(q2)
-        return (p[6] + p[7] / q) / q2
-    x = (0.5 * math.log(q2) - p[0]) / p[1]
-    i = int(x)
-    last = offsets[table + 1] - offsets[table] - 1
-    if i > last:
-        i = last
-    t = x - i
-    c = coef[offsets[table] + i]
-    return (c[0] + t * (c[1] + t * (c[2] + t * c[3]))) / q2
+def _radial_values(q2: np.ndarray, table: int, params: np.ndarray, coef: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """F at each ``q2`` for table ``table`` (-1, -2: Gaussians, see :func:`_radial`)."""
+    kind = 0 if table >= 0 else table
+    p = params[table] if table >= 0 else params[params.shape[0] - 1]
+    first, last = (offsets[table], offsets[table + 1] - 1) if table >= 0 else (0, 0)
+    out = np.empty(q2.shape[0])
+    for k in range(q2.shape[0]):
+        out[k] = _radial(q2[k], kind, p, coef, first, last)
+    return out
 
 
 @njit(cache=True)
@@ -170,42 +180,60 @@ def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table
 
     ``out[s]`` (N, N/2+1) receives the sum over GalSim's (Nk+1) x (Nk/2+1) k-image (rows
     ky = -Nk/2..Nk/2, columns kx = 0..Nk/2), folded as GalSim's Hermitian wrap does and
-    weighted so that numpy's inverse real FFT of ``out[s]`` equals GalSim's real image.
+    weighted so that numpy's inverse real FFT of ``out[s]`` equals GalSim's real image:
+    a stored column kx > 0 counts twice (it stands for -kx too), numpy's columns 0 and N/2
+    once, its others twice.
     """
     half = n_k // 2
     n_half = n_fft // 2
     m = out.shape[0]
     phx = np.empty(half + 1, dtype=np.complex128)
-    phy = np.empty(n_k + 1, dtype=np.complex128)
+    gauss = params[params.shape[0] - 1]
     for s in range(m):
         out[s, :, :] = 0
         for i in range(half + 1):
             a = -i * dk * shift_x[s]
             phx[i] = complex(math.cos(a), math.sin(a))
-        for j in range(n_k + 1):
-            a = -(j - half) * dk * shift_y[s]
-            phy[j] = complex(math.cos(a), math.sin(a))
-        a00, a01, a10, a11 = amat[s, 0], amat[s, 1], amat[s, 2], amat[s, 3]
-        f = flux[s]
         tab = table[s]
+        kind = 0 if tab >= 0 else tab
+        p = params[tab] if tab >= 0 else gauss
+        first = offsets[tab] if tab >= 0 else 0
+        last = offsets[tab + 1] - 1 if tab >= 0 else 0
+        # q^2 = (c_xx i^2 + 2 c_xy i jj + c_yy jj^2) dk^2, q = A k
+        a00, a01, a10, a11 = amat[s, 0], amat[s, 1], amat[s, 2], amat[s, 3]
+        cxx = (a00 * a00 + a10 * a10) * dk * dk
+        cxy = (a00 * a01 + a10 * a11) * dk * dk
+        cyy = (a01 * a01 + a11 * a11) * dk * dk
+        f = flux[s]
         for j in range(n_k + 1):
-            ky = (j - half) * dk
-            for i in range(half + 1):
-                kx = i * dk
-                qx = a00 * kx + a01 * ky
-                qy = a10 * kx + a11 * ky
-                val = f * _radial_value(qx * qx + qy * qy, tab, params, coef, offsets) * kpsf[j, i] * phx[i] * phy[j]
-                # Fold (i, j - half) onto the N grid; columns beyond N/2 by conjugation.
-                cx = i % n_fft
-                row = (j - half) % n_fft
-                if cx > n_half:
-                    cx = n_fft - cx
-                    row = (n_fft - row) % n_fft
-                    val = val.conjugate()
-                w = 1.0 if i == 0 else 2.0
-                if cx != 0 and cx != n_half:
-                    w *= 0.5
-                out[s, row, cx] += w * val
+            jj = j - half
+            a = -jj * dk * shift_y[s]
+            rowf = f * complex(math.cos(a), math.sin(a))
+            qy2 = cyy * jj * jj
+            qxy = 2.0 * cxy * jj
+            row = jj % n_fft
+            if n_k == n_fft:  # no aliasing: column i stays i
+                for i in range(half + 1):
+                    q2 = (cxx * i + qxy) * i + qy2
+                    val = _radial(q2, kind, p, coef, first, last) * kpsf[j, i] * phx[i] * rowf
+                    if i == n_half:
+                        val *= 2.0
+                    out[s, row, i] += val
+            else:
+                for i in range(half + 1):
+                    q2 = (cxx * i + qxy) * i + qy2
+                    val = _radial(q2, kind, p, coef, first, last) * kpsf[j, i] * phx[i] * rowf
+                    # Fold (i, jj) onto the N grid; columns beyond N/2 by conjugation.
+                    cx = i % n_fft
+                    dest = row
+                    if cx > n_half:
+                        cx = n_fft - cx
+                        dest = (n_fft - row) % n_fft
+                        val = val.conjugate()
+                    w = 1.0 if i == 0 else 2.0
+                    if cx != 0 and cx != n_half:
+                        w *= 0.5
+                    out[s, dest, cx] += w * val
 
 
 @dataclass
