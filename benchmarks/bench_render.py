@@ -28,8 +28,8 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXP
     os.environ[_v] = "1"
 
 import argparse  # noqa: E402
-import cProfile  # noqa: E402
 import collections  # noqa: E402
+import cProfile  # noqa: E402
 import math  # noqa: E402
 import pstats  # noqa: E402
 import time  # noqa: E402

@@ -77,8 +77,10 @@ class RadialProfile:
         return _radial_values(q.ravel() ** 2, eparams[0], eint[0], coef, fcoef, fast).reshape(q.shape)
 
 
-#: Cubics per octave of q^2 in the fast form (relative width 2^-7 of q^2).
+#: Cubics per octave of q^2 in the fast form (relative width 2^-8 of q^2).
 FAST_BITS = 8
+#: The fast form of Sersic profiles covers q^2 < 2^30 (q r0 < 32768); the exact one beyond.
+_FAST_MAX_OCTAVE = 30
 
 
 _SERSIC_TABLES: OrderedDict[tuple[float, galsim.GSParams], RadialProfile] = OrderedDict()
@@ -152,7 +154,7 @@ def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialProfile:
     params = np.array([u0, h, kmin * kmin, kd2, kd4, q2_asym, a, b])
     coef = np.ascontiguousarray(coef[: max(first, 1)])
     lo = math.floor(math.log2(kmin * kmin))
-    hi = math.ceil(math.log2(q2_asym)) if math.isfinite(q2_asym) else math.ceil(2 * math.log2(_SERSIC_TABLE_END)) + 1
+    hi = _FAST_MAX_OCTAVE  # the asymptote too: it costs a square root and two divisions
     fast = _fast_cubics(0, params, coef, lo, hi, [kmin * kmin, q2_asym])
     return RadialProfile(0, params, coef, (lo, hi), fast, stepk, maxk, hlr_factor)
 
@@ -164,7 +166,7 @@ def gaussian_profile(gsparams: galsim.GSParams, transformed: bool) -> RadialProf
     params[0] = (gsparams.kvalue_accuracy * 48.0) ** (1.0 / 3.0)  # SBGaussian.cpp
     params[1] = -2.0 * math.log(gsparams.kvalue_accuracy)
     kind = -1 if transformed else -2
-    lo, hi = -40, (math.ceil(math.log2(params[1])) if transformed else 11)  # exp(-1024) = 0
+    lo, hi = -40, _FAST_MAX_OCTAVE
     coef = np.zeros((1, 4))
     fast = _fast_cubics(kind, params, coef, lo, hi, list(params[:2]) if transformed else [])
     return RadialProfile(kind, params, coef, (lo, hi), fast)
@@ -189,7 +191,7 @@ def _fast_cubics(kind: int, params: np.ndarray, coef: np.ndarray, lo: int, hi: i
     return np.ascontiguousarray(fast)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _radial(q2: float, p: np.ndarray, ei: np.ndarray, coef: np.ndarray) -> float:
     """Exact form of F(q) at ``q2 = q^2`` (see :class:`RadialProfile`); ``p`` its params,
     ``ei`` = (kind, first and last of its cubics in ``coef``, ...)."""
@@ -221,18 +223,19 @@ _FRACTION_MASK = (1 << _MANTISSA_SHIFT) - 1
 _FRACTION_SCALE = 1.0 / (1 << _MANTISSA_SHIFT)
 
 
-@njit(cache=True, inline="always")
-def _radial_fast(q2: float, bits: int, p: np.ndarray, ei: np.ndarray, coef: np.ndarray, fcoef: np.ndarray) -> float:
-    """Fast form of F at ``q2`` (``bits``: its IEEE-754 bit pattern); exact form outside
-    its octaves and on its NaN intervals."""
+@njit(cache=True)
+def _fast_index(bits: int, lo: int, hi: int, first: int) -> int:
+    """Row of the fast cubic for ``q^2`` of IEEE-754 bit pattern ``bits`` (-1: none)."""
     e = (bits >> 52) - 1023
-    if e >= ei[3] and e < ei[4]:
-        k = ei[5] + ((e - ei[3]) << FAST_BITS) + ((bits >> _MANTISSA_SHIFT) & ((1 << FAST_BITS) - 1))
-        c0 = fcoef[k, 0]
-        if c0 == c0:
-            t = (bits & _FRACTION_MASK) * _FRACTION_SCALE
-            return c0 + t * (fcoef[k, 1] + t * (fcoef[k, 2] + t * fcoef[k, 3]))
-    return _radial(q2, p, ei, coef)
+    if e < lo or e >= hi:
+        return -1
+    return first + ((e - lo) << FAST_BITS) + ((bits >> _MANTISSA_SHIFT) & ((1 << FAST_BITS) - 1))
+
+
+@njit(cache=True)
+def _fraction(bits: int) -> float:
+    """Position of ``q^2`` (bit pattern ``bits``) in its fast interval, in [0, 1)."""
+    return (bits & _FRACTION_MASK) * _FRACTION_SCALE
 
 
 @njit(cache=True)
@@ -243,7 +246,12 @@ def _radial_values(q2: np.ndarray, p: np.ndarray, ei: np.ndarray, coef: np.ndarr
     q2c = np.ascontiguousarray(q2)
     bits = q2c.view(np.int64)
     for k in range(q2.shape[0]):
-        out[k] = _radial_fast(q2c[k], bits[k], p, ei, coef, fcoef) if fast else _radial(q2c[k], p, ei, coef)
+        c = _fast_index(bits[k], ei[3], ei[4], ei[5]) if fast else -1
+        if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:  # not NaN
+            t = _fraction(bits[k])
+            out[k] = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
+        else:
+            out[k] = _radial(q2c[k], p, ei, coef)
     return out
 
 
@@ -271,6 +279,7 @@ def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table
             phx[i] = complex(math.cos(a), math.sin(a))
         p = eparams[table[s]]
         ei = eint[table[s]]
+        lo, hi, ffirst = ei[3], ei[4], ei[5]
         # q^2 = (c_xx i^2 + 2 c_xy i jj + c_yy jj^2) dk^2, q = A k
         a00, a01, a10, a11 = amat[s, 0], amat[s, 1], amat[s, 2], amat[s, 3]
         cxx = (a00 * a00 + a10 * a10) * dk * dk
@@ -288,7 +297,13 @@ def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table
             row = jj % n_fft
             if n_k == n_fft:  # no aliasing: column i stays i; rows -N/2 and N/2 share row N/2
                 for i in range(half + 1):
-                    val = _radial_fast(q2[i], bits[i], p, ei, coef, fcoef) * kpsf[j, i] * phx[i] * rowf
+                    c = _fast_index(bits[i], lo, hi, ffirst)
+                    if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:  # not NaN
+                        t = _fraction(bits[i])
+                        fq = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
+                    else:
+                        fq = _radial(q2[i], p, ei, coef)
+                    val = fq * kpsf[j, i] * phx[i] * rowf
                     if i == n_half:
                         val *= 2.0
                     if j == n_k:
@@ -297,7 +312,13 @@ def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table
                         out[s, row, i] = val
             else:
                 for i in range(half + 1):
-                    val = _radial_fast(q2[i], bits[i], p, ei, coef, fcoef) * kpsf[j, i] * phx[i] * rowf
+                    c = _fast_index(bits[i], lo, hi, ffirst)
+                    if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:
+                        t = _fraction(bits[i])
+                        fq = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
+                    else:
+                        fq = _radial(q2[i], p, ei, coef)
+                    val = fq * kpsf[j, i] * phx[i] * rowf
                     # Fold (i, jj) onto the N grid; columns beyond N/2 by conjugation.
                     cx = i % n_fft
                     dest = row
