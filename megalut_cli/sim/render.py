@@ -11,6 +11,7 @@ and one inverse FFT runs per batch of stamps sharing a grid. See ``docs/render.m
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import OrderedDict
 from collections.abc import Hashable
@@ -45,31 +46,48 @@ def can_render(profile: str) -> bool:
 
 
 @dataclass(frozen=True)
-class RadialTable:
-    """GalSim's radial k-profile F(q) (flux 1) of a Sersic of scale radius 1, as it evaluates
-    it: quartic below ``q2_min``, piecewise cubic in ``u = log q`` of ``F q^2`` (one cubic per
-    interval of GalSim's own table, reconstructed exactly), ``(a + b / q) / q^2`` from
-    ``q2_asym`` on; plus the profile's stepk, maxk (scale radius 1) and hlr / r0."""
+class RadialProfile:
+    """The radial k-profile F(q) (flux 1, unit radius) of a round galaxy as GalSim evaluates
+    it, in an exact form and a fast one.
 
-    n: float
-    stepk: float
-    maxk: float
-    hlr_factor: float
-    params: np.ndarray  # u0, h, q2_min, kd2, kd4, q2_asym, a, b
-    coef: np.ndarray  # (intervals, 4): cubic coefficients in t = (u - u_i) / h, constant first
+    Exact: ``kind`` 0 is a Sersic of scale radius 1 (quartic below ``params[2]`` = q^2_min,
+    piecewise cubic in ``u = log q`` of ``F q^2``, one cubic per interval of GalSim's own
+    table, reconstructed exactly, and ``(a + b / q) / q^2`` from ``params[5]`` on); ``kind``
+    -1 and -2 are Gaussians of sigma 1, transformed (SBGaussian's fill with a Jacobian:
+    quadratic below ``params[0]``, zero beyond ``params[1]``) and round (exact exp).
+    Fast: over ``q^2`` in [2^lo, 2^hi), ``2^FAST_BITS`` cubics per octave in the mantissa
+    of ``q^2`` (no logarithm per pixel); intervals holding a break of the exact form are NaN
+    and fall back to it. Sersic ``stepk``, ``maxk`` are for scale radius 1, ``hlr_factor``
+    is hlr / r0; Gaussians leave them 0.
+    """
 
-    def kvalue(self, q: np.ndarray) -> np.ndarray:
-        """F(q) (flux 1, scale radius 1) as the renderer evaluates it."""
-        params, coef, offsets = _stack_tables([self], galsim.GSParams())
+    kind: int
+    params: np.ndarray
+    coef: np.ndarray
+    octaves: tuple[int, int]
+    fast: np.ndarray
+    stepk: float = 0.0
+    maxk: float = 0.0
+    hlr_factor: float = 0.0
+
+    def kvalue(self, q: np.ndarray, fast: bool = False) -> np.ndarray:
+        """F(q) as the renderer evaluates it (the fast form with ``fast``)."""
+        eparams, eint, coef, fcoef = _stack([self])
         q = np.asarray(q, dtype=float)
-        return np.array([_radial_value(float(x * x), 0, params, coef, offsets) for x in q.ravel()]).reshape(q.shape)
+        return _radial_values(q.ravel() ** 2, eparams[0], eint[0], coef, fcoef, fast).reshape(q.shape)
 
 
-_SERSIC_TABLES: OrderedDict[tuple[float, galsim.GSParams], RadialTable] = OrderedDict()
+#: Cubics per octave of q^2 in the fast form (relative width 2^-8 of q^2).
+FAST_BITS = 8
+#: The fast form of Sersic profiles covers q^2 < 2^30 (q r0 < 32768); the exact one beyond.
+_FAST_MAX_OCTAVE = 30
 
 
-def sersic_table(n: float, gsparams: galsim.GSParams) -> RadialTable:
-    """The :class:`RadialTable` of Sersic index ``n`` (cached per process, LRU).
+_SERSIC_TABLES: OrderedDict[tuple[float, galsim.GSParams], RadialProfile] = OrderedDict()
+
+
+def sersic_table(n: float, gsparams: galsim.GSParams) -> RadialProfile:
+    """The :class:`RadialProfile` of Sersic index ``n`` (cached per process, LRU).
 
     A new ``n`` costs what it costs GalSim (~30 ms: its SersicInfo Hankel transforms) plus
     ~10 ms of k-value samples; gridded indices are built once per process.
@@ -86,7 +104,7 @@ def sersic_table(n: float, gsparams: galsim.GSParams) -> RadialTable:
     return table
 
 
-def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialTable:
+def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialProfile:
     try:
         unit = galsim.Sersic(n, scale_radius=1.0, gsparams=gsp)
         stepk, maxk = float(unit.stepk), float(unit.maxk)
@@ -119,93 +137,199 @@ def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialTable:
     t_samples = (us - knots[:-1, None]) / h
     vander = t_samples[:, :, None] ** np.arange(4)
     coef = np.linalg.solve(vander, vals[:, :, None])[:, :, 0]
-    # High-k asymptote F q^2 = a + b / q, fitted beyond GalSim's table.
-    qa = np.array([1.2 * _SERSIC_TABLE_END, 1.5 * _SERSIC_TABLE_END])
-    fa = f_q2(qa)
-    b = (fa[0] - fa[1]) / (1.0 / qa[0] - 1.0 / qa[1])
-    a = fa[0] - b / qa[0]
-    # GalSim's table ends where the asymptote became accurate: the first interval from which
-    # on every sample follows it.
-    asym = np.abs(vals - (a + b / np.exp(us))) <= 1e-12 * np.abs(vals)
-    tail = np.logical_and.accumulate(asym.all(axis=1)[::-1])[::-1]
+    # GalSim's table ends at a knot (ksq_max) from which on F q^2 = a + b / q: the first
+    # interval from which on every interval's samples are linear in 1/q.
+    inv_q = np.exp(-us)
+    slope = (vals[:, 3] - vals[:, 0]) / (inv_q[:, 3] - inv_q[:, 0])
+    linear = vals[:, 0, None] + slope[:, None] * (inv_q - inv_q[:, 0, None])
+    asym = (np.abs(vals - linear) <= 1e-11 * np.abs(vals)).all(axis=1)
+    tail = np.logical_and.accumulate(asym[::-1])[::-1]
     first = int(np.argmax(tail)) if tail.any() else n_int
+    q_fit = np.array([math.exp(knots[first] + 0.5 * h) if first < n_int else _SERSIC_TABLE_END,
+                      1.5 * _SERSIC_TABLE_END])
+    fa = f_q2(q_fit)
+    b = (fa[0] - fa[1]) / (1.0 / q_fit[0] - 1.0 / q_fit[1])
+    a = fa[1] - b / q_fit[1]
     q2_asym = math.exp(2.0 * knots[first]) if first < n_int else math.inf
     params = np.array([u0, h, kmin * kmin, kd2, kd4, q2_asym, a, b])
-    return RadialTable(n, stepk, maxk, hlr_factor, params, np.ascontiguousarray(coef[:max(first, 1)]))
+    coef = np.ascontiguousarray(coef[: max(first, 1)])
+    lo = math.floor(math.log2(kmin * kmin))
+    hi = _FAST_MAX_OCTAVE  # the asymptote too: it costs a square root and two divisions
+    fast = _fast_cubics(0, params, coef, lo, hi, [kmin * kmin, q2_asym])
+    return RadialProfile(0, params, coef, (lo, hi), fast, stepk, maxk, hlr_factor)
+
+
+@functools.lru_cache(maxsize=8)
+def gaussian_profile(gsparams: galsim.GSParams, transformed: bool) -> RadialProfile:
+    """The :class:`RadialProfile` of a Gaussian of sigma 1 (``transformed``: sheared)."""
+    params = np.zeros(8)
+    params[0] = (gsparams.kvalue_accuracy * 48.0) ** (1.0 / 3.0)  # SBGaussian.cpp
+    params[1] = -2.0 * math.log(gsparams.kvalue_accuracy)
+    kind = -1 if transformed else -2
+    lo, hi = -40, _FAST_MAX_OCTAVE
+    coef = np.zeros((1, 4))
+    fast = _fast_cubics(kind, params, coef, lo, hi, list(params[:2]) if transformed else [])
+    return RadialProfile(kind, params, coef, (lo, hi), fast)
+
+
+def _fast_cubics(kind: int, params: np.ndarray, coef: np.ndarray, lo: int, hi: int, breaks: list[float]) -> np.ndarray:
+    """The fast form's cubics (see :class:`RadialProfile`), fitted to the exact form at four
+    points of each interval; NaN on the intervals holding a break."""
+    per = 1 << FAST_BITS
+    idx = np.arange((hi - lo) * per)
+    scale = np.ldexp(1.0, lo + idx // per)  # 2^octave
+    start = scale * (1.0 + (idx % per) / per)
+    width = scale / per
+    ts = np.array([0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0])
+    q2 = (start[:, None] + ts[None, :] * width[:, None]).ravel()
+    eint = np.array([kind, 0, len(coef) - 1, lo, hi, 0], dtype=np.int64)
+    vals = _radial_values(q2, params, eint, coef, np.zeros((1, 4)), False).reshape(-1, 4)
+    fast = vals @ np.linalg.inv(np.vander(ts, 4, increasing=True)).T
+    for b in breaks:
+        if math.isfinite(b) and b > 0:
+            fast[(start <= b) & (b <= start + width)] = np.nan
+    return np.ascontiguousarray(fast)
 
 
 @njit(cache=True)
-def _radial_value(q2: float, table: int, params: np.ndarray, coef: np.ndarray, offsets: np.ndarray) -> float:
-    """F(q) of table ``table`` at ``q2 = q^2``; Gaussians of sigma 1: -2 round (GalSim's
-    exact separable fill), -1 transformed (zero beyond ``params[-1, 1]``, quadratic below
-    ``params[-1, 0]``, as SBGaussian's fill with a Jacobian)."""
-    if table == -2:
+def _radial(q2: float, p: np.ndarray, ei: np.ndarray, coef: np.ndarray) -> float:
+    """Exact form of F(q) at ``q2 = q^2`` (see :class:`RadialProfile`); ``p`` its params,
+    ``ei`` = (kind, first and last of its cubics in ``coef``, ...)."""
+    kind = ei[0]
+    if kind == 0:
+        if q2 < p[2]:
+            return 1.0 + q2 * (p[3] + q2 * p[4])
+        if q2 >= p[5]:
+            q = math.sqrt(q2)
+            return (p[6] + p[7] / q) / q2
+        x = (0.5 * math.log(q2) - p[0]) / p[1]
+        i = int(x)
+        t = x - i
+        i += ei[1]
+        if i > ei[2]:
+            i = ei[2]
+        return (coef[i, 0] + t * (coef[i, 1] + t * (coef[i, 2] + t * coef[i, 3]))) / q2
+    if kind == -2:
         return math.exp(-0.5 * q2)
-    if table == -1:
-        g = params[params.shape[0] - 1]
-        if q2 > g[1]:
-            return 0.0
-        if q2 < g[0]:
-            return 1.0 - 0.5 * q2 * (1.0 - 0.25 * q2)
-        return math.exp(-0.5 * q2)
-    p = params[table]
-    if q2 < p[2]:
-        return 1.0 + q2 * (p[3] + q2 * p[4])
-    if q2 >= p[5]:
-        q = math.sqrt(q2)
-        return (p[6] + p[7] / q) / q2
-    x = (0.5 * math.log(q2) - p[0]) / p[1]
-    i = int(x)
-    last = offsets[table + 1] - offsets[table] - 1
-    if i > last:
-        i = last
-    t = x - i
-    c = coef[offsets[table] + i]
-    return (c[0] + t * (c[1] + t * (c[2] + t * c[3]))) / q2
+    if q2 > p[1]:
+        return 0.0
+    if q2 < p[0]:
+        return 1.0 - 0.5 * q2 * (1.0 - 0.25 * q2)
+    return math.exp(-0.5 * q2)
+
+
+_MANTISSA_SHIFT = 52 - FAST_BITS
+_FRACTION_MASK = (1 << _MANTISSA_SHIFT) - 1
+_FRACTION_SCALE = 1.0 / (1 << _MANTISSA_SHIFT)
 
 
 @njit(cache=True)
-def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table, params, coef, offsets):
+def _fast_index(bits: int, lo: int, hi: int, first: int) -> int:
+    """Row of the fast cubic for ``q^2`` of IEEE-754 bit pattern ``bits`` (-1: none)."""
+    e = (bits >> 52) - 1023
+    if e < lo or e >= hi:
+        return -1
+    return first + ((e - lo) << FAST_BITS) + ((bits >> _MANTISSA_SHIFT) & ((1 << FAST_BITS) - 1))
+
+
+@njit(cache=True)
+def _fraction(bits: int) -> float:
+    """Position of ``q^2`` (bit pattern ``bits``) in its fast interval, in [0, 1)."""
+    return (bits & _FRACTION_MASK) * _FRACTION_SCALE
+
+
+@njit(cache=True)
+def _radial_values(q2: np.ndarray, p: np.ndarray, ei: np.ndarray, coef: np.ndarray, fcoef: np.ndarray,
+                   fast: bool) -> np.ndarray:
+    """F at each ``q2`` (exact or fast form)."""
+    out = np.empty(q2.shape[0])
+    q2c = np.ascontiguousarray(q2)
+    bits = q2c.view(np.int64)
+    for k in range(q2.shape[0]):
+        c = _fast_index(bits[k], ei[3], ei[4], ei[5]) if fast else -1
+        if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:  # not NaN
+            t = _fraction(bits[k])
+            out[k] = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
+        else:
+            out[k] = _radial(q2c[k], p, ei, coef)
+    return out
+
+
+@njit(cache=True)
+def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table, eparams, eint, coef, fcoef):
     """Galaxy x PSF x pixel x phase k-values of each stamp, wrapped onto its FFT grid.
 
     ``out[s]`` (N, N/2+1) receives the sum over GalSim's (Nk+1) x (Nk/2+1) k-image (rows
     ky = -Nk/2..Nk/2, columns kx = 0..Nk/2), folded as GalSim's Hermitian wrap does and
-    weighted so that numpy's inverse real FFT of ``out[s]`` equals GalSim's real image.
+    weighted so that numpy's inverse real FFT of ``out[s]`` equals GalSim's real image:
+    a stored column kx > 0 counts twice (it stands for -kx too), numpy's columns 0 and N/2
+    once, its others twice.
     """
     half = n_k // 2
     n_half = n_fft // 2
     m = out.shape[0]
     phx = np.empty(half + 1, dtype=np.complex128)
-    phy = np.empty(n_k + 1, dtype=np.complex128)
+    q2 = np.empty(half + 1)
+    bits = q2.view(np.int64)
     for s in range(m):
-        out[s, :, :] = 0
+        if n_k != n_fft:
+            out[s, :, :] = 0
         for i in range(half + 1):
             a = -i * dk * shift_x[s]
             phx[i] = complex(math.cos(a), math.sin(a))
-        for j in range(n_k + 1):
-            a = -(j - half) * dk * shift_y[s]
-            phy[j] = complex(math.cos(a), math.sin(a))
+        p = eparams[table[s]]
+        ei = eint[table[s]]
+        lo, hi, ffirst = ei[3], ei[4], ei[5]
+        # q^2 = (c_xx i^2 + 2 c_xy i jj + c_yy jj^2) dk^2, q = A k
         a00, a01, a10, a11 = amat[s, 0], amat[s, 1], amat[s, 2], amat[s, 3]
+        cxx = (a00 * a00 + a10 * a10) * dk * dk
+        cxy = (a00 * a01 + a10 * a11) * dk * dk
+        cyy = (a01 * a01 + a11 * a11) * dk * dk
         f = flux[s]
-        tab = table[s]
         for j in range(n_k + 1):
-            ky = (j - half) * dk
+            jj = j - half
+            a = -jj * dk * shift_y[s]
+            rowf = f * complex(math.cos(a), math.sin(a))
+            qy2 = cyy * jj * jj
+            qxy = 2.0 * cxy * jj
             for i in range(half + 1):
-                kx = i * dk
-                qx = a00 * kx + a01 * ky
-                qy = a10 * kx + a11 * ky
-                val = f * _radial_value(qx * qx + qy * qy, tab, params, coef, offsets) * kpsf[j, i] * phx[i] * phy[j]
-                # Fold (i, j - half) onto the N grid; columns beyond N/2 by conjugation.
-                cx = i % n_fft
-                row = (j - half) % n_fft
-                if cx > n_half:
-                    cx = n_fft - cx
-                    row = (n_fft - row) % n_fft
-                    val = val.conjugate()
-                w = 1.0 if i == 0 else 2.0
-                if cx != 0 and cx != n_half:
-                    w *= 0.5
-                out[s, row, cx] += w * val
+                q2[i] = (cxx * i + qxy) * i + qy2
+            row = jj % n_fft
+            if n_k == n_fft:  # no aliasing: column i stays i; rows -N/2 and N/2 share row N/2
+                for i in range(half + 1):
+                    c = _fast_index(bits[i], lo, hi, ffirst)
+                    if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:  # not NaN
+                        t = _fraction(bits[i])
+                        fq = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
+                    else:
+                        fq = _radial(q2[i], p, ei, coef)
+                    val = fq * kpsf[j, i] * phx[i] * rowf
+                    if i == n_half:
+                        val *= 2.0
+                    if j == n_k:
+                        out[s, row, i] += val
+                    else:
+                        out[s, row, i] = val
+            else:
+                for i in range(half + 1):
+                    c = _fast_index(bits[i], lo, hi, ffirst)
+                    if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:
+                        t = _fraction(bits[i])
+                        fq = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
+                    else:
+                        fq = _radial(q2[i], p, ei, coef)
+                    val = fq * kpsf[j, i] * phx[i] * rowf
+                    # Fold (i, jj) onto the N grid; columns beyond N/2 by conjugation.
+                    cx = i % n_fft
+                    dest = row
+                    if cx > n_half:
+                        cx = n_fft - cx
+                        dest = (n_fft - row) % n_fft
+                        val = val.conjugate()
+                    w = 1.0 if i == 0 else 2.0
+                    if cx != 0 and cx != n_half:
+                        w *= 0.5
+                    out[s, dest, cx] += w * val
 
 
 @dataclass
@@ -296,8 +420,8 @@ class StampRenderer:
             size = r0
         else:
             # Round Gaussians are filled separably (exact exp); transformed ones with cutoffs.
-            table = np.where((e1 == 0) & (e2 == 0) & (g1 == 0) & (g2 == 0), -2, -1)
-            tables = []
+            table = np.where((e1 == 0) & (e2 == 0) & (g1 == 0) & (g2 == 0), 1, 0)
+            tables = [gaussian_profile(gsp, True), gaussian_profile(gsp, False)]
             sigma = rad / _GAUSSIAN_HLR_FACTOR
             r_fold = max(math.sqrt(-2.0 * math.log(gsp.folding_threshold)), gsp.stepk_minimum_hlr * _GAUSSIAN_HLR_FACTOR)
             maxk = math.sqrt(-2.0 * math.log(gsp.maxk_threshold)) / sigma
@@ -356,7 +480,7 @@ class StampRenderer:
                 f"({size * size * 24 / 1024**3:.2f} GB) > gsparams.maximum_fft_size = "
                 f"{info.gsparams.maximum_fft_size}; raise gsparams.maximum_fft_size or gsparams.folding_threshold"
             )
-        params, coef, offsets = _stack_tables(tables, info.gsparams)
+        eparams, eint, coef, fcoef = _stack(tables)
         S = self.stamp_size
         stamps = np.empty((m, S, S), dtype=np.float32)
         grids = np.stack([n_fft, n_k], axis=1)
@@ -370,7 +494,7 @@ class StampRenderer:
                 sel = idx[a:a + batch]
                 kbuf = buf[:len(sel)]
                 _fill_kimages(kbuf, kpsf, int(n_f), int(n_kk), 2.0 * np.pi / int(n_f), amat[sel], flux[sel],
-                              shx[sel], shy[sel], table[sel], params, coef, offsets)
+                              shx[sel], shy[sel], table[sel], eparams, eint, coef, fcoef)
                 stamps[sel] = inverse_fft_window(kbuf, int(n_f), S)
         return stamps
 
@@ -425,13 +549,15 @@ def _shear_matrix(g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
     return mat
 
 
-def _stack_tables(tables: list[RadialTable], gsparams: galsim.GSParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Radial tables as flat arrays for the numba kernel: (params, coefficients, offsets);
-    the last row of params holds the Gaussian's q^2 limits (SBGaussian.cpp)."""
-    gauss = np.zeros(8)
-    gauss[0] = (gsparams.kvalue_accuracy * 48.0) ** (1.0 / 3.0)
-    gauss[1] = -2.0 * math.log(gsparams.kvalue_accuracy)
-    params = np.stack([t.params for t in tables] + [gauss])
-    coef = np.concatenate([t.coef for t in tables]) if tables else np.zeros((1, 4))
-    offsets = np.concatenate([[0], np.cumsum([len(t.coef) for t in tables])]).astype(np.int64)
-    return params, coef, offsets
+def _stack(profiles: list[RadialProfile]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Radial profiles as flat arrays for the numba kernels: exact params (T, 8), integers
+    (T, 6: kind, first and last exact cubic, fast octaves lo and hi, first fast cubic),
+    exact cubics, fast cubics."""
+    eparams = np.stack([p.params for p in profiles])
+    sizes = np.array([len(p.coef) for p in profiles])
+    fsizes = np.array([len(p.fast) for p in profiles])
+    first = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    ffirst = np.concatenate([[0], np.cumsum(fsizes)[:-1]])
+    eint = np.array([[p.kind, first[k], first[k] + sizes[k] - 1, p.octaves[0], p.octaves[1], ffirst[k]]
+                     for k, p in enumerate(profiles)], dtype=np.int64)
+    return eparams, eint, np.concatenate([p.coef for p in profiles]), np.concatenate([p.fast for p in profiles])
