@@ -222,12 +222,33 @@ def require_columns(
 
 
 def _history_cards(lines: Iterable[str]) -> list[dict[str, Any]]:
+    """One step per line, cut into cards; a continuation card starts with one space
+    (FITS readers strip trailing blanks, so a cut never leaves one at a card's end)."""
     cards = []
     for line in lines:
-        line = str(line)
-        for i in range(0, max(len(line), 1), _HISTORY_WIDTH):
-            cards.append({"name": "HISTORY", "value": line[i : i + _HISTORY_WIDTH]})
+        rest, prefix = str(line), ""
+        while True:
+            width = _HISTORY_WIDTH - len(prefix)
+            chunk = rest[:width]
+            if len(rest) > width:
+                chunk = chunk.rstrip(" ") or chunk
+            cards.append({"name": "HISTORY", "value": prefix + chunk})
+            rest, prefix = rest[len(chunk):], " "
+            if not rest:
+                break
     return cards
+
+
+def history_steps(lines: Iterable[str]) -> list[str]:
+    """The processing steps recorded in ``HISTORY`` cards, continuation cards joined."""
+    steps: list[str] = []
+    for line in lines:
+        line = str(line)
+        if line.startswith(" ") and steps:
+            steps[-1] += line[1:]
+        else:
+            steps.append(line)
+    return steps
 
 
 def header_cards(

@@ -33,8 +33,9 @@ from typing import Any
 import numpy as np
 
 from megalut_cli import expr as _expr
-from megalut_cli.catalog import catalog_info, iter_catalog, read_catalog
+from megalut_cli.catalog import catalog_info, history_steps, iter_catalog, read_catalog
 from megalut_cli.errors import ConfigError, InputError, MegalutError
+from megalut_cli.provenance import CREATOR, command_line, sha256_file, software_versions, utc_now
 from megalut_cli.shear.bias import (
     GREAT3_SIGMA2_MIN_GROUND,
     STAGE_IV_C,
@@ -59,7 +60,7 @@ SCHEMES = ("unweighted", "weighted")
 CHUNK_ROWS = 500_000
 #: Format name of the JSON written by ``megalut evaluate --json``.
 JSON_FORMAT = "megalut.evaluation"
-JSON_FORMAT_VERSION = "1.0"
+JSON_FORMAT_VERSION = "1.1"
 
 
 # --------------------------------------------------------------------------- planning
@@ -342,7 +343,30 @@ def evaluate_catalog(
     _prepare_cases(plan, lambda cols: _read_columns(path, cols))
     result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins, sigma2_min)
     result["input"] = str(path)
+    result["provenance"] = evaluation_provenance(path)
     return result
+
+
+def evaluation_provenance(path: str | os.PathLike) -> dict[str, Any]:
+    """Provenance of an evaluation of ``path``: this run (creator, date, command, versions)
+    and its input (sha256; for a megalut catalog its format, date, model and config hashes
+    and the HISTORY of the steps that made it)."""
+    from megalut_cli.great3.layout import is_fits_file
+
+    source: dict[str, Any] = {"path": str(path), "sha256": sha256_file(path)}
+    if is_fits_file(path):
+        header = catalog_info(path)[2]
+        for key, card in (("format", "MLFORMAT"), ("created", "DATE"), ("creator", "CREATOR"),
+                          ("model", "MODEL"), ("model_sha256", "MODELSHA"), ("config_sha256", "CFGSHA")):
+            source[key] = header.get(card)
+        source["history"] = history_steps(header.get("HISTORY", []))
+    return {
+        "creator": CREATOR,
+        "created": utc_now(),
+        "command": command_line(),
+        "versions": software_versions(),
+        "input": source,
+    }
 
 
 def evaluate_columns(
