@@ -95,7 +95,16 @@ def main(verbose: int, quiet: int) -> None:
 
 
 def _register() -> None:
-    from megalut_cli.cli import evaluate, info, measure, predict, run, simulate, train_point, train_weight
+    from megalut_cli.cli import (
+        evaluate,
+        info,
+        measure,
+        predict,
+        run,
+        simulate,
+        train_point,
+        train_weight,
+    )
 
     for mod in (simulate, measure, train_point, train_weight, predict, evaluate, run, info):
         main.add_command(mod.command)
