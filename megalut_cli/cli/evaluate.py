@@ -107,11 +107,16 @@ def command(
     \b
     Example:
       megalut evaluate shears.fits
-      megalut evaluate shears.fits --by tru_rad,tru_sersicn,snr --bins 5 --plot biases.png
-      megalut evaluate vp-shears.fits --select-cases "mean(snr) > 10" --by "mean(snr),tru_rad,tru_sersicn"
-      megalut evaluate shears.fits --select "snr > 10 & adamom_sigma > 1.5" --json biases.json
-      megalut evaluate shears.fits --fail-above || echo "biases out of tolerance"
-      megalut evaluate submission.txt --great3-truth branch/truth --sigma2-min 1
+      megalut evaluate shears.fits --by tru_rad,tru_sersicn,snr --bins 5 \\
+          --plot biases.png
+      megalut evaluate vp-shears.fits --select-cases "mean(snr) > 10" \\
+          --by "mean(snr),tru_rad,tru_sersicn"
+      megalut evaluate shears.fits \\
+          --select "snr > 10 & adamom_sigma > 1.5" --json biases.json
+      megalut evaluate shears.fits --fail-above \\
+          || echo "biases out of tolerance"
+      megalut evaluate submission.txt --great3-truth branch/truth \\
+          --sigma2-min 1
     """
     from megalut_cli.atomic import check_output
     from megalut_cli.shear.evaluate import evaluate_catalog, format_table, requirement_met
