@@ -61,6 +61,8 @@ CHUNK_ROWS = 500_000
 #: Format name of the JSON written by ``megalut evaluate --json``.
 JSON_FORMAT = "megalut.evaluation"
 JSON_FORMAT_VERSION = "1.1"
+#: |m| above which a fit is flagged as the sign of an untrained or mismatched model.
+WARN_M = 0.1
 
 
 # --------------------------------------------------------------------------- planning
@@ -345,6 +347,16 @@ def evaluate_catalog(
     result["input"] = str(path)
     result["provenance"] = evaluation_provenance(path)
     return result
+
+
+def large_m(result: Mapping[str, Any]) -> list[str]:
+    """The fits of ``result`` with ``|m| > WARN_M``, as ``"unweighted g1: m = -0.53"``."""
+    out = []
+    for scheme in ("unweighted", "weighted"):
+        for comp, fit in (result.get(scheme) or {}).items():
+            if fit.get("m") is not None and abs(fit["m"]) > WARN_M:
+                out.append(f"{scheme} {comp}: m = {fit['m']:+.2f}")
+    return out
 
 
 def evaluation_provenance(path: str | os.PathLike) -> dict[str, Any]:
