@@ -240,3 +240,24 @@ def test_info_bad_inputs(runner, cli, tmp_path, chain):
 def test_help(runner, cli):
     result = runner.invoke(cli, ["info", "--help"])
     assert result.exit_code == 0 and "--json" in result.output and "Example" in result.output
+
+
+def test_docs_tables_match_the_code():
+    """docs/catalogs.md lists every known column with its unit, and every flag bit."""
+    from pathlib import Path
+
+    from megalut_cli.columns import COLUMNS
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "catalogs.md").read_text()
+    rows = {}
+    for line in text.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.startswith("| `") and len(cells) >= 3:
+            for name in cells[0].replace("`", "").split(","):
+                rows[name.strip()] = cells[1:]
+    for name, (unit, _) in COLUMNS.items():
+        assert name in rows, f"docs/catalogs.md: column {name} missing"
+        assert rows[name][0] == unit, f"docs/catalogs.md: {name} unit {rows[name][0]!r} != {unit!r}"
+    for value, name in flags.FLAG_NAMES.items():
+        bit = value.bit_length() - 1
+        assert f"| {bit} | {value} | `{name}` | {flags.FLAG_DESCRIPTIONS[value]} |" in text, name

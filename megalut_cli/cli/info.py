@@ -7,7 +7,7 @@ import click
 
 @click.command("info", short_help="Summarise a megalut catalog, stamp image or model file.")
 @click.argument("file", type=click.Path(exists=True, dir_okay=False))
-@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON (layout: docs/info.md).")
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON (layout: docs/catalogs.md).")
 def command(file: str, as_json: bool) -> None:
     """Show what FILE holds, as fitsinfo and rio info do for theirs.
 
