@@ -261,3 +261,20 @@ def test_docs_tables_match_the_code():
     for value, name in flags.FLAG_NAMES.items():
         bit = value.bit_length() - 1
         assert f"| {bit} | {value} | `{name}` | {flags.FLAG_DESCRIPTIONS[value]} |" in text, name
+
+
+def test_predict_carries_user_cards_and_comments(runner, cli, tmp_path):
+    from test_shear_predict import features_catalog
+
+    src, model, out = tmp_path / "f.fits", tmp_path / "m.h5", tmp_path / "s.fits"
+    make_model(model)
+    write_catalog(src, features_catalog(50), fmt="megalut.features",
+                  cards={"OBSERVER": ("me", "who took the data"), "COMMENT": ["a user note", "second note"]})
+    r = runner.invoke(cli, ["predict", str(src), "--model", str(model), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    header = fitsio.read_header(str(out), "CATALOG")
+    assert header["OBSERVER"] == "me" and header.get_comment("OBSERVER") == "who took the data"
+    comments = [rec["value"] for rec in header.records() if rec["name"] == "COMMENT"]
+    assert comments == ["a user note", "second note"]
+    assert header["MLFORMAT"] == "megalut.predictions"
+    assert sum(1 for rec in header.records() if rec["name"] == "MLFORMAT") == 1
