@@ -18,8 +18,8 @@ from megalut_cli import flags
 COLUMNS: dict[str, tuple[str, str]] = {
     "case": ("", "case index (one galaxy/shear per case)"),
     "rea": ("", "realization index within the case"),
-    "x": ("pixel", "stamp centre x in the image (FITS 1-based)"),
-    "y": ("pixel", "stamp centre y in the image (FITS 1-based)"),
+    "x": ("pixel", "stamp centre x in the image (1-based unless XYORIGIN = 0)"),
+    "y": ("pixel", "stamp centre y in the image (1-based unless XYORIGIN = 0)"),
     "subfield": ("", "GREAT3 subfield"),
     "ID": ("", "GREAT3 galaxy ID"),
     "star": ("", "star index in the star field"),

@@ -37,6 +37,14 @@ def test_axis_labels_carry_units():
     assert axis_label("mycol") == "mycol"
 
 
+def test_warning_needs_m_beyond_its_error():
+    from megalut_cli.shear.evaluate import m_too_large
+
+    assert m_too_large(-0.5, 0.01) and m_too_large(0.15, None) and m_too_large(0.12, 0.01)
+    assert not m_too_large(-0.108, 0.044)  # noise: 2.5 sigma from 0, not beyond 0.1
+    assert not m_too_large(0.05, None) and not m_too_large(None, None) and not m_too_large(float("nan"), 0.1)
+
+
 def test_good_model_figure():
     r = evaluate_columns(synthetic(seed=3, n_cases=40, weights=True, m=(2e-3, 0), sigma=0.05),
                          by=["tru_rad", "mean(snr)"], bins=3)
@@ -73,7 +81,7 @@ def test_large_m_is_flagged_in_red():
     g2 = by_title["unweighted $g_2$ (40 cases)"]
     assert "|m| > 0.1" in g1.get_title() and _is_red(g1.spines["left"].get_edgecolor())
     assert "|m| > 0.1" not in g2.get_title() and not _is_red(g2.spines["left"].get_edgecolor())
-    assert _is_red(by_title["unweighted m by tru_rad"].spines["left"].get_edgecolor())
+    assert not _is_red(by_title["unweighted m by tru_rad"].spines["left"].get_edgecolor())
     assert not _is_red(by_title["unweighted c by tru_rad"].spines["left"].get_edgecolor())
 
 
@@ -85,7 +93,7 @@ def test_cli_warns_on_large_m(runner, cli, tmp_path):
     assert result.exit_code == 0, result.output
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     err = result.stderr
-    found = re.search(r"warning: \|m\| > 0.1 \(unweighted g1: m = ([-+.\d]+)\)", err)
+    found = re.search(r"warning: \|m\| > 0.1 \(unweighted g1: m = ([-+.\d]+) ± [.\d]+\)", err)
     assert found and float(found[1]) == pytest.approx(0.3, abs=0.03), err
     good = tmp_path / "good.fits"
     write_catalog(good, synthetic(seed=4, n_cases=30, n_rea=20, sigma=0.05), fmt="megalut.predictions")

@@ -61,7 +61,8 @@ CHUNK_ROWS = 500_000
 #: Format name of the JSON written by ``megalut evaluate --json``.
 JSON_FORMAT = "megalut.evaluation"
 JSON_FORMAT_VERSION = "1.1"
-#: |m| above which a fit is flagged as the sign of an untrained or mismatched model.
+#: |m| above which a fit is flagged as the sign of an untrained or mismatched model
+#: (when it exceeds it by more than its 1-sigma error: noise alone does not warn).
 WARN_M = 0.1
 
 
@@ -349,13 +350,23 @@ def evaluate_catalog(
     return result
 
 
+def m_too_large(m: float | None, m_err: float | None) -> bool:
+    """Whether ``|m| > WARN_M`` by more than its 1-sigma error ``m_err`` (or, without an
+    error, at all): the multiplicative bias of an untrained or mismatched model."""
+    if m is None or not math.isfinite(m):
+        return False
+    margin = m_err if m_err is not None and math.isfinite(m_err) else 0.0
+    return abs(m) - margin > WARN_M
+
+
 def large_m(result: Mapping[str, Any]) -> list[str]:
-    """The fits of ``result`` with ``|m| > WARN_M``, as ``"unweighted g1: m = -0.53"``."""
+    """The fits of ``result`` where :func:`m_too_large`, as ``"unweighted g1: m = -0.53 ± 0.01"``."""
     out = []
     for scheme in ("unweighted", "weighted"):
         for comp, fit in (result.get(scheme) or {}).items():
-            if fit.get("m") is not None and abs(fit["m"]) > WARN_M:
-                out.append(f"{scheme} {comp}: m = {fit['m']:+.2f}")
+            if m_too_large(fit.get("m"), fit.get("m_err")):
+                err = f" ± {fit['m_err']:.2f}" if fit.get("m_err") is not None else ""
+                out.append(f"{scheme} {comp}: m = {fit['m']:+.2f}{err}")
     return out
 
 
