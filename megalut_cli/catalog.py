@@ -83,7 +83,7 @@ def catalog_info(path: str | os.PathLike) -> tuple[int, list[str], dict[str, Any
 
 
 _STRUCTURAL = re.compile(
-    r"^(XTENSION|SIMPLE|EXTEND|BITPIX|NAXIS\d*|PCOUNT|GCOUNT|TFIELDS|T(TYPE|FORM|UNIT|COMM|DIM|NULL|SCAL|ZERO)\d+"
+    r"^(XTENSION|SIMPLE|EXTEND|BITPIX|NAXIS\d*|PCOUNT|GCOUNT|TFIELDS|BZERO|BSCALE|T(TYPE|FORM|UNIT|COMM|DIM|NULL|SCAL|ZERO)\d+"
     r"|FLAGBIT\d+)$"
 )
 
@@ -102,17 +102,18 @@ def header_dict(hdr: fitsio.FITSHDR) -> dict[str, Any]:
     return out
 
 
-def read_cards(path: str | os.PathLike) -> dict[str, Any]:
-    """User-level cards of a catalog's table header as ``(value, comment)`` pairs, to carry
-    into a catalog made from it; ``COMMENT`` cards as a list under ``"COMMENT"``.
+def read_cards(path: str | os.PathLike, ext: int | None = None) -> dict[str, Any]:
+    """User-level cards of a catalog's table header (or of HDU ``ext``, e.g. a stamp image)
+    as ``(value, comment)`` pairs, to carry into a catalog made from it; ``COMMENT`` cards
+    as a list under ``"COMMENT"``.
 
-    Cards written afresh by every writer (dates, format, history, columns, flag bits) are
-    left out.
+    Cards written afresh by every writer (dates, format, history, columns, flag bits) and
+    structural ones are left out.
     """
     _check_exists(path)
     try:
         with fitsio.FITS(str(path)) as f:
-            hdr = f[_table_ext(f, path)].read_header()
+            hdr = f[_table_ext(f, path) if ext is None else ext].read_header()
     except InputError:
         raise
     except (OSError, ValueError) as err:

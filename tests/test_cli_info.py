@@ -278,3 +278,14 @@ def test_predict_carries_user_cards_and_comments(runner, cli, tmp_path):
     assert comments == ["a user note", "second note"]
     assert header["MLFORMAT"] == "megalut.predictions"
     assert sum(1 for rec in header.records() if rec["name"] == "MLFORMAT") == 1
+
+
+def test_measure_without_catalog_carries_the_image_cards(runner, cli, chain, tmp_path):
+    out = tmp_path / "f.fits"
+    r = runner.invoke(cli, ["measure", str(chain["st"]), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    image = fitsio.read_header(str(chain["st"]), 0)
+    header, _, _ = _table_header(out)
+    for card in ("SEED", "CFGSHA", "NSTAMPS"):
+        assert header[card] == image[card] and header.get_comment(card) == image.get_comment(card)
+    assert header["MLFORMAT"] == "megalut.features" and "BITPIX" not in header.keys()[8:]

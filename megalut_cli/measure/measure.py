@@ -387,7 +387,7 @@ def measure_file(
         centres = stamp_centres(origins, size)
         table = Table({"x": centres[:, 0], "y": centres[:, 1]})
         history = info.header.get("HISTORY")
-        cards = {}
+        cards = read_cards(stamps_path, ext=info.ext)  # the image's provenance (seed, config)
     log.info("%s: %d stamps of %dx%d pixels", stamps_path, len(origins), size, size)
     header_gain = _card_value(cards.get("GAIN", info.header.get("GAIN")))
     if gain is None and header_gain is not None:
