@@ -90,11 +90,13 @@ def command(
 
     \b
     Example:
-      megalut simulate examples/fiducial/vp.toml -o cat.fits --stamps stamps.fits
+      megalut simulate examples/fiducial/vp.toml -o cat.fits \\
+          --stamps stamps.fits
       megalut measure stamps.fits cat.fits -o features.fits -j 2
-      megalut measure image-000-0.fits galaxy_catalog-000.txt -o f.fits --stamp-size 48 \\
-          --origin 0 --psf starfield_image-000-0.fits
-      megalut measure starfield_image-000-0.fits -o stars.fits --stamp-size 48
+      megalut measure image-000-0.fits galaxy_catalog-000.txt -o f.fits \\
+          --stamp-size 48 --origin 0 --psf starfield_image-000-0.fits
+      megalut measure starfield_image-000-0.fits -o stars.fits \\
+          --stamp-size 48
     """
     from megalut_cli.cli.options import progress
     from megalut_cli.measure.measure import measure_file

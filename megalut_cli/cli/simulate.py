@@ -87,10 +87,14 @@ def command(
 
     \b
     Examples:
-      megalut simulate examples/fiducial/tp.toml -o tp.fits --measure --n-cases 50 --n-realizations 200 -j 4
-      megalut simulate examples/fiducial/vo.toml -o vo.fits --stamps vo-stamps.fits --n-cases 2 --n-realizations 100
-      megalut simulate examples/varpsf/pretrain.toml -o pre.fits --measure noise.sigma=0.2 --n-cases 100
-      megalut simulate examples/great3/branch.toml -o branch.fits --great3 branch/ --n-cases 20
+      megalut simulate examples/fiducial/tp.toml -o tp.fits --measure \\
+          --n-cases 50 --n-realizations 200 -j 4
+      megalut simulate examples/fiducial/vo.toml -o vo.fits \\
+          --stamps vo-stamps.fits --n-cases 2 --n-realizations 100
+      megalut simulate examples/varpsf/pretrain.toml -o pre.fits --measure \\
+          noise.sigma=0.2 --n-cases 100
+      megalut simulate examples/great3/branch.toml -o branch.fits \\
+          --great3 branch/ --n-cases 20
     """
     from megalut_cli.sim.config import load_config
     from megalut_cli.sim.simulate import n_work_units, simulate

@@ -698,14 +698,14 @@ def _write_shears(path: Path, workdir: Path, subfields: Sequence[int], overwrite
     import fitsio
 
     from megalut_cli.atomic import atomic_output
-    from megalut_cli.catalog import catalog_info, header_cards, read_catalog
+    from megalut_cli.catalog import catalog_info, header_cards, read_catalog, write_table_hdu
 
     n = 0
     dtype = None
     _, _, header = catalog_info(workdir / SUBFIELDS_DIR / f"{subfields[0]:03d}" / "shears.fits")
     cards = {k: v for k, v in header.items() if k not in ("HISTORY", "MODEL", "MODELSHA", "SUBFIELD", "TEXTCAT")}
     cards["NSUBFLD"] = (len(subfields), "subfields in this catalog")
-    recs = header_cards(SHEARS_FORMAT, "1.0", cards, header.get("HISTORY"))
+    history = header.get("HISTORY")
     with atomic_output(path, overwrite) as tmp, fitsio.FITS(str(tmp), "rw", clobber=True) as fits:
         for s in subfields:
             src = workdir / SUBFIELDS_DIR / f"{s:03d}" / "shears.fits"
@@ -720,7 +720,7 @@ def _write_shears(path: Path, workdir: Path, subfields: Sequence[int], overwrite
             for c in dtype.names:
                 arr[c] = cols[c]
             if len(fits) < 2:
-                fits.write(arr, header=recs, extname="CATALOG")
+                write_table_hdu(fits, arr, header_cards(SHEARS_FORMAT, "1.0", cards, history, columns=dtype.names))
             else:
                 fits[-1].append(arr)
             n += len(t)

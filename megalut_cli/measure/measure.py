@@ -48,7 +48,14 @@ from astropy.table import Table
 
 from megalut_cli import flags as fl
 from megalut_cli.atomic import check_output
-from megalut_cli.catalog import catalog_info, read_catalog, require_columns, write_catalog
+from megalut_cli.catalog import (
+    catalog_info,
+    read_cards,
+    read_carried_hdus,
+    read_catalog,
+    require_columns,
+    write_catalog,
+)
 from megalut_cli.engine import DEFAULT_ENGINE
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.measure.features import (
@@ -260,6 +267,11 @@ def _read_positions_catalog(path: str | os.PathLike) -> Table:
     return table
 
 
+def _card_value(card: Any) -> Any:
+    """The value of a header card given as a value or a ``(value, comment)`` pair."""
+    return card[0] if isinstance(card, tuple) else card
+
+
 def _grid_step(v: np.ndarray) -> tuple[float | None, int, bool]:
     """``(step, n_unique, regular)`` of the distinct values of ``v`` (step None if < 3:
     two values always look like a regular grid)."""
@@ -358,6 +370,7 @@ def measure_file(
         )
     n_y, n_x = check_grid(info, size)
 
+    extra_hdus: dict[str, np.ndarray] = {}
     if catalog_path is not None:
         table = _read_positions_catalog(catalog_path)
         x, y = _catalog_positions(table, str(catalog_path))
@@ -369,15 +382,21 @@ def measure_file(
                 f"{size} pixels; wrong --origin or --stamp-size?)"
             )
         history = table.meta.get("HISTORY")
-        cards = {k: v for k, v in table.meta.items() if k not in ("HISTORY", "COMMENT")}
+        from megalut_cli.great3.layout import is_fits_file
+
+        if is_fits_file(catalog_path):  # carried with their comments, and the CONFIG HDU
+            cards = read_cards(catalog_path)
+            extra_hdus = read_carried_hdus(catalog_path)
+        else:
+            cards = {k: v for k, v in table.meta.items() if k not in ("HISTORY", "COMMENT")}
     else:
         origins = grid_origins(n_y, n_x, size)[: _n_grid_stamps(info, n_y * n_x)]
         centres = stamp_centres(origins, size)
         table = Table({"x": centres[:, 0], "y": centres[:, 1]})
         history = info.header.get("HISTORY")
-        cards = {}
+        cards = read_cards(stamps_path, ext=info.ext)  # the image's provenance (seed, config)
     log.info("%s: %d stamps of %dx%d pixels", stamps_path, len(origins), size, size)
-    header_gain = cards.get("GAIN", info.header.get("GAIN"))
+    header_gain = _card_value(cards.get("GAIN", info.header.get("GAIN")))
     if gain is None and header_gain is not None:
         log.warning(
             "the input header has GAIN=%s but no --gain was given: snr uses Eq. 10 "
@@ -395,7 +414,8 @@ def measure_file(
         feats["flags"] |= psf.pop("flags")
 
     if stars:
-        return _write_stars(stamps_path, table, feats, output, overwrite, size, origin if catalog_path else 1, cards, history)
+        return _write_stars(stamps_path, table, feats, output, overwrite, size, origin if catalog_path else 1, cards, history,
+                            extra_hdus)
 
     new_cols = list(FEATURE_COLUMNS) + (list(PSF_COLUMNS) if psf is not None else [])
     replaced = [c for c in new_cols if c in table.colnames]
@@ -419,7 +439,10 @@ def measure_file(
             "MENGINE": (engine, "engine of the adaptive moments (megalut --engine)"),
         }
     )
-    write_catalog(output, table, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history)
+    if "MEASURED" in cards:  # a simulation's card: the features are now measured
+        cards["MEASURED"] = (True, "the catalog holds measured features")
+    write_catalog(output, table, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history,
+                  extra_hdus=extra_hdus)
     log.info("wrote %s (%d rows)", output, len(table))
     return table
 
@@ -434,6 +457,7 @@ def _write_stars(
     origin: int,
     cards: dict[str, Any],
     history: list[str] | None,
+    extra_hdus: dict[str, np.ndarray],
 ) -> Table:
     """Write the star-by-star PSF features of a star field (format ``megalut.stars``)."""
     good = feats["flags"] == 0
@@ -457,6 +481,8 @@ def _write_stars(
             "NSTARS": (int(good.sum()), "stars measured"),
         }
     )
-    write_catalog(output, table, fmt=STARS_FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history)
+    cards.pop("MEASURED", None)
+    write_catalog(output, table, fmt=STARS_FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history,
+                  extra_hdus=extra_hdus)
     log.info("wrote %s (%d stars)", output, len(table))
     return table

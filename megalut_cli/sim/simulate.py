@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import fitsio
 import numpy as np
 
 from megalut_cli.atomic import atomic_output, check_output
@@ -97,7 +96,7 @@ def simulation_cards(config: SimConfig, seed: int, measured: bool, engine: str =
         "SNC": (s.snc, "shape-noise cancellation"),
         "NOISE": (config.noise.type if config.noise.override_sigma is None else "gaussian", "noise model"),
         "GAIN": (config.gain, "gain e-/ADU (CCD noise)"),
-        "MEASURED": (bool(measured), "features measured while simulating"),
+        "MEASURED": (bool(measured), "the catalog holds measured features"),
         "ENGINE": (engine, "stamp engine (megalut simulate --engine)"),
         "CFGFILE": (Path(config.path).name, "simulation config file"),
         "CFGSHA": (config.sha256, "sha256 of the config file"),
@@ -120,9 +119,8 @@ def write_simulation_catalog(
 ) -> None:
     """Write (replace) a ``megalut.simulation`` catalog at ``path``, the effective
     configuration in its ``CONFIG`` HDU; meant for the temporary file of ``atomic_output``."""
-    write_catalog(path, columns, fmt=CATALOG_FORMAT, cards=cards, overwrite=True)
-    with fitsio.FITS(str(path), "rw") as f:
-        f.write(_config_table(config), extname="CONFIG")
+    write_catalog(path, columns, fmt=CATALOG_FORMAT, cards=cards, overwrite=True,
+                  extra_hdus={"CONFIG": _config_table(config)})
 
 
 def _assemble(results: list[dict[str, Any]]) -> dict[str, np.ndarray]:
