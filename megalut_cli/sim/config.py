@@ -102,6 +102,9 @@ _REAL_KEYS = {"real_catalog", "real_dir", "pixel_scale", "index", "real_select",
 HST_NOISE_MODES = ("symmetrize", "whiten", "keep")
 _GALAXY_KEYS |= _REAL_KEYS
 _NOISE_KEYS = {"type", "sigma", "sky_mag", "read_noise", "override_sigma"}
+#: Keys of correlated noise (noise.type = "correlated").
+_CORRELATED_KEYS = {"sigma", "image", "correlation", "hdu", "pixel_scale"}
+_NOISE_KEYS |= _CORRELATED_KEYS
 _INSTRUMENT_KEYS = {"pixel_scale", "exptime", "gain", "zeropoint"}
 _CATALOG_KEYS = {"path", "select", "hdu"}
 
@@ -159,11 +162,27 @@ class GalaxySpec:
         return "knots" in self.params
 
 
+#: Sources of correlated noise: a noise image or a correlation-function image.
+CORRELATED_SOURCES = ("image", "correlation")
+
+
+@dataclass(frozen=True)
+class CorrelationSource:
+    """Where a correlated-noise model comes from (plain, picklable)."""
+
+    kind: str  # "image" | "correlation"
+    path: str
+    hdu: int | None = None
+    pixel_scale: float = 1.0  # size of the source's pixel in simulation pixels
+
+
 @dataclass(frozen=True)
 class NoiseSpec:
     type: str
     params: dict[str, Distribution]  # sigma | sky_mag, read_noise
     override_sigma: float | None = None
+    #: type "correlated": where the correlation function comes from
+    source: CorrelationSource | None = None
 
 
 @dataclass(frozen=True)
@@ -646,11 +665,23 @@ def _parse_noise(raw: Mapping[str, Any], instrument: Mapping[str, float], config
     if is_measured(t.get("sigma")):
         t["sigma"] = measured_value(t["sigma"], "noise.sigma", config_path)
     kind = _choice(t.get("type"), "noise.type", NOISE_TYPES)
-    allowed = {"gaussian": {"sigma"}, "ccd": {"sky_mag", "read_noise"}, "none": set()}[kind]
+    allowed = {"gaussian": {"sigma"}, "ccd": {"sky_mag", "read_noise"}, "correlated": _CORRELATED_KEYS,
+               "none": set()}[kind]
     extra = sorted(set(t) - allowed - {"type", "override_sigma"})
     if extra:
         raise ConfigError(f"noise.{extra[0]}: not a key of noise type {kind!r}")
-    if kind == "gaussian":
+    source = None
+    if kind == "correlated":
+        source = _correlation_source(t, config_path)
+        if "sigma" not in t:
+            if source.kind == "correlation":
+                raise ConfigError("noise.sigma: missing (pixel standard deviation in ADU of the correlated noise)")
+            from megalut_cli.sim.noise import source_variance
+
+            t["sigma"] = math.sqrt(source_variance(source))
+            log.info("noise.sigma = %g: the pixel standard deviation of %s", t["sigma"], source.path)
+        params = _dists(t, "noise", ["sigma"])
+    elif kind == "gaussian":
         if "sigma" not in t:
             raise ConfigError("noise.sigma: missing (standard deviation in ADU)")
         params = _dists(t, "noise", ["sigma"])
@@ -669,7 +700,36 @@ def _parse_noise(raw: Mapping[str, Any], instrument: Mapping[str, float], config
         override = _float(override, "noise.override_sigma")
         if override < 0:
             raise ConfigError(f"noise.override_sigma: must be >= 0, got {override}")
-    return NoiseSpec(kind, params, override)
+    return NoiseSpec(kind, params, override, source)
+
+
+def _correlation_source(t: Mapping[str, Any], config_path: str) -> CorrelationSource:
+    """The noise image or correlation-function image of ``noise.type = "correlated"``."""
+    given = [k for k in CORRELATED_SOURCES if k in t]
+    if len(given) != 1:
+        raise ConfigError(
+            "noise.image: correlated noise needs exactly one of noise.image (a FITS noise image, e.g. a "
+            "blank-sky cutout) or noise.correlation (a FITS correlation-function image, e.g. GalSim's "
+            f"acs_I_unrot_sci_20_cf.fits) (got {', '.join(given) or 'none'})"
+        )
+    kind = given[0]
+    path = _resolve_path(t[kind], f"noise.{kind}", config_path)
+    hdu = t.get("hdu")
+    if hdu is not None:
+        hdu = _int(hdu, "noise.hdu", 0)
+    scale = _float(t.get("pixel_scale", 1.0), "noise.pixel_scale")
+    if scale <= 0:
+        raise ConfigError(f"noise.pixel_scale: must be > 0, got {scale}")
+    if kind == "correlation" and hdu is not None:
+        raise ConfigError("noise.hdu: only for noise.image (a correlation-function file is read from its first HDU)")
+    source = CorrelationSource(kind, str(path), hdu, scale)
+    from megalut_cli.sim.noise import unit_correlated_noise
+
+    try:
+        unit_correlated_noise(source)  # fail now, with one line, on an unusable file
+    except InputError as err:
+        raise ConfigError(str(err)) from None
+    return source
 
 
 def _parse_gsparams(raw: Mapping[str, Any]) -> dict[str, float]:
@@ -876,7 +936,7 @@ def validate_config(
     shear = _dists(shear_t, "shear", ["g1", "g2"])
     galaxy = _parse_galaxy(raw, instrument, path)
     noise = _parse_noise(raw, instrument, path)
-    if galaxy.real is not None and galaxy.real["hst_noise"] != "keep" and noise.type == "ccd" and noise.override_sigma is None:
+    if galaxy.real is not None and galaxy.real["hst_noise"] != "keep" and noise.type in ("ccd", "correlated") and noise.override_sigma is None:
         raise ConfigError(
             f"galaxy.hst_noise: {galaxy.real['hst_noise']!r} needs noise.type = 'gaussian' (the added noise "
             "makes up the rest of the variance); or set galaxy.hst_noise = 'keep'"

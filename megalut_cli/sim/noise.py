@@ -5,6 +5,12 @@
 - ``ccd``: GalSim ``CCDNoise``: Poisson noise of the source plus a sky level that has
   been subtracted, and Gaussian read noise, with the sky level from a magnitude per
   arcsec^2: ``F_sky = pix^2 * t / G * 10^(-0.4 (m_sky - Zp))`` (ADU per pixel);
+- ``correlated``: stationary Gaussian noise of pixel standard deviation ``sigma`` (ADU)
+  whose correlation function is that of a noise image (e.g. a blank-sky cutout of the
+  data, GalSim ``CorrelatedNoise``) or a correlation-function image (GalSim
+  ``getCOSMOSNoise``), dilated by the source's pixel size in simulation pixels
+  (``pixel_scale``), sampled at the simulation's pixel separations and rescaled to the
+  pixel variance ``sigma**2``;
 - ``none``: noiseless stamps.
 
 ``override_sigma`` replaces any of these by Gaussian noise of that sigma (low-noise
@@ -13,10 +19,38 @@ pretraining sets, Sect. 6 of the paper).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 
 import galsim
+
+from megalut_cli.errors import InputError
+from megalut_cli.sim.config import CorrelationSource
+
+
+@functools.lru_cache(maxsize=8)
+def unit_correlated_noise(source: CorrelationSource) -> galsim.BaseCorrelatedNoise:
+    """The correlated-noise model of ``source`` in simulation pixels, pixel variance 1
+    (built once per process; its random generator is reset for every stamp)."""
+    try:
+        if source.kind == "correlation":
+            cn = galsim.getCOSMOSNoise(file_name=source.path, cosmos_scale=source.pixel_scale, variance=1.0)
+        else:
+            image = galsim.fits.read(source.path, hdu=source.hdu)
+            cn = galsim.CorrelatedNoise(image, scale=source.pixel_scale, subtract_mean=True)
+    except (OSError, ValueError, KeyError, galsim.GalSimError) as err:
+        raise InputError(f"noise.{source.kind}: {source.path}: not a usable {source.kind} image ({err})") from None
+    if not cn.getVariance() > 0:
+        raise InputError(f"noise.{source.kind}: {source.path}: the noise has no variance")
+    return cn.withVariance(1.0)
+
+
+def source_variance(source: CorrelationSource) -> float:
+    """Pixel variance of the noise of a noise image."""
+    image = galsim.fits.read(source.path, hdu=source.hdu)
+    cn = galsim.CorrelatedNoise(image, scale=source.pixel_scale, subtract_mean=True)
+    return float(cn.getVariance())
 
 
 def sky_level(sky_mag: float, instrument: Mapping[str, float]) -> float:
@@ -32,17 +66,27 @@ def sky_level(sky_mag: float, instrument: Mapping[str, float]) -> float:
 class StampNoise:
     """The noise of one case: ``add(image, seed)`` adds a realization seeded by ``seed``."""
 
-    def __init__(self, kind: str, *, sigma: float = 0.0, sky: float = 0.0, gain: float = 1.0, read_noise: float = 0.0):
+    def __init__(
+        self,
+        kind: str,
+        *,
+        sigma: float = 0.0,
+        sky: float = 0.0,
+        gain: float = 1.0,
+        read_noise: float = 0.0,
+        source: CorrelationSource | None = None,
+    ):
         self.kind = kind
         self.sigma = float(sigma)
         self.sky = float(sky)
         self.gain = float(gain)
         self.read_noise = float(read_noise)
+        self.source = source
 
     @property
     def sky_sigma(self) -> float:
         """Standard deviation (ADU) of the background noise of a pixel without source."""
-        if self.kind == "gaussian":
+        if self.kind in ("gaussian", "correlated"):
             return self.sigma
         if self.kind == "ccd":
             return math.sqrt(self.sky / self.gain + (self.read_noise / self.gain) ** 2)
@@ -52,6 +96,13 @@ class StampNoise:
         if self.kind == "gaussian":
             if self.sigma > 0:
                 image.addNoise(galsim.GaussianNoise(galsim.BaseDeviate(int(seed)), sigma=self.sigma))
+        elif self.kind == "correlated":
+            if self.sigma > 0 and self.source is not None:
+                unit = unit_correlated_noise(self.source)
+                unit.rng.reset(int(seed))
+                field = galsim.ImageD(image.bounds, scale=image.scale)
+                field.addNoise(unit)
+                image.array[...] += (self.sigma * field.array).astype(image.array.dtype, copy=False)
         elif self.kind == "ccd":
             image.addNoise(
                 galsim.CCDNoise(
@@ -68,12 +119,15 @@ def make_noise(
     params: Mapping[str, float],
     instrument: Mapping[str, float],
     override_sigma: float | None = None,
+    source: CorrelationSource | None = None,
 ) -> StampNoise:
     """The :class:`StampNoise` of a case from its (scalar) noise parameters."""
     if override_sigma is not None:
         return StampNoise("gaussian", sigma=override_sigma)
     if kind == "gaussian":
         return StampNoise("gaussian", sigma=params["sigma"])
+    if kind == "correlated":
+        return StampNoise("correlated", sigma=params["sigma"], source=source)
     if kind == "ccd":
         return StampNoise(
             "ccd",

@@ -154,7 +154,7 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     # Noise (per case), offsets and noise seeds (per realization).
     drawn = sample_level(config.noise.params, rng_case, 1, nrows)
     nparams = {k: float(v[0]) for k, v in drawn.items()}
-    noise = make_noise(config.noise.type, nparams, config.instrument, config.noise.override_sigma)
+    noise = make_noise(config.noise.type, nparams, config.instrument, config.noise.override_sigma, config.noise.source)
     truth["tru_sky_sigma"] = np.full(n, noise.sky_sigma)
     offsets = rng_noise.uniform(-s.offset, s.offset, (n, 2)) if s.offset > 0 else np.zeros((n, 2))
     truth["tru_dx"], truth["tru_dy"] = offsets[:, 0], offsets[:, 1]
