@@ -375,15 +375,16 @@ def galaxy_profile(
         return float(truth[name][k])
 
     flux = val("tru_flux")
+    single = "gaussian" if profile == "gaussian" else "sersic"  # a cosmos_fit "sersic" fit is a Sersic
     if not is_framed(truth):
-        return base_profile(profile, val("tru_rad"), flux, val("tru_sersicn") if "tru_sersicn" in truth else None,
+        return base_profile(single, val("tru_rad"), flux, val("tru_sersicn") if "tru_sersicn" in truth else None,
                             gsparams)
     frac = val("tru_bulge_fraction") if "tru_bulge_fraction" in truth else 0.0
     disk_flux = (1.0 - frac) * flux
     if "tru_disk_rad" in truth:
         disk_unit = _component(val("tru_disk_sersicn"), val("tru_disk_rad"), 1.0, gsparams)
     else:  # a Sersic or Gaussian galaxy with knots
-        disk_unit = base_profile(profile, val("tru_rad"), 1.0,
+        disk_unit = base_profile(single, val("tru_rad"), 1.0,
                                  val("tru_sersicn") if "tru_sersicn" in truth else None, gsparams)
     n_knots = int(truth["tru_knots"][k]) if "tru_knots" in truth else 0
     knot_frac = val("tru_knots_fraction") if n_knots > 0 else 0.0
