@@ -317,7 +317,7 @@ def test_bad_cosmos_fit_configs(tmp_path, replace, message):
 
 
 def test_cosmos_fit_needs_a_catalog_table(tmp_path):
-    text = COSMOSFIT.split("[catalog]")[0] + COSMOSFIT.split(f'select = "mag_auto < 23"\n')[1]
+    text = COSMOSFIT.split("[catalog]")[0] + COSMOSFIT.split('select = "mag_auto < 23"\n')[1]
     with pytest.raises(ConfigError, match="galaxy.profile: 'cosmos_fit' samples the rows of a \\[catalog\\]"):
         load_config(write(tmp_path, text))
 
