@@ -93,7 +93,7 @@ def test_noise_image_source(tmp_path):
 
 
 def test_simulate_seeds_skymad_and_workers(tmp_path):
-    """Through simulate: tru_sky_sigma is sigma, the median skymad estimates it (3 %), the
+    """Through simulate: tru_sky_sigma is sigma, the median skymad estimates it (a few % low), the
     same seed gives identical stamps with 1 or 2 workers, another seed other stamps."""
     cfg = load_config(write(tmp_path, NOISE_ONLY.replace("SOURCE", f'correlation = "{CF_FILE}"\nsigma = 1.5')),
                       n_cases=4, n_realizations=50)
@@ -106,7 +106,10 @@ def test_simulate_seeds_skymad_and_workers(tmp_path):
     assert not np.allclose(runs["a"], runs["c"])
     t = read_catalog(tmp_path / "a.fits")
     assert np.all(np.asarray(t["tru_sky_sigma"]) == 1.5)
-    assert abs(np.median(t["skymad"]) / 1.5 - 1.0) < 0.03, np.median(t["skymad"])
+    # skymad (MAD of the ~124 edge pixels of a 32-pixel stamp) is biased low by finite
+    # sampling, more so when neighbours are correlated: -1.4 % for white noise, -3 % here
+    # (1000 stamps); the median of 200 stamps scatters by ~1.5 %.
+    assert 0.92 < np.median(t["skymad"]) / 1.5 < 1.01, np.median(t["skymad"])
 
 
 @pytest.mark.parametrize("source,message", [
