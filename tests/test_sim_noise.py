@@ -3,13 +3,11 @@ skymad, config errors."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import fitsio
 import galsim
 import numpy as np
 import pytest
-from sim_configs import write
+from sim_configs import CF_FILE, NOISE_ONLY, write
 
 from megalut_cli.catalog import read_catalog
 from megalut_cli.errors import ConfigError
@@ -17,7 +15,6 @@ from megalut_cli.sim.config import CorrelationSource, load_config
 from megalut_cli.sim.noise import StampNoise
 from megalut_cli.sim.simulate import simulate
 
-CF_FILE = Path(__file__).resolve().parents[1] / "examples" / "data" / "cosmos" / "acs_I_unrot_sci_20_cf.fits"
 LAGS = ((1, 0), (0, 1), (1, 1), (1, -1), (2, 0), (0, 2))
 
 
@@ -138,25 +135,3 @@ def test_cli_unusable_noise_file_is_one_line(tmp_path, runner, cli):
     missing = write(tmp_path, NOISE_ONLY.replace("SOURCE", 'image = "nothere.fits"'), name="m.toml")
     result = runner.invoke(cli, ["simulate", str(missing), "-o", str(tmp_path / "o.fits")])
     assert result.exit_code == 1 and "noise.image: file 'nothere.fits' not found" in result.stderr
-
-
-NOISE_ONLY = """
-[structure]
-n_cases = 2
-n_realizations = 3
-per_realization = ["galaxy"]
-stamp_size = 32
-
-[galaxy]
-profile = "gaussian"
-rad = 2.0
-flux = 0.0
-
-[psf]
-type = "gaussian"
-sigma = 1.5
-
-[noise]
-type = "correlated"
-SOURCE
-"""
