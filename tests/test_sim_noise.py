@@ -135,3 +135,28 @@ def test_cli_unusable_noise_file_is_one_line(tmp_path, runner, cli):
     missing = write(tmp_path, NOISE_ONLY.replace("SOURCE", 'image = "nothere.fits"'), name="m.toml")
     result = runner.invoke(cli, ["simulate", str(missing), "-o", str(tmp_path / "o.fits")])
     assert result.exit_code == 1 and "noise.image: file 'nothere.fits' not found" in result.stderr
+
+
+def test_real_galaxies_refuse_correlated_noise_unless_hst_noise_is_kept(tmp_path):
+    """Correlated noise cannot fill up the symmetrized HST noise of real galaxies to sigma."""
+    real = f"""
+[structure]
+n_cases = 1
+n_realizations = 2
+[galaxy]
+profile = "real"
+real_catalog = "{CF_FILE.parent / 'real_galaxy_catalog_26_extension_example.fits'}"
+pixel_scale = 0.2
+flux = 200.0
+[psf]
+type = "gaussian"
+sigma = 1.0
+[noise]
+type = "correlated"
+correlation = "{CF_FILE}"
+sigma = 1.0
+"""
+    cfg = write(tmp_path, real)
+    with pytest.raises(ConfigError, match="galaxy.hst_noise: 'symmetrize' needs noise.type = 'gaussian'"):
+        load_config(cfg)
+    assert load_config(cfg, ["galaxy.hst_noise=keep"]).noise.type == "correlated"
