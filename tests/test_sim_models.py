@@ -27,6 +27,7 @@ from megalut_cli.sim.galaxies import (
     oriented,
     sersic_b,
 )
+from megalut_cli.sim.simulate import simulate
 from megalut_cli.sim.structure import draw_case
 
 N_IMG = 512  # stamp side for the light-integration tests (pixels)
@@ -349,3 +350,26 @@ def test_realgal_examples_simulate_through_the_cli(name, runner, cli, tmp_path):
               "tp-knots.toml": "tru_knot_seed", "tp-cosmosfit.toml": "tru_cosmos_ident",
               "tw-cosmosfit.toml": "tru_cosmos_ident", "tp-corrnoise.toml": "tru_sky_sigma"}[name]
     assert expect in t.colnames
+
+
+def test_ring_members_are_rotated_copies_and_workers_agree(tmp_path):
+    """A bulge + disk with knots and an offset bulge on a ring of 2 (theta, theta + 90 deg),
+    unlensed, noiseless, centred: the second stamp is the first rotated by 90 degrees (1e-4
+    of the peak). Stamps are identical with 1 and 2 workers."""
+    cfg = load_config(write(tmp_path, BULGEDISK, replace={
+        "knots = 12": "knots = 12\nbulge_dx = 0.6\nbulge_dy = -0.4",
+        'type = "gaussian"\nsigma = 1.0': 'type = "none"',
+        "stamp_size = 32": "stamp_size = 32\noffset = 0.0",
+        'g1 = {type = "uniform", min = -0.05, max = 0.05}': "g1 = 0.0"}), n_cases=3, n_realizations=2)
+    simulate(cfg, tmp_path / "a.fits", stamps=tmp_path / "a-st.fits", seed=2)
+    simulate(cfg, tmp_path / "b.fits", stamps=tmp_path / "b-st.fits", seed=2, nproc=2)
+    a = fitsio.read(str(tmp_path / "a-st.fits"))
+    assert np.array_equal(a, fitsio.read(str(tmp_path / "b-st.fits")))
+    s = 32
+    for case in range(3):
+        k = 2 * case  # stamps 2c and 2c+1 of the grid (n_x = 3)
+        first = a[(k // 3) * s:(k // 3 + 1) * s, (k % 3) * s:(k % 3 + 1) * s]
+        second = a[((k + 1) // 3) * s:((k + 1) // 3 + 1) * s, ((k + 1) % 3) * s:((k + 1) % 3 + 1) * s]
+        # +90 deg counterclockwise with y up: new[y, x] = old at (x, y) -> (y, -x)
+        assert np.max(np.abs(np.rot90(first, k=-1) - second)) < 1e-4 * first.max()
+        assert np.max(np.abs(np.rot90(first, k=1) - second)) > 1e-2 * first.max()  # not symmetric
