@@ -1,4 +1,5 @@
-"""Galaxy profiles and their true parameters (Sersic, Gaussian or real, in pixel units).
+"""Galaxy profiles and their true parameters (Sersic, Gaussian, bulge + disk, knots,
+COSMOS fits or real, in pixel units).
 
 Fluxes (ADU) come directly, from a surface brightness ``F = S * pi * R^2`` (the paper's
 fiducial coupling of size and flux), or from a magnitude with the instrument zero-point,
@@ -6,6 +7,11 @@ exposure time and gain, ``F = t / G * 10^(-0.4 (m - Zp))``. The intrinsic ellipt
 a GalSim reduced-shear-type ellipticity of modulus ``|e| = (1 - q) / (1 + q)`` and position
 angle ``theta``: ``e1 = |e| cos 2 theta``, ``e2 = |e| sin 2 theta``. The lensing shear is
 applied after this intrinsic shape (and its rotation).
+
+Bulge + disk (``profile = "bulgedisk"``), COSMOS-fit (``"cosmos_fit"``) galaxies and
+galaxies with star-forming knots are built from their truth row in their own frame (the
+disk's major axis along x; :func:`galaxy_profile`), then rotated and lensed
+(:func:`oriented`); ``tru_rad`` is then the half-light radius of the round composite.
 
 Real galaxies (``profile = "real"``) are HST images of a GalSim ``RealGalaxyCatalog``,
 deconvolved from their HST PSF (``galsim.RealGalaxy``), scaled to the requested flux,
@@ -310,7 +316,10 @@ def cosmos_fit_truth(
         "auto": np.asarray(gvals.get("fit_use_bulge", np.zeros(n_rows)), dtype=float) > 0.5,
     }[fit]
     nan = np.full(n_rows, np.nan)
-    get = lambda name: np.asarray(gvals.get(name, nan), dtype=float)  # noqa: E731
+
+    def get(name: str) -> np.ndarray:  # fit columns absent for this fit: NaN
+        return np.asarray(gvals.get(name, nan), dtype=float)
+
     n_single = round_sersicn(np.clip(get("fit_n"), *COSMOS_SERSIC_RANGE), sersicn_step)
     fb, fd = get("fit_bulge_flux"), get("fit_disk_flux")
     with np.errstate(invalid="ignore", divide="ignore"):
