@@ -267,7 +267,8 @@ def composite_hlr(
 def q_to_ellipticity(q: np.ndarray) -> np.ndarray:
     """Ellipticity modulus ``(1 - q) / (1 + q)`` of an axis ratio ``q`` (GalSim's g)."""
     q = np.asarray(q, dtype=float)
-    return (1.0 - q) / (1.0 + q)
+    with np.errstate(divide="ignore", invalid="ignore"):  # unused fits hold q = -1
+        return (1.0 - q) / (1.0 + q)
 
 
 def bulgedisk_truth(
