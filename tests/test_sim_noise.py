@@ -84,6 +84,11 @@ def test_noise_image_source(tmp_path):
     sigma = cfg.noise.params["sigma"].bounds()[0]
     assert abs(sigma - np.sqrt(2) * 3.0) < 0.05 * np.sqrt(2) * 3.0
     stamps = noise_stamps(cfg.noise.source, 1.0)
+    with fitsio.FITS(str(tmp_path / "ext.fits"), "rw", clobber=True) as f:  # the image in HDU 1
+        f.write(None)
+        f.write(field.astype(np.float32))
+    in_ext = load_config(write(tmp_path, NOISE_ONLY.replace("SOURCE", 'image = "ext.fits"\nhdu = 1'), name="e.toml"))
+    assert in_ext.noise.params["sigma"].bounds()[0] == pytest.approx(sigma, rel=1e-6)
     xi_x, ex = measured_cf(stamps, 1, 0)
     xi_y, ey = measured_cf(stamps, 0, 1)
     assert abs(xi_x - 0.5) < 4 * ex + 0.02 and abs(xi_y) < 4 * ey + 0.02, (xi_x, xi_y)
