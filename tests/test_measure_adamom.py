@@ -273,6 +273,12 @@ def test_measure_stamps_engines_agree(size):
     assert (fast["flags"] == 0).mean() > 0.7
 
 
+def test_measure_engines_are_the_cli_engines():
+    from megalut_cli.engine import ENGINES
+
+    assert MEASURE_ENGINES == tuple(ENGINES)
+
+
 def test_measure_stamps_rejects_unknown_engine():
     with pytest.raises(ValueError, match="engine"):
         measure_stamps(fiducial_stamps(2), engine="ngmix")
