@@ -390,7 +390,7 @@ class StampRenderer:
         half = n_k // 2
         image = galsim.ImageCD(galsim.BoundsI(0, half, -half, half), scale=2.0 * np.pi / n_fft)
         info.profile.drawKImage(image=image, recenter=False)
-        kimage = np.ascontiguousarray(image.array)
+        kimage = np.ascontiguousarray(image.array, dtype=np.complex64)  # GalSim's own precision
         self._kimages[key] = kimage
         while len(self._kimages) > _KIMAGE_CACHE_MAX:
             self._kimages.popitem(last=False)
