@@ -397,8 +397,12 @@ class StampRenderer:
         return kimage
 
     # -- geometry ---------------------------------------------------------------------------
-    def _geometry(self, info: _PsfInfo, profile: str, rad, sersicn, e1, e2, g1, g2, dx, dy):
-        """Per-stamp arrays: (N, Nk, k-transform matrix, table index, shifts, tables)."""
+    def _geometry(self, info: _PsfInfo, profile: str, rad: np.ndarray, sersicn: np.ndarray | None,
+                  e1: np.ndarray, e2: np.ndarray, g1: np.ndarray, g2: np.ndarray, dx: np.ndarray, dy: np.ndarray
+                  ) -> tuple[np.ndarray, ...]:
+        """Per-stamp arrays: N, Nk, k-transform matrix, radial-profile index, shifts (the
+        offset, centring and S // 2, so that the stamp is the FFT's first S x S pixels);
+        and the radial profiles."""
         if not can_render(profile):
             raise MegalutError(f"renderer: cannot draw galaxy profile {profile!r} (only {', '.join(PROFILES)})")
         gsp = info.gsparams
@@ -406,22 +410,24 @@ class StampRenderer:
         rad = np.atleast_1d(np.asarray(rad, dtype=float))
         m = len(rad)
         e1, e2, g1, g2, dx, dy = (np.broadcast_to(np.asarray(v, dtype=float), (m,)) for v in (e1, e2, g1, g2, dx, dy))
+        if not (np.all(np.isfinite(rad) & (rad > 0)) and all(np.isfinite(v).all() for v in (e1, e2, g1, g2, dx, dy))):
+            raise MegalutError("renderer: half-light radii must be finite and > 0, shapes and offsets finite")
         if profile == "sersic":
             if sersicn is None:
                 raise MegalutError("renderer: Sersic galaxies need sersicn")
             ns = np.broadcast_to(np.asarray(sersicn, dtype=float), (m,))
             uniq, table = np.unique(ns, return_inverse=True)
-            tables = [sersic_table(float(n), gsp) for n in uniq]
-            hlr_factor = np.array([t.hlr_factor for t in tables])[table]
+            profiles = [sersic_table(float(n), gsp) for n in uniq]
+            hlr_factor = np.array([t.hlr_factor for t in profiles])[table]
             r0 = rad / hlr_factor  # Sersic scale radius, as galsim.Sersic computes it
             inv_r0 = 1.0 / r0
-            stepk = np.array([t.stepk for t in tables])[table] * inv_r0
-            maxk = np.array([t.maxk for t in tables])[table] * inv_r0
+            stepk = np.array([t.stepk for t in profiles])[table] * inv_r0
+            maxk = np.array([t.maxk for t in profiles])[table] * inv_r0
             size = r0
         else:
             # Round Gaussians are filled separably (exact exp); transformed ones with cutoffs.
             table = np.where((e1 == 0) & (e2 == 0) & (g1 == 0) & (g2 == 0), 1, 0)
-            tables = [gaussian_profile(gsp, True), gaussian_profile(gsp, False)]
+            profiles = [gaussian_profile(gsp, True), gaussian_profile(gsp, False)]
             sigma = rad / _GAUSSIAN_HLR_FACTOR
             r_fold = max(math.sqrt(-2.0 * math.log(gsp.folding_threshold)), gsp.stepk_minimum_hlr * _GAUSSIAN_HLR_FACTOR)
             maxk = math.sqrt(-2.0 * math.log(gsp.maxk_threshold)) / sigma
@@ -449,7 +455,7 @@ class StampRenderer:
         amat = np.empty((m, 4))
         amat[:, 0], amat[:, 1] = jac[:, 0, 0] * size, jac[:, 1, 0] * size
         amat[:, 2], amat[:, 3] = jac[:, 0, 1] * size, jac[:, 1, 1] * size
-        return n_fft, n_k, amat, table.astype(np.int64), sx + S // 2, sy + S // 2, tables
+        return n_fft, n_k, amat, table.astype(np.int64), sx + S // 2, sy + S // 2, profiles
 
     def grid_sizes(self, psf: galsim.GSObject, psf_key: Hashable, method: str, profile: str,
                    rad, sersicn, e1, e2, g1, g2, dx, dy) -> tuple[np.ndarray, np.ndarray]:
@@ -469,9 +475,14 @@ class StampRenderer:
         ``psf_key`` names the PSF for the caches: pass the same key only for the same PSF.
         """
         info = self._psf_info(psf, psf_key, method)
-        n_fft, n_k, amat, table, shx, shy, tables = self._geometry(info, profile, rad, sersicn, e1, e2, g1, g2, dx, dy)
+        n_fft, n_k, amat, table, shx, shy, profiles = self._geometry(info, profile, rad, sersicn, e1, e2, g1, g2, dx, dy)
         m = len(n_fft)
+        S = self.stamp_size
+        if m == 0:
+            return np.empty((0, S, S), dtype=np.float32)
         flux = np.broadcast_to(np.asarray(flux, dtype=float), (m,))
+        if not np.isfinite(flux).all():
+            raise MegalutError("renderer: fluxes must be finite")
         too_big = n_k > info.gsparams.maximum_fft_size
         if too_big.any():
             size = int(n_k[too_big].max())
@@ -480,8 +491,7 @@ class StampRenderer:
                 f"({size * size * 24 / 1024**3:.2f} GB) > gsparams.maximum_fft_size = "
                 f"{info.gsparams.maximum_fft_size}; raise gsparams.maximum_fft_size or gsparams.folding_threshold"
             )
-        eparams, eint, coef, fcoef = _stack(tables)
-        S = self.stamp_size
+        eparams, eint, coef, fcoef = _stack(profiles)
         stamps = np.empty((m, S, S), dtype=np.float32)
         grids = np.stack([n_fft, n_k], axis=1)
         for n_f, n_kk in np.unique(grids, axis=0):
