@@ -89,8 +89,9 @@ _SERSIC_TABLES: OrderedDict[tuple[float, galsim.GSParams], RadialProfile] = Orde
 def sersic_table(n: float, gsparams: galsim.GSParams) -> RadialProfile:
     """The :class:`RadialProfile` of Sersic index ``n`` (cached per process, LRU).
 
-    A new ``n`` costs what it costs GalSim (~30 ms: its SersicInfo Hankel transforms) plus
-    ~10 ms of k-value samples; gridded indices are built once per process.
+    A new ``n`` costs what it costs GalSim (0.03-0.3 s, growing with n: its SersicInfo
+    Hankel transforms) plus ~10-20 ms of samples and fits; gridded indices are built once
+    per process, continuous ones once per galaxy, as in GalSim.
     """
     key = (float(n), gsparams)
     hit = _SERSIC_TABLES.get(key)
