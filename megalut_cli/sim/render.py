@@ -34,7 +34,7 @@ MAX_BATCH = 256
 
 _GAUSSIAN_HLR_FACTOR = 1.1774100225154747  # galsim.Gaussian._hlr_factor: hlr / sigma
 _SERSIC_CACHE_MAX = 64  # distinct (n, GSParams) radial tables kept per process
-_KIMAGE_CACHE_MAX = 32  # PSF x pixel k-images kept per renderer
+_KIMAGE_CACHE_BYTES = 256 * 2**20  # PSF x pixel k-images kept per renderer (LRU, the newest always)
 _PSF_CACHE_MAX = 512  # PSF summaries (stepk, maxk, GSParams) kept per renderer
 # Sersic k-profiles: GalSim tabulates them up to k r0 = 500, then uses a k^-2, k^-3 asymptote.
 _SERSIC_TABLE_END = 500.0
@@ -393,7 +393,7 @@ class StampRenderer:
         info.profile.drawKImage(image=image, recenter=False)
         kimage = np.ascontiguousarray(image.array, dtype=np.complex64)  # GalSim's own precision
         self._kimages[key] = kimage
-        while len(self._kimages) > _KIMAGE_CACHE_MAX:
+        while len(self._kimages) > 1 and sum(k.nbytes for k in self._kimages.values()) > _KIMAGE_CACHE_BYTES:
             self._kimages.popitem(last=False)
         return kimage
 
@@ -488,9 +488,10 @@ class StampRenderer:
         if too_big.any():
             size = int(n_k[too_big].max())
             raise MegalutError(
-                f"drawFFT requires a very large FFT: {size} x {size} "
-                f"({size * size * 24 / 1024**3:.2f} GB) > gsparams.maximum_fft_size = "
-                f"{info.gsparams.maximum_fft_size}; raise gsparams.maximum_fft_size or gsparams.folding_threshold"
+                f"drawFFT requires a very large FFT: the required FFT size would be {size} x {size}, "
+                f"which requires {size * size * 24 / 1024**3:.2f} GB of memory; if you can handle the large "
+                f"FFT, you may update gsparams.maximum_fft_size (now {info.gsparams.maximum_fft_size}), "
+                "or raise gsparams.folding_threshold"
             )
         eparams, eint, coef, fcoef = _stack(profiles)
         stamps = np.empty((m, S, S), dtype=np.float32)
