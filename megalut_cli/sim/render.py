@@ -392,6 +392,8 @@ class StampRenderer:
         image = galsim.ImageCD(galsim.BoundsI(0, half, -half, half), scale=2.0 * np.pi / n_fft)
         info.profile.drawKImage(image=image, recenter=False)
         kimage = np.ascontiguousarray(image.array, dtype=np.complex64)  # GalSim's own precision
+        if not kimage.imag.any():  # centrosymmetric PSF: a real k-image (the fill specialises)
+            kimage = np.ascontiguousarray(kimage.real)
         self._kimages[key] = kimage
         while len(self._kimages) > 1 and sum(k.nbytes for k in self._kimages.values()) > _KIMAGE_CACHE_BYTES:
             self._kimages.popitem(last=False)
@@ -513,9 +515,9 @@ class StampRenderer:
 
 def inverse_fft_window(kimages: np.ndarray, n_fft: int, size: int) -> np.ndarray:
     """The first ``size`` x ``size`` pixels of the inverse real FFTs of ``kimages`` (m, N,
-    N/2+1): the y transform keeps only ``size`` rows before the x transform."""
-    rows = scipy.fft.ifft(kimages, axis=1, workers=1)[:, :size, :]
-    return scipy.fft.irfft(rows, n=n_fft, axis=2, workers=1)[:, :, :size]
+    N/2+1; overwritten): the y transform keeps only ``size`` rows before the x transform."""
+    rows = scipy.fft.ifft(kimages, axis=1, workers=1, overwrite_x=True)[:, :size, :]
+    return scipy.fft.irfft(rows, n=n_fft, axis=2, workers=1, overwrite_x=True)[:, :, :size]
 
 
 def fft_grid(stepk: np.ndarray, maxk: np.ndarray, stamp_size: int, gsparams: galsim.GSParams
