@@ -24,13 +24,13 @@ from megalut_cli.errors import MegalutError
 from megalut_cli.sim import render
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.galaxies import (
-    base_profile,
+    galaxy_profile,
     make_gsparams,
+    oriented,
     real_footprint,
     real_noise,
     real_profile,
     rotated,
-    shaped,
 )
 from megalut_cli.sim.structure import draw_case
 
@@ -57,7 +57,8 @@ class WorkUnit:
     @property
     def renders_fast(self) -> bool:
         """Whether this unit's stamps go through the batched renderer."""
-        return self.engine == "fast" and render.can_render(self.config.galaxy.profile)
+        gal = self.config.galaxy
+        return self.engine == "fast" and render.can_render(gal.profile) and not gal.knots
 
 
 def psf_includes_pixel(spec: dict[str, Any]) -> bool:
@@ -234,11 +235,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                     if pad:
                         base0 = real_profile(gal.real, int(t["tru_real_index"][k]), t["tru_flux"][k], gsp)
                 else:
-                    base = base_profile(
-                        gal.profile, t["tru_rad"][k], t["tru_flux"][k],
-                        t["tru_sersicn"][k] if "tru_sersicn" in t else None,
-                        gsp,
-                    )
+                    base = galaxy_profile(gal.profile, t, k, gsp)
                 last_gal = gi
             pi = int(d.psf_index[k])
             if pi != last_psf:
@@ -253,7 +250,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
             if gal.profile == "real":  # real galaxies: rotated by the position angle, then lensed
                 gal_k = rotated(base, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k])
             else:
-                gal_k = shaped(base, t["tru_e1"][k], t["tru_e2"][k], t["tru_g1"][k], t["tru_g2"][k])
+                gal_k = oriented(base, t, k, d.extra["theta"][k])
             obj = galsim.Convolve(gal_k, psf, gsparams=conv_gsp)
             try:
                 obj.drawImage(image=image, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method)

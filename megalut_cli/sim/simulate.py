@@ -216,11 +216,11 @@ def simulate(
 
 def log_engine_fallback(config: SimConfig, engine: str, draws: bool) -> None:
     """Say once when the fast engine hands a galaxy profile to GalSim."""
-    if engine == "fast" and draws and not render.can_render(config.galaxy.profile):
-        log.info(
-            "the fast engine does not render galaxy profile %r: its stamps are drawn by GalSim "
-            "(features still measured by the fast engine)", config.galaxy.profile,
-        )
+    gal = config.galaxy
+    if engine == "fast" and draws and not (render.can_render(gal.profile) and not gal.knots):
+        what = f"galaxy profile {gal.profile!r}" + (" with knots" if gal.knots else "")
+        log.info("the fast engine does not render %s: its stamps are drawn by GalSim "
+                 "(features still measured by the fast engine)", what)
 
 
 def warn_hst_noise(columns: dict[str, np.ndarray]) -> None:
