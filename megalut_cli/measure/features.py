@@ -32,10 +32,11 @@ import math
 import numpy as np
 
 from megalut_cli import flags as fl
+from megalut_cli.engine import ENGINES
 
 #: Engines of :func:`measure_stamps` for the adaptive moments: the compiled batch port of
 #: HSM (:mod:`.adamom`), and GalSim's ``FindAdaptiveMom`` stamp by stamp (the reference).
-MEASURE_ENGINES: tuple[str, ...] = ("fast", "galsim")
+MEASURE_ENGINES: tuple[str, ...] = tuple(ENGINES)
 
 #: Feature columns added by :func:`measure_stamps`, in this order.
 FEATURE_COLUMNS: tuple[str, ...] = (
