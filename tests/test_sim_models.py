@@ -348,7 +348,8 @@ def test_realgal_examples_simulate_through_the_cli(name, runner, cli, tmp_path):
     assert np.all(np.isfinite(np.asarray(t["adamom_g1"])))
     expect = {"tp-bulgedisk.toml": "tru_bulge_fraction", "tw-bulgedisk.toml": "tru_bulge_fraction",
               "tp-knots.toml": "tru_knot_seed", "tp-cosmosfit.toml": "tru_cosmos_ident",
-              "tw-cosmosfit.toml": "tru_cosmos_ident", "tp-corrnoise.toml": "tru_sky_sigma"}[name]
+              "tw-cosmosfit.toml": "tru_cosmos_ident", "tp-corrnoise.toml": "tru_sky_sigma",
+              "fiducial.toml": "tru_twin_rad"}[name]
     assert expect in t.colnames
 
 
