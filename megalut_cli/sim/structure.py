@@ -7,6 +7,11 @@ per-realization parameters and one for offsets and noise seeds. The result there
 never depends on how cases are split into work units, and lowering ``n_realizations``
 keeps the galaxies of each case.
 
+Common random numbers (``structure.common = true``): the per-realization generator and the
+offset/noise-seed generator are seeded by ``seed`` alone (stream ``STREAM_COMMON``), not by
+the case, so realization ``k`` has the same galaxy, position angle, offset and noise seed in
+every case; only the case-level draws (shear, and PSF and noise level when per case) differ.
+
 SNC groups: with ``snc = "ring"`` all realizations of a case form one group whose
 position angles are ``theta_k = theta_0 + k * 180 deg / n`` (so the intrinsic ellipticities
 sum exactly to zero); with ``"pairs"`` consecutive realizations ``2j, 2j+1`` form groups
@@ -27,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from megalut_cli.seeding import STREAM_SIMULATE, rng_for
+from megalut_cli.seeding import STREAM_COMMON, STREAM_SIMULATE, rng_for
 from megalut_cli.sim.config import SimConfig, round_sersicn
 from megalut_cli.sim.distributions import Distribution, sample_level
 from megalut_cli.sim.galaxies import ellipticity_components, galaxy_fluxes, mag_from_flux
@@ -64,8 +69,12 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     n, gs, ng = s.n_realizations, s.group_size, s.n_groups
     group_of = np.arange(n) // gs
     rng_case = rng_for(seed, STREAM_SIMULATE, case, _CASE_KEY)
-    rng_rea = rng_for(seed, STREAM_SIMULATE, case, _REA_KEY)
-    rng_noise = rng_for(seed, STREAM_SIMULATE, case, _NOISE_KEY)
+    if s.common:  # the same realizations in every case
+        rng_rea = rng_for(seed, STREAM_COMMON, _REA_KEY)
+        rng_noise = rng_for(seed, STREAM_COMMON, _NOISE_KEY)
+    else:
+        rng_rea = rng_for(seed, STREAM_SIMULATE, case, _REA_KEY)
+        rng_noise = rng_for(seed, STREAM_SIMULATE, case, _NOISE_KEY)
     nrows = config.catalog_rows
 
     def level(group: str, dists: dict[str, Distribution]) -> tuple[dict[str, np.ndarray], np.ndarray]:
