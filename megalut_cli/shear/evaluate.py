@@ -72,7 +72,7 @@ SCHEMES = ("unweighted", "weighted")
 CHUNK_ROWS = 500_000
 #: Format name of the JSON written by ``megalut evaluate --json``.
 JSON_FORMAT = "megalut.evaluation"
-JSON_FORMAT_VERSION = "1.0"
+JSON_FORMAT_VERSION = "1.1"  # 1.1: "error", "bootstrap"
 #: ``errors`` choices of :func:`evaluate_catalog` (``auto``: bootstrap for CRN sets, else fit).
 ERROR_CHOICES = ("auto", "fit", "bootstrap")
 #: Default number of bootstrap resamples.
