@@ -241,23 +241,23 @@ def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
     psf = None
     if plan.psf is not None:
         psf = (np.asarray(chunk[plan.psf[0]], dtype=float), np.asarray(chunk[plan.psf[1]], dtype=float))
-    key = case if plan.bootstrap is None else _case_group_key(case, chunk["rea"], plan)
+    key = case if plan.bootstrap is None else _case_group_key(case, chunk["rea"], plan.bootstrap.group_size, plan.source)
     return _Rows(case, selected, valid, tru, pre, weight, psf, key)
 
 
-def _case_group_key(case: np.ndarray, rea: np.ndarray, plan: _Plan) -> np.ndarray:
+def _case_group_key(case: np.ndarray, rea: np.ndarray, group_size: int, source: str) -> np.ndarray:
     """One integer per (case, galaxy group): ``case << 32 | rea // group_size``."""
     rea = np.asarray(rea)
     if rea.dtype.kind not in "iu":
         if rea.dtype.kind == "f" and np.all(np.isfinite(rea)) and np.all(rea == np.round(rea)):
             rea = rea.astype(np.int64)
         else:
-            raise InputError(f"{plan.source}: column 'rea' must hold integer realization indices")
+            raise InputError(f"{source}: column 'rea' must hold integer realization indices")
     if rea.size and (rea.min() < 0 or rea.max() >= 2**_GROUP_BITS):
-        raise InputError(f"{plan.source}: column 'rea' must hold realization indices in [0, 2^32)")
+        raise InputError(f"{source}: column 'rea' must hold realization indices in [0, 2^32)")
     if case.size and np.max(np.abs(case)) >= 2**30:
-        raise InputError(f"{plan.source}: case ids beyond 2^30 cannot be bootstrapped")
-    group = rea.astype(np.int64) // plan.bootstrap.group_size  # type: ignore[union-attr]
+        raise InputError(f"{source}: case ids beyond 2^30 cannot be bootstrapped")
+    group = rea.astype(np.int64) // group_size
     return (case.astype(np.int64) << _GROUP_BITS) | group
 
 
