@@ -9,7 +9,8 @@ import pytest
 
 from megalut_cli.catalog import write_catalog
 from megalut_cli.errors import InputError
-from megalut_cli.shear.bootstrap import GroupResampler, resample_counts
+from megalut_cli.shear.bias import fit_bias
+from megalut_cli.shear.bootstrap import GroupResampler, fit_columns, resample_counts
 from megalut_cli.shear.evaluate import (
     BootstrapSpec,
     evaluate_catalog,
@@ -114,10 +115,24 @@ def test_resampler_sums_match_a_direct_loop():
     for j in range(5):
         for name, v in vals.items():
             direct = [np.sum(v[key == k] * counts[group[key == k], j]) for k in range(4)]
-            np.testing.assert_allclose(sums[j][name], direct, rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(sums[name][:, j], direct, rtol=1e-12, atol=1e-12)
         assert counts[:, j].sum() == 7
     # blocks do not change the sequence of resamples
     np.testing.assert_array_equal(np.concatenate(resample_counts(3, 7, 5), axis=1)[:, :2], resample_counts(3, 7, 2)[0])
+
+
+def test_fit_columns_equals_fit_bias():
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-0.1, 0.1, (12, 6))
+    y = 1.03 * x + 1e-3 + rng.normal(0, 0.01, x.shape)
+    y[3, 1] = np.nan  # a case without usable rows
+    x[:, 4] = 0.05  # no lever arm
+    y[1:, 5] = np.nan  # a single case
+    m, c = fit_columns(x, y)
+    for j in range(6):
+        f = fit_bias(x[:, j], y[:, j])
+        np.testing.assert_allclose([m[j], c[j]], [f.m, f.c], rtol=1e-10, atol=1e-14)
+    assert np.isnan(m[4]) and np.isnan(m[5]) and np.isfinite(m[1])
 
 
 def _catalog(tmp_path, crn=True, **cards):

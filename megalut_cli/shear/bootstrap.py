@@ -80,14 +80,30 @@ class GroupResampler:
             (data, (rows, cols)), shape=(len(self.names) * self.n_keys, int(n_groups))
         )
 
-    def sums(self, counts: np.ndarray) -> list[dict[str, np.ndarray]]:
-        """Per-key sums, one ``{name: (n_keys,)}`` dict per column of ``counts`` (n_groups, b)."""
+    def sums(self, counts: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-key sums ``{name: (n_keys, b)}`` for the ``b`` resamples of ``counts`` (n_groups, b)."""
         total = np.asarray(self.matrix @ counts)
-        out = []
-        for j in range(counts.shape[1]):
-            col = total[:, j]
-            out.append({k: col[i * self.n_keys : (i + 1) * self.n_keys] for i, k in enumerate(self.names)})
-        return out
+        return {k: total[i * self.n_keys : (i + 1) * self.n_keys] for i, k in enumerate(self.names)}
+
+
+def fit_columns(g_true: np.ndarray, g_est: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``m, c`` of :func:`megalut_cli.shear.bias.fit_bias` for every column of ``(cases, b)``
+    arrays at once (non-finite pairs left out; NaN without two cases or a lever arm)."""
+    x = np.asarray(g_true, dtype=float)
+    y = np.asarray(g_est, dtype=float) - x
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = np.where(ok, x, 0.0), np.where(ok, y, 0.0)
+    n = ok.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        xm, ym = x.sum(axis=0) / n, y.sum(axis=0) / n
+        dx = np.where(ok, x - xm, 0.0)
+        sxx = (dx * dx).sum(axis=0)
+        m = (dx * (y - ym)).sum(axis=0) / sxx
+        c = ym - m * xm
+        span = np.where(ok, x, -np.inf).max(axis=0) - np.where(ok, x, np.inf).min(axis=0)
+        scale = np.where(ok, np.abs(x), 0.0).max(axis=0)
+    bad = (n < 2) | ~(span > 1e-12 + 1e-9 * scale)
+    return np.where(bad, np.nan, m), np.where(bad, np.nan, c)
 
 
 def spread(values: Sequence[float]) -> float:

@@ -53,6 +53,7 @@ from megalut_cli.shear.bootstrap import (
     ERROR_BOOTSTRAP,
     ERROR_FIT,
     GroupResampler,
+    fit_columns,
     group_size_for,
     resample_counts,
     spread,
@@ -678,21 +679,24 @@ def _bootstrap_errors(
         )
     if n_groups < FEW_GROUPS:
         log.warning("only %d galaxy groups: the bootstrap errors are rough", n_groups)
-    acc = [{(s, comp): ([], []) for s in schemes for comp in f.fits[s]} for f in families]
+    acc: list[dict[tuple[str, str], tuple[list[np.ndarray], list[np.ndarray]]]] = [
+        {(s, comp): ([], []) for s in schemes for comp in f.fits[s]} for f in families
+    ]
     for counts in resample_counts(spec.seed, n_groups, spec.n_resamples):
         for fam, values in zip(families, acc):
-            zeros = np.zeros(fam.resampler.n_keys)
-            for sums in fam.resampler.sums(counts):
-                full = {**{k: zeros for k in _sum_names(schemes)}, **sums}
-                for s in schemes:
-                    for comp, fit in _fit_components(_case_estimates(full, s, fam.theta)).items():
-                        values[(s, comp)][0].append(fit.m)
-                        values[(s, comp)][1].append(fit.c)
+            zeros = np.zeros((fam.resampler.n_keys, counts.shape[1]))
+            sums = {**{k: zeros for k in _sum_names(schemes)}, **fam.resampler.sums(counts)}
+            theta = fam.theta[:, None] if fam.theta is not None else None
+            for s in schemes:
+                for comp, d in _case_estimates(sums, s, theta).items():
+                    m, c = fit_columns(d["tru"], d["pre"])
+                    values[(s, comp)][0].append(m)
+                    values[(s, comp)][1].append(c)
     for fam, values in zip(families, acc):
         for (s, comp), (m, c) in values.items():
             f = fam.fits[s][comp]
-            fam.fits[s][comp] = replace(f, m_err=spread(m) if math.isfinite(f.m) else f.m_err,
-                                        c_err=spread(c) if math.isfinite(f.c) else f.c_err)
+            fam.fits[s][comp] = replace(f, m_err=spread(np.concatenate(m)) if math.isfinite(f.m) else f.m_err,
+                                        c_err=spread(np.concatenate(c)) if math.isfinite(f.c) else f.c_err)
     return {
         "error": ERROR_BOOTSTRAP,
         "bootstrap": {"resamples": spec.n_resamples, "seed": spec.seed, "group_size": spec.group_size,
