@@ -94,10 +94,12 @@ def test_meaningless_combinations_refused(tmp_path, overrides, words):
     assert words in str(err.value) and "\n" not in str(err.value)
 
 
-def test_stamps_identical_across_cases_at_equal_shear(tmp_path):
-    """With the shear switched off, every case of a CRN set is the same image: galaxies,
-    offsets and noise all shared. Also independent of -j (work units split the cases)."""
-    cfg = _cfg(tmp_path, [*CRN, "shear.g1=0.0", "shear.g2=0.0"], n_cases=3, n_rea=6)
+@pytest.mark.parametrize("sigma", [0.0, 1.0])
+def test_stamps_identical_across_cases_at_equal_shear(tmp_path, sigma):
+    """With the shear switched off, every case of a CRN set is the same image, noise-free or
+    not: galaxies, offsets and noise all shared. Also independent of -j (work units split
+    the cases)."""
+    cfg = _cfg(tmp_path, [*CRN, "shear.g1=0.0", "shear.g2=0.0", f"noise.sigma={sigma}"], n_cases=3, n_rea=6)
     simulate(cfg, tmp_path / "c.fits", stamps=tmp_path / "s.fits", seed=5, measure=True)
     img = fitsio.read(str(tmp_path / "s.fits"))
     S = cfg.structure.stamp_size
