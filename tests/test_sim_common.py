@@ -70,6 +70,18 @@ def test_case_level_noise_and_psf_stay_per_case(tmp_path):
         assert np.array_equal(d.noise_seeds, draws[0].noise_seeds)
 
 
+def test_knots_are_common_too(tmp_path):
+    """Composite galaxies with star-forming knots: the knots of realization k are the same
+    in every case (the knot seeds come from the common stream)."""
+    text = (Path(__file__).resolve().parents[1] / "examples" / "realgal" / "tp-knots.toml").read_text()
+    cfg = load_config(write(tmp_path, text, name="knots.toml"), [*CRN, "structure.offset=0.5"], n_cases=3,
+                      n_realizations=8)
+    a, b = draw_case(cfg, 4, 0), draw_case(cfg, 4, 2)
+    assert len(np.unique(a.truth["tru_knot_seed"])) == 4
+    for k in ("tru_knot_seed", "tru_knots", "tru_e1", "tru_rad"):
+        assert np.array_equal(a.truth[k], b.truth[k]), k
+
+
 def test_per_realization_psf_is_common_too(tmp_path):
     cfg = _cfg(tmp_path, ['structure.per_realization=["galaxy", "psf"]', "structure.snc=none", "structure.common=true",
                           'psf.sigma={type="uniform", min=1.2, max=2.0}'])

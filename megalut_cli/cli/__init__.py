@@ -85,9 +85,12 @@ def main(verbose: int, quiet: int) -> None:
 
     \b
     Example (a small end-to-end run):
-      megalut simulate examples/fiducial/tp.toml -o tp.fits --measure --n-cases 50
-      megalut train-point tp.fits -o model.h5 --select-cases "mean(snr) > 10"
-      megalut simulate examples/fiducial/vo.toml -o vo.fits --measure --n-cases 20
+      megalut simulate examples/fiducial/tp.toml -o tp.fits --measure \\
+          --n-cases 50
+      megalut train-point tp.fits -o model.h5 \\
+          --select-cases "mean(snr) > 10"
+      megalut simulate examples/fiducial/vo.toml -o vo.fits --measure \\
+          --n-cases 20
       megalut predict vo.fits --model model.h5 -o shears.fits
       megalut evaluate shears.fits
     """
@@ -95,9 +98,18 @@ def main(verbose: int, quiet: int) -> None:
 
 
 def _register() -> None:
-    from megalut_cli.cli import evaluate, measure, predict, run, simulate, train_point, train_weight
+    from megalut_cli.cli import (
+        evaluate,
+        info,
+        measure,
+        predict,
+        run,
+        simulate,
+        train_point,
+        train_weight,
+    )
 
-    for mod in (simulate, measure, train_point, train_weight, predict, evaluate, run):
+    for mod in (simulate, measure, train_point, train_weight, predict, evaluate, run, info):
         main.add_command(mod.command)
 
 

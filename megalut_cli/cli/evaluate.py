@@ -130,15 +130,26 @@ def command(
     \b
     Example:
       megalut evaluate shears.fits
-      megalut evaluate shears.fits --by tru_rad,tru_sersicn,snr --bins 5 --plot biases.png
-      megalut evaluate vp-shears.fits --select-cases "mean(snr) > 10" --by "mean(snr),tru_rad,tru_sersicn"
-      megalut evaluate shears.fits --select "snr > 10 & adamom_sigma > 1.5" --json biases.json
-      megalut evaluate shears.fits --fail-above || echo "biases out of tolerance"
+      megalut evaluate shears.fits --by tru_rad,tru_sersicn,snr --bins 5 \\
+          --plot biases.png
+      megalut evaluate vp-shears.fits --select-cases "mean(snr) > 10" \\
+          --by "mean(snr),tru_rad,tru_sersicn"
+      megalut evaluate shears.fits \\
+          --select "snr > 10 & adamom_sigma > 1.5" --json biases.json
+      megalut evaluate shears.fits --fail-above \\
+          || echo "biases out of tolerance"
       megalut evaluate crn-shears.fits --bootstrap 500 --seed 2
-      megalut evaluate submission.txt --great3-truth branch/truth --sigma2-min 1
+      megalut evaluate submission.txt --great3-truth branch/truth \\
+          --sigma2-min 1
     """
     from megalut_cli.atomic import check_output
-    from megalut_cli.shear.evaluate import evaluate_catalog, format_table, requirement_met
+    from megalut_cli.shear.evaluate import (
+        WARN_M,
+        evaluate_catalog,
+        format_table,
+        large_m,
+        requirement_met,
+    )
 
     by_cols = parse_list(by, "--by column list")
     for path in (json_path, plot_path):
@@ -162,6 +173,10 @@ def command(
         result = evaluate_catalog(shears, by=by_cols, bins=bins, select=select, select_cases=select_cases,
                                   sigma2_min=sigma2_min, errors=errors, n_bootstrap=n_bootstrap, seed=seed)
     click.echo(format_table(result))
+    warnings = large_m(result)
+    if warnings:
+        click.echo(f"megalut: warning: |m| > {WARN_M:g} ({'; '.join(warnings)}): "
+                   "an untrained or mismatched model?", err=True)
     if json_path is not None:
         _write_json(json_path, result, overwrite)
     if plot_path is not None:

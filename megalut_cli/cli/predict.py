@@ -48,7 +48,8 @@ def command(
     \b
     Example:
       megalut predict vo.fits --model model.h5 -o shears.fits
-      megalut predict mycat.fits --model model.h5 -o shears.fits --col adamom_g1=E1 --col adamom_g2=E2 -j 4
+      megalut predict mycat.fits --model model.h5 -o shears.fits \\
+          --col adamom_g1=E1 --col adamom_g2=E2 -j 4
     """
     from megalut_cli.catalog import catalog_info
     from megalut_cli.cli.options import progress

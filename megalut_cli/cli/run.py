@@ -83,10 +83,14 @@ def command(
     Examples:
       megalut run -j 2
       megalut run --print-default > my-pipeline.toml
-      megalut run examples/fiducial/pipeline.toml scale=0.001 --workdir fid -j 4
-      megalut run examples/fiducial/pipeline.toml scale=0.001 --workdir fid --skip-existing train_weight.iterations=500
-      megalut run examples/varpsf/pipeline-field.toml scale=0.001 --workdir varpsf --skip-existing
-      megalut run examples/great3/pipeline.toml branch.path=rgc --workdir rgc-run -j 2 --keep-going
+      megalut run examples/fiducial/pipeline.toml scale=0.001 \\
+          --workdir fid -j 4
+      megalut run examples/fiducial/pipeline.toml scale=0.001 \\
+          --workdir fid --skip-existing train_weight.iterations=500
+      megalut run examples/varpsf/pipeline-field.toml scale=0.001 \\
+          --workdir varpsf --skip-existing
+      megalut run examples/great3/pipeline.toml branch.path=rgc \\
+          --workdir rgc-run -j 2 --keep-going
     """
     from megalut_cli import pipeline as pl
     from megalut_cli.cli.options import progress
