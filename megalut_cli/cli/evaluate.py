@@ -75,13 +75,22 @@ EXIT_OUT_OF_TOLERANCE = 3
     "--twin", "twin_path", type=click.Path(exists=True, dir_okay=False), default=None,
     help="Paired evaluation: SHEARS holds real galaxies and TWIN their Sersic twins, simulated from one "
     "config and seed; prints m, c of both and m_real - m_twin with paired-bootstrap errors over galaxies "
-    "(docs/realgal.md).",
+    "(--bootstrap resamples, --seed; docs/realgal.md).",
 )
 @click.option(
-    "--bootstrap", "n_boot", type=click.IntRange(10, 100000), default=1000, show_default=True,
-    help="Bootstrap resamples of galaxies for --twin.",
+    "--errors",
+    type=click.Choice(["auto", "fit", "bootstrap"]),
+    default="auto",
+    show_default=True,
+    help="Where the errors of m and c come from: 'fit' (residual scatter over cases), 'bootstrap' "
+    "(resample galaxies: realization groups, all their cases together; needs the 'rea' column), "
+    "'auto': bootstrap for common-random-number sets (header CRN = T), else fit.",
 )
-@seed_option(0, "Seed of the --twin bootstrap resampling.")
+@click.option(
+    "--bootstrap", "n_bootstrap", type=click.IntRange(10, 100000), default=200, show_default=True,
+    help="Number of bootstrap resamples.",
+)
+@seed_option(help="Seed of the bootstrap resampling.")
 @overwrite_option
 def command(
     shears: str,
@@ -94,8 +103,9 @@ def command(
     fail_above: bool,
     great3_truth: str | None,
     sigma2_min: float,
+    errors: str,
+    n_bootstrap: int,
     twin_path: str | None,
-    n_boot: int,
     seed: int,
     overwrite: bool,
 ) -> None:
@@ -109,6 +119,12 @@ def command(
     every case counting the same). With PSF ellipticity columns (tru_psf_g1/g2, else
     psf_adamom_g1/g2) the biases are also given in the PSF frame (plus, cross), as in
     GREAT3, with its Q_c metric.
+
+    Common-random-number sets (simulated with structure.common = true, header CRN = T)
+    share their galaxies between cases, so the cases are not independent: their errors
+    come from a bootstrap over galaxies instead (--bootstrap resamples of the realization
+    groups, a 90-degree pair together, across all cases; --seed). The report says which
+    errors it quotes.
 
     With --great3-truth, SHEARS is evaluated against a GREAT3 constant-shear branch:
     a submission file (one 'subfield g1 g2' line per subfield) or a predictions catalog
@@ -129,6 +145,7 @@ def command(
           --select "snr > 10 & adamom_sigma > 1.5" --json biases.json
       megalut evaluate shears.fits --fail-above \\
           || echo "biases out of tolerance"
+      megalut evaluate crn-shears.fits --bootstrap 500 --seed 2
       megalut evaluate submission.txt --great3-truth branch/truth \\
           --sigma2-min 1
       megalut evaluate real-shears.fits --twin twin-shears.fits \\
@@ -155,19 +172,21 @@ def command(
         check_plot_output(plot_path)
 
     if twin_path is not None:
-        _evaluate_twin(shears, twin_path, by_cols, bins, n_boot, seed, json_path, overwrite,
+        _evaluate_twin(shears, twin_path, by_cols, bins, n_bootstrap, seed, json_path, overwrite,
                        other=[name for name, v in (("--great3-truth", great3_truth), ("--select", select),
-                              ("--select-cases", select_cases), ("--plot", plot_path), ("--fail-above", fail_above))
-                              if v])
+                              ("--select-cases", select_cases), ("--plot", plot_path), ("--fail-above", fail_above),
+                              ("--errors", errors != "auto")) if v])
         return
     if great3_truth is not None:
         from megalut_cli.great3.evaluate import evaluate_branch
 
+        if errors == "bootstrap":
+            raise click.UsageError("--errors bootstrap does not apply to --great3-truth (subfields are independent)")
         result = evaluate_branch(shears, great3_truth, sigma2_min=sigma2_min, by=by_cols, bins=bins,
                                  select=select, select_cases=select_cases)
     else:
         result = evaluate_catalog(shears, by=by_cols, bins=bins, select=select, select_cases=select_cases,
-                                  sigma2_min=sigma2_min)
+                                  sigma2_min=sigma2_min, errors=errors, n_bootstrap=n_bootstrap, seed=seed)
     click.echo(format_table(result))
     warnings = large_m(result)
     if warnings:
