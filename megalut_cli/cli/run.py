@@ -9,6 +9,8 @@ import click
 
 from megalut_cli.cli.options import execution_options, overwrite_option
 
+log = logging.getLogger("megalut")
+
 
 @click.command(
     "run",
@@ -36,6 +38,12 @@ from megalut_cli.cli.options import execution_options, overwrite_option
     "(the products hold them; the exit status is still 1).",
 )
 @click.option(
+    "--dry-run",
+    is_flag=True,
+    help="Check the pipeline and the work folder, list the steps with the simulations' estimated "
+    "times (from tiny calibration draws), and stop.",
+)
+@click.option(
     "--print-default", is_flag=True, help="Print the embedded default pipeline (to copy and edit) and exit."
 )
 @execution_options
@@ -46,6 +54,7 @@ def command(
     workdir: str,
     skip_existing: bool,
     keep_going: bool,
+    dry_run: bool,
     print_default: bool,
     nproc: int,
     scheduler: str | None,
@@ -98,12 +107,20 @@ def command(
         overrides, pipeline = (pipeline, *overrides), None  # `megalut run scale=0.5`
     if pipeline is not None and not Path(pipeline).is_file():
         raise click.BadParameter(f"{pipeline!r}: no such file", param_hint="PIPELINE.toml")
+    if dry_run and pipeline is not None and _is_branch(pipeline):
+        raise click.UsageError("--dry-run applies to simulate/train pipelines, not GREAT3 branch pipelines")
     if pipeline is not None and _branch_pipeline(pipeline, workdir, overrides, skip_existing, overwrite, keep_going,
                                                  nproc, scheduler):
         return
     if keep_going:
-        logging.getLogger("megalut").info("--keep-going applies to GREAT3 branch pipelines only: ignored")
+        log.info("--keep-going applies to GREAT3 branch pipelines only: ignored")
     pipe = pl.load_pipeline(pipeline, overrides)
+    plan = pl.plan_pipeline(pipe, workdir, skip_existing=skip_existing, overwrite=overwrite, nproc=nproc,
+                            scheduler=scheduler)
+    for line in plan:
+        log.info("%s", line)
+    if dry_run:
+        return
     result = pl.run_pipeline(
         pipe,
         workdir,
@@ -114,6 +131,12 @@ def command(
         progress=progress,
     )
     click.echo(pl.format_summary(result))
+
+
+def _is_branch(pipeline: str) -> bool:
+    from megalut_cli.great3 import pipeline as g3
+
+    return bool(g3.is_branch_pipeline(pipeline))
 
 
 def _branch_pipeline(pipeline: str, workdir: str, overrides: tuple[str, ...], skip_existing: bool, overwrite: bool,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import click
 
 from megalut_cli.cli.options import (
@@ -11,6 +13,8 @@ from megalut_cli.cli.options import (
     progress,
     seed_option,
 )
+
+log = logging.getLogger("megalut")
 
 
 @click.command(
@@ -44,6 +48,12 @@ from megalut_cli.cli.options import (
 @click.option(
     "--n-realizations", type=click.IntRange(min=1), default=None, help="Override structure.n_realizations."
 )
+@click.option(
+    "--dry-run",
+    is_flag=True,
+    help="Check the config and the outputs, say what would be simulated and how long it would take "
+    "(from a tiny calibration draw), and stop.",
+)
 @seed_option(1, "Seed of every random draw; the output is identical for any -j or cluster.")
 @execution_options
 @overwrite_option
@@ -56,6 +66,7 @@ def command(
     great3_dir: str | None,
     n_cases: int | None,
     n_realizations: int | None,
+    dry_run: bool,
     seed: int,
     nproc: int,
     scheduler: str | None,
@@ -85,15 +96,23 @@ def command(
       megalut simulate examples/great3/branch.toml -o branch.fits --great3 branch/ --n-cases 20
     """
     from megalut_cli.sim.config import load_config
-    from megalut_cli.sim.simulate import n_work_units, simulate
+    from megalut_cli.sim.simulate import check_outputs, n_work_units, plan_message, simulate
 
     cfg = load_config(config, overrides, n_cases=n_cases, n_realizations=n_realizations)
+    if great3_dir is not None and stamps is not None:
+        raise click.UsageError("--great3 writes the subfield images itself: do not give --stamps")
+    check_outputs(cfg, output, stamps, overwrite)
     if great3_dir is not None:
-        if stamps is not None:
-            raise click.UsageError("--great3 writes the subfield images itself: do not give --stamps")
-        from megalut_cli.great3.sim import check_branch_output, simulate_branch
+        from megalut_cli.great3.sim import check_branch_output
 
         check_branch_output(great3_dir, overwrite)
+    log.info("about to simulate %s", plan_message(cfg, seed, measure, stamps is not None or great3_dir is not None,
+                                                   nproc, scheduler))
+    if dry_run:
+        return
+    if great3_dir is not None:
+        from megalut_cli.great3.sim import simulate_branch
+
         with progress("simulate", cfg.structure.n_cases) as update:
             simulate_branch(
                 cfg, great3_dir, output, measure=measure, seed=seed, nproc=nproc,
