@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
@@ -42,6 +43,22 @@ def _single_threaded_children() -> Iterator[None]:
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def ignore_interrupt() -> None:
+    """Worker initializer: Ctrl-C is the parent's to handle (one line, exit 130), so local
+    workers ignore SIGINT instead of each printing a traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Terminate the workers of ``pool`` now (after Ctrl-C) instead of letting them finish their units."""
+    if hasattr(pool, "terminate_workers"):  # Python >= 3.14
+        pool.terminate_workers()
+        return
+    # Older Pythons have no public way: the pool's own process table.
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        process.terminate()
 
 
 def _dask_client(scheduler: str) -> Any:
@@ -82,10 +99,13 @@ def executor(nproc: int = 1, scheduler: str | None = None) -> Iterator[Executor 
         yield None
         return
     with _single_threaded_children():
-        pool = ProcessPoolExecutor(max_workers=n, mp_context=get_context("spawn"))
+        pool = ProcessPoolExecutor(max_workers=n, mp_context=get_context("spawn"), initializer=ignore_interrupt)
     try:
         log.info("running on %d local worker processes", n)
         yield pool
+    except KeyboardInterrupt:
+        stop_workers(pool)
+        raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
