@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.atomic import check_output
-from megalut_cli.catalog import catalog_info, read_catalog, require_columns
+from megalut_cli.catalog import catalog_info, read_catalog, read_setup, require_columns
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.expr import check_expression, columns_used, evaluate_cases, evaluate_rows
 from megalut_cli.nn import normalization as norm
@@ -265,9 +265,11 @@ def _check_architecture(features: Sequence[str], targets: Sequence[str], hidden:
 
 
 def _provenance(
-    command: str, inputs: dict[str, Any], seed: int, parent: Mapping[str, Any] | None = None
+    command: str, inputs: dict[str, Any], seed: int, parent: Mapping[str, Any] | None = None,
+    setup: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """The provenance of a trained model: command line, versions, inputs, seed (and parent model)."""
+    """The provenance of a trained model: command line, versions, inputs, seed, the training
+    catalog's observing setup (:func:`megalut_cli.catalog.read_setup`) and parent model."""
     prov: dict[str, Any] = {
         "command": command,
         "argv": command_line(),
@@ -275,6 +277,8 @@ def _provenance(
         "inputs": inputs,
         "seed": seed,
     }
+    if setup:
+        prov["setup"] = dict(setup)
     if parent is not None:
         prov["parent"] = parent
     return prov
@@ -381,7 +385,8 @@ def train_point(
     if init_model is not None:
         inputs["init_from"] = {"path": str(init_from), "sha256": init_model.sha256}
     committees = _run(specs, settings, opts.seed, nproc, scheduler, progress)
-    prov = _provenance("train-point", inputs, opts.seed, init_model.provenance if init_model is not None else None)
+    prov = _provenance("train-point", inputs, opts.seed, init_model.provenance if init_model is not None else None,
+                       read_setup(train))
     model = ShearModel(point=committees, provenance=prov)
     model.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, model.sha256[:12])
@@ -460,7 +465,7 @@ def train_weight(
     inputs = {"train": _input(train), "model": {"path": str(model), "sha256": point_model.sha256}}
     if valid is not None:
         inputs["valid"] = _input(valid)
-    prov = _provenance("train-weight", inputs, opts.seed, point_model.provenance)
+    prov = _provenance("train-weight", inputs, opts.seed, point_model.provenance, read_setup(train))
     result = ShearModel(point=point_model.point, weight=committees, provenance=prov)
     result.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, result.sha256[:12])

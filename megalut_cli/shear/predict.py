@@ -29,7 +29,13 @@ import numpy as np
 
 from megalut_cli import flags as _flags
 from megalut_cli.atomic import atomic_output, check_output
-from megalut_cli.catalog import catalog_info, header_cards, iter_catalog
+from megalut_cli.catalog import (
+    catalog_info,
+    header_cards,
+    iter_catalog,
+    read_setup,
+    setup_differences,
+)
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.parallel import executor, resolve_nproc
@@ -203,6 +209,20 @@ def _output_dtype(table: Any, new_cols: Sequence[str]) -> np.dtype:
     return np.dtype(fields)
 
 
+def warn_setup_mismatch(model: ShearModel, features_path: str | os.PathLike) -> None:
+    """Warn when the catalog's recorded setup (PSF, noise, stamp size, gain) differs from the one
+    the model was trained on (as train-point or train-weight recorded it)."""
+    trained = model.provenance.get("setup")
+    if not isinstance(trained, dict) or not trained:
+        return
+    diffs = setup_differences(trained, read_setup(features_path))
+    if diffs:
+        log.warning(
+            "%s: recorded setup differs from the model's training set (trained vs here: %s); "
+            "the estimates may be biased", features_path, "; ".join(diffs),
+        )
+
+
 def predict_catalog(
     features_path: str | os.PathLike,
     model_path: str | os.PathLike,
@@ -228,6 +248,7 @@ def predict_catalog(
     _MODELS.clear()
     _MODELS[abs_model] = model
     resolved = resolve_columns(model.features, names, column_map, str(features_path))
+    warn_setup_mismatch(model, features_path)
     has_flags = "flags" in names
     new_cols = [prediction_column(c.target, c.kind) for c in model.point.values()]
     new_cols += [prediction_column(c.target, c.kind) for c in model.weight.values()]
