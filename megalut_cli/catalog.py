@@ -314,10 +314,10 @@ def read_setup(path: str | os.PathLike) -> dict[str, Any]:
     try:
         with fitsio.FITS(str(path)) as f:
             if "CONFIG" in f:
-                row = f["CONFIG"].read(columns=["config_json"])[0]["config_json"]
-                config = json.loads(bytes(row).decode("ascii"))
+                text = f["CONFIG"].read(columns=["config_json"])[0]["config_json"]
+                config = json.loads(text.decode("ascii") if isinstance(text, bytes) else str(text))
                 setup.update({key: config[key] for key in SETUP_CONFIG_KEYS if key in config})
-    except (OSError, ValueError, KeyError, IndexError):
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
         pass  # no readable CONFIG: the header cards are what is recorded
     return setup
 

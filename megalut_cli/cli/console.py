@@ -107,7 +107,7 @@ def stdin_path(path: str | None, what: str = "catalog") -> Iterator[str | None]:
     if not is_stdio(path):
         yield path
         return
-    stream = click.get_binary_stream("stdin")
+    stream = sys.stdin.buffer
     if stream.isatty():
         raise click.UsageError(f"'-' reads the {what} from stdin, but stdin is a terminal; pipe a file in")
     with tempfile.TemporaryDirectory(prefix="megalut-stdin-") as tmp:
@@ -129,7 +129,7 @@ def stdout_path(path: str | None, name: str = "stdout.fits") -> Iterator[str | N
         target = Path(tmp) / name
         yield str(target)
         if target.exists():
-            out = click.get_binary_stream("stdout")
+            out = sys.stdout.buffer
             with open(target, "rb") as f:
                 shutil.copyfileobj(f, out, 1 << 20)
             out.flush()

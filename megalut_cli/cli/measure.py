@@ -12,8 +12,8 @@ from megalut_cli.cli.options import execution_options, output_option, overwrite_
     short_help="Measure adaptive-moment features on a FITS image of stamps.",
 )
 @click.argument("stamps", type=click.Path(exists=True, dir_okay=False))
-@click.argument("catalog", required=False, type=click.Path(exists=True, dir_okay=False))
-@output_option("Features catalog to write (FITS table, format megalut.features).")
+@click.argument("catalog", required=False, type=click.Path(exists=True, dir_okay=False, allow_dash=True))
+@output_option("Features catalog to write (FITS table, format megalut.features).", dash=True)
 @click.option(
     "--stamp-size",
     type=click.IntRange(min=3),
@@ -78,7 +78,9 @@ def command(
     (1.4826 MAD of the stamp-edge pixels), snr (Eq. 8 with --gain, else Eq. 10) and a
     flags bitmask; flagged stamps (HSM failure, centroid more than min(10, S/4) pixels
     from the stamp centre, non-positive flux, stamp off the image, NaN pixels) have NaN
-    features.
+    features. A CATALOG whose provenance cards (SEED, CFGSHA, NCASES, NREA, NSTAMPX, STAMPSZ)
+    disagree with the image's, or a --stamp-size that contradicts its STAMPSZ card, is
+    refused. CATALOG '-' reads a FITS catalog from stdin; -o - writes to stdout.
 
     \b
     Example:
@@ -88,20 +90,22 @@ def command(
           --origin 0 --psf starfield_image-000-0.fits
       megalut measure starfield_image-000-0.fits -o stars.fits --stamp-size 48
     """
+    from megalut_cli.cli.console import stdin_path, stdout_path
     from megalut_cli.cli.options import progress
     from megalut_cli.measure.measure import measure_file
 
-    measure_file(
-        stamps,
-        catalog,
-        output,
-        stamp_size=stamp_size,
-        origin=int(origin),
-        gain=gain,
-        psf_path=psf,
-        nproc=nproc,
-        scheduler=scheduler,
-        overwrite=overwrite,
-        progress=progress,
-        stars=stars,
-    )
+    with stdin_path(catalog) as catalog_path, stdout_path(output) as output_path:
+        measure_file(
+            stamps,
+            catalog_path,
+            output_path,
+            stamp_size=stamp_size,
+            origin=int(origin),
+            gain=gain,
+            psf_path=psf,
+            nproc=nproc,
+            scheduler=scheduler,
+            overwrite=overwrite,
+            progress=progress,
+            stars=stars,
+        )

@@ -59,9 +59,11 @@ def seed_option(default: int = 1, help: str = "Seed of every random draw of this
     return click.option("--seed", type=int, default=default, show_default=True, help=help)
 
 
-def output_option(help: str = "Output file.") -> Callable[[F], F]:
+def output_option(help: str = "Output file.", dash: bool = False) -> Callable[[F], F]:
+    """``-o/--output``; with ``dash``, ``-o -`` writes the file to stdout."""
     return click.option(
-        "-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help=help
+        "-o", "--output", "output", required=True, type=click.Path(dir_okay=False, allow_dash=dash),
+        help=help + (" '-': stdout." if dash else ""),
     )
 
 

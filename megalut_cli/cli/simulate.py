@@ -23,7 +23,7 @@ log = logging.getLogger("megalut")
 )
 @click.argument("config", type=click.Path(exists=True, dir_okay=False))
 @click.argument("overrides", nargs=-1, metavar="[KEY=VALUE]...")
-@output_option("Output catalog (FITS table, one row per stamp).")
+@output_option("Output catalog (FITS table, one row per stamp).", dash=True)
 @click.option(
     "--stamps",
     type=click.Path(dir_okay=False),
@@ -78,7 +78,9 @@ def command(
     `rea`, the stamp centre `x, y` (FITS 1-based, in the --stamps grid) and every true
     parameter `tru_*`; with --measure it also holds the features (`adamom_*`, `skymad`,
     `snr`, `flags`) measured exactly as `megalut measure` would on the --stamps image.
-    Without --stamps or --measure only the truth is written (nothing is drawn).
+    Without --stamps or --measure only the truth is written (nothing is drawn). -o - writes
+    the catalog to stdout. Before drawing, the plan (cases, stamps, a time estimated from a
+    tiny calibration draw) is logged; --dry-run stops there.
 
     With --great3 DIR, every case becomes a GREAT3 subfield whose realizations fill the
     grid of its image (n_x per row, default sqrt(n_realizations)); the catalog then also
@@ -95,9 +97,11 @@ def command(
       megalut simulate examples/varpsf/pretrain.toml -o pre.fits --measure noise.sigma=0.2 --n-cases 100
       megalut simulate examples/great3/branch.toml -o branch.fits --great3 branch/ --n-cases 20
     """
+    from megalut_cli.cli.console import stdout_path
     from megalut_cli.sim.config import load_config
     from megalut_cli.sim.simulate import check_outputs, n_work_units, plan_message, simulate
 
+    output = click.get_current_context().with_resource(stdout_path(output))  # -o -: to stdout at the end
     cfg = load_config(config, overrides, n_cases=n_cases, n_realizations=n_realizations)
     if great3_dir is not None and stamps is not None:
         raise click.UsageError("--great3 writes the subfield images itself: do not give --stamps")

@@ -82,7 +82,7 @@ def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: 
     if s.snc == "pairs":
         n_rea = max(2, n_rea - n_rea % 2)
     small = dataclasses.replace(config, structure=dataclasses.replace(s, n_cases=1, n_realizations=n_rea))
-    draw_unit(WorkUnit(small, seed, 0, 1, small.structure.grid_nx, False, measure))  # warm-up (lazy imports)
+    draw_unit(WorkUnit(small, seed, 0, 1, small.structure.grid_nx, keep_stamps, measure))  # warm-up (lazy setup)
     t0 = time.perf_counter()
     draw_unit(WorkUnit(small, seed, 0, 1, small.structure.grid_nx, keep_stamps, measure))
     return n_rea / max(time.perf_counter() - t0, 1e-6)
