@@ -171,6 +171,7 @@ def _load_cases(
             x = np.column_stack([np.asarray(columns[f], dtype=np.float64) for f in comm.features])
             point[t] = comm.predict(x)
             ok &= np.isfinite(point[t])
+    measured = ok.copy()
     if select_rows:
         sel = evaluate_rows(select_rows, {c: columns[c] for c in columns_used(select_rows)}, n)
         if not sel.any():
@@ -180,7 +181,8 @@ def _load_cases(
     if select_cases:
         ok = _select_cases(columns, ok, select_cases, str(path))
     data = build_cases(
-        columns, features, targets, ok, where=str(path), constant_targets=constant_targets, point=point
+        columns, features, targets, ok, where=str(path), constant_targets=constant_targets, point=point,
+        measured=measured,
     )
     log.info(
         "%s: %d cases, %d valid realizations (%d masked)",
