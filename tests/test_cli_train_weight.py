@@ -90,7 +90,7 @@ def test_features_hidden_and_valid(runner, cli, setup, tmp_path: Path) -> None:
         ("tw", "v9", [], 1, "version 9.0 is not supported"),
         ("nofeat", "model", [], 1, "missing column(s) adamom_rho4"),
         ("tw", "model", ["--features", "adamom_flux,nope"], 1, "missing column(s) nope"),
-        ("tw", "model", ["--select", "snr >"], 2, "malformed selection expression"),
+        ("tw", "model", ["--select", "snr >"], 2, "cannot be read"),
         ("tw", "model", ["--select", "snr > 1e9"], 2, "selects no row"),
         ("tw", "model", ["--select", "mean(snr) > 3"], 2, "unknown function 'mean'"),
         ("tw", "model", ["--hidden", "-1"], 2, "positive integers"),
