@@ -299,7 +299,7 @@ def write_image(
 
 #: What a catalog records of how its stamps were made, compared between a model's training
 #: catalog and the catalog it predicts on: header card -> name in the setup record.
-SETUP_CARDS = {"STAMPSZ": "stamp_size", "NOISE": "noise", "GAIN": "gain"}
+SETUP_CARDS = {"STAMPSZ": "stamp_size", "NOISE": "noise_type", "GAIN": "gain"}
 #: Sections of the simulation config (``CONFIG`` HDU) that describe the observing setup.
 SETUP_CONFIG_KEYS = ("psf", "noise")
 

@@ -94,6 +94,10 @@ def test_simulate_and_train_read_and_write_dash(runner, cli, tmp_path):
                                   "--valid-fraction", "0"], input=sim.stdout_bytes)
     assert trained.exit_code == 0, trained.stderr
     assert model.is_file() and trained.stdout == ""
+    from megalut_cli.nn.model import ShearModel
+
+    setup = ShearModel.load(model).provenance["setup"]  # recorded for predict's check
+    assert setup["stamp_size"] == 24 and setup["psf"] == {"type": "gaussian", "sigma": 1.5}
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
