@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from typing import TextIO
 
 import click
@@ -147,7 +148,7 @@ def command(
         result["input"] = "stdin"
     click.echo(format_table(result), err=json_to_stdout)
     if json_to_stdout:
-        _dump_json(result, click.get_text_stream("stdout"))
+        _dump_json(result, sys.stdout)
     elif json_path is not None:
         _write_json(json_path, result, overwrite)
     if plot_path is not None:
