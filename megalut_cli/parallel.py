@@ -81,10 +81,13 @@ def _dask_client(scheduler: str) -> Any:
 
 
 @contextlib.contextmanager
-def executor(nproc: int = 1, scheduler: str | None = None) -> Iterator[Executor | None]:
+def executor(
+    nproc: int = 1, scheduler: str | None = None, n_units: int | None = None
+) -> Iterator[Executor | None]:
     """An executor for ``-j nproc`` or ``--scheduler``; ``None`` means run in this process.
 
-    Local workers are started with the ``spawn`` method and one BLAS thread each.
+    Local workers are started with the ``spawn`` method and one BLAS thread each; never more
+    than ``n_units`` (when given), so that a small job does not pay for idle workers.
     """
     if scheduler:
         client = _dask_client(scheduler)
@@ -94,7 +97,7 @@ def executor(nproc: int = 1, scheduler: str | None = None) -> Iterator[Executor 
         finally:
             client.close()
         return
-    n = resolve_nproc(nproc)
+    n = resolve_nproc(nproc) if n_units is None else min(resolve_nproc(nproc), max(n_units, 1))
     if n == 1:
         yield None
         return
@@ -138,6 +141,15 @@ def map_units(
             fut.cancel()
         raise
     return results
+
+
+def format_duration(seconds: float) -> str:
+    """``42 s``, ``7.5 min`` or ``3.2 h`` (for time estimates in logs)."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 def chunk_ranges(n: int, n_chunks: int) -> list[tuple[int, int]]:

@@ -409,7 +409,7 @@ def _run(
         len(specs), specs[0].members, settings.iterations, settings.cost, settings.batch_fraction,
         settings.batch_iterations,
     )
-    with executor(nproc, scheduler) as pool, (progress or _no_progress)("members trained", n_units) as update:
+    with executor(nproc, scheduler, n_units) as pool, (progress or _no_progress)("members trained", n_units) as update:
         return train_committees(specs, settings, seed, pool, update)
 
 

@@ -129,3 +129,11 @@ def test_real_shell_pipeline_and_closed_pipe(sim):
                           cwd=ROOT, timeout=300)
     assert done.returncode == 0, done.stderr
     assert "Traceback" not in done.stderr and "Error" not in done.stderr
+
+
+def test_model_output_refuses_dash(runner, cli, sim, tmp_path, monkeypatch):
+    """HDF5 models cannot stream: '-o -' is a usage error, not a file named '-'."""
+    monkeypatch.chdir(tmp_path)
+    result = runner.invoke(cli, ["train-point", str(sim / "cat.fits"), "-o", "-"])
+    assert result.exit_code == 2 and "stdout" in result.stderr
+    assert not (tmp_path / "-").exists()

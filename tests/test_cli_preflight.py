@@ -162,3 +162,17 @@ def test_progress_bar_gets_its_own_line(monkeypatch, capsys):
     monkeypatch.setenv("CI", "true")
     monkeypatch.setattr("sys.stderr.isatty", lambda: True, raising=False)
     assert not console.interactive()
+
+
+def test_progress_off_a_terminal_estimates_the_time_left_once(monkeypatch, caplog):
+    """Silent per step; one info line from the measured pace once a tenth is done, on long jobs."""
+    from megalut_cli.cli import console
+
+    clock = iter([0.0, 5.0, 30.0, 31.0, 32.0, 60.0])
+    monkeypatch.setattr(console.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(console, "interactive", lambda: False)
+    with caplog.at_level(logging.INFO, logger="megalut"), console.progress("units", 10) as update:
+        for _ in range(5):
+            update(1)
+    infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+    assert infos == ["units: 2/10 in 30 s, about 2.0 min left"]

@@ -80,6 +80,8 @@ def test_process_pool_gives_ordered_results():
         assert parallel.map_units(_square, list(range(9)), pool) == [i * i for i in range(9)]
     with parallel.executor(nproc=1) as pool:
         assert pool is None
+    with parallel.executor(nproc=2, n_units=1) as pool:  # one unit: no workers to start
+        assert pool is None
 
 
 def test_bad_scheduler_is_config_error(tmp_path):

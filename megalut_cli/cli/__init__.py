@@ -82,7 +82,8 @@ def main() -> None:
     weights for any stamp catalog, and evaluate multiplicative and additive biases.
 
     \b
-    Example (a small end-to-end run: 3000 + 4000 stamps, about a minute on 2 cores):
+    Example (a small end-to-end run: 3000 training + 4000 validation stamps, 60 training
+    iterations; 3.5 min measured on a busy 2-core machine):
       megalut simulate examples/fiducial/tp.toml -o tp.fits --measure --n-cases 60 --n-realizations 50
       megalut train-point tp.fits -o model.h5 --select-cases "mean(snr) > 10" --iterations 60
       megalut simulate examples/fiducial/vo.toml -o vo.fits --measure --n-cases 20 --n-realizations 200
@@ -90,7 +91,7 @@ def main() -> None:
       megalut evaluate shears.fits
 
     \b
-    The same chain as a shell pipeline ('-' is stdin or stdout; logs go to stderr):
+    Stamps to biases in one shell pipeline ('-' is stdin or stdout; logs go to stderr):
       megalut measure stamps.fits cat.fits -o - | megalut predict - --model model.h5 -o - | megalut evaluate -
 
     -j/--nproc defaults to all cores (env MEGALUT_NPROC); -v/-q work before or after the

@@ -21,6 +21,7 @@ import os
 import shutil
 import sys
 import tempfile
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -30,6 +31,10 @@ import click
 OWN_LOGGERS = ("megalut", "megalut_cli")
 #: The name that stands for stdin (inputs) or stdout (outputs).
 STDIO = "-"
+
+#: Off a terminal, one info line estimates the time left once a tenth of the work is done,
+#: if that took at least this long (the bar shows its own estimate on a terminal).
+ESTIMATE_AFTER_SECONDS = 20.0
 
 log = logging.getLogger("megalut")
 _bar_shown = False
@@ -85,13 +90,22 @@ def progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
         return
     done = 0
     step = max(1, length // 10)
+    start = time.perf_counter()
+    estimated = False
 
     def update(n: int) -> None:
-        nonlocal done
+        nonlocal done, estimated
         before = done
         done += n
         if done // step != before // step or done == length:
             log.debug("%s: %d/%d", label, done, length)
+        elapsed = time.perf_counter() - start
+        if not estimated and done < length and done >= step and elapsed >= ESTIMATE_AFTER_SECONDS:
+            estimated = True  # one line from the measured pace, for long jobs off a terminal
+            from megalut_cli.parallel import format_duration
+
+            log.info("%s: %d/%d in %s, about %s left", label, done, length, format_duration(elapsed),
+                     format_duration(elapsed / done * (length - done)))
 
     yield update
 

@@ -59,11 +59,18 @@ def seed_option(default: int = 1, help: str = "Seed of every random draw of this
     return click.option("--seed", type=int, default=default, show_default=True, help=help)
 
 
+def _no_dash(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
+    if value == "-":
+        raise click.BadParameter("this output cannot go to stdout ('-'); name a file")
+    return value
+
+
 def output_option(help: str = "Output file.", dash: bool = False) -> Callable[[F], F]:
-    """``-o/--output``; with ``dash``, ``-o -`` writes the file to stdout."""
+    """``-o/--output``; with ``dash``, ``-o -`` writes the file to stdout, else ``-`` is refused
+    (never a file named ``-``)."""
     return click.option(
         "-o", "--output", "output", required=True, type=click.Path(dir_okay=False, allow_dash=dash),
-        help=help + (" '-': stdout." if dash else ""),
+        callback=None if dash else _no_dash, help=help + (" '-': stdout." if dash else ""),
     )
 
 

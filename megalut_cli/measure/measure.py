@@ -153,7 +153,7 @@ def _run_units(
     sizes = [len(p) for p in pieces]
     bar = progress(label, len(idx)) if progress else contextlib.nullcontext(None)
     t0 = time.perf_counter()
-    with executor(nproc, scheduler) as pool, bar as update:
+    with executor(nproc, scheduler, len(units)) as pool, bar as update:
         done = iter(sizes)
         tick = (lambda _n: update(next(done))) if update else None
         # map_units reports finished units in completion order; stamp counts are close

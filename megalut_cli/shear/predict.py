@@ -269,7 +269,7 @@ def predict_catalog(
             flg = np.asarray(table["flags"]) if has_flags else None
             yield table, (abs_model, model.sha256, x, flg)
 
-    with executor(nproc, scheduler) as pool:
+    with executor(nproc, scheduler, -(-n_rows // chunk_rows)) as pool:
         window = 2 * resolve_nproc(nproc) if scheduler is None else 16
         with atomic_output(output, overwrite) as tmp, fitsio.FITS(str(tmp), "rw", clobber=True) as fits:
             dtype = None

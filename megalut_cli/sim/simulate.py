@@ -31,7 +31,7 @@ import numpy as np
 from megalut_cli.atomic import atomic_output, check_output
 from megalut_cli.catalog import write_catalog, write_image
 from megalut_cli.errors import MegalutError
-from megalut_cli.parallel import chunk_ranges, executor, map_units, resolve_nproc
+from megalut_cli.parallel import chunk_ranges, executor, format_duration, map_units, resolve_nproc
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, stamp_centres
 
@@ -86,15 +86,6 @@ def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: 
     t0 = time.perf_counter()
     draw_unit(WorkUnit(small, seed, 0, 1, small.structure.grid_nx, keep_stamps, measure))
     return n_rea / max(time.perf_counter() - t0, 1e-6)
-
-
-def format_duration(seconds: float) -> str:
-    """``42 s``, ``7.5 min`` or ``3.2 h``."""
-    if seconds < 90:
-        return f"{seconds:.0f} s"
-    if seconds < 5400:
-        return f"{seconds / 60:.1f} min"
-    return f"{seconds / 3600:.1f} h"
 
 
 def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, nproc: int,
@@ -233,7 +224,7 @@ def simulate(
         n_y = math.ceil(s.n_stamps / s.grid_nx)
         image = np.zeros((n_y * s.stamp_size, s.grid_nx * s.stamp_size), dtype=np.float32)
     results: list[dict[str, Any]] = []
-    with executor(nproc, scheduler) as pool:
+    with executor(nproc, scheduler, len(units)) as pool:
         # With stamps, go in batches of units so that the unit images are freed early.
         batch = len(units) if st is None else max(8, 4 * workers)
         for i in range(0, len(units), batch):
