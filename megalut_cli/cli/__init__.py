@@ -16,7 +16,7 @@ from typing import Any
 import click
 
 from megalut_cli import __version__
-from megalut_cli.cli.console import setup_logging
+from megalut_cli.cli.console import setup_logging, user_facing
 from megalut_cli.cli.options import verbosity, verbosity_options
 from megalut_cli.errors import MegalutError
 from megalut_cli.provenance import set_command_line
@@ -42,7 +42,7 @@ class MegalutGroup(click.Group):
         try:
             return super().invoke(ctx)
         except MegalutError as err:
-            exc = click.ClickException(str(err))
+            exc = click.ClickException(user_facing(str(err)))
             exc.exit_code = err.exit_code
             raise exc from None
         except KeyboardInterrupt:
@@ -60,7 +60,7 @@ class MegalutGroup(click.Group):
             raise click.ClickException("out of memory; use smaller chunks or more workers") from None
         except OSError as err:
             where = f"{err.filename}: " if getattr(err, "filename", None) else ""
-            raise click.ClickException(f"{where}{err.strerror or err}") from None
+            raise click.ClickException(user_facing(f"{where}{err.strerror or err}")) from None
         except Exception as err:  # a bug: say so plainly, traceback with -v
             log.debug("internal error", exc_info=True)
             raise click.ClickException(

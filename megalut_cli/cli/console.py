@@ -38,6 +38,15 @@ ESTIMATE_AFTER_SECONDS = 20.0
 
 log = logging.getLogger("megalut")
 _bar_shown = False
+#: Temporary files standing for stdin/stdout -> the name a person should read instead.
+_STREAM_NAMES: dict[str, str] = {}
+
+
+def user_facing(text: str) -> str:
+    """``text`` with the temporary files of ``-`` named ``stdin``/``stdout`` as the user knows them."""
+    for path, name in _STREAM_NAMES.items():
+        text = text.replace(path, name)
+    return text
 
 
 class BarAwareHandler(logging.StreamHandler):
@@ -46,6 +55,9 @@ class BarAwareHandler(logging.StreamHandler):
     def __init__(self) -> None:
         super().__init__(sys.stderr)
         self.setFormatter(logging.Formatter("megalut: %(message)s"))
+
+    def format(self, record: logging.LogRecord) -> str:
+        return user_facing(super().format(record))
 
     def emit(self, record: logging.LogRecord) -> None:
         self.stream = sys.stderr  # follows redirections (CliRunner, contextlib.redirect_stderr)
@@ -126,6 +138,7 @@ def stdin_path(path: str | None, what: str = "catalog") -> Iterator[str | None]:
         raise click.UsageError(f"'-' reads the {what} from stdin, but stdin is a terminal; pipe a file in")
     with tempfile.TemporaryDirectory(prefix="megalut-stdin-") as tmp:
         target = Path(tmp) / "stdin.fits"
+        _STREAM_NAMES[str(target)] = "stdin"
         with open(target, "wb") as f:
             shutil.copyfileobj(stream, f, 1 << 20)
         if target.stat().st_size == 0:
@@ -141,6 +154,7 @@ def stdout_path(path: str | None, name: str = "stdout.fits") -> Iterator[str | N
         return
     with tempfile.TemporaryDirectory(prefix="megalut-stdout-") as tmp:
         target = Path(tmp) / name
+        _STREAM_NAMES[str(target)] = "stdout"
         yield str(target)
         if target.exists():
             out = sys.stdout.buffer
