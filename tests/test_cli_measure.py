@@ -132,7 +132,7 @@ def test_refuses_to_overwrite(runner, cli, data):
 def test_stamp_size_contradicting_the_card_is_refused(runner, cli, data):
     out = data / "out.fits"
     text = _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", str(out), "--stamp-size", "16"],
-                  1, str(data / "stamps.fits"), "--stamp-size 16", "STAMPSZ = 32")
+                  1, str(data / "stamps.fits"), "stamp size 16 (--stamp-size)", "STAMPSZ = 32")
     assert len(text.strip().splitlines()) == 2  # the one line, in output (stdout+stderr) and stderr
     assert not out.exists()
 

@@ -383,7 +383,7 @@ def measure_file(
         log.info("%s: no stamp size given: a 3x3 grid of %d-pixel stars", stamps_path, stamp_size)
     if stamp_size is not None and info.header.get("STAMPSZ") not in (None, stamp_size):
         raise InputError(
-            f"{stamps_path}: --stamp-size {stamp_size} contradicts the image's STAMPSZ = "
+            f"{stamps_path}: stamp size {stamp_size} (--stamp-size) contradicts the image's STAMPSZ = "
             f"{info.header.get('STAMPSZ')} card; leave --stamp-size out to use the card"
         )
     size = stamp_size_of(info, stamp_size)
