@@ -242,8 +242,11 @@ def check_belongs_together(
     stamps_path: str, image_header: dict[str, Any], catalog_path: str, catalog_header: dict[str, Any]
 ) -> None:
     """Refuse a catalog whose provenance cards disagree with the stamp image's (another simulation)."""
+    def short(value: Any) -> str:
+        return repr(value[:12] + "...") if isinstance(value, str) and len(value) > 16 else repr(value)
+
     diffs = [
-        f"{what} {key} = {catalog_header[key]!r} vs {image_header[key]!r}"
+        f"{what} {key} = {short(catalog_header[key])} vs {short(image_header[key])}"
         for key, what in SHARED_CARDS.items()
         if key in image_header and key in catalog_header and catalog_header[key] != image_header[key]
     ]
