@@ -49,9 +49,11 @@ def atomic_output(path: str | os.PathLike, overwrite: bool = False) -> Iterator[
         try:
             yield tmp_path
         except OSError as err:  # e.g. disk full: name the user's file, not the hidden temporary one
-            if getattr(err, "filename", None) is None or Path(err.filename).name != tmp_path.name:
+            about_tmp = tmp_path.name in str(getattr(err, "filename", None) or "") or tmp_path.name in str(err)
+            if not about_tmp:
                 raise
-            raise MegalutError(f"{final}: cannot write ({err.strerror or err})") from None
+            why = err.strerror or str(err).replace(str(tmp_path), str(final))
+            raise MegalutError(f"{final}: cannot write ({why})") from None
         if not tmp_path.exists():
             raise MegalutError(f"internal error: nothing was written for {final}")
         if final.exists() and not overwrite:  # appeared while we worked

@@ -52,6 +52,24 @@ def test_catalog_refuses_overwrite_and_bad_files(tmp_path):
         catalog.read_catalog(tmp_path / "nope.fits")
 
 
+def test_write_errors_name_the_users_file_not_the_temporary_one(tmp_path):
+    """A failed write (disk full) names the output the user asked for; the temp file is removed."""
+    target = tmp_path / "out.fits"
+    with pytest.raises(MegalutError) as err:
+        with atomic_output(target) as tmp:
+            tmp.write_bytes(b"partial")
+            raise OSError(28, "No space left on device", str(tmp))
+    assert str(err.value) == f"{target}: cannot write (No space left on device)"
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(MegalutError, match=r"out.fits: cannot write \(.*out.fits: write failed\)"):
+        with atomic_output(target) as tmp:
+            raise OSError(f"{tmp}: write failed")  # as cfitsio says it: no filename attribute
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(MegalutError, match="output folder .* does not exist"):
+        with atomic_output(tmp_path / "missing" / "out.fits"):
+            pass
+
+
 def test_atomic_output_leaves_nothing_on_failure(tmp_path):
     target = tmp_path / "out.fits"
     with pytest.raises(RuntimeError):
