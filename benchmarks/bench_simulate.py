@@ -153,12 +153,12 @@ def timed(func: Job) -> Sample:
     return Sample(wall, cpu, load1, n, max(busy - cpu, 0.0) / wall, phase, sigma)
 
 
-def run_megalut(config: SimConfig, out: Path, nproc: int, seed: int) -> Job:
-    """``simulate(config, out, measure=True, nproc=nproc)`` as a job for :func:`timed`."""
+def run_megalut(config: SimConfig, out: Path, nproc: int, seed: int, engine: str) -> Job:
+    """``simulate(config, out, measure=True, nproc=nproc, engine=engine)`` as a job for :func:`timed`."""
 
     def func() -> tuple[int, float, np.ndarray]:
-        res = simulate(config, out, measure=True, seed=seed, nproc=nproc, overwrite=True)
-        return res.n_stamps, res.seconds, np.zeros(0)
+        res = simulate(config, out, measure=True, seed=seed, nproc=nproc, overwrite=True, engine=engine)
+        return res.n_stamps, res.seconds, features(out)
 
     return func
 
@@ -190,6 +190,16 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+#: The timed runs: name -> (engine or None for the plain loop, workers).
+MODES: dict[str, tuple[str | None, int]] = {
+    "fast -j 1": ("fast", 1),
+    "fast -j 2": ("fast", 2),
+    "galsim -j 1": ("galsim", 1),
+    "plain loop": (None, 1),
+    "fast -j 2 start-up": ("fast", 2),
+}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n-cases", type=int, default=100, help="cases of the scaled-down TP config")
@@ -213,39 +223,36 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "sim.fits"
-        log("warm-up (imports, GalSim Sersic cache) ...")
-        simulate(warm_cfg, out, measure=True, seed=args.seed, nproc=1, overwrite=True)
+        log("warm-up (imports, numba cache, GalSim Sersic cache, the fast engine's tables) ...")
+        for engine in ("fast", "galsim"):
+            simulate(warm_cfg, out, measure=True, seed=args.seed, nproc=1, overwrite=True, engine=engine)
         plain_loop(len(SERSIC_N) * 2, args.seed + 1000)
-        for index in SERSIC_N:  # every gridded index in GalSim's Sersic cache
+        for index in SERSIC_N:  # every gridded index in GalSim's Sersic cache and the fast engine's tables
             galsim.Sersic(n=index, half_light_radius=4.0).drawImage(nx=STAMP_SIZE, ny=STAMP_SIZE, scale=1.0)
+        simulate(load_config(CONFIG, n_cases=len(SERSIC_N) * 3, n_realizations=1), out, measure=True,
+                 seed=args.seed, nproc=1, overwrite=True, engine="fast")
 
-        modes: dict[str, Job] = {
-            "megalut -j 1": run_megalut(config, out, 1, args.seed),
-            "megalut -j 2": run_megalut(config, out, 2, args.seed),
-            "plain loop": lambda: (n, math.nan, plain_loop(n, args.seed)),
-            "-j 2 start-up": run_megalut(startup_cfg, Path(tmp) / "startup.fits", 2, args.seed),
-        }
-        names = list(modes)
+        jobs: dict[str, Job] = {}
+        for name, (engine, workers) in MODES.items():
+            if engine is None:
+                jobs[name] = lambda: (n, math.nan, plain_loop(n, args.seed))
+            elif name.endswith("start-up"):
+                jobs[name] = run_megalut(startup_cfg, Path(tmp) / "startup.fits", workers, args.seed, engine)
+            else:
+                jobs[name] = run_megalut(config, out, workers, args.seed, engine)
+        names = list(MODES)
         samples: dict[str, list[Sample]] = {k: [] for k in names}
-        megalut_sigma = np.zeros(0)
         for r in range(args.repeats):
             order = names[r % len(names):] + names[: r % len(names)]  # rotate the order
             for name in order:
-                s = timed(modes[name])
+                s = timed(jobs[name])
                 samples[name].append(s)
-                if name == "megalut -j 1" and not len(megalut_sigma):
-                    megalut_sigma = features(out)
-                log(f"repeat {r + 1}/{args.repeats} {name:14s} {s.n_stamps / s.wall:8.1f} stamps/s "
+                log(f"repeat {r + 1}/{args.repeats} {name:20s} {s.n_stamps / s.wall:8.1f} stamps/s "
                     f"({s.wall:.2f} s wall, {s.cpu:.2f} s cpu, load {s.load1:.2f}, "
                     f"other jobs {s.others:.2f} cores)")
     load_end = os.getloadavg()
     elapsed = time.perf_counter() - t_start
     others_all = max(machine_busy() - busy_start - (cpu_seconds() - cpu_start), 0.0) / elapsed
-
-    workers = {"megalut -j 1": 1, "megalut -j 2": 2, "plain loop": 1, "-j 2 start-up": 2}
-
-    def rates(name: str) -> list[float]:
-        return [s.n_stamps / s.wall for s in samples[name]]
 
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     print(f"# bench_simulate: {now}")
@@ -255,7 +262,7 @@ def main() -> None:
     print(f"- config: {CONFIG.relative_to(ROOT)} scaled to {args.n_cases} cases x "
           f"{args.n_realizations} realizations = {n} stamps of {config.structure.stamp_size}x"
           f"{config.structure.stamp_size} px; {args.repeats} interleaved repeats; megalut through "
-          "the library call simulate(..., measure=True, nproc=N)")
+          "the library call simulate(..., measure=True, nproc=N, engine=E)")
     print(f"- load average (1, 5, 15 min): {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f} "
           f"at start, {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f} at end; "
           f"whole benchmark {elapsed:.0f} s, during which other jobs kept {others_all:.2f} of the "
@@ -266,65 +273,62 @@ def main() -> None:
     print("| run | workers | wall s | stamps/s | stamps/s per core | draw+measure phase stamps/s "
           "| CPU ms per stamp | cpu share | load (1 min) | other jobs (cores) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    for name in names[:3]:
-        ss, w = samples[name], workers[name]
-        rr = rates(name)
+    for name in names:
+        ss, w = samples[name], MODES[name][1]
+        if name.endswith("start-up"):
+            print(f"| {name} (2 stamps) | {w} | {med_range([s.wall for s in ss], '.2f')} | — | — | — | — "
+                  f"| {med_range([s.cpu / (s.wall * w) for s in ss], '.0%')} "
+                  f"| {med_range([s.load1 for s in ss], '.2f')} | {med_range([s.others for s in ss], '.2f')} |")
+            continue
+        rr = [s.n_stamps / s.wall for s in ss]
         phase = [s.n_stamps / s.phase for s in ss if math.isfinite(s.phase) and s.phase > 0]
-        print(f"| {name} | {w} | {med_range([s.wall for s in ss], '.2f')} | {med_range(rr, '.0f')} | {med_range([x / w for x in rr], '.0f')} "
-              f"| {med_range(phase, '.0f')} | {med_range([1e3 * s.cpu / s.n_stamps for s in ss], '.2f')} "
+        print(f"| {name} | {w} | {med_range([s.wall for s in ss], '.2f')} | {med_range(rr, '.0f')} "
+              f"| {med_range([x / w for x in rr], '.0f')} "
+              f"| {med_range(phase, '.0f')} | {med_range([1e3 * s.cpu / s.n_stamps for s in ss], '.3f')} "
               f"| {med_range([s.cpu / (s.wall * w) for s in ss], '.0%')} "
               f"| {med_range([s.load1 for s in ss], '.2f')} | {med_range([s.others for s in ss], '.2f')} |")
-    st = samples["-j 2 start-up"]
-    print(f"| -j 2 start-up (2 stamps) | 2 | {med_range([s.wall for s in st], '.2f')} | — | — | — | — "
-          f"| {med_range([s.cpu / (s.wall * 2) for s in st], '.0%')} "
-          f"| {med_range([s.load1 for s in st], '.2f')} | {med_range([s.others for s in st], '.2f')} |")
     print()
 
-    j1 = [s.wall for s in samples["megalut -j 1"]]
-    j2 = [s.wall for s in samples["megalut -j 2"]]
-    pl = [s.wall for s in samples["plain loop"]]
-    su = [s.wall for s in st]
-    # Per-repeat ratios (the runs of one repeat are adjacent in time, so they saw similar load).
-    ratio = [p / a for a, p in zip(j1, pl)]
-    speedup = [a / b for a, b in zip(j1, j2)]
-    net = [a / (b - c) for a, b, c in zip(j1, j2, su) if b > c]
-    cpu_ratio = [p.cpu / a.cpu for a, p in zip(samples["megalut -j 1"], samples["plain loop"])]
+    def per_repeat(a: str, b: str, cpu: bool = False) -> list[float]:
+        """``b``'s time over ``a``'s, repeat by repeat (adjacent runs saw similar load)."""
+        if cpu:
+            return [y.cpu / x.cpu for x, y in zip(samples[a], samples[b])]
+        return [y.wall / x.wall for x, y in zip(samples[a], samples[b])]
+
+    su = [s.wall for s in samples["fast -j 2 start-up"]]
+    net = [b.wall / (a.wall - c) for a, b, c in zip(samples["fast -j 2"], samples["fast -j 1"], su) if a.wall > c]
     print("| quantity | median (min–max) over repeats |")
     print("|---|---|")
-    print(f"| megalut -j 1 / plain loop, stamps/s per core (wall) | {med_range(ratio, '.2f')} |")
-    print(f"| megalut -j 1 / plain loop, stamps per CPU second | {med_range(cpu_ratio, '.2f')} |")
-    print(f"| speed-up -j 1 -> -j 2 (wall, as measured) | {med_range(speedup, '.2f')} |")
-    print(f"| -j 2 fixed start-up (spawn 2 workers, imports), s | {med_range(su, '.2f')} |")
-    print(f"| speed-up -j 1 -> -j 2 net of that start-up (derived) | {med_range(net, '.2f')} |")
+    print(f"| fast -j 1 / plain loop, stamps/s per core (wall) | {med_range(per_repeat('fast -j 1', 'plain loop'), '.2f')} |")
+    print(f"| fast -j 1 / plain loop, stamps per CPU second | {med_range(per_repeat('fast -j 1', 'plain loop', True), '.2f')} |")
+    print(f"| fast -j 1 / galsim -j 1, stamps per CPU second | {med_range(per_repeat('fast -j 1', 'galsim -j 1', True), '.2f')} |")
+    print(f"| galsim -j 1 / plain loop, stamps per CPU second | {med_range(per_repeat('galsim -j 1', 'plain loop', True), '.2f')} |")
+    print(f"| speed-up fast -j 1 -> -j 2 (wall, as measured) | {med_range(per_repeat('fast -j 2', 'fast -j 1'), '.2f')} |")
+    print(f"| -j 2 fixed start-up (spawn 2 workers, imports, numba cache), s | {med_range(su, '.2f')} |")
+    print(f"| speed-up fast -j 1 -> -j 2 net of that start-up (derived) | {med_range(net, '.2f')} |")
     print()
 
-    print("Per repeat (stamps/s, and in brackets the cores other jobs kept busy meanwhile):")
+    print("Per repeat: stamps/s (cores other jobs kept busy meanwhile):")
     print()
-    print("| repeat | megalut -j 1 | megalut -j 2 | plain loop | -j 2 start-up s "
-          "| -j1/plain | speed-up 1->2 | net of start-up |")
-    print("|---|---|---|---|---|---|---|---|")
+    shown = [k for k in names if not k.endswith("start-up")]
+    print("| repeat | " + " | ".join(shown) + " | fast/plain (CPU) |")
+    print("|---" * (len(shown) + 2) + "|")
     for r in range(args.repeats):
-        a, b, p, c = (samples[k][r] for k in names)
-        cells = [f"{x.n_stamps / x.wall:.0f} ({x.others:.2f})" for x in (a, b, p)]
-        net_r = f"{a.wall / (b.wall - c.wall):.2f}" if b.wall > c.wall else "—"
-        print(f"| {r + 1} | {' | '.join(cells)} | {c.wall:.2f} ({c.others:.2f}) "
-              f"| {p.wall / a.wall:.2f} | {a.wall / b.wall:.2f} | {net_r} |")
+        cells = [f"{samples[k][r].n_stamps / samples[k][r].wall:.0f} ({samples[k][r].others:.2f})" for k in shown]
+        ratio = samples["plain loop"][r].cpu / samples["fast -j 1"][r].cpu
+        print(f"| {r + 1} | {' | '.join(cells)} | {ratio:.2f} |")
     print()
 
-    s_m = megalut_sigma[np.isfinite(megalut_sigma)]
-    s_p = samples["plain loop"][0].sigma
-    fp = float(np.mean(~np.isfinite(s_p))) if len(s_p) else math.nan
-    s_p = s_p[np.isfinite(s_p)]
-    print("Same kind of galaxies? adamom_sigma (px) of the measured stamps:")
+    print("Same galaxies? adamom_sigma (px) of the measured stamps (first repeat):")
     print()
     print("| run | failed/flagged | median | 10%–90% |")
     print("|---|---|---|---|")
-    if len(megalut_sigma):
-        print(f"| megalut | {1 - len(s_m) / len(megalut_sigma):.1%} | {np.median(s_m):.2f} "
-              f"| {np.percentile(s_m, 10):.2f}–{np.percentile(s_m, 90):.2f} |")
-    if len(s_p):
-        print(f"| plain loop | {fp:.1%} | {np.median(s_p):.2f} "
-              f"| {np.percentile(s_p, 10):.2f}–{np.percentile(s_p, 90):.2f} |")
+    for name in shown:
+        sig = samples[name][0].sigma
+        ok = sig[np.isfinite(sig)]
+        if len(sig) and len(ok):
+            print(f"| {name} | {1 - len(ok) / len(sig):.1%} | {np.median(ok):.2f} "
+                  f"| {np.percentile(ok, 10):.2f}–{np.percentile(ok, 90):.2f} |")
 
 
 if __name__ == "__main__":

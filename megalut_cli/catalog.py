@@ -19,11 +19,14 @@ import numpy as np
 from astropy.table import Table
 
 from megalut_cli.atomic import atomic_output
+from megalut_cli.columns import column_cards, column_units
 from megalut_cli.errors import InputError
 from megalut_cli.provenance import CREATOR, command_line, utc_now
 
 #: Header keywords managed here and never copied from an input header.
 _MANAGED = {"DATE", "CREATOR", "MLFORMAT", "MLFMTVER", "HISTORY", "EXTNAME"}
+#: Extra table HDUs carried from an input catalog to the catalogs made from it.
+CARRIED_HDUS = ("CONFIG",)
 _HISTORY_WIDTH = 70
 
 
@@ -79,7 +82,10 @@ def catalog_info(path: str | os.PathLike) -> tuple[int, list[str], dict[str, Any
         raise _open_error(path, err) from None
 
 
-_STRUCTURAL = re.compile(r"^(XTENSION|SIMPLE|EXTEND|BITPIX|NAXIS\d*|PCOUNT|GCOUNT|TFIELDS|T(TYPE|FORM|UNIT|DIM|NULL|SCAL|ZERO)\d+)$")
+_STRUCTURAL = re.compile(
+    r"^(XTENSION|SIMPLE|EXTEND|BITPIX|NAXIS\d*|PCOUNT|GCOUNT|TFIELDS|BZERO|BSCALE|T(TYPE|FORM|UNIT|COMM|DIM|NULL|SCAL|ZERO)\d+"
+    r"|FLAGBIT\d+)$"
+)
 
 
 def header_dict(hdr: fitsio.FITSHDR) -> dict[str, Any]:
@@ -93,6 +99,48 @@ def header_dict(hdr: fitsio.FITSHDR) -> dict[str, Any]:
             out.setdefault("HISTORY", []).append(str(rec.get("value", "")))
         else:
             out[name] = rec.get("value")
+    return out
+
+
+def read_cards(path: str | os.PathLike, ext: int | None = None) -> dict[str, Any]:
+    """User-level cards of a catalog's table header (or of HDU ``ext``, e.g. a stamp image)
+    as ``(value, comment)`` pairs, to carry into a catalog made from it; ``COMMENT`` cards
+    as a list under ``"COMMENT"``.
+
+    Cards written afresh by every writer (dates, format, history, columns, flag bits) and
+    structural ones are left out.
+    """
+    _check_exists(path)
+    try:
+        with fitsio.FITS(str(path)) as f:
+            hdr = f[_table_ext(f, path) if ext is None else ext].read_header()
+    except InputError:
+        raise
+    except (OSError, ValueError) as err:
+        raise _open_error(path, err) from None
+    out: dict[str, Any] = {}
+    for rec in hdr.records():
+        name = rec.get("name")
+        if not name or name in _MANAGED or name == "CONTINUE" or _STRUCTURAL.match(name):
+            continue
+        if name == "COMMENT":
+            out.setdefault("COMMENT", []).append(str(rec.get("value", "")))
+        else:
+            out[name] = (rec.get("value"), rec.get("comment") or "")
+    return out
+
+
+def read_carried_hdus(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """The extra table HDUs of ``path`` named in :data:`CARRIED_HDUS` (e.g. ``CONFIG``)."""
+    _check_exists(path)
+    out: dict[str, np.ndarray] = {}
+    try:
+        with fitsio.FITS(str(path)) as f:
+            for name in CARRIED_HDUS:
+                if name in f:
+                    out[name] = f[name].read()
+    except (OSError, ValueError) as err:
+        raise _open_error(path, err) from None
     return out
 
 
@@ -175,12 +223,33 @@ def require_columns(
 
 
 def _history_cards(lines: Iterable[str]) -> list[dict[str, Any]]:
+    """One step per line, cut into cards; a continuation card starts with one space
+    (FITS readers strip trailing blanks, so a cut never leaves one at a card's end)."""
     cards = []
     for line in lines:
-        line = str(line)
-        for i in range(0, max(len(line), 1), _HISTORY_WIDTH):
-            cards.append({"name": "HISTORY", "value": line[i : i + _HISTORY_WIDTH]})
+        rest, prefix = str(line), ""
+        while True:
+            width = _HISTORY_WIDTH - len(prefix)
+            chunk = rest[:width]
+            if len(rest) > width:
+                chunk = chunk.rstrip(" ") or chunk
+            cards.append({"name": "HISTORY", "value": prefix + chunk})
+            rest, prefix = rest[len(chunk):], " "
+            if not rest:
+                break
     return cards
+
+
+def history_steps(lines: Iterable[str]) -> list[str]:
+    """The processing steps recorded in ``HISTORY`` cards, continuation cards joined."""
+    steps: list[str] = []
+    for line in lines:
+        line = str(line)
+        if line.startswith(" ") and steps:
+            steps[-1] += line[1:]
+        else:
+            steps.append(line)
+    return steps
 
 
 def header_cards(
@@ -189,11 +258,14 @@ def header_cards(
     cards: Mapping[str, Any] | None = None,
     history: Sequence[str] | None = None,
     command: str | None = None,
+    columns: Sequence[str] | None = None,
 ) -> list[dict[str, Any]]:
     """Header records: DATE, CREATOR, format, extra ``cards`` and HISTORY (+ this command).
 
-    ``cards`` values may be ``(value, comment)`` pairs. ``history`` holds earlier steps
-    (e.g. an input's ``meta['HISTORY']``); the current command line is appended.
+    ``cards`` values may be ``(value, comment)`` pairs; a ``COMMENT`` entry is a list of
+    comment lines. ``history`` holds earlier steps (e.g. an input's ``meta['HISTORY']``);
+    the current command line is appended. With the table's ``columns``, the column
+    descriptions and flag bits of :func:`megalut_cli.columns.column_cards` are added.
     """
     recs: list[dict[str, Any]] = [
         {"name": "DATE", "value": utc_now(), "comment": "UTC date of file creation"},
@@ -201,9 +273,13 @@ def header_cards(
         {"name": "MLFORMAT", "value": fmt, "comment": "megalut file format"},
         {"name": "MLFMTVER", "value": fmt_version, "comment": "megalut file format version"},
     ]
+    comments: list[str] = []
     for key, val in (cards or {}).items():
         key = key.upper()
-        if key in _MANAGED:
+        if key in _MANAGED or _STRUCTURAL.match(key):
+            continue
+        if key == "COMMENT":
+            comments.extend(str(v) for v in ([val] if isinstance(val, str) else val))
             continue
         comment = ""
         if isinstance(val, tuple):
@@ -215,6 +291,9 @@ def header_cards(
         if isinstance(val, str) and len(val) > 68:
             val = val[:68]
         recs.append({"name": key[:8], "value": val, "comment": comment})
+    recs.extend({"name": "COMMENT", "value": line} for line in comments)
+    if columns is not None:
+        recs.extend(column_cards(columns))
     steps = list(history or []) + [command if command is not None else command_line()]
     recs.extend(_history_cards(steps))
     return recs
@@ -254,13 +333,24 @@ def write_catalog(
     cards: Mapping[str, Any] | None = None,
     history: Sequence[str] | None = None,
     extname: str = "CATALOG",
+    extra_hdus: Mapping[str, np.ndarray] | None = None,
 ) -> Path:
-    """Write a catalog atomically as a FITS binary table with provenance cards."""
+    """Write a catalog atomically as a FITS binary table with provenance cards, column
+    units and descriptions; ``extra_hdus`` (EXTNAME -> structured array, e.g. the
+    ``CONFIG`` of :func:`read_carried_hdus`) follow as further table HDUs."""
     arr = _to_structured(table)
-    recs = header_cards(fmt, fmt_version, cards, history)
+    recs = header_cards(fmt, fmt_version, cards, history, columns=arr.dtype.names)
     with atomic_output(path, overwrite) as tmp:
-        fitsio.write(str(tmp), arr, header=recs, extname=extname, clobber=True)
+        with fitsio.FITS(str(tmp), "rw", clobber=True) as f:
+            write_table_hdu(f, arr, recs, extname)
+            for name, extra in (extra_hdus or {}).items():
+                f.write(extra, extname=name)
     return Path(path)
+
+
+def write_table_hdu(fits: fitsio.FITS, arr: np.ndarray, recs: Sequence[Mapping[str, Any]], extname: str = "CATALOG") -> None:
+    """Append the table ``arr`` to an open ``fits`` with header ``recs`` and column units."""
+    fits.write(arr, header=list(recs), extname=extname, units=column_units(arr.dtype.names))
 
 
 def read_image(path: str | os.PathLike, ext: int | None = None) -> tuple[np.ndarray, dict[str, Any]]:

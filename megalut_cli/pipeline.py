@@ -59,6 +59,7 @@ from typing import Any
 
 from megalut_cli import __version__
 from megalut_cli.atomic import atomic_output
+from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.provenance import sha256_file, utc_now
 from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, validate_config
@@ -93,7 +94,7 @@ MAX_EXTENDS = 8
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")  # no ".": never a product's name
 
 _TOP_KEYS = {
-    "description", "name", "scale", "simulation", "sets", "pretrain", "train_point", "train_weight",
+    "description", "name", "scale", "engine", "simulation", "sets", "pretrain", "train_point", "train_weight",
     "evaluate", "evaluate_vp",
 }
 _SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed", "scale_by"}
@@ -189,6 +190,7 @@ class Pipeline:
     name: str = ""  # products of the steps after the simulations go to <workdir>/<name>/
     pretrain: PretrainSpec | None = None  # with the set "pretrain"
     evaluate_vp: EvaluateSpec | None = None  # with the set "vp"
+    engine: str = DEFAULT_ENGINE  # stamp engine of the simulations (megalut_cli.engine)
 
     def product(self, base: str) -> str:
         """Where a product of a training, prediction or evaluation step goes in the work folder."""
@@ -439,6 +441,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
             f"name: expected a folder name (letters, digits, '_', '-'; at most 64), got {name!r}"
         )
     scale = top.get_float("scale", 1.0, 0.0, math.inf, lo_open=True)
+    engine = top.get_str("engine", DEFAULT_ENGINE, tuple(ENGINES)) or DEFAULT_ENGINE
     base_sim = top.data.get("simulation")
     if base_sim is not None and not isinstance(base_sim, Mapping):
         raise ConfigError("simulation: expected a table (a simulation config, see docs/config.md)")
@@ -490,7 +493,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     pipe = Pipeline(
         path=path, sha256=sha256, overrides=tuple(overrides), raw=json.loads(json.dumps(raw, default=str)),
         description=description, scale=scale, sets=sets, train_point=point, train_weight=weight,
-        evaluate=evaluate, name=name, pretrain=pretrain, evaluate_vp=evaluate_vp,
+        evaluate=evaluate, name=name, pretrain=pretrain, evaluate_vp=evaluate_vp, engine=engine,
     )
     _check_columns(pipe)
     return pipe
@@ -708,7 +711,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         def action(wd: Path, overwrite: bool) -> None:
             with prog(f"simulate {spec.name}", n_work_units(spec.config, nproc, scheduler)) as update:
                 simulate(spec.config, wd / spec.product, measure=True, seed=spec.seed, nproc=nproc,
-                         scheduler=scheduler, overwrite=overwrite, progress=update)
+                         scheduler=scheduler, overwrite=overwrite, progress=update, engine=pipe.engine)
 
         s = spec.config.structure
         extra = {}
@@ -719,7 +722,8 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
             extra["psf_sha256"] = sha256_file(psf_path)
         return Step(  # shared by every pipeline of the work folder: no prefix
             f"simulate-{spec.name}", [spec.product], [],
-            {"config": json.loads(spec.config.to_json()), "seed": spec.seed, "measure": True, **extra},
+            {"config": json.loads(spec.config.to_json()), "seed": spec.seed, "measure": True, "engine": pipe.engine,
+             **extra},
             action,
             f"{s.n_cases} cases x {s.n_realizations} realizations = {s.n_stamps} stamps, seed {spec.seed}, "
             f"snc {s.snc} ({spec.source})",
@@ -984,7 +988,8 @@ def plan_pipeline(
     sims = {f"simulate-{name}": spec for name, spec in pipe.sets.items()}
     for i, step in enumerate(steps, 1):
         spec = sims.get(step.name)
-        what = plan_message(spec.config, spec.seed, True, False, nproc, scheduler) if spec else step.summary
+        what = plan_message(spec.config, spec.seed, True, False, nproc, scheduler, pipe.engine) if spec \
+            else step.summary
         lines.append(f"[{i}/{len(steps)}] {step.name}: {what}")
     return lines
 

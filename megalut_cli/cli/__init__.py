@@ -84,15 +84,19 @@ def main() -> None:
     \b
     Example (a small end-to-end run: 3000 training + 4000 validation stamps, 60 training
     iterations; 3.5 min measured on a busy 2-core machine):
-      megalut simulate examples/fiducial/tp.toml -o tp.fits --measure --n-cases 60 --n-realizations 50
-      megalut train-point tp.fits -o model.h5 --select-cases "mean(snr) > 10" --iterations 60
-      megalut simulate examples/fiducial/vo.toml -o vo.fits --measure --n-cases 20 --n-realizations 200
+      megalut simulate examples/fiducial/tp.toml -o tp.fits --measure \\
+          --n-cases 60 --n-realizations 50
+      megalut train-point tp.fits -o model.h5 \\
+          --select-cases "mean(snr) > 10" --iterations 60
+      megalut simulate examples/fiducial/vo.toml -o vo.fits --measure \\
+          --n-cases 20 --n-realizations 200
       megalut predict vo.fits --model model.h5 -o shears.fits
       megalut evaluate shears.fits
 
     \b
     Stamps to biases in one shell pipeline ('-' is stdin or stdout; logs go to stderr):
-      megalut measure stamps.fits cat.fits -o - | megalut predict - --model model.h5 -o - | megalut evaluate -
+      megalut measure stamps.fits cat.fits -o - \\
+          | megalut predict - --model model.h5 -o - | megalut evaluate -
 
     -j/--nproc defaults to all cores (env MEGALUT_NPROC); -v/-q work before or after the
     subcommand. Exit status: 0 success, 1 runtime error, 2 usage error, 130 interrupted.
@@ -104,9 +108,18 @@ main.params.extend(verbosity_options())
 
 
 def _register() -> None:
-    from megalut_cli.cli import evaluate, measure, predict, run, simulate, train_point, train_weight
+    from megalut_cli.cli import (
+        evaluate,
+        info,
+        measure,
+        predict,
+        run,
+        simulate,
+        train_point,
+        train_weight,
+    )
 
-    for mod in (simulate, measure, train_point, train_weight, predict, evaluate, run):
+    for mod in (simulate, measure, train_point, train_weight, predict, evaluate, run, info):
         mod.command.params.extend(verbosity_options())
         main.add_command(mod.command)
 

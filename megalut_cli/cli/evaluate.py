@@ -112,15 +112,26 @@ def command(
     \b
     Example:
       megalut evaluate shears.fits
-      megalut evaluate shears.fits --by tru_rad,tru_sersicn,snr --bins 5 --plot biases.png
-      megalut evaluate vp-shears.fits --select-cases "mean(snr) > 10" --by "mean(snr),tru_rad,tru_sersicn"
-      megalut evaluate shears.fits --select "snr > 10 & adamom_sigma > 1.5" --json biases.json
-      megalut evaluate shears.fits --fail-above || echo "biases out of tolerance"
-      megalut evaluate submission.txt --great3-truth branch/truth --sigma2-min 1
+      megalut evaluate shears.fits --by tru_rad,tru_sersicn,snr --bins 5 \\
+          --plot biases.png
+      megalut evaluate vp-shears.fits --select-cases "mean(snr) > 10" \\
+          --by "mean(snr),tru_rad,tru_sersicn"
+      megalut evaluate shears.fits \\
+          --select "snr > 10 & adamom_sigma > 1.5" --json biases.json
+      megalut evaluate shears.fits --fail-above \\
+          || echo "biases out of tolerance"
+      megalut evaluate submission.txt --great3-truth branch/truth \\
+          --sigma2-min 1
     """
     from megalut_cli.atomic import check_output
     from megalut_cli.cli.console import is_stdio, stdin_path
-    from megalut_cli.shear.evaluate import evaluate_catalog, format_table, requirement_met
+    from megalut_cli.shear.evaluate import (
+        WARN_M,
+        evaluate_catalog,
+        format_table,
+        large_m,
+        requirement_met,
+    )
 
     by_cols = parse_list(by, "--by column list")
     json_to_stdout = is_stdio(json_path)
@@ -147,6 +158,10 @@ def command(
     if from_stdin:
         result["input"] = "stdin"
     click.echo(format_table(result), err=json_to_stdout)
+    warnings = large_m(result)
+    if warnings:
+        click.echo(f"megalut: warning: |m| > {WARN_M:g} ({'; '.join(warnings)}): "
+                   "an untrained or mismatched model?", err=True)
     if json_to_stdout:
         _dump_json(result, sys.stdout)
     elif json_path is not None:

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import click
 
-from megalut_cli.cli.options import execution_options, output_option, overwrite_option
+from megalut_cli.cli.options import (
+    engine_option,
+    execution_options,
+    output_option,
+    overwrite_option,
+)
 
 
 @click.command(
@@ -51,6 +56,7 @@ from megalut_cli.cli.options import execution_options, output_option, overwrite_
     "[default: for files named starfield_image-*; a square one without --stamp-size or "
     "STAMPSZ card is a 3x3 grid].",
 )
+@engine_option("the adaptive moments are measured")
 @execution_options
 @overwrite_option
 def command(
@@ -62,6 +68,7 @@ def command(
     gain: float | None,
     psf: str | None,
     stars: bool | None,
+    engine: str,
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
@@ -74,7 +81,8 @@ def command(
     (column k mod n_x, row k div n_x from the lower-left pixel; as many stamps as the
     header card NSTAMPS says, else the whole grid) and gets one output row with its
     centre x, y. Adds adamom_flux, adamom_g1, adamom_g2, adamom_sigma,
-    adamom_rho4, adamom_x, adamom_y (GalSim HSM FindAdaptiveMom), adamom_logflux, skymad
+    adamom_rho4, adamom_x, adamom_y (HSM adaptive moments: GalSim's FindAdaptiveMom
+    or its compiled batched twin, --engine), adamom_logflux, skymad
     (1.4826 MAD of the stamp-edge pixels), snr (Eq. 8 with --gain, else Eq. 10) and a
     flags bitmask; flagged stamps (HSM failure, centroid more than min(10, S/4) pixels
     from the stamp centre, non-positive flux, stamp off the image, NaN pixels) have NaN
@@ -84,12 +92,15 @@ def command(
 
     \b
     Example (200 stamps, 30 s):
-      megalut simulate examples/fiducial/vp.toml -o cat.fits --stamps stamps.fits --n-cases 2 --n-realizations 100
+      megalut simulate examples/fiducial/vp.toml -o cat.fits \\
+          --stamps stamps.fits --n-cases 2 --n-realizations 100
       megalut measure stamps.fits cat.fits -o features.fits
-      megalut measure stamps.fits cat.fits -o - | megalut predict - --model model.h5 -o shears.fits
-      megalut measure image-000-0.fits galaxy_catalog-000.txt -o f.fits --stamp-size 48 \\
-          --origin 0 --psf starfield_image-000-0.fits
-      megalut measure starfield_image-000-0.fits -o stars.fits --stamp-size 48
+      megalut measure stamps.fits cat.fits -o - \\
+          | megalut predict - --model model.h5 -o shears.fits
+      megalut measure image-000-0.fits galaxy_catalog-000.txt -o f.fits \\
+          --stamp-size 48 --origin 0 --psf starfield_image-000-0.fits
+      megalut measure starfield_image-000-0.fits -o stars.fits \\
+          --stamp-size 48
     """
     from megalut_cli.cli.console import stdin_path, stdout_path
     from megalut_cli.cli.options import progress
@@ -109,4 +120,5 @@ def command(
             overwrite=overwrite,
             progress=progress,
             stars=stars,
+            engine=engine,
         )

@@ -55,6 +55,20 @@ def overwrite_option(f: F) -> F:
     )(f)
 
 
+def engine_option(what: str) -> Callable[[F], F]:
+    """``--engine``: choices and descriptions from :data:`megalut_cli.engine.ENGINES`."""
+    from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
+
+    described = "; ".join(f"{name}: {text}" for name, text in ENGINES.items())
+    return click.option(
+        "--engine",
+        type=click.Choice(list(ENGINES)),
+        default=DEFAULT_ENGINE,
+        show_default=True,
+        help=f"How {what} ({described}).",
+    )
+
+
 def seed_option(default: int = 1, help: str = "Seed of every random draw of this step.") -> Callable[[F], F]:
     return click.option("--seed", type=int, default=default, show_default=True, help=help)
 

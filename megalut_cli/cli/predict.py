@@ -50,8 +50,10 @@ def command(
     \b
     Example:
       megalut predict vo.fits --model model.h5 -o shears.fits
-      megalut predict mycat.fits --model model.h5 -o shears.fits --col adamom_g1=E1 --col adamom_g2=E2 -j 4
-      megalut measure stamps.fits cat.fits -o - | megalut predict - --model model.h5 -o - | megalut evaluate -
+      megalut predict mycat.fits --model model.h5 -o shears.fits \\
+          --col adamom_g1=E1 --col adamom_g2=E2
+      megalut measure stamps.fits cat.fits -o - \\
+          | megalut predict - --model model.h5 -o - | megalut evaluate -
     """
     from megalut_cli.catalog import catalog_info
     from megalut_cli.cli.console import stdin_path, stdout_path

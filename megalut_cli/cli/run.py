@@ -95,11 +95,15 @@ def command(
       megalut run
       megalut run --print-default > my-pipeline.toml
       # sizes of every step and estimated simulation times (10^5 stamps here), nothing run
-      megalut run examples/fiducial/pipeline.toml scale=0.001 --workdir fid --dry-run
+      megalut run examples/fiducial/pipeline.toml scale=0.001 \\
+          --workdir fid --dry-run
       megalut run examples/fiducial/pipeline.toml scale=0.001 --workdir fid
-      megalut run examples/fiducial/pipeline.toml scale=0.001 --workdir fid --skip-existing train_weight.iterations=500
-      megalut run examples/varpsf/pipeline-field.toml scale=0.001 --workdir varpsf --skip-existing
-      megalut run examples/great3/pipeline.toml branch.path=rgc --workdir rgc-run -j 2 --keep-going
+      megalut run examples/fiducial/pipeline.toml scale=0.001 \\
+          --workdir fid --skip-existing train_weight.iterations=500
+      megalut run examples/varpsf/pipeline-field.toml scale=0.001 \\
+          --workdir varpsf --skip-existing
+      megalut run examples/great3/pipeline.toml branch.path=rgc \\
+          --workdir rgc-run --keep-going
     """
     from megalut_cli import pipeline as pl
     from megalut_cli.cli.options import progress

@@ -96,10 +96,13 @@ def command(
 
     \b
     Examples:
-      megalut train-point tp.fits -o model.h5 --select-cases "mean(snr) > 10" -j 4
+      megalut train-point tp.fits -o model.h5 \\
+          --select-cases "mean(snr) > 10" -j 4
       megalut train-point pre.fits -o pre.h5 --targets tru_e1,tru_e2
-      megalut train-point tp.fits -o model.h5 --init-from pre.h5 --iterations 300
-      megalut train-point toy.fits -o toy.h5 --features d --targets tru_theta --hidden 5
+      megalut train-point tp.fits -o model.h5 --init-from pre.h5 \\
+          --iterations 300
+      megalut train-point toy.fits -o toy.h5 --features d \\
+          --targets tru_theta --hidden 5
     """
     from megalut_cli.cli.console import stdin_path
     from megalut_cli.training import train_point

@@ -80,7 +80,8 @@ def command(
 
     \b
     Example:
-      megalut train-weight tw.fits --model model.h5 -o model_w.h5 --select "snr > 10" -j 4
+      megalut train-weight tw.fits --model model.h5 -o model_w.h5 \\
+          --select "snr > 10" -j 4
     """
     from megalut_cli.cli.console import stdin_path
     from megalut_cli.training import train_weight

@@ -89,7 +89,7 @@ def evaluate_branch(
     Returns the JSON-ready dict of :func:`megalut_cli.shear.evaluate.evaluate_columns`
     (cases are subfields) with a ``"great3"`` entry naming the truth folder.
     """
-    from megalut_cli.shear.evaluate import evaluate_columns
+    from megalut_cli.shear.evaluate import evaluate_columns, evaluation_provenance
 
     cols = branch_columns(shears, truth_dir)
     if len(np.unique(cols["case"])) < 2:
@@ -98,5 +98,6 @@ def evaluate_branch(
         cols, by=by, bins=bins, select=select, select_cases=select_cases, source=str(shears), sigma2_min=sigma2_min
     )
     result["input"] = str(shears)
+    result["provenance"] = evaluation_provenance(shears)
     result["great3"] = {"truth": str(truth_dir), "n_subfields": int(len(np.unique(cols["case"])))}
     return result

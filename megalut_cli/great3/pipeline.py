@@ -52,6 +52,7 @@ import numpy as np
 
 from megalut_cli import __version__
 from megalut_cli import flags as fl
+from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.great3 import layout as L
 from megalut_cli.pipeline import TrainPointSpec, TrainWeightSpec
@@ -81,7 +82,7 @@ MANIFEST_FORMAT = "megalut.great3-run"
 UNIT_PRODUCTS = ("features.fits", "stars.fits", "model.h5", "shears.fits")
 SHEARS_FORMAT = "megalut.predictions"
 
-_TOP_KEYS = {"description", "branch", "tp", "tw", "train_point", "train_weight", "output"}
+_TOP_KEYS = {"description", "engine", "branch", "tp", "tw", "train_point", "train_weight", "output"}
 _BRANCH_KEYS = {"path", "kind", "stamp_size", "epoch", "subfields", "strict", "truth", "sigma2_min"}
 _SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed"}
 _COMMON_TRAIN = {
@@ -187,6 +188,7 @@ class BranchPipeline:
     weighted: bool
     keep_sets: bool
     problems: dict[int, str] = field(default_factory=dict)  # subfields with missing files
+    engine: str = DEFAULT_ENGINE  # stamp engine of measure and simulate (megalut_cli.engine)
 
 
 def is_branch_pipeline(path: str | os.PathLike) -> bool:
@@ -388,7 +390,7 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
         description=description, branch_dir=branch_dir, kind=kind, stamp_size=int(size), epoch=int(epoch),
         subfields=subfields, strict=strict, truth=truth, sigma2_min=sigma2_min, sets=sets, point=point,
         weight=weight, weighted=out.get_bool("weighted", True), keep_sets=out.get_bool("keep_sets", False),
-        problems=problems,
+        problems=problems, engine=top.get_str("engine", DEFAULT_ENGINE, tuple(ENGINES)) or DEFAULT_ENGINE,
     )
     _check_templates(pipe)
     return pipe
@@ -444,6 +446,7 @@ def unit_params(pipe: BranchPipeline, subfield: int) -> dict[str, Any]:
         "sets": {n: {"raw": t.raw, "seed": subfield_seed(t.seed, subfield)} for n, t in pipe.sets.items()},
         "train_point": asdict(pipe.point),
         "train_weight": asdict(pipe.weight),
+        "engine": pipe.engine,
     }
 
 
@@ -600,16 +603,17 @@ def _run_subfield(pipe: BranchPipeline, s: int, workdir: Path, skip_existing: bo
         with _quiet():
             t = time.perf_counter()
             feats = measure_file(files["image"], files["catalog"], tmp / "features.fits", stamp_size=pipe.stamp_size,
-                                 origin=0, psf_path=files["starfield"])
+                                 origin=0, psf_path=files["starfield"], engine=pipe.engine)
             _check_measurement(feats, files, pipe.strict)
-            measure_file(files["starfield"], None, tmp / "stars.fits", stamp_size=pipe.stamp_size, stars=True)
+            measure_file(files["starfield"], None, tmp / "stars.fits", stamp_size=pipe.stamp_size, stars=True,
+                         engine=pipe.engine)
             lap("measure", t)
             set_paths, noise_sigma = {}, None
             for name, tpl in pipe.sets.items():
                 t = time.perf_counter()
                 cfg = set_config(tpl, files["starfield"], tmp / "features.fits")
                 set_paths[name] = (tmp if pipe.keep_sets else scratch) / f"{name}.fits"
-                simulate(cfg, set_paths[name], measure=True, seed=params["sets"][name]["seed"])
+                simulate(cfg, set_paths[name], measure=True, seed=params["sets"][name]["seed"], engine=pipe.engine)
                 if name == "tw":
                     noise_sigma = float(cfg.noise.params["sigma"].bounds()[0]) if "sigma" in cfg.noise.params else None
                 lap(f"simulate-{name}", t)
@@ -694,14 +698,14 @@ def _write_shears(path: Path, workdir: Path, subfields: Sequence[int], overwrite
     import fitsio
 
     from megalut_cli.atomic import atomic_output
-    from megalut_cli.catalog import catalog_info, header_cards, read_catalog
+    from megalut_cli.catalog import catalog_info, header_cards, read_catalog, write_table_hdu
 
     n = 0
     dtype = None
     _, _, header = catalog_info(workdir / SUBFIELDS_DIR / f"{subfields[0]:03d}" / "shears.fits")
     cards = {k: v for k, v in header.items() if k not in ("HISTORY", "MODEL", "MODELSHA", "SUBFIELD", "TEXTCAT")}
     cards["NSUBFLD"] = (len(subfields), "subfields in this catalog")
-    recs = header_cards(SHEARS_FORMAT, "1.0", cards, header.get("HISTORY"))
+    history = header.get("HISTORY")
     with atomic_output(path, overwrite) as tmp, fitsio.FITS(str(tmp), "rw", clobber=True) as fits:
         for s in subfields:
             src = workdir / SUBFIELDS_DIR / f"{s:03d}" / "shears.fits"
@@ -716,7 +720,7 @@ def _write_shears(path: Path, workdir: Path, subfields: Sequence[int], overwrite
             for c in dtype.names:
                 arr[c] = cols[c]
             if len(fits) < 2:
-                fits.write(arr, header=recs, extname="CATALOG")
+                write_table_hdu(fits, arr, header_cards(SHEARS_FORMAT, "1.0", cards, history, columns=dtype.names))
             else:
                 fits[-1].append(arr)
             n += len(t)

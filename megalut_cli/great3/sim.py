@@ -49,6 +49,7 @@ import numpy as np
 
 from megalut_cli.atomic import atomic_output, check_output
 from megalut_cli.catalog import write_catalog, write_image
+from megalut_cli.engine import DEFAULT_ENGINE
 from megalut_cli.errors import ConfigError, MegalutError
 from megalut_cli.great3 import layout as L
 from megalut_cli.parallel import executor, map_units
@@ -152,7 +153,7 @@ def _draw_subfield(job: dict[str, Any]) -> dict[str, Any]:
     if job["measure"]:
         from megalut_cli.measure.features import measure_stamps
 
-        cols.update(measure_stamps(stamps, origins=origins, gain=unit.config.gain))
+        cols.update(measure_stamps(stamps, origins=origins, gain=unit.config.gain, engine=unit.engine))
     stars, offsets, psf_shape = _star_field(unit.config, unit.seed, unit.case_start, size)
     return {"image": np.ascontiguousarray(image), "stars": stars, "star_offsets": offsets,
             "psf_shape": psf_shape, "columns": cols}
@@ -227,6 +228,7 @@ def simulate_branch(
     scheduler: str | None = None,
     overwrite: bool = False,
     progress: Callable[[int], None] | None = None,
+    engine: str = DEFAULT_ENGINE,
 ) -> BranchResult:
     """Simulate ``config`` into the GREAT3 branch folder ``branch_dir`` and the catalog ``output``.
 
@@ -234,6 +236,7 @@ def simulate_branch(
     """
     from megalut_cli.sim.simulate import (
         expected_workers,
+        log_engine_fallback,
         order_columns,
         simulation_cards,
         warn_hst_noise,
@@ -247,7 +250,7 @@ def simulate_branch(
     size = s.stamp_size
     workers = expected_workers(nproc, scheduler)
     jobs = [
-        {"unit": WorkUnit(config, seed, c, c + 1, n_x, keep_stamps=True, measure=False),
+        {"unit": WorkUnit(config, seed, c, c + 1, n_x, keep_stamps=True, measure=False, engine=engine),
          "n_x": n_x, "n_y": n_y, "measure": measure}
         for c in range(s.n_cases)
     ]
@@ -257,6 +260,7 @@ def simulate_branch(
         "simulating a GREAT3-layout branch: %d subfield(s) of %dx%d stamps of %d px into %s",
         s.n_cases, n_x, n_y, size, final,
     )
+    log_engine_fallback(config, engine, True)
     t0 = time.perf_counter()
     tmp_dir = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.resolve().parent))
     try:
@@ -285,7 +289,7 @@ def simulate_branch(
         g1 = columns["tru_g1"].reshape(n_sub, -1)[:, 0]
         g2 = columns["tru_g2"].reshape(n_sub, -1)[:, 0]
         L.write_truth(tmp_dir / TRUTH_DIR, np.arange(n_sub), g1, g2, shapes[:, 0], shapes[:, 1])
-        cards = simulation_cards(config, seed, measure)
+        cards = simulation_cards(config, seed, measure, engine)
         cards["NSTAMPX"] = (n_x, "stamps per row of each subfield image")
         cards["LAYOUT"] = ("great3", "files written by --great3")
         with atomic_output(out, overwrite) as tmp_cat:

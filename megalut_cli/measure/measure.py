@@ -48,7 +48,15 @@ from astropy.table import Table
 
 from megalut_cli import flags as fl
 from megalut_cli.atomic import check_output
-from megalut_cli.catalog import catalog_info, read_catalog, require_columns, write_catalog
+from megalut_cli.catalog import (
+    catalog_info,
+    read_cards,
+    read_carried_hdus,
+    read_catalog,
+    require_columns,
+    write_catalog,
+)
+from megalut_cli.engine import DEFAULT_ENGINE
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.measure.features import (
     FEATURE_COLUMNS,
@@ -103,11 +111,11 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
     y1 = int(origins[:, 1].max()) - 1 + size
     rows = read_rows(info, y0, y1)
     stamps = cut_stamps(rows, y0, origins, size)
-    return measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"])
+    return measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine=unit["engine"])
 
 
 def _units(
-    info: ImageInfo, origins: np.ndarray, size: int, gain: float | None, n_workers: int
+    info: ImageInfo, origins: np.ndarray, size: int, gain: float | None, n_workers: int, engine: str
 ) -> tuple[list[dict[str, Any]], list[np.ndarray]]:
     """Split the stamps (all inside the image) into chunks sorted by position."""
     info = dataclasses.replace(info, path=os.path.abspath(info.path))  # for remote workers
@@ -121,6 +129,7 @@ def _units(
             "origins": np.ascontiguousarray(origins[p]),
             "gain": gain,
             "max_shift": default_max_shift(size),
+            "engine": engine,
         }
         for p in pieces
     ]
@@ -136,6 +145,7 @@ def _run_units(
     scheduler: str | None,
     progress: ProgressFactory | None,
     label: str,
+    engine: str = DEFAULT_ENGINE,
 ) -> dict[str, np.ndarray]:
     """Measure stamps at ``origins``; stamps off the image get STAMP_OFF_IMAGE and NaN."""
     n = len(origins)
@@ -149,7 +159,7 @@ def _run_units(
     if not len(idx):
         return out
     workers = 2 if scheduler else resolve_nproc(nproc)
-    units, pieces = _units(info, origins[idx], size, gain, workers)
+    units, pieces = _units(info, origins[idx], size, gain, workers, engine)
     sizes = [len(p) for p in pieces]
     bar = progress(label, len(idx)) if progress else contextlib.nullcontext(None)
     t0 = time.perf_counter()
@@ -171,7 +181,7 @@ def _run_units(
     return out
 
 
-def _single_psf(path: str, size_hint: int) -> dict[str, float]:
+def _single_psf(path: str, size_hint: int, engine: str = DEFAULT_ENGINE) -> dict[str, float]:
     """Features of a one-PSF image (whole image, or the first stamp of a star grid)."""
     info = image_info(path)
     ny, nx = info.shape
@@ -191,7 +201,7 @@ def _single_psf(path: str, size_hint: int) -> dict[str, float]:
         raise InputError(f"{path}: the PSF stamp has NaN or infinite pixels")
     if not stamp.sum() > 0:
         raise InputError(f"{path}: the PSF stamp is empty (no star)")
-    res = measure_stamps(stamp[None])
+    res = measure_stamps(stamp[None], engine=engine)
     if res["flags"][0]:
         raise InputError(
             f"{path}: the PSF stamp could not be measured ({', '.join(fl.explain(res['flags'][0]))})"
@@ -207,19 +217,20 @@ def _psf_features(
     nproc: int,
     scheduler: str | None,
     progress: ProgressFactory | None,
+    engine: str = DEFAULT_ENGINE,
 ) -> dict[str, np.ndarray]:
     n = len(origins)
     info = image_info(psf_path)
     if info.shape == gal_info.shape:
         log.info("%s: a PSF stamp per galaxy stamp", psf_path)
-        res = _run_units(info, origins, size, None, nproc, scheduler, progress, "measuring PSF stamps")
+        res = _run_units(info, origins, size, None, nproc, scheduler, progress, "measuring PSF stamps", engine)
         out = {p: res[p[len("psf_"):]] for p in PSF_COLUMNS}
         failed = (res["flags"] & ~fl.STAMP_OFF_IMAGE) != 0
         out["flags"] = np.where(failed, fl.PSF_FAILED, 0).astype(np.int32)
         if failed.any():
             log.warning("%s: %d PSF stamp(s) could not be measured: flagged", psf_path, int(failed.sum()))
         return out
-    values = _single_psf(psf_path, size)
+    values = _single_psf(psf_path, size, engine)
     log.info(
         "%s: one PSF for all rows (g1=%.4f, g2=%.4f, sigma=%.4f)",
         psf_path, values["psf_adamom_g1"], values["psf_adamom_g2"], values["psf_adamom_sigma"],
@@ -297,6 +308,11 @@ def _read_positions_catalog(path: str | os.PathLike) -> Table:
     return table
 
 
+def _card_value(card: Any) -> Any:
+    """The value of a header card given as a value or a ``(value, comment)`` pair."""
+    return card[0] if isinstance(card, tuple) else card
+
+
 def _grid_step(v: np.ndarray) -> tuple[float | None, int, bool]:
     """``(step, n_unique, regular)`` of the distinct values of ``v`` (step None if < 3:
     two values always look like a regular grid)."""
@@ -343,6 +359,7 @@ def measure_file(
     overwrite: bool = False,
     progress: ProgressFactory | None = None,
     stars: bool | None = None,
+    engine: str = DEFAULT_ENGINE,
 ) -> Table:
     """Measure every stamp of ``stamps_path`` and write the features catalog ``output``.
 
@@ -364,6 +381,8 @@ def measure_file(
             ``megalut.stars``); None: when the file name starts with ``starfield_image``.
             Without ``stamp_size`` or a ``STAMPSZ`` card, a square star field is taken
             as GREAT3's 3x3 grid.
+        engine: ``fast`` (compiled adaptive moments) or ``galsim`` (``FindAdaptiveMom``),
+            see :mod:`megalut_cli.engine`.
 
     Returns:
         The table written.
@@ -392,6 +411,7 @@ def measure_file(
     size = stamp_size_of(info, stamp_size)
     n_y, n_x = check_grid(info, size)
 
+    extra_hdus: dict[str, np.ndarray] = {}
     if catalog_path is not None:
         table = _read_positions_catalog(catalog_path)
         check_belongs_together(stamps_path, info.header, str(catalog_path), table.meta)
@@ -404,15 +424,21 @@ def measure_file(
                 f"{size} pixels; wrong --origin or --stamp-size?)"
             )
         history = table.meta.get("HISTORY")
-        cards = {k: v for k, v in table.meta.items() if k not in ("HISTORY", "COMMENT")}
+        from megalut_cli.great3.layout import is_fits_file
+
+        if is_fits_file(catalog_path):  # carried with their comments, and the CONFIG HDU
+            cards = read_cards(catalog_path)
+            extra_hdus = read_carried_hdus(catalog_path)
+        else:
+            cards = {k: v for k, v in table.meta.items() if k not in ("HISTORY", "COMMENT")}
     else:
         origins = grid_origins(n_y, n_x, size)[: _n_grid_stamps(info, n_y * n_x)]
         centres = stamp_centres(origins, size)
         table = Table({"x": centres[:, 0], "y": centres[:, 1]})
         history = info.header.get("HISTORY")
-        cards = {}
+        cards = read_cards(stamps_path, ext=info.ext)  # the image's provenance (seed, config)
     log.info("%s: %d stamps of %dx%d pixels", stamps_path, len(origins), size, size)
-    header_gain = cards.get("GAIN", info.header.get("GAIN"))
+    header_gain = _card_value(cards.get("GAIN", info.header.get("GAIN")))
     if gain is None and header_gain is not None:
         log.warning(
             "the input header has GAIN=%s but no --gain was given: snr uses Eq. 10 "
@@ -423,14 +449,15 @@ def measure_file(
         psf_path = str(psf_path)
         image_info(psf_path)  # fail early on a bad PSF file, before the long measurement
 
-    feats = _run_units(info, origins, size, gain, nproc, scheduler, progress, "measuring stamps")
+    feats = _run_units(info, origins, size, gain, nproc, scheduler, progress, "measuring stamps", engine)
     psf = None
     if psf_path is not None:
-        psf = _psf_features(psf_path, info, origins, size, nproc, scheduler, progress)
+        psf = _psf_features(psf_path, info, origins, size, nproc, scheduler, progress, engine)
         feats["flags"] |= psf.pop("flags")
 
     if stars:
-        return _write_stars(stamps_path, table, feats, output, overwrite, size, origin if catalog_path else 1, cards, history)
+        return _write_stars(stamps_path, table, feats, output, overwrite, size, origin if catalog_path else 1, cards, history,
+                            extra_hdus)
 
     new_cols = list(FEATURE_COLUMNS) + (list(PSF_COLUMNS) if psf is not None else [])
     replaced = [c for c in new_cols if c in table.colnames]
@@ -452,9 +479,13 @@ def measure_file(
             "XYORIGIN": (origin if catalog_path is not None else 1, "coordinate of the first pixel in x, y"),
             "GAIN": (gain, "gain [e-/ADU] of the S/N (Eq. 8)") if gain is not None else None,
             "MAXSHIFT": (default_max_shift(size), "centroid shift limit [pixels]"),
+            "MENGINE": (engine, "engine of the adaptive moments (megalut --engine)"),
         }
     )
-    write_catalog(output, table, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history)
+    if "MEASURED" in cards:  # a simulation's card: the features are now measured
+        cards["MEASURED"] = (True, "the catalog holds measured features")
+    write_catalog(output, table, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history,
+                  extra_hdus=extra_hdus)
     log.info("wrote %s (%d rows)", output, len(table))
     return table
 
@@ -469,6 +500,7 @@ def _write_stars(
     origin: int,
     cards: dict[str, Any],
     history: list[str] | None,
+    extra_hdus: dict[str, np.ndarray],
 ) -> Table:
     """Write the star-by-star PSF features of a star field (format ``megalut.stars``)."""
     good = feats["flags"] == 0
@@ -492,6 +524,8 @@ def _write_stars(
             "NSTARS": (int(good.sum()), "stars measured"),
         }
     )
-    write_catalog(output, table, fmt=STARS_FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history)
+    cards.pop("MEASURED", None)
+    write_catalog(output, table, fmt=STARS_FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history,
+                  extra_hdus=extra_hdus)
     log.info("wrote %s (%d stars)", output, len(table))
     return table

@@ -33,8 +33,9 @@ from typing import Any
 import numpy as np
 
 from megalut_cli import expr as _expr
-from megalut_cli.catalog import catalog_info, iter_catalog, read_catalog
+from megalut_cli.catalog import catalog_info, history_steps, iter_catalog, read_catalog
 from megalut_cli.errors import ConfigError, InputError, MegalutError
+from megalut_cli.provenance import CREATOR, command_line, sha256_file, software_versions, utc_now
 from megalut_cli.shear.bias import (
     GREAT3_SIGMA2_MIN_GROUND,
     STAGE_IV_C,
@@ -59,7 +60,10 @@ SCHEMES = ("unweighted", "weighted")
 CHUNK_ROWS = 500_000
 #: Format name of the JSON written by ``megalut evaluate --json``.
 JSON_FORMAT = "megalut.evaluation"
-JSON_FORMAT_VERSION = "1.0"
+JSON_FORMAT_VERSION = "1.1"
+#: |m| above which a fit is flagged as the sign of an untrained or mismatched model
+#: (when it exceeds it by more than its 1-sigma error: noise alone does not warn).
+WARN_M = 0.1
 
 
 # --------------------------------------------------------------------------- planning
@@ -342,7 +346,50 @@ def evaluate_catalog(
     _prepare_cases(plan, lambda cols: _read_columns(path, cols))
     result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins, sigma2_min)
     result["input"] = str(path)
+    result["provenance"] = evaluation_provenance(path)
     return result
+
+
+def m_too_large(m: float | None, m_err: float | None) -> bool:
+    """Whether ``|m| > WARN_M`` by more than its 1-sigma error ``m_err`` (or, without an
+    error, at all): the multiplicative bias of an untrained or mismatched model."""
+    if m is None or not math.isfinite(m):
+        return False
+    margin = m_err if m_err is not None and math.isfinite(m_err) else 0.0
+    return abs(m) - margin > WARN_M
+
+
+def large_m(result: Mapping[str, Any]) -> list[str]:
+    """The fits of ``result`` where :func:`m_too_large`, as ``"unweighted g1: m = -0.53 ± 0.01"``."""
+    out = []
+    for scheme in ("unweighted", "weighted"):
+        for comp, fit in (result.get(scheme) or {}).items():
+            if m_too_large(fit.get("m"), fit.get("m_err")):
+                err = f" ± {fit['m_err']:.2f}" if fit.get("m_err") is not None else ""
+                out.append(f"{scheme} {comp}: m = {fit['m']:+.2f}{err}")
+    return out
+
+
+def evaluation_provenance(path: str | os.PathLike) -> dict[str, Any]:
+    """Provenance of an evaluation of ``path``: this run (creator, date, command, versions)
+    and its input (sha256; for a megalut catalog its format, date, model and config hashes
+    and the HISTORY of the steps that made it)."""
+    from megalut_cli.great3.layout import is_fits_file
+
+    source: dict[str, Any] = {"path": str(path), "sha256": sha256_file(path)}
+    if is_fits_file(path):
+        header = catalog_info(path)[2]
+        for key, card in (("format", "MLFORMAT"), ("created", "DATE"), ("creator", "CREATOR"),
+                          ("model", "MODEL"), ("model_sha256", "MODELSHA"), ("config_sha256", "CFGSHA")):
+            source[key] = header.get(card)
+        source["history"] = history_steps(header.get("HISTORY", []))
+    return {
+        "creator": CREATOR,
+        "created": utc_now(),
+        "command": command_line(),
+        "versions": software_versions(),
+        "input": source,
+    }
 
 
 def evaluate_columns(

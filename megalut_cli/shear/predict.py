@@ -33,8 +33,11 @@ from megalut_cli.catalog import (
     catalog_info,
     header_cards,
     iter_catalog,
+    read_cards,
+    read_carried_hdus,
     read_setup,
     setup_differences,
+    write_table_hdu,
 )
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.nn.model import ShearModel, prediction_column
@@ -255,10 +258,10 @@ def predict_catalog(
     replaced = [c for c in new_cols if c in names]
     if replaced:
         log.warning("%s: replacing existing column(s) %s", features_path, ", ".join(replaced))
-    cards = {k: v for k, v in header.items() if k != "HISTORY"}
+    cards = read_cards(features_path)  # with their comments
     cards["MODELSHA"] = (model.sha256, "sha256 of the model file")
     cards["MODEL"] = (Path(model_path).name[:68], "model file")
-    recs = header_cards(FORMAT, FORMAT_VERSION, cards, header.get("HISTORY"))
+    extra_hdus = read_carried_hdus(features_path)
     feature_cols = [resolved[f] for f in model.features]
     n_failed = 0
 
@@ -276,6 +279,7 @@ def predict_catalog(
             for table, pred in _ordered(_predict_unit, units(), pool, window):
                 if dtype is None:
                     dtype = _output_dtype(table, new_cols)
+                    recs = header_cards(FORMAT, FORMAT_VERSION, cards, header.get("HISTORY"), columns=dtype.names)
                 arr = np.zeros(len(table), dtype=dtype)
                 for c in table.colnames:
                     if c not in pred:
@@ -285,11 +289,13 @@ def predict_catalog(
                     arr[c] = v
                 n_failed += int(np.count_nonzero(pred["flags"] & _flags.BAD_FEATURES))
                 if len(fits) < 2:
-                    fits.write(arr, header=recs, extname="CATALOG")
+                    write_table_hdu(fits, arr, recs)
                 else:
                     fits[-1].append(arr)
                 if progress is not None:
                     progress(len(table))
+            for name, extra in extra_hdus.items():
+                fits.write(extra, extname=name)
     if n_failed:
         log.info("%d of %d rows have failed features (NaN estimates, flag BAD_FEATURES)", n_failed, n_rows)
     return PredictReport(Path(output), n_rows, n_failed, new_cols, model.sha256)

@@ -42,8 +42,8 @@ log = logging.getLogger("megalut")
 #: Parameter groups that can be redrawn for every realization (else once per case).
 VARY_GROUPS = ("shear", "galaxy", "angle", "psf")
 SNC_MODES = ("ring", "pairs", "none")
-PROFILES = ("sersic", "gaussian", "real")
-NOISE_TYPES = ("gaussian", "ccd", "none")
+PROFILES = ("sersic", "gaussian", "bulgedisk", "cosmos_fit", "real")
+NOISE_TYPES = ("gaussian", "ccd", "correlated", "none")
 FLUX_KEYS = ("flux", "sb", "mag")
 #: GalSim's Sersic index range.
 SERSIC_N_RANGE = (0.3, 6.2)
@@ -80,12 +80,31 @@ _STRUCTURE_KEYS = {
     "n_x",
 }
 _GALAXY_KEYS = {"profile", "sersicn", "sersicn_step", "rad", "ellipticity", "angle", *FLUX_KEYS}
+#: Star-forming knots (GalSim RandomKnots), for every profile but "real".
+_KNOT_KEYS = {"knots", "knots_fraction"}
+#: Bulge + disk keys (profile = "bulgedisk") and their defaults.
+BULGE_DEFAULTS: dict[str, float] = {
+    "bulge_rad_ratio": 0.5,
+    "bulge_sersicn": 4.0,
+    "bulge_ellipticity": 0.0,
+    "bulge_angle": 0.0,
+    "bulge_dx": 0.0,
+    "bulge_dy": 0.0,
+}
+_BULGE_KEYS = {"bulge_fraction", *BULGE_DEFAULTS}
+#: COSMOS parametric fits (profile = "cosmos_fit"): which fit, and the pixel scale.
+_FIT_KEYS = {"fit"}
+COSMOS_FITS = ("sersic", "bulgedisk", "auto")
+_GALAXY_KEYS |= _KNOT_KEYS | _BULGE_KEYS | _FIT_KEYS
 #: Keys of real galaxies (profile = "real") from a GalSim RealGalaxyCatalog.
 _REAL_KEYS = {"real_catalog", "real_dir", "pixel_scale", "index", "real_select", "hst_noise"}
 #: What to do with the HST noise of real galaxies (see docs/config.md).
 HST_NOISE_MODES = ("symmetrize", "whiten", "keep")
 _GALAXY_KEYS |= _REAL_KEYS
 _NOISE_KEYS = {"type", "sigma", "sky_mag", "read_noise", "override_sigma"}
+#: Keys of correlated noise (noise.type = "correlated").
+_CORRELATED_KEYS = {"sigma", "image", "correlation", "hdu", "pixel_scale"}
+_NOISE_KEYS |= _CORRELATED_KEYS
 _INSTRUMENT_KEYS = {"pixel_scale", "exptime", "gain", "zeropoint"}
 _CATALOG_KEYS = {"path", "select", "hdu"}
 
@@ -134,6 +153,27 @@ class GalaxySpec:
     sersicn_step: float
     #: profile "real": {"catalog": file, "dir": image folder, "pixel_scale": arcsec/pixel}
     real: dict[str, Any] | None = None
+    #: profile "cosmos_fit": {"fit": "sersic" | "bulgedisk" | "auto", "pixel_scale": arcsec/pixel or None}
+    model: dict[str, Any] | None = None
+
+    @property
+    def knots(self) -> bool:
+        """Whether galaxies may get star-forming knots."""
+        return "knots" in self.params
+
+
+#: Sources of correlated noise: a noise image or a correlation-function image.
+CORRELATED_SOURCES = ("image", "correlation")
+
+
+@dataclass(frozen=True)
+class CorrelationSource:
+    """Where a correlated-noise model comes from (plain, picklable)."""
+
+    kind: str  # "image" | "correlation"
+    path: str
+    hdu: int | None = None
+    pixel_scale: float = 1.0  # size of the source's pixel in simulation pixels
 
 
 @dataclass(frozen=True)
@@ -141,6 +181,8 @@ class NoiseSpec:
     type: str
     params: dict[str, Distribution]  # sigma | sky_mag, read_noise
     override_sigma: float | None = None
+    #: type "correlated": where the correlation function comes from
+    source: CorrelationSource | None = None
 
 
 @dataclass(frozen=True)
@@ -426,36 +468,148 @@ def _parse_galaxy(raw: Mapping[str, Any], instrument: Mapping[str, float], confi
     t = _table(raw, "galaxy", _GALAXY_KEYS, required=True)
     profile = _choice(t.get("profile", "sersic"), "galaxy.profile", PROFILES)
     if profile == "real":
+        extra = sorted(set(t) & (_KNOT_KEYS | _BULGE_KEYS | _FIT_KEYS))
+        if extra:
+            raise ConfigError(f"galaxy.{extra[0]}: not a key of profile 'real'")
         return _parse_real_galaxy(t, instrument, config_path)
-    extra = sorted(set(t) & _REAL_KEYS)
+    extra = sorted(set(t) & (_REAL_KEYS - ({"pixel_scale"} if profile == "cosmos_fit" else set())))
     if extra:
-        raise ConfigError(f"galaxy.{extra[0]}: only for profile = 'real'")
+        where = "profile = 'real' or 'cosmos_fit'" if extra[0] == "pixel_scale" else "profile = 'real'"
+        raise ConfigError(f"galaxy.{extra[0]}: only for {where}")
+    extra = sorted(set(t) & (_BULGE_KEYS if profile != "bulgedisk" else set()))
+    if extra:
+        raise ConfigError(f"galaxy.{extra[0]}: only for profile = 'bulgedisk'")
+    if "fit" in t and profile != "cosmos_fit":
+        raise ConfigError("galaxy.fit: only for profile = 'cosmos_fit'")
+    if profile == "cosmos_fit":
+        return _parse_cosmos_fit(t, instrument)
     if "rad" not in t:
         raise ConfigError("galaxy.rad: missing (half-light radius in pixels)")
+    flux_mode = _flux_mode(t, instrument)
+    if profile == "sersic":
+        if "sersicn" not in t:
+            raise ConfigError("galaxy.sersicn: missing (Sersic index)")
+    elif "sersicn" in t:
+        raise ConfigError("galaxy.sersicn: only for profile = 'sersic'")
+    step = _sersicn_step(t)
+    keys = ["rad", "sersicn", flux_mode]
+    params = _dists(t, "galaxy", keys)
+    params["ellipticity"] = parse_distribution(t.get("ellipticity", 0.0), "galaxy.ellipticity")
+    if profile == "bulgedisk":
+        if "bulge_fraction" not in t:
+            raise ConfigError("galaxy.bulge_fraction: missing (fraction of the flux in the bulge, 0-1)")
+        params["bulge_fraction"] = parse_distribution(t["bulge_fraction"], "galaxy.bulge_fraction")
+        for k, default in BULGE_DEFAULTS.items():
+            params[k] = parse_distribution(t.get(k, default), f"galaxy.{k}")
+    params.update(_knot_dists(t))
+    return GalaxySpec(profile, params, _angle(t), flux_mode, step)
+
+
+def _flux_mode(t: Mapping[str, Any], instrument: Mapping[str, float]) -> str:
     given = [k for k in FLUX_KEYS if k in t]
     if len(given) != 1:
         raise ConfigError(
             "galaxy.flux: give exactly one of galaxy.flux, galaxy.sb (surface brightness) "
             f"or galaxy.mag (got {', '.join(given) or 'none'})"
         )
-    flux_mode = given[0]
-    if flux_mode == "mag":
+    if given[0] == "mag":
         _need_instrument(instrument, ("zeropoint", "exptime", "gain"), "galaxy.mag")
-    if profile == "sersic":
-        if "sersicn" not in t:
-            raise ConfigError("galaxy.sersicn: missing (Sersic index)")
-    elif "sersicn" in t:
-        raise ConfigError("galaxy.sersicn: only for profile = 'sersic'")
+    return given[0]
+
+
+def _sersicn_step(t: Mapping[str, Any]) -> float:
     step = _float(t.get("sersicn_step", 0.1), "galaxy.sersicn_step")
     if step < 0:
         raise ConfigError(f"galaxy.sersicn_step: must be >= 0, got {step}")
-    keys = ["rad", "sersicn", flux_mode]
-    params = _dists(t, "galaxy", keys)
-    params["ellipticity"] = parse_distribution(t.get("ellipticity", 0.0), "galaxy.ellipticity")
-    angle = parse_distribution(
-        t.get("angle", {"type": "uniform", "min": 0.0, "max": 180.0}), "galaxy.angle"
-    )
-    return GalaxySpec(profile, params, angle, flux_mode, step)
+    return step
+
+
+def _angle(t: Mapping[str, Any]) -> Distribution:
+    return parse_distribution(t.get("angle", {"type": "uniform", "min": 0.0, "max": 180.0}), "galaxy.angle")
+
+
+def _knot_dists(t: Mapping[str, Any]) -> dict[str, Distribution]:
+    """``knots`` (number, 0 = none) and ``knots_fraction`` (of the disk's flux), if given."""
+    if "knots" not in t:
+        if "knots_fraction" in t:
+            raise ConfigError("galaxy.knots_fraction: needs galaxy.knots (the number of knots)")
+        return {}
+    if "knots_fraction" not in t:
+        raise ConfigError("galaxy.knots_fraction: missing (fraction of the disk's flux in the knots, 0-1)")
+    return {k: parse_distribution(t[k], f"galaxy.{k}") for k in ("knots", "knots_fraction")}
+
+
+#: Catalog columns of the COSMOS parametric fits (GalSim ``COSMOSCatalog._buildParametric``):
+#: internal parameter -> (column, element).
+COSMOS_FIT_COLUMNS: dict[str, dict[str, tuple[str, int | None]]] = {
+    "sersic": {
+        "fit_n": ("sersicfit", 2), "fit_q": ("sersicfit", 3), "fit_hlr": ("hlr", 0), "fit_viable": ("viable_sersic", None),
+    },
+    "bulgedisk": {
+        "fit_disk_q": ("bulgefit", 3), "fit_disk_beta": ("bulgefit", 7), "fit_bulge_q": ("bulgefit", 11),
+        "fit_bulge_beta": ("bulgefit", 15), "fit_bulge_hlr": ("hlr", 1), "fit_disk_hlr": ("hlr", 2),
+        "fit_bulge_flux": ("flux", 1), "fit_disk_flux": ("flux", 2), "fit_use_bulge": ("use_bulgefit", None),
+    },
+}
+
+
+def _parse_cosmos_fit(t: dict[str, Any], instrument: Mapping[str, float]) -> GalaxySpec:
+    """``profile = "cosmos_fit"``: rows of the [catalog] (COSMOS parametric fits)."""
+    for k in ("sersicn", "ellipticity", "real_select"):
+        if k in t:
+            raise ConfigError(f"galaxy.{k}: not a key of profile 'cosmos_fit' (profile and shape come from the fits)")
+    fit = _choice(t.get("fit", "auto"), "galaxy.fit", COSMOS_FITS)
+    if ("rad" in t) == ("pixel_scale" in t):
+        raise ConfigError(
+            "galaxy.pixel_scale: profile 'cosmos_fit' needs exactly one of galaxy.pixel_scale (arcsec per "
+            "simulation pixel) or galaxy.rad (half-light radius in pixels, the fits then set only the morphology)"
+        )
+    scale = None
+    if "pixel_scale" in t:
+        scale = _float(t["pixel_scale"], "galaxy.pixel_scale")
+        if scale <= 0:
+            raise ConfigError(f"galaxy.pixel_scale: must be > 0, got {scale}")
+    flux_mode = _flux_mode(t, instrument)
+    params = _dists(t, "galaxy", ["rad", flux_mode])
+    params["fit_ident"] = CatalogColumn("galaxy.fit", "IDENT")
+    for part in (["sersic", "bulgedisk"] if fit == "auto" else [fit]):
+        for name, (column, element) in COSMOS_FIT_COLUMNS[part].items():
+            params[name] = CatalogColumn("galaxy.fit", column, element)
+    params.update(_knot_dists(t))
+    return GalaxySpec("cosmos_fit", params, _angle(t), flux_mode, _sersicn_step(t),
+                      model={"fit": fit, "pixel_scale": scale})
+
+
+def _usable_fit_rows(galaxy: GalaxySpec, parts: dict[str, dict[str, Any]], n_rows: int) -> int:
+    """Keep the catalog rows whose chosen COSMOS fit is usable (positive sizes and axis
+    ratios, a bulge fraction in [0, 1], GalSim's ``viable_sersic``/``use_bulgefit``)."""
+    g = parts["galaxy"]
+    cols = {k: v.data for k, v in g.items() if isinstance(v, CatalogColumn) and k.startswith("fit_")}
+    fit = galaxy.model["fit"] if galaxy.model else "auto"
+    ok_s = ok_b = np.zeros(n_rows, dtype=bool)
+    if "fit_n" in cols:
+        ok_s = (cols["fit_viable"] > 0.5) & (cols["fit_hlr"] > 0) & (cols["fit_q"] > 0) & (cols["fit_q"] <= 1)
+    if "fit_disk_q" in cols:
+        fb, fd = cols["fit_bulge_flux"], cols["fit_disk_flux"]
+        ok_b = ((cols["fit_use_bulge"] > 0.5) & (cols["fit_bulge_hlr"] > 0) & (cols["fit_disk_hlr"] > 0)
+                & (fb >= 0) & (fd >= 0) & (fb + fd > 0)
+                & (cols["fit_disk_q"] > 0) & (cols["fit_disk_q"] <= 1)
+                & (cols["fit_bulge_q"] > 0) & (cols["fit_bulge_q"] <= 1))
+    if fit == "sersic":
+        keep = ok_s
+    elif fit == "bulgedisk":
+        keep = ok_b
+    else:
+        keep = np.where(cols["fit_use_bulge"] > 0.5, ok_b, ok_s)
+    if not keep.any():
+        raise ConfigError(f"galaxy.fit: no catalog row has a usable {fit!r} fit")
+    if not keep.all():
+        log.info("galaxy.fit = %r: %d of %d catalog rows have a usable fit", fit, int(keep.sum()), n_rows)
+    for part in parts.values():
+        for name, d in part.items():
+            if isinstance(d, CatalogColumn):
+                part[name] = d.with_data(d.data[keep])
+    return int(keep.sum())
 
 
 _MEASURED_KEYS = {"type", "path", "column", "statistic", "select", "scale"}
@@ -511,11 +665,23 @@ def _parse_noise(raw: Mapping[str, Any], instrument: Mapping[str, float], config
     if is_measured(t.get("sigma")):
         t["sigma"] = measured_value(t["sigma"], "noise.sigma", config_path)
     kind = _choice(t.get("type"), "noise.type", NOISE_TYPES)
-    allowed = {"gaussian": {"sigma"}, "ccd": {"sky_mag", "read_noise"}, "none": set()}[kind]
+    allowed = {"gaussian": {"sigma"}, "ccd": {"sky_mag", "read_noise"}, "correlated": _CORRELATED_KEYS,
+               "none": set()}[kind]
     extra = sorted(set(t) - allowed - {"type", "override_sigma"})
     if extra:
         raise ConfigError(f"noise.{extra[0]}: not a key of noise type {kind!r}")
-    if kind == "gaussian":
+    source = None
+    if kind == "correlated":
+        source = _correlation_source(t, config_path)
+        if "sigma" not in t:
+            if source.kind == "correlation":
+                raise ConfigError("noise.sigma: missing (pixel standard deviation in ADU of the correlated noise)")
+            from megalut_cli.sim.noise import source_variance
+
+            t["sigma"] = math.sqrt(source_variance(source))
+            log.info("noise.sigma = %g: the pixel standard deviation of %s", t["sigma"], source.path)
+        params = _dists(t, "noise", ["sigma"])
+    elif kind == "gaussian":
         if "sigma" not in t:
             raise ConfigError("noise.sigma: missing (standard deviation in ADU)")
         params = _dists(t, "noise", ["sigma"])
@@ -534,7 +700,36 @@ def _parse_noise(raw: Mapping[str, Any], instrument: Mapping[str, float], config
         override = _float(override, "noise.override_sigma")
         if override < 0:
             raise ConfigError(f"noise.override_sigma: must be >= 0, got {override}")
-    return NoiseSpec(kind, params, override)
+    return NoiseSpec(kind, params, override, source)
+
+
+def _correlation_source(t: Mapping[str, Any], config_path: str) -> CorrelationSource:
+    """The noise image or correlation-function image of ``noise.type = "correlated"``."""
+    given = [k for k in CORRELATED_SOURCES if k in t]
+    if len(given) != 1:
+        raise ConfigError(
+            "noise.image: correlated noise needs exactly one of noise.image (a FITS noise image, e.g. a "
+            "blank-sky cutout) or noise.correlation (a FITS correlation-function image, e.g. GalSim's "
+            f"acs_I_unrot_sci_20_cf.fits) (got {', '.join(given) or 'none'})"
+        )
+    kind = given[0]
+    path = _resolve_path(t[kind], f"noise.{kind}", config_path)
+    hdu = t.get("hdu")
+    if hdu is not None:
+        hdu = _int(hdu, "noise.hdu", 0)
+    scale = _float(t.get("pixel_scale", 1.0), "noise.pixel_scale")
+    if scale <= 0:
+        raise ConfigError(f"noise.pixel_scale: must be > 0, got {scale}")
+    if kind == "correlation" and hdu is not None:
+        raise ConfigError("noise.hdu: only for noise.image (a correlation-function file is read from its first HDU)")
+    source = CorrelationSource(kind, str(path), hdu, scale)
+    from megalut_cli.sim.noise import unit_correlated_noise
+
+    try:
+        unit_correlated_noise(source)  # fail now, with one line, on an unusable file
+    except InputError as err:
+        raise ConfigError(str(err)) from None
+    return source
 
 
 def _parse_gsparams(raw: Mapping[str, Any]) -> dict[str, float]:
@@ -741,7 +936,7 @@ def validate_config(
     shear = _dists(shear_t, "shear", ["g1", "g2"])
     galaxy = _parse_galaxy(raw, instrument, path)
     noise = _parse_noise(raw, instrument, path)
-    if galaxy.real is not None and galaxy.real["hst_noise"] != "keep" and noise.type == "ccd" and noise.override_sigma is None:
+    if galaxy.real is not None and galaxy.real["hst_noise"] != "keep" and noise.type in ("ccd", "correlated") and noise.override_sigma is None:
         raise ConfigError(
             f"galaxy.hst_noise: {galaxy.real['hst_noise']!r} needs noise.type = 'gaussian' (the added noise "
             "makes up the rest of the variance); or set galaxy.hst_noise = 'keep'"
@@ -762,7 +957,14 @@ def validate_config(
         "angle": {"angle": galaxy.angle},
         "noise": noise.params,
     }
+    if galaxy.profile == "cosmos_fit" and not isinstance(raw.get("catalog"), Mapping):
+        raise ConfigError(
+            "galaxy.profile: 'cosmos_fit' samples the rows of a [catalog] table (catalog.path = the COSMOS "
+            "fits file, e.g. real_galaxy_catalog_23.5_example_fits.fits)"
+        )
     n_rows, cat_path = _load_catalog(raw, path, parts)
+    if galaxy.profile == "cosmos_fit":
+        n_rows = _usable_fit_rows(galaxy, parts, n_rows)
     psf.update(parts["psf"])
     galaxy = replace(galaxy, angle=parts["angle"]["angle"])
     if field_d is not None:
@@ -779,13 +981,32 @@ def validate_config(
         a, b = g["ellipticity"].bounds()
         if b >= 1.0:
             raise ConfigError(f"galaxy.ellipticity: the modulus must be < 1, but values reach {b:g}")
-    if "sersicn" in g:
-        lo, hi = (float(round_sersicn(np.array(v), galaxy.sersicn_step)) for v in g["sersicn"].bounds())
-        if lo < SERSIC_N_RANGE[0] or hi > SERSIC_N_RANGE[1]:
-            raise ConfigError(
-                f"galaxy.sersicn: GalSim supports {SERSIC_N_RANGE[0]} <= n <= {SERSIC_N_RANGE[1]}, "
-                f"but values reach [{lo:g}, {hi:g}]"
-            )
+    for name in ("sersicn", "bulge_sersicn"):
+        if name in g:
+            lo, hi = (float(round_sersicn(np.array(v), galaxy.sersicn_step)) for v in g[name].bounds())
+            if lo < SERSIC_N_RANGE[0] or hi > SERSIC_N_RANGE[1]:
+                raise ConfigError(
+                    f"galaxy.{name}: GalSim supports {SERSIC_N_RANGE[0]} <= n <= {SERSIC_N_RANGE[1]}, "
+                    f"but values reach [{lo:g}, {hi:g}]"
+                )
+    for name, lo, hi, what in (
+        ("bulge_fraction", 0.0, 1.0, "the bulge's flux fraction"),
+        ("knots_fraction", 0.0, 1.0, "the knots' fraction of the disk's flux"),
+        ("knots", 0.0, 10000.0, "the number of knots"),
+    ):
+        if name in g:
+            _check_range(g[name], lo, hi, what)
+    if "bulge_rad_ratio" in g:
+        _check_range(g["bulge_rad_ratio"], 0.0, None, "the bulge-to-disk half-light radius ratio", strict_lo=True)
+    if "bulge_ellipticity" in g:
+        _check_range(g["bulge_ellipticity"], 0.0, None, "the bulge's ellipticity modulus")
+        if g["bulge_ellipticity"].bounds()[1] >= 1.0:
+            raise ConfigError(f"galaxy.bulge_ellipticity: the modulus must be < 1, but values reach {g['bulge_ellipticity'].bounds()[1]:g}")
+    for name in ("bulge_dx", "bulge_dy"):
+        if name in g:
+            a, b = g[name].bounds()
+            if max(abs(a), abs(b)) > structure.stamp_size / 4:
+                raise ConfigError(f"galaxy.{name}: the bulge offset must stay within stamp_size/4 pixels, but values reach {max(abs(a), abs(b)):g}")
     gmax = [max(abs(x) for x in d.bounds()) for d in shear.values()]
     if gmax and math.hypot(*gmax, 0.0) >= 1.0:
         raise ConfigError("shear: the reduced shear |g| must stay < 1")

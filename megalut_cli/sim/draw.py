@@ -4,8 +4,10 @@
 its cases (galaxy convolved with the PSF, pixel response included, centred on the stamp
 centre plus the sub-pixel offset), adds the noise seeded per (case, realization), and
 returns the truth columns, plus the measured features (``measure``) and/or the stamps
-(``keep_stamps``). Profiles are reused within a case (one Sersic per galaxy, one PSF per
-case) and image buffers are reused between stamps.
+(``keep_stamps``). With the ``fast`` engine the stamps of a case are rendered in batches
+(:mod:`megalut_cli.sim.render`) and the noise is added with numpy; with ``galsim`` (and for
+galaxies the fast renderer does not cover) GalSim draws them one by one, reusing profiles
+within a case and image buffers between stamps.
 """
 
 from __future__ import annotations
@@ -17,16 +19,18 @@ from typing import Any
 import galsim
 import numpy as np
 
+from megalut_cli.engine import DEFAULT_ENGINE
 from megalut_cli.errors import MegalutError
+from megalut_cli.sim import render
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.galaxies import (
-    base_profile,
+    galaxy_profile,
     make_gsparams,
+    oriented,
     real_footprint,
     real_noise,
     real_profile,
     rotated,
-    shaped,
 )
 from megalut_cli.sim.structure import draw_case
 
@@ -48,6 +52,13 @@ class WorkUnit:
     n_x: int
     keep_stamps: bool = False
     measure: bool = False
+    engine: str = DEFAULT_ENGINE
+
+    @property
+    def renders_fast(self) -> bool:
+        """Whether this unit's stamps go through the batched renderer."""
+        gal = self.config.galaxy
+        return self.engine == "fast" and render.can_render(gal.profile) and not gal.knots
 
 
 def psf_includes_pixel(spec: dict[str, Any]) -> bool:
@@ -67,9 +78,7 @@ def get_psf(
     """The PSF (pixel units) and its truth, cached per process (PSFs can be costly)."""
     from megalut_cli.sim.psf import make_psf
 
-    key = json.dumps([spec, gsparams or {}], sort_keys=True, default=str)
-    if varies:
-        key += f"|{field_x!r}|{field_y!r}"
+    key = psf_cache_key(spec, field_x, field_y, varies, gsparams)
     hit = _PSF_CACHE.get(key)
     if hit is None:
         if len(_PSF_CACHE) >= _PSF_CACHE_MAX:
@@ -79,6 +88,16 @@ def get_psf(
             psf = psf.withGSParams(make_gsparams(gsparams))
         hit = _PSF_CACHE[key] = (psf, dict(truth))
     return hit
+
+
+def psf_cache_key(
+    spec: dict[str, Any], field_x: float, field_y: float, varies: bool, gsparams: dict[str, float] | None = None
+) -> str:
+    """A string that names one PSF: its spec, GSParams and (for a variable PSF) field position."""
+    key = json.dumps([spec, gsparams or {}], sort_keys=True, default=str)
+    if varies:
+        key += f"|{field_x!r}|{field_y!r}"
+    return key
 
 
 def stamp_origins(index: np.ndarray, n_x: int, stamp_size: int) -> np.ndarray:
@@ -97,16 +116,17 @@ def stamp_centres(index: np.ndarray, n_x: int, stamp_size: int) -> tuple[np.ndar
 class _Measurer:
     """Accumulates stamps and measures them in batches."""
 
-    def __init__(self, gain: float | None):
+    def __init__(self, gain: float | None, engine: str = DEFAULT_ENGINE):
         from megalut_cli.measure.features import measure_stamps
 
         self._measure = measure_stamps
         self.gain = gain
+        self.engine = engine
         self.parts: list[dict[str, np.ndarray]] = []
 
     def __call__(self, stamps: np.ndarray, origins: np.ndarray) -> None:
         if len(stamps):
-            self.parts.append(self._measure(stamps, origins=origins, gain=self.gain))
+            self.parts.append(self._measure(stamps, origins=origins, gain=self.gain, engine=self.engine))
 
     def columns(self) -> dict[str, np.ndarray]:
         if not self.parts:
@@ -170,6 +190,8 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     row per stamp, ordered by case then realization.
     """
     _single_threaded_galsim()
+    if unit.renders_fast and (unit.keep_stamps or unit.measure):
+        return draw_unit_fast(unit)
     cfg = unit.config
     s = cfg.structure
     S, n_rea = s.stamp_size, s.n_realizations
@@ -182,7 +204,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     render = keep or unit.measure  # else: truth only, nothing to draw
     nbuf = n_total if keep else (min(MEASURE_BATCH, n_total) if unit.measure else 0)
     stamps = np.empty((max(nbuf, 1), S, S), dtype=np.float32)
-    measurer = _Measurer(cfg.gain) if unit.measure else None
+    measurer = _Measurer(cfg.gain, unit.engine) if unit.measure else None
     image = galsim.ImageF(S, S, scale=1.0)
     gsp = make_gsparams(cfg.gsparams)
     conv_gsp = gsp if cfg.gsparams else None  # else GalSim combines the components' own
@@ -213,11 +235,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                     if pad:
                         base0 = real_profile(gal.real, int(t["tru_real_index"][k]), t["tru_flux"][k], gsp)
                 else:
-                    base = base_profile(
-                        gal.profile, t["tru_rad"][k], t["tru_flux"][k],
-                        t["tru_sersicn"][k] if "tru_sersicn" in t else None,
-                        gsp,
-                    )
+                    base = galaxy_profile(gal.profile, t, k, gsp)
                 last_gal = gi
             pi = int(d.psf_index[k])
             if pi != last_psf:
@@ -232,7 +250,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
             if gal.profile == "real":  # real galaxies: rotated by the position angle, then lensed
                 gal_k = rotated(base, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k])
             else:
-                gal_k = shaped(base, t["tru_e1"][k], t["tru_e2"][k], t["tru_g1"][k], t["tru_g2"][k])
+                gal_k = oriented(base, t, k, d.extra["theta"][k])
             obj = galsim.Convolve(gal_k, psf, gsparams=conv_gsp)
             try:
                 obj.drawImage(image=image, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method)
@@ -258,15 +276,9 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                 measurer(stamps[:fill], stamp_origins(idx, unit.n_x, S))
                 buf_first += fill
                 fill = 0
-        cols = {
-            "case": np.full(n_rea, case, dtype=np.int64),
-            "rea": np.arange(n_rea, dtype=np.int64),
-        }
-        cols.update(t)
+        cols = case_columns(d, psf_truths)
         if hst_var is not None:
             cols["tru_hst_noise_var"] = hst_var
-        for name in psf_truths[0]:
-            cols[name] = np.array([p[name] for p in psf_truths], dtype=float)[d.psf_index]
         truth_parts.append(cols)
 
     if measurer is not None and fill:
@@ -281,3 +293,94 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     if measurer is not None:
         columns.update(measurer.columns())
     return {"columns": columns, "stamps": stamps[:n_total] if keep else None}
+
+
+def case_columns(d: Any, psf_truths: list[dict[str, float]]) -> dict[str, np.ndarray]:
+    """The catalog columns of one drawn case: ``case, rea``, its truth and its PSF truth."""
+    n_rea = len(d.noise_seeds)
+    cols: dict[str, np.ndarray] = {
+        "case": np.full(n_rea, d.case, dtype=np.int64),
+        "rea": np.arange(n_rea, dtype=np.int64),
+    }
+    cols.update(d.truth)
+    for name in psf_truths[0]:
+        cols[name] = np.array([p[name] for p in psf_truths], dtype=float)[d.psf_index]
+    return cols
+
+
+_RENDERERS: dict[str, render.StampRenderer] = {}
+
+
+def stamp_renderer(stamp_size: int, gsparams: dict[str, float]) -> render.StampRenderer:
+    """The batched renderer of this process for a stamp size and GSParams (its caches are kept)."""
+    key = json.dumps([stamp_size, gsparams], sort_keys=True)
+    if key not in _RENDERERS:
+        _RENDERERS[key] = render.StampRenderer(stamp_size, gsparams)
+    return _RENDERERS[key]
+
+
+def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
+    """:func:`draw_unit` with the fast engine: each case's stamps of one PSF rendered in one
+    batch, noise added in bulk, features measured :data:`MEASURE_BATCH` stamps at a time."""
+    cfg = unit.config
+    s = cfg.structure
+    S, n_rea = s.stamp_size, s.n_realizations
+    gal = cfg.galaxy
+    renderer = stamp_renderer(S, dict(cfg.gsparams))
+    measurer = _Measurer(cfg.gain, unit.engine) if unit.measure else None
+    kept: list[np.ndarray] = []
+    pending: list[np.ndarray] = []  # rendered stamps not yet measured
+    n_pending = 0
+    measured_to = unit.case_start * n_rea  # global index of the first pending stamp
+    truth_parts: list[dict[str, np.ndarray]] = []
+
+    def measure_pending(final: bool) -> None:
+        nonlocal pending, n_pending, measured_to
+        if measurer is None or not pending:
+            return
+        block = np.concatenate(pending)
+        stop = len(block) if final else len(block) - len(block) % MEASURE_BATCH
+        for a in range(0, stop, MEASURE_BATCH):
+            b = min(a + MEASURE_BATCH, stop)
+            idx = np.arange(measured_to + a, measured_to + b)
+            measurer(block[a:b], stamp_origins(idx, unit.n_x, S))
+        measured_to += stop
+        pending = [block[stop:]] if stop < len(block) else []
+        n_pending = len(block) - stop
+
+    for case in range(unit.case_start, unit.case_stop):
+        d = draw_case(cfg, unit.seed, case)
+        t = d.truth
+        stamps = np.empty((n_rea, S, S), dtype=np.float32)
+        psf_truths: list[dict[str, float]] = []
+        for pi, (spec, fx, fy) in enumerate(d.psf_specs):
+            psf, ptruth = get_psf(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
+            psf_truths.append(ptruth)
+            sel = np.flatnonzero(d.psf_index == pi)
+            key = psf_cache_key(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
+            method = "no_pixel" if psf_includes_pixel(spec) else "auto"
+            try:
+                stamps[sel] = renderer.draw(
+                    psf, key, method, gal.profile,
+                    t["tru_rad"][sel], t["tru_flux"][sel],
+                    t["tru_sersicn"][sel] if "tru_sersicn" in t else None,
+                    t["tru_e1"][sel], t["tru_e2"][sel], t["tru_g1"][sel], t["tru_g2"][sel],
+                    d.offsets[sel, 0], d.offsets[sel, 1],
+                )
+            except MegalutError as err:
+                raise MegalutError(f"case {case}: {err}") from None
+        d.noise.add_batch(stamps, d.noise_seeds)
+        truth_parts.append(case_columns(d, psf_truths))
+        if unit.keep_stamps:
+            kept.append(stamps)
+        if measurer is not None:
+            pending.append(stamps)
+            n_pending += n_rea
+            if n_pending >= MEASURE_BATCH:
+                measure_pending(final=False)
+    measure_pending(final=True)
+    columns = {k: np.concatenate([p[k] for p in truth_parts]) for k in truth_parts[0]} if truth_parts else {}
+    if measurer is not None:
+        columns.update(measurer.columns())
+    stamps_out = np.concatenate(kept) if unit.keep_stamps and kept else None
+    return {"columns": columns, "stamps": stamps_out}

@@ -25,13 +25,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import fitsio
 import numpy as np
 
 from megalut_cli.atomic import atomic_output, check_output
 from megalut_cli.catalog import write_catalog, write_image
+from megalut_cli.engine import DEFAULT_ENGINE, check_engine
 from megalut_cli.errors import MegalutError
 from megalut_cli.parallel import chunk_ranges, executor, format_duration, map_units, resolve_nproc
+from megalut_cli.sim import render
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, stamp_centres
 
@@ -71,7 +72,8 @@ def n_work_units(config: SimConfig, nproc: int = 1, scheduler: str | None = None
     return min(n_units, s.n_cases)
 
 
-def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, n_stamps: int = 32) -> float:
+def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, n_stamps: int = 32,
+                      engine: str = DEFAULT_ENGINE) -> float:
     """Drawing rate of one worker, timed on a tiny draw of ``n_stamps`` stamps of the first case.
 
     Cheap (well under a second at the paper's stamp size); per-case setup costs and work
@@ -82,14 +84,15 @@ def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: 
     if s.snc == "pairs":
         n_rea = max(2, n_rea - n_rea % 2)
     small = dataclasses.replace(config, structure=dataclasses.replace(s, n_cases=1, n_realizations=n_rea))
-    draw_unit(WorkUnit(small, seed, 0, 1, small.structure.grid_nx, keep_stamps, measure))  # warm-up (lazy setup)
+    unit = WorkUnit(small, seed, 0, 1, small.structure.grid_nx, keep_stamps, measure, engine)
+    draw_unit(unit)  # warm-up (lazy imports, compilation)
     t0 = time.perf_counter()
-    draw_unit(WorkUnit(small, seed, 0, 1, small.structure.grid_nx, keep_stamps, measure))
+    draw_unit(unit)
     return n_rea / max(time.perf_counter() - t0, 1e-6)
 
 
 def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, nproc: int,
-                 scheduler: str | None) -> str:
+                 scheduler: str | None, engine: str = DEFAULT_ENGINE) -> str:
     """What simulating ``config`` will do, with a time estimated from a tiny calibration draw."""
     s = config.structure
     what = " and ".join(w for w, on in (("drawn into an image", keep_stamps), ("measured", measure)) if on)
@@ -97,7 +100,7 @@ def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool,
             f"{s.stamp_size}x{s.stamp_size} px")
     if not what:
         return f"{head}: truth only, nothing drawn"
-    rate = stamps_per_second(config, seed, measure, keep_stamps)
+    rate = stamps_per_second(config, seed, measure, keep_stamps, engine=engine)
     if scheduler:
         return (f"{head}, {what}: about {format_duration(s.n_stamps / rate)} of worker time "
                 f"on the Dask cluster ({rate:.0f} stamps/s per worker in a calibration draw)")
@@ -107,18 +110,19 @@ def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool,
 
 
 def make_units(
-    config: SimConfig, seed: int, nproc: int, scheduler: str | None, keep_stamps: bool, measure: bool
+    config: SimConfig, seed: int, nproc: int, scheduler: str | None, keep_stamps: bool, measure: bool,
+    engine: str = DEFAULT_ENGINE,
 ) -> list[WorkUnit]:
     """Split the cases into work units of about ``UNIT_STAMPS`` stamps (whole cases)."""
     s = config.structure
     n_units = n_work_units(config, nproc, scheduler)
     return [
-        WorkUnit(config, seed, a, b, s.grid_nx, keep_stamps, measure)
+        WorkUnit(config, seed, a, b, s.grid_nx, keep_stamps, measure, engine)
         for a, b in chunk_ranges(s.n_cases, n_units)
     ]
 
 
-def simulation_cards(config: SimConfig, seed: int, measured: bool) -> dict[str, Any]:
+def simulation_cards(config: SimConfig, seed: int, measured: bool, engine: str = DEFAULT_ENGINE) -> dict[str, Any]:
     """Header cards of a simulated catalog: seed, structure and config provenance."""
     s = config.structure
     cards: dict[str, Any] = {
@@ -130,7 +134,8 @@ def simulation_cards(config: SimConfig, seed: int, measured: bool) -> dict[str, 
         "SNC": (s.snc, "shape-noise cancellation"),
         "NOISE": (config.noise.type if config.noise.override_sigma is None else "gaussian", "noise model"),
         "GAIN": (config.gain, "gain e-/ADU (CCD noise)"),
-        "MEASURED": (bool(measured), "features measured while simulating"),
+        "MEASURED": (bool(measured), "the catalog holds measured features"),
+        "ENGINE": (engine, "stamp engine (megalut simulate --engine)"),
         "CFGFILE": (Path(config.path).name, "simulation config file"),
         "CFGSHA": (config.sha256, "sha256 of the config file"),
     }
@@ -152,9 +157,8 @@ def write_simulation_catalog(
 ) -> None:
     """Write (replace) a ``megalut.simulation`` catalog at ``path``, the effective
     configuration in its ``CONFIG`` HDU; meant for the temporary file of ``atomic_output``."""
-    write_catalog(path, columns, fmt=CATALOG_FORMAT, cards=cards, overwrite=True)
-    with fitsio.FITS(str(path), "rw") as f:
-        f.write(_config_table(config), extname="CONFIG")
+    write_catalog(path, columns, fmt=CATALOG_FORMAT, cards=cards, overwrite=True,
+                  extra_hdus={"CONFIG": _config_table(config)})
 
 
 def _assemble(results: list[dict[str, Any]]) -> dict[str, np.ndarray]:
@@ -203,17 +207,21 @@ def simulate(
     scheduler: str | None = None,
     overwrite: bool = False,
     progress: Callable[[int], None] | None = None,
+    engine: str = DEFAULT_ENGINE,
 ) -> SimulationResult:
     """Simulate the configured stamps; write the catalog (and the stamp grid image).
 
     ``progress(n)`` is called as work units finish (:func:`n_work_units` in all).
+    ``engine`` is ``fast`` or ``galsim`` (:mod:`megalut_cli.engine`).
     """
+    check_engine(engine)
     out, st = check_outputs(config, output, stamps, overwrite)
     s = config.structure
     if st is None and not measure:
         log.info("neither --stamps nor --measure: writing the truth catalog only (nothing drawn)")
     workers = expected_workers(nproc, scheduler)
-    units = make_units(config, seed, nproc, scheduler, st is not None, measure)
+    units = make_units(config, seed, nproc, scheduler, st is not None, measure, engine)
+    log_engine_fallback(config, engine, st is not None or measure)
     log.info(
         "simulating %d cases x %d realizations = %d stamps of %d px in %d work units",
         s.n_cases, s.n_realizations, s.n_stamps, s.stamp_size, len(units),
@@ -240,7 +248,7 @@ def simulate(
     x, y = stamp_centres(np.arange(n), s.grid_nx, s.stamp_size)
     columns["x"], columns["y"] = x, y
     columns = order_columns(columns)
-    cards = simulation_cards(config, seed, measure)
+    cards = simulation_cards(config, seed, measure, engine)
     with contextlib.ExitStack() as stack:
         tmp_cat = stack.enter_context(atomic_output(out, overwrite))
         tmp_st = stack.enter_context(atomic_output(st, overwrite)) if st is not None else None
@@ -251,6 +259,15 @@ def simulate(
         write_simulation_catalog(tmp_cat, columns, config, cards)
     log.info("%d stamps in %.1f s (%.1f stamps/s)", n, seconds, n / seconds if seconds else math.inf)
     return SimulationResult(n, s.n_cases, s.n_realizations, seconds, out, st)
+
+
+def log_engine_fallback(config: SimConfig, engine: str, draws: bool) -> None:
+    """Say once when the fast engine hands a galaxy profile to GalSim."""
+    gal = config.galaxy
+    if engine == "fast" and draws and not (render.can_render(gal.profile) and not gal.knots):
+        what = f"galaxy profile {gal.profile!r}" + (" with knots" if gal.knots else "")
+        log.info("the fast engine does not render %s: its stamps are drawn by GalSim "
+                 "(features still measured by the fast engine)", what)
 
 
 def warn_hst_noise(columns: dict[str, np.ndarray]) -> None:

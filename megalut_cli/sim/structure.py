@@ -30,11 +30,17 @@ import numpy as np
 from megalut_cli.seeding import STREAM_SIMULATE, rng_for
 from megalut_cli.sim.config import SimConfig, round_sersicn
 from megalut_cli.sim.distributions import Distribution, sample_level
-from megalut_cli.sim.galaxies import ellipticity_components, galaxy_fluxes, mag_from_flux
+from megalut_cli.sim.galaxies import (
+    bulgedisk_truth,
+    cosmos_fit_truth,
+    ellipticity_components,
+    galaxy_fluxes,
+    mag_from_flux,
+)
 from megalut_cli.sim.noise import StampNoise, make_noise
 
 #: Sub-keys of rng_for(seed, STREAM_SIMULATE, case, KEY).
-_CASE_KEY, _REA_KEY, _NOISE_KEY = 0, 1, 2
+_CASE_KEY, _REA_KEY, _NOISE_KEY, _KNOT_KEY = 0, 1, 2, 3
 
 
 @dataclass
@@ -103,15 +109,28 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     # Galaxy.
     gal = config.galaxy
     gvals, gal_index = level("galaxy", gal.params)
+    model_cols: dict[str, np.ndarray] = {}
     if gal.profile == "real":  # size and shape come from the HST image: NaN truth
         truth["tru_real_index"] = np.round(gvals["index"]).astype(np.int64)
         rad = np.full(n, np.nan)
         gvals["ellipticity"] = np.full(n, np.nan)
+    elif gal.profile == "bulgedisk":
+        rad, model_cols = bulgedisk_truth(gvals, gal.sersicn_step)
+    elif gal.profile == "cosmos_fit":
+        model = gal.model or {}
+        rad, model_cols = cosmos_fit_truth(gvals, model.get("fit", "auto"), model.get("pixel_scale"), gal.sersicn_step)
     else:
         rad = gvals["rad"]
     truth["tru_rad"] = rad
     if "sersicn" in gvals:
         truth["tru_sersicn"] = round_sersicn(gvals["sersicn"], gal.sersicn_step)
+    truth.update(model_cols)
+    if gal.knots:  # one seed per galaxy draw, from its own stream (the other draws are unchanged)
+        n_draws = int(gal_index.max()) + 1
+        knot_seeds = rng_for(seed, STREAM_SIMULATE, case, _KNOT_KEY).integers(1, 2**31 - 1, n_draws)
+        truth["tru_knots"] = np.round(gvals["knots"]).astype(np.int64)
+        truth["tru_knots_fraction"] = np.where(truth["tru_knots"] > 0, gvals["knots_fraction"], 0.0)
+        truth["tru_knot_seed"] = knot_seeds[gal_index]
     flux = galaxy_fluxes(gal.flux_mode, gvals[gal.flux_mode], rad, config.instrument)
     truth["tru_flux"] = flux
     truth["tru_sb"] = flux / (np.pi * rad**2)
@@ -135,7 +154,7 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     # Noise (per case), offsets and noise seeds (per realization).
     drawn = sample_level(config.noise.params, rng_case, 1, nrows)
     nparams = {k: float(v[0]) for k, v in drawn.items()}
-    noise = make_noise(config.noise.type, nparams, config.instrument, config.noise.override_sigma)
+    noise = make_noise(config.noise.type, nparams, config.instrument, config.noise.override_sigma, config.noise.source)
     truth["tru_sky_sigma"] = np.full(n, noise.sky_sigma)
     offsets = rng_noise.uniform(-s.offset, s.offset, (n, 2)) if s.offset > 0 else np.zeros((n, 2))
     truth["tru_dx"], truth["tru_dy"] = offsets[:, 0], offsets[:, 1]

@@ -1,0 +1,33 @@
+"""`megalut info`: what is inside a catalog, a stamp image or a model file."""
+
+from __future__ import annotations
+
+import click
+
+
+@click.command("info", short_help="Summarise a megalut catalog, stamp image or model file.")
+@click.argument("file", type=click.Path(exists=True, dir_okay=False))
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON (layout: docs/catalogs.md).")
+def command(file: str, as_json: bool) -> None:
+    """Show what FILE holds, as fitsinfo and rio info do for theirs.
+
+    A FITS catalog of any megalut format: its format, rows, columns with their units
+    and descriptions, how many rows each flag bit marks, header cards, the stored
+    simulation config and the provenance chain (the command of every step that made
+    it, the model and config hashes). A stamp image: its shape, stamp size and grid.
+    An HDF5 model: its targets, features, committees (networks selected, architecture,
+    cost, normalisation, training settings), the training data (path and sha256) of
+    every training step, software versions.
+
+    \b
+    Example:
+      megalut info shears.fits
+      megalut info model.h5 --json | python -m json.tool
+      megalut info stamps.fits
+    """
+    import json
+
+    from megalut_cli.info import describe_file, format_info
+
+    info = describe_file(file)
+    click.echo(json.dumps(info, indent=1, default=str) if as_json else format_info(info))

@@ -1,0 +1,115 @@
+"""Units and descriptions of catalog columns, written as ``TUNITn``/``TCOMMn`` cards.
+
+One table for every writer: exact names in :data:`COLUMNS`, families by pattern
+(``pre_X`` takes the unit of ``tru_X``, ``psf_adamom_X`` that of ``adamom_X``). A column
+not known here gets no unit rather than a wrong one. Units follow the FITS standard
+(``pixel``, ``adu``, ``deg``, ``mag``); an empty unit means a dimensionless quantity.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from typing import Any
+
+from megalut_cli import flags
+
+#: (unit, comment) of the columns megalut writes.
+COLUMNS: dict[str, tuple[str, str]] = {
+    "case": ("", "case index (one galaxy/shear per case)"),
+    "rea": ("", "realization index within the case"),
+    "x": ("pixel", "stamp centre x in the image (1-based unless XYORIGIN = 0)"),
+    "y": ("pixel", "stamp centre y in the image (1-based unless XYORIGIN = 0)"),
+    "subfield": ("", "GREAT3 subfield"),
+    "ID": ("", "GREAT3 galaxy ID"),
+    "star": ("", "star index in the star field"),
+    "flags": ("", "bitmask of failures, see FLAGBITn cards (0: good)"),
+    "tru_g1": ("", "true reduced shear g1"),
+    "tru_g2": ("", "true reduced shear g2"),
+    "tru_e1": ("", "true intrinsic ellipticity e1"),
+    "tru_e2": ("", "true intrinsic ellipticity e2"),
+    "tru_ell": ("", "true intrinsic ellipticity modulus |e|"),
+    "tru_theta": ("deg", "true position angle of the galaxy, in [0, 180)"),
+    "tru_flux": ("adu", "true total flux of the galaxy"),
+    "tru_rad": ("pixel", "true half-light radius"),
+    "tru_sersicn": ("", "true Sersic index"),
+    "tru_sb": ("adu / pixel2", "true mean surface brightness, flux / (pi rad^2)"),
+    "tru_mag": ("mag", "true magnitude"),
+    "tru_sky_sigma": ("adu", "true sky noise standard deviation"),
+    "tru_dx": ("pixel", "true sub-pixel offset of the galaxy in x"),
+    "tru_dy": ("pixel", "true sub-pixel offset of the galaxy in y"),
+    "tru_psf_g1": ("", "true PSF reduced shear g1"),
+    "tru_psf_g2": ("", "true PSF reduced shear g2"),
+    "tru_psf_sigma": ("pixel", "true PSF size sigma"),
+    "tru_field_x": ("", "true field position x (field units, 0 to 1)"),
+    "tru_field_y": ("", "true field position y (field units, 0 to 1)"),
+    "tru_real_index": ("", "index of the real galaxy in its catalog"),
+    "tru_hst_noise_var": ("adu2", "variance of the HST noise left in the stamp"),
+    "adamom_flux": ("adu", "HSM adaptive-moment amplitude (moments_amp)"),
+    "adamom_g1": ("", "HSM adaptive-moment shape g1"),
+    "adamom_g2": ("", "HSM adaptive-moment shape g2"),
+    "adamom_sigma": ("pixel", "HSM adaptive-moment size (moments_sigma)"),
+    "adamom_rho4": ("", "HSM adaptive-moment radial kurtosis (moments_rho4)"),
+    "adamom_x": ("pixel", "HSM adaptive-moment centroid x (FITS 1-based)"),
+    "adamom_y": ("pixel", "HSM adaptive-moment centroid y (FITS 1-based)"),
+    "adamom_logflux": ("", "log10 of adamom_flux in ADU"),
+    "skymad": ("adu", "sky noise: 1.4826 MAD of the stamp-edge pixels"),
+    "snr": ("", "signal-to-noise ratio (paper Eq. 8 or 10)"),
+}
+
+_PRE_WEIGHT = re.compile(r"^pre_(?P<base>.+)_w$")
+_PRE = re.compile(r"^pre_(?P<base>.+)$")
+_PSF = re.compile(r"^psf_(?P<base>adamom_.+)$")
+
+
+def describe(name: str) -> tuple[str, str] | None:
+    """``(unit, comment)`` of column ``name``, or None when megalut does not know it."""
+    if name in COLUMNS:
+        return COLUMNS[name]
+    if m := _PSF.match(name):
+        base = describe(m["base"])
+        return None if base is None else (base[0], f"PSF: {base[1]}"[:68])
+    if m := _PRE_WEIGHT.match(name):
+        return ("", f"weight of pre_{m['base']}, in (0, 1)")
+    if m := _PRE.match(name):
+        truth = describe(f"tru_{m['base']}")
+        unit = truth[0] if truth is not None else None
+        if unit is None:
+            return None
+        return (unit, f"estimate of tru_{m['base']}")
+    return None
+
+
+def column_units(names: Sequence[str]) -> list[str]:
+    """FITS units of ``names`` (empty for dimensionless and unknown columns)."""
+    return [(describe(n) or ("", ""))[0] for n in names]
+
+
+def column_cards(names: Sequence[str]) -> list[dict[str, Any]]:
+    """``TCOMMn`` (and empty ``TUNITn``) records for each known column of ``names``.
+
+    Units go through fitsio's ``units=`` argument (:func:`column_units`), which places
+    ``TUNITn`` next to ``TTYPEn``; a known dimensionless column gets ``TUNITn = ''``
+    here, an unknown column no card. ``flags`` adds the ``FLAGBITn`` cards.
+    """
+    recs: list[dict[str, Any]] = []
+    for i, name in enumerate(names, start=1):
+        desc = describe(name)
+        if desc is None:
+            continue
+        if not desc[0]:
+            recs.append({"name": f"TUNIT{i}", "value": "", "comment": "dimensionless"})
+        recs.append({"name": f"TCOMM{i}", "value": desc[1][:68], "comment": ""})
+    if "flags" in names:
+        recs.extend(flag_cards())
+    return recs
+
+
+def flag_cards() -> list[dict[str, Any]]:
+    """``FLAGBITn = NAME / value: description`` for every bit of :mod:`megalut_cli.flags`."""
+    recs = []
+    for value, name in sorted(flags.FLAG_NAMES.items()):
+        bit = value.bit_length() - 1
+        recs.append({"name": f"FLAGBIT{bit}", "value": name,
+                     "comment": f"{value}: {flags.FLAG_DESCRIPTIONS[value]}"[:46]})
+    return recs

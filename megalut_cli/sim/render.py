@@ -1,0 +1,563 @@
+"""Batched k-space rendering of parametric galaxies, pixel for pixel as GalSim's drawImage.
+
+:class:`StampRenderer` draws many Sersic or Gaussian galaxies (sheared by their intrinsic
+ellipticity, then by the lensing shear, convolved with one PSF and the pixel, at sub-pixel
+offsets) the way ``galsim.Convolve(gal, psf).drawImage(image, offset=..., method=...)``
+does: same FFT grid (N, Nk) per stamp, same k-values, same wrapping, same centring. It
+only skips GalSim's per-stamp Python objects and per-stamp FFTs: the galaxy k-values come
+from a table of GalSim's own radial k-profile, the PSF x pixel k-image is cached per grid,
+and one inverse FFT runs per batch of stamps sharing a grid. See ``docs/render.md``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections import OrderedDict
+from collections.abc import Hashable
+from dataclasses import dataclass
+
+import galsim
+import numpy as np
+import scipy.fft
+from numba import njit
+
+from megalut_cli.errors import MegalutError
+
+#: Galaxy profiles the renderer draws (others go through GalSim).
+PROFILES = ("sersic", "gaussian")
+
+#: Most bytes of complex k-images held at once (bounds the stamps per FFT batch).
+BATCH_BYTES = 64 * 2**20
+#: Most stamps per FFT batch.
+MAX_BATCH = 256
+
+_GAUSSIAN_HLR_FACTOR = 1.1774100225154747  # galsim.Gaussian._hlr_factor: hlr / sigma
+_SERSIC_CACHE_MAX = 64  # distinct (n, GSParams) radial tables kept per process
+_KIMAGE_CACHE_MAX = 32  # PSF x pixel k-images kept per renderer
+_PSF_CACHE_MAX = 512  # PSF summaries (stepk, maxk, GSParams) kept per renderer
+# Sersic k-profiles: GalSim tabulates them up to k r0 = 500, then uses a k^-2, k^-3 asymptote.
+_SERSIC_TABLE_END = 500.0
+
+
+def can_render(profile: str) -> bool:
+    """Whether :class:`StampRenderer` draws galaxies of this profile (else use GalSim)."""
+    return profile in PROFILES
+
+
+@dataclass(frozen=True)
+class RadialProfile:
+    """The radial k-profile F(q) (flux 1, unit radius) of a round galaxy as GalSim evaluates
+    it, in an exact form and a fast one.
+
+    Exact: ``kind`` 0 is a Sersic of scale radius 1 (quartic below ``params[2]`` = q^2_min,
+    piecewise cubic in ``u = log q`` of ``F q^2``, one cubic per interval of GalSim's own
+    table, reconstructed exactly, and ``(a + b / q) / q^2`` from ``params[5]`` on); ``kind``
+    -1 and -2 are Gaussians of sigma 1, transformed (SBGaussian's fill with a Jacobian:
+    quadratic below ``params[0]``, zero beyond ``params[1]``) and round (exact exp).
+    Fast: over ``q^2`` in [2^lo, 2^hi), ``2^FAST_BITS`` cubics per octave in the mantissa
+    of ``q^2`` (no logarithm per pixel); intervals holding a break of the exact form are NaN
+    and fall back to it. Sersic ``stepk``, ``maxk`` are for scale radius 1, ``hlr_factor``
+    is hlr / r0; Gaussians leave them 0.
+    """
+
+    kind: int
+    params: np.ndarray
+    coef: np.ndarray
+    octaves: tuple[int, int]
+    fast: np.ndarray
+    stepk: float = 0.0
+    maxk: float = 0.0
+    hlr_factor: float = 0.0
+
+    def kvalue(self, q: np.ndarray, fast: bool = False) -> np.ndarray:
+        """F(q) as the renderer evaluates it (the fast form with ``fast``)."""
+        eparams, eint, coef, fcoef = _stack([self])
+        q = np.asarray(q, dtype=float)
+        return _radial_values(q.ravel() ** 2, eparams[0], eint[0], coef, fcoef, fast).reshape(q.shape)
+
+
+#: Cubics per octave of q^2 in the fast form (relative width 2^-8 of q^2).
+FAST_BITS = 8
+#: The fast form of Sersic profiles covers q^2 < 2^30 (q r0 < 32768); the exact one beyond.
+_FAST_MAX_OCTAVE = 30
+
+
+_SERSIC_TABLES: OrderedDict[tuple[float, galsim.GSParams], RadialProfile] = OrderedDict()
+
+
+def sersic_table(n: float, gsparams: galsim.GSParams) -> RadialProfile:
+    """The :class:`RadialProfile` of Sersic index ``n`` (cached per process, LRU).
+
+    A new ``n`` costs what it costs GalSim (~30 ms: its SersicInfo Hankel transforms) plus
+    ~10 ms of k-value samples; gridded indices are built once per process.
+    """
+    key = (float(n), gsparams)
+    hit = _SERSIC_TABLES.get(key)
+    if hit is not None:
+        _SERSIC_TABLES.move_to_end(key)
+        return hit
+    table = _build_sersic_table(float(n), gsparams)
+    _SERSIC_TABLES[key] = table
+    while len(_SERSIC_TABLES) > _SERSIC_CACHE_MAX:
+        _SERSIC_TABLES.popitem(last=False)
+    return table
+
+
+def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialProfile:
+    try:
+        unit = galsim.Sersic(n, scale_radius=1.0, gsparams=gsp)
+        stepk, maxk = float(unit.stepk), float(unit.maxk)
+    except (galsim.GalSimError, RuntimeError) as err:
+        raise MegalutError(f"Sersic n={n}: GalSim cannot build the profile ({err})") from None
+    hlr_factor = float(galsim.Sersic(n, half_light_radius=1.0, gsparams=gsp).calculateHLRFactor())
+
+    def f_q2(q: np.ndarray) -> np.ndarray:  # F(q) q^2, as GalSim evaluates it
+        return np.array([unit.kValue(float(x), 0.0).real for x in q]) * q * q
+
+    # GalSim's table (SBSersic.cpp, SersicInfo::buildFT): knots at log(kmin) - 0.001 + i dlogk.
+    g2n = math.gamma(2.0 * n)
+    kd2 = -math.gamma(4.0 * n) / (4.0 * g2n)
+    kd4 = math.gamma(6.0 * n) / (64.0 * g2n)
+    kd6 = math.gamma(8.0 * n) / (2304.0 * g2n)
+    kmin = (gsp.kvalue_accuracy / kd6) ** (1.0 / 6.0)
+    h = gsp.table_spacing * math.sqrt(math.sqrt(gsp.kvalue_accuracy / 10.0))
+    u0 = math.log(kmin) - 0.001
+    knots = [u0]  # accumulated as GalSim does (logk += dlogk)
+    while knots[-1] < math.log(_SERSIC_TABLE_END) + h:
+        knots.append(knots[-1] + h)
+    knots = np.array(knots)
+    n_int = len(knots) - 1
+    # Four interior samples per interval fix its cubic (interval 0 starts at kmin: below it,
+    # the quartic; the last knot of GalSim's table already belongs to the asymptote).
+    ts = np.array([0.05, 0.35, 0.65, 0.95])
+    lo = np.maximum(knots[:-1], math.log(kmin))
+    us = lo[:, None] + ts[None, :] * (knots[1:] - lo)[:, None]
+    vals = f_q2(np.exp(us.ravel())).reshape(us.shape)
+    t_samples = (us - knots[:-1, None]) / h
+    vander = t_samples[:, :, None] ** np.arange(4)
+    coef = np.linalg.solve(vander, vals[:, :, None])[:, :, 0]
+    # GalSim's table ends at a knot (ksq_max) from which on F q^2 = a + b / q: the first
+    # interval from which on every interval's samples are linear in 1/q.
+    inv_q = np.exp(-us)
+    slope = (vals[:, 3] - vals[:, 0]) / (inv_q[:, 3] - inv_q[:, 0])
+    linear = vals[:, 0, None] + slope[:, None] * (inv_q - inv_q[:, 0, None])
+    asym = (np.abs(vals - linear) <= 1e-11 * np.abs(vals)).all(axis=1)
+    tail = np.logical_and.accumulate(asym[::-1])[::-1]
+    first = int(np.argmax(tail)) if tail.any() else n_int
+    q_fit = np.array([math.exp(knots[first] + 0.5 * h) if first < n_int else _SERSIC_TABLE_END,
+                      1.5 * _SERSIC_TABLE_END])
+    fa = f_q2(q_fit)
+    b = (fa[0] - fa[1]) / (1.0 / q_fit[0] - 1.0 / q_fit[1])
+    a = fa[1] - b / q_fit[1]
+    q2_asym = math.exp(2.0 * knots[first]) if first < n_int else math.inf
+    params = np.array([u0, h, kmin * kmin, kd2, kd4, q2_asym, a, b])
+    coef = np.ascontiguousarray(coef[: max(first, 1)])
+    lo = math.floor(math.log2(kmin * kmin))
+    hi = _FAST_MAX_OCTAVE  # the asymptote too: it costs a square root and two divisions
+    fast = _fast_cubics(0, params, coef, lo, hi, [kmin * kmin, q2_asym])
+    return RadialProfile(0, params, coef, (lo, hi), fast, stepk, maxk, hlr_factor)
+
+
+@functools.lru_cache(maxsize=8)
+def gaussian_profile(gsparams: galsim.GSParams, transformed: bool) -> RadialProfile:
+    """The :class:`RadialProfile` of a Gaussian of sigma 1 (``transformed``: sheared)."""
+    params = np.zeros(8)
+    params[0] = (gsparams.kvalue_accuracy * 48.0) ** (1.0 / 3.0)  # SBGaussian.cpp
+    params[1] = -2.0 * math.log(gsparams.kvalue_accuracy)
+    kind = -1 if transformed else -2
+    lo, hi = -40, _FAST_MAX_OCTAVE
+    coef = np.zeros((1, 4))
+    fast = _fast_cubics(kind, params, coef, lo, hi, list(params[:2]) if transformed else [])
+    return RadialProfile(kind, params, coef, (lo, hi), fast)
+
+
+def _fast_cubics(kind: int, params: np.ndarray, coef: np.ndarray, lo: int, hi: int, breaks: list[float]) -> np.ndarray:
+    """The fast form's cubics (see :class:`RadialProfile`), fitted to the exact form at four
+    points of each interval; NaN on the intervals holding a break."""
+    per = 1 << FAST_BITS
+    idx = np.arange((hi - lo) * per)
+    scale = np.ldexp(1.0, lo + idx // per)  # 2^octave
+    start = scale * (1.0 + (idx % per) / per)
+    width = scale / per
+    ts = np.array([0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0])
+    q2 = (start[:, None] + ts[None, :] * width[:, None]).ravel()
+    eint = np.array([kind, 0, len(coef) - 1, lo, hi, 0], dtype=np.int64)
+    vals = _radial_values(q2, params, eint, coef, np.zeros((1, 4)), False).reshape(-1, 4)
+    fast = vals @ np.linalg.inv(np.vander(ts, 4, increasing=True)).T
+    for b in breaks:
+        if math.isfinite(b) and b > 0:
+            fast[(start <= b) & (b <= start + width)] = np.nan
+    return np.ascontiguousarray(fast)
+
+
+@njit(cache=True)
+def _radial(q2: float, p: np.ndarray, ei: np.ndarray, coef: np.ndarray) -> float:
+    """Exact form of F(q) at ``q2 = q^2`` (see :class:`RadialProfile`); ``p`` its params,
+    ``ei`` = (kind, first and last of its cubics in ``coef``, ...)."""
+    kind = ei[0]
+    if kind == 0:
+        if q2 < p[2]:
+            return 1.0 + q2 * (p[3] + q2 * p[4])
+        if q2 >= p[5]:
+            q = math.sqrt(q2)
+            return (p[6] + p[7] / q) / q2
+        x = (0.5 * math.log(q2) - p[0]) / p[1]
+        i = int(x)
+        t = x - i
+        i += ei[1]
+        if i > ei[2]:
+            i = ei[2]
+        return (coef[i, 0] + t * (coef[i, 1] + t * (coef[i, 2] + t * coef[i, 3]))) / q2
+    if kind == -2:
+        return math.exp(-0.5 * q2)
+    if q2 > p[1]:
+        return 0.0
+    if q2 < p[0]:
+        return 1.0 - 0.5 * q2 * (1.0 - 0.25 * q2)
+    return math.exp(-0.5 * q2)
+
+
+_MANTISSA_SHIFT = 52 - FAST_BITS
+_FRACTION_MASK = (1 << _MANTISSA_SHIFT) - 1
+_FRACTION_SCALE = 1.0 / (1 << _MANTISSA_SHIFT)
+
+
+@njit(cache=True)
+def _fast_index(bits: int, lo: int, hi: int, first: int) -> int:
+    """Row of the fast cubic for ``q^2`` of IEEE-754 bit pattern ``bits`` (-1: none)."""
+    e = (bits >> 52) - 1023
+    if e < lo or e >= hi:
+        return -1
+    return first + ((e - lo) << FAST_BITS) + ((bits >> _MANTISSA_SHIFT) & ((1 << FAST_BITS) - 1))
+
+
+@njit(cache=True)
+def _fraction(bits: int) -> float:
+    """Position of ``q^2`` (bit pattern ``bits``) in its fast interval, in [0, 1)."""
+    return (bits & _FRACTION_MASK) * _FRACTION_SCALE
+
+
+@njit(cache=True)
+def _radial_values(q2: np.ndarray, p: np.ndarray, ei: np.ndarray, coef: np.ndarray, fcoef: np.ndarray,
+                   fast: bool) -> np.ndarray:
+    """F at each ``q2`` (exact or fast form)."""
+    out = np.empty(q2.shape[0])
+    q2c = np.ascontiguousarray(q2)
+    bits = q2c.view(np.int64)
+    for k in range(q2.shape[0]):
+        c = _fast_index(bits[k], ei[3], ei[4], ei[5]) if fast else -1
+        if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:  # not NaN
+            t = _fraction(bits[k])
+            out[k] = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
+        else:
+            out[k] = _radial(q2c[k], p, ei, coef)
+    return out
+
+
+@njit(cache=True)
+def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table, eparams, eint, coef, fcoef):
+    """Galaxy x PSF x pixel x phase k-values of each stamp, wrapped onto its FFT grid.
+
+    ``out[s]`` (N, N/2+1) receives the sum over GalSim's (Nk+1) x (Nk/2+1) k-image (rows
+    ky = -Nk/2..Nk/2, columns kx = 0..Nk/2), folded as GalSim's Hermitian wrap does and
+    weighted so that numpy's inverse real FFT of ``out[s]`` equals GalSim's real image:
+    a stored column kx > 0 counts twice (it stands for -kx too), numpy's columns 0 and N/2
+    once, its others twice.
+    """
+    half = n_k // 2
+    n_half = n_fft // 2
+    m = out.shape[0]
+    phx = np.empty(half + 1, dtype=np.complex128)
+    q2 = np.empty(half + 1)
+    bits = q2.view(np.int64)
+    for s in range(m):
+        if n_k != n_fft:
+            out[s, :, :] = 0
+        for i in range(half + 1):
+            a = -i * dk * shift_x[s]
+            phx[i] = complex(math.cos(a), math.sin(a))
+        p = eparams[table[s]]
+        ei = eint[table[s]]
+        lo, hi, ffirst = ei[3], ei[4], ei[5]
+        # q^2 = (c_xx i^2 + 2 c_xy i jj + c_yy jj^2) dk^2, q = A k
+        a00, a01, a10, a11 = amat[s, 0], amat[s, 1], amat[s, 2], amat[s, 3]
+        cxx = (a00 * a00 + a10 * a10) * dk * dk
+        cxy = (a00 * a01 + a10 * a11) * dk * dk
+        cyy = (a01 * a01 + a11 * a11) * dk * dk
+        f = flux[s]
+        for j in range(n_k + 1):
+            jj = j - half
+            a = -jj * dk * shift_y[s]
+            rowf = f * complex(math.cos(a), math.sin(a))
+            qy2 = cyy * jj * jj
+            qxy = 2.0 * cxy * jj
+            for i in range(half + 1):
+                q2[i] = (cxx * i + qxy) * i + qy2
+            row = jj % n_fft
+            if n_k == n_fft:  # no aliasing: column i stays i; rows -N/2 and N/2 share row N/2
+                for i in range(half + 1):
+                    c = _fast_index(bits[i], lo, hi, ffirst)
+                    if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:  # not NaN
+                        t = _fraction(bits[i])
+                        fq = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
+                    else:
+                        fq = _radial(q2[i], p, ei, coef)
+                    val = fq * kpsf[j, i] * phx[i] * rowf
+                    if i == n_half:
+                        val *= 2.0
+                    if j == n_k:
+                        out[s, row, i] += val
+                    else:
+                        out[s, row, i] = val
+            else:
+                for i in range(half + 1):
+                    c = _fast_index(bits[i], lo, hi, ffirst)
+                    if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:
+                        t = _fraction(bits[i])
+                        fq = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
+                    else:
+                        fq = _radial(q2[i], p, ei, coef)
+                    val = fq * kpsf[j, i] * phx[i] * rowf
+                    # Fold (i, jj) onto the N grid; columns beyond N/2 by conjugation.
+                    cx = i % n_fft
+                    dest = row
+                    if cx > n_half:
+                        cx = n_fft - cx
+                        dest = (n_fft - row) % n_fft
+                        val = val.conjugate()
+                    w = 1.0 if i == 0 else 2.0
+                    if cx != 0 and cx != n_half:
+                        w *= 0.5
+                    out[s, dest, cx] += w * val
+
+
+@dataclass
+class _PsfInfo:
+    profile: galsim.GSObject  # PSF (x pixel unless "no_pixel"), with the drawing GSParams
+    gsparams: galsim.GSParams
+    stepk: float  # of the PSF alone
+    maxk: float
+    pixel_stepk: float  # 0 for "no_pixel"
+    pixel_maxk: float
+
+
+class StampRenderer:
+    """Draws batches of parametric galaxies convolved with one PSF, as GalSim's drawImage would.
+
+    ``gsparams`` is the config's ``[gsparams]`` table (GSParams keyword arguments); empty
+    or None: GalSim's defaults combined with the PSF's own, as ``galsim.Convolve`` does.
+    """
+
+    def __init__(self, stamp_size: int, gsparams: dict[str, float] | None = None):
+        if int(stamp_size) < 1:
+            raise MegalutError(f"stamp size must be >= 1, got {stamp_size}")
+        self.stamp_size = int(stamp_size)
+        self.gsparams = dict(gsparams or {})
+        self._gsp = galsim.GSParams(**self.gsparams) if self.gsparams else None
+        self._psfs: OrderedDict[tuple[Hashable, str], _PsfInfo] = OrderedDict()
+        self._kimages: OrderedDict[tuple[Hashable, str, int, int], np.ndarray] = OrderedDict()
+
+    # -- PSF --------------------------------------------------------------------------------
+    def _psf_info(self, psf: galsim.GSObject, psf_key: Hashable, method: str) -> _PsfInfo:
+        key = (psf_key, method)
+        hit = self._psfs.get(key)
+        if hit is not None:
+            self._psfs.move_to_end(key)
+            return hit
+        if method not in ("auto", "no_pixel"):
+            raise MegalutError(f"renderer: unknown drawing method {method!r} (auto or no_pixel)")
+        gsp = self._gsp or galsim.GSParams.combine([galsim.GSParams(), psf.gsparams])
+        psf_g = psf.withGSParams(gsp)
+        if method == "auto":
+            pixel = galsim.Pixel(1.0, gsparams=gsp)
+            profile = galsim.Convolve(psf_g, pixel, gsparams=gsp)
+            pix_stepk, pix_maxk = float(pixel.stepk), float(pixel.maxk)
+        else:
+            profile, pix_stepk, pix_maxk = psf_g, 0.0, math.inf
+        info = _PsfInfo(profile, gsp, float(psf_g.stepk), float(psf_g.maxk), pix_stepk, pix_maxk)
+        self._psfs[key] = info
+        while len(self._psfs) > _PSF_CACHE_MAX:
+            self._psfs.popitem(last=False)
+        return info
+
+    def _psf_kimage(self, info: _PsfInfo, psf_key: Hashable, method: str, n_fft: int, n_k: int) -> np.ndarray:
+        key = (psf_key, method, n_fft, n_k)
+        hit = self._kimages.get(key)
+        if hit is not None:
+            self._kimages.move_to_end(key)
+            return hit
+        half = n_k // 2
+        image = galsim.ImageCD(galsim.BoundsI(0, half, -half, half), scale=2.0 * np.pi / n_fft)
+        info.profile.drawKImage(image=image, recenter=False)
+        kimage = np.ascontiguousarray(image.array)
+        self._kimages[key] = kimage
+        while len(self._kimages) > _KIMAGE_CACHE_MAX:
+            self._kimages.popitem(last=False)
+        return kimage
+
+    # -- geometry ---------------------------------------------------------------------------
+    def _geometry(self, info: _PsfInfo, profile: str, rad, sersicn, e1, e2, g1, g2, dx, dy):
+        """Per-stamp arrays: (N, Nk, k-transform matrix, table index, shifts, tables)."""
+        if not can_render(profile):
+            raise MegalutError(f"renderer: cannot draw galaxy profile {profile!r} (only {', '.join(PROFILES)})")
+        gsp = info.gsparams
+        S = self.stamp_size
+        rad = np.atleast_1d(np.asarray(rad, dtype=float))
+        m = len(rad)
+        e1, e2, g1, g2, dx, dy = (np.broadcast_to(np.asarray(v, dtype=float), (m,)) for v in (e1, e2, g1, g2, dx, dy))
+        if profile == "sersic":
+            if sersicn is None:
+                raise MegalutError("renderer: Sersic galaxies need sersicn")
+            ns = np.broadcast_to(np.asarray(sersicn, dtype=float), (m,))
+            uniq, table = np.unique(ns, return_inverse=True)
+            tables = [sersic_table(float(n), gsp) for n in uniq]
+            hlr_factor = np.array([t.hlr_factor for t in tables])[table]
+            r0 = rad / hlr_factor  # Sersic scale radius, as galsim.Sersic computes it
+            inv_r0 = 1.0 / r0
+            stepk = np.array([t.stepk for t in tables])[table] * inv_r0
+            maxk = np.array([t.maxk for t in tables])[table] * inv_r0
+            size = r0
+        else:
+            # Round Gaussians are filled separably (exact exp); transformed ones with cutoffs.
+            table = np.where((e1 == 0) & (e2 == 0) & (g1 == 0) & (g2 == 0), 1, 0)
+            tables = [gaussian_profile(gsp, True), gaussian_profile(gsp, False)]
+            sigma = rad / _GAUSSIAN_HLR_FACTOR
+            r_fold = max(math.sqrt(-2.0 * math.log(gsp.folding_threshold)), gsp.stepk_minimum_hlr * _GAUSSIAN_HLR_FACTOR)
+            maxk = math.sqrt(-2.0 * math.log(gsp.maxk_threshold)) / sigma
+            stepk = math.pi / (r_fold * sigma)
+            size = sigma
+        jac = _shear_jacobian(e1, e2, g1, g2)
+        # Transformation: maxk / minor, stepk / major (galsim/transform.py).
+        h1 = np.hypot(jac[:, 0, 0] + jac[:, 1, 1], jac[:, 0, 1] - jac[:, 1, 0])
+        h2 = np.hypot(jac[:, 0, 0] - jac[:, 1, 1], jac[:, 0, 1] + jac[:, 1, 0])
+        major, minor = 0.5 * np.abs(h1 + h2), 0.5 * np.abs(h1 - h2)
+        gal_stepk, gal_maxk = stepk / major, maxk / minor
+        # Convolution with the PSF, shift by the offset (+ centring), convolution with the pixel.
+        stepk_c = (gal_stepk**-2 + info.stepk**-2) ** -0.5
+        maxk_c = np.minimum(gal_maxk, info.maxk)
+        sx = dx - 0.5 if S % 2 == 0 else dx.copy()
+        sy = dy - 0.5 if S % 2 == 0 else dy.copy()
+        dr = np.hypot(sx, sy)
+        shifted = (sx != 0.0) | (sy != 0.0)
+        stepk_c = np.where(shifted, math.pi / (math.pi / stepk_c + dr), stepk_c)
+        if info.pixel_stepk > 0:
+            stepk_c = (stepk_c**-2 + info.pixel_stepk**-2) ** -0.5
+            maxk_c = np.minimum(maxk_c, info.pixel_maxk)
+        n_fft, n_k = fft_grid(stepk_c, maxk_c, S, gsp)
+        # q = |A k| in units of the profile's radius: A = size J^T.
+        amat = np.empty((m, 4))
+        amat[:, 0], amat[:, 1] = jac[:, 0, 0] * size, jac[:, 1, 0] * size
+        amat[:, 2], amat[:, 3] = jac[:, 0, 1] * size, jac[:, 1, 1] * size
+        return n_fft, n_k, amat, table.astype(np.int64), sx + S // 2, sy + S // 2, tables
+
+    def grid_sizes(self, psf: galsim.GSObject, psf_key: Hashable, method: str, profile: str,
+                   rad, sersicn, e1, e2, g1, g2, dx, dy) -> tuple[np.ndarray, np.ndarray]:
+        """GalSim's FFT sizes (N, Nk) for these stamps (``drawFFT_makeKImage``)."""
+        info = self._psf_info(psf, psf_key, method)
+        n_fft, n_k, *_ = self._geometry(info, profile, rad, sersicn, e1, e2, g1, g2, dx, dy)
+        return n_fft, n_k
+
+    # -- drawing ----------------------------------------------------------------------------
+    def draw(self, psf: galsim.GSObject, psf_key: Hashable, method: str, profile: str,
+             rad, flux, sersicn, e1, e2, g1, g2, dx, dy) -> np.ndarray:
+        """Noiseless stamps (m, S, S) float32 of ``profile`` galaxies of half-light radius
+        ``rad`` (pixels), ``flux``, index ``sersicn`` (None for Gaussians), intrinsic shape
+        (e1, e2) then shear (g1, g2), offset (dx, dy) pixels from the stamp centre, convolved
+        with ``psf`` (and the pixel unless ``method`` is "no_pixel").
+
+        ``psf_key`` names the PSF for the caches: pass the same key only for the same PSF.
+        """
+        info = self._psf_info(psf, psf_key, method)
+        n_fft, n_k, amat, table, shx, shy, tables = self._geometry(info, profile, rad, sersicn, e1, e2, g1, g2, dx, dy)
+        m = len(n_fft)
+        flux = np.broadcast_to(np.asarray(flux, dtype=float), (m,))
+        too_big = n_k > info.gsparams.maximum_fft_size
+        if too_big.any():
+            size = int(n_k[too_big].max())
+            raise MegalutError(
+                f"drawFFT requires a very large FFT: {size} x {size} "
+                f"({size * size * 24 / 1024**3:.2f} GB) > gsparams.maximum_fft_size = "
+                f"{info.gsparams.maximum_fft_size}; raise gsparams.maximum_fft_size or gsparams.folding_threshold"
+            )
+        eparams, eint, coef, fcoef = _stack(tables)
+        S = self.stamp_size
+        stamps = np.empty((m, S, S), dtype=np.float32)
+        grids = np.stack([n_fft, n_k], axis=1)
+        for n_f, n_kk in np.unique(grids, axis=0):
+            idx = np.flatnonzero((n_fft == n_f) & (n_k == n_kk))
+            kpsf = self._psf_kimage(info, psf_key, method, int(n_f), int(n_kk))
+            per = int(n_f) * (int(n_f) // 2 + 1) * 8
+            batch = max(1, min(MAX_BATCH, BATCH_BYTES // per))
+            buf = np.empty((min(batch, len(idx)), int(n_f), int(n_f) // 2 + 1), dtype=np.complex64)
+            for a in range(0, len(idx), batch):
+                sel = idx[a:a + batch]
+                kbuf = buf[:len(sel)]
+                _fill_kimages(kbuf, kpsf, int(n_f), int(n_kk), 2.0 * np.pi / int(n_f), amat[sel], flux[sel],
+                              shx[sel], shy[sel], table[sel], eparams, eint, coef, fcoef)
+                stamps[sel] = inverse_fft_window(kbuf, int(n_f), S)
+        return stamps
+
+
+def inverse_fft_window(kimages: np.ndarray, n_fft: int, size: int) -> np.ndarray:
+    """The first ``size`` x ``size`` pixels of the inverse real FFTs of ``kimages`` (m, N,
+    N/2+1): the y transform keeps only ``size`` rows before the x transform."""
+    rows = scipy.fft.ifft(kimages, axis=1, workers=1)[:, :size, :]
+    return scipy.fft.irfft(rows, n=n_fft, axis=2, workers=1)[:, :, :size]
+
+
+def fft_grid(stepk: np.ndarray, maxk: np.ndarray, stamp_size: int, gsparams: galsim.GSParams
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """GalSim's FFT sizes (N, Nk) for profiles of ``stepk``, ``maxk`` (pixel scale 1) drawn
+    on a ``stamp_size`` image (``GSObject.getGoodImageSize``, ``drawFFT_makeKImage``)."""
+    stepk = np.asarray(stepk, dtype=float)
+    n_good = np.ceil(2.0 * np.pi / stepk * (1.0 - 1.0e-12)).astype(np.int64)
+    n_good = 2 * ((n_good + 1) // 2)
+    n_good = np.maximum(n_good, stamp_size)  # the image itself: 2 max|bounds| or its size
+    uniq, inv = np.unique(n_good, return_inverse=True)
+    good = np.array([galsim.Image.good_fft_size(int(v)) for v in uniq], dtype=np.int64)
+    n_fft = np.maximum(good[inv], int(gsparams.minimum_fft_size))
+    dk = 2.0 * np.pi / n_fft
+    maxk = np.broadcast_to(np.asarray(maxk, dtype=float), n_fft.shape)
+    with np.errstate(over="ignore", invalid="ignore"):
+        n_k = np.where(n_fft * dk / 2 > maxk, n_fft, np.ceil(maxk / dk).astype(np.int64) * 2)
+    return n_fft.reshape(stepk.shape), n_k.reshape(stepk.shape)
+
+
+def _shear_jacobian(e1: np.ndarray, e2: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
+    """(m, 2, 2) Jacobians of shear (e1, e2) then shear (g1, g2), as GalSim composes them."""
+    je, jg = _shear_matrix(e1, e2), _shear_matrix(g1, g2)
+    jac = np.einsum("mij,mjk->mik", jg, je)
+    only_e = (g1 == 0) & (g2 == 0)
+    jac[only_e] = je[only_e]
+    only_g = (e1 == 0) & (e2 == 0)
+    jac[only_g] = jg[only_g]
+    return jac
+
+
+def _shear_matrix(g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
+    """``galsim.Shear(g1=g1, g2=g2).getMatrix()`` for arrays (identity where g = 0)."""
+    g = np.abs(g1 + 1j * g2)
+    if np.any(g >= 1.0):
+        raise MegalutError(f"renderer: shear or ellipticity modulus must be < 1, got {float(g.max())}")
+    norm = np.sqrt(1.0 - g**2)
+    mat = np.empty((len(g1), 2, 2))
+    mat[:, 0, 0] = (1.0 + g1) / norm
+    mat[:, 0, 1] = g2 / norm
+    mat[:, 1, 0] = g2 / norm
+    mat[:, 1, 1] = (1.0 - g1) / norm
+    return mat
+
+
+def _stack(profiles: list[RadialProfile]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Radial profiles as flat arrays for the numba kernels: exact params (T, 8), integers
+    (T, 6: kind, first and last exact cubic, fast octaves lo and hi, first fast cubic),
+    exact cubics, fast cubics."""
+    eparams = np.stack([p.params for p in profiles])
+    sizes = np.array([len(p.coef) for p in profiles])
+    fsizes = np.array([len(p.fast) for p in profiles])
+    first = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    ffirst = np.concatenate([[0], np.cumsum(fsizes)[:-1]])
+    eint = np.array([[p.kind, first[k], first[k] + sizes[k] - 1, p.octaves[0], p.octaves[1], ffirst[k]]
+                     for k, p in enumerate(profiles)], dtype=np.int64)
+    return eparams, eint, np.concatenate([p.coef for p in profiles]), np.concatenate([p.fast for p in profiles])
