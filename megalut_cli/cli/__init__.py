@@ -83,7 +83,7 @@ def main() -> None:
 
     \b
     Example (a small end-to-end run: 3000 training + 4000 validation stamps, 60 training
-    iterations; 3.5 min measured on a busy 2-core machine):
+    iterations; 1.5 min measured on a busy 2-core machine):
       megalut simulate examples/fiducial/tp.toml -o tp.fits --measure \\
           --n-cases 60 --n-realizations 50
       megalut train-point tp.fits -o model.h5 \\

@@ -100,16 +100,16 @@ def command(
 
     \b
     Examples (sizes as given; times measured on a busy 2-core machine):
-      # 10 000 stamps drawn and measured, no image kept (2 min)
+      # 10 000 stamps drawn and measured, no image kept (40 s)
       megalut simulate examples/fiducial/tp.toml -o tp.fits --measure \\
           --n-cases 50 --n-realizations 200
-      # 200 stamps kept as a grid image of 64x64-pixel stamps (20 s)
+      # 200 stamps kept as a grid image of 64x64-pixel stamps (25 s)
       megalut simulate examples/fiducial/vo.toml -o vo.fits \\
           --stamps vo-stamps.fits --n-cases 2 --n-realizations 100
-      # 5000 low-noise stamps for the ellipticity pretraining (80 s)
+      # 5000 low-noise stamps for the ellipticity pretraining (30 s)
       megalut simulate examples/varpsf/pretrain.toml -o pre.fits --measure \\
           noise.sigma=0.2 --n-cases 100 --n-realizations 50
-      # a GREAT3-layout branch: 4 subfields of 10x10 stamps (35 s)
+      # a GREAT3-layout branch: 4 subfields of 10x10 stamps (30 s)
       megalut simulate examples/great3/branch.toml -o branch.fits \\
           --great3 branch/ --n-cases 4 --n-realizations 100
       # what the paper-sized config would do (10^7 stamps), how long it would take
