@@ -91,7 +91,7 @@ def command(
     refused. CATALOG '-' reads a FITS catalog from stdin; -o - writes to stdout.
 
     \b
-    Example (200 stamps: 25 s to simulate, 10 s to measure, on a busy 2-core machine):
+    Example (200 stamps: 25 s to simulate, 10 s to measure, 2 busy cores):
       megalut simulate examples/fiducial/vp.toml -o cat.fits \\
           --stamps stamps.fits --n-cases 2 --n-realizations 100
       megalut measure stamps.fits cat.fits -o features.fits

@@ -91,10 +91,10 @@ def command(
 
     \b
     Examples:
-      # the default: 275 000 stamps, 7 min on a 2-core machine (all cores are used)
+      # the default: 275 000 stamps, 7 min on 2 cores (all cores are used)
       megalut run
       megalut run --print-default > my-pipeline.toml
-      # sizes of every step and estimated simulation times (10^5 stamps here), nothing run
+      # each step's size and simulation time (10^5 stamps here); no run
       megalut run examples/fiducial/pipeline.toml scale=0.001 \\
           --workdir fid --dry-run
       megalut run examples/fiducial/pipeline.toml scale=0.001 --workdir fid

@@ -112,8 +112,9 @@ def command(
       # a GREAT3-layout branch: 4 subfields of 10x10 stamps (30 s)
       megalut simulate examples/great3/branch.toml -o branch.fits \\
           --great3 branch/ --n-cases 4 --n-realizations 100
-      # what the paper-sized config would do (10^7 stamps), how long it would take
-      megalut simulate examples/fiducial/tp.toml -o tp.fits --measure --dry-run
+      # what the paper-sized config (10^7 stamps) would do, and how long
+      megalut simulate examples/fiducial/tp.toml -o tp.fits --measure \\
+          --dry-run
     """
     from megalut_cli.cli.console import stdout_path
     from megalut_cli.sim.config import load_config
