@@ -8,8 +8,8 @@ written model holds both. Neither needs GalSim or click.
 
 Masked realizations: rows with ``flags != 0`` (when the column exists), with a non-finite
 feature, (for weights) with a non-finite point estimate or outside ``select``. Cases left
-without any valid realization are dropped with a warning; an error is raised when fewer
-than two cases remain.
+without any valid realization are dropped (a warning, or an info line when a selection
+removed them); an error is raised when fewer than two cases remain.
 """
 
 from __future__ import annotations

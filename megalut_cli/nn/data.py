@@ -8,8 +8,9 @@ valid rows and not ``n_cases x max_realizations``; :meth:`CaseData.padded` gives
 ``(n_cases, n_rea_max, n_features)`` array + mask view of the same data, and
 :meth:`CaseData.from_padded` builds one from such arrays.
 
-Decision on cases without any valid realization: they are dropped (with a warning, or an info line when a selection removed them) when other
-cases remain; an error is raised when none (or fewer than two) remain.
+Decision on cases without any valid realization: they are dropped when other cases remain
+(a warning when all their rows are flagged or non-finite, an info line when a selection
+removed them); an error is raised when none (or fewer than two) remain.
 """
 
 from __future__ import annotations
