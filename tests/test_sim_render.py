@@ -178,6 +178,12 @@ def test_bad_input_is_megaluterror():
         renderer.draw(galsim.Gaussian(sigma=2.0), "g", "phot", **gals)
     with pytest.raises(MegalutError, match="< 1"):
         renderer.draw(galsim.Gaussian(sigma=2.0), "g", "auto", **{**gals, "g1": np.array([1.0, 0.0])})
+    with pytest.raises(MegalutError, match="finite"):
+        renderer.draw(galsim.Gaussian(sigma=2.0), "g", "auto", **{**gals, "rad": np.array([np.nan, 1.0])})
+    with pytest.raises(MegalutError, match="Sersic n=9"):
+        renderer.draw(galsim.Gaussian(sigma=2.0), "g", "auto", **{**gals, "sersicn": np.array([9.0, 1.0])})
+    empty = {f: (v if f == "profile" else v[:0]) for f, v in gals.items()}
+    assert renderer.draw(galsim.Gaussian(sigma=2.0), "g", "auto", **empty).shape == (0, 32, 32)
 
 
 def test_can_render():

@@ -34,7 +34,7 @@ MAX_BATCH = 256
 
 _GAUSSIAN_HLR_FACTOR = 1.1774100225154747  # galsim.Gaussian._hlr_factor: hlr / sigma
 _SERSIC_CACHE_MAX = 64  # distinct (n, GSParams) radial tables kept per process
-_KIMAGE_CACHE_MAX = 32  # PSF x pixel k-images kept per renderer
+_KIMAGE_CACHE_BYTES = 256 * 2**20  # PSF x pixel k-images kept per renderer (LRU, the newest always)
 _PSF_CACHE_MAX = 512  # PSF summaries (stepk, maxk, GSParams) kept per renderer
 # Sersic k-profiles: GalSim tabulates them up to k r0 = 500, then uses a k^-2, k^-3 asymptote.
 _SERSIC_TABLE_END = 500.0
@@ -89,8 +89,9 @@ _SERSIC_TABLES: OrderedDict[tuple[float, galsim.GSParams], RadialProfile] = Orde
 def sersic_table(n: float, gsparams: galsim.GSParams) -> RadialProfile:
     """The :class:`RadialProfile` of Sersic index ``n`` (cached per process, LRU).
 
-    A new ``n`` costs what it costs GalSim (~30 ms: its SersicInfo Hankel transforms) plus
-    ~10 ms of k-value samples; gridded indices are built once per process.
+    A new ``n`` costs what it costs GalSim (0.03-0.3 s, growing with n: its SersicInfo
+    Hankel transforms) plus ~10-20 ms of samples and fits; gridded indices are built once
+    per process, continuous ones once per galaxy, as in GalSim.
     """
     key = (float(n), gsparams)
     hit = _SERSIC_TABLES.get(key)
@@ -390,15 +391,21 @@ class StampRenderer:
         half = n_k // 2
         image = galsim.ImageCD(galsim.BoundsI(0, half, -half, half), scale=2.0 * np.pi / n_fft)
         info.profile.drawKImage(image=image, recenter=False)
-        kimage = np.ascontiguousarray(image.array)
+        kimage = np.ascontiguousarray(image.array, dtype=np.complex64)  # GalSim's own precision
+        if not kimage.imag.any():  # centrosymmetric PSF: a real k-image (the fill specialises)
+            kimage = np.ascontiguousarray(kimage.real)
         self._kimages[key] = kimage
-        while len(self._kimages) > _KIMAGE_CACHE_MAX:
+        while len(self._kimages) > 1 and sum(k.nbytes for k in self._kimages.values()) > _KIMAGE_CACHE_BYTES:
             self._kimages.popitem(last=False)
         return kimage
 
     # -- geometry ---------------------------------------------------------------------------
-    def _geometry(self, info: _PsfInfo, profile: str, rad, sersicn, e1, e2, g1, g2, dx, dy):
-        """Per-stamp arrays: (N, Nk, k-transform matrix, table index, shifts, tables)."""
+    def _geometry(self, info: _PsfInfo, profile: str, rad: np.ndarray, sersicn: np.ndarray | None,
+                  e1: np.ndarray, e2: np.ndarray, g1: np.ndarray, g2: np.ndarray, dx: np.ndarray, dy: np.ndarray
+                  ) -> tuple[np.ndarray, ...]:
+        """Per-stamp arrays: N, Nk, k-transform matrix, radial-profile index, shifts (the
+        offset, centring and S // 2, so that the stamp is the FFT's first S x S pixels);
+        and the radial profiles."""
         if not can_render(profile):
             raise MegalutError(f"renderer: cannot draw galaxy profile {profile!r} (only {', '.join(PROFILES)})")
         gsp = info.gsparams
@@ -406,22 +413,24 @@ class StampRenderer:
         rad = np.atleast_1d(np.asarray(rad, dtype=float))
         m = len(rad)
         e1, e2, g1, g2, dx, dy = (np.broadcast_to(np.asarray(v, dtype=float), (m,)) for v in (e1, e2, g1, g2, dx, dy))
+        if not (np.all(np.isfinite(rad) & (rad > 0)) and all(np.isfinite(v).all() for v in (e1, e2, g1, g2, dx, dy))):
+            raise MegalutError("renderer: half-light radii must be finite and > 0, shapes and offsets finite")
         if profile == "sersic":
             if sersicn is None:
                 raise MegalutError("renderer: Sersic galaxies need sersicn")
             ns = np.broadcast_to(np.asarray(sersicn, dtype=float), (m,))
             uniq, table = np.unique(ns, return_inverse=True)
-            tables = [sersic_table(float(n), gsp) for n in uniq]
-            hlr_factor = np.array([t.hlr_factor for t in tables])[table]
+            profiles = [sersic_table(float(n), gsp) for n in uniq]
+            hlr_factor = np.array([t.hlr_factor for t in profiles])[table]
             r0 = rad / hlr_factor  # Sersic scale radius, as galsim.Sersic computes it
             inv_r0 = 1.0 / r0
-            stepk = np.array([t.stepk for t in tables])[table] * inv_r0
-            maxk = np.array([t.maxk for t in tables])[table] * inv_r0
+            stepk = np.array([t.stepk for t in profiles])[table] * inv_r0
+            maxk = np.array([t.maxk for t in profiles])[table] * inv_r0
             size = r0
         else:
             # Round Gaussians are filled separably (exact exp); transformed ones with cutoffs.
             table = np.where((e1 == 0) & (e2 == 0) & (g1 == 0) & (g2 == 0), 1, 0)
-            tables = [gaussian_profile(gsp, True), gaussian_profile(gsp, False)]
+            profiles = [gaussian_profile(gsp, True), gaussian_profile(gsp, False)]
             sigma = rad / _GAUSSIAN_HLR_FACTOR
             r_fold = max(math.sqrt(-2.0 * math.log(gsp.folding_threshold)), gsp.stepk_minimum_hlr * _GAUSSIAN_HLR_FACTOR)
             maxk = math.sqrt(-2.0 * math.log(gsp.maxk_threshold)) / sigma
@@ -449,7 +458,7 @@ class StampRenderer:
         amat = np.empty((m, 4))
         amat[:, 0], amat[:, 1] = jac[:, 0, 0] * size, jac[:, 1, 0] * size
         amat[:, 2], amat[:, 3] = jac[:, 0, 1] * size, jac[:, 1, 1] * size
-        return n_fft, n_k, amat, table.astype(np.int64), sx + S // 2, sy + S // 2, tables
+        return n_fft, n_k, amat, table.astype(np.int64), sx + S // 2, sy + S // 2, profiles
 
     def grid_sizes(self, psf: galsim.GSObject, psf_key: Hashable, method: str, profile: str,
                    rad, sersicn, e1, e2, g1, g2, dx, dy) -> tuple[np.ndarray, np.ndarray]:
@@ -469,19 +478,24 @@ class StampRenderer:
         ``psf_key`` names the PSF for the caches: pass the same key only for the same PSF.
         """
         info = self._psf_info(psf, psf_key, method)
-        n_fft, n_k, amat, table, shx, shy, tables = self._geometry(info, profile, rad, sersicn, e1, e2, g1, g2, dx, dy)
+        n_fft, n_k, amat, table, shx, shy, profiles = self._geometry(info, profile, rad, sersicn, e1, e2, g1, g2, dx, dy)
         m = len(n_fft)
+        S = self.stamp_size
+        if m == 0:
+            return np.empty((0, S, S), dtype=np.float32)
         flux = np.broadcast_to(np.asarray(flux, dtype=float), (m,))
+        if not np.isfinite(flux).all():
+            raise MegalutError("renderer: fluxes must be finite")
         too_big = n_k > info.gsparams.maximum_fft_size
         if too_big.any():
             size = int(n_k[too_big].max())
             raise MegalutError(
-                f"drawFFT requires a very large FFT: {size} x {size} "
-                f"({size * size * 24 / 1024**3:.2f} GB) > gsparams.maximum_fft_size = "
-                f"{info.gsparams.maximum_fft_size}; raise gsparams.maximum_fft_size or gsparams.folding_threshold"
+                f"drawFFT requires a very large FFT: the required FFT size would be {size} x {size}, "
+                f"which requires {size * size * 24 / 1024**3:.2f} GB of memory; if you can handle the large "
+                f"FFT, you may update gsparams.maximum_fft_size (now {info.gsparams.maximum_fft_size}), "
+                "or raise gsparams.folding_threshold"
             )
-        eparams, eint, coef, fcoef = _stack(tables)
-        S = self.stamp_size
+        eparams, eint, coef, fcoef = _stack(profiles)
         stamps = np.empty((m, S, S), dtype=np.float32)
         grids = np.stack([n_fft, n_k], axis=1)
         for n_f, n_kk in np.unique(grids, axis=0):
@@ -501,9 +515,9 @@ class StampRenderer:
 
 def inverse_fft_window(kimages: np.ndarray, n_fft: int, size: int) -> np.ndarray:
     """The first ``size`` x ``size`` pixels of the inverse real FFTs of ``kimages`` (m, N,
-    N/2+1): the y transform keeps only ``size`` rows before the x transform."""
-    rows = scipy.fft.ifft(kimages, axis=1, workers=1)[:, :size, :]
-    return scipy.fft.irfft(rows, n=n_fft, axis=2, workers=1)[:, :, :size]
+    N/2+1; overwritten): the y transform keeps only ``size`` rows before the x transform."""
+    rows = scipy.fft.ifft(kimages, axis=1, workers=1, overwrite_x=True)[:, :size, :]
+    return scipy.fft.irfft(rows, n=n_fft, axis=2, workers=1, overwrite_x=True)[:, :, :size]
 
 
 def fft_grid(stepk: np.ndarray, maxk: np.ndarray, stamp_size: int, gsparams: galsim.GSParams
