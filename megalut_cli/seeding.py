@@ -14,6 +14,10 @@ STREAM_TRAIN = 2
 STREAM_SPLIT = 3
 #: Per-subfield seeds of a GREAT3 branch pipeline (``megalut run`` on a ``[branch]`` file).
 STREAM_SUBFIELD = 4
+#: Per-realization draws shared by all cases of a common-random-number set (``structure.common``).
+STREAM_COMMON = 5
+#: Bootstrap resampling of ``megalut evaluate``.
+STREAM_BOOTSTRAP = 6
 
 
 def rng_for(seed: int, *keys: int) -> np.random.Generator:

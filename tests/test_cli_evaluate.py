@@ -147,3 +147,40 @@ def test_nan_in_json_is_null(runner, cli, tmp_path):
     data = json.loads(js.read_text())
     assert data["unweighted"]["g2"]["m"] is None and data["unweighted"]["g1"]["m"] is not None
     assert "undetermined" in result.stdout
+
+
+def test_crn_catalog_gets_bootstrap_errors(runner, cli, tmp_path):
+    """A common-random-number catalog (header CRN = T): bootstrap over galaxies, said in the
+    table and the JSON; --errors fit overrides; the seed makes it reproducible."""
+    from test_shear_bootstrap import synthetic as crn_synthetic
+
+    path = tmp_path / "crn.fits"
+    write_catalog(path, crn_synthetic(3, True, n_cases=6, n_groups=50), fmt="megalut.predictions",
+                  cards={"CRN": True, "SNC": "pairs", "NREA": 100})
+    js = tmp_path / "e.json"
+    result = runner.invoke(cli, ["evaluate", str(path), "--bootstrap", "50", "--seed", "4", "--json", str(js)])
+    assert result.exit_code == 0, result.output
+    assert "errors: bootstrap over galaxies (common-random-number set" in result.stdout
+    assert "50 groups of 2 realization(s)" in result.stdout
+    data = json.loads(js.read_text())
+    assert data["error"] == "bootstrap-galaxies" and data["bootstrap"]["seed"] == 4
+    again = runner.invoke(cli, ["evaluate", str(path), "--bootstrap", "50", "--seed", "4"])
+    assert again.stdout == result.stdout
+    fit = runner.invoke(cli, ["evaluate", str(path), "--errors", "fit"])
+    assert fit.exit_code == 0 and "errors: from the fit" in fit.stdout
+
+
+def test_bootstrap_bad_input(runner, cli, shears, tmp_path):
+    # without the 'rea' column galaxies cannot be resampled: one line, exit 1
+    d = synthetic(seed=1, n_cases=10, n_rea=5)
+    d.pop("rea")
+    path = tmp_path / "norea.fits"
+    write_catalog(path, d, fmt="megalut.predictions")
+    result = runner.invoke(cli, ["evaluate", str(path), "--errors", "bootstrap"])
+    assert result.exit_code == 1
+    text = (result.stderr or result.output).strip()
+    assert "Traceback" not in text and len(text.splitlines()) == 1 and "'rea'" in text
+    assert runner.invoke(cli, ["evaluate", str(shears), "--bootstrap", "3"]).exit_code == 2
+    assert runner.invoke(cli, ["evaluate", str(shears), "--errors", "jackknife"]).exit_code == 2
+    assert runner.invoke(cli, ["evaluate", str(shears), "--errors", "bootstrap", "--great3-truth", str(tmp_path)]
+                         ).exit_code == 2

@@ -7,7 +7,7 @@ from typing import TextIO
 
 import click
 
-from megalut_cli.cli.options import overwrite_option, parse_list
+from megalut_cli.cli.options import overwrite_option, parse_list, seed_option
 
 #: Exit code of ``--fail-above`` when the Stage IV requirement does not hold.
 EXIT_OUT_OF_TOLERANCE = 3
@@ -75,6 +75,20 @@ EXIT_OUT_OF_TOLERANCE = 3
     show_default=True,
     help="Damping term of the GREAT3 Q_c metric: 4 for ground branches, 1 for space.",
 )
+@click.option(
+    "--errors",
+    type=click.Choice(["auto", "fit", "bootstrap"]),
+    default="auto",
+    show_default=True,
+    help="Where the errors of m and c come from: 'fit' (residual scatter over cases), 'bootstrap' "
+    "(resample galaxies: realization groups, all their cases together; needs the 'rea' column), "
+    "'auto': bootstrap for common-random-number sets (header CRN = T), else fit.",
+)
+@click.option(
+    "--bootstrap", "n_bootstrap", type=click.IntRange(10, 100000), default=200, show_default=True,
+    help="Number of bootstrap resamples.",
+)
+@seed_option(help="Seed of the bootstrap resampling.")
 @overwrite_option
 def command(
     shears: str,
@@ -87,6 +101,9 @@ def command(
     fail_above: bool,
     great3_truth: str | None,
     sigma2_min: float,
+    errors: str,
+    n_bootstrap: int,
+    seed: int,
     overwrite: bool,
 ) -> None:
     """Measure the shear biases of SHEARS.fits, a catalog with truth and predictions.
@@ -99,6 +116,12 @@ def command(
     every case counting the same). With PSF ellipticity columns (tru_psf_g1/g2, else
     psf_adamom_g1/g2) the biases are also given in the PSF frame (plus, cross), as in
     GREAT3, with its Q_c metric.
+
+    Common-random-number sets (simulated with structure.common = true, header CRN = T)
+    share their galaxies between cases, so the cases are not independent: their errors
+    come from a bootstrap over galaxies instead (--bootstrap resamples of the realization
+    groups, a 90-degree pair together, across all cases; --seed). The report says which
+    errors it quotes.
 
     With --great3-truth, SHEARS is evaluated against a GREAT3 constant-shear branch:
     a submission file (one 'subfield g1 g2' line per subfield) or a predictions catalog
@@ -120,6 +143,7 @@ def command(
           --select "snr > 10 & adamom_sigma > 1.5" --json biases.json
       megalut evaluate shears.fits --fail-above \\
           || echo "biases out of tolerance"
+      megalut evaluate crn-shears.fits --bootstrap 500 --seed 2
       megalut evaluate submission.txt --great3-truth branch/truth \\
           --sigma2-min 1
     """
@@ -150,11 +174,13 @@ def command(
     if great3_truth is not None:
         from megalut_cli.great3.evaluate import evaluate_branch
 
+        if errors == "bootstrap":
+            raise click.UsageError("--errors bootstrap does not apply to --great3-truth (subfields are independent)")
         result = evaluate_branch(shears, great3_truth, sigma2_min=sigma2_min, by=by_cols, bins=bins,
                                  select=select, select_cases=select_cases)
     else:
         result = evaluate_catalog(shears, by=by_cols, bins=bins, select=select, select_cases=select_cases,
-                                  sigma2_min=sigma2_min)
+                                  sigma2_min=sigma2_min, errors=errors, n_bootstrap=n_bootstrap, seed=seed)
     if from_stdin:
         result["input"] = "stdin"
     click.echo(format_table(result), err=json_to_stdout)

@@ -133,25 +133,81 @@ _MAX_EXPONENT = 600.0
 
 
 @njit(cache=True, error_model="numpy", fastmath={"reassoc"})
-def _row_power_sums(
+def _window_sums(
     image: np.ndarray,
-    row: int,
+    iy1: int,
+    iy2: int,
+    y0: float,
+    segments: np.ndarray,
+    xb1: int,
+    xb2: int,
     cross: np.ndarray,
+    step: np.ndarray,
     tables: np.ndarray,
-    first: int,
-    last: int,
-) -> tuple[float, float, float, float, float]:
-    """``sum_x cross[x] image[row, x] tables[k, x]`` for k = 0..4, x in ``first..last``."""
-    s0 = s1 = s2 = s3 = s4 = 0.0
-    # Unsigned indices: no negative-index wraparound test, so that the loop is vectorised.
-    for x in range(uint64(first), uint64(last + 1)):
-        u = cross[x] * image[uint64(row), x]
-        s0 += u * tables[0, x]
-        s1 += u * tables[1, x]
-        s2 += u * tables[2, x]
-        s3 += u * tables[3, x]
-        s4 += u * tables[4, x]
-    return s0, s1, s2, s3, s4
+    row_weight: float,
+    row_ratio: float,
+    row_ratio_step: float,
+    minv_xx: float,
+    minv_yy: float,
+    two_minv_xy: float,
+    sums: np.ndarray,
+) -> None:
+    """The factorised sums of :func:`_ellipmom_1` over rows ``iy1..iy2`` into ``sums``.
+
+    Row ``y`` sums the 0-based columns ``segments[:, y - 1]``; per pixel,
+    ``cross[x] image[y, x] tables[k, x]`` for the powers k = 0..4 of ``x'``, which give the
+    moments once multiplied by the row factor. Unsigned indices (no negative-index test)
+    and reassociated sums let LLVM vectorise the pixel loops.
+    """
+    a_sum = bx = by = cxx = cxy = cyy = rho4w = 0.0
+    box_lo = uint64(xb1 - 1)
+    box_hi = uint64(xb2)
+    for y in range(iy1, iy2 + 1):
+        r = uint64(y - 1)
+        first = segments[0, r]
+        last = segments[1, r]
+        if first <= last:
+            s0 = s1 = s2 = s3 = s4 = 0.0
+            for x in range(uint64(first), uint64(last + 1)):
+                u = cross[x] * image[r, x]
+                s0 += u * tables[0, x]
+                s1 += u * tables[1, x]
+                s2 += u * tables[2, x]
+                s3 += u * tables[3, x]
+                s4 += u * tables[4, x]
+            y_y0 = y - y0
+            b = two_minv_xy * y_y0
+            cy = minv_yy * y_y0 * y_y0
+            s0 *= row_weight
+            s1 *= row_weight
+            s2 *= row_weight
+            s3 *= row_weight
+            s4 *= row_weight
+            a_sum += s0
+            bx += s1
+            by += s0 * y_y0
+            cxx += s2
+            cxy += s1 * y_y0
+            cyy += s0 * y_y0 * y_y0
+            # rho^2 = cy + b x' + minv_xx x'^2, squared and summed over the row
+            rho4w += (
+                cy * cy * s0
+                + 2.0 * cy * b * s1
+                + (b * b + 2.0 * minv_xx * cy) * s2
+                + 2.0 * minv_xx * b * s3
+                + minv_xx * minv_xx * s4
+            )
+        for x in range(box_lo, box_hi):
+            cross[x] *= step[x]
+        row_weight *= row_ratio
+        row_ratio *= row_ratio_step
+    sums[0] = a_sum
+    sums[1] = bx
+    sums[2] = by
+    sums[3] = cxx
+    sums[4] = cxy
+    sums[5] = cyy
+    sums[6] = rho4w
 
 
 @njit(cache=True, error_model="numpy")
@@ -170,6 +226,7 @@ def _ellipmom_1(
     tables: np.ndarray,
     cross: np.ndarray,
     step: np.ndarray,
+    segments: np.ndarray,
     sums: np.ndarray,
     exact_exp: bool,
 ) -> int:
@@ -191,7 +248,6 @@ def _ellipmom_1(
     minv_yy = mxx / det
     inv2_minv_xx = 0.5 / minv_xx
 
-    a_sum = bx = by = cxx = cxy = cyy = rho4w = 0.0
     y2 = math.sqrt(nsig2 * myy)
     y1 = -y2 + y0
     y2 += y0
@@ -248,51 +304,40 @@ def _ellipmom_1(
             tables[0, x - 1] = minv_xx * (x - x0) * (x - x0)
         row_weight = row_ratio = row_ratio_step = 0.0
 
+    # GalSim's x range of each row (rho^2 < nsig2: a quadratic in x - x0), 0-based
     for y in range(iy1, iy2 + 1):
         y_y0 = y - y0
-        two_minv_xy_y = two_minv_xy * y_y0
-        minv_yy_y2 = minv_yy * y_y0 * y_y0
-        # x range of rho^2 < nsig2 on this row: a quadratic in (x - x0)
-        b = two_minv_xy_y
-        c = minv_yy_y2 - nsig2
+        b = two_minv_xy * y_y0
+        c = minv_yy * y_y0 * y_y0 - nsig2
         d = b * b - 4.0 * minv_xx * c
         if d < 0.0:
             return NO_ROW_SOLUTION
         sqrtd = math.sqrt(d)
         ix1 = max(int(math.ceil(inv2_minv_xx * (-b - sqrtd) + x0)), xmin)
         ix2 = min(int(math.floor(inv2_minv_xx * (-b + sqrtd) + x0)), xmax)
-        row = y - 1
         if factorised:
             ix1 = max(ix1, xb1)
             ix2 = min(ix2, xb2)
-            if ix1 <= ix2:
-                s0, s1, s2, s3, s4 = _row_power_sums(image, row, cross, tables, ix1 - 1, ix2 - 1)
-                s0 *= row_weight
-                s1 *= row_weight
-                s2 *= row_weight
-                s3 *= row_weight
-                s4 *= row_weight
-                a_sum += s0
-                bx += s1
-                by += s0 * y_y0
-                cxx += s2
-                cxy += s1 * y_y0
-                cyy += s0 * y_y0 * y_y0
-                # rho^2 = minv_yy_y2 + b x' + minv_xx x'^2, squared and summed over the row
-                rho4w += (
-                    minv_yy_y2 * minv_yy_y2 * s0
-                    + 2.0 * minv_yy_y2 * b * s1
-                    + (b * b + 2.0 * minv_xx * minv_yy_y2) * s2
-                    + 2.0 * minv_xx * b * s3
-                    + minv_xx * minv_xx * s4
-                )
-            for x in range(uint64(xb1 - 1), uint64(xb2)):
-                cross[x] *= step[x]
-            row_weight *= row_ratio
-            row_ratio *= row_ratio_step
-            continue
+        segments[0, y - 1] = ix1 - 1
+        segments[1, y - 1] = ix2 - 1
+    if factorised:
+        _window_sums(
+            image, iy1, iy2, y0, segments, xb1, xb2, cross, step, tables,
+            row_weight, row_ratio, row_ratio_step, minv_xx, minv_yy, two_minv_xy, sums,
+        )
+        return SUCCESS
+
+    # GalSim's sums, in its order
+    a_sum = bx = by = cxx = cxy = cyy = rho4w = 0.0
+    for y in range(iy1, iy2 + 1):
+        row = y - 1
+        ix1 = segments[0, row] + 1
+        ix2 = segments[1, row] + 1
         if ix1 > ix2:
             continue
+        y_y0 = y - y0
+        two_minv_xy_y = two_minv_xy * y_y0
+        minv_yy_y2 = minv_yy * y_y0 * y_y0
         x_x0 = ix1 - x0
         for x in range(ix1, ix2 + 1):
             rho2 = minv_yy_y2 + two_minv_xy_y * x_x0 + tables[0, x - xmin]
@@ -333,6 +378,7 @@ def _adaptive_moments_one(
     tables: np.ndarray,
     cross: np.ndarray,
     step: np.ndarray,
+    segments: np.ndarray,
     sums: np.ndarray,
     result: np.ndarray,
 ) -> tuple[int, int]:
@@ -371,6 +417,7 @@ def _adaptive_moments_one(
             tables,
             cross,
             step,
+            segments,
             sums,
             exact_exp,
         )
@@ -465,6 +512,7 @@ def _adaptive_moments_stack(
     tables = np.empty((5, stamps.shape[2]))
     cross = np.empty(stamps.shape[2])
     step = np.empty(stamps.shape[2])
+    segments = np.empty((2, stamps.shape[1]), dtype=np.int64)
     sums = np.empty(7)
     for k in range(stamps.shape[0]):
         status[k], n_iter[k] = _adaptive_moments_one(
@@ -482,6 +530,7 @@ def _adaptive_moments_stack(
             tables,
             cross,
             step,
+            segments,
             sums,
             results[k],
         )

@@ -32,10 +32,11 @@ import math
 import numpy as np
 
 from megalut_cli import flags as fl
+from megalut_cli.engine import ENGINES
 
 #: Engines of :func:`measure_stamps` for the adaptive moments: the compiled batch port of
 #: HSM (:mod:`.adamom`), and GalSim's ``FindAdaptiveMom`` stamp by stamp (the reference).
-MEASURE_ENGINES: tuple[str, ...] = ("fast", "galsim")
+MEASURE_ENGINES: tuple[str, ...] = tuple(ENGINES)
 
 #: Feature columns added by :func:`measure_stamps`, in this order.
 FEATURE_COLUMNS: tuple[str, ...] = (
@@ -206,7 +207,10 @@ def measure_stamps(
     moments = np.full((n, 7), np.nan)
     if finite.any():
         measure = fast_moments if engine == "fast" else galsim_moments
-        moments[finite] = measure(stamps[finite], guess)
+        if finite.all():  # no copy of the stack
+            moments[:] = measure(stamps, guess)
+        else:
+            moments[finite] = measure(stamps[finite], guess)
     measured = np.isfinite(moments).all(axis=1)
     flags[finite & ~measured] |= fl.HSM_FAILED  # status != 0, or NaN results
 

@@ -17,6 +17,11 @@ simulations.
 Conditional biases (``by``): equal-population bins of any column, over the rows used;
 in each bin the rows of each case are averaged and the line fitted over cases.
 
+Errors: from the fit (OLS over cases), or, for common-random-number sets whose cases share
+their galaxies (header ``CRN = T``), from a bootstrap over galaxies
+(:mod:`megalut_cli.shear.bootstrap`): realization groups (``rea // group_size``) are
+resampled with replacement across all cases together and every fit is redone.
+
 Catalogs are read in row chunks: memory grows with the number of cases (and with the
 ``by`` columns, whose values are needed to place the bin edges), not with the rows.
 """
@@ -27,7 +32,7 @@ import logging
 import math
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -45,6 +50,15 @@ from megalut_cli.shear.bias import (
     psf_angle,
     q_c,
 )
+from megalut_cli.shear.bootstrap import (
+    ERROR_BOOTSTRAP,
+    ERROR_FIT,
+    GroupResampler,
+    fit_columns,
+    group_size_for,
+    resample_counts,
+    spread,
+)
 from megalut_cli.shear.conditional import assign_bins, equal_population_edges
 
 log = logging.getLogger(__name__)
@@ -60,13 +74,33 @@ SCHEMES = ("unweighted", "weighted")
 CHUNK_ROWS = 500_000
 #: Format name of the JSON written by ``megalut evaluate --json``.
 JSON_FORMAT = "megalut.evaluation"
-JSON_FORMAT_VERSION = "1.1"
+JSON_FORMAT_VERSION = "1.2"  # 1.1: "provenance"; 1.2: "error", "bootstrap"
 #: |m| above which a fit is flagged as the sign of an untrained or mismatched model
 #: (when it exceeds it by more than its 1-sigma error: noise alone does not warn).
 WARN_M = 0.1
+#: ``errors`` choices of :func:`evaluate_catalog` (``auto``: bootstrap for CRN sets, else fit).
+ERROR_CHOICES = ("auto", "fit", "bootstrap")
+#: Default number of bootstrap resamples.
+N_BOOTSTRAP = 200
+#: Galaxy groups below which bootstrap errors are flagged as rough.
+FEW_GROUPS = 30
+#: Bits of a (case, group) key that hold the group (case ids must fit in the rest).
+_GROUP_BITS = 32
 
 
 # --------------------------------------------------------------------------- planning
+
+
+@dataclass(frozen=True)
+class BootstrapSpec:
+    """A bootstrap over galaxy groups: ``group_size`` consecutive realizations (``rea``)
+    form a group, resampled ``n_resamples`` times from ``seed``; ``crn`` records whether
+    the input is a common-random-number set (reported, not used)."""
+
+    group_size: int = 1
+    n_resamples: int = N_BOOTSTRAP
+    seed: int = 1
+    crn: bool = False
 
 
 @dataclass
@@ -82,6 +116,7 @@ class _Plan:
     selected_cases: np.ndarray | None = None
     by_kind: dict[str, str] = field(default_factory=dict)  # "column", "row" or "case" (see check_by)
     case_by: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # expr -> (case ids, values)
+    bootstrap: BootstrapSpec | None = None
 
     @property
     def schemes(self) -> tuple[str, ...]:
@@ -115,6 +150,7 @@ def _make_plan(
     by: Sequence[str] | None,
     select: str | None,
     select_cases: str | None,
+    bootstrap: BootstrapSpec | None = None,
 ) -> _Plan:
     have = set(colnames)
     missing = [c for c in (*TRUTH_COLUMNS, *ESTIMATE_COLUMNS) if c not in have]
@@ -133,8 +169,19 @@ def _make_plan(
         _expr.check_expression(select, list(colnames))
     if select_cases is not None:
         _expr.check_expression(select_cases, list(colnames), case_mode=True)
-    plan = _Plan(source, weighted, psf, by, select, select_cases, has_flags="flags" in have, by_kind=by_kind)
+    if bootstrap is not None:
+        if "rea" not in have:
+            raise InputError(
+                f"{source}: bootstrap errors need the realization column 'rea' to resample galaxies "
+                "(or use fit errors: --errors fit)"
+            )
+        if bootstrap.n_resamples < 2 or bootstrap.group_size < 1:
+            raise ConfigError("bootstrap: needs at least 2 resamples and a group size >= 1")
+    plan = _Plan(source, weighted, psf, by, select, select_cases, has_flags="flags" in have, by_kind=by_kind,
+                 bootstrap=bootstrap)
     cols = [*TRUTH_COLUMNS, *ESTIMATE_COLUMNS]
+    if bootstrap is not None:
+        cols.append("rea")
     if weighted:
         cols += WEIGHT_COLUMNS
     if plan.has_flags:
@@ -161,6 +208,7 @@ class _Rows:
     pre: dict[str, np.ndarray]
     weight: dict[tuple[str, str], np.ndarray]  # (scheme, comp) -> weight (0 = row not used)
     psf: tuple[np.ndarray, np.ndarray] | None
+    key: np.ndarray  # what sums are grouped by: the case, or (case, galaxy group) when bootstrapping
 
 
 def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
@@ -198,7 +246,30 @@ def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
     psf = None
     if plan.psf is not None:
         psf = (np.asarray(chunk[plan.psf[0]], dtype=float), np.asarray(chunk[plan.psf[1]], dtype=float))
-    return _Rows(case, selected, valid, tru, pre, weight, psf)
+    key = case if plan.bootstrap is None else _case_group_key(case, chunk["rea"], plan.bootstrap.group_size, plan.source)
+    return _Rows(case, selected, valid, tru, pre, weight, psf, key)
+
+
+def _case_group_key(case: np.ndarray, rea: np.ndarray, group_size: int, source: str) -> np.ndarray:
+    """One integer per (case, galaxy group): ``case << 32 | rea // group_size``."""
+    rea = np.asarray(rea)
+    if rea.dtype.kind not in "iu":
+        if rea.dtype.kind == "f" and np.all(np.isfinite(rea)) and np.all(rea == np.round(rea)):
+            rea = rea.astype(np.int64)
+        else:
+            raise InputError(f"{source}: column 'rea' must hold integer realization indices")
+    if rea.size and (rea.min() < 0 or rea.max() >= 2**_GROUP_BITS):
+        raise InputError(f"{source}: column 'rea' must hold realization indices in [0, 2^32)")
+    if case.size and np.max(np.abs(case)) >= 2**30:
+        raise InputError(f"{source}: case ids beyond 2^30 cannot be bootstrapped")
+    group = rea.astype(np.int64) // group_size
+    return (case.astype(np.int64) << _GROUP_BITS) | group
+
+
+def _split_key(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(case, group)`` of the keys of :func:`_case_group_key`."""
+    key = np.asarray(key, dtype=np.int64)
+    return key >> _GROUP_BITS, key & (2**_GROUP_BITS - 1)
 
 
 # --------------------------------------------------------------------------- group sums
@@ -332,6 +403,9 @@ def evaluate_catalog(
     select_cases: str | None = None,
     chunk_rows: int = CHUNK_ROWS,
     sigma2_min: float = GREAT3_SIGMA2_MIN_GROUND,
+    errors: str = "auto",
+    n_bootstrap: int = N_BOOTSTRAP,
+    seed: int = 1,
 ) -> dict[str, Any]:
     """Evaluate the shear biases of the catalog at ``path``; returns a JSON-ready dict.
 
@@ -339,10 +413,13 @@ def evaluate_catalog(
     row selection expression (:func:`megalut_cli.expr.evaluate_rows`); ``select_cases``:
     case selection on per-case aggregates (:func:`megalut_cli.expr.evaluate_cases`),
     e.g. ``"mean(snr) > 10"`` as in paper Fig. 12; ``sigma2_min``: the ``Q_c`` damping
-    term (4 ground, 1 space). See :func:`evaluate_columns`.
+    term (4 ground, 1 space). ``errors``: ``"auto"`` (a bootstrap over galaxies when the
+    header says ``CRN = T``, else from the fit), ``"fit"`` or ``"bootstrap"``; the galaxy
+    groups follow the header's ``SNC`` (pairs: 2 realizations). See :func:`evaluate_columns`.
     """
-    _, names, _ = catalog_info(path)
-    plan = _make_plan(names, str(path), by, select, select_cases)
+    _, names, header = catalog_info(path)
+    plan = _make_plan(names, str(path), by, select, select_cases,
+                      bootstrap_from_header(header, errors, n_bootstrap, seed))
     _prepare_cases(plan, lambda cols: _read_columns(path, cols))
     result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins, sigma2_min)
     result["input"] = str(path)
@@ -401,21 +478,42 @@ def evaluate_columns(
     select_cases: str | None = None,
     source: str = "catalog",
     sigma2_min: float = GREAT3_SIGMA2_MIN_GROUND,
+    bootstrap: BootstrapSpec | None = None,
 ) -> dict[str, Any]:
     """Evaluate in-memory columns (a dict of arrays or an astropy Table), as :func:`evaluate_catalog`.
 
     The result holds, for ``"unweighted"`` and (with weight columns) ``"weighted"``, a
     dict per component (``g1, g2`` and ``plus, cross`` with PSF columns) with ``m, m_err,
     c, c_err, n_cases, n_rows``; ``"conditional"`` when ``by`` is given; ``"requirement"``
-    (Stage IV check), ``"q_c"`` (GREAT3 metric), ``"per_case"`` averages and row counts.
+    (Stage IV check), ``"q_c"`` (GREAT3 metric), ``"per_case"`` averages and row counts;
+    ``"error"`` says where the errors come from: ``"fit"``, or ``"bootstrap-galaxies"`` with
+    ``bootstrap`` given (then ``"bootstrap"`` holds its settings; needs the ``rea`` column).
     """
     names = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
-    plan = _make_plan(names, source, by, select, select_cases)
+    plan = _make_plan(names, source, by, select, select_cases, bootstrap)
     data = {c: np.asarray(columns[c]) for c in plan.columns}
     _prepare_cases(plan, lambda cols: {c: np.asarray(columns[c]) for c in cols})
     result = _evaluate(lambda: iter([data]), plan, bins, sigma2_min)
     result["input"] = source
     return result
+
+
+def bootstrap_from_header(
+    header: Mapping[str, Any], errors: str = "auto", n_bootstrap: int = N_BOOTSTRAP, seed: int = 1
+) -> BootstrapSpec | None:
+    """The bootstrap of a catalog with this header under ``errors`` (``auto``: only for
+    common-random-number sets, ``CRN = T``), or None for errors from the fit."""
+    if errors not in ERROR_CHOICES:
+        raise ConfigError(f"errors: unknown value {errors!r} (expected one of {', '.join(ERROR_CHOICES)})")
+    crn = header.get("CRN") is True
+    if errors == "fit" or (errors == "auto" and not crn):
+        if crn:
+            log.warning("the input is a common-random-number set (CRN = T): errors from the fit ignore that its "
+                        "cases share their galaxies and are too small")
+        return None
+    nrea = header.get("NREA")
+    gsize = group_size_for(header.get("SNC"), nrea if isinstance(nrea, int) else None)
+    return BootstrapSpec(gsize, int(n_bootstrap), int(seed), crn)
 
 
 def _read_columns(path: str | os.PathLike, columns: list[str]) -> dict[str, np.ndarray]:
@@ -484,16 +582,21 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
         n_selected += int(rows.selected.sum())
         n_valid += int((rows.valid["g1"] | rows.valid["g2"]).sum())
         vals = _row_values(rows, schemes)
-        overall.add(rows.case, vals)
+        overall.add(rows.key, vals)
         for c, g in conditional.items():
-            g.add(rows.case, vals, assign_bins(_by_values(chunk, plan, c, rows.case.size), edges[c]))
+            g.add(rows.key, vals, assign_bins(_by_values(chunk, plan, c, rows.case.size), edges[c]))
         if psf_sums is not None and rows.psf is not None:
             ok = np.isfinite(rows.psf[0]) & np.isfinite(rows.psf[1])
             psf_sums.add(rows.case, {"psf1": np.where(ok, rows.psf[0], 0.0), "psf2": np.where(ok, rows.psf[1], 0.0),
                                      "npsf": ok.astype(float)})
 
     _check_usable(plan, n_total, n_selected, n_valid)
-    _, case_ids, sums = overall.result()
+    bins0, keys, key_sums = overall.result()
+    groups: _Groups | None = None
+    if plan.bootstrap is not None:
+        _, case_ids, sums, groups = _collapse(bins0, keys, key_sums)
+    else:
+        case_ids, sums = keys, key_sums
 
     theta_of: dict[int, float] = {}
     theta = None
@@ -526,6 +629,19 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
         "weights": list(WEIGHT_COLUMNS) if plan.weighted else None,
     }
     fits = {s: _fit_components(per_case[s]) for s in schemes}
+    families: list[_Family] = []
+    if groups is not None:
+        families.append(_Family(fits, groups.resampler(np.ones(groups.key_index.size, dtype=bool), case_ids.size,
+                                                       key_sums), theta))
+    cond_out: dict[str, Any] = {}
+    for c in plan.by:
+        if c not in edges:
+            log.warning("--by %s: no usable row has a value", c)
+            cond_out[c] = {"edges": [], "bins": []}
+            continue
+        cond_out[c] = _conditional(conditional[c], edges[c], by_values[c][0], schemes, theta_of,
+                                   families if groups is not None else None, groups)
+    result.update(_bootstrap_errors(families, plan, groups, schemes))
     for s in schemes:
         result[s] = {comp: fits[s][comp].as_dict() for comp in COMPONENTS if comp in fits[s]}
         for comp, f in fits[s].items():
@@ -541,20 +657,98 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
                           sigma2_min=sigma2_min))
            for s in schemes},
     }
+    for cond in cond_out.values():
+        for entry in cond["bins"]:
+            for scheme in schemes:
+                entry[scheme] = {comp: f.as_dict() for comp, f in entry[scheme].items() if comp in COMPONENTS}
     if plan.by:
-        result["conditional"] = {}
-        for c in plan.by:
-            if c not in edges:
-                log.warning("--by %s: no usable row has a value", c)
-                result["conditional"][c] = {"edges": [], "bins": []}
-                continue
-            result["conditional"][c] = _conditional(conditional[c], edges[c], by_values[c][0], schemes, theta_of)
+        result["conditional"] = cond_out
     result["per_case"] = {
         "case": [int(k) for k in case_ids],
         **({"psf_theta": _json_list(theta)} if theta is not None else {}),
         **{s: {comp: {k: _json_list(v) for k, v in d.items()} for comp, d in per_case[s].items()} for s in schemes},
     }
     return result
+
+
+@dataclass
+class _Groups:
+    """(key, galaxy group) entries behind per-key sums: entry ``e`` belongs to key
+    ``key_index[e]`` and group ``group[e]``."""
+
+    key_index: np.ndarray
+    group: np.ndarray
+    n_groups: int
+
+    def resampler(self, entries: np.ndarray, n_keys: int, sums: Mapping[str, np.ndarray]) -> GroupResampler:
+        """A resampler of the selected ``entries`` (bool mask), keys renumbered in order."""
+        keys = np.unique(self.key_index[entries])
+        index = np.searchsorted(keys, self.key_index[entries])
+        values = {k: v[entries] for k, v in sums.items() if ":n:" not in k}
+        return GroupResampler(index, self.group[entries], values, n_keys, self.n_groups)
+
+
+@dataclass
+class _Family:
+    """Fits sharing one set of per-key sums (the overall fit, or one bin of a ``--by``)."""
+
+    fits: dict[str, dict[str, BiasFit]]  # scheme -> component -> fit; errors replaced by the bootstrap
+    resampler: GroupResampler
+    theta: np.ndarray | None
+
+
+def _collapse(
+    bins: np.ndarray, keys: np.ndarray, sums: Mapping[str, np.ndarray], n_groups: int | None = None
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], _Groups]:
+    """Per-(bin, case) sums from per-(bin, case, group) sums; returns the bins and cases
+    of the collapsed keys, their sums and the entries behind them."""
+    case, group = _split_key(keys)
+    pairs, inv = np.unique(np.stack([bins, case], axis=1), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    collapsed = {k: np.bincount(inv, weights=v, minlength=len(pairs)) for k, v in sums.items()}
+    n = int(group.max()) + 1 if n_groups is None and group.size else int(n_groups or 0)
+    return pairs[:, 0], pairs[:, 1], collapsed, _Groups(inv, group, n)
+
+
+def _bootstrap_errors(
+    families: list[_Family], plan: _Plan, groups: _Groups | None, schemes: Sequence[str]
+) -> dict[str, Any]:
+    """Replace the errors of every family's fits by the bootstrap spread; return the
+    ``error`` and ``bootstrap`` entries of the result."""
+    spec = plan.bootstrap
+    if spec is None or groups is None:
+        return {"error": ERROR_FIT, "bootstrap": None}
+    n_groups = groups.n_groups
+    if n_groups < 2:
+        raise InputError(
+            f"{plan.source}: the bootstrap over galaxies needs at least 2 galaxy groups, found {n_groups} "
+            f"(group size {spec.group_size}); use --errors fit"
+        )
+    if n_groups < FEW_GROUPS:
+        log.warning("only %d galaxy groups: the bootstrap errors are rough", n_groups)
+    acc: list[dict[tuple[str, str], tuple[list[np.ndarray], list[np.ndarray]]]] = [
+        {(s, comp): ([], []) for s in schemes for comp in f.fits[s]} for f in families
+    ]
+    for counts in resample_counts(spec.seed, n_groups, spec.n_resamples):
+        for fam, values in zip(families, acc):
+            zeros = np.zeros((fam.resampler.n_keys, counts.shape[1]))
+            sums = {**{k: zeros for k in _sum_names(schemes)}, **fam.resampler.sums(counts)}
+            theta = fam.theta[:, None] if fam.theta is not None else None
+            for s in schemes:
+                for comp, d in _case_estimates(sums, s, theta).items():
+                    m, c = fit_columns(d["tru"], d["pre"])
+                    values[(s, comp)][0].append(m)
+                    values[(s, comp)][1].append(c)
+    for fam, values in zip(families, acc):
+        for (s, comp), (m, c) in values.items():
+            f = fam.fits[s][comp]
+            fam.fits[s][comp] = replace(f, m_err=spread(np.concatenate(m)) if math.isfinite(f.m) else f.m_err,
+                                        c_err=spread(np.concatenate(c)) if math.isfinite(f.c) else f.c_err)
+    return {
+        "error": ERROR_BOOTSTRAP,
+        "bootstrap": {"resamples": spec.n_resamples, "seed": spec.seed, "group_size": spec.group_size,
+                      "groups": n_groups, "crn": spec.crn},
+    }
 
 
 def _json_q(q: float) -> float | None:
@@ -611,8 +805,17 @@ def _conditional(
     values: np.ndarray,
     schemes: Sequence[str],
     theta_of: Mapping[int, float],
+    families: list[_Family] | None = None,
+    overall: _Groups | None = None,
 ) -> dict[str, Any]:
-    bins, cases, s = sums.result()
+    """Fits per bin (``BiasFit`` objects, turned into dicts by the caller once the bootstrap,
+    when ``families`` is given, has set their errors)."""
+    bins, keys, key_sums = sums.result()
+    groups = None
+    if overall is not None:
+        bins, cases, s, groups = _collapse(bins, keys, key_sums, overall.n_groups)
+    else:
+        cases, s = keys, key_sums
     value_bin = assign_bins(values, edges)
     out_bins = []
     for k in range(edges.size - 1):
@@ -626,9 +829,11 @@ def _conditional(
             "center": float(np.median(in_bin)) if in_bin.size else None,
             "n_rows": int(in_bin.size),
         }
+        fits = {scheme: _fit_components(_case_estimates(sub, scheme, theta)) for scheme in schemes}
         for scheme in schemes:
-            fits = _fit_components(_case_estimates(sub, scheme, theta))
-            entry[scheme] = {comp: fits[comp].as_dict() for comp in COMPONENTS if comp in fits}
+            entry[scheme] = fits[scheme]
+        if families is not None and groups is not None:
+            families.append(_Family(fits, groups.resampler(sel[groups.key_index], int(sel.sum()), key_sums), theta))
         out_bins.append(entry)
     return {"edges": [float(e) for e in edges], "bins": out_bins}
 
@@ -639,6 +844,16 @@ def _conditional(
 def requirement_met(result: Mapping[str, Any]) -> bool:
     """Whether the Stage IV requirement holds (weighted results when present, else unweighted)."""
     return bool(result["requirement"]["met"])
+
+
+def error_note(result: Mapping[str, Any]) -> str:
+    """One line saying which errors the result quotes."""
+    boot = result.get("bootstrap")
+    if result.get("error") != ERROR_BOOTSTRAP or not boot:
+        return "errors: from the fit (residual scatter of the per-case averages about the line)"
+    what = "common-random-number set: the cases share their galaxies" if boot["crn"] else "galaxy groups"
+    return (f"errors: bootstrap over galaxies ({what}; {boot['groups']} groups of {boot['group_size']} "
+            f"realization(s) resampled across all cases, {boot['resamples']} resamples, seed {boot['seed']})")
 
 
 def _pm(v: float | None, e: float | None) -> str:
@@ -678,6 +893,7 @@ def format_table(result: Mapping[str, Any]) -> str:
         note = " (round PSF in every case: same as g1, g2, not repeated)" if round_psf else ""
         lines.append(f"PSF frame (plus, cross) from {', '.join(result['psf_frame']['columns'])}{note}")
     lines.append(f"Stage IV requirement: |m| < {STAGE_IV_M:.0e}, |c| < {STAGE_IV_C:.0e}")
+    lines.append(error_note(result))
     header = f"  {'':6}{'m':^22}   {'c':^22}  {'cases':>6} {'rows':>10}  req"
     for scheme in SCHEMES:
         if scheme not in result:

@@ -78,6 +78,7 @@ _STRUCTURE_KEYS = {
     "stamp_size",
     "offset",
     "n_x",
+    "common",
 }
 _GALAXY_KEYS = {"profile", "sersicn", "sersicn_step", "rad", "ellipticity", "angle", *FLUX_KEYS}
 #: Star-forming knots (GalSim RandomKnots), for every profile but "real".
@@ -120,6 +121,8 @@ class StructureSpec:
     stamp_size: int
     offset: float
     n_x: int | None = None
+    #: Common random numbers: every case draws the same galaxies, offsets and noise.
+    common: bool = False
 
     @property
     def group_size(self) -> int:
@@ -367,7 +370,32 @@ def _parse_structure(raw: Mapping[str, Any]) -> StructureSpec:
     n_x = t.get("n_x")
     if n_x is not None:
         n_x = _int(n_x, "structure.n_x", 1)
-    return StructureSpec(n_cases, n_rea, frozenset(per), snc, stamp, offset, n_x)
+    common = _bool(t.get("common", False), "structure.common")
+    if common:
+        _check_common(frozenset(per), snc)
+    return StructureSpec(n_cases, n_rea, frozenset(per), snc, stamp, offset, n_x, common)
+
+
+def _bool(value: Any, key: str) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+    return value
+
+
+def _check_common(per: frozenset[str], snc: str) -> None:
+    """Refuse common-random-number sets that cannot mean anything."""
+    if "galaxy" not in per:
+        raise ConfigError(
+            "structure.common: needs per_realization to include 'galaxy' (a new galaxy per realization "
+            "group, the same one in every case)"
+        )
+    if "shear" in per:
+        raise ConfigError("structure.common: the shear must be drawn per case; remove 'shear' from per_realization")
+    if snc == "ring":
+        raise ConfigError(
+            "structure.common: snc = 'ring' makes one galaxy per case, nothing to share between cases; "
+            "use snc = 'pairs' or 'none'"
+        )
 
 
 def _dists(table: Mapping[str, Any], prefix: str, keys: Sequence[str]) -> dict[str, Distribution]:

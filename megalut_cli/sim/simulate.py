@@ -133,6 +133,7 @@ def simulation_cards(config: SimConfig, seed: int, measured: bool, engine: str =
         "STAMPSZ": (s.stamp_size, "stamp size in pixels"),
         "NSTAMPX": (s.grid_nx, "stamps per row of the stamp grid"),
         "SNC": (s.snc, "shape-noise cancellation"),
+        "CRN": (s.common, "common random numbers: the same galaxies in every case"),
         "NOISE": (config.noise.type if config.noise.override_sigma is None else "gaussian", "noise model"),
         "GAIN": (config.gain, "gain e-/ADU (CCD noise)"),
         "MEASURED": (bool(measured), "the catalog holds measured features"),

@@ -7,6 +7,12 @@ per-realization parameters and one for offsets and noise seeds. The result there
 never depends on how cases are split into work units, and lowering ``n_realizations``
 keeps the galaxies of each case.
 
+Common random numbers (``structure.common = true``): the per-realization generator and the
+offset/noise-seed generator are seeded by ``seed`` alone (stream ``STREAM_COMMON``), not by
+the case, so realization ``k`` has the same galaxy, position angle, offset and noise seed in
+every case (star-forming knots too); only the case-level draws (shear, and PSF and noise
+level when per case) differ.
+
 SNC groups: with ``snc = "ring"`` all realizations of a case form one group whose
 position angles are ``theta_k = theta_0 + k * 180 deg / n`` (so the intrinsic ellipticities
 sum exactly to zero); with ``"pairs"`` consecutive realizations ``2j, 2j+1`` form groups
@@ -27,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from megalut_cli.seeding import STREAM_SIMULATE, rng_for
+from megalut_cli.seeding import STREAM_COMMON, STREAM_SIMULATE, rng_for
 from megalut_cli.sim.config import SimConfig, round_sersicn
 from megalut_cli.sim.distributions import Distribution, sample_level
 from megalut_cli.sim.galaxies import (
@@ -70,8 +76,12 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     n, gs, ng = s.n_realizations, s.group_size, s.n_groups
     group_of = np.arange(n) // gs
     rng_case = rng_for(seed, STREAM_SIMULATE, case, _CASE_KEY)
-    rng_rea = rng_for(seed, STREAM_SIMULATE, case, _REA_KEY)
-    rng_noise = rng_for(seed, STREAM_SIMULATE, case, _NOISE_KEY)
+    if s.common:  # the same realizations in every case
+        rng_rea = rng_for(seed, STREAM_COMMON, _REA_KEY)
+        rng_noise = rng_for(seed, STREAM_COMMON, _NOISE_KEY)
+    else:
+        rng_rea = rng_for(seed, STREAM_SIMULATE, case, _REA_KEY)
+        rng_noise = rng_for(seed, STREAM_SIMULATE, case, _NOISE_KEY)
     nrows = config.catalog_rows
 
     def level(group: str, dists: dict[str, Distribution]) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -127,7 +137,8 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     truth.update(model_cols)
     if gal.knots:  # one seed per galaxy draw, from its own stream (the other draws are unchanged)
         n_draws = int(gal_index.max()) + 1
-        knot_seeds = rng_for(seed, STREAM_SIMULATE, case, _KNOT_KEY).integers(1, 2**31 - 1, n_draws)
+        knot_rng = rng_for(seed, STREAM_COMMON, _KNOT_KEY) if s.common else rng_for(seed, STREAM_SIMULATE, case, _KNOT_KEY)
+        knot_seeds = knot_rng.integers(1, 2**31 - 1, n_draws)
         truth["tru_knots"] = np.round(gvals["knots"]).astype(np.int64)
         truth["tru_knots_fraction"] = np.where(truth["tru_knots"] > 0, gvals["knots_fraction"], 0.0)
         truth["tru_knot_seed"] = knot_seeds[gal_index]
