@@ -385,3 +385,37 @@ def write_image(
     with atomic_output(path, overwrite) as tmp:
         fitsio.write(str(tmp), np.ascontiguousarray(image), header=recs, clobber=True)
     return Path(path)
+
+
+#: What a catalog records of how its stamps were made, compared between a model's training
+#: catalog and the catalog it predicts on: header card -> name in the setup record.
+SETUP_CARDS = {"STAMPSZ": "stamp_size", "NOISE": "noise_type", "GAIN": "gain"}
+#: Sections of the simulation config (``CONFIG`` HDU) that describe the observing setup.
+SETUP_CONFIG_KEYS = ("psf", "noise")
+
+
+def read_setup(path: str | os.PathLike) -> dict[str, Any]:
+    """The observing setup a catalog records: stamp size, noise, gain (header cards) and, for a
+    simulated catalog, the PSF and noise sections of its ``CONFIG`` HDU. Empty if none."""
+    import json
+
+    _, _, header = catalog_info(path)
+    setup: dict[str, Any] = {name: header[card] for card, name in SETUP_CARDS.items() if card in header}
+    try:
+        with fitsio.FITS(str(path)) as f:
+            if "CONFIG" in f:
+                text = f["CONFIG"].read(columns=["config_json"])[0]["config_json"]
+                config = json.loads(text.decode("ascii") if isinstance(text, bytes) else str(text))
+                setup.update({key: config[key] for key in SETUP_CONFIG_KEYS if key in config})
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        pass  # no readable CONFIG: the header cards are what is recorded
+    return setup
+
+
+def setup_differences(trained: Mapping[str, Any], applied: Mapping[str, Any]) -> list[str]:
+    """``name: trained vs applied`` for every setup item both record and that differ."""
+    return [
+        f"{name} {trained[name]} vs {applied[name]}"
+        for name in trained
+        if name in applied and trained[name] != applied[name]
+    ]

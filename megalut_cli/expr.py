@@ -16,6 +16,7 @@ per row, ``mean(snr)`` per case.
 from __future__ import annotations
 
 import ast
+import re
 from collections.abc import Callable, Mapping
 
 import numpy as np
@@ -62,8 +63,61 @@ def _parse(expr: str) -> ast.AST:
     text = expr.strip().replace("&", " and ").replace("|", " or ").replace("~", " not ").strip()
     try:
         return ast.parse(text, mode="eval").body
-    except SyntaxError as err:
-        raise ConfigError(f"malformed selection expression {expr!r}: {err.msg}") from None
+    except SyntaxError:
+        hint = " (compare with ==, not =)" if "=" in expr and "==" not in expr and not re.search(r"[<>!]=", expr) \
+            else ""
+        raise ConfigError(
+            f"selection expression {expr!r} cannot be read{hint}: write conditions such as "
+            "\"snr > 10 & adamom_sigma > 1.5\" or, per case, \"mean(snr) > 10\""
+        ) from None
+
+
+#: Plain words for the Python syntax that expressions do not allow.
+_SYNTAX_WORDS = {
+    "Attribute": "'.' after a name (attribute access)",
+    "Subscript": "'[ ]' (indexing)",
+    "Tuple": "',' (tuples)",
+    "List": "'[ ]' (lists)",
+    "Dict": "'{ }' (dictionaries)",
+    "Set": "'{ }' (sets)",
+    "Lambda": "lambda",
+    "Call": "a call of something other than a function name",
+    "IfExp": "if/else",
+    "Starred": "'*' before a name",
+    "NamedExpr": "':='",
+    "JoinedStr": "strings",
+    "ListComp": "comprehensions",
+    "GeneratorExp": "comprehensions",
+    "MatMult": "'@'",
+    "FloorDiv": "'//'",
+    "LShift": "'<<'",
+    "RShift": "'>>'",
+    "BitXor": "'^'",
+    "Is": "'is'",
+    "IsNot": "'is not'",
+    "In": "'in'",
+    "NotIn": "'not in'",
+}
+_GRAMMAR = ("numbers, column names, + - * / ** %, comparisons, & | ~ (and, or, not), parentheses and the "
+            "functions " + " ".join(_FUNCS))
+
+
+def describe_syntax(node: ast.AST) -> str:
+    """What a piece of unsupported syntax is, in words (never the parser's tree)."""
+    name = type(node).__name__
+    return _SYNTAX_WORDS.get(name, name.lower())
+
+
+def unknown_columns_message(expr: str, missing: list[str], available: list[str]) -> str:
+    """``unknown column(s) ...``, with close matches and the columns that exist."""
+    import difflib
+
+    close = {m: difflib.get_close_matches(m, available, n=1) for m in missing}
+    guesses = [c[0] if len(missing) == 1 else f"{c[0]} for {m}" for m, c in close.items() if c]
+    shown = ", ".join(sorted(available)[:40]) + (", ..." if len(available) > 40 else "")
+    return (f"selection expression {expr!r}: unknown column(s) {', '.join(missing)}"
+            + (f" (did you mean {'; '.join(guesses)}?)" if guesses else "")
+            + f"; the catalog has: {shown}")
 
 
 def columns_used(expr: str) -> list[str]:
@@ -90,7 +144,7 @@ class _Evaluator:
 
     def column(self, name: str) -> np.ndarray:
         if name not in self.columns:
-            raise self.fail(f"unknown column {name!r}")
+            raise ConfigError(unknown_columns_message(self.expr, [name], list(self.columns)))
         return np.asarray(self.columns[name])
 
     def eval(self, node: ast.AST, in_agg: bool = False) -> np.ndarray:
@@ -127,7 +181,7 @@ class _Evaluator:
             result = np.asarray(True)
             for op, comp in zip(node.ops, node.comparators):
                 if type(op) not in _CMPOPS:
-                    raise self.fail("unsupported comparison")
+                    raise self.fail(f"{describe_syntax(op)} is not allowed; use < <= > >= == !=")
                 right = self.eval(comp, in_agg)
                 result = np.logical_and(result, _CMPOPS[type(op)](left, right))
                 left = right
@@ -144,8 +198,10 @@ class _Evaluator:
                 if in_agg:
                     raise self.fail("nested aggregates are not allowed")
                 return self._aggregate(name, self.eval(node.args[0], in_agg=True))
-            raise self.fail(f"unknown function {name!r}")
-        raise self.fail(f"unsupported syntax {ast.dump(node)[:40]}...")
+            raise self.fail(f"unknown function {name!r}; functions: {' '.join(_FUNCS)}"
+                            + (f", aggregates: {' '.join(_AGGS)}" if case_mode else ""))
+        bad = node.op if isinstance(node, ast.BinOp) else node
+        raise self.fail(f"{describe_syntax(bad)} is not allowed; use {_GRAMMAR}")
 
     def _constant_per_case(self, name: str, col: np.ndarray) -> np.ndarray:
         idx = self.case_index
@@ -271,9 +327,13 @@ def check_expression(expr: str, available: list[str] | None = None, case_mode: b
             sub,
             (ast.Constant, ast.Name, ast.BinOp, ast.UnaryOp, ast.BoolOp, ast.Compare, ast.Load, ast.operator,
              ast.unaryop, ast.boolop, ast.cmpop),
+        ) or (isinstance(sub, ast.BinOp) and type(sub.op) not in _BINOPS) or (
+            isinstance(sub, ast.Compare) and any(type(op) not in _CMPOPS for op in sub.ops)
         ):
-            raise ConfigError(f"selection expression {expr!r}: unsupported syntax")
+            bad = sub.op if isinstance(sub, ast.BinOp) else (
+                next(op for op in sub.ops if type(op) not in _CMPOPS) if isinstance(sub, ast.Compare) else sub)
+            raise ConfigError(f"selection expression {expr!r}: {describe_syntax(bad)} is not allowed; use {_GRAMMAR}")
     if available is not None:
         missing = [c for c in columns_used(expr) if c not in available and c not in ("True", "False")]
         if missing:
-            raise ConfigError(f"selection expression {expr!r}: unknown column(s) {', '.join(missing)}")
+            raise ConfigError(unknown_columns_message(expr, missing, list(available)))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
@@ -44,6 +45,22 @@ def _single_threaded_children() -> Iterator[None]:
                 os.environ[k] = v
 
 
+def ignore_interrupt() -> None:
+    """Worker initializer: Ctrl-C is the parent's to handle (one line, exit 130), so local
+    workers ignore SIGINT instead of each printing a traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Terminate the workers of ``pool`` now (after Ctrl-C) instead of letting them finish their units."""
+    if hasattr(pool, "terminate_workers"):  # Python >= 3.14
+        pool.terminate_workers()
+        return
+    # Older Pythons have no public way: the pool's own process table.
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        process.terminate()
+
+
 def _dask_client(scheduler: str) -> Any:
     try:
         from distributed import Client
@@ -64,10 +81,13 @@ def _dask_client(scheduler: str) -> Any:
 
 
 @contextlib.contextmanager
-def executor(nproc: int = 1, scheduler: str | None = None) -> Iterator[Executor | None]:
+def executor(
+    nproc: int = 1, scheduler: str | None = None, n_units: int | None = None
+) -> Iterator[Executor | None]:
     """An executor for ``-j nproc`` or ``--scheduler``; ``None`` means run in this process.
 
-    Local workers are started with the ``spawn`` method and one BLAS thread each.
+    Local workers are started with the ``spawn`` method and one BLAS thread each; never more
+    than ``n_units`` (when given), so that a small job does not pay for idle workers.
     """
     if scheduler:
         client = _dask_client(scheduler)
@@ -77,15 +97,18 @@ def executor(nproc: int = 1, scheduler: str | None = None) -> Iterator[Executor 
         finally:
             client.close()
         return
-    n = resolve_nproc(nproc)
+    n = resolve_nproc(nproc) if n_units is None else min(resolve_nproc(nproc), max(n_units, 1))
     if n == 1:
         yield None
         return
     with _single_threaded_children():
-        pool = ProcessPoolExecutor(max_workers=n, mp_context=get_context("spawn"))
+        pool = ProcessPoolExecutor(max_workers=n, mp_context=get_context("spawn"), initializer=ignore_interrupt)
     try:
         log.info("running on %d local worker processes", n)
         yield pool
+    except KeyboardInterrupt:
+        stop_workers(pool)
+        raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
@@ -118,6 +141,15 @@ def map_units(
             fut.cancel()
         raise
     return results
+
+
+def format_duration(seconds: float) -> str:
+    """``42 s``, ``7.5 min`` or ``3.2 h`` (for time estimates in logs)."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 def chunk_ranges(n: int, n_chunks: int) -> list[tuple[int, int]]:

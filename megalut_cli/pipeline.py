@@ -945,6 +945,10 @@ def check_workdir(workdir: Path, steps: Sequence[Step], skip_existing: bool, ove
     """Fail early: a file where the folder should be, or products there without a flag."""
     if workdir.exists() and not workdir.is_dir():
         raise MegalutError(f"--workdir {workdir}: exists and is not a folder")
+    existing = next((p for p in (workdir, *workdir.absolute().parents) if p.exists()), Path("."))
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        where = "" if existing == workdir else f" (its folder {existing})"
+        raise MegalutError(f"--workdir {workdir}: not writable{where}")
     if skip_existing or overwrite:
         return
     prefix = next((s.prefix for s in steps if s.prefix), "")
@@ -961,6 +965,33 @@ def _copy_products(wd: Path, mapping: Mapping[str, str]) -> None:
     for ours, theirs in mapping.items():
         with atomic_output(wd / ours, overwrite=True) as tmp:
             shutil.copyfile(wd / theirs, tmp)
+
+
+def plan_pipeline(
+    pipe: Pipeline,
+    workdir: str | os.PathLike = DEFAULT_WORKDIR,
+    *,
+    skip_existing: bool = False,
+    overwrite: bool = False,
+    nproc: int = 1,
+    scheduler: str | None = None,
+) -> list[str]:
+    """Pre-flight of :func:`run_pipeline`: check the work folder; one line per step saying
+    what it will do, the simulations with a time estimated from a tiny calibration draw."""
+    from megalut_cli.sim.simulate import plan_message
+
+    wd = Path(workdir)
+    steps = build_steps(pipe, nproc, scheduler)
+    check_workdir(wd, steps, skip_existing, overwrite)
+    lines = [f"pipeline {pipe.path} -> {wd / pipe.name if pipe.name else wd}: {len(steps)} steps"
+             + (" (up-to-date steps will be skipped)" if skip_existing else "")]
+    sims = {f"simulate-{name}": spec for name, spec in pipe.sets.items()}
+    for i, step in enumerate(steps, 1):
+        spec = sims.get(step.name)
+        what = plan_message(spec.config, spec.seed, True, False, nproc, scheduler, pipe.engine) if spec \
+            else step.summary
+        lines.append(f"[{i}/{len(steps)}] {step.name}: {what}")
+    return lines
 
 
 def run_pipeline(

@@ -8,8 +8,8 @@ written model holds both. Neither needs GalSim or click.
 
 Masked realizations: rows with ``flags != 0`` (when the column exists), with a non-finite
 feature, (for weights) with a non-finite point estimate or outside ``select``. Cases left
-without any valid realization are dropped with a warning; an error is raised when fewer
-than two cases remain.
+without any valid realization are dropped (a warning, or an info line when a selection
+removed them); an error is raised when fewer than two cases remain.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.atomic import check_output
-from megalut_cli.catalog import catalog_info, read_catalog, require_columns
+from megalut_cli.catalog import catalog_info, read_catalog, read_setup, require_columns
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.expr import check_expression, columns_used, evaluate_cases, evaluate_rows
 from megalut_cli.nn import normalization as norm
@@ -172,6 +172,7 @@ def _load_cases(
             x = np.column_stack([np.asarray(columns[f], dtype=np.float64) for f in comm.features])
             point[t] = comm.predict(x)
             ok &= np.isfinite(point[t])
+    measured = ok.copy()
     if select_rows:
         sel = evaluate_rows(select_rows, {c: columns[c] for c in columns_used(select_rows)}, n)
         if not sel.any():
@@ -181,7 +182,8 @@ def _load_cases(
     if select_cases:
         ok = _select_cases(columns, ok, select_cases, str(path))
     data = build_cases(
-        columns, features, targets, ok, where=str(path), constant_targets=constant_targets, point=point
+        columns, features, targets, ok, where=str(path), constant_targets=constant_targets, point=point,
+        measured=measured,
     )
     log.info(
         "%s: %d cases, %d valid realizations (%d masked)",
@@ -266,9 +268,11 @@ def _check_architecture(features: Sequence[str], targets: Sequence[str], hidden:
 
 
 def _provenance(
-    command: str, inputs: dict[str, Any], seed: int, parent: Mapping[str, Any] | None = None
+    command: str, inputs: dict[str, Any], seed: int, parent: Mapping[str, Any] | None = None,
+    setup: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """The provenance of a trained model: command line, versions, inputs, seed (and parent model)."""
+    """The provenance of a trained model: command line, versions, inputs, seed, the training
+    catalog's observing setup (:func:`megalut_cli.catalog.read_setup`) and parent model."""
     prov: dict[str, Any] = {
         "command": command,
         "argv": command_line(),
@@ -276,6 +280,8 @@ def _provenance(
         "inputs": inputs,
         "seed": seed,
     }
+    if setup:
+        prov["setup"] = dict(setup)
     train = inputs.get("train", {}).get("path")
     population = training_population(train) if train else None
     if population is not None:
@@ -386,7 +392,8 @@ def train_point(
     if init_model is not None:
         inputs["init_from"] = {"path": str(init_from), "sha256": init_model.sha256}
     committees = _run(specs, settings, opts.seed, nproc, scheduler, progress)
-    prov = _provenance("train-point", inputs, opts.seed, init_model.provenance if init_model is not None else None)
+    prov = _provenance("train-point", inputs, opts.seed, init_model.provenance if init_model is not None else None,
+                       read_setup(train))
     model = ShearModel(point=committees, provenance=prov)
     model.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, model.sha256[:12])
@@ -407,7 +414,7 @@ def _run(
         len(specs), specs[0].members, settings.iterations, settings.cost, settings.batch_fraction,
         settings.batch_iterations,
     )
-    with executor(nproc, scheduler) as pool, (progress or _no_progress)("members trained", n_units) as update:
+    with executor(nproc, scheduler, n_units) as pool, (progress or _no_progress)("members trained", n_units) as update:
         return train_committees(specs, settings, seed, pool, update)
 
 
@@ -465,7 +472,7 @@ def train_weight(
     inputs = {"train": _input(train), "model": {"path": str(model), "sha256": point_model.sha256}}
     if valid is not None:
         inputs["valid"] = _input(valid)
-    prov = _provenance("train-weight", inputs, opts.seed, point_model.provenance)
+    prov = _provenance("train-weight", inputs, opts.seed, point_model.provenance, read_setup(train))
     result = ShearModel(point=point_model.point, weight=committees, provenance=prov)
     result.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, result.sha256[:12])

@@ -21,3 +21,10 @@ def cli():
     from megalut_cli.cli import main
 
     return main
+
+
+@pytest.fixture(autouse=True)
+def _one_process_by_default(monkeypatch):
+    """-j defaults to all cores; tests run in one process unless they ask for more (spawning
+    workers costs seconds on this shared machine). Results do not depend on -j."""
+    monkeypatch.setenv("MEGALUT_NPROC", "1")

@@ -105,7 +105,7 @@ def test_bad_inputs(runner, cli, data):
     write_catalog(data / "noxy.fits", {"ra": np.zeros(3), "dec": np.zeros(3)}, fmt="test")
     _fails(runner, cli, ["measure", str(data / "stamps.fits"), str(data / "noxy.fits"), "-o", out],
            1, "noxy.fits", "x, y")
-    _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", out, "--stamp-size", "40"],
+    _fails(runner, cli, ["measure", str(data / "nocard.fits"), "-o", out, "--stamp-size", "40"],
            1, "does not divide")
     _fails(runner, cli, ["measure", str(data / "nocard.fits"), "-o", out], 2, "STAMPSZ", "--stamp-size")
     _fails(runner, cli, ["measure", str(data / "stamps.fits"), str(data / "stamps.fits"), "-o", out],
@@ -127,3 +127,40 @@ def test_refuses_to_overwrite(runner, cli, data):
     result = runner.invoke(cli, ["measure", str(data / "stamps.fits"), "-o", str(out), "--overwrite"])
     assert result.exit_code == 0, result.output
     assert len(read_catalog(out)) == NX * NY
+
+
+def test_stamp_size_contradicting_the_card_is_refused(runner, cli, data):
+    out = data / "out.fits"
+    text = _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", str(out), "--stamp-size", "16"],
+                  1, str(data / "stamps.fits"), "stamp size 16 (--stamp-size)", "STAMPSZ = 32")
+    assert len(text.strip().splitlines()) == 2  # the one line, in output (stdout+stderr) and stderr
+    assert not out.exists()
+
+
+def test_catalog_of_another_simulation_is_refused(runner, cli, data):
+    """Seed, config hash and grid shape of the catalog must match the stamp image's."""
+    arr = np.zeros((NY * S, NX * S), dtype=np.float32)
+    prov = {"STAMPSZ": S, "SEED": 12, "CFGSHA": "abc", "NSTAMPX": NX}
+    write_image(data / "sim.fits", arr, fmt="megalut.stamps", cards=prov)
+    xy = {"x": np.array([S / 2 + 0.5]), "y": np.array([S / 2 + 0.5])}
+    write_catalog(data / "other.fits", xy, fmt="megalut.simulation", cards={**prov, "SEED": 13, "NSTAMPX": 4})
+    out = data / "out.fits"
+    text = _fails(runner, cli, ["measure", str(data / "sim.fits"), str(data / "other.fits"), "-o", str(out)],
+                  1, str(data / "other.fits"), "does not belong to", "SEED = 13 vs 12", "NSTAMPX = 4 vs 3")
+    assert "CFGSHA" not in text  # equal cards are not reported
+    assert len(text.strip().splitlines()) == 2 and not out.exists()
+    write_catalog(data / "same.fits", xy, fmt="megalut.simulation", cards=prov)
+    result = runner.invoke(cli, ["measure", str(data / "sim.fits"), str(data / "same.fits"), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+
+
+def test_warns_when_most_stamps_are_flagged(runner, cli, data):
+    """An empty image: every stamp fails; the warning gives the count and the reasons."""
+    write_image(data / "empty.fits", np.zeros((NY * S, NX * S), dtype=np.float32), fmt="megalut.stamps",
+                cards={"STAMPSZ": S})
+    result = runner.invoke(cli, ["measure", str(data / "empty.fits"), "-o", str(data / "f.fits")])
+    assert result.exit_code == 0, result.output
+    assert f"{NX * NY} of {NX * NY} stamps flagged" in result.stderr
+    assert "HSM_FAILED" in result.stderr or "NEGATIVE_FLUX" in result.stderr
+    ok = runner.invoke(cli, ["measure", str(data / "stamps.fits"), "-o", str(data / "g.fits")])
+    assert ok.exit_code == 0 and "wrong --stamp-size" not in ok.stderr

@@ -161,3 +161,41 @@ def test_identity_model_then_evaluate(runner, cli, tmp_path):
     for comp in ("g1", "g2"):
         f = r["unweighted"][comp]
         assert abs(f["m"]) < 3 * f["m_err"] and abs(f["c"]) < 3 * f["c_err"] and f["m_err"] < 0.01
+
+
+def test_warns_when_catalog_setup_differs_from_training(runner, cli, tmp_path):
+    """The model records its training set's setup; predict names each difference."""
+    from test_shear_predict import make_committee
+
+    from megalut_cli.nn.model import ShearModel as Model
+
+    point = {t: make_committee("point", t, FEATURES, seed=i) for i, t in enumerate(("tru_g1", "tru_g2"))}
+    setup = {"stamp_size": 64, "noise": {"type": "gaussian", "sigma": 1.0}, "psf": {"type": "gaussian", "sigma": 2.0}}
+    Model(point, provenance={"setup": setup}).save(tmp_path / "m.h5")
+    d = features_catalog(100)
+    write_catalog(tmp_path / "same.fits", d, fmt="megalut.features", cards={"STAMPSZ": 64})
+    write_catalog(tmp_path / "other.fits", d, fmt="megalut.features", cards={"STAMPSZ": 48})
+    same = runner.invoke(cli, ["predict", str(tmp_path / "same.fits"), "--model", str(tmp_path / "m.h5"),
+                               "-o", str(tmp_path / "a.fits")])
+    assert same.exit_code == 0 and "setup differs" not in same.stderr
+    other = runner.invoke(cli, ["predict", str(tmp_path / "other.fits"), "--model", str(tmp_path / "m.h5"),
+                                "-o", str(tmp_path / "b.fits")])
+    assert other.exit_code == 0, other.stderr
+    assert "recorded setup differs" in other.stderr and "stamp_size 64 vs 48" in other.stderr
+    assert "psf" not in other.stderr  # not recorded by this catalog: nothing to compare
+
+
+def test_training_records_the_setup_of_simulated_catalogs(tmp_path):
+    """read_setup takes stamp size, noise and gain cards and the CONFIG HDU's psf and noise."""
+    from sim_configs import write
+
+    from megalut_cli.catalog import read_setup, setup_differences
+    from megalut_cli.sim.config import load_config
+    from megalut_cli.sim.simulate import simulate
+
+    simulate(load_config(write(tmp_path), ()), tmp_path / "a.fits", measure=True)
+    simulate(load_config(write(tmp_path, name="b.toml"), ("psf.sigma=2.0",)), tmp_path / "b.fits", measure=True)
+    a, b = read_setup(tmp_path / "a.fits"), read_setup(tmp_path / "b.fits")
+    assert a["stamp_size"] == 24 and a["psf"] == {"type": "gaussian", "sigma": 1.5}
+    assert a["noise"] == {"type": "gaussian", "sigma": 1.0} and a["noise_type"] == "gaussian"
+    assert setup_differences(a, b) == [f"psf {a['psf']} vs {b['psf']}"]

@@ -52,6 +52,24 @@ def test_catalog_refuses_overwrite_and_bad_files(tmp_path):
         catalog.read_catalog(tmp_path / "nope.fits")
 
 
+def test_write_errors_name_the_users_file_not_the_temporary_one(tmp_path):
+    """A failed write (disk full) names the output the user asked for; the temp file is removed."""
+    target = tmp_path / "out.fits"
+    with pytest.raises(MegalutError) as err:
+        with atomic_output(target) as tmp:
+            tmp.write_bytes(b"partial")
+            raise OSError(28, "No space left on device", str(tmp))
+    assert str(err.value) == f"{target}: cannot write (No space left on device)"
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(MegalutError, match=r"out.fits: cannot write \(.*out.fits: write failed\)"):
+        with atomic_output(target) as tmp:
+            raise OSError(f"{tmp}: write failed")  # as cfitsio says it: no filename attribute
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(MegalutError, match="output folder .* does not exist"):
+        with atomic_output(tmp_path / "missing" / "out.fits"):
+            pass
+
+
 def test_atomic_output_leaves_nothing_on_failure(tmp_path):
     target = tmp_path / "out.fits"
     with pytest.raises(RuntimeError):
@@ -79,6 +97,8 @@ def test_process_pool_gives_ordered_results():
         assert pool is not None
         assert parallel.map_units(_square, list(range(9)), pool) == [i * i for i in range(9)]
     with parallel.executor(nproc=1) as pool:
+        assert pool is None
+    with parallel.executor(nproc=2, n_units=1) as pool:  # one unit: no workers to start
         assert pool is None
 
 
@@ -123,9 +143,9 @@ def test_case_expressions():
 @pytest.mark.parametrize(
     "bad, message",
     [
-        ("snr >", "malformed"),
-        ("__import__('os').system('true')", "unsupported|unknown function"),
-        ("snr.real > 1", "unsupported"),
+        ("snr >", "cannot be read"),
+        ("__import__('os').system('true')", "not allowed|unknown function"),
+        ("snr.real > 1", "attribute access"),
         ("mean(snr) > 1", "only allowed in case"),
         ("foo > 1", "unknown column"),
         ("snr + 1", "not a condition"),
@@ -134,6 +154,29 @@ def test_case_expressions():
 def test_bad_expressions_are_config_errors(bad, message):
     with pytest.raises(ConfigError, match=message):
         expr.evaluate_rows(bad, COLS)
+
+
+@pytest.mark.parametrize(
+    "bad, words",
+    [
+        ("snr = 10", ["cannot be read", "==", "snr > 10"]),
+        ("snr[0] > 1", ["indexing", "is not allowed", "comparisons", "sqrt"]),
+        ("snr >> 1", ["'>>' is not allowed"]),
+        ("snr in 3", ["'in' is not allowed"]),
+        ("sn > 1 & tru < 3", ["unknown column(s) sn", "did you mean snr?", "the catalog has: case, s, snr, tru"]),
+    ],
+)
+def test_expression_errors_are_plain_words_with_existing_columns(bad, words):
+    """Never the parser's tree; the columns that exist, and the closest one, for a typo."""
+    for check in (lambda: expr.evaluate_rows(bad, COLS), lambda: expr.check_expression(bad, list(COLS))):
+        with pytest.raises(ConfigError) as err:
+            check()
+        text = str(err.value)
+        assert "ast." not in text and "Name(" not in text and "ctx=" not in text
+        for w in words:
+            if w.startswith("the catalog") and "unknown" not in text:
+                continue
+            assert w in text, text
 
 
 def test_case_expression_rejects_varying_bare_column():

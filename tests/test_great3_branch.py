@@ -164,9 +164,15 @@ def test_measure_bad_subfields(runner, cli, branch, tmp_path):
     b = branch / "b"
     img = str(b / L.image_name(0))
     out = str(tmp_path / "f.fits")
-    # stamp size not matching the catalog grid (96 divides the 128-pixel image? no: 64 does)
+    # a --stamp-size that contradicts the image's STAMPSZ card
     _fails(runner.invoke(cli, ["measure", img, str(b / L.galaxy_catalog_name(0)), "-o", out, "--origin", "0",
-                               "--stamp-size", "64"]), 1, "galaxy_catalog-000.txt", "stamp size 64")
+                               "--stamp-size", "64"]), 1, "image-000-0.fits", "STAMPSZ = 32")
+    # stamp size not matching the catalog grid, on an image without the card (64 divides the 128-pixel image)
+    pixels, _ = read_image(img)
+    nocard = tmp_path / "image-nocard.fits"
+    write_image(nocard, pixels, fmt="test")
+    _fails(runner.invoke(cli, ["measure", str(nocard), str(b / L.galaxy_catalog_name(0)), "-o", out, "--origin",
+                               "0", "--stamp-size", "64"]), 1, "galaxy_catalog-000.txt", "stamp size 64")
     # centres off the image: all of them
     far = tmp_path / "far.txt"
     L.write_text_catalog(far, {"x": np.array([1000.0, 2000.0]), "y": np.array([15.0, 15.0]), "ID": np.array([0, 1])})

@@ -244,6 +244,11 @@ def _corrupt_nan_stars(b: Path) -> str:
     return p.name
 
 
+def _image_with_stampsz_card(b: Path) -> str:
+    """Nothing corrupted: megalut's simulated branch images carry a STAMPSZ card (48)."""
+    return L.image_name(0)
+
+
 def _corrupt_empty_subfield(b: Path) -> str:
     p = b / L.galaxy_catalog_name(1)
     p.write_text("# x\n# y\n# ID\n")
@@ -258,8 +263,8 @@ def _corrupt_empty_subfield(b: Path) -> str:
         (_corrupt_empty_stars, [], ["empty"]),
         (_corrupt_nan_stars, [], ["NaN"]),
         (_corrupt_empty_subfield, [], ["no rows"]),
-        (None, ["branch.stamp_size=32"], ["does not match the stamp size 32"]),
-        (None, ["branch.kind=space"], ["does not match the stamp size 96"]),
+        (_image_with_stampsz_card, ["branch.stamp_size=32"], ["stamp size 32", "STAMPSZ = 48"]),
+        (_image_with_stampsz_card, ["branch.kind=space"], ["stamp size 96", "STAMPSZ = 48"]),
     ],
 )
 def test_bad_branch_input(runner, cli, branch, tmp_path, corrupt, extra, words):

@@ -55,7 +55,7 @@ def test_empty_case_dropped_with_warning(caplog: pytest.LogCaptureFixture) -> No
     with caplog.at_level(logging.WARNING):
         d = build_cases(cols, ["f"], ["tru_x"], ok, where="cat.fits")
     assert d.case_ids.tolist() == [0, 2]
-    assert "1 case(s) without any valid realization dropped" in caplog.text
+    assert "1 case(s) dropped: every realization is flagged" in caplog.text
 
 
 def test_errors() -> None:

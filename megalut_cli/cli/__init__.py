@@ -2,7 +2,8 @@
 
 One module per subcommand; options shared between them live in :mod:`.options`.
 Library errors (:class:`megalut_cli.errors.MegalutError`) become one-line messages with
-exit code 1 (runtime) or 2 (usage/configuration); click's own usage errors exit with 2.
+exit code 1 (runtime) or 2 (usage/configuration); click's own usage errors exit with 2;
+Ctrl-C prints one line and exits with 130.
 """
 
 from __future__ import annotations
@@ -15,10 +16,15 @@ from typing import Any
 import click
 
 from megalut_cli import __version__
+from megalut_cli.cli.console import setup_logging, user_facing
+from megalut_cli.cli.options import verbosity, verbosity_options
 from megalut_cli.errors import MegalutError
 from megalut_cli.provenance import set_command_line
 
 log = logging.getLogger("megalut")
+
+#: Exit status after Ctrl-C (128 + SIGINT, as shells report it).
+EXIT_INTERRUPTED = 130
 
 
 class MegalutGroup(click.Group):
@@ -36,9 +42,13 @@ class MegalutGroup(click.Group):
         try:
             return super().invoke(ctx)
         except MegalutError as err:
-            exc = click.ClickException(str(err))
+            exc = click.ClickException(user_facing(str(err)))
             exc.exit_code = err.exit_code
             raise exc from None
+        except KeyboardInterrupt:
+            # Temporary outputs are removed on the way up (atomic_output, console).
+            click.echo("megalut: interrupted", err=True)
+            ctx.exit(EXIT_INTERRUPTED)
         except BrokenPipeError:
             # Output piped into a command that stopped reading (e.g. `| head`): exit quietly.
             devnull = os.open(os.devnull, os.O_WRONLY)
@@ -50,22 +60,12 @@ class MegalutGroup(click.Group):
             raise click.ClickException("out of memory; use smaller chunks or more workers") from None
         except OSError as err:
             where = f"{err.filename}: " if getattr(err, "filename", None) else ""
-            raise click.ClickException(f"{where}{err.strerror or err}") from None
+            raise click.ClickException(user_facing(f"{where}{err.strerror or err}")) from None
         except Exception as err:  # a bug: say so plainly, traceback with -v
             log.debug("internal error", exc_info=True)
             raise click.ClickException(
                 f"internal error ({type(err).__name__}: {err}); run with -v for the traceback"
             ) from None
-
-
-def _setup_logging(verbose: int, quiet: int) -> None:
-    level = logging.INFO + 10 * (quiet - verbose)
-    logging.basicConfig(
-        level=max(logging.DEBUG, min(level, logging.CRITICAL)),
-        format="megalut: %(message)s",
-        stream=sys.stderr,
-        force=True,
-    )
 
 
 @click.group(
@@ -74,27 +74,41 @@ def _setup_logging(verbose: int, quiet: int) -> None:
     short_help="Weak-lensing shear measurement with machine learning.",
 )
 @click.version_option(__version__, "--version", prog_name="megalut")
-@click.option("-v", "--verbose", count=True, help="More log output (repeatable).")
-@click.option("-q", "--quiet", count=True, help="Less log output (repeatable).")
-def main(verbose: int, quiet: int) -> None:
+def main() -> None:
     """Weak-lensing shear measurement with machine learning (Tewes et al. 2019).
 
     Simulate galaxies with known shear, measure adaptive-moment features, train neural
     network committees with the mean-square-bias cost, predict shear estimates and
     weights for any stamp catalog, and evaluate multiplicative and additive biases.
 
+    A small end-to-end run: 3000 training and 4000 validation stamps, 60 training
+    iterations; 1.5 min measured on a busy 2-core machine.
+
     \b
-    Example (a small end-to-end run):
+    Example:
       megalut simulate examples/fiducial/tp.toml -o tp.fits --measure \\
-          --n-cases 50
+          --n-cases 60 --n-realizations 50
       megalut train-point tp.fits -o model.h5 \\
-          --select-cases "mean(snr) > 10"
+          --select-cases "mean(snr) > 10" --iterations 60
       megalut simulate examples/fiducial/vo.toml -o vo.fits --measure \\
-          --n-cases 20
+          --n-cases 20 --n-realizations 200
       megalut predict vo.fits --model model.h5 -o shears.fits
       megalut evaluate shears.fits
+
+    Stamps to biases in one shell pipeline ('-' is stdin or stdout; logs go to stderr):
+
+    \b
+    Example:
+      megalut measure stamps.fits cat.fits -o - \\
+          | megalut predict - --model model.h5 -o - | megalut evaluate -
+
+    -j/--nproc defaults to all cores (env MEGALUT_NPROC); -v/-q work before or after the
+    subcommand. Exit status: 0 success, 1 runtime error, 2 usage error, 130 interrupted.
     """
-    _setup_logging(verbose, quiet)
+    setup_logging(verbosity(click.get_current_context()))
+
+
+main.params.extend(verbosity_options())
 
 
 def _register() -> None:
@@ -110,6 +124,7 @@ def _register() -> None:
     )
 
     for mod in (simulate, measure, train_point, train_weight, predict, evaluate, run, info):
+        mod.command.params.extend(verbosity_options())
         main.add_command(mod.command)
 
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import sys
+from typing import TextIO
+
 import click
 
 from megalut_cli.cli.options import overwrite_option, parse_list, seed_option
@@ -14,7 +17,7 @@ EXIT_OUT_OF_TOLERANCE = 3
     "evaluate",
     short_help="Measure shear biases m and c, overall and conditional.",
 )
-@click.argument("shears", type=click.Path(exists=True, dir_okay=False))
+@click.argument("shears", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
 @click.option(
     "--by",
     metavar="COL,COL",
@@ -40,8 +43,9 @@ EXIT_OUT_OF_TOLERANCE = 3
     help="Keep only the cases where EXPR of per-case aggregates holds, e.g. \"mean(snr) > 10\".",
 )
 @click.option(
-    "--json", "json_path", type=click.Path(dir_okay=False), default=None,
-    help="Write all results (and per-case averages) to this JSON file (layout: docs/evaluate.md).",
+    "--json", "json_path", type=click.Path(dir_okay=False, allow_dash=True), default=None,
+    help="Write all results (and per-case averages) to this JSON file (layout: docs/evaluate.md); "
+    "'-': stdout, the table then goes to stderr.",
 )
 @click.option(
     "--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
@@ -131,8 +135,9 @@ def command(
     whose rows carry a subfield (column subfield, or GREAT3 ID = 1e6 subfield + ...);
     the subfields are the cases, the truth's starshape parameters give the PSF frame.
 
-    The table goes to stdout; exit status 0, or 1 for bad input, 2 for bad options, and
-    with --fail-above 3 when the Stage IV requirement does not hold.
+    SHEARS '-' reads a FITS catalog from stdin. The table goes to stdout (to stderr with
+    --json -); exit status 0, or 1 for bad input, 2 for bad options, and with --fail-above
+    3 when the Stage IV requirement does not hold.
 
     \b
     Example:
@@ -152,6 +157,7 @@ def command(
           --by "tru_twin_rad/tru_psf_sigma,snr"
     """
     from megalut_cli.atomic import check_output
+    from megalut_cli.cli.console import is_stdio, stdin_path
     from megalut_cli.shear.evaluate import (
         WARN_M,
         evaluate_catalog,
@@ -161,8 +167,9 @@ def command(
     )
 
     by_cols = parse_list(by, "--by column list")
+    json_to_stdout = is_stdio(json_path)
     for path in (json_path, plot_path):
-        if path is not None:
+        if path is not None and not is_stdio(path):
             check_output(path, overwrite)
     if json_path is not None and plot_path is not None and json_path == plot_path:
         raise click.UsageError("--json and --plot must name different files")
@@ -177,6 +184,8 @@ def command(
                               ("--select-cases", select_cases), ("--plot", plot_path), ("--fail-above", fail_above),
                               ("--errors", errors != "auto")) if v])
         return
+    from_stdin = is_stdio(shears)
+    shears = click.get_current_context().with_resource(stdin_path(shears))
     if great3_truth is not None:
         from megalut_cli.great3.evaluate import evaluate_branch
 
@@ -187,12 +196,16 @@ def command(
     else:
         result = evaluate_catalog(shears, by=by_cols, bins=bins, select=select, select_cases=select_cases,
                                   sigma2_min=sigma2_min, errors=errors, n_bootstrap=n_bootstrap, seed=seed)
-    click.echo(format_table(result))
+    if from_stdin:
+        result["input"] = "stdin"
+    click.echo(format_table(result), err=json_to_stdout)
     warnings = large_m(result)
     if warnings:
         click.echo(f"megalut: warning: |m| > {WARN_M:g} ({'; '.join(warnings)}): "
                    "an untrained or mismatched model?", err=True)
-    if json_path is not None:
+    if json_to_stdout:
+        _dump_json(result, sys.stdout)
+    elif json_path is not None:
         _write_json(json_path, result, overwrite)
     if plot_path is not None:
         from megalut_cli.shear.plots import plot_evaluation
@@ -208,22 +221,31 @@ def command(
 def _evaluate_twin(shears: str, twin: str, by: list[str] | None, bins: int, n_boot: int, seed: int,
                    json_path: str | None, overwrite: bool, other: list[str]) -> None:
     """The paired real-vs-twin evaluation of ``--twin``."""
+    from megalut_cli.cli.console import is_stdio
     from megalut_cli.shear.paired import evaluate_paired_catalogs, format_paired
 
     if other:
         raise click.UsageError(f"{other[0]} does not apply with --twin")
+    if is_stdio(shears):
+        raise click.UsageError("--twin needs SHEARS as a file, not stdin")
     result = evaluate_paired_catalogs(shears, twin, by=by, n_bins=bins, n_boot=n_boot, seed=seed)
-    click.echo(format_paired(result), nl=False)
-    if json_path is not None:
+    click.echo(format_paired(result), nl=False, err=is_stdio(json_path))
+    if is_stdio(json_path):
+        _dump_json(result, sys.stdout)
+    elif json_path is not None:
         _write_json(json_path, result, overwrite)
 
 
-def _write_json(path: str, result: dict, overwrite: bool) -> None:
+def _dump_json(result: dict, stream: TextIO) -> None:
     import json
 
+    stream.write(json.dumps(result, indent=1, allow_nan=False) + "\n")
+    stream.flush()
+
+
+def _write_json(path: str, result: dict, overwrite: bool) -> None:
     from megalut_cli.atomic import atomic_output
 
     with atomic_output(path, overwrite) as tmp:
         with open(tmp, "w") as f:
-            json.dump(result, f, indent=1, allow_nan=False)
-            f.write("\n")
+            _dump_json(result, f)

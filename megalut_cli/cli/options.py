@@ -2,18 +2,51 @@
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import logging
-import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import click
 
+from megalut_cli.cli.console import progress as progress
+from megalut_cli.cli.console import setup_logging
+
 log = logging.getLogger("megalut")
 
 F = Callable[..., Any]
+
+
+#: Where the group and its subcommands add up their -v and -q counts.
+_VERBOSITY_KEY = "megalut.verbosity"
+
+
+def _count_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> int:
+    if value:
+        root = ctx.find_root()
+        sign = 1 if param.name == "verbose" else -1
+        root.meta[_VERBOSITY_KEY] = root.meta.get(_VERBOSITY_KEY, 0) + sign * value
+        setup_logging(root.meta[_VERBOSITY_KEY])
+    return value
+
+
+def verbosity(ctx: click.Context) -> int:
+    """The -v count minus the -q count given so far, before and after the subcommand."""
+    return int(ctx.find_root().meta.get(_VERBOSITY_KEY, 0))
+
+
+def verbosity_options() -> list[click.Option]:
+    """``-v/--verbose`` and ``-q/--quiet``, accepted before and after the subcommand (they add up)."""
+    return [
+        click.Option(
+            ["-v", "--verbose"], count=True, expose_value=False, callback=_count_verbosity,
+            help="More log output: -v megalut's debug lines, -vv also third-party libraries'.",
+        ),
+        click.Option(
+            ["-q", "--quiet"], count=True, expose_value=False, callback=_count_verbosity,
+            help="Less log output: -q warnings and errors only, -qq errors only.",
+        ),
+    ]
 
 
 def overwrite_option(f: F) -> F:
@@ -40,9 +73,18 @@ def seed_option(default: int = 1, help: str = "Seed of every random draw of this
     return click.option("--seed", type=int, default=default, show_default=True, help=help)
 
 
-def output_option(help: str = "Output file.") -> Callable[[F], F]:
+def _no_dash(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
+    if value == "-":
+        raise click.BadParameter("this output cannot go to stdout ('-'); name a file")
+    return value
+
+
+def output_option(help: str = "Output file.", dash: bool = False) -> Callable[[F], F]:
+    """``-o/--output``; with ``dash``, ``-o -`` writes the file to stdout, else ``-`` is refused
+    (never a file named ``-``)."""
     return click.option(
-        "-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help=help
+        "-o", "--output", "output", required=True, type=click.Path(dir_okay=False, allow_dash=dash),
+        callback=None if dash else _no_dash, help=help + (" '-': stdout." if dash else ""),
     )
 
 
@@ -59,9 +101,11 @@ def execution_options(f: F) -> F:
         "-j",
         "--nproc",
         type=int,
-        default=1,
+        default=0,
         show_default=True,
-        help="Local worker processes (0 or less: all cores).",
+        envvar="MEGALUT_NPROC",
+        help="Local worker processes (0 or less: all cores; env MEGALUT_NPROC). "
+        "Results are identical for any value.",
     )(f)
 
     @functools.wraps(f)
@@ -186,23 +230,3 @@ def parse_int_list(value: str | None, what: str = "list") -> list[int] | None:
         raise click.BadParameter(f"{what} must be positive integers, got {value!r}")
     return out
 
-
-@contextlib.contextmanager
-def progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
-    """A progress callback: a bar on an interactive terminal, log lines otherwise."""
-    interactive = sys.stderr.isatty() and log.getEffectiveLevel() <= logging.INFO
-    if interactive and length > 0:
-        with click.progressbar(length=length, label=label, file=sys.stderr, show_pos=True) as bar:
-            yield bar.update
-        return
-    done = 0
-    step = max(1, length // 10)
-
-    def update(n: int) -> None:
-        nonlocal done
-        before = done
-        done += n
-        if done // step != before // step or done == length:
-            log.info("%s: %d/%d", label, done, length)
-
-    yield update

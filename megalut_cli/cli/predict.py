@@ -10,12 +10,12 @@ from megalut_cli.cli.options import execution_options, output_option, overwrite_
 
 
 @click.command("predict", short_help="Apply a trained model: add pre_g1, pre_g2 (and weights).")
-@click.argument("features", type=click.Path(exists=True, dir_okay=False))
+@click.argument("features", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
 @click.option(
     "--model", "model_path", required=True, type=click.Path(exists=True, dir_okay=False),
     help="Trained model (HDF5 from train-point / train-weight).",
 )
-@output_option("Output catalog: all input columns plus the predictions.")
+@output_option("Output catalog: all input columns plus the predictions.", dash=True)
 @click.option(
     "--col", "col", multiple=True, metavar="FEATURE=COLUMN",
     help="Read the model feature FEATURE from the catalog column COLUMN (repeatable), "
@@ -43,31 +43,38 @@ def command(
     has weight committees, pre_g1_w, pre_g2_w. Rows whose features failed (flags != 0 or a
     non-finite feature) get NaN estimates, weight 0 and the BAD_FEATURES flag (128) in
     'flags'. The catalog is streamed in chunks; the header records the model's sha256
-    (MODELSHA). The model's training population and its recorded bias on real galaxies
-    (when it carries one) are logged at info level.
+    (MODELSHA). FEATURES '-' reads the catalog from stdin, -o - writes to stdout. A warning
+    says when the catalog's recorded setup (PSF, noise, stamp size, gain) differs from the
+    model's training set. The model's training
+    population and its recorded bias on real galaxies (when it carries one) are logged at
+    info level.
 
     \b
     Example:
       megalut predict vo.fits --model model.h5 -o shears.fits
       megalut predict mycat.fits --model model.h5 -o shears.fits \\
-          --col adamom_g1=E1 --col adamom_g2=E2 -j 4
+          --col adamom_g1=E1 --col adamom_g2=E2
+      megalut measure stamps.fits cat.fits -o - \\
+          | megalut predict - --model model.h5 -o - | megalut evaluate -
     """
     from megalut_cli.catalog import catalog_info
+    from megalut_cli.cli.console import stdin_path, stdout_path
     from megalut_cli.cli.options import progress
     from megalut_cli.nn.model import ShearModel
     from megalut_cli.nn.population import model_report
     from megalut_cli.shear.predict import parse_column_map, predict_catalog
 
     column_map = parse_column_map(col)
-    n_rows = catalog_info(features)[0]
-    with progress("predict", n_rows) as update:
-        report = predict_catalog(
-            features, model_path, output, column_map=column_map, nproc=nproc, scheduler=scheduler,
-            overwrite=overwrite, chunk_rows=chunk_rows, progress=update,
-        )
+    with stdin_path(features) as features_path, stdout_path(output) as output_path:
+        n_rows = catalog_info(features_path)[0]
+        with progress("predict", n_rows) as update:
+            report = predict_catalog(
+                features_path, model_path, output_path, column_map=column_map, nproc=nproc, scheduler=scheduler,
+                overwrite=overwrite, chunk_rows=chunk_rows, progress=update,
+            )
     logging.getLogger("megalut").info(
         "wrote %s: %d rows, %s (%d with failed features)",
-        report.output, report.n_rows, ", ".join(report.columns), report.n_failed,
+        "stdout" if output == "-" else report.output, report.n_rows, ", ".join(report.columns), report.n_failed,
     )
     for line in model_report(ShearModel.load(model_path)):  # what the model was trained on
         logging.getLogger("megalut").info("%s", line)

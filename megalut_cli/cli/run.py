@@ -9,6 +9,8 @@ import click
 
 from megalut_cli.cli.options import execution_options, overwrite_option
 
+log = logging.getLogger("megalut")
+
 
 @click.command(
     "run",
@@ -36,6 +38,12 @@ from megalut_cli.cli.options import execution_options, overwrite_option
     "(the products hold them; the exit status is still 1).",
 )
 @click.option(
+    "--dry-run",
+    is_flag=True,
+    help="Check the pipeline and the work folder, list the steps with the simulations' estimated "
+    "times (from tiny calibration draws), and stop.",
+)
+@click.option(
     "--print-default", is_flag=True, help="Print the embedded default pipeline (to copy and edit) and exit."
 )
 @execution_options
@@ -46,6 +54,7 @@ def command(
     workdir: str,
     skip_existing: bool,
     keep_going: bool,
+    dry_run: bool,
     print_default: bool,
     nproc: int,
     scheduler: str | None,
@@ -67,7 +76,8 @@ def command(
     printed at the end; logs and step timings go to stderr.
 
     The default is the paper's fiducial setup (Sect. 5) scaled down to about 10 minutes on
-    2 cores. KEY=VALUE arguments override pipeline keys (dotted names, TOML values), e.g.
+    2 cores. Before the first step, every step is logged with its size, the simulations with
+    a time estimated from a tiny calibration draw; --dry-run stops there. KEY=VALUE arguments override pipeline keys (dotted names, TOML values), e.g.
     scale=0.01 (the fraction of the stamps of every set), sets.vo.seed=7 or
     train_point.iterations=300. The file format is in docs/pipeline.md.
 
@@ -81,16 +91,19 @@ def command(
 
     \b
     Examples:
-      megalut run -j 2
+      # the default: 275 000 stamps, 7 min on 2 cores (all cores are used)
+      megalut run
       megalut run --print-default > my-pipeline.toml
+      # each step's size and simulation time (10^5 stamps here); no run
       megalut run examples/fiducial/pipeline.toml scale=0.001 \\
-          --workdir fid -j 4
+          --workdir fid --dry-run
+      megalut run examples/fiducial/pipeline.toml scale=0.001 --workdir fid
       megalut run examples/fiducial/pipeline.toml scale=0.001 \\
           --workdir fid --skip-existing train_weight.iterations=500
       megalut run examples/varpsf/pipeline-field.toml scale=0.001 \\
           --workdir varpsf --skip-existing
       megalut run examples/great3/pipeline.toml branch.path=rgc \\
-          --workdir rgc-run -j 2 --keep-going
+          --workdir rgc-run --keep-going
     """
     from megalut_cli import pipeline as pl
     from megalut_cli.cli.options import progress
@@ -102,12 +115,20 @@ def command(
         overrides, pipeline = (pipeline, *overrides), None  # `megalut run scale=0.5`
     if pipeline is not None and not Path(pipeline).is_file():
         raise click.BadParameter(f"{pipeline!r}: no such file", param_hint="PIPELINE.toml")
+    if dry_run and pipeline is not None and _is_branch(pipeline):
+        raise click.UsageError("--dry-run applies to simulate/train pipelines, not GREAT3 branch pipelines")
     if pipeline is not None and _branch_pipeline(pipeline, workdir, overrides, skip_existing, overwrite, keep_going,
                                                  nproc, scheduler):
         return
     if keep_going:
-        logging.getLogger("megalut").info("--keep-going applies to GREAT3 branch pipelines only: ignored")
+        log.info("--keep-going applies to GREAT3 branch pipelines only: ignored")
     pipe = pl.load_pipeline(pipeline, overrides)
+    plan = pl.plan_pipeline(pipe, workdir, skip_existing=skip_existing, overwrite=overwrite, nproc=nproc,
+                            scheduler=scheduler)
+    for line in plan:
+        log.info("%s", line)
+    if dry_run:
+        return
     result = pl.run_pipeline(
         pipe,
         workdir,
@@ -118,6 +139,12 @@ def command(
         progress=progress,
     )
     click.echo(pl.format_summary(result))
+
+
+def _is_branch(pipeline: str) -> bool:
+    from megalut_cli.great3 import pipeline as g3
+
+    return bool(g3.is_branch_pipeline(pipeline))
 
 
 def _branch_pipeline(pipeline: str, workdir: str, overrides: tuple[str, ...], skip_existing: bool, overwrite: bool,

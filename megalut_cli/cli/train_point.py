@@ -30,7 +30,7 @@ _DEFAULT_FEATURES = "adamom_g1, adamom_g2, adamom_sigma, adamom_flux, adamom_rho
     short_help="Train point-estimate committees (MSB cost).",
     context_settings={"show_default": True},
 )
-@click.argument("train", type=click.Path(exists=True, dir_okay=False))
+@click.argument("train", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
 @output_option("Output model file (HDF5).")
 @click.option(
     "--features",
@@ -87,7 +87,7 @@ def command(
 ) -> None:
     """Train committees of neural networks predicting TARGETS from FEATURES.
 
-    TRAIN is a catalog with one row per realization, grouped into cases by its `case`
+    TRAIN is a catalog (FITS; '-': stdin) with one row per realization, grouped into cases by its `case`
     column; within a case all realizations share the target value. Each committee member
     minimises the mean square bias (paper Eq. 3) with BFGS on random mini-batches of cases,
     is monitored on the validation cases after every iteration, and keeps its parameters of
@@ -104,7 +104,10 @@ def command(
       megalut train-point toy.fits -o toy.h5 --features d \\
           --targets tru_theta --hidden 5
     """
+    from megalut_cli.cli.console import stdin_path
     from megalut_cli.training import train_point
+
+    train = click.get_current_context().with_resource(stdin_path(train))  # '-': stdin
 
     train_point(
         train,

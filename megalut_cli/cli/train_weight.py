@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     short_help="Train weight committees (MSWB cost) for a point model.",
     context_settings={"show_default": True},
 )
-@click.argument("train", type=click.Path(exists=True, dir_okay=False))
+@click.argument("train", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
 @click.option(
     "--model",
     required=True,
@@ -72,7 +72,7 @@ def command(
 
     The point committees of MODEL predict their estimates on TRAIN; then, for each target,
     a committee of networks with outputs in (0, 1) learns weights minimising the mean
-    square weighted bias (paper Eq. 5) of every case. TRAIN should mimic the survey's
+    square weighted bias (paper Eq. 5) of every case. TRAIN (FITS; '-': stdin) should mimic the survey's
     population (many different galaxies per case, no shape-noise cancellation). Rows with
     flags != 0, non-finite features or estimates, or outside --select are masked (weight 0
     at prediction time is the user's selection). The output model holds the point and
@@ -83,7 +83,10 @@ def command(
       megalut train-weight tw.fits --model model.h5 -o model_w.h5 \\
           --select "snr > 10" -j 4
     """
+    from megalut_cli.cli.console import stdin_path
     from megalut_cli.training import train_weight
+
+    train = click.get_current_context().with_resource(stdin_path(train))  # '-': stdin
 
     train_weight(
         train,

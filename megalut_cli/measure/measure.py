@@ -172,7 +172,7 @@ def _run_units(
     sizes = [len(p) for p in pieces]
     bar = progress(label, len(idx)) if progress else contextlib.nullcontext(None)
     t0 = time.perf_counter()
-    with executor(nproc, scheduler) as pool, bar as update:
+    with executor(nproc, scheduler, len(units)) as pool, bar as update:
         done = iter(sizes)
         tick = (lambda _n: update(next(done))) if update else None
         # map_units reports finished units in completion order; stamp counts are close
@@ -247,6 +247,47 @@ def _psf_features(
     out = {p: np.full(n, values[p]) for p in PSF_COLUMNS}
     out["flags"] = np.zeros(n, dtype=np.int32)
     return out
+
+
+#: Provenance cards that a stamp image and its catalog, simulated together, share.
+SHARED_CARDS = {
+    "SEED": "seed", "CFGSHA": "config hash", "NCASES": "cases", "NREA": "realizations",
+    "NSTAMPX": "grid stamps per row", "STAMPSZ": "stamp size",
+}
+#: Fraction of flagged stamps above which ``measure`` warns that something is off.
+MOSTLY_FLAGGED = 0.5
+
+
+def check_belongs_together(
+    stamps_path: str, image_header: dict[str, Any], catalog_path: str, catalog_header: dict[str, Any]
+) -> None:
+    """Refuse a catalog whose provenance cards disagree with the stamp image's (another simulation)."""
+    def short(value: Any) -> str:
+        return repr(value[:12] + "...") if isinstance(value, str) and len(value) > 16 else repr(value)
+
+    diffs = [
+        f"{what} {key} = {short(catalog_header[key])} vs {short(image_header[key])}"
+        for key, what in SHARED_CARDS.items()
+        if key in image_header and key in catalog_header and catalog_header[key] != image_header[key]
+    ]
+    if diffs:
+        raise InputError(
+            f"{catalog_path} does not belong to {stamps_path} (catalog vs image: {'; '.join(diffs)}); "
+            "pass the catalog written with these stamps"
+        )
+
+
+def warn_if_mostly_flagged(flags: np.ndarray, where: str) -> None:
+    """Warn when more than :data:`MOSTLY_FLAGGED` of the stamps are flagged, saying why."""
+    bad = flags != 0
+    if len(flags) == 0 or bad.mean() <= MOSTLY_FLAGGED:
+        return
+    reasons = {name: int(np.sum((flags & value) != 0)) for value, name in fl.FLAG_NAMES.items()}
+    why = ", ".join(f"{name} {n}" for name, n in sorted(reasons.items(), key=lambda kv: -kv[1]) if n)
+    log.warning(
+        "%s: %d of %d stamps flagged (%s): wrong --stamp-size, --origin or catalog?",
+        where, int(bad.sum()), len(flags), why,
+    )
 
 
 def _n_grid_stamps(info: ImageInfo, n_grid: int) -> int:
@@ -373,17 +414,18 @@ def measure_file(
     if stars and stamp_size is None and info.header.get("STAMPSZ") is None and info.shape[0] == info.shape[1]:
         stamp_size = info.shape[0] // 3  # GREAT3: a 3x3 grid of stars
         log.info("%s: no stamp size given: a 3x3 grid of %d-pixel stars", stamps_path, stamp_size)
-    size = stamp_size_of(info, stamp_size)
     if stamp_size is not None and info.header.get("STAMPSZ") not in (None, stamp_size):
-        log.warning(
-            "%s: --stamp-size %d differs from the header's STAMPSZ=%s; using %d",
-            stamps_path, stamp_size, info.header.get("STAMPSZ"), stamp_size,
+        raise InputError(
+            f"{stamps_path}: stamp size {stamp_size} (--stamp-size) contradicts the image's STAMPSZ = "
+            f"{info.header.get('STAMPSZ')} card; leave --stamp-size out to use the card"
         )
+    size = stamp_size_of(info, stamp_size)
     n_y, n_x = check_grid(info, size)
 
     extra_hdus: dict[str, np.ndarray] = {}
     if catalog_path is not None:
         table = _read_positions_catalog(catalog_path)
+        check_belongs_together(stamps_path, info.header, str(catalog_path), table.meta)
         x, y = _catalog_positions(table, str(catalog_path))
         _check_spacing(x, y, size, str(catalog_path))
         origins = catalog_origins(x, y, size, origin)
@@ -444,6 +486,7 @@ def measure_file(
 
     nflag = int((feats["flags"] != 0).sum())
     log.info("%d of %d stamps flagged (features NaN)", nflag, len(table))
+    warn_if_mostly_flagged(feats["flags"], stamps_path)
     cards.update(
         {
             "STAMPSZ": (size, "stamp size [pixels]"),

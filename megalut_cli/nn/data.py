@@ -8,8 +8,9 @@ valid rows and not ``n_cases x max_realizations``; :meth:`CaseData.padded` gives
 ``(n_cases, n_rea_max, n_features)`` array + mask view of the same data, and
 :meth:`CaseData.from_padded` builds one from such arrays.
 
-Decision on cases without any valid realization: they are dropped with a warning when other
-cases remain; an error is raised when none (or fewer than two) remain.
+Decision on cases without any valid realization: they are dropped when other cases remain
+(a warning when all their rows are flagged or non-finite, an info line when a selection
+removed them); an error is raised when none (or fewer than two) remain.
 """
 
 from __future__ import annotations
@@ -141,6 +142,23 @@ def valid_rows(columns: Mapping[str, np.ndarray], features: Sequence[str], n_row
     return ok
 
 
+def _report_dropped(case: np.ndarray, empty: np.ndarray, measured: np.ndarray | None, where: str) -> None:
+    """Log the dropped cases by why: a selection removed them (info), or no row was valid (warning)."""
+    if measured is not None:
+        had_rows = np.isin(empty, case[np.asarray(measured, bool)])
+        deselected, empty = empty[had_rows], empty[~had_rows]
+        if len(deselected):
+            log.info(
+                "%s: %d case(s) left out by the selection (no selected realization; e.g. case %s)",
+                where, len(deselected), ", ".join(str(v) for v in deselected[:5]),
+            )
+    if len(empty):
+        log.warning(
+            "%s: %d case(s) dropped: every realization is flagged or has a non-finite feature or "
+            "estimate (e.g. case %s)", where, len(empty), ", ".join(str(v) for v in empty[:5]),
+        )
+
+
 def build_cases(
     columns: Mapping[str, np.ndarray],
     features: Sequence[str],
@@ -149,12 +167,16 @@ def build_cases(
     where: str = "catalog",
     constant_targets: bool = True,
     point: Mapping[str, np.ndarray] | None = None,
+    measured: np.ndarray | None = None,
 ) -> CaseData:
     """Group catalog rows by ``case`` into :class:`CaseData`.
 
     ``valid`` marks the usable rows. Targets must be finite on every row; with
     ``constant_targets`` (MSB, MSWB) they must also be constant within each case.
     ``point`` maps each target to the point estimates of every row (for MSWB).
+    ``measured`` marks the rows valid before any selection (``valid`` then adds the
+    selections): the log says which dropped cases a selection removed and which had no
+    valid realization at all.
     """
     case = np.asarray(columns["case"])
     n = len(case)
@@ -176,11 +198,7 @@ def build_cases(
     if len(ids) == 0:
         raise InputError(f"{where}: no valid realization in any case (all rows flagged, non-finite or deselected)")
     if n_empty:
-        empty = np.setdiff1d(ids_all, ids)
-        log.warning(
-            "%s: %d case(s) without any valid realization dropped (e.g. case %s)",
-            where, n_empty, ", ".join(str(v) for v in empty[:5]),
-        )
+        _report_dropped(case, np.setdiff1d(ids_all, ids), measured, where)
     if len(ids) < 2:
         raise InputError(f"{where}: fewer than 2 cases with valid realizations ({len(ids)}); MSB training needs several cases")
     index = index.ravel().astype(np.intp)

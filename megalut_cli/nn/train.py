@@ -30,6 +30,9 @@ from megalut_cli.seeding import rng_for
 
 log = logging.getLogger("megalut.train")
 
+#: Seconds between two progress lines of a member at info level (every mini-batch at debug).
+REPORT_SECONDS = 30.0
+
 OPTIMIZERS = ("bfgs", "lbfgs")
 
 
@@ -232,6 +235,7 @@ def train_member(task: MemberTask) -> MemberResult:
     bsize = n_cases if s.batch_fraction >= 1.0 else min(n_cases, max(1, int(round(s.batch_fraction * n_cases))))
     stalls = 0
     n_evals = 0
+    last_report = t0
     if s.optimizer == "bfgs":
         method, opts = "BFGS", {"gtol": 1e-12}
     else:
@@ -252,8 +256,13 @@ def train_member(task: MemberTask) -> MemberResult:
         if np.all(np.isfinite(res.x)):
             params = np.asarray(res.x, dtype=np.float64)
         last = mon.rows[-1] if mon.rows else (np.nan, np.nan)
-        log.info(
-            "%s: iteration %d/%d, batch %s %.4e, valid %.4e (best %.4e at %d)",
+        now = time.perf_counter()
+        # One line per mini-batch only at debug level; at info, one every REPORT_SECONDS.
+        level = logging.INFO if now - last_report >= REPORT_SECONDS else logging.DEBUG
+        if level == logging.INFO:
+            last_report = now
+        log.log(
+            level, "%s: iteration %d/%d, batch %s %.4e, valid %.4e (best %.4e at %d)",
             task.label, mon.it, s.iterations, s.cost, last[0], last[1], mon.best_valid, mon.best_iter,
         )
         if mon.it == before_it:
@@ -267,6 +276,10 @@ def train_member(task: MemberTask) -> MemberResult:
         mon.best_params, mon.best_valid, mon.best_iter, mon.rows, mon.times,
     )
     train_cost = full.value(best_params)
+    log.info(
+        "%s: done, %d iterations in %.1f s, best validation %s %.4e at iteration %d",
+        task.label, mon.it, time.perf_counter() - t0, s.cost, best_valid, best_iter,
+    )
     history = np.asarray(rows, dtype=np.float64).reshape(-1, 2)
     if task.prior_history is not None and len(task.prior_history):
         history = np.vstack([np.asarray(task.prior_history, dtype=np.float64).reshape(-1, 2), history])

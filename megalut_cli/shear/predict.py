@@ -35,6 +35,8 @@ from megalut_cli.catalog import (
     iter_catalog,
     read_cards,
     read_carried_hdus,
+    read_setup,
+    setup_differences,
     write_table_hdu,
 )
 from megalut_cli.errors import ConfigError, InputError
@@ -210,6 +212,20 @@ def _output_dtype(table: Any, new_cols: Sequence[str]) -> np.dtype:
     return np.dtype(fields)
 
 
+def warn_setup_mismatch(model: ShearModel, features_path: str | os.PathLike) -> None:
+    """Warn when the catalog's recorded setup (PSF, noise, stamp size, gain) differs from the one
+    the model was trained on (as train-point or train-weight recorded it)."""
+    trained = model.provenance.get("setup")
+    if not isinstance(trained, dict) or not trained:
+        return
+    diffs = setup_differences(trained, read_setup(features_path))
+    if diffs:
+        log.warning(
+            "%s: recorded setup differs from the model's training set (trained vs here: %s); "
+            "the estimates may be biased", features_path, "; ".join(diffs),
+        )
+
+
 def predict_catalog(
     features_path: str | os.PathLike,
     model_path: str | os.PathLike,
@@ -235,6 +251,7 @@ def predict_catalog(
     _MODELS.clear()
     _MODELS[abs_model] = model
     resolved = resolve_columns(model.features, names, column_map, str(features_path))
+    warn_setup_mismatch(model, features_path)
     has_flags = "flags" in names
     new_cols = [prediction_column(c.target, c.kind) for c in model.point.values()]
     new_cols += [prediction_column(c.target, c.kind) for c in model.weight.values()]
@@ -255,7 +272,7 @@ def predict_catalog(
             flg = np.asarray(table["flags"]) if has_flags else None
             yield table, (abs_model, model.sha256, x, flg)
 
-    with executor(nproc, scheduler) as pool:
+    with executor(nproc, scheduler, -(-n_rows // chunk_rows)) as pool:
         window = 2 * resolve_nproc(nproc) if scheduler is None else 16
         with atomic_output(output, overwrite) as tmp, fitsio.FITS(str(tmp), "rw", clobber=True) as fits:
             dtype = None

@@ -15,6 +15,7 @@ catalog is identical for any ``-j`` or Dask cluster. Outputs:
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -30,7 +31,7 @@ from megalut_cli.atomic import atomic_output, check_output
 from megalut_cli.catalog import write_catalog, write_image
 from megalut_cli.engine import DEFAULT_ENGINE, check_engine
 from megalut_cli.errors import MegalutError
-from megalut_cli.parallel import chunk_ranges, executor, map_units, resolve_nproc
+from megalut_cli.parallel import chunk_ranges, executor, format_duration, map_units, resolve_nproc
 from megalut_cli.sim import render
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, stamp_centres
@@ -69,6 +70,44 @@ def n_work_units(config: SimConfig, nproc: int = 1, scheduler: str | None = None
     s = config.structure
     n_units = max(math.ceil(s.n_stamps / UNIT_STAMPS), 4 * expected_workers(nproc, scheduler))
     return min(n_units, s.n_cases)
+
+
+def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, n_stamps: int = 32,
+                      engine: str = DEFAULT_ENGINE) -> float:
+    """Drawing rate of one worker, timed on a tiny draw of ``n_stamps`` stamps of the first case.
+
+    Cheap (well under a second at the paper's stamp size); per-case setup costs and work
+    spread over several workers make the real rate differ by tens of percent.
+    """
+    s = config.structure
+    n_rea = min(s.n_realizations, n_stamps)
+    if s.snc == "pairs":
+        n_rea = max(2, n_rea - n_rea % 2)
+    small = dataclasses.replace(config, structure=dataclasses.replace(s, n_cases=1, n_realizations=n_rea))
+    # Warm up (lazy imports, compilation) on other galaxies than those timed: GalSim caches
+    # per-profile tables, which a repeat of the same case would find ready.
+    draw_unit(WorkUnit(small, seed + 1, 0, 1, small.structure.grid_nx, keep_stamps, measure, engine))
+    t0 = time.perf_counter()
+    draw_unit(WorkUnit(small, seed, 0, 1, small.structure.grid_nx, keep_stamps, measure, engine))
+    return n_rea / max(time.perf_counter() - t0, 1e-6)
+
+
+def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, nproc: int,
+                 scheduler: str | None, engine: str = DEFAULT_ENGINE) -> str:
+    """What simulating ``config`` will do, with a time estimated from a tiny calibration draw."""
+    s = config.structure
+    what = " and ".join(w for w, on in (("drawn into an image", keep_stamps), ("measured", measure)) if on)
+    head = (f"{s.n_cases} cases x {s.n_realizations} realizations = {s.n_stamps} stamps of "
+            f"{s.stamp_size}x{s.stamp_size} px")
+    if not what:
+        return f"{head}: truth only, nothing drawn"
+    rate = stamps_per_second(config, seed, measure, keep_stamps, engine=engine)
+    if scheduler:
+        return (f"{head}, {what}: about {format_duration(s.n_stamps / rate)} of worker time "
+                f"on the Dask cluster ({rate:.0f} stamps/s per worker in a calibration draw)")
+    workers = min(resolve_nproc(nproc), n_work_units(config, nproc, scheduler))
+    return (f"{head}, {what}, on {workers} worker(s): about {format_duration(s.n_stamps / rate / workers)} "
+            f"({rate:.0f} stamps/s per worker in a calibration draw)")
 
 
 def make_units(
@@ -141,6 +180,26 @@ def order_columns(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {c: columns[c] for c in first + truth + rest}
 
 
+def check_outputs(
+    config: SimConfig, output: str | os.PathLike, stamps: str | os.PathLike | None, overwrite: bool
+) -> tuple[Path, Path | None]:
+    """Pre-flight of :func:`simulate`: both outputs can be written, and the image is not too big."""
+    out = check_output(output, overwrite)
+    st = check_output(stamps, overwrite) if stamps is not None else None
+    if st is not None and st.resolve() == out.resolve():
+        raise MegalutError("--stamps and -o must be different files")
+    s = config.structure
+    if st is not None:
+        n_y = math.ceil(s.n_stamps / s.grid_nx)
+        pixels = n_y * s.grid_nx * s.stamp_size**2
+        if pixels > MAX_STAMP_PIXELS:
+            raise MegalutError(
+                f"--stamps: the image would have {pixels:.3g} pixels; lower --n-cases/--n-realizations "
+                "or use --measure without --stamps"
+            )
+    return out, st
+
+
 def simulate(
     config: SimConfig,
     output: str | os.PathLike,
@@ -161,19 +220,8 @@ def simulate(
     ``engine`` is ``fast`` or ``galsim`` (:mod:`megalut_cli.engine`).
     """
     check_engine(engine)
-    out = check_output(output, overwrite)
-    st = check_output(stamps, overwrite) if stamps is not None else None
-    if st is not None and st.resolve() == out.resolve():
-        raise MegalutError("--stamps and -o must be different files")
+    out, st = check_outputs(config, output, stamps, overwrite)
     s = config.structure
-    if st is not None:
-        n_y = math.ceil(s.n_stamps / s.grid_nx)
-        pixels = n_y * s.grid_nx * s.stamp_size**2
-        if pixels > MAX_STAMP_PIXELS:
-            raise MegalutError(
-                f"--stamps: the image would have {pixels:.3g} pixels; lower --n-cases/--n-realizations "
-                "or use --measure without --stamps"
-            )
     if st is None and not measure:
         log.info("neither --stamps nor --measure: writing the truth catalog only (nothing drawn)")
     workers = expected_workers(nproc, scheduler)
@@ -189,7 +237,7 @@ def simulate(
         n_y = math.ceil(s.n_stamps / s.grid_nx)
         image = np.zeros((n_y * s.stamp_size, s.grid_nx * s.stamp_size), dtype=np.float32)
     results: list[dict[str, Any]] = []
-    with executor(nproc, scheduler) as pool:
+    with executor(nproc, scheduler, len(units)) as pool:
         # With stamps, go in batches of units so that the unit images are freed early.
         batch = len(units) if st is None else max(8, 4 * workers)
         for i in range(0, len(units), batch):

@@ -1,0 +1,164 @@
+"""What a person sees on the terminal: log setup, progress bars, ``-`` for stdin/stdout.
+
+Logs and progress go to stderr only. ``-v`` shows megalut's debug lines, ``-vv`` also
+those of third-party libraries (h5py, numba, distributed...), which otherwise stay at
+WARNING. A progress bar is drawn only on an interactive terminal (never in CI, where
+``CI`` is set, nor in a pipe); a log line printed while a bar is shown clears the bar's
+line first, so the bar is redrawn on a line of its own.
+
+``-`` as an input catalog reads all of stdin into a temporary file (FITS readers need to
+seek); ``-`` as an output writes a temporary file, then copies it to stdout. Both
+temporary files live in the system's temporary folder (``TMPDIR``) and are removed when
+the command ends, interrupted or not: streaming costs disk space equal to the catalog's
+size, not memory.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import click
+
+#: Loggers of this package (the CLI's and the library modules').
+OWN_LOGGERS = ("megalut", "megalut_cli")
+#: The name that stands for stdin (inputs) or stdout (outputs).
+STDIO = "-"
+
+#: Off a terminal, one info line estimates the time left once a tenth of the work is done,
+#: if that took at least this long (the bar shows its own estimate on a terminal).
+ESTIMATE_AFTER_SECONDS = 20.0
+
+log = logging.getLogger("megalut")
+_bar_shown = False
+#: Temporary files standing for stdin/stdout -> the name a person should read instead.
+_STREAM_NAMES: dict[str, str] = {}
+
+
+def user_facing(text: str) -> str:
+    """``text`` with the temporary files of ``-`` named ``stdin``/``stdout`` as the user knows them."""
+    for path, name in _STREAM_NAMES.items():
+        text = text.replace(path, name)
+    return text
+
+
+class BarAwareHandler(logging.StreamHandler):
+    """Log to the current ``sys.stderr``, clearing a progress bar's line first."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+        self.setFormatter(logging.Formatter("megalut: %(message)s"))
+
+    def format(self, record: logging.LogRecord) -> str:
+        return user_facing(super().format(record))
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.stream = sys.stderr  # follows redirections (CliRunner, contextlib.redirect_stderr)
+        if _bar_shown:
+            self.stream.write("\r\x1b[K")
+        super().emit(record)
+
+
+def setup_logging(verbosity: int) -> None:
+    """Log level from ``-v`` count minus ``-q`` count: 0 info, 1 debug, -1 warning, ...
+
+    Third-party loggers stay at WARNING unless ``verbosity >= 2``.
+    """
+    level = max(logging.DEBUG, min(logging.INFO - 10 * verbosity, logging.CRITICAL))
+    root = logging.getLogger()
+    for handler in list(root.handlers):
+        if isinstance(handler, BarAwareHandler):
+            root.removeHandler(handler)
+    root.addHandler(BarAwareHandler())
+    root.setLevel(level if verbosity >= 2 else max(level, logging.WARNING))
+    for name in OWN_LOGGERS:
+        logging.getLogger(name).setLevel(level)
+    logging.captureWarnings(True)
+
+
+def interactive() -> bool:
+    """Whether progress bars are drawn: stderr is a terminal and this is not CI."""
+    return sys.stderr.isatty() and not os.environ.get("CI") and log.getEffectiveLevel() <= logging.INFO
+
+
+@contextlib.contextmanager
+def progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
+    """A progress callback: a bar on an interactive terminal; elsewhere debug lines only."""
+    global _bar_shown
+    if interactive() and length > 0:
+        with click.progressbar(length=length, label=label, file=sys.stderr, show_pos=True, show_eta=True) as bar:
+            _bar_shown = True
+            try:
+                yield bar.update
+            finally:
+                _bar_shown = False
+        return
+    done = 0
+    step = max(1, length // 10)
+    start = time.perf_counter()
+    estimated = False
+
+    def update(n: int) -> None:
+        nonlocal done, estimated
+        before = done
+        done += n
+        if done // step != before // step or done == length:
+            log.debug("%s: %d/%d", label, done, length)
+        elapsed = time.perf_counter() - start
+        if not estimated and done < length and done >= step and elapsed >= ESTIMATE_AFTER_SECONDS:
+            estimated = True  # one line from the measured pace, for long jobs off a terminal
+            from megalut_cli.parallel import format_duration
+
+            log.info("%s: %d/%d in %s, about %s left", label, done, length, format_duration(elapsed),
+                     format_duration(elapsed / done * (length - done)))
+
+    yield update
+
+
+def is_stdio(path: str | os.PathLike | None) -> bool:
+    """Whether ``path`` is ``-`` (stdin or stdout)."""
+    return path is not None and str(path) == STDIO
+
+
+@contextlib.contextmanager
+def stdin_path(path: str | None, what: str = "catalog") -> Iterator[str | None]:
+    """``path`` as it is, or for ``-`` a temporary copy of all of stdin (removed at the end)."""
+    if not is_stdio(path):
+        yield path
+        return
+    stream = sys.stdin.buffer
+    if stream.isatty():
+        raise click.UsageError(f"'-' reads the {what} from stdin, but stdin is a terminal; pipe a file in")
+    with tempfile.TemporaryDirectory(prefix="megalut-stdin-") as tmp:
+        target = Path(tmp) / "stdin.fits"
+        _STREAM_NAMES[str(target)] = "stdin"
+        with open(target, "wb") as f:
+            shutil.copyfileobj(stream, f, 1 << 20)
+        if target.stat().st_size == 0:
+            raise click.ClickException(f"stdin: no {what} was piped in (empty input)")
+        yield str(target)
+
+
+@contextlib.contextmanager
+def stdout_path(path: str | None, name: str = "stdout.fits") -> Iterator[str | None]:
+    """``path`` as it is, or for ``-`` a temporary file whose content goes to stdout at the end."""
+    if not is_stdio(path):
+        yield path
+        return
+    with tempfile.TemporaryDirectory(prefix="megalut-stdout-") as tmp:
+        target = Path(tmp) / name
+        _STREAM_NAMES[str(target)] = "stdout"
+        yield str(target)
+        if target.exists():
+            out = sys.stdout.buffer
+            with open(target, "rb") as f:
+                shutil.copyfileobj(f, out, 1 << 20)
+            out.flush()
+

@@ -1,0 +1,178 @@
+"""Pre-flight checks, --dry-run, verbosity, progress and Ctrl-C, through the CLI."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pipeline_configs import write_pipeline
+from sim_configs import write
+
+from megalut_cli.catalog import write_catalog
+
+
+def _one_line(result) -> str:
+    text = result.stderr.strip()
+    assert "Traceback" not in text and len(text.splitlines()) == 1, text
+    return text
+
+
+@pytest.fixture
+def inputs(tmp_path):
+    """A config, a features catalog with truth and predictions, and a point model."""
+    from test_shear_predict import features_catalog, make_model
+
+    feats = features_catalog(200)
+    feats["case"] = np.repeat(np.arange(20), 10)
+    feats["tru_g1"] = np.repeat(np.linspace(-0.05, 0.05, 20), 10)
+    feats["tru_g2"] = -feats["tru_g1"]
+    feats["pre_g1"], feats["pre_g2"] = feats["tru_g1"] * 1.01, feats["tru_g2"]
+    write_catalog(tmp_path / "f.fits", feats, fmt="megalut.features")
+    make_model(tmp_path / "m.h5")
+    return {"config": write(tmp_path), "features": tmp_path / "f.fits", "model": tmp_path / "m.h5"}
+
+
+def _commands(inputs, out: str) -> dict[str, list[str]]:
+    return {
+        "simulate": ["simulate", str(inputs["config"]), "-o", out, "--measure"],
+        "simulate --stamps": ["simulate", str(inputs["config"]), "-o", str(inputs["config"].parent / "c.fits"),
+                              "--stamps", out],
+        "train-point": ["train-point", str(inputs["features"]), "-o", out, "--iterations", "2"],
+        "predict": ["predict", str(inputs["features"]), "--model", str(inputs["model"]), "-o", out],
+        "evaluate --json": ["evaluate", str(inputs["features"]), "--json", out],
+    }
+
+
+@pytest.mark.parametrize("command", ["simulate", "simulate --stamps", "train-point", "predict", "evaluate --json"])
+def test_missing_output_folder_fails_before_any_work(runner, cli, inputs, tmp_path, command):
+    out = str(tmp_path / "nowhere" / "out.fits")
+    result = runner.invoke(cli, _commands(inputs, out)[command])
+    assert result.exit_code == 1
+    text = _one_line(result)
+    assert out in text and "does not exist" in text
+    assert not (tmp_path / "c.fits").exists()
+
+
+@pytest.mark.parametrize("command", ["simulate", "train-point", "predict", "evaluate --json"])
+def test_unwritable_output_folder_is_named_before_any_work(runner, cli, inputs, tmp_path, command, monkeypatch):
+    """The folder's write permission is checked first (simulated here: tests may run as root)."""
+    import megalut_cli.atomic as atomic
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real_access = atomic.os.access
+    monkeypatch.setattr(atomic.os, "access", lambda p, mode: False if Path(p) == ro else real_access(p, mode))
+    out = str(ro / "out.fits")
+    result = runner.invoke(cli, _commands(inputs, out)[command])
+    assert result.exit_code == 1
+    text = _one_line(result)
+    assert out in text and "not writable" in text and ".tmp" not in text
+    assert list(ro.iterdir()) == []
+
+
+def test_simulate_dry_run_says_what_and_how_long_and_writes_nothing(runner, cli, inputs, tmp_path):
+    out = tmp_path / "cat.fits"
+    result = runner.invoke(cli, ["simulate", str(inputs["config"]), "-o", str(out), "--measure", "--dry-run",
+                                 "--n-cases", "5"])
+    assert result.exit_code == 0, result.stderr
+    assert "5 cases x 4 realizations = 20 stamps of 24x24 px, measured" in result.stderr
+    assert "stamps/s per worker in a calibration draw" in result.stderr and "about" in result.stderr
+    assert not out.exists() and result.stdout == ""
+    # the dry run still does the pre-flight
+    (tmp_path / "cat.fits").write_text("x")
+    again = runner.invoke(cli, ["simulate", str(inputs["config"]), "-o", str(out), "--dry-run"])
+    assert again.exit_code == 1 and "--overwrite" in again.stderr
+
+
+def test_run_dry_run_lists_steps_and_creates_nothing(runner, cli, tmp_path):
+    wd = tmp_path / "wd"
+    result = runner.invoke(cli, ["run", str(write_pipeline(tmp_path)), "--workdir", str(wd), "--dry-run"])
+    assert result.exit_code == 0, result.stderr
+    for line in ("[1/7] simulate-tp: 24 cases x 8 realizations = 192 stamps", "[4/7] train-point",
+                 "[7/7] evaluate"):
+        assert line in result.stderr
+    assert "calibration draw" in result.stderr
+    assert not wd.exists() and result.stdout == ""
+
+
+def test_run_unwritable_workdir_fails_first(runner, cli, tmp_path):
+    (tmp_path / "afile").write_text("x")
+    wd = tmp_path / "afile" / "wd"
+    result = runner.invoke(cli, ["run", str(write_pipeline(tmp_path)), "--workdir", str(wd)])
+    assert result.exit_code == 1
+    assert str(wd) in _one_line(result)
+
+
+def test_verbosity_before_and_after_the_subcommand(runner, cli, inputs, tmp_path):
+    args = ["simulate", str(inputs["config"]), "--measure", "--overwrite", "-o", str(tmp_path / "c.fits")]
+    normal = runner.invoke(cli, args)
+    assert normal.exit_code == 0 and "about to simulate" in normal.stderr
+    assert "simulate: 3/3" not in normal.stderr  # progress lines are silent off a terminal
+    for quiet in (["-q", *args], [*args, "-q"]):
+        result = runner.invoke(cli, quiet)
+        assert result.exit_code == 0 and result.stderr == "", result.stderr
+    verbose = runner.invoke(cli, [*args, "-v"])
+    assert verbose.exit_code == 0 and "simulate: 3/3" in verbose.stderr
+    assert logging.getLogger("h5py").getEffectiveLevel() == logging.WARNING
+    assert logging.getLogger("megalut").getEffectiveLevel() == logging.DEBUG
+    both = runner.invoke(cli, ["-v", *args, "-v"])  # they add up: -vv
+    assert both.exit_code == 0
+    assert logging.getLogger("h5py").getEffectiveLevel() == logging.DEBUG
+    undone = runner.invoke(cli, ["-v", *args, "-q"])
+    assert undone.exit_code == 0 and "simulate: 3/3" not in undone.stderr and "about to" in undone.stderr
+
+
+def test_ctrl_c_exits_130_with_one_line_and_no_file(runner, cli, inputs, tmp_path, monkeypatch):
+    import megalut_cli.sim.simulate as sim
+
+    real = sim.write_simulation_catalog
+
+    def interrupted(path, *args, **kwargs):
+        real(path, *args, **kwargs)  # the temporary file is written, then Ctrl-C
+        assert Path(path).exists()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sim, "write_simulation_catalog", interrupted)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    result = runner.invoke(cli, ["simulate", str(inputs["config"]), "-o", str(out_dir / "c.fits"), "--measure",
+                                 "--stamps", str(out_dir / "s.fits")])
+    assert result.exit_code == 130
+    assert result.stderr.splitlines()[-1] == "megalut: interrupted"
+    assert "Traceback" not in result.stderr and "Aborted" not in result.stderr
+    assert list(out_dir.iterdir()) == []  # neither output nor temporary files
+
+
+def test_progress_bar_gets_its_own_line(monkeypatch, capsys):
+    """On a terminal, a log line first clears the bar's line; with CI set, there is no bar."""
+    from megalut_cli.cli import console
+
+    console.setup_logging(0)
+    monkeypatch.setattr(console, "interactive", lambda: True)
+    with console.progress("work", 4) as update:
+        update(1)
+        logging.getLogger("megalut").info("hello")
+        update(3)
+    err = capsys.readouterr().err
+    assert "\r\x1b[Kmegalut: hello\n" in err and "work" in err
+
+    monkeypatch.undo()
+    monkeypatch.setenv("CI", "true")
+    monkeypatch.setattr("sys.stderr.isatty", lambda: True, raising=False)
+    assert not console.interactive()
+
+
+def test_progress_off_a_terminal_estimates_the_time_left_once(monkeypatch, caplog):
+    """Silent per step; one info line from the measured pace once a tenth is done, on long jobs."""
+    from megalut_cli.cli import console
+
+    clock = iter([0.0, 5.0, 30.0, 31.0, 32.0, 60.0])
+    monkeypatch.setattr(console.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(console, "interactive", lambda: False)
+    with caplog.at_level(logging.INFO, logger="megalut"), console.progress("units", 10) as update:
+        for _ in range(5):
+            update(1)
+    infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+    assert infos == ["units: 2/10 in 30 s, about 2.0 min left"]
