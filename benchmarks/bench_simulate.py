@@ -1,33 +1,33 @@
-"""Throughput of ``megalut simulate --measure`` against a plain GalSim loop, and its -j scaling.
+"""Throughput of ``megalut simulate --measure``: fast and galsim engines against a plain GalSim loop.
 
 On a scaled-down fiducial TP config (``examples/fiducial/tp.toml``: 64x64 stamps, Sersic
 galaxies with gridded index convolved with a circular Gaussian PSF of sigma 2 px, Gaussian
 noise of sigma 1, Table 1 of the paper), measured in ONE run, interleaved and repeated
 because the machine is shared:
 
-* ``megalut -j 1`` / ``megalut -j 2``: the library call
-  ``megalut_cli.sim.simulate.simulate(config, out, measure=True, nproc=N)`` (what
-  ``megalut simulate CONFIG -o OUT --measure -j N`` runs after parsing its options), timed
-  from the call to its return, so it includes the worker start-up for ``-j 2`` and writing
-  the FITS catalog;
+* ``fast -j 1`` / ``fast -j 2`` / ``galsim -j 1``: the library call
+  ``megalut_cli.sim.simulate.simulate(config, out, measure=True, nproc=N, engine=E)`` (what
+  ``megalut simulate CONFIG -o OUT --measure -j N --engine E`` runs after parsing its
+  options), timed from the call to its return, so it includes the worker start-up for
+  ``-j 2`` and writing the FITS catalog;
 * ``plain loop``: the same kind of galaxies (same parameter distributions, drawn here with
   numpy per stamp), one stamp at a time in this process: ``galsim.Sersic`` sheared by the
   intrinsic ellipticity then the shear, ``Convolve`` with the PSF, ``drawImage`` (64x64,
   sub-pixel offset), ``addNoise`` (Gaussian, sigma 1), ``galsim.hsm.FindAdaptiveMom``;
-* ``-j 2 start-up``: ``simulate`` on 2 cases x 1 realization at ``-j 2``, i.e. the fixed
-  cost of spawning the workers and importing GalSim, SciPy, megalut in them.
+* ``fast -j 2 start-up``: ``simulate`` on 2 cases x 1 realization at ``-j 2``, i.e. the fixed
+  cost of spawning the workers, importing GalSim, SciPy, numba and megalut in them and
+  loading the compiled kernels; each new worker also builds the fast engine's Sersic tables
+  of the indices it meets (GalSim's Sersic cache, which the plain loop also pays once).
 
-A warm-up (megalut -j 1 and the plain loop on a few stamps) runs first, so that the
-in-process runs see warm imports and GalSim's Sersic cache, as in a long run; the
-``-j 2`` workers are new processes for every call, as with the CLI. BLAS/OpenMP are
-limited to one thread per process (``galsim.set_omp_threads(1)``, as megalut's workers do).
+A warm-up runs first, so that the in-process runs see warm imports, GalSim's Sersic cache
+and the fast engine's tables, as in a long run; the ``-j 2`` workers are new processes for
+every call, as with the CLI. BLAS/OpenMP are limited to one thread per process.
 
-CPU time (this process for ``-j 1`` and the plain loop, this process plus the reaped
-workers for ``-j 2``) is reported next to the wall clock: on a loaded machine
-``cpu share`` = CPU seconds / (wall seconds x workers) shows how much of the cores the
-benchmark actually got, and ``other jobs`` = the machine's busy CPU seconds (``/proc/stat``)
-minus the benchmark's own, per wall second, how many cores the other users took meanwhile.
-Run::
+CPU time (this process, plus the reaped workers for ``-j 2``) is reported next to the wall
+clock: on a loaded machine ``cpu share`` = CPU seconds / (wall seconds x workers) shows how
+much of the cores the benchmark actually got, and ``other jobs`` = the machine's busy CPU
+seconds (``/proc/stat``) minus the benchmark's own, per wall second, how many cores the
+other users took meanwhile. The ratios per CPU second are the robust ones. Run::
 
     python benchmarks/bench_simulate.py [--n-cases 100 --n-realizations 40 --repeats 3]
 """
