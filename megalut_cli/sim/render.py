@@ -271,6 +271,7 @@ def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table
     m = out.shape[0]
     phx = np.empty(half + 1, dtype=np.complex128)
     q2 = np.empty(half + 1)
+    fq = np.empty(half + 1)
     bits = q2.view(np.int64)
     for s in range(m):
         if n_k != n_fft:
@@ -295,42 +296,43 @@ def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table
             qxy = 2.0 * cxy * jj
             for i in range(half + 1):
                 q2[i] = (cxx * i + qxy) * i + qy2
+            # F(q) for the row (the table lookup), then the products in branch-free loops.
+            for i in range(half + 1):
+                c = _fast_index(bits[i], lo, hi, ffirst)
+                if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:  # not NaN
+                    t = _fraction(bits[i])
+                    fq[i] = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
+                else:
+                    fq[i] = _radial(q2[i], p, ei, coef)
+            kp = kpsf[j]
             row = jj % n_fft
             if n_k == n_fft:  # no aliasing: column i stays i; rows -N/2 and N/2 share row N/2
-                for i in range(half + 1):
-                    c = _fast_index(bits[i], lo, hi, ffirst)
-                    if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:  # not NaN
-                        t = _fraction(bits[i])
-                        fq = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
-                    else:
-                        fq = _radial(q2[i], p, ei, coef)
-                    val = fq * kpsf[j, i] * phx[i] * rowf
-                    if i == n_half:
-                        val *= 2.0
-                    if j == n_k:
-                        out[s, row, i] += val
-                    else:
-                        out[s, row, i] = val
+                dest = out[s, row]
+                if j == n_k:
+                    for i in range(half):
+                        dest[i] += fq[i] * kp[i] * phx[i] * rowf
+                else:
+                    for i in range(half):
+                        dest[i] = fq[i] * kp[i] * phx[i] * rowf
+                val = 2.0 * (fq[half] * kp[half] * phx[half] * rowf)  # column N/2 counts twice
+                if j == n_k:
+                    dest[half] += val
+                else:
+                    dest[half] = val
             else:
                 for i in range(half + 1):
-                    c = _fast_index(bits[i], lo, hi, ffirst)
-                    if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:
-                        t = _fraction(bits[i])
-                        fq = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
-                    else:
-                        fq = _radial(q2[i], p, ei, coef)
-                    val = fq * kpsf[j, i] * phx[i] * rowf
+                    val = fq[i] * kp[i] * phx[i] * rowf
                     # Fold (i, jj) onto the N grid; columns beyond N/2 by conjugation.
                     cx = i % n_fft
-                    dest = row
+                    dest_row = row
                     if cx > n_half:
                         cx = n_fft - cx
-                        dest = (n_fft - row) % n_fft
+                        dest_row = (n_fft - row) % n_fft
                         val = val.conjugate()
                     w = 1.0 if i == 0 else 2.0
                     if cx != 0 and cx != n_half:
                         w *= 0.5
-                    out[s, dest, cx] += w * val
+                    out[s, dest_row, cx] += w * val
 
 
 @dataclass
