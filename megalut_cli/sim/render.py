@@ -257,7 +257,7 @@ def _radial_values(q2: np.ndarray, p: np.ndarray, ei: np.ndarray, coef: np.ndarr
 
 
 @njit(cache=True)
-def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table, eparams, eint, coef, fcoef):
+def _fill_kimages(out, kpsf, real_psf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table, eparams, eint, coef, fcoef):
     """Galaxy x PSF x pixel x phase k-values of each stamp, wrapped onto its FFT grid.
 
     ``out[s]`` (N, N/2+1) receives the sum over GalSim's (Nk+1) x (Nk/2+1) k-image (rows
@@ -270,15 +270,20 @@ def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table
     n_half = n_fft // 2
     m = out.shape[0]
     phx = np.empty(half + 1, dtype=np.complex128)
+    phx_re = np.empty(half + 1)
+    phx_im = np.empty(half + 1)
     q2 = np.empty(half + 1)
     fq = np.empty(half + 1)
     bits = q2.view(np.int64)
+    out_f = out.view(np.float32)  # (m, N, 2 (N/2+1)): real and imaginary parts
     for s in range(m):
         if n_k != n_fft:
             out[s, :, :] = 0
         for i in range(half + 1):
             a = -i * dk * shift_x[s]
             phx[i] = complex(math.cos(a), math.sin(a))
+            phx_re[i] = phx[i].real
+            phx_im[i] = phx[i].imag
         p = eparams[table[s]]
         ei = eint[table[s]]
         lo, hi, ffirst = ei[3], ei[4], ei[5]
@@ -311,6 +316,16 @@ def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table
                 if j == n_k:
                     for i in range(half):
                         dest[i] += fq[i] * kp[i] * phx[i] * rowf
+                elif real_psf:  # real PSF k-image: the complex products in real arithmetic
+                    # (the same operations as the complex ones, in the same order: same bits)
+                    dest_f = out_f[s, row]
+                    fr, fi = rowf.real, rowf.imag
+                    for i in range(half):
+                        r = fq[i] * kp[i].real
+                        pr = r * phx_re[i]
+                        pi = r * phx_im[i]
+                        dest_f[2 * i] = pr * fr - pi * fi
+                        dest_f[2 * i + 1] = pr * fi + pi * fr
                 else:
                     for i in range(half):
                         dest[i] = fq[i] * kp[i] * phx[i] * rowf
@@ -509,7 +524,7 @@ class StampRenderer:
             for a in range(0, len(idx), batch):
                 sel = idx[a:a + batch]
                 kbuf = buf[:len(sel)]
-                _fill_kimages(kbuf, kpsf, int(n_f), int(n_kk), 2.0 * np.pi / int(n_f), amat[sel], flux[sel],
+                _fill_kimages(kbuf, kpsf, kpsf.dtype == np.float32, int(n_f), int(n_kk), 2.0 * np.pi / int(n_f), amat[sel], flux[sel],
                               shx[sel], shy[sel], table[sel], eparams, eint, coef, fcoef)
                 stamps[sel] = inverse_fft_window(kbuf, int(n_f), S)
         return stamps
