@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 import scipy.fft  # noqa: E402
 
 from megalut_cli.sim.galaxies import base_profile, shaped  # noqa: E402
-from megalut_cli.sim.render import StampRenderer, inverse_fft_window  # noqa: E402
+from megalut_cli.sim.render import BATCH_BYTES, StampRenderer, inverse_fft_window  # noqa: E402
 
 STAMP = 64
 
@@ -100,7 +100,7 @@ def fft_floor(sizes: collections.Counter, stamp: int) -> None:
     for n, count in sorted(sizes.items()):
         flops = (n // 2 + 1) * 5 * n * math.log2(n) + stamp * 2.5 * n * math.log2(n)
         nbytes = n * (n // 2 + 1) * 8 * 3 + stamp * (n // 2 + 1) * 8 + stamp * n * 8
-        batch = max(1, min(64, (32 << 20) // (n * (n // 2 + 1) * 8)))
+        batch = max(1, min(64, BATCH_BYTES // (n * (n // 2 + 1) * 8)))  # as the renderer batches
         k0 = (np.random.default_rng(0).standard_normal((batch, n, n // 2 + 1)) + 0j).astype(np.complex64)
         inverse_fft_window(k0.copy(), n, stamp)
         reps, spent = 3, 0.0

@@ -27,8 +27,9 @@ from megalut_cli.errors import MegalutError
 #: Galaxy profiles the renderer draws (others go through GalSim).
 PROFILES = ("sersic", "gaussian")
 
-#: Most bytes of complex k-images held at once (bounds the stamps per FFT batch).
-BATCH_BYTES = 64 * 2**20
+#: Most bytes of complex k-images per FFT batch: small enough that a batch filled stays in
+#: the core's cache for its inverse FFT (1 MB: 0.26 ms/stamp against 0.31-0.36 with 64 MB).
+BATCH_BYTES = 2**20
 #: Most stamps per FFT batch.
 MAX_BATCH = 256
 
@@ -257,7 +258,7 @@ def _radial_values(q2: np.ndarray, p: np.ndarray, ei: np.ndarray, coef: np.ndarr
 
 
 @njit(cache=True)
-def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table, eparams, eint, coef, fcoef):
+def _fill_kimages(out, kpsf, real_psf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table, eparams, eint, coef, fcoef):
     """Galaxy x PSF x pixel x phase k-values of each stamp, wrapped onto its FFT grid.
 
     ``out[s]`` (N, N/2+1) receives the sum over GalSim's (Nk+1) x (Nk/2+1) k-image (rows
@@ -270,14 +271,20 @@ def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table
     n_half = n_fft // 2
     m = out.shape[0]
     phx = np.empty(half + 1, dtype=np.complex128)
+    phx_re = np.empty(half + 1)
+    phx_im = np.empty(half + 1)
     q2 = np.empty(half + 1)
+    fq = np.empty(half + 1)
     bits = q2.view(np.int64)
+    out_f = out.view(np.float32)  # (m, N, 2 (N/2+1)): real and imaginary parts
     for s in range(m):
         if n_k != n_fft:
             out[s, :, :] = 0
         for i in range(half + 1):
             a = -i * dk * shift_x[s]
             phx[i] = complex(math.cos(a), math.sin(a))
+            phx_re[i] = phx[i].real
+            phx_im[i] = phx[i].imag
         p = eparams[table[s]]
         ei = eint[table[s]]
         lo, hi, ffirst = ei[3], ei[4], ei[5]
@@ -295,42 +302,53 @@ def _fill_kimages(out, kpsf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table
             qxy = 2.0 * cxy * jj
             for i in range(half + 1):
                 q2[i] = (cxx * i + qxy) * i + qy2
+            # F(q) for the row (the table lookup), then the products in branch-free loops.
+            for i in range(half + 1):
+                c = _fast_index(bits[i], lo, hi, ffirst)
+                if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:  # not NaN
+                    t = _fraction(bits[i])
+                    fq[i] = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
+                else:
+                    fq[i] = _radial(q2[i], p, ei, coef)
+            kp = kpsf[j]
             row = jj % n_fft
             if n_k == n_fft:  # no aliasing: column i stays i; rows -N/2 and N/2 share row N/2
-                for i in range(half + 1):
-                    c = _fast_index(bits[i], lo, hi, ffirst)
-                    if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:  # not NaN
-                        t = _fraction(bits[i])
-                        fq = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
-                    else:
-                        fq = _radial(q2[i], p, ei, coef)
-                    val = fq * kpsf[j, i] * phx[i] * rowf
-                    if i == n_half:
-                        val *= 2.0
-                    if j == n_k:
-                        out[s, row, i] += val
-                    else:
-                        out[s, row, i] = val
+                dest = out[s, row]
+                if j == n_k:
+                    for i in range(half):
+                        dest[i] += fq[i] * kp[i] * phx[i] * rowf
+                elif real_psf:  # real PSF k-image: the complex products in real arithmetic
+                    # (the same operations as the complex ones, in the same order: same bits)
+                    dest_f = out_f[s, row]
+                    fr, fi = rowf.real, rowf.imag
+                    for i in range(half):
+                        r = fq[i] * kp[i].real
+                        pr = r * phx_re[i]
+                        pi = r * phx_im[i]
+                        dest_f[2 * i] = pr * fr - pi * fi
+                        dest_f[2 * i + 1] = pr * fi + pi * fr
+                else:
+                    for i in range(half):
+                        dest[i] = fq[i] * kp[i] * phx[i] * rowf
+                val = 2.0 * (fq[half] * kp[half] * phx[half] * rowf)  # column N/2 counts twice
+                if j == n_k:
+                    dest[half] += val
+                else:
+                    dest[half] = val
             else:
                 for i in range(half + 1):
-                    c = _fast_index(bits[i], lo, hi, ffirst)
-                    if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:
-                        t = _fraction(bits[i])
-                        fq = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
-                    else:
-                        fq = _radial(q2[i], p, ei, coef)
-                    val = fq * kpsf[j, i] * phx[i] * rowf
+                    val = fq[i] * kp[i] * phx[i] * rowf
                     # Fold (i, jj) onto the N grid; columns beyond N/2 by conjugation.
                     cx = i % n_fft
-                    dest = row
+                    dest_row = row
                     if cx > n_half:
                         cx = n_fft - cx
-                        dest = (n_fft - row) % n_fft
+                        dest_row = (n_fft - row) % n_fft
                         val = val.conjugate()
                     w = 1.0 if i == 0 else 2.0
                     if cx != 0 and cx != n_half:
                         w *= 0.5
-                    out[s, dest, cx] += w * val
+                    out[s, dest_row, cx] += w * val
 
 
 @dataclass
@@ -507,7 +525,7 @@ class StampRenderer:
             for a in range(0, len(idx), batch):
                 sel = idx[a:a + batch]
                 kbuf = buf[:len(sel)]
-                _fill_kimages(kbuf, kpsf, int(n_f), int(n_kk), 2.0 * np.pi / int(n_f), amat[sel], flux[sel],
+                _fill_kimages(kbuf, kpsf, kpsf.dtype == np.float32, int(n_f), int(n_kk), 2.0 * np.pi / int(n_f), amat[sel], flux[sel],
                               shx[sel], shy[sel], table[sel], eparams, eint, coef, fcoef)
                 stamps[sel] = inverse_fft_window(kbuf, int(n_f), S)
         return stamps
