@@ -91,7 +91,7 @@ def command(
 
     \b
     Examples:
-      # the default: 275 000 stamps, 4.5 min on 2 cores (all cores are used)
+      # the default: 275 000 stamps, 3 min on 2 cores (all cores are used)
       megalut run
       megalut run --print-default > my-pipeline.toml
       # each step's size and simulation time (10^5 stamps here); no run
