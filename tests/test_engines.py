@@ -182,6 +182,8 @@ def test_training_on_either_engine_gives_the_same_biases(runner, cli, tmp_path: 
     for kind in ("unweighted", "weighted"):
         for comp in ("g1", "g2"):
             f, g = results["fast"][kind][comp], results["galsim"][kind][comp]
+            print(f"{kind} {comp}: fast m = {f['m']:+.2e} ± {f['m_err']:.1e}, c = {f['c']:+.2e} ± {f['c_err']:.1e}; "
+                  f"galsim m = {g['m']:+.2e} ± {g['m_err']:.1e}, c = {g['c']:+.2e} ± {g['c_err']:.1e}")
             for q in ("m", "c"):
                 sigma = np.hypot(f[f"{q}_err"], g[f"{q}_err"])
                 assert abs(f[q] - g[q]) < 3 * sigma, (kind, comp, q, f[q], g[q], sigma)
