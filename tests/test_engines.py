@@ -171,22 +171,44 @@ def test_pipeline_engine_key_is_validated() -> None:
 
 @pytest.mark.slow
 def test_training_on_either_engine_gives_the_same_biases(runner, cli, tmp_path: Path) -> None:
-    """Science unchanged: the default pipeline at a quarter size, run once with each engine
-    (same config, same seeds: same galaxies, different noise realizations), gives the same
-    m and c, unweighted and weighted, within their combined errors (3 sigma)."""
-    results = {}
+    """Science unchanged: the default pipeline at a quarter size, run with each engine (same
+    config, same seeds: same galaxies, different noise realizations), then each model on
+    both validation sets.
+
+    * Same networks, either engine's validation set: the same m and c within 3 combined
+      errors (what the engine changes in the data the estimates see).
+    * Networks trained on either engine's sets, one validation set: the same m within 3
+      combined errors. (c is only printed: the additive bias of the point estimates moves
+      from one training to the next by more than the fit error, whatever the engine; three
+      default runs with three noise streams gave unweighted c1 from -1.1e-3 to +1.1e-3,
+      each quoted at 5e-4.)
+    """
     for engine in ("fast", "galsim"):
-        wd = tmp_path / engine
-        _ok(runner.invoke(cli, ["run", "scale=0.25", f"engine='{engine}'", "--workdir", str(wd), "-j", "2"]))
-        results[engine] = json.loads((wd / "evaluation.json").read_text())
+        _ok(runner.invoke(cli, ["run", "scale=0.25", f"engine='{engine}'", "--workdir", str(tmp_path / engine),
+                                "-j", "2"]))
+    ev: dict[tuple[str, str], dict] = {}
+    for model in ("fast", "galsim"):
+        for data in ("fast", "galsim"):
+            stem = tmp_path / f"{model}-on-{data}"
+            _ok(runner.invoke(cli, ["predict", str(tmp_path / data / "vo.fits"), "--model",
+                                    str(tmp_path / model / "model.h5"), "-o", f"{stem}.fits"]))
+            _ok(runner.invoke(cli, ["evaluate", f"{stem}.fits", "--json", f"{stem}.json"]))
+            ev[model, data] = json.loads(Path(f"{stem}.json").read_text())
+
+    def close(a: dict, b: dict, q: str) -> bool:
+        return abs(a[q] - b[q]) < 3 * np.hypot(a[f"{q}_err"], b[f"{q}_err"])
+
     for kind in ("unweighted", "weighted"):
         for comp in ("g1", "g2"):
-            f, g = results["fast"][kind][comp], results["galsim"][kind][comp]
-            print(f"{kind} {comp}: fast m = {f['m']:+.2e} ± {f['m_err']:.1e}, c = {f['c']:+.2e} ± {f['c_err']:.1e}; "
-                  f"galsim m = {g['m']:+.2e} ± {g['m_err']:.1e}, c = {g['c']:+.2e} ± {g['c_err']:.1e}")
-            for q in ("m", "c"):
-                sigma = np.hypot(f[f"{q}_err"], g[f"{q}_err"])
-                assert abs(f[q] - g[q]) < 3 * sigma, (kind, comp, q, f[q], g[q], sigma)
+            fit = {k: v[kind][comp] for k, v in ev.items()}
+            for k, f in fit.items():
+                print(f"{kind} {comp} model {k[0]} on {k[1]}: m = {f['m']:+.2e} ± {f['m_err']:.1e}, "
+                      f"c = {f['c']:+.2e} ± {f['c_err']:.1e}")
+            for model in ("fast", "galsim"):
+                for q in ("m", "c"):
+                    assert close(fit[model, "fast"], fit[model, "galsim"], q), (kind, comp, "model", model, q)
+            for data in ("fast", "galsim"):
+                assert close(fit["fast", data], fit["galsim", data], "m"), (kind, comp, "data", data)
 
 
 def test_correlated_noise_is_galsims_with_the_fast_engine(runner, cli, tmp_path: Path) -> None:
