@@ -59,8 +59,13 @@ class WorkUnit:
     @property
     def renders_fast(self) -> bool:
         """Whether this unit's stamps go through the batched renderer."""
-        gal = self.config.galaxy
-        return self.engine == "fast" and render.can_render(gal.profile) and not gal.knots
+        return self.engine == "fast" and renders_galaxies(self.config)
+
+
+def renders_galaxies(config: SimConfig) -> bool:
+    """Whether the fast renderer draws this config's galaxies: a single Sersic or Gaussian
+    (knots or any other model go through GalSim)."""
+    return render.can_render(config.galaxy.profile) and not config.galaxy.knots
 
 
 def psf_includes_pixel(spec: dict[str, Any]) -> bool:

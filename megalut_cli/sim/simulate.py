@@ -32,9 +32,8 @@ from megalut_cli.catalog import write_catalog, write_image
 from megalut_cli.engine import DEFAULT_ENGINE, check_engine
 from megalut_cli.errors import MegalutError
 from megalut_cli.parallel import chunk_ranges, executor, format_duration, map_units, resolve_nproc
-from megalut_cli.sim import render
 from megalut_cli.sim.config import SimConfig
-from megalut_cli.sim.draw import WorkUnit, draw_unit, stamp_centres
+from megalut_cli.sim.draw import WorkUnit, draw_unit, renders_galaxies, stamp_centres
 
 log = logging.getLogger("megalut")
 
@@ -269,7 +268,7 @@ def simulate(
 def log_engine_fallback(config: SimConfig, engine: str, draws: bool) -> None:
     """Say once when the fast engine hands a galaxy profile to GalSim."""
     gal = config.galaxy
-    if engine == "fast" and draws and not (render.can_render(gal.profile) and not gal.knots):
+    if engine == "fast" and draws and not renders_galaxies(config):
         what = f"galaxy profile {gal.profile!r}" + (" with knots" if gal.knots else "")
         log.info("the fast engine does not render %s: its stamps are drawn by GalSim "
                  "(features still measured by the fast engine)", what)
