@@ -1,4 +1,4 @@
-"""The stamp engines: how ``simulate`` draws and ``measure`` measures stamps.
+"""The stamp engines: how ``simulate`` draws and ``measure`` measures stamps; and the devices.
 
 ``fast`` (the default) renders parametric galaxies in batches in Fourier space
 (:mod:`megalut_cli.sim.render`), adds the noise with numpy and measures adaptive moments with
@@ -6,6 +6,10 @@ a compiled kernel (:mod:`megalut_cli.measure.adamom`); ``galsim`` draws, adds no
 measures one stamp at a time through GalSim, the reference. Both give the same noiseless
 pixels and the same features to within tests' tolerances (docs/engines.md); their noise
 realizations differ (different generators from the same per-stamp seeds).
+
+The ``device`` runs the fast engine and the trainings: ``cpu`` (the default) or ``gpu``, the
+optional JAX backend (:mod:`megalut_cli.gpu`, docs/gpu.md); ``auto`` picks ``gpu`` when the
+backend finds one.
 """
 
 from __future__ import annotations
@@ -18,6 +22,15 @@ ENGINES: dict[str, str] = {
 
 DEFAULT_ENGINE = "fast"
 
+#: Device name -> one-line description (the CLI's choices and help, the ``device`` key).
+DEVICES: dict[str, str] = {
+    "cpu": "numba and numpy on the CPU cores",
+    "gpu": "the JAX backend on a GPU (the 'gpu' extra; one clear error if none is usable)",
+    "auto": "gpu when the backend finds one, else cpu",
+}
+
+DEFAULT_DEVICE = "cpu"
+
 
 def check_engine(name: str, key: str = "engine") -> str:
     """``name`` if it is an engine, else a ``ConfigError`` naming ``key``."""
@@ -26,3 +39,31 @@ def check_engine(name: str, key: str = "engine") -> str:
     if name not in ENGINES:
         raise ConfigError(f"{key}: unknown engine {name!r} (choose from {', '.join(ENGINES)})")
     return name
+
+
+def check_device(name: str, key: str = "device") -> str:
+    """``name`` if it is a device choice, else a ``ConfigError`` naming ``key``."""
+    from megalut_cli.errors import ConfigError
+
+    if name not in DEVICES:
+        raise ConfigError(f"{key}: unknown device {name!r} (choose from {', '.join(DEVICES)})")
+    return name
+
+
+def resolve_device(name: str) -> str:
+    """``cpu`` or ``gpu`` for a device choice: ``auto`` becomes ``gpu`` when the backend finds
+    one (silently ``cpu`` otherwise); ``gpu`` with none usable raises a one-line
+    ``MegalutError``."""
+    check_device(name)
+    if name == "cpu":
+        return "cpu"
+    from megalut_cli.gpu import device_problem
+
+    problem = device_problem()
+    if problem is None:
+        return "gpu"
+    if name == "auto":
+        return "cpu"
+    from megalut_cli.errors import MegalutError
+
+    raise MegalutError(f"--device gpu: {problem}")

@@ -23,7 +23,7 @@ _R = 3.6541528853610088
 _V = 0.00492867323399
 
 
-def _ziggurat_table() -> np.ndarray:
+def ziggurat_table() -> np.ndarray:
     """Layer edges x[0..256]: x[0] = v / f(r) (the base strip), x[1] = r, ..., x[256] = 0."""
     x = np.empty(ZIGGURAT_LAYERS + 1)
     x[0] = _V / math.exp(-0.5 * _R * _R)
@@ -34,7 +34,7 @@ def _ziggurat_table() -> np.ndarray:
     return x
 
 
-_X = _ziggurat_table()
+_X = ziggurat_table()
 _RATIO = _X[1:] / _X[:-1]  # accept u * x[i] at once where |u| < x[i+1] / x[i]
 
 _M1 = np.uint64(0xBF58476D1CE4E5B9)

@@ -1,0 +1,52 @@
+"""The optional device backend of the fast engine and the trainings, in JAX (docs/gpu.md).
+
+Importing this package does not import JAX; :func:`device_problem` says whether a device is
+usable, :func:`jax_device` gives it. The submodules (``render``, ``noise``, ``adamom``,
+``draw``, ``train``) import JAX and run in float64 where it matters (``jax_enable_x64``).
+
+The environment variable ``MEGALUT_GPU_PLATFORM`` names the JAX platform that counts as the
+device (default ``gpu``; ``cpu`` runs the device path on JAX's CPU mode, as the tests and the
+CPU-mode benchmark do).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from typing import Any
+
+#: Environment variable naming the JAX platform used as the device.
+PLATFORM_ENV = "MEGALUT_GPU_PLATFORM"
+
+
+def platform() -> str:
+    """The JAX platform that counts as the device (``gpu`` unless ``MEGALUT_GPU_PLATFORM``)."""
+    return os.environ.get(PLATFORM_ENV, "gpu").strip().lower() or "gpu"
+
+
+@functools.lru_cache(maxsize=4)
+def _problem(name: str) -> str | None:
+    try:
+        import jax
+    except ImportError:
+        return "the GPU backend is not installed (pip install 'megalut-cli[gpu]')"
+    try:
+        devices = jax.devices(name)
+    except RuntimeError:
+        devices = []
+    if not devices:
+        return f"JAX finds no {name} device (its devices: {', '.join(str(d) for d in jax.devices())})"
+    return None
+
+
+def device_problem() -> str | None:
+    """Why no device is usable (one line), or None when one is."""
+    return _problem(platform())
+
+
+def jax_device() -> Any:
+    """The JAX device that runs the backend (the first of :func:`platform`), float64 enabled."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    return jax.devices(platform())[0]
