@@ -486,21 +486,13 @@ class StampRenderer:
         return n_fft, n_k
 
     # -- drawing ----------------------------------------------------------------------------
-    def draw(self, psf: galsim.GSObject, psf_key: Hashable, method: str, profile: str,
-             rad, flux, sersicn, e1, e2, g1, g2, dx, dy) -> np.ndarray:
-        """Noiseless stamps (m, S, S) float32 of ``profile`` galaxies of half-light radius
-        ``rad`` (pixels), ``flux``, index ``sersicn`` (None for Gaussians), intrinsic shape
-        (e1, e2) then shear (g1, g2), offset (dx, dy) pixels from the stamp centre, convolved
-        with ``psf`` (and the pixel unless ``method`` is "no_pixel").
-
-        ``psf_key`` names the PSF for the caches: pass the same key only for the same PSF.
-        """
+    def plan(self, psf: galsim.GSObject, psf_key: Hashable, method: str, profile: str,
+             rad, flux, sersicn, e1, e2, g1, g2, dx, dy) -> RenderPlan:
+        """What :meth:`draw` computes on the host before filling k-images (arguments as there):
+        per-stamp grids, transforms, fluxes, shifts and the radial profiles; checked."""
         info = self._psf_info(psf, psf_key, method)
         n_fft, n_k, amat, table, shx, shy, profiles = self._geometry(info, profile, rad, sersicn, e1, e2, g1, g2, dx, dy)
         m = len(n_fft)
-        S = self.stamp_size
-        if m == 0:
-            return np.empty((0, S, S), dtype=np.float32)
         flux = np.broadcast_to(np.asarray(flux, dtype=float), (m,))
         if not np.isfinite(flux).all():
             raise MegalutError("renderer: fluxes must be finite")
@@ -513,12 +505,34 @@ class StampRenderer:
                 f"FFT, you may update gsparams.maximum_fft_size (now {info.gsparams.maximum_fft_size}), "
                 "or raise gsparams.folding_threshold"
             )
-        eparams, eint, coef, fcoef = _stack(profiles)
+        return RenderPlan(n_fft, n_k, amat, table, shx, shy, np.array(flux), profiles)
+
+    def psf_kimage(self, psf: galsim.GSObject, psf_key: Hashable, method: str, n_fft: int, n_k: int) -> np.ndarray:
+        """The PSF (x pixel) k-image on GalSim's (Nk+1) x (Nk/2+1) grid for FFT size N
+        (complex64, or float32 when real), cached per renderer."""
+        return self._psf_kimage(self._psf_info(psf, psf_key, method), psf_key, method, int(n_fft), int(n_k))
+
+    def draw(self, psf: galsim.GSObject, psf_key: Hashable, method: str, profile: str,
+             rad, flux, sersicn, e1, e2, g1, g2, dx, dy) -> np.ndarray:
+        """Noiseless stamps (m, S, S) float32 of ``profile`` galaxies of half-light radius
+        ``rad`` (pixels), ``flux``, index ``sersicn`` (None for Gaussians), intrinsic shape
+        (e1, e2) then shear (g1, g2), offset (dx, dy) pixels from the stamp centre, convolved
+        with ``psf`` (and the pixel unless ``method`` is "no_pixel").
+
+        ``psf_key`` names the PSF for the caches: pass the same key only for the same PSF.
+        """
+        p = self.plan(psf, psf_key, method, profile, rad, flux, sersicn, e1, e2, g1, g2, dx, dy)
+        n_fft, n_k, amat, table, shx, shy, flux = p.n_fft, p.n_k, p.amat, p.table, p.shift_x, p.shift_y, p.flux
+        m = len(n_fft)
+        S = self.stamp_size
+        if m == 0:
+            return np.empty((0, S, S), dtype=np.float32)
+        eparams, eint, coef, fcoef = _stack(p.profiles)
         stamps = np.empty((m, S, S), dtype=np.float32)
         grids = np.stack([n_fft, n_k], axis=1)
         for n_f, n_kk in np.unique(grids, axis=0):
             idx = np.flatnonzero((n_fft == n_f) & (n_k == n_kk))
-            kpsf = self._psf_kimage(info, psf_key, method, int(n_f), int(n_kk))
+            kpsf = self.psf_kimage(psf, psf_key, method, int(n_f), int(n_kk))
             per = int(n_f) * (int(n_f) // 2 + 1) * 8
             batch = max(1, min(MAX_BATCH, BATCH_BYTES // per))
             buf = np.empty((min(batch, len(idx)), int(n_f), int(n_f) // 2 + 1), dtype=np.complex64)
@@ -529,6 +543,29 @@ class StampRenderer:
                               shx[sel], shy[sel], table[sel], eparams, eint, coef, fcoef)
                 stamps[sel] = inverse_fft_window(kbuf, int(n_f), S)
         return stamps
+
+
+@dataclass(frozen=True)
+class RenderPlan:
+    """Per-stamp inputs of the k-image fill (:meth:`StampRenderer.plan`): FFT size N and
+    k-grid size Nk, the k-transform ``amat`` (m, 4: q = A k in units of the profile's
+    radius), the index of each stamp's radial profile in ``profiles``, the shifts (offset,
+    centring and S // 2, in pixels) and the fluxes."""
+
+    n_fft: np.ndarray
+    n_k: np.ndarray
+    amat: np.ndarray
+    table: np.ndarray
+    shift_x: np.ndarray
+    shift_y: np.ndarray
+    flux: np.ndarray
+    profiles: list[RadialProfile]
+
+
+def stack_profiles(profiles: list[RadialProfile]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Radial profiles as flat arrays: exact params (T, 8), integers (T, 6: kind, first and
+    last exact cubic, fast octaves lo and hi, first fast cubic), exact cubics, fast cubics."""
+    return _stack(profiles)
 
 
 def inverse_fft_window(kimages: np.ndarray, n_fft: int, size: int) -> np.ndarray:
