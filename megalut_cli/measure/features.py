@@ -163,6 +163,7 @@ def measure_stamps(
     guess_sigma: float | None = None,
     max_shift: float | None = None,
     engine: str = "fast",
+    device: str = "cpu",
 ) -> dict[str, np.ndarray]:
     """Measure the features of a stack of stamps.
 
@@ -175,6 +176,8 @@ def measure_stamps(
         max_shift: centroid distance (pixels) from the stamp centre beyond which a stamp is
             flagged CENTROID_SHIFT; default :func:`default_max_shift`.
         engine: one of :data:`MEASURE_ENGINES`; both give the same features and flags.
+        device: ``cpu``, or ``gpu`` to measure the fast engine's moments with the device
+            backend (:mod:`megalut_cli.gpu`; a resolved device, not ``auto``).
 
     Returns:
         A dict of :data:`FEATURE_COLUMNS` arrays of length ``n`` (float64; ``flags`` int32).
@@ -195,15 +198,13 @@ def measure_stamps(
     guess = default_guess_sigma(size) if guess_sigma is None else float(guess_sigma)
     limit = default_max_shift(size) if max_shift is None else float(max_shift)
 
-    out = {c: np.full(n, np.nan) for c in FEATURE_COLUMNS if c != "flags"}
-    flags = np.zeros(n, dtype=np.int32)
+    if engine == "fast" and device == "gpu" and n:
+        from megalut_cli.gpu.measure import pixel_measurements
 
+        moments, skymad, finite = pixel_measurements(stamps, guess)
+        return features_from_moments(moments, skymad, finite, origins, size, gain, limit)
     finite = np.isfinite(stamps).all(axis=(1, 2)) if n else np.zeros(0, bool)
-    flags[~finite] |= fl.BAD_PIXELS
-    if n:
-        out["skymad"][:] = sky_mad(stamps)
-    flags[~np.isfinite(out["skymad"])] |= fl.BAD_SKY
-
+    skymad = sky_mad(stamps) if n else np.zeros(0)
     moments = np.full((n, 7), np.nan)
     if finite.any():
         measure = fast_moments if engine == "fast" else galsim_moments
@@ -211,6 +212,24 @@ def measure_stamps(
             moments[:] = measure(stamps, guess)
         else:
             moments[finite] = measure(stamps[finite], guess)
+    return features_from_moments(moments, skymad, finite, origins, size, gain, limit)
+
+
+def features_from_moments(
+    moments: np.ndarray, skymad: np.ndarray, finite: np.ndarray, origins: np.ndarray, size: int,
+    gain: float | None, max_shift: float,
+) -> dict[str, np.ndarray]:
+    """The features and flags of :func:`measure_stamps` from what it measures on the pixels:
+    ``moments`` (n, 7: ``amp, g1, g2, sigma, rho4, x, y``, NaN rows where HSM failed),
+    the sky MAD and whether all pixels of each stamp are finite."""
+    n = len(moments)
+    limit = max_shift
+    out = {c: np.full(n, np.nan) for c in FEATURE_COLUMNS if c != "flags"}
+    flags = np.zeros(n, dtype=np.int32)
+    finite = np.asarray(finite, dtype=bool)
+    flags[~finite] |= fl.BAD_PIXELS
+    out["skymad"][:] = skymad
+    flags[~np.isfinite(out["skymad"])] |= fl.BAD_SKY
     measured = np.isfinite(moments).all(axis=1)
     flags[finite & ~measured] |= fl.HSM_FAILED  # status != 0, or NaN results
 

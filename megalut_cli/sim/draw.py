@@ -19,7 +19,7 @@ from typing import Any
 import galsim
 import numpy as np
 
-from megalut_cli.engine import DEFAULT_ENGINE
+from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE
 from megalut_cli.errors import MegalutError
 from megalut_cli.sim import render
 from megalut_cli.sim.config import SimConfig
@@ -55,6 +55,7 @@ class WorkUnit:
     measure: bool = False
     engine: str = DEFAULT_ENGINE
     morphology: bool = False  # with measure: also the morph_* features (measure/morphology.py)
+    device: str = DEFAULT_DEVICE  # "cpu" or "gpu" (resolved): where the fast engine runs
 
     @property
     def renders_fast(self) -> bool:
@@ -123,18 +124,20 @@ def stamp_centres(index: np.ndarray, n_x: int, stamp_size: int) -> tuple[np.ndar
 class _Measurer:
     """Accumulates stamps and measures them in batches."""
 
-    def __init__(self, gain: float | None, engine: str = DEFAULT_ENGINE, morphology: bool = False):
+    def __init__(self, gain: float | None, engine: str = DEFAULT_ENGINE, morphology: bool = False,
+                 device: str = DEFAULT_DEVICE):
         from megalut_cli.measure.features import measure_stamps
 
         self._measure = measure_stamps
         self.gain = gain
         self.engine = engine
         self.morphology = morphology
+        self.device = device
         self.parts: list[dict[str, np.ndarray]] = []
 
     def __call__(self, stamps: np.ndarray, origins: np.ndarray) -> None:
         if len(stamps):
-            feats = self._measure(stamps, origins=origins, gain=self.gain, engine=self.engine)
+            feats = self._measure(stamps, origins=origins, gain=self.gain, engine=self.engine, device=self.device)
             if self.morphology:
                 from megalut_cli.measure.morphology import morphology_of_measured
 
@@ -223,7 +226,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     render = keep or unit.measure  # else: truth only, nothing to draw
     nbuf = n_total if keep else (min(MEASURE_BATCH, n_total) if unit.measure else 0)
     stamps = np.empty((max(nbuf, 1), S, S), dtype=np.float32)
-    measurer = _Measurer(cfg.gain, unit.engine, unit.morphology) if unit.measure else None
+    measurer = _Measurer(cfg.gain, unit.engine, unit.morphology, unit.device) if unit.measure else None
     image = galsim.ImageF(S, S, scale=1.0)
     gsp = make_gsparams(cfg.gsparams)
     conv_gsp = gsp if cfg.gsparams else None  # else GalSim combines the components' own
@@ -349,7 +352,12 @@ def stamp_renderer(stamp_size: int, gsparams: dict[str, float]) -> render.StampR
 
 def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
     """:func:`draw_unit` with the fast engine: each case's stamps of one PSF rendered in one
-    batch, noise added in bulk, features measured :data:`MEASURE_BATCH` stamps at a time."""
+    batch, noise added in bulk, features measured :data:`MEASURE_BATCH` stamps at a time
+    (on the device with ``unit.device == "gpu"``: :mod:`megalut_cli.gpu.draw`)."""
+    if unit.device == "gpu":
+        from megalut_cli.gpu.draw import draw_unit_device
+
+        return draw_unit_device(unit)
     cfg = unit.config
     s = cfg.structure
     S, n_rea = s.stamp_size, s.n_realizations

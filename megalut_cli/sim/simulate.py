@@ -29,7 +29,7 @@ import numpy as np
 
 from megalut_cli.atomic import atomic_output, check_output
 from megalut_cli.catalog import write_catalog, write_image
-from megalut_cli.engine import DEFAULT_ENGINE, check_engine
+from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, check_engine, resolve_device
 from megalut_cli.errors import MegalutError
 from megalut_cli.parallel import chunk_ranges, executor, format_duration, map_units, resolve_nproc
 from megalut_cli.sim.config import SimConfig
@@ -41,6 +41,8 @@ CATALOG_FORMAT = "megalut.simulation"
 STAMPS_FORMAT = "megalut.stamps"
 #: Stamps per work unit aimed at (a unit holds whole cases).
 UNIT_STAMPS = 2048
+#: Stamps per work unit on the device (one process feeds it; bigger batches fill it better).
+DEVICE_UNIT_STAMPS = 32768
 #: Largest image written with --stamps (pixels; 4 GiB in float32): fail early, not out of memory.
 MAX_STAMP_PIXELS = 2**30
 
@@ -72,7 +74,7 @@ def n_work_units(config: SimConfig, nproc: int = 1, scheduler: str | None = None
 
 
 def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, n_stamps: int = 32,
-                      engine: str = DEFAULT_ENGINE) -> float:
+                      engine: str = DEFAULT_ENGINE, device: str = DEFAULT_DEVICE) -> float:
     """Drawing rate of one worker, timed on a tiny draw of ``n_stamps`` stamps of the first case.
 
     Cheap (well under a second at the paper's stamp size); per-case setup costs and work
@@ -85,14 +87,15 @@ def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: 
     small = dataclasses.replace(config, structure=dataclasses.replace(s, n_cases=1, n_realizations=n_rea))
     # Warm up (lazy imports, compilation) on other galaxies than those timed: GalSim caches
     # per-profile tables, which a repeat of the same case would find ready.
-    draw_unit(WorkUnit(small, seed + 1, 0, 1, small.structure.grid_nx, keep_stamps, measure, engine))
+    device = resolve_device(device)
+    draw_unit(WorkUnit(small, seed + 1, 0, 1, small.structure.grid_nx, keep_stamps, measure, engine, device=device))
     t0 = time.perf_counter()
-    draw_unit(WorkUnit(small, seed, 0, 1, small.structure.grid_nx, keep_stamps, measure, engine))
+    draw_unit(WorkUnit(small, seed, 0, 1, small.structure.grid_nx, keep_stamps, measure, engine, device=device))
     return n_rea / max(time.perf_counter() - t0, 1e-6)
 
 
 def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, nproc: int,
-                 scheduler: str | None, engine: str = DEFAULT_ENGINE) -> str:
+                 scheduler: str | None, engine: str = DEFAULT_ENGINE, device: str = DEFAULT_DEVICE) -> str:
     """What simulating ``config`` will do, with a time estimated from a tiny calibration draw."""
     s = config.structure
     what = " and ".join(w for w, on in (("drawn into an image", keep_stamps), ("measured", measure)) if on)
@@ -100,7 +103,7 @@ def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool,
             f"{s.stamp_size}x{s.stamp_size} px")
     if not what:
         return f"{head}: truth only, nothing drawn"
-    rate = stamps_per_second(config, seed, measure, keep_stamps, engine=engine)
+    rate = stamps_per_second(config, seed, measure, keep_stamps, engine=engine, device=device)
     if scheduler:
         return (f"{head}, {what}: about {format_duration(s.n_stamps / rate)} of worker time "
                 f"on the Dask cluster ({rate:.0f} stamps/s per worker in a calibration draw)")
@@ -113,12 +116,16 @@ def make_units(
     config: SimConfig, seed: int, nproc: int, scheduler: str | None, keep_stamps: bool, measure: bool,
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
+    device: str = DEFAULT_DEVICE,
 ) -> list[WorkUnit]:
-    """Split the cases into work units of about ``UNIT_STAMPS`` stamps (whole cases)."""
+    """Split the cases into work units of about ``UNIT_STAMPS`` stamps (whole cases;
+    ``DEVICE_UNIT_STAMPS`` on the device, ``device`` being resolved)."""
     s = config.structure
     n_units = n_work_units(config, nproc, scheduler)
+    if device == "gpu" and not scheduler:
+        n_units = min(s.n_cases, max(1, math.ceil(s.n_stamps / DEVICE_UNIT_STAMPS)))
     return [
-        WorkUnit(config, seed, a, b, s.grid_nx, keep_stamps, measure, engine, morphology)
+        WorkUnit(config, seed, a, b, s.grid_nx, keep_stamps, measure, engine, morphology, device)
         for a, b in chunk_ranges(s.n_cases, n_units)
     ]
 
@@ -211,20 +218,25 @@ def simulate(
     progress: Callable[[int], None] | None = None,
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
+    device: str = DEFAULT_DEVICE,
 ) -> SimulationResult:
     """Simulate the configured stamps; write the catalog (and the stamp grid image).
     With ``measure`` and ``morphology``, the ``morph_*`` features are measured too.
 
     ``progress(n)`` is called as work units finish (:func:`n_work_units` in all).
-    ``engine`` is ``fast`` or ``galsim`` (:mod:`megalut_cli.engine`).
+    ``engine`` is ``fast`` or ``galsim``, ``device`` ``cpu``, ``gpu`` or ``auto``
+    (:mod:`megalut_cli.engine`); on the device the units run in this process.
     """
     check_engine(engine)
+    device = resolve_device(device)
+    if device == "gpu" and not scheduler:
+        nproc = 1
     out, st = check_outputs(config, output, stamps, overwrite)
     s = config.structure
     if st is None and not measure:
         log.info("neither --stamps nor --measure: writing the truth catalog only (nothing drawn)")
     workers = expected_workers(nproc, scheduler)
-    units = make_units(config, seed, nproc, scheduler, st is not None, measure, engine, morphology and measure)
+    units = make_units(config, seed, nproc, scheduler, st is not None, measure, engine, morphology and measure, device)
     log_engine_fallback(config, engine, st is not None or measure)
     log.info(
         "simulating %d cases x %d realizations = %d stamps of %d px in %d work units",

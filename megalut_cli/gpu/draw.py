@@ -1,0 +1,149 @@
+"""A work unit of the fast engine on the device: render, noise, measure; features back.
+
+:func:`draw_unit_device` is :func:`megalut_cli.sim.draw.draw_unit_fast` with the pixels on the
+device. The host draws the cases (truth, offsets, seeds: :func:`megalut_cli.sim.structure.draw_case`)
+and plans the stamps (:meth:`megalut_cli.sim.render.StampRenderer.plan`); the stamps of the
+unit are grouped by PSF and FFT grid into fixed-shape batches, rendered, given their noise
+(Gaussian noise on the device, from the CPU engine's per-stamp stream; CCD and correlated
+noise on the host) and measured there; only the features (and the stamps when they are kept)
+come back.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from megalut_cli.errors import MegalutError
+from megalut_cli.gpu import jax_device
+from megalut_cli.gpu import render as grender
+from megalut_cli.gpu.adamom import measure_batch
+from megalut_cli.gpu.measure import BATCH_STAMPS, padded_size, split_measurements
+from megalut_cli.gpu.noise import add_gaussian_noise
+from megalut_cli.measure.features import default_guess_sigma, default_max_shift, features_from_moments
+from megalut_cli.sim.draw import (
+    case_columns,
+    get_psf,
+    psf_cache_key,
+    psf_includes_pixel,
+    stamp_origins,
+    stamp_renderer,
+)
+from megalut_cli.sim.structure import draw_case
+
+
+def _padded(a: np.ndarray, size: int, fill: float = 0.0) -> np.ndarray:
+    out = np.full((size, *a.shape[1:]), fill, dtype=a.dtype)
+    out[: len(a)] = a
+    return out
+
+
+def draw_unit_device(unit: Any) -> dict[str, Any]:
+    """:func:`megalut_cli.sim.draw.draw_unit` of a fast-engine unit on the device."""
+    dev = jax_device()
+    cfg = unit.config
+    s = cfg.structure
+    S, n_rea = s.stamp_size, s.n_realizations
+    gal = cfg.galaxy
+    renderer = stamp_renderer(S, dict(cfg.gsparams))
+    n_total = (unit.case_stop - unit.case_start) * n_rea
+    first = unit.case_start * n_rea
+    truth_parts: list[dict[str, np.ndarray]] = []
+    groups: dict[tuple[str, int, int], list[np.ndarray]] = {}  # (psf key, N, Nk) -> stamp rows
+    psfs: dict[str, tuple[Any, str]] = {}
+    plans: list[Any] = []
+    rows_of_plan: list[np.ndarray] = []
+    seeds = np.empty(n_total, dtype=np.int64)
+    noises: list[Any] = []
+    noise_of = np.empty(n_total, dtype=np.int64)
+    for case in range(unit.case_start, unit.case_stop):
+        d = draw_case(cfg, unit.seed, case)
+        t = d.truth
+        base = (case - unit.case_start) * n_rea
+        seeds[base:base + n_rea] = d.noise_seeds
+        noise_of[base:base + n_rea] = len(noises)
+        noises.append(d.noise)
+        psf_truths = []
+        for pi, (spec, fx, fy) in enumerate(d.psf_specs):
+            psf, ptruth = get_psf(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
+            psf_truths.append(ptruth)
+            sel = np.flatnonzero(d.psf_index == pi)
+            key = psf_cache_key(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
+            method = "no_pixel" if psf_includes_pixel(spec) else "auto"
+            psfs[key] = (psf, method)
+            try:
+                plan = renderer.plan(
+                    psf, key, method, gal.profile, t["tru_rad"][sel], t["tru_flux"][sel],
+                    t["tru_sersicn"][sel] if "tru_sersicn" in t else None,
+                    t["tru_e1"][sel], t["tru_e2"][sel], t["tru_g1"][sel], t["tru_g2"][sel],
+                    d.offsets[sel, 0], d.offsets[sel, 1],
+                )
+            except MegalutError as err:
+                raise MegalutError(f"case {case}: {err}") from None
+            plans.append(plan)
+            rows_of_plan.append(base + sel)
+            for nf, nk in set(zip(plan.n_fft.tolist(), plan.n_k.tolist())):
+                pick = (plan.n_fft == nf) & (plan.n_k == nk)
+                groups.setdefault((key, nf, nk), []).append(np.stack(
+                    [np.full(pick.sum(), len(plans) - 1), np.flatnonzero(pick), base + sel[pick]], axis=1))
+        truth_parts.append(case_columns(d, psf_truths))
+
+    # Per-stamp inputs, gathered from the plans; one table of radial profiles for the unit.
+    profiles, offsets = [], []
+    for plan in plans:
+        offsets.append(len(profiles))
+        profiles.extend(plan.profiles)
+    amat = np.zeros((n_total, 4))
+    flux, shx, shy = np.zeros(n_total), np.zeros(n_total), np.zeros(n_total)
+    table = np.zeros(n_total, dtype=np.int64)
+    for plan, rows, off in zip(plans, rows_of_plan, offsets):
+        amat[rows], flux[rows], shx[rows], shy[rows] = plan.amat, plan.flux, plan.shift_x, plan.shift_y
+        table[rows] = plan.table + off
+    eparams, eint, coef = (jax.device_put(a, dev) for a in grender.profile_arrays(profiles)) if profiles else (None,) * 3
+    gaussian = np.array([nz.kind == "gaussian" and nz.sigma > 0 for nz in noises])[noise_of]
+    sigma = np.array([nz.sigma for nz in noises])[noise_of]
+    host_noise = np.array([nz.kind not in ("gaussian", "none") for nz in noises])[noise_of]
+    guess = default_guess_sigma(S)
+
+    results = np.full((n_total, 11), np.nan)
+    keep = unit.keep_stamps or (unit.measure and unit.morphology)  # morphology is measured on the host
+    kept = np.empty((n_total, S, S), dtype=np.float32) if keep else None
+    for (key, nf, nk), parts in groups.items():
+        rows = np.concatenate(parts)[:, 2]
+        psf, method = psfs[key]
+        kpsf = jax.device_put(renderer.psf_kimage(psf, key, method, nf, nk), dev)
+        dest, weight, conj = (jax.device_put(a, dev) for a in grender.fold_indices(nf, nk))
+        for a in range(0, len(rows), BATCH_STAMPS):
+            sel = rows[a:a + BATCH_STAMPS]
+            size = padded_size(len(sel))
+            pad_amat = _padded(amat[sel], size)
+            pad_amat[len(sel):, 0] = pad_amat[len(sel):, 3] = 1.0  # padding: zero flux, identity transform
+            stamps = grender.render_batch(
+                kpsf, pad_amat, _padded(flux[sel], size), _padded(shx[sel], size), _padded(shy[sel], size),
+                _padded(table[sel], size), eparams, eint, coef, dest, weight, conj, n_fft=nf, n_k=nk, size=S)
+            if gaussian[sel].any():
+                stamps = add_gaussian_noise(stamps, jnp.asarray(_padded(seeds[sel], size)),
+                                            jnp.asarray(_padded(np.where(gaussian[sel], sigma[sel], 0.0), size)))
+            if host_noise[sel].any():
+                host = np.array(stamps)
+                for k in np.flatnonzero(host_noise[sel]):
+                    noises[noise_of[sel[k]]].add_batch(host[k:k + 1], seeds[sel[k]:sel[k] + 1])
+                stamps = jax.device_put(host, dev)
+            if kept is not None:
+                kept[sel] = np.asarray(stamps)[: len(sel)]
+            if unit.measure:
+                results[sel] = np.asarray(measure_batch(stamps, guess))[: len(sel)]
+
+    columns = {k: np.concatenate([p[k] for p in truth_parts]) for k in truth_parts[0]} if truth_parts else {}
+    if unit.measure:
+        origins = stamp_origins(np.arange(first, first + n_total), unit.n_x, S)
+        moments, skymad, finite = split_measurements(results)
+        columns.update(features_from_moments(moments, skymad, finite, origins, S, cfg.gain, default_max_shift(S)))
+        if unit.morphology:
+            from megalut_cli.measure.morphology import morphology_of_measured
+
+            columns.update(morphology_of_measured(kept, origins, columns))
+    return {"columns": columns, "stamps": kept if unit.keep_stamps else None}
