@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from megalut_cli.cli.options import (
+    device_option,
     engine_option,
     execution_options,
     output_option,
@@ -63,6 +64,7 @@ from megalut_cli.cli.options import (
     "Gaussian windows of 0.5, 1, 2 times the adaptive ellipse; docs/realgal.md).",
 )
 @engine_option("the adaptive moments are measured")
+@device_option("the fast engine measures")
 @execution_options
 @overwrite_option
 def command(
@@ -76,6 +78,7 @@ def command(
     stars: bool | None,
     morphology: bool,
     engine: str,
+    device: str,
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
@@ -112,7 +115,10 @@ def command(
     """
     from megalut_cli.cli.console import stdin_path, stdout_path
     from megalut_cli.cli.options import progress
+    from megalut_cli.engine import resolve_device
     from megalut_cli.measure.measure import measure_file
+
+    device = resolve_device(device)
 
     with stdin_path(catalog) as catalog_path, stdout_path(output) as output_path:
         measure_file(
@@ -130,4 +136,5 @@ def command(
             stars=stars,
             engine=engine,
             morphology=morphology,
+            device=device,
         )

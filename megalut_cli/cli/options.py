@@ -69,6 +69,21 @@ def engine_option(what: str) -> Callable[[F], F]:
     )
 
 
+def device_option(what: str) -> Callable[[F], F]:
+    """``--device``: choices and descriptions from :data:`megalut_cli.engine.DEVICES`."""
+    from megalut_cli.engine import DEFAULT_DEVICE, DEVICES
+
+    described = "; ".join(f"{name}: {text}" for name, text in DEVICES.items())
+    return click.option(
+        "--device",
+        type=click.Choice(list(DEVICES)),
+        default=DEFAULT_DEVICE,
+        show_default=True,
+        envvar="MEGALUT_DEVICE",
+        help=f"Where {what} ({described}; env MEGALUT_DEVICE; docs/gpu.md).",
+    )
+
+
 def seed_option(default: int = 1, help: str = "Seed of every random draw of this step.") -> Callable[[F], F]:
     return click.option("--seed", type=int, default=default, show_default=True, help=help)
 

@@ -7,6 +7,7 @@ import logging
 import click
 
 from megalut_cli.cli.options import (
+    device_option,
     engine_option,
     execution_options,
     output_option,
@@ -63,6 +64,7 @@ log = logging.getLogger("megalut")
 )
 @seed_option(1, "Seed of every random draw; the output is identical for any -j or cluster.")
 @engine_option("stamps are drawn, noised and measured")
+@device_option("the fast engine draws, noises and measures")
 @execution_options
 @overwrite_option
 def command(
@@ -78,6 +80,7 @@ def command(
     dry_run: bool,
     seed: int,
     engine: str,
+    device: str,
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
@@ -124,8 +127,11 @@ def command(
           --dry-run
     """
     from megalut_cli.cli.console import stdout_path
+    from megalut_cli.engine import resolve_device
     from megalut_cli.sim.config import load_config
     from megalut_cli.sim.simulate import check_outputs, n_work_units, plan_message, simulate
+
+    device = resolve_device(device)
 
     output = click.get_current_context().with_resource(stdout_path(output))  # -o -: to stdout at the end
     cfg = load_config(config, overrides, n_cases=n_cases, n_realizations=n_realizations)
@@ -139,7 +145,7 @@ def command(
 
         check_branch_output(great3_dir, overwrite)
     log.info("about to simulate %s", plan_message(cfg, seed, measure, stamps is not None or great3_dir is not None,
-                                                   nproc, scheduler, engine))
+                                                   nproc, scheduler, engine, device))
     if dry_run:
         return
     if great3_dir is not None:
@@ -164,4 +170,5 @@ def command(
             overwrite=overwrite,
             progress=update,
             engine=engine,
+            device=device,
         )

@@ -23,7 +23,11 @@ from megalut_cli.gpu import render as grender
 from megalut_cli.gpu.adamom import measure_batch
 from megalut_cli.gpu.measure import BATCH_STAMPS, padded_size, split_measurements
 from megalut_cli.gpu.noise import add_gaussian_noise
-from megalut_cli.measure.features import default_guess_sigma, default_max_shift, features_from_moments
+from megalut_cli.measure.features import (
+    default_guess_sigma,
+    default_max_shift,
+    features_from_moments,
+)
 from megalut_cli.sim.draw import (
     case_columns,
     get_psf,

@@ -56,7 +56,7 @@ from megalut_cli.catalog import (
     require_columns,
     write_catalog,
 )
-from megalut_cli.engine import DEFAULT_ENGINE
+from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.measure.features import (
     FEATURE_COLUMNS,
@@ -112,7 +112,8 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
     y1 = int(origins[:, 1].max()) - 1 + size
     rows = read_rows(info, y0, y1)
     stamps = cut_stamps(rows, y0, origins, size)
-    feats = measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine=unit["engine"])
+    feats = measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine=unit["engine"],
+                           device=unit.get("device", DEFAULT_DEVICE))
     if unit.get("morphology"):
         feats.update(morphology_of_measured(stamps, origins, feats))
     return feats
@@ -151,9 +152,13 @@ def _run_units(
     label: str,
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
+    device: str = DEFAULT_DEVICE,
 ) -> dict[str, np.ndarray]:
     """Measure stamps at ``origins``; stamps off the image get STAMP_OFF_IMAGE and NaN.
-    With ``morphology``, the :data:`MORPHOLOGY_COLUMNS` too."""
+    With ``morphology``, the :data:`MORPHOLOGY_COLUMNS` too. On the (resolved) ``device``
+    "gpu", the units run in this process."""
+    if device == "gpu" and not scheduler:
+        nproc = 1
     n = len(origins)
     names = FEATURE_COLUMNS + (MORPHOLOGY_COLUMNS if morphology else ())
     out = {c: np.full(n, np.nan) for c in names if c != "flags"}
@@ -169,6 +174,7 @@ def _run_units(
     units, pieces = _units(info, origins[idx], size, gain, workers, engine)
     for unit in units:
         unit["morphology"] = morphology
+        unit["device"] = device
     sizes = [len(p) for p in pieces]
     bar = progress(label, len(idx)) if progress else contextlib.nullcontext(None)
     t0 = time.perf_counter()
@@ -370,6 +376,7 @@ def measure_file(
     stars: bool | None = None,
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
+    device: str = DEFAULT_DEVICE,
 ) -> Table:
     """Measure every stamp of ``stamps_path`` and write the features catalog ``output``.
 
@@ -394,6 +401,8 @@ def measure_file(
         engine: ``fast`` (compiled adaptive moments) or ``galsim`` (``FindAdaptiveMom``),
             see :mod:`megalut_cli.engine`.
         morphology: also measure :data:`MORPHOLOGY_COLUMNS` (``measure/morphology.py``).
+        device: ``cpu`` or ``gpu`` (resolved, :func:`megalut_cli.engine.resolve_device`): where
+            the fast engine measures the moments.
 
     Returns:
         The table written.
@@ -462,7 +471,7 @@ def measure_file(
 
     if stars and morphology:
         raise ConfigError("--morphology does not apply to a star field")
-    feats = _run_units(info, origins, size, gain, nproc, scheduler, progress, "measuring stamps", engine, morphology)
+    feats = _run_units(info, origins, size, gain, nproc, scheduler, progress, "measuring stamps", engine, morphology, device)
     psf = None
     if psf_path is not None:
         psf = _psf_features(psf_path, info, origins, size, nproc, scheduler, progress, engine)
