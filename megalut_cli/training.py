@@ -67,6 +67,7 @@ class TrainOptions:
     seed: int = 1
     dtype: str = "float64"
     keep: int | None = None
+    device: str = "cpu"  # resolved (megalut_cli.engine.resolve_device): where costs and gradients run
 
     def check(self) -> None:
         if self.members < 1:
@@ -93,6 +94,7 @@ class TrainOptions:
         return TrainSettings(
             cost=cost, iterations=self.iterations, batch_fraction=self.batch_fraction,
             batch_iterations=self.batch_iterations, optimizer=self.optimizer, dtype=self.dtype,
+            device=self.device,
         )
 
 
@@ -409,6 +411,8 @@ def _run(
     progress: ProgressFactory | None,
 ) -> dict[str, Committee]:
     n_units = sum(s.members for s in specs)
+    if settings.device == "gpu" and not scheduler:
+        nproc = 1  # one process feeds the device
     log.info(
         "training %d committee(s) x %d members, %d iterations each (%s, batches of %g of the cases x %d iterations)",
         len(specs), specs[0].members, settings.iterations, settings.cost, settings.batch_fraction,

@@ -199,6 +199,7 @@ def optimizer_options(f: F) -> F:
             help="Arithmetic of the network passes during training (float32 is about twice as fast).",
         ),
         seed_option(1, "Seed of the random draws (initial parameters, mini-batches, validation split)."),
+        device_option("the costs and gradients are computed"),
     )(f)
 
 
@@ -215,9 +216,11 @@ def pass_train_options(f: Callable[..., Any]) -> F:
 
     @functools.wraps(f)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from megalut_cli.engine import resolve_device
         from megalut_cli.training import TrainOptions
 
-        options = TrainOptions(dtype=kwargs.pop("precision"), **{k: kwargs.pop(k) for k in _TRAIN_OPTION_FIELDS})
+        options = TrainOptions(dtype=kwargs.pop("precision"), device=resolve_device(kwargs.pop("device")),
+                               **{k: kwargs.pop(k) for k in _TRAIN_OPTION_FIELDS})
         return f(*args, options=options, **kwargs)
 
     return wrapper

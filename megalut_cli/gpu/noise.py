@@ -122,11 +122,21 @@ def standard_normals(seeds: jnp.ndarray, size: int) -> jnp.ndarray:
     return jax.lax.while_loop(cond, body, init)[-1]
 
 
+@functools.partial(jax.jit, static_argnums=(2,))
+def _noise(seeds: jnp.ndarray, sigma: jnp.ndarray, shape: tuple[int, ...]) -> jnp.ndarray:
+    size = int(np.prod(shape[1:]))
+    normals = standard_normals(seeds, size).astype(jnp.float32).reshape(shape)
+    return sigma.astype(jnp.float32).reshape(shape[0], *([1] * (len(shape) - 1))) * normals
+
+
 @jax.jit
+def _add(stamps: jnp.ndarray, noise: jnp.ndarray) -> jnp.ndarray:
+    return stamps + noise
+
+
 def add_gaussian_noise(stamps: jnp.ndarray, seeds: jnp.ndarray, sigma: jnp.ndarray) -> jnp.ndarray:
     """``stamps`` (float32, (m, S, S)) plus ``sigma`` (one per stamp) times the normals of
-    their seeds, in float32 as :func:`megalut_cli.sim.normals.add_gaussian_noise` adds them."""
-    m = stamps.shape[0]
-    size = int(np.prod(stamps.shape[1:]))
-    normals = standard_normals(seeds, size).astype(jnp.float32).reshape(stamps.shape)
-    return stamps + sigma.astype(jnp.float32).reshape(m, *([1] * (stamps.ndim - 1))) * normals
+    their seeds, in float32 as :func:`megalut_cli.sim.normals.add_gaussian_noise` adds them:
+    the product is rounded before the sum (a separate kernel: XLA would fuse a
+    multiply-add and round once)."""
+    return _add(stamps, _noise(jnp.asarray(seeds), jnp.asarray(sigma), tuple(stamps.shape)))

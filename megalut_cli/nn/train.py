@@ -49,6 +49,7 @@ class TrainSettings:
     valid_every: int = 1
     max_stalls: int = 3
     dtype: str = "float64"
+    device: str = "cpu"  # "gpu": costs and gradients on the device (megalut_cli.gpu.train)
 
     def __post_init__(self) -> None:
         if self.cost not in costs.COSTS:
@@ -57,6 +58,8 @@ class TrainSettings:
             raise ValueError(f"unknown optimizer {self.optimizer!r}")
         if self.dtype not in ("float64", "float32"):
             raise ValueError(f"unknown dtype {self.dtype!r}")
+        if self.device not in ("cpu", "gpu"):
+            raise ValueError(f"unknown device {self.device!r} (a resolved one: cpu or gpu)")
         if self.gradient not in ("analytic", "fd"):
             raise ValueError(f"unknown gradient {self.gradient!r}")
         if not 0.0 < self.batch_fraction <= 1.0:
@@ -226,8 +229,12 @@ def train_member(task: MemberTask) -> MemberResult:
     params = initial_params(task, rng)
     t0, cpu0 = time.perf_counter(), time.process_time()
 
+    objective: Any = Objective
+    if s.device == "gpu":
+        from megalut_cli.gpu.train import DeviceObjective as objective
+
     def make(data: CaseData) -> Objective:
-        return Objective(task.net, s.cost, data, task.j, task.in_loc, task.in_scale, task.cost_scale, s.dtype)
+        return objective(task.net, s.cost, data, task.j, task.in_loc, task.in_scale, task.cost_scale, s.dtype)
 
     full = make(task.train)
     mon = _Monitor(full if task.valid is None else make(task.valid), params, s, t0, cpu0)
