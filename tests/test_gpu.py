@@ -68,21 +68,28 @@ def _device_draw(renderer, psf, key, method, gals):
     out = np.empty((len(plan.n_fft), renderer.stamp_size, renderer.stamp_size), np.float32)
     for nf, nk in set(zip(plan.n_fft.tolist(), plan.n_k.tolist())):
         sel = np.flatnonzero((plan.n_fft == nf) & (plan.n_k == nk))
+        pad = np.concatenate([sel, np.full(16 - len(sel), sel[0])])  # one batch shape per grid
         kpsf = renderer.psf_kimage(psf, key, method, nf, nk)
         out[sel] = np.asarray(grender.render_batch(
-            kpsf, plan.amat[sel], plan.flux[sel], plan.shift_x[sel], plan.shift_y[sel], plan.table[sel],
-            eparams, eint, coef, *grender.fold_indices(nf, nk), n_fft=nf, n_k=nk, size=renderer.stamp_size))
+            kpsf, plan.amat[pad], plan.flux[pad], plan.shift_x[pad], plan.shift_y[pad], plan.table[pad],
+            eparams, eint, coef, *grender.fold_indices(nf, nk), n_fft=nf, n_k=nk, size=renderer.stamp_size))[:len(sel)]
     return out
 
 
-@pytest.mark.parametrize("profile", ["sersic", "gaussian"])
-def test_noiseless_stamps_equal_cpu_over_the_render_grid(profile, starfield) -> None:
-    """Every PSF, grid (wrapping Nk > N included) and galaxy of tests/test_sim_render.py."""
-    from test_sim_render import CASES, _galaxies, _setup
+#: Cases of tests/test_sim_render.py in the default run: the fiducial PSF, a small Moffat
+#: (Nk > N: GalSim's wrapping), a star image (no_pixel). The
+#: whole grid (each new FFT grid costs a compilation on JAX's CPU mode) runs with -m slow.
+QUICK_CASES = (0, 3, 8)
+
+
+def _check_render_cases(profile: str, cases, starfield: str) -> None:
+    from test_sim_render import _galaxies, _setup
 
     from megalut_cli.sim.render import StampRenderer
 
-    for case in range(len(CASES)):
+    for case in cases:
+        from test_sim_render import CASES
+
         psf, method, gsparams, size, m = _setup(CASES[case], starfield)
         gals = _galaxies(100 + case, m if profile == "sersic" else max(3, m // 3), profile)
         renderer = StampRenderer(size, gsparams)
@@ -90,6 +97,20 @@ def test_noiseless_stamps_equal_cpu_over_the_render_grid(profile, starfield) -> 
         got = _device_draw(renderer, psf, ("psf", case), method, gals)
         err = np.abs(got - ref).max(axis=(1, 2)) / np.abs(ref).max(axis=(1, 2))
         assert err.max() <= PEAK_TOLERANCE, (case, err.max())
+
+
+@pytest.mark.parametrize("profile", ["sersic", "gaussian"])
+def test_noiseless_stamps_equal_cpu(profile, starfield) -> None:
+    _check_render_cases(profile, QUICK_CASES, starfield)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("profile", ["sersic", "gaussian"])
+def test_noiseless_stamps_equal_cpu_over_the_render_grid(profile, starfield) -> None:
+    """Every PSF, grid and galaxy of tests/test_sim_render.py."""
+    from test_sim_render import CASES
+
+    _check_render_cases(profile, range(len(CASES)), starfield)
 
 
 def _noisy_stamps(m: int = 96, size: int = 32) -> np.ndarray:
@@ -143,7 +164,7 @@ def test_work_unit_on_the_device_equals_the_fast_engine() -> None:
     from megalut_cli.sim.draw import WorkUnit, draw_unit
 
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = load_config(write(Path(tmp), TINY), n_cases=3, n_realizations=6)
+        cfg = load_config(write(Path(tmp), TINY))  # 3 cases x 4 realizations, as the CLI test below
     unit = WorkUnit(cfg, 5, 0, 3, cfg.structure.grid_nx, keep_stamps=True, measure=True)
     cpu = draw_unit(unit)
     dev = draw_unit(dataclasses.replace(unit, device="gpu"))
