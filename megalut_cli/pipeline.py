@@ -59,7 +59,7 @@ from typing import Any
 
 from megalut_cli import __version__
 from megalut_cli.atomic import atomic_output
-from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
+from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, DEVICES, ENGINES, resolve_device
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.provenance import sha256_file, utc_now
 from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, validate_config
@@ -94,7 +94,7 @@ MAX_EXTENDS = 8
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")  # no ".": never a product's name
 
 _TOP_KEYS = {
-    "description", "name", "scale", "engine", "simulation", "sets", "pretrain", "train_point", "train_weight",
+    "description", "name", "scale", "engine", "device", "simulation", "sets", "pretrain", "train_point", "train_weight",
     "evaluate", "evaluate_vp",
 }
 _SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed", "scale_by"}
@@ -191,6 +191,7 @@ class Pipeline:
     pretrain: PretrainSpec | None = None  # with the set "pretrain"
     evaluate_vp: EvaluateSpec | None = None  # with the set "vp"
     engine: str = DEFAULT_ENGINE  # stamp engine of the simulations (megalut_cli.engine)
+    device: str = DEFAULT_DEVICE  # where simulations and trainings run; not in the steps' keys
 
     def product(self, base: str) -> str:
         """Where a product of a training, prediction or evaluation step goes in the work folder."""
@@ -442,6 +443,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         )
     scale = top.get_float("scale", 1.0, 0.0, math.inf, lo_open=True)
     engine = top.get_str("engine", DEFAULT_ENGINE, tuple(ENGINES)) or DEFAULT_ENGINE
+    device = top.get_str("device", DEFAULT_DEVICE, tuple(DEVICES)) or DEFAULT_DEVICE
     base_sim = top.data.get("simulation")
     if base_sim is not None and not isinstance(base_sim, Mapping):
         raise ConfigError("simulation: expected a table (a simulation config, see docs/config.md)")
@@ -493,7 +495,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     pipe = Pipeline(
         path=path, sha256=sha256, overrides=tuple(overrides), raw=json.loads(json.dumps(raw, default=str)),
         description=description, scale=scale, sets=sets, train_point=point, train_weight=weight,
-        evaluate=evaluate, name=name, pretrain=pretrain, evaluate_vp=evaluate_vp, engine=engine,
+        evaluate=evaluate, name=name, pretrain=pretrain, evaluate_vp=evaluate_vp, engine=engine, device=device,
     )
     _check_columns(pipe)
     return pipe
@@ -711,7 +713,8 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         def action(wd: Path, overwrite: bool) -> None:
             with prog(f"simulate {spec.name}", n_work_units(spec.config, nproc, scheduler)) as update:
                 simulate(spec.config, wd / spec.product, measure=True, seed=spec.seed, nproc=nproc,
-                         scheduler=scheduler, overwrite=overwrite, progress=update, engine=pipe.engine)
+                         scheduler=scheduler, overwrite=overwrite, progress=update, engine=pipe.engine,
+                         device=pipe.device)
 
         s = spec.config.structure
         extra = {}
@@ -741,7 +744,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
 
             train_point(wd / "pretrain.fits", wd / out("pretrain.h5"), features=tp.features, targets=pre.targets,
                         hidden=tp.hidden, cost=pre.cost, select_cases=pre.select_cases, init_scheme=pre.init,
-                        options=pre.options, nproc=nproc, scheduler=scheduler, overwrite=overwrite,
+                        options=replace(pre.options, device=resolve_device(pipe.device)), nproc=nproc, scheduler=scheduler, overwrite=overwrite,
                         progress=progress)
 
         add("pretrain-point", [out("pretrain.h5")], ["pretrain.fits"],
@@ -758,7 +761,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         init_from = wd / out("pretrain.h5") if pre is not None else None
         train_point(wd / "tp.fits", wd / out("point.h5"), features=tp.features, targets=tp.targets,
                     hidden=tp.hidden, cost=tp.cost, select_cases=tp.select_cases, init_from=init_from,
-                    init_scheme=tp.init, options=tp.options, nproc=nproc, scheduler=scheduler,
+                    init_scheme=tp.init, options=replace(tp.options, device=resolve_device(pipe.device)), nproc=nproc, scheduler=scheduler,
                     overwrite=overwrite, progress=progress)
 
     add("train-point", [out("point.h5")], ["tp.fits"] + ([out("pretrain.h5")] if pre is not None else []),
@@ -818,7 +821,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         from megalut_cli.training import train_weight
 
         train_weight(wd / "tw.fits", wd / out("point.h5"), wd / out("model.h5"), features=tw.features,
-                     hidden=tw.hidden, select=tw.select, options=tw.options, nproc=nproc, scheduler=scheduler,
+                     hidden=tw.hidden, select=tw.select, options=replace(tw.options, device=resolve_device(pipe.device)), nproc=nproc, scheduler=scheduler,
                      overwrite=overwrite, progress=progress)
 
     add("train-weight", [out("model.h5")], ["tw.fits", out("point.h5")],
