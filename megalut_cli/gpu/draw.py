@@ -20,8 +20,7 @@ import numpy as np
 from megalut_cli.errors import MegalutError
 from megalut_cli.gpu import jax_device
 from megalut_cli.gpu import render as grender
-from megalut_cli.gpu.adamom import measure_batch
-from megalut_cli.gpu.measure import BATCH_STAMPS, padded_size, split_measurements
+from megalut_cli.gpu.measure import BATCH_STAMPS, measure_on_device, padded_size, split_measurements
 from megalut_cli.gpu.noise import add_gaussian_noise
 from megalut_cli.measure.features import (
     default_guess_sigma,
@@ -37,6 +36,10 @@ from megalut_cli.sim.draw import (
     stamp_renderer,
 )
 from megalut_cli.sim.structure import draw_case
+
+#: Most stamps given their noise at once (the generator's state and normals: ~33 KB per
+#: 64 x 64 stamp).
+NOISE_STAMPS = 32768
 
 
 def _padded(a: np.ndarray, size: int, fill: float = 0.0) -> np.ndarray:
@@ -96,25 +99,25 @@ def draw_unit_device(unit: Any) -> dict[str, Any]:
         truth_parts.append(case_columns(d, psf_truths))
 
     # Per-stamp inputs, gathered from the plans; one table of radial profiles for the unit.
-    profiles, offsets = [], []
-    for plan in plans:
-        offsets.append(len(profiles))
-        profiles.extend(plan.profiles)
+    profiles: list[Any] = []
+    index_of: dict[int, int] = {}  # id of a (cached) radial profile -> its row in the unit's table
     amat = np.zeros((n_total, 4))
     flux, shx, shy = np.zeros(n_total), np.zeros(n_total), np.zeros(n_total)
     table = np.zeros(n_total, dtype=np.int64)
-    for plan, rows, off in zip(plans, rows_of_plan, offsets):
+    for plan, rows in zip(plans, rows_of_plan):
         amat[rows], flux[rows], shx[rows], shy[rows] = plan.amat, plan.flux, plan.shift_x, plan.shift_y
-        table[rows] = plan.table + off
+        for prof in plan.profiles:
+            if id(prof) not in index_of:
+                index_of[id(prof)] = len(profiles)
+                profiles.append(prof)
+        table[rows] = np.array([index_of[id(prof)] for prof in plan.profiles], dtype=np.int64)[plan.table]
     eparams, eint, coef = (jax.device_put(a, dev) for a in grender.profile_arrays(profiles)) if profiles else (None,) * 3
     gaussian = np.array([nz.kind == "gaussian" and nz.sigma > 0 for nz in noises])[noise_of]
     sigma = np.array([nz.sigma for nz in noises])[noise_of]
     host_noise = np.array([nz.kind not in ("gaussian", "none") for nz in noises])[noise_of]
     guess = default_guess_sigma(S)
 
-    results = np.full((n_total, 11), np.nan)
-    keep = unit.keep_stamps or (unit.measure and unit.morphology)  # morphology is measured on the host
-    kept = np.empty((n_total, S, S), dtype=np.float32) if keep else None
+    pieces, piece_rows = [], []
     for (key, nf, nk), parts in groups.items():
         rows = np.concatenate(parts)[:, 2]
         psf, method = psfs[key]
@@ -125,21 +128,31 @@ def draw_unit_device(unit: Any) -> dict[str, Any]:
             size = padded_size(len(sel))
             pad_amat = _padded(amat[sel], size)
             pad_amat[len(sel):, 0] = pad_amat[len(sel):, 3] = 1.0  # padding: zero flux, identity transform
-            stamps = grender.render_batch(
+            pieces.append(grender.render_batch(
                 kpsf, pad_amat, _padded(flux[sel], size), _padded(shx[sel], size), _padded(shy[sel], size),
-                _padded(table[sel], size), eparams, eint, coef, dest, weight, conj, n_fft=nf, n_k=nk, size=S)
-            if gaussian[sel].any():
-                stamps = add_gaussian_noise(stamps, jnp.asarray(_padded(seeds[sel], size)),
-                                            jnp.asarray(_padded(np.where(gaussian[sel], sigma[sel], 0.0), size)))
-            if host_noise[sel].any():
-                host = np.array(stamps)
-                for k in np.flatnonzero(host_noise[sel]):
-                    noises[noise_of[sel[k]]].add_batch(host[k:k + 1], seeds[sel[k]:sel[k] + 1])
-                stamps = jax.device_put(host, dev)
-            if kept is not None:
-                kept[sel] = np.asarray(stamps)[: len(sel)]
-            if unit.measure:
-                results[sel] = np.asarray(measure_batch(stamps, guess))[: len(sel)]
+                _padded(table[sel], size), eparams, eint, coef, dest, weight, conj, n_fft=nf, n_k=nk, size=S
+            )[: len(sel)])
+            piece_rows.append(sel)
+    # The unit's stamps in row order, then the noise over large batches (its generator loops
+    # over the pixels: the loop's cost per step hardly depends on the batch size).
+    stamps = jnp.concatenate(pieces)[jnp.asarray(np.argsort(np.concatenate(piece_rows)))]
+    if gaussian.any():
+        noisy = []
+        for a in range(0, n_total, NOISE_STAMPS):
+            b = min(a + NOISE_STAMPS, n_total)
+            size = padded_size(b - a, NOISE_STAMPS)
+            block = jnp.concatenate([stamps[a:b], jnp.zeros((size - (b - a), S, S), jnp.float32)])
+            noisy.append(add_gaussian_noise(block, _padded(seeds[a:b], size),
+                                            _padded(np.where(gaussian[a:b], sigma[a:b], 0.0), size))[: b - a])
+        stamps = jnp.concatenate(noisy)
+    if host_noise.any():
+        host = np.array(stamps)
+        for k in np.flatnonzero(host_noise):
+            noises[noise_of[k]].add_batch(host[k:k + 1], seeds[k:k + 1])
+        stamps = jax.device_put(host, dev)
+    keep = unit.keep_stamps or (unit.measure and unit.morphology)  # morphology is measured on the host
+    kept = np.asarray(stamps) if keep else None
+    results = measure_on_device(stamps, guess) if unit.measure else None
 
     columns = {k: np.concatenate([p[k] for p in truth_parts]) for k in truth_parts[0]} if truth_parts else {}
     if unit.measure:
