@@ -40,29 +40,44 @@ execution engine (``-j``, Dask) is not part of the key: the results do not depen
 
 from __future__ import annotations
 
-import contextlib
 import copy
-import hashlib
 import importlib.resources
 import json
 import logging
 import math
 import os
 import re
-import shutil
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import AbstractContextManager
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from megalut_cli import __version__
-from megalut_cli.atomic import atomic_output
+from megalut_cli.atomic import write_json
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, DEVICES, ENGINES, resolve_device
 from megalut_cli.errors import ConfigError, InputError, MegalutError
-from megalut_cli.provenance import sha256_file, utc_now
+from megalut_cli.pipeline_config import (
+    ConfigTable,
+    EvaluateSpec,
+    TrainPointSpec,
+    TrainWeightSpec,
+    merge_tables,
+    selection_expression,
+    train_options_from,
+)
+from megalut_cli.progress import Progress, relabelled
+from megalut_cli.provenance import sha256_file
 from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, validate_config
+from megalut_cli.steps import (
+    MANIFEST,
+    RunRecord,
+    Step,
+    StepReport,
+    check_workdir,
+    run_steps,
+    sha_text,
+    timing_line,
+)
 from megalut_cli.training import DEFAULT_FEATURES, TrainOptions
 
 log = logging.getLogger("megalut")
@@ -70,9 +85,6 @@ log = logging.getLogger("megalut")
 #: The embedded default pipeline (package data).
 DEFAULT_PIPELINE = "default_pipeline.toml"
 DEFAULT_WORKDIR = "megalut-run"
-MANIFEST = "manifest.json"
-MANIFEST_FORMAT = "megalut.run-manifest"
-MANIFEST_VERSION = "1.0"
 EVALUATION_JSON = "evaluation.json"
 EVALUATION_PNG = "evaluation.png"
 EVALUATION_VP_JSON = "evaluation-vp.json"
@@ -110,9 +122,6 @@ _TRAIN_WEIGHT_KEYS = _TRAIN_COMMON | {"select"}
 _PRETRAIN_KEYS = (_TRAIN_COMMON - {"features", "hidden"}) | {"targets", "cost", "select_cases", "init"}
 _EVALUATE_KEYS = {"by", "bins", "select", "select_cases", "plot"}
 
-ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
-
-
 # --------------------------------------------------------------------------- specification
 
 
@@ -131,17 +140,6 @@ class SetSpec:
 
 
 @dataclass(frozen=True)
-class TrainPointSpec:
-    features: list[str]
-    targets: list[str]
-    hidden: list[int]
-    cost: str
-    select_cases: str | None
-    init: str
-    options: TrainOptions
-
-
-@dataclass(frozen=True)
 class PretrainSpec:
     """Pretraining of the point estimators on the ``pretrain`` set (paper Sect. 6).
 
@@ -153,23 +151,6 @@ class PretrainSpec:
     select_cases: str | None
     init: str
     options: TrainOptions
-
-
-@dataclass(frozen=True)
-class TrainWeightSpec:
-    features: list[str] | None  # None: those of the point model
-    hidden: list[int]
-    select: str | None
-    options: TrainOptions
-
-
-@dataclass(frozen=True)
-class EvaluateSpec:
-    by: list[str]
-    bins: int
-    select: str | None
-    select_cases: str | None
-    plot: bool
 
 
 @dataclass(frozen=True)
@@ -198,105 +179,12 @@ class Pipeline:
         return f"{self.name}/{base}" if self.name else base
 
 
-class ConfigTable:
-    """Typed, key-checked access to one table of the pipeline file (errors name the key)."""
-
-    def __init__(self, data: Any, where: str, allowed: set[str] | None = None) -> None:
-        if data is None:
-            data = {}
-        if not isinstance(data, Mapping):
-            raise ConfigError(f"{where}: expected a table, got {data!r}")
-        self.data, self.where = dict(data), where
-        if allowed is not None:
-            unknown = sorted(set(self.data) - allowed)
-            if unknown:
-                raise ConfigError(f"{self.key(unknown[0])}: unknown key (allowed: {', '.join(sorted(allowed))})")
-
-    def key(self, name: str) -> str:
-        return f"{self.where}.{name}" if self.where else name
-
-    def get_int(self, name: str, default: int | None, minimum: int) -> int | None:
-        v = self.data.get(name, default)
-        if v is None:
-            return None
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise ConfigError(f"{self.key(name)}: expected an integer, got {v!r}")
-        if v < minimum:
-            raise ConfigError(f"{self.key(name)}: must be >= {minimum}, got {v}")
-        return int(v)
-
-    def get_float(self, name: str, default: float, lo: float, hi: float, lo_open: bool = False,
-              hi_open: bool = False) -> float:
-        v = self.data.get(name, default)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise ConfigError(f"{self.key(name)}: expected a finite number, got {v!r}")
-        if v < lo or v > hi or (lo_open and v == lo) or (hi_open and v == hi):
-            interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
-            raise ConfigError(f"{self.key(name)}: must be in {interval}, got {v!r}")
-        return float(v)
-
-    def get_str(self, name: str, default: str | None, choices: Sequence[str] | None = None) -> str | None:
-        v = self.data.get(name, default)
-        if v is None:
-            return None
-        if not isinstance(v, str) or not v.strip():
-            raise ConfigError(f"{self.key(name)}: expected a non-empty string, got {v!r}")
-        if choices is not None and v not in choices:
-            raise ConfigError(f"{self.key(name)}: unknown value {v!r} (expected one of {', '.join(choices)})")
-        return v
-
-    def get_bool(self, name: str, default: bool) -> bool:
-        v = self.data.get(name, default)
-        if not isinstance(v, bool):
-            raise ConfigError(f"{self.key(name)}: expected true or false, got {v!r}")
-        return v
-
-    def get_str_list(self, name: str, default: Sequence[str] | None, allow_empty: bool = False) -> list[str] | None:
-        v = self.data.get(name, default)
-        if v is None:
-            return None
-        if isinstance(v, str):
-            v = [s.strip() for s in v.split(",") if s.strip()]
-        if not isinstance(v, (list, tuple)) or not all(isinstance(s, str) and s for s in v):
-            raise ConfigError(f"{self.key(name)}: expected a list of names, got {v!r}")
-        if not v and not allow_empty:
-            raise ConfigError(f"{self.key(name)}: the list is empty")
-        dup = sorted({s for s in v if list(v).count(s) > 1})
-        if dup:
-            raise ConfigError(f"{self.key(name)}: {dup[0]!r} given twice")
-        return list(v)
-
-    def get_int_list(self, name: str, default: Sequence[int]) -> list[int]:
-        v = self.data.get(name, default)
-        if isinstance(v, int) and not isinstance(v, bool):
-            v = [v]
-        if (not isinstance(v, (list, tuple)) or not v
-                or not all(isinstance(i, int) and not isinstance(i, bool) and i > 0 for i in v)):
-            raise ConfigError(f"{self.key(name)}: expected a list of positive integers, got {v!r}")
-        return list(v)
-
-
-def merge_tables(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
-    """Deep-merge ``over`` into a copy of ``base``; a table with a ``type`` key replaces, not merges."""
-    out = copy.deepcopy(dict(base))
-    for k, v in over.items():
-        if isinstance(v, Mapping) and "type" not in v and isinstance(out.get(k), Mapping):
-            out[k] = merge_tables(out[k], v)
-        else:
-            out[k] = copy.deepcopy(v)
-    return out
-
-
 def scaled_size(n: int, factor: float, minimum: int, even: bool = False) -> int:
     """``n`` times ``factor``, rounded, at least ``minimum`` (and even when ``even``)."""
     m = max(minimum, round(n * factor))
     if even:
         m = max(2, 2 * round(m / 2))
     return int(m)
-
-
-def _sha_text(obj: Any) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
 def _resolve(text: str, key: str, base: Path | None) -> Path:
@@ -359,39 +247,6 @@ def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | N
     if config.structure.n_cases < 2:
         raise ConfigError(f"sets.{name}.n_cases: at least 2 cases are needed, got {config.structure.n_cases}")
     return SetSpec(name, config, int(seed), source)
-
-
-def train_options_from(t: ConfigTable, iterations: int, seed: int) -> TrainOptions:
-    opts = TrainOptions(
-        members=t.get_int("members", 8, 1),
-        iterations=t.get_int("iterations", iterations, 1),
-        batch_fraction=t.get_float("batch_fraction", 0.25, 0.0, 1.0, lo_open=True),
-        batch_iterations=t.get_int("batch_iterations", 30, 1),
-        optimizer=t.get_str("optimizer", "bfgs", ("bfgs", "lbfgs")),
-        normalization=t.get_str("normalization", "minmax", ("minmax", "robust")),
-        valid_fraction=t.get_float("valid_fraction", 0.2, 0.0, 1.0, hi_open=True),
-        seed=t.get_int("seed", seed, 0),
-        dtype=t.get_str("precision", "float64", ("float64", "float32")),
-        keep=t.get_int("keep", None, 1),
-    )
-    if opts.keep is not None and opts.keep > opts.members:
-        raise ConfigError(f"{t.key('keep')}: must be <= {t.key('members')} ({opts.members}), got {opts.keep}")
-    return opts
-
-
-def selection_expression(t: ConfigTable, name: str, case_mode: bool, default: str | None = None) -> str | None:
-    """A selection expression, syntax-checked (columns are checked later); ``""`` means none."""
-    from megalut_cli.expr import check_expression
-
-    if t.data.get(name) == "":
-        return None
-    expr = t.get_str(name, default)
-    if expr is not None:
-        try:
-            check_expression(expr, None, case_mode=case_mode)
-        except MegalutError as err:
-            raise ConfigError(f"{t.key(name)}: {err}") from None
-    return expr
 
 
 def _evaluate_spec(t: ConfigTable, select_cases: str | None) -> EvaluateSpec:
@@ -635,7 +490,7 @@ def read_pipeline_file(path: str | os.PathLike, _chain: tuple[Path, ...] = ()) -
         raise InputError(f"{path}: extends: no such file {str(base_path)!r}")
     base_raw, base_sha = read_pipeline_file(base_path, (*_chain, p))
     _absolute_configs(base_raw, base_path.parent)
-    return merge_tables(base_raw, raw), _sha_text([base_sha, sha])
+    return merge_tables(base_raw, raw), sha_text([base_sha, sha])
 
 
 def load_pipeline(path: str | os.PathLike | None = None, overrides: Sequence[str] = ()) -> Pipeline:
@@ -653,31 +508,6 @@ def load_pipeline(path: str | os.PathLike | None = None, overrides: Sequence[str
 
 
 @dataclass
-class Step:
-    """One step: products in the work folder, inputs (upstream products), parameters.
-
-    ``prefix`` (``"<name>/"`` of a named pipeline, else ``""``) starts the step's name
-    and its products; the step's key is computed without it, so that the same work
-    gets the same key in any pipeline.
-    """
-
-    name: str
-    outputs: list[str]
-    inputs: list[str]
-    params: dict[str, Any]
-    action: Callable[[Path, bool], None]  # (workdir, overwrite)
-    summary: str = ""
-    prefix: str = ""
-
-
-@dataclass
-class StepReport:
-    name: str
-    status: str  # "ran", "skipped" or "copied" (the products of the same work in another pipeline)
-    seconds: float
-
-
-@dataclass
 class RunResult:
     """What :func:`run_pipeline` did and the evaluation it ends with."""
 
@@ -689,16 +519,9 @@ class RunResult:
     prefix: str = ""  # where the step products are, relative to workdir ("" or "<name>/")
 
 
-@contextlib.contextmanager
-def _quiet_progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
-    del label, length
-    yield lambda n: None
-
-
 def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
-                progress: ProgressFactory | None = None) -> list[Step]:
+                progress: Progress | None = None) -> list[Step]:
     """The steps of ``pipe`` in execution order."""
-    prog = progress or _quiet_progress
     prefix = f"{pipe.name}/" if pipe.name else ""
     out = pipe.product
     steps: list[Step] = []
@@ -708,13 +531,12 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         steps.append(Step(prefix + name, outputs, inputs, params, action, summary, prefix))
 
     def sim_step(spec: SetSpec) -> Step:
-        from megalut_cli.sim.simulate import n_work_units, simulate
+        from megalut_cli.sim.simulate import simulate
 
         def action(wd: Path, overwrite: bool) -> None:
-            with prog(f"simulate {spec.name}", n_work_units(spec.config, nproc, scheduler)) as update:
-                simulate(spec.config, wd / spec.product, measure=True, seed=spec.seed, nproc=nproc,
-                         scheduler=scheduler, overwrite=overwrite, progress=update, engine=pipe.engine,
-                         device=pipe.device)
+            simulate(spec.config, wd / spec.product, measure=True, seed=spec.seed, nproc=nproc, scheduler=scheduler,
+                     overwrite=overwrite, progress=relabelled(progress, f"simulate {spec.name}"), engine=pipe.engine,
+                     device=pipe.device)
 
         s = spec.config.structure
         extra = {}
@@ -775,12 +597,10 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
 
     def predict_step(name: str, catalog: str, model: str, shears: str, summary: str) -> None:
         def action(wd: Path, overwrite: bool) -> None:
-            from megalut_cli.catalog import catalog_info
             from megalut_cli.shear.predict import predict_catalog
 
-            with prog(name, catalog_info(wd / catalog)[0]) as update:
-                predict_catalog(wd / catalog, wd / out(model), wd / out(shears), nproc=nproc,
-                                scheduler=scheduler, overwrite=overwrite, progress=update)
+            predict_catalog(wd / catalog, wd / out(model), wd / out(shears), nproc=nproc, scheduler=scheduler,
+                            overwrite=overwrite, progress=relabelled(progress, name))
 
         add(name, [out(shears)], [catalog, out(model)], {}, action, summary)
 
@@ -842,132 +662,12 @@ def _have_matplotlib() -> bool:
     return True
 
 
-def write_json(path: str | os.PathLike, obj: Any, overwrite: bool = False) -> None:
-    """Write ``obj`` as indented JSON, atomically (temp file, then rename)."""
-    with atomic_output(path, overwrite) as tmp:
-        tmp.write_text(json.dumps(obj, indent=1, allow_nan=False) + "\n")
-
-
-# --------------------------------------------------------------------------- manifest
-
-
-class Manifest:
-    """``manifest.json``: the key and output fingerprints of every finished step."""
-
-    def __init__(self, path: Path, pipeline: Pipeline) -> None:
-        self.path = path
-        self.pipeline = pipeline
-        self.steps: dict[str, Any] = {}
-        self.pipelines: dict[str, Any] = {}  # name ("" unnamed) -> the last pipeline of that name run here
-        if path.is_file():
-            try:
-                data = json.loads(path.read_text())
-            except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-                log.warning("%s: unreadable, every step will run", path)
-                data = {}
-            if isinstance(data, dict) and data.get("format") == MANIFEST_FORMAT and isinstance(data.get("steps"), dict):
-                self.steps = data["steps"]
-                if isinstance(data.get("pipelines"), dict):
-                    self.pipelines = data["pipelines"]
-
-    @staticmethod
-    def fingerprint(path: Path) -> dict[str, Any]:
-        st = path.stat()
-        return {"sha256": sha256_file(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
-
-    def current_sha(self, step: str, workdir: Path, name: str) -> str | None:
-        """The sha256 of product ``name`` if it is still what ``step`` recorded, else None."""
-        p = workdir / name
-        rec = (self.steps.get(step) or {}).get("outputs", {}).get(name)
-        if not p.is_file() or not isinstance(rec, dict):
-            return None
-        st = p.stat()
-        if rec.get("size") == st.st_size and rec.get("mtime_ns") == st.st_mtime_ns:
-            return rec.get("sha256")  # unchanged since recorded (as make/git assume)
-        sha = sha256_file(p)
-        return sha if sha == rec.get("sha256") else None
-
-    def same_work(self, step: Step, key: str, workdir: Path) -> tuple[str, dict[str, str]] | None:
-        """Another step with this key whose products are intact: (its name, our product -> its product)."""
-        for other, rec in self.steps.items():
-            if other == step.name or not isinstance(rec, dict) or rec.get("key") != key:
-                continue
-            theirs = list(rec.get("outputs") or {})
-            if len(theirs) == len(step.outputs) and all(self.current_sha(other, workdir, o) for o in theirs):
-                return other, dict(zip(step.outputs, theirs))
-        return None
-
-    def record(self, step: Step, key: str, inputs: Mapping[str, str], outputs: Mapping[str, dict[str, Any]],
-               seconds: float, copied_from: str | None = None) -> None:
-        self.steps[step.name] = {
-            "key": key,
-            "params": step.params,
-            "inputs": dict(inputs),
-            "outputs": dict(outputs),
-            "seconds": round(seconds, 3),
-            "finished": utc_now(),
-        }
-        if copied_from is not None:
-            self.steps[step.name]["copied_from"] = copied_from
-        self.save()
-
-    def save(self) -> None:
-        p = self.pipeline
-        this = {"path": p.path, "sha256": p.sha256, "overrides": list(p.overrides), "effective": p.raw}
-        self.pipelines[p.name] = this
-        data = {
-            "format": MANIFEST_FORMAT,
-            "format_version": MANIFEST_VERSION,
-            "megalut": __version__,
-            "pipeline": this,  # the last one run here
-            "pipelines": self.pipelines,
-            "steps": self.steps,
-        }
-        write_json(self.path, data, overwrite=True)
-
-
-def _unprefix(name: str, prefix: str) -> str:
-    return name[len(prefix):] if prefix and name.startswith(prefix) else name
-
-
-def step_key(step: Step, input_shas: Mapping[str, str]) -> str:
-    """The identity of a step's work: parameters, input contents, megalut version (no pipeline name)."""
-    inputs = {_unprefix(n, step.prefix): s for n, s in input_shas.items()}
-    return _sha_text({"step": _unprefix(step.name, step.prefix), "params": step.params, "inputs": inputs,
-                      "megalut": __version__})
-
-
 # --------------------------------------------------------------------------- running
 
 
-def products(steps: Sequence[Step]) -> list[str]:
-    return [o for s in steps for o in s.outputs]
-
-
-def check_workdir(workdir: Path, steps: Sequence[Step], skip_existing: bool, overwrite: bool) -> None:
-    """Fail early: a file where the folder should be, or products there without a flag."""
-    if workdir.exists() and not workdir.is_dir():
-        raise MegalutError(f"--workdir {workdir}: exists and is not a folder")
-    existing = next((p for p in (workdir, *workdir.absolute().parents) if p.exists()), Path("."))
-    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
-        where = "" if existing == workdir else f" (its folder {existing})"
-        raise MegalutError(f"--workdir {workdir}: not writable{where}")
-    if skip_existing or overwrite:
-        return
-    prefix = next((s.prefix for s in steps if s.prefix), "")
-    pngs = [prefix + EVALUATION_PNG, prefix + EVALUATION_VP_PNG]
-    for name in dict.fromkeys([*products(steps), *pngs, MANIFEST]):
-        if (workdir / name).exists():
-            raise MegalutError(
-                f"{workdir / name} exists; use --skip-existing to reuse the up-to-date products "
-                "or --overwrite to redo every step"
-            )
-
-
-def _copy_products(wd: Path, mapping: Mapping[str, str]) -> None:
-    for ours, theirs in mapping.items():
-        with atomic_output(wd / ours, overwrite=True) as tmp:
-            shutil.copyfile(wd / theirs, tmp)
+def _evaluation_pngs(pipe: Pipeline) -> list[str]:
+    """Figures a run may leave (even when this one draws none): a product to refuse to overwrite."""
+    return [pipe.product(EVALUATION_PNG), pipe.product(EVALUATION_VP_PNG)]
 
 
 def plan_pipeline(
@@ -985,7 +685,7 @@ def plan_pipeline(
 
     wd = Path(workdir)
     steps = build_steps(pipe, nproc, scheduler)
-    check_workdir(wd, steps, skip_existing, overwrite)
+    check_workdir(wd, steps, skip_existing, overwrite, _evaluation_pngs(pipe))
     lines = [f"pipeline {pipe.path} -> {wd / pipe.name if pipe.name else wd}: {len(steps)} steps"
              + (" (up-to-date steps will be skipped)" if skip_existing else "")]
     sims = {f"simulate-{name}": spec for name, spec in pipe.sets.items()}
@@ -1005,64 +705,25 @@ def run_pipeline(
     overwrite: bool = False,
     nproc: int = 1,
     scheduler: str | None = None,
-    progress: ProgressFactory | None = None,
+    progress: Progress | None = None,
 ) -> RunResult:
     """Run (or bring up to date) every step of ``pipe`` in ``workdir``; return the evaluation."""
     wd = Path(workdir)
     steps = build_steps(pipe, nproc, scheduler, progress)
-    check_workdir(wd, steps, skip_existing, overwrite)
+    check_workdir(wd, steps, skip_existing, overwrite, _evaluation_pngs(pipe))
     wd.mkdir(parents=True, exist_ok=True)
     if pipe.name:
         (wd / pipe.name).mkdir(exist_ok=True)
-    manifest = Manifest(wd / MANIFEST, pipe)
-    if not skip_existing:  # every step of this pipeline runs; other pipelines' records stay
-        for step in steps:
-            manifest.steps.pop(step.name, None)
     log.info("pipeline %s -> %s", pipe.path, wd / pipe.name if pipe.name else wd)
     t_start = time.perf_counter()
-    shas: dict[str, str] = {}
-    reports: list[StepReport] = []
-    for i, step in enumerate(steps, 1):
-        label = f"[{i}/{len(steps)}] {step.name}"
-        inputs = {name: shas[name] for name in step.inputs}
-        key = step_key(step, inputs)
-        donor = None
-        if skip_existing:
-            rec = manifest.steps.get(step.name) or {}
-            current = {o: manifest.current_sha(step.name, wd, o) for o in step.outputs}
-            if rec.get("key") == key and all(current.values()):
-                shas.update({o: s for o, s in current.items() if s})
-                log.info("%s: up to date, skipped", label)
-                reports.append(StepReport(step.name, "skipped", 0.0))
-                continue
-            donor = manifest.same_work(step, key, wd)
-            reason = "parameters or inputs changed" if rec.get("key") not in (None, key) else (
-                "not run yet" if not rec else "products missing or changed")
-            if donor is None:
-                log.info("%s: %s: %s", label, reason, step.summary)
-        else:
-            log.info("%s: %s", label, step.summary)
-        manifest.steps.pop(step.name, None)
-        t0 = time.perf_counter()
-        if donor is not None:
-            log.info("%s: the same work as %s: copying its products", label, donor[0])
-            _copy_products(wd, donor[1])
-        else:
-            step.action(wd, overwrite or skip_existing)
-        seconds = time.perf_counter() - t0
-        outputs = {o: Manifest.fingerprint(wd / o) for o in step.outputs}
-        shas.update({o: f["sha256"] for o, f in outputs.items()})
-        manifest.record(step, key, inputs, outputs, seconds, donor[0] if donor else None)
-        log.info("%s: done in %.1f s", label, seconds)
-        reports.append(StepReport(step.name, "copied" if donor else "ran", seconds))
+    run = RunRecord(pipe.name, pipe.path, pipe.sha256, pipe.overrides, pipe.raw)
+    reports = run_steps(steps, wd, run, skip_existing=skip_existing, overwrite=overwrite)
     total = time.perf_counter() - t_start
     evaluation = json.loads((wd / pipe.product(EVALUATION_JSON)).read_text())
     evaluation_vp = None
     if pipe.evaluate_vp is not None:
         evaluation_vp = json.loads((wd / pipe.product(EVALUATION_VP_JSON)).read_text())
-    log.info("pipeline finished in %.1f s (%s)", total,
-             ", ".join(f"{r.name} {r.seconds:.0f} s" if r.status == "ran" else f"{r.name} {r.status}"
-                       for r in reports))
+    log.info("pipeline finished in %.1f s (%s)", total, timing_line(reports))
     return RunResult(wd, evaluation, reports, total, evaluation_vp, f"{pipe.name}/" if pipe.name else "")
 
 

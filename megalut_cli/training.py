@@ -14,11 +14,9 @@ removed them); an error is raised when fewer than two cases remain.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import AbstractContextManager
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -37,6 +35,7 @@ from megalut_cli.nn.network import Network
 from megalut_cli.nn.population import training_population
 from megalut_cli.nn.train import OPTIMIZERS, TrainSettings
 from megalut_cli.parallel import executor
+from megalut_cli.progress import Progress, no_progress
 from megalut_cli.provenance import command_line, sha256_file, software_versions
 from megalut_cli.seeding import STREAM_SPLIT, rng_for
 
@@ -49,8 +48,6 @@ DEFAULT_POINT_HIDDEN = (5, 5)
 DEFAULT_WEIGHT_HIDDEN = (5,)
 DEFAULT_POINT_ITERATIONS = 1000
 DEFAULT_WEIGHT_ITERATIONS = 300
-
-ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
 
 
 @dataclass
@@ -96,18 +93,6 @@ class TrainOptions:
             batch_iterations=self.batch_iterations, optimizer=self.optimizer, dtype=self.dtype,
             device=self.device,
         )
-
-
-@contextlib.contextmanager
-def _no_progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
-    done = 0
-
-    def update(n: int) -> None:
-        nonlocal done
-        done += n
-        log.info("%s: %d/%d", label, done, length)
-
-    yield update
 
 
 def _unique(items: Sequence[str], what: str) -> list[str]:
@@ -309,7 +294,7 @@ def train_point(
     nproc: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
-    progress: ProgressFactory | None = None,
+    progress: Progress | None = None,
 ) -> ShearModel:
     """Train point-estimate committees (one per target) and write the model to ``output``."""
     opts = options or TrainOptions()
@@ -408,7 +393,7 @@ def _run(
     seed: int,
     nproc: int,
     scheduler: str | None,
-    progress: ProgressFactory | None,
+    progress: Progress | None,
 ) -> dict[str, Committee]:
     n_units = sum(s.members for s in specs)
     if settings.device == "gpu" and not scheduler:
@@ -418,7 +403,7 @@ def _run(
         len(specs), specs[0].members, settings.iterations, settings.cost, settings.batch_fraction,
         settings.batch_iterations,
     )
-    with executor(nproc, scheduler, n_units) as pool, (progress or _no_progress)("members trained", n_units) as update:
+    with executor(nproc, scheduler, n_units) as pool, (progress or no_progress)("members trained", n_units) as update:
         return train_committees(specs, settings, seed, pool, update)
 
 
@@ -435,7 +420,7 @@ def train_weight(
     nproc: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
-    progress: ProgressFactory | None = None,
+    progress: Progress | None = None,
 ) -> ShearModel:
     """Train weight committees (MSWB) for every point committee of ``model``; write both to ``output``."""
     opts = options or TrainOptions(iterations=DEFAULT_WEIGHT_ITERATIONS)

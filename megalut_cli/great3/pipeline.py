@@ -42,8 +42,7 @@ import re
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import AbstractContextManager
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -55,12 +54,11 @@ from megalut_cli import flags as fl
 from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.great3 import layout as L
-from megalut_cli.pipeline import TrainPointSpec, TrainWeightSpec
+from megalut_cli.pipeline_config import TrainPointSpec, TrainWeightSpec
+from megalut_cli.progress import Progress, no_progress
 from megalut_cli.seeding import STREAM_SUBFIELD, int_seed_for
 
 log = logging.getLogger("megalut")
-
-ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
 
 KINDS = ("ground", "space")
 SET_NAMES = ("tp", "tw")
@@ -246,7 +244,7 @@ def _find_path(text: str, key: str, base_dir: Path | None, want_dir: bool) -> Pa
 
 
 def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, pipe_path: str) -> SetTemplate:
-    from megalut_cli.pipeline import ConfigTable, merge_tables
+    from megalut_cli.pipeline_config import ConfigTable, merge_tables
     from megalut_cli.sim.config import read_toml
 
     t = ConfigTable(top.data.get(name), name, _SET_KEYS)
@@ -312,7 +310,7 @@ def _check_features(names: Sequence[str], key: str) -> None:
 def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str = "",
                           overrides: Sequence[str] = (), base_dir: Path | None = None) -> BranchPipeline:
     """Validate a parsed branch pipeline (after ``key=value`` overrides); check the branch folder."""
-    from megalut_cli.pipeline import ConfigTable, selection_expression, train_options_from
+    from megalut_cli.pipeline_config import ConfigTable, selection_expression, train_options_from
     from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND, GREAT3_SIGMA2_MIN_SPACE
     from megalut_cli.sim.config import apply_overrides
 
@@ -571,6 +569,7 @@ def _about(subfield: int, message: str) -> str:
 
 
 def _run_subfield(pipe: BranchPipeline, s: int, workdir: Path, skip_existing: bool) -> dict[str, Any]:
+    from megalut_cli.atomic import replace_folder
     from megalut_cli.catalog import read_catalog
     from megalut_cli.measure.measure import measure_file
     from megalut_cli.provenance import sha256_file
@@ -642,23 +641,12 @@ def _run_subfield(pipe: BranchPipeline, s: int, workdir: Path, skip_existing: bo
         record = {"format": MANIFEST_FORMAT, "key": key, "params": params, "inputs": inputs, "summary": summary,
                   "products": _fingerprints(tmp, products), "megalut": __version__}
         (tmp / UNIT_RECORD).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
-        _replace_dir(tmp, final)
+        replace_folder(tmp, final)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     log.info("subfield %d: g1 = %+.5f, g2 = %+.5f (%d galaxies, noise sigma %.4g) in %.0f s", s, summary["g1"],
              summary["g2"], summary["n_galaxies"], noise_sigma or 0.0, summary["seconds"])
     return summary
-
-
-def _replace_dir(tmp: Path, final: Path) -> None:
-    """Move the finished folder ``tmp`` to ``final``, replacing an older one."""
-    old = None
-    if final.exists():
-        old = final.with_name(f".{final.name}.old-{os.getpid()}")
-        os.replace(final, old)
-    os.replace(tmp, final)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 # --------------------------------------------------------------------------- the branch
@@ -736,7 +724,7 @@ def run_branch(
     keep_going: bool = False,
     nproc: int = 1,
     scheduler: str | None = None,
-    progress: ProgressFactory | None = None,
+    progress: Progress | None = None,
 ) -> BranchRunResult:
     """Run every subfield of ``pipe`` (work units), then write the per-galaxy catalog, the
     submission, the manifest and (with a truth folder) the evaluation.
@@ -764,7 +752,7 @@ def run_branch(
 
 
 def _run_units(pipe: BranchPipeline, wd: Path, skip_existing: bool, keep_going: bool, nproc: int,
-               scheduler: str | None, progress: ProgressFactory | None) -> BranchRunResult:
+               scheduler: str | None, progress: Progress | None) -> BranchRunResult:
     from megalut_cli.parallel import executor, map_units
 
     t0 = time.perf_counter()
@@ -776,7 +764,7 @@ def _run_units(pipe: BranchPipeline, wd: Path, skip_existing: bool, keep_going: 
              pipe.point.options.members, pipe.weight.options.members)
     jobs = [{"pipe": pipe, "subfield": s, "workdir": str(wd.resolve()), "skip_existing": skip_existing,
              "keep_going": keep_going} for s in pipe.subfields]
-    prog = progress or _no_progress
+    prog = progress or no_progress
     with executor(nproc, scheduler) as pool, prog("subfields", n) as update:
         results = map_units(run_subfield, jobs, pool, update)
     failures = [r for r in results if "error" in r]
@@ -791,8 +779,8 @@ def _run_units(pipe: BranchPipeline, wd: Path, skip_existing: bool, keep_going: 
     evaluation = None
     products = [SHEARS, SUBMISSION]
     if pipe.truth is not None:
+        from megalut_cli.atomic import write_json
         from megalut_cli.great3.evaluate import evaluate_branch
-        from megalut_cli.pipeline import write_json
 
         if len(done) >= 2:
             with _quiet():
@@ -823,15 +811,9 @@ def failure_error(result: BranchRunResult) -> MegalutError | None:
     )
 
 
-@contextlib.contextmanager
-def _no_progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
-    del label, length
-    yield lambda k: None
-
-
 def _write_manifest(pipe: BranchPipeline, wd: Path, done: Sequence[Mapping[str, Any]],
                     failures: Sequence[Mapping[str, Any]], seconds: float) -> None:
-    from megalut_cli.pipeline import write_json
+    from megalut_cli.atomic import write_json
     from megalut_cli.provenance import utc_now
 
     data = {
