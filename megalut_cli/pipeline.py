@@ -61,6 +61,7 @@ from megalut_cli.pipeline_config import (
     EvaluateSpec,
     TrainPointSpec,
     TrainWeightSpec,
+    key_names,
     merge_tables,
     selection_expression,
     train_options_from,
@@ -564,7 +565,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
             train_point(wd / "pretrain.fits", wd / out("pretrain.h5"), features=tp.features, targets=pre.targets,
                         hidden=tp.hidden, cost=pre.cost, select_cases=pre.select_cases, init_scheme=pre.init,
                         options=pre.options, nproc=nproc, scheduler=scheduler, overwrite=overwrite,
-                        progress=progress)
+                        progress=progress, names=key_names("pretrain"))
 
         add("pretrain-point", [out("pretrain.h5")], ["pretrain.fits"],
             {"features": tp.features, "targets": pre.targets, "hidden": tp.hidden, "cost": pre.cost,
@@ -581,7 +582,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         train_point(wd / "tp.fits", wd / out("point.h5"), features=tp.features, targets=tp.targets,
                     hidden=tp.hidden, cost=tp.cost, select_cases=tp.select_cases, init_from=init_from,
                     init_scheme=tp.init, options=tp.options, nproc=nproc, scheduler=scheduler,
-                    overwrite=overwrite, progress=progress)
+                    overwrite=overwrite, progress=progress, names=key_names("train_point"))
 
     add("train-point", [out("point.h5")], ["tp.fits"] + ([out("pretrain.h5")] if pre is not None else []),
         {"features": tp.features, "targets": tp.targets, "hidden": tp.hidden, "cost": tp.cost,
@@ -611,7 +612,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
             from megalut_cli.shear.evaluate import evaluate_catalog
 
             result = evaluate_catalog(wd / out(shears), by=ev.by or None, bins=ev.bins, select=ev.select,
-                                      select_cases=ev.select_cases)
+                                      select_cases=ev.select_cases, names=key_names(name.replace("-", "_")))
             write_json(wd / out(json_name), result, overwrite)
             if plot:
                 from megalut_cli.shear.plots import plot_evaluation
@@ -639,7 +640,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
 
         train_weight(wd / "tw.fits", wd / out("point.h5"), wd / out("model.h5"), features=tw.features,
                      hidden=tw.hidden, select=tw.select, options=tw.options, nproc=nproc, scheduler=scheduler,
-                     overwrite=overwrite, progress=progress)
+                     overwrite=overwrite, progress=progress, names=key_names("train_weight"))
 
     add("train-weight", [out("model.h5")], ["tw.fits", out("point.h5")],
         {"features": tw.features, "hidden": tw.hidden, "select": tw.select, "options": asdict(tw.options)},
@@ -726,7 +727,7 @@ def run_pipeline(
 
 def format_summary(result: RunResult) -> str:
     """The evaluation table(s), then where the products are."""
-    from megalut_cli.shear.evaluate import format_table
+    from megalut_cli.shear.report import format_table
 
     lines = []
     if result.evaluation_vp is not None:
