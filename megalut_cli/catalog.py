@@ -212,6 +212,28 @@ def iter_catalog(
         raise _open_error(path, err) from None
 
 
+class CatalogColumns(Mapping[str, np.ndarray]):
+    """The columns of a FITS catalog as a mapping, each read from the file when first asked for."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = path
+        self.names: list[str] = catalog_info(path)[1]
+        self._read: dict[str, np.ndarray] = {}
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self._read:
+            if name not in self.names:
+                raise KeyError(name)
+            self._read[name] = np.asarray(read_catalog(self.path, columns=[name])[name])
+        return self._read[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
 def require_columns(
     available: Iterable[str], needed: Iterable[str], where: str | os.PathLike = "catalog"
 ) -> None:
@@ -419,3 +441,122 @@ def setup_differences(trained: Mapping[str, Any], applied: Mapping[str, Any]) ->
         for name in trained
         if name in applied and trained[name] != applied[name]
     ]
+
+
+# --------------------------------------------------------------------------- text catalogs
+
+_FITS_MAGIC = b"SIMPLE  ="
+
+
+def is_fits_file(path: str | os.PathLike) -> bool:
+    """Whether ``path`` starts like a FITS file (else it is read as a text catalog)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(_FITS_MAGIC)) == _FITS_MAGIC
+    except OSError:
+        raise InputError(f"{path}: no such file") from None
+
+
+#: Columns read as integers from text catalogs (when their values are integral): GREAT3
+#: writes every column with numpy.savetxt's default ``%.18e``, IDs and tile indices too.
+INTEGER_COLUMNS = ("ID", "id", "subfield", "case", "rea", "flags", "x_tile_index", "y_tile_index")
+
+
+def read_text_catalog(path: str | os.PathLike) -> Table:
+    """Read a whitespace-separated text catalog whose column names are in ``#`` lines.
+
+    Names come from one ``# name`` line per column (GREAT3's catalogs) or from a single
+    ``# name name ...`` line. Every value must be a number; ``ID``-like columns
+    (:data:`INTEGER_COLUMNS`) with integral values become int64, the others float64.
+    Errors name the file (and the line).
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such file")
+    try:
+        text = p.read_text()
+    except UnicodeDecodeError:
+        raise InputError(f"{p}: neither a FITS file nor a text catalog") from None
+    header: list[list[str]] = []
+    rows: list[list[str]] = []
+    first_data = None
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s:
+            continue
+        if s.startswith("#"):
+            if first_data is None:
+                header.append(s[1:].split())
+            continue
+        if first_data is None:
+            first_data = lineno
+        rows.append([lineno, *s.split()])  # type: ignore[list-item]
+    header = [h for h in header if h]
+    if not header:
+        raise InputError(f"{p}: no '# name' header lines giving the column names")
+    if rows:
+        ncol = len(rows[0]) - 1
+    else:
+        ncol = len(header) if all(len(h) == 1 for h in header) else len(header[-1])
+    last = header[-ncol:] if 0 < ncol <= len(header) else []
+    if last and all(len(h) == 1 for h in last):
+        names = [h[0] for h in last]  # one '# name' line per column (GREAT3)
+    elif len(header[-1]) == ncol:
+        names = header[-1]  # one '# name name ...' line
+    else:
+        raise InputError(
+            f"{p}: the '#' header lines do not name the {ncol} column(s) "
+            "(expected one '# name' line per column, or one '# name name ...' line)"
+        )
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"{p}: duplicate column name(s) {', '.join(dup)}")
+    values = np.empty((len(rows), ncol), dtype=np.float64)
+    for i, r in enumerate(rows):
+        lineno, fields = r[0], r[1:]
+        if len(fields) != ncol:
+            raise InputError(f"{p}: line {lineno}: {len(fields)} value(s), expected {ncol}")
+        try:
+            values[i] = [float(v) for v in fields]
+        except ValueError:
+            raise InputError(f"{p}: line {lineno}: not a number in {' '.join(fields)!r}") from None
+    table = Table()
+    for j, name in enumerate(names):
+        col = values[:, j]
+        if name in INTEGER_COLUMNS and np.all(np.isfinite(col)) and np.all(col == np.round(col)):
+            table[name] = col.astype(np.int64)
+        else:
+            table[name] = col
+    table.meta["TEXTCAT"] = p.name
+    return table
+
+
+def _format_value(v: Any) -> str:
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    f = float(v)
+    return str(int(f)) if f.is_integer() and abs(f) < 2**53 else repr(f)
+
+
+def text_catalog_lines(columns: Mapping[str, np.ndarray]) -> list[str]:
+    """Lines of a GREAT3-style text catalog: ``# name`` per column, then the rows."""
+    names = list(columns)
+    arrays = [np.asarray(columns[n]) for n in names]
+    lines = [f"# {n}" for n in names]
+    for i in range(len(arrays[0]) if arrays else 0):
+        lines.append(" ".join(_format_value(a[i]) for a in arrays))
+    return lines
+
+
+def write_text_catalog(path: str | os.PathLike, columns: Mapping[str, np.ndarray], overwrite: bool = False) -> Path:
+    """Write ``columns`` as a GREAT3-style text catalog, atomically."""
+    with atomic_output(path, overwrite) as tmp:
+        Path(tmp).write_text("\n".join(text_catalog_lines(columns)) + "\n")
+    return Path(path)
+
+
+def read_any_catalog(path: str | os.PathLike) -> Table:
+    """A FITS catalog (first table) or a text catalog with ``# name`` header lines."""
+    if is_fits_file(path):
+        return read_catalog(path)
+    return read_text_catalog(path)

@@ -61,6 +61,7 @@ from megalut_cli.pipeline_config import (
     EvaluateSpec,
     TrainPointSpec,
     TrainWeightSpec,
+    key_names,
     merge_tables,
     selection_expression,
     train_options_from,
@@ -519,6 +520,14 @@ class RunResult:
     prefix: str = ""  # where the step products are, relative to workdir ("" or "<name>/")
 
 
+def key_options(options: Any) -> dict[str, Any]:
+    """Training options as they enter a step's key: all but where they run (``device``,
+    like ``-j``: the device gives the same results within tolerance, docs/gpu.md)."""
+    record = asdict(options)
+    record.pop("device", None)
+    return record
+
+
 def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
                 progress: Progress | None = None) -> list[Step]:
     """The steps of ``pipe`` in execution order."""
@@ -567,11 +576,11 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
             train_point(wd / "pretrain.fits", wd / out("pretrain.h5"), features=tp.features, targets=pre.targets,
                         hidden=tp.hidden, cost=pre.cost, select_cases=pre.select_cases, init_scheme=pre.init,
                         options=replace(pre.options, device=resolve_device(pipe.device)), nproc=nproc, scheduler=scheduler, overwrite=overwrite,
-                        progress=progress)
+                        progress=progress, names=key_names("pretrain"))
 
         add("pretrain-point", [out("pretrain.h5")], ["pretrain.fits"],
             {"features": tp.features, "targets": pre.targets, "hidden": tp.hidden, "cost": pre.cost,
-             "select_cases": pre.select_cases, "init": pre.init, "options": asdict(pre.options)},
+             "select_cases": pre.select_cases, "init": pre.init, "options": key_options(pre.options)},
             pretrain_action,
             f"{pre.options.members} members x {len(pre.targets)} targets ({', '.join(pre.targets)}), hidden "
             f"{tp.hidden}, {pre.options.iterations} iterations, select_cases {pre.select_cases!r}, "
@@ -584,12 +593,12 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         train_point(wd / "tp.fits", wd / out("point.h5"), features=tp.features, targets=tp.targets,
                     hidden=tp.hidden, cost=tp.cost, select_cases=tp.select_cases, init_from=init_from,
                     init_scheme=tp.init, options=replace(tp.options, device=resolve_device(pipe.device)), nproc=nproc, scheduler=scheduler,
-                    overwrite=overwrite, progress=progress)
+                    overwrite=overwrite, progress=progress, names=key_names("train_point"))
 
     add("train-point", [out("point.h5")], ["tp.fits"] + ([out("pretrain.h5")] if pre is not None else []),
         {"features": tp.features, "targets": tp.targets, "hidden": tp.hidden, "cost": tp.cost,
          "select_cases": tp.select_cases, "init": "pretrain.h5" if pre is not None else tp.init,
-         "options": asdict(tp.options)},
+         "options": key_options(tp.options)},
         train_point_action,
         f"{tp.options.members} members x {len(tp.targets)} targets, hidden {tp.hidden}, "
         f"{tp.options.iterations} iterations, select_cases {tp.select_cases!r}, seed {tp.options.seed}"
@@ -614,7 +623,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
             from megalut_cli.shear.evaluate import evaluate_catalog
 
             result = evaluate_catalog(wd / out(shears), by=ev.by or None, bins=ev.bins, select=ev.select,
-                                      select_cases=ev.select_cases)
+                                      select_cases=ev.select_cases, names=key_names(name.replace("-", "_")))
             write_json(wd / out(json_name), result, overwrite)
             if plot:
                 from megalut_cli.shear.plots import plot_evaluation
@@ -642,10 +651,10 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
 
         train_weight(wd / "tw.fits", wd / out("point.h5"), wd / out("model.h5"), features=tw.features,
                      hidden=tw.hidden, select=tw.select, options=replace(tw.options, device=resolve_device(pipe.device)), nproc=nproc, scheduler=scheduler,
-                     overwrite=overwrite, progress=progress)
+                     overwrite=overwrite, progress=progress, names=key_names("train_weight"))
 
     add("train-weight", [out("model.h5")], ["tw.fits", out("point.h5")],
-        {"features": tw.features, "hidden": tw.hidden, "select": tw.select, "options": asdict(tw.options)},
+        {"features": tw.features, "hidden": tw.hidden, "select": tw.select, "options": key_options(tw.options)},
         train_weight_action,
         f"{tw.options.members} members, hidden {tw.hidden}, {tw.options.iterations} iterations, "
         f"select {tw.select!r}, seed {tw.options.seed}")
@@ -729,7 +738,7 @@ def run_pipeline(
 
 def format_summary(result: RunResult) -> str:
     """The evaluation table(s), then where the products are."""
-    from megalut_cli.shear.evaluate import format_table
+    from megalut_cli.shear.report import format_table
 
     lines = []
     if result.evaluation_vp is not None:

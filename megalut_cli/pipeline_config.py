@@ -152,6 +152,11 @@ def train_options_from(t: ConfigTable, iterations: int, seed: int) -> TrainOptio
     return opts
 
 
+def key_names(table: str) -> dict[str, str]:
+    """How library messages name their arguments: keys of the table ``table`` of the pipeline file."""
+    return {arg: f"{table}.{arg}" for arg in ("select_cases", "select", "hidden", "valid_fraction", "by")}
+
+
 def selection_expression(t: ConfigTable, name: str, case_mode: bool, default: str | None = None) -> str | None:
     """A selection expression, syntax-checked (columns are checked later); ``""`` means none."""
     from megalut_cli.expr import check_expression

@@ -1,10 +1,15 @@
-"""Library entry points of ``megalut train-point`` and ``megalut train-weight``.
+"""Training of shear estimators: in memory (:func:`fit_point`, :func:`fit_weight`) and
+file to file (:func:`train_point`, :func:`train_weight`, ``megalut train-point/-weight``).
 
-:func:`train_point` trains one committee of point estimators per target with the MSB cost
-(paper Sect. 5.1), optionally continuing from an earlier model (pretraining, Sect. 6).
-:func:`train_weight` predicts the point estimates of a model on a weight-training catalog
-and trains one committee of weight networks per target with the MSWB cost (Sect. 5.2); the
-written model holds both. Neither needs GalSim or click.
+:func:`fit_point` trains one committee of point estimators per target with the MSB cost
+(paper Sect. 5.1) on a table of columns, optionally continuing from an earlier model
+(pretraining, Sect. 6), and returns a :class:`ShearModel`. :func:`fit_weight` predicts the
+point estimates of a model on a weight-training table and trains one committee of weight
+networks per target with the MSWB cost (Sect. 5.2); the model it returns holds both. The
+file functions read the catalogs, add the provenance of the files and write the model.
+Messages name the arguments (``select_cases``...) or, given ``names``, the caller's words
+for them (``--select-cases`` of the command line, ``train_point.select_cases`` of a
+pipeline file). Nothing here needs GalSim or click.
 
 Masked realizations: rows with ``flags != 0`` (when the column exists), with a non-finite
 feature, (for weights) with a non-finite point estimate or outside ``select``. Cases left
@@ -16,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.atomic import check_output
-from megalut_cli.catalog import catalog_info, read_catalog, read_setup, require_columns
+from megalut_cli.catalog import CatalogColumns, read_setup, require_columns
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.expr import check_expression, columns_used, evaluate_cases, evaluate_rows
 from megalut_cli.nn import normalization as norm
@@ -48,6 +53,15 @@ DEFAULT_POINT_HIDDEN = (5, 5)
 DEFAULT_WEIGHT_HIDDEN = (5,)
 DEFAULT_POINT_ITERATIONS = 1000
 DEFAULT_WEIGHT_ITERATIONS = 300
+#: A table of columns: a dict of column name to array, an astropy Table, or a
+#: :class:`megalut_cli.catalog.CatalogColumns` reading a catalog's columns on demand.
+Columns = Mapping[str, Any]
+
+
+def _namer(names: Mapping[str, str] | None) -> Callable[[str], str]:
+    """How messages name an argument: ``names[arg]`` if given, else the argument's name."""
+    given = dict(names or {})
+    return lambda arg: given.get(arg, arg)
 
 
 @dataclass
@@ -105,32 +119,33 @@ def _unique(items: Sequence[str], what: str) -> list[str]:
     return items
 
 
-def _read_columns(path: str | os.PathLike, required: Sequence[str], optional: Sequence[str] = ()) -> dict[str, np.ndarray]:
-    _, names, _ = catalog_info(path)
-    require_columns(names, required, path)
+def column_names(table: Columns) -> list[str]:
+    """The column names of a table (an astropy Table iterates over rows, a mapping over names)."""
+    return list(table.colnames) if hasattr(table, "colnames") else list(table)
+
+
+def _take_columns(table: Columns, where: str, required: Sequence[str], optional: Sequence[str] = ()) -> dict[str, np.ndarray]:
+    names = column_names(table)
+    require_columns(names, required, where)
     use = list(dict.fromkeys([*required, *(c for c in optional if c in names)]))
-    table = read_catalog(path, columns=use)
     return {c: np.asarray(table[c]) for c in use}
 
 
-def _available(path: str | os.PathLike) -> list[str]:
-    return catalog_info(path)[1]
-
-
-def _select_cases(columns: Mapping[str, np.ndarray], ok: np.ndarray, expr: str, where: str) -> np.ndarray:
+def _select_cases(columns: Mapping[str, np.ndarray], ok: np.ndarray, expr: str, where: str, name: str) -> np.ndarray:
     """Restrict ``ok`` to the cases selected by a case expression (evaluated on valid rows)."""
     if not ok.any():
         return ok
     sub = {c: np.asarray(columns[c])[ok] for c in columns_used(expr)}
     ids, sel = evaluate_cases(expr, sub, np.asarray(columns["case"])[ok])
     if not sel.any():
-        raise ConfigError(f"--select-cases {expr!r} selects no case of {where}")
-    log.info("%s: --select-cases keeps %d of %d cases", where, int(sel.sum()), len(ids))
+        raise ConfigError(f"{name} {expr!r} selects no case of {where}")
+    log.info("%s: %s keeps %d of %d cases", where, name, int(sel.sum()), len(ids))
     return ok & np.isin(columns["case"], ids[sel])
 
 
 def _load_cases(
-    path: str | os.PathLike,
+    table: Columns,
+    where: str,
     features: Sequence[str],
     targets: Sequence[str],
     *,
@@ -138,9 +153,11 @@ def _load_cases(
     select_cases: str | None = None,
     select_rows: str | None = None,
     point_model: ShearModel | None = None,
+    name: Callable[[str], str] | None = None,
 ) -> CaseData:
-    """Read a catalog and group it into cases (see the module docstring for masking)."""
-    names = _available(path)
+    """Group a table's rows into cases (see the module docstring for masking)."""
+    name = name or _namer(None)
+    names = column_names(table)
     extra = []
     for expr, case_mode in ((select_cases, True), (select_rows, False)):
         if expr:
@@ -148,7 +165,7 @@ def _load_cases(
             extra += columns_used(expr)
     point_features = point_model.features if point_model is not None else []
     required = list(dict.fromkeys(["case", *features, *point_features, *targets]))
-    columns = _read_columns(path, required, ["flags", *extra])
+    columns = _take_columns(table, where, required, ["flags", *extra])
     n = len(columns["case"])
     ok = valid_rows(columns, list(dict.fromkeys([*features, *point_features])), n)
     point = None
@@ -163,25 +180,27 @@ def _load_cases(
     if select_rows:
         sel = evaluate_rows(select_rows, {c: columns[c] for c in columns_used(select_rows)}, n)
         if not sel.any():
-            raise ConfigError(f"--select {select_rows!r} selects no row of {path}")
-        log.info("%s: --select keeps %d of %d rows", path, int(sel.sum()), n)
+            raise ConfigError(f"{name('select')} {select_rows!r} selects no row of {where}")
+        log.info("%s: %s keeps %d of %d rows", where, name("select"), int(sel.sum()), n)
         ok &= sel
     if select_cases:
-        ok = _select_cases(columns, ok, select_cases, str(path))
+        ok = _select_cases(columns, ok, select_cases, where, name("select_cases"))
     data = build_cases(
-        columns, features, targets, ok, where=str(path), constant_targets=constant_targets, point=point,
+        columns, features, targets, ok, where=where, constant_targets=constant_targets, point=point,
         measured=measured,
     )
     log.info(
         "%s: %d cases, %d valid realizations (%d masked)",
-        path, data.n_cases, data.n_rows, int(np.isin(columns["case"], data.case_ids).sum()) - data.n_rows,
+        where, data.n_cases, data.n_rows, int(np.isin(columns["case"], data.case_ids).sum()) - data.n_rows,
     )
     return data
 
 
 def _load_split(
-    train: str | os.PathLike,
-    valid: str | os.PathLike | None,
+    train: Columns,
+    train_name: str,
+    valid: Columns | None,
+    valid_name: str,
     opts: TrainOptions,
     features: Sequence[str],
     targets: Sequence[str],
@@ -189,18 +208,22 @@ def _load_split(
 ) -> tuple[CaseData, CaseData | None, str]:
     """Training and validation cases: from ``valid``, or a held-out fraction of ``train``;
     and a description of the validation set. ``load`` goes to :func:`_load_cases`."""
-    data = _load_cases(train, features, targets, **load)
+    name = load.get("name", _namer(None))
+    data = _load_cases(train, train_name, features, targets, **load)
     if valid is not None:
-        return data, _load_cases(valid, features, targets, **load), str(valid)
+        return data, _load_cases(valid, valid_name, features, targets, **load), valid_name
     if opts.valid_fraction <= 0:
-        log.warning("no validation set (--valid-fraction 0): members are monitored and selected on the training set")
+        log.warning("no validation set (%s 0): members are monitored and selected on the training set",
+                    name("valid_fraction"))
         return data, None, "training set"
     tr, va = split_cases(data.n_cases, opts.valid_fraction, rng_for(opts.seed, STREAM_SPLIT))
     if len(tr) < 2:
         raise InputError(
-            f"only {data.n_cases} cases: too few to hold out a validation fraction; use --valid FILE or --valid-fraction 0"
+            f"only {data.n_cases} cases: too few to hold out a validation fraction; "
+            f"use {name('valid')} or {name('valid_fraction')} 0"
         )
-    log.info("holding out %d of %d cases for validation (--valid-fraction %g)", len(va), data.n_cases, opts.valid_fraction)
+    log.info("holding out %d of %d cases for validation (%s %g)", len(va), data.n_cases, name("valid_fraction"),
+             opts.valid_fraction)
     return data.subset(tr), data.subset(va), f"held-out fraction {opts.valid_fraction:g}"
 
 
@@ -246,12 +269,13 @@ def _training_record(
     }
 
 
-def _check_architecture(features: Sequence[str], targets: Sequence[str], hidden: Sequence[int]) -> None:
+def _check_architecture(features: Sequence[str], targets: Sequence[str], hidden: Sequence[int],
+                        name: Callable[[str], str]) -> None:
     overlap = sorted(set(features) & set(targets))
     if overlap:
         raise ConfigError(f"column(s) {', '.join(overlap)} cannot be both a feature and a target")
     if any(h < 1 for h in hidden):
-        raise ConfigError("--hidden sizes must be positive integers")
+        raise ConfigError(f"{name('hidden')} sizes must be positive integers")
 
 
 def _provenance(
@@ -278,36 +302,39 @@ def _provenance(
     return prov
 
 
-def train_point(
-    train: str | os.PathLike,
-    output: str | os.PathLike,
+def fit_point(
+    train: Columns,
     *,
     features: Sequence[str] | None = None,
     targets: Sequence[str] | None = None,
-    valid: str | os.PathLike | None = None,
+    valid: Columns | None = None,
     hidden: Sequence[int] | None = None,
     cost: str = "msb",
     select_cases: str | None = None,
-    init_from: str | os.PathLike | None = None,
+    init_model: ShearModel | None = None,
     init_scheme: str = "normal",
     options: TrainOptions | None = None,
     nproc: int = 1,
     scheduler: str | None = None,
-    overwrite: bool = False,
     progress: Progress | None = None,
+    sources: Mapping[str, str] | None = None,
+    names: Mapping[str, str] | None = None,
 ) -> ShearModel:
-    """Train point-estimate committees (one per target) and write the model to ``output``."""
+    """Train point-estimate committees (one per target) on the table ``train``.
+
+    ``init_model``: continue its point committees (by target, else by position).
+    ``sources`` names the tables and the initial model in logs and records (keys
+    ``train``, ``valid``, ``init_model``); ``names`` how messages name the arguments.
+    The model's provenance holds the command, versions and seed (the file functions add
+    their inputs).
+    """
+    name = _namer(names)
+    src_names = {"train": "train", "valid": "valid", "init_model": "init_model", **(sources or {})}
+    init_from = src_names["init_model"]
     opts = options or TrainOptions()
     opts.check()
-    out = check_output(output, overwrite)
-    if cost not in ("msb", "mse"):
-        raise ConfigError(f"unknown cost {cost!r} for point estimates (choose msb or mse)")
-    if init_scheme not in ("normal", "identity"):
-        raise ConfigError(f"unknown initialisation {init_scheme!r}")
-    if select_cases is not None:
-        check_expression(select_cases, None, case_mode=True)
+    _check_point_arguments(cost, init_scheme, select_cases)
     targets = _unique(targets or DEFAULT_TARGETS, "targets")
-    init_model = ShearModel.load(init_from) if init_from is not None else None
     init_comms: dict[str, Committee] = {}
     if init_model is not None:
         available = list(init_model.point.values())
@@ -331,16 +358,17 @@ def train_point(
             )
         if hidden is not None and tuple(hidden) != src.hidden:
             raise ConfigError(
-                f"--hidden {','.join(map(str, hidden))} differs from the architecture of {init_from} "
-                f"({','.join(map(str, src.hidden))}); leave --hidden out to continue that model"
+                f"{name('hidden')} {','.join(map(str, hidden))} differs from the architecture of {init_from} "
+                f"({','.join(map(str, src.hidden))}); leave {name('hidden')} out to continue that model"
             )
     hidden = tuple(hidden) if hidden is not None else (
         next(iter(init_comms.values())).hidden if init_comms else DEFAULT_POINT_HIDDEN
     )
-    _check_architecture(features, targets, hidden)
+    _check_architecture(features, targets, hidden, name)
 
     tdata, vdata, valid_desc = _load_split(
-        train, valid, opts, features, targets, constant_targets=cost != "mse", select_cases=select_cases
+        train, src_names["train"], valid, src_names["valid"], opts, features, targets,
+        constant_targets=cost != "mse", select_cases=select_cases, name=name,
     )
 
     specs = []
@@ -361,7 +389,7 @@ def train_point(
         training = _training_record(
             opts, "train-point", cost, valid_desc, tdata, vdata,
             select_cases=select_cases,
-            init_from=str(init_from) if init_from is not None else None,
+            init_from=init_from if init_model is not None else None,
             init_scheme="model" if src is not None else init_scheme,
         )
         specs.append(
@@ -372,16 +400,58 @@ def train_point(
                 init_members=init_members, normalization=method, training=training,
             )
         )
-    settings = opts.settings(cost)
+    committees = _run(specs, opts.settings(cost), opts.seed, nproc, scheduler, progress)
+    parent = init_model.provenance if init_model is not None else None
+    return ShearModel(point=committees, provenance=_provenance("train-point", {}, opts.seed, parent))
+
+
+def _check_point_arguments(cost: str, init_scheme: str, select_cases: str | None) -> None:
+    if cost not in ("msb", "mse"):
+        raise ConfigError(f"unknown cost {cost!r} for point estimates (choose msb or mse)")
+    if init_scheme not in ("normal", "identity"):
+        raise ConfigError(f"unknown initialisation {init_scheme!r}")
+    if select_cases is not None:
+        check_expression(select_cases, None, case_mode=True)
+
+
+def train_point(
+    train: str | os.PathLike,
+    output: str | os.PathLike,
+    *,
+    features: Sequence[str] | None = None,
+    targets: Sequence[str] | None = None,
+    valid: str | os.PathLike | None = None,
+    hidden: Sequence[int] | None = None,
+    cost: str = "msb",
+    select_cases: str | None = None,
+    init_from: str | os.PathLike | None = None,
+    init_scheme: str = "normal",
+    options: TrainOptions | None = None,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+    names: Mapping[str, str] | None = None,
+) -> ShearModel:
+    """:func:`fit_point` on the catalog ``train``; write the model to ``output``."""
+    (options or TrainOptions()).check()
+    out = check_output(output, overwrite)
+    _check_point_arguments(cost, init_scheme, select_cases)
+    init_model = ShearModel.load(init_from) if init_from is not None else None
+    sources = {"train": str(train), "valid": str(valid), "init_model": str(init_from)}
+    model = fit_point(
+        CatalogColumns(train), features=features, targets=targets,
+        valid=CatalogColumns(valid) if valid is not None else None, hidden=hidden, cost=cost,
+        select_cases=select_cases, init_model=init_model, init_scheme=init_scheme, options=options, nproc=nproc,
+        scheduler=scheduler, progress=progress, sources=sources, names=names,
+    )
     inputs = {"train": _input(train)}
     if valid is not None:
         inputs["valid"] = _input(valid)
     if init_model is not None:
         inputs["init_from"] = {"path": str(init_from), "sha256": init_model.sha256}
-    committees = _run(specs, settings, opts.seed, nproc, scheduler, progress)
-    prov = _provenance("train-point", inputs, opts.seed, init_model.provenance if init_model is not None else None,
-                       read_setup(train))
-    model = ShearModel(point=committees, provenance=prov)
+    model.provenance = _provenance("train-point", inputs, model.provenance["seed"],
+                                   init_model.provenance if init_model is not None else None, read_setup(train))
     model.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, model.sha256[:12])
     return model
@@ -407,6 +477,64 @@ def _run(
         return train_committees(specs, settings, seed, pool, update)
 
 
+def fit_weight(
+    train: Columns,
+    point_model: ShearModel,
+    *,
+    features: Sequence[str] | None = None,
+    hidden: Sequence[int] | None = None,
+    select: str | None = None,
+    valid: Columns | None = None,
+    options: TrainOptions | None = None,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    progress: Progress | None = None,
+    sources: Mapping[str, str] | None = None,
+    names: Mapping[str, str] | None = None,
+) -> ShearModel:
+    """Train weight committees (MSWB) on the table ``train`` for every point committee of
+    ``point_model``; return a model with both (provenance: command, versions, seed, parent).
+
+    ``sources`` names the tables and the point model (keys ``train``, ``valid``,
+    ``model``); ``names`` how messages name the arguments.
+    """
+    name = _namer(names)
+    src_names = {"train": "train", "valid": "valid", "model": "model", **(sources or {})}
+    opts = options or TrainOptions(iterations=DEFAULT_WEIGHT_ITERATIONS)
+    opts.check()
+    if select is not None:
+        check_expression(select, None, case_mode=False)
+    if not point_model.point:
+        raise InputError(f"{src_names['model']}: the model has no point committee")
+    targets = list(point_model.point)
+    features = _unique(features if features is not None else point_model.features, "features")
+    hidden = tuple(hidden) if hidden is not None else DEFAULT_WEIGHT_HIDDEN
+    _check_architecture(features, targets, hidden, name)
+
+    tdata, vdata, valid_desc = _load_split(
+        train, src_names["train"], valid, src_names["valid"], opts, features, targets, constant_targets=True,
+        select_rows=select, point_model=point_model, name=name,
+    )
+    in_loc, in_scale = norm.fit(tdata.x, opts.normalization, features)
+    specs = []
+    for j, t in enumerate(targets):
+        net = Network(len(features), hidden, "sigmoid4")
+        training = _training_record(
+            opts, "train-weight", "mswb", valid_desc, tdata, vdata,
+            select=select, point_model_sha256=point_model.sha256 or None,
+        )
+        specs.append(
+            CommitteeSpec(
+                kind="weight", target=t, j=j, net=net, in_loc=in_loc, in_scale=in_scale, train=tdata,
+                valid=vdata, members=opts.members, keep=opts.keep, cost_scale=_spread(tdata.targets[:, j]),
+                normalization=opts.normalization, training=training,
+            )
+        )
+    committees = _run(specs, opts.settings("mswb"), opts.seed, nproc, scheduler, progress)
+    prov = _provenance("train-weight", {}, opts.seed, point_model.provenance)
+    return ShearModel(point=point_model.point, weight=committees, provenance=prov)
+
+
 def train_weight(
     train: str | os.PathLike,
     model: str | os.PathLike,
@@ -421,48 +549,28 @@ def train_weight(
     scheduler: str | None = None,
     overwrite: bool = False,
     progress: Progress | None = None,
+    names: Mapping[str, str] | None = None,
 ) -> ShearModel:
-    """Train weight committees (MSWB) for every point committee of ``model``; write both to ``output``."""
-    opts = options or TrainOptions(iterations=DEFAULT_WEIGHT_ITERATIONS)
-    opts.check()
+    """:func:`fit_weight` on the catalog ``train`` and the model file ``model``; write the
+    model with both kinds of committees to ``output``."""
+    (options or TrainOptions(iterations=DEFAULT_WEIGHT_ITERATIONS)).check()
     out = check_output(output, overwrite)
     if Path(out).resolve() == Path(model).resolve():
-        raise ConfigError(f"-o {output} would replace the input model; choose another output file")
+        raise ConfigError(f"{_namer(names)('output')} {output} would replace the input model; choose another output file")
     if select is not None:
         check_expression(select, None, case_mode=False)
     point_model = ShearModel.load(model)
-    if not point_model.point:
-        raise InputError(f"{model}: the model has no point committee")
-    targets = list(point_model.point)
-    features = _unique(features if features is not None else point_model.features, "features")
-    hidden = tuple(hidden) if hidden is not None else DEFAULT_WEIGHT_HIDDEN
-    _check_architecture(features, targets, hidden)
-
-    tdata, vdata, valid_desc = _load_split(
-        train, valid, opts, features, targets, constant_targets=True, select_rows=select, point_model=point_model
+    result = fit_weight(
+        CatalogColumns(train), point_model, features=features, hidden=hidden, select=select,
+        valid=CatalogColumns(valid) if valid is not None else None, options=options, nproc=nproc,
+        scheduler=scheduler, progress=progress, sources={"train": str(train), "valid": str(valid), "model": str(model)},
+        names=names,
     )
-    in_loc, in_scale = norm.fit(tdata.x, opts.normalization, features)
-    specs = []
-    for j, t in enumerate(targets):
-        net = Network(len(features), hidden, "sigmoid4")
-        training = _training_record(
-            opts, "train-weight", "mswb", valid_desc, tdata, vdata,
-            select=select, point_model_sha256=point_model.sha256,
-        )
-        specs.append(
-            CommitteeSpec(
-                kind="weight", target=t, j=j, net=net, in_loc=in_loc, in_scale=in_scale, train=tdata,
-                valid=vdata, members=opts.members, keep=opts.keep, cost_scale=_spread(tdata.targets[:, j]),
-                normalization=opts.normalization, training=training,
-            )
-        )
-    settings = opts.settings("mswb")
-    committees = _run(specs, settings, opts.seed, nproc, scheduler, progress)
     inputs = {"train": _input(train), "model": {"path": str(model), "sha256": point_model.sha256}}
     if valid is not None:
         inputs["valid"] = _input(valid)
-    prov = _provenance("train-weight", inputs, opts.seed, point_model.provenance, read_setup(train))
-    result = ShearModel(point=point_model.point, weight=committees, provenance=prov)
+    result.provenance = _provenance("train-weight", inputs, result.provenance["seed"], point_model.provenance,
+                                    read_setup(train))
     result.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, result.sha256[:12])
     return result

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from test_shear_evaluate import _png_size, synthetic
+from helpers import png_size, synthetic
 
 from megalut_cli.catalog import write_catalog
 
@@ -49,7 +49,7 @@ def test_table_json_and_plot(runner, cli, shears, tmp_path):
     assert len(data["conditional"]["tru_rad"]["bins"]) == 3
     assert set(data["conditional"]["snr"]["bins"][0]["weighted"]) == {"g1", "g2", "plus", "cross"}
     assert len(data["per_case"]["case"]) == 100
-    w, h = _png_size(png)
+    w, h = png_size(png)
     assert w > 800 and h > 800
 
 
@@ -152,7 +152,7 @@ def test_nan_in_json_is_null(runner, cli, tmp_path):
 def test_crn_catalog_gets_bootstrap_errors(runner, cli, tmp_path):
     """A common-random-number catalog (header CRN = T): bootstrap over galaxies, said in the
     table and the JSON; --errors fit overrides; the seed makes it reproducible."""
-    from test_shear_bootstrap import synthetic as crn_synthetic
+    from helpers import crn_synthetic
 
     path = tmp_path / "crn.fits"
     write_catalog(path, crn_synthetic(3, True, n_cases=6, n_groups=50), fmt="megalut.predictions",

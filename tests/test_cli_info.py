@@ -9,7 +9,7 @@ import random
 import fitsio
 import numpy as np
 import pytest
-from test_shear_predict import make_model
+from helpers import make_model
 
 from megalut_cli import flags
 from megalut_cli.catalog import header_cards, history_steps, write_catalog
@@ -264,7 +264,7 @@ def test_docs_tables_match_the_code():
 
 
 def test_predict_carries_user_cards_and_comments(runner, cli, tmp_path):
-    from test_shear_predict import features_catalog
+    from helpers import features_catalog
 
     src, model, out = tmp_path / "f.fits", tmp_path / "m.h5", tmp_path / "s.fits"
     make_model(model)

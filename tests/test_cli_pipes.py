@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from astropy.io import fits
+from helpers import make_model
 from sim_configs import write
-from test_shear_predict import make_model
 
 from megalut_cli.catalog import read_catalog
 

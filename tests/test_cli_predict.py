@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from test_shear_predict import FEATURES, features_catalog, make_model, manual_predict
+from helpers import FEATURES, features_catalog, make_model, manual_predict
 
 from megalut_cli.catalog import read_catalog, write_catalog
 from megalut_cli.nn.model import ShearModel
@@ -165,7 +165,7 @@ def test_identity_model_then_evaluate(runner, cli, tmp_path):
 
 def test_warns_when_catalog_setup_differs_from_training(runner, cli, tmp_path):
     """The model records its training set's setup; predict names each difference."""
-    from test_shear_predict import make_committee
+    from helpers import make_committee
 
     from megalut_cli.nn.model import ShearModel as Model
 

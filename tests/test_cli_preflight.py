@@ -22,7 +22,7 @@ def _one_line(result) -> str:
 @pytest.fixture
 def inputs(tmp_path):
     """A config, a features catalog with truth and predictions, and a point model."""
-    from test_shear_predict import features_catalog, make_model
+    from helpers import features_catalog, make_model
 
     feats = features_catalog(200)
     feats["case"] = np.repeat(np.arange(20), 10)

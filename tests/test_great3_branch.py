@@ -10,40 +10,12 @@ import fitsio
 import galsim
 import numpy as np
 import pytest
+from helpers import GREAT3_BRANCH as BRANCH
 from sim_configs import write
 
+from megalut_cli import catalog
 from megalut_cli.catalog import read_catalog, read_image, write_catalog, write_image
 from megalut_cli.great3 import layout as L
-
-BRANCH = """
-[structure]
-n_cases = 2
-n_realizations = 16
-per_realization = ["galaxy"]
-snc = "pairs"
-stamp_size = 32
-
-[shear]
-g1 = {type = "uniform", min = -0.05, max = 0.05}
-g2 = {type = "uniform", min = -0.05, max = 0.05}
-
-[galaxy]
-sersicn = {type = "grid", min = 0.5, max = 2.5, step = 0.5}
-rad = {type = "uniform", min = 1.0, max = 2.5}
-flux = {type = "uniform", min = 100.0, max = 200.0}
-ellipticity = {type = "rayleigh", mode = 0.2, min = 0.0, max = 0.6}
-
-[psf]
-type = "moffat"
-beta = 3.0
-fwhm = {type = "uniform", min = 2.5, max = 3.5}
-g1 = {type = "uniform", min = -0.05, max = 0.05}
-g2 = {type = "uniform", min = -0.05, max = 0.05}
-
-[noise]
-type = "gaussian"
-sigma = 0.5
-"""
 
 S = 32
 
@@ -175,7 +147,7 @@ def test_measure_bad_subfields(runner, cli, branch, tmp_path):
                                "0", "--stamp-size", "64"]), 1, "galaxy_catalog-000.txt", "stamp size 64")
     # centres off the image: all of them
     far = tmp_path / "far.txt"
-    L.write_text_catalog(far, {"x": np.array([1000.0, 2000.0]), "y": np.array([15.0, 15.0]), "ID": np.array([0, 1])})
+    catalog.write_text_catalog(far, {"x": np.array([1000.0, 2000.0]), "y": np.array([15.0, 15.0]), "ID": np.array([0, 1])})
     _fails(runner.invoke(cli, ["measure", img, str(far), "-o", out, "--origin", "0", "--stamp-size", str(S)]),
            1, "far.txt", "no stamp centre falls on")
     # a broken text catalog

@@ -26,6 +26,7 @@ import math
 import numpy as np
 import pytest
 
+from megalut_cli import catalog
 from megalut_cli.catalog import read_catalog, write_image
 from megalut_cli.errors import InputError
 from megalut_cli.great3 import layout as L
@@ -84,7 +85,7 @@ def test_fixtures_are_what_numpy_savetxt_writes():
 def test_galaxy_catalog_constant_psf(tmp_path, newline, tail):
     p = tmp_path / "galaxy_catalog-003.txt"
     p.write_bytes((GALAXY_CONSTANT + tail).replace("\n", newline).encode())
-    for t in (L.read_galaxy_catalog(p), L.read_any_catalog(p), L.read_text_catalog(p)):
+    for t in (L.read_galaxy_catalog(p), catalog.read_any_catalog(p), catalog.read_text_catalog(p)):
         assert t.colnames == ["x", "y", "ID"]
         assert t["ID"].dtype == np.int64
         np.testing.assert_array_equal(t["ID"], [3_000_000, 3_001_000, 3_000_001, 3_001_001])
@@ -118,7 +119,7 @@ def test_galaxy_catalog_variable_psf(tmp_path):
 def test_star_catalog(tmp_path):
     p = tmp_path / "star_catalog-000.txt"
     p.write_text(STAR_CONSTANT)
-    t = L.read_any_catalog(p)
+    t = catalog.read_any_catalog(p)
     assert t.colnames == ["x", "y"] and len(t) == 9
     np.testing.assert_array_equal(t["x"][:4], [23, 71, 119, 23])
     np.testing.assert_array_equal(t["y"][::3], [23, 71, 119])

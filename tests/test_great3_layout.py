@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from megalut_cli import catalog
 from megalut_cli.catalog import write_catalog, write_image
 from megalut_cli.errors import InputError, MegalutError
 from megalut_cli.great3 import layout as L
@@ -44,28 +45,28 @@ def test_text_catalog_great3_style(tmp_path):
     p = tmp_path / "galaxy_catalog-000.txt"
     p.write_text("# x\n# y\n# ID\n2.300000000000000000e+01 2.300000000000000000e+01 0.000000000000000000e+00\n"
                  "7.100000000000000000e+01 2.300000000000000000e+01 1.000000000000000000e+03\n")
-    t = L.read_text_catalog(p)
+    t = catalog.read_text_catalog(p)
     assert t.colnames == ["x", "y", "ID"]
     assert t["ID"].dtype == np.int64 and list(t["ID"]) == [0, 1000]
     assert list(t["x"]) == [23.0, 71.0]
     # one-line header, comments after the header, blank lines
     p2 = tmp_path / "c.txt"
     p2.write_text("# a comment\n# x y ID\n\n1 2 3\n# trailing comment\n4 5 6\n")
-    t2 = L.read_text_catalog(p2)
+    t2 = catalog.read_text_catalog(p2)
     assert t2.colnames == ["x", "y", "ID"] and len(t2) == 2
 
 
 def test_text_catalog_roundtrip_and_fits(tmp_path):
     cat = L.galaxy_catalog(2, 4, 4, 48)
-    L.write_text_catalog(tmp_path / "c.txt", cat)
+    catalog.write_text_catalog(tmp_path / "c.txt", cat)
     assert (tmp_path / "c.txt").read_text().startswith("# x\n# y\n# ID\n23 23 2000000\n")
     t = L.read_galaxy_catalog(tmp_path / "c.txt")
     np.testing.assert_array_equal(t["ID"], cat["ID"])
     write_catalog(tmp_path / "c.fits", cat, fmt="great3.catalog")
-    assert L.is_fits_file(tmp_path / "c.fits") and not L.is_fits_file(tmp_path / "c.txt")
+    assert catalog.is_fits_file(tmp_path / "c.fits") and not catalog.is_fits_file(tmp_path / "c.txt")
     np.testing.assert_array_equal(L.read_galaxy_catalog(tmp_path / "c.fits")["x"], cat["x"])
     with pytest.raises(MegalutError, match="exists"):
-        L.write_text_catalog(tmp_path / "c.txt", cat)
+        catalog.write_text_catalog(tmp_path / "c.txt", cat)
 
 
 @pytest.mark.parametrize(
@@ -82,7 +83,7 @@ def test_text_catalog_errors_name_the_file(tmp_path, text, message):
     p = tmp_path / "bad.txt"
     p.write_text(text)
     with pytest.raises(InputError, match=message) as err:
-        L.read_text_catalog(p)
+        catalog.read_text_catalog(p)
     assert str(p) in str(err.value)
 
 

@@ -5,14 +5,16 @@ trained per subfield with tiny sizes, down to the per-galaxy catalog and the sub
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
 import fitsio
 import numpy as np
 import pytest
-from test_great3_branch import BRANCH as G3BRANCH
+from helpers import GREAT3_BRANCH as G3BRANCH
 
+from megalut_cli import catalog
 from megalut_cli.catalog import read_catalog
 from megalut_cli.errors import ConfigError
 from megalut_cli.great3 import layout as L
@@ -182,6 +184,19 @@ def test_skip_existing_and_refusal(runner, cli, branch, tmp_path):
     man = json.loads((w / P.MANIFEST).read_text())
     assert man["subfields"]["000"]["status"] == "skipped"
     assert (w / P.SUBMISSION).read_text() == first
+    # a product touched but unchanged is still up to date (content hashes, the step engine's rule)
+    os.utime(w / P.SUBFIELDS_DIR / "000" / "shears.fits", ns=(0, 0))
+    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]))
+    assert json.loads((w / P.MANIFEST).read_text())["subfields"]["000"]["status"] == "skipped"
+    # a record without content hashes (written by an older megalut): the subfield is redone, the same
+    record = w / P.SUBFIELDS_DIR / "000" / P.UNIT_RECORD
+    old = json.loads(record.read_text())
+    for fp in old["products"].values():
+        del fp["sha256"]
+    record.write_text(json.dumps(old))
+    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]))
+    assert json.loads((w / P.MANIFEST).read_text())["subfields"]["000"]["status"] == "ran"
+    assert (w / P.SUBMISSION).read_text() == first
     # a changed training setting re-runs the subfield
     _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing",
                             "train_weight.iterations=6"]))
@@ -223,8 +238,8 @@ def _corrupt_missing(b: Path) -> str:
 
 def _corrupt_off_image(b: Path) -> str:
     p = b / L.galaxy_catalog_name(1)
-    t = L.read_text_catalog(p)
-    L.write_text_catalog(p, {"x": np.asarray(t["x"]) + 100.0, "y": np.asarray(t["y"]), "ID": np.asarray(t["ID"])},
+    t = catalog.read_text_catalog(p)
+    catalog.write_text_catalog(p, {"x": np.asarray(t["x"]) + 100.0, "y": np.asarray(t["y"]), "ID": np.asarray(t["ID"])},
                          overwrite=True)
     return p.name
 

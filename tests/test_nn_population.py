@@ -75,7 +75,7 @@ def test_predict_logs_population_and_recorded_bias(trained):
 
 
 def test_old_model_without_population(tmp_path):
-    from test_shear_predict import make_model
+    from helpers import make_model
 
     make_model(tmp_path / "old.h5")
     lines = model_report(ShearModel.load(tmp_path / "old.h5"))
@@ -86,7 +86,7 @@ def test_old_model_without_population(tmp_path):
 def test_population_recorded_afterwards_from_a_config(tmp_path):
     from pathlib import Path
 
-    from test_shear_predict import make_model
+    from helpers import make_model
 
     from megalut_cli.nn.population import population_from_config, record_population
 

@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import CRN_C_TRUE as C_TRUE
+from helpers import CRN_M_TRUE as M_TRUE
+from helpers import crn_synthetic as synthetic
 
 from megalut_cli.catalog import write_catalog
 from megalut_cli.errors import InputError
@@ -15,39 +18,8 @@ from megalut_cli.shear.evaluate import (
     BootstrapSpec,
     evaluate_catalog,
     evaluate_columns,
-    format_table,
 )
-
-M_TRUE, C_TRUE = 0.05, 1e-3
-
-
-def synthetic(seed: int, crn: bool, n_cases: int = 10, n_groups: int = 300, group_size: int = 2) -> dict:
-    """Estimates ``pre = e + (1 + m + d) g + c + n + eps`` of ``n_groups`` galaxies (90-degree
-    pairs: ``e`` opposite within a pair) per case. Per galaxy: intrinsic ``e``, response
-    scatter ``d`` and pixel noise ``n``, the same in every case when ``crn`` (else new per
-    case); ``eps`` is a small independent per-row noise."""
-    rng = np.random.default_rng(seed)
-    n_rea = n_groups * group_size
-    g = rng.uniform(-0.1, 0.1, (2, n_cases))
-
-    def galaxies() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        e = rng.normal(0, 0.25, (2, n_groups))
-        e = np.repeat(e, group_size, axis=1) * np.tile([1.0, -1.0][:group_size], n_groups)
-        d = rng.normal(0, 0.15, (2, n_rea))
-        noise = rng.normal(0, 0.1, (2, n_rea))
-        return e, d, noise
-
-    shared = galaxies()
-    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("case", "rea", "tru_g1", "tru_g2", "pre_g1", "pre_g2")}
-    for k in range(n_cases):
-        e, d, noise = shared if crn else galaxies()
-        eps = rng.normal(0, 0.01, (2, n_rea))
-        cols["case"].append(np.full(n_rea, k))
-        cols["rea"].append(np.arange(n_rea))
-        for i in (0, 1):
-            cols[f"tru_g{i + 1}"].append(np.full(n_rea, g[i, k]))
-            cols[f"pre_g{i + 1}"].append(e[i] + (1 + M_TRUE + d[i]) * g[i, k] + C_TRUE + noise[i] + eps[i])
-    return {k: np.concatenate(v) for k, v in cols.items()}
+from megalut_cli.shear.report import format_table
 
 
 def _fits(crn: bool, errors: str, n_seeds: int, n_resamples: int = 100, group_size: int = 2) -> np.ndarray:

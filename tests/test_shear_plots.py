@@ -6,7 +6,7 @@ import re
 
 import numpy as np
 import pytest
-from test_shear_evaluate import synthetic
+from helpers import synthetic
 
 from megalut_cli.catalog import write_catalog
 from megalut_cli.shear.bias import STAGE_IV_C, STAGE_IV_M

@@ -10,70 +10,14 @@ from concurrent.futures import ThreadPoolExecutor
 import fitsio
 import numpy as np
 import pytest
+from helpers import FEATURES, features_catalog, make_model, manual_predict
 
 from megalut_cli import flags
 from megalut_cli.catalog import read_catalog, write_catalog
 from megalut_cli.errors import ConfigError, InputError, MegalutError
-from megalut_cli.nn.model import Committee, Member, ShearModel
+from megalut_cli.nn.model import ShearModel
 from megalut_cli.provenance import sha256_file
 from megalut_cli.shear import predict as P
-
-FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]
-
-
-def make_committee(kind: str, target: str, features: list[str], hidden=(5, 5), n_members=3, seed=0) -> Committee:
-    rng = np.random.default_rng(seed)
-    sizes = [len(features), *hidden, 1]
-    members = [
-        Member(layers=[(rng.normal(0, 0.7, (i, o)), rng.normal(0, 0.2, o)) for i, o in zip(sizes[:-1], sizes[1:])])
-        for _ in range(n_members)
-    ]
-    return Committee(
-        kind, target, features, hidden,
-        in_loc=rng.normal(0, 0.5, len(features)), in_scale=rng.uniform(0.5, 2.0, len(features)),
-        members=members, out_loc=0.01, out_scale=0.3,
-    )
-
-
-def make_model(path, weights: bool = True, seed: int = 0) -> ShearModel:
-    point = {t: make_committee("point", t, FEATURES, seed=seed + i) for i, t in enumerate(("tru_g1", "tru_g2"))}
-    weight = {}
-    if weights:  # weight committees may use other features: the model needs their union
-        wf = [*FEATURES[2:], "snr"]
-        weight = {t: make_committee("weight", t, wf, hidden=(4,), seed=seed + 10 + i)
-                  for i, t in enumerate(("tru_g1", "tru_g2"))}
-    model = ShearModel(point, weight)
-    model.save(path)
-    return model
-
-
-def manual_predict(c: Committee, x: np.ndarray) -> np.ndarray:
-    """Independent forward pass: mean over members of the plain layer-by-layer formula."""
-    outs = []
-    for mem in c.members:
-        a = (x - c.in_loc) / c.in_scale
-        for w, b in mem.layers[:-1]:
-            a = np.tanh(a @ w + b)
-        z = a @ mem.layers[-1][0][:, 0] + mem.layers[-1][1][0]
-        outs.append(c.out_loc + c.out_scale * z if c.kind == "point" else 1.0 / (1.0 + np.exp(-4.0 * z)))
-    return np.mean(outs, axis=0)
-
-
-def features_catalog(n: int = 1000, seed: int = 1) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    d = {
-        "case": np.arange(n) // 10,
-        "adamom_g1": rng.normal(0, 0.2, n),
-        "adamom_g2": rng.normal(0, 0.2, n),
-        "adamom_sigma": rng.uniform(1, 4, n),
-        "adamom_flux": rng.uniform(10, 100, n),
-        "adamom_rho4": rng.uniform(1.8, 2.4, n),
-        "snr": rng.uniform(5, 50, n),
-        "name": np.array([f"g{i % 7}" for i in range(n)]),
-        "vec": rng.normal(size=(n, 3)),
-        "flags": np.zeros(n, dtype=np.int32),
-    }
-    return d
 
 
 @pytest.fixture

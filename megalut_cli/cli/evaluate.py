@@ -10,6 +10,9 @@ import click
 from megalut_cli.atomic import write_json
 from megalut_cli.cli.options import overwrite_option, parse_list, seed_option
 
+#: How the evaluation library's messages name its arguments here.
+FLAGS = {"by": "--by", "select": "--select", "select_cases": "--select-cases", "errors": "--errors"}
+
 #: Exit code of ``--fail-above`` when the Stage IV requirement does not hold.
 EXIT_OUT_OF_TOLERANCE = 3
 
@@ -162,10 +165,10 @@ def command(
     from megalut_cli.shear.evaluate import (
         WARN_M,
         evaluate_catalog,
-        format_table,
         large_m,
         requirement_met,
     )
+    from megalut_cli.shear.report import format_table
 
     by_cols = parse_list(by, "--by column list")
     json_to_stdout = is_stdio(json_path)
@@ -193,10 +196,11 @@ def command(
         if errors == "bootstrap":
             raise click.UsageError("--errors bootstrap does not apply to --great3-truth (subfields are independent)")
         result = evaluate_branch(shears, great3_truth, sigma2_min=sigma2_min, by=by_cols, bins=bins,
-                                 select=select, select_cases=select_cases)
+                                 select=select, select_cases=select_cases, names=FLAGS)
     else:
         result = evaluate_catalog(shears, by=by_cols, bins=bins, select=select, select_cases=select_cases,
-                                  sigma2_min=sigma2_min, errors=errors, n_bootstrap=n_bootstrap, seed=seed)
+                                  sigma2_min=sigma2_min, errors=errors, n_bootstrap=n_bootstrap, seed=seed,
+                                  names=FLAGS)
     if from_stdin:
         result["input"] = "stdin"
     click.echo(format_table(result), err=json_to_stdout)

@@ -248,3 +248,10 @@ def parse_int_list(value: str | None, what: str = "list") -> list[int] | None:
         raise click.BadParameter(f"{what} must be positive integers, got {value!r}")
     return out
 
+
+
+#: How the training library's messages name its arguments on the command line.
+TRAINING_FLAGS = {
+    "select_cases": "--select-cases", "select": "--select", "hidden": "--hidden", "valid": "--valid FILE",
+    "valid_fraction": "--valid-fraction", "output": "-o",
+}

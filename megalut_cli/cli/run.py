@@ -152,14 +152,15 @@ def _branch_pipeline(pipeline: str, workdir: str, overrides: tuple[str, ...], sk
     """Run ``pipeline`` if it is a GREAT3 branch pipeline (a [branch] table); False otherwise."""
     from megalut_cli.cli.options import progress
     from megalut_cli.great3 import pipeline as g3
+    from megalut_cli.great3 import runner
 
     if not g3.is_branch_pipeline(pipeline):
         return False
     pipe = g3.load_branch_pipeline(pipeline, overrides)
-    result = g3.run_branch(pipe, workdir, skip_existing=skip_existing, overwrite=overwrite, keep_going=keep_going,
-                           nproc=nproc, scheduler=scheduler, progress=progress)
-    click.echo(g3.format_summary(result))
-    error = g3.failure_error(result)
+    result = runner.run_branch(pipe, workdir, skip_existing=skip_existing, overwrite=overwrite, keep_going=keep_going,
+                               nproc=nproc, scheduler=scheduler, progress=progress)
+    click.echo(runner.format_summary(result))
+    error = runner.failure_error(result)
     if error is not None:
         raise error
     return True

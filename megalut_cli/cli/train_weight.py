@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 import click
 
 from megalut_cli.cli.options import (
+    TRAINING_FLAGS,
     committee_options,
     execution_options,
     optimizer_options,
@@ -101,4 +102,5 @@ def command(
         scheduler=scheduler,
         overwrite=overwrite,
         progress=progress,
+        names=TRAINING_FLAGS,
     )

@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
+from megalut_cli.catalog import is_fits_file
 from megalut_cli.errors import InputError
 from megalut_cli.great3 import layout as L
 from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND
@@ -35,7 +36,7 @@ def branch_columns(shears: str | os.PathLike, truth_dir: str | os.PathLike) -> d
     """Columns for :func:`megalut_cli.shear.evaluate.evaluate_columns`: the estimates of
     ``shears`` (submission or predictions catalog) joined with the truth of their subfield
     (``case`` = subfield, ``tru_g1, tru_g2``, and ``tru_psf_g1, tru_psf_g2`` when known)."""
-    if L.is_fits_file(shears):
+    if is_fits_file(shears):
         from megalut_cli.catalog import read_catalog
 
         table = read_catalog(shears)
@@ -83,9 +84,11 @@ def evaluate_branch(
     bins: int = 5,
     select: str | None = None,
     select_cases: str | None = None,
+    names: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """m, c (pixel and PSF frames) and ``Q_c`` of ``shears`` against the truth in ``truth_dir``.
 
+    ``names``: how messages name the arguments (see :func:`~megalut_cli.shear.evaluate.evaluate_catalog`).
     Returns the JSON-ready dict of :func:`megalut_cli.shear.evaluate.evaluate_columns`
     (cases are subfields) with a ``"great3"`` entry naming the truth folder.
     """
@@ -95,7 +98,8 @@ def evaluate_branch(
     if len(np.unique(cols["case"])) < 2:
         raise InputError(f"{shears}: estimates for fewer than 2 subfields: m and c cannot be fitted")
     result = evaluate_columns(
-        cols, by=by, bins=bins, select=select, select_cases=select_cases, source=str(shears), sigma2_min=sigma2_min
+        cols, by=by, bins=bins, select=select, select_cases=select_cases, source=str(shears), sigma2_min=sigma2_min,
+        names=names,
     )
     result["input"] = str(shears)
     result["provenance"] = evaluation_provenance(shears)

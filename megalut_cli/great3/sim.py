@@ -47,7 +47,7 @@ import galsim
 import numpy as np
 
 from megalut_cli.atomic import atomic_output, check_output, move_into_folder
-from megalut_cli.catalog import write_catalog, write_image
+from megalut_cli.catalog import write_catalog, write_image, write_text_catalog
 from megalut_cli.engine import DEFAULT_ENGINE
 from megalut_cli.errors import ConfigError, MegalutError
 from megalut_cli.great3 import layout as L
@@ -179,7 +179,7 @@ def _write_subfield(tmp_dir: Path, config: SimConfig, seed: int, case: int, res:
     write_catalog(tmp_dir / L.galaxy_catalog_name(case, "fits"), cat, fmt=L.CATALOG_FORMAT,
                   cards={"SUBFIELD": cards["SUBFIELD"], "STAMPSZ": cards["STAMPSZ"],
                          "XYORIGIN": (0, "coordinate of the first pixel in x, y")})
-    L.write_text_catalog(tmp_dir / L.galaxy_catalog_name(case, "txt"), cat)
+    write_text_catalog(tmp_dir / L.galaxy_catalog_name(case, "txt"), cat)
     n = L.STARFIELD_GRID
     star_cards = dict(cards, NSTAMPX=(n, "stars per row"), NSTAMPS=(n * n, "number of stars"))
     write_image(tmp_dir / L.starfield_name(case), res["stars"], fmt=L.STARFIELD_FORMAT, cards=star_cards)
@@ -187,7 +187,7 @@ def _write_subfield(tmp_dir: Path, config: SimConfig, seed: int, case: int, res:
     star_cat = {"x": stars["x"], "y": stars["y"]}
     write_catalog(tmp_dir / L.star_catalog_name(case, "fits"), star_cat, fmt=L.CATALOG_FORMAT,
                   cards={"SUBFIELD": cards["SUBFIELD"], "STAMPSZ": cards["STAMPSZ"]})
-    L.write_text_catalog(tmp_dir / L.star_catalog_name(case, "txt"), star_cat)
+    write_text_catalog(tmp_dir / L.star_catalog_name(case, "txt"), star_cat)
 
 
 def check_branch_output(branch_dir: str | os.PathLike, overwrite: bool) -> Path:

@@ -23,7 +23,7 @@ cannot be measured sets the ``PSF_FAILED`` flag; a single PSF that cannot be mea
 an error.
 
 Catalogs may be FITS tables or text files with ``# name`` header lines (GREAT3's
-``galaxy_catalog-SSS.txt``; :func:`megalut_cli.great3.layout.read_text_catalog`). A
+``galaxy_catalog-SSS.txt``; :func:`megalut_cli.catalog.read_text_catalog`). A
 catalog whose centres form a regular grid with a spacing that is not a multiple of the
 stamp size, or whose centres all fall off the image, is an error naming the file.
 
@@ -307,7 +307,7 @@ def _n_grid_stamps(info: ImageInfo, n_grid: int) -> int:
 
 def _read_positions_catalog(path: str | os.PathLike) -> Table:
     """A FITS catalog, or a text catalog with ``# name`` header lines, holding ``x, y``."""
-    from megalut_cli.great3.layout import is_fits_file, read_text_catalog
+    from megalut_cli.catalog import is_fits_file, read_text_catalog
 
     if is_fits_file(path):
         n_rows, names, _ = catalog_info(path)
@@ -443,7 +443,7 @@ def measure_file(
                 f"{size} pixels; wrong --origin or --stamp-size?)"
             )
         history = table.meta.get("HISTORY")
-        from megalut_cli.great3.layout import is_fits_file
+        from megalut_cli.catalog import is_fits_file
 
         if is_fits_file(catalog_path):  # carried with their comments, and the CONFIG HDU
             cards = read_cards(catalog_path)

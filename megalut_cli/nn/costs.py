@@ -54,11 +54,6 @@ def _groups(case: np.ndarray | Groups, n: np.ndarray) -> Groups:
     return case if isinstance(case, Groups) else Groups(case, len(n))
 
 
-def case_sums(values: np.ndarray, case: np.ndarray, n_cases: int) -> np.ndarray:
-    """Sum of ``values`` over the rows of each case."""
-    return np.bincount(case, weights=values, minlength=n_cases)
-
-
 def mse(o: np.ndarray, case: np.ndarray | Groups, n: np.ndarray, t_row: np.ndarray) -> tuple[float, np.ndarray]:
     """Mean square error (Eq. 4); ``t_row`` is the target of each row."""
     grp = _groups(case, n)

@@ -138,7 +138,11 @@ def rotate_to_psf_frame(
     ``(g1, g2)`` is rotated by ``-2 theta`` with ``theta`` the PSF position angle (GREAT3,
     paper Sect. 2.2): ``g_plus`` is along the PSF anisotropy, ``g_cross`` at 45 degrees.
     """
-    theta = psf_angle(psf_g1, psf_g2)
+    return rotate_spin2(g1, g2, psf_angle(psf_g1, psf_g2))
+
+
+def rotate_spin2(g1: np.ndarray, g2: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(g1, g2)`` in the frame turned by the angle ``theta`` (radians): rotated by ``-2 theta``."""
     cos2, sin2 = np.cos(2.0 * theta), np.sin(2.0 * theta)
     g1 = np.asarray(g1, dtype=float)
     g2 = np.asarray(g2, dtype=float)

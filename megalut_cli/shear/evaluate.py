@@ -49,6 +49,7 @@ from megalut_cli.shear.bias import (
     fit_bias,
     psf_angle,
     q_c,
+    rotate_spin2,
 )
 from megalut_cli.shear.bootstrap import (
     ERROR_BOOTSTRAP,
@@ -117,10 +118,15 @@ class _Plan:
     by_kind: dict[str, str] = field(default_factory=dict)  # "column", "row" or "case" (see check_by)
     case_by: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # expr -> (case ids, values)
     bootstrap: BootstrapSpec | None = None
+    names: dict[str, str] = field(default_factory=dict)  # how messages name the arguments
 
     @property
     def schemes(self) -> tuple[str, ...]:
         return SCHEMES if self.weighted else SCHEMES[:1]
+
+    def name(self, arg: str) -> str:
+        """How messages name the argument ``arg`` (``by``, ``select``, ``select_cases``, ``errors``)."""
+        return self.names.get(arg, arg)
 
 
 def check_by(by: Sequence[str], available: Sequence[str], key: str = "--by", where: str = "the catalog") -> dict[str, str]:
@@ -151,7 +157,9 @@ def _make_plan(
     select: str | None,
     select_cases: str | None,
     bootstrap: BootstrapSpec | None = None,
+    names: Mapping[str, str] | None = None,
 ) -> _Plan:
+    given = dict(names or {})
     have = set(colnames)
     missing = [c for c in (*TRUTH_COLUMNS, *ESTIMATE_COLUMNS) if c not in have]
     if missing:
@@ -164,7 +172,7 @@ def _make_plan(
         log.warning("%s: only one of %s present; weighted analysis skipped", source, ", ".join(WEIGHT_COLUMNS))
     psf = next((pair for pair in PSF_COLUMNS if all(c in have for c in pair)), None)
     by = list(dict.fromkeys(by or []))
-    by_kind = check_by(by, list(colnames), "--by", source)
+    by_kind = check_by(by, list(colnames), given.get("by", "by"), source)
     if select is not None:
         _expr.check_expression(select, list(colnames))
     if select_cases is not None:
@@ -173,12 +181,12 @@ def _make_plan(
         if "rea" not in have:
             raise InputError(
                 f"{source}: bootstrap errors need the realization column 'rea' to resample galaxies "
-                "(or use fit errors: --errors fit)"
+                f"(or use fit errors: {given.get('errors', 'errors')} fit)"
             )
         if bootstrap.n_resamples < 2 or bootstrap.group_size < 1:
             raise ConfigError("bootstrap: needs at least 2 resamples and a group size >= 1")
     plan = _Plan(source, weighted, psf, by, select, select_cases, has_flags="flags" in have, by_kind=by_kind,
-                 bootstrap=bootstrap)
+                 bootstrap=bootstrap, names=given)
     cols = [*TRUTH_COLUMNS, *ESTIMATE_COLUMNS]
     if bootstrap is not None:
         cols.append("rea")
@@ -356,12 +364,11 @@ def _case_estimates(
                 "n_rows": np.where(use, sums[f"{scheme}:n:{comp}"], 0.0),
             }
     if theta is not None:
-        cos2, sin2 = np.cos(2 * theta), np.sin(2 * theta)
         n_both = sums[f"{scheme}:n:both"]
         for kind in ("tru", "pre"):
-            a, b = out["g1"][kind], out["g2"][kind]
-            out.setdefault("plus", {})[kind] = a * cos2 + b * sin2
-            out.setdefault("cross", {})[kind] = -a * sin2 + b * cos2
+            plus, cross = rotate_spin2(out["g1"][kind], out["g2"][kind], theta)
+            out.setdefault("plus", {})[kind] = plus
+            out.setdefault("cross", {})[kind] = cross
         use = np.isfinite(out["plus"]["pre"])
         out["plus"]["n_rows"] = np.where(use, n_both, 0.0)
         out["cross"]["n_rows"] = out["plus"]["n_rows"]
@@ -406,6 +413,7 @@ def evaluate_catalog(
     errors: str = "auto",
     n_bootstrap: int = N_BOOTSTRAP,
     seed: int = 1,
+    names: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """Evaluate the shear biases of the catalog at ``path``; returns a JSON-ready dict.
 
@@ -415,11 +423,13 @@ def evaluate_catalog(
     e.g. ``"mean(snr) > 10"`` as in paper Fig. 12; ``sigma2_min``: the ``Q_c`` damping
     term (4 ground, 1 space). ``errors``: ``"auto"`` (a bootstrap over galaxies when the
     header says ``CRN = T``, else from the fit), ``"fit"`` or ``"bootstrap"``; the galaxy
-    groups follow the header's ``SNC`` (pairs: 2 realizations). See :func:`evaluate_columns`.
+    groups follow the header's ``SNC`` (pairs: 2 realizations). ``names``: how messages name
+    the arguments (``by``, ``select``, ``select_cases``, ``errors``), e.g. as command-line
+    flags or pipeline keys. See :func:`evaluate_columns`.
     """
-    _, names, header = catalog_info(path)
-    plan = _make_plan(names, str(path), by, select, select_cases,
-                      bootstrap_from_header(header, errors, n_bootstrap, seed))
+    _, colnames, header = catalog_info(path)
+    plan = _make_plan(colnames, str(path), by, select, select_cases,
+                      bootstrap_from_header(header, errors, n_bootstrap, seed), names)
     _prepare_cases(plan, lambda cols: _read_columns(path, cols))
     result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins, sigma2_min)
     result["input"] = str(path)
@@ -451,7 +461,7 @@ def evaluation_provenance(path: str | os.PathLike) -> dict[str, Any]:
     """Provenance of an evaluation of ``path``: this run (creator, date, command, versions)
     and its input (sha256; for a megalut catalog its format, date, model and config hashes
     and the HISTORY of the steps that made it)."""
-    from megalut_cli.great3.layout import is_fits_file
+    from megalut_cli.catalog import is_fits_file
 
     source: dict[str, Any] = {"path": str(path), "sha256": sha256_file(path)}
     if is_fits_file(path):
@@ -479,6 +489,7 @@ def evaluate_columns(
     source: str = "catalog",
     sigma2_min: float = GREAT3_SIGMA2_MIN_GROUND,
     bootstrap: BootstrapSpec | None = None,
+    names: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """Evaluate in-memory columns (a dict of arrays or an astropy Table), as :func:`evaluate_catalog`.
 
@@ -489,8 +500,8 @@ def evaluate_columns(
     ``"error"`` says where the errors come from: ``"fit"``, or ``"bootstrap-galaxies"`` with
     ``bootstrap`` given (then ``"bootstrap"`` holds its settings; needs the ``rea`` column).
     """
-    names = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
-    plan = _make_plan(names, source, by, select, select_cases, bootstrap)
+    colnames = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
+    plan = _make_plan(colnames, source, by, select, select_cases, bootstrap, names)
     data = {c: np.asarray(columns[c]) for c in plan.columns}
     _prepare_cases(plan, lambda cols: {c: np.asarray(columns[c]) for c in cols})
     result = _evaluate(lambda: iter([data]), plan, bins, sigma2_min)
@@ -636,7 +647,7 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
     cond_out: dict[str, Any] = {}
     for c in plan.by:
         if c not in edges:
-            log.warning("--by %s: no usable row has a value", c)
+            log.warning("%s %s: no usable row has a value", plan.name("by"), c)
             cond_out[c] = {"edges": [], "bins": []}
             continue
         cond_out[c] = _conditional(conditional[c], edges[c], by_values[c][0], schemes, theta_of,
@@ -722,7 +733,7 @@ def _bootstrap_errors(
     if n_groups < 2:
         raise InputError(
             f"{plan.source}: the bootstrap over galaxies needs at least 2 galaxy groups, found {n_groups} "
-            f"(group size {spec.group_size}); use --errors fit"
+            f"(group size {spec.group_size}); use {plan.name('errors')} fit"
         )
     if n_groups < FEW_GROUPS:
         log.warning("only %d galaxy groups: the bootstrap errors are rough", n_groups)
@@ -759,7 +770,8 @@ def _check_usable(plan: _Plan, n_total: int, n_selected: int, n_valid: int) -> N
     if n_total == 0:
         raise InputError(f"{plan.source}: the catalog has no rows")
     if n_selected == 0:
-        what = " and ".join(f"{o} {e!r}" for o, e in (("--select", plan.select), ("--select-cases", plan.select_cases))
+        what = " and ".join(f"{plan.name(o)} {e!r}" for o, e in (("select", plan.select),
+                                                                  ("select_cases", plan.select_cases))
                             if e is not None)
         raise InputError(f"{plan.source}: no row passes {what}")
     if n_valid == 0:
@@ -844,94 +856,3 @@ def _conditional(
 def requirement_met(result: Mapping[str, Any]) -> bool:
     """Whether the Stage IV requirement holds (weighted results when present, else unweighted)."""
     return bool(result["requirement"]["met"])
-
-
-def error_note(result: Mapping[str, Any]) -> str:
-    """One line saying which errors the result quotes."""
-    boot = result.get("bootstrap")
-    if result.get("error") != ERROR_BOOTSTRAP or not boot:
-        return "errors: from the fit (residual scatter of the per-case averages about the line)"
-    what = "common-random-number set: the cases share their galaxies" if boot["crn"] else "galaxy groups"
-    return (f"errors: bootstrap over galaxies ({what}; {boot['groups']} groups of {boot['group_size']} "
-            f"realization(s) resampled across all cases, {boot['resamples']} resamples, seed {boot['seed']})")
-
-
-def _pm(v: float | None, e: float | None) -> str:
-    if v is None:
-        return f"{'undetermined':>21}"
-    err = f"{e:.1e}" if e is not None else "  n/a  "
-    return f"{v:+.2e} ± {err}"
-
-
-def _pm_short(v: float | None, e: float | None) -> str:
-    if v is None:
-        return f"{'n/a':^17}"
-    return f"{v:+.1e}±{e:.1e}" if e is not None else f"{v:+.1e}±  n/a  "
-
-
-def _ok(fit: Mapping[str, Any]) -> str:
-    m, c = fit["m"], fit["c"]
-    if m is None or c is None:
-        return "?"
-    return "ok" if abs(m) < STAGE_IV_M and abs(c) < STAGE_IV_C else "OUT"
-
-
-def format_table(result: Mapping[str, Any]) -> str:
-    """A readable text report of an evaluation result."""
-    lines = [f"shear biases of {result['input']}"]
-    lines.append(
-        f"rows: {result['n_rows']} in catalog, {result['n_selected']} selected, {result['n_valid']} usable "
-        "(flags == 0, finite estimates)"
-    )
-    if result.get("select"):
-        lines.append(f"row selection: {result['select']}")
-    if result.get("select_cases"):
-        lines.append(f"case selection: {result['select_cases']}")
-    round_psf = bool(result.get("psf_frame") and result["psf_frame"].get("round"))
-    hidden = ("plus", "cross") if round_psf else ()  # identical to g1, g2: kept in JSON only
-    if result.get("psf_frame"):
-        note = " (round PSF in every case: same as g1, g2, not repeated)" if round_psf else ""
-        lines.append(f"PSF frame (plus, cross) from {', '.join(result['psf_frame']['columns'])}{note}")
-    lines.append(f"Stage IV requirement: |m| < {STAGE_IV_M:.0e}, |c| < {STAGE_IV_C:.0e}")
-    lines.append(error_note(result))
-    header = f"  {'':6}{'m':^22}   {'c':^22}  {'cases':>6} {'rows':>10}  req"
-    for scheme in SCHEMES:
-        if scheme not in result:
-            continue
-        lines += ["", f"{scheme} (per-case {'weighted ' if scheme == 'weighted' else ''}averages)", header]
-        for comp, f in result[scheme].items():
-            if comp in hidden:
-                continue
-            lines.append(
-                f"  {comp:6}{_pm(f['m'], f['m_err']):>22}   {_pm(f['c'], f['c_err']):>22}  "
-                f"{f['n_cases']:>6} {f['n_rows']:>10}  {_ok(f)}"
-            )
-    q = result.get("q_c")
-    if q:
-        frame = "+/x" if q["frame"] == "psf" else "1/2"
-        vals = ", ".join(f"{s} {q[s]:.1f}" if q.get(s) is not None else f"{s} n/a" for s in SCHEMES if s in q)
-        lines += ["", f"GREAT3 Q_c ({frame} frame, sigma2_min={q['sigma2_min']:g}): {vals}"]
-    req = result["requirement"]
-    verdict = "met" if req["met"] else "NOT met (" + "; ".join(req["failures"]) + ")"
-    lines.append(f"Stage IV requirement on {req['applies_to']} results: {verdict}")
-    for col, cond in (result.get("conditional") or {}).items():
-        for scheme in SCHEMES:
-            if not cond["bins"] or scheme not in cond["bins"][0]:
-                continue
-            comps = list(cond["bins"][0][scheme])
-            lines += ["", f"conditional biases by {col} ({len(cond['bins'])} equal-population bins, {scheme})"]
-            for frame in (comps[:2], comps[2:]):
-                if not frame or frame[0] in hidden:
-                    continue
-                head = f"  {'range':^23} {'rows':>9} {'cases':>6}"
-                for comp in frame:
-                    head += f"  {'m_' + comp:^17} {'c_' + comp:^17}"
-                lines.append(head)
-                for b in cond["bins"]:
-                    f0 = b[scheme][frame[0]]
-                    row = f"  [{b['lo']:10.4g},{b['hi']:10.4g}] {b['n_rows']:>9} {f0['n_cases']:>6}"
-                    for comp in frame:
-                        f = b[scheme][comp]
-                        row += f"  {_pm_short(f['m'], f['m_err'])} {_pm_short(f['c'], f['c_err'])}"
-                    lines.append(row)
-    return "\n".join(lines)

@@ -694,8 +694,8 @@ def measured_value(value: Mapping[str, Any], key: str, config_path: str) -> floa
     """A value measured on data: ``statistic`` (median) of ``column`` (skymad) of the
     catalog ``path`` (FITS, or text with ``# name`` lines), over the rows passing
     ``select`` with a finite value, times ``scale`` (1)."""
+    from megalut_cli.catalog import read_any_catalog
     from megalut_cli.expr import check_expression, columns_used, evaluate_rows
-    from megalut_cli.great3.layout import read_any_catalog
 
     unknown = sorted(set(value) - _MEASURED_KEYS)
     if unknown:

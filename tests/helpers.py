@@ -1,0 +1,172 @@
+"""Helpers shared by several test modules: synthetic models, catalogs and predictions."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+from megalut_cli.nn.model import Committee, Member, ShearModel
+
+FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]
+
+
+def make_committee(kind: str, target: str, features: list[str], hidden=(5, 5), n_members=3, seed=0) -> Committee:
+    rng = np.random.default_rng(seed)
+    sizes = [len(features), *hidden, 1]
+    members = [
+        Member(layers=[(rng.normal(0, 0.7, (i, o)), rng.normal(0, 0.2, o)) for i, o in zip(sizes[:-1], sizes[1:])])
+        for _ in range(n_members)
+    ]
+    return Committee(
+        kind, target, features, hidden,
+        in_loc=rng.normal(0, 0.5, len(features)), in_scale=rng.uniform(0.5, 2.0, len(features)),
+        members=members, out_loc=0.01, out_scale=0.3,
+    )
+
+
+def make_model(path, weights: bool = True, seed: int = 0) -> ShearModel:
+    point = {t: make_committee("point", t, FEATURES, seed=seed + i) for i, t in enumerate(("tru_g1", "tru_g2"))}
+    weight = {}
+    if weights:  # weight committees may use other features: the model needs their union
+        wf = [*FEATURES[2:], "snr"]
+        weight = {t: make_committee("weight", t, wf, hidden=(4,), seed=seed + 10 + i)
+                  for i, t in enumerate(("tru_g1", "tru_g2"))}
+    model = ShearModel(point, weight)
+    model.save(path)
+    return model
+
+
+def manual_predict(c: Committee, x: np.ndarray) -> np.ndarray:
+    """Independent forward pass: mean over members of the plain layer-by-layer formula."""
+    outs = []
+    for mem in c.members:
+        a = (x - c.in_loc) / c.in_scale
+        for w, b in mem.layers[:-1]:
+            a = np.tanh(a @ w + b)
+        z = a @ mem.layers[-1][0][:, 0] + mem.layers[-1][1][0]
+        outs.append(c.out_loc + c.out_scale * z if c.kind == "point" else 1.0 / (1.0 + np.exp(-4.0 * z)))
+    return np.mean(outs, axis=0)
+
+
+def features_catalog(n: int = 1000, seed: int = 1) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    d = {
+        "case": np.arange(n) // 10,
+        "adamom_g1": rng.normal(0, 0.2, n),
+        "adamom_g2": rng.normal(0, 0.2, n),
+        "adamom_sigma": rng.uniform(1, 4, n),
+        "adamom_flux": rng.uniform(10, 100, n),
+        "adamom_rho4": rng.uniform(1.8, 2.4, n),
+        "snr": rng.uniform(5, 50, n),
+        "name": np.array([f"g{i % 7}" for i in range(n)]),
+        "vec": rng.normal(size=(n, 3)),
+        "flags": np.zeros(n, dtype=np.int32),
+    }
+    return d
+
+
+def synthetic(
+    seed: int = 0,
+    n_cases: int = 100,
+    n_rea: int = 100,
+    m: tuple[float, float] = (0.0, 0.0),
+    c: tuple[float, float] = (0.0, 0.0),
+    sigma: float = 0.2,
+    weights: bool = False,
+    psf: bool = False,
+) -> dict[str, np.ndarray]:
+    """Rows ``pre = (1 + m) g + c + noise`` for cases with uniform true shears (no simulation)."""
+    rng = np.random.default_rng(seed)
+    case = np.repeat(np.arange(n_cases), n_rea) + 1000  # ids need not start at 0
+    g = rng.uniform(-0.1, 0.1, (2, n_cases))
+    t1, t2 = g[0][case - 1000], g[1][case - 1000]
+    d = {
+        "case": case,
+        "rea": np.tile(np.arange(n_rea), n_cases),
+        "tru_g1": t1,
+        "tru_g2": t2,
+        "pre_g1": (1 + m[0]) * t1 + c[0] + rng.normal(0, sigma, case.size),
+        "pre_g2": (1 + m[1]) * t2 + c[1] + rng.normal(0, sigma, case.size),
+        "flags": np.zeros(case.size, dtype=np.int32),
+        "tru_rad": rng.uniform(1.0, 5.0, n_cases)[case - 1000],
+        "snr": rng.uniform(5.0, 50.0, case.size),
+    }
+    if weights:
+        d["pre_g1_w"] = rng.uniform(0.1, 1.0, case.size)
+        d["pre_g2_w"] = rng.uniform(0.1, 1.0, case.size)
+    if psf:
+        d["tru_psf_g1"] = rng.uniform(-0.1, 0.1, n_cases)[case - 1000]
+        d["tru_psf_g2"] = rng.uniform(-0.1, 0.1, n_cases)[case - 1000]
+    return d
+
+
+def png_size(path) -> tuple[int, int]:
+    with open(path, "rb") as f:
+        head = f.read(24)
+    assert head[:8] == b"\x89PNG\r\n\x1a\n"
+    return struct.unpack(">II", head[16:24])
+
+
+#: The biases :func:`crn_synthetic` injects.
+CRN_M_TRUE, CRN_C_TRUE = 0.05, 1e-3
+
+
+def crn_synthetic(seed: int, crn: bool, n_cases: int = 10, n_groups: int = 300, group_size: int = 2) -> dict:
+    """Estimates ``pre = e + (1 + m + d) g + c + n + eps`` of ``n_groups`` galaxies (90-degree
+    pairs: ``e`` opposite within a pair) per case. Per galaxy: intrinsic ``e``, response
+    scatter ``d`` and pixel noise ``n``, the same in every case when ``crn`` (else new per
+    case); ``eps`` is a small independent per-row noise."""
+    rng = np.random.default_rng(seed)
+    n_rea = n_groups * group_size
+    g = rng.uniform(-0.1, 0.1, (2, n_cases))
+
+    def galaxies() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        e = rng.normal(0, 0.25, (2, n_groups))
+        e = np.repeat(e, group_size, axis=1) * np.tile([1.0, -1.0][:group_size], n_groups)
+        d = rng.normal(0, 0.15, (2, n_rea))
+        noise = rng.normal(0, 0.1, (2, n_rea))
+        return e, d, noise
+
+    shared = galaxies()
+    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("case", "rea", "tru_g1", "tru_g2", "pre_g1", "pre_g2")}
+    for k in range(n_cases):
+        e, d, noise = shared if crn else galaxies()
+        eps = rng.normal(0, 0.01, (2, n_rea))
+        cols["case"].append(np.full(n_rea, k))
+        cols["rea"].append(np.arange(n_rea))
+        for i in (0, 1):
+            cols[f"tru_g{i + 1}"].append(np.full(n_rea, g[i, k]))
+            cols[f"pre_g{i + 1}"].append(e[i] + (1 + CRN_M_TRUE + d[i]) * g[i, k] + CRN_C_TRUE + noise[i] + eps[i])
+    return {k: np.concatenate(v) for k, v in cols.items()}
+
+
+GREAT3_BRANCH = """
+[structure]
+n_cases = 2
+n_realizations = 16
+per_realization = ["galaxy"]
+snc = "pairs"
+stamp_size = 32
+
+[shear]
+g1 = {type = "uniform", min = -0.05, max = 0.05}
+g2 = {type = "uniform", min = -0.05, max = 0.05}
+
+[galaxy]
+sersicn = {type = "grid", min = 0.5, max = 2.5, step = 0.5}
+rad = {type = "uniform", min = 1.0, max = 2.5}
+flux = {type = "uniform", min = 100.0, max = 200.0}
+ellipticity = {type = "rayleigh", mode = 0.2, min = 0.0, max = 0.6}
+
+[psf]
+type = "moffat"
+beta = 3.0
+fwhm = {type = "uniform", min = 2.5, max = 3.5}
+g1 = {type = "uniform", min = -0.05, max = 0.05}
+g2 = {type = "uniform", min = -0.05, max = 0.05}
+
+[noise]
+type = "gaussian"
+sigma = 0.5
+"""

@@ -1,0 +1,78 @@
+"""The training library in memory (``fit_point``, ``fit_weight``) against its file functions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from megalut_cli.catalog import CatalogColumns, write_catalog
+from megalut_cli.errors import ConfigError
+from megalut_cli.nn.model import ShearModel
+from megalut_cli.nn.toy import shear_like_columns
+from megalut_cli.pipeline_config import key_names
+from megalut_cli.training import TrainOptions, fit_point, fit_weight, train_point, train_weight
+
+FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma"]
+POINT = TrainOptions(members=2, iterations=15, seed=3)
+WEIGHT = TrainOptions(members=2, iterations=8, seed=4)
+
+
+def _same_members(a: ShearModel, b: ShearModel) -> None:
+    """Every member's parameters equal, bit for bit, in both kinds of committees."""
+    for kind in ("point", "weight"):
+        ca, cb = getattr(a, kind), getattr(b, kind)
+        assert list(ca) == list(cb)
+        for t in ca:
+            assert ca[t].training == cb[t].training or kind == "weight"
+            for i in range(len(ca[t].members)):
+                assert np.array_equal(ca[t].member_params(i), cb[t].member_params(i)), (kind, t, i)
+
+
+def test_fit_in_memory_equals_the_file_functions(tmp_path: Path) -> None:
+    tp, tw = shear_like_columns(24, 30, seed=1), shear_like_columns(12, 40, seed=2)
+    write_catalog(tmp_path / "tp.fits", tp, fmt="megalut.toy")
+    write_catalog(tmp_path / "tw.fits", tw, fmt="megalut.toy")
+    point_file = train_point(tmp_path / "tp.fits", tmp_path / "p.h5", features=FEATURES, options=POINT)
+    both_file = train_weight(tmp_path / "tw.fits", tmp_path / "p.h5", tmp_path / "w.h5", options=WEIGHT)
+    point = fit_point(tp, features=FEATURES, options=POINT, sources={"train": str(tmp_path / "tp.fits")})
+    both = fit_weight(tw, point, options=WEIGHT)
+    _same_members(point, point_file)
+    _same_members(both, both_file)
+    # the point estimates of the in-memory model are those of the file's (the same networks)
+    x = np.column_stack([tw[f] for f in FEATURES])
+    for t, comm in both.point.items():
+        assert np.array_equal(comm.predict(x), both_file.point[t].predict(x))
+    assert both.weight["tru_g1"].training["point_model_sha256"] is None  # never written to a file
+    assert "inputs" in both_file.provenance and both_file.provenance["inputs"]["train"]["path"].endswith("tw.fits")
+
+
+def test_catalog_columns_read_on_demand(tmp_path: Path) -> None:
+    cols = shear_like_columns(4, 5, seed=1)
+    write_catalog(tmp_path / "c.fits", cols, fmt="megalut.toy")
+    table = CatalogColumns(tmp_path / "c.fits")
+    assert list(table) == list(cols) and len(table) == len(cols)
+    assert np.array_equal(table["adamom_g1"], cols["adamom_g1"])
+    with pytest.raises(KeyError):
+        table["nope"]
+
+
+def test_messages_name_the_callers_words() -> None:
+    tp = shear_like_columns(10, 10, seed=1)
+    opts = TrainOptions(members=1, iterations=2)
+    for names, word in ((None, "select_cases"), (key_names("train_point"), "train_point.select_cases"),
+                        ({"select_cases": "--select-cases"}, "--select-cases")):
+        with pytest.raises(ConfigError, match=f"^{word} 'mean\\(adamom_sigma\\) > 1e9' selects no case"):
+            fit_point(tp, features=FEATURES, select_cases="mean(adamom_sigma) > 1e9", options=opts, names=names)
+
+
+def test_an_astropy_table_is_a_table_too() -> None:
+    from astropy.table import Table
+
+    tp = shear_like_columns(12, 20, seed=5)
+    opts = TrainOptions(members=1, iterations=4, seed=2)
+    a = fit_point(tp, features=FEATURES, options=opts)
+    b = fit_point(Table(tp), features=FEATURES, options=opts)
+    for t in a.point:
+        assert np.array_equal(a.point[t].member_params(0), b.point[t].member_params(0))
