@@ -128,9 +128,12 @@ def check_int_list(value: Any, key: str) -> list[int]:
     return list(value)
 
 
-def check_table(value: Any, key: str, allowed: set[str] | None = None) -> dict[str, Any]:
-    """A table (``None``: an empty one) whose keys are all in ``allowed`` when given."""
+def check_table(value: Any, key: str, allowed: set[str] | None = None, required: bool = False) -> dict[str, Any]:
+    """A table (``None``: an empty one, unless ``required``) whose keys are all in ``allowed``
+    when given."""
     if value is None:
+        if required:
+            raise ConfigError(f"{key}: missing [{key}] table")
         return {}
     if not isinstance(value, Mapping):
         raise ConfigError(f"{key}: expected a table, got {value!r}")

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.schema import check_bool, check_choice, check_float, check_int, check_table
 from megalut_cli.sim.distributions import (
     DIST_TYPES,
     CatalogColumn,
@@ -306,86 +307,48 @@ def load_config(
 # --------------------------------------------------------------------------- validation
 
 
-def _table(raw: Mapping[str, Any], name: str, allowed: set[str] | None, required: bool = False) -> dict[str, Any]:
-    value = raw.get(name)
-    if value is None:
-        if required:
-            raise ConfigError(f"{name}: missing [{name}] table")
-        return {}
-    if not isinstance(value, Mapping):
-        raise ConfigError(f"{name}: expected a table, got {value!r}")
-    if allowed is not None:
-        unknown = sorted(set(value) - allowed)
-        if unknown:
-            raise ConfigError(
-                f"{name}.{unknown[0]}: unknown key (allowed: {', '.join(sorted(allowed))})"
-            )
-    return dict(value)
 
 
-def _int(value: Any, key: str, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        if isinstance(value, float) and value.is_integer():
-            value = int(value)
-        else:
-            raise ConfigError(f"{key}: expected an integer, got {value!r}")
-    if value < minimum:
-        raise ConfigError(f"{key}: must be >= {minimum}, got {value}")
-    return int(value)
 
 
-def _float(value: Any, key: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"{key}: expected a number, got {value!r}")
-    if not math.isfinite(value):
-        raise ConfigError(f"{key}: must be a finite number, got {value!r}")
-    return float(value)
 
 
-def _choice(value: Any, key: str, choices: Sequence[str]) -> str:
-    if value not in choices:
-        raise ConfigError(f"{key}: unknown value {value!r} (expected one of {', '.join(choices)})")
-    return str(value)
 
 
 def _parse_structure(raw: Mapping[str, Any]) -> StructureSpec:
-    t = _table(raw, "structure", _STRUCTURE_KEYS, required=True)
+    t = check_table(raw.get("structure"), "structure", _STRUCTURE_KEYS, required=True)
     for k in ("n_cases", "n_realizations"):
         if k not in t:
             raise ConfigError(f"structure.{k}: missing")
-    n_cases = _int(t["n_cases"], "structure.n_cases", 1)
-    n_rea = _int(t["n_realizations"], "structure.n_realizations", 1)
+    n_cases = check_int(t["n_cases"], "structure.n_cases", 1)
+    n_rea = check_int(t["n_realizations"], "structure.n_realizations", 1)
     per = t.get("per_realization", ["angle"])
     if isinstance(per, str):
         per = [per]
     if not isinstance(per, list) or not all(isinstance(p, str) for p in per):
         raise ConfigError("structure.per_realization: expected a list of names")
     for p in per:
-        _choice(p, "structure.per_realization", VARY_GROUPS)
-    snc = _choice(t.get("snc", "none"), "structure.snc", SNC_MODES)
+        check_choice(p, "structure.per_realization", VARY_GROUPS)
+    snc = check_choice(t.get("snc", "none"), "structure.snc", SNC_MODES)
     if snc == "pairs" and n_rea % 2:
         raise ConfigError(
             f"structure.n_realizations: snc = 'pairs' needs an even number, got {n_rea}"
         )
-    stamp = _int(t.get("stamp_size", 64), "structure.stamp_size", 8)
+    stamp = check_int(t.get("stamp_size", 64), "structure.stamp_size", 8)
     if stamp > 4096:
         raise ConfigError(f"structure.stamp_size: {stamp} is too large (max 4096)")
-    offset = _float(t.get("offset", 0.5), "structure.offset")
+    offset = check_float(t.get("offset", 0.5), "structure.offset")
     if offset < 0 or offset > stamp / 4:
         raise ConfigError(f"structure.offset: must be in [0, stamp_size/4], got {offset}")
     n_x = t.get("n_x")
     if n_x is not None:
-        n_x = _int(n_x, "structure.n_x", 1)
-    common = _bool(t.get("common", False), "structure.common")
+        n_x = check_int(n_x, "structure.n_x", 1)
+    common = check_bool(t.get("common", False), "structure.common")
     if common:
         _check_common(frozenset(per), snc)
     return StructureSpec(n_cases, n_rea, frozenset(per), snc, stamp, offset, n_x, common)
 
 
-def _bool(value: Any, key: str) -> bool:
-    if not isinstance(value, bool):
-        raise ConfigError(f"{key}: expected true or false, got {value!r}")
-    return value
 
 
 def _check_common(per: frozenset[str], snc: str) -> None:
@@ -409,10 +372,10 @@ def _dists(table: Mapping[str, Any], prefix: str, keys: Sequence[str]) -> dict[s
 
 
 def _parse_instrument(raw: Mapping[str, Any]) -> dict[str, float]:
-    t = _table(raw, "instrument", _INSTRUMENT_KEYS)
+    t = check_table(raw.get("instrument"), "instrument", _INSTRUMENT_KEYS)
     out = {}
     for k, v in t.items():
-        out[k] = _float(v, f"instrument.{k}")
+        out[k] = check_float(v, f"instrument.{k}")
         if k != "zeropoint" and out[k] <= 0:
             raise ConfigError(f"instrument.{k}: must be > 0, got {out[k]}")
     return out
@@ -447,7 +410,7 @@ def _real_rows(select: Any, cat: Path) -> list[int]:
 
 def _parse_twin(t: Mapping[str, Any], config_path: str, index: Distribution) -> dict[str, Any]:
     """``galaxy.twin`` and ``galaxy.twin_catalog``: draw each real galaxy's Sérsic twin."""
-    twin = _choice(t.get("twin", "none"), "galaxy.twin", TWIN_MODES)
+    twin = check_choice(t.get("twin", "none"), "galaxy.twin", TWIN_MODES)
     if "twin_catalog" not in t:
         if twin != "none":
             raise ConfigError("galaxy.twin_catalog: missing (required by galaxy.twin = 'sersic': the Sérsic-twin FITS table)")
@@ -490,7 +453,7 @@ def _parse_real_galaxy(t: dict[str, Any], instrument: Mapping[str, float], confi
         real_dir = str(d.resolve())
     else:
         real_dir = str(cat.parent)
-    scale = _float(t["pixel_scale"], "galaxy.pixel_scale")
+    scale = check_float(t["pixel_scale"], "galaxy.pixel_scale")
     if scale <= 0:
         raise ConfigError(f"galaxy.pixel_scale: must be > 0, got {scale}")
     from megalut_cli.sim.galaxies import real_galaxy_catalog
@@ -514,10 +477,10 @@ def _parse_real_galaxy(t: dict[str, Any], instrument: Mapping[str, float], confi
     if lo < 0 or hi > n_obj - 1 or any(float(v) != int(v) for v in (lo, hi)):
         raise ConfigError(f"galaxy.index: must be integers in [0, {n_obj - 1}] (the rows of {cat.name}), got [{lo:g}, {hi:g}]")
     angle = parse_distribution(t.get("angle", {"type": "uniform", "min": 0.0, "max": 180.0}), "galaxy.angle")
-    hst_noise = _choice(t.get("hst_noise", "symmetrize"), "galaxy.hst_noise", HST_NOISE_MODES)
+    hst_noise = check_choice(t.get("hst_noise", "symmetrize"), "galaxy.hst_noise", HST_NOISE_MODES)
     real = {"catalog": str(cat), "dir": real_dir, "pixel_scale": scale, "n_objects": int(n_obj), "hst_noise": hst_noise}
     real.update(_parse_twin(t, config_path, params["index"]))
-    real["order"] = _choice(t.get("real_order", "random"), "galaxy.real_order", REAL_ORDERS)
+    real["order"] = check_choice(t.get("real_order", "random"), "galaxy.real_order", REAL_ORDERS)
     if real["order"] == "each":
         if not isinstance(params["index"], Grid):
             raise ConfigError("galaxy.real_order: 'each' needs galaxy.real_select or a grid of galaxy.index values")
@@ -526,8 +489,8 @@ def _parse_real_galaxy(t: dict[str, Any], instrument: Mapping[str, float], confi
 
 
 def _parse_galaxy(raw: Mapping[str, Any], instrument: Mapping[str, float], config_path: str = "<config>") -> GalaxySpec:
-    t = _table(raw, "galaxy", _GALAXY_KEYS, required=True)
-    profile = _choice(t.get("profile", "sersic"), "galaxy.profile", PROFILES)
+    t = check_table(raw.get("galaxy"), "galaxy", _GALAXY_KEYS, required=True)
+    profile = check_choice(t.get("profile", "sersic"), "galaxy.profile", PROFILES)
     if profile == "real":
         extra = sorted(set(t) & (_KNOT_KEYS | _BULGE_KEYS | _FIT_KEYS))
         if extra:
@@ -579,7 +542,7 @@ def _flux_mode(t: Mapping[str, Any], instrument: Mapping[str, float]) -> str:
 
 
 def _sersicn_step(t: Mapping[str, Any]) -> float:
-    step = _float(t.get("sersicn_step", 0.1), "galaxy.sersicn_step")
+    step = check_float(t.get("sersicn_step", 0.1), "galaxy.sersicn_step")
     if step < 0:
         raise ConfigError(f"galaxy.sersicn_step: must be >= 0, got {step}")
     return step
@@ -619,7 +582,7 @@ def _parse_cosmos_fit(t: dict[str, Any], instrument: Mapping[str, float]) -> Gal
     for k in ("sersicn", "ellipticity", "real_select"):
         if k in t:
             raise ConfigError(f"galaxy.{k}: not a key of profile 'cosmos_fit' (profile and shape come from the fits)")
-    fit = _choice(t.get("fit", "auto"), "galaxy.fit", COSMOS_FITS)
+    fit = check_choice(t.get("fit", "auto"), "galaxy.fit", COSMOS_FITS)
     if ("rad" in t) == ("pixel_scale" in t):
         raise ConfigError(
             "galaxy.pixel_scale: profile 'cosmos_fit' needs exactly one of galaxy.pixel_scale (arcsec per "
@@ -627,7 +590,7 @@ def _parse_cosmos_fit(t: dict[str, Any], instrument: Mapping[str, float]) -> Gal
         )
     scale = None
     if "pixel_scale" in t:
-        scale = _float(t["pixel_scale"], "galaxy.pixel_scale")
+        scale = check_float(t["pixel_scale"], "galaxy.pixel_scale")
         if scale <= 0:
             raise ConfigError(f"galaxy.pixel_scale: must be > 0, got {scale}")
     flux_mode = _flux_mode(t, instrument)
@@ -696,8 +659,8 @@ def measured_value(value: Mapping[str, Any], key: str, config_path: str) -> floa
     column = value.get("column", "skymad")
     if not isinstance(column, str) or not column:
         raise ConfigError(f"{key}.column: expected a column name, got {column!r}")
-    statistic = _choice(value.get("statistic", "median"), f"{key}.statistic", MEASURED_STATISTICS)
-    scale = _float(value.get("scale", 1.0), f"{key}.scale")
+    statistic = check_choice(value.get("statistic", "median"), f"{key}.statistic", MEASURED_STATISTICS)
+    scale = check_float(value.get("scale", 1.0), f"{key}.scale")
     select = value.get("select")
     if select is not None and not isinstance(select, str):
         raise ConfigError(f"{key}.select: expected an expression string")
@@ -722,10 +685,10 @@ def measured_value(value: Mapping[str, Any], key: str, config_path: str) -> floa
 
 
 def _parse_noise(raw: Mapping[str, Any], instrument: Mapping[str, float], config_path: str = "<config>") -> NoiseSpec:
-    t = _table(raw, "noise", _NOISE_KEYS, required=True)
+    t = check_table(raw.get("noise"), "noise", _NOISE_KEYS, required=True)
     if is_measured(t.get("sigma")):
         t["sigma"] = measured_value(t["sigma"], "noise.sigma", config_path)
-    kind = _choice(t.get("type"), "noise.type", NOISE_TYPES)
+    kind = check_choice(t.get("type"), "noise.type", NOISE_TYPES)
     allowed = {"gaussian": {"sigma"}, "ccd": {"sky_mag", "read_noise"}, "correlated": _CORRELATED_KEYS,
                "none": set()}[kind]
     extra = sorted(set(t) - allowed - {"type", "override_sigma"})
@@ -758,7 +721,7 @@ def _parse_noise(raw: Mapping[str, Any], instrument: Mapping[str, float], config
         params = {}
     override = t.get("override_sigma")
     if override is not None:
-        override = _float(override, "noise.override_sigma")
+        override = check_float(override, "noise.override_sigma")
         if override < 0:
             raise ConfigError(f"noise.override_sigma: must be >= 0, got {override}")
     return NoiseSpec(kind, params, override, source)
@@ -777,8 +740,8 @@ def _correlation_source(t: Mapping[str, Any], config_path: str) -> CorrelationSo
     path = _resolve_path(t[kind], f"noise.{kind}", config_path)
     hdu = t.get("hdu")
     if hdu is not None:
-        hdu = _int(hdu, "noise.hdu", 0)
-    scale = _float(t.get("pixel_scale", 1.0), "noise.pixel_scale")
+        hdu = check_int(hdu, "noise.hdu", 0)
+    scale = check_float(t.get("pixel_scale", 1.0), "noise.pixel_scale")
     if scale <= 0:
         raise ConfigError(f"noise.pixel_scale: must be > 0, got {scale}")
     if kind == "correlation" and hdu is not None:
@@ -794,13 +757,13 @@ def _correlation_source(t: Mapping[str, Any], config_path: str) -> CorrelationSo
 
 
 def _parse_gsparams(raw: Mapping[str, Any]) -> dict[str, float]:
-    t = _table(raw, "gsparams", set(GSPARAMS_KEYS))
+    t = check_table(raw.get("gsparams"), "gsparams", set(GSPARAMS_KEYS))
     out: dict[str, float] = {}
     for k, v in t.items():
         if GSPARAMS_KEYS[k] is int:
-            out[k] = _int(v, f"gsparams.{k}", 16)
+            out[k] = check_int(v, f"gsparams.{k}", 16)
         else:
-            out[k] = _float(v, f"gsparams.{k}")
+            out[k] = check_float(v, f"gsparams.{k}")
             upper = math.inf if k == "stepk_minimum_hlr" else 1.0
             if not 0 < out[k] < upper:
                 raise ConfigError(f"gsparams.{k}: must be in (0, {upper:g}), got {out[k]}")
@@ -815,7 +778,7 @@ def _parse_gsparams(raw: Mapping[str, Any]) -> dict[str, float]:
 
 
 def _parse_psf(raw: Mapping[str, Any], config_path: str) -> dict[str, Any]:
-    t = _table(raw, "psf", None, required=True)
+    t = check_table(raw.get("psf"), "psf", None, required=True)
     if "type" not in t:
         raise ConfigError("psf.type: missing")
     if t["type"] == "stamp" and "path" in t:  # a star image: same lookup as catalog.path
@@ -825,8 +788,7 @@ def _parse_psf(raw: Mapping[str, Any], config_path: str) -> dict[str, Any]:
             raise ConfigError("psf.index: 'random' needs psf.path and psf.stamp_size (a grid of stars)")
         from megalut_cli.sim.psf import star_grid_size
 
-        if isinstance(t["stamp_size"], bool) or not isinstance(t["stamp_size"], int) or t["stamp_size"] < 3:
-            raise ConfigError(f"psf.stamp_size: must be an integer >= 3, got {t['stamp_size']!r}")
+        t["stamp_size"] = check_int(t["stamp_size"], "psf.stamp_size", 3)
         n = star_grid_size(t["path"], t.get("hdu"), t["stamp_size"])
         t["index"] = {"type": "grid", "values": list(range(n))}
     elif isinstance(t.get("index"), str):
@@ -894,7 +856,7 @@ def _load_catalog(
     from megalut_cli.catalog import read_catalog
     from megalut_cli.expr import columns_used, evaluate_rows
 
-    t = _table(raw, "catalog", _CATALOG_KEYS)
+    t = check_table(raw.get("catalog"), "catalog", _CATALOG_KEYS)
     found = _catalog_dists(parts)
     if not found:
         if t:
@@ -993,7 +955,7 @@ def validate_config(
         raise ConfigError("description: expected a string")
     structure = _parse_structure(raw)
     instrument = _parse_instrument(raw)
-    shear_t = _table(raw, "shear", {"g1", "g2"})
+    shear_t = check_table(raw.get("shear"), "shear", {"g1", "g2"})
     shear = _dists(shear_t, "shear", ["g1", "g2"])
     galaxy = _parse_galaxy(raw, instrument, path)
     noise = _parse_noise(raw, instrument, path)
@@ -1004,7 +966,7 @@ def validate_config(
         )
     psf = _parse_psf(raw, path)
     gsparams = _parse_gsparams(raw)
-    field_t = _table(raw, "field", {"x", "y"})
+    field_t = check_table(raw.get("field"), "field", {"x", "y"})
     field_d = _dists(field_t, "field", ["x", "y"]) if field_t else None
     if field_d is not None and len(field_d) != 2:
         raise ConfigError(f"field.{'y' if 'x' in field_d else 'x'}: missing")

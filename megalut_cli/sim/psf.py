@@ -55,6 +55,7 @@ import galsim
 import numpy as np
 
 from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.schema import check_float, check_int
 
 #: Truth columns returned by :func:`make_psf`.
 TRUTH_COLUMNS = ("tru_psf_g1", "tru_psf_g2", "tru_psf_sigma")
@@ -110,27 +111,15 @@ def _key(where: str, k: str) -> str:
 
 
 def _number(spec: Mapping[str, Any], k: str, where: str) -> float:
-    v = spec[k]
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        raise ConfigError(f"{_key(where, k)}: expected a number, got {v!r}")
-    v = float(v)
-    if not math.isfinite(v):
-        raise ConfigError(f"{_key(where, k)}: must be finite, got {v}")
-    return v
+    return check_float(spec[k], _key(where, k))
 
 
 def _positive(spec: Mapping[str, Any], k: str, where: str) -> float:
-    v = _number(spec, k, where)
-    if v <= 0:
-        raise ConfigError(f"{_key(where, k)}: must be > 0, got {v}")
-    return v
+    return check_float(spec[k], _key(where, k), 0.0, lo_open=True)
 
 
 def _integer(spec: Mapping[str, Any], k: str, where: str, minimum: int) -> int:
-    v = _number(spec, k, where)
-    if not v.is_integer() or v < minimum:
-        raise ConfigError(f"{_key(where, k)}: must be an integer >= {minimum}, got {spec[k]!r}")
-    return int(v)
+    return check_int(spec[k], _key(where, k), minimum)
 
 
 def _check_shear(g1: float, g2: float, where: str, what: str = "g1, g2") -> None:
