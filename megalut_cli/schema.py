@@ -146,19 +146,25 @@ def check_table(value: Any, key: str, allowed: set[str] | None = None, required:
 
 
 def resolve_path(text: Any, key: str, base: str | Path | None, folder: bool = False) -> Path:
-    """The existing file (or ``folder``) ``text`` names, relative to the folder ``base`` of
-    the file that names it; ``~`` is expanded. A missing one is an :class:`InputError`."""
+    """The existing file (or ``folder``) that ``text`` names, absolute.
+
+    The one rule for relative paths: relative to the folder ``base`` of the file that names
+    them, then to the current folder (where ``KEY=VALUE`` overrides given on the command
+    line are meant). ``~`` is expanded. A missing one is an :class:`InputError`.
+    """
     what = "folder" if folder else "file"
     if not isinstance(text, str) or not text:
         raise ConfigError(f"{key}: expected a {what} path")
     path = Path(text).expanduser()
-    if not path.is_absolute():
-        if base is None:
-            raise ConfigError(f"{key}: a relative path needs a file to be relative to")
-        path = Path(base) / path
-    if not (path.is_dir() if folder else path.is_file()):
-        raise InputError(f"{key}: no such {what} {str(path)!r}")
-    return path.resolve()
+    if path.is_absolute():
+        candidates = [path]
+    else:
+        candidates = ([Path(base) / path] if base is not None else []) + [Path.cwd() / path]
+    for candidate in candidates:
+        if candidate.is_dir() if folder else candidate.is_file():
+            return candidate.resolve()
+    where = "" if path.is_absolute() else " (looked beside the file that names it and in the current folder)"
+    raise InputError(f"{key}: no such {what} {text!r}{where}")
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,14 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.errors import ConfigError, InputError
-from megalut_cli.schema import check_bool, check_choice, check_float, check_int, check_table
+from megalut_cli.schema import (
+    check_bool,
+    check_choice,
+    check_float,
+    check_int,
+    check_table,
+    resolve_path,
+)
 from megalut_cli.sim.distributions import (
     DIST_TYPES,
     CatalogColumn,
@@ -442,15 +449,7 @@ def _parse_real_galaxy(t: dict[str, Any], instrument: Mapping[str, float], confi
             raise ConfigError(f"galaxy.{k}: missing (required by profile 'real': {what})")
     cat = _resolve_path(t["real_catalog"], "galaxy.real_catalog", config_path)
     if "real_dir" in t:
-        if not isinstance(t["real_dir"], str) or not t["real_dir"]:
-            raise ConfigError("galaxy.real_dir: expected a folder path")
-        d = Path(t["real_dir"]).expanduser()
-        if not d.is_absolute():
-            cands = [Path.cwd() / d, Path(config_path).resolve().parent / d]
-            d = next((c for c in cands if c.is_dir()), cands[0])
-        if not d.is_dir():
-            raise InputError(f"galaxy.real_dir: folder {t['real_dir']!r} not found")
-        real_dir = str(d.resolve())
+        real_dir = str(_resolve_path(t["real_dir"], "galaxy.real_dir", config_path, folder=True))
     else:
         real_dir = str(cat.parent)
     scale = check_float(t["pixel_scale"], "galaxy.pixel_scale")
@@ -802,20 +801,9 @@ def _parse_psf(raw: Mapping[str, Any], config_path: str) -> dict[str, Any]:
     return spec
 
 
-def _resolve_path(text: Any, key: str, config_path: str) -> Path:
-    if not isinstance(text, str) or not text:
-        raise ConfigError(f"{key}: expected a file path")
-    p = Path(text).expanduser()
-    if p.is_absolute():
-        candidates = [p]
-    else:
-        candidates = [Path.cwd() / p, Path(config_path).resolve().parent / p]
-    for c in candidates:
-        if c.is_file():
-            return c.resolve()
-    raise InputError(
-        f"{key}: file {text!r} not found (looked in the current folder and beside the config)"
-    )
+def _resolve_path(text: Any, key: str, config_path: str, folder: bool = False) -> Path:
+    """A path named by the config ``config_path`` (:func:`megalut_cli.schema.resolve_path`)."""
+    return resolve_path(text, key, Path(config_path).resolve().parent, folder)
 
 
 def _catalog_dists(parts: Mapping[str, Mapping[str, Any]]) -> list[tuple[str, str, CatalogColumn]]:
