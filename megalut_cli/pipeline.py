@@ -61,7 +61,10 @@ from megalut_cli import __version__
 from megalut_cli.atomic import atomic_output
 from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
 from megalut_cli.errors import ConfigError, InputError, MegalutError
+from megalut_cli.nn.options import OPTION as TRAIN_OPTION
+from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
 from megalut_cli.provenance import sha256_file, utc_now
+from megalut_cli.schema import Table, resolve_path
 from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, validate_config
 from megalut_cli.training import DEFAULT_FEATURES, TrainOptions
 
@@ -197,84 +200,6 @@ class Pipeline:
         return f"{self.name}/{base}" if self.name else base
 
 
-class ConfigTable:
-    """Typed, key-checked access to one table of the pipeline file (errors name the key)."""
-
-    def __init__(self, data: Any, where: str, allowed: set[str] | None = None) -> None:
-        if data is None:
-            data = {}
-        if not isinstance(data, Mapping):
-            raise ConfigError(f"{where}: expected a table, got {data!r}")
-        self.data, self.where = dict(data), where
-        if allowed is not None:
-            unknown = sorted(set(self.data) - allowed)
-            if unknown:
-                raise ConfigError(f"{self.key(unknown[0])}: unknown key (allowed: {', '.join(sorted(allowed))})")
-
-    def key(self, name: str) -> str:
-        return f"{self.where}.{name}" if self.where else name
-
-    def get_int(self, name: str, default: int | None, minimum: int) -> int | None:
-        v = self.data.get(name, default)
-        if v is None:
-            return None
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise ConfigError(f"{self.key(name)}: expected an integer, got {v!r}")
-        if v < minimum:
-            raise ConfigError(f"{self.key(name)}: must be >= {minimum}, got {v}")
-        return int(v)
-
-    def get_float(self, name: str, default: float, lo: float, hi: float, lo_open: bool = False,
-              hi_open: bool = False) -> float:
-        v = self.data.get(name, default)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise ConfigError(f"{self.key(name)}: expected a finite number, got {v!r}")
-        if v < lo or v > hi or (lo_open and v == lo) or (hi_open and v == hi):
-            interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
-            raise ConfigError(f"{self.key(name)}: must be in {interval}, got {v!r}")
-        return float(v)
-
-    def get_str(self, name: str, default: str | None, choices: Sequence[str] | None = None) -> str | None:
-        v = self.data.get(name, default)
-        if v is None:
-            return None
-        if not isinstance(v, str) or not v.strip():
-            raise ConfigError(f"{self.key(name)}: expected a non-empty string, got {v!r}")
-        if choices is not None and v not in choices:
-            raise ConfigError(f"{self.key(name)}: unknown value {v!r} (expected one of {', '.join(choices)})")
-        return v
-
-    def get_bool(self, name: str, default: bool) -> bool:
-        v = self.data.get(name, default)
-        if not isinstance(v, bool):
-            raise ConfigError(f"{self.key(name)}: expected true or false, got {v!r}")
-        return v
-
-    def get_str_list(self, name: str, default: Sequence[str] | None, allow_empty: bool = False) -> list[str] | None:
-        v = self.data.get(name, default)
-        if v is None:
-            return None
-        if isinstance(v, str):
-            v = [s.strip() for s in v.split(",") if s.strip()]
-        if not isinstance(v, (list, tuple)) or not all(isinstance(s, str) and s for s in v):
-            raise ConfigError(f"{self.key(name)}: expected a list of names, got {v!r}")
-        if not v and not allow_empty:
-            raise ConfigError(f"{self.key(name)}: the list is empty")
-        dup = sorted({s for s in v if list(v).count(s) > 1})
-        if dup:
-            raise ConfigError(f"{self.key(name)}: {dup[0]!r} given twice")
-        return list(v)
-
-    def get_int_list(self, name: str, default: Sequence[int]) -> list[int]:
-        v = self.data.get(name, default)
-        if isinstance(v, int) and not isinstance(v, bool):
-            v = [v]
-        if (not isinstance(v, (list, tuple)) or not v
-                or not all(isinstance(i, int) and not isinstance(i, bool) and i > 0 for i in v)):
-            raise ConfigError(f"{self.key(name)}: expected a list of positive integers, got {v!r}")
-        return list(v)
-
-
 def merge_tables(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
     """Deep-merge ``over`` into a copy of ``base``; a table with a ``type`` key replaces, not merges."""
     out = copy.deepcopy(dict(base))
@@ -298,22 +223,11 @@ def _sha_text(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def _resolve(text: str, key: str, base: Path | None) -> Path:
-    p = Path(text).expanduser()
-    if not p.is_absolute():
-        if base is None:
-            raise ConfigError(f"{key}: a relative path needs a pipeline file to be relative to")
-        p = base / p
-    if not p.is_file():
-        raise InputError(f"{key}: no such file {str(p)!r}")
-    return p
-
-
 def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | None, scale: float,
               pipeline_path: str, base_dir: Path | None, pipeline_sha: str) -> SetSpec:
-    t = ConfigTable(raw.get(name), f"sets.{name}", _SET_KEYS)
+    t = Table(raw.get(name), f"sets.{name}", _SET_KEYS)
     if "config" in t.data:
-        cfg_path = _resolve(t.get_str("config", None) or "", t.key("config"), base_dir)
+        cfg_path = resolve_path(t.get_str("config", None) or "", t.key("config"), base_dir)
         try:
             sim_raw, sha = read_toml(cfg_path)
         except MegalutError as err:
@@ -360,25 +274,13 @@ def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | N
     return SetSpec(name, config, int(seed), source)
 
 
-def train_options_from(t: ConfigTable, iterations: int, seed: int) -> TrainOptions:
-    opts = TrainOptions(
-        members=t.get_int("members", 8, 1),
-        iterations=t.get_int("iterations", iterations, 1),
-        batch_fraction=t.get_float("batch_fraction", 0.25, 0.0, 1.0, lo_open=True),
-        batch_iterations=t.get_int("batch_iterations", 30, 1),
-        optimizer=t.get_str("optimizer", "bfgs", ("bfgs", "lbfgs")),
-        normalization=t.get_str("normalization", "minmax", ("minmax", "robust")),
-        valid_fraction=t.get_float("valid_fraction", 0.2, 0.0, 1.0, hi_open=True),
-        seed=t.get_int("seed", seed, 0),
-        dtype=t.get_str("precision", "float64", ("float64", "float32")),
-        keep=t.get_int("keep", None, 1),
-    )
-    if opts.keep is not None and opts.keep > opts.members:
-        raise ConfigError(f"{t.key('keep')}: must be <= {t.key('members')} ({opts.members}), got {opts.keep}")
-    return opts
+def train_options_from(t: Table, iterations: int, seed: int) -> TrainOptions:
+    """The training options of a table (``iterations`` and ``seed``: its defaults)."""
+    values = {k: v for k, v in t.data.items() if k in TRAIN_OPTION}
+    return TrainOptions.from_values(values, t.where, {"iterations": iterations, "seed": seed})
 
 
-def selection_expression(t: ConfigTable, name: str, case_mode: bool, default: str | None = None) -> str | None:
+def selection_expression(t: Table, name: str, case_mode: bool, default: str | None = None) -> str | None:
     """A selection expression, syntax-checked (columns are checked later); ``""`` means none."""
     from megalut_cli.expr import check_expression
 
@@ -393,7 +295,7 @@ def selection_expression(t: ConfigTable, name: str, case_mode: bool, default: st
     return expr
 
 
-def _evaluate_spec(t: ConfigTable, select_cases: str | None) -> EvaluateSpec:
+def _evaluate_spec(t: Table, select_cases: str | None) -> EvaluateSpec:
     return EvaluateSpec(
         by=t.get_str_list("by", [], allow_empty=True) or [],
         bins=t.get_int("bins", 5, 1) or 5,
@@ -403,25 +305,25 @@ def _evaluate_spec(t: ConfigTable, select_cases: str | None) -> EvaluateSpec:
     )
 
 
-def _pretrain_spec(top: ConfigTable, has_set: bool) -> PretrainSpec | None:
+def _pretrain_spec(top: Table, has_set: bool) -> PretrainSpec | None:
     if not has_set:
         if top.data.get("pretrain") is not None:
             raise ConfigError("pretrain: there is no set to pretrain on: add a [sets.pretrain] table")
         return None
-    t = ConfigTable(top.data.get("pretrain"), "pretrain")
+    t = Table(top.data.get("pretrain"), "pretrain")
     for k in ("features", "hidden"):
         if k in t.data:
             raise ConfigError(
                 f"pretrain.{k}: the pretraining uses the features and hidden layers of [train_point], "
                 "which continues from it; set them there"
             )
-    ConfigTable(t.data, "pretrain", _PRETRAIN_KEYS)
+    Table(t.data, "pretrain", _PRETRAIN_KEYS)
     return PretrainSpec(
         targets=t.get_str_list("targets", PRETRAIN_TARGETS) or [],
         cost=t.get_str("cost", "msb", ("msb", "mse")) or "msb",
         select_cases=selection_expression(t, "select_cases", True),
         init=t.get_str("init", "normal", ("normal", "identity")) or "normal",
-        options=train_options_from(t, 1000, 3),
+        options=train_options_from(t, POINT_ITERATIONS, 3),
     )
 
 
@@ -431,7 +333,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     raw = apply_overrides(dict(raw), overrides)
     if "extends" in raw:
         raise ConfigError("extends: only a pipeline file can extend another (not an override or a mapping)")
-    top = ConfigTable(raw, "", _TOP_KEYS)
+    top = Table(raw, "", _TOP_KEYS)
     description = top.data.get("description", "")
     if not isinstance(description, str):
         raise ConfigError("description: expected a string")
@@ -445,7 +347,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     base_sim = top.data.get("simulation")
     if base_sim is not None and not isinstance(base_sim, Mapping):
         raise ConfigError("simulation: expected a table (a simulation config, see docs/config.md)")
-    sets_t = ConfigTable(top.data.get("sets"), "sets", set(ALL_SETS))
+    sets_t = Table(top.data.get("sets"), "sets", set(ALL_SETS))
     missing = [n for n in SET_NAMES if n not in sets_t.data]
     if missing:
         raise ConfigError(f"sets.{missing[0]}: missing (a pipeline needs the sets {', '.join(SET_NAMES)})")
@@ -461,7 +363,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         seen[s.seed] = n
 
     pretrain = _pretrain_spec(top, "pretrain" in sets)
-    tp = ConfigTable(top.data.get("train_point"), "train_point", _TRAIN_POINT_KEYS)
+    tp = Table(top.data.get("train_point"), "train_point", _TRAIN_POINT_KEYS)
     point = TrainPointSpec(
         features=tp.get_str_list("features", DEFAULT_FEATURES) or [],
         targets=tp.get_str_list("targets", ["tru_g1", "tru_g2"]) or [],
@@ -469,24 +371,24 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         cost=tp.get_str("cost", "msb", ("msb", "mse")) or "msb",
         select_cases=selection_expression(tp, "select_cases", True),
         init=tp.get_str("init", "normal", ("normal", "identity")) or "normal",
-        options=train_options_from(tp, 1000, 1),
+        options=train_options_from(tp, POINT_ITERATIONS, 1),
     )
     overlap = sorted(set(point.features) & set(point.targets))
     if overlap:
         raise ConfigError(f"train_point.features: {overlap[0]!r} is also a target")
     if pretrain is not None:
         _check_pretrain(pretrain, point, sets["pretrain"])
-    tw = ConfigTable(top.data.get("train_weight"), "train_weight", _TRAIN_WEIGHT_KEYS)
+    tw = Table(top.data.get("train_weight"), "train_weight", _TRAIN_WEIGHT_KEYS)
     weight = TrainWeightSpec(
         features=tw.get_str_list("features", None),
         hidden=tw.get_int_list("hidden", [5]),
         select=selection_expression(tw, "select", False),
-        options=train_options_from(tw, 300, 2),
+        options=train_options_from(tw, WEIGHT_ITERATIONS, 2),
     )
-    evaluate = _evaluate_spec(ConfigTable(top.data.get("evaluate"), "evaluate", _EVALUATE_KEYS), None)
+    evaluate = _evaluate_spec(Table(top.data.get("evaluate"), "evaluate", _EVALUATE_KEYS), None)
     evaluate_vp = None
     if "vp" in sets:
-        evaluate_vp = _evaluate_spec(ConfigTable(top.data.get("evaluate_vp"), "evaluate_vp", _EVALUATE_KEYS),
+        evaluate_vp = _evaluate_spec(Table(top.data.get("evaluate_vp"), "evaluate_vp", _EVALUATE_KEYS),
                                      VP_SELECT_CASES)
     elif top.data.get("evaluate_vp") is not None:
         raise ConfigError("evaluate_vp: there is no set to evaluate: add a [sets.vp] table")

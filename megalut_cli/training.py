@@ -76,9 +76,11 @@ class TrainOptions:
     keep: int | None = OPTION["keep"].default
 
     @classmethod
-    def from_values(cls, values: Mapping[str, Any]) -> TrainOptions:
-        """From option values by name (``precision`` is ``dtype``), checked."""
-        out = check_train_values(values)
+    def from_values(cls, values: Mapping[str, Any], where: str = "",
+                    defaults: Mapping[str, Any] | None = None) -> TrainOptions:
+        """From option values by name (``precision`` is ``dtype``; missing ones from
+        ``defaults``, then the declared defaults), checked; errors name ``where.<name>``."""
+        out = check_train_values(values, where, defaults)
         return cls(dtype=out.pop("precision"), **out)
 
     def check(self) -> None:

@@ -246,7 +246,8 @@ def _find_path(text: str, key: str, base_dir: Path | None, want_dir: bool) -> Pa
 
 
 def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, pipe_path: str) -> SetTemplate:
-    from megalut_cli.pipeline import ConfigTable, merge_tables
+    from megalut_cli.pipeline import merge_tables
+    from megalut_cli.schema import Table as ConfigTable
     from megalut_cli.sim.config import read_toml
 
     t = ConfigTable(top.data.get(name), name, _SET_KEYS)
@@ -312,7 +313,9 @@ def _check_features(names: Sequence[str], key: str) -> None:
 def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str = "",
                           overrides: Sequence[str] = (), base_dir: Path | None = None) -> BranchPipeline:
     """Validate a parsed branch pipeline (after ``key=value`` overrides); check the branch folder."""
-    from megalut_cli.pipeline import ConfigTable, selection_expression, train_options_from
+    from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
+    from megalut_cli.pipeline import selection_expression, train_options_from
+    from megalut_cli.schema import Table as ConfigTable
     from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND, GREAT3_SIGMA2_MIN_SPACE
     from megalut_cli.sim.config import apply_overrides
 
@@ -373,7 +376,7 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
         cost=tp.get_str("cost", "msb", ("msb", "mse")) or "msb",
         select_cases=selection_expression(tp, "select_cases", True),
         init=tp.get_str("init", "normal", ("normal", "identity")) or "normal",
-        options=train_options_from(tp, 1000, DEFAULT_SEEDS["train_point"]),
+        options=train_options_from(tp, POINT_ITERATIONS, DEFAULT_SEEDS["train_point"]),
     )
     _check_features(point.features, "train_point.features")
     tw = ConfigTable(top.data.get("train_weight"), "train_weight", _WEIGHT_KEYS)
@@ -381,7 +384,7 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
         features=tw.get_str_list("features", point.features) or [],
         hidden=tw.get_int_list("hidden", [5, 5]),  # "for all estimators ... two hidden layers" (Sect. 8.2)
         select=selection_expression(tw, "select", False),
-        options=train_options_from(tw, 300, DEFAULT_SEEDS["train_weight"]),
+        options=train_options_from(tw, WEIGHT_ITERATIONS, DEFAULT_SEEDS["train_weight"]),
     )
     _check_features(weight.features, "train_weight.features")
     out = ConfigTable(top.data.get("output"), "output", _OUTPUT_KEYS)
