@@ -122,11 +122,11 @@ def execution_options(f: F) -> F:
     return wrapper
 
 
-def schema_option(option: Option, help: str | None = None) -> Callable[[F], F]:
+def schema_option(option: Option, help: str | None = None, show_default: bool | None = None) -> Callable[[F], F]:
     """The click option of a declared :class:`~megalut_cli.schema.Option`: its flag, type
     (``IntRange``/``FloatRange`` from its range, ``Choice`` from its choices), default and
     help (``help`` replaces the declared one)."""
-    kwargs: dict[str, Any] = {"default": option.default}
+    kwargs: dict[str, Any] = {"default": option.default, "show_default": show_default}
     if option.kind in ("int", "float"):
         bounded = option.minimum is not None or option.maximum is not None
         if option.kind == "int":
@@ -181,8 +181,9 @@ def committee_options(kind: str) -> Callable[[F], F]:
 
 def optimizer_options(f: F) -> F:
     """``--normalization``, ``--optimizer``, ``--precision`` and ``--seed`` of the training commands."""
-    names = ("normalization", "optimizer", "precision", "seed")
-    return _stack(*(schema_option(TRAIN_OPTION[n]) for n in names))(f)
+    names = ("normalization", "optimizer", "precision")
+    seed = schema_option(TRAIN_OPTION["seed"], show_default=True)  # as every --seed
+    return _stack(*(schema_option(TRAIN_OPTION[n]) for n in names), seed)(f)
 
 
 def pass_train_options(f: Callable[..., Any]) -> F:
