@@ -167,6 +167,11 @@ def resolve_path(text: Any, key: str, base: str | Path | None, folder: bool = Fa
     raise InputError(f"{key}: no such {what} {text!r}{where}")
 
 
+def resolve_beside(text: Any, key: str, config_path: str | Path, folder: bool = False) -> Path:
+    """:func:`resolve_path` for a path named in the file ``config_path``."""
+    return resolve_path(text, key, Path(config_path).resolve().parent, folder)
+
+
 @dataclass(frozen=True)
 class Option:
     """One option, declared once: its config key, value kind, default, range or choices,

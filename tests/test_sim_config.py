@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 from sim_configs import COSMOS, TINY, write
 
+from megalut_cli.configfile import apply_overrides, parse_override
 from megalut_cli.errors import ConfigError, InputError
-from megalut_cli.sim.config import apply_overrides, load_config, parse_override
+from megalut_cli.sim.config import load_config
 from megalut_cli.sim.structure import draw_case
 
 

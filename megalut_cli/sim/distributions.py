@@ -19,7 +19,7 @@ paper does with GEMS) unless ``joint = false``.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -290,6 +290,11 @@ def _parse_catalog(value: Mapping[str, Any], key: str) -> CatalogColumn:
     offset = check_float(value.get("offset", 0.0), f"{key}.offset")
     joint = check_bool(value.get("joint", True), f"{key}.joint")
     return CatalogColumn(key, column, element, scale, offset, joint)
+
+
+def parse_distributions(table: Mapping[str, Any], prefix: str, keys: Sequence[str]) -> dict[str, Distribution]:
+    """The distributions of those ``keys`` that ``table`` has (keys named ``prefix.key``)."""
+    return {k: parse_distribution(table[k], f"{prefix}.{k}") for k in keys if k in table}
 
 
 def sample_level(
