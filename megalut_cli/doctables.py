@@ -14,12 +14,14 @@ from pathlib import Path
 
 from megalut_cli.nn.options import POINT_OPTIONS, WEIGHT_OPTIONS, train_options
 from megalut_cli.schema import docs_table
+from megalut_cli.sim.config import STRUCTURE_OPTIONS
 
 #: Generated tables by name.
 TABLES: dict[str, Callable[[], str]] = {
     "train-common": lambda: docs_table(train_options("point")),
     "train-point": lambda: docs_table(POINT_OPTIONS),
     "train-weight": lambda: docs_table(WEIGHT_OPTIONS),
+    "structure": lambda: docs_table(STRUCTURE_OPTIONS, cli=False),
 }
 
 _BLOCK = re.compile(r"(<!-- table: ([\w-]+) -->\n)(.*?)(<!-- end table -->)", re.S)

@@ -26,7 +26,7 @@ from typing import Any
 from megalut_cli.errors import ConfigError, InputError
 
 #: Value kinds of an :class:`Option`.
-KINDS = ("int", "float", "str", "bool", "choice", "str_list", "int_list")
+KINDS = ("int", "float", "str", "bool", "choice", "str_list", "int_list", "choice_list")
 
 
 def _is_number(value: Any) -> bool:
@@ -128,6 +128,15 @@ def check_int_list(value: Any, key: str) -> list[int]:
     return list(value)
 
 
+def check_choice_list(value: Any, key: str, choices: Sequence[str]) -> list[str]:
+    """A list (possibly empty) of ``choices``, or one of them as a string."""
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise ConfigError(f"{key}: expected a list of names")
+    return [check_choice(v, key, choices) for v in value]
+
+
 def check_table(value: Any, key: str, allowed: set[str] | None = None, required: bool = False) -> dict[str, Any]:
     """A table (``None``: an empty one, unless ``required``) whose keys are all in ``allowed``
     when given."""
@@ -190,11 +199,14 @@ class Option:
     flag: str = ""
     metavar: str | None = None
     default_text: str | None = None
+    #: The allowed values as docs write them, when a check beyond the declared range (one
+    #: depending on another key) is made where the option is read.
+    allowed_text: str | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"option {self.name}: unknown kind {self.kind!r}")
-        if self.kind == "choice" and not self.choices:
+        if self.kind in ("choice", "choice_list") and not self.choices:
             raise ValueError(f"option {self.name}: a choice needs choices")
 
     @property
@@ -217,6 +229,8 @@ class Option:
             return check_float(value, key, self.minimum, self.maximum, self.min_open, self.max_open)
         if self.kind == "choice":
             return check_choice(value, key, self.choices)
+        if self.kind == "choice_list":
+            return check_choice_list(value, key, self.choices)
         if self.kind == "bool":
             return check_bool(value, key)
         if self.kind == "str":
@@ -227,7 +241,9 @@ class Option:
 
     def range_text(self) -> str:
         """What values are allowed, for docs tables."""
-        if self.kind == "choice":
+        if self.allowed_text is not None:
+            return self.allowed_text
+        if self.kind in ("choice", "choice_list"):
             return ", ".join(f"`{c}`" for c in self.choices)
         if self.kind in ("int", "float"):
             return interval_text(self.minimum, self.maximum, self.min_open, self.max_open)
@@ -240,7 +256,9 @@ class Option:
         if self.default is None:
             return "none"
         if isinstance(self.default, (list, tuple)):
-            return ", ".join(str(v) for v in self.default)
+            return "[" + ", ".join(f'"{v}"' if isinstance(v, str) else str(v) for v in self.default) + "]"
+        if isinstance(self.default, str):
+            return f'"{self.default}"'
         if isinstance(self.default, bool):
             return "true" if self.default else "false"
         return str(self.default)

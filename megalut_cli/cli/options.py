@@ -142,7 +142,7 @@ def schema_option(option: Option, help: str | None = None, show_default: bool | 
     elif option.kind in ("str_list", "int_list"):
         kwargs["default"] = None if option.default is None else ",".join(str(v) for v in option.default)
     text = option.help if help is None else help
-    if option.default_text is not None:
+    if option.default_text is not None and help is None:
         text += f" [default: {option.default_text}]"
     return click.option(option.cli_flag, metavar=option.metavar, help=text, **kwargs)
 

@@ -25,8 +25,8 @@ import numpy as np
 from megalut_cli.configfile import apply_overrides, parse_override, read_toml
 from megalut_cli.errors import ConfigError
 from megalut_cli.schema import (
-    check_bool,
-    check_choice,
+    Option,
+    Table,
     check_float,
     check_int,
     check_table,
@@ -91,16 +91,27 @@ GSPARAMS_KEYS = {
     "minimum_fft_size": int,
     "maximum_fft_size": int,
 }
-_STRUCTURE_KEYS = {
-    "n_cases",
-    "n_realizations",
-    "per_realization",
-    "snc",
-    "stamp_size",
-    "offset",
-    "n_x",
-    "common",
-}
+#: The keys of ``[structure]``, declared once (their checks, the table of docs/config.md,
+#: ``simulate --n-cases/--n-realizations``).
+STRUCTURE_OPTIONS: tuple[Option, ...] = (
+    Option("n_cases", "int", None, "number of cases", minimum=1, default_text="required"),
+    Option("n_realizations", "int", None, "realizations per case (stamps = n_cases × n_realizations)",
+           minimum=1, default_text="required"),
+    Option("per_realization", "choice_list", ["angle"], "parameter groups redrawn for every realization; the "
+           'others are drawn once per case. Groups: `"shear"` (g1, g2), `"galaxy"` (all of `[galaxy]`, implies '
+           '`"angle"`), `"angle"` (position angle only), `"psf"` (field position and random PSF parameters)',
+           choices=VARY_GROUPS),
+    Option("snc", "choice", "none", 'shape-noise cancellation (below; `"pairs"` needs an even n_realizations)',
+           choices=SNC_MODES),
+    Option("stamp_size", "int", 64, "stamp size S in pixels", minimum=8, maximum=4096),
+    Option("offset", "float", 0.5, "the true centre is the stamp centre plus an offset uniform in ±`offset` "
+           "pixels (per realization)", allowed_text="[0, stamp_size/4]"),
+    Option("n_x", "int", None, "stamps per row of the `--stamps` grid image", minimum=1,
+           default_text="ceil(sqrt(N))"),
+    Option("common", "bool", False, "common random numbers: every case draws the **same** realizations "
+           "(galaxies, position angles, offsets, noise); see below"),
+)
+STRUCTURE = {o.name: o for o in STRUCTURE_OPTIONS}
 _INSTRUMENT_KEYS = {"pixel_scale", "exptime", "gain", "zeropoint"}
 
 
@@ -203,34 +214,19 @@ def load_config(
 
 
 def _parse_structure(raw: Mapping[str, Any]) -> StructureSpec:
-    t = check_table(raw.get("structure"), "structure", _STRUCTURE_KEYS, required=True)
+    t = Table(raw.get("structure"), "structure", set(STRUCTURE))
+    if raw.get("structure") is None:
+        raise ConfigError("structure: missing [structure] table")
     for k in ("n_cases", "n_realizations"):
-        if k not in t:
+        if k not in t.data:
             raise ConfigError(f"structure.{k}: missing")
-    n_cases = check_int(t["n_cases"], "structure.n_cases", 1)
-    n_rea = check_int(t["n_realizations"], "structure.n_realizations", 1)
-    per = t.get("per_realization", ["angle"])
-    if isinstance(per, str):
-        per = [per]
-    if not isinstance(per, list) or not all(isinstance(p, str) for p in per):
-        raise ConfigError("structure.per_realization: expected a list of names")
-    for p in per:
-        check_choice(p, "structure.per_realization", VARY_GROUPS)
-    snc = check_choice(t.get("snc", "none"), "structure.snc", SNC_MODES)
+    n_cases, n_rea, per, snc, stamp, offset, n_x, common = (t.option(o) for o in STRUCTURE_OPTIONS)
     if snc == "pairs" and n_rea % 2:
         raise ConfigError(
             f"structure.n_realizations: snc = 'pairs' needs an even number, got {n_rea}"
         )
-    stamp = check_int(t.get("stamp_size", 64), "structure.stamp_size", 8)
-    if stamp > 4096:
-        raise ConfigError(f"structure.stamp_size: {stamp} is too large (max 4096)")
-    offset = check_float(t.get("offset", 0.5), "structure.offset")
     if offset < 0 or offset > stamp / 4:
         raise ConfigError(f"structure.offset: must be in [0, stamp_size/4], got {offset}")
-    n_x = t.get("n_x")
-    if n_x is not None:
-        n_x = check_int(n_x, "structure.n_x", 1)
-    common = check_bool(t.get("common", False), "structure.common")
     if common:
         _check_common(frozenset(per), snc)
     return StructureSpec(n_cases, n_rea, frozenset(per), snc, stamp, offset, n_x, common)
