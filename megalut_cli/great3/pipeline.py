@@ -235,14 +235,10 @@ def parse_subfields(value: Any, key: str = "branch.subfields") -> list[int] | No
 
 
 def _find_path(text: str, key: str, base_dir: Path | None, want_dir: bool) -> Path:
-    """A path from the pipeline file: as given (absolute or from the current folder), else beside the file."""
-    p = Path(text).expanduser()
-    candidates = [p] if p.is_absolute() else [Path.cwd() / p] + ([base_dir / p] if base_dir else [])
-    for c in candidates:
-        if (c.is_dir() if want_dir else c.is_file()):
-            return c.resolve()
-    what = "folder" if want_dir else "file"
-    raise InputError(f"{key}: no such {what} {text!r} (looked in the current folder and beside the pipeline file)")
+    """A path from the pipeline file (:func:`megalut_cli.schema.resolve_path`)."""
+    from megalut_cli.schema import resolve_path
+
+    return resolve_path(text, key, base_dir, folder=want_dir)
 
 
 def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, pipe_path: str) -> SetTemplate:
