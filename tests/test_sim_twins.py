@@ -135,3 +135,20 @@ def test_twins_look_like_their_galaxies_with_the_same_noise(pair):
     assert np.median(dg) < 0.1
     sky = np.asarray(twin["skymad"] / real["skymad"])
     assert np.mean(sky) == pytest.approx(1.0, abs=0.05)
+
+
+def test_surface_brightness_of_real_galaxies_uses_the_twin_radius(tmp_path):
+    """``sb`` for real galaxies: F = S·π·R² with R the fitted half-light radius, so that the
+    fluxes follow the training population's size-flux coupling (Sect. 5.1)."""
+    from megalut_cli.sim.structure import draw_case
+
+    cfg_text = CONFIG.replace("flux = {type = \"uniform\", min = 300.0, max = 1500.0}", "sb = {type = \"uniform\", min = 5.0, max = 15.0}")
+    cfg = load_config(write(tmp_path, cfg_text, "t.toml"))
+    truth = draw_case(cfg, 2, 3).truth
+    twins = load_twins(str(TWINS))
+    rad = np.array([twins[int(i)][1] / 0.06 for i in truth["tru_real_index"]])
+    sb = np.asarray(truth["tru_flux"]) / (np.pi * rad**2)
+    assert np.all((sb >= 5.0) & (sb <= 15.0)) and np.ptp(sb) > 1.0
+    np.testing.assert_allclose(truth["tru_sb"], sb, rtol=1e-12)
+    with pytest.raises(ConfigError, match="galaxy.sb: profile 'real' takes its size from galaxy.twin_catalog"):
+        load_config(write(tmp_path, cfg_text.replace(f'twin_catalog = "{TWINS}"\n', ""), "t.toml"))

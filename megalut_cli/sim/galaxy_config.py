@@ -118,7 +118,7 @@ def _parse_twin(t: Mapping[str, Any], config_path: str, index: Distribution) -> 
 
 def _parse_real_galaxy(t: dict[str, Any], instrument: Mapping[str, float], config_path: str) -> GalaxySpec:
     """``profile = "real"``: galaxies of a GalSim RealGalaxyCatalog (HST images)."""
-    for k in ("rad", "sersicn", "sersicn_step", "ellipticity", "sb"):
+    for k in ("rad", "sersicn", "sersicn_step", "ellipticity"):
         if k in t:
             raise ConfigError(
                 f"galaxy.{k}: not a key of profile 'real' (size, shape and profile come from the HST images)"
@@ -138,10 +138,18 @@ def _parse_real_galaxy(t: dict[str, Any], instrument: Mapping[str, float], confi
     from megalut_cli.sim.galaxies import real_galaxy_catalog
 
     n_obj = real_galaxy_catalog(str(cat), real_dir).nobjects
-    given = [k for k in ("flux", "mag") if k in t]
+    given = [k for k in FLUX_KEYS if k in t]
     if len(given) != 1:
-        raise ConfigError(f"galaxy.flux: profile 'real' needs exactly one of galaxy.flux or galaxy.mag (got {', '.join(given) or 'none'})")
+        raise ConfigError(
+            "galaxy.flux: profile 'real' needs exactly one of galaxy.flux, galaxy.sb or galaxy.mag "
+            f"(got {', '.join(given) or 'none'})"
+        )
     flux_mode = given[0]
+    if flux_mode == "sb" and "twin_catalog" not in t:
+        raise ConfigError(
+            "galaxy.sb: profile 'real' takes its size from galaxy.twin_catalog (the fitted half-light radius); "
+            "give galaxy.twin_catalog, or galaxy.flux"
+        )
     if flux_mode == "mag":
         need_instrument(instrument, ("zeropoint", "exptime", "gain"), "galaxy.mag")
     index = t.get("index", "random")

@@ -44,6 +44,7 @@ from megalut_cli.sim.galaxies import (
     mag_from_flux,
 )
 from megalut_cli.sim.noise import StampNoise, make_noise
+from megalut_cli.sim.twins import twin_truth
 
 #: Sub-keys of rng_for(seed, STREAM_SIMULATE, case, KEY).
 _CASE_KEY, _REA_KEY, _NOISE_KEY, _KNOT_KEY = 0, 1, 2, 3
@@ -120,6 +121,7 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     gal = config.galaxy
     gvals, gal_index = level("galaxy", gal.params)
     model_cols: dict[str, np.ndarray] = {}
+    flux_rad = None  # the radius of F = S * pi * R^2
     if gal.profile == "real":  # size and shape come from the HST image: NaN truth
         truth["tru_real_index"] = np.round(gvals["index"]).astype(np.int64)
         if gal.real.get("order") == "each":  # SNC group g (or case g): galaxy g (mod N)
@@ -127,6 +129,8 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
             truth["tru_real_index"] = rows[(group_of if s.varies("galaxy") else np.full(n, case)) % len(rows)]
         rad = np.full(n, np.nan)
         gvals["ellipticity"] = np.full(n, np.nan)
+        if gal.flux_mode == "sb":  # F = S * pi * R^2, R the fitted (twin) half-light radius
+            flux_rad = twin_truth(gal.real, truth["tru_real_index"])["tru_twin_rad"]
     elif gal.profile == "bulgedisk":
         rad, model_cols = bulgedisk_truth(gvals, gal.sersicn_step)
     elif gal.profile == "cosmos_fit":
@@ -145,9 +149,11 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
         truth["tru_knots"] = np.round(gvals["knots"]).astype(np.int64)
         truth["tru_knots_fraction"] = np.where(truth["tru_knots"] > 0, gvals["knots_fraction"], 0.0)
         truth["tru_knot_seed"] = knot_seeds[gal_index]
-    flux = galaxy_fluxes(gal.flux_mode, gvals[gal.flux_mode], rad, config.instrument)
+    if flux_rad is None:
+        flux_rad = rad
+    flux = galaxy_fluxes(gal.flux_mode, gvals[gal.flux_mode], flux_rad, config.instrument)
     truth["tru_flux"] = flux
-    truth["tru_sb"] = flux / (np.pi * rad**2)
+    truth["tru_sb"] = flux / (np.pi * flux_rad**2)
     inst = config.instrument
     if gal.flux_mode == "mag":
         truth["tru_mag"] = gvals["mag"]
