@@ -65,6 +65,7 @@ from megalut_cli.nn.options import OPTION as TRAIN_OPTION
 from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
 from megalut_cli.provenance import sha256_file, utc_now
 from megalut_cli.schema import Table, resolve_path
+from megalut_cli.shear.options import EVALUATE
 from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, validate_config
 from megalut_cli.training import DEFAULT_FEATURES, TrainOptions
 
@@ -297,8 +298,8 @@ def selection_expression(t: Table, name: str, case_mode: bool, default: str | No
 
 def _evaluate_spec(t: Table, select_cases: str | None) -> EvaluateSpec:
     return EvaluateSpec(
-        by=t.get_str_list("by", [], allow_empty=True) or [],
-        bins=t.get_int("bins", 5, 1) or 5,
+        by=t.option(EVALUATE["by"]),
+        bins=t.option(EVALUATE["bins"]),
         select=selection_expression(t, "select", False),
         select_cases=selection_expression(t, "select_cases", True, select_cases),
         plot=t.get_bool("plot", True),

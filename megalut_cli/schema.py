@@ -202,6 +202,8 @@ class Option:
     #: The allowed values as docs write them, when a check beyond the declared range (one
     #: depending on another key) is made where the option is read.
     allowed_text: str | None = None
+    #: Whether a list may be empty.
+    empty_ok: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -236,7 +238,7 @@ class Option:
         if self.kind == "str":
             return check_str(value, key)
         if self.kind == "str_list":
-            return check_str_list(value, key)
+            return check_str_list(value, key, self.empty_ok)
         return check_int_list(value, key)
 
     def range_text(self) -> str:

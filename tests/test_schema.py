@@ -198,3 +198,12 @@ def test_a_new_psf_type_is_one_registration():
         del psf_mod.PSF_REGISTRY["box"]
     with pytest.raises(ConfigError, match="unknown PSF type 'box'"):
         psf_mod.validate_psf_config({"type": "box"})
+
+
+def test_evaluation_bins_one_range(cli, runner, tmp_path):
+    """``bins`` is declared once: the same upper bound on the command line and in a pipeline."""
+    r = runner.invoke(cli, ["evaluate", __file__, "--by", "snr", "--bins", "1001"])
+    assert r.exit_code == 2 and "Invalid value for '--bins'" in r.stderr
+    with pytest.raises(ConfigError, match=r"^evaluate.bins: must be <= 1000, got 1001$"):
+        load_pipeline(write_pipeline(tmp_path), ["evaluate.bins=1001"])
+    assert load_pipeline(write_pipeline(tmp_path), ["evaluate.bins=7.0"]).evaluate.bins == 7
