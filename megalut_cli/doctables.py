@@ -15,7 +15,7 @@ from pathlib import Path
 from megalut_cli.nn.options import POINT_OPTIONS, WEIGHT_OPTIONS, train_options
 from megalut_cli.schema import docs_table
 from megalut_cli.shear.options import EVALUATE_OPTIONS
-from megalut_cli.sim.config import STRUCTURE_OPTIONS
+from megalut_cli.sim.config import GSPARAMS_OPTIONS, INSTRUMENT_OPTIONS, STRUCTURE_OPTIONS
 
 #: Generated tables by name.
 TABLES: dict[str, Callable[[], str]] = {
@@ -23,6 +23,8 @@ TABLES: dict[str, Callable[[], str]] = {
     "train-point": lambda: docs_table(POINT_OPTIONS),
     "train-weight": lambda: docs_table(WEIGHT_OPTIONS),
     "structure": lambda: docs_table(STRUCTURE_OPTIONS, cli=False),
+    "instrument": lambda: docs_table(INSTRUMENT_OPTIONS, cli=False),
+    "gsparams": lambda: docs_table(GSPARAMS_OPTIONS, cli=False),
     "evaluate": lambda: docs_table(EVALUATE_OPTIONS),
 }
 

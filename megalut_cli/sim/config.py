@@ -27,7 +27,6 @@ from megalut_cli.errors import ConfigError
 from megalut_cli.schema import (
     Option,
     Table,
-    check_float,
     check_int,
     check_table,
     resolve_beside,
@@ -81,16 +80,31 @@ _TOP_KEYS = {
     "catalog",
     "gsparams",
 }
-#: GalSim GSParams settable in [gsparams] (accuracy/speed of the rendering).
-GSPARAMS_KEYS = {
-    "folding_threshold": float,
-    "maxk_threshold": float,
-    "kvalue_accuracy": float,
-    "xvalue_accuracy": float,
-    "stepk_minimum_hlr": float,
-    "minimum_fft_size": int,
-    "maximum_fft_size": int,
-}
+#: GalSim GSParams settable in ``[gsparams]`` (accuracy/speed of the rendering), declared once.
+GSPARAMS_OPTIONS: tuple[Option, ...] = tuple(
+    Option(name, "float", None, what, minimum=0.0, maximum=1.0, min_open=True, max_open=True,
+           default_text="GalSim's")
+    for name, what in (
+        ("folding_threshold", "fraction of the flux allowed to fold in the FFT (smaller: larger FFTs)"),
+        ("maxk_threshold", "largest Fourier amplitude left out of the FFT"),
+        ("kvalue_accuracy", "accuracy of Fourier-space values"),
+        ("xvalue_accuracy", "accuracy of real-space values"),
+    )
+) + (
+    Option("stepk_minimum_hlr", "float", None, "smallest FFT field in half-light radii", minimum=0.0,
+           min_open=True, default_text="GalSim's"),
+    Option("minimum_fft_size", "int", None, "smallest FFT size", minimum=16, default_text="GalSim's"),
+    Option("maximum_fft_size", "int", None, "largest FFT size", minimum=16, default_text="GalSim's"),
+)
+GSPARAMS = {o.name: o for o in GSPARAMS_OPTIONS}
+#: The keys of ``[instrument]``, declared once (needed by magnitudes and CCD noise).
+INSTRUMENT_OPTIONS: tuple[Option, ...] = (
+    Option("pixel_scale", "float", None, "arcsec per pixel (sky level)", minimum=0.0, min_open=True, default_text="—"),
+    Option("exptime", "float", None, "exposure time, s", minimum=0.0, min_open=True, default_text="—"),
+    Option("gain", "float", None, "electrons per ADU", minimum=0.0, min_open=True, default_text="—"),
+    Option("zeropoint", "float", None, "magnitude zero-point Z_p", default_text="—"),
+)
+INSTRUMENT = {o.name: o for o in INSTRUMENT_OPTIONS}
 #: The keys of ``[structure]``, declared once (their checks, the table of docs/config.md,
 #: ``simulate --n-cases/--n-realizations``).
 STRUCTURE_OPTIONS: tuple[Option, ...] = (
@@ -249,26 +263,13 @@ def _check_common(per: frozenset[str], snc: str) -> None:
 
 
 def _parse_instrument(raw: Mapping[str, Any]) -> dict[str, float]:
-    t = check_table(raw.get("instrument"), "instrument", _INSTRUMENT_KEYS)
-    out = {}
-    for k, v in t.items():
-        out[k] = check_float(v, f"instrument.{k}")
-        if k != "zeropoint" and out[k] <= 0:
-            raise ConfigError(f"instrument.{k}: must be > 0, got {out[k]}")
-    return out
+    t = Table(raw.get("instrument"), "instrument", set(INSTRUMENT))
+    return {k: t.option(INSTRUMENT[k]) for k in t.data}
 
 
 def _parse_gsparams(raw: Mapping[str, Any]) -> dict[str, float]:
-    t = check_table(raw.get("gsparams"), "gsparams", set(GSPARAMS_KEYS))
-    out: dict[str, float] = {}
-    for k, v in t.items():
-        if GSPARAMS_KEYS[k] is int:
-            out[k] = check_int(v, f"gsparams.{k}", 16)
-        else:
-            out[k] = check_float(v, f"gsparams.{k}")
-            upper = math.inf if k == "stepk_minimum_hlr" else 1.0
-            if not 0 < out[k] < upper:
-                raise ConfigError(f"gsparams.{k}: must be in (0, {upper:g}), got {out[k]}")
+    t = Table(raw.get("gsparams"), "gsparams", set(GSPARAMS))
+    out: dict[str, float] = {k: t.option(GSPARAMS[k]) for k in t.data}
     if out:
         import galsim
 
