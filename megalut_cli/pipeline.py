@@ -104,15 +104,12 @@ _TOP_KEYS = {
 _SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed", "scale_by"}
 #: How ``scale`` shrinks a set: the exponents of ``scale`` for (n_cases, n_realizations).
 SCALE_BY = {"both": (0.5, 0.5), "cases": (1.0, 0.0), "realizations": (0.0, 1.0)}
-_TRAIN_COMMON = {
-    "features", "hidden", "members", "keep", "iterations", "batch_fraction", "batch_iterations",
-    "normalization", "optimizer", "precision", "valid_fraction", "seed",
-}
+_TRAIN_COMMON = {"features", "hidden", *TRAIN_OPTION}
 _TRAIN_POINT_KEYS = _TRAIN_COMMON | {"targets", "cost", "select_cases", "init"}
 _TRAIN_WEIGHT_KEYS = _TRAIN_COMMON | {"select"}
 #: Pretraining continues into train_point: same features and architecture.
 _PRETRAIN_KEYS = (_TRAIN_COMMON - {"features", "hidden"}) | {"targets", "cost", "select_cases", "init"}
-_EVALUATE_KEYS = {"by", "bins", "select", "select_cases", "plot"}
+_EVALUATE_KEYS = {*EVALUATE, "plot"}
 
 ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
 

@@ -55,6 +55,7 @@ from megalut_cli import flags as fl
 from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.great3 import layout as L
+from megalut_cli.nn.options import OPTION as TRAIN_OPTION
 from megalut_cli.pipeline import TrainPointSpec, TrainWeightSpec
 from megalut_cli.seeding import STREAM_SUBFIELD, int_seed_for
 
@@ -85,10 +86,7 @@ SHEARS_FORMAT = "megalut.predictions"
 _TOP_KEYS = {"description", "engine", "branch", "tp", "tw", "train_point", "train_weight", "output"}
 _BRANCH_KEYS = {"path", "kind", "stamp_size", "epoch", "subfields", "strict", "truth", "sigma2_min"}
 _SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed"}
-_COMMON_TRAIN = {
-    "features", "hidden", "members", "keep", "iterations", "batch_fraction", "batch_iterations",
-    "normalization", "optimizer", "precision", "valid_fraction", "seed",
-}
+_COMMON_TRAIN = {"features", "hidden", *TRAIN_OPTION}
 _POINT_KEYS = _COMMON_TRAIN | {"targets", "cost", "select_cases", "init"}
 _WEIGHT_KEYS = _COMMON_TRAIN | {"select"}
 _OUTPUT_KEYS = {"weighted", "keep_sets"}
