@@ -1,12 +1,15 @@
-"""Safe output files: refuse to overwrite, write to a temporary file, then rename."""
+"""Safe outputs: refuse to overwrite, write to a temporary file or folder, then rename."""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from megalut_cli.errors import MegalutError
 
@@ -62,3 +65,34 @@ def atomic_output(path: str | os.PathLike, overwrite: bool = False) -> Iterator[
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def write_json(path: str | os.PathLike, obj: Any, overwrite: bool = False) -> None:
+    """Write ``obj`` as indented JSON (no NaN), atomically."""
+    with atomic_output(path, overwrite) as tmp:
+        tmp.write_text(json.dumps(obj, indent=1, allow_nan=False) + "\n")
+
+
+def replace_folder(tmp: Path, final: Path) -> None:
+    """Move the finished folder ``tmp`` to ``final``, replacing an older one whole."""
+    old = None
+    if final.exists():
+        old = final.with_name(f".{final.name}.old-{os.getpid()}")
+        os.replace(final, old)
+    os.replace(tmp, final)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def move_into_folder(tmp: Path, final: Path) -> None:
+    """Move the finished folder ``tmp`` to ``final``, replacing same-named files of an existing one."""
+    if not final.exists():
+        os.replace(tmp, final)
+        return
+    for src in sorted(tmp.rglob("*")):
+        dest = final / src.relative_to(tmp)
+        if src.is_dir():
+            dest.mkdir(exist_ok=True)
+        else:
+            os.replace(src, dest)
+    shutil.rmtree(tmp)

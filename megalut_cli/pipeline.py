@@ -40,33 +40,47 @@ execution engine (``-j``, Dask) is not part of the key: the results do not depen
 
 from __future__ import annotations
 
-import contextlib
 import copy
-import hashlib
 import importlib.resources
 import json
 import logging
 import math
 import os
 import re
-import shutil
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import AbstractContextManager
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from megalut_cli import __version__
-from megalut_cli.atomic import atomic_output
+from megalut_cli.atomic import write_json
 from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
 from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
-from megalut_cli.provenance import sha256_file, utc_now
+from megalut_cli.pipeline_config import (
+    EvaluateSpec,
+    TrainPointSpec,
+    TrainWeightSpec,
+    merge_tables,
+    selection_expression,
+    train_options_from,
+)
+from megalut_cli.progress import Progress, relabelled
+from megalut_cli.provenance import sha256_file
 from megalut_cli.schema import Table, resolve_path
 from megalut_cli.shear.options import EVALUATE
 from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, validate_config
+from megalut_cli.steps import (
+    MANIFEST,
+    RunRecord,
+    Step,
+    StepReport,
+    check_workdir,
+    run_steps,
+    sha_text,
+    timing_line,
+)
 from megalut_cli.training import DEFAULT_FEATURES, TrainOptions
 
 log = logging.getLogger("megalut")
@@ -74,9 +88,6 @@ log = logging.getLogger("megalut")
 #: The embedded default pipeline (package data).
 DEFAULT_PIPELINE = "default_pipeline.toml"
 DEFAULT_WORKDIR = "megalut-run"
-MANIFEST = "manifest.json"
-MANIFEST_FORMAT = "megalut.run-manifest"
-MANIFEST_VERSION = "1.0"
 EVALUATION_JSON = "evaluation.json"
 EVALUATION_PNG = "evaluation.png"
 EVALUATION_VP_JSON = "evaluation-vp.json"
@@ -111,9 +122,6 @@ _TRAIN_WEIGHT_KEYS = _TRAIN_COMMON | {"select"}
 _PRETRAIN_KEYS = (_TRAIN_COMMON - {"features", "hidden"}) | {"targets", "cost", "select_cases", "init"}
 _EVALUATE_KEYS = {*EVALUATE, "plot"}
 
-ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
-
-
 # --------------------------------------------------------------------------- specification
 
 
@@ -132,17 +140,6 @@ class SetSpec:
 
 
 @dataclass(frozen=True)
-class TrainPointSpec:
-    features: list[str]
-    targets: list[str]
-    hidden: list[int]
-    cost: str
-    select_cases: str | None
-    init: str
-    options: TrainOptions
-
-
-@dataclass(frozen=True)
 class PretrainSpec:
     """Pretraining of the point estimators on the ``pretrain`` set (paper Sect. 6).
 
@@ -154,23 +151,6 @@ class PretrainSpec:
     select_cases: str | None
     init: str
     options: TrainOptions
-
-
-@dataclass(frozen=True)
-class TrainWeightSpec:
-    features: list[str] | None  # None: those of the point model
-    hidden: list[int]
-    select: str | None
-    options: TrainOptions
-
-
-@dataclass(frozen=True)
-class EvaluateSpec:
-    by: list[str]
-    bins: int
-    select: str | None
-    select_cases: str | None
-    plot: bool
 
 
 @dataclass(frozen=True)
@@ -198,27 +178,12 @@ class Pipeline:
         return f"{self.name}/{base}" if self.name else base
 
 
-def merge_tables(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
-    """Deep-merge ``over`` into a copy of ``base``; a table with a ``type`` key replaces, not merges."""
-    out = copy.deepcopy(dict(base))
-    for k, v in over.items():
-        if isinstance(v, Mapping) and "type" not in v and isinstance(out.get(k), Mapping):
-            out[k] = merge_tables(out[k], v)
-        else:
-            out[k] = copy.deepcopy(v)
-    return out
-
-
 def scaled_size(n: int, factor: float, minimum: int, even: bool = False) -> int:
     """``n`` times ``factor``, rounded, at least ``minimum`` (and even when ``even``)."""
     m = max(minimum, round(n * factor))
     if even:
         m = max(2, 2 * round(m / 2))
     return int(m)
-
-
-def _sha_text(obj: Any) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
 def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | None, scale: float,
@@ -270,27 +235,6 @@ def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | N
     if config.structure.n_cases < 2:
         raise ConfigError(f"sets.{name}.n_cases: at least 2 cases are needed, got {config.structure.n_cases}")
     return SetSpec(name, config, int(seed), source)
-
-
-def train_options_from(t: Table, iterations: int, seed: int) -> TrainOptions:
-    """The training options of a table (``iterations`` and ``seed``: its defaults)."""
-    values = {k: v for k, v in t.data.items() if k in TRAIN_OPTION}
-    return TrainOptions.from_values(values, t.where, {"iterations": iterations, "seed": seed})
-
-
-def selection_expression(t: Table, name: str, case_mode: bool, default: str | None = None) -> str | None:
-    """A selection expression, syntax-checked (columns are checked later); ``""`` means none."""
-    from megalut_cli.expr import check_expression
-
-    if t.data.get(name) == "":
-        return None
-    expr = t.get_str(name, default)
-    if expr is not None:
-        try:
-            check_expression(expr, None, case_mode=case_mode)
-        except MegalutError as err:
-            raise ConfigError(f"{t.key(name)}: {err}") from None
-    return expr
 
 
 def _evaluate_spec(t: Table, select_cases: str | None) -> EvaluateSpec:
@@ -533,7 +477,7 @@ def read_pipeline_file(path: str | os.PathLike, _chain: tuple[Path, ...] = ()) -
         raise InputError(f"{path}: extends: no such file {str(base_path)!r}")
     base_raw, base_sha = read_pipeline_file(base_path, (*_chain, p))
     _absolute_configs(base_raw, base_path.parent)
-    return merge_tables(base_raw, raw), _sha_text([base_sha, sha])
+    return merge_tables(base_raw, raw), sha_text([base_sha, sha])
 
 
 def load_pipeline(path: str | os.PathLike | None = None, overrides: Sequence[str] = ()) -> Pipeline:
@@ -551,31 +495,6 @@ def load_pipeline(path: str | os.PathLike | None = None, overrides: Sequence[str
 
 
 @dataclass
-class Step:
-    """One step: products in the work folder, inputs (upstream products), parameters.
-
-    ``prefix`` (``"<name>/"`` of a named pipeline, else ``""``) starts the step's name
-    and its products; the step's key is computed without it, so that the same work
-    gets the same key in any pipeline.
-    """
-
-    name: str
-    outputs: list[str]
-    inputs: list[str]
-    params: dict[str, Any]
-    action: Callable[[Path, bool], None]  # (workdir, overwrite)
-    summary: str = ""
-    prefix: str = ""
-
-
-@dataclass
-class StepReport:
-    name: str
-    status: str  # "ran", "skipped" or "copied" (the products of the same work in another pipeline)
-    seconds: float
-
-
-@dataclass
 class RunResult:
     """What :func:`run_pipeline` did and the evaluation it ends with."""
 
@@ -587,16 +506,9 @@ class RunResult:
     prefix: str = ""  # where the step products are, relative to workdir ("" or "<name>/")
 
 
-@contextlib.contextmanager
-def _quiet_progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
-    del label, length
-    yield lambda n: None
-
-
 def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
-                progress: ProgressFactory | None = None) -> list[Step]:
+                progress: Progress | None = None) -> list[Step]:
     """The steps of ``pipe`` in execution order."""
-    prog = progress or _quiet_progress
     prefix = f"{pipe.name}/" if pipe.name else ""
     out = pipe.product
     steps: list[Step] = []
@@ -606,12 +518,11 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         steps.append(Step(prefix + name, outputs, inputs, params, action, summary, prefix))
 
     def sim_step(spec: SetSpec) -> Step:
-        from megalut_cli.sim.simulate import n_work_units, simulate
+        from megalut_cli.sim.simulate import simulate
 
         def action(wd: Path, overwrite: bool) -> None:
-            with prog(f"simulate {spec.name}", n_work_units(spec.config, nproc, scheduler)) as update:
-                simulate(spec.config, wd / spec.product, measure=True, seed=spec.seed, nproc=nproc,
-                         scheduler=scheduler, overwrite=overwrite, progress=update, engine=pipe.engine)
+            simulate(spec.config, wd / spec.product, measure=True, seed=spec.seed, nproc=nproc, scheduler=scheduler,
+                     overwrite=overwrite, progress=relabelled(progress, f"simulate {spec.name}"), engine=pipe.engine)
 
         s = spec.config.structure
         extra = {}
@@ -672,12 +583,10 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
 
     def predict_step(name: str, catalog: str, model: str, shears: str, summary: str) -> None:
         def action(wd: Path, overwrite: bool) -> None:
-            from megalut_cli.catalog import catalog_info
             from megalut_cli.shear.predict import predict_catalog
 
-            with prog(name, catalog_info(wd / catalog)[0]) as update:
-                predict_catalog(wd / catalog, wd / out(model), wd / out(shears), nproc=nproc,
-                                scheduler=scheduler, overwrite=overwrite, progress=update)
+            predict_catalog(wd / catalog, wd / out(model), wd / out(shears), nproc=nproc, scheduler=scheduler,
+                            overwrite=overwrite, progress=relabelled(progress, name))
 
         add(name, [out(shears)], [catalog, out(model)], {}, action, summary)
 
@@ -739,132 +648,12 @@ def _have_matplotlib() -> bool:
     return True
 
 
-def write_json(path: str | os.PathLike, obj: Any, overwrite: bool = False) -> None:
-    """Write ``obj`` as indented JSON, atomically (temp file, then rename)."""
-    with atomic_output(path, overwrite) as tmp:
-        tmp.write_text(json.dumps(obj, indent=1, allow_nan=False) + "\n")
-
-
-# --------------------------------------------------------------------------- manifest
-
-
-class Manifest:
-    """``manifest.json``: the key and output fingerprints of every finished step."""
-
-    def __init__(self, path: Path, pipeline: Pipeline) -> None:
-        self.path = path
-        self.pipeline = pipeline
-        self.steps: dict[str, Any] = {}
-        self.pipelines: dict[str, Any] = {}  # name ("" unnamed) -> the last pipeline of that name run here
-        if path.is_file():
-            try:
-                data = json.loads(path.read_text())
-            except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-                log.warning("%s: unreadable, every step will run", path)
-                data = {}
-            if isinstance(data, dict) and data.get("format") == MANIFEST_FORMAT and isinstance(data.get("steps"), dict):
-                self.steps = data["steps"]
-                if isinstance(data.get("pipelines"), dict):
-                    self.pipelines = data["pipelines"]
-
-    @staticmethod
-    def fingerprint(path: Path) -> dict[str, Any]:
-        st = path.stat()
-        return {"sha256": sha256_file(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
-
-    def current_sha(self, step: str, workdir: Path, name: str) -> str | None:
-        """The sha256 of product ``name`` if it is still what ``step`` recorded, else None."""
-        p = workdir / name
-        rec = (self.steps.get(step) or {}).get("outputs", {}).get(name)
-        if not p.is_file() or not isinstance(rec, dict):
-            return None
-        st = p.stat()
-        if rec.get("size") == st.st_size and rec.get("mtime_ns") == st.st_mtime_ns:
-            return rec.get("sha256")  # unchanged since recorded (as make/git assume)
-        sha = sha256_file(p)
-        return sha if sha == rec.get("sha256") else None
-
-    def same_work(self, step: Step, key: str, workdir: Path) -> tuple[str, dict[str, str]] | None:
-        """Another step with this key whose products are intact: (its name, our product -> its product)."""
-        for other, rec in self.steps.items():
-            if other == step.name or not isinstance(rec, dict) or rec.get("key") != key:
-                continue
-            theirs = list(rec.get("outputs") or {})
-            if len(theirs) == len(step.outputs) and all(self.current_sha(other, workdir, o) for o in theirs):
-                return other, dict(zip(step.outputs, theirs))
-        return None
-
-    def record(self, step: Step, key: str, inputs: Mapping[str, str], outputs: Mapping[str, dict[str, Any]],
-               seconds: float, copied_from: str | None = None) -> None:
-        self.steps[step.name] = {
-            "key": key,
-            "params": step.params,
-            "inputs": dict(inputs),
-            "outputs": dict(outputs),
-            "seconds": round(seconds, 3),
-            "finished": utc_now(),
-        }
-        if copied_from is not None:
-            self.steps[step.name]["copied_from"] = copied_from
-        self.save()
-
-    def save(self) -> None:
-        p = self.pipeline
-        this = {"path": p.path, "sha256": p.sha256, "overrides": list(p.overrides), "effective": p.raw}
-        self.pipelines[p.name] = this
-        data = {
-            "format": MANIFEST_FORMAT,
-            "format_version": MANIFEST_VERSION,
-            "megalut": __version__,
-            "pipeline": this,  # the last one run here
-            "pipelines": self.pipelines,
-            "steps": self.steps,
-        }
-        write_json(self.path, data, overwrite=True)
-
-
-def _unprefix(name: str, prefix: str) -> str:
-    return name[len(prefix):] if prefix and name.startswith(prefix) else name
-
-
-def step_key(step: Step, input_shas: Mapping[str, str]) -> str:
-    """The identity of a step's work: parameters, input contents, megalut version (no pipeline name)."""
-    inputs = {_unprefix(n, step.prefix): s for n, s in input_shas.items()}
-    return _sha_text({"step": _unprefix(step.name, step.prefix), "params": step.params, "inputs": inputs,
-                      "megalut": __version__})
-
-
 # --------------------------------------------------------------------------- running
 
 
-def products(steps: Sequence[Step]) -> list[str]:
-    return [o for s in steps for o in s.outputs]
-
-
-def check_workdir(workdir: Path, steps: Sequence[Step], skip_existing: bool, overwrite: bool) -> None:
-    """Fail early: a file where the folder should be, or products there without a flag."""
-    if workdir.exists() and not workdir.is_dir():
-        raise MegalutError(f"--workdir {workdir}: exists and is not a folder")
-    existing = next((p for p in (workdir, *workdir.absolute().parents) if p.exists()), Path("."))
-    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
-        where = "" if existing == workdir else f" (its folder {existing})"
-        raise MegalutError(f"--workdir {workdir}: not writable{where}")
-    if skip_existing or overwrite:
-        return
-    prefix = next((s.prefix for s in steps if s.prefix), "")
-    pngs = [prefix + EVALUATION_PNG, prefix + EVALUATION_VP_PNG]
-    for name in dict.fromkeys([*products(steps), *pngs, MANIFEST]):
-        if (workdir / name).exists():
-            raise MegalutError(
-                f"{workdir / name} exists; use --skip-existing to reuse the up-to-date products "
-                "or --overwrite to redo every step"
-            )
-
-
-def _copy_products(wd: Path, mapping: Mapping[str, str]) -> None:
-    for ours, theirs in mapping.items():
-        with atomic_output(wd / ours, overwrite=True) as tmp:
-            shutil.copyfile(wd / theirs, tmp)
+def _evaluation_pngs(pipe: Pipeline) -> list[str]:
+    """Figures a run may leave (even when this one draws none): a product to refuse to overwrite."""
+    return [pipe.product(EVALUATION_PNG), pipe.product(EVALUATION_VP_PNG)]
 
 
 def plan_pipeline(
@@ -882,7 +671,7 @@ def plan_pipeline(
 
     wd = Path(workdir)
     steps = build_steps(pipe, nproc, scheduler)
-    check_workdir(wd, steps, skip_existing, overwrite)
+    check_workdir(wd, steps, skip_existing, overwrite, _evaluation_pngs(pipe))
     lines = [f"pipeline {pipe.path} -> {wd / pipe.name if pipe.name else wd}: {len(steps)} steps"
              + (" (up-to-date steps will be skipped)" if skip_existing else "")]
     sims = {f"simulate-{name}": spec for name, spec in pipe.sets.items()}
@@ -902,64 +691,25 @@ def run_pipeline(
     overwrite: bool = False,
     nproc: int = 1,
     scheduler: str | None = None,
-    progress: ProgressFactory | None = None,
+    progress: Progress | None = None,
 ) -> RunResult:
     """Run (or bring up to date) every step of ``pipe`` in ``workdir``; return the evaluation."""
     wd = Path(workdir)
     steps = build_steps(pipe, nproc, scheduler, progress)
-    check_workdir(wd, steps, skip_existing, overwrite)
+    check_workdir(wd, steps, skip_existing, overwrite, _evaluation_pngs(pipe))
     wd.mkdir(parents=True, exist_ok=True)
     if pipe.name:
         (wd / pipe.name).mkdir(exist_ok=True)
-    manifest = Manifest(wd / MANIFEST, pipe)
-    if not skip_existing:  # every step of this pipeline runs; other pipelines' records stay
-        for step in steps:
-            manifest.steps.pop(step.name, None)
     log.info("pipeline %s -> %s", pipe.path, wd / pipe.name if pipe.name else wd)
     t_start = time.perf_counter()
-    shas: dict[str, str] = {}
-    reports: list[StepReport] = []
-    for i, step in enumerate(steps, 1):
-        label = f"[{i}/{len(steps)}] {step.name}"
-        inputs = {name: shas[name] for name in step.inputs}
-        key = step_key(step, inputs)
-        donor = None
-        if skip_existing:
-            rec = manifest.steps.get(step.name) or {}
-            current = {o: manifest.current_sha(step.name, wd, o) for o in step.outputs}
-            if rec.get("key") == key and all(current.values()):
-                shas.update({o: s for o, s in current.items() if s})
-                log.info("%s: up to date, skipped", label)
-                reports.append(StepReport(step.name, "skipped", 0.0))
-                continue
-            donor = manifest.same_work(step, key, wd)
-            reason = "parameters or inputs changed" if rec.get("key") not in (None, key) else (
-                "not run yet" if not rec else "products missing or changed")
-            if donor is None:
-                log.info("%s: %s: %s", label, reason, step.summary)
-        else:
-            log.info("%s: %s", label, step.summary)
-        manifest.steps.pop(step.name, None)
-        t0 = time.perf_counter()
-        if donor is not None:
-            log.info("%s: the same work as %s: copying its products", label, donor[0])
-            _copy_products(wd, donor[1])
-        else:
-            step.action(wd, overwrite or skip_existing)
-        seconds = time.perf_counter() - t0
-        outputs = {o: Manifest.fingerprint(wd / o) for o in step.outputs}
-        shas.update({o: f["sha256"] for o, f in outputs.items()})
-        manifest.record(step, key, inputs, outputs, seconds, donor[0] if donor else None)
-        log.info("%s: done in %.1f s", label, seconds)
-        reports.append(StepReport(step.name, "copied" if donor else "ran", seconds))
+    run = RunRecord(pipe.name, pipe.path, pipe.sha256, pipe.overrides, pipe.raw)
+    reports = run_steps(steps, wd, run, skip_existing=skip_existing, overwrite=overwrite)
     total = time.perf_counter() - t_start
     evaluation = json.loads((wd / pipe.product(EVALUATION_JSON)).read_text())
     evaluation_vp = None
     if pipe.evaluate_vp is not None:
         evaluation_vp = json.loads((wd / pipe.product(EVALUATION_VP_JSON)).read_text())
-    log.info("pipeline finished in %.1f s (%s)", total,
-             ", ".join(f"{r.name} {r.seconds:.0f} s" if r.status == "ran" else f"{r.name} {r.status}"
-                       for r in reports))
+    log.info("pipeline finished in %.1f s (%s)", total, timing_line(reports))
     return RunResult(wd, evaluation, reports, total, evaluation_vp, f"{pipe.name}/" if pipe.name else "")
 
 

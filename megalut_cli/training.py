@@ -14,11 +14,9 @@ removed them); an error is raised when fewer than two cases remain.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import AbstractContextManager
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -44,6 +42,7 @@ from megalut_cli.nn.options import (
 from megalut_cli.nn.population import training_population
 from megalut_cli.nn.train import INIT_SCHEMES, POINT_ITERATIONS, WEIGHT_ITERATIONS, TrainSettings
 from megalut_cli.parallel import executor
+from megalut_cli.progress import Progress, no_progress
 from megalut_cli.provenance import command_line, sha256_file, software_versions
 from megalut_cli.seeding import STREAM_SPLIT, rng_for
 
@@ -56,8 +55,6 @@ DEFAULT_POINT_HIDDEN = tuple(POINT_OPTION["hidden"].default)
 DEFAULT_WEIGHT_HIDDEN = tuple(WEIGHT_OPTION["hidden"].default)
 DEFAULT_POINT_ITERATIONS = POINT_ITERATIONS
 DEFAULT_WEIGHT_ITERATIONS = WEIGHT_ITERATIONS
-
-ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
 
 
 @dataclass
@@ -94,18 +91,6 @@ class TrainOptions:
             cost=cost, iterations=self.iterations, batch_fraction=self.batch_fraction,
             batch_iterations=self.batch_iterations, optimizer=self.optimizer, dtype=self.dtype,
         )
-
-
-@contextlib.contextmanager
-def _no_progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
-    done = 0
-
-    def update(n: int) -> None:
-        nonlocal done
-        done += n
-        log.info("%s: %d/%d", label, done, length)
-
-    yield update
 
 
 def _unique(items: Sequence[str], what: str) -> list[str]:
@@ -307,7 +292,7 @@ def train_point(
     nproc: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
-    progress: ProgressFactory | None = None,
+    progress: Progress | None = None,
 ) -> ShearModel:
     """Train point-estimate committees (one per target) and write the model to ``output``."""
     opts = options or TrainOptions()
@@ -406,7 +391,7 @@ def _run(
     seed: int,
     nproc: int,
     scheduler: str | None,
-    progress: ProgressFactory | None,
+    progress: Progress | None,
 ) -> dict[str, Committee]:
     n_units = sum(s.members for s in specs)
     log.info(
@@ -414,7 +399,7 @@ def _run(
         len(specs), specs[0].members, settings.iterations, settings.cost, settings.batch_fraction,
         settings.batch_iterations,
     )
-    with executor(nproc, scheduler, n_units) as pool, (progress or _no_progress)("members trained", n_units) as update:
+    with executor(nproc, scheduler, n_units) as pool, (progress or no_progress)("members trained", n_units) as update:
         return train_committees(specs, settings, seed, pool, update)
 
 
@@ -431,7 +416,7 @@ def train_weight(
     nproc: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
-    progress: ProgressFactory | None = None,
+    progress: Progress | None = None,
 ) -> ShearModel:
     """Train weight committees (MSWB) for every point committee of ``model``; write both to ``output``."""
     opts = options or TrainOptions(iterations=DEFAULT_WEIGHT_ITERATIONS)

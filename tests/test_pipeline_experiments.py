@@ -13,15 +13,9 @@ from megalut_cli import __version__
 from megalut_cli.catalog import catalog_info, read_catalog
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.nn.model import ShearModel
-from megalut_cli.pipeline import (
-    MANIFEST,
-    _sha_text,
-    build_steps,
-    load_pipeline,
-    run_pipeline,
-    step_key,
-)
+from megalut_cli.pipeline import build_steps, load_pipeline, run_pipeline
 from megalut_cli.shear.predict import predict_columns
+from megalut_cli.steps import MANIFEST, sha_text, step_key
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 FIVE = ["adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]
@@ -226,7 +220,7 @@ def test_old_pipelines_parse_with_the_same_steps_and_keys() -> None:
         shas = {"tp.fits": "a" * 64, "tw.fits": "b" * 64, "point.h5": "c" * 64}
         for step in steps:
             inputs = {n: shas.get(n, "d" * 64) for n in step.inputs}
-            old = _sha_text({"step": step.name, "params": step.params, "inputs": inputs, "megalut": __version__})
+            old = sha_text({"step": step.name, "params": step.params, "inputs": inputs, "megalut": __version__})
             assert step_key(step, inputs) == old, step.name  # manifests written before stay valid
         assert step.params.keys() == {"by", "bins", "select", "select_cases", "plot"}
 

@@ -7,6 +7,7 @@ from typing import TextIO
 
 import click
 
+from megalut_cli.atomic import write_json
 from megalut_cli.cli.options import overwrite_option, parse_list, schema_option, seed_option
 from megalut_cli.shear.options import EVALUATE
 
@@ -187,7 +188,7 @@ def command(
     if json_to_stdout:
         _dump_json(result, sys.stdout)
     elif json_path is not None:
-        _write_json(json_path, result, overwrite)
+        write_json(json_path, result, overwrite)
     if plot_path is not None:
         from megalut_cli.shear.plots import plot_evaluation
 
@@ -214,7 +215,7 @@ def _evaluate_twin(shears: str, twin: str, by: list[str] | None, bins: int, n_bo
     if is_stdio(json_path):
         _dump_json(result, sys.stdout)
     elif json_path is not None:
-        _write_json(json_path, result, overwrite)
+        write_json(json_path, result, overwrite)
 
 
 def _dump_json(result: dict, stream: TextIO) -> None:
@@ -223,10 +224,3 @@ def _dump_json(result: dict, stream: TextIO) -> None:
     stream.write(json.dumps(result, indent=1, allow_nan=False) + "\n")
     stream.flush()
 
-
-def _write_json(path: str, result: dict, overwrite: bool) -> None:
-    from megalut_cli.atomic import atomic_output
-
-    with atomic_output(path, overwrite) as tmp:
-        with open(tmp, "w") as f:
-            _dump_json(result, f)

@@ -57,7 +57,6 @@ def command(
       megalut measure stamps.fits cat.fits -o - \\
           | megalut predict - --model model.h5 -o - | megalut evaluate -
     """
-    from megalut_cli.catalog import catalog_info
     from megalut_cli.cli.console import stdin_path, stdout_path
     from megalut_cli.cli.options import progress
     from megalut_cli.nn.model import ShearModel
@@ -66,12 +65,10 @@ def command(
 
     column_map = parse_column_map(col)
     with stdin_path(features) as features_path, stdout_path(output) as output_path:
-        n_rows = catalog_info(features_path)[0]
-        with progress("predict", n_rows) as update:
-            report = predict_catalog(
-                features_path, model_path, output_path, column_map=column_map, nproc=nproc, scheduler=scheduler,
-                overwrite=overwrite, chunk_rows=chunk_rows, progress=update,
-            )
+        report = predict_catalog(
+            features_path, model_path, output_path, column_map=column_map, nproc=nproc, scheduler=scheduler,
+            overwrite=overwrite, chunk_rows=chunk_rows, progress=progress,
+        )
     logging.getLogger("megalut").info(
         "wrote %s: %d rows, %s (%d with failed features)",
         "stdout" if output == "-" else report.output, report.n_rows, ", ".join(report.columns), report.n_failed,

@@ -125,7 +125,7 @@ def command(
     """
     from megalut_cli.cli.console import stdout_path
     from megalut_cli.sim.config import load_config
-    from megalut_cli.sim.simulate import check_outputs, n_work_units, plan_message, simulate
+    from megalut_cli.sim.simulate import check_outputs, plan_message, simulate
 
     output = click.get_current_context().with_resource(stdout_path(output))  # -o -: to stdout at the end
     cfg = load_config(config, overrides, n_cases=n_cases, n_realizations=n_realizations)
@@ -145,23 +145,21 @@ def command(
     if great3_dir is not None:
         from megalut_cli.great3.sim import simulate_branch
 
-        with progress("simulate", cfg.structure.n_cases) as update:
-            simulate_branch(
-                cfg, great3_dir, output, measure=measure, seed=seed, nproc=nproc,
-                scheduler=scheduler, overwrite=overwrite, progress=update, engine=engine,
-            )
-        return
-    with progress("simulate", n_work_units(cfg, nproc, scheduler)) as update:
-        simulate(
-            cfg,
-            output,
-            stamps=stamps,
-            measure=measure,
-            morphology=morphology,
-            seed=seed,
-            nproc=nproc,
-            scheduler=scheduler,
-            overwrite=overwrite,
-            progress=update,
-            engine=engine,
+        simulate_branch(
+            cfg, great3_dir, output, measure=measure, seed=seed, nproc=nproc,
+            scheduler=scheduler, overwrite=overwrite, progress=progress, engine=engine,
         )
+        return
+    simulate(
+        cfg,
+        output,
+        stamps=stamps,
+        measure=measure,
+        morphology=morphology,
+        seed=seed,
+        nproc=nproc,
+        scheduler=scheduler,
+        overwrite=overwrite,
+        progress=progress,
+        engine=engine,
+    )

@@ -42,8 +42,7 @@ import re
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import AbstractContextManager
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -56,12 +55,13 @@ from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.great3 import layout as L
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
-from megalut_cli.pipeline import TrainPointSpec, TrainWeightSpec
+from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
+from megalut_cli.pipeline_config import TrainPointSpec, TrainWeightSpec
+from megalut_cli.progress import Progress, no_progress
+from megalut_cli.schema import Table, resolve_path
 from megalut_cli.seeding import STREAM_SUBFIELD, int_seed_for
 
 log = logging.getLogger("megalut")
-
-ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
 
 KINDS = ("ground", "space")
 SET_NAMES = ("tp", "tw")
@@ -234,17 +234,14 @@ def parse_subfields(value: Any, key: str = "branch.subfields") -> list[int] | No
 
 def _find_path(text: str, key: str, base_dir: Path | None, want_dir: bool) -> Path:
     """A path from the pipeline file (:func:`megalut_cli.schema.resolve_path`)."""
-    from megalut_cli.schema import resolve_path
-
     return resolve_path(text, key, base_dir, folder=want_dir)
 
 
 def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, pipe_path: str) -> SetTemplate:
-    from megalut_cli.pipeline import merge_tables
-    from megalut_cli.schema import Table as ConfigTable
+    from megalut_cli.pipeline_config import merge_tables
     from megalut_cli.sim.config import read_toml
 
-    t = ConfigTable(top.data.get(name), name, _SET_KEYS)
+    t = Table(top.data.get(name), name, _SET_KEYS)
     if "config" in t.data:
         cfg = _find_path(t.get_str("config", None) or "", t.key("config"), base_dir, want_dir=False)
         raw, _ = read_toml(cfg)
@@ -307,18 +304,16 @@ def _check_features(names: Sequence[str], key: str) -> None:
 def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str = "",
                           overrides: Sequence[str] = (), base_dir: Path | None = None) -> BranchPipeline:
     """Validate a parsed branch pipeline (after ``key=value`` overrides); check the branch folder."""
-    from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
-    from megalut_cli.pipeline import selection_expression, train_options_from
-    from megalut_cli.schema import Table as ConfigTable
+    from megalut_cli.pipeline_config import selection_expression, train_options_from
     from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND, GREAT3_SIGMA2_MIN_SPACE
     from megalut_cli.sim.config import apply_overrides
 
     raw = apply_overrides(dict(raw), overrides)
-    top = ConfigTable(raw, "", _TOP_KEYS)
+    top = Table(raw, "", _TOP_KEYS)
     description = top.data.get("description", "")
     if not isinstance(description, str):
         raise ConfigError("description: expected a string")
-    b = ConfigTable(top.data.get("branch"), "branch", _BRANCH_KEYS)
+    b = Table(top.data.get("branch"), "branch", _BRANCH_KEYS)
     if "path" not in b.data:
         raise ConfigError("branch.path: missing (the branch folder, in the GREAT3 layout)")
     branch_dir = _find_path(b.get_str("path", None) or "", "branch.path", base_dir, want_dir=True)
@@ -356,7 +351,7 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
     if sets["tp"].seed == sets["tw"].seed:
         raise ConfigError(f"tw.seed: {sets['tw'].seed} is also the seed of tp; every set needs its own seed")
 
-    tp = ConfigTable(top.data.get("train_point"), "train_point", _POINT_KEYS)
+    tp = Table(top.data.get("train_point"), "train_point", _POINT_KEYS)
     targets = tp.get_str_list("targets", list(TARGET_CHOICES[0])) or []
     if tuple(targets) not in TARGET_CHOICES:
         raise ConfigError(
@@ -373,7 +368,7 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
         options=train_options_from(tp, POINT_ITERATIONS, DEFAULT_SEEDS["train_point"]),
     )
     _check_features(point.features, "train_point.features")
-    tw = ConfigTable(top.data.get("train_weight"), "train_weight", _WEIGHT_KEYS)
+    tw = Table(top.data.get("train_weight"), "train_weight", _WEIGHT_KEYS)
     weight = TrainWeightSpec(
         features=tw.get_str_list("features", point.features) or [],
         hidden=tw.get_int_list("hidden", [5, 5]),  # "for all estimators ... two hidden layers" (Sect. 8.2)
@@ -381,7 +376,7 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
         options=train_options_from(tw, WEIGHT_ITERATIONS, DEFAULT_SEEDS["train_weight"]),
     )
     _check_features(weight.features, "train_weight.features")
-    out = ConfigTable(top.data.get("output"), "output", _OUTPUT_KEYS)
+    out = Table(top.data.get("output"), "output", _OUTPUT_KEYS)
     pipe = BranchPipeline(
         path=path, sha256=sha256, overrides=tuple(overrides), raw=json.loads(json.dumps(raw, default=str)),
         description=description, branch_dir=branch_dir, kind=kind, stamp_size=int(size), epoch=int(epoch),
@@ -568,6 +563,7 @@ def _about(subfield: int, message: str) -> str:
 
 
 def _run_subfield(pipe: BranchPipeline, s: int, workdir: Path, skip_existing: bool) -> dict[str, Any]:
+    from megalut_cli.atomic import replace_folder
     from megalut_cli.catalog import read_catalog
     from megalut_cli.measure.measure import measure_file
     from megalut_cli.provenance import sha256_file
@@ -639,23 +635,12 @@ def _run_subfield(pipe: BranchPipeline, s: int, workdir: Path, skip_existing: bo
         record = {"format": MANIFEST_FORMAT, "key": key, "params": params, "inputs": inputs, "summary": summary,
                   "products": _fingerprints(tmp, products), "megalut": __version__}
         (tmp / UNIT_RECORD).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
-        _replace_dir(tmp, final)
+        replace_folder(tmp, final)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     log.info("subfield %d: g1 = %+.5f, g2 = %+.5f (%d galaxies, noise sigma %.4g) in %.0f s", s, summary["g1"],
              summary["g2"], summary["n_galaxies"], noise_sigma or 0.0, summary["seconds"])
     return summary
-
-
-def _replace_dir(tmp: Path, final: Path) -> None:
-    """Move the finished folder ``tmp`` to ``final``, replacing an older one."""
-    old = None
-    if final.exists():
-        old = final.with_name(f".{final.name}.old-{os.getpid()}")
-        os.replace(final, old)
-    os.replace(tmp, final)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 # --------------------------------------------------------------------------- the branch
@@ -733,7 +718,7 @@ def run_branch(
     keep_going: bool = False,
     nproc: int = 1,
     scheduler: str | None = None,
-    progress: ProgressFactory | None = None,
+    progress: Progress | None = None,
 ) -> BranchRunResult:
     """Run every subfield of ``pipe`` (work units), then write the per-galaxy catalog, the
     submission, the manifest and (with a truth folder) the evaluation.
@@ -761,7 +746,7 @@ def run_branch(
 
 
 def _run_units(pipe: BranchPipeline, wd: Path, skip_existing: bool, keep_going: bool, nproc: int,
-               scheduler: str | None, progress: ProgressFactory | None) -> BranchRunResult:
+               scheduler: str | None, progress: Progress | None) -> BranchRunResult:
     from megalut_cli.parallel import executor, map_units
 
     t0 = time.perf_counter()
@@ -773,7 +758,7 @@ def _run_units(pipe: BranchPipeline, wd: Path, skip_existing: bool, keep_going: 
              pipe.point.options.members, pipe.weight.options.members)
     jobs = [{"pipe": pipe, "subfield": s, "workdir": str(wd.resolve()), "skip_existing": skip_existing,
              "keep_going": keep_going} for s in pipe.subfields]
-    prog = progress or _no_progress
+    prog = progress or no_progress
     with executor(nproc, scheduler) as pool, prog("subfields", n) as update:
         results = map_units(run_subfield, jobs, pool, update)
     failures = [r for r in results if "error" in r]
@@ -788,8 +773,8 @@ def _run_units(pipe: BranchPipeline, wd: Path, skip_existing: bool, keep_going: 
     evaluation = None
     products = [SHEARS, SUBMISSION]
     if pipe.truth is not None:
+        from megalut_cli.atomic import write_json
         from megalut_cli.great3.evaluate import evaluate_branch
-        from megalut_cli.pipeline import write_json
 
         if len(done) >= 2:
             with _quiet():
@@ -820,15 +805,9 @@ def failure_error(result: BranchRunResult) -> MegalutError | None:
     )
 
 
-@contextlib.contextmanager
-def _no_progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
-    del label, length
-    yield lambda k: None
-
-
 def _write_manifest(pipe: BranchPipeline, wd: Path, done: Sequence[Mapping[str, Any]],
                     failures: Sequence[Mapping[str, Any]], seconds: float) -> None:
-    from megalut_cli.pipeline import write_json
+    from megalut_cli.atomic import write_json
     from megalut_cli.provenance import utc_now
 
     data = {

@@ -39,7 +39,6 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -47,12 +46,13 @@ from typing import Any
 import galsim
 import numpy as np
 
-from megalut_cli.atomic import atomic_output, check_output
+from megalut_cli.atomic import atomic_output, check_output, move_into_folder
 from megalut_cli.catalog import write_catalog, write_image
 from megalut_cli.engine import DEFAULT_ENGINE
 from megalut_cli.errors import ConfigError, MegalutError
 from megalut_cli.great3 import layout as L
 from megalut_cli.parallel import executor, map_units
+from megalut_cli.progress import Progress, no_progress
 from megalut_cli.seeding import STREAM_SIMULATE, rng_for
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, get_psf, psf_includes_pixel
@@ -190,20 +190,6 @@ def _write_subfield(tmp_dir: Path, config: SimConfig, seed: int, case: int, res:
     L.write_text_catalog(tmp_dir / L.star_catalog_name(case, "txt"), star_cat)
 
 
-def _move_into(tmp_dir: Path, final: Path) -> None:
-    """Move the finished branch ``tmp_dir`` to ``final`` (replacing same-named files)."""
-    if not final.exists():
-        os.replace(tmp_dir, final)
-        return
-    for src in sorted(tmp_dir.rglob("*")):
-        dest = final / src.relative_to(tmp_dir)
-        if src.is_dir():
-            dest.mkdir(exist_ok=True)
-        else:
-            os.replace(src, dest)
-    shutil.rmtree(tmp_dir)
-
-
 def check_branch_output(branch_dir: str | os.PathLike, overwrite: bool) -> Path:
     """Fail early if ``branch_dir`` is a file, a non-empty folder without ``overwrite``, or
     its parent folder is missing."""
@@ -227,12 +213,12 @@ def simulate_branch(
     nproc: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
-    progress: Callable[[int], None] | None = None,
+    progress: Progress | None = None,
     engine: str = DEFAULT_ENGINE,
 ) -> BranchResult:
     """Simulate ``config`` into the GREAT3 branch folder ``branch_dir`` and the catalog ``output``.
 
-    ``progress(1)`` is called as each subfield is drawn (``n_cases`` in all).
+    ``progress`` counts the subfields as they are drawn (``n_cases`` in all).
     """
     from megalut_cli.sim.simulate import (
         expected_workers,
@@ -266,9 +252,9 @@ def simulate_branch(
     try:
         parts: list[dict[str, np.ndarray]] = []
         shapes = np.zeros((s.n_cases, 2))
-        with executor(nproc, scheduler) as pool:
+        with executor(nproc, scheduler) as pool, (progress or no_progress)("simulate", s.n_cases) as update:
             for i in range(0, len(jobs), batch):
-                results = map_units(_draw_subfield, jobs[i : i + batch], pool, progress)
+                results = map_units(_draw_subfield, jobs[i : i + batch], pool, update)
                 for job, res in zip(jobs[i : i + batch], results):
                     case = job["unit"].case_start
                     _write_subfield(tmp_dir, config, seed, case, res, n_x, n_y)
@@ -295,7 +281,7 @@ def simulate_branch(
         with atomic_output(out, overwrite) as tmp_cat:
             write_simulation_catalog(tmp_cat, columns, config, cards)
             check_branch_output(final, overwrite)  # appeared while we worked?
-            _move_into(tmp_dir, final)
+            move_into_folder(tmp_dir, final)
     finally:
         with contextlib.suppress(FileNotFoundError):
             shutil.rmtree(tmp_dir)

@@ -34,13 +34,10 @@ Star fields (``stars``, automatic for images named ``starfield_image-*``, e.g. G
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import os
 import time
-from collections.abc import Callable
-from contextlib import AbstractContextManager
 from typing import Any
 
 import numpy as np
@@ -77,6 +74,7 @@ from megalut_cli.measure.stamps import (
     stamp_size_of,
 )
 from megalut_cli.parallel import executor, map_units, resolve_nproc
+from megalut_cli.progress import Progress, no_progress
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +98,6 @@ STARFIELD_PREFIXES = ("starfield_image", "deep_starfield_image")
 #: Stamps per work unit (about 0.3 s of HSM each at 64x64 pixels).
 CHUNK_STAMPS = 1000
 
-ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
 
 
 def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
@@ -147,7 +144,7 @@ def _run_units(
     gain: float | None,
     nproc: int,
     scheduler: str | None,
-    progress: ProgressFactory | None,
+    progress: Progress | None,
     label: str,
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
@@ -170,11 +167,13 @@ def _run_units(
     for unit in units:
         unit["morphology"] = morphology
     sizes = [len(p) for p in pieces]
-    bar = progress(label, len(idx)) if progress else contextlib.nullcontext(None)
     t0 = time.perf_counter()
-    with executor(nproc, scheduler, len(units)) as pool, bar as update:
+    with executor(nproc, scheduler, len(units)) as pool, (progress or no_progress)(label, len(idx)) as update:
         done = iter(sizes)
-        tick = (lambda _n: update(next(done))) if update else None
+
+        def tick(_n: int) -> None:
+            update(next(done))
+
         # map_units reports finished units in completion order; stamp counts are close
         # enough for a progress display.
         results = map_units(_measure_unit, units, pool, tick)
@@ -225,7 +224,7 @@ def _psf_features(
     size: int,
     nproc: int,
     scheduler: str | None,
-    progress: ProgressFactory | None,
+    progress: Progress | None,
     engine: str = DEFAULT_ENGINE,
 ) -> dict[str, np.ndarray]:
     n = len(origins)
@@ -366,7 +365,7 @@ def measure_file(
     nproc: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
-    progress: ProgressFactory | None = None,
+    progress: Progress | None = None,
     stars: bool | None = None,
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
@@ -386,7 +385,7 @@ def measure_file(
         psf_path: optional FITS image of PSF stamps (see the module docstring).
         nproc, scheduler: local worker processes, or a Dask scheduler address/file.
         overwrite: replace ``output`` if it exists.
-        progress: a ``progress(label, length)`` context manager yielding ``update(n)``.
+        progress: a :data:`megalut_cli.progress.Progress` (stamps measured).
         stars: measure a star field star by star into :data:`STAR_COLUMNS` (format
             ``megalut.stars``); None: when the file name starts with ``starfield_image``.
             Without ``stamp_size`` or a ``STAMPSZ`` card, a square star field is taken

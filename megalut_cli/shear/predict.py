@@ -42,6 +42,7 @@ from megalut_cli.catalog import (
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.parallel import executor, resolve_nproc
+from megalut_cli.progress import Progress, no_progress
 
 log = logging.getLogger(__name__)
 
@@ -236,11 +237,11 @@ def predict_catalog(
     scheduler: str | None = None,
     overwrite: bool = False,
     chunk_rows: int = CHUNK_ROWS,
-    progress: Callable[[int], None] | None = None,
+    progress: Progress | None = None,
 ) -> PredictReport:
     """Predict shears for every row of ``features_path`` into ``output`` (see module doc).
 
-    ``progress(n)`` is called with the number of rows just written.
+    ``progress`` counts the rows as they are written (all of the catalog's).
     """
     check_output(output, overwrite)
     if Path(output).resolve() == Path(features_path).resolve():
@@ -272,7 +273,8 @@ def predict_catalog(
             flg = np.asarray(table["flags"]) if has_flags else None
             yield table, (abs_model, model.sha256, x, flg)
 
-    with executor(nproc, scheduler, -(-n_rows // chunk_rows)) as pool:
+    with executor(nproc, scheduler, -(-n_rows // chunk_rows)) as pool, \
+            (progress or no_progress)("predict", n_rows) as update:
         window = 2 * resolve_nproc(nproc) if scheduler is None else 16
         with atomic_output(output, overwrite) as tmp, fitsio.FITS(str(tmp), "rw", clobber=True) as fits:
             dtype = None
@@ -292,8 +294,7 @@ def predict_catalog(
                     write_table_hdu(fits, arr, recs)
                 else:
                     fits[-1].append(arr)
-                if progress is not None:
-                    progress(len(table))
+                update(len(table))
             for name, extra in extra_hdus.items():
                 fits.write(extra, extname=name)
     if n_failed:

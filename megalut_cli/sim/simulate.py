@@ -20,7 +20,6 @@ import logging
 import math
 import os
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,6 +31,7 @@ from megalut_cli.catalog import write_catalog, write_image
 from megalut_cli.engine import DEFAULT_ENGINE, check_engine
 from megalut_cli.errors import MegalutError
 from megalut_cli.parallel import chunk_ranges, executor, format_duration, map_units, resolve_nproc
+from megalut_cli.progress import Progress, no_progress
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, renders_galaxies, stamp_centres
 
@@ -208,14 +208,14 @@ def simulate(
     nproc: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
-    progress: Callable[[int], None] | None = None,
+    progress: Progress | None = None,
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
 ) -> SimulationResult:
     """Simulate the configured stamps; write the catalog (and the stamp grid image).
     With ``measure`` and ``morphology``, the ``morph_*`` features are measured too.
 
-    ``progress(n)`` is called as work units finish (:func:`n_work_units` in all).
+    ``progress`` counts the work units as they finish (:func:`n_work_units` in all).
     ``engine`` is ``fast`` or ``galsim`` (:mod:`megalut_cli.engine`).
     """
     check_engine(engine)
@@ -236,11 +236,11 @@ def simulate(
         n_y = math.ceil(s.n_stamps / s.grid_nx)
         image = np.zeros((n_y * s.stamp_size, s.grid_nx * s.stamp_size), dtype=np.float32)
     results: list[dict[str, Any]] = []
-    with executor(nproc, scheduler, len(units)) as pool:
+    with executor(nproc, scheduler, len(units)) as pool, (progress or no_progress)("simulate", len(units)) as update:
         # With stamps, go in batches of units so that the unit images are freed early.
         batch = len(units) if st is None else max(8, 4 * workers)
         for i in range(0, len(units), batch):
-            part = map_units(draw_unit, units[i : i + batch], pool, progress)
+            part = map_units(draw_unit, units[i : i + batch], pool, update)
             for unit, res in zip(units[i : i + batch], part):
                 if image is not None:
                     _paste(image, res.pop("stamps"), unit.case_start * s.n_realizations, s.grid_nx, s.stamp_size)

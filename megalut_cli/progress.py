@@ -1,0 +1,34 @@
+"""The one progress interface of long library operations.
+
+A long operation takes ``progress: Progress | None`` and opens it itself, with a label
+and the total it knows: ``with (progress or no_progress)(label, total) as update:
+update(n)``. The command layer passes a terminal bar (``cli.console.progress``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
+
+#: A callback ``update(n)``: ``n`` more units of work are done.
+Update = Callable[[int], None]
+#: ``progress(label, total)``: a context manager yielding the :data:`Update` of one operation.
+Progress = Callable[[str, int], AbstractContextManager[Update]]
+
+
+@contextlib.contextmanager
+def no_progress(label: str, total: int) -> Iterator[Update]:
+    """The silent :data:`Progress`."""
+    del label, total
+    yield lambda n: None
+
+
+def relabelled(progress: Progress | None, label: str) -> Progress:
+    """``progress`` (or :func:`no_progress`) under another label."""
+    bar = progress or no_progress
+
+    def opened(_label: str, total: int) -> AbstractContextManager[Update]:
+        return bar(label, total)
+
+    return opened
