@@ -53,7 +53,7 @@ from megalut_cli.sim.noise_config import (
     parse_noise,
 )
 
-#: Names of the table modules, importable from here as before the split.
+#: Public names, with those of the table modules that stay importable from here (as before the split).
 __all__ = [
     "COSMOS_FIT_COLUMNS", "CorrelationSource", "GalaxySpec", "NoiseSpec", "SimConfig", "StructureSpec",
     "apply_overrides", "is_measured", "load_config", "measured_value", "parse_override", "read_toml",
