@@ -349,7 +349,10 @@ def test_realgal_examples_simulate_through_the_cli(name, runner, cli, tmp_path):
     expect = {"tp-bulgedisk.toml": "tru_bulge_fraction", "tw-bulgedisk.toml": "tru_bulge_fraction",
               "tp-knots.toml": "tru_knot_seed", "tp-cosmosfit.toml": "tru_cosmos_ident",
               "tw-cosmosfit.toml": "tru_cosmos_ident", "tp-corrnoise.toml": "tru_sky_sigma",
-              "fiducial.toml": "tru_twin_rad"}[name]
+              "fiducial.toml": "tru_twin_rad", "crn-fiducial.toml": "tru_twin_rad", "crn-ground.toml": "tru_twin_rad",
+              "tp-ground-sersic.toml": "tru_sersicn", "tw-ground-sersic.toml": "tru_sersicn",
+              "tp-ground-cosmosfit.toml": "tru_cosmos_ident", "tw-ground-cosmosfit.toml": "tru_cosmos_ident",
+              "vo-crn-ground.toml": "tru_sersicn"}[name]
     assert expect in t.colnames
 
 

@@ -1,0 +1,112 @@
+"""Model bias on real galaxies of several models, from the same real and twin stamps.
+
+Usage: python compare_models.py REAL.fits TWIN.fits NAME=MODEL.h5 [NAME=MODEL.h5 ...]
+       [--reference NAME] [--bootstrap 1000] [--seed 1] [--json OUT.json]
+
+Every model predicts on the same real-galaxy set and its Sérsic-twin set (drawn with common
+random numbers: docs/realgal.md). For each model it reports m_real, m_twin and m_real - m_twin
+(weighted and unweighted), with errors from one bootstrap over galaxies shared by all models,
+and for each model the change of m_real - m_twin against the reference model with the error
+of that change (the same resamples, so what the galaxies have in common cancels).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from megalut_cli.catalog import read_catalog
+from megalut_cli.nn.model import ShearModel
+from megalut_cli.shear.predict import predict_columns
+
+
+def cell_sums(table, est: np.ndarray, weight: np.ndarray, flags: np.ndarray, comp: int, galaxies: np.ndarray,
+              cases: np.ndarray) -> np.ndarray:
+    """(3, n_galaxies, n_cases) sums of w, w g_est, w g_true per (galaxy, case); rows with a
+    non-finite estimate or non-zero flags have w = 0 (as in ``megalut evaluate``)."""
+    g_true = np.asarray(table[f"tru_g{comp}"], float)
+    gi = np.searchsorted(galaxies, np.asarray(table["tru_real_index"]))
+    ci = np.searchsorted(cases, np.asarray(table["case"]))
+    ok = np.isfinite(est) & np.isfinite(weight) & (weight > 0) & (flags == 0)
+    w = np.where(ok, weight, 0.0)
+    cell = gi * len(cases) + ci
+    n = len(galaxies) * len(cases)
+    out = [np.bincount(cell, weights=v, minlength=n) for v in (w, np.where(ok, w * est, 0.0), w * g_true)]
+    return np.stack(out).reshape(3, len(galaxies), len(cases))
+
+
+def slopes(sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """m for each row of ``counts`` (n_boot, n_galaxies): OLS of case-mean estimate on case-mean truth."""
+    s = np.einsum("bg,kgc->kbc", counts, sums)
+    est, tru = s[1] / s[0], s[2] / s[0]
+    x = tru - tru.mean(axis=1, keepdims=True)
+    y = est - est.mean(axis=1, keepdims=True)
+    return (x * y).sum(axis=1) / (x * x).sum(axis=1) - 1.0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("real")
+    ap.add_argument("twin")
+    ap.add_argument("models", nargs="+", help="NAME=MODEL.h5")
+    ap.add_argument("--reference", default=None, help="NAME of the reference model (default: the first)")
+    ap.add_argument("--bootstrap", type=int, default=1000)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    real, twin = read_catalog(args.real), read_catalog(args.twin)
+    for c in ("case", "rea", "tru_g1", "tru_g2", "tru_real_index"):
+        if not np.array_equal(np.asarray(real[c]), np.asarray(twin[c])):
+            raise SystemExit(f"error: {args.real} and {args.twin} differ in column {c}: not a real/twin pair")
+    galaxies = np.unique(np.asarray(real["tru_real_index"]))
+    cases = np.unique(np.asarray(real["case"]))
+    rng = np.random.default_rng(args.seed)
+    draws = rng.integers(0, len(galaxies), (args.bootstrap, len(galaxies)))
+    counts = np.vstack([np.ones(len(galaxies)), np.apply_along_axis(np.bincount, 1, draws, minlength=len(galaxies))])
+    names = [m.split("=", 1)[0] for m in args.models]
+    ref = args.reference or names[0]
+    result: dict = {"real": args.real, "twin": args.twin, "n_galaxies": len(galaxies), "n_cases": len(cases),
+                    "n_boot": args.bootstrap, "seed": args.seed, "reference": ref, "models": {}}
+    dms: dict = {}
+    for spec in args.models:
+        name, path = spec.split("=", 1)
+        model = ShearModel.load(path)
+        res = {"model": path, "features": list(model.features)}
+        preds = {k: predict_columns(model, t) for k, t in (("real", real), ("twin", twin))}
+        for scheme in ("unweighted", "weighted"):
+            for comp in (1, 2):
+                ms = {}
+                for k, t in (("real", real), ("twin", twin)):
+                    p = preds[k]
+                    est = np.asarray(p[f"pre_g{comp}"], float)
+                    w = np.ones_like(est) if scheme == "unweighted" else np.asarray(p[f"pre_g{comp}_w"], float)
+                    ms[k] = slopes(cell_sums(t, est, w, np.asarray(p["flags"]), comp, galaxies, cases), counts)
+                dm = ms["real"] - ms["twin"]
+                dms[(name, scheme, comp)] = dm
+                res[f"{scheme}_g{comp}"] = {
+                    "m_real": ms["real"][0], "m_real_err": ms["real"][1:].std(ddof=1),
+                    "m_twin": ms["twin"][0], "m_twin_err": ms["twin"][1:].std(ddof=1),
+                    "dm": dm[0], "dm_err": dm[1:].std(ddof=1)}
+        result["models"][name] = res
+    for name in names:
+        for scheme in ("unweighted", "weighted"):
+            for comp in (1, 2):
+                d = dms[(name, scheme, comp)] - dms[(ref, scheme, comp)]
+                result["models"][name][f"{scheme}_g{comp}"].update({"ddm_vs_ref": d[0], "ddm_vs_ref_err": d[1:].std(ddof=1)})
+    print(f"{len(galaxies)} galaxies x {len(cases)} shears; errors: {args.bootstrap} bootstrap resamples of the galaxies, shared by all models")
+    print(f"{'model':28s} {'scheme':10s} {'comp':4s} {'m_real':>18s} {'m_twin':>18s} {'m_real - m_twin':>18s} {'change vs ' + ref:>22s}")
+    for name in names:
+        for scheme in ("unweighted", "weighted"):
+            for comp in (1, 2):
+                r = result["models"][name][f"{scheme}_g{comp}"]
+                print(f"{name:28s} {scheme:10s} g{comp:<3d} {r['m_real']:+9.2e} ± {r['m_real_err']:.1e} {r['m_twin']:+9.2e} ± {r['m_twin_err']:.1e}"
+                      f" {r['dm']:+9.2e} ± {r['dm_err']:.1e} {r['ddm_vs_ref']:+11.2e} ± {r['ddm_vs_ref_err']:.1e}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(result, f, indent=1, default=float)
+
+
+if __name__ == "__main__":
+    main()
