@@ -56,8 +56,9 @@ from typing import Any
 from megalut_cli.atomic import write_json
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, DEVICES, ENGINES, resolve_device
 from megalut_cli.errors import ConfigError, InputError, MegalutError
+from megalut_cli.nn.options import OPTION as TRAIN_OPTION
+from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
 from megalut_cli.pipeline_config import (
-    ConfigTable,
     EvaluateSpec,
     TrainPointSpec,
     TrainWeightSpec,
@@ -68,6 +69,8 @@ from megalut_cli.pipeline_config import (
 )
 from megalut_cli.progress import Progress, relabelled
 from megalut_cli.provenance import sha256_file
+from megalut_cli.schema import Table, resolve_path
+from megalut_cli.shear.options import EVALUATE
 from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, validate_config
 from megalut_cli.steps import (
     MANIFEST,
@@ -113,15 +116,12 @@ _TOP_KEYS = {
 _SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed", "scale_by"}
 #: How ``scale`` shrinks a set: the exponents of ``scale`` for (n_cases, n_realizations).
 SCALE_BY = {"both": (0.5, 0.5), "cases": (1.0, 0.0), "realizations": (0.0, 1.0)}
-_TRAIN_COMMON = {
-    "features", "hidden", "members", "keep", "iterations", "batch_fraction", "batch_iterations",
-    "normalization", "optimizer", "precision", "valid_fraction", "seed",
-}
+_TRAIN_COMMON = {"features", "hidden", *TRAIN_OPTION}
 _TRAIN_POINT_KEYS = _TRAIN_COMMON | {"targets", "cost", "select_cases", "init"}
 _TRAIN_WEIGHT_KEYS = _TRAIN_COMMON | {"select"}
 #: Pretraining continues into train_point: same features and architecture.
 _PRETRAIN_KEYS = (_TRAIN_COMMON - {"features", "hidden"}) | {"targets", "cost", "select_cases", "init"}
-_EVALUATE_KEYS = {"by", "bins", "select", "select_cases", "plot"}
+_EVALUATE_KEYS = {*EVALUATE, "plot"}
 
 # --------------------------------------------------------------------------- specification
 
@@ -188,22 +188,11 @@ def scaled_size(n: int, factor: float, minimum: int, even: bool = False) -> int:
     return int(m)
 
 
-def _resolve(text: str, key: str, base: Path | None) -> Path:
-    p = Path(text).expanduser()
-    if not p.is_absolute():
-        if base is None:
-            raise ConfigError(f"{key}: a relative path needs a pipeline file to be relative to")
-        p = base / p
-    if not p.is_file():
-        raise InputError(f"{key}: no such file {str(p)!r}")
-    return p
-
-
 def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | None, scale: float,
               pipeline_path: str, base_dir: Path | None, pipeline_sha: str) -> SetSpec:
-    t = ConfigTable(raw.get(name), f"sets.{name}", _SET_KEYS)
+    t = Table(raw.get(name), f"sets.{name}", _SET_KEYS)
     if "config" in t.data:
-        cfg_path = _resolve(t.get_str("config", None) or "", t.key("config"), base_dir)
+        cfg_path = resolve_path(t.get_str("config", None) or "", t.key("config"), base_dir)
         try:
             sim_raw, sha = read_toml(cfg_path)
         except MegalutError as err:
@@ -250,35 +239,35 @@ def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | N
     return SetSpec(name, config, int(seed), source)
 
 
-def _evaluate_spec(t: ConfigTable, select_cases: str | None) -> EvaluateSpec:
+def _evaluate_spec(t: Table, select_cases: str | None) -> EvaluateSpec:
     return EvaluateSpec(
-        by=t.get_str_list("by", [], allow_empty=True) or [],
-        bins=t.get_int("bins", 5, 1) or 5,
+        by=t.option(EVALUATE["by"]),
+        bins=t.option(EVALUATE["bins"]),
         select=selection_expression(t, "select", False),
         select_cases=selection_expression(t, "select_cases", True, select_cases),
         plot=t.get_bool("plot", True),
     )
 
 
-def _pretrain_spec(top: ConfigTable, has_set: bool) -> PretrainSpec | None:
+def _pretrain_spec(top: Table, has_set: bool) -> PretrainSpec | None:
     if not has_set:
         if top.data.get("pretrain") is not None:
             raise ConfigError("pretrain: there is no set to pretrain on: add a [sets.pretrain] table")
         return None
-    t = ConfigTable(top.data.get("pretrain"), "pretrain")
+    t = Table(top.data.get("pretrain"), "pretrain")
     for k in ("features", "hidden"):
         if k in t.data:
             raise ConfigError(
                 f"pretrain.{k}: the pretraining uses the features and hidden layers of [train_point], "
                 "which continues from it; set them there"
             )
-    ConfigTable(t.data, "pretrain", _PRETRAIN_KEYS)
+    Table(t.data, "pretrain", _PRETRAIN_KEYS)
     return PretrainSpec(
         targets=t.get_str_list("targets", PRETRAIN_TARGETS) or [],
         cost=t.get_str("cost", "msb", ("msb", "mse")) or "msb",
         select_cases=selection_expression(t, "select_cases", True),
         init=t.get_str("init", "normal", ("normal", "identity")) or "normal",
-        options=train_options_from(t, 1000, 3),
+        options=train_options_from(t, POINT_ITERATIONS, 3),
     )
 
 
@@ -288,7 +277,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     raw = apply_overrides(dict(raw), overrides)
     if "extends" in raw:
         raise ConfigError("extends: only a pipeline file can extend another (not an override or a mapping)")
-    top = ConfigTable(raw, "", _TOP_KEYS)
+    top = Table(raw, "", _TOP_KEYS)
     description = top.data.get("description", "")
     if not isinstance(description, str):
         raise ConfigError("description: expected a string")
@@ -303,7 +292,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     base_sim = top.data.get("simulation")
     if base_sim is not None and not isinstance(base_sim, Mapping):
         raise ConfigError("simulation: expected a table (a simulation config, see docs/config.md)")
-    sets_t = ConfigTable(top.data.get("sets"), "sets", set(ALL_SETS))
+    sets_t = Table(top.data.get("sets"), "sets", set(ALL_SETS))
     missing = [n for n in SET_NAMES if n not in sets_t.data]
     if missing:
         raise ConfigError(f"sets.{missing[0]}: missing (a pipeline needs the sets {', '.join(SET_NAMES)})")
@@ -319,7 +308,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         seen[s.seed] = n
 
     pretrain = _pretrain_spec(top, "pretrain" in sets)
-    tp = ConfigTable(top.data.get("train_point"), "train_point", _TRAIN_POINT_KEYS)
+    tp = Table(top.data.get("train_point"), "train_point", _TRAIN_POINT_KEYS)
     point = TrainPointSpec(
         features=tp.get_str_list("features", DEFAULT_FEATURES) or [],
         targets=tp.get_str_list("targets", ["tru_g1", "tru_g2"]) or [],
@@ -327,24 +316,24 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         cost=tp.get_str("cost", "msb", ("msb", "mse")) or "msb",
         select_cases=selection_expression(tp, "select_cases", True),
         init=tp.get_str("init", "normal", ("normal", "identity")) or "normal",
-        options=train_options_from(tp, 1000, 1),
+        options=train_options_from(tp, POINT_ITERATIONS, 1),
     )
     overlap = sorted(set(point.features) & set(point.targets))
     if overlap:
         raise ConfigError(f"train_point.features: {overlap[0]!r} is also a target")
     if pretrain is not None:
         _check_pretrain(pretrain, point, sets["pretrain"])
-    tw = ConfigTable(top.data.get("train_weight"), "train_weight", _TRAIN_WEIGHT_KEYS)
+    tw = Table(top.data.get("train_weight"), "train_weight", _TRAIN_WEIGHT_KEYS)
     weight = TrainWeightSpec(
         features=tw.get_str_list("features", None),
         hidden=tw.get_int_list("hidden", [5]),
         select=selection_expression(tw, "select", False),
-        options=train_options_from(tw, 300, 2),
+        options=train_options_from(tw, WEIGHT_ITERATIONS, 2),
     )
-    evaluate = _evaluate_spec(ConfigTable(top.data.get("evaluate"), "evaluate", _EVALUATE_KEYS), None)
+    evaluate = _evaluate_spec(Table(top.data.get("evaluate"), "evaluate", _EVALUATE_KEYS), None)
     evaluate_vp = None
     if "vp" in sets:
-        evaluate_vp = _evaluate_spec(ConfigTable(top.data.get("evaluate_vp"), "evaluate_vp", _EVALUATE_KEYS),
+        evaluate_vp = _evaluate_spec(Table(top.data.get("evaluate_vp"), "evaluate_vp", _EVALUATE_KEYS),
                                      VP_SELECT_CASES)
     elif top.data.get("evaluate_vp") is not None:
         raise ConfigError("evaluate_vp: there is no set to evaluate: add a [sets.vp] table")

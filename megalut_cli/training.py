@@ -37,8 +37,15 @@ from megalut_cli.nn.committee import CommitteeSpec, train_committees
 from megalut_cli.nn.data import CaseData, build_cases, split_cases, valid_rows
 from megalut_cli.nn.model import Committee, ShearModel, component_name
 from megalut_cli.nn.network import Network
+from megalut_cli.nn.options import (
+    OPTION,
+    POINT_COSTS,
+    POINT_OPTION,
+    WEIGHT_OPTION,
+    check_train_values,
+)
 from megalut_cli.nn.population import training_population
-from megalut_cli.nn.train import OPTIMIZERS, TrainSettings
+from megalut_cli.nn.train import INIT_SCHEMES, POINT_ITERATIONS, WEIGHT_ITERATIONS, TrainSettings
 from megalut_cli.parallel import executor
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.provenance import command_line, sha256_file, software_versions
@@ -47,12 +54,12 @@ from megalut_cli.seeding import STREAM_SPLIT, rng_for
 log = logging.getLogger("megalut")
 
 #: The paper's five input features (Sect. 5.3).
-DEFAULT_FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]
-DEFAULT_TARGETS = ["tru_g1", "tru_g2"]
-DEFAULT_POINT_HIDDEN = (5, 5)
-DEFAULT_WEIGHT_HIDDEN = (5,)
-DEFAULT_POINT_ITERATIONS = 1000
-DEFAULT_WEIGHT_ITERATIONS = 300
+DEFAULT_FEATURES = list(POINT_OPTION["features"].default)
+DEFAULT_TARGETS = list(POINT_OPTION["targets"].default)
+DEFAULT_POINT_HIDDEN = tuple(POINT_OPTION["hidden"].default)
+DEFAULT_WEIGHT_HIDDEN = tuple(WEIGHT_OPTION["hidden"].default)
+DEFAULT_POINT_ITERATIONS = POINT_ITERATIONS
+DEFAULT_WEIGHT_ITERATIONS = WEIGHT_ITERATIONS
 #: A table of columns: a dict of column name to array, an astropy Table, or a
 #: :class:`megalut_cli.catalog.CatalogColumns` reading a catalog's columns on demand.
 Columns = Mapping[str, Any]
@@ -66,39 +73,32 @@ def _namer(names: Mapping[str, str] | None) -> Callable[[str], str]:
 
 @dataclass
 class TrainOptions:
-    """Settings shared by point and weight training."""
+    """Settings shared by point and weight training (declared in :mod:`megalut_cli.nn.options`)."""
 
-    members: int = 8
-    iterations: int = DEFAULT_POINT_ITERATIONS
-    batch_fraction: float = 0.25
-    batch_iterations: int = 30
-    optimizer: str = "bfgs"
-    normalization: str = "minmax"
-    valid_fraction: float = 0.2
-    seed: int = 1
-    dtype: str = "float64"
-    keep: int | None = None
+    members: int = OPTION["members"].default
+    iterations: int = OPTION["iterations"].default
+    batch_fraction: float = OPTION["batch_fraction"].default
+    batch_iterations: int = OPTION["batch_iterations"].default
+    optimizer: str = OPTION["optimizer"].default
+    normalization: str = OPTION["normalization"].default
+    valid_fraction: float = OPTION["valid_fraction"].default
+    seed: int = OPTION["seed"].default
+    dtype: str = OPTION["precision"].default
+    keep: int | None = OPTION["keep"].default
     device: str = "cpu"  # resolved (megalut_cli.engine.resolve_device): where costs and gradients run
 
+    @classmethod
+    def from_values(cls, values: Mapping[str, Any], where: str = "",
+                    defaults: Mapping[str, Any] | None = None) -> TrainOptions:
+        """From option values by name (``precision`` is ``dtype``; missing ones from
+        ``defaults``, then the declared defaults), checked; errors name ``where.<name>``."""
+        out = check_train_values(values, where, defaults)
+        return cls(dtype=out.pop("precision"), **out)
+
     def check(self) -> None:
-        if self.members < 1:
-            raise ConfigError("--members must be at least 1")
-        if self.keep is not None and not 1 <= self.keep <= self.members:
-            raise ConfigError("--keep must be between 1 and --members")
-        if self.iterations < 1:
-            raise ConfigError("--iterations must be at least 1")
-        if not 0.0 < self.batch_fraction <= 1.0:
-            raise ConfigError("--batch-fraction must be in (0, 1]")
-        if self.batch_iterations < 1:
-            raise ConfigError("--batch-iterations must be at least 1")
-        if not 0.0 <= self.valid_fraction < 1.0:
-            raise ConfigError("--valid-fraction must be in [0, 1)")
-        if self.optimizer not in OPTIMIZERS:
-            raise ConfigError(f"unknown optimizer {self.optimizer!r} (choose from {', '.join(OPTIMIZERS)})")
-        if self.normalization not in norm.METHODS:
-            raise ConfigError(f"unknown normalisation {self.normalization!r}")
-        if self.dtype not in ("float64", "float32"):
-            raise ConfigError(f"unknown precision {self.dtype!r}")
+        """Check every value against its declaration (errors name the option)."""
+        values = {k: v for k, v in asdict(self).items() if k not in ("dtype", "device")}
+        check_train_values({**values, "precision": self.dtype})
 
     def settings(self, cost: str) -> TrainSettings:
         """How to train each member with ``cost``."""
@@ -406,9 +406,9 @@ def fit_point(
 
 
 def _check_point_arguments(cost: str, init_scheme: str, select_cases: str | None) -> None:
-    if cost not in ("msb", "mse"):
+    if cost not in POINT_COSTS:
         raise ConfigError(f"unknown cost {cost!r} for point estimates (choose msb or mse)")
-    if init_scheme not in ("normal", "identity"):
+    if init_scheme not in INIT_SCHEMES:
         raise ConfigError(f"unknown initialisation {init_scheme!r}")
     if select_cases is not None:
         check_expression(select_cases, None, case_mode=True)

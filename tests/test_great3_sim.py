@@ -151,7 +151,7 @@ def test_real_galaxy_config_errors(tmp_path):
     for override, message in [
         ("galaxy.rad=2.0", "galaxy.rad: not a key of profile 'real'"),
         ("galaxy.index=100", r"galaxy.index: must be integers in \[0, 99\]"),
-        ("galaxy.real_catalog=missing.fits", "galaxy.real_catalog: file 'missing.fits' not found"),
+        ("galaxy.real_catalog=missing.fits", "galaxy.real_catalog: no such file 'missing.fits'"),
         ("galaxy.profile=sersic", "galaxy.pixel_scale: only for profile = 'real'"),
         ("galaxy.pixel_scale=-1", "galaxy.pixel_scale: must be > 0"),
     ]:

@@ -115,7 +115,7 @@ def test_set_tables_merge_and_typed_tables_replace(tmp_path: Path) -> None:
         ('evaluate.by=["nope"]', "evaluate.by: no column nope", ConfigError),
         ("evaluate.plot=3", "evaluate.plot: expected true or false", ConfigError),
         ("scale=0", "scale: must be in (0, inf]", ConfigError),
-        ("scale=nan", "scale: expected a finite number", ConfigError),
+        ("scale=nan", "scale: must be a finite number", ConfigError),
         ("sets.tp.simulation.galaxy.rad=-1", "sets.tp: galaxy.rad", ConfigError),
         ("sets.tp.n_cases=1", "sets.tp.n_cases: at least 2 cases", ConfigError),
         ("sets.tp.config=missing.toml", "sets.tp.config: no such file", InputError),

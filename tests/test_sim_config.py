@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 from sim_configs import COSMOS, TINY, write
 
+from megalut_cli.configfile import apply_overrides, parse_override
 from megalut_cli.errors import ConfigError, InputError
-from megalut_cli.sim.config import apply_overrides, load_config, parse_override
+from megalut_cli.sim.config import load_config
 from megalut_cli.sim.structure import draw_case
 
 
@@ -146,7 +147,7 @@ def test_catalog_errors(tmp_path):
         load_config(_gems_config(tmp_path), ['galaxy.mag={type="catalog", column="MAG"}'])
     with pytest.raises(ConfigError, match="catalog.select: no usable row"):
         load_config(_gems_config(tmp_path), ["catalog.select='mag_auto > 99'"])
-    with pytest.raises(InputError, match="catalog.path: file"):
+    with pytest.raises(InputError, match="catalog.path: no such file"):
         load_config(_gems_config(tmp_path, path="nowhere.fits"))
     with pytest.raises(ConfigError, match="needs a \\[catalog\\] table"):
         load_config(write(tmp_path, replace={'sb = {type = "uniform", min = 5.0, max = 15.0}': 'flux = {type = "catalog", column = "flux"}'}))

@@ -224,7 +224,7 @@ def test_knot_seeds_follow_the_galaxy_draws(tmp_path):
 
 def fit_truth(index: int, fit: str, pixel_scale: float, step: float = 0.0) -> dict[str, np.ndarray]:
     """Truth of catalog row ``index`` as the config machinery builds it."""
-    from megalut_cli.sim.config import COSMOS_FIT_COLUMNS
+    from megalut_cli.sim.galaxy_config import COSMOS_FIT_COLUMNS
 
     data = fitsio.read(str(COSMOS))
     gvals = {"fit_ident": np.array([float(data["IDENT"][index])])}

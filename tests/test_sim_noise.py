@@ -139,7 +139,7 @@ def test_cli_unusable_noise_file_is_one_line(tmp_path, runner, cli):
     assert len(lines) == 1 and "noise.image" in lines[0], result.stderr
     missing = write(tmp_path, NOISE_ONLY.replace("SOURCE", 'image = "nothere.fits"'), name="m.toml")
     result = runner.invoke(cli, ["simulate", str(missing), "-o", str(tmp_path / "o.fits")])
-    assert result.exit_code == 1 and "noise.image: file 'nothere.fits' not found" in result.stderr
+    assert result.exit_code == 1 and "noise.image: no such file 'nothere.fits'" in result.stderr
 
 
 def test_real_galaxies_refuse_correlated_noise_unless_hst_noise_is_kept(tmp_path):

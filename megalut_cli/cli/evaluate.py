@@ -8,7 +8,8 @@ from typing import TextIO
 import click
 
 from megalut_cli.atomic import write_json
-from megalut_cli.cli.options import overwrite_option, parse_list, seed_option
+from megalut_cli.cli.options import overwrite_option, parse_list, schema_option, seed_option
+from megalut_cli.shear.options import EVALUATE
 
 #: How the evaluation library's messages name its arguments here.
 FLAGS = {"by": "--by", "select": "--select", "select_cases": "--select-cases", "errors": "--errors"}
@@ -22,30 +23,10 @@ EXIT_OUT_OF_TOLERANCE = 3
     short_help="Measure shear biases m and c, overall and conditional.",
 )
 @click.argument("shears", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
-@click.option(
-    "--by",
-    metavar="COL,COL",
-    default=None,
-    help="Conditional biases in equal-population bins of these columns (true or measured) or "
-    "quantities, e.g. tru_rad,tru_sersicn,snr; 'mean(snr)' bins whole cases by their average S/N "
-    "(paper Fig. 12), 'sqrt(tru_e1**2+tru_e2**2)' bins rows by |e|.",
-)
-@click.option(
-    "--bins", type=click.IntRange(1, 1000), default=5, show_default=True, help="Number of bins for --by."
-)
-@click.option(
-    "--select",
-    metavar="EXPR",
-    default=None,
-    help="Keep only the rows (realizations) where EXPR holds, e.g. \"snr > 10 & adamom_sigma > 1.5\" "
-    "(studies selection biases).",
-)
-@click.option(
-    "--select-cases",
-    metavar="EXPR",
-    default=None,
-    help="Keep only the cases where EXPR of per-case aggregates holds, e.g. \"mean(snr) > 10\".",
-)
+@schema_option(EVALUATE["by"].with_default(None))
+@schema_option(EVALUATE["bins"], show_default=True)
+@schema_option(EVALUATE["select"])
+@schema_option(EVALUATE["select_cases"])
 @click.option(
     "--json", "json_path", type=click.Path(dir_okay=False, allow_dash=True), default=None,
     help="Write all results (and per-case averages) to this JSON file (layout: docs/evaluate.md); "

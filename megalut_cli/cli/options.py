@@ -5,12 +5,16 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import click
 
 from megalut_cli.cli.console import progress as progress
 from megalut_cli.cli.console import setup_logging
+from megalut_cli.nn.options import OPTION as TRAIN_OPTION
+from megalut_cli.nn.options import train_options
+from megalut_cli.schema import Option
 
 log = logging.getLogger("megalut")
 
@@ -134,6 +138,31 @@ def execution_options(f: F) -> F:
     return wrapper
 
 
+def schema_option(option: Option, help: str | None = None, show_default: bool | None = None) -> Callable[[F], F]:
+    """The click option of a declared :class:`~megalut_cli.schema.Option`: its flag, type
+    (``IntRange``/``FloatRange`` from its range, ``Choice`` from its choices), default and
+    help (``help`` replaces the declared one)."""
+    kwargs: dict[str, Any] = {"default": option.default, "show_default": show_default}
+    if option.kind in ("int", "float"):
+        bounded = option.minimum is not None or option.maximum is not None
+        if option.kind == "int":
+            kwargs["type"] = click.IntRange(option.minimum, option.maximum) if bounded else int
+        else:
+            kwargs["type"] = click.FloatRange(
+                option.minimum, option.maximum, min_open=option.min_open, max_open=option.max_open
+            ) if bounded else float
+    elif option.kind == "choice":
+        kwargs["type"] = click.Choice(list(option.choices))
+    elif option.kind == "bool":
+        kwargs["is_flag"] = True
+    elif option.kind in ("str_list", "int_list"):
+        kwargs["default"] = None if option.default is None else ",".join(str(v) for v in option.default)
+    text = option.help if help is None else help
+    if option.default_text is not None and help is None:
+        text += f" [default: {option.default_text}]"
+    return click.option(option.cli_flag, metavar=option.metavar, help=text, **kwargs)
+
+
 def _stack(*decorators: Callable[[F], F]) -> Callable[[F], F]:
     """Apply option decorators so that they appear in ``--help`` in the order given."""
 
@@ -145,70 +174,33 @@ def _stack(*decorators: Callable[[F], F]) -> Callable[[F], F]:
     return decorate
 
 
-# Options of train-point and train-weight, in three groups so that each command keeps its
-# own order of options in --help; ``pass_train_options`` gathers their values.
+# Options of train-point and train-weight (megalut_cli.nn.options), in three groups so that
+# each command keeps its own order of options in --help; ``pass_train_options`` gathers their
+# values.
 
 
 def validation_options(valid_help: str) -> Callable[[F], F]:
     """``--valid FILE`` and ``--valid-fraction`` of the training commands."""
     return _stack(
         click.option("--valid", type=click.Path(exists=True, dir_okay=False), default=None, help=valid_help),
-        click.option(
-            "--valid-fraction",
-            type=click.FloatRange(0.0, 1.0, max_open=True),
-            default=0.2,
-            help="Fraction of the training cases held out for validation when no --valid is given (0: none).",
-        ),
+        schema_option(TRAIN_OPTION["valid_fraction"]),
     )
 
 
-def committee_options(iterations_default: int) -> Callable[[F], F]:
-    """``--members``, ``--keep``, ``--iterations``, ``--batch-fraction``, ``--batch-iterations``."""
-    return _stack(
-        click.option("--members", type=click.IntRange(1), default=8, help="Networks per committee."),
-        click.option(
-            "--keep", type=click.IntRange(1), default=None, help="Members kept (lowest validation cost). [default: half]"
-        ),
-        click.option(
-            "--iterations", type=click.IntRange(1), default=iterations_default, help="Optimizer iterations per member."
-        ),
-        click.option(
-            "--batch-fraction",
-            type=click.FloatRange(0.0, 1.0, min_open=True),
-            default=0.25,
-            help="Fraction of the training cases in each mini-batch (1: full batch).",
-        ),
-        click.option("--batch-iterations", type=click.IntRange(1), default=30, help="Iterations on each mini-batch."),
-    )
+def committee_options(kind: str) -> Callable[[F], F]:
+    """``--members``, ``--keep``, ``--iterations``, ``--batch-fraction``, ``--batch-iterations``
+    of a ``"point"`` or ``"weight"`` training."""
+    options = {o.name: o for o in train_options(kind)}
+    names = ("members", "keep", "iterations", "batch_fraction", "batch_iterations")
+    return _stack(*(schema_option(options[n]) for n in names))
 
 
 def optimizer_options(f: F) -> F:
     """``--normalization``, ``--optimizer``, ``--precision`` and ``--seed`` of the training commands."""
-    return _stack(
-        click.option(
-            "--normalization",
-            type=click.Choice(["minmax", "robust"]),
-            default="minmax",
-            help="Input scaling: training range to [-1, 1] (paper), or 1st-99th percentile to [-1, 1].",
-        ),
-        click.option("--optimizer", type=click.Choice(["bfgs", "lbfgs"]), default="bfgs", help="scipy optimizer."),
-        click.option(
-            "--precision",
-            type=click.Choice(["float64", "float32"]),
-            default="float64",
-            help="Arithmetic of the network passes during training (float32 is about twice as fast).",
-        ),
-        seed_option(1, "Seed of the random draws (initial parameters, mini-batches, validation split)."),
-        device_option("the costs and gradients are computed"),
-    )(f)
-
-
-#: Parameters of the training option groups that are fields of ``TrainOptions`` as they are
-#: (``--precision`` is its ``dtype``).
-_TRAIN_OPTION_FIELDS = (
-    "members", "keep", "iterations", "batch_fraction", "batch_iterations", "valid_fraction",
-    "normalization", "optimizer", "seed",
-)
+    names = ("normalization", "optimizer", "precision")
+    seed = schema_option(TRAIN_OPTION["seed"], show_default=True)  # as every --seed
+    device = device_option("the costs and gradients are computed")
+    return _stack(*(schema_option(TRAIN_OPTION[n]) for n in names), seed, device)(f)
 
 
 def pass_train_options(f: Callable[..., Any]) -> F:
@@ -219,8 +211,10 @@ def pass_train_options(f: Callable[..., Any]) -> F:
         from megalut_cli.engine import resolve_device
         from megalut_cli.training import TrainOptions
 
-        options = TrainOptions(dtype=kwargs.pop("precision"), device=resolve_device(kwargs.pop("device")),
-                               **{k: kwargs.pop(k) for k in _TRAIN_OPTION_FIELDS})
+        values = {name: kwargs.pop(name) for name in TRAIN_OPTION}
+        if values["keep"] is not None and values["keep"] > values["members"]:
+            raise click.UsageError(f"--keep: must be <= --members ({values['members']}), got {values['keep']}")
+        options = replace(TrainOptions.from_values(values), device=resolve_device(kwargs.pop("device")))
         return f(*args, options=options, **kwargs)
 
     return wrapper

@@ -13,8 +13,10 @@ from megalut_cli.cli.options import (
     output_option,
     overwrite_option,
     progress,
+    schema_option,
     seed_option,
 )
+from megalut_cli.sim.config import STRUCTURE
 
 log = logging.getLogger("megalut")
 
@@ -52,10 +54,8 @@ log = logging.getLogger("megalut")
     "(image-SSS-0.fits, galaxy_catalog-SSS.fits/.txt, starfield_image-SSS-0.fits, truth/); "
     "see docs/great3.md. Not with --stamps.",
 )
-@click.option("--n-cases", type=click.IntRange(min=1), default=None, help="Override structure.n_cases.")
-@click.option(
-    "--n-realizations", type=click.IntRange(min=1), default=None, help="Override structure.n_realizations."
-)
+@schema_option(STRUCTURE["n_cases"], help="Override structure.n_cases.")
+@schema_option(STRUCTURE["n_realizations"], help="Override structure.n_realizations.")
 @click.option(
     "--dry-run",
     is_flag=True,

@@ -17,13 +17,16 @@ from megalut_cli.cli.options import (
     parse_list,
     pass_train_options,
     progress,
+    schema_option,
     validation_options,
 )
+from megalut_cli.nn.options import POINT_OPTION
 
 if TYPE_CHECKING:
     from megalut_cli.training import TrainOptions
 
-_DEFAULT_FEATURES = "adamom_g1, adamom_g2, adamom_sigma, adamom_flux, adamom_rho4"
+_DEFAULT_FEATURES = ", ".join(POINT_OPTION["features"].default)
+_DEFAULT_HIDDEN = ",".join(str(n) for n in POINT_OPTION["hidden"].default)
 
 
 @click.command(
@@ -39,13 +42,13 @@ _DEFAULT_FEATURES = "adamom_g1, adamom_g2, adamom_sigma, adamom_flux, adamom_rho
     metavar="A,B,...",
     help=f"Input feature columns. [default: {_DEFAULT_FEATURES}, or those of --init-from]",
 )
-@click.option("--targets", default="tru_g1,tru_g2", metavar="A,B", help="Target columns, one committee each.")
+@schema_option(POINT_OPTION["targets"])
 @validation_options(
     "Validation catalog (monitoring and member selection). Default: hold out --valid-fraction of the cases."
 )
-@click.option("--hidden", default=None, metavar="N,N", help="Hidden layer sizes. [default: 5,5, or those of --init-from]")
-@committee_options(iterations_default=1000)
-@click.option("--cost", type=click.Choice(["msb", "mse"]), default="msb", help="Cost function (MSE only for comparison).")
+@click.option("--hidden", default=None, metavar="N,N", help=f"Hidden layer sizes. [default: {_DEFAULT_HIDDEN}, or those of --init-from]")
+@committee_options("point")
+@schema_option(POINT_OPTION["cost"])
 @click.option(
     "--select-cases",
     metavar="EXPR",
@@ -62,9 +65,9 @@ _DEFAULT_FEATURES = "adamom_g1, adamom_g2, adamom_sigma, adamom_flux, adamom_rho
 @click.option(
     "--init",
     "init_scheme",
-    type=click.Choice(["normal", "identity"]),
-    default="normal",
-    help="Starting parameters: N(0, 0.1), or near-identity on the matching feature (adamom_g1 for tru_g1).",
+    type=click.Choice(list(POINT_OPTION["init"].choices)),
+    default=POINT_OPTION["init"].default,
+    help=POINT_OPTION["init"].help,
 )
 @optimizer_options
 @execution_options

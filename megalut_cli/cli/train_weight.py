@@ -17,8 +17,10 @@ from megalut_cli.cli.options import (
     parse_list,
     pass_train_options,
     progress,
+    schema_option,
     validation_options,
 )
+from megalut_cli.nn.options import WEIGHT_OPTION
 
 if TYPE_CHECKING:
     from megalut_cli.training import TrainOptions
@@ -43,8 +45,8 @@ if TYPE_CHECKING:
     metavar="A,B,...",
     help="Input feature columns of the weight networks. [default: all features of the point model]",
 )
-@click.option("--hidden", default="5", metavar="N,N", help="Hidden layer sizes.")
-@committee_options(iterations_default=300)
+@schema_option(WEIGHT_OPTION["hidden"])
+@committee_options("weight")
 @click.option(
     "--select",
     metavar="EXPR",

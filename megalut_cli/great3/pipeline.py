@@ -46,7 +46,10 @@ from typing import Any
 from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.great3 import layout as L
+from megalut_cli.nn.options import OPTION as TRAIN_OPTION
+from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
 from megalut_cli.pipeline_config import TrainPointSpec, TrainWeightSpec
+from megalut_cli.schema import Table, resolve_path
 from megalut_cli.seeding import STREAM_SUBFIELD, int_seed_for
 from megalut_cli.steps import sha_text
 
@@ -75,10 +78,7 @@ SHEARS_FORMAT = "megalut.predictions"
 _TOP_KEYS = {"description", "engine", "branch", "tp", "tw", "train_point", "train_weight", "output"}
 _BRANCH_KEYS = {"path", "kind", "stamp_size", "epoch", "subfields", "strict", "truth", "sigma2_min"}
 _SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed"}
-_COMMON_TRAIN = {
-    "features", "hidden", "members", "keep", "iterations", "batch_fraction", "batch_iterations",
-    "normalization", "optimizer", "precision", "valid_fraction", "seed",
-}
+_COMMON_TRAIN = {"features", "hidden", *TRAIN_OPTION}
 _POINT_KEYS = _COMMON_TRAIN | {"targets", "cost", "select_cases", "init"}
 _WEIGHT_KEYS = _COMMON_TRAIN | {"select"}
 _OUTPUT_KEYS = {"weighted", "keep_sets"}
@@ -225,21 +225,15 @@ def parse_subfields(value: Any, key: str = "branch.subfields") -> list[int] | No
 
 
 def _find_path(text: str, key: str, base_dir: Path | None, want_dir: bool) -> Path:
-    """A path from the pipeline file: as given (absolute or from the current folder), else beside the file."""
-    p = Path(text).expanduser()
-    candidates = [p] if p.is_absolute() else [Path.cwd() / p] + ([base_dir / p] if base_dir else [])
-    for c in candidates:
-        if (c.is_dir() if want_dir else c.is_file()):
-            return c.resolve()
-    what = "folder" if want_dir else "file"
-    raise InputError(f"{key}: no such {what} {text!r} (looked in the current folder and beside the pipeline file)")
+    """A path from the pipeline file (:func:`megalut_cli.schema.resolve_path`)."""
+    return resolve_path(text, key, base_dir, folder=want_dir)
 
 
 def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, pipe_path: str) -> SetTemplate:
-    from megalut_cli.pipeline_config import ConfigTable, merge_tables
+    from megalut_cli.pipeline_config import merge_tables
     from megalut_cli.sim.config import read_toml
 
-    t = ConfigTable(top.data.get(name), name, _SET_KEYS)
+    t = Table(top.data.get(name), name, _SET_KEYS)
     if "config" in t.data:
         cfg = _find_path(t.get_str("config", None) or "", t.key("config"), base_dir, want_dir=False)
         raw, _ = read_toml(cfg)
@@ -301,16 +295,16 @@ def _check_features(names: Sequence[str], key: str) -> None:
 def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str = "",
                           overrides: Sequence[str] = (), base_dir: Path | None = None) -> BranchPipeline:
     """Validate a parsed branch pipeline (after ``key=value`` overrides); check the branch folder."""
-    from megalut_cli.pipeline_config import ConfigTable, selection_expression, train_options_from
+    from megalut_cli.pipeline_config import selection_expression, train_options_from
     from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND, GREAT3_SIGMA2_MIN_SPACE
     from megalut_cli.sim.config import apply_overrides
 
     raw = apply_overrides(dict(raw), overrides)
-    top = ConfigTable(raw, "", _TOP_KEYS)
+    top = Table(raw, "", _TOP_KEYS)
     description = top.data.get("description", "")
     if not isinstance(description, str):
         raise ConfigError("description: expected a string")
-    b = ConfigTable(top.data.get("branch"), "branch", _BRANCH_KEYS)
+    b = Table(top.data.get("branch"), "branch", _BRANCH_KEYS)
     if "path" not in b.data:
         raise ConfigError("branch.path: missing (the branch folder, in the GREAT3 layout)")
     branch_dir = _find_path(b.get_str("path", None) or "", "branch.path", base_dir, want_dir=True)
@@ -348,7 +342,7 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
     if sets["tp"].seed == sets["tw"].seed:
         raise ConfigError(f"tw.seed: {sets['tw'].seed} is also the seed of tp; every set needs its own seed")
 
-    tp = ConfigTable(top.data.get("train_point"), "train_point", _POINT_KEYS)
+    tp = Table(top.data.get("train_point"), "train_point", _POINT_KEYS)
     targets = tp.get_str_list("targets", list(TARGET_CHOICES[0])) or []
     if tuple(targets) not in TARGET_CHOICES:
         raise ConfigError(
@@ -362,18 +356,18 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
         cost=tp.get_str("cost", "msb", ("msb", "mse")) or "msb",
         select_cases=selection_expression(tp, "select_cases", True),
         init=tp.get_str("init", "normal", ("normal", "identity")) or "normal",
-        options=train_options_from(tp, 1000, DEFAULT_SEEDS["train_point"]),
+        options=train_options_from(tp, POINT_ITERATIONS, DEFAULT_SEEDS["train_point"]),
     )
     _check_features(point.features, "train_point.features")
-    tw = ConfigTable(top.data.get("train_weight"), "train_weight", _WEIGHT_KEYS)
+    tw = Table(top.data.get("train_weight"), "train_weight", _WEIGHT_KEYS)
     weight = TrainWeightSpec(
         features=tw.get_str_list("features", point.features) or [],
         hidden=tw.get_int_list("hidden", [5, 5]),  # "for all estimators ... two hidden layers" (Sect. 8.2)
         select=selection_expression(tw, "select", False),
-        options=train_options_from(tw, 300, DEFAULT_SEEDS["train_weight"]),
+        options=train_options_from(tw, WEIGHT_ITERATIONS, DEFAULT_SEEDS["train_weight"]),
     )
     _check_features(weight.features, "train_weight.features")
-    out = ConfigTable(top.data.get("output"), "output", _OUTPUT_KEYS)
+    out = Table(top.data.get("output"), "output", _OUTPUT_KEYS)
     pipe = BranchPipeline(
         path=path, sha256=sha256, overrides=tuple(overrides), raw=json.loads(json.dumps(raw, default=str)),
         description=description, branch_dir=branch_dir, kind=kind, stamp_size=int(size), epoch=int(epoch),

@@ -45,13 +45,13 @@ class CommitteeSpec:
     in_scale: np.ndarray
     train: CaseData
     valid: CaseData | None
-    members: int = 8
+    members: int
+    normalization: str  # of the inputs (megalut_cli.nn.normalization.METHODS)
     keep: int | None = None  # members kept; default: the best half
     cost_scale: float = 1.0
     init_scheme: str = "normal"
     identity_feature: int = 0
     init_members: Sequence[Member] | None = None  # start from these (--init-from)
-    normalization: str = "minmax"
     training: dict[str, Any] = field(default_factory=dict)
 
 

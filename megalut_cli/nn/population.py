@@ -105,7 +105,7 @@ def model_report(model: Any) -> list[str]:
 def population_from_config(config_path: str | os.PathLike) -> dict[str, Any]:
     """The population of a simulation config file, or of the ``[simulation]`` table of a
     pipeline file (for models whose training catalog is gone)."""
-    from megalut_cli.sim.config import read_toml
+    from megalut_cli.configfile import read_toml
 
     raw, _ = read_toml(config_path)
     if "galaxy" not in raw and isinstance(raw.get("simulation"), Mapping):

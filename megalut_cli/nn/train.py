@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import minimize
 
 from megalut_cli.nn import costs
 from megalut_cli.nn.data import CaseData
@@ -33,7 +32,15 @@ log = logging.getLogger("megalut.train")
 #: Seconds between two progress lines of a member at info level (every mini-batch at debug).
 REPORT_SECONDS = 30.0
 
+#: scipy optimizers of the members (``bfgs``: BFGS, ``lbfgs``: L-BFGS-B).
 OPTIMIZERS = ("bfgs", "lbfgs")
+#: Arithmetic of the network passes during training.
+PRECISIONS = ("float64", "float32")
+#: How members start: N(0, 0.1), or near-identity on one feature.
+INIT_SCHEMES = ("normal", "identity")
+#: Optimizer iterations per member of point and of weight committees, by default.
+POINT_ITERATIONS = 1000
+WEIGHT_ITERATIONS = 300
 
 
 @dataclass(frozen=True)
@@ -41,7 +48,7 @@ class TrainSettings:
     """How to train one member."""
 
     cost: str = "msb"
-    iterations: int = 1000
+    iterations: int = POINT_ITERATIONS
     batch_fraction: float = 0.25
     batch_iterations: int = 30
     optimizer: str = "bfgs"
@@ -56,7 +63,7 @@ class TrainSettings:
             raise ValueError(f"unknown cost {self.cost!r}")
         if self.optimizer not in OPTIMIZERS:
             raise ValueError(f"unknown optimizer {self.optimizer!r}")
-        if self.dtype not in ("float64", "float32"):
+        if self.dtype not in PRECISIONS:
             raise ValueError(f"unknown dtype {self.dtype!r}")
         if self.device not in ("cpu", "gpu"):
             raise ValueError(f"unknown device {self.device!r} (a resolved one: cpu or gpu)")
@@ -243,6 +250,8 @@ def train_member(task: MemberTask) -> MemberResult:
     stalls = 0
     n_evals = 0
     last_report = t0
+    from scipy.optimize import minimize  # here: importing it costs every command ~0.3 s
+
     if s.optimizer == "bfgs":
         method, opts = "BFGS", {"gtol": 1e-12}
     else:

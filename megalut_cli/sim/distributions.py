@@ -19,24 +19,16 @@ paper does with GEMS) unless ``joint = false``.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from megalut_cli.errors import ConfigError
+from megalut_cli.schema import check_bool, check_float, check_int
 
 DIST_TYPES = ("constant", "uniform", "normal", "rayleigh", "grid", "catalog")
-
-
-def _number(value: Any, key: str) -> float:
-    """A finite float, or a ConfigError naming ``key``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"{key}: expected a number, got {value!r}")
-    if not math.isfinite(value):
-        raise ConfigError(f"{key}: must be a finite number, got {value!r}")
-    return float(value)
 
 
 @dataclass(frozen=True)
@@ -204,7 +196,7 @@ def parse_distribution(value: Any, key: str) -> Distribution:
     Errors are :class:`ConfigError` naming ``key`` (e.g. ``galaxy.rad.max``).
     """
     if not isinstance(value, Mapping):
-        return Constant(key, _number(value, key))
+        return Constant(key, check_float(value, key))
     kind = value.get("type")
     if kind is None:
         raise ConfigError(f"{key}: a distribution table needs a 'type' ({', '.join(DIST_TYPES)})")
@@ -224,7 +216,7 @@ def parse_distribution(value: Any, key: str) -> Distribution:
             if default is None:
                 raise ConfigError(f"{key}.{name}: missing (needed by a {kind} distribution)")
             return default
-        return _number(value[name], f"{key}.{name}")
+        return check_float(value[name], f"{key}.{name}")
 
     if kind == "constant":
         return Constant(key, num("value"))
@@ -267,7 +259,7 @@ def _parse_grid(value: Mapping[str, Any], key: str, num: Any) -> Grid:
         vals = value["values"]
         if not isinstance(vals, list) or not vals:
             raise ConfigError(f"{key}.values: expected a non-empty list of numbers")
-        return Grid(key, tuple(_number(v, f"{key}.values") for v in vals))
+        return Grid(key, tuple(check_float(v, f"{key}.values") for v in vals))
     lo, hi = num("min"), num("max")
     if not lo <= hi:
         raise ConfigError(f"{key}: grid needs min <= max, got min={lo}, max={hi}")
@@ -282,9 +274,7 @@ def _parse_grid(value: Mapping[str, Any], key: str, num: Any) -> Grid:
             raise ConfigError(f"{key}.step: too many grid values ({count})")
         vals = np.round(lo + step * np.arange(count), 12)
     else:
-        n = value["n"]
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ConfigError(f"{key}.n: expected a positive integer, got {n!r}")
+        n = check_int(value["n"], f"{key}.n", 1)
         vals = np.linspace(lo, hi, n)
     return Grid(key, tuple(float(v) for v in vals))
 
@@ -294,14 +284,17 @@ def _parse_catalog(value: Mapping[str, Any], key: str) -> CatalogColumn:
     if not isinstance(column, str) or not column:
         raise ConfigError(f"{key}.column: missing (the [catalog] column to sample)")
     element = value.get("element")
-    if element is not None and (isinstance(element, bool) or not isinstance(element, int) or element < 0):
-        raise ConfigError(f"{key}.element: expected a non-negative integer, got {element!r}")
-    scale = _number(value.get("scale", 1.0), f"{key}.scale")
-    offset = _number(value.get("offset", 0.0), f"{key}.offset")
-    joint = value.get("joint", True)
-    if not isinstance(joint, bool):
-        raise ConfigError(f"{key}.joint: expected true or false, got {joint!r}")
+    if element is not None:
+        element = check_int(element, f"{key}.element", 0)
+    scale = check_float(value.get("scale", 1.0), f"{key}.scale")
+    offset = check_float(value.get("offset", 0.0), f"{key}.offset")
+    joint = check_bool(value.get("joint", True), f"{key}.joint")
     return CatalogColumn(key, column, element, scale, offset, joint)
+
+
+def parse_distributions(table: Mapping[str, Any], prefix: str, keys: Sequence[str]) -> dict[str, Distribution]:
+    """The distributions of those ``keys`` that ``table`` has (keys named ``prefix.key``)."""
+    return {k: parse_distribution(table[k], f"{prefix}.{k}") for k in keys if k in table}
 
 
 def sample_level(

@@ -48,61 +48,52 @@ from __future__ import annotations
 import functools
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import galsim
 import numpy as np
 
 from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.schema import check_bool, check_choice, check_float, check_int
 
 #: Truth columns returned by :func:`make_psf`.
 TRUTH_COLUMNS = ("tru_psf_g1", "tru_psf_g2", "tru_psf_sigma")
 
-_INTERPOLANTS = ("quintic", "cubic", "linear", "lanczos3", "lanczos5", "lanczos7", "lanczos15")
+#: GalSim x interpolants of ``stamp`` PSFs.
+INTERPOLANTS = ("quintic", "cubic", "linear", "lanczos3", "lanczos5", "lanczos7", "lanczos15")
 
-# Allowed keys per type: (required, optional with defaults). Keys in REQUIRED_ONE_OF
-# groups need exactly one member.
-_OPTIONAL: dict[str, dict[str, Any]] = {
-    "gaussian": {"sigma": None, "fwhm": None, "g1": 0.0, "g2": 0.0},
-    "moffat": {"beta": None, "fwhm": None, "half_light_radius": None, "trunc": 0.0, "g1": 0.0, "g2": 0.0},
-    "field": {
-        "e1_min": -0.25,
-        "e1_max": 0.25,
-        "e2_min": 0.0,
-        "e2_max": 0.25,
-        "sigma_mean": 2.0,
-        "sigma_slope": 0.25,
-    },
-    "euclid": {
-        "diam": 1.2,
-        "obscuration": 0.29,
-        "nstruts": 6,
-        "lam_min": 550.0,
-        "lam_max": 900.0,
-        "lam_step": 50.0,
-        "pixel_scale": 0.1,
-        "oversampling": 5,
-        "size": 64,
-        "temperature": 5800.0,
-    },
-    "stamp": {
-        "path": None,
-        "hdu": None,
-        "stamp_size": None,
-        "index": 0,
-        "pixel_scale": 1.0,
-        "interpolant": "quintic",
-        "includes_pixel": None,
-    },
-}
-_ONE_OF: dict[str, tuple[tuple[str, ...], ...]] = {
-    "gaussian": (("sigma", "fwhm"),),
-    "moffat": (("fwhm", "half_light_radius"),),
-}
-_REQUIRED: dict[str, tuple[str, ...]] = {"moffat": ("beta",), "stamp": ("path",)}
 
-PSF_TYPES = tuple(_OPTIONAL)
+@dataclass(frozen=True)
+class PsfType:
+    """One kind of PSF: its keys and defaults, its checks and how to build it.
+
+    ``keys`` are the optional keys with their defaults (``None``: no default), ``required``
+    the keys that must be given, ``one_of`` groups of keys of which exactly one must be
+    given. ``check(spec, where)`` checks the values of a spec with defaults filled in;
+    ``build(spec, x, y)`` returns the profile and its truth at field position ``(x, y)``.
+    """
+
+    name: str
+    keys: Mapping[str, Any]
+    check: Callable[[Mapping[str, Any], Mapping[str, Any], str], None]
+    build: Callable[[Mapping[str, Any], float, float], tuple[galsim.GSObject, dict[str, float]]]
+    required: tuple[str, ...] = ()
+    one_of: tuple[tuple[str, ...], ...] = ()
+    #: Whether the PSF depends on the field position.
+    varies: bool = False
+
+
+#: Every PSF type by name, in the order of registration (``psf.type`` values).
+PSF_REGISTRY: dict[str, PsfType] = {}
+
+
+def register_psf_type(psf_type: PsfType) -> None:
+    """Make ``psf_type`` available as ``psf.type = "<name>"`` (the one place a PSF type is added)."""
+    if psf_type.name in PSF_REGISTRY:
+        raise ValueError(f"PSF type {psf_type.name!r} is already registered")
+    PSF_REGISTRY[psf_type.name] = psf_type
 
 
 def _key(where: str, k: str) -> str:
@@ -110,27 +101,15 @@ def _key(where: str, k: str) -> str:
 
 
 def _number(spec: Mapping[str, Any], k: str, where: str) -> float:
-    v = spec[k]
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        raise ConfigError(f"{_key(where, k)}: expected a number, got {v!r}")
-    v = float(v)
-    if not math.isfinite(v):
-        raise ConfigError(f"{_key(where, k)}: must be finite, got {v}")
-    return v
+    return check_float(spec[k], _key(where, k))
 
 
 def _positive(spec: Mapping[str, Any], k: str, where: str) -> float:
-    v = _number(spec, k, where)
-    if v <= 0:
-        raise ConfigError(f"{_key(where, k)}: must be > 0, got {v}")
-    return v
+    return check_float(spec[k], _key(where, k), 0.0, lo_open=True)
 
 
 def _integer(spec: Mapping[str, Any], k: str, where: str, minimum: int) -> int:
-    v = _number(spec, k, where)
-    if not v.is_integer() or v < minimum:
-        raise ConfigError(f"{_key(where, k)}: must be an integer >= {minimum}, got {spec[k]!r}")
-    return int(v)
+    return check_int(spec[k], _key(where, k), minimum)
 
 
 def _check_shear(g1: float, g2: float, where: str, what: str = "g1, g2") -> None:
@@ -141,7 +120,7 @@ def _check_shear(g1: float, g2: float, where: str, what: str = "g1, g2") -> None
 def _full(spec: Mapping[str, Any]) -> dict[str, Any]:
     """The spec with defaults filled in (assumes a validated spec)."""
     t = spec["type"]
-    out = dict(_OPTIONAL[t])
+    out = dict(PSF_REGISTRY[t].keys)
     out.update({k: v for k, v in spec.items() if k != "type"})
     out["type"] = t
     return out
@@ -158,88 +137,96 @@ def validate_psf_config(spec: Mapping[str, Any], where: str = "psf") -> None:
     t = spec.get("type")
     if t is None:
         raise ConfigError(f"{_key(where, 'type')}: missing")
-    if t not in _OPTIONAL:
+    if t not in PSF_REGISTRY:
         raise ConfigError(
-            f"{_key(where, 'type')}: unknown PSF type {t!r} (choose from {', '.join(PSF_TYPES)})"
+            f"{_key(where, 'type')}: unknown PSF type {t!r} (choose from {', '.join(PSF_REGISTRY)})"
         )
-    allowed = set(_OPTIONAL[t]) | {"type"}
+    kind = PSF_REGISTRY[t]
+    allowed = set(kind.keys) | {"type"}
     unknown = sorted(set(spec) - allowed)
     if unknown:
         raise ConfigError(
             f"{_key(where, unknown[0])}: unknown key for PSF type {t!r} "
             f"(allowed: {', '.join(sorted(allowed - {'type'}))})"
         )
-    for k in _REQUIRED.get(t, ()):
+    for k in kind.required:
         if k not in spec:
             raise ConfigError(f"{_key(where, k)}: missing (required by PSF type {t!r})")
-    for group in _ONE_OF.get(t, ()):
+    for group in kind.one_of:
         given = [k for k in group if k in spec]
         if len(given) != 1:
             raise ConfigError(
                 f"{_key(where, group[0])}: PSF type {t!r} needs exactly one of "
                 f"{' or '.join(group)}, got {', '.join(given) if given else 'none'}"
             )
-    s = _full(spec)
-    if t in ("gaussian", "moffat"):
-        for k in ("sigma", "fwhm", "half_light_radius"):
-            if k in spec:
-                _positive(spec, k, where)
-        _check_shear(_number(s, "g1", where), _number(s, "g2", where), where)
-    if t == "moffat":
+    kind.check(spec, _full(spec), where)
+
+
+def _check_profile(spec: Mapping[str, Any], s: Mapping[str, Any], where: str) -> None:
+    """``gaussian`` and ``moffat``: positive sizes, |g| < 1; Moffat's ``beta`` and ``trunc``."""
+    for k in ("sigma", "fwhm", "half_light_radius"):
+        if k in spec:
+            _positive(spec, k, where)
+    _check_shear(_number(s, "g1", where), _number(s, "g2", where), where)
+    if s["type"] == "moffat":
         beta = _positive(spec, "beta", where)
         trunc = _number(s, "trunc", where)
         if trunc < 0:
             raise ConfigError(f"{_key(where, 'trunc')}: must be >= 0, got {trunc}")
         if beta <= 1.1 and trunc == 0:
             raise ConfigError(f"{_key(where, 'beta')}: must be > 1.1 without trunc, got {beta}")
-    elif t == "field":
-        for k in ("e1_min", "e1_max", "e2_min", "e2_max", "sigma_mean", "sigma_slope"):
-            _number(s, k, where)
-        for x in (0.0, 1.0):
-            for y in (0.0, 1.0):
-                e1, e2, sigma = field_psf_params(s, x, y)
-                _check_shear(e1, e2, where, "e1, e2")
-                if sigma <= 0:
-                    raise ConfigError(
-                        f"{_key(where, 'sigma_mean')}: the field PSF sigma must stay > 0 over "
-                        f"the field, got {sigma} at x={x}, y={y}"
-                    )
-    elif t == "euclid":
-        for k in ("diam", "lam_min", "lam_max", "lam_step", "pixel_scale", "temperature"):
-            _positive(s, k, where)
-        obsc = _number(s, "obscuration", where)
-        if not 0 <= obsc < 1:
-            raise ConfigError(f"{_key(where, 'obscuration')}: must be in [0, 1), got {obsc}")
-        _integer(s, "nstruts", where, 0)
-        _integer(s, "oversampling", where, 1)
-        _integer(s, "size", where, 8)
-        if s["lam_max"] < s["lam_min"]:
-            raise ConfigError(f"{_key(where, 'lam_max')}: must be >= lam_min")
-    elif t == "stamp":
-        path = s["path"]
-        if not isinstance(path, (str, os.PathLike)) or not str(path):
-            raise ConfigError(f"{_key(where, 'path')}: expected a file path, got {path!r}")
-        if not os.path.isfile(path):
-            raise InputError(f"{_key(where, 'path')}: {path}: no such file")
-        if s["hdu"] is not None:
-            _integer(s, "hdu", where, 0)
-        if s["stamp_size"] is not None:
-            _integer(s, "stamp_size", where, 3)
-        index = _integer(s, "index", where, 0)
-        n_stars = star_grid_size(path, s["hdu"], s["stamp_size"], where)
-        if index >= n_stars:
-            raise ConfigError(
-                f"{_key(where, 'index')}: {index} is beyond the {n_stars} star(s) of {path} "
-                "(0-based, in grid order from the lower-left)"
-            )
-        _positive(s, "pixel_scale", where)
-        if s["interpolant"] not in _INTERPOLANTS:
-            raise ConfigError(
-                f"{_key(where, 'interpolant')}: unknown interpolant {s['interpolant']!r} "
-                f"(choose from {', '.join(_INTERPOLANTS)})"
-            )
-        if s["includes_pixel"] is not None and not isinstance(s["includes_pixel"], bool):
-            raise ConfigError(f"{_key(where, 'includes_pixel')}: expected true or false")
+
+
+def _check_field(spec: Mapping[str, Any], s: Mapping[str, Any], where: str) -> None:
+    """``field``: numbers, and a valid PSF at the four corners of the field."""
+    for k in ("e1_min", "e1_max", "e2_min", "e2_max", "sigma_mean", "sigma_slope"):
+        _number(s, k, where)
+    for x in (0.0, 1.0):
+        for y in (0.0, 1.0):
+            e1, e2, sigma = field_psf_params(s, x, y)
+            _check_shear(e1, e2, where, "e1, e2")
+            if sigma <= 0:
+                raise ConfigError(
+                    f"{_key(where, 'sigma_mean')}: the field PSF sigma must stay > 0 over "
+                    f"the field, got {sigma} at x={x}, y={y}"
+                )
+
+
+def _check_euclid(spec: Mapping[str, Any], s: Mapping[str, Any], where: str) -> None:
+    for k in ("diam", "lam_min", "lam_max", "lam_step", "pixel_scale", "temperature"):
+        _positive(s, k, where)
+    obsc = _number(s, "obscuration", where)
+    if not 0 <= obsc < 1:
+        raise ConfigError(f"{_key(where, 'obscuration')}: must be in [0, 1), got {obsc}")
+    _integer(s, "nstruts", where, 0)
+    _integer(s, "oversampling", where, 1)
+    _integer(s, "size", where, 8)
+    if s["lam_max"] < s["lam_min"]:
+        raise ConfigError(f"{_key(where, 'lam_max')}: must be >= lam_min")
+
+
+def _check_stamp(spec: Mapping[str, Any], s: Mapping[str, Any], where: str) -> None:
+    """``stamp``: an existing image, a star ``index`` within its grid, a known interpolant."""
+    path = s["path"]
+    if not isinstance(path, (str, os.PathLike)) or not str(path):
+        raise ConfigError(f"{_key(where, 'path')}: expected a file path, got {path!r}")
+    if not os.path.isfile(path):
+        raise InputError(f"{_key(where, 'path')}: {path}: no such file")
+    if s["hdu"] is not None:
+        _integer(s, "hdu", where, 0)
+    if s["stamp_size"] is not None:
+        _integer(s, "stamp_size", where, 3)
+    index = _integer(s, "index", where, 0)
+    n_stars = star_grid_size(path, s["hdu"], s["stamp_size"], where)
+    if index >= n_stars:
+        raise ConfigError(
+            f"{_key(where, 'index')}: {index} is beyond the {n_stars} star(s) of {path} "
+            "(0-based, in grid order from the lower-left)"
+        )
+    _positive(s, "pixel_scale", where)
+    check_choice(s["interpolant"], _key(where, "interpolant"), INTERPOLANTS)
+    if s["includes_pixel"] is not None:
+        check_bool(s["includes_pixel"], _key(where, "includes_pixel"))
 
 
 @functools.lru_cache(maxsize=64)
@@ -264,7 +251,8 @@ def star_grid_size(path: str | os.PathLike, hdu: Any = None, stamp_size: Any = N
 
 def psf_varies(spec: Mapping[str, Any]) -> bool:
     """Whether the PSF depends on the field position (``field`` type)."""
-    return spec.get("type") == "field"
+    kind = PSF_REGISTRY.get(str(spec.get("type")))
+    return kind is not None and kind.varies
 
 
 def psf_includes_pixel(spec: Mapping[str, Any]) -> bool:
@@ -284,7 +272,7 @@ def psf_includes_pixel(spec: Mapping[str, Any]) -> bool:
 
 def field_psf_params(spec: Mapping[str, Any], field_x: float, field_y: float) -> tuple[float, float, float]:
     """``(e1, e2, sigma)`` of the Sect. 6 toy PSF at field position ``(x, y)``."""
-    s = {**_OPTIONAL["field"], **{k: v for k, v in spec.items() if k != "type"}}
+    s = {**PSF_REGISTRY["field"].keys, **{k: v for k, v in spec.items() if k != "type"}}
     e1 = s["e1_min"] + (s["e1_max"] - s["e1_min"]) * field_x
     e2 = s["e2_min"] + (s["e2_max"] - s["e2_min"]) * field_y
     sigma = s["sigma_mean"] + s["sigma_slope"] * (field_x + field_y - 1.0)
@@ -431,15 +419,32 @@ def make_psf(
     Costly PSFs (``euclid``, ``stamp``) are built once per process and cached.
     """
     validate_psf_config(spec)
-    t = spec.get("type")
-    if t == "gaussian":
-        return _gaussian(spec)
-    if t == "moffat":
-        return _moffat(spec)
-    if t == "field":
-        return _field(spec, float(field_x), float(field_y))
-    if t == "euclid":
-        return _euclid(spec)
-    if t == "stamp":
-        return _stamp(spec)
-    raise ConfigError(f"psf.type: unknown PSF type {t!r}")  # unreachable after validation
+    return PSF_REGISTRY[spec["type"]].build(spec, float(field_x), float(field_y))
+
+
+register_psf_type(PsfType(
+    "gaussian", {"sigma": None, "fwhm": None, "g1": 0.0, "g2": 0.0}, _check_profile,
+    lambda spec, x, y: _gaussian(spec), one_of=(("sigma", "fwhm"),),
+))
+register_psf_type(PsfType(
+    "moffat", {"beta": None, "fwhm": None, "half_light_radius": None, "trunc": 0.0, "g1": 0.0, "g2": 0.0},
+    _check_profile, lambda spec, x, y: _moffat(spec), required=("beta",), one_of=(("fwhm", "half_light_radius"),),
+))
+register_psf_type(PsfType(
+    "field", {"e1_min": -0.25, "e1_max": 0.25, "e2_min": 0.0, "e2_max": 0.25, "sigma_mean": 2.0, "sigma_slope": 0.25},
+    _check_field, _field, varies=True,
+))
+register_psf_type(PsfType(
+    "euclid",
+    {"diam": 1.2, "obscuration": 0.29, "nstruts": 6, "lam_min": 550.0, "lam_max": 900.0, "lam_step": 50.0,
+     "pixel_scale": 0.1, "oversampling": 5, "size": 64, "temperature": 5800.0},
+    _check_euclid, lambda spec, x, y: _euclid(spec),
+))
+register_psf_type(PsfType(
+    "stamp",
+    {"path": None, "hdu": None, "stamp_size": None, "index": 0, "pixel_scale": 1.0, "interpolant": "quintic",
+     "includes_pixel": None},
+    _check_stamp, lambda spec, x, y: _stamp(spec), required=("path",),
+))
+#: The PSF types, in the order of registration.
+PSF_TYPES = tuple(PSF_REGISTRY)
