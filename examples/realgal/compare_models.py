@@ -19,31 +19,19 @@ import numpy as np
 
 from megalut_cli.catalog import read_catalog
 from megalut_cli.nn.model import ShearModel
+from megalut_cli.shear.paired import fit_resamples, group_sums
 from megalut_cli.shear.predict import predict_columns
 
 
-def cell_sums(table, est: np.ndarray, weight: np.ndarray, flags: np.ndarray, comp: int, galaxies: np.ndarray,
-              cases: np.ndarray) -> np.ndarray:
-    """(3, n_galaxies, n_cases) sums of w, w g_est, w g_true per (galaxy, case); rows with a
-    non-finite estimate or non-zero flags have w = 0 (as in ``megalut evaluate``)."""
-    g_true = np.asarray(table[f"tru_g{comp}"], float)
-    gi = np.searchsorted(galaxies, np.asarray(table["tru_real_index"]))
-    ci = np.searchsorted(cases, np.asarray(table["case"]))
-    ok = np.isfinite(est) & np.isfinite(weight) & (weight > 0) & (flags == 0)
-    w = np.where(ok, weight, 0.0)
-    cell = gi * len(cases) + ci
-    n = len(galaxies) * len(cases)
-    out = [np.bincount(cell, weights=v, minlength=n) for v in (w, np.where(ok, w * est, 0.0), w * g_true)]
-    return np.stack(out).reshape(3, len(galaxies), len(cases))
-
-
-def slopes(sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """m for each row of ``counts`` (n_boot, n_galaxies): OLS of case-mean estimate on case-mean truth."""
-    s = np.einsum("bg,kgc->kbc", counts, sums)
-    est, tru = s[1] / s[0], s[2] / s[0]
-    x = tru - tru.mean(axis=1, keepdims=True)
-    y = est - est.mean(axis=1, keepdims=True)
-    return (x * y).sum(axis=1) / (x * x).sum(axis=1) - 1.0
+def slopes(table, pred, scheme: str, comp: int, cell: np.ndarray, n_cases: int, n_gal: int,
+           counts: np.ndarray) -> np.ndarray:
+    """m of one set for each row of ``counts`` (galaxy multiplicities), as ``megalut evaluate
+    --twin`` fits it (:mod:`megalut_cli.shear.paired`); flagged rows have no weight."""
+    est = np.asarray(pred[f"pre_g{comp}"], float)
+    w = np.ones_like(est) if scheme == "unweighted" else np.asarray(pred[f"pre_g{comp}_w"], float)
+    w = np.where(np.asarray(pred["flags"]) == 0, w, 0.0)
+    sums = group_sums(cell, n_cases * n_gal, np.asarray(table[f"tru_g{comp}"], float), est, w)
+    return fit_resamples(sums, counts, n_cases, n_gal)[0]
 
 
 def main() -> None:
@@ -60,8 +48,9 @@ def main() -> None:
     for c in ("case", "rea", "tru_g1", "tru_g2", "tru_real_index"):
         if not np.array_equal(np.asarray(real[c]), np.asarray(twin[c])):
             raise SystemExit(f"error: {args.real} and {args.twin} differ in column {c}: not a real/twin pair")
-    galaxies = np.unique(np.asarray(real["tru_real_index"]))
-    cases = np.unique(np.asarray(real["case"]))
+    galaxies, gi = np.unique(np.asarray(real["tru_real_index"]), return_inverse=True)
+    cases, ci = np.unique(np.asarray(real["case"]), return_inverse=True)
+    cell = ci.ravel() * len(galaxies) + gi.ravel()
     rng = np.random.default_rng(args.seed)
     draws = rng.integers(0, len(galaxies), (args.bootstrap, len(galaxies)))
     counts = np.vstack([np.ones(len(galaxies)), np.apply_along_axis(np.bincount, 1, draws, minlength=len(galaxies))])
@@ -79,10 +68,7 @@ def main() -> None:
             for comp in (1, 2):
                 ms = {}
                 for k, t in (("real", real), ("twin", twin)):
-                    p = preds[k]
-                    est = np.asarray(p[f"pre_g{comp}"], float)
-                    w = np.ones_like(est) if scheme == "unweighted" else np.asarray(p[f"pre_g{comp}_w"], float)
-                    ms[k] = slopes(cell_sums(t, est, w, np.asarray(p["flags"]), comp, galaxies, cases), counts)
+                    ms[k] = slopes(t, preds[k], scheme, comp, cell, len(cases), len(galaxies), counts)
                 dm = ms["real"] - ms["twin"]
                 dms[(name, scheme, comp)] = dm
                 res[f"{scheme}_g{comp}"] = {

@@ -29,10 +29,9 @@ from megalut_cli.measure.features import (
 )
 from megalut_cli.sim.draw import (
     case_columns,
-    get_psf,
-    psf_cache_key,
-    psf_includes_pixel,
+    case_psfs,
     stamp_origins,
+    stamp_parameters,
     stamp_renderer,
 )
 from megalut_cli.sim.structure import draw_case
@@ -68,35 +67,24 @@ def draw_unit_device(unit: Any) -> dict[str, Any]:
     noise_of = np.empty(n_total, dtype=np.int64)
     for case in range(unit.case_start, unit.case_stop):
         d = draw_case(cfg, unit.seed, case)
-        t = d.truth
         base = (case - unit.case_start) * n_rea
         seeds[base:base + n_rea] = d.noise_seeds
         noise_of[base:base + n_rea] = len(noises)
         noises.append(d.noise)
-        psf_truths = []
-        for pi, (spec, fx, fy) in enumerate(d.psf_specs):
-            psf, ptruth = get_psf(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
-            psf_truths.append(ptruth)
-            sel = np.flatnonzero(d.psf_index == pi)
-            key = psf_cache_key(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
-            method = "no_pixel" if psf_includes_pixel(spec) else "auto"
-            psfs[key] = (psf, method)
+        case_psf_list = case_psfs(cfg, d)
+        for p in case_psf_list:
+            psfs[p.key] = (p.psf, p.method)
             try:
-                plan = renderer.plan(
-                    psf, key, method, gal.profile, t["tru_rad"][sel], t["tru_flux"][sel],
-                    t["tru_sersicn"][sel] if "tru_sersicn" in t else None,
-                    t["tru_e1"][sel], t["tru_e2"][sel], t["tru_g1"][sel], t["tru_g2"][sel],
-                    d.offsets[sel, 0], d.offsets[sel, 1],
-                )
+                plan = renderer.plan(p.psf, p.key, p.method, gal.profile, *stamp_parameters(d, p.rows))
             except MegalutError as err:
                 raise MegalutError(f"case {case}: {err}") from None
             plans.append(plan)
-            rows_of_plan.append(base + sel)
+            rows_of_plan.append(base + p.rows)
             for nf, nk in set(zip(plan.n_fft.tolist(), plan.n_k.tolist())):
                 pick = (plan.n_fft == nf) & (plan.n_k == nk)
-                groups.setdefault((key, nf, nk), []).append(np.stack(
-                    [np.full(pick.sum(), len(plans) - 1), np.flatnonzero(pick), base + sel[pick]], axis=1))
-        truth_parts.append(case_columns(d, psf_truths))
+                groups.setdefault((p.key, nf, nk), []).append(np.stack(
+                    [np.full(pick.sum(), len(plans) - 1), np.flatnonzero(pick), base + p.rows[pick]], axis=1))
+        truth_parts.append(case_columns(d, [p.truth for p in case_psf_list]))
 
     # Per-stamp inputs, gathered from the plans; one table of radial profiles for the unit.
     profiles: list[Any] = []

@@ -22,6 +22,7 @@ import numpy as np
 
 from megalut_cli.errors import InputError
 from megalut_cli.seeding import STREAM_BOOTSTRAP, rng_for
+from megalut_cli.shear.bootstrap import fit_columns
 
 #: Columns that must agree row by row between paired catalogs.
 PAIRING_COLUMNS = ("case", "rea", "tru_g1", "tru_g2")
@@ -29,10 +30,11 @@ PAIRING_COLUMNS = ("case", "rea", "tru_g1", "tru_g2")
 N_BOOTSTRAP = 1000
 
 
-def _group_sums(
+def group_sums(
     cell: np.ndarray, n_cells: int, g_true: np.ndarray, g_est: np.ndarray, weight: np.ndarray
 ) -> np.ndarray:
-    """``(3, n_cells)`` sums of ``w``, ``w g_est``, ``w g_true`` per cell (invalid rows: w = 0)."""
+    """``(3, n_cells)`` sums of ``w``, ``w g_est``, ``w g_true`` per cell (invalid rows: w = 0);
+    cell ``case * n_galaxies + galaxy`` for :func:`fit_resamples`."""
     ok = np.isfinite(g_est) & np.isfinite(weight) & (weight > 0)
     w = np.where(ok, weight, 0.0)
     return np.stack([
@@ -42,21 +44,14 @@ def _group_sums(
     ])
 
 
-def _fit_columns(sums: np.ndarray, counts: np.ndarray, n_cases: int, n_gal: int) -> tuple[np.ndarray, np.ndarray]:
-    """m and c (one per row of ``counts``, galaxy multiplicities) of per-case means."""
+def fit_resamples(sums: np.ndarray, counts: np.ndarray, n_cases: int, n_gal: int) -> tuple[np.ndarray, np.ndarray]:
+    """m and c of the per-case means of :func:`group_sums`, one per row of ``counts`` (galaxy
+    multiplicities); NaN with fewer than 3 cases."""
     s = sums.reshape(3, n_cases, n_gal) @ counts.T  # (3, n_cases, B)
-    ok = s[0] > 0
     with np.errstate(invalid="ignore", divide="ignore"):
-        x = np.where(ok, s[2] / np.where(ok, s[0], 1.0), 0.0)
-        y = np.where(ok, s[1] / np.where(ok, s[0], 1.0), 0.0) - x
-        n = ok.sum(axis=0)
-        xm = x.sum(axis=0) / n
-        ym = y.sum(axis=0) / n
-        dx = np.where(ok, x - xm, 0.0)
-        m = (dx * (y - ym)).sum(axis=0) / (dx * dx).sum(axis=0)
-        c = ym - m * xm
-    bad = n < 3
-    return np.where(bad, np.nan, m), np.where(bad, np.nan, c)
+        m, c = fit_columns(s[2] / s[0], s[1] / s[0])
+    few = (s[0] > 0).sum(axis=0) < 3
+    return np.where(few, np.nan, m), np.where(few, np.nan, c)
 
 
 def paired_bias(
@@ -85,12 +80,12 @@ def paired_bias(
     ones = np.ones(g_true.size)
     wa = ones if weight_a is None else np.asarray(weight_a, dtype=float)
     wb = ones if weight_b is None else np.asarray(weight_b, dtype=float)
-    sums_a = _group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_a, dtype=float), wa)
-    sums_b = _group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_b, dtype=float), wb)
+    sums_a = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_a, dtype=float), wa)
+    sums_b = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_b, dtype=float), wb)
     rng = rng_for(seed, STREAM_BOOTSTRAP)
     counts = np.vstack([np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)])
-    m_a, c_a = _fit_columns(sums_a, counts, n_cases, n_gal)
-    m_b, c_b = _fit_columns(sums_b, counts, n_cases, n_gal)
+    m_a, c_a = fit_resamples(sums_a, counts, n_cases, n_gal)
+    m_b, c_b = fit_resamples(sums_b, counts, n_cases, n_gal)
     out: dict[str, Any] = {}
     for name, v in (("m_a", m_a), ("c_a", c_a), ("m_b", m_b), ("c_b", c_b), ("dm", m_a - m_b), ("dc", c_a - c_b)):
         boot = v[1:][np.isfinite(v[1:])]

@@ -326,6 +326,39 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     return {"columns": columns, "stamps": stamps[:n_total] if keep else None}
 
 
+@dataclass(frozen=True)
+class CasePsf:
+    """One PSF of a drawn case, as the batched renderers take it."""
+
+    psf: Any  # the GalSim object
+    key: str  # psf_cache_key: the renderer's cache of PSF k-images
+    method: str  # GalSim drawing method ("no_pixel" when the PSF includes the pixel)
+    rows: np.ndarray  # the realizations of the case drawn with it
+    truth: dict[str, float]  # its truth columns
+
+
+def case_psfs(cfg: Any, d: Any) -> list[CasePsf]:
+    """The PSFs of the drawn case ``d``, in ``d.psf_index`` order."""
+    out = []
+    for pi, (spec, fx, fy) in enumerate(d.psf_specs):
+        psf, ptruth = get_psf(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
+        key = psf_cache_key(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
+        method = "no_pixel" if psf_includes_pixel(spec) else "auto"
+        out.append(CasePsf(psf, key, method, np.flatnonzero(d.psf_index == pi), ptruth))
+    return out
+
+
+def stamp_parameters(d: Any, rows: np.ndarray) -> tuple[Any, ...]:
+    """The per-stamp arguments of the batched renderers for the realizations ``rows`` of the
+    drawn case ``d``: rad, flux, sersicn (or None), e1, e2, g1, g2, dx, dy."""
+    t = d.truth
+    return (
+        t["tru_rad"][rows], t["tru_flux"][rows], t["tru_sersicn"][rows] if "tru_sersicn" in t else None,
+        t["tru_e1"][rows], t["tru_e2"][rows], t["tru_g1"][rows], t["tru_g2"][rows],
+        d.offsets[rows, 0], d.offsets[rows, 1],
+    )
+
+
 def case_columns(d: Any, psf_truths: list[dict[str, float]]) -> dict[str, np.ndarray]:
     """The catalog columns of one drawn case: ``case, rea``, its truth and its PSF truth."""
     n_rea = len(d.noise_seeds)
@@ -386,27 +419,15 @@ def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
 
     for case in range(unit.case_start, unit.case_stop):
         d = draw_case(cfg, unit.seed, case)
-        t = d.truth
         stamps = np.empty((n_rea, S, S), dtype=np.float32)
-        psf_truths: list[dict[str, float]] = []
-        for pi, (spec, fx, fy) in enumerate(d.psf_specs):
-            psf, ptruth = get_psf(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
-            psf_truths.append(ptruth)
-            sel = np.flatnonzero(d.psf_index == pi)
-            key = psf_cache_key(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
-            method = "no_pixel" if psf_includes_pixel(spec) else "auto"
+        psfs = case_psfs(cfg, d)
+        for p in psfs:
             try:
-                stamps[sel] = renderer.draw(
-                    psf, key, method, gal.profile,
-                    t["tru_rad"][sel], t["tru_flux"][sel],
-                    t["tru_sersicn"][sel] if "tru_sersicn" in t else None,
-                    t["tru_e1"][sel], t["tru_e2"][sel], t["tru_g1"][sel], t["tru_g2"][sel],
-                    d.offsets[sel, 0], d.offsets[sel, 1],
-                )
+                stamps[p.rows] = renderer.draw(p.psf, p.key, p.method, gal.profile, *stamp_parameters(d, p.rows))
             except MegalutError as err:
                 raise MegalutError(f"case {case}: {err}") from None
         d.noise.add_batch(stamps, d.noise_seeds)
-        truth_parts.append(case_columns(d, psf_truths))
+        truth_parts.append(case_columns(d, [p.truth for p in psfs]))
         if unit.keep_stamps:
             kept.append(stamps)
         if measurer is not None:
