@@ -1,5 +1,9 @@
 """Exceptions raised by the library; the CLI turns them into one-line errors."""
 
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
 
 class MegalutError(Exception):
     """A runtime error with a message fit for the user (exit code 1)."""
@@ -17,3 +21,15 @@ class InputError(MegalutError):
     """An input file is missing, unreadable or lacks what is needed (exit code 1)."""
 
     exit_code = 1
+
+
+#: How a caller names the library's arguments in its messages, e.g. ``{"stamp_size":
+#: "--stamp-size"}`` from the command line or ``{"n_cases": "sets.tp.n_cases"}`` from a
+#: pipeline file; an argument missing from it is named as it is.
+Names = Mapping[str, str]
+
+
+def namer(names: Names | None) -> Callable[[str], str]:
+    """How messages name an argument: ``names[arg]`` if given, else the argument's own name."""
+    given = dict(names or {})
+    return lambda arg: given.get(arg, arg)

@@ -30,7 +30,7 @@ import numpy as np
 
 from megalut_cli.atomic import check_output
 from megalut_cli.catalog import CatalogColumns, read_setup, require_columns
-from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.errors import ConfigError, InputError, namer
 from megalut_cli.expr import check_expression, columns_used, evaluate_cases, evaluate_rows
 from megalut_cli.nn import normalization as norm
 from megalut_cli.nn.committee import CommitteeSpec, train_committees
@@ -63,12 +63,6 @@ DEFAULT_WEIGHT_ITERATIONS = WEIGHT_ITERATIONS
 #: A table of columns: a dict of column name to array, an astropy Table, or a
 #: :class:`megalut_cli.catalog.CatalogColumns` reading a catalog's columns on demand.
 Columns = Mapping[str, Any]
-
-
-def _namer(names: Mapping[str, str] | None) -> Callable[[str], str]:
-    """How messages name an argument: ``names[arg]`` if given, else the argument's name."""
-    given = dict(names or {})
-    return lambda arg: given.get(arg, arg)
 
 
 @dataclass
@@ -156,7 +150,7 @@ def _load_cases(
     name: Callable[[str], str] | None = None,
 ) -> CaseData:
     """Group a table's rows into cases (see the module docstring for masking)."""
-    name = name or _namer(None)
+    name = name or namer(None)
     names = column_names(table)
     extra = []
     for expr, case_mode in ((select_cases, True), (select_rows, False)):
@@ -208,7 +202,7 @@ def _load_split(
 ) -> tuple[CaseData, CaseData | None, str]:
     """Training and validation cases: from ``valid``, or a held-out fraction of ``train``;
     and a description of the validation set. ``load`` goes to :func:`_load_cases`."""
-    name = load.get("name", _namer(None))
+    name = load.get("name", namer(None))
     data = _load_cases(train, train_name, features, targets, **load)
     if valid is not None:
         return data, _load_cases(valid, valid_name, features, targets, **load), valid_name
@@ -328,7 +322,7 @@ def fit_point(
     The model's provenance holds the command, versions and seed (the file functions add
     their inputs).
     """
-    name = _namer(names)
+    name = namer(names)
     src_names = {"train": "train", "valid": "valid", "init_model": "init_model", **(sources or {})}
     init_from = src_names["init_model"]
     opts = options or TrainOptions()
@@ -498,7 +492,7 @@ def fit_weight(
     ``sources`` names the tables and the point model (keys ``train``, ``valid``,
     ``model``); ``names`` how messages name the arguments.
     """
-    name = _namer(names)
+    name = namer(names)
     src_names = {"train": "train", "valid": "valid", "model": "model", **(sources or {})}
     opts = options or TrainOptions(iterations=DEFAULT_WEIGHT_ITERATIONS)
     opts.check()
@@ -556,7 +550,7 @@ def train_weight(
     (options or TrainOptions(iterations=DEFAULT_WEIGHT_ITERATIONS)).check()
     out = check_output(output, overwrite)
     if Path(out).resolve() == Path(model).resolve():
-        raise ConfigError(f"{_namer(names)('output')} {output} would replace the input model; choose another output file")
+        raise ConfigError(f"{namer(names)('output')} {output} would replace the input model; choose another output file")
     if select is not None:
         check_expression(select, None, case_mode=False)
     point_model = ShearModel.load(model)

@@ -164,3 +164,23 @@ def test_warns_when_most_stamps_are_flagged(runner, cli, data):
     assert "HSM_FAILED" in result.stderr or "NEGATIVE_FLUX" in result.stderr
     ok = runner.invoke(cli, ["measure", str(data / "stamps.fits"), "-o", str(data / "g.fits")])
     assert ok.exit_code == 0 and "wrong --stamp-size" not in ok.stderr
+
+
+def test_library_messages_name_arguments_the_command_line_its_flags(data, runner, cli):
+    """The library names its own arguments; the subcommand maps them to its flags."""
+    from megalut_cli.cli.measure import command
+    from megalut_cli.cli.options import flag_names
+    from megalut_cli.errors import ConfigError
+    from megalut_cli.measure.measure import measure_file
+
+    out = str(data / "out.fits")
+    with pytest.raises(ConfigError, match=r"^gain must be a positive number"):
+        measure_file(data / "stamps.fits", None, out, gain=-1.0)
+    with pytest.raises(ConfigError, match="give stamp_size or a STAMPSZ"):
+        measure_file(data / "nocard.fits", None, out)
+    with pytest.raises(ConfigError, match=r"^psf_path does not apply to a star field"):
+        measure_file(data / "stamps.fits", None, out, psf_path=data / "stamps.fits", stars=True)
+    names = flag_names(command, psf_path="--psf")
+    assert names["stamp_size"] == "--stamp-size" and names["psf_path"] == "--psf" and names["output"] == "-o"
+    _fails(runner, cli, ["measure", str(data / "nocard.fits"), "-o", out], 2, "give --stamp-size or a STAMPSZ")
+    assert not (data / "out.fits").exists()

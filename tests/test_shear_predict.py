@@ -14,6 +14,7 @@ from helpers import FEATURES, features_catalog, make_model, manual_predict
 
 from megalut_cli import flags
 from megalut_cli.catalog import read_catalog, write_catalog
+from megalut_cli.cli.predict import parse_column_map
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.nn.model import ShearModel
 from megalut_cli.provenance import sha256_file
@@ -93,15 +94,15 @@ def test_missing_features_listed_at_once(tmp_path, model_path):
     src = tmp_path / "f.fits"
     write_catalog(src, d, fmt="megalut.features")
     with pytest.raises(InputError) as err:
-        P.predict_catalog(src, model_path, tmp_path / "p.fits")
+        P.predict_catalog(src, model_path, tmp_path / "p.fits", names={"column_map": "--col"})
     msg = str(err.value)
     assert all(c in msg for c in ("adamom_g1", "adamom_rho4", "snr", "--col")) and "\n" not in msg
-    with pytest.raises(InputError, match=r"adamom_g1 \(--col adamom_g1=E1\)"):
+    with pytest.raises(InputError, match=r"adamom_g1 \(column_map adamom_g1=E1\)"):
         P.predict_catalog(src, model_path, tmp_path / "p.fits", column_map={"adamom_g1": "E1"})
     with pytest.raises(ConfigError, match="not a feature of the model"):
         P.predict_catalog(src, model_path, tmp_path / "p.fits", column_map={"size": "adamom_sigma"})
     with pytest.raises(ConfigError, match="FEATURE=COLUMN"):
-        P.parse_column_map(["adamom_g1"])
+        parse_column_map(["adamom_g1"])
     assert not (tmp_path / "p.fits").exists()
 
 

@@ -8,11 +8,14 @@ from typing import TextIO
 import click
 
 from megalut_cli.atomic import write_json
-from megalut_cli.cli.options import overwrite_option, parse_list, schema_option, seed_option
+from megalut_cli.cli.options import (
+    flag_names,
+    overwrite_option,
+    parse_list,
+    schema_option,
+    seed_option,
+)
 from megalut_cli.shear.options import EVALUATE
-
-#: How the evaluation library's messages name its arguments here.
-FLAGS = {"by": "--by", "select": "--select", "select_cases": "--select-cases", "errors": "--errors"}
 
 #: Exit code of ``--fail-above`` when the Stage IV requirement does not hold.
 EXIT_OUT_OF_TOLERANCE = 3
@@ -177,11 +180,11 @@ def command(
         if errors == "bootstrap":
             raise click.UsageError("--errors bootstrap does not apply to --great3-truth (subfields are independent)")
         result = evaluate_branch(shears, great3_truth, sigma2_min=sigma2_min, by=by_cols, bins=bins,
-                                 select=select, select_cases=select_cases, names=FLAGS)
+                                 select=select, select_cases=select_cases, names=flag_names())
     else:
         result = evaluate_catalog(shears, by=by_cols, bins=bins, select=select, select_cases=select_cases,
                                   sigma2_min=sigma2_min, errors=errors, n_bootstrap=n_bootstrap, seed=seed,
-                                  names=FLAGS)
+                                  names=flag_names())
     if from_stdin:
         result["input"] = "stdin"
     click.echo(format_table(result), err=json_to_stdout)
@@ -214,7 +217,7 @@ def _evaluate_twin(shears: str, twin: str, by: list[str] | None, bins: int, n_bo
         raise click.UsageError(f"{other[0]} does not apply with --twin")
     if is_stdio(shears):
         raise click.UsageError("--twin needs SHEARS as a file, not stdin")
-    result = evaluate_paired_catalogs(shears, twin, by=by, n_bins=bins, n_boot=n_boot, seed=seed)
+    result = evaluate_paired_catalogs(shears, twin, by=by, n_bins=bins, n_boot=n_boot, seed=seed, names=flag_names())
     click.echo(format_paired(result), nl=False, err=is_stdio(json_path))
     if is_stdio(json_path):
         _dump_json(result, sys.stdout)

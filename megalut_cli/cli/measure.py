@@ -8,6 +8,7 @@ from megalut_cli.cli.options import (
     device_option,
     engine_option,
     execution_options,
+    flag_names,
     output_option,
     overwrite_option,
 )
@@ -137,4 +138,5 @@ def command(
             engine=engine,
             morphology=morphology,
             device=device,
+            names=flag_names(psf_path="--psf"),
         )

@@ -243,9 +243,21 @@ def parse_int_list(value: str | None, what: str = "list") -> list[int] | None:
     return out
 
 
+def flag_names(command: click.Command | None = None, **renamed: str) -> dict[str, str]:
+    """How the library's messages name its arguments on this command line.
 
-#: How the training library's messages name its arguments on the command line.
-TRAINING_FLAGS = {
-    "select_cases": "--select-cases", "select": "--select", "hidden": "--hidden", "valid": "--valid FILE",
-    "valid_fraction": "--valid-fraction", "output": "-o",
-}
+    Every parameter of ``command`` (default: the running one) by its first flag
+    (``stamp_size`` -> ``--stamp-size``, ``output`` -> ``-o``), an argument by its metavar
+    (``CONFIG``); ``renamed`` gives the library arguments whose name is not the
+    parameter's (``psf_path="--psf"``). Passed as ``names=`` to library calls.
+    """
+    command = command or click.get_current_context().command
+    out: dict[str, str] = {}
+    for param in command.params:
+        if param.name is None:
+            continue
+        if isinstance(param, click.Option):
+            out[param.name] = param.opts[0]
+        else:
+            out[param.name] = param.human_readable_name
+    return {**out, **renamed}

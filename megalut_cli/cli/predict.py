@@ -6,7 +6,22 @@ import logging
 
 import click
 
-from megalut_cli.cli.options import execution_options, output_option, overwrite_option
+from megalut_cli.cli.options import execution_options, flag_names, output_option, overwrite_option
+from megalut_cli.errors import ConfigError
+
+
+def parse_column_map(items: tuple[str, ...] | list[str]) -> dict[str, str]:
+    """``--col`` values ``["adamom_g1=E1", ...]`` -> ``{"adamom_g1": "E1"}`` (feature -> catalog column)."""
+    out: dict[str, str] = {}
+    for item in items:
+        feat, sep, col = item.partition("=")
+        feat, col = feat.strip(), col.strip()
+        if not sep or not feat or not col:
+            raise ConfigError(f"--col {item!r}: expected FEATURE=COLUMN, e.g. adamom_g1=E1")
+        if feat in out and out[feat] != col:
+            raise ConfigError(f"--col: feature {feat!r} mapped twice")
+        out[feat] = col
+    return out
 
 
 @click.command("predict", short_help="Apply a trained model: add pre_g1, pre_g2 (and weights).")
@@ -61,13 +76,14 @@ def command(
     from megalut_cli.cli.options import progress
     from megalut_cli.nn.model import ShearModel
     from megalut_cli.nn.population import model_report
-    from megalut_cli.shear.predict import parse_column_map, predict_catalog
+    from megalut_cli.shear.predict import predict_catalog
 
     column_map = parse_column_map(col)
     with stdin_path(features) as features_path, stdout_path(output) as output_path:
         report = predict_catalog(
             features_path, model_path, output_path, column_map=column_map, nproc=nproc, scheduler=scheduler,
             overwrite=overwrite, chunk_rows=chunk_rows, progress=progress,
+            names=flag_names(column_map="--col"),
         )
     logging.getLogger("megalut").info(
         "wrote %s: %d rows, %s (%d with failed features)",

@@ -10,6 +10,7 @@ from megalut_cli.cli.options import (
     device_option,
     engine_option,
     execution_options,
+    flag_names,
     output_option,
     overwrite_option,
     progress,
@@ -139,11 +140,12 @@ def command(
         raise click.UsageError("--morphology needs --measure (and not --great3)")
     if great3_dir is not None and stamps is not None:
         raise click.UsageError("--great3 writes the subfield images itself: do not give --stamps")
-    check_outputs(cfg, output, stamps, overwrite)
+    names = flag_names(branch_dir="--great3")
+    check_outputs(cfg, output, stamps, overwrite, names)
     if great3_dir is not None:
         from megalut_cli.great3.sim import check_branch_output
 
-        check_branch_output(great3_dir, overwrite)
+        check_branch_output(great3_dir, overwrite, names)
     log.info("about to simulate %s", plan_message(cfg, seed, measure, stamps is not None or great3_dir is not None,
                                                    nproc, scheduler, engine, device))
     if dry_run:
@@ -153,7 +155,7 @@ def command(
 
         simulate_branch(
             cfg, great3_dir, output, measure=measure, seed=seed, nproc=nproc,
-            scheduler=scheduler, overwrite=overwrite, progress=progress, engine=engine,
+            scheduler=scheduler, overwrite=overwrite, progress=progress, engine=engine, names=names,
         )
         return
     simulate(
@@ -169,4 +171,5 @@ def command(
         progress=progress,
         engine=engine,
         device=device,
+        names=names,
     )

@@ -7,9 +7,9 @@ from typing import TYPE_CHECKING
 import click
 
 from megalut_cli.cli.options import (
-    TRAINING_FLAGS,
     committee_options,
     execution_options,
+    flag_names,
     optimizer_options,
     output_option,
     overwrite_option,
@@ -129,5 +129,5 @@ def command(
         scheduler=scheduler,
         overwrite=overwrite,
         progress=progress,
-        names=TRAINING_FLAGS,
+        names=flag_names(valid="--valid FILE"),
     )

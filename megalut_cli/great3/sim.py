@@ -49,7 +49,7 @@ import numpy as np
 from megalut_cli.atomic import atomic_output, check_output, move_into_folder
 from megalut_cli.catalog import write_catalog, write_image, write_text_catalog
 from megalut_cli.engine import DEFAULT_ENGINE
-from megalut_cli.errors import ConfigError, MegalutError
+from megalut_cli.errors import ConfigError, MegalutError, Names, namer
 from megalut_cli.great3 import layout as L
 from megalut_cli.parallel import executor, map_units
 from megalut_cli.progress import Progress, no_progress
@@ -190,17 +190,19 @@ def _write_subfield(tmp_dir: Path, config: SimConfig, seed: int, case: int, res:
     write_text_catalog(tmp_dir / L.star_catalog_name(case, "txt"), star_cat)
 
 
-def check_branch_output(branch_dir: str | os.PathLike, overwrite: bool) -> Path:
+def check_branch_output(branch_dir: str | os.PathLike, overwrite: bool, names: Names | None = None) -> Path:
     """Fail early if ``branch_dir`` is a file, a non-empty folder without ``overwrite``, or
-    its parent folder is missing."""
+    its parent folder is missing (messages name the arguments by ``names``)."""
+    name = namer(names)
     d = Path(branch_dir)
+    key = f"{name('branch_dir')} {d}"
     if d.exists() and not d.is_dir():
-        raise MegalutError(f"--great3 {d}: exists and is not a folder")
+        raise MegalutError(f"{key}: exists and is not a folder")
     if d.is_dir() and any(d.iterdir()) and not overwrite:
-        raise MegalutError(f"--great3 {d}: the folder exists and is not empty; use --overwrite to replace its files")
+        raise MegalutError(f"{key}: the folder exists and is not empty; use {name('overwrite')} to replace its files")
     parent = d.resolve().parent
     if not parent.is_dir():
-        raise MegalutError(f"--great3 {d}: the parent folder {parent} does not exist")
+        raise MegalutError(f"{key}: the parent folder {parent} does not exist")
     return d
 
 
@@ -215,10 +217,12 @@ def simulate_branch(
     overwrite: bool = False,
     progress: Progress | None = None,
     engine: str = DEFAULT_ENGINE,
+    names: Names | None = None,
 ) -> BranchResult:
     """Simulate ``config`` into the GREAT3 branch folder ``branch_dir`` and the catalog ``output``.
 
-    ``progress`` counts the subfields as they are drawn (``n_cases`` in all).
+    ``progress`` counts the subfields as they are drawn (``n_cases`` in all); messages name
+    the arguments by ``names``.
     """
     from megalut_cli.sim.simulate import (
         expected_workers,
@@ -230,7 +234,7 @@ def simulate_branch(
     )
 
     out = check_output(output, overwrite)
-    final = check_branch_output(branch_dir, overwrite)
+    final = check_branch_output(branch_dir, overwrite, names)
     n_x, n_y = check_config(config)
     s = config.structure
     size = s.stamp_size
@@ -280,7 +284,7 @@ def simulate_branch(
         cards["LAYOUT"] = ("great3", "files written by --great3")
         with atomic_output(out, overwrite) as tmp_cat:
             write_simulation_catalog(tmp_cat, columns, config, cards)
-            check_branch_output(final, overwrite)  # appeared while we worked?
+            check_branch_output(final, overwrite, names)  # appeared while we worked?
             move_into_folder(tmp_dir, final)
     finally:
         with contextlib.suppress(FileNotFoundError):

@@ -54,7 +54,7 @@ from megalut_cli.catalog import (
     write_catalog,
 )
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE
-from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.measure.features import (
     FEATURE_COLUMNS,
     default_max_shift,
@@ -282,16 +282,18 @@ def check_belongs_together(
         )
 
 
-def warn_if_mostly_flagged(flags: np.ndarray, where: str) -> None:
-    """Warn when more than :data:`MOSTLY_FLAGGED` of the stamps are flagged, saying why."""
+def warn_if_mostly_flagged(flags: np.ndarray, where: str, names: Names | None = None) -> None:
+    """Warn when more than :data:`MOSTLY_FLAGGED` of the stamps are flagged, saying why
+    (and which arguments may be wrong, named by ``names``)."""
+    name = namer(names)
     bad = flags != 0
     if len(flags) == 0 or bad.mean() <= MOSTLY_FLAGGED:
         return
     reasons = {name: int(np.sum((flags & value) != 0)) for value, name in fl.FLAG_NAMES.items()}
     why = ", ".join(f"{name} {n}" for name, n in sorted(reasons.items(), key=lambda kv: -kv[1]) if n)
     log.warning(
-        "%s: %d of %d stamps flagged (%s): wrong --stamp-size, --origin or catalog?",
-        where, int(bad.sum()), len(flags), why,
+        "%s: %d of %d stamps flagged (%s): wrong %s, %s or catalog?",
+        where, int(bad.sum()), len(flags), why, name("stamp_size"), name("origin"),
     )
 
 
@@ -338,7 +340,7 @@ def _grid_step(v: np.ndarray) -> tuple[float | None, int, bool]:
     return step, int(u.size), bool(np.allclose(d / step, np.round(d / step), rtol=0, atol=1e-6))
 
 
-def _check_spacing(x: np.ndarray, y: np.ndarray, size: int, path: str) -> None:
+def _check_spacing(x: np.ndarray, y: np.ndarray, size: int, path: str, size_key: str) -> None:
     """Error if the centres form a full regular grid whose spacing is not a multiple of ``size``."""
     sx, nx, rx = _grid_step(x)
     sy, ny, ry = _grid_step(y)
@@ -348,7 +350,7 @@ def _check_spacing(x: np.ndarray, y: np.ndarray, size: int, path: str) -> None:
         if step is not None and abs(step / size - round(step / size)) > 1e-6:
             raise InputError(
                 f"{path}: the catalog centres form a grid {step:g} pixels apart in {name}, which "
-                f"does not match the stamp size {size} (wrong --stamp-size?)"
+                f"does not match the stamp size {size} (wrong {size_key}?)"
             )
 
 
@@ -376,6 +378,7 @@ def measure_file(
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
     device: str = DEFAULT_DEVICE,
+    names: Names | None = None,
 ) -> Table:
     """Measure every stamp of ``stamps_path`` and write the features catalog ``output``.
 
@@ -402,15 +405,17 @@ def measure_file(
         morphology: also measure :data:`MORPHOLOGY_COLUMNS` (``measure/morphology.py``).
         device: ``cpu`` or ``gpu`` (resolved, :func:`megalut_cli.engine.resolve_device`): where
             the fast engine measures the moments.
+        names: how messages name the arguments (e.g. ``{"stamp_size": "--stamp-size"}``).
 
     Returns:
         The table written.
     """
+    name = namer(names)
     check_output(output, overwrite)
     if gain is not None and not (np.isfinite(gain) and gain > 0):
-        raise ConfigError(f"--gain must be a positive number, got {gain}")
+        raise ConfigError(f"{name('gain')} must be a positive number, got {gain}")
     if origin not in (0, 1):
-        raise ConfigError(f"--origin must be 0 or 1, got {origin}")
+        raise ConfigError(f"{name('origin')} must be 0 or 1, got {origin}")
     stamps_path = str(stamps_path)
     info = image_info(stamps_path)
     if stars is None:
@@ -418,16 +423,16 @@ def measure_file(
         if stars:
             log.info("%s: a star field: measuring its stars into psf_adamom_* columns", stamps_path)
     if stars and psf_path is not None:
-        raise ConfigError("--psf does not apply to a star field (its stars are the PSF)")
+        raise ConfigError(f"{name('psf_path')} does not apply to a star field (its stars are the PSF)")
     if stars and stamp_size is None and info.header.get("STAMPSZ") is None and info.shape[0] == info.shape[1]:
         stamp_size = info.shape[0] // 3  # GREAT3: a 3x3 grid of stars
         log.info("%s: no stamp size given: a 3x3 grid of %d-pixel stars", stamps_path, stamp_size)
     if stamp_size is not None and info.header.get("STAMPSZ") not in (None, stamp_size):
         raise InputError(
-            f"{stamps_path}: stamp size {stamp_size} (--stamp-size) contradicts the image's STAMPSZ = "
-            f"{info.header.get('STAMPSZ')} card; leave --stamp-size out to use the card"
+            f"{stamps_path}: stamp size {stamp_size} ({name('stamp_size')}) contradicts the image's STAMPSZ = "
+            f"{info.header.get('STAMPSZ')} card; leave {name('stamp_size')} out to use the card"
         )
-    size = stamp_size_of(info, stamp_size)
+    size = stamp_size_of(info, stamp_size, name("stamp_size"))
     n_y, n_x = check_grid(info, size)
 
     extra_hdus: dict[str, np.ndarray] = {}
@@ -435,12 +440,12 @@ def measure_file(
         table = _read_positions_catalog(catalog_path)
         check_belongs_together(stamps_path, info.header, str(catalog_path), table.meta)
         x, y = _catalog_positions(table, str(catalog_path))
-        _check_spacing(x, y, size, str(catalog_path))
-        origins = catalog_origins(x, y, size, origin)
+        _check_spacing(x, y, size, str(catalog_path), name("stamp_size"))
+        origins = catalog_origins(x, y, size, origin, name("origin"))
         if not inside(origins, size, info.shape).any():
             raise InputError(
                 f"{catalog_path}: no stamp centre falls on {stamps_path} ({n_x}x{n_y} stamps of "
-                f"{size} pixels; wrong --origin or --stamp-size?)"
+                f"{size} pixels; wrong {name('origin')} or {name('stamp_size')}?)"
             )
         history = table.meta.get("HISTORY")
         from megalut_cli.catalog import is_fits_file
@@ -460,8 +465,8 @@ def measure_file(
     header_gain = _card_value(cards.get("GAIN", info.header.get("GAIN")))
     if gain is None and header_gain is not None:
         log.warning(
-            "the input header has GAIN=%s but no --gain was given: snr uses Eq. 10 "
-            "(sky-limited); pass --gain %s for Eq. 8", header_gain, header_gain,
+            "the input header has GAIN=%s but no %s was given: snr uses Eq. 10 "
+            "(sky-limited); pass %s %s for Eq. 8", header_gain, name("gain"), name("gain"), header_gain,
         )
 
     if psf_path is not None:
@@ -469,7 +474,7 @@ def measure_file(
         image_info(psf_path)  # fail early on a bad PSF file, before the long measurement
 
     if stars and morphology:
-        raise ConfigError("--morphology does not apply to a star field")
+        raise ConfigError(f"{name('morphology')} does not apply to a star field")
     feats = _run_units(info, origins, size, gain, nproc, scheduler, progress, "measuring stamps", engine, morphology, device)
     psf = None
     if psf_path is not None:
@@ -494,7 +499,7 @@ def measure_file(
 
     nflag = int((feats["flags"] != 0).sum())
     log.info("%d of %d stamps flagged (features NaN)", nflag, len(table))
-    warn_if_mostly_flagged(feats["flags"], stamps_path)
+    warn_if_mostly_flagged(feats["flags"], stamps_path, names)
     cards.update(
         {
             "STAMPSZ": (size, "stamp size [pixels]"),

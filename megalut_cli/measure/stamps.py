@@ -94,9 +94,10 @@ def read_rows(info: ImageInfo, y0: int, y1: int) -> np.ndarray:
 
 
 def stamp_size_of(
-    info: ImageInfo, stamp_size: int | None, where: str = "--stamp-size"
+    info: ImageInfo, stamp_size: int | None, where: str = "stamp_size"
 ) -> int:
-    """The stamp size: ``stamp_size`` if given, else the image's ``STAMPSZ`` header card."""
+    """The stamp size: ``stamp_size`` if given, else the image's ``STAMPSZ`` header card
+    (messages name the argument ``where``)."""
     if stamp_size is None:
         card = info.header.get(STAMP_SIZE_CARD)
         if card is None:
@@ -132,17 +133,17 @@ def grid_origins(n_y: int, n_x: int, stamp_size: int) -> np.ndarray:
 
 
 def catalog_origins(
-    x: np.ndarray, y: np.ndarray, stamp_size: int, origin: int = 1
+    x: np.ndarray, y: np.ndarray, stamp_size: int, origin: int = 1, where: str = "origin"
 ) -> np.ndarray:
     """1-based lower-left ``(x, y)`` of the stamps centred at catalog positions ``x, y``.
 
     ``origin`` is the coordinate of the first pixel's centre in the catalog (1: FITS,
     0: numpy/GREAT3). A centre half-way between two stamps goes to the one on the grid
     of ``stamp_size`` stamps from pixel 1 (see the module docstring). Non-finite centres
-    give the origin ``INT64_MIN`` (never inside).
+    give the origin ``INT64_MIN`` (never inside). Messages name ``origin`` ``where``.
     """
     if origin not in (0, 1):
-        raise ConfigError(f"--origin must be 0 or 1, got {origin}")
+        raise ConfigError(f"{where} must be 0 or 1, got {origin}")
     xy = np.column_stack([np.asarray(x, np.float64), np.asarray(y, np.float64)]) + (1 - origin)
     t = xy - stamp_size / 2.0 + 0.5
     ll = np.floor(t + _EPS)

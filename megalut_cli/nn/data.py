@@ -214,7 +214,7 @@ def build_cases(
             r, j = np.argwhere(bad)[0]
             raise InputError(
                 f"{where}: target {targets[j]} varies within case {ids[index[r]]}; MSB needs one target "
-                "value per case (use --cost mse, or one case per target value)"
+                "value per case (use the MSE cost, or one case per target value)"
             )
     x = np.column_stack([np.asarray(columns[f], dtype=np.float64)[rows] for f in features])
     pt = None

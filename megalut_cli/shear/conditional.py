@@ -18,25 +18,25 @@ from megalut_cli.errors import ConfigError
 log = logging.getLogger(__name__)
 
 
-def equal_population_edges(values: np.ndarray, n_bins: int, name: str = "column") -> np.ndarray:
+def equal_population_edges(values: np.ndarray, n_bins: int, name: str = "column", key: str = "by") -> np.ndarray:
     """Bin edges holding about the same number of (finite) ``values`` in each bin.
 
     Edges are quantiles; ties (e.g. a true parameter shared by all rows of a case, or a
     column with few distinct values) can merge bins, in which case fewer than ``n_bins``
     bins come back and a note is logged. Raises :class:`ConfigError` when no finite value
-    exists.
+    exists. Messages name the column ``name`` after the caller's ``key``.
     """
     if n_bins < 1:
         raise ConfigError(f"number of bins must be positive, got {n_bins}")
     v = np.asarray(values, dtype=float)
     v = v[np.isfinite(v)]
     if v.size == 0:
-        raise ConfigError(f"--by {name}: no finite values among the rows used")
+        raise ConfigError(f"{key} {name}: no finite values among the rows used")
     edges = np.unique(np.quantile(v, np.linspace(0.0, 1.0, n_bins + 1)))
     if edges.size == 1:  # a single value: one bin of zero width
         edges = np.array([edges[0], edges[0]])
     if edges.size - 1 < n_bins:
-        log.info("--by %s: only %d distinct bin(s) (tied values)", name, edges.size - 1)
+        log.info("%s %s: only %d distinct bin(s) (tied values)", key, name, edges.size - 1)
     return edges
 
 

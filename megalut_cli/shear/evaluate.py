@@ -129,7 +129,7 @@ class _Plan:
         return self.names.get(arg, arg)
 
 
-def check_by(by: Sequence[str], available: Sequence[str], key: str = "--by", where: str = "the catalog") -> dict[str, str]:
+def check_by(by: Sequence[str], available: Sequence[str], key: str = "by", where: str = "the catalog") -> dict[str, str]:
     """Kind of each ``by`` entry: ``"column"``, ``"row"`` (numeric row expression such as
     ``sqrt(tru_e1**2 + tru_e2**2)``) or ``"case"`` (per-case aggregate such as ``mean(snr)``,
     the paper's binning by average S/N per case). Raises :class:`ConfigError` naming ``key``."""
@@ -578,7 +578,7 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
         for c in plan.by:
             vals = np.concatenate(by_values[c]) if by_values[c] else np.zeros(0)
             if vals.size:
-                edges[c] = equal_population_edges(vals, n_bins, c)
+                edges[c] = equal_population_edges(vals, n_bins, c, plan.name("by"))
                 by_values[c] = [vals]
 
     # Pass 2: per-(bin, case) sums.

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from megalut_cli.errors import InputError
+from megalut_cli.errors import InputError, Names, namer
 from megalut_cli.seeding import STREAM_BOOTSTRAP, rng_for
 from megalut_cli.shear.bootstrap import fit_columns
 
@@ -226,11 +226,12 @@ def format_paired(result: Mapping[str, Any]) -> str:
 
 def evaluate_paired_catalogs(
     path_a: str, path_b: str, by: Sequence[str] | None = None, n_bins: int = 3, n_boot: int = N_BOOTSTRAP,
-    seed: int = 0, galaxy_column: str = "tru_real_index",
+    seed: int = 0, galaxy_column: str = "tru_real_index", names: Names | None = None,
 ) -> dict[str, Any]:
     """:func:`paired_evaluation` of two prediction catalogs (e.g. ``real_shears.fits`` and
     ``twin_shears.fits``). ``by`` holds columns or numeric row expressions (e.g.
-    ``tru_twin_rad/tru_psf_sigma``); their values are averaged over both catalogs."""
+    ``tru_twin_rad/tru_psf_sigma``); their values are averaged over both catalogs. Messages
+    name the arguments by ``names`` (``by``, ``twin``)."""
     from megalut_cli import expr as _expr
     from megalut_cli.catalog import catalog_info, read_catalog
     from megalut_cli.errors import ConfigError
@@ -239,15 +240,16 @@ def evaluate_paired_catalogs(
     names_a, names_b = catalog_info(path_a)[1], catalog_info(path_b)[1]
     common = [c for c in names_a if c in set(names_b)]
     need = [*PAIRING_COLUMNS, galaxy_column, "pre_g1", "pre_g2"]
-    for path, names in ((path_a, names_a), (path_b, names_b)):
-        missing = [c for c in need if c not in names]
+    for path, colnames in ((path_a, names_a), (path_b, names_b)):
+        missing = [c for c in need if c not in colnames]
         if missing:
             raise InputError(f"{path}: missing column(s) {', '.join(missing)} (a prediction catalog of a "
                              "real-galaxy or twin set)")
-    kinds = check_by(list(by or []), common, where=f"both {path_a} and {path_b}")
+    name = namer(names)  # the caller's names of the arguments
+    kinds = check_by(list(by or []), common, name("by"), where=f"both {path_a} and {path_b}")
     if "case" in kinds.values():
         bad = next(c for c, k in kinds.items() if k == "case")
-        raise ConfigError(f"--by: {bad!r}: per-case aggregates do not apply with --twin (groups are binned by "
+        raise ConfigError(f"{name('by')}: {bad!r}: per-case aggregates do not apply with {name('twin')} (groups are binned by "
                           "their mean already)")
     used = {c for c in kinds if kinds[c] == "column"} | {u for c in kinds if kinds[c] == "row"
                                                          for u in _expr.columns_used(c)}

@@ -41,7 +41,7 @@ def _figure_class() -> Any:
     try:
         from matplotlib.figure import Figure
     except ImportError:
-        raise MegalutError("--plot needs matplotlib: pip install 'megalut-cli[plot]'") from None
+        raise MegalutError("figures need matplotlib: pip install 'megalut-cli[plot]'") from None
     return Figure
 
 

@@ -39,7 +39,7 @@ from megalut_cli.catalog import (
     setup_differences,
     write_table_hdu,
 )
-from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.parallel import executor, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
@@ -52,41 +52,30 @@ FORMAT = "megalut.predictions"
 FORMAT_VERSION = "1.0"
 
 
-def parse_column_map(items: Sequence[str]) -> dict[str, str]:
-    """``["adamom_g1=E1", ...]`` -> ``{"adamom_g1": "E1"}`` (feature -> catalog column)."""
-    out: dict[str, str] = {}
-    for item in items:
-        feat, sep, col = item.partition("=")
-        feat, col = feat.strip(), col.strip()
-        if not sep or not feat or not col:
-            raise ConfigError(f"--col {item!r}: expected FEATURE=COLUMN, e.g. adamom_g1=E1")
-        if feat in out and out[feat] != col:
-            raise ConfigError(f"--col: feature {feat!r} mapped twice")
-        out[feat] = col
-    return out
-
-
 def resolve_columns(
-    features: Sequence[str], available: Sequence[str], column_map: Mapping[str, str] | None, where: str
+    features: Sequence[str], available: Sequence[str], column_map: Mapping[str, str] | None, where: str,
+    names: Names | None = None,
 ) -> dict[str, str]:
     """Catalog column of every model feature, checking everything at once.
 
-    Raises :class:`ConfigError` for a ``--col`` naming something that is not a feature,
-    and :class:`InputError` listing every feature without a column.
+    Raises :class:`ConfigError` for a ``column_map`` entry that is not a feature, and
+    :class:`InputError` listing every feature without a column. Messages name
+    ``column_map`` by ``names``.
     """
+    key = namer(names)("column_map")
     column_map = dict(column_map or {})
     unknown = [f for f in column_map if f not in features]
     if unknown:
         raise ConfigError(
-            f"--col {', '.join(unknown)}: not a feature of the model (its features: {', '.join(features)})"
+            f"{key} {', '.join(unknown)}: not a feature of the model (its features: {', '.join(features)})"
         )
     have = set(available)
     resolved = {f: column_map.get(f, f) for f in features}
-    missing = [f if resolved[f] == f else f"{f} (--col {f}={resolved[f]})" for f in features if resolved[f] not in have]
+    missing = [f if resolved[f] == f else f"{f} ({key} {f}={resolved[f]})" for f in features if resolved[f] not in have]
     if missing:
         raise InputError(
             f"{where}: missing column(s) for model feature(s) {', '.join(missing)}; "
-            "map differently named columns with --col FEATURE=COLUMN"
+            f"map differently named columns with {key} FEATURE=COLUMN"
         )
     return resolved
 
@@ -238,25 +227,27 @@ def predict_catalog(
     overwrite: bool = False,
     chunk_rows: int = CHUNK_ROWS,
     progress: Progress | None = None,
+    names: Names | None = None,
 ) -> PredictReport:
     """Predict shears for every row of ``features_path`` into ``output`` (see module doc).
 
-    ``progress`` counts the rows as they are written (all of the catalog's).
+    ``progress`` counts the rows as they are written (all of the catalog's); messages name
+    the arguments by ``names``.
     """
     check_output(output, overwrite)
     if Path(output).resolve() == Path(features_path).resolve():
         raise ConfigError("the output must not be the input catalog")
-    n_rows, names, header = catalog_info(features_path)
+    n_rows, colnames, header = catalog_info(features_path)
     abs_model = str(Path(model_path).resolve())
     model = ShearModel.load(abs_model)  # always fresh here; workers reuse it by hash
     _MODELS.clear()
     _MODELS[abs_model] = model
-    resolved = resolve_columns(model.features, names, column_map, str(features_path))
+    resolved = resolve_columns(model.features, colnames, column_map, str(features_path), names)
     warn_setup_mismatch(model, features_path)
-    has_flags = "flags" in names
+    has_flags = "flags" in colnames
     new_cols = [prediction_column(c.target, c.kind) for c in model.point.values()]
     new_cols += [prediction_column(c.target, c.kind) for c in model.weight.values()]
-    replaced = [c for c in new_cols if c in names]
+    replaced = [c for c in new_cols if c in colnames]
     if replaced:
         log.warning("%s: replacing existing column(s) %s", features_path, ", ".join(replaced))
     cards = read_cards(features_path)  # with their comments

@@ -29,7 +29,7 @@ import numpy as np
 from megalut_cli.atomic import atomic_output, check_output
 from megalut_cli.catalog import write_catalog, write_image
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, check_engine, resolve_device
-from megalut_cli.errors import MegalutError
+from megalut_cli.errors import MegalutError, Names, namer
 from megalut_cli.parallel import chunk_ranges, executor, format_duration, map_units, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.sim.config import SimConfig
@@ -187,21 +187,24 @@ def order_columns(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def check_outputs(
-    config: SimConfig, output: str | os.PathLike, stamps: str | os.PathLike | None, overwrite: bool
+    config: SimConfig, output: str | os.PathLike, stamps: str | os.PathLike | None, overwrite: bool,
+    names: Names | None = None,
 ) -> tuple[Path, Path | None]:
-    """Pre-flight of :func:`simulate`: both outputs can be written, and the image is not too big."""
+    """Pre-flight of :func:`simulate`: both outputs can be written, and the image is not too big
+    (messages name the arguments by ``names``)."""
+    name = namer(names)
     out = check_output(output, overwrite)
     st = check_output(stamps, overwrite) if stamps is not None else None
     if st is not None and st.resolve() == out.resolve():
-        raise MegalutError("--stamps and -o must be different files")
+        raise MegalutError(f"{name('stamps')} and {name('output')} must be different files")
     s = config.structure
     if st is not None:
         n_y = math.ceil(s.n_stamps / s.grid_nx)
         pixels = n_y * s.grid_nx * s.stamp_size**2
         if pixels > MAX_STAMP_PIXELS:
             raise MegalutError(
-                f"--stamps: the image would have {pixels:.3g} pixels; lower --n-cases/--n-realizations "
-                "or use --measure without --stamps"
+                f"{name('stamps')}: the image would have {pixels:.3g} pixels; lower "
+                f"{name('n_cases')}/{name('n_realizations')} or use {name('measure')} without {name('stamps')}"
             )
     return out, st
 
@@ -219,22 +222,25 @@ def simulate(
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
     device: str = DEFAULT_DEVICE,
+    names: Names | None = None,
 ) -> SimulationResult:
     """Simulate the configured stamps; write the catalog (and the stamp grid image).
     With ``measure`` and ``morphology``, the ``morph_*`` features are measured too.
 
     ``progress`` counts the work units as they finish (:func:`n_work_units` in all).
     ``engine`` is ``fast`` or ``galsim``, ``device`` ``cpu``, ``gpu`` or ``auto``
-    (:mod:`megalut_cli.engine`); on the device the units run in this process.
+    (:mod:`megalut_cli.engine`); on the device the units run in this process. Messages
+    name the arguments by ``names``.
     """
     check_engine(engine)
     device = resolve_device(device)
     if device == "gpu" and not scheduler:
         nproc = 1
-    out, st = check_outputs(config, output, stamps, overwrite)
+    out, st = check_outputs(config, output, stamps, overwrite, names)
     s = config.structure
     if st is None and not measure:
-        log.info("neither --stamps nor --measure: writing the truth catalog only (nothing drawn)")
+        name = namer(names)
+        log.info("neither %s nor %s: writing the truth catalog only (nothing drawn)", name("stamps"), name("measure"))
     workers = expected_workers(nproc, scheduler)
     units = make_units(config, seed, nproc, scheduler, st is not None, measure, engine, morphology and measure, device)
     log_engine_fallback(config, engine, st is not None or measure)
