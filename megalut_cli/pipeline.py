@@ -57,6 +57,7 @@ from megalut_cli.atomic import write_json
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, DEVICES, ENGINES, resolve_device
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
+from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
 from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
 from megalut_cli.pipeline_config import (
     EvaluateSpec,
@@ -93,6 +94,9 @@ EVALUATION_JSON = "evaluation.json"
 EVALUATION_PNG = "evaluation.png"
 EVALUATION_VP_JSON = "evaluation-vp.json"
 EVALUATION_VP_PNG = "evaluation-vp.png"
+REFERENCE_SHEARS = "reference-shears.fits"
+EVALUATION_REFERENCE_JSON = "evaluation-reference.json"
+EVALUATION_REFERENCE_PNG = "evaluation-reference.png"
 #: The sets every pipeline has.
 SET_NAMES = ("tp", "tw", "vo")
 #: Optional sets: ellipticity pretraining (Sect. 6) and point-estimator validation.
@@ -111,8 +115,9 @@ _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")  # no ".": never a prod
 
 _TOP_KEYS = {
     "description", "name", "scale", "engine", "device", "simulation", "sets", "pretrain", "train_point", "train_weight",
-    "evaluate", "evaluate_vp",
+    "evaluate", "evaluate_vp", "reference",
 }
+_REFERENCE_KEYS = {"model", "set"}
 _SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed", "scale_by"}
 #: How ``scale`` shrinks a set: the exponents of ``scale`` for (n_cases, n_realizations).
 SCALE_BY = {"both": (0.5, 0.5), "cases": (1.0, 0.0), "realizations": (0.0, 1.0)}
@@ -155,6 +160,15 @@ class PretrainSpec:
 
 
 @dataclass(frozen=True)
+class ReferenceSpec:
+    """A fixed model validated beside the trained one, on one of the pipeline's sets."""
+
+    model: Path
+    label: str  # how the summary names it
+    set: str
+
+
+@dataclass(frozen=True)
 class Pipeline:
     """A validated pipeline file (overrides and scale applied)."""
 
@@ -174,6 +188,7 @@ class Pipeline:
     evaluate_vp: EvaluateSpec | None = None  # with the set "vp"
     engine: str = DEFAULT_ENGINE  # stamp engine of the simulations (megalut_cli.engine)
     device: str = DEFAULT_DEVICE  # where simulations and trainings run; not in the steps' keys
+    reference: ReferenceSpec | None = None  # [reference]: a fixed model evaluated on a set
 
     def product(self, base: str) -> str:
         """Where a product of a training, prediction or evaluation step goes in the work folder."""
@@ -341,9 +356,26 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         path=path, sha256=sha256, overrides=tuple(overrides), raw=json.loads(json.dumps(raw, default=str)),
         description=description, scale=scale, sets=sets, train_point=point, train_weight=weight,
         evaluate=evaluate, name=name, pretrain=pretrain, evaluate_vp=evaluate_vp, engine=engine, device=device,
+        reference=_reference_spec(top, sets, base_dir),
     )
     _check_columns(pipe)
     return pipe
+
+
+def _reference_spec(top: Table, sets: Mapping[str, SetSpec], base_dir: Path | None) -> ReferenceSpec | None:
+    """``[reference]``: ``model`` (a model file, or the name of a shipped model) and ``set``."""
+    if top.data.get("reference") is None:
+        return None
+    t = Table(top.data["reference"], "reference", _REFERENCE_KEYS)
+    text = t.get_str("model", None)
+    if text is None:
+        raise ConfigError(f"reference.model: missing (a model file, or a shipped model: {', '.join(SHIPPED_MODELS)})")
+    if text in SHIPPED_MODELS:
+        model, label = shipped_model(text), f"the shipped model {text} (models/{SHIPPED_MODELS[text]})"
+    else:
+        model, label = resolve_path(text, "reference.model", base_dir), text
+    set_name = t.get_str("set", "vo", [n for n in ALL_SETS if n in sets]) or "vo"
+    return ReferenceSpec(model, label, set_name)
 
 
 def _check_pretrain(pre: PretrainSpec, point: TrainPointSpec, spec: SetSpec) -> None:
@@ -446,7 +478,13 @@ def default_pipeline_text() -> str:
 
 
 def _absolute_configs(raw: dict[str, Any], base_dir: Path) -> None:
-    """Make the relative ``sets.*.config`` paths of an extended file relative to nothing."""
+    """Make the relative ``sets.*.config`` and ``reference.model`` paths of an extended file
+    relative to nothing."""
+    ref = raw.get("reference")
+    if isinstance(ref, dict) and isinstance(ref.get("model"), str) and ref["model"] not in SHIPPED_MODELS:
+        p = Path(ref["model"]).expanduser()
+        if not p.is_absolute() and (base_dir / p).is_file():
+            ref["model"] = str(base_dir / p)
     sets = raw.get("sets")
     if not isinstance(sets, dict):
         return
@@ -507,6 +545,8 @@ class RunResult:
     seconds: float
     evaluation_vp: dict[str, Any] | None = None
     prefix: str = ""  # where the step products are, relative to workdir ("" or "<name>/")
+    evaluation_reference: dict[str, Any] | None = None
+    reference: ReferenceSpec | None = None
 
 
 def key_options(options: Any) -> dict[str, Any]:
@@ -603,7 +643,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         add(name, [out(shears)], [catalog, out(model)], {}, action, summary)
 
     def evaluate_step(name: str, ev: EvaluateSpec, shears: str, json_name: str, png_name: str,
-                      what: str) -> None:
+                      what: str, keys: str | None = None) -> None:
         plot = ev.plot and _have_matplotlib()
         if ev.plot and not plot:
             log.info("matplotlib is not installed: no %s (pip install 'megalut-cli[plot]')", png_name)
@@ -612,7 +652,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
             from megalut_cli.shear.evaluate import evaluate_catalog
 
             result = evaluate_catalog(wd / out(shears), by=ev.by or None, bins=ev.bins, select=ev.select,
-                                      select_cases=ev.select_cases, names=key_names(name.replace("-", "_")))
+                                      select_cases=ev.select_cases, names=key_names(keys or name.replace("-", "_")))
             write_json(wd / out(json_name), result, overwrite)
             if plot:
                 from megalut_cli.shear.plots import plot_evaluation
@@ -649,6 +689,20 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         f"select {tw.select!r}, seed {tw.options.seed}")
     predict_step("predict", "vo.fits", "model.h5", "vo-shears.fits", "point estimates and weights on vo.fits")
     evaluate_step("evaluate", pipe.evaluate, "vo-shears.fits", EVALUATION_JSON, EVALUATION_PNG, "m, c")
+    ref = pipe.reference
+    if ref is not None:
+        catalog = pipe.sets[ref.set].product
+
+        def reference_action(wd: Path, overwrite: bool) -> None:
+            from megalut_cli.shear.predict import predict_catalog
+
+            predict_catalog(wd / catalog, ref.model, wd / out(REFERENCE_SHEARS), nproc=nproc, scheduler=scheduler,
+                            overwrite=overwrite, progress=relabelled(progress, "predict-reference"))
+
+        add("predict-reference", [out(REFERENCE_SHEARS)], [catalog], {"model_sha256": sha256_file(ref.model)},
+            reference_action, f"{ref.label} on {catalog}")
+        evaluate_step("evaluate-reference", pipe.evaluate, REFERENCE_SHEARS, EVALUATION_REFERENCE_JSON,
+                      EVALUATION_REFERENCE_PNG, f"m, c of {ref.label}", keys="evaluate")
     return steps
 
 
@@ -665,7 +719,7 @@ def _have_matplotlib() -> bool:
 
 def _evaluation_pngs(pipe: Pipeline) -> list[str]:
     """Figures a run may leave (even when this one draws none): a product to refuse to overwrite."""
-    return [pipe.product(EVALUATION_PNG), pipe.product(EVALUATION_VP_PNG)]
+    return [pipe.product(EVALUATION_PNG), pipe.product(EVALUATION_VP_PNG), pipe.product(EVALUATION_REFERENCE_PNG)]
 
 
 def plan_pipeline(
@@ -718,11 +772,14 @@ def run_pipeline(
     reports = run_steps(steps, wd, run, skip_existing=skip_existing, overwrite=overwrite)
     total = time.perf_counter() - t_start
     evaluation = json.loads((wd / pipe.product(EVALUATION_JSON)).read_text())
-    evaluation_vp = None
+    evaluation_vp = evaluation_reference = None
     if pipe.evaluate_vp is not None:
         evaluation_vp = json.loads((wd / pipe.product(EVALUATION_VP_JSON)).read_text())
+    if pipe.reference is not None:
+        evaluation_reference = json.loads((wd / pipe.product(EVALUATION_REFERENCE_JSON)).read_text())
     log.info("pipeline finished in %.1f s (%s)", total, timing_line(reports))
-    return RunResult(wd, evaluation, reports, total, evaluation_vp, f"{pipe.name}/" if pipe.name else "")
+    return RunResult(wd, evaluation, reports, total, evaluation_vp, f"{pipe.name}/" if pipe.name else "",
+                     evaluation_reference, pipe.reference)
 
 
 def format_summary(result: RunResult) -> str:
@@ -730,14 +787,21 @@ def format_summary(result: RunResult) -> str:
     from megalut_cli.shear.report import format_table
 
     lines = []
+    ref = result.reference
     if result.evaluation_vp is not None:
         lines += [f"== VP: point estimates ({result.prefix}{EVALUATION_VP_JSON}) ==",
-                  format_table(result.evaluation_vp), "",
-                  f"== VO: overall validation ({result.prefix}{EVALUATION_JSON}) =="]
+                  format_table(result.evaluation_vp), ""]
+    if result.evaluation_vp is not None or result.evaluation_reference is not None:
+        lines.append(f"== VO: overall validation of the model trained here ({result.prefix}{EVALUATION_JSON}) ==")
     lines += [format_table(result.evaluation), ""]
+    if result.evaluation_reference is not None and ref is not None:
+        lines += [f"== {ref.label} on {ref.set} ({result.prefix}{EVALUATION_REFERENCE_JSON}) ==",
+                  format_table(result.evaluation_reference), ""]
     names = [EVALUATION_JSON, EVALUATION_PNG]
     if result.evaluation_vp is not None:
         names += [EVALUATION_VP_JSON, EVALUATION_VP_PNG]
+    if result.evaluation_reference is not None:
+        names += [EVALUATION_REFERENCE_JSON, EVALUATION_REFERENCE_PNG]
     files = [result.prefix + n for n in names if (result.workdir / (result.prefix + n)).is_file()]
     lines.append(f"products in {result.workdir}/: {', '.join(files)}, {MANIFEST} (and the catalogs and models)")
     return "\n".join(lines)

@@ -11,7 +11,7 @@ import pytest
 from pipeline_configs import TINY_PIPELINE, write_pipeline
 
 from megalut_cli.errors import ConfigError, InputError, MegalutError
-from megalut_cli.pipeline import load_pipeline, parse_pipeline, run_pipeline, scaled_size
+from megalut_cli.pipeline import format_summary, load_pipeline, parse_pipeline, run_pipeline, scaled_size
 from megalut_cli.steps import MANIFEST
 from megalut_cli.training import DEFAULT_FEATURES
 
@@ -120,6 +120,9 @@ def test_set_tables_merge_and_typed_tables_replace(tmp_path: Path) -> None:
         ("sets.tp.n_cases=1", "sets.tp.n_cases: at least 2 cases", ConfigError),
         ("sets.tp.config=missing.toml", "sets.tp.config: no such file", InputError),
         ("sets=3", "sets: expected a table", ConfigError),
+        ('reference.model="nope.h5"', "reference.model: no such file 'nope.h5'", InputError),
+        ('reference={model="fiducial", set="tq"}', "reference.set: unknown value 'tq'", ConfigError),
+        ('reference={set="vo"}', "reference.model: missing", ConfigError),
     ],
 )
 def test_bad_pipeline_names_the_key(tmp_path: Path, override: str, message: str, error: type) -> None:
@@ -179,6 +182,16 @@ def test_run_end_to_end_and_skip_existing(tmp_path: Path) -> None:
     again = run_pipeline(load_pipeline(path), wd, skip_existing=True)
     assert set(_statuses(again).values()) == {"skipped"}
     assert again.evaluation == ev
+
+    # A fixed model (the shipped one) validated beside the trained one: two more steps and a
+    # second table, on the same rows of vo.
+    ref = run_pipeline(load_pipeline(path, ['reference.model="fiducial"']), wd, skip_existing=True)
+    assert [n for n, s in _statuses(ref).items() if s == "ran"] == ["predict-reference", "evaluate-reference"]
+    assert ref.evaluation == ev
+    assert ref.evaluation_reference["weighted"]["g1"]["n_rows"] == ev["weighted"]["g1"]["n_rows"]
+    assert ref.evaluation_reference["weighted"]["g1"]["m"] != ev["weighted"]["g1"]["m"]
+    summary = format_summary(ref)
+    assert "the model trained here" in summary and "the shipped model fiducial (models/fiducial.h5) on vo" in summary
 
     # A training setting changed: that step and everything downstream re-run.
     changed = run_pipeline(load_pipeline(path, ["train_weight.iterations=12"]), wd, skip_existing=True)
