@@ -81,14 +81,23 @@ def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: 
     spread over several workers make the real rate differ by tens of percent.
     """
     s = config.structure
-    n_rea = min(s.n_realizations, n_stamps)
-    if s.snc == "pairs":
-        n_rea = max(2, n_rea - n_rea % 2)
-    small = dataclasses.replace(config, structure=dataclasses.replace(s, n_cases=1, n_realizations=n_rea))
-    # Warm up (lazy imports, compilation) on other galaxies than those timed: GalSim caches
-    # per-profile tables, which a repeat of the same case would find ready.
+
+    def first_case(n: int) -> SimConfig:
+        n = min(s.n_realizations, n)
+        if s.snc == "pairs":
+            n = max(2, n - n % 2)
+        return dataclasses.replace(config, structure=dataclasses.replace(s, n_cases=1, n_realizations=n))
+
+    small = first_case(n_stamps)
+    n_rea = small.structure.n_realizations
+    # Warm up (lazy imports, compilation) on other galaxies than those timed, four times as
+    # many: GalSim builds a table per Sersic index once per process (31 on the fiducial n
+    # grid), which a long run pays once but a tiny timed draw would pay for most of its
+    # galaxies; a repeat of the same galaxies would hide the per-galaxy tables of a
+    # continuous n instead.
     device = resolve_device(device)
-    draw_unit(WorkUnit(small, seed + 1, 0, 1, small.structure.grid_nx, keep_stamps, measure, engine, device=device))
+    warm = first_case(4 * n_stamps)
+    draw_unit(WorkUnit(warm, seed + 1, 0, 1, warm.structure.grid_nx, keep_stamps, measure, engine, device=device))
     t0 = time.perf_counter()
     draw_unit(WorkUnit(small, seed, 0, 1, small.structure.grid_nx, keep_stamps, measure, engine, device=device))
     return n_rea / max(time.perf_counter() - t0, 1e-6)
