@@ -259,11 +259,7 @@ class BranchRunResult:
 
 def build_steps(pipe: BranchPipeline, workdir: Path) -> list[Entry]:
     """The steps of ``pipe``: the subfields (units), then the branch steps they allow."""
-    tp, tw = (pipe.sets[k].raw.get("structure", {}) for k in SET_NAMES)
-    units = Units("subfields", [subfield_unit(pipe, s) for s in pipe.subfields],
-                  f"tp {tp.get('n_cases')} x {tp.get('n_realizations')} stamps, tw {tw.get('n_cases')} x "
-                  f"{tw.get('n_realizations')} stamps; {pipe.point.options.members} + {pipe.weight.options.members} "
-                  "members per component", noun="subfield")
+    units = Units("subfields", [subfield_unit(pipe, s) for s in pipe.subfields], noun="subfield")
 
     def branch(results: Mapping[str, Any]) -> list[Step]:
         return branch_steps(pipe, workdir, [results[u.name] for u in units.units if u.name in results])
@@ -380,7 +376,10 @@ def run_branch(
     t0 = time.perf_counter()
     log.info("branch %s (%s, %d-pixel stamps): %d subfield(s) -> %s", pipe.branch_dir, pipe.kind, pipe.stamp_size,
              len(pipe.subfields), wd)
-    log.info("per subfield: %s", steps[0].summary)
+    tp, tw = (pipe.sets[k].raw.get("structure", {}) for k in SET_NAMES)
+    log.info("per subfield: tp %s x %s stamps, tw %s x %s stamps; %d + %d members per component",
+             tp.get("n_cases"), tp.get("n_realizations"), tw.get("n_cases"), tw.get("n_realizations"),
+             pipe.point.options.members, pipe.weight.options.members)
     run = RunRecord("", pipe.path, pipe.sha256, pipe.overrides, pipe.raw)
     with made_workdir(wd, SUBFIELDS_DIR):
         reports = run_steps(steps, wd, run, skip_existing=skip_existing, overwrite=overwrite, keep_going=keep_going,
