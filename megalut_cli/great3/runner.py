@@ -166,13 +166,14 @@ def subfield_unit(pipe: BranchPipeline, subfield: int) -> Unit:
 def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
     """Work unit: the whole pipeline of one subfield (``job``: ``pipe``, ``subfield``), written
     into ``subfields/SSS/`` with its record; returns its summary (means, galaxies, noise)."""
-    pipe: BranchPipeline = job["pipe"]
-    s = int(job["subfield"])
     from megalut_cli.atomic import replace_folder
     from megalut_cli.catalog import CatalogColumns, read_catalog
     from megalut_cli.measure.measure import measure_file
     from megalut_cli.shear.predict import predict_catalog
     from megalut_cli.sim.simulate import simulate
+
+    pipe: BranchPipeline = job["pipe"]
+    s = int(job["subfield"])
 
     if s in pipe.problems:
         raise InputError(pipe.problems[s])
