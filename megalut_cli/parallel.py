@@ -118,15 +118,19 @@ def map_units(
     units: Sequence[Any],
     pool: Executor | None = None,
     progress: Callable[[int], None] | None = None,
+    finished: Callable[[int, T], None] | None = None,
 ) -> list[T]:
     """Apply ``func`` to every unit, in this process or on ``pool``; results in unit order.
 
-    ``progress(n)`` is called with the number of units just finished.
+    ``progress(n)`` is called with the number of units just finished; ``finished(i, result)``
+    with each result as it arrives (in the order of completion).
     """
     results: list[Any] = [None] * len(units)
     if pool is None:
         for i, unit in enumerate(units):
             results[i] = func(unit)
+            if finished:
+                finished(i, results[i])
             if progress:
                 progress(1)
         return results
@@ -134,6 +138,8 @@ def map_units(
     try:
         for fut in as_completed(futures):
             results[futures[fut]] = fut.result()
+            if finished:
+                finished(futures[fut], results[futures[fut]])
             if progress:
                 progress(1)
     except BaseException:

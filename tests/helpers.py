@@ -170,3 +170,20 @@ g2 = {type = "uniform", min = -0.05, max = 0.05}
 type = "gaussian"
 sigma = 0.5
 """
+
+
+def toy_unit(job: dict, work) -> dict:
+    """A :class:`megalut_cli.steps.Unit` function (top level, for worker processes): writes
+    ``u<i>.txt`` = the content of its source times ``factor``; fails when the source says "bad"."""
+    from pathlib import Path
+
+    from megalut_cli.errors import InputError
+
+    text = Path(job["source"]).read_text()
+    if text == "bad":
+        raise InputError(f"{job['source']}: bad content")
+    value = int(text) * job["factor"]
+    with open(job["log"], "a") as calls:
+        calls.write(f"{job['i']}\n")
+    (work.workdir / f"u{job['i']}.txt").write_text(str(value))
+    return {"i": job["i"], "value": value, "key": work.key}

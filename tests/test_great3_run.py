@@ -126,9 +126,11 @@ def test_run_writes_submission_and_catalog(first_run, branch):
     ev = json.loads((w / P.EVALUATION).read_text())
     assert ev["great3"]["n_subfields"] == 2 and "q_c" in ev
     assert "Q_c" in out and "submission.txt" in out
-    man = json.loads((w / P.MANIFEST).read_text())
-    assert set(man["subfields"]) == {"000", "001"} and man["failed"] == {}
-    assert man["submission"]["weighted"] is True
+    man = json.loads((w / P.MANIFEST).read_text())  # the step engine's manifest
+    assert man["format"] == "megalut.run-manifest" and man["failed"] == {}
+    assert set(man["steps"]) == {"subfield-000", "subfield-001", "shears", "submission", "evaluation"}
+    assert man["steps"]["subfield-001"]["result"]["n_galaxies"] == 16
+    assert man["steps"]["submission"]["params"] == {"subfields": [0, 1], "weighted": True}
 
 
 def test_per_subfield_products(first_run, branch):
@@ -172,35 +174,46 @@ def test_subfields_do_not_depend_on_the_selection(runner, cli, first_run, tmp_pa
     assert not (tmp_path / "one" / P.EVALUATION).exists()  # one subfield: no fit
 
 
+def _ran_at(w: Path, step: str = "subfield-000") -> tuple:
+    """When ``step`` last ran (its record changes only when it runs)."""
+    rec = json.loads((w / P.MANIFEST).read_text())["steps"][step]
+    return rec["finished"], rec["seconds"], rec["outputs"]
+
+
 def test_skip_existing_and_refusal(runner, cli, branch, tmp_path):
     pipe = _pipeline(tmp_path, branch)
     w = tmp_path / "w"
     _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]"]))
-    first = (w / P.SUBMISSION).read_text()
+    first, ran = (w / P.SUBMISSION).read_text(), _ran_at(w)
     _error_line(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]"]), 1,
                 "exists", "--skip-existing")
     r = runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"])
     _ok(r)
-    man = json.loads((w / P.MANIFEST).read_text())
-    assert man["subfields"]["000"]["status"] == "skipped"
+    assert _ran_at(w) == ran and _ran_at(w, "shears") is not None
     assert (w / P.SUBMISSION).read_text() == first
     # a product touched but unchanged is still up to date (content hashes, the step engine's rule)
     os.utime(w / P.SUBFIELDS_DIR / "000" / "shears.fits", ns=(0, 0))
     _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]))
-    assert json.loads((w / P.MANIFEST).read_text())["subfields"]["000"]["status"] == "skipped"
-    # a record without content hashes (written by an older megalut): the subfield is redone, the same
-    record = w / P.SUBFIELDS_DIR / "000" / P.UNIT_RECORD
-    old = json.loads(record.read_text())
-    for fp in old["products"].values():
-        del fp["sha256"]
-    record.write_text(json.dumps(old))
+    assert _ran_at(w) == ran
+    # a product changed: the subfield is redone, the same
+    model = w / P.SUBFIELDS_DIR / "000" / "model.h5"
+    model.write_bytes(model.read_bytes() + b"x")
     _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]))
-    assert json.loads((w / P.MANIFEST).read_text())["subfields"]["000"]["status"] == "ran"
+    assert _ran_at(w) != ran
     assert (w / P.SUBMISSION).read_text() == first
     # a changed training setting re-runs the subfield
+    ran = _ran_at(w)
     _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing",
                             "train_weight.iterations=6"]))
-    assert json.loads((w / P.MANIFEST).read_text())["subfields"]["000"]["status"] == "ran"
+    assert _ran_at(w) != ran
+    # a work folder of the previous megalut (its own manifest format): refused, one line naming --overwrite
+    man = w / P.MANIFEST
+    man.write_text(json.dumps({"format": "megalut.great3-run", "format_version": "1.0", "subfields": {}}))
+    _error_line(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]),
+                1, str(man), "older megalut", "--overwrite")
+    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--overwrite"]))
+    assert json.loads(man.read_text())["format"] == "megalut.run-manifest"
+    assert (w / P.SUBMISSION).read_text() == first
 
 
 def test_keep_going_with_a_corrupted_subfield(runner, cli, branch, tmp_path):
@@ -213,8 +226,10 @@ def test_keep_going_with_a_corrupted_subfield(runner, cli, branch, tmp_path):
     w = tmp_path / "w"
     r = runner.invoke(cli, ["run", str(pipe), "--workdir", str(w)])
     _error_line(r, 1, "subfield 1", str(image), "NaN")
-    for name in (P.SHEARS, P.SUBMISSION, P.MANIFEST, P.EVALUATION):
+    for name in (P.SHEARS, P.SUBMISSION, P.EVALUATION):
         assert not (w / name).exists(), name
+    # the engine's manifest records the subfield finished before the failure (--skip-existing resumes)
+    assert {"subfield-000"} == set(json.loads((w / P.MANIFEST).read_text())["steps"])
     assert not (w / P.SUBFIELDS_DIR / "001").exists()
     assert not [p for p in (w / P.SUBFIELDS_DIR).iterdir() if p.name.startswith(".")]  # no temporary left
     w2 = tmp_path / "w2"
@@ -224,7 +239,7 @@ def test_keep_going_with_a_corrupted_subfield(runner, cli, branch, tmp_path):
     assert sub.shape == (1, 3) and sub[0, 0] == 0
     assert len(read_catalog(w2 / P.SHEARS)) == 16
     man = json.loads((w2 / P.MANIFEST).read_text())
-    assert list(man["failed"]) == ["001"] and "NaN" in man["failed"]["001"]
+    assert list(man["failed"]) == ["subfield-001"] and "NaN" in man["failed"]["subfield-001"]
     # the non-strict mode flags the bad stamp and completes the subfield
     _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(tmp_path / "w3"), "branch.strict=false"]))
     shears = read_catalog(tmp_path / "w3" / P.SHEARS)

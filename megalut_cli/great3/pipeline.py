@@ -51,6 +51,7 @@ from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
 from megalut_cli.pipeline_config import TrainPointSpec, TrainWeightSpec
 from megalut_cli.schema import Table, resolve_path
 from megalut_cli.seeding import STREAM_SUBFIELD, int_seed_for
+from megalut_cli.steps import MANIFEST as MANIFEST  # the step engine's manifest.json
 from megalut_cli.steps import sha_text
 
 log = logging.getLogger("megalut")
@@ -67,10 +68,10 @@ TARGET_CHOICES = (("tru_e1", "tru_e2"), ("tru_g1", "tru_g2"))
 SUBFIELDS_DIR = "subfields"
 SHEARS = "shears.fits"
 SUBMISSION = "submission.txt"
-MANIFEST = "manifest.json"
 EVALUATION = "evaluation.json"
 UNIT_RECORD = "subfield.json"
-MANIFEST_FORMAT = "megalut.great3-run"
+#: ``format`` of a subfield's own record ``subfield.json`` (the manifest is the step engine's).
+UNIT_RECORD_FORMAT = "megalut.great3-run"
 #: Products of a subfield folder (``tp.fits``, ``tw.fits`` too with ``keep_sets``).
 UNIT_PRODUCTS = ("features.fits", "stars.fits", "model.h5", "shears.fits")
 SHEARS_FORMAT = "megalut.predictions"

@@ -1,11 +1,14 @@
-"""Running a GREAT3 branch pipeline (:mod:`megalut_cli.great3.pipeline`) in a work folder.
+"""Running a GREAT3 branch pipeline (:mod:`megalut_cli.great3.pipeline`): its steps over
+the step engine (:mod:`megalut_cli.steps`).
 
-Every subfield is one work unit (``-j``, Dask), run serially inside and written into a
-temporary folder renamed into place when complete (``subfields/SSS/``, with its record
-``subfield.json``); its point and weight committees are trained in memory
+Every subfield is one :class:`~megalut_cli.steps.Unit` (``-j``, Dask, ``--keep-going``,
+skipped when up to date: the engine decides and records), run serially inside and written
+into a temporary folder renamed into place when complete (``subfields/SSS/``, with its
+record ``subfield.json``); its point and weight committees are trained in memory
 (:func:`megalut_cli.training.fit_point`, :func:`~megalut_cli.training.fit_weight`). Then
-the branch products: ``shears.fits``, ``submission.txt``, ``evaluation.json`` (with a
-truth folder) and ``manifest.json``.
+the branch steps, declared once the subfields finished: ``shears.fits``,
+``submission.txt``, ``evaluation.json`` (with a truth folder); the engine's
+``manifest.json`` records them all.
 """
 
 from __future__ import annotations
@@ -32,7 +35,6 @@ from megalut_cli.great3 import layout as L
 from megalut_cli.great3.pipeline import (
     EVALUATION,
     MANIFEST,
-    MANIFEST_FORMAT,
     SET_NAMES,
     SHEARS,
     SHEARS_FORMAT,
@@ -40,6 +42,7 @@ from megalut_cli.great3.pipeline import (
     SUBMISSION,
     UNIT_PRODUCTS,
     UNIT_RECORD,
+    UNIT_RECORD_FORMAT,
     BranchPipeline,
     component_features,
     set_config,
@@ -47,8 +50,22 @@ from megalut_cli.great3.pipeline import (
     unit_params,
 )
 from megalut_cli.nn.model import ShearModel
-from megalut_cli.progress import Progress, no_progress
-from megalut_cli.steps import current_sha, fingerprint, sha_text
+from megalut_cli.progress import Progress
+from megalut_cli.steps import (
+    Entry,
+    RunRecord,
+    Step,
+    Unit,
+    Units,
+    UnitWork,
+    about,
+    check_workdir,
+    failed_units,
+    fingerprint,
+    finished_units,
+    made_workdir,
+    run_steps,
+)
 
 if TYPE_CHECKING:
     from megalut_cli.training import Columns
@@ -71,24 +88,6 @@ def _quiet() -> Iterator[None]:
     finally:
         for lg, lv in zip(loggers, old):
             lg.setLevel(lv)
-
-
-def _up_to_date(folder: Path, key: str) -> dict[str, Any] | None:
-    """The record of a finished subfield folder if its key is ``key`` and its products
-    unchanged (the step engine's rule: :func:`megalut_cli.steps.current_sha`)."""
-    try:
-        rec = json.loads((folder / UNIT_RECORD).read_text())
-    except (OSError, ValueError):
-        return None
-    if not isinstance(rec, dict) or rec.get("key") != key or not isinstance(rec.get("products"), dict):
-        return None
-    products = rec["products"]
-    if any(isinstance(fp, dict) and "sha256" not in fp for fp in products.values()):
-        log.info("%s: recorded by an older megalut without content hashes: redone", folder)
-        return None
-    if not all(current_sha(folder / name, fp) for name, fp in products.items()):
-        return None
-    return rec
 
 
 def _check_measurement(feats: Any, files: Mapping[str, Path], strict: bool) -> None:
@@ -149,47 +148,38 @@ def train_subfield(pipe: BranchPipeline, subfield: int, tp: Columns, tw: Columns
     return ShearModel(point=point, weight=weight, provenance=prov)
 
 
-def run_subfield(job: Mapping[str, Any]) -> dict[str, Any]:
-    """Work unit: the whole pipeline of one subfield; returns its summary (see :func:`run_branch`).
-
-    ``job``: ``pipe``, ``subfield``, ``workdir``, ``skip_existing``, ``keep_going``. With
-    ``keep_going`` an error is returned (``{"subfield", "error"}``) instead of raised.
-    """
-    try:
-        return _run_subfield(job["pipe"], int(job["subfield"]), Path(job["workdir"]), bool(job["skip_existing"]))
-    except Exception as err:
-        if not job.get("keep_going"):
-            if isinstance(err, MegalutError):
-                raise type(err)(_about(job["subfield"], str(err))) from None
-            raise
-        text = str(err) if isinstance(err, MegalutError) else f"internal error ({type(err).__name__}: {err})"
-        return {"subfield": int(job["subfield"]), "error": text}
+def subfield_folder(subfield: int) -> str:
+    """``subfields/SSS``: where a subfield's products are, relative to the work folder."""
+    return f"{SUBFIELDS_DIR}/{subfield:03d}"
 
 
-def _about(subfield: int, message: str) -> str:
-    """``message`` prefixed with the subfield unless it names it already."""
-    return message if f"subfield {subfield}:" in message else f"subfield {subfield}: {message}"
+def subfield_unit(pipe: BranchPipeline, subfield: int) -> Unit:
+    """The work unit of one subfield: its products, parameters and input files (image,
+    galaxy catalog, star field; none for a subfield with missing files: it fails)."""
+    folder = subfield_folder(subfield)
+    names = [*UNIT_PRODUCTS, *([f"{n}.fits" for n in SET_NAMES] if pipe.keep_sets else []), UNIT_RECORD]
+    sources = {} if subfield in pipe.problems else L.subfield_files(pipe.branch_dir, subfield, pipe.epoch)
+    return Unit(f"subfield-{subfield:03d}", f"subfield {subfield}", [f"{folder}/{n}" for n in names],
+                unit_params(pipe, subfield), dict(sources), run_subfield, {"pipe": pipe, "subfield": subfield})
 
 
-def _run_subfield(pipe: BranchPipeline, s: int, workdir: Path, skip_existing: bool) -> dict[str, Any]:
+def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
+    """Work unit: the whole pipeline of one subfield (``job``: ``pipe``, ``subfield``), written
+    into ``subfields/SSS/`` with its record; returns its summary (means, galaxies, noise)."""
     from megalut_cli.atomic import replace_folder
     from megalut_cli.catalog import CatalogColumns, read_catalog
     from megalut_cli.measure.measure import measure_file
-    from megalut_cli.provenance import sha256_file
     from megalut_cli.shear.predict import predict_catalog
     from megalut_cli.sim.simulate import simulate
+
+    pipe: BranchPipeline = job["pipe"]
+    s = int(job["subfield"])
 
     if s in pipe.problems:
         raise InputError(pipe.problems[s])
     files = L.subfield_files(pipe.branch_dir, s, pipe.epoch)
     params = unit_params(pipe, s)
-    inputs = {k: {"name": p.name, "sha256": sha256_file(p)} for k, p in files.items()}
-    key = sha_text({"params": params, "inputs": inputs, "megalut": __version__})
-    final = workdir / SUBFIELDS_DIR / f"{s:03d}"
-    if skip_existing:
-        rec = _up_to_date(final, key)
-        if rec is not None:
-            return {**rec["summary"], "status": "skipped"}
+    final = work.workdir / subfield_folder(s)
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{s:03d}.", suffix=".tmp", dir=final.parent))
     tmp.chmod(0o755)  # mkdtemp's 0700 would follow the folder into place
@@ -243,7 +233,7 @@ def _run_subfield(pipe: BranchPipeline, s: int, workdir: Path, skip_existing: bo
             "timings": timings, "status": "ran",
         }
         products = list(UNIT_PRODUCTS) + ([f"{n}.fits" for n in SET_NAMES] if pipe.keep_sets else [])
-        record = {"format": MANIFEST_FORMAT, "key": key, "params": params, "inputs": inputs, "summary": summary,
+        record = {"format": UNIT_RECORD_FORMAT, "key": work.key, "params": params, "inputs": work.inputs, "summary": summary,
                   "products": {n: fingerprint(tmp / n) for n in products}, "megalut": __version__}
         (tmp / UNIT_RECORD).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
         replace_folder(tmp, final)
@@ -261,29 +251,68 @@ def _run_subfield(pipe: BranchPipeline, s: int, workdir: Path, skip_existing: bo
 class BranchRunResult:
     workdir: Path
     summaries: list[dict[str, Any]]
-    failures: list[dict[str, Any]]
+    failures: list[dict[str, Any]]  # {"subfield", "error"}
     evaluation: dict[str, Any] | None
     seconds: float
     products: list[str]
+    n_skipped: int = 0  # subfields up to date
 
 
-def _final_products(pipe: BranchPipeline) -> list[str]:
-    return [SHEARS, SUBMISSION, MANIFEST] + ([EVALUATION] if pipe.truth is not None else [])
+def build_steps(pipe: BranchPipeline, workdir: Path) -> list[Entry]:
+    """The steps of ``pipe``: the subfields (units), then the branch steps they allow."""
+    units = Units("subfields", [subfield_unit(pipe, s) for s in pipe.subfields], noun="subfield")
+
+    def branch(results: Mapping[str, Any]) -> list[Step]:
+        return branch_steps(pipe, workdir, [results[u.name] for u in units.units if u.name in results])
+
+    return [units, branch]
 
 
-def check_workdir(pipe: BranchPipeline, workdir: Path, skip_existing: bool, overwrite: bool) -> None:
-    """Fail early: a file where the folder should be, or products there without a flag."""
-    if workdir.exists() and not workdir.is_dir():
-        raise MegalutError(f"--workdir {workdir}: exists and is not a folder")
-    if skip_existing or overwrite:
-        return
-    names = _final_products(pipe) + [f"{SUBFIELDS_DIR}/{s:03d}" for s in pipe.subfields]
-    for name in names:
-        if (workdir / name).exists():
-            raise MegalutError(
-                f"{workdir / name} exists; use --skip-existing to reuse the up-to-date subfields "
-                "or --overwrite to redo every one"
-            )
+def branch_steps(pipe: BranchPipeline, workdir: Path, done: Sequence[Mapping[str, Any]]) -> list[Step]:
+    """``shears.fits``, ``submission.txt`` and (truth, 2 subfields or more) ``evaluation.json``
+    of the finished subfields (their summaries ``done``)."""
+    done = sorted(done, key=lambda r: r["subfield"])
+    subs = [int(r["subfield"]) for r in done]
+    their_shears = [f"{subfield_folder(s)}/shears.fits" for s in subs]
+    scheme = "weighted" if pipe.weighted else "unweighted"
+
+    def write_shears(wd: Path, overwrite: bool) -> None:
+        _write_shears(wd / SHEARS, wd, subs, overwrite=True)
+
+    def write_submission(wd: Path, overwrite: bool) -> None:
+        L.write_submission(wd / SUBMISSION, subs, [r["means"][scheme]["g1"] for r in done],
+                           [r["means"][scheme]["g2"] for r in done], overwrite=True)
+
+    steps = [
+        Step("shears", [SHEARS], their_shears, {"subfields": subs}, write_shears,
+             f"the {len(subs)} subfield(s)' galaxies with a subfield column"),
+        Step("submission", [SUBMISSION], their_shears, {"subfields": subs, "weighted": pipe.weighted},
+             write_submission, f"subfield g1 g2 ({scheme} means)"),
+    ]
+    if pipe.truth is None:
+        return steps
+    if len(done) < 2:
+        log.warning("%s: one subfield only: m and c cannot be fitted, no %s", pipe.truth, EVALUATION)
+        (workdir / EVALUATION).unlink(missing_ok=True)  # none of an earlier run left beside these products
+        return steps
+    truth = pipe.truth
+
+    def evaluate(wd: Path, overwrite: bool) -> None:
+        from megalut_cli.atomic import write_json
+        from megalut_cli.great3.evaluate import evaluate_branch
+
+        with _quiet():
+            evaluation = evaluate_branch(wd / SHEARS, truth, sigma2_min=pipe.sigma2_min)
+        evaluation["submission"] = {"weighted": pipe.weighted, "path": SUBMISSION}
+        write_json(wd / EVALUATION, evaluation, overwrite=True)
+
+    from megalut_cli.provenance import sha256_file
+
+    truth_files = {p.name: sha256_file(p) for p in sorted(truth.iterdir()) if p.is_file()}
+    return steps + [Step("evaluation", [EVALUATION], [SHEARS],
+                         {"truth": str(truth), "truth_sha256": truth_files, "sigma2_min": pipe.sigma2_min,
+                          "weighted": pipe.weighted},
+                         evaluate, f"m, c and Q_c against {truth}")]
 
 
 def _write_shears(path: Path, workdir: Path, subfields: Sequence[int], overwrite: bool) -> int:
@@ -331,8 +360,8 @@ def run_branch(
     scheduler: str | None = None,
     progress: Progress | None = None,
 ) -> BranchRunResult:
-    """Run every subfield of ``pipe`` (work units), then write the per-galaxy catalog, the
-    submission, the manifest and (with a truth folder) the evaluation.
+    """Run (or bring up to date) every subfield of ``pipe`` (work units), then write the
+    per-galaxy catalog, the submission and (with a truth folder) the evaluation.
 
     Without ``keep_going`` the first failing subfield stops the run (no branch product is
     written; the subfields already finished stay in ``subfields/``). With it, the others
@@ -340,68 +369,36 @@ def run_branch(
     :func:`failure_error`). Every subfield failing is an error.
     """
     wd = Path(workdir)
-    check_workdir(pipe, wd, skip_existing, overwrite)
+    steps = build_steps(pipe, wd)
+    check_workdir(wd, steps, skip_existing, overwrite, [SHEARS, SUBMISSION, EVALUATION])
     if pipe.problems and not keep_going:
         s = next(iter(pipe.problems))
-        raise InputError(_about(s, pipe.problems[s]))
-    created = not wd.exists()
-    wd.mkdir(parents=True, exist_ok=True)
-    try:
-        return _run_units(pipe, wd, skip_existing, keep_going, nproc, scheduler, progress)
-    except BaseException:
-        with contextlib.suppress(OSError):  # leave no empty folder behind a failed start
-            (wd / SUBFIELDS_DIR).rmdir()
-            if created:
-                wd.rmdir()
-        raise
-
-
-def _run_units(pipe: BranchPipeline, wd: Path, skip_existing: bool, keep_going: bool, nproc: int,
-               scheduler: str | None, progress: Progress | None) -> BranchRunResult:
-    from megalut_cli.parallel import executor, map_units
-
+        raise InputError(about(f"subfield {s}", pipe.problems[s]))
     t0 = time.perf_counter()
-    n = len(pipe.subfields)
-    log.info("branch %s (%s, %d-pixel stamps): %d subfield(s) -> %s", pipe.branch_dir, pipe.kind, pipe.stamp_size, n, wd)
+    log.info("branch %s (%s, %d-pixel stamps): %d subfield(s) -> %s", pipe.branch_dir, pipe.kind, pipe.stamp_size,
+             len(pipe.subfields), wd)
     tp, tw = (pipe.sets[k].raw.get("structure", {}) for k in SET_NAMES)
     log.info("per subfield: tp %s x %s stamps, tw %s x %s stamps; %d + %d members per component",
              tp.get("n_cases"), tp.get("n_realizations"), tw.get("n_cases"), tw.get("n_realizations"),
              pipe.point.options.members, pipe.weight.options.members)
-    jobs = [{"pipe": pipe, "subfield": s, "workdir": str(wd.resolve()), "skip_existing": skip_existing,
-             "keep_going": keep_going} for s in pipe.subfields]
-    prog = progress or no_progress
-    with executor(nproc, scheduler) as pool, prog("subfields", n) as update:
-        results = map_units(run_subfield, jobs, pool, update)
-    failures = [r for r in results if "error" in r]
-    done = sorted((r for r in results if "error" not in r), key=lambda r: r["subfield"])
-    for f in failures:
-        log.error("subfield %d failed: %s", f["subfield"], f["error"])
-    if not done:
-        raise MegalutError(f"every subfield failed (first: subfield {failures[0]['subfield']}: {failures[0]['error']})")
-    subs = [r["subfield"] for r in done]
-    n_rows = _write_shears(wd / SHEARS, wd, subs, overwrite=True)
-    L.write_submission(wd / SUBMISSION, subs, [r["g1"] for r in done], [r["g2"] for r in done], overwrite=True)
+    run = RunRecord("", pipe.path, pipe.sha256, pipe.overrides, pipe.raw)
+    with made_workdir(wd, SUBFIELDS_DIR):
+        reports = run_steps(steps, wd, run, skip_existing=skip_existing, overwrite=overwrite, keep_going=keep_going,
+                            nproc=nproc, scheduler=scheduler, progress=progress)
+    done = sorted((u.result for u in finished_units(reports)), key=lambda r: r["subfield"])
+    failures = [{"subfield": int(u.name.rsplit("-", 1)[1]), "error": u.error} for u in failed_units(reports)]
+    n_skipped = sum(u.status == "skipped" for u in finished_units(reports))
+    ran = {r.name for r in reports}
     evaluation = None
     products = [SHEARS, SUBMISSION]
-    if pipe.truth is not None:
-        from megalut_cli.atomic import write_json
-        from megalut_cli.great3.evaluate import evaluate_branch
-
-        if len(done) >= 2:
-            with _quiet():
-                evaluation = evaluate_branch(wd / SHEARS, pipe.truth, sigma2_min=pipe.sigma2_min)
-            evaluation["submission"] = {"weighted": pipe.weighted, "path": SUBMISSION}
-            write_json(wd / EVALUATION, evaluation, overwrite=True)
-            products.append(EVALUATION)
-        else:
-            log.warning("%s: one subfield only: m and c cannot be fitted, no %s", pipe.truth, EVALUATION)
-            (wd / EVALUATION).unlink(missing_ok=True)
-    seconds = time.perf_counter() - t0
-    _write_manifest(pipe, wd, done, failures, seconds)
+    if "evaluation" in ran and (wd / EVALUATION).is_file():
+        evaluation = json.loads((wd / EVALUATION).read_text())
+        products.append(EVALUATION)
     products.append(MANIFEST)
+    seconds = time.perf_counter() - t0
     log.info("%d subfield(s) done (%d skipped as up to date), %d failed; %d galaxies in %s; %.0f s",
-             len(done), sum(r["status"] == "skipped" for r in done), len(failures), n_rows, SHEARS, seconds)
-    return BranchRunResult(wd, done, failures, evaluation, seconds, products)
+             len(done), n_skipped, len(failures), sum(r["n_galaxies"] for r in done), SHEARS, seconds)
+    return BranchRunResult(wd, done, failures, evaluation, seconds, products, n_skipped)
 
 
 def failure_error(result: BranchRunResult) -> MegalutError | None:
@@ -414,27 +411,6 @@ def failure_error(result: BranchRunResult) -> MegalutError | None:
         f"{len(f)} of {len(f) + len(result.summaries)} subfield(s) failed ({listed}); "
         f"{result.workdir / SUBMISSION} holds the other {len(result.summaries)}"
     )
-
-
-def _write_manifest(pipe: BranchPipeline, wd: Path, done: Sequence[Mapping[str, Any]],
-                    failures: Sequence[Mapping[str, Any]], seconds: float) -> None:
-    from megalut_cli.atomic import write_json
-    from megalut_cli.provenance import utc_now
-
-    data = {
-        "format": MANIFEST_FORMAT,
-        "format_version": "1.0",
-        "megalut": __version__,
-        "finished": utc_now(),
-        "pipeline": {"path": pipe.path, "sha256": pipe.sha256, "overrides": list(pipe.overrides), "effective": pipe.raw},
-        "branch": {"path": str(pipe.branch_dir), "kind": pipe.kind, "stamp_size": pipe.stamp_size,
-                   "truth": str(pipe.truth) if pipe.truth else None},
-        "submission": {"path": SUBMISSION, "weighted": pipe.weighted, "n_subfields": len(done)},
-        "seconds": round(seconds, 3),
-        "subfields": {f"{r['subfield']:03d}": r for r in done},
-        "failed": {f"{r['subfield']:03d}": r["error"] for r in failures},
-    }
-    write_json(wd / MANIFEST, json.loads(json.dumps(data, default=str)), overwrite=True)
 
 
 def format_summary(result: BranchRunResult) -> str:
