@@ -12,6 +12,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from megalut_cli.measure.options import ALL_MEASURE_OPTIONS
 from megalut_cli.nn.options import POINT_OPTIONS, WEIGHT_OPTIONS, train_options
 from megalut_cli.schema import docs_table
 from megalut_cli.shear.options import EVALUATE_OPTIONS
@@ -26,6 +27,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "instrument": lambda: docs_table(INSTRUMENT_OPTIONS, cli=False),
     "gsparams": lambda: docs_table(GSPARAMS_OPTIONS, cli=False),
     "evaluate": lambda: docs_table(EVALUATE_OPTIONS),
+    "measure": lambda: docs_table(ALL_MEASURE_OPTIONS, keys=False),
 }
 
 _BLOCK = re.compile(r"(<!-- table: ([\w-]+) -->\n)(.*?)(<!-- end table -->)", re.S)

@@ -28,6 +28,10 @@ from megalut_cli.errors import ConfigError, InputError
 #: Value kinds of an :class:`Option`.
 KINDS = ("int", "float", "str", "bool", "choice", "str_list", "int_list", "choice_list")
 
+#: Where, in an option's help text, the command line shows its computed default
+#: (``[default: ...]``, from ``default_text``); without it, the note goes at the end.
+DEFAULT_MARK = "{default}"
+
 
 def _is_number(value: Any) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
@@ -185,7 +189,10 @@ def resolve_beside(text: Any, key: str, config_path: str | Path, folder: bool = 
 class Option:
     """One option, declared once: its config key, value kind, default, range or choices,
     and help text. ``flag`` is its command-line name (default ``--`` + the key with
-    dashes); ``default_text`` replaces the default in help texts when it is computed."""
+    dashes; ``--x/--no-x`` for an on/off pair), ``short`` a one-letter alias (``-j``),
+    ``envvar`` an environment variable that sets it; ``default_text`` replaces the default
+    in help texts when it is computed (placed at :data:`DEFAULT_MARK` in ``help`` if the
+    text has one)."""
 
     name: str
     kind: str
@@ -204,6 +211,8 @@ class Option:
     allowed_text: str | None = None
     #: Whether a list may be empty.
     empty_ok: bool = False
+    short: str = ""
+    envvar: str | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -214,6 +223,17 @@ class Option:
     @property
     def cli_flag(self) -> str:
         return self.flag or "--" + self.name.replace("_", "-")
+
+    def cli_help(self) -> str:
+        """The help text of the command line: ``help`` with the computed default noted."""
+        note = "" if self.default_text is None else f" [default: {self.default_text}]"
+        if DEFAULT_MARK in self.help:
+            return self.help.replace(DEFAULT_MARK, note)
+        return self.help + note
+
+    def doc_help(self) -> str:
+        """The help text of docs tables (whose default column says the default)."""
+        return self.help.replace(DEFAULT_MARK, "")
 
     def with_default(self, default: Any, default_text: str | None = None) -> Option:
         """The same option with another default (e.g. per command)."""
@@ -266,14 +286,15 @@ class Option:
         return str(self.default)
 
 
-def docs_table(options: Sequence[Option], cli: bool = True) -> str:
-    """A Markdown table of ``options`` (key, flag, default, allowed values, meaning)."""
-    head = "| key | option | default | allowed | meaning |" if cli else "| key | default | allowed | meaning |"
-    rule = "|---|---|---|---|---|" if cli else "|---|---|---|---|"
-    rows = [head, rule]
+def docs_table(options: Sequence[Option], cli: bool = True, keys: bool = True) -> str:
+    """A Markdown table of ``options``: config key (unless not ``keys``: a command's options),
+    flag (when ``cli``), default, allowed values, meaning."""
+    head = ["key"] * keys + ["option"] * cli + ["default", "allowed", "meaning"]
+    rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for o in options:
-        cells = [f"`{o.name}`"] + ([f"`{o.cli_flag}`"] if cli else [])
-        cells += [o.default_repr(), o.range_text(), o.help.replace("|", "\\|")]
+        flags = f"`{o.short}`, `{o.cli_flag}`" if o.short else f"`{o.cli_flag}`"
+        cells = [f"`{o.name}`"] * keys + [flags] * cli
+        cells += [o.default_repr(), o.range_text(), o.doc_help().replace("|", "\\|")]
         rows.append("| " + " | ".join(cells) + " |")
     return "\n".join(rows)
 
