@@ -74,3 +74,31 @@ def test_engine_and_device_checked_in_the_one_vocabulary():
     assert check_engine("galsim") == "galsim"
     with pytest.raises(ConfigError, match=r"^engine: unknown value 'gpu' \(expected one of fast, galsim\)$"):
         check_engine("gpu")
+
+
+def test_simulate_options_are_the_declarations(cli):
+    from megalut_cli.measure.options import MEASURE as MEASURED
+    from megalut_cli.sim.options import SIMULATE, SIMULATE_OPTIONS
+    from megalut_cli.sim.simulate import simulate
+
+    params = {p.name: p for p in cli.commands["simulate"].params}
+    for o in (*SIMULATE_OPTIONS, *SHARED):
+        check_click_option(params, o)
+    assert params["morphology"].help == "With --measure: a" + MEASURED["morphology"].help[1:]
+    defaults = {k: v.default for k, v in inspect.signature(simulate).parameters.items()}
+    for name in ("measure", "seed", "morphology"):
+        assert defaults[name] == SIMULATE[name].default, name
+
+
+def test_predict_options_are_the_declarations(cli, runner, tmp_path):
+    from megalut_cli.shear.options import PREDICT, PREDICT_OPTIONS
+    from megalut_cli.shear.predict import CHUNK_ROWS, predict_catalog
+
+    params = {p.name: p for p in cli.commands["predict"].params}
+    for o in (*PREDICT_OPTIONS, NPROC_OPTION, SCHEDULER_OPTION, OVERWRITE_OPTION):
+        check_click_option(params, o)
+    assert inspect.signature(predict_catalog).parameters["chunk_rows"].default == CHUNK_ROWS
+    assert CHUNK_ROWS == PREDICT["chunk_rows"].default
+    r = runner.invoke(cli, ["predict", __file__, "--model", __file__, "-o", str(tmp_path / "p.fits"),
+                            "--chunk-rows", str(PREDICT["chunk_rows"].minimum - 1)])
+    assert r.exit_code == 2 and "Invalid value for '--chunk-rows'" in r.stderr

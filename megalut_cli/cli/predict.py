@@ -6,7 +6,13 @@ import logging
 
 import click
 
-from megalut_cli.cli.options import execution_options, output_option, overwrite_option
+from megalut_cli.cli.options import (
+    execution_options,
+    output_option,
+    overwrite_option,
+    schema_option,
+)
+from megalut_cli.shear.options import PREDICT
 
 
 @click.command("predict", short_help="Apply a trained model: add pre_g1, pre_g2 (and weights).")
@@ -21,10 +27,7 @@ from megalut_cli.cli.options import execution_options, output_option, overwrite_
     help="Read the model feature FEATURE from the catalog column COLUMN (repeatable), "
     "e.g. --col adamom_g1=E1.",
 )
-@click.option(
-    "--chunk-rows", type=click.IntRange(1000), default=250_000, show_default=True,
-    help="Rows per chunk (memory bound and unit of work).",
-)
+@schema_option(PREDICT["chunk_rows"], show_default=True)
 @execution_options
 @overwrite_option
 def command(
