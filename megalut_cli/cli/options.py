@@ -128,6 +128,8 @@ def schema_option(option: Option, help: str | None = None, show_default: bool | 
         kwargs["type"] = click.Choice(list(option.choices))
     elif option.kind == "bool":
         kwargs["is_flag"] = True
+    elif option.kind == "path":
+        kwargs["type"] = click.Path(dir_okay=False)
     elif option.kind in ("str_list", "int_list"):
         kwargs["default"] = None if option.default is None else ",".join(str(v) for v in option.default)
     if option.envvar is not None:
