@@ -56,6 +56,7 @@ from megalut_cli.atomic import write_json
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, resolve_device
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
+from megalut_cli.nn.options import POINT_OPTION, WEIGHT_OPTION
 from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
 from megalut_cli.pipeline_config import (
     DEFAULT_SET_SEEDS,
@@ -86,7 +87,7 @@ from megalut_cli.steps import (
     sha_text,
     timing_line,
 )
-from megalut_cli.training import DEFAULT_FEATURES, TrainOptions
+from megalut_cli.training import TrainOptions
 
 log = logging.getLogger("megalut")
 
@@ -258,10 +259,10 @@ def _pretrain_spec(top: Table, has_set: bool) -> PretrainSpec | None:
             )
     Table(t.data, "pretrain", _PRETRAIN_KEYS)
     return PretrainSpec(
-        targets=t.get_str_list("targets", PRETRAIN_TARGETS) or [],
-        cost=t.get_str("cost", "msb", ("msb", "mse")) or "msb",
+        targets=t.option(POINT_OPTION["targets"], PRETRAIN_TARGETS),
+        cost=t.option(POINT_OPTION["cost"]),
         select_cases=selection_expression(t, "select_cases", True),
-        init=t.get_str("init", "normal", ("normal", "identity")) or "normal",
+        init=t.option(POINT_OPTION["init"]),
         options=train_options_from(t, POINT_ITERATIONS, 3),
     )
 
@@ -301,12 +302,12 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     pretrain = _pretrain_spec(top, "pretrain" in sets)
     tp = Table(top.data.get("train_point"), "train_point", _TRAIN_POINT_KEYS)
     point = TrainPointSpec(
-        features=tp.get_str_list("features", DEFAULT_FEATURES) or [],
-        targets=tp.get_str_list("targets", ["tru_g1", "tru_g2"]) or [],
-        hidden=tp.get_int_list("hidden", [5, 5]),
-        cost=tp.get_str("cost", "msb", ("msb", "mse")) or "msb",
+        features=tp.option(POINT_OPTION["features"]),
+        targets=tp.option(POINT_OPTION["targets"]),
+        hidden=tp.option(POINT_OPTION["hidden"]),
+        cost=tp.option(POINT_OPTION["cost"]),
         select_cases=selection_expression(tp, "select_cases", True),
-        init=tp.get_str("init", "normal", ("normal", "identity")) or "normal",
+        init=tp.option(POINT_OPTION["init"]),
         options=train_options_from(tp, POINT_ITERATIONS, 1),
     )
     overlap = sorted(set(point.features) & set(point.targets))
@@ -316,8 +317,8 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         _check_pretrain(pretrain, point, sets["pretrain"])
     tw = Table(top.data.get("train_weight"), "train_weight", _TRAIN_WEIGHT_KEYS)
     weight = TrainWeightSpec(
-        features=tw.get_str_list("features", None),
-        hidden=tw.get_int_list("hidden", [5]),
+        features=tw.option(WEIGHT_OPTION["features"]),
+        hidden=tw.option(WEIGHT_OPTION["hidden"]),
         select=selection_expression(tw, "select", False),
         options=train_options_from(tw, WEIGHT_ITERATIONS, 2),
     )
