@@ -12,6 +12,10 @@ from pathlib import Path
 from typing import Any
 
 from megalut_cli.errors import MegalutError
+from megalut_cli.schema import Option
+
+#: ``--overwrite``: whether an existing output may be replaced.
+OVERWRITE_OPTION = Option("overwrite", "bool", False, "Replace the output file if it exists.")
 
 
 def check_output(path: str | os.PathLike, overwrite: bool) -> Path:

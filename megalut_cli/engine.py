@@ -14,6 +14,8 @@ backend finds one.
 
 from __future__ import annotations
 
+from megalut_cli.schema import Option, check_choice
+
 #: Engine name -> one-line description (the CLI's choices and help come from here).
 ENGINES: dict[str, str] = {
     "fast": "batched Fourier-space rendering, numpy noise, compiled adaptive moments",
@@ -32,22 +34,29 @@ DEVICES: dict[str, str] = {
 DEFAULT_DEVICE = "cpu"
 
 
+def described(choices: dict[str, str]) -> str:
+    """``name: text; name: text``: choices with their descriptions, as help texts list them."""
+    return "; ".join(f"{name}: {text}" for name, text in choices.items())
+
+
+#: The ``engine`` option of ``simulate``, ``measure`` and pipeline files (the command line
+#: says per command what the engine does).
+ENGINE_OPTION = Option("engine", "choice", DEFAULT_ENGINE, f"Stamp engine ({described(ENGINES)}).",
+                       choices=tuple(ENGINES))
+#: The ``device`` option of ``simulate``, ``measure``, the trainings and pipeline files.
+DEVICE_OPTION = Option("device", "choice", DEFAULT_DEVICE, f"Where the fast engine and the trainings run "
+                       f"({described(DEVICES)}; env MEGALUT_DEVICE; docs/gpu.md).", choices=tuple(DEVICES),
+                       envvar="MEGALUT_DEVICE")
+
+
 def check_engine(name: str, key: str = "engine") -> str:
     """``name`` if it is an engine, else a ``ConfigError`` naming ``key``."""
-    from megalut_cli.errors import ConfigError
-
-    if name not in ENGINES:
-        raise ConfigError(f"{key}: unknown engine {name!r} (choose from {', '.join(ENGINES)})")
-    return name
+    return check_choice(name, key, ENGINE_OPTION.choices)
 
 
 def check_device(name: str, key: str = "device") -> str:
     """``name`` if it is a device choice, else a ``ConfigError`` naming ``key``."""
-    from megalut_cli.errors import ConfigError
-
-    if name not in DEVICES:
-        raise ConfigError(f"{key}: unknown device {name!r} (choose from {', '.join(DEVICES)})")
-    return name
+    return check_choice(name, key, DEVICE_OPTION.choices)
 
 
 def resolve_device(name: str) -> str:

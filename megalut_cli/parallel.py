@@ -19,9 +19,17 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from megalut_cli.errors import ConfigError, MegalutError
+from megalut_cli.schema import Option
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
+
+#: Local worker processes (``-j``), the same for every command.
+NPROC_OPTION = Option("nproc", "int", 0, "Local worker processes (0 or less: all cores; env MEGALUT_NPROC). "
+                      "Results are identical for any value.", short="-j", envvar="MEGALUT_NPROC")
+#: A Dask cluster instead of local processes (``--scheduler``).
+SCHEDULER_OPTION = Option("scheduler", "str", None, "Run on an existing Dask cluster: a scheduler address "
+                          "(tcp://host:8786) or a scheduler file. Needs the 'dask' extra.", metavar="ADDR")
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 

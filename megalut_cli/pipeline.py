@@ -44,7 +44,6 @@ import copy
 import importlib.resources
 import json
 import logging
-import math
 import os
 import re
 import time
@@ -54,12 +53,18 @@ from pathlib import Path
 from typing import Any
 
 from megalut_cli.atomic import write_json
-from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, DEVICES, ENGINES, resolve_device
+from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, resolve_device
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
+from megalut_cli.nn.options import POINT_OPTION, WEIGHT_OPTION
 from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
 from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
 from megalut_cli.pipeline_config import (
+    DEFAULT_SET_SEEDS,
+    MAX_NAME,
+    PIPELINE,
+    SCALE_BY,
+    SET_OPTION,
     EvaluateSpec,
     TrainPointSpec,
     TrainWeightSpec,
@@ -83,7 +88,7 @@ from megalut_cli.steps import (
     sha_text,
     timing_line,
 )
-from megalut_cli.training import DEFAULT_FEATURES, TrainOptions
+from megalut_cli.training import TrainOptions
 
 log = logging.getLogger("megalut")
 
@@ -103,24 +108,17 @@ SET_NAMES = ("tp", "tw", "vo")
 OPTIONAL_SETS = ("pretrain", "vp")
 #: Every set, in the order of the simulation steps.
 ALL_SETS = ("pretrain", "tp", "tw", "vo", "vp")
-#: Seeds of the sets when the file gives none (all different).
-DEFAULT_SET_SEEDS = {"tp": 1, "tw": 2, "vo": 3, "pretrain": 4, "vp": 5}
 #: Targets of the ellipticity pretraining (paper Sect. 4.4 and 6).
 PRETRAIN_TARGETS = ["tru_e1", "tru_e2"]
 #: Case selection of the VP evaluation unless the file says otherwise (paper Figs. 12, 10).
 VP_SELECT_CASES = "mean(snr) > 10"
 #: How deep ``extends`` chains may go.
 MAX_EXTENDS = 8
-_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")  # no ".": never a product's name
+_NAME_RE = re.compile(rf"[A-Za-z0-9][A-Za-z0-9_-]{{0,{MAX_NAME - 1}}}")  # no ".": never a product's name
 
-_TOP_KEYS = {
-    "description", "name", "scale", "engine", "device", "simulation", "sets", "pretrain", "train_point", "train_weight",
-    "evaluate", "evaluate_vp", "reference",
-}
+#: Top-level keys a parsed pipeline may have (``extends`` is read with the file).
+_TOP_KEYS = set(PIPELINE) - {"extends"}
 _REFERENCE_KEYS = {"model", "set"}
-_SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed", "scale_by"}
-#: How ``scale`` shrinks a set: the exponents of ``scale`` for (n_cases, n_realizations).
-SCALE_BY = {"both": (0.5, 0.5), "cases": (1.0, 0.0), "realizations": (0.0, 1.0)}
 _TRAIN_COMMON = {"features", "hidden", *TRAIN_OPTION}
 _TRAIN_POINT_KEYS = _TRAIN_COMMON | {"targets", "cost", "select_cases", "init"}
 _TRAIN_WEIGHT_KEYS = _TRAIN_COMMON | {"select"}
@@ -205,9 +203,9 @@ def scaled_size(n: int, factor: float, minimum: int, even: bool = False) -> int:
 
 def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | None, scale: float,
               pipeline_path: str, base_dir: Path | None, pipeline_sha: str) -> SetSpec:
-    t = Table(raw.get(name), f"sets.{name}", _SET_KEYS)
+    t = Table(raw.get(name), f"sets.{name}", set(SET_OPTION))
     if "config" in t.data:
-        cfg_path = resolve_path(t.get_str("config", None) or "", t.key("config"), base_dir)
+        cfg_path = resolve_path(t.option(SET_OPTION["config"]), t.key("config"), base_dir)
         try:
             sim_raw, sha = read_toml(cfg_path)
         except MegalutError as err:
@@ -218,10 +216,8 @@ def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | N
         where, source = f"{pipeline_path}#sets.{name}", "[simulation]"
     else:
         raise ConfigError(f"sets.{name}.config: missing (a simulation config file, or a [simulation] table)")
-    over = t.data.get("simulation")
+    over = t.option(SET_OPTION["simulation"])
     if over is not None:
-        if not isinstance(over, Mapping):
-            raise ConfigError(f"{t.key('simulation')}: expected a table")
         sim_raw = merge_tables(sim_raw, over)
         source += f" + sets.{name}.simulation"
     structure = sim_raw.get("structure")
@@ -230,11 +226,11 @@ def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | N
     if not isinstance(structure, dict):
         raise ConfigError(f"sets.{name}: structure: expected a table")
     for k in ("n_cases", "n_realizations"):
-        v = t.get_int(k, None, 1)
+        v = t.option(SET_OPTION[k])
         if v is not None:
             structure[k] = v
-    seed = t.get_int("seed", DEFAULT_SET_SEEDS[name], 0)
-    scale_by = t.get_str("scale_by", "both", tuple(SCALE_BY)) or "both"
+    seed = t.option(SET_OPTION["seed"], DEFAULT_SET_SEEDS[name])
+    scale_by = t.option(SET_OPTION["scale_by"])
     try:
         config = validate_config(sim_raw, path=where, sha256=sha)
     except MegalutError as err:
@@ -278,10 +274,10 @@ def _pretrain_spec(top: Table, has_set: bool) -> PretrainSpec | None:
             )
     Table(t.data, "pretrain", _PRETRAIN_KEYS)
     return PretrainSpec(
-        targets=t.get_str_list("targets", PRETRAIN_TARGETS) or [],
-        cost=t.get_str("cost", "msb", ("msb", "mse")) or "msb",
+        targets=t.option(POINT_OPTION["targets"], PRETRAIN_TARGETS),
+        cost=t.option(POINT_OPTION["cost"]),
         select_cases=selection_expression(t, "select_cases", True),
-        init=t.get_str("init", "normal", ("normal", "identity")) or "normal",
+        init=t.option(POINT_OPTION["init"]),
         options=train_options_from(t, POINT_ITERATIONS, 3),
     )
 
@@ -293,21 +289,17 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     if "extends" in raw:
         raise ConfigError("extends: only a pipeline file can extend another (not an override or a mapping)")
     top = Table(raw, "", _TOP_KEYS)
-    description = top.data.get("description", "")
-    if not isinstance(description, str):
-        raise ConfigError("description: expected a string")
-    name = top.data.get("name", "")
+    description = top.option(PIPELINE["description"])
+    name = top.data.get("name", PIPELINE["name"].default)
     if not isinstance(name, str) or (name and not _NAME_RE.fullmatch(name)):
         raise ConfigError(
-            f"name: expected a folder name (letters, digits, '_', '-'; at most 64), got {name!r}"
+            f"name: expected a folder name (letters, digits, '_', '-'; at most {MAX_NAME}), got {name!r}"
         )
-    scale = top.get_float("scale", 1.0, 0.0, math.inf, lo_open=True)
-    engine = top.get_str("engine", DEFAULT_ENGINE, tuple(ENGINES)) or DEFAULT_ENGINE
-    device = top.get_str("device", DEFAULT_DEVICE, tuple(DEVICES)) or DEFAULT_DEVICE
-    base_sim = top.data.get("simulation")
-    if base_sim is not None and not isinstance(base_sim, Mapping):
-        raise ConfigError("simulation: expected a table (a simulation config, see docs/config.md)")
-    sets_t = Table(top.data.get("sets"), "sets", set(ALL_SETS))
+    scale = top.option(PIPELINE["scale"])
+    engine = top.option(PIPELINE["engine"])
+    device = top.option(PIPELINE["device"])
+    base_sim = top.option(PIPELINE["simulation"])
+    sets_t = Table(top.option(PIPELINE["sets"]), "sets", set(ALL_SETS))
     missing = [n for n in SET_NAMES if n not in sets_t.data]
     if missing:
         raise ConfigError(f"sets.{missing[0]}: missing (a pipeline needs the sets {', '.join(SET_NAMES)})")
@@ -325,12 +317,12 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     pretrain = _pretrain_spec(top, "pretrain" in sets)
     tp = Table(top.data.get("train_point"), "train_point", _TRAIN_POINT_KEYS)
     point = TrainPointSpec(
-        features=tp.get_str_list("features", DEFAULT_FEATURES) or [],
-        targets=tp.get_str_list("targets", ["tru_g1", "tru_g2"]) or [],
-        hidden=tp.get_int_list("hidden", [5, 5]),
-        cost=tp.get_str("cost", "msb", ("msb", "mse")) or "msb",
+        features=tp.option(POINT_OPTION["features"]),
+        targets=tp.option(POINT_OPTION["targets"]),
+        hidden=tp.option(POINT_OPTION["hidden"]),
+        cost=tp.option(POINT_OPTION["cost"]),
         select_cases=selection_expression(tp, "select_cases", True),
-        init=tp.get_str("init", "normal", ("normal", "identity")) or "normal",
+        init=tp.option(POINT_OPTION["init"]),
         options=train_options_from(tp, POINT_ITERATIONS, 1),
     )
     overlap = sorted(set(point.features) & set(point.targets))
@@ -340,8 +332,8 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         _check_pretrain(pretrain, point, sets["pretrain"])
     tw = Table(top.data.get("train_weight"), "train_weight", _TRAIN_WEIGHT_KEYS)
     weight = TrainWeightSpec(
-        features=tw.get_str_list("features", None),
-        hidden=tw.get_int_list("hidden", [5]),
+        features=tw.option(WEIGHT_OPTION["features"]),
+        hidden=tw.option(WEIGHT_OPTION["hidden"]),
         select=selection_expression(tw, "select", False),
         options=train_options_from(tw, WEIGHT_ITERATIONS, 2),
     )

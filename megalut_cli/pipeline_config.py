@@ -1,21 +1,85 @@
 """Pipeline-file validation shared by the standard and GREAT3 pipelines of ``megalut run``.
 
-:class:`~megalut_cli.schema.Table` (typed, key-checked access to a table; errors name the key),
-:func:`merge_tables` (``extends`` and ``[sets.X.simulation]`` overrides), and the
-specifications of the training and evaluation steps with their readers.
+The declarations of the top-level keys (:data:`PIPELINE_OPTIONS`) and of the ``[sets.X]``
+keys (:data:`SET_OPTIONS`) of a pipeline file, read with :class:`~megalut_cli.schema.Table`
+and shown in ``docs/pipeline.md``; :func:`merge_tables` (``extends`` and
+``[sets.X.simulation]`` overrides), and the specifications of the training and evaluation
+steps with their readers.
 """
 
 from __future__ import annotations
 
 import copy
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
+from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION
 from megalut_cli.errors import ConfigError, MegalutError
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
-from megalut_cli.schema import Table
+from megalut_cli.schema import Option, Table
+from megalut_cli.sim.config import STRUCTURE
 from megalut_cli.training import TrainOptions
+
+#: Seeds of the sets when the file gives none (all different).
+DEFAULT_SET_SEEDS = {"tp": 1, "tw": 2, "vo": 3, "pretrain": 4, "vp": 5}
+#: How ``scale`` shrinks a set: the exponents of ``scale`` for (n_cases, n_realizations).
+SCALE_BY = {"both": (0.5, 0.5), "cases": (1.0, 0.0), "realizations": (0.0, 1.0)}
+#: Most characters of a pipeline's ``name``.
+MAX_NAME = 64
+
+#: The top-level keys of a pipeline file (``docs/pipeline.md``, "Top level"). ``extends`` is
+#: read with the file (:func:`megalut_cli.pipeline.read_pipeline_file`), the tables by their
+#: own readers.
+PIPELINE_OPTIONS: tuple[Option, ...] = (
+    Option("description", "str", "", "free text", empty_ok=True),
+    Option("name", "str", "", "a subfolder of the work folder for the products of the steps after the "
+           "simulations; see above", empty_ok=True,
+           allowed_text=f"letters, digits, `_`, `-` (at most {MAX_NAME})"),
+    Option("extends", "path", None, "a pipeline file this one changes; see above (in a file only, not as an "
+           "override)"),
+    Option("scale", "float", 1.0, "fraction of the stamps to simulate: shrinks (or grows) every set, see "
+           "`scale_by`", minimum=0, min_open=True),
+    replace(ENGINE_OPTION, help="stamp engine of the simulations: `\"fast\"` (batched rendering, compiled "
+            "adaptive moments) or `\"galsim\"` (the reference); see [engines.md](engines.md). Part of the "
+            "simulation steps' keys: changing it re-runs them"),
+    replace(DEVICE_OPTION, help="where the simulations and trainings run: `\"cpu\"`, `\"gpu\"` (the optional "
+            "JAX backend; one clear error if none is usable) or `\"auto\"` (gpu when found); see "
+            "[gpu.md](gpu.md). Not part of the steps' keys (results agree within the tolerances of gpu.md), "
+            "like `-j`"),
+    Option("simulation", "table", None, "a simulation config (any table of docs/config.md) shared by the sets "
+           "without `config`"),
+    Option("sets", "table", None, "the simulated sets: `[sets.tp]`, `[sets.tw]`, `[sets.vo]` (required), "
+           "`[sets.pretrain]` (enables `pretrain-point`) and `[sets.vp]` (enables `predict-vp`, `evaluate-vp`)",
+           default_text="required"),
+    Option("pretrain", "table", None, "pretraining of the point estimators (needs `[sets.pretrain]`)",
+           default_text="see below"),
+    Option("train_point", "table", None, "point-estimator training", default_text="see below"),
+    Option("train_weight", "table", None, "weight training", default_text="see below"),
+    Option("evaluate", "table", None, "bias analysis on `vo`", default_text="see below"),
+    Option("evaluate_vp", "table", None, "bias analysis of the point estimates on `vp` (needs `[sets.vp]`)",
+           default_text="see below"),
+    Option("reference", "table", None, "a fixed model validated beside the one trained here (needs `model`)",
+           default_text="see below"),
+)
+PIPELINE = {o.name: o for o in PIPELINE_OPTIONS}
+
+#: The keys of a ``[sets.X]`` table.
+SET_OPTIONS: tuple[Option, ...] = (
+    Option("config", "path", None, "a simulation config file (docs/config.md), relative to the pipeline file; "
+           "without it the top-level `[simulation]` table is the base"),
+    Option("simulation", "table", None, "a table merged over the base config, e.g. "
+           "`{structure = {snc = \"pairs\"}}`"),
+    replace(STRUCTURE["n_cases"], help="overrides `structure.n_cases`", default_text="the config's"),
+    replace(STRUCTURE["n_realizations"], help="overrides `structure.n_realizations`",
+            default_text="the config's"),
+    Option("seed", "int", None, "seed of every random draw of the set; **the seeds of the sets must differ**",
+           minimum=0, default_text=", ".join(f"{k} {v}" for k, v in DEFAULT_SET_SEEDS.items())),
+    Option("scale_by", "choice", "both", "how `scale` shrinks the set: `\"both\"` multiplies n_cases and "
+           "n_realizations by sqrt(scale), `\"cases\"` n_cases by scale, `\"realizations\"` n_realizations by "
+           "scale", choices=tuple(SCALE_BY)),
+)
+SET_OPTION = {o.name: o for o in SET_OPTIONS}
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,11 @@ from typing import Any
 from megalut_cli.errors import ConfigError, InputError
 
 #: Value kinds of an :class:`Option`.
-KINDS = ("int", "float", "str", "bool", "choice", "str_list", "int_list", "choice_list")
+KINDS = ("int", "float", "str", "bool", "choice", "str_list", "int_list", "choice_list", "path", "table")
+
+#: Where, in an option's help text, the command line shows its computed default
+#: (``[default: ...]``, from ``default_text``); without it, the note goes at the end.
+DEFAULT_MARK = "{default}"
 
 
 def _is_number(value: Any) -> bool:
@@ -97,10 +101,10 @@ def check_bool(value: Any, key: str) -> bool:
     return value
 
 
-def check_str(value: Any, key: str) -> str:
-    """A non-empty string."""
-    if not isinstance(value, str) or not value.strip():
-        raise ConfigError(f"{key}: expected a non-empty string, got {value!r}")
+def check_str(value: Any, key: str, allow_empty: bool = False) -> str:
+    """A non-empty string (or any string, with ``allow_empty``)."""
+    if not isinstance(value, str) or not (allow_empty or value.strip()):
+        raise ConfigError(f"{key}: expected a {'' if allow_empty else 'non-empty '}string, got {value!r}")
     return value
 
 
@@ -185,7 +189,10 @@ def resolve_beside(text: Any, key: str, config_path: str | Path, folder: bool = 
 class Option:
     """One option, declared once: its config key, value kind, default, range or choices,
     and help text. ``flag`` is its command-line name (default ``--`` + the key with
-    dashes); ``default_text`` replaces the default in help texts when it is computed."""
+    dashes; ``--x/--no-x`` for an on/off pair), ``short`` a one-letter alias (``-j``),
+    ``envvar`` an environment variable that sets it; ``default_text`` replaces the default
+    in help texts when it is computed (placed at :data:`DEFAULT_MARK` in ``help`` if the
+    text has one)."""
 
     name: str
     kind: str
@@ -202,8 +209,10 @@ class Option:
     #: The allowed values as docs write them, when a check beyond the declared range (one
     #: depending on another key) is made where the option is read.
     allowed_text: str | None = None
-    #: Whether a list may be empty.
+    #: Whether a list (or a string) may be empty.
     empty_ok: bool = False
+    short: str = ""
+    envvar: str | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -214,6 +223,17 @@ class Option:
     @property
     def cli_flag(self) -> str:
         return self.flag or "--" + self.name.replace("_", "-")
+
+    def cli_help(self) -> str:
+        """The help text of the command line: ``help`` with the computed default noted."""
+        note = "" if self.default_text is None else f" [default: {self.default_text}]"
+        if DEFAULT_MARK in self.help:
+            return self.help.replace(DEFAULT_MARK, note)
+        return self.help + note
+
+    def doc_help(self) -> str:
+        """The help text of docs tables (whose default column says the default)."""
+        return self.help.replace(DEFAULT_MARK, "")
 
     def with_default(self, default: Any, default_text: str | None = None) -> Option:
         """The same option with another default (e.g. per command)."""
@@ -236,7 +256,11 @@ class Option:
         if self.kind == "bool":
             return check_bool(value, key)
         if self.kind == "str":
+            return check_str(value, key, self.empty_ok)
+        if self.kind == "path":  # resolved by the reader (resolve_path), beside the file
             return check_str(value, key)
+        if self.kind == "table":
+            return check_table(value, key)
         if self.kind == "str_list":
             return check_str_list(value, key, self.empty_ok)
         return check_int_list(value, key)
@@ -249,7 +273,8 @@ class Option:
             return ", ".join(f"`{c}`" for c in self.choices)
         if self.kind in ("int", "float"):
             return interval_text(self.minimum, self.maximum, self.min_open, self.max_open)
-        return {"bool": "true, false", "str": "text", "str_list": "names", "int_list": "positive integers"}[self.kind]
+        return {"bool": "true, false", "str": "text", "str_list": "names", "int_list": "positive integers",
+                "path": "a path", "table": "a table"}[self.kind]
 
     def default_repr(self) -> str:
         """The default as a docs table writes it."""
@@ -266,14 +291,15 @@ class Option:
         return str(self.default)
 
 
-def docs_table(options: Sequence[Option], cli: bool = True) -> str:
-    """A Markdown table of ``options`` (key, flag, default, allowed values, meaning)."""
-    head = "| key | option | default | allowed | meaning |" if cli else "| key | default | allowed | meaning |"
-    rule = "|---|---|---|---|---|" if cli else "|---|---|---|---|"
-    rows = [head, rule]
+def docs_table(options: Sequence[Option], cli: bool = True, keys: bool = True, prefix: str = "") -> str:
+    """A Markdown table of ``options``: config key (``prefix`` + name; none unless ``keys``: a
+    command's options), flag (when ``cli``), default, allowed values, meaning."""
+    head = ["key"] * keys + ["option"] * cli + ["default", "allowed", "meaning"]
+    rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for o in options:
-        cells = [f"`{o.name}`"] + ([f"`{o.cli_flag}`"] if cli else [])
-        cells += [o.default_repr(), o.range_text(), o.help.replace("|", "\\|")]
+        flags = f"`{o.short}`, `{o.cli_flag}`" if o.short else f"`{o.cli_flag}`"
+        cells = [f"`{prefix}{o.name}`"] * keys + [flags] * cli
+        cells += [o.default_repr(), o.range_text(), o.doc_help().replace("|", "\\|")]
         rows.append("| " + " | ".join(cells) + " |")
     return "\n".join(rows)
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from megalut_cli.schema import Option
+
 #: Stream ids keep independent uses of one user seed apart.
 STREAM_SIMULATE = 1
 STREAM_TRAIN = 2
@@ -18,6 +20,9 @@ STREAM_SUBFIELD = 4
 STREAM_COMMON = 5
 #: Bootstrap resampling of ``megalut evaluate`` (also its paired ``--twin`` bootstrap).
 STREAM_BOOTSTRAP = 6
+
+#: The ``--seed`` of the commands (each gives its own default and help).
+SEED_OPTION = Option("seed", "int", 1, "Seed of every random draw of this step.")
 
 
 def rng_for(seed: int, *keys: int) -> np.random.Generator:

@@ -83,7 +83,7 @@ def test_run_prints_table_and_writes_products(runner, cli, tmp_path: Path) -> No
     [
         (["missing.toml"], 2, "no such file"),
         (["bogus=1"], 2, "bogus: unknown key"),
-        (["scale=-1"], 2, "scale: must be in (0, inf]"),
+        (["scale=-1"], 2, "scale: must be > 0"),
         (["sets.vo.seed=1"], 2, "sets.vo.seed: 1 is also the seed of sets.tp"),
         (["-j", "2", "--scheduler", "tcp://localhost:1"], 2, "mutually exclusive"),
     ],

@@ -317,6 +317,9 @@ def test_bad_branch_input(runner, cli, branch, tmp_path, corrupt, extra, words):
         ("tw.seed=1", ["tw.seed"]),
         ("tp.simulation.galaxy.rad.max=-1", ["tp", "galaxy.rad"]),
         ("tp.n_cases=1", ["tp.n_cases"]),
+        ("branch.sigma2_min=0", ["branch.sigma2_min: must be > 0"]),
+        ("branch.stamp_size=2", ["branch.stamp_size: must be >= 3"]),
+        ("branch.epoch=-1", ["branch.epoch: must be >= 0"]),
     ],
 )
 def test_bad_pipeline_settings(runner, cli, branch, tmp_path, override, words):
@@ -328,6 +331,17 @@ def test_bad_pipeline_settings(runner, cli, branch, tmp_path, override, words):
 def test_missing_branch_folder(runner, cli, tmp_path):
     r = runner.invoke(cli, ["run", str(_pipeline(tmp_path, tmp_path / "nowhere")), "--workdir", str(tmp_path / "w")])
     _error_line(r, 1, "branch.path", "nowhere")
+
+
+def test_branch_defaults_come_from_the_declarations(branch, tmp_path):
+    """Defaults by kind (stamp size, sigma2_min) and the others are those of BRANCH_OPTIONS."""
+    from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_SPACE
+
+    pipe = P.load_branch_pipeline(_pipeline(tmp_path, branch))
+    assert (pipe.kind, pipe.stamp_size, pipe.sigma2_min) == ("ground", L.STAMP_SIZES["ground"], P.SIGMA2_MIN["ground"])
+    assert pipe.epoch == P.BRANCH["epoch"].default and pipe.strict is P.BRANCH["strict"].default
+    space = P.parse_branch_pipeline({"branch": {"path": str(branch), "kind": "space"}}, overrides=())
+    assert space.sigma2_min == GREAT3_SIGMA2_MIN_SPACE and space.stamp_size == L.STAMP_SIZES["space"]
 
 
 def test_parse_helpers(branch):

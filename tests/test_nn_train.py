@@ -184,3 +184,17 @@ def test_dask_scheduler_gives_identical_committees(tmp_path: Path) -> None:
     for t in serial.point:
         for i in range(2):
             assert np.array_equal(dask_model.point[t].member_params(i), serial.point[t].member_params(i))
+
+
+@pytest.mark.parametrize(("kw", "message"), [
+    ({"batch_fraction": 0.0}, r"^batch_fraction: must be in \(0, 1\], got 0.0$"),
+    ({"batch_iterations": 0}, r"^batch_iterations: must be >= 1, got 0$"),
+    ({"optimizer": "sgd"}, r"^optimizer: unknown value 'sgd' \(expected one of bfgs, lbfgs\)$"),
+    ({"dtype": "float16"}, r"^precision: unknown value 'float16'"),
+    ({"iterations": -1}, r"^iterations: must be >= 0, got -1$"),
+])
+def test_member_settings_checked_by_the_declarations(kw, message):
+    """TrainSettings refuses what the training declarations refuse (one source of ranges)."""
+    with pytest.raises(ValueError, match=message):
+        TrainSettings(**kw)
+    assert TrainSettings(iterations=0).iterations == 0  # a member may keep its starting parameters

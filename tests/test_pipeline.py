@@ -120,7 +120,7 @@ def test_set_tables_merge_and_typed_tables_replace(tmp_path: Path) -> None:
         ("train_weight.batch_fraction=0", "train_weight.batch_fraction: must be in (0, 1]", ConfigError),
         ('evaluate.by=["nope"]', "evaluate.by: no column nope", ConfigError),
         ("evaluate.plot=3", "evaluate.plot: expected true or false", ConfigError),
-        ("scale=0", "scale: must be in (0, inf]", ConfigError),
+        ("scale=0", "scale: must be > 0", ConfigError),
         ("scale=nan", "scale: must be a finite number", ConfigError),
         ("sets.tp.simulation.galaxy.rad=-1", "sets.tp: galaxy.rad", ConfigError),
         ("sets.tp.n_cases=1", "sets.tp.n_cases: at least 2 cases", ConfigError),

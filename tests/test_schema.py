@@ -207,3 +207,31 @@ def test_evaluation_bins_one_range(cli, runner, tmp_path):
     with pytest.raises(ConfigError, match=r"^evaluate.bins: must be <= 1000, got 1001$"):
         load_pipeline(write_pipeline(tmp_path), ["evaluate.bins=1001"])
     assert load_pipeline(write_pipeline(tmp_path), ["evaluate.bins=7.0"]).evaluate.bins == 7
+
+
+def test_pipeline_keys_are_the_declarations(tmp_path):
+    """The top-level and [sets.X] keys a pipeline accepts, their defaults and ranges, are
+    those declared in pipeline_config (unknown keys list them)."""
+    from megalut_cli.pipeline_config import DEFAULT_SET_SEEDS, PIPELINE, SET_OPTION
+
+    pipe = load_pipeline(write_pipeline(tmp_path))
+    assert pipe.scale == PIPELINE["scale"].default and pipe.engine == PIPELINE["engine"].default
+    assert pipe.description == "" or isinstance(pipe.description, str)
+    with pytest.raises(ConfigError, match=r"^sets\.tp\.bogus: unknown key \(allowed: (.*)\)$") as err:
+        load_pipeline(write_pipeline(tmp_path), ["sets.tp.bogus=1"])
+    assert err.value.args[0].endswith(", ".join(sorted(SET_OPTION)) + ")")
+    with pytest.raises(ConfigError, match=r"^bogus: unknown key \(allowed: "):
+        load_pipeline(write_pipeline(tmp_path), ["bogus=1"])
+    with pytest.raises(ConfigError, match=r"^sets\.tp\.scale_by: unknown value 'rows' \(expected one of both, cases, "
+                       r"realizations\)$"):
+        load_pipeline(write_pipeline(tmp_path), ["sets.tp.scale_by=rows"])
+    with pytest.raises(ConfigError, match=r"^sets\.tw\.seed: must be >= 0, got -1$"):
+        load_pipeline(write_pipeline(tmp_path), ["sets.tw.seed=-1"])
+    with pytest.raises(ConfigError, match=r"^description: expected a string, got 3$"):
+        load_pipeline(write_pipeline(tmp_path), ["description=3"])
+    # integers written as integral floats, as everywhere
+    assert load_pipeline(write_pipeline(tmp_path), ["sets.vo.n_cases=3.0"]).sets["vo"].config.structure.n_cases == 3
+    text = write_pipeline(tmp_path).read_text()
+    unseeded = write_pipeline(tmp_path, "\n".join(line for line in text.splitlines() if not line.startswith("seed")))
+    assert {n: s.seed for n, s in load_pipeline(unseeded).sets.items()} == {
+        n: DEFAULT_SET_SEEDS[n] for n in load_pipeline(unseeded).sets}

@@ -11,7 +11,9 @@ from megalut_cli.cli.options import (
     flag_names,
     output_option,
     overwrite_option,
+    schema_option,
 )
+from megalut_cli.measure.options import MEASURE
 
 
 @click.command(
@@ -21,26 +23,9 @@ from megalut_cli.cli.options import (
 @click.argument("stamps", type=click.Path(exists=True, dir_okay=False))
 @click.argument("catalog", required=False, type=click.Path(exists=True, dir_okay=False, allow_dash=True))
 @output_option("Features catalog to write (FITS table, format megalut.features).", dash=True)
-@click.option(
-    "--stamp-size",
-    type=click.IntRange(min=3),
-    default=None,
-    help="Stamp size in pixels [default: the image's STAMPSZ header card].",
-)
-@click.option(
-    "--origin",
-    type=click.Choice(["0", "1"]),
-    default="1",
-    show_default=True,
-    help="Coordinate of the first pixel's centre in the catalog's x, y (1: FITS, 0: GREAT3).",
-)
-@click.option(
-    "--gain",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help="Gain in e-/ADU: S/N from the CCD equation (paper Eq. 8) "
-    "[default: none, sky-limited S/N of Eq. 10].",
-)
+@schema_option(MEASURE["stamp_size"])
+@schema_option(MEASURE["origin"], show_default=True)
+@schema_option(MEASURE["gain"])
 @click.option(
     "--psf",
     "psf",
@@ -50,20 +35,8 @@ from megalut_cli.cli.options import (
     "(single stamp, or the lower-left star of a star grid such as GREAT3's starfield_image); "
     "adds psf_adamom_g1, psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4.",
 )
-@click.option(
-    "--stars/--no-stars",
-    default=None,
-    help="STAMPS is a star field: one row per star with psf_adamom_flux, psf_adamom_g1, "
-    "psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4, psf_adamom_x, psf_adamom_y, flags "
-    "[default: for files named starfield_image-*; a square one without --stamp-size or "
-    "STAMPSZ card is a 3x3 grid].",
-)
-@click.option(
-    "--morphology",
-    is_flag=True,
-    help="Also the morphology features morph_conc, morph_conc_inner, morph_size_ratio (light inside "
-    "Gaussian windows of 0.5, 1, 2 times the adaptive ellipse; docs/realgal.md).",
-)
+@schema_option(MEASURE["stars"])
+@schema_option(MEASURE["morphology"])
 @engine_option("the adaptive moments are measured")
 @device_option("the fast engine measures")
 @execution_options

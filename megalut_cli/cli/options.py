@@ -10,11 +10,15 @@ from typing import Any
 
 import click
 
+from megalut_cli.atomic import OVERWRITE_OPTION
 from megalut_cli.cli.console import progress as progress
 from megalut_cli.cli.console import setup_logging
+from megalut_cli.engine import DEVICE_OPTION, DEVICES, ENGINE_OPTION, ENGINES, described
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
 from megalut_cli.nn.options import train_options
+from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION
 from megalut_cli.schema import Option
+from megalut_cli.seeding import SEED_OPTION
 
 log = logging.getLogger("megalut")
 
@@ -54,42 +58,26 @@ def verbosity_options() -> list[click.Option]:
 
 
 def overwrite_option(f: F) -> F:
-    return click.option(
-        "--overwrite", is_flag=True, help="Replace the output file if it exists."
-    )(f)
+    """``--overwrite`` (:data:`megalut_cli.atomic.OVERWRITE_OPTION`)."""
+    return schema_option(OVERWRITE_OPTION)(f)
 
 
 def engine_option(what: str) -> Callable[[F], F]:
-    """``--engine``: choices and descriptions from :data:`megalut_cli.engine.ENGINES`."""
-    from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
-
-    described = "; ".join(f"{name}: {text}" for name, text in ENGINES.items())
-    return click.option(
-        "--engine",
-        type=click.Choice(list(ENGINES)),
-        default=DEFAULT_ENGINE,
-        show_default=True,
-        help=f"How {what} ({described}).",
-    )
+    """``--engine`` (:data:`megalut_cli.engine.ENGINE_OPTION`), saying what the engine does here."""
+    return schema_option(ENGINE_OPTION, help=f"How {what} ({described(ENGINES)}).", show_default=True)
 
 
 def device_option(what: str) -> Callable[[F], F]:
-    """``--device``: choices and descriptions from :data:`megalut_cli.engine.DEVICES`."""
-    from megalut_cli.engine import DEFAULT_DEVICE, DEVICES
-
-    described = "; ".join(f"{name}: {text}" for name, text in DEVICES.items())
-    return click.option(
-        "--device",
-        type=click.Choice(list(DEVICES)),
-        default=DEFAULT_DEVICE,
+    """``--device`` (:data:`megalut_cli.engine.DEVICE_OPTION`), saying what runs there."""
+    return schema_option(
+        DEVICE_OPTION, help=f"Where {what} ({described(DEVICES)}; env MEGALUT_DEVICE; docs/gpu.md).",
         show_default=True,
-        envvar="MEGALUT_DEVICE",
-        help=f"Where {what} ({described}; env MEGALUT_DEVICE; docs/gpu.md).",
     )
 
 
-def seed_option(default: int = 1, help: str = "Seed of every random draw of this step.") -> Callable[[F], F]:
-    return click.option("--seed", type=int, default=default, show_default=True, help=help)
+def seed_option(default: int = 1, help: str | None = None) -> Callable[[F], F]:
+    """``--seed`` (:data:`megalut_cli.seeding.SEED_OPTION`) with this command's default and help."""
+    return schema_option(SEED_OPTION.with_default(default), help=help, show_default=True)
 
 
 def _no_dash(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
@@ -108,24 +96,9 @@ def output_option(help: str = "Output file.", dash: bool = False) -> Callable[[F
 
 
 def execution_options(f: F) -> F:
-    """``-j/--nproc`` and ``--scheduler`` (mutually exclusive)."""
-    f = click.option(
-        "--scheduler",
-        metavar="ADDR",
-        default=None,
-        help="Run on an existing Dask cluster: a scheduler address (tcp://host:8786) "
-        "or a scheduler file. Needs the 'dask' extra.",
-    )(f)
-    f = click.option(
-        "-j",
-        "--nproc",
-        type=int,
-        default=0,
-        show_default=True,
-        envvar="MEGALUT_NPROC",
-        help="Local worker processes (0 or less: all cores; env MEGALUT_NPROC). "
-        "Results are identical for any value.",
-    )(f)
+    """``-j/--nproc`` and ``--scheduler`` (mutually exclusive; :mod:`megalut_cli.parallel`)."""
+    f = schema_option(SCHEDULER_OPTION)(f)
+    f = schema_option(NPROC_OPTION, show_default=True)(f)
 
     @functools.wraps(f)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -139,9 +112,9 @@ def execution_options(f: F) -> F:
 
 
 def schema_option(option: Option, help: str | None = None, show_default: bool | None = None) -> Callable[[F], F]:
-    """The click option of a declared :class:`~megalut_cli.schema.Option`: its flag, type
-    (``IntRange``/``FloatRange`` from its range, ``Choice`` from its choices), default and
-    help (``help`` replaces the declared one)."""
+    """The click option of a declared :class:`~megalut_cli.schema.Option`: its flags, type
+    (``IntRange``/``FloatRange`` from its range, ``Choice`` from its choices), default,
+    environment variable and help (``help`` replaces the declared one)."""
     kwargs: dict[str, Any] = {"default": option.default, "show_default": show_default}
     if option.kind in ("int", "float"):
         bounded = option.minimum is not None or option.maximum is not None
@@ -155,12 +128,14 @@ def schema_option(option: Option, help: str | None = None, show_default: bool | 
         kwargs["type"] = click.Choice(list(option.choices))
     elif option.kind == "bool":
         kwargs["is_flag"] = True
+    elif option.kind == "path":
+        kwargs["type"] = click.Path(dir_okay=False)
     elif option.kind in ("str_list", "int_list"):
         kwargs["default"] = None if option.default is None else ",".join(str(v) for v in option.default)
-    text = option.help if help is None else help
-    if option.default_text is not None and help is None:
-        text += f" [default: {option.default_text}]"
-    return click.option(option.cli_flag, metavar=option.metavar, help=text, **kwargs)
+    if option.envvar is not None:
+        kwargs["envvar"] = option.envvar
+    flags = ([option.short] if option.short else []) + [option.cli_flag]
+    return click.option(*flags, metavar=option.metavar, help=option.cli_help() if help is None else help, **kwargs)
 
 
 def _stack(*decorators: Callable[[F], F]) -> Callable[[F], F]:

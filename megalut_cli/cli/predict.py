@@ -6,8 +6,15 @@ import logging
 
 import click
 
-from megalut_cli.cli.options import execution_options, flag_names, output_option, overwrite_option
+from megalut_cli.cli.options import (
+    execution_options,
+    flag_names,
+    output_option,
+    overwrite_option,
+    schema_option,
+)
 from megalut_cli.errors import ConfigError
+from megalut_cli.shear.options import PREDICT
 
 
 def parse_column_map(items: tuple[str, ...] | list[str]) -> dict[str, str]:
@@ -36,10 +43,7 @@ def parse_column_map(items: tuple[str, ...] | list[str]) -> dict[str, str]:
     help="Read the model feature FEATURE from the catalog column COLUMN (repeatable), "
     "e.g. --col adamom_g1=E1.",
 )
-@click.option(
-    "--chunk-rows", type=click.IntRange(1000), default=250_000, show_default=True,
-    help="Rows per chunk (memory bound and unit of work).",
-)
+@schema_option(PREDICT["chunk_rows"], show_default=True)
 @execution_options
 @overwrite_option
 def command(

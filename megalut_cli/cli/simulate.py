@@ -15,9 +15,8 @@ from megalut_cli.cli.options import (
     overwrite_option,
     progress,
     schema_option,
-    seed_option,
 )
-from megalut_cli.sim.config import STRUCTURE
+from megalut_cli.sim.options import SIMULATE
 
 log = logging.getLogger("megalut")
 
@@ -35,17 +34,8 @@ log = logging.getLogger("megalut")
     default=None,
     help="Also write the stamps as a FITS image grid (stamp k at column k mod n_x, row k div n_x).",
 )
-@click.option(
-    "--measure",
-    is_flag=True,
-    help="Measure the features right after drawing (no image kept): the way to make large training sets.",
-)
-@click.option(
-    "--morphology",
-    is_flag=True,
-    help="With --measure: also the morphology features morph_conc, morph_conc_inner, morph_size_ratio "
-    "(light inside Gaussian windows of 0.5, 1, 2 times the adaptive ellipse; docs/realgal.md).",
-)
+@schema_option(SIMULATE["measure"])
+@schema_option(SIMULATE["morphology"])
 @click.option(
     "--great3",
     "great3_dir",
@@ -55,15 +45,10 @@ log = logging.getLogger("megalut")
     "(image-SSS-0.fits, galaxy_catalog-SSS.fits/.txt, starfield_image-SSS-0.fits, truth/); "
     "see docs/great3.md. Not with --stamps.",
 )
-@schema_option(STRUCTURE["n_cases"], help="Override structure.n_cases.")
-@schema_option(STRUCTURE["n_realizations"], help="Override structure.n_realizations.")
-@click.option(
-    "--dry-run",
-    is_flag=True,
-    help="Check the config and the outputs, say what would be simulated and how long it would take "
-    "(from a tiny calibration draw), and stop.",
-)
-@seed_option(1, "Seed of every random draw; the output is identical for any -j or cluster.")
+@schema_option(SIMULATE["n_cases"])
+@schema_option(SIMULATE["n_realizations"])
+@schema_option(SIMULATE["dry_run"])
+@schema_option(SIMULATE["seed"], show_default=True)
 @engine_option("stamps are drawn, noised and measured")
 @device_option("the fast engine draws, noises and measures")
 @execution_options

@@ -35,7 +35,6 @@ from __future__ import annotations
 import copy
 import json
 import logging
-import math
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -46,11 +45,13 @@ from typing import Any
 from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.great3 import layout as L
+from megalut_cli.measure.stamps import MIN_STAMP_SIZE
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
 from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
 from megalut_cli.pipeline_config import TrainPointSpec, TrainWeightSpec
-from megalut_cli.schema import Table, resolve_path
+from megalut_cli.schema import Option, Table, resolve_path
 from megalut_cli.seeding import STREAM_SUBFIELD, int_seed_for
+from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND, GREAT3_SIGMA2_MIN_SPACE
 from megalut_cli.steps import MANIFEST as MANIFEST  # the step engine's manifest.json
 from megalut_cli.steps import sha_text
 
@@ -77,7 +78,32 @@ UNIT_PRODUCTS = ("features.fits", "stars.fits", "model.h5", "shears.fits")
 SHEARS_FORMAT = "megalut.predictions"
 
 _TOP_KEYS = {"description", "engine", "branch", "tp", "tw", "train_point", "train_weight", "output"}
-_BRANCH_KEYS = {"path", "kind", "stamp_size", "epoch", "subfields", "strict", "truth", "sigma2_min"}
+
+
+def _by_kind(values: Mapping[str, Any]) -> str:
+    return "by `kind` (" + ", ".join(f"{k} {v:g}" for k, v in values.items()) + ")"
+
+
+#: ``Q_c``'s sigma^2_min by kind of branch (the GREAT3 metric).
+SIGMA2_MIN = {"ground": GREAT3_SIGMA2_MIN_GROUND, "space": GREAT3_SIGMA2_MIN_SPACE}
+
+#: The keys of the ``[branch]`` table (``docs/great3.md``); ``subfields`` and ``truth`` have
+#: readers of their own (:func:`parse_subfields`, a folder or a flag).
+BRANCH_OPTIONS: tuple[Option, ...] = (
+    Option("path", "path", None, "the branch folder", default_text="required"),
+    Option("kind", "choice", KINDS[0], '`"ground"` (48-pixel stamps, Table 3 ground distributions, `sigma2_min` 4) '
+           'or `"space"` (96, space, 1)', choices=KINDS),
+    Option("stamp_size", "int", None, "stamp size in pixels", minimum=MIN_STAMP_SIZE,
+           default_text=_by_kind(L.STAMP_SIZES)),
+    Option("subfields", "str", "all", "every `image-SSS-E.fits` of the folder, or a list (`[0, 5]`), or a text "
+           '(`"0-19,25"`)', allowed_text='`"all"`, indices, a text of ranges'),
+    Option("epoch", "int", 0, "the `E` of the file names", minimum=0),
+    Option("strict", "bool", True, "off-image centres and NaN pixels are errors (false: flagged stamps)"),
+    Option("truth", "bool", True, "the truth folder to evaluate against: true = the branch's `truth/` if any, a "
+           "path, or false", allowed_text="true, false, a folder"),
+    Option("sigma2_min", "float", None, "`Q_c`'s σ²_min", minimum=0, min_open=True, default_text=_by_kind(SIGMA2_MIN)),
+)
+BRANCH = {o.name: o for o in BRANCH_OPTIONS}
 _SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed"}
 _COMMON_TRAIN = {"features", "hidden", *TRAIN_OPTION}
 _POINT_KEYS = _COMMON_TRAIN | {"targets", "cost", "select_cases", "init"}
@@ -297,7 +323,6 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
                           overrides: Sequence[str] = (), base_dir: Path | None = None) -> BranchPipeline:
     """Validate a parsed branch pipeline (after ``key=value`` overrides); check the branch folder."""
     from megalut_cli.pipeline_config import selection_expression, train_options_from
-    from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND, GREAT3_SIGMA2_MIN_SPACE
     from megalut_cli.sim.config import apply_overrides
 
     raw = apply_overrides(dict(raw), overrides)
@@ -305,17 +330,16 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
     description = top.data.get("description", "")
     if not isinstance(description, str):
         raise ConfigError("description: expected a string")
-    b = Table(top.data.get("branch"), "branch", _BRANCH_KEYS)
+    b = Table(top.data.get("branch"), "branch", set(BRANCH))
     if "path" not in b.data:
         raise ConfigError("branch.path: missing (the branch folder, in the GREAT3 layout)")
-    branch_dir = _find_path(b.get_str("path", None) or "", "branch.path", base_dir, want_dir=True)
-    kind = b.get_str("kind", "ground", KINDS) or "ground"
-    size = b.get_int("stamp_size", L.STAMP_SIZES[kind], 3) or L.STAMP_SIZES[kind]
-    epoch = b.get_int("epoch", 0, 0) or 0
-    strict = b.get_bool("strict", True)
-    sigma2_min = b.get_float("sigma2_min", GREAT3_SIGMA2_MIN_GROUND if kind == "ground" else GREAT3_SIGMA2_MIN_SPACE,
-                             0.0, math.inf, lo_open=True)
-    truth_value = b.data.get("truth", True)
+    branch_dir = _find_path(b.option(BRANCH["path"]), "branch.path", base_dir, want_dir=True)
+    kind = b.option(BRANCH["kind"])
+    size = b.option(BRANCH["stamp_size"], L.STAMP_SIZES[kind])
+    epoch = b.option(BRANCH["epoch"])
+    strict = b.option(BRANCH["strict"])
+    sigma2_min = b.option(BRANCH["sigma2_min"], SIGMA2_MIN[kind])
+    truth_value = b.data.get("truth", BRANCH["truth"].default)
     truth: Path | None = None
     if truth_value is True:
         truth = branch_dir / "truth" if (branch_dir / "truth").is_dir() else None
@@ -325,7 +349,7 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
         raise ConfigError(f"branch.truth: expected a folder, true (the branch's truth/ if any) or false, got {truth_value!r}")
 
     available = L.find_subfields(branch_dir, epoch)
-    wanted = parse_subfields(b.data.get("subfields", "all"))
+    wanted = parse_subfields(b.data.get("subfields", BRANCH["subfields"].default))
     if wanted is None:
         if not available:
             raise InputError(f"{branch_dir}: no {L.image_name(0, epoch).replace('000', 'SSS')} file: not a GREAT3 branch folder")

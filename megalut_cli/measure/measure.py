@@ -61,6 +61,7 @@ from megalut_cli.measure.features import (
     measure_stamps,
 )
 from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS, morphology_of_measured
+from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.stamps import (
     ImageInfo,
     catalog_origins,
@@ -366,17 +367,17 @@ def measure_file(
     stamps_path: str | os.PathLike,
     catalog_path: str | os.PathLike | None,
     output: str | os.PathLike,
-    stamp_size: int | None = None,
-    origin: int = 1,
-    gain: float | None = None,
+    stamp_size: int | None = MEASURE["stamp_size"].default,
+    origin: int = int(MEASURE["origin"].default),
+    gain: float | None = MEASURE["gain"].default,
     psf_path: str | os.PathLike | None = None,
     nproc: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
     progress: Progress | None = None,
-    stars: bool | None = None,
+    stars: bool | None = MEASURE["stars"].default,
     engine: str = DEFAULT_ENGINE,
-    morphology: bool = False,
+    morphology: bool = MEASURE["morphology"].default,
     device: str = DEFAULT_DEVICE,
     names: Names | None = None,
 ) -> Table:

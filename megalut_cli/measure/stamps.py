@@ -34,6 +34,10 @@ from megalut_cli.errors import ConfigError, InputError
 
 #: Header card holding the stamp size of an image of stamps.
 STAMP_SIZE_CARD = "STAMPSZ"
+#: The smallest stamp, in pixels.
+MIN_STAMP_SIZE = 3
+#: Coordinates of the first pixel's centre a catalog may use: 1 (FITS), 0 (GREAT3).
+ORIGINS = (0, 1)
 
 #: Tolerance making ``floor`` robust to centres stored as e.g. 32.49999999.
 _EPS = 1e-6
@@ -111,8 +115,8 @@ def stamp_size_of(
         if isinstance(card, bool) or not value.is_integer():
             raise InputError(f"{info.path}: bad {STAMP_SIZE_CARD} header card {card!r}")
         stamp_size = int(value)
-    if stamp_size < 3:
-        raise ConfigError(f"stamp size must be at least 3 pixels, got {stamp_size}")
+    if stamp_size < MIN_STAMP_SIZE:
+        raise ConfigError(f"stamp size must be at least {MIN_STAMP_SIZE} pixels, got {stamp_size}")
     return int(stamp_size)
 
 
@@ -142,7 +146,7 @@ def catalog_origins(
     of ``stamp_size`` stamps from pixel 1 (see the module docstring). Non-finite centres
     give the origin ``INT64_MIN`` (never inside). Messages name ``origin`` ``where``.
     """
-    if origin not in (0, 1):
+    if origin not in ORIGINS:
         raise ConfigError(f"{where} must be 0 or 1, got {origin}")
     xy = np.column_stack([np.asarray(x, np.float64), np.asarray(y, np.float64)]) + (1 - origin)
     t = xy - stamp_size / 2.0 + 0.5

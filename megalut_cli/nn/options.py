@@ -11,6 +11,7 @@ one field of ``TrainOptions``.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import replace
 from typing import Any
 
 from megalut_cli.errors import ConfigError
@@ -51,6 +52,13 @@ TRAIN_OPTIONS: tuple[Option, ...] = (
            minimum=0),
 )
 OPTION = {o.name: o for o in TRAIN_OPTIONS}
+
+#: The declarations :class:`megalut_cli.nn.train.TrainSettings` checks a member's settings
+#: with; a member may run 0 iterations (its starting parameters), the options ask for >= 1.
+MEMBER_CHECKS = {
+    **{n: OPTION[n] for n in ("batch_fraction", "batch_iterations", "optimizer", "precision")},
+    "iterations": replace(OPTION["iterations"], minimum=0),
+}
 
 #: Iterations per member by kind of committee.
 ITERATIONS = {"point": POINT_ITERATIONS, "weight": WEIGHT_ITERATIONS}

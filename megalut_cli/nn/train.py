@@ -59,20 +59,26 @@ class TrainSettings:
     device: str = "cpu"  # "gpu": costs and gradients on the device (megalut_cli.gpu.train)
 
     def __post_init__(self) -> None:
+        """Check the settings: the ranges and choices of the declarations of
+        :mod:`megalut_cli.nn.options` (a ``ValueError``: a programming error, not user input)."""
+        from megalut_cli.errors import ConfigError
+        from megalut_cli.nn.options import MEMBER_CHECKS  # imports this module: not at the top
+
         if self.cost not in costs.COSTS:
             raise ValueError(f"unknown cost {self.cost!r}")
-        if self.optimizer not in OPTIMIZERS:
-            raise ValueError(f"unknown optimizer {self.optimizer!r}")
-        if self.dtype not in PRECISIONS:
-            raise ValueError(f"unknown dtype {self.dtype!r}")
         if self.device not in ("cpu", "gpu"):
             raise ValueError(f"unknown device {self.device!r} (a resolved one: cpu or gpu)")
         if self.gradient not in ("analytic", "fd"):
             raise ValueError(f"unknown gradient {self.gradient!r}")
-        if not 0.0 < self.batch_fraction <= 1.0:
-            raise ValueError("batch_fraction must be in (0, 1]")
-        if self.iterations < 0 or self.batch_iterations < 1 or self.valid_every < 1:
-            raise ValueError("iterations must be >= 0, batch_iterations and valid_every >= 1")
+        if self.valid_every < 1:
+            raise ValueError("valid_every must be >= 1")
+        values = {"iterations": self.iterations, "batch_fraction": self.batch_fraction,
+                  "batch_iterations": self.batch_iterations, "optimizer": self.optimizer, "precision": self.dtype}
+        try:
+            for name, value in values.items():
+                MEMBER_CHECKS[name].check(value, name)
+        except ConfigError as err:
+            raise ValueError(str(err)) from None
 
 
 class Objective:

@@ -43,11 +43,12 @@ from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.parallel import executor, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
+from megalut_cli.shear.options import PREDICT
 
 log = logging.getLogger(__name__)
 
 #: Rows per chunk (work unit).
-CHUNK_ROWS = 250_000
+CHUNK_ROWS: int = PREDICT["chunk_rows"].default
 FORMAT = "megalut.predictions"
 FORMAT_VERSION = "1.0"
 

@@ -34,6 +34,7 @@ from megalut_cli.parallel import chunk_ranges, executor, format_duration, map_un
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, renders_galaxies, stamp_centres
+from megalut_cli.sim.options import SIMULATE
 
 log = logging.getLogger("megalut")
 
@@ -222,14 +223,14 @@ def simulate(
     config: SimConfig,
     output: str | os.PathLike,
     stamps: str | os.PathLike | None = None,
-    measure: bool = False,
-    seed: int = 1,
+    measure: bool = SIMULATE["measure"].default,
+    seed: int = SIMULATE["seed"].default,
     nproc: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
     progress: Progress | None = None,
     engine: str = DEFAULT_ENGINE,
-    morphology: bool = False,
+    morphology: bool = SIMULATE["morphology"].default,
     device: str = DEFAULT_DEVICE,
     names: Names | None = None,
 ) -> SimulationResult:

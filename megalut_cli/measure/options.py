@@ -1,0 +1,39 @@
+"""The options of ``megalut measure``, declared once: its click options, the defaults of
+:func:`megalut_cli.measure.measure.measure_file` and the table of ``docs/catalogs.md``.
+
+The choices and ranges come from the modules that implement them (:mod:`.stamps`,
+:mod:`megalut_cli.engine`); ``--engine``, ``--device``, ``-j``, ``--scheduler`` and
+``--overwrite`` are the shared declarations of :mod:`megalut_cli.engine`,
+:mod:`megalut_cli.parallel` and :mod:`megalut_cli.atomic`.
+"""
+
+from __future__ import annotations
+
+from megalut_cli.atomic import OVERWRITE_OPTION
+from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION
+from megalut_cli.measure.stamps import MIN_STAMP_SIZE, ORIGINS
+from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION
+from megalut_cli.schema import DEFAULT_MARK, Option
+
+#: The options of ``megalut measure`` that only it has, in the order of ``--help``.
+MEASURE_OPTIONS: tuple[Option, ...] = (
+    Option("stamp_size", "int", None, f"Stamp size in pixels{DEFAULT_MARK}.", minimum=MIN_STAMP_SIZE,
+           default_text="the image's STAMPSZ header card"),
+    Option("origin", "choice", "1", "Coordinate of the first pixel's centre in the catalog's x, y "
+           "(1: FITS, 0: GREAT3).", choices=tuple(str(o) for o in ORIGINS)),
+    Option("gain", "float", None, f"Gain in e-/ADU: S/N from the CCD equation (paper Eq. 8){DEFAULT_MARK}.",
+           minimum=0, min_open=True, default_text="none, sky-limited S/N of Eq. 10"),
+    Option("stars", "bool", None, "STAMPS is a star field: one row per star with psf_adamom_flux, psf_adamom_g1, "
+           f"psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4, psf_adamom_x, psf_adamom_y, flags{DEFAULT_MARK}.",
+           flag="--stars/--no-stars", default_text="for files named starfield_image-*; a square one without "
+           "--stamp-size or STAMPSZ card is a 3x3 grid"),
+    Option("morphology", "bool", False, "Also the morphology features morph_conc, morph_conc_inner, "
+           "morph_size_ratio (light inside Gaussian windows of 0.5, 1, 2 times the adaptive ellipse; "
+           "docs/realgal.md)."),
+)
+MEASURE = {o.name: o for o in MEASURE_OPTIONS}
+
+#: Every option of ``megalut measure`` with a value (not its files), for the docs table.
+ALL_MEASURE_OPTIONS: tuple[Option, ...] = (
+    *MEASURE_OPTIONS, ENGINE_OPTION, DEVICE_OPTION, NPROC_OPTION, SCHEDULER_OPTION, OVERWRITE_OPTION,
+)
