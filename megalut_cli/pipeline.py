@@ -784,7 +784,7 @@ def format_summary(result: RunResult) -> str:
         lines += [f"== VP: point estimates ({result.prefix}{EVALUATION_VP_JSON}) ==",
                   format_table(result.evaluation_vp), ""]
     if result.evaluation_vp is not None or result.evaluation_reference is not None:
-        lines.append(f"== VO: overall validation of the model trained here ({result.prefix}{EVALUATION_JSON}) ==")
+        lines.append(f"== VO: overall validation ({result.prefix}{EVALUATION_JSON}) ==")
     lines += [format_table(result.evaluation), ""]
     if result.evaluation_reference is not None and ref is not None:
         lines += [f"== {ref.label} on {ref.set} ({result.prefix}{EVALUATION_REFERENCE_JSON}) ==",

@@ -38,6 +38,7 @@ def test_print_default(runner, cli) -> None:
     assert result.stdout == default_pipeline_text()
     raw = tomllib.loads(result.stdout)
     assert set(raw["sets"]) == {"tp", "tw", "vo"}
+    assert raw["reference"] == {"model": "fiducial"}  # the second table: the shipped model on vo
 
 
 def test_run_prints_table_and_writes_products(runner, cli, tmp_path: Path) -> None:
@@ -122,3 +123,7 @@ def test_default_pipeline_weights_reduce_multiplicative_bias(runner, cli, tmp_pa
         assert abs(weighted["m"]) < abs(unweighted["m"]), comp
         # the unweighted estimates are biased (noise bias of faint galaxies, selection of failures)
         assert unweighted["m"] < 0
+    # the second table: the shipped model, trained on far more stamps, on the same rows
+    assert "the shipped model fiducial (models/fiducial.h5) on vo" in result.stdout
+    ref = json.loads((wd / "evaluation-reference.json").read_text())
+    assert ref["weighted"]["g1"]["n_rows"] == ev["weighted"]["g1"]["n_rows"]

@@ -197,7 +197,7 @@ def test_run_end_to_end_and_skip_existing(tmp_path: Path) -> None:
     assert ref.evaluation_reference["weighted"]["g1"]["n_rows"] == ev["weighted"]["g1"]["n_rows"]
     assert ref.evaluation_reference["weighted"]["g1"]["m"] != ev["weighted"]["g1"]["m"]
     summary = format_summary(ref)
-    assert "the model trained here" in summary and "the shipped model fiducial (models/fiducial.h5) on vo" in summary
+    assert "== VO: overall validation (evaluation.json) ==" in summary and "the shipped model fiducial (models/fiducial.h5) on vo" in summary
 
     # A training setting changed: that step and everything downstream re-run.
     changed = run_pipeline(load_pipeline(path, ["train_weight.iterations=12"]), wd, skip_existing=True)

@@ -1,9 +1,9 @@
 """The shipped model models/fiducial.h5 on a fresh common-random-number validation set (slow).
 
-The set (examples/fiducial/vo-crn.toml: 20 shears x 20000 galaxies in 90-degree pairs, the
+The set (examples/fiducial/vo-crn.toml: 20 shears x 40000 galaxies in 90-degree pairs, the
 same galaxies, offsets and noise under every shear) is drawn with seed 1001, which no set or
-training of the model used (models/fiducial-pipeline.toml: TP 41, TW 42, VO 43; training
-51, 52). Its errors come from a bootstrap over the galaxy pairs. The test asserts the Stage
+training of the model used (models/fiducial-pipeline.toml: TP 21, TW 22, VO 23; training
+31, 32). Its errors come from a bootstrap over the galaxy pairs. The test asserts the Stage
 IV requirement (|m| < 2e-3, |c| < 2e-4) within 3 sigma for the weighted estimates; the
 recorded run is in models/README.md. Run with
 ``python -m pytest -m slow -s tests/test_shipped_model.py``.
@@ -30,7 +30,7 @@ def test_fiducial_model_meets_the_stage_iv_requirement_within_3_sigma(tmp_path):
 
     if not MODEL.exists():
         pytest.skip("models/fiducial.h5 is not shipped in this checkout")
-    config = load_config(VO_CRN, n_cases=20, n_realizations=20000)
+    config = load_config(VO_CRN, n_cases=20, n_realizations=40000)
     vo = tmp_path / "vo.fits"
     simulate(config, vo, measure=True, seed=1001, nproc=2)
     shears = tmp_path / "shears.fits"
