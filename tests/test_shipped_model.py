@@ -2,8 +2,8 @@
 
 The set (examples/fiducial/vo-crn.toml: 20 shears x 40000 galaxies in 90-degree pairs, the
 same galaxies, offsets and noise under every shear) is drawn with seed 1001, which no set or
-training of the model used (models/fiducial-pipeline.toml: TP 21, TW 22, VO 23; training
-31, 32). Its errors come from a bootstrap over the galaxy pairs. The test asserts the Stage
+training of the model used (models/fiducial-pipeline.toml: TP 41, TW 42, VO 43; training
+51, 52; nor the 3e6-stamp check of models/README.md, 44). Its errors come from a bootstrap over the galaxy pairs. The test asserts the Stage
 IV requirement (|m| < 2e-3, |c| < 2e-4) within 3 sigma for the weighted estimates; the
 recorded run is in models/README.md. Run with
 ``python -m pytest -m slow -s tests/test_shipped_model.py``.

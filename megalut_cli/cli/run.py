@@ -75,7 +75,7 @@ def command(
     one --workdir and simulate them once. The m, c table (unweighted and weighted) is
     printed at the end; logs and step timings go to stderr.
 
-    The default is the paper's fiducial setup (Sect. 5) scaled down to about 10 minutes on
+    The default is the paper's fiducial setup (Sect. 5) scaled down to under 10 minutes on
     2 cores. Before the first step, every step is logged with its size, the simulations with
     a time estimated from a tiny calibration draw; --dry-run stops there. KEY=VALUE arguments override pipeline keys (dotted names, TOML values), e.g.
     scale=0.01 (the fraction of the stamps of every set), sets.vo.seed=7 or
@@ -91,7 +91,7 @@ def command(
 
     \b
     Examples:
-      # the default: 275 000 stamps, 3 min on 2 cores (all cores are used)
+      # the default: 10^6 stamps, 7 min on 2 cores (all cores are used)
       megalut run
       megalut run --print-default > my-pipeline.toml
       # each step's size and simulation time (10^5 stamps here); no run

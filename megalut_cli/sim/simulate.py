@@ -19,6 +19,7 @@ import dataclasses
 import logging
 import math
 import os
+import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -75,8 +76,8 @@ def n_work_units(config: SimConfig, nproc: int = 1, scheduler: str | None = None
 
 
 def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, n_stamps: int = 32,
-                      engine: str = DEFAULT_ENGINE, device: str = DEFAULT_DEVICE) -> float:
-    """Drawing rate of one worker, timed on a tiny draw of ``n_stamps`` stamps of the first case.
+                      engine: str = DEFAULT_ENGINE, device: str = DEFAULT_DEVICE, n_draws: int = 5) -> float:
+    """Drawing rate of one worker: the median of ``n_draws`` tiny timed draws of ``n_stamps``.
 
     Cheap (well under a second at the paper's stamp size); per-case setup costs and work
     spread over several workers make the real rate differ by tens of percent.
@@ -89,19 +90,24 @@ def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: 
             n = max(2, n - n % 2)
         return dataclasses.replace(config, structure=dataclasses.replace(s, n_cases=1, n_realizations=n))
 
+    def draw(case: SimConfig, draw_seed: int) -> None:
+        draw_unit(WorkUnit(case, draw_seed, 0, 1, case.structure.grid_nx, keep_stamps, measure, engine,
+                           device=device))
+
     small = first_case(n_stamps)
     n_rea = small.structure.n_realizations
-    # Warm up (lazy imports, compilation) on other galaxies than those timed, four times as
-    # many: GalSim builds a table per Sersic index once per process (31 on the fiducial n
-    # grid), which a long run pays once but a tiny timed draw would pay for most of its
-    # galaxies; a repeat of the same galaxies would hide the per-galaxy tables of a
-    # continuous n instead.
+    # Warm up (lazy imports, compilation) on four times as many other galaxies. GalSim builds
+    # a table per Sersic index once per process, which a long run pays once: a timed draw of
+    # a few galaxies that meets an index the warm-up missed runs several times slower. The
+    # median over draws of different galaxies leaves such a draw out.
     device = resolve_device(device)
-    warm = first_case(4 * n_stamps)
-    draw_unit(WorkUnit(warm, seed + 1, 0, 1, warm.structure.grid_nx, keep_stamps, measure, engine, device=device))
-    t0 = time.perf_counter()
-    draw_unit(WorkUnit(small, seed, 0, 1, small.structure.grid_nx, keep_stamps, measure, engine, device=device))
-    return n_rea / max(time.perf_counter() - t0, 1e-6)
+    draw(first_case(4 * n_stamps), seed + 1)
+    seconds = []
+    for k in range(n_draws):
+        t0 = time.perf_counter()
+        draw(small, seed + 1 + k if k else seed)
+        seconds.append(time.perf_counter() - t0)
+    return n_rea / max(statistics.median(seconds), 1e-6)
 
 
 def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, nproc: int,
