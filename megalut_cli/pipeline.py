@@ -80,12 +80,14 @@ from megalut_cli.shear.options import EVALUATE
 from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, validate_config
 from megalut_cli.steps import (
     MANIFEST,
+    Manifest,
     RunRecord,
     Step,
     StepReport,
     check_workdir,
     run_steps,
     sha_text,
+    step_key,
     timing_line,
 )
 from megalut_cli.training import TrainOptions
@@ -733,10 +735,16 @@ def plan_pipeline(
     lines = [f"pipeline {pipe.path} -> {wd / pipe.name if pipe.name else wd}: {len(steps)} steps"
              + (" (up-to-date steps will be skipped)" if skip_existing else "")]
     sims = {f"simulate-{name}": spec for name, spec in pipe.sets.items()}
+    manifest = Manifest(wd / MANIFEST, RunRecord(pipe.name, pipe.path, pipe.sha256, pipe.overrides, pipe.raw)) \
+        if skip_existing else None
     for i, step in enumerate(steps, 1):
         spec = sims.get(step.name)
-        what = plan_message(spec.config, spec.seed, True, False, nproc, scheduler, pipe.engine) if spec \
-            else step.summary
+        if spec and manifest is not None and not step.inputs and manifest.up_to_date(step, step_key(step, {}), wd):
+            what = "up to date, will be skipped"
+        elif spec:
+            what = plan_message(spec.config, spec.seed, True, False, nproc, scheduler, pipe.engine)
+        else:
+            what = step.summary
         lines.append(f"[{i}/{len(steps)}] {step.name}: {what}")
     return lines
 

@@ -205,6 +205,15 @@ class Manifest:
                 return other, dict(zip(step.outputs, theirs))
         return None
 
+    def up_to_date(self, step: Step, key: str, workdir: Path) -> dict[str, str] | None:
+        """The sha256 of each product of ``step`` if its record has ``key`` and its products
+        are intact (what ``--skip-existing`` skips), else None."""
+        rec = self.steps.get(step.name) or {}
+        current = {o: self.current_sha(step.name, workdir, o) for o in step.outputs}
+        if rec.get("key") != key or not all(current.values()):
+            return None
+        return {o: s for o, s in current.items() if s}
+
     def record(self, step: Step, key: str, inputs: Mapping[str, str], outputs: Mapping[str, dict[str, Any]],
                seconds: float, copied_from: str | None = None) -> None:
         self.steps[step.name] = {
@@ -433,9 +442,9 @@ def run_steps(steps: Sequence[Entry], workdir: Path, run: RunRecord, *, skip_exi
         donor = None
         if skip_existing:
             rec = manifest.steps.get(step.name) or {}
-            current = {o: manifest.current_sha(step.name, wd, o) for o in step.outputs}
-            if rec.get("key") == key and all(current.values()):
-                shas.update({o: s for o, s in current.items() if s})
+            current = manifest.up_to_date(step, key, wd)
+            if current is not None:
+                shas.update(current)
                 log.info("%s: up to date, skipped", label)
                 reports.append(StepReport(step.name, "skipped", 0.0))
                 continue

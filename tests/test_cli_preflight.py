@@ -97,6 +97,20 @@ def test_run_dry_run_lists_steps_and_creates_nothing(runner, cli, tmp_path):
     assert not wd.exists() and result.stdout == ""
 
 
+def test_run_dry_run_with_skip_existing_names_the_up_to_date_simulations(runner, cli, tmp_path):
+    """No calibration draw, and no time, for a simulation that --skip-existing will skip."""
+    wd = tmp_path / "wd"
+    pipeline = str(write_pipeline(tmp_path))
+    assert runner.invoke(cli, ["run", pipeline, "--workdir", str(wd), "-q"]).exit_code == 0
+    result = runner.invoke(cli, ["run", pipeline, "sets.tw.seed=77", "--workdir", str(wd), "--dry-run",
+                                 "--skip-existing"])
+    assert result.exit_code == 0, result.stderr
+    lines = result.stderr.splitlines()
+    assert any(line.endswith("simulate-tp: up to date, will be skipped") for line in lines), lines
+    assert any(line.endswith("simulate-vo: up to date, will be skipped") for line in lines), lines
+    assert any("simulate-tw:" in line and "calibration draw" in line for line in lines), lines
+
+
 def test_run_unwritable_workdir_fails_first(runner, cli, tmp_path):
     (tmp_path / "afile").write_text("x")
     wd = tmp_path / "afile" / "wd"
