@@ -55,7 +55,7 @@ class TrainSettings:
     gradient: str = "analytic"
     valid_every: int = 1
     max_stalls: int = 3
-    dtype: str = "float32"  # matches float64 at the paper's size (benchmarks/training.md)
+    dtype: str = "float64"
     device: str = "cpu"  # "gpu": costs and gradients on the device (megalut_cli.gpu.train)
 
     def __post_init__(self) -> None:
