@@ -166,6 +166,7 @@ class ReferenceSpec:
     model: Path
     label: str  # how the summary names it
     set: str
+    sha256: str  # of the model file, hashed once: part of the prediction step's key
 
 
 @dataclass(frozen=True)
@@ -369,7 +370,7 @@ def _reference_spec(top: Table, sets: Mapping[str, SetSpec], base_dir: Path | No
     else:
         model, label = resolve_path(text, "reference.model", base_dir), text
     set_name = t.get_str("set", "vo", [n for n in ALL_SETS if n in sets]) or "vo"
-    return ReferenceSpec(model, label, set_name)
+    return ReferenceSpec(model, label, set_name, sha256_file(model))
 
 
 def _check_pretrain(pre: PretrainSpec, point: TrainPointSpec, spec: SetSpec) -> None:
@@ -636,8 +637,9 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
 
         add(name, [out(shears)], [catalog, out(model)], {}, action, summary)
 
-    def evaluate_step(name: str, ev: EvaluateSpec, shears: str, json_name: str, png_name: str,
-                      what: str, keys: str | None = None) -> None:
+    def evaluate_step(name: str, table: str, ev: EvaluateSpec, shears: str, json_name: str, png_name: str,
+                      what: str) -> None:
+        """A step evaluating ``shears`` with the options ``ev`` of the pipeline table ``table``."""
         plot = ev.plot and _have_matplotlib()
         if ev.plot and not plot:
             log.info("matplotlib is not installed: no %s (pip install 'megalut-cli[plot]')", png_name)
@@ -646,7 +648,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
             from megalut_cli.shear.evaluate import evaluate_catalog
 
             result = evaluate_catalog(wd / out(shears), by=ev.by or None, bins=ev.bins, select=ev.select,
-                                      select_cases=ev.select_cases, names=key_names(keys or name.replace("-", "_")))
+                                      select_cases=ev.select_cases, names=key_names(table))
             write_json(wd / out(json_name), result, overwrite)
             if plot:
                 from megalut_cli.shear.plots import plot_evaluation
@@ -664,7 +666,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
 
     if pipe.evaluate_vp is not None:
         predict_step("predict-vp", "vp.fits", "point.h5", "vp-shears.fits", "point estimates on vp.fits")
-        evaluate_step("evaluate-vp", pipe.evaluate_vp, "vp-shears.fits", EVALUATION_VP_JSON, EVALUATION_VP_PNG,
+        evaluate_step("evaluate-vp", "evaluate_vp", pipe.evaluate_vp, "vp-shears.fits", EVALUATION_VP_JSON, EVALUATION_VP_PNG,
                       "m, c of the point estimates (unweighted)")
 
     tw = pipe.train_weight
@@ -682,7 +684,7 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         f"{tw.options.members} members, hidden {tw.hidden}, {tw.options.iterations} iterations, "
         f"select {tw.select!r}, seed {tw.options.seed}")
     predict_step("predict", "vo.fits", "model.h5", "vo-shears.fits", "point estimates and weights on vo.fits")
-    evaluate_step("evaluate", pipe.evaluate, "vo-shears.fits", EVALUATION_JSON, EVALUATION_PNG, "m, c")
+    evaluate_step("evaluate", "evaluate", pipe.evaluate, "vo-shears.fits", EVALUATION_JSON, EVALUATION_PNG, "m, c")
     ref = pipe.reference
     if ref is not None:
         catalog = pipe.sets[ref.set].product
@@ -693,10 +695,10 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
             predict_catalog(wd / catalog, ref.model, wd / out(REFERENCE_SHEARS), nproc=nproc, scheduler=scheduler,
                             overwrite=overwrite, progress=relabelled(progress, "predict-reference"))
 
-        add("predict-reference", [out(REFERENCE_SHEARS)], [catalog], {"model_sha256": sha256_file(ref.model)},
+        add("predict-reference", [out(REFERENCE_SHEARS)], [catalog], {"model_sha256": ref.sha256},
             reference_action, f"{ref.label} on {catalog}")
-        evaluate_step("evaluate-reference", pipe.evaluate, REFERENCE_SHEARS, EVALUATION_REFERENCE_JSON,
-                      EVALUATION_REFERENCE_PNG, f"m, c of {ref.label}", keys="evaluate")
+        evaluate_step("evaluate-reference", "evaluate", pipe.evaluate, REFERENCE_SHEARS, EVALUATION_REFERENCE_JSON,
+                      EVALUATION_REFERENCE_PNG, f"m, c of {ref.label}")
     return steps
 
 
