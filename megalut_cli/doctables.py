@@ -15,7 +15,7 @@ from pathlib import Path
 from megalut_cli.great3.pipeline import BRANCH_OPTIONS
 from megalut_cli.measure.options import ALL_MEASURE_OPTIONS
 from megalut_cli.nn.options import POINT_OPTIONS, WEIGHT_OPTIONS, train_options
-from megalut_cli.pipeline_config import PIPELINE_OPTIONS, SET_OPTIONS
+from megalut_cli.pipeline_config import PIPELINE_OPTIONS, REFERENCE_OPTIONS, SET_OPTIONS
 from megalut_cli.schema import docs_table
 from megalut_cli.shear.options import ALL_PREDICT_OPTIONS, EVALUATE_OPTIONS
 from megalut_cli.sim.config import GSPARAMS_OPTIONS, INSTRUMENT_OPTIONS, STRUCTURE_OPTIONS
@@ -32,6 +32,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "evaluate": lambda: docs_table(EVALUATE_OPTIONS),
     "pipeline": lambda: docs_table(PIPELINE_OPTIONS, cli=False),
     "pipeline-sets": lambda: docs_table(SET_OPTIONS, cli=False),
+    "pipeline-reference": lambda: docs_table(REFERENCE_OPTIONS, cli=False),
     "great3-branch": lambda: docs_table(BRANCH_OPTIONS, cli=False, prefix="branch."),
     "measure": lambda: docs_table(ALL_MEASURE_OPTIONS, keys=False),
     "predict": lambda: docs_table(ALL_PREDICT_OPTIONS, keys=False),

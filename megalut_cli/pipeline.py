@@ -62,7 +62,9 @@ from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
 from megalut_cli.pipeline_config import (
     DEFAULT_SET_SEEDS,
     MAX_NAME,
+    PATH_TABLES,
     PIPELINE,
+    REFERENCE_OPTION,
     SCALE_BY,
     SET_OPTION,
     EvaluateSpec,
@@ -120,7 +122,6 @@ _NAME_RE = re.compile(rf"[A-Za-z0-9][A-Za-z0-9_-]{{0,{MAX_NAME - 1}}}")  # no ".
 
 #: Top-level keys a parsed pipeline may have (``extends`` is read with the file).
 _TOP_KEYS = set(PIPELINE) - {"extends"}
-_REFERENCE_KEYS = {"model", "set"}
 _TRAIN_COMMON = {"features", "hidden", *TRAIN_OPTION}
 _TRAIN_POINT_KEYS = _TRAIN_COMMON | {"targets", "cost", "select_cases", "init"}
 _TRAIN_WEIGHT_KEYS = _TRAIN_COMMON | {"select"}
@@ -361,15 +362,16 @@ def _reference_spec(top: Table, sets: Mapping[str, SetSpec], base_dir: Path | No
     """``[reference]``: ``model`` (a model file, or the name of a shipped model) and ``set``."""
     if top.data.get("reference") is None:
         return None
-    t = Table(top.data["reference"], "reference", _REFERENCE_KEYS)
-    text = t.get_str("model", None)
-    if text is None:
+    t = Table(top.data["reference"], "reference", set(REFERENCE_OPTION))
+    if t.data.get("model") is None:
         raise ConfigError(f"reference.model: missing (a model file, or a shipped model: {', '.join(SHIPPED_MODELS)})")
+    text = t.option(REFERENCE_OPTION["model"])
     if text in SHIPPED_MODELS:
         model, label = shipped_model(text), f"the shipped model {text} (models/{SHIPPED_MODELS[text]})"
     else:
         model, label = resolve_path(text, "reference.model", base_dir), text
-    set_name = t.get_str("set", "vo", [n for n in ALL_SETS if n in sets]) or "vo"
+    default_set = REFERENCE_OPTION["set"].default
+    set_name = t.get_str("set", default_set, [n for n in ALL_SETS if n in sets]) or default_set
     return ReferenceSpec(model, label, set_name, sha256_file(model))
 
 
@@ -472,22 +474,28 @@ def default_pipeline_text() -> str:
     return importlib.resources.files("megalut_cli").joinpath("data", DEFAULT_PIPELINE).read_text()
 
 
-def _absolute_configs(raw: dict[str, Any], base_dir: Path) -> None:
-    """Make the relative ``sets.*.config`` and ``reference.model`` paths of an extended file
-    relative to nothing."""
-    ref = raw.get("reference")
-    if isinstance(ref, dict) and isinstance(ref.get("model"), str) and ref["model"] not in SHIPPED_MODELS:
-        p = Path(ref["model"]).expanduser()
-        if not p.is_absolute() and (base_dir / p).is_file():
-            ref["model"] = str(base_dir / p)
-    sets = raw.get("sets")
-    if not isinstance(sets, dict):
-        return
-    for table in sets.values():
-        if isinstance(table, dict) and isinstance(table.get("config"), str) and table["config"].strip():
-            p = Path(table["config"]).expanduser()
-            if not p.is_absolute():
-                table["config"] = str(base_dir / p)
+def _tables_at(raw: Mapping[str, Any], where: Sequence[str]) -> list[dict[str, Any]]:
+    """The tables of ``raw`` at the dotted position ``where`` (``"*"``: every sub-table)."""
+    found: list[Any] = [raw]
+    for part in where:
+        found = [sub for t in found for sub in (t.values() if part == "*" else [t.get(part)])]
+        found = [t for t in found if isinstance(t, dict)]
+    return found
+
+
+def _rebase_paths(raw: dict[str, Any], base_dir: Path) -> None:
+    """Make the relative ``path`` options (:data:`PATH_TABLES`) of an extended file absolute
+    where they name a file beside it; others (a shipped model's name, a file relative to the
+    current folder) stay as written."""
+    for where, options in PATH_TABLES:
+        for table in _tables_at(raw, where):
+            for option in options:
+                text = table.get(option.name)
+                if option.kind != "path" or not isinstance(text, str) or not text.strip():
+                    continue
+                path = Path(text).expanduser()
+                if not path.is_absolute() and (base_dir / path).exists():
+                    table[option.name] = str(base_dir / path)
 
 
 def read_pipeline_file(path: str | os.PathLike, _chain: tuple[Path, ...] = ()) -> tuple[dict[str, Any], str]:
@@ -512,7 +520,7 @@ def read_pipeline_file(path: str | os.PathLike, _chain: tuple[Path, ...] = ()) -
     if not base_path.is_file():
         raise InputError(f"{path}: extends: no such file {str(base_path)!r}")
     base_raw, base_sha = read_pipeline_file(base_path, (*_chain, p))
-    _absolute_configs(base_raw, base_path.parent)
+    _rebase_paths(base_raw, base_path.parent)
     return merge_tables(base_raw, raw), sha_text([base_sha, sha])
 
 

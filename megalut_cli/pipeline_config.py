@@ -81,6 +81,24 @@ SET_OPTIONS: tuple[Option, ...] = (
 )
 SET_OPTION = {o.name: o for o in SET_OPTIONS}
 
+#: The keys of the ``[reference]`` table.
+REFERENCE_OPTIONS: tuple[Option, ...] = (
+    Option("model", "path", None, "a model file (relative to the pipeline file), or the name of a model shipped "
+           "with megalut: `\"fiducial\"` (`models/fiducial.h5`, the paper-size model) or `\"fiducial-1e6\"` "
+           "(`models/fiducial-1e6.h5`, the model shipped before it; [models/README.md](../models/README.md))",
+           default_text="required", allowed_text="a path, or a shipped model's name"),
+    Option("set", "str", "vo", "the set it is evaluated on, with the options of `[evaluate]`",
+           allowed_text="a set of the pipeline"),
+)
+REFERENCE_OPTION = {o.name: o for o in REFERENCE_OPTIONS}
+
+#: The tables whose ``path`` options name files relative to the pipeline file: where they sit
+#: in the file (``"*"``: every sub-table) and their declarations.
+PATH_TABLES: tuple[tuple[tuple[str, ...], tuple[Option, ...]], ...] = (
+    (("sets", "*"), SET_OPTIONS),
+    (("reference",), REFERENCE_OPTIONS),
+)
+
 
 @dataclass(frozen=True)
 class TrainPointSpec:

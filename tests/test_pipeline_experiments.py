@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -128,6 +129,25 @@ def test_named_pipelines_share_the_sets(tmp_path: Path) -> None:
     feat = run_pipeline(load_pipeline(select, ["name=feat", f"train_point.features={FIVE[:4]}"]), wd,
                         skip_existing=True)
     assert "copied" not in _statuses(feat).values() and "feat/pretrain-point" in _ran(feat)
+
+
+def test_extends_rebases_every_path_key_and_keeps_shipped_names(tmp_path: Path) -> None:
+    """The one rule for the path keys of an extended file (pipeline_config.PATH_TABLES): relative
+    to that file; a shipped model's name is not a path."""
+    from megalut_cli.nn.shipped import shipped_model
+
+    (tmp_path / "base").mkdir()
+    (tmp_path / "base" / "tp.toml").write_text((EXAMPLES / "fiducial" / "tp.toml").read_text())
+    shutil.copyfile(shipped_model("fiducial-1e6"), tmp_path / "base" / "ref.h5")
+    text = TINY_PIPELINE.replace("[sets.tp]\n", '[sets.tp]\nconfig = "tp.toml"\n')
+    write_pipeline(tmp_path / "base", text + '[reference]\nmodel = "ref.h5"\n', "base.toml")
+    child = write_pipeline(tmp_path, 'extends = "base/base.toml"\n', "child.toml")
+    pipe = load_pipeline(child)
+    assert pipe.reference is not None and pipe.reference.model == tmp_path / "base" / "ref.h5"
+    assert pipe.sets["tp"].config.structure.stamp_size == 64
+    write_pipeline(tmp_path / "base", text + '[reference]\nmodel = "fiducial"\n', "named.toml")
+    named = load_pipeline(write_pipeline(tmp_path, 'extends = "base/named.toml"\n', "child2.toml"))
+    assert named.reference is not None and named.reference.model == shipped_model("fiducial")
 
 
 def test_extends_merges_and_keeps_relative_configs(tmp_path: Path) -> None:
