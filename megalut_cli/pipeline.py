@@ -55,10 +55,9 @@ from typing import Any
 from megalut_cli.atomic import write_json
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, resolve_device
 from megalut_cli.errors import ConfigError, InputError, MegalutError
-from megalut_cli.nn.options import OPTION as TRAIN_OPTION
-from megalut_cli.nn.options import POINT_OPTION, WEIGHT_OPTION
+from megalut_cli.nn.options import POINT_OPTION
 from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
-from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
+from megalut_cli.nn.train import POINT_ITERATIONS
 from megalut_cli.pipeline_config import (
     DEFAULT_SET_SEEDS,
     MAX_NAME,
@@ -67,13 +66,17 @@ from megalut_cli.pipeline_config import (
     REFERENCE_OPTION,
     SCALE_BY,
     SET_OPTION,
+    TRAIN_POINT_KEYS,
+    TRAIN_WEIGHT_KEYS,
     EvaluateSpec,
     TrainPointSpec,
     TrainWeightSpec,
     key_names,
     merge_tables,
+    point_spec,
     selection_expression,
     train_options_from,
+    weight_spec,
 )
 from megalut_cli.progress import Progress, relabelled
 from megalut_cli.provenance import sha256_file
@@ -122,11 +125,8 @@ _NAME_RE = re.compile(rf"[A-Za-z0-9][A-Za-z0-9_-]{{0,{MAX_NAME - 1}}}")  # no ".
 
 #: Top-level keys a parsed pipeline may have (``extends`` is read with the file).
 _TOP_KEYS = set(PIPELINE) - {"extends"}
-_TRAIN_COMMON = {"features", "hidden", *TRAIN_OPTION}
-_TRAIN_POINT_KEYS = _TRAIN_COMMON | {"targets", "cost", "select_cases", "init"}
-_TRAIN_WEIGHT_KEYS = _TRAIN_COMMON | {"select"}
 #: Pretraining continues into train_point: same features and architecture.
-_PRETRAIN_KEYS = (_TRAIN_COMMON - {"features", "hidden"}) | {"targets", "cost", "select_cases", "init"}
+_PRETRAIN_KEYS = TRAIN_POINT_KEYS - {"features", "hidden"}
 _EVALUATE_KEYS = {*EVALUATE, "plot"}
 
 # --------------------------------------------------------------------------- specification
@@ -319,28 +319,13 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         seen[s.seed] = n
 
     pretrain = _pretrain_spec(top, "pretrain" in sets)
-    tp = Table(top.data.get("train_point"), "train_point", _TRAIN_POINT_KEYS)
-    point = TrainPointSpec(
-        features=tp.option(POINT_OPTION["features"]),
-        targets=tp.option(POINT_OPTION["targets"]),
-        hidden=tp.option(POINT_OPTION["hidden"]),
-        cost=tp.option(POINT_OPTION["cost"]),
-        select_cases=selection_expression(tp, "select_cases", True),
-        init=tp.option(POINT_OPTION["init"]),
-        options=train_options_from(tp, POINT_ITERATIONS, 1),
-    )
+    point = point_spec(Table(top.data.get("train_point"), "train_point", TRAIN_POINT_KEYS), 1)
     overlap = sorted(set(point.features) & set(point.targets))
     if overlap:
         raise ConfigError(f"train_point.features: {overlap[0]!r} is also a target")
     if pretrain is not None:
         _check_pretrain(pretrain, point, sets["pretrain"])
-    tw = Table(top.data.get("train_weight"), "train_weight", _TRAIN_WEIGHT_KEYS)
-    weight = TrainWeightSpec(
-        features=tw.option(WEIGHT_OPTION["features"]),
-        hidden=tw.option(WEIGHT_OPTION["hidden"]),
-        select=selection_expression(tw, "select", False),
-        options=train_options_from(tw, WEIGHT_ITERATIONS, 2),
-    )
+    weight = weight_spec(Table(top.data.get("train_weight"), "train_weight", TRAIN_WEIGHT_KEYS), 2)
     evaluate = _evaluate_spec(Table(top.data.get("evaluate"), "evaluate", _EVALUATE_KEYS), None)
     evaluate_vp = None
     if "vp" in sets:

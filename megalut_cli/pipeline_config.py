@@ -17,6 +17,8 @@ from typing import Any
 from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION
 from megalut_cli.errors import ConfigError, MegalutError
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
+from megalut_cli.nn.options import POINT_OPTION, WEIGHT_OPTION
+from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
 from megalut_cli.schema import Option, Table
 from megalut_cli.sim.config import STRUCTURE
 from megalut_cli.training import TrainOptions
@@ -144,6 +146,35 @@ def train_options_from(t: Table, iterations: int, seed: int) -> TrainOptions:
     their declarations (:mod:`megalut_cli.nn.options`)."""
     values = {k: v for k, v in t.data.items() if k in TRAIN_OPTION}
     return TrainOptions.from_values(values, t.where, {"iterations": iterations, "seed": seed})
+
+
+#: The keys of a ``[train_point]`` and a ``[train_weight]`` table (standard and GREAT3 pipelines).
+TRAIN_POINT_KEYS = {*POINT_OPTION, *TRAIN_OPTION, "select_cases"}
+TRAIN_WEIGHT_KEYS = {*WEIGHT_OPTION, *TRAIN_OPTION, "select"}
+
+
+def point_spec(t: Table, seed: int, **defaults: Any) -> TrainPointSpec:
+    """A ``[train_point]`` table read with the declarations of :mod:`megalut_cli.nn.options`;
+    ``seed`` and ``defaults`` (by key) are the pipeline's own defaults."""
+
+    def value(name: str) -> Any:
+        return t.option(POINT_OPTION[name], defaults.get(name))
+
+    return TrainPointSpec(
+        features=value("features"), targets=value("targets"), hidden=value("hidden"), cost=value("cost"),
+        select_cases=selection_expression(t, "select_cases", True), init=value("init"),
+        options=train_options_from(t, POINT_ITERATIONS, seed),
+    )
+
+
+def weight_spec(t: Table, seed: int, **defaults: Any) -> TrainWeightSpec:
+    """A ``[train_weight]`` table read with the declarations of :mod:`megalut_cli.nn.options`."""
+    return TrainWeightSpec(
+        features=t.option(WEIGHT_OPTION["features"], defaults.get("features")),
+        hidden=t.option(WEIGHT_OPTION["hidden"], defaults.get("hidden")),
+        select=selection_expression(t, "select", False),
+        options=train_options_from(t, WEIGHT_ITERATIONS, seed),
+    )
 
 
 def key_names(table: str) -> dict[str, str]:

@@ -38,16 +38,15 @@ import logging
 import os
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from megalut_cli.engine import DEFAULT_ENGINE, ENGINES
+from megalut_cli.engine import DEFAULT_ENGINE, ENGINE_OPTION
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.great3 import layout as L
 from megalut_cli.measure.stamps import MIN_STAMP_SIZE
-from megalut_cli.nn.options import OPTION as TRAIN_OPTION
-from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
+from megalut_cli.pipeline_config import SET_OPTIONS as PIPELINE_SET_OPTIONS
 from megalut_cli.pipeline_config import TrainPointSpec, TrainWeightSpec
 from megalut_cli.schema import Option, Table, resolve_path
 from megalut_cli.seeding import STREAM_SUBFIELD, int_seed_for
@@ -104,11 +103,23 @@ BRANCH_OPTIONS: tuple[Option, ...] = (
     Option("sigma2_min", "float", None, "`Q_c`'s σ²_min", minimum=0, min_open=True, default_text=_by_kind(SIGMA2_MIN)),
 )
 BRANCH = {o.name: o for o in BRANCH_OPTIONS}
-_SET_KEYS = {"config", "simulation", "n_cases", "n_realizations", "seed"}
-_COMMON_TRAIN = {"features", "hidden", *TRAIN_OPTION}
-_POINT_KEYS = _COMMON_TRAIN | {"targets", "cost", "select_cases", "init"}
-_WEIGHT_KEYS = _COMMON_TRAIN | {"select"}
-_OUTPUT_KEYS = {"weighted", "keep_sets"}
+#: The keys of the ``[tp]`` and ``[tw]`` tables: those of a standard pipeline's ``[sets.X]``
+#: but ``scale_by`` (a branch pipeline has no ``scale``).
+_SET_CHANGES = {
+    "config": {"help": "a simulation config file replacing the default set (below), relative to the pipeline "
+               "file", "default_text": "the paper's"},
+    "seed": {"default_text": "tp 1, tw 2"},
+}
+SET_OPTIONS: tuple[Option, ...] = tuple(
+    replace(o, **_SET_CHANGES.get(o.name, {})) for o in PIPELINE_SET_OPTIONS if o.name != "scale_by"
+)
+SET_OPTION = {o.name: o for o in SET_OPTIONS}
+#: The keys of the ``[output]`` table.
+OUTPUT_OPTIONS: tuple[Option, ...] = (
+    Option("weighted", "bool", True, "the submission from weighted means (false: plain means)"),
+    Option("keep_sets", "bool", False, "keep `tp.fits`, `tw.fits` per subfield (200 × ~50 MB at the paper's sizes)"),
+)
+OUTPUT = {o.name: o for o in OUTPUT_OPTIONS}
 
 # --------------------------------------------------------------------------- Table 3
 
@@ -260,9 +271,9 @@ def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, 
     from megalut_cli.pipeline_config import merge_tables
     from megalut_cli.sim.config import read_toml
 
-    t = Table(top.data.get(name), name, _SET_KEYS)
+    t = Table(top.data.get(name), name, set(SET_OPTION))
     if "config" in t.data:
-        cfg = _find_path(t.get_str("config", None) or "", t.key("config"), base_dir, want_dir=False)
+        cfg = _find_path(t.option(SET_OPTION["config"]), t.key("config"), base_dir, want_dir=False)
         raw, _ = read_toml(cfg)
         config_path, source = str(cfg), str(cfg)
     else:
@@ -277,10 +288,10 @@ def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, 
     if not isinstance(structure, dict):
         raise ConfigError(f"{name}: structure: expected a table")
     for k in ("n_cases", "n_realizations"):
-        v = t.get_int(k, None, 1)
+        v = t.option(SET_OPTION[k]) if k in t.data else None
         if v is not None:
             structure[k] = v
-    seed = t.get_int("seed", DEFAULT_SEEDS[name], 0)
+    seed = t.option(SET_OPTION["seed"], DEFAULT_SEEDS[name])
     return SetTemplate(name, raw, int(seed or 0), config_path, source)
 
 
@@ -322,7 +333,12 @@ def _check_features(names: Sequence[str], key: str) -> None:
 def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str = "",
                           overrides: Sequence[str] = (), base_dir: Path | None = None) -> BranchPipeline:
     """Validate a parsed branch pipeline (after ``key=value`` overrides); check the branch folder."""
-    from megalut_cli.pipeline_config import selection_expression, train_options_from
+    from megalut_cli.pipeline_config import (
+        TRAIN_POINT_KEYS,
+        TRAIN_WEIGHT_KEYS,
+        point_spec,
+        weight_spec,
+    )
     from megalut_cli.sim.config import apply_overrides
 
     raw = apply_overrides(dict(raw), overrides)
@@ -367,38 +383,26 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
     if sets["tp"].seed == sets["tw"].seed:
         raise ConfigError(f"tw.seed: {sets['tw'].seed} is also the seed of tp; every set needs its own seed")
 
-    tp = Table(top.data.get("train_point"), "train_point", _POINT_KEYS)
-    targets = tp.get_str_list("targets", list(TARGET_CHOICES[0])) or []
+    point = point_spec(Table(top.data.get("train_point"), "train_point", TRAIN_POINT_KEYS),
+                       DEFAULT_SEEDS["train_point"], targets=list(TARGET_CHOICES[0]), features=DEFAULT_FEATURES)
+    targets = point.targets
     if tuple(targets) not in TARGET_CHOICES:
         raise ConfigError(
             "train_point.targets: expected [\"tru_e1\", \"tru_e2\"] (the ellipticity shortcut) or "
             f"[\"tru_g1\", \"tru_g2\"], got {targets!r}"
         )
-    point = TrainPointSpec(
-        features=tp.get_str_list("features", DEFAULT_FEATURES) or [],
-        targets=targets,
-        hidden=tp.get_int_list("hidden", [5, 5]),
-        cost=tp.get_str("cost", "msb", ("msb", "mse")) or "msb",
-        select_cases=selection_expression(tp, "select_cases", True),
-        init=tp.get_str("init", "normal", ("normal", "identity")) or "normal",
-        options=train_options_from(tp, POINT_ITERATIONS, DEFAULT_SEEDS["train_point"]),
-    )
     _check_features(point.features, "train_point.features")
-    tw = Table(top.data.get("train_weight"), "train_weight", _WEIGHT_KEYS)
-    weight = TrainWeightSpec(
-        features=tw.get_str_list("features", point.features) or [],
-        hidden=tw.get_int_list("hidden", [5, 5]),  # "for all estimators ... two hidden layers" (Sect. 8.2)
-        select=selection_expression(tw, "select", False),
-        options=train_options_from(tw, WEIGHT_ITERATIONS, DEFAULT_SEEDS["train_weight"]),
-    )
+    # hidden [5, 5]: "for all estimators ... two hidden layers" (Sect. 8.2)
+    weight = weight_spec(Table(top.data.get("train_weight"), "train_weight", TRAIN_WEIGHT_KEYS),
+                         DEFAULT_SEEDS["train_weight"], features=point.features, hidden=[5, 5])
     _check_features(weight.features, "train_weight.features")
-    out = Table(top.data.get("output"), "output", _OUTPUT_KEYS)
+    out = Table(top.data.get("output"), "output", set(OUTPUT))
     pipe = BranchPipeline(
         path=path, sha256=sha256, overrides=tuple(overrides), raw=json.loads(json.dumps(raw, default=str)),
         description=description, branch_dir=branch_dir, kind=kind, stamp_size=int(size), epoch=int(epoch),
         subfields=subfields, strict=strict, truth=truth, sigma2_min=sigma2_min, sets=sets, point=point,
-        weight=weight, weighted=out.get_bool("weighted", True), keep_sets=out.get_bool("keep_sets", False),
-        problems=problems, engine=top.get_str("engine", DEFAULT_ENGINE, tuple(ENGINES)) or DEFAULT_ENGINE,
+        weight=weight, weighted=out.option(OUTPUT["weighted"]), keep_sets=out.option(OUTPUT["keep_sets"]),
+        problems=problems, engine=top.option(ENGINE_OPTION),
     )
     _check_templates(pipe)
     return pipe
