@@ -15,7 +15,7 @@ from megalut_cli.cli.options import (
     schema_option,
     seed_option,
 )
-from megalut_cli.shear.options import EVALUATE
+from megalut_cli.shear.options import EVALUATE, EVALUATE_CLI
 
 #: Exit code of ``--fail-above`` when the Stage IV requirement does not hold.
 EXIT_OUT_OF_TOLERANCE = 3
@@ -39,13 +39,7 @@ EXIT_OUT_OF_TOLERANCE = 3
     "--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
     help="Draw residual and conditional-bias panels into this .png/.pdf/.svg (needs the 'plot' extra).",
 )
-@click.option(
-    "--fail-above",
-    is_flag=True,
-    help=f"Exit with status {EXIT_OUT_OF_TOLERANCE} when the Stage IV requirement (|m| < 2e-3, "
-    "|c| < 2e-4 for every component) does not hold, on the weighted results when the catalog "
-    "has weights, else on the unweighted ones.",
-)
+@schema_option(EVALUATE_CLI["fail_above"], help=EVALUATE_CLI["fail_above"].help.replace("EXIT", str(EXIT_OUT_OF_TOLERANCE)))
 @click.option(
     "--great3-truth",
     "great3_truth",
@@ -56,32 +50,15 @@ EXIT_OUT_OF_TOLERANCE = 3
     "(subfield g1 g2 per line) or a predictions catalog with subfield or GREAT3 ID, and the "
     "cases are its subfields.",
 )
-@click.option(
-    "--sigma2-min",
-    type=click.FloatRange(min=0),
-    default=4.0,
-    show_default=True,
-    help="Damping term of the GREAT3 Q_c metric: 4 for ground branches, 1 for space.",
-)
+@schema_option(EVALUATE_CLI["sigma2_min"], show_default=True)
 @click.option(
     "--twin", "twin_path", type=click.Path(exists=True, dir_okay=False), default=None,
     help="Paired evaluation: SHEARS holds real galaxies and TWIN their Sersic twins, simulated from one "
     "config and seed; prints m, c of both and m_real - m_twin with paired-bootstrap errors over galaxies "
     "(--bootstrap resamples, --seed; docs/realgal.md).",
 )
-@click.option(
-    "--errors",
-    type=click.Choice(["auto", "fit", "bootstrap"]),
-    default="auto",
-    show_default=True,
-    help="Where the errors of m and c come from: 'fit' (residual scatter over cases), 'bootstrap' "
-    "(resample galaxies: realization groups, all their cases together; needs the 'rea' column), "
-    "'auto': bootstrap for common-random-number sets (header CRN = T), else fit.",
-)
-@click.option(
-    "--bootstrap", "n_bootstrap", type=click.IntRange(10, 100000), default=200, show_default=True,
-    help="Number of bootstrap resamples.",
-)
+@schema_option(EVALUATE_CLI["errors"], show_default=True)
+@schema_option(EVALUATE_CLI["bootstrap"], show_default=True)
 @seed_option(help="Seed of the bootstrap resampling.")
 @overwrite_option
 def command(
@@ -96,7 +73,7 @@ def command(
     great3_truth: str | None,
     sigma2_min: float,
     errors: str,
-    n_bootstrap: int,
+    bootstrap: int,
     twin_path: str | None,
     seed: int,
     overwrite: bool,
@@ -167,7 +144,7 @@ def command(
         check_plot_output(plot_path)
 
     if twin_path is not None:
-        _evaluate_twin(shears, twin_path, by_cols, bins, n_bootstrap, seed, json_path, overwrite,
+        _evaluate_twin(shears, twin_path, by_cols, bins, bootstrap, seed, json_path, overwrite,
                        other=[name for name, v in (("--great3-truth", great3_truth), ("--select", select),
                               ("--select-cases", select_cases), ("--plot", plot_path), ("--fail-above", fail_above),
                               ("--errors", errors != "auto")) if v])
@@ -183,7 +160,7 @@ def command(
                                  select=select, select_cases=select_cases, names=flag_names())
     else:
         result = evaluate_catalog(shears, by=by_cols, bins=bins, select=select, select_cases=select_cases,
-                                  sigma2_min=sigma2_min, errors=errors, n_bootstrap=n_bootstrap, seed=seed,
+                                  sigma2_min=sigma2_min, errors=errors, n_bootstrap=bootstrap, seed=seed,
                                   names=flag_names())
     if from_stdin:
         result["input"] = "stdin"

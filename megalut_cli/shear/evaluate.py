@@ -61,6 +61,7 @@ from megalut_cli.shear.bootstrap import (
     spread,
 )
 from megalut_cli.shear.conditional import assign_bins, equal_population_edges
+from megalut_cli.shear.options import ERROR_CHOICES, N_BOOTSTRAP
 
 log = logging.getLogger(__name__)
 
@@ -79,10 +80,6 @@ JSON_FORMAT_VERSION = "1.2"  # 1.1: "provenance"; 1.2: "error", "bootstrap"
 #: |m| above which a fit is flagged as the sign of an untrained or mismatched model
 #: (when it exceeds it by more than its 1-sigma error: noise alone does not warn).
 WARN_M = 0.1
-#: ``errors`` choices of :func:`evaluate_catalog` (``auto``: bootstrap for CRN sets, else fit).
-ERROR_CHOICES = ("auto", "fit", "bootstrap")
-#: Default number of bootstrap resamples.
-N_BOOTSTRAP = 200
 #: Galaxy groups below which bootstrap errors are flagged as rough.
 FEW_GROUPS = 30
 #: Bits of a (case, group) key that hold the group (case ids must fit in the rest).

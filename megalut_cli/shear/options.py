@@ -8,6 +8,7 @@ from __future__ import annotations
 from megalut_cli.atomic import OVERWRITE_OPTION
 from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION
 from megalut_cli.schema import Option
+from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND
 
 #: Most bins of a conditional bias (``--by``).
 MAX_BINS = 1000
@@ -23,6 +24,26 @@ EVALUATE_OPTIONS: tuple[Option, ...] = (
            "\"mean(snr) > 10\".", metavar="EXPR"),
 )
 EVALUATE = {o.name: o for o in EVALUATE_OPTIONS}
+
+#: Where the errors of m and c come from (``--errors``).
+ERROR_CHOICES = ("auto", "fit", "bootstrap")
+#: Bootstrap resamples of ``megalut evaluate`` by default.
+N_BOOTSTRAP = 200
+
+#: The options of ``megalut evaluate`` alone (not pipeline keys), files aside.
+EVALUATE_CLI_OPTIONS: tuple[Option, ...] = (
+    Option("fail_above", "bool", False, "Exit with status EXIT when the Stage IV requirement (|m| < 2e-3, "
+           "|c| < 2e-4 for every component) does not hold, on the weighted results when the catalog has weights, "
+           "else on the unweighted ones."),
+    Option("sigma2_min", "float", GREAT3_SIGMA2_MIN_GROUND, "Damping term of the GREAT3 Q_c metric: 4 for ground "
+           "branches, 1 for space.", minimum=0),
+    Option("errors", "choice", ERROR_CHOICES[0], "Where the errors of m and c come from: 'fit' (residual scatter "
+           "over cases), 'bootstrap' (resample galaxies: realization groups, all their cases together; needs the "
+           "'rea' column), 'auto': bootstrap for common-random-number sets (header CRN = T), else fit.",
+           choices=ERROR_CHOICES),
+    Option("bootstrap", "int", N_BOOTSTRAP, "Number of bootstrap resamples.", minimum=10, maximum=100000),
+)
+EVALUATE_CLI = {o.name: o for o in EVALUATE_CLI_OPTIONS}
 
 #: Fewest rows per chunk of ``megalut predict``.
 MIN_CHUNK_ROWS = 1000
