@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from megalut_cli.errors import MegalutError
+from megalut_cli.errors import MegalutError, OutputExistsError
 from megalut_cli.schema import Option
 
 #: ``--overwrite``: whether an existing output may be replaced.
@@ -28,7 +28,7 @@ def check_output(path: str | os.PathLike, overwrite: bool) -> Path:
     if p.is_dir():
         raise MegalutError(f"{p} is a directory, not a file")
     if p.exists() and not overwrite:
-        raise MegalutError(f"{p} exists; use --overwrite to replace it")
+        raise OutputExistsError(p)
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise MegalutError(f"{p}: output folder {parent} does not exist")
@@ -64,7 +64,7 @@ def atomic_output(path: str | os.PathLike, overwrite: bool = False) -> Iterator[
         if not tmp_path.exists():
             raise MegalutError(f"internal error: nothing was written for {final}")
         if final.exists() and not overwrite:  # appeared while we worked
-            raise MegalutError(f"{final} exists; use --overwrite to replace it")
+            raise OutputExistsError(final)
         os.replace(tmp_path, final)
     finally:
         if tmp_path.exists():

@@ -23,6 +23,19 @@ class InputError(MegalutError):
     exit_code = 1
 
 
+class OutputExistsError(MegalutError):
+    """An output exists and the caller did not allow replacing it (exit code 1); the
+    message names the library's argument, the command line its ``--overwrite``."""
+
+    def __init__(self, path: object, argument: str = "overwrite=True") -> None:
+        super().__init__(f"{path} exists; pass {argument} to replace it")
+        self.path = path
+
+    def named(self, argument: str) -> str:
+        """The message with the caller's name for the argument (``--overwrite``)."""
+        return f"{self.path} exists; use {argument} to replace it"
+
+
 #: How a caller names the library's arguments in its messages, e.g. ``{"stamp_size":
 #: "--stamp-size"}`` from the command line or ``{"n_cases": "sets.tp.n_cases"}`` from a
 #: pipeline file; an argument missing from it is named as it is.

@@ -42,7 +42,7 @@ def test_catalog_chunks_and_columns(tmp_path):
 def test_catalog_refuses_overwrite_and_bad_files(tmp_path):
     path = tmp_path / "c.fits"
     catalog.write_catalog(path, _table(), fmt="megalut.test")
-    with pytest.raises(MegalutError, match="--overwrite"):
+    with pytest.raises(MegalutError, match="exists; pass overwrite=True to replace it"):
         catalog.write_catalog(path, _table(), fmt="megalut.test")
     bad = tmp_path / "bad.fits"
     bad.write_bytes(path.read_bytes()[:4000])
@@ -187,3 +187,17 @@ def test_case_expression_rejects_varying_bare_column():
 def test_flags_explain():
     assert flags.explain(flags.HSM_FAILED | flags.BAD_PIXELS) == ["HSM_FAILED", "BAD_PIXELS"]
     assert flags.explain(0) == []
+
+
+def test_an_existing_output_is_named_by_the_library_argument_and_by_the_cli_flag(tmp_path, runner, cli):
+    """The library says ``overwrite=True``; the command line maps it to ``--overwrite``."""
+    from megalut_cli.atomic import check_output
+    from megalut_cli.errors import OutputExistsError
+
+    out = tmp_path / "x.fits"
+    out.write_text("x")
+    with pytest.raises(OutputExistsError) as err:
+        check_output(out, overwrite=False)
+    assert str(err.value) == f"{out} exists; pass overwrite=True to replace it"
+    result = runner.invoke(cli, ["evaluate", str(out), "--json", str(out)])
+    assert result.exit_code == 1 and f"{out} exists; use --overwrite to replace it" in result.stderr

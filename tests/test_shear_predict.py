@@ -171,7 +171,7 @@ def test_empty_catalog_and_overwrite(tmp_path, model_path):
     P.predict_catalog(src, model_path, out)
     t = read_catalog(out)
     assert len(t) == 0 and "pre_g2_w" in t.colnames
-    with pytest.raises(MegalutError, match="--overwrite"):
+    with pytest.raises(MegalutError, match="exists; pass overwrite=True"):
         P.predict_catalog(src, model_path, out)
     P.predict_catalog(src, model_path, out, overwrite=True)
 

@@ -80,7 +80,7 @@ def test_refuses_overwrite_and_same_paths(tmp_path):
     cfg = load_config(write(tmp_path))
     out = tmp_path / "c.fits"
     out.write_text("keep me")
-    with pytest.raises(MegalutError, match="exists; use --overwrite"):
+    with pytest.raises(MegalutError, match="exists; pass overwrite=True"):
         simulate(cfg, out, measure=True)
     assert out.read_text() == "keep me"
     with pytest.raises(MegalutError, match="must be different files"):

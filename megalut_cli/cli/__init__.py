@@ -18,7 +18,7 @@ import click
 from megalut_cli import __version__
 from megalut_cli.cli.console import setup_logging, user_facing
 from megalut_cli.cli.options import verbosity, verbosity_options
-from megalut_cli.errors import MegalutError
+from megalut_cli.errors import MegalutError, OutputExistsError
 from megalut_cli.provenance import set_command_line
 
 log = logging.getLogger("megalut")
@@ -42,7 +42,8 @@ class MegalutGroup(click.Group):
         try:
             return super().invoke(ctx)
         except MegalutError as err:
-            exc = click.ClickException(user_facing(str(err)))
+            text = err.named("--overwrite") if isinstance(err, OutputExistsError) else str(err)
+            exc = click.ClickException(user_facing(text))
             exc.exit_code = err.exit_code
             raise exc from None
         except KeyboardInterrupt:
