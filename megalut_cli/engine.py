@@ -73,6 +73,6 @@ def resolve_device(name: str) -> str:
         return "gpu"
     if name == "auto":
         return "cpu"
-    from megalut_cli.errors import MegalutError
+    from megalut_cli.errors import ArgumentError
 
-    raise MegalutError(f"--device gpu: {problem}")
+    raise ArgumentError("device", f" gpu: {problem}")

@@ -23,6 +23,23 @@ class InputError(MegalutError):
     exit_code = 1
 
 
+class ArgumentError(MegalutError):
+    """A problem with one argument of a library call, a message that starts with its name:
+    the argument's own name here, the caller's (a command-line flag) through :meth:`named`."""
+
+    def __init__(self, argument: str, rest: str) -> None:
+        super().__init__(argument + rest)
+        self.argument = argument
+        self.rest = rest
+
+    def named(self, name: str) -> str:
+        return name + self.rest
+
+
+class ArgumentValueError(ArgumentError, ConfigError):
+    """An :class:`ArgumentError` about a value that cannot be right (exit code 2)."""
+
+
 class OutputExistsError(MegalutError):
     """An output exists and the caller did not allow replacing it (exit code 1); the
     message names the library's argument, the command line its ``--overwrite``."""

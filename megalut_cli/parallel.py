@@ -18,7 +18,7 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, TypeVar
 
-from megalut_cli.errors import ConfigError, MegalutError
+from megalut_cli.errors import ArgumentError, ArgumentValueError, MegalutError
 from megalut_cli.schema import Option
 
 log = logging.getLogger(__name__)
@@ -73,9 +73,7 @@ def _dask_client(scheduler: str) -> Any:
     try:
         from distributed import Client
     except ImportError:
-        raise MegalutError(
-            "--scheduler needs Dask: pip install 'megalut-cli[dask]'"
-        ) from None
+        raise ArgumentError("scheduler", " needs Dask: pip install 'megalut-cli[dask]'") from None
     try:
         if "://" in scheduler:
             return Client(scheduler, timeout="30s")
@@ -83,8 +81,8 @@ def _dask_client(scheduler: str) -> Any:
             return Client(scheduler_file=scheduler, timeout="30s")
     except (OSError, TimeoutError) as err:
         raise MegalutError(f"cannot reach the Dask scheduler at {scheduler}: {err}") from None
-    raise ConfigError(
-        f"--scheduler {scheduler!r} is neither an address (tcp://host:port) nor a scheduler file"
+    raise ArgumentValueError(
+        "scheduler", f" {scheduler!r} is neither an address (tcp://host:port) nor a scheduler file"
     )
 
 

@@ -31,7 +31,7 @@ from typing import Any
 
 from megalut_cli import __version__
 from megalut_cli.atomic import atomic_output, write_json
-from megalut_cli.errors import MegalutError
+from megalut_cli.errors import ArgumentError, MegalutError
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.provenance import sha256_file, utc_now
 
@@ -271,11 +271,11 @@ def check_workdir(workdir: Path, steps: Sequence[Entry], skip_existing: bool, ov
     """Fail early: a file where the folder should be, an unwritable place, or products
     (or the files named in ``also``) there without ``skip_existing`` or ``overwrite``."""
     if workdir.exists() and not workdir.is_dir():
-        raise MegalutError(f"--workdir {workdir}: exists and is not a folder")
+        raise ArgumentError("workdir", f" {workdir}: exists and is not a folder")
     existing = next((p for p in (workdir, *workdir.absolute().parents) if p.exists()), Path("."))
     if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
         where = "" if existing == workdir else f" (its folder {existing})"
-        raise MegalutError(f"--workdir {workdir}: not writable{where}")
+        raise ArgumentError("workdir", f" {workdir}: not writable{where}")
     if skip_existing or overwrite:
         return
     for name in dict.fromkeys([*products(steps), *also, MANIFEST]):

@@ -23,7 +23,7 @@ def no_jax(monkeypatch):
 def test_resolution_without_the_extra(no_jax) -> None:
     assert resolve_device("cpu") == "cpu"
     assert resolve_device("auto") == "cpu"
-    with pytest.raises(MegalutError, match=r"--device gpu: the GPU backend is not installed \(pip install"):
+    with pytest.raises(MegalutError, match=r"^device gpu: the GPU backend is not installed \(pip install"):
         resolve_device("gpu")
     with pytest.raises(ConfigError, match="device: unknown value 'tpu'"):
         resolve_device("tpu")

@@ -201,3 +201,26 @@ def test_an_existing_output_is_named_by_the_library_argument_and_by_the_cli_flag
     assert str(err.value) == f"{out} exists; pass overwrite=True to replace it"
     result = runner.invoke(cli, ["evaluate", str(out), "--json", str(out)])
     assert result.exit_code == 1 and f"{out} exists; use --overwrite to replace it" in result.stderr
+
+
+def test_argument_errors_name_the_argument_and_the_cli_names_the_flag(tmp_path, runner, cli):
+    """Library messages about --workdir, --scheduler, --device name the argument; the command
+    line maps it to the running command's flag, exit codes unchanged."""
+    from pipeline_configs import write_pipeline
+
+    from megalut_cli.errors import ArgumentError, ConfigError
+    from megalut_cli.parallel import executor
+    from megalut_cli.steps import check_workdir
+
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(ArgumentError) as err:
+        check_workdir(blocker, [], False, False)
+    assert str(err.value) == f"workdir {blocker}: exists and is not a folder"
+    with pytest.raises(ConfigError, match=r"^scheduler 'nowhere' is neither an address"):
+        with executor(1, "nowhere"):
+            pass
+    result = runner.invoke(cli, ["run", str(write_pipeline(tmp_path)), "--workdir", str(tmp_path / "wd"),
+                                 "--scheduler", "nowhere", "-q"])
+    assert result.exit_code == 2, result.stderr
+    assert "--scheduler 'nowhere' is neither an address" in result.stderr

@@ -32,7 +32,7 @@ def test_device_resolution(monkeypatch) -> None:
     assert resolve_device("gpu") == "gpu"  # JAX's CPU mode counts as the device here
     monkeypatch.setenv(PLATFORM_ENV, "no-such-platform")
     assert resolve_device("auto") == "cpu"
-    with pytest.raises(MegalutError, match="--device gpu: JAX finds no no-such-platform device"):
+    with pytest.raises(MegalutError, match="^device gpu: JAX finds no no-such-platform device"):
         resolve_device("gpu")
 
 

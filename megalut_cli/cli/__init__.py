@@ -17,8 +17,8 @@ import click
 
 from megalut_cli import __version__
 from megalut_cli.cli.console import setup_logging, user_facing
-from megalut_cli.cli.options import verbosity, verbosity_options
-from megalut_cli.errors import MegalutError, OutputExistsError
+from megalut_cli.cli.options import flag_names, verbosity, verbosity_options
+from megalut_cli.errors import ArgumentError, MegalutError, OutputExistsError
 from megalut_cli.provenance import set_command_line
 
 log = logging.getLogger("megalut")
@@ -38,12 +38,22 @@ class MegalutGroup(click.Group):
     def list_commands(self, ctx: click.Context) -> list[str]:
         return list(self.commands)  # the order of the data flow, not alphabetical
 
+    def message(self, ctx: click.Context, err: MegalutError) -> str:
+        """A library error in the words of the command line: an argument it names becomes
+        the running subcommand's flag (``workdir`` -> ``--workdir``)."""
+        if isinstance(err, OutputExistsError):
+            return err.named("--overwrite")
+        if isinstance(err, ArgumentError):
+            command = self.commands.get(ctx.invoked_subcommand or "")
+            flags = flag_names(command) if command is not None else {}
+            return err.named(flags.get(err.argument, "--" + err.argument.replace("_", "-")))
+        return str(err)
+
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
         except MegalutError as err:
-            text = err.named("--overwrite") if isinstance(err, OutputExistsError) else str(err)
-            exc = click.ClickException(user_facing(text))
+            exc = click.ClickException(user_facing(self.message(ctx, err)))
             exc.exit_code = err.exit_code
             raise exc from None
         except KeyboardInterrupt:
