@@ -40,6 +40,25 @@ class ArgumentValueError(ArgumentError, ConfigError):
     """An :class:`ArgumentError` about a value that cannot be right (exit code 2)."""
 
 
+class HintError(MegalutError):
+    """An error whose message suggests arguments to pass: ``template`` names them as
+    ``{argument}``; the library writes ``argument=True``, a caller its own words through
+    :meth:`named` (the command line: its flags)."""
+
+    def __init__(self, template: str, *arguments: str) -> None:
+        self.template = template
+        self.arguments = arguments
+        super().__init__(self.named({a: f"{a}=True" for a in arguments}))
+
+    def named(self, names: Mapping[str, str]) -> str:
+        return self.template.format(**{a: names.get(a, a) for a in self.arguments})
+
+
+def braces_escaped(text: object) -> str:
+    """``text`` fit to sit in a :class:`HintError` template."""
+    return str(text).replace("{", "{{").replace("}", "}}")
+
+
 class OutputExistsError(MegalutError):
     """An output exists and the caller did not allow replacing it (exit code 1); the
     message names the library's argument, the command line its ``--overwrite``."""

@@ -31,7 +31,7 @@ from typing import Any
 
 from megalut_cli import __version__
 from megalut_cli.atomic import atomic_output, write_json
-from megalut_cli.errors import ArgumentError, MegalutError
+from megalut_cli.errors import ArgumentError, HintError, MegalutError, braces_escaped
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.provenance import sha256_file, utc_now
 
@@ -184,8 +184,9 @@ class Manifest:
                 data = {}
             fmt = data.get("format") if isinstance(data, dict) else None
             if skip_existing and isinstance(fmt, str) and fmt != MANIFEST_FORMAT:
-                raise MegalutError(f"{path}: written by an older megalut (format {fmt}), its records cannot be "
-                                   "reused; use --overwrite to redo the work")
+                raise HintError(f"{braces_escaped(path)}: written by an older megalut (format "
+                                f"{braces_escaped(fmt)}), its records cannot be reused; use {{overwrite}} to "
+                                "redo the work", "overwrite")
             if isinstance(data, dict) and fmt == MANIFEST_FORMAT and isinstance(data.get("steps"), dict):
                 self.steps = data["steps"]
                 if isinstance(data.get("pipelines"), dict):
@@ -280,9 +281,9 @@ def check_workdir(workdir: Path, steps: Sequence[Entry], skip_existing: bool, ov
         return
     for name in dict.fromkeys([*products(steps), *also, MANIFEST]):
         if (workdir / name).exists():
-            raise MegalutError(
-                f"{workdir / name} exists; use --skip-existing to reuse the up-to-date products "
-                "or --overwrite to redo every step"
+            raise HintError(
+                f"{braces_escaped(workdir / name)} exists; use {{skip_existing}} to reuse the up-to-date "
+                "products or {overwrite} to redo every step", "skip_existing", "overwrite",
             )
 
 

@@ -181,7 +181,7 @@ def test_run_end_to_end_and_skip_existing(tmp_path: Path) -> None:
     assert manifest["steps"]["train-weight"]["inputs"].keys() == {"tw.fits", "point.h5"}
 
     # Refuses to touch existing products without a flag, before doing anything.
-    with pytest.raises(MegalutError, match="exists; use --skip-existing"):
+    with pytest.raises(MegalutError, match="exists; use skip_existing=True to reuse the up-to-date products or overwrite=True"):
         run_pipeline(load_pipeline(path), wd)
 
     # Nothing changed: every step is skipped, the evaluation is the same.

@@ -104,7 +104,7 @@ def test_named_pipelines_share_the_sets(tmp_path: Path) -> None:
     wd = tmp_path / "work"
     first = run_pipeline(load_pipeline(base), wd)
     assert first.evaluation["select"] == "snr > 20"
-    with pytest.raises(MegalutError, match="exists; use --skip-existing"):
+    with pytest.raises(MegalutError, match="exists; use skip_existing=True"):
         run_pipeline(load_pipeline(select), wd)
     res = run_pipeline(load_pipeline(select), wd, skip_existing=True)
     statuses = _statuses(res)

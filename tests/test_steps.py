@@ -76,7 +76,7 @@ def test_check_workdir_refuses_products_without_a_flag(tmp_path: Path) -> None:
     steps = toy_steps([], 1)
     check_workdir(tmp_path, steps, False, False)  # empty: fine
     (tmp_path / "b.txt").write_text("old")
-    with pytest.raises(MegalutError, match="b.txt exists; use --skip-existing"):
+    with pytest.raises(MegalutError, match="b.txt exists; use skip_existing=True to reuse the up-to-date products or overwrite=True to redo"):
         check_workdir(tmp_path, steps, False, False)
     check_workdir(tmp_path, steps, True, False)
     check_workdir(tmp_path, steps, False, True)
@@ -217,7 +217,7 @@ def test_units_do_not_depend_on_workers(tmp_path: Path) -> None:
 
 def test_old_manifest_format_is_refused_with_skip_existing(tmp_path: Path) -> None:
     (tmp_path / MANIFEST).write_text(json.dumps({"format": "megalut.great3-run", "subfields": {}}))
-    with pytest.raises(MegalutError, match=r"older megalut \(format megalut.great3-run\).*--overwrite"):
+    with pytest.raises(MegalutError, match=r"older megalut \(format megalut.great3-run\).*use overwrite=True to redo"):
         run_steps(toy_units(tmp_path), tmp_path, RUN, skip_existing=True)
     run_steps(toy_units(tmp_path), tmp_path, RUN, overwrite=True)  # --overwrite replaces it
     assert json.loads((tmp_path / MANIFEST).read_text())["format"] == "megalut.run-manifest"

@@ -18,7 +18,7 @@ import click
 from megalut_cli import __version__
 from megalut_cli.cli.console import setup_logging, user_facing
 from megalut_cli.cli.options import flag_names, verbosity, verbosity_options
-from megalut_cli.errors import ArgumentError, MegalutError, OutputExistsError
+from megalut_cli.errors import ArgumentError, HintError, MegalutError, OutputExistsError
 from megalut_cli.provenance import set_command_line
 
 log = logging.getLogger("megalut")
@@ -43,11 +43,17 @@ class MegalutGroup(click.Group):
         the running subcommand's flag (``workdir`` -> ``--workdir``)."""
         if isinstance(err, OutputExistsError):
             return err.named("--overwrite")
+        if not isinstance(err, (ArgumentError, HintError)):
+            return str(err)
+        command = self.commands.get(ctx.invoked_subcommand or "")
+        flags = flag_names(command) if command is not None else {}
+
+        def flag(argument: str) -> str:
+            return flags.get(argument, "--" + argument.replace("_", "-"))
+
         if isinstance(err, ArgumentError):
-            command = self.commands.get(ctx.invoked_subcommand or "")
-            flags = flag_names(command) if command is not None else {}
-            return err.named(flags.get(err.argument, "--" + err.argument.replace("_", "-")))
-        return str(err)
+            return err.named(flag(err.argument))
+        return err.named({a: flag(a) for a in err.arguments})
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
