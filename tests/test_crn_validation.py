@@ -1,10 +1,11 @@
-"""Common-random-number validation sets against independent ones, with the shipped model (slow).
+"""Common-random-number validation sets against independent ones, with a shipped model (slow).
 
 On the same number of stamps (K shears x N realizations, fiducial VO galaxies), a CRN set
 (examples/fiducial/vo-crn.toml: the same galaxy pairs under every shear) measures m with an
 error several times smaller than an independent set (examples/fiducial/vo.toml), and both
 quoted errors (bootstrap over galaxies for CRN, the fit for independent cases) match the
-scatter of m over seeds. Seeds 2001.. are used by no training set of models/fiducial.h5.
+scatter of m over seeds. Seeds 2001.. are used by no training set of models/fiducial-1e6.h5
+(the model of the table recorded in examples/fiducial/README.md).
 Run with ``python -m pytest -m slow -s tests/test_crn_validation.py`` (a few minutes).
 """
 
@@ -16,7 +17,7 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-MODEL = ROOT / "models" / "fiducial.h5"
+MODEL = ROOT / "models" / "fiducial-1e6.h5"
 CONFIGS = {"crn": ROOT / "examples" / "fiducial" / "vo-crn.toml", "independent": ROOT / "examples" / "fiducial" / "vo.toml"}
 N_CASES, N_REA, SEEDS = 8, 200, range(2001, 2007)
 
@@ -40,7 +41,7 @@ def _run(kind: str, seed: int, tmp_path: Path) -> dict:
 @pytest.mark.slow
 def test_crn_error_on_m_is_several_times_smaller_and_both_are_right(tmp_path):
     if not MODEL.exists():
-        pytest.skip("models/fiducial.h5 is not shipped in this checkout")
+        pytest.skip("models/fiducial-1e6.h5 is not shipped in this checkout")
     results = {kind: [_run(kind, s, tmp_path) for s in SEEDS] for kind in CONFIGS}
     assert all(r["error"] == "bootstrap-galaxies" for r in results["crn"])
     assert all(r["error"] == "fit" for r in results["independent"])

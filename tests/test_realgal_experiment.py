@@ -1,7 +1,8 @@
 """The real-vs-twin experiment end to end (slow): examples/realgal at a small size.
 
 Real COSMOS galaxies and their Sérsic twins are simulated from one config and seed,
-predicted with models/fiducial.h5 and compared with the paired bootstrap. Run with
+predicted with models/fiducial-1e6.h5 (the model of the recorded results) and compared with
+the paired bootstrap. Run with
 ``python -m pytest -m slow -s tests/test_realgal_experiment.py`` (about 3 minutes on 2 cores).
 """
 
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-MODEL = ROOT / "models" / "fiducial.h5"
+MODEL = ROOT / "models" / "fiducial-1e6.h5"
 CONFIG = ROOT / "examples" / "realgal" / "fiducial.toml"
 
 
@@ -25,7 +26,7 @@ def test_real_vs_twin_paired_bias(tmp_path):
     from megalut_cli.sim.simulate import simulate
 
     if not MODEL.exists():
-        pytest.skip("models/fiducial.h5 is not shipped in this checkout")
+        pytest.skip("models/fiducial-1e6.h5 is not shipped in this checkout")
     shears = {}
     for name, overrides in (("real", []), ("twin", ["galaxy.twin='sersic'"])):
         cfg = load_config(CONFIG, overrides, n_cases=8)
