@@ -12,7 +12,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from megalut_cli.great3.pipeline import BRANCH_OPTIONS, OUTPUT_OPTIONS
+from megalut_cli.great3.pipeline import BRANCH_OPTIONS, OUTPUT_OPTIONS, TOP_OPTIONS
 from megalut_cli.great3.pipeline import SET_OPTIONS as GREAT3_SET_OPTIONS
 from megalut_cli.measure.options import ALL_MEASURE_OPTIONS
 from megalut_cli.nn.options import POINT_OPTIONS, WEIGHT_OPTIONS, train_options
@@ -35,6 +35,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "pipeline-sets": lambda: docs_table(SET_OPTIONS, cli=False),
     "pipeline-reference": lambda: docs_table(REFERENCE_OPTIONS, cli=False),
     "great3-branch": lambda: docs_table(BRANCH_OPTIONS, cli=False, prefix="branch."),
+    "great3-top": lambda: docs_table(TOP_OPTIONS, cli=False),
     "great3-sets": lambda: docs_table(GREAT3_SET_OPTIONS, cli=False),
     "great3-output": lambda: docs_table(OUTPUT_OPTIONS, cli=False, prefix="output."),
     "measure": lambda: docs_table(ALL_MEASURE_OPTIONS, keys=False),

@@ -46,8 +46,8 @@ from megalut_cli.engine import DEFAULT_ENGINE, ENGINE_OPTION
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.great3 import layout as L
 from megalut_cli.measure.stamps import MIN_STAMP_SIZE
+from megalut_cli.pipeline_config import PIPELINE, TrainPointSpec, TrainWeightSpec
 from megalut_cli.pipeline_config import SET_OPTIONS as PIPELINE_SET_OPTIONS
-from megalut_cli.pipeline_config import TrainPointSpec, TrainWeightSpec
 from megalut_cli.schema import Option, Table, resolve_path
 from megalut_cli.seeding import STREAM_SUBFIELD, int_seed_for
 from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND, GREAT3_SIGMA2_MIN_SPACE
@@ -76,7 +76,6 @@ UNIT_RECORD_FORMAT = "megalut.great3-run"
 UNIT_PRODUCTS = ("features.fits", "stars.fits", "model.h5", "shears.fits")
 SHEARS_FORMAT = "megalut.predictions"
 
-_TOP_KEYS = {"description", "engine", "branch", "tp", "tw", "train_point", "train_weight", "output"}
 
 
 def _by_kind(values: Mapping[str, Any]) -> str:
@@ -120,6 +119,27 @@ OUTPUT_OPTIONS: tuple[Option, ...] = (
     Option("keep_sets", "bool", False, "keep `tp.fits`, `tw.fits` per subfield (200 × ~50 MB at the paper's sizes)"),
 )
 OUTPUT = {o.name: o for o in OUTPUT_OPTIONS}
+#: The top-level keys of a branch pipeline file.
+TOP_OPTIONS: tuple[Option, ...] = (
+    PIPELINE["description"],
+    replace(ENGINE_OPTION, help="stamp engine of `measure` and the training simulations, as in "
+            "[pipeline.md](pipeline.md) ([engines.md](engines.md))"),
+    Option("branch", "table", None, "the branch and how to read it (above)", default_text="required"),
+    Option("tp", "table", None, "the per-subfield point-training set (below)", default_text="the paper's"),
+    Option("tw", "table", None, "the per-subfield weight-training set (below); its seed must differ from tp's",
+           default_text="the paper's"),
+    Option("train_point", "table", None, "as in [pipeline.md](pipeline.md): `features` (default "
+           "`[\"adamom_g{i}\", \"adamom_sigma\", \"adamom_flux\", \"adamom_rho4\"]`, `{i}` = the component), "
+           "`targets` (`[\"tru_e1\", \"tru_e2\"]`, or `[\"tru_g1\", \"tru_g2\"]` with a sheared `tp`), `hidden` "
+           "([5, 5]), `members` (8), `keep`, `iterations` (1000), `cost`, `select_cases`, `init`, `normalization`, "
+           "`optimizer`, `precision`, `valid_fraction`, `batch_fraction`, `batch_iterations`, `seed` (3)",
+           default_text="see meaning"),
+    Option("train_weight", "table", None, "the same keys (no `targets`, `cost`, `select_cases`, `init`), plus "
+           "`select`; `features` default those of `train_point`, `hidden` [5, 5] (the paper's choice for all its "
+           "GREAT3 estimators), `iterations` 300, `seed` 4", default_text="see meaning"),
+    Option("output", "table", None, "what the run writes (below)", default_text="see below"),
+)
+TOP = {o.name: o for o in TOP_OPTIONS}
 
 # --------------------------------------------------------------------------- Table 3
 
@@ -342,10 +362,8 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
     from megalut_cli.sim.config import apply_overrides
 
     raw = apply_overrides(dict(raw), overrides)
-    top = Table(raw, "", _TOP_KEYS)
-    description = top.data.get("description", "")
-    if not isinstance(description, str):
-        raise ConfigError("description: expected a string")
+    top = Table(raw, "", set(TOP))
+    description = top.option(TOP["description"])
     b = Table(top.data.get("branch"), "branch", set(BRANCH))
     if "path" not in b.data:
         raise ConfigError("branch.path: missing (the branch folder, in the GREAT3 layout)")
@@ -402,7 +420,7 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
         description=description, branch_dir=branch_dir, kind=kind, stamp_size=int(size), epoch=int(epoch),
         subfields=subfields, strict=strict, truth=truth, sigma2_min=sigma2_min, sets=sets, point=point,
         weight=weight, weighted=out.option(OUTPUT["weighted"]), keep_sets=out.option(OUTPUT["keep_sets"]),
-        problems=problems, engine=top.option(ENGINE_OPTION),
+        problems=problems, engine=top.option(TOP["engine"]),
     )
     _check_templates(pipe)
     return pipe
