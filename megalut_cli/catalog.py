@@ -8,6 +8,7 @@ version (``MLFORMAT``/``MLFMTVER``), any extra cards (seeds, model hash, ...) an
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 from collections.abc import Iterable, Iterator, Mapping, Sequence
@@ -361,13 +362,70 @@ def write_catalog(
     units and descriptions; ``extra_hdus`` (EXTNAME -> structured array, e.g. the
     ``CONFIG`` of :func:`read_carried_hdus`) follow as further table HDUs."""
     arr = _to_structured(table)
-    recs = header_cards(fmt, fmt_version, cards, history, columns=arr.dtype.names)
-    with atomic_output(path, overwrite) as tmp:
-        with fitsio.FITS(str(tmp), "rw", clobber=True) as f:
-            write_table_hdu(f, arr, recs, extname)
-            for name, extra in (extra_hdus or {}).items():
-                f.write(extra, extname=name)
+    with catalog_writer(path, fmt=fmt, fmt_version=fmt_version, overwrite=overwrite, cards=cards, history=history,
+                        extname=extname, extra_hdus=extra_hdus) as writer:
+        writer.append(arr)
     return Path(path)
+
+
+class CatalogWriter:
+    """A catalog table written chunk by chunk into an open FITS file (:func:`catalog_writer`):
+    the first chunk fixes the columns and the header, later ones are appended in order."""
+
+    def __init__(self, fits: fitsio.FITS, header: Any, extname: str) -> None:
+        self._fits = fits
+        self._header = header
+        self._extname = extname
+        self._dtype: np.dtype | None = None
+        self.n_rows = 0
+
+    def append(self, table: Table | Mapping[str, np.ndarray] | np.ndarray) -> None:
+        """Append the rows of ``table`` (columns as in the first chunk, in any order)."""
+        arr = table if isinstance(table, np.ndarray) and table.dtype.names else _to_structured(table)
+        if self._dtype is None:
+            self._dtype = arr.dtype
+            write_table_hdu(self._fits, arr, self._header(arr.dtype.names), self._extname)
+        else:
+            if set(arr.dtype.names) != set(self._dtype.names):
+                raise ValueError(f"chunk columns {arr.dtype.names} differ from {self._dtype.names}")
+            if arr.dtype != self._dtype:
+                cast = np.zeros(len(arr), dtype=self._dtype)
+                for name in self._dtype.names:
+                    cast[name] = arr[name]
+                arr = cast
+            self._fits[self._extname].append(arr)
+        self.n_rows += len(arr)
+
+    @property
+    def started(self) -> bool:
+        """Whether the table exists (a first chunk, possibly empty, was appended)."""
+        return self._dtype is not None
+
+
+@contextlib.contextmanager
+def catalog_writer(
+    path: str | os.PathLike,
+    *,
+    fmt: str,
+    fmt_version: str = "1.0",
+    overwrite: bool = False,
+    cards: Mapping[str, Any] | None = None,
+    history: Sequence[str] | None = None,
+    extname: str = "CATALOG",
+    extra_hdus: Mapping[str, np.ndarray] | None = None,
+) -> Iterator[CatalogWriter]:
+    """Stream a catalog to ``path``: a :class:`CatalogWriter` whose chunks go to a temporary
+    file, renamed to ``path`` when the block ends without error (header as
+    :func:`write_catalog`'s; ``extra_hdus`` follow the table)."""
+    with atomic_output(path, overwrite) as tmp, fitsio.FITS(str(tmp), "rw", clobber=True) as fits:
+        writer = CatalogWriter(
+            fits, lambda columns: header_cards(fmt, fmt_version, cards, history, columns=columns), extname
+        )
+        yield writer
+        if not writer.started:
+            raise ValueError("a catalog needs at least one (possibly empty) chunk")
+        for name, extra in (extra_hdus or {}).items():
+            fits.write(extra, extname=name)
 
 
 def write_table_hdu(fits: fitsio.FITS, arr: np.ndarray, recs: Sequence[Mapping[str, Any]], extname: str = "CATALOG") -> None:

@@ -12,8 +12,9 @@ import contextlib
 import logging
 import os
 import signal
-from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, TypeVar
@@ -153,6 +154,30 @@ def map_units(
             fut.cancel()
         raise
     return results
+
+
+def map_ordered(
+    func: Callable[[Any], T], items: Iterable[tuple[Any, Any]], pool: Executor | None, window: int
+) -> Iterator[tuple[Any, T]]:
+    """``(key, func(unit))`` for the ``(key, unit)`` pairs of ``items``, in their order, with at
+    most ``window`` units in flight: a stream whose memory does not grow with the number of units."""
+    if pool is None:
+        for key, unit in items:
+            yield key, func(unit)
+        return
+    pending: deque[tuple[Any, Future]] = deque()
+    try:
+        for key, unit in items:
+            pending.append((key, pool.submit(func, unit)))
+            if len(pending) >= window:
+                k, fut = pending.popleft()
+                yield k, fut.result()
+        while pending:
+            k, fut = pending.popleft()
+            yield k, fut.result()
+    finally:
+        for _, fut in pending:
+            fut.cancel()
 
 
 def format_duration(seconds: float) -> str:

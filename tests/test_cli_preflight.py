@@ -141,14 +141,14 @@ def test_verbosity_before_and_after_the_subcommand(runner, cli, inputs, tmp_path
 def test_ctrl_c_exits_130_with_one_line_and_no_file(runner, cli, inputs, tmp_path, monkeypatch):
     import megalut_cli.sim.simulate as sim
 
-    real = sim.write_simulation_catalog
+    real = sim.write_image
 
     def interrupted(path, *args, **kwargs):
-        real(path, *args, **kwargs)  # the temporary file is written, then Ctrl-C
+        real(path, *args, **kwargs)  # the temporary files are written, then Ctrl-C
         assert Path(path).exists()
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(sim, "write_simulation_catalog", interrupted)
+    monkeypatch.setattr(sim, "write_image", interrupted)
     out_dir = tmp_path / "out"
     out_dir.mkdir()
     result = runner.invoke(cli, ["simulate", str(inputs["config"]), "-o", str(out_dir / "c.fits"), "--measure",

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 from astropy.table import Table
@@ -224,3 +228,52 @@ def test_argument_errors_name_the_argument_and_the_cli_names_the_flag(tmp_path, 
                                  "--scheduler", "nowhere", "-q"])
     assert result.exit_code == 2, result.stderr
     assert "--scheduler 'nowhere' is neither an address" in result.stderr
+
+
+def test_ordered_window_bounds_work_in_flight():
+    active, peak, lock = 0, 0, threading.Lock()
+
+    def work(x: int) -> int:
+        nonlocal active, peak
+        with lock:
+            active += 1
+            peak = max(peak, active)
+        time.sleep(0.002)
+        with lock:
+            active -= 1
+        return x * x
+
+    consumed = []
+    with ThreadPoolExecutor(8) as pool:
+        for key, res in parallel.map_ordered(work, ((i, i) for i in range(60)), pool, window=3):
+            consumed.append((key, res))
+    assert consumed == [(i, i * i) for i in range(60)]
+    assert peak <= 3
+
+
+def test_catalog_written_in_chunks_equals_one_write(tmp_path):
+    rng = np.random.default_rng(2)
+    cols = {"a": rng.normal(size=1000), "b": np.arange(1000, dtype=np.int32), "flags": np.zeros(1000, np.int32)}
+    extra = {"CONFIG": np.array([(b"{}",)], dtype=[("json", "S2")])}
+    catalog.write_catalog(tmp_path / "one.fits", cols, fmt="megalut.features", cards={"SEED": 3}, extra_hdus=extra)
+    with catalog.catalog_writer(tmp_path / "chunks.fits", fmt="megalut.features", cards={"SEED": 3},
+                                extra_hdus=extra) as writer:
+        for start in range(0, 1000, 300):
+            writer.append({k: v[start : start + 300].astype(np.int64) if k == "b" and start else v[start : start + 300]
+                           for k, v in cols.items()})  # a later chunk in another dtype is cast
+        assert writer.n_rows == 1000
+    import fitsio
+
+    with fitsio.FITS(str(tmp_path / "one.fits")) as a, fitsio.FITS(str(tmp_path / "chunks.fits")) as b:
+        assert len(a) == len(b) == 3
+        for ha, hb in zip(a, b):
+            assert np.array_equal(ha.read(), hb.read()) if ha.has_data() else not hb.has_data()
+            cards = [(r["name"], r.get("value")) for r in ha.read_header().records() if r["name"] != "DATE"]
+            assert cards == [(r["name"], r.get("value")) for r in hb.read_header().records() if r["name"] != "DATE"]
+
+
+def test_catalog_writer_leaves_nothing_on_failure(tmp_path):
+    with pytest.raises(RuntimeError), catalog.catalog_writer(tmp_path / "c.fits", fmt="megalut.features") as writer:
+        writer.append({"a": np.arange(3.0)})
+        raise RuntimeError("interrupted")
+    assert list(tmp_path.iterdir()) == []

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import threading
-import time
 import tracemalloc
-from concurrent.futures import ThreadPoolExecutor
 
 import fitsio
 import numpy as np
@@ -124,27 +121,6 @@ def test_parallel_equals_serial(tmp_path, model_path):
             np.testing.assert_allclose(a[name], c[name], rtol=1e-13, atol=1e-16)
         else:
             np.testing.assert_array_equal(a[name], c[name])
-
-
-def test_ordered_window_bounds_work_in_flight():
-    active, peak, lock = 0, 0, threading.Lock()
-
-    def work(x: int) -> int:
-        nonlocal active, peak
-        with lock:
-            active += 1
-            peak = max(peak, active)
-        time.sleep(0.002)
-        with lock:
-            active -= 1
-        return x * x
-
-    consumed = []
-    with ThreadPoolExecutor(8) as pool:
-        for key, res in P._ordered(work, ((i, i) for i in range(60)), pool, window=3):
-            consumed.append((key, res))
-    assert consumed == [(i, i * i) for i in range(60)]
-    assert peak <= 3
 
 
 def test_memory_is_bounded_by_chunks(tmp_path, model_path):

@@ -14,7 +14,7 @@ from megalut_cli.errors import MegalutError
 from megalut_cli.measure.features import FEATURE_COLUMNS
 from megalut_cli.measure.measure import measure_file
 from megalut_cli.sim.config import load_config
-from megalut_cli.sim.simulate import simulate
+from megalut_cli.sim.simulate import simulate, simulate_table
 
 
 def test_measure_equals_stamps_then_measure(tmp_path):
@@ -92,10 +92,14 @@ def test_refuses_overwrite_and_same_paths(tmp_path):
 def test_failure_leaves_no_output(tmp_path, monkeypatch):
     cfg = load_config(write(tmp_path))
 
-    def boom(*args, **kwargs):
-        raise MegalutError("simulated failure")
+    from megalut_cli.sim import draw
 
-    monkeypatch.setattr("megalut_cli.sim.simulate.write_catalog", boom)
+    def boom(unit):  # the first unit is drawn (and streamed to the catalog), the second fails
+        if unit.case_start > 0:
+            raise MegalutError("simulated failure")
+        return draw.draw_unit(unit)
+
+    monkeypatch.setattr("megalut_cli.sim.simulate.draw_unit", boom)
     with pytest.raises(MegalutError, match="simulated failure"):
         simulate(cfg, tmp_path / "c.fits", stamps=tmp_path / "s.fits", measure=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sim.toml"]
@@ -114,3 +118,36 @@ def test_star_stamp_psf_path_beside_config(tmp_path, monkeypatch):
     t = read_catalog(tmp_path / "c.fits")
     assert np.allclose(t["tru_psf_sigma"], t["tru_psf_sigma"][0]) and 1.4 < t["tru_psf_sigma"][0] < 1.7
     assert (t["flags"] == 0).sum() >= 8
+
+
+def test_in_memory_set_equals_the_written_files(tmp_path):
+    """simulate_table (in memory) holds exactly the catalog and the stamps simulate writes."""
+    cfg = load_config(write(tmp_path), n_cases=3, n_realizations=4)
+    simulate(cfg, tmp_path / "c.fits", stamps=tmp_path / "s.fits", measure=True, seed=4)
+    columns, stamps = simulate_table(cfg, 4, measure=True, keep_stamps=True)
+    cat = read_catalog(tmp_path / "c.fits")
+    assert list(columns) == cat.colnames
+    for name, values in columns.items():
+        assert np.array_equal(values, np.asarray(cat[name]), equal_nan=True), name
+    image = fitsio.read(str(tmp_path / "s.fits"))
+    size = cfg.structure.stamp_size
+    for k, (x, y) in enumerate(zip(cat["x"], cat["y"])):  # FITS 1-based centres of the grid
+        r0, c0 = int(y - (size + 1) / 2), int(x - (size + 1) / 2)
+        assert np.array_equal(image[r0 : r0 + size, c0 : c0 + size], stamps[k])
+
+
+def test_catalog_is_streamed_not_assembled(tmp_path):
+    """The catalog goes to the file unit by unit: peak memory stays far below its size."""
+    import tracemalloc
+
+    cfg = load_config(write(tmp_path), n_cases=400, n_realizations=500)  # truth only: 2e5 rows, nothing drawn
+    tracemalloc.start()
+    try:
+        simulate(cfg, tmp_path / "c.fits", seed=1)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    cat = read_catalog(tmp_path / "c.fits")
+    assert len(cat) == 200_000 and np.array_equal(cat["case"], np.repeat(np.arange(400), 500))
+    size = sum(np.asarray(cat[c]).nbytes for c in cat.colnames)
+    assert peak < size / 4, (peak, size)

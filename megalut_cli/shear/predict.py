@@ -17,31 +17,27 @@ from __future__ import annotations
 
 import logging
 import os
-from collections import deque
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from concurrent.futures import Executor, Future
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import fitsio
 import numpy as np
 
 from megalut_cli import flags as _flags
-from megalut_cli.atomic import atomic_output, check_output
+from megalut_cli.atomic import check_output
 from megalut_cli.catalog import (
     catalog_info,
-    header_cards,
+    catalog_writer,
     iter_catalog,
     read_cards,
     read_carried_hdus,
     read_setup,
     setup_differences,
-    write_table_hdu,
 )
 from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.nn.model import ShearModel, prediction_column
-from megalut_cli.parallel import executor, resolve_nproc
+from megalut_cli.parallel import executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.shear.options import PREDICT
 
@@ -148,29 +144,6 @@ def _predict_unit(unit: tuple[str, str, np.ndarray, np.ndarray | None]) -> dict[
     return predict_arrays(_load_model(path, sha), x, flg)
 
 
-def _ordered(
-    func: Callable[[Any], Any], units: Iterator[Any], pool: Executor | None, window: int
-) -> Iterator[tuple[Any, Any]]:
-    """``(key, func(unit))`` for ``(key, unit)`` pairs, in order, at most ``window`` in flight."""
-    if pool is None:
-        for key, unit in units:
-            yield key, func(unit)
-        return
-    pending: deque[tuple[Any, Future]] = deque()
-    try:
-        for key, unit in units:
-            pending.append((key, pool.submit(func, unit)))
-            if len(pending) >= window:
-                u, fut = pending.popleft()
-                yield u, fut.result()
-        while pending:
-            u, fut = pending.popleft()
-            yield u, fut.result()
-    finally:
-        for _, fut in pending:
-            fut.cancel()
-
-
 @dataclass
 class PredictReport:
     """What ``predict_catalog`` did."""
@@ -268,12 +241,12 @@ def predict_catalog(
     with executor(nproc, scheduler, -(-n_rows // chunk_rows)) as pool, \
             (progress or no_progress)("predict", n_rows) as update:
         window = 2 * resolve_nproc(nproc) if scheduler is None else 16
-        with atomic_output(output, overwrite) as tmp, fitsio.FITS(str(tmp), "rw", clobber=True) as fits:
+        with catalog_writer(output, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards,
+                            history=header.get("HISTORY"), extra_hdus=extra_hdus) as writer:
             dtype = None
-            for table, pred in _ordered(_predict_unit, units(), pool, window):
+            for table, pred in map_ordered(_predict_unit, units(), pool, window):
                 if dtype is None:
                     dtype = _output_dtype(table, new_cols)
-                    recs = header_cards(FORMAT, FORMAT_VERSION, cards, header.get("HISTORY"), columns=dtype.names)
                 arr = np.zeros(len(table), dtype=dtype)
                 for c in table.colnames:
                     if c not in pred:
@@ -282,13 +255,8 @@ def predict_catalog(
                 for c, v in pred.items():
                     arr[c] = v
                 n_failed += int(np.count_nonzero(pred["flags"] & _flags.BAD_FEATURES))
-                if len(fits) < 2:
-                    write_table_hdu(fits, arr, recs)
-                else:
-                    fits[-1].append(arr)
+                writer.append(arr)
                 update(len(table))
-            for name, extra in extra_hdus.items():
-                fits.write(extra, extname=name)
     if n_failed:
         log.info("%d of %d rows have failed features (NaN estimates, flag BAD_FEATURES)", n_failed, n_rows)
     return PredictReport(Path(output), n_rows, n_failed, new_cols, model.sha256)

@@ -21,6 +21,7 @@ import math
 import os
 import statistics
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,10 +29,10 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.atomic import atomic_output, check_output
-from megalut_cli.catalog import write_catalog, write_image
+from megalut_cli.catalog import catalog_writer, write_catalog, write_image
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, check_engine, resolve_device
 from megalut_cli.errors import MegalutError, Names, namer
-from megalut_cli.parallel import chunk_ranges, executor, format_duration, map_units, resolve_nproc
+from megalut_cli.parallel import chunk_ranges, executor, format_duration, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, renders_galaxies, stamp_centres
@@ -186,14 +187,6 @@ def write_simulation_catalog(
                   extra_hdus={"CONFIG": _config_table(config)})
 
 
-def _assemble(results: list[dict[str, Any]]) -> dict[str, np.ndarray]:
-    names = list(results[0]["columns"])
-    for r in results[1:]:
-        if list(r["columns"]) != names:
-            raise MegalutError("internal error: work units returned different columns")
-    return {k: np.concatenate([r["columns"][k] for r in results]) for k in names}
-
-
 def order_columns(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """case, rea, x, y, truth (sorted), then features in their given order."""
     first = [c for c in ("case", "rea", "x", "y") if c in columns]
@@ -225,6 +218,76 @@ def check_outputs(
     return out, st
 
 
+@dataclass
+class SimulatedChunk:
+    """Consecutive rows of a simulated catalog: stamps ``first, first + 1, ...``."""
+
+    first: int
+    #: catalog columns, in catalog order (:func:`order_columns`), with the grid centres ``x, y``
+    columns: dict[str, np.ndarray]
+    #: the stamps, shape (n, S, S), when asked for
+    stamps: np.ndarray | None
+
+
+def simulate_chunks(
+    config: SimConfig,
+    seed: int = SIMULATE["seed"].default,
+    *,
+    measure: bool = SIMULATE["measure"].default,
+    keep_stamps: bool = False,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    progress: Progress | None = None,
+    engine: str = DEFAULT_ENGINE,
+    morphology: bool = SIMULATE["morphology"].default,
+    device: str = DEFAULT_DEVICE,
+) -> Iterator[SimulatedChunk]:
+    """Draw the configured stamps (and measure them), yielding the catalog in order, one
+    work unit at a time, with a bounded number of units in flight: the memory does not grow
+    with the size of the set. ``progress`` counts the units (:func:`n_work_units` in all).
+
+    ``engine`` is ``fast`` or ``galsim``, ``device`` ``cpu``, ``gpu`` or ``auto``
+    (:mod:`megalut_cli.engine`); on the device the units run in this process.
+    """
+    check_engine(engine)
+    device = resolve_device(device)
+    if device == "gpu" and not scheduler:
+        nproc = 1
+    s = config.structure
+    units = make_units(config, seed, nproc, scheduler, keep_stamps, measure, engine, morphology and measure, device)
+    log_engine_fallback(config, engine, keep_stamps or measure)
+    log.info(
+        "simulating %d cases x %d realizations = %d stamps of %d px in %d work units",
+        s.n_cases, s.n_realizations, s.n_stamps, s.stamp_size, len(units),
+    )
+    window = max(8, 4 * expected_workers(nproc, scheduler))
+    names: list[str] | None = None
+    with executor(nproc, scheduler, len(units)) as pool, (progress or no_progress)("simulate", len(units)) as update:
+        for unit, res in map_ordered(draw_unit, ((u, u) for u in units), pool, window):
+            columns = res["columns"]
+            if names is None:
+                names = list(columns)
+            elif list(columns) != names:
+                raise MegalutError("internal error: work units returned different columns")
+            first = unit.case_start * s.n_realizations
+            n = len(columns["case"])
+            columns["x"], columns["y"] = stamp_centres(np.arange(first, first + n), s.grid_nx, s.stamp_size)
+            update(1)
+            yield SimulatedChunk(first, order_columns(columns), res.get("stamps") if keep_stamps else None)
+
+
+def simulate_table(
+    config: SimConfig, seed: int = SIMULATE["seed"].default, *, keep_stamps: bool = False, **kwargs: Any
+) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+    """In memory: the catalog columns of the configured set and, with ``keep_stamps``, the
+    stamps (n, S, S); ``kwargs`` as :func:`simulate_chunks`."""
+    chunks = list(simulate_chunks(config, seed, keep_stamps=keep_stamps, **kwargs))
+    columns = {k: np.concatenate([c.columns[k] for c in chunks]) for k in chunks[0].columns}
+    warn_hst_noise(columns)
+    stamps = np.concatenate([c.stamps for c in chunks]) if keep_stamps else None
+    return columns, stamps
+
+
 def simulate(
     config: SimConfig,
     output: str | os.PathLike,
@@ -240,61 +303,43 @@ def simulate(
     device: str = DEFAULT_DEVICE,
     names: Names | None = None,
 ) -> SimulationResult:
-    """Simulate the configured stamps; write the catalog (and the stamp grid image).
-    With ``measure`` and ``morphology``, the ``morph_*`` features are measured too.
-
-    ``progress`` counts the work units as they finish (:func:`n_work_units` in all).
-    ``engine`` is ``fast`` or ``galsim``, ``device`` ``cpu``, ``gpu`` or ``auto``
-    (:mod:`megalut_cli.engine`); on the device the units run in this process. Messages
-    name the arguments by ``names``.
+    """Simulate the configured stamps into files: the catalog, streamed as the work units
+    finish (:func:`simulate_chunks`), and the stamp grid image ``stamps``. With ``measure``
+    and ``morphology``, the ``morph_*`` features are measured too. Messages name the
+    arguments by ``names``.
     """
     check_engine(engine)
-    device = resolve_device(device)
-    if device == "gpu" and not scheduler:
-        nproc = 1
     out, st = check_outputs(config, output, stamps, overwrite, names)
     s = config.structure
     if st is None and not measure:
         name = namer(names)
         log.info("neither %s nor %s: writing the truth catalog only (nothing drawn)", name("stamps"), name("measure"))
-    workers = expected_workers(nproc, scheduler)
-    units = make_units(config, seed, nproc, scheduler, st is not None, measure, engine, morphology and measure, device)
-    log_engine_fallback(config, engine, st is not None or measure)
-    log.info(
-        "simulating %d cases x %d realizations = %d stamps of %d px in %d work units",
-        s.n_cases, s.n_realizations, s.n_stamps, s.stamp_size, len(units),
-    )
     t0 = time.perf_counter()
     image = None
     if st is not None:
         n_y = math.ceil(s.n_stamps / s.grid_nx)
         image = np.zeros((n_y * s.stamp_size, s.grid_nx * s.stamp_size), dtype=np.float32)
-    results: list[dict[str, Any]] = []
-    with executor(nproc, scheduler, len(units)) as pool, (progress or no_progress)("simulate", len(units)) as update:
-        # With stamps, go in batches of units so that the unit images are freed early.
-        batch = len(units) if st is None else max(8, 4 * workers)
-        for i in range(0, len(units), batch):
-            part = map_units(draw_unit, units[i : i + batch], pool, update)
-            for unit, res in zip(units[i : i + batch], part):
-                if image is not None:
-                    _paste(image, res.pop("stamps"), unit.case_start * s.n_realizations, s.grid_nx, s.stamp_size)
-                results.append(res)
-    seconds = time.perf_counter() - t0
-    columns = _assemble(results)
-    warn_hst_noise(columns)
-    n = len(columns["case"])
-    x, y = stamp_centres(np.arange(n), s.grid_nx, s.stamp_size)
-    columns["x"], columns["y"] = x, y
-    columns = order_columns(columns)
     cards = simulation_cards(config, seed, measure, engine)
+    excess = HstNoiseExcess()
+    chunks = simulate_chunks(config, seed, measure=measure, keep_stamps=st is not None, nproc=nproc,
+                             scheduler=scheduler, progress=progress, engine=engine, morphology=morphology, device=device)
     with contextlib.ExitStack() as stack:
-        tmp_cat = stack.enter_context(atomic_output(out, overwrite))
+        writer = stack.enter_context(catalog_writer(out, fmt=CATALOG_FORMAT, cards=cards, overwrite=overwrite,
+                                                    extra_hdus={"CONFIG": _config_table(config)}))
         tmp_st = stack.enter_context(atomic_output(st, overwrite)) if st is not None else None
+        stack.enter_context(contextlib.closing(chunks))  # on error, stop the workers first
+        for chunk in chunks:
+            if image is not None and chunk.stamps is not None:
+                _paste(image, chunk.stamps, chunk.first, s.grid_nx, s.stamp_size)
+            excess.add(chunk.columns)
+            writer.append(chunk.columns)
         if tmp_st is not None and image is not None:
             st_cards = {k: v for k, v in cards.items() if k not in ("MEASURED",)}
-            st_cards["NSTAMPS"] = (n, "number of stamps in the grid")
+            st_cards["NSTAMPS"] = (writer.n_rows, "number of stamps in the grid")
             write_image(tmp_st, image, fmt=STAMPS_FORMAT, cards=st_cards, overwrite=True)
-        write_simulation_catalog(tmp_cat, columns, config, cards)
+        excess.warn()
+    seconds = time.perf_counter() - t0
+    n = writer.n_rows
     log.info("%d stamps in %.1f s (%.1f stamps/s)", n, seconds, n / seconds if seconds else math.inf)
     return SimulationResult(n, s.n_cases, s.n_realizations, seconds, out, st)
 
@@ -308,17 +353,33 @@ def log_engine_fallback(config: SimConfig, engine: str, draws: bool) -> None:
                  "(features still measured by the fast engine)", what)
 
 
+@dataclass
+class HstNoiseExcess:
+    """Counts real-galaxy stamps whose own (symmetrized) HST noise exceeds the requested
+    noise, over the chunks of a catalog; :meth:`warn` logs them."""
+
+    over: int = 0
+    n: int = 0
+
+    def add(self, columns: dict[str, np.ndarray]) -> None:
+        if "tru_hst_noise_var" in columns:
+            self.over += int(np.sum(columns["tru_hst_noise_var"] > columns["tru_sky_sigma"] ** 2))
+            self.n += len(columns["tru_hst_noise_var"])
+
+    def warn(self) -> None:
+        if self.over:
+            log.warning(
+                "%d of %d real-galaxy stamps carry more (symmetrized) HST noise than noise.sigma^2: their noise "
+                "is higher than asked (column tru_hst_noise_var); lower the fluxes, raise noise.sigma or select "
+                "brighter galaxies (galaxy.real_select)", self.over, self.n,
+            )
+
+
 def warn_hst_noise(columns: dict[str, np.ndarray]) -> None:
     """Warn about real-galaxy stamps whose own HST noise exceeds the requested noise."""
-    if "tru_hst_noise_var" not in columns:
-        return
-    over = int(np.sum(columns["tru_hst_noise_var"] > columns["tru_sky_sigma"] ** 2))
-    if over:
-        log.warning(
-            "%d of %d real-galaxy stamps carry more (symmetrized) HST noise than noise.sigma^2: their noise "
-            "is higher than asked (column tru_hst_noise_var); lower the fluxes, raise noise.sigma or select "
-            "brighter galaxies (galaxy.real_select)", over, len(columns["tru_hst_noise_var"]),
-        )
+    excess = HstNoiseExcess()
+    excess.add(columns)
+    excess.warn()
 
 
 def _paste(image: np.ndarray, stamps: np.ndarray, first: int, n_x: int, size: int) -> None:
