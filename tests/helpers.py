@@ -6,7 +6,11 @@ import struct
 
 import numpy as np
 
+from megalut_cli.nn.data import CaseData
 from megalut_cli.nn.model import Committee, Member, ShearModel
+from megalut_cli.nn.network import Network
+from megalut_cli.nn.toy import appendix_columns
+from megalut_cli.nn.train import MemberTask, TrainSettings
 
 FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]
 
@@ -187,3 +191,20 @@ def toy_unit(job: dict, work) -> dict:
         calls.write(f"{job['i']}\n")
     (work.workdir / f"u{job['i']}.txt").write_text(str(value))
     return {"i": job["i"], "value": value, "key": work.key}
+
+
+def toy_task(data: CaseData, valid: CaseData, **kw) -> MemberTask:
+    """A small training task of one member on the Appendix A toy cases."""
+    net = Network(data.x.shape[1], (5,), "identity", float(data.targets.mean()), float(data.targets.std()))
+    settings = TrainSettings(**{"iterations": 90, "batch_fraction": 0.5, "batch_iterations": 30, **kw})
+    return MemberTask(
+        "m", net, settings, data, valid, 0, np.full(1, 1.4), np.full(1, 0.9), seed=5, keys=(2, 1, 0),
+        cost_scale=float(data.targets.std()),
+    )
+
+
+def toy_cases(seed: int, nc: int = 60, nr: int = 100) -> CaseData:
+    """``nc`` Appendix A toy cases of ``nr`` realizations."""
+    rng = np.random.default_rng(seed)
+    cols = appendix_columns(rng.uniform(0.25, 2.0, nc), nr, rng)
+    return CaseData.from_padded(cols["d"].reshape(nc, nr, 1), np.ones((nc, nr), bool), cols["tru_theta"][::nr])

@@ -14,6 +14,9 @@ import pytest
 
 jax = pytest.importorskip("jax")
 
+from helpers import toy_cases, toy_task  # noqa: E402
+from render_cases import RENDER_CASES, random_galaxies, render_setup, write_starfield  # noqa: E402
+
 from megalut_cli.engine import resolve_device  # noqa: E402
 from megalut_cli.errors import MegalutError  # noqa: E402
 from megalut_cli.gpu import PLATFORM_ENV  # noqa: E402
@@ -55,9 +58,8 @@ def test_noise_is_the_cpu_stream_bit_for_bit() -> None:
 
 @pytest.fixture(scope="module")
 def starfield(tmp_path_factory):
-    from test_sim_render import _starfield
 
-    return str(_starfield(tmp_path_factory.mktemp("gpu") / "stars.fits"))
+    return str(write_starfield(tmp_path_factory.mktemp("gpu") / "stars.fits"))
 
 
 def _device_draw(renderer, psf, key, method, gals):
@@ -83,15 +85,13 @@ QUICK_CASES = (0, 3, 8)
 
 
 def _check_render_cases(profile: str, cases, starfield: str) -> None:
-    from test_sim_render import _galaxies, _setup
 
     from megalut_cli.sim.render import StampRenderer
 
     for case in cases:
-        from test_sim_render import CASES
 
-        psf, method, gsparams, size, m = _setup(CASES[case], starfield)
-        gals = _galaxies(100 + case, m if profile == "sersic" else max(3, m // 3), profile)
+        psf, method, gsparams, size, m = render_setup(RENDER_CASES[case], starfield)
+        gals = random_galaxies(100 + case, m if profile == "sersic" else max(3, m // 3), profile)
         renderer = StampRenderer(size, gsparams)
         ref = renderer.draw(psf, ("psf", case), method, **gals)
         got = _device_draw(renderer, psf, ("psf", case), method, gals)
@@ -108,9 +108,8 @@ def test_noiseless_stamps_equal_cpu(profile, starfield) -> None:
 @pytest.mark.parametrize("profile", ["sersic", "gaussian"])
 def test_noiseless_stamps_equal_cpu_over_the_render_grid(profile, starfield) -> None:
     """Every PSF, grid and galaxy of tests/test_sim_render.py."""
-    from test_sim_render import CASES
 
-    _check_render_cases(profile, range(len(CASES)), starfield)
+    _check_render_cases(profile, range(len(RENDER_CASES)), starfield)
 
 
 def _noisy_stamps(m: int = 96, size: int = 32) -> np.ndarray:
@@ -178,13 +177,12 @@ def test_work_unit_on_the_device_equals_the_fast_engine() -> None:
 
 @pytest.mark.parametrize("cost", ["msb", "mse"])
 def test_training_reaches_the_same_validation_cost(cost) -> None:
-    from test_nn_train import _task, _toy_cases
 
     from megalut_cli.nn.train import train_member
 
-    tr, va = _toy_cases(1), _toy_cases(2, 30)
-    cpu = train_member(_task(tr, va, cost=cost, iterations=60))
-    dev = train_member(_task(tr, va, cost=cost, iterations=60, device="gpu"))
+    tr, va = toy_cases(1), toy_cases(2, 30)
+    cpu = train_member(toy_task(tr, va, cost=cost, iterations=60))
+    dev = train_member(toy_task(tr, va, cost=cost, iterations=60, device="gpu"))
     assert dev.best_iter > 0
     np.testing.assert_allclose(dev.valid_cost, cpu.valid_cost, rtol=1e-6)
     np.testing.assert_allclose(dev.history[:, 1], cpu.history[:, 1], rtol=1e-6)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import toy_cases, toy_task
 
 from megalut_cli.catalog import write_catalog
 from megalut_cli.nn.committee import select_best
@@ -51,37 +52,22 @@ def test_appendix_msb_unbiased_mse_biased(tmp_path: Path, runner, cli) -> None:
     assert np.abs(biases["mse"]).max() > 3 * np.abs(biases["msb"]).max()
 
 
-def _task(data: CaseData, valid: CaseData, **kw) -> MemberTask:
-    net = Network(data.x.shape[1], (5,), "identity", float(data.targets.mean()), float(data.targets.std()))
-    settings = TrainSettings(**{"iterations": 90, "batch_fraction": 0.5, "batch_iterations": 30, **kw})
-    return MemberTask(
-        "m", net, settings, data, valid, 0, np.full(1, 1.4), np.full(1, 0.9), seed=5, keys=(2, 1, 0),
-        cost_scale=float(data.targets.std()),
-    )
-
-
-def _toy_cases(seed: int, nc: int = 60, nr: int = 100) -> CaseData:
-    rng = np.random.default_rng(seed)
-    cols = appendix_columns(rng.uniform(0.25, 2.0, nc), nr, rng)
-    return CaseData.from_padded(cols["d"].reshape(nc, nr, 1), np.ones((nc, nr), bool), cols["tru_theta"][::nr])
-
-
 def test_member_keeps_best_validation_parameters_and_is_deterministic() -> None:
-    tr, va = _toy_cases(1), _toy_cases(2, 30)
-    res = train_member(_task(tr, va))
+    tr, va = toy_cases(1), toy_cases(2, 30)
+    res = train_member(toy_task(tr, va))
     assert res.n_iter == 90 and res.history.shape == (90, 2)
     assert res.valid_cost == pytest.approx(np.nanmin(res.history[:, 1]))
     assert res.history[res.best_iter - 1, 1] == res.valid_cost
-    again = train_member(_task(tr, va))
+    again = train_member(toy_task(tr, va))
     assert np.array_equal(res.params, again.params)
-    other = train_member(_task(tr, va, optimizer="lbfgs"))
+    other = train_member(toy_task(tr, va, optimizer="lbfgs"))
     assert other.valid_cost < res.history[0, 1]
 
 
 def test_fd_baseline_reaches_similar_cost() -> None:
-    tr, va = _toy_cases(1), _toy_cases(2, 30)
-    ana = train_member(_task(tr, va, iterations=30))
-    fd = train_member(_task(tr, va, iterations=30, gradient="fd"))
+    tr, va = toy_cases(1), toy_cases(2, 30)
+    ana = train_member(toy_task(tr, va, iterations=30))
+    fd = train_member(toy_task(tr, va, iterations=30, gradient="fd"))
     assert fd.valid_cost == pytest.approx(ana.valid_cost, rel=0.5)
     assert fd.n_evals > 5 * ana.n_evals or fd.elapsed > ana.elapsed
 

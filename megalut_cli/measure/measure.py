@@ -53,7 +53,7 @@ from megalut_cli.catalog import (
     require_columns,
     write_catalog,
 )
-from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE
+from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, resolve_device
 from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.measure.features import (
     FEATURE_COLUMNS,
@@ -102,13 +102,13 @@ CHUNK_STAMPS = 1000
 
 
 def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
-    """Worker: read the band of rows covering ``unit['origins']`` and measure its stamps."""
-    info: ImageInfo = unit["info"]
+    """Worker: read the band of rows covering ``unit['origins']`` (or take it from
+    ``unit['rows']``, for an image in memory) and measure its stamps."""
     size: int = unit["stamp_size"]
     origins: np.ndarray = unit["origins"]
     y0 = int(origins[:, 1].min()) - 1
     y1 = int(origins[:, 1].max()) - 1 + size
-    rows = read_rows(info, y0, y1)
+    rows = unit["rows"] if "rows" in unit else read_rows(unit["info"], y0, y1)
     stamps = cut_stamps(rows, y0, origins, size)
     feats = measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine=unit["engine"],
                            device=unit.get("device", DEFAULT_DEVICE))
@@ -118,29 +118,36 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
 
 
 def _units(
-    info: ImageInfo, origins: np.ndarray, size: int, gain: float | None, n_workers: int, engine: str
+    image: ImageInfo | np.ndarray, origins: np.ndarray, size: int, gain: float | None, n_workers: int, engine: str
 ) -> tuple[list[dict[str, Any]], list[np.ndarray]]:
-    """Split the stamps (all inside the image) into chunks sorted by position."""
-    info = dataclasses.replace(info, path=os.path.abspath(info.path))  # for remote workers
+    """Split the stamps (all inside the image) into chunks sorted by position; a unit of an
+    image in memory carries its band of rows."""
+    if isinstance(image, ImageInfo):
+        image = dataclasses.replace(image, path=os.path.abspath(image.path))  # for remote workers
     order = np.lexsort((origins[:, 0], origins[:, 1]))
     n_units = max(-(-len(order) // CHUNK_STAMPS), min(4 * n_workers, len(order)) if n_workers > 1 else 1)
     pieces = [p for p in np.array_split(order, max(n_units, 1)) if len(p)]
-    units = [
-        {
-            "info": info,
+    units = []
+    for p in pieces:
+        unit = {
             "stamp_size": size,
             "origins": np.ascontiguousarray(origins[p]),
             "gain": gain,
             "max_shift": default_max_shift(size),
             "engine": engine,
         }
-        for p in pieces
-    ]
+        if isinstance(image, ImageInfo):
+            unit["info"] = image
+        else:
+            y0 = int(unit["origins"][:, 1].min()) - 1
+            y1 = int(unit["origins"][:, 1].max()) - 1 + size
+            unit["rows"] = np.asarray(image[y0:y1], dtype=np.float64)
+        units.append(unit)
     return units, pieces
 
 
 def _run_units(
-    info: ImageInfo,
+    image: ImageInfo | np.ndarray,
     origins: np.ndarray,
     size: int,
     gain: float | None,
@@ -161,15 +168,16 @@ def _run_units(
     names = FEATURE_COLUMNS + (MORPHOLOGY_COLUMNS if morphology else ())
     out = {c: np.full(n, np.nan) for c in names if c != "flags"}
     out["flags"] = np.zeros(n, dtype=np.int32)
-    ok = inside(origins, size, info.shape)
+    ok = inside(origins, size, image.shape)
     out["flags"][~ok] |= fl.STAMP_OFF_IMAGE
     if (~ok).any():
-        log.warning("%s: %d stamp(s) not entirely inside the image: flagged", info.path, int((~ok).sum()))
+        where = image.path if isinstance(image, ImageInfo) else "image"
+        log.warning("%s: %d stamp(s) not entirely inside the image: flagged", where, int((~ok).sum()))
     idx = np.flatnonzero(ok)
     if not len(idx):
         return out
     workers = 2 if scheduler else resolve_nproc(nproc)
-    units, pieces = _units(info, origins[idx], size, gain, workers, engine)
+    units, pieces = _units(image, origins[idx], size, gain, workers, engine)
     for unit in units:
         unit["morphology"] = morphology
         unit["device"] = device
@@ -194,6 +202,37 @@ def _run_units(
             else:
                 out[c][rows] = v
     return out
+
+
+def measure_image(
+    image: np.ndarray,
+    stamp_size: int,
+    origins: np.ndarray | None = None,
+    gain: float | None = MEASURE["gain"].default,
+    *,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    progress: Progress | None = None,
+    engine: str = DEFAULT_ENGINE,
+    morphology: bool = MEASURE["morphology"].default,
+    device: str = DEFAULT_DEVICE,
+) -> dict[str, np.ndarray]:
+    """In memory: the features of the stamps of ``image`` (2-d array, axis 0 is y), the
+    :data:`FEATURE_COLUMNS` (and with ``morphology`` the :data:`MORPHOLOGY_COLUMNS`) as
+    arrays. ``origins`` are the stamps' FITS 1-based lower-left pixels ``(x, y)``
+    (:func:`megalut_cli.measure.stamps.catalog_origins` from centres); by default the whole
+    grid of ``stamp_size`` stamps in grid order. Stamps not inside the image are flagged
+    ``STAMP_OFF_IMAGE``. Work is split as :func:`measure_file`'s (``nproc``, ``scheduler``).
+    """
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise ValueError(f"image must be 2-d, got shape {image.shape}")
+    if origins is None:
+        n_y, n_x = image.shape[0] // stamp_size, image.shape[1] // stamp_size
+        origins = grid_origins(n_y, n_x, stamp_size)
+    origins = np.asarray(origins, dtype=np.int64).reshape(-1, 2)
+    return _run_units(image, origins, stamp_size, gain, nproc, scheduler, progress, "measuring stamps", engine,
+                      morphology, resolve_device(device))
 
 
 def _single_psf(path: str, size_hint: int, engine: str = DEFAULT_ENGINE) -> dict[str, float]:
