@@ -11,13 +11,8 @@ import pytest
 from pipeline_configs import TINY_PIPELINE, write_pipeline
 
 from megalut_cli.errors import ConfigError, InputError, MegalutError
-from megalut_cli.pipeline import (
-    format_summary,
-    load_pipeline,
-    parse_pipeline,
-    run_pipeline,
-    scaled_size,
-)
+from megalut_cli.pipeline import load_pipeline, parse_pipeline, scaled_size
+from megalut_cli.pipeline_run import format_summary, run_pipeline
 from megalut_cli.steps import MANIFEST
 from megalut_cli.training import DEFAULT_FEATURES
 

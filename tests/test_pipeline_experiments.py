@@ -14,7 +14,8 @@ from megalut_cli import __version__
 from megalut_cli.catalog import catalog_info, read_catalog
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.nn.model import ShearModel
-from megalut_cli.pipeline import build_steps, load_pipeline, run_pipeline
+from megalut_cli.pipeline import load_pipeline
+from megalut_cli.pipeline_run import build_steps, run_pipeline
 from megalut_cli.shear.predict import predict_columns
 from megalut_cli.steps import MANIFEST, sha_text, step_key
 

@@ -106,6 +106,7 @@ def command(
           --workdir rgc-run --keep-going
     """
     from megalut_cli import pipeline as pl
+    from megalut_cli import pipeline_run
     from megalut_cli.cli.options import progress
 
     if print_default:
@@ -123,13 +124,13 @@ def command(
     if keep_going:
         log.info("--keep-going applies to GREAT3 branch pipelines only: ignored")
     pipe = pl.load_pipeline(pipeline, overrides)
-    plan = pl.plan_pipeline(pipe, workdir, skip_existing=skip_existing, overwrite=overwrite, nproc=nproc,
+    plan = pipeline_run.plan_pipeline(pipe, workdir, skip_existing=skip_existing, overwrite=overwrite, nproc=nproc,
                             scheduler=scheduler)
     for line in plan:
         log.info("%s", line)
     if dry_run:
         return
-    result = pl.run_pipeline(
+    result = pipeline_run.run_pipeline(
         pipe,
         workdir,
         skip_existing=skip_existing,
@@ -138,7 +139,7 @@ def command(
         scheduler=scheduler,
         progress=progress,
     )
-    click.echo(pl.format_summary(result))
+    click.echo(pipeline_run.format_summary(result))
 
 
 def _is_branch(pipeline: str) -> bool:
