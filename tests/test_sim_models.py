@@ -347,8 +347,9 @@ def test_realgal_examples_simulate_through_the_cli(name, runner, cli, tmp_path):
     assert len(t) == 4 and np.all(np.asarray(t["flags"]) == 0)
     assert np.all(np.isfinite(np.asarray(t["adamom_g1"])))
     expect = {"tp-bulgedisk.toml": "tru_bulge_fraction", "tw-bulgedisk.toml": "tru_bulge_fraction",
-              "tp-knots.toml": "tru_knot_seed", "tp-cosmosfit.toml": "tru_cosmos_ident",
+              "tp-knots.toml": "tru_knot_seed", "tw-knots.toml": "tru_knot_seed", "tp-cosmosfit.toml": "tru_cosmos_ident",
               "tw-cosmosfit.toml": "tru_cosmos_ident", "tp-corrnoise.toml": "tru_sky_sigma",
+              "tw-corrnoise.toml": "tru_sky_sigma",
               "fiducial.toml": "tru_twin_rad", "crn-fiducial.toml": "tru_twin_rad", "crn-ground.toml": "tru_twin_rad",
               "tp-ground-sersic.toml": "tru_sersicn", "tw-ground-sersic.toml": "tru_sersicn",
               "tp-ground-cosmosfit.toml": "tru_cosmos_ident", "tw-ground-cosmosfit.toml": "tru_cosmos_ident",
