@@ -2,7 +2,9 @@
 
 The cases are split into work units (contiguous chunks of cases) mapped over the
 executor of :mod:`megalut_cli.parallel`; every random draw is seeded per case, so the
-catalog is identical for any ``-j`` or Dask cluster. Outputs:
+catalog is identical for any ``-j`` or Dask cluster. :func:`simulate_chunks` yields the
+catalog in order, unit by unit (:func:`simulate_table`: all of it in memory);
+:func:`simulate` streams it to the files:
 
 - the catalog (``megalut.simulation``): one row per stamp, ordered by case then
   realization, with ``case, rea, x, y``, all ``tru_*`` truth and, with ``measure``, the
