@@ -303,3 +303,18 @@ def test_cli_prints_vp_and_vo_tables(runner, cli, tmp_path: Path) -> None:
     err = bad.stderr if hasattr(bad, "stderr") else bad.output
     assert "pretrain.hidden: the pretraining uses" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "other").exists()
+
+
+def test_correlated_noise_pipeline_differs_from_fiducial_1e6_by_its_noise_only() -> None:
+    """The premise of the comparison in docs/realgal.md: same sets, seeds and training, other noise."""
+    white = load_pipeline(EXAMPLES.parent / "models" / "fiducial-1e6-pipeline.toml")
+    corr = load_pipeline(EXAMPLES / "realgal" / "corrnoise-1e6-pipeline.toml")
+    assert white.train_point == corr.train_point and white.train_weight == corr.train_weight
+    assert set(white.sets) == set(corr.sets) == {"tp", "tw", "vo"}
+    for name, spec in corr.sets.items():
+        a, b = json.loads(white.sets[name].config.to_json()), json.loads(spec.config.to_json())
+        assert spec.seed == white.sets[name].seed
+        noise_a, noise_b = a.pop("noise"), b.pop("noise")
+        assert noise_a["type"] == "gaussian" and noise_b["type"] == "correlated" and noise_b["sigma"] == noise_a["sigma"]
+        a.pop("description", None), b.pop("description", None)
+        assert a == b, name
