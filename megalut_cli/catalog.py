@@ -492,12 +492,26 @@ def read_setup(path: str | os.PathLike) -> dict[str, Any]:
     return setup
 
 
+#: Setup keys whose values are file paths: the same file may be named from another folder.
+SETUP_PATH_KEYS = frozenset({"path", "image", "correlation", "psf_path"})
+
+
+def _same_setup_value(a: Any, b: Any, key: str = "") -> bool:
+    """Equal, where sections (dicts) are compared on the keys both give (a key one of them
+    leaves to its default is not a difference) and paths by their file names."""
+    if isinstance(a, Mapping) and isinstance(b, Mapping):
+        return all(_same_setup_value(a[k], b[k], k) for k in a.keys() & b.keys())
+    if key in SETUP_PATH_KEYS and isinstance(a, str) and isinstance(b, str):
+        return Path(a).name == Path(b).name
+    return a == b
+
+
 def setup_differences(trained: Mapping[str, Any], applied: Mapping[str, Any]) -> list[str]:
     """``name: trained vs applied`` for every setup item both record and that differ."""
     return [
         f"{name} {trained[name]} vs {applied[name]}"
         for name in trained
-        if name in applied and trained[name] != applied[name]
+        if name in applied and not _same_setup_value(trained[name], applied[name])
     ]
 
 

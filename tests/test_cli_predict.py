@@ -199,3 +199,16 @@ def test_training_records_the_setup_of_simulated_catalogs(tmp_path):
     assert a["stamp_size"] == 24 and a["psf"] == {"type": "gaussian", "sigma": 1.5}
     assert a["noise"] == {"type": "gaussian", "sigma": 1.0} and a["noise_type"] == "gaussian"
     assert setup_differences(a, b) == [f"psf {a['psf']} vs {b['psf']}"]
+
+
+def test_setup_written_another_way_is_no_difference():
+    """A path from another folder to the same file, or a key left to its default, is not a
+    different setup; another value is."""
+    from megalut_cli.catalog import setup_differences
+
+    trained = {"noise": {"type": "correlated", "correlation": "../data/cosmos/cf.fits", "pixel_scale": 1.0, "sigma": 1.0}}
+    same = {"noise": {"type": "correlated", "correlation": "/abs/examples/data/cosmos/cf.fits", "sigma": 1.0}}
+    assert setup_differences(trained, same) == []
+    other = {"noise": {"type": "correlated", "correlation": "/abs/other_cf.fits", "sigma": 1.0}}
+    assert setup_differences(trained, other) == [f"noise {trained['noise']} vs {other['noise']}"]
+    assert setup_differences(trained, {"noise": {**same["noise"], "sigma": 2.0}}) != []
