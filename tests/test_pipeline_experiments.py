@@ -308,7 +308,7 @@ def test_cli_prints_vp_and_vo_tables(runner, cli, tmp_path: Path) -> None:
 def test_correlated_noise_pipeline_differs_from_fiducial_1e6_by_its_noise_only() -> None:
     """The premise of the comparison in docs/realgal.md: same sets, seeds and training, other noise."""
     white = load_pipeline(EXAMPLES.parent / "models" / "fiducial-1e6-pipeline.toml")
-    corr = load_pipeline(EXAMPLES / "realgal" / "corrnoise-1e6-pipeline.toml")
+    corr = load_pipeline(EXAMPLES / "realgal" / "pipeline-corrnoise-1e6.toml")
     assert white.train_point == corr.train_point and white.train_weight == corr.train_weight
     assert set(white.sets) == set(corr.sets) == {"tp", "tw", "vo"}
     for name, spec in corr.sets.items():
