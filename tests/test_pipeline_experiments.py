@@ -318,3 +318,19 @@ def test_correlated_noise_pipeline_differs_from_fiducial_1e6_by_its_noise_only()
         assert noise_a["type"] == "gaussian" and noise_b["type"] == "correlated" and noise_b["sigma"] == noise_a["sigma"]
         a.pop("description", None), b.pop("description", None)
         assert a == b, name
+
+
+def test_bulge_disk_pipeline_differs_from_fiducial_1e6_by_its_galaxies_only() -> None:
+    """Same sets, seeds, sizes, PSF, noise and training as fiducial-1e6; bulge + disk galaxies
+    with the same size, brightness and (disk) shape distributions."""
+    sersic = load_pipeline(EXAMPLES.parent / "models" / "fiducial-1e6-pipeline.toml")
+    bd = load_pipeline(EXAMPLES / "realgal" / "pipeline-bulgedisk-1e6.toml")
+    assert sersic.train_point == bd.train_point and sersic.train_weight == bd.train_weight
+    for name, spec in bd.sets.items():
+        a, b = json.loads(sersic.sets[name].config.to_json()), json.loads(spec.config.to_json())
+        assert spec.seed == sersic.sets[name].seed
+        gal_a, gal_b = a.pop("galaxy"), b.pop("galaxy")
+        assert gal_a["profile"] == "sersic" and gal_b["profile"] == "bulgedisk"
+        assert all(gal_a[k] == gal_b[k] for k in ("rad", "sb", "ellipticity", "angle"))
+        a.pop("description", None), b.pop("description", None)
+        assert a == b, name
