@@ -79,9 +79,7 @@ from megalut_cli.provenance import sha256_file
 from megalut_cli.schema import Table, resolve_path
 from megalut_cli.shear.options import EVALUATE
 from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, validate_config
-from megalut_cli.steps import (
-    sha_text,
-)
+from megalut_cli.steps import sha_text
 from megalut_cli.training import TrainOptions
 
 log = logging.getLogger("megalut")

@@ -101,13 +101,17 @@ CHUNK_STAMPS = 1000
 
 
 
+def _row_band(origins: np.ndarray, size: int) -> tuple[int, int]:
+    """The image rows ``y0 .. y1 - 1`` (0-based) that stamps at ``origins`` cover."""
+    return int(origins[:, 1].min()) - 1, int(origins[:, 1].max()) - 1 + size
+
+
 def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
     """Worker: read the band of rows covering ``unit['origins']`` (or take it from
     ``unit['rows']``, for an image in memory) and measure its stamps."""
     size: int = unit["stamp_size"]
     origins: np.ndarray = unit["origins"]
-    y0 = int(origins[:, 1].min()) - 1
-    y1 = int(origins[:, 1].max()) - 1 + size
+    y0, y1 = _row_band(origins, size)
     rows = unit["rows"] if "rows" in unit else read_rows(unit["info"], y0, y1)
     stamps = cut_stamps(rows, y0, origins, size)
     feats = measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine=unit["engine"],
@@ -139,8 +143,7 @@ def _units(
         if isinstance(image, ImageInfo):
             unit["info"] = image
         else:
-            y0 = int(unit["origins"][:, 1].min()) - 1
-            y1 = int(unit["origins"][:, 1].max()) - 1 + size
+            y0, y1 = _row_band(unit["origins"], size)
             unit["rows"] = np.asarray(image[y0:y1], dtype=np.float64)
         units.append(unit)
     return units, pieces

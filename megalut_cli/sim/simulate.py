@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.atomic import atomic_output, check_output
-from megalut_cli.catalog import catalog_writer, write_catalog, write_image
+from megalut_cli.catalog import CatalogWriter, catalog_writer, write_image
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, check_engine, resolve_device
 from megalut_cli.errors import MegalutError, Names, namer
 from megalut_cli.parallel import chunk_ranges, executor, format_duration, map_ordered, resolve_nproc
@@ -180,13 +180,22 @@ def _config_table(config: SimConfig) -> np.ndarray:
     return arr
 
 
+def simulation_catalog_writer(
+    path: str | os.PathLike, config: SimConfig, cards: dict[str, Any], overwrite: bool = False
+) -> contextlib.AbstractContextManager[CatalogWriter]:
+    """A streaming writer (:func:`megalut_cli.catalog.catalog_writer`) of a
+    ``megalut.simulation`` catalog, the effective configuration in its ``CONFIG`` HDU."""
+    return catalog_writer(path, fmt=CATALOG_FORMAT, cards=cards, overwrite=overwrite,
+                          extra_hdus={"CONFIG": _config_table(config)})
+
+
 def write_simulation_catalog(
     path: str | os.PathLike, columns: dict[str, np.ndarray], config: SimConfig, cards: dict[str, Any]
 ) -> None:
-    """Write (replace) a ``megalut.simulation`` catalog at ``path``, the effective
-    configuration in its ``CONFIG`` HDU; meant for the temporary file of ``atomic_output``."""
-    write_catalog(path, columns, fmt=CATALOG_FORMAT, cards=cards, overwrite=True,
-                  extra_hdus={"CONFIG": _config_table(config)})
+    """Write (replace) a whole ``megalut.simulation`` catalog at ``path``; meant for the
+    temporary file of ``atomic_output``."""
+    with simulation_catalog_writer(path, config, cards, overwrite=True) as writer:
+        writer.append(columns)
 
 
 def order_columns(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -326,16 +335,15 @@ def simulate(
     chunks = simulate_chunks(config, seed, measure=measure, keep_stamps=st is not None, nproc=nproc,
                              scheduler=scheduler, progress=progress, engine=engine, morphology=morphology, device=device)
     with contextlib.ExitStack() as stack:
-        writer = stack.enter_context(catalog_writer(out, fmt=CATALOG_FORMAT, cards=cards, overwrite=overwrite,
-                                                    extra_hdus={"CONFIG": _config_table(config)}))
+        writer = stack.enter_context(simulation_catalog_writer(out, config, cards, overwrite))
         tmp_st = stack.enter_context(atomic_output(st, overwrite)) if st is not None else None
         stack.enter_context(contextlib.closing(chunks))  # on error, stop the workers first
         for chunk in chunks:
-            if image is not None and chunk.stamps is not None:
+            if image is not None:  # with stamps: every chunk has them
                 _paste(image, chunk.stamps, chunk.first, s.grid_nx, s.stamp_size)
             excess.add(chunk.columns)
             writer.append(chunk.columns)
-        if tmp_st is not None and image is not None:
+        if image is not None:  # and so tmp_st
             st_cards = {k: v for k, v in cards.items() if k not in ("MEASURED",)}
             st_cards["NSTAMPS"] = (writer.n_rows, "number of stamps in the grid")
             write_image(tmp_st, image, fmt=STAMPS_FORMAT, cards=st_cards, overwrite=True)
