@@ -115,7 +115,6 @@ def test_refuses_to_overwrite(runner, cli, setup):
 
 
 def test_dask_scheduler(runner, cli, setup):
-    pytest.importorskip("distributed")
     from distributed import LocalCluster
 
     tmp, model, src, _ = setup

@@ -110,20 +110,57 @@ def test_bad_pipeline_file(runner, cli, tmp_path: Path) -> None:
     assert result.exit_code != 0
 
 
+#: README's Stage IV requirement and the default run's claim: weighted m, c within 2 sigma.
+REQUIREMENT_M, REQUIREMENT_C = 2e-3, 2e-4
+
+
+def readme_default_run_tables() -> dict[str, dict[str, dict[str, float]]]:
+    """The m, c and errors of the two weighted tables README records for the default run."""
+    import re
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = text[text.index("exactly `megalut run --workdir"):]
+    block = block[block.index("```"):]
+    block = block[: block.index("```", 3)]
+    row = re.compile(r"^\s+(g[12])\s+([-+0-9.e]+) ± ([0-9.e-]+)\s+([-+0-9.e]+) ± ([0-9.e-]+)", re.M)
+    tables = {}
+    for name, part in zip(("run", "reference"), block.split("== the shipped model")):
+        weighted = part[part.index("weighted (per-case weighted"):]
+        tables[name] = {g: dict(zip(("m", "m_err", "c", "c_err"), map(float, v)))
+                        for g, *v in row.findall(weighted)}
+    return tables
+
+
+def test_readme_records_the_default_run_tables() -> None:
+    tables = readme_default_run_tables()
+    assert set(tables) == {"run", "reference"} and all(set(t) == {"g1", "g2"} for t in tables.values())
+
+
 @pytest.mark.slow
-def test_default_pipeline_weights_reduce_multiplicative_bias(runner, cli, tmp_path: Path) -> None:
-    """The issue's check at a quarter of the default size (about 75 000 stamps, minutes)."""
+def test_default_run_meets_the_stage_iv_requirement_within_2_sigma(runner, cli, tmp_path: Path) -> None:
+    """README's claim on exactly the default run (1.45e6 stamps, 7 minutes on 2 cores): the
+    weighted m and c within 2 sigma of the Stage IV requirement, for the run's networks and
+    for the shipped model on the same validation set; the weights reduce |m|; and the run
+    reproduces the tables README prints (same seeds, results independent of -j)."""
     wd = tmp_path / "wd"
-    result = runner.invoke(cli, ["run", "scale=0.25", "--workdir", str(wd), "-j", "2"])
+    result = runner.invoke(cli, ["run", "--workdir", str(wd), "-j", "2"])
     assert result.exit_code == 0, _err(result)
-    assert "unweighted" in result.stdout and "weighted" in result.stdout
-    ev = json.loads((wd / "evaluation.json").read_text())
-    for comp in ("g1", "g2"):
-        unweighted, weighted = ev["unweighted"][comp], ev["weighted"][comp]
-        assert abs(weighted["m"]) < abs(unweighted["m"]), comp
-        # the unweighted estimates are biased (noise bias of faint galaxies, selection of failures)
-        assert unweighted["m"] < 0
-    # the second table: the shipped model, trained on far more stamps, on the same rows
     assert "the shipped model fiducial (models/fiducial.h5) on vo" in result.stdout
-    ref = json.loads((wd / "evaluation-reference.json").read_text())
-    assert ref["weighted"]["g1"]["n_rows"] == ev["weighted"]["g1"]["n_rows"]
+    readme = readme_default_run_tables()
+    for name, products in (("run", "evaluation.json"), ("reference", "evaluation-reference.json")):
+        ev = json.loads((wd / products).read_text())
+        for comp in ("g1", "g2"):
+            unweighted, weighted = ev["unweighted"][comp], ev["weighted"][comp]
+            print(name, comp, {k: weighted[k] for k in ("m", "m_err", "c", "c_err")})
+            assert abs(weighted["m"]) < REQUIREMENT_M + 2 * weighted["m_err"], (name, comp, weighted)
+            assert abs(weighted["c"]) < REQUIREMENT_C + 2 * weighted["c_err"], (name, comp, weighted)
+            assert weighted["m_err"] < 2e-3, (name, comp, weighted)  # 1.4e-3 recorded
+            # the unweighted estimates are biased (noise bias of faint galaxies, selection of
+            # failures); the weights remove most of it
+            assert unweighted["m"] < -0.02 and abs(weighted["m"]) < abs(unweighted["m"]) / 5, (name, comp)
+            # README's printed table is this run: within a quarter of its error (training is
+            # deterministic for given seeds; BLAS or compiler changes may move the last digits)
+            rec = readme[name][comp]
+            for q in ("m", "c"):
+                assert abs(weighted[q] - rec[q]) < 0.25 * rec[f"{q}_err"], (name, comp, q, weighted[q], rec)
+        assert ev["weighted"]["g1"]["n_rows"] == 386798

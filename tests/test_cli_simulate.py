@@ -114,18 +114,21 @@ def _table_bytes(path: Path) -> tuple[bytes, bytes, dict]:
     return data, cfg, hdr
 
 
-def test_identical_for_any_engine(runner, cli, tmp_path, monkeypatch):
-    """Same seed: byte-identical catalogs with -j 1, -j 2 and a Dask LocalCluster."""
+@pytest.mark.parametrize("stamp_engine", ["fast", "galsim"])
+def test_identical_for_any_engine(runner, cli, tmp_path, monkeypatch, stamp_engine):
+    """Same seed: byte-identical catalogs with -j 1, -j 2 and a Dask LocalCluster, with
+    either stamp engine (docs/engines.md)."""
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
     cfg = str(write(tmp_path, replace={'per_realization = ["angle"]': 'per_realization = ["galaxy"]',
                                        'snc = "ring"': 'snc = "pairs"'}))
-    common = ["--measure", "--n-cases", "9", "--n-realizations", "4", "--seed", "21"]
+    common = ["--measure", "--engine", stamp_engine, "--n-cases", "9", "--n-realizations", "4", "--seed", "21"]
     outs = {}
     for name, extra in (("j1", ["-j", "1"]), ("j2", ["-j", "2"])):
         outs[name] = tmp_path / f"{name}.fits"
         r = runner.invoke(cli, ["simulate", cfg, "-o", str(outs[name]), *common, *extra])
         assert r.exit_code == 0, _err(r)
-    distributed = pytest.importorskip("distributed")
+    import distributed
+
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster:
         outs["dask"] = tmp_path / "dask.fits"

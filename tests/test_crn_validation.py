@@ -20,6 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "fiducial-1e6.h5"
 CONFIGS = {"crn": ROOT / "examples" / "fiducial" / "vo-crn.toml", "independent": ROOT / "examples" / "fiducial" / "vo.toml"}
 N_CASES, N_REA, SEEDS = 8, 200, range(2001, 2007)
+#: The error on m of an independent set over that of a CRN set of the same size, at least.
+MIN_GAIN = {"unweighted": 4.0, "weighted": 8.0}
 
 
 def _run(kind: str, seed: int, tmp_path: Path) -> dict:
@@ -40,16 +42,16 @@ def _run(kind: str, seed: int, tmp_path: Path) -> dict:
 
 @pytest.mark.slow
 def test_crn_error_on_m_is_several_times_smaller_and_both_are_right(tmp_path):
-    if not MODEL.exists():
-        pytest.skip("models/fiducial-1e6.h5 is not shipped in this checkout")
     results = {kind: [_run(kind, s, tmp_path) for s in SEEDS] for kind in CONFIGS}
     assert all(r["error"] == "bootstrap-galaxies" for r in results["crn"])
     assert all(r["error"] == "fit" for r in results["independent"])
     quoted: dict[tuple[str, str], float] = {}
+    quoted_c: dict[tuple[str, str], float] = {}
     for kind, runs in results.items():
         for scheme in ("unweighted", "weighted"):
             m = np.array([[r[scheme][c]["m"] for c in ("g1", "g2")] for r in runs])
             err = np.array([[r[scheme][c]["m_err"] for c in ("g1", "g2")] for r in runs])
+            quoted_c[(kind, scheme)] = float(np.mean([[r[scheme][c]["c_err"] for c in ("g1", "g2")] for r in runs]))
             # pooled scatter over seeds of each component (their true m may differ)
             scatter = float(np.sqrt(np.mean(np.var(m, axis=0, ddof=1))))
             quoted[(kind, scheme)] = float(np.mean(err))
@@ -57,7 +59,11 @@ def test_crn_error_on_m_is_several_times_smaller_and_both_are_right(tmp_path):
                   f"{scatter:.4f}  mean quoted error {np.mean(err):.4f}")
             # right within what 6 seeds x 2 components (10 degrees of freedom) can tell
             assert 0.5 < np.mean(err) / scatter < 2.0, (kind, scheme, scatter, np.mean(err))
-    for scheme in ("unweighted", "weighted"):
+    # docs/config.md claims 4-12x smaller errors on m at equal size (recorded 4.4 and 11.7)
+    for scheme, least in MIN_GAIN.items():
         gain = quoted[("independent", scheme)] / quoted[("crn", scheme)]
-        print(f"{scheme}: independent / CRN error on m = {gain:.1f}")
-        assert gain > 3.0, (scheme, gain)
+        gain_c = quoted_c[("independent", scheme)] / quoted_c[("crn", scheme)]
+        print(f"{scheme}: independent / CRN error on m = {gain:.1f}, on c = {gain_c:.1f}")
+        assert gain >= least, (scheme, gain)
+        # c gains less (docs/config.md): a CRN set averages it over its N galaxies only
+        assert gain_c < gain / 2, (scheme, gain_c, gain)

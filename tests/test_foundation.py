@@ -107,7 +107,8 @@ def test_process_pool_gives_ordered_results():
 
 
 def test_bad_scheduler_is_config_error(tmp_path):
-    pytest.importorskip("distributed")
+    import distributed  # noqa: F401  (the test extra: a missing dask must fail, not skip)
+
     with pytest.raises(ConfigError, match="neither an address"):
         with parallel.executor(scheduler=str(tmp_path / "missing.json")):
             pass

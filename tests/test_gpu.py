@@ -1,38 +1,81 @@
-"""The device backend (megalut_cli.gpu) against the CPU fast engine, on JAX's CPU mode.
+"""The device backend (megalut_cli.gpu) against the CPU fast engine, on a GPU when JAX finds
+one, otherwise on JAX's CPU mode.
 
-Tolerances (issue 13): noiseless stamps within 1e-5 of the peak pixel over the render test
-grid; on noisy stamps the same adaptive-moment failures and features within 1e-6; the same
-noise (bit for bit); training reaches the same validation cost (relative 1e-6).
+Tolerances (issue 13, tightened in issue 22 to what is achieved): noiseless stamps within
+7e-7 of the peak pixel over the render test grid; on noisy stamps the same adaptive-moment
+failures, float32 outputs bit for bit and rho4, centroid within 2e-13 (on a GPU: within 1e-6,
+not yet measured on one); the same noise (bit for bit); training reaches the same validation
+cost (relative 1e-6).
 """
 
 from __future__ import annotations
 
 import dataclasses
 
+import jax  # in the test extra: a broken install fails here rather than skipping the file
 import numpy as np
 import pytest
+from helpers import toy_cases, toy_task
+from render_cases import RENDER_CASES, random_galaxies, render_setup, write_starfield
 
-jax = pytest.importorskip("jax")
+from megalut_cli.engine import resolve_device
+from megalut_cli.errors import MegalutError
+from megalut_cli.gpu import PLATFORM_ENV
 
-from helpers import toy_cases, toy_task  # noqa: E402
-from render_cases import RENDER_CASES, random_galaxies, render_setup, write_starfield  # noqa: E402
 
-from megalut_cli.engine import resolve_device  # noqa: E402
-from megalut_cli.errors import MegalutError  # noqa: E402
-from megalut_cli.gpu import PLATFORM_ENV  # noqa: E402
+def _jax_finds_a_gpu() -> bool:
+    try:
+        return len(jax.devices("gpu")) > 0
+    except RuntimeError:  # no GPU platform: a CPU-only jaxlib, or no usable device
+        return False
 
-PEAK_TOLERANCE = 1e-5
-FEATURE_TOLERANCE = 1e-6
+
+#: The JAX platform the device tests run on: a GPU when JAX finds one, otherwise JAX's CPU mode.
+DEVICE_PLATFORM = "gpu" if _jax_finds_a_gpu() else "cpu"
+ON_GPU = DEVICE_PLATFORM == "gpu"
+
+#: Noiseless stamps, device against the CPU fast path: largest pixel difference as a
+#: fraction of the stamp's peak. Achieved on JAX's CPU mode: 1.4e-7 over the whole render
+#: grid (Sersic, case 3; the quick cases include it), 1.2e-7 for the Gaussians; the work unit's
+#: stamps are equal. A GPU's float64 FFT and exp change that by ~1e-15 before the float32
+#: rounding, so the same gate holds there.
+PEAK_TOLERANCE = 7e-7
+#: Adaptive moments, device against CPU: identical statuses and flags; the outputs GalSim
+#: stores as float32 (flux, g1, g2, sigma) and the columns computed from them alone (logflux,
+#: snr, skymad) bit for bit; rho4 and the centroid (float64) within FEATURE_TOLERANCE,
+#: absolute. Achieved on JAX's CPU mode: 3.9e-14 (x), 2.8e-14 (y), 4.4e-15 (rho4) on the noisy
+#: stamps; 1.4e-14 in the work unit and the CLI.
+FEATURE_TOLERANCE = 2e-13
+FLOAT64_FEATURES = ("adamom_rho4", "adamom_x", "adamom_y")
+#: On a GPU, XLA's exp and the order of its float64 reductions differ from the CPU's by
+#: ~1e-16 relative per sum, which a float32 rounding or a long HSM iteration can turn into
+#: more: every feature within the issue-13 tolerance (absolute), flags still identical.
+#: Not yet measured on a GPU.
+GPU_FEATURE_TOLERANCE = 1e-6
 
 
 @pytest.fixture(autouse=True)
-def _jax_cpu_is_the_device(monkeypatch):
-    monkeypatch.setenv(PLATFORM_ENV, "cpu")
+def _device_platform(monkeypatch):
+    monkeypatch.setenv(PLATFORM_ENV, DEVICE_PLATFORM)
+
+
+def _assert_same_features(dev, cpu, names) -> None:
+    """Columns ``names`` of the device's and the CPU's outputs within the gates above (flags,
+    truth and the float32 outputs bit for bit on JAX's CPU mode)."""
+    for name in names:
+        got, expect = np.asarray(dev[name], float), np.asarray(cpu[name], float)
+        if ON_GPU:
+            np.testing.assert_allclose(got, expect, rtol=0, atol=GPU_FEATURE_TOLERANCE, err_msg=name)
+        elif name in FLOAT64_FEATURES:
+            np.testing.assert_allclose(got, expect, rtol=0, atol=FEATURE_TOLERANCE, err_msg=name)
+        else:
+            np.testing.assert_array_equal(got, expect, err_msg=name)
 
 
 def test_device_resolution(monkeypatch) -> None:
     assert resolve_device("cpu") == "cpu"
-    assert resolve_device("gpu") == "gpu"  # JAX's CPU mode counts as the device here
+    assert resolve_device("gpu") == "gpu"  # a GPU, or JAX's CPU mode counting as the device
+    assert resolve_device("auto") == "gpu"
     monkeypatch.setenv(PLATFORM_ENV, "no-such-platform")
     assert resolve_device("auto") == "cpu"
     with pytest.raises(MegalutError, match="^device gpu: JAX finds no no-such-platform device"):
@@ -142,14 +185,14 @@ def test_adaptive_moments_same_failures_and_features() -> None:
     np.testing.assert_array_equal(finite, ok)
     assert (ref.status != 0).sum() >= 2  # the blank stamp and faint ones fail
     np.testing.assert_array_equal(np.isnan(moments[ok]).any(axis=1), ref.status != 0)
-    expect = np.stack([ref.amp, ref.g1, ref.g2, ref.sigma, ref.rho4, ref.x, ref.y], axis=1)
-    np.testing.assert_allclose(moments[ok], expect, rtol=0, atol=FEATURE_TOLERANCE)
+    assert ref.n_iter.max() > 100  # unsettled runs too
+    names = ("adamom_flux", "adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4", "adamom_x", "adamom_y")
+    expect = dict(zip(names, (ref.amp, ref.g1, ref.g2, ref.sigma, ref.rho4, ref.x, ref.y)))
+    _assert_same_features(dict(zip(names, moments[ok].T)), expect, names)
     # the feature catalog: same flags, same features
     cpu = measure_stamps(stamps, engine="fast", device="cpu")
     dev = measure_stamps(stamps, engine="fast", device="gpu")
-    np.testing.assert_array_equal(dev["flags"], cpu["flags"])
-    for name, values in cpu.items():
-        np.testing.assert_allclose(dev[name], values, rtol=0, atol=FEATURE_TOLERANCE, err_msg=name)
+    _assert_same_features(dev, cpu, cpu)
 
 
 def test_work_unit_on_the_device_equals_the_fast_engine() -> None:
@@ -168,11 +211,10 @@ def test_work_unit_on_the_device_equals_the_fast_engine() -> None:
     cpu = draw_unit(unit)
     dev = draw_unit(dataclasses.replace(unit, device="gpu"))
     peak = np.abs(cpu["stamps"]).max(axis=(1, 2))
-    assert (np.abs(dev["stamps"] - cpu["stamps"]).max(axis=(1, 2)) <= PEAK_TOLERANCE * peak).all()
+    err = np.abs(dev["stamps"] - cpu["stamps"]).max(axis=(1, 2)) / peak
+    assert err.max() <= PEAK_TOLERANCE, err.max()
     assert set(dev["columns"]) == set(cpu["columns"])
-    np.testing.assert_array_equal(dev["columns"]["flags"], cpu["columns"]["flags"])
-    for name, values in cpu["columns"].items():
-        np.testing.assert_allclose(dev["columns"][name], values, rtol=0, atol=FEATURE_TOLERANCE, err_msg=name)
+    _assert_same_features(dev["columns"], cpu["columns"], cpu["columns"])
 
 
 @pytest.mark.parametrize("cost", ["msb", "mse"])
@@ -234,6 +276,5 @@ def test_cli_simulate_on_the_device_equals_cpu(tmp_path, runner, cli) -> None:
                                   "--device", device, "--seed", "3"])
         assert res.exit_code == 0, res.stderr
     cpu, dev = (read_catalog(str(tmp_path / f"{d}.fits")) for d in ("cpu", "gpu"))
-    for name in ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "snr", "flags"):
-        np.testing.assert_allclose(np.asarray(dev[name], float), np.asarray(cpu[name], float), rtol=0,
-                                   atol=FEATURE_TOLERANCE, err_msg=name)
+    assert dev.colnames == cpu.colnames
+    _assert_same_features(dev, cpu, cpu.colnames)

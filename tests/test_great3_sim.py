@@ -16,7 +16,6 @@ from megalut_cli.sim.config import load_config
 
 COSMOS_DIR = Path(__file__).resolve().parents[1] / "examples" / "data" / "cosmos"
 RGC = COSMOS_DIR / "real_galaxy_catalog_26_extension_example.fits"
-needs_cosmos = pytest.mark.skipif(not RGC.is_file(), reason="COSMOS example data not available")
 
 STAMP_PSF = '[psf]\ntype = "gaussian"\nsigma = 1.5'
 
@@ -117,7 +116,6 @@ type = "none"
 """
 
 
-@needs_cosmos
 def test_real_galaxies_pairs_flux_and_shear(tmp_path, runner, cli):
     cfg = write(tmp_path, REAL, "real.toml")
     out = tmp_path / "r.fits"
@@ -145,7 +143,6 @@ def test_real_galaxies_pairs_flux_and_shear(tmp_path, runner, cli):
     assert np.all(np.abs(pair0) < 2e-3) and np.all(pair > 0.01)
 
 
-@needs_cosmos
 def test_real_galaxy_config_errors(tmp_path):
     cfg = write(tmp_path, REAL, "real.toml")
     for override, message in [
@@ -166,7 +163,13 @@ def test_real_galaxy_config_errors(tmp_path):
         load_config(cfg, [f"galaxy.real_catalog={bad}"])
 
 
-@needs_cosmos
+# per pixel scale (fixed seeds, deterministic): the median padding / model variance ratio
+# over the six galaxies, and the largest anisotropy left after symmetrizing.
+# Achieved: ratio 1.10 (0.89-1.37) at 0.2", 1.30 (1.22-1.35) at 0.05" (docs/great3.md);
+# anisotropy 0.0054 -> 0.00047 at 0.2", 0.42 -> 0.015 at 0.05"
+HST_NOISE_GATES = {0.2: ((1.05, 1.15), 0.002), 0.05: ((1.25, 1.35), 0.05)}
+
+
 @pytest.mark.parametrize("pixel_scale, fwhm", [(0.2, 3.5), (0.05, 2.5)])
 def test_hst_noise_model_and_symmetrization(pixel_scale, fwhm):
     """The HST noise padded around a real galaxy has the correlation shape of the model used
@@ -194,8 +197,9 @@ def test_hst_noise_model_and_symmetrization(pixel_scale, fwhm):
         after.append(_corr((image.array - clean)[:24].astype(float)))
     before, after, model = (np.mean(a, axis=0) for a in (before, after, model))
     np.testing.assert_allclose(model, before, atol=0.06)  # the model's correlation shape
-    assert 0.5 < np.median(ratio) < 2.0, ratio  # its raw variance: within a factor ~1.5
-    assert abs(after[0] - after[1]) < 0.03 + 0.25 * abs(before[0] - before[1]), (before, after)
+    (lo, hi), aniso = HST_NOISE_GATES[pixel_scale]
+    assert lo < np.median(ratio) < hi, ratio  # its raw variance, as docs/great3.md records it
+    assert abs(after[0] - after[1]) < aniso, (before, after)
 
 
 def _corr(a):
@@ -204,7 +208,6 @@ def _corr(a):
     return (a[:, 1:] * a[:, :-1]).mean() / v, (a[1:, :] * a[:-1, :]).mean() / v
 
 
-@needs_cosmos
 def test_real_galaxies_hst_noise_column(tmp_path, runner, cli):
     cfg = write(tmp_path, REAL.replace('[noise]\ntype = "none"', '[noise]\ntype = "gaussian"\nsigma = 0.3'), "n.toml")
     r = runner.invoke(cli, ["simulate", str(cfg), "-o", str(tmp_path / "a.fits"), "--measure", "--seed", "2"])

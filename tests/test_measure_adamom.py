@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import platform
+
 import galsim
 import numpy as np
 import pytest
@@ -15,12 +17,49 @@ from megalut_cli.measure.adamom import (
     HSMParams,
     adaptive_moments,
 )
-from megalut_cli.measure.features import FEATURE_COLUMNS, MEASURE_ENGINES, measure_stamps
+from megalut_cli.measure.features import (
+    FEATURE_COLUMNS,
+    MEASURE_ENGINES,
+    default_guess_sigma,
+    measure_stamps,
+)
 
 FIELDS = ("amp", "g1", "g2", "sigma", "rho4", "x", "y")
-#: Tolerances of the checks: relative for amp and sigma, absolute for the others.
+
+# The gates, and what the kernel achieves on the stamps of these tests (default run: 2000
+# fiducial stamps, 4 stamp sizes, rectangular stamps, corner cases; slow run: 10^4 stamps).
+#
+#: Success or failure: the same as GalSim's on every stamp. The kind of failure: the same on
+#: at least this fraction of the stamps. Achieved: 100 % (default run); 99.95 % (slow run:
+#: 5 stamps still unsettled after hundreds of iterations, TOO_MANY_ITERATIONS against NAN or
+#: OUT_OF_RANGE; exact_exp=True gives GalSim's kind on them).
+KIND_AGREEMENT = 0.999
+#: A run of more than this many iterations has not settled: the factorised weight differs
+#: from GalSim's exp per pixel by ~1e-13 relative, and a long iteration amplifies that.
+SETTLED_ITERATIONS = 64
+#: How each output is compared where both succeed: "exact" bit for bit (amp and sigma, which
+#: GalSim stores as float32); "g" (from GalSim's float32 e1, e2) within ROUND_TOLERANCE, i.e. bit
+#: for bit unless |g| < 1e-7; "float64" (rho4, centroid) within SETTLED_TOLERANCE on settled
+#: runs and UNSETTLED_TOLERANCE on longer ones, absolute.
+KINDS = {"amp": "exact", "g1": "g", "g2": "g", "sigma": "exact", "rho4": "float64", "x": "float64",
+         "y": "float64"}
+#: Achieved (float32 outputs bit for bit on every stamp of the default run): settled runs
+#: (98 % of the stamps) 1.0e-12 (x, y of the corner cases; 8.4e-13 over the 10^4 stamps;
+#: rho4 at most 9e-14); unsettled runs 2.1e-9 (rho4, 40 x 48 stamps with guess 1.5),
+#: 9.6e-10 (x), 4.5e-10 (y).
+SETTLED_TOLERANCE = 5e-12
+UNSETTLED_TOLERANCE = 5e-9
+#: g1 or g2 of a round or axis-aligned source is float64 rounding noise (up to 7e-10 in the
+#: corner cases), stored as float32: the two sums round it differently. Achieved: 2.6e-15.
+ROUND_TOLERANCE = 1e-14
+#: Stamps outside the gates above: at most this fraction of the successes, all unsettled,
+#: within OUTLIER_TOLERANCE (relative for amp and sigma). Achieved: none in the default run;
+#: 3 of 9672 in the slow run (148 to 215 iterations; float32 outputs one float32 step off on
+#: 2 of them; rho4 8.2e-7, x 4.0e-7, y 1.6e-7, amp 1.1e-7 relative; exact_exp=True gives
+#: GalSim's numbers on them).
+OUTLIER_FRACTION = 0.001
+OUTLIER_TOLERANCE = 1e-6
 RELATIVE = ("amp", "sigma")
-TOLERANCE = 1e-6
 
 
 def fiducial_stamps(n: int, size: int = 64, seed: int = 0) -> np.ndarray:
@@ -80,24 +119,42 @@ def galsim_reference(stamps: np.ndarray, guess_sigma: float) -> tuple[np.ndarray
     return status, out
 
 
-def assert_matches_galsim(stamps, guess_sigma=5.0, min_agreement=1.0, tol=TOLERANCE, **kw):
-    """Same failures (kinds included) on ``min_agreement`` of the stamps, same numbers."""
+def assert_same_numbers(mine: dict, theirs: dict, kinds: dict, n_iter: np.ndarray, relative=RELATIVE) -> None:
+    """The gates above on outputs measured where both succeed, ``n_iter`` the kernel's iterations."""
+    settled = n_iter <= SETTLED_ITERATIONS
+    outlier = np.zeros(len(n_iter), dtype=bool)
+    for name, kind in kinds.items():
+        a, b = mine[name], theirs[name]
+        assert np.isfinite(a).all() and np.isfinite(b).all(), name
+        if kind == "exact":
+            outlier |= a != b
+        elif kind == "g":
+            outlier |= np.abs(a - b) > ROUND_TOLERANCE
+        else:
+            outlier |= np.abs(a - b) > np.where(settled, SETTLED_TOLERANCE, UNSETTLED_TOLERANCE)
+    details = {name: (mine[name][outlier], theirs[name][outlier]) for name in kinds}
+    assert outlier.sum() <= OUTLIER_FRACTION * len(outlier), (outlier.sum(), n_iter[outlier], details)
+    assert not (outlier & settled).any(), (n_iter[outlier], details)
+    for name in kinds:
+        rtol, atol = (OUTLIER_TOLERANCE, 0) if name in relative else (0, OUTLIER_TOLERANCE)
+        np.testing.assert_allclose(mine[name][outlier], theirs[name][outlier], rtol=rtol, atol=atol, err_msg=name)
+
+
+def assert_matches_galsim(stamps, guess_sigma=5.0, **kw):
+    """The same success or failure on every stamp, the same kind of failure on KIND_AGREEMENT
+    of them, the same numbers (assert_same_numbers)."""
     ours = adaptive_moments(stamps, guess_sigma, **kw)
     status, ref = galsim_reference(stamps, guess_sigma)
+    np.testing.assert_array_equal(ours.status == SUCCESS, status == SUCCESS)
     agree = ours.status == status
-    assert agree.mean() >= min_agreement, [
+    assert agree.mean() >= KIND_AGREEMENT, [
         (STATUS_NAMES[a], STATUS_NAMES[b]) for a, b in zip(ours.status[~agree], status[~agree])
     ]
-    # Whether a stamp failed at all agrees even more often.
-    assert ((ours.status == 0) == (status == 0)).mean() >= min_agreement
-    both = (ours.status == 0) & (status == 0)
+    both = ours.status == SUCCESS
     for f in FIELDS:
-        mine, theirs = getattr(ours, f)[both], ref[f][both]
-        if f in RELATIVE:
-            np.testing.assert_allclose(mine, theirs, rtol=tol, atol=0, err_msg=f)
-        else:
-            np.testing.assert_allclose(mine, theirs, rtol=0, atol=tol, err_msg=f)
-        assert np.isnan(getattr(ours, f)[ours.status != 0]).all()
+        assert np.isnan(getattr(ours, f)[~both]).all()
+    assert_same_numbers({f: getattr(ours, f)[both] for f in FIELDS}, {f: ref[f][both] for f in FIELDS},
+                        KINDS, ours.n_iter[both])
     return ours, status
 
 
@@ -108,7 +165,7 @@ def test_status_names_cover_galsim_messages():
 
 def test_fiducial_stamps_match_galsim():
     stamps = fiducial_stamps(2000, seed=11)
-    ours, status = assert_matches_galsim(stamps, min_agreement=0.995)
+    ours, status = assert_matches_galsim(stamps)
     # Faint galaxies make HSM fail, so that failures are tested too.
     assert 0.01 < (status != 0).mean() < 0.2
     assert ours.n_iter[ours.status == 0].min() >= 1
@@ -118,20 +175,30 @@ def test_fiducial_stamps_match_galsim():
 @pytest.mark.slow
 def test_fiducial_stamps_match_galsim_1e4():
     stamps = fiducial_stamps(10_000, seed=12)
-    assert_matches_galsim(stamps, min_agreement=0.995)
+    assert_matches_galsim(stamps)
 
 
 def test_exact_exp_reproduces_galsim_numbers():
-    """With an exp per pixel, the sums are GalSim's, summed in GalSim's order."""
+    """With an exp per pixel, the sums are GalSim's, summed in GalSim's order: the same
+    statuses and numbers, bit for bit on x86-64 (as documented; achieved)."""
     stamps = fiducial_stamps(300, seed=13)
-    assert_matches_galsim(stamps, min_agreement=1.0, tol=1e-12, exact_exp=True)
+    ours = adaptive_moments(stamps, 5.0, exact_exp=True)
+    status, ref = galsim_reference(stamps, 5.0)
+    np.testing.assert_array_equal(ours.status, status)
+    assert (status != SUCCESS).any()
+    exact = platform.machine().lower() in ("x86_64", "amd64")
+    for f in FIELDS:
+        if exact:
+            np.testing.assert_array_equal(getattr(ours, f), ref[f], err_msg=f)
+        else:  # another libm or FMA contraction may round differently
+            np.testing.assert_allclose(getattr(ours, f), ref[f], rtol=0, atol=1e-12, err_msg=f)
 
 
 @pytest.mark.parametrize("size", [32, 33, 64, 128])
 def test_stamp_sizes_match_galsim(size):
     stamps = fiducial_stamps(150, size=size, seed=size)
     guess = min(5.0, size / 8.0)
-    ours, status = assert_matches_galsim(stamps, guess, min_agreement=0.98)
+    ours, status = assert_matches_galsim(stamps, guess)
     assert (status == 0).mean() > 0.5
 
 
@@ -164,7 +231,8 @@ def test_corner_cases_match_galsim():
             np.full((64, 64), 3.0),  # constant
         ]
     )
-    ours, status = assert_matches_galsim(stamps, min_agreement=1.0)
+    ours, status = assert_matches_galsim(stamps)
+    np.testing.assert_array_equal(ours.status, status)  # every kind of failure too
     assert ours.status[0] == ALL_ZERO
     # GalSim's outcomes, which cover most failure kinds
     names = [STATUS_NAMES[s] for s in ours.status]
@@ -177,7 +245,7 @@ def test_corner_cases_match_galsim():
 def test_rectangular_stamps_and_guesses_match_galsim():
     stamps = fiducial_stamps(60, size=48, seed=2)[:, 4:44, :]  # 40 x 48
     for guess in (1.5, 5.0, 9.0):
-        assert_matches_galsim(stamps, guess, min_agreement=0.95)
+        assert_matches_galsim(stamps, guess)
 
 
 def test_noiseless_gaussian_is_recovered():
@@ -245,13 +313,35 @@ def test_bad_arguments_rejected():
     assert empty.status.shape == (0,) and empty.g1.shape == (0,)
 
 
-def _assert_same_features(a, b, min_agreement):
-    """Same flags on ``min_agreement`` of the rows (HSM runs that have not converged after
-    hundreds of iterations amplify rounding differences), same features where both are 0."""
-    same = a["flags"] == b["flags"]
-    assert same.mean() >= min_agreement
-    for c in FEATURE_COLUMNS:
-        np.testing.assert_allclose(a[c][same], b[c][same], rtol=TOLERANCE, atol=TOLERANCE, err_msg=c)
+#: measure_stamps, fast against galsim engine: how each feature is compared (KINDS). The
+#: feature columns derived from amp, sigma and skymad alone are bit for bit.
+FEATURE_KINDS = {"adamom_flux": "exact", "adamom_g1": "g", "adamom_g2": "g", "adamom_sigma": "exact",
+                 "adamom_rho4": "float64", "adamom_x": "float64", "adamom_y": "float64",
+                 "adamom_logflux": "exact", "snr": "exact", "skymad": "exact"}
+#: Stamps whose flags differ: at most this fraction, each an unsettled run that one side
+#: ends in a success and the other in a failure. This breaks "the same success or failure
+#: on every stamp": achieved 1 of 100 stamps (size 32, stamp 49: the kernel converges after
+#: 268 iterations where GalSim gives up after 400 (TOO_MANY_ITERATIONS); exact_exp=True
+#: gives GalSim's failure), none at sizes 33 and 64.
+LATE_FRACTION = 0.01
+
+
+def _assert_same_features(stamps, a, b):
+    """Same flags but on rare unsettled stamps (LATE_FRACTION); where both are 0, the same
+    features (assert_same_numbers)."""
+    assert set(a) == set(b) == set(FEATURE_COLUMNS) == set(FEATURE_KINDS) | {"flags"}
+    n_iter = np.zeros(len(stamps), dtype=int)
+    finite = np.isfinite(stamps).all(axis=(1, 2))
+    n_iter[finite] = adaptive_moments(stamps[finite], default_guess_sigma(stamps.shape[1])).n_iter
+    differ = a["flags"] != b["flags"]
+    assert differ.mean() <= LATE_FRACTION, np.flatnonzero(differ)
+    assert (n_iter[differ] > SETTLED_ITERATIONS).all(), n_iter[differ]
+    assert ((a["flags"][differ] & fl.HSM_FAILED) != (b["flags"][differ] & fl.HSM_FAILED)).all()
+    for c in FEATURE_KINDS:  # NaN where flagged, in both
+        np.testing.assert_array_equal(np.isnan(a[c][~differ]), np.isnan(b[c][~differ]), err_msg=c)
+    good = (a["flags"] == 0) & (b["flags"] == 0)
+    assert_same_numbers({c: a[c][good] for c in FEATURE_KINDS}, {c: b[c][good] for c in FEATURE_KINDS},
+                        FEATURE_KINDS, n_iter[good], relative=("adamom_flux", "adamom_sigma", "snr"))
 
 
 @pytest.mark.parametrize("size", [32, 33, 64])
@@ -265,7 +355,7 @@ def test_measure_stamps_engines_agree(size):
     origins = np.random.default_rng(1).integers(1, 500, size=(100, 2))
     fast = measure_stamps(stamps, origins, engine="fast")
     ref = measure_stamps(stamps, origins, engine="galsim")
-    _assert_same_features(fast, ref, min_agreement=0.98)
+    _assert_same_features(stamps, fast, ref)
     np.testing.assert_array_equal(fast["flags"][3:7], ref["flags"][3:7])
     assert fast["flags"][3] == fl.HSM_FAILED
     assert fast["flags"][4] & fl.BAD_PIXELS

@@ -69,7 +69,10 @@ def test_fd_baseline_reaches_similar_cost() -> None:
     ana = train_member(toy_task(tr, va, iterations=30))
     fd = train_member(toy_task(tr, va, iterations=30, gradient="fd"))
     assert fd.valid_cost == pytest.approx(ana.valid_cost, rel=0.5)
-    assert fd.n_evals > 5 * ana.n_evals or fd.elapsed > ana.elapsed
+    # the work is counted, not clocked (no wall-clock assertions in tests): each finite-difference
+    # gradient costs one cost evaluation per parameter
+    assert fd.n_evals >= ana.params.size * fd.n_iter
+    assert fd.n_evals > 5 * ana.n_evals
 
 
 def test_select_best_half() -> None:
@@ -153,13 +156,14 @@ def test_mswb_weights_learn_to_downweight_biased_realizations() -> None:
     res = train_member(task)
     w = net.forward(res.params, ((np.array([[0.2, 0.5, 0.9, 0.95]]) - 0.5) / 0.5))
     unweighted = np.mean((point[30:].mean(axis=1) - t[30:]) ** 2)
-    assert res.valid_cost < 0.02 * unweighted
-    assert w[2] < 0.1 * w[0] and w[3] < 0.1 * w[1]
+    assert res.valid_cost < 8e-3 * unweighted  # achieved 2.3e-3
+    assert w[2] < 4e-3 * w[0] and w[3] < 4e-3 * w[1]  # achieved <= 1.1e-3
 
 
 @pytest.mark.slow
 def test_dask_scheduler_gives_identical_committees(tmp_path: Path) -> None:
-    distributed = pytest.importorskip("distributed")
+    import distributed
+
     from megalut_cli.training import TrainOptions, train_point
 
     write_catalog(tmp_path / "tp.fits", shear_like_columns(30, 40, seed=1), fmt="megalut.toy")
@@ -184,3 +188,18 @@ def test_member_settings_checked_by_the_declarations(kw, message):
     with pytest.raises(ValueError, match=message):
         TrainSettings(**kw)
     assert TrainSettings(iterations=0).iterations == 0  # a member may keep its starting parameters
+
+
+def test_float32_training_follows_the_float64_trajectory() -> None:
+    """The same member trained with float32 and float64 passes (same data, init and batches)
+    follows the same trajectory at first, then drifts as any two BFGS runs do, to a validation
+    cost as good (benchmarks/training.md: equal for 12-27 iterations on the fiducial TP).
+    Achieved here: validation costs within 1.6e-5 (relative) over the first 20 iterations,
+    final costs within 3 %."""
+    data, valid = toy_cases(1), toy_cases(2)
+    runs = {dt: train_member(toy_task(data, valid, dtype=dt, iterations=90)) for dt in ("float64", "float32")}
+    ref, f32 = runs["float64"].history[:, 1], runs["float32"].history[:, 1]
+    assert len(ref) == len(f32) == 90
+    assert np.max(np.abs(f32[:20] - ref[:20]) / ref[:20]) < 1e-4
+    assert np.max(np.abs(f32 - ref) / ref) > 1e-4  # and then they drift: the precisions differ
+    assert abs(runs["float32"].valid_cost / runs["float64"].valid_cost - 1) < 0.1

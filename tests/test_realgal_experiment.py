@@ -16,6 +16,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "fiducial-1e6.h5"
 CONFIG = ROOT / "examples" / "realgal" / "fiducial.toml"
+#: m_real - m_twin of the independent measurement of issue 14 (docs/realgal.md).
+INDEPENDENT_DM = {"g1": -0.022, "g2": -0.023}
 
 
 @pytest.mark.slow
@@ -25,8 +27,6 @@ def test_real_vs_twin_paired_bias(tmp_path):
     from megalut_cli.sim.config import load_config
     from megalut_cli.sim.simulate import simulate
 
-    if not MODEL.exists():
-        pytest.skip("models/fiducial-1e6.h5 is not shipped in this checkout")
     shears = {}
     for name, overrides in (("real", []), ("twin", ["galaxy.twin='sersic'"])):
         cfg = load_config(CONFIG, overrides, n_cases=8)
@@ -45,7 +45,11 @@ def test_real_vs_twin_paired_bias(tmp_path):
             # in the difference, whose error is below that of the twins' own bias (0.6-0.7
             # times it in the recorded 40-shear run).
             assert r["dm_err"] < 0.9 * r["m_b_err"]
-            # The model bias on real galaxies is percent-level, not tens of per cent.
-            assert abs(r["dm"]) < 0.05 + 3 * r["dm_err"]
+            # The model's bias on real galaxies is the percent-level one measured independently
+            # (docs/realgal.md: -2.2 % and -2.3 % weighted, 41 galaxies), within 2 sigma of this
+            # run, whose errors are 2.4-3.4 % (recorded 2026-11-26: unweighted -3.8 %, -0.5 %,
+            # weighted -5.5 %, -0.2 %).
+            assert r["dm_err"] < 0.04
+            assert abs(r["dm"] - INDEPENDENT_DM[comp]) < 2 * r["dm_err"], (scheme, comp, r["dm"], r["dm_err"])
     bins = res["by"]["tru_twin_rad/tru_psf_sigma"]["bins"]
     assert sum(b["unweighted"]["g1"]["n_galaxies"] for b in bins) >= 30

@@ -73,9 +73,11 @@ def test_bootstrap_on_independent_sets_agrees_with_fit():
     """Resampling galaxy groups is valid for independent cases too: it then agrees with the fit."""
     boot = _fits(False, "bootstrap", 60, group_size=1)
     fit = _fits(False, "fit", 60, group_size=1)
-    assert np.mean(boot[:, 1]) == pytest.approx(np.mean(fit[:, 1]), rel=0.15)
-    assert np.mean(boot[:, 3]) == pytest.approx(np.mean(fit[:, 3]), rel=0.15)
-    np.testing.assert_allclose(boot[:, 0], fit[:, 0], rtol=1e-12)  # the point values do not change
+    # fixed seeds, so deterministic: achieved bootstrap / fit 0.994 (m), 0.981 (c)
+    assert np.mean(boot[:, 1]) == pytest.approx(np.mean(fit[:, 1]), rel=0.03)
+    assert np.mean(boot[:, 3]) == pytest.approx(np.mean(fit[:, 3]), rel=0.06)
+    # the point values do not change: achieved identical; rtol a few ulp (float64 rounding)
+    np.testing.assert_allclose(boot[:, 0], fit[:, 0], rtol=1e-14)
 
 
 def test_resampler_sums_match_a_direct_loop():

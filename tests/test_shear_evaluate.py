@@ -89,8 +89,8 @@ def test_psf_frame_additive_bias_along_psf_lands_in_c_plus_only():
     r = evaluate_columns(d)["unweighted"]
     plus, cross = r["plus"], r["cross"]
     assert plus["c"] == pytest.approx(c0, abs=3 * plus["c_err"])
-    assert abs(plus["c"] - c0) < 0.05 * c0
-    assert abs(cross["c"]) < 3 * cross["c_err"] and abs(cross["c"]) < 0.05 * c0
+    assert abs(plus["c"] - c0) < 0.02 * c0  # achieved 0.49 % (0.43 sigma)
+    assert abs(cross["c"]) < 3 * cross["c_err"] and abs(cross["c"]) < 1e-3 * c0  # achieved 3.0e-4 c0
     for comp in ("plus", "cross"):
         assert abs(r[comp]["m"]) < 3 * r[comp]["m_err"]
     # In the pixel frame the same bias is smeared over both components and the scatter.
@@ -246,7 +246,6 @@ def test_bad_options():
 
 
 def test_plot_renders(tmp_path):
-    pytest.importorskip("matplotlib")
     from megalut_cli.shear.plots import plot_evaluation
 
     r = evaluate_columns(synthetic(seed=3, weights=True, psf=True, m=(2e-3, 0)), by=["tru_rad", "snr"], bins=4)

@@ -11,9 +11,7 @@ from helpers import synthetic
 from megalut_cli.catalog import write_catalog
 from megalut_cli.shear.bias import STAGE_IV_C, STAGE_IV_M
 from megalut_cli.shear.evaluate import evaluate_columns
-
-pytest.importorskip("matplotlib")
-from megalut_cli.shear.plots import axis_label, evaluation_figure  # noqa: E402
+from megalut_cli.shear.plots import axis_label, evaluation_figure
 
 WARN_RED = (0.75, 0.0, 0.0)
 

@@ -119,7 +119,6 @@ def _gems_config(tmp_path, path=COSMOS, extra=""):
     return write(tmp_path, text)
 
 
-@pytest.mark.skipif(not COSMOS.is_file(), reason="COSMOS example catalog not available")
 def test_joint_catalog_sampling(tmp_path):
     cfg = load_config(_gems_config(tmp_path), n_cases=20, n_realizations=50)
     data = fitsio.read(str(COSMOS), ext=1)
@@ -139,7 +138,6 @@ def test_joint_catalog_sampling(tmp_path):
     assert len(seen) > 0.9 * len(rows)
 
 
-@pytest.mark.skipif(not COSMOS.is_file(), reason="COSMOS example catalog not available")
 def test_catalog_errors(tmp_path):
     with pytest.raises(ConfigError, match="galaxy.rad.element: 'hlr' is an array column"):
         load_config(_gems_config(tmp_path), ['galaxy.rad={type="catalog", column="hlr"}'])
@@ -153,7 +151,6 @@ def test_catalog_errors(tmp_path):
         load_config(write(tmp_path, replace={'sb = {type = "uniform", min = 5.0, max = 15.0}': 'flux = {type = "catalog", column = "flux"}'}))
 
 
-@pytest.mark.skipif(not COSMOS.is_file(), reason="COSMOS example catalog not available")
 def test_catalog_path_relative_to_config(tmp_path, monkeypatch):
     import shutil
 

@@ -76,10 +76,11 @@ def test_intrinsic_ellipticity_then_shear(tmp_path):
     jac = _shear_matrix(0.05, -0.08) @ _shear_matrix(e1, e2) * sigma
     g1, g2, s = _shape_from_jacobian(jac, 0.5**2 + 1 / 12)  # PSF and pixel variances
     assert t["flags"][0] == 0
-    assert t["adamom_g1"][0] == pytest.approx(g1, abs=2e-3)
-    assert t["adamom_g2"][0] == pytest.approx(g2, abs=2e-3)
-    assert t["adamom_sigma"][0] == pytest.approx(s, rel=0.01)
-    assert t["adamom_flux"][0] == pytest.approx(1000.0, rel=0.01)
+    # achieved: |dg| 1.4e-6, 6.7e-7; sigma 2.4e-6 and flux 1.3e-6 relative
+    assert t["adamom_g1"][0] == pytest.approx(g1, abs=5e-6)
+    assert t["adamom_g2"][0] == pytest.approx(g2, abs=5e-6)
+    assert t["adamom_sigma"][0] == pytest.approx(s, rel=1e-5)
+    assert t["adamom_flux"][0] == pytest.approx(1000.0, rel=5e-6)
     # the other order of shears gives a clearly different shape: the test can fail
     g1b, g2b, _ = _shape_from_jacobian(_shear_matrix(e1, e2) @ _shear_matrix(0.05, -0.08) * sigma, 0.25 + 1 / 12)
     assert abs(g1b - g1) + abs(g2b - g2) > 5e-3
@@ -152,6 +153,7 @@ def test_gsparams_change_little(tmp_path):
     a, b = read_catalog(tmp_path / "a.fits"), read_catalog(tmp_path / "b.fits")
     pa, pb = fitsio.read(str(tmp_path / "a_s.fits")), fitsio.read(str(tmp_path / "b_s.fits"))
     assert not np.array_equal(pa, pb)  # the setting is applied
-    assert abs(pa.sum() / pb.sum() - 1) < 1e-3
-    assert abs(a["adamom_g1"][0] - b["adamom_g1"][0]) < 1e-5
-    assert abs(a["adamom_g2"][0] - b["adamom_g2"][0]) < 1e-5
+    # docs/config.md claims < 1e-4 (flux) and < 1e-6 (g); achieved 3.0e-5 and 4.0e-8
+    assert abs(pa.sum() / pb.sum() - 1) < 1e-4
+    assert abs(a["adamom_g1"][0] - b["adamom_g1"][0]) < 2e-7
+    assert abs(a["adamom_g2"][0] - b["adamom_g2"][0]) < 2e-7

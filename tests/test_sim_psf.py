@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 
 import galsim
 import numpy as np
@@ -93,13 +92,9 @@ def test_blackbody_photon_weights():
 
 def test_euclid_psf_is_cached_and_plausible():
     spec = {"type": "euclid", "size": 32}  # smaller stamp keeps the test fast
-    t0 = time.perf_counter()
     prof, truth = make_psf(spec, 0.0, 0.0)
-    first = time.perf_counter() - t0
-    t0 = time.perf_counter()
     prof2, truth2 = make_psf(dict(spec), 0.7, 0.2)
-    assert prof2 is prof and truth2 == truth
-    assert time.perf_counter() - t0 < max(0.01, first / 20)
+    assert prof2 is prof and truth2 == truth  # cached: the same object, not rebuilt (no timing)
     assert prof.flux == pytest.approx(1.0)
     # Round (six struts, no aberrations); paper: FWHM ~ 0.1" = 1 VIS pixel when oversampled.
     assert abs(truth["tru_psf_g1"]) < 1e-3 and abs(truth["tru_psf_g2"]) < 1e-3

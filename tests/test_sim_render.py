@@ -1,4 +1,4 @@
-"""The batched renderer draws GalSim's pixels: same FFT grids, same stamps (to 1e-5 of the peak)."""
+"""The batched renderer draws GalSim's pixels: same FFT grids, same stamps (to 1e-6 of the peak)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,10 @@ from megalut_cli.errors import MegalutError
 from megalut_cli.sim.galaxies import base_profile, make_gsparams, shaped
 from megalut_cli.sim.render import StampRenderer, can_render, fft_grid
 
-TOLERANCE = 1e-5  # of the peak pixel
+#: Largest |fast - GalSim| pixel difference allowed, as a fraction of GalSim's peak pixel.
+#: Achieved over the render grid below (every case, Sersic and Gaussian): 3.7e-7 (the
+#: Gaussians of case 0; Sersic at most 2.2e-7), a few float32 roundings of the peak.
+TOLERANCE = 1e-6
 
 FIELDS = ("profile", "rad", "flux", "sersicn", "e1", "e2", "g1", "g2", "dx", "dy")
 

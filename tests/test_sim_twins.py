@@ -66,7 +66,7 @@ def test_fit_recovers_a_sersic_through_the_hst_psf():
     assert fit["g1"] == pytest.approx(0.3, abs=0.015) and fit["g2"] == pytest.approx(-0.2, abs=0.015)
     assert fit["dx"] == pytest.approx(0.02, abs=0.005) and fit["dy"] == pytest.approx(-0.03, abs=0.005)
     assert fit["flux"] == pytest.approx(100.0, rel=0.02)
-    assert fit["chi2_dof"] == pytest.approx(1.0, abs=0.1)
+    assert fit["chi2_dof"] == pytest.approx(1.0, abs=0.03)  # fixed seed: achieved 0.992
 
 
 def test_shipped_twin_catalog_covers_the_bright_galaxies():

@@ -8,8 +8,14 @@ GalSim's float32 rounding of ``amp``, ``sigma`` and ``e1, e2``.
 
 The weight ``exp(-rho^2 / 2)`` is factorised into row and column factors updated by
 multiplication (:func:`_ellipmom_1`) instead of an ``exp`` per pixel: sums agree with
-GalSim's to ~1e-13, float32 outputs bit for bit. ``exact_exp=True`` evaluates the weight
-as GalSim does and reproduces its numbers exactly.
+GalSim's to ~1e-13 relative, which a long iteration amplifies. On runs of at most 64
+iterations (~98 % of stamps) ``amp`` and ``sigma`` are GalSim's bit for bit, ``g1, g2``
+within 1e-14, ``rho4`` and the centroid within ~1e-12; on longer runs the float64 outputs
+are within a few 1e-9, except on rare stamps (3 of 9672 in 10^4 fiducial stamps) within
+1e-6, so the float32 outputs are bit for bit on 99.98 % of stamps. Success or failure is
+GalSim's except on rare stamps still unsettled after hundreds of iterations, where one
+side may converge and the other give up. ``exact_exp=True`` evaluates the weight as
+GalSim does and reproduces its statuses and numbers exactly (on x86-64).
 """
 
 from __future__ import annotations

@@ -37,6 +37,9 @@ from megalut_cli.sim.twins import real_twin, twin_truth
 
 #: Stamps measured at once when the images are not kept (bounds the memory of a unit).
 MEASURE_BATCH = 1024
+#: The fast engine renders a case in blocks of at most this many realizations, so that a
+#: worker's memory does not grow with ``n_realizations`` (16 KB per 64-px stamp).
+CASE_BLOCK = 8 * MEASURE_BATCH
 
 _PSF_CACHE: dict[str, tuple[galsim.GSObject, dict[str, float]]] = {}
 _PSF_CACHE_MAX = 512
@@ -419,22 +422,29 @@ def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
 
     for case in range(unit.case_start, unit.case_stop):
         d = draw_case(cfg, unit.seed, case)
-        stamps = np.empty((n_rea, S, S), dtype=np.float32)
         psfs = case_psfs(cfg, d)
-        for p in psfs:
-            try:
-                stamps[p.rows] = renderer.draw(p.psf, p.key, p.method, gal.profile, *stamp_parameters(d, p.rows))
-            except MegalutError as err:
-                raise MegalutError(f"case {case}: {err}") from None
-        d.noise.add_batch(stamps, d.noise_seeds)
         truth_parts.append(case_columns(d, [p.truth for p in psfs]))
-        if unit.keep_stamps:
-            kept.append(stamps)
-        if measurer is not None:
-            pending.append(stamps)
-            n_pending += n_rea
-            if n_pending >= MEASURE_BATCH:
-                measure_pending(final=False)
+        # each stamp is rendered, and gets its noise, on its own: blocks change nothing
+        for lo in range(0, n_rea, CASE_BLOCK):
+            hi = min(lo + CASE_BLOCK, n_rea)
+            stamps = np.empty((hi - lo, S, S), dtype=np.float32)
+            for p in psfs:
+                rows = p.rows[np.searchsorted(p.rows, lo):np.searchsorted(p.rows, hi)]
+                if not len(rows):
+                    continue
+                try:
+                    stamps[rows - lo] = renderer.draw(p.psf, p.key, p.method, gal.profile,
+                                                      *stamp_parameters(d, rows))
+                except MegalutError as err:
+                    raise MegalutError(f"case {case}: {err}") from None
+            d.noise.add_batch(stamps, d.noise_seeds[lo:hi])
+            if unit.keep_stamps:
+                kept.append(stamps)
+            if measurer is not None:
+                pending.append(stamps)
+                n_pending += hi - lo
+                if n_pending >= MEASURE_BATCH:
+                    measure_pending(final=False)
     measure_pending(final=True)
     columns = {k: np.concatenate([p[k] for p in truth_parts]) for k in truth_parts[0]} if truth_parts else {}
     if measurer is not None:
