@@ -59,7 +59,7 @@ def _tests_in(source: str, filename: str = "<test file>") -> dict[str, bool]:
     module_slow = any(
         isinstance(node, ast.Assign)
         and any(isinstance(t, ast.Name) and t.id == "pytestmark" for t in node.targets)
-        and re.search(r"\bmark\.slow\b", ast.unparse(node.value))
+        and _is_slow([node.value])
         for node in tree.body
     )
     found: dict[str, bool] = {}

@@ -32,12 +32,21 @@ INTERPOLANT = "lanczos15"
 
 @dataclass(frozen=True)
 class MetacalImages:
-    """The five versions of one stamp (``images[type]``, float64, the stamp's shape), the
-    target PSF's sigma (pixels) and the image of the target PSF (the PSF image's shape)."""
+    """The five versions of one stamp (``images[type]``, float64, the stamp's shape) and the
+    sigma (pixels) of the round Gaussian target PSF they are convolved with."""
 
     images: dict[str, np.ndarray]
     target_sigma: float
-    target_psf: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Operation:
+    """What the operation needs of a PSF image: the PSF to deconvolve, the target to
+    reconvolve with, and the step (built once per PSF)."""
+
+    psf: galsim.GSObject
+    target: galsim.Gaussian
+    step: float
 
 
 def target_psf_sigma(psf_image: np.ndarray, step: float = DEFAULT_STEP) -> float:
@@ -49,27 +58,48 @@ def target_psf_sigma(psf_image: np.ndarray, step: float = DEFAULT_STEP) -> float
     return float(res.moments_sigma) * (1.0 + 2.0 * abs(step))
 
 
-def _check(stamp: np.ndarray, psf_image: np.ndarray) -> None:
-    if stamp.ndim != 2 or psf_image.ndim != 2:
-        raise ValueError("the stamp and the PSF image must be 2-d arrays")
-    if not (np.isfinite(stamp).all() and np.isfinite(psf_image).all()):
-        raise ValueError("the stamp or the PSF image holds NaN or infinite pixels")
+def _finite_2d(image: np.ndarray, what: str) -> None:
+    if image.ndim != 2:
+        raise ValueError(f"the {what} must be a 2-d array")
+    if not np.isfinite(image).all():
+        raise ValueError(f"the {what} holds NaN or infinite pixels")
+
+
+def _operation(psf_image: np.ndarray, step: float) -> _Operation:
+    """The operation for one PSF image (checked) and step."""
+    _finite_2d(psf_image, "PSF image")
     if psf_image.sum() <= 0:
         raise ValueError("the PSF image has no positive flux")
+    if not 0.0 < step < 0.1:
+        raise ValueError(f"metacal step {step}: expected 0 < step < 0.1")
+    psf = galsim.InterpolatedImage(galsim.ImageD(psf_image / psf_image.sum(), scale=1.0), x_interpolant=INTERPOLANT)
+    return _Operation(psf, galsim.Gaussian(sigma=target_psf_sigma(psf_image, step)), step)
 
 
-def _versions(image: np.ndarray, psf: galsim.GSObject, target: galsim.GSObject, step: float) -> dict[str, np.ndarray]:
-    """The five sheared and reconvolved versions of ``image`` (deconvolved by ``psf``)."""
+def _versions(image: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
+    """The five sheared and reconvolved versions of ``image`` (deconvolved by ``op.psf``)."""
     ny, nx = image.shape
     obj = galsim.InterpolatedImage(galsim.ImageD(image, scale=1.0), x_interpolant=INTERPOLANT)
-    deconvolved = galsim.Convolve(obj, galsim.Deconvolve(psf))
+    deconvolved = galsim.Convolve(obj, galsim.Deconvolve(op.psf))
     out = {}
     for kind in TYPES:
         s1, s2 = SHEARS[kind]
-        sheared = deconvolved if kind == "noshear" else deconvolved.shear(g1=s1 * step, g2=s2 * step)
-        drawn = galsim.Convolve(sheared, target).drawImage(nx=nx, ny=ny, scale=1.0, method="no_pixel")
+        sheared = deconvolved if kind == "noshear" else deconvolved.shear(g1=s1 * op.step, g2=s2 * op.step)
+        drawn = galsim.Convolve(sheared, op.target).drawImage(nx=nx, ny=ny, scale=1.0, method="no_pixel")
         out[kind] = drawn.array.astype(np.float64)
     return out
+
+
+def _apply(stamp: np.ndarray, op: _Operation, noise_sigma: float | None, seed: int) -> MetacalImages:
+    stamp = np.asarray(stamp, dtype=np.float64)
+    _finite_2d(stamp, "stamp")
+    images = _versions(stamp, op)
+    if noise_sigma is not None and noise_sigma > 0:
+        noise = np.random.default_rng(seed).normal(0.0, noise_sigma, stamp.shape)
+        rotated = _versions(np.rot90(noise, 1), op)
+        for kind in TYPES:  # rotated back: its applied shear is the opposite of the stamp's
+            images[kind] = images[kind] + np.rot90(rotated[kind], -1)
+    return MetacalImages(images, op.target.sigma)
 
 
 def metacal_images(
@@ -85,23 +115,7 @@ def metacal_images(
     ``noise_sigma``: the stamp's noise level; when given, fixnoise adds the operation's image
     of a rotated noise field of that level, drawn from ``seed``.
     """
-    stamp = np.asarray(stamp, dtype=np.float64)
-    psf_arr = np.asarray(psf_image, dtype=np.float64)
-    _check(stamp, psf_arr)
-    if not 0.0 < step < 0.1:
-        raise ValueError(f"metacal step {step}: expected 0 < step < 0.1")
-    sigma_t = target_psf_sigma(psf_arr, step)
-    psf = galsim.InterpolatedImage(galsim.ImageD(psf_arr / psf_arr.sum(), scale=1.0), x_interpolant=INTERPOLANT)
-    target = galsim.Gaussian(sigma=sigma_t)
-    images = _versions(stamp, psf, target, step)
-    if noise_sigma is not None and noise_sigma > 0:
-        noise = np.random.default_rng(seed).normal(0.0, noise_sigma, stamp.shape)
-        rotated = _versions(np.rot90(noise, 1), psf, target, step)
-        for kind in TYPES:  # rotated back: its applied shear is the opposite of the stamp's
-            images[kind] = images[kind] + np.rot90(rotated[kind], -1)
-    ny, nx = psf_arr.shape
-    target_image = target.drawImage(nx=nx, ny=ny, scale=1.0, method="no_pixel").array
-    return MetacalImages(images, sigma_t, target_image)
+    return _apply(stamp, _operation(np.asarray(psf_image, dtype=np.float64), step), noise_sigma, seed)
 
 
 def metacal_features(
@@ -122,15 +136,15 @@ def metacal_features(
     stamps = np.asarray(stamps, dtype=np.float64)
     psfs = np.asarray(psf_images, dtype=np.float64)
     n = len(stamps)
-    if psfs.ndim == 2:
-        psfs = np.broadcast_to(psfs, (n, *psfs.shape))
-    if psfs.shape[0] != n:
+    if psfs.ndim == 3 and psfs.shape[0] != n:
         raise ValueError(f"{psfs.shape[0]} PSF images for {n} stamps")
+    shared = _operation(psfs, step) if psfs.ndim == 2 else None  # one PSF: built once
     sigmas = [None] * n if noise_sigma is None else [float(v) for v in noise_sigma]
     seeds = np.arange(n) if seeds is None else np.asarray(seeds, dtype=np.int64)
     versions = {kind: np.empty_like(stamps) for kind in TYPES}
     for i in range(n):
-        mc = metacal_images(stamps[i], psfs[i], step, sigmas[i], int(seeds[i]))
+        op = shared if shared is not None else _operation(psfs[i], step)
+        mc = _apply(stamps[i], op, sigmas[i], int(seeds[i]))
         for kind in TYPES:
             versions[kind][i] = mc.images[kind]
     out: dict[str, np.ndarray] = {}
