@@ -1,4 +1,4 @@
-"""Metacalibration image operation, GalSim reference (issue 23; no command uses it yet).
+"""Metacalibration image operation (issue 23): the GalSim reference and the engine dispatch.
 
 Each stamp is deconvolved by its PSF image, sheared by ``±step`` along g1 and g2, and
 reconvolved with a round Gaussian target PSF slightly wider than the PSF, giving the five
@@ -90,16 +90,91 @@ def _versions(image: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
     return out
 
 
-def _apply(stamp: np.ndarray, op: _Operation, noise_sigma: float | None, seed: int) -> MetacalImages:
-    stamp = np.asarray(stamp, dtype=np.float64)
-    _finite_2d(stamp, "stamp")
-    images = _versions(stamp, op)
-    if noise_sigma is not None and noise_sigma > 0:
-        noise = np.random.default_rng(seed).normal(0.0, noise_sigma, stamp.shape)
-        rotated = _versions(np.rot90(noise, 1), op)
-        for kind in TYPES:  # rotated back: its applied shear is the opposite of the stamp's
-            images[kind] = images[kind] + np.rot90(rotated[kind], -1)
-    return MetacalImages(images, op.target.sigma)
+def noise_field(sigma: float, seed: int, shape: tuple[int, int]) -> np.ndarray:
+    """The fixnoise field of one stamp: Gaussian, of standard deviation ``sigma``, from ``seed``."""
+    return np.random.default_rng(int(seed)).normal(0.0, sigma, shape)
+
+
+def _linear_versions(images: np.ndarray, psf_image: np.ndarray, op: _Operation, engine: str) -> dict[str, np.ndarray]:
+    """The operation (linear in the image) on a stack ``(n, S, S)`` that shares one PSF."""
+    if engine == "fast":
+        from megalut_cli.measure.metacal_fft import fft_versions
+
+        return fft_versions(images, psf_image, op.step, op.target.sigma)
+    out = {kind: np.empty_like(images) for kind in TYPES}
+    for i, image in enumerate(images):
+        for kind, version in _versions(image, op).items():
+            out[kind][i] = version
+    return out
+
+
+def _with_fixnoise(
+    stamps: np.ndarray,
+    psf_image: np.ndarray,
+    op: _Operation,
+    sigmas: np.ndarray,
+    seeds: np.ndarray,
+    engine: str,
+) -> dict[str, np.ndarray]:
+    """The five versions of stamps sharing one PSF; where ``sigmas > 0``, with fixnoise: the
+    operation's image of a 90-degree rotated noise field, rotated back, added (its applied
+    shear is the opposite of the stamp's)."""
+    noisy = np.flatnonzero(sigmas > 0)
+    fields = [np.rot90(noise_field(sigmas[i], seeds[i], stamps.shape[1:]), 1) for i in noisy]
+    stack = np.concatenate([stamps, np.asarray(fields).reshape(-1, *stamps.shape[1:])]) if len(noisy) else stamps
+    versions = _linear_versions(stack, psf_image, op, engine)
+    n = len(stamps)
+    out = {}
+    for kind in TYPES:
+        out[kind] = versions[kind][:n].copy()
+        if len(noisy):
+            out[kind][noisy] += np.rot90(versions[kind][n:], -1, axes=(1, 2))
+    return out
+
+
+def metacal_versions(
+    stamps: np.ndarray,
+    psf_images: np.ndarray,
+    step: float = DEFAULT_STEP,
+    noise_sigma: Sequence[float] | np.ndarray | None = None,
+    seeds: Sequence[int] | np.ndarray | None = None,
+    engine: str = "galsim",
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The five metacal versions of a stack of stamps ``(n, S, S)``, as ``({type: (n, S, S)},
+    target_sigma (n,))``.
+
+    ``psf_images``: one PSF image ``(P, P)`` for all stamps, or one per stamp ``(n, P, P)``.
+    ``noise_sigma`` (per stamp; e.g. the measured ``skymad``; 0 or NaN: none) turns fixnoise
+    on, each stamp's field drawn from its ``seeds`` entry (default: the stamp index).
+    ``engine``: ``"galsim"`` (the reference, stamp by stamp) or ``"fast"`` (FFTs over the
+    stack, :mod:`.metacal_fft`).
+    """
+    stamps = np.asarray(stamps, dtype=np.float64)
+    psfs = np.asarray(psf_images, dtype=np.float64)
+    if stamps.ndim != 3:
+        raise ValueError(f"stamps must be a stack (n, S, S), got shape {stamps.shape}")
+    n = len(stamps)
+    if psfs.ndim == 3 and psfs.shape[0] != n:
+        raise ValueError(f"{psfs.shape[0]} PSF images for {n} stamps")
+    if psfs.ndim not in (2, 3):
+        raise ValueError(f"PSF images must be (P, P) or (n, P, P), got shape {psfs.shape}")
+    for i, stamp in enumerate(stamps):
+        if not np.isfinite(stamp).all():
+            raise ValueError(f"stamp {i} holds NaN or infinite pixels")
+    sigmas = np.zeros(n) if noise_sigma is None else np.nan_to_num(np.asarray(noise_sigma, dtype=np.float64), nan=0.0)
+    seeds = np.arange(n, dtype=np.int64) if seeds is None else np.asarray(seeds, dtype=np.int64)
+    if psfs.ndim == 2:  # one PSF: the operation built once, the whole stack at once
+        op = _operation(psfs, step)
+        return _with_fixnoise(stamps, psfs, op, sigmas, seeds, engine), np.full(n, op.target.sigma)
+    versions = {kind: np.empty_like(stamps) for kind in TYPES}
+    target = np.empty(n)
+    for i in range(n):
+        op = _operation(psfs[i], step)
+        one = _with_fixnoise(stamps[i : i + 1], psfs[i], op, sigmas[i : i + 1], seeds[i : i + 1], engine)
+        for kind in TYPES:
+            versions[kind][i] = one[kind][0]
+        target[i] = op.target.sigma
+    return versions, target
 
 
 def metacal_images(
@@ -108,6 +183,7 @@ def metacal_images(
     step: float = DEFAULT_STEP,
     noise_sigma: float | None = None,
     seed: int = 0,
+    engine: str = "galsim",
 ) -> MetacalImages:
     """The five metacal versions of ``stamp`` with the PSF image ``psf_image`` (both centred
     like GalSim's images: the true centre of an even-sized image is between pixels).
@@ -115,7 +191,12 @@ def metacal_images(
     ``noise_sigma``: the stamp's noise level; when given, fixnoise adds the operation's image
     of a rotated noise field of that level, drawn from ``seed``.
     """
-    return _apply(stamp, _operation(np.asarray(psf_image, dtype=np.float64), step), noise_sigma, seed)
+    stamp = np.asarray(stamp, dtype=np.float64)
+    _finite_2d(stamp, "stamp")
+    versions, target = metacal_versions(
+        stamp[None], psf_image, step, None if noise_sigma is None else [noise_sigma], [seed], engine
+    )
+    return MetacalImages({kind: v[0] for kind, v in versions.items()}, float(target[0]))
 
 
 def metacal_features(
@@ -124,29 +205,16 @@ def metacal_features(
     step: float = DEFAULT_STEP,
     noise_sigma: Sequence[float] | np.ndarray | None = None,
     seeds: Sequence[int] | np.ndarray | None = None,
+    metacal_engine: str = "galsim",
     **measure_kw: Any,
 ) -> dict[str, np.ndarray]:
     """Features of the five metacal versions of a stack of stamps ``(n, S, S)``: every column
     ``X`` of :func:`~megalut_cli.measure.features.measure_stamps` as ``X_<type>``.
 
-    ``psf_images``: one PSF image ``(P, P)`` for all stamps, or one per stamp ``(n, P, P)``.
-    ``noise_sigma`` (per stamp; e.g. the measured ``skymad``) turns fixnoise on, with the
-    per-stamp ``seeds`` (default: the stamp index). ``measure_kw`` go to ``measure_stamps``.
+    Arguments as :func:`metacal_versions` (``metacal_engine`` is its ``engine``);
+    ``measure_kw`` go to ``measure_stamps``.
     """
-    stamps = np.asarray(stamps, dtype=np.float64)
-    psfs = np.asarray(psf_images, dtype=np.float64)
-    n = len(stamps)
-    if psfs.ndim == 3 and psfs.shape[0] != n:
-        raise ValueError(f"{psfs.shape[0]} PSF images for {n} stamps")
-    shared = _operation(psfs, step) if psfs.ndim == 2 else None  # one PSF: built once
-    sigmas = [None] * n if noise_sigma is None else [float(v) for v in noise_sigma]
-    seeds = np.arange(n) if seeds is None else np.asarray(seeds, dtype=np.int64)
-    versions = {kind: np.empty_like(stamps) for kind in TYPES}
-    for i in range(n):
-        op = shared if shared is not None else _operation(psfs[i], step)
-        mc = _apply(stamps[i], op, sigmas[i], int(seeds[i]))
-        for kind in TYPES:
-            versions[kind][i] = mc.images[kind]
+    versions, _ = metacal_versions(stamps, psf_images, step, noise_sigma, seeds, metacal_engine)
     out: dict[str, np.ndarray] = {}
     for kind in TYPES:
         for name, values in measure_stamps(versions[kind], **measure_kw).items():
