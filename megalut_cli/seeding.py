@@ -20,6 +20,8 @@ STREAM_SUBFIELD = 4
 STREAM_COMMON = 5
 #: Bootstrap resampling of ``megalut evaluate`` (also its paired ``--twin`` bootstrap).
 STREAM_BOOTSTRAP = 6
+#: The fixnoise fields of metacalibration (``measure --metacal``), one per stamp.
+STREAM_METACAL = 7
 
 #: The ``--seed`` of the commands (each gives its own default and help).
 SEED_OPTION = Option("seed", "int", 1, "Seed of every random draw of this step.")

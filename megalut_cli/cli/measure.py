@@ -37,6 +37,9 @@ from megalut_cli.measure.options import MEASURE
 )
 @schema_option(MEASURE["stars"])
 @schema_option(MEASURE["morphology"])
+@schema_option(MEASURE["metacal"])
+@schema_option(MEASURE["metacal_step"], show_default=True)
+@schema_option(MEASURE["seed"], show_default=True)
 @engine_option("the adaptive moments are measured")
 @device_option("the fast engine measures")
 @execution_options
@@ -51,6 +54,9 @@ def command(
     psf: str | None,
     stars: bool | None,
     morphology: bool,
+    metacal: bool,
+    metacal_step: float,
+    seed: int,
     engine: str,
     device: str,
     nproc: int,
@@ -73,7 +79,12 @@ def command(
     features. A CATALOG whose provenance cards (SEED, CFGSHA, NCASES, NREA, NSTAMPX, STAMPSZ)
     disagree with the image's, or a --stamp-size that contradicts its STAMPSZ card, is
     refused. CATALOG '-' reads a FITS catalog from stdin; -o - writes to stdout. With --morphology,
-    morph_conc, morph_conc_inner and morph_size_ratio are added.
+    morph_conc, morph_conc_inner and morph_size_ratio are added. With --metacal (and --psf),
+    each stamp is also deconvolved by its PSF, sheared by +-step along g1 and g2 and
+    reconvolved with a round target PSF, with fixnoise (docs/metacal.md): every feature
+    column X (and psf_adamom_*, of the target PSF) is written again as X_noshear, X_1p,
+    X_1m, X_2p, X_2m, and the header gets MCALSTEP, MCALSEED; a stamp with NaN pixels is
+    then an error.
 
     \b
     Example (200 stamps: 25 s to simulate, 10 s to measure, 2 busy cores):
@@ -84,6 +95,8 @@ def command(
           | megalut predict - --model model.h5 -o shears.fits
       megalut measure image-000-0.fits galaxy_catalog-000.txt -o f.fits \\
           --stamp-size 48 --origin 0 --psf starfield_image-000-0.fits
+      megalut measure stamps.fits cat.fits -o mcal.fits \\
+          --psf psf.fits --metacal
       megalut measure starfield_image-000-0.fits -o stars.fits \\
           --stamp-size 48
     """
@@ -112,4 +125,7 @@ def command(
             morphology=morphology,
             device=device,
             names=flag_names(psf_path="--psf"),
+            metacal=metacal,
+            metacal_step=metacal_step,
+            seed=seed,
         )

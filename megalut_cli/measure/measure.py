@@ -60,6 +60,7 @@ from megalut_cli.measure.features import (
     default_max_shift,
     measure_stamps,
 )
+from megalut_cli.measure.metacal_defaults import SEED_CARD, STEP_CARD, TYPES, metacal_columns
 from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS, morphology_of_measured
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.stamps import (
@@ -118,7 +119,36 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
                            device=unit.get("device", DEFAULT_DEVICE))
     if unit.get("morphology"):
         feats.update(morphology_of_measured(stamps, origins, feats))
+    mc = unit.get("metacal")
+    if mc is not None:
+        feats.update(_metacal_unit(unit, mc, stamps, feats))
     return feats
+
+
+def _metacal_unit(
+    unit: dict[str, Any], mc: dict[str, Any], stamps: np.ndarray, feats: dict[str, np.ndarray]
+) -> dict[str, np.ndarray]:
+    """The metacal features of a unit's stamps (:func:`.metacal.metacal_features`)."""
+    from megalut_cli.measure.metacal import metacal_features
+
+    size, origins = unit["stamp_size"], unit["origins"]
+    bad = ~np.isfinite(stamps).all(axis=(1, 2))
+    if bad.any():
+        x, y = stamp_centres(origins[bad][:1], size)[0]
+        raise InputError(
+            f"{int(bad.sum())} stamp(s) hold NaN or infinite pixels (the first centred at x={x:g}, y={y:g}); "
+            "metacalibration needs whole stamps: cut those rows from the catalog"
+        )
+    if mc.get("psf") is not None:
+        psfs = mc["psf"]
+    else:
+        y0, y1 = _row_band(origins, size)
+        psfs = cut_stamps(read_rows(mc["psf_info"], y0, y1), y0, origins, size)
+    return metacal_features(
+        stamps, psfs, mc["step"], noise_sigma=feats["skymad"], seeds=mc["seeds"], metacal_engine=unit["engine"],
+        morphology=bool(unit.get("morphology")), origins=origins, gain=unit["gain"], max_shift=unit["max_shift"],
+        engine=unit["engine"], device=unit.get("device", DEFAULT_DEVICE),
+    )
 
 
 def _units(
@@ -161,18 +191,25 @@ def _run_units(
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
     device: str = DEFAULT_DEVICE,
+    metacal: dict[str, Any] | None = None,
 ) -> dict[str, np.ndarray]:
     """Measure stamps at ``origins``; stamps off the image get STAMP_OFF_IMAGE and NaN.
     With ``morphology``, the :data:`MORPHOLOGY_COLUMNS` too. On the (resolved) ``device``
-    "gpu", the units run in this process."""
+    "gpu", the units run in this process. ``metacal``: ``{"step", "seeds" (one per stamp),
+    "psf" (one PSF image) or "psf_info" (a grid of PSF stamps like the image)}`` adds the
+    metacal columns ``X_<type>``."""
     if device == "gpu" and not scheduler:
         nproc = 1
     n = len(origins)
     names = FEATURE_COLUMNS + (MORPHOLOGY_COLUMNS if morphology else ())
-    out = {c: np.full(n, np.nan) for c in names if c != "flags"}
-    out["flags"] = np.zeros(n, dtype=np.int32)
+    flag_cols = ["flags"] + ([f"flags_{kind}" for kind in TYPES] if metacal is not None else [])
+    if metacal is not None:
+        names = names + tuple(metacal_columns(names))
+    out = {c: np.full(n, np.nan) for c in names if c not in flag_cols}
     ok = inside(origins, size, image.shape)
-    out["flags"][~ok] |= fl.STAMP_OFF_IMAGE
+    for c in flag_cols:
+        out[c] = np.zeros(n, dtype=np.int32)
+        out[c][~ok] |= fl.STAMP_OFF_IMAGE
     if (~ok).any():
         where = image.path if isinstance(image, ImageInfo) else "image"
         log.warning("%s: %d stamp(s) not entirely inside the image: flagged", where, int((~ok).sum()))
@@ -181,9 +218,11 @@ def _run_units(
         return out
     workers = 2 if scheduler else resolve_nproc(nproc)
     units, pieces = _units(image, origins[idx], size, gain, workers, engine)
-    for unit in units:
+    for unit, piece in zip(units, pieces):
         unit["morphology"] = morphology
         unit["device"] = device
+        if metacal is not None:
+            unit["metacal"] = {**{k: v for k, v in metacal.items() if k != "seeds"}, "seeds": metacal["seeds"][idx[piece]]}
     sizes = [len(p) for p in pieces]
     t0 = time.perf_counter()
     with executor(nproc, scheduler, len(units)) as pool, (progress or no_progress)(label, len(idx)) as update:
@@ -200,7 +239,7 @@ def _run_units(
     for piece, res in zip(pieces, results):
         rows = idx[piece]
         for c, v in res.items():
-            if c == "flags":
+            if c in flag_cols:
                 out[c][rows] |= v
             else:
                 out[c][rows] = v
@@ -238,8 +277,8 @@ def measure_image(
                       morphology, resolve_device(device))
 
 
-def _single_psf(path: str, size_hint: int, engine: str = DEFAULT_ENGINE) -> dict[str, float]:
-    """Features of a one-PSF image (whole image, or the first stamp of a star grid)."""
+def _single_psf_stamp(path: str, size_hint: int) -> np.ndarray:
+    """The stamp of a one-PSF image (whole image, or the first stamp of a star grid), checked."""
     info = image_info(path)
     ny, nx = info.shape
     card = info.header.get("STAMPSZ")
@@ -258,12 +297,84 @@ def _single_psf(path: str, size_hint: int, engine: str = DEFAULT_ENGINE) -> dict
         raise InputError(f"{path}: the PSF stamp has NaN or infinite pixels")
     if not stamp.sum() > 0:
         raise InputError(f"{path}: the PSF stamp is empty (no star)")
-    res = measure_stamps(stamp[None], engine=engine)
+    return np.asarray(stamp, dtype=np.float64)
+
+
+def _single_psf(path: str, size_hint: int, engine: str = DEFAULT_ENGINE) -> dict[str, float]:
+    """Features of a one-PSF image (whole image, or the first stamp of a star grid)."""
+    res = measure_stamps(_single_psf_stamp(path, size_hint)[None], engine=engine)
     if res["flags"][0]:
         raise InputError(
             f"{path}: the PSF stamp could not be measured ({', '.join(fl.explain(res['flags'][0]))})"
         )
     return {f"psf_{c}": float(res[c][0]) for c in ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4")}
+
+
+#: Header cards that may give an image's pixel scale (arcsec per pixel), in this order.
+PIXEL_SCALE_CARDS = ("PIXSCALE", "PIXSCAL", "SECPIX")
+
+
+def pixel_scale(header: dict[str, Any]) -> float | None:
+    """An image's pixel scale in arcsec from its header (a pixel-scale card, else its WCS),
+    or None when it does not say."""
+    for key in PIXEL_SCALE_CARDS:
+        value = header.get(key)
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0:
+            return float(value)
+    if "CD1_1" in header or "CDELT1" in header:
+        cd11 = float(header.get("CD1_1", header.get("CDELT1", 0.0)))
+        cd21 = float(header.get("CD2_1", 0.0))
+        scale = 3600.0 * float(np.hypot(cd11, cd21))
+        return scale if scale > 0 else None
+    return None
+
+
+def _metacal_psf(
+    psf_path: str, gal_info: ImageInfo, size: int, names: Names | None
+) -> dict[str, Any]:
+    """The PSF of ``--metacal``: one PSF stamp, or a grid like the galaxy image; checked for
+    its pixel scale and its size's parity against the galaxy stamps'."""
+    name = namer(names)
+    psf_info = image_info(psf_path)
+    gal_scale, psf_scale = pixel_scale(gal_info.header), pixel_scale(psf_info.header)
+    if gal_scale is not None and psf_scale is not None and abs(psf_scale / gal_scale - 1) > 1e-3:
+        raise InputError(
+            f"{psf_path}: PSF pixels of {psf_scale:g} arcsec for galaxy pixels of {gal_scale:g} arcsec "
+            f"({gal_info.path}); {name('metacal')} needs the PSF at the galaxy image's pixel scale"
+        )
+    if psf_info.shape == gal_info.shape:
+        return {"psf_info": dataclasses.replace(psf_info, path=os.path.abspath(psf_path))}
+    stamp = _single_psf_stamp(psf_path, size)
+    if stamp.shape[0] % 2 != size % 2:
+        raise InputError(
+            f"{psf_path}: a {stamp.shape[0]}-pixel PSF stamp for {size}-pixel galaxy stamps: an even and an odd "
+            "size put their centres half a pixel apart; cut the PSF to a size of the same parity"
+        )
+    return {"psf": stamp}
+
+
+def _target_psf_columns(psf: dict[str, Any], feats: dict[str, np.ndarray], size: int) -> dict[str, np.ndarray]:
+    """``psf_adamom_*_<type>``: the features of each row's target PSF (round, the sigma the
+    operation chose for its PSF; the same for the five types)."""
+    from megalut_cli.measure.metacal import target_psf_features, target_psf_sigma
+
+    n = len(feats["psf_adamom_sigma"])
+    if "psf" in psf:
+        sigma = np.full(n, target_psf_sigma(psf["psf"], psf["step"]))
+    else:
+        sigma = feats["psf_adamom_sigma"] * (1.0 + 2.0 * abs(psf["step"]))  # the PSF stamps' HSM sigma
+    out = {f"psf_{c}_{kind}": np.full(n, np.nan) for kind in TYPES for c in _TARGET_COLUMNS}
+    finite = np.isfinite(sigma)
+    for value in np.unique(np.round(sigma[finite], 6)):
+        rows = finite & (np.round(sigma, 6) == value)
+        values = target_psf_features(float(value), size)
+        for kind in TYPES:
+            for c in _TARGET_COLUMNS:
+                out[f"psf_{c}_{kind}"][rows] = values[c]
+    return out
+
+
+_TARGET_COLUMNS = ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4")
 
 
 def _psf_features(
@@ -422,6 +533,9 @@ def measure_file(
     morphology: bool = MEASURE["morphology"].default,
     device: str = DEFAULT_DEVICE,
     names: Names | None = None,
+    metacal: bool = MEASURE["metacal"].default,
+    metacal_step: float = MEASURE["metacal_step"].default,
+    seed: int = MEASURE["seed"].default,
 ) -> Table:
     """Measure every stamp of ``stamps_path`` and write the features catalog ``output``.
 
@@ -449,6 +563,11 @@ def measure_file(
         device: ``cpu`` or ``gpu`` (resolved, :func:`megalut_cli.engine.resolve_device`): where
             the fast engine measures the moments.
         names: how messages name the arguments (e.g. ``{"stamp_size": "--stamp-size"}``).
+        metacal: also the features of the five metacal versions of each stamp, ``X_<type>``
+            (:mod:`.metacal`; needs ``psf_path``), and ``psf_adamom_*_<type>`` of the target
+            PSF; header cards ``MCALSTEP``, ``MCALSEED``.
+        metacal_step: the shear step of ``metacal``.
+        seed: seed of the fixnoise fields of ``metacal``.
 
     Returns:
         The table written.
@@ -459,12 +578,18 @@ def measure_file(
         raise ConfigError(f"{name('gain')} must be a positive number, got {gain}")
     if origin not in (0, 1):
         raise ConfigError(f"{name('origin')} must be 0 or 1, got {origin}")
+    if metacal and psf_path is None:
+        raise ConfigError(f"{name('metacal')} needs {name('psf_path')}: the PSF to deconvolve each stamp by")
+    if metacal and not 0 < metacal_step <= MEASURE["metacal_step"].maximum:
+        raise ConfigError(f"{name('metacal_step')} must be in (0, {MEASURE['metacal_step'].maximum}], got {metacal_step}")
     stamps_path = str(stamps_path)
     info = image_info(stamps_path)
     if stars is None:
         stars = os.path.basename(stamps_path).startswith(STARFIELD_PREFIXES)
         if stars:
             log.info("%s: a star field: measuring its stars into psf_adamom_* columns", stamps_path)
+    if stars and metacal:
+        raise ConfigError(f"{name('metacal')} does not apply to a star field")
     if stars and psf_path is not None:
         raise ConfigError(f"{name('psf_path')} does not apply to a star field (its stars are the PSF)")
     if stars and stamp_size is None and info.header.get("STAMPSZ") is None and info.shape[0] == info.shape[1]:
@@ -512,24 +637,42 @@ def measure_file(
             "(sky-limited); pass %s %s for Eq. 8", header_gain, name("gain"), name("gain"), header_gain,
         )
 
+    mc = None
     if psf_path is not None:
         psf_path = str(psf_path)
         image_info(psf_path)  # fail early on a bad PSF file, before the long measurement
+        if metacal:
+            mc = {**_metacal_psf(psf_path, info, size, names), "step": float(metacal_step)}
+            common = bool(_card_value(cards.get("CRN", False))) and "rea" in table.colnames
+            keys = np.asarray(table["rea"], dtype=np.int64) if common else np.arange(len(origins))
+            from megalut_cli.measure.metacal import fixnoise_seeds
+
+            mc["seeds"] = fixnoise_seeds(seed, keys)
 
     if stars and morphology:
         raise ConfigError(f"{name('morphology')} does not apply to a star field")
-    feats = _run_units(info, origins, size, gain, nproc, scheduler, progress, "measuring stamps", engine, morphology, device)
+    feats = _run_units(info, origins, size, gain, nproc, scheduler, progress, "measuring stamps", engine, morphology, device,
+                       mc)
     psf = None
     if psf_path is not None:
         psf = _psf_features(psf_path, info, origins, size, nproc, scheduler, progress, engine)
-        feats["flags"] |= psf.pop("flags")
+        psf_flags = psf.pop("flags")
+        feats["flags"] |= psf_flags
+        if mc is not None:
+            for kind in TYPES:
+                feats[f"flags_{kind}"] |= psf_flags
+            psf.update(_target_psf_columns(mc, psf, size))
 
     if stars:
         return _write_stars(stamps_path, table, feats, output, overwrite, size, origin if catalog_path else 1, cards, history,
                             extra_hdus)
 
     feature_cols = list(FEATURE_COLUMNS) + (list(MORPHOLOGY_COLUMNS) if morphology else [])
-    new_cols = feature_cols + (list(PSF_COLUMNS) if psf is not None else [])
+    psf_cols = list(PSF_COLUMNS) if psf is not None else []
+    if mc is not None:
+        feature_cols += metacal_columns(feature_cols)
+        psf_cols += metacal_columns(psf_cols)
+    new_cols = feature_cols + psf_cols
     replaced = [c for c in new_cols if c in table.colnames]
     if replaced:
         log.warning("replacing existing column(s) %s", ", ".join(replaced))
@@ -537,7 +680,7 @@ def measure_file(
     for c in feature_cols:
         table[c] = feats[c]
     if psf is not None:
-        for c in PSF_COLUMNS:
+        for c in psf_cols:
             table[c] = psf[c]
 
     nflag = int((feats["flags"] != 0).sum())
@@ -552,6 +695,9 @@ def measure_file(
             "MENGINE": (engine, "engine of the adaptive moments (megalut --engine)"),
         }
     )
+    if mc is not None:
+        cards[STEP_CARD] = (float(metacal_step), "metacal shear step (measure --metacal-step)")
+        cards[SEED_CARD] = (int(seed), "seed of the metacal fixnoise fields (measure --seed)")
     if "MEASURED" in cards:  # a simulation's card: the features are now measured
         cards["MEASURED"] = (True, "the catalog holds measured features")
     write_catalog(output, table, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history,

@@ -19,15 +19,14 @@ import galsim
 import numpy as np
 
 from megalut_cli.measure.features import measure_stamps
-
-#: The five versions of a stamp, in output order.
-TYPES = ("noshear", "1p", "1m", "2p", "2m")
-#: The applied shear of each version, for a step of 1.
-SHEARS = {"noshear": (0.0, 0.0), "1p": (1.0, 0.0), "1m": (-1.0, 0.0), "2p": (0.0, 1.0), "2m": (0.0, -1.0)}
-DEFAULT_STEP = 0.01
-#: The interpolant of the stamp and PSF images (ngmix's choice; lanczos15 keeps the
-#: interpolation error of a sheared, deconvolved image at the 1e-4 level).
-INTERPOLANT = "lanczos15"
+from megalut_cli.measure.metacal_defaults import (
+    DEFAULT_STEP,
+    INTERPOLANT,
+    MAX_STEP,
+    SHEARS,
+    TYPES,
+)
+from megalut_cli.seeding import STREAM_METACAL, int_seed_for
 
 
 @dataclass(frozen=True)
@@ -70,8 +69,8 @@ def _operation(psf_image: np.ndarray, step: float) -> _Operation:
     _finite_2d(psf_image, "PSF image")
     if psf_image.sum() <= 0:
         raise ValueError("the PSF image has no positive flux")
-    if not 0.0 < step < 0.1:
-        raise ValueError(f"metacal step {step}: expected 0 < step < 0.1")
+    if not 0.0 < step <= MAX_STEP:
+        raise ValueError(f"metacal step {step}: expected 0 < step <= {MAX_STEP}")
     psf = galsim.InterpolatedImage(galsim.ImageD(psf_image / psf_image.sum(), scale=1.0), x_interpolant=INTERPOLANT)
     return _Operation(psf, galsim.Gaussian(sigma=target_psf_sigma(psf_image, step)), step)
 
@@ -139,11 +138,14 @@ def metacal_versions(
     noise_sigma: Sequence[float] | np.ndarray | None = None,
     seeds: Sequence[int] | np.ndarray | None = None,
     engine: str = "galsim",
+    psf_index: Sequence[int] | np.ndarray | None = None,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The five metacal versions of a stack of stamps ``(n, S, S)``, as ``({type: (n, S, S)},
     target_sigma (n,))``.
 
-    ``psf_images``: one PSF image ``(P, P)`` for all stamps, or one per stamp ``(n, P, P)``.
+    ``psf_images``: one PSF image ``(P, P)`` for all stamps, or a stack ``(m, P, P)`` with
+    ``psf_index`` (n,) naming each stamp's (default: one per stamp, ``m == n``); stamps
+    sharing a PSF go through the operation together.
     ``noise_sigma`` (per stamp; e.g. the measured ``skymad``; 0 or NaN: none) turns fixnoise
     on, each stamp's field drawn from its ``seeds`` entry (default: the stamp index).
     ``engine``: ``"galsim"`` (the reference, stamp by stamp) or ``"fast"`` (FFTs over the
@@ -154,27 +156,44 @@ def metacal_versions(
     if stamps.ndim != 3:
         raise ValueError(f"stamps must be a stack (n, S, S), got shape {stamps.shape}")
     n = len(stamps)
-    if psfs.ndim == 3 and psfs.shape[0] != n:
-        raise ValueError(f"{psfs.shape[0]} PSF images for {n} stamps")
-    if psfs.ndim not in (2, 3):
-        raise ValueError(f"PSF images must be (P, P) or (n, P, P), got shape {psfs.shape}")
-    for i, stamp in enumerate(stamps):
-        if not np.isfinite(stamp).all():
-            raise ValueError(f"stamp {i} holds NaN or infinite pixels")
+    if psfs.ndim == 2:
+        psfs, psf_index = psfs[None], np.zeros(n, dtype=np.int64)
+    if psfs.ndim != 3:
+        raise ValueError(f"PSF images must be (P, P) or (m, P, P), got shape {psfs.shape}")
+    if psf_index is None:
+        if len(psfs) != n:
+            raise ValueError(f"{len(psfs)} PSF images for {n} stamps")
+        psf_index = np.arange(n)
+    psf_index = np.asarray(psf_index, dtype=np.int64)
+    if psf_index.shape != (n,) or (n and (psf_index.min() < 0 or psf_index.max() >= len(psfs))):
+        raise ValueError("psf_index must give each stamp one of the PSF images")
+    bad = ~np.isfinite(stamps).all(axis=(1, 2)) if n else np.zeros(0, bool)
+    if bad.any():
+        raise ValueError(f"stamp {int(np.flatnonzero(bad)[0])} holds NaN or infinite pixels")
     sigmas = np.zeros(n) if noise_sigma is None else np.nan_to_num(np.asarray(noise_sigma, dtype=np.float64), nan=0.0)
     seeds = np.arange(n, dtype=np.int64) if seeds is None else np.asarray(seeds, dtype=np.int64)
-    if psfs.ndim == 2:  # one PSF: the operation built once, the whole stack at once
-        op = _operation(psfs, step)
-        return _with_fixnoise(stamps, psfs, op, sigmas, seeds, engine), np.full(n, op.target.sigma)
     versions = {kind: np.empty_like(stamps) for kind in TYPES}
     target = np.empty(n)
-    for i in range(n):
-        op = _operation(psfs[i], step)
-        one = _with_fixnoise(stamps[i : i + 1], psfs[i], op, sigmas[i : i + 1], seeds[i : i + 1], engine)
+    for j in np.unique(psf_index):
+        rows = np.flatnonzero(psf_index == j)
+        op = _operation(psfs[j], step)
+        group = _with_fixnoise(stamps[rows], psfs[j], op, sigmas[rows], seeds[rows], engine)
         for kind in TYPES:
-            versions[kind][i] = one[kind][0]
-        target[i] = op.target.sigma
+            versions[kind][rows] = group[kind]
+        target[rows] = op.target.sigma
     return versions, target
+
+
+def fixnoise_seeds(seed: int, keys: Sequence[int] | np.ndarray) -> np.ndarray:
+    """Per-stamp seeds of the fixnoise fields under the user's ``seed``: one per key (a row
+    index, or the realization index of a common-random-number set, so that its cases share
+    their fields)."""
+    return np.array([int_seed_for(seed, STREAM_METACAL, int(k)) for k in keys], dtype=np.int64)
+
+
+def target_psf_image(target_sigma: float, size: int) -> np.ndarray:
+    """The round Gaussian target PSF as the versions hold it (no pixel), ``size`` pixels."""
+    return galsim.Gaussian(sigma=target_sigma).drawImage(nx=size, ny=size, scale=1.0, method="no_pixel").array
 
 
 def metacal_images(
@@ -206,17 +225,37 @@ def metacal_features(
     noise_sigma: Sequence[float] | np.ndarray | None = None,
     seeds: Sequence[int] | np.ndarray | None = None,
     metacal_engine: str = "galsim",
+    psf_index: Sequence[int] | np.ndarray | None = None,
+    morphology: bool = False,
     **measure_kw: Any,
 ) -> dict[str, np.ndarray]:
     """Features of the five metacal versions of a stack of stamps ``(n, S, S)``: every column
-    ``X`` of :func:`~megalut_cli.measure.features.measure_stamps` as ``X_<type>``.
+    ``X`` of :func:`~megalut_cli.measure.features.measure_stamps` (and with ``morphology``
+    of :mod:`.morphology`) as ``X_<type>``.
 
     Arguments as :func:`metacal_versions` (``metacal_engine`` is its ``engine``);
     ``measure_kw`` go to ``measure_stamps``.
     """
-    versions, _ = metacal_versions(stamps, psf_images, step, noise_sigma, seeds, metacal_engine)
+    versions, _ = metacal_versions(stamps, psf_images, step, noise_sigma, seeds, metacal_engine, psf_index)
     out: dict[str, np.ndarray] = {}
     for kind in TYPES:
-        for name, values in measure_stamps(versions[kind], **measure_kw).items():
+        feats = measure_stamps(versions[kind], **measure_kw)
+        if morphology:
+            from megalut_cli.measure.morphology import morphology_of_measured
+
+            feats.update(morphology_of_measured(versions[kind], measure_kw.get("origins"), feats))
+        for name, values in feats.items():
             out[f"{name}_{kind}"] = values
     return out
+
+
+#: The PSF feature columns of a metacal version: those of its target PSF.
+TARGET_PSF_COLUMNS = ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4")
+
+
+def target_psf_features(target_sigma: float, size: int, engine: str = "fast") -> dict[str, float]:
+    """``adamom_g1, adamom_g2, adamom_sigma, adamom_rho4`` of the target PSF (what the
+    ``psf_adamom_*_<type>`` columns of a metacal catalog hold)."""
+    res = measure_stamps(target_psf_image(target_sigma, size)[None], engine=engine)
+    return {c: float(res[c][0]) for c in TARGET_PSF_COLUMNS}
+

@@ -9,11 +9,15 @@ The choices and ranges come from the modules that implement them (:mod:`.stamps`
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from megalut_cli.atomic import OVERWRITE_OPTION
 from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION
+from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, MAX_STEP
 from megalut_cli.measure.stamps import MIN_STAMP_SIZE, ORIGINS
 from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION
 from megalut_cli.schema import DEFAULT_MARK, Option
+from megalut_cli.seeding import SEED_OPTION
 
 #: The options of ``megalut measure`` that only it has, in the order of ``--help``.
 MEASURE_OPTIONS: tuple[Option, ...] = (
@@ -30,6 +34,14 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
     Option("morphology", "bool", False, "Also the morphology features morph_conc, morph_conc_inner, "
            "morph_size_ratio (light inside Gaussian windows of 0.5, 1, 2 times the adaptive ellipse; "
            "docs/realgal.md)."),
+    Option("metacal", "bool", False, "Also measure the five metacalibration versions of each stamp (noshear, "
+           "1p, 1m, 2p, 2m: deconvolved by the --psf, sheared by +-step along g1 and g2, reconvolved with a round "
+           "target PSF, with fixnoise at the stamp's skymad): every feature column X again as X_noshear, X_1p, "
+           "X_1m, X_2p, X_2m (docs/metacal.md). Needs --psf."),
+    Option("metacal_step", "float", DEFAULT_STEP, "Shear step of --metacal.", minimum=0, min_open=True,
+           maximum=MAX_STEP),
+    replace(SEED_OPTION, help="Seed of the fixnoise fields of --metacal (one field per stamp; per realization "
+            "in a common-random-number set)."),
 )
 MEASURE = {o.name: o for o in MEASURE_OPTIONS}
 

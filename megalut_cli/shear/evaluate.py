@@ -40,6 +40,7 @@ import numpy as np
 from megalut_cli import expr as _expr
 from megalut_cli.catalog import catalog_info, history_steps, iter_catalog, read_catalog
 from megalut_cli.errors import ConfigError, InputError, MegalutError
+from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, STEP_CARD
 from megalut_cli.provenance import CREATOR, command_line, sha256_file, software_versions, utc_now
 from megalut_cli.shear.bias import (
     GREAT3_SIGMA2_MIN_GROUND,
@@ -82,6 +83,10 @@ JSON_FORMAT_VERSION = "1.2"  # 1.1: "provenance"; 1.2: "error", "bootstrap"
 WARN_M = 0.1
 #: Galaxy groups below which bootstrap errors are flagged as rough.
 FEW_GROUPS = 30
+#: Per-row metacal responses written by ``megalut predict`` on a metacal catalog.
+RESPONSE_COLUMNS = ("mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22")
+#: The sheared metacal versions whose selection gives the selection response.
+SHEARED_TYPES = ("1p", "1m", "2p", "2m")
 #: Bits of a (case, group) key that hold the group (case ids must fit in the rest).
 _GROUP_BITS = 32
 
@@ -116,6 +121,8 @@ class _Plan:
     case_by: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # expr -> (case ids, values)
     bootstrap: BootstrapSpec | None = None
     names: dict[str, str] = field(default_factory=dict)  # how messages name the arguments
+    metacal: float | None = None  # the metacal step: calibrate pre_*_noshear by the mean response
+    selection_columns: dict[str, dict[str, str]] = field(default_factory=dict)  # type -> {X: X_<type>} of select
 
     @property
     def schemes(self) -> tuple[str, ...]:
@@ -155,9 +162,11 @@ def _make_plan(
     select_cases: str | None,
     bootstrap: BootstrapSpec | None = None,
     names: Mapping[str, str] | None = None,
+    metacal_step: float | None = None,
 ) -> _Plan:
     given = dict(names or {})
     have = set(colnames)
+    metacal = _metacal_mode(have, source, metacal_step)
     missing = [c for c in (*TRUTH_COLUMNS, *ESTIMATE_COLUMNS) if c not in have]
     if missing:
         raise InputError(
@@ -165,6 +174,8 @@ def _make_plan(
             f"and the estimates from 'megalut predict' (pre_g1, pre_g2); missing: {', '.join(missing)}"
         )
     weighted = all(c in have for c in WEIGHT_COLUMNS)
+    if metacal is not None:
+        weighted = weighted and all(f"{c}_{kind}" in have for c in WEIGHT_COLUMNS for kind in ("noshear", *SHEARED_TYPES))
     if not weighted and any(c in have for c in WEIGHT_COLUMNS):
         log.warning("%s: only one of %s present; weighted analysis skipped", source, ", ".join(WEIGHT_COLUMNS))
     psf = next((pair for pair in PSF_COLUMNS if all(c in have for c in pair)), None)
@@ -183,8 +194,18 @@ def _make_plan(
         if bootstrap.n_resamples < 2 or bootstrap.group_size < 1:
             raise ConfigError("bootstrap: needs at least 2 resamples and a group size >= 1")
     plan = _Plan(source, weighted, psf, by, select, select_cases, has_flags="flags" in have, by_kind=by_kind,
-                 bootstrap=bootstrap, names=given)
+                 bootstrap=bootstrap, names=given, metacal=metacal)
     cols = [*TRUTH_COLUMNS, *ESTIMATE_COLUMNS]
+    if metacal is not None:
+        cols += [*RESPONSE_COLUMNS, *(f"{c}_noshear" for c in ESTIMATE_COLUMNS), "flags_noshear"]
+        if weighted:
+            cols += [f"{c}_{kind}" for c in WEIGHT_COLUMNS for kind in ("noshear", *SHEARED_TYPES)]
+        if select is not None:
+            used = _expr.columns_used(select)
+            plan.selection_columns = {kind: {c: f"{c}_{kind}" for c in used if f"{c}_{kind}" in have}
+                                      for kind in SHEARED_TYPES}
+            cols += [v for m in plan.selection_columns.values() for v in m.values()]
+        cols += [f"flags_{kind}" for kind in SHEARED_TYPES]
     if bootstrap is not None:
         cols.append("rea")
     if weighted:
@@ -201,6 +222,18 @@ def _make_plan(
     return plan
 
 
+def _metacal_mode(have: set[str], source: str, step: float | None) -> float | None:
+    """The metacal step when the catalog holds ``megalut predict``'s metacal columns, else None."""
+    present = [c for c in RESPONSE_COLUMNS if c in have]
+    if not present:
+        return None
+    needed = [*RESPONSE_COLUMNS, *(f"{c}_noshear" for c in ESTIMATE_COLUMNS)]
+    missing = [c for c in needed if c not in have]
+    if missing:
+        raise InputError(f"{source}: a metacal catalog (with {', '.join(present)}) lacks {', '.join(missing)}")
+    return float(step) if step is not None else DEFAULT_STEP
+
+
 # --------------------------------------------------------------------------- per-chunk rows
 
 
@@ -214,6 +247,12 @@ class _Rows:
     weight: dict[tuple[str, str], np.ndarray]  # (scheme, comp) -> weight (0 = row not used)
     psf: tuple[np.ndarray, np.ndarray] | None
     key: np.ndarray  # what sums are grouped by: the case, or (case, galaxy group) when bootstrapping
+    # metacal: per-row responses (0 where not valid) and, per scheme, component and sheared
+    # type, the weight of the row under that type's selection and weights
+    response: dict[tuple[int, int], np.ndarray] | None = None
+    sheared_weight: dict[tuple[str, str, str], np.ndarray] | None = None
+    pre_noshear: dict[int, np.ndarray] | None = None
+    step: float | None = None
 
 
 def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
@@ -230,19 +269,25 @@ def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
     if plan.selected_cases is not None:
         selected &= np.isin(case, plan.selected_cases)
     base = selected.copy()
-    if plan.has_flags:
+    suffix = "_noshear" if plan.metacal is not None else ""
+    if plan.metacal is not None:
+        base &= np.asarray(chunk["flags_noshear"]) == 0
+    elif plan.has_flags:
         base &= np.asarray(chunk["flags"]) == 0
     valid, tru, pre, weight = {}, {}, {}, {}
     for comp in ("g1", "g2"):
         t = np.asarray(chunk[f"tru_{comp}"], dtype=float)
-        p = np.asarray(chunk[f"pre_{comp}"], dtype=float)
+        p = np.asarray(chunk[f"pre_{comp}{suffix}"], dtype=float)
         ok = base & np.isfinite(t) & np.isfinite(p)
+        if plan.metacal is not None:  # a row needs its response too
+            ok &= np.isfinite(np.asarray(chunk[f"mcal_r{comp[1]}1"], dtype=float))
+            ok &= np.isfinite(np.asarray(chunk[f"mcal_r{comp[1]}2"], dtype=float))
         valid[comp] = ok
         tru[comp] = np.where(ok, t, 0.0)
         pre[comp] = np.where(ok, p, 0.0)
         weight[("unweighted", comp)] = ok.astype(float)
         if plan.weighted:
-            wcol = f"pre_{comp}_w"
+            wcol = f"pre_{comp}_w{suffix}"
             w = np.asarray(chunk[wcol], dtype=float)
             bad = ok & (w < 0)
             if np.any(bad):
@@ -252,7 +297,49 @@ def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
     if plan.psf is not None:
         psf = (np.asarray(chunk[plan.psf[0]], dtype=float), np.asarray(chunk[plan.psf[1]], dtype=float))
     key = case if plan.bootstrap is None else _case_group_key(case, chunk["rea"], plan.bootstrap.group_size, plan.source)
-    return _Rows(case, selected, valid, tru, pre, weight, psf, key)
+    rows = _Rows(case, selected, valid, tru, pre, weight, psf, key)
+    if plan.metacal is not None:
+        _metacal_rows(rows, chunk, plan)
+    return rows
+
+
+def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> None:
+    """The responses of the valid rows and, with a selection or weights, each row's weight
+    under the selection (and weights) of each sheared version (Sheldon & Huff 2017, Sect. 5)."""
+    n = rows.case.size
+    rows.step = plan.metacal
+    rows.pre_noshear = {i: np.asarray(chunk[f"pre_g{i}_noshear"], dtype=float) for i in (1, 2)}
+    rows.response = {}
+    for i in (1, 2):
+        ok = rows.valid[f"g{i}"]
+        for j in (1, 2):
+            rows.response[(i, j)] = np.where(ok, np.asarray(chunk[f"mcal_r{i}{j}"], dtype=float), 0.0)
+    if plan.select is None and not plan.weighted:
+        return
+    # The rows usable whatever the selection: flags_noshear == 0 and finite estimates and
+    # responses (which needs every sheared version measured): failures are not a selection.
+    usable = np.asarray(chunk["flags_noshear"]) == 0
+    if plan.selected_cases is not None:
+        usable &= np.isin(rows.case, plan.selected_cases)
+    for i in (1, 2):
+        usable &= np.isfinite(rows.pre_noshear[i]) & np.isfinite(np.asarray(chunk[f"tru_g{i}"], dtype=float))
+        for j in (1, 2):
+            usable &= np.isfinite(np.asarray(chunk[f"mcal_r{i}{j}"], dtype=float))
+    rows.sheared_weight = {}
+    for kind in SHEARED_TYPES:
+        sel = usable.copy()
+        if plan.select is not None:
+            view = {**chunk, **{c: chunk[v] for c, v in plan.selection_columns.get(kind, {}).items()}}
+            sel &= _expr.evaluate_rows(plan.select, view, n)
+        for s in plan.schemes:
+            if s == "unweighted" and plan.select is None:
+                continue
+            for i in (1, 2):
+                if s == "weighted":
+                    w = np.asarray(chunk[f"pre_g{i}_w_{kind}"], dtype=float)
+                    rows.sheared_weight[(s, f"g{i}", kind)] = np.where(sel & np.isfinite(w) & (w > 0), w, 0.0)
+                else:
+                    rows.sheared_weight[(s, f"g{i}", kind)] = sel.astype(float)
 
 
 def _case_group_key(case: np.ndarray, rea: np.ndarray, group_size: int, source: str) -> np.ndarray:
@@ -321,12 +408,16 @@ class _GroupSums:
         return keys // ids.size, ids[keys % ids.size], out
 
 
-def _sum_names(schemes: Sequence[str]) -> list[str]:
+def _sum_names(schemes: Sequence[str], plan: _Plan | None = None) -> list[str]:
     names = []
     for s in schemes:
         for comp in ("g1", "g2"):
             names += [f"{s}:w:{comp}", f"{s}:wpre:{comp}", f"{s}:wtru:{comp}", f"{s}:n:{comp}"]
         names.append(f"{s}:n:both")
+        if plan is not None and plan.metacal is not None:
+            names += [f"{s}:wR:{i}{j}" for i in (1, 2) for j in (1, 2)]
+            if plan.select is not None or s == "weighted":
+                names += [f"{s}:{q}:{i}:{kind}" for q in ("sw", "swpre") for i in (1, 2) for kind in SHEARED_TYPES]
     return names
 
 
@@ -340,16 +431,55 @@ def _row_values(rows: _Rows, schemes: Sequence[str]) -> dict[str, np.ndarray]:
             vals[f"{s}:wtru:{comp}"] = w * rows.tru[comp]
             vals[f"{s}:n:{comp}"] = (w > 0).astype(float)
         vals[f"{s}:n:both"] = ((rows.weight[(s, "g1")] > 0) & (rows.weight[(s, "g2")] > 0)).astype(float)
+        if rows.response is not None:
+            for (i, j), r in rows.response.items():
+                vals[f"{s}:wR:{i}{j}"] = rows.weight[(s, f"g{i}")] * r
+        if rows.sheared_weight is not None and rows.step is not None and (s, "g1", "1p") in rows.sheared_weight:
+            for i in (1, 2):
+                pre = np.nan_to_num(rows.pre_noshear[i])
+                for kind in SHEARED_TYPES:
+                    w = rows.sheared_weight[(s, f"g{i}", kind)]
+                    vals[f"{s}:sw:{i}:{kind}"] = w
+                    # divided by 2 step here, so that a ratio of sums is the response term
+                    vals[f"{s}:swpre:{i}:{kind}"] = w * pre / (2.0 * rows.step)
     return vals
 
 
 # --------------------------------------------------------------------------- fits
 
 
+def metacal_response(sums: Mapping[str, np.ndarray], scheme: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """The mean metacal response ``R[i][j]`` of the rows behind ``sums`` (all keys: axis 0),
+    and the selection response (None without a selection or weights), each ``(2, 2, ...)``."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.array([[sums[f"{scheme}:wR:{i}{j}"].sum(axis=0) / sums[f"{scheme}:w:g{i}"].sum(axis=0)
+                          for j in (1, 2)] for i in (1, 2)])
+        if f"{scheme}:sw:1:1p" not in sums:
+            return mean, None
+
+        def avg(i: int, kind: str) -> np.ndarray:
+            return sums[f"{scheme}:swpre:{i}:{kind}"].sum(axis=0) / sums[f"{scheme}:sw:{i}:{kind}"].sum(axis=0)
+
+        selection = np.array([[avg(i, f"{j}p") - avg(i, f"{j}m") for j in (1, 2)] for i in (1, 2)])
+    return mean, selection
+
+
+def _calibrate(out: dict[str, dict[str, np.ndarray]], sums: Mapping[str, np.ndarray], scheme: str) -> None:
+    """Replace the per-case estimates by the metacal-calibrated ones, ``(R + R_S)^-1 <g>``."""
+    mean, selection = metacal_response(sums, scheme)
+    r = mean if selection is None else mean + selection
+    p1, p2 = out["g1"]["pre"], out["g2"]["pre"]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        det = r[0, 0] * r[1, 1] - r[0, 1] * r[1, 0]
+        out["g1"]["pre"] = (r[1, 1] * p1 - r[0, 1] * p2) / det
+        out["g2"]["pre"] = (r[0, 0] * p2 - r[1, 0] * p1) / det
+
+
 def _case_estimates(
     sums: Mapping[str, np.ndarray], scheme: str, theta: np.ndarray | None
 ) -> dict[str, dict[str, np.ndarray]]:
-    """Per-case true and estimated averages (NaN where the case has no usable row) and row counts."""
+    """Per-case true and estimated averages (NaN where the case has no usable row) and row
+    counts; with metacal sums, the estimates calibrated by the mean response of all the rows."""
     out: dict[str, dict[str, np.ndarray]] = {}
     with np.errstate(invalid="ignore", divide="ignore"):
         for comp in ("g1", "g2"):
@@ -360,6 +490,8 @@ def _case_estimates(
                 "pre": np.where(use, sums[f"{scheme}:wpre:{comp}"] / w, np.nan),
                 "n_rows": np.where(use, sums[f"{scheme}:n:{comp}"], 0.0),
             }
+    if f"{scheme}:wR:11" in sums:
+        _calibrate(out, sums, scheme)
     if theta is not None:
         n_both = sums[f"{scheme}:n:both"]
         for kind in ("tru", "pre"):
@@ -425,8 +557,10 @@ def evaluate_catalog(
     flags or pipeline keys. See :func:`evaluate_columns`.
     """
     _, colnames, header = catalog_info(path)
+    step = header.get(STEP_CARD)
     plan = _make_plan(colnames, str(path), by, select, select_cases,
-                      bootstrap_from_header(header, errors, n_bootstrap, seed), names)
+                      bootstrap_from_header(header, errors, n_bootstrap, seed), names,
+                      float(step) if isinstance(step, (int, float)) and not isinstance(step, bool) else None)
     _prepare_cases(plan, lambda cols: _read_columns(path, cols))
     result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins, sigma2_min)
     result["input"] = str(path)
@@ -487,6 +621,7 @@ def evaluate_columns(
     sigma2_min: float = GREAT3_SIGMA2_MIN_GROUND,
     bootstrap: BootstrapSpec | None = None,
     names: Mapping[str, str] | None = None,
+    metacal_step: float | None = None,
 ) -> dict[str, Any]:
     """Evaluate in-memory columns (a dict of arrays or an astropy Table), as :func:`evaluate_catalog`.
 
@@ -496,9 +631,15 @@ def evaluate_columns(
     (Stage IV check), ``"q_c"`` (GREAT3 metric), ``"per_case"`` averages and row counts;
     ``"error"`` says where the errors come from: ``"fit"``, or ``"bootstrap-galaxies"`` with
     ``bootstrap`` given (then ``"bootstrap"`` holds its settings; needs the ``rea`` column).
+
+    A metacal catalog (``megalut predict`` on ``measure --metacal`` features: columns
+    ``mcal_r11 .. mcal_r22``) is evaluated on ``pre_g*_noshear`` calibrated by the mean
+    response of the rows used, plus the selection response of ``select`` and the weights
+    (each computed on the sheared versions; ``metacal_step``, default 0.01, is the catalog's
+    ``MCALSTEP``); ``"metacal"`` then holds the responses.
     """
     colnames = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
-    plan = _make_plan(colnames, source, by, select, select_cases, bootstrap, names)
+    plan = _make_plan(colnames, source, by, select, select_cases, bootstrap, names, metacal_step)
     data = {c: np.asarray(columns[c]) for c in plan.columns}
     _prepare_cases(plan, lambda cols: {c: np.asarray(columns[c]) for c in cols})
     result = _evaluate(lambda: iter([data]), plan, bins, sigma2_min)
@@ -579,7 +720,7 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
                 by_values[c] = [vals]
 
     # Pass 2: per-(bin, case) sums.
-    names = _sum_names(schemes)
+    names = _sum_names(schemes, plan)
     overall = _GroupSums(names)
     conditional = {c: _GroupSums(names) for c in edges}
     psf_sums = _GroupSums(["psf1", "psf2", "npsf"]) if plan.psf else None
@@ -636,6 +777,8 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
         "psf_frame": {"columns": list(plan.psf), "round": psf_round} if plan.psf else None,
         "weights": list(WEIGHT_COLUMNS) if plan.weighted else None,
     }
+    if plan.metacal is not None:
+        result["metacal"] = _metacal_summary(sums, plan)
     fits = {s: _fit_components(per_case[s]) for s in schemes}
     families: list[_Family] = []
     if groups is not None:
@@ -677,6 +820,17 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
         **{s: {comp: {k: _json_list(v) for k, v in d.items()} for comp, d in per_case[s].items()} for s in schemes},
     }
     return result
+
+
+def _metacal_summary(sums: Mapping[str, np.ndarray], plan: _Plan) -> dict[str, Any]:
+    """The ``"metacal"`` entry of a result: step, mean and selection responses per scheme."""
+    out: dict[str, Any] = {"step": plan.metacal, "estimate": [f"{c}_noshear" for c in ESTIMATE_COLUMNS],
+                           "response": {}, "selection_response": {}}
+    for s in plan.schemes:
+        mean, selection = metacal_response(sums, s)
+        out["response"][s] = [_json_list(row) for row in mean]
+        out["selection_response"][s] = None if selection is None else [_json_list(row) for row in selection]
+    return out
 
 
 @dataclass

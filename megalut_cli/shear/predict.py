@@ -36,6 +36,7 @@ from megalut_cli.catalog import (
     setup_differences,
 )
 from megalut_cli.errors import ConfigError, InputError, Names, namer
+from megalut_cli.measure.metacal_defaults import STEP_CARD, TYPES
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.parallel import executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
@@ -113,6 +114,33 @@ def predict_arrays(model: Any, x: np.ndarray, flags_in: np.ndarray | None = None
     return out
 
 
+def metacal_response_columns(preds: Mapping[str, Mapping[str, np.ndarray]], step: float) -> dict[str, np.ndarray]:
+    """``mcal_r<i><j> = (pre_g<i>_<j>p - pre_g<i>_<j>m) / (2 step)`` from the predictions of
+    each metacal type (``preds[type]["pre_g1"]``...), for the components present."""
+    out = {}
+    for i in ("1", "2"):
+        for j in ("1", "2"):
+            col = f"pre_g{i}"
+            if col in preds["noshear"]:
+                out[f"mcal_r{i}{j}"] = (preds[f"{j}p"][col] - preds[f"{j}m"][col]) / (2.0 * step)
+    return out
+
+
+def predict_metacal(
+    model: Any, x_by_type: Mapping[str, np.ndarray], flags_by_type: Mapping[str, np.ndarray | None], step: float
+) -> dict[str, np.ndarray]:
+    """Predictions for the five metacal versions: ``pre_*_<type>`` for every prediction column
+    of :func:`predict_arrays`, ``flags_<type>`` (with ``BAD_FEATURES`` where the type's
+    features failed) and the per-row responses ``mcal_r11, mcal_r12, mcal_r21, mcal_r22``."""
+    preds = {kind: predict_arrays(model, x_by_type[kind], flags_by_type.get(kind)) for kind in TYPES}
+    out: dict[str, np.ndarray] = {}
+    for kind, pred in preds.items():
+        for col, values in pred.items():
+            out[f"{col}_{kind}"] = values
+    out.update(metacal_response_columns(preds, step))
+    return out
+
+
 def predict_columns(
     model: Any, columns: Mapping[str, np.ndarray], column_map: Mapping[str, str] | None = None
 ) -> dict[str, np.ndarray]:
@@ -138,10 +166,33 @@ def _load_model(path: str, sha256: str | None = None) -> Any:
     return model
 
 
-def _predict_unit(unit: tuple[str, str, np.ndarray, np.ndarray | None]) -> dict[str, np.ndarray]:
-    """Work unit: ``(model_path, model_sha256, X, flags)`` -> prediction columns."""
-    path, sha, x, flg = unit
-    return predict_arrays(_load_model(path, sha), x, flg)
+def _predict_unit(unit: tuple[Any, ...]) -> dict[str, np.ndarray]:
+    """Work unit: ``(model_path, model_sha256, X, flags, metacal)`` -> prediction columns;
+    ``metacal`` is None or ``(step, {type: X}, {type: flags})``."""
+    path, sha, x, flg, metacal = unit
+    model = _load_model(path, sha)
+    out = predict_arrays(model, x, flg)
+    if metacal is not None:
+        step, xs, flgs = metacal
+        out.update(predict_metacal(model, xs, flgs, step))
+    return out
+
+
+def _matrix(table: Any, cols: Sequence[str]) -> np.ndarray:
+    """The float64 matrix (rows x ``cols``) of a table chunk."""
+    if not len(table):
+        return np.zeros((0, len(cols)))
+    return np.column_stack([np.asarray(table[c], dtype=np.float64) for c in cols])
+
+
+def _metacal_step(header: Mapping[str, Any], path: str | os.PathLike) -> float | None:
+    """The metacal step of a catalog (its ``MCALSTEP`` card), or None for a plain catalog."""
+    step = header.get(STEP_CARD)
+    if step is None:
+        return None
+    if isinstance(step, bool) or not isinstance(step, (int, float)) or not 0 < step < 1:
+        raise InputError(f"{path}: bad {STEP_CARD} card {step!r}: expected the metacal shear step, e.g. 0.01")
+    return float(step)
 
 
 @dataclass
@@ -221,12 +272,26 @@ def predict_catalog(
     has_flags = "flags" in colnames
     new_cols = [prediction_column(c.target, c.kind) for c in model.point.values()]
     new_cols += [prediction_column(c.target, c.kind) for c in model.weight.values()]
+    step = _metacal_step(header, features_path)
+    if step is not None:
+        missing = [f"{resolved[f]}_{kind}" for kind in TYPES for f in model.features
+                   if f"{resolved[f]}_{kind}" not in colnames]
+        if missing:
+            raise InputError(
+                f"{features_path}: a metacal catalog ({STEP_CARD} card) without the metacal column(s) "
+                f"{', '.join(missing)}"
+            )
+        plain_cols = list(new_cols)
+        new_cols += [f"{c}_{kind}" for kind in TYPES for c in plain_cols]
+        new_cols += [f"mcal_r{i}{j}" for i in "12" for j in "12" if f"pre_g{i}" in plain_cols]
     replaced = [c for c in new_cols if c in colnames]
     if replaced:
         log.warning("%s: replacing existing column(s) %s", features_path, ", ".join(replaced))
     cards = read_cards(features_path)  # with their comments
     cards["MODELSHA"] = (model.sha256, "sha256 of the model file")
     cards["MODEL"] = (Path(model_path).name[:68], "model file")
+    if step is not None:
+        cards[STEP_CARD] = (step, "metacal shear step of the mcal_r* responses")
     extra_hdus = read_carried_hdus(features_path)
     feature_cols = [resolved[f] for f in model.features]
     n_failed = 0
@@ -236,7 +301,13 @@ def predict_catalog(
             x = np.column_stack([np.asarray(table[c], dtype=np.float64) for c in feature_cols]) if len(table) else \
                 np.zeros((0, len(feature_cols)))
             flg = np.asarray(table["flags"]) if has_flags else None
-            yield table, (abs_model, model.sha256, x, flg)
+            metacal = None
+            if step is not None:
+                xs = {kind: _matrix(table, [f"{c}_{kind}" for c in feature_cols]) for kind in TYPES}
+                flgs = {kind: np.asarray(table[f"flags_{kind}"]) if f"flags_{kind}" in table.colnames else None
+                        for kind in TYPES}
+                metacal = (step, xs, flgs)
+            yield table, (abs_model, model.sha256, x, flg, metacal)
 
     with executor(nproc, scheduler, -(-n_rows // chunk_rows)) as pool, \
             (progress or no_progress)("predict", n_rows) as update:

@@ -1,0 +1,22 @@
+"""Metacalibration constants, import-free (the options and the docs read them without GalSim)."""
+
+#: The five versions of a stamp, in output order.
+TYPES = ("noshear", "1p", "1m", "2p", "2m")
+#: The applied shear of each version, for a step of 1.
+SHEARS = {"noshear": (0.0, 0.0), "1p": (1.0, 0.0), "1m": (-1.0, 0.0), "2p": (0.0, 1.0), "2m": (0.0, -1.0)}
+#: The default shear step.
+DEFAULT_STEP = 0.01
+#: The step's range: above 0.1 the finite difference is no longer a first-order response.
+MAX_STEP = 0.1
+#: Header card of a catalog measured (or predicted) in metacal mode: the step.
+STEP_CARD = "MCALSTEP"
+#: Header card: the seed of the fixnoise fields.
+SEED_CARD = "MCALSEED"
+#: The interpolant of the stamp and PSF images (ngmix's choice; lanczos15 keeps the
+#: interpolation error of a sheared, deconvolved image at the 1e-4 level).
+INTERPOLANT = "lanczos15"
+
+
+def metacal_columns(names: tuple[str, ...] | list[str]) -> list[str]:
+    """The metacal column names ``X_<type>`` of the columns ``names``, type by type."""
+    return [f"{name}_{kind}" for kind in TYPES for name in names]
