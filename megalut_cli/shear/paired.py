@@ -26,30 +26,40 @@ from megalut_cli.shear.bootstrap import fit_columns
 
 #: Columns that must agree row by row between paired catalogs.
 PAIRING_COLUMNS = ("case", "rea", "tru_g1", "tru_g2")
+#: Columns of a metacal prediction catalog that the paired evaluation calibrates with
+#: (the diagonal responses; the mean off-diagonal ones are zero for an isotropic set).
+METACAL_COLUMNS = ("pre_g1_noshear", "pre_g2_noshear", "mcal_r11", "mcal_r22")
 #: Default bootstrap resamples.
 N_BOOTSTRAP = 1000
 
 
 def group_sums(
-    cell: np.ndarray, n_cells: int, g_true: np.ndarray, g_est: np.ndarray, weight: np.ndarray
+    cell: np.ndarray, n_cells: int, g_true: np.ndarray, g_est: np.ndarray, weight: np.ndarray,
+    response: np.ndarray | None = None,
 ) -> np.ndarray:
     """``(3, n_cells)`` sums of ``w``, ``w g_est``, ``w g_true`` per cell (invalid rows: w = 0);
-    cell ``case * n_galaxies + galaxy`` for :func:`fit_resamples`."""
+    cell ``case * n_galaxies + galaxy`` for :func:`fit_resamples`. With a metacal
+    ``response`` (per row, this component's), a fourth row ``w R`` (rows need a finite R)."""
     ok = np.isfinite(g_est) & np.isfinite(weight) & (weight > 0)
+    if response is not None:
+        ok &= np.isfinite(response)
     w = np.where(ok, weight, 0.0)
-    return np.stack([
-        np.bincount(cell, weights=w, minlength=n_cells),
-        np.bincount(cell, weights=np.where(ok, w * g_est, 0.0), minlength=n_cells),
-        np.bincount(cell, weights=np.where(ok, w * g_true, 0.0), minlength=n_cells),
-    ])
+    rows = [w, np.where(ok, w * g_est, 0.0), np.where(ok, w * g_true, 0.0)]
+    if response is not None:
+        rows.append(np.where(ok, w * response, 0.0))
+    return np.stack([np.bincount(cell, weights=r, minlength=n_cells) for r in rows])
 
 
 def fit_resamples(sums: np.ndarray, counts: np.ndarray, n_cases: int, n_gal: int) -> tuple[np.ndarray, np.ndarray]:
     """m and c of the per-case means of :func:`group_sums`, one per row of ``counts`` (galaxy
-    multiplicities); NaN with fewer than 3 cases."""
-    s = sums.reshape(3, n_cases, n_gal) @ counts.T  # (3, n_cases, B)
+    multiplicities); NaN with fewer than 3 cases. With a response row, the means are divided
+    by the mean response of the resample (metacal)."""
+    s = sums.reshape(len(sums), n_cases, n_gal) @ counts.T  # (3 or 4, n_cases, B)
     with np.errstate(invalid="ignore", divide="ignore"):
-        m, c = fit_columns(s[2] / s[0], s[1] / s[0])
+        est = s[1] / s[0]
+        if len(sums) == 4:
+            est = est / (s[3].sum(axis=0) / s[0].sum(axis=0))
+        m, c = fit_columns(s[2] / s[0], est)
     few = (s[0] > 0).sum(axis=0) < 3
     return np.where(few, np.nan, m), np.where(few, np.nan, c)
 
@@ -64,9 +74,13 @@ def paired_bias(
     weight_b: np.ndarray | None = None,
     n_boot: int = N_BOOTSTRAP,
     seed: int = 0,
+    response_a: np.ndarray | None = None,
+    response_b: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """m, c of sets ``a`` and ``b`` (one shear component, rows paired) and ``m_a - m_b``,
-    ``c_a - c_b``, with 1-sigma errors from a paired bootstrap over galaxies.
+    ``c_a - c_b``, with 1-sigma errors from a paired bootstrap over galaxies. With per-row
+    metacal responses (``response_a``, ``response_b``: ``mcal_r11`` or ``mcal_r22``), each
+    set's estimates are calibrated by its mean response, recomputed in every resample.
 
     ``galaxy`` and ``case`` are the ids shared by the paired rows. Returns a JSON-ready dict:
     ``m_a, m_a_err, c_a, c_a_err, m_b, ..., dm, dm_err, dc, dc_err, n_galaxies, n_cases,
@@ -80,8 +94,10 @@ def paired_bias(
     ones = np.ones(g_true.size)
     wa = ones if weight_a is None else np.asarray(weight_a, dtype=float)
     wb = ones if weight_b is None else np.asarray(weight_b, dtype=float)
-    sums_a = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_a, dtype=float), wa)
-    sums_b = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_b, dtype=float), wb)
+    sums_a = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_a, dtype=float), wa,
+                        None if response_a is None else np.asarray(response_a, dtype=float))
+    sums_b = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_b, dtype=float), wb,
+                        None if response_b is None else np.asarray(response_b, dtype=float))
     rng = rng_for(seed, STREAM_BOOTSTRAP)
     counts = np.vstack([np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)])
     m_a, c_a = fit_resamples(sums_a, counts, n_cases, n_gal)
@@ -157,11 +173,17 @@ def paired_evaluation(
     over both sets and per (case, galaxy)). JSON-ready; layout in ``docs/realgal.md``."""
     check_pairing(a, b, (names[0], names[1]), galaxy_column)
     gal, case = np.asarray(a[galaxy_column]), np.asarray(a["case"])
-    schemes = ["unweighted"] + (["weighted"] if all(f"pre_g{i}_w" in t for t in (a, b) for i in (1, 2)) else [])
+    metacal = all(c in t for c in METACAL_COLUMNS for t in (a, b))
+    sfx = "_noshear" if metacal else ""
+    schemes = ["unweighted"] + (["weighted"] if all(f"pre_g{i}_w{sfx}" in t for t in (a, b) for i in (1, 2)) else [])
+    flag_col = "flags_noshear" if metacal else "flags"
 
     def valid(t: Mapping[str, np.ndarray], comp: str) -> np.ndarray:
-        ok = np.isfinite(np.asarray(t[f"pre_{comp}"], dtype=float))
-        return ok & (np.asarray(t["flags"]) == 0) if "flags" in t else ok
+        ok = np.isfinite(np.asarray(t[f"pre_{comp}{sfx}"], dtype=float))
+        return ok & (np.asarray(t[flag_col]) == 0) if flag_col in t else ok
+
+    def response(t: Mapping[str, np.ndarray], comp: str, rows: np.ndarray) -> np.ndarray | None:
+        return np.asarray(t[f"mcal_r{comp[1]}{comp[1]}"], dtype=float)[rows] if metacal else None
 
     def evaluate(rows: np.ndarray) -> dict[str, Any]:
         res: dict[str, Any] = {}
@@ -173,15 +195,18 @@ def paired_evaluation(
                 wa = valid(a, comp).astype(float)
                 wb = valid(b, comp).astype(float)
                 if scheme == "weighted":
-                    wa = wa * np.nan_to_num(np.asarray(a[f"pre_{comp}_w"], dtype=float))
-                    wb = wb * np.nan_to_num(np.asarray(b[f"pre_{comp}_w"], dtype=float))
+                    wa = wa * np.nan_to_num(np.asarray(a[f"pre_{comp}_w{sfx}"], dtype=float))
+                    wb = wb * np.nan_to_num(np.asarray(b[f"pre_{comp}_w{sfx}"], dtype=float))
                 res[scheme][comp] = paired_bias(
                     gal[rows], case[rows], np.asarray(a[f"tru_{comp}"], dtype=float)[rows],
-                    np.asarray(a[f"pre_{comp}"], dtype=float)[rows], np.asarray(b[f"pre_{comp}"], dtype=float)[rows],
-                    wa[rows], wb[rows], n_boot=n_boot, seed=seed)
+                    np.asarray(a[f"pre_{comp}{sfx}"], dtype=float)[rows],
+                    np.asarray(b[f"pre_{comp}{sfx}"], dtype=float)[rows],
+                    wa[rows], wb[rows], n_boot=n_boot, seed=seed,
+                    response_a=response(a, comp, rows), response_b=response(b, comp, rows))
         return res
 
     result: dict[str, Any] = {"names": list(names), "galaxy_column": galaxy_column, "n_boot": int(n_boot),
+                              "metacal": metacal,
                               "seed": int(seed), "overall": evaluate(np.ones(case.size, dtype=bool)), "by": {}}
     for label, values in (by or {}).items():
         idx, edges = group_bins(values, gal, case, n_bins)
@@ -253,7 +278,8 @@ def evaluate_paired_catalogs(
                           "their mean already)")
     used = {c for c in kinds if kinds[c] == "column"} | {u for c in kinds if kinds[c] == "row"
                                                          for u in _expr.columns_used(c)}
-    extra = [c for c in ("flags", "pre_g1_w", "pre_g2_w") if c in common]
+    extra = [c for c in ("flags", "pre_g1_w", "pre_g2_w", *METACAL_COLUMNS, "flags_noshear", "pre_g1_w_noshear",
+                         "pre_g2_w_noshear") if c in common]
     cols = list(dict.fromkeys(need + extra + sorted(used)))
     ta, tb = read_catalog(path_a, columns=cols), read_catalog(path_b, columns=cols)
     a = {c: np.asarray(ta[c]) for c in cols}
