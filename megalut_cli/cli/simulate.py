@@ -36,6 +36,8 @@ log = logging.getLogger("megalut")
 )
 @schema_option(SIMULATE["measure"])
 @schema_option(SIMULATE["morphology"])
+@schema_option(SIMULATE["metacal"])
+@schema_option(SIMULATE["metacal_step"], show_default=True)
 @click.option(
     "--great3",
     "great3_dir",
@@ -60,6 +62,8 @@ def command(
     stamps: str | None,
     measure: bool,
     morphology: bool,
+    metacal: bool,
+    metacal_step: float,
     great3_dir: str | None,
     n_cases: int | None,
     n_realizations: int | None,
@@ -123,6 +127,8 @@ def command(
     cfg = load_config(config, overrides, n_cases=n_cases, n_realizations=n_realizations)
     if morphology and (not measure or great3_dir is not None):
         raise click.UsageError("--morphology needs --measure (and not --great3)")
+    if metacal and (not measure or great3_dir is not None):
+        raise click.UsageError("--metacal needs --measure (and not --great3)")
     if great3_dir is not None and stamps is not None:
         raise click.UsageError("--great3 writes the subfield images itself: do not give --stamps")
     names = flag_names(branch_dir="--great3")
@@ -157,4 +163,6 @@ def command(
         engine=engine,
         device=device,
         names=names,
+        metacal=metacal,
+        metacal_step=metacal_step,
     )

@@ -59,6 +59,7 @@ class WorkUnit:
     engine: str = DEFAULT_ENGINE
     morphology: bool = False  # with measure: also the morph_* features (measure/morphology.py)
     device: str = DEFAULT_DEVICE  # "cpu" or "gpu" (resolved): where the fast engine runs
+    metacal_step: float | None = None  # with measure: also the metacal features (measure/metacal.py)
 
     @property
     def renders_fast(self) -> bool:
@@ -125,27 +126,74 @@ def stamp_centres(index: np.ndarray, n_x: int, stamp_size: int) -> tuple[np.ndar
 
 
 class _Measurer:
-    """Accumulates stamps and measures them in batches."""
+    """Accumulates stamps and measures them in batches (with ``unit.metacal_step``, also
+    their metacal versions, deconvolved by the PSF image each stamp was drawn with)."""
 
-    def __init__(self, gain: float | None, engine: str = DEFAULT_ENGINE, morphology: bool = False,
-                 device: str = DEFAULT_DEVICE):
+    def __init__(self, unit: WorkUnit):
         from megalut_cli.measure.features import measure_stamps
 
         self._measure = measure_stamps
-        self.gain = gain
-        self.engine = engine
-        self.morphology = morphology
-        self.device = device
+        self.gain = unit.config.gain
+        self.engine = unit.engine
+        self.morphology = unit.morphology
+        self.device = unit.device
+        self.step = unit.metacal_step
+        self.seed = unit.seed
+        s = unit.config.structure
+        self.common, self.n_rea = bool(s.common), s.n_realizations
+        self.size = s.stamp_size
         self.parts: list[dict[str, np.ndarray]] = []
+        self.psf_images: dict[int, np.ndarray] = {}  # id -> PSF image (with the pixel, as drawn)
+        self._targets: dict[int, dict[str, float]] = {}
 
-    def __call__(self, stamps: np.ndarray, origins: np.ndarray) -> None:
-        if len(stamps):
-            feats = self._measure(stamps, origins=origins, gain=self.gain, engine=self.engine, device=self.device)
-            if self.morphology:
-                from megalut_cli.measure.morphology import morphology_of_measured
+    def psf_id(self, psf: Any, method: str, key: Any) -> int:
+        """An id of the PSF ``psf`` (drawn with ``method``), its image stored for metacal."""
+        pid = hash((key, method)) & 0x7FFFFFFF
+        if self.step is not None and pid not in self.psf_images:
+            size = self.size
+            self.psf_images[pid] = psf.drawImage(nx=size, ny=size, scale=1.0, method=method).array.astype(np.float64)
+        return pid
 
-                feats.update(morphology_of_measured(stamps, origins, feats))
-            self.parts.append(feats)
+    def __call__(self, stamps: np.ndarray, origins: np.ndarray, index: np.ndarray | None = None,
+                 psf_ids: np.ndarray | None = None) -> None:
+        if not len(stamps):
+            return
+        feats = self._measure(stamps, origins=origins, gain=self.gain, engine=self.engine, device=self.device)
+        if self.morphology:
+            from megalut_cli.measure.morphology import morphology_of_measured
+
+            feats.update(morphology_of_measured(stamps, origins, feats))
+        if self.step is not None and index is not None and psf_ids is not None:
+            feats.update(self._metacal(stamps, origins, index, psf_ids, feats))
+        self.parts.append(feats)
+
+    def _metacal(self, stamps: np.ndarray, origins: np.ndarray, index: np.ndarray, psf_ids: np.ndarray,
+                 feats: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        from megalut_cli.measure.metacal import (
+            fixnoise_seeds,
+            metacal_features,
+            target_psf_features,
+            target_psf_sigma,
+        )
+        from megalut_cli.measure.metacal_defaults import TYPES
+
+        ids = np.unique(psf_ids)
+        stack = np.stack([self.psf_images[int(i)] for i in ids])
+        keys = index % self.n_rea if self.common else index
+        out = metacal_features(
+            stamps, stack, self.step, noise_sigma=feats["skymad"], seeds=fixnoise_seeds(self.seed, keys),
+            metacal_engine=self.engine, psf_index=np.searchsorted(ids, psf_ids), morphology=self.morphology,
+            origins=origins, gain=self.gain, engine=self.engine, device=self.device,
+        )
+        for i in ids:
+            if int(i) not in self._targets:
+                sigma = target_psf_sigma(self.psf_images[int(i)], self.step)
+                self._targets[int(i)] = target_psf_features(sigma, self.size)
+        for c in ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4"):
+            values = np.array([self._targets[int(i)][c] for i in psf_ids])
+            for kind in TYPES:
+                out[f"psf_{c}_{kind}"] = values
+        return out
 
     def columns(self) -> dict[str, np.ndarray]:
         if not self.parts:
@@ -229,7 +277,8 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     render = keep or unit.measure  # else: truth only, nothing to draw
     nbuf = n_total if keep else (min(MEASURE_BATCH, n_total) if unit.measure else 0)
     stamps = np.empty((max(nbuf, 1), S, S), dtype=np.float32)
-    measurer = _Measurer(cfg.gain, unit.engine, unit.morphology, unit.device) if unit.measure else None
+    psf_ids = np.zeros(max(nbuf, 1), dtype=np.int64)  # the PSF of each buffered stamp (metacal)
+    measurer = _Measurer(unit) if unit.measure else None
     image = galsim.ImageF(S, S, scale=1.0)
     gsp = make_gsparams(cfg.gsparams)
     conv_gsp = gsp if cfg.gsparams else None  # else GalSim combines the components' own
@@ -273,6 +322,8 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                 method = "no_pixel" if psf_includes_pixel(spec) else "auto"
                 psf_truths.append(ptruth)
                 last_psf = pi
+                pid = measurer.psf_id(psf, method, psf_cache_key(spec, fx, fy, cfg.psf_varies, cfg.gsparams)) \
+                    if measurer is not None and render else 0
             if not render:
                 continue
             hst_k = hst_var is not None and d.noise.kind != "none"
@@ -302,10 +353,11 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
             else:
                 d.noise.add(image, int(d.noise_seeds[k]))
             stamps[fill] = image.array
+            psf_ids[fill] = pid
             fill += 1
             if not keep and measurer is not None and fill == nbuf:
                 idx = np.arange(buf_first, buf_first + fill)
-                measurer(stamps[:fill], stamp_origins(idx, unit.n_x, S))
+                measurer(stamps[:fill], stamp_origins(idx, unit.n_x, S), idx, psf_ids[:fill])
                 buf_first += fill
                 fill = 0
         cols = case_columns(d, psf_truths)
@@ -320,9 +372,9 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
         if keep:
             for a in range(0, fill, MEASURE_BATCH):
                 b = min(a + MEASURE_BATCH, fill)
-                measurer(stamps[a:b], stamp_origins(idx[a:b], unit.n_x, S))
+                measurer(stamps[a:b], stamp_origins(idx[a:b], unit.n_x, S), idx[a:b], psf_ids[a:b])
         else:
-            measurer(stamps[:fill], stamp_origins(idx, unit.n_x, S))
+            measurer(stamps[:fill], stamp_origins(idx, unit.n_x, S), idx, psf_ids[:fill])
     columns = {k: np.concatenate([p[k] for p in truth_parts]) for k in truth_parts[0]} if truth_parts else {}
     if measurer is not None:
         columns.update(measurer.columns())
@@ -399,25 +451,28 @@ def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
     S, n_rea = s.stamp_size, s.n_realizations
     gal = cfg.galaxy
     renderer = stamp_renderer(S, dict(cfg.gsparams))
-    measurer = _Measurer(cfg.gain, unit.engine, unit.morphology) if unit.measure else None
+    measurer = _Measurer(unit) if unit.measure else None
     kept: list[np.ndarray] = []
     pending: list[np.ndarray] = []  # rendered stamps not yet measured
+    pending_psf: list[np.ndarray] = []  # their PSF ids (metacal)
     n_pending = 0
     measured_to = unit.case_start * n_rea  # global index of the first pending stamp
     truth_parts: list[dict[str, np.ndarray]] = []
 
     def measure_pending(final: bool) -> None:
-        nonlocal pending, n_pending, measured_to
+        nonlocal pending, pending_psf, n_pending, measured_to
         if measurer is None or not pending:
             return
         block = np.concatenate(pending)
+        block_psf = np.concatenate(pending_psf)
         stop = len(block) if final else len(block) - len(block) % MEASURE_BATCH
         for a in range(0, stop, MEASURE_BATCH):
             b = min(a + MEASURE_BATCH, stop)
             idx = np.arange(measured_to + a, measured_to + b)
-            measurer(block[a:b], stamp_origins(idx, unit.n_x, S))
+            measurer(block[a:b], stamp_origins(idx, unit.n_x, S), idx, block_psf[a:b])
         measured_to += stop
         pending = [block[stop:]] if stop < len(block) else []
+        pending_psf = [block_psf[stop:]] if stop < len(block) else []
         n_pending = len(block) - stop
 
     for case in range(unit.case_start, unit.case_stop):
@@ -428,6 +483,7 @@ def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
         for lo in range(0, n_rea, CASE_BLOCK):
             hi = min(lo + CASE_BLOCK, n_rea)
             stamps = np.empty((hi - lo, S, S), dtype=np.float32)
+            block_psf = np.zeros(hi - lo, dtype=np.int64)
             for p in psfs:
                 rows = p.rows[np.searchsorted(p.rows, lo):np.searchsorted(p.rows, hi)]
                 if not len(rows):
@@ -437,11 +493,14 @@ def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
                                                       *stamp_parameters(d, rows))
                 except MegalutError as err:
                     raise MegalutError(f"case {case}: {err}") from None
+                if measurer is not None:
+                    block_psf[rows - lo] = measurer.psf_id(p.psf, p.method, p.key)
             d.noise.add_batch(stamps, d.noise_seeds[lo:hi])
             if unit.keep_stamps:
                 kept.append(stamps)
             if measurer is not None:
                 pending.append(stamps)
+                pending_psf.append(block_psf)
                 n_pending += hi - lo
                 if n_pending >= MEASURE_BATCH:
                     measure_pending(final=False)

@@ -136,6 +136,7 @@ def make_units(
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
     device: str = DEFAULT_DEVICE,
+    metacal_step: float | None = None,
 ) -> list[WorkUnit]:
     """Split the cases into work units of about ``UNIT_STAMPS`` stamps (whole cases;
     ``DEVICE_UNIT_STAMPS`` on the device, ``device`` being resolved)."""
@@ -144,7 +145,8 @@ def make_units(
     if device == "gpu" and not scheduler:
         n_units = min(s.n_cases, max(1, math.ceil(s.n_stamps / DEVICE_UNIT_STAMPS)))
     return [
-        WorkUnit(config, seed, a, b, s.grid_nx, keep_stamps, measure, engine, morphology, device)
+        WorkUnit(config, seed, a, b, s.grid_nx, keep_stamps, measure, engine, morphology, device,
+                 metacal_step if measure else None)
         for a, b in chunk_ranges(s.n_cases, n_units)
     ]
 
@@ -252,6 +254,7 @@ def simulate_chunks(
     engine: str = DEFAULT_ENGINE,
     morphology: bool = SIMULATE["morphology"].default,
     device: str = DEFAULT_DEVICE,
+    metacal_step: float | None = None,
 ) -> Iterator[SimulatedChunk]:
     """Draw the configured stamps (and measure them), yielding the catalog in order, one
     work unit at a time, with a bounded number of units in flight: the memory does not grow
@@ -259,13 +262,18 @@ def simulate_chunks(
 
     ``engine`` is ``fast`` or ``galsim``, ``device`` ``cpu``, ``gpu`` or ``auto``
     (:mod:`megalut_cli.engine`); on the device the units run in this process.
+    ``metacal_step`` (with ``measure``): also the metacal features (on the CPU).
     """
     check_engine(engine)
     device = resolve_device(device)
+    if metacal_step is not None and measure and device == "gpu":
+        log.info("metacal runs on the CPU: drawing and measuring there")
+        device = "cpu"
     if device == "gpu" and not scheduler:
         nproc = 1
     s = config.structure
-    units = make_units(config, seed, nproc, scheduler, keep_stamps, measure, engine, morphology and measure, device)
+    units = make_units(config, seed, nproc, scheduler, keep_stamps, measure, engine, morphology and measure, device,
+                       metacal_step)
     log_engine_fallback(config, engine, keep_stamps or measure)
     log.info(
         "simulating %d cases x %d realizations = %d stamps of %d px in %d work units",
@@ -313,11 +321,15 @@ def simulate(
     morphology: bool = SIMULATE["morphology"].default,
     device: str = DEFAULT_DEVICE,
     names: Names | None = None,
+    metacal: bool = SIMULATE["metacal"].default,
+    metacal_step: float = SIMULATE["metacal_step"].default,
 ) -> SimulationResult:
     """Simulate the configured stamps into files: the catalog, streamed as the work units
     finish (:func:`simulate_chunks`), and the stamp grid image ``stamps``. With ``measure``
-    and ``morphology``, the ``morph_*`` features are measured too. Messages name the
-    arguments by ``names``.
+    and ``morphology``, the ``morph_*`` features are measured too; with ``measure`` and
+    ``metacal``, the metacal features of :func:`megalut_cli.measure.measure.measure_file`
+    (each stamp deconvolved by the PSF image it was drawn with, fixnoise seeded by ``seed``).
+    Messages name the arguments by ``names``.
     """
     check_engine(engine)
     out, st = check_outputs(config, output, stamps, overwrite, names)
@@ -331,9 +343,15 @@ def simulate(
         n_y = math.ceil(s.n_stamps / s.grid_nx)
         image = np.zeros((n_y * s.stamp_size, s.grid_nx * s.stamp_size), dtype=np.float32)
     cards = simulation_cards(config, seed, measure, engine)
+    if metacal and measure:
+        from megalut_cli.measure.metacal_defaults import SEED_CARD, STEP_CARD
+
+        cards[STEP_CARD] = (float(metacal_step), "metacal shear step (simulate --metacal-step)")
+        cards[SEED_CARD] = (int(seed), "seed of the metacal fixnoise fields (simulate --seed)")
     excess = HstNoiseExcess()
     chunks = simulate_chunks(config, seed, measure=measure, keep_stamps=st is not None, nproc=nproc,
-                             scheduler=scheduler, progress=progress, engine=engine, morphology=morphology, device=device)
+                             scheduler=scheduler, progress=progress, engine=engine, morphology=morphology, device=device,
+                             metacal_step=float(metacal_step) if metacal and measure else None)
     with contextlib.ExitStack() as stack:
         writer = stack.enter_context(simulation_catalog_writer(out, config, cards, overwrite))
         tmp_st = stack.enter_context(atomic_output(st, overwrite)) if st is not None else None
