@@ -176,6 +176,7 @@ class Pipeline:
     engine: str = DEFAULT_ENGINE  # stamp engine of the simulations (megalut_cli.engine)
     device: str = DEFAULT_DEVICE  # where simulations and trainings run; not in the steps' keys
     reference: ReferenceSpec | None = None  # [reference]: a fixed model evaluated on a set
+    metacal: bool = False  # the validation sets measured in metacal mode too (docs/metacal.md)
 
     def product(self, base: str) -> str:
         """Where a product of a training, prediction or evaluation step goes in the work folder."""
@@ -287,6 +288,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     scale = top.option(PIPELINE["scale"])
     engine = top.option(PIPELINE["engine"])
     device = top.option(PIPELINE["device"])
+    metacal = top.option(PIPELINE["metacal"])
     base_sim = top.option(PIPELINE["simulation"])
     sets_t = Table(top.option(PIPELINE["sets"]), "sets", set(ALL_SETS))
     missing = [n for n in SET_NAMES if n not in sets_t.data]
@@ -322,7 +324,7 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         path=path, sha256=sha256, overrides=tuple(overrides), raw=json.loads(json.dumps(raw, default=str)),
         description=description, scale=scale, sets=sets, train_point=point, train_weight=weight,
         evaluate=evaluate, name=name, pretrain=pretrain, evaluate_vp=evaluate_vp, engine=engine, device=device,
-        reference=_reference_spec(top, sets, base_dir),
+        reference=_reference_spec(top, sets, base_dir), metacal=bool(metacal),
     )
     _check_columns(pipe)
     return pipe

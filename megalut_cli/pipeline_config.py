@@ -49,6 +49,10 @@ PIPELINE_OPTIONS: tuple[Option, ...] = (
             "JAX backend; one clear error if none is usable) or `\"auto\"` (gpu when found); see "
             "[gpu.md](gpu.md). Not part of the steps' keys (results agree within the tolerances of gpu.md), "
             "like `-j`"),
+    Option("metacal", "bool", False, "also measure the validation sets (`vo`, `vp`) in metacal mode (each stamp "
+           "deconvolved by its PSF, sheared by ±0.01, reconvolved; docs/metacal.md): their predictions get the "
+           "responses `mcal_r11`..`mcal_r22` and `evaluate` reports the response-calibrated biases. Part of their "
+           "simulation steps' keys"),
     Option("simulation", "table", None, "a simulation config (any table of docs/config.md) shared by the sets "
            "without `config`"),
     Option("sets", "table", None, "the simulated sets: `[sets.tp]`, `[sets.tw]`, `[sets.vo]` (required), "

@@ -52,6 +52,9 @@ from megalut_cli.steps import (
 
 log = logging.getLogger("megalut")
 
+#: The sets that ``metacal = true`` measures in metacal mode: those that are evaluated.
+METACAL_SETS = ("vo", "vp")
+
 
 
 @dataclass
@@ -90,13 +93,15 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
     def sim_step(spec: SetSpec) -> Step:
         from megalut_cli.sim.simulate import simulate
 
+        metacal = pipe.metacal and spec.name in METACAL_SETS
+
         def action(wd: Path, overwrite: bool) -> None:
             simulate(spec.config, wd / spec.product, measure=True, seed=spec.seed, nproc=nproc, scheduler=scheduler,
                      overwrite=overwrite, progress=relabelled(progress, f"simulate {spec.name}"), engine=pipe.engine,
-                     device=pipe.device)
+                     device=pipe.device, metacal=metacal)
 
         s = spec.config.structure
-        extra = {}
+        extra: dict[str, Any] = {"metacal": True} if metacal else {}
         if spec.config.catalog_path:
             extra["catalog_sha256"] = sha256_file(spec.config.catalog_path)
         psf_path = spec.config.psf.get("path")
