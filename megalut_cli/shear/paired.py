@@ -226,7 +226,8 @@ def _pm(v: float | None, e: float | None) -> str:
 def format_paired(result: Mapping[str, Any]) -> str:
     """Plain-text table of :func:`paired_evaluation`'s result."""
     a, b = result["names"]
-    lines = []
+    lines = ["metacal: pre_g*_noshear of each set calibrated by its mean response (mcal_r11, mcal_r22)", ""] \
+        if result.get("metacal") else []
 
     def block(res: Mapping[str, Any], title: str) -> None:
         for scheme, comps in res.items():

@@ -40,6 +40,21 @@ def _ok(fit: Mapping[str, Any]) -> str:
     return "ok" if abs(m) < STAGE_IV_M and abs(c) < STAGE_IV_C else "OUT"
 
 
+def _matrix(r: Any) -> str:
+    return "[[" + "], [".join(", ".join("n/a" if v is None else f"{v:+.4f}" for v in row) for row in r) + "]]"
+
+
+def metacal_lines(mcal: Mapping[str, Any] | None) -> list[str]:
+    """The report lines of a metacal evaluation: what is calibrated, by which responses."""
+    if not mcal:
+        return []
+    lines = [f"metacal: {', '.join(mcal['estimate'])} calibrated by (<R> + R_sel)^-1, step {mcal['step']:g}"]
+    for scheme, r in mcal["response"].items():
+        sel = mcal["selection_response"].get(scheme)
+        lines.append(f"  {scheme}: <R> = {_matrix(r)}" + (f", R_sel = {_matrix(sel)}" if sel is not None else ""))
+    return lines
+
+
 def format_table(result: Mapping[str, Any]) -> str:
     """A readable text report of an evaluation result."""
     lines = [f"shear biases of {result['input']}"]
@@ -58,6 +73,7 @@ def format_table(result: Mapping[str, Any]) -> str:
         lines.append(f"PSF frame (plus, cross) from {', '.join(result['psf_frame']['columns'])}{note}")
     lines.append(f"Stage IV requirement: |m| < {STAGE_IV_M:.0e}, |c| < {STAGE_IV_C:.0e}")
     lines.append(error_note(result))
+    lines += metacal_lines(result.get("metacal"))
     header = f"  {'':6}{'m':^22}   {'c':^22}  {'cases':>6} {'rows':>10}  req"
     for scheme in SCHEMES:
         if scheme not in result:
