@@ -235,6 +235,26 @@ class CatalogColumns(Mapping[str, np.ndarray]):
         return len(self.names)
 
 
+class VersionColumns(Mapping[str, np.ndarray]):
+    """The columns of a metacal catalog as one version sees them: ``X`` reads ``X_<version>``
+    where that exists (features, flags), else ``X`` (truth, structure)."""
+
+    def __init__(self, columns: Mapping[str, np.ndarray], version: str = "noshear") -> None:
+        self.columns = columns
+        self.version = version
+        self._names = set(getattr(columns, "names", None) or list(columns))
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        own = f"{name}_{self.version}"
+        return self.columns[own] if own in self._names else self.columns[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.columns)
+
+    def __len__(self) -> int:
+        return len(self.columns)
+
+
 def require_columns(
     available: Iterable[str], needed: Iterable[str], where: str | os.PathLike = "catalog"
 ) -> None:

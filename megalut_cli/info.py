@@ -197,6 +197,7 @@ def _describe_model(p: Path) -> dict[str, Any]:
         "uuid": model.uuid,
         "targets": model.targets,
         "features": model.features,
+        "shear_mode": model.shear_mode,
         "committees": committees,
         "provenance": {"created": model.created, **model.provenance},
     }
@@ -254,6 +255,10 @@ def format_info(info: dict[str, Any]) -> str:
                          f"in a {gx}x{gy} grid")
     else:
         lines.append(f"{info['path']}: {fmt}, targets {', '.join(info['targets'])}")
+        mode = info.get("shear_mode", "simulation")
+        lines.append("mode: " + ("metacal (for catalogs of measure --metacal: features X_noshear..., calibrated by "
+                                 "the response; docs/metacal.md)" if mode == "metacal" else
+                                 "simulation-calibrated (for catalogs measured without --metacal)"))
         lines.append(f"features: {', '.join(info['features'])}")
         lines.append("committees:")
         for c in info["committees"]:

@@ -49,10 +49,11 @@ PIPELINE_OPTIONS: tuple[Option, ...] = (
             "JAX backend; one clear error if none is usable) or `\"auto\"` (gpu when found); see "
             "[gpu.md](gpu.md). Not part of the steps' keys (results agree within the tolerances of gpu.md), "
             "like `-j`"),
-    Option("metacal", "bool", False, "also measure the validation sets (`vo`, `vp`) in metacal mode (each stamp "
-           "deconvolved by its PSF, sheared by ±0.01, reconvolved; docs/metacal.md): their predictions get the "
-           "responses `mcal_r11`..`mcal_r22` and `evaluate` reports the response-calibrated biases. Part of their "
-           "simulation steps' keys"),
+    Option("metacal", "bool", False, "measure every set in metacal mode too (each stamp deconvolved by its PSF, "
+           "sheared by ±0.01, reconvolved; docs/metacal.md): the networks train on the features of the noshear "
+           "versions (a metacal model), the predictions get the responses `mcal_r11`..`mcal_r22` and `evaluate` "
+           "reports the response-calibrated biases; a `[reference]` model must then be a metacal one "
+           "(`\"fiducial-metacal\"`). Part of the simulation steps' keys"),
     Option("simulation", "table", None, "a simulation config (any table of docs/config.md) shared by the sets "
            "without `config`"),
     Option("sets", "table", None, "the simulated sets: `[sets.tp]`, `[sets.tw]`, `[sets.vo]` (required), "
@@ -91,7 +92,8 @@ SET_OPTION = {o.name: o for o in SET_OPTIONS}
 REFERENCE_OPTIONS: tuple[Option, ...] = (
     Option("model", "path", None, "a model file (relative to the pipeline file), or the name of a model shipped "
            "with megalut: `\"fiducial\"` (`models/fiducial.h5`, the paper-size model) or `\"fiducial-1e6\"` "
-           "(`models/fiducial-1e6.h5`, the model shipped before it; [models/README.md](../models/README.md))",
+           "(`models/fiducial-1e6.h5`, the model shipped before it; [models/README.md](../models/README.md)), or "
+           "`\"fiducial-metacal\"` (the networks of `fiducial` for metacal catalogs, [metacal.md](metacal.md))",
            default_text="required", allowed_text="a path, or a shipped model's name"),
     Option("set", "str", "vo", "the set it is evaluated on, with the options of `[evaluate]`",
            allowed_text="a set of the pipeline"),

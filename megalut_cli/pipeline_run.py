@@ -52,8 +52,9 @@ from megalut_cli.steps import (
 
 log = logging.getLogger("megalut")
 
-#: The sets that ``metacal = true`` measures in metacal mode: those that are evaluated.
-METACAL_SETS = ("vo", "vp")
+#: The sets that ``metacal = true`` measures in metacal mode: all (the networks then train on
+#: the noshear versions' features: a metacal model).
+METACAL_SETS = ("tp", "tw", "vo", "vp", "pretrain")
 
 
 

@@ -29,7 +29,13 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.atomic import check_output
-from megalut_cli.catalog import CatalogColumns, read_setup, require_columns
+from megalut_cli.catalog import (
+    CatalogColumns,
+    VersionColumns,
+    catalog_info,
+    read_setup,
+    require_columns,
+)
 from megalut_cli.errors import ConfigError, InputError, namer
 from megalut_cli.expr import check_expression, columns_used, evaluate_cases, evaluate_rows
 from megalut_cli.nn import normalization as norm
@@ -63,6 +69,23 @@ DEFAULT_WEIGHT_ITERATIONS = WEIGHT_ITERATIONS
 #: A table of columns: a dict of column name to array, an astropy Table, or a
 #: :class:`megalut_cli.catalog.CatalogColumns` reading a catalog's columns on demand.
 Columns = Mapping[str, Any]
+
+
+def training_columns(path: str | os.PathLike) -> tuple[Columns, str]:
+    """The columns a model trains on, and its shear mode: a metacal catalog (``MCALSTEP``
+    card, ``measure``/``simulate --metacal``) trains on the ``noshear`` version's features."""
+    from megalut_cli.measure.metacal_defaults import STEP_CARD
+
+    columns = CatalogColumns(path)
+    if catalog_info(path)[2].get(STEP_CARD) is None:
+        return columns, "simulation"
+    log.info("%s: a metacal catalog: training on the features of its noshear versions (a metacal model)", path)
+    return VersionColumns(columns, "noshear"), "metacal"
+
+
+def _same_mode(train: str | os.PathLike, valid: str | os.PathLike | None, mode: str, name: Callable[[str], str]) -> None:
+    if valid is not None and training_columns(valid)[1] != mode:
+        raise InputError(f"{name('valid')} {valid} and {name('train')} {train}: one is a metacal catalog, the other not")
 
 
 @dataclass
@@ -433,9 +456,11 @@ def train_point(
     _check_point_arguments(cost, init_scheme, select_cases)
     init_model = ShearModel.load(init_from) if init_from is not None else None
     sources = {"train": str(train), "valid": str(valid), "init_model": str(init_from)}
+    train_columns, mode = training_columns(train)
+    _same_mode(train, valid, mode, namer(names))
     model = fit_point(
-        CatalogColumns(train), features=features, targets=targets,
-        valid=CatalogColumns(valid) if valid is not None else None, hidden=hidden, cost=cost,
+        train_columns, features=features, targets=targets,
+        valid=training_columns(valid)[0] if valid is not None else None, hidden=hidden, cost=cost,
         select_cases=select_cases, init_model=init_model, init_scheme=init_scheme, options=options, nproc=nproc,
         scheduler=scheduler, progress=progress, sources=sources, names=names,
     )
@@ -446,6 +471,7 @@ def train_point(
         inputs["init_from"] = {"path": str(init_from), "sha256": init_model.sha256}
     model.provenance = _provenance("train-point", inputs, model.provenance["seed"],
                                    init_model.provenance if init_model is not None else None, read_setup(train))
+    model.shear_mode = mode
     model.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, model.sha256[:12])
     return model
@@ -554,9 +580,16 @@ def train_weight(
     if select is not None:
         check_expression(select, None, case_mode=False)
     point_model = ShearModel.load(model)
+    train_columns, mode = training_columns(train)
+    _same_mode(train, valid, mode, namer(names))
+    if point_model.shear_mode != mode:
+        raise InputError(
+            f"{model} is a {point_model.shear_mode} model and {train} {'a metacal' if mode == 'metacal' else 'a plain'} "
+            "catalog: train the weights on a catalog of the point model's mode"
+        )
     result = fit_weight(
-        CatalogColumns(train), point_model, features=features, hidden=hidden, select=select,
-        valid=CatalogColumns(valid) if valid is not None else None, options=options, nproc=nproc,
+        train_columns, point_model, features=features, hidden=hidden, select=select,
+        valid=training_columns(valid)[0] if valid is not None else None, options=options, nproc=nproc,
         scheduler=scheduler, progress=progress, sources={"train": str(train), "valid": str(valid), "model": str(model)},
         names=names,
     )
@@ -565,6 +598,7 @@ def train_weight(
         inputs["valid"] = _input(valid)
     result.provenance = _provenance("train-weight", inputs, result.provenance["seed"], point_model.provenance,
                                     read_setup(train))
+    result.shear_mode = mode
     result.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, result.sha256[:12])
     return result

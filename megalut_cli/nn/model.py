@@ -271,6 +271,12 @@ def _attr(obj: Any, key: str, default: str | None = None) -> str:
     return val.decode() if isinstance(val, bytes) else str(val)
 
 
+#: What a model's networks estimate from (root attribute ``shear_mode``; absent: the first):
+#: the features of the stamps as they are, calibrated on simulations (the paper's mode), or
+#: the features of metacal versions, calibrated by each galaxy's response (docs/metacal.md).
+SHEAR_MODES = ("simulation", "metacal")
+
+
 class ShearModel:
     """Point (and weight) committees for each target, with provenance."""
 
@@ -289,6 +295,8 @@ class ShearModel:
         self.uuid = ""
         self.created = ""
         self.format_version = FORMAT_VERSION
+        #: One of :data:`SHEAR_MODES`: the catalogs ``predict`` applies the model to.
+        self.shear_mode = SHEAR_MODES[0]
 
     @property
     def features(self) -> list[str]:
@@ -304,6 +312,18 @@ class ShearModel:
 
     def __repr__(self) -> str:
         return f"ShearModel(point={list(self.point)}, weight={list(self.weight)}, features={self.features})"
+
+    def for_mode(self, mode: str, why: str) -> ShearModel:
+        """The same networks for catalogs of another shear mode (:data:`SHEAR_MODES`), with the
+        source model's sha256 and ``why`` in the provenance (``mode_from``)."""
+        if mode not in SHEAR_MODES:
+            raise ValueError(f"unknown shear mode {mode!r} (known: {', '.join(SHEAR_MODES)})")
+        out = ShearModel(self.point, self.weight, self.provenance)
+        out.validation = dict(self.validation)
+        out.provenance["mode_from"] = {"shear_mode": self.shear_mode, "sha256": self.sha256, "uuid": self.uuid,
+                                       "why": why}
+        out.shear_mode = mode
+        return out
 
     # ------------------------------------------------------------------ I/O
     def save(self, path: str | os.PathLike, overwrite: bool = False) -> None:
@@ -323,6 +343,7 @@ class ShearModel:
                 f.attrs["creator"] = CREATOR
                 f.attrs["created"] = self.created
                 f.attrs["uuid"] = self.uuid
+                f.attrs["shear_mode"] = self.shear_mode
                 for kind, comms in (("point", self.point), ("weight", self.weight)):
                     kg = f.create_group(kind)
                     for target, comm in comms.items():
@@ -384,6 +405,9 @@ class ShearModel:
                     model.validation[key] = json.loads(val.decode() if isinstance(val, bytes) else str(val))
                 model.uuid = _attr(f, "uuid", "")
                 model.created = _attr(f, "created", "")
+                model.shear_mode = _attr(f, "shear_mode", SHEAR_MODES[0])
+                if model.shear_mode not in SHEAR_MODES:
+                    raise InputError(f"{p}: unknown shear_mode {model.shear_mode!r} (known: {', '.join(SHEAR_MODES)})")
         except InputError:
             raise
         except (KeyError, ValueError, TypeError, OSError, json.JSONDecodeError) as err:

@@ -8,7 +8,7 @@ from pathlib import Path
 from megalut_cli.errors import InputError
 
 #: Name -> file in megalut_cli/data/ (models/ in the repository links to them).
-SHIPPED_MODELS = {"fiducial": "fiducial.h5", "fiducial-1e6": "fiducial-1e6.h5"}
+SHIPPED_MODELS = {"fiducial": "fiducial.h5", "fiducial-1e6": "fiducial-1e6.h5", "fiducial-metacal": "fiducial-metacal.h5"}
 
 
 def shipped_model(name: str) -> Path:

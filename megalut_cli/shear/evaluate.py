@@ -200,11 +200,12 @@ def _make_plan(
         cols += [*RESPONSE_COLUMNS, *(f"{c}_noshear" for c in ESTIMATE_COLUMNS), "flags_noshear"]
         if weighted:
             cols += [f"{c}_{kind}" for c in WEIGHT_COLUMNS for kind in ("noshear", *SHEARED_TYPES)]
-        if select is not None:
-            used = _expr.columns_used(select)
-            plan.selection_columns = {kind: {c: f"{c}_{kind}" for c in used if f"{c}_{kind}" in have}
-                                      for kind in SHEARED_TYPES}
-            cols += [v for m in plan.selection_columns.values() for v in m.values()]
+        used = list(_expr.columns_used(select)) if select is not None else []
+        for c in by:  # the bins too are taken on the noshear versions
+            used += [c] if by_kind[c] == "column" else _expr.columns_used(c) if by_kind[c] == "row" else []
+        plan.selection_columns = {kind: {c: f"{c}_{kind}" for c in used if f"{c}_{kind}" in have}
+                                  for kind in ("noshear", *SHEARED_TYPES)}
+        cols += [v for m in plan.selection_columns.values() for v in m.values()]
         cols += [f"flags_{kind}" for kind in SHEARED_TYPES]
     if bootstrap is not None:
         cols.append("rea")
@@ -227,7 +228,8 @@ def _metacal_mode(have: set[str], source: str, step: float | None) -> float | No
     present = [c for c in RESPONSE_COLUMNS if c in have]
     if not present:
         return None
-    needed = [*RESPONSE_COLUMNS, *(f"{c}_noshear" for c in ESTIMATE_COLUMNS)]
+    needed = [*RESPONSE_COLUMNS, *(f"{c}_noshear" for c in ESTIMATE_COLUMNS), "flags_noshear",
+              *(f"flags_{kind}" for kind in SHEARED_TYPES)]
     missing = [c for c in needed if c not in have]
     if missing:
         raise InputError(f"{source}: a metacal catalog (with {', '.join(present)}) lacks {', '.join(missing)}")
@@ -264,8 +266,8 @@ def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
             raise InputError(f"{plan.source}: column 'case' must hold integer case ids")
     n = case.size
     selected = np.ones(n, dtype=bool)
-    if plan.select is not None:
-        selected &= _expr.evaluate_rows(plan.select, chunk, n)
+    if plan.select is not None:  # in metacal mode on the noshear versions' columns
+        selected &= _expr.evaluate_rows(plan.select, _version_view(chunk, plan, "noshear"), n)
     if plan.selected_cases is not None:
         selected &= np.isin(case, plan.selected_cases)
     base = selected.copy()
@@ -303,6 +305,14 @@ def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
     return rows
 
 
+def _version_view(chunk: Mapping[str, np.ndarray], plan: _Plan, kind: str) -> Mapping[str, np.ndarray]:
+    """The chunk as the metacal version ``kind`` sees it: ``X`` is ``X_<kind>`` where the
+    catalog has it (the chunk itself in plain mode)."""
+    if plan.metacal is None or not plan.selection_columns.get(kind):
+        return chunk
+    return {**chunk, **{c: chunk[v] for c, v in plan.selection_columns[kind].items()}}
+
+
 def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> None:
     """The responses of the valid rows and, with a selection or weights, each row's weight
     under the selection (and weights) of each sheared version (Sheldon & Huff 2017, Sect. 5)."""
@@ -329,8 +339,7 @@ def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> 
     for kind in SHEARED_TYPES:
         sel = usable.copy()
         if plan.select is not None:
-            view = {**chunk, **{c: chunk[v] for c, v in plan.selection_columns.get(kind, {}).items()}}
-            sel &= _expr.evaluate_rows(plan.select, view, n)
+            sel &= _expr.evaluate_rows(plan.select, _version_view(chunk, plan, kind), n)
         for s in plan.schemes:
             if s == "unweighted" and plan.select is None:
                 continue
@@ -689,6 +698,7 @@ def _prepare_cases(plan: _Plan, read: Callable[[list[str]], Mapping[str, np.ndar
 def _by_values(chunk: Mapping[str, np.ndarray], plan: _Plan, c: str, n: int) -> np.ndarray:
     """Values of the ``by`` entry ``c`` on the rows of ``chunk`` (a case's value for per-case entries)."""
     kind = plan.by_kind.get(c, "column")
+    chunk = _version_view(chunk, plan, "noshear")
     if kind == "column":
         return np.asarray(chunk[c], dtype=float)
     if kind == "row":

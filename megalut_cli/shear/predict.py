@@ -171,10 +171,18 @@ def _predict_unit(unit: tuple[Any, ...]) -> dict[str, np.ndarray]:
     ``metacal`` is None or ``(step, {type: X}, {type: flags})``."""
     path, sha, x, flg, metacal = unit
     model = _load_model(path, sha)
-    out = predict_arrays(model, x, flg)
-    if metacal is not None:
-        step, xs, flgs = metacal
-        out.update(predict_metacal(model, xs, flgs, step))
+    if metacal is None:
+        return predict_arrays(model, x, flg)
+    step, xs, flgs = metacal
+    out = predict_metacal(model, xs, flgs, step)
+    # pre_X: the (uncalibrated) noshear estimate; flags: the catalog's, and BAD_FEATURES where it failed
+    for col in list(out):
+        if col.endswith("_noshear") and col.startswith("pre_"):
+            out[col[: -len("_noshear")]] = out[col]
+    failed = (np.asarray(out["flags_noshear"]) & _flags.BAD_FEATURES) != 0
+    base = np.zeros(len(failed), dtype=np.int32) if flg is None else np.asarray(flg)
+    base = base.astype(np.promote_types(base.dtype, np.int16))
+    out["flags"] = base | np.where(failed, _flags.BAD_FEATURES, 0).astype(base.dtype)
     return out
 
 
@@ -183,6 +191,24 @@ def _matrix(table: Any, cols: Sequence[str]) -> np.ndarray:
     if not len(table):
         return np.zeros((0, len(cols)))
     return np.column_stack([np.asarray(table[c], dtype=np.float64) for c in cols])
+
+
+def _check_mode(model: ShearModel, step: float | None, model_path: Any, features_path: Any) -> None:
+    """Refuse a metacal model on a plain catalog and a simulation-calibrated one on a metacal catalog."""
+    if model.shear_mode == "metacal" and step is None:
+        raise InputError(
+            f"{model_path} is a metacal model and {features_path} a plain catalog (no {STEP_CARD} card): measure "
+            "with --metacal (and --psf), or use a simulation-calibrated model"
+        )
+    if model.shear_mode != "metacal" and step is not None:
+        raise InputError(
+            f"{model_path} is a simulation-calibrated model and {features_path} a metacal catalog ({STEP_CARD} card): "
+            f"use a metacal model ({METACAL_MODEL_HINT}), or measure without --metacal"
+        )
+
+
+#: Where the messages send users for a metacal model.
+METACAL_MODEL_HINT = "megalut info MODEL says its mode; the shipped one is megalut_cli/data/fiducial-metacal.h5"
 
 
 def _metacal_step(header: Mapping[str, Any], path: str | os.PathLike) -> float | None:
@@ -273,15 +299,16 @@ def predict_catalog(
     new_cols = [prediction_column(c.target, c.kind) for c in model.point.values()]
     new_cols += [prediction_column(c.target, c.kind) for c in model.weight.values()]
     step = _metacal_step(header, features_path)
+    _check_mode(model, step, model_path, features_path)
     if step is not None:
-        missing = [f"{resolved[f]}_{kind}" for kind in TYPES for f in model.features
-                   if f"{resolved[f]}_{kind}" not in colnames]
+        missing = [f"{c}_{kind}" for kind in TYPES for c in [*(resolved[f] for f in model.features), "flags"]
+                   if f"{c}_{kind}" not in colnames]
         if missing:
             raise InputError(
                 f"{features_path}: a metacal catalog ({STEP_CARD} card) without the metacal column(s) "
                 f"{', '.join(missing)}"
             )
-        plain_cols = list(new_cols)
+        plain_cols = list(new_cols)  # in metacal mode: the noshear estimates, uncalibrated
         new_cols += [f"{c}_{kind}" for kind in TYPES for c in plain_cols]
         new_cols += [f"mcal_r{i}{j}" for i in "12" for j in "12" if f"pre_g{i}" in plain_cols]
     replaced = [c for c in new_cols if c in colnames]
