@@ -164,12 +164,13 @@ SIM_EXAMPLES = sorted(
 @pytest.mark.parametrize("path", SIM_EXAMPLES, ids=str)
 def test_examples_are_valid(path, monkeypatch):
     """Every example simulation config (not pipeline files) loads at its paper size
-    (realgal/: the real-galaxy experiment, which has no paper size)."""
+    (realgal/ and metacal/: the real-galaxy experiments, which have no paper size: their
+    galaxies are the 100 COSMOS ones)."""
     from megalut_cli.sim.config import load_config
 
     monkeypatch.chdir(EXAMPLES.parent)
     cfg = load_config(Path("examples") / path)
-    assert cfg.structure.n_stamps >= (10**3 if path.parts[0] == "realgal" else 10**6)
+    assert cfg.structure.n_stamps >= (10**2 if path.parts[0] in ("realgal", "metacal") else 10**6)
 
 
 def test_varpsf_example_runs(runner, cli, tmp_path, monkeypatch):
