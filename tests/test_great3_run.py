@@ -395,3 +395,30 @@ def test_branch_shear_recovered(runner, cli, tmp_path):
     for comp in ("g1", "g2"):
         f = ev["unweighted"][comp]
         assert abs(f["m"]) < 0.1 and abs(f["c"]) < 0.005 and f["m_err"] < 0.08, (comp, f)
+
+
+@pytest.mark.slow
+def test_metacal_branch(runner, cli, branch, tmp_path):
+    """`metacal = true`: the subfield's galaxies measured with --metacal on the star field's PSF,
+    the networks trained on metacal sets (a metacal model), and each subfield's submitted shear
+    its response-calibrated mean: R^-1 times the mean noshear estimate of the same rows."""
+    pipe = tmp_path / "pipe.toml"
+    pipe.write_text("metacal = true\n" + PIPELINE.format(path=branch).replace(
+        "n_cases = 20\nn_realizations = 4", "n_cases = 8\nn_realizations = 4"))
+    w = tmp_path / "w"
+    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w)]))
+    shears = read_catalog(w / P.SHEARS)
+    for c in ("adamom_g1_noshear", "adamom_g1_1p", "pre_g1_noshear", "mcal_r11", "mcal_r22"):
+        assert c in shears.colnames, c
+    assert ShearModel.load(w / "subfields" / "000" / "model.h5").shear_mode == "metacal"
+    sub = np.loadtxt(w / P.SUBMISSION)
+    rows = np.asarray(shears["subfield"]) == 0
+    ok = rows & (np.asarray(shears["flags_noshear"]) == 0)
+    for c in ("mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22", "pre_g1_noshear", "pre_g2_noshear"):
+        ok &= np.isfinite(np.asarray(shears[c], dtype=float))
+    w1, w2 = (np.asarray(shears[f"pre_g{i}_w_noshear"], dtype=float)[ok] for i in (1, 2))
+    g = np.array([np.average(np.asarray(shears["pre_g1_noshear"])[ok], weights=w1),
+                  np.average(np.asarray(shears["pre_g2_noshear"])[ok], weights=w2)])
+    r = np.array([[np.average(np.asarray(shears[f"mcal_r{i}{j}"])[ok], weights=(w1, w2)[i - 1]) for j in (1, 2)]
+                  for i in (1, 2)])
+    np.testing.assert_allclose(sub[0, 1:], np.linalg.solve(r, g), rtol=1e-10)

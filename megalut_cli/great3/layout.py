@@ -314,12 +314,16 @@ def submission_from_catalog(
     """Per-subfield mean shears ``(subfield, g1, g2, n_used)`` of a predictions catalog.
 
     Rows with ``flags != 0`` or non-finite ``pre_g1, pre_g2`` do not count; ``weighted``
-    averages with ``pre_g1_w, pre_g2_w``. A subfield without usable rows gets NaN.
+    averages with ``pre_g1_w, pre_g2_w``. A subfield without usable rows gets NaN. A metacal
+    catalog (``mcal_r11`` ... columns) gives each subfield's mean noshear estimate times the
+    inverse of its mean response (rows need finite responses).
     """
     from megalut_cli.catalog import require_columns
     from megalut_cli.shear.bias import case_means
 
     names = list(table.colnames) if hasattr(table, "colnames") else list(table)
+    if "mcal_r11" in names:
+        return _metacal_subfield_means(table, names, weighted, where)
     need = ["pre_g1", "pre_g2"] + (["pre_g1_w", "pre_g2_w"] if weighted else [])
     require_columns(names, need, where)
     sub = subfield_column(table, where)
@@ -335,6 +339,37 @@ def submission_from_catalog(
         out.append(means)
         n_used = nrows if n_used is None else np.minimum(n_used, nrows)
     return ids, out[0], out[1], n_used
+
+
+def _metacal_subfield_means(
+    table: Any, names: list[str], weighted: bool, where: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`submission_from_catalog` of a metacal catalog: ``<R>^-1 <g_noshear>`` per subfield."""
+    from megalut_cli.catalog import require_columns
+    from megalut_cli.shear.bias import case_means
+
+    resp = [f"mcal_r{i}{j}" for i in "12" for j in "12"]
+    require_columns(names, ["pre_g1_noshear", "pre_g2_noshear", *resp]
+                    + (["pre_g1_w_noshear", "pre_g2_w_noshear"] if weighted else []), where)
+    sub = subfield_column(table, where)
+    ok = np.asarray(table["flags_noshear"]) == 0 if "flags_noshear" in names else np.ones(len(sub), dtype=bool)
+    for c in resp:
+        ok &= np.isfinite(np.asarray(table[c], dtype=float))
+    mean: dict[str, np.ndarray] = {}
+    n_used = None
+    for i in "12":
+        w = np.asarray(table[f"pre_g{i}_w_noshear"], dtype=float) if weighted else None
+        g = np.where(ok, np.asarray(table[f"pre_g{i}_noshear"], dtype=float), np.nan)
+        ids, mean[f"g{i}"], _, nrows = case_means(sub, g, w)
+        n_used = nrows if n_used is None else np.minimum(n_used, nrows)
+        for j in "12":  # the response of the same rows, with the same weights
+            r = np.where(np.isfinite(g), np.asarray(table[f"mcal_r{i}{j}"], dtype=float), np.nan)
+            mean[f"r{i}{j}"] = case_means(sub, r, w)[1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        det = mean["r11"] * mean["r22"] - mean["r12"] * mean["r21"]
+        g1 = (mean["r22"] * mean["g1"] - mean["r12"] * mean["g2"]) / det
+        g2 = (mean["r11"] * mean["g2"] - mean["r21"] * mean["g1"]) / det
+    return ids, g1, g2, n_used
 
 
 # --------------------------------------------------------------------------- truth

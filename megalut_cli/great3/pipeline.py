@@ -124,6 +124,10 @@ TOP_OPTIONS: tuple[Option, ...] = (
     PIPELINE["description"],
     replace(ENGINE_OPTION, help="stamp engine of `measure` and the training simulations, as in "
             "[pipeline.md](pipeline.md) ([engines.md](engines.md))"),
+    Option("metacal", "bool", False, "self-calibrated mode ([metacal.md](metacal.md)): the subfield's galaxies "
+           "are measured with `--metacal` (deconvolved by the star field's first star), the training sets in "
+           "metacal mode (the networks train on the noshear versions' features), and each subfield's shear is "
+           "its mean noshear estimate divided by its mean response"),
     Option("branch", "table", None, "the branch and how to read it (above)", default_text="required"),
     Option("tp", "table", None, "the per-subfield point-training set (below)", default_text="the paper's"),
     Option("tw", "table", None, "the per-subfield weight-training set (below); its seed must differ from tp's",
@@ -237,6 +241,7 @@ class BranchPipeline:
     keep_sets: bool
     problems: dict[int, str] = field(default_factory=dict)  # subfields with missing files
     engine: str = DEFAULT_ENGINE  # stamp engine of measure and simulate (megalut_cli.engine)
+    metacal: bool = False  # the self-calibrated mode (docs/metacal.md)
 
 
 def is_branch_pipeline(path: str | os.PathLike) -> bool:
@@ -420,7 +425,7 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
         description=description, branch_dir=branch_dir, kind=kind, stamp_size=int(size), epoch=int(epoch),
         subfields=subfields, strict=strict, truth=truth, sigma2_min=sigma2_min, sets=sets, point=point,
         weight=weight, weighted=out.option(OUTPUT["weighted"]), keep_sets=out.option(OUTPUT["keep_sets"]),
-        problems=problems, engine=top.option(TOP["engine"]),
+        problems=problems, engine=top.option(TOP["engine"]), metacal=bool(top.option(TOP["metacal"])),
     )
     _check_templates(pipe)
     return pipe
@@ -470,4 +475,5 @@ def unit_params(pipe: BranchPipeline, subfield: int) -> dict[str, Any]:
         "train_point": asdict(pipe.point),
         "train_weight": asdict(pipe.weight),
         "engine": pipe.engine,
+        **({"metacal": True} if pipe.metacal else {}),
     }

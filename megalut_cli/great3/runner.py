@@ -167,7 +167,7 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
     """Work unit: the whole pipeline of one subfield (``job``: ``pipe``, ``subfield``), written
     into ``subfields/SSS/`` with its record; returns its summary (means, galaxies, noise)."""
     from megalut_cli.atomic import replace_folder
-    from megalut_cli.catalog import CatalogColumns, read_catalog
+    from megalut_cli.catalog import CatalogColumns, VersionColumns, read_catalog
     from megalut_cli.measure.measure import measure_file
     from megalut_cli.shear.predict import predict_catalog
     from megalut_cli.sim.simulate import simulate
@@ -195,7 +195,7 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
         with _quiet():
             t = time.perf_counter()
             feats = measure_file(files["image"], files["catalog"], tmp / "features.fits", stamp_size=pipe.stamp_size,
-                                 origin=0, psf_path=files["starfield"], engine=pipe.engine)
+                                 origin=0, psf_path=files["starfield"], engine=pipe.engine, metacal=pipe.metacal)
             _check_measurement(feats, files, pipe.strict)
             measure_file(files["starfield"], None, tmp / "stars.fits", stamp_size=pipe.stamp_size, stars=True,
                          engine=pipe.engine)
@@ -205,13 +205,17 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
                 t = time.perf_counter()
                 cfg = set_config(tpl, files["starfield"], tmp / "features.fits")
                 set_paths[name] = (tmp if pipe.keep_sets else scratch) / f"{name}.fits"
-                simulate(cfg, set_paths[name], measure=True, seed=params["sets"][name]["seed"], engine=pipe.engine)
+                simulate(cfg, set_paths[name], measure=True, seed=params["sets"][name]["seed"], engine=pipe.engine,
+                         metacal=pipe.metacal)
                 if name == "tw":
                     noise_sigma = float(cfg.noise.params["sigma"].bounds()[0]) if "sigma" in cfg.noise.params else None
                 lap(f"simulate-{name}", t)
             t = time.perf_counter()
-            model = train_subfield(pipe, s, CatalogColumns(set_paths["tp"]), CatalogColumns(set_paths["tw"]),
-                                   {n: p.name for n, p in set_paths.items()})
+            tp, tw = CatalogColumns(set_paths["tp"]), CatalogColumns(set_paths["tw"])
+            if pipe.metacal:  # the networks train on the noshear versions' features
+                tp, tw = VersionColumns(tp, "noshear"), VersionColumns(tw, "noshear")
+            model = train_subfield(pipe, s, tp, tw, {n: p.name for n, p in set_paths.items()})
+            model.shear_mode = "metacal" if pipe.metacal else model.shear_mode
             model.save(tmp / "model.h5")
             lap("train", t)
             t = time.perf_counter()
