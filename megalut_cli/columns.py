@@ -65,6 +65,8 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "snr": ("", "signal-to-noise ratio (paper Eq. 8 or 10)"),
 }
 
+_METACAL = re.compile(r"^(?P<base>.+)_(?P<kind>noshear|1p|1m|2p|2m)$")
+_RESPONSE = re.compile(r"^mcal_r(?P<i>[12])(?P<j>[12])$")
 _PRE_WEIGHT = re.compile(r"^pre_(?P<base>.+)_w$")
 _PRE = re.compile(r"^pre_(?P<base>.+)$")
 _PSF = re.compile(r"^psf_(?P<base>adamom_.+)$")
@@ -74,6 +76,13 @@ def describe(name: str) -> tuple[str, str] | None:
     """``(unit, comment)`` of column ``name``, or None when megalut does not know it."""
     if name in COLUMNS:
         return COLUMNS[name]
+    if m := _RESPONSE.match(name):
+        return ("", f"metacal response dpre_g{m['i']}/dg{m['j']} (finite difference)")
+    if m := _METACAL.match(name):
+        base = describe(m["base"])
+        return None if base is None else (base[0], f"metacal {m['kind']}: {base[1]}"[:68])
+    if name.startswith("flags_") and name[len("flags_"):] in ("noshear", "1p", "1m", "2p", "2m"):
+        return ("", f"flags of the metacal {name[len('flags_'):]} version")
     if m := _PSF.match(name):
         base = describe(m["base"])
         return None if base is None else (base[0], f"PSF: {base[1]}"[:68])
