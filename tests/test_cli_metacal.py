@@ -511,3 +511,22 @@ def test_metacal_on_a_star_field_is_a_usage_error(sim, tmp_path):
     stars = _copy_image(sim / "psf.fits", tmp_path / "starfield_image-000-0.fits")
     _refused(["measure", stars, "--psf", sim / "psf.fits", "--metacal", "--stamp-size", SIZE, *GALSIM], 2,
              tmp_path / "o.fits", "--metacal")
+
+
+def test_simulate_metacal_equals_measure_on_the_written_stamps(tmp_path):
+    """simulate --measure --metacal deconvolves each stamp by the PSF it was drawn with: the
+    same columns as measure --metacal --psf on the written stamps (same seed), bit for bit
+    (the PSF features of the target aside: its sigma from a float32 vs float64 PSF image)."""
+    args = ["--n-cases", "2", "--n-realizations", "8", "--seed", "3", *GALSIM, "-q"]
+    _ok("simulate", CONFIG, "-o", tmp_path / "cat.fits", "--stamps", tmp_path / "stamps.fits", *args)
+    _ok("simulate", CONFIG, "-o", tmp_path / "sim.fits", "--measure", "--metacal", *args)
+    galsim.Gaussian(sigma=2.0).drawImage(nx=SIZE, ny=SIZE, scale=1.0).write(str(tmp_path / "psf.fits"))
+    _ok("measure", tmp_path / "stamps.fits", tmp_path / "cat.fits", "--psf", tmp_path / "psf.fits", "--metacal",
+        "--seed", "3", *GALSIM, "-o", tmp_path / "m.fits", "-q")
+    sim, meas = read_catalog(tmp_path / "sim.fits"), read_catalog(tmp_path / "m.fits")
+    cols = [c for c in sim.colnames if c.endswith(TYPES) and not c.startswith("psf_")]
+    assert len(cols) == 5 * 11
+    for c in cols:
+        assert _same(sim[c], meas[c]), c
+    np.testing.assert_allclose(_column(sim, "psf_adamom_sigma_noshear"), _column(meas, "psf_adamom_sigma_noshear"),
+                               rtol=1e-6)
