@@ -167,7 +167,8 @@ def _make_plan(
     given = dict(names or {})
     have = set(colnames)
     metacal = _metacal_mode(have, source, metacal_step)
-    missing = [c for c in (*TRUTH_COLUMNS, *ESTIMATE_COLUMNS) if c not in have]
+    estimates = [f"{c}_noshear" for c in ESTIMATE_COLUMNS] if metacal is not None else list(ESTIMATE_COLUMNS)
+    missing = [c for c in (*TRUTH_COLUMNS, *estimates) if c not in have]
     if missing:
         raise InputError(
             f"{source}: evaluate needs the true shear of each case (columns case, tru_g1, tru_g2) "
@@ -175,7 +176,7 @@ def _make_plan(
         )
     weighted = all(c in have for c in WEIGHT_COLUMNS)
     if metacal is not None:
-        weighted = weighted and all(f"{c}_{kind}" in have for c in WEIGHT_COLUMNS for kind in ("noshear", *SHEARED_TYPES))
+        weighted = all(f"{c}_{kind}" in have for c in WEIGHT_COLUMNS for kind in ("noshear", *SHEARED_TYPES))
     if not weighted and any(c in have for c in WEIGHT_COLUMNS):
         log.warning("%s: only one of %s present; weighted analysis skipped", source, ", ".join(WEIGHT_COLUMNS))
     psf = next((pair for pair in PSF_COLUMNS if all(c in have for c in pair)), None)
@@ -195,7 +196,7 @@ def _make_plan(
             raise ConfigError("bootstrap: needs at least 2 resamples and a group size >= 1")
     plan = _Plan(source, weighted, psf, by, select, select_cases, has_flags="flags" in have, by_kind=by_kind,
                  bootstrap=bootstrap, names=given, metacal=metacal)
-    cols = [*TRUTH_COLUMNS, *ESTIMATE_COLUMNS]
+    cols = [*TRUTH_COLUMNS, *(ESTIMATE_COLUMNS if metacal is None else ())]
     if metacal is not None:
         cols += [*RESPONSE_COLUMNS, *(f"{c}_noshear" for c in ESTIMATE_COLUMNS), "flags_noshear"]
         if weighted:
@@ -206,7 +207,6 @@ def _make_plan(
         plan.selection_columns = {kind: {c: f"{c}_{kind}" for c in used if f"{c}_{kind}" in have}
                                   for kind in ("noshear", *SHEARED_TYPES)}
         cols += [v for m in plan.selection_columns.values() for v in m.values()]
-        cols += [f"flags_{kind}" for kind in SHEARED_TYPES]
     if bootstrap is not None:
         cols.append("rea")
     if weighted:
@@ -228,8 +228,7 @@ def _metacal_mode(have: set[str], source: str, step: float | None) -> float | No
     present = [c for c in RESPONSE_COLUMNS if c in have]
     if not present:
         return None
-    needed = [*RESPONSE_COLUMNS, *(f"{c}_noshear" for c in ESTIMATE_COLUMNS), "flags_noshear",
-              *(f"flags_{kind}" for kind in SHEARED_TYPES)]
+    needed = [*RESPONSE_COLUMNS, *(f"{c}_noshear" for c in ESTIMATE_COLUMNS), "flags_noshear"]
     missing = [c for c in needed if c not in have]
     if missing:
         raise InputError(f"{source}: a metacal catalog (with {', '.join(present)}) lacks {', '.join(missing)}")

@@ -35,11 +35,14 @@ N_BOOTSTRAP = 1000
 
 def group_sums(
     cell: np.ndarray, n_cells: int, g_true: np.ndarray, g_est: np.ndarray, weight: np.ndarray,
-    response: np.ndarray | None = None,
+    response: np.ndarray | None = None, sheared_weights: tuple[np.ndarray, np.ndarray, float] | None = None,
 ) -> np.ndarray:
     """``(3, n_cells)`` sums of ``w``, ``w g_est``, ``w g_true`` per cell (invalid rows: w = 0);
     cell ``case * n_galaxies + galaxy`` for :func:`fit_resamples`. With a metacal
-    ``response`` (per row, this component's), a fourth row ``w R`` (rows need a finite R)."""
+    ``response`` (per row, this component's), a fourth row ``w R`` (rows need a finite R);
+    with ``sheared_weights`` ``(w_p, w_m, step)`` (the weights of the +step and -step
+    versions along this component), four more: ``w_p``, ``w_p g / 2 step``, ``w_m``,
+    ``w_m g / 2 step``, for the weights' selection response."""
     ok = np.isfinite(g_est) & np.isfinite(weight) & (weight > 0)
     if response is not None:
         ok &= np.isfinite(response)
@@ -47,18 +50,29 @@ def group_sums(
     rows = [w, np.where(ok, w * g_est, 0.0), np.where(ok, w * g_true, 0.0)]
     if response is not None:
         rows.append(np.where(ok, w * response, 0.0))
+        if sheared_weights is not None:
+            w_p, w_m, step = sheared_weights
+            usable = np.isfinite(g_est) & np.isfinite(response)
+            for ws in (w_p, w_m):
+                ws = np.where(usable & np.isfinite(ws) & (ws > 0), ws, 0.0)
+                rows += [ws, np.where(ws > 0, ws * g_est / (2.0 * step), 0.0)]
     return np.stack([np.bincount(cell, weights=r, minlength=n_cells) for r in rows])
 
 
 def fit_resamples(sums: np.ndarray, counts: np.ndarray, n_cases: int, n_gal: int) -> tuple[np.ndarray, np.ndarray]:
     """m and c of the per-case means of :func:`group_sums`, one per row of ``counts`` (galaxy
     multiplicities); NaN with fewer than 3 cases. With a response row, the means are divided
-    by the mean response of the resample (metacal)."""
-    s = sums.reshape(len(sums), n_cases, n_gal) @ counts.T  # (3 or 4, n_cases, B)
+    by the mean response of the resample (metacal), plus the weights' selection response
+    when the sums hold the sheared weights."""
+    s = sums.reshape(len(sums), n_cases, n_gal) @ counts.T  # (rows, n_cases, B)
     with np.errstate(invalid="ignore", divide="ignore"):
         est = s[1] / s[0]
-        if len(sums) == 4:
-            est = est / (s[3].sum(axis=0) / s[0].sum(axis=0))
+        if len(sums) >= 4:
+            total = s.sum(axis=1)  # over the cases: (rows, B)
+            response = total[3] / total[0]
+            if len(sums) == 8:
+                response = response + total[5] / total[4] - total[7] / total[6]
+            est = est / response
         m, c = fit_columns(s[2] / s[0], est)
     few = (s[0] > 0).sum(axis=0) < 3
     return np.where(few, np.nan, m), np.where(few, np.nan, c)
@@ -76,11 +90,15 @@ def paired_bias(
     seed: int = 0,
     response_a: np.ndarray | None = None,
     response_b: np.ndarray | None = None,
+    sheared_weights_a: tuple[np.ndarray, np.ndarray, float] | None = None,
+    sheared_weights_b: tuple[np.ndarray, np.ndarray, float] | None = None,
 ) -> dict[str, Any]:
     """m, c of sets ``a`` and ``b`` (one shear component, rows paired) and ``m_a - m_b``,
     ``c_a - c_b``, with 1-sigma errors from a paired bootstrap over galaxies. With per-row
     metacal responses (``response_a``, ``response_b``: ``mcal_r11`` or ``mcal_r22``), each
-    set's estimates are calibrated by its mean response, recomputed in every resample.
+    set's estimates are calibrated by its mean response, recomputed in every resample, plus
+    the selection response of its weights with ``sheared_weights_a`` and ``_b`` (see
+    :func:`group_sums`).
 
     ``galaxy`` and ``case`` are the ids shared by the paired rows. Returns a JSON-ready dict:
     ``m_a, m_a_err, c_a, c_a_err, m_b, ..., dm, dm_err, dc, dc_err, n_galaxies, n_cases,
@@ -95,9 +113,9 @@ def paired_bias(
     wa = ones if weight_a is None else np.asarray(weight_a, dtype=float)
     wb = ones if weight_b is None else np.asarray(weight_b, dtype=float)
     sums_a = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_a, dtype=float), wa,
-                        None if response_a is None else np.asarray(response_a, dtype=float))
+                        None if response_a is None else np.asarray(response_a, dtype=float), sheared_weights_a)
     sums_b = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_b, dtype=float), wb,
-                        None if response_b is None else np.asarray(response_b, dtype=float))
+                        None if response_b is None else np.asarray(response_b, dtype=float), sheared_weights_b)
     rng = rng_for(seed, STREAM_BOOTSTRAP)
     counts = np.vstack([np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)])
     m_a, c_a = fit_resamples(sums_a, counts, n_cases, n_gal)
@@ -166,6 +184,7 @@ def paired_evaluation(
     n_boot: int = N_BOOTSTRAP,
     seed: int = 0,
     names: Sequence[str] = ("real", "twin"),
+    metacal_step: float = 0.01,
 ) -> dict[str, Any]:
     """Paired biases of catalogs ``a`` and ``b`` (columns as arrays; checked to be paired),
     unweighted and, when both have ``pre_g1_w, pre_g2_w``, weighted; overall and in
@@ -175,7 +194,9 @@ def paired_evaluation(
     gal, case = np.asarray(a[galaxy_column]), np.asarray(a["case"])
     metacal = all(c in t for c in METACAL_COLUMNS for t in (a, b))
     sfx = "_noshear" if metacal else ""
-    schemes = ["unweighted"] + (["weighted"] if all(f"pre_g{i}_w{sfx}" in t for t in (a, b) for i in (1, 2)) else [])
+    weight_cols = [f"pre_g{i}_w{sfx}" for i in (1, 2)] + ([f"pre_g{i}_w_{i}{s}" for i in (1, 2) for s in "pm"]
+                                                         if metacal else [])
+    schemes = ["unweighted"] + (["weighted"] if all(c in t for t in (a, b) for c in weight_cols) else [])
     flag_col = "flags_noshear" if metacal else "flags"
 
     def valid(t: Mapping[str, np.ndarray], comp: str) -> np.ndarray:
@@ -184,6 +205,16 @@ def paired_evaluation(
 
     def response(t: Mapping[str, np.ndarray], comp: str, rows: np.ndarray) -> np.ndarray | None:
         return np.asarray(t[f"mcal_r{comp[1]}{comp[1]}"], dtype=float)[rows] if metacal else None
+
+    def sheared(t: Mapping[str, np.ndarray], comp: str, rows: np.ndarray,
+                scheme: str) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """The weights of the versions sheared along ``comp`` (the weights' selection response)."""
+        if not metacal or scheme != "weighted":
+            return None
+        ok = valid(t, comp)
+        w_p, w_m = (np.where(ok, np.asarray(t[f"pre_{comp}_w_{comp[1]}{sign}"], dtype=float), 0.0)[rows]
+                    for sign in "pm")
+        return w_p, w_m, metacal_step
 
     def evaluate(rows: np.ndarray) -> dict[str, Any]:
         res: dict[str, Any] = {}
@@ -202,7 +233,8 @@ def paired_evaluation(
                     np.asarray(a[f"pre_{comp}{sfx}"], dtype=float)[rows],
                     np.asarray(b[f"pre_{comp}{sfx}"], dtype=float)[rows],
                     wa[rows], wb[rows], n_boot=n_boot, seed=seed,
-                    response_a=response(a, comp, rows), response_b=response(b, comp, rows))
+                    response_a=response(a, comp, rows), response_b=response(b, comp, rows),
+                    sheared_weights_a=sheared(a, comp, rows, scheme), sheared_weights_b=sheared(b, comp, rows, scheme))
         return res
 
     result: dict[str, Any] = {"names": list(names), "galaxy_column": galaxy_column, "n_boot": int(n_boot),
@@ -280,7 +312,8 @@ def evaluate_paired_catalogs(
     used = {c for c in kinds if kinds[c] == "column"} | {u for c in kinds if kinds[c] == "row"
                                                          for u in _expr.columns_used(c)}
     extra = [c for c in ("flags", "pre_g1_w", "pre_g2_w", *METACAL_COLUMNS, "flags_noshear", "pre_g1_w_noshear",
-                         "pre_g2_w_noshear") if c in common]
+                         "pre_g2_w_noshear", "pre_g1_w_1p", "pre_g1_w_1m", "pre_g2_w_2p", "pre_g2_w_2m")
+             if c in common]
     cols = list(dict.fromkeys(need + extra + sorted(used)))
     ta, tb = read_catalog(path_a, columns=cols), read_catalog(path_b, columns=cols)
     a = {c: np.asarray(ta[c]) for c in cols}
@@ -291,4 +324,7 @@ def evaluate_paired_catalogs(
         va = _expr.evaluate_row_values(c, a, len(ta)) if kinds[c] == "row" else np.asarray(a[c], dtype=float)
         vb = _expr.evaluate_row_values(c, b, len(tb)) if kinds[c] == "row" else np.asarray(b[c], dtype=float)
         values[c] = 0.5 * (va + vb)
-    return paired_evaluation(a, b, galaxy_column, values, n_bins, n_boot, seed, names=("real", "twin"))
+    step = catalog_info(path_a)[2].get("MCALSTEP")
+    step = float(step) if isinstance(step, (int, float)) and not isinstance(step, bool) else 0.01
+    return paired_evaluation(a, b, galaxy_column, values, n_bins, n_boot, seed, names=("real", "twin"),
+                             metacal_step=step)
