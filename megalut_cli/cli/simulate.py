@@ -138,7 +138,8 @@ def command(
 
         check_branch_output(great3_dir, overwrite, names)
     log.info("about to simulate %s", plan_message(cfg, seed, measure, stamps is not None or great3_dir is not None,
-                                                   nproc, scheduler, engine, device))
+                                                   nproc, scheduler, engine, device,
+                                                   metacal_step if metacal and measure else None))
     if dry_run:
         return
     if great3_dir is not None:

@@ -79,7 +79,8 @@ def n_work_units(config: SimConfig, nproc: int = 1, scheduler: str | None = None
 
 
 def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, n_stamps: int = 32,
-                      engine: str = DEFAULT_ENGINE, device: str = DEFAULT_DEVICE, n_draws: int = 5) -> float:
+                      engine: str = DEFAULT_ENGINE, device: str = DEFAULT_DEVICE, n_draws: int = 5,
+                      metacal_step: float | None = None) -> float:
     """Drawing rate of one worker: the median of ``n_draws`` tiny timed draws of ``n_stamps``.
 
     Cheap (well under a second at the paper's stamp size); per-case setup costs and work
@@ -95,7 +96,7 @@ def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: 
 
     def draw(case: SimConfig, draw_seed: int) -> None:
         draw_unit(WorkUnit(case, draw_seed, 0, 1, case.structure.grid_nx, keep_stamps, measure, engine,
-                           device=device))
+                           device=device, metacal_step=metacal_step if measure else None))
 
     small = first_case(n_stamps)
     n_rea = small.structure.n_realizations
@@ -114,15 +115,19 @@ def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: 
 
 
 def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, nproc: int,
-                 scheduler: str | None, engine: str = DEFAULT_ENGINE, device: str = DEFAULT_DEVICE) -> str:
-    """What simulating ``config`` will do, with a time estimated from a tiny calibration draw."""
+                 scheduler: str | None, engine: str = DEFAULT_ENGINE, device: str = DEFAULT_DEVICE,
+                 metacal_step: float | None = None) -> str:
+    """What simulating ``config`` will do, with a time estimated from a tiny calibration draw
+    (with ``metacal_step``: measured in metacal mode too)."""
     s = config.structure
-    what = " and ".join(w for w, on in (("drawn into an image", keep_stamps), ("measured", measure)) if on)
+    measured = "measured" + (" (and metacal)" if metacal_step is not None else "")
+    what = " and ".join(w for w, on in (("drawn into an image", keep_stamps), (measured, measure)) if on)
     head = (f"{s.n_cases} cases x {s.n_realizations} realizations = {s.n_stamps} stamps of "
             f"{s.stamp_size}x{s.stamp_size} px")
     if not what:
         return f"{head}: truth only, nothing drawn"
-    rate = stamps_per_second(config, seed, measure, keep_stamps, engine=engine, device=device)
+    rate = stamps_per_second(config, seed, measure, keep_stamps, engine=engine, device=device,
+                             metacal_step=metacal_step)
     if scheduler:
         return (f"{head}, {what}: about {format_duration(s.n_stamps / rate)} of worker time "
                 f"on the Dask cluster ({rate:.0f} stamps/s per worker in a calibration draw)")
