@@ -119,13 +119,15 @@ def _with_fixnoise(
     operation's image of a 90-degree rotated noise field, rotated back, added (its applied
     shear is the opposite of the stamp's)."""
     noisy = np.flatnonzero(sigmas > 0)
-    fields = [np.rot90(noise_field(sigmas[i], seeds[i], stamps.shape[1:]), 1) for i in noisy]
-    stack = np.concatenate([stamps, np.asarray(fields).reshape(-1, *stamps.shape[1:])]) if len(noisy) else stamps
+    n, shape = len(stamps), stamps.shape[1:]
+    stack = np.empty((n + len(noisy), *shape))  # the stamps, then their rotated fields
+    stack[:n] = stamps
+    for k, i in enumerate(noisy):
+        stack[n + k] = np.rot90(noise_field(sigmas[i], seeds[i], shape), 1)
     versions = _linear_versions(stack, psf_image, op, engine)
-    n = len(stamps)
     out = {}
     for kind in TYPES:
-        out[kind] = versions[kind][:n].copy()
+        out[kind] = versions[kind][:n]  # a view: the fields' rows are dropped with the dict
         if len(noisy):
             out[kind][noisy] += np.rot90(versions[kind][n:], -1, axes=(1, 2))
     return out
@@ -172,9 +174,13 @@ def metacal_versions(
         raise ValueError(f"stamp {int(np.flatnonzero(bad)[0])} holds NaN or infinite pixels")
     sigmas = np.zeros(n) if noise_sigma is None else np.nan_to_num(np.asarray(noise_sigma, dtype=np.float64), nan=0.0)
     seeds = np.arange(n, dtype=np.int64) if seeds is None else np.asarray(seeds, dtype=np.int64)
+    groups = np.unique(psf_index)
+    if len(groups) == 1:  # one PSF (the usual case): no copy into a new stack
+        op = _operation(psfs[groups[0]], step)
+        return _with_fixnoise(stamps, psfs[groups[0]], op, sigmas, seeds, engine), np.full(n, op.target.sigma)
     versions = {kind: np.empty_like(stamps) for kind in TYPES}
     target = np.empty(n)
-    for j in np.unique(psf_index):
+    for j in groups:
         rows = np.flatnonzero(psf_index == j)
         op = _operation(psfs[j], step)
         group = _with_fixnoise(stamps[rows], psfs[j], op, sigmas[rows], seeds[rows], engine)

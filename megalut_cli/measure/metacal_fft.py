@@ -63,9 +63,9 @@ def _axis_taps(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return _quintic_taps(u)
 
 
-def _kvalues(image: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:
-    """GalSim's ``InterpolatedImage(image, x_interpolant=lanczos15).kValue`` at ``(qx, qy)``:
-    the Quintic interpolation of the padded DFT, times the Lanczos transforms and the
+def _interpolated_dft(image: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:
+    """GalSim's ``InterpolatedImage(image).kValue`` at ``(qx, qy)`` but for the x
+    interpolant's transform: the Quintic interpolation of the padded DFT, times the
     half-pixel phase of even sizes (for the PSF)."""
     size = image.shape[0]
     x = np.arange(size) - size // 2
@@ -74,11 +74,19 @@ def _kvalues(image: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:
     py, wy = _quintic_taps(qy / dkp)
     p = np.arange(px.min(), px.max() + 6)
     r = np.arange(py.min(), py.max() + 6)
-    nodes = np.exp(-1j * dkp * np.outer(r, x)) @ image @ np.exp(-1j * dkp * np.outer(x, p))
-    taps = nodes[(py - r[0])[:, None, None] + np.arange(6)[None, :, None], (px - p[0])[:, None, None] + np.arange(6)]
-    val = np.einsum("na,nb,nab->n", wy, wx, taps)
+    nodes = np.exp(-1j * dkp * np.outer(r, x)) @ image.astype(complex) @ np.exp(-1j * dkp * np.outer(x, p))
+    six = np.arange(6)
+    flat = ((py - r[0])[:, None, None] + six[:, None]) * len(p) + (px - p[0])[:, None, None] + six
+    taps = nodes.ravel()[flat.reshape(len(qx), 36)].view(np.float64).reshape(len(qx), 36, 2)
+    val = np.einsum("nkc,nk->nc", taps, (wy[:, :, None] * wx[:, None, :]).reshape(-1, 36))
     shift = 0.5 if size % 2 == 0 else 0.0  # the true centre of an even-sized image
-    return val * _LANCZOS.kval(qx) * _LANCZOS.kval(qy) * np.exp(-1j * shift * (qx + qy))
+    return (val[:, 0] + 1j * val[:, 1]) * np.exp(-1j * shift * (qx + qy))
+
+
+def _lanczos(q: np.ndarray) -> np.ndarray:
+    """The Lanczos-15 kernel's transform at ``q`` (evaluated once per distinct value)."""
+    vals, inv = np.unique(q, return_inverse=True)
+    return _LANCZOS.kval(vals)[inv.ravel()]
 
 
 def _beyond(ii: np.ndarray, jj: np.ndarray, dk: float, g1: float, g2: float, maxk: float) -> np.ndarray:
@@ -138,9 +146,7 @@ def _plan(
     psf_bytes: bytes, psf_size: int, size: int, n_grid: int, step: float, target_sigma: float, dtype: str
 ) -> _Plan:
     """The plan (cached on the PSF's bytes and the parameters), in ``dtype``."""
-    psf = np.frombuffer(psf_bytes, dtype=np.float64).reshape(psf_size, psf_size)
-    psf = psf / psf.sum()
-    maxk = galsim.InterpolatedImage(galsim.ImageD(psf, scale=1.0), x_interpolant=_INTERPOLANT).maxk
+    psf, maxk, _ = _psf_params(psf_bytes, psf_size)
     min_acc = _GSPARAMS.kvalue_accuracy  # Deconvolve: 1 / max(|P|, flux * kvalue_accuracy)
     dk = 2.0 * math.pi / n_grid
     dkp = 2.0 * math.pi / _pad_size(size)
@@ -154,17 +160,26 @@ def _plan(
     # and the doubling of kx > 0 (GalSim's Hermitian wrap doubles the kx = N/2 column too)
     base = np.exp(-0.5 * target_sigma**2 * (kx * kx + ky * ky) + 1j * shift * (kx + ky)) / n_grid**2
     base = base * np.where(ii == 0, 1.0, 2.0)
-    raw = []
+    points = []
     for s1, s2 in _SHEARS:
         m = _shear_matrix(s1 * step, s2 * step)
-        qx = m[0, 0] * kx + m[0, 1] * ky
-        qy = m[1, 0] * kx + m[1, 1] * ky
         inside = ~_beyond(ii, jj, dk, s1 * step, s2 * step, maxk)
-        qx, qy = qx[inside], qy[inside]
-        pk = _kvalues(psf, qx, qy)
+        qx = m[0, 0] * kx[inside] + m[0, 1] * ky[inside]
+        qy = m[1, 0] * kx[inside] + m[1, 1] * ky[inside]
+        points.append((m[0, 1] == 0.0, inside, qx, qy))
+    qx_all = np.concatenate([p[2] for p in points])
+    qy_all = np.concatenate([p[3] for p in points])
+    lanczos = _lanczos(qx_all) * _lanczos(qy_all)  # the x interpolant, the stamp's and the PSF's
+    pk_all = _interpolated_dft(psf, qx_all, qy_all) * lanczos
+    raw = []
+    first = 0
+    for sep, inside, qx, qy in points:
+        sl = slice(first, first + len(qx))
+        first += len(qx)
+        pk = pk_all[sl]
         deconv = np.where(np.abs(pk) < min_acc, 1.0 / min_acc, 1.0 / np.where(pk == 0, 1.0, pk))
-        w = base[inside] * deconv * _LANCZOS.kval(qx) * _LANCZOS.kval(qy) * np.exp(-1j * shift * (qx + qy))
-        raw.append((m[0, 1] == 0.0, qx / dkp, qy / dkp, w, jj[inside], ii[inside]))
+        w = base[inside] * deconv * lanczos[sl] * np.exp(-1j * shift * (qx + qy))
+        raw.append((sep, qx / dkp, qy / dkp, w, jj[inside], ii[inside]))
     ky_n = int(max(np.abs(r[4]).max() for r in raw))
     kx_n = int(max(r[5].max() for r in raw))
     tables = []
@@ -354,10 +369,9 @@ def _slots_sep(
     acc = np.empty((2, m2), f.dtype)
     if wx.shape[1] == 1:  # the k points are nodes of the padded grid
         for j in range(ky + 1):
+            fp, fm = f[r0[ky + j]], f[r0[ky - j]]
             for i in range(n_col):
-                acc[0, :] = f[r0[ky + j], p0[i]]
-                acc[1, :] = f[r0[ky - j], p0[i]]
-                _store(acc[0], acc[1], wr, wi, j, i, q)
+                _store(fp[p0[i]], fm[p0[i]], wr, wi, j, i, q)
         return
     r_lo = r0.min()
     for r in range(r_lo, r0.max() + 6):
@@ -487,11 +501,13 @@ def _flux_radius(images: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=16)
-def _stepks(psf_bytes: bytes, psf_size: int, target_sigma: float) -> tuple[float, float]:
-    """GalSim's ``stepk`` of the PSF image's ``InterpolatedImage`` and of the target."""
+def _psf_params(psf_bytes: bytes, psf_size: int) -> tuple[np.ndarray, float, float]:
+    """The PSF image normalised to a unit sum, and GalSim's ``maxk`` and ``stepk`` of its
+    ``InterpolatedImage``."""
     psf = np.frombuffer(psf_bytes, dtype=np.float64).reshape(psf_size, psf_size)
-    psf_ii = galsim.InterpolatedImage(galsim.ImageD(psf / psf.sum(), scale=1.0), x_interpolant=_INTERPOLANT)
-    return psf_ii.stepk, galsim.Gaussian(sigma=target_sigma).stepk
+    psf = psf / psf.sum()
+    psf_ii = galsim.InterpolatedImage(galsim.ImageD(psf, scale=1.0), x_interpolant=_INTERPOLANT)
+    return psf, psf_ii.maxk, psf_ii.stepk
 
 
 def _grid_sizes(images: np.ndarray, psf_stepk: float, target_stepk: float, step: float) -> np.ndarray:
@@ -545,7 +561,8 @@ def fft_versions(
         raise ValueError(f"out must be a C-contiguous float64 array {(len(TYPES), n, size, size)}")
     if n:
         key = (psf.tobytes(), psf.shape[0])
-        psf_stepk, target_stepk = _stepks(*key, float(target_sigma))
+        psf_stepk = _psf_params(*key)[2]
+        target_stepk = galsim.Gaussian(sigma=float(target_sigma)).stepk
         grids = _grid_sizes(images, psf_stepk, target_stepk, step)
         jobs: dict[int, list[tuple[np.ndarray, tuple[int, ...]]]] = {}
         for pair in np.unique(grids, axis=0):  # noshear uses grids[:, 0], the others grids[:, 1]

@@ -1,0 +1,276 @@
+"""Throughput of the metacal operation: the batched engine against GalSim's, side by side, per core.
+
+On fiducial-like 64-px stamps simulated here with GalSim (Sérsic n 1-4, hlr 2-8 px,
+surface brightness 1-15, ellipticity up to 0.6, sub-pixel offsets, Gaussian PSF sigma 2 px,
+unit noise), interleaved in one run and repeated, timing CPU time of this process (one
+core; BLAS and numba on one thread; the machine may be busy):
+
+* ``fast``: ``metacal_versions(stamps, psf, noise_sigma=1, engine="fast")``: the five
+  versions with fixnoise (the stack of stamps and rotated noise fields through
+  :func:`megalut_cli.measure.metacal_fft.fft_versions`, the fixnoise bookkeeping of
+  ``metacal.py``);
+* ``fast+measure``: ``metacal_features(..., metacal_engine="fast")``: the same plus
+  ``measure_stamps`` (fast engine) of the five versions;
+* ``fft_versions``: the linear operation alone on the stack of 2n stamps and fields;
+* ``galsim``: ``metacal_versions(..., engine="galsim")``, the reference (``--ref-n``
+  stamps, default all).
+
+Then where ``fft_versions``'s time goes (each stage of ``metacal_fft._run``, timed
+separately on the same stack), the floor (matrix-product FLOPs at this machine's sgemm
+rate, interpolation FMAs, bytes) and the first-call costs in fresh processes (numba
+cache cold and warm). Run::
+
+    PYTHONPATH=. python benchmarks/bench_metacal.py [--n 1024] [--repeat 3] [--ref-n N]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    os.environ[_v] = "1"
+
+import argparse  # noqa: E402
+import platform  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from collections import defaultdict  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import galsim  # noqa: E402
+import numba  # noqa: E402
+import numpy as np  # noqa: E402
+
+from megalut_cli.measure import metacal_fft as mf  # noqa: E402
+from megalut_cli.measure.metacal import (  # noqa: E402
+    DEFAULT_STEP,
+    metacal_features,
+    metacal_versions,
+    noise_field,
+    target_psf_sigma,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+SIZE, PSF_SIGMA = 64, 2.0
+
+
+def simulate(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` fiducial-like stamps (float32, as read from a FITS grid) and the PSF image."""
+    rng = np.random.default_rng(seed)
+    psf = galsim.Gaussian(sigma=PSF_SIGMA)
+    stamps = np.empty((n, SIZE, SIZE), dtype=np.float32)
+    for i in range(n):
+        n_s = np.round(rng.uniform(1.0, 4.0), 1)
+        hlr = rng.uniform(2.0, 8.0)
+        flux = 2.0 * np.pi * hlr**2 * rng.uniform(1.0, 15.0)  # mean surface brightness in the hlr
+        e = min(rng.rayleigh(0.2), 0.6)
+        gal = galsim.Sersic(n_s, half_light_radius=hlr, flux=flux, trunc=0.0)
+        gal = gal.shear(e=e, beta=rng.uniform(0, np.pi) * galsim.radians)
+        gal = gal.shear(g1=rng.uniform(-0.1, 0.1), g2=rng.uniform(-0.1, 0.1)).shift(*rng.uniform(-0.5, 0.5, 2))
+        img = galsim.Convolve(gal, psf).drawImage(nx=SIZE, ny=SIZE, scale=1.0).array
+        stamps[i] = img + rng.normal(0.0, 1.0, img.shape)
+    return stamps, psf.drawImage(nx=SIZE, ny=SIZE, scale=1.0).array.astype(np.float64)
+
+
+def cpu_time(func) -> float:
+    t0 = time.process_time()
+    func()
+    return time.process_time() - t0
+
+
+def stage_times(plan: mf._Plan, images: np.ndarray) -> dict[str, float]:
+    """CPU seconds of each stage of ``metacal_fft._run`` (mirrored here, stage by stage) over
+    ``images`` in blocks of ``metacal_fft._BLOCK``."""
+    acc: dict[str, float] = defaultdict(float)
+    m = mf._BLOCK
+    ws = mf._Workspace(plan, m)
+    size, h = plan.size, plan.size // 2 + 1
+    ky1, kx1 = plan.ky + 1, plan.kx + 1
+    out = np.empty((len(mf.TYPES), m, size, size))
+    clock = time.process_time
+    for b in range(0, len(images) - m + 1, m):
+        t = clock()
+
+        def lap(name: str) -> None:
+            nonlocal t
+            t1 = clock()
+            acc[name] += t1 - t
+            t = t1
+
+        mf._fold_x(images[b : b + m], ws.ex, ws.dx)
+        lap("fold x (stamps, f64 -> f32)")
+        np.matmul(ws.ex.reshape(m * size, h), plan.in_xc, out=ws.gc)
+        np.matmul(ws.dx.reshape(m * size, h), plan.in_xs, out=ws.gs)
+        lap("GEMM in, x")
+        mf._fold_y(ws.gc, ws.gs, size, ws.ey, ws.dy)
+        lap("fold y")
+        np.matmul(plan.in_yc, ws.ey.reshape(h, -1), out=ws.top.reshape(plan.ry + 1, -1))
+        np.matmul(plan.in_ys, ws.dy.reshape(h, -1), out=ws.bottom.reshape(plan.ry + 1, -1))
+        lap("GEMM in, y")
+        mf._padded_dft(ws.top, ws.bottom, ws.f)
+        lap("assemble padded DFT")
+        a2, b2 = ws.a.reshape(h * m, -1), ws.b.reshape(h * m, -1)
+        for v, ver in enumerate(plan.versions):
+            if ver.sep:
+                mf._slots_sep(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, ver.wr, ver.wi, ws.q, ws.work)
+            else:
+                mf._slots_full(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, ver.wr, ver.wi, ws.q)
+            lap(f"Quintic taps x weights, {mf.TYPES[v]}")
+            np.matmul(plan.out_yc, ws.q[:ky1].reshape(ky1, -1), out=ws.a.reshape(h, -1))
+            np.matmul(plan.out_ys, ws.q[ky1:].reshape(ky1, -1), out=ws.b.reshape(h, -1))
+            lap("GEMM out, y (5 versions)")
+            for k, (src, mat) in enumerate(((a2, plan.out_xc), (b2, plan.out_xc), (a2, plan.out_xs), (b2, plan.out_xs))):
+                cols = slice(None, kx1) if k < 2 else slice(kx1, None)
+                np.matmul(src[:, cols], mat, out=ws.u[k].reshape(h * m, h))
+            lap("GEMM out, x (5 versions)")
+            mf._unfold(ws.u[0], ws.u[1], ws.u[2], ws.u[3], out[v])
+            lap("unfold (f32 -> f64 stamps)")
+    return acc
+
+
+def gemm_rate(dtype: str, repeat: int) -> float:
+    """This machine's sgemm / dgemm rate (FLOP/s) on products of the engine's shapes."""
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(84, 33)).astype(dtype), rng.normal(size=(33, 16 * 162)).astype(dtype)
+    c, d = rng.normal(size=(33 * 16, 38)).astype(dtype), rng.normal(size=(38, 33)).astype(dtype)
+    ab, cd = a @ b, c @ d
+
+    def products() -> None:
+        for _ in range(200):
+            np.matmul(a, b, out=ab)
+            np.matmul(c, d, out=cd)
+
+    best = min(cpu_time(products) for _ in range(repeat))
+    return 200 * 2 * (a.shape[0] * a.shape[1] * b.shape[1] + c.shape[0] * c.shape[1] * d.shape[1]) / best
+
+
+def floor(plan: mf._Plan, rate: float) -> None:
+    """FLOPs of the matrix products and of the Quintic taps per stamp, bytes per stamp."""
+    size, h, n = plan.size, plan.size // 2 + 1, plan.np_
+    ky1, kx1 = plan.ky + 1, plan.kx + 1
+    macs = {
+        "GEMM in, x": 2 * size * h * n,
+        "GEMM in, y": 2 * (plan.ry + 1) * h * 2 * n,
+        "GEMM out, y": 5 * 2 * h * ky1 * 2 * kx1,
+        "GEMM out, x": 5 * 4 * h * kx1 * h,
+    }
+    taps = 0
+    for ver in plan.versions:
+        pts = int(np.count_nonzero((ver.wr != 0) | (ver.wi != 0)))
+        if ver.sep:
+            rows = int(ver.r0.max() + ver.wy.shape[1] - ver.r0.min())
+            taps += (rows * kx1 * ver.wx.shape[1] if ver.wx.shape[1] > 1 else 0) + pts * ver.wy.shape[1]
+        else:
+            taps += pts * 36
+    total = sum(macs.values())
+    print(f"\nfloor per stamp (plan: padded DFT {2 * plan.ry + 1} x {n} nodes, k box {2 * plan.ky + 1} x {kx1}):")
+    for name, v in macs.items():
+        print(f"  {name:14s} {v / 1e6:6.2f} M multiply-adds")
+    print(f"  matrix products: {total / 1e6:.2f} M multiply-adds = {2 * total / 1e6:.1f} MFLOP,"
+          f" at this machine's sgemm rate on these shapes ({rate / 1e9:.0f} GFLOP/s): {2 * total / rate * 1e6:.0f} us")
+    print(f"  Quintic taps: {taps / 1e3:.0f} k complex taps = {2 * taps / 1e3:.0f} k real FMAs"
+          f" (AVX2, 8 float32 lanes, 2 FMA/cycle: {2 * taps / 16 / 2.0e3:.0f} us at 2 GHz)")
+    ws = mf._Workspace(plan, mf._BLOCK)
+    work = sum(a.nbytes for a in vars(ws).values() if isinstance(a, np.ndarray)) / mf._BLOCK
+    print(f"  bytes: work arrays {work / 1e3:.0f} kB per stamp (in cache, blocks of {mf._BLOCK});"
+          f" input {size * size * 8 / 1e3:.0f} kB + output {5 * size * size * 8 / 1e3:.0f} kB float64 per stamp")
+
+
+FIRST_CALL = """
+import resource, time
+def cpu():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+c0 = cpu()
+import numpy as np
+from megalut_cli.measure.metacal import metacal_versions
+import galsim
+psf = galsim.Gaussian(sigma=2.0).drawImage(nx=64, ny=64, scale=1.0).array
+c1 = cpu()
+metacal_versions(np.random.default_rng(0).normal(size=(2, 64, 64)), psf, noise_sigma=[1, 1], engine="fast")
+c2 = cpu()
+metacal_versions(np.random.default_rng(1).normal(size=(2, 64, 64)), psf, noise_sigma=[1, 1], engine="fast")
+print(c1 - c0, c2 - c1, cpu() - c2)
+"""
+
+
+def first_call_costs(repeat: int) -> None:
+    """CPU seconds to import, then of the first call and of a second call, fresh processes."""
+    print("\nfresh process, CPU seconds (import / first call (compile or load, PSF plan) / second call):")
+    for _ in range(repeat):
+        with tempfile.TemporaryDirectory() as cache:
+            env = dict(os.environ, NUMBA_CACHE_DIR=cache, PYTHONPATH=str(ROOT))
+            for label in ("cold cache", "warm cache"):
+                out = subprocess.run([sys.executable, "-c", FIRST_CALL], env=env, check=True,
+                                     capture_output=True, text=True).stdout.split()
+                print(f"  {label}: {float(out[0]):.2f} / {float(out[1]):.2f} / {float(out[2]):.3f}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=1024, help="stamps to simulate")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--ref-n", type=int, default=None, help="stamps for the GalSim reference (default all)")
+    ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--first-call-only", action="store_true", help="only the compile/cache costs")
+    args = ap.parse_args()
+    if args.first_call_only:
+        first_call_costs(args.repeat)
+        return
+
+    t0 = time.perf_counter()
+    stamps, psf = simulate(args.n, args.seed)
+    n, ref_n = len(stamps), min(args.ref_n or args.n, args.n)
+    print(f"{platform.machine()} {platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}, "
+          f"galsim {galsim.__version__}; {n} stamps of {SIZE} px (simulated in {time.perf_counter() - t0:.0f} s)")
+    ones = np.ones(n)
+    sigma = target_psf_sigma(psf, DEFAULT_STEP)
+    fields = np.array([np.rot90(noise_field(1.0, i, (SIZE, SIZE)), 1) for i in range(n)])
+    stack = np.concatenate([stamps.astype(np.float64), fields])
+    c0 = time.process_time()
+    metacal_features(stamps[:4], psf, noise_sigma=ones[:4], metacal_engine="fast")
+    print(f"first call (numba cache load or compile, PSF plan): {time.process_time() - c0:.2f} s CPU")
+
+    runs = {
+        "fast": lambda: metacal_versions(stamps, psf, noise_sigma=ones, engine="fast"),
+        "fast+measure": lambda: metacal_features(stamps, psf, noise_sigma=ones, metacal_engine="fast"),
+        "fft_versions": lambda: mf.fft_versions(stack, psf, DEFAULT_STEP, sigma),
+        "galsim": lambda: metacal_versions(stamps[:ref_n], psf, noise_sigma=ones[:ref_n], engine="galsim"),
+    }
+    per = {"fast": n, "fast+measure": n, "fft_versions": n, "galsim": ref_n}  # per input stamp
+    times: dict[str, list[float]] = {k: [] for k in runs}
+    for _ in range(args.repeat):
+        for name, func in runs.items():  # interleaved
+            times[name].append(cpu_time(func) / per[name])
+    print(f"\nCPU per input stamp (best / median of {args.repeat}, interleaved; fft_versions: its 2 images):")
+    for name, ts in times.items():
+        print(f"  {name:13s} {min(ts) * 1e6:9.1f} us  {np.median(ts) * 1e6:9.1f} us")
+    ratios = np.array(times["galsim"]) / np.array(times["fast"])
+    print(f"  speed-up fast vs galsim: best-of {min(times['galsim']) / min(times['fast']):.0f}x, "
+          f"median of per-repeat ratios {np.median(ratios):.0f}x")
+
+    # Where fft_versions's time goes, on the same stack of 2n images.
+    plan = mf._plan(psf.tobytes(), SIZE, SIZE, 128, float(DEFAULT_STEP), float(sigma), "float32")
+    stages = None
+    for _ in range(args.repeat):
+        st = stage_times(plan, stack)
+        if stages is None or sum(st.values()) < sum(stages.values()):
+            stages = st
+    assert stages is not None
+    total = sum(stages.values())
+    print(f"\nfft_versions stages, best of {args.repeat}, CPU per image (stamp or field):")
+    for name, t in stages.items():
+        print(f"  {name:38s} {t / len(stack) * 1e6:6.1f} us  {t / total:5.1%}")
+    print(f"  {'sum':38s} {total / len(stack) * 1e6:6.1f} us")
+    fast, lin, meas = min(times["fast"]), min(times["fft_versions"]), min(times["fast+measure"])
+    print(f"  fft_versions call (grid sizes, blocks, output arrays): {lin / 2 * 1e6:.1f} us per image")
+    print(f"  metacal.py around it (noise fields, stack, copies, rot90 + add): {(fast - lin) * 1e6:.1f} us per stamp")
+    print(f"  measure_stamps of the five versions: {(meas - fast) * 1e6:.1f} us per stamp")
+    floor(plan, gemm_rate("float32", args.repeat))
+    first_call_costs(2)
+
+
+if __name__ == "__main__":
+    main()
