@@ -108,16 +108,18 @@ def executor(
     if n == 1:
         yield None
         return
+    # The pool starts its workers when work is first submitted, not here: the variables stay
+    # set while it lives, so that every worker starts with one BLAS thread.
     with _single_threaded_children():
         pool = ProcessPoolExecutor(max_workers=n, mp_context=get_context("spawn"), initializer=ignore_interrupt)
-    try:
-        log.info("running on %d local worker processes", n)
-        yield pool
-    except KeyboardInterrupt:
-        stop_workers(pool)
-        raise
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        try:
+            log.info("running on %d local worker processes", n)
+            yield pool
+        except KeyboardInterrupt:
+            stop_workers(pool)
+            raise
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 def map_units(

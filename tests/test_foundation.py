@@ -106,6 +106,23 @@ def test_process_pool_gives_ordered_results():
         assert pool is None
 
 
+def _blas_threads(_: int) -> str | None:
+    import os
+
+    return os.environ.get("OPENBLAS_NUM_THREADS")
+
+
+def test_workers_start_with_one_blas_thread(monkeypatch):
+    """The pool starts its workers on the first submit: they must still see one BLAS thread
+    (they did not: the variables were restored before any worker started)."""
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    with parallel.executor(nproc=2) as pool:
+        assert parallel.map_units(_blas_threads, [0, 1], pool) == ["1", "1"]
+    import os
+
+    assert "OPENBLAS_NUM_THREADS" not in os.environ
+
+
 def test_bad_scheduler_is_config_error(tmp_path):
     import distributed  # noqa: F401  (the test extra: a missing dask must fail, not skip)
 
