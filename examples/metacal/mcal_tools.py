@@ -1,0 +1,238 @@
+"""Helpers of the metacal real-vs-twin experiments (issue 23; see README.md).
+
+    python mcal_tools.py merge OUT.fits S0.fits S1.fits ...   # shear runs -> one catalog, case = run
+    python mcal_tools.py adamom OUT.fits SIM.fits              # (b): metacal on adaptive moments
+    python mcal_tools.py plain OUT.fits SIM.fits               # (c): the plain features of the same stamps
+    python mcal_tools.py concat OUT.fits A.fits B.fits ...     # merged runs of other seeds: more rings
+    python mcal_tools.py subset OUT.fits IN.fits CONFIG.toml   # the rows of the galaxies of CONFIG's index
+    python mcal_tools.py paired OUT.json REAL.fits TWIN.fits [N_BOOT] [SEED]  # --twin, weights with R_sel
+    python mcal_tools.py table RESULTS.json ...                # the README tables from --json files
+
+``merge``: the shear runs of one config and seed (each a constant shear, every other draw
+identical: common random numbers) become the cases of one catalog: ``case`` = the run's
+position, ``rea`` = its case x NREA + its rea, so that a realization group (a ring, SNC
+"ring", group size NREA) is one galaxy of one run and the same galaxy in every case.
+Checks that the runs hold the same galaxies, rotations, offsets and fluxes.
+
+``adamom`` (on a ``--metacal`` simulation catalog): ``pre_g<i>_<type> :=
+adamom_g<i>_<type>`` (NaN where ``flags_<type> != 0``), ``pre_g<i> := pre_g<i>_noshear`` and
+the responses ``mcal_r<i><j> = (pre_g<i>_<j>p - pre_g<i>_<j>m) / (2 step)``, as ``megalut
+predict`` writes them with a metacal model; no weights.
+
+``paired``: an independent implementation of ``megalut evaluate REAL --twin TWIN --json OUT``
+on metacal catalogs (same resamples for the same seed), the weighted scheme calibrated by
+``<R> + R_sel`` with the selection response of the weights, ``R_sel,ii = (<g_i>_{w_ip} -
+<g_i>_{w_im}) / (2 step)`` (``<g_i>_{w}``: the mean of ``pre_g<i>_noshear`` weighted by
+``pre_g<i>_w_<type>``), as the single-set ``megalut evaluate`` does. ``evaluate --twin`` left
+R_sel out before commit c4e8e7c (README.md, "Bug"); since then both agree to all digits.
+
+``plain``: the catalog without its metacal columns (``X_<type>``) and cards (``MCALSTEP``,
+``MCALSEED``), for ``megalut predict`` with a simulation-calibrated model: the plain features
+of the very same stamps.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+
+from megalut_cli.catalog import read_cards, read_carried_hdus, read_catalog, write_catalog
+from megalut_cli.measure.metacal_defaults import SEED_CARD, STEP_CARD, TYPES
+
+SAME = ("tru_real_index", "tru_theta", "tru_dx", "tru_dy", "tru_flux", "rea")
+
+
+def merge(out: str, paths: list[str]) -> None:
+    tables = [read_catalog(p) for p in paths]
+    cards = read_cards(paths[0])
+    nrea = int(cards["NREA"][0])
+    first = tables[0]
+    for p, t in zip(paths[1:], tables[1:]):
+        if t.colnames != first.colnames or len(t) != len(first):
+            raise SystemExit(f"{p}: not the same columns or rows as {paths[0]}")
+        for c in SAME:
+            if not np.array_equal(np.asarray(t[c]), np.asarray(first[c])):
+                raise SystemExit(f"{p}: column {c} differs from {paths[0]}: not common random numbers")
+    cols = {}
+    for c in first.colnames:
+        parts = [np.asarray(t[c]) for t in tables]
+        if c == "case":
+            parts = [np.full(len(t), k, dtype=np.asarray(t["case"]).dtype) for k, t in enumerate(tables)]
+        elif c == "rea":
+            parts = [np.asarray(t["case"]).astype(np.int64) * nrea + np.asarray(t["rea"]) for t in tables]
+        cols[c] = np.concatenate(parts)
+    cards["NCASES"] = (len(tables), "shear runs merged (mcal_tools.py merge)")
+    cards["NSHEARS"] = (len(tables), "cases = shear runs of common random numbers")
+    write_catalog(out, cols, fmt="megalut.simulation", overwrite=True, cards=cards,
+                  history=[f"mcal_tools.py merge {' '.join(paths)}"], extra_hdus=read_carried_hdus(paths[0]))
+    print(f"{out}: {len(tables)} cases x {len(first)} rows")
+
+
+def adamom(out: str, path: str) -> None:
+    t = read_catalog(path)
+    cards = read_cards(path)
+    step = float(cards[STEP_CARD][0])
+    cols = {c: np.asarray(t[c]) for c in t.colnames}
+    for i in (1, 2):
+        for kind in TYPES:
+            g = np.asarray(t[f"adamom_g{i}_{kind}"], dtype=float)
+            cols[f"pre_g{i}_{kind}"] = np.where((np.asarray(t[f"flags_{kind}"]) == 0) & np.isfinite(g), g, np.nan)
+        cols[f"pre_g{i}"] = cols[f"pre_g{i}_noshear"]
+    for i in (1, 2):
+        for j in (1, 2):
+            cols[f"mcal_r{i}{j}"] = (cols[f"pre_g{i}_{j}p"] - cols[f"pre_g{i}_{j}m"]) / (2.0 * step)
+    cards["MODEL"] = ("adamom", "pre_g* := adamom_g* (mcal_tools.py adamom)")
+    write_catalog(out, cols, fmt="megalut.predictions", overwrite=True, cards=cards,
+                  history=[f"mcal_tools.py adamom {path}"], extra_hdus=read_carried_hdus(path))
+    print(f"{out}: {len(t)} rows, adaptive-moment estimates, step {step}")
+
+
+def plain(out: str, path: str) -> None:
+    t = read_catalog(path)
+    cols = {c: np.asarray(t[c]) for c in t.colnames if not c.endswith(tuple(f"_{k}" for k in TYPES))}
+    cards = {k: v for k, v in read_cards(path).items() if k not in (STEP_CARD, SEED_CARD)}
+    write_catalog(out, cols, fmt="megalut.simulation", overwrite=True, cards=cards,
+                  history=[f"mcal_tools.py plain {path}"], extra_hdus=read_carried_hdus(path))
+    print(f"{out}: {len(t)} rows, {len(cols)} of {len(t.colnames)} columns (metacal columns and cards dropped)")
+
+
+def concat(out: str, paths: list[str]) -> None:
+    """Merged catalogs (``merge``) of the same config and shears but other seeds, one after
+    the other: the same 4 cases, ``rea`` offset so that every ring keeps its own group."""
+    tables = [read_catalog(p) for p in paths]
+    offset, parts = 0, []
+    for t in tables:
+        cols = {c: np.asarray(t[c]) for c in t.colnames}
+        cols["rea"] = cols["rea"] + offset
+        offset = int(cols["rea"].max()) + 1
+        parts.append(cols)
+    names = [c for c in tables[0].colnames if all(c in t.colnames for t in tables)]
+    cols = {c: np.concatenate([p[c] for p in parts]) for c in names}
+    cards = read_cards(paths[0])
+    write_catalog(out, cols, fmt="megalut.predictions", overwrite=True, cards=cards,
+                  history=[f"mcal_tools.py concat {' '.join(paths)}"], extra_hdus=read_carried_hdus(paths[0]))
+    print(f"{out}: {len(cols['case'])} rows from {len(paths)} catalogs")
+
+
+def subset(out: str, path: str, config: str) -> None:
+    import tomllib
+
+    rows = tomllib.load(open(config, "rb"))["galaxy"]["index"]["values"]
+    t = read_catalog(path)
+    keep = np.isin(np.asarray(t["tru_real_index"]), rows)
+    cols = {c: np.asarray(t[c])[keep] for c in t.colnames}
+    write_catalog(out, cols, fmt="megalut.predictions", overwrite=True, cards=read_cards(path),
+                  history=[f"mcal_tools.py subset {path} {config}"], extra_hdus=read_carried_hdus(path))
+    print(f"{out}: {int(keep.sum())} of {len(t)} rows ({len(set(np.asarray(t['tru_real_index'])[keep]))} galaxies of {config})")
+
+
+def _paired_sums(t, comp: int, cell: np.ndarray, n_cells: int, weighted: bool) -> np.ndarray:
+    """Per-cell sums: w, w g_est, w g_true, w R and, weighted, the sheared weights' w_p,
+    w_p g_est, w_m, w_m g_est."""
+    i = comp
+    pre = np.asarray(t[f"pre_g{i}_noshear"], dtype=float)
+    tru = np.asarray(t[f"tru_g{i}"], dtype=float)
+    resp = np.asarray(t[f"mcal_r{i}{i}"], dtype=float)
+    usable = (np.asarray(t["flags_noshear"]) == 0) & np.isfinite(pre) & np.isfinite(tru) & np.isfinite(resp)
+    w = np.where(usable, 1.0, 0.0)
+    if weighted:
+        wn = np.asarray(t[f"pre_g{i}_w_noshear"], dtype=float)
+        w = np.where(usable & np.isfinite(wn) & (wn > 0), wn, 0.0)
+    g = np.where(usable, pre, 0.0)
+    rows = [w, w * g, w * np.where(usable, tru, 0.0), w * np.where(usable, resp, 0.0)]
+    if weighted:
+        for kind in (f"{i}p", f"{i}m"):
+            ws = np.asarray(t[f"pre_g{i}_w_{kind}"], dtype=float)
+            ws = np.where(usable & np.isfinite(ws) & (ws > 0), ws, 0.0)
+            rows += [ws, ws * g]
+    return np.stack([np.bincount(cell, weights=r, minlength=n_cells) for r in rows])
+
+
+def _paired_fit(sums: np.ndarray, counts: np.ndarray, n_cases: int, n_gal: int, step: float):
+    from megalut_cli.shear.bootstrap import fit_columns
+
+    s = sums.reshape(len(sums), n_cases, n_gal) @ counts.T  # (rows, cases, B)
+    tot = s.sum(axis=1)  # (rows, B): every case together
+    with np.errstate(invalid="ignore", divide="ignore"):
+        resp = tot[3] / tot[0]
+        if len(sums) > 4:
+            resp = resp + (tot[5] / tot[4] - tot[7] / tot[6]) / (2.0 * step)
+        est = s[1] / s[0] / resp
+        return fit_columns(s[2] / s[0], est)
+
+
+def paired(out: str, path_a: str, path_b: str, n_boot: int = 1000, seed: int = 1) -> None:
+    from megalut_cli.seeding import STREAM_BOOTSTRAP, rng_for
+
+    a, b = read_catalog(path_a), read_catalog(path_b)
+    for c in ("case", "rea", "tru_g1", "tru_g2", "tru_real_index"):
+        if not np.array_equal(np.asarray(a[c]), np.asarray(b[c])):
+            raise SystemExit(f"{path_a} and {path_b} are not paired (column {c})")
+    step = float(read_cards(path_a)[STEP_CARD][0])
+    gal_ids, gi = np.unique(np.asarray(a["tru_real_index"]), return_inverse=True)
+    case_ids, ci = np.unique(np.asarray(a["case"]), return_inverse=True)
+    n_gal, n_cases = gal_ids.size, case_ids.size
+    cell = ci.ravel() * n_gal + gi.ravel()
+    weighted = all(f"pre_g{i}_w_{k}" in t.colnames for t in (a, b) for i in (1, 2) for k in TYPES)
+    result: dict = {"names": ["real", "twin"], "galaxy_column": "tru_real_index", "n_boot": n_boot, "seed": seed,
+                    "metacal": True, "selection_response": "weights (mcal_tools.py paired)", "overall": {}}
+    for scheme in ["unweighted"] + (["weighted"] if weighted else []):
+        result["overall"][scheme] = {}
+        for i in (1, 2):
+            rng = rng_for(seed, STREAM_BOOTSTRAP)
+            counts = np.vstack([np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)])
+            w = scheme == "weighted"
+            m_a, c_a = _paired_fit(_paired_sums(a, i, cell, n_cases * n_gal, w), counts, n_cases, n_gal, step)
+            m_b, c_b = _paired_fit(_paired_sums(b, i, cell, n_cases * n_gal, w), counts, n_cases, n_gal, step)
+            r: dict = {}
+            for name, v in (("m_a", m_a), ("c_a", c_a), ("m_b", m_b), ("c_b", c_b), ("dm", m_a - m_b), ("dc", c_a - c_b)):
+                boot = v[1:][np.isfinite(v[1:])]
+                r[name] = float(v[0]) if np.isfinite(v[0]) else None
+                r[f"{name}_err"] = float(np.std(boot, ddof=1)) if boot.size > 1 else None
+            r.update(n_galaxies=int(n_gal), n_cases=int(n_cases), n_boot=int(n_boot))
+            result["overall"][scheme][f"g{i}"] = r
+    with open(out, "w") as f:
+        json.dump(result, f, indent=1)
+    print(f"{out}: paired metacal biases, weighted scheme with the selection response")
+
+
+def _f(v: float | None, e: float | None, scale: float = 1e3) -> str:
+    if v is None:
+        return "n/a"
+    return f"{v * scale:+.2f} ± {e * scale:.2f}" if e is not None else f"{v * scale:+.2f}"
+
+
+def table(paths: list[str]) -> None:
+    """One row per JSON file (megalut evaluate --twin --json) and scheme: m in units of
+    1e-3, c in units of 1e-4."""
+    print("| run | scheme | comp | m_real (1e-3) | m_twin (1e-3) | m_real − m_twin (1e-3) | c_real (1e-4) | c_twin (1e-4) | c_real − c_twin (1e-4) | galaxies |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for p in paths:
+        res = json.load(open(p))
+        for scheme, comps in res["overall"].items():
+            for comp, r in comps.items():
+                print(f"| {p.rsplit('/', 1)[-1].removesuffix('.json')} | {scheme} | {comp} | {_f(r['m_a'], r['m_a_err'])} | "
+                      f"{_f(r['m_b'], r['m_b_err'])} | {_f(r['dm'], r['dm_err'])} | {_f(r['c_a'], r['c_a_err'], 1e4)} | "
+                      f"{_f(r['c_b'], r['c_b_err'], 1e4)} | {_f(r['dc'], r['dc_err'], 1e4)} | {r['n_galaxies']} |")
+
+
+if __name__ == "__main__":
+    cmd, args = sys.argv[1], sys.argv[2:]
+    if cmd == "merge":
+        merge(args[0], args[1:])
+    elif cmd == "adamom":
+        adamom(args[0], args[1])
+    elif cmd == "plain":
+        plain(args[0], args[1])
+    elif cmd == "concat":
+        concat(args[0], args[1:])
+    elif cmd == "subset":
+        subset(args[0], args[1], args[2])
+    elif cmd == "paired":
+        paired(args[0], args[1], args[2], *(int(x) for x in args[3:5]))
+    elif cmd == "table":
+        table(args)
+    else:
+        raise SystemExit(__doc__)
