@@ -83,9 +83,15 @@ def training_columns(path: str | os.PathLike) -> tuple[Columns, str]:
     return VersionColumns(columns, "noshear"), "metacal"
 
 
-def _same_mode(train: str | os.PathLike, valid: str | os.PathLike | None, mode: str, name: Callable[[str], str]) -> None:
-    if valid is not None and training_columns(valid)[1] != mode:
+def _validation_columns(train: str | os.PathLike, valid: str | os.PathLike | None, mode: str,
+                        name: Callable[[str], str]) -> Columns | None:
+    """The columns of the validation catalog, which must have the training catalog's mode."""
+    if valid is None:
+        return None
+    columns, valid_mode = training_columns(valid)
+    if valid_mode != mode:
         raise InputError(f"{name('valid')} {valid} and {name('train')} {train}: one is a metacal catalog, the other not")
+    return columns
 
 
 @dataclass
@@ -457,10 +463,9 @@ def train_point(
     init_model = ShearModel.load(init_from) if init_from is not None else None
     sources = {"train": str(train), "valid": str(valid), "init_model": str(init_from)}
     train_columns, mode = training_columns(train)
-    _same_mode(train, valid, mode, namer(names))
     model = fit_point(
         train_columns, features=features, targets=targets,
-        valid=training_columns(valid)[0] if valid is not None else None, hidden=hidden, cost=cost,
+        valid=_validation_columns(train, valid, mode, namer(names)), hidden=hidden, cost=cost,
         select_cases=select_cases, init_model=init_model, init_scheme=init_scheme, options=options, nproc=nproc,
         scheduler=scheduler, progress=progress, sources=sources, names=names,
     )
@@ -581,7 +586,7 @@ def train_weight(
         check_expression(select, None, case_mode=False)
     point_model = ShearModel.load(model)
     train_columns, mode = training_columns(train)
-    _same_mode(train, valid, mode, namer(names))
+    valid_columns = _validation_columns(train, valid, mode, namer(names))
     if point_model.shear_mode != mode:
         raise InputError(
             f"{model} is a {point_model.shear_mode} model and {train} {'a metacal' if mode == 'metacal' else 'a plain'} "
@@ -589,7 +594,7 @@ def train_weight(
         )
     result = fit_weight(
         train_columns, point_model, features=features, hidden=hidden, select=select,
-        valid=training_columns(valid)[0] if valid is not None else None, options=options, nproc=nproc,
+        valid=valid_columns, options=options, nproc=nproc,
         scheduler=scheduler, progress=progress, sources={"train": str(train), "valid": str(valid), "model": str(model)},
         names=names,
     )

@@ -346,7 +346,7 @@ def _metacal_subfield_means(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`submission_from_catalog` of a metacal catalog: ``<R>^-1 <g_noshear>`` per subfield."""
     from megalut_cli.catalog import require_columns
-    from megalut_cli.shear.bias import case_means
+    from megalut_cli.shear.bias import calibrate_by_response, case_means
 
     resp = [f"mcal_r{i}{j}" for i in "12" for j in "12"]
     require_columns(names, ["pre_g1_noshear", "pre_g2_noshear", *resp]
@@ -365,10 +365,7 @@ def _metacal_subfield_means(
         for j in "12":  # the response of the same rows, with the same weights
             r = np.where(np.isfinite(g), np.asarray(table[f"mcal_r{i}{j}"], dtype=float), np.nan)
             mean[f"r{i}{j}"] = case_means(sub, r, w)[1]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        det = mean["r11"] * mean["r22"] - mean["r12"] * mean["r21"]
-        g1 = (mean["r22"] * mean["g1"] - mean["r12"] * mean["g2"]) / det
-        g2 = (mean["r11"] * mean["g2"] - mean["r21"] * mean["g1"]) / det
+    g1, g2 = calibrate_by_response(mean["r11"], mean["r12"], mean["r21"], mean["r22"], mean["g1"], mean["g2"])
     return ids, g1, g2, n_used
 
 

@@ -129,7 +129,7 @@ def _metacal_unit(
     unit: dict[str, Any], mc: dict[str, Any], stamps: np.ndarray, feats: dict[str, np.ndarray]
 ) -> dict[str, np.ndarray]:
     """The metacal features of a unit's stamps (:func:`.metacal.metacal_features`)."""
-    from megalut_cli.measure.metacal import metacal_features
+    from megalut_cli.measure.metacal import fixnoise_seeds, metacal_features
 
     size, origins = unit["stamp_size"], unit["origins"]
     bad = ~np.isfinite(stamps).all(axis=(1, 2))
@@ -145,7 +145,7 @@ def _metacal_unit(
         y0, y1 = _row_band(origins, size)
         psfs = cut_stamps(read_rows(mc["psf_info"], y0, y1), y0, origins, size)
     return metacal_features(
-        stamps, psfs, mc["step"], noise_sigma=feats["skymad"], seeds=mc["seeds"], metacal_engine=unit["engine"],
+        stamps, psfs, mc["step"], noise_sigma=feats["skymad"], seeds=fixnoise_seeds(mc["seed"], mc["keys"]), metacal_engine=unit["engine"],
         morphology=bool(unit.get("morphology")), origins=origins, gain=unit["gain"], max_shift=unit["max_shift"],
         engine=unit["engine"], device=unit.get("device", DEFAULT_DEVICE),
     )
@@ -195,8 +195,8 @@ def _run_units(
 ) -> dict[str, np.ndarray]:
     """Measure stamps at ``origins``; stamps off the image get STAMP_OFF_IMAGE and NaN.
     With ``morphology``, the :data:`MORPHOLOGY_COLUMNS` too. On the (resolved) ``device``
-    "gpu", the units run in this process. ``metacal``: ``{"step", "seeds" (one per stamp),
-    "psf" (one PSF image) or "psf_info" (a grid of PSF stamps like the image)}`` adds the
+    "gpu", the units run in this process. ``metacal``: ``{"step", "seed", "keys" (one per stamp:
+    its fixnoise field's, seeded in the worker), "psf" (one PSF image) or "psf_info" (a grid of PSF stamps like the image)}`` adds the
     metacal columns ``X_<type>``."""
     if device == "gpu" and not scheduler:
         nproc = 1
@@ -222,7 +222,7 @@ def _run_units(
         unit["morphology"] = morphology
         unit["device"] = device
         if metacal is not None:
-            unit["metacal"] = {**{k: v for k, v in metacal.items() if k != "seeds"}, "seeds": metacal["seeds"][idx[piece]]}
+            unit["metacal"] = {**metacal, "keys": metacal["keys"][idx[piece]]}
     sizes = [len(p) for p in pieces]
     t0 = time.perf_counter()
     with executor(nproc, scheduler, len(units)) as pool, (progress or no_progress)(label, len(idx)) as update:
@@ -356,25 +356,14 @@ def _metacal_psf(
 def _target_psf_columns(psf: dict[str, Any], feats: dict[str, np.ndarray], size: int) -> dict[str, np.ndarray]:
     """``psf_adamom_*_<type>``: the features of each row's target PSF (round, the sigma the
     operation chose for its PSF; the same for the five types)."""
-    from megalut_cli.measure.metacal import target_psf_features, target_psf_sigma
+    from megalut_cli.measure.metacal import target_psf_columns, target_psf_sigma
 
     n = len(feats["psf_adamom_sigma"])
     if "psf" in psf:
         sigma = np.full(n, target_psf_sigma(psf["psf"], psf["step"]))
     else:
         sigma = feats["psf_adamom_sigma"] * (1.0 + 2.0 * abs(psf["step"]))  # the PSF stamps' HSM sigma
-    out = {f"psf_{c}_{kind}": np.full(n, np.nan) for kind in TYPES for c in _TARGET_COLUMNS}
-    finite = np.isfinite(sigma)
-    for value in np.unique(np.round(sigma[finite], 6)):
-        rows = finite & (np.round(sigma, 6) == value)
-        values = target_psf_features(float(value), size)
-        for kind in TYPES:
-            for c in _TARGET_COLUMNS:
-                out[f"psf_{c}_{kind}"][rows] = values[c]
-    return out
-
-
-_TARGET_COLUMNS = ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4")
+    return target_psf_columns(sigma, size)
 
 
 def _psf_features(
@@ -644,10 +633,9 @@ def measure_file(
         if metacal:
             mc = {**_metacal_psf(psf_path, info, size, names), "step": float(metacal_step)}
             common = bool(_card_value(cards.get("CRN", False))) and "rea" in table.colnames
-            keys = np.asarray(table["rea"], dtype=np.int64) if common else np.arange(len(origins))
-            from megalut_cli.measure.metacal import fixnoise_seeds
-
-            mc["seeds"] = fixnoise_seeds(seed, keys)
+            # the fields' keys: the realization in a common-random-number set, else the row
+            mc["keys"] = np.asarray(table["rea"], dtype=np.int64) if common else np.arange(len(origins))
+            mc["seed"] = int(seed)
 
     if stars and morphology:
         raise ConfigError(f"{name('morphology')} does not apply to a star field")

@@ -24,6 +24,7 @@ from megalut_cli.measure.metacal_defaults import (
     INTERPOLANT,
     MAX_STEP,
     SHEARS,
+    TARGET_PSF_COLUMNS,
     TYPES,
 )
 from megalut_cli.seeding import STREAM_METACAL, int_seed_for
@@ -255,13 +256,24 @@ def metacal_features(
     return out
 
 
-#: The PSF feature columns of a metacal version: those of its target PSF.
-TARGET_PSF_COLUMNS = ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4")
-
-
 def target_psf_features(target_sigma: float, size: int, engine: str = "fast") -> dict[str, float]:
     """``adamom_g1, adamom_g2, adamom_sigma, adamom_rho4`` of the target PSF (what the
     ``psf_adamom_*_<type>`` columns of a metacal catalog hold)."""
     res = measure_stamps(target_psf_image(target_sigma, size)[None], engine=engine)
     return {c: float(res[c][0]) for c in TARGET_PSF_COLUMNS}
 
+
+def target_psf_columns(target_sigma: np.ndarray, size: int) -> dict[str, np.ndarray]:
+    """``psf_<X>_<type>`` of each row from its target PSF sigma (NaN where not finite; the same
+    for the five types), each distinct sigma measured once."""
+    sigma = np.asarray(target_sigma, dtype=np.float64)
+    out = {f"psf_{c}_{kind}": np.full(len(sigma), np.nan) for kind in TYPES for c in TARGET_PSF_COLUMNS}
+    finite = np.isfinite(sigma)
+    rounded = np.round(sigma, 6)
+    for value in np.unique(rounded[finite]):
+        rows = finite & (rounded == value)
+        values = target_psf_features(float(value), size)
+        for kind in TYPES:
+            for c in TARGET_PSF_COLUMNS:
+                out[f"psf_{c}_{kind}"][rows] = values[c]
+    return out

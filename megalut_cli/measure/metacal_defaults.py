@@ -12,6 +12,8 @@ MAX_STEP = 0.1
 STEP_CARD = "MCALSTEP"
 #: Header card: the seed of the fixnoise fields.
 SEED_CARD = "MCALSEED"
+#: The features of the target PSF that a metacal catalog holds as ``psf_<X>_<type>``.
+TARGET_PSF_COLUMNS = ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4")
 #: The interpolant of the stamp and PSF images (ngmix's choice; lanczos15 keeps the
 #: interpolation error of a sheared, deconvolved image at the 1e-4 level).
 INTERPOLANT = "lanczos15"
@@ -20,3 +22,9 @@ INTERPOLANT = "lanczos15"
 def metacal_columns(names: tuple[str, ...] | list[str]) -> list[str]:
     """The metacal column names ``X_<type>`` of the columns ``names``, type by type."""
     return [f"{name}_{kind}" for kind in TYPES for name in names]
+
+
+def header_step(header: dict) -> float | None:  # type: ignore[type-arg]
+    """The number of a header's ``MCALSTEP`` card, or None (no card, or not a number)."""
+    step = header.get(STEP_CARD)
+    return float(step) if isinstance(step, (int, float)) and not isinstance(step, bool) else None

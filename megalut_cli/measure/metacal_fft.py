@@ -27,10 +27,9 @@ import galsim
 import numpy as np
 from numba import njit
 
-from megalut_cli.measure.metacal import SHEARS, TYPES
+from megalut_cli.measure.metacal_defaults import INTERPOLANT, SHEARS, TYPES
 
 _SHEARS = tuple(SHEARS[kind] for kind in TYPES)
-_INTERPOLANT = "lanczos15"
 _QUINTIC = galsim.Quintic()
 _LANCZOS = galsim.Lanczos(15)
 _GSPARAMS = galsim.GSParams()
@@ -506,7 +505,7 @@ def _psf_params(psf_bytes: bytes, psf_size: int) -> tuple[np.ndarray, float, flo
     ``InterpolatedImage``."""
     psf = np.frombuffer(psf_bytes, dtype=np.float64).reshape(psf_size, psf_size)
     psf = psf / psf.sum()
-    psf_ii = galsim.InterpolatedImage(galsim.ImageD(psf, scale=1.0), x_interpolant=_INTERPOLANT)
+    psf_ii = galsim.InterpolatedImage(galsim.ImageD(psf, scale=1.0), x_interpolant=INTERPOLANT)
     return psf, psf_ii.maxk, psf_ii.stepk
 
 

@@ -141,6 +141,16 @@ def rotate_to_psf_frame(
     return rotate_spin2(g1, g2, psf_angle(psf_g1, psf_g2))
 
 
+def calibrate_by_response(
+    r11: Any, r12: Any, r21: Any, r22: Any, g1: np.ndarray, g2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``R^-1 (g1, g2)`` for the response matrix ``R = [[r11, r12], [r21, r22]]`` (metacal;
+    entries broadcast against the estimates; NaN where R is singular)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        det = r11 * r22 - r12 * r21
+        return (r22 * g1 - r12 * g2) / det, (r11 * g2 - r21 * g1) / det
+
+
 def rotate_spin2(g1: np.ndarray, g2: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(g1, g2)`` in the frame turned by the angle ``theta`` (radians): rotated by ``-2 theta``."""
     cos2, sin2 = np.cos(2.0 * theta), np.sin(2.0 * theta)

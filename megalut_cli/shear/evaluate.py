@@ -38,15 +38,22 @@ from typing import Any
 import numpy as np
 
 from megalut_cli import expr as _expr
-from megalut_cli.catalog import catalog_info, history_steps, iter_catalog, read_catalog
+from megalut_cli.catalog import (
+    VersionColumns,
+    catalog_info,
+    history_steps,
+    iter_catalog,
+    read_catalog,
+)
 from megalut_cli.errors import ConfigError, InputError, MegalutError
-from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, STEP_CARD
+from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, TYPES, header_step
 from megalut_cli.provenance import CREATOR, command_line, sha256_file, software_versions, utc_now
 from megalut_cli.shear.bias import (
     GREAT3_SIGMA2_MIN_GROUND,
     STAGE_IV_C,
     STAGE_IV_M,
     BiasFit,
+    calibrate_by_response,
     fit_bias,
     psf_angle,
     q_c,
@@ -86,7 +93,7 @@ FEW_GROUPS = 30
 #: Per-row metacal responses written by ``megalut predict`` on a metacal catalog.
 RESPONSE_COLUMNS = ("mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22")
 #: The sheared metacal versions whose selection gives the selection response.
-SHEARED_TYPES = ("1p", "1m", "2p", "2m")
+SHEARED_TYPES = TYPES[1:]
 #: Bits of a (case, group) key that hold the group (case ids must fit in the rest).
 _GROUP_BITS = 32
 
@@ -122,7 +129,6 @@ class _Plan:
     bootstrap: BootstrapSpec | None = None
     names: dict[str, str] = field(default_factory=dict)  # how messages name the arguments
     metacal: float | None = None  # the metacal step: calibrate pre_*_noshear by the mean response
-    selection_columns: dict[str, dict[str, str]] = field(default_factory=dict)  # type -> {X: X_<type>} of select
 
     @property
     def schemes(self) -> tuple[str, ...]:
@@ -204,9 +210,7 @@ def _make_plan(
         used = list(_expr.columns_used(select)) if select is not None else []
         for c in by:  # the bins too are taken on the noshear versions
             used += [c] if by_kind[c] == "column" else _expr.columns_used(c) if by_kind[c] == "row" else []
-        plan.selection_columns = {kind: {c: f"{c}_{kind}" for c in used if f"{c}_{kind}" in have}
-                                  for kind in ("noshear", *SHEARED_TYPES)}
-        cols += [v for m in plan.selection_columns.values() for v in m.values()]
+        cols += [f"{c}_{kind}" for kind in TYPES for c in used if f"{c}_{kind}" in have]
     if bootstrap is not None:
         cols.append("rea")
     if weighted:
@@ -306,10 +310,9 @@ def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
 
 def _version_view(chunk: Mapping[str, np.ndarray], plan: _Plan, kind: str) -> Mapping[str, np.ndarray]:
     """The chunk as the metacal version ``kind`` sees it: ``X`` is ``X_<kind>`` where the
-    catalog has it (the chunk itself in plain mode)."""
-    if plan.metacal is None or not plan.selection_columns.get(kind):
-        return chunk
-    return {**chunk, **{c: chunk[v] for c, v in plan.selection_columns[kind].items()}}
+    chunk has it (the chunk itself in plain mode); the plan reads the ``X_<kind>`` of the
+    columns that ``select`` and ``by`` use."""
+    return chunk if plan.metacal is None else VersionColumns(chunk, kind)
 
 
 def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> None:
@@ -476,11 +479,8 @@ def _calibrate(out: dict[str, dict[str, np.ndarray]], sums: Mapping[str, np.ndar
     """Replace the per-case estimates by the metacal-calibrated ones, ``(R + R_S)^-1 <g>``."""
     mean, selection = metacal_response(sums, scheme)
     r = mean if selection is None else mean + selection
-    p1, p2 = out["g1"]["pre"], out["g2"]["pre"]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        det = r[0, 0] * r[1, 1] - r[0, 1] * r[1, 0]
-        out["g1"]["pre"] = (r[1, 1] * p1 - r[0, 1] * p2) / det
-        out["g2"]["pre"] = (r[0, 0] * p2 - r[1, 0] * p1) / det
+    out["g1"]["pre"], out["g2"]["pre"] = calibrate_by_response(r[0, 0], r[0, 1], r[1, 0], r[1, 1],
+                                                               out["g1"]["pre"], out["g2"]["pre"])
 
 
 def _case_estimates(
@@ -565,10 +565,8 @@ def evaluate_catalog(
     flags or pipeline keys. See :func:`evaluate_columns`.
     """
     _, colnames, header = catalog_info(path)
-    step = header.get(STEP_CARD)
     plan = _make_plan(colnames, str(path), by, select, select_cases,
-                      bootstrap_from_header(header, errors, n_bootstrap, seed), names,
-                      float(step) if isinstance(step, (int, float)) and not isinstance(step, bool) else None)
+                      bootstrap_from_header(header, errors, n_bootstrap, seed), names, header_step(header))
     _prepare_cases(plan, lambda cols: _read_columns(path, cols))
     result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins, sigma2_min)
     result["input"] = str(path)

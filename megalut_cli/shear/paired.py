@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.errors import InputError, Names, namer
+from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, header_step
 from megalut_cli.seeding import STREAM_BOOTSTRAP, rng_for
 from megalut_cli.shear.bootstrap import fit_columns
 
@@ -184,7 +185,7 @@ def paired_evaluation(
     n_boot: int = N_BOOTSTRAP,
     seed: int = 0,
     names: Sequence[str] = ("real", "twin"),
-    metacal_step: float = 0.01,
+    metacal_step: float = DEFAULT_STEP,
 ) -> dict[str, Any]:
     """Paired biases of catalogs ``a`` and ``b`` (columns as arrays; checked to be paired),
     unweighted and, when both have ``pre_g1_w, pre_g2_w``, weighted; overall and in
@@ -295,7 +296,8 @@ def evaluate_paired_catalogs(
     from megalut_cli.errors import ConfigError
     from megalut_cli.shear.evaluate import check_by
 
-    names_a, names_b = catalog_info(path_a)[1], catalog_info(path_b)[1]
+    _, names_a, header_a = catalog_info(path_a)
+    names_b = catalog_info(path_b)[1]
     common = [c for c in names_a if c in set(names_b)]
     need = [*PAIRING_COLUMNS, galaxy_column, "pre_g1", "pre_g2"]
     for path, colnames in ((path_a, names_a), (path_b, names_b)):
@@ -324,7 +326,6 @@ def evaluate_paired_catalogs(
         va = _expr.evaluate_row_values(c, a, len(ta)) if kinds[c] == "row" else np.asarray(a[c], dtype=float)
         vb = _expr.evaluate_row_values(c, b, len(tb)) if kinds[c] == "row" else np.asarray(b[c], dtype=float)
         values[c] = 0.5 * (va + vb)
-    step = catalog_info(path_a)[2].get("MCALSTEP")
-    step = float(step) if isinstance(step, (int, float)) and not isinstance(step, bool) else 0.01
+    step = header_step(header_a)
     return paired_evaluation(a, b, galaxy_column, values, n_bins, n_boot, seed, names=("real", "twin"),
-                             metacal_step=step)
+                             metacal_step=DEFAULT_STEP if step is None else step)

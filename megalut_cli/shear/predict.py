@@ -36,7 +36,7 @@ from megalut_cli.catalog import (
     setup_differences,
 )
 from megalut_cli.errors import ConfigError, InputError, Names, namer
-from megalut_cli.measure.metacal_defaults import STEP_CARD, TYPES
+from megalut_cli.measure.metacal_defaults import STEP_CARD, TYPES, header_step
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.parallel import executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
@@ -213,12 +213,13 @@ METACAL_MODEL_HINT = "megalut info MODEL says its mode; the shipped one is megal
 
 def _metacal_step(header: Mapping[str, Any], path: str | os.PathLike) -> float | None:
     """The metacal step of a catalog (its ``MCALSTEP`` card), or None for a plain catalog."""
-    step = header.get(STEP_CARD)
-    if step is None:
+    if header.get(STEP_CARD) is None:
         return None
-    if isinstance(step, bool) or not isinstance(step, (int, float)) or not 0 < step < 1:
-        raise InputError(f"{path}: bad {STEP_CARD} card {step!r}: expected the metacal shear step, e.g. 0.01")
-    return float(step)
+    step = header_step(header)
+    if step is None or not 0 < step < 1:
+        raise InputError(f"{path}: bad {STEP_CARD} card {header[STEP_CARD]!r}: expected the metacal shear step, "
+                         "e.g. 0.01")
+    return step
 
 
 @dataclass
@@ -325,8 +326,7 @@ def predict_catalog(
 
     def units() -> Iterator[tuple[Any, tuple]]:
         for table in iter_catalog(features_path, chunk_rows):
-            x = np.column_stack([np.asarray(table[c], dtype=np.float64) for c in feature_cols]) if len(table) else \
-                np.zeros((0, len(feature_cols)))
+            x = _matrix(table, feature_cols)
             flg = np.asarray(table["flags"]) if has_flags else None
             metacal = None
             if step is not None:

@@ -144,7 +144,7 @@ class _Measurer:
         self.size = s.stamp_size
         self.parts: list[dict[str, np.ndarray]] = []
         self.psf_images: dict[int, np.ndarray] = {}  # id -> PSF image (with the pixel, as drawn)
-        self._targets: dict[int, dict[str, float]] = {}
+        self._targets: dict[int, float] = {}  # PSF id -> target sigma
 
     def psf_id(self, psf: Any, method: str, key: Any) -> int:
         """An id of the PSF ``psf`` (drawn with ``method``), its image stored for metacal."""
@@ -172,10 +172,9 @@ class _Measurer:
         from megalut_cli.measure.metacal import (
             fixnoise_seeds,
             metacal_features,
-            target_psf_features,
+            target_psf_columns,
             target_psf_sigma,
         )
-        from megalut_cli.measure.metacal_defaults import TYPES
 
         ids = np.unique(psf_ids)
         stack = np.stack([self.psf_images[int(i)] for i in ids])
@@ -187,12 +186,8 @@ class _Measurer:
         )
         for i in ids:
             if int(i) not in self._targets:
-                sigma = target_psf_sigma(self.psf_images[int(i)], self.step)
-                self._targets[int(i)] = target_psf_features(sigma, self.size)
-        for c in ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4"):
-            values = np.array([self._targets[int(i)][c] for i in psf_ids])
-            for kind in TYPES:
-                out[f"psf_{c}_{kind}"] = values
+                self._targets[int(i)] = target_psf_sigma(self.psf_images[int(i)], self.step)
+        out.update(target_psf_columns(np.array([self._targets[int(i)] for i in psf_ids]), self.size))
         return out
 
     def columns(self) -> dict[str, np.ndarray]:
