@@ -18,6 +18,7 @@ from typing import Any
 
 from megalut_cli.atomic import write_json
 from megalut_cli.engine import resolve_device
+from megalut_cli.measure.metacal_defaults import DEFAULT_STEP
 from megalut_cli.pipeline import (
     ALL_SETS,
     DEFAULT_WORKDIR,
@@ -256,9 +257,11 @@ def plan_pipeline(
     overwrite: bool = False,
     nproc: int = 1,
     scheduler: str | None = None,
+    estimate: bool | None = None,
 ) -> list[str]:
     """Pre-flight of :func:`run_pipeline`: check the work folder; one line per step saying
-    what it will do, the simulations with a time estimated from a tiny calibration draw."""
+    what it will do, the simulations with a time estimated from a tiny calibration draw
+    (``estimate``: as :func:`~megalut_cli.sim.simulate.plan_message`)."""
     from megalut_cli.sim.simulate import plan_message
 
     wd = Path(workdir)
@@ -274,7 +277,9 @@ def plan_pipeline(
         if spec and manifest is not None and not step.inputs and manifest.up_to_date(step, step_key(step, {}), wd):
             what = "up to date, will be skipped"
         elif spec:
-            what = plan_message(spec.config, spec.seed, True, False, nproc, scheduler, pipe.engine)
+            metacal = pipe.metacal and spec.name in METACAL_SETS
+            what = plan_message(spec.config, spec.seed, True, False, nproc, scheduler, pipe.engine,
+                                metacal_step=DEFAULT_STEP if metacal else None, estimate=estimate)
         else:
             what = step.summary
         lines.append(f"[{i}/{len(steps)}] {step.name}: {what}")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import fnmatch
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -98,5 +100,11 @@ class StrictSkips:
 
 
 def pytest_configure(config) -> None:
+    # The disk cache (megalut_cli.cache) of this session: a fresh folder, not the user's,
+    # unless MEGALUT_CACHE names one; the CLI's subprocesses inherit it.
+    if "MEGALUT_CACHE" not in os.environ:
+        folder = tempfile.mkdtemp(prefix="megalut-test-cache-")
+        os.environ["MEGALUT_CACHE"] = folder
+        config.add_cleanup(lambda: shutil.rmtree(folder, ignore_errors=True))
     if os.environ.get(STRICT_SKIPS_ENV) == "1":
         config.pluginmanager.register(StrictSkips(EXPECTED_SKIPS), "megalut-strict-skips")

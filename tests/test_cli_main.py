@@ -50,3 +50,45 @@ def test_man_pages_are_current(tmp_path):
         assert page.read_text() == (shipped / page.name).read_text(), (
             f"man/{page.name} is stale: run python -m megalut_cli.cli.manpages"
         )
+
+
+#: Packages whose import takes most of a second (issue 26): no help or version needs them.
+HEAVY = ("astropy", "galsim", "scipy", "numba", "fitsio", "h5py", "matplotlib", "jax", "dask")
+
+
+def _modules_after(args: list[str]) -> set[str]:
+    """Top-level packages and megalut_cli.cli modules imported by ``megalut ARGS`` (a fresh process)."""
+    import json
+    import subprocess
+    import sys
+
+    code = ("import json, sys\nfrom megalut_cli.cli import main\n"
+            f"try:\n    main({args!r}, prog_name='megalut')\nexcept SystemExit:\n    pass\n"
+            "print(json.dumps(sorted(sys.modules)), file=sys.stderr)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    names = json.loads(done.stderr.strip().splitlines()[-1])
+    return {n.split(".")[0] for n in names} | {n for n in names if n.startswith("megalut_cli.cli.")}
+
+
+def test_version_and_group_help_load_no_subcommand():
+    for args in (["--version"], ["--help"]):
+        loaded = _modules_after(args)
+        assert not loaded & set(HEAVY), (args, loaded & set(HEAVY))
+        assert not {f"megalut_cli.cli.{m}" for m in ("simulate", "measure", "predict", "run")} & loaded
+
+
+@pytest.mark.parametrize("command", [*COMMANDS, "info"])
+def test_command_help_needs_no_heavy_package(command):
+    loaded = _modules_after([command, "--help"])
+    assert not loaded & set(HEAVY), loaded & set(HEAVY)
+
+
+def test_registry_names_each_module_command(cli):
+    from megalut_cli.cli.commands import COMMANDS as REGISTRY
+
+    assert list(REGISTRY) == cli.list_commands(None) and set(COMMANDS) < set(REGISTRY)
+    for name, (_, short) in REGISTRY.items():
+        command = cli.get_command(None, name)
+        assert command.name == name and command.short_help == short
+        assert [p.name for p in command.params][-2:] == ["verbose", "quiet"]  # added once
+        assert cli.get_command(None, name) is command

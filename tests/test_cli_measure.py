@@ -168,8 +168,8 @@ def test_warns_when_most_stamps_are_flagged(runner, cli, data):
 
 def test_library_messages_name_arguments_the_command_line_its_flags(data, runner, cli):
     """The library names its own arguments; the subcommand maps them to its flags."""
+    from megalut_cli.cli.console import flag_names
     from megalut_cli.cli.measure import command
-    from megalut_cli.cli.options import flag_names
     from megalut_cli.errors import ConfigError
     from megalut_cli.measure.measure import measure_file
 

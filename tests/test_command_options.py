@@ -33,7 +33,7 @@ def check_click_option(params: dict, o: Option, default: object = None) -> None:
 
 
 def test_measure_options_are_the_declarations(cli):
-    params = {p.name: p for p in cli.commands["measure"].params}
+    params = {p.name: p for p in cli.get_command(None, "measure").params}
     for o in (*MEASURE_OPTIONS, *SHARED):
         check_click_option(params, o)
     assert params["stamp_size"].help == "Stamp size in pixels [default: the image's STAMPSZ header card]."
@@ -81,7 +81,7 @@ def test_simulate_options_are_the_declarations(cli):
     from megalut_cli.sim.options import SIMULATE, SIMULATE_OPTIONS
     from megalut_cli.sim.simulate import simulate
 
-    params = {p.name: p for p in cli.commands["simulate"].params}
+    params = {p.name: p for p in cli.get_command(None, "simulate").params}
     for o in (*SIMULATE_OPTIONS, *SHARED):
         check_click_option(params, o)
     assert params["morphology"].help == "With --measure: a" + MEASURED["morphology"].help[1:]
@@ -94,7 +94,7 @@ def test_predict_options_are_the_declarations(cli, runner, tmp_path):
     from megalut_cli.shear.options import PREDICT, PREDICT_OPTIONS
     from megalut_cli.shear.predict import CHUNK_ROWS, predict_catalog
 
-    params = {p.name: p for p in cli.commands["predict"].params}
+    params = {p.name: p for p in cli.get_command(None, "predict").params}
     for o in (*PREDICT_OPTIONS, NPROC_OPTION, SCHEDULER_OPTION, OVERWRITE_OPTION):
         check_click_option(params, o)
     assert inspect.signature(predict_catalog).parameters["chunk_rows"].default == CHUNK_ROWS

@@ -112,7 +112,7 @@ def test_training_defaults_come_from_the_declarations():
 
 @pytest.mark.parametrize(("command", "iterations"), [("train-point", POINT_ITERATIONS), ("train-weight", WEIGHT_ITERATIONS)])
 def test_click_options_are_the_declarations(cli, command, iterations):
-    params = {p.name: p for p in cli.commands[command].params}
+    params = {p.name: p for p in cli.get_command(None, command).params}
     for o in TRAIN_OPTIONS:
         p = params[o.name]
         expected = iterations if o.name == "iterations" else o.default

@@ -8,6 +8,7 @@ Ctrl-C prints one line and exits with 130.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 import sys
@@ -16,8 +17,14 @@ from typing import Any
 import click
 
 from megalut_cli import __version__
-from megalut_cli.cli.console import setup_logging, user_facing
-from megalut_cli.cli.options import flag_names, verbosity, verbosity_options
+from megalut_cli.cli.commands import COMMANDS
+from megalut_cli.cli.console import (
+    flag_names,
+    setup_logging,
+    user_facing,
+    verbosity,
+    verbosity_options,
+)
 from megalut_cli.errors import ArgumentError, HintError, MegalutError, OutputExistsError
 from megalut_cli.provenance import set_command_line
 
@@ -36,7 +43,20 @@ class MegalutGroup(click.Group):
         return super().main(args=args, prog_name=prog_name, **kwargs)
 
     def list_commands(self, ctx: click.Context) -> list[str]:
-        return list(self.commands)  # the order of the data flow, not alphabetical
+        return list(COMMANDS)  # the order of the data flow, not alphabetical
+
+    def get_command(self, ctx: click.Context | None, cmd_name: str) -> click.Command | None:
+        """The subcommand ``cmd_name``, its module imported on first use (fast start-up)."""
+        if cmd_name not in self.commands and cmd_name in COMMANDS:
+            command = importlib.import_module(COMMANDS[cmd_name][0]).command
+            command.params.extend(verbosity_options())
+            self.add_command(command, cmd_name)
+        return self.commands.get(cmd_name)
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        """The subcommands and their one-line help, without importing them."""
+        with formatter.section("Commands"):
+            formatter.write_dl([(name, text) for name, (_, text) in COMMANDS.items()])
 
     def message(self, ctx: click.Context, err: MegalutError) -> str:
         """A library error in the words of the command line: an argument it names becomes
@@ -45,7 +65,7 @@ class MegalutGroup(click.Group):
             return err.named("--overwrite")
         if not isinstance(err, (ArgumentError, HintError)):
             return str(err)
-        command = self.commands.get(ctx.invoked_subcommand or "")
+        command = self.get_command(ctx, ctx.invoked_subcommand or "")
         flags = flag_names(command) if command is not None else {}
 
         def flag(argument: str) -> str:
@@ -126,23 +146,3 @@ def main() -> None:
 
 
 main.params.extend(verbosity_options())
-
-
-def _register() -> None:
-    from megalut_cli.cli import (
-        evaluate,
-        info,
-        measure,
-        predict,
-        run,
-        simulate,
-        train_point,
-        train_weight,
-    )
-
-    for mod in (simulate, measure, train_point, train_weight, predict, evaluate, run, info):
-        mod.command.params.extend(verbosity_options())
-        main.add_command(mod.command)
-
-
-_register()

@@ -162,3 +162,54 @@ def stdout_path(path: str | None, name: str = "stdout.fits") -> Iterator[str | N
                 shutil.copyfileobj(f, out, 1 << 20)
             out.flush()
 
+
+#: Where the group and its subcommands add up their -v and -q counts.
+_VERBOSITY_KEY = "megalut.verbosity"
+
+
+def _count_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> int:
+    if value:
+        root = ctx.find_root()
+        sign = 1 if param.name == "verbose" else -1
+        root.meta[_VERBOSITY_KEY] = root.meta.get(_VERBOSITY_KEY, 0) + sign * value
+        setup_logging(root.meta[_VERBOSITY_KEY])
+    return value
+
+
+def verbosity(ctx: click.Context) -> int:
+    """The -v count minus the -q count given so far, before and after the subcommand."""
+    return int(ctx.find_root().meta.get(_VERBOSITY_KEY, 0))
+
+
+def verbosity_options() -> list[click.Option]:
+    """``-v/--verbose`` and ``-q/--quiet``, accepted before and after the subcommand (they add up)."""
+    return [
+        click.Option(
+            ["-v", "--verbose"], count=True, expose_value=False, callback=_count_verbosity,
+            help="More log output: -v megalut's debug lines, -vv also third-party libraries'.",
+        ),
+        click.Option(
+            ["-q", "--quiet"], count=True, expose_value=False, callback=_count_verbosity,
+            help="Less log output: -q warnings and errors only, -qq errors only.",
+        ),
+    ]
+
+
+def flag_names(command: click.Command | None = None, **renamed: str) -> dict[str, str]:
+    """How the library's messages name its arguments on this command line.
+
+    Every parameter of ``command`` (default: the running one) by its first flag
+    (``stamp_size`` -> ``--stamp-size``, ``output`` -> ``-o``), an argument by its metavar
+    (``CONFIG``); ``renamed`` gives the library arguments whose name is not the
+    parameter's (``psf_path="--psf"``). Passed as ``names=`` to library calls.
+    """
+    command = command or click.get_current_context().command
+    out: dict[str, str] = {}
+    for param in command.params:
+        if param.name is None:
+            continue
+        if isinstance(param, click.Option):
+            out[param.name] = param.opts[0]
+        else:
+            out[param.name] = param.human_readable_name
+    return {**out, **renamed}

@@ -8,8 +8,8 @@ from typing import TextIO
 import click
 
 from megalut_cli.atomic import write_json
+from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.options import (
-    flag_names,
     overwrite_option,
     parse_list,
     schema_option,
@@ -23,7 +23,7 @@ EXIT_OUT_OF_TOLERANCE = 3
 
 @click.command(
     "evaluate",
-    short_help="Measure shear biases m and c, overall and conditional.",
+    short_help=short_help("evaluate"),
 )
 @click.argument("shears", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
 @schema_option(EVALUATE["by"].with_default(None))
@@ -122,7 +122,7 @@ def command(
           --by "tru_twin_rad/tru_psf_sigma,snr"
     """
     from megalut_cli.atomic import check_output
-    from megalut_cli.cli.console import is_stdio, stdin_path
+    from megalut_cli.cli.console import flag_names, is_stdio, stdin_path
     from megalut_cli.shear.evaluate import (
         WARN_M,
         evaluate_catalog,
@@ -187,7 +187,7 @@ def command(
 def _evaluate_twin(shears: str, twin: str, by: list[str] | None, bins: int, n_boot: int, seed: int,
                    json_path: str | None, overwrite: bool, other: list[str]) -> None:
     """The paired real-vs-twin evaluation of ``--twin``."""
-    from megalut_cli.cli.console import is_stdio
+    from megalut_cli.cli.console import flag_names, is_stdio
     from megalut_cli.shear.paired import evaluate_paired_catalogs, format_paired
 
     if other:

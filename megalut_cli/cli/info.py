@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import click
 
+from megalut_cli.cli.commands import short_help
 
-@click.command("info", short_help="Summarise a megalut catalog, stamp image or model file.")
+
+@click.command("info", short_help=short_help("info"))
 @click.argument("file", type=click.Path(exists=True, dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON (layout: docs/catalogs.md).")
 def command(file: str, as_json: bool) -> None:

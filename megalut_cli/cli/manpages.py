@@ -71,9 +71,17 @@ def iter_commands(cli: click.Command, name: str = "megalut") -> Iterator[click.C
     while stack:
         ctx = stack.pop(0)
         yield ctx
-        for sub_name, sub in getattr(ctx.command, "commands", {}).items():
-            if not sub.hidden:
-                stack.append(click.Context(sub, info_name=sub_name, parent=ctx))
+        for sub_name, sub in subcommands(ctx):
+            stack.append(click.Context(sub, info_name=sub_name, parent=ctx))
+
+
+def subcommands(ctx: click.Context) -> list[tuple[str, click.Command]]:
+    """The visible subcommands of a group (loaded), in its order; none for a command."""
+    group = ctx.command
+    if not isinstance(group, click.Group):
+        return []
+    found = ((name, group.get_command(ctx, name)) for name in group.list_commands(ctx))
+    return [(name, sub) for name, sub in found if sub is not None and not sub.hidden]
 
 
 def man_page(ctx: click.Context) -> str:
@@ -93,9 +101,9 @@ def man_page(ctx: click.Context) -> str:
             record = param.get_help_record(ctx)
             if record is not None:
                 page.options.append((record[0], roff_escape(record[1])))
-    commands = getattr(ctx.command, "commands", None)
+    commands = subcommands(ctx)
     if commands:
-        page.commands = [(k, roff_escape(get_short_help_str(v))) for k, v in commands.items() if not v.hidden]
+        page.commands = [(k, roff_escape(get_short_help_str(v))) for k, v in commands]
     # no hyphenation, ragged right: option names and paths stay whole
     title, rest = str(page).split("\n", 1)
     return f"{title}\n.nh\n.ad l\n{rest}"

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import click
 
+from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.options import (
     device_option,
     engine_option,
     execution_options,
-    flag_names,
     output_option,
     overwrite_option,
     schema_option,
@@ -18,7 +18,7 @@ from megalut_cli.measure.options import MEASURE
 
 @click.command(
     "measure",
-    short_help="Measure adaptive-moment features on a FITS image of stamps.",
+    short_help=short_help("measure"),
 )
 @click.argument("stamps", type=click.Path(exists=True, dir_okay=False))
 @click.argument("catalog", required=False, type=click.Path(exists=True, dir_okay=False, allow_dash=True))
@@ -100,7 +100,7 @@ def command(
       megalut measure starfield_image-000-0.fits -o stars.fits \\
           --stamp-size 48
     """
-    from megalut_cli.cli.console import stdin_path, stdout_path
+    from megalut_cli.cli.console import flag_names, stdin_path, stdout_path
     from megalut_cli.cli.options import progress
     from megalut_cli.engine import resolve_device
     from megalut_cli.measure.measure import measure_file

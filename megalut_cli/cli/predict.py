@@ -6,9 +6,9 @@ import logging
 
 import click
 
+from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.options import (
     execution_options,
-    flag_names,
     output_option,
     overwrite_option,
     schema_option,
@@ -31,7 +31,7 @@ def parse_column_map(items: tuple[str, ...] | list[str]) -> dict[str, str]:
     return out
 
 
-@click.command("predict", short_help="Apply a trained model: add pre_g1, pre_g2 (and weights).")
+@click.command("predict", short_help=short_help("predict"))
 @click.argument("features", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
 @click.option(
     "--model", "model_path", required=True, type=click.Path(exists=True, dir_okay=False),
@@ -76,7 +76,7 @@ def command(
       megalut measure stamps.fits cat.fits -o - \\
           | megalut predict - --model model.h5 -o - | megalut evaluate -
     """
-    from megalut_cli.cli.console import stdin_path, stdout_path
+    from megalut_cli.cli.console import flag_names, stdin_path, stdout_path
     from megalut_cli.cli.options import progress
     from megalut_cli.nn.model import ShearModel
     from megalut_cli.nn.population import model_report

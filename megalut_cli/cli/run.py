@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.options import execution_options, overwrite_option
 
 log = logging.getLogger("megalut")
@@ -14,7 +15,7 @@ log = logging.getLogger("megalut")
 
 @click.command(
     "run",
-    short_help="Run a whole pipeline: simulate, train, predict, evaluate.",
+    short_help=short_help("run"),
     context_settings={"show_default": True},
 )
 @click.argument("pipeline", required=False, metavar="[PIPELINE.toml]")
@@ -125,7 +126,7 @@ def command(
         log.info("--keep-going applies to GREAT3 branch pipelines only: ignored")
     pipe = pl.load_pipeline(pipeline, overrides)
     plan = pipeline_run.plan_pipeline(pipe, workdir, skip_existing=skip_existing, overwrite=overwrite, nproc=nproc,
-                            scheduler=scheduler)
+                                      scheduler=scheduler, estimate=True if dry_run else None)
     for line in plan:
         log.info("%s", line)
     if dry_run:

@@ -6,11 +6,11 @@ import logging
 
 import click
 
+from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.options import (
     device_option,
     engine_option,
     execution_options,
-    flag_names,
     output_option,
     overwrite_option,
     progress,
@@ -23,7 +23,7 @@ log = logging.getLogger("megalut")
 
 @click.command(
     "simulate",
-    short_help="Simulate galaxy stamps with known shear.",
+    short_help=short_help("simulate"),
 )
 @click.argument("config", type=click.Path(exists=True, dir_okay=False))
 @click.argument("overrides", nargs=-1, metavar="[KEY=VALUE]...")
@@ -116,7 +116,7 @@ def command(
       megalut simulate examples/fiducial/tp.toml -o tp.fits --measure \\
           --dry-run
     """
-    from megalut_cli.cli.console import stdout_path
+    from megalut_cli.cli.console import flag_names, stdout_path
     from megalut_cli.engine import resolve_device
     from megalut_cli.sim.config import load_config
     from megalut_cli.sim.simulate import check_outputs, plan_message, simulate
@@ -139,7 +139,8 @@ def command(
         check_branch_output(great3_dir, overwrite, names)
     log.info("about to simulate %s", plan_message(cfg, seed, measure, stamps is not None or great3_dir is not None,
                                                    nproc, scheduler, engine, device,
-                                                   metacal_step if metacal and measure else None))
+                                                   metacal_step if metacal and measure else None,
+                                                   estimate=True if dry_run else None))
     if dry_run:
         return
     if great3_dir is not None:

@@ -6,10 +6,10 @@ from typing import TYPE_CHECKING
 
 import click
 
+from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.options import (
     committee_options,
     execution_options,
-    flag_names,
     optimizer_options,
     output_option,
     overwrite_option,
@@ -31,7 +31,7 @@ _DEFAULT_HIDDEN = ",".join(str(n) for n in POINT_OPTION["hidden"].default)
 
 @click.command(
     "train-point",
-    short_help="Train point-estimate committees (MSB cost).",
+    short_help=short_help("train-point"),
     context_settings={"show_default": True},
 )
 @click.argument("train", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
@@ -108,7 +108,7 @@ def command(
       megalut train-point toy.fits -o toy.h5 --features d \\
           --targets tru_theta --hidden 5
     """
-    from megalut_cli.cli.console import stdin_path
+    from megalut_cli.cli.console import flag_names, stdin_path
     from megalut_cli.training import train_point
 
     train = click.get_current_context().with_resource(stdin_path(train))  # '-': stdin

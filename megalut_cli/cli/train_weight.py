@@ -6,10 +6,10 @@ from typing import TYPE_CHECKING
 
 import click
 
+from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.options import (
     committee_options,
     execution_options,
-    flag_names,
     optimizer_options,
     output_option,
     overwrite_option,
@@ -28,7 +28,7 @@ if TYPE_CHECKING:
 
 @click.command(
     "train-weight",
-    short_help="Train weight committees (MSWB cost) for a point model.",
+    short_help=short_help("train-weight"),
     context_settings={"show_default": True},
 )
 @click.argument("train", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
@@ -86,7 +86,7 @@ def command(
       megalut train-weight tw.fits --model model.h5 -o model_w.h5 \\
           --select "snr > 10" -j 4
     """
-    from megalut_cli.cli.console import stdin_path
+    from megalut_cli.cli.console import flag_names, stdin_path
     from megalut_cli.training import train_weight
 
     train = click.get_current_context().with_resource(stdin_path(train))  # '-': stdin

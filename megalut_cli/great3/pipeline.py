@@ -45,7 +45,7 @@ from typing import Any
 from megalut_cli.engine import DEFAULT_ENGINE, ENGINE_OPTION
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.great3 import layout as L
-from megalut_cli.measure.stamps import MIN_STAMP_SIZE
+from megalut_cli.measure.defaults import MIN_STAMP_SIZE
 from megalut_cli.pipeline_config import PIPELINE, TrainPointSpec, TrainWeightSpec
 from megalut_cli.pipeline_config import SET_OPTIONS as PIPELINE_SET_OPTIONS
 from megalut_cli.schema import Option, Table, resolve_path

@@ -4,7 +4,3 @@
 flags); :mod:`.stamps` locates stamps in FITS images; :mod:`.measure` runs
 ``megalut measure`` on files, in parallel.
 """
-
-from megalut_cli.measure.features import FEATURE_COLUMNS, measure_stamps
-
-__all__ = ["FEATURE_COLUMNS", "measure_stamps"]

@@ -13,8 +13,8 @@ from dataclasses import replace
 
 from megalut_cli.atomic import OVERWRITE_OPTION
 from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION
+from megalut_cli.measure.defaults import MIN_STAMP_SIZE, ORIGINS
 from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, MAX_STEP
-from megalut_cli.measure.stamps import MIN_STAMP_SIZE, ORIGINS
 from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION
 from megalut_cli.schema import DEFAULT_MARK, Option
 from megalut_cli.seeding import SEED_OPTION

@@ -31,13 +31,10 @@ import numpy as np
 
 from megalut_cli.catalog import header_dict, image_ext
 from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.measure.defaults import MIN_STAMP_SIZE, ORIGINS
 
 #: Header card holding the stamp size of an image of stamps.
 STAMP_SIZE_CARD = "STAMPSZ"
-#: The smallest stamp, in pixels.
-MIN_STAMP_SIZE = 3
-#: Coordinates of the first pixel's centre a catalog may use: 1 (FITS), 0 (GREAT3).
-ORIGINS = (0, 1)
 
 #: Tolerance making ``floor`` robust to centres stored as e.g. 32.49999999.
 _EPS = 1e-6

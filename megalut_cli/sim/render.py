@@ -12,16 +12,19 @@ and one inverse FFT runs per batch of stamps sharing a grid. See ``docs/render.m
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 from collections import OrderedDict
-from collections.abc import Hashable
+from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 import galsim
 import numpy as np
 import scipy.fft
 from numba import njit
 
+from megalut_cli.cache import load_arrays, store_arrays
 from megalut_cli.errors import MegalutError
 
 #: Galaxy profiles the renderer draws (others go through GalSim).
@@ -71,6 +74,19 @@ class RadialProfile:
     maxk: float = 0.0
     hlr_factor: float = 0.0
 
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The profile as named arrays (for the disk cache); inverse of :meth:`from_arrays`."""
+        scalars = np.array([self.stepk, self.maxk, self.hlr_factor])
+        ints = np.array([self.kind, *self.octaves], dtype=np.int64)
+        return {"params": self.params, "coef": self.coef, "fast": self.fast, "scalars": scalars, "ints": ints}
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> RadialProfile:
+        """The profile stored by :meth:`arrays`."""
+        kind, lo, hi = (int(v) for v in arrays["ints"])
+        stepk, maxk, hlr_factor = (float(v) for v in arrays["scalars"])
+        return cls(kind, arrays["params"], arrays["coef"], (lo, hi), arrays["fast"], stepk, maxk, hlr_factor)
+
     def kvalue(self, q: np.ndarray, fast: bool = False) -> np.ndarray:
         """F(q) as the renderer evaluates it (the fast form with ``fast``)."""
         eparams, eint, coef, fcoef = _stack([self])
@@ -88,22 +104,44 @@ _SERSIC_TABLES: OrderedDict[tuple[float, galsim.GSParams], RadialProfile] = Orde
 
 
 def sersic_table(n: float, gsparams: galsim.GSParams) -> RadialProfile:
-    """The :class:`RadialProfile` of Sersic index ``n`` (cached per process, LRU).
+    """The :class:`RadialProfile` of Sersic index ``n`` (cached per process, LRU, and on disk).
 
     A new ``n`` costs what it costs GalSim (0.03-0.3 s, growing with n: its SersicInfo
-    Hankel transforms) plus ~10-20 ms of samples and fits; gridded indices are built once
-    per process, continuous ones once per galaxy, as in GalSim.
+    Hankel transforms) plus ~10-20 ms of samples and fits. Indices with at most four
+    decimals (grids) are kept in the disk cache (:mod:`megalut_cli.cache`), so processes
+    and later runs load them in about a millisecond; others (continuous draws, fits) once
+    per process, as in GalSim.
     """
     key = (float(n), gsparams)
     hit = _SERSIC_TABLES.get(key)
     if hit is not None:
         _SERSIC_TABLES.move_to_end(key)
         return hit
-    table = _build_sersic_table(float(n), gsparams)
+    n = float(n)
+    disk_key = sersic_table_key(n, gsparams) if round(n, 4) == n else None
+    stored = load_arrays("sersic", disk_key) if disk_key else None
+    if stored is not None:
+        table = RadialProfile.from_arrays(stored)
+    else:
+        table = _build_sersic_table(n, gsparams)
+        if disk_key:
+            store_arrays("sersic", disk_key, table.arrays())
     _SERSIC_TABLES[key] = table
     while len(_SERSIC_TABLES) > _SERSIC_CACHE_MAX:
         _SERSIC_TABLES.popitem(last=False)
     return table
+
+
+@functools.lru_cache(maxsize=1)
+def _source_digest() -> str:
+    return hashlib.sha256(Path(__file__).read_bytes()).hexdigest()[:16]
+
+
+def sersic_table_key(n: float, gsparams: galsim.GSParams) -> str:
+    """Everything a Sersic table depends on: ``n``, the GSParams, GalSim's and numpy's
+    versions and this module's source (any change of the code that builds it)."""
+    return (f"sersic n={n!r} {gsparams!r} galsim={galsim.__version__} numpy={np.__version__} "
+            f"render={_source_digest()}")
 
 
 def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialProfile:

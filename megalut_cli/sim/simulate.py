@@ -78,8 +78,16 @@ def n_work_units(config: SimConfig, nproc: int = 1, scheduler: str | None = None
     return min(n_units, s.n_cases)
 
 
-def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, n_stamps: int = 32,
-                      engine: str = DEFAULT_ENGINE, device: str = DEFAULT_DEVICE, n_draws: int = 5,
+#: The calibration draw of :func:`stamps_per_second`: ``CALIBRATION_DRAWS`` timed draws of
+#: ``CALIBRATION_DRAW_STAMPS`` stamps after a warm-up of four times that many.
+CALIBRATION_DRAW_STAMPS = 32
+CALIBRATION_DRAWS = 5
+CALIBRATION_STAMPS = (4 + CALIBRATION_DRAWS) * CALIBRATION_DRAW_STAMPS
+
+
+def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: bool,
+                      n_stamps: int = CALIBRATION_DRAW_STAMPS, engine: str = DEFAULT_ENGINE,
+                      device: str = DEFAULT_DEVICE, n_draws: int = CALIBRATION_DRAWS,
                       metacal_step: float | None = None) -> float:
     """Drawing rate of one worker: the median of ``n_draws`` tiny timed draws of ``n_stamps``.
 
@@ -114,11 +122,17 @@ def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: 
     return n_rea / max(statistics.median(seconds), 1e-6)
 
 
+#: Below this many stamps a run's plan gives no time estimate unless asked (``--dry-run``):
+#: the calibration draw would cost more than 1 % of the work it estimates.
+ESTIMATE_MIN_STAMPS = 100 * CALIBRATION_STAMPS
+
+
 def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, nproc: int,
                  scheduler: str | None, engine: str = DEFAULT_ENGINE, device: str = DEFAULT_DEVICE,
-                 metacal_step: float | None = None) -> str:
+                 metacal_step: float | None = None, estimate: bool | None = None) -> str:
     """What simulating ``config`` will do, with a time estimated from a tiny calibration draw
-    (with ``metacal_step``: measured in metacal mode too)."""
+    (with ``metacal_step``: measured in metacal mode too). ``estimate``: whether to make that
+    draw; by default only for runs of ``ESTIMATE_MIN_STAMPS`` or more."""
     s = config.structure
     measured = "measured" + (" (and metacal)" if metacal_step is not None else "")
     what = " and ".join(w for w, on in (("drawn into an image", keep_stamps), (measured, measure)) if on)
@@ -126,6 +140,12 @@ def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool,
             f"{s.stamp_size}x{s.stamp_size} px")
     if not what:
         return f"{head}: truth only, nothing drawn"
+    if estimate is None:
+        estimate = s.n_stamps >= ESTIMATE_MIN_STAMPS
+    if not estimate:
+        where = "on the Dask cluster" if scheduler else \
+            f"on {min(resolve_nproc(nproc), n_work_units(config, nproc, scheduler))} worker(s)"
+        return f"{head}, {what}, {where}"
     rate = stamps_per_second(config, seed, measure, keep_stamps, engine=engine, device=device,
                              metacal_step=metacal_step)
     if scheduler:

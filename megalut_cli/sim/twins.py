@@ -16,7 +16,6 @@ from typing import Any
 
 import galsim
 import numpy as np
-from scipy.optimize import least_squares
 
 from megalut_cli.errors import InputError
 
@@ -72,6 +71,8 @@ def fit_sersic(image: galsim.Image, psf: galsim.GSObject, variance: float) -> di
         flux = float(np.sum(model * data)) / mm if mm > 0 else 0.0
         last["flux"] = flux
         return ((data - flux * model) / sqrt_var).ravel()
+
+    from scipy.optimize import least_squares  # a second to import: only fits need it
 
     res = least_squares(residuals, p0, bounds=(lo, hi), x_scale=np.array([0.1, 0.3, 0.1, 0.1, scale, scale]),
                         diff_step=1e-3, max_nfev=200)
