@@ -43,6 +43,8 @@ from megalut_cli.measure.measure import measure_file  # noqa: E402
 from megalut_cli.measure.stamps import check_grid, cut_stamps, grid_origins, image_info, read_rows  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from galsim_loops import measure_loop  # noqa: E402
 
 
 def simulate_grid(path: Path, n: int, seed: int) -> None:
@@ -64,11 +66,6 @@ def read_grid(path: Path) -> np.ndarray:
     n_y, n_x = check_grid(info, size)
     origins = grid_origins(n_y, n_x, size)[: int(info.header.get("NSTAMPS", n_y * n_x))]
     return cut_stamps(read_rows(info, 0, info.shape[0]), 0, origins, size)
-
-
-def plain_loop(stamps: np.ndarray) -> None:
-    for stamp in stamps:
-        galsim.hsm.FindAdaptiveMom(galsim.ImageD(stamp), guess_sig=5.0, strict=False)
 
 
 def cpu_time(func) -> float:
@@ -148,7 +145,7 @@ def main() -> None:
         runs = {
             "fast": lambda: measure_stamps(stamps, engine="fast"),
             "galsim": lambda: measure_stamps(stamps, engine="galsim"),
-            "loop": lambda: plain_loop(stamps),
+            "loop": lambda: measure_loop(stamps),
             "measure_file": lambda: measure_file(grid, None, Path(tmp) / "f.fits", overwrite=True),
         }
         times: dict[str, list[float]] = {k: [] for k in runs}

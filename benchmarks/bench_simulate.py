@@ -59,19 +59,11 @@ import numpy as np  # noqa: E402
 from megalut_cli.sim.config import SimConfig, load_config  # noqa: E402
 from megalut_cli.sim.simulate import simulate  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from galsim_loops import SERSIC_N, STAMP_SIZE, plain_loop  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "examples" / "fiducial" / "tp.toml"
-
-#: The plain loop's parameter distributions: those of examples/fiducial/tp.toml (Table 1).
-STAMP_SIZE = 64
-PSF_SIGMA = 2.0
-NOISE_SIGMA = 1.0
-SERSIC_N = np.round(np.arange(1.0, 4.0 + 1e-9, 0.1), 1)  # grid, step 0.1 (GalSim's cache)
-RAD = (2.0, 8.0)  # half-light radius, pixels, uniform
-SB = (1.0, 15.0)  # surface brightness, flux = sb * pi * rad^2, uniform
-ELL_MODE, ELL_MAX = 0.2, 0.6  # Rayleigh of mode 0.2 truncated to [0, 0.6]
-SHEAR_MAX = 0.1  # g1, g2 uniform in [-0.1, 0.1]
-OFFSET = 0.5  # sub-pixel offset uniform in [-0.5, 0.5] px
 
 #: A timed job: returns (n_stamps, seconds of the draw+measure phase or NaN, adamom sigmas).
 Job = Callable[[], tuple[int, float, np.ndarray]]
@@ -107,41 +99,6 @@ def machine_busy() -> float:
     # cpu user nice system idle iowait irq softirq steal ...
     busy = sum(int(fields[i]) for i in (1, 2, 3, 6, 7, 8) if i < len(fields))
     return busy / os.sysconf("SC_CLK_TCK")
-
-
-def truncated_rayleigh(rng: np.random.Generator, n: int, mode: float, hi: float) -> np.ndarray:
-    """Rayleigh of ``mode`` truncated to [0, hi] (inverse CDF)."""
-    q_hi = math.exp(-(hi**2) / (2 * mode**2))
-    q = 1.0 - rng.random(n) * (1.0 - q_hi)
-    return np.sqrt(-2 * mode**2 * np.log(q))
-
-
-def plain_loop(n: int, seed: int) -> np.ndarray:
-    """Draw, noise and measure ``n`` fiducial stamps with plain GalSim calls; adamom sigmas."""
-    rng = np.random.default_rng(seed)
-    sersicn = rng.choice(SERSIC_N, n)
-    rad = rng.uniform(*RAD, n)
-    flux = rng.uniform(*SB, n) * np.pi * rad**2
-    ell = truncated_rayleigh(rng, n, ELL_MODE, ELL_MAX)
-    theta = rng.uniform(0.0, np.pi, n)
-    e1, e2 = ell * np.cos(2 * theta), ell * np.sin(2 * theta)
-    g1, g2 = rng.uniform(-SHEAR_MAX, SHEAR_MAX, (2, n))
-    dx, dy = rng.uniform(-OFFSET, OFFSET, (2, n))
-    noise_seeds = rng.integers(1, 2**31 - 1, n)
-    psf = galsim.Gaussian(sigma=PSF_SIGMA)
-    sigma = np.full(n, np.nan)
-    for i in range(n):
-        gal = galsim.Sersic(n=sersicn[i], half_light_radius=rad[i], flux=flux[i])
-        gal = gal.shear(g1=e1[i], g2=e2[i]).shear(g1=g1[i], g2=g2[i])
-        image = galsim.Convolve(gal, psf).drawImage(
-            nx=STAMP_SIZE, ny=STAMP_SIZE, scale=1.0, offset=(dx[i], dy[i])
-        )
-        noise = galsim.GaussianNoise(galsim.BaseDeviate(int(noise_seeds[i])), sigma=NOISE_SIGMA)
-        image.addNoise(noise)
-        res = galsim.hsm.FindAdaptiveMom(image, strict=False)
-        if res.moments_status == 0:
-            sigma[i] = res.moments_sigma
-    return sigma
 
 
 def timed(func: Job) -> Sample:

@@ -86,6 +86,26 @@ def test_simulate_dry_run_says_what_and_how_long_and_writes_nothing(runner, cli,
     assert again.exit_code == 1 and "--overwrite" in again.stderr
 
 
+def test_small_simulation_makes_no_calibration_draw(runner, cli, inputs, tmp_path, monkeypatch):
+    """A run far below ESTIMATE_MIN_STAMPS says what it does but draws nothing to time it
+    (the calibration would cost more than the run); --dry-run still estimates."""
+    from megalut_cli.sim import simulate as sim_module
+
+    calls = []
+    real = sim_module.stamps_per_second
+    monkeypatch.setattr(sim_module, "stamps_per_second", lambda *a, **k: calls.append(1) or real(*a, **k))
+    out = tmp_path / "cat.fits"
+    result = runner.invoke(cli, ["simulate", str(inputs["config"]), "-o", str(out), "--measure", "--n-cases", "3",
+                                 "-j", "1"])
+    assert result.exit_code == 0, result.stderr
+    assert "3 cases x 4 realizations = 12 stamps of 24x24 px, measured, on 1 worker(s)" in result.stderr
+    assert "calibration draw" not in result.stderr and calls == [] and out.exists()
+    assert sim_module.ESTIMATE_MIN_STAMPS >= 100 * sim_module.CALIBRATION_STAMPS
+    dry = runner.invoke(cli, ["simulate", str(inputs["config"]), "-o", str(out), "--measure", "--n-cases", "3",
+                              "--dry-run", "--overwrite"])
+    assert dry.exit_code == 0 and "calibration draw" in dry.stderr and calls == [1]
+
+
 def test_run_dry_run_lists_steps_and_creates_nothing(runner, cli, tmp_path):
     wd = tmp_path / "wd"
     result = runner.invoke(cli, ["run", str(write_pipeline(tmp_path)), "--workdir", str(wd), "--dry-run"])

@@ -16,7 +16,7 @@ T="python $EX/mcal_tools.py"
 BOOT=${BOOT:-1000}
 W=${W:-/tmp/mcx/$EXP-s$(IFS=+; echo "${SEEDS[*]}")-n$NC}
 mkdir -p "$W"
-for e in a b c; do
+for e in ${LETTERS:-a b c}; do
   for set in real twin; do
     $T concat "$W/$set-$e.fits" $(for s in "${SEEDS[@]}"; do echo "/tmp/mcx/$EXP-s$s-n$NC/$set-$e.fits"; done)
   done

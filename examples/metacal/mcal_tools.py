@@ -7,6 +7,7 @@
     python mcal_tools.py subset OUT.fits IN.fits CONFIG.toml   # the rows of the galaxies of CONFIG's index
     python mcal_tools.py paired OUT.json REAL.fits TWIN.fits [N_BOOT] [SEED]  # --twin, weights with R_sel
     python mcal_tools.py table RESULTS.json ...                # the README tables from --json files
+    python mcal_tools.py responses SHEARS.fits ...             # mean and scatter of the responses
 
 ``merge``: the shear runs of one config and seed (each a constant shear, every other draw
 identical: common random numbers) become the cases of one catalog: ``case`` = the run's
@@ -204,6 +205,37 @@ def _f(v: float | None, e: float | None, scale: float = 1e3) -> str:
     return f"{v * scale:+.2f} ± {e * scale:.2f}" if e is not None else f"{v * scale:+.2f}"
 
 
+def responses(paths: list[str]) -> None:
+    """Per estimator (a ``megalut predict`` or ``adamom`` catalog): mean and scatter of the
+    per-row diagonal responses and of the noshear estimates, on the rows ``evaluate`` uses
+    (noshear features measured, every response finite); with weights, the weighted mean
+    response and the effective scatter sqrt(N sum w^2 (R - <R>)^2) / sum w that sets the
+    error of <R> (the error on m of a common-random-number set, whose shears share it)."""
+    print("| catalog | rows | <R11> | sd R11 | <R22> | sd R22 | sd g1 | weighted <R11> | eff. sd R11 | weighted <R22> | eff. sd R22 |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for p in paths:
+        t = read_catalog(p)
+        r11, r22 = (np.asarray(t[c], dtype=float) for c in ("mcal_r11", "mcal_r22"))
+        g1 = np.asarray(t["pre_g1"], dtype=float)
+        ok = np.isfinite(r11) & np.isfinite(r22) & np.isfinite(g1)
+        if "flags_noshear" in t.colnames:
+            ok &= np.asarray(t["flags_noshear"]) == 0
+        row = [p.rsplit("/", 1)[-1], f"{ok.sum()}"]
+        for r in (r11, r22):
+            row += [f"{r[ok].mean():.4f}", f"{r[ok].std():.3f}"]
+        row.append(f"{g1[ok].std():.3f}")
+        for i, r in ((1, r11), (2, r22)):
+            if f"pre_g{i}_w" in t.colnames:
+                w = np.asarray(t[f"pre_g{i}_w"], dtype=float)
+                good = ok & np.isfinite(w)
+                mean = np.average(r[good], weights=w[good])
+                eff = np.sqrt(good.sum() * np.sum(w[good] ** 2 * (r[good] - mean) ** 2)) / w[good].sum()
+                row += [f"{mean:.4f}", f"{eff:.3f}"]
+            else:
+                row += ["", ""]
+        print("| " + " | ".join(row) + " |")
+
+
 def table(paths: list[str]) -> None:
     """One row per JSON file (megalut evaluate --twin --json) and scheme: m in units of
     1e-3, c in units of 1e-4."""
@@ -234,5 +266,7 @@ if __name__ == "__main__":
         paired(args[0], args[1], args[2], *(int(x) for x in args[3:5]))
     elif cmd == "table":
         table(args)
+    elif cmd == "responses":
+        responses(args)
     else:
         raise SystemExit(__doc__)
