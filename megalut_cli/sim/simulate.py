@@ -140,18 +140,14 @@ def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool,
             f"{s.stamp_size}x{s.stamp_size} px")
     if not what:
         return f"{head}: truth only, nothing drawn"
-    if estimate is None:
-        estimate = s.n_stamps >= ESTIMATE_MIN_STAMPS
-    if not estimate:
-        where = "on the Dask cluster" if scheduler else \
-            f"on {min(resolve_nproc(nproc), n_work_units(config, nproc, scheduler))} worker(s)"
-        return f"{head}, {what}, {where}"
+    workers = 0 if scheduler else min(resolve_nproc(nproc), n_work_units(config, nproc, scheduler))
+    if not (s.n_stamps >= ESTIMATE_MIN_STAMPS if estimate is None else estimate):
+        return f"{head}, {what}, " + ("on the Dask cluster" if scheduler else f"on {workers} worker(s)")
     rate = stamps_per_second(config, seed, measure, keep_stamps, engine=engine, device=device,
                              metacal_step=metacal_step)
     if scheduler:
         return (f"{head}, {what}: about {format_duration(s.n_stamps / rate)} of worker time "
                 f"on the Dask cluster ({rate:.0f} stamps/s per worker in a calibration draw)")
-    workers = min(resolve_nproc(nproc), n_work_units(config, nproc, scheduler))
     return (f"{head}, {what}, on {workers} worker(s): about {format_duration(s.n_stamps / rate / workers)} "
             f"({rate:.0f} stamps/s per worker in a calibration draw)")
 
