@@ -22,7 +22,8 @@ def check_output(path: str | os.PathLike, overwrite: bool) -> Path:
     """Fail early, before any work, if ``path`` cannot be written as asked.
 
     That is: it exists and ``overwrite`` is false, it is a folder, its folder is missing or
-    not writable (outputs are written to a temporary file beside them, then renamed).
+    no file can be created in it (outputs are written to a temporary file beside them, then
+    renamed).
     """
     p = Path(path)
     if p.is_dir():
@@ -34,6 +35,14 @@ def check_output(path: str | os.PathLike, overwrite: bool) -> Path:
         raise MegalutError(f"{p}: output folder {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise MegalutError(f"{p}: output folder {parent} is not writable")
+    # Permission bits do not tell everything (root, read-only or virtual file systems such
+    # as /sys): create the temporary file the writer would create, and remove it.
+    try:
+        fd, probe = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=parent)
+    except OSError as err:
+        raise MegalutError(f"{p}: cannot write in {parent} ({err.strerror or err})") from None
+    os.close(fd)
+    os.unlink(probe)
     return p
 
 

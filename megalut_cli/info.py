@@ -1,4 +1,6 @@
-"""What is inside a megalut file (``megalut info``): catalogs, stamp images, models.
+"""What is inside a megalut file (``megalut info``): catalogs, stamp images, models,
+evaluations (``evaluate --json``), run manifests (``manifest.json``) and text catalogs
+(GREAT3's ``# name`` catalogs).
 
 :func:`describe_file` returns a JSON-ready dict; :func:`format_info` renders it as text,
 as ``fitsinfo`` and ``rio info`` do for their files.
@@ -17,7 +19,7 @@ import numpy as np
 from megalut_cli import flags as fl
 from megalut_cli.catalog import header_dict, history_steps
 from megalut_cli.errors import InputError
-from megalut_cli.provenance import sha256_file
+from megalut_cli.provenance import sha256_file, shown_path
 
 _FITS_MAGIC = b"SIMPLE  ="
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
@@ -42,7 +44,119 @@ def describe_file(path: str | os.PathLike) -> dict[str, Any]:
         return _describe_fits(p)
     if magic == _HDF5_MAGIC:
         return _describe_model(p)
-    raise InputError(f"{p}: not a FITS catalog, FITS image or HDF5 model file")
+    if magic.lstrip()[:1] == b"{":
+        return _describe_json(p)
+    try:
+        return _describe_text_catalog(p)
+    except InputError:
+        pass
+    raise InputError(f"{p}: not a FITS catalog or image, HDF5 model, megalut JSON file (evaluation, "
+                     "manifest) or text catalog")
+
+
+# --------------------------------------------------------------------------- JSON and text files
+#: The JSON formats ``info`` describes: evaluate --json and the run manifest.
+EVALUATION_FORMAT = "megalut.evaluation"
+MANIFEST_FORMAT = "megalut.run-manifest"
+
+
+def _describe_json(p: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(p.read_text())
+    except (UnicodeDecodeError, ValueError):
+        raise InputError(f"{p}: not a readable JSON file") from None
+    fmt = data.get("format") if isinstance(data, dict) else None
+    if fmt == EVALUATION_FORMAT:
+        return _describe_evaluation(p, data)
+    if fmt == MANIFEST_FORMAT:
+        return _describe_manifest(p, data)
+    raise InputError(f"{p}: a JSON file megalut does not describe (format {fmt!r}; known: "
+                     f"{EVALUATION_FORMAT}, {MANIFEST_FORMAT})")
+
+
+def _describe_evaluation(p: Path, data: dict[str, Any]) -> dict[str, Any]:
+    fits = {s: data[s] for s in ("unweighted", "weighted") if isinstance(data.get(s), dict)}
+    prov = data.get("provenance") if isinstance(data.get("provenance"), dict) else {}
+    return {
+        "path": str(p),
+        "format": EVALUATION_FORMAT,
+        "format_version": data.get("format_version"),
+        "kind": "evaluation",
+        "input": data.get("input"),
+        "rows": data.get("n_rows"),
+        "rows_usable": data.get("n_valid"),
+        "error": data.get("error"),
+        "fits": fits,
+        "requirement": data.get("requirement"),
+        "conditional": sorted(data.get("conditional") or {}),
+        "provenance": {k: prov.get(k) for k in ("created", "creator", "command") if k in prov},
+    }
+
+
+def _describe_manifest(p: Path, data: dict[str, Any]) -> dict[str, Any]:
+    pipe = data.get("pipeline") if isinstance(data.get("pipeline"), dict) else {}
+    steps = data.get("steps") if isinstance(data.get("steps"), dict) else {}
+    return {
+        "path": str(p),
+        "format": MANIFEST_FORMAT,
+        "format_version": data.get("format_version"),
+        "kind": "manifest",
+        "megalut": data.get("megalut"),
+        "pipeline": {k: pipe.get(k) for k in ("path", "sha256", "overrides")},
+        "pipelines": sorted(data.get("pipelines") or {}),
+        "steps": {
+            name: {"seconds": rec.get("seconds"), "finished": rec.get("finished"),
+                   "outputs": sorted(rec.get("outputs") or {}), "copied_from": rec.get("copied_from")}
+            for name, rec in steps.items() if isinstance(rec, dict)
+        },
+        "failed": data.get("failed") or {},
+    }
+
+
+def _describe_text_catalog(p: Path) -> dict[str, Any]:
+    from megalut_cli.catalog import read_text_catalog
+
+    try:
+        with open(p, "rb") as f:
+            head = f.read(4096)
+        if b"\0" in head or not head.lstrip().startswith(b"#"):
+            raise InputError(f"{p}: not a text catalog")
+        table = read_text_catalog(p)
+    except (OSError, ValueError):
+        raise InputError(f"{p}: not a text catalog") from None
+    names = list(table.colnames)
+    n = len(table)
+    out: dict[str, Any] = {
+        "path": str(p),
+        "format": "text catalog",
+        "format_version": None,
+        "kind": "text_catalog",
+        "rows": n,
+        "columns": [{"name": c, "type": np.asarray(table[c]).dtype.name} for c in names],
+    }
+    great3 = _great3_kind(p.name, names)
+    if great3:
+        out["format"] = f"GREAT3 {great3} (text)"
+    if "ID" in names and n:
+        ids = np.asarray(table["ID"]).astype(np.int64)
+        out["subfields"] = sorted({int(i) for i in ids // 1_000_000})[:20]
+    for c in ("x", "y"):
+        if c in names and n:
+            v = np.asarray(table[c], dtype=float)
+            out[f"{c}_range"] = [float(np.nanmin(v)), float(np.nanmax(v))]
+    return out
+
+
+def _great3_kind(name: str, columns: list[str]) -> str | None:
+    """GREAT3's name of a text catalog, from its file name and columns (docs/great3.md)."""
+    for prefix, what in (("galaxy_catalog-", "galaxy catalog"), ("star_catalog-", "star catalog"),
+                         ("shear_params-", "shear parameters"), ("starshape_parameters-", "star shape parameters"),
+                         ("subfield_offset-", "subfield offset"), ("epoch_dither-", "epoch dither")):
+        if name.startswith(prefix):
+            return what
+    if {"x", "y", "ID"} <= set(columns):
+        return "galaxy catalog"
+    return None
 
 
 # --------------------------------------------------------------------------- FITS
@@ -216,7 +330,7 @@ def _model_chain(prov: dict[str, Any]) -> list[str]:
     while isinstance(prov, dict) and prov:
         inputs = prov.get("inputs") or {}
         used = ", ".join(
-            f"{role} {v.get('path', '?')} (sha256 {str(v.get('sha256', '?'))[:12]})"
+            f"{role} {shown_path(v.get('path', '?'))} (sha256 {str(v.get('sha256', '?'))[:12]})"
             for role, v in inputs.items() if isinstance(v, dict)
         )
         lines.append(f"{prov.get('argv') or prov.get('command', '?')}" + (f"\n      inputs: {used}" if used else ""))
@@ -253,6 +367,9 @@ def format_info(info: dict[str, Any]) -> str:
             gx, gy = info["grid"]
             lines.append(f"stamps: {info['stamps']} of {info['stamp_size']}x{info['stamp_size']} pixels "
                          f"in a {gx}x{gy} grid")
+    elif kind in ("evaluation", "manifest", "text_catalog"):
+        lines += _OTHER_FORMATS[kind](info, fmt)
+        return "\n".join(lines)
     else:
         lines.append(f"{info['path']}: {fmt}, targets {', '.join(info['targets'])}")
         mode = info.get("shear_mode", "simulation")
@@ -296,3 +413,67 @@ def format_info(info: dict[str, Any]) -> str:
             lines.append("provenance:")
             lines += [f"  {i}. {s}" for i, s in enumerate(chain, start=1)]
     return "\n".join(lines)
+
+
+def _pm(v: Any, e: Any) -> str:
+    if v is None:
+        return "undetermined"
+    return f"{v:+.2e} ± " + (f"{e:.1e}" if e is not None else "n/a")
+
+
+def _evaluation_lines(info: dict[str, Any], fmt: str) -> list[str]:
+    lines = [f"{info['path']}: {fmt}, the biases of {info.get('input') or '?'} "
+             f"({info.get('rows_usable', '?')} of {info.get('rows', '?')} rows usable)"]
+    lines.append(f"errors: {'bootstrap over galaxies' if info.get('error') == 'bootstrap-galaxies' else 'from the fit'}")
+    for scheme, comps in info["fits"].items():
+        for comp, f in comps.items():
+            lines.append(f"  {scheme:<10} {comp:<5} m = {_pm(f.get('m'), f.get('m_err')):<21} "
+                         f"c = {_pm(f.get('c'), f.get('c_err')):<21} {f.get('n_cases', '?')} cases")
+    req = info.get("requirement")
+    if isinstance(req, dict):
+        lines.append(f"Stage IV requirement on {req.get('applies_to', '?')} results: "
+                     + ("met" if req.get("met") else "NOT met"))
+    if info.get("conditional"):
+        lines.append(f"conditional biases by: {', '.join(info['conditional'])}")
+    prov = info["provenance"]
+    lines.append(f"created: {prov.get('created') or '?'} by {prov.get('creator') or '?'}")
+    if prov.get("command"):
+        lines.append(f"command: {prov['command']}")
+    return lines
+
+
+def _manifest_lines(info: dict[str, Any], fmt: str) -> list[str]:
+    pipe = info["pipeline"]
+    sha = str(pipe.get("sha256") or "?")[:12]
+    lines = [f"{info['path']}: {fmt}, a megalut run's work folder record (megalut {info.get('megalut') or '?'})",
+             f"pipeline: {pipe.get('path') or '?'} (sha256 {sha}), overrides: "
+             + (" ".join(pipe.get("overrides") or []) or "none")]
+    if len(info["pipelines"]) > 1:
+        lines.append(f"pipelines run here: {', '.join(n or '(unnamed)' for n in info['pipelines'])}")
+    steps = info["steps"]
+    lines.append(f"steps: {len(steps)} finished")
+    width = max([len(n) for n in steps] + [4])
+    for name, st in steps.items():
+        secs = st.get("seconds")
+        took = f"{secs:.1f} s" if isinstance(secs, (int, float)) else "?"
+        copied = f" (copied from {st['copied_from']})" if st.get("copied_from") else ""
+        lines.append(f"  {name:<{width}}  {took:>9}  {st.get('finished') or '?':<19}  "
+                     f"{', '.join(st['outputs'])}{copied}".rstrip())
+    for unit, error in info["failed"].items():
+        lines.append(f"  failed: {unit}: {error}")
+    return lines
+
+
+def _text_catalog_lines(info: dict[str, Any], fmt: str) -> list[str]:
+    lines = [f"{info['path']}: {fmt}, {info['rows']} rows, {len(info['columns'])} columns: "
+             + ", ".join(c["name"] for c in info["columns"])]
+    if "subfields" in info:
+        lines.append(f"subfields (ID // 10^6): {', '.join(map(str, info['subfields']))}")
+    for c in ("x", "y"):
+        if f"{c}_range" in info:
+            lo, hi = info[f"{c}_range"]
+            lines.append(f"{c}: {lo:g} to {hi:g}")
+    return lines
+
+
+_OTHER_FORMATS = {"evaluation": _evaluation_lines, "manifest": _manifest_lines, "text_catalog": _text_catalog_lines}

@@ -173,7 +173,9 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         """A step evaluating ``shears`` with the options ``ev`` of the pipeline table ``table``."""
         plot = ev.plot and _have_matplotlib()
         if ev.plot and not plot:
-            log.info("matplotlib is not installed: no %s (pip install 'megalut-cli[plot]')", png_name)
+            from megalut_cli.shear.plots import MATPLOTLIB_HINT
+
+            log.info("matplotlib is not installed: no %s (%s)", png_name, MATPLOTLIB_HINT)
 
         def action(wd: Path, overwrite: bool) -> None:
             from megalut_cli.shear.evaluate import evaluate_catalog

@@ -132,7 +132,7 @@ def test_unreadable_and_bad_options(runner, cli, shears, tmp_path):
     result = runner.invoke(cli, ["evaluate", str(shears), "--select", "snr >"])
     assert result.exit_code == 2
     result = runner.invoke(cli, ["evaluate", str(shears), "--plot", str(tmp_path / "x.jpg")])
-    assert result.exit_code == 1 and ".png" in _errline(result)
+    assert result.exit_code == 2 and ".png" in _errline(result)  # a usage error (issue 24)
 
 
 def test_nan_in_json_is_null(runner, cli, tmp_path):

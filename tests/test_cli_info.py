@@ -216,7 +216,7 @@ def test_info_bad_inputs(runner, cli, tmp_path, chain):
     text = tmp_path / "notes.txt"
     text.write_text("hello\n")
     r = runner.invoke(cli, ["info", str(text)])
-    assert r.exit_code == 1 and "not a FITS catalog, FITS image or HDF5 model file" in _one_line_error(r)
+    assert r.exit_code == 1 and "not a FITS catalog or image, HDF5 model, megalut JSON file" in _one_line_error(r)
     trunc = tmp_path / "trunc.fits"
     trunc.write_bytes(chain["sh"].read_bytes()[:5000])
     r = runner.invoke(cli, ["info", str(trunc)])

@@ -330,7 +330,7 @@ def test_bad_pipeline_settings(runner, cli, branch, tmp_path, override, words):
 
 def test_missing_branch_folder(runner, cli, tmp_path):
     r = runner.invoke(cli, ["run", str(_pipeline(tmp_path, tmp_path / "nowhere")), "--workdir", str(tmp_path / "w")])
-    _error_line(r, 1, "branch.path", "nowhere")
+    _error_line(r, 1, "pipe.toml: [branch] path", "nowhere")  # the file and table as written (issue 24)
 
 
 def test_branch_defaults_come_from_the_declarations(branch, tmp_path):

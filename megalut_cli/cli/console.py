@@ -152,6 +152,9 @@ def stdout_path(path: str | None, name: str = "stdout.fits") -> Iterator[str | N
     if not is_stdio(path):
         yield path
         return
+    if sys.stdout.isatty():
+        raise click.UsageError("'-o -' writes a FITS file to stdout, but stdout is a terminal; "
+                               "redirect it (> file.fits) or pipe it into another command")
     with tempfile.TemporaryDirectory(prefix="megalut-stdout-") as tmp:
         target = Path(tmp) / name
         _STREAM_NAMES[str(target)] = "stdout"

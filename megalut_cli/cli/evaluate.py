@@ -21,6 +21,19 @@ from megalut_cli.shear.options import EVALUATE, EVALUATE_CLI
 EXIT_OUT_OF_TOLERANCE = 3
 
 
+def _plot_suffix(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
+    """``--plot``'s file type, checked while the options are read (a usage error, before any work)."""
+    if value is not None:
+        from megalut_cli.errors import ArgumentValueError
+        from megalut_cli.shear.plots import check_plot_suffix
+
+        try:
+            check_plot_suffix(value)
+        except ArgumentValueError as err:
+            raise click.BadParameter(err.rest.lstrip(": "), ctx, param) from None
+    return value
+
+
 @click.command(
     "evaluate",
     short_help=short_help("evaluate"),
@@ -36,8 +49,9 @@ EXIT_OUT_OF_TOLERANCE = 3
     "'-': stdout, the table then goes to stderr.",
 )
 @click.option(
-    "--plot", "plot_path", type=click.Path(dir_okay=False), default=None,
-    help="Draw residual and conditional-bias panels into this .png/.pdf/.svg (needs the 'plot' extra).",
+    "--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix,
+    help="Draw residual and conditional-bias panels into this .png/.pdf/.svg (needs matplotlib: "
+    "pip install matplotlib).",
 )
 @schema_option(EVALUATE_CLI["fail_above"], help=EVALUATE_CLI["fail_above"].help.replace("EXIT", str(EXIT_OUT_OF_TOLERANCE)))
 @click.option(
@@ -125,6 +139,7 @@ def command(
     from megalut_cli.cli.console import flag_names, is_stdio, stdin_path
     from megalut_cli.shear.evaluate import (
         WARN_M,
+        errors_na_note,
         evaluate_catalog,
         large_m,
         requirement_met,
@@ -165,6 +180,9 @@ def command(
     if from_stdin:
         result["input"] = "stdin"
     click.echo(format_table(result), err=json_to_stdout)
+    note = errors_na_note(result)
+    if note:
+        click.echo(f"megalut: {note}", err=True)
     warnings = large_m(result)
     if warnings:
         click.echo(f"megalut: warning: |m| > {WARN_M:g} ({'; '.join(warnings)}): "

@@ -1,4 +1,4 @@
-"""`megalut info`: what is inside a catalog, a stamp image or a model file."""
+"""`megalut info`: what is inside a catalog, a stamp image, a model, an evaluation or a run manifest."""
 
 from __future__ import annotations
 
@@ -19,13 +19,20 @@ def command(file: str, as_json: bool) -> None:
     it, the model and config hashes). A stamp image: its shape, stamp size and grid.
     An HDF5 model: its targets, features, committees (networks selected, architecture,
     cost, normalisation, training settings), the training data (path and sha256) of
-    every training step, software versions.
+    every training step (file names and sha256), software versions. An evaluation
+    (evaluate --json, a run's evaluation.json): its input, m and c of each fit, the
+    requirement. A run's manifest.json: the pipeline file and overrides, every finished
+    step with its time and products. A text catalog (GREAT3's galaxy_catalog-SSS.txt,
+    star_catalog-SSS.txt; '# name' header lines): rows, columns, subfields, x/y ranges.
 
     \b
     Example:
       megalut info shears.fits
       megalut info model.h5 --json | python -m json.tool
       megalut info stamps.fits
+      megalut info megalut-run/manifest.json
+      megalut info megalut-run/evaluation.json
+      megalut info galaxy_catalog-000.txt
     """
     import json
 

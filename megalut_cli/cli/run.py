@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from collections.abc import Iterator
 from pathlib import Path
 
 import click
@@ -124,7 +126,8 @@ def command(
         return
     if keep_going:
         log.info("--keep-going applies to GREAT3 branch pipelines only: ignored")
-    pipe = pl.load_pipeline(pipeline, overrides)
+    with _keys_as_written(pipeline, overrides):
+        pipe = pl.load_pipeline(pipeline, overrides)
     plan = pipeline_run.plan_pipeline(pipe, workdir, skip_existing=skip_existing, overwrite=overwrite, nproc=nproc,
                                       scheduler=scheduler, estimate=True if dry_run else None)
     for line in plan:
@@ -143,6 +146,21 @@ def command(
     click.echo(pipeline_run.format_summary(result))
 
 
+@contextlib.contextmanager
+def _keys_as_written(pipeline: str | None, overrides: tuple[str, ...]) -> Iterator[None]:
+    """Errors of the pipeline file name its keys where the user wrote them: the file and
+    its table (``pipeline.toml: [simulation.noise] sigam: unknown key``) or the override."""
+    from megalut_cli.errors import ConfigError, InputError
+    from megalut_cli.pipeline_config import where_written
+
+    try:
+        yield
+    except (ConfigError, InputError) as err:
+        if type(err) not in (ConfigError, InputError):  # errors with their own fields
+            raise
+        raise type(err)(where_written(str(err), pipeline, overrides)) from None
+
+
 def _is_branch(pipeline: str) -> bool:
     from megalut_cli.great3 import pipeline as g3
 
@@ -158,7 +176,8 @@ def _branch_pipeline(pipeline: str, workdir: str, overrides: tuple[str, ...], sk
 
     if not g3.is_branch_pipeline(pipeline):
         return False
-    pipe = g3.load_branch_pipeline(pipeline, overrides)
+    with _keys_as_written(pipeline, overrides):
+        pipe = g3.load_branch_pipeline(pipeline, overrides)
     result = runner.run_branch(pipe, workdir, skip_existing=skip_existing, overwrite=overwrite, keep_going=keep_going,
                                nproc=nproc, scheduler=scheduler, progress=progress)
     click.echo(runner.format_summary(result))

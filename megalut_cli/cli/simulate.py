@@ -146,12 +146,13 @@ def command(
     if great3_dir is not None:
         from megalut_cli.great3.sim import simulate_branch
 
-        simulate_branch(
+        branch = simulate_branch(
             cfg, great3_dir, output, measure=measure, seed=seed, nproc=nproc,
             scheduler=scheduler, overwrite=overwrite, progress=progress, engine=engine, names=names,
         )
+        log.info("wrote %s (%d subfields) and %s", branch.branch_dir, branch.n_subfields, branch.catalog)
         return
-    simulate(
+    result = simulate(
         cfg,
         output,
         stamps=stamps,
@@ -168,3 +169,5 @@ def command(
         metacal=metacal,
         metacal_step=metacal_step,
     )
+    log.info("wrote %s (%d rows)%s", result.catalog, result.n_stamps,
+             f" and {result.stamps}" if result.stamps is not None else "")

@@ -594,6 +594,37 @@ def large_m(result: Mapping[str, Any]) -> list[str]:
     return out
 
 
+#: Cases below which the fit gives no errors (its residual scatter has N - 2 degrees of freedom).
+MIN_CASES_FOR_ERRORS = 3
+
+
+def _no_errors(fit: Mapping[str, Any]) -> bool:
+    return fit.get("m") is not None and (fit.get("m_err") is None or fit.get("c_err") is None)
+
+
+def errors_na_note(result: Mapping[str, Any]) -> str | None:
+    """One line saying why some errors of ``result`` are ``n/a`` (None when none is): too
+    few cases for the fit's residual scatter, or a bootstrap whose resamples too often
+    leave a fit undefined."""
+    schemes = [s for s in ("unweighted", "weighted") if s in result]
+    overall = [f for s in schemes for f in (result.get(s) or {}).values() if _no_errors(f)]
+    binned = [b[s][comp] for cond in (result.get("conditional") or {}).values() for b in cond.get("bins", [])
+              for s in schemes if s in b for comp in b[s] if _no_errors(b[s][comp])]
+    fits = overall or binned
+    if not fits:
+        return None
+    where = "" if overall else " (conditional bins)"
+    n = min(int(f.get("n_cases") or 0) for f in fits)
+    have = "the catalog has" if overall else "a bin has"
+    boot = result.get("bootstrap")
+    if result.get("error") == ERROR_BOOTSTRAP and boot:
+        return (f"errors n/a{where}: the bootstrap over {boot['groups']} galaxy groups leaves the fit undefined "
+                f"in more than half of its resamples (a fit needs at least 2 cases with different true shears; "
+                f"{have} {n})")
+    return (f"errors n/a{where}: errors from the fit need at least {MIN_CASES_FOR_ERRORS} cases (the residual "
+            f"scatter about the line has N - 2 degrees of freedom); {have} {n} usable case{'s' * (n != 1)}")
+
+
 def evaluation_provenance(path: str | os.PathLike) -> dict[str, Any]:
     """Provenance of an evaluation of ``path``: this run (creator, date, command, versions)
     and its input (sha256; for a megalut catalog its format, date, model and config hashes

@@ -25,13 +25,18 @@ import numpy as np
 
 from megalut_cli.atomic import atomic_output
 from megalut_cli.columns import describe
-from megalut_cli.errors import MegalutError
+from megalut_cli.errors import ArgumentValueError, MegalutError
 from megalut_cli.shear.bias import STAGE_IV_C, STAGE_IV_M
 from megalut_cli.shear.evaluate import WARN_M, large_m, m_too_large
 
 _LABELS = {"g1": "g_1", "g2": "g_2", "plus": "g_+", "cross": r"g_\times"}
 _COLORS = {"g1": "C0", "g2": "C1", "plus": "C2", "cross": "C3"}
 _FORMATS = {".png": "png", ".pdf": "pdf", ".svg": "svg"}
+#: The file name endings ``--plot`` accepts.
+PLOT_SUFFIXES = tuple(_FORMATS)
+#: How to install matplotlib: a command that works from a clone and from an installed
+#: wheel alike (``pip install '.[plot]'`` in the clone does the same).
+MATPLOTLIB_HINT = "pip install matplotlib"
 _BAND = {"color": "#2ca02c", "alpha": 0.25, "lw": 0}
 _WARN_COLOR = "#c00000"
 _AGGREGATE = re.compile(r"^(mean|median|min|max|std)\((?P<col>\w+)\)$")
@@ -41,15 +46,22 @@ def _figure_class() -> Any:
     try:
         from matplotlib.figure import Figure
     except ImportError:
-        raise MegalutError("figures need matplotlib: pip install 'megalut-cli[plot]'") from None
+        raise MegalutError(f"figures need matplotlib: {MATPLOTLIB_HINT}") from None
     return Figure
 
 
-def check_plot_output(path: str | os.PathLike) -> None:
-    """Fail early when matplotlib is missing or the file type is not supported."""
-    _figure_class()
+def check_plot_suffix(path: str | os.PathLike, argument: str = "plot_path") -> None:
+    """A usage error (:class:`ArgumentValueError`, exit 2) unless ``path`` ends in a
+    supported extension; its message names the supported ones."""
     if Path(path).suffix.lower() not in _FORMATS:
-        raise MegalutError(f"{path}: plot file must end in {', '.join(_FORMATS)}")
+        raise ArgumentValueError(argument, f": {path}: unsupported figure type (use a name ending in "
+                                           f"{', '.join(PLOT_SUFFIXES)})")
+
+
+def check_plot_output(path: str | os.PathLike) -> None:
+    """Fail early when the file type is not supported (exit 2) or matplotlib is missing."""
+    check_plot_suffix(path)
+    _figure_class()
 
 
 def _arr(values: Any) -> np.ndarray:
