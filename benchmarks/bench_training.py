@@ -12,11 +12,22 @@
    at which each run first reached it. Both runs use the same vectorised forward pass, so
    the baseline is, if anything, faster than the original code (which ran on masked numpy
    arrays); the validation cost is evaluated after every iteration in both.
+3. (``--cli``) The whole command against the same baseline: the training set of 2. and its
+   validation set are written as FITS catalogs; ``megalut train-point`` trains one member
+   (one target, the baseline's iterations, batches and validation catalog, ``-j 1``) as a
+   separate process, timed from its start to its exit (start-up, reading, normalisation,
+   training, writing the model), and the finite-difference baseline trains the same member
+   (the same initial parameters and mini-batches: the CLI member's seed and keys) in this
+   process, timed to its best validation MSB. The command is given the iterations it needs
+   to reach that MSB (the first hit of an in-process analytic run of the same member; at
+   most 10x the baseline's). Runs alternate; medians are reported, and the command's member
+   must reach the baseline's best validation MSB (read from the model file).
 
 Run from the repository root (single process; results go to stdout):
 
     python benchmarks/bench_training.py            # defaults as recorded in training.md
     python benchmarks/bench_training.py --quick    # a smaller run, for a smoke test
+    python benchmarks/bench_training.py --cli      # 3. only (the whole command)
 """
 
 from __future__ import annotations
@@ -29,7 +40,12 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import platform  # noqa: E402
+import resource  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -148,6 +164,96 @@ def bench_training(n_cases: int, n_rea: int, members: int, fd_iterations: int, m
     return rows
 
 
+def _child_cpu() -> float:
+    """CPU seconds (user + system) of the waited-for child processes so far."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _run_cli(tp: Path, vp: Path, out: Path, iterations: int, precision: str | None,
+             tree: str | None = None) -> tuple[float, float]:
+    """Wall and CPU seconds of one ``megalut train-point`` process training one member
+    (``tree``: the megalut_cli of that source tree, e.g. a git worktree of an older commit)."""
+    env = dict(os.environ, PYTHONPATH=tree) if tree else None
+    # ``python -m`` puts the working folder first on the path: run in the folder of the code
+    cwd = tree or str(Path(__file__).resolve().parent.parent)
+    cmd = [sys.executable, "-m", "megalut_cli", "train-point", str(tp), "-o", str(out), "--overwrite",
+           "--targets", "tru_g1", "--members", "1", "--valid", str(vp), "--iterations", str(iterations),
+           "--seed", "1", "-j", "1"]
+    if precision:
+        cmd += ["--precision", precision]
+    cpu, t = _child_cpu(), time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=cwd)
+    return time.perf_counter() - t, _child_cpu() - cpu
+
+
+def bench_cli(n_cases: int, n_rea: int, fd_iterations: int, repeat: int, tree: str | None = None) -> None:
+    """Section 3: the whole ``train-point`` command (one member) against the FD baseline;
+    ``tree``: also the command of that source tree, in the same alternation."""
+    from megalut_cli.catalog import write_catalog
+    from megalut_cli.nn.committee import member_keys
+    from megalut_cli.nn.model import ShearModel
+
+    train_cols = shear_like_columns(n_cases, n_rea, 2)
+    valid_cols = shear_like_columns(max(2, n_cases // 5), n_rea, 3)
+    # The baseline's member: the data, normalisation and network the command builds, and
+    # the seed and keys of its first tru_g1 member (same initial parameters and batches).
+    train = build_cases(train_cols, FEATURES, ["tru_g1"], valid_rows(train_cols, FEATURES, len(train_cols["case"])))
+    valid = build_cases(valid_cols, FEATURES, ["tru_g1"], valid_rows(valid_cols, FEATURES, len(valid_cols["case"])))
+    loc, scale = normalization.fit(train.x)
+    spread = float(np.std(train.targets[:, 0]))
+    net = Network(5, (5, 5), "identity", float(np.mean(train.targets[:, 0])), spread)
+    settings = TrainSettings(cost="msb", iterations=fd_iterations, gradient="fd")
+    fd_task = MemberTask("fd", net, settings, train, valid, 0, loc, scale, seed=1,
+                         keys=member_keys("point", "tru_g1", 0), cost_scale=spread, log_level=30)
+    precisions = (None, "float32")  # the command's default (float64), then --precision float32
+    fd = train_member(fd_task)
+    target = fd.valid_cost
+    # Iterations the command needs to reach the target: the first hit of an in-process analytic
+    # run of the same member (the command's member follows the same trajectory).
+    needed: dict[str | None, int] = {}
+    for p in precisions:
+        an_settings = TrainSettings(cost="msb", iterations=fd_iterations * MAX_FACTOR, dtype=p or "float64")
+        an = train_member(MemberTask("an", net, an_settings, train, valid, 0, loc, scale, seed=1,
+                                     keys=fd_task.keys, cost_scale=spread, log_level=30))
+        hit = np.flatnonzero(an.history[:, 1] <= target * (1 + 1e-12))
+        needed[p] = int(hit[0]) + 1 if len(hit) else fd_iterations * MAX_FACTOR
+    print(f"  FD baseline: best validation MSB {target:.4e} at iteration {fd.best_iter}; the command reaches it at "
+          + ", ".join(f"iteration {needed[p]} ({p or 'float64, default'})" for p in precisions), flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        tp, vp = Path(tmp) / "tp.fits", Path(tmp) / "vp.fits"
+        write_catalog(tp, train_cols, fmt="megalut.toy")
+        write_catalog(vp, valid_cols, fmt="megalut.toy")
+        t_fd, cpu_fd = [], []
+        trees = {"": None, **({f" [{tree}]": tree} if tree else {})}
+        runs = [(p, t) for t in trees for p in precisions]
+        cli: dict[tuple[str | None, str], list[tuple[float, float, float]]] = {k: [] for k in runs}
+        for r in range(repeat):
+            if r:
+                fd = train_member(fd_task)
+            t_fd.append(_time_to(fd, target) if fd.best_iter else 0.0)  # 0: no iteration improved on the start
+            cpu_fd.append(_time_to(fd, target, cpu=True) if fd.best_iter else 0.0)
+            line = f"  run {r + 1}: FD {t_fd[-1]:.2f} s (CPU {cpu_fd[-1]:.2f} s)"
+            for p, t in runs:
+                out = Path(tmp) / f"m-{p}.h5"
+                wall, cpu = _run_cli(tp, vp, out, needed[p], p, trees[t])
+                reached = ShearModel.load(out).point["tru_g1"].members[0].valid_cost
+                cli[p, t].append((wall, cpu, reached))
+                line += f"; CLI{t} {p or 'float64'} {wall:.2f} s (CPU {cpu:.2f} s, valid MSB {reached:.4e})"
+            print(line, flush=True)
+    med_fd, med_cpu_fd = float(np.median(t_fd)), float(np.median(cpu_fd))
+    print(f"  FD baseline to its best validation MSB (in-process, training loop only): wall {med_fd:.2f} s, "
+          f"CPU {med_cpu_fd:.2f} s (medians of {repeat})")
+    for p, t in runs:
+        wall = float(np.median([c[0] for c in cli[p, t]]))
+        cpu = float(np.median([c[1] for c in cli[p, t]]))
+        reached = max(c[2] for c in cli[p, t])
+        ok = "reached" if reached <= target * (1 + 1e-12) else f"NOT reached ({reached / target - 1:+.1%})"
+        print(f"  train-point{t} --iterations {needed[p]}, precision {p or 'float64 (default)'}: whole process wall "
+              f"{wall:.2f} s, CPU {cpu:.2f} s -> {med_fd / wall:.1f}x (wall), {med_cpu_fd / cpu:.1f}x (CPU); "
+              f"baseline's validation MSB {ok}")
+
+
 def bench_predict(n_rows: int, repeat: int) -> float:
     """Rows per second of Committee.predict for two 8-member (4 selected) 5-5-1 committees."""
     from megalut_cli.nn.model import Committee, Member
@@ -171,6 +277,10 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
     ap.add_argument("--members", type=int, default=4)
     ap.add_argument("--fd-iterations", type=int, default=60)
+    ap.add_argument("--cli", action="store_true", help="only 3.: the whole train-point command against the baseline")
+    ap.add_argument("--repeat", type=int, default=3, help="alternating runs of 3.")
+    ap.add_argument("--tree", default=None, metavar="DIR",
+                    help="3. also runs the command of this source tree (e.g. a git worktree of HEAD), alternating")
     args = ap.parse_args()
     ev_cases, ev_rea, repeat = (50, 2000, 3) if args.quick else (500, 2000, 7)
     tr_cases, tr_rea = (100, 400) if args.quick else (500, 1000)
@@ -179,6 +289,12 @@ def main() -> None:
 
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, numpy {np.__version__}, "
           f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
+    if args.cli:
+        print(f"\n3. the whole train-point command, one member, {tr_cases} cases x {tr_rea} realizations "
+              f"(validation catalog {max(2, tr_cases // 5)} cases), batches 25% x 30 iterations, "
+              f"{fd_iter} iterations (CLI and FD baseline)")
+        bench_cli(tr_cases, tr_rea, fd_iter, args.repeat, args.tree)
+        return
     print(f"\n1. one MSB evaluation, 5-5-1 network, {ev_cases} cases x {ev_rea} realizations x 5 features")
     ev = bench_evaluation(ev_cases, ev_rea, repeat)
     print(f"  rows {ev['rows']}, parameters {ev['params']} (best of {repeat})")

@@ -188,6 +188,33 @@ def read_catalog(
     return table
 
 
+def read_catalog_columns(
+    path: str | os.PathLike, columns: Sequence[str] | None = None
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """What :func:`read_catalog` reads, without an astropy Table (whose import costs ~0.4 s):
+    ``(columns, header)``, the columns (all, or ``columns``; native byte order) in the file's
+    order and the header as ``table.meta`` would hold it."""
+    _check_exists(path)
+    try:
+        with fitsio.FITS(str(path)) as f:
+            hdu = f[_table_ext(f, path)]
+            if columns is not None:
+                require_columns(hdu.get_colnames(), columns, path)
+            names = hdu.get_colnames() if columns is None else list(columns)
+            if hdu.get_nrows():
+                data = hdu.read(columns=names) if columns is not None else hdu.read()
+            else:
+                dtype = hdu.get_rec_dtype()[0]
+                data = np.zeros(0, dtype=[(n, dtype[n]) for n in names])
+            header = header_dict(hdu.read_header())
+    except InputError:
+        raise
+    except (OSError, ValueError) as err:
+        raise _open_error(path, err) from None
+    data = _native(data)
+    return {name: data[name] for name in data.dtype.names}, header
+
+
 def iter_catalog(
     path: str | os.PathLike, chunk_rows: int, columns: Sequence[str] | None = None
 ) -> Iterator[Table]:
@@ -231,7 +258,7 @@ class CatalogColumns(Mapping[str, np.ndarray]):
         if name not in self._read:
             if name not in self.names:
                 raise KeyError(name)
-            self._read[name] = np.asarray(read_catalog(self.path, columns=[name])[name])
+            self._read[name] = read_catalog_columns(self.path, [name])[0][name]
         return self._read[name]
 
     def __iter__(self) -> Iterator[str]:

@@ -12,10 +12,11 @@ import contextlib
 import logging
 import os
 import signal
+import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
+from multiprocessing import get_all_start_methods, get_context
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -33,6 +34,12 @@ SCHEDULER_OPTION = Option("scheduler", "str", None, "Run on an existing Dask clu
                           "(tcp://host:8786) or a scheduler file. Needs the 'dask' extra.", metavar="ADDR")
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+#: How local workers start: forked from one server process per command that has imported
+#: their modules once (``forkserver``), else (platforms without it) ``spawn``.
+START_METHOD = "forkserver" if "forkserver" in get_all_start_methods() else "spawn"
+#: Imported first by the worker server: Ctrl-C and start-up failures after the command left.
+_SERVER_MODULE = "megalut_cli.worker_server"
 
 
 def resolve_nproc(nproc: int) -> int:
@@ -70,6 +77,39 @@ def stop_workers(pool: ProcessPoolExecutor) -> None:
         process.terminate()
 
 
+def start_worker_server(modules: Sequence[str]) -> None:
+    """Start, in the background, the process that local workers are forked from, importing
+    ``modules`` (those defining the functions the workers run).
+
+    Called as a command starts, before its own imports, so that the server imports in
+    parallel with the command; every pool of the command then forks its workers from it,
+    warm. Its environment (one BLAS thread) is fixed when it starts. Nothing is done where
+    the platform cannot fork from a server, or when the server already runs.
+    """
+    if START_METHOD != "forkserver":
+        return
+    from multiprocessing import forkserver  # its sockets and selectors: only with workers
+
+    with _single_threaded_children(), _interrupt_ignored_by_children():
+        get_context(START_METHOD).set_forkserver_preload([_SERVER_MODULE, *modules])
+        forkserver.ensure_running()
+
+
+@contextlib.contextmanager
+def _interrupt_ignored_by_children() -> Iterator[None]:
+    """Processes started inside ignore Ctrl-C from birth (an ignored signal stays ignored
+    across exec, and Python keeps it so), not only once their imports are done; a Ctrl-C
+    to this process in those milliseconds is lost."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
 def _dask_client(scheduler: str) -> Any:
     try:
         from distributed import Client
@@ -93,8 +133,9 @@ def executor(
 ) -> Iterator[Executor | None]:
     """An executor for ``-j nproc`` or ``--scheduler``; ``None`` means run in this process.
 
-    Local workers are started with the ``spawn`` method and one BLAS thread each; never more
-    than ``n_units`` (when given), so that a small job does not pay for idle workers.
+    Local workers are forked from a warm server (:func:`start_worker_server`; ``spawn``
+    where the platform has no fork server), with one BLAS thread each; never more than
+    ``n_units`` (when given), so that a small job does not pay for idle workers.
     """
     if scheduler:
         client = _dask_client(scheduler)
@@ -110,8 +151,10 @@ def executor(
         return
     # The pool starts its workers when work is first submitted, not here: the variables stay
     # set while it lives, so that every worker starts with one BLAS thread.
+    start_worker_server(())  # where the command did not start it already
     with _single_threaded_children():
-        pool = ProcessPoolExecutor(max_workers=n, mp_context=get_context("spawn"), initializer=ignore_interrupt)
+        pool = ProcessPoolExecutor(max_workers=n, mp_context=get_context(START_METHOD),
+                                   initializer=ignore_interrupt)
         try:
             log.info("running on %d local worker processes", n)
             yield pool

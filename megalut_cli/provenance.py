@@ -44,15 +44,18 @@ def command_line() -> str:
 
 def software_versions() -> dict[str, str]:
     """Versions of the libraries that shape results."""
+    import importlib.metadata  # 20 ms: only where provenance is written
+
     versions = {"megalut": __version__, "python": sys.version.split()[0]}
     for name in ("numpy", "scipy", "galsim", "astropy", "fitsio", "h5py"):
         mod = sys.modules.get(name)
-        if mod is None:
-            try:
-                mod = __import__(name)
-            except ImportError:  # pragma: no cover - all are dependencies
-                continue
-        versions[name] = getattr(mod, "__version__", "unknown")
+        if mod is not None:
+            versions[name] = getattr(mod, "__version__", "unknown")
+            continue
+        try:  # the installed distribution's version: no import (GalSim's costs 0.5 s)
+            versions[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:  # pragma: no cover - all are dependencies
+            continue
     return versions
 
 
@@ -63,3 +66,24 @@ def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
         while block := f.read(chunk):
             h.update(block)
     return h.hexdigest()
+
+
+def recorded_path(path: str | os.PathLike, base: str | os.PathLike | None = None) -> str:
+    """How provenance names a file, without the absolute paths of this machine: relative to
+    ``base`` (a pipeline's work folder) when the file is inside it, else relative to the
+    current folder when inside that, else its name alone (its sha256, recorded beside it,
+    identifies it)."""
+    p = Path(os.path.abspath(path))
+    for folder in ([Path(os.path.abspath(base))] if base is not None else []) + [Path.cwd()]:
+        try:
+            return p.relative_to(folder).as_posix()
+        except ValueError:
+            continue
+    return p.name
+
+
+def shown_path(recorded: str) -> str:
+    """A recorded path as ``megalut info`` shows it: as recorded, but an absolute path (of
+    the machine that made the file, in files made before :func:`recorded_path`) by its name."""
+    text = str(recorded)
+    return Path(text).name if os.path.isabs(text) or text.startswith("~") else text

@@ -92,3 +92,54 @@ def test_registry_names_each_module_command(cli):
         assert command.name == name and command.short_help == short
         assert [p.name for p in command.params][-2:] == ["verbose", "quiet"]  # added once
         assert cli.get_command(None, name) is command
+
+
+_EXIT_SCRIPT = """
+import atexit, sys
+from megalut_cli import cli
+
+invoke = cli.MegalutGroup.invoke
+marker = sys.argv[1]
+
+
+class Teardown:  # Python's teardown would call this; the shell command skips it
+    def __del__(self):
+        open(marker + ".teardown", "w").write("torn down")
+
+
+kept = Teardown()
+
+
+def invoke_registering(self, ctx):  # as a library imported by the command would
+    atexit.register(lambda: open(marker, "w").write("ran"))
+    return invoke(self, ctx)
+
+
+cli.MegalutGroup.invoke = invoke_registering
+sys.argv = ["megalut", *sys.argv[2:]]
+cli.main()
+"""
+
+
+@pytest.mark.parametrize(("args", "status"), [
+    (["info", "models/fiducial.h5"], 0),
+    (["simulate", "/nonexistent.toml"], 2),
+    (["train-point", "/dev/null", "-o", "/sys/megalut-test.h5"], 1),
+])
+def test_the_shell_command_exits_without_teardown_keeping_status_and_exit_handlers(tmp_path, args, status):
+    """`megalut` as the shell runs it leaves through os._exit once the exit handlers have run
+    (Python's teardown of GalSim, numba and astropy took 0.3-0.8 s); its status and the
+    handlers of the libraries it imported are kept."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    marker = tmp_path / "marker"
+    root = Path(__file__).resolve().parent.parent
+    out = subprocess.run([sys.executable, "-c", _EXIT_SCRIPT, str(marker), *args], cwd=root,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == status, out.stderr
+    assert marker.read_text() == "ran"
+    assert not (tmp_path / "marker.teardown").exists()
+    if status == 0:
+        assert out.stdout.startswith("models/fiducial.h5: megalut.model")

@@ -72,6 +72,38 @@ def test_unwritable_output_folder_is_named_before_any_work(runner, cli, inputs, 
     assert list(ro.iterdir()) == []
 
 
+@pytest.mark.parametrize("command", ["simulate", "train-point"])
+def test_folder_that_takes_no_file_is_named_before_any_work(runner, cli, inputs, tmp_path, command, monkeypatch):
+    """Permission bits that allow writing are not enough (root, read-only mounts): the
+    pre-flight creates the temporary file the writer would (issue 24: `-o /sys/x.h5` as root
+    trained every network before failing)."""
+    import megalut_cli.atomic as atomic
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real_mkstemp = atomic.tempfile.mkstemp
+
+    def refuse(*args, **kwargs):
+        if Path(kwargs.get("dir", "")) == ro:
+            raise OSError(30, "Read-only file system")
+        return real_mkstemp(*args, **kwargs)
+
+    monkeypatch.setattr(atomic.tempfile, "mkstemp", refuse)
+    out = str(ro / "out.fits")
+    result = runner.invoke(cli, _commands(inputs, out)[command])
+    assert result.exit_code == 1
+    text = _one_line(result)
+    assert out in text and "Read-only file system" in text
+    assert list(ro.iterdir()) == []
+
+
+def test_virtual_file_system_is_refused_before_any_work(runner, cli, inputs):
+    """The case of issue 24 itself: /sys takes no new file, for root either."""
+    result = runner.invoke(cli, _commands(inputs, "/sys/megalut-test.h5")["train-point"])
+    assert result.exit_code == 1
+    assert "/sys/megalut-test.h5" in _one_line(result)
+
+
 def test_simulate_dry_run_says_what_and_how_long_and_writes_nothing(runner, cli, inputs, tmp_path):
     out = tmp_path / "cat.fits"
     result = runner.invoke(cli, ["simulate", str(inputs["config"]), "-o", str(out), "--measure", "--dry-run",
@@ -177,6 +209,38 @@ def test_ctrl_c_exits_130_with_one_line_and_no_file(runner, cli, inputs, tmp_pat
     assert result.stderr.splitlines()[-1] == "megalut: interrupted"
     assert "Traceback" not in result.stderr and "Aborted" not in result.stderr
     assert list(out_dir.iterdir()) == []  # neither output nor temporary files
+
+
+def test_ctrl_c_while_workers_start_is_one_line(inputs, tmp_path):
+    """A real SIGINT to the whole process group (as a terminal sends it) just as `-j 2`
+    starts its workers: one line, exit 130, no worker traceback, no file (issue 24)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    env = {**os.environ, "MEGALUT_NPROC": "2"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "megalut_cli", "simulate", str(inputs["config"]), "--measure", "-v",
+         "--n-cases", "4000", "-o", str(out_dir / "c.fits")],
+        stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env, start_new_session=True,
+    )
+    lines = []
+    try:
+        for line in proc.stderr:
+            lines.append(line)
+            if "local worker processes" in line:
+                os.killpg(proc.pid, signal.SIGINT)
+                break
+        rest = proc.stderr.read()
+        assert proc.wait(timeout=60) == 130, "".join(lines) + rest
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert "Traceback" not in rest and rest.strip().splitlines() == ["megalut: interrupted"], rest
+    assert list(out_dir.iterdir()) == []
 
 
 def test_progress_bar_gets_its_own_line(monkeypatch, capsys):

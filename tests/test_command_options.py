@@ -10,7 +10,7 @@ from megalut_cli.atomic import OVERWRITE_OPTION
 from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION, ENGINES, check_engine
 from megalut_cli.errors import ConfigError
 from megalut_cli.measure import stamps
-from megalut_cli.measure.measure import measure_file
+from megalut_cli.measure.measure import measure_file_columns
 from megalut_cli.measure.options import MEASURE, MEASURE_OPTIONS
 from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION
 from megalut_cli.schema import DEFAULT_MARK, Option, docs_table
@@ -41,7 +41,7 @@ def test_measure_options_are_the_declarations(cli):
 
 
 def test_measure_library_defaults_and_choices_from_the_declarations():
-    defaults = {k: v.default for k, v in inspect.signature(measure_file).parameters.items()}
+    defaults = {k: v.default for k, v in inspect.signature(measure_file_columns).parameters.items()}
     for name in ("stamp_size", "gain", "stars", "morphology"):
         assert defaults[name] == MEASURE[name].default, name
     assert str(defaults["origin"]) == MEASURE["origin"].default

@@ -123,6 +123,56 @@ def test_workers_start_with_one_blas_thread(monkeypatch):
     assert "OPENBLAS_NUM_THREADS" not in os.environ
 
 
+_PROBE = """
+import signal, sys
+
+
+def state(name):
+    return name in sys.modules, signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+"""
+
+_WARM_SCRIPT = """
+import sys
+sys.path.insert(0, {folder!r})
+from megalut_cli import parallel
+parallel.start_worker_server(["json.tool"])  # imported by nothing else here
+import probe
+with parallel.executor(nproc=2) as pool:
+    print(parallel.map_units(probe.state, ["json.tool", "megalut_cli.worker_server"], pool))
+"""
+
+
+def test_workers_are_forked_warm_from_one_server(tmp_path):
+    """Local workers come from a server that imported the command's modules once (so each
+    worker does not import them again) and ignore Ctrl-C; a fresh process, since the server
+    is one per process."""
+    import subprocess
+    import sys
+
+    if parallel.START_METHOD != "forkserver":
+        pytest.skip("no fork server on this platform")  # not on Linux, where CI runs
+    (tmp_path / "probe.py").write_text(_PROBE)
+    out = subprocess.run([sys.executable, "-c", _WARM_SCRIPT.format(folder=str(tmp_path))],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[(True, True), (True, True)]"
+
+
+def test_every_command_with_workers_names_their_modules():
+    import importlib
+
+    from megalut_cli.cli import main
+    from megalut_cli.cli.commands import COMMANDS, WORKER_MODULES
+
+    for name in COMMANDS:
+        command = main.get_command(None, name)
+        has_workers = any(p.name == "nproc" for p in command.params)
+        assert (name in WORKER_MODULES) == has_workers, name
+    for modules in WORKER_MODULES.values():
+        for module in modules:
+            importlib.import_module(module)
+
+
 def test_bad_scheduler_is_config_error(tmp_path):
     import distributed  # noqa: F401  (the test extra: a missing dask must fail, not skip)
 
@@ -295,3 +345,25 @@ def test_catalog_writer_leaves_nothing_on_failure(tmp_path):
         writer.append({"a": np.arange(3.0)})
         raise RuntimeError("interrupted")
     assert list(tmp_path.iterdir()) == []
+
+
+_VERSIONS_SCRIPT = """
+import sys
+from megalut_cli.provenance import software_versions
+versions = software_versions()
+loaded = [name for name in ("galsim", "astropy", "scipy") if name in sys.modules]
+import astropy, fitsio, galsim, h5py, numpy, scipy
+modules = {"astropy": astropy, "fitsio": fitsio, "galsim": galsim, "h5py": h5py, "numpy": numpy, "scipy": scipy}
+print(loaded, all(versions[name] == m.__version__ for name, m in modules.items()))
+"""
+
+
+def test_software_versions_are_the_modules_without_importing_them():
+    """Provenance records the libraries' versions without importing them (GalSim and its
+    astropy cost 0.5 s of every training command), and they are the modules' own."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _VERSIONS_SCRIPT], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[] True"

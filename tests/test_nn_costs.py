@@ -133,3 +133,51 @@ def test_float32_passes_agree_with_float64() -> None:
     f32, g32 = Objective(net, "msb", data, 0, np.zeros(5), np.ones(5), dtype="float32").value_and_grad(p)
     assert f32 == pytest.approx(f64, rel=1e-4)
     assert np.max(np.abs(g32 - g64)) <= 1e-3 * np.max(np.abs(g64))
+
+
+@pytest.mark.parametrize("cost", ["msb", "mse", "mswb"])
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_batch_objective_is_the_objective_of_the_subset(cost: str, dtype: str) -> None:
+    """A mini-batch taken from the normalised data (Objective.batch) holds the same numbers,
+    bit for bit, as an objective built from CaseData.subset, and gives the same cost and
+    gradient; the value-only MSB (validation passes) is the MSB."""
+    x, mask, t, point = _data(n_cases=30, n_rea=40, n_feat=3, seed=7)
+    data = CaseData.from_padded(x, mask, t, point=point)
+    net = Network(3, (4,), "sigmoid4" if cost == "mswb" else "identity", 0.1, 0.7)
+    p = net.init_normal(np.random.default_rng(2), 0.5)
+    loc, scale = np.array([0.1, -0.2, 0.3]), np.array([1.7, 2.1, 0.9])
+    full = Objective(net, cost, data, 0, loc, scale, 0.3, dtype)
+    cases = np.sort(np.random.default_rng(3).choice(data.n_cases, size=11, replace=False))
+    batch = full.batch(cases)
+    ref = Objective(net, cost, data.subset(cases), 0, loc, scale, 0.3, dtype)
+    assert batch.xt.flags.c_contiguous and batch.xt.dtype == ref.xt.dtype
+    for name in ("xt", "t", "t_row", "n"):
+        assert np.array_equal(getattr(batch, name), getattr(ref, name))
+    assert np.array_equal(batch.groups.case, ref.groups.case)
+    if cost == "mswb":
+        assert np.array_equal(batch.point, ref.point)
+    fb, gb = batch.value_and_grad(p)
+    fr, gr = ref.value_and_grad(p)
+    assert fb == fr and np.array_equal(gb, gr)
+    assert batch.value(p) == ref.value(p) == fr
+    assert full.n_evals == 0 and batch.n_evals == 2
+
+
+def test_msb_value_is_the_msb() -> None:
+    x, mask, t, _ = _data(seed=8)
+    data = CaseData.from_padded(x, mask, t)
+    o = np.random.default_rng(0).normal(size=data.n_rows)
+    n = data.counts.astype(float)
+    assert costs.msb_value(o, data.case, n, data.targets[:, 0]) == costs.msb(o, data.case, n, data.targets[:, 0])[0]
+
+
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_normalised_columns_by_blocks(dtype: str) -> None:
+    """The blockwise normalisation gives the numbers of the whole-array expression."""
+    from megalut_cli.nn.train import normalised_columns
+
+    x = np.random.default_rng(4).normal(size=(1000, 3)) * 5
+    loc, scale = np.array([0.3, -1.0, 2.0]), np.array([3.1, 0.7, 1.3])
+    xt = normalised_columns(x, loc, scale, dtype, block=64)
+    assert xt.flags.c_contiguous and xt.dtype == np.dtype(dtype)
+    assert np.array_equal(xt, np.ascontiguousarray(((x - loc) / scale).T, dtype=dtype))

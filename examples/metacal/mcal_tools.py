@@ -8,6 +8,7 @@
     python mcal_tools.py paired OUT.json REAL.fits TWIN.fits [N_BOOT] [SEED]  # --twin, weights with R_sel
     python mcal_tools.py table RESULTS.json ...                # the README tables from --json files
     python mcal_tools.py responses SHEARS.fits ...             # mean and scatter of the responses
+    python mcal_tools.py failures SHEARS.fits ... [--groups 2]  # failures as a selection (bootstrap)
 
 ``merge``: the shear runs of one config and seed (each a constant shear, every other draw
 identical: common random numbers) become the cases of one catalog: ``case`` = the run's
@@ -26,6 +27,14 @@ on metacal catalogs (same resamples for the same seed), the weighted scheme cali
 <g_i>_{w_im}) / (2 step)`` (``<g_i>_{w}``: the mean of ``pre_g<i>_noshear`` weighted by
 ``pre_g<i>_w_<type>``), as the single-set ``megalut evaluate`` does. ``evaluate --twin`` left
 R_sel out before commit c4e8e7c (README.md, "Bug"); since then both agree to all digits.
+
+``failures`` (on a ``megalut predict`` metacal catalog of a common-random-number set):
+m of two estimators with a paired bootstrap over galaxy groups (``rea // groups``; 200
+resamples, seed 1). *evaluate*: what ``megalut evaluate`` reports (rows with every version
+measured, ``<R>`` per row, ``R_sel`` of the weights); it reproduces evaluate's m to all
+digits. *version-selected*: failures treated as a selection, as metadetection does: each
+version averaged over its own measured rows with its own weights, ``<g>`` from noshear, the
+response ``(<g_i>_{jp} - <g_i>_{jm}) / (2 step)`` of the sheared versions' own estimates.
 
 ``plain``: the catalog without its metacal columns (``X_<type>``) and cards (``MCALSTEP``,
 ``MCALSEED``), for ``megalut predict`` with a simulation-calibrated model: the plain features
@@ -236,6 +245,96 @@ def responses(paths: list[str]) -> None:
         print("| " + " | ".join(row) + " |")
 
 
+VERSIONS = ("noshear", "1p", "1m", "2p", "2m")
+
+
+def _failure_sums(t, weighted: bool, groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per (galaxy group, case) sums of weights and weighted estimates: for each component
+    and version, first on the rows evaluate uses (noshear weights, per-row responses), then
+    on each version's own measured rows; the cases' true shears."""
+    cases, ci = np.unique(np.asarray(t["case"]), return_inverse=True)
+    grp = np.asarray(t["rea"]) // groups
+    idx = grp * cases.size + ci
+    n_cells = (grp.max() + 1) * cases.size
+
+    def col(name: str) -> np.ndarray:
+        return np.asarray(t[name], dtype=float)
+
+    measured = {k: (np.asarray(t[f"flags_{k}"]) == 0) & np.isfinite(col(f"pre_g1_{k}")) & np.isfinite(col(f"pre_g2_{k}"))
+                for k in VERSIONS}
+    every = measured["noshear"] & np.all([np.isfinite(col(f"mcal_r{i}{j}")) for i in (1, 2) for j in (1, 2)], axis=0)
+
+    def weight(kind: str, comp: int, rows: np.ndarray) -> np.ndarray:
+        if not weighted:
+            return rows.astype(float)
+        w = col(f"pre_g{comp}_w_{kind}")
+        return np.where(rows & np.isfinite(w) & (w > 0), w, 0.0)
+
+    q = []
+    for i in (1, 2):
+        g_ns = np.nan_to_num(col(f"pre_g{i}_noshear"))
+        w0 = weight("noshear", i, every)
+        q += [w0, w0 * g_ns, *(w0 * np.nan_to_num(col(f"mcal_r{i}{j}")) for j in (1, 2))]
+        for kind in VERSIONS[1:]:  # the selection response of the weights (evaluate's R_sel)
+            wk = weight(kind, i, every) if weighted else w0
+            q += [wk, wk * g_ns]
+        for kind in VERSIONS:
+            wk = weight(kind, i, measured[kind])
+            q += [wk, wk * np.nan_to_num(col(f"pre_g{i}_{kind}"))]
+    sums = np.stack([np.bincount(idx, weights=x, minlength=n_cells) for x in q]).reshape(len(q), -1, cases.size)
+    tru = np.array([[col(f"tru_g{i}")[ci == c][0] for i in (1, 2)] for c in range(cases.size)])
+    return sums, tru, np.array([measured["noshear"].mean(), every.mean()])
+
+
+def _failure_m(s: np.ndarray, tru: np.ndarray, step: float, weighted: bool) -> np.ndarray:
+    """m (2 estimators x 2 components) from the per-case sums ``s`` of :func:`_failure_sums`."""
+    per = s.shape[0] // 2
+    out = np.zeros((2, 2))
+    for e, name in enumerate(("evaluate", "version")):
+        g, resp = np.zeros((tru.shape[0], 2)), np.zeros((2, 2))
+        for i in range(2):
+            q = s[i * per:(i + 1) * per]
+            if name == "evaluate":
+                g[:, i] = q[1] / q[0]
+                resp[i] = q[2].sum() / q[0].sum(), q[3].sum() / q[0].sum()
+                if weighted:
+                    avg = {k: q[4 + 2 * n + 1].sum() / q[4 + 2 * n].sum() for n, k in enumerate(VERSIONS[1:])}
+                    resp[i] += [(avg[f"{j}p"] - avg[f"{j}m"]) / (2 * step) for j in (1, 2)]
+            else:
+                avg = {k: q[12 + 2 * n + 1].sum() / q[12 + 2 * n].sum() for n, k in enumerate(VERSIONS)}
+                g[:, i] = q[13] / q[12]
+                resp[i] = [(avg[f"{j}p"] - avg[f"{j}m"]) / (2 * step) for j in (1, 2)]
+        cal = np.linalg.solve(resp, g.T).T
+        for i in range(2):
+            slope = np.polyfit(tru[:, i], cal[:, i], 1)[0]
+            out[e, i] = slope - 1.0
+    return out
+
+
+def failures(paths: list[str], groups: int = 2, n_boot: int = 200, seed: int = 1) -> None:
+    """m of evaluate's estimator and of the version-selected one, and their difference, with
+    a paired bootstrap over galaxy groups (units of 1e-3)."""
+    print("| catalog | scheme | measured (noshear / every version) | m evaluate | m version-selected | difference |")
+    print("|---|---|---|---|---|---|")
+    for p in paths:
+        t = read_catalog(p)
+        step = float(read_cards(p).get(STEP_CARD, (0.01, ""))[0])
+        for weighted in (False, True) if "pre_g1_w_noshear" in t.colnames else (False,):
+            sums, tru, frac = _failure_sums(t, weighted, groups)
+            n_groups = sums.shape[1]
+            rng = np.random.default_rng(seed)
+            counts = np.vstack([np.ones(n_groups)] + [rng.multinomial(n_groups, np.full(n_groups, 1 / n_groups))
+                                                      for _ in range(n_boot)])
+            resampled = np.einsum("bg,qgc->bqc", counts, sums)
+            m = np.array([_failure_m(r, tru, step, weighted) for r in resampled])
+
+            def cell(a: np.ndarray) -> str:
+                return " / ".join(_f(a[0, i], a[1:, i].std()) for i in (0, 1))
+
+            print(f"| {p.rsplit('/', 1)[-1]} | {'weighted' if weighted else 'unweighted'} | "
+                  f"{frac[0]:.4f} / {frac[1]:.4f} | {cell(m[:, 0])} | {cell(m[:, 1])} | {cell(m[:, 1] - m[:, 0])} |")
+
+
 def table(paths: list[str]) -> None:
     """One row per JSON file (megalut evaluate --twin --json) and scheme: m in units of
     1e-3, c in units of 1e-4."""
@@ -268,5 +367,11 @@ if __name__ == "__main__":
         table(args)
     elif cmd == "responses":
         responses(args)
+    elif cmd == "failures":
+        if "--groups" in args:
+            k = args.index("--groups")
+            failures(args[:k] + args[k + 2:], groups=int(args[k + 1]))
+        else:
+            failures(args)
     else:
         raise SystemExit(__doc__)

@@ -18,6 +18,23 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("megalut_cli.cli.info", "Summarise a megalut catalog, stamp image or model file."),
 }
 
+_SIMULATE = "megalut_cli.sim.simulate"
+_MEASURE = "megalut_cli.measure.measure"
+_TRAIN = "megalut_cli.nn.train"
+_PREDICT = "megalut_cli.shear.predict"
+_NUMBA = "megalut_cli.warm_numba"
+
+#: name -> the modules the command's local workers need (imported once, by
+#: the server the workers are forked from: :func:`megalut_cli.parallel.start_worker_server`)
+WORKER_MODULES: dict[str, tuple[str, ...]] = {
+    "simulate": (_SIMULATE, _NUMBA),
+    "measure": (_MEASURE, _NUMBA),
+    "train-point": (_TRAIN,),
+    "train-weight": (_TRAIN,),
+    "predict": (_PREDICT,),
+    "run": (_SIMULATE, _MEASURE, _TRAIN, _PREDICT, "megalut_cli.steps", _NUMBA),
+}
+
 
 def short_help(name: str) -> str:
     """The one-line help of subcommand ``name``."""

@@ -103,12 +103,12 @@ def command(
     from megalut_cli.cli.console import flag_names, stdin_path, stdout_path
     from megalut_cli.cli.options import progress
     from megalut_cli.engine import resolve_device
-    from megalut_cli.measure.measure import measure_file
+    from megalut_cli.measure.measure import measure_file_columns  # no astropy Table: ~0.4 s less
 
     device = resolve_device(device)
 
     with stdin_path(catalog) as catalog_path, stdout_path(output) as output_path:
-        measure_file(
+        measure_file_columns(
             stamps,
             catalog_path,
             output_path,

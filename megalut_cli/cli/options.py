@@ -11,11 +11,12 @@ from typing import Any
 import click
 
 from megalut_cli.atomic import OVERWRITE_OPTION
+from megalut_cli.cli.commands import WORKER_MODULES
 from megalut_cli.cli.console import progress as progress
 from megalut_cli.engine import DEVICE_OPTION, DEVICES, ENGINE_OPTION, ENGINES, described
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
 from megalut_cli.nn.options import train_options
-from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION
+from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION, resolve_nproc, start_worker_server
 from megalut_cli.schema import Option
 from megalut_cli.seeding import SEED_OPTION
 
@@ -73,6 +74,8 @@ def execution_options(f: F) -> F:
         nproc_given = ctx.get_parameter_source("nproc") == click.core.ParameterSource.COMMANDLINE
         if kwargs.get("scheduler") and nproc_given:
             raise click.UsageError("-j/--nproc and --scheduler are mutually exclusive")
+        if not kwargs.get("scheduler") and not kwargs.get("dry_run") and resolve_nproc(kwargs["nproc"]) > 1:
+            start_worker_server(WORKER_MODULES.get(ctx.command.name, ()))
         return f(*args, **kwargs)
 
     return wrapper

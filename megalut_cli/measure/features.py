@@ -164,6 +164,8 @@ def measure_stamps(
     max_shift: float | None = None,
     engine: str = "fast",
     device: str = "cpu",
+    finite: np.ndarray | None = None,
+    skymad: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Measure the features of a stack of stamps.
 
@@ -178,6 +180,9 @@ def measure_stamps(
         engine: one of :data:`MEASURE_ENGINES`; both give the same features and flags.
         device: ``cpu``, or ``gpu`` to measure the fast engine's moments with the device
             backend (:mod:`megalut_cli.gpu`; a resolved device, not ``auto``).
+        finite, skymad: whether all pixels of each stamp are finite and its :func:`sky_mad`,
+            when the caller has them already (e.g. from
+            :func:`megalut_cli.measure.stamps.cut_stamps_checked`); both or neither.
 
     Returns:
         A dict of :data:`FEATURE_COLUMNS` arrays of length ``n`` (float64; ``flags`` int32).
@@ -198,13 +203,18 @@ def measure_stamps(
     guess = default_guess_sigma(size) if guess_sigma is None else float(guess_sigma)
     limit = default_max_shift(size) if max_shift is None else float(max_shift)
 
+    if (finite is None) != (skymad is None):
+        raise ValueError("give both finite and skymad, or neither")
     if engine == "fast" and device == "gpu" and n:
         from megalut_cli.gpu.measure import pixel_measurements
 
         moments, skymad, finite = pixel_measurements(stamps, guess)
         return features_from_moments(moments, skymad, finite, origins, size, gain, limit)
-    finite = np.isfinite(stamps).all(axis=(1, 2)) if n else np.zeros(0, bool)
-    skymad = sky_mad(stamps) if n else np.zeros(0)
+    if finite is None or skymad is None:
+        finite = np.isfinite(stamps).all(axis=(1, 2)) if n else np.zeros(0, bool)
+        skymad = sky_mad(stamps) if n else np.zeros(0)
+    elif np.shape(finite) != (n,) or np.shape(skymad) != (n,):
+        raise ValueError(f"finite and skymad must have one value per stamp ({n})")
     moments = np.full((n, 7), np.nan)
     if finite.any():
         measure = fast_moments if engine == "fast" else galsim_moments

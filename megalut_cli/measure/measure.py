@@ -38,10 +38,9 @@ import dataclasses
 import logging
 import os
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from astropy.table import Table
 
 from megalut_cli import flags as fl
 from megalut_cli.atomic import check_output
@@ -49,7 +48,7 @@ from megalut_cli.catalog import (
     catalog_info,
     read_cards,
     read_carried_hdus,
-    read_catalog,
+    read_catalog_columns,
     require_columns,
     write_catalog,
 )
@@ -68,9 +67,12 @@ from megalut_cli.measure.stamps import (
     catalog_origins,
     check_grid,
     cut_stamps,
+    cut_stamps_checked,
     grid_origins,
     image_info,
     inside,
+    pixel_rows,
+    read_band,
     read_rows,
     stamp_centres,
     stamp_size_of,
@@ -78,7 +80,13 @@ from megalut_cli.measure.stamps import (
 from megalut_cli.parallel import executor, map_units, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
 
+if TYPE_CHECKING:  # astropy.table costs ~0.4 s to import: only measure_file's Table needs it
+    from astropy.table import Table
+
 log = logging.getLogger(__name__)
+
+#: Catalog columns in their order (name -> array), as :func:`measure_file_columns` handles them.
+Columns = dict[str, np.ndarray]
 
 #: Output format name of ``megalut measure`` catalogs.
 FORMAT = "megalut.features"
@@ -113,10 +121,16 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
     size: int = unit["stamp_size"]
     origins: np.ndarray = unit["origins"]
     y0, y1 = _row_band(origins, size)
-    rows = unit["rows"] if "rows" in unit else read_rows(unit["info"], y0, y1)
-    stamps = cut_stamps(rows, y0, origins, size)
-    feats = measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine=unit["engine"],
-                           device=unit.get("device", DEFAULT_DEVICE))
+    rows = unit["rows"] if "rows" in unit else read_band(unit["info"], y0, y1)
+    device = unit.get("device", DEFAULT_DEVICE)
+    if unit["engine"] == "fast" and device == "gpu":  # the device measures the pixel checks itself
+        stamps = cut_stamps(rows, y0, origins, size)
+        feats = measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine="fast", device=device)
+    else:  # one pass over the pixels: float64 stamps, whether they are finite, skymad
+        cut = cut_stamps_checked(rows, y0, origins, size)
+        stamps = cut.stamps
+        feats = measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine=unit["engine"],
+                               device=device, finite=cut.finite, skymad=cut.skymad)
     if unit.get("morphology"):
         feats.update(morphology_of_measured(stamps, origins, feats))
     mc = unit.get("metacal")
@@ -143,7 +157,7 @@ def _metacal_unit(
         psfs = mc["psf"]
     else:
         y0, y1 = _row_band(origins, size)
-        psfs = cut_stamps(read_rows(mc["psf_info"], y0, y1), y0, origins, size)
+        psfs = cut_stamps(read_band(mc["psf_info"], y0, y1), y0, origins, size)
     return metacal_features(
         stamps, psfs, mc["step"], noise_sigma=feats["skymad"], seeds=fixnoise_seeds(mc["seed"], mc["keys"]), metacal_engine=unit["engine"],
         morphology=bool(unit.get("morphology")), origins=origins, gain=unit["gain"], max_shift=unit["max_shift"],
@@ -174,7 +188,7 @@ def _units(
             unit["info"] = image
         else:
             y0, y1 = _row_band(unit["origins"], size)
-            unit["rows"] = np.asarray(image[y0:y1], dtype=np.float64)
+            unit["rows"] = pixel_rows(image[y0:y1])
         units.append(unit)
     return units, pieces
 
@@ -450,8 +464,9 @@ def _n_grid_stamps(info: ImageInfo, n_grid: int) -> int:
     return card
 
 
-def _read_positions_catalog(path: str | os.PathLike) -> Table:
-    """A FITS catalog, or a text catalog with ``# name`` header lines, holding ``x, y``."""
+def _read_positions_catalog(path: str | os.PathLike) -> tuple[Columns, dict[str, Any]]:
+    """A FITS catalog, or a text catalog with ``# name`` header lines, holding ``x, y``: its
+    columns and its header (a Table's ``meta``)."""
     from megalut_cli.catalog import is_fits_file, read_text_catalog
 
     if is_fits_file(path):
@@ -459,12 +474,12 @@ def _read_positions_catalog(path: str | os.PathLike) -> Table:
         require_columns(names, ["x", "y"], path)
         if n_rows == 0:
             raise InputError(f"{path}: the catalog has no rows")
-        return read_catalog(path)
+        return read_catalog_columns(path)
     table = read_text_catalog(path)
     require_columns(table.colnames, ["x", "y"], path)
     if len(table) == 0:
         raise InputError(f"{path}: the catalog has no rows")
-    return table
+    return {name: np.asarray(table[name]) for name in table.colnames}, dict(table.meta)
 
 
 def _card_value(card: Any) -> Any:
@@ -497,15 +512,15 @@ def _check_spacing(x: np.ndarray, y: np.ndarray, size: int, path: str, size_key:
             )
 
 
-def _catalog_positions(table: Table, path: str) -> tuple[np.ndarray, np.ndarray]:
-    require_columns(table.colnames, ["x", "y"], path)
+def _catalog_positions(table: Columns, path: str) -> tuple[np.ndarray, np.ndarray]:
+    require_columns(list(table), ["x", "y"], path)
     bad = [c for c in ("x", "y") if np.asarray(table[c]).dtype.kind not in "iuf" or np.ndim(table[c]) != 1]
     if bad:
         raise InputError(f"{path}: column(s) {', '.join(bad)} must be numeric scalars")
     return np.asarray(table["x"], np.float64), np.asarray(table["y"], np.float64)
 
 
-def measure_file(
+def measure_file_columns(
     stamps_path: str | os.PathLike,
     catalog_path: str | os.PathLike | None,
     output: str | os.PathLike,
@@ -525,7 +540,7 @@ def measure_file(
     metacal: bool = MEASURE["metacal"].default,
     metacal_step: float = MEASURE["metacal_step"].default,
     seed: int = MEASURE["seed"].default,
-) -> Table:
+) -> tuple[Columns, dict[str, Any]]:
     """Measure every stamp of ``stamps_path`` and write the features catalog ``output``.
 
     Args:
@@ -559,7 +574,8 @@ def measure_file(
         seed: seed of the fixnoise fields of ``metacal``.
 
     Returns:
-        The table written.
+        The columns written (name -> array, in order) and the input catalog's header (empty
+        in grid order); no astropy Table is made (see :func:`measure_file`).
     """
     name = namer(names)
     check_output(output, overwrite)
@@ -594,8 +610,8 @@ def measure_file(
 
     extra_hdus: dict[str, np.ndarray] = {}
     if catalog_path is not None:
-        table = _read_positions_catalog(catalog_path)
-        check_belongs_together(stamps_path, info.header, str(catalog_path), table.meta)
+        table, meta = _read_positions_catalog(catalog_path)
+        check_belongs_together(stamps_path, info.header, str(catalog_path), meta)
         x, y = _catalog_positions(table, str(catalog_path))
         _check_spacing(x, y, size, str(catalog_path), name("stamp_size"))
         origins = catalog_origins(x, y, size, origin, name("origin"))
@@ -604,18 +620,18 @@ def measure_file(
                 f"{catalog_path}: no stamp centre falls on {stamps_path} ({n_x}x{n_y} stamps of "
                 f"{size} pixels; wrong {name('origin')} or {name('stamp_size')}?)"
             )
-        history = table.meta.get("HISTORY")
+        history = meta.get("HISTORY")
         from megalut_cli.catalog import is_fits_file
 
         if is_fits_file(catalog_path):  # carried with their comments, and the CONFIG HDU
             cards = read_cards(catalog_path)
             extra_hdus = read_carried_hdus(catalog_path)
         else:
-            cards = {k: v for k, v in table.meta.items() if k not in ("HISTORY", "COMMENT")}
+            cards = {k: v for k, v in meta.items() if k not in ("HISTORY", "COMMENT")}
     else:
         origins = grid_origins(n_y, n_x, size)[: _n_grid_stamps(info, n_y * n_x)]
         centres = stamp_centres(origins, size)
-        table = Table({"x": centres[:, 0], "y": centres[:, 1]})
+        table, meta = {"x": centres[:, 0].copy(), "y": centres[:, 1].copy()}, {}
         history = info.header.get("HISTORY")
         cards = read_cards(stamps_path, ext=info.ext)  # the image's provenance (seed, config)
     log.info("%s: %d stamps of %dx%d pixels", stamps_path, len(origins), size, size)
@@ -632,7 +648,7 @@ def measure_file(
         image_info(psf_path)  # fail early on a bad PSF file, before the long measurement
         if metacal:
             mc = {**_metacal_psf(psf_path, info, size, names), "step": float(metacal_step)}
-            common = bool(_card_value(cards.get("CRN", False))) and "rea" in table.colnames
+            common = bool(_card_value(cards.get("CRN", False))) and "rea" in table
             # the fields' keys: the realization in a common-random-number set, else the row
             mc["keys"] = np.asarray(table["rea"], dtype=np.int64) if common else np.arange(len(origins))
             mc["seed"] = int(seed)
@@ -653,7 +669,7 @@ def measure_file(
 
     if stars:
         return _write_stars(stamps_path, table, feats, output, overwrite, size, origin if catalog_path else 1, cards, history,
-                            extra_hdus)
+                            extra_hdus), meta
 
     feature_cols = list(FEATURE_COLUMNS) + (list(MORPHOLOGY_COLUMNS) if morphology else [])
     psf_cols = list(PSF_COLUMNS) if psf is not None else []
@@ -661,10 +677,11 @@ def measure_file(
         feature_cols += metacal_columns(feature_cols)
         psf_cols += metacal_columns(psf_cols)
     new_cols = feature_cols + psf_cols
-    replaced = [c for c in new_cols if c in table.colnames]
+    replaced = [c for c in new_cols if c in table]
     if replaced:
         log.warning("replacing existing column(s) %s", ", ".join(replaced))
-        table.remove_columns(replaced)
+        for c in replaced:
+            del table[c]
     for c in feature_cols:
         table[c] = feats[c]
     if psf is not None:
@@ -672,7 +689,7 @@ def measure_file(
             table[c] = psf[c]
 
     nflag = int((feats["flags"] != 0).sum())
-    log.info("%d of %d stamps flagged (features NaN)", nflag, len(table))
+    log.info("%d of %d stamps flagged (features NaN)", nflag, len(origins))
     warn_if_mostly_flagged(feats["flags"], stamps_path, names)
     cards.update(
         {
@@ -690,13 +707,24 @@ def measure_file(
         cards["MEASURED"] = (True, "the catalog holds measured features")
     write_catalog(output, table, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history,
                   extra_hdus=extra_hdus)
-    log.info("wrote %s (%d rows)", output, len(table))
+    log.info("wrote %s (%d rows)", output, len(origins))
+    return table, meta
+
+
+def measure_file(*args: Any, **kwargs: Any) -> Table:
+    """:func:`measure_file_columns` (the same arguments), returning the table written as an
+    astropy Table whose ``meta`` is the input catalog's header."""
+    from astropy.table import Table
+
+    columns, meta = measure_file_columns(*args, **kwargs)
+    table = Table(columns, copy=False)
+    table.meta.update(meta)
     return table
 
 
 def _write_stars(
     path: str,
-    table: Table,
+    table: Columns,
     feats: dict[str, np.ndarray],
     output: str | os.PathLike,
     overwrite: bool,
@@ -705,17 +733,18 @@ def _write_stars(
     cards: dict[str, Any],
     history: list[str] | None,
     extra_hdus: dict[str, np.ndarray],
-) -> Table:
+) -> Columns:
     """Write the star-by-star PSF features of a star field (format ``megalut.stars``)."""
     good = feats["flags"] == 0
     if not good.any():
         raise InputError(f"{path}: no star could be measured (a star field without stars?)")
-    if "star" not in table.colnames:
-        table["star"] = np.arange(len(table), dtype=np.int64)
-    replaced = [c for c in (*STAR_COLUMNS, "flags") if c in table.colnames]
+    if "star" not in table:
+        table["star"] = np.arange(len(good), dtype=np.int64)
+    replaced = [c for c in (*STAR_COLUMNS, "flags") if c in table]
     if replaced:
         log.warning("replacing existing column(s) %s", ", ".join(replaced))
-        table.remove_columns(replaced)
+        for c in replaced:
+            del table[c]
     for c in STAR_COLUMNS:
         table[c] = feats[c[len("psf_"):]]
     table["flags"] = feats["flags"]
@@ -731,5 +760,5 @@ def _write_stars(
     cards.pop("MEASURED", None)
     write_catalog(output, table, fmt=STARS_FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history,
                   extra_hdus=extra_hdus)
-    log.info("wrote %s (%d stars)", output, len(table))
+    log.info("wrote %s (%d stars)", output, len(good))
     return table

@@ -84,14 +84,29 @@ def image_info(path: str | os.PathLike, ext: int | None = None) -> ImageInfo:
     return ImageInfo(str(path), int(ext), (int(dims[0]), int(dims[1])), header)
 
 
-def read_rows(info: ImageInfo, y0: int, y1: int) -> np.ndarray:
-    """Read image rows ``y0 .. y1 - 1`` (0-based numpy indices) as float64."""
+def pixel_rows(rows: np.ndarray) -> np.ndarray:
+    """``rows`` as the cutting kernel takes them: float32 and float64 pixels as they are (in
+    native byte order, C order), any other type as float64."""
+    rows = np.asarray(rows)
+    if rows.dtype.type in (np.float32, np.float64):
+        return np.ascontiguousarray(rows, dtype=rows.dtype.newbyteorder("="))
+    return np.ascontiguousarray(rows, dtype=np.float64)
+
+
+def read_band(info: ImageInfo, y0: int, y1: int) -> np.ndarray:
+    """Read image rows ``y0 .. y1 - 1`` (0-based numpy indices) in one read, as
+    :func:`pixel_rows` (float32 pixels are not converted)."""
     try:
         with fitsio.FITS(info.path) as f:
             data = f[info.ext][y0:y1, :]
     except (OSError, ValueError):
         raise _unreadable(info.path) from None
-    return np.asarray(data, dtype=np.float64)
+    return pixel_rows(data)
+
+
+def read_rows(info: ImageInfo, y0: int, y1: int) -> np.ndarray:
+    """Read image rows ``y0 .. y1 - 1`` (0-based numpy indices) as float64."""
+    return np.asarray(read_band(info, y0, y1), dtype=np.float64)
 
 
 def stamp_size_of(
@@ -167,17 +182,52 @@ def inside(origins: np.ndarray, stamp_size: int, shape: tuple[int, int]) -> np.n
     return (ox >= 1) & (oy >= 1) & (ox + stamp_size - 1 <= nx) & (oy + stamp_size - 1 <= ny)
 
 
+@dataclass(frozen=True)
+class CheckedStamps:
+    """Stamps cut by :func:`cut_stamps_checked`: ``stamps`` ``(n, S, S)`` float64, whether all
+    pixels of each are finite, and the sky MAD of its edge pixels (``features.sky_mad``)."""
+
+    stamps: np.ndarray
+    finite: np.ndarray
+    skymad: np.ndarray
+
+
+def _cut(rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int, checks: bool) -> CheckedStamps:
+    from megalut_cli.measure.features import MAD_TO_SIGMA
+    from megalut_cli.measure.stamps_nb import cut_stack  # imports numba
+
+    rows = pixel_rows(rows)
+    if rows.ndim != 2:
+        raise ValueError(f"rows must be 2-d, got shape {rows.shape}")
+    origins = np.ascontiguousarray(np.asarray(origins).reshape(-1, 2), dtype=np.int64)
+    n = len(origins)
+    if checks and stamp_size < MIN_STAMP_SIZE:  # the edge statistic needs an inside
+        raise ValueError(f"stamps must be at least {MIN_STAMP_SIZE} pixels, got {stamp_size}")
+    x0, y0 = origins[:, 0] - 1, origins[:, 1] - 1 - row0
+    if n and not ((x0 >= 0) & (y0 >= 0) & (x0 + stamp_size <= rows.shape[1]) & (y0 + stamp_size <= rows.shape[0])).all():
+        raise ValueError("stamps must lie inside the rows they are cut from")
+    out = np.empty((n, stamp_size, stamp_size), dtype=np.float64)
+    finite = np.zeros(n if checks else 0, dtype=np.bool_)
+    mad = np.zeros(n if checks else 0, dtype=np.float64)
+    if n:
+        cut_stack(rows, int(row0), origins, out, finite, mad, checks)
+    return CheckedStamps(out, finite, MAD_TO_SIGMA * mad)
+
+
 def cut_stamps(
     rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int
 ) -> np.ndarray:
-    """Cut stamps ``(n, S, S)`` from a block of image ``rows`` whose first row is ``row0`` (0-based)."""
-    n = len(origins)
-    out = np.empty((n, stamp_size, stamp_size), dtype=np.float64)
-    for i, (ox, oy) in enumerate(origins):
-        y = int(oy) - 1 - row0
-        x = int(ox) - 1
-        out[i] = rows[y : y + stamp_size, x : x + stamp_size]
-    return out
+    """Cut stamps ``(n, S, S)`` (float64) from a block of image ``rows`` whose first row is
+    ``row0`` (0-based), in one compiled call."""
+    return _cut(rows, row0, origins, stamp_size, False).stamps
+
+
+def cut_stamps_checked(
+    rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int
+) -> CheckedStamps:
+    """:func:`cut_stamps`, and in the same pass over the pixels whether every pixel of each
+    stamp is finite and its ``skymad`` (:func:`megalut_cli.measure.features.sky_mad`, exactly)."""
+    return _cut(rows, row0, origins, stamp_size, True)
 
 
 def stamp_centres(origins: np.ndarray, stamp_size: int) -> np.ndarray:

@@ -73,6 +73,12 @@ def msb(o: np.ndarray, case: np.ndarray | Groups, n: np.ndarray, t: np.ndarray) 
     return cost, grp.expand(2.0 * r / (c * n))
 
 
+def msb_value(o: np.ndarray, case: np.ndarray | Groups, n: np.ndarray, t: np.ndarray) -> float:
+    """:func:`msb` without the derivative (the same number)."""
+    r = _groups(case, n).sum(o) / n - t
+    return float(r @ r) / len(n)
+
+
 def mswb(
     w: np.ndarray, o: np.ndarray, case: np.ndarray | Groups, n: np.ndarray, t: np.ndarray
 ) -> tuple[float, np.ndarray]:

@@ -64,14 +64,10 @@ class CaseData:
         """The data of the cases with indices ``cases`` (renumbered 0..len-1, in that order)."""
         cases = np.asarray(cases, dtype=np.intp)
         counts = self.counts
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        sel_counts = counts[cases]
-        # row indices of the selected cases, case after case
-        offsets = np.repeat(starts[cases] - np.concatenate([[0], np.cumsum(sel_counts)[:-1]]), sel_counts)
-        rows = np.arange(int(sel_counts.sum())) + offsets
+        rows = case_rows(counts, cases)
         return CaseData(
             x=self.x[rows],
-            case=np.repeat(np.arange(len(cases)), sel_counts),
+            case=np.repeat(np.arange(len(cases)), counts[cases]),
             case_ids=self.case_ids[cases],
             targets=self.targets[cases],
             row_targets=self.row_targets[rows],
@@ -130,6 +126,16 @@ class CaseData:
             target_names=list(target_names) if target_names else [f"t{i}" for i in range(t.shape[1])],
             point=pt,
         )
+
+
+def case_rows(counts: np.ndarray, cases: np.ndarray) -> np.ndarray:
+    """Row indices of the cases ``cases``, case after case, in data whose rows are grouped by
+    case in order with ``counts`` rows per case (:class:`CaseData`)."""
+    cases = np.asarray(cases, dtype=np.intp)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    sel_counts = counts[cases]
+    offsets = np.repeat(starts[cases] - np.concatenate([[0], np.cumsum(sel_counts)[:-1]]), sel_counts)
+    return np.arange(int(sel_counts.sum())) + offsets
 
 
 def valid_rows(columns: Mapping[str, np.ndarray], features: Sequence[str], n_rows: int) -> np.ndarray:

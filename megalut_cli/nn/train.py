@@ -13,6 +13,7 @@ original implementation did); it exists for the benchmark only.
 
 from __future__ import annotations
 
+import copy
 import logging
 import multiprocessing
 import sys
@@ -23,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.nn import costs
-from megalut_cli.nn.data import CaseData
+from megalut_cli.nn.data import CaseData, case_rows
 from megalut_cli.nn.network import Network
 from megalut_cli.seeding import rng_for
 
@@ -81,6 +82,17 @@ class TrainSettings:
             raise ValueError(str(err)) from None
 
 
+def normalised_columns(x: np.ndarray, loc: np.ndarray, scale: np.ndarray, dtype: str,
+                       block: int = 16384) -> np.ndarray:
+    """``(x - loc) / scale`` (float64 arithmetic) transposed to the column layout
+    (``features x rows``, C-contiguous) in ``dtype``; by blocks of rows that stay in the CPU
+    cache (the numbers of ``np.ascontiguousarray(((x - loc) / scale).T, dtype)``)."""
+    xt = np.empty((x.shape[1], x.shape[0]), dtype=dtype)
+    for s in range(0, x.shape[0], block):
+        xt[:, s : s + block] = ((x[s : s + block] - loc) / scale).T
+    return xt
+
+
 class Objective:
     """A cost of a network on a set of cases, as a function of the flat parameters.
 
@@ -102,7 +114,7 @@ class Objective:
     ) -> None:
         self.net = net
         self.cost = cost
-        self.xt = np.ascontiguousarray(((data.x - in_loc) / in_scale).T, dtype=dtype)
+        self.xt = normalised_columns(data.x, in_loc, in_scale, dtype)
         self.groups = costs.Groups(data.case, data.n_cases)
         self.n = self.groups.n
         self.t = np.ascontiguousarray(data.targets[:, j])
@@ -121,10 +133,31 @@ class Objective:
             return costs.mse(out, self.groups, self.n, self.t_row)
         return costs.mswb(out, self.point, self.groups, self.n, self.t)
 
+    def batch(self, cases: np.ndarray) -> Objective:
+        """The same cost on the cases ``cases`` of this objective's data, built from its
+        normalised features (the numbers of ``Objective(..., data.subset(cases), ...)``
+        without normalising the rows again)."""
+        cases = np.asarray(cases, dtype=np.intp)
+        counts = self.groups.counts
+        rows = case_rows(counts, cases)
+        new = copy.copy(self)
+        new.xt = self.xt.take(rows, axis=1)  # C-contiguous (``xt[:, rows]`` would not be)
+        new.groups = costs.Groups(np.repeat(np.arange(len(cases)), counts[cases]), len(cases))
+        new.n = new.groups.n
+        new.t = self.t[cases]
+        new.t_row = self.t_row[rows]
+        new.point = None if self.point is None else self.point[rows]
+        new.n_evals = 0
+        new._work = None
+        return new
+
     def value(self, params: np.ndarray) -> float:
         """The cost (in the targets' units squared)."""
         self.n_evals += 1
-        return self._cost(self.net.forward(params, self.xt))[0]
+        out = self.net.forward(params, self.xt)
+        if self.cost == "msb":  # no derivative needed (validation passes)
+            return costs.msb_value(out, self.groups, self.n, self.t)
+        return self._cost(out)[0]
 
     def value_and_grad(self, params: np.ndarray) -> tuple[float, np.ndarray]:
         """The cost and its analytic gradient (in the targets' units squared)."""
@@ -264,7 +297,9 @@ def train_member(task: MemberTask) -> MemberResult:
         method, opts = "L-BFGS-B", {"gtol": 1e-12, "ftol": 1e-15}
     while mon.it < s.iterations:
         if bsize < n_cases:
-            obj = make(task.train.subset(np.sort(rng.choice(n_cases, size=bsize, replace=False))))
+            cases = np.sort(rng.choice(n_cases, size=bsize, replace=False))
+            # On the CPU the batch's features are taken from the normalised training set.
+            obj = full.batch(cases) if isinstance(full, Objective) else make(task.train.subset(cases))
         else:
             obj = full
         mon.batch_norm = obj.norm

@@ -1,0 +1,122 @@
+"""Compiled kernels of :mod:`.stamps`: cutting a stack of stamps out of a band of image rows
+in one call, with each stamp's pixel checks (the Python API is
+:func:`megalut_cli.measure.stamps.cut_stamps_checked`).
+
+The edge statistic is ``numpy.median``'s arithmetic exactly: the mean ``(a + b) / 2`` of the
+two middle order statistics of the ``4 S - 4`` edge pixels (an even count), then the same of
+the absolute deviations from it; a NaN among the edges or among the deviations gives NaN.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, error_model="numpy")
+def _select(a: np.ndarray, k: int) -> None:
+    """Rearrange ``a`` (no NaN) so that ``a[k]`` is its ``k``-th smallest value, the values
+    before it not larger and those after it not smaller (Hoare's selection)."""
+    lo = 0
+    hi = a.shape[0] - 1
+    while hi > lo:
+        mid = (lo + hi) >> 1
+        x, y, z = a[lo], a[mid], a[hi]
+        if x < y:
+            p = y if y < z else (z if x < z else x)
+        else:
+            p = x if x < z else (z if y < z else y)
+        i = lo
+        j = hi
+        while i <= j:
+            while a[i] < p:
+                i += 1
+            while a[j] > p:
+                j -= 1
+            if i <= j:
+                t = a[i]
+                a[i] = a[j]
+                a[j] = t
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return
+
+
+@njit(cache=True, error_model="numpy")
+def _median_even(a: np.ndarray) -> float:
+    """``numpy.median`` of ``a`` (an even count, no NaN; ``a`` is reordered)."""
+    h = a.shape[0] // 2
+    _select(a, h)
+    low = a[0]
+    for i in range(1, h):
+        if a[i] > low:
+            low = a[i]
+    return (low + a[h]) / 2.0
+
+
+@njit(cache=True, error_model="numpy")
+def _edge_mad(stamp: np.ndarray, edges: np.ndarray, work: np.ndarray) -> float:
+    """``median(|e - median(e)|)`` of the edge pixels ``e`` of ``stamp`` (NaN if a NaN enters)."""
+    s = stamp.shape[0]
+    j = 0
+    for x in range(s):
+        edges[j] = stamp[0, x]
+        edges[j + s] = stamp[s - 1, x]
+        j += 1
+    j = 2 * s
+    for y in range(1, s - 1):
+        edges[j] = stamp[y, 0]
+        edges[j + s - 2] = stamp[y, s - 1]
+        j += 1
+    for i in range(edges.shape[0]):
+        if math.isnan(edges[i]):
+            return np.nan
+        work[i] = edges[i]
+    centre = _median_even(work)
+    for i in range(edges.shape[0]):
+        d = abs(edges[i] - centre)
+        if math.isnan(d):
+            return np.nan
+        work[i] = d
+    return _median_even(work)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def cut_stack(
+    rows: np.ndarray,
+    row0: int,
+    origins: np.ndarray,
+    out: np.ndarray,
+    finite: np.ndarray,
+    mad: np.ndarray,
+    checks: bool,
+) -> None:
+    """Copy the stamps whose 1-based lower-left pixels are ``origins`` (``(n, 2)``, ``x, y``) out
+    of ``rows`` (image rows from the 0-based ``row0``) into ``out`` (``(n, S, S)`` float64).
+    With ``checks``, ``finite[k]`` says whether every pixel of stamp ``k`` is finite and
+    ``mad[k]`` is the median absolute deviation of its edge pixels (not rescaled)."""
+    s = out.shape[1]
+    edges = np.empty(4 * s - 4)
+    work = np.empty(4 * s - 4)
+    for k in range(out.shape[0]):
+        y0 = origins[k, 1] - 1 - row0
+        x0 = origins[k, 0] - 1
+        stamp = out[k]
+        ok = True
+        for y in range(s):
+            src = rows[y0 + y]
+            dst = stamp[y]
+            for x in range(s):
+                v = np.float64(src[x0 + x])
+                dst[x] = v
+                ok &= math.isfinite(v)
+        if checks:
+            finite[k] = ok
+            mad[k] = _edge_mad(stamp, edges, work)
