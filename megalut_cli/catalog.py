@@ -157,43 +157,20 @@ def read_catalog(
     ``table.meta`` holds the header as a dict (``HISTORY`` as a list of strings).
     Missing ``columns`` are reported all at once.
     """
-    _check_exists(path)
-    try:
-        with fitsio.FITS(str(path)) as f:
-            ext = _table_ext(f, path)
-            hdu = f[ext]
-            if columns is not None:
-                require_columns(hdu.get_colnames(), columns, path)
-            nrows = hdu.get_nrows()
-            kwargs: dict[str, Any] = {}
-            if columns is not None:
-                kwargs["columns"] = list(columns)
-            if rows is not None:
-                start, stop, _ = rows.indices(nrows)
-                kwargs["rows"] = np.arange(start, stop)
-            data = hdu.read(**kwargs) if nrows else None
-            header = header_dict(hdu.read_header())
-            if data is None:
-                names = list(columns) if columns is not None else hdu.get_colnames()
-                dtype = hdu.get_rec_dtype()[0]
-                data = np.zeros(0, dtype=[(n, dtype[n]) for n in names])
-    except InputError:
-        raise
-    except (OSError, ValueError) as err:
-        raise _open_error(path, err) from None
     from astropy.table import Table
 
-    table = Table(_native(data), copy=False)
+    data, header = read_catalog_columns(path, columns, rows)
+    table = Table(data, copy=False)
     table.meta.update(header)
     return table
 
 
 def read_catalog_columns(
-    path: str | os.PathLike, columns: Sequence[str] | None = None
+    path: str | os.PathLike, columns: Sequence[str] | None = None, rows: slice | None = None
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """What :func:`read_catalog` reads, without an astropy Table (whose import costs ~0.4 s):
-    ``(columns, header)``, the columns (all, or ``columns``; native byte order) in the file's
-    order and the header as ``table.meta`` would hold it."""
+    ``(columns, header)``, the columns (all, or ``columns``; native byte order; all rows, or
+    ``rows``) in the file's order and the header as ``table.meta`` would hold it."""
     _check_exists(path)
     try:
         with fitsio.FITS(str(path)) as f:
@@ -201,8 +178,15 @@ def read_catalog_columns(
             if columns is not None:
                 require_columns(hdu.get_colnames(), columns, path)
             names = hdu.get_colnames() if columns is None else list(columns)
-            if hdu.get_nrows():
-                data = hdu.read(columns=names) if columns is not None else hdu.read()
+            n_rows = hdu.get_nrows()
+            kwargs: dict[str, Any] = {}
+            if columns is not None:
+                kwargs["columns"] = names
+            if rows is not None:
+                start, stop, _ = rows.indices(n_rows)
+                kwargs["rows"] = np.arange(start, stop)
+            if n_rows:
+                data = hdu.read(**kwargs)
             else:
                 dtype = hdu.get_rec_dtype()[0]
                 data = np.zeros(0, dtype=[(n, dtype[n]) for n in names])

@@ -55,12 +55,11 @@ def describe_file(path: str | os.PathLike) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- JSON and text files
-#: The JSON formats ``info`` describes: evaluate --json and the run manifest.
-EVALUATION_FORMAT = "megalut.evaluation"
-MANIFEST_FORMAT = "megalut.run-manifest"
-
-
 def _describe_json(p: Path) -> dict[str, Any]:
+    """evaluate --json files and run manifests (their writers' format names)."""
+    from megalut_cli.shear.evaluate import JSON_FORMAT as EVALUATION_FORMAT
+    from megalut_cli.steps import MANIFEST_FORMAT
+
     try:
         data = json.loads(p.read_text())
     except (UnicodeDecodeError, ValueError):
@@ -79,7 +78,7 @@ def _describe_evaluation(p: Path, data: dict[str, Any]) -> dict[str, Any]:
     prov = data.get("provenance") if isinstance(data.get("provenance"), dict) else {}
     return {
         "path": str(p),
-        "format": EVALUATION_FORMAT,
+        "format": data["format"],
         "format_version": data.get("format_version"),
         "kind": "evaluation",
         "input": data.get("input"),
@@ -98,7 +97,7 @@ def _describe_manifest(p: Path, data: dict[str, Any]) -> dict[str, Any]:
     steps = data.get("steps") if isinstance(data.get("steps"), dict) else {}
     return {
         "path": str(p),
-        "format": MANIFEST_FORMAT,
+        "format": data["format"],
         "format_version": data.get("format_version"),
         "kind": "manifest",
         "megalut": data.get("megalut"),

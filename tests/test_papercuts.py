@@ -128,7 +128,7 @@ def test_pipeline_errors_name_the_file_and_table_as_written(runner, cli, tmp_pat
     assert not (tmp_path / "wd").exists()
 
 
-def test_pipeline_errors_in_a_set_config_file_name_that_file(runner, cli, tmp_path) -> None:
+def test_pipeline_errors_in_a_set_config_file_name_that_file(runner, cli, tmp_path, monkeypatch) -> None:
     cfg = write_sim_config(tmp_path, name="tp-sim.toml")
     text = cfg.read_text()
     assert "\n[noise]" in text and "sigma" in text
@@ -136,7 +136,7 @@ def test_pipeline_errors_in_a_set_config_file_name_that_file(runner, cli, tmp_pa
     pipe = TINY_PIPELINE.replace('[sets.tp]\n', '[sets.tp]\nconfig = "tp-sim.toml"\n', 1)
     pipe = pipe.replace('simulation = {structure = {per_realization = ["angle"], snc = "ring"}}\n', "", 1)
     path = write_pipeline(tmp_path, pipe)
-    os.chdir(tmp_path)  # the config file is named relative to the current folder
+    monkeypatch.chdir(tmp_path)  # the config file is named relative to the current folder
     result = runner.invoke(cli, ["run", str(path), "--workdir", str(tmp_path / "wd"), "--dry-run"])
     assert result.exit_code == 2
     assert _one_line(result).startswith("Error: tp-sim.toml: [noise] sigam: unknown key"), _err(result)
