@@ -1,4 +1,5 @@
-"""Config files: reading TOML and applying dotted ``key=value`` overrides (simulation and pipeline files)."""
+"""Config files: reading TOML, applying dotted ``key=value`` overrides, and naming a key of an
+error message where the user wrote it (simulation and pipeline files)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ import hashlib
 import os
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -68,3 +70,121 @@ def read_toml(path: str | os.PathLike) -> tuple[dict[str, Any], str]:
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{p}: invalid TOML ({err})") from None
     return raw, hashlib.sha256(data).hexdigest()
+
+
+# --------------------------------------------------------------------------- where a key is written
+#: A dotted key at the start of a message (``sets.tp``, ``noise.sigam``, ``sets.*.config``).
+MESSAGE_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*(?:\.[A-Za-z0-9_*-]+)*")
+#: A table header line of a TOML file (``[simulation.noise]``); arrays of tables are not headers here.
+_HEADER = re.compile(r"^\s*\[(?!\[)\s*([^\[\]]+?)\s*\]\s*(?:#.*)?$")
+
+
+@dataclass(frozen=True)
+class ConfigSource:
+    """A config file as the user wrote it: how to name it, its table and its text."""
+
+    name: str
+    raw: Mapping[str, Any]
+    text: str
+
+
+def config_source(path: str | os.PathLike, name: str | None = None) -> ConfigSource | None:
+    """The TOML file ``path`` as a :class:`ConfigSource` named ``name`` (default: ``path`` as
+    given); None when it cannot be read."""
+    try:
+        text = Path(path).read_text()
+        raw = tomllib.loads(text)
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return None
+    return ConfigSource(str(path) if name is None else name, raw, text)
+
+
+def _headers(text: str) -> set[tuple[str, ...]]:
+    out = set()
+    for line in text.splitlines():
+        m = _HEADER.match(line)
+        if m:
+            out.add(tuple(p.strip().strip("\"'") for p in m.group(1).split(".")))
+    return out
+
+
+def table_key(text: str, parts: Sequence[str]) -> str:
+    """``parts`` as the file ``text`` writes it: under its deepest table header
+    (``[simulation.noise] sigam``), a table by its header (``[pretrain]``), else dotted."""
+    headers = _headers(text)
+    if tuple(parts) in headers:
+        return f"[{'.'.join(parts)}]"
+    for i in range(len(parts) - 1, 0, -1):
+        if tuple(parts[:i]) in headers:
+            return f"[{'.'.join(parts[:i])}] {'.'.join(parts[i:])}"
+    return ".".join(parts)
+
+
+def has_key(raw: Any, parts: Sequence[str]) -> bool:
+    """Whether the nested tables ``raw`` hold the dotted key ``parts``."""
+    for p in parts:
+        if not isinstance(raw, Mapping) or p not in raw:
+            return False
+        raw = raw[p]
+    return True
+
+
+def override_for(parts: Sequence[str], overrides: Sequence[str]) -> str | None:
+    """The last ``KEY=VALUE`` override that sets ``parts``, a table above it or a part of its
+    value (``galaxy.rad.min=-1`` for ``galaxy.rad``)."""
+    for text in reversed(overrides):
+        try:
+            key, _ = parse_override(text)
+        except ConfigError:
+            continue
+        n = min(len(key), len(parts))
+        if list(parts[:n]) == key[:n]:
+            return text
+    return None
+
+
+def written_at(parts: Sequence[str], sources: Sequence[ConfigSource], overrides: Sequence[str]) -> str | None:
+    """Where ``parts`` is given: the dotted key of a ``KEY=VALUE`` override (as the command line
+    writes it), else ``FILE: [table] key`` of the first source that has it; None if nowhere."""
+    if override_for(parts, overrides) is not None:
+        return ".".join(parts)
+    for src in sources:
+        if has_key(src.raw, parts):
+            return f"{src.name}: {table_key(src.text, parts)}"
+    return None
+
+
+def message_keys(message: str, top: Collection[str], names: Collection[str] = ()) -> tuple[list[str], str]:
+    """The dotted keys that ``message`` starts with (``sets.tp: noise.sigam: unknown key`` ->
+    ``(["sets.tp", "noise.sigam"], "unknown key")``), the first one a key of ``top``; none when
+    the message starts with one of ``names`` (a file's name)."""
+    keys: list[str] = []
+    rest = message
+    if any(message.startswith(f"{n}: ") for n in names):
+        return keys, message
+    while True:
+        head, sep, tail = rest.partition(": ")
+        if not sep or not MESSAGE_KEY.fullmatch(head) or (not keys and head.split(".")[0] not in top):
+            break
+        keys.append(head)
+        rest = tail
+    return keys, rest
+
+
+def where_written(message: str, sources: Sequence[ConfigSource], overrides: Sequence[str] = (),
+                  top: Collection[str] | None = None) -> str:
+    """A config error ``message`` (``galaxy.rad: ... must be > 0``) naming its key where the user
+    wrote it: the override (``galaxy.rad``), else the file and its table (``tp.toml: [galaxy]
+    rad: ... must be > 0``), the first of ``sources`` when none gives it. ``top``: the
+    top-level keys a message may start with (default: those of the first source). ``message``
+    is returned as it is when it starts with no such key."""
+    if not sources:
+        return message
+    keys, rest = message_keys(message, set(sources[0].raw) if top is None else top, [s.name for s in sources])
+    if not keys:
+        return message
+    parts = ".".join(keys).split(".")
+    found = written_at(parts, sources, overrides)
+    if found is None and "*" not in parts:
+        found = f"{sources[0].name}: {table_key(sources[0].text, parts)}"
+    return message if found is None else f"{found}: {rest}"

@@ -22,6 +22,12 @@ BAD_SKY = 1 << 5
 PSF_FAILED = 1 << 6
 #: ``predict``: an input feature of the model is missing or not finite on this row.
 BAD_FEATURES = 1 << 7
+#: MEDS input: the object has no cutout of the index measured (``ncutout`` too small).
+NO_CUTOUT = 1 << 8
+#: MEDS input: too many masked pixels (bad-mask bits or zero weight) for usable moments:
+#: more than ``meds.MAX_MASKED_FRACTION`` (25 %) of the stamp, or one within
+#: ``meds.CENTRAL_MASK_RADIUS`` (2 pixels) of the object's position.
+MASKED_PIXELS = 1 << 9
 
 FLAG_NAMES: dict[int, str] = {
     HSM_FAILED: "HSM_FAILED",
@@ -32,6 +38,8 @@ FLAG_NAMES: dict[int, str] = {
     BAD_SKY: "BAD_SKY",
     PSF_FAILED: "PSF_FAILED",
     BAD_FEATURES: "BAD_FEATURES",
+    NO_CUTOUT: "NO_CUTOUT",
+    MASKED_PIXELS: "MASKED_PIXELS",
 }
 
 FLAG_DESCRIPTIONS: dict[int, str] = {
@@ -43,6 +51,8 @@ FLAG_DESCRIPTIONS: dict[int, str] = {
     BAD_SKY: "sky noise (skymad) not finite",
     PSF_FAILED: "PSF stamp could not be measured",
     BAD_FEATURES: "model input features missing or not finite",
+    NO_CUTOUT: "MEDS object without the cutout measured",
+    MASKED_PIXELS: "masked pixels: over 25 % of the stamp, or within 2 px of the centre",
 }
 
 

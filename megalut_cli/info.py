@@ -19,7 +19,9 @@ import numpy as np
 from megalut_cli import flags as fl
 from megalut_cli.catalog import header_dict, history_steps
 from megalut_cli.errors import InputError
-from megalut_cli.provenance import sha256_file, shown_path
+from megalut_cli.nn.domain import domain_summary, model_domain
+from megalut_cli.nn.population import domain_line, population_lines, population_summary
+from megalut_cli.provenance import sha256_file, shown_command, shown_path
 
 _FITS_MAGIC = b"SIMPLE  ="
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
@@ -312,8 +314,64 @@ def _describe_model(p: Path) -> dict[str, Any]:
         "features": model.features,
         "shear_mode": model.shear_mode,
         "committees": committees,
+        "training_sets": _training_sets(model.provenance),
+        "domain": model_domain(model.provenance),
         "provenance": {"created": model.created, **model.provenance},
     }
+
+
+def _training_sets(prov: dict[str, Any]) -> list[dict[str, Any]]:
+    """What each training step (the newest first) recorded of its set: the committees it
+    trained, the catalog, the population (with its one-line summary) and the setup."""
+    out = []
+    while isinstance(prov, dict) and prov:
+        if prov.get("command"):
+            pop = prov.get("population") if isinstance(prov.get("population"), dict) else None
+            train = (prov.get("inputs") or {}).get("train")
+            catalog = (train.get("name") or shown_path(train.get("path", "?"))) if isinstance(train, dict) else None
+            out.append({
+                "committees": "point estimates" if prov.get("command") == "train-point" else "weights",
+                "catalog": catalog or (pop or {}).get("config"),
+                "summary": (pop.get("summary") or population_summary(pop)) if pop else None,
+                "population": pop,
+                "setup": prov.get("setup") if isinstance(prov.get("setup"), dict) else None,
+            })
+        prov = prov.get("parent")
+    return out
+
+
+def describe_shipped_models() -> list[dict[str, Any]]:
+    """The models shipped with megalut (:data:`megalut_cli.nn.shipped.SHIPPED_MODELS`), one
+    dict each: name, file, shear mode, what they were trained on (from the model files)."""
+    from megalut_cli.nn.model import ShearModel
+    from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
+
+    out = []
+    for name in SHIPPED_MODELS:
+        path = shipped_model(name)
+        model = ShearModel.load(path)
+        sets = _training_sets(model.provenance)
+        domain = model_domain(model.provenance)
+        setup = next((t["setup"] for t in sets if t["setup"]), None) or {}
+        out.append({
+            "name": name, "file": str(path), "shear_mode": model.shear_mode,
+            "trained_on": next((t["summary"] for t in sets if t["summary"]), None),
+            "stamp_size": (domain or {}).get("stamp_size") or setup.get("stamp_size"),
+            "domain": domain_summary(domain) if domain else None,
+        })
+    return out
+
+
+def format_shipped_models(models: list[dict[str, Any]]) -> str:
+    """One line per shipped model: name, mode, training population and stamp size, file."""
+    width = max(len(m["name"]) for m in models)
+    lines = []
+    for m in models:
+        mode = "metacal" if m["shear_mode"] == "metacal" else "plain"
+        stamp = f", stamp {m['stamp_size']} px" if m.get("stamp_size") else ""
+        lines.append(f"{m['name']:<{width}}  {mode:<7}  {m['trained_on'] or 'training population not recorded'}"
+                     f"{stamp}  ({m['file']})")
+    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------- text
@@ -324,17 +382,46 @@ def _fmt_value(v: Any) -> str:
 
 
 def _model_chain(prov: dict[str, Any]) -> list[str]:
-    """One line per training step, the oldest first (``parent`` links)."""
+    """One line per training step, the oldest first (``parent`` links); files by their
+    recorded names (absolute paths of older records by their file names)."""
     lines = []
     while isinstance(prov, dict) and prov:
         inputs = prov.get("inputs") or {}
         used = ", ".join(
-            f"{role} {shown_path(v.get('path', '?'))} (sha256 {str(v.get('sha256', '?'))[:12]})"
+            f"{role} {v.get('name') or shown_path(v.get('path', '?'))} (sha256 {str(v.get('sha256', '?'))[:12]})"
             for role, v in inputs.items() if isinstance(v, dict)
         )
-        lines.append(f"{prov.get('argv') or prov.get('command', '?')}" + (f"\n      inputs: {used}" if used else ""))
+        command = shown_command(prov["argv"]) if prov.get("argv") else prov.get("command", "?")
+        lines.append(f"{command}" + (f"\n      inputs: {used}" if used else ""))
         prov = prov.get("parent")
     return lines[::-1]
+
+
+def _training_lines(info: dict[str, Any]) -> list[str]:
+    """The training population of every step in plain words, and the domain."""
+    lines = []
+    sets = info.get("training_sets") or []
+    if sets:
+        lines.append("trained on:")
+    previous = None
+    for t in sets:
+        where = f" ({t['catalog']})" if t.get("catalog") else ""
+        if t["population"] is None:
+            lines.append(f"  {t['committees']}{where}: population not recorded")
+            continue
+        if previous is not None and t["population"].get("summary") == previous.get("summary") and \
+                {k: t["population"].get(k) for k in ("galaxy", "psf", "noise")} == \
+                {k: previous.get(k) for k in ("galaxy", "psf", "noise")}:
+            lines.append(f"  {t['committees']}{where}: the same population")
+            continue
+        lines.append(f"  {t['committees']}{where}: {t['summary']}")
+        setup = t.get("setup") or {"stamp_size": (info.get("domain") or {}).get("stamp_size")}
+        lines += [f"    {line}" for line in population_lines(t["population"], setup)]
+        previous = t["population"]
+    domain = info.get("domain")
+    lines.append(f"domain: {domain_line(domain)}" if domain else
+                 "domain: not recorded (predict compares only the recorded setup)")
+    return lines
 
 
 def format_info(info: dict[str, Any]) -> str:
@@ -388,6 +475,7 @@ def format_info(info: dict[str, Any]) -> str:
             if c["training"]:
                 lines.append("         training: " + ", ".join(
                     f"{k}={_fmt_value(v)}" for k, v in sorted(c["training"].items())))
+        lines += _training_lines(info)
         lines.append(f"sha256: {info['sha256']}")
         lines.append(f"uuid: {info['uuid']}")
     if kind != "model":

@@ -11,12 +11,23 @@ from __future__ import annotations
 
 import copy
 import os
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from megalut_cli.configfile import (
+    ConfigSource,
+    config_source,
+    has_key,
+    message_keys,
+    override_for,
+    parse_override,
+    table_key,
+    tomllib,
+    written_at,
+)
+from megalut_cli.configfile import where_written as config_where_written
 from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION
 from megalut_cli.errors import ConfigError, MegalutError
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
@@ -209,54 +220,8 @@ def selection_expression(t: Table, name: str, case_mode: bool, default: str | No
 
 
 # --------------------------------------------------------------------------- where a key is written
-#: A dotted key at the start of a message (``sets.tp``, ``noise.sigam``, ``sets.*.config``).
-_MESSAGE_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*(?:\.[A-Za-z0-9_*-]+)*")
-#: A table header line of a TOML file (``[simulation.noise]``); arrays of tables are not headers here.
-_HEADER = re.compile(r"^\s*\[(?!\[)\s*([^\[\]]+?)\s*\]\s*(?:#.*)?$")
 #: Set keys that the pipeline copies into the set's ``structure``.
 _SET_STRUCTURE_KEYS = ("n_cases", "n_realizations")
-
-
-@dataclass(frozen=True)
-class _Source:
-    """One file of a pipeline's ``extends`` chain: how to name it, its table and its text."""
-
-    name: str
-    raw: Mapping[str, Any]
-    text: str
-
-
-def _headers(text: str) -> set[tuple[str, ...]]:
-    out = set()
-    for line in text.splitlines():
-        m = _HEADER.match(line)
-        if m:
-            out.add(tuple(p.strip().strip("\"'") for p in m.group(1).split(".")))
-    return out
-
-
-def table_key(text: str, parts: Sequence[str]) -> str:
-    """``parts`` as the file ``text`` writes it: under its deepest table header
-    (``[simulation.noise] sigam``), a table by its header (``[pretrain]``), else dotted."""
-    headers = _headers(text)
-    if tuple(parts) in headers:
-        return f"[{'.'.join(parts)}]"
-    for i in range(len(parts) - 1, 0, -1):
-        if tuple(parts[:i]) in headers:
-            return f"[{'.'.join(parts[:i])}] {'.'.join(parts[i:])}"
-    return ".".join(parts)
-
-
-def _has(raw: Any, parts: Sequence[str]) -> bool:
-    for p in parts:
-        if not isinstance(raw, Mapping) or p not in raw:
-            return False
-        raw = raw[p]
-    return True
-
-
-def _get(raw: Any, parts: Sequence[str]) -> Any:
-    return raw if not parts else (_get(raw.get(parts[0]), parts[1:]) if isinstance(raw, Mapping) else None)
 
 
 def _display(path: Path) -> str:
@@ -266,28 +231,24 @@ def _display(path: Path) -> str:
         return str(path)
 
 
-def _chain(path: str | os.PathLike | None) -> list[_Source]:
+def _chain(path: str | os.PathLike | None) -> list[ConfigSource]:
     """The files of a pipeline, the given one first, then those it ``extends``; the embedded
     default for ``None``."""
-    from megalut_cli.configfile import tomllib
-
     if path is None:
         from megalut_cli.pipeline import default_pipeline_text
 
         text = default_pipeline_text()
-        return [_Source("the default pipeline", tomllib.loads(text), text)]
-    out: list[_Source] = []
+        return [ConfigSource("the default pipeline", tomllib.loads(text), text)]
+    out: list[ConfigSource] = []
     p, name = Path(path), str(path)
     seen: set[Path] = set()
     while p.is_file() and p.resolve() not in seen and len(out) < 32:
         seen.add(p.resolve())
-        try:
-            text = p.read_text()
-            raw = tomllib.loads(text)
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        src = config_source(p, name)
+        if src is None:
             break
-        out.append(_Source(name, raw, text))
-        base = raw.get("extends")
+        out.append(src)
+        base = src.raw.get("extends")
         if not isinstance(base, str) or not base.strip():
             break
         p = (p.resolve().parent / Path(base).expanduser()).resolve()
@@ -295,52 +256,29 @@ def _chain(path: str | os.PathLike | None) -> list[_Source]:
     return out
 
 
-def _override_for(parts: Sequence[str], overrides: Sequence[str]) -> str | None:
-    """The last ``KEY=VALUE`` override that sets ``parts`` (or a table above it)."""
-    from megalut_cli.configfile import parse_override
-
-    for text in reversed(overrides):
-        try:
-            key, _ = parse_override(text)
-        except ConfigError:
-            continue
-        if list(parts[: len(key)]) == key:
-            return text
-    return None
+def _get(raw: Any, parts: Sequence[str]) -> Any:
+    return raw if not parts else (_get(raw.get(parts[0]), parts[1:]) if isinstance(raw, Mapping) else None)
 
 
-def _written(parts: Sequence[str], chain: Sequence[_Source], overrides: Sequence[str]) -> str | None:
-    """Where ``parts`` is given: ``FILE: [table] key``, or the dotted key of a ``KEY=VALUE``
-    override (as the command line writes it); None if nowhere."""
-    if _override_for(parts, overrides) is not None:
-        return ".".join(parts)
-    for src in chain:
-        if _has(src.raw, parts):
-            return f"{src.name}: {table_key(src.text, parts)}"
-    return None
-
-
-def _set_key(name: str, key: list[str], chain: Sequence[_Source], overrides: Sequence[str]) -> str | None:
+def _set_key(name: str, key: list[str], chain: Sequence[ConfigSource], overrides: Sequence[str]) -> str | None:
     """Where the simulation key ``key`` of the set ``name`` comes from: an override, the
     set's ``simulation`` table (or its ``n_cases``/``n_realizations``), its ``config``
     file, or the top-level ``[simulation]``."""
     if len(key) == 2 and key[0] == "structure" and key[1] in _SET_STRUCTURE_KEYS:
-        found = _written(["sets", name, key[1]], chain, overrides)
+        found = written_at(["sets", name, key[1]], chain, overrides)
         if found:
             return found
-    found = _written(["sets", name, "simulation", *key], chain, overrides)
+    found = written_at(["sets", name, "simulation", *key], chain, overrides)
     if found:
         return found
-    config = _written(["sets", name, "config"], chain, overrides)
+    config = written_at(["sets", name, "config"], chain, overrides)
     if config is not None:
-        from megalut_cli.configfile import parse_override
-
-        override = _override_for(["sets", name, "config"], overrides)
+        override = override_for(["sets", name, "config"], overrides)
         if override is not None:  # a path given on the command line: from the current folder
             okey, value = parse_override(override)
             value, base = _get({"v": value}, ["v", *["sets", name, "config"][len(okey):]]), Path.cwd()
         else:
-            src = next(s for s in chain if _has(s.raw, ["sets", name, "config"]))
+            src = next(s for s in chain if has_key(s.raw, ["sets", name, "config"]))
             value, base = _get(src.raw, ["sets", name, "config"]), Path(src.name).resolve().parent
         if isinstance(value, str):
             for candidate in (base / Path(value).expanduser(), Path.cwd() / Path(value).expanduser()):
@@ -350,35 +288,22 @@ def _set_key(name: str, key: list[str], chain: Sequence[_Source], overrides: Seq
                     except (OSError, UnicodeDecodeError):
                         break
         return None
-    return _written(["simulation", *key], chain, overrides)
+    return written_at(["simulation", *key], chain, overrides)
 
 
 def where_written(message: str, path: str | os.PathLike | None, overrides: Sequence[str] = ()) -> str:
     """A pipeline-file error ``message`` (``sets.tp: noise.sigam: unknown key``) naming the
     key where the user wrote it: the file and its table (``pipeline.toml: [simulation.noise]
     sigam: unknown key``), a set's simulation config file, or the dotted key of a ``KEY=VALUE``
-    override.
+    override (:func:`megalut_cli.configfile.where_written` for the keys outside the sets).
     ``message`` is returned as it is when its key is not found."""
     chain = _chain(path)
     if not chain:
         return message
     top = {*chain[0].raw, *PIPELINE, "branch"}
-    keys: list[str] = []
-    rest = message
-    while True:
-        head, sep, tail = rest.partition(": ")
-        if not sep or not _MESSAGE_KEY.fullmatch(head) or (not keys and head.split(".")[0] not in top):
-            break
-        keys.append(head)
-        rest = tail
-    if not keys:
-        return message
-    first = keys[0].split(".")
-    if first[0] == "sets" and len(first) == 2 and len(keys) > 1:
+    keys, rest = message_keys(message, top, [s.name for s in chain])
+    first = keys[0].split(".") if keys else []
+    if first[:1] == ["sets"] and len(first) == 2 and len(keys) > 1:
         found = _set_key(first[1], ".".join(keys[1:]).split("."), chain, overrides)
-    else:
-        parts = ".".join(keys).split(".")
-        found = _written(parts, chain, overrides)
-        if found is None and "*" not in parts:
-            found = f"{chain[0].name}: {table_key(chain[0].text, parts)}"
-    return message if found is None else f"{found}: {rest}"
+        return message if found is None else f"{found}: {rest}"
+    return config_where_written(message, chain, overrides, top)

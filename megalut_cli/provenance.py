@@ -86,4 +86,21 @@ def shown_path(recorded: str) -> str:
     """A recorded path as ``megalut info`` shows it: as recorded, but an absolute path (of
     the machine that made the file, in files made before :func:`recorded_path`) by its name."""
     text = str(recorded)
-    return Path(text).name if os.path.isabs(text) or text.startswith("~") else text
+    return (Path(text).name or text) if os.path.isabs(text) or text.startswith("~") else text
+
+
+def shown_command(argv: str) -> str:
+    """A recorded command line as ``megalut info`` shows it: every absolute path in it (an
+    argument, or the value of ``--opt=/path``) by its name (:func:`shown_path`)."""
+    try:
+        args = shlex.split(str(argv))
+    except ValueError:
+        return str(argv)
+
+    def shown(arg: str) -> str:
+        key, sep, value = arg.partition("=")
+        if sep and key.startswith("-") and value:
+            return f"{key}={shown_path(value)}"
+        return shown_path(arg)
+
+    return " ".join([args[0], *(shlex.quote(shown(a)) for a in args[1:])]) if args else str(argv)

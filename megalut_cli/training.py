@@ -41,6 +41,7 @@ from megalut_cli.expr import check_expression, columns_used, evaluate_cases, eva
 from megalut_cli.nn import normalization as norm
 from megalut_cli.nn.committee import CommitteeSpec, train_committees
 from megalut_cli.nn.data import CaseData, build_cases, split_cases, valid_rows
+from megalut_cli.nn.domain import DOMAIN_COLUMNS, DOMAIN_KEY, domain_record
 from megalut_cli.nn.model import Committee, ShearModel, component_name
 from megalut_cli.nn.network import Network
 from megalut_cli.nn.options import (
@@ -54,7 +55,7 @@ from megalut_cli.nn.population import training_population
 from megalut_cli.nn.train import INIT_SCHEMES, POINT_ITERATIONS, WEIGHT_ITERATIONS, TrainSettings
 from megalut_cli.parallel import executor
 from megalut_cli.progress import Progress, no_progress
-from megalut_cli.provenance import command_line, sha256_file, software_versions
+from megalut_cli.provenance import command_line, recorded_path, sha256_file, software_versions
 from megalut_cli.seeding import STREAM_SPLIT, rng_for
 
 log = logging.getLogger("megalut")
@@ -177,8 +178,9 @@ def _load_cases(
     select_rows: str | None = None,
     point_model: ShearModel | None = None,
     name: Callable[[str], str] | None = None,
-) -> CaseData:
-    """Group a table's rows into cases (see the module docstring for masking)."""
+) -> tuple[CaseData, dict[str, Any]]:
+    """Group a table's rows into cases (see the module docstring for masking); and the
+    domain of its usable rows (:func:`megalut_cli.nn.domain.domain_record`)."""
     name = name or namer(None)
     names = column_names(table)
     extra = []
@@ -188,7 +190,7 @@ def _load_cases(
             extra += columns_used(expr)
     point_features = point_model.features if point_model is not None else []
     required = list(dict.fromkeys(["case", *features, *point_features, *targets]))
-    columns = _take_columns(table, where, required, ["flags", *extra])
+    columns = _take_columns(table, where, required, ["flags", *extra, *DOMAIN_COLUMNS])
     n = len(columns["case"])
     ok = valid_rows(columns, list(dict.fromkeys([*features, *point_features])), n)
     point = None
@@ -216,7 +218,7 @@ def _load_cases(
         "%s: %d cases, %d valid realizations (%d masked)",
         where, data.n_cases, data.n_rows, int(np.isin(columns["case"], data.case_ids).sum()) - data.n_rows,
     )
-    return data
+    return data, domain_record(columns, ok & np.isin(columns["case"], data.case_ids))
 
 
 def _load_split(
@@ -228,17 +230,18 @@ def _load_split(
     features: Sequence[str],
     targets: Sequence[str],
     **load: Any,
-) -> tuple[CaseData, CaseData | None, str]:
+) -> tuple[CaseData, CaseData | None, str, dict[str, Any]]:
     """Training and validation cases: from ``valid``, or a held-out fraction of ``train``;
-    and a description of the validation set. ``load`` goes to :func:`_load_cases`."""
+    a description of the validation set; the domain of ``train`` (all its usable rows).
+    ``load`` goes to :func:`_load_cases`."""
     name = load.get("name", namer(None))
-    data = _load_cases(train, train_name, features, targets, **load)
+    data, domain = _load_cases(train, train_name, features, targets, **load)
     if valid is not None:
-        return data, _load_cases(valid, valid_name, features, targets, **load), valid_name
+        return data, _load_cases(valid, valid_name, features, targets, **load)[0], valid_name, domain
     if opts.valid_fraction <= 0:
         log.warning("no validation set (%s 0): members are monitored and selected on the training set",
                     name("valid_fraction"))
-        return data, None, "training set"
+        return data, None, "training set", domain
     tr, va = split_cases(data.n_cases, opts.valid_fraction, rng_for(opts.seed, STREAM_SPLIT))
     if len(tr) < 2:
         raise InputError(
@@ -247,7 +250,7 @@ def _load_split(
         )
     log.info("holding out %d of %d cases for validation (%s %g)", len(va), data.n_cases, name("valid_fraction"),
              opts.valid_fraction)
-    return data.subset(tr), data.subset(va), f"held-out fraction {opts.valid_fraction:g}"
+    return data.subset(tr), data.subset(va), f"held-out fraction {opts.valid_fraction:g}", domain
 
 
 def _identity_feature(target: str, features: Sequence[str]) -> int:
@@ -260,8 +263,10 @@ def _identity_feature(target: str, features: Sequence[str]) -> int:
     return 0
 
 
-def _input(path: str | os.PathLike) -> dict[str, str]:
-    return {"path": str(path), "sha256": sha256_file(path)}
+def _input(path: str | os.PathLike, sha256: str | None = None) -> dict[str, str]:
+    """How a model records an input file: its name and sha256 (its identity) and, for
+    information only, a path never absolute (:func:`megalut_cli.provenance.recorded_path`)."""
+    return {"name": Path(path).name, "path": recorded_path(path), "sha256": sha256 or sha256_file(path)}
 
 
 def _spread(values: np.ndarray) -> float:
@@ -303,10 +308,13 @@ def _check_architecture(features: Sequence[str], targets: Sequence[str], hidden:
 
 def _provenance(
     command: str, inputs: dict[str, Any], seed: int, parent: Mapping[str, Any] | None = None,
-    setup: Mapping[str, Any] | None = None,
+    setup: Mapping[str, Any] | None = None, train: str | os.PathLike | None = None,
+    domain: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The provenance of a trained model: command line, versions, inputs, seed, the training
-    catalog's observing setup (:func:`megalut_cli.catalog.read_setup`) and parent model."""
+    catalog's observing setup (:func:`megalut_cli.catalog.read_setup`), population (read
+    from the training catalog ``train`` itself, never from a recorded path), domain
+    (:mod:`megalut_cli.nn.domain`) and parent model."""
     prov: dict[str, Any] = {
         "command": command,
         "argv": command_line(),
@@ -316,13 +324,28 @@ def _provenance(
     }
     if setup:
         prov["setup"] = dict(setup)
-    train = inputs.get("train", {}).get("path")
-    population = training_population(train) if train else None
+    population = training_population(train) if train is not None else None
     if population is not None:
         prov["population"] = population
+    if domain:
+        prov[DOMAIN_KEY] = dict(domain)
     if parent is not None:
         prov["parent"] = parent
     return prov
+
+
+def _file_domain(prov: Mapping[str, Any], train: str | os.PathLike, setup: Mapping[str, Any],
+                 mode: str) -> dict[str, Any]:
+    """The domain :func:`fit_point`/:func:`fit_weight` recorded, with the training catalog's
+    stamp size (``STAMPSZ`` card) and file name, and for a metacal model the version its
+    columns are of (``noshear``)."""
+    domain = dict(prov.get(DOMAIN_KEY) or {})
+    if domain:
+        domain["stamp_size"] = setup.get("stamp_size")
+        domain["source"] = Path(train).name
+        if mode == "metacal":
+            domain["version"] = "noshear"
+    return domain
 
 
 def fit_point(
@@ -389,7 +412,7 @@ def fit_point(
     )
     _check_architecture(features, targets, hidden, name)
 
-    tdata, vdata, valid_desc = _load_split(
+    tdata, vdata, valid_desc, domain = _load_split(
         train, src_names["train"], valid, src_names["valid"], opts, features, targets,
         constant_targets=cost != "mse", select_cases=select_cases, name=name,
     )
@@ -425,7 +448,8 @@ def fit_point(
         )
     committees = _run(specs, opts.settings(cost), opts.seed, nproc, scheduler, progress)
     parent = init_model.provenance if init_model is not None else None
-    return ShearModel(point=committees, provenance=_provenance("train-point", {}, opts.seed, parent))
+    domain.update(source=src_names["train"], selection=select_cases)
+    return ShearModel(point=committees, provenance=_provenance("train-point", {}, opts.seed, parent, domain=domain))
 
 
 def _check_point_arguments(cost: str, init_scheme: str, select_cases: str | None) -> None:
@@ -473,9 +497,11 @@ def train_point(
     if valid is not None:
         inputs["valid"] = _input(valid)
     if init_model is not None:
-        inputs["init_from"] = {"path": str(init_from), "sha256": init_model.sha256}
+        inputs["init_from"] = _input(init_from, init_model.sha256)
+    setup = read_setup(train)
     model.provenance = _provenance("train-point", inputs, model.provenance["seed"],
-                                   init_model.provenance if init_model is not None else None, read_setup(train))
+                                   init_model.provenance if init_model is not None else None, setup, train,
+                                   _file_domain(model.provenance, train, setup, mode))
     model.shear_mode = mode
     model.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, model.sha256[:12])
@@ -536,7 +562,7 @@ def fit_weight(
     hidden = tuple(hidden) if hidden is not None else DEFAULT_WEIGHT_HIDDEN
     _check_architecture(features, targets, hidden, name)
 
-    tdata, vdata, valid_desc = _load_split(
+    tdata, vdata, valid_desc, domain = _load_split(
         train, src_names["train"], valid, src_names["valid"], opts, features, targets, constant_targets=True,
         select_rows=select, point_model=point_model, name=name,
     )
@@ -556,7 +582,8 @@ def fit_weight(
             )
         )
     committees = _run(specs, opts.settings("mswb"), opts.seed, nproc, scheduler, progress)
-    prov = _provenance("train-weight", {}, opts.seed, point_model.provenance)
+    domain.update(source=src_names["train"], selection=select)
+    prov = _provenance("train-weight", {}, opts.seed, point_model.provenance, domain=domain)
     return ShearModel(point=point_model.point, weight=committees, provenance=prov)
 
 
@@ -598,11 +625,12 @@ def train_weight(
         scheduler=scheduler, progress=progress, sources={"train": str(train), "valid": str(valid), "model": str(model)},
         names=names,
     )
-    inputs = {"train": _input(train), "model": {"path": str(model), "sha256": point_model.sha256}}
+    inputs = {"train": _input(train), "model": _input(model, point_model.sha256)}
     if valid is not None:
         inputs["valid"] = _input(valid)
+    setup = read_setup(train)
     result.provenance = _provenance("train-weight", inputs, result.provenance["seed"], point_model.provenance,
-                                    read_setup(train))
+                                    setup, train, _file_domain(result.provenance, train, setup, mode))
     result.shear_mode = mode
     result.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, result.sha256[:12])

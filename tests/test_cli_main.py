@@ -6,7 +6,7 @@ import pytest
 
 from megalut_cli import __version__
 
-COMMANDS = ["simulate", "measure", "train-point", "train-weight", "predict", "evaluate", "run"]
+COMMANDS = ["simulate", "measure", "train-point", "train-weight", "predict", "evaluate", "run", "draft"]
 
 
 def test_version(runner, cli):

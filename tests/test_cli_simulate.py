@@ -51,11 +51,11 @@ def test_key_value_overrides(runner, cli, tmp_path):
 @pytest.mark.parametrize(
     "replace, args, message",
     [
-        ({"n_cases = 3\n": ""}, [], "structure.n_cases: missing"),
-        ({"sigma = 1.5": "sigma = nan"}, [], "psf.sigma"),
-        ({'rad = {type = "uniform", min = 1.5, max = 3.0}': "rad = -1.0"}, [], "galaxy.rad"),
-        ({'rad = {type = "uniform", min = 1.5, max = 3.0}': 'rad = {type = "lognormal", mean = 1}'}, [], "galaxy.rad.type: unknown distribution"),
-        ({'type = "gaussian"\nsigma = 1.5': 'type = "airy"'}, [], "psf.type: unknown PSF type 'airy'"),
+        ({"n_cases = 3\n": ""}, [], "[structure] n_cases: missing"),
+        ({"sigma = 1.5": "sigma = nan"}, [], "[psf] sigma"),
+        ({'rad = {type = "uniform", min = 1.5, max = 3.0}': "rad = -1.0"}, [], "[galaxy] rad"),
+        ({'rad = {type = "uniform", min = 1.5, max = 3.0}': 'rad = {type = "lognormal", mean = 1}'}, [], "[galaxy] rad.type: unknown distribution"),
+        ({'type = "gaussian"\nsigma = 1.5': 'type = "airy"'}, [], "[psf] type: unknown PSF type 'airy'"),
         ({"[structure]": "[structure"}, [], "invalid TOML"),
         ({}, ["noise.sigma"], "expected KEY=VALUE"),
         ({}, ["noise.sigma=-1"], "noise.sigma"),
@@ -103,7 +103,7 @@ def test_missing_catalog_file_exit_1(runner, cli, tmp_path):
     text = (EXAMPLES / "euclid" / "vo.toml").read_text().replace("../data/cosmos/", "nowhere/")
     cfg = write(tmp_path, text, name="vo.toml")
     r = runner.invoke(cli, ["simulate", str(cfg), "-o", str(tmp_path / "c.fits"), "--n-cases", "1"])
-    assert r.exit_code == 1 and "catalog.path" in _err(r)
+    assert r.exit_code == 1 and "vo.toml: [catalog] path" in _err(r)
 
 
 def _table_bytes(path: Path) -> tuple[bytes, bytes, dict]:
@@ -165,12 +165,12 @@ SIM_EXAMPLES = sorted(
 def test_examples_are_valid(path, monkeypatch):
     """Every example simulation config (not pipeline files) loads at its paper size
     (realgal/ and metacal/: the real-galaxy experiments, which have no paper size: their
-    galaxies are the 100 COSMOS ones)."""
+    galaxies are the 100 COSMOS ones; your-data/: the worked example's stand-in survey)."""
     from megalut_cli.sim.config import load_config
 
     monkeypatch.chdir(EXAMPLES.parent)
     cfg = load_config(Path("examples") / path)
-    assert cfg.structure.n_stamps >= (10**2 if path.parts[0] in ("realgal", "metacal") else 10**6)
+    assert cfg.structure.n_stamps >= {"realgal": 10**2, "metacal": 10**2, "your-data": 10**4}.get(path.parts[0], 10**6)
 
 
 def test_varpsf_example_runs(runner, cli, tmp_path, monkeypatch):

@@ -331,7 +331,7 @@ def test_cli_bad_model_config_is_one_line_exit_2(tmp_path, runner, cli):
     result = runner.invoke(cli, ["simulate", str(cfg), "-o", str(tmp_path / "o.fits")])
     assert result.exit_code == 2
     lines = [ln for ln in result.stderr.strip().splitlines() if ln]
-    assert len(lines) == 1 and "galaxy.bulge_rad_ratio" in lines[0] and "Traceback" not in result.stderr
+    assert len(lines) == 1 and "[galaxy] bulge_rad_ratio" in lines[0] and "Traceback" not in result.stderr
 
 
 REALGAL = Path(__file__).resolve().parents[1] / "examples" / "realgal"

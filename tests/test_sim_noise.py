@@ -136,10 +136,10 @@ def test_cli_unusable_noise_file_is_one_line(tmp_path, runner, cli):
     result = runner.invoke(cli, ["simulate", str(cfg), "-o", str(tmp_path / "o.fits")])
     assert result.exit_code == 2, result.stderr
     lines = [ln for ln in result.stderr.strip().splitlines() if ln]
-    assert len(lines) == 1 and "noise.image" in lines[0], result.stderr
+    assert len(lines) == 1 and "[noise] image" in lines[0], result.stderr
     missing = write(tmp_path, NOISE_ONLY.replace("SOURCE", 'image = "nothere.fits"'), name="m.toml")
     result = runner.invoke(cli, ["simulate", str(missing), "-o", str(tmp_path / "o.fits")])
-    assert result.exit_code == 1 and "noise.image: no such file 'nothere.fits'" in result.stderr
+    assert result.exit_code == 1 and "m.toml: [noise] image: no such file 'nothere.fits'" in result.stderr
 
 
 def test_real_galaxies_refuse_correlated_noise_unless_hst_noise_is_kept(tmp_path):

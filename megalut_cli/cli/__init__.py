@@ -3,7 +3,8 @@
 One module per subcommand; options shared between them live in :mod:`.options`.
 Library errors (:class:`megalut_cli.errors.MegalutError`) become one-line messages with
 exit code 1 (runtime) or 2 (usage/configuration); click's own usage errors exit with 2;
-Ctrl-C prints one line and exits with 130.
+Ctrl-C prints one line and exits with 130 (while click and megalut are imported, before the
+group exists: :mod:`megalut_cli.__main__`, the console script's entry point).
 """
 
 from __future__ import annotations
@@ -73,6 +74,16 @@ class MegalutGroup(click.Group):
         argv = list(args) if args is not None else sys.argv[1:]
         set_command_line(["megalut", *argv])  # recorded in every output's HISTORY
         return super().main(args=args, prog_name=prog_name, **kwargs)
+
+    def make_context(self, info_name: str | None, args: list[str], parent: click.Context | None = None,
+                     **extra: Any) -> click.Context:
+        """The group's context; Ctrl-C while its options are read (``--help``, ``--version``) is
+        one line and 130, not click's "Aborted!" and 1."""
+        try:
+            return super().make_context(info_name, args, parent=parent, **extra)
+        except KeyboardInterrupt:
+            click.echo("megalut: interrupted", err=True)
+            raise click.exceptions.Exit(EXIT_INTERRUPTED) from None
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return list(COMMANDS)  # the order of the data flow, not alphabetical

@@ -5,21 +5,28 @@ from __future__ import annotations
 import click
 
 from megalut_cli.cli.commands import short_help
+from megalut_cli.cli.options import MODEL_FILE
 
 
 @click.command("info", short_help=short_help("info"))
-@click.argument("file", type=click.Path(exists=True, dir_okay=False))
+@click.argument("file", type=MODEL_FILE, required=False)
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON (layout: docs/catalogs.md).")
-def command(file: str, as_json: bool) -> None:
+@click.option("--models", "list_models", is_flag=True,
+              help="List the shipped models (name, shear mode, what they were trained on, file) instead of FILE.")
+def command(file: str | None, as_json: bool, list_models: bool) -> None:
     """Show what FILE holds, as fitsinfo and rio info do for theirs.
 
     A FITS catalog of any megalut format: its format, rows, columns with their units
     and descriptions, how many rows each flag bit marks, header cards, the stored
     simulation config and the provenance chain (the command of every step that made
     it, the model and config hashes). A stamp image: its shape, stamp size and grid.
-    An HDF5 model: its targets, features, committees (networks selected, architecture,
-    cost, normalisation, training settings), the training data (path and sha256) of
-    every training step (file names and sha256), software versions. An evaluation
+    An HDF5 model (a file, or a shipped model by name: megalut info fiducial): its
+    targets, features, committees (networks selected, architecture, cost,
+    normalisation, training settings), what it was trained on in plain words (galaxy
+    profile and ranges, PSF, noise, stamp size) and its domain (the 1-99 % ranges of
+    skymad, snr, sizes and flux over its training rows, which predict compares
+    catalogs with), the training data of every training step (file names and sha256),
+    software versions. --models lists the shipped models. An evaluation
     (evaluate --json, a run's evaluation.json): its input, m and c of each fit, the
     requirement. A run's manifest.json: the pipeline file and overrides, every finished
     step with its time and products. A text catalog (GREAT3's galaxy_catalog-SSS.txt,
@@ -29,6 +36,8 @@ def command(file: str, as_json: bool) -> None:
     Example:
       megalut info shears.fits
       megalut info model.h5 --json | python -m json.tool
+      megalut info fiducial
+      megalut info --models
       megalut info stamps.fits
       megalut info megalut-run/manifest.json
       megalut info megalut-run/evaluation.json
@@ -36,7 +45,18 @@ def command(file: str, as_json: bool) -> None:
     """
     import json
 
-    from megalut_cli.info import describe_file, format_info
+    from megalut_cli.info import (
+        describe_file,
+        describe_shipped_models,
+        format_info,
+        format_shipped_models,
+    )
 
+    if list_models == (file is not None):
+        raise click.UsageError("give FILE or --models (one of them)")
+    if list_models:
+        models = describe_shipped_models()
+        click.echo(json.dumps(models, indent=1) if as_json else format_shipped_models(models))
+        return
     info = describe_file(file)
     click.echo(json.dumps(info, indent=1, default=str) if as_json else format_info(info))

@@ -35,6 +35,17 @@ from megalut_cli.measure.options import MEASURE
     "(single stamp, or the lower-left star of a star grid such as GREAT3's starfield_image); "
     "adds psf_adamom_g1, psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4.",
 )
+@click.option(
+    "--psf-model",
+    "psf_model",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="PSF model of the exposure the stamps are cut from, instead of --psf: a PSFEx .psf file "
+    "or a Piff model (pip install 'megalut-cli[piff]'); each row's PSF is the model's at its "
+    "position (CATALOG's x, y; without CATALOG the stamp centre in STAMPS), for psf_adamom_* "
+    "and --metacal.",
+)
+@schema_option(MEASURE["cutout"], show_default=True)
 @schema_option(MEASURE["stars"])
 @schema_option(MEASURE["morphology"])
 @schema_option(MEASURE["metacal"])
@@ -52,6 +63,8 @@ def command(
     origin: str,
     gain: float | None,
     psf: str | None,
+    psf_model: str | None,
+    cutout: int,
     stars: bool | None,
     morphology: bool,
     metacal: bool,
@@ -79,12 +92,27 @@ def command(
     features. A CATALOG whose provenance cards (SEED, CFGSHA, NCASES, NREA, NSTAMPX, STAMPSZ)
     disagree with the image's, or a --stamp-size that contradicts its STAMPSZ card, is
     refused. CATALOG '-' reads a FITS catalog from stdin; -o - writes to stdout. With --morphology,
-    morph_conc, morph_conc_inner and morph_size_ratio are added. With --metacal (and --psf),
+    morph_conc, morph_conc_inner and morph_size_ratio are added. With --psf-model (a PSFEx
+    .psf file or a Piff model of the exposure STAMPS is, or is cut from, pixel for pixel),
+    each row's PSF is the model's at its position, drawn in the exposure's pixels on a stamp
+    like the galaxy's and measured as a --psf grid stamp would be; the header records it
+    (PSFMODEL, PSFMSHA, PSFMTYPE). With --metacal (and --psf or --psf-model),
     each stamp is also deconvolved by its PSF, sheared by +-step along g1 and g2 and
     reconvolved with a round target PSF, with fixnoise (docs/metacal.md): every feature
     column X (and psf_adamom_*, of the target PSF) is written again as X_noshear, X_1p,
     X_1m, X_2p, X_2m, and the header gets MCALSTEP, MCALSEED; a stamp with NaN pixels is
     then an error.
+
+    A MEDS cutout file as STAMPS (recognised by its object_data and image_cutouts
+    extensions; no CATALOG) gives one row per object: its id, number, box_size,
+    ncutout, ra, dec, orig_row, orig_col, and the features of its cutout --cutout (0:
+    the coadd when the file marks one, else the first cutout; the log says which).
+    Masked pixels (bmask != 0 or weight 0) are left out of the moments (as GalSim's
+    badpix) and counted in n_masked; too many, or one near the centre, flag
+    MASKED_PIXELS; noise_weight = 1/sqrt(median weight) gives the snr when the file
+    has weight maps. The PSF: --psf (one for all objects), --psf-model (at each
+    object's orig_col + 1, orig_row + 1), else the file's PSF cutouts
+    (docs/catalogs.md, MEDS input).
 
     \b
     Example (200 stamps: 25 s to simulate, 10 s to measure, 2 busy cores):
@@ -97,8 +125,11 @@ def command(
           --stamp-size 48 --origin 0 --psf starfield_image-000-0.fits
       megalut measure stamps.fits cat.fits -o mcal.fits \\
           --psf psf.fits --metacal
+      megalut measure exposure.fits objects.fits -o f.fits \\
+          --psf-model exposure_psfcat.psf
       megalut measure starfield_image-000-0.fits -o stars.fits \\
           --stamp-size 48
+      megalut measure objects.meds.fits -o f.fits
     """
     from megalut_cli.cli.console import flag_names, stdin_path, stdout_path
     from megalut_cli.cli.options import progress
@@ -124,8 +155,10 @@ def command(
             engine=engine,
             morphology=morphology,
             device=device,
-            names=flag_names(psf_path="--psf"),
+            names=flag_names(psf_path="--psf", psf_model_path="--psf-model"),
             metacal=metacal,
             metacal_step=metacal_step,
             seed=seed,
+            cutout=cutout,
+            psf_model_path=psf_model,
         )

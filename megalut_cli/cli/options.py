@@ -186,3 +186,40 @@ def parse_int_list(value: str | None, what: str = "list") -> list[int] | None:
     if any(v <= 0 for v in out):
         raise click.BadParameter(f"{what} must be positive integers, got {value!r}")
     return out
+
+
+class ModelFile(click.ParamType):
+    """An existing file, or the name of a model shipped with megalut
+    (:data:`megalut_cli.nn.shipped.SHIPPED_MODELS`), converted to its file; anything else is a
+    usage error listing the shipped names. Used wherever a command takes a model."""
+
+    name = "model"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
+        import os
+        from pathlib import Path
+
+        from megalut_cli.errors import InputError
+        from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
+
+        text = os.fspath(value)
+        if Path(text).is_file():
+            return text
+        if text in SHIPPED_MODELS:
+            try:
+                return str(shipped_model(text))
+            except InputError as err:
+                self.fail(str(err), param, ctx)
+        what = "a folder, not a file" if Path(text).is_dir() else "no such file"
+        self.fail(f"{text!r}: {what}, nor a shipped model (shipped: {', '.join(SHIPPED_MODELS)})", param, ctx)
+
+
+#: The click type of a model argument: a file or a shipped model's name.
+MODEL_FILE = ModelFile()
+
+
+def model_help(help: str) -> str:
+    """``help`` of a model option or argument, followed by the shipped models' names."""
+    from megalut_cli.nn.shipped import SHIPPED_MODELS
+
+    return f"{help} Or a shipped model by name: {', '.join(SHIPPED_MODELS)} (megalut info --models)."

@@ -8,7 +8,9 @@ import click
 
 from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.options import (
+    MODEL_FILE,
     execution_options,
+    model_help,
     output_option,
     overwrite_option,
     schema_option,
@@ -34,8 +36,8 @@ def parse_column_map(items: tuple[str, ...] | list[str]) -> dict[str, str]:
 @click.command("predict", short_help=short_help("predict"))
 @click.argument("features", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
 @click.option(
-    "--model", "model_path", required=True, type=click.Path(exists=True, dir_okay=False),
-    help="Trained model (HDF5 from train-point / train-weight).",
+    "--model", "model_path", required=True, type=MODEL_FILE,
+    help=model_help("Trained model (HDF5 from train-point / train-weight)."),
 )
 @output_option("Output catalog: all input columns plus the predictions.", dash=True)
 @click.option(
@@ -44,6 +46,7 @@ def parse_column_map(items: tuple[str, ...] | list[str]) -> dict[str, str]:
     "e.g. --col adamom_g1=E1.",
 )
 @schema_option(PREDICT["chunk_rows"], show_default=True)
+@schema_option(PREDICT["strict"])
 @execution_options
 @overwrite_option
 def command(
@@ -52,6 +55,7 @@ def command(
     output: str,
     col: tuple[str, ...],
     chunk_rows: int,
+    strict: bool,
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
@@ -62,15 +66,22 @@ def command(
     has weight committees, pre_g1_w, pre_g2_w. Rows whose features failed (flags != 0 or a
     non-finite feature) get NaN estimates, weight 0 and the BAD_FEATURES flag (128) in
     'flags'. The catalog is streamed in chunks; the header records the model's sha256
-    (MODELSHA). FEATURES '-' reads the catalog from stdin, -o - writes to stdout. A warning
-    says when the catalog's recorded setup (PSF, noise, stamp size, gain) differs from the
-    model's training set. The model's training
-    population and its recorded bias on real galaxies (when it carries one) are logged at
-    info level.
+    (MODELSHA). FEATURES '-' reads the catalog from stdin, -o - writes to stdout.
+
+    Before predicting, the catalog is compared with the model's training domain: a
+    warning with the numbers for each of skymad, snr, adamom_sigma, adamom_flux,
+    psf_adamom_sigma (usable rows; noshear columns of a metacal catalog) whose median
+    lies outside the model's 1-99 % range or of which more than 10 % of the rows lie
+    outside its 0.5-99.5 % range, for a stamp size (STAMPSZ) other than the model's, and
+    for every item of the recorded setup (PSF, noise, gain) that differs; --strict
+    refuses such a catalog (exit 1, nothing written). The model's training population,
+    domain and recorded bias on real galaxies (when it carries one) are logged at info
+    level. MODEL may name a shipped model (--model fiducial).
 
     \b
     Example:
       megalut predict vo.fits --model model.h5 -o shears.fits
+      megalut predict survey.fits --model fiducial -o shears.fits --strict
       megalut predict mycat.fits --model model.h5 -o shears.fits \\
           --col adamom_g1=E1 --col adamom_g2=E2
       megalut measure stamps.fits cat.fits -o - \\
@@ -86,7 +97,7 @@ def command(
     with stdin_path(features) as features_path, stdout_path(output) as output_path:
         report = predict_catalog(
             features_path, model_path, output_path, column_map=column_map, nproc=nproc, scheduler=scheduler,
-            overwrite=overwrite, chunk_rows=chunk_rows, progress=progress,
+            overwrite=overwrite, chunk_rows=chunk_rows, strict=strict, progress=progress,
             names=flag_names(column_map="--col"),
         )
     logging.getLogger("megalut").info(

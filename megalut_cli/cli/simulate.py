@@ -118,13 +118,14 @@ def command(
     """
     from megalut_cli.cli.console import flag_names, stdout_path
     from megalut_cli.engine import resolve_device
-    from megalut_cli.sim.config import load_config
+    from megalut_cli.sim.config import keys_as_written, load_config
     from megalut_cli.sim.simulate import check_outputs, plan_message, simulate
 
     device = resolve_device(device)
 
     output = click.get_current_context().with_resource(stdout_path(output))  # -o -: to stdout at the end
-    cfg = load_config(config, overrides, n_cases=n_cases, n_realizations=n_realizations)
+    with keys_as_written(config, overrides, n_cases=n_cases, n_realizations=n_realizations):  # [table] key of FILE
+        cfg = load_config(config, overrides, n_cases=n_cases, n_realizations=n_realizations)
     if morphology and (not measure or great3_dir is not None):
         raise click.UsageError("--morphology needs --measure (and not --great3)")
     if metacal and (not measure or great3_dir is not None):

@@ -8,8 +8,10 @@ import click
 
 from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.options import (
+    MODEL_FILE,
     committee_options,
     execution_options,
+    model_help,
     optimizer_options,
     output_option,
     overwrite_option,
@@ -58,9 +60,9 @@ _DEFAULT_HIDDEN = ",".join(str(n) for n in POINT_OPTION["hidden"].default)
 )
 @click.option(
     "--init-from",
-    type=click.Path(exists=True, dir_okay=False),
+    type=MODEL_FILE,
     default=None,
-    help="Continue from the point committees of this model (e.g. pretrained on ellipticity).",
+    help=model_help("Continue from the point committees of this model (e.g. pretrained on ellipticity)."),
 )
 @click.option(
     "--init",

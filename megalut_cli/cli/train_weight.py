@@ -8,8 +8,10 @@ import click
 
 from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.options import (
+    MODEL_FILE,
     committee_options,
     execution_options,
+    model_help,
     optimizer_options,
     output_option,
     overwrite_option,
@@ -35,8 +37,8 @@ if TYPE_CHECKING:
 @click.option(
     "--model",
     required=True,
-    type=click.Path(exists=True, dir_okay=False),
-    help="Model with the point-estimate committees (from train-point).",
+    type=MODEL_FILE,
+    help=model_help("Model with the point-estimate committees (from train-point)."),
 )
 @output_option("Output model file (HDF5): the point and the new weight committees.")
 @click.option(

@@ -22,6 +22,11 @@ In the last two cases every row gets the same PSF features. A per-row PSF stamp 
 cannot be measured sets the ``PSF_FAILED`` flag; a single PSF that cannot be measured is
 an error.
 
+A PSF model (``--psf-model``, :mod:`.psf_model`: PSFEx or Piff) gives each row the model's
+PSF at its position (the catalog's ``x, y``; in grid order the stamp centre, meaningful only
+when the stamps image is the exposure the model was fit on), drawn by the work unit on a
+stamp like the galaxy's and measured as a per-row PSF stamp of a grid would be.
+
 Catalogs may be FITS tables or text files with ``# name`` header lines (GREAT3's
 ``galaxy_catalog-SSS.txt``; :func:`megalut_cli.catalog.read_text_catalog`). A
 catalog whose centres form a regular grid with a spacing that is not a multiple of the
@@ -62,6 +67,7 @@ from megalut_cli.measure.features import (
 from megalut_cli.measure.metacal_defaults import SEED_CARD, STEP_CARD, TYPES, metacal_columns
 from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS, morphology_of_measured
 from megalut_cli.measure.options import MEASURE
+from megalut_cli.measure.psf_model import cached_psf_model
 from megalut_cli.measure.stamps import (
     ImageInfo,
     catalog_origins,
@@ -120,9 +126,13 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
     ``unit['rows']``, for an image in memory) and measure its stamps."""
     size: int = unit["stamp_size"]
     origins: np.ndarray = unit["origins"]
+    device = unit.get("device", DEFAULT_DEVICE)
+    if unit.get("psf_model") is not None:  # PSF stamps drawn by a model at the rows' positions
+        stamps = _model_psfs(unit["psf_model"], size)
+        return measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine=unit["engine"],
+                              device=device)
     y0, y1 = _row_band(origins, size)
     rows = unit["rows"] if "rows" in unit else read_band(unit["info"], y0, y1)
-    device = unit.get("device", DEFAULT_DEVICE)
     if unit["engine"] == "fast" and device == "gpu":  # the device measures the pixel checks itself
         stamps = cut_stamps(rows, y0, origins, size)
         feats = measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine="fast", device=device)
@@ -137,6 +147,17 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
     if mc is not None:
         feats.update(_metacal_unit(unit, mc, stamps, feats))
     return feats
+
+
+def _unit_psf_model(spec: dict[str, Any], rows: np.ndarray) -> dict[str, Any]:
+    """A PSF model's spec (``path``, ``xy`` of every stamp) for the stamps ``rows`` of a unit."""
+    return {**spec, "xy": np.ascontiguousarray(spec["xy"][rows])}
+
+
+def _model_psfs(spec: dict[str, Any], size: int) -> np.ndarray:
+    """The PSF stamps ``(n, size, size)`` of a unit's PSF model spec, loaded once per process."""
+    xy = spec["xy"]
+    return cached_psf_model(spec["path"]).draw(xy[:, 0], xy[:, 1], size)
 
 
 def _metacal_unit(
@@ -155,6 +176,12 @@ def _metacal_unit(
         )
     if mc.get("psf") is not None:
         psfs = mc["psf"]
+    elif mc.get("psf_model") is not None:
+        psfs = _model_psfs(mc["psf_model"], size)
+        bad = ~np.isfinite(psfs).all(axis=(1, 2))
+        if bad.any():
+            x, y = mc["psf_model"]["xy"][bad][0]
+            raise InputError(f"{mc['psf_model']['path']}: the PSF model has no positive flux at x={x:g}, y={y:g}")
     else:
         y0, y1 = _row_band(origins, size)
         psfs = cut_stamps(read_band(mc["psf_info"], y0, y1), y0, origins, size)
@@ -206,12 +233,15 @@ def _run_units(
     morphology: bool = False,
     device: str = DEFAULT_DEVICE,
     metacal: dict[str, Any] | None = None,
+    psf_model: dict[str, Any] | None = None,
 ) -> dict[str, np.ndarray]:
     """Measure stamps at ``origins``; stamps off the image get STAMP_OFF_IMAGE and NaN.
     With ``morphology``, the :data:`MORPHOLOGY_COLUMNS` too. On the (resolved) ``device``
     "gpu", the units run in this process. ``metacal``: ``{"step", "seed", "keys" (one per stamp:
-    its fixnoise field's, seeded in the worker), "psf" (one PSF image) or "psf_info" (a grid of PSF stamps like the image)}`` adds the
-    metacal columns ``X_<type>``."""
+    its fixnoise field's, seeded in the worker), "psf" (one PSF image), "psf_info" (a grid of PSF stamps like the image) or "psf_model"
+    (below)}`` adds the metacal columns ``X_<type>``. ``psf_model``: ``{"path": a PSF model file,
+    "xy": (n, 2) 1-based positions in its exposure}``: the stamps measured are the model's PSFs
+    at those positions (drawn in the worker, :func:`.psf_model.cached_psf_model`), not the image's."""
     if device == "gpu" and not scheduler:
         nproc = 1
     n = len(origins)
@@ -237,6 +267,10 @@ def _run_units(
         unit["device"] = device
         if metacal is not None:
             unit["metacal"] = {**metacal, "keys": metacal["keys"][idx[piece]]}
+            if metacal.get("psf_model") is not None:
+                unit["metacal"]["psf_model"] = _unit_psf_model(metacal["psf_model"], idx[piece])
+        if psf_model is not None:
+            unit["psf_model"] = _unit_psf_model(psf_model, idx[piece])
     sizes = [len(p) for p in pieces]
     t0 = time.perf_counter()
     with executor(nproc, scheduler, len(units)) as pool, (progress or no_progress)(label, len(idx)) as update:
@@ -324,6 +358,18 @@ def _single_psf(path: str, size_hint: int, engine: str = DEFAULT_ENGINE) -> dict
     return {f"psf_{c}": float(res[c][0]) for c in ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4")}
 
 
+def single_psf_stamp(path: str, size_hint: int) -> np.ndarray:
+    """The PSF stamp of a one-PSF image (the whole square image, or the first stamp of a
+    grid of ``STAMPSZ`` (else ``size_hint``) pixel stamps), checked: finite, not empty."""
+    return _single_psf_stamp(path, size_hint)
+
+
+def single_psf_features(path: str, size_hint: int, engine: str = DEFAULT_ENGINE) -> dict[str, float]:
+    """``psf_adamom_g1, psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4`` of a one-PSF image
+    (:func:`single_psf_stamp`); an unmeasurable PSF is an InputError."""
+    return _single_psf(path, size_hint, engine)
+
+
 #: Header cards that may give an image's pixel scale (arcsec per pixel), in this order.
 PIXEL_SCALE_CARDS = ("PIXSCALE", "PIXSCAL", "SECPIX")
 
@@ -380,6 +426,33 @@ def _target_psf_columns(psf: dict[str, Any], feats: dict[str, np.ndarray], size:
     return target_psf_columns(sigma, size)
 
 
+def _psf_model_spec(
+    path: str, positions: np.ndarray, origins: np.ndarray, size: int, gal_info: ImageInfo
+) -> dict[str, Any]:
+    """Load (and check) the PSF model ``path`` in this process and say what it will give; its
+    spec for the work units: ``{"path": absolute, "xy": positions}`` (1-based, one per row)."""
+    model = cached_psf_model(path)
+    ok = inside(origins, size, gal_info.shape)
+    log.info("%s: a %s PSF model (sha256 %s...), drawn at each row's position in the exposure's pixels",
+             path, model.kind, model.sha256[:12])
+    out = model.outside(positions[ok, 0], positions[ok, 1]) if ok.any() else np.zeros(0, bool)
+    if out.any():
+        log.warning("%s: %d of %d position(s) lie outside the area of the stars the model was fit to: "
+                    "its PSF there is an extrapolation", path, int(out.sum()), int(ok.sum()))
+    gal_scale = pixel_scale(gal_info.header)
+    if gal_scale is not None and ok.any():
+        model_scale = model.native_scale(*np.median(positions[ok], axis=0))
+        if model_scale is not None and abs(model_scale / gal_scale - 1) > PIXEL_SCALE_TOLERANCE:
+            log.warning("%s: the model's pixels are %.4g arcsec, %s's %.4g arcsec: the stamps should be cut "
+                        "from the exposure the model was fit on", path, model_scale, gal_info.path, gal_scale)
+    return {"path": os.path.abspath(path), "xy": np.ascontiguousarray(positions, dtype=np.float64)}
+
+
+#: Relative difference of pixel scales above which a PSF model's exposure and the stamps'
+#: image are said to differ.
+PIXEL_SCALE_TOLERANCE = 0.02
+
+
 def _psf_features(
     psf_path: str,
     gal_info: ImageInfo,
@@ -389,12 +462,21 @@ def _psf_features(
     scheduler: str | None,
     progress: Progress | None,
     engine: str = DEFAULT_ENGINE,
+    psf_model: dict[str, Any] | None = None,
 ) -> dict[str, np.ndarray]:
+    """``psf_adamom_*`` and ``flags`` (PSF_FAILED) of each row: from a PSF image ``psf_path``, or
+    with ``psf_model`` (:func:`_run_units`'s) from the PSF model ``psf_path`` at each row's position."""
     n = len(origins)
-    info = image_info(psf_path)
-    if info.shape == gal_info.shape:
+    res = None
+    if psf_model is not None:
+        log.info("%s: the PSF model's PSF at each row's position", psf_path)
+        res = _run_units(gal_info, origins, size, None, nproc, scheduler, progress, "drawing and measuring PSFs", engine,
+                         psf_model=psf_model)
+    elif image_info(psf_path).shape == gal_info.shape:
         log.info("%s: a PSF stamp per galaxy stamp", psf_path)
-        res = _run_units(info, origins, size, None, nproc, scheduler, progress, "measuring PSF stamps", engine)
+        res = _run_units(image_info(psf_path), origins, size, None, nproc, scheduler, progress, "measuring PSF stamps",
+                         engine)
+    if res is not None:
         out = {p: res[p[len("psf_"):]] for p in PSF_COLUMNS}
         failed = (res["flags"] & ~fl.STAMP_OFF_IMAGE) != 0
         out["flags"] = np.where(failed, fl.PSF_FAILED, 0).astype(np.int32)
@@ -540,8 +622,14 @@ def measure_file_columns(
     metacal: bool = MEASURE["metacal"].default,
     metacal_step: float = MEASURE["metacal_step"].default,
     seed: int = MEASURE["seed"].default,
+    cutout: int = MEASURE["cutout"].default,
+    psf_model_path: str | os.PathLike | None = None,
 ) -> tuple[Columns, dict[str, Any]]:
     """Measure every stamp of ``stamps_path`` and write the features catalog ``output``.
+
+    A MEDS file as ``stamps_path`` (:func:`megalut_cli.measure.meds.is_meds`) is measured
+    object by object instead (:func:`megalut_cli.measure.meds.measure_meds_file`: its
+    ``cutout``, one row per object); it takes no catalog, ``stamp_size``, ``origin`` or ``stars``.
 
     Args:
         stamps_path: FITS image of stamps.
@@ -572,19 +660,48 @@ def measure_file_columns(
             PSF; header cards ``MCALSTEP``, ``MCALSEED``.
         metacal_step: the shear step of ``metacal``.
         seed: seed of the fixnoise fields of ``metacal``.
+        cutout: MEDS input: the cutout index measured.
+        psf_model_path: a PSF model of the exposure the stamps are cut from (a PSFEx ``.psf``
+            file or a Piff model, :mod:`.psf_model`; not with ``psf_path``): each row's PSF is
+            the model's at its position (the catalog's ``x, y``, else the stamp centre), drawn
+            in the exposure's pixels on a stamp like the galaxy's, for ``psf_adamom_*`` and
+            ``metacal``; header cards ``PSFMODEL``, ``PSFMSHA``, ``PSFMTYPE``.
 
     Returns:
         The columns written (name -> array, in order) and the input catalog's header (empty
         in grid order); no astropy Table is made (see :func:`measure_file`).
     """
     name = namer(names)
+    if psf_path is not None and psf_model_path is not None:
+        raise ConfigError(f"{name('psf_path')} and {name('psf_model_path')} exclude each other: give one PSF")
+    from megalut_cli.measure.meds import is_meds
+
+    if is_meds(stamps_path):  # a MEDS cutout file: one row per object (measure/meds.py)
+        from megalut_cli.measure.meds import measure_meds_file
+
+        if catalog_path is not None:
+            raise ConfigError(f"{stamps_path} is a MEDS file, which carries its own objects: give it no catalog")
+        wrong = [name(k) for k, given in (("stamp_size", stamp_size is not None), ("origin", origin != 1),
+                                          ("stars", bool(stars))) if given]
+        if wrong:
+            raise ConfigError(f"{stamps_path} is a MEDS file (each object has its box_size): leave out {', '.join(wrong)}")
+        columns, _ = measure_meds_file(
+            stamps_path, output, cutout=cutout, gain=gain, psf_path=psf_path, engine=engine, morphology=morphology,
+            metacal=metacal, metacal_step=metacal_step, seed=seed, nproc=nproc, scheduler=scheduler,
+            overwrite=overwrite, progress=progress, device=device, names=names, psf_model_path=psf_model_path,
+        )
+        return columns, {}
+    if cutout != MEASURE["cutout"].default:
+        raise ConfigError(f"{name('cutout')} applies to MEDS files only; {stamps_path} is an image of stamps")
     check_output(output, overwrite)
     if gain is not None and not (np.isfinite(gain) and gain > 0):
         raise ConfigError(f"{name('gain')} must be a positive number, got {gain}")
     if origin not in (0, 1):
         raise ConfigError(f"{name('origin')} must be 0 or 1, got {origin}")
-    if metacal and psf_path is None:
-        raise ConfigError(f"{name('metacal')} needs {name('psf_path')}: the PSF to deconvolve each stamp by")
+    if metacal and psf_path is None and psf_model_path is None:
+        raise ConfigError(
+            f"{name('metacal')} needs {name('psf_path')} or {name('psf_model_path')}: the PSF to deconvolve each stamp by"
+        )
     if metacal and not 0 < metacal_step <= MEASURE["metacal_step"].maximum:
         raise ConfigError(f"{name('metacal_step')} must be in (0, {MEASURE['metacal_step'].maximum}], got {metacal_step}")
     stamps_path = str(stamps_path)
@@ -595,8 +712,11 @@ def measure_file_columns(
             log.info("%s: a star field: measuring its stars into psf_adamom_* columns", stamps_path)
     if stars and metacal:
         raise ConfigError(f"{name('metacal')} does not apply to a star field")
-    if stars and psf_path is not None:
-        raise ConfigError(f"{name('psf_path')} does not apply to a star field (its stars are the PSF)")
+    for key, given in (("psf_path", psf_path), ("psf_model_path", psf_model_path)):
+        if stars and given is not None:
+            raise ConfigError(f"{name(key)} does not apply to a star field (its stars are the PSF)")
+    if psf_model_path is not None:
+        cached_psf_model(str(psf_model_path))  # fail early on a file that is no PSF model
     if stars and stamp_size is None and info.header.get("STAMPSZ") is None and info.shape[0] == info.shape[1]:
         stamp_size = info.shape[0] // 3  # GREAT3: a 3x3 grid of stars
         log.info("%s: no stamp size given: a 3x3 grid of %d-pixel stars", stamps_path, stamp_size)
@@ -643,11 +763,21 @@ def measure_file_columns(
         )
 
     mc = None
+    model_spec = None
+    if psf_model_path is not None:  # each row's position in the exposure, 1-based
+        positions = (np.column_stack([x, y]) + (1 - origin)) if catalog_path is not None else centres
+        model_spec = _psf_model_spec(str(psf_model_path), positions, origins, size, info)
+        psf_path = model_spec["path"]
+        cards.update(cached_psf_model(psf_path).header_cards())
     if psf_path is not None:
         psf_path = str(psf_path)
-        image_info(psf_path)  # fail early on a bad PSF file, before the long measurement
+        if model_spec is None:
+            image_info(psf_path)  # fail early on a bad PSF file, before the long measurement
         if metacal:
-            mc = {**_metacal_psf(psf_path, info, size, names), "step": float(metacal_step)}
+            if model_spec is not None:
+                mc = {"psf_model": model_spec, "step": float(metacal_step)}
+            else:
+                mc = {**_metacal_psf(psf_path, info, size, names), "step": float(metacal_step)}
             common = bool(_card_value(cards.get("CRN", False))) and "rea" in table
             # the fields' keys: the realization in a common-random-number set, else the row
             mc["keys"] = np.asarray(table["rea"], dtype=np.int64) if common else np.arange(len(origins))
@@ -659,7 +789,7 @@ def measure_file_columns(
                        mc)
     psf = None
     if psf_path is not None:
-        psf = _psf_features(psf_path, info, origins, size, nproc, scheduler, progress, engine)
+        psf = _psf_features(psf_path, info, origins, size, nproc, scheduler, progress, engine, model_spec)
         psf_flags = psf.pop("flags")
         feats["flags"] |= psf_flags
         if mc is not None:

@@ -1,11 +1,13 @@
-"""What a model was trained on, and the biases recorded for it (told by ``megalut predict``).
+"""What a model was trained on, and the biases recorded for it (told by ``megalut predict``
+and ``megalut info``).
 
 The training population comes from the training catalog's ``CONFIG`` HDU (written by
 ``simulate``): the ``[galaxy]``, ``[psf]`` and ``[noise]`` tables of the effective
-configuration, stored in the model's ``/provenance`` ``population`` attribute. A model
-bias measured on real galaxies (``megalut evaluate --twin``) is stored with
-:func:`record_real_bias` in the ``/validation`` ``real_galaxy_bias`` attribute
-(``docs/model-format.md``).
+configuration, stored in the model's ``/provenance`` ``population`` attribute; its domain
+(the measured distributions of its training rows) in ``domain``
+(:mod:`megalut_cli.nn.domain`). A model bias measured on real galaxies (``megalut evaluate
+--twin``) is stored with :func:`record_real_bias` in the ``/validation``
+``real_galaxy_bias`` attribute (``docs/model-format.md``).
 """
 
 from __future__ import annotations
@@ -14,11 +16,12 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 from megalut_cli.errors import InputError
+from megalut_cli.nn.domain import DOMAIN_KEY, MEDIAN_RANGE, domain_summary, model_domain
 
 #: Attribute of ``/validation`` holding the recorded model bias on real galaxies (JSON).
 REAL_BIAS_ATTR = "real_galaxy_bias"
@@ -79,8 +82,83 @@ def population_summary(pop: Mapping[str, Any]) -> str:
     return f"{g}; {p}; {n}"
 
 
+#: Units of the population's keys in plain words, by table.
+_UNITS = {"galaxy": {"rad": "px", "angle": "deg", "flux": "adu", "sb": "adu/px2"},
+          "psf": {"sigma": "px", "fwhm": "px", "rad": "px"}, "noise": {"sigma": "adu"}}
+#: Keys told first (size and brightness before shape), the others as recorded.
+_FIRST = ("sersicn", "rad", "sb", "flux", "mag", "sigma", "fwhm", "beta", "ellipticity", "angle")
+#: How plain words name the population's tables.
+_TABLE_NAMES = {"galaxy": "galaxies", "psf": "PSF", "noise": "noise"}
+
+
+def _num(v: Any) -> str:
+    return f"{v:g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v)
+
+
+def describe_value(v: Any, unit: str = "") -> str:
+    """A config value (a number, a string, a distribution table) in plain words, e.g.
+    ``uniform 2 to 8 px``, ``Rayleigh of mode 0.2 in 0 to 0.6``, ``grid 1 to 4 step 0.1``."""
+    u = f" {unit}" if unit else ""
+    if not isinstance(v, Mapping):
+        if isinstance(v, (list, tuple)):
+            return ", ".join(_num(x) for x in v) + u
+        return _num(v) + (u if isinstance(v, (int, float)) and not isinstance(v, bool) else "")
+    t = v.get("type", "")
+    lo, hi = v.get("min"), v.get("max")
+    span = f" in {_num(lo)} to {_num(hi)}{u}" if lo is not None and hi is not None else ""
+    if t == "constant":
+        return f"{_num(v.get('value'))}{u}"
+    if t == "uniform":
+        return f"uniform {_num(lo)} to {_num(hi)}{u}"
+    if t == "normal":
+        return f"normal {_num(v.get('mean'))} ± {_num(v.get('sigma'))}{u}{span}"
+    if t == "rayleigh":
+        return f"Rayleigh of mode {_num(v.get('mode'))}{span}"
+    if t == "grid":
+        if "values" in v:
+            return f"one of {describe_value(list(v['values']), unit)}"
+        step = f" step {_num(v['step'])}" if "step" in v else f" ({_num(v['n'])} values)" if "n" in v else ""
+        return f"grid {_num(lo)} to {_num(hi)}{u}{step}"
+    if t == "catalog":
+        return f"column {v.get('column')} of the catalog"
+    return ", ".join(f"{k} {describe_value(x)}" for k, x in v.items())
+
+
+def population_lines(pop: Mapping[str, Any], setup: Mapping[str, Any] | None = None) -> list[str]:
+    """The population (and the setup's stamp size) in plain words, one line per table:
+    ``galaxies: sersic; rad uniform 2 to 8 px; ...``, ``PSF: gaussian; sigma 2 px``,
+    ``noise: gaussian; sigma 1 adu``, ``stamp size: 64 px``."""
+    lines = []
+    for table in ("galaxy", "psf", "noise"):
+        t = pop.get(table)
+        if not isinstance(t, Mapping) or not t:
+            continue
+        head = t.get("profile", t.get("type"))
+        first = [k for k in _FIRST if k in t]
+        items = [f"{k} {describe_value(t[k], _UNITS[table].get(k, ''))}"
+                 for k in [*first, *(k for k in t if k not in first)] if k not in ("profile", "type")]
+        lines.append(f"{_TABLE_NAMES[table]}: " + "; ".join([str(head)] * (head is not None) + items))
+    size = (setup or {}).get("stamp_size")
+    if size:
+        lines.append(f"stamp size: {size} px")
+    return lines
+
+
+def domain_line(domain: Mapping[str, Any]) -> str:
+    """One line: the domain's ranges, and the rows they come from."""
+    lo, hi = (f"{100 * p:g}" for p in MEDIAN_RANGE)
+    rows = f"{domain.get('n_rows')} usable rows" if domain.get("n_rows") else "the usable rows"
+    of = f" of {domain['source']}" if domain.get("source") else ""
+    if isinstance(domain.get("derived"), Mapping):
+        d = domain["derived"]
+        of += f", derived by {d.get('script')} (seed {d.get('seed')}, {d.get('n_stamps')} stamps)"
+    version = f", {domain['version']} columns" if domain.get("version") else ""
+    return f"{lo}–{hi} % of {rows}{of}{version}: {domain_summary(domain)}"
+
+
 def model_report(model: Any) -> list[str]:
-    """Lines telling what ``model`` (a ShearModel) was trained on and its recorded biases."""
+    """Lines telling what ``model`` (a ShearModel) was trained on (population and domain)
+    and its recorded biases."""
     lines = []
     prov = model.provenance
     chain = [prov] + ([prov["parent"]] if isinstance(prov.get("parent"), Mapping) else [])
@@ -91,6 +169,11 @@ def model_report(model: Any) -> list[str]:
             lines.append(f"model {what} trained on: {pop.get('summary') or population_summary(pop)} ({pop.get('config')})")
         elif p.get("command"):
             lines.append(f"model {what}: training population not recorded in the model file")
+    domain = model_domain(prov)
+    if domain is not None:
+        lines.append(f"model domain ({domain_line(domain)})")
+    else:
+        lines.append(f"model domain: not recorded in the model file ({DOMAIN_KEY}; docs/model-format.md)")
     rec = model.validation.get(REAL_BIAS_ATTR)
     if isinstance(rec, Mapping):
         lines.append(
@@ -151,6 +234,30 @@ def record_population(model_path: str | os.PathLike, population: Mapping[str, An
     _edit_model(model_path, edit)
 
 
+def update_provenance(model_path: str | os.PathLike, change: Callable[[dict[str, Any]], dict[str, Any]]) -> None:
+    """Replace a model's ``/provenance`` by ``change(provenance)`` (decoded as
+    :meth:`ShearModel.load` decodes it, ``parent`` included), in place but atomically; the
+    networks are not touched (only the attributes of ``/provenance`` are rewritten)."""
+
+    def edit(f: Any) -> None:
+        group = f.require_group("provenance")
+        prov = {}
+        for key, val in group.attrs.items():
+            val = val.decode() if isinstance(val, bytes) else str(val)
+            try:
+                prov[key] = json.loads(val)
+            except json.JSONDecodeError:
+                prov[key] = val
+        new = change(prov)
+        for key in list(group.attrs):
+            if key not in new:
+                del group.attrs[key]
+        for key, val in new.items():
+            group.attrs[key] = val if isinstance(val, str) else json.dumps(val, sort_keys=True)
+
+    _edit_model(model_path, edit)
+
+
 def _set_json_attr(model_path: str | os.PathLike, group: str, key: str, value: Any) -> None:
     """Set the JSON attribute ``key`` of ``group`` in a copy of the model file, then rename it."""
 
@@ -169,6 +276,7 @@ def _edit_model(model_path: str | os.PathLike, edit: Any) -> None:
     os.close(fd)
     try:
         shutil.copyfile(src, tmp)
+        shutil.copymode(src, tmp)  # mkstemp's 0600 would replace the file's mode
         with h5py.File(tmp, "a") as f:
             edit(f)
         os.replace(tmp, src)

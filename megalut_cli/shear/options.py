@@ -51,6 +51,9 @@ MIN_CHUNK_ROWS = 1000
 #: The options of ``megalut predict`` with a value (files aside).
 PREDICT_OPTIONS: tuple[Option, ...] = (
     Option("chunk_rows", "int", 250_000, "Rows per chunk (memory bound and unit of work).", minimum=MIN_CHUNK_ROWS),
+    Option("strict", "bool", False, "Refuse (exit 1, nothing written) a catalog that lies outside the model's "
+           "training domain (skymad, snr, sizes, flux, stamp size, recorded setup) instead of warning; "
+           "docs/model-format.md."),
 )
 PREDICT = {o.name: o for o in PREDICT_OPTIONS}
 #: Every option of ``megalut predict`` with a value, for the docs table.

@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,11 +32,13 @@ from megalut_cli.catalog import (
     iter_catalog,
     read_cards,
     read_carried_hdus,
+    read_catalog_columns,
     read_setup,
     setup_differences,
 )
 from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.measure.metacal_defaults import STEP_CARD, TYPES, header_step
+from megalut_cli.nn.domain import Finding, domain_findings, model_domain
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.parallel import executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
@@ -231,6 +233,8 @@ class PredictReport:
     n_failed: int
     columns: list[str]
     model_sha256: str
+    #: How the catalog lies outside the model's domain (:func:`domain_report`).
+    findings: list[Finding] = field(default_factory=list)
 
 
 def _fits_field(name: str, col: np.ndarray) -> tuple:
@@ -254,18 +258,108 @@ def _output_dtype(table: Any, new_cols: Sequence[str]) -> np.dtype:
     return np.dtype(fields)
 
 
-def warn_setup_mismatch(model: ShearModel, features_path: str | os.PathLike) -> None:
-    """Warn when the catalog's recorded setup (PSF, noise, stamp size, gain) differs from the one
-    the model was trained on (as train-point or train-weight recorded it)."""
-    trained = model.provenance.get("setup")
-    if not isinstance(trained, dict) or not trained:
-        return
-    diffs = setup_differences(trained, read_setup(features_path))
-    if diffs:
-        log.warning(
-            "%s: recorded setup differs from the model's training set (trained vs here: %s); "
-            "the estimates may be biased", features_path, "; ".join(diffs),
-        )
+def _trained_setup(model: ShearModel) -> dict[str, Any]:
+    """The setup the model records (its own training set's, else its point training set's)."""
+    for prov in (model.provenance, model.provenance.get("parent")):
+        if isinstance(prov, Mapping) and isinstance(prov.get("setup"), Mapping) and prov["setup"]:
+            return dict(prov["setup"])
+    return {}
+
+
+def setup_findings(trained: Mapping[str, Any], applied: Mapping[str, Any]) -> list[Finding]:
+    """One :class:`Finding` (item ``setup``) naming every item of the recorded setups (PSF,
+    noise, stamp size, gain: a model's ``trained``, a catalog's ``applied``) that both record
+    and that differ; none when they agree."""
+    diffs = setup_differences(trained, applied)
+    if not diffs:
+        return []
+    return [Finding("setup", f"recorded setup differs from the model's training set (trained vs here): "
+                             f"{'; '.join(diffs)}")]
+
+
+#: Most rows the domain check reads: a larger catalog is read chunk by chunk, keeping every
+#: k-th row (a systematic sample; memory stays bounded as predict's own).
+MAX_DOMAIN_ROWS = 1_000_000
+
+
+def domain_columns(
+    features_path: str | os.PathLike, domain: Mapping[str, Any], colnames: Sequence[str],
+    resolved: Mapping[str, str] | None = None, metacal: bool = False, n_rows: int | None = None,
+) -> dict[str, np.ndarray]:
+    """The catalog's columns of the model's ``domain`` and ``flags`` (only those, in one pass;
+    every k-th row of a catalog of more than :data:`MAX_DOMAIN_ROWS` rows), by their domain
+    names: a model feature through its ``resolved`` column, and for a metacal catalog the
+    ``noshear`` version's column where there is one."""
+    have = set(colnames)
+    wanted = {}
+    for c in [*domain.get("columns", {}), "flags"]:
+        base = (resolved or {}).get(c, c)
+        column = f"{base}_noshear" if metacal and f"{base}_noshear" in have else base
+        if column in have:
+            wanted[c] = column
+    if not wanted:
+        return {}
+    read = list(dict.fromkeys(wanted.values()))
+    if n_rows is None or n_rows <= MAX_DOMAIN_ROWS:
+        data, _ = read_catalog_columns(features_path, read)
+        return {c: data[column] for c, column in wanted.items()}
+    step = -(-n_rows // MAX_DOMAIN_ROWS)
+    parts: dict[str, list[np.ndarray]] = {column: [] for column in read}
+    start = 0
+    for table in iter_catalog(features_path, CHUNK_ROWS, columns=read):
+        first = (-start) % step  # the chunk's first row whose index is a multiple of step
+        for column in read:
+            parts[column].append(np.asarray(table[column])[first::step])
+        start += len(table)
+    return {c: np.concatenate(parts[column]) for c, column in wanted.items()}
+
+
+def domain_report(
+    model: ShearModel, features_path: str | os.PathLike, *, colnames: Sequence[str], header: Mapping[str, Any],
+    resolved: Mapping[str, str] | None = None, metacal: bool = False, n_rows: int | None = None,
+) -> list[Finding]:
+    """How the catalog ``features_path`` lies outside ``model``'s domain: the findings of
+    :func:`megalut_cli.nn.domain.domain_findings` on its usable rows (``flags == 0``; the
+    ``noshear`` columns of a metacal catalog) and stamp size (``STAMPSZ``; the model's from
+    its domain, else its recorded setup), and those of :func:`setup_findings` on the setups
+    both record (the stamp size once)."""
+    trained = _trained_setup(model)
+    domain = model_domain(model.provenance)
+    findings: list[Finding] = []
+    if domain is not None:
+        if domain.get("stamp_size") is None and trained.get("stamp_size") is not None:
+            domain["stamp_size"] = trained["stamp_size"]
+        stamp = header.get("STAMPSZ")
+        columns = domain_columns(features_path, domain, colnames, resolved, metacal, n_rows)
+        findings += domain_findings(domain, columns, int(stamp) if isinstance(stamp, (int, np.integer)) else None)
+        trained.pop("stamp_size", None)
+    if trained:
+        findings += setup_findings(trained, read_setup(features_path))
+    return findings
+
+
+def check_domain(
+    model: ShearModel, model_path: str | os.PathLike, features_path: str | os.PathLike, *,
+    colnames: Sequence[str], header: Mapping[str, Any], resolved: Mapping[str, str] | None = None,
+    metacal: bool = False, n_rows: int | None = None, strict: bool = False, names: Names | None = None,
+) -> list[Finding]:
+    """:func:`domain_report`, told: a warning per finding and one saying what they mean, or
+    with ``strict`` an :class:`InputError` listing them (before anything is written)."""
+    name = Path(model_path).name
+    if model_domain(model.provenance) is None:
+        log.info("%s records no domain (quantiles of its training rows): only its recorded setup is compared "
+                 "with %s", name, features_path)
+    findings = domain_report(model, features_path, colnames=colnames, header=header, resolved=resolved,
+                             metacal=metacal, n_rows=n_rows)
+    if findings and strict:
+        raise InputError(f"{features_path} lies outside the domain of {name} ({namer(names)('strict')}): "
+                         + "; ".join(map(str, findings)))
+    for f in findings:
+        log.warning("%s: %s", features_path, f)
+    if findings:
+        log.warning("%s: %d finding(s) against the training domain of %s: the estimates may be biased "
+                    "(megalut info shows what the model was trained on)", features_path, len(findings), name)
+    return findings
 
 
 def predict_catalog(
@@ -278,13 +372,15 @@ def predict_catalog(
     scheduler: str | None = None,
     overwrite: bool = False,
     chunk_rows: int = CHUNK_ROWS,
+    strict: bool = PREDICT["strict"].default,
     progress: Progress | None = None,
     names: Names | None = None,
 ) -> PredictReport:
     """Predict shears for every row of ``features_path`` into ``output`` (see module doc).
 
-    ``progress`` counts the rows as they are written (all of the catalog's); messages name
-    the arguments by ``names``.
+    The catalog is first compared with the model's domain (:func:`check_domain`): warnings,
+    or with ``strict`` an error and nothing written. ``progress`` counts the rows as they
+    are written (all of the catalog's); messages name the arguments by ``names``.
     """
     check_output(output, overwrite)
     if Path(output).resolve() == Path(features_path).resolve():
@@ -295,7 +391,6 @@ def predict_catalog(
     _MODELS.clear()
     _MODELS[abs_model] = model
     resolved = resolve_columns(model.features, colnames, column_map, str(features_path), names)
-    warn_setup_mismatch(model, features_path)
     has_flags = "flags" in colnames
     new_cols = [prediction_column(c.target, c.kind) for c in model.point.values()]
     new_cols += [prediction_column(c.target, c.kind) for c in model.weight.values()]
@@ -309,6 +404,9 @@ def predict_catalog(
                 f"{features_path}: a metacal catalog ({STEP_CARD} card) without the metacal column(s) "
                 f"{', '.join(missing)}"
             )
+    findings = check_domain(model, model_path, features_path, colnames=colnames, header=header, resolved=resolved,
+                            metacal=step is not None, n_rows=n_rows, strict=strict, names=names)
+    if step is not None:
         plain_cols = list(new_cols)  # in metacal mode: the noshear estimates, uncalibrated
         new_cols += [f"{c}_{kind}" for kind in TYPES for c in plain_cols]
         new_cols += [f"mcal_r{i}{j}" for i in "12" for j in "12" if f"pre_g{i}" in plain_cols]
@@ -357,4 +455,4 @@ def predict_catalog(
                 update(len(table))
     if n_failed:
         log.info("%d of %d rows have failed features (NaN estimates, flag BAD_FEATURES)", n_failed, n_rows)
-    return PredictReport(Path(output), n_rows, n_failed, new_cols, model.sha256)
+    return PredictReport(Path(output), n_rows, n_failed, new_cols, model.sha256, findings)

@@ -12,18 +12,25 @@ Every problem is reported as one :class:`~megalut_cli.errors.ConfigError` naming
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from megalut_cli.configfile import apply_overrides, parse_override, read_toml
-from megalut_cli.errors import ConfigError
+from megalut_cli.configfile import (
+    apply_overrides,
+    config_source,
+    parse_override,
+    read_toml,
+    where_written,
+)
+from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.schema import (
     Option,
     Table,
@@ -211,7 +218,8 @@ def load_config(
     n_cases: int | None = None,
     n_realizations: int | None = None,
 ) -> SimConfig:
-    """Read, override and validate a simulation config file."""
+    """Read, override and validate a simulation config file (errors name the keys dotted:
+    ``galaxy.rad: ...``; :func:`keys_as_written` names them as the file writes them)."""
     raw, sha = read_toml(path)
     raw = apply_overrides(raw, overrides)
     structure = raw.setdefault("structure", {}) if isinstance(raw.get("structure", {}), dict) else None
@@ -222,6 +230,25 @@ def load_config(
     if n_realizations is not None:
         structure["n_realizations"] = int(n_realizations)
     return validate_config(raw, path=str(path), sha256=sha, overrides=tuple(overrides))
+
+
+@contextlib.contextmanager
+def keys_as_written(path: str | os.PathLike, overrides: Sequence[str] = (), **given: Any) -> Iterator[None]:
+    """Errors of the config file ``path`` raised inside (:func:`load_config`) name their key
+    where the user wrote it: the file and its table (``tp.toml: [galaxy] rad: ...``), or the
+    dotted key of a ``KEY=VALUE`` override (``galaxy.rad: ...``). ``given``: the structure
+    keys the caller set (``n_cases=100``), named dotted too."""
+    try:
+        yield
+    except (ConfigError, InputError) as err:
+        if type(err) not in (ConfigError, InputError):  # errors with their own fields
+            raise
+        source = config_source(path)
+        if source is None:
+            raise
+        set_by_caller = [f"structure.{k}={v}" for k, v in given.items() if v is not None]
+        top = _TOP_KEYS | set(source.raw)
+        raise type(err)(where_written(str(err), [source], [*overrides, *set_by_caller], top)) from None
 
 
 # --------------------------------------------------------------------------- validation
