@@ -41,7 +41,13 @@ from megalut_cli.expr import check_expression, columns_used, evaluate_cases, eva
 from megalut_cli.nn import normalization as norm
 from megalut_cli.nn.committee import CommitteeSpec, train_committees
 from megalut_cli.nn.data import CaseData, build_cases, split_cases, valid_rows
-from megalut_cli.nn.domain import DOMAIN_COLUMNS, DOMAIN_KEY, domain_record
+from megalut_cli.nn.domain import (
+    DOMAIN_COLUMNS,
+    DOMAIN_KEY,
+    PSF_SIZE_TOLERANCE,
+    domain_record,
+    with_constant_column,
+)
 from megalut_cli.nn.model import Committee, ShearModel, component_name
 from megalut_cli.nn.network import Network
 from megalut_cli.nn.options import (
@@ -345,7 +351,23 @@ def _file_domain(prov: Mapping[str, Any], train: str | os.PathLike, setup: Mappi
         domain["source"] = Path(train).name
         if mode == "metacal":
             domain["version"] = "noshear"
+        if domain["stamp_size"] and "psf_adamom_sigma" not in domain.get("columns", {}):
+            psf = (training_population(train) or {}).get("psf")
+            if isinstance(psf, Mapping) and psf:
+                domain = config_psf_domain(domain, psf, int(domain["stamp_size"]))
     return domain
+
+
+def config_psf_domain(domain: Mapping[str, Any], psf: Mapping[str, Any], stamp_size: int) -> dict[str, Any]:
+    """``domain`` with the ``psf_adamom_sigma`` of a constant training PSF (the ``[psf]`` table
+    drawn as ``measure --psf`` sees it), when the training rows carry no PSF measurement."""
+    from megalut_cli.sim.psf import measured_psf_sigma  # GalSim: only when a PSF must be drawn
+
+    sigma = measured_psf_sigma(psf, stamp_size)
+    if sigma is None:
+        return dict(domain)
+    return with_constant_column(domain, "psf_adamom_sigma", sigma, PSF_SIZE_TOLERANCE,
+                                "the training config's [psf], drawn with the pixel on the stamp and measured")
 
 
 def fit_point(

@@ -35,6 +35,7 @@ from megalut_cli.pipeline import load_pipeline
 from megalut_cli.provenance import sha256_file, shown_command, shown_path
 from megalut_cli.sim.options import SIMULATE
 from megalut_cli.sim.simulate import simulate_table
+from megalut_cli.training import config_psf_domain
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = "models/record_domain.py"
@@ -67,7 +68,8 @@ def sample_domain(name: str, model: ShearModel) -> dict[str, Any]:
                              "derived": derived}
     if metacal:
         about["version"] = "noshear"
-    return domain_record(table, usable, config.structure.stamp_size, **about)
+    domain = domain_record(table, usable, config.structure.stamp_size, **about)
+    return config_psf_domain(domain, config.raw["psf"], config.structure.stamp_size)  # as train-point records it
 
 
 def _named_inputs(prov: dict[str, Any]) -> dict[str, Any]:

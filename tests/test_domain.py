@@ -171,6 +171,46 @@ def test_training_records_the_domain_of_its_usable_rows(tmp_path, runner, cli):
     assert "domain: 1–99 % of" in info and "stamp 24 px" in info and "PSF: gaussian; sigma 1.5 px" in info
 
 
+def test_a_constant_training_psf_is_in_the_domain_and_a_wider_psf_is_a_finding(tmp_path, cats, runner, cli):
+    """Simulated training rows carry no PSF measurement: a constant PSF's size enters the domain
+    from the config, drawn with the pixel as `measure --psf` measures it (also in the shipped
+    models), so a survey catalog measured with a wider PSF is a finding even without setup cards."""
+    import galsim
+
+    from megalut_cli.sim.psf import measured_psf_sigma
+
+    expected = galsim.hsm.FindAdaptiveMom(galsim.Gaussian(sigma=2.0).drawImage(nx=64, ny=64, scale=1.0)).moments_sigma
+    assert measured_psf_sigma({"type": "gaussian", "sigma": 2.0}, 64) == pytest.approx(expected, rel=1e-12)
+    assert measured_psf_sigma({"type": "field"}, 64) is None  # varies: nothing recorded
+    dom = model_domain(ShearModel.load(shipped_model("fiducial")).provenance)
+    entry = dom["columns"]["psf_adamom_sigma"]
+    assert entry["q"] == [pytest.approx(expected, rel=1e-12)] * len(QUANTILES) and entry["tolerance"] == 0.01
+    t = fitsio.read(str(cats["bare"]))
+    base = {k: t[k] for k in t.dtype.names}
+    for sigma, found in ((expected, False), (1.008 * expected, False), (1.02 * expected, True), (3.03, True)):
+        cols = {**base, "psf_adamom_sigma": np.full(len(t), sigma)}
+        names = [f.item for f in domain_findings(dom, cols)]
+        assert ("psf_adamom_sigma" in names) is found, (sigma, names)
+    survey = tmp_path / "survey.fits"  # the trap as a survey delivers it: measured PSF, no cards
+    psf3 = measured_psf_sigma({"type": "gaussian", "sigma": 3.0}, 48)
+    write_catalog(survey, {**base, "psf_adamom_sigma": np.full(len(t), psf3)}, fmt="survey")
+    r = runner.invoke(cli, ["predict", str(survey), "--model", "fiducial", "-o", str(tmp_path / "s.fits")])
+    assert r.exit_code == 0, r.stderr
+    assert f"psf_adamom_sigma median {fmt(psf3)} px" in r.stderr and f"model trained at {fmt(expected)} px (±1 %)" in r.stderr
+    # a model trained today records its own constant PSF the same way
+    from sim_configs import write
+
+    from megalut_cli.sim.config import load_config
+    from megalut_cli.sim.simulate import simulate
+    from megalut_cli.training import TrainOptions, train_point
+
+    tp = tmp_path / "tp.fits"
+    simulate(load_config(write(tmp_path, replace={"n_cases = 3": "n_cases = 8"})), tp, measure=True, seed=3)
+    model = train_point(tp, tmp_path / "m.h5", hidden=(3,), options=TrainOptions(members=1, iterations=3))
+    got = model.provenance["domain"]["columns"]["psf_adamom_sigma"]["q"][0]
+    assert got == pytest.approx(measured_psf_sigma({"type": "gaussian", "sigma": 1.5}, 24), rel=1e-12)
+
+
 def test_metacal_catalogs_are_compared_on_their_noshear_columns(runner, cli, tmp_path):
     cat = _simulate(tmp_path / "mc.fits", n_cases=1, n_rea=40, metacal=True)
     # the noshear noise is lower than the plain one: comparing the wrong columns would be a finding

@@ -41,6 +41,9 @@ MIN_TAIL_ROWS = 100
 MIN_MODEL_TAIL_ROWS = 1000
 #: Relative margin of the ranges (float rounding of values recorded in float32).
 TOLERANCE = 1e-6
+#: Relative margin of a PSF size the training config fixed (a constant PSF): about the
+#: precision to which a survey knows its PSF size; a 1 % error in it biases shears by ~1-2 %.
+PSF_SIZE_TOLERANCE = 0.01
 #: Units shown after the values of a column.
 UNITS = {"adamom_sigma": " px", "psf_adamom_sigma": " px"}
 
@@ -93,6 +96,23 @@ def domain_record(
         record["n_rows"] = int(np.count_nonzero(rows))
     record.update(about)
     return record
+
+
+def with_constant_column(
+    domain: Mapping[str, Any], column: str, value: float, tolerance: float, source: str
+) -> dict[str, Any]:
+    """``domain`` with ``column`` recorded as the constant ``value`` (every quantile), when it
+    does not record that column yet: a quantity fixed by the training config (the PSF size of a
+    constant PSF) rather than measured on its rows. A catalog's median within ``tolerance``
+    (relative) of it is inside; ``source`` says where the value comes from."""
+    out = dict(domain)
+    columns = dict(out.get("columns", {}))
+    if column not in columns and np.isfinite(value):
+        n = int(out.get("n_rows", 0))
+        columns[column] = {"n": n, "q": [float(value)] * len(out.get("quantiles", QUANTILES)),
+                           "tolerance": float(tolerance), "from": source}
+        out["columns"] = columns
+    return out
 
 
 def model_domain(provenance: Mapping[str, Any]) -> dict[str, Any] | None:
@@ -171,15 +191,20 @@ def domain_findings(
         lo, hi = _quantile(entry, qs, MEDIAN_RANGE[0]), _quantile(entry, qs, MEDIAN_RANGE[1])
         model_med = _quantile(entry, qs, 0.5)
         here = f"median {fmt(med)}{unit} (5–95 %: {fmt(q5)}–{fmt(q95)})"
-        tol = TOLERANCE * max(abs(lo), abs(hi))  # a constant column (a fixed PSF) stays inside itself
+        rel = max(TOLERANCE, float(entry.get("tolerance", 0.0)))
+        tol = rel * max(abs(lo), abs(hi))  # a constant column (a fixed PSF) stays inside itself
         if not lo - tol <= med <= hi + tol:
-            out.append(Finding(c, f"{c} {here}, model trained on {fmt(lo)}–{fmt(hi)}{unit} "
-                                  f"({_pct(MEDIAN_RANGE[0])}–{_pct(MEDIAN_RANGE[1])} %, median {fmt(model_med)})"))
+            if lo == hi:  # a constant of the training config (a fixed PSF)
+                trained = f"model trained at {fmt(lo)}{unit} (±{100 * rel:g} %)"
+            else:
+                trained = (f"model trained on {fmt(lo)}–{fmt(hi)}{unit} ({_pct(MEDIAN_RANGE[0])}–"
+                           f"{_pct(MEDIAN_RANGE[1])} %, median {fmt(model_med)})")
+            out.append(Finding(c, f"{c} {here}, {trained}"))
             continue
         if v.size < MIN_TAIL_ROWS or int(entry.get("n", 0)) < MIN_MODEL_TAIL_ROWS:
             continue
         tlo, thi = _quantile(entry, qs, TAIL_RANGE[0]), _quantile(entry, qs, TAIL_RANGE[1])
-        tol = TOLERANCE * max(abs(tlo), abs(thi))
+        tol = rel * max(abs(tlo), abs(thi))
         outside = float(np.mean((v < tlo - tol) | (v > thi + tol)))
         if outside > OUTSIDE_FRACTION:
             out.append(Finding(c, f"{c} {here}: {100 * outside:.0f} % of the rows outside the model's "

@@ -410,6 +410,23 @@ def _stamp(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float]]:
     return prof, {"tru_psf_g1": g1, "tru_psf_g2": g2, "tru_psf_sigma": sigma}
 
 
+def measured_psf_sigma(spec: Mapping[str, Any], stamp_size: int) -> float | None:
+    """The adaptive-moment sigma (pixels) that ``megalut measure --psf`` finds on this PSF drawn
+    with the pixel response on a ``stamp_size`` stamp; None for a PSF that varies (over the field,
+    or with parameters drawn from distributions) or that cannot be built here (a star file
+    that is not at hand)."""
+    if psf_varies(spec) or any(isinstance(v, Mapping) for v in spec.values()):
+        return None
+    try:
+        prof, _ = make_psf(spec, 0.5, 0.5)
+    except (ConfigError, OSError, ValueError):
+        return None
+    method = "no_pixel" if psf_includes_pixel(spec) else "auto"
+    image = prof.drawImage(nx=int(stamp_size), ny=int(stamp_size), scale=1.0, method=method)
+    res = galsim.hsm.FindAdaptiveMom(image, strict=False)
+    return float(res.moments_sigma) if res.moments_status == 0 else None
+
+
 def make_psf(
     spec: Mapping[str, Any], field_x: float, field_y: float
 ) -> tuple[galsim.GSObject, dict[str, float]]:
