@@ -80,12 +80,12 @@ def cpu_time(func) -> float:
     return time.process_time() - t0
 
 
-def stage_times(plan: mf._Plan, images: np.ndarray) -> dict[str, float]:
+def stage_times(plan: mf.Plan, images: np.ndarray) -> dict[str, float]:
     """CPU seconds of each stage of ``metacal_fft._run`` (mirrored here, stage by stage) over
-    ``images`` in blocks of ``metacal_fft._BLOCK``."""
+    ``images`` in blocks of ``metacal_fft.BLOCK``."""
     acc: dict[str, float] = defaultdict(float)
-    m = mf._BLOCK
-    ws = mf._Workspace(plan, m)
+    m = mf.BLOCK
+    ws = mf.Workspace(plan, m)
     size, h = plan.size, plan.size // 2 + 1
     ky1, kx1 = plan.ky + 1, plan.kx + 1
     out = np.empty((len(mf.TYPES), m, size, size))
@@ -146,7 +146,7 @@ def gemm_rate(dtype: str, repeat: int) -> float:
     return 200 * 2 * (a.shape[0] * a.shape[1] * b.shape[1] + c.shape[0] * c.shape[1] * d.shape[1]) / best
 
 
-def floor(plan: mf._Plan, rate: float) -> None:
+def floor(plan: mf.Plan, rate: float) -> None:
     """FLOPs of the matrix products and of the Quintic taps per stamp, bytes per stamp."""
     size, h, n = plan.size, plan.size // 2 + 1, plan.np_
     ky1, kx1 = plan.ky + 1, plan.kx + 1
@@ -172,9 +172,9 @@ def floor(plan: mf._Plan, rate: float) -> None:
           f" at this machine's sgemm rate on these shapes ({rate / 1e9:.0f} GFLOP/s): {2 * total / rate * 1e6:.0f} us")
     print(f"  Quintic taps: {taps / 1e3:.0f} k complex taps = {2 * taps / 1e3:.0f} k real FMAs"
           f" (AVX2, 8 float32 lanes, 2 FMA/cycle: {2 * taps / 16 / 2.0e3:.0f} us at 2 GHz)")
-    ws = mf._Workspace(plan, mf._BLOCK)
-    work = sum(a.nbytes for a in vars(ws).values() if isinstance(a, np.ndarray)) / mf._BLOCK
-    print(f"  bytes: work arrays {work / 1e3:.0f} kB per stamp (in cache, blocks of {mf._BLOCK});"
+    ws = mf.Workspace(plan, mf.BLOCK)
+    work = sum(a.nbytes for a in vars(ws).values() if isinstance(a, np.ndarray)) / mf.BLOCK
+    print(f"  bytes: work arrays {work / 1e3:.0f} kB per stamp (in cache, blocks of {mf.BLOCK});"
           f" input {size * size * 8 / 1e3:.0f} kB + output {5 * size * size * 8 / 1e3:.0f} kB float64 per stamp")
 
 

@@ -97,7 +97,7 @@ def test_noshear_and_sheared_versions_on_different_fft_sizes(monkeypatch):
     stamps = _stack(32, psf, seed=9)
 
     def forced(pair):
-        monkeypatch.setattr(metacal_fft, "_grid_sizes", lambda images, *a: np.tile(pair, (len(images), 1)))
+        monkeypatch.setattr(metacal_fft, "grid_sizes", lambda images, *a: np.tile(pair, (len(images), 1)))
         return fft_versions(stamps, psf_image, STEP, sigma)
 
     mixed, small, large = forced([128, 192]), forced([128, 128]), forced([192, 192])

@@ -67,7 +67,8 @@ def run_tour(text: str) -> tuple[str, float]:
     with tempfile.TemporaryDirectory(prefix="megalut-tour-") as tmp:
         t0 = time.perf_counter()
         res = subprocess.run(["bash", "-e", "-c", script], cwd=tmp, capture_output=True, text=True,
-                             env={**os.environ, "MEGALUT_NPROC": "2"})
+                             env={**os.environ, "MEGALUT_NPROC": "2",  # this Python's megalut first
+                                  "PATH": os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])})
         seconds = time.perf_counter() - t0
     if res.returncode != 0:
         sys.stderr.write(res.stderr[-4000:])

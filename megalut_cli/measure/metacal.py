@@ -65,13 +65,18 @@ def _finite_2d(image: np.ndarray, what: str) -> None:
         raise ValueError(f"the {what} holds NaN or infinite pixels")
 
 
-def _operation(psf_image: np.ndarray, step: float) -> _Operation:
-    """The operation for one PSF image (checked) and step."""
+def _check_psf(psf_image: np.ndarray, step: float) -> None:
+    """Raise ``ValueError`` unless ``psf_image`` and ``step`` suit the operation."""
     _finite_2d(psf_image, "PSF image")
     if psf_image.sum() <= 0:
         raise ValueError("the PSF image has no positive flux")
     if not 0.0 < step <= MAX_STEP:
         raise ValueError(f"metacal step {step}: expected 0 < step <= {MAX_STEP}")
+
+
+def _operation(psf_image: np.ndarray, step: float) -> _Operation:
+    """The operation for one PSF image (checked) and step."""
+    _check_psf(psf_image, step)
     psf = galsim.InterpolatedImage(galsim.ImageD(psf_image / psf_image.sum(), scale=1.0), x_interpolant=INTERPOLANT)
     return _Operation(psf, galsim.Gaussian(sigma=target_psf_sigma(psf_image, step)), step)
 
@@ -134,6 +139,41 @@ def _with_fixnoise(
     return out
 
 
+def _fast_several_psfs(
+    stamps: np.ndarray, psfs: np.ndarray, psf_index: np.ndarray, step: float, sigmas: np.ndarray, seeds: np.ndarray
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """:func:`metacal_versions` with the fast engine and several PSFs: every stamp and its
+    fixnoise field through one :func:`~.metacal_fft_multi.fft_versions_multi` call (the
+    stamps in PSF order, each followed by its rotated field: a PSF's rows are contiguous)."""
+    from megalut_cli.measure.metacal_fft_multi import fft_versions_multi
+
+    n, shape = len(stamps), stamps.shape[1:]
+    target = np.full(len(psfs), np.nan)
+    for j in np.unique(psf_index):
+        _check_psf(psfs[j], step)
+        target[j] = target_psf_sigma(psfs[j], step)
+    order = np.argsort(psf_index, kind="stable")
+    noisy = sigmas[order] > 0
+    rows = np.cumsum(1 + noisy) - (1 + noisy)  # each stamp's row; its field's is the next
+    stack = np.empty((n + int(noisy.sum()), *shape))
+    stack[rows] = stamps[order]
+    for r, i in zip(rows[noisy], order[noisy]):
+        stack[r + 1] = np.rot90(noise_field(sigmas[i], seeds[i], shape), 1)
+    index = np.empty(len(stack), np.int64)
+    index[rows] = psf_index[order]
+    index[rows[noisy] + 1] = psf_index[order][noisy]
+    versions = fft_versions_multi(stack, psfs, index, step, target)
+    out = {}
+    for kind in TYPES:
+        v = versions[kind]
+        if noisy.any():
+            v[rows[noisy]] += np.rot90(v[rows[noisy] + 1], -1, axes=(1, 2))
+        res = np.empty((n, *shape))
+        res[order] = v[rows]
+        out[kind] = res
+    return out, target[psf_index]
+
+
 def metacal_versions(
     stamps: np.ndarray,
     psf_images: np.ndarray,
@@ -152,7 +192,7 @@ def metacal_versions(
     ``noise_sigma`` (per stamp; e.g. the measured ``skymad``; 0 or NaN: none) turns fixnoise
     on, each stamp's field drawn from its ``seeds`` entry (default: the stamp index).
     ``engine``: ``"galsim"`` (the reference, stamp by stamp) or ``"fast"`` (FFTs over the
-    stack, :mod:`.metacal_fft`).
+    stack, :mod:`.metacal_fft`; with several PSFs, in one pass: :mod:`.metacal_fft_multi`).
     """
     stamps = np.asarray(stamps, dtype=np.float64)
     psfs = np.asarray(psf_images, dtype=np.float64)
@@ -179,6 +219,8 @@ def metacal_versions(
     if len(groups) == 1:  # one PSF (the usual case): no copy into a new stack
         op = _operation(psfs[groups[0]], step)
         return _with_fixnoise(stamps, psfs[groups[0]], op, sigmas, seeds, engine), np.full(n, op.target.sigma)
+    if engine == "fast":
+        return _fast_several_psfs(stamps, psfs, psf_index, step, sigmas, seeds)
     versions = {kind: np.empty_like(stamps) for kind in TYPES}
     target = np.empty(n)
     for j in groups:

@@ -34,32 +34,32 @@ _QUINTIC = galsim.Quintic()
 _LANCZOS = galsim.Lanczos(15)
 _GSPARAMS = galsim.GSParams()
 #: Stamps per block: the block's work arrays stay in the core's cache.
-_BLOCK = 16
+BLOCK = 16
 
 
-def _shear_matrix(g1: float, g2: float) -> np.ndarray:
+def shear_matrix(g1: float, g2: float) -> np.ndarray:
     """GalSim's shear as a 2x2 matrix (symmetric, determinant 1); k-values of a sheared
     profile are the original's at ``matrix @ k``."""
     return np.array([[1.0 + g1, g2], [g2, 1.0 - g1]]) / math.sqrt(1.0 - g1 * g1 - g2 * g2)
 
 
-def _pad_size(size: int) -> int:
+def pad_size(size: int) -> int:
     """Side of GalSim's zero-padded ``InterpolatedImage`` (pad_factor 4)."""
     return int(galsim.Image.good_fft_size(int(math.ceil(4.0 * size))))
 
 
-def _quintic_taps(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def quintic_taps(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """First node and the six Quintic weights of each interpolation point ``u`` (in nodes)."""
     first = np.floor(u).astype(np.int64) - 2
     x = (first[:, None] + np.arange(6)[None, :]) - u[:, None]
     return first, _QUINTIC.xval(x.ravel()).reshape(x.shape)
 
 
-def _axis_taps(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_quintic_taps`, or a single tap of weight 1 where every ``u`` is a node."""
+def axis_taps(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`quintic_taps`, or a single tap of weight 1 where every ``u`` is a node."""
     if np.all(np.abs(u - np.round(u)) < 1e-9):
         return np.round(u).astype(np.int64), np.ones((len(u), 1))
-    return _quintic_taps(u)
+    return quintic_taps(u)
 
 
 def _interpolated_dft(image: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:
@@ -68,9 +68,9 @@ def _interpolated_dft(image: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.n
     half-pixel phase of even sizes (for the PSF)."""
     size = image.shape[0]
     x = np.arange(size) - size // 2
-    dkp = 2.0 * math.pi / _pad_size(size)
-    px, wx = _quintic_taps(qx / dkp)
-    py, wy = _quintic_taps(qy / dkp)
+    dkp = 2.0 * math.pi / pad_size(size)
+    px, wx = quintic_taps(qx / dkp)
+    py, wy = quintic_taps(qy / dkp)
     p = np.arange(px.min(), px.max() + 6)
     r = np.arange(py.min(), py.max() + 6)
     nodes = np.exp(-1j * dkp * np.outer(r, x)) @ image.astype(complex) @ np.exp(-1j * dkp * np.outer(x, p))
@@ -82,24 +82,29 @@ def _interpolated_dft(image: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.n
     return (val[:, 0] + 1j * val[:, 1]) * np.exp(-1j * shift * (qx + qy))
 
 
-def _lanczos(q: np.ndarray) -> np.ndarray:
+def lanczos_kvalue(q: np.ndarray) -> np.ndarray:
     """The Lanczos-15 kernel's transform at ``q`` (evaluated once per distinct value)."""
     vals, inv = np.unique(q, return_inverse=True)
     return _LANCZOS.kval(vals)[inv.ravel()]
 
 
-def _beyond(ii: np.ndarray, jj: np.ndarray, dk: float, g1: float, g2: float, maxk: float) -> np.ndarray:
-    """Where GalSim's ``Deconvolution`` sets the k image to 0: ``|S k|^2 > maxk^2``, in its
-    floating-point arithmetic (grid points can lie exactly on the circle)."""
+def sheared_k2(ii: np.ndarray, jj: np.ndarray, dk: float, g1: float, g2: float) -> np.ndarray:
+    """``|S k|^2`` of the grid points ``(ii, jj) dk`` in GalSim's ``Deconvolution``
+    floating-point arithmetic (grid points can lie exactly on the maxk circle)."""
     kx, ky = ii.astype(np.float64), jj.astype(np.float64)
     if g1 or g2:
         jac = galsim.Shear(g1=g1, g2=g2).getMatrix()
         kx, ky = (jac[0, 0] * kx + jac[1, 0] * ky), (jac[0, 1] * kx + jac[1, 1] * ky)
-    return (kx**2 + ky**2) * dk**2 > maxk**2
+    return (kx**2 + ky**2) * dk**2
+
+
+def _beyond(ii: np.ndarray, jj: np.ndarray, dk: float, g1: float, g2: float, maxk: float) -> np.ndarray:
+    """Where GalSim's ``Deconvolution`` sets the k image to 0: ``|S k|^2 > maxk^2``."""
+    return sheared_k2(ii, jj, dk, g1, g2) > maxk**2
 
 
 @dataclass(frozen=True)
-class _Version:
+class Version:
     """How to get one version's k image from the padded DFT ``F``.
 
     Slots ``(j, i)``, ``0 <= j <= ky``, ``0 <= i <= kx``, each with the two k points
@@ -120,7 +125,7 @@ class _Version:
 
 
 @dataclass(frozen=True)
-class _Plan:
+class Plan:
     """One PSF image, step, target, stamp size and k grid ``N``: the version tables and
     the folded transform matrices (positions ``t = 0..c``, ``c = S // 2``)."""
 
@@ -137,18 +142,18 @@ class _Plan:
     out_ys: np.ndarray
     out_xc: np.ndarray  # (kx + 1, c + 1): cos(i dk t)
     out_xs: np.ndarray
-    versions: tuple[_Version, ...]
+    versions: tuple[Version, ...]
 
 
 @functools.lru_cache(maxsize=16)
 def _plan(
     psf_bytes: bytes, psf_size: int, size: int, n_grid: int, step: float, target_sigma: float, dtype: str
-) -> _Plan:
+) -> Plan:
     """The plan (cached on the PSF's bytes and the parameters), in ``dtype``."""
-    psf, maxk, _ = _psf_params(psf_bytes, psf_size)
+    psf, maxk, _ = psf_params(psf_bytes, psf_size)
     min_acc = _GSPARAMS.kvalue_accuracy  # Deconvolve: 1 / max(|P|, flux * kvalue_accuracy)
     dk = 2.0 * math.pi / n_grid
-    dkp = 2.0 * math.pi / _pad_size(size)
+    dkp = 2.0 * math.pi / pad_size(size)
     # candidate grid points: |k| <= maxk / (smallest singular value of the shear) + margin
     reach = min(int(math.ceil(maxk * (1.0 + 2.0 * step) / dk)) + 1, n_grid // 2)
     ii, jj = np.meshgrid(np.arange(reach + 1), np.arange(-reach, reach + 1))
@@ -161,14 +166,14 @@ def _plan(
     base = base * np.where(ii == 0, 1.0, 2.0)
     points = []
     for s1, s2 in _SHEARS:
-        m = _shear_matrix(s1 * step, s2 * step)
+        m = shear_matrix(s1 * step, s2 * step)
         inside = ~_beyond(ii, jj, dk, s1 * step, s2 * step, maxk)
         qx = m[0, 0] * kx[inside] + m[0, 1] * ky[inside]
         qy = m[1, 0] * kx[inside] + m[1, 1] * ky[inside]
         points.append((m[0, 1] == 0.0, inside, qx, qy))
     qx_all = np.concatenate([p[2] for p in points])
     qy_all = np.concatenate([p[3] for p in points])
-    lanczos = _lanczos(qx_all) * _lanczos(qy_all)  # the x interpolant, the stamp's and the PSF's
+    lanczos = lanczos_kvalue(qx_all) * lanczos_kvalue(qy_all)  # the x interpolant, the stamp's and the PSF's
     pk_all = _interpolated_dft(psf, qx_all, qy_all) * lanczos
     raw = []
     first = 0
@@ -192,11 +197,11 @@ def _plan(
             ux[i] = u
             vy = np.zeros(2 * ky_n + 1)
             vy[j + ky_n] = v
-            p0, wx = _axis_taps(ux)
-            r0, wy = _axis_taps(vy)
+            p0, wx = axis_taps(ux)
+            r0, wy = axis_taps(vy)
         else:
-            pf, wxf = _quintic_taps(u)
-            rf, wyf = _quintic_taps(v)
+            pf, wxf = quintic_taps(u)
+            rf, wyf = quintic_taps(v)
             p0 = np.zeros((2, ky_n + 1, kx_n + 1), dtype=np.int64)
             r0 = np.zeros_like(p0)
             wx = np.zeros((2, ky_n + 1, kx_n + 1, 6))
@@ -214,7 +219,7 @@ def _plan(
     for sep, p0, wx, r0, wy, wr, wi in tables:
         p0 = p0 - p_lo
         r0 = r0 + ry
-        versions.append(_Version(sep, p0, wx.astype(dt), r0, wy.astype(dt), wr.astype(dt), wi.astype(dt)))
+        versions.append(Version(sep, p0, wx.astype(dt), r0, wy.astype(dt), wr.astype(dt), wi.astype(dt)))
     t = np.arange(size // 2 + 1)
     r, p = np.arange(ry + 1), np.arange(p_lo, p_lo + np_)
     j, i = np.arange(ky_n + 1), np.arange(kx_n + 1)
@@ -222,7 +227,7 @@ def _plan(
     def mat(a: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(a, dtype=dt)
 
-    return _Plan(
+    return Plan(
         size=size, ry=ry, np_=np_, ky=ky_n, kx=kx_n,
         in_xc=mat(np.cos(dkp * np.outer(t, p))), in_xs=mat(np.sin(dkp * np.outer(t, p))),
         in_yc=mat(np.cos(dkp * np.outer(r, t))), in_ys=mat(np.sin(dkp * np.outer(r, t))),
@@ -422,10 +427,10 @@ def _unfold(u1: np.ndarray, u2: np.ndarray, u3: np.ndarray, u4: np.ndarray, out:
                         out[s, hi_y, hi_x] = a - b - e + g
 
 
-class _Workspace:
+class Workspace:
     """Work arrays for blocks of up to ``m`` stamps (allocated once per call)."""
 
-    def __init__(self, plan: _Plan, m: int):
+    def __init__(self, plan: Plan, m: int):
         dt = plan.in_xc.dtype
         size, h, n = plan.size, plan.size // 2 + 1, plan.np_
         kq = 2 * (plan.kx + 1)
@@ -446,13 +451,10 @@ class _Workspace:
         self.work = np.empty((2 * plan.ry + 1, plan.kx + 1, 2 * m), dt)
 
 
-def _run(plan: _Plan, images: np.ndarray, out: np.ndarray, which: tuple[int, ...], ws: _Workspace) -> None:
-    """Versions ``which`` of the stamps ``images`` (m, S, S) into ``out`` (V, m, S, S)."""
+def stack_dft(plan: Plan, images: np.ndarray, ws: Workspace) -> None:
+    """The padded DFTs of the stamps ``images`` (m, S, S) into ``ws.f`` (``ws.m == m``)."""
     m, size = images.shape[0], plan.size
-    if m != ws.m:
-        ws = _Workspace(plan, m)
     h = size // 2 + 1
-    ky1, kx1 = plan.ky + 1, plan.kx + 1
     _fold_x(images, ws.ex, ws.dx)
     np.matmul(ws.ex.reshape(m * size, h), plan.in_xc, out=ws.gc)
     np.matmul(ws.dx.reshape(m * size, h), plan.in_xs, out=ws.gs)
@@ -460,21 +462,35 @@ def _run(plan: _Plan, images: np.ndarray, out: np.ndarray, which: tuple[int, ...
     np.matmul(plan.in_yc, ws.ey.reshape(h, -1), out=ws.top.reshape(plan.ry + 1, -1))
     np.matmul(plan.in_ys, ws.dy.reshape(h, -1), out=ws.bottom.reshape(plan.ry + 1, -1))
     _padded_dft(ws.top, ws.bottom, ws.f)
+
+
+def draw_slots(plan: Plan, ws: Workspace, out: np.ndarray) -> None:
+    """The stamps ``out`` (m, S, S) of the slots' k values in ``ws.q`` (``ws.m == m``)."""
+    m, h = ws.m, plan.size // 2 + 1
+    ky1, kx1 = plan.ky + 1, plan.kx + 1
     q, u = ws.q, ws.u
     a2, b2 = ws.a.reshape(h * m, -1), ws.b.reshape(h * m, -1)
+    np.matmul(plan.out_yc, q[:ky1].reshape(ky1, -1), out=ws.a.reshape(h, -1))
+    np.matmul(plan.out_ys, q[ky1:].reshape(ky1, -1), out=ws.b.reshape(h, -1))
+    np.matmul(a2[:, :kx1], plan.out_xc, out=u[0].reshape(h * m, h))
+    np.matmul(b2[:, :kx1], plan.out_xc, out=u[1].reshape(h * m, h))
+    np.matmul(a2[:, kx1:], plan.out_xs, out=u[2].reshape(h * m, h))
+    np.matmul(b2[:, kx1:], plan.out_xs, out=u[3].reshape(h * m, h))
+    _unfold(u[0], u[1], u[2], u[3], out)
+
+
+def _run(plan: Plan, images: np.ndarray, out: np.ndarray, which: tuple[int, ...], ws: Workspace) -> None:
+    """Versions ``which`` of the stamps ``images`` (m, S, S) into ``out`` (V, m, S, S)."""
+    if images.shape[0] != ws.m:
+        ws = Workspace(plan, images.shape[0])
+    stack_dft(plan, images, ws)
     for v in which:
         ver = plan.versions[v]
         if ver.sep:
-            _slots_sep(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, ver.wr, ver.wi, q, ws.work)
+            _slots_sep(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, ver.wr, ver.wi, ws.q, ws.work)
         else:
-            _slots_full(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, ver.wr, ver.wi, q)
-        np.matmul(plan.out_yc, q[:ky1].reshape(ky1, -1), out=ws.a.reshape(h, -1))
-        np.matmul(plan.out_ys, q[ky1:].reshape(ky1, -1), out=ws.b.reshape(h, -1))
-        np.matmul(a2[:, :kx1], plan.out_xc, out=u[0].reshape(h * m, h))
-        np.matmul(b2[:, :kx1], plan.out_xc, out=u[1].reshape(h * m, h))
-        np.matmul(a2[:, kx1:], plan.out_xs, out=u[2].reshape(h * m, h))
-        np.matmul(b2[:, kx1:], plan.out_xs, out=u[3].reshape(h * m, h))
-        _unfold(u[0], u[1], u[2], u[3], out[v])
+            _slots_full(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, ver.wr, ver.wi, ws.q)
+        draw_slots(plan, ws, out[v])
 
 
 @functools.lru_cache(maxsize=8)
@@ -500,7 +516,7 @@ def _flux_radius(images: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=16)
-def _psf_params(psf_bytes: bytes, psf_size: int) -> tuple[np.ndarray, float, float]:
+def psf_params(psf_bytes: bytes, psf_size: int) -> tuple[np.ndarray, float, float]:
     """The PSF image normalised to a unit sum, and GalSim's ``maxk`` and ``stepk`` of its
     ``InterpolatedImage``."""
     psf = np.frombuffer(psf_bytes, dtype=np.float64).reshape(psf_size, psf_size)
@@ -509,9 +525,12 @@ def _psf_params(psf_bytes: bytes, psf_size: int) -> tuple[np.ndarray, float, flo
     return psf, psf_ii.maxk, psf_ii.stepk
 
 
-def _grid_sizes(images: np.ndarray, psf_stepk: float, target_stepk: float, step: float) -> np.ndarray:
+def grid_sizes(
+    images: np.ndarray, psf_stepk: float | np.ndarray, target_stepk: float | np.ndarray, step: float
+) -> np.ndarray:
     """GalSim's FFT size ``N`` for each stamp (n, 2): of the noshear and of the sheared
-    versions (``drawFFT_makeKImage``: from the ``stepk`` of the drawn profile)."""
+    versions (``drawFFT_makeKImage``: from the ``stepk`` of the drawn profile). The PSF's and
+    the target's ``stepk``: one for all stamps, or one per stamp (n,)."""
     size = images.shape[1]
     stepk = math.pi / np.hypot(_flux_radius(images), _LANCZOS.xrange)
     deconvolved = (stepk**-2 + psf_stepk**-2) ** -0.5
@@ -527,6 +546,20 @@ def _grid_sizes(images: np.ndarray, psf_stepk: float, target_stepk: float, step:
         good = np.array([galsim.Image.good_fft_size(int(x)) for x in vals])
         out[:, col] = np.maximum(good[inv.ravel()], _GSPARAMS.minimum_fft_size)
     return out
+
+
+def grid_jobs(grids: np.ndarray) -> dict[int, list[tuple[np.ndarray, tuple[int, ...]]]]:
+    """The work per k grid ``N``: ``{N: [(stamps, versions), ...]}`` from the stamps' grid
+    sizes (n, 2) (noshear uses ``grids[:, 0]``, the sheared versions ``grids[:, 1]``)."""
+    jobs: dict[int, list[tuple[np.ndarray, tuple[int, ...]]]] = {}
+    for pair in np.unique(grids, axis=0):
+        sel = np.flatnonzero((grids == pair).all(axis=1))
+        if pair[0] == pair[1]:
+            jobs.setdefault(int(pair[0]), []).append((sel, (0, 1, 2, 3, 4)))
+        else:
+            jobs.setdefault(int(pair[0]), []).append((sel, (0,)))
+            jobs.setdefault(int(pair[1]), []).append((sel, (1, 2, 3, 4)))
+    return jobs
 
 
 def fft_versions(
@@ -560,23 +593,15 @@ def fft_versions(
         raise ValueError(f"out must be a C-contiguous float64 array {(len(TYPES), n, size, size)}")
     if n:
         key = (psf.tobytes(), psf.shape[0])
-        psf_stepk = _psf_params(*key)[2]
+        psf_stepk = psf_params(*key)[2]
         target_stepk = galsim.Gaussian(sigma=float(target_sigma)).stepk
-        grids = _grid_sizes(images, psf_stepk, target_stepk, step)
-        jobs: dict[int, list[tuple[np.ndarray, tuple[int, ...]]]] = {}
-        for pair in np.unique(grids, axis=0):  # noshear uses grids[:, 0], the others grids[:, 1]
-            sel = np.flatnonzero((grids == pair).all(axis=1))
-            if pair[0] == pair[1]:
-                jobs.setdefault(int(pair[0]), []).append((sel, (0, 1, 2, 3, 4)))
-            else:
-                jobs.setdefault(int(pair[0]), []).append((sel, (0,)))
-                jobs.setdefault(int(pair[1]), []).append((sel, (1, 2, 3, 4)))
+        jobs = grid_jobs(grid_sizes(images, psf_stepk, target_stepk, step))
         for n_grid, todo in jobs.items():
             plan = _plan(*key, size, n_grid, float(step), float(target_sigma), np.dtype(dtype).name)
-            ws = _Workspace(plan, min(_BLOCK, n))
+            ws = Workspace(plan, min(BLOCK, n))
             for sel, which in todo:
-                for b in range(0, len(sel), _BLOCK):
-                    idx = sel[b : b + _BLOCK]
+                for b in range(0, len(sel), BLOCK):
+                    idx = sel[b : b + BLOCK]
                     i0, i1 = int(idx[0]), int(idx[-1]) + 1
                     if i1 - i0 == len(idx):  # a contiguous run: in place
                         _run(plan, images[i0:i1], out[:, i0:i1], which, ws)
