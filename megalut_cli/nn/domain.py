@@ -42,7 +42,8 @@ MIN_MODEL_TAIL_ROWS = 1000
 #: Relative margin of the ranges (float rounding of values recorded in float32).
 TOLERANCE = 1e-6
 #: Relative margin of a PSF size the training config fixed (a constant PSF): about the
-#: precision to which a survey knows its PSF size; a 1 % error in it biases shears by ~1-2 %.
+#: precision to which a survey knows its PSF size; to first order a relative size error d
+#: biases a PSF-corrected shear by about 2 d (R_psf / R_gal)^2 (Paulin-Henriksson et al. 2008).
 PSF_SIZE_TOLERANCE = 0.01
 #: Units shown after the values of a column.
 UNITS = {"adamom_sigma": " px", "psf_adamom_sigma": " px"}
