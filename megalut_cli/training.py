@@ -314,12 +314,12 @@ def _check_architecture(features: Sequence[str], targets: Sequence[str], hidden:
 
 def _provenance(
     command: str, inputs: dict[str, Any], seed: int, parent: Mapping[str, Any] | None = None,
-    setup: Mapping[str, Any] | None = None, train: str | os.PathLike | None = None,
+    setup: Mapping[str, Any] | None = None, population: Mapping[str, Any] | None = None,
     domain: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The provenance of a trained model: command line, versions, inputs, seed, the training
     catalog's observing setup (:func:`megalut_cli.catalog.read_setup`), population (read
-    from the training catalog ``train`` itself, never from a recorded path), domain
+    from the training catalog itself, never from a recorded path), domain
     (:mod:`megalut_cli.nn.domain`) and parent model."""
     prov: dict[str, Any] = {
         "command": command,
@@ -330,9 +330,8 @@ def _provenance(
     }
     if setup:
         prov["setup"] = dict(setup)
-    population = training_population(train) if train is not None else None
     if population is not None:
-        prov["population"] = population
+        prov["population"] = dict(population)
     if domain:
         prov[DOMAIN_KEY] = dict(domain)
     if parent is not None:
@@ -341,10 +340,10 @@ def _provenance(
 
 
 def _file_domain(prov: Mapping[str, Any], train: str | os.PathLike, setup: Mapping[str, Any],
-                 mode: str) -> dict[str, Any]:
+                 mode: str, population: Mapping[str, Any] | None) -> dict[str, Any]:
     """The domain :func:`fit_point`/:func:`fit_weight` recorded, with the training catalog's
-    stamp size (``STAMPSZ`` card) and file name, and for a metacal model the version its
-    columns are of (``noshear``)."""
+    stamp size (``STAMPSZ`` card) and file name, for a metacal model the version its
+    columns are of (``noshear``), and the PSF size of its ``population``'s constant PSF."""
     domain = dict(prov.get(DOMAIN_KEY) or {})
     if domain:
         domain["stamp_size"] = setup.get("stamp_size")
@@ -352,7 +351,7 @@ def _file_domain(prov: Mapping[str, Any], train: str | os.PathLike, setup: Mappi
         if mode == "metacal":
             domain["version"] = "noshear"
         if domain["stamp_size"] and "psf_adamom_sigma" not in domain.get("columns", {}):
-            psf = (training_population(train) or {}).get("psf")
+            psf = (population or {}).get("psf")
             if isinstance(psf, Mapping) and psf:
                 domain = config_psf_domain(domain, psf, int(domain["stamp_size"]))
     return domain
@@ -520,10 +519,10 @@ def train_point(
         inputs["valid"] = _input(valid)
     if init_model is not None:
         inputs["init_from"] = _input(init_from, init_model.sha256)
-    setup = read_setup(train)
+    setup, population = read_setup(train), training_population(train)
     model.provenance = _provenance("train-point", inputs, model.provenance["seed"],
-                                   init_model.provenance if init_model is not None else None, setup, train,
-                                   _file_domain(model.provenance, train, setup, mode))
+                                   init_model.provenance if init_model is not None else None, setup, population,
+                                   _file_domain(model.provenance, train, setup, mode, population))
     model.shear_mode = mode
     model.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, model.sha256[:12])
@@ -650,9 +649,9 @@ def train_weight(
     inputs = {"train": _input(train), "model": _input(model, point_model.sha256)}
     if valid is not None:
         inputs["valid"] = _input(valid)
-    setup = read_setup(train)
+    setup, population = read_setup(train), training_population(train)
     result.provenance = _provenance("train-weight", inputs, result.provenance["seed"], point_model.provenance,
-                                    setup, train, _file_domain(result.provenance, train, setup, mode))
+                                    setup, population, _file_domain(result.provenance, train, setup, mode, population))
     result.shear_mode = mode
     result.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, result.sha256[:12])

@@ -416,13 +416,13 @@ def _metacal_psf(
 def _target_psf_columns(psf: dict[str, Any], feats: dict[str, np.ndarray], size: int) -> dict[str, np.ndarray]:
     """``psf_adamom_*_<type>``: the features of each row's target PSF (round, the sigma the
     operation chose for its PSF; the same for the five types)."""
-    from megalut_cli.measure.metacal import target_psf_columns, target_psf_sigma
+    from megalut_cli.measure.metacal import dilated_sigma, target_psf_columns, target_psf_sigma
 
     n = len(feats["psf_adamom_sigma"])
     if "psf" in psf:
         sigma = np.full(n, target_psf_sigma(psf["psf"], psf["step"]))
     else:
-        sigma = feats["psf_adamom_sigma"] * (1.0 + 2.0 * abs(psf["step"]))  # the PSF stamps' HSM sigma
+        sigma = dilated_sigma(feats["psf_adamom_sigma"], psf["step"])  # the PSF stamps' HSM sigma
     return target_psf_columns(sigma, size)
 
 

@@ -560,7 +560,12 @@ def _metacal(
     unit: dict[str, Any], mc: dict[str, Any], clean: np.ndarray, feats: dict[str, np.ndarray], psfs: np.ndarray | None
 ) -> dict[str, np.ndarray]:
     """The metacal columns ``X_<type>`` of a unit's cleaned stamps, with the unit's PSFs."""
-    from megalut_cli.measure.metacal import fixnoise_seeds, metacal_features, target_psf_columns
+    from megalut_cli.measure.metacal import (
+        dilated_sigma,
+        fixnoise_seeds,
+        metacal_features,
+        target_psf_columns,
+    )
 
     n, size = len(clean), unit["layout"].box_size
     names = list(FEATURE_COLUMNS) + (list(MORPHOLOGY_COLUMNS) if unit["morphology"] else [])
@@ -576,7 +581,7 @@ def _metacal(
             psf_images, index, sigma_t = mc["psf"], None, np.full(n, mc["target_sigma"])
         else:
             psf_images, index = distinct_psfs(same_parity_psfs(psfs[ok], size))
-            sigma_t = feats["psf_adamom_sigma"] * (1.0 + 2.0 * abs(mc["step"]))
+            sigma_t = dilated_sigma(feats["psf_adamom_sigma"], mc["step"])
         res = metacal_features(
             clean[ok], psf_images, mc["step"], noise_sigma=noise[ok], seeds=fixnoise_seeds(mc["seed"], unit["keys"][ok]),
             metacal_engine=unit["engine"], psf_index=index, morphology=unit["morphology"], origins=unit["origins"][ok],

@@ -55,7 +55,13 @@ def target_psf_sigma(psf_image: np.ndarray, step: float = DEFAULT_STEP) -> float
     galaxy's high frequencies stay under the target."""
     res = galsim.hsm.FindAdaptiveMom(galsim.ImageD(np.asarray(psf_image, dtype=np.float64), scale=1.0))
     # the round-equivalent size of an elliptical PSF: sigma = det(M)^(1/4)
-    return float(res.moments_sigma) * (1.0 + 2.0 * abs(step))
+    return float(dilated_sigma(res.moments_sigma, step))
+
+
+def dilated_sigma(psf_sigma: float | np.ndarray, step: float = DEFAULT_STEP) -> float | np.ndarray:
+    """The target PSF's sigma from the PSF's adaptive-moment sigma (e.g. the ``psf_adamom_sigma``
+    column): dilated by ``1 + 2|step|``, as :func:`target_psf_sigma`."""
+    return psf_sigma * (1.0 + 2.0 * abs(step))
 
 
 def _finite_2d(image: np.ndarray, what: str) -> None:
