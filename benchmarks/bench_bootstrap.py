@@ -29,13 +29,17 @@ def catalog(n_cases: int, n_rea: int, seed: int = 1) -> dict[str, np.ndarray]:
     """Estimates of the same galaxy pairs under ``n_cases`` shears (no simulation)."""
     rng = np.random.default_rng(seed)
     n = n_cases * n_rea
-    e = np.repeat(rng.normal(0, 0.25, (2, n_rea // 2)), 2, axis=1) * np.tile([1.0, -1.0], n_rea // 2)
+    e = np.repeat(rng.normal(0, 0.25, (2, n_rea // 2)), 2, axis=1) * np.tile(
+        [1.0, -1.0], n_rea // 2
+    )
     g = rng.uniform(-0.1, 0.1, (2, n_cases))
     cols = {"case": np.repeat(np.arange(n_cases), n_rea), "rea": np.tile(np.arange(n_rea), n_cases)}
     for i in (0, 1):
         t = np.repeat(g[i], n_rea)
         cols[f"tru_g{i + 1}"] = t
-        cols[f"pre_g{i + 1}"] = np.tile(e[i], n_cases) + t * (1 + rng.normal(0, 0.2, n)) + rng.normal(0, 0.05, n)
+        cols[f"pre_g{i + 1}"] = (
+            np.tile(e[i], n_cases) + t * (1 + rng.normal(0, 0.2, n)) + rng.normal(0, 0.05, n)
+        )
         cols[f"pre_g{i + 1}_w"] = rng.uniform(0.1, 1.0, n)
         cols[f"tru_psf_g{i + 1}"] = np.full(n, 0.01 * (i + 1))
     cols["snr"] = rng.uniform(5, 50, n)
@@ -61,13 +65,17 @@ def main() -> None:
     args = ap.parse_args()
     cols = catalog(args.cases, args.rea)
     spec = BootstrapSpec(2, args.resamples, 1, True)
-    print(f"{args.cases} cases x {args.rea} realizations = {args.cases * args.rea} rows, "
-          f"{args.rea // 2} pairs, {args.resamples} resamples, best of {args.repeat}")
+    print(
+        f"{args.cases} cases x {args.rea} realizations = {args.cases * args.rea} rows, "
+        f"{args.rea // 2} pairs, {args.resamples} resamples, best of {args.repeat}"
+    )
     for by in (None, ["snr"]):
         fit = best_time(lambda by=by: evaluate_columns(cols, by=by), args.repeat)
         boot = best_time(lambda by=by: evaluate_columns(cols, by=by, bootstrap=spec), args.repeat)
         what = "overall" if by is None else "overall + --by snr (5 bins)"
-        print(f"{what:30} fit {fit:6.2f} s   bootstrap {boot:6.2f} s   ratio {boot / fit:5.1f}  (CPU)")
+        print(
+            f"{what:30} fit {fit:6.2f} s   bootstrap {boot:6.2f} s   ratio {boot / fit:5.1f}  (CPU)"
+        )
 
 
 if __name__ == "__main__":

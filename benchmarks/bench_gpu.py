@@ -23,7 +23,13 @@ from __future__ import annotations
 import os
 import sys
 
-for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS", "NUMBA_NUM_THREADS"):
+for _v in (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "NUMBA_NUM_THREADS",
+):
     os.environ[_v] = "1"
 
 if "--platform" in sys.argv and sys.argv[sys.argv.index("--platform") + 1] == "cpu":
@@ -54,23 +60,33 @@ def time_unit(unit: WorkUnit, repeats: int) -> tuple[float, dict]:
 
 
 def bench_simulate(cases: int, realizations: int, repeats: int) -> None:
-    cfg = load_config(ROOT / "examples" / "fiducial" / "tp.toml", n_cases=cases + 1, n_realizations=realizations)
+    cfg = load_config(
+        ROOT / "examples" / "fiducial" / "tp.toml", n_cases=cases + 1, n_realizations=realizations
+    )
     nx = cfg.structure.grid_nx
-    cpu_unit = WorkUnit(cfg, 1, 1, cases + 1, nx, keep_stamps=False, measure=True, engine="fast", device="cpu")
+    cpu_unit = WorkUnit(
+        cfg, 1, 1, cases + 1, nx, keep_stamps=False, measure=True, engine="fast", device="cpu"
+    )
     gpu_unit = dataclasses.replace(cpu_unit, device="gpu")
     draw_unit(dataclasses.replace(cpu_unit, case_start=0, case_stop=1))  # numba, GalSim tables
     t0 = time.perf_counter()
-    draw_unit(dataclasses.replace(gpu_unit, case_start=0, case_stop=cases + 1))  # compilation (same shapes)
+    draw_unit(
+        dataclasses.replace(gpu_unit, case_start=0, case_stop=cases + 1)
+    )  # compilation (same shapes)
     compile_s = time.perf_counter() - t0
     t_cpu, r_cpu = time_unit(cpu_unit, repeats)
     t_gpu, r_gpu = time_unit(gpu_unit, repeats)
     n = cases * realizations
     same = np.array_equal(r_cpu["columns"]["flags"], r_gpu["columns"]["flags"])
     dg = np.nanmax(np.abs(r_cpu["columns"]["adamom_g1"] - r_gpu["columns"]["adamom_g1"]))
-    print(f"simulate --measure, {n} fiducial stamps ({cases} cases x {realizations}), best of {repeats}:")
+    print(
+        f"simulate --measure, {n} fiducial stamps ({cases} cases x {realizations}), best of {repeats}:"
+    )
     print(f"  cpu (fast engine, 1 core): {t_cpu:8.3f} s  {n / t_cpu:12.0f} stamps/s")
-    print(f"  device                   : {t_gpu:8.3f} s  {n / t_gpu:12.0f} stamps/s  "
-          f"(x{t_cpu / t_gpu:.2f}; first call with compilation {compile_s:.1f} s)")
+    print(
+        f"  device                   : {t_gpu:8.3f} s  {n / t_gpu:12.0f} stamps/s  "
+        f"(x{t_cpu / t_gpu:.2f}; first call with compilation {compile_s:.1f} s)"
+    )
     print(f"  same flags: {same}; max |adamom_g1 difference| {dg:.2e}")
 
 
@@ -99,22 +115,32 @@ def bench_training(rows: int, repeats: int) -> None:
             best = min(best, time.perf_counter() - t0)
         out[name] = (best, c, g)
     n = nc * n_rea
-    print(f"training: one MSB cost + gradient on {n} rows (5 inputs, hidden 5,5), best of {repeats}:")
+    print(
+        f"training: one MSB cost + gradient on {n} rows (5 inputs, hidden 5,5), best of {repeats}:"
+    )
     (t_c, c_c, g_c), (t_d, c_d, g_d) = out.values()
     print(f"  cpu (numpy, 1 core): {t_c * 1e3:9.2f} ms  {n / t_c:14.0f} rows/s")
     print(f"  device             : {t_d * 1e3:9.2f} ms  {n / t_d:14.0f} rows/s  (x{t_c / t_d:.2f})")
-    print(f"  relative differences: cost {abs(c_d - c_c) / abs(c_c):.1e}, "
-          f"gradient {np.abs(g_d - g_c).max() / np.abs(g_c).max():.1e}")
+    print(
+        f"  relative differences: cost {abs(c_d - c_c) / abs(c_c):.1e}, "
+        f"gradient {np.abs(g_d - g_c).max() / np.abs(g_c).max():.1e}"
+    )
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--cases", type=int, default=4)
     ap.add_argument("--realizations", type=int, default=256)
     ap.add_argument("--rows", type=int, default=200_000)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--platform", choices=["gpu", "cpu"], default="gpu",
-                    help="JAX platform of the device path (cpu: JAX's CPU mode, one thread)")
+    ap.add_argument(
+        "--platform",
+        choices=["gpu", "cpu"],
+        default="gpu",
+        help="JAX platform of the device path (cpu: JAX's CPU mode, one thread)",
+    )
     a = ap.parse_args()
     from megalut_cli.gpu import device_problem, jax_device
 

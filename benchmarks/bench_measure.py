@@ -51,10 +51,24 @@ def simulate_grid(path: Path, n: int, seed: int) -> None:
     """A grid of ``n`` fiducial VO stamps (64 px) by ``megalut simulate``."""
     n_cases = 4
     cmd = [
-        sys.executable, "-m", "megalut_cli", "simulate", str(ROOT / "examples/fiducial/vo.toml"),
-        "-o", str(path.with_suffix(".cat.fits")), "--stamps", str(path),
-        "--n-cases", str(n_cases), "--n-realizations", str(math.ceil(n / n_cases)),
-        "--seed", str(seed), "-j", "1", "--overwrite",
+        sys.executable,
+        "-m",
+        "megalut_cli",
+        "simulate",
+        str(ROOT / "examples/fiducial/vo.toml"),
+        "-o",
+        str(path.with_suffix(".cat.fits")),
+        "--stamps",
+        str(path),
+        "--n-cases",
+        str(n_cases),
+        "--n-realizations",
+        str(math.ceil(n / n_cases)),
+        "--seed",
+        str(seed),
+        "-j",
+        "1",
+        "--overwrite",
     ]
     subprocess.run(cmd, check=True, cwd=ROOT)
 
@@ -112,8 +126,13 @@ def first_call_costs(repeat: int) -> None:
         with tempfile.TemporaryDirectory() as cache:
             env = dict(os.environ, NUMBA_CACHE_DIR=cache, PYTHONPATH=str(ROOT))
             for label in ("cold cache", "warm cache"):
-                out = subprocess.run([sys.executable, "-c", FIRST_CALL], env=env, check=True,
-                                     capture_output=True, text=True).stdout.split()
+                out = subprocess.run(
+                    [sys.executable, "-c", FIRST_CALL],
+                    env=env,
+                    check=True,
+                    capture_output=True,
+                    text=True,
+                ).stdout.split()
                 print(f"  {label}: {float(out[0]):.2f} / {float(out[1]):.2f}")
 
 
@@ -136,11 +155,15 @@ def main() -> None:
             simulate_grid(grid, args.n, args.seed)
         stamps = read_grid(grid)
         n = len(stamps)
-        print(f"{platform.machine()} {platform.python_version()}, numpy {np.__version__}, "
-              f"galsim {galsim.__version__}; {n} stamps of {stamps.shape[1]} px from {grid.name}")
+        print(
+            f"{platform.machine()} {platform.python_version()}, numpy {np.__version__}, "
+            f"galsim {galsim.__version__}; {n} stamps of {stamps.shape[1]} px from {grid.name}"
+        )
         t0 = time.perf_counter()
         measure_stamps(stamps[:2], engine="fast")
-        print(f"first call (import + numba cache load or compile): {time.perf_counter() - t0:.2f} s")
+        print(
+            f"first call (import + numba cache load or compile): {time.perf_counter() - t0:.2f} s"
+        )
 
         runs = {
             "fast": lambda: measure_stamps(stamps, engine="fast"),
@@ -157,14 +180,19 @@ def main() -> None:
             print(f"  {name:13s} {min(ts) / n * 1e6:8.1f} us  {np.median(ts) / n * 1e6:8.1f} us")
         for ref in ("loop", "galsim"):
             ratios = np.array(times[ref]) / np.array(times["fast"])
-            print(f"  speed-up fast vs {ref}: best-of {min(times[ref]) / min(times['fast']):.1f}x, "
-                  f"median of per-repeat ratios {np.median(ratios):.1f}x")
+            print(
+                f"  speed-up fast vs {ref}: best-of {min(times[ref]) / min(times['fast']):.1f}x, "
+                f"median of per-repeat ratios {np.median(ratios):.1f}x"
+            )
         e2e = np.array(times["loop"]) / np.array(times["measure_file"])
         print(f"  speed-up measure_file vs loop: median {np.median(e2e):.1f}x")
 
         # Where the fast engine's time goes.
         kernel = min(cpu_time(lambda: adaptive_moments(stamps, 5.0)) for _ in range(args.repeat))
-        exact = min(cpu_time(lambda: adaptive_moments(stamps, 5.0, exact_exp=True)) for _ in range(args.repeat))
+        exact = min(
+            cpu_time(lambda: adaptive_moments(stamps, 5.0, exact_exp=True))
+            for _ in range(args.repeat)
+        )
         mad = min(cpu_time(lambda: sky_mad(stamps)) for _ in range(args.repeat))
         fast = min(times["fast"])
         print("\nfast engine, best CPU times:")
@@ -181,16 +209,24 @@ def main() -> None:
         visits = (pix[ok] * res.n_iter[ok]).sum()
         loop_t = min(times["loop"])
         print(f"\nfloor ({ok.sum()} converged stamps, {(~ok).sum()} failed):")
-        print(f"  iterations: mean {res.n_iter[ok].mean():.1f}, median {np.median(res.n_iter[ok]):.0f}; "
-              f"failed stamps: {res.n_iter[~ok].sum()} iterations in all")
+        print(
+            f"  iterations: mean {res.n_iter[ok].mean():.1f}, median {np.median(res.n_iter[ok]):.0f}; "
+            f"failed stamps: {res.n_iter[~ok].sum()} iterations in all"
+        )
         print(f"  window: mean {pix[ok].mean():.0f} pixels per iteration")
-        print(f"  pixel visits (= GalSim's exp calls) on converged stamps: {visits / ok.sum():.0f} per stamp")
-        print(f"  kernel: {kernel / res.n_iter.sum() * 1e6:.2f} us per iteration; "
-              f"exact_exp: {exact / res.n_iter.sum() * 1e6:.2f} us; "
-              f"plain loop: {loop_t / res.n_iter.sum() * 1e6:.2f} us (all stamps' iterations)")
+        print(
+            f"  pixel visits (= GalSim's exp calls) on converged stamps: {visits / ok.sum():.0f} per stamp"
+        )
+        print(
+            f"  kernel: {kernel / res.n_iter.sum() * 1e6:.2f} us per iteration; "
+            f"exact_exp: {exact / res.n_iter.sum() * 1e6:.2f} us; "
+            f"plain loop: {loop_t / res.n_iter.sum() * 1e6:.2f} us (all stamps' iterations)"
+        )
         all_visits = visits * res.n_iter.sum() / res.n_iter[ok].sum()
-        print(f"  per pixel visit (approx.): kernel {kernel / all_visits * 1e9:.2f} ns, "
-              f"exact_exp {exact / all_visits * 1e9:.2f} ns, plain loop {loop_t / all_visits * 1e9:.2f} ns")
+        print(
+            f"  per pixel visit (approx.): kernel {kernel / all_visits * 1e9:.2f} ns, "
+            f"exact_exp {exact / all_visits * 1e9:.2f} ns, plain loop {loop_t / all_visits * 1e9:.2f} ns"
+        )
     first_call_costs(2)
 
 

@@ -68,7 +68,9 @@ def simulate(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
         e = min(rng.rayleigh(0.2), 0.6)
         gal = galsim.Sersic(n_s, half_light_radius=hlr, flux=flux, trunc=0.0)
         gal = gal.shear(e=e, beta=rng.uniform(0, np.pi) * galsim.radians)
-        gal = gal.shear(g1=rng.uniform(-0.1, 0.1), g2=rng.uniform(-0.1, 0.1)).shift(*rng.uniform(-0.5, 0.5, 2))
+        gal = gal.shear(g1=rng.uniform(-0.1, 0.1), g2=rng.uniform(-0.1, 0.1)).shift(
+            *rng.uniform(-0.5, 0.5, 2)
+        )
         img = galsim.Convolve(gal, psf).drawImage(nx=SIZE, ny=SIZE, scale=1.0).array
         stamps[i] = img + rng.normal(0.0, 1.0, img.shape)
     return stamps, psf.drawImage(nx=SIZE, ny=SIZE, scale=1.0).array.astype(np.float64)
@@ -121,7 +123,9 @@ def stage_times(plan: mf.Plan, images: np.ndarray) -> dict[str, float]:
             np.matmul(plan.out_yc, ws.q[:ky1].reshape(ky1, -1), out=ws.a.reshape(h, -1))
             np.matmul(plan.out_ys, ws.q[ky1:].reshape(ky1, -1), out=ws.b.reshape(h, -1))
             lap("GEMM out, y (5 versions)")
-            for k, (src, mat) in enumerate(((a2, plan.out_xc), (b2, plan.out_xc), (a2, plan.out_xs), (b2, plan.out_xs))):
+            for k, (src, mat) in enumerate(
+                ((a2, plan.out_xc), (b2, plan.out_xc), (a2, plan.out_xs), (b2, plan.out_xs))
+            ):
                 cols = slice(None, kx1) if k < 2 else slice(kx1, None)
                 np.matmul(src[:, cols], mat, out=ws.u[k].reshape(h * m, h))
             lap("GEMM out, x (5 versions)")
@@ -143,7 +147,12 @@ def gemm_rate(dtype: str, repeat: int) -> float:
             np.matmul(c, d, out=cd)
 
     best = min(cpu_time(products) for _ in range(repeat))
-    return 200 * 2 * (a.shape[0] * a.shape[1] * b.shape[1] + c.shape[0] * c.shape[1] * d.shape[1]) / best
+    return (
+        200
+        * 2
+        * (a.shape[0] * a.shape[1] * b.shape[1] + c.shape[0] * c.shape[1] * d.shape[1])
+        / best
+    )
 
 
 def floor(plan: mf.Plan, rate: float) -> None:
@@ -161,21 +170,31 @@ def floor(plan: mf.Plan, rate: float) -> None:
         pts = int(np.count_nonzero((ver.wr != 0) | (ver.wi != 0)))
         if ver.sep:
             rows = int(ver.r0.max() + ver.wy.shape[1] - ver.r0.min())
-            taps += (rows * kx1 * ver.wx.shape[1] if ver.wx.shape[1] > 1 else 0) + pts * ver.wy.shape[1]
+            taps += (
+                rows * kx1 * ver.wx.shape[1] if ver.wx.shape[1] > 1 else 0
+            ) + pts * ver.wy.shape[1]
         else:
             taps += pts * 36
     total = sum(macs.values())
-    print(f"\nfloor per stamp (plan: padded DFT {2 * plan.ry + 1} x {n} nodes, k box {2 * plan.ky + 1} x {kx1}):")
+    print(
+        f"\nfloor per stamp (plan: padded DFT {2 * plan.ry + 1} x {n} nodes, k box {2 * plan.ky + 1} x {kx1}):"
+    )
     for name, v in macs.items():
         print(f"  {name:14s} {v / 1e6:6.2f} M multiply-adds")
-    print(f"  matrix products: {total / 1e6:.2f} M multiply-adds = {2 * total / 1e6:.1f} MFLOP,"
-          f" at this machine's sgemm rate on these shapes ({rate / 1e9:.0f} GFLOP/s): {2 * total / rate * 1e6:.0f} us")
-    print(f"  Quintic taps: {taps / 1e3:.0f} k complex taps = {2 * taps / 1e3:.0f} k real FMAs"
-          f" (AVX2, 8 float32 lanes, 2 FMA/cycle: {2 * taps / 16 / 2.0e3:.0f} us at 2 GHz)")
+    print(
+        f"  matrix products: {total / 1e6:.2f} M multiply-adds = {2 * total / 1e6:.1f} MFLOP,"
+        f" at this machine's sgemm rate on these shapes ({rate / 1e9:.0f} GFLOP/s): {2 * total / rate * 1e6:.0f} us"
+    )
+    print(
+        f"  Quintic taps: {taps / 1e3:.0f} k complex taps = {2 * taps / 1e3:.0f} k real FMAs"
+        f" (AVX2, 8 float32 lanes, 2 FMA/cycle: {2 * taps / 16 / 2.0e3:.0f} us at 2 GHz)"
+    )
     ws = mf.Workspace(plan, mf.BLOCK)
     work = sum(a.nbytes for a in vars(ws).values() if isinstance(a, np.ndarray)) / mf.BLOCK
-    print(f"  bytes: work arrays {work / 1e3:.0f} kB per stamp (in cache, blocks of {mf.BLOCK});"
-          f" input {size * size * 8 / 1e3:.0f} kB + output {5 * size * size * 8 / 1e3:.0f} kB float64 per stamp")
+    print(
+        f"  bytes: work arrays {work / 1e3:.0f} kB per stamp (in cache, blocks of {mf.BLOCK});"
+        f" input {size * size * 8 / 1e3:.0f} kB + output {5 * size * size * 8 / 1e3:.0f} kB float64 per stamp"
+    )
 
 
 FIRST_CALL = """
@@ -198,13 +217,20 @@ print(c1 - c0, c2 - c1, cpu() - c2)
 
 def first_call_costs(repeat: int) -> None:
     """CPU seconds to import, then of the first call and of a second call, fresh processes."""
-    print("\nfresh process, CPU seconds (import / first call (compile or load, PSF plan) / second call):")
+    print(
+        "\nfresh process, CPU seconds (import / first call (compile or load, PSF plan) / second call):"
+    )
     for _ in range(repeat):
         with tempfile.TemporaryDirectory() as cache:
             env = dict(os.environ, NUMBA_CACHE_DIR=cache, PYTHONPATH=str(ROOT))
             for label in ("cold cache", "warm cache"):
-                out = subprocess.run([sys.executable, "-c", FIRST_CALL], env=env, check=True,
-                                     capture_output=True, text=True).stdout.split()
+                out = subprocess.run(
+                    [sys.executable, "-c", FIRST_CALL],
+                    env=env,
+                    check=True,
+                    capture_output=True,
+                    text=True,
+                ).stdout.split()
                 print(f"  {label}: {float(out[0]):.2f} / {float(out[1]):.2f} / {float(out[2]):.3f}")
 
 
@@ -212,7 +238,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=1024, help="stamps to simulate")
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--ref-n", type=int, default=None, help="stamps for the GalSim reference (default all)")
+    ap.add_argument(
+        "--ref-n", type=int, default=None, help="stamps for the GalSim reference (default all)"
+    )
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--first-call-only", action="store_true", help="only the compile/cache costs")
     args = ap.parse_args()
@@ -223,33 +251,45 @@ def main() -> None:
     t0 = time.perf_counter()
     stamps, psf = simulate(args.n, args.seed)
     n, ref_n = len(stamps), min(args.ref_n or args.n, args.n)
-    print(f"{platform.machine()} {platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}, "
-          f"galsim {galsim.__version__}; {n} stamps of {SIZE} px (simulated in {time.perf_counter() - t0:.0f} s)")
+    print(
+        f"{platform.machine()} {platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}, "
+        f"galsim {galsim.__version__}; {n} stamps of {SIZE} px (simulated in {time.perf_counter() - t0:.0f} s)"
+    )
     ones = np.ones(n)
     sigma = target_psf_sigma(psf, DEFAULT_STEP)
     fields = np.array([np.rot90(noise_field(1.0, i, (SIZE, SIZE)), 1) for i in range(n)])
     stack = np.concatenate([stamps.astype(np.float64), fields])
     c0 = time.process_time()
     metacal_features(stamps[:4], psf, noise_sigma=ones[:4], metacal_engine="fast")
-    print(f"first call (numba cache load or compile, PSF plan): {time.process_time() - c0:.2f} s CPU")
+    print(
+        f"first call (numba cache load or compile, PSF plan): {time.process_time() - c0:.2f} s CPU"
+    )
 
     runs = {
         "fast": lambda: metacal_versions(stamps, psf, noise_sigma=ones, engine="fast"),
-        "fast+measure": lambda: metacal_features(stamps, psf, noise_sigma=ones, metacal_engine="fast"),
+        "fast+measure": lambda: metacal_features(
+            stamps, psf, noise_sigma=ones, metacal_engine="fast"
+        ),
         "fft_versions": lambda: mf.fft_versions(stack, psf, DEFAULT_STEP, sigma),
-        "galsim": lambda: metacal_versions(stamps[:ref_n], psf, noise_sigma=ones[:ref_n], engine="galsim"),
+        "galsim": lambda: metacal_versions(
+            stamps[:ref_n], psf, noise_sigma=ones[:ref_n], engine="galsim"
+        ),
     }
     per = {"fast": n, "fast+measure": n, "fft_versions": n, "galsim": ref_n}  # per input stamp
     times: dict[str, list[float]] = {k: [] for k in runs}
     for _ in range(args.repeat):
         for name, func in runs.items():  # interleaved
             times[name].append(cpu_time(func) / per[name])
-    print(f"\nCPU per input stamp (best / median of {args.repeat}, interleaved; fft_versions: its 2 images):")
+    print(
+        f"\nCPU per input stamp (best / median of {args.repeat}, interleaved; fft_versions: its 2 images):"
+    )
     for name, ts in times.items():
         print(f"  {name:13s} {min(ts) * 1e6:9.1f} us  {np.median(ts) * 1e6:9.1f} us")
     ratios = np.array(times["galsim"]) / np.array(times["fast"])
-    print(f"  speed-up fast vs galsim: best-of {min(times['galsim']) / min(times['fast']):.0f}x, "
-          f"median of per-repeat ratios {np.median(ratios):.0f}x")
+    print(
+        f"  speed-up fast vs galsim: best-of {min(times['galsim']) / min(times['fast']):.0f}x, "
+        f"median of per-repeat ratios {np.median(ratios):.0f}x"
+    )
 
     # Where fft_versions's time goes, on the same stack of 2n images.
     plan = mf._plan(psf.tobytes(), SIZE, SIZE, 128, float(DEFAULT_STEP), float(sigma), "float32")
@@ -265,8 +305,12 @@ def main() -> None:
         print(f"  {name:38s} {t / len(stack) * 1e6:6.1f} us  {t / total:5.1%}")
     print(f"  {'sum':38s} {total / len(stack) * 1e6:6.1f} us")
     fast, lin, meas = min(times["fast"]), min(times["fft_versions"]), min(times["fast+measure"])
-    print(f"  fft_versions call (grid sizes, blocks, output arrays): {lin / 2 * 1e6:.1f} us per image")
-    print(f"  metacal.py around it (noise fields, stack, copies, rot90 + add): {(fast - lin) * 1e6:.1f} us per stamp")
+    print(
+        f"  fft_versions call (grid sizes, blocks, output arrays): {lin / 2 * 1e6:.1f} us per image"
+    )
+    print(
+        f"  metacal.py around it (noise fields, stack, copies, rot90 + add): {(fast - lin) * 1e6:.1f} us per stamp"
+    )
     print(f"  measure_stamps of the five versions: {(meas - fast) * 1e6:.1f} us per stamp")
     floor(plan, gemm_rate("float32", args.repeat))
     first_call_costs(2)

@@ -27,11 +27,19 @@ def make_stack(n: int, size: int, seed: int) -> tuple[np.ndarray, np.ndarray, np
     rng = np.random.default_rng(seed)
     stamps, psfs = np.empty((n, size, size)), np.empty((n, size, size))
     for k in range(n):
-        psf = galsim.Moffat(beta=3.0, fwhm=rng.uniform(2.5, 4.0)).shear(g1=rng.uniform(-0.05, 0.05), g2=rng.uniform(-0.05, 0.05))
+        psf = galsim.Moffat(beta=3.0, fwhm=rng.uniform(2.5, 4.0)).shear(
+            g1=rng.uniform(-0.05, 0.05), g2=rng.uniform(-0.05, 0.05)
+        )
         psf = galsim.Convolve(psf, galsim.Pixel(1.0))
         psfs[k] = psf.drawImage(nx=size, ny=size, scale=1.0, method="no_pixel").array
-        gal = galsim.Exponential(half_light_radius=rng.uniform(1.0, 3.0)).shear(g1=rng.uniform(-0.3, 0.3), g2=rng.uniform(-0.3, 0.3))
-        img = galsim.Convolve(gal, psf).drawImage(nx=size, ny=size, scale=1.0, method="no_pixel").array
+        gal = galsim.Exponential(half_light_radius=rng.uniform(1.0, 3.0)).shear(
+            g1=rng.uniform(-0.3, 0.3), g2=rng.uniform(-0.3, 0.3)
+        )
+        img = (
+            galsim.Convolve(gal, psf)
+            .drawImage(nx=size, ny=size, scale=1.0, method="no_pixel")
+            .array
+        )
         stamps[k] = img + rng.normal(0.0, 1e-3, img.shape)
     return stamps, psfs, np.full(n, 1e-3)
 
@@ -39,7 +47,9 @@ def make_stack(n: int, size: int, seed: int) -> tuple[np.ndarray, np.ndarray, np
 def per_psf(stamps: np.ndarray, psfs: np.ndarray, sigma: np.ndarray) -> None:
     """The per-PSF path: metacal_versions one PSF at a time (what it did before)."""
     for j in range(len(stamps)):
-        metacal_versions(stamps[j : j + 1], psfs[j], noise_sigma=sigma[j : j + 1], seeds=[j], engine="fast")
+        metacal_versions(
+            stamps[j : j + 1], psfs[j], noise_sigma=sigma[j : j + 1], seeds=[j], engine="fast"
+        )
 
 
 def batched(stamps: np.ndarray, psfs: np.ndarray, sigma: np.ndarray) -> None:
@@ -64,10 +74,14 @@ def main() -> None:
                 mm._trig.cache_clear()
                 t = time.process_time()
                 f(stamps, psfs, sigma)
-                best[f.__name__] = min(best.get(f.__name__, np.inf), (time.process_time() - t) / args.n * 1e3)
+                best[f.__name__] = min(
+                    best.get(f.__name__, np.inf), (time.process_time() - t) / args.n * 1e3
+                )
         line = "  ".join(f"{k} {v:.2f} ms" for k, v in best.items())
-        print(f"{size} px, {args.n} objects each with its own PSF, fixnoise: {line} per object "
-              f"(speed-up {best['per_psf'] / best['batched']:.1f}x)")
+        print(
+            f"{size} px, {args.n} objects each with its own PSF, fixnoise: {line} per object "
+            f"(speed-up {best['per_psf'] / best['batched']:.1f}x)"
+        )
 
 
 if __name__ == "__main__":

@@ -36,13 +36,19 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     paths = [ROOT / "fiducial" / "tp.toml", *sorted((ROOT / "realgal").glob("*.toml"))]
-    configs = {p.relative_to(ROOT).as_posix(): load_config(p, n_cases=args.n_cases, n_realizations=args.n_realizations)
-               for p in paths}
+    configs = {
+        p.relative_to(ROOT).as_posix(): load_config(
+            p, n_cases=args.n_cases, n_realizations=args.n_realizations
+        )
+        for p in paths
+    }
     rates: dict[str, list[float]] = {name: [] for name in configs}
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "out.fits"
         for cfg in configs.values():  # warm-up
-            simulate(cfg.with_structure(n_cases=1, n_realizations=4), out, measure=True, overwrite=True)
+            simulate(
+                cfg.with_structure(n_cases=1, n_realizations=4), out, measure=True, overwrite=True
+            )
         for _ in range(args.repeats):
             for name, cfg in configs.items():
                 t0 = time.perf_counter()

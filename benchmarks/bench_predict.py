@@ -37,11 +37,18 @@ from megalut_cli.shear.predict import predict_arrays, predict_catalog  # noqa: E
 FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]
 
 
-def committee(target: str, seed: int, n_members: int = 8, hidden: tuple[int, ...] = (5, 5)) -> Committee:
+def committee(
+    target: str, seed: int, n_members: int = 8, hidden: tuple[int, ...] = (5, 5)
+) -> Committee:
     rng = np.random.default_rng(seed)
     sizes = [len(FEATURES), *hidden, 1]
     members = [
-        Member(layers=[(rng.normal(0, 0.5, (i, o)), rng.normal(0, 0.1, o)) for i, o in zip(sizes[:-1], sizes[1:])])
+        Member(
+            layers=[
+                (rng.normal(0, 0.5, (i, o)), rng.normal(0, 0.1, o))
+                for i, o in zip(sizes[:-1], sizes[1:])
+            ]
+        )
         for _ in range(n_members)
     ]
     return Committee("point", target, FEATURES, hidden, np.zeros(5), np.ones(5), members)
@@ -64,12 +71,21 @@ def main() -> None:
     args = ap.parse_args()
     n = args.rows
     rng = np.random.default_rng(0)
-    x = np.column_stack([rng.normal(0, 0.3, n), rng.normal(0, 0.3, n), rng.uniform(1, 5, n),
-                         rng.uniform(10, 1000, n), rng.uniform(1.8, 2.5, n)])
+    x = np.column_stack(
+        [
+            rng.normal(0, 0.3, n),
+            rng.normal(0, 0.3, n),
+            rng.uniform(1, 5, n),
+            rng.uniform(10, 1000, n),
+            rng.uniform(1.8, 2.5, n),
+        ]
+    )
     model = ShearModel({t: committee(t, i) for i, t in enumerate(("tru_g1", "tru_g2"))})
     model.sha256 = "benchmark"
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, numpy {np.__version__}, "
-          f"1 BLAS thread, {n} rows, best of {args.repeat}")
+    print(
+        f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, numpy {np.__version__}, "
+        f"1 BLAS thread, {n} rows, best of {args.repeat}"
+    )
 
     def network() -> None:
         for c in model.point.values():
@@ -85,8 +101,11 @@ def main() -> None:
         model_path = tmp / "model.h5"
         model.save(model_path)
         src = tmp / "features.fits"
-        cols = {"case": np.arange(n) // 100, **{f: x[:, i] for i, f in enumerate(FEATURES)},
-                "flags": np.zeros(n, dtype=np.int32)}
+        cols = {
+            "case": np.arange(n) // 100,
+            **{f: x[:, i] for i, f in enumerate(FEATURES)},
+            "flags": np.zeros(n, dtype=np.int32),
+        }
         write_catalog(src, cols, fmt="megalut.features")
         out = tmp / "shears.fits"
 
@@ -102,11 +121,17 @@ def main() -> None:
 
         t_read = best_of(read_only, args.repeat)
         shears = fitsio.read(out)
-        t_write = best_of(lambda: fitsio.write(str(tmp / "w.fits"), shears, clobber=True), args.repeat)
-    print(f"end-to-end predict_catalog       {n / t_e2e:12.3e} rows/s  ({t_e2e:.3f} s, "
-          f"{size / 1e6:.0f} MB read+written, chunks of {args.chunk_rows})")
-    print(f"  of which: network {t_net:.3f} s ({t_net / t_e2e:.0%}), reading the input in chunks "
-          f"{t_read:.3f} s ({t_read / t_e2e:.0%}), fitsio writing the output {t_write:.3f} s ({t_write / t_e2e:.0%})")
+        t_write = best_of(
+            lambda: fitsio.write(str(tmp / "w.fits"), shears, clobber=True), args.repeat
+        )
+    print(
+        f"end-to-end predict_catalog       {n / t_e2e:12.3e} rows/s  ({t_e2e:.3f} s, "
+        f"{size / 1e6:.0f} MB read+written, chunks of {args.chunk_rows})"
+    )
+    print(
+        f"  of which: network {t_net:.3f} s ({t_net / t_e2e:.0%}), reading the input in chunks "
+        f"{t_read:.3f} s ({t_read / t_e2e:.0%}), fitsio writing the output {t_write:.3f} s ({t_write / t_e2e:.0%})"
+    )
 
 
 if __name__ == "__main__":

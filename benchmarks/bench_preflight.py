@@ -45,8 +45,10 @@ def main() -> None:
     args = parser.parse_args()
     cfg = load_config(CONFIG, (), n_cases=args.cases, n_realizations=args.realizations)
     n = cfg.structure.n_stamps
-    print(f"{CONFIG.name}: {args.cases} cases x {args.realizations} realizations = {n} stamps, measured, -j 1; "
-          f"python {platform.python_version()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}")
+    print(
+        f"{CONFIG.name}: {args.cases} cases x {args.realizations} realizations = {n} stamps, measured, -j 1; "
+        f"python {platform.python_version()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}"
+    )
     rows = {e: [] for e in ENGINES}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.repeat):
@@ -55,19 +57,30 @@ def main() -> None:
                 rate = stamps_per_second(cfg, 1, True, False, engine=engine)
                 calibration = time.perf_counter() - t0
                 t0 = time.perf_counter()
-                simulate(cfg, Path(tmp) / f"{engine}.fits", measure=True, seed=1, nproc=1, overwrite=True,
-                         engine=engine)
+                simulate(
+                    cfg,
+                    Path(tmp) / f"{engine}.fits",
+                    measure=True,
+                    seed=1,
+                    nproc=1,
+                    overwrite=True,
+                    engine=engine,
+                )
                 run = time.perf_counter() - t0
                 estimate = n / rate
                 rows[engine].append((calibration, estimate, run))
-                print(f"repeat {r + 1}/{args.repeat} {engine:7s} calibration {calibration:5.2f} s, "
-                      f"estimate {estimate:6.1f} s, run {run:6.1f} s, load {os.getloadavg()[0]:.1f}")
+                print(
+                    f"repeat {r + 1}/{args.repeat} {engine:7s} calibration {calibration:5.2f} s, "
+                    f"estimate {estimate:6.1f} s, run {run:6.1f} s, load {os.getloadavg()[0]:.1f}"
+                )
     print("\n| engine | calibration / run | estimate / run |\n|---|---|---|")
     for engine, values in rows.items():
         v = np.asarray(values)
         over, acc = v[:, 0] / v[:, 2], v[:, 1] / v[:, 2]
-        print(f"| {engine} | {np.median(over):.3f} ({over.min():.3f}-{over.max():.3f}) "
-              f"| {np.median(acc):.2f} ({acc.min():.2f}-{acc.max():.2f}) |")
+        print(
+            f"| {engine} | {np.median(over):.3f} ({over.min():.3f}-{over.max():.3f}) "
+            f"| {np.median(acc):.2f} ({acc.min():.2f}-{acc.max():.2f}) |"
+        )
 
 
 if __name__ == "__main__":

@@ -59,8 +59,16 @@ def main() -> None:
     measure_stamps(stamps[:10])  # compiled
     rows = {
         "psfex": best(lambda: model.draw(x, y, size), args.repeat) / n,
-        "galsim": best(lambda: [ref.getPSF(galsim.PositionD(x[i], y[i])).drawImage(
-            nx=size, ny=size, scale=1.0, method="no_pixel") for i in range(k)], args.repeat) / k,
+        "galsim": best(
+            lambda: [
+                ref.getPSF(galsim.PositionD(x[i], y[i])).drawImage(
+                    nx=size, ny=size, scale=1.0, method="no_pixel"
+                )
+                for i in range(k)
+            ],
+            args.repeat,
+        )
+        / k,
         "hsm": best(lambda: measure_stamps(stamps), args.repeat) / n,
     }
     if args.piff:

@@ -76,9 +76,16 @@ def galsim_loop(gals: dict, psf: galsim.GSObject) -> np.ndarray:
     out = np.empty((m, STAMP, STAMP), dtype=np.float32)
     image = galsim.ImageF(STAMP, STAMP, scale=1.0)
     for k in range(m):
-        gal = shaped(base_profile("sersic", gals["rad"][k], gals["flux"][k], gals["sersicn"][k]),
-                     gals["e1"][k], gals["e2"][k], gals["g1"][k], gals["g2"][k])
-        galsim.Convolve(gal, psf).drawImage(image=image, offset=(gals["dx"][k], gals["dy"][k]), method="auto")
+        gal = shaped(
+            base_profile("sersic", gals["rad"][k], gals["flux"][k], gals["sersicn"][k]),
+            gals["e1"][k],
+            gals["e2"][k],
+            gals["g1"][k],
+            gals["g2"][k],
+        )
+        galsim.Convolve(gal, psf).drawImage(
+            image=image, offset=(gals["dx"][k], gals["dy"][k]), method="auto"
+        )
         out[k] = image.array
     return out
 
@@ -92,8 +99,12 @@ def timed(fn, *args):
 def fft_floor(sizes: collections.Counter, stamp: int) -> None:
     """FLOPs and bytes per stamp of the pruned inverse FFT, and its measured time."""
     print("\nFFT floor per stamp (pruned inverse FFT: N/2+1 complex y-transforms of length N, then")
-    print(f"{stamp} real x-transforms; 5 N log2 N flops per complex transform, 2.5 N log2 N per real one;")
-    print("bytes: complex64 k-image written by the fill, read and written by the y-FFT, S rows read by the x-FFT)")
+    print(
+        f"{stamp} real x-transforms; 5 N log2 N flops per complex transform, 2.5 N log2 N per real one;"
+    )
+    print(
+        "bytes: complex64 k-image written by the fill, read and written by the y-FFT, S rows read by the x-FFT)"
+    )
     print(f"{'N':>6} {'share':>6} {'Mflop':>8} {'MB':>7} {'ms measured':>12}")
     total_ms = 0.0
     total = sum(sizes.values())
@@ -101,7 +112,9 @@ def fft_floor(sizes: collections.Counter, stamp: int) -> None:
         flops = (n // 2 + 1) * 5 * n * math.log2(n) + stamp * 2.5 * n * math.log2(n)
         nbytes = n * (n // 2 + 1) * 8 * 3 + stamp * (n // 2 + 1) * 8 + stamp * n * 8
         batch = max(1, min(64, BATCH_BYTES // (n * (n // 2 + 1) * 8)))  # as the renderer batches
-        k0 = (np.random.default_rng(0).standard_normal((batch, n, n // 2 + 1)) + 0j).astype(np.complex64)
+        k0 = (np.random.default_rng(0).standard_normal((batch, n, n // 2 + 1)) + 0j).astype(
+            np.complex64
+        )
         inverse_fft_window(k0.copy(), n, stamp)
         reps, spent = 3, 0.0
         for _ in range(reps):
@@ -140,26 +153,57 @@ def main() -> None:
             if name == "galsim":
                 ref, cpu, wall = timed(galsim_loop, gals, psf)
             else:
-                out, cpu, wall = timed(renderer.draw, psf, "psf", "auto", "sersic", gals["rad"], gals["flux"],
-                                       gals["sersicn"], gals["e1"], gals["e2"], gals["g1"], gals["g2"],
-                                       gals["dx"], gals["dy"])
+                out, cpu, wall = timed(
+                    renderer.draw,
+                    psf,
+                    "psf",
+                    "auto",
+                    "sersic",
+                    gals["rad"],
+                    gals["flux"],
+                    gals["sersicn"],
+                    gals["e1"],
+                    gals["e2"],
+                    gals["g1"],
+                    gals["g2"],
+                    gals["dx"],
+                    gals["dy"],
+                )
             times[name].append((cpu, wall))
     err = np.abs(out - ref).max(axis=(1, 2)) / ref.max(axis=(1, 2))
     m = args.stamps
-    print(f"{m} noiseless fiducial stamps of {STAMP}x{STAMP}, {args.repeats} interleaved repeats; "
-          f"max |render - galsim| / peak = {err.max():.2e}")
+    print(
+        f"{m} noiseless fiducial stamps of {STAMP}x{STAMP}, {args.repeats} interleaved repeats; "
+        f"max |render - galsim| / peak = {err.max():.2e}"
+    )
     print(f"{'':8} {'cpu ms/stamp (min, median)':>28} {'wall ms/stamp (min)':>20}")
     for name, ts in times.items():
         cpus = sorted(c for c, _ in ts)
-        print(f"{name:8} {cpus[0] / m * 1e3:>13.3f} {np.median(cpus) / m * 1e3:>13.3f} "
-              f"{min(w for _, w in ts) / m * 1e3:>20.3f}")
+        print(
+            f"{name:8} {cpus[0] / m * 1e3:>13.3f} {np.median(cpus) / m * 1e3:>13.3f} "
+            f"{min(w for _, w in ts) / m * 1e3:>20.3f}"
+        )
     ratio = [g[0] / r[0] for g, r in zip(times["galsim"], times["render"])]
     print(f"speed-up (galsim cpu / render cpu, per repeat): {', '.join(f'{x:.2f}' for x in ratio)}")
 
-    n_fft, n_k = renderer.grid_sizes(psf, "psf", "auto", "sersic", gals["rad"], gals["sersicn"], gals["e1"],
-                                     gals["e2"], gals["g1"], gals["g2"], gals["dx"], gals["dy"])
+    n_fft, n_k = renderer.grid_sizes(
+        psf,
+        "psf",
+        "auto",
+        "sersic",
+        gals["rad"],
+        gals["sersicn"],
+        gals["e1"],
+        gals["e2"],
+        gals["g1"],
+        gals["g2"],
+        gals["dx"],
+        gals["dy"],
+    )
     sizes = collections.Counter(int(n) for n in n_fft)
-    print(f"grid sizes N (Nk = N for all: {bool((n_k == n_fft).all())}): {dict(sorted(sizes.items()))}")
+    print(
+        f"grid sizes N (Nk = N for all: {bool((n_k == n_fft).all())}): {dict(sorted(sizes.items()))}"
+    )
 
     prof = cProfile.Profile(time.process_time)  # CPU time: the machine is shared
     prof.enable()

@@ -114,7 +114,9 @@ def run_megalut(config: SimConfig, out: Path, nproc: int, seed: int, engine: str
     """``simulate(config, out, measure=True, nproc=nproc, engine=engine)`` as a job for :func:`timed`."""
 
     def func() -> tuple[int, float, np.ndarray]:
-        res = simulate(config, out, measure=True, seed=seed, nproc=nproc, overwrite=True, engine=engine)
+        res = simulate(
+            config, out, measure=True, seed=seed, nproc=nproc, overwrite=True, engine=engine
+        )
         return res.n_stamps, res.seconds, features(out)
 
     return func
@@ -161,7 +163,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n-cases", type=int, default=100, help="cases of the scaled-down TP config")
     ap.add_argument("--n-realizations", type=int, default=40, help="realizations per case")
-    ap.add_argument("--repeats", type=int, default=3, help="interleaved repeats of every measurement")
+    ap.add_argument(
+        "--repeats", type=int, default=3, help="interleaved repeats of every measurement"
+    )
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
     if min(args.n_cases, args.n_realizations, args.repeats) < 1:
@@ -182,31 +186,48 @@ def main() -> None:
         out = Path(tmp) / "sim.fits"
         log("warm-up (imports, numba cache, GalSim Sersic cache, the fast engine's tables) ...")
         for engine in ("fast", "galsim"):
-            simulate(warm_cfg, out, measure=True, seed=args.seed, nproc=1, overwrite=True, engine=engine)
+            simulate(
+                warm_cfg, out, measure=True, seed=args.seed, nproc=1, overwrite=True, engine=engine
+            )
         plain_loop(len(SERSIC_N) * 2, args.seed + 1000)
-        for index in SERSIC_N:  # every gridded index in GalSim's Sersic cache and the fast engine's tables
-            galsim.Sersic(n=index, half_light_radius=4.0).drawImage(nx=STAMP_SIZE, ny=STAMP_SIZE, scale=1.0)
-        simulate(load_config(CONFIG, n_cases=len(SERSIC_N) * 3, n_realizations=1), out, measure=True,
-                 seed=args.seed, nproc=1, overwrite=True, engine="fast")
+        for (
+            index
+        ) in SERSIC_N:  # every gridded index in GalSim's Sersic cache and the fast engine's tables
+            galsim.Sersic(n=index, half_light_radius=4.0).drawImage(
+                nx=STAMP_SIZE, ny=STAMP_SIZE, scale=1.0
+            )
+        simulate(
+            load_config(CONFIG, n_cases=len(SERSIC_N) * 3, n_realizations=1),
+            out,
+            measure=True,
+            seed=args.seed,
+            nproc=1,
+            overwrite=True,
+            engine="fast",
+        )
 
         jobs: dict[str, Job] = {}
         for name, (engine, workers) in MODES.items():
             if engine is None:
                 jobs[name] = lambda: (n, math.nan, plain_loop(n, args.seed))
             elif name.endswith("start-up"):
-                jobs[name] = run_megalut(startup_cfg, Path(tmp) / "startup.fits", workers, args.seed, engine)
+                jobs[name] = run_megalut(
+                    startup_cfg, Path(tmp) / "startup.fits", workers, args.seed, engine
+                )
             else:
                 jobs[name] = run_megalut(config, out, workers, args.seed, engine)
         names = list(MODES)
         samples: dict[str, list[Sample]] = {k: [] for k in names}
         for r in range(args.repeats):
-            order = names[r % len(names):] + names[: r % len(names)]  # rotate the order
+            order = names[r % len(names) :] + names[: r % len(names)]  # rotate the order
             for name in order:
                 s = timed(jobs[name])
                 samples[name].append(s)
-                log(f"repeat {r + 1}/{args.repeats} {name:20s} {s.n_stamps / s.wall:8.1f} stamps/s "
+                log(
+                    f"repeat {r + 1}/{args.repeats} {name:20s} {s.n_stamps / s.wall:8.1f} stamps/s "
                     f"({s.wall:.2f} s wall, {s.cpu:.2f} s cpu, load {s.load1:.2f}, "
-                    f"other jobs {s.others:.2f} cores)")
+                    f"other jobs {s.others:.2f} cores)"
+                )
     load_end = os.getloadavg()
     elapsed = time.perf_counter() - t_start
     others_all = max(machine_busy() - busy_start - (cpu_seconds() - cpu_start), 0.0) / elapsed
@@ -214,36 +235,48 @@ def main() -> None:
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     print(f"# bench_simulate: {now}")
     print()
-    print(f"- machine: {os.cpu_count()} cores ({cpu_model()}), Python {platform.python_version()}, "
-          f"GalSim {galsim.__version__}, numpy {np.__version__}")
-    print(f"- config: {CONFIG.relative_to(ROOT)} scaled to {args.n_cases} cases x "
-          f"{args.n_realizations} realizations = {n} stamps of {config.structure.stamp_size}x"
-          f"{config.structure.stamp_size} px; {args.repeats} interleaved repeats; megalut through "
-          "the library call simulate(..., measure=True, nproc=N, engine=E)")
-    print(f"- load average (1, 5, 15 min): {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f} "
-          f"at start, {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f} at end; "
-          f"whole benchmark {elapsed:.0f} s, during which other jobs kept {others_all:.2f} of the "
-          f"{os.cpu_count()} cores busy on average")
+    print(
+        f"- machine: {os.cpu_count()} cores ({cpu_model()}), Python {platform.python_version()}, "
+        f"GalSim {galsim.__version__}, numpy {np.__version__}"
+    )
+    print(
+        f"- config: {CONFIG.relative_to(ROOT)} scaled to {args.n_cases} cases x "
+        f"{args.n_realizations} realizations = {n} stamps of {config.structure.stamp_size}x"
+        f"{config.structure.stamp_size} px; {args.repeats} interleaved repeats; megalut through "
+        "the library call simulate(..., measure=True, nproc=N, engine=E)"
+    )
+    print(
+        f"- load average (1, 5, 15 min): {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f} "
+        f"at start, {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f} at end; "
+        f"whole benchmark {elapsed:.0f} s, during which other jobs kept {others_all:.2f} of the "
+        f"{os.cpu_count()} cores busy on average"
+    )
     print()
     print("Median over repeats (min–max in brackets).")
     print()
-    print("| run | workers | wall s | stamps/s | stamps/s per core | draw+measure phase stamps/s "
-          "| CPU ms per stamp | cpu share | load (1 min) | other jobs (cores) |")
+    print(
+        "| run | workers | wall s | stamps/s | stamps/s per core | draw+measure phase stamps/s "
+        "| CPU ms per stamp | cpu share | load (1 min) | other jobs (cores) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for name in names:
         ss, w = samples[name], MODES[name][1]
         if name.endswith("start-up"):
-            print(f"| {name} (2 stamps) | {w} | {med_range([s.wall for s in ss], '.2f')} | — | — | — | — "
-                  f"| {med_range([s.cpu / (s.wall * w) for s in ss], '.0%')} "
-                  f"| {med_range([s.load1 for s in ss], '.2f')} | {med_range([s.others for s in ss], '.2f')} |")
+            print(
+                f"| {name} (2 stamps) | {w} | {med_range([s.wall for s in ss], '.2f')} | — | — | — | — "
+                f"| {med_range([s.cpu / (s.wall * w) for s in ss], '.0%')} "
+                f"| {med_range([s.load1 for s in ss], '.2f')} | {med_range([s.others for s in ss], '.2f')} |"
+            )
             continue
         rr = [s.n_stamps / s.wall for s in ss]
         phase = [s.n_stamps / s.phase for s in ss if math.isfinite(s.phase) and s.phase > 0]
-        print(f"| {name} | {w} | {med_range([s.wall for s in ss], '.2f')} | {med_range(rr, '.0f')} "
-              f"| {med_range([x / w for x in rr], '.0f')} "
-              f"| {med_range(phase, '.0f')} | {med_range([1e3 * s.cpu / s.n_stamps for s in ss], '.3f')} "
-              f"| {med_range([s.cpu / (s.wall * w) for s in ss], '.0%')} "
-              f"| {med_range([s.load1 for s in ss], '.2f')} | {med_range([s.others for s in ss], '.2f')} |")
+        print(
+            f"| {name} | {w} | {med_range([s.wall for s in ss], '.2f')} | {med_range(rr, '.0f')} "
+            f"| {med_range([x / w for x in rr], '.0f')} "
+            f"| {med_range(phase, '.0f')} | {med_range([1e3 * s.cpu / s.n_stamps for s in ss], '.3f')} "
+            f"| {med_range([s.cpu / (s.wall * w) for s in ss], '.0%')} "
+            f"| {med_range([s.load1 for s in ss], '.2f')} | {med_range([s.others for s in ss], '.2f')} |"
+        )
     print()
 
     def per_repeat(a: str, b: str, cpu: bool = False) -> list[float]:
@@ -253,16 +286,34 @@ def main() -> None:
         return [y.wall / x.wall for x, y in zip(samples[a], samples[b])]
 
     su = [s.wall for s in samples["fast -j 2 start-up"]]
-    net = [b.wall / (a.wall - c) for a, b, c in zip(samples["fast -j 2"], samples["fast -j 1"], su) if a.wall > c]
+    net = [
+        b.wall / (a.wall - c)
+        for a, b, c in zip(samples["fast -j 2"], samples["fast -j 1"], su)
+        if a.wall > c
+    ]
     print("| quantity | median (min–max) over repeats |")
     print("|---|---|")
-    print(f"| fast -j 1 / plain loop, stamps/s per core (wall) | {med_range(per_repeat('fast -j 1', 'plain loop'), '.2f')} |")
-    print(f"| fast -j 1 / plain loop, stamps per CPU second | {med_range(per_repeat('fast -j 1', 'plain loop', True), '.2f')} |")
-    print(f"| fast -j 1 / galsim -j 1, stamps per CPU second | {med_range(per_repeat('fast -j 1', 'galsim -j 1', True), '.2f')} |")
-    print(f"| galsim -j 1 / plain loop, stamps per CPU second | {med_range(per_repeat('galsim -j 1', 'plain loop', True), '.2f')} |")
-    print(f"| speed-up fast -j 1 -> -j 2 (wall, as measured) | {med_range(per_repeat('fast -j 2', 'fast -j 1'), '.2f')} |")
-    print(f"| -j 2 fixed start-up (spawn 2 workers, imports, numba cache), s | {med_range(su, '.2f')} |")
-    print(f"| speed-up fast -j 1 -> -j 2 net of that start-up (derived) | {med_range(net, '.2f')} |")
+    print(
+        f"| fast -j 1 / plain loop, stamps/s per core (wall) | {med_range(per_repeat('fast -j 1', 'plain loop'), '.2f')} |"
+    )
+    print(
+        f"| fast -j 1 / plain loop, stamps per CPU second | {med_range(per_repeat('fast -j 1', 'plain loop', True), '.2f')} |"
+    )
+    print(
+        f"| fast -j 1 / galsim -j 1, stamps per CPU second | {med_range(per_repeat('fast -j 1', 'galsim -j 1', True), '.2f')} |"
+    )
+    print(
+        f"| galsim -j 1 / plain loop, stamps per CPU second | {med_range(per_repeat('galsim -j 1', 'plain loop', True), '.2f')} |"
+    )
+    print(
+        f"| speed-up fast -j 1 -> -j 2 (wall, as measured) | {med_range(per_repeat('fast -j 2', 'fast -j 1'), '.2f')} |"
+    )
+    print(
+        f"| -j 2 fixed start-up (spawn 2 workers, imports, numba cache), s | {med_range(su, '.2f')} |"
+    )
+    print(
+        f"| speed-up fast -j 1 -> -j 2 net of that start-up (derived) | {med_range(net, '.2f')} |"
+    )
     print()
 
     print("Per repeat: stamps/s (cores other jobs kept busy meanwhile):")
@@ -271,7 +322,10 @@ def main() -> None:
     print("| repeat | " + " | ".join(shown) + " | fast/plain (CPU) |")
     print("|---" * (len(shown) + 2) + "|")
     for r in range(args.repeats):
-        cells = [f"{samples[k][r].n_stamps / samples[k][r].wall:.0f} ({samples[k][r].others:.2f})" for k in shown]
+        cells = [
+            f"{samples[k][r].n_stamps / samples[k][r].wall:.0f} ({samples[k][r].others:.2f})"
+            for k in shown
+        ]
         ratio = samples["plain loop"][r].cpu / samples["fast -j 1"][r].cpu
         print(f"| {r + 1} | {' | '.join(cells)} | {ratio:.2f} |")
     print()
@@ -284,8 +338,10 @@ def main() -> None:
         sig = samples[name][0].sigma
         ok = sig[np.isfinite(sig)]
         if len(sig) and len(ok):
-            print(f"| {name} | {1 - len(ok) / len(sig):.1%} | {np.median(ok):.2f} "
-                  f"| {np.percentile(ok, 10):.2f}–{np.percentile(ok, 90):.2f} |")
+            print(
+                f"| {name} | {1 - len(ok) / len(sig):.1%} | {np.median(ok):.2f} "
+                f"| {np.percentile(ok, 10):.2f}–{np.percentile(ok, 90):.2f} |"
+            )
 
 
 if __name__ == "__main__":

@@ -43,7 +43,14 @@ def run(cmd: Sequence[str], env: dict[str, str]) -> tuple[float, float]:
     run in the folder of the code it runs (``python -m`` puts it first on the path)."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    done = subprocess.run(list(cmd), env=env, cwd=env.get("PYTHONPATH", ROOT), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    done = subprocess.run(
+        list(cmd),
+        env=env,
+        cwd=env.get("PYTHONPATH", ROOT),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:
@@ -51,7 +58,9 @@ def run(cmd: Sequence[str], env: dict[str, str]) -> tuple[float, float]:
     return wall, after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
 
 
-def compare(title: str, commands: dict[str, tuple[list[str], dict[str, str]]], repeats: int) -> None:
+def compare(
+    title: str, commands: dict[str, tuple[list[str], dict[str, str]]], repeats: int
+) -> None:
     """Run ``commands`` in turn ``repeats`` times after a warm-up; print medians and ratios to the first."""
     for cmd, env in commands.values():
         run(cmd, env)
@@ -72,9 +81,13 @@ def compare(title: str, commands: dict[str, tuple[list[str], dict[str, str]]], r
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--before", help="a commit to compare with (git worktree in a temporary folder)")
+    parser.add_argument(
+        "--before", help="a commit to compare with (git worktree in a temporary folder)"
+    )
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--skip-30k", action="store_true", help="leave out the 30 000-stamp comparison")
+    parser.add_argument(
+        "--skip-30k", action="store_true", help="leave out the 30 000-stamp comparison"
+    )
     args = parser.parse_args()
 
     work = Path(tempfile.mkdtemp(prefix="bench-startup-"))
@@ -84,14 +97,20 @@ def main() -> None:
     before_env = None
     if args.before:
         tree = work / "before"
-        subprocess.run(["git", "worktree", "add", "--detach", str(tree), args.before], cwd=ROOT, check=True,
-                       capture_output=True)
+        subprocess.run(
+            ["git", "worktree", "add", "--detach", str(tree), args.before],
+            cwd=ROOT,
+            check=True,
+            capture_output=True,
+        )
         before_env = {**base, "PYTHONPATH": str(tree)}
     py = sys.executable
     cli = [py, "-m", "megalut_cli"]
     loops = [py, str(ROOT / "benchmarks" / "galsim_loops.py")]
-    print(f"{datetime.datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, {os.cpu_count()} cores, "
-          f"load {os.getloadavg()[0]:.1f}; before = {args.before or '-'}")
+    print(
+        f"{datetime.datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, {os.cpu_count()} cores, "
+        f"load {os.getloadavg()[0]:.1f}; before = {args.before or '-'}"
+    )
 
     def versions(cmd: list[str]) -> dict[str, tuple[list[str], dict[str, str]]]:
         out = {"now": (cmd, now_env)}
@@ -100,34 +119,79 @@ def main() -> None:
         return out
 
     def sim(n_cases: int, n_rea: int, j: int, name: str) -> list[str]:
-        return [*cli, "simulate", TP, "--measure", "-j", str(j), "--n-cases", str(n_cases),
-                "--n-realizations", str(n_rea), "-o", str(work / f"{name}.fits"), "--overwrite", "-q"]
+        return [
+            *cli,
+            "simulate",
+            TP,
+            "--measure",
+            "-j",
+            str(j),
+            "--n-cases",
+            str(n_cases),
+            "--n-realizations",
+            str(n_rea),
+            "-o",
+            str(work / f"{name}.fits"),
+            "--overwrite",
+            "-q",
+        ]
 
     compare("megalut --version", versions([*cli, "--version"]), args.repeats)
     compare("megalut simulate --help", versions([*cli, "simulate", "--help"]), args.repeats)
     compare("simulate --measure -j 1, 1 stamp", versions(sim(1, 1, 1, "one")), args.repeats)
     for n_cases, label in ((30, "3000"),) + (() if args.skip_30k else ((300, "30 000"),)):
         n = n_cases * 100
-        cmds = {"now": (sim(n_cases, 100, 1, f"s{n}"), now_env),
-                "galsim": ([*loops, "simulate", str(n), "1"], base)}
+        cmds = {
+            "now": (sim(n_cases, 100, 1, f"s{n}"), now_env),
+            "galsim": ([*loops, "simulate", str(n), "1"], base),
+        }
         if before_env:
             cmds["before"] = (sim(n_cases, 100, 1, f"s{n}b"), before_env)
-        compare(f"simulate --measure -j 1, {label} stamps, against the plain GalSim loop", cmds, args.repeats)
+        compare(
+            f"simulate --measure -j 1, {label} stamps, against the plain GalSim loop",
+            cmds,
+            args.repeats,
+        )
     for name, env in (("now", now_env), ("before", before_env)):
         if env is not None:
-            compare(f"-j 1 against -j 2, 4000 stamps ({name})",
-                    {"-j 1": (sim(40, 100, 1, "j1"), env), "-j 2": (sim(40, 100, 2, "j2"), env)}, args.repeats)
+            compare(
+                f"-j 1 against -j 2, 4000 stamps ({name})",
+                {"-j 1": (sim(40, 100, 1, "j1"), env), "-j 2": (sim(40, 100, 2, "j2"), env)},
+                args.repeats,
+            )
     grid = work / "grid.fits"
-    subprocess.run([*cli, "simulate", str(ROOT / "examples/fiducial/vo.toml"), "-o", str(work / "grid.cat.fits"),
-                    "--stamps", str(grid), "--n-cases", "4", "--n-realizations", "5000", "--seed", "3", "-j", "2",
-                    "-q"], env=now_env, cwd=ROOT, check=True)
+    subprocess.run(
+        [
+            *cli,
+            "simulate",
+            str(ROOT / "examples/fiducial/vo.toml"),
+            "-o",
+            str(work / "grid.cat.fits"),
+            "--stamps",
+            str(grid),
+            "--n-cases",
+            "4",
+            "--n-realizations",
+            "5000",
+            "--seed",
+            "3",
+            "-j",
+            "2",
+            "-q",
+        ],
+        env=now_env,
+        cwd=ROOT,
+        check=True,
+    )
     meas = [*cli, "measure", str(grid), "-o", str(work / "m.fits"), "-j", "1", "--overwrite", "-q"]
     cmds = {"now": (meas, now_env), "galsim": ([*loops, "measure", str(grid)], base)}
     if before_env:
         cmds["before"] = (meas, before_env)
     compare("measure -j 1, 20 000 stamps, against a FindAdaptiveMom loop", cmds, args.repeats)
     if args.before:
-        subprocess.run(["git", "worktree", "remove", "--force", str(work / "before")], cwd=ROOT, check=False)
+        subprocess.run(
+            ["git", "worktree", "remove", "--force", str(work / "before")], cwd=ROOT, check=False
+        )
 
 
 if __name__ == "__main__":

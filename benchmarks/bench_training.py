@@ -113,7 +113,9 @@ def bench_evaluation(n_cases: int, n_rea: int, repeat: int) -> dict[str, float]:
     mask = np.random.default_rng(1).random(mask.shape) < 0.02
     mask3 = np.broadcast_to(mask.T[:, None, :], (x3.shape[0], 1, x3.shape[2]))
     layers = net.unpack(p)
-    res["original_style"] = _best_of(lambda: _original_style_msb(layers, x3, mask3, data.targets[:, 0]), 2)
+    res["original_style"] = _best_of(
+        lambda: _original_style_msb(layers, x3, mask3, data.targets[:, 0]), 2
+    )
     g_fd = approx_fprime(p, o64.value, 1.4901161193847656e-08)
     g_an = o64.value_and_grad(p)[1]
     res["fd_rel_err"] = float(np.max(np.abs(g_fd - g_an)) / np.max(np.abs(g_an)))
@@ -128,7 +130,9 @@ def _time_to(result, target: float, cpu: bool = False) -> float:
     return float(times[hit[0]]) if len(hit) else np.nan
 
 
-def bench_training(n_cases: int, n_rea: int, members: int, fd_iterations: int, max_factor: int) -> list[dict]:
+def bench_training(
+    n_cases: int, n_rea: int, members: int, fd_iterations: int, max_factor: int
+) -> list[dict]:
     train = _cases(n_cases, n_rea, seed=2)
     valid = _cases(max(2, n_cases // 5), n_rea, seed=3)
     loc, scale = normalization.fit(train.x)
@@ -136,16 +140,37 @@ def bench_training(n_cases: int, n_rea: int, members: int, fd_iterations: int, m
     net = Network(5, (5, 5), "identity", float(train.targets.mean()), spread)
     rows = []
     for k in range(members):
+
         def task(gradient: str, iterations: int, dtype: str = "float64", k: int = k) -> MemberTask:
-            settings = TrainSettings(cost="msb", iterations=iterations, gradient=gradient, dtype=dtype)
-            return MemberTask(f"member {k}", net, settings, train, valid, 0, loc, scale, seed=1,
-                              keys=(2, 0, k), cost_scale=spread, log_level=30)
+            settings = TrainSettings(
+                cost="msb", iterations=iterations, gradient=gradient, dtype=dtype
+            )
+            return MemberTask(
+                f"member {k}",
+                net,
+                settings,
+                train,
+                valid,
+                0,
+                loc,
+                scale,
+                seed=1,
+                keys=(2, 0, k),
+                cost_scale=spread,
+                log_level=30,
+            )
 
         fd = train_member(task("fd", fd_iterations))
         target = fd.valid_cost
         t_fd = _time_to(fd, target)
-        row = {"member": k, "target": target, "fd_iter": fd.best_iter, "t_fd": t_fd,
-               "cpu_fd": _time_to(fd, target, cpu=True), "fd_evals": fd.n_evals}
+        row = {
+            "member": k,
+            "target": target,
+            "fd_iter": fd.best_iter,
+            "t_fd": t_fd,
+            "cpu_fd": _time_to(fd, target, cpu=True),
+            "fd_evals": fd.n_evals,
+        }
         for dtype in ("float64", "float32"):
             an = train_member(task("analytic", fd_iterations * max_factor, dtype))
             t_an = _time_to(an, target)
@@ -170,24 +195,48 @@ def _child_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def _run_cli(tp: Path, vp: Path, out: Path, iterations: int, precision: str | None,
-             tree: str | None = None) -> tuple[float, float]:
+def _run_cli(
+    tp: Path, vp: Path, out: Path, iterations: int, precision: str | None, tree: str | None = None
+) -> tuple[float, float]:
     """Wall and CPU seconds of one ``megalut train-point`` process training one member
     (``tree``: the megalut_cli of that source tree, e.g. a git worktree of an older commit)."""
     env = dict(os.environ, PYTHONPATH=tree) if tree else None
     # ``python -m`` puts the working folder first on the path: run in the folder of the code
     cwd = tree or str(Path(__file__).resolve().parent.parent)
-    cmd = [sys.executable, "-m", "megalut_cli", "train-point", str(tp), "-o", str(out), "--overwrite",
-           "--targets", "tru_g1", "--members", "1", "--valid", str(vp), "--iterations", str(iterations),
-           "--seed", "1", "-j", "1"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "megalut_cli",
+        "train-point",
+        str(tp),
+        "-o",
+        str(out),
+        "--overwrite",
+        "--targets",
+        "tru_g1",
+        "--members",
+        "1",
+        "--valid",
+        str(vp),
+        "--iterations",
+        str(iterations),
+        "--seed",
+        "1",
+        "-j",
+        "1",
+    ]
     if precision:
         cmd += ["--precision", precision]
     cpu, t = _child_cpu(), time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=cwd)
+    subprocess.run(
+        cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=cwd
+    )
     return time.perf_counter() - t, _child_cpu() - cpu
 
 
-def bench_cli(n_cases: int, n_rea: int, fd_iterations: int, repeat: int, tree: str | None = None) -> None:
+def bench_cli(
+    n_cases: int, n_rea: int, fd_iterations: int, repeat: int, tree: str | None = None
+) -> None:
     """Section 3: the whole ``train-point`` command (one member) against the FD baseline;
     ``tree``: also the command of that source tree, in the same alternation."""
     from megalut_cli.catalog import write_catalog
@@ -198,14 +247,30 @@ def bench_cli(n_cases: int, n_rea: int, fd_iterations: int, repeat: int, tree: s
     valid_cols = shear_like_columns(max(2, n_cases // 5), n_rea, 3)
     # The baseline's member: the data, normalisation and network the command builds, and
     # the seed and keys of its first tru_g1 member (same initial parameters and batches).
-    train = build_cases(train_cols, FEATURES, ["tru_g1"], valid_rows(train_cols, FEATURES, len(train_cols["case"])))
-    valid = build_cases(valid_cols, FEATURES, ["tru_g1"], valid_rows(valid_cols, FEATURES, len(valid_cols["case"])))
+    train = build_cases(
+        train_cols, FEATURES, ["tru_g1"], valid_rows(train_cols, FEATURES, len(train_cols["case"]))
+    )
+    valid = build_cases(
+        valid_cols, FEATURES, ["tru_g1"], valid_rows(valid_cols, FEATURES, len(valid_cols["case"]))
+    )
     loc, scale = normalization.fit(train.x)
     spread = float(np.std(train.targets[:, 0]))
     net = Network(5, (5, 5), "identity", float(np.mean(train.targets[:, 0])), spread)
     settings = TrainSettings(cost="msb", iterations=fd_iterations, gradient="fd")
-    fd_task = MemberTask("fd", net, settings, train, valid, 0, loc, scale, seed=1,
-                         keys=member_keys("point", "tru_g1", 0), cost_scale=spread, log_level=30)
+    fd_task = MemberTask(
+        "fd",
+        net,
+        settings,
+        train,
+        valid,
+        0,
+        loc,
+        scale,
+        seed=1,
+        keys=member_keys("point", "tru_g1", 0),
+        cost_scale=spread,
+        log_level=30,
+    )
     precisions = (None, "float32")  # the command's default (float64), then --precision float32
     fd = train_member(fd_task)
     target = fd.valid_cost
@@ -213,13 +278,32 @@ def bench_cli(n_cases: int, n_rea: int, fd_iterations: int, repeat: int, tree: s
     # run of the same member (the command's member follows the same trajectory).
     needed: dict[str | None, int] = {}
     for p in precisions:
-        an_settings = TrainSettings(cost="msb", iterations=fd_iterations * MAX_FACTOR, dtype=p or "float64")
-        an = train_member(MemberTask("an", net, an_settings, train, valid, 0, loc, scale, seed=1,
-                                     keys=fd_task.keys, cost_scale=spread, log_level=30))
+        an_settings = TrainSettings(
+            cost="msb", iterations=fd_iterations * MAX_FACTOR, dtype=p or "float64"
+        )
+        an = train_member(
+            MemberTask(
+                "an",
+                net,
+                an_settings,
+                train,
+                valid,
+                0,
+                loc,
+                scale,
+                seed=1,
+                keys=fd_task.keys,
+                cost_scale=spread,
+                log_level=30,
+            )
+        )
         hit = np.flatnonzero(an.history[:, 1] <= target * (1 + 1e-12))
         needed[p] = int(hit[0]) + 1 if len(hit) else fd_iterations * MAX_FACTOR
-    print(f"  FD baseline: best validation MSB {target:.4e} at iteration {fd.best_iter}; the command reaches it at "
-          + ", ".join(f"iteration {needed[p]} ({p or 'float64, default'})" for p in precisions), flush=True)
+    print(
+        f"  FD baseline: best validation MSB {target:.4e} at iteration {fd.best_iter}; the command reaches it at "
+        + ", ".join(f"iteration {needed[p]} ({p or 'float64, default'})" for p in precisions),
+        flush=True,
+    )
     with tempfile.TemporaryDirectory() as tmp:
         tp, vp = Path(tmp) / "tp.fits", Path(tmp) / "vp.fits"
         write_catalog(tp, train_cols, fmt="megalut.toy")
@@ -231,7 +315,9 @@ def bench_cli(n_cases: int, n_rea: int, fd_iterations: int, repeat: int, tree: s
         for r in range(repeat):
             if r:
                 fd = train_member(fd_task)
-            t_fd.append(_time_to(fd, target) if fd.best_iter else 0.0)  # 0: no iteration improved on the start
+            t_fd.append(
+                _time_to(fd, target) if fd.best_iter else 0.0
+            )  # 0: no iteration improved on the start
             cpu_fd.append(_time_to(fd, target, cpu=True) if fd.best_iter else 0.0)
             line = f"  run {r + 1}: FD {t_fd[-1]:.2f} s (CPU {cpu_fd[-1]:.2f} s)"
             for p, t in runs:
@@ -242,16 +328,24 @@ def bench_cli(n_cases: int, n_rea: int, fd_iterations: int, repeat: int, tree: s
                 line += f"; CLI{t} {p or 'float64'} {wall:.2f} s (CPU {cpu:.2f} s, valid MSB {reached:.4e})"
             print(line, flush=True)
     med_fd, med_cpu_fd = float(np.median(t_fd)), float(np.median(cpu_fd))
-    print(f"  FD baseline to its best validation MSB (in-process, training loop only): wall {med_fd:.2f} s, "
-          f"CPU {med_cpu_fd:.2f} s (medians of {repeat})")
+    print(
+        f"  FD baseline to its best validation MSB (in-process, training loop only): wall {med_fd:.2f} s, "
+        f"CPU {med_cpu_fd:.2f} s (medians of {repeat})"
+    )
     for p, t in runs:
         wall = float(np.median([c[0] for c in cli[p, t]]))
         cpu = float(np.median([c[1] for c in cli[p, t]]))
         reached = max(c[2] for c in cli[p, t])
-        ok = "reached" if reached <= target * (1 + 1e-12) else f"NOT reached ({reached / target - 1:+.1%})"
-        print(f"  train-point{t} --iterations {needed[p]}, precision {p or 'float64 (default)'}: whole process wall "
-              f"{wall:.2f} s, CPU {cpu:.2f} s -> {med_fd / wall:.1f}x (wall), {med_cpu_fd / cpu:.1f}x (CPU); "
-              f"baseline's validation MSB {ok}")
+        ok = (
+            "reached"
+            if reached <= target * (1 + 1e-12)
+            else f"NOT reached ({reached / target - 1:+.1%})"
+        )
+        print(
+            f"  train-point{t} --iterations {needed[p]}, precision {p or 'float64 (default)'}: whole process wall "
+            f"{wall:.2f} s, CPU {cpu:.2f} s -> {med_fd / wall:.1f}x (wall), {med_cpu_fd / cpu:.1f}x (CPU); "
+            f"baseline's validation MSB {ok}"
+        )
 
 
 def bench_predict(n_rows: int, repeat: int) -> float:
@@ -263,10 +357,17 @@ def bench_predict(n_rows: int, repeat: int) -> float:
     comms = []
     for target in ("tru_g1", "tru_g2"):
         members = [
-            Member(layers=[(w.copy(), b.copy()) for w, b in net.unpack(net.init_normal(rng, 0.5))], selected=i < 4)
+            Member(
+                layers=[(w.copy(), b.copy()) for w, b in net.unpack(net.init_normal(rng, 0.5))],
+                selected=i < 4,
+            )
             for i in range(8)
         ]
-        comms.append(Committee("point", target, FEATURES, (5, 5), np.zeros(5), np.ones(5), members, 0.0, 0.05))
+        comms.append(
+            Committee(
+                "point", target, FEATURES, (5, 5), np.zeros(5), np.ones(5), members, 0.0, 0.05
+            )
+        )
     x = rng.normal(size=(n_rows, 5))
     t = _best_of(lambda: [c.predict(x) for c in comms], repeat)
     return n_rows / t
@@ -277,43 +378,65 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
     ap.add_argument("--members", type=int, default=4)
     ap.add_argument("--fd-iterations", type=int, default=60)
-    ap.add_argument("--cli", action="store_true", help="only 3.: the whole train-point command against the baseline")
+    ap.add_argument(
+        "--cli",
+        action="store_true",
+        help="only 3.: the whole train-point command against the baseline",
+    )
     ap.add_argument("--repeat", type=int, default=3, help="alternating runs of 3.")
-    ap.add_argument("--tree", default=None, metavar="DIR",
-                    help="3. also runs the command of this source tree (e.g. a git worktree of HEAD), alternating")
+    ap.add_argument(
+        "--tree",
+        default=None,
+        metavar="DIR",
+        help="3. also runs the command of this source tree (e.g. a git worktree of HEAD), alternating",
+    )
     args = ap.parse_args()
     ev_cases, ev_rea, repeat = (50, 2000, 3) if args.quick else (500, 2000, 7)
     tr_cases, tr_rea = (100, 400) if args.quick else (500, 1000)
     members = 2 if args.quick else args.members
     fd_iter = 15 if args.quick else args.fd_iterations
 
-    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, numpy {np.__version__}, "
-          f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
+    print(
+        f"machine: {platform.machine()}, {os.cpu_count()} cores, numpy {np.__version__}, "
+        f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}"
+    )
     if args.cli:
-        print(f"\n3. the whole train-point command, one member, {tr_cases} cases x {tr_rea} realizations "
-              f"(validation catalog {max(2, tr_cases // 5)} cases), batches 25% x 30 iterations, "
-              f"{fd_iter} iterations (CLI and FD baseline)")
+        print(
+            f"\n3. the whole train-point command, one member, {tr_cases} cases x {tr_rea} realizations "
+            f"(validation catalog {max(2, tr_cases // 5)} cases), batches 25% x 30 iterations, "
+            f"{fd_iter} iterations (CLI and FD baseline)"
+        )
         bench_cli(tr_cases, tr_rea, fd_iter, args.repeat, args.tree)
         return
-    print(f"\n1. one MSB evaluation, 5-5-1 network, {ev_cases} cases x {ev_rea} realizations x 5 features")
+    print(
+        f"\n1. one MSB evaluation, 5-5-1 network, {ev_cases} cases x {ev_rea} realizations x 5 features"
+    )
     ev = bench_evaluation(ev_cases, ev_rea, repeat)
     print(f"  rows {ev['rows']}, parameters {ev['params']} (best of {repeat})")
     print(f"  forward pass + cost (float64):         {ev['forward64'] * 1e3:8.1f} ms")
     print(f"  cost + analytic gradient (float64):    {ev['grad64'] * 1e3:8.1f} ms")
     print(f"  cost + analytic gradient (float32):    {ev['grad32'] * 1e3:8.1f} ms")
-    print(f"  cost + finite-difference gradient:     {ev['fd_grad'] * 1e3:8.1f} ms "
-          f"({ev['fd_grad'] / ev['grad64']:.0f}x float64, {ev['fd_grad'] / ev['grad32']:.0f}x float32)")
+    print(
+        f"  cost + finite-difference gradient:     {ev['fd_grad'] * 1e3:8.1f} ms "
+        f"({ev['fd_grad'] / ev['grad64']:.0f}x float64, {ev['fd_grad'] / ev['grad32']:.0f}x float32)"
+    )
     print(f"  max |FD - analytic| / max |analytic|:  {ev['fd_rel_err']:.1e}")
     orig_fd = ev["original_style"] * (ev["params"] + 1)
-    print(f"  original-style cost (masked 3-D arrays): {ev['original_style'] * 1e3:6.1f} ms; its FD gradient "
-          f"would take ~{orig_fd:.1f} s ({orig_fd / ev['grad64']:.0f}x float64, {orig_fd / ev['grad32']:.0f}x float32)")
+    print(
+        f"  original-style cost (masked 3-D arrays): {ev['original_style'] * 1e3:6.1f} ms; its FD gradient "
+        f"would take ~{orig_fd:.1f} s ({orig_fd / ev['grad64']:.0f}x float64, {orig_fd / ev['grad32']:.0f}x float32)"
+    )
 
     rate = bench_predict(1_000_000, repeat)
-    print(f"\n  Committee.predict, two 8-member (4 kept) 5-5-1 committees: {rate / 1e6:.2f} million rows/s (one core)")
+    print(
+        f"\n  Committee.predict, two 8-member (4 kept) 5-5-1 committees: {rate / 1e6:.2f} million rows/s (one core)"
+    )
 
-    print(f"\n2. training to a validation MSB: {members} members, {tr_cases} cases x {tr_rea} realizations "
-          f"(validation {max(2, tr_cases // 5)} cases), batches 25% x 30 iterations, FD baseline "
-          f"{fd_iter} iterations per member")
+    print(
+        f"\n2. training to a validation MSB: {members} members, {tr_cases} cases x {tr_rea} realizations "
+        f"(validation {max(2, tr_cases // 5)} cases), batches 25% x 30 iterations, FD baseline "
+        f"{fd_iter} iterations per member"
+    )
     rows = bench_training(tr_cases, tr_rea, members, fd_iter, max_factor=MAX_FACTOR)
     t_fd = sum(r["t_fd"] for r in rows)
     cpu_fd = sum(r["cpu_fd"] for r in rows)
@@ -322,10 +445,14 @@ def main() -> None:
         t_an = sum(r[f"t_{dtype}"] for r in rows)
         cpu_an = sum(r[f"cpu_{dtype}"] for r in rows)
         if reached:
-            print(f"  committee ({dtype}): wall FD baseline {t_fd:.1f} s, analytic {t_an:.2f} s -> {t_fd / t_an:.0f}x faster; "
-                  f"CPU {cpu_fd:.1f} s vs {cpu_an:.2f} s -> {cpu_fd / cpu_an:.0f}x")
+            print(
+                f"  committee ({dtype}): wall FD baseline {t_fd:.1f} s, analytic {t_an:.2f} s -> {t_fd / t_an:.0f}x faster; "
+                f"CPU {cpu_fd:.1f} s vs {cpu_an:.2f} s -> {cpu_fd / cpu_an:.0f}x"
+            )
         else:
-            print(f"  committee ({dtype}): not every member reached its target within {MAX_FACTOR}x the iterations")
+            print(
+                f"  committee ({dtype}): not every member reached its target within {MAX_FACTOR}x the iterations"
+            )
 
 
 if __name__ == "__main__":

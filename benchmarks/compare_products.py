@@ -138,43 +138,188 @@ class Step:
     stdout: str | None = None
 
 
-def _sim(config: str, out: str, cases: int, rea: int, seed: int, *extra: str, j: int = 1) -> list[str]:
-    return ["simulate", f"in/{config}", "-o", out, "--n-cases", str(cases), "--n-realizations", str(rea),
-            "--seed", str(seed), "-j", str(j), *extra]
+def _sim(
+    config: str, out: str, cases: int, rea: int, seed: int, *extra: str, j: int = 1
+) -> list[str]:
+    return [
+        "simulate",
+        f"in/{config}",
+        "-o",
+        out,
+        "--n-cases",
+        str(cases),
+        "--n-realizations",
+        str(rea),
+        "--seed",
+        str(seed),
+        "-j",
+        str(j),
+        *extra,
+    ]
 
 
 WORKFLOW: list[Step] = [
     Step("simulate tp (fast, --measure)", _sim("tp.toml", "tp.fits", 40, 20, 1, "--measure")),
-    Step("simulate tw (fast, --measure --morphology, -j 2)",
-         _sim("tw.toml", "tw.fits", 10, 40, 2, "--measure", "--morphology", j=2)),
+    Step(
+        "simulate tw (fast, --measure --morphology, -j 2)",
+        _sim("tw.toml", "tw.fits", 10, 40, 2, "--measure", "--morphology", j=2),
+    ),
     Step("simulate vo (fast, --measure)", _sim("vo.toml", "vo.fits", 10, 120, 3, "--measure")),
-    Step("simulate vo (galsim, --measure)", _sim("vo.toml", "vo-galsim.fits", 2, 10, 4, "--measure",
-                                                 "--engine", "galsim")),
-    Step("simulate vo (--stamps)", _sim("vo.toml", "cat.fits", 2, 10, 5, "--stamps", "stamps.fits")),
-    Step("simulate vo-crn (--measure --metacal)", _sim("vo-crn.toml", "mcal.fits", 2, 10, 6, "--measure",
-                                                       "--metacal")),
+    Step(
+        "simulate vo (galsim, --measure)",
+        _sim("vo.toml", "vo-galsim.fits", 2, 10, 4, "--measure", "--engine", "galsim"),
+    ),
+    Step(
+        "simulate vo (--stamps)", _sim("vo.toml", "cat.fits", 2, 10, 5, "--stamps", "stamps.fits")
+    ),
+    Step(
+        "simulate vo-crn (--measure --metacal)",
+        _sim("vo-crn.toml", "mcal.fits", 2, 10, 6, "--measure", "--metacal"),
+    ),
     Step("measure", ["measure", "stamps.fits", "cat.fits", "-o", "features.fits", "-j", "1"]),
-    Step("measure --psf", ["measure", "stamps.fits", "cat.fits", "-o", "features-psf.fits",
-                           "--psf", "in/psf.fits", "-j", "1"]),
-    Step("measure --metacal --psf", ["measure", "stamps.fits", "cat.fits", "-o", "features-mcal.fits",
-                                     "--psf", "in/psf.fits", "--metacal", "--seed", "7", "-j", "1"]),
-    Step("train-point", ["train-point", "tp.fits", "-o", "point.h5", "--members", "2", "--iterations", "8",
-                         "--batch-iterations", "4", "--select-cases", "mean(snr) > 10", "--seed", "11",
-                         "-j", "1"]),
-    Step("train-weight", ["train-weight", "tw.fits", "--model", "point.h5", "-o", "model.h5", "--members", "2",
-                          "--iterations", "6", "--batch-iterations", "3", "--seed", "12", "-j", "1"]),
-    Step("predict (2 chunks)", ["predict", "vo.fits", "--model", "model.h5", "-o", "vo-shears.fits",
-                                "--chunk-rows", "1000", "-j", "1"]),
-    Step("predict (metacal)", ["predict", "mcal.fits", "--model", "in/fiducial-metacal.h5",
-                               "-o", "mcal-shears.fits", "-j", "1"]),
-    Step("evaluate", ["evaluate", "vo-shears.fits", "--by", "tru_rad,snr", "--bins", "2",
-                      "--json", "evaluation.json", "--plot", "evaluation.png"], stdout="evaluate.txt"),
-    Step("evaluate (metacal)", ["evaluate", "mcal-shears.fits", "--json", "evaluation-mcal.json"],
-         stdout="evaluate-mcal.txt"),
-    Step("evaluate (bootstrap)", ["evaluate", "vo-shears.fits", "--errors", "bootstrap", "--bootstrap", "20",
-                                  "--seed", "3", "--json", "evaluation-bootstrap.json"],
-         stdout="evaluate-bootstrap.txt"),
-    Step("run (tiny pipeline)", ["run", "in/pipeline.toml", "--workdir", "run", "-j", "1"], stdout="run.txt"),
+    Step(
+        "measure --psf",
+        [
+            "measure",
+            "stamps.fits",
+            "cat.fits",
+            "-o",
+            "features-psf.fits",
+            "--psf",
+            "in/psf.fits",
+            "-j",
+            "1",
+        ],
+    ),
+    Step(
+        "measure --metacal --psf",
+        [
+            "measure",
+            "stamps.fits",
+            "cat.fits",
+            "-o",
+            "features-mcal.fits",
+            "--psf",
+            "in/psf.fits",
+            "--metacal",
+            "--seed",
+            "7",
+            "-j",
+            "1",
+        ],
+    ),
+    Step(
+        "train-point",
+        [
+            "train-point",
+            "tp.fits",
+            "-o",
+            "point.h5",
+            "--members",
+            "2",
+            "--iterations",
+            "8",
+            "--batch-iterations",
+            "4",
+            "--select-cases",
+            "mean(snr) > 10",
+            "--seed",
+            "11",
+            "-j",
+            "1",
+        ],
+    ),
+    Step(
+        "train-weight",
+        [
+            "train-weight",
+            "tw.fits",
+            "--model",
+            "point.h5",
+            "-o",
+            "model.h5",
+            "--members",
+            "2",
+            "--iterations",
+            "6",
+            "--batch-iterations",
+            "3",
+            "--seed",
+            "12",
+            "-j",
+            "1",
+        ],
+    ),
+    Step(
+        "predict (2 chunks)",
+        [
+            "predict",
+            "vo.fits",
+            "--model",
+            "model.h5",
+            "-o",
+            "vo-shears.fits",
+            "--chunk-rows",
+            "1000",
+            "-j",
+            "1",
+        ],
+    ),
+    Step(
+        "predict (metacal)",
+        [
+            "predict",
+            "mcal.fits",
+            "--model",
+            "in/fiducial-metacal.h5",
+            "-o",
+            "mcal-shears.fits",
+            "-j",
+            "1",
+        ],
+    ),
+    Step(
+        "evaluate",
+        [
+            "evaluate",
+            "vo-shears.fits",
+            "--by",
+            "tru_rad,snr",
+            "--bins",
+            "2",
+            "--json",
+            "evaluation.json",
+            "--plot",
+            "evaluation.png",
+        ],
+        stdout="evaluate.txt",
+    ),
+    Step(
+        "evaluate (metacal)",
+        ["evaluate", "mcal-shears.fits", "--json", "evaluation-mcal.json"],
+        stdout="evaluate-mcal.txt",
+    ),
+    Step(
+        "evaluate (bootstrap)",
+        [
+            "evaluate",
+            "vo-shears.fits",
+            "--errors",
+            "bootstrap",
+            "--bootstrap",
+            "20",
+            "--seed",
+            "3",
+            "--json",
+            "evaluation-bootstrap.json",
+        ],
+        stdout="evaluate-bootstrap.txt",
+    ),
+    Step(
+        "run (tiny pipeline)",
+        ["run", "in/pipeline.toml", "--workdir", "run", "-j", "1"],
+        stdout="run.txt",
+    ),
     Step("info catalog", ["info", "vo-shears.fits"], stdout="info-catalog.txt"),
     Step("info stamps", ["info", "stamps.fits", "--json"], stdout="info-stamps.json"),
     Step("info model", ["info", "model.h5", "--json"], stdout="info-model.json"),
@@ -201,8 +346,10 @@ _DIGEST = re.compile(r"\b[0-9a-f]{64}\b")
 _UUID = re.compile(r"\b[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}\b")
 _FINGERPRINT = {"sha256", "size", "mtime_ns"}
 #: Text lines that legitimately change: dates and times, durations, versions.
-_TEXT_DROP = re.compile(r"\d{4}-\d\d-\d\d[T ]\d\d:\d\d|\bversions?\b|\b\d+(\.\d+)?\s*(s|ms|min|sec|seconds)\b",
-                        re.IGNORECASE)
+_TEXT_DROP = re.compile(
+    r"\d{4}-\d\d-\d\d[T ]\d\d:\d\d|\bversions?\b|\b\d+(\.\d+)?\s*(s|ms|min|sec|seconds)\b",
+    re.IGNORECASE,
+)
 
 
 def _ignored_key(key: str) -> bool:
@@ -225,20 +372,29 @@ class Tree:
 
 
 def _git(*args: str, cwd: Path = REPO) -> str:
-    return subprocess.run(["git", *args], cwd=cwd, check=True, capture_output=True, text=True).stdout.strip()
+    return subprocess.run(
+        ["git", *args], cwd=cwd, check=True, capture_output=True, text=True
+    ).stdout.strip()
 
 
 def _environment(tree: Tree, cache: Path) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("MEGALUT_")}
-    env.update({
-        "PYTHONPATH": str(tree.path),
-        "MEGALUT_CACHE": str(cache / "megalut"),
-        "NUMBA_CACHE_DIR": str(cache / "numba"),  # both trees compile their kernels cold: fair times
-        "SOURCE_DATE_EPOCH": "1700000000",  # same DATE cards where honoured (they are ignored anyway)
-        "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
-        "VECLIB_MAXIMUM_THREADS": "1", "NUMEXPR_NUM_THREADS": "1",
-        "PYTHONDONTWRITEBYTECODE": "1",
-    })
+    env.update(
+        {
+            "PYTHONPATH": str(tree.path),
+            "MEGALUT_CACHE": str(cache / "megalut"),
+            "NUMBA_CACHE_DIR": str(
+                cache / "numba"
+            ),  # both trees compile their kernels cold: fair times
+            "SOURCE_DATE_EPOCH": "1700000000",  # same DATE cards where honoured (they are ignored anyway)
+            "OMP_NUM_THREADS": "1",
+            "OPENBLAS_NUM_THREADS": "1",
+            "MKL_NUM_THREADS": "1",
+            "VECLIB_MAXIMUM_THREADS": "1",
+            "NUMEXPR_NUM_THREADS": "1",
+            "PYTHONDONTWRITEBYTECODE": "1",
+        }
+    )
     return env
 
 
@@ -262,10 +418,18 @@ def _prepare(tree: Tree, psf: Path) -> None:
 def run_workflow(tree: Tree, cache: Path, timeout: float) -> None:
     """Run every step of :data:`WORKFLOW` in ``tree.run``; failures are recorded, not raised."""
     env = _environment(tree, cache)
-    where = subprocess.run([sys.executable, "-c", "import megalut_cli; print(megalut_cli.__file__)"],
-                           cwd=tree.run, env=env, capture_output=True, text=True, check=True).stdout.strip()
+    where = subprocess.run(
+        [sys.executable, "-c", "import megalut_cli; print(megalut_cli.__file__)"],
+        cwd=tree.run,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
     if not Path(where).resolve().is_relative_to(tree.path.resolve()):
-        raise SystemExit(f"{tree.label}: python imports megalut_cli from {where}, not from {tree.path}")
+        raise SystemExit(
+            f"{tree.label}: python imports megalut_cli from {where}, not from {tree.path}"
+        )
     print(f"[{tree.label}] {tree.path} (megalut_cli from {where})", flush=True)
     for i, step in enumerate(WORKFLOW):
         log = tree.run / "logs" / f"{i:02d}.stderr.txt"
@@ -273,8 +437,14 @@ def run_workflow(tree: Tree, cache: Path, timeout: float) -> None:
         t0 = time.perf_counter()
         with open(out, "wb") as fo, open(log, "wb") as fe:
             try:
-                rc = subprocess.run([sys.executable, "-m", "megalut_cli", *step.args], cwd=tree.run, env=env,
-                                    stdout=fo, stderr=fe, timeout=timeout).returncode
+                rc = subprocess.run(
+                    [sys.executable, "-m", "megalut_cli", *step.args],
+                    cwd=tree.run,
+                    env=env,
+                    stdout=fo,
+                    stderr=fe,
+                    timeout=timeout,
+                ).returncode
             except subprocess.TimeoutExpired:
                 rc = -1
         tree.times[step.name] = time.perf_counter() - t0
@@ -282,7 +452,9 @@ def run_workflow(tree: Tree, cache: Path, timeout: float) -> None:
         if rc != 0:
             tail = log.read_text(errors="replace").strip().splitlines()[-1:] or [""]
             tree.failed[step.name] = f"exit {rc}: {tail[0][:200]}"
-        print(f"[{tree.label}] {step.name:<50} {tree.times[step.name]:7.1f} s  {status}", flush=True)
+        print(
+            f"[{tree.label}] {step.name:<50} {tree.times[step.name]:7.1f} s  {status}", flush=True
+        )
 
 
 # --------------------------------------------------------------------------- comparing
@@ -384,12 +556,23 @@ def compare_fits(a: Path, b: Path, roots: Sequence[tuple[str, str]]) -> str | No
         for i, (ha, hb) in enumerate(zip(fa, fb)):
             cards = []
             for h in (ha.header, hb.header):
-                cards.append([(c.keyword, _paths(c.value, roots) if isinstance(c.value, str) else c.value,
-                               c.comment) for c in h.cards if c.keyword not in IGNORED_CARDS])
+                cards.append(
+                    [
+                        (
+                            c.keyword,
+                            _paths(c.value, roots) if isinstance(c.value, str) else c.value,
+                            c.comment,
+                        )
+                        for c in h.cards
+                        if c.keyword not in IGNORED_CARDS
+                    ]
+                )
             for k, (ca, cb) in enumerate(zip(*cards)):
                 if ca != cb:
-                    return f"HDU {i} header card {k}: {ca[0]} = {_fmt(ca[1])} / {ca[2]!r} != " \
-                           f"{cb[0]} = {_fmt(cb[1])} / {cb[2]!r}"
+                    return (
+                        f"HDU {i} header card {k}: {ca[0]} = {_fmt(ca[1])} / {ca[2]!r} != "
+                        f"{cb[0]} = {_fmt(cb[1])} / {cb[2]!r}"
+                    )
             if len(cards[0]) != len(cards[1]):
                 return f"HDU {i}: {len(cards[0])} header cards != {len(cards[1])}"
             da, db = ha.data, hb.data
@@ -403,7 +586,9 @@ def compare_fits(a: Path, b: Path, roots: Sequence[tuple[str, str]]) -> str | No
                 if len(da) != len(db):
                     return f"HDU {i}: {len(da)} rows != {len(db)}"
                 for name in da.columns.names:
-                    diff = _first_array_difference(np.asarray(da[name]), np.asarray(db[name]), table=True)
+                    diff = _first_array_difference(
+                        np.asarray(da[name]), np.asarray(db[name]), table=True
+                    )
                     if diff:
                         return f"HDU {i} column {name} {diff}"
             else:
@@ -445,15 +630,18 @@ def compare_hdf5(a: Path, b: Path, roots: Sequence[tuple[str, str]]) -> str | No
                 diff = _first_array_difference(np.asarray(oa[()]), np.asarray(ob[()]))
                 if diff:
                     return f"dataset {name} {diff}"
-            diff = _first_json_difference(_h5_attrs(oa, roots), _h5_attrs(ob, roots), f"{name} attrs")
+            diff = _first_json_difference(
+                _h5_attrs(oa, roots), _h5_attrs(ob, roots), f"{name} attrs"
+            )
             if diff:
                 return diff
     return None
 
 
 def compare_json(a: Path, b: Path, roots: Sequence[tuple[str, str]]) -> str | None:
-    return _first_json_difference(_normalise(json.loads(a.read_text()), roots),
-                                  _normalise(json.loads(b.read_text()), roots))
+    return _first_json_difference(
+        _normalise(json.loads(a.read_text()), roots), _normalise(json.loads(b.read_text()), roots)
+    )
 
 
 def _text_lines(path: Path, roots: Sequence[tuple[str, str]]) -> list[str]:
@@ -492,7 +680,9 @@ def _products(run: Path) -> Iterator[str]:
 
 def compare_trees(before: Tree, after: Tree) -> bool:
     """Print one line per product; True when all are identical."""
-    roots = [(str(t.run), "<RUN>") for t in (before, after)] + [(str(t.path), "<TREE>") for t in (before, after)]
+    roots = [(str(t.run), "<RUN>") for t in (before, after)] + [
+        (str(t.path), "<TREE>") for t in (before, after)
+    ]
     ok = True
     print("\n== inputs (copied from each tree)")
     for src, name in TREE_INPUTS:
@@ -514,7 +704,9 @@ def compare_trees(before: Tree, after: Tree) -> bool:
             continue
         if not pa.exists() or not pb.exists():
             ok = False
-            print(f"  {name:<{width}}  DIFFERENT: only in {'after' if not pa.exists() else 'before'}")
+            print(
+                f"  {name:<{width}}  DIFFERENT: only in {'after' if not pa.exists() else 'before'}"
+            )
             continue
         try:
             diff = _kind(pa)(pa, pb, roots)
@@ -563,19 +755,36 @@ def _make_tree(label: str, ref: str | None, root: Path) -> Tree:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description="Run one small workflow of every megalut subcommand in two source trees and check that "
-                    "every product is identical (FITS, HDF5, JSON, text; provenance cards such as dates, "
-                    "versions and model uuids/sha256 excepted). Exit 0: all identical; 1: some differ.",
-        epilog="Example: python benchmarks/compare_products.py --before HEAD  (HEAD against the working tree)")
-    parser.add_argument("--before", required=True, metavar="COMMIT",
-                        help="commit of the reference tree (checked out with git worktree add --detach)")
-    parser.add_argument("--after", metavar="COMMIT_OR_WORKTREE",
-                        help="commit (checked out as a worktree) or an existing source folder to compare; "
-                             f"default: the working tree {REPO}")
-    parser.add_argument("--keep", metavar="DIR", type=Path,
-                        help="keep the run folders (products, logs) in this new folder; default: a temporary "
-                             "folder, removed at the end")
-    parser.add_argument("--step-timeout", type=float, default=600.0, metavar="S",
-                        help="seconds after which a step is stopped and counted as failed (default: 600)")
+        "every product is identical (FITS, HDF5, JSON, text; provenance cards such as dates, "
+        "versions and model uuids/sha256 excepted). Exit 0: all identical; 1: some differ.",
+        epilog="Example: python benchmarks/compare_products.py --before HEAD  (HEAD against the working tree)",
+    )
+    parser.add_argument(
+        "--before",
+        required=True,
+        metavar="COMMIT",
+        help="commit of the reference tree (checked out with git worktree add --detach)",
+    )
+    parser.add_argument(
+        "--after",
+        metavar="COMMIT_OR_WORKTREE",
+        help="commit (checked out as a worktree) or an existing source folder to compare; "
+        f"default: the working tree {REPO}",
+    )
+    parser.add_argument(
+        "--keep",
+        metavar="DIR",
+        type=Path,
+        help="keep the run folders (products, logs) in this new folder; default: a temporary "
+        "folder, removed at the end",
+    )
+    parser.add_argument(
+        "--step-timeout",
+        type=float,
+        default=600.0,
+        metavar="S",
+        help="seconds after which a step is stopped and counted as failed (default: 600)",
+    )
     args = parser.parse_args(argv)
     for ref in (args.before, args.after):
         if ref is not None and not Path(ref).is_dir():
@@ -615,8 +824,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0 if identical else 1
     finally:
         for tree in trees:
-            if tree.worktree and subprocess.run(["git", "worktree", "remove", "--force", str(tree.path)],
-                                                cwd=REPO, capture_output=True).returncode != 0:
+            if (
+                tree.worktree
+                and subprocess.run(
+                    ["git", "worktree", "remove", "--force", str(tree.path)],
+                    cwd=REPO,
+                    capture_output=True,
+                ).returncode
+                != 0
+            ):
                 shutil.rmtree(tree.path, ignore_errors=True)
                 subprocess.run(["git", "worktree", "prune"], cwd=REPO, capture_output=True)
         if args.keep is None:

@@ -19,9 +19,20 @@ from megalut_cli.nn.model import Committee, ShearModel
 def first_members(committee: Committee, n: int) -> Committee:
     """A copy of ``committee`` with its first ``n`` members, all selected."""
     members = [dataclasses.replace(m, selected=True) for m in committee.members[:n]]
-    return Committee(committee.kind, committee.target, committee.features, committee.hidden,
-                     committee.in_loc, committee.in_scale, members, committee.out_loc, committee.out_scale,
-                     committee.cost, committee.normalization, committee.training)
+    return Committee(
+        committee.kind,
+        committee.target,
+        committee.features,
+        committee.hidden,
+        committee.in_loc,
+        committee.in_scale,
+        members,
+        committee.out_loc,
+        committee.out_scale,
+        committee.cost,
+        committee.normalization,
+        committee.training,
+    )
 
 
 def main(model_path: str, n: str, output: str) -> None:

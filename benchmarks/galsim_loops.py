@@ -76,7 +76,12 @@ def read_grid_stamps(path: str) -> np.ndarray:
     size = int(header["STAMPSZ"])
     arr = image.array
     n_y, n_x = arr.shape[0] // size, arr.shape[1] // size
-    stamps = arr[: n_y * size, : n_x * size].reshape(n_y, size, n_x, size).swapaxes(1, 2).reshape(-1, size, size)
+    stamps = (
+        arr[: n_y * size, : n_x * size]
+        .reshape(n_y, size, n_x, size)
+        .swapaxes(1, 2)
+        .reshape(-1, size, size)
+    )
     return stamps[: int(header.get("NSTAMPS", n_y * n_x))]
 
 

@@ -50,9 +50,13 @@ def main() -> None:
         prof.disable()
     stats = pstats.Stats(prof).stats  # key -> (calls, primitive calls, tottime, cumtime, callers)
     total = max(v[3] for k, v in stats.items() if k[2] == "simulate")
-    parts = {name: sum(v[3] for k, v in stats.items() if pred(k)) for name, pred in COMPONENTS.items()}
+    parts = {
+        name: sum(v[3] for k, v in stats.items() if pred(k)) for name, pred in COMPONENTS.items()
+    }
     parts["rest (Python, geometry, catalog)"] = total - sum(parts.values())
-    print(f"simulate --measure, {n} fiducial stamps, -j 1, under cProfile: {total / n * 1e3:.3f} CPU ms/stamp")
+    print(
+        f"simulate --measure, {n} fiducial stamps, -j 1, under cProfile: {total / n * 1e3:.3f} CPU ms/stamp"
+    )
     for name, seconds in parts.items():
         print(f"  {name:<34} {seconds / n * 1e3:7.3f} ms/stamp  {seconds / total:6.1%}")
 

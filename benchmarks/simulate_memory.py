@@ -43,8 +43,12 @@ def main() -> None:
         out = os.path.join(tmp, "c.fits")
         for n in args.n_cases:
             extra = ["--measure"] if args.measure else []
-            res = subprocess.run([sys.executable, "-c", CHILD, out, str(n), *extra], capture_output=True, text=True,
-                                 check=True)
+            res = subprocess.run(
+                [sys.executable, "-c", CHILD, out, str(n), *extra],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
             peak = json.loads(res.stdout.strip().splitlines()[-1])
             if n == args.n_cases[0]:
                 print(f"megalut_cli from {res.stderr.strip().splitlines()[-1]}\n")

@@ -20,17 +20,27 @@ from megalut_cli.training import TrainOptions, fit_point, fit_weight
 
 def main() -> None:
     ex = str(Path(__file__).resolve().parent / "fiducial") + "/"
-    tp, _ = simulate_table(load_config(ex + "tp.toml", n_cases=200, n_realizations=100), 1, measure=True, nproc=2)
-    tw, _ = simulate_table(load_config(ex + "tw.toml", n_cases=40, n_realizations=500), 2, measure=True, nproc=2)
-    vo, _ = simulate_table(load_config(ex + "vo.toml", n_cases=40, n_realizations=500), 3, measure=True, nproc=2)
-    point = fit_point(tp, options=TrainOptions(members=2, iterations=300), select_cases="mean(snr) > 10", nproc=2)
+    tp, _ = simulate_table(
+        load_config(ex + "tp.toml", n_cases=200, n_realizations=100), 1, measure=True, nproc=2
+    )
+    tw, _ = simulate_table(
+        load_config(ex + "tw.toml", n_cases=40, n_realizations=500), 2, measure=True, nproc=2
+    )
+    vo, _ = simulate_table(
+        load_config(ex + "vo.toml", n_cases=40, n_realizations=500), 3, measure=True, nproc=2
+    )
+    point = fit_point(
+        tp, options=TrainOptions(members=2, iterations=300), select_cases="mean(snr) > 10", nproc=2
+    )
     model = fit_weight(tw, point, options=TrainOptions(members=2, iterations=200), nproc=2)
     vo.update(predict_columns(model, vo))
     result = evaluate_columns(vo)
     for scheme in ("unweighted", "weighted"):
         for comp in ("g1", "g2"):
             fit = result[scheme][comp]
-            print(f"{scheme:10s} {comp}: m = {fit['m']:+.2e} ± {fit['m_err']:.1e}, c = {fit['c']:+.2e} ± {fit['c_err']:.1e}")
+            print(
+                f"{scheme:10s} {comp}: m = {fit['m']:+.2e} ± {fit['m_err']:.1e}, c = {fit['c']:+.2e} ± {fit['c_err']:.1e}"
+            )
 
 
 if __name__ == "__main__":  # worker processes are spawned: they import this file

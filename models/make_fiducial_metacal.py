@@ -17,8 +17,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 if __name__ == "__main__":
     source = ShearModel.load(ROOT / "megalut_cli/data/fiducial.h5")
-    model = source.for_mode("metacal", "the networks of fiducial.h5 applied to the metacal versions' features "
-                                       "and calibrated by their response (docs/metacal.md)")
+    model = source.for_mode(
+        "metacal",
+        "the networks of fiducial.h5 applied to the metacal versions' features "
+        "and calibrated by their response (docs/metacal.md)",
+    )
     # fiducial.h5's domain is that of plain features: models/record_domain.py records the noshear one
     model.provenance.pop("domain", None)
     model.save(ROOT / "megalut_cli/data/fiducial-metacal.h5", overwrite=True)

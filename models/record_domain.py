@@ -40,8 +40,11 @@ from megalut_cli.training import config_psf_domain
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = "models/record_domain.py"
 #: Model -> (the pipeline file that trained it, whether its domain is the metacal noshear features).
-SOURCES = {"fiducial": ("fiducial-pipeline.toml", False), "fiducial-1e6": ("fiducial-1e6-pipeline.toml", False),
-           "fiducial-metacal": ("fiducial-pipeline.toml", True)}
+SOURCES = {
+    "fiducial": ("fiducial-pipeline.toml", False),
+    "fiducial-1e6": ("fiducial-1e6-pipeline.toml", False),
+    "fiducial-metacal": ("fiducial-pipeline.toml", True),
+}
 SEED = 61
 N_CASES, N_REALIZATIONS = 200, 100  # 20 000 stamps (even realizations: TW draws pairs)
 SET = "tw"
@@ -56,20 +59,40 @@ def sample_domain(name: str, model: ShearModel) -> dict[str, Any]:
     recorded = model.provenance.get("population") or {}
     for table in ("galaxy", "psf", "noise"):
         if config.raw.get(table) != recorded.get(table):
-            raise SystemExit(f"{name}: [{table}] of {pipeline} differs from the population the model records")
+            raise SystemExit(
+                f"{name}: [{table}] of {pipeline} differs from the population the model records"
+            )
     config = config.with_structure(n_cases=N_CASES, n_realizations=N_REALIZATIONS)
-    columns, _ = simulate_table(config, SEED, measure=True, nproc=NPROC, engine="fast",
-                                metacal_step=SIMULATE["metacal_step"].default if metacal else None)
+    columns, _ = simulate_table(
+        config,
+        SEED,
+        measure=True,
+        nproc=NPROC,
+        engine="fast",
+        metacal_step=SIMULATE["metacal_step"].default if metacal else None,
+    )
     table: Any = VersionColumns(columns, "noshear") if metacal else columns
     usable = valid_rows(table, model.features, len(columns["case"]))
-    derived = {"script": SCRIPT, "seed": SEED, "n_stamps": N_CASES * N_REALIZATIONS, "engine": "fast",
-               "pipeline": f"models/{pipeline}", "set": SET, "metacal": metacal}
-    about: dict[str, Any] = {"source": f"a fresh sample of [sets.{SET}] of {pipeline}", "selection": None,
-                             "derived": derived}
+    derived = {
+        "script": SCRIPT,
+        "seed": SEED,
+        "n_stamps": N_CASES * N_REALIZATIONS,
+        "engine": "fast",
+        "pipeline": f"models/{pipeline}",
+        "set": SET,
+        "metacal": metacal,
+    }
+    about: dict[str, Any] = {
+        "source": f"a fresh sample of [sets.{SET}] of {pipeline}",
+        "selection": None,
+        "derived": derived,
+    }
     if metacal:
         about["version"] = "noshear"
     domain = domain_record(table, usable, config.structure.stamp_size, **about)
-    return config_psf_domain(domain, config.raw["psf"], config.structure.stamp_size)  # as train-point records it
+    return config_psf_domain(
+        domain, config.raw["psf"], config.structure.stamp_size
+    )  # as train-point records it
 
 
 def _named_inputs(prov: dict[str, Any]) -> dict[str, Any]:
@@ -77,8 +100,16 @@ def _named_inputs(prov: dict[str, Any]) -> dict[str, Any]:
     out = dict(prov)
     inputs = out.get("inputs")
     if isinstance(inputs, dict):
-        out["inputs"] = {role: {"name": Path(str(v.get("path", ""))).name, **v, "path": shown_path(str(v.get("path")))}
-                         if isinstance(v, dict) and "path" in v else v for role, v in inputs.items()}
+        out["inputs"] = {
+            role: {
+                "name": Path(str(v.get("path", ""))).name,
+                **v,
+                "path": shown_path(str(v.get("path"))),
+            }
+            if isinstance(v, dict) and "path" in v
+            else v
+            for role, v in inputs.items()
+        }
     if isinstance(out.get("argv"), str):
         out["argv"] = shown_command(out["argv"])
     if isinstance(out.get("parent"), dict):
@@ -90,8 +121,11 @@ def record(name: str) -> None:
     path = shipped_model(name)
     model = ShearModel.load(path)
     domain = sample_domain(name, model)
-    edit = {"by": SCRIPT, "what": "domain added (a fresh sample of the training set, see domain.derived); "
-                                  "absolute paths of the machine the model was made on replaced by file names"}
+    edit = {
+        "by": SCRIPT,
+        "what": "domain added (a fresh sample of the training set, see domain.derived); "
+        "absolute paths of the machine the model was made on replaced by file names",
+    }
 
     def change(prov: dict[str, Any]) -> dict[str, Any]:
         new = _named_inputs(prov)
@@ -100,7 +134,9 @@ def record(name: str) -> None:
         return new
 
     update_provenance(path, change)
-    print(f"{name}: {domain_summary(domain)} ({domain['n_rows']} usable rows); sha256 {sha256_file(path)}")
+    print(
+        f"{name}: {domain_summary(domain)} ({domain['n_rows']} usable rows); sha256 {sha256_file(path)}"
+    )
 
 
 if __name__ == "__main__":

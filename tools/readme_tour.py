@@ -63,12 +63,24 @@ def rows(table: str) -> dict[str, tuple[float, float, float, float, int, int]]:
 
 def run_tour(text: str) -> tuple[str, float]:
     """Run the tour's commands in a temporary folder; (the evaluate table printed, seconds)."""
-    script = tour_commands(text).replace("E=examples/fiducial", f"E={ROOT / 'examples' / 'fiducial'}", 1)
+    script = tour_commands(text).replace(
+        "E=examples/fiducial", f"E={ROOT / 'examples' / 'fiducial'}", 1
+    )
     with tempfile.TemporaryDirectory(prefix="megalut-tour-") as tmp:
         t0 = time.perf_counter()
-        res = subprocess.run(["bash", "-e", "-c", script], cwd=tmp, capture_output=True, text=True,
-                             env={**os.environ, "MEGALUT_NPROC": "2",  # this Python's megalut first
-                                  "PATH": os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])})
+        res = subprocess.run(
+            ["bash", "-e", "-c", script],
+            cwd=tmp,
+            capture_output=True,
+            text=True,
+            env={
+                **os.environ,
+                "MEGALUT_NPROC": "2",  # this Python's megalut first
+                "PATH": os.pathsep.join(
+                    [str(Path(sys.executable).parent), os.environ.get("PATH", "")]
+                ),
+            },
+        )
         seconds = time.perf_counter() - t0
     if res.returncode != 0:
         sys.stderr.write(res.stderr[-4000:])
@@ -90,7 +102,9 @@ def differences(printed: str, documented: str) -> list[str]:
         if (k1, n1) != (k0, n0):
             out.append(f"{g}: {k1} cases, {n1} rows printed; README has {k0}, {n0}")
         if abs(m1 - m0) > 0.1 * me0 or abs(c1 - c0) > 0.1 * ce0:
-            out.append(f"{g}: m {m1:+.2e}, c {c1:+.2e} printed; README has m {m0:+.2e}, c {c0:+.2e}")
+            out.append(
+                f"{g}: m {m1:+.2e}, c {c1:+.2e} printed; README has m {m0:+.2e}, c {c0:+.2e}"
+            )
     return out
 
 

@@ -66,8 +66,16 @@ def main() -> None:
         for label, (cat, cost) in runs.items():
             t0 = time.perf_counter()
             model_path = t / f"{cost}_{cat}.h5"
-            train_point(t / cat, model_path, features=["d"], targets=["tru_theta"], hidden=[5], cost=cost,
-                        options=opts, nproc=args.nproc)
+            train_point(
+                t / cat,
+                model_path,
+                features=["d"],
+                targets=["tru_theta"],
+                hidden=[5],
+                cost=cost,
+                options=opts,
+                nproc=args.nproc,
+            )
             comm = ShearModel.load(model_path).point["tru_theta"]
             pre = comm.predict(val["d"][:, None])  # the pre_theta column of `megalut predict`
             bias = pre.reshape(len(grid), -1).mean(axis=1) - grid
@@ -84,7 +92,9 @@ def main() -> None:
             }
             print(label, json.dumps(results[label]), flush=True)
     settings = {k: v for k, v in vars(args).items() if k != "out"}
-    (out / "results.json").write_text(json.dumps({"settings": settings, "results": results}, indent=2) + "\n")
+    (out / "results.json").write_text(
+        json.dumps({"settings": settings, "results": results}, indent=2) + "\n"
+    )
     _plot(out / "appendix_bias.png", noisy, dd, grid, curves)
 
 
@@ -96,7 +106,9 @@ def _plot(path: Path, noisy: dict, dd: np.ndarray, grid: np.ndarray, curves: dic
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.5))
     sel = np.random.default_rng(0).choice(len(noisy["d"]), 400, replace=False)
-    ax1.plot(noisy["d"][sel], noisy["tru_theta"][sel], ".", color="0.6", ms=3, label="training samples")
+    ax1.plot(
+        noisy["d"][sel], noisy["tru_theta"][sel], ".", color="0.6", ms=3, label="training samples"
+    )
     colors = {"MSE": "tab:green", "trained on averages": "tab:orange", "MSB": "tab:purple"}
     for label, (curve, bias, err) in curves.items():
         ax1.plot(dd, curve, color=colors[label], label=label)
@@ -111,7 +123,9 @@ def _plot(path: Path, noisy: dict, dd: np.ndarray, grid: np.ndarray, curves: dic
     ax2.set_xlabel(r"true $\theta$")
     ax2.set_ylabel(r"bias $\langle\hat\theta\rangle - \theta$")
     ax2.legend(fontsize=8)
-    fig.suptitle("Appendix A of Tewes et al. (2019) reproduced with megalut (1-5-1 networks, committees of 8)")
+    fig.suptitle(
+        "Appendix A of Tewes et al. (2019) reproduced with megalut (1-5-1 networks, committees of 8)"
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     print(f"wrote {path}")

@@ -46,15 +46,19 @@ def report(columns: dict[str, np.ndarray], preds: dict[str, np.ndarray]) -> None
         y = case_means(case[good], est[good], w[good], n_cases)
         c_lin, m_lin = np.polyfit(g, y, 1)[::-1]
         coef = np.linalg.lstsq(np.c_[np.ones_like(g), g, g**3, g * go**2], y, rcond=None)[0]
-        print(f"{comp}: straight line c = {c_lin:+.2e}, m = {m_lin - 1:+.2e}; "
-              f"with g^3, g*g_other^2: c = {coef[0]:+.2e}, m = {coef[1] - 1:+.2e}")
+        print(
+            f"{comp}: straight line c = {c_lin:+.2e}, m = {m_lin - 1:+.2e}; "
+            f"with g^3, g*g_other^2: c = {coef[0]:+.2e}, m = {coef[1] - 1:+.2e}"
+        )
         group = (rea // 2) % GROUPS  # galaxy pairs, the unit of the bootstrap
         cs = []
         for k in range(GROUPS):
             sel = good & (group == k)
             cs.append(np.polyfit(g, case_means(case[sel], est[sel], w[sel], n_cases), 1)[1])
-        print(f"    c over {GROUPS} disjoint groups of pairs: mean {np.mean(cs):+.2e}, "
-              f"error from their spread {np.std(cs, ddof=1) / np.sqrt(GROUPS):.1e}")
+        print(
+            f"    c over {GROUPS} disjoint groups of pairs: mean {np.mean(cs):+.2e}, "
+            f"error from their spread {np.std(cs, ddof=1) / np.sqrt(GROUPS):.1e}"
+        )
 
 
 def main(catalog: str, model_path: str, output: str) -> None:
@@ -73,7 +77,11 @@ def main(catalog: str, model_path: str, output: str) -> None:
         mirror = predict_arrays(model, xm, flags)
         mirrored[f"pre_{comp}"] = 0.5 * (preds[f"pre_{comp}"] - mirror[f"pre_{comp}"])
         mirrored[f"pre_{comp}_w"] = 0.5 * (preds[f"pre_{comp}_w"] + mirror[f"pre_{comp}_w"])
-    cards = {k: v for k, v in read_cards(catalog).items() if k in ("CRN", "SNC", "NCASES", "NREA", "SEED")}
+    cards = {
+        k: v
+        for k, v in read_cards(catalog).items()
+        if k in ("CRN", "SNC", "NCASES", "NREA", "SEED")
+    }
     write_catalog(output, mirrored, fmt="megalut.predictions", cards=cards, overwrite=True)
     print(f"wrote {output}: the mirror-symmetric predictions (megalut evaluate {output})")
 

@@ -26,21 +26,33 @@ N_GROUPS, GROUP, N_REA, SEED = 10, 4, 20_000, 1001
 
 
 def main(workdir: Path) -> None:
-    config = load_config(ROOT / "examples" / "fiducial" / "vo-crn.toml", n_cases=N_GROUPS * GROUP, n_realizations=N_REA)
+    config = load_config(
+        ROOT / "examples" / "fiducial" / "vo-crn.toml",
+        n_cases=N_GROUPS * GROUP,
+        n_realizations=N_REA,
+    )
     vo, shears = workdir / "vo.fits", workdir / "shears.fits"
     simulate(config, vo, measure=True, seed=SEED, nproc=2, overwrite=True)
     predict_catalog(vo, ROOT / "models" / "fiducial.h5", shears, nproc=2, overwrite=True)
-    groups = [evaluate_catalog(shears, seed=SEED, select=f"(case >= {GROUP * g}) & (case < {GROUP * (g + 1)})")
-              for g in range(N_GROUPS)]
+    groups = [
+        evaluate_catalog(
+            shears, seed=SEED, select=f"(case >= {GROUP * g}) & (case < {GROUP * (g + 1)})"
+        )
+        for g in range(N_GROUPS)
+    ]
     whole = evaluate_catalog(shears, seed=SEED)
     for scheme in ("unweighted", "weighted"):
         m = np.array([[r[scheme][c]["m"] for c in ("g1", "g2")] for r in groups])
         err = np.array([[r[scheme][c]["m_err"] for c in ("g1", "g2")] for r in groups])
         for i, comp in enumerate(("g1", "g2")):
-            print(f"{scheme:10s} {comp}: m over {N_GROUPS} draws of {GROUP} shears "
-                  f"{' '.join(f'{v:+.2e}' for v in m[:, i])}")
-            print(f"{'':10s} {comp}: scatter {m[:, i].std(ddof=1):.1e}, mean bootstrap error {err[:, i].mean():.1e}; "
-                  f"all {N_GROUPS * GROUP} shears: m = {whole[scheme][comp]['m']:+.2e} ± {whole[scheme][comp]['m_err']:.1e}")
+            print(
+                f"{scheme:10s} {comp}: m over {N_GROUPS} draws of {GROUP} shears "
+                f"{' '.join(f'{v:+.2e}' for v in m[:, i])}"
+            )
+            print(
+                f"{'':10s} {comp}: scatter {m[:, i].std(ddof=1):.1e}, mean bootstrap error {err[:, i].mean():.1e}; "
+                f"all {N_GROUPS * GROUP} shears: m = {whole[scheme][comp]['m']:+.2e} ± {whole[scheme][comp]['m_err']:.1e}"
+            )
 
 
 if __name__ == "__main__":  # worker processes are spawned: they import this file

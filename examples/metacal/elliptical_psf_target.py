@@ -46,7 +46,10 @@ def main() -> None:
     shears = {"1+": (SHEAR, 0.0), "1-": (-SHEAR, 0.0), "2+": (0.0, SHEAR), "2-": (0.0, -SHEAR)}
     images = {k: stamps(psf, *g) for k, g in shears.items()}
     megalut_target = metacal.target_psf_sigma
-    for name, target in (("round-equivalent (megalut)", megalut_target), ("major axis", major_axis_sigma)):
+    for name, target in (
+        ("round-equivalent (megalut)", megalut_target),
+        ("major axis", major_axis_sigma),
+    ):
         metacal.target_psf_sigma = target  # the operation builds its target through this function
         res = {}
         for k in shears:
@@ -54,13 +57,20 @@ def main() -> None:
             f = {t: measure_stamps(v, engine="fast") for t, v in versions.items()}
             r11 = np.mean((f["1p"]["adamom_g1"] - f["1m"]["adamom_g1"]) / (2 * STEP))
             r22 = np.mean((f["2p"]["adamom_g2"] - f["2m"]["adamom_g2"]) / (2 * STEP))
-            res[k] = (np.mean(f["noshear"]["adamom_g1"]), np.mean(f["noshear"]["adamom_g2"]), r11, r22)
+            res[k] = (
+                np.mean(f["noshear"]["adamom_g1"]),
+                np.mean(f["noshear"]["adamom_g2"]),
+                r11,
+                r22,
+            )
         m1 = (res["1+"][0] - res["1-"][0]) / (2 * SHEAR * 0.5 * (res["1+"][2] + res["1-"][2])) - 1
         m2 = (res["2+"][1] - res["2-"][1]) / (2 * SHEAR * 0.5 * (res["2+"][3] + res["2-"][3])) - 1
         c1 = 0.5 * (res["1+"][0] + res["1-"][0]) / res["1+"][2]
         c2 = 0.5 * (res["2+"][1] + res["2-"][1]) / res["2+"][3]
-        print(f"PSF g1 = {g_psf}: {name:27s} target sigma {target(psf_img):.4f} px: "
-              f"m1 {m1:+.2e}  m2 {m2:+.2e}  c1 {c1:+.2e}  c2 {c2:+.2e}")
+        print(
+            f"PSF g1 = {g_psf}: {name:27s} target sigma {target(psf_img):.4f} px: "
+            f"m1 {m1:+.2e}  m2 {m2:+.2e}  c1 {c1:+.2e}  c2 {c2:+.2e}"
+        )
     metacal.target_psf_sigma = megalut_target
 
 

@@ -64,19 +64,32 @@ def merge(out: str, paths: list[str]) -> None:
             raise SystemExit(f"{p}: not the same columns or rows as {paths[0]}")
         for c in SAME:
             if not np.array_equal(np.asarray(t[c]), np.asarray(first[c])):
-                raise SystemExit(f"{p}: column {c} differs from {paths[0]}: not common random numbers")
+                raise SystemExit(
+                    f"{p}: column {c} differs from {paths[0]}: not common random numbers"
+                )
     cols = {}
     for c in first.colnames:
         parts = [np.asarray(t[c]) for t in tables]
         if c == "case":
-            parts = [np.full(len(t), k, dtype=np.asarray(t["case"]).dtype) for k, t in enumerate(tables)]
+            parts = [
+                np.full(len(t), k, dtype=np.asarray(t["case"]).dtype) for k, t in enumerate(tables)
+            ]
         elif c == "rea":
-            parts = [np.asarray(t["case"]).astype(np.int64) * nrea + np.asarray(t["rea"]) for t in tables]
+            parts = [
+                np.asarray(t["case"]).astype(np.int64) * nrea + np.asarray(t["rea"]) for t in tables
+            ]
         cols[c] = np.concatenate(parts)
     cards["NCASES"] = (len(tables), "shear runs merged (mcal_tools.py merge)")
     cards["NSHEARS"] = (len(tables), "cases = shear runs of common random numbers")
-    write_catalog(out, cols, fmt="megalut.simulation", overwrite=True, cards=cards,
-                  history=[f"mcal_tools.py merge {' '.join(paths)}"], extra_hdus=read_carried_hdus(paths[0]))
+    write_catalog(
+        out,
+        cols,
+        fmt="megalut.simulation",
+        overwrite=True,
+        cards=cards,
+        history=[f"mcal_tools.py merge {' '.join(paths)}"],
+        extra_hdus=read_carried_hdus(paths[0]),
+    )
     print(f"{out}: {len(tables)} cases x {len(first)} rows")
 
 
@@ -88,24 +101,44 @@ def adamom(out: str, path: str) -> None:
     for i in (1, 2):
         for kind in TYPES:
             g = np.asarray(t[f"adamom_g{i}_{kind}"], dtype=float)
-            cols[f"pre_g{i}_{kind}"] = np.where((np.asarray(t[f"flags_{kind}"]) == 0) & np.isfinite(g), g, np.nan)
+            cols[f"pre_g{i}_{kind}"] = np.where(
+                (np.asarray(t[f"flags_{kind}"]) == 0) & np.isfinite(g), g, np.nan
+            )
         cols[f"pre_g{i}"] = cols[f"pre_g{i}_noshear"]
     for i in (1, 2):
         for j in (1, 2):
             cols[f"mcal_r{i}{j}"] = (cols[f"pre_g{i}_{j}p"] - cols[f"pre_g{i}_{j}m"]) / (2.0 * step)
     cards["MODEL"] = ("adamom", "pre_g* := adamom_g* (mcal_tools.py adamom)")
-    write_catalog(out, cols, fmt="megalut.predictions", overwrite=True, cards=cards,
-                  history=[f"mcal_tools.py adamom {path}"], extra_hdus=read_carried_hdus(path))
+    write_catalog(
+        out,
+        cols,
+        fmt="megalut.predictions",
+        overwrite=True,
+        cards=cards,
+        history=[f"mcal_tools.py adamom {path}"],
+        extra_hdus=read_carried_hdus(path),
+    )
     print(f"{out}: {len(t)} rows, adaptive-moment estimates, step {step}")
 
 
 def plain(out: str, path: str) -> None:
     t = read_catalog(path)
-    cols = {c: np.asarray(t[c]) for c in t.colnames if not c.endswith(tuple(f"_{k}" for k in TYPES))}
+    cols = {
+        c: np.asarray(t[c]) for c in t.colnames if not c.endswith(tuple(f"_{k}" for k in TYPES))
+    }
     cards = {k: v for k, v in read_cards(path).items() if k not in (STEP_CARD, SEED_CARD)}
-    write_catalog(out, cols, fmt="megalut.simulation", overwrite=True, cards=cards,
-                  history=[f"mcal_tools.py plain {path}"], extra_hdus=read_carried_hdus(path))
-    print(f"{out}: {len(t)} rows, {len(cols)} of {len(t.colnames)} columns (metacal columns and cards dropped)")
+    write_catalog(
+        out,
+        cols,
+        fmt="megalut.simulation",
+        overwrite=True,
+        cards=cards,
+        history=[f"mcal_tools.py plain {path}"],
+        extra_hdus=read_carried_hdus(path),
+    )
+    print(
+        f"{out}: {len(t)} rows, {len(cols)} of {len(t.colnames)} columns (metacal columns and cards dropped)"
+    )
 
 
 def concat(out: str, paths: list[str]) -> None:
@@ -121,8 +154,15 @@ def concat(out: str, paths: list[str]) -> None:
     names = [c for c in tables[0].colnames if all(c in t.colnames for t in tables)]
     cols = {c: np.concatenate([p[c] for p in parts]) for c in names}
     cards = read_cards(paths[0])
-    write_catalog(out, cols, fmt="megalut.predictions", overwrite=True, cards=cards,
-                  history=[f"mcal_tools.py concat {' '.join(paths)}"], extra_hdus=read_carried_hdus(paths[0]))
+    write_catalog(
+        out,
+        cols,
+        fmt="megalut.predictions",
+        overwrite=True,
+        cards=cards,
+        history=[f"mcal_tools.py concat {' '.join(paths)}"],
+        extra_hdus=read_carried_hdus(paths[0]),
+    )
     print(f"{out}: {len(cols['case'])} rows from {len(paths)} catalogs")
 
 
@@ -133,9 +173,18 @@ def subset(out: str, path: str, config: str) -> None:
     t = read_catalog(path)
     keep = np.isin(np.asarray(t["tru_real_index"]), rows)
     cols = {c: np.asarray(t[c])[keep] for c in t.colnames}
-    write_catalog(out, cols, fmt="megalut.predictions", overwrite=True, cards=read_cards(path),
-                  history=[f"mcal_tools.py subset {path} {config}"], extra_hdus=read_carried_hdus(path))
-    print(f"{out}: {int(keep.sum())} of {len(t)} rows ({len(set(np.asarray(t['tru_real_index'])[keep]))} galaxies of {config})")
+    write_catalog(
+        out,
+        cols,
+        fmt="megalut.predictions",
+        overwrite=True,
+        cards=read_cards(path),
+        history=[f"mcal_tools.py subset {path} {config}"],
+        extra_hdus=read_carried_hdus(path),
+    )
+    print(
+        f"{out}: {int(keep.sum())} of {len(t)} rows ({len(set(np.asarray(t['tru_real_index'])[keep]))} galaxies of {config})"
+    )
 
 
 def _paired_sums(t, comp: int, cell: np.ndarray, n_cells: int, weighted: bool) -> np.ndarray:
@@ -145,7 +194,12 @@ def _paired_sums(t, comp: int, cell: np.ndarray, n_cells: int, weighted: bool) -
     pre = np.asarray(t[f"pre_g{i}_noshear"], dtype=float)
     tru = np.asarray(t[f"tru_g{i}"], dtype=float)
     resp = np.asarray(t[f"mcal_r{i}{i}"], dtype=float)
-    usable = (np.asarray(t["flags_noshear"]) == 0) & np.isfinite(pre) & np.isfinite(tru) & np.isfinite(resp)
+    usable = (
+        (np.asarray(t["flags_noshear"]) == 0)
+        & np.isfinite(pre)
+        & np.isfinite(tru)
+        & np.isfinite(resp)
+    )
     w = np.where(usable, 1.0, 0.0)
     if weighted:
         wn = np.asarray(t[f"pre_g{i}_w_noshear"], dtype=float)
@@ -186,18 +240,38 @@ def paired(out: str, path_a: str, path_b: str, n_boot: int = 1000, seed: int = 1
     n_gal, n_cases = gal_ids.size, case_ids.size
     cell = ci.ravel() * n_gal + gi.ravel()
     weighted = all(f"pre_g{i}_w_{k}" in t.colnames for t in (a, b) for i in (1, 2) for k in TYPES)
-    result: dict = {"names": ["real", "twin"], "galaxy_column": "tru_real_index", "n_boot": n_boot, "seed": seed,
-                    "metacal": True, "selection_response": "weights (mcal_tools.py paired)", "overall": {}}
+    result: dict = {
+        "names": ["real", "twin"],
+        "galaxy_column": "tru_real_index",
+        "n_boot": n_boot,
+        "seed": seed,
+        "metacal": True,
+        "selection_response": "weights (mcal_tools.py paired)",
+        "overall": {},
+    }
     for scheme in ["unweighted"] + (["weighted"] if weighted else []):
         result["overall"][scheme] = {}
         for i in (1, 2):
             rng = rng_for(seed, STREAM_BOOTSTRAP)
-            counts = np.vstack([np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)])
+            counts = np.vstack(
+                [np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)]
+            )
             w = scheme == "weighted"
-            m_a, c_a = _paired_fit(_paired_sums(a, i, cell, n_cases * n_gal, w), counts, n_cases, n_gal, step)
-            m_b, c_b = _paired_fit(_paired_sums(b, i, cell, n_cases * n_gal, w), counts, n_cases, n_gal, step)
+            m_a, c_a = _paired_fit(
+                _paired_sums(a, i, cell, n_cases * n_gal, w), counts, n_cases, n_gal, step
+            )
+            m_b, c_b = _paired_fit(
+                _paired_sums(b, i, cell, n_cases * n_gal, w), counts, n_cases, n_gal, step
+            )
             r: dict = {}
-            for name, v in (("m_a", m_a), ("c_a", c_a), ("m_b", m_b), ("c_b", c_b), ("dm", m_a - m_b), ("dc", c_a - c_b)):
+            for name, v in (
+                ("m_a", m_a),
+                ("c_a", c_a),
+                ("m_b", m_b),
+                ("c_b", c_b),
+                ("dm", m_a - m_b),
+                ("dc", c_a - c_b),
+            ):
                 boot = v[1:][np.isfinite(v[1:])]
                 r[name] = float(v[0]) if np.isfinite(v[0]) else None
                 r[f"{name}_err"] = float(np.std(boot, ddof=1)) if boot.size > 1 else None
@@ -220,7 +294,9 @@ def responses(paths: list[str]) -> None:
     (noshear features measured, every response finite); with weights, the weighted mean
     response and the effective scatter sqrt(N sum w^2 (R - <R>)^2) / sum w that sets the
     error of <R> (the error on m of a common-random-number set, whose shears share it)."""
-    print("| catalog | rows | <R11> | sd R11 | <R22> | sd R22 | sd g1 | weighted <R11> | eff. sd R11 | weighted <R22> | eff. sd R22 |")
+    print(
+        "| catalog | rows | <R11> | sd R11 | <R22> | sd R22 | sd g1 | weighted <R11> | eff. sd R11 | weighted <R22> | eff. sd R22 |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for p in paths:
         t = read_catalog(p)
@@ -238,7 +314,10 @@ def responses(paths: list[str]) -> None:
                 w = np.asarray(t[f"pre_g{i}_w"], dtype=float)
                 good = ok & np.isfinite(w)
                 mean = np.average(r[good], weights=w[good])
-                eff = np.sqrt(good.sum() * np.sum(w[good] ** 2 * (r[good] - mean) ** 2)) / w[good].sum()
+                eff = (
+                    np.sqrt(good.sum() * np.sum(w[good] ** 2 * (r[good] - mean) ** 2))
+                    / w[good].sum()
+                )
                 row += [f"{mean:.4f}", f"{eff:.3f}"]
             else:
                 row += ["", ""]
@@ -260,9 +339,15 @@ def _failure_sums(t, weighted: bool, groups: int) -> tuple[np.ndarray, np.ndarra
     def col(name: str) -> np.ndarray:
         return np.asarray(t[name], dtype=float)
 
-    measured = {k: (np.asarray(t[f"flags_{k}"]) == 0) & np.isfinite(col(f"pre_g1_{k}")) & np.isfinite(col(f"pre_g2_{k}"))
-                for k in VERSIONS}
-    every = measured["noshear"] & np.all([np.isfinite(col(f"mcal_r{i}{j}")) for i in (1, 2) for j in (1, 2)], axis=0)
+    measured = {
+        k: (np.asarray(t[f"flags_{k}"]) == 0)
+        & np.isfinite(col(f"pre_g1_{k}"))
+        & np.isfinite(col(f"pre_g2_{k}"))
+        for k in VERSIONS
+    }
+    every = measured["noshear"] & np.all(
+        [np.isfinite(col(f"mcal_r{i}{j}")) for i in (1, 2) for j in (1, 2)], axis=0
+    )
 
     def weight(kind: str, comp: int, rows: np.ndarray) -> np.ndarray:
         if not weighted:
@@ -281,7 +366,9 @@ def _failure_sums(t, weighted: bool, groups: int) -> tuple[np.ndarray, np.ndarra
         for kind in VERSIONS:
             wk = weight(kind, i, measured[kind])
             q += [wk, wk * np.nan_to_num(col(f"pre_g{i}_{kind}"))]
-    sums = np.stack([np.bincount(idx, weights=x, minlength=n_cells) for x in q]).reshape(len(q), -1, cases.size)
+    sums = np.stack([np.bincount(idx, weights=x, minlength=n_cells) for x in q]).reshape(
+        len(q), -1, cases.size
+    )
     tru = np.array([[col(f"tru_g{i}")[ci == c][0] for i in (1, 2)] for c in range(cases.size)])
     return sums, tru, np.array([measured["noshear"].mean(), every.mean()])
 
@@ -293,15 +380,20 @@ def _failure_m(s: np.ndarray, tru: np.ndarray, step: float, weighted: bool) -> n
     for e, name in enumerate(("evaluate", "version")):
         g, resp = np.zeros((tru.shape[0], 2)), np.zeros((2, 2))
         for i in range(2):
-            q = s[i * per:(i + 1) * per]
+            q = s[i * per : (i + 1) * per]
             if name == "evaluate":
                 g[:, i] = q[1] / q[0]
                 resp[i] = q[2].sum() / q[0].sum(), q[3].sum() / q[0].sum()
                 if weighted:
-                    avg = {k: q[4 + 2 * n + 1].sum() / q[4 + 2 * n].sum() for n, k in enumerate(VERSIONS[1:])}
+                    avg = {
+                        k: q[4 + 2 * n + 1].sum() / q[4 + 2 * n].sum()
+                        for n, k in enumerate(VERSIONS[1:])
+                    }
                     resp[i] += [(avg[f"{j}p"] - avg[f"{j}m"]) / (2 * step) for j in (1, 2)]
             else:
-                avg = {k: q[12 + 2 * n + 1].sum() / q[12 + 2 * n].sum() for n, k in enumerate(VERSIONS)}
+                avg = {
+                    k: q[12 + 2 * n + 1].sum() / q[12 + 2 * n].sum() for n, k in enumerate(VERSIONS)
+                }
                 g[:, i] = q[13] / q[12]
                 resp[i] = [(avg[f"{j}p"] - avg[f"{j}m"]) / (2 * step) for j in (1, 2)]
         cal = np.linalg.solve(resp, g.T).T
@@ -314,7 +406,9 @@ def _failure_m(s: np.ndarray, tru: np.ndarray, step: float, weighted: bool) -> n
 def failures(paths: list[str], groups: int = 2, n_boot: int = 200, seed: int = 1) -> None:
     """m of evaluate's estimator and of the version-selected one, and their difference, with
     a paired bootstrap over galaxy groups (units of 1e-3)."""
-    print("| catalog | scheme | measured (noshear / every version) | m evaluate | m version-selected | difference |")
+    print(
+        "| catalog | scheme | measured (noshear / every version) | m evaluate | m version-selected | difference |"
+    )
     print("|---|---|---|---|---|---|")
     for p in paths:
         t = read_catalog(p)
@@ -323,30 +417,41 @@ def failures(paths: list[str], groups: int = 2, n_boot: int = 200, seed: int = 1
             sums, tru, frac = _failure_sums(t, weighted, groups)
             n_groups = sums.shape[1]
             rng = np.random.default_rng(seed)
-            counts = np.vstack([np.ones(n_groups)] + [rng.multinomial(n_groups, np.full(n_groups, 1 / n_groups))
-                                                      for _ in range(n_boot)])
+            counts = np.vstack(
+                [np.ones(n_groups)]
+                + [
+                    rng.multinomial(n_groups, np.full(n_groups, 1 / n_groups))
+                    for _ in range(n_boot)
+                ]
+            )
             resampled = np.einsum("bg,qgc->bqc", counts, sums)
             m = np.array([_failure_m(r, tru, step, weighted) for r in resampled])
 
             def cell(a: np.ndarray) -> str:
                 return " / ".join(_f(a[0, i], a[1:, i].std()) for i in (0, 1))
 
-            print(f"| {p.rsplit('/', 1)[-1]} | {'weighted' if weighted else 'unweighted'} | "
-                  f"{frac[0]:.4f} / {frac[1]:.4f} | {cell(m[:, 0])} | {cell(m[:, 1])} | {cell(m[:, 1] - m[:, 0])} |")
+            print(
+                f"| {p.rsplit('/', 1)[-1]} | {'weighted' if weighted else 'unweighted'} | "
+                f"{frac[0]:.4f} / {frac[1]:.4f} | {cell(m[:, 0])} | {cell(m[:, 1])} | {cell(m[:, 1] - m[:, 0])} |"
+            )
 
 
 def table(paths: list[str]) -> None:
     """One row per JSON file (megalut evaluate --twin --json) and scheme: m in units of
     1e-3, c in units of 1e-4."""
-    print("| run | scheme | comp | m_real (1e-3) | m_twin (1e-3) | m_real − m_twin (1e-3) | c_real (1e-4) | c_twin (1e-4) | c_real − c_twin (1e-4) | galaxies |")
+    print(
+        "| run | scheme | comp | m_real (1e-3) | m_twin (1e-3) | m_real − m_twin (1e-3) | c_real (1e-4) | c_twin (1e-4) | c_real − c_twin (1e-4) | galaxies |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for p in paths:
         res = json.load(open(p))
         for scheme, comps in res["overall"].items():
             for comp, r in comps.items():
-                print(f"| {p.rsplit('/', 1)[-1].removesuffix('.json')} | {scheme} | {comp} | {_f(r['m_a'], r['m_a_err'])} | "
-                      f"{_f(r['m_b'], r['m_b_err'])} | {_f(r['dm'], r['dm_err'])} | {_f(r['c_a'], r['c_a_err'], 1e4)} | "
-                      f"{_f(r['c_b'], r['c_b_err'], 1e4)} | {_f(r['dc'], r['dc_err'], 1e4)} | {r['n_galaxies']} |")
+                print(
+                    f"| {p.rsplit('/', 1)[-1].removesuffix('.json')} | {scheme} | {comp} | {_f(r['m_a'], r['m_a_err'])} | "
+                    f"{_f(r['m_b'], r['m_b_err'])} | {_f(r['dm'], r['dm_err'])} | {_f(r['c_a'], r['c_a_err'], 1e4)} | "
+                    f"{_f(r['c_b'], r['c_b_err'], 1e4)} | {_f(r['dc'], r['dc_err'], 1e4)} | {r['n_galaxies']} |"
+                )
 
 
 if __name__ == "__main__":
@@ -370,7 +475,7 @@ if __name__ == "__main__":
     elif cmd == "failures":
         if "--groups" in args:
             k = args.index("--groups")
-            failures(args[:k] + args[k + 2:], groups=int(args[k + 1]))
+            failures(args[:k] + args[k + 2 :], groups=int(args[k + 1]))
         else:
             failures(args)
     else:

@@ -23,8 +23,16 @@ from megalut_cli.shear.paired import fit_resamples, group_sums
 from megalut_cli.shear.predict import predict_columns
 
 
-def slopes(table, pred, scheme: str, comp: int, cell: np.ndarray, n_cases: int, n_gal: int,
-           counts: np.ndarray) -> np.ndarray:
+def slopes(
+    table,
+    pred,
+    scheme: str,
+    comp: int,
+    cell: np.ndarray,
+    n_cases: int,
+    n_gal: int,
+    counts: np.ndarray,
+) -> np.ndarray:
     """m of one set for each row of ``counts`` (galaxy multiplicities), as ``megalut evaluate
     --twin`` fits it (:mod:`megalut_cli.shear.paired`); flagged rows have no weight."""
     est = np.asarray(pred[f"pre_g{comp}"], float)
@@ -39,7 +47,9 @@ def main() -> None:
     ap.add_argument("real")
     ap.add_argument("twin")
     ap.add_argument("models", nargs="+", help="NAME=MODEL.h5")
-    ap.add_argument("--reference", default=None, help="NAME of the reference model (default: the first)")
+    ap.add_argument(
+        "--reference", default=None, help="NAME of the reference model (default: the first)"
+    )
     ap.add_argument("--bootstrap", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", default=None)
@@ -47,17 +57,32 @@ def main() -> None:
     real, twin = read_catalog(args.real), read_catalog(args.twin)
     for c in ("case", "rea", "tru_g1", "tru_g2", "tru_real_index"):
         if not np.array_equal(np.asarray(real[c]), np.asarray(twin[c])):
-            raise SystemExit(f"error: {args.real} and {args.twin} differ in column {c}: not a real/twin pair")
+            raise SystemExit(
+                f"error: {args.real} and {args.twin} differ in column {c}: not a real/twin pair"
+            )
     galaxies, gi = np.unique(np.asarray(real["tru_real_index"]), return_inverse=True)
     cases, ci = np.unique(np.asarray(real["case"]), return_inverse=True)
     cell = ci.ravel() * len(galaxies) + gi.ravel()
     rng = np.random.default_rng(args.seed)
     draws = rng.integers(0, len(galaxies), (args.bootstrap, len(galaxies)))
-    counts = np.vstack([np.ones(len(galaxies)), np.apply_along_axis(np.bincount, 1, draws, minlength=len(galaxies))])
+    counts = np.vstack(
+        [
+            np.ones(len(galaxies)),
+            np.apply_along_axis(np.bincount, 1, draws, minlength=len(galaxies)),
+        ]
+    )
     names = [m.split("=", 1)[0] for m in args.models]
     ref = args.reference or names[0]
-    result: dict = {"real": args.real, "twin": args.twin, "n_galaxies": len(galaxies), "n_cases": len(cases),
-                    "n_boot": args.bootstrap, "seed": args.seed, "reference": ref, "models": {}}
+    result: dict = {
+        "real": args.real,
+        "twin": args.twin,
+        "n_galaxies": len(galaxies),
+        "n_cases": len(cases),
+        "n_boot": args.bootstrap,
+        "seed": args.seed,
+        "reference": ref,
+        "models": {},
+    }
     dms: dict = {}
     for spec in args.models:
         name, path = spec.split("=", 1)
@@ -68,27 +93,41 @@ def main() -> None:
             for comp in (1, 2):
                 ms = {}
                 for k, t in (("real", real), ("twin", twin)):
-                    ms[k] = slopes(t, preds[k], scheme, comp, cell, len(cases), len(galaxies), counts)
+                    ms[k] = slopes(
+                        t, preds[k], scheme, comp, cell, len(cases), len(galaxies), counts
+                    )
                 dm = ms["real"] - ms["twin"]
                 dms[(name, scheme, comp)] = dm
                 res[f"{scheme}_g{comp}"] = {
-                    "m_real": ms["real"][0], "m_real_err": ms["real"][1:].std(ddof=1),
-                    "m_twin": ms["twin"][0], "m_twin_err": ms["twin"][1:].std(ddof=1),
-                    "dm": dm[0], "dm_err": dm[1:].std(ddof=1)}
+                    "m_real": ms["real"][0],
+                    "m_real_err": ms["real"][1:].std(ddof=1),
+                    "m_twin": ms["twin"][0],
+                    "m_twin_err": ms["twin"][1:].std(ddof=1),
+                    "dm": dm[0],
+                    "dm_err": dm[1:].std(ddof=1),
+                }
         result["models"][name] = res
     for name in names:
         for scheme in ("unweighted", "weighted"):
             for comp in (1, 2):
                 d = dms[(name, scheme, comp)] - dms[(ref, scheme, comp)]
-                result["models"][name][f"{scheme}_g{comp}"].update({"ddm_vs_ref": d[0], "ddm_vs_ref_err": d[1:].std(ddof=1)})
-    print(f"{len(galaxies)} galaxies x {len(cases)} shears; errors: {args.bootstrap} bootstrap resamples of the galaxies, shared by all models")
-    print(f"{'model':28s} {'scheme':10s} {'comp':4s} {'m_real':>18s} {'m_twin':>18s} {'m_real - m_twin':>18s} {'change vs ' + ref:>22s}")
+                result["models"][name][f"{scheme}_g{comp}"].update(
+                    {"ddm_vs_ref": d[0], "ddm_vs_ref_err": d[1:].std(ddof=1)}
+                )
+    print(
+        f"{len(galaxies)} galaxies x {len(cases)} shears; errors: {args.bootstrap} bootstrap resamples of the galaxies, shared by all models"
+    )
+    print(
+        f"{'model':28s} {'scheme':10s} {'comp':4s} {'m_real':>18s} {'m_twin':>18s} {'m_real - m_twin':>18s} {'change vs ' + ref:>22s}"
+    )
     for name in names:
         for scheme in ("unweighted", "weighted"):
             for comp in (1, 2):
                 r = result["models"][name][f"{scheme}_g{comp}"]
-                print(f"{name:28s} {scheme:10s} g{comp:<3d} {r['m_real']:+9.2e} ± {r['m_real_err']:.1e} {r['m_twin']:+9.2e} ± {r['m_twin_err']:.1e}"
-                      f" {r['dm']:+9.2e} ± {r['dm_err']:.1e} {r['ddm_vs_ref']:+11.2e} ± {r['ddm_vs_ref_err']:.1e}")
+                print(
+                    f"{name:28s} {scheme:10s} g{comp:<3d} {r['m_real']:+9.2e} ± {r['m_real_err']:.1e} {r['m_twin']:+9.2e} ± {r['m_twin_err']:.1e}"
+                    f" {r['dm']:+9.2e} ± {r['dm_err']:.1e} {r['ddm_vs_ref']:+11.2e} ± {r['ddm_vs_ref_err']:.1e}"
+                )
     if args.json:
         with open(args.json, "w") as f:
             json.dump(result, f, indent=1, default=float)

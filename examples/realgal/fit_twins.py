@@ -28,8 +28,10 @@ def main(catalog: str, output: str) -> None:
     rgc = galsim.RealGalaxyCatalog(path, dir=os.path.dirname(path))
     rgc.preload()
     cols = fit_real_catalog(rgc)
-    cards = {"REALCAT": (os.path.basename(path), "RealGalaxyCatalog fitted"),
-             "UNITS": ("arcsec", "hlr, dx, dy in arcsec of the HST frame")}
+    cards = {
+        "REALCAT": (os.path.basename(path), "RealGalaxyCatalog fitted"),
+        "UNITS": ("arcsec", "hlr, dx, dy in arcsec of the HST frame"),
+    }
     write_catalog(output, cols, fmt=TWIN_FORMAT, cards=cards, overwrite=True, extname="TWINS")
 
 

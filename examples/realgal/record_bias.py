@@ -22,8 +22,13 @@ def main(model: str, result_json: str, setup: str, command: str) -> None:
         result = json.load(f)
     scheme = "weighted" if "weighted" in result["overall"] else "unweighted"
     res = result["overall"][scheme]
-    record = {"scheme": scheme, "setup": setup, "command": command,
-              "n_galaxies": res["g1"]["n_galaxies"], "n_cases": res["g1"]["n_cases"]}
+    record = {
+        "scheme": scheme,
+        "setup": setup,
+        "command": command,
+        "n_galaxies": res["g1"]["n_galaxies"],
+        "n_cases": res["g1"]["n_cases"],
+    }
     for comp in ("g1", "g2"):
         record[f"dm_{comp}"] = res[comp]["dm"]
         record[f"dm_{comp}_err"] = res[comp]["dm_err"]

@@ -71,8 +71,13 @@ def main() -> None:
     psf = psf_image(config["psf"], size)
     truth = fitsio.read(args.truth, columns=list(TRUTH))
     write_meds(
-        args.output, stamps, weights=weights, bmasks=bmasks, psfs=np.broadcast_to(psf, stamps.shape),
-        extra={c: truth[c] for c in TRUTH}, overwrite=args.overwrite,
+        args.output,
+        stamps,
+        weights=weights,
+        bmasks=bmasks,
+        psfs=np.broadcast_to(psf, stamps.shape),
+        extra={c: truth[c] for c in TRUTH},
+        overwrite=args.overwrite,
     )
     print(f"wrote {args.output}: {n} objects of {size} px, {len(hit)} with a masked cosmic ray")
 

@@ -32,7 +32,9 @@ def main(argv: list[str] | None = None) -> int:
     history = meta.pop("HISTORY", [])
     step = meta.get("MCALSTEP")
     if step is None:
-        raise SystemExit(f"{a.catalog}: no MCALSTEP card: not a `megalut measure --metacal` catalog")
+        raise SystemExit(
+            f"{a.catalog}: no MCALSTEP card: not a `megalut measure --metacal` catalog"
+        )
     step = float(step)
     cols = {name: np.asarray(cat[name]) for name in cat.colnames}
     for i in (1, 2):
@@ -45,10 +47,19 @@ def main(argv: list[str] | None = None) -> int:
     for kind in TYPES:
         if f"flags_{kind}" not in cols:
             raise SystemExit(f"{a.catalog}: no flags_{kind} column")
-    write_catalog(a.output, cols, fmt="megalut.predictions", overwrite=a.overwrite, cards=meta, history=history)
+    write_catalog(
+        a.output,
+        cols,
+        fmt="megalut.predictions",
+        overwrite=a.overwrite,
+        cards=meta,
+        history=history,
+    )
     r = np.nanmean(cols["mcal_r11"]), np.nanmean(cols["mcal_r22"])
-    print(f"adamom metacal: <R11> = {r[0]:.4f}, <R22> = {r[1]:.4f} (all rows, NaN left out); wrote {a.output}",
-          file=sys.stderr)
+    print(
+        f"adamom metacal: <R11> = {r[0]:.4f}, <R22> = {r[1]:.4f} (all rows, NaN left out); wrote {a.output}",
+        file=sys.stderr,
+    )
     return 0
 
 

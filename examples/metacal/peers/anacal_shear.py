@@ -44,8 +44,14 @@ from __future__ import annotations
 
 import os
 
-for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-           "NUMBA_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
+for _v in (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "NUMBA_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+):
     os.environ.setdefault(_v, "1")
 
 import argparse  # noqa: E402
@@ -80,10 +86,14 @@ def centred_psf(path: str, npix: int) -> np.ndarray:
     psf = np.asarray(fitsio.read(path), dtype=np.float64)
     ny, nx = psf.shape
     if ny != nx or ny > npix:
-        raise SystemExit(f"{path}: the PSF image must be square and at most {npix} pixels, got {nx}x{ny}")
+        raise SystemExit(
+            f"{path}: the PSF image must be square and at most {npix} pixels, got {nx}x{ny}"
+        )
     if ny < npix:  # pad symmetrically (same parity assumed, as megalut requires)
         if (npix - ny) % 2:
-            raise SystemExit(f"{path}: PSF stamp of {ny} px and galaxy stamps of {npix} px differ in parity")
+            raise SystemExit(
+                f"{path}: PSF stamp of {ny} px and galaxy stamps of {npix} px differ in parity"
+            )
         p = (npix - ny) // 2
         psf = np.pad(psf, p)
     shift = npix // 2 - (npix - 1) / 2.0  # 0.5 for even stamps, 0 for odd
@@ -98,19 +108,39 @@ def centred_psf(path: str, npix: int) -> np.ndarray:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("stamps")
-    ap.add_argument("catalog", help="catalog of `megalut measure STAMPS ...` (adamom_x, adamom_y, skymad)")
+    ap.add_argument(
+        "catalog", help="catalog of `megalut measure STAMPS ...` (adamom_x, adamom_y, skymad)"
+    )
     ap.add_argument("--psf", required=True)
     ap.add_argument("-o", "--output", required=True)
-    ap.add_argument("--sigma-shapelets", type=float, default=4.0,
-                    help="FPFS shapelet kernel sigma in pixels (default 4.0 = 2 x the PSF sigma of 2 px)")
-    ap.add_argument("--c0-factor", type=float, default=4.0,
-                    help="c0 = factor x std(m00) of AnaCal's prepare_covariance (default 4)")
-    ap.add_argument("--noise-sigma", type=float, default=None,
-                    help="pixel noise sigma for the covariance and c0 (default: the median skymad)")
-    ap.add_argument("--centre", choices=("adamom", "stamp", "truth"), default="adamom",
-                    help="where to measure: the adaptive-moment centroid, the stamp centre, or (diagnostic "
-                         "only, simulations) the true centre x + tru_dx, y + tru_dy")
-    ap.add_argument("--no-noise-array", action="store_true", help="no noise image (no noise-bias correction)")
+    ap.add_argument(
+        "--sigma-shapelets",
+        type=float,
+        default=4.0,
+        help="FPFS shapelet kernel sigma in pixels (default 4.0 = 2 x the PSF sigma of 2 px)",
+    )
+    ap.add_argument(
+        "--c0-factor",
+        type=float,
+        default=4.0,
+        help="c0 = factor x std(m00) of AnaCal's prepare_covariance (default 4)",
+    )
+    ap.add_argument(
+        "--noise-sigma",
+        type=float,
+        default=None,
+        help="pixel noise sigma for the covariance and c0 (default: the median skymad)",
+    )
+    ap.add_argument(
+        "--centre",
+        choices=("adamom", "stamp", "truth"),
+        default="adamom",
+        help="where to measure: the adaptive-moment centroid, the stamp centre, or (diagnostic "
+        "only, simulations) the true centre x + tru_dx, y + tru_dy",
+    )
+    ap.add_argument(
+        "--no-noise-array", action="store_true", help="no noise image (no noise-bias correction)"
+    )
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--chunk", type=int, default=256, help="stamps per AnaCal call")
     ap.add_argument("--pad", type=int, default=12, help="zero border around each stamp, pixels")
@@ -134,13 +164,23 @@ def main(argv: list[str] | None = None) -> int:
     if a.centre == "stamp":
         ok[:] = False
     elif a.centre == "truth":
-        ax = np.asarray(cat["x"], dtype=float) + np.asarray(cat["tru_dx"], dtype=float) - origins[:, 0]
-        ay = np.asarray(cat["y"], dtype=float) + np.asarray(cat["tru_dy"], dtype=float) - origins[:, 1]
+        ax = (
+            np.asarray(cat["x"], dtype=float)
+            + np.asarray(cat["tru_dx"], dtype=float)
+            - origins[:, 0]
+        )
+        ay = (
+            np.asarray(cat["y"], dtype=float)
+            + np.asarray(cat["tru_dy"], dtype=float)
+            - origins[:, 1]
+        )
         ok = np.isfinite(ax) & np.isfinite(ay)
     px = np.where(ok, ax, centre)
     py = np.where(ok, ay, centre)
     flags = np.where(ok, 0, FLAG_NO_CENTROID).astype(np.int32)
-    skymad = np.asarray(cat["skymad"], dtype=float) if "skymad" in cat.colnames else np.full(n, np.nan)
+    skymad = (
+        np.asarray(cat["skymad"], dtype=float) if "skymad" in cat.colnames else np.full(n, np.nan)
+    )
     sigma = a.noise_sigma if a.noise_sigma is not None else float(np.nanmedian(skymad))
     noise_sig = np.where(np.isfinite(skymad) & (skymad > 0), skymad, sigma)
     crn = meta.get("CRN") is True
@@ -149,16 +189,23 @@ def main(argv: list[str] | None = None) -> int:
     # AnaCal set-up, once: the covariance of the modes (galaxy + rotated noise image), c0.
     sig = a.sigma_shapelets * PIXEL_SCALE
     cfg = anacal.fpfs.FpfsConfig(npix=size, sigma_shapelets1=sig)
-    task = anacal.fpfs.FpfsTask(npix=size, pixel_scale=PIXEL_SCALE, sigma_shapelets=sig, psf_array=psf,
-                                kmax_thres=cfg.kmax_thres)
+    task = anacal.fpfs.FpfsTask(
+        npix=size,
+        pixel_scale=PIXEL_SCALE,
+        sigma_shapelets=sig,
+        psf_array=psf,
+        kmax_thres=cfg.kmax_thres,
+    )
     task.prepare_covariance(variance=sigma**2)
     std_m00 = float(task.std_m00)
     cfg.c0 = a.c0_factor * std_m00
     mag_zero = anacal.task.THRESHOLD_REF_MAG_ZERO  # c0 is then used as given (ratio 1)
-    print(f"anacal {anacal.__version__}: {n} stamps of {size} px, kernel sigma {a.sigma_shapelets} px, "
-          f"noise sigma {sigma:.4g}, std(m00) {std_m00:.4g}, c0 = {a.c0_factor} x std(m00) = {cfg.c0:.4g}, "
-          f"centre {a.centre} ({int((~ok).sum())} at the stamp centre), noise image {not a.no_noise_array}",
-          file=sys.stderr)
+    print(
+        f"anacal {anacal.__version__}: {n} stamps of {size} px, kernel sigma {a.sigma_shapelets} px, "
+        f"noise sigma {sigma:.4g}, std(m00) {std_m00:.4g}, c0 = {a.c0_factor} x std(m00) = {cfg.c0:.4g}, "
+        f"centre {a.centre} ({int((~ok).sum())} at the stamp centre), noise image {not a.no_noise_array}",
+        file=sys.stderr,
+    )
 
     out = {k: np.full(n, np.nan) for k in ("e1", "e2", "de1_dg1", "de2_dg2", "m00", "s2n")}
     cell = size + 2 * a.pad
@@ -166,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     # Stamps in the order of the image rows they sit in (each band of rows read once).
     order = np.lexsort((origins[:, 0], origins[:, 1]))
     for start in range(0, n, a.chunk):
-        idx = order[start:start + a.chunk]
+        idx = order[start : start + a.chunk]
         y0 = int(origins[idx, 1].min()) - 1
         y1 = int(origins[idx, 1].max()) - 1 + size
         stamps = cut_stamps(read_rows(info, y0, y1), y0, origins[idx], size)
@@ -184,14 +231,25 @@ def main(argv: list[str] | None = None) -> int:
         det["y"] = a.pad + py[idx]
         det["x"] = np.arange(m) * cell + a.pad + px[idx]
         res = anacal.fpfs.process_image(
-            fpfs_config=cfg, pixel_scale=PIXEL_SCALE, noise_variance=sigma**2, mag_zero=mag_zero,
-            gal_array=gal, psf_array=psf, noise_array=noise, detection=det,
+            fpfs_config=cfg,
+            pixel_scale=PIXEL_SCALE,
+            noise_variance=sigma**2,
+            mag_zero=mag_zero,
+            gal_array=gal,
+            psf_array=psf,
+            noise_array=noise,
+            detection=det,
         )
         cpu_anacal += time.process_time() - c0
         for k in out:
             out[k][idx] = res["s2n_fpfs1" if k == "s2n" else f"fpfs1_{k}"]
 
-    bad = ~np.isfinite(out["e1"]) | ~np.isfinite(out["e2"]) | ~np.isfinite(out["de1_dg1"]) | ~np.isfinite(out["de2_dg2"])
+    bad = (
+        ~np.isfinite(out["e1"])
+        | ~np.isfinite(out["e2"])
+        | ~np.isfinite(out["de1_dg1"])
+        | ~np.isfinite(out["de2_dg2"])
+    )
     flags |= np.where(bad, FLAG_NONFINITE, 0).astype(np.int32)
     good = ~bad
     r11, r22 = float(np.mean(out["de1_dg1"][good])), float(np.mean(out["de2_dg2"][good]))
@@ -214,25 +272,37 @@ def main(argv: list[str] | None = None) -> int:
         cols[f"flags_{kind}"] = (flags & FLAG_NONFINITE).astype(np.int32)
     per_gal = cpu_anacal / max(n, 1)
     cards = {k: v for k, v in meta.items() if k not in ("MCALSTEP", "MCALSEED")}
-    cards.update({
-        "MCALSTEP": (STEP, "metacal step card for megalut evaluate (AnaCal: analytic R)"),
-        "ANVERS": (anacal.__version__, "anacal version"),
-        "ANSIGPX": (a.sigma_shapelets, "AnaCal shapelet kernel sigma, pixels"),
-        "ANC0": (cfg.c0, "AnaCal c0 (flux units of the stamps)"),
-        "ANC0FAC": (a.c0_factor, "c0 / std(m00)"),
-        "ANSTDM00": (std_m00, "std(m00) of prepare_covariance"),
-        "ANNOISE": (sigma, "noise sigma for the covariance"),
-        "ANCENTRE": (a.centre, "where AnaCal measures"),
-        "ANNOIMG": (not a.no_noise_array, "noise image for the noise-bias correction"),
-        "ANSEED": (a.seed, "seed of the noise images"),
-        "ANCPUGAL": (per_gal, "AnaCal CPU seconds per galaxy"),
-    })
+    cards.update(
+        {
+            "MCALSTEP": (STEP, "metacal step card for megalut evaluate (AnaCal: analytic R)"),
+            "ANVERS": (anacal.__version__, "anacal version"),
+            "ANSIGPX": (a.sigma_shapelets, "AnaCal shapelet kernel sigma, pixels"),
+            "ANC0": (cfg.c0, "AnaCal c0 (flux units of the stamps)"),
+            "ANC0FAC": (a.c0_factor, "c0 / std(m00)"),
+            "ANSTDM00": (std_m00, "std(m00) of prepare_covariance"),
+            "ANNOISE": (sigma, "noise sigma for the covariance"),
+            "ANCENTRE": (a.centre, "where AnaCal measures"),
+            "ANNOIMG": (not a.no_noise_array, "noise image for the noise-bias correction"),
+            "ANSEED": (a.seed, "seed of the noise images"),
+            "ANCPUGAL": (per_gal, "AnaCal CPU seconds per galaxy"),
+        }
+    )
     if os.path.exists(a.output) and not a.overwrite:
         raise SystemExit(f"{a.output} exists (use --overwrite)")
-    write_catalog(a.output, cols, fmt="megalut.predictions", overwrite=a.overwrite, cards=cards, history=history)
-    print(f"anacal: <R11> = {r11:.4f}, <R22> = {r22:.4f}, {int(bad.sum())} non-finite; CPU {cpu_anacal:.2f} s in AnaCal "
-          f"({1e3 * per_gal:.3f} ms per galaxy), {time.process_time() - t_cpu:.2f} s CPU and "
-          f"{time.time() - t_wall:.2f} s wall in all; wrote {a.output}", file=sys.stderr)
+    write_catalog(
+        a.output,
+        cols,
+        fmt="megalut.predictions",
+        overwrite=a.overwrite,
+        cards=cards,
+        history=history,
+    )
+    print(
+        f"anacal: <R11> = {r11:.4f}, <R22> = {r22:.4f}, {int(bad.sum())} non-finite; CPU {cpu_anacal:.2f} s in AnaCal "
+        f"({1e3 * per_gal:.3f} ms per galaxy), {time.process_time() - t_cpu:.2f} s CPU and "
+        f"{time.time() - t_wall:.2f} s wall in all; wrote {a.output}",
+        file=sys.stderr,
+    )
     return 0
 
 

@@ -32,15 +32,22 @@ from megalut_cli.catalog import read_catalog
 from megalut_cli.shear.bias import fit_bias
 
 TYPES = ("1p", "1m", "2p", "2m")
-EST = [("sc", "unweighted", "(1) simulation-calibrated, unweighted"), ("sc", "weighted", "(1) simulation-calibrated, weighted"),
-       ("mcal-nn", "unweighted", "(2) megalut + metacal, unweighted"), ("mcal-nn", "weighted", "(2) megalut + metacal, weighted"),
-       ("mcal-am", "unweighted", "(3) metacal, adaptive moments"), ("anacal", "unweighted", "(4) AnaCal")]
+EST = [
+    ("sc", "unweighted", "(1) simulation-calibrated, unweighted"),
+    ("sc", "weighted", "(1) simulation-calibrated, weighted"),
+    ("mcal-nn", "unweighted", "(2) megalut + metacal, unweighted"),
+    ("mcal-nn", "weighted", "(2) megalut + metacal, weighted"),
+    ("mcal-am", "unweighted", "(3) metacal, adaptive moments"),
+    ("anacal", "unweighted", "(4) AnaCal"),
+]
 
 
 class Sums:
     """Per (case, group) sums of one estimator and scheme, from which any resample's m, c follow."""
 
-    def __init__(self, cat, est: str, scheme: str, groups: np.ndarray, n_groups: int, step: float = 0.01):
+    def __init__(
+        self, cat, est: str, scheme: str, groups: np.ndarray, n_groups: int, step: float = 0.01
+    ):
         case = np.asarray(cat["case"])
         self.cases = np.unique(case)
         ci = np.searchsorted(self.cases, case)
@@ -70,10 +77,16 @@ class Sums:
             if scheme == "weighted":
                 ww = np.asarray(cat[f"pre_g{i}_w{sfx}"], float)
                 w = np.where(ok & np.isfinite(ww) & (ww > 0), ww, 0.0)
-            self.w[i], self.wpre[i], self.wtru[i] = s(w), s(w * np.where(ok, p, 0)), s(w * np.where(ok, t, 0))
+            self.w[i], self.wpre[i], self.wtru[i] = (
+                s(w),
+                s(w * np.where(ok, p, 0)),
+                s(w * np.where(ok, t, 0)),
+            )
             if mcal:
                 for j in (1, 2):
-                    self.wR[(i, j)] = s(w * np.where(ok, np.asarray(cat[f"mcal_r{i}{j}"], float), 0))
+                    self.wR[(i, j)] = s(
+                        w * np.where(ok, np.asarray(cat[f"mcal_r{i}{j}"], float), 0)
+                    )
         self.mcal = mcal
         self.selection = mcal and scheme == "weighted"
         if self.selection:
@@ -93,14 +106,23 @@ class Sums:
             tru = {i: (self.wtru[i] @ k) / tot[i] for i in (1, 2)}
             pre = {i: (self.wpre[i] @ k) / tot[i] for i in (1, 2)}
             if self.mcal:
-                R = np.array([[(self.wR[(i, j)] @ k).sum() / tot[i].sum() for j in (1, 2)] for i in (1, 2)])
+                R = np.array(
+                    [[(self.wR[(i, j)] @ k).sum() / tot[i].sum() for j in (1, 2)] for i in (1, 2)]
+                )
                 if self.selection:
+
                     def avg(i, kind):
                         return (self.swpre[(i, kind)] @ k).sum() / (self.sw[(i, kind)] @ k).sum()
-                    R = R + np.array([[avg(i, f"{j}p") - avg(i, f"{j}m") for j in (1, 2)] for i in (1, 2)])
+
+                    R = R + np.array(
+                        [[avg(i, f"{j}p") - avg(i, f"{j}m") for j in (1, 2)] for i in (1, 2)]
+                    )
                 det = R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0]
                 p1, p2 = pre[1], pre[2]
-                pre = {1: (R[1, 1] * p1 - R[0, 1] * p2) / det, 2: (R[0, 0] * p2 - R[1, 0] * p1) / det}
+                pre = {
+                    1: (R[1, 1] * p1 - R[0, 1] * p2) / det,
+                    2: (R[0, 0] * p2 - R[1, 0] * p1) / det,
+                }
         out = {}
         for i in (1, 2):
             use = np.isfinite(pre[i]) & np.isfinite(tru[i])
@@ -133,7 +155,12 @@ def main(argv=None) -> int:
             sums[(est, scheme)] = Sums(cat, est, scheme, g, int(g.max()) + 1)
             d = json.load(open(os.path.join(W, f"A-{est}.json")))[scheme]
             p = sums[(est, scheme)].fit()
-            assert abs(p[1][0] - d["g1"]["m"]) < 1e-9 and abs(p[2][0] - d["g2"]["m"]) < 1e-9, (est, scheme, p, d)
+            assert abs(p[1][0] - d["g1"]["m"]) < 1e-9 and abs(p[2][0] - d["g2"]["m"]) < 1e-9, (
+                est,
+                scheme,
+                p,
+                d,
+            )
         ng = next(iter(sums.values())).ng
         ref = ("anacal", "unweighted")
         point = {key: s.fit() for key, s in sums.items()}
@@ -144,8 +171,10 @@ def main(argv=None) -> int:
                 f = s.fit(k)
                 boot[key].append([f[1][0], f[2][0]])
         boot = {key: np.array(v) for key, v in boot.items()}
-        print(f"## Set A: m of each estimator minus m of AnaCal, same stamps (per cent; shared bootstrap over "
-              f"{ng} galaxy pairs, {a.bootstrap} resamples; point values equal megalut evaluate's)\n")
+        print(
+            f"## Set A: m of each estimator minus m of AnaCal, same stamps (per cent; shared bootstrap over "
+            f"{ng} galaxy pairs, {a.bootstrap} resamples; point values equal megalut evaluate's)\n"
+        )
         print("| estimator | m1 | m2 | m1 − m1(AnaCal) | m2 − m2(AnaCal) |")
         print("|---|---|---|---|---|")
         for est, scheme, label in EST:
@@ -156,12 +185,18 @@ def main(argv=None) -> int:
             derr = (b - r).std(axis=0)
             cell = "0" if key == ref else f"{100 * dm[0]:+.2f} ± {100 * derr[0]:.2f}"
             cell2 = "0" if key == ref else f"{100 * dm[1]:+.2f} ± {100 * derr[1]:.2f}"
-            print(f"| {label} | {100 * point[key][1][0]:+.2f} ± {100 * err[0]:.2f} | "
-                  f"{100 * point[key][2][0]:+.2f} ± {100 * err[1]:.2f} | {cell} | {cell2} |")
+            print(
+                f"| {label} | {100 * point[key][1][0]:+.2f} ± {100 * err[0]:.2f} | "
+                f"{100 * point[key][2][0]:+.2f} ± {100 * err[1]:.2f} | {cell} | {cell2} |"
+            )
         print()
 
     # ------------------------------------------------------------ set B
-    if all(os.path.exists(os.path.join(W, f"B-{s}-{e}.fits")) for e, _, _ in EST for s in ("real", "twin")):
+    if all(
+        os.path.exists(os.path.join(W, f"B-{s}-{e}.fits"))
+        for e, _, _ in EST
+        for s in ("real", "twin")
+    ):
         sums = {}
         for est, scheme, _label in EST:
             for s in ("real", "twin"):
@@ -169,12 +204,17 @@ def main(argv=None) -> int:
                 g = groups_of(cat, "galaxy")
                 gal = np.unique(g)
                 sums[(est, scheme, s)] = Sums(cat, est, scheme, np.searchsorted(gal, g), len(gal))
-            for st in ("real", "twin"):  # the single-set evaluation (2x2 response, selection response)
+            for st in (
+                "real",
+                "twin",
+            ):  # the single-set evaluation (2x2 response, selection response)
                 path = os.path.join(W, f"B-{st}-{est}.json")
                 if os.path.exists(path):
                     d = json.load(open(path))[scheme]
                     p = sums[(est, scheme, st)].fit()
-                    assert abs(p[1][0] - d["g1"]["m"]) < 1e-9 and abs(p[2][0] - d["g2"]["m"]) < 1e-9, (est, scheme, st)
+                    assert (
+                        abs(p[1][0] - d["g1"]["m"]) < 1e-9 and abs(p[2][0] - d["g2"]["m"]) < 1e-9
+                    ), (est, scheme, st)
         ng = next(iter(sums.values())).ng
         point = {key: s.fit() for key, s in sums.items()}
         boot = {key: [] for key in sums}
@@ -191,21 +231,31 @@ def main(argv=None) -> int:
             p = np.array([point[key_real][i][0] - point[key_twin][i][0] for i in (1, 2)])
             return p, boot[key_real] - boot[key_twin]
 
-        print(f"## Set B: m_real, m_twin and m_real − m_twin (per cent; paired bootstrap over the {ng} galaxies, "
-              f"{a.bootstrap} resamples, shared by all estimators; definitions of the single-set megalut evaluate)\n")
+        print(
+            f"## Set B: m_real, m_twin and m_real − m_twin (per cent; paired bootstrap over the {ng} galaxies, "
+            f"{a.bootstrap} resamples, shared by all estimators; definitions of the single-set megalut evaluate)\n"
+        )
         print("| estimator | m_real g1 / g2 | m_twin g1 / g2 | m_real − m_twin g1 / g2 |")
         print("|---|---|---|---|")
         for est, scheme, label in EST:
             cells = []
-            for args in (((est, scheme, "real"),), ((est, scheme, "twin"),), ((est, scheme, "real"), (est, scheme, "twin"))):
+            for args in (
+                ((est, scheme, "real"),),
+                ((est, scheme, "twin"),),
+                ((est, scheme, "real"), (est, scheme, "twin")),
+            ):
                 p, b = val(*args)
                 e = b.std(axis=0)
-                cells.append(f"{100 * p[0]:+.1f} ± {100 * e[0]:.1f} / {100 * p[1]:+.1f} ± {100 * e[1]:.1f}")
+                cells.append(
+                    f"{100 * p[0]:+.1f} ± {100 * e[0]:.1f} / {100 * p[1]:+.1f} ± {100 * e[1]:.1f}"
+                )
             print(f"| {label} | " + " | ".join(cells) + " |")
         print()
         print("## Set B: differences from AnaCal on the same stamps (per cent; same resamples)\n")
-        print("| estimator | m_real − m_real(AnaCal) g1 / g2 | m_twin − m_twin(AnaCal) g1 / g2 | "
-              "(m_real − m_twin) − AnaCal's g1 / g2 |")
+        print(
+            "| estimator | m_real − m_real(AnaCal) g1 / g2 | m_twin − m_twin(AnaCal) g1 / g2 | "
+            "(m_real − m_twin) − AnaCal's g1 / g2 |"
+        )
         print("|---|---|---|---|")
         for est, scheme, label in EST:
             if (est, scheme) == ("anacal", "unweighted"):
@@ -219,7 +269,9 @@ def main(argv=None) -> int:
                     p, b = val((est, scheme, which))
                     pr, br = val(("anacal", "unweighted", which))
                 dp, de = p - pr, (b - br).std(axis=0)
-                cells.append(f"{100 * dp[0]:+.1f} ± {100 * de[0]:.1f} / {100 * dp[1]:+.1f} ± {100 * de[1]:.1f}")
+                cells.append(
+                    f"{100 * dp[0]:+.1f} ± {100 * de[0]:.1f} / {100 * dp[1]:+.1f} ± {100 * de[1]:.1f}"
+                )
             print(f"| {label} | " + " | ".join(cells) + " |")
         print()
     return 0

@@ -38,17 +38,37 @@ def main(argv=None) -> int:
     sub = cat[np.asarray(cat["rea"]) < a.rea]
     sub_path = os.path.join(W, "scan-meas.fits")
     out_path = os.path.join(W, "scan-anacal.fits")
-    write_catalog(sub_path, {n: np.asarray(sub[n]) for n in sub.colnames}, fmt=str(meta.get("MLFORMAT")),
-                  overwrite=True, cards=meta, history=history)
+    write_catalog(
+        sub_path,
+        {n: np.asarray(sub[n]) for n in sub.colnames},
+        fmt=str(meta.get("MLFORMAT")),
+        overwrite=True,
+        cards=meta,
+        history=history,
+    )
     print(f"{len(sub)} stamps (rea < {a.rea} of {os.path.join(W, 'A-meas.fits')})\n")
     print("| sigma_h (px) | c0 / std(m00) | <R> | sigma_g per galaxy | std(R) / <R> |")
     print("|---|---|---|---|---|")
     for sig in (2.5, 3.0, 4.0, 5.0):
         for fac in (2.0, 4.0, 8.0):
             with contextlib.redirect_stderr(io.StringIO()):
-                anacal_shear.main([os.path.join(W, "A-stamps.fits"), sub_path, "--psf", os.path.join(W, "psf.fits"),
-                                   "-o", out_path, "--overwrite", "--sigma-shapelets", str(sig), "--c0-factor", str(fac),
-                                   "--seed", "5"])
+                anacal_shear.main(
+                    [
+                        os.path.join(W, "A-stamps.fits"),
+                        sub_path,
+                        "--psf",
+                        os.path.join(W, "psf.fits"),
+                        "-o",
+                        out_path,
+                        "--overwrite",
+                        "--sigma-shapelets",
+                        str(sig),
+                        "--c0-factor",
+                        str(fac),
+                        "--seed",
+                        "5",
+                    ]
+                )
             c = read_catalog(out_path)
             vals = []
             for i in (1, 2):
