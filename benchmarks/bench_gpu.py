@@ -80,7 +80,8 @@ def bench_simulate(cases: int, realizations: int, repeats: int) -> None:
     same = np.array_equal(r_cpu["columns"]["flags"], r_gpu["columns"]["flags"])
     dg = np.nanmax(np.abs(r_cpu["columns"]["adamom_g1"] - r_gpu["columns"]["adamom_g1"]))
     print(
-        f"simulate --measure, {n} fiducial stamps ({cases} cases x {realizations}), best of {repeats}:"
+        f"simulate --measure, {n} fiducial stamps ({cases} cases x {realizations}), "
+        f"best of {repeats}:"
     )
     print(f"  cpu (fast engine, 1 core): {t_cpu:8.3f} s  {n / t_cpu:12.0f} stamps/s")
     print(

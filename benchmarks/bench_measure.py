@@ -210,12 +210,14 @@ def main() -> None:
         loop_t = min(times["loop"])
         print(f"\nfloor ({ok.sum()} converged stamps, {(~ok).sum()} failed):")
         print(
-            f"  iterations: mean {res.n_iter[ok].mean():.1f}, median {np.median(res.n_iter[ok]):.0f}; "
-            f"failed stamps: {res.n_iter[~ok].sum()} iterations in all"
+            f"  iterations: mean {res.n_iter[ok].mean():.1f}, "
+            f"median {np.median(res.n_iter[ok]):.0f}; failed stamps: "
+            f"{res.n_iter[~ok].sum()} iterations in all"
         )
         print(f"  window: mean {pix[ok].mean():.0f} pixels per iteration")
         print(
-            f"  pixel visits (= GalSim's exp calls) on converged stamps: {visits / ok.sum():.0f} per stamp"
+            "  pixel visits (= GalSim's exp calls) on converged stamps: "
+            f"{visits / ok.sum():.0f} per stamp"
         )
         print(
             f"  kernel: {kernel / res.n_iter.sum() * 1e6:.2f} us per iteration; "
@@ -225,7 +227,8 @@ def main() -> None:
         all_visits = visits * res.n_iter.sum() / res.n_iter[ok].sum()
         print(
             f"  per pixel visit (approx.): kernel {kernel / all_visits * 1e9:.2f} ns, "
-            f"exact_exp {exact / all_visits * 1e9:.2f} ns, plain loop {loop_t / all_visits * 1e9:.2f} ns"
+            f"exact_exp {exact / all_visits * 1e9:.2f} ns, "
+            f"plain loop {loop_t / all_visits * 1e9:.2f} ns"
         )
     first_call_costs(2)
 

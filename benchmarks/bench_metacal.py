@@ -177,13 +177,15 @@ def floor(plan: mf.Plan, rate: float) -> None:
             taps += pts * 36
     total = sum(macs.values())
     print(
-        f"\nfloor per stamp (plan: padded DFT {2 * plan.ry + 1} x {n} nodes, k box {2 * plan.ky + 1} x {kx1}):"
+        f"\nfloor per stamp (plan: padded DFT {2 * plan.ry + 1} x {n} nodes, "
+        f"k box {2 * plan.ky + 1} x {kx1}):"
     )
     for name, v in macs.items():
         print(f"  {name:14s} {v / 1e6:6.2f} M multiply-adds")
     print(
-        f"  matrix products: {total / 1e6:.2f} M multiply-adds = {2 * total / 1e6:.1f} MFLOP,"
-        f" at this machine's sgemm rate on these shapes ({rate / 1e9:.0f} GFLOP/s): {2 * total / rate * 1e6:.0f} us"
+        f"  matrix products: {total / 1e6:.2f} M multiply-adds = {2 * total / 1e6:.1f} MFLOP, "
+        f"at this machine's sgemm rate on these shapes ({rate / 1e9:.0f} GFLOP/s): "
+        f"{2 * total / rate * 1e6:.0f} us"
     )
     print(
         f"  Quintic taps: {taps / 1e3:.0f} k complex taps = {2 * taps / 1e3:.0f} k real FMAs"
@@ -192,8 +194,9 @@ def floor(plan: mf.Plan, rate: float) -> None:
     ws = mf.Workspace(plan, mf.BLOCK)
     work = sum(a.nbytes for a in vars(ws).values() if isinstance(a, np.ndarray)) / mf.BLOCK
     print(
-        f"  bytes: work arrays {work / 1e3:.0f} kB per stamp (in cache, blocks of {mf.BLOCK});"
-        f" input {size * size * 8 / 1e3:.0f} kB + output {5 * size * size * 8 / 1e3:.0f} kB float64 per stamp"
+        f"  bytes: work arrays {work / 1e3:.0f} kB per stamp (in cache, blocks of {mf.BLOCK}); "
+        f"input {size * size * 8 / 1e3:.0f} kB + output {5 * size * size * 8 / 1e3:.0f} kB "
+        "float64 per stamp"
     )
 
 
@@ -208,9 +211,13 @@ from megalut_cli.measure.metacal import metacal_versions
 import galsim
 psf = galsim.Gaussian(sigma=2.0).drawImage(nx=64, ny=64, scale=1.0).array
 c1 = cpu()
-metacal_versions(np.random.default_rng(0).normal(size=(2, 64, 64)), psf, noise_sigma=[1, 1], engine="fast")
+metacal_versions(
+    np.random.default_rng(0).normal(size=(2, 64, 64)), psf, noise_sigma=[1, 1], engine="fast"
+)
 c2 = cpu()
-metacal_versions(np.random.default_rng(1).normal(size=(2, 64, 64)), psf, noise_sigma=[1, 1], engine="fast")
+metacal_versions(
+    np.random.default_rng(1).normal(size=(2, 64, 64)), psf, noise_sigma=[1, 1], engine="fast"
+)
 print(c1 - c0, c2 - c1, cpu() - c2)
 """
 
@@ -218,7 +225,8 @@ print(c1 - c0, c2 - c1, cpu() - c2)
 def first_call_costs(repeat: int) -> None:
     """CPU seconds to import, then of the first call and of a second call, fresh processes."""
     print(
-        "\nfresh process, CPU seconds (import / first call (compile or load, PSF plan) / second call):"
+        "\nfresh process, CPU seconds (import / first call (compile or load, "
+        "PSF plan) / second call):"
     )
     for _ in range(repeat):
         with tempfile.TemporaryDirectory() as cache:
@@ -252,8 +260,9 @@ def main() -> None:
     stamps, psf = simulate(args.n, args.seed)
     n, ref_n = len(stamps), min(args.ref_n or args.n, args.n)
     print(
-        f"{platform.machine()} {platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}, "
-        f"galsim {galsim.__version__}; {n} stamps of {SIZE} px (simulated in {time.perf_counter() - t0:.0f} s)"
+        f"{platform.machine()} {platform.python_version()}, numpy {np.__version__}, "
+        f"numba {numba.__version__}, galsim {galsim.__version__}; "
+        f"{n} stamps of {SIZE} px (simulated in {time.perf_counter() - t0:.0f} s)"
     )
     ones = np.ones(n)
     sigma = target_psf_sigma(psf, DEFAULT_STEP)
@@ -281,7 +290,8 @@ def main() -> None:
         for name, func in runs.items():  # interleaved
             times[name].append(cpu_time(func) / per[name])
     print(
-        f"\nCPU per input stamp (best / median of {args.repeat}, interleaved; fft_versions: its 2 images):"
+        f"\nCPU per input stamp (best / median of {args.repeat}, interleaved; fft_versions: "
+        "its 2 images):"
     )
     for name, ts in times.items():
         print(f"  {name:13s} {min(ts) * 1e6:9.1f} us  {np.median(ts) * 1e6:9.1f} us")
@@ -309,7 +319,8 @@ def main() -> None:
         f"  fft_versions call (grid sizes, blocks, output arrays): {lin / 2 * 1e6:.1f} us per image"
     )
     print(
-        f"  metacal.py around it (noise fields, stack, copies, rot90 + add): {(fast - lin) * 1e6:.1f} us per stamp"
+        "  metacal.py around it (noise fields, stack, copies, rot90 + add): "
+        f"{(fast - lin) * 1e6:.1f} us per stamp"
     )
     print(f"  measure_stamps of the five versions: {(meas - fast) * 1e6:.1f} us per stamp")
     floor(plan, gemm_rate("float32", args.repeat))

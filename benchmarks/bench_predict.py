@@ -83,8 +83,8 @@ def main() -> None:
     model = ShearModel({t: committee(t, i) for i, t in enumerate(("tru_g1", "tru_g2"))})
     model.sha256 = "benchmark"
     print(
-        f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, numpy {np.__version__}, "
-        f"1 BLAS thread, {n} rows, best of {args.repeat}"
+        f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, "
+        f"numpy {np.__version__}, 1 BLAS thread, {n} rows, best of {args.repeat}"
     )
 
     def network() -> None:
@@ -130,7 +130,8 @@ def main() -> None:
     )
     print(
         f"  of which: network {t_net:.3f} s ({t_net / t_e2e:.0%}), reading the input in chunks "
-        f"{t_read:.3f} s ({t_read / t_e2e:.0%}), fitsio writing the output {t_write:.3f} s ({t_write / t_e2e:.0%})"
+        f"{t_read:.3f} s ({t_read / t_e2e:.0%}), fitsio writing the output {t_write:.3f} s "
+        f"({t_write / t_e2e:.0%})"
     )
 
 

@@ -46,8 +46,9 @@ def main() -> None:
     cfg = load_config(CONFIG, (), n_cases=args.cases, n_realizations=args.realizations)
     n = cfg.structure.n_stamps
     print(
-        f"{CONFIG.name}: {args.cases} cases x {args.realizations} realizations = {n} stamps, measured, -j 1; "
-        f"python {platform.python_version()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}"
+        f"{CONFIG.name}: {args.cases} cases x {args.realizations} realizations = {n} stamps, "
+        f"measured, -j 1; python {platform.python_version()}, {os.cpu_count()} cores, "
+        f"load {os.getloadavg()[0]:.1f}"
     )
     rows = {e: [] for e in ENGINES}
     with tempfile.TemporaryDirectory() as tmp:

@@ -100,10 +100,12 @@ def fft_floor(sizes: collections.Counter, stamp: int) -> None:
     """FLOPs and bytes per stamp of the pruned inverse FFT, and its measured time."""
     print("\nFFT floor per stamp (pruned inverse FFT: N/2+1 complex y-transforms of length N, then")
     print(
-        f"{stamp} real x-transforms; 5 N log2 N flops per complex transform, 2.5 N log2 N per real one;"
+        f"{stamp} real x-transforms; 5 N log2 N flops per complex transform, "
+        "2.5 N log2 N per real one;"
     )
     print(
-        "bytes: complex64 k-image written by the fill, read and written by the y-FFT, S rows read by the x-FFT)"
+        "bytes: complex64 k-image written by the fill, read and written by the y-FFT, "
+        "S rows read by the x-FFT)"
     )
     print(f"{'N':>6} {'share':>6} {'Mflop':>8} {'MB':>7} {'ms measured':>12}")
     total_ms = 0.0
@@ -202,7 +204,8 @@ def main() -> None:
     )
     sizes = collections.Counter(int(n) for n in n_fft)
     print(
-        f"grid sizes N (Nk = N for all: {bool((n_k == n_fft).all())}): {dict(sorted(sizes.items()))}"
+        f"grid sizes N (Nk = N for all: {bool((n_k == n_fft).all())}): "
+        f"{dict(sorted(sizes.items()))}"
     )
 
     prof = cProfile.Profile(time.process_time)  # CPU time: the machine is shared

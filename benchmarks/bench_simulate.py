@@ -1,4 +1,5 @@
-"""Throughput of ``megalut simulate --measure``: fast and galsim engines against a plain GalSim loop.
+"""Throughput of ``megalut simulate --measure``: fast and galsim engines against a plain
+GalSim loop.
 
 On a scaled-down fiducial TP config (``examples/fiducial/tp.toml``: 64x64 stamps, Sersic
 galaxies with gridded index convolved with a circular Gaussian PSF of sigma 2 px, Gaussian
@@ -90,7 +91,8 @@ def cpu_seconds() -> float:
 
 
 def machine_busy() -> float:
-    """CPU seconds all cores of the machine spent busy since boot (``/proc/stat``); NaN if unknown."""
+    """CPU seconds all cores of the machine spent busy since boot (``/proc/stat``); NaN if
+    unknown."""
     try:
         with open("/proc/stat") as f:
             fields = f.readline().split()
@@ -111,7 +113,8 @@ def timed(func: Job) -> Sample:
 
 
 def run_megalut(config: SimConfig, out: Path, nproc: int, seed: int, engine: str) -> Job:
-    """``simulate(config, out, measure=True, nproc=nproc, engine=engine)`` as a job for :func:`timed`."""
+    """``simulate(config, out, measure=True, nproc=nproc, engine=engine)`` as a job for
+    :func:`timed`."""
 
     def func() -> tuple[int, float, np.ndarray]:
         res = simulate(
@@ -160,7 +163,7 @@ MODES: dict[str, tuple[str | None, int]] = {
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--n-cases", type=int, default=100, help="cases of the scaled-down TP config")
     ap.add_argument("--n-realizations", type=int, default=40, help="realizations per case")
     ap.add_argument(
@@ -246,10 +249,10 @@ def main() -> None:
         "the library call simulate(..., measure=True, nproc=N, engine=E)"
     )
     print(
-        f"- load average (1, 5, 15 min): {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f} "
-        f"at start, {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f} at end; "
-        f"whole benchmark {elapsed:.0f} s, during which other jobs kept {others_all:.2f} of the "
-        f"{os.cpu_count()} cores busy on average"
+        f"- load average (1, 5, 15 min): {load_start[0]:.2f} {load_start[1]:.2f} "
+        f"{load_start[2]:.2f} at start, {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f} at "
+        f"end; whole benchmark {elapsed:.0f} s, during which other jobs kept {others_all:.2f} of "
+        f"the {os.cpu_count()} cores busy on average"
     )
     print()
     print("Median over repeats (min–max in brackets).")
@@ -263,19 +266,21 @@ def main() -> None:
         ss, w = samples[name], MODES[name][1]
         if name.endswith("start-up"):
             print(
-                f"| {name} (2 stamps) | {w} | {med_range([s.wall for s in ss], '.2f')} | — | — | — | — "
-                f"| {med_range([s.cpu / (s.wall * w) for s in ss], '.0%')} "
-                f"| {med_range([s.load1 for s in ss], '.2f')} | {med_range([s.others for s in ss], '.2f')} |"
+                f"| {name} (2 stamps) | {w} | {med_range([s.wall for s in ss], '.2f')} | — | — | "
+                f"— | — | {med_range([s.cpu / (s.wall * w) for s in ss], '.0%')} | "
+                f"{med_range([s.load1 for s in ss], '.2f')} | "
+                f"{med_range([s.others for s in ss], '.2f')} |"
             )
             continue
         rr = [s.n_stamps / s.wall for s in ss]
         phase = [s.n_stamps / s.phase for s in ss if math.isfinite(s.phase) and s.phase > 0]
         print(
-            f"| {name} | {w} | {med_range([s.wall for s in ss], '.2f')} | {med_range(rr, '.0f')} "
-            f"| {med_range([x / w for x in rr], '.0f')} "
-            f"| {med_range(phase, '.0f')} | {med_range([1e3 * s.cpu / s.n_stamps for s in ss], '.3f')} "
-            f"| {med_range([s.cpu / (s.wall * w) for s in ss], '.0%')} "
-            f"| {med_range([s.load1 for s in ss], '.2f')} | {med_range([s.others for s in ss], '.2f')} |"
+            f"| {name} | {w} | {med_range([s.wall for s in ss], '.2f')} | {med_range(rr, '.0f')} | "
+            f"{med_range([x / w for x in rr], '.0f')} | {med_range(phase, '.0f')} | "
+            f"{med_range([1e3 * s.cpu / s.n_stamps for s in ss], '.3f')} | "
+            f"{med_range([s.cpu / (s.wall * w) for s in ss], '.0%')} | "
+            f"{med_range([s.load1 for s in ss], '.2f')} | "
+            f"{med_range([s.others for s in ss], '.2f')} |"
         )
     print()
 
@@ -294,22 +299,28 @@ def main() -> None:
     print("| quantity | median (min–max) over repeats |")
     print("|---|---|")
     print(
-        f"| fast -j 1 / plain loop, stamps/s per core (wall) | {med_range(per_repeat('fast -j 1', 'plain loop'), '.2f')} |"
+        "| fast -j 1 / plain loop, stamps/s per core (wall) | "
+        f"{med_range(per_repeat('fast -j 1', 'plain loop'), '.2f')} |"
     )
     print(
-        f"| fast -j 1 / plain loop, stamps per CPU second | {med_range(per_repeat('fast -j 1', 'plain loop', True), '.2f')} |"
+        "| fast -j 1 / plain loop, stamps per CPU second | "
+        f"{med_range(per_repeat('fast -j 1', 'plain loop', True), '.2f')} |"
     )
     print(
-        f"| fast -j 1 / galsim -j 1, stamps per CPU second | {med_range(per_repeat('fast -j 1', 'galsim -j 1', True), '.2f')} |"
+        "| fast -j 1 / galsim -j 1, stamps per CPU second | "
+        f"{med_range(per_repeat('fast -j 1', 'galsim -j 1', True), '.2f')} |"
     )
     print(
-        f"| galsim -j 1 / plain loop, stamps per CPU second | {med_range(per_repeat('galsim -j 1', 'plain loop', True), '.2f')} |"
+        "| galsim -j 1 / plain loop, stamps per CPU second | "
+        f"{med_range(per_repeat('galsim -j 1', 'plain loop', True), '.2f')} |"
     )
     print(
-        f"| speed-up fast -j 1 -> -j 2 (wall, as measured) | {med_range(per_repeat('fast -j 2', 'fast -j 1'), '.2f')} |"
+        "| speed-up fast -j 1 -> -j 2 (wall, as measured) | "
+        f"{med_range(per_repeat('fast -j 2', 'fast -j 1'), '.2f')} |"
     )
     print(
-        f"| -j 2 fixed start-up (spawn 2 workers, imports, numba cache), s | {med_range(su, '.2f')} |"
+        "| -j 2 fixed start-up (spawn 2 workers, imports, numba cache), s | "
+        f"{med_range(su, '.2f')} |"
     )
     print(
         f"| speed-up fast -j 1 -> -j 2 net of that start-up (derived) | {med_range(net, '.2f')} |"

@@ -61,7 +61,8 @@ def run(cmd: Sequence[str], env: dict[str, str]) -> tuple[float, float]:
 def compare(
     title: str, commands: dict[str, tuple[list[str], dict[str, str]]], repeats: int
 ) -> None:
-    """Run ``commands`` in turn ``repeats`` times after a warm-up; print medians and ratios to the first."""
+    """Run ``commands`` in turn ``repeats`` times after a warm-up; print medians and ratios to
+    the first."""
     for cmd, env in commands.values():
         run(cmd, env)
     times: dict[str, list[tuple[float, float]]] = {name: [] for name in commands}

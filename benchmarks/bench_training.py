@@ -181,9 +181,10 @@ def bench_training(
             row[f"final_{dtype}"] = an.valid_cost
         rows.append(row)
         print(
-            f"  member {k}: target MSB {target:.4e} (FD best at iteration {fd.best_iter}, {t_fd:.2f} s); "
-            f"analytic float64 reached it at iteration {row['iter_float64']} in {row['t_float64']:.3f} s, "
-            f"float32 at {row['iter_float32']} in {row['t_float32']:.3f} s",
+            f"  member {k}: target MSB {target:.4e} (FD best at iteration {fd.best_iter}, "
+            f"{t_fd:.2f} s); analytic float64 reached it at iteration {row['iter_float64']} in "
+            f"{row['t_float64']:.3f} s, float32 at {row['iter_float32']} in "
+            f"{row['t_float32']:.3f} s",
             flush=True,
         )
     return rows
@@ -300,7 +301,8 @@ def bench_cli(
         hit = np.flatnonzero(an.history[:, 1] <= target * (1 + 1e-12))
         needed[p] = int(hit[0]) + 1 if len(hit) else fd_iterations * MAX_FACTOR
     print(
-        f"  FD baseline: best validation MSB {target:.4e} at iteration {fd.best_iter}; the command reaches it at "
+        f"  FD baseline: best validation MSB {target:.4e} at iteration {fd.best_iter}; "
+        "the command reaches it at "
         + ", ".join(f"iteration {needed[p]} ({p or 'float64, default'})" for p in precisions),
         flush=True,
     )
@@ -325,12 +327,15 @@ def bench_cli(
                 wall, cpu = _run_cli(tp, vp, out, needed[p], p, trees[t])
                 reached = ShearModel.load(out).point["tru_g1"].members[0].valid_cost
                 cli[p, t].append((wall, cpu, reached))
-                line += f"; CLI{t} {p or 'float64'} {wall:.2f} s (CPU {cpu:.2f} s, valid MSB {reached:.4e})"
+                line += (
+                    f"; CLI{t} {p or 'float64'} {wall:.2f} s "
+                    f"(CPU {cpu:.2f} s, valid MSB {reached:.4e})"
+                )
             print(line, flush=True)
     med_fd, med_cpu_fd = float(np.median(t_fd)), float(np.median(cpu_fd))
     print(
-        f"  FD baseline to its best validation MSB (in-process, training loop only): wall {med_fd:.2f} s, "
-        f"CPU {med_cpu_fd:.2f} s (medians of {repeat})"
+        "  FD baseline to its best validation MSB (in-process, training loop only): "
+        f"wall {med_fd:.2f} s, CPU {med_cpu_fd:.2f} s (medians of {repeat})"
     )
     for p, t in runs:
         wall = float(np.median([c[0] for c in cli[p, t]]))
@@ -342,9 +347,9 @@ def bench_cli(
             else f"NOT reached ({reached / target - 1:+.1%})"
         )
         print(
-            f"  train-point{t} --iterations {needed[p]}, precision {p or 'float64 (default)'}: whole process wall "
-            f"{wall:.2f} s, CPU {cpu:.2f} s -> {med_fd / wall:.1f}x (wall), {med_cpu_fd / cpu:.1f}x (CPU); "
-            f"baseline's validation MSB {ok}"
+            f"  train-point{t} --iterations {needed[p]}, precision {p or 'float64 (default)'}: "
+            f"whole process wall {wall:.2f} s, CPU {cpu:.2f} s -> {med_fd / wall:.1f}x (wall), "
+            f"{med_cpu_fd / cpu:.1f}x (CPU); baseline's validation MSB {ok}"
         )
 
 
@@ -388,7 +393,8 @@ def main() -> None:
         "--tree",
         default=None,
         metavar="DIR",
-        help="3. also runs the command of this source tree (e.g. a git worktree of HEAD), alternating",
+        help="3. also runs the command of this source tree (e.g. a git worktree of HEAD), "
+        "alternating",
     )
     args = ap.parse_args()
     ev_cases, ev_rea, repeat = (50, 2000, 3) if args.quick else (500, 2000, 7)
@@ -402,14 +408,15 @@ def main() -> None:
     )
     if args.cli:
         print(
-            f"\n3. the whole train-point command, one member, {tr_cases} cases x {tr_rea} realizations "
-            f"(validation catalog {max(2, tr_cases // 5)} cases), batches 25% x 30 iterations, "
-            f"{fd_iter} iterations (CLI and FD baseline)"
+            f"\n3. the whole train-point command, one member, {tr_cases} cases x {tr_rea} "
+            f"realizations (validation catalog {max(2, tr_cases // 5)} cases), "
+            f"batches 25% x 30 iterations, {fd_iter} iterations (CLI and FD baseline)"
         )
         bench_cli(tr_cases, tr_rea, fd_iter, args.repeat, args.tree)
         return
     print(
-        f"\n1. one MSB evaluation, 5-5-1 network, {ev_cases} cases x {ev_rea} realizations x 5 features"
+        f"\n1. one MSB evaluation, 5-5-1 network, {ev_cases} cases x {ev_rea} realizations "
+        "x 5 features"
     )
     ev = bench_evaluation(ev_cases, ev_rea, repeat)
     print(f"  rows {ev['rows']}, parameters {ev['params']} (best of {repeat})")
@@ -418,24 +425,27 @@ def main() -> None:
     print(f"  cost + analytic gradient (float32):    {ev['grad32'] * 1e3:8.1f} ms")
     print(
         f"  cost + finite-difference gradient:     {ev['fd_grad'] * 1e3:8.1f} ms "
-        f"({ev['fd_grad'] / ev['grad64']:.0f}x float64, {ev['fd_grad'] / ev['grad32']:.0f}x float32)"
+        f"({ev['fd_grad'] / ev['grad64']:.0f}x float64, "
+        f"{ev['fd_grad'] / ev['grad32']:.0f}x float32)"
     )
     print(f"  max |FD - analytic| / max |analytic|:  {ev['fd_rel_err']:.1e}")
     orig_fd = ev["original_style"] * (ev["params"] + 1)
     print(
-        f"  original-style cost (masked 3-D arrays): {ev['original_style'] * 1e3:6.1f} ms; its FD gradient "
-        f"would take ~{orig_fd:.1f} s ({orig_fd / ev['grad64']:.0f}x float64, {orig_fd / ev['grad32']:.0f}x float32)"
+        f"  original-style cost (masked 3-D arrays): {ev['original_style'] * 1e3:6.1f} ms; "
+        f"its FD gradient would take ~{orig_fd:.1f} s ({orig_fd / ev['grad64']:.0f}x float64, "
+        f"{orig_fd / ev['grad32']:.0f}x float32)"
     )
 
     rate = bench_predict(1_000_000, repeat)
     print(
-        f"\n  Committee.predict, two 8-member (4 kept) 5-5-1 committees: {rate / 1e6:.2f} million rows/s (one core)"
+        "\n  Committee.predict, two 8-member (4 kept) 5-5-1 committees: "
+        f"{rate / 1e6:.2f} million rows/s (one core)"
     )
 
     print(
-        f"\n2. training to a validation MSB: {members} members, {tr_cases} cases x {tr_rea} realizations "
-        f"(validation {max(2, tr_cases // 5)} cases), batches 25% x 30 iterations, FD baseline "
-        f"{fd_iter} iterations per member"
+        f"\n2. training to a validation MSB: {members} members, {tr_cases} cases x {tr_rea} "
+        f"realizations (validation {max(2, tr_cases // 5)} cases), batches 25% x 30 iterations, "
+        f"FD baseline {fd_iter} iterations per member"
     )
     rows = bench_training(tr_cases, tr_rea, members, fd_iter, max_factor=MAX_FACTOR)
     t_fd = sum(r["t_fd"] for r in rows)
@@ -446,12 +456,14 @@ def main() -> None:
         cpu_an = sum(r[f"cpu_{dtype}"] for r in rows)
         if reached:
             print(
-                f"  committee ({dtype}): wall FD baseline {t_fd:.1f} s, analytic {t_an:.2f} s -> {t_fd / t_an:.0f}x faster; "
+                f"  committee ({dtype}): wall FD baseline {t_fd:.1f} s, "
+                f"analytic {t_an:.2f} s -> {t_fd / t_an:.0f}x faster; "
                 f"CPU {cpu_fd:.1f} s vs {cpu_an:.2f} s -> {cpu_fd / cpu_an:.0f}x"
             )
         else:
             print(
-                f"  committee ({dtype}): not every member reached its target within {MAX_FACTOR}x the iterations"
+                f"  committee ({dtype}): not every member reached its target within {MAX_FACTOR}x "
+                "the iterations"
             )
 
 

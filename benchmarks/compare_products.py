@@ -1,4 +1,5 @@
-"""Products comparison: does a refactoring or a speed change leave every command's outputs identical?
+"""Products comparison: does a refactoring or a speed change leave every command's outputs
+identical?
 
 Runs one fixed, small workflow (every subcommand and its main modes: ``simulate`` with the fast
 engine, the galsim engine, a stamp grid and metacal; ``measure`` plain, ``--psf`` and
@@ -85,7 +86,8 @@ simulation = {structure = {per_realization = ["galaxy"], snc = "pairs"}}
 n_cases = 40
 n_realizations = 2
 seed = 4
-simulation = {structure = {per_realization = [], snc = "none"}, noise = {sigma = 0.1}, shear = {g1 = {type = "constant", value = 0.0}, g2 = {type = "constant", value = 0.0}}}
+simulation = {structure = {per_realization = [], snc = "none"}, noise = {sigma = 0.1}, \
+shear = {g1 = {type = "constant", value = 0.0}, g2 = {type = "constant", value = 0.0}}}
 
 [sets.vp]
 simulation = {structure = {per_realization = ["angle"], snc = "ring"}}
@@ -383,10 +385,10 @@ def _environment(tree: Tree, cache: Path) -> dict[str, str]:
         {
             "PYTHONPATH": str(tree.path),
             "MEGALUT_CACHE": str(cache / "megalut"),
-            "NUMBA_CACHE_DIR": str(
-                cache / "numba"
-            ),  # both trees compile their kernels cold: fair times
-            "SOURCE_DATE_EPOCH": "1700000000",  # same DATE cards where honoured (they are ignored anyway)
+            # both trees compile their kernels cold: fair times
+            "NUMBA_CACHE_DIR": str(cache / "numba"),
+            # same DATE cards where honoured (they are ignored anyway)
+            "SOURCE_DATE_EPOCH": "1700000000",
             "OMP_NUM_THREADS": "1",
             "OPENBLAS_NUM_THREADS": "1",
             "MKL_NUM_THREADS": "1",
@@ -754,10 +756,16 @@ def _make_tree(label: str, ref: str | None, root: Path) -> Tree:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        description="Run one small workflow of every megalut subcommand in two source trees and check that "
-        "every product is identical (FITS, HDF5, JSON, text; provenance cards such as dates, "
-        "versions and model uuids/sha256 excepted). Exit 0: all identical; 1: some differ.",
-        epilog="Example: python benchmarks/compare_products.py --before HEAD  (HEAD against the working tree)",
+        description=(
+            "Run one small workflow of every megalut subcommand in two source trees and check "
+            "that every product is identical (FITS, HDF5, JSON, text; provenance cards such as "
+            "dates, versions and model uuids/sha256 excepted). Exit 0: all identical; 1: some "
+            "differ."
+        ),
+        epilog=(
+            "Example: python benchmarks/compare_products.py --before HEAD  "
+            "(HEAD against the working tree)"
+        ),
     )
     parser.add_argument(
         "--before",

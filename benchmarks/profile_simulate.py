@@ -55,7 +55,8 @@ def main() -> None:
     }
     parts["rest (Python, geometry, catalog)"] = total - sum(parts.values())
     print(
-        f"simulate --measure, {n} fiducial stamps, -j 1, under cProfile: {total / n * 1e3:.3f} CPU ms/stamp"
+        f"simulate --measure, {n} fiducial stamps, -j 1, under cProfile: "
+        f"{total / n * 1e3:.3f} CPU ms/stamp"
     )
     for name, seconds in parts.items():
         print(f"  {name:<34} {seconds / n * 1e3:7.3f} ms/stamp  {seconds / total:6.1%}")

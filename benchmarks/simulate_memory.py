@@ -21,8 +21,9 @@ import tempfile
 CHILD = """
 import json, resource, sys
 from megalut_cli.cli import main
-sys.argv = ["megalut", "-q", "simulate", "examples/fiducial/tp.toml", "-o", sys.argv[1], "--n-cases", sys.argv[2],
-            "--n-realizations", "1000", "--seed", "1", "-j", "1", "--overwrite"] + sys.argv[3:]
+sys.argv = ["megalut", "-q", "simulate", "examples/fiducial/tp.toml", "-o", sys.argv[1],
+            "--n-cases", sys.argv[2], "--n-realizations", "1000", "--seed", "1", "-j", "1",
+            "--overwrite"] + sys.argv[3:]
 try:
     main()
 except SystemExit as e:

@@ -39,7 +39,8 @@ def main() -> None:
         for comp in ("g1", "g2"):
             fit = result[scheme][comp]
             print(
-                f"{scheme:10s} {comp}: m = {fit['m']:+.2e} ± {fit['m_err']:.1e}, c = {fit['c']:+.2e} ± {fit['c_err']:.1e}"
+                f"{scheme:10s} {comp}: m = {fit['m']:+.2e} ± {fit['m_err']:.1e}, "
+                f"c = {fit['c']:+.2e} ± {fit['c_err']:.1e}"
             )
 
 

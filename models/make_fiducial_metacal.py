@@ -22,7 +22,8 @@ if __name__ == "__main__":
         "the networks of fiducial.h5 applied to the metacal versions' features "
         "and calibrated by their response (docs/metacal.md)",
     )
-    # fiducial.h5's domain is that of plain features: models/record_domain.py records the noshear one
+    # fiducial.h5's domain is that of plain features: models/record_domain.py records the
+    # noshear one
     model.provenance.pop("domain", None)
     model.save(ROOT / "megalut_cli/data/fiducial-metacal.h5", overwrite=True)
     print(f"wrote megalut_cli/data/fiducial-metacal.h5 (sha256 {model.sha256})")

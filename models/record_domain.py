@@ -1,4 +1,5 @@
-"""Record the domain of the shipped models (megalut_cli/data/*.h5), whose training catalogs are gone.
+"""Record the domain of the shipped models (megalut_cli/data/*.h5), whose training catalogs are
+gone.
 
 A model trained today records the quantiles of skymad, snr, adamom_sigma, adamom_flux (and
 psf_adamom_sigma when present) over its training rows, and its stamp size (``/provenance``
@@ -135,7 +136,8 @@ def record(name: str) -> None:
 
     update_provenance(path, change)
     print(
-        f"{name}: {domain_summary(domain)} ({domain['n_rows']} usable rows); sha256 {sha256_file(path)}"
+        f"{name}: {domain_summary(domain)} ({domain['n_rows']} usable rows); "
+        f"sha256 {sha256_file(path)}"
     )
 
 

@@ -124,7 +124,8 @@ def _plot(path: Path, noisy: dict, dd: np.ndarray, grid: np.ndarray, curves: dic
     ax2.set_ylabel(r"bias $\langle\hat\theta\rangle - \theta$")
     ax2.legend(fontsize=8)
     fig.suptitle(
-        "Appendix A of Tewes et al. (2019) reproduced with megalut (1-5-1 networks, committees of 8)"
+        "Appendix A of Tewes et al. (2019) reproduced with megalut (1-5-1 networks, "
+        "committees of 8)"
     )
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -50,8 +50,9 @@ def main(workdir: Path) -> None:
                 f"{' '.join(f'{v:+.2e}' for v in m[:, i])}"
             )
             print(
-                f"{'':10s} {comp}: scatter {m[:, i].std(ddof=1):.1e}, mean bootstrap error {err[:, i].mean():.1e}; "
-                f"all {N_GROUPS * GROUP} shears: m = {whole[scheme][comp]['m']:+.2e} ± {whole[scheme][comp]['m_err']:.1e}"
+                f"{'':10s} {comp}: scatter {m[:, i].std(ddof=1):.1e}, "
+                f"mean bootstrap error {err[:, i].mean():.1e}; all {N_GROUPS * GROUP} shears: "
+                f"m = {whole[scheme][comp]['m']:+.2e} ± {whole[scheme][comp]['m_err']:.1e}"
             )
 
 

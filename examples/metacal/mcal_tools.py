@@ -1,14 +1,20 @@
 """Helpers of the metacal real-vs-twin experiments (issue 23; see README.md).
 
-    python mcal_tools.py merge OUT.fits S0.fits S1.fits ...   # shear runs -> one catalog, case = run
+    python mcal_tools.py merge OUT.fits S0.fits S1.fits ...   # shear runs -> one catalog, \
+case = run
     python mcal_tools.py adamom OUT.fits SIM.fits              # (b): metacal on adaptive moments
-    python mcal_tools.py plain OUT.fits SIM.fits               # (c): the plain features of the same stamps
-    python mcal_tools.py concat OUT.fits A.fits B.fits ...     # merged runs of other seeds: more rings
-    python mcal_tools.py subset OUT.fits IN.fits CONFIG.toml   # the rows of the galaxies of CONFIG's index
-    python mcal_tools.py paired OUT.json REAL.fits TWIN.fits [N_BOOT] [SEED]  # --twin, weights with R_sel
+    python mcal_tools.py plain OUT.fits SIM.fits               # (c): the plain features of the \
+same stamps
+    python mcal_tools.py concat OUT.fits A.fits B.fits ...     # merged runs of other seeds: \
+more rings
+    python mcal_tools.py subset OUT.fits IN.fits CONFIG.toml   # the rows of the galaxies of \
+CONFIG's index
+    python mcal_tools.py paired OUT.json REAL.fits TWIN.fits [N_BOOT] [SEED]  # --twin, \
+weights with R_sel
     python mcal_tools.py table RESULTS.json ...                # the README tables from --json files
     python mcal_tools.py responses SHEARS.fits ...             # mean and scatter of the responses
-    python mcal_tools.py failures SHEARS.fits ... [--groups 2]  # failures as a selection (bootstrap)
+    python mcal_tools.py failures SHEARS.fits ... [--groups 2]  # failures as a selection \
+(bootstrap)
 
 ``merge``: the shear runs of one config and seed (each a constant shear, every other draw
 identical: common random numbers) become the cases of one catalog: ``case`` = the run's
@@ -137,7 +143,8 @@ def plain(out: str, path: str) -> None:
         extra_hdus=read_carried_hdus(path),
     )
     print(
-        f"{out}: {len(t)} rows, {len(cols)} of {len(t.colnames)} columns (metacal columns and cards dropped)"
+        f"{out}: {len(t)} rows, {len(cols)} of {len(t.colnames)} columns (metacal columns and "
+        "cards dropped)"
     )
 
 
@@ -183,7 +190,8 @@ def subset(out: str, path: str, config: str) -> None:
         extra_hdus=read_carried_hdus(path),
     )
     print(
-        f"{out}: {int(keep.sum())} of {len(t)} rows ({len(set(np.asarray(t['tru_real_index'])[keep]))} galaxies of {config})"
+        f"{out}: {int(keep.sum())} of {len(t)} rows "
+        f"({len(set(np.asarray(t['tru_real_index'])[keep]))} galaxies of {config})"
     )
 
 
@@ -295,7 +303,8 @@ def responses(paths: list[str]) -> None:
     response and the effective scatter sqrt(N sum w^2 (R - <R>)^2) / sum w that sets the
     error of <R> (the error on m of a common-random-number set, whose shears share it)."""
     print(
-        "| catalog | rows | <R11> | sd R11 | <R22> | sd R22 | sd g1 | weighted <R11> | eff. sd R11 | weighted <R22> | eff. sd R22 |"
+        "| catalog | rows | <R11> | sd R11 | <R22> | sd R22 | sd g1 | weighted <R11> | "
+        "eff. sd R11 | weighted <R22> | eff. sd R22 |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for p in paths:
@@ -407,7 +416,8 @@ def failures(paths: list[str], groups: int = 2, n_boot: int = 200, seed: int = 1
     """m of evaluate's estimator and of the version-selected one, and their difference, with
     a paired bootstrap over galaxy groups (units of 1e-3)."""
     print(
-        "| catalog | scheme | measured (noshear / every version) | m evaluate | m version-selected | difference |"
+        "| catalog | scheme | measured (noshear / every version) | m evaluate | "
+        "m version-selected | difference |"
     )
     print("|---|---|---|---|---|---|")
     for p in paths:
@@ -432,7 +442,8 @@ def failures(paths: list[str], groups: int = 2, n_boot: int = 200, seed: int = 1
 
             print(
                 f"| {p.rsplit('/', 1)[-1]} | {'weighted' if weighted else 'unweighted'} | "
-                f"{frac[0]:.4f} / {frac[1]:.4f} | {cell(m[:, 0])} | {cell(m[:, 1])} | {cell(m[:, 1] - m[:, 0])} |"
+                f"{frac[0]:.4f} / {frac[1]:.4f} | {cell(m[:, 0])} | {cell(m[:, 1])} | "
+                f"{cell(m[:, 1] - m[:, 0])} |"
             )
 
 
@@ -440,7 +451,8 @@ def table(paths: list[str]) -> None:
     """One row per JSON file (megalut evaluate --twin --json) and scheme: m in units of
     1e-3, c in units of 1e-4."""
     print(
-        "| run | scheme | comp | m_real (1e-3) | m_twin (1e-3) | m_real − m_twin (1e-3) | c_real (1e-4) | c_twin (1e-4) | c_real − c_twin (1e-4) | galaxies |"
+        "| run | scheme | comp | m_real (1e-3) | m_twin (1e-3) | m_real − m_twin (1e-3) | "
+        "c_real (1e-4) | c_twin (1e-4) | c_real − c_twin (1e-4) | galaxies |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for p in paths:
@@ -448,9 +460,11 @@ def table(paths: list[str]) -> None:
         for scheme, comps in res["overall"].items():
             for comp, r in comps.items():
                 print(
-                    f"| {p.rsplit('/', 1)[-1].removesuffix('.json')} | {scheme} | {comp} | {_f(r['m_a'], r['m_a_err'])} | "
-                    f"{_f(r['m_b'], r['m_b_err'])} | {_f(r['dm'], r['dm_err'])} | {_f(r['c_a'], r['c_a_err'], 1e4)} | "
-                    f"{_f(r['c_b'], r['c_b_err'], 1e4)} | {_f(r['dc'], r['dc_err'], 1e4)} | {r['n_galaxies']} |"
+                    f"| {p.rsplit('/', 1)[-1].removesuffix('.json')} | {scheme} | {comp} | "
+                    f"{_f(r['m_a'], r['m_a_err'])} | {_f(r['m_b'], r['m_b_err'])} | "
+                    f"{_f(r['dm'], r['dm_err'])} | {_f(r['c_a'], r['c_a_err'], 1e4)} | "
+                    f"{_f(r['c_b'], r['c_b_err'], 1e4)} | {_f(r['dc'], r['dc_err'], 1e4)} | "
+                    f"{r['n_galaxies']} |"
                 )
 
 

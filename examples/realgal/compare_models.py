@@ -115,18 +115,22 @@ def main() -> None:
                     {"ddm_vs_ref": d[0], "ddm_vs_ref_err": d[1:].std(ddof=1)}
                 )
     print(
-        f"{len(galaxies)} galaxies x {len(cases)} shears; errors: {args.bootstrap} bootstrap resamples of the galaxies, shared by all models"
+        f"{len(galaxies)} galaxies x {len(cases)} shears; errors: {args.bootstrap} bootstrap "
+        "resamples of the galaxies, shared by all models"
     )
     print(
-        f"{'model':28s} {'scheme':10s} {'comp':4s} {'m_real':>18s} {'m_twin':>18s} {'m_real - m_twin':>18s} {'change vs ' + ref:>22s}"
+        f"{'model':28s} {'scheme':10s} {'comp':4s} {'m_real':>18s} {'m_twin':>18s} "
+        f"{'m_real - m_twin':>18s} {'change vs ' + ref:>22s}"
     )
     for name in names:
         for scheme in ("unweighted", "weighted"):
             for comp in (1, 2):
                 r = result["models"][name][f"{scheme}_g{comp}"]
                 print(
-                    f"{name:28s} {scheme:10s} g{comp:<3d} {r['m_real']:+9.2e} ± {r['m_real_err']:.1e} {r['m_twin']:+9.2e} ± {r['m_twin_err']:.1e}"
-                    f" {r['dm']:+9.2e} ± {r['dm_err']:.1e} {r['ddm_vs_ref']:+11.2e} ± {r['ddm_vs_ref_err']:.1e}"
+                    f"{name:28s} {scheme:10s} g{comp:<3d} {r['m_real']:+9.2e} ± "
+                    f"{r['m_real_err']:.1e} {r['m_twin']:+9.2e} ± {r['m_twin_err']:.1e} "
+                    f"{r['dm']:+9.2e} ± {r['dm_err']:.1e} {r['ddm_vs_ref']:+11.2e} ± "
+                    f"{r['ddm_vs_ref_err']:.1e}"
                 )
     if args.json:
         with open(args.json, "w") as f:

@@ -1,7 +1,8 @@
 """Record a paired real-vs-twin result (``megalut evaluate --twin --json``) in a model file.
 
     python examples/realgal/record_bias.py models/fiducial.h5 paired.json \
-        "fiducial resolution: Gaussian PSF sigma 2 px, 0.06\"/px, noise sigma 1 + symmetrized HST noise" \
+        "fiducial resolution: Gaussian PSF sigma 2 px, 0.06\"/px, noise sigma 1 + symmetrized \
+HST noise" \
         "megalut evaluate real-shears.fits --twin twin-shears.fits ..."
 
 Stores the weighted m_real - m_twin (unweighted when the catalogs had no weights) as the

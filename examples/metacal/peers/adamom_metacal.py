@@ -57,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     r = np.nanmean(cols["mcal_r11"]), np.nanmean(cols["mcal_r22"])
     print(
-        f"adamom metacal: <R11> = {r[0]:.4f}, <R22> = {r[1]:.4f} (all rows, NaN left out); wrote {a.output}",
+        f"adamom metacal: <R11> = {r[0]:.4f}, <R22> = {r[1]:.4f} (all rows, NaN left out); "
+        f"wrote {a.output}",
         file=sys.stderr,
     )
     return 0

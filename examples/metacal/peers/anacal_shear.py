@@ -1,8 +1,8 @@
 """AnaCal (FPFS shear with its analytic response; Li & Mandelbaum) on megalut's stamps.
 
-    python examples/metacal/peers/anacal_shear.py STAMPS.fits MEASURED.fits --psf PSF.fits -o OUT.fits
-        [--sigma-shapelets 4.0] [--c0-factor 4] [--noise-sigma S] [--centre adamom|stamp|truth]
-        [--no-noise-array] [--seed 5] [--chunk 256] [--overwrite]
+    python examples/metacal/peers/anacal_shear.py STAMPS.fits MEASURED.fits --psf PSF.fits
+        -o OUT.fits [--sigma-shapelets 4.0] [--c0-factor 4] [--noise-sigma S]
+        [--centre adamom|stamp|truth] [--no-noise-array] [--seed 5] [--chunk 256] [--overwrite]
 
 STAMPS is a megalut stamp image (`megalut simulate --stamps`), MEASURED the catalog of
 `megalut measure STAMPS CATALOG` (plain): its stamp centres `x, y` locate the stamps, its
@@ -201,9 +201,10 @@ def main(argv: list[str] | None = None) -> int:
     cfg.c0 = a.c0_factor * std_m00
     mag_zero = anacal.task.THRESHOLD_REF_MAG_ZERO  # c0 is then used as given (ratio 1)
     print(
-        f"anacal {anacal.__version__}: {n} stamps of {size} px, kernel sigma {a.sigma_shapelets} px, "
-        f"noise sigma {sigma:.4g}, std(m00) {std_m00:.4g}, c0 = {a.c0_factor} x std(m00) = {cfg.c0:.4g}, "
-        f"centre {a.centre} ({int((~ok).sum())} at the stamp centre), noise image {not a.no_noise_array}",
+        f"anacal {anacal.__version__}: {n} stamps of {size} px, kernel sigma {a.sigma_shapelets} "
+        f"px, noise sigma {sigma:.4g}, std(m00) {std_m00:.4g}, c0 = {a.c0_factor} x std(m00) = "
+        f"{cfg.c0:.4g}, centre {a.centre} ({int((~ok).sum())} at the stamp centre), "
+        f"noise image {not a.no_noise_array}",
         file=sys.stderr,
     )
 
@@ -298,9 +299,10 @@ def main(argv: list[str] | None = None) -> int:
         history=history,
     )
     print(
-        f"anacal: <R11> = {r11:.4f}, <R22> = {r22:.4f}, {int(bad.sum())} non-finite; CPU {cpu_anacal:.2f} s in AnaCal "
-        f"({1e3 * per_gal:.3f} ms per galaxy), {time.process_time() - t_cpu:.2f} s CPU and "
-        f"{time.time() - t_wall:.2f} s wall in all; wrote {a.output}",
+        f"anacal: <R11> = {r11:.4f}, <R22> = {r22:.4f}, {int(bad.sum())} non-finite; "
+        f"CPU {cpu_anacal:.2f} s in AnaCal ({1e3 * per_gal:.3f} ms per galaxy), "
+        f"{time.process_time() - t_cpu:.2f} s CPU and {time.time() - t_wall:.2f} s wall in all; "
+        f"wrote {a.output}",
         file=sys.stderr,
     )
     return 0

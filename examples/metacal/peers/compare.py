@@ -172,8 +172,9 @@ def main(argv=None) -> int:
                 boot[key].append([f[1][0], f[2][0]])
         boot = {key: np.array(v) for key, v in boot.items()}
         print(
-            f"## Set A: m of each estimator minus m of AnaCal, same stamps (per cent; shared bootstrap over "
-            f"{ng} galaxy pairs, {a.bootstrap} resamples; point values equal megalut evaluate's)\n"
+            "## Set A: m of each estimator minus m of AnaCal, same stamps (per cent; "
+            f"shared bootstrap over {ng} galaxy pairs, {a.bootstrap} resamples; "
+            "point values equal megalut evaluate's)\n"
         )
         print("| estimator | m1 | m2 | m1 − m1(AnaCal) | m2 − m2(AnaCal) |")
         print("|---|---|---|---|---|")
@@ -232,8 +233,9 @@ def main(argv=None) -> int:
             return p, boot[key_real] - boot[key_twin]
 
         print(
-            f"## Set B: m_real, m_twin and m_real − m_twin (per cent; paired bootstrap over the {ng} galaxies, "
-            f"{a.bootstrap} resamples, shared by all estimators; definitions of the single-set megalut evaluate)\n"
+            "## Set B: m_real, m_twin and m_real − m_twin (per cent; paired bootstrap over the "
+            f"{ng} galaxies, {a.bootstrap} resamples, shared by all estimators; "
+            "definitions of the single-set megalut evaluate)\n"
         )
         print("| estimator | m_real g1 / g2 | m_twin g1 / g2 | m_real − m_twin g1 / g2 |")
         print("|---|---|---|---|")
@@ -270,7 +272,8 @@ def main(argv=None) -> int:
                     pr, br = val(("anacal", "unweighted", which))
                 dp, de = p - pr, (b - br).std(axis=0)
                 cells.append(
-                    f"{100 * dp[0]:+.1f} ± {100 * de[0]:.1f} / {100 * dp[1]:+.1f} ± {100 * de[1]:.1f}"
+                    f"{100 * dp[0]:+.1f} ± {100 * de[0]:.1f} / {100 * dp[1]:+.1f} ± "
+                    f"{100 * de[1]:.1f}"
                 )
             print(f"| {label} | " + " | ".join(cells) + " |")
         print()

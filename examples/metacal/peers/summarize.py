@@ -154,13 +154,16 @@ def main(argv=None) -> int:
     # ---------------------------------------------------------------- set A
     if os.path.exists(os.path.join(W, "A-sc.json")):
         print(
-            "## Set A: Sérsic, common random numbers (4 shears x 5000 galaxy pairs = 40 000 stamps)\n"
+            "## Set A: Sérsic, common random numbers (4 shears x 5000 galaxy pairs = "
+            "40 000 stamps)\n"
         )
         print(
-            "m, c in per cent (c in 1e-4 below); errors: bootstrap over galaxy pairs (megalut evaluate, 500 resamples)\n"
+            "m, c in per cent (c in 1e-4 below); errors: bootstrap over galaxy pairs (megalut "
+            "evaluate, 500 resamples)\n"
         )
         print(
-            "| estimator | scheme | m1 | m2 | c1 (1e-4) | c2 (1e-4) | <R11>, <R22> | rows used | sigma_g per galaxy | n_eff / n_eff(1) |"
+            "| estimator | scheme | m1 | m2 | c1 (1e-4) | c2 (1e-4) | <R11>, <R22> | rows used | "
+            "sigma_g per galaxy | n_eff / n_eff(1) |"
         )
         print("|---|---|---|---|---|---|---|---|---|---|")
         ref = None
@@ -191,14 +194,17 @@ def main(argv=None) -> int:
                 if ref is None:
                     ref = sg
                 print(
-                    f"| {label} | {scheme} | {pct(f1['m'], f1['m_err'], 2)} | {pct(f2['m'], f2['m_err'], 2)} | "
-                    f"{1e4 * f1['c']:+.1f} ± {1e4 * f1['c_err']:.1f} | {1e4 * f2['c']:+.1f} ± {1e4 * f2['c_err']:.1f} | "
-                    f"{rtxt} | {min(f1['n_rows'], f2['n_rows'])} | {sg:.3f} | {(ref / sg) ** 2:.2f} |"
+                    f"| {label} | {scheme} | {pct(f1['m'], f1['m_err'], 2)} | "
+                    f"{pct(f2['m'], f2['m_err'], 2)} | "
+                    f"{1e4 * f1['c']:+.1f} ± {1e4 * f1['c_err']:.1f} | "
+                    f"{1e4 * f2['c']:+.1f} ± {1e4 * f2['c_err']:.1f} | {rtxt} | "
+                    f"{min(f1['n_rows'], f2['n_rows'])} | {sg:.3f} | {(ref / sg) ** 2:.2f} |"
                 )
         if os.path.exists(os.path.join(W, "A-anacal.fits")):
             own = anacal_own([read_catalog(os.path.join(W, "A-anacal.fits"))], a.bootstrap)
             print(
-                f"\nAnaCal's own estimator (<e>/<R> per case, bootstrap over pairs, {a.bootstrap} resamples): "
+                "\nAnaCal's own estimator (<e>/<R> per case, bootstrap over pairs, "
+                f"{a.bootstrap} resamples): "
                 + ", ".join(
                     f"m{i} = {pct(own[f'g{i}'][0][0], own[f'g{i}'][1][0], 2)} %, "
                     f"c{i} = {1e4 * own[f'g{i}'][2][0]:+.1f} ± {1e4 * own[f'g{i}'][3][0]:.1f} e-4"
@@ -216,7 +222,8 @@ def main(argv=None) -> int:
     ]
     if os.path.exists(os.path.join(W, "A0-anacal.json")):
         print(
-            "### AnaCal diagnostics on set A (m, c in per cent / 1e-4, bootstrap over galaxy pairs)\n"
+            "### AnaCal diagnostics on set A (m, c in per cent / 1e-4, "
+            "bootstrap over galaxy pairs)\n"
         )
         print("| variant | m1 | m2 | c1 (1e-4) | c2 (1e-4) | <R11>, <R22> | sigma_g per galaxy |")
         print("|---|---|---|---|---|---|---|")
@@ -232,21 +239,25 @@ def main(argv=None) -> int:
             )
             print(
                 f"| {label} | {pct(f1['m'], f1['m_err'], 2)} | {pct(f2['m'], f2['m_err'], 2)} | "
-                f"{1e4 * f1['c']:+.1f} ± {1e4 * f1['c_err']:.1f} | {1e4 * f2['c']:+.1f} ± {1e4 * f2['c_err']:.1f} | "
-                f"{resp[0][0]:.4f}, {resp[1][1]:.4f} | {sg:.3f} |"
+                f"{1e4 * f1['c']:+.1f} ± {1e4 * f1['c_err']:.1f} | "
+                f"{1e4 * f2['c']:+.1f} ± {1e4 * f2['c_err']:.1f} | {resp[0][0]:.4f}, "
+                f"{resp[1][1]:.4f} | {sg:.3f} |"
             )
         print()
 
     # ---------------------------------------------------------------- set B
     if os.path.exists(os.path.join(W, "B-sc.json")):
         print(
-            "## Set B: 30 real COSMOS galaxies vs their Sérsic twins (10 shears x 30 galaxies x 90° pairs = 600 stamps per set)\n"
+            "## Set B: 30 real COSMOS galaxies vs their Sérsic twins (10 shears x 30 galaxies x "
+            "90° pairs = 600 stamps per set)\n"
         )
         print(
-            "m in per cent; errors: paired bootstrap over the 30 galaxies (megalut evaluate --twin, 1000 resamples)\n"
+            "m in per cent; errors: paired bootstrap over the 30 galaxies (megalut evaluate "
+            "--twin, 1000 resamples)\n"
         )
         print(
-            "| estimator | scheme | m_real g1 / g2 | m_twin g1 / g2 | m_real − m_twin g1 / g2 | rows real / twin | sigma_g real / twin |"
+            "| estimator | scheme | m_real g1 / g2 | m_twin g1 / g2 | m_real − m_twin g1 / g2 | "
+            "rows real / twin | sigma_g real / twin |"
         )
         print("|---|---|---|---|---|---|---|")
         for est, label in EST:
@@ -259,21 +270,25 @@ def main(argv=None) -> int:
             for scheme, v in d["overall"].items():
                 f1, f2 = v["g1"], v["g2"]
                 try:
-                    sg = f"{sigma_g(creal, est, scheme, None):.3f} / {sigma_g(ctwin, est, scheme, None):.3f}"
+                    sg = (
+                        f"{sigma_g(creal, est, scheme, None):.3f} / "
+                        f"{sigma_g(ctwin, est, scheme, None):.3f}"
+                    )
                 except KeyError:
                     sg = "–"
                 print(
-                    f"| {label} | {scheme} | {pct(f1['m_a'], f1['m_a_err'])} / {pct(f2['m_a'], f2['m_a_err'])} | "
-                    f"{pct(f1['m_b'], f1['m_b_err'])} / {pct(f2['m_b'], f2['m_b_err'])} | "
-                    f"**{pct(f1['dm'], f1['dm_err'])} / {pct(f2['dm'], f2['dm_err'])}** | "
+                    f"| {label} | {scheme} | {pct(f1['m_a'], f1['m_a_err'])} / "
+                    f"{pct(f2['m_a'], f2['m_a_err'])} | {pct(f1['m_b'], f1['m_b_err'])} / "
+                    f"{pct(f2['m_b'], f2['m_b_err'])} | **{pct(f1['dm'], f1['dm_err'])} / "
+                    f"{pct(f2['dm'], f2['dm_err'])}** | "
                     f"{f1['n_rows_a']} / {f1['n_rows_b']} | {sg} |"
                 )
         if os.path.exists(os.path.join(W, "B-real-anacal.fits")):
             cats = [read_catalog(os.path.join(W, f"B-{s}-anacal.fits")) for s in ("real", "twin")]
             own = anacal_own(cats, a.bootstrap)
             print(
-                f"\nAnaCal's own estimator (<e>/<R> per case; bootstrap over the 30 galaxies, pairs of both sets "
-                f"together, {a.bootstrap} resamples): "
+                "\nAnaCal's own estimator (<e>/<R> per case; bootstrap over the 30 galaxies, "
+                f"pairs of both sets together, {a.bootstrap} resamples): "
                 + "; ".join(
                     f"g{i}: m_real {pct(own[f'g{i}'][0][0], own[f'g{i}'][1][0])}, "
                     f"m_twin {pct(own[f'g{i}'][0][1], own[f'g{i}'][1][1])}, "
@@ -317,8 +332,9 @@ def main(argv=None) -> int:
         )
     print("| AnaCal calls only (time.process_time) | " + " | ".join(row) + " |")
     print(
-        "\nPer estimator (simulation excluded): (1) measure + predict; (2) measure-metacal + predict-metacal; "
-        "(3) measure-metacal + adamom-metacal; (4) measure (the centroid) + anacal.\n"
+        "\nPer estimator (simulation excluded): (1) measure + predict; "
+        "(2) measure-metacal + predict-metacal; (3) measure-metacal + adamom-metacal; "
+        "(4) measure (the centroid) + anacal.\n"
     )
     print("| estimator | A ms | B real ms |")
     print("|---|---|---|")
