@@ -7,16 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import one_line as _one_line
 from pipeline_configs import write_pipeline
 from sim_configs import write
 
 from megalut_cli.catalog import write_catalog
-
-
-def _one_line(result) -> str:
-    text = result.stderr.strip()
-    assert "Traceback" not in text and len(text.splitlines()) == 1, text
-    return text
 
 
 @pytest.fixture
