@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 #: Environment variable naming the cache folder; ``none`` (or empty) turns the cache off.
 CACHE_ENV = "MEGALUT_CACHE"

@@ -82,7 +82,7 @@ from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, valida
 from megalut_cli.steps import sha_text
 from megalut_cli.training import TrainOptions
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 #: The embedded default pipeline (package data).
 DEFAULT_PIPELINE = "default_pipeline.toml"

@@ -51,7 +51,7 @@ from megalut_cli.steps import (
     timing_line,
 )
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 #: The sets that ``metacal = true`` measures in metacal mode: all (the networks then train on
 #: the noshear versions' features: a metacal model).

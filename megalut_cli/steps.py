@@ -35,7 +35,7 @@ from megalut_cli.errors import ArgumentError, HintError, MegalutError, braces_es
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.provenance import sha256_file, utc_now
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = "megalut.run-manifest"

@@ -64,7 +64,7 @@ from megalut_cli.progress import Progress, no_progress
 from megalut_cli.provenance import command_line, recorded_path, sha256_file, software_versions
 from megalut_cli.seeding import STREAM_SPLIT, rng_for
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 #: The paper's five input features (Sect. 5.3).
 DEFAULT_FEATURES = list(POINT_OPTION["features"].default)

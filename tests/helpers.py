@@ -1,4 +1,5 @@
-"""Helpers shared by several test modules: synthetic models, catalogs and predictions."""
+"""Helpers shared by several test modules: synthetic models, catalogs and predictions, and
+the checks of a command's result (exit status, one error line) of the command-line tests."""
 
 from __future__ import annotations
 
@@ -208,3 +209,47 @@ def toy_cases(seed: int, nc: int = 60, nr: int = 100) -> CaseData:
     rng = np.random.default_rng(seed)
     cols = appendix_columns(rng.uniform(0.25, 2.0, nc), nr, rng)
     return CaseData.from_padded(cols["d"].reshape(nc, nr, 1), np.ones((nc, nr), bool), cols["tru_theta"][::nr])
+
+
+# Checks of a click ``CliRunner`` result (the ``runner`` fixture keeps stderr apart).
+
+
+def error_text(result) -> str:
+    """What the command wrote to stderr (its whole output where the runner mixes them)."""
+    return result.stderr if result.stderr is not None else result.output
+
+
+def one_line(result) -> str:
+    """The command's stderr, stripped, asserted to be one line and no traceback."""
+    text = error_text(result).strip()
+    assert "Traceback" not in text and len(text.splitlines()) == 1, text
+    return text
+
+
+def assert_ok(result) -> None:
+    """Exit status 0 (else both streams in the failure message)."""
+    assert result.exit_code == 0, (result.output, getattr(result, "stderr", ""))
+
+
+def error_line(result, code: int, *words: str) -> str:
+    """Exit status ``code`` and exactly one line starting with "Error" (log and usage lines
+    aside) that holds each of ``words``; no traceback. Returns that line."""
+    text = (result.stderr or result.output).strip()
+    assert result.exit_code == code, text
+    errors = [ln for ln in text.splitlines() if ln.startswith("Error")]
+    assert "Traceback" not in text and len(errors) == 1, text
+    for w in words:
+        assert w in errors[0], (w, errors[0])
+    return errors[0]
+
+
+def invoke_fails(runner, cli, args, code: int, *words: str) -> str:
+    """``megalut ARGS`` exits with ``code``, without a traceback, and its output and stderr
+    hold each of ``words``. Returns them."""
+    result = runner.invoke(cli, args)
+    assert result.exit_code == code, result.output
+    text = result.output + (result.stderr if hasattr(result, "stderr") else "")
+    assert "Traceback" not in text
+    for w in words:
+        assert w in text, text
+    return text

@@ -10,17 +10,12 @@ import fitsio
 import numpy as np
 import pytest
 from helpers import make_model
+from helpers import one_line as _one_line_error
 
 from megalut_cli import flags
 from megalut_cli.catalog import header_cards, history_steps, write_catalog
 from megalut_cli.columns import describe
 from megalut_cli.provenance import sha256_file
-
-
-def _one_line_error(result) -> str:
-    text = (result.stderr or result.output).strip()
-    assert "Traceback" not in text and len(text.splitlines()) == 1, text
-    return text
 
 
 def _table_header(path):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import galsim
 import numpy as np
 import pytest
+from helpers import invoke_fails as _fails
 
 from megalut_cli.catalog import read_catalog, write_catalog, write_image
 from megalut_cli.measure.features import FEATURE_COLUMNS
@@ -83,16 +84,6 @@ def test_parallel_engines_give_identical_results(runner, cli, data):
     a, b = read_catalog(data / "a.fits"), read_catalog(data / "b.fits")
     for c in a.colnames:
         np.testing.assert_array_equal(np.asarray(a[c]), np.asarray(b[c]))
-
-
-def _fails(runner, cli, args, code, *words):
-    result = runner.invoke(cli, args)
-    assert result.exit_code == code, result.output
-    text = result.output + (result.stderr if hasattr(result, "stderr") else "")
-    assert "Traceback" not in text
-    for w in words:
-        assert w in text, text
-    return text
 
 
 def test_bad_inputs(runner, cli, data):

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 from helpers import FEATURES, features_catalog, make_model, manual_predict
+from helpers import one_line as _one_line_error
 
 from megalut_cli.catalog import read_catalog, write_catalog
 from megalut_cli.nn.model import ShearModel
@@ -20,12 +21,6 @@ def setup(tmp_path):
     d = features_catalog(500)
     write_catalog(src, d, fmt="megalut.features")
     return tmp_path, model, src, d
-
-
-def _one_line_error(result) -> str:
-    text = (result.stderr or result.output).strip()
-    assert "Traceback" not in text and len(text.splitlines()) == 1, text
-    return text
 
 
 def test_help(runner, cli):

@@ -7,16 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import one_line as _one_line
 from pipeline_configs import write_pipeline
 from sim_configs import write
 
 from megalut_cli.catalog import write_catalog
-
-
-def _one_line(result) -> str:
-    text = result.stderr.strip()
-    assert "Traceback" not in text and len(text.splitlines()) == 1, text
-    return text
 
 
 @pytest.fixture
@@ -182,7 +177,7 @@ def test_verbosity_before_and_after_the_subcommand(runner, cli, inputs, tmp_path
     verbose = runner.invoke(cli, [*args, "-v"])
     assert verbose.exit_code == 0 and "simulate: 3/3" in verbose.stderr
     assert logging.getLogger("h5py").getEffectiveLevel() == logging.WARNING
-    assert logging.getLogger("megalut").getEffectiveLevel() == logging.DEBUG
+    assert logging.getLogger("megalut_cli").getEffectiveLevel() == logging.DEBUG
     both = runner.invoke(cli, ["-v", *args, "-v"])  # they add up: -vv
     assert both.exit_code == 0
     assert logging.getLogger("h5py").getEffectiveLevel() == logging.DEBUG
@@ -251,7 +246,7 @@ def test_progress_bar_gets_its_own_line(monkeypatch, capsys):
     monkeypatch.setattr(console, "interactive", lambda: True)
     with console.progress("work", 4) as update:
         update(1)
-        logging.getLogger("megalut").info("hello")
+        logging.getLogger("megalut_cli").info("hello")
         update(3)
     err = capsys.readouterr().err
     assert "\r\x1b[Kmegalut: hello\n" in err and "work" in err
@@ -269,7 +264,8 @@ def test_progress_off_a_terminal_estimates_the_time_left_once(monkeypatch, caplo
     clock = iter([0.0, 5.0, 30.0, 31.0, 32.0, 60.0])
     monkeypatch.setattr(console.time, "perf_counter", lambda: next(clock))
     monkeypatch.setattr(console, "interactive", lambda: False)
-    with caplog.at_level(logging.INFO, logger="megalut"), console.progress("units", 10) as update:
+    with (caplog.at_level(logging.INFO, logger="megalut_cli"),
+          console.progress("units", 10) as update):
         for _ in range(5):
             update(1)
     infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import error_text as _err
 from pipeline_configs import write_pipeline
 
 from megalut_cli.pipeline import default_pipeline_text
@@ -15,13 +16,6 @@ if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
     import tomli as tomllib
-
-
-def _err(result) -> str:
-    try:
-        return result.stderr
-    except ValueError:  # older click: stderr mixed in
-        return result.output
 
 
 def test_help(runner, cli) -> None:

@@ -9,19 +9,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import error_text as _err
+from helpers import one_line as _one_line
 from sim_configs import write as write_sim_config
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _err(result) -> str:
-    return result.stderr if result.stderr is not None else result.output
-
-
-def _one_line(result) -> str:
-    text = _err(result).strip()
-    assert "Traceback" not in text and len(text.splitlines()) == 1, text
-    return text
 
 
 # --------------------------------------------------------------------------- simulate CONFIG errors

@@ -11,6 +11,8 @@ import galsim
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from helpers import error_text as _err
+from helpers import one_line as _one_line
 from sim_configs import write as write_sim_config
 
 from megalut_cli.configfile import tomllib
@@ -45,16 +47,6 @@ sigma = {PSF_SIGMA}
 type = "gaussian"
 sigma = {NOISE_SIGMA}
 """
-
-
-def _err(result) -> str:
-    return result.stderr if result.stderr is not None else result.output
-
-
-def _one_line(result) -> str:
-    text = _err(result).strip()
-    assert "Traceback" not in text and len(text.splitlines()) == 1, text
-    return text
 
 
 def _star_field(path: Path, psf: galsim.GSObject, n: int = 4, size: int = STAMP) -> None:

@@ -14,6 +14,7 @@ from pathlib import Path
 import fitsio
 import numpy as np
 import pytest
+from helpers import assert_ok as _ok
 from sim_configs import TINY, write
 
 from megalut_cli.catalog import read_catalog
@@ -36,10 +37,6 @@ HSM_FLOAT64 = ("adamom_rho4", "adamom_x", "adamom_y")
 #: Correlated noise (GalSim's in both engines): largest pixel difference as a fraction of the
 #: largest noisy pixel. Achieved: 1.1e-7.
 CORRELATED_TOLERANCE = 5e-7
-
-
-def _ok(result) -> None:
-    assert result.exit_code == 0, (result.output, getattr(result, "stderr", ""))
 
 
 def _simulate(runner, cli, cfg: Path, out: Path, engine: str, *extra: str) -> None:

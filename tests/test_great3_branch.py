@@ -11,6 +11,8 @@ import galsim
 import numpy as np
 import pytest
 from helpers import GREAT3_BRANCH as BRANCH
+from helpers import assert_ok as _ok
+from helpers import error_line as _fails
 from sim_configs import write
 
 from megalut_cli import catalog
@@ -18,21 +20,6 @@ from megalut_cli.catalog import read_catalog, read_image, write_catalog, write_i
 from megalut_cli.great3 import layout as L
 
 S = 32
-
-
-def _ok(result):
-    assert result.exit_code == 0, (result.output, getattr(result, "stderr", ""))
-
-
-def _fails(result, code: int, *words: str) -> str:
-    text = (result.stderr or result.output).strip()
-    assert result.exit_code == code, text
-    errors = [ln for ln in text.splitlines() if ln.startswith("Error")]  # log and usage lines aside
-    assert "Traceback" not in text and len(errors) == 1, text
-    text = errors[0]
-    for w in words:
-        assert w in text, (w, text)
-    return text
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,8 @@ import fitsio
 import numpy as np
 import pytest
 from helpers import GREAT3_BRANCH as G3BRANCH
+from helpers import assert_ok as _ok
+from helpers import error_line as _error_line
 
 from megalut_cli import catalog
 from megalut_cli.catalog import read_catalog
@@ -51,20 +53,6 @@ members = 2
 iterations = 5
 hidden = [3]
 """
-
-
-def _ok(result):
-    assert result.exit_code == 0, (result.output, getattr(result, "stderr", ""))
-
-
-def _error_line(result, code: int, *words: str) -> str:
-    text = (result.stderr or result.output).strip()
-    assert result.exit_code == code, text
-    errors = [ln for ln in text.splitlines() if ln.startswith("Error")]
-    assert "Traceback" not in text and len(errors) == 1, text
-    for w in words:
-        assert w in errors[0], (w, errors[0])
-    return errors[0]
 
 
 @pytest.fixture(scope="module")

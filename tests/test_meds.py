@@ -7,6 +7,7 @@ import fitsio
 import galsim
 import numpy as np
 import pytest
+from helpers import invoke_fails as _fails
 from numpy.lib import recfunctions
 
 from megalut_cli import flags as fl
@@ -318,16 +319,6 @@ def test_metacal_on_meds(tmp_path):
 
     with pytest.raises(InputError, match="parity"):
         measure_meds(meds, metacal=True, psf_path=odd_file)
-
-
-def _fails(runner, cli, args, code, *words):
-    result = runner.invoke(cli, args)
-    assert result.exit_code == code, result.output
-    text = result.output + (result.stderr if hasattr(result, "stderr") else "")
-    assert "Traceback" not in text
-    for w in words:
-        assert w in text, text
-    return text
 
 
 def test_cli_contract(runner, cli, grid, tmp_path):

@@ -13,7 +13,9 @@ from pathlib import Path
 
 import click
 import pytest
+from helpers import error_text as _err
 from helpers import make_model, synthetic
+from helpers import one_line as _one_line
 from pipeline_configs import TINY_PIPELINE, write_pipeline
 from sim_configs import write as write_sim_config
 
@@ -21,16 +23,6 @@ from megalut_cli.catalog import write_catalog
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
-
-
-def _err(result) -> str:
-    return result.stderr if result.stderr is not None else result.output
-
-
-def _one_line(result) -> str:
-    text = _err(result).strip()
-    assert "Traceback" not in text and len(text.splitlines()) == 1, text
-    return text
 
 
 def _setup_section() -> str:

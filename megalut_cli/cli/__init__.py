@@ -30,7 +30,7 @@ from megalut_cli.cli.console import (
 from megalut_cli.errors import ArgumentError, HintError, MegalutError, OutputExistsError
 from megalut_cli.provenance import set_command_line
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 #: Exit status after Ctrl-C (128 + SIGINT, as shells report it).
 EXIT_INTERRUPTED = 130

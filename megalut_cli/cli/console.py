@@ -27,8 +27,8 @@ from pathlib import Path
 
 import click
 
-#: Loggers of this package (the CLI's and the library modules').
-OWN_LOGGERS = ("megalut", "megalut_cli")
+#: The package's logger, parent of every module's ``logging.getLogger(__name__)``.
+PACKAGE_LOGGER = "megalut_cli"
 #: The name that stands for stdin (inputs) or stdout (outputs).
 STDIO = "-"
 
@@ -36,7 +36,7 @@ STDIO = "-"
 #: if that took at least this long (the bar shows its own estimate on a terminal).
 ESTIMATE_AFTER_SECONDS = 20.0
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 _bar_shown = False
 #: Temporary files standing for stdin/stdout -> the name a person should read instead.
 _STREAM_NAMES: dict[str, str] = {}
@@ -78,8 +78,7 @@ def setup_logging(verbosity: int) -> None:
             root.removeHandler(handler)
     root.addHandler(BarAwareHandler())
     root.setLevel(level if verbosity >= 2 else max(level, logging.WARNING))
-    for name in OWN_LOGGERS:
-        logging.getLogger(name).setLevel(level)
+    logging.getLogger(PACKAGE_LOGGER).setLevel(level)
     logging.captureWarnings(True)
 
 

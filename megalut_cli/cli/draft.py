@@ -10,7 +10,7 @@ from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.options import output_option, overwrite_option, schema_option
 from megalut_cli.draft import STARS_OPTION
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 
 @click.command("draft", short_help=short_help("draft"))

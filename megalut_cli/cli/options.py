@@ -20,7 +20,7 @@ from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION, resolve_nproc, 
 from megalut_cli.schema import Option
 from megalut_cli.seeding import SEED_OPTION
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 F = Callable[..., Any]
 

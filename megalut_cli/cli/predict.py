@@ -18,6 +18,8 @@ from megalut_cli.cli.options import (
 from megalut_cli.errors import ConfigError
 from megalut_cli.shear.options import PREDICT
 
+log = logging.getLogger(__name__)
+
 
 def parse_column_map(items: tuple[str, ...] | list[str]) -> dict[str, str]:
     """``--col`` values ``["adamom_g1=E1", ...]`` -> ``{"adamom_g1": "E1"}`` (feature -> catalog column)."""
@@ -100,9 +102,9 @@ def command(
             overwrite=overwrite, chunk_rows=chunk_rows, strict=strict, progress=progress,
             names=flag_names(column_map="--col"),
         )
-    logging.getLogger("megalut").info(
+    log.info(
         "wrote %s: %d rows, %s (%d with failed features)",
         "stdout" if output == "-" else report.output, report.n_rows, ", ".join(report.columns), report.n_failed,
     )
     for line in model_report(ShearModel.load(model_path)):  # what the model was trained on
-        logging.getLogger("megalut").info("%s", line)
+        log.info("%s", line)

@@ -12,7 +12,7 @@ import click
 from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.options import execution_options, overwrite_option
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 
 @click.command(

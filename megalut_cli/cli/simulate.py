@@ -18,7 +18,7 @@ from megalut_cli.cli.options import (
 )
 from megalut_cli.sim.options import SIMULATE
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 
 @click.command(

@@ -54,7 +54,7 @@ from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND, GREAT3_SIGMA2_MIN_S
 from megalut_cli.steps import MANIFEST as MANIFEST  # the step engine's manifest.json
 from megalut_cli.steps import sha_text
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 KINDS = ("ground", "space")
 SET_NAMES = ("tp", "tw")

@@ -70,24 +70,22 @@ from megalut_cli.steps import (
 if TYPE_CHECKING:
     from megalut_cli.training import Columns
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 
 @contextlib.contextmanager
 def _quiet() -> Iterator[None]:
     """Hide the INFO lines of the inner steps (kept with -v)."""
-    loggers = [logging.getLogger(n) for n in ("megalut", "megalut_cli")]
-    if logging.getLogger("megalut").getEffectiveLevel() < logging.INFO:
+    package = logging.getLogger("megalut_cli")  # the parent of every module's logger
+    if package.getEffectiveLevel() < logging.INFO:
         yield
         return
-    old = [lg.level for lg in loggers]
-    for lg in loggers:
-        lg.setLevel(logging.WARNING)
+    old = package.level
+    package.setLevel(logging.WARNING)
     try:
         yield
     finally:
-        for lg, lv in zip(loggers, old):
-            lg.setLevel(lv)
+        package.setLevel(old)
 
 
 def _check_measurement(feats: Any, files: Mapping[str, Path], strict: bool) -> None:

@@ -58,7 +58,7 @@ from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, get_psf, psf_includes_pixel
 from megalut_cli.sim.structure import draw_case
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 #: Largest offset (pixels, each axis) of the stars other than the lower-left one (GREAT3: 1).
 STAR_SHIFT = 1.0

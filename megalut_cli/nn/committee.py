@@ -103,7 +103,7 @@ def train_committees(
     progress: Callable[[int], None] | None = None,
 ) -> dict[str, Committee]:
     """Train all members of all committees as independent work units; keep the best half of each."""
-    level = logging.getLogger("megalut").getEffectiveLevel()
+    level = log.getEffectiveLevel()
     tasks: list[MemberTask] = []
     for spec in specs:
         tasks += _tasks(spec, settings, seed, level)

@@ -28,7 +28,7 @@ from megalut_cli.nn.data import CaseData, case_rows
 from megalut_cli.nn.network import Network
 from megalut_cli.seeding import rng_for
 
-log = logging.getLogger("megalut.train")
+log = logging.getLogger(__name__)
 
 #: Seconds between two progress lines of a member at info level (every mini-batch at debug).
 REPORT_SECONDS = 30.0

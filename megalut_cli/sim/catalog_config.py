@@ -14,7 +14,7 @@ from megalut_cli.errors import ConfigError
 from megalut_cli.schema import check_table, resolve_beside
 from megalut_cli.sim.distributions import CatalogColumn
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 
 _CATALOG_KEYS = {"path", "select", "hdu"}

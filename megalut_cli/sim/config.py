@@ -67,7 +67,7 @@ __all__ = [
     "round_sersicn", "validate_config",
 ]
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 #: Parameter groups that can be redrawn for every realization (else once per case).
 VARY_GROUPS = ("shear", "galaxy", "angle", "psf")

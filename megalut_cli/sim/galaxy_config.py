@@ -22,7 +22,7 @@ from megalut_cli.sim.distributions import (
 )
 from megalut_cli.sim.noise_config import need_instrument
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 
 PROFILES = ("sersic", "gaussian", "bulgedisk", "cosmos_fit", "real")

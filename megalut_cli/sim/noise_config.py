@@ -15,7 +15,7 @@ from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.schema import check_choice, check_float, check_int, check_table, resolve_beside
 from megalut_cli.sim.distributions import Distribution, parse_distribution, parse_distributions
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 
 NOISE_TYPES = ("gaussian", "ccd", "correlated", "none")

@@ -40,7 +40,7 @@ from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, renders_galaxies, stamp_centres
 from megalut_cli.sim.options import SIMULATE
 
-log = logging.getLogger("megalut")
+log = logging.getLogger(__name__)
 
 CATALOG_FORMAT = "megalut.simulation"
 STAMPS_FORMAT = "megalut.stamps"
