@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from pipeline_configs import write_pipeline
 
-from megalut_cli.pipeline import default_pipeline_text
+from megalut_cli.pipeline_config import default_pipeline_text
 
 if sys.version_info >= (3, 11):
     import tomllib
