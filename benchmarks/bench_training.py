@@ -137,7 +137,7 @@ def bench_training(n_cases: int, n_rea: int, members: int, fd_iterations: int, m
     rows = []
     for k in range(members):
         def task(gradient: str, iterations: int, dtype: str = "float64", k: int = k) -> MemberTask:
-            settings = TrainSettings(cost="msb", iterations=iterations, gradient=gradient, dtype=dtype)
+            settings = TrainSettings(cost="msb", iterations=iterations, gradient=gradient, precision=dtype)
             return MemberTask(f"member {k}", net, settings, train, valid, 0, loc, scale, seed=1,
                               keys=(2, 0, k), cost_scale=spread, log_level=30)
 
@@ -213,7 +213,8 @@ def bench_cli(n_cases: int, n_rea: int, fd_iterations: int, repeat: int, tree: s
     # run of the same member (the command's member follows the same trajectory).
     needed: dict[str | None, int] = {}
     for p in precisions:
-        an_settings = TrainSettings(cost="msb", iterations=fd_iterations * MAX_FACTOR, dtype=p or "float64")
+        an_settings = TrainSettings(cost="msb", iterations=fd_iterations * MAX_FACTOR,
+                                    precision=p or "float64")
         an = train_member(MemberTask("an", net, an_settings, train, valid, 0, loc, scale, seed=1,
                                      keys=fd_task.keys, cost_scale=spread, log_level=30))
         hit = np.flatnonzero(an.history[:, 1] <= target * (1 + 1e-12))
