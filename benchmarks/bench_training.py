@@ -143,7 +143,7 @@ def bench_training(
 
         def task(gradient: str, iterations: int, dtype: str = "float64", k: int = k) -> MemberTask:
             settings = TrainSettings(
-                cost="msb", iterations=iterations, gradient=gradient, dtype=dtype
+                cost="msb", iterations=iterations, gradient=gradient, precision=dtype
             )
             return MemberTask(
                 f"member {k}",
@@ -280,7 +280,7 @@ def bench_cli(
     needed: dict[str | None, int] = {}
     for p in precisions:
         an_settings = TrainSettings(
-            cost="msb", iterations=fd_iterations * MAX_FACTOR, dtype=p or "float64"
+            cost="msb", iterations=fd_iterations * MAX_FACTOR, precision=p or "float64"
         )
         an = train_member(
             MemberTask(

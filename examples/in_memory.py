@@ -11,11 +11,12 @@ and c: the library calls behind ``megalut simulate``, ``train-point``, ``train-w
 
 from pathlib import Path
 
+from megalut_cli.nn.fit import fit_point, fit_weight
+from megalut_cli.nn.options import PointSpec, WeightSpec
 from megalut_cli.shear.evaluate import evaluate_columns
 from megalut_cli.shear.predict import predict_columns
 from megalut_cli.sim import load_config
 from megalut_cli.sim.simulate import simulate_table
-from megalut_cli.training import TrainOptions, fit_point, fit_weight
 
 
 def main() -> None:
@@ -29,10 +30,9 @@ def main() -> None:
     vo, _ = simulate_table(
         load_config(ex + "vo.toml", n_cases=40, n_realizations=500), 3, measure=True, nproc=2
     )
-    point = fit_point(
-        tp, options=TrainOptions(members=2, iterations=300), select_cases="mean(snr) > 10", nproc=2
-    )
-    model = fit_weight(tw, point, options=TrainOptions(members=2, iterations=200), nproc=2)
+    point_spec = PointSpec(select_cases="mean(snr) > 10", members=2, iterations=300)
+    point = fit_point(tp, point_spec, nproc=2)
+    model = fit_weight(tw, point, WeightSpec(members=2, iterations=200), nproc=2)
     vo.update(predict_columns(model, vo))
     result = evaluate_columns(vo)
     for scheme in ("unweighted", "weighted"):

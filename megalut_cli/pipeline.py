@@ -53,39 +53,35 @@ from typing import Any
 
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE
 from megalut_cli.errors import ConfigError, InputError, MegalutError
-from megalut_cli.nn.options import POINT_OPTION
+from megalut_cli.expr import check_expression
+from megalut_cli.nn.options import PointSpec, WeightSpec
 from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
-from megalut_cli.nn.train import POINT_ITERATIONS
 from megalut_cli.pipeline_config import (
+    DEFAULT_PIPELINE,
     DEFAULT_SET_SEEDS,
     MAX_NAME,
     PATH_TABLES,
     PIPELINE,
+    PLOT_OPTION,
     REFERENCE_OPTION,
     SCALE_BY,
     SET_OPTION,
     TRAIN_POINT_KEYS,
+    TRAIN_TABLE_DEFAULTS,
     TRAIN_WEIGHT_KEYS,
     EvaluateSpec,
-    TrainPointSpec,
-    TrainWeightSpec,
     merge_tables,
-    point_spec,
+    read_spec,
     selection_expression,
-    train_options_from,
-    weight_spec,
 )
 from megalut_cli.provenance import sha256_file
 from megalut_cli.schema import Table, resolve_path
 from megalut_cli.shear.options import EVALUATE
 from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, validate_config
 from megalut_cli.steps import sha_text
-from megalut_cli.training import TrainOptions
 
 log = logging.getLogger(__name__)
 
-#: The embedded default pipeline (package data).
-DEFAULT_PIPELINE = "default_pipeline.toml"
 DEFAULT_WORKDIR = "megalut-run"
 EVALUATION_JSON = "evaluation.json"
 EVALUATION_PNG = "evaluation.png"
@@ -100,8 +96,6 @@ SET_NAMES = ("tp", "tw", "vo")
 OPTIONAL_SETS = ("pretrain", "vp")
 #: Every set, in the order of the simulation steps.
 ALL_SETS = ("pretrain", "tp", "tw", "vo", "vp")
-#: Targets of the ellipticity pretraining (paper Sect. 4.4 and 6).
-PRETRAIN_TARGETS = ["tru_e1", "tru_e2"]
 #: Case selection of the VP evaluation unless the file says otherwise (paper Figs. 12, 10).
 VP_SELECT_CASES = "mean(snr) > 10"
 #: How deep ``extends`` chains may go.
@@ -112,7 +106,7 @@ _NAME_RE = re.compile(rf"[A-Za-z0-9][A-Za-z0-9_-]{{0,{MAX_NAME - 1}}}")  # no ".
 _TOP_KEYS = set(PIPELINE) - {"extends"}
 #: Pretraining continues into train_point: same features and architecture.
 _PRETRAIN_KEYS = TRAIN_POINT_KEYS - {"features", "hidden"}
-_EVALUATE_KEYS = {*EVALUATE, "plot"}
+_EVALUATE_KEYS = {*EVALUATE, PLOT_OPTION.name}
 
 # --------------------------------------------------------------------------- specification
 
@@ -129,20 +123,6 @@ class SetSpec:
     @property
     def product(self) -> str:
         return f"{self.name}.fits"
-
-
-@dataclass(frozen=True)
-class PretrainSpec:
-    """Pretraining of the point estimators on the ``pretrain`` set (paper Sect. 6).
-
-    Its features and hidden layers are those of ``train_point``, which continues from it.
-    """
-
-    targets: list[str]
-    cost: str
-    select_cases: str | None
-    init: str
-    options: TrainOptions
 
 
 @dataclass(frozen=True)
@@ -166,12 +146,12 @@ class Pipeline:
     description: str
     scale: float
     sets: dict[str, SetSpec]
-    train_point: TrainPointSpec
-    train_weight: TrainWeightSpec
+    train_point: PointSpec
+    train_weight: WeightSpec
     evaluate: EvaluateSpec
     columns: dict[str, list[str]] = field(default_factory=dict)  # set -> columns it will have
     name: str = ""  # products of the steps after the simulations go to <workdir>/<name>/
-    pretrain: PretrainSpec | None = None  # with the set "pretrain"
+    pretrain: PointSpec | None = None  # with the set "pretrain" (features, hidden: train_point's)
     evaluate_vp: EvaluateSpec | None = None  # with the set "vp"
     engine: str = DEFAULT_ENGINE  # stamp engine of the simulations (megalut_cli.engine)
     device: str = DEFAULT_DEVICE  # where simulations and trainings run; not in the steps' keys
@@ -244,13 +224,15 @@ def _evaluate_spec(t: Table, select_cases: str | None) -> EvaluateSpec:
     return EvaluateSpec(
         by=t.option(EVALUATE["by"]),
         bins=t.option(EVALUATE["bins"]),
-        select=selection_expression(t, "select", False),
-        select_cases=selection_expression(t, "select_cases", True, select_cases),
-        plot=t.get_bool("plot", True),
+        select=selection_expression(t, EVALUATE["select"], False),
+        select_cases=selection_expression(t, EVALUATE["select_cases"], True, select_cases),
+        plot=t.option(PLOT_OPTION),
     )
 
 
-def _pretrain_spec(top: Table, has_set: bool) -> PretrainSpec | None:
+def _pretrain_spec(top: Table, has_set: bool) -> PointSpec | None:
+    """The ``[pretrain]`` table (its features and hidden layers: the defaults, until
+    :func:`parse_pipeline` sets those of ``[train_point]``)."""
     if not has_set:
         if top.data.get("pretrain") is not None:
             raise ConfigError("pretrain: there is no set to pretrain on: add a [sets.pretrain] table")
@@ -262,14 +244,8 @@ def _pretrain_spec(top: Table, has_set: bool) -> PretrainSpec | None:
                 f"pretrain.{k}: the pretraining uses the features and hidden layers of [train_point], "
                 "which continues from it; set them there"
             )
-    Table(t.data, "pretrain", _PRETRAIN_KEYS)
-    return PretrainSpec(
-        targets=t.option(POINT_OPTION["targets"], PRETRAIN_TARGETS),
-        cost=t.option(POINT_OPTION["cost"]),
-        select_cases=selection_expression(t, "select_cases", True),
-        init=t.option(POINT_OPTION["init"]),
-        options=train_options_from(t, POINT_ITERATIONS, 3),
-    )
+    table = Table(t.data, "pretrain", _PRETRAIN_KEYS)
+    return read_spec(PointSpec, table, **TRAIN_TABLE_DEFAULTS["pretrain"])
 
 
 def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str = "",
@@ -306,13 +282,16 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
         seen[s.seed] = n
 
     pretrain = _pretrain_spec(top, "pretrain" in sets)
-    point = point_spec(Table(top.data.get("train_point"), "train_point", TRAIN_POINT_KEYS), 1)
+    point_table = Table(top.data.get("train_point"), "train_point", TRAIN_POINT_KEYS)
+    point = read_spec(PointSpec, point_table, **TRAIN_TABLE_DEFAULTS["train_point"])
     overlap = sorted(set(point.features) & set(point.targets))
     if overlap:
         raise ConfigError(f"train_point.features: {overlap[0]!r} is also a target")
     if pretrain is not None:
+        pretrain = replace(pretrain, features=point.features, hidden=point.hidden)
         _check_pretrain(pretrain, point, sets["pretrain"])
-    weight = weight_spec(Table(top.data.get("train_weight"), "train_weight", TRAIN_WEIGHT_KEYS), 2)
+    weight_table = Table(top.data.get("train_weight"), "train_weight", TRAIN_WEIGHT_KEYS)
+    weight = read_spec(WeightSpec, weight_table, **TRAIN_TABLE_DEFAULTS["train_weight"])
     evaluate = _evaluate_spec(Table(top.data.get("evaluate"), "evaluate", _EVALUATE_KEYS), None)
     evaluate_vp = None
     if "vp" in sets:
@@ -347,7 +326,7 @@ def _reference_spec(top: Table, sets: Mapping[str, SetSpec], base_dir: Path | No
     return ReferenceSpec(model, label, set_name, sha256_file(model))
 
 
-def _check_pretrain(pre: PretrainSpec, point: TrainPointSpec, spec: SetSpec) -> None:
+def _check_pretrain(pre: PointSpec, point: PointSpec, spec: SetSpec) -> None:
     """The pretrained committees must fit train_point, which starts from them (by name, else by position)."""
     for i, t in enumerate(point.targets):
         if t not in pre.targets and i >= len(pre.targets):
@@ -388,8 +367,7 @@ def _require(names: Sequence[str], available: Sequence[str], key: str, where: st
 
 def _check_columns(pipe: Pipeline) -> None:
     """Check every column the steps use against what the simulations will produce."""
-    from megalut_cli.expr import check_expression
-    from megalut_cli.shear.evaluate import check_by
+    from megalut_cli.shear.evaluate import check_by  # scipy: only when a pipeline is checked
 
     cols = {n: _probe_columns(s) for n, s in pipe.sets.items()}
     pipe.columns.update(cols)
@@ -439,11 +417,6 @@ def _check_columns(pipe: Pipeline) -> None:
                 check_expression(expr, available, case_mode=case_mode)
             except MegalutError as err:
                 raise ConfigError(f"{key}: {err}") from None
-
-
-def default_pipeline_text() -> str:
-    """The text of the embedded default pipeline."""
-    return importlib.resources.files("megalut_cli").joinpath("data", DEFAULT_PIPELINE).read_text()
 
 
 def _tables_at(raw: Mapping[str, Any], where: Sequence[str]) -> list[dict[str, Any]]:

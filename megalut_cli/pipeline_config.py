@@ -3,13 +3,15 @@
 The declarations of the top-level keys (:data:`PIPELINE_OPTIONS`) and of the ``[sets.X]``
 keys (:data:`SET_OPTIONS`) of a pipeline file, read with :class:`~megalut_cli.schema.Table`
 and shown in ``docs/pipeline.md``; :func:`merge_tables` (``extends`` and
-``[sets.X.simulation]`` overrides), and the specifications of the training and evaluation
-steps with their readers.
+``[sets.X.simulation]`` overrides); the training tables, read into the specs of
+:mod:`megalut_cli.nn.options` (:func:`read_spec`), and the evaluation tables; the embedded
+default pipeline.
 """
 
 from __future__ import annotations
 
 import copy
+import importlib.resources
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -30,15 +32,24 @@ from megalut_cli.configfile import (
 from megalut_cli.configfile import where_written as config_where_written
 from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION
 from megalut_cli.errors import ConfigError, MegalutError
+from megalut_cli.expr import check_expression
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
-from megalut_cli.nn.options import POINT_OPTION, WEIGHT_OPTION
-from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
+from megalut_cli.nn.options import SELECTIONS, PointSpec, TrainSpec, WeightSpec
 from megalut_cli.schema import Option, Table
 from megalut_cli.sim.config import STRUCTURE
-from megalut_cli.training import TrainOptions
 
+#: The embedded default pipeline (package data).
+DEFAULT_PIPELINE = "default_pipeline.toml"
 #: Seeds of the sets when the file gives none (all different).
 DEFAULT_SET_SEEDS = {"tp": 1, "tw": 2, "vo": 3, "pretrain": 4, "vp": 5}
+#: The defaults of the training tables that are the pipeline's own (the others: those of
+#: ``megalut train-point``/``train-weight``): each training its own seed; the pretraining
+#: learns the ellipticity (paper Sects. 4.4 and 6).
+TRAIN_TABLE_DEFAULTS: dict[str, dict[str, Any]] = {
+    "pretrain": {"targets": ["tru_e1", "tru_e2"], "seed": 3},
+    "train_point": {},
+    "train_weight": {"seed": 2},
+}
 #: How ``scale`` shrinks a set: the exponents of ``scale`` for (n_cases, n_realizations).
 SCALE_BY = {"both": (0.5, 0.5), "cases": (1.0, 0.0), "realizations": (0.0, 1.0)}
 #: Most characters of a pipeline's ``name``.
@@ -123,25 +134,6 @@ PATH_TABLES: tuple[tuple[tuple[str, ...], tuple[Option, ...]], ...] = (
 
 
 @dataclass(frozen=True)
-class TrainPointSpec:
-    features: list[str]
-    targets: list[str]
-    hidden: list[int]
-    cost: str
-    select_cases: str | None
-    init: str
-    options: TrainOptions
-
-
-@dataclass(frozen=True)
-class TrainWeightSpec:
-    features: list[str] | None  # None: those of the point model
-    hidden: list[int]
-    select: str | None
-    options: TrainOptions
-
-
-@dataclass(frozen=True)
 class EvaluateSpec:
     by: list[str]
     bins: int
@@ -161,40 +153,26 @@ def merge_tables(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, 
     return out
 
 
-def train_options_from(t: Table, iterations: int, seed: int) -> TrainOptions:
-    """The training options of a table (``iterations`` and ``seed``: its defaults), checked by
-    their declarations (:mod:`megalut_cli.nn.options`)."""
-    values = {k: v for k, v in t.data.items() if k in TRAIN_OPTION}
-    return TrainOptions.from_values(values, t.where, {"iterations": iterations, "seed": seed})
-
-
 #: The keys of a ``[train_point]`` and a ``[train_weight]`` table (standard and GREAT3 pipelines).
-TRAIN_POINT_KEYS = {*POINT_OPTION, *TRAIN_OPTION, "select_cases"}
-TRAIN_WEIGHT_KEYS = {*WEIGHT_OPTION, *TRAIN_OPTION, "select"}
+TRAIN_POINT_KEYS = {o.name for o in PointSpec.OPTIONS}
+TRAIN_WEIGHT_KEYS = {o.name for o in WeightSpec.OPTIONS}
+#: ``plot`` of an ``[evaluate]`` table (its other keys: the options of ``megalut evaluate``).
+PLOT_OPTION = Option("plot", "bool", True, "draw the evaluation's figure (when matplotlib is "
+                     "installed)")
 
 
-def point_spec(t: Table, seed: int, **defaults: Any) -> TrainPointSpec:
-    """A ``[train_point]`` table read with the declarations of :mod:`megalut_cli.nn.options`;
-    ``seed`` and ``defaults`` (by key) are the pipeline's own defaults."""
-
-    def value(name: str) -> Any:
-        return t.option(POINT_OPTION[name], defaults.get(name))
-
-    return TrainPointSpec(
-        features=value("features"), targets=value("targets"), hidden=value("hidden"), cost=value("cost"),
-        select_cases=selection_expression(t, "select_cases", True), init=value("init"),
-        options=train_options_from(t, POINT_ITERATIONS, seed),
-    )
-
-
-def weight_spec(t: Table, seed: int, **defaults: Any) -> TrainWeightSpec:
-    """A ``[train_weight]`` table read with the declarations of :mod:`megalut_cli.nn.options`."""
-    return TrainWeightSpec(
-        features=t.option(WEIGHT_OPTION["features"], defaults.get("features")),
-        hidden=t.option(WEIGHT_OPTION["hidden"], defaults.get("hidden")),
-        select=selection_expression(t, "select", False),
-        options=train_options_from(t, WEIGHT_ITERATIONS, seed),
-    )
+def read_spec(spec_class: type[TrainSpec], t: Table, **defaults: Any) -> Any:
+    """The training spec of the table ``t``, read with the declarations of ``spec_class``
+    (:mod:`megalut_cli.nn.options`); ``defaults`` (by key) are the pipeline's own. Selections
+    are syntax-checked (their columns later), ``""`` meaning none."""
+    values = {}
+    for o in spec_class.OPTIONS:
+        if o.name in SELECTIONS:
+            values[o.name] = selection_expression(t, o, SELECTIONS[o.name], defaults.get(o.name))
+        elif o.name not in TRAIN_OPTION:  # those: checked together, by from_values
+            values[o.name] = t.option(o, defaults.get(o.name))
+    shared = {k: v for k, v in t.data.items() if k in TRAIN_OPTION}
+    return spec_class.from_values({**values, **shared}, t.where, defaults)
 
 
 def key_names(table: str) -> dict[str, str]:
@@ -202,19 +180,24 @@ def key_names(table: str) -> dict[str, str]:
     return {arg: f"{table}.{arg}" for arg in ("select_cases", "select", "hidden", "valid_fraction", "by")}
 
 
-def selection_expression(t: Table, name: str, case_mode: bool, default: str | None = None) -> str | None:
-    """A selection expression, syntax-checked (columns are checked later); ``""`` means none."""
-    from megalut_cli.expr import check_expression
-
-    if t.data.get(name) == "":
+def selection_expression(t: Table, option: Option, case_mode: bool,
+                         default: str | None = None) -> str | None:
+    """The selection expression of the declared ``option``, syntax-checked (columns are
+    checked later); ``""`` means none."""
+    if t.data.get(option.name) == "":
         return None
-    expr = t.get_str(name, default)
+    expr = t.option(option, default)
     if expr is not None:
         try:
             check_expression(expr, None, case_mode=case_mode)
         except MegalutError as err:
-            raise ConfigError(f"{t.key(name)}: {err}") from None
+            raise ConfigError(f"{t.key(option.name)}: {err}") from None
     return expr
+
+
+def default_pipeline_text() -> str:
+    """The text of the embedded default pipeline."""
+    return importlib.resources.files("megalut_cli").joinpath("data", DEFAULT_PIPELINE).read_text()
 
 
 
@@ -235,8 +218,6 @@ def _chain(path: str | os.PathLike | None) -> list[ConfigSource]:
     """The files of a pipeline, the given one first, then those it ``extends``; the embedded
     default for ``None``."""
     if path is None:
-        from megalut_cli.pipeline import default_pipeline_text
-
         text = default_pipeline_text()
         return [ConfigSource("the default pipeline", tomllib.loads(text), text)]
     out: list[ConfigSource] = []

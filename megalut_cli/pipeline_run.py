@@ -12,13 +12,14 @@ import logging
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 from megalut_cli.atomic import write_json
 from megalut_cli.engine import resolve_device
 from megalut_cli.measure.metacal_defaults import DEFAULT_STEP
+from megalut_cli.nn.options import PointSpec, WeightSpec
 from megalut_cli.pipeline import (
     ALL_SETS,
     DEFAULT_WORKDIR,
@@ -73,14 +74,6 @@ class RunResult:
     reference: ReferenceSpec | None = None
 
 
-def key_options(options: Any) -> dict[str, Any]:
-    """Training options as they enter a step's key: all but where they run (``device``,
-    like ``-j``: the device gives the same results within tolerance, docs/gpu.md)."""
-    record = asdict(options)
-    record.pop("device", None)
-    return record
-
-
 def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
                 progress: Progress | None = None) -> list[Step]:
     """The steps of ``pipe`` in execution order."""
@@ -122,41 +115,40 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
         if name in pipe.sets:
             steps.append(sim_step(pipe.sets[name]))
 
+    # A training step's parameters are its spec's dict; the step trains with the spec rebuilt
+    # from them. Where it runs (the device, like -j) is not a parameter: the results agree
+    # within the tolerances of docs/gpu.md.
     tp, pre = pipe.train_point, pipe.pretrain
     if pre is not None:
+        pre_params = asdict(pre)
 
         def pretrain_action(wd: Path, overwrite: bool) -> None:
-            from megalut_cli.training import train_point
+            from megalut_cli.nn.fit import train_point
 
-            train_point(wd / "pretrain.fits", wd / out("pretrain.h5"), features=tp.features, targets=pre.targets,
-                        hidden=tp.hidden, cost=pre.cost, select_cases=pre.select_cases, init_scheme=pre.init,
-                        options=replace(pre.options, device=resolve_device(pipe.device)), nproc=nproc, scheduler=scheduler, overwrite=overwrite,
-                        progress=progress, names=key_names("pretrain"))
+            train_point(wd / "pretrain.fits", wd / out("pretrain.h5"), PointSpec(**pre_params),
+                        device=resolve_device(pipe.device), nproc=nproc, scheduler=scheduler,
+                        overwrite=overwrite, progress=progress, names=key_names("pretrain"))
 
-        add("pretrain-point", [out("pretrain.h5")], ["pretrain.fits"],
-            {"features": tp.features, "targets": pre.targets, "hidden": tp.hidden, "cost": pre.cost,
-             "select_cases": pre.select_cases, "init": pre.init, "options": key_options(pre.options)},
-            pretrain_action,
-            f"{pre.options.members} members x {len(pre.targets)} targets ({', '.join(pre.targets)}), hidden "
-            f"{tp.hidden}, {pre.options.iterations} iterations, select_cases {pre.select_cases!r}, "
-            f"seed {pre.options.seed}")
+        add("pretrain-point", [out("pretrain.h5")], ["pretrain.fits"], pre_params, pretrain_action,
+            f"{pre.members} members x {len(pre.targets)} targets ({', '.join(pre.targets)}), "
+            f"hidden {tp.hidden}, {pre.iterations} iterations, select_cases {pre.select_cases!r}, "
+            f"seed {pre.seed}")
+
+    tp_params = asdict(tp)
 
     def train_point_action(wd: Path, overwrite: bool) -> None:
-        from megalut_cli.training import train_point
+        from megalut_cli.nn.fit import train_point
 
         init_from = wd / out("pretrain.h5") if pre is not None else None
-        train_point(wd / "tp.fits", wd / out("point.h5"), features=tp.features, targets=tp.targets,
-                    hidden=tp.hidden, cost=tp.cost, select_cases=tp.select_cases, init_from=init_from,
-                    init_scheme=tp.init, options=replace(tp.options, device=resolve_device(pipe.device)), nproc=nproc, scheduler=scheduler,
-                    overwrite=overwrite, progress=progress, names=key_names("train_point"))
+        train_point(wd / "tp.fits", wd / out("point.h5"), PointSpec(**tp_params),
+                    init_from=init_from, device=resolve_device(pipe.device), nproc=nproc,
+                    scheduler=scheduler, overwrite=overwrite, progress=progress,
+                    names=key_names("train_point"))
 
     add("train-point", [out("point.h5")], ["tp.fits"] + ([out("pretrain.h5")] if pre is not None else []),
-        {"features": tp.features, "targets": tp.targets, "hidden": tp.hidden, "cost": tp.cost,
-         "select_cases": tp.select_cases, "init": "pretrain.h5" if pre is not None else tp.init,
-         "options": key_options(tp.options)},
-        train_point_action,
-        f"{tp.options.members} members x {len(tp.targets)} targets, hidden {tp.hidden}, "
-        f"{tp.options.iterations} iterations, select_cases {tp.select_cases!r}, seed {tp.options.seed}"
+        tp_params, train_point_action,
+        f"{tp.members} members x {len(tp.targets)} targets, hidden {tp.hidden}, "
+        f"{tp.iterations} iterations, select_cases {tp.select_cases!r}, seed {tp.seed}"
         + (", starting from pretrain.h5" if pre is not None else ""))
 
     def predict_step(name: str, catalog: str, model: str, shears: str, summary: str) -> None:
@@ -203,19 +195,20 @@ def build_steps(pipe: Pipeline, nproc: int = 1, scheduler: str | None = None,
                       "m, c of the point estimates (unweighted)")
 
     tw = pipe.train_weight
+    tw_params = asdict(tw)
 
     def train_weight_action(wd: Path, overwrite: bool) -> None:
-        from megalut_cli.training import train_weight
+        from megalut_cli.nn.fit import train_weight
 
-        train_weight(wd / "tw.fits", wd / out("point.h5"), wd / out("model.h5"), features=tw.features,
-                     hidden=tw.hidden, select=tw.select, options=replace(tw.options, device=resolve_device(pipe.device)), nproc=nproc, scheduler=scheduler,
-                     overwrite=overwrite, progress=progress, names=key_names("train_weight"))
+        train_weight(wd / "tw.fits", wd / out("point.h5"), wd / out("model.h5"),
+                     WeightSpec(**tw_params), device=resolve_device(pipe.device), nproc=nproc,
+                     scheduler=scheduler, overwrite=overwrite, progress=progress,
+                     names=key_names("train_weight"))
 
-    add("train-weight", [out("model.h5")], ["tw.fits", out("point.h5")],
-        {"features": tw.features, "hidden": tw.hidden, "select": tw.select, "options": key_options(tw.options)},
+    add("train-weight", [out("model.h5")], ["tw.fits", out("point.h5")], tw_params,
         train_weight_action,
-        f"{tw.options.members} members, hidden {tw.hidden}, {tw.options.iterations} iterations, "
-        f"select {tw.select!r}, seed {tw.options.seed}")
+        f"{tw.members} members, hidden {tw.hidden}, {tw.iterations} iterations, "
+        f"select {tw.select!r}, seed {tw.seed}")
     predict_step("predict", "vo.fits", "model.h5", "vo-shears.fits", "point estimates and weights on vo.fits")
     evaluate_step("evaluate", "evaluate", pipe.evaluate, "vo-shears.fits", EVALUATION_JSON, EVALUATION_PNG, "m, c")
     ref = pipe.reference

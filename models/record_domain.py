@@ -29,6 +29,7 @@ from typing import Any
 from megalut_cli.catalog import VersionColumns
 from megalut_cli.nn.data import valid_rows
 from megalut_cli.nn.domain import DOMAIN_KEY, domain_record, domain_summary
+from megalut_cli.nn.fit import config_psf_domain
 from megalut_cli.nn.model import ShearModel
 from megalut_cli.nn.population import update_provenance
 from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
@@ -36,7 +37,6 @@ from megalut_cli.pipeline import load_pipeline
 from megalut_cli.provenance import sha256_file, shown_command, shown_path
 from megalut_cli.sim.options import SIMULATE
 from megalut_cli.sim.simulate import simulate_table
-from megalut_cli.training import config_psf_domain
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = "models/record_domain.py"

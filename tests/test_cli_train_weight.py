@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from megalut_cli.catalog import write_catalog
+from megalut_cli.nn.fit import train_point
 from megalut_cli.nn.model import ShearModel
+from megalut_cli.nn.options import PointSpec
 from megalut_cli.nn.toy import shear_like_columns
-from megalut_cli.training import TrainOptions, train_point
 
 FAST = ["--members", "2", "--iterations", "6"]
 
@@ -26,7 +27,7 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     write_catalog(paths["vw"], shear_like_columns(6, 60, seed=4), fmt="megalut.toy")
     write_catalog(paths["nofeat"], {k: v for k, v in tw.items() if k != "adamom_rho4"}, fmt="megalut.toy")
     paths["model"] = d / "model.h5"
-    train_point(paths["tp"], paths["model"], hidden=(3,), options=TrainOptions(members=2, iterations=5))
+    train_point(paths["tp"], paths["model"], PointSpec(hidden=[3], members=2, iterations=5))
     data = paths["model"].read_bytes()
     paths["trunc"] = d / "trunc.h5"
     paths["trunc"].write_bytes(data[:2000])

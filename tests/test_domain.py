@@ -144,14 +144,15 @@ def test_domain_findings_rule():
 def test_training_records_the_domain_of_its_usable_rows(tmp_path, runner, cli):
     from sim_configs import write
 
+    from megalut_cli.nn.fit import train_point
+    from megalut_cli.nn.options import PointSpec
     from megalut_cli.sim.config import load_config
     from megalut_cli.sim.simulate import simulate
-    from megalut_cli.training import TrainOptions, train_point
 
     cfg = write(tmp_path, replace={"n_cases = 3": "n_cases = 8"})
     tp = tmp_path / "tp.fits"
     simulate(load_config(cfg), tp, measure=True, seed=3)
-    model = train_point(tp, tmp_path / "m.h5", hidden=(3,), options=TrainOptions(members=1, iterations=3))
+    model = train_point(tp, tmp_path / "m.h5", PointSpec(hidden=[3], members=1, iterations=3))
     dom = model.provenance["domain"]
     assert dom["stamp_size"] == 24 and dom["source"] == "tp.fits"
     for col in ("skymad", "snr", "adamom_sigma", "adamom_flux"):
@@ -200,13 +201,14 @@ def test_a_constant_training_psf_is_in_the_domain_and_a_wider_psf_is_a_finding(t
     # a model trained today records its own constant PSF the same way
     from sim_configs import write
 
+    from megalut_cli.nn.fit import train_point
+    from megalut_cli.nn.options import PointSpec
     from megalut_cli.sim.config import load_config
     from megalut_cli.sim.simulate import simulate
-    from megalut_cli.training import TrainOptions, train_point
 
     tp = tmp_path / "tp.fits"
     simulate(load_config(write(tmp_path, replace={"n_cases = 3": "n_cases = 8"})), tp, measure=True, seed=3)
-    model = train_point(tp, tmp_path / "m.h5", hidden=(3,), options=TrainOptions(members=1, iterations=3))
+    model = train_point(tp, tmp_path / "m.h5", PointSpec(hidden=[3], members=1, iterations=3))
     got = model.provenance["domain"]["columns"]["psf_adamom_sigma"]["q"][0]
     assert got == pytest.approx(measured_psf_sigma({"type": "gaussian", "sigma": 1.5}, 24), rel=1e-12)
 

@@ -164,13 +164,15 @@ def test_mswb_weights_learn_to_downweight_biased_realizations() -> None:
 def test_dask_scheduler_gives_identical_committees(tmp_path: Path) -> None:
     import distributed
 
-    from megalut_cli.training import TrainOptions, train_point
+    from megalut_cli.nn.fit import train_point
+    from megalut_cli.nn.options import PointSpec
 
     write_catalog(tmp_path / "tp.fits", shear_like_columns(30, 40, seed=1), fmt="megalut.toy")
-    opts = TrainOptions(members=2, iterations=15)
+    spec = PointSpec(members=2, iterations=15)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster:
-        dask_model = train_point(tmp_path / "tp.fits", tmp_path / "d.h5", options=opts, scheduler=cluster.scheduler_address)
-    serial = train_point(tmp_path / "tp.fits", tmp_path / "s.h5", options=opts)
+        dask_model = train_point(tmp_path / "tp.fits", tmp_path / "d.h5", spec,
+                                 scheduler=cluster.scheduler_address)
+    serial = train_point(tmp_path / "tp.fits", tmp_path / "s.h5", spec)
     for t in serial.point:
         for i in range(2):
             assert np.array_equal(dask_model.point[t].member_params(i), serial.point[t].member_params(i))
@@ -180,7 +182,7 @@ def test_dask_scheduler_gives_identical_committees(tmp_path: Path) -> None:
     ({"batch_fraction": 0.0}, r"^batch_fraction: must be in \(0, 1\], got 0.0$"),
     ({"batch_iterations": 0}, r"^batch_iterations: must be >= 1, got 0$"),
     ({"optimizer": "sgd"}, r"^optimizer: unknown value 'sgd' \(expected one of bfgs, lbfgs\)$"),
-    ({"dtype": "float16"}, r"^precision: unknown value 'float16'"),
+    ({"precision": "float16"}, r"^precision: unknown value 'float16'"),
     ({"iterations": -1}, r"^iterations: must be >= 0, got -1$"),
 ])
 def test_member_settings_checked_by_the_declarations(kw, message):
@@ -197,7 +199,8 @@ def test_float32_training_follows_the_float64_trajectory() -> None:
     Achieved here: validation costs within 1.6e-5 (relative) over the first 20 iterations,
     final costs within 3 %."""
     data, valid = toy_cases(1), toy_cases(2)
-    runs = {dt: train_member(toy_task(data, valid, dtype=dt, iterations=90)) for dt in ("float64", "float32")}
+    runs = {p: train_member(toy_task(data, valid, precision=p, iterations=90))
+            for p in ("float64", "float32")}
     ref, f32 = runs["float64"].history[:, 1], runs["float32"].history[:, 1]
     assert len(ref) == len(f32) == 90
     assert np.max(np.abs(f32[:20] - ref[:20]) / ref[:20]) < 1e-4

@@ -11,10 +11,10 @@ import pytest
 from pipeline_configs import TINY_PIPELINE, write_pipeline
 
 from megalut_cli.errors import ConfigError, InputError, MegalutError
+from megalut_cli.nn.defaults import DEFAULT_FEATURES
 from megalut_cli.pipeline import load_pipeline, parse_pipeline, scaled_size
 from megalut_cli.pipeline_run import format_summary, run_pipeline
 from megalut_cli.steps import MANIFEST
-from megalut_cli.training import DEFAULT_FEATURES
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -32,7 +32,7 @@ def test_default_pipeline_is_the_scaled_fiducial_setup() -> None:
     pipe = load_pipeline(None)
     seeds = [s.seed for s in pipe.sets.values()]
     assert len(set(seeds)) == 3
-    assert pipe.train_point.options.seed != pipe.train_weight.options.seed
+    assert pipe.train_point.seed != pipe.train_weight.seed
     for name in ("tp", "tw", "vo"):
         effective = pipe.sets[name].config.raw
         example = _raw(f"{name}.toml")
@@ -47,11 +47,11 @@ def test_default_pipeline_is_the_scaled_fiducial_setup() -> None:
     # scaled down: 90-degree pairs in TW and VO (documented deviation), far fewer stamps
     assert {pipe.sets[n].config.structure.snc for n in ("tw", "vo")} == {"pairs"}
     assert sum(s.config.structure.n_stamps for s in pipe.sets.values()) <= 1.5e6  # 1/33 of the paper
-    assert pipe.train_point.features == DEFAULT_FEATURES
+    assert pipe.train_point.features == list(DEFAULT_FEATURES)
     assert pipe.train_point.hidden == [5, 5] and pipe.train_weight.hidden == [5]
     assert pipe.train_point.select_cases == "mean(snr) > 10"
     assert pipe.train_weight.select is None
-    assert pipe.train_point.options.members == pipe.train_weight.options.members == 8
+    assert pipe.train_point.members == pipe.train_weight.members == 8
 
 
 def test_example_pipeline_has_paper_sizes_and_scales() -> None:

@@ -160,7 +160,7 @@ def test_extends_merges_and_keeps_relative_configs(tmp_path: Path) -> None:
                            '[sets.vo]\nseed = 7\n', "child.toml")
     pipe = load_pipeline(child)
     assert pipe.name == "v2" and pipe.train_point.hidden == [3]
-    assert pipe.train_point.options.members == 2  # inherited
+    assert pipe.train_point.members == 2  # inherited
     assert pipe.sets["vo"].seed == 7 and pipe.sets["vo"].config.structure.n_cases == 8
     assert pipe.sets["tp"].config.structure.stamp_size == 64  # base/tp.toml, relative to the base file
     assert pipe.sets["tp"].config.structure.n_cases == 24

@@ -4,6 +4,7 @@ click options and docs tables generated from the declarations."""
 from __future__ import annotations
 
 import math
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import pytest
@@ -12,8 +13,16 @@ from sim_configs import write
 
 from megalut_cli.doctables import TABLES, docs_files, render
 from megalut_cli.errors import ConfigError, InputError
-from megalut_cli.nn.options import OPTION, POINT_OPTION, TRAIN_OPTIONS, WEIGHT_OPTION
-from megalut_cli.nn.train import POINT_ITERATIONS, WEIGHT_ITERATIONS
+from megalut_cli.nn.defaults import OPTIMIZERS, POINT_ITERATIONS, WEIGHT_ITERATIONS
+from megalut_cli.nn.options import (
+    OPTION,
+    POINT_OPTION,
+    TRAIN_OPTIONS,
+    WEIGHT_OPTION,
+    PointSpec,
+    WeightSpec,
+)
+from megalut_cli.nn.train import TrainSettings
 from megalut_cli.pipeline import load_pipeline
 from megalut_cli.schema import (
     Option,
@@ -27,7 +36,6 @@ from megalut_cli.schema import (
 from megalut_cli.sim import psf as psf_mod
 from megalut_cli.sim.config import load_config
 from megalut_cli.sim.distributions import parse_distribution
-from megalut_cli.training import TrainOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -76,7 +84,7 @@ def test_n_cases_as_a_float_means_the_same_in_every_config(tmp_path):
     assert sim.structure.n_cases == 6
     pipe = load_pipeline(write_pipeline(tmp_path), ["sets.tp.n_cases=6.0", "train_point.members=4.0"])
     assert pipe.sets["tp"].config.structure.n_cases == 6
-    assert pipe.train_point.options.members == 4
+    assert pipe.train_point.members == 4
     assert parse_distribution({"type": "grid", "min": 0.0, "max": 1.0, "n": 3.0}, "k").values == (0.0, 0.5, 1.0)
     for override, message in (("structure.n_cases=6.5", "structure.n_cases: expected an integer, got 6.5"),):
         with pytest.raises(ConfigError, match=message):
@@ -99,15 +107,34 @@ def test_relative_paths_beside_the_naming_file_then_the_current_folder(tmp_path,
 
 
 def test_training_defaults_come_from_the_declarations():
-    opts = TrainOptions()
-    for o in TRAIN_OPTIONS:
-        assert getattr(opts, "dtype" if o.name == "precision" else o.name) == o.default
+    """The specs have one field per declaration, named as the option, with its default; a
+    member's settings are derived from the spec and default to the same values."""
+    for spec, iterations in ((PointSpec(), POINT_ITERATIONS), (WeightSpec(), WEIGHT_ITERATIONS)):
+        assert [f.name for f in fields(spec)] == [o.name for o in spec.OPTIONS]
+        assert {o.name for o in TRAIN_OPTIONS} <= {f.name for f in fields(spec)}
+        for o in spec.OPTIONS:
+            assert getattr(spec, o.name) == o.default, o.name
+        assert spec.iterations == iterations
+        settings = TrainSettings.of(spec, "msb", "cpu")
+        for name in ("iterations", "batch_fraction", "batch_iterations", "optimizer", "precision"):
+            assert getattr(settings, name) == getattr(spec, name)
+    assert TrainSettings() == TrainSettings.of(PointSpec(), "msb", "cpu")
+    assert PointSpec().features is not PointSpec().features  # a fresh list each
     assert OPTION["iterations"].default == POINT_ITERATIONS
     assert OPTION["optimizer"].choices and OPTION["normalization"].choices
     from megalut_cli.nn import normalization as norm
-    from megalut_cli.nn.train import OPTIMIZERS
 
     assert OPTION["normalization"].choices == norm.METHODS and OPTION["optimizer"].choices == OPTIMIZERS
+
+
+def test_a_spec_round_trips_through_its_dict():
+    """A pipeline step's parameters are its spec's dict; the spec rebuilt from them is equal."""
+    spec = PointSpec(features=["a", "b"], hidden=[3], select_cases="mean(snr) > 10", members=2,
+                     precision="float32")
+    assert PointSpec(**asdict(spec)) == spec
+    assert asdict(spec)["precision"] == "float32" and "dtype" not in asdict(spec)
+    weight = WeightSpec(select="snr > 10", seed=4)
+    assert WeightSpec(**asdict(weight)) == weight
 
 
 @pytest.mark.parametrize(("command", "iterations"), [("train-point", POINT_ITERATIONS), ("train-weight", WEIGHT_ITERATIONS)])
@@ -142,7 +169,7 @@ def test_one_range_for_flag_and_pipeline_key(cli, runner, tmp_path, flag, value,
         load_pipeline(write_pipeline(tmp_path), [f"train_point.{key}={value!r}" if key == "optimizer"
                                                  else f"train_point.{key}={value}"])
     with pytest.raises(ConfigError, match=f"^{key}: "):
-        TrainOptions.from_values({key: int(value) if value.isdigit() else value})
+        PointSpec.from_values({key: int(value) if value.isdigit() else value})
 
 
 def test_keep_larger_than_members(cli, runner, tmp_path):

@@ -9,14 +9,15 @@ import pytest
 
 from megalut_cli.catalog import CatalogColumns, write_catalog
 from megalut_cli.errors import ConfigError
+from megalut_cli.nn.fit import fit_point, fit_weight, train_point, train_weight
 from megalut_cli.nn.model import ShearModel
+from megalut_cli.nn.options import PointSpec, WeightSpec
 from megalut_cli.nn.toy import shear_like_columns
 from megalut_cli.pipeline_config import key_names
-from megalut_cli.training import TrainOptions, fit_point, fit_weight, train_point, train_weight
 
 FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma"]
-POINT = TrainOptions(members=2, iterations=15, seed=3)
-WEIGHT = TrainOptions(members=2, iterations=8, seed=4)
+POINT = PointSpec(features=FEATURES, members=2, iterations=15, seed=3)
+WEIGHT = WeightSpec(members=2, iterations=8, seed=4)
 
 
 def _same_members(a: ShearModel, b: ShearModel) -> None:
@@ -34,10 +35,10 @@ def test_fit_in_memory_equals_the_file_functions(tmp_path: Path) -> None:
     tp, tw = shear_like_columns(24, 30, seed=1), shear_like_columns(12, 40, seed=2)
     write_catalog(tmp_path / "tp.fits", tp, fmt="megalut.toy")
     write_catalog(tmp_path / "tw.fits", tw, fmt="megalut.toy")
-    point_file = train_point(tmp_path / "tp.fits", tmp_path / "p.h5", features=FEATURES, options=POINT)
-    both_file = train_weight(tmp_path / "tw.fits", tmp_path / "p.h5", tmp_path / "w.h5", options=WEIGHT)
-    point = fit_point(tp, features=FEATURES, options=POINT, sources={"train": str(tmp_path / "tp.fits")})
-    both = fit_weight(tw, point, options=WEIGHT)
+    point_file = train_point(tmp_path / "tp.fits", tmp_path / "p.h5", POINT)
+    both_file = train_weight(tmp_path / "tw.fits", tmp_path / "p.h5", tmp_path / "w.h5", WEIGHT)
+    point = fit_point(tp, POINT, sources={"train": str(tmp_path / "tp.fits")})
+    both = fit_weight(tw, point, WEIGHT)
     _same_members(point, point_file)
     _same_members(both, both_file)
     # the point estimates of the in-memory model are those of the file's (the same networks)
@@ -60,20 +61,21 @@ def test_catalog_columns_read_on_demand(tmp_path: Path) -> None:
 
 def test_messages_name_the_callers_words() -> None:
     tp = shear_like_columns(10, 10, seed=1)
-    opts = TrainOptions(members=1, iterations=2)
+    spec = PointSpec(features=FEATURES, select_cases="mean(adamom_sigma) > 1e9", members=1,
+                     iterations=2)
     for names, word in ((None, "select_cases"), (key_names("train_point"), "train_point.select_cases"),
                         ({"select_cases": "--select-cases"}, "--select-cases")):
         with pytest.raises(ConfigError, match=f"^{word} 'mean\\(adamom_sigma\\) > 1e9' selects no case"):
-            fit_point(tp, features=FEATURES, select_cases="mean(adamom_sigma) > 1e9", options=opts, names=names)
+            fit_point(tp, spec, names=names)
 
 
 def test_an_astropy_table_is_a_table_too() -> None:
     from astropy.table import Table
 
     tp = shear_like_columns(12, 20, seed=5)
-    opts = TrainOptions(members=1, iterations=4, seed=2)
-    a = fit_point(tp, features=FEATURES, options=opts)
-    b = fit_point(Table(tp), features=FEATURES, options=opts)
+    spec = PointSpec(features=FEATURES, members=1, iterations=4, seed=2)
+    a = fit_point(tp, spec)
+    b = fit_point(Table(tp), spec)
     for t in a.point:
         assert np.array_equal(a.point[t].member_params(0), b.point[t].member_params(0))
 
@@ -103,8 +105,9 @@ def test_float32_training_changes_m_less_than_the_training_seed() -> None:
     cost: dict[tuple[str, int], dict[str, float]] = {}
     for precision in ("float64", "float32"):
         for seed in (5, 7):
-            opts = TrainOptions(members=4, iterations=800, dtype=precision, seed=seed)
-            model = fit_point(tp, options=opts, select_cases="mean(snr) > 10", nproc=2)
+            spec = PointSpec(select_cases="mean(snr) > 10", members=4, iterations=800,
+                             precision=precision, seed=seed)
+            model = fit_point(tp, spec, nproc=2)
             result = evaluate_columns({**vo, **predict_columns(model, vo)})
             m[precision, seed] = np.array([result["unweighted"][c]["m"] for c in ("g1", "g2")])
             cost[precision, seed] = {t: sum(mem.valid_cost for mem in c.members) for t, c in model.point.items()}

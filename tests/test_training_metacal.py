@@ -1,4 +1,4 @@
-"""Training on metacal catalogs (training.py: training_columns) and the model's shear mode."""
+"""Training on metacal catalogs (nn/fit.py: training_columns) and the model's shear mode."""
 
 from __future__ import annotations
 
@@ -8,12 +8,13 @@ from astropy.table import Table
 
 from megalut_cli.errors import InputError
 from megalut_cli.measure.metacal_defaults import STEP_CARD, TYPES
+from megalut_cli.nn.fit import train_point, train_weight
 from megalut_cli.nn.model import ShearModel
+from megalut_cli.nn.options import PointSpec, WeightSpec
 from megalut_cli.shear.predict import predict_catalog
-from megalut_cli.training import TrainOptions, train_point, train_weight
 
 FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma"]
-OPTS = TrainOptions(members=2, iterations=10, seed=3)
+POINT = PointSpec(features=FEATURES, members=2, iterations=10, seed=3)
 
 
 def _catalog(path, metacal: bool, rng_seed: int = 1):
@@ -45,8 +46,8 @@ def test_a_metacal_catalog_trains_on_its_noshear_features(tmp_path):
     for c in FEATURES:
         plain[c] = t[f"{c}_noshear"]
     plain.write(tmp_path / "noshear.fits")
-    train_point(tmp_path / "mc.fits", tmp_path / "m.h5", features=FEATURES, options=OPTS)
-    train_point(tmp_path / "noshear.fits", tmp_path / "p.h5", features=FEATURES, options=OPTS)
+    train_point(tmp_path / "mc.fits", tmp_path / "m.h5", POINT)
+    train_point(tmp_path / "noshear.fits", tmp_path / "p.h5", POINT)
     m, p = ShearModel.load(tmp_path / "m.h5"), ShearModel.load(tmp_path / "p.h5")
     assert m.shear_mode == "metacal" and p.shear_mode == "simulation"
     x = np.column_stack([np.asarray(plain[c]) for c in FEATURES])
@@ -59,14 +60,15 @@ def test_predict_and_train_weight_refuse_the_other_mode(tmp_path):
     plain point model on a metacal catalog: one clear error each."""
     _catalog(tmp_path / "mc.fits", metacal=True)
     _catalog(tmp_path / "plain.fits", metacal=False)
-    train_point(tmp_path / "mc.fits", tmp_path / "m.h5", features=FEATURES, options=OPTS)
-    train_point(tmp_path / "plain.fits", tmp_path / "p.h5", features=FEATURES, options=OPTS)
+    train_point(tmp_path / "mc.fits", tmp_path / "m.h5", POINT)
+    train_point(tmp_path / "plain.fits", tmp_path / "p.h5", POINT)
     with pytest.raises(InputError, match="metacal model"):
         predict_catalog(tmp_path / "plain.fits", tmp_path / "m.h5", tmp_path / "s1.fits")
     with pytest.raises(InputError, match="simulation-calibrated model"):
         predict_catalog(tmp_path / "mc.fits", tmp_path / "p.h5", tmp_path / "s2.fits")
     with pytest.raises(InputError, match="simulation model"):
-        train_weight(tmp_path / "mc.fits", tmp_path / "p.h5", tmp_path / "w.h5", options=OPTS)
+        train_weight(tmp_path / "mc.fits", tmp_path / "p.h5", tmp_path / "w.h5",
+                     WeightSpec(members=2, iterations=10, seed=3))
     assert not any((tmp_path / f).exists() for f in ("s1.fits", "s2.fits", "w.h5"))
     report = predict_catalog(tmp_path / "mc.fits", tmp_path / "m.h5", tmp_path / "s.fits")
     assert "mcal_r11" in report.columns

@@ -27,9 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from megalut_cli.catalog import write_catalog
+from megalut_cli.nn.fit import train_point
 from megalut_cli.nn.model import ShearModel, prediction_column
+from megalut_cli.nn.options import PointSpec
 from megalut_cli.nn.toy import appendix_columns
-from megalut_cli.training import TrainOptions, train_point
 
 
 def main() -> None:
@@ -50,7 +51,6 @@ def main() -> None:
     avg = appendix_columns(theta, 1, rng, sigma=0.0)
     grid = np.linspace(0.25, 2.0, 36)
     val = appendix_columns(grid, 20000, np.random.default_rng(args.seed + 1))
-    opts = TrainOptions(members=args.members, iterations=args.iterations, seed=args.seed)
     results: dict[str, dict] = {}
     curves = {}
     dd = np.linspace(0.7, 2.5, 300)
@@ -66,16 +66,16 @@ def main() -> None:
         for label, (cat, cost) in runs.items():
             t0 = time.perf_counter()
             model_path = t / f"{cost}_{cat}.h5"
-            train_point(
-                t / cat,
-                model_path,
+            spec = PointSpec(
                 features=["d"],
                 targets=["tru_theta"],
                 hidden=[5],
                 cost=cost,
-                options=opts,
-                nproc=args.nproc,
+                members=args.members,
+                iterations=args.iterations,
+                seed=args.seed,
             )
+            train_point(t / cat, model_path, spec, nproc=args.nproc)
             comm = ShearModel.load(model_path).point["tru_theta"]
             pre = comm.predict(val["d"][:, None])  # the pre_theta column of `megalut predict`
             bias = pre.reshape(len(grid), -1).mean(axis=1) - grid

@@ -5,7 +5,6 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Callable
-from dataclasses import replace
 from typing import Any
 
 import click
@@ -13,9 +12,21 @@ import click
 from megalut_cli.atomic import OVERWRITE_OPTION
 from megalut_cli.cli.commands import WORKER_MODULES
 from megalut_cli.cli.console import progress as progress
-from megalut_cli.engine import DEVICE_OPTION, DEVICES, ENGINE_OPTION, ENGINES, described
-from megalut_cli.nn.options import OPTION as TRAIN_OPTION
-from megalut_cli.nn.options import train_options
+from megalut_cli.engine import (
+    DEVICE_OPTION,
+    DEVICES,
+    ENGINE_OPTION,
+    ENGINES,
+    described,
+    resolve_device,
+)
+from megalut_cli.nn.options import (
+    COMMITTEE_OPTIONS,
+    OPTIMIZER_OPTIONS,
+    VALIDATION_OPTIONS,
+    TrainSpec,
+    train_options,
+)
 from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION, resolve_nproc, start_worker_server
 from megalut_cli.schema import Option
 from megalut_cli.seeding import SEED_OPTION
@@ -119,50 +130,61 @@ def _stack(*decorators: Callable[[F], F]) -> Callable[[F], F]:
     return decorate
 
 
-# Options of train-point and train-weight (megalut_cli.nn.options), in three groups so that
-# each command keeps its own order of options in --help; ``pass_train_options`` gathers their
-# values.
+# Options of train-point and train-weight (megalut_cli.nn.options): the training options in
+# their three declared groups, which each command places to keep its own order of options in
+# --help; ``pass_spec`` gathers the values of a command's options into its training spec.
 
 
 def validation_options(valid_help: str) -> Callable[[F], F]:
-    """``--valid FILE`` and ``--valid-fraction`` of the training commands."""
+    """``--valid FILE`` and the validation options (``--valid-fraction``) of the training
+    commands."""
     return _stack(
         click.option("--valid", type=click.Path(exists=True, dir_okay=False), default=None, help=valid_help),
-        schema_option(TRAIN_OPTION["valid_fraction"]),
+        *(schema_option(o) for o in VALIDATION_OPTIONS),
     )
 
 
 def committee_options(kind: str) -> Callable[[F], F]:
-    """``--members``, ``--keep``, ``--iterations``, ``--batch-fraction``, ``--batch-iterations``
-    of a ``"point"`` or ``"weight"`` training."""
+    """The committee options (``--members``, ``--keep``, ``--iterations``...) of a ``"point"``
+    or ``"weight"`` training (its iteration default)."""
     options = {o.name: o for o in train_options(kind)}
-    names = ("members", "keep", "iterations", "batch_fraction", "batch_iterations")
-    return _stack(*(schema_option(options[n]) for n in names))
+    return _stack(*(schema_option(options[o.name]) for o in COMMITTEE_OPTIONS))
 
 
 def optimizer_options(f: F) -> F:
-    """``--normalization``, ``--optimizer``, ``--precision`` and ``--seed`` of the training commands."""
-    names = ("normalization", "optimizer", "precision")
-    seed = schema_option(TRAIN_OPTION["seed"], show_default=True)  # as every --seed
+    """The optimisation options (``--normalization``, ``--optimizer``, ``--precision``,
+    ``--seed``) and ``--device`` of the training commands."""
     device = device_option("the costs and gradients are computed")
-    return _stack(*(schema_option(TRAIN_OPTION[n]) for n in names), seed, device)(f)
+    # --seed shows its default even where the command's defaults are not shown (man pages), as
+    # every --seed does
+    options = (schema_option(o, show_default=o.name == "seed" or None) for o in OPTIMIZER_OPTIONS)
+    return _stack(*options, device)(f)
 
 
-def pass_train_options(f: Callable[..., Any]) -> F:
-    """Pass the values of the training option groups to ``f`` as one ``options: TrainOptions``."""
+def pass_spec(spec_class: type[TrainSpec]) -> Callable[[F], F]:
+    """Pass the values of the options of a training command's spec to ``f`` as one
+    ``spec`` (comma-separated lists split, ``--keep`` <= ``--members``), and ``device``
+    resolved (:func:`megalut_cli.engine.resolve_device`)."""
 
-    @functools.wraps(f)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        from megalut_cli.engine import resolve_device
-        from megalut_cli.training import TrainOptions
+    def decorate(f: F) -> F:
+        @functools.wraps(f)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            values = {o.name: kwargs.pop(o.name) for o in spec_class.OPTIONS}
+            if values["keep"] is not None and values["keep"] > values["members"]:
+                raise click.UsageError(
+                    f"--keep: must be <= --members ({values['members']}), got {values['keep']}"
+                )
+            device = resolve_device(kwargs.pop("device"))
+            for o in spec_class.OPTIONS:
+                if o.kind == "str_list":
+                    values[o.name] = parse_list(values[o.name], o.cli_flag)
+                elif o.kind == "int_list":
+                    values[o.name] = parse_int_list(values[o.name], o.cli_flag)
+            return f(*args, spec=spec_class.from_values(values), device=device, **kwargs)
 
-        values = {name: kwargs.pop(name) for name in TRAIN_OPTION}
-        if values["keep"] is not None and values["keep"] > values["members"]:
-            raise click.UsageError(f"--keep: must be <= --members ({values['members']}), got {values['keep']}")
-        options = replace(TrainOptions.from_values(values), device=resolve_device(kwargs.pop("device")))
-        return f(*args, options=options, **kwargs)
+        return wrapper
 
-    return wrapper
+    return decorate
 
 
 def parse_list(value: str | None, what: str = "list") -> list[str] | None:

@@ -111,9 +111,10 @@ def command(
     from megalut_cli import pipeline as pl
     from megalut_cli import pipeline_run
     from megalut_cli.cli.options import progress
+    from megalut_cli.pipeline_config import default_pipeline_text
 
     if print_default:
-        click.echo(pl.default_pipeline_text(), nl=False)
+        click.echo(default_pipeline_text(), nl=False)
         return
     if pipeline is not None and "=" in pipeline and not Path(pipeline).exists():
         overrides, pipeline = (pipeline, *overrides), None  # `megalut run scale=0.5`

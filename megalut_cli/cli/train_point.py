@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import click
 
 from megalut_cli.cli.commands import short_help
@@ -15,20 +13,20 @@ from megalut_cli.cli.options import (
     optimizer_options,
     output_option,
     overwrite_option,
-    parse_int_list,
-    parse_list,
-    pass_train_options,
+    pass_spec,
     progress,
     schema_option,
     validation_options,
 )
-from megalut_cli.nn.options import POINT_OPTION
+from megalut_cli.nn.options import POINT_OPTION, PointSpec
 
-if TYPE_CHECKING:
-    from megalut_cli.training import TrainOptions
-
-_DEFAULT_FEATURES = ", ".join(POINT_OPTION["features"].default)
-_DEFAULT_HIDDEN = ",".join(str(n) for n in POINT_OPTION["hidden"].default)
+#: Without --features or --hidden, those of --init-from (else the declared defaults).
+_FEATURES = POINT_OPTION["features"].with_default(
+    None, f"{', '.join(POINT_OPTION['features'].default)}, or those of --init-from"
+)
+_HIDDEN = POINT_OPTION["hidden"].with_default(
+    None, f"{','.join(str(n) for n in POINT_OPTION['hidden'].default)}, or those of --init-from"
+)
 
 
 @click.command(
@@ -38,55 +36,33 @@ _DEFAULT_HIDDEN = ",".join(str(n) for n in POINT_OPTION["hidden"].default)
 )
 @click.argument("train", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
 @output_option("Output model file (HDF5).")
-@click.option(
-    "--features",
-    default=None,
-    metavar="A,B,...",
-    help=f"Input feature columns. [default: {_DEFAULT_FEATURES}, or those of --init-from]",
-)
+@schema_option(_FEATURES)
 @schema_option(POINT_OPTION["targets"])
 @validation_options(
     "Validation catalog (monitoring and member selection). Default: hold out --valid-fraction of the cases."
 )
-@click.option("--hidden", default=None, metavar="N,N", help=f"Hidden layer sizes. [default: {_DEFAULT_HIDDEN}, or those of --init-from]")
+@schema_option(_HIDDEN)
 @committee_options("point")
 @schema_option(POINT_OPTION["cost"])
-@click.option(
-    "--select-cases",
-    metavar="EXPR",
-    default=None,
-    help='Keep only the cases for which EXPR holds, on aggregates over their valid realizations, '
-    'e.g. "mean(snr) > 10" (also applied to --valid).',
-)
+@schema_option(POINT_OPTION["select_cases"])
 @click.option(
     "--init-from",
     type=MODEL_FILE,
     default=None,
     help=model_help("Continue from the point committees of this model (e.g. pretrained on ellipticity)."),
 )
-@click.option(
-    "--init",
-    "init_scheme",
-    type=click.Choice(list(POINT_OPTION["init"].choices)),
-    default=POINT_OPTION["init"].default,
-    help=POINT_OPTION["init"].help,
-)
+@schema_option(POINT_OPTION["init"])
 @optimizer_options
 @execution_options
 @overwrite_option
-@pass_train_options
+@pass_spec(PointSpec)
 def command(
     train: str,
     output: str,
-    features: str | None,
-    targets: str,
     valid: str | None,
-    hidden: str | None,
-    cost: str,
-    select_cases: str | None,
     init_from: str | None,
-    init_scheme: str,
-    options: TrainOptions,
+    spec: PointSpec,
+    device: str,
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
@@ -111,22 +87,17 @@ def command(
           --targets tru_theta --hidden 5
     """
     from megalut_cli.cli.console import flag_names, stdin_path
-    from megalut_cli.training import train_point
+    from megalut_cli.nn.fit import train_point
 
     train = click.get_current_context().with_resource(stdin_path(train))  # '-': stdin
 
     train_point(
         train,
         output,
-        features=parse_list(features, "--features"),
-        targets=parse_list(targets, "--targets"),
+        spec,
         valid=valid,
-        hidden=parse_int_list(hidden, "--hidden"),
-        cost=cost,
-        select_cases=select_cases,
         init_from=init_from,
-        init_scheme=init_scheme,
-        options=options,
+        device=device,
         nproc=nproc,
         scheduler=scheduler,
         overwrite=overwrite,

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import click
 
 from megalut_cli.cli.commands import short_help
@@ -15,17 +13,12 @@ from megalut_cli.cli.options import (
     optimizer_options,
     output_option,
     overwrite_option,
-    parse_int_list,
-    parse_list,
-    pass_train_options,
+    pass_spec,
     progress,
     schema_option,
     validation_options,
 )
-from megalut_cli.nn.options import WEIGHT_OPTION
-
-if TYPE_CHECKING:
-    from megalut_cli.training import TrainOptions
+from megalut_cli.nn.options import WEIGHT_OPTION, WeightSpec
 
 
 @click.command(
@@ -41,34 +34,22 @@ if TYPE_CHECKING:
     help=model_help("Model with the point-estimate committees (from train-point)."),
 )
 @output_option("Output model file (HDF5): the point and the new weight committees.")
-@click.option(
-    "--features",
-    default=None,
-    metavar="A,B,...",
-    help="Input feature columns of the weight networks. [default: all features of the point model]",
-)
+@schema_option(WEIGHT_OPTION["features"])
 @schema_option(WEIGHT_OPTION["hidden"])
 @committee_options("weight")
-@click.option(
-    "--select",
-    metavar="EXPR",
-    default=None,
-    help='Selection function on realizations; rows outside get no weight, e.g. "snr > 10 & adamom_sigma > 1.5".',
-)
+@schema_option(WEIGHT_OPTION["select"])
 @validation_options("Validation catalog. Default: hold out --valid-fraction of the cases.")
 @optimizer_options
 @execution_options
 @overwrite_option
-@pass_train_options
+@pass_spec(WeightSpec)
 def command(
     train: str,
     model: str,
     output: str,
-    features: str | None,
-    hidden: str,
-    select: str | None,
     valid: str | None,
-    options: TrainOptions,
+    spec: WeightSpec,
+    device: str,
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
@@ -89,7 +70,7 @@ def command(
           --select "snr > 10" -j 4
     """
     from megalut_cli.cli.console import flag_names, stdin_path
-    from megalut_cli.training import train_weight
+    from megalut_cli.nn.fit import train_weight
 
     train = click.get_current_context().with_resource(stdin_path(train))  # '-': stdin
 
@@ -97,11 +78,9 @@ def command(
         train,
         model,
         output,
-        features=parse_list(features, "--features"),
-        hidden=parse_int_list(hidden, "--hidden"),
-        select=select,
+        spec,
         valid=valid,
-        options=options,
+        device=device,
         nproc=nproc,
         scheduler=scheduler,
         overwrite=overwrite,

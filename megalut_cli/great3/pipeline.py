@@ -46,7 +46,9 @@ from megalut_cli.engine import DEFAULT_ENGINE, ENGINE_OPTION
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.great3 import layout as L
 from megalut_cli.measure.defaults import MIN_STAMP_SIZE
-from megalut_cli.pipeline_config import PIPELINE, TrainPointSpec, TrainWeightSpec
+from megalut_cli.nn.options import OPTION as TRAIN_OPTION
+from megalut_cli.nn.options import POINT_OPTION, PointSpec, WeightSpec
+from megalut_cli.pipeline_config import PIPELINE, TRAIN_POINT_KEYS, TRAIN_WEIGHT_KEYS, read_spec
 from megalut_cli.pipeline_config import SET_OPTIONS as PIPELINE_SET_OPTIONS
 from megalut_cli.schema import Option, Table, resolve_path
 from megalut_cli.seeding import STREAM_SUBFIELD, int_seed_for
@@ -64,6 +66,9 @@ DEFAULT_SEEDS = {"tp": 1, "tw": 2, "train_point": 3, "train_weight": 4}
 DEFAULT_FEATURES = ["adamom_g{i}", "adamom_sigma", "adamom_flux", "adamom_rho4"]
 #: Targets of the point committees: the ellipticity shortcut, or a shear-structured ``tp``.
 TARGET_CHOICES = (("tru_e1", "tru_e2"), ("tru_g1", "tru_g2"))
+#: Hidden layers of the weight networks: those of the point networks, "for all estimators
+#: ... two hidden layers" (Sect. 8.2).
+WEIGHT_HIDDEN = POINT_OPTION["hidden"].default
 
 SUBFIELDS_DIR = "subfields"
 SHEARS = "shears.fits"
@@ -135,12 +140,16 @@ TOP_OPTIONS: tuple[Option, ...] = (
     Option("train_point", "table", None, "as in [pipeline.md](pipeline.md): `features` (default "
            "`[\"adamom_g{i}\", \"adamom_sigma\", \"adamom_flux\", \"adamom_rho4\"]`, `{i}` = the component), "
            "`targets` (`[\"tru_e1\", \"tru_e2\"]`, or `[\"tru_g1\", \"tru_g2\"]` with a sheared `tp`), `hidden` "
-           "([5, 5]), `members` (8), `keep`, `iterations` (1000), `cost`, `select_cases`, `init`, `normalization`, "
-           "`optimizer`, `precision`, `valid_fraction`, `batch_fraction`, `batch_iterations`, `seed` (3)",
+           f"({POINT_OPTION['hidden'].default}), `members` ({TRAIN_OPTION['members'].default}), "
+           f"`keep`, `iterations` ({PointSpec().iterations}), `cost`, `select_cases`, `init`, "
+           "`normalization`, `optimizer`, `precision`, `valid_fraction`, `batch_fraction`, "
+           f"`batch_iterations`, `seed` ({DEFAULT_SEEDS['train_point']})",
            default_text="see meaning"),
     Option("train_weight", "table", None, "the same keys (no `targets`, `cost`, `select_cases`, `init`), plus "
-           "`select`; `features` default those of `train_point`, `hidden` [5, 5] (the paper's choice for all its "
-           "GREAT3 estimators), `iterations` 300, `seed` 4", default_text="see meaning"),
+           f"`select`; `features` default those of `train_point`, `hidden` {WEIGHT_HIDDEN} (the "
+           "paper's choice for all its GREAT3 estimators), "
+           f"`iterations` {WeightSpec().iterations}, "
+           f"`seed` {DEFAULT_SEEDS['train_weight']}", default_text="see meaning"),
     Option("output", "table", None, "what the run writes (below)", default_text="see below"),
 )
 TOP = {o.name: o for o in TOP_OPTIONS}
@@ -235,8 +244,8 @@ class BranchPipeline:
     truth: Path | None
     sigma2_min: float
     sets: dict[str, SetTemplate]
-    point: TrainPointSpec  # features are templates: "{i}" -> 1, 2
-    weight: TrainWeightSpec
+    point: PointSpec  # features are templates: "{i}" -> 1, 2
+    weight: WeightSpec
     weighted: bool
     keep_sets: bool
     problems: dict[int, str] = field(default_factory=dict)  # subfields with missing files
@@ -358,12 +367,6 @@ def _check_features(names: Sequence[str], key: str) -> None:
 def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str = "",
                           overrides: Sequence[str] = (), base_dir: Path | None = None) -> BranchPipeline:
     """Validate a parsed branch pipeline (after ``key=value`` overrides); check the branch folder."""
-    from megalut_cli.pipeline_config import (
-        TRAIN_POINT_KEYS,
-        TRAIN_WEIGHT_KEYS,
-        point_spec,
-        weight_spec,
-    )
     from megalut_cli.sim.config import apply_overrides
 
     raw = apply_overrides(dict(raw), overrides)
@@ -406,8 +409,9 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
     if sets["tp"].seed == sets["tw"].seed:
         raise ConfigError(f"tw.seed: {sets['tw'].seed} is also the seed of tp; every set needs its own seed")
 
-    point = point_spec(Table(top.data.get("train_point"), "train_point", TRAIN_POINT_KEYS),
-                       DEFAULT_SEEDS["train_point"], targets=list(TARGET_CHOICES[0]), features=DEFAULT_FEATURES)
+    point_table = Table(top.data.get("train_point"), "train_point", TRAIN_POINT_KEYS)
+    point = read_spec(PointSpec, point_table, seed=DEFAULT_SEEDS["train_point"],
+                      targets=list(TARGET_CHOICES[0]), features=DEFAULT_FEATURES)
     targets = point.targets
     if tuple(targets) not in TARGET_CHOICES:
         raise ConfigError(
@@ -415,9 +419,9 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
             f"[\"tru_g1\", \"tru_g2\"], got {targets!r}"
         )
     _check_features(point.features, "train_point.features")
-    # hidden [5, 5]: "for all estimators ... two hidden layers" (Sect. 8.2)
-    weight = weight_spec(Table(top.data.get("train_weight"), "train_weight", TRAIN_WEIGHT_KEYS),
-                         DEFAULT_SEEDS["train_weight"], features=point.features, hidden=[5, 5])
+    weight_table = Table(top.data.get("train_weight"), "train_weight", TRAIN_WEIGHT_KEYS)
+    weight = read_spec(WeightSpec, weight_table, seed=DEFAULT_SEEDS["train_weight"],
+                       features=point.features, hidden=WEIGHT_HIDDEN)
     _check_features(weight.features, "train_weight.features")
     out = Table(top.data.get("output"), "output", set(OUTPUT))
     pipe = BranchPipeline(

@@ -5,7 +5,7 @@ Every subfield is one :class:`~megalut_cli.steps.Unit` (``-j``, Dask, ``--keep-g
 skipped when up to date: the engine decides and records), run serially inside and written
 into a temporary folder renamed into place when complete (``subfields/SSS/``, with its
 record ``subfield.json``); its point and weight committees are trained in memory
-(:func:`megalut_cli.training.fit_point`, :func:`~megalut_cli.training.fit_weight`). Then
+(:func:`megalut_cli.nn.fit.fit_point`, :func:`~megalut_cli.nn.fit.fit_weight`). Then
 the branch steps, declared once the subfields finished: ``shears.fits``,
 ``submission.txt``, ``evaluation.json`` (with a truth folder); the engine's
 ``manifest.json`` records them all.
@@ -50,6 +50,7 @@ from megalut_cli.great3.pipeline import (
     unit_params,
 )
 from megalut_cli.nn.model import ShearModel
+from megalut_cli.nn.options import PointSpec, WeightSpec
 from megalut_cli.progress import Progress
 from megalut_cli.steps import (
     Entry,
@@ -68,7 +69,7 @@ from megalut_cli.steps import (
 )
 
 if TYPE_CHECKING:
-    from megalut_cli.training import Columns
+    from megalut_cli.nn.fit import Columns
 
 log = logging.getLogger(__name__)
 
@@ -118,26 +119,27 @@ def as_shear_estimator(model: ShearModel, component: int) -> ShearModel:
     return ShearModel(point={comm.target: comm}, provenance=model.provenance)
 
 
-def train_subfield(pipe: BranchPipeline, subfield: int, tp: Columns, tw: Columns,
+def train_subfield(pt: PointSpec, pw: WeightSpec, subfield: int, tp: Columns, tw: Columns,
                    sources: Mapping[str, str]) -> ShearModel:
-    """Point committees (per component) on ``tp``, taken as shear estimators; weights on ``tw``; one model.
+    """Point committees (per component) on ``tp`` as ``pt`` says (features are templates,
+    ``{i}`` the component), taken as shear estimators; weights on ``tw`` as ``pw`` says; one
+    model. Each component's trainings draw with the subfield's seeds.
 
     ``sources``: the names of ``tp`` and ``tw`` for the logs and the model's provenance.
     """
+    from megalut_cli.nn.fit import fit_point, fit_weight
     from megalut_cli.pipeline_config import key_names
     from megalut_cli.provenance import command_line, software_versions
-    from megalut_cli.training import fit_point, fit_weight
 
     point, weight = {}, {}
-    pt, pw = pipe.point, pipe.weight
     for i in (1, 2):
-        estimator = fit_point(tp, features=component_features(pt.features, i), targets=[pt.targets[i - 1]],
-                              hidden=pt.hidden, cost=pt.cost, select_cases=pt.select_cases, init_scheme=pt.init,
-                              options=replace(pt.options, seed=subfield_seed(pt.options.seed, subfield, i)),
-                              sources={"train": sources["tp"]}, names=key_names("train_point"))
-        model = fit_weight(tw, as_shear_estimator(estimator, i), features=component_features(pw.features, i),
-                           hidden=pw.hidden, select=pw.select,
-                           options=replace(pw.options, seed=subfield_seed(pw.options.seed, subfield, i)),
+        point_spec = replace(pt, features=component_features(pt.features, i),
+                             targets=[pt.targets[i - 1]], seed=subfield_seed(pt.seed, subfield, i))
+        estimator = fit_point(tp, point_spec, sources={"train": sources["tp"]},
+                              names=key_names("train_point"))
+        weight_spec = replace(pw, features=component_features(pw.features, i),
+                              seed=subfield_seed(pw.seed, subfield, i))
+        model = fit_weight(tw, as_shear_estimator(estimator, i), weight_spec,
                            sources={"train": sources["tw"]}, names=key_names("train_weight"))
         point.update(model.point)
         weight.update(model.weight)
@@ -212,7 +214,8 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
             tp, tw = CatalogColumns(set_paths["tp"]), CatalogColumns(set_paths["tw"])
             if pipe.metacal:  # the networks train on the noshear versions' features
                 tp, tw = VersionColumns(tp, "noshear"), VersionColumns(tw, "noshear")
-            model = train_subfield(pipe, s, tp, tw, {n: p.name for n, p in set_paths.items()})
+            specs = PointSpec(**params["train_point"]), WeightSpec(**params["train_weight"])
+            model = train_subfield(*specs, s, tp, tw, {n: p.name for n, p in set_paths.items()})
             model.shear_mode = "metacal" if pipe.metacal else model.shear_mode
             model.save(tmp / "model.h5")
             lap("train", t)
@@ -382,7 +385,7 @@ def run_branch(
     tp, tw = (pipe.sets[k].raw.get("structure", {}) for k in SET_NAMES)
     log.info("per subfield: tp %s x %s stamps, tw %s x %s stamps; %d + %d members per component",
              tp.get("n_cases"), tp.get("n_realizations"), tw.get("n_cases"), tw.get("n_realizations"),
-             pipe.point.options.members, pipe.weight.options.members)
+             pipe.point.members, pipe.weight.members)
     run = RunRecord("", pipe.path, pipe.sha256, pipe.overrides, pipe.raw)
     with made_workdir(wd, SUBFIELDS_DIR):
         reports = run_steps(steps, wd, run, skip_existing=skip_existing, overwrite=overwrite, keep_going=keep_going,

@@ -18,14 +18,16 @@ import logging
 import multiprocessing
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
 
+from megalut_cli.errors import ConfigError
 from megalut_cli.nn import costs
 from megalut_cli.nn.data import CaseData, case_rows
 from megalut_cli.nn.network import Network
+from megalut_cli.nn.options import MEMBER_CHECKS, OPTION, POINT_OPTION, TrainSpec
 from megalut_cli.seeding import rng_for
 
 log = logging.getLogger(__name__)
@@ -33,38 +35,27 @@ log = logging.getLogger(__name__)
 #: Seconds between two progress lines of a member at info level (every mini-batch at debug).
 REPORT_SECONDS = 30.0
 
-#: scipy optimizers of the members (``bfgs``: BFGS, ``lbfgs``: L-BFGS-B).
-OPTIMIZERS = ("bfgs", "lbfgs")
-#: Arithmetic of the network passes during training.
-PRECISIONS = ("float64", "float32")
-#: How members start: N(0, 0.1), or near-identity on one feature.
-INIT_SCHEMES = ("normal", "identity")
-#: Optimizer iterations per member of point and of weight committees, by default.
-POINT_ITERATIONS = 1000
-WEIGHT_ITERATIONS = 300
-
 
 @dataclass(frozen=True)
 class TrainSettings:
-    """How to train one member."""
+    """How to train one member: the values of the training options it trains with (fields
+    named as the options, defaults declared in :mod:`megalut_cli.nn.options`) and of the
+    settings no option sets."""
 
-    cost: str = "msb"
-    iterations: int = POINT_ITERATIONS
-    batch_fraction: float = 0.25
-    batch_iterations: int = 30
-    optimizer: str = "bfgs"
+    cost: str = POINT_OPTION["cost"].default
+    iterations: int = OPTION["iterations"].default
+    batch_fraction: float = OPTION["batch_fraction"].default
+    batch_iterations: int = OPTION["batch_iterations"].default
+    optimizer: str = OPTION["optimizer"].default
     gradient: str = "analytic"
     valid_every: int = 1
     max_stalls: int = 3
-    dtype: str = "float64"
+    precision: str = OPTION["precision"].default
     device: str = "cpu"  # "gpu": costs and gradients on the device (megalut_cli.gpu.train)
 
     def __post_init__(self) -> None:
         """Check the settings: the ranges and choices of the declarations of
         :mod:`megalut_cli.nn.options` (a ``ValueError``: a programming error, not user input)."""
-        from megalut_cli.errors import ConfigError
-        from megalut_cli.nn.options import MEMBER_CHECKS  # imports this module: not at the top
-
         if self.cost not in costs.COSTS:
             raise ValueError(f"unknown cost {self.cost!r}")
         if self.device not in ("cpu", "gpu"):
@@ -73,13 +64,20 @@ class TrainSettings:
             raise ValueError(f"unknown gradient {self.gradient!r}")
         if self.valid_every < 1:
             raise ValueError("valid_every must be >= 1")
-        values = {"iterations": self.iterations, "batch_fraction": self.batch_fraction,
-                  "batch_iterations": self.batch_iterations, "optimizer": self.optimizer, "precision": self.dtype}
         try:
-            for name, value in values.items():
-                MEMBER_CHECKS[name].check(value, name)
+            for f in fields(self):
+                if f.name in MEMBER_CHECKS:
+                    MEMBER_CHECKS[f.name].check(getattr(self, f.name), f.name)
         except ConfigError as err:
             raise ValueError(str(err)) from None
+
+    @classmethod
+    def of(cls, spec: TrainSpec, cost: str, device: str) -> TrainSettings:
+        """How each member of the training ``spec`` trains: the spec's values of the fields
+        named as its options, with ``cost`` on the resolved ``device``."""
+        names = {o.name for o in spec.OPTIONS}
+        values = {f.name: getattr(spec, f.name) for f in fields(cls) if f.name in names}
+        return cls(**{**values, "cost": cost, "device": device})
 
 
 def normalised_columns(x: np.ndarray, loc: np.ndarray, scale: np.ndarray, dtype: str,
@@ -280,7 +278,8 @@ def train_member(task: MemberTask) -> MemberResult:
         from megalut_cli.gpu.train import DeviceObjective as objective
 
     def make(data: CaseData) -> Objective:
-        return objective(task.net, s.cost, data, task.j, task.in_loc, task.in_scale, task.cost_scale, s.dtype)
+        return objective(task.net, s.cost, data, task.j, task.in_loc, task.in_scale,
+                         task.cost_scale, s.precision)
 
     full = make(task.train)
     mon = _Monitor(full if task.valid is None else make(task.valid), params, s, t0, cpu0)

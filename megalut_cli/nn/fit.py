@@ -1,13 +1,15 @@
 """Training of shear estimators: in memory (:func:`fit_point`, :func:`fit_weight`) and
 file to file (:func:`train_point`, :func:`train_weight`, ``megalut train-point/-weight``).
 
-:func:`fit_point` trains one committee of point estimators per target with the MSB cost
-(paper Sect. 5.1) on a table of columns, optionally continuing from an earlier model
-(pretraining, Sect. 6), and returns a :class:`ShearModel`. :func:`fit_weight` predicts the
-point estimates of a model on a weight-training table and trains one committee of weight
+What a training is, is one spec (:data:`megalut_cli.nn.options.PointSpec`,
+:data:`~megalut_cli.nn.options.WeightSpec`), which the command line and the pipelines build
+and pass whole. :func:`fit_point` trains one committee of point estimators per target with
+the MSB cost (paper Sect. 5.1) on a table of columns, optionally continuing from an earlier
+model (pretraining, Sect. 6), and returns a :class:`ShearModel`. :func:`fit_weight` predicts
+the point estimates of a model on a weight-training table and trains one committee of weight
 networks per target with the MSWB cost (Sect. 5.2); the model it returns holds both. The
 file functions read the catalogs, add the provenance of the files and write the model.
-Messages name the arguments (``select_cases``...) or, given ``names``, the caller's words
+Messages name the options (``select_cases``...) or, given ``names``, the caller's words
 for them (``--select-cases`` of the command line, ``train_point.select_cases`` of a
 pipeline file). Nothing here needs GalSim or click.
 
@@ -22,7 +24,6 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,9 +39,11 @@ from megalut_cli.catalog import (
 )
 from megalut_cli.errors import ConfigError, InputError, namer
 from megalut_cli.expr import check_expression, columns_used, evaluate_cases, evaluate_rows
+from megalut_cli.measure.metacal_defaults import STEP_CARD
 from megalut_cli.nn import normalization as norm
 from megalut_cli.nn.committee import CommitteeSpec, train_committees
 from megalut_cli.nn.data import CaseData, build_cases, split_cases, valid_rows
+from megalut_cli.nn.defaults import INIT_SCHEMES, POINT_COSTS, WEIGHT_COST
 from megalut_cli.nn.domain import (
     DOMAIN_COLUMNS,
     DOMAIN_KEY,
@@ -50,15 +53,9 @@ from megalut_cli.nn.domain import (
 )
 from megalut_cli.nn.model import Committee, ShearModel, component_name
 from megalut_cli.nn.network import Network
-from megalut_cli.nn.options import (
-    OPTION,
-    POINT_COSTS,
-    POINT_OPTION,
-    WEIGHT_OPTION,
-    check_train_values,
-)
+from megalut_cli.nn.options import POINT_OPTION, WEIGHT_OPTION, PointSpec, TrainSpec, WeightSpec
 from megalut_cli.nn.population import training_population
-from megalut_cli.nn.train import INIT_SCHEMES, POINT_ITERATIONS, WEIGHT_ITERATIONS, TrainSettings
+from megalut_cli.nn.train import TrainSettings
 from megalut_cli.parallel import executor
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.provenance import command_line, recorded_path, sha256_file, software_versions
@@ -66,13 +63,14 @@ from megalut_cli.seeding import STREAM_SPLIT, rng_for
 
 log = logging.getLogger(__name__)
 
-#: The paper's five input features (Sect. 5.3).
+#: The declared defaults of a point training's features, targets and hidden layers and of a
+#: weight training's hidden layers.
 DEFAULT_FEATURES = list(POINT_OPTION["features"].default)
 DEFAULT_TARGETS = list(POINT_OPTION["targets"].default)
 DEFAULT_POINT_HIDDEN = tuple(POINT_OPTION["hidden"].default)
 DEFAULT_WEIGHT_HIDDEN = tuple(WEIGHT_OPTION["hidden"].default)
-DEFAULT_POINT_ITERATIONS = POINT_ITERATIONS
-DEFAULT_WEIGHT_ITERATIONS = WEIGHT_ITERATIONS
+#: How a committee's training record names a training option it knew by another name.
+RECORDED_NAMES = {"precision": "dtype"}
 #: A table of columns: a dict of column name to array, an astropy Table, or a
 #: :class:`megalut_cli.catalog.CatalogColumns` reading a catalog's columns on demand.
 Columns = Mapping[str, Any]
@@ -81,8 +79,6 @@ Columns = Mapping[str, Any]
 def training_columns(path: str | os.PathLike) -> tuple[Columns, str]:
     """The columns a model trains on, and its shear mode: a metacal catalog (``MCALSTEP``
     card, ``measure``/``simulate --metacal``) trains on the ``noshear`` version's features."""
-    from megalut_cli.measure.metacal_defaults import STEP_CARD
-
     columns = CatalogColumns(path)
     if catalog_info(path)[2].get(STEP_CARD) is None:
         return columns, "simulation"
@@ -99,44 +95,6 @@ def _validation_columns(train: str | os.PathLike, valid: str | os.PathLike | Non
     if valid_mode != mode:
         raise InputError(f"{name('valid')} {valid} and {name('train')} {train}: one is a metacal catalog, the other not")
     return columns
-
-
-@dataclass
-class TrainOptions:
-    """Settings shared by point and weight training (declared in :mod:`megalut_cli.nn.options`)."""
-
-    members: int = OPTION["members"].default
-    iterations: int = OPTION["iterations"].default
-    batch_fraction: float = OPTION["batch_fraction"].default
-    batch_iterations: int = OPTION["batch_iterations"].default
-    optimizer: str = OPTION["optimizer"].default
-    normalization: str = OPTION["normalization"].default
-    valid_fraction: float = OPTION["valid_fraction"].default
-    seed: int = OPTION["seed"].default
-    dtype: str = OPTION["precision"].default
-    keep: int | None = OPTION["keep"].default
-    device: str = "cpu"  # resolved (megalut_cli.engine.resolve_device): where costs and gradients run
-
-    @classmethod
-    def from_values(cls, values: Mapping[str, Any], where: str = "",
-                    defaults: Mapping[str, Any] | None = None) -> TrainOptions:
-        """From option values by name (``precision`` is ``dtype``; missing ones from
-        ``defaults``, then the declared defaults), checked; errors name ``where.<name>``."""
-        out = check_train_values(values, where, defaults)
-        return cls(dtype=out.pop("precision"), **out)
-
-    def check(self) -> None:
-        """Check every value against its declaration (errors name the option)."""
-        values = {k: v for k, v in asdict(self).items() if k not in ("dtype", "device")}
-        check_train_values({**values, "precision": self.dtype})
-
-    def settings(self, cost: str) -> TrainSettings:
-        """How to train each member with ``cost``."""
-        return TrainSettings(
-            cost=cost, iterations=self.iterations, batch_fraction=self.batch_fraction,
-            batch_iterations=self.batch_iterations, optimizer=self.optimizer, dtype=self.dtype,
-            device=self.device,
-        )
 
 
 def _unique(items: Sequence[str], what: str) -> list[str]:
@@ -232,7 +190,7 @@ def _load_split(
     train_name: str,
     valid: Columns | None,
     valid_name: str,
-    opts: TrainOptions,
+    spec: TrainSpec,
     features: Sequence[str],
     targets: Sequence[str],
     **load: Any,
@@ -244,19 +202,19 @@ def _load_split(
     data, domain = _load_cases(train, train_name, features, targets, **load)
     if valid is not None:
         return data, _load_cases(valid, valid_name, features, targets, **load)[0], valid_name, domain
-    if opts.valid_fraction <= 0:
+    if spec.valid_fraction <= 0:
         log.warning("no validation set (%s 0): members are monitored and selected on the training set",
                     name("valid_fraction"))
         return data, None, "training set", domain
-    tr, va = split_cases(data.n_cases, opts.valid_fraction, rng_for(opts.seed, STREAM_SPLIT))
+    tr, va = split_cases(data.n_cases, spec.valid_fraction, rng_for(spec.seed, STREAM_SPLIT))
     if len(tr) < 2:
         raise InputError(
             f"only {data.n_cases} cases: too few to hold out a validation fraction; "
             f"use {name('valid')} or {name('valid_fraction')} 0"
         )
     log.info("holding out %d of %d cases for validation (%s %g)", len(va), data.n_cases, name("valid_fraction"),
-             opts.valid_fraction)
-    return data.subset(tr), data.subset(va), f"held-out fraction {opts.valid_fraction:g}", domain
+             spec.valid_fraction)
+    return data.subset(tr), data.subset(va), f"held-out fraction {spec.valid_fraction:g}", domain
 
 
 def _identity_feature(target: str, features: Sequence[str]) -> int:
@@ -281,7 +239,8 @@ def _spread(values: np.ndarray) -> float:
 
 
 def _training_record(
-    opts: TrainOptions,
+    spec: TrainSpec,
+    device: str,
     command: str,
     cost: str,
     valid_desc: str,
@@ -289,9 +248,11 @@ def _training_record(
     vdata: CaseData | None,
     **extra: Any,
 ) -> dict[str, Any]:
-    """What a committee records of its training: the options, the data sizes and ``extra``."""
+    """What a committee records of its training: the training options (named as
+    :data:`RECORDED_NAMES` says) and the device, the data sizes and ``extra``."""
     return {
-        **asdict(opts),
+        **{RECORDED_NAMES.get(name, name): value for name, value in spec.train_values().items()},
+        "device": device,
         "command": command,
         "cost": cost,
         **extra,
@@ -371,37 +332,35 @@ def config_psf_domain(domain: Mapping[str, Any], psf: Mapping[str, Any], stamp_s
 
 def fit_point(
     train: Columns,
+    spec: PointSpec | None = None,
     *,
-    features: Sequence[str] | None = None,
-    targets: Sequence[str] | None = None,
     valid: Columns | None = None,
-    hidden: Sequence[int] | None = None,
-    cost: str = "msb",
-    select_cases: str | None = None,
     init_model: ShearModel | None = None,
-    init_scheme: str = "normal",
-    options: TrainOptions | None = None,
+    device: str = "cpu",
     nproc: int = 1,
     scheduler: str | None = None,
     progress: Progress | None = None,
     sources: Mapping[str, str] | None = None,
     names: Mapping[str, str] | None = None,
 ) -> ShearModel:
-    """Train point-estimate committees (one per target) on the table ``train``.
+    """Train point-estimate committees (one per target) on the table ``train`` as ``spec``
+    says (default: every option's declared default).
 
-    ``init_model``: continue its point committees (by target, else by position).
-    ``sources`` names the tables and the initial model in logs and records (keys
-    ``train``, ``valid``, ``init_model``); ``names`` how messages name the arguments.
-    The model's provenance holds the command, versions and seed (the file functions add
-    their inputs).
+    ``init_model``: continue its point committees (by target, else by position); the
+    spec's ``features`` and ``hidden`` ``None`` are then those of the model (else the
+    defaults). ``device``: where the costs and gradients run (a resolved one: ``cpu`` or
+    ``gpu``). ``sources`` names the tables and the initial model in logs and records (keys
+    ``train``, ``valid``, ``init_model``); ``names`` how messages name the options. The
+    model's provenance holds the command, versions and seed (the file functions add their
+    inputs).
     """
+    spec = spec or PointSpec()
     name = namer(names)
     src_names = {"train": "train", "valid": "valid", "init_model": "init_model", **(sources or {})}
     init_from = src_names["init_model"]
-    opts = options or TrainOptions()
-    opts.check()
-    _check_point_arguments(cost, init_scheme, select_cases)
-    targets = _unique(targets or DEFAULT_TARGETS, "targets")
+    spec.check()
+    _check_point_arguments(spec)
+    targets = _unique(spec.targets or DEFAULT_TARGETS, "targets")
     init_comms: dict[str, Committee] = {}
     if init_model is not None:
         available = list(init_model.point.values())
@@ -414,6 +373,7 @@ def fit_point(
             if src.target != t:
                 log.info("initialising %s from the %s committee of %s", t, src.target, init_from)
             init_comms[t] = src
+    features = spec.features
     if features is None:
         features = next(iter(init_comms.values())).features if init_comms else DEFAULT_FEATURES
     features = _unique(features, "features")
@@ -423,22 +383,23 @@ def fit_point(
                 f"{init_from}: the {src.target} committee's features ({', '.join(src.features)}) "
                 f"do not match the features ({', '.join(features)})"
             )
-        if hidden is not None and tuple(hidden) != src.hidden:
+        if spec.hidden is not None and tuple(spec.hidden) != src.hidden:
             raise ConfigError(
-                f"{name('hidden')} {','.join(map(str, hidden))} differs from the architecture of {init_from} "
-                f"({','.join(map(str, src.hidden))}); leave {name('hidden')} out to continue that model"
+                f"{name('hidden')} {','.join(map(str, spec.hidden))} differs from the architecture "
+                f"of {init_from} ({','.join(map(str, src.hidden))}); leave {name('hidden')} out to "
+                "continue that model"
             )
-    hidden = tuple(hidden) if hidden is not None else (
+    hidden = tuple(spec.hidden) if spec.hidden is not None else (
         next(iter(init_comms.values())).hidden if init_comms else DEFAULT_POINT_HIDDEN
     )
     _check_architecture(features, targets, hidden, name)
 
     tdata, vdata, valid_desc, domain = _load_split(
-        train, src_names["train"], valid, src_names["valid"], opts, features, targets,
-        constant_targets=cost != "mse", select_cases=select_cases, name=name,
+        train, src_names["train"], valid, src_names["valid"], spec, features, targets,
+        constant_targets=spec.cost != "mse", select_cases=spec.select_cases, name=name,
     )
 
-    specs = []
+    committee_specs = []
     for j, t in enumerate(targets):
         src = init_comms.get(t)
         if src is not None:
@@ -447,72 +408,71 @@ def fit_point(
             ranked = sorted(range(len(src.members)), key=lambda k: (not src.members[k].selected, k))
             init_members = [src.members[k] for k in ranked]
         else:
-            in_loc, in_scale = norm.fit(tdata.x, opts.normalization, features)
-            method = opts.normalization
+            in_loc, in_scale = norm.fit(tdata.x, spec.normalization, features)
+            method = spec.normalization
             out_loc = float(np.mean(tdata.targets[:, j]))
             out_scale = _spread(tdata.targets[:, j])
             init_members = None
         net = Network(len(features), hidden, "identity", out_loc, out_scale)
         training = _training_record(
-            opts, "train-point", cost, valid_desc, tdata, vdata,
-            select_cases=select_cases,
+            spec, device, "train-point", spec.cost, valid_desc, tdata, vdata,
+            select_cases=spec.select_cases,
             init_from=init_from if init_model is not None else None,
-            init_scheme="model" if src is not None else init_scheme,
+            init_scheme="model" if src is not None else spec.init,
         )
-        specs.append(
+        committee_specs.append(
             CommitteeSpec(
                 kind="point", target=t, j=j, net=net, in_loc=in_loc, in_scale=in_scale, train=tdata,
-                valid=vdata, members=opts.members, keep=opts.keep, cost_scale=out_scale,
-                init_scheme=init_scheme, identity_feature=_identity_feature(t, features),
+                valid=vdata, members=spec.members, keep=spec.keep, cost_scale=out_scale,
+                init_scheme=spec.init, identity_feature=_identity_feature(t, features),
                 init_members=init_members, normalization=method, training=training,
             )
         )
-    committees = _run(specs, opts.settings(cost), opts.seed, nproc, scheduler, progress)
+    settings = TrainSettings.of(spec, spec.cost, device)
+    committees = _run(committee_specs, settings, spec.seed, nproc, scheduler, progress)
     parent = init_model.provenance if init_model is not None else None
-    domain.update(source=src_names["train"], selection=select_cases)
-    return ShearModel(point=committees, provenance=_provenance("train-point", {}, opts.seed, parent, domain=domain))
+    domain.update(source=src_names["train"], selection=spec.select_cases)
+    prov = _provenance("train-point", {}, spec.seed, parent, domain=domain)
+    return ShearModel(point=committees, provenance=prov)
 
 
-def _check_point_arguments(cost: str, init_scheme: str, select_cases: str | None) -> None:
-    if cost not in POINT_COSTS:
-        raise ConfigError(f"unknown cost {cost!r} for point estimates (choose msb or mse)")
-    if init_scheme not in INIT_SCHEMES:
-        raise ConfigError(f"unknown initialisation {init_scheme!r}")
-    if select_cases is not None:
-        check_expression(select_cases, None, case_mode=True)
+def _check_point_arguments(spec: PointSpec) -> None:
+    """Check the cost, the initialisation and the case selection's syntax of a point training."""
+    if spec.cost not in POINT_COSTS:
+        raise ConfigError(f"unknown cost {spec.cost!r} for point estimates (choose msb or mse)")
+    if spec.init not in INIT_SCHEMES:
+        raise ConfigError(f"unknown initialisation {spec.init!r}")
+    if spec.select_cases is not None:
+        check_expression(spec.select_cases, None, case_mode=True)
 
 
 def train_point(
     train: str | os.PathLike,
     output: str | os.PathLike,
+    spec: PointSpec | None = None,
     *,
-    features: Sequence[str] | None = None,
-    targets: Sequence[str] | None = None,
     valid: str | os.PathLike | None = None,
-    hidden: Sequence[int] | None = None,
-    cost: str = "msb",
-    select_cases: str | None = None,
     init_from: str | os.PathLike | None = None,
-    init_scheme: str = "normal",
-    options: TrainOptions | None = None,
+    device: str = "cpu",
     nproc: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
     progress: Progress | None = None,
     names: Mapping[str, str] | None = None,
 ) -> ShearModel:
-    """:func:`fit_point` on the catalog ``train``; write the model to ``output``."""
-    (options or TrainOptions()).check()
+    """:func:`fit_point` on the catalog ``train`` (continuing the model file ``init_from``
+    when given); write the model to ``output``."""
+    spec = spec or PointSpec()
+    spec.check()
     out = check_output(output, overwrite)
-    _check_point_arguments(cost, init_scheme, select_cases)
+    _check_point_arguments(spec)
     init_model = ShearModel.load(init_from) if init_from is not None else None
     sources = {"train": str(train), "valid": str(valid), "init_model": str(init_from)}
     train_columns, mode = training_columns(train)
     model = fit_point(
-        train_columns, features=features, targets=targets,
-        valid=_validation_columns(train, valid, mode, namer(names)), hidden=hidden, cost=cost,
-        select_cases=select_cases, init_model=init_model, init_scheme=init_scheme, options=options, nproc=nproc,
-        scheduler=scheduler, progress=progress, sources=sources, names=names,
+        train_columns, spec, valid=_validation_columns(train, valid, mode, namer(names)),
+        init_model=init_model, device=device, nproc=nproc, scheduler=scheduler, progress=progress,
+        sources=sources, names=names,
     )
     inputs = {"train": _input(train)}
     if valid is not None:
@@ -552,12 +512,10 @@ def _run(
 def fit_weight(
     train: Columns,
     point_model: ShearModel,
+    spec: WeightSpec | None = None,
     *,
-    features: Sequence[str] | None = None,
-    hidden: Sequence[int] | None = None,
-    select: str | None = None,
     valid: Columns | None = None,
-    options: TrainOptions | None = None,
+    device: str = "cpu",
     nproc: int = 1,
     scheduler: str | None = None,
     progress: Progress | None = None,
@@ -565,46 +523,51 @@ def fit_weight(
     names: Mapping[str, str] | None = None,
 ) -> ShearModel:
     """Train weight committees (MSWB) on the table ``train`` for every point committee of
-    ``point_model``; return a model with both (provenance: command, versions, seed, parent).
+    ``point_model`` as ``spec`` says (default: every option's declared default; ``features``
+    ``None``: those of the point model); return a model with both (provenance: command,
+    versions, seed, parent).
 
-    ``sources`` names the tables and the point model (keys ``train``, ``valid``,
-    ``model``); ``names`` how messages name the arguments.
+    ``device``: where the costs and gradients run (``cpu`` or ``gpu``). ``sources`` names
+    the tables and the point model (keys ``train``, ``valid``, ``model``); ``names`` how
+    messages name the options.
     """
+    spec = spec or WeightSpec()
     name = namer(names)
     src_names = {"train": "train", "valid": "valid", "model": "model", **(sources or {})}
-    opts = options or TrainOptions(iterations=DEFAULT_WEIGHT_ITERATIONS)
-    opts.check()
-    if select is not None:
-        check_expression(select, None, case_mode=False)
+    spec.check()
+    if spec.select is not None:
+        check_expression(spec.select, None, case_mode=False)
     if not point_model.point:
         raise InputError(f"{src_names['model']}: the model has no point committee")
     targets = list(point_model.point)
-    features = _unique(features if features is not None else point_model.features, "features")
-    hidden = tuple(hidden) if hidden is not None else DEFAULT_WEIGHT_HIDDEN
+    features = _unique(point_model.features if spec.features is None else spec.features, "features")
+    hidden = tuple(spec.hidden) if spec.hidden is not None else DEFAULT_WEIGHT_HIDDEN
     _check_architecture(features, targets, hidden, name)
 
     tdata, vdata, valid_desc, domain = _load_split(
-        train, src_names["train"], valid, src_names["valid"], opts, features, targets, constant_targets=True,
-        select_rows=select, point_model=point_model, name=name,
+        train, src_names["train"], valid, src_names["valid"], spec, features, targets,
+        constant_targets=True, select_rows=spec.select, point_model=point_model, name=name,
     )
-    in_loc, in_scale = norm.fit(tdata.x, opts.normalization, features)
-    specs = []
+    in_loc, in_scale = norm.fit(tdata.x, spec.normalization, features)
+    committee_specs = []
     for j, t in enumerate(targets):
         net = Network(len(features), hidden, "sigmoid4")
         training = _training_record(
-            opts, "train-weight", "mswb", valid_desc, tdata, vdata,
-            select=select, point_model_sha256=point_model.sha256 or None,
+            spec, device, "train-weight", WEIGHT_COST, valid_desc, tdata, vdata,
+            select=spec.select, point_model_sha256=point_model.sha256 or None,
         )
-        specs.append(
+        committee_specs.append(
             CommitteeSpec(
                 kind="weight", target=t, j=j, net=net, in_loc=in_loc, in_scale=in_scale, train=tdata,
-                valid=vdata, members=opts.members, keep=opts.keep, cost_scale=_spread(tdata.targets[:, j]),
-                normalization=opts.normalization, training=training,
+                valid=vdata, members=spec.members, keep=spec.keep,
+                cost_scale=_spread(tdata.targets[:, j]), normalization=spec.normalization,
+                training=training,
             )
         )
-    committees = _run(specs, opts.settings("mswb"), opts.seed, nproc, scheduler, progress)
-    domain.update(source=src_names["train"], selection=select)
-    prov = _provenance("train-weight", {}, opts.seed, point_model.provenance, domain=domain)
+    settings = TrainSettings.of(spec, WEIGHT_COST, device)
+    committees = _run(committee_specs, settings, spec.seed, nproc, scheduler, progress)
+    domain.update(source=src_names["train"], selection=spec.select)
+    prov = _provenance("train-weight", {}, spec.seed, point_model.provenance, domain=domain)
     return ShearModel(point=point_model.point, weight=committees, provenance=prov)
 
 
@@ -612,12 +575,10 @@ def train_weight(
     train: str | os.PathLike,
     model: str | os.PathLike,
     output: str | os.PathLike,
+    spec: WeightSpec | None = None,
     *,
-    features: Sequence[str] | None = None,
-    hidden: Sequence[int] | None = None,
-    select: str | None = None,
     valid: str | os.PathLike | None = None,
-    options: TrainOptions | None = None,
+    device: str = "cpu",
     nproc: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
@@ -626,12 +587,13 @@ def train_weight(
 ) -> ShearModel:
     """:func:`fit_weight` on the catalog ``train`` and the model file ``model``; write the
     model with both kinds of committees to ``output``."""
-    (options or TrainOptions(iterations=DEFAULT_WEIGHT_ITERATIONS)).check()
+    spec = spec or WeightSpec()
+    spec.check()
     out = check_output(output, overwrite)
     if Path(out).resolve() == Path(model).resolve():
         raise ConfigError(f"{namer(names)('output')} {output} would replace the input model; choose another output file")
-    if select is not None:
-        check_expression(select, None, case_mode=False)
+    if spec.select is not None:
+        check_expression(spec.select, None, case_mode=False)
     point_model = ShearModel.load(model)
     train_columns, mode = training_columns(train)
     valid_columns = _validation_columns(train, valid, mode, namer(names))
@@ -641,8 +603,7 @@ def train_weight(
             "catalog: train the weights on a catalog of the point model's mode"
         )
     result = fit_weight(
-        train_columns, point_model, features=features, hidden=hidden, select=select,
-        valid=valid_columns, options=options, nproc=nproc,
+        train_columns, point_model, spec, valid=valid_columns, device=device, nproc=nproc,
         scheduler=scheduler, progress=progress, sources={"train": str(train), "valid": str(valid), "model": str(model)},
         names=names,
     )
