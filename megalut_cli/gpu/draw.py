@@ -27,7 +27,9 @@ from megalut_cli.measure.features import (
     default_max_shift,
     features_from_moments,
 )
+from megalut_cli.measure.morphology import morphology_of_measured
 from megalut_cli.sim.draw import (
+    WorkUnit,
     case_columns,
     case_psfs,
     stamp_origins,
@@ -47,7 +49,7 @@ def _padded(a: np.ndarray, size: int, fill: float = 0.0) -> np.ndarray:
     return out
 
 
-def draw_unit_device(unit: Any) -> dict[str, Any]:
+def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
     """:func:`megalut_cli.sim.draw.draw_unit` of a fast-engine unit on the device."""
     dev = jax_device()
     cfg = unit.config
@@ -148,7 +150,5 @@ def draw_unit_device(unit: Any) -> dict[str, Any]:
         moments, skymad, finite = split_measurements(results)
         columns.update(features_from_moments(moments, skymad, finite, origins, S, cfg.gain, default_max_shift(S)))
         if unit.morphology:
-            from megalut_cli.measure.morphology import morphology_of_measured
-
             columns.update(morphology_of_measured(kept, origins, columns))
     return {"columns": columns, "stamps": kept if unit.keep_stamps else None}

@@ -42,34 +42,41 @@ import time
 import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import fitsio
 import numpy as np
 
 from megalut_cli import flags as fl
 from megalut_cli.atomic import atomic_output, check_output
+from megalut_cli.catalog import is_fits_file, write_catalog
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE
 from megalut_cli.errors import ConfigError, InputError, Names, namer
+from megalut_cli.measure.defaults import FORMAT, FORMAT_VERSION, MAD_TO_SIGMA, PSF_COLUMNS
 from megalut_cli.measure.features import (
     FEATURE_COLUMNS,
-    MAD_TO_SIGMA,
     SOURCE_COLUMNS,
     default_max_shift,
     edge_pixels,
     measure_stamps,
     signal_to_noise,
     sky_mad,
+    warn_if_mostly_flagged,
 )
-from megalut_cli.measure.metacal_defaults import SEED_CARD, STEP_CARD, TYPES, metacal_columns
-from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS
+from megalut_cli.measure.metacal_defaults import (
+    INTERPOLANT,
+    SEED_CARD,
+    STEP_CARD,
+    TYPES,
+    metacal_columns,
+)
+from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS, morphology_of_measured
 from megalut_cli.measure.options import MEASURE
+from megalut_cli.measure.psf_model import cached_psf_model
+from megalut_cli.measure.single_psf import single_psf_features, single_psf_stamp
 from megalut_cli.parallel import executor, map_units, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.provenance import CREATOR
-
-if TYPE_CHECKING:  # GalSim's des module loads with it
-    from megalut_cli.measure.psf_model import PsfModel as PsfModelFile
 
 log = logging.getLogger(__name__)
 
@@ -251,8 +258,6 @@ class MedsFile:
 def is_meds(path: str | os.PathLike) -> bool:
     """Whether ``path`` is a MEDS file: a FITS file with ``object_data`` and ``image_cutouts``
     extensions."""
-    from megalut_cli.catalog import is_fits_file
-
     try:
         if not is_fits_file(path):
             return False
@@ -501,8 +506,6 @@ def measure_cutouts(
         use = (feats["flags"] == 0) & np.isfinite(noise)
         feats["snr"][use] = signal_to_noise(feats["adamom_flux"][use], feats["adamom_sigma"][use], noise[use], gain)
     if morphology:
-        from megalut_cli.measure.morphology import morphology_of_measured
-
         feats.update(morphology_of_measured(clean, origins, feats))
     return feats
 
@@ -510,8 +513,6 @@ def measure_cutouts(
 def psf_features(psfs: np.ndarray, engine: str = DEFAULT_ENGINE) -> dict[str, np.ndarray]:
     """``psf_adamom_g1, psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4`` of each PSF image
     ``(n, P, P)`` and ``flags`` (PSF_FAILED where it cannot be measured)."""
-    from megalut_cli.measure.measure import PSF_COLUMNS
-
     psfs = np.asarray(psfs, dtype=np.float64)
     n = len(psfs)
     if psfs.ndim != 3 or psfs.shape[1] != psfs.shape[2]:
@@ -520,13 +521,6 @@ def psf_features(psfs: np.ndarray, engine: str = DEFAULT_ENGINE) -> dict[str, np
     out = {p: np.asarray(res[p[len("psf_"):]], dtype=np.float64) for p in PSF_COLUMNS}
     out["flags"] = np.where(np.asarray(res["flags"]) != 0, fl.PSF_FAILED, 0).astype(np.int32)
     return out
-
-
-def _load_psf_model(path: str) -> PsfModelFile:
-    """The PSF model file ``path``, loaded once per process."""
-    from megalut_cli.measure.psf_model import cached_psf_model
-
-    return cached_psf_model(path)
 
 
 def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
@@ -541,7 +535,7 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
     if stamps.psfs is not None and unit.get("psf_source") == "file":
         psfs = stamps.psfs
     elif unit.get("psf_model_path") is not None or unit.get("psf_model") is not None:
-        model = unit.get("psf_model") or _load_psf_model(unit["psf_model_path"])
+        model = unit.get("psf_model") or cached_psf_model(unit["psf_model_path"])
         xy = unit["model_xy"]
         psfs = np.asarray(model.draw(xy[:, 0], xy[:, 1], layout.box_size), dtype=np.float64)
     if psfs is not None:
@@ -560,7 +554,7 @@ def _metacal(
     unit: dict[str, Any], mc: dict[str, Any], clean: np.ndarray, feats: dict[str, np.ndarray], psfs: np.ndarray | None
 ) -> dict[str, np.ndarray]:
     """The metacal columns ``X_<type>`` of a unit's cleaned stamps, with the unit's PSFs."""
-    from megalut_cli.measure.metacal import (
+    from megalut_cli.measure.metacal import (  # GalSim: metacal only
         dilated_sigma,
         fixnoise_seeds,
         metacal_features,
@@ -602,8 +596,6 @@ def _metacal(
 def extra_columns(meds: MedsFile) -> list[str]:
     """The scalar ``object_data`` columns outside the MEDS layout, passed through to the output
     (those named like a feature column are left out)."""
-    from megalut_cli.measure.measure import PSF_COLUMNS
-
     own = set(FEATURE_COLUMNS) | set(PSF_COLUMNS) | set(MORPHOLOGY_COLUMNS) | {MASKED_COLUMN, NOISE_COLUMN}
     return [c for c, v in meds.objects.items() if c not in LAYOUT_COLUMNS and c not in own and v.ndim == 1]
 
@@ -626,8 +618,6 @@ def same_parity_psfs(psfs: np.ndarray, size: int) -> np.ndarray:
     if psfs.shape[1] % 2 == size % 2:
         return psfs
     import galsim
-
-    from megalut_cli.measure.metacal_defaults import INTERPOLANT
 
     p = psfs.shape[1] + 1
     out = np.empty((len(psfs), p, p))
@@ -675,8 +665,6 @@ def measure_meds(
     where there are weights, else ``skymad``). Objects without cutout ``cutout`` get
     NO_CUTOUT and NaN features.
     """
-    from megalut_cli.measure.measure import PSF_COLUMNS, single_psf_features, single_psf_stamp
-
     name = namer(names)
     obj, n = meds.objects, len(meds)
     if cutout < 0:
@@ -720,7 +708,7 @@ def measure_meds(
     model_xy = np.stack([ocol + 1.0, orow + 1.0], axis=1)
 
     if psf_model_path is not None:  # load (and check) it here, before the long work
-        model = _load_psf_model(str(psf_model_path))
+        model = cached_psf_model(str(psf_model_path))
         far = model.outside(model_xy[has, 0], model_xy[has, 1])
         if far.any():
             log.warning("%s: %d of %d object(s) lie outside the area of the stars the model was fit to: its PSF "
@@ -736,7 +724,7 @@ def measure_meds(
             raise ConfigError(f"{name('metacal_step')} must be in (0, {MEASURE['metacal_step'].maximum}], got {metacal_step}")
         mc = {"step": float(metacal_step), "seed": int(seed)}
         if single is not None:
-            from megalut_cli.measure.metacal import target_psf_sigma
+            from megalut_cli.measure.metacal import target_psf_sigma  # GalSim: metacal only
 
             _parity_check(single.shape[0], np.unique(box[has]), str(psf_path), names)
             mc["psf"] = single
@@ -820,7 +808,7 @@ def measure_meds(
         for c in PSF_COLUMNS:
             cols[c][:] = single_values[c]
         if mc is not None:
-            from megalut_cli.measure.metacal import target_psf_columns
+            from megalut_cli.measure.metacal import target_psf_columns  # GalSim: metacal only
 
             for b in np.unique(box[has]):
                 rows = has & (box == b)
@@ -853,9 +841,6 @@ def measure_meds_file(
     """Measure the objects of the MEDS file ``meds_path`` (:func:`measure_meds`) and write
     the features catalog ``output`` (format ``megalut.features``, one row per object).
     Returns the columns written and the header cards added."""
-    from megalut_cli.catalog import write_catalog
-    from megalut_cli.measure.measure import FORMAT, FORMAT_VERSION, warn_if_mostly_flagged
-
     name = namer(names)
     check_output(output, overwrite)
     if gain is not None and not (math.isfinite(gain) and gain > 0):
@@ -885,7 +870,7 @@ def measure_meds_file(
         "MASKRAD": (CENTRAL_MASK_RADIUS, "masked pixel this close to centre: MASKED_PIXELS"),
     }
     if psf_model_path is not None:
-        cards.update(_load_psf_model(str(psf_model_path)).header_cards())
+        cards.update(cached_psf_model(str(psf_model_path)).header_cards())
     if metacal:
         cards[STEP_CARD] = (float(metacal_step), "metacal shear step (measure --metacal-step)")
         cards[SEED_CARD] = (int(seed), "seed of the metacal fixnoise fields (measure --seed)")
