@@ -68,7 +68,7 @@ from megalut_cli.measure.features import (
     measure_stamps,
     warn_if_mostly_flagged,
 )
-from megalut_cli.measure.meds import is_meds, measure_meds_file
+from megalut_cli.measure.meds import MedsOptions, is_meds, measure_meds_file
 from megalut_cli.measure.metacal_defaults import SEED_CARD, STEP_CARD, TYPES, metacal_columns
 from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS, morphology_of_measured
 from megalut_cli.measure.options import MEASURE
@@ -620,10 +620,13 @@ def measure_file_columns(
                                           ("stars", bool(stars))) if given]
         if wrong:
             raise ConfigError(f"{stamps_path} is a MEDS file (each object has its box_size): leave out {', '.join(wrong)}")
+        options = MedsOptions(
+            cutout=cutout, gain=gain, psf_path=psf_path, psf_model_path=psf_model_path, engine=engine,
+            morphology=morphology, metacal=metacal, metacal_step=metacal_step, seed=seed,
+        )
         columns, _ = measure_meds_file(
-            stamps_path, output, cutout=cutout, gain=gain, psf_path=psf_path, engine=engine, morphology=morphology,
-            metacal=metacal, metacal_step=metacal_step, seed=seed, nproc=nproc, scheduler=scheduler,
-            overwrite=overwrite, progress=progress, device=device, names=names, psf_model_path=psf_model_path,
+            stamps_path, output, options, nproc=nproc, scheduler=scheduler, overwrite=overwrite,
+            progress=progress, device=device, names=names,
         )
         return columns, {}
     if cutout != MEASURE["cutout"].default:
