@@ -36,6 +36,8 @@ from megalut_cli.sim.draw import (
     stamp_parameters,
     stamp_renderer,
 )
+from megalut_cli.sim.noise import StampNoise
+from megalut_cli.sim.render import RadialProfile, RenderPlan
 from megalut_cli.sim.structure import draw_case
 
 #: Most stamps given their noise at once (the generator's state and normals: ~33 KB per
@@ -62,10 +64,10 @@ def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
     truth_parts: list[dict[str, np.ndarray]] = []
     groups: dict[tuple[str, int, int], list[np.ndarray]] = {}  # (psf key, N, Nk) -> stamp rows
     psfs: dict[str, tuple[Any, str]] = {}
-    plans: list[Any] = []
+    plans: list[RenderPlan] = []
     rows_of_plan: list[np.ndarray] = []
     seeds = np.empty(n_total, dtype=np.int64)
-    noises: list[Any] = []
+    noises: list[StampNoise] = []
     noise_of = np.empty(n_total, dtype=np.int64)
     for case in range(unit.case_start, unit.case_stop):
         d = draw_case(cfg, unit.seed, case)
@@ -89,7 +91,7 @@ def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
         truth_parts.append(case_columns(d, [p.truth for p in case_psf_list]))
 
     # Per-stamp inputs, gathered from the plans; one table of radial profiles for the unit.
-    profiles: list[Any] = []
+    profiles: list[RadialProfile] = []
     index_of: dict[int, int] = {}  # id of a (cached) radial profile -> its row in the unit's table
     amat = np.zeros((n_total, 4))
     flux, shx, shy = np.zeros(n_total), np.zeros(n_total), np.zeros(n_total)
