@@ -275,7 +275,8 @@ def warn_if_mostly_flagged(flags: np.ndarray, where: str, names: Names | None = 
     if len(flags) == 0 or bad.mean() <= MOSTLY_FLAGGED:
         return
     reasons = {name: int(np.sum((flags & value) != 0)) for value, name in fl.FLAG_NAMES.items()}
-    why = ", ".join(f"{name} {n}" for name, n in sorted(reasons.items(), key=lambda kv: -kv[1]) if n)
+    ranked = sorted(reasons.items(), key=lambda kv: -kv[1])
+    why = ", ".join(f"{name} {n}" for name, n in ranked if n)
     log.warning(
         "%s: %d of %d stamps flagged (%s): wrong %s, %s or catalog?",
         where, int(bad.sum()), len(flags), why, name("stamp_size"), name("origin"),

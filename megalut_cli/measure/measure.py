@@ -621,8 +621,9 @@ def measure_file_columns(
         if wrong:
             raise ConfigError(f"{stamps_path} is a MEDS file (each object has its box_size): leave out {', '.join(wrong)}")
         options = MedsOptions(
-            cutout=cutout, gain=gain, psf_path=psf_path, psf_model_path=psf_model_path, engine=engine,
-            morphology=morphology, metacal=metacal, metacal_step=metacal_step, seed=seed,
+            cutout=cutout, gain=gain, psf_path=psf_path, psf_model_path=psf_model_path,
+            engine=engine, morphology=morphology, metacal=metacal, metacal_step=metacal_step,
+            seed=seed,
         )
         columns, _ = measure_meds_file(
             stamps_path, output, options, nproc=nproc, scheduler=scheduler, overwrite=overwrite,

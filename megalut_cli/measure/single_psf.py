@@ -49,7 +49,6 @@ def single_psf_features(
     (:func:`single_psf_stamp`); an unmeasurable PSF is an InputError."""
     res = measure_stamps(single_psf_stamp(path, size_hint)[None], engine=engine)
     if res["flags"][0]:
-        raise InputError(
-            f"{path}: the PSF stamp could not be measured ({', '.join(fl.explain(res['flags'][0]))})"
-        )
+        why = ", ".join(fl.explain(res["flags"][0]))
+        raise InputError(f"{path}: the PSF stamp could not be measured ({why})")
     return {p: float(res[p[len("psf_"):]][0]) for p in PSF_COLUMNS}

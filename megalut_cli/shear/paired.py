@@ -321,8 +321,9 @@ def evaluate_paired_catalogs(
     check_pairing(a, b, (str(path_a), str(path_b)), galaxy_column)
     values = {}
     for c in by or []:
-        va = evaluate_row_values(c, a, len(ta)) if kinds[c] == "row" else np.asarray(a[c], dtype=float)
-        vb = evaluate_row_values(c, b, len(tb)) if kinds[c] == "row" else np.asarray(b[c], dtype=float)
+        row_expression = kinds[c] == "row"
+        va = evaluate_row_values(c, a, len(ta)) if row_expression else np.asarray(a[c], dtype=float)
+        vb = evaluate_row_values(c, b, len(tb)) if row_expression else np.asarray(b[c], dtype=float)
         values[c] = 0.5 * (va + vb)
     step = header_step(header_a)
     return paired_evaluation(a, b, galaxy_column, values, n_bins, n_boot, seed, names=("real", "twin"),

@@ -92,7 +92,8 @@ class RadialProfile:
         """F(q) as the renderer evaluates it (the fast form with ``fast``)."""
         eparams, eint, coef, fcoef = _stack([self])
         q = np.asarray(q, dtype=float)
-        return radial_values(q.ravel() ** 2, eparams[0], eint[0], coef, fcoef, fast).reshape(q.shape)
+        values = radial_values(q.ravel() ** 2, eparams[0], eint[0], coef, fcoef, fast)
+        return values.reshape(q.shape)
 
 
 #: The fast form of Sersic profiles covers q^2 < 2^30 (q r0 < 32768); the exact one beyond.
