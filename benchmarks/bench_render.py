@@ -216,7 +216,7 @@ def main() -> None:
     total = stats.total_tt
     parts = collections.defaultdict(float)
     for (filename, _, func), (_, _, tottime, _, _) in stats.stats.items():
-        if func == "_fill_kimages":
+        if func == "fill_kimages":
             parts["k-image fill (numba)"] += tottime
         elif "scipy/fft" in filename or "pocketfft" in func or func in ("c2c", "c2r"):
             parts["inverse FFTs (scipy pocketfft)"] += tottime

@@ -42,7 +42,9 @@ from typing import Any
 import numpy as np
 
 from megalut_cli import flags as fl
+from megalut_cli.configfile import tomllib
 from megalut_cli.errors import InputError
+from megalut_cli.measure.features import signal_to_noise
 from megalut_cli.schema import Option
 
 #: The options of ``megalut draft`` beyond its input, output and ``--overwrite``.
@@ -404,8 +406,6 @@ def _draft_galaxies(features: Mapping[str, np.ndarray], where: str, base_galaxy:
                     notes: list[Note]) -> list[Drafted]:
     """Report the data's galaxy distributions; widen the ``rad`` and ``sb`` ranges where the
     data's sizes and S/N reach beyond those of the simulated galaxies (never narrow them)."""
-    from megalut_cli.measure.features import signal_to_noise
-
     n = _n_rows(features)
     good = _flags(features, n) == 0
     reported = []
@@ -509,11 +509,9 @@ def draft_setup(
     of ``megalut measure --stars``) when given. ``base``: the pipeline the ranges are taken
     from (default: the embedded default). ``features_name``, ``stars_name``: how messages and
     comments name the two catalogs. Every missing column is reported at once (InputError)."""
-    from megalut_cli.configfile import tomllib
-
     header = header or {}
     if base is None:
-        from megalut_cli.pipeline_config import default_pipeline_text
+        from megalut_cli.pipeline_config import default_pipeline_text  # fitsio: not for draft --help
 
         base = tomllib.loads(default_pipeline_text())
     notes: list[Note] = []
@@ -609,7 +607,7 @@ def render_pipeline(draft: Draft, base_text: str | None = None) -> str:
     ``draft.removed`` removed, the notes as comments above their tables, and a header saying
     what was drafted from what."""
     if base_text is None:
-        from megalut_cli.pipeline_config import default_pipeline_text
+        from megalut_cli.pipeline_config import default_pipeline_text  # fitsio: not for draft --help
 
         base_text = default_pipeline_text()
     lines = base_text.splitlines()

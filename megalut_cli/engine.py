@@ -10,11 +10,23 @@ realizations differ (different generators from the same per-stamp seeds).
 The ``device`` runs the fast engine and the trainings: ``cpu`` (the default) or ``gpu``, the
 optional JAX backend (:mod:`megalut_cli.gpu`, docs/gpu.md); ``auto`` picks ``gpu`` when the
 backend finds one.
+
+The library reaches the device backend through one seam, :func:`device_backend`: the backend's
+modules import JAX and the library (the renderer, the features), so the library imports them
+by name, when a unit runs on the device, and never the other way round.
 """
 
 from __future__ import annotations
 
+import importlib
+from typing import TYPE_CHECKING, Any, Protocol, cast
+
+from megalut_cli.errors import ArgumentError
+from megalut_cli.gpu import device_problem
 from megalut_cli.schema import Option, check_choice
+
+if TYPE_CHECKING:
+    import numpy as np
 
 #: Engine name -> one-line description (the CLI's choices and help come from here).
 ENGINES: dict[str, str] = {
@@ -66,13 +78,33 @@ def resolve_device(name: str) -> str:
     check_device(name)
     if name == "cpu":
         return "cpu"
-    from megalut_cli.gpu import device_problem
-
     problem = device_problem()
     if problem is None:
         return "gpu"
     if name == "auto":
         return "cpu"
-    from megalut_cli.errors import ArgumentError
-
     raise ArgumentError("device", f" gpu: {problem}")
+
+
+#: The module of the device backend's entry points (it imports JAX).
+DEVICE_BACKEND = "megalut_cli.gpu.backend"
+
+
+class DeviceBackend(Protocol):
+    """What the library runs on the device: the entry points of :mod:`megalut_cli.gpu.backend`."""
+
+    def draw_unit(self, unit: Any) -> dict[str, Any]:
+        """``megalut_cli.sim.draw.draw_unit`` of a fast-engine ``WorkUnit`` on the device."""
+        ...
+
+    def pixel_measurements(
+        self, stamps: np.ndarray, guess_sigma: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(moments, skymad, finite)`` of host stamps ``(n, S, S)``, measured on the device."""
+        ...
+
+
+def device_backend() -> DeviceBackend:
+    """The device backend (:data:`DEVICE_BACKEND`), imported on the first call: the one place
+    where the library reaches it."""
+    return cast(DeviceBackend, importlib.import_module(DEVICE_BACKEND))

@@ -17,11 +17,15 @@ import fitsio
 import numpy as np
 
 from megalut_cli import flags as fl
-from megalut_cli.catalog import header_dict, history_steps
+from megalut_cli.catalog import header_dict, history_steps, read_text_catalog
 from megalut_cli.errors import InputError
 from megalut_cli.nn.domain import domain_summary, model_domain
+from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.nn.population import domain_line, population_lines, population_summary
+from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
 from megalut_cli.provenance import sha256_file, shown_command, shown_path
+from megalut_cli.shear.options import JSON_FORMAT as EVALUATION_FORMAT
+from megalut_cli.steps import MANIFEST_FORMAT
 
 _FITS_MAGIC = b"SIMPLE  ="
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
@@ -59,9 +63,6 @@ def describe_file(path: str | os.PathLike) -> dict[str, Any]:
 # --------------------------------------------------------------------------- JSON and text files
 def _describe_json(p: Path) -> dict[str, Any]:
     """evaluate --json files and run manifests (their writers' format names)."""
-    from megalut_cli.shear.evaluate import JSON_FORMAT as EVALUATION_FORMAT
-    from megalut_cli.steps import MANIFEST_FORMAT
-
     try:
         data = json.loads(p.read_text())
     except (UnicodeDecodeError, ValueError):
@@ -115,8 +116,6 @@ def _describe_manifest(p: Path, data: dict[str, Any]) -> dict[str, Any]:
 
 
 def _describe_text_catalog(p: Path) -> dict[str, Any]:
-    from megalut_cli.catalog import read_text_catalog
-
     try:
         with open(p, "rb") as f:
             head = f.read(4096)
@@ -277,8 +276,6 @@ def _config_summary(arr: np.ndarray) -> dict[str, Any]:
 
 # --------------------------------------------------------------------------- models
 def _describe_model(p: Path) -> dict[str, Any]:
-    from megalut_cli.nn.model import ShearModel, prediction_column
-
     model = ShearModel.load(p)
     committees = []
     for comm in [*model.point.values(), *model.weight.values()]:
@@ -343,9 +340,6 @@ def _training_sets(prov: dict[str, Any]) -> list[dict[str, Any]]:
 def describe_shipped_models() -> list[dict[str, Any]]:
     """The models shipped with megalut (:data:`megalut_cli.nn.shipped.SHIPPED_MODELS`), one
     dict each: name, file, shear mode, what they were trained on (from the model files)."""
-    from megalut_cli.nn.model import ShearModel
-    from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
-
     out = []
     for name in SHIPPED_MODELS:
         path = shipped_model(name)

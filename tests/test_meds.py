@@ -16,6 +16,7 @@ from megalut_cli.measure.features import FEATURE_COLUMNS, measure_stamps, signal
 from megalut_cli.measure.measure import measure_image
 from megalut_cli.measure.meds import (
     MAX_MASKED_FRACTION,
+    MedsOptions,
     extra_columns,
     is_meds,
     measure_cutouts,
@@ -119,7 +120,7 @@ def test_features_equal_the_grid_path(grid, tmp_path):
     ref = measure_image(image, S)
     path = tmp_path / "g.meds.fits"
     write_meds(path, stamps, orig_rows=rows, orig_cols=cols, ids=np.arange(100, 106))
-    out = measure_meds(read_meds(path), morphology=True)
+    out = measure_meds(read_meds(path), MedsOptions(morphology=True))
     ref_morph = measure_image(image, S, morphology=True)
     for c in FEATURE_COLUMNS + ("morph_conc", "morph_conc_inner", "morph_size_ratio"):
         np.testing.assert_array_equal(out[c], ref_morph[c], err_msg=c)
@@ -228,7 +229,7 @@ def test_objects_without_the_cutout_are_flagged(tmp_path):
     assert list(out["id"]) == [7, 8, 9, 10] and list(out["ncutout"]) == [2, 1, 0, 2]
     assert list(out["flags"]) == [0, 0, fl.NO_CUTOUT, 0] and list(out["n_masked"]) == [0, 0, -1, 0]
     assert np.isnan(out["adamom_sigma"][2]) and np.isnan(out["orig_row"][2])
-    one = measure_meds(meds, cutout=1)
+    one = measure_meds(meds, MedsOptions(cutout=1))
     assert list(one["flags"]) == [0, fl.NO_CUTOUT, fl.NO_CUTOUT, 0]
     direct = measure_stamps(epoch[[0, 3]].astype(np.float64))
     np.testing.assert_array_equal(one["adamom_g1"][[0, 3]], direct["adamom_g1"])
@@ -299,17 +300,17 @@ def test_metacal_on_meds(tmp_path):
     psf_file = tmp_path / "psf.fits"
     fitsio.write(str(psf_file), psf)
     meds = read_meds(path)
-    out = measure_meds(meds, metacal=True, seed=3)
+    out = measure_meds(meds, MedsOptions(metacal=True, seed=3))
     for kind in ("noshear", "1p", "1m", "2p", "2m"):
         assert np.isfinite(out[f"adamom_g1_{kind}"]).all() and np.all(out[f"flags_{kind}"] == 0)
         assert np.isfinite(out[f"psf_adamom_sigma_{kind}"]).all()
     assert np.all(out["adamom_g1_1p"] > out["adamom_g1_1m"]) and np.all(out["adamom_g2_2p"] > out["adamom_g2_2m"])
-    single = measure_meds(meds, metacal=True, seed=3, psf_path=psf_file)
+    single = measure_meds(meds, MedsOptions(metacal=True, seed=3, psf_path=psf_file))
     for c in ("adamom_g1_1p", "adamom_sigma_noshear", "psf_adamom_sigma_2m", "psf_adamom_sigma"):
         np.testing.assert_allclose(single[c], out[c], rtol=1e-6, err_msg=c)
     path_odd = tmp_path / "mc33.meds.fits"  # odd PSF cutouts for even boxes (as DES's)
     write_meds(path_odd, stamps, weights=np.full(stamps.shape, 1 / NOISE**2), psfs=[[psf_image(PSF_SIGMA, 33)]] * 3)
-    odd = measure_meds(read_meds(path_odd), metacal=True, seed=3)
+    odd = measure_meds(read_meds(path_odd), MedsOptions(metacal=True, seed=3))
     for c in ("adamom_g1_1p", "adamom_g2_2m", "adamom_g1_noshear"):  # 7e-6 here; the response is 0.013
         np.testing.assert_allclose(odd[c], out[c], rtol=0, atol=2e-5, err_msg=c)
     np.testing.assert_allclose(odd["adamom_sigma_noshear"], out["adamom_sigma_noshear"], rtol=5e-5)
@@ -318,7 +319,7 @@ def test_metacal_on_meds(tmp_path):
     from megalut_cli.errors import InputError
 
     with pytest.raises(InputError, match="parity"):
-        measure_meds(meds, metacal=True, psf_path=odd_file)
+        measure_meds(meds, MedsOptions(metacal=True, psf_path=odd_file))
 
 
 def test_cli_contract(runner, cli, grid, tmp_path):

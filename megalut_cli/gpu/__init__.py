@@ -2,7 +2,9 @@
 
 Importing this package does not import JAX; :func:`device_problem` says whether a device is
 usable, :func:`jax_device` gives it. The submodules (``render``, ``noise``, ``adamom``,
-``draw``, ``train``) import JAX and run in float64 where it matters (``jax_enable_x64``).
+``draw``, ``train``) import JAX and run in float64 where it matters (``jax_enable_x64``);
+``backend`` holds the entry points the library calls, through
+:func:`megalut_cli.engine.device_backend` only.
 
 The environment variable ``MEGALUT_GPU_PLATFORM`` names the JAX platform that counts as the
 device (default ``gpu``; ``cpu`` runs the device path on JAX's CPU mode, as the tests and the

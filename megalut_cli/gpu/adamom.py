@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from megalut_cli.measure import adamom as ref
-from megalut_cli.measure.features import MAD_TO_SIGMA
+from megalut_cli.measure.defaults import MAD_TO_SIGMA
 
 jax.config.update("jax_enable_x64", True)
 

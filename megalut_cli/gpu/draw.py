@@ -27,13 +27,17 @@ from megalut_cli.measure.features import (
     default_max_shift,
     features_from_moments,
 )
+from megalut_cli.measure.morphology import morphology_of_measured
 from megalut_cli.sim.draw import (
+    WorkUnit,
     case_columns,
     case_psfs,
     stamp_origins,
     stamp_parameters,
     stamp_renderer,
 )
+from megalut_cli.sim.noise import StampNoise
+from megalut_cli.sim.render import RadialProfile, RenderPlan
 from megalut_cli.sim.structure import draw_case
 
 #: Most stamps given their noise at once (the generator's state and normals: ~33 KB per
@@ -47,7 +51,7 @@ def _padded(a: np.ndarray, size: int, fill: float = 0.0) -> np.ndarray:
     return out
 
 
-def draw_unit_device(unit: Any) -> dict[str, Any]:
+def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
     """:func:`megalut_cli.sim.draw.draw_unit` of a fast-engine unit on the device."""
     dev = jax_device()
     cfg = unit.config
@@ -60,10 +64,10 @@ def draw_unit_device(unit: Any) -> dict[str, Any]:
     truth_parts: list[dict[str, np.ndarray]] = []
     groups: dict[tuple[str, int, int], list[np.ndarray]] = {}  # (psf key, N, Nk) -> stamp rows
     psfs: dict[str, tuple[Any, str]] = {}
-    plans: list[Any] = []
+    plans: list[RenderPlan] = []
     rows_of_plan: list[np.ndarray] = []
     seeds = np.empty(n_total, dtype=np.int64)
-    noises: list[Any] = []
+    noises: list[StampNoise] = []
     noise_of = np.empty(n_total, dtype=np.int64)
     for case in range(unit.case_start, unit.case_stop):
         d = draw_case(cfg, unit.seed, case)
@@ -87,7 +91,7 @@ def draw_unit_device(unit: Any) -> dict[str, Any]:
         truth_parts.append(case_columns(d, [p.truth for p in case_psf_list]))
 
     # Per-stamp inputs, gathered from the plans; one table of radial profiles for the unit.
-    profiles: list[Any] = []
+    profiles: list[RadialProfile] = []
     index_of: dict[int, int] = {}  # id of a (cached) radial profile -> its row in the unit's table
     amat = np.zeros((n_total, 4))
     flux, shx, shy = np.zeros(n_total), np.zeros(n_total), np.zeros(n_total)
@@ -148,7 +152,5 @@ def draw_unit_device(unit: Any) -> dict[str, Any]:
         moments, skymad, finite = split_measurements(results)
         columns.update(features_from_moments(moments, skymad, finite, origins, S, cfg.gain, default_max_shift(S)))
         if unit.morphology:
-            from megalut_cli.measure.morphology import morphology_of_measured
-
             columns.update(morphology_of_measured(kept, origins, columns))
     return {"columns": columns, "stamps": kept if unit.keep_stamps else None}

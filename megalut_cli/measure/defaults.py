@@ -1,6 +1,17 @@
-"""Constants of stamp measurement, in a module without imports (read by option declarations)."""
+"""Constants of stamp measurement and of its catalogs, in a module without imports (read by
+option declarations, by the image and MEDS measurements, and by the device backend)."""
 
 #: The smallest stamp, in pixels.
 MIN_STAMP_SIZE = 3
 #: Coordinates of the first pixel's centre a catalog may use: 1 (FITS), 0 (GREAT3).
 ORIGINS = (0, 1)
+#: Rescaling of the MAD into a Gaussian standard deviation (paper Eq. 7).
+MAD_TO_SIGMA = 1.4826
+
+#: Output format name of ``megalut measure`` catalogs.
+FORMAT = "megalut.features"
+FORMAT_VERSION = "1.0"
+#: PSF feature columns (from the galaxy features of the PSF stamps).
+PSF_COLUMNS: tuple[str, ...] = (
+    "psf_adamom_g1", "psf_adamom_g2", "psf_adamom_sigma", "psf_adamom_rho4",
+)

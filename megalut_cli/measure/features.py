@@ -27,12 +27,17 @@ with Eq. 10.
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
 
 from megalut_cli import flags as fl
-from megalut_cli.engine import ENGINES
+from megalut_cli.engine import ENGINES, device_backend
+from megalut_cli.errors import Names, namer
+from megalut_cli.measure.defaults import MAD_TO_SIGMA
+
+log = logging.getLogger(__name__)
 
 #: Engines of :func:`measure_stamps` for the adaptive moments: the compiled batch port of
 #: HSM (:mod:`.adamom`), and GalSim's ``FindAdaptiveMom`` stamp by stamp (the reference).
@@ -57,9 +62,6 @@ FEATURE_COLUMNS: tuple[str, ...] = (
 SOURCE_COLUMNS: tuple[str, ...] = tuple(
     c for c in FEATURE_COLUMNS if c not in ("skymad", "flags")
 )
-
-#: Rescaling of the MAD into a Gaussian standard deviation (paper Eq. 7).
-MAD_TO_SIGMA = 1.4826
 
 #: Initial sigma guess of HSM (pixels): GalSim's default, also used by the original
 #: MegaLUT; capped to ``S/8`` on small stamps.
@@ -206,9 +208,7 @@ def measure_stamps(
     if (finite is None) != (skymad is None):
         raise ValueError("give both finite and skymad, or neither")
     if engine == "fast" and device == "gpu" and n:
-        from megalut_cli.gpu.measure import pixel_measurements
-
-        moments, skymad, finite = pixel_measurements(stamps, guess)
+        moments, skymad, finite = device_backend().pixel_measurements(stamps, guess)
         return features_from_moments(moments, skymad, finite, origins, size, gain, limit)
     if finite is None or skymad is None:
         finite = np.isfinite(stamps).all(axis=(1, 2)) if n else np.zeros(0, bool)
@@ -261,3 +261,23 @@ def features_from_moments(
     out["snr"][good] = signal_to_noise(amp[good], sigma[good], out["skymad"][good], gain)
     out["flags"] = flags
     return out
+
+
+#: Fraction of flagged stamps above which ``measure`` warns that something is off.
+MOSTLY_FLAGGED = 0.5
+
+
+def warn_if_mostly_flagged(flags: np.ndarray, where: str, names: Names | None = None) -> None:
+    """Warn when more than :data:`MOSTLY_FLAGGED` of the stamps are flagged, saying why
+    (and which arguments may be wrong, named by ``names``)."""
+    name = namer(names)
+    bad = flags != 0
+    if len(flags) == 0 or bad.mean() <= MOSTLY_FLAGGED:
+        return
+    reasons = {name: int(np.sum((flags & value) != 0)) for value, name in fl.FLAG_NAMES.items()}
+    ranked = sorted(reasons.items(), key=lambda kv: -kv[1])
+    why = ", ".join(f"{name} {n}" for name, n in ranked if n)
+    log.warning(
+        "%s: %d of %d stamps flagged (%s): wrong %s, %s or catalog?",
+        where, int(bad.sum()), len(flags), why, name("stamp_size"), name("origin"),
+    )

@@ -51,23 +51,29 @@ from megalut_cli import flags as fl
 from megalut_cli.atomic import check_output
 from megalut_cli.catalog import (
     catalog_info,
+    is_fits_file,
     read_cards,
     read_carried_hdus,
     read_catalog_columns,
+    read_text_catalog,
     require_columns,
     write_catalog,
 )
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, resolve_device
 from megalut_cli.errors import ConfigError, InputError, Names, namer
+from megalut_cli.measure.defaults import FORMAT, FORMAT_VERSION, PSF_COLUMNS
 from megalut_cli.measure.features import (
     FEATURE_COLUMNS,
     default_max_shift,
     measure_stamps,
+    warn_if_mostly_flagged,
 )
+from megalut_cli.measure.meds import MedsOptions, is_meds, measure_meds_file
 from megalut_cli.measure.metacal_defaults import SEED_CARD, STEP_CARD, TYPES, metacal_columns
 from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS, morphology_of_measured
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.psf_model import cached_psf_model
+from megalut_cli.measure.single_psf import single_psf_features, single_psf_stamp
 from megalut_cli.measure.stamps import (
     ImageInfo,
     catalog_origins,
@@ -79,7 +85,6 @@ from megalut_cli.measure.stamps import (
     inside,
     pixel_rows,
     read_band,
-    read_rows,
     stamp_centres,
     stamp_size_of,
 )
@@ -94,14 +99,8 @@ log = logging.getLogger(__name__)
 #: Catalog columns in their order (name -> array), as :func:`measure_file_columns` handles them.
 Columns = dict[str, np.ndarray]
 
-#: Output format name of ``megalut measure`` catalogs.
-FORMAT = "megalut.features"
-FORMAT_VERSION = "1.0"
 #: Output format name of star-field measurements.
 STARS_FORMAT = "megalut.stars"
-
-#: PSF feature columns (from the galaxy features of the PSF stamps).
-PSF_COLUMNS: tuple[str, ...] = ("psf_adamom_g1", "psf_adamom_g2", "psf_adamom_sigma", "psf_adamom_rho4")
 
 #: Columns of a star-field measurement (``stars``): the features of each star.
 STAR_COLUMNS: tuple[str, ...] = (
@@ -164,7 +163,7 @@ def _metacal_unit(
     unit: dict[str, Any], mc: dict[str, Any], stamps: np.ndarray, feats: dict[str, np.ndarray]
 ) -> dict[str, np.ndarray]:
     """The metacal features of a unit's stamps (:func:`.metacal.metacal_features`)."""
-    from megalut_cli.measure.metacal import fixnoise_seeds, metacal_features
+    from megalut_cli.measure.metacal import fixnoise_seeds, metacal_features  # GalSim: metacal only
 
     size, origins = unit["stamp_size"], unit["origins"]
     bad = ~np.isfinite(stamps).all(axis=(1, 2))
@@ -325,51 +324,6 @@ def measure_image(
                       morphology, resolve_device(device))
 
 
-def _single_psf_stamp(path: str, size_hint: int) -> np.ndarray:
-    """The stamp of a one-PSF image (whole image, or the first stamp of a star grid), checked."""
-    info = image_info(path)
-    ny, nx = info.shape
-    card = info.header.get("STAMPSZ")
-    size = stamp_size_of(info, None) if card is not None else size_hint
-    if ny % size == 0 and nx % size == 0 and (ny, nx) != (size, size):
-        log.info("%s: a %dx%d grid of PSF stamps: using the first (lower-left) one", path, nx // size, ny // size)
-        stamp = read_rows(info, 0, size)[:, :size]
-    elif ny == nx:
-        stamp = read_rows(info, 0, ny)
-    else:
-        raise InputError(
-            f"{path}: a {nx}x{ny} PSF image is neither square, a grid of {size}-pixel stamps, "
-            "nor a grid like the galaxy image"
-        )
-    if not np.all(np.isfinite(stamp)):
-        raise InputError(f"{path}: the PSF stamp has NaN or infinite pixels")
-    if not stamp.sum() > 0:
-        raise InputError(f"{path}: the PSF stamp is empty (no star)")
-    return np.asarray(stamp, dtype=np.float64)
-
-
-def _single_psf(path: str, size_hint: int, engine: str = DEFAULT_ENGINE) -> dict[str, float]:
-    """Features of a one-PSF image (whole image, or the first stamp of a star grid)."""
-    res = measure_stamps(_single_psf_stamp(path, size_hint)[None], engine=engine)
-    if res["flags"][0]:
-        raise InputError(
-            f"{path}: the PSF stamp could not be measured ({', '.join(fl.explain(res['flags'][0]))})"
-        )
-    return {f"psf_{c}": float(res[c][0]) for c in ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4")}
-
-
-def single_psf_stamp(path: str, size_hint: int) -> np.ndarray:
-    """The PSF stamp of a one-PSF image (the whole square image, or the first stamp of a
-    grid of ``STAMPSZ`` (else ``size_hint``) pixel stamps), checked: finite, not empty."""
-    return _single_psf_stamp(path, size_hint)
-
-
-def single_psf_features(path: str, size_hint: int, engine: str = DEFAULT_ENGINE) -> dict[str, float]:
-    """``psf_adamom_g1, psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4`` of a one-PSF image
-    (:func:`single_psf_stamp`); an unmeasurable PSF is an InputError."""
-    return _single_psf(path, size_hint, engine)
-
-
 #: Header cards that may give an image's pixel scale (arcsec per pixel), in this order.
 PIXEL_SCALE_CARDS = ("PIXSCALE", "PIXSCAL", "SECPIX")
 
@@ -404,7 +358,7 @@ def _metacal_psf(
         )
     if psf_info.shape == gal_info.shape:
         return {"psf_info": dataclasses.replace(psf_info, path=os.path.abspath(psf_path))}
-    stamp = _single_psf_stamp(psf_path, size)
+    stamp = single_psf_stamp(psf_path, size)
     if stamp.shape[0] % 2 != size % 2:
         raise InputError(
             f"{psf_path}: a {stamp.shape[0]}-pixel PSF stamp for {size}-pixel galaxy stamps: an even and an odd "
@@ -416,7 +370,11 @@ def _metacal_psf(
 def _target_psf_columns(psf: dict[str, Any], feats: dict[str, np.ndarray], size: int) -> dict[str, np.ndarray]:
     """``psf_adamom_*_<type>``: the features of each row's target PSF (round, the sigma the
     operation chose for its PSF; the same for the five types)."""
-    from megalut_cli.measure.metacal import dilated_sigma, target_psf_columns, target_psf_sigma
+    from megalut_cli.measure.metacal import (  # GalSim: metacal only
+        dilated_sigma,
+        target_psf_columns,
+        target_psf_sigma,
+    )
 
     n = len(feats["psf_adamom_sigma"])
     if "psf" in psf:
@@ -483,7 +441,7 @@ def _psf_features(
         if failed.any():
             log.warning("%s: %d PSF stamp(s) could not be measured: flagged", psf_path, int(failed.sum()))
         return out
-    values = _single_psf(psf_path, size, engine)
+    values = single_psf_features(psf_path, size, engine)
     log.info(
         "%s: one PSF for all rows (g1=%.4f, g2=%.4f, sigma=%.4f)",
         psf_path, values["psf_adamom_g1"], values["psf_adamom_g2"], values["psf_adamom_sigma"],
@@ -498,8 +456,6 @@ SHARED_CARDS = {
     "SEED": "seed", "CFGSHA": "config hash", "NCASES": "cases", "NREA": "realizations",
     "NSTAMPX": "grid stamps per row", "STAMPSZ": "stamp size",
 }
-#: Fraction of flagged stamps above which ``measure`` warns that something is off.
-MOSTLY_FLAGGED = 0.5
 
 
 def check_belongs_together(
@@ -521,21 +477,6 @@ def check_belongs_together(
         )
 
 
-def warn_if_mostly_flagged(flags: np.ndarray, where: str, names: Names | None = None) -> None:
-    """Warn when more than :data:`MOSTLY_FLAGGED` of the stamps are flagged, saying why
-    (and which arguments may be wrong, named by ``names``)."""
-    name = namer(names)
-    bad = flags != 0
-    if len(flags) == 0 or bad.mean() <= MOSTLY_FLAGGED:
-        return
-    reasons = {name: int(np.sum((flags & value) != 0)) for value, name in fl.FLAG_NAMES.items()}
-    why = ", ".join(f"{name} {n}" for name, n in sorted(reasons.items(), key=lambda kv: -kv[1]) if n)
-    log.warning(
-        "%s: %d of %d stamps flagged (%s): wrong %s, %s or catalog?",
-        where, int(bad.sum()), len(flags), why, name("stamp_size"), name("origin"),
-    )
-
-
 def _n_grid_stamps(info: ImageInfo, n_grid: int) -> int:
     """Stamps of a grid: the ``NSTAMPS`` header card (a last row may be partly filled), else all."""
     card = info.header.get("NSTAMPS")
@@ -549,8 +490,6 @@ def _n_grid_stamps(info: ImageInfo, n_grid: int) -> int:
 def _read_positions_catalog(path: str | os.PathLike) -> tuple[Columns, dict[str, Any]]:
     """A FITS catalog, or a text catalog with ``# name`` header lines, holding ``x, y``: its
     columns and its header (a Table's ``meta``)."""
-    from megalut_cli.catalog import is_fits_file, read_text_catalog
-
     if is_fits_file(path):
         n_rows, names, _ = catalog_info(path)
         require_columns(names, ["x", "y"], path)
@@ -674,21 +613,21 @@ def measure_file_columns(
     name = namer(names)
     if psf_path is not None and psf_model_path is not None:
         raise ConfigError(f"{name('psf_path')} and {name('psf_model_path')} exclude each other: give one PSF")
-    from megalut_cli.measure.meds import is_meds
-
     if is_meds(stamps_path):  # a MEDS cutout file: one row per object (measure/meds.py)
-        from megalut_cli.measure.meds import measure_meds_file
-
         if catalog_path is not None:
             raise ConfigError(f"{stamps_path} is a MEDS file, which carries its own objects: give it no catalog")
         wrong = [name(k) for k, given in (("stamp_size", stamp_size is not None), ("origin", origin != 1),
                                           ("stars", bool(stars))) if given]
         if wrong:
             raise ConfigError(f"{stamps_path} is a MEDS file (each object has its box_size): leave out {', '.join(wrong)}")
+        options = MedsOptions(
+            cutout=cutout, gain=gain, psf_path=psf_path, psf_model_path=psf_model_path,
+            engine=engine, morphology=morphology, metacal=metacal, metacal_step=metacal_step,
+            seed=seed,
+        )
         columns, _ = measure_meds_file(
-            stamps_path, output, cutout=cutout, gain=gain, psf_path=psf_path, engine=engine, morphology=morphology,
-            metacal=metacal, metacal_step=metacal_step, seed=seed, nproc=nproc, scheduler=scheduler,
-            overwrite=overwrite, progress=progress, device=device, names=names, psf_model_path=psf_model_path,
+            stamps_path, output, options, nproc=nproc, scheduler=scheduler, overwrite=overwrite,
+            progress=progress, device=device, names=names,
         )
         return columns, {}
     if cutout != MEASURE["cutout"].default:
@@ -741,8 +680,6 @@ def measure_file_columns(
                 f"{size} pixels; wrong {name('origin')} or {name('stamp_size')}?)"
             )
         history = meta.get("HISTORY")
-        from megalut_cli.catalog import is_fits_file
-
         if is_fits_file(catalog_path):  # carried with their comments, and the CONFIG HDU
             cards = read_cards(catalog_path)
             extra_hdus = read_carried_hdus(catalog_path)

@@ -42,34 +42,41 @@ import time
 import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import fitsio
 import numpy as np
 
 from megalut_cli import flags as fl
 from megalut_cli.atomic import atomic_output, check_output
+from megalut_cli.catalog import is_fits_file, write_catalog
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE
 from megalut_cli.errors import ConfigError, InputError, Names, namer
+from megalut_cli.measure.defaults import FORMAT, FORMAT_VERSION, MAD_TO_SIGMA, PSF_COLUMNS
 from megalut_cli.measure.features import (
     FEATURE_COLUMNS,
-    MAD_TO_SIGMA,
     SOURCE_COLUMNS,
     default_max_shift,
     edge_pixels,
     measure_stamps,
     signal_to_noise,
     sky_mad,
+    warn_if_mostly_flagged,
 )
-from megalut_cli.measure.metacal_defaults import SEED_CARD, STEP_CARD, TYPES, metacal_columns
-from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS
+from megalut_cli.measure.metacal_defaults import (
+    INTERPOLANT,
+    SEED_CARD,
+    STEP_CARD,
+    TYPES,
+    metacal_columns,
+)
+from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS, morphology_of_measured
 from megalut_cli.measure.options import MEASURE
+from megalut_cli.measure.psf_model import cached_psf_model
+from megalut_cli.measure.single_psf import single_psf_features, single_psf_stamp
 from megalut_cli.parallel import executor, map_units, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.provenance import CREATOR
-
-if TYPE_CHECKING:  # GalSim's des module loads with it
-    from megalut_cli.measure.psf_model import PsfModel as PsfModelFile
 
 log = logging.getLogger(__name__)
 
@@ -251,8 +258,6 @@ class MedsFile:
 def is_meds(path: str | os.PathLike) -> bool:
     """Whether ``path`` is a MEDS file: a FITS file with ``object_data`` and ``image_cutouts``
     extensions."""
-    from megalut_cli.catalog import is_fits_file
-
     try:
         if not is_fits_file(path):
             return False
@@ -501,8 +506,6 @@ def measure_cutouts(
         use = (feats["flags"] == 0) & np.isfinite(noise)
         feats["snr"][use] = signal_to_noise(feats["adamom_flux"][use], feats["adamom_sigma"][use], noise[use], gain)
     if morphology:
-        from megalut_cli.measure.morphology import morphology_of_measured
-
         feats.update(morphology_of_measured(clean, origins, feats))
     return feats
 
@@ -510,8 +513,6 @@ def measure_cutouts(
 def psf_features(psfs: np.ndarray, engine: str = DEFAULT_ENGINE) -> dict[str, np.ndarray]:
     """``psf_adamom_g1, psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4`` of each PSF image
     ``(n, P, P)`` and ``flags`` (PSF_FAILED where it cannot be measured)."""
-    from megalut_cli.measure.measure import PSF_COLUMNS
-
     psfs = np.asarray(psfs, dtype=np.float64)
     n = len(psfs)
     if psfs.ndim != 3 or psfs.shape[1] != psfs.shape[2]:
@@ -520,13 +521,6 @@ def psf_features(psfs: np.ndarray, engine: str = DEFAULT_ENGINE) -> dict[str, np
     out = {p: np.asarray(res[p[len("psf_"):]], dtype=np.float64) for p in PSF_COLUMNS}
     out["flags"] = np.where(np.asarray(res["flags"]) != 0, fl.PSF_FAILED, 0).astype(np.int32)
     return out
-
-
-def _load_psf_model(path: str) -> PsfModelFile:
-    """The PSF model file ``path``, loaded once per process."""
-    from megalut_cli.measure.psf_model import cached_psf_model
-
-    return cached_psf_model(path)
 
 
 def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
@@ -541,7 +535,7 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
     if stamps.psfs is not None and unit.get("psf_source") == "file":
         psfs = stamps.psfs
     elif unit.get("psf_model_path") is not None or unit.get("psf_model") is not None:
-        model = unit.get("psf_model") or _load_psf_model(unit["psf_model_path"])
+        model = unit.get("psf_model") or cached_psf_model(unit["psf_model_path"])
         xy = unit["model_xy"]
         psfs = np.asarray(model.draw(xy[:, 0], xy[:, 1], layout.box_size), dtype=np.float64)
     if psfs is not None:
@@ -560,7 +554,7 @@ def _metacal(
     unit: dict[str, Any], mc: dict[str, Any], clean: np.ndarray, feats: dict[str, np.ndarray], psfs: np.ndarray | None
 ) -> dict[str, np.ndarray]:
     """The metacal columns ``X_<type>`` of a unit's cleaned stamps, with the unit's PSFs."""
-    from megalut_cli.measure.metacal import (
+    from megalut_cli.measure.metacal import (  # GalSim: metacal only
         dilated_sigma,
         fixnoise_seeds,
         metacal_features,
@@ -602,8 +596,6 @@ def _metacal(
 def extra_columns(meds: MedsFile) -> list[str]:
     """The scalar ``object_data`` columns outside the MEDS layout, passed through to the output
     (those named like a feature column are left out)."""
-    from megalut_cli.measure.measure import PSF_COLUMNS
-
     own = set(FEATURE_COLUMNS) | set(PSF_COLUMNS) | set(MORPHOLOGY_COLUMNS) | {MASKED_COLUMN, NOISE_COLUMN}
     return [c for c, v in meds.objects.items() if c not in LAYOUT_COLUMNS and c not in own and v.ndim == 1]
 
@@ -627,8 +619,6 @@ def same_parity_psfs(psfs: np.ndarray, size: int) -> np.ndarray:
         return psfs
     import galsim
 
-    from megalut_cli.measure.metacal_defaults import INTERPOLANT
-
     p = psfs.shape[1] + 1
     out = np.empty((len(psfs), p, p))
     for i, img in enumerate(psfs):
@@ -648,19 +638,27 @@ def _parity_check(psf_size: int, boxes: np.ndarray, what: str, names: Names | No
         )
 
 
+@dataclasses.dataclass(frozen=True)
+class MedsOptions:
+    """What :func:`measure_meds` (and :func:`measure_meds_file`) measures of a MEDS file's
+    objects: the ``measure`` options that apply to MEDS input."""
+
+    cutout: int = MEASURE["cutout"].default
+    gain: float | None = MEASURE["gain"].default
+    psf_path: str | os.PathLike | None = None
+    psf_model_path: str | os.PathLike | None = None
+    engine: str = DEFAULT_ENGINE
+    morphology: bool = MEASURE["morphology"].default
+    metacal: bool = MEASURE["metacal"].default
+    metacal_step: float = MEASURE["metacal_step"].default
+    seed: int = MEASURE["seed"].default
+
+
 def measure_meds(
     meds: MedsFile,
+    options: MedsOptions | None = None,
     *,
-    cutout: int = MEASURE["cutout"].default,
-    gain: float | None = MEASURE["gain"].default,
-    psf_path: str | os.PathLike | None = None,
-    psf_model_path: str | os.PathLike | None = None,
     psf_model: PsfDrawer | None = None,
-    engine: str = DEFAULT_ENGINE,
-    morphology: bool = MEASURE["morphology"].default,
-    metacal: bool = MEASURE["metacal"].default,
-    metacal_step: float = MEASURE["metacal_step"].default,
-    seed: int = MEASURE["seed"].default,
     nproc: int = 1,
     scheduler: str | None = None,
     progress: Progress | None = None,
@@ -668,46 +666,50 @@ def measure_meds(
 ) -> dict[str, np.ndarray]:
     """The output columns of a MEDS file's objects, one row per object in file order: the
     :data:`PASSED_COLUMNS` and :data:`PASSED_CUTOUT_COLUMNS` it has, the features of its
-    cutout ``cutout`` (:func:`measure_cutouts`), ``psf_adamom_*`` from its PSF cutouts,
-    else ``psf_model`` (an object with :meth:`PsfDrawer.draw`, in this process) or the model
-    file ``psf_model_path`` (loaded in each worker), else the single PSF image ``psf_path``;
-    with ``metacal``, the metacal columns (per-object PSF, fixnoise at ``noise_weight``
-    where there are weights, else ``skymad``). Objects without cutout ``cutout`` get
-    NO_CUTOUT and NaN features.
+    cutout ``options.cutout`` (:func:`measure_cutouts`), ``psf_adamom_*`` from its PSF
+    cutouts, else ``psf_model`` (an object with :meth:`PsfDrawer.draw`, in this process) or
+    the model file ``options.psf_model_path`` (loaded in each worker), else the single PSF
+    image ``options.psf_path``; with ``options.metacal``, the metacal columns (per-object PSF,
+    fixnoise at ``noise_weight`` where there are weights, else ``skymad``). Objects without
+    the cutout get NO_CUTOUT and NaN features. ``options``: default :class:`MedsOptions`.
     """
-    from megalut_cli.measure.measure import PSF_COLUMNS, single_psf_features, single_psf_stamp
-
+    options = options or MedsOptions()
     name = namer(names)
     obj, n = meds.objects, len(meds)
-    if cutout < 0:
-        raise ConfigError(f"{name('cutout')} must be 0 or more, got {cutout}")
-    has = np.asarray(obj["ncutout"]) > cutout
-    if cutout >= meds.n_max or not has.any():
-        raise InputError(f"{meds.path}: no object has a cutout {cutout} ({name('cutout')}; at most {meds.n_max} per object)")
-    if psf_path is not None and (psf_model is not None or psf_model_path is not None):
+    if options.cutout < 0:
+        raise ConfigError(f"{name('cutout')} must be 0 or more, got {options.cutout}")
+    has = np.asarray(obj["ncutout"]) > options.cutout
+    if options.cutout >= meds.n_max or not has.any():
+        raise InputError(f"{meds.path}: no object has a cutout {options.cutout} ({name('cutout')}; "
+                         f"at most {meds.n_max} per object)")
+    model_given = psf_model is not None or options.psf_model_path is not None
+    if options.psf_path is not None and model_given:
         raise ConfigError(f"give {name('psf_path')} or {name('psf_model_path')}, not both")
-    if psf_model is not None or psf_model_path is not None:
+    if model_given:
         source: str | None = "model"
-    elif psf_path is not None:
+    elif options.psf_path is not None:
         source = "single"
     else:
         source = "file" if meds.has("psf") else None
     if meds.has("psf") and source != "file":
         log.info("%s: the PSF cutouts of the file are not used: the PSF comes from %s", meds.path,
                  name("psf_model_path") if source == "model" else name("psf_path"))
-    if metacal and source is None:
+    if options.metacal and source is None:
         raise ConfigError(
             f"{name('metacal')} needs a PSF: PSF cutouts in the MEDS file, {name('psf_path')} or {name('psf_model_path')}"
         )
-    what = "the coadd" if cutout == 0 and meds.first_is_coadd() else (
-        "the first cutout; the file does not mark it as a coadd" if cutout == 0 else "a single-epoch cutout")
-    log.info("%s: measuring cutout %d (%s) of each of %d objects", meds.path, cutout, what, int(has.sum()))
+    what = "the coadd" if options.cutout == 0 and meds.first_is_coadd() else (
+        "the first cutout; the file does not mark it as a coadd" if options.cutout == 0
+        else "a single-epoch cutout")
+    log.info("%s: measuring cutout %d (%s) of each of %d objects", meds.path, options.cutout, what,
+             int(has.sum()))
     if (~has).any():
-        log.warning("%s: %d object(s) without cutout %d: flagged NO_CUTOUT", meds.path, int((~has).sum()), cutout)
+        log.warning("%s: %d object(s) without cutout %d: flagged NO_CUTOUT", meds.path,
+                    int((~has).sum()), options.cutout)
 
     rows_all = np.arange(n)
     box = obj["box_size"].astype(np.int64)
-    k = cutout
+    k = options.cutout
 
     def per_cutout(c: str, default: np.ndarray) -> np.ndarray:
         return obj[c][:, k].astype(np.float64) if c in obj else default
@@ -719,28 +721,31 @@ def measure_meds(
     centres = np.stack([ccol, crow], axis=1)
     model_xy = np.stack([ocol + 1.0, orow + 1.0], axis=1)
 
-    if psf_model_path is not None:  # load (and check) it here, before the long work
-        model = _load_psf_model(str(psf_model_path))
+    if options.psf_model_path is not None:  # load (and check) it here, before the long work
+        model = cached_psf_model(str(options.psf_model_path))
         far = model.outside(model_xy[has, 0], model_xy[has, 1])
         if far.any():
             log.warning("%s: %d of %d object(s) lie outside the area of the stars the model was fit to: its PSF "
-                        "there is an extrapolation", psf_model_path, int(far.sum()), int(has.sum()))
+                        "there is an extrapolation", options.psf_model_path, int(far.sum()),
+                        int(has.sum()))
 
     single = None
     mc: dict[str, Any] | None = None
     if source == "single":  # checked and measured before the long work
-        single = single_psf_stamp(str(psf_path), int(box[has][0]))
-        single_values = single_psf_features(str(psf_path), int(box[has][0]), engine)
-    if metacal:
-        if not 0 < metacal_step <= MEASURE["metacal_step"].maximum:
-            raise ConfigError(f"{name('metacal_step')} must be in (0, {MEASURE['metacal_step'].maximum}], got {metacal_step}")
-        mc = {"step": float(metacal_step), "seed": int(seed)}
+        single = single_psf_stamp(str(options.psf_path), int(box[has][0]))
+        single_values = single_psf_features(str(options.psf_path), int(box[has][0]), options.engine)
+    if options.metacal:
+        top = MEASURE["metacal_step"].maximum
+        if not 0 < options.metacal_step <= top:
+            raise ConfigError(
+                f"{name('metacal_step')} must be in (0, {top}], got {options.metacal_step}")
+        mc = {"step": float(options.metacal_step), "seed": int(options.seed)}
         if single is not None:
-            from megalut_cli.measure.metacal import target_psf_sigma
+            from megalut_cli.measure.metacal import target_psf_sigma  # GalSim: metacal only
 
-            _parity_check(single.shape[0], np.unique(box[has]), str(psf_path), names)
+            _parity_check(single.shape[0], np.unique(box[has]), str(options.psf_path), names)
             mc["psf"] = single
-            mc["target_sigma"] = target_psf_sigma(single, metacal_step)
+            mc["target_sigma"] = target_psf_sigma(single, options.metacal_step)
         elif source == "file":
             shapes = meds.psf_shapes(k)[has]
             if np.any(shapes[:, 0] != shapes[:, 1]):
@@ -762,15 +767,16 @@ def measure_meds(
     units = []
     for p in pieces:
         unit: dict[str, Any] = {
-            "layout": file_meds.layout(p, cutout, psf=source == "file"),
-            "origins": origins[p], "centres": centres[p], "gain": gain, "engine": engine, "morphology": morphology,
+            "layout": file_meds.layout(p, options.cutout, psf=source == "file"),
+            "origins": origins[p], "centres": centres[p], "gain": options.gain,
+            "engine": options.engine, "morphology": options.morphology,
             "keys": p.astype(np.int64), "psf_source": source,
         }
         if source == "model":
             if psf_model is not None:
                 unit["psf_model"] = psf_model
             else:
-                unit["psf_model_path"] = os.path.abspath(str(psf_model_path))
+                unit["psf_model_path"] = os.path.abspath(str(options.psf_model_path))
             unit["model_xy"] = model_xy[p]
         if mc is not None:
             unit["metacal"] = mc
@@ -779,7 +785,7 @@ def measure_meds(
         nproc, scheduler = 1, None  # an object in memory: measured in this process
 
     names_out = list(FEATURE_COLUMNS) + [MASKED_COLUMN] + ([NOISE_COLUMN] if meds.has("weight") else [])
-    names_out += list(MORPHOLOGY_COLUMNS) if morphology else []
+    names_out += list(MORPHOLOGY_COLUMNS) if options.morphology else []
     psf_cols = list(PSF_COLUMNS) if source is not None else []
     out: dict[str, np.ndarray] = {}
     for c in PASSED_COLUMNS:
@@ -799,7 +805,8 @@ def measure_meds(
         else:
             cols[c] = np.full(n, np.nan)
     if mc is not None:
-        for c in metacal_columns(names_out[: len(FEATURE_COLUMNS)] + (list(MORPHOLOGY_COLUMNS) if morphology else [])):
+        morph = list(MORPHOLOGY_COLUMNS) if options.morphology else []
+        for c in metacal_columns(names_out[: len(FEATURE_COLUMNS)] + morph):
             cols[c] = np.where(has, 0, fl.NO_CUTOUT).astype(np.int32) if c.startswith("flags_") else np.full(n, np.nan)
         for c in metacal_columns(psf_cols):
             cols[c] = np.full(n, np.nan)
@@ -820,7 +827,7 @@ def measure_meds(
         for c in PSF_COLUMNS:
             cols[c][:] = single_values[c]
         if mc is not None:
-            from megalut_cli.measure.metacal import target_psf_columns
+            from megalut_cli.measure.metacal import target_psf_columns  # GalSim: metacal only
 
             for b in np.unique(box[has]):
                 rows = has & (box == b)
@@ -833,16 +840,8 @@ def measure_meds(
 def measure_meds_file(
     meds_path: str | os.PathLike,
     output: str | os.PathLike,
+    options: MedsOptions | None = None,
     *,
-    cutout: int = MEASURE["cutout"].default,
-    gain: float | None = MEASURE["gain"].default,
-    psf_path: str | os.PathLike | None = None,
-    psf_model_path: str | os.PathLike | None = None,
-    engine: str = DEFAULT_ENGINE,
-    morphology: bool = MEASURE["morphology"].default,
-    metacal: bool = MEASURE["metacal"].default,
-    metacal_step: float = MEASURE["metacal_step"].default,
-    seed: int = MEASURE["seed"].default,
     nproc: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
@@ -853,42 +852,41 @@ def measure_meds_file(
     """Measure the objects of the MEDS file ``meds_path`` (:func:`measure_meds`) and write
     the features catalog ``output`` (format ``megalut.features``, one row per object).
     Returns the columns written and the header cards added."""
-    from megalut_cli.catalog import write_catalog
-    from megalut_cli.measure.measure import FORMAT, FORMAT_VERSION, warn_if_mostly_flagged
-
+    options = options or MedsOptions()
     name = namer(names)
     check_output(output, overwrite)
-    if gain is not None and not (math.isfinite(gain) and gain > 0):
-        raise ConfigError(f"{name('gain')} must be a positive number, got {gain}")
+    if options.gain is not None and not (math.isfinite(options.gain) and options.gain > 0):
+        raise ConfigError(f"{name('gain')} must be a positive number, got {options.gain}")
     if device == "gpu":
         log.info("MEDS input is measured on the CPU (masked stamps); %s gpu is not used here", name("device"))
     meds = read_meds(meds_path)
-    columns = measure_meds(
-        meds, cutout=cutout, gain=gain, psf_path=psf_path, psf_model_path=psf_model_path, engine=engine,
-        morphology=morphology, metacal=metacal, metacal_step=metacal_step, seed=seed, nproc=nproc,
-        scheduler=scheduler, progress=progress, names=names,
-    )
+    columns = measure_meds(meds, options, nproc=nproc, scheduler=scheduler, progress=progress,
+                           names=names)
     flags = columns["flags"]
     log.info("%d of %d objects flagged (features NaN)", int((flags != 0).sum()), len(flags))
     warn_if_mostly_flagged(flags, str(meds_path), names)
     boxes = np.unique(meds.objects["box_size"])
     cards: dict[str, Any] = {
         FILE_CARD: (os.path.basename(str(meds_path)), "MEDS file measured"),
-        CUTOUT_CARD: (int(cutout), "MEDS cutout index measured (0: coadd or first)"),
-        COADD_CARD: (bool(cutout == 0 and meds.first_is_coadd()), "the measured cutouts are coadds"),
+        CUTOUT_CARD: (int(options.cutout), "MEDS cutout index measured (0: coadd or first)"),
+        COADD_CARD: (bool(options.cutout == 0 and meds.first_is_coadd()),
+                     "the measured cutouts are coadds"),
         "STAMPSZ": (int(boxes[0]), "stamp size [pixels]") if len(boxes) == 1 else None,
-        "GAIN": (gain, "gain [e-/ADU] of the S/N (Eq. 8)") if gain is not None else None,
+        "GAIN": (options.gain, "gain [e-/ADU] of the S/N (Eq. 8)") if options.gain is not None
+        else None,
         "MAXSHIFT": (default_max_shift(int(boxes[0])), "centroid shift limit [pixels]") if len(boxes) == 1 else None,
-        "MENGINE": (engine, "engine of the adaptive moments (megalut --engine)"),
+        "MENGINE": (options.engine, "engine of the adaptive moments (megalut --engine)"),
         "NOISEWT": (meds.has("weight"), "snr from the weight-map noise (noise_weight)"),
         "MASKFRAC": (MAX_MASKED_FRACTION, "masked fraction above which MASKED_PIXELS"),
         "MASKRAD": (CENTRAL_MASK_RADIUS, "masked pixel this close to centre: MASKED_PIXELS"),
     }
-    if psf_model_path is not None:
-        cards.update(_load_psf_model(str(psf_model_path)).header_cards())
-    if metacal:
-        cards[STEP_CARD] = (float(metacal_step), "metacal shear step (measure --metacal-step)")
-        cards[SEED_CARD] = (int(seed), "seed of the metacal fixnoise fields (measure --seed)")
+    if options.psf_model_path is not None:
+        cards.update(cached_psf_model(str(options.psf_model_path)).header_cards())
+    if options.metacal:
+        cards[STEP_CARD] = (float(options.metacal_step),
+                            "metacal shear step (measure --metacal-step)")
+        cards[SEED_CARD] = (int(options.seed),
+                            "seed of the metacal fixnoise fields (measure --seed)")
     write_catalog(output, columns, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards)
     log.info("wrote %s (%d rows)", output, len(flags))
     return columns, cards

@@ -18,6 +18,7 @@ from typing import Any
 import galsim
 import numpy as np
 
+from megalut_cli.measure import metacal_fft_multi
 from megalut_cli.measure.features import measure_stamps
 from megalut_cli.measure.metacal_defaults import (
     DEFAULT_STEP,
@@ -27,6 +28,8 @@ from megalut_cli.measure.metacal_defaults import (
     TARGET_PSF_COLUMNS,
     TYPES,
 )
+from megalut_cli.measure.metacal_fft import fft_versions
+from megalut_cli.measure.morphology import morphology_of_measured
 from megalut_cli.seeding import STREAM_METACAL, int_seed_for
 
 
@@ -109,8 +112,6 @@ def noise_field(sigma: float, seed: int, shape: tuple[int, int]) -> np.ndarray:
 def _linear_versions(images: np.ndarray, psf_image: np.ndarray, op: _Operation, engine: str) -> dict[str, np.ndarray]:
     """The operation (linear in the image) on a stack ``(n, S, S)`` that shares one PSF."""
     if engine == "fast":
-        from megalut_cli.measure.metacal_fft import fft_versions
-
         return fft_versions(images, psf_image, op.step, op.target.sigma)
     out = {kind: np.empty_like(images) for kind in TYPES}
     for i, image in enumerate(images):
@@ -151,8 +152,6 @@ def _fast_several_psfs(
     """:func:`metacal_versions` with the fast engine and several PSFs: every stamp and its
     fixnoise field through one :func:`~.metacal_fft_multi.fft_versions_multi` call (the
     stamps in PSF order, each followed by its rotated field: a PSF's rows are contiguous)."""
-    from megalut_cli.measure.metacal_fft_multi import fft_versions_multi
-
     n, shape = len(stamps), stamps.shape[1:]
     target = np.full(len(psfs), np.nan)
     for j in np.unique(psf_index):
@@ -168,7 +167,7 @@ def _fast_several_psfs(
     index = np.empty(len(stack), np.int64)
     index[rows] = psf_index[order]
     index[rows[noisy] + 1] = psf_index[order][noisy]
-    versions = fft_versions_multi(stack, psfs, index, step, target)
+    versions = metacal_fft_multi.fft_versions_multi(stack, psfs, index, step, target)
     out = {}
     for kind in TYPES:
         v = versions[kind]
@@ -296,8 +295,6 @@ def metacal_features(
     for kind in TYPES:
         feats = measure_stamps(versions[kind], **measure_kw)
         if morphology:
-            from megalut_cli.measure.morphology import morphology_of_measured
-
             feats.update(morphology_of_measured(versions[kind], measure_kw.get("origins"), feats))
         for name, values in feats.items():
             out[f"{name}_{kind}"] = values

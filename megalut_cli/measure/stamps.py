@@ -31,7 +31,7 @@ import numpy as np
 
 from megalut_cli.catalog import header_dict, image_ext
 from megalut_cli.errors import ConfigError, InputError
-from megalut_cli.measure.defaults import MIN_STAMP_SIZE, ORIGINS
+from megalut_cli.measure.defaults import MAD_TO_SIGMA, MIN_STAMP_SIZE, ORIGINS
 
 #: Header card holding the stamp size of an image of stamps.
 STAMP_SIZE_CARD = "STAMPSZ"
@@ -193,8 +193,7 @@ class CheckedStamps:
 
 
 def _cut(rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int, checks: bool) -> CheckedStamps:
-    from megalut_cli.measure.features import MAD_TO_SIGMA
-    from megalut_cli.measure.stamps_nb import cut_stack  # imports numba
+    from megalut_cli.measure.stamps_nb import cut_stack  # numba: loaded where stamps are cut
 
     rows = pixel_rows(rows)
     if rows.ndim != 2:

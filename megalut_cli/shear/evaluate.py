@@ -42,6 +42,7 @@ from megalut_cli.catalog import (
     VersionColumns,
     catalog_info,
     history_steps,
+    is_fits_file,
     iter_catalog,
     read_catalog,
 )
@@ -69,7 +70,7 @@ from megalut_cli.shear.bootstrap import (
     spread,
 )
 from megalut_cli.shear.conditional import assign_bins, equal_population_edges
-from megalut_cli.shear.options import ERROR_CHOICES, N_BOOTSTRAP
+from megalut_cli.shear.options import ERROR_CHOICES, JSON_FORMAT, JSON_FORMAT_VERSION, N_BOOTSTRAP
 
 log = logging.getLogger(__name__)
 
@@ -82,9 +83,6 @@ COMPONENTS = ("g1", "g2", "plus", "cross")
 SCHEMES = ("unweighted", "weighted")
 #: Rows read at a time.
 CHUNK_ROWS = 500_000
-#: Format name of the JSON written by ``megalut evaluate --json``.
-JSON_FORMAT = "megalut.evaluation"
-JSON_FORMAT_VERSION = "1.2"  # 1.1: "provenance"; 1.2: "error", "bootstrap"
 #: |m| above which a fit is flagged as the sign of an untrained or mismatched model
 #: (when it exceeds it by more than its 1-sigma error: noise alone does not warn).
 WARN_M = 0.1
@@ -629,8 +627,6 @@ def evaluation_provenance(path: str | os.PathLike) -> dict[str, Any]:
     """Provenance of an evaluation of ``path``: this run (creator, date, command, versions)
     and its input (sha256; for a megalut catalog its format, date, model and config hashes
     and the HISTORY of the steps that made it)."""
-    from megalut_cli.catalog import is_fits_file
-
     source: dict[str, Any] = {"path": str(path), "sha256": sha256_file(path)}
     if is_fits_file(path):
         header = catalog_info(path)[2]

@@ -12,6 +12,9 @@ from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND
 
 #: Most bins of a conditional bias (``--by``).
 MAX_BINS = 1000
+#: Format name of the JSON written by ``megalut evaluate --json``.
+JSON_FORMAT = "megalut.evaluation"
+JSON_FORMAT_VERSION = "1.2"  # 1.1: "provenance"; 1.2: "error", "bootstrap"
 
 EVALUATE_OPTIONS: tuple[Option, ...] = (
     Option("by", "str_list", [], "Conditional biases in equal-population bins of these columns (true or measured) "

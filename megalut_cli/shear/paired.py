@@ -20,10 +20,13 @@ from typing import Any
 
 import numpy as np
 
-from megalut_cli.errors import InputError, Names, namer
+from megalut_cli.catalog import catalog_info, read_catalog
+from megalut_cli.errors import ConfigError, InputError, Names, namer
+from megalut_cli.expr import columns_used, evaluate_row_values
 from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, header_step
 from megalut_cli.seeding import STREAM_BOOTSTRAP, rng_for
 from megalut_cli.shear.bootstrap import fit_columns
+from megalut_cli.shear.evaluate import check_by
 
 #: Columns that must agree row by row between paired catalogs.
 PAIRING_COLUMNS = ("case", "rea", "tru_g1", "tru_g2")
@@ -291,11 +294,6 @@ def evaluate_paired_catalogs(
     ``twin_shears.fits``). ``by`` holds columns or numeric row expressions (e.g.
     ``tru_twin_rad/tru_psf_sigma``); their values are averaged over both catalogs. Messages
     name the arguments by ``names`` (``by``, ``twin``)."""
-    from megalut_cli import expr as _expr
-    from megalut_cli.catalog import catalog_info, read_catalog
-    from megalut_cli.errors import ConfigError
-    from megalut_cli.shear.evaluate import check_by
-
     _, names_a, header_a = catalog_info(path_a)
     names_b = catalog_info(path_b)[1]
     common = [c for c in names_a if c in set(names_b)]
@@ -312,7 +310,7 @@ def evaluate_paired_catalogs(
         raise ConfigError(f"{name('by')}: {bad!r}: per-case aggregates do not apply with {name('twin')} (groups are binned by "
                           "their mean already)")
     used = {c for c in kinds if kinds[c] == "column"} | {u for c in kinds if kinds[c] == "row"
-                                                         for u in _expr.columns_used(c)}
+                                                         for u in columns_used(c)}
     extra = [c for c in ("flags", "pre_g1_w", "pre_g2_w", *METACAL_COLUMNS, "flags_noshear", "pre_g1_w_noshear",
                          "pre_g2_w_noshear", "pre_g1_w_1p", "pre_g1_w_1m", "pre_g2_w_2p", "pre_g2_w_2m")
              if c in common]
@@ -323,8 +321,9 @@ def evaluate_paired_catalogs(
     check_pairing(a, b, (str(path_a), str(path_b)), galaxy_column)
     values = {}
     for c in by or []:
-        va = _expr.evaluate_row_values(c, a, len(ta)) if kinds[c] == "row" else np.asarray(a[c], dtype=float)
-        vb = _expr.evaluate_row_values(c, b, len(tb)) if kinds[c] == "row" else np.asarray(b[c], dtype=float)
+        row_expression = kinds[c] == "row"
+        va = evaluate_row_values(c, a, len(ta)) if row_expression else np.asarray(a[c], dtype=float)
+        vb = evaluate_row_values(c, b, len(tb)) if row_expression else np.asarray(b[c], dtype=float)
         values[c] = 0.5 * (va + vb)
     step = header_step(header_a)
     return paired_evaluation(a, b, galaxy_column, values, n_bins, n_boot, seed, names=("real", "twin"),

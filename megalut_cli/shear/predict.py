@@ -83,7 +83,9 @@ def resolve_columns(
 # --------------------------------------------------------------------------- core
 
 
-def predict_arrays(model: Any, x: np.ndarray, flags_in: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def predict_arrays(
+    model: ShearModel, x: np.ndarray, flags_in: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
     """Predictions for a feature matrix ``x`` (rows x ``model.features``, in that order).
 
     Returns the ``pre_*`` columns (float64) and ``flags`` (input flags, or zeros, with
@@ -129,7 +131,10 @@ def metacal_response_columns(preds: Mapping[str, Mapping[str, np.ndarray]], step
 
 
 def predict_metacal(
-    model: Any, x_by_type: Mapping[str, np.ndarray], flags_by_type: Mapping[str, np.ndarray | None], step: float
+    model: ShearModel,
+    x_by_type: Mapping[str, np.ndarray],
+    flags_by_type: Mapping[str, np.ndarray | None],
+    step: float,
 ) -> dict[str, np.ndarray]:
     """Predictions for the five metacal versions: ``pre_*_<type>`` for every prediction column
     of :func:`predict_arrays`, ``flags_<type>`` (with ``BAD_FEATURES`` where the type's
@@ -144,7 +149,9 @@ def predict_metacal(
 
 
 def predict_columns(
-    model: Any, columns: Mapping[str, np.ndarray], column_map: Mapping[str, str] | None = None
+    model: ShearModel,
+    columns: Mapping[str, np.ndarray],
+    column_map: Mapping[str, str] | None = None,
 ) -> dict[str, np.ndarray]:
     """In-memory prediction: the new columns (``pre_*`` and ``flags``) for a dict/Table of columns."""
     names = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
@@ -153,10 +160,10 @@ def predict_columns(
     return predict_arrays(model, x, np.asarray(columns["flags"]) if "flags" in names else None)
 
 
-_MODELS: dict[str, Any] = {}
+_MODELS: dict[str, ShearModel] = {}
 
 
-def _load_model(path: str, sha256: str | None = None) -> Any:
+def _load_model(path: str, sha256: str | None = None) -> ShearModel:
     """The model at ``path``, loaded once per process (and checked against ``sha256``)."""
     model = _MODELS.get(str(path))
     if model is None or (sha256 and model.sha256 != sha256):

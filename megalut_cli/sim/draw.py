@@ -19,7 +19,7 @@ from typing import Any
 import galsim
 import numpy as np
 
-from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE
+from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, device_backend
 from megalut_cli.errors import MegalutError
 from megalut_cli.sim import render
 from megalut_cli.sim.config import SimConfig
@@ -436,11 +436,9 @@ def stamp_renderer(stamp_size: int, gsparams: dict[str, float]) -> render.StampR
 def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
     """:func:`draw_unit` with the fast engine: each case's stamps of one PSF rendered in one
     batch, noise added in bulk, features measured :data:`MEASURE_BATCH` stamps at a time
-    (on the device with ``unit.device == "gpu"``: :mod:`megalut_cli.gpu.draw`)."""
+    (on the device with ``unit.device == "gpu"``: :func:`megalut_cli.engine.device_backend`)."""
     if unit.device == "gpu":
-        from megalut_cli.gpu.draw import draw_unit_device
-
-        return draw_unit_device(unit)
+        return device_backend().draw_unit(unit)
     cfg = unit.config
     s = cfg.structure
     S, n_rea = s.stamp_size, s.n_realizations

@@ -22,10 +22,11 @@ from pathlib import Path
 import galsim
 import numpy as np
 import scipy.fft
-from numba import njit
 
 from megalut_cli.cache import load_arrays, store_arrays
 from megalut_cli.errors import MegalutError
+from megalut_cli.sim import render_nb
+from megalut_cli.sim.render_nb import FAST_BITS, fill_kimages, radial_values
 
 #: Galaxy profiles the renderer draws (others go through GalSim).
 PROFILES = ("sersic", "gaussian")
@@ -91,11 +92,10 @@ class RadialProfile:
         """F(q) as the renderer evaluates it (the fast form with ``fast``)."""
         eparams, eint, coef, fcoef = _stack([self])
         q = np.asarray(q, dtype=float)
-        return _radial_values(q.ravel() ** 2, eparams[0], eint[0], coef, fcoef, fast).reshape(q.shape)
+        values = radial_values(q.ravel() ** 2, eparams[0], eint[0], coef, fcoef, fast)
+        return values.reshape(q.shape)
 
 
-#: Cubics per octave of q^2 in the fast form (relative width 2^-8 of q^2).
-FAST_BITS = 8
 #: The fast form of Sersic profiles covers q^2 < 2^30 (q r0 < 32768); the exact one beyond.
 _FAST_MAX_OCTAVE = 30
 
@@ -134,12 +134,15 @@ def sersic_table(n: float, gsparams: galsim.GSParams) -> RadialProfile:
 
 @functools.lru_cache(maxsize=1)
 def _source_digest() -> str:
-    return hashlib.sha256(Path(__file__).read_bytes()).hexdigest()[:16]
+    """The digest of the code that builds a table: this module and its kernels'."""
+    source = Path(__file__).read_bytes() + Path(render_nb.__file__).read_bytes()
+    return hashlib.sha256(source).hexdigest()[:16]
 
 
 def sersic_table_key(n: float, gsparams: galsim.GSParams) -> str:
     """Everything a Sersic table depends on: ``n``, the GSParams, GalSim's and numpy's
-    versions and this module's source (any change of the code that builds it)."""
+    versions and the source of this module and its kernels (any change of the code that
+    builds it)."""
     return (f"sersic n={n!r} {gsparams!r} galsim={galsim.__version__} numpy={np.__version__} "
             f"render={_source_digest()}")
 
@@ -223,170 +226,12 @@ def _fast_cubics(kind: int, params: np.ndarray, coef: np.ndarray, lo: int, hi: i
     ts = np.array([0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0])
     q2 = (start[:, None] + ts[None, :] * width[:, None]).ravel()
     eint = np.array([kind, 0, len(coef) - 1, lo, hi, 0], dtype=np.int64)
-    vals = _radial_values(q2, params, eint, coef, np.zeros((1, 4)), False).reshape(-1, 4)
+    vals = radial_values(q2, params, eint, coef, np.zeros((1, 4)), False).reshape(-1, 4)
     fast = vals @ np.linalg.inv(np.vander(ts, 4, increasing=True)).T
     for b in breaks:
         if math.isfinite(b) and b > 0:
             fast[(start <= b) & (b <= start + width)] = np.nan
     return np.ascontiguousarray(fast)
-
-
-@njit(cache=True)
-def _radial(q2: float, p: np.ndarray, ei: np.ndarray, coef: np.ndarray) -> float:
-    """Exact form of F(q) at ``q2 = q^2`` (see :class:`RadialProfile`); ``p`` its params,
-    ``ei`` = (kind, first and last of its cubics in ``coef``, ...)."""
-    kind = ei[0]
-    if kind == 0:
-        if q2 < p[2]:
-            return 1.0 + q2 * (p[3] + q2 * p[4])
-        if q2 >= p[5]:
-            q = math.sqrt(q2)
-            return (p[6] + p[7] / q) / q2
-        x = (0.5 * math.log(q2) - p[0]) / p[1]
-        i = int(x)
-        t = x - i
-        i += ei[1]
-        if i > ei[2]:
-            i = ei[2]
-        return (coef[i, 0] + t * (coef[i, 1] + t * (coef[i, 2] + t * coef[i, 3]))) / q2
-    if kind == -2:
-        return math.exp(-0.5 * q2)
-    if q2 > p[1]:
-        return 0.0
-    if q2 < p[0]:
-        return 1.0 - 0.5 * q2 * (1.0 - 0.25 * q2)
-    return math.exp(-0.5 * q2)
-
-
-_MANTISSA_SHIFT = 52 - FAST_BITS
-_FRACTION_MASK = (1 << _MANTISSA_SHIFT) - 1
-_FRACTION_SCALE = 1.0 / (1 << _MANTISSA_SHIFT)
-
-
-@njit(cache=True)
-def _fast_index(bits: int, lo: int, hi: int, first: int) -> int:
-    """Row of the fast cubic for ``q^2`` of IEEE-754 bit pattern ``bits`` (-1: none)."""
-    e = (bits >> 52) - 1023
-    if e < lo or e >= hi:
-        return -1
-    return first + ((e - lo) << FAST_BITS) + ((bits >> _MANTISSA_SHIFT) & ((1 << FAST_BITS) - 1))
-
-
-@njit(cache=True)
-def _fraction(bits: int) -> float:
-    """Position of ``q^2`` (bit pattern ``bits``) in its fast interval, in [0, 1)."""
-    return (bits & _FRACTION_MASK) * _FRACTION_SCALE
-
-
-@njit(cache=True)
-def _radial_values(q2: np.ndarray, p: np.ndarray, ei: np.ndarray, coef: np.ndarray, fcoef: np.ndarray,
-                   fast: bool) -> np.ndarray:
-    """F at each ``q2`` (exact or fast form)."""
-    out = np.empty(q2.shape[0])
-    q2c = np.ascontiguousarray(q2)
-    bits = q2c.view(np.int64)
-    for k in range(q2.shape[0]):
-        c = _fast_index(bits[k], ei[3], ei[4], ei[5]) if fast else -1
-        if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:  # not NaN
-            t = _fraction(bits[k])
-            out[k] = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
-        else:
-            out[k] = _radial(q2c[k], p, ei, coef)
-    return out
-
-
-@njit(cache=True)
-def _fill_kimages(out, kpsf, real_psf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table, eparams, eint, coef, fcoef):
-    """Galaxy x PSF x pixel x phase k-values of each stamp, wrapped onto its FFT grid.
-
-    ``out[s]`` (N, N/2+1) receives the sum over GalSim's (Nk+1) x (Nk/2+1) k-image (rows
-    ky = -Nk/2..Nk/2, columns kx = 0..Nk/2), folded as GalSim's Hermitian wrap does and
-    weighted so that numpy's inverse real FFT of ``out[s]`` equals GalSim's real image:
-    a stored column kx > 0 counts twice (it stands for -kx too), numpy's columns 0 and N/2
-    once, its others twice.
-    """
-    half = n_k // 2
-    n_half = n_fft // 2
-    m = out.shape[0]
-    phx = np.empty(half + 1, dtype=np.complex128)
-    phx_re = np.empty(half + 1)
-    phx_im = np.empty(half + 1)
-    q2 = np.empty(half + 1)
-    fq = np.empty(half + 1)
-    bits = q2.view(np.int64)
-    out_f = out.view(np.float32)  # (m, N, 2 (N/2+1)): real and imaginary parts
-    for s in range(m):
-        if n_k != n_fft:
-            out[s, :, :] = 0
-        for i in range(half + 1):
-            a = -i * dk * shift_x[s]
-            phx[i] = complex(math.cos(a), math.sin(a))
-            phx_re[i] = phx[i].real
-            phx_im[i] = phx[i].imag
-        p = eparams[table[s]]
-        ei = eint[table[s]]
-        lo, hi, ffirst = ei[3], ei[4], ei[5]
-        # q^2 = (c_xx i^2 + 2 c_xy i jj + c_yy jj^2) dk^2, q = A k
-        a00, a01, a10, a11 = amat[s, 0], amat[s, 1], amat[s, 2], amat[s, 3]
-        cxx = (a00 * a00 + a10 * a10) * dk * dk
-        cxy = (a00 * a01 + a10 * a11) * dk * dk
-        cyy = (a01 * a01 + a11 * a11) * dk * dk
-        f = flux[s]
-        for j in range(n_k + 1):
-            jj = j - half
-            a = -jj * dk * shift_y[s]
-            rowf = f * complex(math.cos(a), math.sin(a))
-            qy2 = cyy * jj * jj
-            qxy = 2.0 * cxy * jj
-            for i in range(half + 1):
-                q2[i] = (cxx * i + qxy) * i + qy2
-            # F(q) for the row (the table lookup), then the products in branch-free loops.
-            for i in range(half + 1):
-                c = _fast_index(bits[i], lo, hi, ffirst)
-                if c >= 0 and fcoef[c, 0] == fcoef[c, 0]:  # not NaN
-                    t = _fraction(bits[i])
-                    fq[i] = fcoef[c, 0] + t * (fcoef[c, 1] + t * (fcoef[c, 2] + t * fcoef[c, 3]))
-                else:
-                    fq[i] = _radial(q2[i], p, ei, coef)
-            kp = kpsf[j]
-            row = jj % n_fft
-            if n_k == n_fft:  # no aliasing: column i stays i; rows -N/2 and N/2 share row N/2
-                dest = out[s, row]
-                if j == n_k:
-                    for i in range(half):
-                        dest[i] += fq[i] * kp[i] * phx[i] * rowf
-                elif real_psf:  # real PSF k-image: the complex products in real arithmetic
-                    # (the same operations as the complex ones, in the same order: same bits)
-                    dest_f = out_f[s, row]
-                    fr, fi = rowf.real, rowf.imag
-                    for i in range(half):
-                        r = fq[i] * kp[i].real
-                        pr = r * phx_re[i]
-                        pi = r * phx_im[i]
-                        dest_f[2 * i] = pr * fr - pi * fi
-                        dest_f[2 * i + 1] = pr * fi + pi * fr
-                else:
-                    for i in range(half):
-                        dest[i] = fq[i] * kp[i] * phx[i] * rowf
-                val = 2.0 * (fq[half] * kp[half] * phx[half] * rowf)  # column N/2 counts twice
-                if j == n_k:
-                    dest[half] += val
-                else:
-                    dest[half] = val
-            else:
-                for i in range(half + 1):
-                    val = fq[i] * kp[i] * phx[i] * rowf
-                    # Fold (i, jj) onto the N grid; columns beyond N/2 by conjugation.
-                    cx = i % n_fft
-                    dest_row = row
-                    if cx > n_half:
-                        cx = n_fft - cx
-                        dest_row = (n_fft - row) % n_fft
-                        val = val.conjugate()
-                    w = 1.0 if i == 0 else 2.0
-                    if cx != 0 and cx != n_half:
-                        w *= 0.5
-                    out[s, dest_row, cx] += w * val
 
 
 @dataclass
@@ -577,8 +422,9 @@ class StampRenderer:
             for a in range(0, len(idx), batch):
                 sel = idx[a:a + batch]
                 kbuf = buf[:len(sel)]
-                _fill_kimages(kbuf, kpsf, kpsf.dtype == np.float32, int(n_f), int(n_kk), 2.0 * np.pi / int(n_f), amat[sel], flux[sel],
-                              shx[sel], shy[sel], table[sel], eparams, eint, coef, fcoef)
+                fill_kimages(kbuf, kpsf, kpsf.dtype == np.float32, int(n_f), int(n_kk),
+                             2.0 * np.pi / int(n_f), amat[sel], flux[sel], shx[sel], shy[sel],
+                             table[sel], eparams, eint, coef, fcoef)
                 stamps[sel] = inverse_fft_window(kbuf, int(n_f), S)
         return stamps
 
