@@ -511,7 +511,8 @@ def draft_setup(
     comments name the two catalogs. Every missing column is reported at once (InputError)."""
     header = header or {}
     if base is None:
-        from megalut_cli.pipeline_config import default_pipeline_text  # fitsio: not for draft --help
+        # imported here: it reads FITS (fitsio), which `megalut draft --help` should not load
+        from megalut_cli.pipeline_config import default_pipeline_text
 
         base = tomllib.loads(default_pipeline_text())
     notes: list[Note] = []
@@ -607,7 +608,8 @@ def render_pipeline(draft: Draft, base_text: str | None = None) -> str:
     ``draft.removed`` removed, the notes as comments above their tables, and a header saying
     what was drafted from what."""
     if base_text is None:
-        from megalut_cli.pipeline_config import default_pipeline_text  # fitsio: not for draft --help
+        # imported here: it reads FITS (fitsio), which `megalut draft --help` should not load
+        from megalut_cli.pipeline_config import default_pipeline_text
 
         base_text = default_pipeline_text()
     lines = base_text.splitlines()
