@@ -56,6 +56,7 @@ import galsim
 import numpy as np
 
 from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.measure.stamps import check_grid, image_info, read_rows
 from megalut_cli.schema import OneOf, Option, Required, check_params
 
 #: Truth columns returned by :func:`make_psf`.
@@ -208,8 +209,6 @@ def _check_stamp(spec: Mapping[str, Any], s: Mapping[str, Any], where: str) -> N
 
 @functools.lru_cache(maxsize=64)
 def _star_grid(path: str, hdu: int | None, stamp_size: int | None) -> tuple[int, int]:
-    from megalut_cli.measure.stamps import check_grid, image_info
-
     info = image_info(path, hdu)
     if stamp_size is None:
         return 1, 1
@@ -353,8 +352,6 @@ def _euclid(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float]]
 
 @functools.lru_cache(maxsize=32)
 def _stamp_cached(key: tuple[tuple[str, Any], ...]) -> tuple[galsim.GSObject, tuple[float, float, float]]:
-    from megalut_cli.measure.stamps import check_grid, image_info, read_rows
-
     s = dict(key)
     path = str(s["path"])
     info = image_info(path, None if s["hdu"] is None else int(s["hdu"]))
