@@ -17,10 +17,38 @@ from megalut_cli.great3.pipeline import SET_OPTIONS as GREAT3_SET_OPTIONS
 from megalut_cli.measure.options import ALL_MEASURE_OPTIONS
 from megalut_cli.nn.options import POINT_OPTIONS, WEIGHT_OPTIONS, train_options
 from megalut_cli.pipeline_config import PIPELINE_OPTIONS, REFERENCE_OPTIONS, SET_OPTIONS
-from megalut_cli.schema import docs_table
+from megalut_cli.schema import Option, docs_table, kinds_table
 from megalut_cli.shear.options import ALL_PREDICT_OPTIONS, EVALUATE_OPTIONS
 from megalut_cli.sim.config import GSPARAMS_OPTIONS, INSTRUMENT_OPTIONS, STRUCTURE_OPTIONS
+from megalut_cli.sim.galaxy_config import GALAXY_OPTION
+from megalut_cli.sim.noise_config import NOISE_KINDS, NOISE_OPTIONS
 from megalut_cli.sim.options import ALL_SIMULATE_OPTIONS
+from megalut_cli.sim.profiles import GALAXY_PROFILES
+from megalut_cli.sim.psf import PSF_REGISTRY, PSF_TYPES
+
+
+def models_table(
+    head: str, rows: dict[str, list[str]], columns: tuple[str, ...] = ("model",)
+) -> str:
+    """A Markdown table of the kinds of a table (``head``: ``type``, ``profile``), one row each."""
+    lines = [f"| `{head}` | " + " | ".join(columns) + " |", "|" + "---|" * (len(columns) + 1)]
+    lines += [f"| `{name}` | " + " | ".join(cells) + " |" for name, cells in rows.items()]
+    return "\n".join(lines)
+
+
+def galaxy_profiles_table() -> str:
+    """The registered galaxy profiles: what each is, what draws it, its own truth columns."""
+    rows = {
+        name: [p.help, "the fast engine (GalSim with knots)" if p.fast else "GalSim",
+               ", ".join(f"`{c}`" for c in p.truth_columns) or "—"]
+        for name, p in GALAXY_PROFILES.items()
+    }
+    return models_table("profile", rows, ("model", "drawn by", "its truth columns"))
+
+
+#: ``psf.type``, for the docs (the types registered by :mod:`megalut_cli.sim.psf`).
+PSF_TYPE = Option("type", "choice", None, "the PSF model", choices=PSF_TYPES,
+                  default_text="required")
 
 #: Generated tables by name.
 TABLES: dict[str, Callable[[], str]] = {
@@ -30,6 +58,15 @@ TABLES: dict[str, Callable[[], str]] = {
     "structure": lambda: docs_table(STRUCTURE_OPTIONS, cli=False),
     "instrument": lambda: docs_table(INSTRUMENT_OPTIONS, cli=False),
     "gsparams": lambda: docs_table(GSPARAMS_OPTIONS, cli=False),
+    "galaxy-profiles": galaxy_profiles_table,
+    "galaxy": lambda: kinds_table(
+        (GALAXY_OPTION,), {n: p.options for n, p in GALAXY_PROFILES.items()}, "profiles"),
+    "psf-types": lambda: models_table("type", {n: [t.help] for n, t in PSF_REGISTRY.items()}),
+    "psf": lambda: kinds_table(
+        (PSF_TYPE,), {n: t.options for n, t in PSF_REGISTRY.items()}, "types"),
+    "noise-types": lambda: models_table("type", {n: [t.help] for n, t in NOISE_KINDS.items()}),
+    "noise": lambda: kinds_table(
+        NOISE_OPTIONS, {n: t.options for n, t in NOISE_KINDS.items()}, "types"),
     "evaluate": lambda: docs_table(EVALUATE_OPTIONS),
     "pipeline": lambda: docs_table(PIPELINE_OPTIONS, cli=False),
     "pipeline-sets": lambda: docs_table(SET_OPTIONS, cli=False),

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -27,6 +27,13 @@ from megalut_cli.errors import ConfigError, InputError
 
 #: Value kinds of an :class:`Option`.
 KINDS = ("int", "float", "str", "bool", "choice", "str_list", "int_list", "choice_list", "path", "table")
+#: Value kinds the reader of a table parses itself: a number or a distribution table
+#: (``dist``, :mod:`megalut_cli.sim.distributions`), an expression over the columns of a
+#: catalog (``expr``, :mod:`megalut_cli.expr`).
+KINDS += ("dist", "expr")
+#: Kinds whose values :func:`check_params` leaves to the reader (a path is resolved beside
+#: the file that names it, :func:`resolve_path`).
+READER_KINDS = ("dist", "expr", "path")
 
 #: Where, in an option's help text, the command line shows its computed default
 #: (``[default: ...]``, from ``default_text``); without it, the note goes at the end.
@@ -261,6 +268,8 @@ class Option:
             return check_str(value, key)
         if self.kind == "table":
             return check_table(value, key)
+        if self.kind in ("dist", "expr"):  # parsed by the reader
+            return value
         if self.kind == "str_list":
             return check_str_list(value, key, self.empty_ok)
         return check_int_list(value, key)
@@ -274,7 +283,8 @@ class Option:
         if self.kind in ("int", "float"):
             return interval_text(self.minimum, self.maximum, self.min_open, self.max_open)
         return {"bool": "true, false", "str": "text", "str_list": "names", "int_list": "positive integers",
-                "path": "a path", "table": "a table"}[self.kind]
+                "path": "a path", "table": "a table", "dist": "*dist*",
+                "expr": "an expression"}[self.kind]
 
     def default_repr(self) -> str:
         """The default as a docs table writes it."""
@@ -302,6 +312,92 @@ def docs_table(options: Sequence[Option], cli: bool = True, keys: bool = True, p
         cells += [o.default_repr(), o.range_text(), o.doc_help().replace("|", "\\|")]
         rows.append("| " + " | ".join(cells) + " |")
     return "\n".join(rows)
+
+
+def kinds_table(common: Sequence[Option], kinds: Mapping[str, Sequence[Option]], head: str) -> str:
+    """A Markdown table of the keys of a table whose ``type`` (or ``profile``) picks a kind
+    (PSF types, noise types, galaxy profiles): the ``common`` keys, then one row per key
+    declaration naming the kinds (in column ``head``) that take it, a key's declarations
+    together: key, kinds, default, allowed values, meaning."""
+    entries: list[tuple[Option, list[str]]] = []
+    for name, options in kinds.items():
+        for o in options:
+            same = next((names for declared, names in entries if declared == o), None)
+            if same is None:
+                entries.append((o, [name]))
+            else:
+                same.append(name)
+    order = list(dict.fromkeys(o.name for o, _ in entries))
+    entries.sort(key=lambda entry: order.index(entry[0].name))
+    rows = [f"| key | {head} | default | allowed | meaning |", "|---|---|---|---|---|"]
+    for o, names in [(o, ["all"]) for o in common] + entries:
+        which = ", ".join(n if n == "all" else f"`{n}`" for n in names)
+        meaning = o.doc_help().replace("|", "\\|")
+        cells = [f"`{o.name}`", which, o.default_repr(), o.range_text(), meaning]
+        rows.append("| " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
+@dataclass(frozen=True)
+class Required:
+    """A key that must be given; ``why`` is said when it is missing (``KEY: missing (WHY)``)."""
+
+    name: str
+    why: str
+
+
+@dataclass(frozen=True)
+class OneOf:
+    """Keys of which exactly one must be given; ``text`` is said when not, naming the first
+    (``KEY: TEXT``, where ``{got}`` stands for the keys given, or ``none``)."""
+
+    names: tuple[str, ...]
+    text: str
+
+
+def check_params(
+    data: Mapping[str, Any],
+    where: str,
+    options: Sequence[Option],
+    rules: Sequence[Required | OneOf] = (),
+    refuse: Callable[[str], str] | None = None,
+) -> dict[str, Any]:
+    """The one check of a config table's keys and values (GalSim's ``GetAllParams``).
+
+    Every key of ``data`` must be one of ``options`` (``refuse(key)`` says why another is
+    not taken; without it, an unknown key), the ``rules`` must hold, in their order, and
+    every value given is checked by its option (those of :data:`READER_KINDS` are left to
+    the reader). Returns the value of every option, its default where not given. Errors
+    name ``where.KEY``.
+    """
+
+    def key(name: str) -> str:
+        return f"{where}.{name}" if where else name
+
+    names = [o.name for o in options]
+    foreign = sorted(set(data) - set(names))
+    if foreign:
+        if refuse is not None:
+            why = refuse(foreign[0])
+        else:
+            why = f"unknown key (allowed: {', '.join(sorted(names))})"
+        raise ConfigError(f"{key(foreign[0])}: {why}")
+    for rule in rules:
+        if isinstance(rule, Required):
+            if rule.name not in data:
+                raise ConfigError(f"{key(rule.name)}: missing ({rule.why})")
+            continue
+        given = [k for k in rule.names if k in data]
+        if len(given) != 1:
+            got = ", ".join(given) or "none"
+            raise ConfigError(f"{key(rule.names[0])}: " + rule.text.format(got=got))
+    out: dict[str, Any] = {}
+    for o in options:
+        if o.name in data and o.kind not in READER_KINDS:
+            out[o.name] = o.check(data[o.name], key(o.name))
+        else:
+            out[o.name] = data.get(o.name, o.default)
+    return out
 
 
 class Table:

@@ -25,12 +25,16 @@ from megalut_cli.nn.options import (
 from megalut_cli.nn.train import TrainSettings
 from megalut_cli.pipeline import load_pipeline
 from megalut_cli.schema import (
+    OneOf,
     Option,
+    Required,
     Table,
     check_choice,
     check_float,
     check_int,
+    check_params,
     check_table,
+    kinds_table,
     resolve_path,
 )
 from megalut_cli.sim import psf as psf_mod
@@ -206,7 +210,7 @@ def test_a_new_psf_type_is_one_registration():
         check_float(full["size"], f"{where}.size", 0.0, lo_open=True)
 
     kind = psf_mod.PsfType(
-        "box", {"size": 2.0}, check,
+        "box", (Option("size", "float", 2.0, "side, pixels"),), check,
         lambda spec, x, y: (galsim.Box(spec.get("size", 2.0), spec.get("size", 2.0)), {
             "tru_psf_g1": 0.0, "tru_psf_g2": 0.0, "tru_psf_sigma": 0.0}),
     )
@@ -225,6 +229,32 @@ def test_a_new_psf_type_is_one_registration():
         del psf_mod.PSF_REGISTRY["box"]
     with pytest.raises(ConfigError, match="unknown PSF type 'box'"):
         psf_mod.validate_psf_config({"type": "box"})
+
+
+def test_check_params_is_the_one_check_of_a_kind():
+    """check_params: keys of the kind only (the kind says why it refuses another), its rules in
+    order, each value given checked by its declaration (distributions and paths left to the
+    reader), defaults where not given."""
+    options = (Option("size", "float", 2.0, "side", minimum=0.0, min_open=True),
+               Option("a", "dist", None, "a"), Option("b", "dist", None, "b"),
+               Option("path", "path", None, "p"))
+    rules = (Required("size", "the side"), OneOf(("a", "b"), "needs one of a or b, got {got}"))
+    with pytest.raises(ConfigError, match=r"^t\.c: unknown key \(allowed: a, b, path, size\)$"):
+        check_params({"size": 1.0, "a": 1, "c": 2}, "t", options, rules)
+    with pytest.raises(ConfigError, match=r"^t\.c: not mine$"):
+        check_params({"c": 2}, "t", options, rules, lambda key: "not mine")
+    with pytest.raises(ConfigError, match=r"^t\.size: missing \(the side\)$"):
+        check_params({"a": 1}, "t", options, rules)
+    with pytest.raises(ConfigError, match=r"^t\.a: needs one of a or b, got a, b$"):
+        check_params({"size": 1.0, "a": 1, "b": 2}, "t", options, rules)
+    with pytest.raises(ConfigError, match=r"^size: must be > 0, got -1$"):
+        check_params({"size": -1, "a": 1}, "", options, rules)
+    values = check_params({"size": 3, "a": {"type": "uniform"}, "path": 3}, "t", options, rules)
+    assert values == {"size": 3.0, "a": {"type": "uniform"}, "b": None, "path": 3}
+    table = kinds_table((Option("type", "choice", None, "kind", choices=("x", "y")),),
+                        {"x": options[:2], "y": options[:1]}, "types")
+    assert "| `size` | `x`, `y` | 2.0 | > 0 | side |" in table
+    assert "| `a` | `x` | none | *dist* | a |" in table
 
 
 def test_evaluation_bins_one_range(cli, runner, tmp_path):

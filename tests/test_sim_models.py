@@ -20,13 +20,9 @@ from sim_configs import BULGEDISK, COSMOS, COSMOSFIT, write
 from megalut_cli.catalog import read_catalog
 from megalut_cli.errors import ConfigError
 from megalut_cli.sim.config import load_config
-from megalut_cli.sim.galaxies import (
-    composite_hlr,
-    cosmos_fit_truth,
-    galaxy_profile,
-    oriented,
-    sersic_b,
-)
+from megalut_cli.sim.galaxies import galaxy_profile, oriented
+from megalut_cli.sim.profiles import cosmos_fit
+from megalut_cli.sim.profiles.common import composite_hlr, sersic_b
 from megalut_cli.sim.simulate import simulate
 from megalut_cli.sim.structure import draw_case
 
@@ -102,7 +98,7 @@ def test_composite_hlr_encloses_half_of_the_drawn_light(frac, ratio, nb):
     disk_rad = 12.0 / min(1.0, ratio)  # the smaller component: 12 px, well sampled
     t = bulgedisk_row(tru_disk_rad=disk_rad, tru_bulge_rad=ratio * disk_rad, tru_bulge_fraction=frac,
                       tru_bulge_sersicn=nb)
-    img = draw(galaxy_profile("bulgedisk", t, 0), method="auto")
+    img = draw(galaxy_profile(t, 0), method="auto")
     x, y = radii()
     inside = img[np.hypot(x, y) <= h * disk_rad].sum() / 1000.0
     assert abs(inside - 0.5) < 0.004, (h, inside)
@@ -138,7 +134,7 @@ def test_bulgedisk_flux_and_unweighted_ellipticity():
     galaxy is oriented at 30 degrees (prediction rotated by 60 degrees)."""
     t = bulgedisk_row(tru_ell=0.4, tru_bulge_sersicn=2.0, tru_bulge_ell=0.2, tru_bulge_dtheta=35.0,
                       tru_bulge_dx=4.5, tru_bulge_dy=-3.0, tru_disk_rad=18.0, tru_bulge_rad=9.0)
-    base = galaxy_profile("bulgedisk", t, 0)
+    base = galaxy_profile(t, 0)
     img = draw(base)
     assert abs(img.sum() / 1000.0 - 1.0) < 1e-3
     q = predicted_moments([(600.0, 1.0, 18.0, 0.4, 0.0, 0.0, 0.0), (400.0, 2.0, 9.0, 0.2, 35.0, 4.5, -3.0)])
@@ -157,7 +153,7 @@ def test_single_component_adaptive_moments_give_its_ellipticity(n):
     else:
         # the adaptive weight of a de Vaucouleurs profile shrinks onto its cusp: a large one
         t = bulgedisk_row(tru_bulge_fraction=1.0, tru_bulge_rad=48.0, tru_bulge_ell=0.3, tru_bulge_dtheta=0.0)
-    gal = oriented(galaxy_profile("bulgedisk", t, 0), t, 0, 20.0)
+    gal = oriented(galaxy_profile(t, 0), t, 0, 20.0)
     res = galsim.hsm.FindAdaptiveMom(gal.drawImage(nx=N_IMG, ny=N_IMG, scale=1.0, method="no_pixel"))
     expect = 0.3 * np.exp(2j * np.deg2rad(20.0))
     assert abs(complex(res.observed_shape.g1, res.observed_shape.g2) - expect) < 1e-3
@@ -166,7 +162,7 @@ def test_single_component_adaptive_moments_give_its_ellipticity(n):
 def test_lensing_shear_applies_after_the_intrinsic_shape():
     """A round disk lensed by g: the adaptive-moment shape is g (5e-6)."""
     t = bulgedisk_row(tru_bulge_fraction=0.0, tru_g1=0.05, tru_g2=-0.03)
-    gal = oriented(galaxy_profile("bulgedisk", t, 0), t, 0, 73.0)
+    gal = oriented(galaxy_profile(t, 0), t, 0, 73.0)
     res = galsim.hsm.FindAdaptiveMom(gal.drawImage(nx=256, ny=256, scale=1.0, method="no_pixel"))
     # achieved 1.5e-6 (g1), 4.7e-7 (g2)
     assert abs(res.observed_shape.g1 - 0.05) < 5e-6 and abs(res.observed_shape.g2 + 0.03) < 5e-6
@@ -190,16 +186,15 @@ def test_knots_flux_profile_and_seed():
     x, y = radii(128)
     inside = []
     for seed in range(1, 31):
-        gal = galaxy_profile("bulgedisk", knots_row(seed), 0)
+        gal = galaxy_profile(knots_row(seed), 0)
         assert abs(gal.flux - 1000.0) < 1e-9
         img = galsim.Convolve(gal, psf).drawImage(nx=128, ny=128, scale=1.0).array
         inside.append(img[np.hypot(x, y) <= 10.0].sum() / img.sum())
     assert abs(np.mean(inside) - 0.5) < 0.03, np.mean(inside)
-    mixed = galaxy_profile("bulgedisk", knots_row(7, fraction=0.3, tru_bulge_fraction=0.2, tru_bulge_rad=3.0), 0)
+    mixed = galaxy_profile(knots_row(7, fraction=0.3, tru_bulge_fraction=0.2, tru_bulge_rad=3.0), 0)
     assert abs(mixed.flux - 1000.0) < 1e-9
-    a = galsim.Convolve(galaxy_profile("bulgedisk", knots_row(5), 0), psf).drawImage(nx=64, ny=64, scale=1.0).array
-    b = galsim.Convolve(galaxy_profile("bulgedisk", knots_row(5), 0), psf).drawImage(nx=64, ny=64, scale=1.0).array
-    c = galsim.Convolve(galaxy_profile("bulgedisk", knots_row(6), 0), psf).drawImage(nx=64, ny=64, scale=1.0).array
+    a, b, c = (galsim.Convolve(galaxy_profile(knots_row(seed), 0), psf)
+               .drawImage(nx=64, ny=64, scale=1.0).array for seed in (5, 5, 6))
     assert np.array_equal(a, b) and not np.allclose(a, c)
 
 
@@ -225,18 +220,16 @@ def test_knot_seeds_follow_the_galaxy_draws(tmp_path):
 
 def fit_truth(index: int, fit: str, pixel_scale: float, step: float = 0.0) -> dict[str, np.ndarray]:
     """Truth of catalog row ``index`` as the config machinery builds it."""
-    from megalut_cli.sim.galaxy_config import COSMOS_FIT_COLUMNS
-
     data = fitsio.read(str(COSMOS))
     gvals = {"fit_ident": np.array([float(data["IDENT"][index])])}
     for part in (["sersic", "bulgedisk"] if fit == "auto" else [fit]):
-        for name, (col, el) in COSMOS_FIT_COLUMNS[part].items():
+        for name, (col, el) in cosmos_fit.COSMOS_FIT_COLUMNS[part].items():
             v = data[col][index] if el is None else data[col][index][el]
             gvals[name] = np.array([float(v)])
-    rad, cols = cosmos_fit_truth(gvals, fit, pixel_scale, step)
-    t = {"tru_rad": rad, "tru_ell": gvals["ellipticity"], "tru_g1": np.zeros(1), "tru_g2": np.zeros(1),
+    made = cosmos_fit.fit_truth(gvals, fit, pixel_scale, step)
+    t = {"tru_ell": made.ellipticity, "tru_g1": np.zeros(1), "tru_g2": np.zeros(1),
          "tru_flux": np.array([1.0])}
-    t.update(cols)
+    t.update(made.columns)  # tru_rad among them
     return t
 
 
@@ -253,14 +246,14 @@ def test_cosmos_fit_is_galsims_parametric_galaxy(index):
     ref = ref.withFlux(1.0).dilate(1.0 / scale)
     t = fit_truth(index, "auto", scale, step=0.05)
     beta = record["bulgefit"][7] if record["use_bulgefit"] else record["sersicfit"][7]
-    ours = oriented(galaxy_profile("cosmos_fit", t, 0), t, 0, math.degrees(beta))
+    ours = oriented(galaxy_profile(t, 0), t, 0, math.degrees(beta))
     a, b = draw(ours, 384), draw(ref, 384)
     assert np.max(np.abs(a - b)) < 3e-7 * b.max()  # achieved 8.5e-8 (row 0), 3.9e-8 (row 4)
     x, y = radii(384)
     round_t = dict(t, tru_ell=np.zeros(1))
     if "tru_bulge_ell" in t:
         round_t["tru_bulge_ell"] = np.zeros(1)
-    img = draw(galaxy_profile("cosmos_fit", round_t, 0), 384, method="auto")
+    img = draw(galaxy_profile(round_t, 0), 384, method="auto")
     frac = img[np.hypot(x, y) <= t["tru_rad"][0]].sum()
     assert abs(frac - 0.5) < 0.003, frac  # achieved 3.6e-4 (row 0), 9.5e-4 (row 4)
 
@@ -379,3 +372,67 @@ def test_ring_members_are_rotated_copies_and_workers_agree(tmp_path):
         # +90 deg counterclockwise with y up: new[y, x] = old at (x, y) -> (y, -x)
         assert np.max(np.abs(np.rot90(first, k=-1) - second)) < 1e-4 * first.max()
         assert np.max(np.abs(np.rot90(first, k=1) - second)) > 1e-2 * first.max()  # not symmetric
+
+
+# --------------------------------------------------------------------------- the registry
+
+
+def test_a_new_galaxy_profile_is_one_registration(tmp_path):
+    """Registering a profile makes it a valid galaxy.profile: its own keys checked (a key of
+    other profiles refused, naming them), its truth columns written, drawn by GalSim (the
+    fast engine hands it over), and listed in the docs tables."""
+    from sim_configs import TINY
+
+    from megalut_cli.doctables import TABLES
+    from megalut_cli.schema import Option, Required
+    from megalut_cli.sim.distributions import parse_distribution
+    from megalut_cli.sim.profiles import GALAXY_PROFILES, GalaxyProfile, register_galaxy_profile
+    from megalut_cli.sim.profiles.base import GalaxySpec, ProfileTruth
+    from megalut_cli.sim.profiles.common import FLUX, ONE_FLUX, flux_mode, position_angle
+    from megalut_cli.sim.simulate import simulate_table
+
+    def parse(given, values, instrument, config_path):
+        mode = flux_mode(given, instrument)
+        params = {k: parse_distribution(given[k], f"galaxy.{k}") for k in ("scale_radius", mode)}
+        params["ellipticity"] = parse_distribution(0.0, "galaxy.ellipticity")
+        return GalaxySpec("expo", params, position_angle({"angle": 0.0}), mode, 0.0)
+
+    def truth(spec, drawn, sequence):
+        rad = 1.6783469900166608 * drawn["scale_radius"]  # GalSim's Exponential hlr / r0
+        columns = {"tru_rad": rad, "tru_scale_radius": drawn["scale_radius"]}
+        return ProfileTruth(columns, drawn["ellipticity"], rad)
+
+    def build(spec, t, k, gsparams, pad_pixels):
+        return galsim.Exponential(scale_radius=float(t["tru_scale_radius"][k]),
+                                  flux=float(t["tru_flux"][k]), gsparams=gsparams)
+
+    scale = Option("scale_radius", "dist", None, "scale radius, pixels", default_text="required")
+    rules = (Required("scale_radius", "scale radius in pixels"), ONE_FLUX)
+    profile = GalaxyProfile("expo", "an exponential disk", (scale, FLUX), rules, parse, truth,
+                            build, truth_columns=("tru_scale_radius",))
+    galaxy = TINY[TINY.index("[galaxy]"):TINY.index("[psf]")]
+
+    def config(table: str) -> Path:
+        return write(tmp_path, TINY, replace={galaxy: f'[galaxy]\nprofile = "expo"\n{table}\n\n',
+                                              'type = "gaussian"\nsigma = 1.0': 'type = "none"'})
+
+    register_galaxy_profile(profile)
+    try:
+        with pytest.raises(ValueError, match="already registered"):
+            register_galaxy_profile(profile)
+        columns, stamps = simulate_table(load_config(config("scale_radius = 2.0\nflux = 100.0")), 3,
+                                         keep_stamps=True, engine="fast")
+        assert np.allclose(columns["tru_scale_radius"], 2.0)
+        assert np.allclose(columns["tru_flux"], 100.0)
+        assert abs(float(stamps[0].sum()) - 100.0) < 2.0  # 24-px stamps hold most of the light
+        owners = "'cosmos_fit' or 'bulgedisk' or 'gaussian' or 'sersic'"
+        with pytest.raises(ConfigError, match=rf"^galaxy\.rad: only for profile = {owners}$"):
+            load_config(config("scale_radius = 2.0\nflux = 1.0\nrad = 1.0"))
+        missing = r"^galaxy\.scale_radius: missing \(scale radius in pixels\)$"
+        with pytest.raises(ConfigError, match=missing):
+            load_config(config("flux = 1.0"))
+        assert "`expo`" in TABLES["galaxy-profiles"]() and "`scale_radius`" in TABLES["galaxy"]()
+    finally:
+        del GALAXY_PROFILES["expo"]
+    with pytest.raises(ConfigError, match="galaxy.profile: unknown value 'expo'"):
+        load_config(config("flux = 1.0"))

@@ -20,8 +20,11 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+from megalut_cli.configfile import read_toml
 from megalut_cli.errors import InputError
 from megalut_cli.nn.domain import DOMAIN_KEY, MEDIAN_RANGE, domain_summary, model_domain
+from megalut_cli.sim.distributions import short_text
+from megalut_cli.sim.profiles import GALAXY_PROFILES
 
 #: Attribute of ``/validation`` holding the recorded model bias on real galaxies (JSON).
 REAL_BIAS_ATTR = "real_galaxy_bias"
@@ -53,32 +56,17 @@ def training_population(catalog: str | os.PathLike) -> dict[str, Any] | None:
     return pop
 
 
-def _value(v: Any) -> str:
-    if isinstance(v, Mapping):
-        t = v.get("type", "")
-        if t == "uniform":
-            return f"U({v.get('min')}, {v.get('max')})"
-        if t == "constant":
-            return str(v.get("value"))
-        return t or "?"
-    return str(v)
-
-
 def population_summary(pop: Mapping[str, Any]) -> str:
-    """One line: galaxy profile (or real catalog and twin mode), PSF type and size, noise."""
+    """One line: the galaxies as their profile says them (e.g. the real catalog and twin
+    mode), PSF type and size, noise."""
     gal, psf, noise = pop.get("galaxy", {}), pop.get("psf", {}), pop.get("noise", {})
-    profile = gal.get("profile", "sersic")
-    if profile == "real":
-        g = f"real galaxies of {Path(str(gal.get('real_catalog', '?'))).name}"
-        if gal.get("twin", "none") != "none":
-            g = f"Sersic twins of {g}"
-    elif profile == "sersic":
-        g = f"Sersic galaxies (n {_value(gal.get('sersicn', '?'))}, rad {_value(gal.get('rad', '?'))} px)"
-    else:
-        g = f"{profile} galaxies"
+    name = gal.get("profile", "sersic")
+    profile = GALAXY_PROFILES.get(name) if isinstance(name, str) else None
+    g = profile.describe(gal) if profile is not None else f"{name} galaxies"
     p = f"{psf.get('type', '?')} PSF" + "".join(
-        f" {k} {_value(psf[k])}" for k in ("sigma", "fwhm", "beta") if k in psf)
-    n = f"{noise.get('type', '?')} noise" + (f" sigma {_value(noise['sigma'])}" if "sigma" in noise else "")
+        f" {k} {short_text(psf[k])}" for k in ("sigma", "fwhm", "beta") if k in psf)
+    sigma = f" sigma {short_text(noise['sigma'])}" if "sigma" in noise else ""
+    n = f"{noise.get('type', '?')} noise{sigma}"
     return f"{g}; {p}; {n}"
 
 
@@ -188,8 +176,6 @@ def model_report(model: Any) -> list[str]:
 def population_from_config(config_path: str | os.PathLike) -> dict[str, Any]:
     """The population of a simulation config file, or of the ``[simulation]`` table of a
     pipeline file (for models whose training catalog is gone)."""
-    from megalut_cli.configfile import read_toml
-
     raw, _ = read_toml(config_path)
     if "galaxy" not in raw and isinstance(raw.get("simulation"), Mapping):
         raw = {**raw["simulation"], "description": raw.get("description", "")}

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.errors import ConfigError
+from megalut_cli.expr import columns_used, evaluate_rows
 from megalut_cli.schema import check_table, resolve_beside
 from megalut_cli.sim.distributions import CatalogColumn
 
@@ -55,8 +56,7 @@ def load_catalog_columns(
     raw: Mapping[str, Any], config_path: str, parts: dict[str, dict[str, Any]]
 ) -> tuple[int, str | None]:
     """Read the [catalog] columns used by ``catalog`` distributions; attach their data."""
-    from megalut_cli.catalog import read_catalog
-    from megalut_cli.expr import columns_used, evaluate_rows
+    from megalut_cli.catalog import catalog_info, read_catalog  # fitsio: not needed for --help
 
     t = check_table(raw.get("catalog"), "catalog", _CATALOG_KEYS)
     found = _catalog_dists(parts)
@@ -75,8 +75,6 @@ def load_catalog_columns(
         if not isinstance(select, str):
             raise ConfigError("catalog.select: expected an expression string")
         expr_cols = columns_used(select)
-    from megalut_cli.catalog import catalog_info
-
     _, names, _ = catalog_info(path)
     needed = {d.column for _, _, d in found}
     for name in expr_cols:

@@ -21,8 +21,6 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-import numpy as np
-
 from megalut_cli.configfile import (
     apply_overrides,
     config_source,
@@ -42,16 +40,12 @@ from megalut_cli.sim.catalog_config import load_catalog_columns
 from megalut_cli.sim.distributions import (
     DIST_TYPES,
     Distribution,
+    check_bounds,
     is_distribution_table,
     parse_distribution,
     parse_distributions,
 )
-from megalut_cli.sim.galaxy_config import (
-    COSMOS_FIT_COLUMNS,
-    GalaxySpec,
-    parse_galaxy,
-    usable_fit_rows,
-)
+from megalut_cli.sim.galaxy_config import GalaxySpec, check_galaxy_ranges, parse_galaxy
 from megalut_cli.sim.noise_config import (
     CorrelationSource,
     NoiseSpec,
@@ -59,12 +53,15 @@ from megalut_cli.sim.noise_config import (
     measured_value,
     parse_noise,
 )
+from megalut_cli.sim.profiles import GALAXY_PROFILES
+from megalut_cli.sim.profiles.common import SERSIC_N_RANGE, round_sersicn
+from megalut_cli.sim.profiles.cosmos_fit import COSMOS_FIT_COLUMNS
 
 #: Public names, with those of the table modules that stay importable from here (as before the split).
 __all__ = [
-    "COSMOS_FIT_COLUMNS", "CorrelationSource", "GalaxySpec", "NoiseSpec", "SimConfig", "StructureSpec",
-    "apply_overrides", "is_measured", "load_config", "measured_value", "parse_override", "read_toml",
-    "round_sersicn", "validate_config",
+    "COSMOS_FIT_COLUMNS", "SERSIC_N_RANGE", "CorrelationSource", "GalaxySpec", "NoiseSpec",
+    "SimConfig", "StructureSpec", "apply_overrides", "is_measured", "load_config", "measured_value",
+    "parse_override", "read_toml", "round_sersicn", "validate_config",
 ]
 
 log = logging.getLogger(__name__)
@@ -72,8 +69,6 @@ log = logging.getLogger(__name__)
 #: Parameter groups that can be redrawn for every realization (else once per case).
 VARY_GROUPS = ("shear", "galaxy", "angle", "psf")
 SNC_MODES = ("ring", "pairs", "none")
-#: GalSim's Sersic index range.
-SERSIC_N_RANGE = (0.3, 6.2)
 
 _TOP_KEYS = {
     "description",
@@ -332,22 +327,6 @@ def _parse_psf(raw: Mapping[str, Any], config_path: str) -> dict[str, Any]:
     return spec
 
 
-def _check_range(d: Distribution, lo: float | None, hi: float | None, what: str, strict_lo: bool = False) -> None:
-    a, b = d.bounds()
-    if lo is not None and (a <= lo if strict_lo else a < lo):
-        rel = ">" if strict_lo else ">="
-        raise ConfigError(f"{d.key}: {what} must be {rel} {lo}, but values reach {a:g}")
-    if hi is not None and b > hi:
-        raise ConfigError(f"{d.key}: {what} must be <= {hi}, but values reach {b:g}")
-
-
-def round_sersicn(n: np.ndarray, step: float) -> np.ndarray:
-    """Round Sersic indices to multiples of ``step`` (GalSim caches profiles per index)."""
-    if step <= 0:
-        return np.asarray(n, dtype=float)
-    return np.round(np.round(np.asarray(n) / step) * step, 10)
-
-
 def validate_config(
     raw: Mapping[str, Any], path: str = "<config>", sha256: str = "", overrides: tuple[str, ...] = ()
 ) -> SimConfig:
@@ -386,63 +365,26 @@ def validate_config(
         "angle": {"angle": galaxy.angle},
         "noise": noise.params,
     }
-    if galaxy.profile == "cosmos_fit" and not isinstance(raw.get("catalog"), Mapping):
-        raise ConfigError(
-            "galaxy.profile: 'cosmos_fit' samples the rows of a [catalog] table (catalog.path = the COSMOS "
-            "fits file, e.g. real_galaxy_catalog_23.5_example_fits.fits)"
-        )
+    profile = GALAXY_PROFILES[galaxy.profile]
+    if profile.catalog and not isinstance(raw.get("catalog"), Mapping):
+        raise ConfigError(f"galaxy.profile: {profile.name!r} {profile.catalog}")
     n_rows, cat_path = load_catalog_columns(raw, path, parts)
-    if galaxy.profile == "cosmos_fit":
-        n_rows = usable_fit_rows(galaxy, parts, n_rows)
+    if profile.select_rows is not None:
+        n_rows = profile.select_rows(galaxy, parts, n_rows)
     psf.update(parts["psf"])
     galaxy = replace(galaxy, angle=parts["angle"]["angle"])
     if field_d is not None:
         field_d = parts["field"]
 
     # Ranges
-    g = galaxy.params
-    if "rad" in g:
-        _check_range(g["rad"], 0.0, None, "the half-light radius", strict_lo=True)
-    if galaxy.flux_mode in ("flux", "sb"):
-        _check_range(g[galaxy.flux_mode], 0.0, None, "the flux" if galaxy.flux_mode == "flux" else "the surface brightness")
-    if "ellipticity" in g:
-        _check_range(g["ellipticity"], 0.0, None, "the ellipticity modulus")
-        a, b = g["ellipticity"].bounds()
-        if b >= 1.0:
-            raise ConfigError(f"galaxy.ellipticity: the modulus must be < 1, but values reach {b:g}")
-    for name in ("sersicn", "bulge_sersicn"):
-        if name in g:
-            lo, hi = (float(round_sersicn(np.array(v), galaxy.sersicn_step)) for v in g[name].bounds())
-            if lo < SERSIC_N_RANGE[0] or hi > SERSIC_N_RANGE[1]:
-                raise ConfigError(
-                    f"galaxy.{name}: GalSim supports {SERSIC_N_RANGE[0]} <= n <= {SERSIC_N_RANGE[1]}, "
-                    f"but values reach [{lo:g}, {hi:g}]"
-                )
-    for name, lo, hi, what in (
-        ("bulge_fraction", 0.0, 1.0, "the bulge's flux fraction"),
-        ("knots_fraction", 0.0, 1.0, "the knots' fraction of the disk's flux"),
-        ("knots", 0.0, 10000.0, "the number of knots"),
-    ):
-        if name in g:
-            _check_range(g[name], lo, hi, what)
-    if "bulge_rad_ratio" in g:
-        _check_range(g["bulge_rad_ratio"], 0.0, None, "the bulge-to-disk half-light radius ratio", strict_lo=True)
-    if "bulge_ellipticity" in g:
-        _check_range(g["bulge_ellipticity"], 0.0, None, "the bulge's ellipticity modulus")
-        if g["bulge_ellipticity"].bounds()[1] >= 1.0:
-            raise ConfigError(f"galaxy.bulge_ellipticity: the modulus must be < 1, but values reach {g['bulge_ellipticity'].bounds()[1]:g}")
-    for name in ("bulge_dx", "bulge_dy"):
-        if name in g:
-            a, b = g[name].bounds()
-            if max(abs(a), abs(b)) > structure.stamp_size / 4:
-                raise ConfigError(f"galaxy.{name}: the bulge offset must stay within stamp_size/4 pixels, but values reach {max(abs(a), abs(b)):g}")
+    check_galaxy_ranges(galaxy, structure.stamp_size)
     gmax = [max(abs(x) for x in d.bounds()) for d in shear.values()]
     if gmax and math.hypot(*gmax, 0.0) >= 1.0:
         raise ConfigError("shear: the reduced shear |g| must stay < 1")
     if "sigma" in noise.params:
-        _check_range(noise.params["sigma"], 0.0, None, "the noise sigma")
+        check_bounds(noise.params["sigma"], 0.0, None, "the noise sigma")
     if "read_noise" in noise.params:
-        _check_range(noise.params["read_noise"], 0.0, None, "the read noise")
+        check_bounds(noise.params["read_noise"], 0.0, None, "the read noise")
 
     # PSF: validated by the PSF module on both ends of every distribution.
     from megalut_cli.sim import psf as psf_mod

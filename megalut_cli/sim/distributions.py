@@ -297,6 +297,19 @@ def parse_distributions(table: Mapping[str, Any], prefix: str, keys: Sequence[st
     return {k: parse_distribution(table[k], f"{prefix}.{k}") for k in keys if k in table}
 
 
+def check_bounds(
+    d: Distribution, lo: float | None, hi: float | None, what: str, strict_lo: bool = False
+) -> None:
+    """Every value of ``d`` lies in ``[lo, hi]`` (``(lo, hi]`` with ``strict_lo``); errors say
+    ``what`` the values are."""
+    a, b = d.bounds()
+    if lo is not None and (a <= lo if strict_lo else a < lo):
+        rel = ">" if strict_lo else ">="
+        raise ConfigError(f"{d.key}: {what} must be {rel} {lo}, but values reach {a:g}")
+    if hi is not None and b > hi:
+        raise ConfigError(f"{d.key}: {what} must be <= {hi}, but values reach {b:g}")
+
+
 def sample_level(
     dists: Mapping[str, Distribution], rng: np.random.Generator, n: int, n_catalog_rows: int
 ) -> dict[str, np.ndarray]:
@@ -308,3 +321,17 @@ def sample_level(
     if any(isinstance(d, CatalogColumn) and d.joint for d in dists.values()):
         rows = rng.integers(0, n_catalog_rows, n)
     return {name: d.sample(rng, n, rows) for name, d in dists.items()}
+
+
+def short_text(value: Any) -> str:
+    """A config value in a few characters, as one-line summaries write it: ``U(min, max)``
+    for a uniform distribution, the value of a constant, the type of another distribution
+    (``?`` without one), a plain value as it is."""
+    if isinstance(value, Mapping):
+        t = value.get("type", "")
+        if t == "uniform":
+            return f"U({value.get('min')}, {value.get('max')})"
+        if t == "constant":
+            return str(value.get("value"))
+        return t or "?"
+    return str(value)

@@ -23,15 +23,8 @@ from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, device_backend
 from megalut_cli.errors import MegalutError
 from megalut_cli.sim import render
 from megalut_cli.sim.config import SimConfig
-from megalut_cli.sim.galaxies import (
-    galaxy_profile,
-    make_gsparams,
-    oriented,
-    real_footprint,
-    real_noise,
-    real_profile,
-    rotated,
-)
+from megalut_cli.sim.galaxies import make_gsparams, oriented, real_footprint, real_noise, rotated
+from megalut_cli.sim.profiles import GALAXY_PROFILES
 from megalut_cli.sim.structure import draw_case
 from megalut_cli.sim.twins import real_twin, twin_truth
 
@@ -267,6 +260,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     n_total = n_cases * n_rea
     first = unit.case_start * n_rea
     gal = cfg.galaxy
+    profile = GALAXY_PROFILES[gal.profile]
 
     keep = unit.keep_stamps
     render = keep or unit.measure  # else: truth only, nothing to draw
@@ -281,13 +275,13 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     truth_parts: list[dict[str, np.ndarray]] = []
     # Real galaxies: pad with HST noise over the stamp, symmetrize (or whiten) it, add the
     # rest of the noise.
-    hst_mode = gal.real.get("hst_noise", "keep") if gal.profile == "real" and render else "keep"
+    hst_mode = gal.real.get("hst_noise", "keep") if gal.real is not None and render else "keep"
     if cfg.noise.type == "none" and cfg.noise.override_sigma is None:
         hst_mode = "keep"  # noiseless stamps: the HST noise stays in the galaxy's own footprint
     pad = S * 1.5 + 4.0 if hst_mode != "keep" else 0.0
     scratch = galsim.ImageF(S, S, scale=1.0)
     base0 = twin_base = None
-    twin_mode = gal.profile == "real" and render and gal.real.get("twin", "none") != "none"
+    twin_mode = gal.real is not None and render and gal.real.get("twin", "none") != "none"
     fill = 0  # stamps in the buffer
     buf_first = first  # global index of stamps[0]
     for case in range(unit.case_start, unit.case_stop):
@@ -300,14 +294,12 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
         for k in range(n_rea):
             gi = int(d.galaxy_index[k])
             if gi != last_gal and render:
-                if gal.profile == "real":
-                    base = real_profile(gal.real, int(t["tru_real_index"][k]), t["tru_flux"][k], gsp, pad)
-                    if pad:
-                        base0 = real_profile(gal.real, int(t["tru_real_index"][k]), t["tru_flux"][k], gsp)
-                    if twin_mode:  # its Sersic twin, drawn in its place (docs/realgal.md)
-                        twin_base = real_twin(gal.real, int(t["tru_real_index"][k]), t["tru_flux"][k], gsp)
-                else:
-                    base = galaxy_profile(gal.profile, t, k, gsp)
+                base = profile.build(gal, t, k, gsp, pad)
+                if pad:  # the same galaxy without its noise padding
+                    base0 = profile.build(gal, t, k, gsp, 0.0)
+                if twin_mode:  # its Sersic twin, drawn in its place (docs/realgal.md)
+                    index = int(t["tru_real_index"][k])
+                    twin_base = real_twin(gal.real, index, t["tru_flux"][k], gsp)
                 last_gal = gi
             pi = int(d.psf_index[k])
             if pi != last_psf:
@@ -322,11 +314,9 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
             if not render:
                 continue
             hst_k = hst_var is not None and d.noise.kind != "none"
-            if gal.profile == "real":  # real galaxies: rotated by the position angle, then lensed
-                # (a twin replaces its galaxy here, or after the HST-noise measurement)
-                gal_k = rotated(twin_base if twin_mode and not hst_k else base, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k])
-            else:
-                gal_k = oriented(base, t, k, d.extra["theta"][k])
+            # (a real galaxy's twin replaces it here, or after the HST-noise measurement)
+            shown = twin_base if twin_mode and not hst_k else base
+            gal_k = oriented(shown, t, k, d.extra["theta"][k])
             obj = galsim.Convolve(gal_k, psf, gsparams=conv_gsp)
             try:
                 obj.drawImage(image=image, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method)
@@ -358,7 +348,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
         cols = case_columns(d, psf_truths)
         if hst_var is not None:
             cols["tru_hst_noise_var"] = hst_var
-        if gal.profile == "real" and "twin_catalog" in gal.real:
+        if gal.real is not None and "twin_catalog" in gal.real:
             cols.update(twin_truth(gal.real, t["tru_real_index"]))
         truth_parts.append(cols)
 

@@ -1,5 +1,6 @@
-"""Galaxy profiles and their true parameters (Sersic, Gaussian, bulge + disk, knots,
-COSMOS fits or real, in pixel units).
+"""GalSim galaxies from their true parameters (Sersic, Gaussian, bulge + disk, knots,
+COSMOS fits or real, in pixel units); which a config draws is its profile's choice
+(:mod:`megalut_cli.sim.profiles`).
 
 Fluxes (ADU) come directly, from a surface brightness ``F = S * pi * R^2`` (the paper's
 fiducial coupling of size and flux), or from a magnitude with the instrument zero-point,
@@ -24,11 +25,14 @@ from __future__ import annotations
 
 import functools
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import galsim
 import numpy as np
+
+from megalut_cli.catalog import catalog_info
+from megalut_cli.errors import InputError
 
 #: One GSParams object for every profile, so that GalSim's Sersic cache is shared.
 GSPARAMS = galsim.GSParams()
@@ -73,23 +77,41 @@ def make_gsparams(settings: Mapping[str, float] | None) -> galsim.GSParams:
     return galsim.GSParams(**settings) if settings else GSPARAMS
 
 
+def round_sersic(
+    rad: float, flux: float, sersicn: float | None, gsparams: galsim.GSParams = GSPARAMS
+) -> galsim.GSObject:
+    """A round Sérsic of index ``sersicn``, half-light radius ``rad`` (pixels), ``flux`` (ADU)."""
+    return galsim.Sersic(n=float(sersicn), half_light_radius=float(rad), flux=float(flux),
+                         gsparams=gsparams)
+
+
+def round_gaussian(
+    rad: float, flux: float, sersicn: float | None = None, gsparams: galsim.GSParams = GSPARAMS
+) -> galsim.GSObject:
+    """A round Gaussian of half-light radius ``rad`` (pixels) and ``flux`` (ADU)."""
+    return galsim.Gaussian(half_light_radius=float(rad), flux=float(flux), gsparams=gsparams)
+
+
+#: ``(rad, flux, sersicn, gsparams) -> profile``: a round single profile.
+RoundProfile = Callable[[float, float, "float | None", galsim.GSParams], galsim.GSObject]
+#: The round single profiles by the name of the fast renderer's family that reproduces them
+#: (``GalaxyProfile.fast``, :mod:`megalut_cli.sim.render`).
+ROUND_PROFILES: dict[str, RoundProfile] = {"sersic": round_sersic, "gaussian": round_gaussian}
+
+
 def base_profile(
     profile: str, rad: float, flux: float, sersicn: float | None = None, gsparams: galsim.GSParams = GSPARAMS
 ) -> galsim.GSObject:
-    """A round profile of half-light radius ``rad`` (pixels) and ``flux`` (ADU)."""
-    if profile == "sersic":
-        return galsim.Sersic(n=float(sersicn), half_light_radius=float(rad), flux=float(flux), gsparams=gsparams)
-    if profile == "gaussian":
-        return galsim.Gaussian(half_light_radius=float(rad), flux=float(flux), gsparams=gsparams)
-    raise ValueError(f"unknown galaxy profile {profile!r}")
+    """The round profile of family ``profile`` (:data:`ROUND_PROFILES`): half-light radius
+    ``rad`` (pixels), ``flux`` (ADU)."""
+    if profile not in ROUND_PROFILES:
+        raise ValueError(f"unknown galaxy profile {profile!r}")
+    return ROUND_PROFILES[profile](rad, flux, sersicn, gsparams)
 
 
 @functools.lru_cache(maxsize=4)
 def real_galaxy_catalog(path: str, image_dir: str) -> galsim.RealGalaxyCatalog:
     """A GalSim RealGalaxyCatalog, loaded once per process (images preloaded)."""
-    from megalut_cli.catalog import catalog_info
-    from megalut_cli.errors import InputError
-
     _, names, _ = catalog_info(path)
     missing = [c for c in ("GAL_FILENAME", "PSF_FILENAME", "GAL_HDU", "PSF_HDU", "PIXEL_SCALE")
                if c.lower() not in {n.lower() for n in names}]
@@ -221,145 +243,11 @@ def shaped(base: galsim.GSObject, e1: float, e2: float, g1: float, g2: float) ->
 # axis along x) from their truth row, then rotated by the position angle and lensed
 # (:func:`oriented`), so that every realization of a ring is an exact rotated copy.
 
-#: Profiles built by :func:`galaxy_profile` from the composite truth columns.
-COMPOSITE_PROFILES = ("bulgedisk", "cosmos_fit")
-#: GalSim's Sersic range used for the COSMOS fits (as ``galsim.COSMOSCatalog`` clamps them).
-COSMOS_SERSIC_RANGE = (0.3, 6.0)
-
-
-def sersic_b(n: np.ndarray) -> np.ndarray:
-    """``b_n`` of a Sersic profile ``I ~ exp(-b_n (r/R)^(1/n))`` of half-light radius R."""
-    from scipy.special import gammaincinv
-
-    return gammaincinv(2.0 * np.asarray(n, dtype=float), 0.5)
-
-
-def sersic_enclosed(radius_over_hlr: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Fraction of the flux of an untruncated round Sersic profile inside ``r / R``."""
-    from scipy.special import gammainc
-
-    n = np.asarray(n, dtype=float)
-    x = np.asarray(radius_over_hlr, dtype=float)
-    return gammainc(2.0 * n, sersic_b(n) * np.maximum(x, 0.0) ** (1.0 / n))
-
-
-def composite_hlr(
-    bulge_fraction: np.ndarray, rad_ratio: np.ndarray, bulge_n: np.ndarray, disk_n: np.ndarray | float = 1.0
-) -> np.ndarray:
-    """Half-light radius of a round disk (index ``disk_n``, half-light radius 1) plus a round
-    concentric bulge (index ``bulge_n``, half-light radius ``rad_ratio``) holding the flux
-    fraction ``bulge_fraction``; found by bisection (it lies between the two radii)."""
-    b, r, nb, nd = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (bulge_fraction, rad_ratio, bulge_n, disk_n)))
-    lo = np.log(np.minimum(1.0, r))
-    hi = np.log(np.maximum(1.0, r))
-    safe_r = np.where(r > 0, r, 1.0)
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        x = np.exp(mid)
-        inside = b * sersic_enclosed(x / safe_r, nb) + (1.0 - b) * sersic_enclosed(x, nd)
-        below = inside < 0.5
-        lo = np.where(below, mid, lo)
-        hi = np.where(below, hi, mid)
-    out = np.exp(0.5 * (lo + hi))
-    return np.where(b <= 0.0, 1.0, np.where(b >= 1.0, r, out))
-
-
-def q_to_ellipticity(q: np.ndarray) -> np.ndarray:
-    """Ellipticity modulus ``(1 - q) / (1 + q)`` of an axis ratio ``q`` (GalSim's g)."""
-    q = np.asarray(q, dtype=float)
-    with np.errstate(divide="ignore", invalid="ignore"):  # unused fits hold q = -1
-        return (1.0 - q) / (1.0 + q)
-
-
-def bulgedisk_truth(
-    gvals: dict[str, np.ndarray], sersicn_step: float
-) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """``profile = "bulgedisk"``: the composite half-light radius (``rad``) sets the disk's
-    and the bulge's; returns ``(rad, truth columns)``."""
-    from megalut_cli.sim.config import round_sersicn
-
-    rad = np.asarray(gvals["rad"], dtype=float)
-    frac = np.asarray(gvals["bulge_fraction"], dtype=float)
-    ratio = np.asarray(gvals["bulge_rad_ratio"], dtype=float)
-    nb = round_sersicn(gvals["bulge_sersicn"], sersicn_step)
-    disk_rad = rad / composite_hlr(frac, ratio, nb)
-    cols = {
-        "tru_disk_rad": disk_rad,
-        "tru_disk_sersicn": np.ones_like(rad),
-        "tru_bulge_fraction": frac,
-        "tru_bulge_rad": ratio * disk_rad,
-        "tru_bulge_sersicn": nb,
-        "tru_bulge_ell": np.asarray(gvals["bulge_ellipticity"], dtype=float),
-        "tru_bulge_dtheta": np.asarray(gvals["bulge_angle"], dtype=float),
-        "tru_bulge_dx": np.asarray(gvals["bulge_dx"], dtype=float),
-        "tru_bulge_dy": np.asarray(gvals["bulge_dy"], dtype=float),
-    }
-    return rad, cols
-
-
-def cosmos_fit_truth(
-    gvals: dict[str, np.ndarray], fit: str, pixel_scale: float | None, sersicn_step: float
-) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """``profile = "cosmos_fit"``: the parametric fit of the sampled catalog row, as
-    ``galsim.COSMOSCatalog`` builds it (``_buildParametric``), in simulation pixels of
-    ``pixel_scale`` arcsec, or dilated to the composite half-light radius ``gvals["rad"]``.
-
-    Returns ``(rad, truth columns)``; ``gvals["ellipticity"]`` is set to the (disk's or
-    single Sersic's) ellipticity modulus. The fit's own position angle is replaced by the
-    simulation's (``angle``); the bulge keeps its angle relative to the disk.
-    """
-    from megalut_cli.sim.config import round_sersicn
-
-    n_rows = len(gvals["fit_ident"])
-    use_bulge = {
-        "sersic": np.zeros(n_rows, dtype=bool),
-        "bulgedisk": np.ones(n_rows, dtype=bool),
-        "auto": np.asarray(gvals.get("fit_use_bulge", np.zeros(n_rows)), dtype=float) > 0.5,
-    }[fit]
-    nan = np.full(n_rows, np.nan)
-
-    def get(name: str) -> np.ndarray:  # fit columns absent for this fit: NaN
-        return np.asarray(gvals.get(name, nan), dtype=float)
-
-    n_single = round_sersicn(np.clip(get("fit_n"), *COSMOS_SERSIC_RANGE), sersicn_step)
-    fb, fd = get("fit_bulge_flux"), get("fit_disk_flux")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        frac = np.where(use_bulge, fb / (fb + fd), 0.0)
-        ratio = np.where(use_bulge, get("fit_bulge_hlr") / get("fit_disk_hlr"), np.nan)
-    disk_hlr = np.where(use_bulge, get("fit_disk_hlr"), get("fit_hlr"))  # arcsec
-    disk_n = np.where(use_bulge, 1.0, n_single)
-    hlr = disk_hlr * composite_hlr(frac, np.where(use_bulge, ratio, 1.0), 4.0, disk_n)
-    if "rad" in gvals:
-        rad = np.asarray(gvals["rad"], dtype=float)
-        to_pixels = rad / hlr
-    else:
-        to_pixels = np.full(n_rows, 1.0 / float(pixel_scale))
-        rad = hlr * to_pixels
-    disk_rad = disk_hlr * to_pixels
-    gvals["ellipticity"] = q_to_ellipticity(np.where(use_bulge, get("fit_disk_q"), get("fit_q")))
-    cols: dict[str, np.ndarray] = {"tru_cosmos_ident": np.round(get("fit_ident")).astype(np.int64)}
-    if fit == "sersic":
-        cols["tru_sersicn"] = n_single
-        return rad, cols
-    dtheta = np.rad2deg(get("fit_bulge_beta") - get("fit_disk_beta"))
-    cols.update({
-        "tru_disk_rad": disk_rad,
-        "tru_disk_sersicn": disk_n,
-        "tru_bulge_fraction": frac,
-        "tru_bulge_rad": np.where(use_bulge, ratio * disk_rad, np.nan),
-        "tru_bulge_sersicn": np.where(use_bulge, 4.0, np.nan),
-        "tru_bulge_ell": np.where(use_bulge, q_to_ellipticity(get("fit_bulge_q")), np.nan),
-        "tru_bulge_dtheta": np.where(use_bulge, np.mod(dtheta + 90.0, 180.0) - 90.0, np.nan),
-        "tru_bulge_dx": np.zeros(n_rows),
-        "tru_bulge_dy": np.zeros(n_rows),
-    })
-    return rad, cols
-
 
 def is_framed(truth: Mapping[str, np.ndarray]) -> bool:
     """Whether galaxies of these truth columns are built in their own frame and rotated
-    (composites, knots), rather than round and sheared by their ellipticity."""
-    return "tru_disk_rad" in truth or "tru_knots" in truth
+    (composites, knots, real images), rather than round and sheared by their ellipticity."""
+    return "tru_disk_rad" in truth or "tru_knots" in truth or "tru_real_index" in truth
 
 
 def _component(n: float, rad: float, flux: float, gsparams: galsim.GSParams) -> galsim.GSObject:
@@ -369,33 +257,35 @@ def _component(n: float, rad: float, flux: float, gsparams: galsim.GSParams) -> 
 
 
 def galaxy_profile(
-    profile: str, truth: Mapping[str, np.ndarray], k: int, gsparams: galsim.GSParams = GSPARAMS
+    truth: Mapping[str, np.ndarray],
+    k: int,
+    gsparams: galsim.GSParams = GSPARAMS,
+    single: RoundProfile = round_sersic,
 ) -> galsim.GSObject:
-    """The galaxy of row ``k`` of the truth columns (pixel units, flux ``tru_flux``), before
-    its orientation and the lensing shear (:func:`oriented`).
+    """The parametric galaxy of row ``k`` of the truth columns (pixel units, flux
+    ``tru_flux``), before its orientation and the lensing shear (:func:`oriented`).
 
-    Plain Sersic and Gaussian galaxies are round. Framed galaxies (:func:`is_framed`) have
-    the disk's (or single profile's) major axis along x: a disk of ellipticity ``tru_ell``
-    whose flux fraction ``tru_knots_fraction`` sits in ``tru_knots`` GalSim ``RandomKnots``
-    sampled from the disk's own profile (seed ``tru_knot_seed``), plus a bulge of flux
-    fraction ``tru_bulge_fraction``, ellipticity ``tru_bulge_ell`` at ``tru_bulge_dtheta``
+    A single profile (``single``: a Sérsic of index ``tru_sersicn``, or a Gaussian) is
+    round. Framed galaxies (:func:`is_framed`) have the disk's (or single profile's) major
+    axis along x: a disk of ellipticity ``tru_ell`` whose flux fraction
+    ``tru_knots_fraction`` sits in ``tru_knots`` GalSim ``RandomKnots`` sampled from the
+    disk's own profile (seed ``tru_knot_seed``), plus a bulge of flux fraction
+    ``tru_bulge_fraction``, ellipticity ``tru_bulge_ell`` at ``tru_bulge_dtheta``
     degrees from the disk's axis, centred at (``tru_bulge_dx``, ``tru_bulge_dy``).
     """
     def val(name: str) -> float:
         return float(truth[name][k])
 
     flux = val("tru_flux")
-    single = "gaussian" if profile == "gaussian" else "sersic"  # a cosmos_fit "sersic" fit is a Sersic
+    sersicn = val("tru_sersicn") if "tru_sersicn" in truth else None
     if not is_framed(truth):
-        return base_profile(single, val("tru_rad"), flux, val("tru_sersicn") if "tru_sersicn" in truth else None,
-                            gsparams)
+        return single(val("tru_rad"), flux, sersicn, gsparams)
     frac = val("tru_bulge_fraction") if "tru_bulge_fraction" in truth else 0.0
     disk_flux = (1.0 - frac) * flux
     if "tru_disk_rad" in truth:
         disk_unit = _component(val("tru_disk_sersicn"), val("tru_disk_rad"), 1.0, gsparams)
-    else:  # a Sersic or Gaussian galaxy with knots
-        disk_unit = base_profile(single, val("tru_rad"), 1.0,
-                                 val("tru_sersicn") if "tru_sersicn" in truth else None, gsparams)
+    else:  # a single profile with knots
+        disk_unit = single(val("tru_rad"), 1.0, sersicn, gsparams)
     n_knots = int(truth["tru_knots"][k]) if "tru_knots" in truth else 0
     knot_frac = val("tru_knots_fraction") if n_knots > 0 else 0.0
     parts = []

@@ -27,7 +27,7 @@ import galsim
 import numpy as np
 
 from megalut_cli.errors import InputError
-from megalut_cli.sim.noise_config import CorrelationSource
+from megalut_cli.sim.noise_source import CorrelationSource
 from megalut_cli.sim.normals import add_gaussian_noise
 
 

@@ -12,29 +12,96 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.errors import ConfigError, InputError
-from megalut_cli.schema import check_choice, check_float, check_int, check_table, resolve_beside
+from megalut_cli.expr import check_expression, columns_used, evaluate_rows
+from megalut_cli.schema import (
+    OneOf,
+    Option,
+    Required,
+    check_choice,
+    check_float,
+    check_params,
+    check_table,
+    resolve_beside,
+)
 from megalut_cli.sim.distributions import Distribution, parse_distribution, parse_distributions
+from megalut_cli.sim.noise_source import CORRELATED_SOURCES, CorrelationSource
 
 log = logging.getLogger(__name__)
 
 
-NOISE_TYPES = ("gaussian", "ccd", "correlated", "none")
-_NOISE_KEYS = {"type", "sigma", "sky_mag", "read_noise", "override_sigma"}
-#: Keys of correlated noise (noise.type = "correlated").
-_CORRELATED_KEYS = {"sigma", "image", "correlation", "hdu", "pixel_scale"}
-_NOISE_KEYS |= _CORRELATED_KEYS
-#: Sources of correlated noise: a noise image or a correlation-function image.
-CORRELATED_SOURCES = ("image", "correlation")
-
-
 @dataclass(frozen=True)
-class CorrelationSource:
-    """Where a correlated-noise model comes from (plain, picklable)."""
+class NoiseType:
+    """One ``noise.type``: what it is (docs), its keys besides ``type`` and
+    ``override_sigma`` and their rules (checked by :func:`~megalut_cli.schema.check_params`)."""
 
-    kind: str  # "image" | "correlation"
-    path: str
-    hdu: int | None = None
-    pixel_scale: float = 1.0  # size of the source's pixel in simulation pixels
+    name: str
+    help: str
+    options: tuple[Option, ...] = ()
+    rules: tuple[Required | OneOf, ...] = ()
+
+
+NOISE_TYPES = ("gaussian", "ccd", "correlated", "none")
+#: The keys of ``[noise]`` every type takes.
+NOISE_OPTIONS = (
+    Option("type", "choice", None, "the noise model", choices=NOISE_TYPES, default_text="required"),
+    Option("override_sigma", "float", None,
+           "replaces the noise above by Gaussian noise of this sigma (low-noise pretraining sets: "
+           "`megalut simulate tp.toml ... noise.override_sigma=0.1`)",
+           default_text="—", allowed_text=">= 0"),
+)
+OVERRIDE_SIGMA = NOISE_OPTIONS[1]
+#: ``noise.sigma`` of Gaussian noise, as docs write a level measured on data.
+_MEASURED_SIGMA = (
+    '`{type = "measured", path = "features.fits", column = "skymad", statistic = "median", '
+    'select = "...", scale = 1.0}`'
+)
+#: The noise types by name, with their keys.
+NOISE_KINDS: dict[str, NoiseType] = {t.name: t for t in (
+    NoiseType(
+        "gaussian", "stationary Gaussian noise, the paper's background-limited toy model",
+        (Option("sigma", "dist", None,
+                "standard deviation in ADU, drawn per case; or measured on data: "
+                f"{_MEASURED_SIGMA} (only `path` required; FITS or `# name` text catalogs; see "
+                "`docs/great3.md`)",
+                default_text="required", allowed_text="*dist*, >= 0"),),
+        (Required("sigma", "standard deviation in ADU"),),
+    ),
+    NoiseType(
+        "ccd",
+        "GalSim `CCDNoise`: Poisson noise of the source and the (subtracted) sky, read noise "
+        "(below)",
+        (Option("sky_mag", "dist", None, "sky brightness in mag/arcsec², drawn per case",
+                default_text="required"),
+         Option("read_noise", "dist", 0.0, "read noise in electrons, drawn per case",
+                default_text="0", allowed_text="*dist*, >= 0")),
+        (Required("sky_mag", "sky brightness in mag per arcsec^2"),),
+    ),
+    NoiseType(
+        "correlated",
+        "stationary Gaussian noise correlated as in the data, GalSim `CorrelatedNoise` (below)",
+        (Option("image", "path", None,
+                "a FITS noise image (e.g. a blank-sky cutout of the data; its mean is subtracted), "
+                "read with GalSim's `CorrelatedNoise(image)`", default_text="—"),
+         Option("correlation", "path", None,
+                "a FITS image of a correlation function centred on its central pixel, read with "
+                "GalSim's `getCOSMOSNoise` (e.g. "
+                "`examples/data/cosmos/acs_I_unrot_sci_20_cf.fits`, the HST/ACS COSMOS F814W "
+                "coadds)", default_text="—"),
+         Option("hdu", "int", None, "HDU of `image`", minimum=0, default_text="the primary HDU"),
+         Option("pixel_scale", "float", 1.0,
+                "the source's pixel size in simulation pixels (0.3 for COSMOS's 0.03″ in 0.1″ "
+                "pixels)",
+                allowed_text="> 0"),
+         Option("sigma", "dist", None, "the **pixel standard deviation** in ADU, drawn per case",
+                default_text="the image's own (for `image`); required for `correlation`",
+                allowed_text="*dist*, >= 0")),
+        (OneOf(CORRELATED_SOURCES,
+               "correlated noise needs exactly one of noise.image (a FITS noise image, e.g. a "
+               "blank-sky cutout) or noise.correlation (a FITS correlation-function image, e.g. "
+               "GalSim's acs_I_unrot_sci_20_cf.fits) (got {got})"),),
+    ),
+    NoiseType("none", "noiseless stamps"),
+)}
 
 
 @dataclass(frozen=True)
@@ -44,6 +111,12 @@ class NoiseSpec:
     override_sigma: float | None = None
     #: type "correlated": where the correlation function comes from
     source: CorrelationSource | None = None
+
+
+def noise_keys() -> set[str]:
+    """Every key of ``[noise]``."""
+    names = ({o.name for o in t.options} for t in NOISE_KINDS.values())
+    return {o.name for o in NOISE_OPTIONS}.union(*names)
 
 
 def need_instrument(instrument: Mapping[str, float], keys: Sequence[str], why: str) -> None:
@@ -65,8 +138,7 @@ def measured_value(value: Mapping[str, Any], key: str, config_path: str) -> floa
     """A value measured on data: ``statistic`` (median) of ``column`` (skymad) of the
     catalog ``path`` (FITS, or text with ``# name`` lines), over the rows passing
     ``select`` with a finite value, times ``scale`` (1)."""
-    from megalut_cli.catalog import read_any_catalog
-    from megalut_cli.expr import check_expression, columns_used, evaluate_rows
+    from megalut_cli.catalog import read_any_catalog  # fitsio: not needed for --help
 
     unknown = sorted(set(value) - _MEASURED_KEYS)
     if unknown:
@@ -101,69 +173,62 @@ def measured_value(value: Mapping[str, Any], key: str, config_path: str) -> floa
 
 
 def parse_noise(raw: Mapping[str, Any], instrument: Mapping[str, float], config_path: str = "<config>") -> NoiseSpec:
-    t = check_table(raw.get("noise"), "noise", _NOISE_KEYS, required=True)
+    """The ``[noise]`` table of the config ``raw``: its type's keys checked, then read."""
+    t = check_table(raw.get("noise"), "noise", noise_keys(), required=True)
     if is_measured(t.get("sigma")):
         t["sigma"] = measured_value(t["sigma"], "noise.sigma", config_path)
     kind = check_choice(t.get("type"), "noise.type", NOISE_TYPES)
-    allowed = {"gaussian": {"sigma"}, "ccd": {"sky_mag", "read_noise"}, "correlated": _CORRELATED_KEYS,
-               "none": set()}[kind]
-    extra = sorted(set(t) - allowed - {"type", "override_sigma"})
-    if extra:
-        raise ConfigError(f"noise.{extra[0]}: not a key of noise type {kind!r}")
+    given = {k: v for k, v in t.items() if k != "type"}
+    spec = NOISE_KINDS[kind]
+    values = check_params(given, "noise", (*spec.options, OVERRIDE_SIGMA), spec.rules,
+                          lambda key: f"not a key of noise type {kind!r}")
     source = None
     if kind == "correlated":
-        source = _correlation_source(t, config_path)
-        if "sigma" not in t:
+        source = _correlation_source(given, values, config_path)
+        if "sigma" not in given:
             if source.kind == "correlation":
-                raise ConfigError("noise.sigma: missing (pixel standard deviation in ADU of the correlated noise)")
-            from megalut_cli.sim.noise import source_variance
+                raise ConfigError("noise.sigma: missing (pixel standard deviation in ADU of the "
+                    "correlated noise)")
+            from megalut_cli.sim.noise import source_variance  # GalSim: not needed for --help
 
-            t["sigma"] = math.sqrt(source_variance(source))
-            log.info("noise.sigma = %g: the pixel standard deviation of %s", t["sigma"], source.path)
-        params = parse_distributions(t, "noise", ["sigma"])
+            given["sigma"] = math.sqrt(source_variance(source))
+            log.info("noise.sigma = %g: the pixel standard deviation of %s", given["sigma"],
+                     source.path)
+        params = parse_distributions(given, "noise", ["sigma"])
     elif kind == "gaussian":
-        if "sigma" not in t:
-            raise ConfigError("noise.sigma: missing (standard deviation in ADU)")
-        params = parse_distributions(t, "noise", ["sigma"])
+        params = parse_distributions(given, "noise", ["sigma"])
     elif kind == "ccd":
-        if "sky_mag" not in t:
-            raise ConfigError("noise.sky_mag: missing (sky brightness in mag per arcsec^2)")
-        need_instrument(instrument, ("pixel_scale", "exptime", "gain", "zeropoint"), "noise type 'ccd'")
+        need_instrument(instrument, ("pixel_scale", "exptime", "gain", "zeropoint"), "noise type "
+                                                                                     "'ccd'")
         params = {
-            "sky_mag": parse_distribution(t["sky_mag"], "noise.sky_mag"),
-            "read_noise": parse_distribution(t.get("read_noise", 0.0), "noise.read_noise"),
+            "sky_mag": parse_distribution(given["sky_mag"], "noise.sky_mag"),
+            "read_noise": parse_distribution(values["read_noise"], "noise.read_noise"),
         }
     else:
         params = {}
-    override = t.get("override_sigma")
+    override = values["override_sigma"]
     if override is not None:
-        override = check_float(override, "noise.override_sigma")
+        override = float(override)
         if override < 0:
             raise ConfigError(f"noise.override_sigma: must be >= 0, got {override}")
     return NoiseSpec(kind, params, override, source)
 
 
-def _correlation_source(t: Mapping[str, Any], config_path: str) -> CorrelationSource:
+def _correlation_source(
+    given: Mapping[str, Any], values: Mapping[str, Any], config_path: str
+) -> CorrelationSource:
     """The noise image or correlation-function image of ``noise.type = "correlated"``."""
-    given = [k for k in CORRELATED_SOURCES if k in t]
-    if len(given) != 1:
-        raise ConfigError(
-            "noise.image: correlated noise needs exactly one of noise.image (a FITS noise image, e.g. a "
-            "blank-sky cutout) or noise.correlation (a FITS correlation-function image, e.g. GalSim's "
-            f"acs_I_unrot_sci_20_cf.fits) (got {', '.join(given) or 'none'})"
-        )
-    kind = given[0]
-    path = resolve_beside(t[kind], f"noise.{kind}", config_path)
-    hdu = t.get("hdu")
-    if hdu is not None:
-        hdu = check_int(hdu, "noise.hdu", 0)
-    scale = check_float(t.get("pixel_scale", 1.0), "noise.pixel_scale")
+    kind = next(k for k in CORRELATED_SOURCES if k in given)
+    path = resolve_beside(given[kind], f"noise.{kind}", config_path)
+    hdu = values["hdu"]
+    scale = float(values["pixel_scale"])
     if scale <= 0:
         raise ConfigError(f"noise.pixel_scale: must be > 0, got {scale}")
     if kind == "correlation" and hdu is not None:
-        raise ConfigError("noise.hdu: only for noise.image (a correlation-function file is read from its first HDU)")
+        raise ConfigError("noise.hdu: only for noise.image (a correlation-function file is read "
+            "from its first HDU)")
     source = CorrelationSource(kind, str(path), hdu, scale)
-    from megalut_cli.sim.noise import unit_correlated_noise
+    from megalut_cli.sim.noise import unit_correlated_noise  # GalSim: not needed for --help
 
     try:
         unit_correlated_noise(source)  # fail now, with one line, on an unusable file

@@ -56,7 +56,8 @@ import galsim
 import numpy as np
 
 from megalut_cli.errors import ConfigError, InputError
-from megalut_cli.schema import check_bool, check_choice, check_float, check_int
+from megalut_cli.measure.stamps import check_grid, image_info, read_rows
+from megalut_cli.schema import OneOf, Option, Required, check_params
 
 #: Truth columns returned by :func:`make_psf`.
 TRUTH_COLUMNS = ("tru_psf_g1", "tru_psf_g2", "tru_psf_sigma")
@@ -69,20 +70,37 @@ INTERPOLANTS = ("quintic", "cubic", "linear", "lanczos3", "lanczos5", "lanczos7"
 class PsfType:
     """One kind of PSF: its keys and defaults, its checks and how to build it.
 
-    ``keys`` are the optional keys with their defaults (``None``: no default), ``required``
+    ``options`` declare its keys (kind, default, range, help: their values are checked by
+    :func:`~megalut_cli.schema.check_params`, the docs table comes from them), ``required``
     the keys that must be given, ``one_of`` groups of keys of which exactly one must be
-    given. ``check(spec, where)`` checks the values of a spec with defaults filled in;
-    ``build(spec, x, y)`` returns the profile and its truth at field position ``(x, y)``.
+    given. ``check(spec, full, where)`` checks what the declarations cannot (keys together)
+    on the spec with defaults filled in; ``build(spec, x, y)`` returns the profile and its
+    truth at field position ``(x, y)``. ``help`` says what the model is.
     """
 
     name: str
-    keys: Mapping[str, Any]
+    options: tuple[Option, ...]
     check: Callable[[Mapping[str, Any], Mapping[str, Any], str], None]
     build: Callable[[Mapping[str, Any], float, float], tuple[galsim.GSObject, dict[str, float]]]
     required: tuple[str, ...] = ()
     one_of: tuple[tuple[str, ...], ...] = ()
     #: Whether the PSF depends on the field position.
     varies: bool = False
+    help: str = ""
+
+    @property
+    def keys(self) -> dict[str, Any]:
+        """Its keys and their defaults (``None``: no default)."""
+        return {o.name: o.default for o in self.options}
+
+    def rules(self) -> tuple[Required | OneOf, ...]:
+        """Its required keys, then its exactly-one groups, as :func:`check_params` takes them."""
+        need = tuple(Required(k, f"required by PSF type {self.name!r}") for k in self.required)
+        return need + tuple(
+            OneOf(group, f"PSF type {self.name!r} needs exactly one of {' or '.join(group)}, "
+                         "got {got}")
+            for group in self.one_of
+        )
 
 
 #: Every PSF type by name, in the order of registration (``psf.type`` values).
@@ -100,18 +118,6 @@ def _key(where: str, k: str) -> str:
     return f"{where}.{k}" if where else k
 
 
-def _number(spec: Mapping[str, Any], k: str, where: str) -> float:
-    return check_float(spec[k], _key(where, k))
-
-
-def _positive(spec: Mapping[str, Any], k: str, where: str) -> float:
-    return check_float(spec[k], _key(where, k), 0.0, lo_open=True)
-
-
-def _integer(spec: Mapping[str, Any], k: str, where: str, minimum: int) -> int:
-    return check_int(spec[k], _key(where, k), minimum)
-
-
 def _check_shear(g1: float, g2: float, where: str, what: str = "g1, g2") -> None:
     if math.hypot(g1, g2) >= 1.0:
         raise ConfigError(f"{where}: the PSF ellipticity |({what})| must be < 1, got ({g1}, {g2})")
@@ -120,7 +126,7 @@ def _check_shear(g1: float, g2: float, where: str, what: str = "g1, g2") -> None
 def _full(spec: Mapping[str, Any]) -> dict[str, Any]:
     """The spec with defaults filled in (assumes a validated spec)."""
     t = spec["type"]
-    out = dict(PSF_REGISTRY[t].keys)
+    out = PSF_REGISTRY[t].keys
     out.update({k: v for k, v in spec.items() if k != "type"})
     out["type"] = t
     return out
@@ -142,45 +148,29 @@ def validate_psf_config(spec: Mapping[str, Any], where: str = "psf") -> None:
             f"{_key(where, 'type')}: unknown PSF type {t!r} (choose from {', '.join(PSF_REGISTRY)})"
         )
     kind = PSF_REGISTRY[t]
-    allowed = set(kind.keys) | {"type"}
-    unknown = sorted(set(spec) - allowed)
-    if unknown:
-        raise ConfigError(
-            f"{_key(where, unknown[0])}: unknown key for PSF type {t!r} "
-            f"(allowed: {', '.join(sorted(allowed - {'type'}))})"
-        )
-    for k in kind.required:
-        if k not in spec:
-            raise ConfigError(f"{_key(where, k)}: missing (required by PSF type {t!r})")
-    for group in kind.one_of:
-        given = [k for k in group if k in spec]
-        if len(given) != 1:
-            raise ConfigError(
-                f"{_key(where, group[0])}: PSF type {t!r} needs exactly one of "
-                f"{' or '.join(group)}, got {', '.join(given) if given else 'none'}"
-            )
+    allowed = ", ".join(sorted(kind.keys))
+    check_params({k: v for k, v in spec.items() if k != "type"}, where, kind.options, kind.rules(),
+                 lambda key: f"unknown key for PSF type {t!r} (allowed: {allowed})")
     kind.check(spec, _full(spec), where)
 
 
-def _check_profile(spec: Mapping[str, Any], s: Mapping[str, Any], where: str) -> None:
-    """``gaussian`` and ``moffat``: positive sizes, |g| < 1; Moffat's ``beta`` and ``trunc``."""
-    for k in ("sigma", "fwhm", "half_light_radius"):
-        if k in spec:
-            _positive(spec, k, where)
-    _check_shear(_number(s, "g1", where), _number(s, "g2", where), where)
-    if s["type"] == "moffat":
-        beta = _positive(spec, "beta", where)
-        trunc = _number(s, "trunc", where)
-        if trunc < 0:
-            raise ConfigError(f"{_key(where, 'trunc')}: must be >= 0, got {trunc}")
-        if beta <= 1.1 and trunc == 0:
-            raise ConfigError(f"{_key(where, 'beta')}: must be > 1.1 without trunc, got {beta}")
+def _check_gaussian(spec: Mapping[str, Any], s: Mapping[str, Any], where: str) -> None:
+    """``gaussian``: |g| < 1."""
+    _check_shear(float(s["g1"]), float(s["g2"]), where)
+
+
+def _check_moffat(spec: Mapping[str, Any], s: Mapping[str, Any], where: str) -> None:
+    """``moffat``: |g| < 1, ``trunc`` >= 0, ``beta`` > 1.1 without it."""
+    _check_shear(float(s["g1"]), float(s["g2"]), where)
+    beta, trunc = float(s["beta"]), float(s["trunc"])
+    if trunc < 0:
+        raise ConfigError(f"{_key(where, 'trunc')}: must be >= 0, got {trunc}")
+    if beta <= 1.1 and trunc == 0:
+        raise ConfigError(f"{_key(where, 'beta')}: must be > 1.1 without trunc, got {beta}")
 
 
 def _check_field(spec: Mapping[str, Any], s: Mapping[str, Any], where: str) -> None:
-    """``field``: numbers, and a valid PSF at the four corners of the field."""
-    for k in ("e1_min", "e1_max", "e2_min", "e2_max", "sigma_mean", "sigma_slope"):
-        _number(s, k, where)
+    """``field``: a valid PSF at the four corners of the field."""
     for x in (0.0, 1.0):
         for y in (0.0, 1.0):
             e1, e2, sigma = field_psf_params(s, x, y)
@@ -193,46 +183,32 @@ def _check_field(spec: Mapping[str, Any], s: Mapping[str, Any], where: str) -> N
 
 
 def _check_euclid(spec: Mapping[str, Any], s: Mapping[str, Any], where: str) -> None:
-    for k in ("diam", "lam_min", "lam_max", "lam_step", "pixel_scale", "temperature"):
-        _positive(s, k, where)
-    obsc = _number(s, "obscuration", where)
+    """``euclid``: an obscuration in [0, 1), ``lam_max`` >= ``lam_min``."""
+    obsc = float(s["obscuration"])
     if not 0 <= obsc < 1:
         raise ConfigError(f"{_key(where, 'obscuration')}: must be in [0, 1), got {obsc}")
-    _integer(s, "nstruts", where, 0)
-    _integer(s, "oversampling", where, 1)
-    _integer(s, "size", where, 8)
     if s["lam_max"] < s["lam_min"]:
         raise ConfigError(f"{_key(where, 'lam_max')}: must be >= lam_min")
 
 
 def _check_stamp(spec: Mapping[str, Any], s: Mapping[str, Any], where: str) -> None:
-    """``stamp``: an existing image, a star ``index`` within its grid, a known interpolant."""
+    """``stamp``: an existing image, a star ``index`` within its grid."""
     path = s["path"]
     if not isinstance(path, (str, os.PathLike)) or not str(path):
         raise ConfigError(f"{_key(where, 'path')}: expected a file path, got {path!r}")
     if not os.path.isfile(path):
         raise InputError(f"{_key(where, 'path')}: {path}: no such file")
-    if s["hdu"] is not None:
-        _integer(s, "hdu", where, 0)
-    if s["stamp_size"] is not None:
-        _integer(s, "stamp_size", where, 3)
-    index = _integer(s, "index", where, 0)
+    index = int(s["index"])
     n_stars = star_grid_size(path, s["hdu"], s["stamp_size"], where)
     if index >= n_stars:
         raise ConfigError(
             f"{_key(where, 'index')}: {index} is beyond the {n_stars} star(s) of {path} "
             "(0-based, in grid order from the lower-left)"
         )
-    _positive(s, "pixel_scale", where)
-    check_choice(s["interpolant"], _key(where, "interpolant"), INTERPOLANTS)
-    if s["includes_pixel"] is not None:
-        check_bool(s["includes_pixel"], _key(where, "includes_pixel"))
 
 
 @functools.lru_cache(maxsize=64)
 def _star_grid(path: str, hdu: int | None, stamp_size: int | None) -> tuple[int, int]:
-    from megalut_cli.measure.stamps import check_grid, image_info
-
     info = image_info(path, hdu)
     if stamp_size is None:
         return 1, 1
@@ -376,8 +352,6 @@ def _euclid(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float]]
 
 @functools.lru_cache(maxsize=32)
 def _stamp_cached(key: tuple[tuple[str, Any], ...]) -> tuple[galsim.GSObject, tuple[float, float, float]]:
-    from megalut_cli.measure.stamps import check_grid, image_info, read_rows
-
     s = dict(key)
     path = str(s["path"])
     info = image_info(path, None if s["hdu"] is None else int(s["hdu"]))
@@ -439,29 +413,90 @@ def make_psf(
     return PSF_REGISTRY[spec["type"]].build(spec, float(field_x), float(field_y))
 
 
+#: |g| < 1, as docs tables write it.
+_SHEAR_RANGE = "\\|(g1, g2)\\| < 1"
+_G1 = Option("g1", "float", 0.0, "reduced shear g1 applied to the round profile",
+             allowed_text=_SHEAR_RANGE)
+_G2 = Option("g2", "float", 0.0, "reduced shear g2 applied to the round profile",
+             allowed_text=_SHEAR_RANGE)
+
+
+def _size(name: str, what: str, other: str) -> Option:
+    """A size of which the PSF type takes exactly one of two (``name`` or ``other``)."""
+    return Option(name, "float", None, what, minimum=0.0, min_open=True,
+                  default_text=f"or `{other}`")
+
+
+def _positive(name: str, default: float, what: str, allowed: str | None = None) -> Option:
+    return Option(name, "float", default, what, minimum=0.0, min_open=True, allowed_text=allowed)
+
+
 register_psf_type(PsfType(
-    "gaussian", {"sigma": None, "fwhm": None, "g1": 0.0, "g2": 0.0}, _check_profile,
-    lambda spec, x, y: _gaussian(spec), one_of=(("sigma", "fwhm"),),
+    "gaussian",
+    (_size("sigma", "standard deviation, pixels", "fwhm"),
+     _size("fwhm", "full width at half maximum, pixels", "sigma"), _G1, _G2),
+    _check_gaussian, lambda spec, x, y: _gaussian(spec), one_of=(("sigma", "fwhm"),),
+    help="Gaussian, sheared by (g1, g2)",
 ))
 register_psf_type(PsfType(
-    "moffat", {"beta": None, "fwhm": None, "half_light_radius": None, "trunc": 0.0, "g1": 0.0, "g2": 0.0},
-    _check_profile, lambda spec, x, y: _moffat(spec), required=("beta",), one_of=(("fwhm", "half_light_radius"),),
+    "moffat",
+    (Option("beta", "float", None, "Moffat index β (> 1.1 without `trunc`)", minimum=0.0,
+            min_open=True, default_text="required"),
+     _size("fwhm", "full width at half maximum, pixels", "half_light_radius"),
+     _size("half_light_radius", "half-light radius, pixels", "fwhm"),
+     Option("trunc", "float", 0.0, "truncation radius, pixels (0 = none; needed if β ≤ 1.1)",
+            allowed_text=">= 0"),
+     _G1, _G2),
+    _check_moffat, lambda spec, x, y: _moffat(spec), required=("beta",),
+    one_of=(("fwhm", "half_light_radius"),), help="Moffat, sheared by (g1, g2)",
 ))
 register_psf_type(PsfType(
-    "field", {"e1_min": -0.25, "e1_max": 0.25, "e2_min": 0.0, "e2_max": 0.25, "sigma_mean": 2.0, "sigma_slope": 0.25},
+    "field",
+    (Option("e1_min", "float", -0.25, "e1 at x = 0: e1 = e1_min + (e1_max − e1_min) x"),
+     Option("e1_max", "float", 0.25, "e1 at x = 1"),
+     Option("e2_min", "float", 0.0, "e2 at y = 0: e2 = e2_min + (e2_max − e2_min) y"),
+     Option("e2_max", "float", 0.25, "e2 at y = 1"),
+     Option("sigma_mean", "float", 2.0,
+            "sigma at x + y = 1: sigma = sigma_mean + sigma_slope (x + y − 1), pixels",
+            allowed_text="sigma > 0 over the field"),
+     Option("sigma_slope", "float", 0.25, "change of sigma with x + y, pixels")),
     _check_field, _field, varies=True,
+    help="the variable PSF of the paper's Sect. 6, at the case's field position (x, y) in [0, 1] "
+         "(below)",
 ))
 register_psf_type(PsfType(
     "euclid",
-    {"diam": 1.2, "obscuration": 0.29, "nstruts": 6, "lam_min": 550.0, "lam_max": 900.0, "lam_step": 50.0,
-     "pixel_scale": 0.1, "oversampling": 5, "size": 64, "temperature": 5800.0},
+    (_positive("diam", 1.2, "telescope diameter, m"),
+     Option("obscuration", "float", 0.29, "linear obscuration", allowed_text="[0, 1)"),
+     Option("nstruts", "int", 6, "number of struts", minimum=0),
+     _positive("lam_min", 550.0, "shortest wavelength, nm"),
+     _positive("lam_max", 900.0, "longest wavelength, nm", allowed="> 0, >= lam_min"),
+     _positive("lam_step", 50.0, "wavelength step, nm"),
+     _positive("pixel_scale", 0.1, "the VIS pixel, arcsec"),
+     Option("oversampling", "int", 5, "the PSF is drawn this many times finer than the pixel",
+            minimum=1),
+     Option("size", "int", 64, "size of the drawn PSF, pixels", minimum=8),
+     _positive("temperature", 5800.0,
+               "temperature of the blackbody spectrum that weights the wavelengths, K")),
     _check_euclid, lambda spec, x, y: _euclid(spec),
+    help="the Euclid-VIS-like polychromatic PSF of Sect. 7.1.2 (below)",
 ))
 register_psf_type(PsfType(
     "stamp",
-    {"path": None, "hdu": None, "stamp_size": None, "index": 0, "pixel_scale": 1.0, "interpolant": "quintic",
-     "includes_pixel": None},
+    (Option("path", "path", None, "FITS image of a star (relative: beside the config file)",
+            default_text="required"),
+     Option("hdu", "int", None, "HDU of the image", minimum=0, default_text="the first image"),
+     Option("stamp_size", "int", None, "the stamp size of a grid of stars", minimum=3,
+            default_text="none: one star"),
+     Option("index", "int", 0, "the star, in grid order from the lower-left (0-based); a *dist* "
+            'or `"random"`: one star per case', minimum=0),
+     _positive("pixel_scale", 1.0, "the star image's pixel in simulation pixels"),
+     Option("interpolant", "choice", "quintic", "GalSim's x interpolant", choices=INTERPOLANTS),
+     Option("includes_pixel", "bool", None,
+            'whether the image holds the pixel response (drawn with `method = "no_pixel"`)',
+            default_text="true if `pixel_scale` = 1")),
     _check_stamp, lambda spec, x, y: _stamp(spec), required=("path",),
+    help="a star image from a FITS file (below)",
 ))
 #: The PSF types, in the order of registration.
 PSF_TYPES = tuple(PSF_REGISTRY)

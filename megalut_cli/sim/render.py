@@ -18,6 +18,7 @@ from collections import OrderedDict
 from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import galsim
 import numpy as np
@@ -26,10 +27,8 @@ import scipy.fft
 from megalut_cli.cache import load_arrays, store_arrays
 from megalut_cli.errors import MegalutError
 from megalut_cli.sim import render_nb
+from megalut_cli.sim.profiles import GALAXY_PROFILES
 from megalut_cli.sim.render_nb import FAST_BITS, fill_kimages, radial_values
-
-#: Galaxy profiles the renderer draws (others go through GalSim).
-PROFILES = ("sersic", "gaussian")
 
 #: Most bytes of complex k-images per FFT batch: small enough that a batch filled stays in
 #: the core's cache for its inverse FFT (1 MB: 0.26 ms/stamp against 0.31-0.36 with 64 MB).
@@ -46,8 +45,15 @@ _SERSIC_TABLE_END = 500.0
 
 
 def can_render(profile: str) -> bool:
-    """Whether :class:`StampRenderer` draws galaxies of this profile (else use GalSim)."""
-    return profile in PROFILES
+    """Whether :class:`StampRenderer` draws galaxies of this profile (else use GalSim): its
+    registration names a radial family of :data:`RADIAL_FAMILIES` (``GalaxyProfile.fast``)."""
+    kind = GALAXY_PROFILES.get(profile)
+    return kind is not None and kind.fast is not None
+
+
+def fast_profiles() -> tuple[str, ...]:
+    """The galaxy profiles :class:`StampRenderer` draws."""
+    return tuple(name for name in GALAXY_PROFILES if can_render(name))
 
 
 @dataclass(frozen=True)
@@ -308,7 +314,8 @@ class StampRenderer:
         offset, centring and S // 2, so that the stamp is the FFT's first S x S pixels);
         and the radial profiles."""
         if not can_render(profile):
-            raise MegalutError(f"renderer: cannot draw galaxy profile {profile!r} (only {', '.join(PROFILES)})")
+            only = ", ".join(fast_profiles())
+            raise MegalutError(f"renderer: cannot draw galaxy profile {profile!r} (only {only})")
         gsp = info.gsparams
         S = self.stamp_size
         rad = np.atleast_1d(np.asarray(rad, dtype=float))
@@ -316,27 +323,8 @@ class StampRenderer:
         e1, e2, g1, g2, dx, dy = (np.broadcast_to(np.asarray(v, dtype=float), (m,)) for v in (e1, e2, g1, g2, dx, dy))
         if not (np.all(np.isfinite(rad) & (rad > 0)) and all(np.isfinite(v).all() for v in (e1, e2, g1, g2, dx, dy))):
             raise MegalutError("renderer: half-light radii must be finite and > 0, shapes and offsets finite")
-        if profile == "sersic":
-            if sersicn is None:
-                raise MegalutError("renderer: Sersic galaxies need sersicn")
-            ns = np.broadcast_to(np.asarray(sersicn, dtype=float), (m,))
-            uniq, table = np.unique(ns, return_inverse=True)
-            profiles = [sersic_table(float(n), gsp) for n in uniq]
-            hlr_factor = np.array([t.hlr_factor for t in profiles])[table]
-            r0 = rad / hlr_factor  # Sersic scale radius, as galsim.Sersic computes it
-            inv_r0 = 1.0 / r0
-            stepk = np.array([t.stepk for t in profiles])[table] * inv_r0
-            maxk = np.array([t.maxk for t in profiles])[table] * inv_r0
-            size = r0
-        else:
-            # Round Gaussians are filled separably (exact exp); transformed ones with cutoffs.
-            table = np.where((e1 == 0) & (e2 == 0) & (g1 == 0) & (g2 == 0), 1, 0)
-            profiles = [gaussian_profile(gsp, True), gaussian_profile(gsp, False)]
-            sigma = rad / _GAUSSIAN_HLR_FACTOR
-            r_fold = max(math.sqrt(-2.0 * math.log(gsp.folding_threshold)), gsp.stepk_minimum_hlr * _GAUSSIAN_HLR_FACTOR)
-            maxk = math.sqrt(-2.0 * math.log(gsp.maxk_threshold)) / sigma
-            stepk = math.pi / (r_fold * sigma)
-            size = sigma
+        family = RADIAL_FAMILIES[GALAXY_PROFILES[profile].fast]
+        table, profiles, stepk, maxk, size = family(gsp, rad, sersicn, e1, e2, g1, g2)
         jac = _shear_jacobian(e1, e2, g1, g2)
         # Transformation: maxk / minor, stepk / major (galsim/transform.py).
         h1 = np.hypot(jac[:, 0, 0] + jac[:, 1, 1], jac[:, 0, 1] - jac[:, 1, 0])
@@ -427,6 +415,52 @@ class StampRenderer:
                              table[sel], eparams, eint, coef, fcoef)
                 stamps[sel] = inverse_fft_window(kbuf, int(n_f), S)
         return stamps
+
+
+class RadialSet(NamedTuple):
+    """The radial k-profiles of a batch of galaxies (:class:`RadialProfile`): each stamp's
+    index in ``profiles``, their stepk and maxk (pixels^-1, per stamp or one for all) and the
+    radius (pixels) that q is measured in."""
+
+    table: np.ndarray
+    profiles: list[RadialProfile]
+    stepk: np.ndarray | float
+    maxk: np.ndarray | float
+    size: np.ndarray
+
+
+def sersic_radials(gsp: galsim.GSParams, rad: np.ndarray, sersicn: np.ndarray | None,
+                   e1: np.ndarray, e2: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> RadialSet:
+    """Sersic galaxies of half-light radii ``rad``, indices ``sersicn`` (a table per index)."""
+    if sersicn is None:
+        raise MegalutError("renderer: Sersic galaxies need sersicn")
+    ns = np.broadcast_to(np.asarray(sersicn, dtype=float), rad.shape)
+    uniq, table = np.unique(ns, return_inverse=True)
+    profiles = [sersic_table(float(n), gsp) for n in uniq]
+    hlr_factor = np.array([t.hlr_factor for t in profiles])[table]
+    r0 = rad / hlr_factor  # Sersic scale radius, as galsim.Sersic computes it
+    inv_r0 = 1.0 / r0
+    stepk = np.array([t.stepk for t in profiles])[table] * inv_r0
+    maxk = np.array([t.maxk for t in profiles])[table] * inv_r0
+    return RadialSet(table, profiles, stepk, maxk, r0)
+
+
+def gaussian_radials(gsp: galsim.GSParams, rad: np.ndarray, sersicn: np.ndarray | None,
+                     e1: np.ndarray, e2: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> RadialSet:
+    """Gaussian galaxies of half-light radii ``rad``: round ones are filled separably (exact
+    exp), transformed ones with GalSim's cutoffs."""
+    table = np.where((e1 == 0) & (e2 == 0) & (g1 == 0) & (g2 == 0), 1, 0)
+    profiles = [gaussian_profile(gsp, True), gaussian_profile(gsp, False)]
+    sigma = rad / _GAUSSIAN_HLR_FACTOR
+    r_fold = max(math.sqrt(-2.0 * math.log(gsp.folding_threshold)),
+                 gsp.stepk_minimum_hlr * _GAUSSIAN_HLR_FACTOR)
+    maxk = math.sqrt(-2.0 * math.log(gsp.maxk_threshold)) / sigma
+    stepk = math.pi / (r_fold * sigma)
+    return RadialSet(table, profiles, stepk, maxk, sigma)
+
+
+#: The radial families of the renderer, by the name a galaxy profile's ``fast`` gives.
+RADIAL_FAMILIES = {"sersic": sersic_radials, "gaussian": gaussian_radials}
 
 
 @dataclass(frozen=True)

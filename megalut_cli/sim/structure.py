@@ -34,17 +34,11 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.seeding import STREAM_COMMON, STREAM_SIMULATE, rng_for
-from megalut_cli.sim.config import SimConfig, round_sersicn
+from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.distributions import Distribution, sample_level
-from megalut_cli.sim.galaxies import (
-    bulgedisk_truth,
-    cosmos_fit_truth,
-    ellipticity_components,
-    galaxy_fluxes,
-    mag_from_flux,
-)
+from megalut_cli.sim.galaxies import ellipticity_components, galaxy_fluxes, mag_from_flux
 from megalut_cli.sim.noise import StampNoise, make_noise
-from megalut_cli.sim.twins import twin_truth
+from megalut_cli.sim.profiles import GALAXY_PROFILES
 
 #: Sub-keys of rng_for(seed, STREAM_SIMULATE, case, KEY).
 _CASE_KEY, _REA_KEY, _NOISE_KEY, _KNOT_KEY = 0, 1, 2, 3
@@ -117,31 +111,12 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
         fy = float(field_vals["y"][k]) if config.field else 0.0
         specs.append((spec, fx, fy))
 
-    # Galaxy.
+    # Galaxy: its profile makes its truth of the drawn parameters.
     gal = config.galaxy
     gvals, gal_index = level("galaxy", gal.params)
-    model_cols: dict[str, np.ndarray] = {}
-    flux_rad = None  # the radius of F = S * pi * R^2
-    if gal.profile == "real":  # size and shape come from the HST image: NaN truth
-        truth["tru_real_index"] = np.round(gvals["index"]).astype(np.int64)
-        if gal.real.get("order") == "each":  # SNC group g (or case g): galaxy g (mod N)
-            rows = np.asarray(gal.real["rows"], dtype=np.int64)
-            truth["tru_real_index"] = rows[(group_of if s.varies("galaxy") else np.full(n, case)) % len(rows)]
-        rad = np.full(n, np.nan)
-        gvals["ellipticity"] = np.full(n, np.nan)
-        if gal.flux_mode == "sb":  # F = S * pi * R^2, R the fitted (twin) half-light radius
-            flux_rad = twin_truth(gal.real, truth["tru_real_index"])["tru_twin_rad"]
-    elif gal.profile == "bulgedisk":
-        rad, model_cols = bulgedisk_truth(gvals, gal.sersicn_step)
-    elif gal.profile == "cosmos_fit":
-        model = gal.model or {}
-        rad, model_cols = cosmos_fit_truth(gvals, model.get("fit", "auto"), model.get("pixel_scale"), gal.sersicn_step)
-    else:
-        rad = gvals["rad"]
-    truth["tru_rad"] = rad
-    if "sersicn" in gvals:
-        truth["tru_sersicn"] = round_sersicn(gvals["sersicn"], gal.sersicn_step)
-    truth.update(model_cols)
+    sequence = group_of if s.varies("galaxy") else np.full(n, case)  # the galaxy's place in the run
+    galaxy_truth = GALAXY_PROFILES[gal.profile].truth(gal, gvals, sequence)
+    truth.update(galaxy_truth.columns)
     if gal.knots:  # one seed per galaxy draw, from its own stream (the other draws are unchanged)
         n_draws = int(gal_index.max()) + 1
         knot_rng = rng_for(seed, STREAM_COMMON, _KNOT_KEY) if s.common else rng_for(seed, STREAM_SIMULATE, case, _KNOT_KEY)
@@ -149,8 +124,7 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
         truth["tru_knots"] = np.round(gvals["knots"]).astype(np.int64)
         truth["tru_knots_fraction"] = np.where(truth["tru_knots"] > 0, gvals["knots_fraction"], 0.0)
         truth["tru_knot_seed"] = knot_seeds[gal_index]
-    if flux_rad is None:
-        flux_rad = rad
+    flux_rad = galaxy_truth.flux_rad
     flux = galaxy_fluxes(gal.flux_mode, gvals[gal.flux_mode], flux_rad, config.instrument)
     truth["tru_flux"] = flux
     truth["tru_sb"] = flux / (np.pi * flux_rad**2)
@@ -166,7 +140,7 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     else:
         theta0 = np.repeat(gal.angle.sample(rng_case, 1), ng)
     theta = ring_angles(theta0, n, gs)
-    ell = gvals["ellipticity"]
+    ell = galaxy_truth.ellipticity
     e1, e2 = ellipticity_components(ell, theta)
     truth["tru_e1"], truth["tru_e2"] = e1, e2
     truth["tru_ell"], truth["tru_theta"] = ell, np.mod(theta, 180.0)

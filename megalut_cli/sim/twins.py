@@ -17,6 +17,7 @@ from typing import Any
 import galsim
 import numpy as np
 
+from megalut_cli.catalog import read_catalog
 from megalut_cli.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -110,8 +111,6 @@ def fit_real_catalog(rgc: galsim.RealGalaxyCatalog, rows: Sequence[int] | None =
 def load_twins(path: str) -> dict[int, tuple[float, ...]]:
     """Twin parameters of a twin catalog, by real-catalog row:
     ``(sersicn, hlr, g1, g2, dx, dy, flux_ratio)``."""
-    from megalut_cli.catalog import read_catalog
-
     table = read_catalog(path)
     if table.meta.get("MLFORMAT") != TWIN_FORMAT:
         raise InputError(f"galaxy.twin_catalog: {path}: not a Sérsic-twin catalog (MLFORMAT {TWIN_FORMAT!r})")
