@@ -12,11 +12,11 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from megalut_cli.great3.pipeline import BRANCH_OPTIONS, OUTPUT_OPTIONS, TOP_OPTIONS
-from megalut_cli.great3.pipeline import SET_OPTIONS as GREAT3_SET_OPTIONS
 from megalut_cli.measure.options import ALL_MEASURE_OPTIONS
 from megalut_cli.nn.options import POINT_OPTIONS, WEIGHT_OPTIONS, train_options
-from megalut_cli.pipeline_config import PIPELINE_OPTIONS, REFERENCE_OPTIONS, SET_OPTIONS
+from megalut_cli.pipeline.config import PIPELINE_OPTIONS, REFERENCE_OPTIONS, SET_OPTIONS
+from megalut_cli.pipeline.great3_file import BRANCH_OPTIONS, OUTPUT_OPTIONS, TOP_OPTIONS
+from megalut_cli.pipeline.great3_file import SET_OPTIONS as GREAT3_SET_OPTIONS
 from megalut_cli.schema import Option, docs_table, kinds_table
 from megalut_cli.shear.options import ALL_PREDICT_OPTIONS, EVALUATE_OPTIONS
 from megalut_cli.sim.config import GSPARAMS_OPTIONS, INSTRUMENT_OPTIONS, STRUCTURE_OPTIONS

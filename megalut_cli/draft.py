@@ -512,7 +512,7 @@ def draft_setup(
     header = header or {}
     if base is None:
         # imported here: it reads FITS (fitsio), which `megalut draft --help` should not load
-        from megalut_cli.pipeline_config import default_pipeline_text
+        from megalut_cli.pipeline.config import default_pipeline_text
 
         base = tomllib.loads(default_pipeline_text())
     notes: list[Note] = []
@@ -609,7 +609,7 @@ def render_pipeline(draft: Draft, base_text: str | None = None) -> str:
     what was drafted from what."""
     if base_text is None:
         # imported here: it reads FITS (fitsio), which `megalut draft --help` should not load
-        from megalut_cli.pipeline_config import default_pipeline_text
+        from megalut_cli.pipeline.config import default_pipeline_text
 
         base_text = default_pipeline_text()
     lines = base_text.splitlines()

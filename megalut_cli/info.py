@@ -23,9 +23,9 @@ from megalut_cli.nn.domain import domain_summary, model_domain
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.nn.population import domain_line, population_lines, population_summary
 from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
+from megalut_cli.pipeline.steps import MANIFEST_FORMAT
 from megalut_cli.provenance import sha256_file, shown_command, shown_path
 from megalut_cli.shear.options import JSON_FORMAT as EVALUATION_FORMAT
-from megalut_cli.steps import MANIFEST_FORMAT
 
 _FITS_MAGIC = b"SIMPLE  ="
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"

@@ -33,7 +33,7 @@ from megalut_cli.nn.fit import config_psf_domain
 from megalut_cli.nn.model import ShearModel
 from megalut_cli.nn.population import update_provenance
 from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
-from megalut_cli.pipeline import load_pipeline
+from megalut_cli.pipeline.file import load_pipeline
 from megalut_cli.provenance import sha256_file, shown_command, shown_path
 from megalut_cli.sim.options import SIMULATE
 from megalut_cli.sim.simulate import simulate_table

@@ -178,7 +178,7 @@ sigma = 0.5
 
 
 def toy_unit(job: dict, work) -> dict:
-    """A :class:`megalut_cli.steps.Unit` function (top level, for worker processes): writes
+    """A :class:`megalut_cli.pipeline.steps.Unit` function (top level, for worker processes): writes
     ``u<i>.txt`` = the content of its source times ``factor``; fails when the source says "bad"."""
     from pathlib import Path
 

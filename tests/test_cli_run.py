@@ -10,7 +10,7 @@ import pytest
 from helpers import error_text as _err
 from pipeline_configs import write_pipeline
 
-from megalut_cli.pipeline_config import default_pipeline_text
+from megalut_cli.pipeline.config import default_pipeline_text
 
 if sys.version_info >= (3, 11):
     import tomllib

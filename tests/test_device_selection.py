@@ -44,7 +44,7 @@ def test_cli_without_the_extra(no_jax, tmp_path, runner, cli) -> None:
 
 
 def test_pipeline_device_key(tmp_path) -> None:
-    from megalut_cli.pipeline import load_pipeline
+    from megalut_cli.pipeline.file import load_pipeline
 
     default = load_pipeline(None)
     assert default.device == "cpu"

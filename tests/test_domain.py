@@ -310,8 +310,8 @@ def test_megalut_run_logs_the_findings_of_its_predict_steps(tmp_path, caplog):
 
     from pipeline_configs import write_pipeline
 
-    from megalut_cli.pipeline import load_pipeline
-    from megalut_cli.pipeline_run import run_pipeline
+    from megalut_cli.pipeline.file import load_pipeline
+    from megalut_cli.pipeline.run import run_pipeline
 
     pipe = load_pipeline(write_pipeline(tmp_path), ['reference.model="fiducial"'])
     with caplog.at_level(logging.WARNING, logger="megalut_cli.shear.predict"):

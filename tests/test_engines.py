@@ -182,7 +182,7 @@ def test_bad_engine_is_a_usage_error(runner, cli, tmp_path: Path) -> None:
 
 def test_pipeline_engine_key_is_validated() -> None:
     from megalut_cli.errors import ConfigError
-    from megalut_cli.pipeline import load_pipeline
+    from megalut_cli.pipeline.file import load_pipeline
 
     assert load_pipeline(None, ["engine='galsim'"]).engine == "galsim"
     assert load_pipeline(None).engine == "fast"

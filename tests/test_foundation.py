@@ -282,7 +282,7 @@ def test_argument_errors_name_the_argument_and_the_cli_names_the_flag(tmp_path, 
 
     from megalut_cli.errors import ArgumentError, ConfigError
     from megalut_cli.parallel import executor
-    from megalut_cli.steps import check_workdir
+    from megalut_cli.pipeline.steps import check_workdir
 
     blocker = tmp_path / "file"
     blocker.write_text("x")

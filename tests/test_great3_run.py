@@ -20,8 +20,8 @@ from megalut_cli import catalog
 from megalut_cli.catalog import read_catalog
 from megalut_cli.errors import ConfigError
 from megalut_cli.great3 import layout as L
-from megalut_cli.great3 import pipeline as P
 from megalut_cli.nn.model import ShearModel
+from megalut_cli.pipeline import great3_file as P
 
 #: The 2-subfield, 4x4 branch of test_great3_branch, with GREAT3's ground stamps.
 BRANCH = G3BRANCH.replace("stamp_size = 32", "stamp_size = 48\noffset = 0.5")

@@ -13,7 +13,7 @@ from megalut_cli.nn.fit import fit_point, fit_weight, train_point, train_weight
 from megalut_cli.nn.model import ShearModel
 from megalut_cli.nn.options import PointSpec, WeightSpec
 from megalut_cli.nn.toy import shear_like_columns
-from megalut_cli.pipeline_config import key_names
+from megalut_cli.pipeline.config import key_names
 
 FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma"]
 POINT = PointSpec(features=FEATURES, members=2, iterations=15, seed=3)

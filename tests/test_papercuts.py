@@ -135,7 +135,7 @@ def test_pipeline_errors_in_a_set_config_file_name_that_file(runner, cli, tmp_pa
 
 
 def test_where_written_keeps_other_messages() -> None:
-    from megalut_cli.pipeline_config import table_key, where_written
+    from megalut_cli.pipeline.config import table_key, where_written
 
     assert table_key("[a.b]\nx = 1\n[a]\n", ["a", "b", "c", "d"]) == "[a.b] c.d"
     assert table_key("x = 1\n", ["x"]) == "x"
@@ -249,7 +249,7 @@ def test_info_reads_an_evaluation(runner, cli, tmp_path) -> None:
 
 
 def test_info_reads_a_run_manifest(runner, cli, tmp_path) -> None:
-    from megalut_cli.steps import Manifest, RunRecord, Step
+    from megalut_cli.pipeline.steps import Manifest, RunRecord, Step
 
     path = tmp_path / "manifest.json"
     manifest = Manifest(path, RunRecord("", "pipeline.toml", "ab" * 32, ("scale=0.02",), {}))

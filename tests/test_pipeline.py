@@ -12,9 +12,9 @@ from pipeline_configs import TINY_PIPELINE, write_pipeline
 
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.nn.defaults import DEFAULT_FEATURES
-from megalut_cli.pipeline import load_pipeline, parse_pipeline, scaled_size
-from megalut_cli.pipeline_run import format_summary, run_pipeline
-from megalut_cli.steps import MANIFEST
+from megalut_cli.pipeline.file import load_pipeline, parse_pipeline, scaled_size
+from megalut_cli.pipeline.run import format_summary, run_pipeline
+from megalut_cli.pipeline.steps import MANIFEST
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -14,10 +14,10 @@ from megalut_cli import __version__
 from megalut_cli.catalog import catalog_info, read_catalog
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.nn.model import ShearModel
-from megalut_cli.pipeline import load_pipeline
-from megalut_cli.pipeline_run import build_steps, run_pipeline
+from megalut_cli.pipeline.file import load_pipeline
+from megalut_cli.pipeline.run import build_steps, run_pipeline
+from megalut_cli.pipeline.steps import MANIFEST, sha_text, step_key
 from megalut_cli.shear.predict import predict_columns
-from megalut_cli.steps import MANIFEST, sha_text, step_key
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 FIVE = ["adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]

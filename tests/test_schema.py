@@ -23,7 +23,7 @@ from megalut_cli.nn.options import (
     WeightSpec,
 )
 from megalut_cli.nn.train import TrainSettings
-from megalut_cli.pipeline import load_pipeline
+from megalut_cli.pipeline.file import load_pipeline
 from megalut_cli.schema import (
     OneOf,
     Option,
@@ -269,7 +269,7 @@ def test_evaluation_bins_one_range(cli, runner, tmp_path):
 def test_pipeline_keys_are_the_declarations(tmp_path):
     """The top-level and [sets.X] keys a pipeline accepts, their defaults and ranges, are
     those declared in pipeline_config (unknown keys list them)."""
-    from megalut_cli.pipeline_config import DEFAULT_SET_SEEDS, PIPELINE, SET_OPTION
+    from megalut_cli.pipeline.config import DEFAULT_SET_SEEDS, PIPELINE, SET_OPTION
 
     pipe = load_pipeline(write_pipeline(tmp_path))
     assert pipe.scale == PIPELINE["scale"].default and pipe.engine == PIPELINE["engine"].default

@@ -11,7 +11,7 @@ from helpers import png_size, synthetic
 from megalut_cli import flags
 from megalut_cli.catalog import write_catalog
 from megalut_cli.errors import ConfigError, InputError
-from megalut_cli.pipeline_config import key_names
+from megalut_cli.pipeline.config import key_names
 from megalut_cli.shear.evaluate import evaluate_catalog, evaluate_columns
 from megalut_cli.shear.report import format_table
 

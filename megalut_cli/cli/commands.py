@@ -33,7 +33,7 @@ WORKER_MODULES: dict[str, tuple[str, ...]] = {
     "train-point": (_TRAIN,),
     "train-weight": (_TRAIN,),
     "predict": (_PREDICT,),
-    "run": (_SIMULATE, _MEASURE, _TRAIN, _PREDICT, "megalut_cli.steps", _NUMBA),
+    "run": (_SIMULATE, _MEASURE, _TRAIN, _PREDICT, "megalut_cli.pipeline.steps", _NUMBA),
 }
 
 

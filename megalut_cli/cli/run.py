@@ -108,10 +108,10 @@ def command(
       megalut run examples/great3/pipeline.toml branch.path=rgc \\
           --workdir rgc-run --keep-going
     """
-    from megalut_cli import pipeline as pl
-    from megalut_cli import pipeline_run
     from megalut_cli.cli.options import progress
-    from megalut_cli.pipeline_config import default_pipeline_text
+    from megalut_cli.pipeline import file as pl
+    from megalut_cli.pipeline import run as pipeline_run
+    from megalut_cli.pipeline.config import default_pipeline_text
 
     if print_default:
         click.echo(default_pipeline_text(), nl=False)
@@ -152,7 +152,7 @@ def _keys_as_written(pipeline: str | None, overrides: tuple[str, ...]) -> Iterat
     """Errors of the pipeline file name its keys where the user wrote them: the file and
     its table (``pipeline.toml: [simulation.noise] sigam: unknown key``) or the override."""
     from megalut_cli.errors import ConfigError, InputError
-    from megalut_cli.pipeline_config import where_written
+    from megalut_cli.pipeline.config import where_written
 
     try:
         yield
@@ -163,7 +163,7 @@ def _keys_as_written(pipeline: str | None, overrides: tuple[str, ...]) -> Iterat
 
 
 def _is_branch(pipeline: str) -> bool:
-    from megalut_cli.great3 import pipeline as g3
+    from megalut_cli.pipeline import great3_file as g3
 
     return bool(g3.is_branch_pipeline(pipeline))
 
@@ -172,8 +172,8 @@ def _branch_pipeline(pipeline: str, workdir: str, overrides: tuple[str, ...], sk
                      keep_going: bool, nproc: int, scheduler: str | None) -> bool:
     """Run ``pipeline`` if it is a GREAT3 branch pipeline (a [branch] table); False otherwise."""
     from megalut_cli.cli.options import progress
-    from megalut_cli.great3 import pipeline as g3
-    from megalut_cli.great3 import runner
+    from megalut_cli.pipeline import great3_file as g3
+    from megalut_cli.pipeline import great3_run as runner
 
     if not g3.is_branch_pipeline(pipeline):
         return False

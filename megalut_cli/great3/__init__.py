@@ -4,7 +4,8 @@
 ``# name`` header lines, star fields, the constant-shear submission file and the truth
 files), :mod:`.sim` writes simulated branches in that layout (``megalut simulate
 --great3 DIR``), :mod:`.evaluate` measures m, c and ``Q_c`` of a constant-shear
-submission or per-galaxy predictions against a branch's truth, and :mod:`.pipeline` runs a
-branch subfield by subfield (``megalut run`` on a pipeline file with a ``[branch]``
-table). See ``docs/great3.md``.
+submission or per-galaxy predictions against a branch's truth. The branch pipeline of
+``megalut run`` (a pipeline file with a ``[branch]`` table, run subfield by subfield) is
+:mod:`megalut_cli.pipeline.great3_file` and :mod:`megalut_cli.pipeline.great3_run`. See
+``docs/great3.md``.
 """

@@ -1,7 +1,7 @@
-"""Running a GREAT3 branch pipeline (:mod:`megalut_cli.great3.pipeline`): its steps over
-the step engine (:mod:`megalut_cli.steps`).
+"""Running a GREAT3 branch pipeline (:mod:`megalut_cli.pipeline.great3_file`): its steps over
+the step engine (:mod:`megalut_cli.pipeline.steps`).
 
-Every subfield is one :class:`~megalut_cli.steps.Unit` (``-j``, Dask, ``--keep-going``,
+Every subfield is one :class:`~megalut_cli.pipeline.steps.Unit` (``-j``, Dask, ``--keep-going``,
 skipped when up to date: the engine decides and records), run serially inside and written
 into a temporary folder renamed into place when complete (``subfields/SSS/``, with its
 record ``subfield.json``); its point and weight committees are trained in memory
@@ -32,7 +32,9 @@ from megalut_cli import __version__
 from megalut_cli import flags as fl
 from megalut_cli.errors import InputError, MegalutError
 from megalut_cli.great3 import layout as L
-from megalut_cli.great3.pipeline import (
+from megalut_cli.nn.model import ShearModel
+from megalut_cli.nn.options import PointSpec, WeightSpec
+from megalut_cli.pipeline.great3_file import (
     EVALUATION,
     MANIFEST,
     SET_NAMES,
@@ -49,10 +51,7 @@ from megalut_cli.great3.pipeline import (
     subfield_seed,
     unit_params,
 )
-from megalut_cli.nn.model import ShearModel
-from megalut_cli.nn.options import PointSpec, WeightSpec
-from megalut_cli.progress import Progress
-from megalut_cli.steps import (
+from megalut_cli.pipeline.steps import (
     Entry,
     RunRecord,
     Step,
@@ -67,6 +66,7 @@ from megalut_cli.steps import (
     made_workdir,
     run_steps,
 )
+from megalut_cli.progress import Progress
 
 if TYPE_CHECKING:
     from megalut_cli.nn.fit import Columns
@@ -128,7 +128,7 @@ def train_subfield(pt: PointSpec, pw: WeightSpec, subfield: int, tp: Columns, tw
     ``sources``: the names of ``tp`` and ``tw`` for the logs and the model's provenance.
     """
     from megalut_cli.nn.fit import fit_point, fit_weight
-    from megalut_cli.pipeline_config import key_names
+    from megalut_cli.pipeline.config import key_names
     from megalut_cli.provenance import command_line, software_versions
 
     point, weight = {}, {}

@@ -1,6 +1,6 @@
 """The steps of the standard ``megalut run`` pipeline: :func:`build_steps` turns a
-:class:`~megalut_cli.pipeline.Pipeline` (the file, :mod:`megalut_cli.pipeline`) into the
-steps of the engine (:mod:`megalut_cli.steps`); :func:`plan_pipeline` and
+:class:`~megalut_cli.pipeline.file.Pipeline` (the file, :mod:`megalut_cli.pipeline.file`) into the
+steps of the engine (:mod:`megalut_cli.pipeline.steps`); :func:`plan_pipeline` and
 :func:`run_pipeline` check the work folder and run them; :func:`format_summary` reports.
 """
 
@@ -20,7 +20,11 @@ from megalut_cli.atomic import write_json
 from megalut_cli.engine import resolve_device
 from megalut_cli.measure.metacal_defaults import DEFAULT_STEP
 from megalut_cli.nn.options import PointSpec, WeightSpec
-from megalut_cli.pipeline import (
+from megalut_cli.pipeline.config import (
+    EvaluateSpec,
+    key_names,
+)
+from megalut_cli.pipeline.file import (
     ALL_SETS,
     DEFAULT_WORKDIR,
     EVALUATION_JSON,
@@ -34,13 +38,7 @@ from megalut_cli.pipeline import (
     ReferenceSpec,
     SetSpec,
 )
-from megalut_cli.pipeline_config import (
-    EvaluateSpec,
-    key_names,
-)
-from megalut_cli.progress import Progress, relabelled
-from megalut_cli.provenance import sha256_file
-from megalut_cli.steps import (
+from megalut_cli.pipeline.steps import (
     MANIFEST,
     Manifest,
     RunRecord,
@@ -51,6 +49,8 @@ from megalut_cli.steps import (
     step_key,
     timing_line,
 )
+from megalut_cli.progress import Progress, relabelled
+from megalut_cli.provenance import sha256_file
 
 log = logging.getLogger(__name__)
 

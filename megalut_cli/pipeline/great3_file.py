@@ -27,7 +27,7 @@ estimates, weights and a ``subfield`` column), ``submission.txt`` (``subfield g1
 both frames and ``Q_c``). Each subfield is written into a temporary folder renamed into
 place when complete; its seeds derive from the pipeline's seeds and the subfield index
 only, so results do not depend on ``-j`` or the cluster. This module reads and checks the
-file (a :class:`BranchPipeline`); :mod:`megalut_cli.great3.runner` runs it.
+file (a :class:`BranchPipeline`); :mod:`megalut_cli.pipeline.great3_run` runs it.
 """
 
 from __future__ import annotations
@@ -48,13 +48,13 @@ from megalut_cli.great3 import layout as L
 from megalut_cli.measure.defaults import MIN_STAMP_SIZE
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
 from megalut_cli.nn.options import POINT_OPTION, PointSpec, WeightSpec
-from megalut_cli.pipeline_config import PIPELINE, TRAIN_POINT_KEYS, TRAIN_WEIGHT_KEYS, read_spec
-from megalut_cli.pipeline_config import SET_OPTIONS as PIPELINE_SET_OPTIONS
+from megalut_cli.pipeline.config import PIPELINE, TRAIN_POINT_KEYS, TRAIN_WEIGHT_KEYS, read_spec
+from megalut_cli.pipeline.config import SET_OPTIONS as PIPELINE_SET_OPTIONS
+from megalut_cli.pipeline.steps import MANIFEST as MANIFEST  # the step engine's manifest.json
+from megalut_cli.pipeline.steps import sha_text
 from megalut_cli.schema import Option, Table, resolve_path
 from megalut_cli.seeding import STREAM_SUBFIELD, int_seed_for
 from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND, GREAT3_SIGMA2_MIN_SPACE
-from megalut_cli.steps import MANIFEST as MANIFEST  # the step engine's manifest.json
-from megalut_cli.steps import sha_text
 
 log = logging.getLogger(__name__)
 
@@ -302,7 +302,7 @@ def _find_path(text: str, key: str, base_dir: Path | None, want_dir: bool) -> Pa
 
 
 def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, pipe_path: str) -> SetTemplate:
-    from megalut_cli.pipeline_config import merge_tables
+    from megalut_cli.pipeline.config import merge_tables
     from megalut_cli.sim.config import read_toml
 
     t = Table(top.data.get(name), name, set(SET_OPTION))

@@ -10,7 +10,14 @@ from pathlib import Path
 import pytest
 
 from megalut_cli.errors import MegalutError
-from megalut_cli.steps import MANIFEST, RunRecord, Step, check_workdir, failed_units, run_steps
+from megalut_cli.pipeline.steps import (
+    MANIFEST,
+    RunRecord,
+    Step,
+    check_workdir,
+    failed_units,
+    run_steps,
+)
 
 RUN = RunRecord("", "toy.toml", "0" * 64, (), {"value": 1})
 
@@ -92,7 +99,7 @@ def toy_units(tmp_path: Path, n: int = 4, factor: int = 10) -> list:
     """``n`` units (``u<i>.txt`` = source i x factor), then a step summing what finished."""
     from helpers import toy_unit
 
-    from megalut_cli.steps import Unit, Units
+    from megalut_cli.pipeline.steps import Unit, Units
 
     src = tmp_path / "src"
     src.mkdir(exist_ok=True)
@@ -224,7 +231,7 @@ def test_old_manifest_format_is_refused_with_skip_existing(tmp_path: Path) -> No
 
 
 def test_made_workdir_leaves_no_empty_folder(tmp_path: Path) -> None:
-    from megalut_cli.steps import made_workdir
+    from megalut_cli.pipeline.steps import made_workdir
 
     wd = tmp_path / "a" / "wd"
     with pytest.raises(RuntimeError), made_workdir(wd, "sub"):

@@ -56,7 +56,7 @@ SCALE_BY = {"both": (0.5, 0.5), "cases": (1.0, 0.0), "realizations": (0.0, 1.0)}
 MAX_NAME = 64
 
 #: The top-level keys of a pipeline file (``docs/pipeline.md``, "Top level"). ``extends`` is
-#: read with the file (:func:`megalut_cli.pipeline.read_pipeline_file`), the tables by their
+#: read with the file (:func:`megalut_cli.pipeline.file.read_pipeline_file`), the tables by their
 #: own readers.
 PIPELINE_OPTIONS: tuple[Option, ...] = (
     Option("description", "str", "", "free text", empty_ok=True),

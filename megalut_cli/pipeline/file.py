@@ -5,7 +5,7 @@ A pipeline file (reference: ``docs/pipeline.md``) names three simulation sets â€
 (overall validation) â€” and optionally ``pretrain`` (low-noise ellipticity pretraining,
 Fig. 6 structure, paper Sect. 6) and ``vp`` (point-estimator validation, Fig. 4
 structure), with the settings of the training, prediction and evaluation steps.
-:func:`megalut_cli.pipeline_run.run_pipeline` runs, in a work folder:
+:func:`megalut_cli.pipeline.run.run_pipeline` runs, in a work folder:
 
 ====================  ==================================  =========================
 step                  does                                writes
@@ -56,7 +56,7 @@ from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.expr import check_expression
 from megalut_cli.nn.options import PointSpec, WeightSpec
 from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
-from megalut_cli.pipeline_config import (
+from megalut_cli.pipeline.config import (
     DEFAULT_PIPELINE,
     DEFAULT_SET_SEEDS,
     MAX_NAME,
@@ -74,11 +74,11 @@ from megalut_cli.pipeline_config import (
     read_spec,
     selection_expression,
 )
+from megalut_cli.pipeline.steps import sha_text
 from megalut_cli.provenance import sha256_file
 from megalut_cli.schema import Table, resolve_path
 from megalut_cli.shear.options import EVALUATE
 from megalut_cli.sim.config import SimConfig, apply_overrides, read_toml, validate_config
-from megalut_cli.steps import sha_text
 
 log = logging.getLogger(__name__)
 
