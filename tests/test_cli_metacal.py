@@ -271,6 +271,20 @@ def test_predict_metacal_columns_and_responses(measured):
     assert "MCALSTEP" not in plain.meta and not any(c.startswith("mcal_") for c in plain.colnames)
 
 
+def test_predict_columns_of_a_metacal_catalog_in_memory(measured):
+    """predict_columns with the catalog's metacal step gives the columns predict writes, in
+    its order (the GREAT3 branch pipeline predicts its subfields this way)."""
+    from megalut_cli.nn.model import ShearModel
+    from megalut_cli.shear.predict import predict_columns
+
+    features, written = read_catalog(measured / "mc5.fits"), read_catalog(measured / "s_mc5.fits")
+    pred = predict_columns(ShearModel.load(MCAL_MODEL), features, metacal_step=features.meta["MCALSTEP"])
+    assert [c for c in written.colnames if c in pred and c not in features.colnames] == \
+        [c for c in pred if c not in features.colnames]
+    for c, values in pred.items():
+        assert _same(values, written[c]), c
+
+
 def test_predict_refuses_a_model_of_the_other_mode(measured, tmp_path):
     """A simulation-calibrated model on a metacal catalog, a metacal model on a plain one."""
     _refused(["predict", measured / "mc5.fits", "--model", MODEL], 1, tmp_path / "a.fits", "fiducial.h5",

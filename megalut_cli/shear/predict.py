@@ -148,16 +148,60 @@ def predict_metacal(
     return out
 
 
+#: The metacal versions of rows, as :func:`predict_rows` takes them: ``(step, {type: X},
+#: {type: flags})``.
+MetacalInputs = tuple[float, Mapping[str, np.ndarray], Mapping[str, np.ndarray | None]]
+
+
 def predict_columns(
     model: ShearModel,
     columns: Mapping[str, np.ndarray],
     column_map: Mapping[str, str] | None = None,
+    metacal_step: float | None = None,
 ) -> dict[str, np.ndarray]:
-    """In-memory prediction: the new columns (``pre_*`` and ``flags``) for a dict/Table of columns."""
+    """In-memory prediction: the new columns (``pre_*`` and ``flags``) for a dict/Table of columns.
+
+    With ``metacal_step`` (a metacal catalog: ``X_<type>`` columns), the columns ``predict``
+    writes for one: also those of every metacal version and the responses
+    (:func:`predict_rows`), in the catalog's order (:func:`prediction_columns`, then the flags).
+    """
     names = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
     resolved = resolve_columns(model.features, names, column_map, "catalog")
-    x = np.column_stack([np.asarray(columns[resolved[f]], dtype=np.float64) for f in model.features])
-    return predict_arrays(model, x, np.asarray(columns["flags"]) if "flags" in names else None)
+    feature_cols = [resolved[f] for f in model.features]
+    x = _matrix(columns, feature_cols)
+    flags = np.asarray(columns["flags"]) if "flags" in names else None
+    if metacal_step is None:
+        return predict_arrays(model, x, flags)
+    metacal = _metacal_inputs(columns, names, feature_cols, metacal_step)
+    pred = predict_rows(model, x, flags, metacal)
+    order = [*prediction_columns(model, True), *(c for c in pred if c.startswith("flags"))]
+    return {c: pred[c] for c in order}
+
+
+def prediction_columns(model: ShearModel, metacal: bool) -> list[str]:
+    """The estimate columns ``predict`` adds for ``model``: ``pre_X`` per point committee,
+    ``pre_X_w`` per weight committee, and for a ``metacal`` catalog those of every version
+    (``pre_X_<type>``...) and the responses ``mcal_r<i><j>``."""
+    cols = [prediction_column(c.target, c.kind) for c in model.point.values()]
+    cols += [prediction_column(c.target, c.kind) for c in model.weight.values()]
+    if not metacal:
+        return cols
+    plain = list(cols)  # in metacal mode: the noshear estimates, uncalibrated
+    cols += [f"{c}_{kind}" for kind in TYPES for c in plain]
+    cols += [f"mcal_r{i}{j}" for i in "12" for j in "12" if f"pre_g{i}" in plain]
+    return cols
+
+
+def prediction_cards(cards: Mapping[str, Any], model: ShearModel, model_path: str | os.PathLike,
+                     step: float | None) -> dict[str, Any]:
+    """The header cards of a predictions catalog: the features catalog's ``cards``, the
+    model file's sha256 and name, and the metacal step of the responses (``step``)."""
+    out = dict(cards)
+    out["MODELSHA"] = (model.sha256, "sha256 of the model file")
+    out["MODEL"] = (Path(model_path).name[:68], "model file")
+    if step is not None:
+        out[STEP_CARD] = (step, "metacal shear step of the mcal_r* responses")
+    return out
 
 
 _MODELS: dict[str, ShearModel] = {}
@@ -176,10 +220,21 @@ def _load_model(path: str, sha256: str | None = None) -> ShearModel:
 
 
 def _predict_unit(unit: tuple[Any, ...]) -> dict[str, np.ndarray]:
-    """Work unit: ``(model_path, model_sha256, X, flags, metacal)`` -> prediction columns;
-    ``metacal`` is None or ``(step, {type: X}, {type: flags})``."""
+    """Work unit: ``(model_path, model_sha256, X, flags, metacal)`` -> prediction columns
+    (:func:`predict_rows`)."""
     path, sha, x, flg, metacal = unit
-    model = _load_model(path, sha)
+    return predict_rows(_load_model(path, sha), x, flg, metacal)
+
+
+def predict_rows(
+    model: Any, x: np.ndarray, flg: np.ndarray | None,
+    metacal: MetacalInputs | None,
+) -> dict[str, np.ndarray]:
+    """The prediction columns of rows with features ``x`` (rows x ``model.features``) and
+    ``flg``: :func:`predict_arrays`, or for a metacal catalog (``metacal``: ``(step, {type:
+    X}, {type: flags})``) :func:`predict_metacal` plus ``pre_X`` (the noshear estimate,
+    uncalibrated) and ``flags`` (``flg`` with ``BAD_FEATURES`` where the noshear version
+    failed)."""
     if metacal is None:
         return predict_arrays(model, x, flg)
     step, xs, flgs = metacal
@@ -200,6 +255,15 @@ def _matrix(table: Any, cols: Sequence[str]) -> np.ndarray:
     if not len(table):
         return np.zeros((0, len(cols)))
     return np.column_stack([np.asarray(table[c], dtype=np.float64) for c in cols])
+
+
+def _metacal_inputs(table: Any, colnames: Sequence[str], feature_cols: Sequence[str],
+                    step: float) -> MetacalInputs:
+    """The ``metacal`` argument of :func:`predict_rows` for the rows of a metacal table."""
+    xs = {kind: _matrix(table, [f"{c}_{kind}" for c in feature_cols]) for kind in TYPES}
+    flgs = {kind: np.asarray(table[f"flags_{kind}"]) if f"flags_{kind}" in colnames else None
+            for kind in TYPES}
+    return step, xs, flgs
 
 
 def _check_mode(model: ShearModel, step: float | None, model_path: Any, features_path: Any) -> None:
@@ -399,8 +463,6 @@ def predict_catalog(
     _MODELS[abs_model] = model
     resolved = resolve_columns(model.features, colnames, column_map, str(features_path), names)
     has_flags = "flags" in colnames
-    new_cols = [prediction_column(c.target, c.kind) for c in model.point.values()]
-    new_cols += [prediction_column(c.target, c.kind) for c in model.weight.values()]
     step = _metacal_step(header, features_path)
     _check_mode(model, step, model_path, features_path)
     if step is not None:
@@ -413,18 +475,11 @@ def predict_catalog(
             )
     findings = check_domain(model, model_path, features_path, colnames=colnames, header=header, resolved=resolved,
                             metacal=step is not None, n_rows=n_rows, strict=strict, names=names)
-    if step is not None:
-        plain_cols = list(new_cols)  # in metacal mode: the noshear estimates, uncalibrated
-        new_cols += [f"{c}_{kind}" for kind in TYPES for c in plain_cols]
-        new_cols += [f"mcal_r{i}{j}" for i in "12" for j in "12" if f"pre_g{i}" in plain_cols]
+    new_cols = prediction_columns(model, step is not None)
     replaced = [c for c in new_cols if c in colnames]
     if replaced:
         log.warning("%s: replacing existing column(s) %s", features_path, ", ".join(replaced))
-    cards = read_cards(features_path)  # with their comments
-    cards["MODELSHA"] = (model.sha256, "sha256 of the model file")
-    cards["MODEL"] = (Path(model_path).name[:68], "model file")
-    if step is not None:
-        cards[STEP_CARD] = (step, "metacal shear step of the mcal_r* responses")
+    cards = prediction_cards(read_cards(features_path), model, model_path, step)  # with comments
     extra_hdus = read_carried_hdus(features_path)
     feature_cols = [resolved[f] for f in model.features]
     n_failed = 0
@@ -433,12 +488,8 @@ def predict_catalog(
         for table in iter_catalog(features_path, chunk_rows):
             x = _matrix(table, feature_cols)
             flg = np.asarray(table["flags"]) if has_flags else None
-            metacal = None
-            if step is not None:
-                xs = {kind: _matrix(table, [f"{c}_{kind}" for c in feature_cols]) for kind in TYPES}
-                flgs = {kind: np.asarray(table[f"flags_{kind}"]) if f"flags_{kind}" in table.colnames else None
-                        for kind in TYPES}
-                metacal = (step, xs, flgs)
+            metacal = None if step is None else _metacal_inputs(table, table.colnames, feature_cols,
+                                                                step)
             yield table, (abs_model, model.sha256, x, flg, metacal)
 
     with executor(nproc, scheduler, -(-n_rows // chunk_rows)) as pool, \
