@@ -4,8 +4,13 @@ the step engine (:mod:`megalut_cli.pipeline.steps`).
 Every subfield is one :class:`~megalut_cli.pipeline.steps.Unit` (``-j``, Dask, ``--keep-going``,
 skipped when up to date: the engine decides and records), run serially inside and written
 into a temporary folder renamed into place when complete (``subfields/SSS/``, with its
-record ``subfield.json``); its point and weight committees are trained in memory
-(:func:`megalut_cli.nn.fit.fit_point`, :func:`~megalut_cli.nn.fit.fit_weight`). Then
+record ``subfield.json``). Its data pass in memory and files are only its products: the
+galaxies and stars measured into ``features.fits`` and ``stars.fits``, the training sets
+simulated as tables (:func:`~megalut_cli.sim.simulate.simulate_table`; ``tp.fits``,
+``tw.fits`` written with ``output.keep_sets``), the point and weight committees trained on
+them (:func:`megalut_cli.nn.fit.fit_point`, :func:`~megalut_cli.nn.fit.fit_weight`) and
+saved as ``model.h5``, the galaxies' estimates predicted from the tables
+(:func:`~megalut_cli.shear.predict.predict_columns`) into ``shears.fits``. Then
 the branch steps, declared once the subfields finished: ``shears.fits``,
 ``submission.txt``, ``evaluation.json`` (with a truth folder); the engine's
 ``manifest.json`` records them all.
@@ -148,6 +153,59 @@ def train_subfield(pt: PointSpec, pw: WeightSpec, subfield: int, tp: Columns, tw
     return ShearModel(point=point, weight=weight, provenance=prov)
 
 
+def simulate_set(cfg: Any, seed: int, engine: str, metacal: bool,
+                 kept: Path | None) -> dict[str, np.ndarray]:
+    """A training set of one subfield, simulated and measured in memory (``metacal``: in
+    metacal mode); written to ``kept`` too (``output.keep_sets``) as ``megalut simulate
+    --measure`` (``--metacal``) writes it."""
+    from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, SEED_CARD, STEP_CARD
+    from megalut_cli.sim.simulate import simulate_table, simulation_cards, write_simulation_catalog
+
+    t0 = time.perf_counter()
+    columns, _ = simulate_table(cfg, seed, measure=True, engine=engine,
+                                metacal_step=float(DEFAULT_STEP) if metacal else None)
+    if kept is not None:
+        cards = simulation_cards(cfg, seed, True, engine)
+        if metacal:
+            cards[STEP_CARD] = (float(DEFAULT_STEP), "metacal shear step (simulate --metacal-step)")
+            cards[SEED_CARD] = (int(seed), "seed of the metacal fixnoise fields (simulate --seed)")
+        write_simulation_catalog(kept, columns, cfg, cards)
+    n, seconds = len(columns["case"]), time.perf_counter() - t0
+    log.info("%d stamps in %.1f s (%.1f stamps/s)", n, seconds,
+             n / seconds if seconds else math.inf)
+    return columns
+
+
+def predict_subfield(feats: Any, model: ShearModel, features: Path, model_path: Path,
+                     output: Path) -> dict[str, np.ndarray]:
+    """The subfield's galaxies (``feats``, the table measured into ``features``) with the
+    estimates of ``model`` (saved as ``model_path``), predicted in memory and written to
+    ``output`` as ``megalut predict`` writes them: the features catalog's header, carried
+    HDUs and history, after the same check against the model's training domain."""
+    from megalut_cli.catalog import catalog_info, catalog_writer, read_cards, read_carried_hdus
+    from megalut_cli.measure.metacal_defaults import header_step
+    from megalut_cli.shear.predict import (
+        FORMAT,
+        FORMAT_VERSION,
+        check_domain,
+        predict_columns,
+        prediction_cards,
+    )
+
+    n_rows, colnames, header = catalog_info(features)
+    step = header_step(header)
+    check_domain(model, model_path, features, colnames=colnames, header=header,
+                 metacal=step is not None, n_rows=n_rows)
+    columns = {c: np.asarray(feats[c]) for c in feats.colnames}
+    columns.update(predict_columns(model, feats, metacal_step=step))
+    cards = prediction_cards(read_cards(features), model, model_path, step)
+    extra_hdus = read_carried_hdus(features)
+    with catalog_writer(output, fmt=FORMAT, fmt_version=FORMAT_VERSION, cards=cards,
+                        history=header.get("HISTORY"), extra_hdus=extra_hdus) as writer:
+        writer.append(columns)
+    return columns
+
+
 def subfield_folder(subfield: int) -> str:
     """``subfields/SSS``: where a subfield's products are, relative to the work folder."""
     return f"{SUBFIELDS_DIR}/{subfield:03d}"
@@ -167,10 +225,8 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
     """Work unit: the whole pipeline of one subfield (``job``: ``pipe``, ``subfield``), written
     into ``subfields/SSS/`` with its record; returns its summary (means, galaxies, noise)."""
     from megalut_cli.atomic import replace_folder
-    from megalut_cli.catalog import CatalogColumns, VersionColumns, read_catalog
+    from megalut_cli.catalog import VersionColumns
     from megalut_cli.measure.measure import measure_file
-    from megalut_cli.shear.predict import predict_catalog
-    from megalut_cli.sim.simulate import simulate
 
     pipe: BranchPipeline = job["pipe"]
     s = int(job["subfield"])
@@ -190,8 +246,6 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
         timings[name] = round(time.perf_counter() - t, 3)
 
     try:
-        scratch = tmp / "scratch"
-        scratch.mkdir()
         with _quiet():
             t = time.perf_counter()
             feats = measure_file(files["image"], files["catalog"], tmp / "features.fits", stamp_size=pipe.stamp_size,
@@ -200,29 +254,29 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
             measure_file(files["starfield"], None, tmp / "stars.fits", stamp_size=pipe.stamp_size, stars=True,
                          engine=pipe.engine)
             lap("measure", t)
-            set_paths, noise_sigma = {}, None
+            sets, noise_sigma = {}, None
             for name, tpl in pipe.sets.items():
                 t = time.perf_counter()
                 cfg = set_config(tpl, files["starfield"], tmp / "features.fits")
-                set_paths[name] = (tmp if pipe.keep_sets else scratch) / f"{name}.fits"
-                simulate(cfg, set_paths[name], measure=True, seed=params["sets"][name]["seed"], engine=pipe.engine,
-                         metacal=pipe.metacal)
+                kept = tmp / f"{name}.fits" if pipe.keep_sets else None
+                seed = params["sets"][name]["seed"]
+                sets[name] = simulate_set(cfg, seed, pipe.engine, pipe.metacal, kept)
                 if name == "tw":
                     noise_sigma = float(cfg.noise.params["sigma"].bounds()[0]) if "sigma" in cfg.noise.params else None
                 lap(f"simulate-{name}", t)
             t = time.perf_counter()
-            tp, tw = CatalogColumns(set_paths["tp"]), CatalogColumns(set_paths["tw"])
+            tp, tw = sets["tp"], sets["tw"]
             if pipe.metacal:  # the networks train on the noshear versions' features
                 tp, tw = VersionColumns(tp, "noshear"), VersionColumns(tw, "noshear")
             specs = PointSpec(**params["train_point"]), WeightSpec(**params["train_weight"])
-            model = train_subfield(*specs, s, tp, tw, {n: p.name for n, p in set_paths.items()})
+            model = train_subfield(*specs, s, tp, tw, {n: f"{n}.fits" for n in sets})
             model.shear_mode = "metacal" if pipe.metacal else model.shear_mode
             model.save(tmp / "model.h5")
             lap("train", t)
             t = time.perf_counter()
-            predict_catalog(tmp / "features.fits", tmp / "model.h5", tmp / "shears.fits")
+            shears = predict_subfield(feats, model, tmp / "features.fits", tmp / "model.h5",
+                                      tmp / "shears.fits")
             lap("predict", t)
-        shears = read_catalog(tmp / "shears.fits")
         means = {}
         for scheme, weighted in (("unweighted", False), ("weighted", True)):
             _, g1, g2, n_used = L.submission_from_catalog(shears, weighted=weighted, where=str(files["image"]))
@@ -230,9 +284,9 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
         use = means["weighted" if pipe.weighted else "unweighted"]
         if not (math.isfinite(use["g1"]) and math.isfinite(use["g2"])):
             raise InputError(f"{files['image']}: no galaxy with a usable shear estimate")
-        shutil.rmtree(scratch)
         summary = {
-            "subfield": s, "n_galaxies": len(shears), "n_flagged": int(np.count_nonzero(np.asarray(shears["flags"]))),
+            "subfield": s, "n_galaxies": len(shears["flags"]),
+            "n_flagged": int(np.count_nonzero(shears["flags"])),
             "noise_sigma": noise_sigma, "psf_adamom_sigma": float(np.asarray(feats["psf_adamom_sigma"])[0]),
             "means": means, "g1": use["g1"], "g2": use["g2"], "seconds": round(time.perf_counter() - t0, 3),
             "timings": timings, "status": "ran",
