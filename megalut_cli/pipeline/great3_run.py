@@ -375,11 +375,9 @@ def branch_steps(pipe: BranchPipeline, workdir: Path, done: Sequence[Mapping[str
 
 
 def _write_shears(path: Path, workdir: Path, subfields: Sequence[int], overwrite: bool) -> int:
-    """Concatenate the subfields' predictions into one catalog with a ``subfield`` column (streamed)."""
-    import fitsio
-
-    from megalut_cli.atomic import atomic_output
-    from megalut_cli.catalog import catalog_info, header_cards, read_catalog, write_table_hdu
+    """Concatenate the subfields' predictions into one catalog with a ``subfield`` column
+    (streamed, :func:`megalut_cli.catalog.catalog_writer`)."""
+    from megalut_cli.catalog import catalog_info, catalog_writer, read_catalog
 
     n = 0
     dtype = None
@@ -387,7 +385,8 @@ def _write_shears(path: Path, workdir: Path, subfields: Sequence[int], overwrite
     cards = {k: v for k, v in header.items() if k not in ("HISTORY", "MODEL", "MODELSHA", "SUBFIELD", "TEXTCAT")}
     cards["NSUBFLD"] = (len(subfields), "subfields in this catalog")
     history = header.get("HISTORY")
-    with atomic_output(path, overwrite) as tmp, fitsio.FITS(str(tmp), "rw", clobber=True) as fits:
+    with catalog_writer(path, fmt=SHEARS_FORMAT, fmt_version="1.0", overwrite=overwrite, cards=cards,
+                        history=history) as writer:
         for s in subfields:
             src = workdir / SUBFIELDS_DIR / f"{s:03d}" / "shears.fits"
             t = read_catalog(src)
@@ -400,10 +399,7 @@ def _write_shears(path: Path, workdir: Path, subfields: Sequence[int], overwrite
             arr = np.zeros(len(t), dtype=dtype)
             for c in dtype.names:
                 arr[c] = cols[c]
-            if len(fits) < 2:
-                write_table_hdu(fits, arr, header_cards(SHEARS_FORMAT, "1.0", cards, history, columns=dtype.names))
-            else:
-                fits[-1].append(arr)
+            writer.append(arr)
             n += len(t)
     return n
 
