@@ -40,7 +40,9 @@ def run() -> None:
     signal.signal(signal.SIGINT, interrupted)  # until the group handles Ctrl-C itself
     from megalut_cli.cli import main  # click and megalut: the imports of every command
 
-    signal.signal(signal.SIGINT, signal.default_int_handler)  # KeyboardInterrupt: outputs cleaned up
+    signal.signal(
+        signal.SIGINT, signal.default_int_handler
+    )  # KeyboardInterrupt: outputs cleaned up
     try:
         main()
     except SystemExit:  # the command is over: a Ctrl-C while the process exits is one line too

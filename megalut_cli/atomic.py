@@ -65,7 +65,9 @@ def atomic_output(path: str | os.PathLike, overwrite: bool = False) -> Iterator[
         try:
             yield tmp_path
         except OSError as err:  # e.g. disk full: name the user's file, not the hidden temporary one
-            about_tmp = tmp_path.name in str(getattr(err, "filename", None) or "") or tmp_path.name in str(err)
+            about_tmp = tmp_path.name in str(
+                getattr(err, "filename", None) or ""
+            ) or tmp_path.name in str(err)
             if not about_tmp:
                 raise
             why = err.strerror or str(err).replace(str(tmp_path), str(final))

@@ -56,7 +56,13 @@ def load_arrays(kind: str, key: str) -> dict[str, np.ndarray] | None:
             arrays = {name: data[name] for name in data.files}
     except FileNotFoundError:
         return None
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as err:  # damaged: recompute
+    except (
+        OSError,
+        ValueError,
+        EOFError,
+        KeyError,
+        zipfile.BadZipFile,
+    ) as err:  # damaged: recompute
         log.debug("cache: ignoring %s (%s)", path, err)
         return None
     if str(arrays.pop(_KEY_FIELD, "")) != key:
@@ -66,7 +72,9 @@ def load_arrays(kind: str, key: str) -> dict[str, np.ndarray] | None:
     return arrays
 
 
-def store_arrays(kind: str, key: str, arrays: Mapping[str, np.ndarray], max_bytes: int = MAX_BYTES) -> None:
+def store_arrays(
+    kind: str, key: str, arrays: Mapping[str, np.ndarray], max_bytes: int = MAX_BYTES
+) -> None:
     """Store ``arrays`` under ``key`` (atomically), then bound the folder's size."""
     folder = cache_dir()
     if folder is None:
@@ -105,4 +113,3 @@ def prune(folder: Path, max_bytes: int = MAX_BYTES) -> None:
         with contextlib.suppress(OSError):  # another process may have removed it first
             path.unlink()
         total -= size
-

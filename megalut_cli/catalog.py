@@ -57,7 +57,9 @@ def image_ext(fits: fitsio.FITS, path: str | os.PathLike, ext: int | None = None
     """``ext``, or else the index of the first image HDU of ``fits`` that holds data."""
     if ext is not None:
         return ext
-    found = next((i for i, h in enumerate(fits) if h.get_exttype() == "IMAGE_HDU" and h.has_data()), None)
+    found = next(
+        (i for i, h in enumerate(fits) if h.get_exttype() == "IMAGE_HDU" and h.has_data()), None
+    )
     if found is None:
         raise InputError(f"{path}: no image in this FITS file")
     return found
@@ -294,7 +296,7 @@ def _history_cards(lines: Iterable[str]) -> list[dict[str, Any]]:
             if len(rest) > width:
                 chunk = chunk.rstrip(" ") or chunk
             cards.append({"name": "HISTORY", "value": prefix + chunk})
-            rest, prefix = rest[len(chunk):], " "
+            rest, prefix = rest[len(chunk) :], " "
             if not rest:
                 break
     return cards
@@ -399,8 +401,16 @@ def write_catalog(
     units and descriptions; ``extra_hdus`` (EXTNAME -> structured array, e.g. the
     ``CONFIG`` of :func:`read_carried_hdus`) follow as further table HDUs."""
     arr = _to_structured(table)
-    with catalog_writer(path, fmt=fmt, fmt_version=fmt_version, overwrite=overwrite, cards=cards, history=history,
-                        extname=extname, extra_hdus=extra_hdus) as writer:
+    with catalog_writer(
+        path,
+        fmt=fmt,
+        fmt_version=fmt_version,
+        overwrite=overwrite,
+        cards=cards,
+        history=history,
+        extname=extname,
+        extra_hdus=extra_hdus,
+    ) as writer:
         writer.append(arr)
     return Path(path)
 
@@ -418,7 +428,9 @@ class CatalogWriter:
 
     def append(self, table: Table | Mapping[str, np.ndarray] | np.ndarray) -> None:
         """Append the rows of ``table`` (columns as in the first chunk, in any order)."""
-        arr = table if isinstance(table, np.ndarray) and table.dtype.names else _to_structured(table)
+        arr = (
+            table if isinstance(table, np.ndarray) and table.dtype.names else _to_structured(table)
+        )
         if self._dtype is None:
             self._dtype = arr.dtype
             write_table_hdu(self._fits, arr, self._header(arr.dtype.names), self._extname)
@@ -456,7 +468,9 @@ def catalog_writer(
     :func:`write_catalog`'s; ``extra_hdus`` follow the table)."""
     with atomic_output(path, overwrite) as tmp, fitsio.FITS(str(tmp), "rw", clobber=True) as fits:
         writer = CatalogWriter(
-            fits, lambda columns: header_cards(fmt, fmt_version, cards, history, columns=columns), extname
+            fits,
+            lambda columns: header_cards(fmt, fmt_version, cards, history, columns=columns),
+            extname,
         )
         yield writer
         if not writer.started:
@@ -465,12 +479,16 @@ def catalog_writer(
             fits.write(extra, extname=name)
 
 
-def write_table_hdu(fits: fitsio.FITS, arr: np.ndarray, recs: Sequence[Mapping[str, Any]], extname: str = "CATALOG") -> None:
+def write_table_hdu(
+    fits: fitsio.FITS, arr: np.ndarray, recs: Sequence[Mapping[str, Any]], extname: str = "CATALOG"
+) -> None:
     """Append the table ``arr`` to an open ``fits`` with header ``recs`` and column units."""
     fits.write(arr, header=list(recs), extname=extname, units=column_units(arr.dtype.names))
 
 
-def read_image(path: str | os.PathLike, ext: int | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+def read_image(
+    path: str | os.PathLike, ext: int | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
     """Read a FITS image (the first HDU holding one unless ``ext`` is given) and its header."""
     _check_exists(path)
     try:
@@ -517,7 +535,9 @@ def read_setup(path: str | os.PathLike) -> dict[str, Any]:
     import json
 
     _, _, header = catalog_info(path)
-    setup: dict[str, Any] = {name: header[card] for card, name in SETUP_CARDS.items() if card in header}
+    setup: dict[str, Any] = {
+        name: header[card] for card, name in SETUP_CARDS.items() if card in header
+    }
     try:
         with fitsio.FITS(str(path)) as f:
             if "CONFIG" in f:
@@ -659,7 +679,9 @@ def text_catalog_lines(columns: Mapping[str, np.ndarray]) -> list[str]:
     return lines
 
 
-def write_text_catalog(path: str | os.PathLike, columns: Mapping[str, np.ndarray], overwrite: bool = False) -> Path:
+def write_text_catalog(
+    path: str | os.PathLike, columns: Mapping[str, np.ndarray], overwrite: bool = False
+) -> Path:
     """Write ``columns`` as a GREAT3-style text catalog, atomically."""
     with atomic_output(path, overwrite) as tmp:
         Path(tmp).write_text("\n".join(text_catalog_lines(columns)) + "\n")

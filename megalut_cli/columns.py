@@ -91,8 +91,8 @@ def describe(name: str) -> tuple[str, str] | None:
     if m := _METACAL.match(name):
         base = describe(m["base"])
         return None if base is None else (base[0], f"metacal {m['kind']}: {base[1]}"[:68])
-    if name.startswith("flags_") and name[len("flags_"):] in ("noshear", "1p", "1m", "2p", "2m"):
-        return ("", f"flags of the metacal {name[len('flags_'):]} version")
+    if name.startswith("flags_") and name[len("flags_") :] in ("noshear", "1p", "1m", "2p", "2m"):
+        return ("", f"flags of the metacal {name[len('flags_') :]} version")
     if m := _PSF.match(name):
         base = describe(m["base"])
         return None if base is None else (base[0], f"PSF: {base[1]}"[:68])
@@ -137,6 +137,11 @@ def flag_cards() -> list[dict[str, Any]]:
     recs = []
     for value, name in sorted(flags.FLAG_NAMES.items()):
         bit = value.bit_length() - 1
-        recs.append({"name": f"FLAGBIT{bit}", "value": name,
-                     "comment": f"{value}: {flags.FLAG_DESCRIPTIONS[value]}"[:46]})
+        recs.append(
+            {
+                "name": f"FLAGBIT{bit}",
+                "value": name,
+                "comment": f"{value}: {flags.FLAG_DESCRIPTIONS[value]}"[:46],
+            }
+        )
     return recs

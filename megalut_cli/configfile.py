@@ -143,7 +143,9 @@ def override_for(parts: Sequence[str], overrides: Sequence[str]) -> str | None:
     return None
 
 
-def written_at(parts: Sequence[str], sources: Sequence[ConfigSource], overrides: Sequence[str]) -> str | None:
+def written_at(
+    parts: Sequence[str], sources: Sequence[ConfigSource], overrides: Sequence[str]
+) -> str | None:
     """Where ``parts`` is given: the dotted key of a ``KEY=VALUE`` override (as the command line
     writes it), else ``FILE: [table] key`` of the first source that has it; None if nowhere."""
     if override_for(parts, overrides) is not None:
@@ -154,7 +156,9 @@ def written_at(parts: Sequence[str], sources: Sequence[ConfigSource], overrides:
     return None
 
 
-def message_keys(message: str, top: Collection[str], names: Collection[str] = ()) -> tuple[list[str], str]:
+def message_keys(
+    message: str, top: Collection[str], names: Collection[str] = ()
+) -> tuple[list[str], str]:
     """The dotted keys that ``message`` starts with (``sets.tp: noise.sigam: unknown key`` ->
     ``(["sets.tp", "noise.sigam"], "unknown key")``), the first one a key of ``top``; none when
     the message starts with one of ``names`` (a file's name)."""
@@ -164,15 +168,23 @@ def message_keys(message: str, top: Collection[str], names: Collection[str] = ()
         return keys, message
     while True:
         head, sep, tail = rest.partition(": ")
-        if not sep or not MESSAGE_KEY.fullmatch(head) or (not keys and head.split(".")[0] not in top):
+        if (
+            not sep
+            or not MESSAGE_KEY.fullmatch(head)
+            or (not keys and head.split(".")[0] not in top)
+        ):
             break
         keys.append(head)
         rest = tail
     return keys, rest
 
 
-def where_written(message: str, sources: Sequence[ConfigSource], overrides: Sequence[str] = (),
-                  top: Collection[str] | None = None) -> str:
+def where_written(
+    message: str,
+    sources: Sequence[ConfigSource],
+    overrides: Sequence[str] = (),
+    top: Collection[str] | None = None,
+) -> str:
     """A config error ``message`` (``galaxy.rad: ... must be > 0``) naming its key where the user
     wrote it: the override (``galaxy.rad``), else the file and its table (``tp.toml: [galaxy]
     rad: ... must be > 0``), the first of ``sources`` when none gives it. ``top``: the
@@ -180,7 +192,9 @@ def where_written(message: str, sources: Sequence[ConfigSource], overrides: Sequ
     is returned as it is when it starts with no such key."""
     if not sources:
         return message
-    keys, rest = message_keys(message, set(sources[0].raw) if top is None else top, [s.name for s in sources])
+    keys, rest = message_keys(
+        message, set(sources[0].raw) if top is None else top, [s.name for s in sources]
+    )
     if not keys:
         return message
     parts = ".".join(keys).split(".")

@@ -39,16 +39,20 @@ def models_table(
 def galaxy_profiles_table() -> str:
     """The registered galaxy profiles: what each is, what draws it, its own truth columns."""
     rows = {
-        name: [p.help, "the fast engine (GalSim with knots)" if p.fast else "GalSim",
-               ", ".join(f"`{c}`" for c in p.truth_columns) or "—"]
+        name: [
+            p.help,
+            "the fast engine (GalSim with knots)" if p.fast else "GalSim",
+            ", ".join(f"`{c}`" for c in p.truth_columns) or "—",
+        ]
         for name, p in GALAXY_PROFILES.items()
     }
     return models_table("profile", rows, ("model", "drawn by", "its truth columns"))
 
 
 #: ``psf.type``, for the docs (the types registered by :mod:`megalut_cli.sim.psf`).
-PSF_TYPE = Option("type", "choice", None, "the PSF model", choices=PSF_TYPES,
-                  default_text="required")
+PSF_TYPE = Option(
+    "type", "choice", None, "the PSF model", choices=PSF_TYPES, default_text="required"
+)
 
 #: Generated tables by name.
 TABLES: dict[str, Callable[[], str]] = {
@@ -60,13 +64,16 @@ TABLES: dict[str, Callable[[], str]] = {
     "gsparams": lambda: docs_table(GSPARAMS_OPTIONS, cli=False),
     "galaxy-profiles": galaxy_profiles_table,
     "galaxy": lambda: kinds_table(
-        (GALAXY_OPTION,), {n: p.options for n, p in GALAXY_PROFILES.items()}, "profiles"),
+        (GALAXY_OPTION,), {n: p.options for n, p in GALAXY_PROFILES.items()}, "profiles"
+    ),
     "psf-types": lambda: models_table("type", {n: [t.help] for n, t in PSF_REGISTRY.items()}),
     "psf": lambda: kinds_table(
-        (PSF_TYPE,), {n: t.options for n, t in PSF_REGISTRY.items()}, "types"),
+        (PSF_TYPE,), {n: t.options for n, t in PSF_REGISTRY.items()}, "types"
+    ),
     "noise-types": lambda: models_table("type", {n: [t.help] for n, t in NOISE_KINDS.items()}),
     "noise": lambda: kinds_table(
-        NOISE_OPTIONS, {n: t.options for n, t in NOISE_KINDS.items()}, "types"),
+        NOISE_OPTIONS, {n: t.options for n, t in NOISE_KINDS.items()}, "types"
+    ),
     "evaluate": lambda: docs_table(EVALUATE_OPTIONS),
     "pipeline": lambda: docs_table(PIPELINE_OPTIONS, cli=False),
     "pipeline-sets": lambda: docs_table(SET_OPTIONS, cli=False),

@@ -53,12 +53,23 @@ def described(choices: dict[str, str]) -> str:
 
 #: The ``engine`` option of ``simulate``, ``measure`` and pipeline files (the command line
 #: says per command what the engine does).
-ENGINE_OPTION = Option("engine", "choice", DEFAULT_ENGINE, f"Stamp engine ({described(ENGINES)}).",
-                       choices=tuple(ENGINES))
+ENGINE_OPTION = Option(
+    "engine",
+    "choice",
+    DEFAULT_ENGINE,
+    f"Stamp engine ({described(ENGINES)}).",
+    choices=tuple(ENGINES),
+)
 #: The ``device`` option of ``simulate``, ``measure``, the trainings and pipeline files.
-DEVICE_OPTION = Option("device", "choice", DEFAULT_DEVICE, f"Where the fast engine and the trainings run "
-                       f"({described(DEVICES)}; env MEGALUT_DEVICE; docs/gpu.md).", choices=tuple(DEVICES),
-                       envvar="MEGALUT_DEVICE")
+DEVICE_OPTION = Option(
+    "device",
+    "choice",
+    DEFAULT_DEVICE,
+    f"Where the fast engine and the trainings run "
+    f"({described(DEVICES)}; env MEGALUT_DEVICE; docs/gpu.md).",
+    choices=tuple(DEVICES),
+    envvar="MEGALUT_DEVICE",
+)
 
 
 def check_engine(name: str, key: str = "engine") -> str:

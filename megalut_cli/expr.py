@@ -64,11 +64,14 @@ def _parse(expr: str) -> ast.AST:
     try:
         return ast.parse(text, mode="eval").body
     except SyntaxError:
-        hint = " (compare with ==, not =)" if "=" in expr and "==" not in expr and not re.search(r"[<>!]=", expr) \
+        hint = (
+            " (compare with ==, not =)"
+            if "=" in expr and "==" not in expr and not re.search(r"[<>!]=", expr)
             else ""
+        )
         raise ConfigError(
             f"selection expression {expr!r} cannot be read{hint}: write conditions such as "
-            "\"snr > 10 & adamom_sigma > 1.5\" or, per case, \"mean(snr) > 10\""
+            '"snr > 10 & adamom_sigma > 1.5" or, per case, "mean(snr) > 10"'
         ) from None
 
 
@@ -98,8 +101,10 @@ _SYNTAX_WORDS = {
     "In": "'in'",
     "NotIn": "'not in'",
 }
-_GRAMMAR = ("numbers, column names, + - * / ** %, comparisons, & | ~ (and, or, not), parentheses and the "
-            "functions " + " ".join(_FUNCS))
+_GRAMMAR = (
+    "numbers, column names, + - * / ** %, comparisons, & | ~ (and, or, not), parentheses and the "
+    "functions " + " ".join(_FUNCS)
+)
 
 
 def describe_syntax(node: ast.AST) -> str:
@@ -115,15 +120,19 @@ def unknown_columns_message(expr: str, missing: list[str], available: list[str])
     close = {m: difflib.get_close_matches(m, available, n=1) for m in missing}
     guesses = [c[0] if len(missing) == 1 else f"{c[0]} for {m}" for m, c in close.items() if c]
     shown = ", ".join(sorted(available)[:40]) + (", ..." if len(available) > 40 else "")
-    return (f"selection expression {expr!r}: unknown column(s) {', '.join(missing)}"
-            + (f" (did you mean {'; '.join(guesses)}?)" if guesses else "")
-            + f"; the catalog has: {shown}")
+    return (
+        f"selection expression {expr!r}: unknown column(s) {', '.join(missing)}"
+        + (f" (did you mean {'; '.join(guesses)}?)" if guesses else "")
+        + f"; the catalog has: {shown}"
+    )
 
 
 def columns_used(expr: str) -> list[str]:
     """Column names an expression refers to, in order of appearance."""
     nodes = [
-        n for n in ast.walk(_parse(expr)) if isinstance(n, ast.Name) and n.id not in _FUNCS and n.id not in _AGGS
+        n
+        for n in ast.walk(_parse(expr))
+        if isinstance(n, ast.Name) and n.id not in _FUNCS and n.id not in _AGGS
     ]
     names: list[str] = []
     for node in sorted(nodes, key=lambda n: n.col_offset):
@@ -133,7 +142,13 @@ def columns_used(expr: str) -> list[str]:
 
 
 class _Evaluator:
-    def __init__(self, expr: str, columns: Mapping[str, np.ndarray], case_index: np.ndarray | None, n_cases: int):
+    def __init__(
+        self,
+        expr: str,
+        columns: Mapping[str, np.ndarray],
+        case_index: np.ndarray | None,
+        n_cases: int,
+    ):
         self.expr = expr
         self.columns = columns
         self.case_index = case_index  # per-row index of its case (0..n_cases-1), case mode only
@@ -161,7 +176,9 @@ class _Evaluator:
                 return self._constant_per_case(node.id, col)
             return col
         if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
-            return _BINOPS[type(node.op)](self.eval(node.left, in_agg), self.eval(node.right, in_agg))
+            return _BINOPS[type(node.op)](
+                self.eval(node.left, in_agg), self.eval(node.right, in_agg)
+            )
         if isinstance(node, ast.UnaryOp):
             val = self.eval(node.operand, in_agg)
             if isinstance(node.op, ast.USub):
@@ -198,8 +215,10 @@ class _Evaluator:
                 if in_agg:
                     raise self.fail("nested aggregates are not allowed")
                 return self._aggregate(name, self.eval(node.args[0], in_agg=True))
-            raise self.fail(f"unknown function {name!r}; functions: {' '.join(_FUNCS)}"
-                            + (f", aggregates: {' '.join(_AGGS)}" if case_mode else ""))
+            raise self.fail(
+                f"unknown function {name!r}; functions: {' '.join(_FUNCS)}"
+                + (f", aggregates: {' '.join(_AGGS)}" if case_mode else "")
+            )
         bad = node.op if isinstance(node, ast.BinOp) else node
         raise self.fail(f"{describe_syntax(bad)} is not allowed; use {_GRAMMAR}")
 
@@ -219,9 +238,9 @@ class _Evaluator:
         values = np.broadcast_to(np.asarray(values, dtype=float), idx.shape)
         if name == "frac":
             good = np.isfinite(values)
-            return np.bincount(idx, weights=np.where(good, values != 0, 0.0), minlength=n) / np.maximum(
-                np.bincount(idx, minlength=n), 1
-            )
+            return np.bincount(
+                idx, weights=np.where(good, values != 0, 0.0), minlength=n
+            ) / np.maximum(np.bincount(idx, minlength=n), 1)
         good = np.isfinite(values)
         cnt = np.bincount(idx, weights=good, minlength=n)
         if name == "count":
@@ -249,7 +268,9 @@ class _Evaluator:
         return out
 
 
-def evaluate_rows(expr: str, columns: Mapping[str, np.ndarray], n_rows: int | None = None) -> np.ndarray:
+def evaluate_rows(
+    expr: str, columns: Mapping[str, np.ndarray], n_rows: int | None = None
+) -> np.ndarray:
     """Boolean mask of the rows selected by ``expr``."""
     node = _parse(expr)
     if n_rows is None:
@@ -260,7 +281,9 @@ def evaluate_rows(expr: str, columns: Mapping[str, np.ndarray], n_rows: int | No
     return np.broadcast_to(out, (n_rows,)).copy()
 
 
-def _eval_per_case(expr: str, columns: Mapping[str, np.ndarray], case: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _eval_per_case(
+    expr: str, columns: Mapping[str, np.ndarray], case: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     ids, index = np.unique(np.asarray(case), return_inverse=True)
     return ids, _Evaluator(expr, columns, index.ravel(), len(ids)).eval(_parse(expr))
 
@@ -278,7 +301,8 @@ def evaluate_cases(
 def uses_aggregate(expr: str) -> bool:
     """Whether ``expr`` calls a per-case aggregate (``mean(snr)``): then it is a case expression."""
     return any(
-        isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id in _AGGS for n in ast.walk(_parse(expr))
+        isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id in _AGGS
+        for n in ast.walk(_parse(expr))
     )
 
 
@@ -287,9 +311,11 @@ def check_quantity(expr: str, available: list[str] | None = None) -> bool:
     case_mode = uses_aggregate(expr)
     check_expression(expr, available, case_mode=case_mode)
     node = _parse(expr)
-    cond = isinstance(node, (ast.Compare, ast.BoolOp)) or (
-        isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.Not, ast.Invert))
-    ) or (isinstance(node, ast.Call) and getattr(node.func, "id", "") in ("isfinite", "isnan"))
+    cond = (
+        isinstance(node, (ast.Compare, ast.BoolOp))
+        or (isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.Not, ast.Invert)))
+        or (isinstance(node, ast.Call) and getattr(node.func, "id", "") in ("isfinite", "isnan"))
+    )
     if cond:
         raise ConfigError(f"expression {expr!r} is a condition, not a quantity")
     return case_mode
@@ -315,25 +341,54 @@ def evaluate_case_values(
     return ids, np.broadcast_to(_numeric(out, expr), ids.shape).copy()
 
 
-def check_expression(expr: str, available: list[str] | None = None, case_mode: bool = False) -> None:
+def check_expression(
+    expr: str, available: list[str] | None = None, case_mode: bool = False
+) -> None:
     """Validate syntax and column names early (before any heavy work)."""
     node = _parse(expr)
     for sub in ast.walk(node):
         if isinstance(sub, ast.Call):
-            if not isinstance(sub.func, ast.Name) or sub.func.id not in (*_FUNCS, *(_AGGS if case_mode else ())):
+            if not isinstance(sub.func, ast.Name) or sub.func.id not in (
+                *_FUNCS,
+                *(_AGGS if case_mode else ()),
+            ):
                 fname = getattr(sub.func, "id", "?")
                 raise ConfigError(f"selection expression {expr!r}: unknown function {fname!r}")
-        elif not isinstance(
-            sub,
-            (ast.Constant, ast.Name, ast.BinOp, ast.UnaryOp, ast.BoolOp, ast.Compare, ast.Load, ast.operator,
-             ast.unaryop, ast.boolop, ast.cmpop),
-        ) or (isinstance(sub, ast.BinOp) and type(sub.op) not in _BINOPS) or (
-            isinstance(sub, ast.Compare) and any(type(op) not in _CMPOPS for op in sub.ops)
+        elif (
+            not isinstance(
+                sub,
+                (
+                    ast.Constant,
+                    ast.Name,
+                    ast.BinOp,
+                    ast.UnaryOp,
+                    ast.BoolOp,
+                    ast.Compare,
+                    ast.Load,
+                    ast.operator,
+                    ast.unaryop,
+                    ast.boolop,
+                    ast.cmpop,
+                ),
+            )
+            or (isinstance(sub, ast.BinOp) and type(sub.op) not in _BINOPS)
+            or (isinstance(sub, ast.Compare) and any(type(op) not in _CMPOPS for op in sub.ops))
         ):
-            bad = sub.op if isinstance(sub, ast.BinOp) else (
-                next(op for op in sub.ops if type(op) not in _CMPOPS) if isinstance(sub, ast.Compare) else sub)
-            raise ConfigError(f"selection expression {expr!r}: {describe_syntax(bad)} is not allowed; use {_GRAMMAR}")
+            bad = (
+                sub.op
+                if isinstance(sub, ast.BinOp)
+                else (
+                    next(op for op in sub.ops if type(op) not in _CMPOPS)
+                    if isinstance(sub, ast.Compare)
+                    else sub
+                )
+            )
+            raise ConfigError(
+                f"selection expression {expr!r}: {describe_syntax(bad)} is not allowed; use {_GRAMMAR}"
+            )
     if available is not None:
-        missing = [c for c in columns_used(expr) if c not in available and c not in ("True", "False")]
+        missing = [
+            c for c in columns_used(expr) if c not in available and c not in ("True", "False")
+        ]
         if missing:
             raise ConfigError(unknown_columns_message(expr, missing, list(available)))

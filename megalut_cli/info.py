@@ -30,8 +30,19 @@ from megalut_cli.shear.options import JSON_FORMAT as EVALUATION_FORMAT
 _FITS_MAGIC = b"SIMPLE  ="
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 #: Cards shown under "provenance" rather than with the other cards.
-_PROVENANCE_CARDS = {"DATE", "CREATOR", "MLFORMAT", "MLFMTVER", "HISTORY", "MODEL", "MODELSHA",
-                     "CFGFILE", "CFGSHA", "CFGOVR", "SEED"}
+_PROVENANCE_CARDS = {
+    "DATE",
+    "CREATOR",
+    "MLFORMAT",
+    "MLFMTVER",
+    "HISTORY",
+    "MODEL",
+    "MODELSHA",
+    "CFGFILE",
+    "CFGSHA",
+    "CFGOVR",
+    "SEED",
+}
 #: Rows read at a time when counting flags.
 _CHUNK_ROWS = 1_000_000
 
@@ -56,8 +67,10 @@ def describe_file(path: str | os.PathLike) -> dict[str, Any]:
         return _describe_text_catalog(p)
     except InputError:
         pass
-    raise InputError(f"{p}: not a FITS catalog or image, HDF5 model, megalut JSON file (evaluation, "
-                     "manifest) or text catalog")
+    raise InputError(
+        f"{p}: not a FITS catalog or image, HDF5 model, megalut JSON file (evaluation, "
+        "manifest) or text catalog"
+    )
 
 
 # --------------------------------------------------------------------------- JSON and text files
@@ -72,8 +85,10 @@ def _describe_json(p: Path) -> dict[str, Any]:
         return _describe_evaluation(p, data)
     if fmt == MANIFEST_FORMAT:
         return _describe_manifest(p, data)
-    raise InputError(f"{p}: a JSON file megalut does not describe (format {fmt!r}; known: "
-                     f"{EVALUATION_FORMAT}, {MANIFEST_FORMAT})")
+    raise InputError(
+        f"{p}: a JSON file megalut does not describe (format {fmt!r}; known: "
+        f"{EVALUATION_FORMAT}, {MANIFEST_FORMAT})"
+    )
 
 
 def _describe_evaluation(p: Path, data: dict[str, Any]) -> dict[str, Any]:
@@ -107,9 +122,14 @@ def _describe_manifest(p: Path, data: dict[str, Any]) -> dict[str, Any]:
         "pipeline": {k: pipe.get(k) for k in ("path", "sha256", "overrides")},
         "pipelines": sorted(data.get("pipelines") or {}),
         "steps": {
-            name: {"seconds": rec.get("seconds"), "finished": rec.get("finished"),
-                   "outputs": sorted(rec.get("outputs") or {}), "copied_from": rec.get("copied_from")}
-            for name, rec in steps.items() if isinstance(rec, dict)
+            name: {
+                "seconds": rec.get("seconds"),
+                "finished": rec.get("finished"),
+                "outputs": sorted(rec.get("outputs") or {}),
+                "copied_from": rec.get("copied_from"),
+            }
+            for name, rec in steps.items()
+            if isinstance(rec, dict)
         },
         "failed": data.get("failed") or {},
     }
@@ -149,9 +169,14 @@ def _describe_text_catalog(p: Path) -> dict[str, Any]:
 
 def _great3_kind(name: str, columns: list[str]) -> str | None:
     """GREAT3's name of a text catalog, from its file name and columns (docs/great3.md)."""
-    for prefix, what in (("galaxy_catalog-", "galaxy catalog"), ("star_catalog-", "star catalog"),
-                         ("shear_params-", "shear parameters"), ("starshape_parameters-", "star shape parameters"),
-                         ("subfield_offset-", "subfield offset"), ("epoch_dither-", "epoch dither")):
+    for prefix, what in (
+        ("galaxy_catalog-", "galaxy catalog"),
+        ("star_catalog-", "star catalog"),
+        ("shear_params-", "shear parameters"),
+        ("starshape_parameters-", "star shape parameters"),
+        ("subfield_offset-", "subfield offset"),
+        ("epoch_dither-", "epoch dither"),
+    ):
         if name.startswith(prefix):
             return what
     if {"x", "y", "ID"} <= set(columns):
@@ -167,19 +192,26 @@ def _columns(hdu: Any) -> list[dict[str, Any]]:
     for i, name in enumerate(hdu.get_colnames(), start=1):
         unit = hdr.get(f"TUNIT{i}")
         comment = hdr.get(f"TCOMM{i}")
-        out.append({
-            "name": name,
-            "type": dtype[name].base.name if dtype[name].kind != "S" else f"str{dtype[name].itemsize}",
-            "unit": None if unit is None else str(unit).strip(),
-            "description": None if comment is None else str(comment).strip(),
-        })
+        out.append(
+            {
+                "name": name,
+                "type": dtype[name].base.name
+                if dtype[name].kind != "S"
+                else f"str{dtype[name].itemsize}",
+                "unit": None if unit is None else str(unit).strip(),
+                "description": None if comment is None else str(comment).strip(),
+            }
+        )
     return out
 
 
 def _flag_counts(hdu: Any, n_rows: int) -> dict[str, Any]:
     """Rows flagged, and rows per bit (names from the file's FLAGBITn cards, else flags.py)."""
     hdr = hdu.read_header()
-    names = {1 << b: str(hdr.get(f"FLAGBIT{b}", fl.FLAG_NAMES.get(1 << b, f"BIT{b}"))).strip() for b in range(63)}
+    names = {
+        1 << b: str(hdr.get(f"FLAGBIT{b}", fl.FLAG_NAMES.get(1 << b, f"BIT{b}"))).strip()
+        for b in range(63)
+    }
     total = 0
     per_bit = np.zeros(63, dtype=np.int64)
     view = hdu["flags"]
@@ -188,7 +220,9 @@ def _flag_counts(hdu: Any, n_rows: int) -> dict[str, Any]:
         total += int(np.count_nonzero(v))
         for b in range(63):
             per_bit[b] += int(np.count_nonzero((v >> b) & 1))
-    bits = {names[1 << b]: {"value": 1 << b, "rows": int(per_bit[b])} for b in range(63) if per_bit[b]}
+    bits = {
+        names[1 << b]: {"value": 1 << b, "rows": int(per_bit[b])} for b in range(63) if per_bit[b]
+    }
     return {"rows_flagged": total, "rows_good": n_rows - total, "bits": bits}
 
 
@@ -198,8 +232,14 @@ def _provenance_from_header(header: dict[str, Any]) -> dict[str, Any]:
         "creator": header.get("CREATOR"),
         "steps": history_steps(header.get("HISTORY", [])),
     }
-    for key, card in (("seed", "SEED"), ("config_file", "CFGFILE"), ("config_sha256", "CFGSHA"),
-                      ("config_overrides", "CFGOVR"), ("model", "MODEL"), ("model_sha256", "MODELSHA")):
+    for key, card in (
+        ("seed", "SEED"),
+        ("config_file", "CFGFILE"),
+        ("config_sha256", "CFGSHA"),
+        ("config_overrides", "CFGOVR"),
+        ("model", "MODEL"),
+        ("model_sha256", "MODELSHA"),
+    ):
         if card in header:
             prov[key] = header[card]
     return prov
@@ -251,7 +291,14 @@ def _describe_fits(p: Path) -> dict[str, Any]:
 
 
 def _image_dtype(hdu: Any) -> np.dtype:
-    bitpix = {8: np.uint8, 16: np.int16, 32: np.int32, 64: np.int64, -32: np.float32, -64: np.float64}
+    bitpix = {
+        8: np.uint8,
+        16: np.int16,
+        32: np.int32,
+        64: np.int64,
+        -32: np.float32,
+        -64: np.float64,
+    }
     return np.dtype(bitpix.get(int(hdu.read_header().get("BITPIX", -32)), np.float32))
 
 
@@ -280,26 +327,28 @@ def _describe_model(p: Path) -> dict[str, Any]:
     committees = []
     for comm in [*model.point.values(), *model.weight.values()]:
         valid = [m.valid_cost for m in comm.selected]
-        committees.append({
-            "kind": comm.kind,
-            "target": comm.target,
-            "output": prediction_column(comm.target, comm.kind),
-            "features": comm.features,
-            "hidden": list(comm.hidden),
-            "cost": comm.cost,
-            "members": len(comm.members),
-            "selected": comm.n_selected,
-            "valid_cost": [float(np.min(valid)), float(np.max(valid))] if valid else None,
-            "iterations": int(max(m.n_iter for m in comm.members)),
-            "normalization": {
-                "method": comm.normalization,
-                "in_loc": comm.in_loc.tolist(),
-                "in_scale": comm.in_scale.tolist(),
-                "out_loc": comm.out_loc,
-                "out_scale": comm.out_scale,
-            },
-            "training": comm.training,
-        })
+        committees.append(
+            {
+                "kind": comm.kind,
+                "target": comm.target,
+                "output": prediction_column(comm.target, comm.kind),
+                "features": comm.features,
+                "hidden": list(comm.hidden),
+                "cost": comm.cost,
+                "members": len(comm.members),
+                "selected": comm.n_selected,
+                "valid_cost": [float(np.min(valid)), float(np.max(valid))] if valid else None,
+                "iterations": int(max(m.n_iter for m in comm.members)),
+                "normalization": {
+                    "method": comm.normalization,
+                    "in_loc": comm.in_loc.tolist(),
+                    "in_scale": comm.in_scale.tolist(),
+                    "out_loc": comm.out_loc,
+                    "out_scale": comm.out_scale,
+                },
+                "training": comm.training,
+            }
+        )
     return {
         "path": str(p),
         "format": "megalut.model",
@@ -325,14 +374,22 @@ def _training_sets(prov: dict[str, Any]) -> list[dict[str, Any]]:
         if prov.get("command"):
             pop = prov.get("population") if isinstance(prov.get("population"), dict) else None
             train = (prov.get("inputs") or {}).get("train")
-            catalog = (train.get("name") or shown_path(train.get("path", "?"))) if isinstance(train, dict) else None
-            out.append({
-                "committees": "point estimates" if prov.get("command") == "train-point" else "weights",
-                "catalog": catalog or (pop or {}).get("config"),
-                "summary": (pop.get("summary") or population_summary(pop)) if pop else None,
-                "population": pop,
-                "setup": prov.get("setup") if isinstance(prov.get("setup"), dict) else None,
-            })
+            catalog = (
+                (train.get("name") or shown_path(train.get("path", "?")))
+                if isinstance(train, dict)
+                else None
+            )
+            out.append(
+                {
+                    "committees": "point estimates"
+                    if prov.get("command") == "train-point"
+                    else "weights",
+                    "catalog": catalog or (pop or {}).get("config"),
+                    "summary": (pop.get("summary") or population_summary(pop)) if pop else None,
+                    "population": pop,
+                    "setup": prov.get("setup") if isinstance(prov.get("setup"), dict) else None,
+                }
+            )
         prov = prov.get("parent")
     return out
 
@@ -347,12 +404,16 @@ def describe_shipped_models() -> list[dict[str, Any]]:
         sets = _training_sets(model.provenance)
         domain = model_domain(model.provenance)
         setup = next((t["setup"] for t in sets if t["setup"]), None) or {}
-        out.append({
-            "name": name, "file": str(path), "shear_mode": model.shear_mode,
-            "trained_on": next((t["summary"] for t in sets if t["summary"]), None),
-            "stamp_size": (domain or {}).get("stamp_size") or setup.get("stamp_size"),
-            "domain": domain_summary(domain) if domain else None,
-        })
+        out.append(
+            {
+                "name": name,
+                "file": str(path),
+                "shear_mode": model.shear_mode,
+                "trained_on": next((t["summary"] for t in sets if t["summary"]), None),
+                "stamp_size": (domain or {}).get("stamp_size") or setup.get("stamp_size"),
+                "domain": domain_summary(domain) if domain else None,
+            }
+        )
     return out
 
 
@@ -363,8 +424,10 @@ def format_shipped_models(models: list[dict[str, Any]]) -> str:
     for m in models:
         mode = "metacal" if m["shear_mode"] == "metacal" else "plain"
         stamp = f", stamp {m['stamp_size']} px" if m.get("stamp_size") else ""
-        lines.append(f"{m['name']:<{width}}  {mode:<7}  {m['trained_on'] or 'training population not recorded'}"
-                     f"{stamp}  ({m['file']})")
+        lines.append(
+            f"{m['name']:<{width}}  {mode:<7}  {m['trained_on'] or 'training population not recorded'}"
+            f"{stamp}  ({m['file']})"
+        )
     return "\n".join(lines)
 
 
@@ -383,7 +446,8 @@ def _model_chain(prov: dict[str, Any]) -> list[str]:
         inputs = prov.get("inputs") or {}
         used = ", ".join(
             f"{role} {v.get('name') or shown_path(v.get('path', '?'))} (sha256 {str(v.get('sha256', '?'))[:12]})"
-            for role, v in inputs.items() if isinstance(v, dict)
+            for role, v in inputs.items()
+            if isinstance(v, dict)
         )
         command = shown_command(prov["argv"]) if prov.get("argv") else prov.get("command", "?")
         lines.append(f"{command}" + (f"\n      inputs: {used}" if used else ""))
@@ -403,9 +467,12 @@ def _training_lines(info: dict[str, Any]) -> list[str]:
         if t["population"] is None:
             lines.append(f"  {t['committees']}{where}: population not recorded")
             continue
-        if previous is not None and t["population"].get("summary") == previous.get("summary") and \
-                {k: t["population"].get(k) for k in ("galaxy", "psf", "noise")} == \
-                {k: previous.get(k) for k in ("galaxy", "psf", "noise")}:
+        if (
+            previous is not None
+            and t["population"].get("summary") == previous.get("summary")
+            and {k: t["population"].get(k) for k in ("galaxy", "psf", "noise")}
+            == {k: previous.get(k) for k in ("galaxy", "psf", "noise")}
+        ):
             lines.append(f"  {t['committees']}{where}: the same population")
             continue
         lines.append(f"  {t['committees']}{where}: {t['summary']}")
@@ -413,8 +480,11 @@ def _training_lines(info: dict[str, Any]) -> list[str]:
         lines += [f"    {line}" for line in population_lines(t["population"], setup)]
         previous = t["population"]
     domain = info.get("domain")
-    lines.append(f"domain: {domain_line(domain)}" if domain else
-                 "domain: not recorded (predict compares only the recorded setup)")
+    lines.append(
+        f"domain: {domain_line(domain)}"
+        if domain
+        else "domain: not recorded (predict compares only the recorded setup)"
+    )
     return lines
 
 
@@ -429,7 +499,9 @@ def format_info(info: dict[str, Any]) -> str:
         width = max([len(c["name"]) for c in info["columns"]] + [4])
         for c in info["columns"]:
             unit = "?" if c["unit"] is None else (c["unit"] or "-")
-            lines.append(f"  {c['name']:<{width}}  {c['type']:<8} {unit:<13} {c['description'] or ''}".rstrip())
+            lines.append(
+                f"  {c['name']:<{width}}  {c['type']:<8} {unit:<13} {c['description'] or ''}".rstrip()
+            )
         if "flags" in info:
             fl_info = info["flags"]
             lines.append(f"flags: {fl_info['rows_flagged']} of {info['rows']} rows flagged")
@@ -439,45 +511,67 @@ def format_info(info: dict[str, Any]) -> str:
             lines.append(f"extensions: {', '.join(info['extensions'])}")
         if info.get("config"):
             cfg = info["config"]
-            lines.append(f"config: sections {', '.join(cfg.get('sections', []))}; sha256 {cfg.get('sha256', '?')}")
+            lines.append(
+                f"config: sections {', '.join(cfg.get('sections', []))}; sha256 {cfg.get('sha256', '?')}"
+            )
     elif kind == "image":
         shape = "x".join(str(d) for d in info["shape"][::-1])
         lines.append(f"{info['path']}: {fmt}, image {shape} pixels ({info['type']})")
         if "stamp_size" in info:
             gx, gy = info["grid"]
-            lines.append(f"stamps: {info['stamps']} of {info['stamp_size']}x{info['stamp_size']} pixels "
-                         f"in a {gx}x{gy} grid")
+            lines.append(
+                f"stamps: {info['stamps']} of {info['stamp_size']}x{info['stamp_size']} pixels "
+                f"in a {gx}x{gy} grid"
+            )
     elif kind in ("evaluation", "manifest", "text_catalog"):
         lines += _OTHER_FORMATS[kind](info, fmt)
         return "\n".join(lines)
     else:
         lines.append(f"{info['path']}: {fmt}, targets {', '.join(info['targets'])}")
         mode = info.get("shear_mode", "simulation")
-        lines.append("mode: " + ("metacal (for catalogs of measure --metacal: features X_noshear..., calibrated by "
-                                 "the response; docs/metacal.md)" if mode == "metacal" else
-                                 "simulation-calibrated (for catalogs measured without --metacal)"))
+        lines.append(
+            "mode: "
+            + (
+                "metacal (for catalogs of measure --metacal: features X_noshear..., calibrated by "
+                "the response; docs/metacal.md)"
+                if mode == "metacal"
+                else "simulation-calibrated (for catalogs measured without --metacal)"
+            )
+        )
         lines.append(f"features: {', '.join(info['features'])}")
         lines.append("committees:")
         for c in info["committees"]:
             vc = c["valid_cost"]
             cost = f", validation cost {vc[0]:.4g} to {vc[1]:.4g}" if vc else ""
-            lines.append(f"  {c['kind']:<6} {c['target']} -> {c['output']}: {c['selected']} of {c['members']} "
-                         f"networks selected, hidden {c['hidden']}, cost {c['cost']}, "
-                         f"{c['iterations']} iterations{cost}")
+            lines.append(
+                f"  {c['kind']:<6} {c['target']} -> {c['output']}: {c['selected']} of {c['members']} "
+                f"networks selected, hidden {c['hidden']}, cost {c['cost']}, "
+                f"{c['iterations']} iterations{cost}"
+            )
             nrm = c["normalization"]
-            lines.append(f"         features {', '.join(c['features'])}; normalization {nrm['method']}")
+            lines.append(
+                f"         features {', '.join(c['features'])}; normalization {nrm['method']}"
+            )
             if c["training"]:
-                lines.append("         training: " + ", ".join(
-                    f"{k}={_fmt_value(v)}" for k, v in sorted(c["training"].items())))
+                lines.append(
+                    "         training: "
+                    + ", ".join(f"{k}={_fmt_value(v)}" for k, v in sorted(c["training"].items()))
+                )
         lines += _training_lines(info)
         lines.append(f"sha256: {info['sha256']}")
         lines.append(f"uuid: {info['uuid']}")
     if kind != "model":
         if info["cards"]:
-            lines.append("cards: " + ", ".join(f"{k}={_fmt_value(v)}" for k, v in info["cards"].items()))
+            lines.append(
+                "cards: " + ", ".join(f"{k}={_fmt_value(v)}" for k, v in info["cards"].items())
+            )
         prov = info["provenance"]
         lines.append(f"created: {prov.get('created') or '?'} by {prov.get('creator') or '?'}")
-        extra = [f"{k} {_fmt_value(v)}" for k, v in prov.items() if k not in ("created", "creator", "steps")]
+        extra = [
+            f"{k} {_fmt_value(v)}"
+            for k, v in prov.items()
+            if k not in ("created", "creator", "steps")
+        ]
         if extra:
             lines.append("origin: " + ", ".join(extra))
         if prov["steps"]:
@@ -503,17 +597,25 @@ def _pm(v: Any, e: Any) -> str:
 
 
 def _evaluation_lines(info: dict[str, Any], fmt: str) -> list[str]:
-    lines = [f"{info['path']}: {fmt}, the biases of {info.get('input') or '?'} "
-             f"({info.get('rows_usable', '?')} of {info.get('rows', '?')} rows usable)"]
-    lines.append(f"errors: {'bootstrap over galaxies' if info.get('error') == 'bootstrap-galaxies' else 'from the fit'}")
+    lines = [
+        f"{info['path']}: {fmt}, the biases of {info.get('input') or '?'} "
+        f"({info.get('rows_usable', '?')} of {info.get('rows', '?')} rows usable)"
+    ]
+    lines.append(
+        f"errors: {'bootstrap over galaxies' if info.get('error') == 'bootstrap-galaxies' else 'from the fit'}"
+    )
     for scheme, comps in info["fits"].items():
         for comp, f in comps.items():
-            lines.append(f"  {scheme:<10} {comp:<5} m = {_pm(f.get('m'), f.get('m_err')):<21} "
-                         f"c = {_pm(f.get('c'), f.get('c_err')):<21} {f.get('n_cases', '?')} cases")
+            lines.append(
+                f"  {scheme:<10} {comp:<5} m = {_pm(f.get('m'), f.get('m_err')):<21} "
+                f"c = {_pm(f.get('c'), f.get('c_err')):<21} {f.get('n_cases', '?')} cases"
+            )
     req = info.get("requirement")
     if isinstance(req, dict):
-        lines.append(f"Stage IV requirement on {req.get('applies_to', '?')} results: "
-                     + ("met" if req.get("met") else "NOT met"))
+        lines.append(
+            f"Stage IV requirement on {req.get('applies_to', '?')} results: "
+            + ("met" if req.get("met") else "NOT met")
+        )
     if info.get("conditional"):
         lines.append(f"conditional biases by: {', '.join(info['conditional'])}")
     prov = info["provenance"]
@@ -526,11 +628,15 @@ def _evaluation_lines(info: dict[str, Any], fmt: str) -> list[str]:
 def _manifest_lines(info: dict[str, Any], fmt: str) -> list[str]:
     pipe = info["pipeline"]
     sha = str(pipe.get("sha256") or "?")[:12]
-    lines = [f"{info['path']}: {fmt}, a megalut run's work folder record (megalut {info.get('megalut') or '?'})",
-             f"pipeline: {pipe.get('path') or '?'} (sha256 {sha}), overrides: "
-             + (" ".join(pipe.get("overrides") or []) or "none")]
+    lines = [
+        f"{info['path']}: {fmt}, a megalut run's work folder record (megalut {info.get('megalut') or '?'})",
+        f"pipeline: {pipe.get('path') or '?'} (sha256 {sha}), overrides: "
+        + (" ".join(pipe.get("overrides") or []) or "none"),
+    ]
     if len(info["pipelines"]) > 1:
-        lines.append(f"pipelines run here: {', '.join(n or '(unnamed)' for n in info['pipelines'])}")
+        lines.append(
+            f"pipelines run here: {', '.join(n or '(unnamed)' for n in info['pipelines'])}"
+        )
     steps = info["steps"]
     lines.append(f"steps: {len(steps)} finished")
     width = max([len(n) for n in steps] + [4])
@@ -538,16 +644,20 @@ def _manifest_lines(info: dict[str, Any], fmt: str) -> list[str]:
         secs = st.get("seconds")
         took = f"{secs:.1f} s" if isinstance(secs, (int, float)) else "?"
         copied = f" (copied from {st['copied_from']})" if st.get("copied_from") else ""
-        lines.append(f"  {name:<{width}}  {took:>9}  {st.get('finished') or '?':<19}  "
-                     f"{', '.join(st['outputs'])}{copied}".rstrip())
+        lines.append(
+            f"  {name:<{width}}  {took:>9}  {st.get('finished') or '?':<19}  "
+            f"{', '.join(st['outputs'])}{copied}".rstrip()
+        )
     for unit, error in info["failed"].items():
         lines.append(f"  failed: {unit}: {error}")
     return lines
 
 
 def _text_catalog_lines(info: dict[str, Any], fmt: str) -> list[str]:
-    lines = [f"{info['path']}: {fmt}, {info['rows']} rows, {len(info['columns'])} columns: "
-             + ", ".join(c["name"] for c in info["columns"])]
+    lines = [
+        f"{info['path']}: {fmt}, {info['rows']} rows, {len(info['columns'])} columns: "
+        + ", ".join(c["name"] for c in info["columns"])
+    ]
     if "subfields" in info:
         lines.append(f"subfields (ID // 10^6): {', '.join(map(str, info['subfields']))}")
     for c in ("x", "y"):
@@ -557,4 +667,8 @@ def _text_catalog_lines(info: dict[str, Any], fmt: str) -> list[str]:
     return lines
 
 
-_OTHER_FORMATS = {"evaluation": _evaluation_lines, "manifest": _manifest_lines, "text_catalog": _text_catalog_lines}
+_OTHER_FORMATS = {
+    "evaluation": _evaluation_lines,
+    "manifest": _manifest_lines,
+    "text_catalog": _text_catalog_lines,
+}

@@ -27,11 +27,24 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 #: Local worker processes (``-j``), the same for every command.
-NPROC_OPTION = Option("nproc", "int", 0, "Local worker processes (0 or less: all cores; env MEGALUT_NPROC). "
-                      "Results are identical for any value.", short="-j", envvar="MEGALUT_NPROC")
+NPROC_OPTION = Option(
+    "nproc",
+    "int",
+    0,
+    "Local worker processes (0 or less: all cores; env MEGALUT_NPROC). "
+    "Results are identical for any value.",
+    short="-j",
+    envvar="MEGALUT_NPROC",
+)
 #: A Dask cluster instead of local processes (``--scheduler``).
-SCHEDULER_OPTION = Option("scheduler", "str", None, "Run on an existing Dask cluster: a scheduler address "
-                          "(tcp://host:8786) or a scheduler file. Needs the 'dask' extra.", metavar="ADDR")
+SCHEDULER_OPTION = Option(
+    "scheduler",
+    "str",
+    None,
+    "Run on an existing Dask cluster: a scheduler address "
+    "(tcp://host:8786) or a scheduler file. Needs the 'dask' extra.",
+    metavar="ADDR",
+)
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 
@@ -153,8 +166,9 @@ def executor(
     # set while it lives, so that every worker starts with one BLAS thread.
     start_worker_server(())  # where the command did not start it already
     with _single_threaded_children():
-        pool = ProcessPoolExecutor(max_workers=n, mp_context=get_context(START_METHOD),
-                                   initializer=ignore_interrupt)
+        pool = ProcessPoolExecutor(
+            max_workers=n, mp_context=get_context(START_METHOD), initializer=ignore_interrupt
+        )
         try:
             log.info("running on %d local worker processes", n)
             yield pool

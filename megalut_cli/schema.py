@@ -26,7 +26,18 @@ from typing import Any
 from megalut_cli.errors import ConfigError, InputError
 
 #: Value kinds of an :class:`Option`.
-KINDS = ("int", "float", "str", "bool", "choice", "str_list", "int_list", "choice_list", "path", "table")
+KINDS = (
+    "int",
+    "float",
+    "str",
+    "bool",
+    "choice",
+    "str_list",
+    "int_list",
+    "choice_list",
+    "path",
+    "table",
+)
 #: Value kinds the reader of a table parses itself: a number or a distribution table
 #: (``dist``, :mod:`megalut_cli.sim.distributions`), an expression over the columns of a
 #: catalog (``expr``, :mod:`megalut_cli.expr`).
@@ -46,7 +57,9 @@ def _is_number(value: Any) -> bool:
 
 def check_int(value: Any, key: str, minimum: int | None = None, maximum: int | None = None) -> int:
     """An integer (``3`` or ``3.0``), within ``[minimum, maximum]`` when given."""
-    if not _is_number(value) or not (isinstance(value, numbers.Integral) or float(value).is_integer()):
+    if not _is_number(value) or not (
+        isinstance(value, numbers.Integral) or float(value).is_integer()
+    ):
         raise ConfigError(f"{key}: expected an integer, got {value!r}")
     out = int(value)
     if minimum is not None and out < minimum:
@@ -56,7 +69,9 @@ def check_int(value: Any, key: str, minimum: int | None = None, maximum: int | N
     return out
 
 
-def interval_text(lo: float | None, hi: float | None, lo_open: bool = False, hi_open: bool = False) -> str:
+def interval_text(
+    lo: float | None, hi: float | None, lo_open: bool = False, hi_open: bool = False
+) -> str:
     """``[0, 1)``, ``> 0``, ``<= 1``: the allowed range of a number, as messages and docs write it."""
     if lo is not None and hi is not None:
         return f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
@@ -111,7 +126,9 @@ def check_bool(value: Any, key: str) -> bool:
 def check_str(value: Any, key: str, allow_empty: bool = False) -> str:
     """A non-empty string (or any string, with ``allow_empty``)."""
     if not isinstance(value, str) or not (allow_empty or value.strip()):
-        raise ConfigError(f"{key}: expected a {'' if allow_empty else 'non-empty '}string, got {value!r}")
+        raise ConfigError(
+            f"{key}: expected a {'' if allow_empty else 'non-empty '}string, got {value!r}"
+        )
     return value
 
 
@@ -133,8 +150,11 @@ def check_int_list(value: Any, key: str) -> list[int]:
     """A non-empty list of positive integers (or one integer)."""
     if isinstance(value, int) and not isinstance(value, bool):
         value = [value]
-    if (not isinstance(value, (list, tuple)) or not value
-            or not all(isinstance(i, int) and not isinstance(i, bool) and i > 0 for i in value)):
+    if (
+        not isinstance(value, (list, tuple))
+        or not value
+        or not all(isinstance(i, int) and not isinstance(i, bool) and i > 0 for i in value)
+    ):
         raise ConfigError(f"{key}: expected a list of positive integers, got {value!r}")
     return list(value)
 
@@ -148,7 +168,9 @@ def check_choice_list(value: Any, key: str, choices: Sequence[str]) -> list[str]
     return [check_choice(v, key, choices) for v in value]
 
 
-def check_table(value: Any, key: str, allowed: set[str] | None = None, required: bool = False) -> dict[str, Any]:
+def check_table(
+    value: Any, key: str, allowed: set[str] | None = None, required: bool = False
+) -> dict[str, Any]:
     """A table (``None``: an empty one, unless ``required``) whose keys are all in ``allowed``
     when given."""
     if value is None:
@@ -183,7 +205,11 @@ def resolve_path(text: Any, key: str, base: str | Path | None, folder: bool = Fa
     for candidate in candidates:
         if candidate.is_dir() if folder else candidate.is_file():
             return candidate.resolve()
-    where = "" if path.is_absolute() else " (looked beside the file that names it and in the current folder)"
+    where = (
+        ""
+        if path.is_absolute()
+        else " (looked beside the file that names it and in the current folder)"
+    )
     raise InputError(f"{key}: no such {what} {text!r}{where}")
 
 
@@ -282,9 +308,16 @@ class Option:
             return ", ".join(f"`{c}`" for c in self.choices)
         if self.kind in ("int", "float"):
             return interval_text(self.minimum, self.maximum, self.min_open, self.max_open)
-        return {"bool": "true, false", "str": "text", "str_list": "names", "int_list": "positive integers",
-                "path": "a path", "table": "a table", "dist": "*dist*",
-                "expr": "an expression"}[self.kind]
+        return {
+            "bool": "true, false",
+            "str": "text",
+            "str_list": "names",
+            "int_list": "positive integers",
+            "path": "a path",
+            "table": "a table",
+            "dist": "*dist*",
+            "expr": "an expression",
+        }[self.kind]
 
     def default_repr(self) -> str:
         """The default as a docs table writes it."""
@@ -293,7 +326,11 @@ class Option:
         if self.default is None:
             return "none"
         if isinstance(self.default, (list, tuple)):
-            return "[" + ", ".join(f'"{v}"' if isinstance(v, str) else str(v) for v in self.default) + "]"
+            return (
+                "["
+                + ", ".join(f'"{v}"' if isinstance(v, str) else str(v) for v in self.default)
+                + "]"
+            )
         if isinstance(self.default, str):
             return f'"{self.default}"'
         if isinstance(self.default, bool):
@@ -301,7 +338,9 @@ class Option:
         return str(self.default)
 
 
-def docs_table(options: Sequence[Option], cli: bool = True, keys: bool = True, prefix: str = "") -> str:
+def docs_table(
+    options: Sequence[Option], cli: bool = True, keys: bool = True, prefix: str = ""
+) -> str:
     """A Markdown table of ``options``: config key (``prefix`` + name; none unless ``keys``: a
     command's options), flag (when ``cli``), default, allowed values, meaning."""
     head = ["key"] * keys + ["option"] * cli + ["default", "allowed", "meaning"]
@@ -415,15 +454,26 @@ class Table:
         fallback = option.default if default is None else default
         return option.check(self.data.get(option.name, fallback), self.key(option.name))
 
-    def get_int(self, name: str, default: int | None, minimum: int, maximum: int | None = None) -> int | None:
+    def get_int(
+        self, name: str, default: int | None, minimum: int, maximum: int | None = None
+    ) -> int | None:
         v = self.data.get(name, default)
         return None if v is None else check_int(v, self.key(name), minimum, maximum)
 
-    def get_float(self, name: str, default: float, lo: float | None = None, hi: float | None = None,
-                  lo_open: bool = False, hi_open: bool = False) -> float:
+    def get_float(
+        self,
+        name: str,
+        default: float,
+        lo: float | None = None,
+        hi: float | None = None,
+        lo_open: bool = False,
+        hi_open: bool = False,
+    ) -> float:
         return check_float(self.data.get(name, default), self.key(name), lo, hi, lo_open, hi_open)
 
-    def get_str(self, name: str, default: str | None, choices: Sequence[str] | None = None) -> str | None:
+    def get_str(
+        self, name: str, default: str | None, choices: Sequence[str] | None = None
+    ) -> str | None:
         v = self.data.get(name, default)
         if v is None:
             return None
@@ -433,7 +483,9 @@ class Table:
     def get_bool(self, name: str, default: bool) -> bool:
         return check_bool(self.data.get(name, default), self.key(name))
 
-    def get_str_list(self, name: str, default: Sequence[str] | None, allow_empty: bool = False) -> list[str] | None:
+    def get_str_list(
+        self, name: str, default: Sequence[str] | None, allow_empty: bool = False
+    ) -> list[str] | None:
         v = self.data.get(name, default)
         return None if v is None else check_str_list(v, self.key(name), allow_empty)
 

@@ -29,7 +29,9 @@ SEED_OPTION = Option("seed", "int", 1, "Seed of every random draw of this step."
 
 def rng_for(seed: int, *keys: int) -> np.random.Generator:
     """A numpy Generator for the unit named by ``keys`` under the user's ``seed``."""
-    return np.random.default_rng(np.random.SeedSequence(entropy=int(seed), spawn_key=tuple(int(k) for k in keys)))
+    return np.random.default_rng(
+        np.random.SeedSequence(entropy=int(seed), spawn_key=tuple(int(k) for k in keys))
+    )
 
 
 def int_seed_for(seed: int, *keys: int) -> int:

@@ -13,7 +13,9 @@ from types import TracebackType
 signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _quiet_when_orphaned(kind: type[BaseException], value: BaseException, tb: TracebackType | None) -> None:
+def _quiet_when_orphaned(
+    kind: type[BaseException], value: BaseException, tb: TracebackType | None
+) -> None:
     """The server calls the hook only when a worker fails to start; an OS or end-of-file
     error there means that the command left."""
     if issubclass(kind, (OSError, EOFError)):

@@ -50,7 +50,9 @@ def read_expected_skips(path: Path) -> list[tuple[str, str]]:
             continue
         pattern, sep, reason = line.partition(" # ")
         if not sep or not pattern.strip() or not reason.strip():
-            raise pytest.UsageError(f"{path}:{number}: expected '<nodeid or pattern> # <reason>', got {line!r}")
+            raise pytest.UsageError(
+                f"{path}:{number}: expected '<nodeid or pattern> # <reason>', got {line!r}"
+            )
         entries.append((pattern.strip(), reason.strip()))
     return entries
 

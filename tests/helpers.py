@@ -16,27 +16,45 @@ from megalut_cli.nn.train import MemberTask, TrainSettings
 FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]
 
 
-def make_committee(kind: str, target: str, features: list[str], hidden=(5, 5), n_members=3, seed=0) -> Committee:
+def make_committee(
+    kind: str, target: str, features: list[str], hidden=(5, 5), n_members=3, seed=0
+) -> Committee:
     rng = np.random.default_rng(seed)
     sizes = [len(features), *hidden, 1]
     members = [
-        Member(layers=[(rng.normal(0, 0.7, (i, o)), rng.normal(0, 0.2, o)) for i, o in zip(sizes[:-1], sizes[1:])])
+        Member(
+            layers=[
+                (rng.normal(0, 0.7, (i, o)), rng.normal(0, 0.2, o))
+                for i, o in zip(sizes[:-1], sizes[1:])
+            ]
+        )
         for _ in range(n_members)
     ]
     return Committee(
-        kind, target, features, hidden,
-        in_loc=rng.normal(0, 0.5, len(features)), in_scale=rng.uniform(0.5, 2.0, len(features)),
-        members=members, out_loc=0.01, out_scale=0.3,
+        kind,
+        target,
+        features,
+        hidden,
+        in_loc=rng.normal(0, 0.5, len(features)),
+        in_scale=rng.uniform(0.5, 2.0, len(features)),
+        members=members,
+        out_loc=0.01,
+        out_scale=0.3,
     )
 
 
 def make_model(path, weights: bool = True, seed: int = 0) -> ShearModel:
-    point = {t: make_committee("point", t, FEATURES, seed=seed + i) for i, t in enumerate(("tru_g1", "tru_g2"))}
+    point = {
+        t: make_committee("point", t, FEATURES, seed=seed + i)
+        for i, t in enumerate(("tru_g1", "tru_g2"))
+    }
     weight = {}
     if weights:  # weight committees may use other features: the model needs their union
         wf = [*FEATURES[2:], "snr"]
-        weight = {t: make_committee("weight", t, wf, hidden=(4,), seed=seed + 10 + i)
-                  for i, t in enumerate(("tru_g1", "tru_g2"))}
+        weight = {
+            t: make_committee("weight", t, wf, hidden=(4,), seed=seed + 10 + i)
+            for i, t in enumerate(("tru_g1", "tru_g2"))
+        }
     model = ShearModel(point, weight)
     model.save(path)
     return model
@@ -50,7 +68,9 @@ def manual_predict(c: Committee, x: np.ndarray) -> np.ndarray:
         for w, b in mem.layers[:-1]:
             a = np.tanh(a @ w + b)
         z = a @ mem.layers[-1][0][:, 0] + mem.layers[-1][1][0]
-        outs.append(c.out_loc + c.out_scale * z if c.kind == "point" else 1.0 / (1.0 + np.exp(-4.0 * z)))
+        outs.append(
+            c.out_loc + c.out_scale * z if c.kind == "point" else 1.0 / (1.0 + np.exp(-4.0 * z))
+        )
     return np.mean(outs, axis=0)
 
 
@@ -117,7 +137,9 @@ def png_size(path) -> tuple[int, int]:
 CRN_M_TRUE, CRN_C_TRUE = 0.05, 1e-3
 
 
-def crn_synthetic(seed: int, crn: bool, n_cases: int = 10, n_groups: int = 300, group_size: int = 2) -> dict:
+def crn_synthetic(
+    seed: int, crn: bool, n_cases: int = 10, n_groups: int = 300, group_size: int = 2
+) -> dict:
     """Estimates ``pre = e + (1 + m + d) g + c + n + eps`` of ``n_groups`` galaxies (90-degree
     pairs: ``e`` opposite within a pair) per case. Per galaxy: intrinsic ``e``, response
     scatter ``d`` and pixel noise ``n``, the same in every case when ``crn`` (else new per
@@ -134,7 +156,9 @@ def crn_synthetic(seed: int, crn: bool, n_cases: int = 10, n_groups: int = 300, 
         return e, d, noise
 
     shared = galaxies()
-    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("case", "rea", "tru_g1", "tru_g2", "pre_g1", "pre_g2")}
+    cols: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("case", "rea", "tru_g1", "tru_g2", "pre_g1", "pre_g2")
+    }
     for k in range(n_cases):
         e, d, noise = shared if crn else galaxies()
         eps = rng.normal(0, 0.01, (2, n_rea))
@@ -142,7 +166,9 @@ def crn_synthetic(seed: int, crn: bool, n_cases: int = 10, n_groups: int = 300, 
         cols["rea"].append(np.arange(n_rea))
         for i in (0, 1):
             cols[f"tru_g{i + 1}"].append(np.full(n_rea, g[i, k]))
-            cols[f"pre_g{i + 1}"].append(e[i] + (1 + CRN_M_TRUE + d[i]) * g[i, k] + CRN_C_TRUE + noise[i] + eps[i])
+            cols[f"pre_g{i + 1}"].append(
+                e[i] + (1 + CRN_M_TRUE + d[i]) * g[i, k] + CRN_C_TRUE + noise[i] + eps[i]
+            )
     return {k: np.concatenate(v) for k, v in cols.items()}
 
 
@@ -196,10 +222,23 @@ def toy_unit(job: dict, work) -> dict:
 
 def toy_task(data: CaseData, valid: CaseData, **kw) -> MemberTask:
     """A small training task of one member on the Appendix A toy cases."""
-    net = Network(data.x.shape[1], (5,), "identity", float(data.targets.mean()), float(data.targets.std()))
-    settings = TrainSettings(**{"iterations": 90, "batch_fraction": 0.5, "batch_iterations": 30, **kw})
+    net = Network(
+        data.x.shape[1], (5,), "identity", float(data.targets.mean()), float(data.targets.std())
+    )
+    settings = TrainSettings(
+        **{"iterations": 90, "batch_fraction": 0.5, "batch_iterations": 30, **kw}
+    )
     return MemberTask(
-        "m", net, settings, data, valid, 0, np.full(1, 1.4), np.full(1, 0.9), seed=5, keys=(2, 1, 0),
+        "m",
+        net,
+        settings,
+        data,
+        valid,
+        0,
+        np.full(1, 1.4),
+        np.full(1, 0.9),
+        seed=5,
+        keys=(2, 1, 0),
         cost_scale=float(data.targets.std()),
     )
 
@@ -208,7 +247,9 @@ def toy_cases(seed: int, nc: int = 60, nr: int = 100) -> CaseData:
     """``nc`` Appendix A toy cases of ``nr`` realizations."""
     rng = np.random.default_rng(seed)
     cols = appendix_columns(rng.uniform(0.25, 2.0, nc), nr, rng)
-    return CaseData.from_padded(cols["d"].reshape(nc, nr, 1), np.ones((nc, nr), bool), cols["tru_theta"][::nr])
+    return CaseData.from_padded(
+        cols["d"].reshape(nc, nr, 1), np.ones((nc, nr), bool), cols["tru_theta"][::nr]
+    )
 
 
 # Checks of a click ``CliRunner`` result (the ``runner`` fixture keeps stderr apart).

@@ -12,6 +12,7 @@ from megalut_cli.sim.psf import psf_includes_pixel
 #: Sersic indices of the random galaxies: gridded and continuous.
 N_VALUES = (0.5, 1.0, 1.2345, 2.5, 3.3, 4.567, 6.0)
 
+
 def random_galaxies(seed: int, m: int, profile: str = "sersic") -> dict[str, np.ndarray]:
     """Corner cases first, then random galaxies (n in N_VALUES, hlr in [0.5, 12] px,
     |e| <= 0.8, |g| <= 0.2, offsets +-0.5 px); FFT sizes kept moderate for speed."""
@@ -46,7 +47,8 @@ def write_starfield(path, size=24):
         i, j = k % 3, k // 3
         b = galsim.BoundsI(i * size + 1, (i + 1) * size, j * size + 1, (j + 1) * size)
         galsim.Gaussian(sigma=1.2 + 0.2 * k, flux=50.0).shear(g1=0.02 * k, g2=-0.01 * k).drawImage(
-            field[b], method="no_pixel")
+            field[b], method="no_pixel"
+        )
     write_image(path, field.array, fmt="test")
     return path
 
@@ -55,11 +57,28 @@ def write_starfield(path, size=24):
 RENDER_CASES = [
     ({"type": "gaussian", "sigma": 2.0}, (0, 0), {}, 64, 16),  # fiducial
     ({"type": "gaussian", "sigma": 1.5, "g1": 0.05}, (0, 0), {}, 32, 10),
-    ({"type": "moffat", "beta": 3.0, "fwhm": 2.5, "g1": 0.03, "g2": -0.04}, (0, 0),
-     {"folding_threshold": 0.01}, 33, 10),
-    ({"type": "moffat", "beta": 2.5, "half_light_radius": 0.6, "trunc": 4.0}, (0, 0), {}, 32, 8),  # Nk > N
+    (
+        {"type": "moffat", "beta": 3.0, "fwhm": 2.5, "g1": 0.03, "g2": -0.04},
+        (0, 0),
+        {"folding_threshold": 0.01},
+        33,
+        10,
+    ),
+    (
+        {"type": "moffat", "beta": 2.5, "half_light_radius": 0.6, "trunc": 4.0},
+        (0, 0),
+        {},
+        32,
+        8,
+    ),  # Nk > N
     ({"type": "field"}, (0.3, 0.9), {}, 64, 10),
-    ({"type": "field", "sigma_mean": 1.2}, (1.0, 0.0), {"maxk_threshold": 0.002, "kvalue_accuracy": 2e-5}, 128, 6),
+    (
+        {"type": "field", "sigma_mean": 1.2},
+        (1.0, 0.0),
+        {"maxk_threshold": 0.002, "kvalue_accuracy": 2e-5},
+        128,
+        6,
+    ),
     ({"type": "euclid", "size": 32}, (0, 0), {"folding_threshold": 0.02}, 33, 10),
     ({"type": "euclid", "size": 32}, (0, 0), {}, 32, 6),
     ({"type": "stamp", "stamp_size": 24, "index": 4}, (0, 0), {}, 33, 10),

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-COSMOS = Path(__file__).resolve().parents[1] / "examples" / "data" / "cosmos" / "real_galaxy_catalog_23.5_example_fits.fits"
+COSMOS = (
+    Path(__file__).resolve().parents[1]
+    / "examples"
+    / "data"
+    / "cosmos"
+    / "real_galaxy_catalog_23.5_example_fits.fits"
+)
 #: GalSim's COSMOS noise correlation function (getCOSMOSNoise).
 CF_FILE = COSMOS.parent / "acs_I_unrot_sci_20_cf.fits"
 
@@ -126,7 +132,9 @@ SOURCE
 """
 
 
-def write(tmp_path: Path, text: str = TINY, name: str = "sim.toml", replace: dict[str, str] | None = None) -> Path:
+def write(
+    tmp_path: Path, text: str = TINY, name: str = "sim.toml", replace: dict[str, str] | None = None
+) -> Path:
     """Write a config (with optional plain-text replacements) and return its path."""
     for old, new in (replace or {}).items():
         assert old in text, old

@@ -19,7 +19,10 @@ def folder(tmp_path, monkeypatch):
 
 
 def test_round_trip_is_exact_and_keyed(folder):
-    arrays = {"a": np.array([0.1, np.nan, -np.inf]), "b": np.arange(6, dtype=np.int64).reshape(2, 3)}
+    arrays = {
+        "a": np.array([0.1, np.nan, -np.inf]),
+        "b": np.arange(6, dtype=np.int64).reshape(2, 3),
+    }
     assert cache.load_arrays("t", "key 1") is None
     cache.store_arrays("t", "key 1", arrays)
     back = cache.load_arrays("t", "key 1")
@@ -87,7 +90,9 @@ def _writer(args: tuple[str, int]) -> bool:
 def test_concurrent_writers_and_readers_see_whole_entries(folder):
     with multiprocessing.get_context("spawn").Pool(4) as pool:
         assert all(pool.map(_writer, [(str(folder), k) for k in range(8)]))
-    assert sorted(p.name for p in folder.iterdir()) == [cache.entry_path("t", "shared", folder).name]
+    assert sorted(p.name for p in folder.iterdir()) == [
+        cache.entry_path("t", "shared", folder).name
+    ]
 
 
 def test_sersic_table_from_disk_equals_the_built_one(folder, monkeypatch):
@@ -106,8 +111,13 @@ def test_sersic_table_from_disk_equals_the_built_one(folder, monkeypatch):
         a, b = getattr(built, name), getattr(loaded, name)
         assert a.dtype == b.dtype and a.flags.c_contiguous and b.flags.c_contiguous
         np.testing.assert_array_equal(a, b)  # NaN where the fast form falls back, in both
-    assert (built.kind, built.octaves, built.stepk, built.maxk, built.hlr_factor) == \
-        (loaded.kind, loaded.octaves, loaded.stepk, loaded.maxk, loaded.hlr_factor)
+    assert (built.kind, built.octaves, built.stepk, built.maxk, built.hlr_factor) == (
+        loaded.kind,
+        loaded.octaves,
+        loaded.stepk,
+        loaded.maxk,
+        loaded.hlr_factor,
+    )
     render._SERSIC_TABLES.clear()
 
 

@@ -15,31 +15,62 @@ from megalut_cli.catalog import write_catalog
 def shears(tmp_path):
     """A prediction catalog with weights and PSF columns and a clear multiplicative bias."""
     path = tmp_path / "shears.fits"
-    write_catalog(path, synthetic(seed=7, m=(0.02, 0.0), sigma=0.05, weights=True, psf=True), fmt="megalut.predictions")
+    write_catalog(
+        path,
+        synthetic(seed=7, m=(0.02, 0.0), sigma=0.05, weights=True, psf=True),
+        fmt="megalut.predictions",
+    )
     return path
 
 
 @pytest.fixture
 def perfect(tmp_path):
     path = tmp_path / "perfect.fits"
-    write_catalog(path, synthetic(seed=7, sigma=0.0, n_cases=20, n_rea=5), fmt="megalut.predictions")
+    write_catalog(
+        path, synthetic(seed=7, sigma=0.0, n_cases=20, n_rea=5), fmt="megalut.predictions"
+    )
     return path
 
 
 def test_help(runner, cli):
     result = runner.invoke(cli, ["evaluate", "--help"])
     assert result.exit_code == 0
-    for word in ("--by", "--bins", "--select", "--json", "--plot", "--fail-above", "Example", "status"):
+    for word in (
+        "--by",
+        "--bins",
+        "--select",
+        "--json",
+        "--plot",
+        "--fail-above",
+        "Example",
+        "status",
+    ):
         assert word in result.output
 
 
 def test_table_json_and_plot(runner, cli, shears, tmp_path):
     js, png = tmp_path / "out.json", tmp_path / "out.png"
     result = runner.invoke(
-        cli, ["evaluate", str(shears), "--by", "tru_rad,snr", "--bins", "3", "--json", str(js), "--plot", str(png)]
+        cli,
+        [
+            "evaluate",
+            str(shears),
+            "--by",
+            "tru_rad,snr",
+            "--bins",
+            "3",
+            "--json",
+            str(js),
+            "--plot",
+            str(png),
+        ],
     )
     assert result.exit_code == 0, result.output
-    assert "unweighted" in result.stdout and "plus" in result.stdout and "conditional biases by snr" in result.stdout
+    assert (
+        "unweighted" in result.stdout
+        and "plus" in result.stdout
+        and "conditional biases by snr" in result.stdout
+    )
     data = json.loads(js.read_text())
     for scheme in ("unweighted", "weighted"):
         assert set(data[scheme]) == {"g1", "g2", "plus", "cross"}
@@ -55,8 +86,23 @@ def test_table_json_and_plot(runner, cli, shears, tmp_path):
 
 def test_by_case_average_and_expression(runner, cli, shears, tmp_path):
     js, png = tmp_path / "q.json", tmp_path / "q.png"
-    result = runner.invoke(cli, ["evaluate", str(shears), "--by", "mean(snr),snr*2", "--bins", "2",
-                                 "--select-cases", "mean(snr) > 0", "--json", str(js), "--plot", str(png)])
+    result = runner.invoke(
+        cli,
+        [
+            "evaluate",
+            str(shears),
+            "--by",
+            "mean(snr),snr*2",
+            "--bins",
+            "2",
+            "--select-cases",
+            "mean(snr) > 0",
+            "--json",
+            str(js),
+            "--plot",
+            str(png),
+        ],
+    )
     assert result.exit_code == 0, result.output
     assert "conditional biases by mean(snr)" in result.stdout
     cond = json.loads(js.read_text())["conditional"]
@@ -70,13 +116,17 @@ def test_fail_above_exit_codes(runner, cli, shears, perfect):
     result = runner.invoke(cli, ["evaluate", str(shears), "--fail-above"])
     assert result.exit_code == 3
     assert "bias out of tolerance" in result.stderr
-    assert runner.invoke(cli, ["evaluate", str(shears)]).exit_code == 0  # only reported without the flag
+    assert (
+        runner.invoke(cli, ["evaluate", str(shears)]).exit_code == 0
+    )  # only reported without the flag
     assert runner.invoke(cli, ["evaluate", str(perfect), "--fail-above"]).exit_code == 0
 
 
 def test_select_changes_rows(runner, cli, shears, tmp_path):
     js = tmp_path / "sel.json"
-    result = runner.invoke(cli, ["evaluate", str(shears), "--select", "snr > 10 & tru_rad > 1.5", "--json", str(js)])
+    result = runner.invoke(
+        cli, ["evaluate", str(shears), "--select", "snr > 10 & tru_rad > 1.5", "--json", str(js)]
+    )
     assert result.exit_code == 0, result.output
     data = json.loads(js.read_text())
     assert 0 < data["n_selected"] < data["n_rows"]
@@ -88,7 +138,10 @@ def test_refuses_to_overwrite(runner, cli, shears, tmp_path):
     result = runner.invoke(cli, ["evaluate", str(shears), "--json", str(js)])
     assert result.exit_code == 1 and "--overwrite" in result.output + result.stderr
     assert js.read_text() == "keep"
-    assert runner.invoke(cli, ["evaluate", str(shears), "--json", str(js), "--overwrite"]).exit_code == 0
+    assert (
+        runner.invoke(cli, ["evaluate", str(shears), "--json", str(js), "--overwrite"]).exit_code
+        == 0
+    )
     assert json.loads(js.read_text())["format"] == "megalut.evaluation"
 
 
@@ -155,10 +208,16 @@ def test_crn_catalog_gets_bootstrap_errors(runner, cli, tmp_path):
     from helpers import crn_synthetic
 
     path = tmp_path / "crn.fits"
-    write_catalog(path, crn_synthetic(3, True, n_cases=6, n_groups=50), fmt="megalut.predictions",
-                  cards={"CRN": True, "SNC": "pairs", "NREA": 100})
+    write_catalog(
+        path,
+        crn_synthetic(3, True, n_cases=6, n_groups=50),
+        fmt="megalut.predictions",
+        cards={"CRN": True, "SNC": "pairs", "NREA": 100},
+    )
     js = tmp_path / "e.json"
-    result = runner.invoke(cli, ["evaluate", str(path), "--bootstrap", "50", "--seed", "4", "--json", str(js)])
+    result = runner.invoke(
+        cli, ["evaluate", str(path), "--bootstrap", "50", "--seed", "4", "--json", str(js)]
+    )
     assert result.exit_code == 0, result.output
     assert "errors: bootstrap over galaxies (common-random-number set" in result.stdout
     assert "50 groups of 2 realization(s)" in result.stdout
@@ -182,5 +241,9 @@ def test_bootstrap_bad_input(runner, cli, shears, tmp_path):
     assert "Traceback" not in text and len(text.splitlines()) == 1 and "'rea'" in text
     assert runner.invoke(cli, ["evaluate", str(shears), "--bootstrap", "3"]).exit_code == 2
     assert runner.invoke(cli, ["evaluate", str(shears), "--errors", "jackknife"]).exit_code == 2
-    assert runner.invoke(cli, ["evaluate", str(shears), "--errors", "bootstrap", "--great3-truth", str(tmp_path)]
-                         ).exit_code == 2
+    assert (
+        runner.invoke(
+            cli, ["evaluate", str(shears), "--errors", "bootstrap", "--great3-truth", str(tmp_path)]
+        ).exit_code
+        == 2
+    )

@@ -24,8 +24,10 @@ def _table_header(path):
 
 
 def _units(header, names) -> dict[str, str | None]:
-    return {n: (header.get(f"TUNIT{i}").strip() if f"TUNIT{i}" in header else None)
-            for i, n in enumerate(names, start=1)}
+    return {
+        n: (header.get(f"TUNIT{i}").strip() if f"TUNIT{i}" in header else None)
+        for i, n in enumerate(names, start=1)
+    }
 
 
 @pytest.fixture(scope="module")
@@ -37,11 +39,25 @@ def chain(tmp_path_factory):
 
     tmp = tmp_path_factory.mktemp("chain")
     run = CliRunner().invoke
-    cat, st, feat, sh, model, ev = (tmp / n for n in ("cat.fits", "st.fits", "feat.fits", "sh.fits", "m.h5", "ev.json"))
+    cat, st, feat, sh, model, ev = (
+        tmp / n for n in ("cat.fits", "st.fits", "feat.fits", "sh.fits", "m.h5", "ev.json")
+    )
     make_model(model)
     steps = [
-        ["simulate", "examples/fiducial/vo.toml", "-o", str(cat), "--stamps", str(st), "--n-cases", "3",
-         "--n-realizations", "8", "--seed", "5"],
+        [
+            "simulate",
+            "examples/fiducial/vo.toml",
+            "-o",
+            str(cat),
+            "--stamps",
+            str(st),
+            "--n-cases",
+            "3",
+            "--n-realizations",
+            "8",
+            "--seed",
+            "5",
+        ],
         ["measure", str(st), str(cat), "-o", str(feat)],
         ["predict", str(feat), "--model", str(model), "-o", str(sh)],
         ["evaluate", str(sh), "--json", str(ev)],
@@ -65,9 +81,16 @@ def test_describe_families():
 def test_history_cards_round_trip():
     rng = random.Random(3)
     for _ in range(300):
-        words = ["".join(rng.choice("ab-/ ") for _ in range(rng.randint(0, 40))) for _ in range(rng.randint(1, 9))]
+        words = [
+            "".join(rng.choice("ab-/ ") for _ in range(rng.randint(0, 40)))
+            for _ in range(rng.randint(1, 9))
+        ]
         step = " ".join(words).strip() or "x"
-        recs = [r for r in header_cards("f", history=[step], command="megalut last") if r["name"] == "HISTORY"]
+        recs = [
+            r
+            for r in header_cards("f", history=[step], command="megalut last")
+            if r["name"] == "HISTORY"
+        ]
         values = [r["value"].rstrip() for r in recs]  # FITS readers strip trailing blanks
         assert all(len(v) <= 70 for v in values)
         assert history_steps(values) == [step, "megalut last"]
@@ -137,27 +160,39 @@ def test_info_catalog_text_and_json(runner, cli, chain):
     assert result.exit_code == 0, result.output
     out = result.output
     assert "megalut.predictions 1.0, 24 rows" in out
-    assert any(line.split()[:3] == ["adamom_sigma", "float64", "pixel"] for line in out.splitlines())
-    n_flagged = int(np.count_nonzero(fitsio.read(str(chain["sh"]), "CATALOG", columns=["flags"])["flags"]))
+    assert any(
+        line.split()[:3] == ["adamom_sigma", "float64", "pixel"] for line in out.splitlines()
+    )
+    n_flagged = int(
+        np.count_nonzero(fitsio.read(str(chain["sh"]), "CATALOG", columns=["flags"])["flags"])
+    )
     assert f"flags: {n_flagged} of 24 rows flagged" in out
     assert "1. megalut simulate" in out and "3. megalut predict" in out
     js = json.loads(runner.invoke(cli, ["info", str(chain["sh"]), "--json"]).output)
     assert js["kind"] == "catalog" and js["rows"] == 24 and js["format"] == "megalut.predictions"
     cols = {c["name"]: c for c in js["columns"]}
     assert cols["tru_rad"]["unit"] == "pixel" and cols["pre_g1"]["unit"] == ""
-    assert js["provenance"]["model_sha256"] == fitsio.read_header(str(chain["sh"]), "CATALOG")["MODELSHA"]
+    assert (
+        js["provenance"]["model_sha256"]
+        == fitsio.read_header(str(chain["sh"]), "CATALOG")["MODELSHA"]
+    )
     assert js["config"]["sha256"] == js["provenance"]["config_sha256"]
     assert "CONFIG" in js["extensions"]
 
 
 def test_info_counts_flag_bits(runner, cli, tmp_path):
     out = tmp_path / "f.fits"
-    fl = np.array([0, flags.HSM_FAILED, flags.HSM_FAILED | flags.CENTROID_SHIFT, flags.BAD_FEATURES, 0])
+    fl = np.array(
+        [0, flags.HSM_FAILED, flags.HSM_FAILED | flags.CENTROID_SHIFT, flags.BAD_FEATURES, 0]
+    )
     write_catalog(out, {"x": np.arange(5.0), "flags": fl.astype(np.int32)}, fmt="megalut.features")
     js = json.loads(runner.invoke(cli, ["info", str(out), "--json"]).output)
     assert js["flags"]["rows_flagged"] == 3 and js["flags"]["rows_good"] == 2
     assert {k: v["rows"] for k, v in js["flags"]["bits"].items()} == {
-        "HSM_FAILED": 2, "CENTROID_SHIFT": 1, "BAD_FEATURES": 1}
+        "HSM_FAILED": 2,
+        "CENTROID_SHIFT": 1,
+        "BAD_FEATURES": 1,
+    }
     text = runner.invoke(cli, ["info", str(out)]).output
     assert "flags: 3 of 5 rows flagged" in text and "HSM_FAILED" in text
 
@@ -181,7 +216,12 @@ def test_info_model(runner, cli, chain):
     assert js["kind"] == "model" and js["sha256"] == model.sha256
     assert js["targets"] == model.targets and js["features"] == model.features
     kinds = sorted((c["kind"], c["output"]) for c in js["committees"])
-    assert kinds == [("point", "pre_g1"), ("point", "pre_g2"), ("weight", "pre_g1_w"), ("weight", "pre_g2_w")]
+    assert kinds == [
+        ("point", "pre_g1"),
+        ("point", "pre_g2"),
+        ("weight", "pre_g1_w"),
+        ("weight", "pre_g2_w"),
+    ]
     c0 = js["committees"][0]
     assert len(c0["normalization"]["in_loc"]) == len(c0["features"])
     text = runner.invoke(cli, ["info", str(chain["model"])]).output
@@ -191,14 +231,38 @@ def test_info_model(runner, cli, chain):
 def test_info_model_provenance_chain(runner, cli, tmp_path):
     """A model from train-point then train-weight lists both steps and their inputs."""
     tp = tmp_path / "tp.fits"
-    args = ["simulate", "examples/fiducial/tp.toml", "-o", str(tp), "--measure", "--n-cases", "6",
-            "--n-realizations", "8"]
+    args = [
+        "simulate",
+        "examples/fiducial/tp.toml",
+        "-o",
+        str(tp),
+        "--measure",
+        "--n-cases",
+        "6",
+        "--n-realizations",
+        "8",
+    ]
     assert runner.invoke(cli, args).exit_code == 0
     point, model = tmp_path / "p.h5", tmp_path / "m.h5"
-    r = runner.invoke(cli, ["train-point", str(tp), "-o", str(point), "--iterations", "2", "--members", "2"])
+    r = runner.invoke(
+        cli, ["train-point", str(tp), "-o", str(point), "--iterations", "2", "--members", "2"]
+    )
     assert r.exit_code == 0, r.output
-    r = runner.invoke(cli, ["train-weight", str(tp), "--model", str(point), "-o", str(model), "--iterations", "2",
-                            "--members", "2"])
+    r = runner.invoke(
+        cli,
+        [
+            "train-weight",
+            str(tp),
+            "--model",
+            str(point),
+            "-o",
+            str(model),
+            "--iterations",
+            "2",
+            "--members",
+            "2",
+        ],
+    )
     assert r.exit_code == 0, r.output
     text = runner.invoke(cli, ["info", str(model)]).output
     lines = text.splitlines()
@@ -211,7 +275,10 @@ def test_info_bad_inputs(runner, cli, tmp_path, chain):
     text = tmp_path / "notes.txt"
     text.write_text("hello\n")
     r = runner.invoke(cli, ["info", str(text)])
-    assert r.exit_code == 1 and "not a FITS catalog or image, HDF5 model, megalut JSON file" in _one_line_error(r)
+    assert (
+        r.exit_code == 1
+        and "not a FITS catalog or image, HDF5 model, megalut JSON file" in _one_line_error(r)
+    )
     trunc = tmp_path / "trunc.fits"
     trunc.write_bytes(chain["sh"].read_bytes()[:5000])
     r = runner.invoke(cli, ["info", str(trunc)])
@@ -263,8 +330,12 @@ def test_predict_carries_user_cards_and_comments(runner, cli, tmp_path):
 
     src, model, out = tmp_path / "f.fits", tmp_path / "m.h5", tmp_path / "s.fits"
     make_model(model)
-    write_catalog(src, features_catalog(50), fmt="megalut.features",
-                  cards={"OBSERVER": ("me", "who took the data"), "COMMENT": ["a user note", "second note"]})
+    write_catalog(
+        src,
+        features_catalog(50),
+        fmt="megalut.features",
+        cards={"OBSERVER": ("me", "who took the data"), "COMMENT": ["a user note", "second note"]},
+    )
     r = runner.invoke(cli, ["predict", str(src), "--model", str(model), "-o", str(out)])
     assert r.exit_code == 0, r.output
     header = fitsio.read_header(str(out), "CATALOG")

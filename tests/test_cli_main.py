@@ -6,7 +6,16 @@ import pytest
 
 from megalut_cli import __version__
 
-COMMANDS = ["simulate", "measure", "train-point", "train-weight", "predict", "evaluate", "run", "draft"]
+COMMANDS = [
+    "simulate",
+    "measure",
+    "train-point",
+    "train-weight",
+    "predict",
+    "evaluate",
+    "run",
+    "draft",
+]
 
 
 def test_version(runner, cli):
@@ -62,9 +71,11 @@ def _modules_after(args: list[str]) -> set[str]:
     import subprocess
     import sys
 
-    code = ("import json, sys\nfrom megalut_cli.cli import main\n"
-            f"try:\n    main({args!r}, prog_name='megalut')\nexcept SystemExit:\n    pass\n"
-            "print(json.dumps(sorted(sys.modules)), file=sys.stderr)")
+    code = (
+        "import json, sys\nfrom megalut_cli.cli import main\n"
+        f"try:\n    main({args!r}, prog_name='megalut')\nexcept SystemExit:\n    pass\n"
+        "print(json.dumps(sorted(sys.modules)), file=sys.stderr)"
+    )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     names = json.loads(done.stderr.strip().splitlines()[-1])
     return {n.split(".")[0] for n in names} | {n for n in names if n.startswith("megalut_cli.cli.")}
@@ -74,7 +85,9 @@ def test_version_and_group_help_load_no_subcommand():
     for args in (["--version"], ["--help"]):
         loaded = _modules_after(args)
         assert not loaded & set(HEAVY), (args, loaded & set(HEAVY))
-        assert not {f"megalut_cli.cli.{m}" for m in ("simulate", "measure", "predict", "run")} & loaded
+        assert (
+            not {f"megalut_cli.cli.{m}" for m in ("simulate", "measure", "predict", "run")} & loaded
+        )
 
 
 @pytest.mark.parametrize("command", [*COMMANDS, "info"])
@@ -121,12 +134,17 @@ cli.main()
 """
 
 
-@pytest.mark.parametrize(("args", "status"), [
-    (["info", "models/fiducial.h5"], 0),
-    (["simulate", "/nonexistent.toml"], 2),
-    (["train-point", "/dev/null", "-o", "/sys/megalut-test.h5"], 1),
-])
-def test_the_shell_command_exits_without_teardown_keeping_status_and_exit_handlers(tmp_path, args, status):
+@pytest.mark.parametrize(
+    ("args", "status"),
+    [
+        (["info", "models/fiducial.h5"], 0),
+        (["simulate", "/nonexistent.toml"], 2),
+        (["train-point", "/dev/null", "-o", "/sys/megalut-test.h5"], 1),
+    ],
+)
+def test_the_shell_command_exits_without_teardown_keeping_status_and_exit_handlers(
+    tmp_path, args, status
+):
     """`megalut` as the shell runs it leaves through os._exit once the exit handlers have run
     (Python's teardown of GalSim, numba and astropy took 0.3-0.8 s); its status and the
     handlers of the libraries it imported are kept."""
@@ -136,8 +154,13 @@ def test_the_shell_command_exits_without_teardown_keeping_status_and_exit_handle
 
     marker = tmp_path / "marker"
     root = Path(__file__).resolve().parent.parent
-    out = subprocess.run([sys.executable, "-c", _EXIT_SCRIPT, str(marker), *args], cwd=root,
-                         capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-c", _EXIT_SCRIPT, str(marker), *args],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == status, out.stderr
     assert marker.read_text() == "ran"
     assert not (tmp_path / "marker.teardown").exists()

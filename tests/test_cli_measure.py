@@ -43,7 +43,15 @@ def data(tmp_path):
 def test_help(runner, cli):
     result = runner.invoke(cli, ["measure", "--help"])
     assert result.exit_code == 0
-    for opt in ("--stamp-size", "--origin", "--gain", "--psf", "--nproc", "--scheduler", "--overwrite"):
+    for opt in (
+        "--stamp-size",
+        "--origin",
+        "--gain",
+        "--psf",
+        "--nproc",
+        "--scheduler",
+        "--overwrite",
+    ):
         assert opt in result.output
     assert "Example" in result.output
 
@@ -51,13 +59,28 @@ def test_help(runner, cli):
 def test_measure_with_catalog(runner, cli, data):
     out = data / "f.fits"
     result = runner.invoke(
-        cli, ["measure", str(data / "stamps.fits"), str(data / "cat.fits"), "-o", str(out),
-              "--gain", "3.1", "--psf", str(data / "psf.fits")]
+        cli,
+        [
+            "measure",
+            str(data / "stamps.fits"),
+            str(data / "cat.fits"),
+            "-o",
+            str(out),
+            "--gain",
+            "3.1",
+            "--psf",
+            str(data / "psf.fits"),
+        ],
     )
     assert result.exit_code == 0, result.output
     t = read_catalog(out)
     assert t.colnames[:3] == ["x", "y", "tru_rad"]
-    for c in FEATURE_COLUMNS + ("psf_adamom_g1", "psf_adamom_g2", "psf_adamom_sigma", "psf_adamom_rho4"):
+    for c in FEATURE_COLUMNS + (
+        "psf_adamom_g1",
+        "psf_adamom_g2",
+        "psf_adamom_sigma",
+        "psf_adamom_rho4",
+    ):
         assert c in t.colnames
     assert (t["flags"] == 0).all()
     assert np.all(np.diff(t["adamom_sigma"]) > 0)  # sizes grow with k
@@ -69,7 +92,8 @@ def test_measure_with_catalog(runner, cli, data):
 
 def test_grid_order_and_stamp_size_option(runner, cli, data):
     result = runner.invoke(
-        cli, ["measure", str(data / "nocard.fits"), "-o", str(data / "f.fits"), "--stamp-size", str(S)]
+        cli,
+        ["measure", str(data / "nocard.fits"), "-o", str(data / "f.fits"), "--stamp-size", str(S)],
     )
     assert result.exit_code == 0, result.output
     t = read_catalog(data / "f.fits")
@@ -90,22 +114,55 @@ def test_bad_inputs(runner, cli, data):
     out = str(data / "out.fits")
     raw = (data / "stamps.fits").read_bytes()
     (data / "trunc.fits").write_bytes(raw[: len(raw) - 3000])
-    _fails(runner, cli, ["measure", str(data / "trunc.fits"), "-o", out], 1, "trunc.fits", "truncated")
+    _fails(
+        runner, cli, ["measure", str(data / "trunc.fits"), "-o", out], 1, "trunc.fits", "truncated"
+    )
     (data / "junk.fits").write_text("SIMPLE = garbage\n" * 300)
     _fails(runner, cli, ["measure", str(data / "junk.fits"), "-o", out], 1, "junk.fits", "FITS")
     write_catalog(data / "noxy.fits", {"ra": np.zeros(3), "dec": np.zeros(3)}, fmt="test")
-    _fails(runner, cli, ["measure", str(data / "stamps.fits"), str(data / "noxy.fits"), "-o", out],
-           1, "noxy.fits", "x, y")
-    _fails(runner, cli, ["measure", str(data / "nocard.fits"), "-o", out, "--stamp-size", "40"],
-           1, "does not divide")
-    _fails(runner, cli, ["measure", str(data / "nocard.fits"), "-o", out], 2, "STAMPSZ", "--stamp-size")
-    _fails(runner, cli, ["measure", str(data / "stamps.fits"), str(data / "stamps.fits"), "-o", out],
-           1, "no table")
+    _fails(
+        runner,
+        cli,
+        ["measure", str(data / "stamps.fits"), str(data / "noxy.fits"), "-o", out],
+        1,
+        "noxy.fits",
+        "x, y",
+    )
+    _fails(
+        runner,
+        cli,
+        ["measure", str(data / "nocard.fits"), "-o", out, "--stamp-size", "40"],
+        1,
+        "does not divide",
+    )
+    _fails(
+        runner, cli, ["measure", str(data / "nocard.fits"), "-o", out], 2, "STAMPSZ", "--stamp-size"
+    )
+    _fails(
+        runner,
+        cli,
+        ["measure", str(data / "stamps.fits"), str(data / "stamps.fits"), "-o", out],
+        1,
+        "no table",
+    )
     _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", out, "--gain", "-1"], 2)
     _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", out, "--origin", "2"], 2)
     _fails(runner, cli, ["measure", str(data / "missing.fits"), "-o", out], 2)
-    _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", out, "-j", "2",
-                         "--scheduler", "tcp://localhost:1"], 2)
+    _fails(
+        runner,
+        cli,
+        [
+            "measure",
+            str(data / "stamps.fits"),
+            "-o",
+            out,
+            "-j",
+            "2",
+            "--scheduler",
+            "tcp://localhost:1",
+        ],
+        2,
+    )
     assert not (data / "out.fits").exists()
     assert [p.name for p in data.iterdir() if p.name.startswith(".")] == []  # no temp files left
 
@@ -115,15 +172,24 @@ def test_refuses_to_overwrite(runner, cli, data):
     out.write_text("precious")
     _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", str(out)], 1, "--overwrite")
     assert out.read_text() == "precious"
-    result = runner.invoke(cli, ["measure", str(data / "stamps.fits"), "-o", str(out), "--overwrite"])
+    result = runner.invoke(
+        cli, ["measure", str(data / "stamps.fits"), "-o", str(out), "--overwrite"]
+    )
     assert result.exit_code == 0, result.output
     assert len(read_catalog(out)) == NX * NY
 
 
 def test_stamp_size_contradicting_the_card_is_refused(runner, cli, data):
     out = data / "out.fits"
-    text = _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", str(out), "--stamp-size", "16"],
-                  1, str(data / "stamps.fits"), "stamp size 16 (--stamp-size)", "STAMPSZ = 32")
+    text = _fails(
+        runner,
+        cli,
+        ["measure", str(data / "stamps.fits"), "-o", str(out), "--stamp-size", "16"],
+        1,
+        str(data / "stamps.fits"),
+        "stamp size 16 (--stamp-size)",
+        "STAMPSZ = 32",
+    )
     assert len(text.strip().splitlines()) == 2  # the one line, in output (stdout+stderr) and stderr
     assert not out.exists()
 
@@ -134,21 +200,37 @@ def test_catalog_of_another_simulation_is_refused(runner, cli, data):
     prov = {"STAMPSZ": S, "SEED": 12, "CFGSHA": "abc", "NSTAMPX": NX}
     write_image(data / "sim.fits", arr, fmt="megalut.stamps", cards=prov)
     xy = {"x": np.array([S / 2 + 0.5]), "y": np.array([S / 2 + 0.5])}
-    write_catalog(data / "other.fits", xy, fmt="megalut.simulation", cards={**prov, "SEED": 13, "NSTAMPX": 4})
+    write_catalog(
+        data / "other.fits", xy, fmt="megalut.simulation", cards={**prov, "SEED": 13, "NSTAMPX": 4}
+    )
     out = data / "out.fits"
-    text = _fails(runner, cli, ["measure", str(data / "sim.fits"), str(data / "other.fits"), "-o", str(out)],
-                  1, str(data / "other.fits"), "does not belong to", "SEED = 13 vs 12", "NSTAMPX = 4 vs 3")
+    text = _fails(
+        runner,
+        cli,
+        ["measure", str(data / "sim.fits"), str(data / "other.fits"), "-o", str(out)],
+        1,
+        str(data / "other.fits"),
+        "does not belong to",
+        "SEED = 13 vs 12",
+        "NSTAMPX = 4 vs 3",
+    )
     assert "CFGSHA" not in text  # equal cards are not reported
     assert len(text.strip().splitlines()) == 2 and not out.exists()
     write_catalog(data / "same.fits", xy, fmt="megalut.simulation", cards=prov)
-    result = runner.invoke(cli, ["measure", str(data / "sim.fits"), str(data / "same.fits"), "-o", str(out)])
+    result = runner.invoke(
+        cli, ["measure", str(data / "sim.fits"), str(data / "same.fits"), "-o", str(out)]
+    )
     assert result.exit_code == 0, result.output
 
 
 def test_warns_when_most_stamps_are_flagged(runner, cli, data):
     """An empty image: every stamp fails; the warning gives the count and the reasons."""
-    write_image(data / "empty.fits", np.zeros((NY * S, NX * S), dtype=np.float32), fmt="megalut.stamps",
-                cards={"STAMPSZ": S})
+    write_image(
+        data / "empty.fits",
+        np.zeros((NY * S, NX * S), dtype=np.float32),
+        fmt="megalut.stamps",
+        cards={"STAMPSZ": S},
+    )
     result = runner.invoke(cli, ["measure", str(data / "empty.fits"), "-o", str(data / "f.fits")])
     assert result.exit_code == 0, result.output
     assert f"{NX * NY} of {NX * NY} stamps flagged" in result.stderr
@@ -172,6 +254,16 @@ def test_library_messages_name_arguments_the_command_line_its_flags(data, runner
     with pytest.raises(ConfigError, match=r"^psf_path does not apply to a star field"):
         measure_file(data / "stamps.fits", None, out, psf_path=data / "stamps.fits", stars=True)
     names = flag_names(command, psf_path="--psf")
-    assert names["stamp_size"] == "--stamp-size" and names["psf_path"] == "--psf" and names["output"] == "-o"
-    _fails(runner, cli, ["measure", str(data / "nocard.fits"), "-o", out], 2, "give --stamp-size or a STAMPSZ")
+    assert (
+        names["stamp_size"] == "--stamp-size"
+        and names["psf_path"] == "--psf"
+        and names["output"] == "-o"
+    )
+    _fails(
+        runner,
+        cli,
+        ["measure", str(data / "nocard.fits"), "-o", out],
+        2,
+        "give --stamp-size or a STAMPSZ",
+    )
     assert not (data / "out.fits").exists()

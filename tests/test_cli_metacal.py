@@ -64,8 +64,19 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
 def sim(tmp_path_factory) -> Path:
     """The simulated stamps, their catalog and the PSF image (Gaussian sigma 2, with pixel)."""
     d = tmp_path_factory.mktemp("mcal_sim")
-    _ok("simulate", CONFIG, "-o", d / "cat.fits", "--stamps", d / "stamps.fits",
-        "--n-cases", N_CASES, "--n-realizations", N_REA, "-q")
+    _ok(
+        "simulate",
+        CONFIG,
+        "-o",
+        d / "cat.fits",
+        "--stamps",
+        d / "stamps.fits",
+        "--n-cases",
+        N_CASES,
+        "--n-realizations",
+        N_REA,
+        "-q",
+    )
     galsim.Gaussian(sigma=2.0).drawImage(nx=SIZE, ny=SIZE, scale=1.0).write(str(d / "psf.fits"))
     return d
 
@@ -80,7 +91,17 @@ def measured(sim) -> Path:
     _ok(*base, "-o", d / "mc5.fits", "--metacal", "--seed", "5")
     _ok(*base, "-o", d / "mc5b.fits", "--metacal", "--seed", "5")
     _ok(*base, "-o", d / "mc6.fits", "--metacal", "--seed", "6")
-    _ok(*base, "-o", d / "morph.fits", "--metacal", "--metacal-step", "0.02", "--morphology", "--seed", "5")
+    _ok(
+        *base,
+        "-o",
+        d / "morph.fits",
+        "--metacal",
+        "--metacal-step",
+        "0.02",
+        "--morphology",
+        "--seed",
+        "5",
+    )
     _ok("predict", d / "plain.fits", "--model", MODEL, "-o", d / "s_plain.fits", "-q")
     for name in ("mc5", "mc6", "morph"):
         _ok("predict", d / f"{name}.fits", "--model", MCAL_MODEL, "-o", d / f"s_{name}.fits", "-q")
@@ -114,8 +135,9 @@ def test_measure_metacal_columns_and_cards(measured):
         np.testing.assert_allclose(_column(t, f"psf_adamom_g2_{kind}"), 0.0, atol=1e-4)
         sigma = _column(t, f"psf_adamom_sigma_{kind}")
         assert np.all(sigma > _column(t, "psf_adamom_sigma")) and np.ptp(sigma) == 0
-    np.testing.assert_allclose(_column(t, "psf_adamom_sigma_noshear"), _column(t, "psf_adamom_sigma") * 1.02,
-                               rtol=2e-3)
+    np.testing.assert_allclose(
+        _column(t, "psf_adamom_sigma_noshear"), _column(t, "psf_adamom_sigma") * 1.02, rtol=2e-3
+    )
     for kind in TYPES:  # most sheared versions are measured
         assert np.mean(_column(t, f"flags_{kind}") == 0) > 0.8, kind
 
@@ -208,11 +230,16 @@ def test_workers_and_psf_grid_give_the_same_metacal_features(measured, tmp_path)
     assert j2.colnames == ref.colnames == per_row.colnames
     for name in ref.colnames:
         assert _same(j2[name], ref[name]), name
-        if name.startswith("psf_adamom_") and name.endswith(TYPES):  # the target from the PSF stamps' sigma
-            np.testing.assert_allclose(_column(per_row, name), _column(ref, name), rtol=1e-5, atol=1e-6)
+        if name.startswith("psf_adamom_") and name.endswith(
+            TYPES
+        ):  # the target from the PSF stamps' sigma
+            np.testing.assert_allclose(
+                _column(per_row, name), _column(ref, name), rtol=1e-5, atol=1e-6
+            )
         elif np.asarray(ref[name]).dtype.kind == "f":
-            np.testing.assert_allclose(_column(per_row, name), _column(ref, name), rtol=1e-9, atol=1e-12,
-                                       err_msg=name)
+            np.testing.assert_allclose(
+                _column(per_row, name), _column(ref, name), rtol=1e-9, atol=1e-12, err_msg=name
+            )
         else:
             assert _same(per_row[name], ref[name]), name
 
@@ -225,8 +252,19 @@ def test_fast_and_galsim_metacal_engines_agree(measured, tmp_path):
     out = {}
     for engine in ("galsim", "fast"):
         out[engine] = tmp_path / f"{engine}.fits"
-        _ok("measure", d / "stamps.fits", cat, "--psf", d / "psf.fits", "--metacal", "--engine", engine,
-            "-o", out[engine], "-q")
+        _ok(
+            "measure",
+            d / "stamps.fits",
+            cat,
+            "--psf",
+            d / "psf.fits",
+            "--metacal",
+            "--engine",
+            engine,
+            "-o",
+            out[engine],
+            "-q",
+        )
     a, b = read_catalog(out["galsim"]), read_catalog(out["fast"])
     assert a.colnames == b.colnames and str(b.meta["MENGINE"]).strip() == "fast"
     for kind in TYPES:
@@ -236,8 +274,9 @@ def test_fast_and_galsim_metacal_engines_agree(measured, tmp_path):
             ok = np.isfinite(x) & np.isfinite(y)
             assert ok.sum() >= 6 and np.array_equal(np.isfinite(x), np.isfinite(y))
             assert np.max(np.abs(x[ok] - y[ok])) < 1e-4, (c, kind)
-        np.testing.assert_allclose(_column(b, f"adamom_sigma_{kind}"), _column(a, f"adamom_sigma_{kind}"),
-                                   rtol=1e-4)
+        np.testing.assert_allclose(
+            _column(b, f"adamom_sigma_{kind}"), _column(a, f"adamom_sigma_{kind}"), rtol=1e-4
+        )
 
 
 # --------------------------------------------------------------------------- predict
@@ -278,19 +317,32 @@ def test_predict_columns_of_a_metacal_catalog_in_memory(measured):
     from megalut_cli.shear.predict import predict_columns
 
     features, written = read_catalog(measured / "mc5.fits"), read_catalog(measured / "s_mc5.fits")
-    pred = predict_columns(ShearModel.load(MCAL_MODEL), features, metacal_step=features.meta["MCALSTEP"])
-    assert [c for c in written.colnames if c in pred and c not in features.colnames] == \
-        [c for c in pred if c not in features.colnames]
+    pred = predict_columns(
+        ShearModel.load(MCAL_MODEL), features, metacal_step=features.meta["MCALSTEP"]
+    )
+    assert [c for c in written.colnames if c in pred and c not in features.colnames] == [
+        c for c in pred if c not in features.colnames
+    ]
     for c, values in pred.items():
         assert _same(values, written[c]), c
 
 
 def test_predict_refuses_a_model_of_the_other_mode(measured, tmp_path):
     """A simulation-calibrated model on a metacal catalog, a metacal model on a plain one."""
-    _refused(["predict", measured / "mc5.fits", "--model", MODEL], 1, tmp_path / "a.fits", "fiducial.h5",
-             "MCALSTEP")
-    _refused(["predict", measured / "plain.fits", "--model", MCAL_MODEL], 1, tmp_path / "b.fits",
-             "fiducial-metacal.h5", "--metacal")
+    _refused(
+        ["predict", measured / "mc5.fits", "--model", MODEL],
+        1,
+        tmp_path / "a.fits",
+        "fiducial.h5",
+        "MCALSTEP",
+    )
+    _refused(
+        ["predict", measured / "plain.fits", "--model", MCAL_MODEL],
+        1,
+        tmp_path / "b.fits",
+        "fiducial-metacal.h5",
+        "--metacal",
+    )
 
 
 def test_predict_metacal_catalog_without_type_flags(measured, tmp_path):
@@ -301,8 +353,9 @@ def test_predict_metacal_catalog_without_type_flags(measured, tmp_path):
         cols = [c for c in h[1].columns if not c.name.startswith("flags_")]
         fits.HDUList([h[0], fits.BinTableHDU.from_columns(cols, header=h[1].header)]).writeto(src)
     out = tmp_path / "s.fits"
-    result = _runner().invoke(megalut, ["predict", str(src), "--model", str(MCAL_MODEL), "-o", str(out), "-q"],
-                              env=ENV)
+    result = _runner().invoke(
+        megalut, ["predict", str(src), "--model", str(MCAL_MODEL), "-o", str(out), "-q"], env=ENV
+    )
     assert "internal error" not in result.stderr and "Traceback" not in result.stderr
     assert result.exit_code in (0, 1)
     if result.exit_code == 0:
@@ -322,7 +375,9 @@ def _usable(s, comp: int) -> np.ndarray:
 
 def test_evaluate_metacal(measured, tmp_path):
     js = tmp_path / "e.json"
-    result = _runner().invoke(megalut, ["evaluate", str(measured / "s_mc5.fits"), "--json", str(js)], env=ENV)
+    result = _runner().invoke(
+        megalut, ["evaluate", str(measured / "s_mc5.fits"), "--json", str(js)], env=ENV
+    )
     assert result.exit_code == 0, (result.output, result.stderr)
     e = json.loads(js.read_text())
     mc = e["metacal"]
@@ -338,7 +393,9 @@ def test_evaluate_metacal(measured, tmp_path):
         ok = _usable(s, i)
         assert ok.sum() > 20
         for j in (1, 2):
-            np.testing.assert_allclose(r[i - 1, j - 1], np.mean(_column(s, f"mcal_r{i}{j}")[ok]), rtol=1e-10)
+            np.testing.assert_allclose(
+                r[i - 1, j - 1], np.mean(_column(s, f"mcal_r{i}{j}")[ok]), rtol=1e-10
+            )
 
     # per case: the mean of pre_g*_noshear calibrated by the inverse of the mean response
     case = _column(s, "case")
@@ -346,7 +403,9 @@ def test_evaluate_metacal(measured, tmp_path):
     means = {}
     for i in (1, 2):
         ok = _usable(s, i)
-        means[i] = np.array([np.mean(_column(s, f"pre_g{i}_noshear")[ok & (case == k)]) for k in per_case["case"]])
+        means[i] = np.array(
+            [np.mean(_column(s, f"pre_g{i}_noshear")[ok & (case == k)]) for k in per_case["case"]]
+        )
     det = r[0, 0] * r[1, 1] - r[0, 1] * r[1, 0]
     g1 = (r[1, 1] * means[1] - r[0, 1] * means[2]) / det
     g2 = (r[0, 0] * means[2] - r[1, 0] * means[1]) / det
@@ -360,14 +419,18 @@ def test_evaluate_metacal(measured, tmp_path):
         assert e["unweighted"][comp]["c"] == pytest.approx(c, rel=1e-6, abs=1e-9)
 
     # the same command with --fail-above: the documented exit status 3 (biases of 32 stamps)
-    result = _runner().invoke(megalut, ["evaluate", str(measured / "s_mc5.fits"), "--fail-above", "-q"], env=ENV)
+    result = _runner().invoke(
+        megalut, ["evaluate", str(measured / "s_mc5.fits"), "--fail-above", "-q"], env=ENV
+    )
     assert result.exit_code == 3 and "bias out of tolerance" in result.stderr
 
 
 def test_evaluate_metacal_selection_response(measured, tmp_path):
     js = tmp_path / "sel.json"
     result = _runner().invoke(
-        megalut, ["evaluate", str(measured / "s_mc5.fits"), "--select", "snr > 10", "--json", str(js), "-q"], env=ENV
+        megalut,
+        ["evaluate", str(measured / "s_mc5.fits"), "--select", "snr > 10", "--json", str(js), "-q"],
+        env=ENV,
     )
     assert result.exit_code == 0, result.stderr
     e = json.loads(js.read_text())
@@ -380,7 +443,9 @@ def test_evaluate_metacal_selection_response(measured, tmp_path):
 
 def test_evaluate_metacal_step_from_the_header(measured, tmp_path):
     js = tmp_path / "e.json"
-    result = _runner().invoke(megalut, ["evaluate", str(measured / "s_morph.fits"), "--json", str(js), "-q"], env=ENV)
+    result = _runner().invoke(
+        megalut, ["evaluate", str(measured / "s_morph.fits"), "--json", str(js), "-q"], env=ENV
+    )
     assert result.exit_code == 0, result.stderr
     assert json.loads(js.read_text())["metacal"]["step"] == 0.02
 
@@ -388,7 +453,9 @@ def test_evaluate_metacal_step_from_the_header(measured, tmp_path):
 def test_evaluate_metacal_selects_on_noshear_columns(measured, tmp_path):
     js = tmp_path / "sel.json"
     result = _runner().invoke(
-        megalut, ["evaluate", str(measured / "s_mc5.fits"), "--select", "snr > 10", "--json", str(js), "-q"], env=ENV
+        megalut,
+        ["evaluate", str(measured / "s_mc5.fits"), "--select", "snr > 10", "--json", str(js), "-q"],
+        env=ENV,
     )
     assert result.exit_code == 0, result.stderr
     s = read_catalog(measured / "s_mc5.fits")
@@ -412,7 +479,9 @@ def _with_galaxy_column(src: Path, dst: Path) -> Path:
     with fits.open(src) as h:
         rea = np.asarray(h[1].data["rea"], dtype=np.int64)
         col = fits.Column(name="tru_real_index", format="K", array=rea)
-        table = fits.BinTableHDU.from_columns(h[1].columns + fits.ColDefs([col]), header=h[1].header)
+        table = fits.BinTableHDU.from_columns(
+            h[1].columns + fits.ColDefs([col]), header=h[1].header
+        )
         fits.HDUList([h[0], table]).writeto(dst)
     return dst
 
@@ -422,7 +491,9 @@ def test_evaluate_twin_on_metacal_catalogs(measured, tmp_path):
     b = _with_galaxy_column(measured / "s_mc6.fits", tmp_path / "b.fits")
     js = tmp_path / "twin.json"
     result = _runner().invoke(
-        megalut, ["evaluate", str(a), "--twin", str(b), "--bootstrap", "50", "--json", str(js), "-q"], env=ENV
+        megalut,
+        ["evaluate", str(a), "--twin", str(b), "--bootstrap", "50", "--json", str(js), "-q"],
+        env=ENV,
     )
     assert result.exit_code == 0, (result.output, result.stderr)
     e = json.loads(js.read_text())
@@ -430,12 +501,17 @@ def test_evaluate_twin_on_metacal_catalogs(measured, tmp_path):
     for scheme in ("unweighted", "weighted"):
         for comp in ("g1", "g2"):
             r = e["overall"][scheme][comp]
-            assert r["m_a"] is not None and r["m_b"] is not None and r["dm_err"] is not None, (scheme, comp)
+            assert r["m_a"] is not None and r["m_b"] is not None and r["dm_err"] is not None, (
+                scheme,
+                comp,
+            )
             assert r["n_cases"] == N_CASES and r["n_galaxies"] == N_REA
     # a catalog paired with itself: no difference
     js2 = tmp_path / "self.json"
     result = _runner().invoke(
-        megalut, ["evaluate", str(a), "--twin", str(a), "--bootstrap", "20", "--json", str(js2), "-q"], env=ENV
+        megalut,
+        ["evaluate", str(a), "--twin", str(a), "--bootstrap", "20", "--json", str(js2), "-q"],
+        env=ENV,
     )
     assert result.exit_code == 0, result.stderr
     self_pair = json.loads(js2.read_text())["overall"]["unweighted"]["g1"]
@@ -445,7 +521,9 @@ def test_evaluate_twin_on_metacal_catalogs(measured, tmp_path):
 # --------------------------------------------------------------------------- bad input
 
 
-def _copy_image(src: Path, dst: Path, cards: dict | None = None, nan_at: tuple[int, int] | None = None) -> Path:
+def _copy_image(
+    src: Path, dst: Path, cards: dict | None = None, nan_at: tuple[int, int] | None = None
+) -> Path:
     with fits.open(src) as h:
         for k, v in (cards or {}).items():
             h[0].header[k] = v
@@ -469,31 +547,69 @@ def _refused(args: list, code: int, out: Path, *words: str) -> str:
     for w in words:
         assert w in lines[0], lines[0]
     assert not out.exists()
-    assert [p.name for p in out.parent.iterdir() if p.name.startswith(".")] == []  # no temporary files
+    assert [
+        p.name for p in out.parent.iterdir() if p.name.startswith(".")
+    ] == []  # no temporary files
     return lines[0]
 
 
 def test_metacal_without_psf_is_a_usage_error(sim, tmp_path):
-    _refused(["measure", sim / "stamps.fits", sim / "cat.fits", "--metacal", *GALSIM], 2, tmp_path / "o.fits",
-             "--psf", "--metacal")
+    _refused(
+        ["measure", sim / "stamps.fits", sim / "cat.fits", "--metacal", *GALSIM],
+        2,
+        tmp_path / "o.fits",
+        "--psf",
+        "--metacal",
+    )
 
 
 @pytest.mark.parametrize("step", ["0", "0.5", "-0.01"])
 def test_metacal_step_out_of_range(sim, tmp_path, step):
-    _refused(["measure", sim / "stamps.fits", sim / "cat.fits", "--psf", sim / "psf.fits", "--metacal",
-              "--metacal-step", step, *GALSIM], 2, tmp_path / "o.fits", "--metacal-step")
+    _refused(
+        [
+            "measure",
+            sim / "stamps.fits",
+            sim / "cat.fits",
+            "--psf",
+            sim / "psf.fits",
+            "--metacal",
+            "--metacal-step",
+            step,
+            *GALSIM,
+        ],
+        2,
+        tmp_path / "o.fits",
+        "--metacal-step",
+    )
 
 
 def test_psf_at_another_pixel_scale(sim, tmp_path):
     stamps = _copy_image(sim / "stamps.fits", tmp_path / "stamps.fits", {"PIXSCALE": 0.2})
     psf = _copy_image(sim / "psf.fits", tmp_path / "psf.fits", {"PIXSCALE": 0.1})
     out = tmp_path / "o.fits"
-    _refused(["measure", stamps, sim / "cat.fits", "--psf", psf, "--metacal", *GALSIM], 1, out, "psf.fits", "0.1",
-             "0.2")
+    _refused(
+        ["measure", stamps, sim / "cat.fits", "--psf", psf, "--metacal", *GALSIM],
+        1,
+        out,
+        "psf.fits",
+        "0.1",
+        "0.2",
+    )
     # the same pixel scale is fine (4 rows, to be quick); without --metacal the scale is not checked
     cat = _first_rows(sim / "cat.fits", tmp_path / "cat4.fits", 4)
     same = _copy_image(sim / "psf.fits", tmp_path / "psf02.fits", {"PIXSCALE": 0.2})
-    _ok("measure", stamps, cat, "--psf", same, "--metacal", *GALSIM, "-o", tmp_path / "ok.fits", "-q")
+    _ok(
+        "measure",
+        stamps,
+        cat,
+        "--psf",
+        same,
+        "--metacal",
+        *GALSIM,
+        "-o",
+        tmp_path / "ok.fits",
+        "-q",
+    )
     assert len(read_catalog(tmp_path / "ok.fits")) == 4
     _ok("measure", stamps, cat, "--psf", psf, *GALSIM, "-o", tmp_path / "plain.fits", "-q")
 
@@ -501,30 +617,59 @@ def test_psf_at_another_pixel_scale(sim, tmp_path):
 def test_psf_of_the_other_parity(sim, tmp_path):
     psf = tmp_path / "psf63.fits"
     galsim.Gaussian(sigma=2.0).drawImage(nx=SIZE - 1, ny=SIZE - 1, scale=1.0).write(str(psf))
-    _refused(["measure", sim / "stamps.fits", sim / "cat.fits", "--psf", psf, "--metacal", *GALSIM], 1,
-             tmp_path / "o.fits", "psf63.fits", "63")
+    _refused(
+        ["measure", sim / "stamps.fits", sim / "cat.fits", "--psf", psf, "--metacal", *GALSIM],
+        1,
+        tmp_path / "o.fits",
+        "psf63.fits",
+        "63",
+    )
 
 
 def test_psf_with_nan_pixels(sim, tmp_path):
     psf = _copy_image(sim / "psf.fits", tmp_path / "psfnan.fits", nan_at=(32, 32))
-    _refused(["measure", sim / "stamps.fits", sim / "cat.fits", "--psf", psf, "--metacal", *GALSIM], 1,
-             tmp_path / "o.fits", "psfnan.fits")
+    _refused(
+        ["measure", sim / "stamps.fits", sim / "cat.fits", "--psf", psf, "--metacal", *GALSIM],
+        1,
+        tmp_path / "o.fits",
+        "psfnan.fits",
+    )
 
 
 def test_stamp_with_nan_pixels(sim, tmp_path):
-    stamps = _copy_image(sim / "stamps.fits", tmp_path / "stamps.fits", nan_at=(10, 10))  # the first stamp
-    _refused(["measure", stamps, sim / "cat.fits", "--psf", sim / "psf.fits", "--metacal", *GALSIM], 1,
-             tmp_path / "o.fits", "NaN")
+    stamps = _copy_image(
+        sim / "stamps.fits", tmp_path / "stamps.fits", nan_at=(10, 10)
+    )  # the first stamp
+    _refused(
+        ["measure", stamps, sim / "cat.fits", "--psf", sim / "psf.fits", "--metacal", *GALSIM],
+        1,
+        tmp_path / "o.fits",
+        "NaN",
+    )
     # without --metacal, the stamp is flagged and the rest measured
-    _ok("measure", stamps, sim / "cat.fits", "--psf", sim / "psf.fits", *GALSIM, "-o", tmp_path / "plain.fits", "-q")
+    _ok(
+        "measure",
+        stamps,
+        sim / "cat.fits",
+        "--psf",
+        sim / "psf.fits",
+        *GALSIM,
+        "-o",
+        tmp_path / "plain.fits",
+        "-q",
+    )
     flags = _column(read_catalog(tmp_path / "plain.fits"), "flags")
     assert flags[0] != 0 and np.sum(flags != 0) < 5
 
 
 def test_metacal_on_a_star_field_is_a_usage_error(sim, tmp_path):
     stars = _copy_image(sim / "psf.fits", tmp_path / "starfield_image-000-0.fits")
-    _refused(["measure", stars, "--psf", sim / "psf.fits", "--metacal", "--stamp-size", SIZE, *GALSIM], 2,
-             tmp_path / "o.fits", "--metacal")
+    _refused(
+        ["measure", stars, "--psf", sim / "psf.fits", "--metacal", "--stamp-size", SIZE, *GALSIM],
+        2,
+        tmp_path / "o.fits",
+        "--metacal",
+    )
 
 
 def test_simulate_metacal_equals_measure_on_the_written_stamps(tmp_path):
@@ -532,15 +677,34 @@ def test_simulate_metacal_equals_measure_on_the_written_stamps(tmp_path):
     same columns as measure --metacal --psf on the written stamps (same seed), bit for bit
     (the PSF features of the target aside: its sigma from a float32 vs float64 PSF image)."""
     args = ["--n-cases", "2", "--n-realizations", "8", "--seed", "3", *GALSIM, "-q"]
-    _ok("simulate", CONFIG, "-o", tmp_path / "cat.fits", "--stamps", tmp_path / "stamps.fits", *args)
+    _ok(
+        "simulate", CONFIG, "-o", tmp_path / "cat.fits", "--stamps", tmp_path / "stamps.fits", *args
+    )
     _ok("simulate", CONFIG, "-o", tmp_path / "sim.fits", "--measure", "--metacal", *args)
-    galsim.Gaussian(sigma=2.0).drawImage(nx=SIZE, ny=SIZE, scale=1.0).write(str(tmp_path / "psf.fits"))
-    _ok("measure", tmp_path / "stamps.fits", tmp_path / "cat.fits", "--psf", tmp_path / "psf.fits", "--metacal",
-        "--seed", "3", *GALSIM, "-o", tmp_path / "m.fits", "-q")
+    galsim.Gaussian(sigma=2.0).drawImage(nx=SIZE, ny=SIZE, scale=1.0).write(
+        str(tmp_path / "psf.fits")
+    )
+    _ok(
+        "measure",
+        tmp_path / "stamps.fits",
+        tmp_path / "cat.fits",
+        "--psf",
+        tmp_path / "psf.fits",
+        "--metacal",
+        "--seed",
+        "3",
+        *GALSIM,
+        "-o",
+        tmp_path / "m.fits",
+        "-q",
+    )
     sim, meas = read_catalog(tmp_path / "sim.fits"), read_catalog(tmp_path / "m.fits")
     cols = [c for c in sim.colnames if c.endswith(TYPES) and not c.startswith("psf_")]
     assert len(cols) == 5 * 11
     for c in cols:
         assert _same(sim[c], meas[c]), c
-    np.testing.assert_allclose(_column(sim, "psf_adamom_sigma_noshear"), _column(meas, "psf_adamom_sigma_noshear"),
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        _column(sim, "psf_adamom_sigma_noshear"),
+        _column(meas, "psf_adamom_sigma_noshear"),
+        rtol=1e-6,
+    )

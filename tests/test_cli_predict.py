@@ -52,13 +52,29 @@ def test_col_mapping_and_parallel(runner, cli, setup):
     out = tmp / "shears.fits"
     result = runner.invoke(
         cli,
-        ["predict", str(src), "--model", str(model), "-o", str(out), "--col", "adamom_g1=E1",
-         "--col", "adamom_g2=E2", "-j", "2", "--chunk-rows", "1000"],
+        [
+            "predict",
+            str(src),
+            "--model",
+            str(model),
+            "-o",
+            str(out),
+            "--col",
+            "adamom_g1=E1",
+            "--col",
+            "adamom_g2=E2",
+            "-j",
+            "2",
+            "--chunk-rows",
+            "1000",
+        ],
     )
     assert result.exit_code == 0, result.output
     m = ShearModel.load(model)
     x = np.column_stack([d["E1"], d["E2"], *(d[f] for f in FEATURES[2:])])
-    np.testing.assert_allclose(read_catalog(out)["pre_g2"], manual_predict(m.point["tru_g2"], x), rtol=1e-12)
+    np.testing.assert_allclose(
+        read_catalog(out)["pre_g2"], manual_predict(m.point["tru_g2"], x), rtol=1e-12
+    )
 
 
 def test_missing_feature_suggests_col(runner, cli, setup):
@@ -83,7 +99,9 @@ def test_bad_usage_and_files(runner, cli, setup):
     result = runner.invoke(cli, [*base, "--col", "size=adamom_sigma"])
     assert result.exit_code == 2 and "not a feature" in _one_line_error(result)
     assert runner.invoke(cli, [*base, "-j", "2", "--scheduler", "tcp://x:1"]).exit_code == 2
-    assert runner.invoke(cli, ["predict", str(src), "-o", str(out)]).exit_code == 2  # --model required
+    assert (
+        runner.invoke(cli, ["predict", str(src), "-o", str(out)]).exit_code == 2
+    )  # --model required
     junk = tmp / "junk.h5"
     junk.write_bytes(b"x" * 64)
     result = runner.invoke(cli, ["predict", str(src), "--model", str(junk), "-o", str(out)])
@@ -105,7 +123,9 @@ def test_refuses_to_overwrite(runner, cli, setup):
     assert out.read_text() == "keep"
     assert runner.invoke(cli, [*args, "--overwrite"]).exit_code == 0
     assert len(read_catalog(out)) == 500
-    result = runner.invoke(cli, ["predict", str(src), "--model", str(model), "-o", str(src), "--overwrite"])
+    result = runner.invoke(
+        cli, ["predict", str(src), "--model", str(model), "-o", str(src), "--overwrite"]
+    )
     assert result.exit_code == 2
 
 
@@ -113,15 +133,34 @@ def test_dask_scheduler(runner, cli, setup):
     from distributed import LocalCluster
 
     tmp, model, src, _ = setup
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+    with LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
         out = tmp / "dask.fits"
         result = runner.invoke(
-            cli, ["predict", str(src), "--model", str(model), "-o", str(out), "--scheduler", cluster.scheduler_address,
-                  "--chunk-rows", "1000"]
+            cli,
+            [
+                "predict",
+                str(src),
+                "--model",
+                str(model),
+                "-o",
+                str(out),
+                "--scheduler",
+                cluster.scheduler_address,
+                "--chunk-rows",
+                "1000",
+            ],
         )
     assert result.exit_code == 0, result.output
     ref = tmp / "ref.fits"
-    assert runner.invoke(cli, ["predict", str(src), "--model", str(model), "-o", str(ref), "--chunk-rows", "1000"]).exit_code == 0
+    assert (
+        runner.invoke(
+            cli,
+            ["predict", str(src), "--model", str(model), "-o", str(ref), "--chunk-rows", "1000"],
+        ).exit_code
+        == 0
+    )
     np.testing.assert_array_equal(read_catalog(out)["pre_g1_w"], read_catalog(ref)["pre_g1_w"])
 
 
@@ -132,8 +171,15 @@ def test_identity_model_then_evaluate(runner, cli, tmp_path):
     def identity(target: str, k: int) -> Committee:
         w = np.zeros((2, 1))
         w[k, 0] = 1.0
-        return Committee("point", target, ["adamom_g1", "adamom_g2"], (), np.zeros(2), np.ones(2),
-                         [Member(layers=[(w, np.zeros(1))])])
+        return Committee(
+            "point",
+            target,
+            ["adamom_g1", "adamom_g2"],
+            (),
+            np.zeros(2),
+            np.ones(2),
+            [Member(layers=[(w, np.zeros(1))])],
+        )
 
     model = tmp_path / "identity.h5"
     ShearModel({"tru_g1": identity("tru_g1", 0), "tru_g2": identity("tru_g2", 1)}).save(model)
@@ -141,12 +187,20 @@ def test_identity_model_then_evaluate(runner, cli, tmp_path):
     n_cases, n_rea = 60, 50
     case = np.repeat(np.arange(n_cases), n_rea)
     g = rng.uniform(-0.05, 0.05, (2, n_cases))[:, case]
-    cat = {"case": case, "tru_g1": g[0], "tru_g2": g[1],
-           "adamom_g1": g[0] + rng.normal(0, 0.01, case.size), "adamom_g2": g[1] + rng.normal(0, 0.01, case.size)}
+    cat = {
+        "case": case,
+        "tru_g1": g[0],
+        "tru_g2": g[1],
+        "adamom_g1": g[0] + rng.normal(0, 0.01, case.size),
+        "adamom_g2": g[1] + rng.normal(0, 0.01, case.size),
+    }
     cat["adamom_g2"][7] = np.nan
     src, out = tmp_path / "f.fits", tmp_path / "s.fits"
     write_catalog(src, cat, fmt="megalut.features")
-    assert runner.invoke(cli, ["predict", str(src), "--model", str(model), "-o", str(out)]).exit_code == 0
+    assert (
+        runner.invoke(cli, ["predict", str(src), "--model", str(model), "-o", str(out)]).exit_code
+        == 0
+    )
     js = tmp_path / "e.json"
     result = runner.invoke(cli, ["evaluate", str(out), "--json", str(js)])
     assert result.exit_code == 0, result.output
@@ -163,17 +217,41 @@ def test_warns_when_catalog_setup_differs_from_training(runner, cli, tmp_path):
 
     from megalut_cli.nn.model import ShearModel as Model
 
-    point = {t: make_committee("point", t, FEATURES, seed=i) for i, t in enumerate(("tru_g1", "tru_g2"))}
-    setup = {"stamp_size": 64, "noise": {"type": "gaussian", "sigma": 1.0}, "psf": {"type": "gaussian", "sigma": 2.0}}
+    point = {
+        t: make_committee("point", t, FEATURES, seed=i) for i, t in enumerate(("tru_g1", "tru_g2"))
+    }
+    setup = {
+        "stamp_size": 64,
+        "noise": {"type": "gaussian", "sigma": 1.0},
+        "psf": {"type": "gaussian", "sigma": 2.0},
+    }
     Model(point, provenance={"setup": setup}).save(tmp_path / "m.h5")
     d = features_catalog(100)
     write_catalog(tmp_path / "same.fits", d, fmt="megalut.features", cards={"STAMPSZ": 64})
     write_catalog(tmp_path / "other.fits", d, fmt="megalut.features", cards={"STAMPSZ": 48})
-    same = runner.invoke(cli, ["predict", str(tmp_path / "same.fits"), "--model", str(tmp_path / "m.h5"),
-                               "-o", str(tmp_path / "a.fits")])
+    same = runner.invoke(
+        cli,
+        [
+            "predict",
+            str(tmp_path / "same.fits"),
+            "--model",
+            str(tmp_path / "m.h5"),
+            "-o",
+            str(tmp_path / "a.fits"),
+        ],
+    )
     assert same.exit_code == 0 and "setup differs" not in same.stderr
-    other = runner.invoke(cli, ["predict", str(tmp_path / "other.fits"), "--model", str(tmp_path / "m.h5"),
-                                "-o", str(tmp_path / "b.fits")])
+    other = runner.invoke(
+        cli,
+        [
+            "predict",
+            str(tmp_path / "other.fits"),
+            "--model",
+            str(tmp_path / "m.h5"),
+            "-o",
+            str(tmp_path / "b.fits"),
+        ],
+    )
     assert other.exit_code == 0, other.stderr
     assert "recorded setup differs" in other.stderr and "stamp_size 64 vs 48" in other.stderr
     assert "psf" not in other.stderr  # not recorded by this catalog: nothing to compare
@@ -188,7 +266,11 @@ def test_training_records_the_setup_of_simulated_catalogs(tmp_path):
     from megalut_cli.sim.simulate import simulate
 
     simulate(load_config(write(tmp_path), ()), tmp_path / "a.fits", measure=True)
-    simulate(load_config(write(tmp_path, name="b.toml"), ("psf.sigma=2.0",)), tmp_path / "b.fits", measure=True)
+    simulate(
+        load_config(write(tmp_path, name="b.toml"), ("psf.sigma=2.0",)),
+        tmp_path / "b.fits",
+        measure=True,
+    )
     a, b = read_setup(tmp_path / "a.fits"), read_setup(tmp_path / "b.fits")
     assert a["stamp_size"] == 24 and a["psf"] == {"type": "gaussian", "sigma": 1.5}
     assert a["noise"] == {"type": "gaussian", "sigma": 1.0} and a["noise_type"] == "gaussian"
@@ -200,8 +282,21 @@ def test_setup_written_another_way_is_no_difference():
     different setup; another value is."""
     from megalut_cli.catalog import setup_differences
 
-    trained = {"noise": {"type": "correlated", "correlation": "../data/cosmos/cf.fits", "pixel_scale": 1.0, "sigma": 1.0}}
-    same = {"noise": {"type": "correlated", "correlation": "/abs/examples/data/cosmos/cf.fits", "sigma": 1.0}}
+    trained = {
+        "noise": {
+            "type": "correlated",
+            "correlation": "../data/cosmos/cf.fits",
+            "pixel_scale": 1.0,
+            "sigma": 1.0,
+        }
+    }
+    same = {
+        "noise": {
+            "type": "correlated",
+            "correlation": "/abs/examples/data/cosmos/cf.fits",
+            "sigma": 1.0,
+        }
+    }
     assert setup_differences(trained, same) == []
     other = {"noise": {"type": "correlated", "correlation": "/abs/other_cf.fits", "sigma": 1.0}}
     assert setup_differences(trained, other) == [f"noise {trained['noise']} vs {other['noise']}"]

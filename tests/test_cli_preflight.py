@@ -32,15 +32,23 @@ def inputs(tmp_path):
 def _commands(inputs, out: str) -> dict[str, list[str]]:
     return {
         "simulate": ["simulate", str(inputs["config"]), "-o", out, "--measure"],
-        "simulate --stamps": ["simulate", str(inputs["config"]), "-o", str(inputs["config"].parent / "c.fits"),
-                              "--stamps", out],
+        "simulate --stamps": [
+            "simulate",
+            str(inputs["config"]),
+            "-o",
+            str(inputs["config"].parent / "c.fits"),
+            "--stamps",
+            out,
+        ],
         "train-point": ["train-point", str(inputs["features"]), "-o", out, "--iterations", "2"],
         "predict": ["predict", str(inputs["features"]), "--model", str(inputs["model"]), "-o", out],
         "evaluate --json": ["evaluate", str(inputs["features"]), "--json", out],
     }
 
 
-@pytest.mark.parametrize("command", ["simulate", "simulate --stamps", "train-point", "predict", "evaluate --json"])
+@pytest.mark.parametrize(
+    "command", ["simulate", "simulate --stamps", "train-point", "predict", "evaluate --json"]
+)
 def test_missing_output_folder_fails_before_any_work(runner, cli, inputs, tmp_path, command):
     out = str(tmp_path / "nowhere" / "out.fits")
     result = runner.invoke(cli, _commands(inputs, out)[command])
@@ -51,14 +59,18 @@ def test_missing_output_folder_fails_before_any_work(runner, cli, inputs, tmp_pa
 
 
 @pytest.mark.parametrize("command", ["simulate", "train-point", "predict", "evaluate --json"])
-def test_unwritable_output_folder_is_named_before_any_work(runner, cli, inputs, tmp_path, command, monkeypatch):
+def test_unwritable_output_folder_is_named_before_any_work(
+    runner, cli, inputs, tmp_path, command, monkeypatch
+):
     """The folder's write permission is checked first (simulated here: tests may run as root)."""
     import megalut_cli.atomic as atomic
 
     ro = tmp_path / "ro"
     ro.mkdir()
     real_access = atomic.os.access
-    monkeypatch.setattr(atomic.os, "access", lambda p, mode: False if Path(p) == ro else real_access(p, mode))
+    monkeypatch.setattr(
+        atomic.os, "access", lambda p, mode: False if Path(p) == ro else real_access(p, mode)
+    )
     out = str(ro / "out.fits")
     result = runner.invoke(cli, _commands(inputs, out)[command])
     assert result.exit_code == 1
@@ -68,7 +80,9 @@ def test_unwritable_output_folder_is_named_before_any_work(runner, cli, inputs, 
 
 
 @pytest.mark.parametrize("command", ["simulate", "train-point"])
-def test_folder_that_takes_no_file_is_named_before_any_work(runner, cli, inputs, tmp_path, command, monkeypatch):
+def test_folder_that_takes_no_file_is_named_before_any_work(
+    runner, cli, inputs, tmp_path, command, monkeypatch
+):
     """Permission bits that allow writing are not enough (root, read-only mounts): the
     pre-flight creates the temporary file the writer would (issue 24: `-o /sys/x.h5` as root
     trained every network before failing)."""
@@ -101,8 +115,19 @@ def test_virtual_file_system_is_refused_before_any_work(runner, cli, inputs):
 
 def test_simulate_dry_run_says_what_and_how_long_and_writes_nothing(runner, cli, inputs, tmp_path):
     out = tmp_path / "cat.fits"
-    result = runner.invoke(cli, ["simulate", str(inputs["config"]), "-o", str(out), "--measure", "--dry-run",
-                                 "--n-cases", "5"])
+    result = runner.invoke(
+        cli,
+        [
+            "simulate",
+            str(inputs["config"]),
+            "-o",
+            str(out),
+            "--measure",
+            "--dry-run",
+            "--n-cases",
+            "5",
+        ],
+    )
     assert result.exit_code == 0, result.stderr
     assert "5 cases x 4 realizations = 20 stamps of 24x24 px, measured" in result.stderr
     assert "stamps/s per worker in a calibration draw" in result.stderr and "about" in result.stderr
@@ -120,25 +145,59 @@ def test_small_simulation_makes_no_calibration_draw(runner, cli, inputs, tmp_pat
 
     calls = []
     real = sim_module.stamps_per_second
-    monkeypatch.setattr(sim_module, "stamps_per_second", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(
+        sim_module, "stamps_per_second", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
     out = tmp_path / "cat.fits"
-    result = runner.invoke(cli, ["simulate", str(inputs["config"]), "-o", str(out), "--measure", "--n-cases", "3",
-                                 "-j", "1"])
+    result = runner.invoke(
+        cli,
+        [
+            "simulate",
+            str(inputs["config"]),
+            "-o",
+            str(out),
+            "--measure",
+            "--n-cases",
+            "3",
+            "-j",
+            "1",
+        ],
+    )
     assert result.exit_code == 0, result.stderr
-    assert "3 cases x 4 realizations = 12 stamps of 24x24 px, measured, on 1 worker(s)" in result.stderr
+    assert (
+        "3 cases x 4 realizations = 12 stamps of 24x24 px, measured, on 1 worker(s)"
+        in result.stderr
+    )
     assert "calibration draw" not in result.stderr and calls == [] and out.exists()
     assert sim_module.ESTIMATE_MIN_STAMPS >= 100 * sim_module.CALIBRATION_STAMPS
-    dry = runner.invoke(cli, ["simulate", str(inputs["config"]), "-o", str(out), "--measure", "--n-cases", "3",
-                              "--dry-run", "--overwrite"])
+    dry = runner.invoke(
+        cli,
+        [
+            "simulate",
+            str(inputs["config"]),
+            "-o",
+            str(out),
+            "--measure",
+            "--n-cases",
+            "3",
+            "--dry-run",
+            "--overwrite",
+        ],
+    )
     assert dry.exit_code == 0 and "calibration draw" in dry.stderr and calls == [1]
 
 
 def test_run_dry_run_lists_steps_and_creates_nothing(runner, cli, tmp_path):
     wd = tmp_path / "wd"
-    result = runner.invoke(cli, ["run", str(write_pipeline(tmp_path)), "--workdir", str(wd), "--dry-run"])
+    result = runner.invoke(
+        cli, ["run", str(write_pipeline(tmp_path)), "--workdir", str(wd), "--dry-run"]
+    )
     assert result.exit_code == 0, result.stderr
-    for line in ("[1/7] simulate-tp: 24 cases x 8 realizations = 192 stamps", "[4/7] train-point",
-                 "[7/7] evaluate"):
+    for line in (
+        "[1/7] simulate-tp: 24 cases x 8 realizations = 192 stamps",
+        "[4/7] train-point",
+        "[7/7] evaluate",
+    ):
         assert line in result.stderr
     assert "calibration draw" in result.stderr
     assert not wd.exists() and result.stdout == ""
@@ -149,8 +208,10 @@ def test_run_dry_run_with_skip_existing_names_the_up_to_date_simulations(runner,
     wd = tmp_path / "wd"
     pipeline = str(write_pipeline(tmp_path))
     assert runner.invoke(cli, ["run", pipeline, "--workdir", str(wd), "-q"]).exit_code == 0
-    result = runner.invoke(cli, ["run", pipeline, "sets.tw.seed=77", "--workdir", str(wd), "--dry-run",
-                                 "--skip-existing"])
+    result = runner.invoke(
+        cli,
+        ["run", pipeline, "sets.tw.seed=77", "--workdir", str(wd), "--dry-run", "--skip-existing"],
+    )
     assert result.exit_code == 0, result.stderr
     lines = result.stderr.splitlines()
     assert any(line.endswith("simulate-tp: up to date, will be skipped") for line in lines), lines
@@ -167,7 +228,14 @@ def test_run_unwritable_workdir_fails_first(runner, cli, tmp_path):
 
 
 def test_verbosity_before_and_after_the_subcommand(runner, cli, inputs, tmp_path):
-    args = ["simulate", str(inputs["config"]), "--measure", "--overwrite", "-o", str(tmp_path / "c.fits")]
+    args = [
+        "simulate",
+        str(inputs["config"]),
+        "--measure",
+        "--overwrite",
+        "-o",
+        str(tmp_path / "c.fits"),
+    ]
     normal = runner.invoke(cli, args)
     assert normal.exit_code == 0 and "about to simulate" in normal.stderr
     assert "simulate: 3/3" not in normal.stderr  # progress lines are silent off a terminal
@@ -182,7 +250,11 @@ def test_verbosity_before_and_after_the_subcommand(runner, cli, inputs, tmp_path
     assert both.exit_code == 0
     assert logging.getLogger("h5py").getEffectiveLevel() == logging.DEBUG
     undone = runner.invoke(cli, ["-v", *args, "-q"])
-    assert undone.exit_code == 0 and "simulate: 3/3" not in undone.stderr and "about to" in undone.stderr
+    assert (
+        undone.exit_code == 0
+        and "simulate: 3/3" not in undone.stderr
+        and "about to" in undone.stderr
+    )
 
 
 def test_ctrl_c_exits_130_with_one_line_and_no_file(runner, cli, inputs, tmp_path, monkeypatch):
@@ -198,8 +270,18 @@ def test_ctrl_c_exits_130_with_one_line_and_no_file(runner, cli, inputs, tmp_pat
     monkeypatch.setattr(sim, "write_image", interrupted)
     out_dir = tmp_path / "out"
     out_dir.mkdir()
-    result = runner.invoke(cli, ["simulate", str(inputs["config"]), "-o", str(out_dir / "c.fits"), "--measure",
-                                 "--stamps", str(out_dir / "s.fits")])
+    result = runner.invoke(
+        cli,
+        [
+            "simulate",
+            str(inputs["config"]),
+            "-o",
+            str(out_dir / "c.fits"),
+            "--measure",
+            "--stamps",
+            str(out_dir / "s.fits"),
+        ],
+    )
     assert result.exit_code == 130
     assert result.stderr.splitlines()[-1] == "megalut: interrupted"
     assert "Traceback" not in result.stderr and "Aborted" not in result.stderr
@@ -218,9 +300,24 @@ def test_ctrl_c_while_workers_start_is_one_line(inputs, tmp_path):
     out_dir.mkdir()
     env = {**os.environ, "MEGALUT_NPROC": "2"}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "megalut_cli", "simulate", str(inputs["config"]), "--measure", "-v",
-         "--n-cases", "4000", "-o", str(out_dir / "c.fits")],
-        stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env, start_new_session=True,
+        [
+            sys.executable,
+            "-m",
+            "megalut_cli",
+            "simulate",
+            str(inputs["config"]),
+            "--measure",
+            "-v",
+            "--n-cases",
+            "4000",
+            "-o",
+            str(out_dir / "c.fits"),
+        ],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        text=True,
+        env=env,
+        start_new_session=True,
     )
     lines = []
     try:
@@ -264,8 +361,10 @@ def test_progress_off_a_terminal_estimates_the_time_left_once(monkeypatch, caplo
     clock = iter([0.0, 5.0, 30.0, 31.0, 32.0, 60.0])
     monkeypatch.setattr(console.time, "perf_counter", lambda: next(clock))
     monkeypatch.setattr(console, "interactive", lambda: False)
-    with (caplog.at_level(logging.INFO, logger="megalut_cli"),
-          console.progress("units", 10) as update):
+    with (
+        caplog.at_level(logging.INFO, logger="megalut_cli"),
+        console.progress("units", 10) as update,
+    ):
         for _ in range(5):
             update(1)
     infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]

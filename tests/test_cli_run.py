@@ -21,7 +21,15 @@ else:  # pragma: no cover
 def test_help(runner, cli) -> None:
     result = runner.invoke(cli, ["run", "--help"])
     assert result.exit_code == 0
-    for text in ("PIPELINE.toml", "--workdir", "--skip-existing", "--scheduler", "-j", "megalut-run", "Example"):
+    for text in (
+        "PIPELINE.toml",
+        "--workdir",
+        "--skip-existing",
+        "--scheduler",
+        "-j",
+        "megalut-run",
+        "Example",
+    ):
         assert text in result.output
     assert "run" in runner.invoke(cli, ["--help"]).output
 
@@ -53,7 +61,10 @@ def test_run_prints_table_and_writes_products(runner, cli, tmp_path: Path) -> No
 
     # evaluation.json has the layout of `megalut evaluate --json`
     other = tmp_path / "other.json"
-    assert runner.invoke(cli, ["evaluate", str(wd / "vo-shears.fits"), "--json", str(other)]).exit_code == 0
+    assert (
+        runner.invoke(cli, ["evaluate", str(wd / "vo-shears.fits"), "--json", str(other)]).exit_code
+        == 0
+    )
     direct = json.loads(other.read_text())
     assert ev.keys() == direct.keys()
     assert ev["weighted"] == direct["weighted"] and ev["unweighted"] == direct["unweighted"]
@@ -62,7 +73,9 @@ def test_run_prints_table_and_writes_products(runner, cli, tmp_path: Path) -> No
     mtime = (wd / "model.h5").stat().st_mtime_ns
     again = runner.invoke(cli, args)
     assert again.exit_code == 1
-    assert "exists; use --skip-existing" in _err(again) and len(_err(again).strip().splitlines()) == 1
+    assert (
+        "exists; use --skip-existing" in _err(again) and len(_err(again).strip().splitlines()) == 1
+    )
     assert (wd / "model.h5").stat().st_mtime_ns == mtime
 
     # --skip-existing: all up to date, the same table
@@ -113,25 +126,31 @@ def readme_default_run_tables() -> dict[str, dict[str, dict[str, float]]]:
     import re
 
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    block = text[text.index("exactly `megalut run --workdir"):]
-    block = block[block.index("```"):]
+    block = text[text.index("exactly `megalut run --workdir") :]
+    block = block[block.index("```") :]
     block = block[: block.index("```", 3)]
     row = re.compile(r"^\s+(g[12])\s+([-+0-9.e]+) ± ([0-9.e-]+)\s+([-+0-9.e]+) ± ([0-9.e-]+)", re.M)
     tables = {}
     for name, part in zip(("run", "reference"), block.split("== the shipped model")):
-        weighted = part[part.index("weighted (per-case weighted"):]
-        tables[name] = {g: dict(zip(("m", "m_err", "c", "c_err"), map(float, v)))
-                        for g, *v in row.findall(weighted)}
+        weighted = part[part.index("weighted (per-case weighted") :]
+        tables[name] = {
+            g: dict(zip(("m", "m_err", "c", "c_err"), map(float, v)))
+            for g, *v in row.findall(weighted)
+        }
     return tables
 
 
 def test_readme_records_the_default_run_tables() -> None:
     tables = readme_default_run_tables()
-    assert set(tables) == {"run", "reference"} and all(set(t) == {"g1", "g2"} for t in tables.values())
+    assert set(tables) == {"run", "reference"} and all(
+        set(t) == {"g1", "g2"} for t in tables.values()
+    )
 
 
 @pytest.mark.slow
-def test_default_run_meets_the_stage_iv_requirement_within_2_sigma(runner, cli, tmp_path: Path) -> None:
+def test_default_run_meets_the_stage_iv_requirement_within_2_sigma(
+    runner, cli, tmp_path: Path
+) -> None:
     """README's claim on exactly the default run (1.45e6 stamps, 7 minutes on 2 cores): the
     weighted m and c within 2 sigma of the Stage IV requirement, for the run's networks and
     for the shipped model on the same validation set; the weights reduce |m|; and the run
@@ -146,15 +165,32 @@ def test_default_run_meets_the_stage_iv_requirement_within_2_sigma(runner, cli, 
         for comp in ("g1", "g2"):
             unweighted, weighted = ev["unweighted"][comp], ev["weighted"][comp]
             print(name, comp, {k: weighted[k] for k in ("m", "m_err", "c", "c_err")})
-            assert abs(weighted["m"]) < REQUIREMENT_M + 2 * weighted["m_err"], (name, comp, weighted)
-            assert abs(weighted["c"]) < REQUIREMENT_C + 2 * weighted["c_err"], (name, comp, weighted)
+            assert abs(weighted["m"]) < REQUIREMENT_M + 2 * weighted["m_err"], (
+                name,
+                comp,
+                weighted,
+            )
+            assert abs(weighted["c"]) < REQUIREMENT_C + 2 * weighted["c_err"], (
+                name,
+                comp,
+                weighted,
+            )
             assert weighted["m_err"] < 2e-3, (name, comp, weighted)  # 1.4e-3 recorded
             # the unweighted estimates are biased (noise bias of faint galaxies, selection of
             # failures); the weights remove most of it
-            assert unweighted["m"] < -0.02 and abs(weighted["m"]) < abs(unweighted["m"]) / 5, (name, comp)
+            assert unweighted["m"] < -0.02 and abs(weighted["m"]) < abs(unweighted["m"]) / 5, (
+                name,
+                comp,
+            )
             # README's printed table is this run: within a quarter of its error (training is
             # deterministic for given seeds; BLAS or compiler changes may move the last digits)
             rec = readme[name][comp]
             for q in ("m", "c"):
-                assert abs(weighted[q] - rec[q]) < 0.25 * rec[f"{q}_err"], (name, comp, q, weighted[q], rec)
+                assert abs(weighted[q] - rec[q]) < 0.25 * rec[f"{q}_err"], (
+                    name,
+                    comp,
+                    q,
+                    weighted[q],
+                    rec,
+                )
         assert ev["weighted"]["g1"]["n_rows"] == 386798

@@ -21,16 +21,39 @@ def _err(result) -> str:
 def test_help(runner, cli):
     result = runner.invoke(cli, ["simulate", "--help"])
     assert result.exit_code == 0
-    for opt in ("--stamps", "--measure", "--n-cases", "--n-realizations", "--seed", "--nproc",
-                "--scheduler", "--overwrite", "KEY=VALUE"):
+    for opt in (
+        "--stamps",
+        "--measure",
+        "--n-cases",
+        "--n-realizations",
+        "--seed",
+        "--nproc",
+        "--scheduler",
+        "--overwrite",
+        "KEY=VALUE",
+    ):
         assert opt in result.output
     assert "megalut simulate examples/fiducial/tp.toml" in result.output
 
 
 def test_simulate_measure(runner, cli, tmp_path):
     out = tmp_path / "cat.fits"
-    result = runner.invoke(cli, ["simulate", str(write(tmp_path)), "-o", str(out), "--measure",
-                                 "--n-cases", "2", "--n-realizations", "6", "--seed", "4"])
+    result = runner.invoke(
+        cli,
+        [
+            "simulate",
+            str(write(tmp_path)),
+            "-o",
+            str(out),
+            "--measure",
+            "--n-cases",
+            "2",
+            "--n-realizations",
+            "6",
+            "--seed",
+            "4",
+        ],
+    )
     assert result.exit_code == 0, _err(result)
     t = read_catalog(out)
     assert len(t) == 12 and t.meta["SEED"] == 4 and t.meta["NCASES"] == 2
@@ -40,8 +63,19 @@ def test_simulate_measure(runner, cli, tmp_path):
 
 def test_key_value_overrides(runner, cli, tmp_path):
     out = tmp_path / "cat.fits"
-    result = runner.invoke(cli, ["simulate", str(write(tmp_path)), "-o", str(out), "noise.sigma=0.5",
-                                 "galaxy.rad=2.0", "--n-cases", "1"])
+    result = runner.invoke(
+        cli,
+        [
+            "simulate",
+            str(write(tmp_path)),
+            "-o",
+            str(out),
+            "noise.sigma=0.5",
+            "galaxy.rad=2.0",
+            "--n-cases",
+            "1",
+        ],
+    )
     assert result.exit_code == 0, _err(result)
     t = read_catalog(out)
     assert np.all(t["tru_sky_sigma"] == 0.5) and np.all(t["tru_rad"] == 2.0)
@@ -54,8 +88,18 @@ def test_key_value_overrides(runner, cli, tmp_path):
         ({"n_cases = 3\n": ""}, [], "[structure] n_cases: missing"),
         ({"sigma = 1.5": "sigma = nan"}, [], "[psf] sigma"),
         ({'rad = {type = "uniform", min = 1.5, max = 3.0}': "rad = -1.0"}, [], "[galaxy] rad"),
-        ({'rad = {type = "uniform", min = 1.5, max = 3.0}': 'rad = {type = "lognormal", mean = 1}'}, [], "[galaxy] rad.type: unknown distribution"),
-        ({'type = "gaussian"\nsigma = 1.5': 'type = "airy"'}, [], "[psf] type: unknown PSF type 'airy'"),
+        (
+            {
+                'rad = {type = "uniform", min = 1.5, max = 3.0}': 'rad = {type = "lognormal", mean = 1}'
+            },
+            [],
+            "[galaxy] rad.type: unknown distribution",
+        ),
+        (
+            {'type = "gaussian"\nsigma = 1.5': 'type = "airy"'},
+            [],
+            "[psf] type: unknown PSF type 'airy'",
+        ),
         ({"[structure]": "[structure"}, [], "invalid TOML"),
         ({}, ["noise.sigma"], "expected KEY=VALUE"),
         ({}, ["noise.sigma=-1"], "noise.sigma"),
@@ -93,7 +137,9 @@ def test_refuses_overwrite(runner, cli, tmp_path):
     st = tmp_path / "s.fits"
     st.write_bytes(b"precious")
     r = runner.invoke(cli, ["simulate", cfg, "-o", str(tmp_path / "new.fits"), "--stamps", str(st)])
-    assert r.exit_code == 1 and st.read_bytes() == b"precious" and not (tmp_path / "new.fits").exists()
+    assert (
+        r.exit_code == 1 and st.read_bytes() == b"precious" and not (tmp_path / "new.fits").exists()
+    )
     r = runner.invoke(cli, ["simulate", cfg, "-o", str(out), "--measure", "--overwrite"])
     assert r.exit_code == 0, _err(r)
     assert len(read_catalog(out)) == 12
@@ -110,7 +156,9 @@ def _table_bytes(path: Path) -> tuple[bytes, bytes, dict]:
     with fitsio.FITS(str(path)) as f:
         data = f[1].read().tobytes()
         cfg = f["CONFIG"].read().tobytes()
-        hdr = {r["name"]: r["value"] for r in f[1].read_header().records() if r["name"] != "HISTORY"}
+        hdr = {
+            r["name"]: r["value"] for r in f[1].read_header().records() if r["name"] != "HISTORY"
+        }
     return data, cfg, hdr
 
 
@@ -119,9 +167,26 @@ def test_identical_for_any_engine(runner, cli, tmp_path, monkeypatch, stamp_engi
     """Same seed: byte-identical catalogs with -j 1, -j 2 and a Dask LocalCluster, with
     either stamp engine (docs/engines.md)."""
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
-    cfg = str(write(tmp_path, replace={'per_realization = ["angle"]': 'per_realization = ["galaxy"]',
-                                       'snc = "ring"': 'snc = "pairs"'}))
-    common = ["--measure", "--engine", stamp_engine, "--n-cases", "9", "--n-realizations", "4", "--seed", "21"]
+    cfg = str(
+        write(
+            tmp_path,
+            replace={
+                'per_realization = ["angle"]': 'per_realization = ["galaxy"]',
+                'snc = "ring"': 'snc = "pairs"',
+            },
+        )
+    )
+    common = [
+        "--measure",
+        "--engine",
+        stamp_engine,
+        "--n-cases",
+        "9",
+        "--n-realizations",
+        "4",
+        "--seed",
+        "21",
+    ]
     outs = {}
     for name, extra in (("j1", ["-j", "1"]), ("j2", ["-j", "2"])):
         outs[name] = tmp_path / f"{name}.fits"
@@ -129,11 +194,22 @@ def test_identical_for_any_engine(runner, cli, tmp_path, monkeypatch, stamp_engi
         assert r.exit_code == 0, _err(r)
     import distributed
 
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
         outs["dask"] = tmp_path / "dask.fits"
-        r = runner.invoke(cli, ["simulate", cfg, "-o", str(outs["dask"]), *common,
-                                "--scheduler", cluster.scheduler_address])
+        r = runner.invoke(
+            cli,
+            [
+                "simulate",
+                cfg,
+                "-o",
+                str(outs["dask"]),
+                *common,
+                "--scheduler",
+                cluster.scheduler_address,
+            ],
+        )
         assert r.exit_code == 0, _err(r)
     ref = _table_bytes(outs["j1"])
     assert len(read_catalog(outs["j1"])) == 36
@@ -170,14 +246,28 @@ def test_examples_are_valid(path, monkeypatch):
 
     monkeypatch.chdir(EXAMPLES.parent)
     cfg = load_config(Path("examples") / path)
-    assert cfg.structure.n_stamps >= {"realgal": 10**2, "metacal": 10**2, "your-data": 10**4}.get(path.parts[0], 10**6)
+    assert cfg.structure.n_stamps >= {"realgal": 10**2, "metacal": 10**2, "your-data": 10**4}.get(
+        path.parts[0], 10**6
+    )
 
 
 def test_varpsf_example_runs(runner, cli, tmp_path, monkeypatch):
     monkeypatch.chdir(EXAMPLES.parent)
     out = tmp_path / "tw.fits"
-    r = runner.invoke(cli, ["simulate", "examples/varpsf/tw.toml", "-o", str(out), "--measure",
-                            "--n-cases", "2", "--n-realizations", "4"])
+    r = runner.invoke(
+        cli,
+        [
+            "simulate",
+            "examples/varpsf/tw.toml",
+            "-o",
+            str(out),
+            "--measure",
+            "--n-cases",
+            "2",
+            "--n-realizations",
+            "4",
+        ],
+    )
     assert r.exit_code == 0, _err(r)
     t = read_catalog(out)
     assert t.meta["SNC"] == "pairs"
@@ -185,4 +275,6 @@ def test_varpsf_example_runs(runner, cli, tmp_path, monkeypatch):
         per_case = [np.unique(np.asarray(t[col])[np.asarray(t["case"]) == c]) for c in (0, 1)]
         assert all(len(u) == 1 for u in per_case) and per_case[0][0] != per_case[1][0], col
     np.testing.assert_allclose(t["tru_psf_g1"], -0.25 + 0.5 * np.asarray(t["tru_field_x"]))
-    np.testing.assert_allclose(t["tru_psf_sigma"], 2 + 0.25 * (np.asarray(t["tru_field_x"]) + t["tru_field_y"] - 1))
+    np.testing.assert_allclose(
+        t["tru_psf_sigma"], 2 + 0.25 * (np.asarray(t["tru_field_x"]) + t["tru_field_y"] - 1)
+    )

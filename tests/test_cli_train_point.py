@@ -45,9 +45,24 @@ def _run(runner, cli, *args: str):
 def test_help(runner, cli) -> None:
     res = runner.invoke(cli, ["train-point", "--help"])
     assert res.exit_code == 0
-    for opt in ("--features", "--targets", "--valid", "--hidden", "--members", "--iterations", "--cost",
-                "--select-cases", "--init-from", "--seed", "--nproc", "--scheduler", "--overwrite",
-                "--batch-fraction", "--batch-iterations", "--valid-fraction"):
+    for opt in (
+        "--features",
+        "--targets",
+        "--valid",
+        "--hidden",
+        "--members",
+        "--iterations",
+        "--cost",
+        "--select-cases",
+        "--init-from",
+        "--seed",
+        "--nproc",
+        "--scheduler",
+        "--overwrite",
+        "--batch-fraction",
+        "--batch-iterations",
+        "--valid-fraction",
+    ):
         assert opt in res.output
     assert "megalut train-point tp.fits" in res.output
 
@@ -71,8 +86,21 @@ def test_train_defaults_and_progress(runner, cli, cats, tmp_path: Path) -> None:
 
 def test_training_logs_per_member_not_per_mini_batch(runner, cli, cats, tmp_path: Path) -> None:
     """20 mini-batches per member: one line per member at info, the batches only with -v."""
-    args = [cats["tp"], "-o", tmp_path / "m.h5", "--members", "2", "--iterations", "40", "--hidden", "3",
-            "--batch-iterations", "2", "--targets", "tru_g1"]
+    args = [
+        cats["tp"],
+        "-o",
+        tmp_path / "m.h5",
+        "--members",
+        "2",
+        "--iterations",
+        "40",
+        "--hidden",
+        "3",
+        "--batch-iterations",
+        "2",
+        "--targets",
+        "tru_g1",
+    ]
     res = _run(runner, cli, *args)
     assert res.exit_code == 0, res.output
     assert res.stderr.count(": done, ") == 2 and ": iteration " not in res.stderr
@@ -83,28 +111,69 @@ def test_training_logs_per_member_not_per_mini_batch(runner, cli, cats, tmp_path
 
 def test_valid_file_mse_and_options(runner, cli, cats, tmp_path: Path) -> None:
     out = tmp_path / "m.h5"
-    res = _run(runner, cli, cats["tp"], "-o", out, *FAST, "--valid", cats["vp"], "--cost", "mse",
-               "--targets", "tru_g2", "--features", "adamom_g2,adamom_sigma", "--optimizer", "lbfgs",
-               "--normalization", "robust", "--init", "identity", "--precision", "float32", "--keep", "2")
+    res = _run(
+        runner,
+        cli,
+        cats["tp"],
+        "-o",
+        out,
+        *FAST,
+        "--valid",
+        cats["vp"],
+        "--cost",
+        "mse",
+        "--targets",
+        "tru_g2",
+        "--features",
+        "adamom_g2,adamom_sigma",
+        "--optimizer",
+        "lbfgs",
+        "--normalization",
+        "robust",
+        "--init",
+        "identity",
+        "--precision",
+        "float32",
+        "--keep",
+        "2",
+    )
     assert res.exit_code == 0, res.output
     m = ShearModel.load(out)
     comm = m.point["tru_g2"]
-    assert comm.cost == "mse" and comm.features == ["adamom_g2", "adamom_sigma"] and comm.n_selected == 2
+    assert (
+        comm.cost == "mse"
+        and comm.features == ["adamom_g2", "adamom_sigma"]
+        and comm.n_selected == 2
+    )
     assert comm.training["n_valid_cases"] == 10 and comm.normalization == "robust"
     assert m.provenance["inputs"]["valid"]["path"].endswith("vp.fits")
 
 
 def test_case_without_valid_rows_is_dropped(runner, cli, cats, tmp_path: Path) -> None:
-    res = _run(runner, cli, cats["flagged"], "-o", tmp_path / "m.h5", *FAST, "--valid-fraction", "0")
+    res = _run(
+        runner, cli, cats["flagged"], "-o", tmp_path / "m.h5", *FAST, "--valid-fraction", "0"
+    )
     assert res.exit_code == 0, res.output
     assert "1 case(s) dropped: every realization is flagged" in res.stderr
     assert ShearModel.load(tmp_path / "m.h5").point["tru_g1"].training["n_train_cases"] == 23
 
 
-def test_cases_removed_by_a_selection_are_not_called_invalid(runner, cli, cats, tmp_path: Path) -> None:
+def test_cases_removed_by_a_selection_are_not_called_invalid(
+    runner, cli, cats, tmp_path: Path
+) -> None:
     """The log says a selection left cases out; only case 3 (all flagged) is reported as invalid."""
-    res = _run(runner, cli, cats["flagged"], "-o", tmp_path / "m.h5", *FAST, "--valid-fraction", "0",
-               "--select-cases", "mean(case) > 1")
+    res = _run(
+        runner,
+        cli,
+        cats["flagged"],
+        "-o",
+        tmp_path / "m.h5",
+        *FAST,
+        "--valid-fraction",
+        "0",
+        "--select-cases",
+        "mean(case) > 1",
+    )
     assert res.exit_code == 0, res.output
     assert "2 case(s) left out by the selection" in res.stderr
     assert "1 case(s) dropped: every realization is flagged" in res.stderr
@@ -131,7 +200,9 @@ def test_cases_removed_by_a_selection_are_not_called_invalid(runner, cli, cats, 
         ("tp", ["--features", "adamom_g1,tru_g1"], 2, "both a feature and a target"),
     ],
 )
-def test_errors_are_one_line_and_write_nothing(runner, cli, cats, tmp_path: Path, key, extra, code, message) -> None:
+def test_errors_are_one_line_and_write_nothing(
+    runner, cli, cats, tmp_path: Path, key, extra, code, message
+) -> None:
     out = tmp_path / "m.h5"
     extra = [str(cats["notmodel"]) if e == "NOTMODEL" else e for e in extra]
     res = _run(runner, cli, cats[key], "-o", out, *FAST, *extra)
@@ -157,13 +228,48 @@ def test_init_from_mismatches(runner, cli, cats, tmp_path: Path) -> None:
     base = tmp_path / "base.h5"
     assert _run(runner, cli, cats["tp"], "-o", base, *FAST).exit_code == 0
     out = tmp_path / "m.h5"
-    res = _run(runner, cli, cats["tp"], "-o", out, "--init-from", base, "--features", "adamom_g1,adamom_g2",
-               "--iterations", "2")
+    res = _run(
+        runner,
+        cli,
+        cats["tp"],
+        "-o",
+        out,
+        "--init-from",
+        base,
+        "--features",
+        "adamom_g1,adamom_g2",
+        "--iterations",
+        "2",
+    )
     assert res.exit_code == 1 and "do not match the features" in res.stderr
-    res = _run(runner, cli, cats["tp"], "-o", out, "--init-from", base, "--hidden", "5,5", "--iterations", "2")
+    res = _run(
+        runner,
+        cli,
+        cats["tp"],
+        "-o",
+        out,
+        "--init-from",
+        base,
+        "--hidden",
+        "5,5",
+        "--iterations",
+        "2",
+    )
     assert res.exit_code == 2 and "differs from the architecture" in res.stderr
     assert not out.exists()
-    res = _run(runner, cli, cats["tp"], "-o", out, "--init-from", base, "--iterations", "2", "--members", "3")
+    res = _run(
+        runner,
+        cli,
+        cats["tp"],
+        "-o",
+        out,
+        "--init-from",
+        base,
+        "--iterations",
+        "2",
+        "--members",
+        "3",
+    )
     assert res.exit_code == 0, res.output
     m = ShearModel.load(out)
     assert m.point["tru_g1"].hidden == (3,) and len(m.point["tru_g1"].members) == 3

@@ -25,7 +25,9 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     tw = shear_like_columns(12, 60, seed=3)
     write_catalog(paths["tw"], tw, fmt="megalut.toy")
     write_catalog(paths["vw"], shear_like_columns(6, 60, seed=4), fmt="megalut.toy")
-    write_catalog(paths["nofeat"], {k: v for k, v in tw.items() if k != "adamom_rho4"}, fmt="megalut.toy")
+    write_catalog(
+        paths["nofeat"], {k: v for k, v in tw.items() if k != "adamom_rho4"}, fmt="megalut.toy"
+    )
     paths["model"] = d / "model.h5"
     train_point(paths["tp"], paths["model"], PointSpec(hidden=[3], members=2, iterations=5))
     data = paths["model"].read_bytes()
@@ -45,15 +47,37 @@ def _run(runner, cli, *args: str):
 def test_help(runner, cli) -> None:
     res = runner.invoke(cli, ["train-weight", "--help"])
     assert res.exit_code == 0
-    for opt in ("--model", "--features", "--hidden", "--members", "--iterations", "--select", "--valid",
-                "--seed", "--nproc", "--scheduler", "--overwrite"):
+    for opt in (
+        "--model",
+        "--features",
+        "--hidden",
+        "--members",
+        "--iterations",
+        "--select",
+        "--valid",
+        "--seed",
+        "--nproc",
+        "--scheduler",
+        "--overwrite",
+    ):
         assert opt in res.output
     assert "megalut train-weight tw.fits --model model.h5" in res.output
 
 
 def test_train_weight_writes_point_and_weight(runner, cli, setup, tmp_path: Path) -> None:
     out = tmp_path / "mw.h5"
-    res = _run(runner, cli, setup["tw"], "--model", setup["model"], "-o", out, *FAST, "--select", "snr > 10")
+    res = _run(
+        runner,
+        cli,
+        setup["tw"],
+        "--model",
+        setup["model"],
+        "-o",
+        out,
+        *FAST,
+        "--select",
+        "snr > 10",
+    )
     assert res.exit_code == 0, res.output
     assert "done, 6 iterations" in res.stderr
     m = ShearModel.load(out)
@@ -66,7 +90,13 @@ def test_train_weight_writes_point_and_weight(runner, cli, setup, tmp_path: Path
         assert w.features == point.features  # default: all features of the point model
         assert w.training["select"] == "snr > 10"
         assert w.training["point_model_sha256"] == point.sha256
-        x = np.random.default_rng(0).normal(size=(100, 5)) * [0.2, 0.2, 0.5, 300, 0.1] + [0, 0, 3, 800, 2.5]
+        x = np.random.default_rng(0).normal(size=(100, 5)) * [0.2, 0.2, 0.5, 300, 0.1] + [
+            0,
+            0,
+            3,
+            800,
+            2.5,
+        ]
         pred = w.predict(x)
         assert np.all((pred > 0) & (pred < 1))
     assert m.provenance["parent"]["command"] == "train-point"
@@ -75,8 +105,22 @@ def test_train_weight_writes_point_and_weight(runner, cli, setup, tmp_path: Path
 
 def test_features_hidden_and_valid(runner, cli, setup, tmp_path: Path) -> None:
     out = tmp_path / "mw.h5"
-    res = _run(runner, cli, setup["tw"], "--model", setup["model"], "-o", out, *FAST, "--features",
-               "adamom_flux,adamom_sigma,snr", "--hidden", "4,2", "--valid", setup["vw"])
+    res = _run(
+        runner,
+        cli,
+        setup["tw"],
+        "--model",
+        setup["model"],
+        "-o",
+        out,
+        *FAST,
+        "--features",
+        "adamom_flux,adamom_sigma,snr",
+        "--hidden",
+        "4,2",
+        "--valid",
+        setup["vw"],
+    )
     assert res.exit_code == 0, res.output
     w = ShearModel.load(out).weight["tru_g2"]
     assert w.features == ["adamom_flux", "adamom_sigma", "snr"] and w.hidden == (4, 2)
@@ -111,7 +155,17 @@ def test_output_safety(runner, cli, setup, tmp_path: Path) -> None:
     out.write_text("precious")
     res = _run(runner, cli, setup["tw"], "--model", setup["model"], "-o", out, *FAST)
     assert res.exit_code == 1 and "--overwrite" in res.stderr and out.read_text() == "precious"
-    res = _run(runner, cli, setup["tw"], "--model", setup["model"], "-o", setup["model"], *FAST, "--overwrite")
+    res = _run(
+        runner,
+        cli,
+        setup["tw"],
+        "--model",
+        setup["model"],
+        "-o",
+        setup["model"],
+        *FAST,
+        "--overwrite",
+    )
     assert res.exit_code == 2 and "would replace the input model" in res.stderr
     res = runner.invoke(cli, ["train-weight", str(setup["tw"]), "-o", str(out)])
     assert res.exit_code == 2 and "--model" in res.stderr

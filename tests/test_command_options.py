@@ -36,7 +36,10 @@ def test_measure_options_are_the_declarations(cli):
     params = {p.name: p for p in cli.get_command(None, "measure").params}
     for o in (*MEASURE_OPTIONS, *SHARED):
         check_click_option(params, o)
-    assert params["stamp_size"].help == "Stamp size in pixels [default: the image's STAMPSZ header card]."
+    assert (
+        params["stamp_size"].help
+        == "Stamp size in pixels [default: the image's STAMPSZ header card]."
+    )
     assert params["stars"].secondary_opts == ["--no-stars"]
 
 
@@ -45,16 +48,25 @@ def test_measure_library_defaults_and_choices_from_the_declarations():
     for name in ("stamp_size", "gain", "stars", "morphology"):
         assert defaults[name] == MEASURE[name].default, name
     assert str(defaults["origin"]) == MEASURE["origin"].default
-    assert defaults["engine"] == ENGINE_OPTION.default and defaults["device"] == DEVICE_OPTION.default
+    assert (
+        defaults["engine"] == ENGINE_OPTION.default and defaults["device"] == DEVICE_OPTION.default
+    )
     assert MEASURE["origin"].choices == tuple(str(o) for o in stamps.ORIGINS)
     assert MEASURE["stamp_size"].minimum == stamps.MIN_STAMP_SIZE
     assert ENGINE_OPTION.choices == tuple(ENGINES)
 
 
-@pytest.mark.parametrize(("args", "flag"), [
-    (["--stamp-size", "2"], "--stamp-size"), (["--origin", "2"], "--origin"), (["--gain", "0"], "--gain"),
-    (["--engine", "gpu"], "--engine"), (["--device", "tpu"], "--device"), (["-j", "x"], "-j"),
-])
+@pytest.mark.parametrize(
+    ("args", "flag"),
+    [
+        (["--stamp-size", "2"], "--stamp-size"),
+        (["--origin", "2"], "--origin"),
+        (["--gain", "0"], "--gain"),
+        (["--engine", "gpu"], "--engine"),
+        (["--device", "tpu"], "--device"),
+        (["-j", "x"], "-j"),
+    ],
+)
 def test_measure_refuses_what_the_declarations_refuse(cli, runner, args, flag):
     r = runner.invoke(cli, ["measure", __file__, "-o", "-", *args])
     assert r.exit_code == 2 and f"Invalid value for '{flag}" in r.stderr
@@ -67,12 +79,17 @@ def test_the_default_note_goes_where_the_help_says():
     assert plain.cli_help() == "How many. [default: all]"
     assert marked.doc_help() == plain.doc_help() == "How many."
     table = docs_table([marked], keys=False).splitlines()
-    assert table[0] == "| option | default | allowed | meaning |" and table[2] == "| `--n` | all | any | How many. |"
+    assert (
+        table[0] == "| option | default | allowed | meaning |"
+        and table[2] == "| `--n` | all | any | How many. |"
+    )
 
 
 def test_engine_and_device_checked_in_the_one_vocabulary():
     assert check_engine("galsim") == "galsim"
-    with pytest.raises(ConfigError, match=r"^engine: unknown value 'gpu' \(expected one of fast, galsim\)$"):
+    with pytest.raises(
+        ConfigError, match=r"^engine: unknown value 'gpu' \(expected one of fast, galsim\)$"
+    ):
         check_engine("gpu")
 
 
@@ -99,6 +116,17 @@ def test_predict_options_are_the_declarations(cli, runner, tmp_path):
         check_click_option(params, o)
     assert inspect.signature(predict_catalog).parameters["chunk_rows"].default == CHUNK_ROWS
     assert CHUNK_ROWS == PREDICT["chunk_rows"].default
-    r = runner.invoke(cli, ["predict", __file__, "--model", __file__, "-o", str(tmp_path / "p.fits"),
-                            "--chunk-rows", str(PREDICT["chunk_rows"].minimum - 1)])
+    r = runner.invoke(
+        cli,
+        [
+            "predict",
+            __file__,
+            "--model",
+            __file__,
+            "-o",
+            str(tmp_path / "p.fits"),
+            "--chunk-rows",
+            str(PREDICT["chunk_rows"].minimum - 1),
+        ],
+    )
     assert r.exit_code == 2 and "Invalid value for '--chunk-rows'" in r.stderr

@@ -18,7 +18,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "fiducial-1e6.h5"
-CONFIGS = {"crn": ROOT / "examples" / "fiducial" / "vo-crn.toml", "independent": ROOT / "examples" / "fiducial" / "vo.toml"}
+CONFIGS = {
+    "crn": ROOT / "examples" / "fiducial" / "vo-crn.toml",
+    "independent": ROOT / "examples" / "fiducial" / "vo.toml",
+}
 N_CASES, N_REA, SEEDS = 8, 200, range(2001, 2007)
 #: The error on m of an independent set over that of a CRN set of the same size, at least.
 MIN_GAIN = {"unweighted": 4.0, "weighted": 8.0}
@@ -51,12 +54,16 @@ def test_crn_error_on_m_is_several_times_smaller_and_both_are_right(tmp_path):
         for scheme in ("unweighted", "weighted"):
             m = np.array([[r[scheme][c]["m"] for c in ("g1", "g2")] for r in runs])
             err = np.array([[r[scheme][c]["m_err"] for c in ("g1", "g2")] for r in runs])
-            quoted_c[(kind, scheme)] = float(np.mean([[r[scheme][c]["c_err"] for c in ("g1", "g2")] for r in runs]))
+            quoted_c[(kind, scheme)] = float(
+                np.mean([[r[scheme][c]["c_err"] for c in ("g1", "g2")] for r in runs])
+            )
             # pooled scatter over seeds of each component (their true m may differ)
             scatter = float(np.sqrt(np.mean(np.var(m, axis=0, ddof=1))))
             quoted[(kind, scheme)] = float(np.mean(err))
-            print(f"{kind:12} {scheme:10} mean m {np.mean(m):+.4f}  scatter of m over {len(runs)} seeds "
-                  f"{scatter:.4f}  mean quoted error {np.mean(err):.4f}")
+            print(
+                f"{kind:12} {scheme:10} mean m {np.mean(m):+.4f}  scatter of m over {len(runs)} seeds "
+                f"{scatter:.4f}  mean quoted error {np.mean(err):.4f}"
+            )
             # right within what 6 seeds x 2 components (10 degrees of freedom) can tell
             assert 0.5 < np.mean(err) / scatter < 2.0, (kind, scheme, scatter, np.mean(err))
     # docs/config.md claims 4-12x smaller errors on m at equal size (recorded 4.4 and 11.7)

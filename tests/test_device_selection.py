@@ -23,7 +23,9 @@ def no_jax(monkeypatch):
 def test_resolution_without_the_extra(no_jax) -> None:
     assert resolve_device("cpu") == "cpu"
     assert resolve_device("auto") == "cpu"
-    with pytest.raises(MegalutError, match=r"^device gpu: the GPU backend is not installed \(pip install"):
+    with pytest.raises(
+        MegalutError, match=r"^device gpu: the GPU backend is not installed \(pip install"
+    ):
         resolve_device("gpu")
     with pytest.raises(ConfigError, match="device: unknown value 'tpu'"):
         resolve_device("tpu")
@@ -33,11 +35,15 @@ def test_cli_without_the_extra(no_jax, tmp_path, runner, cli) -> None:
     from sim_configs import write
 
     cfg = str(write(tmp_path))
-    res = runner.invoke(cli, ["simulate", cfg, "-o", str(tmp_path / "a.fits"), "--measure", "--device", "gpu"])
+    res = runner.invoke(
+        cli, ["simulate", cfg, "-o", str(tmp_path / "a.fits"), "--measure", "--device", "gpu"]
+    )
     assert res.exit_code == 1
     assert res.stderr.strip().splitlines()[-1].endswith("pip install 'megalut-cli[gpu]')")
     assert not (tmp_path / "a.fits").exists()
-    res = runner.invoke(cli, ["simulate", cfg, "-o", str(tmp_path / "a.fits"), "--measure", "--device", "auto"])
+    res = runner.invoke(
+        cli, ["simulate", cfg, "-o", str(tmp_path / "a.fits"), "--measure", "--device", "auto"]
+    )
     assert res.exit_code == 0, res.stderr
     res = runner.invoke(cli, ["simulate", cfg, "-o", str(tmp_path / "b.fits"), "--device", "tpu"])
     assert res.exit_code == 2 and "'tpu' is not one of" in res.stderr

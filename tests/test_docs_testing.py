@@ -42,7 +42,9 @@ def _claim_rows() -> list[list[str]]:
     for table in tables:
         assert table[0] == CLAIM_COLUMNS, table[0]
         for row in table[1:]:
-            assert len(row) == len(CLAIM_COLUMNS), f"a row of {len(row)} cells (an unescaped |?): {row}"
+            assert len(row) == len(CLAIM_COLUMNS), (
+                f"a row of {len(row)} cells (an unescaped |?): {row}"
+            )
             rows.append(row)
     return rows
 
@@ -100,7 +102,9 @@ def test_every_named_test_exists() -> None:
     for path, name in refs:
         _resolve(path, name)
     # a backticked `tests/...::...` the pattern does not read is a typo, not a reference
-    loose = [s for s in re.findall(r"`(tests/[^`]*::[^`]*)`", text) if not REFERENCE.fullmatch(f"`{s}`")]
+    loose = [
+        s for s in re.findall(r"`(tests/[^`]*::[^`]*)`", text) if not REFERENCE.fullmatch(f"`{s}`")
+    ]
     assert not loose, loose
 
 
@@ -112,7 +116,9 @@ def test_claims_table_rows_name_their_tests_and_sets() -> None:
         assert claim and tolerance and achieved, (claim, test, set_)
         refs = _references(test)
         if not refs:
-            assert test.lower().startswith("none"), f"{claim}: Test names no test and does not say none"
+            assert test.lower().startswith("none"), (
+                f"{claim}: Test names no test and does not say none"
+            )
             assert set_ == "—", f"{claim}: no test, but Set is {set_!r}"
             continue
         tested += 1
@@ -125,7 +131,10 @@ def test_claims_table_rows_name_their_tests_and_sets() -> None:
 @pytest.mark.parametrize(
     ("reference", "parsed"),
     [
-        ("`tests/test_gpu.py::test_noiseless_stamps_equal_cpu[sersic]`", ("tests/test_gpu.py", "test_noiseless_stamps_equal_cpu")),
+        (
+            "`tests/test_gpu.py::test_noiseless_stamps_equal_cpu[sersic]`",
+            ("tests/test_gpu.py", "test_noiseless_stamps_equal_cpu"),
+        ),
         ("`tests/test_x.py::TestThing::test_it[a-1]`", ("tests/test_x.py", "TestThing::test_it")),
         ("`tests/test_x.py`", None),
     ],
@@ -163,9 +172,16 @@ class TestMixed:
 def test_test_files_are_read_without_importing_them() -> None:
     """Functions and methods are found, and slow is told from default at every level."""
     found = _tests_in(SYNTHETIC)
-    assert found == {"test_plain": False, "test_long": True, "TestSlowClass::test_method": True,
-                     "test_method": True, "TestMixed::test_slow_one": True, "test_slow_one": True,
-                     "TestMixed::test_fast_one": False, "test_fast_one": False}
+    assert found == {
+        "test_plain": False,
+        "test_long": True,
+        "TestSlowClass::test_method": True,
+        "test_method": True,
+        "TestMixed::test_slow_one": True,
+        "test_slow_one": True,
+        "TestMixed::test_fast_one": False,
+        "test_fast_one": False,
+    }
     assert all(_tests_in("import pytest\npytestmark = pytest.mark.slow\n" + SYNTHETIC).values())
 
 

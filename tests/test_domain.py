@@ -39,8 +39,13 @@ def _simulate(path: Path, overrides=(), n_cases=2, n_rea=150, seed=7, metacal=Fa
     from megalut_cli.sim.config import load_config
     from megalut_cli.sim.simulate import simulate
 
-    simulate(load_config(VO, overrides, n_cases=n_cases, n_realizations=n_rea), path, measure=True, seed=seed,
-             metacal=metacal)
+    simulate(
+        load_config(VO, overrides, n_cases=n_cases, n_realizations=n_rea),
+        path,
+        measure=True,
+        seed=seed,
+        metacal=metacal,
+    )
     return path
 
 
@@ -50,7 +55,9 @@ def cats(tmp_path_factory):
     trap = _simulate(d / "trap.fits", TRAP)
     # the same rows as a survey would deliver them: no setup cards, no CONFIG HDU
     t = fitsio.read(str(trap))
-    write_catalog(d / "bare.fits", {k: t[k] for k in t.dtype.names if not k.startswith("tru_")}, fmt="survey")
+    write_catalog(
+        d / "bare.fits", {k: t[k] for k in t.dtype.names if not k.startswith("tru_")}, fmt="survey"
+    )
     own = _simulate(d / "own.fits", n_rea=200, seed=8)  # the fiducial population itself (VO)
     return {"dir": d, "trap": trap, "bare": d / "bare.fits", "own": own}
 
@@ -64,11 +71,15 @@ def _usable(path: Path, column: str) -> np.ndarray:
 def _skymad_message(path: Path) -> str:
     """The finding the trap must give, computed here from the catalog and the model file."""
     v = _usable(path, "skymad")
-    rec = model_domain(ShearModel.load(shipped_model("fiducial")).provenance)["columns"]["skymad"]["q"]
+    rec = model_domain(ShearModel.load(shipped_model("fiducial")).provenance)["columns"]["skymad"][
+        "q"
+    ]
     q = dict(zip(QUANTILES, rec))
     med, q5, q95 = np.quantile(v, (0.5, 0.05, 0.95))
-    return (f"skymad median {fmt(med)} (5–95 %: {fmt(q5)}–{fmt(q95)}), model trained on {fmt(q[0.01])}–"
-            f"{fmt(q[0.99])} (1–99 %, median {fmt(q[0.5])})")
+    return (
+        f"skymad median {fmt(med)} (5–95 %: {fmt(q5)}–{fmt(q95)}), model trained on {fmt(q[0.01])}–"
+        f"{fmt(q[0.99])} (1–99 %, median {fmt(q[0.5])})"
+    )
 
 
 def test_the_trap_warns_with_the_numbers_and_strict_refuses(runner, cli, cats):
@@ -79,10 +90,14 @@ def test_the_trap_warns_with_the_numbers_and_strict_refuses(runner, cli, cats):
     assert r.exit_code == 0, r.stderr
     assert _skymad_message(cats["trap"]) in r.stderr
     assert "stamp size 48 px, model trained at 64 px" in r.stderr
-    assert "noise {'sigma': 1.0, 'type': 'gaussian'} vs {'sigma': 3.0, 'type': 'gaussian'}" in r.stderr
+    assert (
+        "noise {'sigma': 1.0, 'type': 'gaussian'} vs {'sigma': 3.0, 'type': 'gaussian'}" in r.stderr
+    )
     assert "snr median" not in r.stderr  # inside the model's range: no finding
     strict = cats["dir"] / "strict.fits"
-    r = runner.invoke(cli, ["predict", str(cats["trap"]), "--model", "fiducial", "-o", str(strict), "--strict"])
+    r = runner.invoke(
+        cli, ["predict", str(cats["trap"]), "--model", "fiducial", "-o", str(strict), "--strict"]
+    )
     assert r.exit_code == 1 and not strict.exists()
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "--strict" in lines[0] and _skymad_message(cats["trap"]) in lines[0]
@@ -96,9 +111,22 @@ def test_a_catalog_without_setup_cards_still_gets_the_column_findings(runner, cl
     r = runner.invoke(cli, ["predict", str(cats["bare"]), "--model", "fiducial", "-o", str(out)])
     assert r.exit_code == 0, r.stderr
     assert _skymad_message(cats["bare"]) in r.stderr
-    assert "recorded setup differs" not in r.stderr and "stamp size" not in r.stderr  # nothing recorded to compare
-    r = runner.invoke(cli, ["predict", str(cats["bare"]), "--model", "fiducial", "-o", str(out), "--overwrite",
-                            "--strict"])
+    assert (
+        "recorded setup differs" not in r.stderr and "stamp size" not in r.stderr
+    )  # nothing recorded to compare
+    r = runner.invoke(
+        cli,
+        [
+            "predict",
+            str(cats["bare"]),
+            "--model",
+            "fiducial",
+            "-o",
+            str(out),
+            "--overwrite",
+            "--strict",
+        ],
+    )
     assert r.exit_code == 1 and "skymad median" in r.stderr
 
 
@@ -111,7 +139,9 @@ def test_a_catalog_of_the_models_own_population_gives_no_finding(runner, cli, ca
     assert n == 400
     assert domain_report(model, cats["own"], colnames=names, header=header) == []
     out = cats["dir"] / "own-shears.fits"
-    r = runner.invoke(cli, ["predict", str(cats["own"]), "--model", "fiducial", "-o", str(out), "--strict"])
+    r = runner.invoke(
+        cli, ["predict", str(cats["own"]), "--model", "fiducial", "-o", str(out), "--strict"]
+    )
     assert r.exit_code == 0, r.stderr
     assert "finding" not in r.stderr and out.exists()
 
@@ -119,8 +149,9 @@ def test_a_catalog_of_the_models_own_population_gives_no_finding(runner, cli, ca
 def test_domain_findings_rule():
     """The rule, arrays in: median outside 1-99 %, or more than 10 % outside 0.5-99.5 %."""
     rng = np.random.default_rng(3)
-    domain = domain_record({"skymad": rng.normal(1.0, 0.05, 20000), "snr": rng.lognormal(3, 0.5, 20000)},
-                           stamp_size=64)
+    domain = domain_record(
+        {"skymad": rng.normal(1.0, 0.05, 20000), "snr": rng.lognormal(3, 0.5, 20000)}, stamp_size=64
+    )
     assert domain["columns"]["skymad"]["n"] == 20000 and domain["stamp_size"] == 64
     same = {"skymad": rng.normal(1.0, 0.05, 1000), "snr": rng.lognormal(3, 0.5, 1000)}
     assert domain_findings(domain, same, 64) == []
@@ -128,7 +159,9 @@ def test_domain_findings_rule():
     (f,) = domain_findings(domain, noisy)
     assert f.item == "skymad" and f.message.startswith("skymad median 3")
     tail = dict(same)
-    tail["snr"] = np.where(np.arange(1000) < 200, 500.0, same["snr"])  # 20 % far above, median unchanged
+    tail["snr"] = np.where(
+        np.arange(1000) < 200, 500.0, same["snr"]
+    )  # 20 % far above, median unchanged
     (f,) = domain_findings(domain, tail)
     assert f.item == "snr" and "20 % of the rows outside the model's 0.5–99.5 % range" in f.message
     few = dict(same)
@@ -156,23 +189,44 @@ def test_training_records_the_domain_of_its_usable_rows(tmp_path, runner, cli):
     dom = model.provenance["domain"]
     assert dom["stamp_size"] == 24 and dom["source"] == "tp.fits"
     for col in ("skymad", "snr", "adamom_sigma", "adamom_flux"):
-        np.testing.assert_allclose(dom["columns"][col]["q"], np.quantile(_usable(tp, col), QUANTILES), rtol=1e-12)
+        np.testing.assert_allclose(
+            dom["columns"][col]["q"], np.quantile(_usable(tp, col), QUANTILES), rtol=1e-12
+        )
     # the recorded inputs name files; the path is never absolute (tmp_path is outside the current folder)
     train = model.provenance["inputs"]["train"]
     assert train["name"] == "tp.fits" and not Path(train["path"]).is_absolute()
     # its own catalog is inside its domain; three times the noise is not
-    r = runner.invoke(cli, ["predict", str(tp), "--model", str(tmp_path / "m.h5"), "-o", str(tmp_path / "s.fits"),
-                            "--strict"])
+    r = runner.invoke(
+        cli,
+        [
+            "predict",
+            str(tp),
+            "--model",
+            str(tmp_path / "m.h5"),
+            "-o",
+            str(tmp_path / "s.fits"),
+            "--strict",
+        ],
+    )
     assert r.exit_code == 0, r.stderr
     noisy = tmp_path / "noisy.fits"
     simulate(load_config(cfg, ("noise.sigma=3.0",)), noisy, measure=True, seed=4)
-    r = runner.invoke(cli, ["predict", str(noisy), "--model", str(tmp_path / "m.h5"), "-o", str(tmp_path / "n.fits")])
+    r = runner.invoke(
+        cli,
+        ["predict", str(noisy), "--model", str(tmp_path / "m.h5"), "-o", str(tmp_path / "n.fits")],
+    )
     assert r.exit_code == 0 and "skymad median" in r.stderr
     info = runner.invoke(cli, ["info", str(tmp_path / "m.h5")]).stdout
-    assert "domain: 1–99 % of" in info and "stamp 24 px" in info and "PSF: gaussian; sigma 1.5 px" in info
+    assert (
+        "domain: 1–99 % of" in info
+        and "stamp 24 px" in info
+        and "PSF: gaussian; sigma 1.5 px" in info
+    )
 
 
-def test_a_constant_training_psf_is_in_the_domain_and_a_wider_psf_is_a_finding(tmp_path, cats, runner, cli):
+def test_a_constant_training_psf_is_in_the_domain_and_a_wider_psf_is_a_finding(
+    tmp_path, cats, runner, cli
+):
     """Simulated training rows carry no PSF measurement: a constant PSF's size enters the domain
     from the config, drawn with the pixel as `measure --psf` measures it (also in the shipped
     models), so a survey catalog measured with a wider PSF is a finding even without setup cards."""
@@ -180,24 +234,41 @@ def test_a_constant_training_psf_is_in_the_domain_and_a_wider_psf_is_a_finding(t
 
     from megalut_cli.sim.psf import measured_psf_sigma
 
-    expected = galsim.hsm.FindAdaptiveMom(galsim.Gaussian(sigma=2.0).drawImage(nx=64, ny=64, scale=1.0)).moments_sigma
-    assert measured_psf_sigma({"type": "gaussian", "sigma": 2.0}, 64) == pytest.approx(expected, rel=1e-12)
+    expected = galsim.hsm.FindAdaptiveMom(
+        galsim.Gaussian(sigma=2.0).drawImage(nx=64, ny=64, scale=1.0)
+    ).moments_sigma
+    assert measured_psf_sigma({"type": "gaussian", "sigma": 2.0}, 64) == pytest.approx(
+        expected, rel=1e-12
+    )
     assert measured_psf_sigma({"type": "field"}, 64) is None  # varies: nothing recorded
     dom = model_domain(ShearModel.load(shipped_model("fiducial")).provenance)
     entry = dom["columns"]["psf_adamom_sigma"]
-    assert entry["q"] == [pytest.approx(expected, rel=1e-12)] * len(QUANTILES) and entry["tolerance"] == 0.01
+    assert (
+        entry["q"] == [pytest.approx(expected, rel=1e-12)] * len(QUANTILES)
+        and entry["tolerance"] == 0.01
+    )
     t = fitsio.read(str(cats["bare"]))
     base = {k: t[k] for k in t.dtype.names}
-    for sigma, found in ((expected, False), (1.008 * expected, False), (1.02 * expected, True), (3.03, True)):
+    for sigma, found in (
+        (expected, False),
+        (1.008 * expected, False),
+        (1.02 * expected, True),
+        (3.03, True),
+    ):
         cols = {**base, "psf_adamom_sigma": np.full(len(t), sigma)}
         names = [f.item for f in domain_findings(dom, cols)]
         assert ("psf_adamom_sigma" in names) is found, (sigma, names)
     survey = tmp_path / "survey.fits"  # the trap as a survey delivers it: measured PSF, no cards
     psf3 = measured_psf_sigma({"type": "gaussian", "sigma": 3.0}, 48)
     write_catalog(survey, {**base, "psf_adamom_sigma": np.full(len(t), psf3)}, fmt="survey")
-    r = runner.invoke(cli, ["predict", str(survey), "--model", "fiducial", "-o", str(tmp_path / "s.fits")])
+    r = runner.invoke(
+        cli, ["predict", str(survey), "--model", "fiducial", "-o", str(tmp_path / "s.fits")]
+    )
     assert r.exit_code == 0, r.stderr
-    assert f"psf_adamom_sigma median {fmt(psf3)} px" in r.stderr and f"model trained at {fmt(expected)} px (±1 %)" in r.stderr
+    assert (
+        f"psf_adamom_sigma median {fmt(psf3)} px" in r.stderr
+        and f"model trained at {fmt(expected)} px (±1 %)" in r.stderr
+    )
     # a model trained today records its own constant PSF the same way
     from sim_configs import write
 
@@ -207,18 +278,35 @@ def test_a_constant_training_psf_is_in_the_domain_and_a_wider_psf_is_a_finding(t
     from megalut_cli.sim.simulate import simulate
 
     tp = tmp_path / "tp.fits"
-    simulate(load_config(write(tmp_path, replace={"n_cases = 3": "n_cases = 8"})), tp, measure=True, seed=3)
+    simulate(
+        load_config(write(tmp_path, replace={"n_cases = 3": "n_cases = 8"})),
+        tp,
+        measure=True,
+        seed=3,
+    )
     model = train_point(tp, tmp_path / "m.h5", PointSpec(hidden=[3], members=1, iterations=3))
     got = model.provenance["domain"]["columns"]["psf_adamom_sigma"]["q"][0]
-    assert got == pytest.approx(measured_psf_sigma({"type": "gaussian", "sigma": 1.5}, 24), rel=1e-12)
+    assert got == pytest.approx(
+        measured_psf_sigma({"type": "gaussian", "sigma": 1.5}, 24), rel=1e-12
+    )
 
 
 def test_metacal_catalogs_are_compared_on_their_noshear_columns(runner, cli, tmp_path):
     cat = _simulate(tmp_path / "mc.fits", n_cases=1, n_rea=40, metacal=True)
     # the noshear noise is lower than the plain one: comparing the wrong columns would be a finding
     assert np.median(_usable(cat, "skymad")) > 1.5 * np.median(_usable(cat, "skymad_noshear"))
-    r = runner.invoke(cli, ["predict", str(cat), "--model", "fiducial-metacal", "-o", str(tmp_path / "s.fits"),
-                            "--strict"])
+    r = runner.invoke(
+        cli,
+        [
+            "predict",
+            str(cat),
+            "--model",
+            "fiducial-metacal",
+            "-o",
+            str(tmp_path / "s.fits"),
+            "--strict",
+        ],
+    )
     assert r.exit_code == 0, r.stderr
     dom = model_domain(ShearModel.load(shipped_model("fiducial-metacal")).provenance)
     assert dom["version"] == "noshear" and "psf_adamom_sigma" in dom["columns"]
@@ -229,16 +317,26 @@ def test_models_by_name(runner, cli, cats):
     r = runner.invoke(cli, ["predict", str(cats["own"]), "--model", "fiducial-1e6", "-o", str(out)])
     assert r.exit_code == 0, r.stderr
     assert fitsio.read_header(str(out), 1)["MODEL"] == "fiducial-1e6.h5"
-    r = runner.invoke(cli, ["predict", str(cats["own"]), "--model", "fidutial", "-o", str(out), "--overwrite"])
-    assert r.exit_code == 2 and "nor a shipped model (shipped: fiducial, fiducial-1e6, fiducial-metacal)" in r.stderr
+    r = runner.invoke(
+        cli, ["predict", str(cats["own"]), "--model", "fidutial", "-o", str(out), "--overwrite"]
+    )
+    assert (
+        r.exit_code == 2
+        and "nor a shipped model (shipped: fiducial, fiducial-1e6, fiducial-metacal)" in r.stderr
+    )
     r = runner.invoke(cli, ["info", "fidutial"])
     assert r.exit_code == 2 and "fiducial-metacal" in r.stderr
     r = runner.invoke(cli, ["info", "--models"])
     assert r.exit_code == 0, r.stderr
     lines = r.stdout.splitlines()
-    assert [line.split()[:2] for line in lines] == [["fiducial", "plain"], ["fiducial-1e6", "plain"],
-                                                   ["fiducial-metacal", "metacal"]]
-    assert all("gaussian PSF sigma 2.0; gaussian noise sigma 1.0, stamp 64 px" in line for line in lines)
+    assert [line.split()[:2] for line in lines] == [
+        ["fiducial", "plain"],
+        ["fiducial-1e6", "plain"],
+        ["fiducial-metacal", "metacal"],
+    ]
+    assert all(
+        "gaussian PSF sigma 2.0; gaussian noise sigma 1.0, stamp 64 px" in line for line in lines
+    )
     js = json.loads(runner.invoke(cli, ["info", "--models", "--json"]).stdout)
     assert [m["name"] for m in js] == list(SHIPPED_MODELS) and js[2]["shear_mode"] == "metacal"
     assert runner.invoke(cli, ["info", "--models", "fiducial"]).exit_code == 2
@@ -249,17 +347,27 @@ def test_info_shows_the_population_and_the_domain(runner, cli):
     r = runner.invoke(cli, ["info", "fiducial"])
     assert r.exit_code == 0, r.stderr
     text = r.stdout
-    for words in ("weights (tw.fits): Sersic galaxies (n grid, rad U(2.0, 8.0) px)",
-                  "galaxies: sersic; sersicn grid 1 to 4 step 0.1; rad uniform 2 to 8 px; sb uniform 1 to 15",
-                  "ellipticity Rayleigh of mode 0.2 in 0 to 0.6",
-                  "PSF: gaussian; sigma 2 px", "noise: gaussian; sigma 1 adu", "stamp size: 64 px",
-                  "point estimates (tp.fits): the same population"):
+    for words in (
+        "weights (tw.fits): Sersic galaxies (n grid, rad U(2.0, 8.0) px)",
+        "galaxies: sersic; sersicn grid 1 to 4 step 0.1; rad uniform 2 to 8 px; sb uniform 1 to 15",
+        "ellipticity Rayleigh of mode 0.2 in 0 to 0.6",
+        "PSF: gaussian; sigma 2 px",
+        "noise: gaussian; sigma 1 adu",
+        "stamp size: 64 px",
+        "point estimates (tp.fits): the same population",
+    ):
         assert words in text, words
     (domain,) = [line for line in text.splitlines() if line.startswith("domain: ")]
-    assert "skymad 0.835–1.17" in domain and "stamp 64 px" in domain and "models/record_domain.py" in domain
+    assert (
+        "skymad 0.835–1.17" in domain
+        and "stamp 64 px" in domain
+        and "models/record_domain.py" in domain
+    )
     assert "/work/exp12" not in text  # where it was made (its path here heads the first line)
     js = json.loads(runner.invoke(cli, ["info", "fiducial", "--json"]).stdout)
-    assert js["domain"]["stamp_size"] == 64 and js["training_sets"][0]["setup"]["psf"]["sigma"] == 2.0
+    assert (
+        js["domain"]["stamp_size"] == 64 and js["training_sets"][0]["setup"]["psf"]["sigma"] == 2.0
+    )
 
 
 #: Digest of everything in the shipped files but /provenance, recorded from the files before
@@ -274,6 +382,7 @@ NETWORK_DIGESTS = {
 def _network_digest(path: Path) -> str:
     h = hashlib.sha256()
     with h5py.File(path, "r") as f:
+
         def visit(name: str, obj) -> None:
             if name == "provenance" or name.startswith("provenance/"):
                 return

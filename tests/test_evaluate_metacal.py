@@ -9,7 +9,9 @@ from megalut_cli.shear.evaluate import evaluate_columns
 from megalut_cli.shear.paired import paired_evaluation
 
 STEP = 0.01
-SHEARS = np.array([[-0.04, 0.03], [-0.02, -0.03], [0.0, 0.01], [0.02, -0.01], [0.04, 0.02], [0.03, 0.04]])
+SHEARS = np.array(
+    [[-0.04, 0.03], [-0.02, -0.03], [0.0, 0.01], [0.02, -0.01], [0.04, 0.02], [0.03, 0.04]]
+)
 
 
 def _catalog(n_rea: int = 20000, response: float = 0.6, seed: int = 1) -> dict[str, np.ndarray]:
@@ -22,12 +24,25 @@ def _catalog(n_rea: int = 20000, response: float = 0.6, seed: int = 1) -> dict[s
     case = np.repeat(np.arange(n_cases), n_rea)
     rea = np.tile(np.arange(n_rea), n_cases)
     half = rng.normal(0.0, 0.25, (n_rea // 2, 2))
-    e_int = np.tile(np.stack([half, -half], axis=1).reshape(-1, 2), (n_cases, 1))  # common random numbers
+    e_int = np.tile(
+        np.stack([half, -half], axis=1).reshape(-1, 2), (n_cases, 1)
+    )  # common random numbers
     r_row = np.tile(response + rng.normal(0.0, 0.3, n_rea), n_cases)
     g = SHEARS[case]
-    cols: dict[str, np.ndarray] = {"case": case, "rea": rea, "tru_g1": g[:, 0], "tru_g2": g[:, 1],
-                                   "tru_real_index": rea // 2}
-    for kind, (s1, s2) in {"noshear": (0, 0), "1p": (1, 0), "1m": (-1, 0), "2p": (0, 1), "2m": (0, -1)}.items():
+    cols: dict[str, np.ndarray] = {
+        "case": case,
+        "rea": rea,
+        "tru_g1": g[:, 0],
+        "tru_g2": g[:, 1],
+        "tru_real_index": rea // 2,
+    }
+    for kind, (s1, s2) in {
+        "noshear": (0, 0),
+        "1p": (1, 0),
+        "1m": (-1, 0),
+        "2p": (0, 1),
+        "2m": (0, -1),
+    }.items():
         e = e_int + r_row[:, None] * (g + STEP * np.array([s1, s2]))
         cols[f"pre_g1_{kind}"], cols[f"pre_g2_{kind}"] = e[:, 0], e[:, 1]
         cols[f"q_{kind}"] = np.hypot(e[:, 0], e[:, 1])

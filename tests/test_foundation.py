@@ -22,7 +22,9 @@ def _table(n: int = 7) -> Table:
 
 def test_catalog_round_trip_with_provenance(tmp_path):
     path = tmp_path / "c.fits"
-    catalog.write_catalog(path, _table(), fmt="megalut.test", cards={"SEED": (42, "seed")}, history=["step one"])
+    catalog.write_catalog(
+        path, _table(), fmt="megalut.test", cards={"SEED": (42, "seed")}, history=["step one"]
+    )
     back = catalog.read_catalog(path)
     np.testing.assert_array_equal(back["x"], _table()["x"])
     np.testing.assert_array_equal(back["v"], _table()["v"])
@@ -152,8 +154,12 @@ def test_workers_are_forked_warm_from_one_server(tmp_path):
     if parallel.START_METHOD != "forkserver":
         pytest.skip("no fork server on this platform")  # not on Linux, where CI runs
     (tmp_path / "probe.py").write_text(_PROBE)
-    out = subprocess.run([sys.executable, "-c", _WARM_SCRIPT.format(folder=str(tmp_path))],
-                         capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-c", _WARM_SCRIPT.format(folder=str(tmp_path))],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[(True, True), (True, True)]"
 
@@ -198,7 +204,9 @@ def test_row_expressions_with_ampersand_precedence():
     np.testing.assert_array_equal(
         expr.evaluate_rows("snr > 10 & s > 1.5", COLS), [False, True, True, False, True]
     )
-    np.testing.assert_array_equal(expr.evaluate_rows("~(snr > 10) | s >= 3", COLS), [True, False, False, True, True])
+    np.testing.assert_array_equal(
+        expr.evaluate_rows("~(snr > 10) | s >= 3", COLS), [True, False, False, True, True]
+    )
     assert expr.columns_used("log10(snr) > 1 & s < 2") == ["snr", "s"]
 
 
@@ -235,12 +243,18 @@ def test_bad_expressions_are_config_errors(bad, message):
         ("snr[0] > 1", ["indexing", "is not allowed", "comparisons", "sqrt"]),
         ("snr >> 1", ["'>>' is not allowed"]),
         ("snr in 3", ["'in' is not allowed"]),
-        ("sn > 1 & tru < 3", ["unknown column(s) sn", "did you mean snr?", "the catalog has: case, s, snr, tru"]),
+        (
+            "sn > 1 & tru < 3",
+            ["unknown column(s) sn", "did you mean snr?", "the catalog has: case, s, snr, tru"],
+        ),
     ],
 )
 def test_expression_errors_are_plain_words_with_existing_columns(bad, words):
     """Never the parser's tree; the columns that exist, and the closest one, for a typo."""
-    for check in (lambda: expr.evaluate_rows(bad, COLS), lambda: expr.check_expression(bad, list(COLS))):
+    for check in (
+        lambda: expr.evaluate_rows(bad, COLS),
+        lambda: expr.check_expression(bad, list(COLS)),
+    ):
         with pytest.raises(ConfigError) as err:
             check()
         text = str(err.value)
@@ -261,7 +275,9 @@ def test_flags_explain():
     assert flags.explain(0) == []
 
 
-def test_an_existing_output_is_named_by_the_library_argument_and_by_the_cli_flag(tmp_path, runner, cli):
+def test_an_existing_output_is_named_by_the_library_argument_and_by_the_cli_flag(
+    tmp_path, runner, cli
+):
     """The library says ``overwrite=True``; the command line maps it to ``--overwrite``."""
     from megalut_cli.atomic import check_output
     from megalut_cli.errors import OutputExistsError
@@ -292,8 +308,18 @@ def test_argument_errors_name_the_argument_and_the_cli_names_the_flag(tmp_path, 
     with pytest.raises(ConfigError, match=r"^scheduler 'nowhere' is neither an address"):
         with executor(1, "nowhere"):
             pass
-    result = runner.invoke(cli, ["run", str(write_pipeline(tmp_path)), "--workdir", str(tmp_path / "wd"),
-                                 "--scheduler", "nowhere", "-q"])
+    result = runner.invoke(
+        cli,
+        [
+            "run",
+            str(write_pipeline(tmp_path)),
+            "--workdir",
+            str(tmp_path / "wd"),
+            "--scheduler",
+            "nowhere",
+            "-q",
+        ],
+    )
     assert result.exit_code == 2, result.stderr
     assert "--scheduler 'nowhere' is neither an address" in result.stderr
 
@@ -321,27 +347,54 @@ def test_ordered_window_bounds_work_in_flight():
 
 def test_catalog_written_in_chunks_equals_one_write(tmp_path):
     rng = np.random.default_rng(2)
-    cols = {"a": rng.normal(size=1000), "b": np.arange(1000, dtype=np.int32), "flags": np.zeros(1000, np.int32)}
+    cols = {
+        "a": rng.normal(size=1000),
+        "b": np.arange(1000, dtype=np.int32),
+        "flags": np.zeros(1000, np.int32),
+    }
     extra = {"CONFIG": np.array([(b"{}",)], dtype=[("json", "S2")])}
-    catalog.write_catalog(tmp_path / "one.fits", cols, fmt="megalut.features", cards={"SEED": 3}, extra_hdus=extra)
-    with catalog.catalog_writer(tmp_path / "chunks.fits", fmt="megalut.features", cards={"SEED": 3},
-                                extra_hdus=extra) as writer:
+    catalog.write_catalog(
+        tmp_path / "one.fits", cols, fmt="megalut.features", cards={"SEED": 3}, extra_hdus=extra
+    )
+    with catalog.catalog_writer(
+        tmp_path / "chunks.fits", fmt="megalut.features", cards={"SEED": 3}, extra_hdus=extra
+    ) as writer:
         for start in range(0, 1000, 300):
-            writer.append({k: v[start : start + 300].astype(np.int64) if k == "b" and start else v[start : start + 300]
-                           for k, v in cols.items()})  # a later chunk in another dtype is cast
+            writer.append(
+                {
+                    k: v[start : start + 300].astype(np.int64)
+                    if k == "b" and start
+                    else v[start : start + 300]
+                    for k, v in cols.items()
+                }
+            )  # a later chunk in another dtype is cast
         assert writer.n_rows == 1000
     import fitsio
 
-    with fitsio.FITS(str(tmp_path / "one.fits")) as a, fitsio.FITS(str(tmp_path / "chunks.fits")) as b:
+    with (
+        fitsio.FITS(str(tmp_path / "one.fits")) as a,
+        fitsio.FITS(str(tmp_path / "chunks.fits")) as b,
+    ):
         assert len(a) == len(b) == 3
         for ha, hb in zip(a, b):
             assert np.array_equal(ha.read(), hb.read()) if ha.has_data() else not hb.has_data()
-            cards = [(r["name"], r.get("value")) for r in ha.read_header().records() if r["name"] != "DATE"]
-            assert cards == [(r["name"], r.get("value")) for r in hb.read_header().records() if r["name"] != "DATE"]
+            cards = [
+                (r["name"], r.get("value"))
+                for r in ha.read_header().records()
+                if r["name"] != "DATE"
+            ]
+            assert cards == [
+                (r["name"], r.get("value"))
+                for r in hb.read_header().records()
+                if r["name"] != "DATE"
+            ]
 
 
 def test_catalog_writer_leaves_nothing_on_failure(tmp_path):
-    with pytest.raises(RuntimeError), catalog.catalog_writer(tmp_path / "c.fits", fmt="megalut.features") as writer:
+    with (
+        pytest.raises(RuntimeError),
+        catalog.catalog_writer(tmp_path / "c.fits", fmt="megalut.features") as writer,
+    ):
         writer.append({"a": np.arange(3.0)})
         raise RuntimeError("interrupted")
     assert list(tmp_path.iterdir()) == []
@@ -364,6 +417,8 @@ def test_software_versions_are_the_modules_without_importing_them():
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, "-c", _VERSIONS_SCRIPT], capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-c", _VERSIONS_SCRIPT], capture_output=True, text=True, timeout=120
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[] True"

@@ -65,7 +65,9 @@ def _assert_same_features(dev, cpu, names) -> None:
     for name in names:
         got, expect = np.asarray(dev[name], float), np.asarray(cpu[name], float)
         if ON_GPU:
-            np.testing.assert_allclose(got, expect, rtol=0, atol=GPU_FEATURE_TOLERANCE, err_msg=name)
+            np.testing.assert_allclose(
+                got, expect, rtol=0, atol=GPU_FEATURE_TOLERANCE, err_msg=name
+            )
         elif name in FLOAT64_FEATURES:
             np.testing.assert_allclose(got, expect, rtol=0, atol=FEATURE_TOLERANCE, err_msg=name)
         else:
@@ -87,7 +89,9 @@ def test_noise_is_the_cpu_stream_bit_for_bit() -> None:
     from megalut_cli.gpu.noise import standard_normals as device_normals
     from megalut_cli.sim.normals import add_gaussian_noise, standard_normals
 
-    seeds = np.array([0, 1, 2, 12345, 2**40 + 17, 2**62 + 3] + list(range(1000, 1026)), dtype=np.int64)
+    seeds = np.array(
+        [0, 1, 2, 12345, 2**40 + 17, 2**62 + 3] + list(range(1000, 1026)), dtype=np.int64
+    )
     ref = standard_normals(seeds, 1024)
     got = np.asarray(device_normals(jax.numpy.asarray(seeds), 1024))
     np.testing.assert_array_equal(got, ref)
@@ -115,9 +119,23 @@ def _device_draw(renderer, psf, key, method, gals):
         sel = np.flatnonzero((plan.n_fft == nf) & (plan.n_k == nk))
         pad = np.concatenate([sel, np.full(16 - len(sel), sel[0])])  # one batch shape per grid
         kpsf = renderer.psf_kimage(psf, key, method, nf, nk)
-        out[sel] = np.asarray(grender.render_batch(
-            kpsf, plan.amat[pad], plan.flux[pad], plan.shift_x[pad], plan.shift_y[pad], plan.table[pad],
-            eparams, eint, coef, *grender.fold_indices(nf, nk), n_fft=nf, n_k=nk, size=renderer.stamp_size))[:len(sel)]
+        out[sel] = np.asarray(
+            grender.render_batch(
+                kpsf,
+                plan.amat[pad],
+                plan.flux[pad],
+                plan.shift_x[pad],
+                plan.shift_y[pad],
+                plan.table[pad],
+                eparams,
+                eint,
+                coef,
+                *grender.fold_indices(nf, nk),
+                n_fft=nf,
+                n_k=nk,
+                size=renderer.stamp_size,
+            )
+        )[: len(sel)]
     return out
 
 
@@ -132,7 +150,6 @@ def _check_render_cases(profile: str, cases, starfield: str) -> None:
     from megalut_cli.sim.render import StampRenderer
 
     for case in cases:
-
         psf, method, gsparams, size, m = render_setup(RENDER_CASES[case], starfield)
         gals = random_galaxies(100 + case, m if profile == "sersic" else max(3, m // 3), profile)
         renderer = StampRenderer(size, gsparams)
@@ -161,9 +178,18 @@ def _noisy_stamps(m: int = 96, size: int = 32) -> np.ndarray:
     from megalut_cli.sim.render import StampRenderer
 
     rng = np.random.default_rng(4)
-    gals = dict(profile="sersic", rad=rng.uniform(1.0, 4.0, m), flux=rng.uniform(5.0, 800.0, m),
-                sersicn=rng.choice([1.0, 2.5, 4.0], m), e1=rng.uniform(-0.4, 0.4, m), e2=rng.uniform(-0.4, 0.4, m),
-                g1=np.zeros(m), g2=np.zeros(m), dx=rng.uniform(-0.5, 0.5, m), dy=rng.uniform(-0.5, 0.5, m))
+    gals = dict(
+        profile="sersic",
+        rad=rng.uniform(1.0, 4.0, m),
+        flux=rng.uniform(5.0, 800.0, m),
+        sersicn=rng.choice([1.0, 2.5, 4.0], m),
+        e1=rng.uniform(-0.4, 0.4, m),
+        e2=rng.uniform(-0.4, 0.4, m),
+        g1=np.zeros(m),
+        g2=np.zeros(m),
+        dx=rng.uniform(-0.5, 0.5, m),
+        dy=rng.uniform(-0.5, 0.5, m),
+    )
     import galsim
 
     stamps = StampRenderer(size).draw(galsim.Gaussian(sigma=1.5), "g", "auto", **gals)
@@ -186,7 +212,15 @@ def test_adaptive_moments_same_failures_and_features() -> None:
     assert (ref.status != 0).sum() >= 2  # the blank stamp and faint ones fail
     np.testing.assert_array_equal(np.isnan(moments[ok]).any(axis=1), ref.status != 0)
     assert ref.n_iter.max() > 100  # unsettled runs too
-    names = ("adamom_flux", "adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4", "adamom_x", "adamom_y")
+    names = (
+        "adamom_flux",
+        "adamom_g1",
+        "adamom_g2",
+        "adamom_sigma",
+        "adamom_rho4",
+        "adamom_x",
+        "adamom_y",
+    )
     expect = dict(zip(names, (ref.amp, ref.g1, ref.g2, ref.sigma, ref.rho4, ref.x, ref.y)))
     _assert_same_features(dict(zip(names, moments[ok].T)), expect, names)
     # the feature catalog: same flags, same features
@@ -255,13 +289,33 @@ def test_cli_device_gpu_without_a_device_is_one_line(tmp_path, runner, cli, monk
     from sim_configs import write
 
     monkeypatch.setenv(PLATFORM_ENV, "no-such-platform")
-    res = runner.invoke(cli, ["simulate", str(write(tmp_path)), "-o", str(tmp_path / "o.fits"), "--measure",
-                              "--device", "gpu"])
+    res = runner.invoke(
+        cli,
+        [
+            "simulate",
+            str(write(tmp_path)),
+            "-o",
+            str(tmp_path / "o.fits"),
+            "--measure",
+            "--device",
+            "gpu",
+        ],
+    )
     assert res.exit_code == 1
     assert "--device gpu: JAX finds no no-such-platform device" in res.stderr
     assert "Traceback" not in res.stderr and not (tmp_path / "o.fits").exists()
-    res = runner.invoke(cli, ["simulate", str(write(tmp_path)), "-o", str(tmp_path / "o.fits"), "--measure",
-                              "--device", "auto"])
+    res = runner.invoke(
+        cli,
+        [
+            "simulate",
+            str(write(tmp_path)),
+            "-o",
+            str(tmp_path / "o.fits"),
+            "--measure",
+            "--device",
+            "auto",
+        ],
+    )
     assert res.exit_code == 0, res.stderr
 
 
@@ -272,8 +326,20 @@ def test_cli_simulate_on_the_device_equals_cpu(tmp_path, runner, cli) -> None:
 
     cfg = str(write(tmp_path))
     for device in ("cpu", "gpu"):
-        res = runner.invoke(cli, ["simulate", cfg, "-o", str(tmp_path / f"{device}.fits"), "--measure",
-                                  "--device", device, "--seed", "3"])
+        res = runner.invoke(
+            cli,
+            [
+                "simulate",
+                cfg,
+                "-o",
+                str(tmp_path / f"{device}.fits"),
+                "--measure",
+                "--device",
+                device,
+                "--seed",
+                "3",
+            ],
+        )
         assert res.exit_code == 0, res.stderr
     cpu, dev = (read_catalog(str(tmp_path / f"{d}.fits")) for d in ("cpu", "gpu"))
     assert dev.colnames == cpu.colnames

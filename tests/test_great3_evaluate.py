@@ -47,7 +47,8 @@ def test_m_c_and_psf_leakage_recovered(truth, tmp_path):
     assert u["plus"]["c"] > 10 * u["plus"]["c_err"]
     assert res["q_c"]["frame"] == "psf" and res["q_c"]["sigma2_min"] == 4.0
     assert res["q_c"]["unweighted"] == pytest.approx(
-        q_c(u["plus"]["m"], u["plus"]["c"], u["cross"]["m"], u["cross"]["c"], sigma2_min=4.0))
+        q_c(u["plus"]["m"], u["plus"]["c"], u["cross"]["m"], u["cross"]["c"], sigma2_min=4.0)
+    )
     space = evaluate_branch(sub, d, sigma2_min=1.0)["q_c"]
     assert space["sigma2_min"] == 1.0 and space["unweighted"] > res["q_c"]["unweighted"]
 
@@ -57,7 +58,9 @@ def test_perfect_submission_scores_the_great3_maximum(truth, tmp_path):
     sub = tmp_path / "sub.txt"
     L.write_submission(sub, np.arange(N), g1, g2)
     res = evaluate_branch(sub, d)
-    assert res["q_c"]["unweighted"] == pytest.approx(2000 * 1.232 / 2, rel=1e-6)  # sqrt(sigma2_min = 4)
+    assert res["q_c"]["unweighted"] == pytest.approx(
+        2000 * 1.232 / 2, rel=1e-6
+    )  # sqrt(sigma2_min = 4)
 
 
 def test_per_galaxy_catalog_equals_its_submission(truth, tmp_path, runner, cli):
@@ -71,9 +74,14 @@ def test_per_galaxy_catalog_equals_its_submission(truth, tmp_path, runner, cli):
     w = rng.uniform(0.1, 1.0, sub_of.size)
     flags = (rng.random(sub_of.size) < 0.05).astype(np.int32)
     cat = tmp_path / "shears.fits"
-    write_catalog(cat, {"ID": ids, "pre_g1": pre1, "pre_g2": pre2, "pre_g1_w": w, "pre_g2_w": w, "flags": flags},
-                  fmt="megalut.predictions")
-    r = runner.invoke(cli, ["evaluate", str(cat), "--great3-truth", str(d), "--json", str(tmp_path / "c.json")])
+    write_catalog(
+        cat,
+        {"ID": ids, "pre_g1": pre1, "pre_g2": pre2, "pre_g1_w": w, "pre_g2_w": w, "flags": flags},
+        fmt="megalut.predictions",
+    )
+    r = runner.invoke(
+        cli, ["evaluate", str(cat), "--great3-truth", str(d), "--json", str(tmp_path / "c.json")]
+    )
     assert r.exit_code == 0, r.output
     rc = json.loads((tmp_path / "c.json").read_text())
     for weighted, scheme in ((False, "unweighted"), (True, "weighted")):

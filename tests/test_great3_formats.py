@@ -42,8 +42,17 @@ GALAXY_CONSTANT = (
     "3.500000000000000000e+01 3.500000000000000000e+01 3.001001000000000000e+06\n"
 )
 
-VARIABLE_COLUMNS = ["x", "y", "ID", "x_tile_index", "y_tile_index", "tile_x_pos_deg", "tile_y_pos_deg",
-                    "x_field_true_deg", "y_field_true_deg"]
+VARIABLE_COLUMNS = [
+    "x",
+    "y",
+    "ID",
+    "x_tile_index",
+    "y_tile_index",
+    "tile_x_pos_deg",
+    "tile_y_pos_deg",
+    "x_field_true_deg",
+    "y_field_true_deg",
+]
 
 #: galaxy_catalog-199.txt of a variable-PSF branch (GREAT3's largest IDs, tile columns).
 GALAXY_VARIABLE = "".join(f"# {c}\n" for c in VARIABLE_COLUMNS) + (
@@ -63,7 +72,9 @@ STAR_CONSTANT = "# x\n# y\n" + "".join(
 
 def _savetxt(names: list[str], rows: list[tuple]) -> str:
     """What GREAT3's writeCatalog writes: '# name' lines + numpy.savetxt(catalog) (fmt '%.18e')."""
-    dtype = [(n, int if n in ("x", "y", "ID", "x_tile_index", "y_tile_index") else float) for n in names]
+    dtype = [
+        (n, int if n in ("x", "y", "ID", "x_tile_index", "y_tile_index") else float) for n in names
+    ]
     buf = io.BytesIO()
     np.savetxt(buf, np.array(rows, dtype=dtype))
     return "".join(f"# {n}\n" for n in names) + buf.getvalue().decode()
@@ -71,13 +82,20 @@ def _savetxt(names: list[str], rows: list[tuple]) -> str:
 
 def test_fixtures_are_what_numpy_savetxt_writes():
     """The hand-written fixtures are byte for byte numpy.savetxt's output for GREAT3's schema."""
-    assert GALAXY_CONSTANT == _savetxt(["x", "y", "ID"], [(11, 11, 3000000), (35, 11, 3001000),
-                                                          (11, 35, 3000001), (35, 35, 3001001)])
-    assert GALAXY_VARIABLE == _savetxt(VARIABLE_COLUMNS, [
-        (4751, 4751, 199099099, 4, 3, 1.2345678901234567, 0.5, 9.876543210987654, 2.5),
-        (23, 4751, 199000099, 0, 3, 0.01, 0.5, 0.5 / 7, 2.5),
-    ])
-    assert STAR_CONSTANT == _savetxt(["x", "y"], [(x, y) for y in (23, 71, 119) for x in (23, 71, 119)])
+    assert GALAXY_CONSTANT == _savetxt(
+        ["x", "y", "ID"],
+        [(11, 11, 3000000), (35, 11, 3001000), (11, 35, 3000001), (35, 35, 3001001)],
+    )
+    assert GALAXY_VARIABLE == _savetxt(
+        VARIABLE_COLUMNS,
+        [
+            (4751, 4751, 199099099, 4, 3, 1.2345678901234567, 0.5, 9.876543210987654, 2.5),
+            (23, 4751, 199000099, 0, 3, 0.01, 0.5, 0.5 / 7, 2.5),
+        ],
+    )
+    assert STAR_CONSTANT == _savetxt(
+        ["x", "y"], [(x, y) for y in (23, 71, 119) for x in (23, 71, 119)]
+    )
 
 
 @pytest.mark.parametrize("newline", ["\n", "\r\n"])
@@ -129,16 +147,22 @@ def test_text_catalog_bad_input_names_the_file(tmp_path):
     p = tmp_path / "galaxy_catalog-000.txt"
     lines = GALAXY_CONSTANT.splitlines(keepends=True)
     p.write_text("".join(lines[:4]) + lines[4][:30] + "\n")  # a truncated row
-    with pytest.raises(InputError, match=r"galaxy_catalog-000\.txt: line 5: 2 value\(s\), expected 3"):
+    with pytest.raises(
+        InputError, match=r"galaxy_catalog-000\.txt: line 5: 2 value\(s\), expected 3"
+    ):
         L.read_galaxy_catalog(p)
     p.write_text("".join(lines[3:]))  # header lines lost
     with pytest.raises(InputError, match=r"galaxy_catalog-000\.txt: no '# name' header"):
         L.read_galaxy_catalog(p)
     p.write_text("# x\n# y\n" + "".join(lines[3:]))  # a name line lost: 2 names, 3 values
-    with pytest.raises(InputError, match=r"galaxy_catalog-000\.txt: the '#' header lines do not name the 3"):
+    with pytest.raises(
+        InputError, match=r"galaxy_catalog-000\.txt: the '#' header lines do not name the 3"
+    ):
         L.read_galaxy_catalog(p)
     p.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe")
-    with pytest.raises(InputError, match=r"galaxy_catalog-000\.txt: neither a FITS file nor a text catalog"):
+    with pytest.raises(
+        InputError, match=r"galaxy_catalog-000\.txt: neither a FITS file nor a text catalog"
+    ):
         L.read_galaxy_catalog(p)
 
 
@@ -148,10 +172,16 @@ def test_text_catalog_bad_input_names_the_file(tmp_path):
 SHEAR_TXT = "# g1 g2 \n0.0134245325233 -0.0270384719183 \n"
 SHEAR_YAML = "{g1: 0.013424532523264, g2: -0.02703847191834}\n"
 #: constant PSF: writeStarParameters' dict; variable PSF adds n_star_actual.
-STARSHAPE_TXT = "# epoch_index psf_g1 psf_g2 subfield_index \n0 0.0123456789012 -4.56789012345e-05 7 \n"
-STARSHAPE_VARIABLE_TXT = "# epoch_index n_star_actual psf_g1 psf_g2 subfield_index \n0 3 -0.00912345678901 0.0123 7 \n"
+STARSHAPE_TXT = (
+    "# epoch_index psf_g1 psf_g2 subfield_index \n0 0.0123456789012 -4.56789012345e-05 7 \n"
+)
+STARSHAPE_VARIABLE_TXT = (
+    "# epoch_index n_star_actual psf_g1 psf_g2 subfield_index \n0 3 -0.00912345678901 0.0123 7 \n"
+)
 STARSHAPE_FAILED_TXT = "# epoch_index psf_g1 psf_g2 subfield_index \n0 -10.0 -10.0 8 \n"
-STARSHAPE_YAML = "{epoch_index: 0, psf_g1: 0.012345678901234, psf_g2: -4.5678901234e-05, subfield_index: 7}\n"
+STARSHAPE_YAML = (
+    "{epoch_index: 0, psf_g1: 0.012345678901234, psf_g2: -4.5678901234e-05, subfield_index: 7}\n"
+)
 
 
 @pytest.mark.parametrize(
@@ -159,15 +189,47 @@ STARSHAPE_YAML = "{epoch_index: 0, psf_g1: 0.012345678901234, psf_g2: -4.5678901
     [
         ("shear_params-007.txt", SHEAR_TXT, {"g1": 0.0134245325233, "g2": -0.0270384719183}),
         ("shear_params-007.yaml", SHEAR_YAML, {"g1": 0.013424532523264, "g2": -0.02703847191834}),
-        ("starshape_parameters-007-0.txt", STARSHAPE_TXT,
-         {"epoch_index": 0, "psf_g1": 0.0123456789012, "psf_g2": -4.56789012345e-05, "subfield_index": 7}),
-        ("starshape_parameters-007-0.yaml", STARSHAPE_YAML,
-         {"epoch_index": 0, "psf_g1": 0.012345678901234, "psf_g2": -4.5678901234e-05, "subfield_index": 7}),
-        ("starshape_parameters-007-0.txt", STARSHAPE_VARIABLE_TXT,
-         {"epoch_index": 0, "n_star_actual": 3, "psf_g1": -0.00912345678901, "psf_g2": 0.0123, "subfield_index": 7}),
-        ("subfield_offset-007.txt", "# offset_deg_x offset_deg_y \n0.0 0.0 \n", {"offset_deg_x": 0.0, "offset_deg_y": 0.0}),
-        ("epoch_dither-007-3.txt", "# xdither_pixels ydither_pixels \n0.312345678901 -0.0987654321098 \n",
-         {"xdither_pixels": 0.312345678901, "ydither_pixels": -0.0987654321098}),
+        (
+            "starshape_parameters-007-0.txt",
+            STARSHAPE_TXT,
+            {
+                "epoch_index": 0,
+                "psf_g1": 0.0123456789012,
+                "psf_g2": -4.56789012345e-05,
+                "subfield_index": 7,
+            },
+        ),
+        (
+            "starshape_parameters-007-0.yaml",
+            STARSHAPE_YAML,
+            {
+                "epoch_index": 0,
+                "psf_g1": 0.012345678901234,
+                "psf_g2": -4.5678901234e-05,
+                "subfield_index": 7,
+            },
+        ),
+        (
+            "starshape_parameters-007-0.txt",
+            STARSHAPE_VARIABLE_TXT,
+            {
+                "epoch_index": 0,
+                "n_star_actual": 3,
+                "psf_g1": -0.00912345678901,
+                "psf_g2": 0.0123,
+                "subfield_index": 7,
+            },
+        ),
+        (
+            "subfield_offset-007.txt",
+            "# offset_deg_x offset_deg_y \n0.0 0.0 \n",
+            {"offset_deg_x": 0.0, "offset_deg_y": 0.0},
+        ),
+        (
+            "epoch_dither-007-3.txt",
+            "# xdither_pixels ydither_pixels \n0.312345678901 -0.0987654321098 \n",
+            {"xdither_pixels": 0.312345678901, "ydither_pixels": -0.0987654321098},
+        ),
     ],
 )
 def test_write_dict_files(tmp_path, name, text, expected):
@@ -182,7 +244,9 @@ def test_our_truth_files_are_great3_write_dict(tmp_path):
     """write_truth's .txt files have writeDict's layout (sorted keys, trailing spaces)."""
     L.write_truth(tmp_path, [4], [0.0134245325233], [-0.02], [0.0123], [-4.5e-05])
     assert (tmp_path / "shear_params-004.txt").read_text() == "# g1 g2 \n0.0134245325233 -0.02 \n"
-    assert (tmp_path / "starshape_parameters-004-0.txt").read_text() == "# psf_g1 psf_g2 \n0.0123 -4.5e-05 \n"
+    assert (
+        tmp_path / "starshape_parameters-004-0.txt"
+    ).read_text() == "# psf_g1 psf_g2 \n0.0123 -4.5e-05 \n"
 
 
 def test_read_truth_on_great3_truth_folder(tmp_path):
@@ -196,7 +260,9 @@ def test_read_truth_on_great3_truth_folder(tmp_path):
     (d / "starshape_parameters-008-0.txt").write_text(STARSHAPE_FAILED_TXT)
     t = L.read_truth(d)
     np.testing.assert_array_equal(t["subfield"], [7, 8])
-    assert t["g1"][0] == 0.0134245325233 and t["g2"][0] == -0.0270384719183  # the .txt is read first
+    assert (
+        t["g1"][0] == 0.0134245325233 and t["g2"][0] == -0.0270384719183
+    )  # the .txt is read first
     assert t["psf_g1"][0] == 0.0123456789012 and t["psf_g2"][0] == -4.56789012345e-05
     assert t["g1"][1] == -0.03
     assert math.isnan(t["psf_g1"][1]) and math.isnan(t["psf_g2"][1])  # GREAT3's -10: failed
@@ -236,10 +302,13 @@ def test_presubmission_output_and_evaluation(tmp_path):
     for s in range(4):
         (d / f"shear_params-{s:03d}.txt").write_text(f"# g1 g2 \n{g1[s]!r} {g2[s]!r} \n")
         (d / f"starshape_parameters-{s:03d}-0.txt").write_text(
-            f"# epoch_index psf_g1 psf_g2 subfield_index \n0 0.0{s + 1} -0.01 {s} \n")
+            f"# epoch_index psf_g1 psf_g2 subfield_index \n0 0.0{s + 1} -0.01 {s} \n"
+        )
     m, c = 0.02, -0.001
     sub = tmp_path / "cgc.out"
-    sub.write_text("".join(f"{s} {(1 + m) * g1[s] + c!s} {(1 + m) * g2[s] + c!s}\n" for s in range(4)))
+    sub.write_text(
+        "".join(f"{s} {(1 + m) * g1[s] + c!s} {(1 + m) * g2[s] + c!s}\n" for s in range(4))
+    )
     s, e1, e2 = L.read_submission(sub)
     assert s.dtype == np.int64
     np.testing.assert_array_equal(s, [0, 1, 2, 3])
@@ -261,17 +330,24 @@ def _subfield(tmp_path, catalog_text: str):
 
     s = 24
     psf = galsim.Gaussian(sigma=1.3).shear(g1=0.05, g2=-0.02)
-    shears = [(0.3, 0.0), (-0.3, 0.0), (0.0, 0.3), (0.0, -0.3)]  # grid order: (0,0) (1,0) (0,1) (1,1)
+    shears = [
+        (0.3, 0.0),
+        (-0.3, 0.0),
+        (0.0, 0.3),
+        (0.0, -0.3),
+    ]  # grid order: (0,0) (1,0) (0,1) (1,1)
     img = np.zeros((2 * s, 2 * s))
     for k, (a, b) in enumerate(shears):
         col, row = k % 2, k // 2
         gal = galsim.Convolve(galsim.Gaussian(sigma=2.0, flux=100.0).shear(g1=a, g2=b), psf)
-        img[row * s:(row + 1) * s, col * s:(col + 1) * s] = gal.drawImage(nx=s, ny=s, scale=1.0).array
+        img[row * s : (row + 1) * s, col * s : (col + 1) * s] = gal.drawImage(
+            nx=s, ny=s, scale=1.0
+        ).array
     img += np.random.default_rng(3).normal(0.0, 0.01, img.shape)
     stars = np.zeros((3 * s, 3 * s))
     for k in range(9):
         r, c = divmod(k, 3)
-        stars[r * s:(r + 1) * s, c * s:(c + 1) * s] = psf.drawImage(nx=s, ny=s, scale=1.0).array
+        stars[r * s : (r + 1) * s, c * s : (c + 1) * s] = psf.drawImage(nx=s, ny=s, scale=1.0).array
     write_image(tmp_path / "image-003-0.fits", img, fmt="test")
     write_image(tmp_path / "starfield_image-003-0.fits", stars, fmt="test")
     (tmp_path / "galaxy_catalog-003.txt").write_text(catalog_text)
@@ -284,10 +360,23 @@ def test_measure_a_subfield_with_great3_text_catalog(runner, cli, tmp_path):
     shears = _subfield(tmp_path, GALAXY_CONSTANT)
     out, grid = tmp_path / "features-003.fits", tmp_path / "grid.fits"
     common = ["--stamp-size", "24", "--psf", str(tmp_path / "starfield_image-003-0.fits")]
-    r = runner.invoke(cli, ["measure", str(tmp_path / "image-003-0.fits"), str(tmp_path / "galaxy_catalog-003.txt"),
-                            "-o", str(out), "--origin", "0", *common])
+    r = runner.invoke(
+        cli,
+        [
+            "measure",
+            str(tmp_path / "image-003-0.fits"),
+            str(tmp_path / "galaxy_catalog-003.txt"),
+            "-o",
+            str(out),
+            "--origin",
+            "0",
+            *common,
+        ],
+    )
     assert r.exit_code == 0, r.output
-    r = runner.invoke(cli, ["measure", str(tmp_path / "image-003-0.fits"), "-o", str(grid), *common])
+    r = runner.invoke(
+        cli, ["measure", str(tmp_path / "image-003-0.fits"), "-o", str(grid), *common]
+    )
     assert r.exit_code == 0, r.output
     f, g = read_catalog(out), read_catalog(grid)
     assert f.colnames[:3] == ["x", "y", "ID"]
@@ -295,8 +384,18 @@ def test_measure_a_subfield_with_great3_text_catalog(runner, cli, tmp_path):
     np.testing.assert_array_equal(f["ID"], [3_000_000, 3_001_000, 3_000_001, 3_001_001])
     np.testing.assert_array_equal(f["x"], [11, 35, 11, 35])
     assert (f["flags"] == 0).all()
-    for c in ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "snr", "psf_adamom_g1", "psf_adamom_sigma"):
-        np.testing.assert_allclose(f[c], g[c], rtol=1e-12, err_msg=c)  # the same stamps as in grid order
+    for c in (
+        "adamom_g1",
+        "adamom_g2",
+        "adamom_sigma",
+        "adamom_flux",
+        "snr",
+        "psf_adamom_g1",
+        "psf_adamom_sigma",
+    ):
+        np.testing.assert_allclose(
+            f[c], g[c], rtol=1e-12, err_msg=c
+        )  # the same stamps as in grid order
     # the galaxies' shapes follow their shears (sheared by +-0.3, PSF of ellipticity 0.05)
     g1s = np.array([a for a, _ in shears])
     g2s = np.array([b for _, b in shears])
@@ -307,12 +406,28 @@ def test_measure_a_subfield_with_great3_text_catalog(runner, cli, tmp_path):
 
 def test_measure_passes_variable_psf_columns_through(runner, cli, tmp_path):
     """A variable-PSF galaxy catalog (GREAT3's nine columns) on the same 2x2 subfield."""
-    rows = [(11, 11, 3000000, 0, 0, 0.1, 0.2, 1.1, 1.2), (35, 11, 3001000, 0, 0, 0.3, 0.2, 1.3, 1.2),
-            (11, 35, 3000001, 0, 0, 0.1, 0.4, 1.1, 1.4), (35, 35, 3001001, 0, 0, 0.3, 0.4, 1.3, 1.4)]
+    rows = [
+        (11, 11, 3000000, 0, 0, 0.1, 0.2, 1.1, 1.2),
+        (35, 11, 3001000, 0, 0, 0.3, 0.2, 1.3, 1.2),
+        (11, 35, 3000001, 0, 0, 0.1, 0.4, 1.1, 1.4),
+        (35, 35, 3001001, 0, 0, 0.3, 0.4, 1.3, 1.4),
+    ]
     _subfield(tmp_path, _savetxt(VARIABLE_COLUMNS, rows))
     out = tmp_path / "f.fits"
-    r = runner.invoke(cli, ["measure", str(tmp_path / "image-003-0.fits"), str(tmp_path / "galaxy_catalog-003.txt"),
-                            "-o", str(out), "--origin", "0", "--stamp-size", "24"])
+    r = runner.invoke(
+        cli,
+        [
+            "measure",
+            str(tmp_path / "image-003-0.fits"),
+            str(tmp_path / "galaxy_catalog-003.txt"),
+            "-o",
+            str(out),
+            "--origin",
+            "0",
+            "--stamp-size",
+            "24",
+        ],
+    )
     assert r.exit_code == 0, r.output
     f = read_catalog(out)
     assert f.colnames[:9] == VARIABLE_COLUMNS

@@ -43,8 +43,10 @@ def test_grid_centres_and_ids_follow_great3_builder(size):
 def test_text_catalog_great3_style(tmp_path):
     """GREAT3's writeCatalog: one '# name' line per column, then numpy.savetxt rows (%.18e)."""
     p = tmp_path / "galaxy_catalog-000.txt"
-    p.write_text("# x\n# y\n# ID\n2.300000000000000000e+01 2.300000000000000000e+01 0.000000000000000000e+00\n"
-                 "7.100000000000000000e+01 2.300000000000000000e+01 1.000000000000000000e+03\n")
+    p.write_text(
+        "# x\n# y\n# ID\n2.300000000000000000e+01 2.300000000000000000e+01 0.000000000000000000e+00\n"
+        "7.100000000000000000e+01 2.300000000000000000e+01 1.000000000000000000e+03\n"
+    )
     t = catalog.read_text_catalog(p)
     assert t.colnames == ["x", "y", "ID"]
     assert t["ID"].dtype == np.int64 and list(t["ID"]) == [0, 1000]
@@ -63,7 +65,9 @@ def test_text_catalog_roundtrip_and_fits(tmp_path):
     t = L.read_galaxy_catalog(tmp_path / "c.txt")
     np.testing.assert_array_equal(t["ID"], cat["ID"])
     write_catalog(tmp_path / "c.fits", cat, fmt="great3.catalog")
-    assert catalog.is_fits_file(tmp_path / "c.fits") and not catalog.is_fits_file(tmp_path / "c.txt")
+    assert catalog.is_fits_file(tmp_path / "c.fits") and not catalog.is_fits_file(
+        tmp_path / "c.txt"
+    )
     np.testing.assert_array_equal(L.read_galaxy_catalog(tmp_path / "c.fits")["x"], cat["x"])
     with pytest.raises(MegalutError, match="exists"):
         catalog.write_text_catalog(tmp_path / "c.txt", cat)
@@ -106,7 +110,7 @@ def _starfield(tmp_path, size=16, empty=False, nan=False):
     if not empty:
         for k in range(9):
             r, c = divmod(k, 3)
-            img[r * size:(r + 1) * size, c * size:(c + 1) * size] = (
+            img[r * size : (r + 1) * size, c * size : (c + 1) * size] = (
                 galsim.Gaussian(sigma=1.5 + 0.1 * k).drawImage(nx=size, ny=size, scale=1.0).array
             )
     if nan:
@@ -197,7 +201,10 @@ def test_truth_files(tmp_path):
 
 
 def test_subfield_files_and_stamp_size(tmp_path):
-    with pytest.raises(InputError, match="subfield 4: missing image-004-0.fits, galaxy_catalog-004.txt, starfield_image-004-0.fits"):
+    with pytest.raises(
+        InputError,
+        match="subfield 4: missing image-004-0.fits, galaxy_catalog-004.txt, starfield_image-004-0.fits",
+    ):
         L.subfield_files(tmp_path, 4)
     for name in (L.image_name(4), L.galaxy_catalog_name(4, "fits"), L.starfield_name(4)):
         (tmp_path / name).write_text("x")

@@ -64,8 +64,19 @@ def branch(tmp_path_factory) -> Path:
 
     d = tmp_path_factory.mktemp("g3run")
     (d / "branch.toml").write_text(BRANCH)
-    r = CliRunner().invoke(main, ["simulate", str(d / "branch.toml"), "-o", str(d / "cat.fits"),
-                                  "--great3", str(d / "b"), "--seed", "11"])
+    r = CliRunner().invoke(
+        main,
+        [
+            "simulate",
+            str(d / "branch.toml"),
+            "-o",
+            str(d / "cat.fits"),
+            "--great3",
+            str(d / "b"),
+            "--seed",
+            "11",
+        ],
+    )
     _ok(r)
     return d / "b"
 
@@ -102,7 +113,19 @@ def test_run_writes_submission_and_catalog(first_run, branch):
     assert np.all(np.isfinite(sub[:, 1:])) and np.all(np.abs(sub[:, 1:]) < 1)
     shears = read_catalog(w / P.SHEARS)
     assert len(shears) == 32
-    for c in ("subfield", "ID", "x", "y", "adamom_g1", "skymad", "flags", "pre_g1", "pre_g2", "pre_g1_w", "pre_g2_w"):
+    for c in (
+        "subfield",
+        "ID",
+        "x",
+        "y",
+        "adamom_g1",
+        "skymad",
+        "flags",
+        "pre_g1",
+        "pre_g2",
+        "pre_g1_w",
+        "pre_g2_w",
+    ):
         assert c in shears.colnames, c
     np.testing.assert_array_equal(shears["subfield"], L.split_ids(shears["ID"])[0])
     # the submission is the per-subfield weighted mean of the per-galaxy catalog
@@ -116,7 +139,13 @@ def test_run_writes_submission_and_catalog(first_run, branch):
     assert "Q_c" in out and "submission.txt" in out
     man = json.loads((w / P.MANIFEST).read_text())  # the step engine's manifest
     assert man["format"] == "megalut.run-manifest" and man["failed"] == {}
-    assert set(man["steps"]) == {"subfield-000", "subfield-001", "shears", "submission", "evaluation"}
+    assert set(man["steps"]) == {
+        "subfield-000",
+        "subfield-001",
+        "shears",
+        "submission",
+        "evaluation",
+    }
     assert man["steps"]["subfield-001"]["result"]["n_galaxies"] == 16
     assert man["steps"]["submission"]["params"] == {"subfields": [0, 1], "weighted": True}
 
@@ -124,22 +153,38 @@ def test_run_writes_submission_and_catalog(first_run, branch):
 def test_per_subfield_products(first_run, branch):
     _, w, _ = first_run
     d = w / P.SUBFIELDS_DIR / "001"
-    assert sorted(p.name for p in d.iterdir()) == sorted([*P.UNIT_PRODUCTS, P.UNIT_RECORD])  # no tp/tw by default
+    assert sorted(p.name for p in d.iterdir()) == sorted(
+        [*P.UNIT_PRODUCTS, P.UNIT_RECORD]
+    )  # no tp/tw by default
     model = ShearModel.load(d / "model.h5")
     # the ellipticity shortcut: point committees trained on tru_e1/e2 estimate g1/g2, and
     # every component has the paper's four features with its own adamom_g
     assert sorted(model.point) == sorted(model.weight) == ["tru_g1", "tru_g2"]
     assert model.point["tru_g1"].training["trained_on"] == "tru_e1"
-    assert model.point["tru_g1"].features == ["adamom_g1", "adamom_sigma", "adamom_flux", "adamom_rho4"]
-    assert model.weight["tru_g2"].features == ["adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]
+    assert model.point["tru_g1"].features == [
+        "adamom_g1",
+        "adamom_sigma",
+        "adamom_flux",
+        "adamom_rho4",
+    ]
+    assert model.weight["tru_g2"].features == [
+        "adamom_g2",
+        "adamom_sigma",
+        "adamom_flux",
+        "adamom_rho4",
+    ]
     rec = json.loads((d / P.UNIT_RECORD).read_text())
     # the weight-training noise is the subfield's measured skymad (the branch has sigma 0.5)
     assert rec["summary"]["noise_sigma"] == pytest.approx(0.5, rel=0.1)
     stars = read_catalog(d / "stars.fits")
     assert len(stars) == 9 and (np.asarray(stars["flags"]) == 0).all()
     # distinct seeds per subfield: the two subfields' training sets differ
-    assert rec["params"]["sets"]["tp"]["seed"] != json.loads(
-        (w / P.SUBFIELDS_DIR / "000" / P.UNIT_RECORD).read_text())["params"]["sets"]["tp"]["seed"]
+    assert (
+        rec["params"]["sets"]["tp"]["seed"]
+        != json.loads((w / P.SUBFIELDS_DIR / "000" / P.UNIT_RECORD).read_text())["params"]["sets"][
+            "tp"
+        ]["seed"]
+    )
 
 
 @pytest.mark.slow
@@ -156,7 +201,11 @@ def test_subfields_do_not_depend_on_workers(runner, cli, first_run, tmp_path):
 def test_subfields_do_not_depend_on_the_selection(runner, cli, first_run, tmp_path):
     """A subfield's result depends on its index and the seeds only: the same run alone."""
     pipe, w, _ = first_run
-    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(tmp_path / "one"), "branch.subfields=[1]"]))
+    _ok(
+        runner.invoke(
+            cli, ["run", str(pipe), "--workdir", str(tmp_path / "one"), "branch.subfields=[1]"]
+        )
+    )
     one = np.loadtxt(tmp_path / "one" / P.SUBMISSION)
     np.testing.assert_array_equal(one, np.loadtxt(w / P.SUBMISSION)[1])
     assert not (tmp_path / "one" / P.EVALUATION).exists()  # one subfield: no fit
@@ -173,33 +222,72 @@ def test_skip_existing_and_refusal(runner, cli, branch, tmp_path):
     w = tmp_path / "w"
     _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]"]))
     first, ran = (w / P.SUBMISSION).read_text(), _ran_at(w)
-    _error_line(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]"]), 1,
-                "exists", "--skip-existing")
-    r = runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"])
+    _error_line(
+        runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]"]),
+        1,
+        "exists",
+        "--skip-existing",
+    )
+    r = runner.invoke(
+        cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]
+    )
     _ok(r)
     assert _ran_at(w) == ran and _ran_at(w, "shears") is not None
     assert (w / P.SUBMISSION).read_text() == first
     # a product touched but unchanged is still up to date (content hashes, the step engine's rule)
     os.utime(w / P.SUBFIELDS_DIR / "000" / "shears.fits", ns=(0, 0))
-    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]))
+    _ok(
+        runner.invoke(
+            cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]
+        )
+    )
     assert _ran_at(w) == ran
     # a product changed: the subfield is redone, the same
     model = w / P.SUBFIELDS_DIR / "000" / "model.h5"
     model.write_bytes(model.read_bytes() + b"x")
-    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]))
+    _ok(
+        runner.invoke(
+            cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]
+        )
+    )
     assert _ran_at(w) != ran
     assert (w / P.SUBMISSION).read_text() == first
     # a changed training setting re-runs the subfield
     ran = _ran_at(w)
-    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing",
-                            "train_weight.iterations=6"]))
+    _ok(
+        runner.invoke(
+            cli,
+            [
+                "run",
+                str(pipe),
+                "--workdir",
+                str(w),
+                "branch.subfields=[0]",
+                "--skip-existing",
+                "train_weight.iterations=6",
+            ],
+        )
+    )
     assert _ran_at(w) != ran
     # a work folder of the previous megalut (its own manifest format): refused, one line naming --overwrite
     man = w / P.MANIFEST
-    man.write_text(json.dumps({"format": "megalut.great3-run", "format_version": "1.0", "subfields": {}}))
-    _error_line(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]),
-                1, str(man), "older megalut", "--overwrite")
-    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--overwrite"]))
+    man.write_text(
+        json.dumps({"format": "megalut.great3-run", "format_version": "1.0", "subfields": {}})
+    )
+    _error_line(
+        runner.invoke(
+            cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]
+        ),
+        1,
+        str(man),
+        "older megalut",
+        "--overwrite",
+    )
+    _ok(
+        runner.invoke(
+            cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--overwrite"]
+        )
+    )
     assert json.loads(man.read_text())["format"] == "megalut.run-manifest"
     assert (w / P.SUBMISSION).read_text() == first
 
@@ -219,7 +307,9 @@ def test_keep_going_with_a_corrupted_subfield(runner, cli, branch, tmp_path):
     # the engine's manifest records the subfield finished before the failure (--skip-existing resumes)
     assert {"subfield-000"} == set(json.loads((w / P.MANIFEST).read_text())["steps"])
     assert not (w / P.SUBFIELDS_DIR / "001").exists()
-    assert not [p for p in (w / P.SUBFIELDS_DIR).iterdir() if p.name.startswith(".")]  # no temporary left
+    assert not [
+        p for p in (w / P.SUBFIELDS_DIR).iterdir() if p.name.startswith(".")
+    ]  # no temporary left
     w2 = tmp_path / "w2"
     r = runner.invoke(cli, ["run", str(pipe), "--workdir", str(w2), "--keep-going"])
     _error_line(r, 1, "1 of 2 subfield(s) failed", "image-001-0.fits")
@@ -229,7 +319,11 @@ def test_keep_going_with_a_corrupted_subfield(runner, cli, branch, tmp_path):
     man = json.loads((w2 / P.MANIFEST).read_text())
     assert list(man["failed"]) == ["subfield-001"] and "NaN" in man["failed"]["subfield-001"]
     # the non-strict mode flags the bad stamp and completes the subfield
-    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(tmp_path / "w3"), "branch.strict=false"]))
+    _ok(
+        runner.invoke(
+            cli, ["run", str(pipe), "--workdir", str(tmp_path / "w3"), "branch.strict=false"]
+        )
+    )
     shears = read_catalog(tmp_path / "w3" / P.SHEARS)
     assert np.count_nonzero(np.asarray(shears["flags"])[np.asarray(shears["subfield"]) == 1]) == 1
 
@@ -242,8 +336,11 @@ def _corrupt_missing(b: Path) -> str:
 def _corrupt_off_image(b: Path) -> str:
     p = b / L.galaxy_catalog_name(1)
     t = catalog.read_text_catalog(p)
-    catalog.write_text_catalog(p, {"x": np.asarray(t["x"]) + 100.0, "y": np.asarray(t["y"]), "ID": np.asarray(t["ID"])},
-                         overwrite=True)
+    catalog.write_text_catalog(
+        p,
+        {"x": np.asarray(t["x"]) + 100.0, "y": np.asarray(t["y"]), "ID": np.asarray(t["ID"])},
+        overwrite=True,
+    )
     return p.name
 
 
@@ -299,7 +396,7 @@ def test_bad_branch_input(runner, cli, branch, tmp_path, corrupt, extra, words):
     [
         ("branch.colour=1", ["branch.colour", "unknown key"]),
         ("branch.kind=balloon", ["branch.kind"]),
-        ("branch.subfields=\"3-1\"", ["branch.subfields"]),
+        ('branch.subfields="3-1"', ["branch.subfields"]),
         ('train_point.features=["adamom_g{i}","tru_rad"]', ["train_point.features", "tru_rad"]),
         ('train_point.targets=["tru_e1"]', ["train_point.targets"]),
         ("tw.seed=1", ["tw.seed"]),
@@ -311,14 +408,21 @@ def test_bad_branch_input(runner, cli, branch, tmp_path, corrupt, extra, words):
     ],
 )
 def test_bad_pipeline_settings(runner, cli, branch, tmp_path, override, words):
-    r = runner.invoke(cli, ["run", str(_pipeline(tmp_path, branch)), "--workdir", str(tmp_path / "w"), override])
+    r = runner.invoke(
+        cli, ["run", str(_pipeline(tmp_path, branch)), "--workdir", str(tmp_path / "w"), override]
+    )
     _error_line(r, 2, *words)
     assert not (tmp_path / "w").exists()
 
 
 def test_missing_branch_folder(runner, cli, tmp_path):
-    r = runner.invoke(cli, ["run", str(_pipeline(tmp_path, tmp_path / "nowhere")), "--workdir", str(tmp_path / "w")])
-    _error_line(r, 1, "pipe.toml: [branch] path", "nowhere")  # the file and table as written (issue 24)
+    r = runner.invoke(
+        cli,
+        ["run", str(_pipeline(tmp_path, tmp_path / "nowhere")), "--workdir", str(tmp_path / "w")],
+    )
+    _error_line(
+        r, 1, "pipe.toml: [branch] path", "nowhere"
+    )  # the file and table as written (issue 24)
 
 
 def test_branch_defaults_come_from_the_declarations(branch, tmp_path):
@@ -326,10 +430,18 @@ def test_branch_defaults_come_from_the_declarations(branch, tmp_path):
     from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_SPACE
 
     pipe = P.load_branch_pipeline(_pipeline(tmp_path, branch))
-    assert (pipe.kind, pipe.stamp_size, pipe.sigma2_min) == ("ground", L.STAMP_SIZES["ground"], P.SIGMA2_MIN["ground"])
+    assert (pipe.kind, pipe.stamp_size, pipe.sigma2_min) == (
+        "ground",
+        L.STAMP_SIZES["ground"],
+        P.SIGMA2_MIN["ground"],
+    )
     assert pipe.epoch == P.BRANCH["epoch"].default and pipe.strict is P.BRANCH["strict"].default
-    space = P.parse_branch_pipeline({"branch": {"path": str(branch), "kind": "space"}}, overrides=())
-    assert space.sigma2_min == GREAT3_SIGMA2_MIN_SPACE and space.stamp_size == L.STAMP_SIZES["space"]
+    space = P.parse_branch_pipeline(
+        {"branch": {"path": str(branch), "kind": "space"}}, overrides=()
+    )
+    assert (
+        space.sigma2_min == GREAT3_SIGMA2_MIN_SPACE and space.stamp_size == L.STAMP_SIZES["space"]
+    )
 
 
 def test_parse_helpers(branch):
@@ -338,7 +450,12 @@ def test_parse_helpers(branch):
     assert P.parse_subfields([5, 2, 5]) == [2, 5]
     with pytest.raises(ConfigError):
         P.parse_subfields("a-b")
-    assert P.component_features(P.DEFAULT_FEATURES, 2) == ["adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]
+    assert P.component_features(P.DEFAULT_FEATURES, 2) == [
+        "adamom_g2",
+        "adamom_sigma",
+        "adamom_flux",
+        "adamom_rho4",
+    ]
     star = branch / L.starfield_name(0)
     for kind, size in (("ground", 48), ("space", 96)):
         for name in P.SET_NAMES:
@@ -349,15 +466,23 @@ def test_parse_helpers(branch):
             else:  # Table 3 space distributions
                 assert tpl.raw["galaxy"]["rad"]["max"] == 10.0
     tp = P.default_set("tp", "ground", 48)
-    assert tp["noise"] == {"type": "none"} and "shear" not in tp and tp["structure"]["n_realizations"] == 10
+    assert (
+        tp["noise"] == {"type": "none"}
+        and "shear" not in tp
+        and tp["structure"]["n_realizations"] == 10
+    )
     tw = P.default_set("tw", "ground", 48)
     assert tw["structure"]["snc"] == "pairs" and tw["noise"]["sigma"]["type"] == "measured"
 
 
 #: 6 subfields of 8x8 stamps, bright galaxies (within the tp fluxes) and low noise.
 BRIGHT = BRANCH
-for _old, _new in (("n_cases = 2", "n_cases = 6"), ("n_realizations = 16", "n_realizations = 64"),
-                   ("min = 100.0, max = 200.0", "min = 60.0, max = 100.0"), ("sigma = 0.5", "sigma = 0.05")):
+for _old, _new in (
+    ("n_cases = 2", "n_cases = 6"),
+    ("n_realizations = 16", "n_realizations = 64"),
+    ("min = 100.0, max = 200.0", "min = 60.0, max = 100.0"),
+    ("sigma = 0.5", "sigma = 0.05"),
+):
     assert _old in BRIGHT
     BRIGHT = BRIGHT.replace(_old, _new)
 
@@ -370,14 +495,37 @@ def test_branch_shear_recovered(runner, cli, tmp_path):
     (Unweighted: weights from a tiny tw break the pairs' shape-noise cancellation; the
     scatter of the weighted means is 4x larger at this size.)"""
     (tmp_path / "branch.toml").write_text(BRIGHT)
-    _ok(runner.invoke(cli, ["simulate", str(tmp_path / "branch.toml"), "-o", str(tmp_path / "cat.fits"),
-                            "--great3", str(tmp_path / "b"), "--seed", "2024"]))
+    _ok(
+        runner.invoke(
+            cli,
+            [
+                "simulate",
+                str(tmp_path / "branch.toml"),
+                "-o",
+                str(tmp_path / "cat.fits"),
+                "--great3",
+                str(tmp_path / "b"),
+                "--seed",
+                "2024",
+            ],
+        )
+    )
     pipe = tmp_path / "pipe.toml"
-    pipe.write_text(PIPELINE.format(path=tmp_path / "b")
-                    .replace("n_cases = 20\nn_realizations = 4", "n_cases = 300\nn_realizations = 10")
-                    .replace("n_cases = 4\nn_realizations = 16", "n_cases = 20\nn_realizations = 100")
-                    .replace("members = 2\niterations = 5\nhidden = [3]", "members = 4\niterations = 300\nhidden = [5, 5]", 1)
-                    .replace("members = 2\niterations = 5\nhidden = [3]", "members = 4\niterations = 100\nhidden = [5, 5]", 1))
+    pipe.write_text(
+        PIPELINE.format(path=tmp_path / "b")
+        .replace("n_cases = 20\nn_realizations = 4", "n_cases = 300\nn_realizations = 10")
+        .replace("n_cases = 4\nn_realizations = 16", "n_cases = 20\nn_realizations = 100")
+        .replace(
+            "members = 2\niterations = 5\nhidden = [3]",
+            "members = 4\niterations = 300\nhidden = [5, 5]",
+            1,
+        )
+        .replace(
+            "members = 2\niterations = 5\nhidden = [3]",
+            "members = 4\niterations = 100\nhidden = [5, 5]",
+            1,
+        )
+    )
     _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(tmp_path / "w")]))
     ev = json.loads((tmp_path / "w" / P.EVALUATION).read_text())
     for comp in ("g1", "g2"):
@@ -391,8 +539,12 @@ def test_metacal_branch(runner, cli, branch, tmp_path):
     the networks trained on metacal sets (a metacal model), and each subfield's submitted shear
     its response-calibrated mean: R^-1 times the mean noshear estimate of the same rows."""
     pipe = tmp_path / "pipe.toml"
-    pipe.write_text("metacal = true\n" + PIPELINE.format(path=branch).replace(
-        "n_cases = 20\nn_realizations = 4", "n_cases = 8\nn_realizations = 4"))
+    pipe.write_text(
+        "metacal = true\n"
+        + PIPELINE.format(path=branch).replace(
+            "n_cases = 20\nn_realizations = 4", "n_cases = 8\nn_realizations = 4"
+        )
+    )
     w = tmp_path / "w"
     _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w)]))
     shears = read_catalog(w / P.SHEARS)
@@ -405,8 +557,19 @@ def test_metacal_branch(runner, cli, branch, tmp_path):
     for c in ("mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22", "pre_g1_noshear", "pre_g2_noshear"):
         ok &= np.isfinite(np.asarray(shears[c], dtype=float))
     w1, w2 = (np.asarray(shears[f"pre_g{i}_w_noshear"], dtype=float)[ok] for i in (1, 2))
-    g = np.array([np.average(np.asarray(shears["pre_g1_noshear"])[ok], weights=w1),
-                  np.average(np.asarray(shears["pre_g2_noshear"])[ok], weights=w2)])
-    r = np.array([[np.average(np.asarray(shears[f"mcal_r{i}{j}"])[ok], weights=(w1, w2)[i - 1]) for j in (1, 2)]
-                  for i in (1, 2)])
+    g = np.array(
+        [
+            np.average(np.asarray(shears["pre_g1_noshear"])[ok], weights=w1),
+            np.average(np.asarray(shears["pre_g2_noshear"])[ok], weights=w2),
+        ]
+    )
+    r = np.array(
+        [
+            [
+                np.average(np.asarray(shears[f"mcal_r{i}{j}"])[ok], weights=(w1, w2)[i - 1])
+                for j in (1, 2)
+            ]
+            for i in (1, 2)
+        ]
+    )
     np.testing.assert_allclose(sub[0, 1:], np.linalg.solve(r, g), rtol=1e-10)

@@ -26,7 +26,9 @@ def _starfield(tmp_path: Path, size: int = 24) -> Path:
     for k in range(9):
         r, c = divmod(k, 3)
         star = galsim.Gaussian(sigma=1.2 + 0.1 * k).shear(g1=0.02 * (k - 4), g2=0.01 * k)
-        img[r * size:(r + 1) * size, c * size:(c + 1) * size] = star.drawImage(nx=size, ny=size, scale=1.0).array
+        img[r * size : (r + 1) * size, c * size : (c + 1) * size] = star.drawImage(
+            nx=size, ny=size, scale=1.0
+        ).array
     p = tmp_path / "starfield_image-000-0.fits"
     write_image(p, img, fmt="test", overwrite=True)
     return p
@@ -34,7 +36,13 @@ def _starfield(tmp_path: Path, size: int = 24) -> Path:
 
 def test_psf_star_chosen_per_case(tmp_path, runner, cli):
     field = _starfield(tmp_path)
-    cfg = write(tmp_path, TINY, replace={STAMP_PSF: f'[psf]\ntype = "stamp"\npath = "{field}"\nstamp_size = 24\nindex = "random"'})
+    cfg = write(
+        tmp_path,
+        TINY,
+        replace={
+            STAMP_PSF: f'[psf]\ntype = "stamp"\npath = "{field}"\nstamp_size = 24\nindex = "random"'
+        },
+    )
     out = tmp_path / "a.fits"
     r = runner.invoke(cli, ["simulate", str(cfg), "-o", str(out), "--n-cases", "12", "--seed", "3"])
     assert r.exit_code == 0, r.output
@@ -46,8 +54,12 @@ def test_psf_star_chosen_per_case(tmp_path, runner, cli):
     np.testing.assert_allclose(sig[:, 0], expected[stars], atol=2e-3)
     assert len(set(stars.tolist())) >= 5 and set(stars.tolist()) <= set(range(9))
     # seeded per case: the first cases keep their star with more cases
-    r = runner.invoke(cli, ["simulate", str(cfg), "-o", str(tmp_path / "b.fits"), "--n-cases", "5", "--seed", "3"])
-    np.testing.assert_array_equal(read_catalog(tmp_path / "b.fits")["tru_psf_sigma"], t["tru_psf_sigma"][:20])
+    r = runner.invoke(
+        cli, ["simulate", str(cfg), "-o", str(tmp_path / "b.fits"), "--n-cases", "5", "--seed", "3"]
+    )
+    np.testing.assert_array_equal(
+        read_catalog(tmp_path / "b.fits")["tru_psf_sigma"], t["tru_psf_sigma"][:20]
+    )
 
 
 def test_psf_star_index_errors(tmp_path):
@@ -58,23 +70,42 @@ def test_psf_star_index_errors(tmp_path):
     with pytest.raises(ConfigError, match="psf.index: 9 is beyond the 9 star"):
         load_config(write(tmp_path, TINY, replace={STAMP_PSF: base + "stamp_size = 24\nindex = 9"}))
     with pytest.raises(ConfigError, match="psf.index: 9 is beyond"):
-        load_config(write(tmp_path, TINY, replace={STAMP_PSF: base + 'stamp_size = 24\nindex = {type = "grid", values = [0, 9]}'}))
+        load_config(
+            write(
+                tmp_path,
+                TINY,
+                replace={
+                    STAMP_PSF: base + 'stamp_size = 24\nindex = {type = "grid", values = [0, 9]}'
+                },
+            )
+        )
     with pytest.raises(ConfigError, match="psf.index: expected"):
-        load_config(write(tmp_path, TINY, replace={STAMP_PSF: base + 'stamp_size = 24\nindex = "all"'}))
+        load_config(
+            write(tmp_path, TINY, replace={STAMP_PSF: base + 'stamp_size = 24\nindex = "all"'})
+        )
     with pytest.raises(InputError, match="psf.path.*does not divide"):
         load_config(write(tmp_path, TINY, replace={STAMP_PSF: base + "stamp_size = 25"}))
 
 
 def test_noise_measured_on_data(tmp_path, runner, cli):
     skymad = np.array([0.5, 0.7, 0.9, np.nan, 100.0])
-    write_catalog(tmp_path / "f.fits", {"skymad": skymad, "flags": np.array([0, 0, 0, 1, 1])}, fmt="megalut.features")
+    write_catalog(
+        tmp_path / "f.fits",
+        {"skymad": skymad, "flags": np.array([0, 0, 0, 1, 1])},
+        fmt="megalut.features",
+    )
     measured = '[noise]\ntype = "gaussian"\nsigma = {type = "measured", path = "f.fits"}'
     cfg = write(tmp_path, TINY, replace={'[noise]\ntype = "gaussian"\nsigma = 1.0': measured})
     c = load_config(cfg)
     assert c.noise.params["sigma"].bounds() == (0.8, 0.8)  # median of the finite values
-    c = load_config(cfg, ["noise.sigma.select=flags == 0", "noise.sigma.statistic=mean", "noise.sigma.scale=2.0"])
+    c = load_config(
+        cfg,
+        ["noise.sigma.select=flags == 0", "noise.sigma.statistic=mean", "noise.sigma.scale=2.0"],
+    )
     assert c.noise.params["sigma"].bounds()[0] == pytest.approx(1.4)
-    r = runner.invoke(cli, ["simulate", str(cfg), "-o", str(tmp_path / "s.fits"), "--measure", "--n-cases", "2"])
+    r = runner.invoke(
+        cli, ["simulate", str(cfg), "-o", str(tmp_path / "s.fits"), "--measure", "--n-cases", "2"]
+    )
     assert r.exit_code == 0, r.output
     assert np.all(read_catalog(tmp_path / "s.fits")["tru_sky_sigma"] == 0.8)
     with pytest.raises(ConfigError, match="noise.sigma.column: no column 'sky'"):
@@ -89,7 +120,9 @@ def test_noise_measured_on_data(tmp_path, runner, cli):
         load_config(cfg, ["noise.sigma.path=missing.fits"])
     # a GREAT3-style text catalog works too
     (tmp_path / "f.txt").write_text("# skymad\n0.25\n0.35\n")
-    assert load_config(cfg, ["noise.sigma.path=f.txt"]).noise.params["sigma"].bounds()[0] == pytest.approx(0.3)
+    assert load_config(cfg, ["noise.sigma.path=f.txt"]).noise.params["sigma"].bounds()[
+        0
+    ] == pytest.approx(0.3)
 
 
 REAL = f"""
@@ -119,8 +152,22 @@ type = "none"
 def test_real_galaxies_pairs_flux_and_shear(tmp_path, runner, cli):
     cfg = write(tmp_path, REAL, "real.toml")
     out = tmp_path / "r.fits"
-    r = runner.invoke(cli, ["simulate", str(cfg), "-o", str(out), "--stamps", str(tmp_path / "st.fits"),
-                            "--measure", "--seed", "4", "--n-cases", "3"])
+    r = runner.invoke(
+        cli,
+        [
+            "simulate",
+            str(cfg),
+            "-o",
+            str(out),
+            "--stamps",
+            str(tmp_path / "st.fits"),
+            "--measure",
+            "--seed",
+            "4",
+            "--n-cases",
+            "3",
+        ],
+    )
     assert r.exit_code == 0, r.output
     t = read_catalog(out)
     idx = np.asarray(t["tru_real_index"])
@@ -134,8 +181,21 @@ def test_real_galaxies_pairs_flux_and_shear(tmp_path, runner, cli):
     np.testing.assert_allclose(t["adamom_g2"][1::2], -t["adamom_g2"][0::2], atol=2e-3)
     assert np.all(t["adamom_sigma"] > 1.1)  # wider than the PSF (1 pixel, plus the pixel)
     # a shear shows up in the pair means (which cancel without shear)
-    sh = runner.invoke(cli, ["simulate", str(cfg), "-o", str(tmp_path / "s.fits"), "--measure", "--seed", "4",
-                             "--n-cases", "3", "shear.g1=0.1"])
+    sh = runner.invoke(
+        cli,
+        [
+            "simulate",
+            str(cfg),
+            "-o",
+            str(tmp_path / "s.fits"),
+            "--measure",
+            "--seed",
+            "4",
+            "--n-cases",
+            "3",
+            "shear.g1=0.1",
+        ],
+    )
     assert sh.exit_code == 0, sh.output
     s = read_catalog(tmp_path / "s.fits")
     pair0 = (np.asarray(t["adamom_g1"])[0::2] + np.asarray(t["adamom_g1"])[1::2]) / 2
@@ -185,8 +245,11 @@ def test_hst_noise_model_and_symmetrization(pixel_scale, fwhm):
     for k, index in enumerate([3, 7, 12, 20, 31, 44]):
         gal = rotated(real_profile(real, index, 100.0, pad_pixels=120.0), 0.0, 0.3, 0.0)
         image = galsim.Convolve(gal, psf).drawImage(nx=80, ny=80, scale=1.0)
-        clean = galsim.Convolve(rotated(real_profile(real, index, 100.0), 0.0, 0.3, 0.0), psf).drawImage(
-            nx=80, ny=80, scale=1.0).array
+        clean = (
+            galsim.Convolve(rotated(real_profile(real, index, 100.0), 0.0, 0.3, 0.0), psf)
+            .drawImage(nx=80, ny=80, scale=1.0)
+            .array
+        )
         cn = real_noise(real, index, 100.0, 0.0, 0.3, 0.0, kernel, seed=k + 1)
         noise = (image.array - clean)[:24].astype(float)  # far from the galaxy: padding only
         ratio.append(noise.var() / cn.getVariance())
@@ -209,15 +272,32 @@ def _corr(a):
 
 
 def test_real_galaxies_hst_noise_column(tmp_path, runner, cli):
-    cfg = write(tmp_path, REAL.replace('[noise]\ntype = "none"', '[noise]\ntype = "gaussian"\nsigma = 0.3'), "n.toml")
-    r = runner.invoke(cli, ["simulate", str(cfg), "-o", str(tmp_path / "a.fits"), "--measure", "--seed", "2"])
+    cfg = write(
+        tmp_path,
+        REAL.replace('[noise]\ntype = "none"', '[noise]\ntype = "gaussian"\nsigma = 0.3'),
+        "n.toml",
+    )
+    r = runner.invoke(
+        cli, ["simulate", str(cfg), "-o", str(tmp_path / "a.fits"), "--measure", "--seed", "2"]
+    )
     assert r.exit_code == 0, r.output
     t = read_catalog(tmp_path / "a.fits")
     v = np.asarray(t["tru_hst_noise_var"])
     assert np.all(v > 0) and np.all(np.isfinite(v))
     np.testing.assert_allclose(v[0::2], v[1::2], rtol=1e-4)  # a pair: one galaxy, rotated
-    r = runner.invoke(cli, ["simulate", str(cfg), "-o", str(tmp_path / "b.fits"), "--measure", "--seed", "2",
-                            "galaxy.hst_noise=keep"])
+    r = runner.invoke(
+        cli,
+        [
+            "simulate",
+            str(cfg),
+            "-o",
+            str(tmp_path / "b.fits"),
+            "--measure",
+            "--seed",
+            "2",
+            "galaxy.hst_noise=keep",
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert "tru_hst_noise_var" not in read_catalog(tmp_path / "b.fits").colnames
     with pytest.raises(ConfigError, match="galaxy.real_select: give either"):

@@ -39,7 +39,9 @@ def test_example_lines_fit_a_terminal():
 
 
 def test_roff_escaping():
-    roff = help_to_roff("Intro text, --opt.\n'quoted' start\n.dot start\n\n\b\nExample:\n  a \\\n      --b c\n")
+    roff = help_to_roff(
+        "Intro text, --opt.\n'quoted' start\n.dot start\n\n\b\nExample:\n  a \\\n      --b c\n"
+    )
     lines = roff.split("\n")
     assert r"\&'quoted' start" in lines and r"\&.dot start" in lines  # not roff requests
     assert ".nf" in lines and ".fi" in lines  # examples not refilled
@@ -52,7 +54,9 @@ def test_rendered_examples_are_whole_lines():
     env = {**os.environ, "MANWIDTH": "80", "MAN_KEEP_FORMATTING": ""}
     for ctx in iter_commands(main):
         page = MAN / (ctx.command_path.replace(" ", "-") + ".1")
-        text = subprocess.run(["man", "-l", str(page)], capture_output=True, text=True, env=env, check=True).stdout
+        text = subprocess.run(
+            ["man", "-l", str(page)], capture_output=True, text=True, env=env, check=True
+        ).stdout
         rendered = {line.strip() for line in text.splitlines()}
         for line in example_blocks(ctx.command.help):
             assert line.strip() in rendered, f"{page.name}: {line!r} not rendered whole"
@@ -76,9 +80,21 @@ def test_wheel_contains_the_man_pages(tmp_path):
     for name in ("megalut_cli", "man"):
         shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
     proc = subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index", "-q",
-         "-w", str(tmp_path / "dist"), str(src)],
-        capture_output=True, text=True,
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "--no-index",
+            "-q",
+            "-w",
+            str(tmp_path / "dist"),
+            str(src),
+        ],
+        capture_output=True,
+        text=True,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     (wheel,) = (tmp_path / "dist").glob("megalut_cli-*.whl")
@@ -86,4 +102,6 @@ def test_wheel_contains_the_man_pages(tmp_path):
         names = z.namelist()
         pages = {Path(n).name: n for n in names if "/data/share/man/man1/" in n}
         assert set(pages) == {p.name for p in MAN.glob("*.1")}
-        assert z.read(pages["megalut-simulate.1"]).decode() == (MAN / "megalut-simulate.1").read_text()
+        assert (
+            z.read(pages["megalut-simulate.1"]).decode() == (MAN / "megalut-simulate.1").read_text()
+        )

@@ -41,8 +41,15 @@ SETTLED_ITERATIONS = 64
 #: GalSim stores as float32); "g" (from GalSim's float32 e1, e2) within ROUND_TOLERANCE, i.e. bit
 #: for bit unless |g| < 1e-7; "float64" (rho4, centroid) within SETTLED_TOLERANCE on settled
 #: runs and UNSETTLED_TOLERANCE on longer ones, absolute.
-KINDS = {"amp": "exact", "g1": "g", "g2": "g", "sigma": "exact", "rho4": "float64", "x": "float64",
-         "y": "float64"}
+KINDS = {
+    "amp": "exact",
+    "g1": "g",
+    "g2": "g",
+    "sigma": "exact",
+    "rho4": "float64",
+    "x": "float64",
+    "y": "float64",
+}
 #: Achieved (float32 outputs bit for bit on every stamp of the default run): settled runs
 #: (98 % of the stamps) 1.0e-12 (x, y of the corner cases; 8.4e-13 over the 10^4 stamps;
 #: rho4 at most 9e-14); unsettled runs 2.1e-9 (rho4, 40 x 48 stamps with guess 1.5),
@@ -109,7 +116,15 @@ def galsim_reference(stamps: np.ndarray, guess_sigma: float) -> tuple[np.ndarray
         if res.moments_status == 0:
             status[i] = SUCCESS
             shape, cen = res.observed_shape, res.moments_centroid
-            values = (res.moments_amp, shape.g1, shape.g2, res.moments_sigma, res.moments_rho4, cen.x, cen.y)
+            values = (
+                res.moments_amp,
+                shape.g1,
+                shape.g2,
+                res.moments_sigma,
+                res.moments_rho4,
+                cen.x,
+                cen.y,
+            )
             for f, v in zip(FIELDS, values):
                 out[f][i] = v
         else:
@@ -119,7 +134,9 @@ def galsim_reference(stamps: np.ndarray, guess_sigma: float) -> tuple[np.ndarray
     return status, out
 
 
-def assert_same_numbers(mine: dict, theirs: dict, kinds: dict, n_iter: np.ndarray, relative=RELATIVE) -> None:
+def assert_same_numbers(
+    mine: dict, theirs: dict, kinds: dict, n_iter: np.ndarray, relative=RELATIVE
+) -> None:
     """The gates above on outputs measured where both succeed, ``n_iter`` the kernel's iterations."""
     settled = n_iter <= SETTLED_ITERATIONS
     outlier = np.zeros(len(n_iter), dtype=bool)
@@ -133,11 +150,17 @@ def assert_same_numbers(mine: dict, theirs: dict, kinds: dict, n_iter: np.ndarra
         else:
             outlier |= np.abs(a - b) > np.where(settled, SETTLED_TOLERANCE, UNSETTLED_TOLERANCE)
     details = {name: (mine[name][outlier], theirs[name][outlier]) for name in kinds}
-    assert outlier.sum() <= OUTLIER_FRACTION * len(outlier), (outlier.sum(), n_iter[outlier], details)
+    assert outlier.sum() <= OUTLIER_FRACTION * len(outlier), (
+        outlier.sum(),
+        n_iter[outlier],
+        details,
+    )
     assert not (outlier & settled).any(), (n_iter[outlier], details)
     for name in kinds:
         rtol, atol = (OUTLIER_TOLERANCE, 0) if name in relative else (0, OUTLIER_TOLERANCE)
-        np.testing.assert_allclose(mine[name][outlier], theirs[name][outlier], rtol=rtol, atol=atol, err_msg=name)
+        np.testing.assert_allclose(
+            mine[name][outlier], theirs[name][outlier], rtol=rtol, atol=atol, err_msg=name
+        )
 
 
 def assert_matches_galsim(stamps, guess_sigma=5.0, **kw):
@@ -153,8 +176,12 @@ def assert_matches_galsim(stamps, guess_sigma=5.0, **kw):
     both = ours.status == SUCCESS
     for f in FIELDS:
         assert np.isnan(getattr(ours, f)[~both]).all()
-    assert_same_numbers({f: getattr(ours, f)[both] for f in FIELDS}, {f: ref[f][both] for f in FIELDS},
-                        KINDS, ours.n_iter[both])
+    assert_same_numbers(
+        {f: getattr(ours, f)[both] for f in FIELDS},
+        {f: ref[f][both] for f in FIELDS},
+        KINDS,
+        ours.n_iter[both],
+    )
     return ours, status
 
 
@@ -315,9 +342,18 @@ def test_bad_arguments_rejected():
 
 #: measure_stamps, fast against galsim engine: how each feature is compared (KINDS). The
 #: feature columns derived from amp, sigma and skymad alone are bit for bit.
-FEATURE_KINDS = {"adamom_flux": "exact", "adamom_g1": "g", "adamom_g2": "g", "adamom_sigma": "exact",
-                 "adamom_rho4": "float64", "adamom_x": "float64", "adamom_y": "float64",
-                 "adamom_logflux": "exact", "snr": "exact", "skymad": "exact"}
+FEATURE_KINDS = {
+    "adamom_flux": "exact",
+    "adamom_g1": "g",
+    "adamom_g2": "g",
+    "adamom_sigma": "exact",
+    "adamom_rho4": "float64",
+    "adamom_x": "float64",
+    "adamom_y": "float64",
+    "adamom_logflux": "exact",
+    "snr": "exact",
+    "skymad": "exact",
+}
 #: Stamps whose flags differ: at most this fraction, each an unsettled run that one side
 #: ends in a success and the other in a failure. This breaks "the same success or failure
 #: on every stamp": achieved 1 of 100 stamps (size 32, stamp 49: the kernel converges after
@@ -340,8 +376,13 @@ def _assert_same_features(stamps, a, b):
     for c in FEATURE_KINDS:  # NaN where flagged, in both
         np.testing.assert_array_equal(np.isnan(a[c][~differ]), np.isnan(b[c][~differ]), err_msg=c)
     good = (a["flags"] == 0) & (b["flags"] == 0)
-    assert_same_numbers({c: a[c][good] for c in FEATURE_KINDS}, {c: b[c][good] for c in FEATURE_KINDS},
-                        FEATURE_KINDS, n_iter[good], relative=("adamom_flux", "adamom_sigma", "snr"))
+    assert_same_numbers(
+        {c: a[c][good] for c in FEATURE_KINDS},
+        {c: b[c][good] for c in FEATURE_KINDS},
+        FEATURE_KINDS,
+        n_iter[good],
+        relative=("adamom_flux", "adamom_sigma", "snr"),
+    )
 
 
 @pytest.mark.parametrize("size", [32, 33, 64])

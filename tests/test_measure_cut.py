@@ -37,7 +37,9 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
     return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
-def _random_origins(rng: np.random.Generator, n: int, size: int, shape: tuple[int, int], row0: int) -> np.ndarray:
+def _random_origins(
+    rng: np.random.Generator, n: int, size: int, shape: tuple[int, int], row0: int
+) -> np.ndarray:
     x = rng.integers(1, shape[1] - size + 2, n)
     y = rng.integers(1, shape[0] - size + 2, n) + row0
     return np.column_stack([x, y]).astype(np.int64)
@@ -73,7 +75,13 @@ def _awkward_stamps(size: int) -> np.ndarray:
     signed[::2] = -0.0
     signed[1, 1] = 1.0
     stamps.append(signed)
-    for where in [(0, 0), (size - 1, size // 2), (size // 2, 0), (size // 2, size - 1), (size // 2, size // 2)]:
+    for where in [
+        (0, 0),
+        (size - 1, size // 2),
+        (size // 2, 0),
+        (size // 2, size - 1),
+        (size // 2, size // 2),
+    ]:
         for value in (np.nan, np.inf, -np.inf):
             s = rng.normal(size=(size, size))
             s[where] = value
@@ -149,7 +157,12 @@ def test_read_band_reads_the_rows_of_read_rows(tmp_path, dtype):
 
 def test_measure_stamps_with_the_checks_given_equals_without():
     stamps = _awkward_stamps(16)
-    cut = cut_stamps_checked(stamps.reshape(-1, 16), 0, np.column_stack([np.ones(len(stamps)), 1 + 16 * np.arange(len(stamps))]).astype(np.int64), 16)
+    cut = cut_stamps_checked(
+        stamps.reshape(-1, 16),
+        0,
+        np.column_stack([np.ones(len(stamps)), 1 + 16 * np.arange(len(stamps))]).astype(np.int64),
+        16,
+    )
     with np.errstate(invalid="ignore"):
         plain = measure_stamps(stamps)
     given = measure_stamps(stamps, finite=cut.finite, skymad=cut.skymad)
@@ -165,8 +178,11 @@ def test_measure_stamps_with_the_checks_given_equals_without():
 def test_read_catalog_columns_reads_what_read_catalog_reads(tmp_path):
     path = tmp_path / "cat.fits"
     cols = {
-        "x": np.array([1.5, 2.5]), "n": np.array([3, 4], np.int32), "v": np.arange(6.0).reshape(2, 3),
-        "s": np.array(["ab", "c"]), "b": np.array([True, False]),
+        "x": np.array([1.5, 2.5]),
+        "n": np.array([3, 4], np.int32),
+        "v": np.arange(6.0).reshape(2, 3),
+        "s": np.array(["ab", "c"]),
+        "b": np.array([True, False]),
     }
     write_catalog(path, cols, fmt="test", cards={"SEED": (4, "seed")}, history=["made by test"])
     table = read_catalog(path)
@@ -181,10 +197,12 @@ def test_measure_file_columns_writes_what_measure_file_writes(tmp_path):
     rng = np.random.default_rng(2)
     size = 24
     image = rng.normal(0, 1, (2 * size, 3 * size)).astype(np.float32)
-    yy, xx = np.mgrid[:2 * size, :3 * size]
+    yy, xx = np.mgrid[: 2 * size, : 3 * size]
     for cy in (size / 2, 1.5 * size):
         for cx in (size / 2, 1.5 * size, 2.5 * size):
-            image += (40 * np.exp(-((xx - cx + 0.5) ** 2 + (yy - cy + 0.5) ** 2) / 8.0)).astype(np.float32)
+            image += (40 * np.exp(-((xx - cx + 0.5) ** 2 + (yy - cy + 0.5) ** 2) / 8.0)).astype(
+                np.float32
+            )
     fitsio.write(str(tmp_path / "st.fits"), image, header={"STAMPSZ": size}, clobber=True)
     columns, meta = measure_file_columns(tmp_path / "st.fits", None, tmp_path / "a.fits")
     table = measure_file(tmp_path / "st.fits", None, tmp_path / "b.fits")

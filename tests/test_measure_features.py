@@ -28,7 +28,9 @@ def test_columns_and_types():
     res = measure_stamps(np.stack([gaussian_stamp(), gaussian_stamp(sigma=2.0)]))
     assert tuple(res) == FEATURE_COLUMNS
     assert res["flags"].dtype == np.int32
-    assert all(res[c].dtype == np.float64 and res[c].shape == (2,) for c in FEATURE_COLUMNS if c != "flags")
+    assert all(
+        res[c].dtype == np.float64 and res[c].shape == (2,) for c in FEATURE_COLUMNS if c != "flags"
+    )
 
 
 def test_noiseless_elliptical_gaussian_matches_analytic_values():

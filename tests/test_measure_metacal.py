@@ -16,7 +16,11 @@ def _psf_image(size: int = SIZE) -> np.ndarray:
 
 
 def _observed(galaxy: galsim.GSObject, size: int = SIZE) -> np.ndarray:
-    return galsim.Convolve(galaxy, galsim.Gaussian(sigma=PSF_SIGMA)).drawImage(nx=size, ny=size, scale=1.0).array
+    return (
+        galsim.Convolve(galaxy, galsim.Gaussian(sigma=PSF_SIGMA))
+        .drawImage(nx=size, ny=size, scale=1.0)
+        .array
+    )
 
 
 def _shape(image: np.ndarray) -> np.ndarray:
@@ -30,7 +34,9 @@ def test_versions_are_the_sheared_galaxy_through_the_target_psf():
     galaxy = galsim.Gaussian(sigma=3.0).shear(g1=0.2, g2=-0.1)
     mc = metacal_images(_observed(galaxy), _psf_image(), step=STEP)
     # the PSF image holds the pixel: sigma^2 = PSF_SIGMA^2 + 1/12, dilated by 1 + 2 step
-    assert mc.target_sigma == pytest.approx(np.hypot(PSF_SIGMA, 12**-0.5) * (1 + 2 * STEP), rel=1e-4)
+    assert mc.target_sigma == pytest.approx(
+        np.hypot(PSF_SIGMA, 12**-0.5) * (1 + 2 * STEP), rel=1e-4
+    )
     target = galsim.Gaussian(sigma=mc.target_sigma)
     for kind in TYPES:
         s1, s2 = SHEARS[kind]
@@ -47,14 +53,22 @@ def test_response_calibrates_a_sheared_sersic_ring():
     e, response = np.zeros(2), np.zeros((2, 2))
     for angle in (0, 45, 90, 135):
         galaxy = galsim.Sersic(2.0, half_light_radius=3.0).shear(g=0.3, beta=angle * galsim.degrees)
-        mc = metacal_images(_observed(galaxy.shear(g1=g_true[0], g2=g_true[1])), _psf_image(), step=STEP)
+        mc = metacal_images(
+            _observed(galaxy.shear(g1=g_true[0], g2=g_true[1])), _psf_image(), step=STEP
+        )
         shapes = {kind: _shape(image) for kind, image in mc.images.items()}
         e += shapes["noshear"] / 4
-        response += np.column_stack([shapes["1p"] - shapes["1m"], shapes["2p"] - shapes["2m"]]) / (2 * STEP) / 4
+        response += (
+            np.column_stack([shapes["1p"] - shapes["1m"], shapes["2p"] - shapes["2m"]])
+            / (2 * STEP)
+            / 4
+        )
     m = np.linalg.solve(response, e) / g_true - 1
     assert np.all(np.abs(m) < 1e-3), m
     # the galaxy is resolved (R = 0.476) and the ring cancels the cross terms (achieved 1.4e-4)
-    assert np.all(np.diag(response) > 0.3) and np.all(np.abs(response - np.diag(np.diag(response))) < 1e-3)
+    assert np.all(np.diag(response) > 0.3) and np.all(
+        np.abs(response - np.diag(np.diag(response))) < 1e-3
+    )
 
 
 def _anisotropy(image: np.ndarray) -> float:
@@ -73,7 +87,9 @@ def test_fixnoise_makes_the_noise_independent_of_the_applied_shear():
     for i in range(60):
         noise = rng.normal(0.0, 1.0, (32, 32))
         for fix in (False, True):
-            mc = metacal_images(noise, psf, step=STEP, noise_sigma=1.0 if fix else None, seed=1000 + i)
+            mc = metacal_images(
+                noise, psf, step=STEP, noise_sigma=1.0 if fix else None, seed=1000 + i
+            )
             diff[fix].append(_anisotropy(mc.images["1p"]) - _anisotropy(mc.images["1m"]))
     plain, fixed = np.array(diff[False]), np.array(diff[True])
     assert plain.mean() < -10 * plain.std() / np.sqrt(len(plain))  # the problem is there
@@ -82,7 +98,9 @@ def test_fixnoise_makes_the_noise_independent_of_the_applied_shear():
 
 
 def test_same_seed_same_fixnoise_and_bad_input():
-    stamp = _observed(galsim.Gaussian(sigma=3.0)) + np.random.default_rng(0).normal(0, 0.1, (SIZE, SIZE))
+    stamp = _observed(galsim.Gaussian(sigma=3.0)) + np.random.default_rng(0).normal(
+        0, 0.1, (SIZE, SIZE)
+    )
     a = metacal_images(stamp, _psf_image(), noise_sigma=0.1, seed=5)
     b = metacal_images(stamp, _psf_image(), noise_sigma=0.1, seed=5)
     c = metacal_images(stamp, _psf_image(), noise_sigma=0.1, seed=6)
@@ -96,7 +114,9 @@ def test_same_seed_same_fixnoise_and_bad_input():
         metacal_images(stamp, _psf_image(), step=0.2)
     with pytest.raises(ValueError, match="no positive flux"):
         metacal_images(stamp, np.zeros((SIZE, SIZE)))
-    assert target_psf_sigma(_psf_image(), 0.0) == pytest.approx(np.hypot(PSF_SIGMA, 12**-0.5), rel=1e-4)
+    assert target_psf_sigma(_psf_image(), 0.0) == pytest.approx(
+        np.hypot(PSF_SIGMA, 12**-0.5), rel=1e-4
+    )
 
 
 def test_features_of_the_five_versions():
@@ -105,11 +125,16 @@ def test_features_of_the_five_versions():
     from megalut_cli.measure.features import FEATURE_COLUMNS, measure_stamps
     from megalut_cli.measure.metacal import metacal_features
 
-    galaxies = [galsim.Sersic(1.5, half_light_radius=3.0).shear(g=0.2, beta=a * galsim.degrees) for a in (0, 90)]
+    galaxies = [
+        galsim.Sersic(1.5, half_light_radius=3.0).shear(g=0.2, beta=a * galsim.degrees)
+        for a in (0, 90)
+    ]
     stamps = np.stack([_observed(g) for g in galaxies]).astype(np.float32)
     cols = metacal_features(stamps, _psf_image(), step=STEP)
     assert set(cols) == {f"{c}_{t}" for c in FEATURE_COLUMNS for t in TYPES}
-    ref = measure_stamps(np.stack([metacal_images(s, _psf_image(), STEP).images["1p"] for s in stamps]))
+    ref = measure_stamps(
+        np.stack([metacal_images(s, _psf_image(), STEP).images["1p"] for s in stamps])
+    )
     for c in FEATURE_COLUMNS:
         np.testing.assert_array_equal(cols[f"{c}_1p"], ref[c])
     assert (cols["flags_noshear"] == 0).all()

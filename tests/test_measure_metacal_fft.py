@@ -12,7 +12,9 @@ from megalut_cli.measure.metacal_fft import fft_versions
 STEP = 0.01
 
 
-def _stack(size: int, psf: galsim.GSObject, seed: int, n_gal: int = 2, n_noise: int = 1) -> np.ndarray:
+def _stack(
+    size: int, psf: galsim.GSObject, seed: int, n_gal: int = 2, n_noise: int = 1
+) -> np.ndarray:
     """Sersic galaxies (n 1..4, hlr 1.5..6 px, |g| < 0.5, off-centre) seen through ``psf``,
     then unit-noise stamps."""
     rng = np.random.default_rng(seed)
@@ -39,7 +41,11 @@ def _errors(fast: dict, ref: dict, n_gal: int) -> np.ndarray:
 CASES = {
     # stamp size, PSF stamp size, PSF
     "64/64 gaussian": (64, 64, galsim.Gaussian(sigma=2.0)),
-    "48/33 elliptical moffat fwhm 3": (48, 33, galsim.Moffat(beta=3.0, fwhm=3.0).shear(g1=0.1, g2=-0.11)),
+    "48/33 elliptical moffat fwhm 3": (
+        48,
+        33,
+        galsim.Moffat(beta=3.0, fwhm=3.0).shear(g1=0.1, g2=-0.11),
+    ),
     "65/48 moffat fwhm 5": (65, 48, galsim.Moffat(beta=2.5, fwhm=5.0)),
     # the PSF's maxk falls exactly on grid points of the noshear k image (cut or not by GalSim)
     "49/32 moffat fwhm 3": (49, 32, galsim.Moffat(beta=3.0, fwhm=3.0)),
@@ -76,12 +82,16 @@ def test_mixed_fft_sizes_and_fixnoise():
     stamps = _stack(128, psf, seed=3)[[0, 2, 1]]  # galaxy, noise, galaxy
     ref, _ = metacal_versions(stamps, psf_image, step=STEP, engine="galsim")
     fast, _ = metacal_versions(stamps, psf_image, step=STEP, engine="fast")
-    errors = _errors({k: v[[0, 2, 1]] for k, v in fast.items()}, {k: v[[0, 2, 1]] for k, v in ref.items()}, 2)
+    errors = _errors(
+        {k: v[[0, 2, 1]] for k, v in fast.items()}, {k: v[[0, 2, 1]] for k, v in ref.items()}, 2
+    )
     assert np.all(errors < 1e-5), errors
     sigmas = np.array([0.1, 1.0, 0.0])
     ref, _ = metacal_versions(stamps, psf_image, step=STEP, noise_sigma=sigmas, engine="galsim")
     fast, _ = metacal_versions(stamps, psf_image, step=STEP, noise_sigma=sigmas, engine="fast")
-    errors = _errors({k: v[[0, 2, 1]] for k, v in fast.items()}, {k: v[[0, 2, 1]] for k, v in ref.items()}, 2)
+    errors = _errors(
+        {k: v[[0, 2, 1]] for k, v in fast.items()}, {k: v[[0, 2, 1]] for k, v in ref.items()}, 2
+    )
     assert np.all(errors < 1e-5), errors
 
 
@@ -97,11 +107,15 @@ def test_noshear_and_sheared_versions_on_different_fft_sizes(monkeypatch):
     stamps = _stack(32, psf, seed=9)
 
     def forced(pair):
-        monkeypatch.setattr(metacal_fft, "grid_sizes", lambda images, *a: np.tile(pair, (len(images), 1)))
+        monkeypatch.setattr(
+            metacal_fft, "grid_sizes", lambda images, *a: np.tile(pair, (len(images), 1))
+        )
         return fft_versions(stamps, psf_image, STEP, sigma)
 
     mixed, small, large = forced([128, 192]), forced([128, 128]), forced([192, 192])
-    assert np.array_equal(mixed["noshear"], small["noshear"]) and not np.allclose(small["noshear"], large["noshear"])
+    assert np.array_equal(mixed["noshear"], small["noshear"]) and not np.allclose(
+        small["noshear"], large["noshear"]
+    )
     assert all(np.array_equal(mixed[k], large[k]) for k in TYPES[1:])
 
 
@@ -145,10 +159,16 @@ def test_response_calibrates_a_sheared_sersic_ring():
     for i in range(4):
         shapes = {kind: shape(versions[kind][i]) for kind in TYPES}
         e += shapes["noshear"] / 4
-        response += np.column_stack([shapes["1p"] - shapes["1m"], shapes["2p"] - shapes["2m"]]) / (2 * STEP) / 4
+        response += (
+            np.column_stack([shapes["1p"] - shapes["1m"], shapes["2p"] - shapes["2m"]])
+            / (2 * STEP)
+            / 4
+        )
     m = np.linalg.solve(response, e) / g_true - 1
     assert np.all(np.abs(m) < 1e-3), m
-    assert np.all(np.diag(response) > 0.3) and np.all(np.abs(response - np.diag(np.diag(response))) < 1e-3)
+    assert np.all(np.diag(response) > 0.3) and np.all(
+        np.abs(response - np.diag(np.diag(response))) < 1e-3
+    )
 
 
 def test_versions_are_the_sheared_galaxy_through_the_target_psf():
@@ -163,7 +183,9 @@ def test_versions_are_the_sheared_galaxy_through_the_target_psf():
     versions = fft_versions(stamp[None], psf_image, STEP, sigma)
     for kind in TYPES:
         s1, s2 = SHEARS[kind]
-        expected = galsim.Convolve(galaxy.shear(g1=s1 * STEP, g2=s2 * STEP), galsim.Gaussian(sigma=sigma))
+        expected = galsim.Convolve(
+            galaxy.shear(g1=s1 * STEP, g2=s2 * STEP), galsim.Gaussian(sigma=sigma)
+        )
         ref = expected.drawImage(nx=size, ny=size, scale=1.0, method="no_pixel").array
         assert np.abs(versions[kind][0] - ref).max() < 1e-6 * ref.max(), kind
 
@@ -177,7 +199,9 @@ def test_shapes_are_checked():
     empty = fft_versions(np.zeros((0, 8, 8)), psf_image, STEP, 2.0)
     assert all(v.shape == (0, 8, 8) for v in empty.values())
     with pytest.raises(ValueError, match="out must be"):
-        fft_versions(np.zeros((2, 8, 8)), psf_image, STEP, 2.0, out=np.empty((5, 2, 8, 8), np.float32))
+        fft_versions(
+            np.zeros((2, 8, 8)), psf_image, STEP, 2.0, out=np.empty((5, 2, 8, 8), np.float32)
+        )
 
 
 def test_out_receives_the_versions():

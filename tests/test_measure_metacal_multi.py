@@ -15,26 +15,39 @@ from megalut_cli.measure.metacal_fft_multi import fft_versions_multi
 STEP = 0.01
 
 
-def _stack(n: int, size: int, psf_sizes: list[int], seed: int) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+def _stack(
+    n: int, size: int, psf_sizes: list[int], seed: int
+) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
     """``n`` sheared exponential galaxies (noise 1e-3), stamp ``k`` seen through a Moffat PSF
     ``k`` (FWHM 2.5..4 px, |g| < 0.05, with the pixel) drawn on ``psf_sizes[k % len]`` pixels:
     ``(stamps, psf images, noise sigmas)``."""
     rng = np.random.default_rng(seed)
     stamps, psfs = np.empty((n, size, size)), []
     for k in range(n):
-        psf = galsim.Moffat(beta=3.0, fwhm=rng.uniform(2.5, 4.0)).shear(g1=rng.uniform(-0.05, 0.05), g2=rng.uniform(-0.05, 0.05))
+        psf = galsim.Moffat(beta=3.0, fwhm=rng.uniform(2.5, 4.0)).shear(
+            g1=rng.uniform(-0.05, 0.05), g2=rng.uniform(-0.05, 0.05)
+        )
         psf = galsim.Convolve(psf, galsim.Pixel(1.0))
         p = psf_sizes[k % len(psf_sizes)]
         psfs.append(psf.drawImage(nx=p, ny=p, scale=1.0, method="no_pixel").array)
-        gal = galsim.Exponential(half_light_radius=rng.uniform(1.0, 3.0)).shear(g1=rng.uniform(-0.3, 0.3), g2=rng.uniform(-0.3, 0.3))
-        img = galsim.Convolve(gal, psf).drawImage(nx=size, ny=size, scale=1.0, method="no_pixel").array
+        gal = galsim.Exponential(half_light_radius=rng.uniform(1.0, 3.0)).shear(
+            g1=rng.uniform(-0.3, 0.3), g2=rng.uniform(-0.3, 0.3)
+        )
+        img = (
+            galsim.Convolve(gal, psf)
+            .drawImage(nx=size, ny=size, scale=1.0, method="no_pixel")
+            .array
+        )
         stamps[k] = img + rng.normal(0.0, 1e-3, img.shape)
     return stamps, psfs, np.full(n, 1e-3)
 
 
 def _errors(a: dict, b: dict, peak: np.ndarray) -> np.ndarray:
     """Max |a - b| over the five versions of each stamp, relative to ``peak`` (per stamp)."""
-    return np.array([max(np.abs(a[k][i] - b[k][i]).max() for k in TYPES) for i in range(len(peak))]) / peak
+    return (
+        np.array([max(np.abs(a[k][i] - b[k][i]).max() for k in TYPES) for i in range(len(peak))])
+        / peak
+    )
 
 
 @pytest.mark.parametrize("size, psf_size", [(48, 48), (64, 64), (48, 33), (49, 32)])
@@ -47,15 +60,21 @@ def test_several_psfs_agree_with_the_one_psf_path_and_galsim(size, psf_size):
     psfs = np.array(psfs[:4])
     index = np.array([0, 1, 2, 3, 3])
     seeds = np.arange(5) + 100
-    multi, target = metacal_versions(stamps, psfs, STEP, sigma, seeds, engine="fast", psf_index=index)
+    multi, target = metacal_versions(
+        stamps, psfs, STEP, sigma, seeds, engine="fast", psf_index=index
+    )
     for j in range(4):
         rows = np.flatnonzero(index == j)
-        one, t_one = metacal_versions(stamps[rows], psfs[j], STEP, sigma[rows], seeds[rows], engine="fast")
+        one, t_one = metacal_versions(
+            stamps[rows], psfs[j], STEP, sigma[rows], seeds[rows], engine="fast"
+        )
         peak = one["noshear"].max(axis=(1, 2))
         errors = _errors({k: multi[k][rows] for k in TYPES}, one, peak)
         assert np.all(errors <= 1e-7), errors
         np.testing.assert_array_equal(target[rows], t_one)
-    ref, t_ref = metacal_versions(stamps, psfs, STEP, sigma, seeds, engine="galsim", psf_index=index)
+    ref, t_ref = metacal_versions(
+        stamps, psfs, STEP, sigma, seeds, engine="galsim", psf_index=index
+    )
     np.testing.assert_array_equal(target, t_ref)
     errors = _errors(multi, ref, ref["noshear"].max(axis=(1, 2)))
     assert np.all(errors < 1e-5), errors
@@ -96,7 +115,9 @@ def test_mixed_psf_sizes_are_planned_by_size(monkeypatch):
     assert sorted(shapes) == [(2, 33, 33), (2, 48, 48)]
     for i in range(4):
         one = fft_versions(stamps[i : i + 1], psfs[i], STEP, target[i])
-        errors = _errors({k: multi[k][i : i + 1] for k in TYPES}, one, one["noshear"].max(axis=(1, 2)))
+        errors = _errors(
+            {k: multi[k][i : i + 1] for k in TYPES}, one, one["noshear"].max(axis=(1, 2))
+        )
         assert np.all(errors <= 1e-7), (i, errors)
 
 

@@ -14,7 +14,9 @@ from megalut_cli.measure.morphology import (
 )
 
 
-def _draw(profile: galsim.GSObject, size: int = 64, offset=(0.3, -0.2), method: str = "no_pixel") -> np.ndarray:
+def _draw(
+    profile: galsim.GSObject, size: int = 64, offset=(0.3, -0.2), method: str = "no_pixel"
+) -> np.ndarray:
     return profile.drawImage(nx=size, ny=size, scale=1.0, offset=offset, method=method).array
 
 
@@ -85,10 +87,21 @@ def test_simulate_measure_and_training_use_them(tmp_path, runner, cli):
     args = ["simulate", str(cfg), "--seed", "2"]
     res = runner.invoke(cli, [*args, "-o", str(tmp_path / "m.fits"), "--measure", "--morphology"])
     assert res.exit_code == 0, res.output
-    res = runner.invoke(cli, [*args, "-o", str(tmp_path / "c.fits"), "--stamps", str(tmp_path / "s.fits")])
+    res = runner.invoke(
+        cli, [*args, "-o", str(tmp_path / "c.fits"), "--stamps", str(tmp_path / "s.fits")]
+    )
     assert res.exit_code == 0, res.output
-    res = runner.invoke(cli, ["measure", str(tmp_path / "s.fits"), str(tmp_path / "c.fits"), "-o",
-                              str(tmp_path / "f.fits"), "--morphology"])
+    res = runner.invoke(
+        cli,
+        [
+            "measure",
+            str(tmp_path / "s.fits"),
+            str(tmp_path / "c.fits"),
+            "-o",
+            str(tmp_path / "f.fits"),
+            "--morphology",
+        ],
+    )
     assert res.exit_code == 0, res.output
     a, b = read_catalog(tmp_path / "m.fits"), read_catalog(tmp_path / "f.fits")
     for c in MORPHOLOGY_COLUMNS:
@@ -97,7 +110,22 @@ def test_simulate_measure_and_training_use_them(tmp_path, runner, cli):
     res = runner.invoke(cli, ["simulate", str(cfg), "-o", str(tmp_path / "x.fits"), "--morphology"])
     assert res.exit_code == 2 and "--morphology needs --measure" in res.output
     feats = "adamom_g1,adamom_g2,adamom_sigma,adamom_flux,adamom_rho4,morph_conc,morph_size_ratio"
-    res = runner.invoke(cli, ["train-point", str(tmp_path / "m.fits"), "-o", str(tmp_path / "model.h5"),
-                              "--features", feats, "--members", "1", "--iterations", "3", "--hidden", "3"])
+    res = runner.invoke(
+        cli,
+        [
+            "train-point",
+            str(tmp_path / "m.fits"),
+            "-o",
+            str(tmp_path / "model.h5"),
+            "--features",
+            feats,
+            "--members",
+            "1",
+            "--iterations",
+            "3",
+            "--hidden",
+            "3",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert ShearModel.load(tmp_path / "model.h5").point["tru_g1"].features == feats.split(",")

@@ -90,8 +90,13 @@ def _grid_image(tmp_path, stampsz_card=True, noise=0.5):
     rng = np.random.default_rng(1)
     arr = big.array + rng.normal(0.0, noise, size=big.array.shape)
     path = tmp_path / "stamps.fits"
-    write_image(path, arr, fmt="megalut.stamps", cards={"STAMPSZ": S} if stampsz_card else None,
-                history=["megalut simulate x.toml"])
+    write_image(
+        path,
+        arr,
+        fmt="megalut.stamps",
+        cards={"STAMPSZ": S} if stampsz_card else None,
+        history=["megalut simulate x.toml"],
+    )
     return path, np.array(centres)
 
 
@@ -118,7 +123,12 @@ def test_catalog_centres_find_the_special_stamp(tmp_path, origin):
     order = np.random.default_rng(0).permutation(NX * NY)
     # nominal (GalSim) centres, shifted to the catalog's convention
     xy = np.floor(centres[order]) + 1 - (1 - origin)
-    cat = {"x": xy[:, 0], "y": xy[:, 1], "ID": order.astype(np.int64), "name": np.array([f"g{k}" for k in order])}
+    cat = {
+        "x": xy[:, 0],
+        "y": xy[:, 1],
+        "ID": order.astype(np.int64),
+        "name": np.array([f"g{k}" for k in order]),
+    }
     write_catalog(tmp_path / "cat.fits", cat, fmt="test", history=["made by test"])
     out = measure_file(path, tmp_path / "cat.fits", tmp_path / "f.fits", origin=origin)
     assert list(out.colnames[:4]) == ["x", "y", "ID", "name"]
@@ -160,9 +170,13 @@ def test_great3_integer_centres_find_grid_stamps():
         np.testing.assert_array_equal(o[:, 0], col * 48 + 1)
         np.testing.assert_array_equal(o[:, 1], col[::-1] * 48 + 1)
     # 1-based, odd stamps: half a pixel either side of the true centre 3 (S = 5)
-    np.testing.assert_array_equal(catalog_origins(np.array([2.5, 3.5]), np.array([3.0, 3.0]), 5, 1), [[1, 1], [1, 1]])
+    np.testing.assert_array_equal(
+        catalog_origins(np.array([2.5, 3.5]), np.array([3.0, 3.0]), 5, 1), [[1, 1], [1, 1]]
+    )
     # off the grid, the half-way rule keeps the lower candidate
-    np.testing.assert_array_equal(catalog_origins(np.array([30.0]), np.array([30.0]), 48, 0), [[7, 7]])
+    np.testing.assert_array_equal(
+        catalog_origins(np.array([30.0]), np.array([30.0]), 48, 0), [[7, 7]]
+    )
 
 
 def test_off_image_stamps_are_flagged_not_fatal(tmp_path):
@@ -179,7 +193,11 @@ def test_off_image_stamps_are_flagged_not_fatal(tmp_path):
 
 def test_single_psf_stamp_for_all_rows(tmp_path):
     path, _ = _grid_image(tmp_path)
-    psf = galsim.Gaussian(sigma=2.0).shear(g1=0.1, g2=-0.05).drawImage(nx=25, ny=25, scale=1.0, method="no_pixel")
+    psf = (
+        galsim.Gaussian(sigma=2.0)
+        .shear(g1=0.1, g2=-0.05)
+        .drawImage(nx=25, ny=25, scale=1.0, method="no_pixel")
+    )
     write_image(tmp_path / "psf.fits", psf.array, fmt="test")
     out = measure_file(path, None, tmp_path / "f.fits", psf_path=tmp_path / "psf.fits")
     for c in PSF_COLUMNS:
@@ -255,10 +273,14 @@ def test_image_info_rejects_truncated_and_non_fits(tmp_path):
 def test_nstamps_card_limits_grid_order(tmp_path):
     path, _ = _grid_image(tmp_path)
     arr = read_image(path)[0]
-    write_image(tmp_path / "partial.fits", arr, fmt="megalut.stamps", cards={"STAMPSZ": S, "NSTAMPS": 7})
+    write_image(
+        tmp_path / "partial.fits", arr, fmt="megalut.stamps", cards={"STAMPSZ": S, "NSTAMPS": 7}
+    )
     out = measure_file(tmp_path / "partial.fits", None, tmp_path / "f.fits")
     assert len(out) == 7 and np.argmax(out["adamom_sigma"]) == SPECIAL
-    write_image(tmp_path / "bad.fits", arr, fmt="megalut.stamps", cards={"STAMPSZ": S, "NSTAMPS": 99})
+    write_image(
+        tmp_path / "bad.fits", arr, fmt="megalut.stamps", cards={"STAMPSZ": S, "NSTAMPS": 99}
+    )
     with pytest.raises(InputError, match="NSTAMPS"):
         measure_file(tmp_path / "bad.fits", None, tmp_path / "g.fits")
 

@@ -30,7 +30,9 @@ PSF_SIGMA = 1.5
 NOISE = 2.0
 
 
-def galaxy_stamps(n: int, seed: int = 5, size: int = S, noise: float | np.ndarray = NOISE, flux: float = 1500.0):
+def galaxy_stamps(
+    n: int, seed: int = 5, size: int = S, noise: float | np.ndarray = NOISE, flux: float = 1500.0
+):
     """``n`` sheared Gaussian galaxies convolved with a Gaussian PSF (float32, like stamps
     files), with Gaussian noise of ``noise`` (one value, or one per stamp); and their shears."""
     rng = np.random.default_rng(seed)
@@ -39,7 +41,9 @@ def galaxy_stamps(n: int, seed: int = 5, size: int = S, noise: float | np.ndarra
     out = np.empty((n, size, size), np.float32)
     psf = galsim.Gaussian(sigma=PSF_SIGMA)
     for i in range(n):
-        gal = galsim.Gaussian(sigma=2.0 + 0.5 * rng.uniform(), flux=flux).shear(g1=g[i, 0], g2=g[i, 1])
+        gal = galsim.Gaussian(sigma=2.0 + 0.5 * rng.uniform(), flux=flux).shear(
+            g1=g[i, 0], g2=g[i, 1]
+        )
         img = galsim.Convolve(gal, psf).drawImage(nx=size, ny=size, scale=1.0).array
         out[i] = img + rng.normal(0.0, noise[i], img.shape)
     return out, g
@@ -74,7 +78,7 @@ def grid():
     rows, cols = [], []
     for k, s in enumerate(stamps):
         r, c = divmod(k, nx)
-        image[r * S:(r + 1) * S, c * S:(c + 1) * S] = s
+        image[r * S : (r + 1) * S, c * S : (c + 1) * S] = s
         rows.append(r * S + (S - 1) / 2.0)
         cols.append(c * S + (S - 1) / 2.0)
     return stamps, image, np.array(rows), np.array(cols)
@@ -90,11 +94,25 @@ def test_write_read_round_trip(tmp_path):
     bms = [[(rng.uniform(size=c.shape) < 0.1).astype(np.int32) for c in cuts] for cuts in imgs]
     psfs = [[psf_image(1.0 + 0.1 * j, 17) for j, _ in enumerate(cuts)] for cuts in imgs]
     path = tmp_path / "o.meds.fits"
-    write_meds(path, imgs, wts, bms, psfs, ids=[11, 12, 13, 14], ra=[1.0, 2.0, 3.0, 4.0], dec=[-1.0, -2.0, -3.0, -4.0])
+    write_meds(
+        path,
+        imgs,
+        wts,
+        bms,
+        psfs,
+        ids=[11, 12, 13, 14],
+        ra=[1.0, 2.0, 3.0, 4.0],
+        dec=[-1.0, -2.0, -3.0, -4.0],
+    )
     assert is_meds(path)
     meds = read_meds(path)
     assert len(meds) == 4 and meds.n_max == 3 and meds.first_is_coadd()
-    assert list(meds.objects["id"]) == [11, 12, 13, 14] and list(meds.objects["ncutout"]) == [1, 3, 0, 2]
+    assert list(meds.objects["id"]) == [11, 12, 13, 14] and list(meds.objects["ncutout"]) == [
+        1,
+        3,
+        0,
+        2,
+    ]
     for i, cuts in enumerate(imgs):
         for k, img in enumerate(cuts):
             c = meds.cutout(i, k)
@@ -130,7 +148,9 @@ def test_features_equal_the_grid_path(grid, tmp_path):
     assert "noise_weight" not in out
 
     path_w = tmp_path / "w.meds.fits"
-    write_meds(path_w, stamps, weights=np.full(stamps.shape, 1 / 3.0**2), orig_rows=rows, orig_cols=cols)
+    write_meds(
+        path_w, stamps, weights=np.full(stamps.shape, 1 / 3.0**2), orig_rows=rows, orig_cols=cols
+    )
     out_w = measure_meds(read_meds(path_w))
     for c in FEATURE_COLUMNS:
         if c != "snr":
@@ -186,8 +206,9 @@ def test_masked_cosmic_ray_is_left_out_of_the_moments(tmp_path):
     assert np.all(d_masked < 0.01) and np.all(d_raw > 0.1), (d_masked, d_raw)
     assert np.all(np.abs(fast["adamom_sigma"] / ref["adamom_sigma"] - 1) < 0.01)
     assert np.all(np.abs(raw["adamom_sigma"] / ref["adamom_sigma"] - 1) > 0.02)
-    res = galsim.hsm.FindAdaptiveMom(galsim.ImageD(hit[0].astype(np.float64)), badpix=galsim.ImageI(bmask[0]),
-                                     guess_sig=4.0)
+    res = galsim.hsm.FindAdaptiveMom(
+        galsim.ImageD(hit[0].astype(np.float64)), badpix=galsim.ImageI(bmask[0]), guess_sig=4.0
+    )
     assert fast["adamom_sigma"][0] == pytest.approx(res.moments_sigma, abs=1e-9)
     assert fast["adamom_g1"][0] == pytest.approx(res.observed_shape.g1, abs=1e-9)
 
@@ -211,7 +232,9 @@ def test_too_many_or_central_masked_pixels_are_flagged():
     edges = stamps[2].astype(np.float64).copy()
     edges[:, :3] = np.nan
     kept = np.concatenate([edges[0, 3:], edges[-1, 3:], edges[1:-1, -1]])
-    assert out["skymad"][2] == pytest.approx(1.4826 * np.median(np.abs(kept - np.median(kept))), rel=1e-12)
+    assert out["skymad"][2] == pytest.approx(
+        1.4826 * np.median(np.abs(kept - np.median(kept))), rel=1e-12
+    )
     assert fl.explain(fl.MASKED_PIXELS | fl.NO_CUTOUT) == ["NO_CUTOUT", "MASKED_PIXELS"]
 
 
@@ -285,7 +308,9 @@ def test_psf_model_at_each_objects_position(grid, tmp_path):
     y = np.concatenate([c[1] for c in model.calls])
     np.testing.assert_array_equal(np.sort(x), np.sort(cols + 1))
     np.testing.assert_array_equal(np.sort(y), np.sort(rows + 1))
-    np.testing.assert_allclose(out["psf_adamom_sigma"], np.sqrt(model.sigma(cols + 1) ** 2 + 1 / 12), rtol=0.01)
+    np.testing.assert_allclose(
+        out["psf_adamom_sigma"], np.sqrt(model.sigma(cols + 1) ** 2 + 1 / 12), rtol=0.01
+    )
 
 
 def test_metacal_on_meds(tmp_path):
@@ -304,14 +329,25 @@ def test_metacal_on_meds(tmp_path):
     for kind in ("noshear", "1p", "1m", "2p", "2m"):
         assert np.isfinite(out[f"adamom_g1_{kind}"]).all() and np.all(out[f"flags_{kind}"] == 0)
         assert np.isfinite(out[f"psf_adamom_sigma_{kind}"]).all()
-    assert np.all(out["adamom_g1_1p"] > out["adamom_g1_1m"]) and np.all(out["adamom_g2_2p"] > out["adamom_g2_2m"])
+    assert np.all(out["adamom_g1_1p"] > out["adamom_g1_1m"]) and np.all(
+        out["adamom_g2_2p"] > out["adamom_g2_2m"]
+    )
     single = measure_meds(meds, MedsOptions(metacal=True, seed=3, psf_path=psf_file))
     for c in ("adamom_g1_1p", "adamom_sigma_noshear", "psf_adamom_sigma_2m", "psf_adamom_sigma"):
         np.testing.assert_allclose(single[c], out[c], rtol=1e-6, err_msg=c)
     path_odd = tmp_path / "mc33.meds.fits"  # odd PSF cutouts for even boxes (as DES's)
-    write_meds(path_odd, stamps, weights=np.full(stamps.shape, 1 / NOISE**2), psfs=[[psf_image(PSF_SIGMA, 33)]] * 3)
+    write_meds(
+        path_odd,
+        stamps,
+        weights=np.full(stamps.shape, 1 / NOISE**2),
+        psfs=[[psf_image(PSF_SIGMA, 33)]] * 3,
+    )
     odd = measure_meds(read_meds(path_odd), MedsOptions(metacal=True, seed=3))
-    for c in ("adamom_g1_1p", "adamom_g2_2m", "adamom_g1_noshear"):  # 7e-6 here; the response is 0.013
+    for c in (
+        "adamom_g1_1p",
+        "adamom_g2_2m",
+        "adamom_g1_noshear",
+    ):  # 7e-6 here; the response is 0.013
         np.testing.assert_allclose(odd[c], out[c], rtol=0, atol=2e-5, err_msg=c)
     np.testing.assert_allclose(odd["adamom_sigma_noshear"], out["adamom_sigma_noshear"], rtol=5e-5)
     odd_file = tmp_path / "odd.fits"
@@ -335,14 +371,18 @@ def test_cli_contract(runner, cli, grid, tmp_path):
     table, header = read_catalog_columns(out)
     assert len(table["id"]) == 6 and header["MEDSCUT"] == 0 and header["MEDSCOAD"] is True
     assert header["MLFORMAT"] == "megalut.features" and header["STAMPSZ"] == S
-    assert "cutout 0 (the coadd) of each of 6 objects" in (result.stderr if hasattr(result, "stderr") else result.output)
+    assert "cutout 0 (the coadd) of each of 6 objects" in (
+        result.stderr if hasattr(result, "stderr") else result.output
+    )
     _fails(runner, cli, ["measure", str(meds), "-o", str(out)], 1, "--overwrite")
 
     bad = tmp_path / "bad.fits"
     cat = tmp_path / "cat.fits"
     fitsio.write(str(cat), np.zeros(2, dtype=[("x", "f8"), ("y", "f8")]))
     _fails(runner, cli, ["measure", str(meds), str(cat), "-o", str(bad)], 2, "MEDS", "no catalog")
-    _fails(runner, cli, ["measure", str(meds), "-o", str(bad), "--stamp-size", "32"], 2, "--stamp-size")
+    _fails(
+        runner, cli, ["measure", str(meds), "-o", str(bad), "--stamp-size", "32"], 2, "--stamp-size"
+    )
     trunc = tmp_path / "t.meds.fits"
     rewrite(meds, trunc, truncate={"image_cutouts": 5 * S * S + 10})
     _fails(runner, cli, ["measure", str(trunc), "-o", str(bad)], 1, "truncated MEDS")
@@ -350,10 +390,23 @@ def test_cli_contract(runner, cli, grid, tmp_path):
     fitsio.write(str(even), psf_image(PSF_SIGMA, 32) + 0 * np.zeros(1))
     odd_meds = tmp_path / "odd.meds.fits"
     write_meds(odd_meds, [s[:31, :31] for s in stamps])
-    _fails(runner, cli, ["measure", str(odd_meds), "-o", str(bad), "--psf", str(even), "--metacal"], 1, "parity")
+    _fails(
+        runner,
+        cli,
+        ["measure", str(odd_meds), "-o", str(bad), "--psf", str(even), "--metacal"],
+        1,
+        "parity",
+    )
     grid_image = tmp_path / "stamps.fits"
     fitsio.write(str(grid_image), image, header={"STAMPSZ": S})
-    _fails(runner, cli, ["measure", str(grid_image), "-o", str(bad), "--cutout", "1"], 2, "--cutout", "MEDS")
+    _fails(
+        runner,
+        cli,
+        ["measure", str(grid_image), "-o", str(bad), "--cutout", "1"],
+        2,
+        "--cutout",
+        "MEDS",
+    )
     assert not bad.exists() and not list(tmp_path.glob(".bad.fits*"))
 
 
@@ -373,7 +426,9 @@ def test_meds_with_a_psfex_model_end_to_end(runner, cli, grid, tmp_path):
     cols = np.linspace(x0 + 50, x1 - 50, 6)[::-1] - 1
     meds, out = tmp_path / "d.meds.fits", tmp_path / "f.fits"
     write_meds(meds, stamps[:5], orig_rows=rows[:5], orig_cols=cols[:5])
-    result = runner.invoke(cli, ["measure", str(meds), "-o", str(out), "--psf-model", str(decam), "--metacal"])
+    result = runner.invoke(
+        cli, ["measure", str(meds), "-o", str(out), "--psf-model", str(decam), "--metacal"]
+    )
     assert result.exit_code == 0, result.output
     table, header = read_catalog_columns(out)
     ref = measure_stamps(model.draw(cols[:5] + 1, rows[:5] + 1, S))
@@ -408,18 +463,48 @@ def test_your_data_example_makes_a_meds_file_measure_reads(runner, cli, tmp_path
 
     example = Path(__file__).resolve().parents[1] / "examples" / "your-data"
     truth, stamps, meds, out = (tmp_path / n for n in ("t.fits", "s.fits", "m.fits", "f.fits"))
-    r = runner.invoke(cli, ["simulate", str(example / "survey.toml"), "-o", str(truth), "--stamps", str(stamps),
-                            "--n-cases", "2", "--n-realizations", "50", "--seed", "15"])
+    r = runner.invoke(
+        cli,
+        [
+            "simulate",
+            str(example / "survey.toml"),
+            "-o",
+            str(truth),
+            "--stamps",
+            str(stamps),
+            "--n-cases",
+            "2",
+            "--n-realizations",
+            "50",
+            "--seed",
+            "15",
+        ],
+    )
     assert r.exit_code == 0, r.output
-    subprocess.run([sys.executable, str(example / "make_meds.py"), str(stamps), str(truth),
-                    str(example / "survey.toml"), "-o", str(meds)], check=True, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            str(example / "make_meds.py"),
+            str(stamps),
+            str(truth),
+            str(example / "survey.toml"),
+            "-o",
+            str(meds),
+        ],
+        check=True,
+        capture_output=True,
+    )
     r = runner.invoke(cli, ["measure", str(meds), "-o", str(out)])
     assert r.exit_code == 0, r.output
     table, _ = read_catalog_columns(out)
     sim, _ = read_catalog_columns(truth)
     np.testing.assert_array_equal(table["tru_g1"], sim["tru_g1"])
     np.testing.assert_array_equal(table["case"], sim["case"])
-    moffat = galsim.Moffat(beta=3.0, fwhm=5.0).shear(g1=0.01, g2=-0.02).drawImage(nx=48, ny=48, scale=1.0)
+    moffat = (
+        galsim.Moffat(beta=3.0, fwhm=5.0)
+        .shear(g1=0.01, g2=-0.02)
+        .drawImage(nx=48, ny=48, scale=1.0)
+    )
     expected = galsim.hsm.FindAdaptiveMom(moffat).moments_sigma
     np.testing.assert_allclose(table["psf_adamom_sigma"], expected, rtol=1e-5)
     np.testing.assert_allclose(table["noise_weight"], 2.0, rtol=1e-6)

@@ -11,7 +11,9 @@ from megalut_cli.nn.network import CHUNK, Network
 from megalut_cli.nn.train import Objective
 
 
-def _data(n_cases: int = 7, n_rea: int = 9, n_feat: int = 3, seed: int = 1, frac_masked: float = 0.35) -> tuple:
+def _data(
+    n_cases: int = 7, n_rea: int = 9, n_feat: int = 3, seed: int = 1, frac_masked: float = 0.35
+) -> tuple:
     rng = np.random.default_rng(seed)
     x = rng.normal(size=(n_cases, n_rea, n_feat))
     mask = rng.random((n_cases, n_rea)) > frac_masked
@@ -43,7 +45,9 @@ CASES = [
 
 
 @pytest.mark.parametrize("cost,output,hidden", CASES)
-def test_analytic_gradient_matches_finite_differences(cost: str, output: str, hidden: tuple) -> None:
+def test_analytic_gradient_matches_finite_differences(
+    cost: str, output: str, hidden: tuple
+) -> None:
     x, mask, t, point = _data()
     data = CaseData.from_padded(x, mask, t, point=point)
     kw = {"out_loc": 0.1, "out_scale": 0.7} if output == "identity" else {}
@@ -101,7 +105,9 @@ def test_compact_costs_equal_the_literal_equations(cost: str) -> None:
     assert compact == pytest.approx(ref, rel=1e-14)
     # garbage in masked slots does not matter
     garbage = np.where(mask, out, 1e6)
-    assert costs.padded_cost(cost, garbage, mask, t, point=np.where(mask, point, -1e6)) == pytest.approx(ref, rel=1e-14)
+    assert costs.padded_cost(
+        cost, garbage, mask, t, point=np.where(mask, point, -1e6)
+    ) == pytest.approx(ref, rel=1e-14)
 
 
 def test_msb_is_mean_before_square_and_mse_after() -> None:
@@ -110,7 +116,9 @@ def test_msb_is_mean_before_square_and_mse_after() -> None:
     case = np.array([0, 0])
     n = np.array([2.0])
     assert costs.msb(o, case, n, np.array([2.0]))[0] == 0.0
-    assert costs.mse(o, case, n, np.array([2.0, 2.0]))[0] == pytest.approx(1.0, rel=1e-14)  # achieved: exact
+    assert costs.mse(o, case, n, np.array([2.0, 2.0]))[0] == pytest.approx(
+        1.0, rel=1e-14
+    )  # achieved: exact
 
 
 def test_mswb_with_equal_weights_is_msb() -> None:
@@ -130,7 +138,9 @@ def test_float32_passes_agree_with_float64() -> None:
     net = Network(5, (5, 5))
     p = net.init_normal(np.random.default_rng(1), 0.3)
     f64, g64 = Objective(net, "msb", data, 0, np.zeros(5), np.ones(5)).value_and_grad(p)
-    f32, g32 = Objective(net, "msb", data, 0, np.zeros(5), np.ones(5), dtype="float32").value_and_grad(p)
+    f32, g32 = Objective(
+        net, "msb", data, 0, np.zeros(5), np.ones(5), dtype="float32"
+    ).value_and_grad(p)
     assert f32 == pytest.approx(f64, rel=1e-4)
     assert np.max(np.abs(g32 - g64)) <= 1e-3 * np.max(np.abs(g64))
 
@@ -168,7 +178,10 @@ def test_msb_value_is_the_msb() -> None:
     data = CaseData.from_padded(x, mask, t)
     o = np.random.default_rng(0).normal(size=data.n_rows)
     n = data.counts.astype(float)
-    assert costs.msb_value(o, data.case, n, data.targets[:, 0]) == costs.msb(o, data.case, n, data.targets[:, 0])[0]
+    assert (
+        costs.msb_value(o, data.case, n, data.targets[:, 0])
+        == costs.msb(o, data.case, n, data.targets[:, 0])[0]
+    )
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])

@@ -46,7 +46,9 @@ def test_fit_in_memory_equals_the_file_functions(tmp_path: Path) -> None:
     for t, comm in both.point.items():
         assert np.array_equal(comm.predict(x), both_file.point[t].predict(x))
     assert both.weight["tru_g1"].training["point_model_sha256"] is None  # never written to a file
-    assert "inputs" in both_file.provenance and both_file.provenance["inputs"]["train"]["path"].endswith("tw.fits")
+    assert "inputs" in both_file.provenance and both_file.provenance["inputs"]["train"][
+        "path"
+    ].endswith("tw.fits")
 
 
 def test_catalog_columns_read_on_demand(tmp_path: Path) -> None:
@@ -61,11 +63,17 @@ def test_catalog_columns_read_on_demand(tmp_path: Path) -> None:
 
 def test_messages_name_the_callers_words() -> None:
     tp = shear_like_columns(10, 10, seed=1)
-    spec = PointSpec(features=FEATURES, select_cases="mean(adamom_sigma) > 1e9", members=1,
-                     iterations=2)
-    for names, word in ((None, "select_cases"), (key_names("train_point"), "train_point.select_cases"),
-                        ({"select_cases": "--select-cases"}, "--select-cases")):
-        with pytest.raises(ConfigError, match=f"^{word} 'mean\\(adamom_sigma\\) > 1e9' selects no case"):
+    spec = PointSpec(
+        features=FEATURES, select_cases="mean(adamom_sigma) > 1e9", members=1, iterations=2
+    )
+    for names, word in (
+        (None, "select_cases"),
+        (key_names("train_point"), "train_point.select_cases"),
+        ({"select_cases": "--select-cases"}, "--select-cases"),
+    ):
+        with pytest.raises(
+            ConfigError, match=f"^{word} 'mean\\(adamom_sigma\\) > 1e9' selects no case"
+        ):
             fit_point(tp, spec, names=names)
 
 
@@ -98,19 +106,32 @@ def test_float32_training_changes_m_less_than_the_training_seed() -> None:
     from megalut_cli.sim.simulate import simulate_table
 
     fiducial = Path(__file__).resolve().parents[1] / "examples" / "fiducial"
-    tp, _ = simulate_table(load_config(fiducial / "tp.toml", n_cases=400, n_realizations=100), 1, measure=True, nproc=2)
-    vo, _ = simulate_table(load_config(fiducial / "vo-crn.toml", n_cases=4, n_realizations=10_000), 3,
-                           measure=True, nproc=2)
+    tp, _ = simulate_table(
+        load_config(fiducial / "tp.toml", n_cases=400, n_realizations=100), 1, measure=True, nproc=2
+    )
+    vo, _ = simulate_table(
+        load_config(fiducial / "vo-crn.toml", n_cases=4, n_realizations=10_000),
+        3,
+        measure=True,
+        nproc=2,
+    )
     m: dict[tuple[str, int], np.ndarray] = {}
     cost: dict[tuple[str, int], dict[str, float]] = {}
     for precision in ("float64", "float32"):
         for seed in (5, 7):
-            spec = PointSpec(select_cases="mean(snr) > 10", members=4, iterations=800,
-                             precision=precision, seed=seed)
+            spec = PointSpec(
+                select_cases="mean(snr) > 10",
+                members=4,
+                iterations=800,
+                precision=precision,
+                seed=seed,
+            )
             model = fit_point(tp, spec, nproc=2)
             result = evaluate_columns({**vo, **predict_columns(model, vo)})
             m[precision, seed] = np.array([result["unweighted"][c]["m"] for c in ("g1", "g2")])
-            cost[precision, seed] = {t: sum(mem.valid_cost for mem in c.members) for t, c in model.point.items()}
+            cost[precision, seed] = {
+                t: sum(mem.valid_cost for mem in c.members) for t, c in model.point.items()
+            }
             print(precision, seed, "m", m[precision, seed], "valid cost", cost[precision, seed])
     by_precision = [np.abs(m["float32", s] - m["float64", s]) for s in (5, 7)]
     by_seed = [np.abs(m[p, 7] - m[p, 5]) for p in ("float64", "float32")]

@@ -17,7 +17,9 @@ from megalut_cli.nn.network import Network
 FEATURES = ["adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"]
 
 
-def _committee(kind: str, target: str, features: list[str], hidden: tuple, seed: int, n: int = 8) -> Committee:
+def _committee(
+    kind: str, target: str, features: list[str], hidden: tuple, seed: int, n: int = 8
+) -> Committee:
     rng = np.random.default_rng(seed)
     out = "identity" if kind == "point" else "sigmoid4"
     net = Network(len(features), hidden, out, 0.01, 0.05)
@@ -27,21 +29,42 @@ def _committee(kind: str, target: str, features: list[str], hidden: tuple, seed:
         members.append(
             Member(
                 layers=[(w.copy(), b.copy()) for w, b in net.unpack(p)],
-                seed=7, keys=(2, 99, i), train_cost=1e-4 + i, valid_cost=2e-4 + i, n_iter=30,
-                best_iter=20, selected=i % 2 == 0, history=rng.random((30, 2)),
+                seed=7,
+                keys=(2, 99, i),
+                train_cost=1e-4 + i,
+                valid_cost=2e-4 + i,
+                n_iter=30,
+                best_iter=20,
+                selected=i % 2 == 0,
+                history=rng.random((30, 2)),
             )
         )
     return Committee(
-        kind, target, features, hidden, rng.normal(size=len(features)), rng.uniform(0.5, 2, len(features)),
-        members, out_loc=0.01 if kind == "point" else 0.0, out_scale=0.05 if kind == "point" else 1.0,
-        cost="msb" if kind == "point" else "mswb", training={"iterations": 30},
+        kind,
+        target,
+        features,
+        hidden,
+        rng.normal(size=len(features)),
+        rng.uniform(0.5, 2, len(features)),
+        members,
+        out_loc=0.01 if kind == "point" else 0.0,
+        out_scale=0.05 if kind == "point" else 1.0,
+        cost="msb" if kind == "point" else "mswb",
+        training={"iterations": 30},
     )
 
 
 def _model() -> ShearModel:
-    point = {t: _committee("point", t, FEATURES, (5, 5), s) for s, t in enumerate(["tru_g1", "tru_g2"])}
-    weight = {t: _committee("weight", t, FEATURES + ["snr"], (5,), 10 + s) for s, t in enumerate(["tru_g1", "tru_g2"])}
-    return ShearModel(point, weight, provenance={"argv": "megalut test", "versions": {"numpy": np.__version__}})
+    point = {
+        t: _committee("point", t, FEATURES, (5, 5), s) for s, t in enumerate(["tru_g1", "tru_g2"])
+    }
+    weight = {
+        t: _committee("weight", t, FEATURES + ["snr"], (5,), 10 + s)
+        for s, t in enumerate(["tru_g1", "tru_g2"])
+    }
+    return ShearModel(
+        point, weight, provenance={"argv": "megalut test", "versions": {"numpy": np.__version__}}
+    )
 
 
 def _rows(n: int = 5000, nf: int = 6, seed: int = 3) -> np.ndarray:
@@ -135,7 +158,9 @@ def test_file_readable_with_h5py_alone(tmp_path: Path) -> None:
         assert "versions" in f["provenance"].attrs and "argv" in f["provenance"].attrs
     # achieved <= 1.0e-17 abs (predictions of order 0.1-1: float64 rounding only); the gate
     # allows a few tens of ulp for another BLAS's summation order
-    assert np.allclose(np.mean(preds, axis=0), model.point["tru_g1"].predict(x), rtol=1e-14, atol=1e-16)
+    assert np.allclose(
+        np.mean(preds, axis=0), model.point["tru_g1"].predict(x), rtol=1e-14, atol=1e-16
+    )
 
 
 def test_save_is_atomic_and_refuses_overwrite(tmp_path: Path) -> None:
@@ -149,7 +174,9 @@ def test_save_is_atomic_and_refuses_overwrite(tmp_path: Path) -> None:
     assert [p.name for p in tmp_path.iterdir()] == ["m.h5"]  # no temporary left behind
 
 
-def test_load_refuses_foreign_truncated_and_unknown_versions(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+def test_load_refuses_foreign_truncated_and_unknown_versions(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     good = tmp_path / "good.h5"
     _model().save(good)
     data = good.read_bytes()

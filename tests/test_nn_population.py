@@ -15,8 +15,15 @@ from megalut_cli.nn.population import (
     training_population,
 )
 
-RECORD = {"dm_g1": -0.022, "dm_g1_err": 0.004, "dm_g2": -0.023, "dm_g2_err": 0.005, "scheme": "weighted",
-          "setup": "fiducial resolution", "command": "megalut evaluate real.fits --twin twin.fits"}
+RECORD = {
+    "dm_g1": -0.022,
+    "dm_g1_err": 0.004,
+    "dm_g2": -0.023,
+    "dm_g2_err": 0.005,
+    "scheme": "weighted",
+    "setup": "fiducial resolution",
+    "command": "megalut evaluate real.fits --twin twin.fits",
+}
 
 
 @pytest.fixture(scope="module")
@@ -28,10 +35,25 @@ def trained(tmp_path_factory):
     d = tmp_path_factory.mktemp("pop")
     cfg = write(d, replace={"n_cases = 3": "n_cases = 8"})
     runner = CliRunner()
-    res = runner.invoke(main, ["simulate", str(cfg), "-o", str(d / "tp.fits"), "--measure", "--seed", "3"])
+    res = runner.invoke(
+        main, ["simulate", str(cfg), "-o", str(d / "tp.fits"), "--measure", "--seed", "3"]
+    )
     assert res.exit_code == 0, res.output
-    res = runner.invoke(main, ["train-point", str(d / "tp.fits"), "-o", str(d / "m.h5"), "--members", "1",
-                               "--iterations", "3", "--hidden", "3"])
+    res = runner.invoke(
+        main,
+        [
+            "train-point",
+            str(d / "tp.fits"),
+            "-o",
+            str(d / "m.h5"),
+            "--members",
+            "1",
+            "--iterations",
+            "3",
+            "--hidden",
+            "3",
+        ],
+    )
     assert res.exit_code == 0, res.output
     return d
 
@@ -39,17 +61,27 @@ def trained(tmp_path_factory):
 def test_training_catalog_population(trained):
     pop = training_population(trained / "tp.fits")
     assert pop["galaxy"]["profile"] == "sersic" and pop["psf"]["sigma"] == 1.5
-    assert pop["summary"] == ("Sersic galaxies (n grid, rad U(1.5, 3.0) px); gaussian PSF sigma 1.5; "
-                              "gaussian noise sigma 1.0")
+    assert pop["summary"] == (
+        "Sersic galaxies (n grid, rad U(1.5, 3.0) px); gaussian PSF sigma 1.5; "
+        "gaussian noise sigma 1.0"
+    )
     prov = ShearModel.load(trained / "m.h5").provenance
     assert prov["population"]["summary"] == pop["summary"]
 
 
 def test_population_summary_real_and_twin():
     gal = {"profile": "real", "real_catalog": "../x/real.fits", "twin": "sersic"}
-    s = population_summary({"galaxy": gal, "psf": {"type": "moffat", "fwhm": 3.0, "beta": 3.0},
-                            "noise": {"type": "gaussian", "sigma": 0.1}})
-    assert s == "Sersic twins of real galaxies of real.fits; moffat PSF fwhm 3.0 beta 3.0; gaussian noise sigma 0.1"
+    s = population_summary(
+        {
+            "galaxy": gal,
+            "psf": {"type": "moffat", "fwhm": 3.0, "beta": 3.0},
+            "noise": {"type": "gaussian", "sigma": 0.1},
+        }
+    )
+    assert (
+        s
+        == "Sersic twins of real galaxies of real.fits; moffat PSF fwhm 3.0 beta 3.0; gaussian noise sigma 0.1"
+    )
 
 
 def test_predict_logs_population_and_recorded_bias(trained):
@@ -59,13 +91,26 @@ def test_predict_logs_population_and_recorded_bias(trained):
 
     model = trained / "m.h5"
     lines = model_report(ShearModel.load(model))
-    assert lines[0].startswith("model point estimates trained on: Sersic galaxies") and "tp.fits" in lines[0]
+    assert (
+        lines[0].startswith("model point estimates trained on: Sersic galaxies")
+        and "tp.fits" in lines[0]
+    )
     assert lines[-1].startswith("no model bias on real galaxies recorded")
     record_real_bias(model, RECORD)
     loaded = ShearModel.load(model)
     assert loaded.validation[REAL_BIAS_ATTR] == RECORD
-    res = CliRunner().invoke(main, ["predict", str(trained / "tp.fits"), "--model", str(model),
-                                    "-o", str(trained / "s.fits"), "--overwrite"])
+    res = CliRunner().invoke(
+        main,
+        [
+            "predict",
+            str(trained / "tp.fits"),
+            "--model",
+            str(model),
+            "-o",
+            str(trained / "s.fits"),
+            "--overwrite",
+        ],
+    )
     assert res.exit_code == 0, res.output
     text = res.output  # the log lines (stderr; click mixes them into output)
     assert "trained on: Sersic galaxies" in text
@@ -94,8 +139,13 @@ def test_population_recorded_afterwards_from_a_config(tmp_path):
     make_model(tmp_path / "old.h5")
     record_population(tmp_path / "old.h5", population_from_config(tp))
     lines = model_report(ShearModel.load(tmp_path / "old.h5"))
-    assert any(line.endswith("trained on: Sersic galaxies (n grid, rad U(2.0, 8.0) px); gaussian PSF sigma 2.0; "
-                             "gaussian noise sigma 1.0 (tp.toml)") for line in lines), lines
+    assert any(
+        line.endswith(
+            "trained on: Sersic galaxies (n grid, rad U(2.0, 8.0) px); gaussian PSF sigma 2.0; "
+            "gaussian noise sigma 1.0 (tp.toml)"
+        )
+        for line in lines
+    ), lines
 
 
 def test_population_of_a_weight_trained_model_and_its_parent(tmp_path):
@@ -106,9 +156,13 @@ def test_population_of_a_weight_trained_model_and_its_parent(tmp_path):
 
     root = Path(__file__).resolve().parents[1]
     shutil.copyfile(root / "models" / "fiducial.h5", tmp_path / "m.h5")
-    record_population(tmp_path / "m.h5", population_from_config(root / "models" / "fiducial-pipeline.toml"))
+    record_population(
+        tmp_path / "m.h5", population_from_config(root / "models" / "fiducial-pipeline.toml")
+    )
     model = ShearModel.load(tmp_path / "m.h5")
     assert model.provenance["parent"]["population"] == model.provenance["population"]
     lines = model_report(model)
-    assert lines[0].startswith("model weights trained on: Sersic galaxies (n grid, rad U(2.0, 8.0) px)")
+    assert lines[0].startswith(
+        "model weights trained on: Sersic galaxies (n grid, rad U(2.0, 8.0) px)"
+    )
     assert lines[1].startswith("model point estimates trained on: Sersic galaxies")

@@ -41,9 +41,26 @@ def test_appendix_msb_unbiased_mse_biased(tmp_path: Path, runner, cli) -> None:
     biases = {}
     for cost in ("msb", "mse"):
         out = tmp_path / f"{cost}.h5"
-        args = ["train-point", str(tmp_path / "toy.fits"), "-o", str(out), "--features", "d",
-                "--targets", "tru_theta", "--hidden", "5", "--members", "4", "--iterations", "500",
-                "--cost", cost, "--seed", "3"]
+        args = [
+            "train-point",
+            str(tmp_path / "toy.fits"),
+            "-o",
+            str(out),
+            "--features",
+            "d",
+            "--targets",
+            "tru_theta",
+            "--hidden",
+            "5",
+            "--members",
+            "4",
+            "--iterations",
+            "500",
+            "--cost",
+            cost,
+            "--seed",
+            "3",
+        ]
         res = runner.invoke(cli, args)
         assert res.exit_code == 0, res.output
         _, biases[cost] = _appendix_bias(out)
@@ -86,15 +103,54 @@ def test_init_from_continues_training(tmp_path: Path, runner, cli) -> None:
     write_catalog(tmp_path / "tp.fits", cols, fmt="megalut.toy")
     pre = dict(cols, tru_e1=cols["tru_g1"] * 1.5, tru_e2=cols["tru_g2"] * 1.5)
     write_catalog(tmp_path / "pre.fits", pre, fmt="megalut.toy")
-    base = ["--members", "2", "--hidden", "4", "--iterations", "40", "--batch-fraction", "0.5", "--seed", "2"]
-    res = runner.invoke(cli, ["train-point", str(tmp_path / "pre.fits"), "-o", str(tmp_path / "pre.h5"),
-                              "--targets", "tru_e1,tru_e2", *base])
+    base = [
+        "--members",
+        "2",
+        "--hidden",
+        "4",
+        "--iterations",
+        "40",
+        "--batch-fraction",
+        "0.5",
+        "--seed",
+        "2",
+    ]
+    res = runner.invoke(
+        cli,
+        [
+            "train-point",
+            str(tmp_path / "pre.fits"),
+            "-o",
+            str(tmp_path / "pre.h5"),
+            "--targets",
+            "tru_e1,tru_e2",
+            *base,
+        ],
+    )
     assert res.exit_code == 0, res.output
-    res = runner.invoke(cli, ["train-point", str(tmp_path / "tp.fits"), "-o", str(tmp_path / "a.h5"), *base])
+    res = runner.invoke(
+        cli, ["train-point", str(tmp_path / "tp.fits"), "-o", str(tmp_path / "a.h5"), *base]
+    )
     assert res.exit_code == 0, res.output
-    res = runner.invoke(cli, ["train-point", str(tmp_path / "tp.fits"), "-o", str(tmp_path / "b.h5"),
-                              "--init-from", str(tmp_path / "a.h5"), "--members", "2", "--iterations", "40",
-                              "--batch-fraction", "0.5", "--seed", "2"])
+    res = runner.invoke(
+        cli,
+        [
+            "train-point",
+            str(tmp_path / "tp.fits"),
+            "-o",
+            str(tmp_path / "b.h5"),
+            "--init-from",
+            str(tmp_path / "a.h5"),
+            "--members",
+            "2",
+            "--iterations",
+            "40",
+            "--batch-fraction",
+            "0.5",
+            "--seed",
+            "2",
+        ],
+    )
     assert res.exit_code == 0, res.output
     a, b = ShearModel.load(tmp_path / "a.h5"), ShearModel.load(tmp_path / "b.h5")
     for t in ("tru_g1", "tru_g2"):
@@ -107,8 +163,21 @@ def test_init_from_continues_training(tmp_path: Path, runner, cli) -> None:
         assert cb.members[0].valid_cost <= first.valid_cost
     assert b.provenance["inputs"]["init_from"]["sha256"] == a.sha256
     # pretraining on ellipticity, then shear: committees are matched by position
-    res = runner.invoke(cli, ["train-point", str(tmp_path / "tp.fits"), "-o", str(tmp_path / "c.h5"),
-                              "--init-from", str(tmp_path / "pre.h5"), "--members", "2", "--iterations", "10"])
+    res = runner.invoke(
+        cli,
+        [
+            "train-point",
+            str(tmp_path / "tp.fits"),
+            "-o",
+            str(tmp_path / "c.h5"),
+            "--init-from",
+            str(tmp_path / "pre.h5"),
+            "--members",
+            "2",
+            "--iterations",
+            "10",
+        ],
+    )
     assert res.exit_code == 0, res.output
     c = ShearModel.load(tmp_path / "c.h5")
     assert list(c.point) == ["tru_g1", "tru_g2"] and c.point["tru_g1"].members[0].n_iter == 50
@@ -119,8 +188,21 @@ def test_results_do_not_depend_on_worker_count(tmp_path: Path, runner, cli) -> N
     params = []
     for j in ("1", "2"):
         out = tmp_path / f"m{j}.h5"
-        res = runner.invoke(cli, ["train-point", str(tmp_path / "tp.fits"), "-o", str(out), "--members", "3",
-                                  "--iterations", "20", "-j", j])
+        res = runner.invoke(
+            cli,
+            [
+                "train-point",
+                str(tmp_path / "tp.fits"),
+                "-o",
+                str(out),
+                "--members",
+                "3",
+                "--iterations",
+                "20",
+                "-j",
+                j,
+            ],
+        )
         assert res.exit_code == 0, res.output
         m = ShearModel.load(out)
         params.append([c.member_params(i) for c in m.point.values() for i in range(3)])
@@ -151,8 +233,19 @@ def test_mswb_weights_learn_to_downweight_biased_realizations() -> None:
     valid = data.subset(np.arange(30, 40))
     train = data.subset(np.arange(30))
     net = Network(1, (3,), "sigmoid4")
-    task = MemberTask("w", net, TrainSettings(cost="mswb", iterations=200, batch_fraction=1.0), train, valid, 0,
-                      np.full(1, 0.5), np.full(1, 0.5), seed=1, keys=(2, 3, 0), cost_scale=float(t.std()))
+    task = MemberTask(
+        "w",
+        net,
+        TrainSettings(cost="mswb", iterations=200, batch_fraction=1.0),
+        train,
+        valid,
+        0,
+        np.full(1, 0.5),
+        np.full(1, 0.5),
+        seed=1,
+        keys=(2, 3, 0),
+        cost_scale=float(t.std()),
+    )
     res = train_member(task)
     w = net.forward(res.params, ((np.array([[0.2, 0.5, 0.9, 0.95]]) - 0.5) / 0.5))
     unweighted = np.mean((point[30:].mean(axis=1) - t[30:]) ** 2)
@@ -169,22 +262,30 @@ def test_dask_scheduler_gives_identical_committees(tmp_path: Path) -> None:
 
     write_catalog(tmp_path / "tp.fits", shear_like_columns(30, 40, seed=1), fmt="megalut.toy")
     spec = PointSpec(members=2, iterations=15)
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster:
-        dask_model = train_point(tmp_path / "tp.fits", tmp_path / "d.h5", spec,
-                                 scheduler=cluster.scheduler_address)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, dashboard_address=None
+    ) as cluster:
+        dask_model = train_point(
+            tmp_path / "tp.fits", tmp_path / "d.h5", spec, scheduler=cluster.scheduler_address
+        )
     serial = train_point(tmp_path / "tp.fits", tmp_path / "s.h5", spec)
     for t in serial.point:
         for i in range(2):
-            assert np.array_equal(dask_model.point[t].member_params(i), serial.point[t].member_params(i))
+            assert np.array_equal(
+                dask_model.point[t].member_params(i), serial.point[t].member_params(i)
+            )
 
 
-@pytest.mark.parametrize(("kw", "message"), [
-    ({"batch_fraction": 0.0}, r"^batch_fraction: must be in \(0, 1\], got 0.0$"),
-    ({"batch_iterations": 0}, r"^batch_iterations: must be >= 1, got 0$"),
-    ({"optimizer": "sgd"}, r"^optimizer: unknown value 'sgd' \(expected one of bfgs, lbfgs\)$"),
-    ({"precision": "float16"}, r"^precision: unknown value 'float16'"),
-    ({"iterations": -1}, r"^iterations: must be >= 0, got -1$"),
-])
+@pytest.mark.parametrize(
+    ("kw", "message"),
+    [
+        ({"batch_fraction": 0.0}, r"^batch_fraction: must be in \(0, 1\], got 0.0$"),
+        ({"batch_iterations": 0}, r"^batch_iterations: must be >= 1, got 0$"),
+        ({"optimizer": "sgd"}, r"^optimizer: unknown value 'sgd' \(expected one of bfgs, lbfgs\)$"),
+        ({"precision": "float16"}, r"^precision: unknown value 'float16'"),
+        ({"iterations": -1}, r"^iterations: must be >= 0, got -1$"),
+    ],
+)
 def test_member_settings_checked_by_the_declarations(kw, message):
     """TrainSettings refuses what the training declarations refuse (one source of ranges)."""
     with pytest.raises(ValueError, match=message):
@@ -199,8 +300,10 @@ def test_float32_training_follows_the_float64_trajectory() -> None:
     Achieved here: validation costs within 1.6e-5 (relative) over the first 20 iterations,
     final costs within 3 %."""
     data, valid = toy_cases(1), toy_cases(2)
-    runs = {p: train_member(toy_task(data, valid, precision=p, iterations=90))
-            for p in ("float64", "float32")}
+    runs = {
+        p: train_member(toy_task(data, valid, precision=p, iterations=90))
+        for p in ("float64", "float32")
+    }
     ref, f32 = runs["float64"].history[:, 1], runs["float32"].history[:, 1]
     assert len(ref) == len(f32) == 90
     assert np.max(np.abs(f32[:20] - ref[:20]) / ref[:20]) < 1e-4

@@ -46,7 +46,9 @@ def test_default_pipeline_is_the_scaled_fiducial_setup() -> None:
     assert pipe.sets["tp"].config.structure.snc == "ring"
     # scaled down: 90-degree pairs in TW and VO (documented deviation), far fewer stamps
     assert {pipe.sets[n].config.structure.snc for n in ("tw", "vo")} == {"pairs"}
-    assert sum(s.config.structure.n_stamps for s in pipe.sets.values()) <= 1.5e6  # 1/33 of the paper
+    assert (
+        sum(s.config.structure.n_stamps for s in pipe.sets.values()) <= 1.5e6
+    )  # 1/33 of the paper
     assert pipe.train_point.features == list(DEFAULT_FEATURES)
     assert pipe.train_point.hidden == [5, 5] and pipe.train_weight.hidden == [5]
     assert pipe.train_point.select_cases == "mean(snr) > 10"
@@ -57,12 +59,23 @@ def test_default_pipeline_is_the_scaled_fiducial_setup() -> None:
 def test_example_pipeline_has_paper_sizes_and_scales() -> None:
     path = FIDUCIAL / "pipeline.toml"
     pipe = load_pipeline(path)
-    sizes = {n: (s.config.structure.n_cases, s.config.structure.n_realizations) for n, s in pipe.sets.items()}
-    assert sizes == {"tp": (5000, 2000), "vp": (5000, 10000), "tw": (200, 100000), "vo": (200, 100000)}
+    sizes = {
+        n: (s.config.structure.n_cases, s.config.structure.n_realizations)
+        for n, s in pipe.sets.items()
+    }
+    assert sizes == {
+        "tp": (5000, 2000),
+        "vp": (5000, 10000),
+        "tw": (200, 100000),
+        "vo": (200, 100000),
+    }
     assert pipe.sets["tw"].config.structure.snc == "none"
     assert pipe.train_point.select_cases == "mean(snr) > 10"
     small = load_pipeline(path, ["scale=0.01"])
-    sizes = {n: (s.config.structure.n_cases, s.config.structure.n_realizations) for n, s in small.sets.items()}
+    sizes = {
+        n: (s.config.structure.n_cases, s.config.structure.n_realizations)
+        for n, s in small.sets.items()
+    }
     assert sizes == {"tp": (500, 200), "vp": (500, 1000), "tw": (200, 1000), "vo": (200, 1000)}
     # the galaxy of every TP case does not change with the scale (seeded per case)
     assert small.sets["tp"].seed == pipe.sets["tp"].seed
@@ -95,7 +108,10 @@ def test_set_tables_merge_and_typed_tables_replace(tmp_path: Path) -> None:
     del raw["sets"]["tw"]["n_cases"], raw["sets"]["tw"]["n_realizations"]
     pipe = parse_pipeline(raw, base_dir=tmp_path)
     assert pipe.sets["tp"].config.structure.n_cases == 24
-    assert (pipe.sets["tw"].config.structure.n_cases, pipe.sets["tw"].config.structure.n_realizations) == (5, 4)
+    assert (
+        pipe.sets["tw"].config.structure.n_cases,
+        pipe.sets["tw"].config.structure.n_realizations,
+    ) == (5, 4)
     assert raw["simulation"]["structure"] == {"stamp_size": 24, "n_cases": 5, "n_realizations": 4}
 
 
@@ -106,13 +122,25 @@ def test_set_tables_merge_and_typed_tables_replace(tmp_path: Path) -> None:
         ("sets.vo.seed=2", "sets.vo.seed: 2 is also the seed of sets.tw", ConfigError),
         ("sets.tp.sed=4", "sets.tp.sed: unknown key", ConfigError),
         ("sets.tw.scale_by=rows", "sets.tw.scale_by: unknown value 'rows'", ConfigError),
-        ('train_point.features=["adamom_g1", "adamom_g3"]', "train_point.features: no column 'adamom_g3'", ConfigError),
+        (
+            'train_point.features=["adamom_g1", "adamom_g3"]',
+            "train_point.features: no column 'adamom_g3'",
+            ConfigError,
+        ),
         ("train_point.members=0", "train_point.members: must be >= 1", ConfigError),
-        ("train_point.hidden=[5, 0]", "train_point.hidden: expected a list of positive integers", ConfigError),
+        (
+            "train_point.hidden=[5, 0]",
+            "train_point.hidden: expected a list of positive integers",
+            ConfigError,
+        ),
         ("train_point.select_cases='mean(snr) >'", "train_point.select_cases", ConfigError),
         ("train_point.select_cases='mean(nope) > 1'", "unknown column(s) nope", ConfigError),
         ("train_weight.select='snr > 10 & adamom_size > 1'", "train_weight.select", ConfigError),
-        ("train_weight.batch_fraction=0", "train_weight.batch_fraction: must be in (0, 1]", ConfigError),
+        (
+            "train_weight.batch_fraction=0",
+            "train_weight.batch_fraction: must be in (0, 1]",
+            ConfigError,
+        ),
         ('evaluate.by=["nope"]', "evaluate.by: no column nope", ConfigError),
         ("evaluate.plot=3", "evaluate.plot: expected true or false", ConfigError),
         ("scale=0", "scale: must be > 0", ConfigError),
@@ -122,11 +150,17 @@ def test_set_tables_merge_and_typed_tables_replace(tmp_path: Path) -> None:
         ("sets.tp.config=missing.toml", "sets.tp.config: no such file", InputError),
         ("sets=3", "sets: expected a table", ConfigError),
         ('reference.model="nope.h5"', "reference.model: no such file 'nope.h5'", InputError),
-        ('reference={model="fiducial", set="tq"}', "reference.set: unknown value 'tq'", ConfigError),
+        (
+            'reference={model="fiducial", set="tq"}',
+            "reference.set: unknown value 'tq'",
+            ConfigError,
+        ),
         ('reference={set="vo"}', "reference.model: missing", ConfigError),
     ],
 )
-def test_bad_pipeline_names_the_key(tmp_path: Path, override: str, message: str, error: type) -> None:
+def test_bad_pipeline_names_the_key(
+    tmp_path: Path, override: str, message: str, error: type
+) -> None:
     path = write_pipeline(tmp_path)
     with pytest.raises(error) as info:
         load_pipeline(path, [override])
@@ -162,7 +196,16 @@ def test_run_end_to_end_and_skip_existing(tmp_path: Path) -> None:
     wd = tmp_path / "work"
     res = run_pipeline(load_pipeline(path), wd)
     assert set(_statuses(res).values()) == {"ran"}
-    for name in ("tp.fits", "tw.fits", "vo.fits", "point.h5", "model.h5", "vo-shears.fits", "evaluation.json", MANIFEST):
+    for name in (
+        "tp.fits",
+        "tw.fits",
+        "vo.fits",
+        "point.h5",
+        "model.h5",
+        "vo-shears.fits",
+        "evaluation.json",
+        MANIFEST,
+    ):
         assert (wd / name).is_file(), name
     assert not (wd / "evaluation.png").exists()  # evaluate.plot = false
     ev = json.loads((wd / "evaluation.json").read_text())
@@ -176,7 +219,10 @@ def test_run_end_to_end_and_skip_existing(tmp_path: Path) -> None:
     assert manifest["steps"]["train-weight"]["inputs"].keys() == {"tw.fits", "point.h5"}
 
     # Refuses to touch existing products without a flag, before doing anything.
-    with pytest.raises(MegalutError, match="exists; use skip_existing=True to reuse the up-to-date products or overwrite=True"):
+    with pytest.raises(
+        MegalutError,
+        match="exists; use skip_existing=True to reuse the up-to-date products or overwrite=True",
+    ):
         run_pipeline(load_pipeline(path), wd)
 
     # Nothing changed: every step is skipped, the evaluation is the same.
@@ -187,33 +233,61 @@ def test_run_end_to_end_and_skip_existing(tmp_path: Path) -> None:
     # A fixed model (the shipped one) validated beside the trained one: two more steps and a
     # second table, on the same rows of vo.
     ref = run_pipeline(load_pipeline(path, ['reference.model="fiducial"']), wd, skip_existing=True)
-    assert [n for n, s in _statuses(ref).items() if s == "ran"] == ["predict-reference", "evaluate-reference"]
+    assert [n for n, s in _statuses(ref).items() if s == "ran"] == [
+        "predict-reference",
+        "evaluate-reference",
+    ]
     assert ref.evaluation == ev
     assert ref.evaluation_reference["weighted"]["g1"]["n_rows"] == ev["weighted"]["g1"]["n_rows"]
     assert ref.evaluation_reference["weighted"]["g1"]["m"] != ev["weighted"]["g1"]["m"]
     summary = format_summary(ref)
-    assert "== VO: overall validation (evaluation.json) ==" in summary and "the shipped model fiducial (models/fiducial.h5) on vo" in summary
+    assert (
+        "== VO: overall validation (evaluation.json) ==" in summary
+        and "the shipped model fiducial (models/fiducial.h5) on vo" in summary
+    )
 
     # A training setting changed: that step and everything downstream re-run.
-    changed = run_pipeline(load_pipeline(path, ["train_weight.iterations=12"]), wd, skip_existing=True)
+    changed = run_pipeline(
+        load_pipeline(path, ["train_weight.iterations=12"]), wd, skip_existing=True
+    )
     assert _statuses(changed) == {
-        "simulate-tp": "skipped", "simulate-tw": "skipped", "simulate-vo": "skipped", "train-point": "skipped",
-        "train-weight": "ran", "predict": "ran", "evaluate": "ran",
+        "simulate-tp": "skipped",
+        "simulate-tw": "skipped",
+        "simulate-vo": "skipped",
+        "train-point": "skipped",
+        "train-weight": "ran",
+        "predict": "ran",
+        "evaluate": "ran",
     }
     # A new VO seed: the VO simulation and what depends on it.
-    reseeded = run_pipeline(load_pipeline(path, ["train_weight.iterations=12", "sets.vo.seed=7"]), wd,
-                            skip_existing=True)
-    assert [n for n, s in _statuses(reseeded).items() if s == "ran"] == ["simulate-vo", "predict", "evaluate"]
-    assert reseeded.evaluation["unweighted"]["g1"]["m"] != changed.evaluation["unweighted"]["g1"]["m"]
+    reseeded = run_pipeline(
+        load_pipeline(path, ["train_weight.iterations=12", "sets.vo.seed=7"]),
+        wd,
+        skip_existing=True,
+    )
+    assert [n for n, s in _statuses(reseeded).items() if s == "ran"] == [
+        "simulate-vo",
+        "predict",
+        "evaluate",
+    ]
+    assert (
+        reseeded.evaluation["unweighted"]["g1"]["m"] != changed.evaluation["unweighted"]["g1"]["m"]
+    )
 
     # A product deleted or modified: its step runs again; an untouched product is trusted.
     os.remove(wd / "vo-shears.fits")
     with open(wd / "point.h5", "ab") as f:
         f.write(b"x")
-    fixed = run_pipeline(load_pipeline(path, ["train_weight.iterations=12", "sets.vo.seed=7"]), wd,
-                         skip_existing=True)
+    fixed = run_pipeline(
+        load_pipeline(path, ["train_weight.iterations=12", "sets.vo.seed=7"]),
+        wd,
+        skip_existing=True,
+    )
     assert [n for n, s in _statuses(fixed).items() if s == "ran"] == [
-        "train-point", "train-weight", "predict", "evaluate"
+        "train-point",
+        "train-weight",
+        "predict",
+        "evaluate",
     ]
 
     # --overwrite redoes everything; the simulations are reproducible from the file.

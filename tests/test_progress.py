@@ -38,7 +38,13 @@ def test_simulate_and_predict_report_their_whole_totals(tmp_path: Path) -> None:
     model = tmp_path / "m.h5"
     make_model(model)
     rec.bars.clear()
-    predict_catalog(tmp_path / "c.fits", model, tmp_path / "p.fits", chunk_rows=5, progress=relabelled(rec, "vo"))
+    predict_catalog(
+        tmp_path / "c.fits",
+        model,
+        tmp_path / "p.fits",
+        chunk_rows=5,
+        progress=relabelled(rec, "vo"),
+    )
     rows = catalog_info(tmp_path / "c.fits")[0]
     assert rec.bars == [("vo", rows, rows)] and rows == cfg.structure.n_stamps
 

@@ -32,8 +32,12 @@ def _hsm(stamp: np.ndarray) -> galsim.hsm.ShapeData:
 
 def _galsim_psfex(x: float, y: float, size: int) -> np.ndarray:
     """GalSim's own drawing of the DECam model (DES_PSFEx.getPSF, no pixel), unit sum."""
-    image = galsim.des.DES_PSFEx(str(DECAM)).getPSF(galsim.PositionD(x, y)).drawImage(
-        nx=size, ny=size, scale=1.0, method="no_pixel").array
+    image = (
+        galsim.des.DES_PSFEx(str(DECAM))
+        .getPSF(galsim.PositionD(x, y))
+        .drawImage(nx=size, ny=size, scale=1.0, method="no_pixel")
+        .array
+    )
     return image / image.sum()
 
 
@@ -43,15 +47,36 @@ def _gaussian_basis(sigma: float, n: int = 25) -> np.ndarray:
     return g / g.sum()
 
 
-def _write_psfex(path: Path, basis: np.ndarray, zero=(0.0, 0.0), scale=(1.0, 1.0), order: int = 1,
-                 samp: float = 1.0) -> Path:
+def _write_psfex(
+    path: Path,
+    basis: np.ndarray,
+    zero=(0.0, 0.0),
+    scale=(1.0, 1.0),
+    order: int = 1,
+    samp: float = 1.0,
+) -> Path:
     """A PSFEx file as PSFEx writes it (PSF_DATA table, POL* and PSF* cards)."""
     k, ny, nx = basis.shape
     data = np.zeros(1, dtype=[("PSF_MASK", "f4", (k, ny, nx))])
     data["PSF_MASK"][0] = basis
-    header = {"POLNAXIS": 2, "POLGRP1": 1, "POLNAME1": "X_IMAGE", "POLZERO1": zero[0], "POLSCAL1": scale[0],
-              "POLGRP2": 1, "POLNAME2": "Y_IMAGE", "POLZERO2": zero[1], "POLSCAL2": scale[1], "POLNGRP": 1,
-              "POLDEG1": order, "PSF_SAMP": samp, "PSFNAXIS": 3, "PSFAXIS1": nx, "PSFAXIS2": ny, "PSFAXIS3": k}
+    header = {
+        "POLNAXIS": 2,
+        "POLGRP1": 1,
+        "POLNAME1": "X_IMAGE",
+        "POLZERO1": zero[0],
+        "POLSCAL1": scale[0],
+        "POLGRP2": 1,
+        "POLNAME2": "Y_IMAGE",
+        "POLZERO2": zero[1],
+        "POLSCAL2": scale[1],
+        "POLNGRP": 1,
+        "POLDEG1": order,
+        "PSF_SAMP": samp,
+        "PSFNAXIS": 3,
+        "PSFAXIS1": nx,
+        "PSFAXIS2": ny,
+        "PSFAXIS3": k,
+    }
     with fitsio.FITS(str(path), "rw", clobber=True) as f:
         f.write(None)
         f.write_table(data, extname="PSF_DATA", header=header)
@@ -66,8 +91,12 @@ X0, XSCALE = 24.5, 3 * S
 @pytest.fixture
 def synthetic(tmp_path) -> Path:
     g0, g1 = _gaussian_basis(SIGMA0), _gaussian_basis(SIGMA1)
-    return _write_psfex(tmp_path / "synthetic.psf", np.stack([g0, g1 - g0, np.zeros_like(g0)]),
-                        zero=(X0, 100.0), scale=(XSCALE, 100.0))
+    return _write_psfex(
+        tmp_path / "synthetic.psf",
+        np.stack([g0, g1 - g0, np.zeros_like(g0)]),
+        zero=(X0, 100.0),
+        scale=(XSCALE, 100.0),
+    )
 
 
 # ------------------------------------------------------------------------------- library
@@ -126,7 +155,9 @@ def test_psf_size_varies_across_the_field_as_the_model_says(synthetic):
     real = load_psf_model(DECAM)
     gx, gy = np.meshgrid(np.linspace(30, 2020, 4), np.linspace(30, 4070, 4))
     sigma = measure_stamps(real.draw(gx.ravel(), gy.ravel(), S))["adamom_sigma"]
-    ref = np.array([_hsm(_galsim_psfex(x, y, S)).moments_sigma for x, y in zip(gx.ravel(), gy.ravel())])
+    ref = np.array(
+        [_hsm(_galsim_psfex(x, y, S)).moments_sigma for x, y in zip(gx.ravel(), gy.ravel())]
+    )
     np.testing.assert_allclose(sigma, ref, rtol=0, atol=1e-5)
     assert np.ptp(sigma) > 0.02  # 1.79 .. 1.83 px over the chip
 
@@ -135,9 +166,13 @@ def test_outside_the_fitted_area(tmp_path):
     """Positions off the stars' area are told apart; where the polynomial leaves no positive
     flux (an extrapolation), the PSF is NaN, so that its row is flagged PSF_FAILED."""
     model = load_psf_model(DECAM)
-    np.testing.assert_array_equal(model.outside([1024.0, 5.0, 1024.0], [2048.0, 2048.0, 4090.0]), [False, True, True])
+    np.testing.assert_array_equal(
+        model.outside([1024.0, 5.0, 1024.0], [2048.0, 2048.0, 4090.0]), [False, True, True]
+    )
     g = _gaussian_basis(2.0)
-    fading = load_psf_model(_write_psfex(tmp_path / "fading.psf", np.stack([g, -g, 0 * g])))  # flux 1 - x
+    fading = load_psf_model(
+        _write_psfex(tmp_path / "fading.psf", np.stack([g, -g, 0 * g]))
+    )  # flux 1 - x
     drawn = fading.draw([0.5, 2.0], [0.0, 0.0], 21)
     assert abs(drawn[0].sum() - 1) < 1e-12 and np.isnan(drawn[1]).all()
     assert measure_stamps(drawn)["flags"][1] != 0
@@ -157,24 +192,34 @@ def _exposure(tmp_path: Path, offsets: bool = True):
         i, j = k % NX, k // NX
         b = galsim.BoundsI(i * S + 1, (i + 1) * S, j * S + 1, (j + 1) * S)
         dx, dy = rng.uniform(0.0, 0.45, 2) if offsets else (0.0, 0.0)  # the same stamp (stamps.py)
-        gal = galsim.Exponential(half_light_radius=2.0 + 0.1 * k, flux=3000.0).shear(g1=0.1, g2=-0.05)
+        gal = galsim.Exponential(half_light_radius=2.0 + 0.1 * k, flux=3000.0).shear(
+            g1=0.1, g2=-0.05
+        )
         galsim.Convolve(gal, psf).drawImage(big[b], offset=(dx, dy))
         xs.append(b.true_center.x + dx)
         ys.append(b.true_center.y + dy)
     arr = big.array + rng.normal(0.0, 1.0, big.array.shape)
     write_image(tmp_path / "exposure.fits", arr, fmt="megalut.stamps", cards={"STAMPSZ": S})
-    write_catalog(tmp_path / "cat.fits", {"x": np.array(xs), "y": np.array(ys)}, fmt="megalut.catalog")
-    write_catalog(tmp_path / "cat0.fits", {"x": np.array(xs) - 1, "y": np.array(ys) - 1}, fmt="megalut.catalog")
+    write_catalog(
+        tmp_path / "cat.fits", {"x": np.array(xs), "y": np.array(ys)}, fmt="megalut.catalog"
+    )
+    write_catalog(
+        tmp_path / "cat0.fits",
+        {"x": np.array(xs) - 1, "y": np.array(ys) - 1},
+        fmt="megalut.catalog",
+    )
     return np.array(xs), np.array(ys)
 
 
-def _psf_grid(tmp_path: Path, model_path: Path, xs: np.ndarray, ys: np.ndarray, name: str = "psfgrid.fits") -> Path:
+def _psf_grid(
+    tmp_path: Path, model_path: Path, xs: np.ndarray, ys: np.ndarray, name: str = "psfgrid.fits"
+) -> Path:
     """The PSF of the model at each catalog position, as a grid image like the exposure (float64)."""
     drawn = load_psf_model(model_path).draw(xs, ys, S)
     grid = np.zeros((NY * S, NX * S))
     for k, stamp in enumerate(drawn):
         i, j = k % NX, k // NX
-        grid[j * S:(j + 1) * S, i * S:(i + 1) * S] = stamp
+        grid[j * S : (j + 1) * S, i * S : (i + 1) * S] = stamp
     write_image(tmp_path / name, grid, fmt="test")
     return tmp_path / name
 
@@ -192,10 +237,30 @@ def test_measure_psf_model_equals_the_same_psfs_as_a_grid(runner, cli, tmp_path)
     xs, ys = _exposure(tmp_path)
     grid = _psf_grid(tmp_path, DECAM, xs, ys)
     exposure = tmp_path / "exposure.fits"
-    _run(runner, cli, [exposure, tmp_path / "cat.fits", "-o", tmp_path / "grid.fits", "--psf", grid])
-    _run(runner, cli, [exposure, tmp_path / "cat.fits", "-o", tmp_path / "model.fits", "--psf-model", DECAM])
-    _run(runner, cli, [exposure, tmp_path / "cat0.fits", "-o", tmp_path / "model0.fits", "--psf-model", DECAM,
-                       "--origin", "0", "-j", "2"])
+    _run(
+        runner, cli, [exposure, tmp_path / "cat.fits", "-o", tmp_path / "grid.fits", "--psf", grid]
+    )
+    _run(
+        runner,
+        cli,
+        [exposure, tmp_path / "cat.fits", "-o", tmp_path / "model.fits", "--psf-model", DECAM],
+    )
+    _run(
+        runner,
+        cli,
+        [
+            exposure,
+            tmp_path / "cat0.fits",
+            "-o",
+            tmp_path / "model0.fits",
+            "--psf-model",
+            DECAM,
+            "--origin",
+            "0",
+            "-j",
+            "2",
+        ],
+    )
     a, b, c = (read_catalog(tmp_path / n) for n in ("grid.fits", "model.fits", "model0.fits"))
     assert (b["flags"] == 0).all()
     for col in (*PSF_COLUMNS, "flags", "adamom_g1", "adamom_sigma"):
@@ -211,7 +276,11 @@ def test_grid_order_uses_the_stamp_centres(runner, cli, tmp_path, synthetic):
     model's sigma runs from 1.8 px (first column, u = 0) to 2.6 px (fourth, u = 1), to 0.5 %
     (48-px stamps: see the test above)."""
     _exposure(tmp_path, offsets=False)
-    _run(runner, cli, [tmp_path / "exposure.fits", "-o", tmp_path / "f.fits", "--psf-model", synthetic])
+    _run(
+        runner,
+        cli,
+        [tmp_path / "exposure.fits", "-o", tmp_path / "f.fits", "--psf-model", synthetic],
+    )
     t = read_catalog(tmp_path / "f.fits")
     sigma = np.asarray(t["psf_adamom_sigma"]).reshape(NY, NX)
     np.testing.assert_allclose(sigma[:, 0], SIGMA0, rtol=5e-3)
@@ -228,7 +297,11 @@ def test_metacal_with_psf_model_equals_metacal_with_the_grid(runner, cli, tmp_pa
     _run(runner, cli, [*common, "-o", tmp_path / "grid.fits", "--psf", grid])
     _run(runner, cli, [*common, "-o", tmp_path / "model.fits", "--psf-model", DECAM])
     a, b = read_catalog(tmp_path / "grid.fits"), read_catalog(tmp_path / "model.fits")
-    assert a.colnames == b.colnames and "adamom_g1_1p" in b.colnames and "psf_adamom_sigma_noshear" in b.colnames
+    assert (
+        a.colnames == b.colnames
+        and "adamom_g1_1p" in b.colnames
+        and "psf_adamom_sigma_noshear" in b.colnames
+    )
     for col in a.colnames:
         np.testing.assert_array_equal(np.asarray(a[col]), np.asarray(b[col]), err_msg=col)
     assert (b["flags_1p"] == 0).all()
@@ -239,7 +312,9 @@ def _fails(runner, cli, args, code, *words):
     text = result.output + getattr(result, "stderr", "")
     assert result.exit_code == code, text
     assert "Traceback" not in text
-    lines = [ln for ln in (getattr(result, "stderr", "") or result.output).splitlines() if ln.strip()]
+    lines = [
+        ln for ln in (getattr(result, "stderr", "") or result.output).splitlines() if ln.strip()
+    ]
     assert len(lines) == 1, text
     for w in words:
         assert w in text, text
@@ -250,17 +325,44 @@ def test_errors_are_one_line_and_write_nothing(runner, cli, tmp_path, monkeypatc
     _exposure(tmp_path)
     exposure, cat, out = tmp_path / "exposure.fits", tmp_path / "cat.fits", tmp_path / "out.fits"
     # not a PSF model: a FITS image, a text file
-    _fails(runner, cli, [exposure, cat, "-o", out, "--psf-model", exposure], 1, "exposure.fits", "not a PSF model")
+    _fails(
+        runner,
+        cli,
+        [exposure, cat, "-o", out, "--psf-model", exposure],
+        1,
+        "exposure.fits",
+        "not a PSF model",
+    )
     (tmp_path / "notes.psf").write_text("not FITS\n" * 400)
-    _fails(runner, cli, [exposure, cat, "-o", out, "--psf-model", tmp_path / "notes.psf"], 1, "notes.psf",
-           "not a PSF model")
+    _fails(
+        runner,
+        cli,
+        [exposure, cat, "-o", out, "--psf-model", tmp_path / "notes.psf"],
+        1,
+        "notes.psf",
+        "not a PSF model",
+    )
     # a PSFEx file GalSim refuses (PSFAXIS3 does not match the polynomial degree)
     bad = _write_psfex(tmp_path / "bad.psf", np.stack([_gaussian_basis(2.0)] * 3), order=2)
     _fails(runner, cli, [exposure, cat, "-o", out, "--psf-model", bad], 1, "bad.psf", "PSFEx")
     # --psf with --psf-model; --metacal without either; --psf-model on a star field
-    _fails(runner, cli, [exposure, cat, "-o", out, "--psf-model", DECAM, "--psf", exposure], 2, "--psf", "--psf-model")
+    _fails(
+        runner,
+        cli,
+        [exposure, cat, "-o", out, "--psf-model", DECAM, "--psf", exposure],
+        2,
+        "--psf",
+        "--psf-model",
+    )
     _fails(runner, cli, [exposure, cat, "-o", out, "--metacal"], 2, "--psf-model")
-    _fails(runner, cli, [exposure, "-o", out, "--psf-model", DECAM, "--stars"], 2, "--psf-model", "star field")
+    _fails(
+        runner,
+        cli,
+        [exposure, "-o", out, "--psf-model", DECAM, "--stars"],
+        2,
+        "--psf-model",
+        "star field",
+    )
     # a Piff model without piff installed
     fake = tmp_path / "model.piff"
     with fitsio.FITS(str(fake), "rw", clobber=True) as f:
@@ -268,8 +370,14 @@ def test_errors_are_one_line_and_write_nothing(runner, cli, tmp_path, monkeypatc
         f.write_table(np.zeros(1, dtype=[("type", "S10")]), extname="psf")
     assert file_kind(fake) == PIFF
     monkeypatch.setitem(sys.modules, "piff", None)  # import piff raises ImportError
-    _fails(runner, cli, [exposure, cat, "-o", out, "--psf-model", fake], 1, "model.piff is a Piff model",
-           "pip install 'megalut-cli[piff]'")
+    _fails(
+        runner,
+        cli,
+        [exposure, cat, "-o", out, "--psf-model", fake],
+        1,
+        "model.piff is a Piff model",
+        "pip install 'megalut-cli[piff]'",
+    )
     assert not out.exists()
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
@@ -289,6 +397,7 @@ def _piff_truth(x: float, y: float) -> galsim.GSObject:
 def piff_model(tmp_path_factory) -> Path:
     """A Piff model (Gaussian, linear interpolation) fit to 30 stars drawn with GalSim (~1.5 s)."""
     import piff  # the test extra has it: a missing piff fails, not skips (docs/testing.md)
+
     full = galsim.ImageD(1024, 1024, wcs=PIFF_WCS)
     rng = np.random.default_rng(11)
     stars = []
@@ -296,7 +405,9 @@ def piff_model(tmp_path_factory) -> Path:
         b = galsim.BoundsI(int(x) - 12, int(x) + 12, int(y) - 12, int(y) + 12)
         _piff_truth(x, y).withFlux(1e4).drawImage(full[b], center=(x, y))
         weight = galsim.ImageD(b, init_value=1.0, wcs=full.wcs)
-        data = piff.StarData(full[b].copy(), galsim.PositionD(x, y), weight=weight, properties={"chipnum": 0})
+        data = piff.StarData(
+            full[b].copy(), galsim.PositionD(x, y), weight=weight, properties={"chipnum": 0}
+        )
         stars.append(piff.Star(data, None))
     psf = piff.SimplePSF(piff.Gaussian(), piff.Polynomial(order=1), max_iter=3)
     psf.fit(stars, {0: full.wcs}, None)
@@ -322,9 +433,14 @@ def test_piff_draw_is_the_fitted_psf(piff_model):
             assert ours.moments_sigma == pytest.approx(ref.moments_sigma, rel=5e-3)
             assert abs(ours.observed_shape.g1 - ref.observed_shape.g1) < 5e-3
             assert abs(ours.observed_shape.g2 - ref.observed_shape.g2) < 5e-3
-            assert abs(ours.moments_centroid.x - 16.5) < 0.01 and abs(ours.moments_centroid.y - 16.5) < 0.01
+            assert (
+                abs(ours.moments_centroid.x - 16.5) < 0.01
+                and abs(ours.moments_centroid.y - 16.5) < 0.01
+            )
     native, sky = model.draw(512.0, 512.0, 32), model.draw(512.0, 512.0, 32, pixel_scale=0.26)
-    assert _hsm(native[0]).observed_shape.g1 * _hsm(sky[0]).observed_shape.g1 < 0  # the WCS rotates g1's sign
+    assert (
+        _hsm(native[0]).observed_shape.g1 * _hsm(sky[0]).observed_shape.g1 < 0
+    )  # the WCS rotates g1's sign
 
 
 def test_measure_piff_model_equals_the_same_psfs_as_a_grid(runner, cli, tmp_path, piff_model):

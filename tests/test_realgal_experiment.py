@@ -14,7 +14,10 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-MODELS = {"fiducial-1e6": ROOT / "models" / "fiducial-1e6.h5", "fiducial": ROOT / "models" / "fiducial.h5"}
+MODELS = {
+    "fiducial-1e6": ROOT / "models" / "fiducial-1e6.h5",
+    "fiducial": ROOT / "models" / "fiducial.h5",
+}
 CONFIG = ROOT / "examples" / "realgal" / "fiducial.toml"
 #: m_real - m_twin of the independent measurement of issue 14 (docs/realgal.md).
 INDEPENDENT_DM = {"g1": -0.022, "g2": -0.023}
@@ -35,8 +38,14 @@ def test_real_vs_twin_paired_bias(tmp_path):
         for name in ("real", "twin"):
             shears[name] = tmp_path / f"{name}-{model}.fits"
             predict_catalog(tmp_path / f"{name}.fits", path, shears[name])
-        res = evaluate_paired_catalogs(str(shears["real"]), str(shears["twin"]), by=["tru_twin_rad/tru_psf_sigma"],
-                                       n_bins=2, n_boot=500, seed=1)
+        res = evaluate_paired_catalogs(
+            str(shears["real"]),
+            str(shears["twin"]),
+            by=["tru_twin_rad/tru_psf_sigma"],
+            n_bins=2,
+            n_boot=500,
+            seed=1,
+        )
         print(model, format_paired(res), sep="\n")
         for scheme in ("unweighted", "weighted"):
             for comp in ("g1", "g2"):
@@ -52,6 +61,11 @@ def test_real_vs_twin_paired_bias(tmp_path):
                 # within 2 sigma of this run, whose errors are 2.4-3.4 % (fiducial-1e6,
                 # 2026-11-26: unweighted -3.8 %, -0.5 %, weighted -5.5 %, -0.2 %).
                 assert r["dm_err"] < 0.04
-                assert abs(r["dm"] - INDEPENDENT_DM[comp]) < 2 * r["dm_err"], (model, scheme, comp, r)
+                assert abs(r["dm"] - INDEPENDENT_DM[comp]) < 2 * r["dm_err"], (
+                    model,
+                    scheme,
+                    comp,
+                    r,
+                )
         bins = res["by"]["tru_twin_rad/tru_psf_sigma"]["bins"]
         assert sum(b["unweighted"]["g1"]["n_galaxies"] for b in bins) >= 30

@@ -22,11 +22,17 @@ from megalut_cli.shear.evaluate import (
 from megalut_cli.shear.report import format_table
 
 
-def _fits(crn: bool, errors: str, n_seeds: int, n_resamples: int = 100, group_size: int = 2) -> np.ndarray:
+def _fits(
+    crn: bool, errors: str, n_seeds: int, n_resamples: int = 100, group_size: int = 2
+) -> np.ndarray:
     """(m, m_err, c, c_err) of g1 for seeds 0..n_seeds-1."""
     out = []
     for seed in range(n_seeds):
-        spec = BootstrapSpec(group_size, n_resamples, seed + 1000, crn) if errors == "bootstrap" else None
+        spec = (
+            BootstrapSpec(group_size, n_resamples, seed + 1000, crn)
+            if errors == "bootstrap"
+            else None
+        )
         data = synthetic(seed, crn, n_groups=600 // group_size, group_size=group_size)
         r = evaluate_columns(data, bootstrap=spec)
         f = r["unweighted"]["g1"]
@@ -92,7 +98,9 @@ def test_resampler_sums_match_a_direct_loop():
             np.testing.assert_allclose(sums[name][:, j], direct, rtol=1e-12, atol=1e-12)
         assert counts[:, j].sum() == 7
     # blocks do not change the sequence of resamples
-    np.testing.assert_array_equal(np.concatenate(resample_counts(3, 7, 5), axis=1)[:, :2], resample_counts(3, 7, 2)[0])
+    np.testing.assert_array_equal(
+        np.concatenate(resample_counts(3, 7, 5), axis=1)[:, :2], resample_counts(3, 7, 2)[0]
+    )
 
 
 def test_fit_columns_equals_fit_bias():
@@ -118,8 +126,13 @@ def _catalog(tmp_path, crn=True, **cards):
     d["tru_psf_g2"] = np.repeat(rng.uniform(-0.05, 0.05, 6), 120)
     d["snr"] = rng.uniform(5, 50, d["case"].size)
     p = tmp_path / "shears.fits"
-    write_catalog(p, d, fmt="megalut.predictions", cards={"CRN": crn, "SNC": "pairs", "NREA": 120, **cards},
-                  overwrite=True)
+    write_catalog(
+        p,
+        d,
+        fmt="megalut.predictions",
+        cards={"CRN": crn, "SNC": "pairs", "NREA": 120, **cards},
+        overwrite=True,
+    )
     return p
 
 
@@ -127,8 +140,16 @@ def test_catalog_header_selects_the_bootstrap(tmp_path):
     p = _catalog(tmp_path)
     a = evaluate_catalog(p, by=["snr"], bins=3, seed=5, n_bootstrap=50)
     assert a["error"] == "bootstrap-galaxies"
-    assert a["bootstrap"] == {"resamples": 50, "seed": 5, "group_size": 2, "groups": 60, "crn": True}
-    assert "bootstrap over galaxies" in format_table(a) and "common-random-number" in format_table(a)
+    assert a["bootstrap"] == {
+        "resamples": 50,
+        "seed": 5,
+        "group_size": 2,
+        "groups": 60,
+        "crn": True,
+    }
+    assert "bootstrap over galaxies" in format_table(a) and "common-random-number" in format_table(
+        a
+    )
     for scheme in ("unweighted", "weighted"):
         for comp in ("g1", "g2", "plus", "cross"):
             assert a[scheme][comp]["m_err"] > 0 and a[scheme][comp]["c_err"] > 0
@@ -138,13 +159,16 @@ def test_catalog_header_selects_the_bootstrap(tmp_path):
     b = evaluate_catalog(p, by=["snr"], bins=3, seed=5, n_bootstrap=50, chunk_rows=97)
     assert b["weighted"]["g1"]["m_err"] == pytest.approx(a["weighted"]["g1"]["m_err"], rel=1e-9)
     assert b["conditional"]["snr"]["bins"][1]["weighted"]["plus"]["c_err"] == pytest.approx(
-        a["conditional"]["snr"]["bins"][1]["weighted"]["plus"]["c_err"], rel=1e-9)
+        a["conditional"]["snr"]["bins"][1]["weighted"]["plus"]["c_err"], rel=1e-9
+    )
     c = evaluate_catalog(p, seed=6, n_bootstrap=50)
     assert c["weighted"]["g1"]["m"] == a["weighted"]["g1"]["m"]
     assert c["weighted"]["g1"]["m_err"] != a["weighted"]["g1"]["m_err"]
     # fit errors on request, and for independent sets
     f = evaluate_catalog(p, errors="fit")
-    assert f["error"] == "fit" and f["bootstrap"] is None and "errors: from the fit" in format_table(f)
+    assert (
+        f["error"] == "fit" and f["bootstrap"] is None and "errors: from the fit" in format_table(f)
+    )
     assert f["weighted"]["g1"]["m"] == pytest.approx(a["weighted"]["g1"]["m"], rel=1e-12)
     assert evaluate_catalog(_catalog(tmp_path, crn=False))["error"] == "fit"
 

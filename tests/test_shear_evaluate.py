@@ -34,7 +34,9 @@ def test_quoted_errors_match_scatter_over_seeds():
     m, c = (0.01, -0.005), (5e-4, 0.0)
     est = {k: [] for k in ("m", "m_err", "c", "c_err")}
     for seed in range(200):
-        f = evaluate_columns(synthetic(seed=seed, n_cases=40, n_rea=25, m=m, c=c, sigma=0.3))["unweighted"]["g1"]
+        f = evaluate_columns(synthetic(seed=seed, n_cases=40, n_rea=25, m=m, c=c, sigma=0.3))[
+            "unweighted"
+        ]["g1"]
         for k in est:
             est[k].append(f[k])
     est = {k: np.array(v) for k, v in est.items()}
@@ -90,7 +92,9 @@ def test_psf_frame_additive_bias_along_psf_lands_in_c_plus_only():
     plus, cross = r["plus"], r["cross"]
     assert plus["c"] == pytest.approx(c0, abs=3 * plus["c_err"])
     assert abs(plus["c"] - c0) < 0.02 * c0  # achieved 0.49 % (0.43 sigma)
-    assert abs(cross["c"]) < 3 * cross["c_err"] and abs(cross["c"]) < 1e-3 * c0  # achieved 3.0e-4 c0
+    assert (
+        abs(cross["c"]) < 3 * cross["c_err"] and abs(cross["c"]) < 1e-3 * c0
+    )  # achieved 3.0e-4 c0
     for comp in ("plus", "cross"):
         assert abs(r[comp]["m"]) < 3 * r[comp]["m_err"]
     # In the pixel frame the same bias is smeared over both components and the scatter.
@@ -151,8 +155,12 @@ def test_conditional_biases_by_case_average_keep_whole_cases(tmp_path):
     path = tmp_path / "shears.fits"
     write_catalog(path, d, fmt="megalut.shears")
     streamed = evaluate_catalog(path, by=["mean(snr)"], bins=2, chunk_rows=777)
-    for a, b in zip(streamed["conditional"]["mean(snr)"]["bins"], by_case):  # chunked sums: rounding only
-        assert a["n_rows"] == b["n_rows"] and a["unweighted"]["g1"]["m"] == pytest.approx(b["unweighted"]["g1"]["m"])
+    for a, b in zip(
+        streamed["conditional"]["mean(snr)"]["bins"], by_case
+    ):  # chunked sums: rounding only
+        assert a["n_rows"] == b["n_rows"] and a["unweighted"]["g1"]["m"] == pytest.approx(
+            b["unweighted"]["g1"]["m"]
+        )
 
 
 def test_conditional_biases_by_row_expression():
@@ -162,7 +170,11 @@ def test_conditional_biases_by_row_expression():
     r = evaluate_columns(d, by=["sqrt(tru_e1**2 + tru_e2**2)"], bins=4)
     bins = r["conditional"]["sqrt(tru_e1**2 + tru_e2**2)"]["bins"]
     e = np.hypot(d["tru_e1"], d["tru_e2"])
-    assert len(bins) == 4 and bins[0]["lo"] == pytest.approx(e.min()) and bins[-1]["hi"] == pytest.approx(e.max())
+    assert (
+        len(bins) == 4
+        and bins[0]["lo"] == pytest.approx(e.min())
+        and bins[-1]["hi"] == pytest.approx(e.max())
+    )
     assert sum(b["n_rows"] for b in bins) == e.size
 
 
@@ -197,7 +209,9 @@ def test_streamed_file_equals_in_memory(tmp_path):
     for col in ("tru_rad", "snr"):
         for bref, bgot in zip(ref["conditional"][col]["bins"], got["conditional"][col]["bins"]):
             assert bgot["n_rows"] == bref["n_rows"]
-            assert bgot["weighted"]["plus"]["m"] == pytest.approx(bref["weighted"]["plus"]["m"], rel=1e-9)
+            assert bgot["weighted"]["plus"]["m"] == pytest.approx(
+                bref["weighted"]["plus"]["m"], rel=1e-9
+            )
     assert got["input"] == str(path)
 
 
@@ -243,12 +257,12 @@ def test_bad_options():
         evaluate_columns(d, select="snr > 1000")
 
 
-
-
 def test_plot_renders(tmp_path):
     from megalut_cli.shear.plots import plot_evaluation
 
-    r = evaluate_columns(synthetic(seed=3, weights=True, psf=True, m=(2e-3, 0)), by=["tru_rad", "snr"], bins=4)
+    r = evaluate_columns(
+        synthetic(seed=3, weights=True, psf=True, m=(2e-3, 0)), by=["tru_rad", "snr"], bins=4
+    )
     out = plot_evaluation(r, tmp_path / "ev.png")
     w, h = png_size(out)
     assert w >= 1000 and h >= 1000  # 4 columns x 4 rows of panels
@@ -271,7 +285,10 @@ def test_round_psf_is_flagged():
 
 def test_messages_name_the_callers_words():
     d = synthetic(seed=1, n_cases=5, n_rea=5)
-    for names, word in ((None, "select"), ({"select": "--select"}, "--select"),
-                        (key_names("evaluate"), "evaluate.select")):
+    for names, word in (
+        (None, "select"),
+        ({"select": "--select"}, "--select"),
+        (key_names("evaluate"), "evaluate.select"),
+    ):
         with pytest.raises(InputError, match=f"no row passes {re.escape(word)} 'tru_g1 > 5'"):
             evaluate_columns(d, select="tru_g1 > 5", names=names)

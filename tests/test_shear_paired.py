@@ -15,8 +15,14 @@ from megalut_cli.shear.paired import (
 )
 
 
-def synthetic_pair(seed: int, n_gal: int = 60, n_shear: int = 20, dm: float = -0.02, spread: float = 0.03,
-                   noise: float = 0.05) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+def synthetic_pair(
+    seed: int,
+    n_gal: int = 60,
+    n_shear: int = 20,
+    dm: float = -0.02,
+    spread: float = 0.03,
+    noise: float = 0.05,
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Twin estimates g (1 + m_t) + e + noise; real ones g (1 + m_t + dm + delta_i) + e + noise,
     with a per-galaxy response delta_i ~ N(0, spread) (real morphologies differ), 90-degree
     pairs, every galaxy under every shear; common shears, shapes and part of the noise."""
@@ -39,8 +45,12 @@ def synthetic_pair(seed: int, n_gal: int = 60, n_shear: int = 20, dm: float = -0
         gt = g[case, i]
         a[f"tru_{comp}"] = b[f"tru_{comp}"] = gt
         b[f"pre_{comp}"] = gt * (1 + m_t) + e_rows[:, i] + common[:, i]
-        a[f"pre_{comp}"] = gt * (1 + m_t + dm + delta[gal]) + e_rows[:, i] + common[:, i] \
+        a[f"pre_{comp}"] = (
+            gt * (1 + m_t + dm + delta[gal])
+            + e_rows[:, i]
+            + common[:, i]
             + rng.normal(0, 0.3 * noise, case.size)
+        )
         a[f"pre_{comp}_w"] = b[f"pre_{comp}_w"] = np.full(case.size, 0.5)
     return a, b
 
@@ -51,7 +61,9 @@ def test_recovers_injected_difference_and_its_error():
     dms, errs, dms_sample = [], [], []
     for seed in range(40):
         a, b = synthetic_pair(seed)
-        r = paired_bias(a["gal"], a["case"], a["tru_g1"], a["pre_g1"], b["pre_g1"], n_boot=400, seed=seed)
+        r = paired_bias(
+            a["gal"], a["case"], a["tru_g1"], a["pre_g1"], b["pre_g1"], n_boot=400, seed=seed
+        )
         dms.append(r["dm"])
         errs.append(r["dm_err"])
         dms_sample.append(r["m_a"] - r["m_b"])
@@ -79,11 +91,15 @@ def test_pairing_makes_the_difference_more_precise_than_either_bias():
 def test_evaluation_weighted_bins_and_table():
     a, b = synthetic_pair(3)
     size = np.linspace(1, 3, 60)[a["gal"]]
-    res = paired_evaluation(a, b, galaxy_column="gal", by={"size": size}, n_bins=2, n_boot=200, seed=4)
+    res = paired_evaluation(
+        a, b, galaxy_column="gal", by={"size": size}, n_bins=2, n_boot=200, seed=4
+    )
     assert set(res["overall"]) == {"unweighted", "weighted"}
     # uniform weights: the weighted analysis equals the unweighted one
     for comp in ("g1", "g2"):
-        assert res["overall"]["weighted"][comp]["dm"] == pytest.approx(res["overall"]["unweighted"][comp]["dm"])
+        assert res["overall"]["weighted"][comp]["dm"] == pytest.approx(
+            res["overall"]["unweighted"][comp]["dm"]
+        )
     bins = res["by"]["size"]["bins"]
     assert [x["unweighted"]["g1"]["n_galaxies"] for x in bins] == [30, 30]
     assert "m_real - m_twin" in format_paired(res)
@@ -120,8 +136,17 @@ def test_cli_twin(tmp_path, runner, cli):
         t["tru_real_index"] = t.pop("gal")
     write_catalog(tmp_path / "real.fits", a, fmt="test")
     write_catalog(tmp_path / "twin.fits", b, fmt="test")
-    args = ["evaluate", str(tmp_path / "real.fits"), "--twin", str(tmp_path / "twin.fits"), "--bootstrap", "100"]
-    res = runner.invoke(cli, [*args, "--json", str(tmp_path / "p.json"), "--by", "abs(tru_g1)", "--bins", "2"])
+    args = [
+        "evaluate",
+        str(tmp_path / "real.fits"),
+        "--twin",
+        str(tmp_path / "twin.fits"),
+        "--bootstrap",
+        "100",
+    ]
+    res = runner.invoke(
+        cli, [*args, "--json", str(tmp_path / "p.json"), "--by", "abs(tru_g1)", "--bins", "2"]
+    )
     assert res.exit_code == 0, res.output
     assert "m_real - m_twin" in res.output and "abs(tru_g1) in [" in res.output
     out = json.loads((tmp_path / "p.json").read_text())
@@ -129,9 +154,13 @@ def test_cli_twin(tmp_path, runner, cli):
     assert len(out["by"]["abs(tru_g1)"]["bins"]) == 2
     bad = dict(b, rea=b["rea"][::-1].copy())
     write_catalog(tmp_path / "bad.fits", bad, fmt="test")
-    res = runner.invoke(cli, ["evaluate", str(tmp_path / "real.fits"), "--twin", str(tmp_path / "bad.fits")])
+    res = runner.invoke(
+        cli, ["evaluate", str(tmp_path / "real.fits"), "--twin", str(tmp_path / "bad.fits")]
+    )
     assert res.exit_code == 1
-    lines = (res.stderr if hasattr(res, "stderr") and res.stderr else res.output).strip().splitlines()
+    lines = (
+        (res.stderr if hasattr(res, "stderr") and res.stderr else res.output).strip().splitlines()
+    )
     assert len(lines) == 1 and "not paired: column rea differs at row 0" in lines[0]
     res = runner.invoke(cli, [*args, "--plot", str(tmp_path / "x.png")])
     assert res.exit_code == 2 and "--plot does not apply with --twin" in res.output

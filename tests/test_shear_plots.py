@@ -31,7 +31,9 @@ def test_axis_labels_carry_units():
     assert axis_label("adamom_flux") == "adamom_flux [adu]"
     assert axis_label("snr") == "snr (dimensionless)"
     assert axis_label("mean(adamom_sigma)") == "mean(adamom_sigma) [pixel]"
-    assert axis_label("sqrt(tru_e1**2+tru_e2**2)") == "sqrt(tru_e1**2+tru_e2**2)"  # unknown: no unit
+    assert (
+        axis_label("sqrt(tru_e1**2+tru_e2**2)") == "sqrt(tru_e1**2+tru_e2**2)"
+    )  # unknown: no unit
     assert axis_label("mycol") == "mycol"
 
 
@@ -40,12 +42,19 @@ def test_warning_needs_m_beyond_its_error():
 
     assert m_too_large(-0.5, 0.01) and m_too_large(0.15, None) and m_too_large(0.12, 0.01)
     assert not m_too_large(-0.108, 0.044)  # noise: 2.5 sigma from 0, not beyond 0.1
-    assert not m_too_large(0.05, None) and not m_too_large(None, None) and not m_too_large(float("nan"), 0.1)
+    assert (
+        not m_too_large(0.05, None)
+        and not m_too_large(None, None)
+        and not m_too_large(float("nan"), 0.1)
+    )
 
 
 def test_good_model_figure():
-    r = evaluate_columns(synthetic(seed=3, n_cases=40, weights=True, m=(2e-3, 0), sigma=0.05),
-                         by=["tru_rad", "mean(snr)"], bins=3)
+    r = evaluate_columns(
+        synthetic(seed=3, n_cases=40, weights=True, m=(2e-3, 0), sigma=0.05),
+        by=["tru_rad", "mean(snr)"],
+        bins=3,
+    )
     fig = evaluation_figure(r)
     assert "WARNING" not in fig._suptitle.get_text()
     panels = _panels(fig)
@@ -68,11 +77,15 @@ def test_good_model_figure():
 
 
 def test_large_m_is_flagged_in_red():
-    r = evaluate_columns(synthetic(seed=3, n_cases=40, m=(-0.5, 0.0), sigma=0.05), by=["tru_rad"], bins=3)
+    r = evaluate_columns(
+        synthetic(seed=3, n_cases=40, m=(-0.5, 0.0), sigma=0.05), by=["tru_rad"], bins=3
+    )
     fig = evaluation_figure(r)
     sup = fig._suptitle
     assert "WARNING: |m| > 0.1 in 1 fit(s)" in sup.get_text()
-    assert float(re.search(r"unweighted g1: m = ([-+.\d]+)", sup.get_text())[1]) == pytest.approx(-0.5, abs=0.03)
+    assert float(re.search(r"unweighted g1: m = ([-+.\d]+)", sup.get_text())[1]) == pytest.approx(
+        -0.5, abs=0.03
+    )
     assert _is_red(sup.get_color())
     by_title = {ax.get_title().split("\n")[0]: ax for ax in _panels(fig)}
     g1 = by_title["unweighted $g_1$ (40 cases)"]
@@ -85,7 +98,11 @@ def test_large_m_is_flagged_in_red():
 
 def test_cli_warns_on_large_m(runner, cli, tmp_path):
     src = tmp_path / "shears.fits"
-    write_catalog(src, synthetic(seed=4, n_cases=30, n_rea=20, m=(0.3, 0.0), sigma=0.05), fmt="megalut.predictions")
+    write_catalog(
+        src,
+        synthetic(seed=4, n_cases=30, n_rea=20, m=(0.3, 0.0), sigma=0.05),
+        fmt="megalut.predictions",
+    )
     png = tmp_path / "ev.png"
     result = runner.invoke(cli, ["evaluate", str(src), "--plot", str(png)])
     assert result.exit_code == 0, result.output
@@ -94,6 +111,8 @@ def test_cli_warns_on_large_m(runner, cli, tmp_path):
     found = re.search(r"warning: \|m\| > 0.1 \(unweighted g1: m = ([-+.\d]+) ± [.\d]+\)", err)
     assert found and float(found[1]) == pytest.approx(0.3, abs=0.03), err
     good = tmp_path / "good.fits"
-    write_catalog(good, synthetic(seed=4, n_cases=30, n_rea=20, sigma=0.05), fmt="megalut.predictions")
+    write_catalog(
+        good, synthetic(seed=4, n_cases=30, n_rea=20, sigma=0.05), fmt="megalut.predictions"
+    )
     result = runner.invoke(cli, ["evaluate", str(good)])
     assert result.exit_code == 0 and "|m| >" not in result.stderr

@@ -36,7 +36,9 @@ def test_predictions_match_independent_forward_pass(tmp_path, model_path):
     model = ShearModel.load(model_path)
     x = np.column_stack([d[f] for f in FEATURES])
     for target, comm in model.point.items():
-        np.testing.assert_allclose(t[P.prediction_column(target)], manual_predict(comm, x), rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(
+            t[P.prediction_column(target)], manual_predict(comm, x), rtol=1e-12, atol=1e-14
+        )
     xw = np.column_stack([d[f] for f in [*FEATURES[2:], "snr"]])
     for target, comm in model.weight.items():
         w = np.asarray(t[P.prediction_column(target, "weight")])

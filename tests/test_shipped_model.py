@@ -64,7 +64,11 @@ def test_shipped_model_predictions_equal_the_recorded_ones(name: str) -> None:
         # float64 network passes: equal up to the order of the BLAS sums
         np.testing.assert_allclose(got[key], recorded, rtol=1e-10, atol=1e-14, err_msg=key)
     flagged = table["flags"] != 0
-    assert flagged.any() and np.isnan(got["pre_g1"][flagged]).all() and (got["pre_g1_w"][flagged] == 0).all()
+    assert (
+        flagged.any()
+        and np.isnan(got["pre_g1"][flagged]).all()
+        and (got["pre_g1_w"][flagged] == 0).all()
+    )
     # the point estimates follow the shears: a sanity check that the file holds real stamps
     good = ~flagged
     assert np.corrcoef(got["pre_g1"][good], table["adamom_g1"][good])[0, 1] > 0.9
@@ -85,7 +89,13 @@ def test_fiducial_model_meets_the_stage_iv_requirement_on_a_crn_set(tmp_path):
     result = evaluate_catalog(shears, seed=1001)
     assert result["error"] == "bootstrap-galaxies"
     for scheme in ("unweighted", "weighted"):  # shown with pytest -s, recorded in models/README.md
-        print(scheme, {c: {k: result[scheme][c][k] for k in ("m", "m_err", "c", "c_err", "n_rows")} for c in ("g1", "g2")})
+        print(
+            scheme,
+            {
+                c: {k: result[scheme][c][k] for k in ("m", "m_err", "c", "c_err", "n_rows")}
+                for c in ("g1", "g2")
+            },
+        )
     for comp in ("g1", "g2"):
         fit = result["weighted"][comp]
         assert fit["m_err"] <= MAX_M_ERR, (comp, fit)

@@ -20,14 +20,28 @@ from megalut_cli.sim.structure import draw_case
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "fiducial.h5"
 #: Truth of a realization (everything but the case-level shear, PSF and noise level).
-PER_REALIZATION = ("tru_rad", "tru_flux", "tru_sb", "tru_sersicn", "tru_ell", "tru_theta", "tru_e1", "tru_e2",
-                   "tru_dx", "tru_dy")
+PER_REALIZATION = (
+    "tru_rad",
+    "tru_flux",
+    "tru_sb",
+    "tru_sersicn",
+    "tru_ell",
+    "tru_theta",
+    "tru_e1",
+    "tru_e2",
+    "tru_dx",
+    "tru_dy",
+)
 CRN = ['structure.per_realization=["galaxy"]', "structure.snc=pairs", "structure.common=true"]
 
 
 def _cfg(tmp_path, overrides=CRN, n_cases=4, n_rea=10, **replace):
-    return load_config(write(tmp_path, replace=replace or None), list(overrides), n_cases=n_cases,
-                       n_realizations=n_rea)
+    return load_config(
+        write(tmp_path, replace=replace or None),
+        list(overrides),
+        n_cases=n_cases,
+        n_realizations=n_rea,
+    )
 
 
 def test_same_galaxies_offsets_and_noise_in_every_case(tmp_path):
@@ -56,12 +70,21 @@ def test_independent_sets_differ_between_cases(tmp_path):
     assert not np.any(a.noise_seeds == b.noise_seeds)
     # and the case-level draws are the same with or without common random numbers
     c = draw_case(_cfg(tmp_path, CRN), 21, 1)
-    assert c.truth["tru_g1"][0] == b.truth["tru_g1"][0] and c.truth["tru_g2"][0] == b.truth["tru_g2"][0]
+    assert (
+        c.truth["tru_g1"][0] == b.truth["tru_g1"][0]
+        and c.truth["tru_g2"][0] == b.truth["tru_g2"][0]
+    )
 
 
 def test_case_level_noise_and_psf_stay_per_case(tmp_path):
-    cfg = _cfg(tmp_path, [*CRN, 'noise.sigma={type="uniform", min=0.5, max=2.0}',
-                          'psf.sigma={type="uniform", min=1.2, max=2.0}'])
+    cfg = _cfg(
+        tmp_path,
+        [
+            *CRN,
+            'noise.sigma={type="uniform", min=0.5, max=2.0}',
+            'psf.sigma={type="uniform", min=1.2, max=2.0}',
+        ],
+    )
     draws = [draw_case(cfg, 3, c) for c in range(3)]
     assert len({d.noise.sigma for d in draws}) == 3
     assert len({d.psf_specs[0][0]["sigma"] for d in draws}) == 3
@@ -73,9 +96,15 @@ def test_case_level_noise_and_psf_stay_per_case(tmp_path):
 def test_knots_are_common_too(tmp_path):
     """Composite galaxies with star-forming knots: the knots of realization k are the same
     in every case (the knot seeds come from the common stream)."""
-    text = (Path(__file__).resolve().parents[1] / "examples" / "realgal" / "tp-knots.toml").read_text()
-    cfg = load_config(write(tmp_path, text, name="knots.toml"), [*CRN, "structure.offset=0.5"], n_cases=3,
-                      n_realizations=8)
+    text = (
+        Path(__file__).resolve().parents[1] / "examples" / "realgal" / "tp-knots.toml"
+    ).read_text()
+    cfg = load_config(
+        write(tmp_path, text, name="knots.toml"),
+        [*CRN, "structure.offset=0.5"],
+        n_cases=3,
+        n_realizations=8,
+    )
     a, b = draw_case(cfg, 4, 0), draw_case(cfg, 4, 2)
     assert len(np.unique(a.truth["tru_knot_seed"])) == 4
     for k in ("tru_knot_seed", "tru_knots", "tru_e1", "tru_rad"):
@@ -83,8 +112,15 @@ def test_knots_are_common_too(tmp_path):
 
 
 def test_per_realization_psf_is_common_too(tmp_path):
-    cfg = _cfg(tmp_path, ['structure.per_realization=["galaxy", "psf"]', "structure.snc=none", "structure.common=true",
-                          'psf.sigma={type="uniform", min=1.2, max=2.0}'])
+    cfg = _cfg(
+        tmp_path,
+        [
+            'structure.per_realization=["galaxy", "psf"]',
+            "structure.snc=none",
+            "structure.common=true",
+            'psf.sigma={type="uniform", min=1.2, max=2.0}',
+        ],
+    )
     a, b = draw_case(cfg, 3, 0), draw_case(cfg, 3, 2)
     assert len(a.psf_specs) == 10
     assert [s[0]["sigma"] for s in a.psf_specs] == [s[0]["sigma"] for s in b.psf_specs]
@@ -93,10 +129,22 @@ def test_per_realization_psf_is_common_too(tmp_path):
 @pytest.mark.parametrize(
     ("overrides", "words"),
     [
-        (['structure.per_realization=["angle"]', "structure.snc=none", "structure.common=true"], "include 'galaxy'"),
-        (['structure.per_realization=["galaxy", "shear"]', "structure.snc=none", "structure.common=true"],
-         "shear must be drawn per case"),
-        (['structure.per_realization=["galaxy"]', "structure.snc=ring", "structure.common=true"], "snc = 'ring'"),
+        (
+            ['structure.per_realization=["angle"]', "structure.snc=none", "structure.common=true"],
+            "include 'galaxy'",
+        ),
+        (
+            [
+                'structure.per_realization=["galaxy", "shear"]',
+                "structure.snc=none",
+                "structure.common=true",
+            ],
+            "shear must be drawn per case",
+        ),
+        (
+            ['structure.per_realization=["galaxy"]', "structure.snc=ring", "structure.common=true"],
+            "snc = 'ring'",
+        ),
         (['structure.per_realization=["galaxy"]', "structure.common=1"], "expected true or false"),
     ],
 )
@@ -111,12 +159,17 @@ def test_stamps_identical_across_cases_at_equal_shear(tmp_path, sigma):
     """With the shear switched off, every case of a CRN set is the same image, noise-free or
     not: galaxies, offsets and noise all shared. Also independent of -j (work units split
     the cases)."""
-    cfg = _cfg(tmp_path, [*CRN, "shear.g1=0.0", "shear.g2=0.0", f"noise.sigma={sigma}"], n_cases=3, n_rea=6)
+    cfg = _cfg(
+        tmp_path, [*CRN, "shear.g1=0.0", "shear.g2=0.0", f"noise.sigma={sigma}"], n_cases=3, n_rea=6
+    )
     simulate(cfg, tmp_path / "c.fits", stamps=tmp_path / "s.fits", seed=5, measure=True)
     img = fitsio.read(str(tmp_path / "s.fits"))
     S = cfg.structure.stamp_size
-    stamps = [img[r * S:(r + 1) * S, c * S:(c + 1) * S] for r in range(img.shape[0] // S)
-              for c in range(img.shape[1] // S)][:18]
+    stamps = [
+        img[r * S : (r + 1) * S, c * S : (c + 1) * S]
+        for r in range(img.shape[0] // S)
+        for c in range(img.shape[1] // S)
+    ][:18]
     for case in (1, 2):
         for k in range(6):
             assert np.array_equal(stamps[case * 6 + k], stamps[k])
@@ -124,7 +177,9 @@ def test_stamps_identical_across_cases_at_equal_shear(tmp_path, sigma):
     assert t.meta["CRN"] is True
     for col in ("adamom_g1", "adamom_sigma", "tru_rad", "tru_e1", "tru_dx"):
         v = np.asarray(t[col]).reshape(3, 6)
-        assert np.array_equal(v[1], v[0], equal_nan=True) and np.array_equal(v[2], v[0], equal_nan=True), col
+        assert np.array_equal(v[1], v[0], equal_nan=True) and np.array_equal(
+            v[2], v[0], equal_nan=True
+        ), col
     simulate(cfg, tmp_path / "c2.fits", seed=5, measure=True, nproc=2)
     t2 = read_catalog(tmp_path / "c2.fits")
     for col in t.colnames:
@@ -135,8 +190,18 @@ def test_stamps_identical_across_cases_at_equal_shear(tmp_path, sigma):
 def test_noise_free_stamps_differ_only_by_the_shear(tmp_path):
     """Noise-free stamps of a CRN set: the same galaxy under two shears; its measured
     ellipticity moves with the shear, the same way for every galaxy (same sign)."""
-    cfg = _cfg(tmp_path, [*CRN, "noise.sigma=0.0", "shear.g2=0.0", "structure.offset=0.0",
-                          'shear.g1={type="uniform", min=-0.1, max=0.1}'], n_cases=2, n_rea=8)
+    cfg = _cfg(
+        tmp_path,
+        [
+            *CRN,
+            "noise.sigma=0.0",
+            "shear.g2=0.0",
+            "structure.offset=0.0",
+            'shear.g1={type="uniform", min=-0.1, max=0.1}',
+        ],
+        n_cases=2,
+        n_rea=8,
+    )
     simulate(cfg, tmp_path / "c.fits", seed=8, measure=True)
     t = read_catalog(tmp_path / "c.fits")
     g1 = np.asarray(t["tru_g1"]).reshape(2, 8)[:, 0]

@@ -30,7 +30,9 @@ def test_structure_overrides(tmp_path):
 
 
 def test_dotted_overrides(tmp_path):
-    cfg = load_config(write(tmp_path), ["noise.sigma=0.25", 'galaxy.rad={type="uniform", min=2, max=2.5}'])
+    cfg = load_config(
+        write(tmp_path), ["noise.sigma=0.25", 'galaxy.rad={type="uniform", min=2, max=2.5}']
+    )
     assert cfg.noise.params["sigma"].bounds() == (0.25, 0.25)
     assert cfg.galaxy.params["rad"].bounds() == (2.0, 2.5)
     assert parse_override("psf.type=moffat") == (["psf", "type"], "moffat")
@@ -49,31 +51,85 @@ def test_dotted_overrides(tmp_path):
         ({"n_cases = 3": "n_cases = 0"}, [], "structure.n_cases: must be >= 1"),
         ({"n_cases = 3": "n_cases = 2.5"}, [], "structure.n_cases: expected an integer"),
         ({'snc = "ring"': 'snc = "circle"'}, [], "structure.snc: unknown value 'circle'"),
-        ({'snc = "ring"': 'snc = "pairs"', "n_realizations = 4": "n_realizations = 3"}, [], "structure.n_realizations: snc = 'pairs'"),
-        ({'per_realization = ["angle"]': 'per_realization = ["colour"]'}, [], "structure.per_realization"),
+        (
+            {'snc = "ring"': 'snc = "pairs"', "n_realizations = 4": "n_realizations = 3"},
+            [],
+            "structure.n_realizations: snc = 'pairs'",
+        ),
+        (
+            {'per_realization = ["angle"]': 'per_realization = ["colour"]'},
+            [],
+            "structure.per_realization",
+        ),
         ({"stamp_size = 24": "stamp_size = 4"}, [], "structure.stamp_size"),
-        ({'rad = {type = "uniform", min = 1.5, max = 3.0}': "rad = nan"}, [], "galaxy.rad: must be a finite number"),
-        ({'rad = {type = "uniform", min = 1.5, max = 3.0}': "rad = -2.0"}, [], "galaxy.rad: the half-light radius must be > 0"),
-        ({'rad = {type = "uniform", min = 1.5, max = 3.0}': 'rad = {type = "uniform", min = 0.0, max = 3.0}'}, [], "galaxy.rad"),
+        (
+            {'rad = {type = "uniform", min = 1.5, max = 3.0}': "rad = nan"},
+            [],
+            "galaxy.rad: must be a finite number",
+        ),
+        (
+            {'rad = {type = "uniform", min = 1.5, max = 3.0}': "rad = -2.0"},
+            [],
+            "galaxy.rad: the half-light radius must be > 0",
+        ),
+        (
+            {
+                'rad = {type = "uniform", min = 1.5, max = 3.0}': 'rad = {type = "uniform", min = 0.0, max = 3.0}'
+            },
+            [],
+            "galaxy.rad",
+        ),
         ({'rad = {type = "uniform", min = 1.5, max = 3.0}\n': ""}, [], "galaxy.rad: missing"),
-        ({'rad = {type = "uniform", min = 1.5, max = 3.0}': 'rad = {type = "gamma", k = 2}'}, [], "galaxy.rad.type: unknown distribution 'gamma'"),
+        (
+            {'rad = {type = "uniform", min = 1.5, max = 3.0}': 'rad = {type = "gamma", k = 2}'},
+            [],
+            "galaxy.rad.type: unknown distribution 'gamma'",
+        ),
         ({"sb = {": "flux = 100.0\nsb = {"}, [], "give exactly one of galaxy.flux"),
         ({"sb = {": "mag = 22.0\n#"}, [], "instrument.zeropoint: missing (needed by galaxy.mag)"),
-        ({'max = 0.6}': 'max = 1.2}'}, [], "galaxy.ellipticity: the modulus must be < 1"),
-        ({"step = 0.5}": "step = 0.5}\nsersicn_step = 0"}, ["galaxy.sersicn={type='uniform', min=0.1, max=2}"], "galaxy.sersicn: GalSim supports"),
-        ({'type = "gaussian"\nsigma = 1.5': 'type = "hexagon"'}, [], "psf.type: unknown PSF type 'hexagon'"),
+        ({"max = 0.6}": "max = 1.2}"}, [], "galaxy.ellipticity: the modulus must be < 1"),
+        (
+            {"step = 0.5}": "step = 0.5}\nsersicn_step = 0"},
+            ["galaxy.sersicn={type='uniform', min=0.1, max=2}"],
+            "galaxy.sersicn: GalSim supports",
+        ),
+        (
+            {'type = "gaussian"\nsigma = 1.5': 'type = "hexagon"'},
+            [],
+            "psf.type: unknown PSF type 'hexagon'",
+        ),
         ({'type = "gaussian"\nsigma = 1.5': 'type = "gaussian"\nsigma = -1.5'}, [], "psf.sigma"),
         ({"[psf]\ntype": "[psf]\nkind"}, [], "psf.type: missing"),
-        ({'type = "gaussian"\nsigma = 1.0': 'type = "poisson"'}, [], "noise.type: unknown value 'poisson'"),
+        (
+            {'type = "gaussian"\nsigma = 1.0': 'type = "poisson"'},
+            [],
+            "noise.type: unknown value 'poisson'",
+        ),
         ({'type = "gaussian"\nsigma = 1.0': 'type = "gaussian"'}, [], "noise.sigma: missing"),
-        ({'type = "gaussian"\nsigma = 1.0': 'type = "ccd"\nsky_mag = 22.0'}, [], "instrument.pixel_scale: missing"),
+        (
+            {'type = "gaussian"\nsigma = 1.0': 'type = "ccd"\nsky_mag = 22.0'},
+            [],
+            "instrument.pixel_scale: missing",
+        ),
         ({"[noise]": "[noise]\ncolour = 1"}, [], "noise.colour: unknown key"),
         ({"[shear]": "[shaer]"}, [], "shaer: unknown table"),
         ({"offset = 0.5": "offset = 0.5\nofset = 1"}, [], "structure.ofset: unknown key"),
-        ({"[psf]": "[gsparams]\nfolding_threshold = 2.0\n\n[psf]"}, [], "gsparams.folding_threshold: must be in (0, 1)"),
+        (
+            {"[psf]": "[gsparams]\nfolding_threshold = 2.0\n\n[psf]"},
+            [],
+            "gsparams.folding_threshold: must be in (0, 1)",
+        ),
         ({"[psf]": "[gsparams]\nfolding = 0.1\n\n[psf]"}, [], "gsparams.folding: unknown key"),
-        ({"[psf]": "[gsparams]\nmaximum_fft_size = 1.5\n\n[psf]"}, [], "gsparams.maximum_fft_size: expected an integer"),
-        ({"[shear]\ng1": "[shear]\ng1 = {type = \"uniform\", min = -0.9, max = 0.9}\n#"}, ["shear.g2=0.9"], "shear: the reduced shear"),
+        (
+            {"[psf]": "[gsparams]\nmaximum_fft_size = 1.5\n\n[psf]"},
+            [],
+            "gsparams.maximum_fft_size: expected an integer",
+        ),
+        (
+            {"[shear]\ng1": '[shear]\ng1 = {type = "uniform", min = -0.9, max = 0.9}\n#'},
+            ["shear.g2=0.9"],
+            "shear: the reduced shear",
+        ),
     ],
 )
 def test_config_errors_name_the_key(tmp_path, replace, overrides, message):
@@ -114,17 +170,34 @@ zeropoint = 24.6
 
 
 def _gems_config(tmp_path, path=COSMOS, extra=""):
-    text = TINY.split("[galaxy]")[0] + GEMS.format(path=path) + "\n[psf]" + TINY.split("[psf]")[1] + extra
-    text = text.replace('per_realization = ["angle"]', 'per_realization = ["galaxy"]').replace('snc = "ring"', 'snc = "none"')
+    text = (
+        TINY.split("[galaxy]")[0]
+        + GEMS.format(path=path)
+        + "\n[psf]"
+        + TINY.split("[psf]")[1]
+        + extra
+    )
+    text = text.replace('per_realization = ["angle"]', 'per_realization = ["galaxy"]').replace(
+        'snc = "ring"', 'snc = "none"'
+    )
     return write(tmp_path, text)
 
 
 def test_joint_catalog_sampling(tmp_path):
     cfg = load_config(_gems_config(tmp_path), n_cases=20, n_realizations=50)
     data = fitsio.read(str(COSMOS), ext=1)
-    sel = (data["mag_auto"] > 20.5) & (data["mag_auto"] < 25) & (data["sersicfit"][:, 2] > 0.3) & (data["sersicfit"][:, 2] < 6) & (data["hlr"][:, 0] < 1.2)
+    sel = (
+        (data["mag_auto"] > 20.5)
+        & (data["mag_auto"] < 25)
+        & (data["sersicfit"][:, 2] > 0.3)
+        & (data["sersicfit"][:, 2] < 6)
+        & (data["hlr"][:, 0] < 1.2)
+    )
     assert cfg.catalog_rows == int(sel.sum())
-    rows = {(round(m, 9), round(n, 9), round(r * 10, 9)) for m, n, r in zip(data["mag_auto"][sel], data["sersicfit"][sel, 2], data["hlr"][sel, 0])}
+    rows = {
+        (round(m, 9), round(n, 9), round(r * 10, 9))
+        for m, n, r in zip(data["mag_auto"][sel], data["sersicfit"][sel, 2], data["hlr"][sel, 0])
+    }
     seen = set()
     for case in range(20):
         t = draw_case(cfg, 3, case).truth
@@ -148,7 +221,14 @@ def test_catalog_errors(tmp_path):
     with pytest.raises(InputError, match="catalog.path: no such file"):
         load_config(_gems_config(tmp_path, path="nowhere.fits"))
     with pytest.raises(ConfigError, match="needs a \\[catalog\\] table"):
-        load_config(write(tmp_path, replace={'sb = {type = "uniform", min = 5.0, max = 15.0}': 'flux = {type = "catalog", column = "flux"}'}))
+        load_config(
+            write(
+                tmp_path,
+                replace={
+                    'sb = {type = "uniform", min = 5.0, max = 15.0}': 'flux = {type = "catalog", column = "flux"}'
+                },
+            )
+        )
 
 
 def test_catalog_path_relative_to_config(tmp_path, monkeypatch):

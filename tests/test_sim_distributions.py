@@ -58,7 +58,9 @@ def test_untruncated_normal_moments():
 def test_truncated_rayleigh_range_and_moments():
     """The paper's R(0.2)_[0, 0.6]: mode 0.2, no sample beyond 0.6."""
     mode, hi = 0.2, 0.6
-    x = parse_distribution({"type": "rayleigh", "mode": mode, "min": 0.0, "max": hi}, "k").sample(_rng(4), N)
+    x = parse_distribution({"type": "rayleigh", "mode": mode, "min": 0.0, "max": hi}, "k").sample(
+        _rng(4), N
+    )
     assert x.min() >= 0.0 and x.max() <= hi
     pdf = stats.rayleigh(scale=mode).pdf
     norm = integrate.quad(pdf, 0, hi)[0]
@@ -72,7 +74,9 @@ def test_truncated_rayleigh_range_and_moments():
 
 
 def test_rayleigh_with_lower_bound():
-    x = parse_distribution({"type": "rayleigh", "mode": 1.0, "min": 0.5, "max": 2.0}, "k").sample(_rng(5), 10_000)
+    x = parse_distribution({"type": "rayleigh", "mode": 1.0, "min": 0.5, "max": 2.0}, "k").sample(
+        _rng(5), 10_000
+    )
     assert x.min() >= 0.5 and x.max() <= 2.0
 
 

@@ -42,8 +42,12 @@ def test_normals_are_standard_normal(draws: np.ndarray) -> None:
 
 def test_normals_are_independent(draws: np.ndarray) -> None:
     n = draws[:, 1:].size
-    assert abs(np.corrcoef(draws[:, :-1].ravel(), draws[:, 1:].ravel())[0, 1]) < 5 / np.sqrt(n)  # along a stamp
-    assert abs(np.corrcoef(draws[:-1].ravel(), draws[1:].ravel())[0, 1]) < 5 / np.sqrt(n)  # neighbouring seeds
+    assert abs(np.corrcoef(draws[:, :-1].ravel(), draws[:, 1:].ravel())[0, 1]) < 5 / np.sqrt(
+        n
+    )  # along a stamp
+    assert abs(np.corrcoef(draws[:-1].ravel(), draws[1:].ravel())[0, 1]) < 5 / np.sqrt(
+        n
+    )  # neighbouring seeds
 
 
 def test_each_row_depends_on_its_seed_only(draws: np.ndarray) -> None:
@@ -82,20 +86,54 @@ def test_stamp_noise_gaussian_uses_the_per_stamp_normals() -> None:
 # fails here. A deliberate change of the stream must update these literals AND be stated in
 # the docs/notes (catalogs simulated with the same seed before and after the change differ).
 REFERENCE_NORMALS = {
-    0: [0.23960225981284106, 1.1197590614847543, -0.6546297307432535, -0.3728991015532164,
-        0.8456399898882828, 0.1451213209499282, 1.548434666746904, 1.7207591322721152],
-    1: [0.42950292484415614, 0.029151296815977275, 0.3869667033227528, -0.2767176327523615,
-        0.6406802280665065, -1.6867861094101184, -0.6524174114737895, -0.3186206273241666],
-    12345: [0.6603521262850607, -0.7773451148286102, 1.3727619126041757, -1.9473928579170607,
-            0.2156291860702279, -1.4760901280502587, -0.9306101812943083, -0.4536971253038732],
-    2**40 + 17: [0.4494568268760835, 1.5621444759940402, 0.6466166433810518, 0.05901440065816504,
-                 0.09343954314335239, 0.0752228976228636, -0.6155029363148706, 0.04819657486855133],
+    0: [
+        0.23960225981284106,
+        1.1197590614847543,
+        -0.6546297307432535,
+        -0.3728991015532164,
+        0.8456399898882828,
+        0.1451213209499282,
+        1.548434666746904,
+        1.7207591322721152,
+    ],
+    1: [
+        0.42950292484415614,
+        0.029151296815977275,
+        0.3869667033227528,
+        -0.2767176327523615,
+        0.6406802280665065,
+        -1.6867861094101184,
+        -0.6524174114737895,
+        -0.3186206273241666,
+    ],
+    12345: [
+        0.6603521262850607,
+        -0.7773451148286102,
+        1.3727619126041757,
+        -1.9473928579170607,
+        0.2156291860702279,
+        -1.4760901280502587,
+        -0.9306101812943083,
+        -0.4536971253038732,
+    ],
+    2**40 + 17: [
+        0.4494568268760835,
+        1.5621444759940402,
+        0.6466166433810518,
+        0.05901440065816504,
+        0.09343954314335239,
+        0.0752228976228636,
+        -0.6155029363148706,
+        0.04819657486855133,
+    ],
 }
 
 
 def test_standard_normals_reference_vectors() -> None:
     seeds = np.array(list(REFERENCE_NORMALS), dtype=np.int64)
-    np.testing.assert_array_equal(standard_normals(seeds, 8), np.array(list(REFERENCE_NORMALS.values())))
+    np.testing.assert_array_equal(
+        standard_normals(seeds, 8), np.array(list(REFERENCE_NORMALS.values()))
+    )
     for seed, ref in REFERENCE_NORMALS.items():  # a longer draw starts the same way
         np.testing.assert_array_equal(standard_normals([seed], 100)[0, :8], ref)
 
@@ -107,12 +145,31 @@ def test_simulate_noise_reference_stamps() -> None:
 
     stamps = np.zeros((2, 4, 4), dtype=np.float32)
     make_noise("gaussian", {"sigma": 2.5}, {}).add_batch(stamps, np.array([7, 2**40 + 17]))
-    expected = np.array([
-        [1.812182903289795, -1.0549168586730957, 2.3565456867218018, 4.87283182144165,
-         6.209567070007324, 3.625443935394287, -4.07185697555542, -1.7084330320358276],
-        [1.123642086982727, 3.9053611755371094, 1.6165416240692139, 0.1475360095500946,
-         0.23359885811805725, 0.18805724382400513, -1.53875732421875, 0.12049144506454468],
-    ], dtype=np.float32)
+    expected = np.array(
+        [
+            [
+                1.812182903289795,
+                -1.0549168586730957,
+                2.3565456867218018,
+                4.87283182144165,
+                6.209567070007324,
+                3.625443935394287,
+                -4.07185697555542,
+                -1.7084330320358276,
+            ],
+            [
+                1.123642086982727,
+                3.9053611755371094,
+                1.6165416240692139,
+                0.1475360095500946,
+                0.23359885811805725,
+                0.18805724382400513,
+                -1.53875732421875,
+                0.12049144506454468,
+            ],
+        ],
+        dtype=np.float32,
+    )
     np.testing.assert_array_equal(stamps.reshape(2, -1)[:, :8], expected)
     direct = np.zeros((2, 4, 4), dtype=np.float32)  # the same as the generator's own entry point
     add_gaussian_noise(direct, np.array([7, 2**40 + 17]), 2.5)
@@ -121,11 +178,32 @@ def test_simulate_noise_reference_stamps() -> None:
     # numpy may change its streams between versions (NEP 19): that too must be stated.
     instrument = {"pixel_scale": 0.1, "exptime": 565.0, "gain": 3.1, "zeropoint": 24.6}
     stamps = np.full((2, 4, 4), 5.0, dtype=np.float32)
-    make_noise("ccd", {"sky_mag": 22.35, "read_noise": 4.2}, instrument).add_batch(stamps, np.array([7, 8]))
-    expected = np.array([
-        [5.931722164154053, 5.475877285003662, 3.690401077270508, 9.299198150634766,
-         1.4911119937896729, 4.106407165527344, 5.039271354675293, 1.7504125833511353],
-        [5.696648597717285, 6.934509754180908, 1.2151442766189575, -0.3442944586277008,
-         4.550861358642578, 1.1903263330459595, 5.411487102508545, 1.1297216415405273],
-    ], dtype=np.float32)
+    make_noise("ccd", {"sky_mag": 22.35, "read_noise": 4.2}, instrument).add_batch(
+        stamps, np.array([7, 8])
+    )
+    expected = np.array(
+        [
+            [
+                5.931722164154053,
+                5.475877285003662,
+                3.690401077270508,
+                9.299198150634766,
+                1.4911119937896729,
+                4.106407165527344,
+                5.039271354675293,
+                1.7504125833511353,
+            ],
+            [
+                5.696648597717285,
+                6.934509754180908,
+                1.2151442766189575,
+                -0.3442944586277008,
+                4.550861358642578,
+                1.1903263330459595,
+                5.411487102508545,
+                1.1297216415405273,
+            ],
+        ],
+        dtype=np.float32,
+    )
     np.testing.assert_array_equal(stamps.reshape(2, -1)[:, :8], expected)

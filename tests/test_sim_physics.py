@@ -49,7 +49,9 @@ def test_magnitude_and_sky_formulas():
     # Sect. 7.1.2: F = t/G 10^(-0.4 (m - Zp)); F_sky = pix^2 t/G 10^(-0.4 (m_sky - Zp))
     assert flux_from_mag(24.6, 24.6, 1695.0, 3.1) == pytest.approx(1695.0 / 3.1)
     assert flux_from_mag(22.1, 24.6, 1695.0, 3.1) == pytest.approx(1695.0 / 3.1 * 10.0)
-    assert mag_from_flux(flux_from_mag(23.3, 24.6, 1695.0, 3.1), 24.6, 1695.0, 3.1) == pytest.approx(23.3)
+    assert mag_from_flux(
+        flux_from_mag(23.3, 24.6, 1695.0, 3.1), 24.6, 1695.0, 3.1
+    ) == pytest.approx(23.3)
     assert sky_level(22.35, EUCLID) == pytest.approx(0.01 * 1695.0 / 3.1 * 10 ** (0.4 * 2.25))
 
 
@@ -82,14 +84,18 @@ def test_intrinsic_ellipticity_then_shear(tmp_path):
     assert t["adamom_sigma"][0] == pytest.approx(s, rel=1e-5)
     assert t["adamom_flux"][0] == pytest.approx(1000.0, rel=5e-6)
     # the other order of shears gives a clearly different shape: the test can fail
-    g1b, g2b, _ = _shape_from_jacobian(_shear_matrix(e1, e2) @ _shear_matrix(0.05, -0.08) * sigma, 0.25 + 1 / 12)
+    g1b, g2b, _ = _shape_from_jacobian(
+        _shear_matrix(e1, e2) @ _shear_matrix(0.05, -0.08) * sigma, 0.25 + 1 / 12
+    )
     assert abs(g1b - g1) + abs(g2b - g2) > 5e-3
 
 
 def test_flux_from_surface_brightness_and_centring(tmp_path):
     """F = S pi R^2; the light is centred on the stamp centre plus the offset."""
     text = SHAPE.replace("flux = 1000.0", "sb = 2.0").replace("rad = 6.0", "rad = 3.0")
-    text = text.replace("n_realizations = 1", "n_realizations = 6").replace("offset = 0.0", "offset = 0.5")
+    text = text.replace("n_realizations = 1", "n_realizations = 6").replace(
+        "offset = 0.0", "offset = 0.5"
+    )
     out, st = tmp_path / "c.fits", tmp_path / "s.fits"
     simulate(load_config(write(tmp_path, text)), out, stamps=st, measure=True, seed=4)
     t = read_catalog(out)
@@ -112,20 +118,28 @@ def _stamps(path, table, size):
     return np.array(out)
 
 
-NOISE_ONLY = SHAPE.replace("flux = 1000.0", "flux = 0.0").replace("n_realizations = 1", "n_realizations = 8")
+NOISE_ONLY = SHAPE.replace("flux = 1000.0", "flux = 0.0").replace(
+    "n_realizations = 1", "n_realizations = 8"
+)
 
 
 @pytest.mark.parametrize(
     "noise, overrides, expected",
     [
         ('type = "gaussian"\nsigma = 2.5', [], 2.5),
-        ('type = "ccd"\nsky_mag = 22.35\nread_noise = 4.2', [],
-         math.sqrt(sky_level(22.35, EUCLID) / 3.1 + (4.2 / 3.1) ** 2)),
+        (
+            'type = "ccd"\nsky_mag = 22.35\nread_noise = 4.2',
+            [],
+            math.sqrt(sky_level(22.35, EUCLID) / 3.1 + (4.2 / 3.1) ** 2),
+        ),
         ('type = "ccd"\nsky_mag = 22.35\nread_noise = 4.2', ["noise.override_sigma=0.1"], 0.1),
     ],
 )
 def test_noise_levels(tmp_path, noise, overrides, expected):
-    text = NOISE_ONLY.replace('type = "none"', noise) + "\n[instrument]\npixel_scale = 0.1\nexptime = 1695.0\ngain = 3.1\nzeropoint = 24.6\n"
+    text = (
+        NOISE_ONLY.replace('type = "none"', noise)
+        + "\n[instrument]\npixel_scale = 0.1\nexptime = 1695.0\ngain = 3.1\nzeropoint = 24.6\n"
+    )
     out, st = tmp_path / "c.fits", tmp_path / "s.fits"
     simulate(load_config(write(tmp_path, text), overrides), out, stamps=st, seed=2)
     t = read_catalog(out)
@@ -145,11 +159,17 @@ def test_noiseless(tmp_path):
 
 def test_gsparams_change_little(tmp_path):
     """A looser folding threshold barely changes a large n = 6 galaxy (it is faster)."""
-    text = SHAPE.replace('profile = "gaussian"', 'profile = "sersic"\nsersicn = 6.0').replace("rad = 6.0", "rad = 8.0")
+    text = SHAPE.replace('profile = "gaussian"', 'profile = "sersic"\nsersicn = 6.0').replace(
+        "rad = 6.0", "rad = 8.0"
+    )
     cfg = write(tmp_path, text)
     simulate(load_config(cfg), tmp_path / "a.fits", stamps=tmp_path / "a_s.fits", measure=True)
-    simulate(load_config(cfg, ["gsparams.folding_threshold=0.02"]), tmp_path / "b.fits",
-             stamps=tmp_path / "b_s.fits", measure=True)
+    simulate(
+        load_config(cfg, ["gsparams.folding_threshold=0.02"]),
+        tmp_path / "b.fits",
+        stamps=tmp_path / "b_s.fits",
+        measure=True,
+    )
     a, b = read_catalog(tmp_path / "a.fits"), read_catalog(tmp_path / "b.fits")
     pa, pb = fitsio.read(str(tmp_path / "a_s.fits")), fitsio.read(str(tmp_path / "b_s.fits"))
     assert not np.array_equal(pa, pb)  # the setting is applied

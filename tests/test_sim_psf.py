@@ -40,7 +40,9 @@ def test_gaussian_round_and_elliptical():
 
 
 def test_moffat_truth_matches_hsm():
-    prof, truth = make_psf({"type": "moffat", "beta": 3.0, "fwhm": 3.0, "g1": 0.05, "g2": 0.02}, 0, 0)
+    prof, truth = make_psf(
+        {"type": "moffat", "beta": 3.0, "fwhm": 3.0, "g1": 0.05, "g2": 0.02}, 0, 0
+    )
     assert prof.calculateFWHM() == pytest.approx(3.0, rel=0.1)
     g1, g2, sigma = hsm(prof)
     assert g1 == pytest.approx(0.05, abs=1e-5) and g2 == pytest.approx(0.02, abs=1e-5)
@@ -51,8 +53,14 @@ def test_moffat_truth_matches_hsm():
 
 @pytest.mark.parametrize(
     "x, y, e1, e2, sigma",
-    [(0, 0, -0.25, 0.0, 1.75), (1, 0, 0.25, 0.0, 2.0), (0, 1, -0.25, 0.25, 2.0),
-     (1, 1, 0.25, 0.25, 2.25), (0.5, 0.5, 0.0, 0.125, 2.0), (0.3, 0.9, -0.1, 0.225, 2.05)],
+    [
+        (0, 0, -0.25, 0.0, 1.75),
+        (1, 0, 0.25, 0.0, 2.0),
+        (0, 1, -0.25, 0.25, 2.0),
+        (1, 1, 0.25, 0.25, 2.25),
+        (0.5, 0.5, 0.0, 0.125, 2.0),
+        (0.3, 0.9, -0.1, 0.225, 2.05),
+    ],
 )
 def test_field_psf_follows_the_papers_toy_model(x, y, e1, e2, sigma):
     spec = {"type": "field"}
@@ -87,7 +95,9 @@ def test_blackbody_photon_weights():
     np.testing.assert_allclose(w, expected)
     # peak of B_lambda in photons for 5800 K lies near 630 nm (Wien for photons: 3670 um K / T)
     grid = np.linspace(300, 1500, 2401)
-    assert grid[np.argmax(blackbody_photons(grid, 5800.0))] == pytest.approx(3.6697e6 / 5800.0, abs=2)
+    assert grid[np.argmax(blackbody_photons(grid, 5800.0))] == pytest.approx(
+        3.6697e6 / 5800.0, abs=2
+    )
 
 
 def test_euclid_psf_is_cached_and_plausible():
@@ -146,7 +156,9 @@ def test_stamp_psf_single_star_and_pixel_scale(tmp_path):
     star = galsim.Gaussian(sigma=5.0).drawImage(nx=64, ny=64, scale=1.0, method="no_pixel")
     write_image(tmp_path / "star.fits", star.array, fmt="test")
     # a star image sampled 5x finer than the simulation pixels
-    _, truth = make_psf({"type": "stamp", "path": str(tmp_path / "star.fits"), "pixel_scale": 0.2}, 0, 0)
+    _, truth = make_psf(
+        {"type": "stamp", "path": str(tmp_path / "star.fits"), "pixel_scale": 0.2}, 0, 0
+    )
     assert truth["tru_psf_sigma"] == pytest.approx(1.0, rel=1e-3)
 
 

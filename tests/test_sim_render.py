@@ -23,25 +23,44 @@ def _one(gals: dict, k: int) -> dict:
     return {f: (gals[f] if f == "profile" or gals[f] is None else gals[f][k]) for f in FIELDS}
 
 
-def _galsim_stamp(size: int, psf: galsim.GSObject, method: str, gsparams: dict, g: dict) -> np.ndarray:
+def _galsim_stamp(
+    size: int, psf: galsim.GSObject, method: str, gsparams: dict, g: dict
+) -> np.ndarray:
     """The stamp as ``megalut_cli/sim/draw.py`` draws it."""
     gsp = make_gsparams(gsparams)
-    gal = shaped(base_profile(g["profile"], g["rad"], g["flux"], g["sersicn"], gsp), g["e1"], g["e2"], g["g1"], g["g2"])
+    gal = shaped(
+        base_profile(g["profile"], g["rad"], g["flux"], g["sersicn"], gsp),
+        g["e1"],
+        g["e2"],
+        g["g1"],
+        g["g2"],
+    )
     image = galsim.ImageF(size, size, scale=1.0)
     galsim.Convolve(gal, psf, gsparams=gsp if gsparams else None).drawImage(
-        image=image, offset=(g["dx"], g["dy"]), method=method)
+        image=image, offset=(g["dx"], g["dy"]), method=method
+    )
     return image.array.copy()
 
 
-def _galsim_grid(size: int, psf: galsim.GSObject, method: str, gsparams: dict, g: dict) -> tuple[int, int]:
+def _galsim_grid(
+    size: int, psf: galsim.GSObject, method: str, gsparams: dict, g: dict
+) -> tuple[int, int]:
     """(N, Nk) of GalSim's drawFFT_makeKImage for that stamp, built as drawImage builds it."""
     gsp = make_gsparams(gsparams)
-    gal = shaped(base_profile(g["profile"], g["rad"], g["flux"], g["sersicn"], gsp), g["e1"], g["e2"], g["g1"], g["g2"])
+    gal = shaped(
+        base_profile(g["profile"], g["rad"], g["flux"], g["sersicn"], gsp),
+        g["e1"],
+        g["e2"],
+        g["g1"],
+        g["g2"],
+    )
     obj = galsim.Convolve(gal, psf, gsparams=gsp if gsparams else None)
     centring = -0.5 if size % 2 == 0 else 0.0
     prof = obj.shift(g["dx"] + centring, g["dy"] + centring)
     if method == "auto":
-        prof = galsim.Convolve(prof, galsim.Pixel(1.0, gsparams=obj.gsparams), gsparams=obj.gsparams)
+        prof = galsim.Convolve(
+            prof, galsim.Pixel(1.0, gsparams=obj.gsparams), gsparams=obj.gsparams
+        )
     view = galsim.ImageF(size, size, scale=1.0).view()
     view.setCenter(0, 0)
     kimage, n_fft = prof.drawFFT_makeKImage(view)
@@ -62,7 +81,9 @@ def test_stamps_and_grids_equal_galsim(case, profile, starfield):
     gals = random_galaxies(100 + case, m, profile)
     renderer = StampRenderer(size, gsparams)
     stamps = renderer.draw(psf, ("psf", case), method, **gals)
-    n_fft, n_k = renderer.grid_sizes(psf, ("psf", case), method, **{f: gals[f] for f in FIELDS if f != "flux"})
+    n_fft, n_k = renderer.grid_sizes(
+        psf, ("psf", case), method, **{f: gals[f] for f in FIELDS if f != "flux"}
+    )
     assert stamps.shape == (m, size, size) and stamps.dtype == np.float32
     for k in range(m):
         g = _one(gals, k)
@@ -78,7 +99,8 @@ def test_wrapping_cases_are_covered(starfield):
         psf, method, gsparams, size, m = render_setup(RENDER_CASES[case], starfield)
         gals = random_galaxies(100 + case, m)
         n_fft, n_k = StampRenderer(size, gsparams).grid_sizes(
-            psf, "p", method, **{f: gals[f] for f in FIELDS if f != "flux"})
+            psf, "p", method, **{f: gals[f] for f in FIELDS if f != "flux"}
+        )
         assert (n_k > n_fft).any()
 
 
@@ -87,8 +109,17 @@ def test_batch_size_independence():
     gals = random_galaxies(7, 12)
     renderer = StampRenderer(48)
     together = renderer.draw(psf, "g", "auto", **gals)
-    alone = np.stack([renderer.draw(psf, "g", "auto", **{f: (v if f == "profile" else v[k : k + 1])
-                                                           for f, v in gals.items()}) for k in range(12)])
+    alone = np.stack(
+        [
+            renderer.draw(
+                psf,
+                "g",
+                "auto",
+                **{f: (v if f == "profile" else v[k : k + 1]) for f, v in gals.items()},
+            )
+            for k in range(12)
+        ]
+    )
     np.testing.assert_array_equal(together, alone[:, 0])
     # a fresh renderer (cold caches) draws the same pixels
     np.testing.assert_array_equal(StampRenderer(48).draw(psf, "other", "auto", **gals), together)
@@ -111,11 +142,17 @@ def test_bad_input_is_megaluterror():
     with pytest.raises(MegalutError, match="method"):
         renderer.draw(galsim.Gaussian(sigma=2.0), "g", "phot", **gals)
     with pytest.raises(MegalutError, match="< 1"):
-        renderer.draw(galsim.Gaussian(sigma=2.0), "g", "auto", **{**gals, "g1": np.array([1.0, 0.0])})
+        renderer.draw(
+            galsim.Gaussian(sigma=2.0), "g", "auto", **{**gals, "g1": np.array([1.0, 0.0])}
+        )
     with pytest.raises(MegalutError, match="finite"):
-        renderer.draw(galsim.Gaussian(sigma=2.0), "g", "auto", **{**gals, "rad": np.array([np.nan, 1.0])})
+        renderer.draw(
+            galsim.Gaussian(sigma=2.0), "g", "auto", **{**gals, "rad": np.array([np.nan, 1.0])}
+        )
     with pytest.raises(MegalutError, match="Sersic n=9"):
-        renderer.draw(galsim.Gaussian(sigma=2.0), "g", "auto", **{**gals, "sersicn": np.array([9.0, 1.0])})
+        renderer.draw(
+            galsim.Gaussian(sigma=2.0), "g", "auto", **{**gals, "sersicn": np.array([9.0, 1.0])}
+        )
     empty = {f: (v if f == "profile" else v[:0]) for f, v in gals.items()}
     assert renderer.draw(galsim.Gaussian(sigma=2.0), "g", "auto", **empty).shape == (0, 32, 32)
 
@@ -130,13 +167,19 @@ def test_fft_grid_follows_galsim_rules():
     # N = good_fft_size(2 pi / stepk), at least minimum_fft_size (128); maxk below pi: Nk = N
     prof = galsim.Convolve(galsim.Gaussian(sigma=2.0), galsim.Pixel(1.0))
     n_fft, n_k = fft_grid(np.array([prof.stepk]), np.array([prof.maxk]), 16, gsp)
-    assert n_fft[0] == max(galsim.Image.good_fft_size(prof.getGoodImageSize(1.0)), 128) and n_k[0] == n_fft[0]
+    assert (
+        n_fft[0] == max(galsim.Image.good_fft_size(prof.getGoodImageSize(1.0)), 128)
+        and n_k[0] == n_fft[0]
+    )
     # a large maxk: Nk = 2 ceil(maxk / dk)
     n_fft, n_k = fft_grid(np.array([1.0]), np.array([10.0]), 16, gsp)
     assert n_fft[0] == 128 and n_k[0] == 2 * int(np.ceil(10.0 / (2 * np.pi / 128)))
     # the stamp and minimum_fft_size set lower bounds
     assert fft_grid(np.array([3.0]), np.array([1.0]), 200, gsp)[0][0] == 256
-    assert fft_grid(np.array([3.0]), np.array([1.0]), 8, galsim.GSParams(minimum_fft_size=96))[0][0] == 96
+    assert (
+        fft_grid(np.array([3.0]), np.array([1.0]), 8, galsim.GSParams(minimum_fft_size=96))[0][0]
+        == 96
+    )
 
 
 def test_sersic_k_profile_matches_galsim_kvalue():
@@ -157,4 +200,3 @@ def test_sersic_k_profile_matches_galsim_kvalue():
         # the fast form (cubics per 1/256 octave of q^2, no logarithm): achieved 8.7e-12
         np.testing.assert_allclose(table.kvalue(q, fast=True), theirs, rtol=0, atol=4e-11)
         assert table.stepk == unit.stepk and table.maxk == unit.maxk
-

@@ -19,8 +19,12 @@ from megalut_cli.sim.simulate import simulate, simulate_table
 
 def test_measure_equals_stamps_then_measure(tmp_path):
     """The key property: features of --measure == `megalut measure` on the --stamps image."""
-    cfg = load_config(write(tmp_path), ['structure.per_realization=["galaxy"]', "structure.snc=none"],
-                      n_cases=3, n_realizations=5)
+    cfg = load_config(
+        write(tmp_path),
+        ['structure.per_realization=["galaxy"]', "structure.snc=none"],
+        n_cases=3,
+        n_realizations=5,
+    )
     simulate(cfg, tmp_path / "direct.fits", measure=True, seed=9)
     simulate(cfg, tmp_path / "truth.fits", stamps=tmp_path / "stamps.fits", seed=9)
     measure_file(tmp_path / "stamps.fits", tmp_path / "truth.fits", tmp_path / "measured.fits")
@@ -35,7 +39,9 @@ def test_measure_equals_stamps_then_measure(tmp_path):
     c = read_catalog(tmp_path / "both.fits")
     for col in FEATURE_COLUMNS:
         assert np.array_equal(np.asarray(a[col]), np.asarray(c[col]), equal_nan=True), col
-    assert np.array_equal(fitsio.read(str(tmp_path / "stamps.fits")), fitsio.read(str(tmp_path / "stamps2.fits")))
+    assert np.array_equal(
+        fitsio.read(str(tmp_path / "stamps.fits")), fitsio.read(str(tmp_path / "stamps2.fits"))
+    )
 
 
 def test_grid_layout_and_headers(tmp_path):
@@ -49,8 +55,20 @@ def test_grid_layout_and_headers(tmp_path):
     np.testing.assert_array_equal(t["case"], np.repeat([0, 1], 5))
     np.testing.assert_array_equal(t["rea"], np.tile(np.arange(5), 2))
     assert t.colnames[:4] == ["case", "rea", "x", "y"]
-    assert {"tru_g1", "tru_g2", "tru_e1", "tru_e2", "tru_flux", "tru_rad", "tru_sersicn", "tru_sb",
-            "tru_psf_g1", "tru_psf_g2", "tru_psf_sigma", "tru_sky_sigma"} <= set(t.colnames)
+    assert {
+        "tru_g1",
+        "tru_g2",
+        "tru_e1",
+        "tru_e2",
+        "tru_flux",
+        "tru_rad",
+        "tru_sersicn",
+        "tru_sb",
+        "tru_psf_g1",
+        "tru_psf_g2",
+        "tru_psf_sigma",
+        "tru_sky_sigma",
+    } <= set(t.colnames)
     assert not any(c.startswith("adamom") for c in t.colnames)
     m = t.meta
     assert m["MLFORMAT"] == "megalut.simulation"
@@ -111,12 +129,16 @@ def test_star_stamp_psf_path_beside_config(tmp_path, monkeypatch):
 
     star = galsim.Gaussian(sigma=1.5).drawImage(nx=21, ny=21, scale=1.0).array
     fitsio.write(str(tmp_path / "star.fits"), star.astype(np.float32))
-    cfg_path = write(tmp_path, replace={'type = "gaussian"\nsigma = 1.5': 'type = "stamp"\npath = "star.fits"'})
+    cfg_path = write(
+        tmp_path, replace={'type = "gaussian"\nsigma = 1.5': 'type = "stamp"\npath = "star.fits"'}
+    )
     monkeypatch.chdir(tmp_path.parent)
     cfg = load_config(cfg_path)
     simulate(cfg, tmp_path / "c.fits", measure=True, seed=2)
     t = read_catalog(tmp_path / "c.fits")
-    assert np.allclose(t["tru_psf_sigma"], t["tru_psf_sigma"][0]) and 1.4 < t["tru_psf_sigma"][0] < 1.7
+    assert (
+        np.allclose(t["tru_psf_sigma"], t["tru_psf_sigma"][0]) and 1.4 < t["tru_psf_sigma"][0] < 1.7
+    )
     assert (t["flags"] == 0).sum() >= 8
 
 
@@ -140,7 +162,9 @@ def test_catalog_is_streamed_not_assembled(tmp_path):
     """The catalog goes to the file unit by unit: peak memory stays far below its size."""
     import tracemalloc
 
-    cfg = load_config(write(tmp_path), n_cases=400, n_realizations=500)  # truth only: 2e5 rows, nothing drawn
+    cfg = load_config(
+        write(tmp_path), n_cases=400, n_realizations=500
+    )  # truth only: 2e5 rows, nothing drawn
     tracemalloc.start()
     try:
         simulate(cfg, tmp_path / "c.fits", seed=1)
@@ -159,8 +183,11 @@ def test_cases_rendered_in_blocks_give_the_same_catalog_and_stamps(tmp_path, mon
     with one PSF per realization as well (blocks then cut the PSF groups)."""
     from megalut_cli.sim import draw
 
-    overrides = ['structure.per_realization=["galaxy", "psf"]', "structure.snc=none",
-                 "psf.sigma={type='uniform', min=1.5, max=2.5}"]
+    overrides = [
+        'structure.per_realization=["galaxy", "psf"]',
+        "structure.snc=none",
+        "psf.sigma={type='uniform', min=1.5, max=2.5}",
+    ]
     cfg = load_config(write(tmp_path), overrides, n_cases=2, n_realizations=23)
     whole = simulate_table(cfg, 4, measure=True, keep_stamps=True)
     monkeypatch.setattr(draw, "CASE_BLOCK", 5)

@@ -13,10 +13,15 @@ GAL_KEYS = ("tru_rad", "tru_flux", "tru_sersicn", "tru_ell")
 
 
 def _cfg(tmp_path, per, snc, n_rea=8, shear=True, extra=()):
-    replace = {'per_realization = ["angle"]': f"per_realization = {per}", 'snc = "ring"': f'snc = "{snc}"',
-               "n_realizations = 4": f"n_realizations = {n_rea}"}
+    replace = {
+        'per_realization = ["angle"]': f"per_realization = {per}",
+        'snc = "ring"': f'snc = "{snc}"',
+        "n_realizations = 4": f"n_realizations = {n_rea}",
+    }
     if not shear:
-        replace['[shear]\ng1 = {type = "uniform", min = -0.1, max = 0.1}\ng2 = {type = "uniform", min = -0.1, max = 0.1}\n'] = ""
+        replace[
+            '[shear]\ng1 = {type = "uniform", min = -0.1, max = 0.1}\ng2 = {type = "uniform", min = -0.1, max = 0.1}\n'
+        ] = ""
     return load_config(write(tmp_path, replace=replace), list(extra))
 
 
@@ -45,7 +50,9 @@ def test_ring_cancels_mean_ellipticity_exactly(tmp_path, n_rea):
 def test_ring_angles_formula():
     theta = ring_angles(np.array([10.0]), 4, 4)
     np.testing.assert_allclose(theta, [10.0, 55.0, 100.0, 145.0])
-    np.testing.assert_allclose(ring_angles(np.array([10.0, 30.0]), 4, 2), [10.0, 100.0, 30.0, 120.0])
+    np.testing.assert_allclose(
+        ring_angles(np.array([10.0, 30.0]), 4, 2), [10.0, 100.0, 30.0, 120.0]
+    )
 
 
 def test_pairs_are_rotated_by_90_degrees(tmp_path):
@@ -55,7 +62,9 @@ def test_pairs_are_rotated_by_90_degrees(tmp_path):
     e = t["tru_e1"] + 1j * t["tru_e2"]
     # 90 degrees in position angle = 180 degrees in ellipticity: e_{2j+1} = -e_{2j}
     np.testing.assert_allclose(e[1::2], -e[0::2], atol=1e-15)
-    np.testing.assert_allclose(np.mod(t["tru_theta"][1::2] - t["tru_theta"][0::2], 180), 90, atol=1e-9)
+    np.testing.assert_allclose(
+        np.mod(t["tru_theta"][1::2] - t["tru_theta"][0::2], 180), 90, atol=1e-9
+    )
     for k in GAL_KEYS:
         assert np.array_equal(t[k][0::2], t[k][1::2])  # same galaxy within a pair
         assert len(np.unique(t[k][0::2])) == 5 or k == "tru_sersicn"  # new galaxy per pair
@@ -115,8 +124,13 @@ def test_seeds_per_case(tmp_path):
 
 
 def test_field_psf_truth(tmp_path):
-    p = write(tmp_path, replace={'type = "gaussian"\nsigma = 1.5': 'type = "field"',
-                             "[noise]": "[field]\nx = {type = \"uniform\", min = 0.0, max = 1.0}\ny = 0.25\n\n[noise]"})
+    p = write(
+        tmp_path,
+        replace={
+            'type = "gaussian"\nsigma = 1.5': 'type = "field"',
+            "[noise]": '[field]\nx = {type = "uniform", min = 0.0, max = 1.0}\ny = 0.25\n\n[noise]',
+        },
+    )
     cfg = load_config(p)
     assert cfg.psf_varies
     d = draw_case(cfg, 2, 0)

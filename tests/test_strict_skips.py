@@ -47,14 +47,20 @@ def test_unlisted_skip_fails_the_session(project: pytest.Pytester, monkeypatch) 
     result = project.runpytest()
     assert result.ret == pytest.ExitCode.TESTS_FAILED
     result.assert_outcomes(passed=1, skipped=4, xfailed=1)
-    result.stdout.fnmatch_lines(["*unexpected skips (MEGALUT_STRICT_SKIPS=1)*",
-                                 "SKIPPED test_some.py::test_unexpected - a missing package",
-                                 "1 skip(s) not listed in *expected_skips.txt*"])
+    result.stdout.fnmatch_lines(
+        [
+            "*unexpected skips (MEGALUT_STRICT_SKIPS=1)*",
+            "SKIPPED test_some.py::test_unexpected - a missing package",
+            "1 skip(s) not listed in *expected_skips.txt*",
+        ]
+    )
     assert "SKIPPED test_some.py::test_expected" not in result.stdout.str()
     assert "SKIPPED test_some.py::test_listed_by_pattern" not in result.stdout.str()
 
 
-def test_listed_skips_pass_and_the_check_is_off_by_default(project: pytest.Pytester, monkeypatch) -> None:
+def test_listed_skips_pass_and_the_check_is_off_by_default(
+    project: pytest.Pytester, monkeypatch
+) -> None:
     monkeypatch.setenv("MEGALUT_STRICT_SKIPS", "1")
     assert project.runpytest("-k", "not unexpected").ret == pytest.ExitCode.OK
     monkeypatch.delenv("MEGALUT_STRICT_SKIPS")
@@ -76,4 +82,6 @@ def test_a_line_without_reason_is_a_usage_error(project: pytest.Pytester, monkey
     (project.path / "expected_skips.txt").write_text("test_some.py::test_expected\n")
     result = project.runpytest()
     assert result.ret == pytest.ExitCode.USAGE_ERROR
-    result.stderr.fnmatch_lines(["*expected_skips.txt:1: expected '<nodeid or pattern> # <reason>'*"])
+    result.stderr.fnmatch_lines(
+        ["*expected_skips.txt:1: expected '<nodeid or pattern> # <reason>'*"]
+    )

@@ -50,9 +50,7 @@ def read_map() -> dict[str, list[str]]:
 
 
 def package_modules() -> list[str]:
-    return sorted(
-        p.relative_to(ROOT).as_posix() for p in PACKAGE.rglob("*.py") if defines_code(p)
-    )
+    return sorted(p.relative_to(ROOT).as_posix() for p in PACKAGE.rglob("*.py") if defines_code(p))
 
 
 def test_the_naming_rule():

@@ -25,9 +25,18 @@ def _catalog(path, metacal: bool, rng_seed: int = 1):
     case = np.repeat(np.arange(n_cases), n_rea)
     g = rng.uniform(-0.05, 0.05, (n_cases, 2))[case]
     e = rng.normal(0, 0.2, (len(case), 2))
-    t = Table({"case": case, "rea": np.tile(np.arange(n_rea), n_cases), "tru_g1": g[:, 0], "tru_g2": g[:, 1],
-               "adamom_g1": e[:, 0] + g[:, 0], "adamom_g2": e[:, 1] + g[:, 1],
-               "adamom_sigma": rng.uniform(2, 4, len(case)), "flags": np.zeros(len(case), np.int32)})
+    t = Table(
+        {
+            "case": case,
+            "rea": np.tile(np.arange(n_rea), n_cases),
+            "tru_g1": g[:, 0],
+            "tru_g2": g[:, 1],
+            "adamom_g1": e[:, 0] + g[:, 0],
+            "adamom_g2": e[:, 1] + g[:, 1],
+            "adamom_sigma": rng.uniform(2, 4, len(case)),
+            "flags": np.zeros(len(case), np.int32),
+        }
+    )
     if metacal:
         for kind in TYPES:
             for c in FEATURES:
@@ -67,8 +76,12 @@ def test_predict_and_train_weight_refuse_the_other_mode(tmp_path):
     with pytest.raises(InputError, match="simulation-calibrated model"):
         predict_catalog(tmp_path / "mc.fits", tmp_path / "p.h5", tmp_path / "s2.fits")
     with pytest.raises(InputError, match="simulation model"):
-        train_weight(tmp_path / "mc.fits", tmp_path / "p.h5", tmp_path / "w.h5",
-                     WeightSpec(members=2, iterations=10, seed=3))
+        train_weight(
+            tmp_path / "mc.fits",
+            tmp_path / "p.h5",
+            tmp_path / "w.h5",
+            WeightSpec(members=2, iterations=10, seed=3),
+        )
     assert not any((tmp_path / f).exists() for f in ("s1.fits", "s2.fits", "w.h5"))
     report = predict_catalog(tmp_path / "mc.fits", tmp_path / "m.h5", tmp_path / "s.fits")
     assert "mcal_r11" in report.columns

@@ -75,8 +75,13 @@ class MegalutGroup(click.Group):
         set_command_line(["megalut", *argv])  # recorded in every output's HISTORY
         return super().main(args=args, prog_name=prog_name, **kwargs)
 
-    def make_context(self, info_name: str | None, args: list[str], parent: click.Context | None = None,
-                     **extra: Any) -> click.Context:
+    def make_context(
+        self,
+        info_name: str | None,
+        args: list[str],
+        parent: click.Context | None = None,
+        **extra: Any,
+    ) -> click.Context:
         """The group's context; Ctrl-C while its options are read (``--help``, ``--version``) is
         one line and 130, not click's "Aborted!" and 1."""
         try:
@@ -137,7 +142,9 @@ class MegalutGroup(click.Group):
         except (click.exceptions.Exit, click.ClickException, click.Abort):
             raise
         except MemoryError:
-            raise click.ClickException("out of memory; use smaller chunks or more workers") from None
+            raise click.ClickException(
+                "out of memory; use smaller chunks or more workers"
+            ) from None
         except OSError as err:
             where = f"{err.filename}: " if getattr(err, "filename", None) else ""
             raise click.ClickException(user_facing(f"{where}{err.strerror or err}")) from None

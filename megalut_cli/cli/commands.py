@@ -9,13 +9,28 @@ from __future__ import annotations
 #: name -> (module defining ``command``, the short help shown by ``megalut --help``)
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("megalut_cli.cli.simulate", "Simulate galaxy stamps with known shear."),
-    "measure": ("megalut_cli.cli.measure", "Measure adaptive-moment features on a FITS image of stamps or a MEDS file."),
+    "measure": (
+        "megalut_cli.cli.measure",
+        "Measure adaptive-moment features on a FITS image of stamps or a MEDS file.",
+    ),
     "train-point": ("megalut_cli.cli.train_point", "Train point-estimate committees (MSB cost)."),
-    "train-weight": ("megalut_cli.cli.train_weight", "Train weight committees (MSWB cost) for a point model."),
-    "predict": ("megalut_cli.cli.predict", "Apply a trained model: add pre_g1, pre_g2 (and weights)."),
-    "evaluate": ("megalut_cli.cli.evaluate", "Measure shear biases m and c, overall and conditional."),
+    "train-weight": (
+        "megalut_cli.cli.train_weight",
+        "Train weight committees (MSWB cost) for a point model.",
+    ),
+    "predict": (
+        "megalut_cli.cli.predict",
+        "Apply a trained model: add pre_g1, pre_g2 (and weights).",
+    ),
+    "evaluate": (
+        "megalut_cli.cli.evaluate",
+        "Measure shear biases m and c, overall and conditional.",
+    ),
     "run": ("megalut_cli.cli.run", "Run a whole pipeline: simulate, train, predict, evaluate."),
-    "draft": ("megalut_cli.cli.draft", "Draft a pipeline file whose PSF and noise come from your data."),
+    "draft": (
+        "megalut_cli.cli.draft",
+        "Draft a pipeline file whose PSF and noise come from your data.",
+    ),
     "info": ("megalut_cli.cli.info", "Summarise a megalut catalog, stamp image or model file."),
 }
 

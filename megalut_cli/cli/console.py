@@ -84,7 +84,9 @@ def setup_logging(verbosity: int) -> None:
 
 def interactive() -> bool:
     """Whether progress bars are drawn: stderr is a terminal and this is not CI."""
-    return sys.stderr.isatty() and not os.environ.get("CI") and log.getEffectiveLevel() <= logging.INFO
+    return (
+        sys.stderr.isatty() and not os.environ.get("CI") and log.getEffectiveLevel() <= logging.INFO
+    )
 
 
 @contextlib.contextmanager
@@ -92,7 +94,9 @@ def progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
     """A progress callback: a bar on an interactive terminal; elsewhere debug lines only."""
     global _bar_shown
     if interactive() and length > 0:
-        with click.progressbar(length=length, label=label, file=sys.stderr, show_pos=True, show_eta=True) as bar:
+        with click.progressbar(
+            length=length, label=label, file=sys.stderr, show_pos=True, show_eta=True
+        ) as bar:
             _bar_shown = True
             try:
                 yield bar.update
@@ -115,8 +119,14 @@ def progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
             estimated = True  # one line from the measured pace, for long jobs off a terminal
             from megalut_cli.parallel import format_duration
 
-            log.info("%s: %d/%d in %s, about %s left", label, done, length, format_duration(elapsed),
-                     format_duration(elapsed / done * (length - done)))
+            log.info(
+                "%s: %d/%d in %s, about %s left",
+                label,
+                done,
+                length,
+                format_duration(elapsed),
+                format_duration(elapsed / done * (length - done)),
+            )
 
     yield update
 
@@ -134,7 +144,9 @@ def stdin_path(path: str | None, what: str = "catalog") -> Iterator[str | None]:
         return
     stream = sys.stdin.buffer
     if stream.isatty():
-        raise click.UsageError(f"'-' reads the {what} from stdin, but stdin is a terminal; pipe a file in")
+        raise click.UsageError(
+            f"'-' reads the {what} from stdin, but stdin is a terminal; pipe a file in"
+        )
     with tempfile.TemporaryDirectory(prefix="megalut-stdin-") as tmp:
         target = Path(tmp) / "stdin.fits"
         _STREAM_NAMES[str(target)] = "stdin"
@@ -152,8 +164,10 @@ def stdout_path(path: str | None, name: str = "stdout.fits") -> Iterator[str | N
         yield path
         return
     if sys.stdout.isatty():
-        raise click.UsageError("'-o -' writes a FITS file to stdout, but stdout is a terminal; "
-                               "redirect it (> file.fits) or pipe it into another command")
+        raise click.UsageError(
+            "'-o -' writes a FITS file to stdout, but stdout is a terminal; "
+            "redirect it (> file.fits) or pipe it into another command"
+        )
     with tempfile.TemporaryDirectory(prefix="megalut-stdout-") as tmp:
         target = Path(tmp) / name
         _STREAM_NAMES[str(target)] = "stdout"
@@ -187,11 +201,17 @@ def verbosity_options() -> list[click.Option]:
     """``-v/--verbose`` and ``-q/--quiet``, accepted before and after the subcommand (they add up)."""
     return [
         click.Option(
-            ["-v", "--verbose"], count=True, expose_value=False, callback=_count_verbosity,
+            ["-v", "--verbose"],
+            count=True,
+            expose_value=False,
+            callback=_count_verbosity,
             help="More log output: -v megalut's debug lines, -vv also third-party libraries'.",
         ),
         click.Option(
-            ["-q", "--quiet"], count=True, expose_value=False, callback=_count_verbosity,
+            ["-q", "--quiet"],
+            count=True,
+            expose_value=False,
+            callback=_count_verbosity,
             help="Less log output: -q warnings and errors only, -qq errors only.",
         ),
     ]

@@ -52,7 +52,9 @@ def command(features: str, output: str, stars: str | None, overwrite: bool) -> N
         check_output(output, overwrite)  # before reading anything
     columns, header = read_catalog_columns(features)
     star_columns = read_catalog_columns(stars)[0] if stars is not None else None
-    draft = draft_setup(columns, header, star_columns, features_name=features, stars_name=stars or "stars")
+    draft = draft_setup(
+        columns, header, star_columns, features_name=features, stars_name=stars or "stars"
+    )
     for v in draft.values:
         log.info("[%s] %s = %s: %s", v.table, v.key, toml_value(v.value), v.source)
     for note in draft.notes:

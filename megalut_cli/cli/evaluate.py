@@ -44,16 +44,26 @@ def _plot_suffix(ctx: click.Context, param: click.Parameter, value: str | None) 
 @schema_option(EVALUATE["select"])
 @schema_option(EVALUATE["select_cases"])
 @click.option(
-    "--json", "json_path", type=click.Path(dir_okay=False, allow_dash=True), default=None,
+    "--json",
+    "json_path",
+    type=click.Path(dir_okay=False, allow_dash=True),
+    default=None,
     help="Write all results (and per-case averages) to this JSON file (layout: docs/evaluate.md); "
     "'-': stdout, the table then goes to stderr.",
 )
 @click.option(
-    "--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix,
+    "--plot",
+    "plot_path",
+    type=click.Path(dir_okay=False),
+    default=None,
+    callback=_plot_suffix,
     help="Draw residual and conditional-bias panels into this .png/.pdf/.svg (needs matplotlib: "
     "pip install matplotlib).",
 )
-@schema_option(EVALUATE_CLI["fail_above"], help=EVALUATE_CLI["fail_above"].help.replace("EXIT", str(EXIT_OUT_OF_TOLERANCE)))
+@schema_option(
+    EVALUATE_CLI["fail_above"],
+    help=EVALUATE_CLI["fail_above"].help.replace("EXIT", str(EXIT_OUT_OF_TOLERANCE)),
+)
 @click.option(
     "--great3-truth",
     "great3_truth",
@@ -66,7 +76,10 @@ def _plot_suffix(ctx: click.Context, param: click.Parameter, value: str | None) 
 )
 @schema_option(EVALUATE_CLI["sigma2_min"], show_default=True)
 @click.option(
-    "--twin", "twin_path", type=click.Path(exists=True, dir_okay=False), default=None,
+    "--twin",
+    "twin_path",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
     help="Paired evaluation: SHEARS holds real galaxies and TWIN their Sersic twins, simulated from one "
     "config and seed; prints m, c of both and m_real - m_twin with paired-bootstrap errors over galaxies "
     "(--bootstrap resamples, --seed; docs/realgal.md).",
@@ -159,10 +172,28 @@ def command(
         check_plot_output(plot_path)
 
     if twin_path is not None:
-        _evaluate_twin(shears, twin_path, by_cols, bins, bootstrap, seed, json_path, overwrite,
-                       other=[name for name, v in (("--great3-truth", great3_truth), ("--select", select),
-                              ("--select-cases", select_cases), ("--plot", plot_path), ("--fail-above", fail_above),
-                              ("--errors", errors != "auto")) if v])
+        _evaluate_twin(
+            shears,
+            twin_path,
+            by_cols,
+            bins,
+            bootstrap,
+            seed,
+            json_path,
+            overwrite,
+            other=[
+                name
+                for name, v in (
+                    ("--great3-truth", great3_truth),
+                    ("--select", select),
+                    ("--select-cases", select_cases),
+                    ("--plot", plot_path),
+                    ("--fail-above", fail_above),
+                    ("--errors", errors != "auto"),
+                )
+                if v
+            ],
+        )
         return
     from_stdin = is_stdio(shears)
     shears = click.get_current_context().with_resource(stdin_path(shears))
@@ -170,13 +201,32 @@ def command(
         from megalut_cli.great3.evaluate import evaluate_branch
 
         if errors == "bootstrap":
-            raise click.UsageError("--errors bootstrap does not apply to --great3-truth (subfields are independent)")
-        result = evaluate_branch(shears, great3_truth, sigma2_min=sigma2_min, by=by_cols, bins=bins,
-                                 select=select, select_cases=select_cases, names=flag_names())
+            raise click.UsageError(
+                "--errors bootstrap does not apply to --great3-truth (subfields are independent)"
+            )
+        result = evaluate_branch(
+            shears,
+            great3_truth,
+            sigma2_min=sigma2_min,
+            by=by_cols,
+            bins=bins,
+            select=select,
+            select_cases=select_cases,
+            names=flag_names(),
+        )
     else:
-        result = evaluate_catalog(shears, by=by_cols, bins=bins, select=select, select_cases=select_cases,
-                                  sigma2_min=sigma2_min, errors=errors, n_bootstrap=bootstrap, seed=seed,
-                                  names=flag_names())
+        result = evaluate_catalog(
+            shears,
+            by=by_cols,
+            bins=bins,
+            select=select,
+            select_cases=select_cases,
+            sigma2_min=sigma2_min,
+            errors=errors,
+            n_bootstrap=bootstrap,
+            seed=seed,
+            names=flag_names(),
+        )
     if from_stdin:
         result["input"] = "stdin"
     click.echo(format_table(result), err=json_to_stdout)
@@ -185,8 +235,11 @@ def command(
         click.echo(f"megalut: {note}", err=True)
     warnings = large_m(result)
     if warnings:
-        click.echo(f"megalut: warning: |m| > {WARN_M:g} ({'; '.join(warnings)}): "
-                   "an untrained or mismatched model?", err=True)
+        click.echo(
+            f"megalut: warning: |m| > {WARN_M:g} ({'; '.join(warnings)}): "
+            "an untrained or mismatched model?",
+            err=True,
+        )
     if json_to_stdout:
         _dump_json(result, sys.stdout)
     elif json_path is not None:
@@ -197,13 +250,23 @@ def command(
         plot_evaluation(result, plot_path, overwrite)
     if fail_above and not requirement_met(result):
         click.echo(
-            f"megalut: bias out of tolerance ({'; '.join(result['requirement']['failures'])})", err=True
+            f"megalut: bias out of tolerance ({'; '.join(result['requirement']['failures'])})",
+            err=True,
         )
         click.get_current_context().exit(EXIT_OUT_OF_TOLERANCE)
 
 
-def _evaluate_twin(shears: str, twin: str, by: list[str] | None, bins: int, n_boot: int, seed: int,
-                   json_path: str | None, overwrite: bool, other: list[str]) -> None:
+def _evaluate_twin(
+    shears: str,
+    twin: str,
+    by: list[str] | None,
+    bins: int,
+    n_boot: int,
+    seed: int,
+    json_path: str | None,
+    overwrite: bool,
+    other: list[str],
+) -> None:
     """The paired real-vs-twin evaluation of ``--twin``."""
     from megalut_cli.cli.console import flag_names, is_stdio
     from megalut_cli.shear.paired import evaluate_paired_catalogs, format_paired
@@ -212,7 +275,9 @@ def _evaluate_twin(shears: str, twin: str, by: list[str] | None, bins: int, n_bo
         raise click.UsageError(f"{other[0]} does not apply with --twin")
     if is_stdio(shears):
         raise click.UsageError("--twin needs SHEARS as a file, not stdin")
-    result = evaluate_paired_catalogs(shears, twin, by=by, n_bins=bins, n_boot=n_boot, seed=seed, names=flag_names())
+    result = evaluate_paired_catalogs(
+        shears, twin, by=by, n_bins=bins, n_boot=n_boot, seed=seed, names=flag_names()
+    )
     click.echo(format_paired(result), nl=False, err=is_stdio(json_path))
     if is_stdio(json_path):
         _dump_json(result, sys.stdout)
@@ -225,4 +290,3 @@ def _dump_json(result: dict, stream: TextIO) -> None:
 
     stream.write(json.dumps(result, indent=1, allow_nan=False) + "\n")
     stream.flush()
-

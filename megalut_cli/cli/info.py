@@ -10,9 +10,15 @@ from megalut_cli.cli.options import MODEL_FILE
 
 @click.command("info", short_help=short_help("info"))
 @click.argument("file", type=MODEL_FILE, required=False)
-@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON (layout: docs/catalogs.md).")
-@click.option("--models", "list_models", is_flag=True,
-              help="List the shipped models (name, shear mode, what they were trained on, file) instead of FILE.")
+@click.option(
+    "--json", "as_json", is_flag=True, help="Print the summary as JSON (layout: docs/catalogs.md)."
+)
+@click.option(
+    "--models",
+    "list_models",
+    is_flag=True,
+    help="List the shipped models (name, shear mode, what they were trained on, file) instead of FILE.",
+)
 def command(file: str | None, as_json: bool, list_models: bool) -> None:
     """Show what FILE holds, as fitsinfo and rio info do for theirs.
 

@@ -21,7 +21,9 @@ from megalut_cli.measure.options import MEASURE
     short_help=short_help("measure"),
 )
 @click.argument("stamps", type=click.Path(exists=True, dir_okay=False))
-@click.argument("catalog", required=False, type=click.Path(exists=True, dir_okay=False, allow_dash=True))
+@click.argument(
+    "catalog", required=False, type=click.Path(exists=True, dir_okay=False, allow_dash=True)
+)
 @output_option("Features catalog to write (FITS table, format megalut.features).", dash=True)
 @schema_option(MEASURE["stamp_size"])
 @schema_option(MEASURE["origin"], show_default=True)

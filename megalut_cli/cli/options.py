@@ -43,13 +43,16 @@ def overwrite_option(f: F) -> F:
 
 def engine_option(what: str) -> Callable[[F], F]:
     """``--engine`` (:data:`megalut_cli.engine.ENGINE_OPTION`), saying what the engine does here."""
-    return schema_option(ENGINE_OPTION, help=f"How {what} ({described(ENGINES)}).", show_default=True)
+    return schema_option(
+        ENGINE_OPTION, help=f"How {what} ({described(ENGINES)}).", show_default=True
+    )
 
 
 def device_option(what: str) -> Callable[[F], F]:
     """``--device`` (:data:`megalut_cli.engine.DEVICE_OPTION`), saying what runs there."""
     return schema_option(
-        DEVICE_OPTION, help=f"Where {what} ({described(DEVICES)}; env MEGALUT_DEVICE; docs/gpu.md).",
+        DEVICE_OPTION,
+        help=f"Where {what} ({described(DEVICES)}; env MEGALUT_DEVICE; docs/gpu.md).",
         show_default=True,
     )
 
@@ -69,8 +72,13 @@ def output_option(help: str = "Output file.", dash: bool = False) -> Callable[[F
     """``-o/--output``; with ``dash``, ``-o -`` writes the file to stdout, else ``-`` is refused
     (never a file named ``-``)."""
     return click.option(
-        "-o", "--output", "output", required=True, type=click.Path(dir_okay=False, allow_dash=dash),
-        callback=None if dash else _no_dash, help=help + (" '-': stdout." if dash else ""),
+        "-o",
+        "--output",
+        "output",
+        required=True,
+        type=click.Path(dir_okay=False, allow_dash=dash),
+        callback=None if dash else _no_dash,
+        help=help + (" '-': stdout." if dash else ""),
     )
 
 
@@ -85,14 +93,20 @@ def execution_options(f: F) -> F:
         nproc_given = ctx.get_parameter_source("nproc") == click.core.ParameterSource.COMMANDLINE
         if kwargs.get("scheduler") and nproc_given:
             raise click.UsageError("-j/--nproc and --scheduler are mutually exclusive")
-        if not kwargs.get("scheduler") and not kwargs.get("dry_run") and resolve_nproc(kwargs["nproc"]) > 1:
+        if (
+            not kwargs.get("scheduler")
+            and not kwargs.get("dry_run")
+            and resolve_nproc(kwargs["nproc"]) > 1
+        ):
             start_worker_server(WORKER_MODULES.get(ctx.command.name, ()))
         return f(*args, **kwargs)
 
     return wrapper
 
 
-def schema_option(option: Option, help: str | None = None, show_default: bool | None = None) -> Callable[[F], F]:
+def schema_option(
+    option: Option, help: str | None = None, show_default: bool | None = None
+) -> Callable[[F], F]:
     """The click option of a declared :class:`~megalut_cli.schema.Option`: its flags, type
     (``IntRange``/``FloatRange`` from its range, ``Choice`` from its choices), default,
     environment variable and help (``help`` replaces the declared one)."""
@@ -102,9 +116,16 @@ def schema_option(option: Option, help: str | None = None, show_default: bool | 
         if option.kind == "int":
             kwargs["type"] = click.IntRange(option.minimum, option.maximum) if bounded else int
         else:
-            kwargs["type"] = click.FloatRange(
-                option.minimum, option.maximum, min_open=option.min_open, max_open=option.max_open
-            ) if bounded else float
+            kwargs["type"] = (
+                click.FloatRange(
+                    option.minimum,
+                    option.maximum,
+                    min_open=option.min_open,
+                    max_open=option.max_open,
+                )
+                if bounded
+                else float
+            )
     elif option.kind == "choice":
         kwargs["type"] = click.Choice(list(option.choices))
     elif option.kind == "bool":
@@ -112,11 +133,15 @@ def schema_option(option: Option, help: str | None = None, show_default: bool | 
     elif option.kind == "path":
         kwargs["type"] = click.Path(dir_okay=False)
     elif option.kind in ("str_list", "int_list"):
-        kwargs["default"] = None if option.default is None else ",".join(str(v) for v in option.default)
+        kwargs["default"] = (
+            None if option.default is None else ",".join(str(v) for v in option.default)
+        )
     if option.envvar is not None:
         kwargs["envvar"] = option.envvar
     flags = ([option.short] if option.short else []) + [option.cli_flag]
-    return click.option(*flags, metavar=option.metavar, help=option.cli_help() if help is None else help, **kwargs)
+    return click.option(
+        *flags, metavar=option.metavar, help=option.cli_help() if help is None else help, **kwargs
+    )
 
 
 def _stack(*decorators: Callable[[F], F]) -> Callable[[F], F]:
@@ -139,7 +164,9 @@ def validation_options(valid_help: str) -> Callable[[F], F]:
     """``--valid FILE`` and the validation options (``--valid-fraction``) of the training
     commands."""
     return _stack(
-        click.option("--valid", type=click.Path(exists=True, dir_okay=False), default=None, help=valid_help),
+        click.option(
+            "--valid", type=click.Path(exists=True, dir_okay=False), default=None, help=valid_help
+        ),
         *(schema_option(o) for o in VALIDATION_OPTIONS),
     )
 
@@ -204,7 +231,9 @@ def parse_int_list(value: str | None, what: str = "list") -> list[int] | None:
     try:
         out = [int(v) for v in items]
     except ValueError:
-        raise click.BadParameter(f"{what} must be comma-separated integers, got {value!r}") from None
+        raise click.BadParameter(
+            f"{what} must be comma-separated integers, got {value!r}"
+        ) from None
     if any(v <= 0 for v in out):
         raise click.BadParameter(f"{what} must be positive integers, got {value!r}")
     return out
@@ -233,7 +262,11 @@ class ModelFile(click.ParamType):
             except InputError as err:
                 self.fail(str(err), param, ctx)
         what = "a folder, not a file" if Path(text).is_dir() else "no such file"
-        self.fail(f"{text!r}: {what}, nor a shipped model (shipped: {', '.join(SHIPPED_MODELS)})", param, ctx)
+        self.fail(
+            f"{text!r}: {what}, nor a shipped model (shipped: {', '.join(SHIPPED_MODELS)})",
+            param,
+            ctx,
+        )
 
 
 #: The click type of a model argument: a file or a shipped model's name.
@@ -244,4 +277,6 @@ def model_help(help: str) -> str:
     """``help`` of a model option or argument, followed by the shipped models' names."""
     from megalut_cli.nn.shipped import SHIPPED_MODELS
 
-    return f"{help} Or a shipped model by name: {', '.join(SHIPPED_MODELS)} (megalut info --models)."
+    return (
+        f"{help} Or a shipped model by name: {', '.join(SHIPPED_MODELS)} (megalut info --models)."
+    )

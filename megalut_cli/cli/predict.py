@@ -38,12 +38,18 @@ def parse_column_map(items: tuple[str, ...] | list[str]) -> dict[str, str]:
 @click.command("predict", short_help=short_help("predict"))
 @click.argument("features", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
 @click.option(
-    "--model", "model_path", required=True, type=MODEL_FILE,
+    "--model",
+    "model_path",
+    required=True,
+    type=MODEL_FILE,
     help=model_help("Trained model (HDF5 from train-point / train-weight)."),
 )
 @output_option("Output catalog: all input columns plus the predictions.", dash=True)
 @click.option(
-    "--col", "col", multiple=True, metavar="FEATURE=COLUMN",
+    "--col",
+    "col",
+    multiple=True,
+    metavar="FEATURE=COLUMN",
     help="Read the model feature FEATURE from the catalog column COLUMN (repeatable), "
     "e.g. --col adamom_g1=E1.",
 )
@@ -98,13 +104,24 @@ def command(
     column_map = parse_column_map(col)
     with stdin_path(features) as features_path, stdout_path(output) as output_path:
         report = predict_catalog(
-            features_path, model_path, output_path, column_map=column_map, nproc=nproc, scheduler=scheduler,
-            overwrite=overwrite, chunk_rows=chunk_rows, strict=strict, progress=progress,
+            features_path,
+            model_path,
+            output_path,
+            column_map=column_map,
+            nproc=nproc,
+            scheduler=scheduler,
+            overwrite=overwrite,
+            chunk_rows=chunk_rows,
+            strict=strict,
+            progress=progress,
             names=flag_names(column_map="--col"),
         )
     log.info(
         "wrote %s: %d rows, %s (%d with failed features)",
-        "stdout" if output == "-" else report.output, report.n_rows, ", ".join(report.columns), report.n_failed,
+        "stdout" if output == "-" else report.output,
+        report.n_rows,
+        ", ".join(report.columns),
+        report.n_failed,
     )
     for line in model_report(ShearModel.load(model_path)):  # what the model was trained on
         log.info("%s", line)

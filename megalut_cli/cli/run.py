@@ -47,7 +47,9 @@ log = logging.getLogger(__name__)
     "times (from tiny calibration draws), and stop.",
 )
 @click.option(
-    "--print-default", is_flag=True, help="Print the embedded default pipeline (to copy and edit) and exit."
+    "--print-default",
+    is_flag=True,
+    help="Print the embedded default pipeline (to copy and edit) and exit.",
 )
 @execution_options
 @overwrite_option
@@ -121,16 +123,26 @@ def command(
     if pipeline is not None and not Path(pipeline).is_file():
         raise click.BadParameter(f"{pipeline!r}: no such file", param_hint="PIPELINE.toml")
     if dry_run and pipeline is not None and _is_branch(pipeline):
-        raise click.UsageError("--dry-run applies to simulate/train pipelines, not GREAT3 branch pipelines")
-    if pipeline is not None and _branch_pipeline(pipeline, workdir, overrides, skip_existing, overwrite, keep_going,
-                                                 nproc, scheduler):
+        raise click.UsageError(
+            "--dry-run applies to simulate/train pipelines, not GREAT3 branch pipelines"
+        )
+    if pipeline is not None and _branch_pipeline(
+        pipeline, workdir, overrides, skip_existing, overwrite, keep_going, nproc, scheduler
+    ):
         return
     if keep_going:
         log.info("--keep-going applies to GREAT3 branch pipelines only: ignored")
     with _keys_as_written(pipeline, overrides):
         pipe = pl.load_pipeline(pipeline, overrides)
-    plan = pipeline_run.plan_pipeline(pipe, workdir, skip_existing=skip_existing, overwrite=overwrite, nproc=nproc,
-                                      scheduler=scheduler, estimate=True if dry_run else None)
+    plan = pipeline_run.plan_pipeline(
+        pipe,
+        workdir,
+        skip_existing=skip_existing,
+        overwrite=overwrite,
+        nproc=nproc,
+        scheduler=scheduler,
+        estimate=True if dry_run else None,
+    )
     for line in plan:
         log.info("%s", line)
     if dry_run:
@@ -168,8 +180,16 @@ def _is_branch(pipeline: str) -> bool:
     return bool(g3.is_branch_pipeline(pipeline))
 
 
-def _branch_pipeline(pipeline: str, workdir: str, overrides: tuple[str, ...], skip_existing: bool, overwrite: bool,
-                     keep_going: bool, nproc: int, scheduler: str | None) -> bool:
+def _branch_pipeline(
+    pipeline: str,
+    workdir: str,
+    overrides: tuple[str, ...],
+    skip_existing: bool,
+    overwrite: bool,
+    keep_going: bool,
+    nproc: int,
+    scheduler: str | None,
+) -> bool:
     """Run ``pipeline`` if it is a GREAT3 branch pipeline (a [branch] table); False otherwise."""
     from megalut_cli.cli.options import progress
     from megalut_cli.pipeline import great3_file as g3
@@ -179,8 +199,16 @@ def _branch_pipeline(pipeline: str, workdir: str, overrides: tuple[str, ...], sk
         return False
     with _keys_as_written(pipeline, overrides):
         pipe = g3.load_branch_pipeline(pipeline, overrides)
-    result = runner.run_branch(pipe, workdir, skip_existing=skip_existing, overwrite=overwrite, keep_going=keep_going,
-                               nproc=nproc, scheduler=scheduler, progress=progress)
+    result = runner.run_branch(
+        pipe,
+        workdir,
+        skip_existing=skip_existing,
+        overwrite=overwrite,
+        keep_going=keep_going,
+        nproc=nproc,
+        scheduler=scheduler,
+        progress=progress,
+    )
     click.echo(runner.format_summary(result))
     error = runner.failure_error(result)
     if error is not None:

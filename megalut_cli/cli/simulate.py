@@ -123,8 +123,12 @@ def command(
 
     device = resolve_device(device)
 
-    output = click.get_current_context().with_resource(stdout_path(output))  # -o -: to stdout at the end
-    with keys_as_written(config, overrides, n_cases=n_cases, n_realizations=n_realizations):  # [table] key of FILE
+    output = click.get_current_context().with_resource(
+        stdout_path(output)
+    )  # -o -: to stdout at the end
+    with keys_as_written(
+        config, overrides, n_cases=n_cases, n_realizations=n_realizations
+    ):  # [table] key of FILE
         cfg = load_config(config, overrides, n_cases=n_cases, n_realizations=n_realizations)
     if morphology and (not measure or great3_dir is not None):
         raise click.UsageError("--morphology needs --measure (and not --great3)")
@@ -138,20 +142,42 @@ def command(
         from megalut_cli.great3.sim import check_branch_output
 
         check_branch_output(great3_dir, overwrite, names)
-    log.info("about to simulate %s", plan_message(cfg, seed, measure, stamps is not None or great3_dir is not None,
-                                                   nproc, scheduler, engine, device,
-                                                   metacal_step if metacal and measure else None,
-                                                   estimate=True if dry_run else None))
+    log.info(
+        "about to simulate %s",
+        plan_message(
+            cfg,
+            seed,
+            measure,
+            stamps is not None or great3_dir is not None,
+            nproc,
+            scheduler,
+            engine,
+            device,
+            metacal_step if metacal and measure else None,
+            estimate=True if dry_run else None,
+        ),
+    )
     if dry_run:
         return
     if great3_dir is not None:
         from megalut_cli.great3.sim import simulate_branch
 
         branch = simulate_branch(
-            cfg, great3_dir, output, measure=measure, seed=seed, nproc=nproc,
-            scheduler=scheduler, overwrite=overwrite, progress=progress, engine=engine, names=names,
+            cfg,
+            great3_dir,
+            output,
+            measure=measure,
+            seed=seed,
+            nproc=nproc,
+            scheduler=scheduler,
+            overwrite=overwrite,
+            progress=progress,
+            engine=engine,
+            names=names,
         )
-        log.info("wrote %s (%d subfields) and %s", branch.branch_dir, branch.n_subfields, branch.catalog)
+        log.info(
+            "wrote %s (%d subfields) and %s", branch.branch_dir, branch.n_subfields, branch.catalog
+        )
         return
     result = simulate(
         cfg,
@@ -170,5 +196,9 @@ def command(
         metacal=metacal,
         metacal_step=metacal_step,
     )
-    log.info("wrote %s (%d rows)%s", result.catalog, result.n_stamps,
-             f" and {result.stamps}" if result.stamps is not None else "")
+    log.info(
+        "wrote %s (%d rows)%s",
+        result.catalog,
+        result.n_stamps,
+        f" and {result.stamps}" if result.stamps is not None else "",
+    )

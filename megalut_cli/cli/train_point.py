@@ -49,7 +49,9 @@ _HIDDEN = POINT_OPTION["hidden"].with_default(
     "--init-from",
     type=MODEL_FILE,
     default=None,
-    help=model_help("Continue from the point committees of this model (e.g. pretrained on ellipticity)."),
+    help=model_help(
+        "Continue from the point committees of this model (e.g. pretrained on ellipticity)."
+    ),
 )
 @schema_option(POINT_OPTION["init"])
 @optimizer_options

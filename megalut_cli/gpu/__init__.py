@@ -37,7 +37,9 @@ def _problem(name: str) -> str | None:
     except RuntimeError:
         devices = []
     if not devices:
-        return f"JAX finds no {name} device (its devices: {', '.join(str(d) for d in jax.devices())})"
+        return (
+            f"JAX finds no {name} device (its devices: {', '.join(str(d) for d in jax.devices())})"
+        )
     return None
 
 

@@ -25,7 +25,19 @@ from megalut_cli.measure.defaults import MAD_TO_SIGMA
 jax.config.update("jax_enable_x64", True)
 
 #: Columns of :func:`measure_batch`'s result.
-RESULT_COLUMNS = ("amp", "g1", "g2", "sigma", "rho4", "x", "y", "status", "n_iter", "skymad", "finite")
+RESULT_COLUMNS = (
+    "amp",
+    "g1",
+    "g2",
+    "sigma",
+    "rho4",
+    "x",
+    "y",
+    "status",
+    "n_iter",
+    "skymad",
+    "finite",
+)
 
 
 def _cpp_max(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
@@ -51,20 +63,44 @@ def _start(img: jnp.ndarray, guess: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
     nz = img != 0.0
     cols, rows = nz.any(axis=1), nz.any(axis=2)
     big = 1.0e9
-    bounds = jnp.stack([jnp.min(jnp.where(cols, xs, big), axis=1), jnp.max(jnp.where(cols, xs, -big), axis=1),
-                        jnp.min(jnp.where(rows, ys, big), axis=1), jnp.max(jnp.where(rows, ys, -big), axis=1)], axis=1)
+    bounds = jnp.stack(
+        [
+            jnp.min(jnp.where(cols, xs, big), axis=1),
+            jnp.max(jnp.where(cols, xs, -big), axis=1),
+            jnp.min(jnp.where(rows, ys, big), axis=1),
+            jnp.max(jnp.where(rows, ys, -big), axis=1),
+        ],
+        axis=1,
+    )
     all_zero = ~cols.any(axis=1)
     zeros = jnp.zeros(m)
     status0 = jnp.where(all_zero, ref.ALL_ZERO, ref.SUCCESS).astype(jnp.int32)
     # state: x0, y0, mxx, mxy, myy, shiftscale0, amp, rho4, n_iter, status, active
-    state = (jnp.full(m, (nx + 1) / 2.0), jnp.full(m, (ny + 1) / 2.0), guess * guess, zeros, guess * guess,
-             zeros, zeros, zeros, jnp.zeros(m, jnp.int32), status0, ~all_zero)
+    state = (
+        jnp.full(m, (nx + 1) / 2.0),
+        jnp.full(m, (ny + 1) / 2.0),
+        guess * guess,
+        zeros,
+        guess * guess,
+        zeros,
+        zeros,
+        zeros,
+        jnp.zeros(m, jnp.int32),
+        status0,
+        ~all_zero,
+    )
     return bounds, state
 
 
 @functools.partial(jax.jit, static_argnames=("precision", "params", "max_steps"))
-def _iterate(img: jnp.ndarray, bounds: jnp.ndarray, state: tuple[jnp.ndarray, ...], precision: float,
-             params: ref.HSMParams, max_steps: int) -> tuple[jnp.ndarray, ...]:
+def _iterate(
+    img: jnp.ndarray,
+    bounds: jnp.ndarray,
+    state: tuple[jnp.ndarray, ...],
+    precision: float,
+    params: ref.HSMParams,
+    max_steps: int,
+) -> tuple[jnp.ndarray, ...]:
     """At most ``max_steps`` steps of the iteration of every active stamp."""
     m, ny, nx = img.shape
     nsig2 = -2.0 * math.log(params.convergence_threshold / 10.0)
@@ -101,11 +137,16 @@ def _iterate(img: jnp.ndarray, bounds: jnp.ndarray, state: tuple[jnp.ndarray, ..
         ix1 = jnp.maximum(jnp.ceil(inv2[:, None] * (-b - sqrtd) + x0[:, None]), xmin[:, None])
         ix2 = jnp.minimum(jnp.floor(inv2[:, None] * (-b + sqrtd) + x0[:, None]), xmax[:, None])
         x_x0 = xs[None, :] - x0[:, None]  # (m, nx)
-        inside = (in_rows[:, :, None] & (xs[None, None, :] >= ix1[:, :, None])
-                  & (xs[None, None, :] <= ix2[:, :, None]))
-        rho2 = (minv_yy[:, None, None] * (y_y0 * y_y0)[:, :, None]
-                + (two_minv_xy[:, None] * y_y0)[:, :, None] * x_x0[:, None, :]
-                + minv_xx[:, None, None] * (x_x0 * x_x0)[:, None, :])
+        inside = (
+            in_rows[:, :, None]
+            & (xs[None, None, :] >= ix1[:, :, None])
+            & (xs[None, None, :] <= ix2[:, :, None])
+        )
+        rho2 = (
+            minv_yy[:, None, None] * (y_y0 * y_y0)[:, :, None]
+            + (two_minv_xy[:, None] * y_y0)[:, :, None] * x_x0[:, None, :]
+            + minv_xx[:, None, None] * (x_x0 * x_x0)[:, None, :]
+        )
         inten = jnp.where(inside, jnp.exp(-0.5 * jnp.where(inside, rho2, 0.0)) * img, 0.0)
         row_sum = inten.sum(axis=2)  # (m, ny)
         row_x = (inten * x_x0[:, None, :]).sum(axis=2)
@@ -138,29 +179,58 @@ def _iterate(img: jnp.ndarray, bounds: jnp.ndarray, state: tuple[jnp.ndarray, ..
         nmxx = mxx + dxx * semi_b2
         nmxy = mxy + dxy * semi_b2
         nmyy = myy + dyy * semi_b2
-        out_of_range = ((jnp.abs(nmxx) > params.max_amoment) | (jnp.abs(nmxy) > params.max_amoment)
-                        | (jnp.abs(nmyy) > params.max_amoment) | (jnp.abs(nx0 - x00) > params.max_ashift)
-                        | (jnp.abs(ny0 - y00) > params.max_ashift))
+        out_of_range = (
+            (jnp.abs(nmxx) > params.max_amoment)
+            | (jnp.abs(nmxy) > params.max_amoment)
+            | (jnp.abs(nmyy) > params.max_amoment)
+            | (jnp.abs(nx0 - x00) > params.max_ashift)
+            | (jnp.abs(ny0 - y00) > params.max_ashift)
+        )
         ndet = nmxx * nmyy - nmxy * nmxy
         singular = (jnp.abs(nmxx) < 1.0e-8) | (jnp.abs(nmyy) < 1.0e-8) | (ndet < 1.0e-8)
         it = n_iter + 1
         too_many = it > params.max_mom2_iter
-        nan = (jnp.isnan(conv) | jnp.isnan(nmxx) | jnp.isnan(nmyy) | jnp.isnan(nmxy)
-               | jnp.isnan(nx0) | jnp.isnan(ny0))
+        nan = (
+            jnp.isnan(conv)
+            | jnp.isnan(nmxx)
+            | jnp.isnan(nmyy)
+            | jnp.isnan(nmxy)
+            | jnp.isnan(nx0)
+            | jnp.isnan(ny0)
+        )
         failure = jnp.select(
             [npd, bad_bounds, no_row, wnpd, out_of_range, singular, too_many, nan],
-            [ref.NOT_POSITIVE_DEFINITE, ref.BAD_BOUNDS, ref.NO_ROW_SOLUTION, ref.WEIGHT_NOT_POSITIVE_DEFINITE,
-             ref.OUT_OF_RANGE, ref.SINGULAR, ref.TOO_MANY_ITERATIONS, ref.NAN],
+            [
+                ref.NOT_POSITIVE_DEFINITE,
+                ref.BAD_BOUNDS,
+                ref.NO_ROW_SOLUTION,
+                ref.WEIGHT_NOT_POSITIVE_DEFINITE,
+                ref.OUT_OF_RANGE,
+                ref.SINGULAR,
+                ref.TOO_MANY_ITERATIONS,
+                ref.NAN,
+            ],
             ref.SUCCESS,
         ).astype(jnp.int32)
-        counted = (failure == ref.TOO_MANY_ITERATIONS) | (failure == ref.NAN) | (failure == ref.SUCCESS)
+        counted = (
+            (failure == ref.TOO_MANY_ITERATIONS) | (failure == ref.NAN) | (failure == ref.SUCCESS)
+        )
         failed = active & (failure != ref.SUCCESS)
         step = active & (failure == ref.SUCCESS)
         keep = lambda new, old: jnp.where(step, new, old)  # noqa: E731
-        return steps + 1, (keep(nx0, x0), keep(ny0, y0), keep(nmxx, mxx), keep(nmxy, mxy), keep(nmyy, myy),
-                jnp.where(active, ss0, carry[5]), keep(a_sum, amp), keep(rho4w, rho4),
-                jnp.where(active & counted, it, n_iter), jnp.where(failed, failure, status),
-                step & (conv > precision))
+        return steps + 1, (
+            keep(nx0, x0),
+            keep(ny0, y0),
+            keep(nmxx, mxx),
+            keep(nmxy, mxy),
+            keep(nmyy, myy),
+            jnp.where(active, ss0, carry[5]),
+            keep(a_sum, amp),
+            keep(rho4w, rho4),
+            jnp.where(active & counted, it, n_iter),
+            jnp.where(failed, failure, status),
+            step & (conv > precision),
+        )
 
     return jax.lax.while_loop(cond, body, (0, state))[1]
 
@@ -172,19 +242,33 @@ def _results(state: tuple[jnp.ndarray, ...]) -> jnp.ndarray:
     e1 = ((mxx - myy) / (mxx + myy)).astype(jnp.float32).astype(jnp.float64)
     e2 = (2.0 * mxy / (mxx + myy)).astype(jnp.float32).astype(jnp.float64)
     abs_e2 = e1 * e1 + e2 * e2
-    e2g = jnp.where(abs_e2 > 1.0e-4, 1.0 / (1.0 + jnp.sqrt(jnp.maximum(1.0 - abs_e2, 0.0))),
-                    0.5 + abs_e2 * (0.125 + abs_e2 * (0.0625 + abs_e2 * 0.0390625)))
+    e2g = jnp.where(
+        abs_e2 > 1.0e-4,
+        1.0 / (1.0 + jnp.sqrt(jnp.maximum(1.0 - abs_e2, 0.0))),
+        0.5 + abs_e2 * (0.125 + abs_e2 * (0.0625 + abs_e2 * 0.0390625)),
+    )
     det = mxx * myy - mxy * mxy
-    results = jnp.stack([
-        (2.0 * amp).astype(jnp.float32).astype(jnp.float64), e1 * e2g, e2 * e2g,
-        jnp.power(jnp.maximum(det, 0.0), 0.25).astype(jnp.float32).astype(jnp.float64),
-        rho4 / amp, x0, y0,
-    ], axis=1)
+    results = jnp.stack(
+        [
+            (2.0 * amp).astype(jnp.float32).astype(jnp.float64),
+            e1 * e2g,
+            e2 * e2g,
+            jnp.power(jnp.maximum(det, 0.0), 0.25).astype(jnp.float32).astype(jnp.float64),
+            rho4 / amp,
+            x0,
+            y0,
+        ],
+        axis=1,
+    )
     return jnp.where((status == ref.SUCCESS)[:, None], results, jnp.nan)
 
 
-def adaptive_moments(stamps: jnp.ndarray, guess_sigma: float | jnp.ndarray, precision: float = 1.0e-6,
-                     params: ref.HSMParams | None = None) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+def adaptive_moments(
+    stamps: jnp.ndarray,
+    guess_sigma: float | jnp.ndarray,
+    precision: float = 1.0e-6,
+    params: ref.HSMParams | None = None,
+) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """``(status, n_iter, results)`` of every stamp of ``stamps`` (m, S, S): ``results``
     (m, 7) holds ``amp, g1, g2, sigma, rho4, x, y`` as
     :func:`megalut_cli.measure.adamom.adaptive_moments` returns them (NaN where
@@ -228,5 +312,13 @@ def measure_batch(stamps: jnp.ndarray, guess_sigma: float) -> jnp.ndarray:
 @jax.jit
 def _pack(finite, status, n_iter, results, stamps) -> jnp.ndarray:
     results = jnp.where(finite[:, None], results, jnp.nan)
-    return jnp.concatenate([results, status[:, None].astype(jnp.float64), n_iter[:, None].astype(jnp.float64),
-                            sky_mad(stamps)[:, None], finite[:, None].astype(jnp.float64)], axis=1)
+    return jnp.concatenate(
+        [
+            results,
+            status[:, None].astype(jnp.float64),
+            n_iter[:, None].astype(jnp.float64),
+            sky_mad(stamps)[:, None],
+            finite[:, None].astype(jnp.float64),
+        ],
+        axis=1,
+    )

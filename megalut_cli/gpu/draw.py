@@ -72,22 +72,32 @@ def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
     for case in range(unit.case_start, unit.case_stop):
         d = draw_case(cfg, unit.seed, case)
         base = (case - unit.case_start) * n_rea
-        seeds[base:base + n_rea] = d.noise_seeds
-        noise_of[base:base + n_rea] = len(noises)
+        seeds[base : base + n_rea] = d.noise_seeds
+        noise_of[base : base + n_rea] = len(noises)
         noises.append(d.noise)
         case_psf_list = case_psfs(cfg, d)
         for p in case_psf_list:
             psfs[p.key] = (p.psf, p.method)
             try:
-                plan = renderer.plan(p.psf, p.key, p.method, gal.profile, *stamp_parameters(d, p.rows))
+                plan = renderer.plan(
+                    p.psf, p.key, p.method, gal.profile, *stamp_parameters(d, p.rows)
+                )
             except MegalutError as err:
                 raise MegalutError(f"case {case}: {err}") from None
             plans.append(plan)
             rows_of_plan.append(base + p.rows)
             for nf, nk in set(zip(plan.n_fft.tolist(), plan.n_k.tolist())):
                 pick = (plan.n_fft == nf) & (plan.n_k == nk)
-                groups.setdefault((p.key, nf, nk), []).append(np.stack(
-                    [np.full(pick.sum(), len(plans) - 1), np.flatnonzero(pick), base + p.rows[pick]], axis=1))
+                groups.setdefault((p.key, nf, nk), []).append(
+                    np.stack(
+                        [
+                            np.full(pick.sum(), len(plans) - 1),
+                            np.flatnonzero(pick),
+                            base + p.rows[pick],
+                        ],
+                        axis=1,
+                    )
+                )
         truth_parts.append(case_columns(d, [p.truth for p in case_psf_list]))
 
     # Per-stamp inputs, gathered from the plans; one table of radial profiles for the unit.
@@ -97,13 +107,24 @@ def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
     flux, shx, shy = np.zeros(n_total), np.zeros(n_total), np.zeros(n_total)
     table = np.zeros(n_total, dtype=np.int64)
     for plan, rows in zip(plans, rows_of_plan):
-        amat[rows], flux[rows], shx[rows], shy[rows] = plan.amat, plan.flux, plan.shift_x, plan.shift_y
+        amat[rows], flux[rows], shx[rows], shy[rows] = (
+            plan.amat,
+            plan.flux,
+            plan.shift_x,
+            plan.shift_y,
+        )
         for prof in plan.profiles:
             if id(prof) not in index_of:
                 index_of[id(prof)] = len(profiles)
                 profiles.append(prof)
-        table[rows] = np.array([index_of[id(prof)] for prof in plan.profiles], dtype=np.int64)[plan.table]
-    eparams, eint, coef = (jax.device_put(a, dev) for a in grender.profile_arrays(profiles)) if profiles else (None,) * 3
+        table[rows] = np.array([index_of[id(prof)] for prof in plan.profiles], dtype=np.int64)[
+            plan.table
+        ]
+    eparams, eint, coef = (
+        (jax.device_put(a, dev) for a in grender.profile_arrays(profiles))
+        if profiles
+        else (None,) * 3
+    )
     gaussian = np.array([nz.kind == "gaussian" and nz.sigma > 0 for nz in noises])[noise_of]
     sigma = np.array([nz.sigma for nz in noises])[noise_of]
     host_noise = np.array([nz.kind not in ("gaussian", "none") for nz in noises])[noise_of]
@@ -116,14 +137,31 @@ def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
         kpsf = jax.device_put(renderer.psf_kimage(psf, key, method, nf, nk), dev)
         dest, weight, conj = (jax.device_put(a, dev) for a in grender.fold_indices(nf, nk))
         for a in range(0, len(rows), BATCH_STAMPS):
-            sel = rows[a:a + BATCH_STAMPS]
+            sel = rows[a : a + BATCH_STAMPS]
             size = padded_size(len(sel))
             pad_amat = _padded(amat[sel], size)
-            pad_amat[len(sel):, 0] = pad_amat[len(sel):, 3] = 1.0  # padding: zero flux, identity transform
-            pieces.append(grender.render_batch(
-                kpsf, pad_amat, _padded(flux[sel], size), _padded(shx[sel], size), _padded(shy[sel], size),
-                _padded(table[sel], size), eparams, eint, coef, dest, weight, conj, n_fft=nf, n_k=nk, size=S
-            )[: len(sel)])
+            pad_amat[len(sel) :, 0] = pad_amat[len(sel) :, 3] = (
+                1.0  # padding: zero flux, identity transform
+            )
+            pieces.append(
+                grender.render_batch(
+                    kpsf,
+                    pad_amat,
+                    _padded(flux[sel], size),
+                    _padded(shx[sel], size),
+                    _padded(shy[sel], size),
+                    _padded(table[sel], size),
+                    eparams,
+                    eint,
+                    coef,
+                    dest,
+                    weight,
+                    conj,
+                    n_fft=nf,
+                    n_k=nk,
+                    size=S,
+                )[: len(sel)]
+            )
             piece_rows.append(sel)
     # The unit's stamps in row order, then the noise over large batches (its generator loops
     # over the pixels: the loop's cost per step hardly depends on the batch size).
@@ -134,23 +172,38 @@ def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
             b = min(a + NOISE_STAMPS, n_total)
             size = padded_size(b - a, NOISE_STAMPS)
             block = jnp.concatenate([stamps[a:b], jnp.zeros((size - (b - a), S, S), jnp.float32)])
-            noisy.append(add_gaussian_noise(block, _padded(seeds[a:b], size),
-                                            _padded(np.where(gaussian[a:b], sigma[a:b], 0.0), size))[: b - a])
+            noisy.append(
+                add_gaussian_noise(
+                    block,
+                    _padded(seeds[a:b], size),
+                    _padded(np.where(gaussian[a:b], sigma[a:b], 0.0), size),
+                )[: b - a]
+            )
         stamps = jnp.concatenate(noisy)
     if host_noise.any():
         host = np.array(stamps)
         for k in np.flatnonzero(host_noise):
-            noises[noise_of[k]].add_batch(host[k:k + 1], seeds[k:k + 1])
+            noises[noise_of[k]].add_batch(host[k : k + 1], seeds[k : k + 1])
         stamps = jax.device_put(host, dev)
-    keep = unit.keep_stamps or (unit.measure and unit.morphology)  # morphology is measured on the host
+    keep = unit.keep_stamps or (
+        unit.measure and unit.morphology
+    )  # morphology is measured on the host
     kept = np.asarray(stamps) if keep else None
     results = measure_on_device(stamps, guess) if unit.measure else None
 
-    columns = {k: np.concatenate([p[k] for p in truth_parts]) for k in truth_parts[0]} if truth_parts else {}
+    columns = (
+        {k: np.concatenate([p[k] for p in truth_parts]) for k in truth_parts[0]}
+        if truth_parts
+        else {}
+    )
     if unit.measure:
         origins = stamp_origins(np.arange(first, first + n_total), unit.n_x, S)
         moments, skymad, finite = split_measurements(results)
-        columns.update(features_from_moments(moments, skymad, finite, origins, S, cfg.gain, default_max_shift(S)))
+        columns.update(
+            features_from_moments(
+                moments, skymad, finite, origins, S, cfg.gain, default_max_shift(S)
+            )
+        )
         if unit.morphology:
             columns.update(morphology_of_measured(kept, origins, columns))
     return {"columns": columns, "stamps": kept if unit.keep_stamps else None}

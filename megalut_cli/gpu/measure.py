@@ -34,21 +34,25 @@ def measure_on_device(stamps: jnp.ndarray, guess_sigma: float) -> np.ndarray:
     n = stamps.shape[0]
     out = []
     for a in range(0, n, BATCH_STAMPS):
-        block = stamps[a:a + BATCH_STAMPS]
+        block = stamps[a : a + BATCH_STAMPS]
         size = padded_size(len(block))
         if size > len(block):
-            block = jnp.concatenate([block, jnp.zeros((size - len(block), *block.shape[1:]), block.dtype)])
+            block = jnp.concatenate(
+                [block, jnp.zeros((size - len(block), *block.shape[1:]), block.dtype)]
+            )
         out.append(np.asarray(measure_batch(block, guess_sigma))[: min(BATCH_STAMPS, n - a)])
     return np.concatenate(out) if out else np.zeros((0, 11))
 
 
-def pixel_measurements(stamps: np.ndarray, guess_sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def pixel_measurements(
+    stamps: np.ndarray, guess_sigma: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(moments, skymad, finite)`` of host ``stamps`` (n, S, S), measured on the device,
     as :func:`megalut_cli.measure.features.measure_stamps` measures them on the CPU."""
     dev = jax_device()
     dtype = np.float64 if np.asarray(stamps).dtype == np.float64 else np.float32
     res = []
     for a in range(0, len(stamps), BATCH_STAMPS):
-        block = jax.device_put(np.asarray(stamps[a:a + BATCH_STAMPS], dtype=dtype), dev)
+        block = jax.device_put(np.asarray(stamps[a : a + BATCH_STAMPS], dtype=dtype), dev)
         res.append(measure_on_device(block, guess_sigma))
     return split_measurements(np.concatenate(res))

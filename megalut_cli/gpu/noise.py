@@ -76,8 +76,15 @@ def standard_normals(seeds: jnp.ndarray, size: int) -> jnp.ndarray:
     rows = jnp.arange(m)
     zero = jnp.zeros(m)
     # mode 0: main draw; 1: wedge test pending; 2: tail's first uniform; 3: its second
-    init = ((a, b, c, d), jnp.zeros(m, jnp.int32), jnp.zeros(m, jnp.int32), jnp.zeros(m, jnp.int32),
-            zero, zero, jnp.zeros((m, size)))
+    init = (
+        (a, b, c, d),
+        jnp.zeros(m, jnp.int32),
+        jnp.zeros(m, jnp.int32),
+        jnp.zeros(m, jnp.int32),
+        zero,
+        zero,
+        jnp.zeros((m, size)),
+    )
 
     def cond(carry):
         return jnp.any(carry[1] < size)
@@ -103,7 +110,10 @@ def standard_normals(seeds: jnp.ndarray, size: int) -> jnp.ndarray:
         yt = -jnp.log(uni)
         tail_ok = yt + yt > xt * xt
         z_tail = jnp.where(u > 0, x[1] + xt, -x[1] - xt)
-        accept = jnp.select([mode == 0, mode == 1, mode == 2], [quick, wedge_ok, False], tail_ok) & active
+        accept = (
+            jnp.select([mode == 0, mode == 1, mode == 2], [quick, wedge_ok, False], tail_ok)
+            & active
+        )
         z = jnp.select([mode == 0, mode == 1], [z0, xu], z_tail)
         next_mode = jnp.select(
             [mode == 0, mode == 1, mode == 2],

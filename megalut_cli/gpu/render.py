@@ -70,18 +70,36 @@ def radial(q2: jnp.ndarray, p: jnp.ndarray, ei: jnp.ndarray, coef: jnp.ndarray) 
     c = coef[idx]
     cubic = (c[..., 0] + t * (c[..., 1] + t * (c[..., 2] + t * c[..., 3]))) / safe
     q = jnp.sqrt(safe)
-    sersic = jnp.where(q2 < p[..., 2], 1.0 + q2 * (p[..., 3] + q2 * p[..., 4]),
-                       jnp.where(q2 >= p[..., 5], (p[..., 6] + p[..., 7] / q) / safe, cubic))
+    sersic = jnp.where(
+        q2 < p[..., 2],
+        1.0 + q2 * (p[..., 3] + q2 * p[..., 4]),
+        jnp.where(q2 >= p[..., 5], (p[..., 6] + p[..., 7] / q) / safe, cubic),
+    )
     gauss = jnp.exp(-0.5 * q2)
-    sheared = jnp.where(q2 > p[..., 1], 0.0, jnp.where(q2 < p[..., 0], 1.0 - 0.5 * q2 * (1.0 - 0.25 * q2), gauss))
+    sheared = jnp.where(
+        q2 > p[..., 1], 0.0, jnp.where(q2 < p[..., 0], 1.0 - 0.5 * q2 * (1.0 - 0.25 * q2), gauss)
+    )
     return jnp.where(kind == 0, sersic, jnp.where(kind == -2, gauss, sheared))
 
 
 @functools.partial(jax.jit, static_argnames=("n_fft", "n_k", "size"))
-def render_batch(kpsf: jnp.ndarray, amat: jnp.ndarray, flux: jnp.ndarray, shift_x: jnp.ndarray,
-                 shift_y: jnp.ndarray, table: jnp.ndarray, eparams: jnp.ndarray, eint: jnp.ndarray,
-                 coef: jnp.ndarray, dest: jnp.ndarray, weight: jnp.ndarray, conj: jnp.ndarray,
-                 n_fft: int, n_k: int, size: int) -> jnp.ndarray:
+def render_batch(
+    kpsf: jnp.ndarray,
+    amat: jnp.ndarray,
+    flux: jnp.ndarray,
+    shift_x: jnp.ndarray,
+    shift_y: jnp.ndarray,
+    table: jnp.ndarray,
+    eparams: jnp.ndarray,
+    eint: jnp.ndarray,
+    coef: jnp.ndarray,
+    dest: jnp.ndarray,
+    weight: jnp.ndarray,
+    conj: jnp.ndarray,
+    n_fft: int,
+    n_k: int,
+    size: int,
+) -> jnp.ndarray:
     """Noiseless float32 stamps (m, size, size) of one batch on one grid (N, Nk)."""
     half = n_k // 2
     dk = 2.0 * math.pi / n_fft

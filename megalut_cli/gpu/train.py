@@ -28,9 +28,9 @@ def forward(net: Network, params: jnp.ndarray, x: jnp.ndarray) -> jnp.ndarray:
     a = x
     k = 0
     for li, (i, o) in enumerate(net.shapes):
-        w = params[k:k + i * o].reshape(i, o).astype(x.dtype)
+        w = params[k : k + i * o].reshape(i, o).astype(x.dtype)
         k += i * o
-        b = params[k:k + o].astype(x.dtype)
+        b = params[k : k + o].astype(x.dtype)
         k += o
         z = a @ w + b
         if li < len(net.shapes) - 1:
@@ -42,12 +42,21 @@ def forward(net: Network, params: jnp.ndarray, x: jnp.ndarray) -> jnp.ndarray:
     return 1.0 / (1.0 + jnp.exp(jnp.clip(-4.0 * a, -700.0, 700.0)))
 
 
-def cost(name: str, out: jnp.ndarray, case: jnp.ndarray, n: jnp.ndarray, t: jnp.ndarray, t_row: jnp.ndarray,
-         point: jnp.ndarray | None) -> jnp.ndarray:
+def cost(
+    name: str,
+    out: jnp.ndarray,
+    case: jnp.ndarray,
+    n: jnp.ndarray,
+    t: jnp.ndarray,
+    t_row: jnp.ndarray,
+    point: jnp.ndarray | None,
+) -> jnp.ndarray:
     """MSE, MSB or MSWB (``megalut_cli.nn.costs``) of outputs ``out`` on rows grouped by ``case``."""
     c = n.shape[0]
     out = out.astype(jnp.float64)
-    seg = functools.partial(jax.ops.segment_sum, segment_ids=case, num_segments=c, indices_are_sorted=True)
+    seg = functools.partial(
+        jax.ops.segment_sum, segment_ids=case, num_segments=c, indices_are_sorted=True
+    )
     if name == "mse":
         d = out - t_row
         return jnp.sum(seg(d * d) / (c * n))
@@ -66,14 +75,25 @@ def _value(params, x, case, n, t, t_row, point, net, name):
 
 @functools.partial(jax.jit, static_argnames=("net", "name"))
 def _value_and_grad(params, x, case, n, t, t_row, point, net, name):
-    return jax.value_and_grad(lambda p: cost(name, forward(net, p, x), case, n, t, t_row, point))(params)
+    return jax.value_and_grad(lambda p: cost(name, forward(net, p, x), case, n, t, t_row, point))(
+        params
+    )
 
 
 class DeviceObjective:
     """The interface of :class:`megalut_cli.nn.train.Objective`, evaluated on the device."""
 
-    def __init__(self, net: Network, cost: str, data: CaseData, j: int, in_loc: np.ndarray, in_scale: np.ndarray,
-                 cost_scale: float = 1.0, dtype: str = "float64") -> None:
+    def __init__(
+        self,
+        net: Network,
+        cost: str,
+        data: CaseData,
+        j: int,
+        in_loc: np.ndarray,
+        in_scale: np.ndarray,
+        cost_scale: float = 1.0,
+        dtype: str = "float64",
+    ) -> None:
         if cost == "mswb" and data.point is None:
             raise ValueError("MSWB needs point estimates")
         dev = jax_device()
@@ -85,12 +105,24 @@ class DeviceObjective:
         self.n = put(np.bincount(data.case, minlength=data.n_cases).astype(np.float64))
         self.t = put(np.ascontiguousarray(data.targets[:, j], dtype=np.float64))
         self.t_row = put(np.ascontiguousarray(data.row_targets[:, j], dtype=np.float64))
-        self.point = None if data.point is None else put(np.ascontiguousarray(data.point[:, j], dtype=np.float64))
+        self.point = (
+            None
+            if data.point is None
+            else put(np.ascontiguousarray(data.point[:, j], dtype=np.float64))
+        )
         self.norm = 1.0 / float(cost_scale) ** 2
         self.n_evals = 0
 
     def _args(self, params: np.ndarray) -> tuple:
-        return (jnp.asarray(params, dtype=jnp.float64), self.x, self.case, self.n, self.t, self.t_row, self.point)
+        return (
+            jnp.asarray(params, dtype=jnp.float64),
+            self.x,
+            self.case,
+            self.n,
+            self.t,
+            self.t_row,
+            self.point,
+        )
 
     def value(self, params: np.ndarray) -> float:
         """The cost (in the targets' units squared)."""

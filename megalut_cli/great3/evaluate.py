@@ -32,7 +32,9 @@ from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND
 log = logging.getLogger(__name__)
 
 
-def branch_columns(shears: str | os.PathLike, truth_dir: str | os.PathLike) -> dict[str, np.ndarray]:
+def branch_columns(
+    shears: str | os.PathLike, truth_dir: str | os.PathLike
+) -> dict[str, np.ndarray]:
     """Columns for :func:`megalut_cli.shear.evaluate.evaluate_columns`: the estimates of
     ``shears`` (submission or predictions catalog) joined with the truth of their subfield
     (``case`` = subfield, ``tru_g1, tru_g2``, and ``tru_psf_g1, tru_psf_g2`` when known)."""
@@ -70,7 +72,10 @@ def branch_columns(shears: str | os.PathLike, truth_dir: str | os.PathLike) -> d
     if missing.size:
         log.warning(
             "%s: %d of the %d subfield(s) of the truth have no estimate (e.g. %s)",
-            shears, missing.size, all_truth.size, ", ".join(map(str, missing[:5])),
+            shears,
+            missing.size,
+            all_truth.size,
+            ", ".join(map(str, missing[:5])),
         )
     return cols
 
@@ -96,9 +101,17 @@ def evaluate_branch(
 
     cols = branch_columns(shears, truth_dir)
     if len(np.unique(cols["case"])) < 2:
-        raise InputError(f"{shears}: estimates for fewer than 2 subfields: m and c cannot be fitted")
+        raise InputError(
+            f"{shears}: estimates for fewer than 2 subfields: m and c cannot be fitted"
+        )
     result = evaluate_columns(
-        cols, by=by, bins=bins, select=select, select_cases=select_cases, source=str(shears), sigma2_min=sigma2_min,
+        cols,
+        by=by,
+        bins=bins,
+        select=select,
+        select_cases=select_cases,
+        source=str(shears),
+        sigma2_min=sigma2_min,
         names=names,
     )
     result["input"] = str(shears)

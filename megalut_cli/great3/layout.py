@@ -129,7 +129,9 @@ def catalog_stamp_size(x: np.ndarray, image_width: int) -> int:
     """The stamp size of a GREAT3 grid: ``image width / number of distinct x centres``."""
     n = np.unique(np.round(np.asarray(x, dtype=float), 6)).size
     if n < 1 or image_width % n:
-        raise InputError(f"cannot infer the stamp size: {n} distinct x centres on a {image_width}-pixel-wide image")
+        raise InputError(
+            f"cannot infer the stamp size: {n} distinct x centres on a {image_width}-pixel-wide image"
+        )
     return image_width // n
 
 
@@ -168,7 +170,9 @@ def galaxy_catalog(subfield: int, n_x: int, n_y: int, stamp_size: int) -> dict[s
     if not 0 <= subfield <= MAX_SUBFIELD:
         raise MegalutError(f"subfield {subfield}: GREAT3 IDs encode subfields 0 to {MAX_SUBFIELD}")
     if max(n_x, n_y) > MAX_GRID:
-        raise MegalutError(f"a {n_x}x{n_y} grid is too large for GREAT3 IDs (at most {MAX_GRID} per side)")
+        raise MegalutError(
+            f"a {n_x}x{n_y} grid is too large for GREAT3 IDs (at most {MAX_GRID} per side)"
+        )
     g = grid_centres(n_x, n_y, stamp_size)
     return {"x": g["x"], "y": g["y"], "ID": galaxy_ids(subfield, g["column"], g["row"])}
 
@@ -242,7 +246,9 @@ def write_submission(
         raise MegalutError("submission: negative subfield index")
     uniq, counts = np.unique(s, return_counts=True)
     if np.any(counts > 1):
-        raise MegalutError(f"submission: duplicate subfield(s) {', '.join(map(str, uniq[counts > 1][:10]))}")
+        raise MegalutError(
+            f"submission: duplicate subfield(s) {', '.join(map(str, uniq[counts > 1][:10]))}"
+        )
     bad = ~(np.isfinite(a1) & np.isfinite(a2))
     if np.any(bad):
         raise MegalutError(
@@ -299,7 +305,9 @@ def subfield_column(table: Any, where: str = "catalog") -> np.ndarray:
     elif "ID" in names:
         s = split_ids(np.asarray(table["ID"]).astype(np.int64))[0]
     else:
-        raise InputError(f"{where}: no 'subfield' or GREAT3 'ID' column to group galaxies by subfield")
+        raise InputError(
+            f"{where}: no 'subfield' or GREAT3 'ID' column to group galaxies by subfield"
+        )
     if s.dtype.kind not in "iu":
         if s.dtype.kind == "f" and np.all(np.isfinite(s)) and np.all(s == np.round(s)):
             s = s.astype(np.int64)
@@ -349,10 +357,18 @@ def _metacal_subfield_means(
     from megalut_cli.shear.bias import calibrate_by_response, case_means
 
     resp = [f"mcal_r{i}{j}" for i in "12" for j in "12"]
-    require_columns(names, ["pre_g1_noshear", "pre_g2_noshear", *resp]
-                    + (["pre_g1_w_noshear", "pre_g2_w_noshear"] if weighted else []), where)
+    require_columns(
+        names,
+        ["pre_g1_noshear", "pre_g2_noshear", *resp]
+        + (["pre_g1_w_noshear", "pre_g2_w_noshear"] if weighted else []),
+        where,
+    )
     sub = subfield_column(table, where)
-    ok = np.asarray(table["flags_noshear"]) == 0 if "flags_noshear" in names else np.ones(len(sub), dtype=bool)
+    ok = (
+        np.asarray(table["flags_noshear"]) == 0
+        if "flags_noshear" in names
+        else np.ones(len(sub), dtype=bool)
+    )
     for c in resp:
         ok &= np.isfinite(np.asarray(table[c], dtype=float))
     mean: dict[str, np.ndarray] = {}
@@ -365,7 +381,9 @@ def _metacal_subfield_means(
         for j in "12":  # the response of the same rows, with the same weights
             r = np.where(np.isfinite(g), np.asarray(table[f"mcal_r{i}{j}"], dtype=float), np.nan)
             mean[f"r{i}{j}"] = case_means(sub, r, w)[1]
-    g1, g2 = calibrate_by_response(mean["r11"], mean["r12"], mean["r21"], mean["r22"], mean["g1"], mean["g2"])
+    g1, g2 = calibrate_by_response(
+        mean["r11"], mean["r12"], mean["r21"], mean["r22"], mean["g1"], mean["g2"]
+    )
     return ids, g1, g2, n_used
 
 
@@ -375,7 +393,13 @@ def _metacal_subfield_means(
 def _dict_text(values: Mapping[str, float]) -> str:
     """GREAT3's ``writeDict(type='txt')``: ``# k1 k2 `` then ``v1 v2 ``."""
     keys = sorted(values)
-    return "# " + "".join(f"{k} " for k in keys) + "\n" + "".join(f"{float(values[k])!r} " for k in keys) + "\n"
+    return (
+        "# "
+        + "".join(f"{k} " for k in keys)
+        + "\n"
+        + "".join(f"{float(values[k])!r} " for k in keys)
+        + "\n"
+    )
 
 
 def _dict_yaml(values: Mapping[str, float]) -> str:
@@ -408,7 +432,10 @@ def write_truth(
     return written
 
 
-_YAML_ITEM = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)\s*:\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?\.?(?:nan|inf)\b)", re.I)
+_YAML_ITEM = re.compile(
+    r"([A-Za-z_][A-Za-z0-9_]*)\s*:\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?\.?(?:nan|inf)\b)",
+    re.I,
+)
 
 
 def read_dict_file(path: str | os.PathLike) -> dict[str, float]:
@@ -422,7 +449,10 @@ def read_dict_file(path: str | os.PathLike) -> dict[str, float]:
     except (OSError, UnicodeDecodeError):
         raise InputError(f"{p}: not a readable text parameter file") from None
     if p.suffix == ".yaml":
-        out = {k: float(v.replace(".nan", "nan").replace(".inf", "inf")) for k, v in _YAML_ITEM.findall(text)}
+        out = {
+            k: float(v.replace(".nan", "nan").replace(".inf", "inf"))
+            for k, v in _YAML_ITEM.findall(text)
+        }
         if not out:
             raise InputError(f"{p}: no 'key: value' entries")
         return out
@@ -444,7 +474,9 @@ def _truth_file(d: Path, name_txt: str, name_yaml: str) -> Path | None:
     return None
 
 
-def read_truth(truth_dir: str | os.PathLike, subfields: Sequence[int] | None = None) -> dict[str, np.ndarray]:
+def read_truth(
+    truth_dir: str | os.PathLike, subfields: Sequence[int] | None = None
+) -> dict[str, np.ndarray]:
     """Truth of a constant-shear branch: ``subfield, g1, g2, psf_g1, psf_g2`` arrays.
 
     Reads ``shear_params-SSS`` and ``starshape_parameters-SSS-0`` (``.txt`` or ``.yaml``)
@@ -468,7 +500,9 @@ def read_truth(truth_dir: str | os.PathLike, subfields: Sequence[int] | None = N
     for s in subfields:
         sp = _truth_file(d, shear_params_name(s, "txt"), shear_params_name(s, "yaml"))
         if sp is None:
-            raise InputError(f"{d}: no truth for subfield {s} ({shear_params_name(s, 'txt')} missing)")
+            raise InputError(
+                f"{d}: no truth for subfield {s} ({shear_params_name(s, 'txt')} missing)"
+            )
         vals = read_dict_file(sp)
         missing = [k for k in ("g1", "g2") if k not in vals]
         if missing:

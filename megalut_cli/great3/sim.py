@@ -91,10 +91,14 @@ def grid_shape(config: SimConfig) -> tuple[int, int]:
             "give n_x (stamps per row) or a square number of realizations"
         )
     if n % n_x:
-        raise ConfigError(f"structure.n_x: {n_x} does not divide n_realizations = {n} (the grid must be full)")
+        raise ConfigError(
+            f"structure.n_x: {n_x} does not divide n_realizations = {n} (the grid must be full)"
+        )
     n_y = n // n_x
     if max(n_x, n_y) > L.MAX_GRID:
-        raise ConfigError(f"structure.n_x: a {n_x}x{n_y} grid is too large for GREAT3 IDs (at most {L.MAX_GRID} per side)")
+        raise ConfigError(
+            f"structure.n_x: a {n_x}x{n_y} grid is too large for GREAT3 IDs (at most {L.MAX_GRID} per side)"
+        )
     return n_x, n_y
 
 
@@ -102,7 +106,9 @@ def check_config(config: SimConfig) -> tuple[int, int]:
     """Check that ``config`` maps onto GREAT3 subfields; return the grid ``(n_x, n_y)``."""
     s = config.structure
     if s.n_cases > L.MAX_SUBFIELD + 1:
-        raise ConfigError(f"structure.n_cases: at most {L.MAX_SUBFIELD + 1} subfields in the GREAT3 layout, got {s.n_cases}")
+        raise ConfigError(
+            f"structure.n_cases: at most {L.MAX_SUBFIELD + 1} subfields in the GREAT3 layout, got {s.n_cases}"
+        )
     for group, what in (("shear", "one shear"), ("psf", "one PSF")):
         if group in s.per_realization:
             raise ConfigError(
@@ -110,7 +116,9 @@ def check_config(config: SimConfig) -> tuple[int, int]:
                 f"remove {group!r}"
             )
     if config.psf_varies:
-        raise ConfigError("psf.type: the GREAT3 constant-PSF layout needs a PSF that does not vary over the field")
+        raise ConfigError(
+            "psf.type: the GREAT3 constant-PSF layout needs a PSF that does not vary over the field"
+        )
     return grid_shape(config)
 
 
@@ -132,7 +140,9 @@ def _star_field(
         row, col = divmod(k, n)
         psf.drawImage(image=stamp, offset=(offsets[k, 0], offsets[k, 1]), method=method)
         image[row * size : (row + 1) * size, col * size : (col + 1) * size] = stamp.array
-    res = galsim.hsm.FindAdaptiveMom(galsim.ImageF(np.ascontiguousarray(image[:size, :size])), strict=False)
+    res = galsim.hsm.FindAdaptiveMom(
+        galsim.ImageF(np.ascontiguousarray(image[:size, :size])), strict=False
+    )
     if res.moments_status == 0:
         shape = (float(res.observed_shape.g1), float(res.observed_shape.g2))
     else:  # fall back on the PSF truth
@@ -146,20 +156,31 @@ def _draw_subfield(job: dict[str, Any]) -> dict[str, Any]:
     n_x, n_y, size = job["n_x"], job["n_y"], unit.config.structure.stamp_size
     res = draw_unit(unit)
     stamps = res["stamps"]
-    image = stamps.reshape(n_y, n_x, size, size).transpose(0, 2, 1, 3).reshape(n_y * size, n_x * size)
+    image = (
+        stamps.reshape(n_y, n_x, size, size).transpose(0, 2, 1, 3).reshape(n_y * size, n_x * size)
+    )
     cols = res["columns"]
     g = L.grid_centres(n_x, n_y, size)
     origins = np.column_stack([g["column"] * size + 1, g["row"] * size + 1]).astype(float)
     if job["measure"]:
         from megalut_cli.measure.features import measure_stamps
 
-        cols.update(measure_stamps(stamps, origins=origins, gain=unit.config.gain, engine=unit.engine))
+        cols.update(
+            measure_stamps(stamps, origins=origins, gain=unit.config.gain, engine=unit.engine)
+        )
     stars, offsets, psf_shape = _star_field(unit.config, unit.seed, unit.case_start, size)
-    return {"image": np.ascontiguousarray(image), "stars": stars, "star_offsets": offsets,
-            "psf_shape": psf_shape, "columns": cols}
+    return {
+        "image": np.ascontiguousarray(image),
+        "stars": stars,
+        "star_offsets": offsets,
+        "psf_shape": psf_shape,
+        "columns": cols,
+    }
 
 
-def _subfield_cards(config: SimConfig, seed: int, subfield: int, size: int, n: int, n_x: int) -> dict[str, Any]:
+def _subfield_cards(
+    config: SimConfig, seed: int, subfield: int, size: int, n: int, n_x: int
+) -> dict[str, Any]:
     return {
         "SUBFIELD": (subfield, "GREAT3 subfield index (megalut case)"),
         "STAMPSZ": (size, "stamp size in pixels"),
@@ -171,26 +192,43 @@ def _subfield_cards(config: SimConfig, seed: int, subfield: int, size: int, n: i
     }
 
 
-def _write_subfield(tmp_dir: Path, config: SimConfig, seed: int, case: int, res: dict[str, Any], n_x: int, n_y: int) -> None:
+def _write_subfield(
+    tmp_dir: Path, config: SimConfig, seed: int, case: int, res: dict[str, Any], n_x: int, n_y: int
+) -> None:
     size = config.structure.stamp_size
     cards = _subfield_cards(config, seed, case, size, n_x * n_y, n_x)
     write_image(tmp_dir / L.image_name(case), res["image"], fmt=L.IMAGE_FORMAT, cards=cards)
     cat = L.galaxy_catalog(case, n_x, n_y, size)
-    write_catalog(tmp_dir / L.galaxy_catalog_name(case, "fits"), cat, fmt=L.CATALOG_FORMAT,
-                  cards={"SUBFIELD": cards["SUBFIELD"], "STAMPSZ": cards["STAMPSZ"],
-                         "XYORIGIN": (0, "coordinate of the first pixel in x, y")})
+    write_catalog(
+        tmp_dir / L.galaxy_catalog_name(case, "fits"),
+        cat,
+        fmt=L.CATALOG_FORMAT,
+        cards={
+            "SUBFIELD": cards["SUBFIELD"],
+            "STAMPSZ": cards["STAMPSZ"],
+            "XYORIGIN": (0, "coordinate of the first pixel in x, y"),
+        },
+    )
     write_text_catalog(tmp_dir / L.galaxy_catalog_name(case, "txt"), cat)
     n = L.STARFIELD_GRID
     star_cards = dict(cards, NSTAMPX=(n, "stars per row"), NSTAMPS=(n * n, "number of stars"))
-    write_image(tmp_dir / L.starfield_name(case), res["stars"], fmt=L.STARFIELD_FORMAT, cards=star_cards)
+    write_image(
+        tmp_dir / L.starfield_name(case), res["stars"], fmt=L.STARFIELD_FORMAT, cards=star_cards
+    )
     stars = L.grid_centres(n, n, size)
     star_cat = {"x": stars["x"], "y": stars["y"]}
-    write_catalog(tmp_dir / L.star_catalog_name(case, "fits"), star_cat, fmt=L.CATALOG_FORMAT,
-                  cards={"SUBFIELD": cards["SUBFIELD"], "STAMPSZ": cards["STAMPSZ"]})
+    write_catalog(
+        tmp_dir / L.star_catalog_name(case, "fits"),
+        star_cat,
+        fmt=L.CATALOG_FORMAT,
+        cards={"SUBFIELD": cards["SUBFIELD"], "STAMPSZ": cards["STAMPSZ"]},
+    )
     write_text_catalog(tmp_dir / L.star_catalog_name(case, "txt"), star_cat)
 
 
-def check_branch_output(branch_dir: str | os.PathLike, overwrite: bool, names: Names | None = None) -> Path:
+def check_branch_output(
+    branch_dir: str | os.PathLike, overwrite: bool, names: Names | None = None
+) -> Path:
     """Fail early if ``branch_dir`` is a file, a non-empty folder without ``overwrite``, or
     its parent folder is missing (messages name the arguments by ``names``)."""
     name = namer(names)
@@ -199,7 +237,9 @@ def check_branch_output(branch_dir: str | os.PathLike, overwrite: bool, names: N
     if d.exists() and not d.is_dir():
         raise MegalutError(f"{key}: exists and is not a folder")
     if d.is_dir() and any(d.iterdir()) and not overwrite:
-        raise MegalutError(f"{key}: the folder exists and is not empty; use {name('overwrite')} to replace its files")
+        raise MegalutError(
+            f"{key}: the folder exists and is not empty; use {name('overwrite')} to replace its files"
+        )
     parent = d.resolve().parent
     if not parent.is_dir():
         raise MegalutError(f"{key}: the parent folder {parent} does not exist")
@@ -240,23 +280,38 @@ def simulate_branch(
     size = s.stamp_size
     workers = expected_workers(nproc, scheduler)
     jobs = [
-        {"unit": WorkUnit(config, seed, c, c + 1, n_x, keep_stamps=True, measure=False, engine=engine),
-         "n_x": n_x, "n_y": n_y, "measure": measure}
+        {
+            "unit": WorkUnit(
+                config, seed, c, c + 1, n_x, keep_stamps=True, measure=False, engine=engine
+            ),
+            "n_x": n_x,
+            "n_y": n_y,
+            "measure": measure,
+        }
         for c in range(s.n_cases)
     ]
     bytes_per = 4 * n_x * n_y * size * size * 2  # stamps and image
     batch = max(1, workers, min(4 * workers, _BATCH_BYTES // max(bytes_per, 1)))
     log.info(
         "simulating a GREAT3-layout branch: %d subfield(s) of %dx%d stamps of %d px into %s",
-        s.n_cases, n_x, n_y, size, final,
+        s.n_cases,
+        n_x,
+        n_y,
+        size,
+        final,
     )
     log_engine_fallback(config, engine, True)
     t0 = time.perf_counter()
-    tmp_dir = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.resolve().parent))
+    tmp_dir = Path(
+        tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.resolve().parent)
+    )
     try:
         parts: list[dict[str, np.ndarray]] = []
         shapes = np.zeros((s.n_cases, 2))
-        with executor(nproc, scheduler) as pool, (progress or no_progress)("simulate", s.n_cases) as update:
+        with (
+            executor(nproc, scheduler) as pool,
+            (progress or no_progress)("simulate", s.n_cases) as update,
+        ):
             for i in range(0, len(jobs), batch):
                 results = map_units(_draw_subfield, jobs[i : i + batch], pool, update)
                 for job, res in zip(jobs[i : i + batch], results):
@@ -272,7 +327,9 @@ def simulate_branch(
         columns["x"] = np.tile(g["column"] * size + (size + 1) / 2.0, n_sub)  # 1-based true centres
         columns["y"] = np.tile(g["row"] * size + (size + 1) / 2.0, n_sub)
         columns["subfield"] = columns["case"].copy()
-        columns["ID"] = L.galaxy_ids(columns["case"], np.tile(g["column"], n_sub), np.tile(g["row"], n_sub))
+        columns["ID"] = L.galaxy_ids(
+            columns["case"], np.tile(g["column"], n_sub), np.tile(g["row"], n_sub)
+        )
         columns = order_columns(columns)
         first = {c: columns.pop(c) for c in ("case", "rea", "subfield", "ID", "x", "y")}
         columns = {**first, **columns}
@@ -290,5 +347,11 @@ def simulate_branch(
         with contextlib.suppress(FileNotFoundError):
             shutil.rmtree(tmp_dir)
     n = n_x * n_y * s.n_cases
-    log.info("%d subfield(s), %d stamps in %.1f s (%.1f stamps/s)", s.n_cases, n, seconds, n / seconds if seconds else math.inf)
+    log.info(
+        "%d subfield(s), %d stamps in %.1f s (%.1f stamps/s)",
+        s.n_cases,
+        n,
+        seconds,
+        n / seconds if seconds else math.inf,
+    )
     return BranchResult(s.n_cases, n_x, n_y, seconds, final, out)

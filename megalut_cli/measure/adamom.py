@@ -139,7 +139,9 @@ def adaptive_moments(
     if not (math.isfinite(precision) and 0 < precision < 1):
         raise ValueError(f"precision must be in (0, 1), got {precision}")
     if not (0 < params.convergence_threshold < 1):
-        raise ValueError(f"convergence_threshold must be in (0, 1), got {params.convergence_threshold}")
+        raise ValueError(
+            f"convergence_threshold must be in (0, 1), got {params.convergence_threshold}"
+        )
     nsig2 = -2.0 * math.log(params.convergence_threshold / 10.0)
     status = np.zeros(n, dtype=np.int32)
     n_iter = np.zeros(n, dtype=np.int32)

@@ -254,8 +254,23 @@ def _ellipmom_1(
         segments[1, y - 1] = ix2 - 1
     if factorised:
         _window_sums(
-            image, iy1, iy2, y0, segments, xb1, xb2, cross, step, tables,
-            row_weight, row_ratio, row_ratio_step, minv_xx, minv_yy, two_minv_xy, sums,
+            image,
+            iy1,
+            iy2,
+            y0,
+            segments,
+            xb1,
+            xb2,
+            cross,
+            step,
+            tables,
+            row_weight,
+            row_ratio,
+            row_ratio_step,
+            minv_xx,
+            minv_yy,
+            two_minv_xy,
+            sums,
         )
         return SUCCESS
 

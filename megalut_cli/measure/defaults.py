@@ -13,5 +13,8 @@ FORMAT = "megalut.features"
 FORMAT_VERSION = "1.0"
 #: PSF feature columns (from the galaxy features of the PSF stamps).
 PSF_COLUMNS: tuple[str, ...] = (
-    "psf_adamom_g1", "psf_adamom_g2", "psf_adamom_sigma", "psf_adamom_rho4",
+    "psf_adamom_g1",
+    "psf_adamom_g2",
+    "psf_adamom_sigma",
+    "psf_adamom_rho4",
 )

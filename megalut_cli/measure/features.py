@@ -59,9 +59,7 @@ FEATURE_COLUMNS: tuple[str, ...] = (
 )
 
 #: Columns set to NaN when a stamp is flagged.
-SOURCE_COLUMNS: tuple[str, ...] = tuple(
-    c for c in FEATURE_COLUMNS if c not in ("skymad", "flags")
-)
+SOURCE_COLUMNS: tuple[str, ...] = tuple(c for c in FEATURE_COLUMNS if c not in ("skymad", "flags"))
 
 #: Initial sigma guess of HSM (pixels): GalSim's default, also used by the original
 #: MegaLUT; capped to ``S/8`` on small stamps.
@@ -226,8 +224,13 @@ def measure_stamps(
 
 
 def features_from_moments(
-    moments: np.ndarray, skymad: np.ndarray, finite: np.ndarray, origins: np.ndarray, size: int,
-    gain: float | None, max_shift: float,
+    moments: np.ndarray,
+    skymad: np.ndarray,
+    finite: np.ndarray,
+    origins: np.ndarray,
+    size: int,
+    gain: float | None,
+    max_shift: float,
 ) -> dict[str, np.ndarray]:
     """The features and flags of :func:`measure_stamps` from what it measures on the pixels:
     ``moments`` (n, 7: ``amp, g1, g2, sigma, rho4, x, y``, NaN rows where HSM failed),
@@ -279,5 +282,10 @@ def warn_if_mostly_flagged(flags: np.ndarray, where: str, names: Names | None = 
     why = ", ".join(f"{name} {n}" for name, n in ranked if n)
     log.warning(
         "%s: %d of %d stamps flagged (%s): wrong %s, %s or catalog?",
-        where, int(bad.sum()), len(flags), why, name("stamp_size"), name("origin"),
+        where,
+        int(bad.sum()),
+        len(flags),
+        why,
+        name("stamp_size"),
+        name("origin"),
     )

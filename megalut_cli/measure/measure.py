@@ -104,15 +104,19 @@ STARS_FORMAT = "megalut.stars"
 
 #: Columns of a star-field measurement (``stars``): the features of each star.
 STAR_COLUMNS: tuple[str, ...] = (
-    "psf_adamom_flux", "psf_adamom_g1", "psf_adamom_g2", "psf_adamom_sigma", "psf_adamom_rho4",
-    "psf_adamom_x", "psf_adamom_y",
+    "psf_adamom_flux",
+    "psf_adamom_g1",
+    "psf_adamom_g2",
+    "psf_adamom_sigma",
+    "psf_adamom_rho4",
+    "psf_adamom_x",
+    "psf_adamom_y",
 )
 #: File-name prefixes of star fields measured star by star without ``stars=True``.
 STARFIELD_PREFIXES = ("starfield_image", "deep_starfield_image")
 
 #: Stamps per work unit (about 0.3 s of HSM each at 64x64 pixels).
 CHUNK_STAMPS = 1000
-
 
 
 def _row_band(origins: np.ndarray, size: int) -> tuple[int, int]:
@@ -128,18 +132,34 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
     device = unit.get("device", DEFAULT_DEVICE)
     if unit.get("psf_model") is not None:  # PSF stamps drawn by a model at the rows' positions
         stamps = _model_psfs(unit["psf_model"], size)
-        return measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine=unit["engine"],
-                              device=device)
+        return measure_stamps(
+            stamps,
+            origins,
+            unit["gain"],
+            max_shift=unit["max_shift"],
+            engine=unit["engine"],
+            device=device,
+        )
     y0, y1 = _row_band(origins, size)
     rows = unit["rows"] if "rows" in unit else read_band(unit["info"], y0, y1)
     if unit["engine"] == "fast" and device == "gpu":  # the device measures the pixel checks itself
         stamps = cut_stamps(rows, y0, origins, size)
-        feats = measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine="fast", device=device)
+        feats = measure_stamps(
+            stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine="fast", device=device
+        )
     else:  # one pass over the pixels: float64 stamps, whether they are finite, skymad
         cut = cut_stamps_checked(rows, y0, origins, size)
         stamps = cut.stamps
-        feats = measure_stamps(stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine=unit["engine"],
-                               device=device, finite=cut.finite, skymad=cut.skymad)
+        feats = measure_stamps(
+            stamps,
+            origins,
+            unit["gain"],
+            max_shift=unit["max_shift"],
+            engine=unit["engine"],
+            device=device,
+            finite=cut.finite,
+            skymad=cut.skymad,
+        )
     if unit.get("morphology"):
         feats.update(morphology_of_measured(stamps, origins, feats))
     mc = unit.get("metacal")
@@ -180,26 +200,44 @@ def _metacal_unit(
         bad = ~np.isfinite(psfs).all(axis=(1, 2))
         if bad.any():
             x, y = mc["psf_model"]["xy"][bad][0]
-            raise InputError(f"{mc['psf_model']['path']}: the PSF model has no positive flux at x={x:g}, y={y:g}")
+            raise InputError(
+                f"{mc['psf_model']['path']}: the PSF model has no positive flux at x={x:g}, y={y:g}"
+            )
     else:
         y0, y1 = _row_band(origins, size)
         psfs = cut_stamps(read_band(mc["psf_info"], y0, y1), y0, origins, size)
     return metacal_features(
-        stamps, psfs, mc["step"], noise_sigma=feats["skymad"], seeds=fixnoise_seeds(mc["seed"], mc["keys"]), metacal_engine=unit["engine"],
-        morphology=bool(unit.get("morphology")), origins=origins, gain=unit["gain"], max_shift=unit["max_shift"],
-        engine=unit["engine"], device=unit.get("device", DEFAULT_DEVICE),
+        stamps,
+        psfs,
+        mc["step"],
+        noise_sigma=feats["skymad"],
+        seeds=fixnoise_seeds(mc["seed"], mc["keys"]),
+        metacal_engine=unit["engine"],
+        morphology=bool(unit.get("morphology")),
+        origins=origins,
+        gain=unit["gain"],
+        max_shift=unit["max_shift"],
+        engine=unit["engine"],
+        device=unit.get("device", DEFAULT_DEVICE),
     )
 
 
 def _units(
-    image: ImageInfo | np.ndarray, origins: np.ndarray, size: int, gain: float | None, n_workers: int, engine: str
+    image: ImageInfo | np.ndarray,
+    origins: np.ndarray,
+    size: int,
+    gain: float | None,
+    n_workers: int,
+    engine: str,
 ) -> tuple[list[dict[str, Any]], list[np.ndarray]]:
     """Split the stamps (all inside the image) into chunks sorted by position; a unit of an
     image in memory carries its band of rows."""
     if isinstance(image, ImageInfo):
         image = dataclasses.replace(image, path=os.path.abspath(image.path))  # for remote workers
     order = np.lexsort((origins[:, 0], origins[:, 1]))
-    n_units = max(-(-len(order) // CHUNK_STAMPS), min(4 * n_workers, len(order)) if n_workers > 1 else 1)
+    n_units = max(
+        -(-len(order) // CHUNK_STAMPS), min(4 * n_workers, len(order)) if n_workers > 1 else 1
+    )
     pieces = [p for p in np.array_split(order, max(n_units, 1)) if len(p)]
     units = []
     for p in pieces:
@@ -255,7 +293,9 @@ def _run_units(
         out[c][~ok] |= fl.STAMP_OFF_IMAGE
     if (~ok).any():
         where = image.path if isinstance(image, ImageInfo) else "image"
-        log.warning("%s: %d stamp(s) not entirely inside the image: flagged", where, int((~ok).sum()))
+        log.warning(
+            "%s: %d stamp(s) not entirely inside the image: flagged", where, int((~ok).sum())
+        )
     idx = np.flatnonzero(ok)
     if not len(idx):
         return out
@@ -272,7 +312,10 @@ def _run_units(
             unit["psf_model"] = _unit_psf_model(psf_model, idx[piece])
     sizes = [len(p) for p in pieces]
     t0 = time.perf_counter()
-    with executor(nproc, scheduler, len(units)) as pool, (progress or no_progress)(label, len(idx)) as update:
+    with (
+        executor(nproc, scheduler, len(units)) as pool,
+        (progress or no_progress)(label, len(idx)) as update,
+    ):
         done = iter(sizes)
 
         def tick(_n: int) -> None:
@@ -282,7 +325,9 @@ def _run_units(
         # enough for a progress display.
         results = map_units(_measure_unit, units, pool, tick)
     dt = time.perf_counter() - t0
-    log.info("%s: measured %d stamps in %.1f s (%.2f ms/stamp)", label, len(idx), dt, 1e3 * dt / len(idx))
+    log.info(
+        "%s: measured %d stamps in %.1f s (%.2f ms/stamp)", label, len(idx), dt, 1e3 * dt / len(idx)
+    )
     for piece, res in zip(pieces, results):
         rows = idx[piece]
         for c, v in res.items():
@@ -320,8 +365,19 @@ def measure_image(
         n_y, n_x = image.shape[0] // stamp_size, image.shape[1] // stamp_size
         origins = grid_origins(n_y, n_x, stamp_size)
     origins = np.asarray(origins, dtype=np.int64).reshape(-1, 2)
-    return _run_units(image, origins, stamp_size, gain, nproc, scheduler, progress, "measuring stamps", engine,
-                      morphology, resolve_device(device))
+    return _run_units(
+        image,
+        origins,
+        stamp_size,
+        gain,
+        nproc,
+        scheduler,
+        progress,
+        "measuring stamps",
+        engine,
+        morphology,
+        resolve_device(device),
+    )
 
 
 #: Header cards that may give an image's pixel scale (arcsec per pixel), in this order.
@@ -367,7 +423,9 @@ def _metacal_psf(
     return {"psf": stamp}
 
 
-def _target_psf_columns(psf: dict[str, Any], feats: dict[str, np.ndarray], size: int) -> dict[str, np.ndarray]:
+def _target_psf_columns(
+    psf: dict[str, Any], feats: dict[str, np.ndarray], size: int
+) -> dict[str, np.ndarray]:
     """``psf_adamom_*_<type>``: the features of each row's target PSF (round, the sigma the
     operation chose for its PSF; the same for the five types)."""
     from megalut_cli.measure.metacal import (  # GalSim: metacal only
@@ -391,18 +449,33 @@ def _psf_model_spec(
     spec for the work units: ``{"path": absolute, "xy": positions}`` (1-based, one per row)."""
     model = cached_psf_model(path)
     ok = inside(origins, size, gal_info.shape)
-    log.info("%s: a %s PSF model (sha256 %s...), drawn at each row's position in the exposure's pixels",
-             path, model.kind, model.sha256[:12])
+    log.info(
+        "%s: a %s PSF model (sha256 %s...), drawn at each row's position in the exposure's pixels",
+        path,
+        model.kind,
+        model.sha256[:12],
+    )
     out = model.outside(positions[ok, 0], positions[ok, 1]) if ok.any() else np.zeros(0, bool)
     if out.any():
-        log.warning("%s: %d of %d position(s) lie outside the area of the stars the model was fit to: "
-                    "its PSF there is an extrapolation", path, int(out.sum()), int(ok.sum()))
+        log.warning(
+            "%s: %d of %d position(s) lie outside the area of the stars the model was fit to: "
+            "its PSF there is an extrapolation",
+            path,
+            int(out.sum()),
+            int(ok.sum()),
+        )
     gal_scale = pixel_scale(gal_info.header)
     if gal_scale is not None and ok.any():
         model_scale = model.native_scale(*np.median(positions[ok], axis=0))
         if model_scale is not None and abs(model_scale / gal_scale - 1) > PIXEL_SCALE_TOLERANCE:
-            log.warning("%s: the model's pixels are %.4g arcsec, %s's %.4g arcsec: the stamps should be cut "
-                        "from the exposure the model was fit on", path, model_scale, gal_info.path, gal_scale)
+            log.warning(
+                "%s: the model's pixels are %.4g arcsec, %s's %.4g arcsec: the stamps should be cut "
+                "from the exposure the model was fit on",
+                path,
+                model_scale,
+                gal_info.path,
+                gal_scale,
+            )
     return {"path": os.path.abspath(path), "xy": np.ascontiguousarray(positions, dtype=np.float64)}
 
 
@@ -428,23 +501,47 @@ def _psf_features(
     res = None
     if psf_model is not None:
         log.info("%s: the PSF model's PSF at each row's position", psf_path)
-        res = _run_units(gal_info, origins, size, None, nproc, scheduler, progress, "drawing and measuring PSFs", engine,
-                         psf_model=psf_model)
+        res = _run_units(
+            gal_info,
+            origins,
+            size,
+            None,
+            nproc,
+            scheduler,
+            progress,
+            "drawing and measuring PSFs",
+            engine,
+            psf_model=psf_model,
+        )
     elif image_info(psf_path).shape == gal_info.shape:
         log.info("%s: a PSF stamp per galaxy stamp", psf_path)
-        res = _run_units(image_info(psf_path), origins, size, None, nproc, scheduler, progress, "measuring PSF stamps",
-                         engine)
+        res = _run_units(
+            image_info(psf_path),
+            origins,
+            size,
+            None,
+            nproc,
+            scheduler,
+            progress,
+            "measuring PSF stamps",
+            engine,
+        )
     if res is not None:
-        out = {p: res[p[len("psf_"):]] for p in PSF_COLUMNS}
+        out = {p: res[p[len("psf_") :]] for p in PSF_COLUMNS}
         failed = (res["flags"] & ~fl.STAMP_OFF_IMAGE) != 0
         out["flags"] = np.where(failed, fl.PSF_FAILED, 0).astype(np.int32)
         if failed.any():
-            log.warning("%s: %d PSF stamp(s) could not be measured: flagged", psf_path, int(failed.sum()))
+            log.warning(
+                "%s: %d PSF stamp(s) could not be measured: flagged", psf_path, int(failed.sum())
+            )
         return out
     values = single_psf_features(psf_path, size, engine)
     log.info(
         "%s: one PSF for all rows (g1=%.4f, g2=%.4f, sigma=%.4f)",
-        psf_path, values["psf_adamom_g1"], values["psf_adamom_g2"], values["psf_adamom_sigma"],
+        psf_path,
+        values["psf_adamom_g1"],
+        values["psf_adamom_g2"],
+        values["psf_adamom_sigma"],
     )
     out = {p: np.full(n, values[p]) for p in PSF_COLUMNS}
     out["flags"] = np.zeros(n, dtype=np.int32)
@@ -453,22 +550,34 @@ def _psf_features(
 
 #: Provenance cards that a stamp image and its catalog, simulated together, share.
 SHARED_CARDS = {
-    "SEED": "seed", "CFGSHA": "config hash", "NCASES": "cases", "NREA": "realizations",
-    "NSTAMPX": "grid stamps per row", "STAMPSZ": "stamp size",
+    "SEED": "seed",
+    "CFGSHA": "config hash",
+    "NCASES": "cases",
+    "NREA": "realizations",
+    "NSTAMPX": "grid stamps per row",
+    "STAMPSZ": "stamp size",
 }
 
 
 def check_belongs_together(
-    stamps_path: str, image_header: dict[str, Any], catalog_path: str, catalog_header: dict[str, Any]
+    stamps_path: str,
+    image_header: dict[str, Any],
+    catalog_path: str,
+    catalog_header: dict[str, Any],
 ) -> None:
     """Refuse a catalog whose provenance cards disagree with the stamp image's (another simulation)."""
+
     def short(value: Any) -> str:
-        return repr(value[:12] + "...") if isinstance(value, str) and len(value) > 16 else repr(value)
+        return (
+            repr(value[:12] + "...") if isinstance(value, str) and len(value) > 16 else repr(value)
+        )
 
     diffs = [
         f"{what} {key} = {short(catalog_header[key])} vs {short(image_header[key])}"
         for key, what in SHARED_CARDS.items()
-        if key in image_header and key in catalog_header and catalog_header[key] != image_header[key]
+        if key in image_header
+        and key in catalog_header
+        and catalog_header[key] != image_header[key]
     ]
     if diffs:
         raise InputError(
@@ -483,7 +592,9 @@ def _n_grid_stamps(info: ImageInfo, n_grid: int) -> int:
     if card is None:
         return n_grid
     if isinstance(card, bool) or not isinstance(card, int) or not 0 < card <= n_grid:
-        raise InputError(f"{info.path}: bad NSTAMPS header card {card!r} for a grid of {n_grid} stamps")
+        raise InputError(
+            f"{info.path}: bad NSTAMPS header card {card!r} for a grid of {n_grid} stamps"
+        )
     return card
 
 
@@ -535,7 +646,11 @@ def _check_spacing(x: np.ndarray, y: np.ndarray, size: int, path: str, size_key:
 
 def _catalog_positions(table: Columns, path: str) -> tuple[np.ndarray, np.ndarray]:
     require_columns(list(table), ["x", "y"], path)
-    bad = [c for c in ("x", "y") if np.asarray(table[c]).dtype.kind not in "iuf" or np.ndim(table[c]) != 1]
+    bad = [
+        c
+        for c in ("x", "y")
+        if np.asarray(table[c]).dtype.kind not in "iuf" or np.ndim(table[c]) != 1
+    ]
     if bad:
         raise InputError(f"{path}: column(s) {', '.join(bad)} must be numeric scalars")
     return np.asarray(table["x"], np.float64), np.asarray(table["y"], np.float64)
@@ -612,26 +727,54 @@ def measure_file_columns(
     """
     name = namer(names)
     if psf_path is not None and psf_model_path is not None:
-        raise ConfigError(f"{name('psf_path')} and {name('psf_model_path')} exclude each other: give one PSF")
+        raise ConfigError(
+            f"{name('psf_path')} and {name('psf_model_path')} exclude each other: give one PSF"
+        )
     if is_meds(stamps_path):  # a MEDS cutout file: one row per object (measure/meds.py)
         if catalog_path is not None:
-            raise ConfigError(f"{stamps_path} is a MEDS file, which carries its own objects: give it no catalog")
-        wrong = [name(k) for k, given in (("stamp_size", stamp_size is not None), ("origin", origin != 1),
-                                          ("stars", bool(stars))) if given]
+            raise ConfigError(
+                f"{stamps_path} is a MEDS file, which carries its own objects: give it no catalog"
+            )
+        wrong = [
+            name(k)
+            for k, given in (
+                ("stamp_size", stamp_size is not None),
+                ("origin", origin != 1),
+                ("stars", bool(stars)),
+            )
+            if given
+        ]
         if wrong:
-            raise ConfigError(f"{stamps_path} is a MEDS file (each object has its box_size): leave out {', '.join(wrong)}")
+            raise ConfigError(
+                f"{stamps_path} is a MEDS file (each object has its box_size): leave out {', '.join(wrong)}"
+            )
         options = MedsOptions(
-            cutout=cutout, gain=gain, psf_path=psf_path, psf_model_path=psf_model_path,
-            engine=engine, morphology=morphology, metacal=metacal, metacal_step=metacal_step,
+            cutout=cutout,
+            gain=gain,
+            psf_path=psf_path,
+            psf_model_path=psf_model_path,
+            engine=engine,
+            morphology=morphology,
+            metacal=metacal,
+            metacal_step=metacal_step,
             seed=seed,
         )
         columns, _ = measure_meds_file(
-            stamps_path, output, options, nproc=nproc, scheduler=scheduler, overwrite=overwrite,
-            progress=progress, device=device, names=names,
+            stamps_path,
+            output,
+            options,
+            nproc=nproc,
+            scheduler=scheduler,
+            overwrite=overwrite,
+            progress=progress,
+            device=device,
+            names=names,
         )
         return columns, {}
     if cutout != MEASURE["cutout"].default:
-        raise ConfigError(f"{name('cutout')} applies to MEDS files only; {stamps_path} is an image of stamps")
+        raise ConfigError(
+            f"{name('cutout')} applies to MEDS files only; {stamps_path} is an image of stamps"
+        )
     check_output(output, overwrite)
     if gain is not None and not (np.isfinite(gain) and gain > 0):
         raise ConfigError(f"{name('gain')} must be a positive number, got {gain}")
@@ -642,7 +785,9 @@ def measure_file_columns(
             f"{name('metacal')} needs {name('psf_path')} or {name('psf_model_path')}: the PSF to deconvolve each stamp by"
         )
     if metacal and not 0 < metacal_step <= MEASURE["metacal_step"].maximum:
-        raise ConfigError(f"{name('metacal_step')} must be in (0, {MEASURE['metacal_step'].maximum}], got {metacal_step}")
+        raise ConfigError(
+            f"{name('metacal_step')} must be in (0, {MEASURE['metacal_step'].maximum}], got {metacal_step}"
+        )
     stamps_path = str(stamps_path)
     info = image_info(stamps_path)
     if stars is None:
@@ -656,7 +801,12 @@ def measure_file_columns(
             raise ConfigError(f"{name(key)} does not apply to a star field (its stars are the PSF)")
     if psf_model_path is not None:
         cached_psf_model(str(psf_model_path))  # fail early on a file that is no PSF model
-    if stars and stamp_size is None and info.header.get("STAMPSZ") is None and info.shape[0] == info.shape[1]:
+    if (
+        stars
+        and stamp_size is None
+        and info.header.get("STAMPSZ") is None
+        and info.shape[0] == info.shape[1]
+    ):
         stamp_size = info.shape[0] // 3  # GREAT3: a 3x3 grid of stars
         log.info("%s: no stamp size given: a 3x3 grid of %d-pixel stars", stamps_path, stamp_size)
     if stamp_size is not None and info.header.get("STAMPSZ") not in (None, stamp_size):
@@ -696,13 +846,19 @@ def measure_file_columns(
     if gain is None and header_gain is not None:
         log.warning(
             "the input header has GAIN=%s but no %s was given: snr uses Eq. 10 "
-            "(sky-limited); pass %s %s for Eq. 8", header_gain, name("gain"), name("gain"), header_gain,
+            "(sky-limited); pass %s %s for Eq. 8",
+            header_gain,
+            name("gain"),
+            name("gain"),
+            header_gain,
         )
 
     mc = None
     model_spec = None
     if psf_model_path is not None:  # each row's position in the exposure, 1-based
-        positions = (np.column_stack([x, y]) + (1 - origin)) if catalog_path is not None else centres
+        positions = (
+            (np.column_stack([x, y]) + (1 - origin)) if catalog_path is not None else centres
+        )
         model_spec = _psf_model_spec(str(psf_model_path), positions, origins, size, info)
         psf_path = model_spec["path"]
         cards.update(cached_psf_model(psf_path).header_cards())
@@ -717,16 +873,32 @@ def measure_file_columns(
                 mc = {**_metacal_psf(psf_path, info, size, names), "step": float(metacal_step)}
             common = bool(_card_value(cards.get("CRN", False))) and "rea" in table
             # the fields' keys: the realization in a common-random-number set, else the row
-            mc["keys"] = np.asarray(table["rea"], dtype=np.int64) if common else np.arange(len(origins))
+            mc["keys"] = (
+                np.asarray(table["rea"], dtype=np.int64) if common else np.arange(len(origins))
+            )
             mc["seed"] = int(seed)
 
     if stars and morphology:
         raise ConfigError(f"{name('morphology')} does not apply to a star field")
-    feats = _run_units(info, origins, size, gain, nproc, scheduler, progress, "measuring stamps", engine, morphology, device,
-                       mc)
+    feats = _run_units(
+        info,
+        origins,
+        size,
+        gain,
+        nproc,
+        scheduler,
+        progress,
+        "measuring stamps",
+        engine,
+        morphology,
+        device,
+        mc,
+    )
     psf = None
     if psf_path is not None:
-        psf = _psf_features(psf_path, info, origins, size, nproc, scheduler, progress, engine, model_spec)
+        psf = _psf_features(
+            psf_path, info, origins, size, nproc, scheduler, progress, engine, model_spec
+        )
         psf_flags = psf.pop("flags")
         feats["flags"] |= psf_flags
         if mc is not None:
@@ -735,8 +907,18 @@ def measure_file_columns(
             psf.update(_target_psf_columns(mc, psf, size))
 
     if stars:
-        return _write_stars(stamps_path, table, feats, output, overwrite, size, origin if catalog_path else 1, cards, history,
-                            extra_hdus), meta
+        return _write_stars(
+            stamps_path,
+            table,
+            feats,
+            output,
+            overwrite,
+            size,
+            origin if catalog_path else 1,
+            cards,
+            history,
+            extra_hdus,
+        ), meta
 
     feature_cols = list(FEATURE_COLUMNS) + (list(MORPHOLOGY_COLUMNS) if morphology else [])
     psf_cols = list(PSF_COLUMNS) if psf is not None else []
@@ -761,7 +943,10 @@ def measure_file_columns(
     cards.update(
         {
             "STAMPSZ": (size, "stamp size [pixels]"),
-            "XYORIGIN": (origin if catalog_path is not None else 1, "coordinate of the first pixel in x, y"),
+            "XYORIGIN": (
+                origin if catalog_path is not None else 1,
+                "coordinate of the first pixel in x, y",
+            ),
             "GAIN": (gain, "gain [e-/ADU] of the S/N (Eq. 8)") if gain is not None else None,
             "MAXSHIFT": (default_max_shift(size), "centroid shift limit [pixels]"),
             "MENGINE": (engine, "engine of the adaptive moments (megalut --engine)"),
@@ -772,8 +957,16 @@ def measure_file_columns(
         cards[SEED_CARD] = (int(seed), "seed of the metacal fixnoise fields (measure --seed)")
     if "MEASURED" in cards:  # a simulation's card: the features are now measured
         cards["MEASURED"] = (True, "the catalog holds measured features")
-    write_catalog(output, table, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history,
-                  extra_hdus=extra_hdus)
+    write_catalog(
+        output,
+        table,
+        fmt=FORMAT,
+        fmt_version=FORMAT_VERSION,
+        overwrite=overwrite,
+        cards=cards,
+        history=history,
+        extra_hdus=extra_hdus,
+    )
     log.info("wrote %s (%d rows)", output, len(origins))
     return table, meta
 
@@ -813,10 +1006,15 @@ def _write_stars(
         for c in replaced:
             del table[c]
     for c in STAR_COLUMNS:
-        table[c] = feats[c[len("psf_"):]]
+        table[c] = feats[c[len("psf_") :]]
     table["flags"] = feats["flags"]
     if not good.all():
-        log.warning("%s: %d of %d star stamp(s) could not be measured: flagged", path, int((~good).sum()), len(good))
+        log.warning(
+            "%s: %d of %d star stamp(s) could not be measured: flagged",
+            path,
+            int((~good).sum()),
+            len(good),
+        )
     cards.update(
         {
             "STAMPSZ": (size, "stamp size [pixels]"),
@@ -825,7 +1023,15 @@ def _write_stars(
         }
     )
     cards.pop("MEASURED", None)
-    write_catalog(output, table, fmt=STARS_FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards, history=history,
-                  extra_hdus=extra_hdus)
+    write_catalog(
+        output,
+        table,
+        fmt=STARS_FORMAT,
+        fmt_version=FORMAT_VERSION,
+        overwrite=overwrite,
+        cards=cards,
+        history=history,
+        extra_hdus=extra_hdus,
+    )
     log.info("wrote %s (%d stars)", output, len(good))
     return table

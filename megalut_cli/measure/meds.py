@@ -84,7 +84,10 @@ log = logging.getLogger(__name__)
 MEDS_EXTENSIONS: tuple[str, ...] = ("object_data", "image_cutouts")
 #: The cutout extensions megalut reads, by cutout type.
 CUTOUT_EXTENSIONS: dict[str, str] = {
-    "image": "image_cutouts", "weight": "weight_cutouts", "seg": "seg_cutouts", "bmask": "bmask_cutouts",
+    "image": "image_cutouts",
+    "weight": "weight_cutouts",
+    "seg": "seg_cutouts",
+    "bmask": "bmask_cutouts",
 }
 #: Names of the PSF extension: ``psf`` (the meds package's), then ``psf_cutouts``.
 PSF_EXTENSIONS: tuple[str, ...] = ("psf", "psf_cutouts")
@@ -92,8 +95,19 @@ PSF_EXTENSIONS: tuple[str, ...] = ("psf", "psf_cutouts")
 REQUIRED_COLUMNS: tuple[str, ...] = ("id", "ncutout", "box_size", "start_row")
 #: ``object_data`` columns read when present (per-cutout ones are ``(n, NMAX)``).
 OBJECT_COLUMNS: tuple[str, ...] = (
-    *REQUIRED_COLUMNS, "number", "ra", "dec", "orig_row", "orig_col", "cutout_row", "cutout_col", "file_id",
-    "psf_start_row", "psf_box_size", "psf_row_size", "psf_col_size",
+    *REQUIRED_COLUMNS,
+    "number",
+    "ra",
+    "dec",
+    "orig_row",
+    "orig_col",
+    "cutout_row",
+    "cutout_col",
+    "file_id",
+    "psf_start_row",
+    "psf_box_size",
+    "psf_row_size",
+    "psf_col_size",
 )
 #: Per-object columns copied to the output when the file has them.
 PASSED_COLUMNS: tuple[str, ...] = ("id", "number", "box_size", "ncutout", "ra", "dec")
@@ -101,10 +115,19 @@ PASSED_COLUMNS: tuple[str, ...] = ("id", "number", "box_size", "ncutout", "ra", 
 PASSED_CUTOUT_COLUMNS: tuple[str, ...] = ("orig_row", "orig_col")
 #: The ``object_data`` columns of the MEDS layout (esheldon/meds README); any other scalar
 #: column (a survey's own ids, a simulation's truth) is passed through to the output.
-LAYOUT_COLUMNS: frozenset[str] = frozenset((
-    *OBJECT_COLUMNS, "orig_start_row", "orig_start_col", "dudrow", "dudcol", "dvdrow", "dvdcol",
-    "psf_cutout_row", "psf_cutout_col",
-))
+LAYOUT_COLUMNS: frozenset[str] = frozenset(
+    (
+        *OBJECT_COLUMNS,
+        "orig_start_row",
+        "orig_start_col",
+        "dudrow",
+        "dudcol",
+        "dvdrow",
+        "dvdcol",
+        "psf_cutout_row",
+        "psf_cutout_col",
+    )
+)
 
 #: A stamp with more than this fraction of its pixels masked is flagged MASKED_PIXELS.
 MAX_MASKED_FRACTION = 0.25
@@ -129,7 +152,9 @@ FILE_CARD = "MEDSFILE"
 class PsfDrawer(Protocol):
     """What measure needs of a PSF model: :meth:`megalut_cli.measure.psf_model.PsfModel.draw`."""
 
-    def draw(self, x: np.ndarray, y: np.ndarray, size: int, pixel_scale: float | None = None) -> np.ndarray:
+    def draw(
+        self, x: np.ndarray, y: np.ndarray, size: int, pixel_scale: float | None = None
+    ) -> np.ndarray:
         """``(n, size, size)`` unit-sum PSF images at 1-based image positions ``x, y``."""
         ...
 
@@ -195,13 +220,22 @@ class MedsFile:
     def has(self, kind: str) -> bool:
         """Whether the file holds cutouts of ``kind`` (``image``, ``weight``, ``seg``,
         ``bmask``, ``psf``)."""
-        return self.psf_extension is not None if kind == "psf" else CUTOUT_EXTENSIONS[kind] in self.extensions
+        return (
+            self.psf_extension is not None
+            if kind == "psf"
+            else CUTOUT_EXTENSIONS[kind] in self.extensions
+        )
 
     def first_is_coadd(self) -> bool:
         """Whether cutout 0 is a coadd, as the file says: a true ``first_image_is_coadd``
         in ``metadata``, else an ``image_info`` path of file 0 naming a coadd."""
         meta = self.metadata
-        if meta is not None and meta.dtype.names and "first_image_is_coadd" in meta.dtype.names and len(meta):
+        if (
+            meta is not None
+            and meta.dtype.names
+            and "first_image_is_coadd" in meta.dtype.names
+            and len(meta)
+        ):
             return bool(meta["first_image_is_coadd"][0])
         info = self.image_info
         if info is not None and info.dtype.names and "image_path" in info.dtype.names and len(info):
@@ -218,8 +252,10 @@ class MedsFile:
         elif "psf_box_size" in obj:
             rows = cols = obj["psf_box_size"]
         else:
-            raise InputError(f"{self.path}: PSF cutouts without psf_box_size or psf_row_size, psf_col_size columns")
-        pick = (lambda a: a[:, cutout] if a.ndim == 2 else a)  # noqa: E731
+            raise InputError(
+                f"{self.path}: PSF cutouts without psf_box_size or psf_row_size, psf_col_size columns"
+            )
+        pick = lambda a: a[:, cutout] if a.ndim == 2 else a  # noqa: E731
         return np.stack([pick(rows), pick(cols)], axis=1).astype(np.int64)
 
     def layout(self, rows: np.ndarray, cutout: int = 0, psf: bool = True) -> Layout:
@@ -239,8 +275,15 @@ class MedsFile:
                 raise ValueError("objects of one PSF size expected")
             psf_shape = (int(shapes[0][0]), int(shapes[0][1]))
             psf_starts = self.objects["psf_start_row"][rows, cutout].astype(np.int64)
-        return Layout(self.path, self.objects["start_row"][rows, cutout].astype(np.int64), int(boxes[0]), kinds,
-                      self.psf_extension if psf else None, psf_starts, psf_shape)
+        return Layout(
+            self.path,
+            self.objects["start_row"][rows, cutout].astype(np.int64),
+            int(boxes[0]),
+            kinds,
+            self.psf_extension if psf else None,
+            psf_starts,
+            psf_shape,
+        )
 
     def stamps(self, rows: Sequence[int] | np.ndarray, cutout: int = 0) -> Stamps:
         """Cutout ``cutout`` of the objects ``rows`` (one box size) as stacks."""
@@ -249,9 +292,11 @@ class MedsFile:
     def cutout(self, index: int, cutout: int = 0) -> Cutout:
         """Cutout ``cutout`` of object ``index`` as 2-D arrays."""
         if not 0 <= cutout < int(self.objects["ncutout"][index]):
-            raise IndexError(f"object {index} has {int(self.objects['ncutout'][index])} cutout(s), not {cutout + 1}")
+            raise IndexError(
+                f"object {index} has {int(self.objects['ncutout'][index])} cutout(s), not {cutout + 1}"
+            )
         s = self.stamps([index], cutout)
-        first = (lambda a: None if a is None else a[0])  # noqa: E731
+        first = lambda a: None if a is None else a[0]  # noqa: E731
         return Cutout(s.images[0], first(s.weights), first(s.bmasks), first(s.segs), first(s.psfs))
 
 
@@ -296,9 +341,15 @@ def read_meds(path: str | os.PathLike) -> MedsFile:
             names = hdu.get_colnames()
             absent = [c for c in REQUIRED_COLUMNS if c not in names]
             if absent:
-                raise InputError(f"{path}: MEDS object_data lacks the column(s) {', '.join(absent)}")
-            table = hdu.read(columns=[c for c in names if c in OBJECT_COLUMNS or c not in LAYOUT_COLUMNS])
-            extensions = {e: int(np.prod(f[e].get_dims())) for e in CUTOUT_EXTENSIONS.values() if e in f}
+                raise InputError(
+                    f"{path}: MEDS object_data lacks the column(s) {', '.join(absent)}"
+                )
+            table = hdu.read(
+                columns=[c for c in names if c in OBJECT_COLUMNS or c not in LAYOUT_COLUMNS]
+            )
+            extensions = {
+                e: int(np.prod(f[e].get_dims())) for e in CUTOUT_EXTENSIONS.values() if e in f
+            }
             psf_ext = next((e for e in PSF_EXTENSIONS if e in f), None)
             if psf_ext is not None:
                 extensions[psf_ext] = int(np.prod(f[psf_ext].get_dims()))
@@ -307,14 +358,26 @@ def read_meds(path: str | os.PathLike) -> MedsFile:
     except InputError:
         raise
     except (OSError, ValueError) as err:
-        raise InputError(f"{path}: not a readable MEDS file ({str(err).splitlines()[0][:80]})") from None
+        raise InputError(
+            f"{path}: not a readable MEDS file ({str(err).splitlines()[0][:80]})"
+        ) from None
     objects = {c: _column(table, c) for c in table.dtype.names}
     n = len(objects["id"])
-    for c in ("start_row", "orig_row", "orig_col", "cutout_row", "cutout_col", "file_id", "psf_start_row"):
+    for c in (
+        "start_row",
+        "orig_row",
+        "orig_col",
+        "cutout_row",
+        "cutout_col",
+        "file_id",
+        "psf_start_row",
+    ):
         if c in objects and objects[c].ndim == 1:
             objects[c] = objects[c].reshape(n, 1)
     if psf_ext is not None and "psf_start_row" not in objects:
-        log.warning("%s: a %s extension but no psf_start_row column: PSF cutouts ignored", path, psf_ext)
+        log.warning(
+            "%s: a %s extension but no psf_start_row column: PSF cutouts ignored", path, psf_ext
+        )
         psf_ext = None
     meds = MedsFile(path, objects, image_info, metadata, extensions, psf_ext)
     _check_layout(meds)
@@ -372,7 +435,7 @@ def _read_flat(hdu: Any, starts: np.ndarray, npix: int) -> np.ndarray:
         j, end = i + 1, s[i] + npix
         while j < n and s[j] - end <= npix:
             end, j = max(end, s[j] + npix), j + 1
-        block = _native(np.asarray(hdu[int(s[i]):int(end)]))
+        block = _native(np.asarray(hdu[int(s[i]) : int(end)]))
         if out is None:
             out = np.empty((n, npix), dtype=block.dtype)
         out[order[i:j]] = block[(s[i:j] - s[i])[:, None] + np.arange(npix)[None, :]]
@@ -392,17 +455,25 @@ def read_stamps(layout: Layout) -> Stamps:
                 if ext in layout.extensions or kind in layout.extensions:
                     flat = _read_flat(f[ext], layout.starts, size * size).reshape(n, size, size)
                     maps[kind] = flat.astype(np.float64) if kind in ("image", "weight") else flat
-            if layout.psf_extension is not None and layout.psf_starts is not None and layout.psf_shape is not None:
+            if (
+                layout.psf_extension is not None
+                and layout.psf_starts is not None
+                and layout.psf_shape is not None
+            ):
                 rows, cols = layout.psf_shape
                 flat = _read_flat(f[layout.psf_extension], layout.psf_starts, rows * cols)
                 psfs = flat.reshape(n, rows, cols).astype(np.float64)
     except (OSError, ValueError) as err:
-        raise InputError(f"{layout.path}: cannot read MEDS cutouts ({str(err).splitlines()[0][:80]})") from None
+        raise InputError(
+            f"{layout.path}: cannot read MEDS cutouts ({str(err).splitlines()[0][:80]})"
+        ) from None
     assert maps["image"] is not None
     return Stamps(maps["image"], maps["weight"], maps["bmask"], maps["seg"], psfs)
 
 
-def masked_pixels(weights: np.ndarray | None, bmasks: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
+def masked_pixels(
+    weights: np.ndarray | None, bmasks: np.ndarray | None, shape: tuple[int, ...]
+) -> np.ndarray:
     """Bad pixels: ``bmask != 0``, or a weight that is not positive (or not finite)."""
     masked = np.zeros(shape, dtype=bool)
     if bmasks is not None:
@@ -494,8 +565,15 @@ def measure_cutouts(
     finite = np.isfinite(clean).all(axis=(1, 2)) if n else np.zeros(0, bool)
     skymad = masked_sky_mad(images, masked) if n else np.zeros(0)
     size = images.shape[1]
-    feats = measure_stamps(clean, origins, gain, max_shift=default_max_shift(size), engine=engine,
-                           finite=finite, skymad=skymad)
+    feats = measure_stamps(
+        clean,
+        origins,
+        gain,
+        max_shift=default_max_shift(size),
+        engine=engine,
+        finite=finite,
+        skymad=skymad,
+    )
     feats[MASKED_COLUMN] = masked.reshape(n, -1).sum(axis=1).astype(np.int32)
     bad = too_masked(masked, centres)
     feats["flags"][bad] |= fl.MASKED_PIXELS
@@ -504,7 +582,9 @@ def measure_cutouts(
         noise = weight_noise(np.asarray(weights), masked)
         feats[NOISE_COLUMN] = noise
         use = (feats["flags"] == 0) & np.isfinite(noise)
-        feats["snr"][use] = signal_to_noise(feats["adamom_flux"][use], feats["adamom_sigma"][use], noise[use], gain)
+        feats["snr"][use] = signal_to_noise(
+            feats["adamom_flux"][use], feats["adamom_sigma"][use], noise[use], gain
+        )
     if morphology:
         feats.update(morphology_of_measured(clean, origins, feats))
     return feats
@@ -518,7 +598,7 @@ def psf_features(psfs: np.ndarray, engine: str = DEFAULT_ENGINE) -> dict[str, np
     if psfs.ndim != 3 or psfs.shape[1] != psfs.shape[2]:
         raise InputError(f"PSF cutouts must be square, got {psfs.shape[1]}x{psfs.shape[2]}")
     res = measure_stamps(psfs, engine=engine) if n else {c: np.zeros(0) for c in FEATURE_COLUMNS}
-    out = {p: np.asarray(res[p[len("psf_"):]], dtype=np.float64) for p in PSF_COLUMNS}
+    out = {p: np.asarray(res[p[len("psf_") :]], dtype=np.float64) for p in PSF_COLUMNS}
     out["flags"] = np.where(np.asarray(res["flags"]) != 0, fl.PSF_FAILED, 0).astype(np.int32)
     return out
 
@@ -528,8 +608,14 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
     layout: Layout = unit["layout"]
     stamps = read_stamps(layout)
     feats = measure_cutouts(
-        stamps.images, stamps.weights, stamps.bmasks, origins=unit["origins"], centres=unit["centres"],
-        gain=unit["gain"], engine=unit["engine"], morphology=unit["morphology"],
+        stamps.images,
+        stamps.weights,
+        stamps.bmasks,
+        origins=unit["origins"],
+        centres=unit["centres"],
+        gain=unit["gain"],
+        engine=unit["engine"],
+        morphology=unit["morphology"],
     )
     psfs = None
     if stamps.psfs is not None and unit.get("psf_source") == "file":
@@ -551,7 +637,11 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
 
 
 def _metacal(
-    unit: dict[str, Any], mc: dict[str, Any], clean: np.ndarray, feats: dict[str, np.ndarray], psfs: np.ndarray | None
+    unit: dict[str, Any],
+    mc: dict[str, Any],
+    clean: np.ndarray,
+    feats: dict[str, np.ndarray],
+    psfs: np.ndarray | None,
 ) -> dict[str, np.ndarray]:
     """The metacal columns ``X_<type>`` of a unit's cleaned stamps, with the unit's PSFs."""
     from megalut_cli.measure.metacal import (  # GalSim: metacal only
@@ -577,9 +667,18 @@ def _metacal(
             psf_images, index = distinct_psfs(same_parity_psfs(psfs[ok], size))
             sigma_t = dilated_sigma(feats["psf_adamom_sigma"], mc["step"])
         res = metacal_features(
-            clean[ok], psf_images, mc["step"], noise_sigma=noise[ok], seeds=fixnoise_seeds(mc["seed"], unit["keys"][ok]),
-            metacal_engine=unit["engine"], psf_index=index, morphology=unit["morphology"], origins=unit["origins"][ok],
-            gain=unit["gain"], max_shift=default_max_shift(size), engine=unit["engine"],
+            clean[ok],
+            psf_images,
+            mc["step"],
+            noise_sigma=noise[ok],
+            seeds=fixnoise_seeds(mc["seed"], unit["keys"][ok]),
+            metacal_engine=unit["engine"],
+            psf_index=index,
+            morphology=unit["morphology"],
+            origins=unit["origins"][ok],
+            gain=unit["gain"],
+            max_shift=default_max_shift(size),
+            engine=unit["engine"],
         )
         for c, v in res.items():
             out[c][ok] = v
@@ -587,7 +686,9 @@ def _metacal(
         sigma_t = np.full(n, np.nan)
     for kind in TYPES:
         out[f"flags_{kind}"] |= base
-        nan_flagged(out, out[f"flags_{kind}"], [f"{c}_{kind}" for c in SOURCE_COLUMNS + MORPHOLOGY_COLUMNS])
+        nan_flagged(
+            out, out[f"flags_{kind}"], [f"{c}_{kind}" for c in SOURCE_COLUMNS + MORPHOLOGY_COLUMNS]
+        )
     if psfs is not None:  # per-object PSFs (one PSF for all: the caller adds its columns)
         out.update(target_psf_columns(np.where(ok, sigma_t, np.nan), size))
     return out
@@ -596,16 +697,28 @@ def _metacal(
 def extra_columns(meds: MedsFile) -> list[str]:
     """The scalar ``object_data`` columns outside the MEDS layout, passed through to the output
     (those named like a feature column are left out)."""
-    own = set(FEATURE_COLUMNS) | set(PSF_COLUMNS) | set(MORPHOLOGY_COLUMNS) | {MASKED_COLUMN, NOISE_COLUMN}
-    return [c for c, v in meds.objects.items() if c not in LAYOUT_COLUMNS and c not in own and v.ndim == 1]
+    own = (
+        set(FEATURE_COLUMNS)
+        | set(PSF_COLUMNS)
+        | set(MORPHOLOGY_COLUMNS)
+        | {MASKED_COLUMN, NOISE_COLUMN}
+    )
+    return [
+        c
+        for c, v in meds.objects.items()
+        if c not in LAYOUT_COLUMNS and c not in own and v.ndim == 1
+    ]
 
 
 def distinct_psfs(psfs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The distinct images of a PSF stack ``(n, P, P)`` and each stamp's index into them: objects
     sharing a PSF (a constant PSF, or one cutout per CCD) go through metacal's operation together."""
     flat = np.ascontiguousarray(psfs).reshape(len(psfs), -1)
-    _, first, index = np.unique(flat.view(np.dtype((np.void, flat.shape[1] * flat.itemsize))).ravel(),
-                                return_index=True, return_inverse=True)
+    _, first, index = np.unique(
+        flat.view(np.dtype((np.void, flat.shape[1] * flat.itemsize))).ravel(),
+        return_index=True,
+        return_inverse=True,
+    )
     return psfs[first], index.ravel()
 
 
@@ -680,8 +793,10 @@ def measure_meds(
         raise ConfigError(f"{name('cutout')} must be 0 or more, got {options.cutout}")
     has = np.asarray(obj["ncutout"]) > options.cutout
     if options.cutout >= meds.n_max or not has.any():
-        raise InputError(f"{meds.path}: no object has a cutout {options.cutout} ({name('cutout')}; "
-                         f"at most {meds.n_max} per object)")
+        raise InputError(
+            f"{meds.path}: no object has a cutout {options.cutout} ({name('cutout')}; "
+            f"at most {meds.n_max} per object)"
+        )
     model_given = psf_model is not None or options.psf_model_path is not None
     if options.psf_path is not None and model_given:
         raise ConfigError(f"give {name('psf_path')} or {name('psf_model_path')}, not both")
@@ -692,20 +807,38 @@ def measure_meds(
     else:
         source = "file" if meds.has("psf") else None
     if meds.has("psf") and source != "file":
-        log.info("%s: the PSF cutouts of the file are not used: the PSF comes from %s", meds.path,
-                 name("psf_model_path") if source == "model" else name("psf_path"))
+        log.info(
+            "%s: the PSF cutouts of the file are not used: the PSF comes from %s",
+            meds.path,
+            name("psf_model_path") if source == "model" else name("psf_path"),
+        )
     if options.metacal and source is None:
         raise ConfigError(
             f"{name('metacal')} needs a PSF: PSF cutouts in the MEDS file, {name('psf_path')} or {name('psf_model_path')}"
         )
-    what = "the coadd" if options.cutout == 0 and meds.first_is_coadd() else (
-        "the first cutout; the file does not mark it as a coadd" if options.cutout == 0
-        else "a single-epoch cutout")
-    log.info("%s: measuring cutout %d (%s) of each of %d objects", meds.path, options.cutout, what,
-             int(has.sum()))
+    what = (
+        "the coadd"
+        if options.cutout == 0 and meds.first_is_coadd()
+        else (
+            "the first cutout; the file does not mark it as a coadd"
+            if options.cutout == 0
+            else "a single-epoch cutout"
+        )
+    )
+    log.info(
+        "%s: measuring cutout %d (%s) of each of %d objects",
+        meds.path,
+        options.cutout,
+        what,
+        int(has.sum()),
+    )
     if (~has).any():
-        log.warning("%s: %d object(s) without cutout %d: flagged NO_CUTOUT", meds.path,
-                    int((~has).sum()), options.cutout)
+        log.warning(
+            "%s: %d object(s) without cutout %d: flagged NO_CUTOUT",
+            meds.path,
+            int((~has).sum()),
+            options.cutout,
+        )
 
     rows_all = np.arange(n)
     box = obj["box_size"].astype(np.int64)
@@ -725,9 +858,13 @@ def measure_meds(
         model = cached_psf_model(str(options.psf_model_path))
         far = model.outside(model_xy[has, 0], model_xy[has, 1])
         if far.any():
-            log.warning("%s: %d of %d object(s) lie outside the area of the stars the model was fit to: its PSF "
-                        "there is an extrapolation", options.psf_model_path, int(far.sum()),
-                        int(has.sum()))
+            log.warning(
+                "%s: %d of %d object(s) lie outside the area of the stars the model was fit to: its PSF "
+                "there is an extrapolation",
+                options.psf_model_path,
+                int(far.sum()),
+                int(has.sum()),
+            )
 
     single = None
     mc: dict[str, Any] | None = None
@@ -738,7 +875,8 @@ def measure_meds(
         top = MEASURE["metacal_step"].maximum
         if not 0 < options.metacal_step <= top:
             raise ConfigError(
-                f"{name('metacal_step')} must be in (0, {top}], got {options.metacal_step}")
+                f"{name('metacal_step')} must be in (0, {top}], got {options.metacal_step}"
+            )
         mc = {"step": float(options.metacal_step), "seed": int(options.seed)}
         if single is not None:
             from megalut_cli.measure.metacal import target_psf_sigma  # GalSim: metacal only
@@ -758,7 +896,9 @@ def measure_meds(
     for key in np.unique(keys[has], axis=0):
         groups.append(rows_all[has & np.all(keys == key, axis=1)])
     workers = 2 if scheduler else resolve_nproc(nproc)
-    n_units = max(-(-int(has.sum()) // CHUNK_OBJECTS), min(4 * workers, int(has.sum())) if workers > 1 else 1)
+    n_units = max(
+        -(-int(has.sum()) // CHUNK_OBJECTS), min(4 * workers, int(has.sum())) if workers > 1 else 1
+    )
     pieces: list[np.ndarray] = []
     for g in groups:
         share = max(1, round(n_units * len(g) / max(int(has.sum()), 1)))
@@ -768,9 +908,13 @@ def measure_meds(
     for p in pieces:
         unit: dict[str, Any] = {
             "layout": file_meds.layout(p, options.cutout, psf=source == "file"),
-            "origins": origins[p], "centres": centres[p], "gain": options.gain,
-            "engine": options.engine, "morphology": options.morphology,
-            "keys": p.astype(np.int64), "psf_source": source,
+            "origins": origins[p],
+            "centres": centres[p],
+            "gain": options.gain,
+            "engine": options.engine,
+            "morphology": options.morphology,
+            "keys": p.astype(np.int64),
+            "psf_source": source,
         }
         if source == "model":
             if psf_model is not None:
@@ -784,7 +928,9 @@ def measure_meds(
     if source == "model" and psf_model is not None and (nproc != 1 or scheduler):
         nproc, scheduler = 1, None  # an object in memory: measured in this process
 
-    names_out = list(FEATURE_COLUMNS) + [MASKED_COLUMN] + ([NOISE_COLUMN] if meds.has("weight") else [])
+    names_out = (
+        list(FEATURE_COLUMNS) + [MASKED_COLUMN] + ([NOISE_COLUMN] if meds.has("weight") else [])
+    )
     names_out += list(MORPHOLOGY_COLUMNS) if options.morphology else []
     psf_cols = list(PSF_COLUMNS) if source is not None else []
     out: dict[str, np.ndarray] = {}
@@ -807,18 +953,29 @@ def measure_meds(
     if mc is not None:
         morph = list(MORPHOLOGY_COLUMNS) if options.morphology else []
         for c in metacal_columns(names_out[: len(FEATURE_COLUMNS)] + morph):
-            cols[c] = np.where(has, 0, fl.NO_CUTOUT).astype(np.int32) if c.startswith("flags_") else np.full(n, np.nan)
+            cols[c] = (
+                np.where(has, 0, fl.NO_CUTOUT).astype(np.int32)
+                if c.startswith("flags_")
+                else np.full(n, np.nan)
+            )
         for c in metacal_columns(psf_cols):
             cols[c] = np.full(n, np.nan)
 
     t0 = time.perf_counter()
-    with executor(nproc, scheduler, len(units)) as pool, (progress or no_progress)("measuring MEDS objects",
-                                                                                   int(has.sum())) as update:
+    with (
+        executor(nproc, scheduler, len(units)) as pool,
+        (progress or no_progress)("measuring MEDS objects", int(has.sum())) as update,
+    ):
         sizes = iter([len(p) for p in pieces])
         results = map_units(_measure_unit, units, pool, lambda _n: update(next(sizes)))
     dt = time.perf_counter() - t0
     if has.any():
-        log.info("measured %d objects in %.1f s (%.2f ms/object)", int(has.sum()), dt, 1e3 * dt / int(has.sum()))
+        log.info(
+            "measured %d objects in %.1f s (%.2f ms/object)",
+            int(has.sum()),
+            dt,
+            1e3 * dt / int(has.sum()),
+        )
     for piece, res in zip(pieces, results):
         for c, v in res.items():
             if c in cols:
@@ -831,7 +988,9 @@ def measure_meds(
 
             for b in np.unique(box[has]):
                 rows = has & (box == b)
-                for c, v in target_psf_columns(np.full(int(rows.sum()), mc["target_sigma"]), int(b)).items():
+                for c, v in target_psf_columns(
+                    np.full(int(rows.sum()), mc["target_sigma"]), int(b)
+                ).items():
                     cols[c][rows] = v
     out.update(cols)
     return out
@@ -858,10 +1017,14 @@ def measure_meds_file(
     if options.gain is not None and not (math.isfinite(options.gain) and options.gain > 0):
         raise ConfigError(f"{name('gain')} must be a positive number, got {options.gain}")
     if device == "gpu":
-        log.info("MEDS input is measured on the CPU (masked stamps); %s gpu is not used here", name("device"))
+        log.info(
+            "MEDS input is measured on the CPU (masked stamps); %s gpu is not used here",
+            name("device"),
+        )
     meds = read_meds(meds_path)
-    columns = measure_meds(meds, options, nproc=nproc, scheduler=scheduler, progress=progress,
-                           names=names)
+    columns = measure_meds(
+        meds, options, nproc=nproc, scheduler=scheduler, progress=progress, names=names
+    )
     flags = columns["flags"]
     log.info("%d of %d objects flagged (features NaN)", int((flags != 0).sum()), len(flags))
     warn_if_mostly_flagged(flags, str(meds_path), names)
@@ -869,12 +1032,17 @@ def measure_meds_file(
     cards: dict[str, Any] = {
         FILE_CARD: (os.path.basename(str(meds_path)), "MEDS file measured"),
         CUTOUT_CARD: (int(options.cutout), "MEDS cutout index measured (0: coadd or first)"),
-        COADD_CARD: (bool(options.cutout == 0 and meds.first_is_coadd()),
-                     "the measured cutouts are coadds"),
+        COADD_CARD: (
+            bool(options.cutout == 0 and meds.first_is_coadd()),
+            "the measured cutouts are coadds",
+        ),
         "STAMPSZ": (int(boxes[0]), "stamp size [pixels]") if len(boxes) == 1 else None,
-        "GAIN": (options.gain, "gain [e-/ADU] of the S/N (Eq. 8)") if options.gain is not None
+        "GAIN": (options.gain, "gain [e-/ADU] of the S/N (Eq. 8)")
+        if options.gain is not None
         else None,
-        "MAXSHIFT": (default_max_shift(int(boxes[0])), "centroid shift limit [pixels]") if len(boxes) == 1 else None,
+        "MAXSHIFT": (default_max_shift(int(boxes[0])), "centroid shift limit [pixels]")
+        if len(boxes) == 1
+        else None,
         "MENGINE": (options.engine, "engine of the adaptive moments (megalut --engine)"),
         "NOISEWT": (meds.has("weight"), "snr from the weight-map noise (noise_weight)"),
         "MASKFRAC": (MAX_MASKED_FRACTION, "masked fraction above which MASKED_PIXELS"),
@@ -883,11 +1051,17 @@ def measure_meds_file(
     if options.psf_model_path is not None:
         cards.update(cached_psf_model(str(options.psf_model_path)).header_cards())
     if options.metacal:
-        cards[STEP_CARD] = (float(options.metacal_step),
-                            "metacal shear step (measure --metacal-step)")
-        cards[SEED_CARD] = (int(options.seed),
-                            "seed of the metacal fixnoise fields (measure --seed)")
-    write_catalog(output, columns, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards)
+        cards[STEP_CARD] = (
+            float(options.metacal_step),
+            "metacal shear step (measure --metacal-step)",
+        )
+        cards[SEED_CARD] = (
+            int(options.seed),
+            "seed of the metacal fixnoise fields (measure --seed)",
+        )
+    write_catalog(
+        output, columns, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards
+    )
     log.info("wrote %s (%d rows)", output, len(flags))
     return columns, cards
 
@@ -942,8 +1116,11 @@ def write_meds(
     imgs = _as_cutout_lists(images, None, "images")
     assert imgs is not None
     n = len(imgs)
-    maps = {"weight": _as_cutout_lists(weights, n, "weights"), "bmask": _as_cutout_lists(bmasks, n, "bmasks"),
-            "seg": _as_cutout_lists(segs, n, "segs")}
+    maps = {
+        "weight": _as_cutout_lists(weights, n, "weights"),
+        "bmask": _as_cutout_lists(bmasks, n, "bmasks"),
+        "seg": _as_cutout_lists(segs, n, "segs"),
+    }
     psf_lists = _as_cutout_lists(psfs, n, "psfs")
     ncut = np.array([len(c) for c in imgs], dtype=np.int64)
     nmax = max(int(ncut.max()) if n else 1, 1)
@@ -953,7 +1130,9 @@ def write_meds(
     for i, cuts in enumerate(imgs):
         shapes = {c.shape for c in cuts}
         if len(shapes) > 1 or any(s[0] != s[1] for s in shapes):
-            raise ValueError(f"object {i}: cutouts must be square and of one size, got {sorted(shapes)}")
+            raise ValueError(
+                f"object {i}: cutouts must be square and of one size, got {sorted(shapes)}"
+            )
         boxes[i] = next(iter(shapes))[0] if shapes else (boxes[i - 1] if i else 32)
         for kind, lists in maps.items():
             if lists is not None and [c.shape for c in lists[i]] != [c.shape for c in cuts]:
@@ -968,21 +1147,39 @@ def write_meds(
         return np.repeat(arr[:, None], nmax, axis=1) if arr.ndim == 1 else arr[:, :nmax]
 
     dtype: list[Any] = [
-        ("id", "i8"), ("number", "i4"), ("box_size", "i8"),
-        *([("ra", "f8"), ("dec", "f8")] if ra is not None and dec is not None else []), ("ncutout", "i8"),
-        ("file_id", "i8", (nmax,)), ("start_row", "i8", (nmax,)),
-        ("orig_row", "f8", (nmax,)), ("orig_col", "f8", (nmax,)),
-        ("orig_start_row", "i8", (nmax,)), ("orig_start_col", "i8", (nmax,)),
-        ("cutout_row", "f8", (nmax,)), ("cutout_col", "f8", (nmax,)),
-        ("dudrow", "f8", (nmax,)), ("dudcol", "f8", (nmax,)), ("dvdrow", "f8", (nmax,)), ("dvdcol", "f8", (nmax,)),
+        ("id", "i8"),
+        ("number", "i4"),
+        ("box_size", "i8"),
+        *([("ra", "f8"), ("dec", "f8")] if ra is not None and dec is not None else []),
+        ("ncutout", "i8"),
+        ("file_id", "i8", (nmax,)),
+        ("start_row", "i8", (nmax,)),
+        ("orig_row", "f8", (nmax,)),
+        ("orig_col", "f8", (nmax,)),
+        ("orig_start_row", "i8", (nmax,)),
+        ("orig_start_col", "i8", (nmax,)),
+        ("cutout_row", "f8", (nmax,)),
+        ("cutout_col", "f8", (nmax,)),
+        ("dudrow", "f8", (nmax,)),
+        ("dudcol", "f8", (nmax,)),
+        ("dvdrow", "f8", (nmax,)),
+        ("dvdcol", "f8", (nmax,)),
     ]
     if psf_lists is not None:
-        dtype += [("psf_box_size", "i8"), ("psf_row_size", "i8", (nmax,)), ("psf_col_size", "i8", (nmax,)),
-                  ("psf_start_row", "i8", (nmax,)), ("psf_cutout_row", "f8", (nmax,)), ("psf_cutout_col", "f8", (nmax,))]
+        dtype += [
+            ("psf_box_size", "i8"),
+            ("psf_row_size", "i8", (nmax,)),
+            ("psf_col_size", "i8", (nmax,)),
+            ("psf_start_row", "i8", (nmax,)),
+            ("psf_cutout_row", "f8", (nmax,)),
+            ("psf_cutout_col", "f8", (nmax,)),
+        ]
     extra = {c: np.asarray(v) for c, v in (extra or {}).items()}
     clash = sorted(set(extra) & LAYOUT_COLUMNS)
     if clash or any(v.shape != (n,) for v in extra.values()):
-        raise ValueError(f"extra columns must be (n,) arrays outside the MEDS layout (got {clash or list(extra)})")
+        raise ValueError(
+            f"extra columns must be (n,) arrays outside the MEDS layout (got {clash or list(extra)})"
+        )
     dtype += [(c, v.dtype.str) for c, v in extra.items()]
     od = np.zeros(n, dtype=dtype)
     for c in od.dtype.names:
@@ -1020,13 +1217,36 @@ def write_meds(
         if psf_lists is not None and psf_lists[i]:
             od["psf_box_size"][i] = psf_lists[i][0].shape[0]
 
-    info = np.zeros(nmax, dtype=[("image_path", "S16"), ("image_ext", "i2"), ("image_id", "i8"),
-                                 ("image_flags", "i8"), ("magzp", "f4"), ("scale", "f4"), ("position_offset", "f8")])
-    info["image_path"] = [("coadd" if k == 0 and first_is_coadd else f"epoch_{k}").encode() for k in range(nmax)]
+    info = np.zeros(
+        nmax,
+        dtype=[
+            ("image_path", "S16"),
+            ("image_ext", "i2"),
+            ("image_id", "i8"),
+            ("image_flags", "i8"),
+            ("magzp", "f4"),
+            ("scale", "f4"),
+            ("position_offset", "f8"),
+        ],
+    )
+    info["image_path"] = [
+        ("coadd" if k == 0 and first_is_coadd else f"epoch_{k}").encode() for k in range(nmax)
+    ]
     info["image_id"] = np.arange(nmax)
     info["magzp"], info["scale"], info["position_offset"] = 30.0, 1.0, 1.0
-    meta = np.zeros(1, dtype=[("medsconf", "S16"), ("first_image_is_coadd", "i2"), ("creator", f"S{len(CREATOR)}")])
-    meta["medsconf"], meta["first_image_is_coadd"], meta["creator"] = b"megalut", int(first_is_coadd), CREATOR.encode()
+    meta = np.zeros(
+        1,
+        dtype=[
+            ("medsconf", "S16"),
+            ("first_image_is_coadd", "i2"),
+            ("creator", f"S{len(CREATOR)}"),
+        ],
+    )
+    meta["medsconf"], meta["first_image_is_coadd"], meta["creator"] = (
+        b"megalut",
+        int(first_is_coadd),
+        CREATOR.encode(),
+    )
 
     def flat(lists: list[list[np.ndarray]], dtype: str) -> np.ndarray:
         parts = [np.asarray(c, dtype=dtype).ravel() for cuts in lists for c in cuts]

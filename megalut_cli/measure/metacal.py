@@ -56,7 +56,9 @@ def target_psf_sigma(psf_image: np.ndarray, step: float = DEFAULT_STEP) -> float
     """Sigma of the round Gaussian target PSF: the adaptive-moment sigma of ``psf_image``
     (which holds the pixel), dilated by ``1 + 2|step|`` so that the sheared, deconvolved
     galaxy's high frequencies stay under the target."""
-    res = galsim.hsm.FindAdaptiveMom(galsim.ImageD(np.asarray(psf_image, dtype=np.float64), scale=1.0))
+    res = galsim.hsm.FindAdaptiveMom(
+        galsim.ImageD(np.asarray(psf_image, dtype=np.float64), scale=1.0)
+    )
     # the round-equivalent size of an elliptical PSF: sigma = det(M)^(1/4)
     return float(dilated_sigma(res.moments_sigma, step))
 
@@ -86,7 +88,9 @@ def _check_psf(psf_image: np.ndarray, step: float) -> None:
 def _operation(psf_image: np.ndarray, step: float) -> _Operation:
     """The operation for one PSF image (checked) and step."""
     _check_psf(psf_image, step)
-    psf = galsim.InterpolatedImage(galsim.ImageD(psf_image / psf_image.sum(), scale=1.0), x_interpolant=INTERPOLANT)
+    psf = galsim.InterpolatedImage(
+        galsim.ImageD(psf_image / psf_image.sum(), scale=1.0), x_interpolant=INTERPOLANT
+    )
     return _Operation(psf, galsim.Gaussian(sigma=target_psf_sigma(psf_image, step)), step)
 
 
@@ -98,8 +102,14 @@ def _versions(image: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
     out = {}
     for kind in TYPES:
         s1, s2 = SHEARS[kind]
-        sheared = deconvolved if kind == "noshear" else deconvolved.shear(g1=s1 * op.step, g2=s2 * op.step)
-        drawn = galsim.Convolve(sheared, op.target).drawImage(nx=nx, ny=ny, scale=1.0, method="no_pixel")
+        sheared = (
+            deconvolved
+            if kind == "noshear"
+            else deconvolved.shear(g1=s1 * op.step, g2=s2 * op.step)
+        )
+        drawn = galsim.Convolve(sheared, op.target).drawImage(
+            nx=nx, ny=ny, scale=1.0, method="no_pixel"
+        )
         out[kind] = drawn.array.astype(np.float64)
     return out
 
@@ -109,7 +119,9 @@ def noise_field(sigma: float, seed: int, shape: tuple[int, int]) -> np.ndarray:
     return np.random.default_rng(int(seed)).normal(0.0, sigma, shape)
 
 
-def _linear_versions(images: np.ndarray, psf_image: np.ndarray, op: _Operation, engine: str) -> dict[str, np.ndarray]:
+def _linear_versions(
+    images: np.ndarray, psf_image: np.ndarray, op: _Operation, engine: str
+) -> dict[str, np.ndarray]:
     """The operation (linear in the image) on a stack ``(n, S, S)`` that shares one PSF."""
     if engine == "fast":
         return fft_versions(images, psf_image, op.step, op.target.sigma)
@@ -147,7 +159,12 @@ def _with_fixnoise(
 
 
 def _fast_several_psfs(
-    stamps: np.ndarray, psfs: np.ndarray, psf_index: np.ndarray, step: float, sigmas: np.ndarray, seeds: np.ndarray
+    stamps: np.ndarray,
+    psfs: np.ndarray,
+    psf_index: np.ndarray,
+    step: float,
+    sigmas: np.ndarray,
+    seeds: np.ndarray,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """:func:`metacal_versions` with the fast engine and several PSFs: every stamp and its
     fixnoise field through one :func:`~.metacal_fft_multi.fft_versions_multi` call (the
@@ -218,12 +235,18 @@ def metacal_versions(
     bad = ~np.isfinite(stamps).all(axis=(1, 2)) if n else np.zeros(0, bool)
     if bad.any():
         raise ValueError(f"stamp {int(np.flatnonzero(bad)[0])} holds NaN or infinite pixels")
-    sigmas = np.zeros(n) if noise_sigma is None else np.nan_to_num(np.asarray(noise_sigma, dtype=np.float64), nan=0.0)
+    sigmas = (
+        np.zeros(n)
+        if noise_sigma is None
+        else np.nan_to_num(np.asarray(noise_sigma, dtype=np.float64), nan=0.0)
+    )
     seeds = np.arange(n, dtype=np.int64) if seeds is None else np.asarray(seeds, dtype=np.int64)
     groups = np.unique(psf_index)
     if len(groups) == 1:  # one PSF (the usual case): no copy into a new stack
         op = _operation(psfs[groups[0]], step)
-        return _with_fixnoise(stamps, psfs[groups[0]], op, sigmas, seeds, engine), np.full(n, op.target.sigma)
+        return _with_fixnoise(stamps, psfs[groups[0]], op, sigmas, seeds, engine), np.full(
+            n, op.target.sigma
+        )
     if engine == "fast":
         return _fast_several_psfs(stamps, psfs, psf_index, step, sigmas, seeds)
     versions = {kind: np.empty_like(stamps) for kind in TYPES}
@@ -247,7 +270,11 @@ def fixnoise_seeds(seed: int, keys: Sequence[int] | np.ndarray) -> np.ndarray:
 
 def target_psf_image(target_sigma: float, size: int) -> np.ndarray:
     """The round Gaussian target PSF as the versions hold it (no pixel), ``size`` pixels."""
-    return galsim.Gaussian(sigma=target_sigma).drawImage(nx=size, ny=size, scale=1.0, method="no_pixel").array
+    return (
+        galsim.Gaussian(sigma=target_sigma)
+        .drawImage(nx=size, ny=size, scale=1.0, method="no_pixel")
+        .array
+    )
 
 
 def metacal_images(
@@ -290,7 +317,9 @@ def metacal_features(
     Arguments as :func:`metacal_versions` (``metacal_engine`` is its ``engine``);
     ``measure_kw`` go to ``measure_stamps``.
     """
-    versions, _ = metacal_versions(stamps, psf_images, step, noise_sigma, seeds, metacal_engine, psf_index)
+    versions, _ = metacal_versions(
+        stamps, psf_images, step, noise_sigma, seeds, metacal_engine, psf_index
+    )
     out: dict[str, np.ndarray] = {}
     for kind in TYPES:
         feats = measure_stamps(versions[kind], **measure_kw)
@@ -312,7 +341,9 @@ def target_psf_columns(target_sigma: np.ndarray, size: int) -> dict[str, np.ndar
     """``psf_<X>_<type>`` of each row from its target PSF sigma (NaN where not finite; the same
     for the five types), each distinct sigma measured once."""
     sigma = np.asarray(target_sigma, dtype=np.float64)
-    out = {f"psf_{c}_{kind}": np.full(len(sigma), np.nan) for kind in TYPES for c in TARGET_PSF_COLUMNS}
+    out = {
+        f"psf_{c}_{kind}": np.full(len(sigma), np.nan) for kind in TYPES for c in TARGET_PSF_COLUMNS
+    }
     finite = np.isfinite(sigma)
     rounded = np.round(sigma, 6)
     for value in np.unique(rounded[finite]):

@@ -3,7 +3,13 @@
 #: The five versions of a stamp, in output order.
 TYPES = ("noshear", "1p", "1m", "2p", "2m")
 #: The applied shear of each version, for a step of 1.
-SHEARS = {"noshear": (0.0, 0.0), "1p": (1.0, 0.0), "1m": (-1.0, 0.0), "2p": (0.0, 1.0), "2m": (0.0, -1.0)}
+SHEARS = {
+    "noshear": (0.0, 0.0),
+    "1p": (1.0, 0.0),
+    "1m": (-1.0, 0.0),
+    "2p": (0.0, 1.0),
+    "2m": (0.0, -1.0),
+}
 #: The default shear step.
 DEFAULT_STEP = 0.01
 #: The step's range: above 0.1 the finite difference is no longer a first-order response.

@@ -73,7 +73,11 @@ def _interpolated_dft(image: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.n
     py, wy = quintic_taps(qy / dkp)
     p = np.arange(px.min(), px.max() + 6)
     r = np.arange(py.min(), py.max() + 6)
-    nodes = np.exp(-1j * dkp * np.outer(r, x)) @ image.astype(complex) @ np.exp(-1j * dkp * np.outer(x, p))
+    nodes = (
+        np.exp(-1j * dkp * np.outer(r, x))
+        @ image.astype(complex)
+        @ np.exp(-1j * dkp * np.outer(x, p))
+    )
     six = np.arange(6)
     flat = ((py - r[0])[:, None, None] + six[:, None]) * len(p) + (px - p[0])[:, None, None] + six
     taps = nodes.ravel()[flat.reshape(len(qx), 36)].view(np.float64).reshape(len(qx), 36, 2)
@@ -98,7 +102,9 @@ def sheared_k2(ii: np.ndarray, jj: np.ndarray, dk: float, g1: float, g2: float) 
     return (kx**2 + ky**2) * dk**2
 
 
-def _beyond(ii: np.ndarray, jj: np.ndarray, dk: float, g1: float, g2: float, maxk: float) -> np.ndarray:
+def _beyond(
+    ii: np.ndarray, jj: np.ndarray, dk: float, g1: float, g2: float, maxk: float
+) -> np.ndarray:
     """Where GalSim's ``Deconvolution`` sets the k image to 0: ``|S k|^2 > maxk^2``."""
     return sheared_k2(ii, jj, dk, g1, g2) > maxk**2
 
@@ -147,7 +153,13 @@ class Plan:
 
 @functools.lru_cache(maxsize=16)
 def _plan(
-    psf_bytes: bytes, psf_size: int, size: int, n_grid: int, step: float, target_sigma: float, dtype: str
+    psf_bytes: bytes,
+    psf_size: int,
+    size: int,
+    n_grid: int,
+    step: float,
+    target_sigma: float,
+    dtype: str,
 ) -> Plan:
     """The plan (cached on the PSF's bytes and the parameters), in ``dtype``."""
     psf, maxk, _ = psf_params(psf_bytes, psf_size)
@@ -173,7 +185,9 @@ def _plan(
         points.append((m[0, 1] == 0.0, inside, qx, qy))
     qx_all = np.concatenate([p[2] for p in points])
     qy_all = np.concatenate([p[3] for p in points])
-    lanczos = lanczos_kvalue(qx_all) * lanczos_kvalue(qy_all)  # the x interpolant, the stamp's and the PSF's
+    lanczos = lanczos_kvalue(qx_all) * lanczos_kvalue(
+        qy_all
+    )  # the x interpolant, the stamp's and the PSF's
     pk_all = _interpolated_dft(psf, qx_all, qy_all) * lanczos
     raw = []
     first = 0
@@ -219,7 +233,9 @@ def _plan(
     for sep, p0, wx, r0, wy, wr, wi in tables:
         p0 = p0 - p_lo
         r0 = r0 + ry
-        versions.append(Version(sep, p0, wx.astype(dt), r0, wy.astype(dt), wr.astype(dt), wi.astype(dt)))
+        versions.append(
+            Version(sep, p0, wx.astype(dt), r0, wy.astype(dt), wr.astype(dt), wi.astype(dt))
+        )
     t = np.arange(size // 2 + 1)
     r, p = np.arange(ry + 1), np.arange(p_lo, p_lo + np_)
     j, i = np.arange(ky_n + 1), np.arange(kx_n + 1)
@@ -309,7 +325,9 @@ def _padded_dft(top: np.ndarray, bottom: np.ndarray, f: np.ndarray) -> None:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _store(ap: np.ndarray, am: np.ndarray, wr: np.ndarray, wi: np.ndarray, j: int, i: int, q: np.ndarray) -> None:
+def _store(
+    ap: np.ndarray, am: np.ndarray, wr: np.ndarray, wi: np.ndarray, j: int, i: int, q: np.ndarray
+) -> None:
     """Slot ``(j, i)``: the k values ``O+- = acc+- * w+-`` of the points ``(+-j, i)`` into
     ``q[:, s] = [[Oe_r, Oe_i], [Oo_i, -Oo_r]]`` (``Oe = O+ + O-``, ``Oo = O+ - O-``)."""
     m = q.shape[1]
@@ -329,7 +347,14 @@ def _store(ap: np.ndarray, am: np.ndarray, wr: np.ndarray, wi: np.ndarray, j: in
 
 @njit(cache=True, nogil=True, fastmath=True)
 def _slots_full(
-    f: np.ndarray, p0: np.ndarray, wx: np.ndarray, r0: np.ndarray, wy: np.ndarray, wr: np.ndarray, wi: np.ndarray, q: np.ndarray
+    f: np.ndarray,
+    p0: np.ndarray,
+    wx: np.ndarray,
+    r0: np.ndarray,
+    wy: np.ndarray,
+    wr: np.ndarray,
+    wi: np.ndarray,
+    q: np.ndarray,
 ) -> None:
     """Each slot's two k values by six by six Quintic taps of ``f``, into ``q``."""
     m2 = f.shape[2]
@@ -347,9 +372,23 @@ def _slots_full(
                 for t in range(6):
                     src = f[r0[h, j, i] + t]
                     wt = wy[h, j, i, t]
-                    s0, s1, s2, s3, s4, s5 = src[p], src[p + 1], src[p + 2], src[p + 3], src[p + 4], src[p + 5]
+                    s0, s1, s2, s3, s4, s5 = (
+                        src[p],
+                        src[p + 1],
+                        src[p + 2],
+                        src[p + 3],
+                        src[p + 4],
+                        src[p + 5],
+                    )
                     for s in range(m2):
-                        a[s] += wt * (w0 * s0[s] + w1 * s1[s] + w2 * s2[s] + w3 * s3[s] + w4 * s4[s] + w5 * s5[s])
+                        a[s] += wt * (
+                            w0 * s0[s]
+                            + w1 * s1[s]
+                            + w2 * s2[s]
+                            + w3 * s3[s]
+                            + w4 * s4[s]
+                            + w5 * s5[s]
+                        )
             _store(acc[0], acc[1], wr, wi, j, i, q)
 
 
@@ -384,17 +423,52 @@ def _slots_sep(
         for i in range(n_col):
             p = p0[i]
             w0, w1, w2, w3, w4, w5 = wx[i, 0], wx[i, 1], wx[i, 2], wx[i, 3], wx[i, 4], wx[i, 5]
-            s0, s1, s2, s3, s4, s5 = src[p], src[p + 1], src[p + 2], src[p + 3], src[p + 4], src[p + 5]
+            s0, s1, s2, s3, s4, s5 = (
+                src[p],
+                src[p + 1],
+                src[p + 2],
+                src[p + 3],
+                src[p + 4],
+                src[p + 5],
+            )
             d = wk[i]
             for s in range(m2):
                 d[s] = w0 * s0[s] + w1 * s1[s] + w2 * s2[s] + w3 * s3[s] + w4 * s4[s] + w5 * s5[s]
     a0, a1 = acc[0], acc[1]
     for j in range(ky + 1):
         rp, rm = r0[ky + j] - r_lo, r0[ky - j] - r_lo
-        v0, v1, v2, v3, v4, v5 = wy[ky + j, 0], wy[ky + j, 1], wy[ky + j, 2], wy[ky + j, 3], wy[ky + j, 4], wy[ky + j, 5]
-        w0, w1, w2, w3, w4, w5 = wy[ky - j, 0], wy[ky - j, 1], wy[ky - j, 2], wy[ky - j, 3], wy[ky - j, 4], wy[ky - j, 5]
-        t0, t1, t2, t3, t4, t5 = work[rp], work[rp + 1], work[rp + 2], work[rp + 3], work[rp + 4], work[rp + 5]
-        u0, u1, u2, u3, u4, u5 = work[rm], work[rm + 1], work[rm + 2], work[rm + 3], work[rm + 4], work[rm + 5]
+        v0, v1, v2, v3, v4, v5 = (
+            wy[ky + j, 0],
+            wy[ky + j, 1],
+            wy[ky + j, 2],
+            wy[ky + j, 3],
+            wy[ky + j, 4],
+            wy[ky + j, 5],
+        )
+        w0, w1, w2, w3, w4, w5 = (
+            wy[ky - j, 0],
+            wy[ky - j, 1],
+            wy[ky - j, 2],
+            wy[ky - j, 3],
+            wy[ky - j, 4],
+            wy[ky - j, 5],
+        )
+        t0, t1, t2, t3, t4, t5 = (
+            work[rp],
+            work[rp + 1],
+            work[rp + 2],
+            work[rp + 3],
+            work[rp + 4],
+            work[rp + 5],
+        )
+        u0, u1, u2, u3, u4, u5 = (
+            work[rm],
+            work[rm + 1],
+            work[rm + 2],
+            work[rm + 3],
+            work[rm + 4],
+            work[rm + 5],
+        )
         for i in range(n_col):
             b0, b1, b2, b3, b4, b5 = t0[i], t1[i], t2[i], t3[i], t4[i], t5[i]
             for s in range(m2):
@@ -406,7 +480,9 @@ def _slots_sep(
 
 
 @njit(cache=True, nogil=True)
-def _unfold(u1: np.ndarray, u2: np.ndarray, u3: np.ndarray, u4: np.ndarray, out: np.ndarray) -> None:
+def _unfold(
+    u1: np.ndarray, u2: np.ndarray, u3: np.ndarray, u4: np.ndarray, out: np.ndarray
+) -> None:
     """The stamps ``out`` (m, S, S) from the folded products ``(ty, m, tx)``: at ``(c +- ty, c +- tx)``,
     ``u1 -+ u2 -+ u3 +- u4`` with the signs of the y side on u2 and of the x side on u3
     (``u1 = A_r Cx``, ``u2 = B_r Cx``, ``u3 = A_i Sx``, ``u4 = B_i Sx``)."""
@@ -479,7 +555,9 @@ def draw_slots(plan: Plan, ws: Workspace, out: np.ndarray) -> None:
     _unfold(u[0], u[1], u[2], u[3], out)
 
 
-def _run(plan: Plan, images: np.ndarray, out: np.ndarray, which: tuple[int, ...], ws: Workspace) -> None:
+def _run(
+    plan: Plan, images: np.ndarray, out: np.ndarray, which: tuple[int, ...], ws: Workspace
+) -> None:
     """Versions ``which`` of the stamps ``images`` (m, S, S) into ``out`` (V, m, S, S)."""
     if images.shape[0] != ws.m:
         ws = Workspace(plan, images.shape[0])
@@ -589,7 +667,11 @@ def fft_versions(
     n, size = images.shape[:2]
     if out is None:
         out = np.empty((len(TYPES), n, size, size))
-    elif out.shape != (len(TYPES), n, size, size) or out.dtype != np.float64 or not out.flags.c_contiguous:
+    elif (
+        out.shape != (len(TYPES), n, size, size)
+        or out.dtype != np.float64
+        or not out.flags.c_contiguous
+    ):
         raise ValueError(f"out must be a C-contiguous float64 array {(len(TYPES), n, size, size)}")
     if n:
         key = (psf.tobytes(), psf.shape[0])

@@ -58,7 +58,13 @@ _KVALUE_ACCURACY = galsim.GSParams().kvalue_accuracy
 
 @njit(cache=True, nogil=True)
 def _gather36(
-    nodes: np.ndarray, idx: np.ndarray, px: np.ndarray, wx: np.ndarray, py: np.ndarray, wy: np.ndarray, out: np.ndarray
+    nodes: np.ndarray,
+    idx: np.ndarray,
+    px: np.ndarray,
+    wx: np.ndarray,
+    py: np.ndarray,
+    wy: np.ndarray,
+    out: np.ndarray,
 ) -> None:
     """``out[n, k] = sum_ty sum_tx wy[i, ty] wx[i, tx] nodes[py[i] + ty, px[i] + tx, k]``
     (``i = idx[n]``): six by six Quintic taps of the PSFs' padded DFTs ``nodes`` (rows,
@@ -112,7 +118,9 @@ def _fill_weights(
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _store_multi(ap: np.ndarray, am: np.ndarray, wr: np.ndarray, wi: np.ndarray, j: int, i: int, q: np.ndarray) -> None:
+def _store_multi(
+    ap: np.ndarray, am: np.ndarray, wr: np.ndarray, wi: np.ndarray, j: int, i: int, q: np.ndarray
+) -> None:
     """:mod:`.metacal_fft`'s slot store with the weights of stamp ``s`` in ``wr[:, j, i, s]``."""
     m = q.shape[1]
     kyh = q.shape[0] // 2
@@ -152,9 +160,23 @@ def _slots_full_multi(
                 for t in range(6):
                     src = f[r0[h, j, i] + t]
                     wt = wy[h, j, i, t]
-                    s0, s1, s2, s3, s4, s5 = src[p], src[p + 1], src[p + 2], src[p + 3], src[p + 4], src[p + 5]
+                    s0, s1, s2, s3, s4, s5 = (
+                        src[p],
+                        src[p + 1],
+                        src[p + 2],
+                        src[p + 3],
+                        src[p + 4],
+                        src[p + 5],
+                    )
                     for s in range(m2):
-                        a[s] += wt * (w0 * s0[s] + w1 * s1[s] + w2 * s2[s] + w3 * s3[s] + w4 * s4[s] + w5 * s5[s])
+                        a[s] += wt * (
+                            w0 * s0[s]
+                            + w1 * s1[s]
+                            + w2 * s2[s]
+                            + w3 * s3[s]
+                            + w4 * s4[s]
+                            + w5 * s5[s]
+                        )
             _store_multi(acc[0], acc[1], wr, wi, j, i, q)
 
 
@@ -182,17 +204,52 @@ def _slots_sep_multi(
         for i in range(n_col):
             p = p0[i]
             w0, w1, w2, w3, w4, w5 = wx[i, 0], wx[i, 1], wx[i, 2], wx[i, 3], wx[i, 4], wx[i, 5]
-            s0, s1, s2, s3, s4, s5 = src[p], src[p + 1], src[p + 2], src[p + 3], src[p + 4], src[p + 5]
+            s0, s1, s2, s3, s4, s5 = (
+                src[p],
+                src[p + 1],
+                src[p + 2],
+                src[p + 3],
+                src[p + 4],
+                src[p + 5],
+            )
             d = wk[i]
             for s in range(m2):
                 d[s] = w0 * s0[s] + w1 * s1[s] + w2 * s2[s] + w3 * s3[s] + w4 * s4[s] + w5 * s5[s]
     a0, a1 = acc[0], acc[1]
     for j in range(ky + 1):
         rp, rm = r0[ky + j] - r_lo, r0[ky - j] - r_lo
-        v0, v1, v2, v3, v4, v5 = wy[ky + j, 0], wy[ky + j, 1], wy[ky + j, 2], wy[ky + j, 3], wy[ky + j, 4], wy[ky + j, 5]
-        w0, w1, w2, w3, w4, w5 = wy[ky - j, 0], wy[ky - j, 1], wy[ky - j, 2], wy[ky - j, 3], wy[ky - j, 4], wy[ky - j, 5]
-        t0, t1, t2, t3, t4, t5 = work[rp], work[rp + 1], work[rp + 2], work[rp + 3], work[rp + 4], work[rp + 5]
-        u0, u1, u2, u3, u4, u5 = work[rm], work[rm + 1], work[rm + 2], work[rm + 3], work[rm + 4], work[rm + 5]
+        v0, v1, v2, v3, v4, v5 = (
+            wy[ky + j, 0],
+            wy[ky + j, 1],
+            wy[ky + j, 2],
+            wy[ky + j, 3],
+            wy[ky + j, 4],
+            wy[ky + j, 5],
+        )
+        w0, w1, w2, w3, w4, w5 = (
+            wy[ky - j, 0],
+            wy[ky - j, 1],
+            wy[ky - j, 2],
+            wy[ky - j, 3],
+            wy[ky - j, 4],
+            wy[ky - j, 5],
+        )
+        t0, t1, t2, t3, t4, t5 = (
+            work[rp],
+            work[rp + 1],
+            work[rp + 2],
+            work[rp + 3],
+            work[rp + 4],
+            work[rp + 5],
+        )
+        u0, u1, u2, u3, u4, u5 = (
+            work[rm],
+            work[rm + 1],
+            work[rm + 2],
+            work[rm + 3],
+            work[rm + 4],
+            work[rm + 5],
+        )
         for i in range(n_col):
             b0, b1, b2, b3, b4, b5 = t0[i], t1[i], t2[i], t3[i], t4[i], t5[i]
             for s in range(m2):
@@ -295,7 +352,9 @@ def geometry(size: int, psf_size: int, n_grid: int, step: float) -> Geometry:
 
 
 @functools.lru_cache(maxsize=32)
-def _trig(size: int, n_grid: int, ry: int, p_lo: int, np_: int, ky: int, kx: int, dtype: str) -> tuple[np.ndarray, ...]:
+def _trig(
+    size: int, n_grid: int, ry: int, p_lo: int, np_: int, ky: int, kx: int, dtype: str
+) -> tuple[np.ndarray, ...]:
     """A plan's eight transform matrices ``in_xc, in_xs, in_yc, in_ys, out_yc, out_ys, out_xc,
     out_xs`` (as :mod:`.metacal_fft`'s plan builds them)."""
     dt = np.dtype(dtype)
@@ -332,7 +391,9 @@ class MultiPlan:
     live: tuple[np.ndarray, ...]
 
 
-def _version_table(vg: VersionGeometry, idx: np.ndarray, geo: Geometry, ky_n: int, kx_n: int, dkp: float) -> tuple:
+def _version_table(
+    vg: VersionGeometry, idx: np.ndarray, geo: Geometry, ky_n: int, kx_n: int, dkp: float
+) -> tuple:
     """The tap table ``(sep, p0, wx, r0, wy, live)`` of a version at its points ``idx`` (as
     :mod:`.metacal_fft`'s plan builds it; positions before the final offsets)."""
     j, i = geo.jj[idx], geo.ii[idx]
@@ -351,24 +412,39 @@ def _version_table(vg: VersionGeometry, idx: np.ndarray, geo: Geometry, ky_n: in
         r0 = np.zeros_like(p0)
         wx = np.zeros((2, ky_n + 1, kx_n + 1, 6))
         wy = np.zeros_like(wx)
-        p0[slot], r0[slot], wx[slot], wy[slot] = vg.g_pf[idx], vg.g_rf[idx], vg.g_wx[idx], vg.g_wy[idx]
+        p0[slot], r0[slot], wx[slot], wy[slot] = (
+            vg.g_pf[idx],
+            vg.g_rf[idx],
+            vg.g_wx[idx],
+            vg.g_wy[idx],
+        )
         p0[~live] = int(np.median(vg.g_pf[idx]))  # absent points: taps inside F (weight 0)
         r0[~live] = 0
     return vg.sep, p0, wx, r0, wy, live
 
 
 def multi_plan(
-    psfs: np.ndarray, maxk: np.ndarray, target_sigma: np.ndarray, size: int, n_grid: int, step: float, dtype: str
+    psfs: np.ndarray,
+    maxk: np.ndarray,
+    target_sigma: np.ndarray,
+    size: int,
+    n_grid: int,
+    step: float,
+    dtype: str,
 ) -> MultiPlan:
     """The plan of the unit-sum PSF images ``psfs`` (K, P, P) with their GalSim ``maxk`` (K,)
     and targets ``target_sigma`` (K,), for stamps of side ``size`` on the k grid ``n_grid``."""
     geo = geometry(size, psfs.shape[1], n_grid, float(step))
     dkp = 2.0 * math.pi / pad_size(size)
     dt = np.dtype(dtype)
-    nodes = np.ascontiguousarray((geo.e_r[None] @ psfs.astype(complex) @ geo.e_p[None]).transpose(1, 2, 0))
+    nodes = np.ascontiguousarray(
+        (geo.e_r[None] @ psfs.astype(complex) @ geo.e_p[None]).transpose(1, 2, 0)
+    )
     maxk2 = np.asarray(maxk, dtype=np.float64) ** 2
     k1 = np.arange(n_grid // 2 + 1) * (2.0 * math.pi / n_grid)
-    gauss = np.exp(-0.5 * np.asarray(target_sigma, dtype=np.float64)[:, None] ** 2 * (k1 * k1)[None, :])
+    gauss = np.exp(
+        -0.5 * np.asarray(target_sigma, dtype=np.float64)[:, None] ** 2 * (k1 * k1)[None, :]
+    )
     points = [np.flatnonzero(~(vg.r2 > maxk2.max())) for vg in geo.versions]  # the union
     ky_n = int(max(np.abs(geo.jj[idx]).max() for idx in points))
     kx_n = int(max(geo.ii[idx].max() for idx in points))
@@ -381,7 +457,20 @@ def multi_plan(
         wi = np.zeros_like(wr)
         shared = geo.base0 * vg.lanczos * vg.gal_phase
         psf_factor = vg.psf_phase * vg.lanczos
-        _fill_weights(g, idx, psf_factor, shared, vg.r2, gauss, maxk2, _KVALUE_ACCURACY, geo.jj, geo.ii, wr, wi)
+        _fill_weights(
+            g,
+            idx,
+            psf_factor,
+            shared,
+            vg.r2,
+            gauss,
+            maxk2,
+            _KVALUE_ACCURACY,
+            geo.jj,
+            geo.ii,
+            wr,
+            wi,
+        )
         weights.append((wr, wi))
         table = _version_table(vg, idx, geo, ky_n, kx_n, dkp)
         tables.append(table)
@@ -391,7 +480,8 @@ def multi_plan(
     np_ = int(max((t[1] + t[2].shape[-1] - 1).max() for t in tables)) + 1 - p_lo
     zeros = np.zeros((2, ky_n + 1, kx_n + 1), dt)
     versions = tuple(
-        Version(sep, p0 - p_lo, wx.astype(dt), r0 + ry, wy.astype(dt), zeros, zeros) for sep, p0, wx, r0, wy, _ in tables
+        Version(sep, p0 - p_lo, wx.astype(dt), r0 + ry, wy.astype(dt), zeros, zeros)
+        for sep, p0, wx, r0, wy, _ in tables
     )
     trig = _trig(size, n_grid, ry, p_lo, np_, ky_n, kx_n, dt.name)
     return MultiPlan(Plan(size, ry, np_, ky_n, kx_n, *trig, versions), tuple(weights), tuple(live))
@@ -402,7 +492,12 @@ def multi_plan(
 
 
 def _run_multi(
-    mp: MultiPlan, images: np.ndarray, col: np.ndarray, out: np.ndarray, which: tuple[int, ...], ws: Workspace
+    mp: MultiPlan,
+    images: np.ndarray,
+    col: np.ndarray,
+    out: np.ndarray,
+    which: tuple[int, ...],
+    ws: Workspace,
 ) -> None:
     """Versions ``which`` of the stamps ``images`` (m, S, S), stamp ``s`` with PSF ``col[s]``
     of ``mp``, into ``out`` (V, m, S, S)."""
@@ -463,7 +558,11 @@ def fft_versions_multi(
     images = np.ascontiguousarray(images)
     if out is None:
         out = np.empty((len(TYPES), n, size, size))
-    elif out.shape != (len(TYPES), n, size, size) or out.dtype != np.float64 or not out.flags.c_contiguous:
+    elif (
+        out.shape != (len(TYPES), n, size, size)
+        or out.dtype != np.float64
+        or not out.flags.c_contiguous
+    ):
         raise ValueError(f"out must be a C-contiguous float64 array {(len(TYPES), n, size, size)}")
     if not n:
         return {kind: out[v] for v, kind in enumerate(TYPES)}
@@ -481,14 +580,24 @@ def fft_versions_multi(
             for psf_chunk in _chunks(np.unique(psf_index[sel]), psf_sizes, chunk):
                 rows = sel[np.isin(psf_index[sel], psf_chunk)]
                 stack = np.array([unit[j] for j in psf_chunk])
-                mp = multi_plan(stack, maxk[psf_chunk], target_sigma[psf_chunk], size, n_grid, step, np.dtype(dtype).name)
+                mp = multi_plan(
+                    stack,
+                    maxk[psf_chunk],
+                    target_sigma[psf_chunk],
+                    size,
+                    n_grid,
+                    step,
+                    np.dtype(dtype).name,
+                )
                 col_of[psf_chunk] = np.arange(len(psf_chunk))
                 ws = Workspace(mp.plan, min(BLOCK, len(rows)))
                 for b in range(0, len(rows), BLOCK):
                     idx = rows[b : b + BLOCK]
                     i0, i1 = int(idx[0]), int(idx[-1]) + 1
                     if i1 - i0 == len(idx):  # a contiguous run: in place
-                        _run_multi(mp, images[i0:i1], col_of[psf_index[i0:i1]], out[:, i0:i1], which, ws)
+                        _run_multi(
+                            mp, images[i0:i1], col_of[psf_index[i0:i1]], out[:, i0:i1], which, ws
+                        )
                         continue
                     tmp = np.empty((len(TYPES), len(idx), size, size))
                     _run_multi(mp, images[idx], col_of[psf_index[idx]], tmp, which, ws)

@@ -46,21 +46,35 @@ def morphology_features(
     """
     stamps = np.asarray(stamps, dtype=np.float64)
     n, size = stamps.shape[0], stamps.shape[-1]
-    x, y, sigma, g1, g2 = (np.asarray(v, dtype=np.float64).reshape(n) for v in (x, y, sigma, g1, g2))
+    x, y, sigma, g1, g2 = (
+        np.asarray(v, dtype=np.float64).reshape(n) for v in (x, y, sigma, g1, g2)
+    )
     out = {c: np.full(n, np.nan) for c in MORPHOLOGY_COLUMNS}
-    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(sigma) & (sigma > 0) & np.isfinite(g1) & np.isfinite(g2)
+    ok = (
+        np.isfinite(x)
+        & np.isfinite(y)
+        & np.isfinite(sigma)
+        & (sigma > 0)
+        & np.isfinite(g1)
+        & np.isfinite(g2)
+    )
     ok &= g1**2 + g2**2 < 1.0
     pix = np.arange(1, size + 1, dtype=np.float64)
     for start in range(0, n, CHUNK):
-        rows = np.flatnonzero(ok[start:start + CHUNK]) + start
+        rows = np.flatnonzero(ok[start : start + CHUNK]) + start
         if rows.size == 0:
             continue
         dx = pix[None, None, :] - x[rows, None, None]
         dy = pix[None, :, None] - y[rows, None, None]
         a, b = g1[rows], g2[rows]
-        norm = (1.0 - a**2 - b**2) * sigma[rows] ** 2  # M^-1 = [[(1-g1)^2+g2^2, -2 g2], [.., (1+g1)^2+g2^2]] / norm
-        rho2 = (((1 - a) ** 2 + b**2)[:, None, None] * dx**2 - 4 * b[:, None, None] * dx * dy
-                + ((1 + a) ** 2 + b**2)[:, None, None] * dy**2) / norm[:, None, None]
+        norm = (1.0 - a**2 - b**2) * sigma[
+            rows
+        ] ** 2  # M^-1 = [[(1-g1)^2+g2^2, -2 g2], [.., (1+g1)^2+g2^2]] / norm
+        rho2 = (
+            ((1 - a) ** 2 + b**2)[:, None, None] * dx**2
+            - 4 * b[:, None, None] * dx * dy
+            + ((1 + a) ** 2 + b**2)[:, None, None] * dy**2
+        ) / norm[:, None, None]
         img = stamps[rows]
         flux, spread = {}, {}
         for k in WINDOW_SCALES:
@@ -75,12 +89,20 @@ def morphology_features(
     return out
 
 
-def morphology_of_measured(stamps: np.ndarray, origins: np.ndarray | None, features: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+def morphology_of_measured(
+    stamps: np.ndarray, origins: np.ndarray | None, features: dict[str, np.ndarray]
+) -> dict[str, np.ndarray]:
     """:func:`morphology_features` from the output of ``measure_stamps`` (its ``adamom_x,
     adamom_y`` are in the big image whose pixel ``origins`` is each stamp's lower-left one)."""
     n = len(features["adamom_sigma"])
-    origins = np.ones((n, 2)) if origins is None else np.asarray(origins, dtype=np.float64).reshape(n, 2)
+    origins = (
+        np.ones((n, 2)) if origins is None else np.asarray(origins, dtype=np.float64).reshape(n, 2)
+    )
     return morphology_features(
-        stamps, features["adamom_x"] - origins[:, 0] + 1.0, features["adamom_y"] - origins[:, 1] + 1.0,
-        features["adamom_sigma"], features["adamom_g1"], features["adamom_g2"],
+        stamps,
+        features["adamom_x"] - origins[:, 0] + 1.0,
+        features["adamom_y"] - origins[:, 1] + 1.0,
+        features["adamom_sigma"],
+        features["adamom_g1"],
+        features["adamom_g2"],
     )

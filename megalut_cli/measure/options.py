@@ -21,34 +21,89 @@ from megalut_cli.seeding import SEED_OPTION
 
 #: The options of ``megalut measure`` that only it has, in the order of ``--help``.
 MEASURE_OPTIONS: tuple[Option, ...] = (
-    Option("stamp_size", "int", None, f"Stamp size in pixels{DEFAULT_MARK}.", minimum=MIN_STAMP_SIZE,
-           default_text="the image's STAMPSZ header card"),
-    Option("origin", "choice", "1", "Coordinate of the first pixel's centre in the catalog's x, y "
-           "(1: FITS, 0: GREAT3).", choices=tuple(str(o) for o in ORIGINS)),
-    Option("gain", "float", None, f"Gain in e-/ADU: S/N from the CCD equation (paper Eq. 8){DEFAULT_MARK}.",
-           minimum=0, min_open=True, default_text="none, sky-limited S/N of Eq. 10"),
-    Option("cutout", "int", 0, "MEDS input: the cutout of each object to measure (0: the coadd when the file "
-           "has one, else the first epoch; k: the k-th cutout; objects with fewer cutouts are flagged NO_CUTOUT).",
-           minimum=0, metavar="INDEX"),
-    Option("stars", "bool", None, "STAMPS is a star field: one row per star with psf_adamom_flux, psf_adamom_g1, "
-           f"psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4, psf_adamom_x, psf_adamom_y, flags{DEFAULT_MARK}.",
-           flag="--stars/--no-stars", default_text="for files named starfield_image-*; a square one without "
-           "--stamp-size or STAMPSZ card is a 3x3 grid"),
-    Option("morphology", "bool", False, "Also the morphology features morph_conc, morph_conc_inner, "
-           "morph_size_ratio (light inside Gaussian windows of 0.5, 1, 2 times the adaptive ellipse; "
-           "docs/realgal.md)."),
-    Option("metacal", "bool", False, "Also measure the five metacalibration versions of each stamp (noshear, "
-           "1p, 1m, 2p, 2m: deconvolved by the PSF, sheared by +-step along g1 and g2, reconvolved with a round "
-           "target PSF, with fixnoise at the stamp's skymad): every feature column X again as X_noshear, X_1p, "
-           "X_1m, X_2p, X_2m (docs/metacal.md). Needs --psf or --psf-model."),
-    Option("metacal_step", "float", DEFAULT_STEP, "Shear step of --metacal.", minimum=0, min_open=True,
-           maximum=MAX_STEP),
-    replace(SEED_OPTION, help="Seed of the fixnoise fields of --metacal (one field per stamp; per realization "
-            "in a common-random-number set)."),
+    Option(
+        "stamp_size",
+        "int",
+        None,
+        f"Stamp size in pixels{DEFAULT_MARK}.",
+        minimum=MIN_STAMP_SIZE,
+        default_text="the image's STAMPSZ header card",
+    ),
+    Option(
+        "origin",
+        "choice",
+        "1",
+        "Coordinate of the first pixel's centre in the catalog's x, y (1: FITS, 0: GREAT3).",
+        choices=tuple(str(o) for o in ORIGINS),
+    ),
+    Option(
+        "gain",
+        "float",
+        None,
+        f"Gain in e-/ADU: S/N from the CCD equation (paper Eq. 8){DEFAULT_MARK}.",
+        minimum=0,
+        min_open=True,
+        default_text="none, sky-limited S/N of Eq. 10",
+    ),
+    Option(
+        "cutout",
+        "int",
+        0,
+        "MEDS input: the cutout of each object to measure (0: the coadd when the file "
+        "has one, else the first epoch; k: the k-th cutout; objects with fewer cutouts are flagged NO_CUTOUT).",
+        minimum=0,
+        metavar="INDEX",
+    ),
+    Option(
+        "stars",
+        "bool",
+        None,
+        "STAMPS is a star field: one row per star with psf_adamom_flux, psf_adamom_g1, "
+        f"psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4, psf_adamom_x, psf_adamom_y, flags{DEFAULT_MARK}.",
+        flag="--stars/--no-stars",
+        default_text="for files named starfield_image-*; a square one without "
+        "--stamp-size or STAMPSZ card is a 3x3 grid",
+    ),
+    Option(
+        "morphology",
+        "bool",
+        False,
+        "Also the morphology features morph_conc, morph_conc_inner, "
+        "morph_size_ratio (light inside Gaussian windows of 0.5, 1, 2 times the adaptive ellipse; "
+        "docs/realgal.md).",
+    ),
+    Option(
+        "metacal",
+        "bool",
+        False,
+        "Also measure the five metacalibration versions of each stamp (noshear, "
+        "1p, 1m, 2p, 2m: deconvolved by the PSF, sheared by +-step along g1 and g2, reconvolved with a round "
+        "target PSF, with fixnoise at the stamp's skymad): every feature column X again as X_noshear, X_1p, "
+        "X_1m, X_2p, X_2m (docs/metacal.md). Needs --psf or --psf-model.",
+    ),
+    Option(
+        "metacal_step",
+        "float",
+        DEFAULT_STEP,
+        "Shear step of --metacal.",
+        minimum=0,
+        min_open=True,
+        maximum=MAX_STEP,
+    ),
+    replace(
+        SEED_OPTION,
+        help="Seed of the fixnoise fields of --metacal (one field per stamp; per realization "
+        "in a common-random-number set).",
+    ),
 )
 MEASURE = {o.name: o for o in MEASURE_OPTIONS}
 
 #: Every option of ``megalut measure`` with a value (not its files), for the docs table.
 ALL_MEASURE_OPTIONS: tuple[Option, ...] = (
-    *MEASURE_OPTIONS, ENGINE_OPTION, DEVICE_OPTION, NPROC_OPTION, SCHEDULER_OPTION, OVERWRITE_OPTION,
+    *MEASURE_OPTIONS,
+    ENGINE_OPTION,
+    DEVICE_OPTION,
+    NPROC_OPTION,
+    SCHEDULER_OPTION,
+    OVERWRITE_OPTION,
 )

@@ -69,7 +69,9 @@ class PsfModel:
             raise ValueError(f"pixel_scale must be a positive number, got {pixel_scale!r}")
         return _unit_sum(self._draw(x, y, int(size), pixel_scale))
 
-    def _draw(self, x: np.ndarray, y: np.ndarray, size: int, pixel_scale: float | None) -> np.ndarray:
+    def _draw(
+        self, x: np.ndarray, y: np.ndarray, size: int, pixel_scale: float | None
+    ) -> np.ndarray:
         raise NotImplementedError
 
     def native_scale(self, x: float, y: float) -> float | None:
@@ -103,7 +105,9 @@ def _positions(x: Any, y: Any) -> tuple[np.ndarray, np.ndarray]:
     x = np.atleast_1d(np.asarray(x, dtype=np.float64))
     y = np.atleast_1d(np.asarray(y, dtype=np.float64))
     if x.ndim != 1 or x.shape != y.shape:
-        raise ValueError(f"x and y must be scalars or 1-d arrays of one length, got shapes {x.shape}, {y.shape}")
+        raise ValueError(
+            f"x and y must be scalars or 1-d arrays of one length, got shapes {x.shape}, {y.shape}"
+        )
     if not (np.isfinite(x).all() and np.isfinite(y).all()):
         raise ValueError("x and y must be finite")
     return x, y
@@ -136,7 +140,9 @@ class PsfexModel(PsfModel):
         u = (x - self.zero[0]) / self.scale[0]
         v = (y - self.zero[1]) / self.scale[1]
         order = self.fit_order
-        return np.stack([u**i * v**j for j in range(order + 1) for i in range(order + 1 - j)], axis=1)
+        return np.stack(
+            [u**i * v**j for j in range(order + 1) for i in range(order + 1 - j)], axis=1
+        )
 
     def resampled_basis(self, size: int) -> np.ndarray:
         """The basis images ``(k, size, size)`` drawn as ``DES_PSFEx.getPSF`` draws a PSF
@@ -151,13 +157,19 @@ class PsfexModel(PsfModel):
                 # output pixel i at (i - (size-1)/2) image pixels from the centre, i.e. at
                 # that / sample_scale basis pixels from the basis's true centre (n_in-1)/2
                 u = (np.arange(size) - (size - 1) / 2.0) / self.sample_scale + (n_in - 1) / 2.0
-                return np.asarray(kernel.xval((u[:, None] - np.arange(n_in)[None, :]).ravel())).reshape(size, n_in)
+                return np.asarray(
+                    kernel.xval((u[:, None] - np.arange(n_in)[None, :]).ravel())
+                ).reshape(size, n_in)
 
             wy, wx = weights(self.basis.shape[1]), weights(self.basis.shape[2])
-            self._resampled[size] = np.ascontiguousarray(np.einsum("ij,kjl,ml->kim", wy, self.basis, wx))
+            self._resampled[size] = np.ascontiguousarray(
+                np.einsum("ij,kjl,ml->kim", wy, self.basis, wx)
+            )
         return self._resampled[size]
 
-    def _draw(self, x: np.ndarray, y: np.ndarray, size: int, pixel_scale: float | None) -> np.ndarray:
+    def _draw(
+        self, x: np.ndarray, y: np.ndarray, size: int, pixel_scale: float | None
+    ) -> np.ndarray:
         if pixel_scale is not None:
             raise InputError(
                 f"{self.path}: a PSFEx model is in its exposure's pixels and has no arcsecond scale: "
@@ -188,15 +200,23 @@ class PiffModel(PsfModel):
     def native_scale(self, x: float, y: float) -> float | None:
         import galsim
 
-        return float(np.sqrt(abs(self.psf.wcs[self.chipnum].local(galsim.PositionD(x, y)).pixelArea())))
+        return float(
+            np.sqrt(abs(self.psf.wcs[self.chipnum].local(galsim.PositionD(x, y)).pixelArea()))
+        )
 
-    def _draw(self, x: np.ndarray, y: np.ndarray, size: int, pixel_scale: float | None) -> np.ndarray:
+    def _draw(
+        self, x: np.ndarray, y: np.ndarray, size: int, pixel_scale: float | None
+    ) -> np.ndarray:
         import galsim
 
         wcs = self.psf.wcs[self.chipnum]
         out = np.empty((len(x), size, size))
         for i, (xi, yi) in enumerate(zip(x, y)):
-            local = galsim.PixelScale(pixel_scale) if pixel_scale is not None else wcs.local(galsim.PositionD(xi, yi))
+            local = (
+                galsim.PixelScale(pixel_scale)
+                if pixel_scale is not None
+                else wcs.local(galsim.PositionD(xi, yi))
+            )
             image = galsim.ImageD(size, size, wcs=local)
             self.psf.draw(float(xi), float(yi), chipnum=self.chipnum, image=image, center=True)
             out[i] = image.array
@@ -221,7 +241,11 @@ def file_kind(path: str | os.PathLike) -> str | None:
                 header = hdu.read_header()
                 if name.upper() == "PSF_DATA" or "POLNAXIS" in header:
                     return PSFEX
-                if name == "psf" and hdu.get_exttype() == "BINARY_TBL" and "type" in hdu.get_colnames():
+                if (
+                    name == "psf"
+                    and hdu.get_exttype() == "BINARY_TBL"
+                    and "type" in hdu.get_colnames()
+                ):
                     return PIFF
     except (OSError, ValueError, IndexError):
         raise InputError(
@@ -250,19 +274,43 @@ def _load_psfex(path: str, sha: str) -> PsfexModel:
     try:
         psfex = galsim.des.DES_PSFEx(path)
     except KeyError as err:
-        raise InputError(f"{path}: a PSFEx file GalSim cannot read (a card is missing: {err.args[0]})") from None
+        raise InputError(
+            f"{path}: a PSFEx file GalSim cannot read (a card is missing: {err.args[0]})"
+        ) from None
     except (OSError, ValueError, IndexError) as err:
         text = str(err).strip()
-        why = ("its POL*/PSF* cards do not describe its basis" if "not as expected" in text
-               else text.splitlines()[0] if text else type(err).__name__)
+        why = (
+            "its POL*/PSF* cards do not describe its basis"
+            if "not as expected" in text
+            else text.splitlines()[0]
+            if text
+            else type(err).__name__
+        )
         raise InputError(f"{path}: a PSFEx file GalSim cannot read ({why})") from None
     basis = np.asarray(psfex.basis, dtype=np.float64)
     if not np.isfinite(basis).all():
         raise InputError(f"{path}: the PSFEx basis holds NaN or infinite values")
-    zero, scale = (float(psfex.x_zero), float(psfex.y_zero)), (float(psfex.x_scale), float(psfex.y_scale))
-    bounds = (zero[0] - scale[0] / 2, zero[0] + scale[0] / 2, zero[1] - scale[1] / 2, zero[1] + scale[1] / 2)
-    return PsfexModel(path, PSFEX, sha, bounds, basis=basis, fit_order=int(psfex.fit_order), zero=zero, scale=scale,
-                      sample_scale=float(psfex.sample_scale))
+    zero, scale = (
+        (float(psfex.x_zero), float(psfex.y_zero)),
+        (float(psfex.x_scale), float(psfex.y_scale)),
+    )
+    bounds = (
+        zero[0] - scale[0] / 2,
+        zero[0] + scale[0] / 2,
+        zero[1] - scale[1] / 2,
+        zero[1] + scale[1] / 2,
+    )
+    return PsfexModel(
+        path,
+        PSFEX,
+        sha,
+        bounds,
+        basis=basis,
+        fit_order=int(psfex.fit_order),
+        zero=zero,
+        scale=scale,
+        sample_scale=float(psfex.sample_scale),
+    )
 
 
 def _load_piff(path: str, sha: str) -> PiffModel:
@@ -282,7 +330,9 @@ def _load_piff(path: str, sha: str) -> PiffModel:
         )
     extra = [p for p in getattr(psf, "interp_property_names", ()) if p not in ("x", "y", "u", "v")]
     if extra:
-        raise InputError(f"{path}: the Piff model interpolates in {', '.join(extra)} besides the position, which megalut cannot give")
+        raise InputError(
+            f"{path}: the Piff model interpolates in {', '.join(extra)} besides the position, which megalut cannot give"
+        )
     stars = getattr(psf, "stars", None) or []
     bounds = None
     if stars:

@@ -25,8 +25,12 @@ def single_psf_stamp(path: str, size_hint: int) -> np.ndarray:
     card = info.header.get("STAMPSZ")
     size = stamp_size_of(info, None) if card is not None else size_hint
     if ny % size == 0 and nx % size == 0 and (ny, nx) != (size, size):
-        log.info("%s: a %dx%d grid of PSF stamps: using the first (lower-left) one",
-                 path, nx // size, ny // size)
+        log.info(
+            "%s: a %dx%d grid of PSF stamps: using the first (lower-left) one",
+            path,
+            nx // size,
+            ny // size,
+        )
         stamp = read_rows(info, 0, size)[:, :size]
     elif ny == nx:
         stamp = read_rows(info, 0, ny)
@@ -51,4 +55,4 @@ def single_psf_features(
     if res["flags"][0]:
         why = ", ".join(fl.explain(res["flags"][0]))
         raise InputError(f"{path}: the PSF stamp could not be measured ({why})")
-    return {p: float(res[p[len("psf_"):]][0]) for p in PSF_COLUMNS}
+    return {p: float(res[p[len("psf_") :]][0]) for p in PSF_COLUMNS}

@@ -109,9 +109,7 @@ def read_rows(info: ImageInfo, y0: int, y1: int) -> np.ndarray:
     return np.asarray(read_band(info, y0, y1), dtype=np.float64)
 
 
-def stamp_size_of(
-    info: ImageInfo, stamp_size: int | None, where: str = "stamp_size"
-) -> int:
+def stamp_size_of(info: ImageInfo, stamp_size: int | None, where: str = "stamp_size") -> int:
     """The stamp size: ``stamp_size`` if given, else the image's ``STAMPSZ`` header card
     (messages name the argument ``where``)."""
     if stamp_size is None:
@@ -192,7 +190,9 @@ class CheckedStamps:
     skymad: np.ndarray
 
 
-def _cut(rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int, checks: bool) -> CheckedStamps:
+def _cut(
+    rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int, checks: bool
+) -> CheckedStamps:
     from megalut_cli.measure.stamps_nb import cut_stack  # numba: loaded where stamps are cut
 
     rows = pixel_rows(rows)
@@ -203,7 +203,15 @@ def _cut(rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int, chec
     if checks and stamp_size < MIN_STAMP_SIZE:  # the edge statistic needs an inside
         raise ValueError(f"stamps must be at least {MIN_STAMP_SIZE} pixels, got {stamp_size}")
     x0, y0 = origins[:, 0] - 1, origins[:, 1] - 1 - row0
-    if n and not ((x0 >= 0) & (y0 >= 0) & (x0 + stamp_size <= rows.shape[1]) & (y0 + stamp_size <= rows.shape[0])).all():
+    if (
+        n
+        and not (
+            (x0 >= 0)
+            & (y0 >= 0)
+            & (x0 + stamp_size <= rows.shape[1])
+            & (y0 + stamp_size <= rows.shape[0])
+        ).all()
+    ):
         raise ValueError("stamps must lie inside the rows they are cut from")
     out = np.empty((n, stamp_size, stamp_size), dtype=np.float64)
     finite = np.zeros(n if checks else 0, dtype=np.bool_)
@@ -213,9 +221,7 @@ def _cut(rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int, chec
     return CheckedStamps(out, finite, MAD_TO_SIGMA * mad)
 
 
-def cut_stamps(
-    rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int
-) -> np.ndarray:
+def cut_stamps(rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int) -> np.ndarray:
     """Cut stamps ``(n, S, S)`` (float64) from a block of image ``rows`` whose first row is
     ``row0`` (0-based), in one compiled call."""
     return _cut(rows, row0, origins, stamp_size, False).stamps

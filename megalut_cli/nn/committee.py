@@ -55,7 +55,9 @@ class CommitteeSpec:
     training: dict[str, Any] = field(default_factory=dict)
 
 
-def _tasks(spec: CommitteeSpec, settings: TrainSettings, seed: int, log_level: int) -> list[MemberTask]:
+def _tasks(
+    spec: CommitteeSpec, settings: TrainSettings, seed: int, log_level: int
+) -> list[MemberTask]:
     tasks = []
     for k in range(spec.members):
         init = prior = None
@@ -132,7 +134,12 @@ def train_committees(
         kept = [f"{r.valid_cost:.4g}" for r, s in zip(res, chosen) if s]
         log.info(
             "%s %s: kept %d/%d members, validation %s %s",
-            spec.kind, spec.target, int(chosen.sum()), spec.members, settings.cost, ", ".join(kept),
+            spec.kind,
+            spec.target,
+            int(chosen.sum()),
+            spec.members,
+            settings.cost,
+            ", ".join(kept),
         )
         out[spec.target] = Committee(
             kind=spec.kind,

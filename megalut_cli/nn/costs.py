@@ -31,7 +31,9 @@ class Groups:
 
     def __init__(self, case: np.ndarray, n_cases: int | None = None) -> None:
         self.case = np.asarray(case, dtype=np.intp)
-        self.n_cases = int(n_cases if n_cases is not None else (self.case.max() + 1 if len(self.case) else 0))
+        self.n_cases = int(
+            n_cases if n_cases is not None else (self.case.max() + 1 if len(self.case) else 0)
+        )
         self.counts = np.bincount(self.case, minlength=self.n_cases)
         self.n = self.counts.astype(np.float64)
         self.contiguous = bool(np.all(self.counts > 0)) and bool(np.all(np.diff(self.case) >= 0))
@@ -54,7 +56,9 @@ def _groups(case: np.ndarray | Groups, n: np.ndarray) -> Groups:
     return case if isinstance(case, Groups) else Groups(case, len(n))
 
 
-def mse(o: np.ndarray, case: np.ndarray | Groups, n: np.ndarray, t_row: np.ndarray) -> tuple[float, np.ndarray]:
+def mse(
+    o: np.ndarray, case: np.ndarray | Groups, n: np.ndarray, t_row: np.ndarray
+) -> tuple[float, np.ndarray]:
     """Mean square error (Eq. 4); ``t_row`` is the target of each row."""
     grp = _groups(case, n)
     c = len(n)
@@ -64,7 +68,9 @@ def mse(o: np.ndarray, case: np.ndarray | Groups, n: np.ndarray, t_row: np.ndarr
     return cost, 2.0 * d * grp.expand(inv)
 
 
-def msb(o: np.ndarray, case: np.ndarray | Groups, n: np.ndarray, t: np.ndarray) -> tuple[float, np.ndarray]:
+def msb(
+    o: np.ndarray, case: np.ndarray | Groups, n: np.ndarray, t: np.ndarray
+) -> tuple[float, np.ndarray]:
     """Mean square bias (Eq. 3); ``t`` is the target of each case."""
     grp = _groups(case, n)
     c = len(n)

@@ -123,7 +123,9 @@ class CaseData:
             targets=t,
             row_targets=t[ci],
             features=list(features) if features else [f"x{i}" for i in range(nf)],
-            target_names=list(target_names) if target_names else [f"t{i}" for i in range(t.shape[1])],
+            target_names=list(target_names)
+            if target_names
+            else [f"t{i}" for i in range(t.shape[1])],
             point=pt,
         )
 
@@ -134,11 +136,15 @@ def case_rows(counts: np.ndarray, cases: np.ndarray) -> np.ndarray:
     cases = np.asarray(cases, dtype=np.intp)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     sel_counts = counts[cases]
-    offsets = np.repeat(starts[cases] - np.concatenate([[0], np.cumsum(sel_counts)[:-1]]), sel_counts)
+    offsets = np.repeat(
+        starts[cases] - np.concatenate([[0], np.cumsum(sel_counts)[:-1]]), sel_counts
+    )
     return np.arange(int(sel_counts.sum())) + offsets
 
 
-def valid_rows(columns: Mapping[str, np.ndarray], features: Sequence[str], n_rows: int) -> np.ndarray:
+def valid_rows(
+    columns: Mapping[str, np.ndarray], features: Sequence[str], n_rows: int
+) -> np.ndarray:
     """Rows usable for training: ``flags == 0`` (when the column exists) and finite features."""
     ok = np.ones(n_rows, bool)
     if "flags" in columns:
@@ -148,7 +154,9 @@ def valid_rows(columns: Mapping[str, np.ndarray], features: Sequence[str], n_row
     return ok
 
 
-def _report_dropped(case: np.ndarray, empty: np.ndarray, measured: np.ndarray | None, where: str) -> None:
+def _report_dropped(
+    case: np.ndarray, empty: np.ndarray, measured: np.ndarray | None, where: str
+) -> None:
     """Log the dropped cases by why: a selection removed them (info), or no row was valid (warning)."""
     if measured is not None:
         had_rows = np.isin(empty, case[np.asarray(measured, bool)])
@@ -156,12 +164,17 @@ def _report_dropped(case: np.ndarray, empty: np.ndarray, measured: np.ndarray | 
         if len(deselected):
             log.info(
                 "%s: %d case(s) left out by the selection (no selected realization; e.g. case %s)",
-                where, len(deselected), ", ".join(str(v) for v in deselected[:5]),
+                where,
+                len(deselected),
+                ", ".join(str(v) for v in deselected[:5]),
             )
     if len(empty):
         log.warning(
             "%s: %d case(s) dropped: every realization is flagged or has a non-finite feature or "
-            "estimate (e.g. case %s)", where, len(empty), ", ".join(str(v) for v in empty[:5]),
+            "estimate (e.g. case %s)",
+            where,
+            len(empty),
+            ", ".join(str(v) for v in empty[:5]),
         )
 
 
@@ -202,15 +215,22 @@ def build_cases(
     ids, index = np.unique(case[rows], return_inverse=True)
     n_empty = len(ids_all) - len(ids)
     if len(ids) == 0:
-        raise InputError(f"{where}: no valid realization in any case (all rows flagged, non-finite or deselected)")
+        raise InputError(
+            f"{where}: no valid realization in any case (all rows flagged, non-finite or deselected)"
+        )
     if n_empty:
         _report_dropped(case, np.setdiff1d(ids_all, ids), measured, where)
     if len(ids) < 2:
-        raise InputError(f"{where}: fewer than 2 cases with valid realizations ({len(ids)}); MSB training needs several cases")
+        raise InputError(
+            f"{where}: fewer than 2 cases with valid realizations ({len(ids)}); MSB training needs several cases"
+        )
     index = index.ravel().astype(np.intp)
     counts = np.bincount(index, minlength=len(ids))
     row_t = np.column_stack([np.asarray(columns[t], dtype=np.float64)[rows] for t in targets])
-    tsum = np.stack([np.bincount(index, weights=row_t[:, j], minlength=len(ids)) for j in range(len(targets))], axis=1)
+    tsum = np.stack(
+        [np.bincount(index, weights=row_t[:, j], minlength=len(ids)) for j in range(len(targets))],
+        axis=1,
+    )
     tcase = tsum / counts[:, None]
     if constant_targets:
         dev = np.abs(row_t - tcase[index])
@@ -238,7 +258,9 @@ def build_cases(
     )
 
 
-def split_cases(n_cases: int, fraction: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def split_cases(
+    n_cases: int, fraction: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Random ``(train, valid)`` case indices holding out ``fraction`` of the cases (both sorted)."""
     n_valid = max(1, int(round(fraction * n_cases)))
     perm = rng.permutation(n_cases)

@@ -27,7 +27,13 @@ import numpy as np
 #: Provenance key of the record.
 DOMAIN_KEY = "domain"
 #: The measured quantities whose training distribution a model records (those present).
-DOMAIN_COLUMNS: tuple[str, ...] = ("skymad", "snr", "adamom_sigma", "adamom_flux", "psf_adamom_sigma")
+DOMAIN_COLUMNS: tuple[str, ...] = (
+    "skymad",
+    "snr",
+    "adamom_sigma",
+    "adamom_flux",
+    "psf_adamom_sigma",
+)
 #: Quantiles recorded (fractions).
 QUANTILES: tuple[float, ...] = (0.005, 0.01, 0.05, 0.5, 0.95, 0.99, 0.995)
 #: The model's range a catalog's median must lie in (quantiles).
@@ -76,7 +82,9 @@ def _finite(values: Any, rows: np.ndarray | None) -> np.ndarray:
 
 
 def domain_record(
-    columns: Mapping[str, Any], usable: np.ndarray | None = None, stamp_size: int | None = None,
+    columns: Mapping[str, Any],
+    usable: np.ndarray | None = None,
+    stamp_size: int | None = None,
     **about: Any,
 ) -> dict[str, Any]:
     """The domain record of a training table: the :data:`QUANTILES` (and count) of every
@@ -84,7 +92,12 @@ def domain_record(
     ``flags == 0``), finite values only; ``stamp_size`` and ``about`` (e.g. ``source``,
     ``version``) as given."""
     present = [c for c in DOMAIN_COLUMNS if c in columns]
-    record: dict[str, Any] = {"quantiles": list(QUANTILES), "columns": {}, "stamp_size": stamp_size, "n_rows": 0}
+    record: dict[str, Any] = {
+        "quantiles": list(QUANTILES),
+        "columns": {},
+        "stamp_size": stamp_size,
+        "n_rows": 0,
+    }
     rows = usable
     for c in present:
         v = np.asarray(columns[c])
@@ -92,7 +105,10 @@ def domain_record(
             rows = usable_rows(columns, len(v))
         v = _finite(v, rows)
         if v.size:
-            record["columns"][c] = {"n": int(v.size), "q": [float(x) for x in np.quantile(v, QUANTILES)]}
+            record["columns"][c] = {
+                "n": int(v.size),
+                "q": [float(x) for x in np.quantile(v, QUANTILES)],
+            }
     if rows is not None:
         record["n_rows"] = int(np.count_nonzero(rows))
     record.update(about)
@@ -110,8 +126,12 @@ def with_constant_column(
     columns = dict(out.get("columns", {}))
     if column not in columns and np.isfinite(value):
         n = int(out.get("n_rows", 0))
-        columns[column] = {"n": n, "q": [float(value)] * len(out.get("quantiles", QUANTILES)),
-                           "tolerance": float(tolerance), "from": source}
+        columns[column] = {
+            "n": n,
+            "q": [float(value)] * len(out.get("quantiles", QUANTILES)),
+            "tolerance": float(tolerance),
+            "from": source,
+        }
         out["columns"] = columns
     return out
 
@@ -149,8 +169,9 @@ def _pct(p: float) -> str:
     return f"{100 * p:g}"
 
 
-def column_range(domain: Mapping[str, Any], column: str, lo: float = MEDIAN_RANGE[0],
-                 hi: float = MEDIAN_RANGE[1]) -> tuple[float, float, float]:
+def column_range(
+    domain: Mapping[str, Any], column: str, lo: float = MEDIAN_RANGE[0], hi: float = MEDIAN_RANGE[1]
+) -> tuple[float, float, float]:
     """``(low, high, median)`` of a recorded column: its ``lo`` and ``hi`` quantiles."""
     entry, qs = domain["columns"][column], domain.get("quantiles", QUANTILES)
     return _quantile(entry, qs, lo), _quantile(entry, qs, hi), _quantile(entry, qs, 0.5)
@@ -198,8 +219,10 @@ def domain_findings(
             if lo == hi:  # a constant of the training config (a fixed PSF)
                 trained = f"model trained at {fmt(lo)}{unit} (±{100 * rel:g} %)"
             else:
-                trained = (f"model trained on {fmt(lo)}–{fmt(hi)}{unit} ({_pct(MEDIAN_RANGE[0])}–"
-                           f"{_pct(MEDIAN_RANGE[1])} %, median {fmt(model_med)})")
+                trained = (
+                    f"model trained on {fmt(lo)}–{fmt(hi)}{unit} ({_pct(MEDIAN_RANGE[0])}–"
+                    f"{_pct(MEDIAN_RANGE[1])} %, median {fmt(model_med)})"
+                )
             out.append(Finding(c, f"{c} {here}, {trained}"))
             continue
         if v.size < MIN_TAIL_ROWS or int(entry.get("n", 0)) < MIN_MODEL_TAIL_ROWS:
@@ -208,10 +231,19 @@ def domain_findings(
         tol = rel * max(abs(tlo), abs(thi))
         outside = float(np.mean((v < tlo - tol) | (v > thi + tol)))
         if outside > OUTSIDE_FRACTION:
-            out.append(Finding(c, f"{c} {here}: {100 * outside:.0f} % of the rows outside the model's "
-                                  f"{_pct(TAIL_RANGE[0])}–{_pct(TAIL_RANGE[1])} % range {fmt(tlo)}–{fmt(thi)}{unit} "
-                                  f"(median {fmt(model_med)})"))
+            out.append(
+                Finding(
+                    c,
+                    f"{c} {here}: {100 * outside:.0f} % of the rows outside the model's "
+                    f"{_pct(TAIL_RANGE[0])}–{_pct(TAIL_RANGE[1])} % range {fmt(tlo)}–{fmt(thi)}{unit} "
+                    f"(median {fmt(model_med)})",
+                )
+            )
     trained = domain.get("stamp_size")
     if stamp_size is not None and trained is not None and int(stamp_size) != int(trained):
-        out.append(Finding("stamp_size", f"stamp size {int(stamp_size)} px, model trained at {int(trained)} px"))
+        out.append(
+            Finding(
+                "stamp_size", f"stamp size {int(stamp_size)} px, model trained at {int(trained)} px"
+            )
+        )
     return out

@@ -82,18 +82,24 @@ def training_columns(path: str | os.PathLike) -> tuple[Columns, str]:
     columns = CatalogColumns(path)
     if catalog_info(path)[2].get(STEP_CARD) is None:
         return columns, "simulation"
-    log.info("%s: a metacal catalog: training on the features of its noshear versions (a metacal model)", path)
+    log.info(
+        "%s: a metacal catalog: training on the features of its noshear versions (a metacal model)",
+        path,
+    )
     return VersionColumns(columns, "noshear"), "metacal"
 
 
-def _validation_columns(train: str | os.PathLike, valid: str | os.PathLike | None, mode: str,
-                        name: Callable[[str], str]) -> Columns | None:
+def _validation_columns(
+    train: str | os.PathLike, valid: str | os.PathLike | None, mode: str, name: Callable[[str], str]
+) -> Columns | None:
     """The columns of the validation catalog, which must have the training catalog's mode."""
     if valid is None:
         return None
     columns, valid_mode = training_columns(valid)
     if valid_mode != mode:
-        raise InputError(f"{name('valid')} {valid} and {name('train')} {train}: one is a metacal catalog, the other not")
+        raise InputError(
+            f"{name('valid')} {valid} and {name('train')} {train}: one is a metacal catalog, the other not"
+        )
     return columns
 
 
@@ -112,14 +118,18 @@ def column_names(table: Columns) -> list[str]:
     return list(table.colnames) if hasattr(table, "colnames") else list(table)
 
 
-def _take_columns(table: Columns, where: str, required: Sequence[str], optional: Sequence[str] = ()) -> dict[str, np.ndarray]:
+def _take_columns(
+    table: Columns, where: str, required: Sequence[str], optional: Sequence[str] = ()
+) -> dict[str, np.ndarray]:
     names = column_names(table)
     require_columns(names, required, where)
     use = list(dict.fromkeys([*required, *(c for c in optional if c in names)]))
     return {c: np.asarray(table[c]) for c in use}
 
 
-def _select_cases(columns: Mapping[str, np.ndarray], ok: np.ndarray, expr: str, where: str, name: str) -> np.ndarray:
+def _select_cases(
+    columns: Mapping[str, np.ndarray], ok: np.ndarray, expr: str, where: str, name: str
+) -> np.ndarray:
     """Restrict ``ok`` to the cases selected by a case expression (evaluated on valid rows)."""
     if not ok.any():
         return ok
@@ -175,12 +185,21 @@ def _load_cases(
     if select_cases:
         ok = _select_cases(columns, ok, select_cases, where, name("select_cases"))
     data = build_cases(
-        columns, features, targets, ok, where=where, constant_targets=constant_targets, point=point,
+        columns,
+        features,
+        targets,
+        ok,
+        where=where,
+        constant_targets=constant_targets,
+        point=point,
         measured=measured,
     )
     log.info(
         "%s: %d cases, %d valid realizations (%d masked)",
-        where, data.n_cases, data.n_rows, int(np.isin(columns["case"], data.case_ids).sum()) - data.n_rows,
+        where,
+        data.n_cases,
+        data.n_rows,
+        int(np.isin(columns["case"], data.case_ids).sum()) - data.n_rows,
     )
     return data, domain_record(columns, ok & np.isin(columns["case"], data.case_ids))
 
@@ -201,10 +220,17 @@ def _load_split(
     name = load.get("name", namer(None))
     data, domain = _load_cases(train, train_name, features, targets, **load)
     if valid is not None:
-        return data, _load_cases(valid, valid_name, features, targets, **load)[0], valid_name, domain
+        return (
+            data,
+            _load_cases(valid, valid_name, features, targets, **load)[0],
+            valid_name,
+            domain,
+        )
     if spec.valid_fraction <= 0:
-        log.warning("no validation set (%s 0): members are monitored and selected on the training set",
-                    name("valid_fraction"))
+        log.warning(
+            "no validation set (%s 0): members are monitored and selected on the training set",
+            name("valid_fraction"),
+        )
         return data, None, "training set", domain
     tr, va = split_cases(data.n_cases, spec.valid_fraction, rng_for(spec.seed, STREAM_SPLIT))
     if len(tr) < 2:
@@ -212,8 +238,13 @@ def _load_split(
             f"only {data.n_cases} cases: too few to hold out a validation fraction; "
             f"use {name('valid')} or {name('valid_fraction')} 0"
         )
-    log.info("holding out %d of %d cases for validation (%s %g)", len(va), data.n_cases, name("valid_fraction"),
-             spec.valid_fraction)
+    log.info(
+        "holding out %d of %d cases for validation (%s %g)",
+        len(va),
+        data.n_cases,
+        name("valid_fraction"),
+        spec.valid_fraction,
+    )
     return data.subset(tr), data.subset(va), f"held-out fraction {spec.valid_fraction:g}", domain
 
 
@@ -230,7 +261,11 @@ def _identity_feature(target: str, features: Sequence[str]) -> int:
 def _input(path: str | os.PathLike, sha256: str | None = None) -> dict[str, str]:
     """How a model records an input file: its name and sha256 (its identity) and, for
     information only, a path never absolute (:func:`megalut_cli.provenance.recorded_path`)."""
-    return {"name": Path(path).name, "path": recorded_path(path), "sha256": sha256 or sha256_file(path)}
+    return {
+        "name": Path(path).name,
+        "path": recorded_path(path),
+        "sha256": sha256 or sha256_file(path),
+    }
 
 
 def _spread(values: np.ndarray) -> float:
@@ -264,8 +299,12 @@ def _training_record(
     }
 
 
-def _check_architecture(features: Sequence[str], targets: Sequence[str], hidden: Sequence[int],
-                        name: Callable[[str], str]) -> None:
+def _check_architecture(
+    features: Sequence[str],
+    targets: Sequence[str],
+    hidden: Sequence[int],
+    name: Callable[[str], str],
+) -> None:
     overlap = sorted(set(features) & set(targets))
     if overlap:
         raise ConfigError(f"column(s) {', '.join(overlap)} cannot be both a feature and a target")
@@ -274,8 +313,12 @@ def _check_architecture(features: Sequence[str], targets: Sequence[str], hidden:
 
 
 def _provenance(
-    command: str, inputs: dict[str, Any], seed: int, parent: Mapping[str, Any] | None = None,
-    setup: Mapping[str, Any] | None = None, population: Mapping[str, Any] | None = None,
+    command: str,
+    inputs: dict[str, Any],
+    seed: int,
+    parent: Mapping[str, Any] | None = None,
+    setup: Mapping[str, Any] | None = None,
+    population: Mapping[str, Any] | None = None,
     domain: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The provenance of a trained model: command line, versions, inputs, seed, the training
@@ -300,8 +343,13 @@ def _provenance(
     return prov
 
 
-def _file_domain(prov: Mapping[str, Any], train: str | os.PathLike, setup: Mapping[str, Any],
-                 mode: str, population: Mapping[str, Any] | None) -> dict[str, Any]:
+def _file_domain(
+    prov: Mapping[str, Any],
+    train: str | os.PathLike,
+    setup: Mapping[str, Any],
+    mode: str,
+    population: Mapping[str, Any] | None,
+) -> dict[str, Any]:
     """The domain :func:`fit_point`/:func:`fit_weight` recorded, with the training catalog's
     stamp size (``STAMPSZ`` card) and file name, for a metacal model the version its
     columns are of (``noshear``), and the PSF size of its ``population``'s constant PSF."""
@@ -318,7 +366,9 @@ def _file_domain(prov: Mapping[str, Any], train: str | os.PathLike, setup: Mappi
     return domain
 
 
-def config_psf_domain(domain: Mapping[str, Any], psf: Mapping[str, Any], stamp_size: int) -> dict[str, Any]:
+def config_psf_domain(
+    domain: Mapping[str, Any], psf: Mapping[str, Any], stamp_size: int
+) -> dict[str, Any]:
     """``domain`` with the ``psf_adamom_sigma`` of a constant training PSF (the ``[psf]`` table
     drawn as ``measure --psf`` sees it), when the training rows carry no PSF measurement."""
     from megalut_cli.sim.psf import measured_psf_sigma  # GalSim: only when a PSF must be drawn
@@ -326,8 +376,13 @@ def config_psf_domain(domain: Mapping[str, Any], psf: Mapping[str, Any], stamp_s
     sigma = measured_psf_sigma(psf, stamp_size)
     if sigma is None:
         return dict(domain)
-    return with_constant_column(domain, "psf_adamom_sigma", sigma, PSF_SIZE_TOLERANCE,
-                                "the training config's [psf], drawn with the pixel on the stamp and measured")
+    return with_constant_column(
+        domain,
+        "psf_adamom_sigma",
+        sigma,
+        PSF_SIZE_TOLERANCE,
+        "the training config's [psf], drawn with the pixel on the stamp and measured",
+    )
 
 
 def fit_point(
@@ -389,21 +444,36 @@ def fit_point(
                 f"of {init_from} ({','.join(map(str, src.hidden))}); leave {name('hidden')} out to "
                 "continue that model"
             )
-    hidden = tuple(spec.hidden) if spec.hidden is not None else (
-        next(iter(init_comms.values())).hidden if init_comms else DEFAULT_POINT_HIDDEN
+    hidden = (
+        tuple(spec.hidden)
+        if spec.hidden is not None
+        else (next(iter(init_comms.values())).hidden if init_comms else DEFAULT_POINT_HIDDEN)
     )
     _check_architecture(features, targets, hidden, name)
 
     tdata, vdata, valid_desc, domain = _load_split(
-        train, src_names["train"], valid, src_names["valid"], spec, features, targets,
-        constant_targets=spec.cost != "mse", select_cases=spec.select_cases, name=name,
+        train,
+        src_names["train"],
+        valid,
+        src_names["valid"],
+        spec,
+        features,
+        targets,
+        constant_targets=spec.cost != "mse",
+        select_cases=spec.select_cases,
+        name=name,
     )
 
     committee_specs = []
     for j, t in enumerate(targets):
         src = init_comms.get(t)
         if src is not None:
-            in_loc, in_scale, out_loc, out_scale = src.in_loc, src.in_scale, src.out_loc, src.out_scale
+            in_loc, in_scale, out_loc, out_scale = (
+                src.in_loc,
+                src.in_scale,
+                src.out_loc,
+                src.out_scale,
+            )
             method = src.normalization
             ranked = sorted(range(len(src.members)), key=lambda k: (not src.members[k].selected, k))
             init_members = [src.members[k] for k in ranked]
@@ -415,17 +485,35 @@ def fit_point(
             init_members = None
         net = Network(len(features), hidden, "identity", out_loc, out_scale)
         training = _training_record(
-            spec, device, "train-point", spec.cost, valid_desc, tdata, vdata,
+            spec,
+            device,
+            "train-point",
+            spec.cost,
+            valid_desc,
+            tdata,
+            vdata,
             select_cases=spec.select_cases,
             init_from=init_from if init_model is not None else None,
             init_scheme="model" if src is not None else spec.init,
         )
         committee_specs.append(
             CommitteeSpec(
-                kind="point", target=t, j=j, net=net, in_loc=in_loc, in_scale=in_scale, train=tdata,
-                valid=vdata, members=spec.members, keep=spec.keep, cost_scale=out_scale,
-                init_scheme=spec.init, identity_feature=_identity_feature(t, features),
-                init_members=init_members, normalization=method, training=training,
+                kind="point",
+                target=t,
+                j=j,
+                net=net,
+                in_loc=in_loc,
+                in_scale=in_scale,
+                train=tdata,
+                valid=vdata,
+                members=spec.members,
+                keep=spec.keep,
+                cost_scale=out_scale,
+                init_scheme=spec.init,
+                identity_feature=_identity_feature(t, features),
+                init_members=init_members,
+                normalization=method,
+                training=training,
             )
         )
     settings = TrainSettings.of(spec, spec.cost, device)
@@ -470,9 +558,16 @@ def train_point(
     sources = {"train": str(train), "valid": str(valid), "init_model": str(init_from)}
     train_columns, mode = training_columns(train)
     model = fit_point(
-        train_columns, spec, valid=_validation_columns(train, valid, mode, namer(names)),
-        init_model=init_model, device=device, nproc=nproc, scheduler=scheduler, progress=progress,
-        sources=sources, names=names,
+        train_columns,
+        spec,
+        valid=_validation_columns(train, valid, mode, namer(names)),
+        init_model=init_model,
+        device=device,
+        nproc=nproc,
+        scheduler=scheduler,
+        progress=progress,
+        sources=sources,
+        names=names,
     )
     inputs = {"train": _input(train)}
     if valid is not None:
@@ -480,9 +575,15 @@ def train_point(
     if init_model is not None:
         inputs["init_from"] = _input(init_from, init_model.sha256)
     setup, population = read_setup(train), training_population(train)
-    model.provenance = _provenance("train-point", inputs, model.provenance["seed"],
-                                   init_model.provenance if init_model is not None else None, setup, population,
-                                   _file_domain(model.provenance, train, setup, mode, population))
+    model.provenance = _provenance(
+        "train-point",
+        inputs,
+        model.provenance["seed"],
+        init_model.provenance if init_model is not None else None,
+        setup,
+        population,
+        _file_domain(model.provenance, train, setup, mode, population),
+    )
     model.shear_mode = mode
     model.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, model.sha256[:12])
@@ -502,10 +603,17 @@ def _run(
         nproc = 1  # one process feeds the device
     log.info(
         "training %d committee(s) x %d members, %d iterations each (%s, batches of %g of the cases x %d iterations)",
-        len(specs), specs[0].members, settings.iterations, settings.cost, settings.batch_fraction,
+        len(specs),
+        specs[0].members,
+        settings.iterations,
+        settings.cost,
+        settings.batch_fraction,
         settings.batch_iterations,
     )
-    with executor(nproc, scheduler, n_units) as pool, (progress or no_progress)("members trained", n_units) as update:
+    with (
+        executor(nproc, scheduler, n_units) as pool,
+        (progress or no_progress)("members trained", n_units) as update,
+    ):
         return train_committees(specs, settings, seed, pool, update)
 
 
@@ -545,22 +653,47 @@ def fit_weight(
     _check_architecture(features, targets, hidden, name)
 
     tdata, vdata, valid_desc, domain = _load_split(
-        train, src_names["train"], valid, src_names["valid"], spec, features, targets,
-        constant_targets=True, select_rows=spec.select, point_model=point_model, name=name,
+        train,
+        src_names["train"],
+        valid,
+        src_names["valid"],
+        spec,
+        features,
+        targets,
+        constant_targets=True,
+        select_rows=spec.select,
+        point_model=point_model,
+        name=name,
     )
     in_loc, in_scale = norm.fit(tdata.x, spec.normalization, features)
     committee_specs = []
     for j, t in enumerate(targets):
         net = Network(len(features), hidden, "sigmoid4")
         training = _training_record(
-            spec, device, "train-weight", WEIGHT_COST, valid_desc, tdata, vdata,
-            select=spec.select, point_model_sha256=point_model.sha256 or None,
+            spec,
+            device,
+            "train-weight",
+            WEIGHT_COST,
+            valid_desc,
+            tdata,
+            vdata,
+            select=spec.select,
+            point_model_sha256=point_model.sha256 or None,
         )
         committee_specs.append(
             CommitteeSpec(
-                kind="weight", target=t, j=j, net=net, in_loc=in_loc, in_scale=in_scale, train=tdata,
-                valid=vdata, members=spec.members, keep=spec.keep,
-                cost_scale=_spread(tdata.targets[:, j]), normalization=spec.normalization,
+                kind="weight",
+                target=t,
+                j=j,
+                net=net,
+                in_loc=in_loc,
+                in_scale=in_scale,
+                train=tdata,
+                valid=vdata,
+                members=spec.members,
+                keep=spec.keep,
+                cost_scale=_spread(tdata.targets[:, j]),
+                normalization=spec.normalization,
                 training=training,
             )
         )
@@ -591,7 +724,9 @@ def train_weight(
     spec.check()
     out = check_output(output, overwrite)
     if Path(out).resolve() == Path(model).resolve():
-        raise ConfigError(f"{namer(names)('output')} {output} would replace the input model; choose another output file")
+        raise ConfigError(
+            f"{namer(names)('output')} {output} would replace the input model; choose another output file"
+        )
     if spec.select is not None:
         check_expression(spec.select, None, case_mode=False)
     point_model = ShearModel.load(model)
@@ -603,16 +738,30 @@ def train_weight(
             "catalog: train the weights on a catalog of the point model's mode"
         )
     result = fit_weight(
-        train_columns, point_model, spec, valid=valid_columns, device=device, nproc=nproc,
-        scheduler=scheduler, progress=progress, sources={"train": str(train), "valid": str(valid), "model": str(model)},
+        train_columns,
+        point_model,
+        spec,
+        valid=valid_columns,
+        device=device,
+        nproc=nproc,
+        scheduler=scheduler,
+        progress=progress,
+        sources={"train": str(train), "valid": str(valid), "model": str(model)},
         names=names,
     )
     inputs = {"train": _input(train), "model": _input(model, point_model.sha256)}
     if valid is not None:
         inputs["valid"] = _input(valid)
     setup, population = read_setup(train), training_population(train)
-    result.provenance = _provenance("train-weight", inputs, result.provenance["seed"], point_model.provenance,
-                                    setup, population, _file_domain(result.provenance, train, setup, mode, population))
+    result.provenance = _provenance(
+        "train-weight",
+        inputs,
+        result.provenance["seed"],
+        point_model.provenance,
+        setup,
+        population,
+        _file_domain(result.provenance, train, setup, mode, population),
+    )
     result.shear_mode = mode
     result.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, result.sha256[:12])

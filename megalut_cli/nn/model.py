@@ -138,7 +138,9 @@ class Committee:
         m = len(sel)
         w0 = np.concatenate([mem.layers[0][0] for mem in sel], axis=1) / self.in_scale[:, None]
         b0 = np.concatenate([mem.layers[0][1] for mem in sel])
-        b0 = b0 - (self.in_loc / self.in_scale) @ np.concatenate([mem.layers[0][0] for mem in sel], axis=1)
+        b0 = b0 - (self.in_loc / self.in_scale) @ np.concatenate(
+            [mem.layers[0][0] for mem in sel], axis=1
+        )
         stack: list[tuple[np.ndarray, np.ndarray]] = [(w0, b0)]
         for li in range(1, len(self.hidden) + 1):
             hin, hout = sel[0].layers[li][0].shape
@@ -215,7 +217,9 @@ class Committee:
                 layer.attrs["activation"] = acts[li]
                 layer.create_dataset("W", data=np.asarray(w, dtype=np.float64))
                 layer.create_dataset("b", data=np.asarray(b, dtype=np.float64))
-            h = hg.create_dataset(name, data=np.asarray(mem.history, dtype=np.float64).reshape(-1, 2))
+            h = hg.create_dataset(
+                name, data=np.asarray(mem.history, dtype=np.float64).reshape(-1, 2)
+            )
             h.attrs["columns"] = json.dumps(HISTORY_COLUMNS)
 
     @classmethod
@@ -228,11 +232,17 @@ class Committee:
         for name in sorted(g["members"]):
             sg = g["members"][name]
             layers = [
-                (np.asarray(sg["layers"][str(li)]["W"][()], dtype=np.float64),
-                 np.asarray(sg["layers"][str(li)]["b"][()], dtype=np.float64))
+                (
+                    np.asarray(sg["layers"][str(li)]["W"][()], dtype=np.float64),
+                    np.asarray(sg["layers"][str(li)]["b"][()], dtype=np.float64),
+                )
                 for li in range(n_layers)
             ]
-            hist = g["history"][name][()] if "history" in g and name in g["history"] else np.zeros((0, 2))
+            hist = (
+                g["history"][name][()]
+                if "history" in g and name in g["history"]
+                else np.zeros((0, 2))
+            )
             members.append(
                 Member(
                     layers=layers,
@@ -320,8 +330,12 @@ class ShearModel:
             raise ValueError(f"unknown shear mode {mode!r} (known: {', '.join(SHEAR_MODES)})")
         out = ShearModel(self.point, self.weight, self.provenance)
         out.validation = dict(self.validation)
-        out.provenance["mode_from"] = {"shear_mode": self.shear_mode, "sha256": self.sha256, "uuid": self.uuid,
-                                       "why": why}
+        out.provenance["mode_from"] = {
+            "shear_mode": self.shear_mode,
+            "sha256": self.sha256,
+            "uuid": self.uuid,
+            "why": why,
+        }
         out.shear_mode = mode
         return out
 
@@ -350,7 +364,9 @@ class ShearModel:
                         comm._write(kg.create_group(component_name(target)))
                 prov = f.create_group("provenance")
                 for key, val in self.provenance.items():
-                    prov.attrs[key] = val if isinstance(val, str) else json.dumps(val, sort_keys=True)
+                    prov.attrs[key] = (
+                        val if isinstance(val, str) else json.dumps(val, sort_keys=True)
+                    )
                 if self.validation:
                     val_group = f.create_group("validation")
                     for key, val in self.validation.items():
@@ -368,7 +384,9 @@ class ShearModel:
         try:
             f = h5py.File(p, "r")
         except OSError:
-            raise InputError(f"{p}: not a readable HDF5 model file (truncated or not HDF5)") from None
+            raise InputError(
+                f"{p}: not a readable HDF5 model file (truncated or not HDF5)"
+            ) from None
         try:
             with f:
                 fmt = f.attrs.get("format")
@@ -383,7 +401,12 @@ class ShearModel:
                         f"{p}: model format version {version} is not supported (this megalut reads {cur_major}.x)"
                     )
                 if minor > cur_minor:
-                    log.warning("%s: model format version %s is newer than this megalut's %s", p, version, FORMAT_VERSION)
+                    log.warning(
+                        "%s: model format version %s is newer than this megalut's %s",
+                        p,
+                        version,
+                        FORMAT_VERSION,
+                    )
                 model = cls()
                 model.format_version = version
                 for kind in KINDS:
@@ -402,12 +425,16 @@ class ShearModel:
                         except json.JSONDecodeError:
                             model.provenance[key] = val
                 for key, val in f["validation"].attrs.items() if "validation" in f else ():
-                    model.validation[key] = json.loads(val.decode() if isinstance(val, bytes) else str(val))
+                    model.validation[key] = json.loads(
+                        val.decode() if isinstance(val, bytes) else str(val)
+                    )
                 model.uuid = _attr(f, "uuid", "")
                 model.created = _attr(f, "created", "")
                 model.shear_mode = _attr(f, "shear_mode", SHEAR_MODES[0])
                 if model.shear_mode not in SHEAR_MODES:
-                    raise InputError(f"{p}: unknown shear_mode {model.shear_mode!r} (known: {', '.join(SHEAR_MODES)})")
+                    raise InputError(
+                        f"{p}: unknown shear_mode {model.shear_mode!r} (known: {', '.join(SHEAR_MODES)})"
+                    )
         except InputError:
             raise
         except (KeyError, ValueError, TypeError, OSError, json.JSONDecodeError) as err:

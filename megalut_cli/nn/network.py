@@ -170,7 +170,11 @@ class Network:
         return out, cache
 
     def backward(
-        self, params: np.ndarray, out: np.ndarray, cache: list[list[np.ndarray]], grad_out: np.ndarray
+        self,
+        params: np.ndarray,
+        out: np.ndarray,
+        cache: list[list[np.ndarray]],
+        grad_out: np.ndarray,
     ) -> np.ndarray:
         """Gradient of a cost with respect to the flat parameters, given ``d cost / d output``.
 
@@ -227,7 +231,9 @@ class Network:
         return sigmoid4(z, out=z)
 
 
-def _hidden(w: np.ndarray, b: np.ndarray, a: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+def _hidden(
+    w: np.ndarray, b: np.ndarray, a: np.ndarray, out: np.ndarray | None = None
+) -> np.ndarray:
     z = np.matmul(w.T, a, out=out)
     z += b[:, None]
     return np.tanh(z, out=z)

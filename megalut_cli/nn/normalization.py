@@ -18,7 +18,9 @@ log = logging.getLogger(__name__)
 METHODS = ("minmax", "robust")
 
 
-def fit(x: np.ndarray, method: str = "minmax", names: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def fit(
+    x: np.ndarray, method: str = "minmax", names: Sequence[str] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """``(loc, scale)`` per column of ``x`` (rows x features, finite values only)."""
     x = np.asarray(x, dtype=np.float64)
     if x.ndim != 2 or x.shape[0] == 0:

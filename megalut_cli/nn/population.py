@@ -64,15 +64,19 @@ def population_summary(pop: Mapping[str, Any]) -> str:
     profile = GALAXY_PROFILES.get(name) if isinstance(name, str) else None
     g = profile.describe(gal) if profile is not None else f"{name} galaxies"
     p = f"{psf.get('type', '?')} PSF" + "".join(
-        f" {k} {short_text(psf[k])}" for k in ("sigma", "fwhm", "beta") if k in psf)
+        f" {k} {short_text(psf[k])}" for k in ("sigma", "fwhm", "beta") if k in psf
+    )
     sigma = f" sigma {short_text(noise['sigma'])}" if "sigma" in noise else ""
     n = f"{noise.get('type', '?')} noise{sigma}"
     return f"{g}; {p}; {n}"
 
 
 #: Units of the population's keys in plain words, by table.
-_UNITS = {"galaxy": {"rad": "px", "angle": "deg", "flux": "adu", "sb": "adu/px2"},
-          "psf": {"sigma": "px", "fwhm": "px", "rad": "px"}, "noise": {"sigma": "adu"}}
+_UNITS = {
+    "galaxy": {"rad": "px", "angle": "deg", "flux": "adu", "sb": "adu/px2"},
+    "psf": {"sigma": "px", "fwhm": "px", "rad": "px"},
+    "noise": {"sigma": "adu"},
+}
 #: Keys told first (size and brightness before shape), the others as recorded.
 _FIRST = ("sersicn", "rad", "sb", "flux", "mag", "sigma", "fwhm", "beta", "ellipticity", "angle")
 #: How plain words name the population's tables.
@@ -105,7 +109,13 @@ def describe_value(v: Any, unit: str = "") -> str:
     if t == "grid":
         if "values" in v:
             return f"one of {describe_value(list(v['values']), unit)}"
-        step = f" step {_num(v['step'])}" if "step" in v else f" ({_num(v['n'])} values)" if "n" in v else ""
+        step = (
+            f" step {_num(v['step'])}"
+            if "step" in v
+            else f" ({_num(v['n'])} values)"
+            if "n" in v
+            else ""
+        )
         return f"grid {_num(lo)} to {_num(hi)}{u}{step}"
     if t == "catalog":
         return f"column {v.get('column')} of the catalog"
@@ -123,9 +133,14 @@ def population_lines(pop: Mapping[str, Any], setup: Mapping[str, Any] | None = N
             continue
         head = t.get("profile", t.get("type"))
         first = [k for k in _FIRST if k in t]
-        items = [f"{k} {describe_value(t[k], _UNITS[table].get(k, ''))}"
-                 for k in [*first, *(k for k in t if k not in first)] if k not in ("profile", "type")]
-        lines.append(f"{_TABLE_NAMES[table]}: " + "; ".join([str(head)] * (head is not None) + items))
+        items = [
+            f"{k} {describe_value(t[k], _UNITS[table].get(k, ''))}"
+            for k in [*first, *(k for k in t if k not in first)]
+            if k not in ("profile", "type")
+        ]
+        lines.append(
+            f"{_TABLE_NAMES[table]}: " + "; ".join([str(head)] * (head is not None) + items)
+        )
     size = (setup or {}).get("stamp_size")
     if size:
         lines.append(f"stamp size: {size} px")
@@ -154,20 +169,25 @@ def model_report(model: Any) -> list[str]:
         pop = p.get("population")
         what = "point estimates" if p.get("command") == "train-point" else "weights"
         if isinstance(pop, Mapping):
-            lines.append(f"model {what} trained on: {pop.get('summary') or population_summary(pop)} ({pop.get('config')})")
+            lines.append(
+                f"model {what} trained on: {pop.get('summary') or population_summary(pop)} ({pop.get('config')})"
+            )
         elif p.get("command"):
             lines.append(f"model {what}: training population not recorded in the model file")
     domain = model_domain(prov)
     if domain is not None:
         lines.append(f"model domain ({domain_line(domain)})")
     else:
-        lines.append(f"model domain: not recorded in the model file ({DOMAIN_KEY}; docs/model-format.md)")
+        lines.append(
+            f"model domain: not recorded in the model file ({DOMAIN_KEY}; docs/model-format.md)"
+        )
     rec = model.validation.get(REAL_BIAS_ATTR)
     if isinstance(rec, Mapping):
         lines.append(
             f"recorded model bias on real galaxies ({rec.get('setup')}, {rec.get('scheme')}): "
             f"m_real - m_twin = {rec.get('dm_g1'):+.2e} ± {rec.get('dm_g1_err'):.1e} (g1), "
-            f"{rec.get('dm_g2'):+.2e} ± {rec.get('dm_g2_err'):.1e} (g2)")
+            f"{rec.get('dm_g2'):+.2e} ± {rec.get('dm_g2_err'):.1e} (g2)"
+        )
     else:
         lines.append("no model bias on real galaxies recorded for this model (docs/realgal.md)")
     return lines
@@ -211,7 +231,10 @@ def record_population(model_path: str | os.PathLike, population: Mapping[str, An
             prov["parent"] = json.dumps(parent, sort_keys=True)
 
     def edit(f: Any) -> None:
-        prov = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.require_group("provenance").attrs.items()}
+        prov = {
+            k: (v.decode() if isinstance(v, bytes) else v)
+            for k, v in f.require_group("provenance").attrs.items()
+        }
         update(prov)
         f["provenance"].attrs["population"] = json.dumps(dict(population), sort_keys=True)
         if "parent" in prov:
@@ -220,7 +243,9 @@ def record_population(model_path: str | os.PathLike, population: Mapping[str, An
     _edit_model(model_path, edit)
 
 
-def update_provenance(model_path: str | os.PathLike, change: Callable[[dict[str, Any]], dict[str, Any]]) -> None:
+def update_provenance(
+    model_path: str | os.PathLike, change: Callable[[dict[str, Any]], dict[str, Any]]
+) -> None:
     """Replace a model's ``/provenance`` by ``change(provenance)`` (decoded as
     :meth:`ShearModel.load` decodes it, ``parent`` included), in place but atomically; the
     networks are not touched (only the attributes of ``/provenance`` are rewritten)."""

@@ -42,7 +42,9 @@ def appendix_columns(
     }
 
 
-def shear_like_columns(n_cases: int, n_rea: int, seed: int, psf_sigma: float = 2.0) -> dict[str, np.ndarray]:
+def shear_like_columns(
+    n_cases: int, n_rea: int, seed: int, psf_sigma: float = 2.0
+) -> dict[str, np.ndarray]:
     """A shear-like training set: features ``adamom_g1, adamom_g2, adamom_sigma, adamom_flux,
     adamom_rho4`` and targets ``tru_g1, tru_g2`` (constant within each case)."""
     rng = np.random.default_rng(seed)

@@ -80,8 +80,9 @@ class TrainSettings:
         return cls(**{**values, "cost": cost, "device": device})
 
 
-def normalised_columns(x: np.ndarray, loc: np.ndarray, scale: np.ndarray, dtype: str,
-                       block: int = 16384) -> np.ndarray:
+def normalised_columns(
+    x: np.ndarray, loc: np.ndarray, scale: np.ndarray, dtype: str, block: int = 16384
+) -> np.ndarray:
     """``(x - loc) / scale`` (float64 arithmetic) transposed to the column layout
     (``features x rows``, C-contiguous) in ``dtype``; by blocks of rows that stay in the CPU
     cache (the numbers of ``np.ascontiguousarray(((x - loc) / scale).T, dtype)``)."""
@@ -209,7 +210,9 @@ class MemberResult:
     n_iter: int
     best_iter: int
     history: np.ndarray  # (n_iter_total, 2): batch training cost, validation cost
-    times: np.ndarray = field(default_factory=lambda: np.zeros(0))  # wall seconds since start, per iteration
+    times: np.ndarray = field(
+        default_factory=lambda: np.zeros(0)
+    )  # wall seconds since start, per iteration
     cpu_times: np.ndarray = field(default_factory=lambda: np.zeros(0))  # CPU seconds since start
     n_evals: int = 0
     elapsed: float = 0.0
@@ -237,7 +240,12 @@ class _Monitor:
     """Records the cost after every optimiser iteration and keeps the best-validation parameters."""
 
     def __init__(
-        self, monitor: Objective, params: np.ndarray, settings: TrainSettings, t0: float, cpu0: float
+        self,
+        monitor: Objective,
+        params: np.ndarray,
+        settings: TrainSettings,
+        t0: float,
+        cpu0: float,
     ) -> None:
         self.monitor = monitor
         self.settings = settings
@@ -259,7 +267,11 @@ class _Monitor:
         if self.it % self.settings.valid_every == 0 or self.it == self.settings.iterations:
             v = self.monitor.value(x)
             if v < self.best_valid or not np.isfinite(self.best_valid):
-                self.best_valid, self.best_params, self.best_iter = v, np.array(x, copy=True), self.it
+                self.best_valid, self.best_params, self.best_iter = (
+                    v,
+                    np.array(x, copy=True),
+                    self.it,
+                )
         self.rows.append((float(intermediate_result.fun) / self.batch_norm, v))
         self.times.append(time.perf_counter() - self.t0)
         self.cpu_times.append(time.process_time() - self.cpu0)
@@ -278,13 +290,18 @@ def train_member(task: MemberTask) -> MemberResult:
         from megalut_cli.gpu.train import DeviceObjective as objective
 
     def make(data: CaseData) -> Objective:
-        return objective(task.net, s.cost, data, task.j, task.in_loc, task.in_scale,
-                         task.cost_scale, s.precision)
+        return objective(
+            task.net, s.cost, data, task.j, task.in_loc, task.in_scale, task.cost_scale, s.precision
+        )
 
     full = make(task.train)
     mon = _Monitor(full if task.valid is None else make(task.valid), params, s, t0, cpu0)
     n_cases = task.train.n_cases
-    bsize = n_cases if s.batch_fraction >= 1.0 else min(n_cases, max(1, int(round(s.batch_fraction * n_cases))))
+    bsize = (
+        n_cases
+        if s.batch_fraction >= 1.0
+        else min(n_cases, max(1, int(round(s.batch_fraction * n_cases))))
+    )
     stalls = 0
     n_evals = 0
     last_report = t0
@@ -298,14 +315,20 @@ def train_member(task: MemberTask) -> MemberResult:
         if bsize < n_cases:
             cases = np.sort(rng.choice(n_cases, size=bsize, replace=False))
             # On the CPU the batch's features are taken from the normalised training set.
-            obj = full.batch(cases) if isinstance(full, Objective) else make(task.train.subset(cases))
+            obj = (
+                full.batch(cases) if isinstance(full, Objective) else make(task.train.subset(cases))
+            )
         else:
             obj = full
         mon.batch_norm = obj.norm
         before_it, before_evals = mon.it, obj.n_evals
         fun, jac = (obj.scaled_with_grad, True) if s.gradient == "analytic" else (obj.scaled, None)
         res = minimize(
-            fun, params, jac=jac, method=method, callback=mon,
+            fun,
+            params,
+            jac=jac,
+            method=method,
+            callback=mon,
             options={**opts, "maxiter": min(s.batch_iterations, s.iterations - mon.it)},
         )
         n_evals += obj.n_evals - before_evals
@@ -318,27 +341,48 @@ def train_member(task: MemberTask) -> MemberResult:
         if level == logging.INFO:
             last_report = now
         log.log(
-            level, "%s: iteration %d/%d, batch %s %.4e, valid %.4e (best %.4e at %d)",
-            task.label, mon.it, s.iterations, s.cost, last[0], last[1], mon.best_valid, mon.best_iter,
+            level,
+            "%s: iteration %d/%d, batch %s %.4e, valid %.4e (best %.4e at %d)",
+            task.label,
+            mon.it,
+            s.iterations,
+            s.cost,
+            last[0],
+            last[1],
+            mon.best_valid,
+            mon.best_iter,
         )
         if mon.it == before_it:
             stalls += 1
             if stalls >= s.max_stalls:
-                log.info("%s: the optimiser made no progress on %d batches; stopping", task.label, stalls)
+                log.info(
+                    "%s: the optimiser made no progress on %d batches; stopping", task.label, stalls
+                )
                 break
         else:
             stalls = 0
     best_params, best_valid, best_iter, rows, times = (
-        mon.best_params, mon.best_valid, mon.best_iter, mon.rows, mon.times,
+        mon.best_params,
+        mon.best_valid,
+        mon.best_iter,
+        mon.rows,
+        mon.times,
     )
     train_cost = full.value(best_params)
     log.info(
         "%s: done, %d iterations in %.1f s, best validation %s %.4e at iteration %d",
-        task.label, mon.it, time.perf_counter() - t0, s.cost, best_valid, best_iter,
+        task.label,
+        mon.it,
+        time.perf_counter() - t0,
+        s.cost,
+        best_valid,
+        best_iter,
     )
     history = np.asarray(rows, dtype=np.float64).reshape(-1, 2)
     if task.prior_history is not None and len(task.prior_history):
-        history = np.vstack([np.asarray(task.prior_history, dtype=np.float64).reshape(-1, 2), history])
+        history = np.vstack(
+            [np.asarray(task.prior_history, dtype=np.float64).reshape(-1, 2), history]
+        )
         offset = len(task.prior_history)
     else:
         offset = 0

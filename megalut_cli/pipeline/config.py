@@ -60,68 +60,156 @@ MAX_NAME = 64
 #: own readers.
 PIPELINE_OPTIONS: tuple[Option, ...] = (
     Option("description", "str", "", "free text", empty_ok=True),
-    Option("name", "str", "", "a subfolder of the work folder for the products of the steps after the "
-           "simulations; see above", empty_ok=True,
-           allowed_text=f"letters, digits, `_`, `-` (at most {MAX_NAME})"),
-    Option("extends", "path", None, "a pipeline file this one changes; see above (in a file only, not as an "
-           "override)"),
-    Option("scale", "float", 1.0, "fraction of the stamps to simulate: shrinks (or grows) every set, see "
-           "`scale_by`", minimum=0, min_open=True),
-    replace(ENGINE_OPTION, help="stamp engine of the simulations: `\"fast\"` (batched rendering, compiled "
-            "adaptive moments) or `\"galsim\"` (the reference); see [engines.md](engines.md). Part of the "
-            "simulation steps' keys: changing it re-runs them"),
-    replace(DEVICE_OPTION, help="where the simulations and trainings run: `\"cpu\"`, `\"gpu\"` (the optional "
-            "JAX backend; one clear error if none is usable) or `\"auto\"` (gpu when found); see "
-            "[gpu.md](gpu.md). Not part of the steps' keys (results agree within the tolerances of gpu.md), "
-            "like `-j`"),
-    Option("metacal", "bool", False, "measure every set in metacal mode too (each stamp deconvolved by its PSF, "
-           "sheared by ±0.01, reconvolved; docs/metacal.md): the networks train on the features of the noshear "
-           "versions (a metacal model), the predictions get the responses `mcal_r11`..`mcal_r22` and `evaluate` "
-           "reports the response-calibrated biases; a `[reference]` model must then be a metacal one "
-           "(`\"fiducial-metacal\"`). Part of the simulation steps' keys"),
-    Option("simulation", "table", None, "a simulation config (any table of docs/config.md) shared by the sets "
-           "without `config`"),
-    Option("sets", "table", None, "the simulated sets: `[sets.tp]`, `[sets.tw]`, `[sets.vo]` (required), "
-           "`[sets.pretrain]` (enables `pretrain-point`) and `[sets.vp]` (enables `predict-vp`, `evaluate-vp`)",
-           default_text="required"),
-    Option("pretrain", "table", None, "pretraining of the point estimators (needs `[sets.pretrain]`)",
-           default_text="see below"),
+    Option(
+        "name",
+        "str",
+        "",
+        "a subfolder of the work folder for the products of the steps after the "
+        "simulations; see above",
+        empty_ok=True,
+        allowed_text=f"letters, digits, `_`, `-` (at most {MAX_NAME})",
+    ),
+    Option(
+        "extends",
+        "path",
+        None,
+        "a pipeline file this one changes; see above (in a file only, not as an override)",
+    ),
+    Option(
+        "scale",
+        "float",
+        1.0,
+        "fraction of the stamps to simulate: shrinks (or grows) every set, see `scale_by`",
+        minimum=0,
+        min_open=True,
+    ),
+    replace(
+        ENGINE_OPTION,
+        help='stamp engine of the simulations: `"fast"` (batched rendering, compiled '
+        'adaptive moments) or `"galsim"` (the reference); see [engines.md](engines.md). Part of the '
+        "simulation steps' keys: changing it re-runs them",
+    ),
+    replace(
+        DEVICE_OPTION,
+        help='where the simulations and trainings run: `"cpu"`, `"gpu"` (the optional '
+        'JAX backend; one clear error if none is usable) or `"auto"` (gpu when found); see '
+        "[gpu.md](gpu.md). Not part of the steps' keys (results agree within the tolerances of gpu.md), "
+        "like `-j`",
+    ),
+    Option(
+        "metacal",
+        "bool",
+        False,
+        "measure every set in metacal mode too (each stamp deconvolved by its PSF, "
+        "sheared by ±0.01, reconvolved; docs/metacal.md): the networks train on the features of the noshear "
+        "versions (a metacal model), the predictions get the responses `mcal_r11`..`mcal_r22` and `evaluate` "
+        "reports the response-calibrated biases; a `[reference]` model must then be a metacal one "
+        '(`"fiducial-metacal"`). Part of the simulation steps\' keys',
+    ),
+    Option(
+        "simulation",
+        "table",
+        None,
+        "a simulation config (any table of docs/config.md) shared by the sets without `config`",
+    ),
+    Option(
+        "sets",
+        "table",
+        None,
+        "the simulated sets: `[sets.tp]`, `[sets.tw]`, `[sets.vo]` (required), "
+        "`[sets.pretrain]` (enables `pretrain-point`) and `[sets.vp]` (enables `predict-vp`, `evaluate-vp`)",
+        default_text="required",
+    ),
+    Option(
+        "pretrain",
+        "table",
+        None,
+        "pretraining of the point estimators (needs `[sets.pretrain]`)",
+        default_text="see below",
+    ),
     Option("train_point", "table", None, "point-estimator training", default_text="see below"),
     Option("train_weight", "table", None, "weight training", default_text="see below"),
     Option("evaluate", "table", None, "bias analysis on `vo`", default_text="see below"),
-    Option("evaluate_vp", "table", None, "bias analysis of the point estimates on `vp` (needs `[sets.vp]`)",
-           default_text="see below"),
-    Option("reference", "table", None, "a fixed model validated beside the one trained here (needs `model`)",
-           default_text="see below"),
+    Option(
+        "evaluate_vp",
+        "table",
+        None,
+        "bias analysis of the point estimates on `vp` (needs `[sets.vp]`)",
+        default_text="see below",
+    ),
+    Option(
+        "reference",
+        "table",
+        None,
+        "a fixed model validated beside the one trained here (needs `model`)",
+        default_text="see below",
+    ),
 )
 PIPELINE = {o.name: o for o in PIPELINE_OPTIONS}
 
 #: The keys of a ``[sets.X]`` table.
 SET_OPTIONS: tuple[Option, ...] = (
-    Option("config", "path", None, "a simulation config file (docs/config.md), relative to the pipeline file; "
-           "without it the top-level `[simulation]` table is the base"),
-    Option("simulation", "table", None, "a table merged over the base config, e.g. "
-           "`{structure = {snc = \"pairs\"}}`"),
-    replace(STRUCTURE["n_cases"], help="overrides `structure.n_cases`", default_text="the config's"),
-    replace(STRUCTURE["n_realizations"], help="overrides `structure.n_realizations`",
-            default_text="the config's"),
-    Option("seed", "int", None, "seed of every random draw of the set; **the seeds of the sets must differ**",
-           minimum=0, default_text=", ".join(f"{k} {v}" for k, v in DEFAULT_SET_SEEDS.items())),
-    Option("scale_by", "choice", "both", "how `scale` shrinks the set: `\"both\"` multiplies n_cases and "
-           "n_realizations by sqrt(scale), `\"cases\"` n_cases by scale, `\"realizations\"` n_realizations by "
-           "scale", choices=tuple(SCALE_BY)),
+    Option(
+        "config",
+        "path",
+        None,
+        "a simulation config file (docs/config.md), relative to the pipeline file; "
+        "without it the top-level `[simulation]` table is the base",
+    ),
+    Option(
+        "simulation",
+        "table",
+        None,
+        'a table merged over the base config, e.g. `{structure = {snc = "pairs"}}`',
+    ),
+    replace(
+        STRUCTURE["n_cases"], help="overrides `structure.n_cases`", default_text="the config's"
+    ),
+    replace(
+        STRUCTURE["n_realizations"],
+        help="overrides `structure.n_realizations`",
+        default_text="the config's",
+    ),
+    Option(
+        "seed",
+        "int",
+        None,
+        "seed of every random draw of the set; **the seeds of the sets must differ**",
+        minimum=0,
+        default_text=", ".join(f"{k} {v}" for k, v in DEFAULT_SET_SEEDS.items()),
+    ),
+    Option(
+        "scale_by",
+        "choice",
+        "both",
+        'how `scale` shrinks the set: `"both"` multiplies n_cases and '
+        'n_realizations by sqrt(scale), `"cases"` n_cases by scale, `"realizations"` n_realizations by '
+        "scale",
+        choices=tuple(SCALE_BY),
+    ),
 )
 SET_OPTION = {o.name: o for o in SET_OPTIONS}
 
 #: The keys of the ``[reference]`` table.
 REFERENCE_OPTIONS: tuple[Option, ...] = (
-    Option("model", "path", None, "a model file (relative to the pipeline file), or the name of a model shipped "
-           "with megalut: `\"fiducial\"` (`models/fiducial.h5`, the paper-size model) or `\"fiducial-1e6\"` "
-           "(`models/fiducial-1e6.h5`, the model shipped before it; [models/README.md](../models/README.md)), or "
-           "`\"fiducial-metacal\"` (the networks of `fiducial` for metacal catalogs, [metacal.md](metacal.md))",
-           default_text="required", allowed_text="a path, or a shipped model's name"),
-    Option("set", "str", "vo", "the set it is evaluated on, with the options of `[evaluate]`",
-           allowed_text="a set of the pipeline"),
+    Option(
+        "model",
+        "path",
+        None,
+        "a model file (relative to the pipeline file), or the name of a model shipped "
+        'with megalut: `"fiducial"` (`models/fiducial.h5`, the paper-size model) or `"fiducial-1e6"` '
+        "(`models/fiducial-1e6.h5`, the model shipped before it; [models/README.md](../models/README.md)), or "
+        '`"fiducial-metacal"` (the networks of `fiducial` for metacal catalogs, [metacal.md](metacal.md))',
+        default_text="required",
+        allowed_text="a path, or a shipped model's name",
+    ),
+    Option(
+        "set",
+        "str",
+        "vo",
+        "the set it is evaluated on, with the options of `[evaluate]`",
+        allowed_text="a set of the pipeline",
+    ),
 )
 REFERENCE_OPTION = {o.name: o for o in REFERENCE_OPTIONS}
 
@@ -157,8 +245,9 @@ def merge_tables(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, 
 TRAIN_POINT_KEYS = {o.name for o in PointSpec.OPTIONS}
 TRAIN_WEIGHT_KEYS = {o.name for o in WeightSpec.OPTIONS}
 #: ``plot`` of an ``[evaluate]`` table (its other keys: the options of ``megalut evaluate``).
-PLOT_OPTION = Option("plot", "bool", True, "draw the evaluation's figure (when matplotlib is "
-                     "installed)")
+PLOT_OPTION = Option(
+    "plot", "bool", True, "draw the evaluation's figure (when matplotlib is installed)"
+)
 
 
 def read_spec(spec_class: type[TrainSpec], t: Table, **defaults: Any) -> Any:
@@ -177,11 +266,15 @@ def read_spec(spec_class: type[TrainSpec], t: Table, **defaults: Any) -> Any:
 
 def key_names(table: str) -> dict[str, str]:
     """How library messages name their arguments: keys of the table ``table`` of the pipeline file."""
-    return {arg: f"{table}.{arg}" for arg in ("select_cases", "select", "hidden", "valid_fraction", "by")}
+    return {
+        arg: f"{table}.{arg}"
+        for arg in ("select_cases", "select", "hidden", "valid_fraction", "by")
+    }
 
 
-def selection_expression(t: Table, option: Option, case_mode: bool,
-                         default: str | None = None) -> str | None:
+def selection_expression(
+    t: Table, option: Option, case_mode: bool, default: str | None = None
+) -> str | None:
     """The selection expression of the declared ``option``, syntax-checked (columns are
     checked later); ``""`` means none."""
     if t.data.get(option.name) == "":
@@ -198,8 +291,6 @@ def selection_expression(t: Table, option: Option, case_mode: bool,
 def default_pipeline_text() -> str:
     """The text of the embedded default pipeline."""
     return importlib.resources.files("megalut_cli").joinpath("data", DEFAULT_PIPELINE).read_text()
-
-
 
 
 # --------------------------------------------------------------------------- where a key is written
@@ -238,10 +329,16 @@ def _chain(path: str | os.PathLike | None) -> list[ConfigSource]:
 
 
 def _get(raw: Any, parts: Sequence[str]) -> Any:
-    return raw if not parts else (_get(raw.get(parts[0]), parts[1:]) if isinstance(raw, Mapping) else None)
+    return (
+        raw
+        if not parts
+        else (_get(raw.get(parts[0]), parts[1:]) if isinstance(raw, Mapping) else None)
+    )
 
 
-def _set_key(name: str, key: list[str], chain: Sequence[ConfigSource], overrides: Sequence[str]) -> str | None:
+def _set_key(
+    name: str, key: list[str], chain: Sequence[ConfigSource], overrides: Sequence[str]
+) -> str | None:
     """Where the simulation key ``key`` of the set ``name`` comes from: an override, the
     set's ``simulation`` table (or its ``n_cases``/``n_realizations``), its ``config``
     file, or the top-level ``[simulation]``."""
@@ -257,12 +354,18 @@ def _set_key(name: str, key: list[str], chain: Sequence[ConfigSource], overrides
         override = override_for(["sets", name, "config"], overrides)
         if override is not None:  # a path given on the command line: from the current folder
             okey, value = parse_override(override)
-            value, base = _get({"v": value}, ["v", *["sets", name, "config"][len(okey):]]), Path.cwd()
+            value, base = (
+                _get({"v": value}, ["v", *["sets", name, "config"][len(okey) :]]),
+                Path.cwd(),
+            )
         else:
             src = next(s for s in chain if has_key(s.raw, ["sets", name, "config"]))
             value, base = _get(src.raw, ["sets", name, "config"]), Path(src.name).resolve().parent
         if isinstance(value, str):
-            for candidate in (base / Path(value).expanduser(), Path.cwd() / Path(value).expanduser()):
+            for candidate in (
+                base / Path(value).expanduser(),
+                Path.cwd() / Path(value).expanduser(),
+            ):
                 if candidate.is_file():
                     try:
                         return f"{_display(candidate)}: {table_key(candidate.read_text(), key)}"
@@ -272,7 +375,9 @@ def _set_key(name: str, key: list[str], chain: Sequence[ConfigSource], overrides
     return written_at(["simulation", *key], chain, overrides)
 
 
-def where_written(message: str, path: str | os.PathLike | None, overrides: Sequence[str] = ()) -> str:
+def where_written(
+    message: str, path: str | os.PathLike | None, overrides: Sequence[str] = ()
+) -> str:
     """A pipeline-file error ``message`` (``sets.tp: noise.sigam: unknown key``) naming the
     key where the user wrote it: the file and its table (``pipeline.toml: [simulation.noise]
     sigam: unknown key``), a set's simulation config file, or the dotted key of a ``KEY=VALUE``

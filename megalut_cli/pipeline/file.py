@@ -100,7 +100,9 @@ ALL_SETS = ("pretrain", "tp", "tw", "vo", "vp")
 VP_SELECT_CASES = "mean(snr) > 10"
 #: How deep ``extends`` chains may go.
 MAX_EXTENDS = 8
-_NAME_RE = re.compile(rf"[A-Za-z0-9][A-Za-z0-9_-]{{0,{MAX_NAME - 1}}}")  # no ".": never a product's name
+_NAME_RE = re.compile(
+    rf"[A-Za-z0-9][A-Za-z0-9_-]{{0,{MAX_NAME - 1}}}"
+)  # no ".": never a product's name
 
 #: Top-level keys a parsed pipeline may have (``extends`` is read with the file).
 _TOP_KEYS = set(PIPELINE) - {"extends"}
@@ -171,8 +173,15 @@ def scaled_size(n: int, factor: float, minimum: int, even: bool = False) -> int:
     return int(m)
 
 
-def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | None, scale: float,
-              pipeline_path: str, base_dir: Path | None, pipeline_sha: str) -> SetSpec:
+def _load_set(
+    name: str,
+    raw: Mapping[str, Any],
+    base_sim: Mapping[str, Any] | None,
+    scale: float,
+    pipeline_path: str,
+    base_dir: Path | None,
+    pipeline_sha: str,
+) -> SetSpec:
     t = Table(raw.get(name), f"sets.{name}", set(SET_OPTION))
     if "config" in t.data:
         cfg_path = resolve_path(t.option(SET_OPTION["config"]), t.key("config"), base_dir)
@@ -185,7 +194,9 @@ def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | N
         sim_raw, sha = copy.deepcopy(dict(base_sim)), pipeline_sha
         where, source = f"{pipeline_path}#sets.{name}", "[simulation]"
     else:
-        raise ConfigError(f"sets.{name}.config: missing (a simulation config file, or a [simulation] table)")
+        raise ConfigError(
+            f"sets.{name}.config: missing (a simulation config file, or a [simulation] table)"
+        )
     over = t.option(SET_OPTION["simulation"])
     if over is not None:
         sim_raw = merge_tables(sim_raw, over)
@@ -216,7 +227,9 @@ def _load_set(name: str, raw: Mapping[str, Any], base_sim: Mapping[str, Any] | N
         raw_scaled["structure"].update(sizes)
         config = replace(config.with_structure(**sizes), raw=raw_scaled)
     if config.structure.n_cases < 2:
-        raise ConfigError(f"sets.{name}.n_cases: at least 2 cases are needed, got {config.structure.n_cases}")
+        raise ConfigError(
+            f"sets.{name}.n_cases: at least 2 cases are needed, got {config.structure.n_cases}"
+        )
     return SetSpec(name, config, int(seed), source)
 
 
@@ -235,7 +248,9 @@ def _pretrain_spec(top: Table, has_set: bool) -> PointSpec | None:
     :func:`parse_pipeline` sets those of ``[train_point]``)."""
     if not has_set:
         if top.data.get("pretrain") is not None:
-            raise ConfigError("pretrain: there is no set to pretrain on: add a [sets.pretrain] table")
+            raise ConfigError(
+                "pretrain: there is no set to pretrain on: add a [sets.pretrain] table"
+            )
         return None
     t = Table(top.data.get("pretrain"), "pretrain")
     for k in ("features", "hidden"):
@@ -248,12 +263,19 @@ def _pretrain_spec(top: Table, has_set: bool) -> PointSpec | None:
     return read_spec(PointSpec, table, **TRAIN_TABLE_DEFAULTS["pretrain"])
 
 
-def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str = "",
-                   overrides: Sequence[str] = (), base_dir: Path | None = None) -> Pipeline:
+def parse_pipeline(
+    raw: Mapping[str, Any],
+    path: str = "<pipeline>",
+    sha256: str = "",
+    overrides: Sequence[str] = (),
+    base_dir: Path | None = None,
+) -> Pipeline:
     """Validate a parsed pipeline mapping (after ``key=value`` overrides)."""
     raw = apply_overrides(dict(raw), overrides)
     if "extends" in raw:
-        raise ConfigError("extends: only a pipeline file can extend another (not an override or a mapping)")
+        raise ConfigError(
+            "extends: only a pipeline file can extend another (not an override or a mapping)"
+        )
     top = Table(raw, "", _TOP_KEYS)
     description = top.option(PIPELINE["description"])
     name = top.data.get("name", PIPELINE["name"].default)
@@ -269,9 +291,14 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     sets_t = Table(top.option(PIPELINE["sets"]), "sets", set(ALL_SETS))
     missing = [n for n in SET_NAMES if n not in sets_t.data]
     if missing:
-        raise ConfigError(f"sets.{missing[0]}: missing (a pipeline needs the sets {', '.join(SET_NAMES)})")
-    sets = {n: _load_set(n, sets_t.data, base_sim, scale, path, base_dir, sha256) for n in ALL_SETS
-            if n in sets_t.data}
+        raise ConfigError(
+            f"sets.{missing[0]}: missing (a pipeline needs the sets {', '.join(SET_NAMES)})"
+        )
+    sets = {
+        n: _load_set(n, sets_t.data, base_sim, scale, path, base_dir, sha256)
+        for n in ALL_SETS
+        if n in sets_t.data
+    }
     seen: dict[int, str] = {}
     for n, s in sets.items():
         if s.seed in seen:
@@ -295,30 +322,51 @@ def parse_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str
     evaluate = _evaluate_spec(Table(top.data.get("evaluate"), "evaluate", _EVALUATE_KEYS), None)
     evaluate_vp = None
     if "vp" in sets:
-        evaluate_vp = _evaluate_spec(Table(top.data.get("evaluate_vp"), "evaluate_vp", _EVALUATE_KEYS),
-                                     VP_SELECT_CASES)
+        evaluate_vp = _evaluate_spec(
+            Table(top.data.get("evaluate_vp"), "evaluate_vp", _EVALUATE_KEYS), VP_SELECT_CASES
+        )
     elif top.data.get("evaluate_vp") is not None:
         raise ConfigError("evaluate_vp: there is no set to evaluate: add a [sets.vp] table")
     pipe = Pipeline(
-        path=path, sha256=sha256, overrides=tuple(overrides), raw=json.loads(json.dumps(raw, default=str)),
-        description=description, scale=scale, sets=sets, train_point=point, train_weight=weight,
-        evaluate=evaluate, name=name, pretrain=pretrain, evaluate_vp=evaluate_vp, engine=engine, device=device,
-        reference=_reference_spec(top, sets, base_dir), metacal=bool(metacal),
+        path=path,
+        sha256=sha256,
+        overrides=tuple(overrides),
+        raw=json.loads(json.dumps(raw, default=str)),
+        description=description,
+        scale=scale,
+        sets=sets,
+        train_point=point,
+        train_weight=weight,
+        evaluate=evaluate,
+        name=name,
+        pretrain=pretrain,
+        evaluate_vp=evaluate_vp,
+        engine=engine,
+        device=device,
+        reference=_reference_spec(top, sets, base_dir),
+        metacal=bool(metacal),
     )
     _check_columns(pipe)
     return pipe
 
 
-def _reference_spec(top: Table, sets: Mapping[str, SetSpec], base_dir: Path | None) -> ReferenceSpec | None:
+def _reference_spec(
+    top: Table, sets: Mapping[str, SetSpec], base_dir: Path | None
+) -> ReferenceSpec | None:
     """``[reference]``: ``model`` (a model file, or the name of a shipped model) and ``set``."""
     if top.data.get("reference") is None:
         return None
     t = Table(top.data["reference"], "reference", set(REFERENCE_OPTION))
     if t.data.get("model") is None:
-        raise ConfigError(f"reference.model: missing (a model file, or a shipped model: {', '.join(SHIPPED_MODELS)})")
+        raise ConfigError(
+            f"reference.model: missing (a model file, or a shipped model: {', '.join(SHIPPED_MODELS)})"
+        )
     text = t.option(REFERENCE_OPTION["model"])
     if text in SHIPPED_MODELS:
-        model, label = shipped_model(text), f"the shipped model {text} (models/{SHIPPED_MODELS[text]})"
+        model, label = (
+            shipped_model(text),
+            f"the shipped model {text} (models/{SHIPPED_MODELS[text]})",
+        )
     else:
         model, label = resolve_path(text, "reference.model", base_dir), text
     default_set = REFERENCE_OPTION["set"].default
@@ -338,11 +386,13 @@ def _check_pretrain(pre: PointSpec, point: PointSpec, spec: SetSpec) -> None:
     if overlap:
         raise ConfigError(f"pretrain.targets: {overlap[0]!r} is also a feature of train_point")
     s = spec.config.structure
-    varying = [t for t in pre.targets if t in ("tru_e1", "tru_e2", "tru_theta")]  # change with the angle
+    varying = [
+        t for t in pre.targets if t in ("tru_e1", "tru_e2", "tru_theta")
+    ]  # change with the angle
     if pre.cost == "msb" and varying and (s.varies("angle") or s.snc != "none"):
         raise ConfigError(
             f"sets.pretrain: the target {varying[0]} changes within a case (rotated realizations) but the "
-            "MSB cost needs one value per case: use per_realization = [] and snc = \"none\" (Fig. 6 structure)"
+            'MSB cost needs one value per case: use per_realization = [] and snc = "none" (Fig. 6 structure)'
         )
 
 
@@ -362,7 +412,9 @@ def _probe_columns(spec: SetSpec) -> list[str]:
 def _require(names: Sequence[str], available: Sequence[str], key: str, where: str) -> None:
     missing = [n for n in names if n not in available]
     if missing:
-        raise ConfigError(f"{key}: no column {', '.join(map(repr, missing))} in the {where} catalog")
+        raise ConfigError(
+            f"{key}: no column {', '.join(map(repr, missing))} in the {where} catalog"
+        )
 
 
 def _check_columns(pipe: Pipeline) -> None:
@@ -373,9 +425,15 @@ def _check_columns(pipe: Pipeline) -> None:
     pipe.columns.update(cols)
     tp, tw, ev = pipe.train_point, pipe.train_weight, pipe.evaluate
     if not {"tru_g1", "tru_g2"} <= set(tp.targets):
-        raise ConfigError("train_point.targets: the pipeline evaluates shear: the targets must include tru_g1, tru_g2")
+        raise ConfigError(
+            "train_point.targets: the pipeline evaluates shear: the targets must include tru_g1, tru_g2"
+        )
     needs = [  # (key, columns, the sets that must have them)
-        ("train_point.features", tp.features, ("tp", "tw", "vo")),  # trained on tp, predicted on tw, vo
+        (
+            "train_point.features",
+            tp.features,
+            ("tp", "tw", "vo"),
+        ),  # trained on tp, predicted on tw, vo
         ("train_point.targets", tp.targets, ("tp", "tw")),
         ("train_weight.features", tw.features or [], ("tw", "vo")),
         ("sets.vo", ["case", "tru_g1", "tru_g2"], ("vo",)),
@@ -443,7 +501,9 @@ def _rebase_paths(raw: dict[str, Any], base_dir: Path) -> None:
                     table[option.name] = str(base_dir / path)
 
 
-def read_pipeline_file(path: str | os.PathLike, _chain: tuple[Path, ...] = ()) -> tuple[dict[str, Any], str]:
+def read_pipeline_file(
+    path: str | os.PathLike, _chain: tuple[Path, ...] = ()
+) -> tuple[dict[str, Any], str]:
     """Parse a pipeline file, merged over the file it ``extends`` (recursively); return (raw, sha256).
 
     The sha256 covers every file of the chain. Relative set configs of an extended file

@@ -82,7 +82,6 @@ UNIT_PRODUCTS = ("features.fits", "stars.fits", "model.h5", "shears.fits")
 SHEARS_FORMAT = "megalut.predictions"
 
 
-
 def _by_kind(values: Mapping[str, Any]) -> str:
     return "by `kind` (" + ", ".join(f"{k} {v:g}" for k, v in values.items()) + ")"
 
@@ -94,24 +93,63 @@ SIGMA2_MIN = {"ground": GREAT3_SIGMA2_MIN_GROUND, "space": GREAT3_SIGMA2_MIN_SPA
 #: readers of their own (:func:`parse_subfields`, a folder or a flag).
 BRANCH_OPTIONS: tuple[Option, ...] = (
     Option("path", "path", None, "the branch folder", default_text="required"),
-    Option("kind", "choice", KINDS[0], '`"ground"` (48-pixel stamps, Table 3 ground distributions, `sigma2_min` 4) '
-           'or `"space"` (96, space, 1)', choices=KINDS),
-    Option("stamp_size", "int", None, "stamp size in pixels", minimum=MIN_STAMP_SIZE,
-           default_text=_by_kind(L.STAMP_SIZES)),
-    Option("subfields", "str", "all", "every `image-SSS-E.fits` of the folder, or a list (`[0, 5]`), or a text "
-           '(`"0-19,25"`)', allowed_text='`"all"`, indices, a text of ranges'),
+    Option(
+        "kind",
+        "choice",
+        KINDS[0],
+        '`"ground"` (48-pixel stamps, Table 3 ground distributions, `sigma2_min` 4) '
+        'or `"space"` (96, space, 1)',
+        choices=KINDS,
+    ),
+    Option(
+        "stamp_size",
+        "int",
+        None,
+        "stamp size in pixels",
+        minimum=MIN_STAMP_SIZE,
+        default_text=_by_kind(L.STAMP_SIZES),
+    ),
+    Option(
+        "subfields",
+        "str",
+        "all",
+        'every `image-SSS-E.fits` of the folder, or a list (`[0, 5]`), or a text (`"0-19,25"`)',
+        allowed_text='`"all"`, indices, a text of ranges',
+    ),
     Option("epoch", "int", 0, "the `E` of the file names", minimum=0),
-    Option("strict", "bool", True, "off-image centres and NaN pixels are errors (false: flagged stamps)"),
-    Option("truth", "bool", True, "the truth folder to evaluate against: true = the branch's `truth/` if any, a "
-           "path, or false", allowed_text="true, false, a folder"),
-    Option("sigma2_min", "float", None, "`Q_c`'s σ²_min", minimum=0, min_open=True, default_text=_by_kind(SIGMA2_MIN)),
+    Option(
+        "strict",
+        "bool",
+        True,
+        "off-image centres and NaN pixels are errors (false: flagged stamps)",
+    ),
+    Option(
+        "truth",
+        "bool",
+        True,
+        "the truth folder to evaluate against: true = the branch's `truth/` if any, a "
+        "path, or false",
+        allowed_text="true, false, a folder",
+    ),
+    Option(
+        "sigma2_min",
+        "float",
+        None,
+        "`Q_c`'s σ²_min",
+        minimum=0,
+        min_open=True,
+        default_text=_by_kind(SIGMA2_MIN),
+    ),
 )
 BRANCH = {o.name: o for o in BRANCH_OPTIONS}
 #: The keys of the ``[tp]`` and ``[tw]`` tables: those of a standard pipeline's ``[sets.X]``
 #: but ``scale_by`` (a branch pipeline has no ``scale``).
 _SET_CHANGES = {
-    "config": {"help": "a simulation config file replacing the default set (below), relative to the pipeline "
-               "file", "default_text": "the paper's"},
+    "config": {
+        "help": "a simulation config file replacing the default set (below), relative to the pipeline "
+        "file",
+        "default_text": "the paper's",
+    },
     "seed": {"default_text": "tp 1, tw 2"},
 }
 SET_OPTIONS: tuple[Option, ...] = tuple(
@@ -121,35 +159,72 @@ SET_OPTION = {o.name: o for o in SET_OPTIONS}
 #: The keys of the ``[output]`` table.
 OUTPUT_OPTIONS: tuple[Option, ...] = (
     Option("weighted", "bool", True, "the submission from weighted means (false: plain means)"),
-    Option("keep_sets", "bool", False, "keep `tp.fits`, `tw.fits` per subfield (200 × ~50 MB at the paper's sizes)"),
+    Option(
+        "keep_sets",
+        "bool",
+        False,
+        "keep `tp.fits`, `tw.fits` per subfield (200 × ~50 MB at the paper's sizes)",
+    ),
 )
 OUTPUT = {o.name: o for o in OUTPUT_OPTIONS}
 #: The top-level keys of a branch pipeline file.
 TOP_OPTIONS: tuple[Option, ...] = (
     PIPELINE["description"],
-    replace(ENGINE_OPTION, help="stamp engine of `measure` and the training simulations, as in "
-            "[pipeline.md](pipeline.md) ([engines.md](engines.md))"),
-    Option("metacal", "bool", False, "self-calibrated mode ([metacal.md](metacal.md)): the subfield's galaxies "
-           "are measured with `--metacal` (deconvolved by the star field's first star), the training sets in "
-           "metacal mode (the networks train on the noshear versions' features), and each subfield's shear is "
-           "its mean noshear estimate divided by its mean response"),
-    Option("branch", "table", None, "the branch and how to read it (above)", default_text="required"),
-    Option("tp", "table", None, "the per-subfield point-training set (below)", default_text="the paper's"),
-    Option("tw", "table", None, "the per-subfield weight-training set (below); its seed must differ from tp's",
-           default_text="the paper's"),
-    Option("train_point", "table", None, "as in [pipeline.md](pipeline.md): `features` (default "
-           "`[\"adamom_g{i}\", \"adamom_sigma\", \"adamom_flux\", \"adamom_rho4\"]`, `{i}` = the component), "
-           "`targets` (`[\"tru_e1\", \"tru_e2\"]`, or `[\"tru_g1\", \"tru_g2\"]` with a sheared `tp`), `hidden` "
-           f"({POINT_OPTION['hidden'].default}), `members` ({TRAIN_OPTION['members'].default}), "
-           f"`keep`, `iterations` ({PointSpec().iterations}), `cost`, `select_cases`, `init`, "
-           "`normalization`, `optimizer`, `precision`, `valid_fraction`, `batch_fraction`, "
-           f"`batch_iterations`, `seed` ({DEFAULT_SEEDS['train_point']})",
-           default_text="see meaning"),
-    Option("train_weight", "table", None, "the same keys (no `targets`, `cost`, `select_cases`, `init`), plus "
-           f"`select`; `features` default those of `train_point`, `hidden` {WEIGHT_HIDDEN} (the "
-           "paper's choice for all its GREAT3 estimators), "
-           f"`iterations` {WeightSpec().iterations}, "
-           f"`seed` {DEFAULT_SEEDS['train_weight']}", default_text="see meaning"),
+    replace(
+        ENGINE_OPTION,
+        help="stamp engine of `measure` and the training simulations, as in "
+        "[pipeline.md](pipeline.md) ([engines.md](engines.md))",
+    ),
+    Option(
+        "metacal",
+        "bool",
+        False,
+        "self-calibrated mode ([metacal.md](metacal.md)): the subfield's galaxies "
+        "are measured with `--metacal` (deconvolved by the star field's first star), the training sets in "
+        "metacal mode (the networks train on the noshear versions' features), and each subfield's shear is "
+        "its mean noshear estimate divided by its mean response",
+    ),
+    Option(
+        "branch", "table", None, "the branch and how to read it (above)", default_text="required"
+    ),
+    Option(
+        "tp",
+        "table",
+        None,
+        "the per-subfield point-training set (below)",
+        default_text="the paper's",
+    ),
+    Option(
+        "tw",
+        "table",
+        None,
+        "the per-subfield weight-training set (below); its seed must differ from tp's",
+        default_text="the paper's",
+    ),
+    Option(
+        "train_point",
+        "table",
+        None,
+        "as in [pipeline.md](pipeline.md): `features` (default "
+        '`["adamom_g{i}", "adamom_sigma", "adamom_flux", "adamom_rho4"]`, `{i}` = the component), '
+        '`targets` (`["tru_e1", "tru_e2"]`, or `["tru_g1", "tru_g2"]` with a sheared `tp`), `hidden` '
+        f"({POINT_OPTION['hidden'].default}), `members` ({TRAIN_OPTION['members'].default}), "
+        f"`keep`, `iterations` ({PointSpec().iterations}), `cost`, `select_cases`, `init`, "
+        "`normalization`, `optimizer`, `precision`, `valid_fraction`, `batch_fraction`, "
+        f"`batch_iterations`, `seed` ({DEFAULT_SEEDS['train_point']})",
+        default_text="see meaning",
+    ),
+    Option(
+        "train_weight",
+        "table",
+        None,
+        "the same keys (no `targets`, `cost`, `select_cases`, `init`), plus "
+        f"`select`; `features` default those of `train_point`, `hidden` {WEIGHT_HIDDEN} (the "
+        "paper's choice for all its GREAT3 estimators), "
+        f"`iterations` {WeightSpec().iterations}, "
+        f"`seed` {DEFAULT_SEEDS['train_weight']}",
+        default_text="see meaning",
+    ),
     Option("output", "table", None, "what the run writes (below)", default_text="see below"),
 )
 TOP = {o.name: o for o in TOP_OPTIONS}
@@ -161,25 +236,34 @@ _ANGLE = {"type": "uniform", "min": 0.0, "max": 180.0}
 
 
 def _sersic(lo: float, hi: float) -> dict[str, Any]:
-    return {"type": "grid", "min": lo, "max": hi, "step": 0.1}  # gridded, as the paper (Table 3, note a)
+    return {
+        "type": "grid",
+        "min": lo,
+        "max": hi,
+        "step": 0.1,
+    }  # gridded, as the paper (Table 3, note a)
 
 
 #: Galaxy distributions of the paper's Table 3: (kind, "uniform" | "mock") -> [galaxy] table.
 TABLE3: dict[tuple[str, str], dict[str, Any]] = {
     ("ground", "uniform"): {
-        "sersicn": _sersic(0.5, 4.0), "rad": {"type": "uniform", "min": 0.75, "max": 3.0},
+        "sersicn": _sersic(0.5, 4.0),
+        "rad": {"type": "uniform", "min": 0.75, "max": 3.0},
         "flux": {"type": "uniform", "min": 10.0, "max": 100.0},
     },
     ("ground", "mock"): {
-        "sersicn": _sersic(0.5, 2.5), "rad": {"type": "normal", "mean": 1.0, "sigma": 0.8, "min": 0.75, "max": 3.0},
+        "sersicn": _sersic(0.5, 2.5),
+        "rad": {"type": "normal", "mean": 1.0, "sigma": 0.8, "min": 0.75, "max": 3.0},
         "flux": {"type": "normal", "mean": 15.0, "sigma": 20.0, "min": 10.0, "max": 200.0},
     },
     ("space", "uniform"): {
-        "sersicn": _sersic(0.5, 4.0), "rad": {"type": "uniform", "min": 1.25, "max": 10.0},
+        "sersicn": _sersic(0.5, 4.0),
+        "rad": {"type": "uniform", "min": 1.25, "max": 10.0},
         "flux": {"type": "uniform", "min": 10.0, "max": 100.0},
     },
     ("space", "mock"): {
-        "sersicn": _sersic(0.5, 4.0), "rad": {"type": "normal", "mean": 2.5, "sigma": 3.5, "min": 1.25, "max": 10.0},
+        "sersicn": _sersic(0.5, 4.0),
+        "rad": {"type": "normal", "mean": 2.5, "sigma": 3.5, "min": 1.25, "max": 10.0},
         "flux": {"type": "normal", "mean": 0.0, "sigma": 30.0, "min": 10.0, "max": 200.0},
     },
 }
@@ -192,23 +276,47 @@ def default_set(name: str, kind: str, stamp_size: int) -> dict[str, Any]:
     per subfield.
     """
     star_psf = {"type": "stamp", "path": "", "stamp_size": stamp_size, "index": "random"}
-    galaxy = {"profile": "sersic", **copy.deepcopy(TABLE3[(kind, "uniform" if name == "tp" else "mock")]),
-              "ellipticity": dict(_RAYLEIGH), "angle": dict(_ANGLE)}
+    galaxy = {
+        "profile": "sersic",
+        **copy.deepcopy(TABLE3[(kind, "uniform" if name == "tp" else "mock")]),
+        "ellipticity": dict(_RAYLEIGH),
+        "angle": dict(_ANGLE),
+    }
     if name == "tp":
         return {
             "description": f"GREAT3 {kind} subfield: point-estimate training set (ellipticity shortcut, Table 3 uniform)",
-            "structure": {"n_cases": 1000, "n_realizations": 10, "per_realization": [], "snc": "none",
-                          "stamp_size": stamp_size, "offset": 0.5},
-            "galaxy": galaxy, "psf": star_psf, "noise": {"type": "none"},
+            "structure": {
+                "n_cases": 1000,
+                "n_realizations": 10,
+                "per_realization": [],
+                "snc": "none",
+                "stamp_size": stamp_size,
+                "offset": 0.5,
+            },
+            "galaxy": galaxy,
+            "psf": star_psf,
+            "noise": {"type": "none"},
         }
     return {
         "description": f"GREAT3 {kind} subfield: weight training set (90-degree pairs, Table 3 mock)",
-        "structure": {"n_cases": 200, "n_realizations": 1000, "per_realization": ["galaxy"], "snc": "pairs",
-                      "stamp_size": stamp_size, "offset": 0.5},
-        "shear": {"g1": {"type": "uniform", "min": -0.1, "max": 0.1}, "g2": {"type": "uniform", "min": -0.1, "max": 0.1}},
-        "galaxy": galaxy, "psf": star_psf,
-        "noise": {"type": "gaussian", "sigma": {"type": "measured", "path": "", "column": "skymad",
-                                                "statistic": "median"}},
+        "structure": {
+            "n_cases": 200,
+            "n_realizations": 1000,
+            "per_realization": ["galaxy"],
+            "snc": "pairs",
+            "stamp_size": stamp_size,
+            "offset": 0.5,
+        },
+        "shear": {
+            "g1": {"type": "uniform", "min": -0.1, "max": 0.1},
+            "g2": {"type": "uniform", "min": -0.1, "max": 0.1},
+        },
+        "galaxy": galaxy,
+        "psf": star_psf,
+        "noise": {
+            "type": "gaussian",
+            "sigma": {"type": "measured", "path": "", "column": "skymad", "statistic": "median"},
+        },
     }
 
 
@@ -278,19 +386,25 @@ def parse_subfields(value: Any, key: str = "branch.subfields") -> list[int] | No
     items: list[int] = []
     if isinstance(value, int) and not isinstance(value, bool):
         items = [value]
-    elif isinstance(value, list) and value and all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+    elif (
+        isinstance(value, list)
+        and value
+        and all(isinstance(v, int) and not isinstance(v, bool) for v in value)
+    ):
         items = list(value)
     elif isinstance(value, str) and value.strip():
         for part in value.split(","):
             m = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", part)
             if not m:
-                raise ConfigError(f"{key}: cannot read {part.strip()!r} (expected e.g. \"0-19,25\")")
+                raise ConfigError(f'{key}: cannot read {part.strip()!r} (expected e.g. "0-19,25")')
             a, b = int(m.group(1)), int(m.group(2) if m.group(2) is not None else m.group(1))
             if b < a:
                 raise ConfigError(f"{key}: empty range {part.strip()!r}")
             items += range(a, b + 1)
     else:
-        raise ConfigError(f"{key}: expected \"all\", a list of subfield indices or a text like \"0-19\", got {value!r}")
+        raise ConfigError(
+            f'{key}: expected "all", a list of subfield indices or a text like "0-19", got {value!r}'
+        )
     if any(v < 0 for v in items):
         raise ConfigError(f"{key}: subfield indices must be >= 0")
     return sorted(set(items))
@@ -301,7 +415,9 @@ def _find_path(text: str, key: str, base_dir: Path | None, want_dir: bool) -> Pa
     return resolve_path(text, key, base_dir, folder=want_dir)
 
 
-def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, pipe_path: str) -> SetTemplate:
+def _load_set(
+    name: str, top: Any, kind: str, size: int, base_dir: Path | None, pipe_path: str
+) -> SetTemplate:
     from megalut_cli.pipeline.config import merge_tables
     from megalut_cli.sim.config import read_toml
 
@@ -311,7 +427,11 @@ def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, 
         raw, _ = read_toml(cfg)
         config_path, source = str(cfg), str(cfg)
     else:
-        raw, config_path, source = default_set(name, kind, size), pipe_path, f"default {kind} {name}"
+        raw, config_path, source = (
+            default_set(name, kind, size),
+            pipe_path,
+            f"default {kind} {name}",
+        )
     over = t.data.get("simulation")
     if over is not None:
         if not isinstance(over, Mapping):
@@ -329,7 +449,9 @@ def _load_set(name: str, top: Any, kind: str, size: int, base_dir: Path | None, 
     return SetTemplate(name, raw, int(seed or 0), config_path, source)
 
 
-def set_config(tpl: SetTemplate, starfield: str | os.PathLike, features: str | os.PathLike | None) -> Any:
+def set_config(
+    tpl: SetTemplate, starfield: str | os.PathLike, features: str | os.PathLike | None
+) -> Any:
     """The validated simulation config of ``tpl`` for one subfield: a ``stamp`` PSF takes
     the subfield's star field, a ``measured`` noise its features catalog (``None``: a
     stand-in value of 1, to check the config before anything is measured)."""
@@ -364,8 +486,13 @@ def _check_features(names: Sequence[str], key: str) -> None:
             )
 
 
-def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha256: str = "",
-                          overrides: Sequence[str] = (), base_dir: Path | None = None) -> BranchPipeline:
+def parse_branch_pipeline(
+    raw: Mapping[str, Any],
+    path: str = "<pipeline>",
+    sha256: str = "",
+    overrides: Sequence[str] = (),
+    base_dir: Path | None = None,
+) -> BranchPipeline:
     """Validate a parsed branch pipeline (after ``key=value`` overrides); check the branch folder."""
     from megalut_cli.sim.config import apply_overrides
 
@@ -388,13 +515,17 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
     elif isinstance(truth_value, str) and truth_value:
         truth = _find_path(truth_value, "branch.truth", base_dir, want_dir=True)
     elif truth_value is not False:
-        raise ConfigError(f"branch.truth: expected a folder, true (the branch's truth/ if any) or false, got {truth_value!r}")
+        raise ConfigError(
+            f"branch.truth: expected a folder, true (the branch's truth/ if any) or false, got {truth_value!r}"
+        )
 
     available = L.find_subfields(branch_dir, epoch)
     wanted = parse_subfields(b.data.get("subfields", BRANCH["subfields"].default))
     if wanted is None:
         if not available:
-            raise InputError(f"{branch_dir}: no {L.image_name(0, epoch).replace('000', 'SSS')} file: not a GREAT3 branch folder")
+            raise InputError(
+                f"{branch_dir}: no {L.image_name(0, epoch).replace('000', 'SSS')} file: not a GREAT3 branch folder"
+            )
         subfields = available
     else:
         subfields = wanted
@@ -407,29 +538,57 @@ def parse_branch_pipeline(raw: Mapping[str, Any], path: str = "<pipeline>", sha2
 
     sets = {n: _load_set(n, top, kind, size, base_dir, path) for n in SET_NAMES}
     if sets["tp"].seed == sets["tw"].seed:
-        raise ConfigError(f"tw.seed: {sets['tw'].seed} is also the seed of tp; every set needs its own seed")
+        raise ConfigError(
+            f"tw.seed: {sets['tw'].seed} is also the seed of tp; every set needs its own seed"
+        )
 
     point_table = Table(top.data.get("train_point"), "train_point", TRAIN_POINT_KEYS)
-    point = read_spec(PointSpec, point_table, seed=DEFAULT_SEEDS["train_point"],
-                      targets=list(TARGET_CHOICES[0]), features=DEFAULT_FEATURES)
+    point = read_spec(
+        PointSpec,
+        point_table,
+        seed=DEFAULT_SEEDS["train_point"],
+        targets=list(TARGET_CHOICES[0]),
+        features=DEFAULT_FEATURES,
+    )
     targets = point.targets
     if tuple(targets) not in TARGET_CHOICES:
         raise ConfigError(
-            "train_point.targets: expected [\"tru_e1\", \"tru_e2\"] (the ellipticity shortcut) or "
-            f"[\"tru_g1\", \"tru_g2\"], got {targets!r}"
+            'train_point.targets: expected ["tru_e1", "tru_e2"] (the ellipticity shortcut) or '
+            f'["tru_g1", "tru_g2"], got {targets!r}'
         )
     _check_features(point.features, "train_point.features")
     weight_table = Table(top.data.get("train_weight"), "train_weight", TRAIN_WEIGHT_KEYS)
-    weight = read_spec(WeightSpec, weight_table, seed=DEFAULT_SEEDS["train_weight"],
-                       features=point.features, hidden=WEIGHT_HIDDEN)
+    weight = read_spec(
+        WeightSpec,
+        weight_table,
+        seed=DEFAULT_SEEDS["train_weight"],
+        features=point.features,
+        hidden=WEIGHT_HIDDEN,
+    )
     _check_features(weight.features, "train_weight.features")
     out = Table(top.data.get("output"), "output", set(OUTPUT))
     pipe = BranchPipeline(
-        path=path, sha256=sha256, overrides=tuple(overrides), raw=json.loads(json.dumps(raw, default=str)),
-        description=description, branch_dir=branch_dir, kind=kind, stamp_size=int(size), epoch=int(epoch),
-        subfields=subfields, strict=strict, truth=truth, sigma2_min=sigma2_min, sets=sets, point=point,
-        weight=weight, weighted=out.option(OUTPUT["weighted"]), keep_sets=out.option(OUTPUT["keep_sets"]),
-        problems=problems, engine=top.option(TOP["engine"]), metacal=bool(top.option(TOP["metacal"])),
+        path=path,
+        sha256=sha256,
+        overrides=tuple(overrides),
+        raw=json.loads(json.dumps(raw, default=str)),
+        description=description,
+        branch_dir=branch_dir,
+        kind=kind,
+        stamp_size=int(size),
+        epoch=int(epoch),
+        subfields=subfields,
+        strict=strict,
+        truth=truth,
+        sigma2_min=sigma2_min,
+        sets=sets,
+        point=point,
+        weight=weight,
+        weighted=out.option(OUTPUT["weighted"]),
+        keep_sets=out.option(OUTPUT["keep_sets"]),
+        problems=problems,
+        engine=top.option(TOP["engine"]),
+        metacal=bool(top.option(TOP["metacal"])),
     )
     _check_templates(pipe)
     return pipe
@@ -448,14 +607,20 @@ def _check_templates(pipe: BranchPipeline) -> None:
             continue  # a bad star field: that subfield fails when it runs
         s = cfg.structure
         if s.stamp_size != pipe.stamp_size:
-            raise ConfigError(f"{name}: structure.stamp_size {s.stamp_size} differs from the branch's {pipe.stamp_size}")
+            raise ConfigError(
+                f"{name}: structure.stamp_size {s.stamp_size} differs from the branch's {pipe.stamp_size}"
+            )
         if s.n_cases < 2:
             raise ConfigError(f"{name}.n_cases: at least 2 cases are needed, got {s.n_cases}")
     tw_raw = pipe.sets["tw"].raw
     if not tw_raw.get("shear"):
-        raise ConfigError("tw: the weight-training set needs a [shear] distribution (MSWB learns the shear)")
+        raise ConfigError(
+            "tw: the weight-training set needs a [shear] distribution (MSWB learns the shear)"
+        )
     if pipe.point.targets[0] == "tru_g1" and not pipe.sets["tp"].raw.get("shear"):
-        raise ConfigError("train_point.targets: tru_g1, tru_g2 need a [shear] in tp (or use tru_e1, tru_e2)")
+        raise ConfigError(
+            "train_point.targets: tru_g1, tru_g2 need a [shear] in tp (or use tru_e1, tru_e2)"
+        )
 
 
 def load_branch_pipeline(path: str | os.PathLike, overrides: Sequence[str] = ()) -> BranchPipeline:
@@ -475,7 +640,9 @@ def unit_params(pipe: BranchPipeline, subfield: int) -> dict[str, Any]:
         "epoch": pipe.epoch,
         "strict": pipe.strict,
         "keep_sets": pipe.keep_sets,
-        "sets": {n: {"raw": t.raw, "seed": subfield_seed(t.seed, subfield)} for n, t in pipe.sets.items()},
+        "sets": {
+            n: {"raw": t.raw, "seed": subfield_seed(t.seed, subfield)} for n, t in pipe.sets.items()
+        },
         "train_point": asdict(pipe.point),
         "train_weight": asdict(pipe.weight),
         "engine": pipe.engine,

@@ -102,12 +102,18 @@ def _check_measurement(feats: Any, files: Mapping[str, Path], strict: bool) -> N
     off = int(np.count_nonzero(flags & fl.STAMP_OFF_IMAGE))
     bad = int(np.count_nonzero(flags & fl.BAD_PIXELS))
     if strict and off:
-        raise InputError(f"{files['catalog']}: {off} of {n} galaxy centre(s) fall off {files['image'].name} "
-                         "(wrong stamp size or centres?)")
+        raise InputError(
+            f"{files['catalog']}: {off} of {n} galaxy centre(s) fall off {files['image'].name} "
+            "(wrong stamp size or centres?)"
+        )
     if strict and bad:
-        raise InputError(f"{files['image']}: {bad} of {n} galaxy stamp(s) have NaN or infinite pixels")
+        raise InputError(
+            f"{files['image']}: {bad} of {n} galaxy stamp(s) have NaN or infinite pixels"
+        )
     if not np.any(flags == 0):
-        raise InputError(f"{files['image']}: no galaxy of the subfield could be measured ({n} flagged)")
+        raise InputError(
+            f"{files['image']}: no galaxy of the subfield could be measured ({n} flagged)"
+        )
     for what, k in (("off the image", off), ("with NaN or infinite pixels", bad)):
         if k:
             log.warning("%s: %d galaxy stamp(s) %s: flagged, left out", files["image"], k, what)
@@ -118,14 +124,24 @@ def as_shear_estimator(model: ShearModel, component: int) -> ShearModel:
     (relabelled in place when it was trained on the ellipticity)."""
     (comm,) = model.point.values()
     if comm.target != f"tru_g{component}":
-        comm.training = {**comm.training, "estimates": f"tru_g{component}", "trained_on": comm.target,
-                         "note": "ellipticity shortcut (paper Sects. 4.3, 8.2): the ellipticity estimate is the shear estimate"}
+        comm.training = {
+            **comm.training,
+            "estimates": f"tru_g{component}",
+            "trained_on": comm.target,
+            "note": "ellipticity shortcut (paper Sects. 4.3, 8.2): the ellipticity estimate is the shear estimate",
+        }
         comm.target = f"tru_g{component}"
     return ShearModel(point={comm.target: comm}, provenance=model.provenance)
 
 
-def train_subfield(pt: PointSpec, pw: WeightSpec, subfield: int, tp: Columns, tw: Columns,
-                   sources: Mapping[str, str]) -> ShearModel:
+def train_subfield(
+    pt: PointSpec,
+    pw: WeightSpec,
+    subfield: int,
+    tp: Columns,
+    tw: Columns,
+    sources: Mapping[str, str],
+) -> ShearModel:
     """Point committees (per component) on ``tp`` as ``pt`` says (features are templates,
     ``{i}`` the component), taken as shear estimators; weights on ``tw`` as ``pw`` says; one
     model. Each component's trainings draw with the subfield's seeds.
@@ -138,23 +154,42 @@ def train_subfield(pt: PointSpec, pw: WeightSpec, subfield: int, tp: Columns, tw
 
     point, weight = {}, {}
     for i in (1, 2):
-        point_spec = replace(pt, features=component_features(pt.features, i),
-                             targets=[pt.targets[i - 1]], seed=subfield_seed(pt.seed, subfield, i))
-        estimator = fit_point(tp, point_spec, sources={"train": sources["tp"]},
-                              names=key_names("train_point"))
-        weight_spec = replace(pw, features=component_features(pw.features, i),
-                              seed=subfield_seed(pw.seed, subfield, i))
-        model = fit_weight(tw, as_shear_estimator(estimator, i), weight_spec,
-                           sources={"train": sources["tw"]}, names=key_names("train_weight"))
+        point_spec = replace(
+            pt,
+            features=component_features(pt.features, i),
+            targets=[pt.targets[i - 1]],
+            seed=subfield_seed(pt.seed, subfield, i),
+        )
+        estimator = fit_point(
+            tp, point_spec, sources={"train": sources["tp"]}, names=key_names("train_point")
+        )
+        weight_spec = replace(
+            pw,
+            features=component_features(pw.features, i),
+            seed=subfield_seed(pw.seed, subfield, i),
+        )
+        model = fit_weight(
+            tw,
+            as_shear_estimator(estimator, i),
+            weight_spec,
+            sources={"train": sources["tw"]},
+            names=key_names("train_weight"),
+        )
         point.update(model.point)
         weight.update(model.weight)
-    prov = {"command": "run (GREAT3 branch)", "argv": command_line(), "versions": software_versions(),
-            "subfield": subfield, "inputs": dict(sources)}
+    prov = {
+        "command": "run (GREAT3 branch)",
+        "argv": command_line(),
+        "versions": software_versions(),
+        "subfield": subfield,
+        "inputs": dict(sources),
+    }
     return ShearModel(point=point, weight=weight, provenance=prov)
 
 
-def simulate_set(cfg: Any, seed: int, engine: str, metacal: bool,
-                 kept: Path | None) -> dict[str, np.ndarray]:
+def simulate_set(
+    cfg: Any, seed: int, engine: str, metacal: bool, kept: Path | None
+) -> dict[str, np.ndarray]:
     """A training set of one subfield, simulated and measured in memory (``metacal``: in
     metacal mode); written to ``kept`` too (``output.keep_sets``) as ``megalut simulate
     --measure`` (``--metacal``) writes it."""
@@ -162,8 +197,13 @@ def simulate_set(cfg: Any, seed: int, engine: str, metacal: bool,
     from megalut_cli.sim.simulate import simulate_table, simulation_cards, write_simulation_catalog
 
     t0 = time.perf_counter()
-    columns, _ = simulate_table(cfg, seed, measure=True, engine=engine,
-                                metacal_step=float(DEFAULT_STEP) if metacal else None)
+    columns, _ = simulate_table(
+        cfg,
+        seed,
+        measure=True,
+        engine=engine,
+        metacal_step=float(DEFAULT_STEP) if metacal else None,
+    )
     if kept is not None:
         cards = simulation_cards(cfg, seed, True, engine)
         if metacal:
@@ -171,13 +211,15 @@ def simulate_set(cfg: Any, seed: int, engine: str, metacal: bool,
             cards[SEED_CARD] = (int(seed), "seed of the metacal fixnoise fields (simulate --seed)")
         write_simulation_catalog(kept, columns, cfg, cards)
     n, seconds = len(columns["case"]), time.perf_counter() - t0
-    log.info("%d stamps in %.1f s (%.1f stamps/s)", n, seconds,
-             n / seconds if seconds else math.inf)
+    log.info(
+        "%d stamps in %.1f s (%.1f stamps/s)", n, seconds, n / seconds if seconds else math.inf
+    )
     return columns
 
 
-def predict_subfield(feats: Any, model: ShearModel, features: Path, model_path: Path,
-                     output: Path) -> dict[str, np.ndarray]:
+def predict_subfield(
+    feats: Any, model: ShearModel, features: Path, model_path: Path, output: Path
+) -> dict[str, np.ndarray]:
     """The subfield's galaxies (``feats``, the table measured into ``features``) with the
     estimates of ``model`` (saved as ``model_path``), predicted in memory and written to
     ``output`` as ``megalut predict`` writes them: the features catalog's header, carried
@@ -194,14 +236,27 @@ def predict_subfield(feats: Any, model: ShearModel, features: Path, model_path: 
 
     n_rows, colnames, header = catalog_info(features)
     step = header_step(header)
-    check_domain(model, model_path, features, colnames=colnames, header=header,
-                 metacal=step is not None, n_rows=n_rows)
+    check_domain(
+        model,
+        model_path,
+        features,
+        colnames=colnames,
+        header=header,
+        metacal=step is not None,
+        n_rows=n_rows,
+    )
     columns = {c: np.asarray(feats[c]) for c in feats.colnames}
     columns.update(predict_columns(model, feats, metacal_step=step))
     cards = prediction_cards(read_cards(features), model, model_path, step)
     extra_hdus = read_carried_hdus(features)
-    with catalog_writer(output, fmt=FORMAT, fmt_version=FORMAT_VERSION, cards=cards,
-                        history=header.get("HISTORY"), extra_hdus=extra_hdus) as writer:
+    with catalog_writer(
+        output,
+        fmt=FORMAT,
+        fmt_version=FORMAT_VERSION,
+        cards=cards,
+        history=header.get("HISTORY"),
+        extra_hdus=extra_hdus,
+    ) as writer:
         writer.append(columns)
     return columns
 
@@ -215,10 +270,23 @@ def subfield_unit(pipe: BranchPipeline, subfield: int) -> Unit:
     """The work unit of one subfield: its products, parameters and input files (image,
     galaxy catalog, star field; none for a subfield with missing files: it fails)."""
     folder = subfield_folder(subfield)
-    names = [*UNIT_PRODUCTS, *([f"{n}.fits" for n in SET_NAMES] if pipe.keep_sets else []), UNIT_RECORD]
-    sources = {} if subfield in pipe.problems else L.subfield_files(pipe.branch_dir, subfield, pipe.epoch)
-    return Unit(f"subfield-{subfield:03d}", f"subfield {subfield}", [f"{folder}/{n}" for n in names],
-                unit_params(pipe, subfield), dict(sources), run_subfield, {"pipe": pipe, "subfield": subfield})
+    names = [
+        *UNIT_PRODUCTS,
+        *([f"{n}.fits" for n in SET_NAMES] if pipe.keep_sets else []),
+        UNIT_RECORD,
+    ]
+    sources = (
+        {} if subfield in pipe.problems else L.subfield_files(pipe.branch_dir, subfield, pipe.epoch)
+    )
+    return Unit(
+        f"subfield-{subfield:03d}",
+        f"subfield {subfield}",
+        [f"{folder}/{n}" for n in names],
+        unit_params(pipe, subfield),
+        dict(sources),
+        run_subfield,
+        {"pipe": pipe, "subfield": subfield},
+    )
 
 
 def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
@@ -248,11 +316,25 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
     try:
         with _quiet():
             t = time.perf_counter()
-            feats = measure_file(files["image"], files["catalog"], tmp / "features.fits", stamp_size=pipe.stamp_size,
-                                 origin=0, psf_path=files["starfield"], engine=pipe.engine, metacal=pipe.metacal)
+            feats = measure_file(
+                files["image"],
+                files["catalog"],
+                tmp / "features.fits",
+                stamp_size=pipe.stamp_size,
+                origin=0,
+                psf_path=files["starfield"],
+                engine=pipe.engine,
+                metacal=pipe.metacal,
+            )
             _check_measurement(feats, files, pipe.strict)
-            measure_file(files["starfield"], None, tmp / "stars.fits", stamp_size=pipe.stamp_size, stars=True,
-                         engine=pipe.engine)
+            measure_file(
+                files["starfield"],
+                None,
+                tmp / "stars.fits",
+                stamp_size=pipe.stamp_size,
+                stars=True,
+                engine=pipe.engine,
+            )
             lap("measure", t)
             sets, noise_sigma = {}, None
             for name, tpl in pipe.sets.items():
@@ -262,7 +344,11 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
                 seed = params["sets"][name]["seed"]
                 sets[name] = simulate_set(cfg, seed, pipe.engine, pipe.metacal, kept)
                 if name == "tw":
-                    noise_sigma = float(cfg.noise.params["sigma"].bounds()[0]) if "sigma" in cfg.noise.params else None
+                    noise_sigma = (
+                        float(cfg.noise.params["sigma"].bounds()[0])
+                        if "sigma" in cfg.noise.params
+                        else None
+                    )
                 lap(f"simulate-{name}", t)
             t = time.perf_counter()
             tp, tw = sets["tp"], sets["tw"]
@@ -274,32 +360,57 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
             model.save(tmp / "model.h5")
             lap("train", t)
             t = time.perf_counter()
-            shears = predict_subfield(feats, model, tmp / "features.fits", tmp / "model.h5",
-                                      tmp / "shears.fits")
+            shears = predict_subfield(
+                feats, model, tmp / "features.fits", tmp / "model.h5", tmp / "shears.fits"
+            )
             lap("predict", t)
         means = {}
         for scheme, weighted in (("unweighted", False), ("weighted", True)):
-            _, g1, g2, n_used = L.submission_from_catalog(shears, weighted=weighted, where=str(files["image"]))
+            _, g1, g2, n_used = L.submission_from_catalog(
+                shears, weighted=weighted, where=str(files["image"])
+            )
             means[scheme] = {"g1": float(g1[0]), "g2": float(g2[0]), "n_used": int(n_used[0])}
         use = means["weighted" if pipe.weighted else "unweighted"]
         if not (math.isfinite(use["g1"]) and math.isfinite(use["g2"])):
             raise InputError(f"{files['image']}: no galaxy with a usable shear estimate")
         summary = {
-            "subfield": s, "n_galaxies": len(shears["flags"]),
+            "subfield": s,
+            "n_galaxies": len(shears["flags"]),
             "n_flagged": int(np.count_nonzero(shears["flags"])),
-            "noise_sigma": noise_sigma, "psf_adamom_sigma": float(np.asarray(feats["psf_adamom_sigma"])[0]),
-            "means": means, "g1": use["g1"], "g2": use["g2"], "seconds": round(time.perf_counter() - t0, 3),
-            "timings": timings, "status": "ran",
+            "noise_sigma": noise_sigma,
+            "psf_adamom_sigma": float(np.asarray(feats["psf_adamom_sigma"])[0]),
+            "means": means,
+            "g1": use["g1"],
+            "g2": use["g2"],
+            "seconds": round(time.perf_counter() - t0, 3),
+            "timings": timings,
+            "status": "ran",
         }
-        products = list(UNIT_PRODUCTS) + ([f"{n}.fits" for n in SET_NAMES] if pipe.keep_sets else [])
-        record = {"format": UNIT_RECORD_FORMAT, "key": work.key, "params": params, "inputs": work.inputs, "summary": summary,
-                  "products": {n: fingerprint(tmp / n) for n in products}, "megalut": __version__}
+        products = list(UNIT_PRODUCTS) + (
+            [f"{n}.fits" for n in SET_NAMES] if pipe.keep_sets else []
+        )
+        record = {
+            "format": UNIT_RECORD_FORMAT,
+            "key": work.key,
+            "params": params,
+            "inputs": work.inputs,
+            "summary": summary,
+            "products": {n: fingerprint(tmp / n) for n in products},
+            "megalut": __version__,
+        }
         (tmp / UNIT_RECORD).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
         replace_folder(tmp, final)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    log.info("subfield %d: g1 = %+.5f, g2 = %+.5f (%d galaxies, noise sigma %.4g) in %.0f s", s, summary["g1"],
-             summary["g2"], summary["n_galaxies"], noise_sigma or 0.0, summary["seconds"])
+    log.info(
+        "subfield %d: g1 = %+.5f, g2 = %+.5f (%d galaxies, noise sigma %.4g) in %.0f s",
+        s,
+        summary["g1"],
+        summary["g2"],
+        summary["n_galaxies"],
+        noise_sigma or 0.0,
+        summary["seconds"],
+    )
     return summary
 
 
@@ -322,12 +433,16 @@ def build_steps(pipe: BranchPipeline, workdir: Path) -> list[Entry]:
     units = Units("subfields", [subfield_unit(pipe, s) for s in pipe.subfields], noun="subfield")
 
     def branch(results: Mapping[str, Any]) -> list[Step]:
-        return branch_steps(pipe, workdir, [results[u.name] for u in units.units if u.name in results])
+        return branch_steps(
+            pipe, workdir, [results[u.name] for u in units.units if u.name in results]
+        )
 
     return [units, branch]
 
 
-def branch_steps(pipe: BranchPipeline, workdir: Path, done: Sequence[Mapping[str, Any]]) -> list[Step]:
+def branch_steps(
+    pipe: BranchPipeline, workdir: Path, done: Sequence[Mapping[str, Any]]
+) -> list[Step]:
     """``shears.fits``, ``submission.txt`` and (truth, 2 subfields or more) ``evaluation.json``
     of the finished subfields (their summaries ``done``)."""
     done = sorted(done, key=lambda r: r["subfield"])
@@ -339,20 +454,41 @@ def branch_steps(pipe: BranchPipeline, workdir: Path, done: Sequence[Mapping[str
         _write_shears(wd / SHEARS, wd, subs, overwrite=True)
 
     def write_submission(wd: Path, overwrite: bool) -> None:
-        L.write_submission(wd / SUBMISSION, subs, [r["means"][scheme]["g1"] for r in done],
-                           [r["means"][scheme]["g2"] for r in done], overwrite=True)
+        L.write_submission(
+            wd / SUBMISSION,
+            subs,
+            [r["means"][scheme]["g1"] for r in done],
+            [r["means"][scheme]["g2"] for r in done],
+            overwrite=True,
+        )
 
     steps = [
-        Step("shears", [SHEARS], their_shears, {"subfields": subs}, write_shears,
-             f"the {len(subs)} subfield(s)' galaxies with a subfield column"),
-        Step("submission", [SUBMISSION], their_shears, {"subfields": subs, "weighted": pipe.weighted},
-             write_submission, f"subfield g1 g2 ({scheme} means)"),
+        Step(
+            "shears",
+            [SHEARS],
+            their_shears,
+            {"subfields": subs},
+            write_shears,
+            f"the {len(subs)} subfield(s)' galaxies with a subfield column",
+        ),
+        Step(
+            "submission",
+            [SUBMISSION],
+            their_shears,
+            {"subfields": subs, "weighted": pipe.weighted},
+            write_submission,
+            f"subfield g1 g2 ({scheme} means)",
+        ),
     ]
     if pipe.truth is None:
         return steps
     if len(done) < 2:
-        log.warning("%s: one subfield only: m and c cannot be fitted, no %s", pipe.truth, EVALUATION)
-        (workdir / EVALUATION).unlink(missing_ok=True)  # none of an earlier run left beside these products
+        log.warning(
+            "%s: one subfield only: m and c cannot be fitted, no %s", pipe.truth, EVALUATION
+        )
+        (workdir / EVALUATION).unlink(
+            missing_ok=True
+        )  # none of an earlier run left beside these products
         return steps
     truth = pipe.truth
 
@@ -368,10 +504,21 @@ def branch_steps(pipe: BranchPipeline, workdir: Path, done: Sequence[Mapping[str
     from megalut_cli.provenance import sha256_file
 
     truth_files = {p.name: sha256_file(p) for p in sorted(truth.iterdir()) if p.is_file()}
-    return steps + [Step("evaluation", [EVALUATION], [SHEARS],
-                         {"truth": str(truth), "truth_sha256": truth_files, "sigma2_min": pipe.sigma2_min,
-                          "weighted": pipe.weighted},
-                         evaluate, f"m, c and Q_c against {truth}")]
+    return steps + [
+        Step(
+            "evaluation",
+            [EVALUATION],
+            [SHEARS],
+            {
+                "truth": str(truth),
+                "truth_sha256": truth_files,
+                "sigma2_min": pipe.sigma2_min,
+                "weighted": pipe.weighted,
+            },
+            evaluate,
+            f"m, c and Q_c against {truth}",
+        )
+    ]
 
 
 def _write_shears(path: Path, workdir: Path, subfields: Sequence[int], overwrite: bool) -> int:
@@ -382,18 +529,33 @@ def _write_shears(path: Path, workdir: Path, subfields: Sequence[int], overwrite
     n = 0
     dtype = None
     _, _, header = catalog_info(workdir / SUBFIELDS_DIR / f"{subfields[0]:03d}" / "shears.fits")
-    cards = {k: v for k, v in header.items() if k not in ("HISTORY", "MODEL", "MODELSHA", "SUBFIELD", "TEXTCAT")}
+    cards = {
+        k: v
+        for k, v in header.items()
+        if k not in ("HISTORY", "MODEL", "MODELSHA", "SUBFIELD", "TEXTCAT")
+    }
     cards["NSUBFLD"] = (len(subfields), "subfields in this catalog")
     history = header.get("HISTORY")
-    with catalog_writer(path, fmt=SHEARS_FORMAT, fmt_version="1.0", overwrite=overwrite, cards=cards,
-                        history=history) as writer:
+    with catalog_writer(
+        path,
+        fmt=SHEARS_FORMAT,
+        fmt_version="1.0",
+        overwrite=overwrite,
+        cards=cards,
+        history=history,
+    ) as writer:
         for s in subfields:
             src = workdir / SUBFIELDS_DIR / f"{s:03d}" / "shears.fits"
             t = read_catalog(src)
             cols = {"subfield": np.full(len(t), s, dtype=np.int64)}
             cols.update({c: np.asarray(t[c]) for c in t.colnames if c != "subfield"})
             if dtype is None:
-                dtype = np.dtype([(c, v.dtype.str, v.shape[1:]) if v.ndim > 1 else (c, v.dtype.str) for c, v in cols.items()])
+                dtype = np.dtype(
+                    [
+                        (c, v.dtype.str, v.shape[1:]) if v.ndim > 1 else (c, v.dtype.str)
+                        for c, v in cols.items()
+                    ]
+                )
             elif set(cols) != set(dtype.names):
                 raise InputError(f"{src}: its columns differ from those of subfield {subfields[0]}")
             arr = np.zeros(len(t), dtype=dtype)
@@ -430,18 +592,41 @@ def run_branch(
         s = next(iter(pipe.problems))
         raise InputError(about(f"subfield {s}", pipe.problems[s]))
     t0 = time.perf_counter()
-    log.info("branch %s (%s, %d-pixel stamps): %d subfield(s) -> %s", pipe.branch_dir, pipe.kind, pipe.stamp_size,
-             len(pipe.subfields), wd)
+    log.info(
+        "branch %s (%s, %d-pixel stamps): %d subfield(s) -> %s",
+        pipe.branch_dir,
+        pipe.kind,
+        pipe.stamp_size,
+        len(pipe.subfields),
+        wd,
+    )
     tp, tw = (pipe.sets[k].raw.get("structure", {}) for k in SET_NAMES)
-    log.info("per subfield: tp %s x %s stamps, tw %s x %s stamps; %d + %d members per component",
-             tp.get("n_cases"), tp.get("n_realizations"), tw.get("n_cases"), tw.get("n_realizations"),
-             pipe.point.members, pipe.weight.members)
+    log.info(
+        "per subfield: tp %s x %s stamps, tw %s x %s stamps; %d + %d members per component",
+        tp.get("n_cases"),
+        tp.get("n_realizations"),
+        tw.get("n_cases"),
+        tw.get("n_realizations"),
+        pipe.point.members,
+        pipe.weight.members,
+    )
     run = RunRecord("", pipe.path, pipe.sha256, pipe.overrides, pipe.raw)
     with made_workdir(wd, SUBFIELDS_DIR):
-        reports = run_steps(steps, wd, run, skip_existing=skip_existing, overwrite=overwrite, keep_going=keep_going,
-                            nproc=nproc, scheduler=scheduler, progress=progress)
+        reports = run_steps(
+            steps,
+            wd,
+            run,
+            skip_existing=skip_existing,
+            overwrite=overwrite,
+            keep_going=keep_going,
+            nproc=nproc,
+            scheduler=scheduler,
+            progress=progress,
+        )
     done = sorted((u.result for u in finished_units(reports)), key=lambda r: r["subfield"])
-    failures = [{"subfield": int(u.name.rsplit("-", 1)[1]), "error": u.error} for u in failed_units(reports)]
+    failures = [
+        {"subfield": int(u.name.rsplit("-", 1)[1]), "error": u.error} for u in failed_units(reports)
+    ]
     n_skipped = sum(u.status == "skipped" for u in finished_units(reports))
     ran = {r.name for r in reports}
     evaluation = None
@@ -451,8 +636,15 @@ def run_branch(
         products.append(EVALUATION)
     products.append(MANIFEST)
     seconds = time.perf_counter() - t0
-    log.info("%d subfield(s) done (%d skipped as up to date), %d failed; %d galaxies in %s; %.0f s",
-             len(done), n_skipped, len(failures), sum(r["n_galaxies"] for r in done), SHEARS, seconds)
+    log.info(
+        "%d subfield(s) done (%d skipped as up to date), %d failed; %d galaxies in %s; %.0f s",
+        len(done),
+        n_skipped,
+        len(failures),
+        sum(r["n_galaxies"] for r in done),
+        SHEARS,
+        seconds,
+    )
     return BranchRunResult(wd, done, failures, evaluation, seconds, products, n_skipped)
 
 
@@ -461,7 +653,9 @@ def failure_error(result: BranchRunResult) -> MegalutError | None:
     if not result.failures:
         return None
     f = result.failures
-    listed = "; ".join(f"{r['subfield']}: {r['error']}" for r in f[:3]) + (" ..." if len(f) > 3 else "")
+    listed = "; ".join(f"{r['subfield']}: {r['error']}" for r in f[:3]) + (
+        " ..." if len(f) > 3 else ""
+    )
     return MegalutError(
         f"{len(f)} of {len(f) + len(result.summaries)} subfield(s) failed ({listed}); "
         f"{result.workdir / SUBMISSION} holds the other {len(result.summaries)}"
@@ -475,6 +669,8 @@ def format_summary(result: BranchRunResult) -> str:
         from megalut_cli.shear.report import format_table
 
         lines += [format_table(result.evaluation), ""]
-    lines.append(f"{len(result.summaries)} subfield(s); products in {result.workdir}/: {', '.join(result.products)} "
-                 f"(and {SUBFIELDS_DIR}/SSS/)")
+    lines.append(
+        f"{len(result.summaries)} subfield(s); products in {result.workdir}/: {', '.join(result.products)} "
+        f"(and {SUBFIELDS_DIR}/SSS/)"
+    )
     return "\n".join(lines)

@@ -137,8 +137,12 @@ class RunRecord:
     effective: dict[str, Any]  # the validated file, overrides applied
 
     def as_dict(self) -> dict[str, Any]:
-        return {"path": self.path, "sha256": self.sha256, "overrides": list(self.overrides),
-                "effective": self.effective}
+        return {
+            "path": self.path,
+            "sha256": self.sha256,
+            "overrides": list(self.overrides),
+            "effective": self.effective,
+        }
 
 
 def sha_text(obj: Any) -> str:
@@ -174,7 +178,9 @@ class Manifest:
         self.path = path
         self.run = run
         self.steps: dict[str, Any] = {}
-        self.pipelines: dict[str, Any] = {}  # name ("" unnamed) -> the last pipeline of that name run here
+        self.pipelines: dict[
+            str, Any
+        ] = {}  # name ("" unnamed) -> the last pipeline of that name run here
         self.failed: dict[str, str] | None = None  # unit name -> error, of the last run with units
         if path.is_file():
             try:
@@ -184,17 +190,26 @@ class Manifest:
                 data = {}
             fmt = data.get("format") if isinstance(data, dict) else None
             if skip_existing and isinstance(fmt, str) and fmt != MANIFEST_FORMAT:
-                raise HintError(f"{braces_escaped(path)}: written by an older megalut (format "
-                                f"{braces_escaped(fmt)}), its records cannot be reused; use {{overwrite}} to "
-                                "redo the work", "overwrite")
-            if isinstance(data, dict) and fmt == MANIFEST_FORMAT and isinstance(data.get("steps"), dict):
+                raise HintError(
+                    f"{braces_escaped(path)}: written by an older megalut (format "
+                    f"{braces_escaped(fmt)}), its records cannot be reused; use {{overwrite}} to "
+                    "redo the work",
+                    "overwrite",
+                )
+            if (
+                isinstance(data, dict)
+                and fmt == MANIFEST_FORMAT
+                and isinstance(data.get("steps"), dict)
+            ):
                 self.steps = data["steps"]
                 if isinstance(data.get("pipelines"), dict):
                     self.pipelines = data["pipelines"]
 
     def current_sha(self, step: str, workdir: Path, name: str) -> str | None:
         """The sha256 of product ``name`` if it is still what ``step`` recorded, else None."""
-        return current_sha(workdir / name, (self.steps.get(step) or {}).get("outputs", {}).get(name))
+        return current_sha(
+            workdir / name, (self.steps.get(step) or {}).get("outputs", {}).get(name)
+        )
 
     def same_work(self, step: Step, key: str, workdir: Path) -> tuple[str, dict[str, str]] | None:
         """Another step with this key whose products are intact: (its name, our product -> its product)."""
@@ -202,7 +217,9 @@ class Manifest:
             if other == step.name or not isinstance(rec, dict) or rec.get("key") != key:
                 continue
             theirs = list(rec.get("outputs") or {})
-            if len(theirs) == len(step.outputs) and all(self.current_sha(other, workdir, o) for o in theirs):
+            if len(theirs) == len(step.outputs) and all(
+                self.current_sha(other, workdir, o) for o in theirs
+            ):
                 return other, dict(zip(step.outputs, theirs))
         return None
 
@@ -215,8 +232,15 @@ class Manifest:
             return None
         return {o: s for o, s in current.items() if s}
 
-    def record(self, step: Step, key: str, inputs: Mapping[str, str], outputs: Mapping[str, dict[str, Any]],
-               seconds: float, copied_from: str | None = None) -> None:
+    def record(
+        self,
+        step: Step,
+        key: str,
+        inputs: Mapping[str, str],
+        outputs: Mapping[str, dict[str, Any]],
+        seconds: float,
+        copied_from: str | None = None,
+    ) -> None:
         self.steps[step.name] = {
             "key": key,
             "params": step.params,
@@ -246,14 +270,20 @@ class Manifest:
 
 
 def _unprefix(name: str, prefix: str) -> str:
-    return name[len(prefix):] if prefix and name.startswith(prefix) else name
+    return name[len(prefix) :] if prefix and name.startswith(prefix) else name
 
 
 def step_key(step: Step, input_shas: Mapping[str, str]) -> str:
     """The identity of a step's work: parameters, input contents, megalut version (no pipeline name)."""
     inputs = {_unprefix(n, step.prefix): s for n, s in input_shas.items()}
-    return sha_text({"step": _unprefix(step.name, step.prefix), "params": step.params, "inputs": inputs,
-                     "megalut": __version__})
+    return sha_text(
+        {
+            "step": _unprefix(step.name, step.prefix),
+            "params": step.params,
+            "inputs": inputs,
+            "megalut": __version__,
+        }
+    )
 
 
 def products(steps: Sequence[Entry]) -> list[str]:
@@ -267,8 +297,13 @@ def products(steps: Sequence[Entry]) -> list[str]:
     return out
 
 
-def check_workdir(workdir: Path, steps: Sequence[Entry], skip_existing: bool, overwrite: bool,
-                  also: Sequence[str] = ()) -> None:
+def check_workdir(
+    workdir: Path,
+    steps: Sequence[Entry],
+    skip_existing: bool,
+    overwrite: bool,
+    also: Sequence[str] = (),
+) -> None:
     """Fail early: a file where the folder should be, an unwritable place, or products
     (or the files named in ``also``) there without ``skip_existing`` or ``overwrite``."""
     if workdir.exists() and not workdir.is_dir():
@@ -283,7 +318,9 @@ def check_workdir(workdir: Path, steps: Sequence[Entry], skip_existing: bool, ov
         if (workdir / name).exists():
             raise HintError(
                 f"{braces_escaped(workdir / name)} exists; use {{skip_existing}} to reuse the up-to-date "
-                "products or {overwrite} to redo every step", "skip_existing", "overwrite",
+                "products or {overwrite} to redo every step",
+                "skip_existing",
+                "overwrite",
             )
 
 
@@ -332,10 +369,15 @@ def run_unit(task: Mapping[str, Any]) -> dict[str, Any]:
     prior = task.get("prior")
     t0 = time.perf_counter()
     try:
-        inputs = {k: {"name": Path(p).name, "sha256": sha256_file(p)} for k, p in unit.sources.items()}
+        inputs = {
+            k: {"name": Path(p).name, "sha256": sha256_file(p)} for k, p in unit.sources.items()
+        }
         key = unit_key(unit.params, inputs)
-        if isinstance(prior, dict) and prior.get("key") == key and all(
-                current_sha(wd / o, (prior.get("outputs") or {}).get(o)) for o in unit.outputs):
+        if (
+            isinstance(prior, dict)
+            and prior.get("key") == key
+            and all(current_sha(wd / o, (prior.get("outputs") or {}).get(o)) for o in unit.outputs)
+        ):
             return {"status": "skipped"}
         result = unit.func(unit.job, UnitWork(wd, key, inputs, bool(task["overwrite"])))
         outputs = {o: fingerprint(wd / o) for o in unit.outputs}
@@ -344,20 +386,50 @@ def run_unit(task: Mapping[str, Any]) -> dict[str, Any]:
             if isinstance(err, MegalutError):
                 raise type(err)(about(unit.label, str(err))) from None
             raise
-        text = str(err) if isinstance(err, MegalutError) else f"internal error ({type(err).__name__}: {err})"
+        text = (
+            str(err)
+            if isinstance(err, MegalutError)
+            else f"internal error ({type(err).__name__}: {err})"
+        )
         return {"status": "failed", "error": text}
-    return {"status": "ran", "key": key, "params": unit.params, "inputs": inputs, "outputs": outputs,
-            "result": result, "seconds": round(time.perf_counter() - t0, 3), "finished": utc_now()}
+    return {
+        "status": "ran",
+        "key": key,
+        "params": unit.params,
+        "inputs": inputs,
+        "outputs": outputs,
+        "result": result,
+        "seconds": round(time.perf_counter() - t0, 3),
+        "finished": utc_now(),
+    }
 
 
-def _run_units(group: Units, wd: Path, manifest: Manifest, *, skip_existing: bool, overwrite: bool,
-               keep_going: bool, nproc: int, scheduler: str | None, progress: Progress | None) -> list[UnitReport]:
+def _run_units(
+    group: Units,
+    wd: Path,
+    manifest: Manifest,
+    *,
+    skip_existing: bool,
+    overwrite: bool,
+    keep_going: bool,
+    nproc: int,
+    scheduler: str | None,
+    progress: Progress | None,
+) -> list[UnitReport]:
     """Run the units of ``group`` not up to date, on the executor; record each as it finishes."""
     from megalut_cli.parallel import executor, map_units
 
     n = len(group.units)
-    tasks = [{"unit": u, "workdir": str(wd.resolve()), "prior": manifest.steps.get(u.name) if skip_existing else None,
-              "overwrite": overwrite or skip_existing, "keep_going": keep_going} for u in group.units]
+    tasks = [
+        {
+            "unit": u,
+            "workdir": str(wd.resolve()),
+            "prior": manifest.steps.get(u.name) if skip_existing else None,
+            "overwrite": overwrite or skip_existing,
+            "keep_going": keep_going,
+        }
+        for u in group.units
+    ]
     reports: list[UnitReport | None] = [None] * n
     failed = manifest.failed if manifest.failed is not None else {}
     manifest.failed = failed
@@ -379,7 +451,10 @@ def _run_units(group: Units, wd: Path, manifest: Manifest, *, skip_existing: boo
             reports[i] = UnitReport(unit.name, unit.label, "ran", out["seconds"], out["result"])
         manifest.save()
 
-    with executor(nproc, scheduler, n_units=n) as pool, (progress or no_progress)(f"{group.noun}s", n) as update:
+    with (
+        executor(nproc, scheduler, n_units=n) as pool,
+        (progress or no_progress)(f"{group.noun}s", n) as update,
+    ):
         map_units(run_unit, tasks, pool, update, finished)
     manifest.save()
     done = [r for r in reports if r is not None]
@@ -389,9 +464,18 @@ def _run_units(group: Units, wd: Path, manifest: Manifest, *, skip_existing: boo
     return done
 
 
-def run_steps(steps: Sequence[Entry], workdir: Path, run: RunRecord, *, skip_existing: bool = False,
-              overwrite: bool = False, keep_going: bool = False, nproc: int = 1, scheduler: str | None = None,
-              progress: Progress | None = None) -> list[StepReport]:
+def run_steps(
+    steps: Sequence[Entry],
+    workdir: Path,
+    run: RunRecord,
+    *,
+    skip_existing: bool = False,
+    overwrite: bool = False,
+    keep_going: bool = False,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    progress: Progress | None = None,
+) -> list[StepReport]:
     """Run (or bring up to date) ``steps`` in order in ``workdir`` (which exists), recording
     each in ``manifest.json``; return what happened to each.
 
@@ -422,10 +506,25 @@ def run_steps(steps: Sequence[Entry], workdir: Path, run: RunRecord, *, skip_exi
         i += 1
         label = f"[{i}/{i + len(entries)}] {entry.name}" if numbered else f"[{i}] {entry.name}"
         if isinstance(entry, Units):
-            log.info("%s: %d %s(s)%s", label, len(entry.units), entry.noun, f": {entry.summary}" if entry.summary else "")
+            log.info(
+                "%s: %d %s(s)%s",
+                label,
+                len(entry.units),
+                entry.noun,
+                f": {entry.summary}" if entry.summary else "",
+            )
             t0 = time.perf_counter()
-            units = _run_units(entry, wd, manifest, skip_existing=skip_existing, overwrite=overwrite,
-                               keep_going=keep_going, nproc=nproc, scheduler=scheduler, progress=progress)
+            units = _run_units(
+                entry,
+                wd,
+                manifest,
+                skip_existing=skip_existing,
+                overwrite=overwrite,
+                keep_going=keep_going,
+                nproc=nproc,
+                scheduler=scheduler,
+                progress=progress,
+            )
             for u in units:
                 if u.status != "failed":
                     results[u.name] = u.result
@@ -433,9 +532,17 @@ def run_steps(steps: Sequence[Entry], workdir: Path, run: RunRecord, *, skip_exi
                     shas.update({o: f["sha256"] for o, f in rec["outputs"].items()})
             seconds = time.perf_counter() - t0
             counts = {s: sum(u.status == s for u in units) for s in ("ran", "skipped", "failed")}
-            log.info("%s: %d ran, %d up to date, %d failed in %.1f s", label, counts["ran"], counts["skipped"],
-                     counts["failed"], seconds)
-            reports.append(StepReport(entry.name, "ran" if counts["ran"] else "skipped", seconds, units))
+            log.info(
+                "%s: %d ran, %d up to date, %d failed in %.1f s",
+                label,
+                counts["ran"],
+                counts["skipped"],
+                counts["failed"],
+                seconds,
+            )
+            reports.append(
+                StepReport(entry.name, "ran" if counts["ran"] else "skipped", seconds, units)
+            )
             continue
         step = entry
         inputs = {name: shas[name] for name in step.inputs}
@@ -450,8 +557,11 @@ def run_steps(steps: Sequence[Entry], workdir: Path, run: RunRecord, *, skip_exi
                 reports.append(StepReport(step.name, "skipped", 0.0))
                 continue
             donor = manifest.same_work(step, key, wd)
-            reason = "parameters or inputs changed" if rec.get("key") not in (None, key) else (
-                "not run yet" if not rec else "products missing or changed")
+            reason = (
+                "parameters or inputs changed"
+                if rec.get("key") not in (None, key)
+                else ("not run yet" if not rec else "products missing or changed")
+            )
             if donor is None:
                 log.info("%s: %s: %s", label, reason, step.summary)
         else:
@@ -484,5 +594,7 @@ def finished_units(reports: Sequence[StepReport]) -> list[UnitReport]:
 
 def timing_line(reports: Sequence[StepReport]) -> str:
     """``name 12 s, name skipped, ...``: what each step took."""
-    return ", ".join(f"{r.name} {r.seconds:.0f} s" if r.status == "ran" else f"{r.name} {r.status}"
-                     for r in reports)
+    return ", ".join(
+        f"{r.name} {r.seconds:.0f} s" if r.status == "ran" else f"{r.name} {r.status}"
+        for r in reports
+    )

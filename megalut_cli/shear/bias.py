@@ -151,7 +151,9 @@ def calibrate_by_response(
         return (r22 * g1 - r12 * g2) / det, (r11 * g2 - r21 * g1) / det
 
 
-def rotate_spin2(g1: np.ndarray, g2: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def rotate_spin2(
+    g1: np.ndarray, g2: np.ndarray, theta: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """``(g1, g2)`` in the frame turned by the angle ``theta`` (radians): rotated by ``-2 theta``."""
     cos2, sin2 = np.cos(2.0 * theta), np.sin(2.0 * theta)
     g1 = np.asarray(g1, dtype=float)

@@ -18,7 +18,9 @@ from megalut_cli.errors import ConfigError
 log = logging.getLogger(__name__)
 
 
-def equal_population_edges(values: np.ndarray, n_bins: int, name: str = "column", key: str = "by") -> np.ndarray:
+def equal_population_edges(
+    values: np.ndarray, n_bins: int, name: str = "column", key: str = "by"
+) -> np.ndarray:
     """Bin edges holding about the same number of (finite) ``values`` in each bin.
 
     Edges are quantiles; ties (e.g. a true parameter shared by all rows of a case, or a

@@ -122,8 +122,12 @@ class _Plan:
     columns: list[str] = field(default_factory=list)
     has_flags: bool = False
     selected_cases: np.ndarray | None = None
-    by_kind: dict[str, str] = field(default_factory=dict)  # "column", "row" or "case" (see check_by)
-    case_by: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # expr -> (case ids, values)
+    by_kind: dict[str, str] = field(
+        default_factory=dict
+    )  # "column", "row" or "case" (see check_by)
+    case_by: dict[str, tuple[np.ndarray, np.ndarray]] = field(
+        default_factory=dict
+    )  # expr -> (case ids, values)
     bootstrap: BootstrapSpec | None = None
     names: dict[str, str] = field(default_factory=dict)  # how messages name the arguments
     metacal: float | None = None  # the metacal step: calibrate pre_*_noshear by the mean response
@@ -137,7 +141,9 @@ class _Plan:
         return self.names.get(arg, arg)
 
 
-def check_by(by: Sequence[str], available: Sequence[str], key: str = "by", where: str = "the catalog") -> dict[str, str]:
+def check_by(
+    by: Sequence[str], available: Sequence[str], key: str = "by", where: str = "the catalog"
+) -> dict[str, str]:
     """Kind of each ``by`` entry: ``"column"``, ``"row"`` (numeric row expression such as
     ``sqrt(tru_e1**2 + tru_e2**2)``) or ``"case"`` (per-case aggregate such as ``mean(snr)``,
     the paper's binning by average S/N per case). Raises :class:`ConfigError` naming ``key``."""
@@ -171,7 +177,11 @@ def _make_plan(
     given = dict(names or {})
     have = set(colnames)
     metacal = _metacal_mode(have, source, metacal_step)
-    estimates = [f"{c}_noshear" for c in ESTIMATE_COLUMNS] if metacal is not None else list(ESTIMATE_COLUMNS)
+    estimates = (
+        [f"{c}_noshear" for c in ESTIMATE_COLUMNS]
+        if metacal is not None
+        else list(ESTIMATE_COLUMNS)
+    )
     missing = [c for c in (*TRUTH_COLUMNS, *estimates) if c not in have]
     if missing:
         raise InputError(
@@ -180,9 +190,15 @@ def _make_plan(
         )
     weighted = all(c in have for c in WEIGHT_COLUMNS)
     if metacal is not None:
-        weighted = all(f"{c}_{kind}" in have for c in WEIGHT_COLUMNS for kind in ("noshear", *SHEARED_TYPES))
+        weighted = all(
+            f"{c}_{kind}" in have for c in WEIGHT_COLUMNS for kind in ("noshear", *SHEARED_TYPES)
+        )
     if not weighted and any(c in have for c in WEIGHT_COLUMNS):
-        log.warning("%s: only one of %s present; weighted analysis skipped", source, ", ".join(WEIGHT_COLUMNS))
+        log.warning(
+            "%s: only one of %s present; weighted analysis skipped",
+            source,
+            ", ".join(WEIGHT_COLUMNS),
+        )
     psf = next((pair for pair in PSF_COLUMNS if all(c in have for c in pair)), None)
     by = list(dict.fromkeys(by or []))
     by_kind = check_by(by, list(colnames), given.get("by", "by"), source)
@@ -198,8 +214,19 @@ def _make_plan(
             )
         if bootstrap.n_resamples < 2 or bootstrap.group_size < 1:
             raise ConfigError("bootstrap: needs at least 2 resamples and a group size >= 1")
-    plan = _Plan(source, weighted, psf, by, select, select_cases, has_flags="flags" in have, by_kind=by_kind,
-                 bootstrap=bootstrap, names=given, metacal=metacal)
+    plan = _Plan(
+        source,
+        weighted,
+        psf,
+        by,
+        select,
+        select_cases,
+        has_flags="flags" in have,
+        by_kind=by_kind,
+        bootstrap=bootstrap,
+        names=given,
+        metacal=metacal,
+    )
     cols = [*TRUTH_COLUMNS, *(ESTIMATE_COLUMNS if metacal is None else ())]
     if metacal is not None:
         cols += [*RESPONSE_COLUMNS, *(f"{c}_noshear" for c in ESTIMATE_COLUMNS), "flags_noshear"]
@@ -207,7 +234,13 @@ def _make_plan(
             cols += [f"{c}_{kind}" for c in WEIGHT_COLUMNS for kind in ("noshear", *SHEARED_TYPES)]
         used = list(_expr.columns_used(select)) if select is not None else []
         for c in by:  # the bins too are taken on the noshear versions
-            used += [c] if by_kind[c] == "column" else _expr.columns_used(c) if by_kind[c] == "row" else []
+            used += (
+                [c]
+                if by_kind[c] == "column"
+                else _expr.columns_used(c)
+                if by_kind[c] == "row"
+                else []
+            )
         cols += [f"{c}_{kind}" for kind in TYPES for c in used if f"{c}_{kind}" in have]
     if bootstrap is not None:
         cols.append("rea")
@@ -218,7 +251,9 @@ def _make_plan(
     if psf:
         cols += psf
     for c in by:
-        cols += [c] if by_kind[c] == "column" else _expr.columns_used(c) if by_kind[c] == "row" else []
+        cols += (
+            [c] if by_kind[c] == "column" else _expr.columns_used(c) if by_kind[c] == "row" else []
+        )
     if select is not None:
         cols += _expr.columns_used(select)
     plan.columns = list(dict.fromkeys(c for c in cols if c in have))
@@ -233,7 +268,9 @@ def _metacal_mode(have: set[str], source: str, step: float | None) -> float | No
     needed = [*RESPONSE_COLUMNS, *(f"{c}_noshear" for c in ESTIMATE_COLUMNS), "flags_noshear"]
     missing = [c for c in needed if c not in have]
     if missing:
-        raise InputError(f"{source}: a metacal catalog (with {', '.join(present)}) lacks {', '.join(missing)}")
+        raise InputError(
+            f"{source}: a metacal catalog (with {', '.join(present)}) lacks {', '.join(missing)}"
+        )
     return float(step) if step is not None else DEFAULT_STEP
 
 
@@ -249,7 +286,9 @@ class _Rows:
     pre: dict[str, np.ndarray]
     weight: dict[tuple[str, str], np.ndarray]  # (scheme, comp) -> weight (0 = row not used)
     psf: tuple[np.ndarray, np.ndarray] | None
-    key: np.ndarray  # what sums are grouped by: the case, or (case, galaxy group) when bootstrapping
+    key: (
+        np.ndarray
+    )  # what sums are grouped by: the case, or (case, galaxy group) when bootstrapping
     # metacal: per-row responses (0 where not valid) and, per scheme, component and sheared
     # type, the weight of the row under that type's selection and weights
     response: dict[tuple[int, int], np.ndarray] | None = None
@@ -294,19 +333,30 @@ def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
             w = np.asarray(chunk[wcol], dtype=float)
             bad = ok & (w < 0)
             if np.any(bad):
-                raise InputError(f"{plan.source}: column {wcol} has {int(bad.sum())} negative weight(s)")
+                raise InputError(
+                    f"{plan.source}: column {wcol} has {int(bad.sum())} negative weight(s)"
+                )
             weight[("weighted", comp)] = np.where(ok & np.isfinite(w) & (w > 0), w, 0.0)
     psf = None
     if plan.psf is not None:
-        psf = (np.asarray(chunk[plan.psf[0]], dtype=float), np.asarray(chunk[plan.psf[1]], dtype=float))
-    key = case if plan.bootstrap is None else _case_group_key(case, chunk["rea"], plan.bootstrap.group_size, plan.source)
+        psf = (
+            np.asarray(chunk[plan.psf[0]], dtype=float),
+            np.asarray(chunk[plan.psf[1]], dtype=float),
+        )
+    key = (
+        case
+        if plan.bootstrap is None
+        else _case_group_key(case, chunk["rea"], plan.bootstrap.group_size, plan.source)
+    )
     rows = _Rows(case, selected, valid, tru, pre, weight, psf, key)
     if plan.metacal is not None:
         _metacal_rows(rows, chunk, plan)
     return rows
 
 
-def _version_view(chunk: Mapping[str, np.ndarray], plan: _Plan, kind: str) -> Mapping[str, np.ndarray]:
+def _version_view(
+    chunk: Mapping[str, np.ndarray], plan: _Plan, kind: str
+) -> Mapping[str, np.ndarray]:
     """The chunk as the metacal version ``kind`` sees it: ``X`` is ``X_<kind>`` where the
     chunk has it (the chunk itself in plain mode); the plan reads the ``X_<kind>`` of the
     columns that ``select`` and ``by`` use."""
@@ -323,7 +373,9 @@ def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> 
     for i in (1, 2):
         ok = rows.valid[f"g{i}"]
         for j in (1, 2):
-            rows.response[(i, j)] = np.where(ok, np.asarray(chunk[f"mcal_r{i}{j}"], dtype=float), 0.0)
+            rows.response[(i, j)] = np.where(
+                ok, np.asarray(chunk[f"mcal_r{i}{j}"], dtype=float), 0.0
+            )
     if plan.select is None and not plan.weighted:
         return
     # The rows usable whatever the selection: flags_noshear == 0 and finite estimates and
@@ -332,7 +384,9 @@ def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> 
     if plan.selected_cases is not None:
         usable &= np.isin(rows.case, plan.selected_cases)
     for i in (1, 2):
-        usable &= np.isfinite(rows.pre_noshear[i]) & np.isfinite(np.asarray(chunk[f"tru_g{i}"], dtype=float))
+        usable &= np.isfinite(rows.pre_noshear[i]) & np.isfinite(
+            np.asarray(chunk[f"tru_g{i}"], dtype=float)
+        )
         for j in (1, 2):
             usable &= np.isfinite(np.asarray(chunk[f"mcal_r{i}{j}"], dtype=float))
     rows.sheared_weight = {}
@@ -346,7 +400,9 @@ def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> 
             for i in (1, 2):
                 if s == "weighted":
                     w = np.asarray(chunk[f"pre_g{i}_w_{kind}"], dtype=float)
-                    rows.sheared_weight[(s, f"g{i}", kind)] = np.where(sel & np.isfinite(w) & (w > 0), w, 0.0)
+                    rows.sheared_weight[(s, f"g{i}", kind)] = np.where(
+                        sel & np.isfinite(w) & (w > 0), w, 0.0
+                    )
                 else:
                     rows.sheared_weight[(s, f"g{i}", kind)] = sel.astype(float)
 
@@ -385,7 +441,9 @@ class _GroupSums:
         self._cases: list[np.ndarray] = []
         self._sums: list[np.ndarray] = []
 
-    def add(self, case: np.ndarray, values: Mapping[str, np.ndarray], bin_idx: np.ndarray | None = None) -> None:
+    def add(
+        self, case: np.ndarray, values: Mapping[str, np.ndarray], bin_idx: np.ndarray | None = None
+    ) -> None:
         if bin_idx is not None:
             keep = bin_idx >= 0
             case, bin_idx = case[keep], bin_idx[keep]
@@ -400,20 +458,31 @@ class _GroupSums:
         present = np.flatnonzero(np.bincount(key, minlength=size))
         self._bins.append(present // ids.size)
         self._cases.append(ids[present % ids.size])
-        self._sums.append(np.stack([np.bincount(key, weights=values[k], minlength=size)[present] for k in self.names]))
+        self._sums.append(
+            np.stack(
+                [np.bincount(key, weights=values[k], minlength=size)[present] for k in self.names]
+            )
+        )
 
     def result(self) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """``(bins, cases, {name: sums})`` with one entry per (bin, case) present."""
         if not self._cases:
             empty = np.zeros(0)
-            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), {k: empty for k in self.names}
+            return (
+                np.zeros(0, dtype=np.int64),
+                np.zeros(0, dtype=np.int64),
+                {k: empty for k in self.names},
+            )
         bins = np.concatenate(self._bins)
         cases = np.concatenate(self._cases)
         sums = np.concatenate(self._sums, axis=1)
         ids, cinv = np.unique(cases, return_inverse=True)
         keys, inv = np.unique(bins * ids.size + cinv.ravel(), return_inverse=True)
         inv = inv.ravel()
-        out = {k: np.bincount(inv, weights=sums[i], minlength=keys.size) for i, k in enumerate(self.names)}
+        out = {
+            k: np.bincount(inv, weights=sums[i], minlength=keys.size)
+            for i, k in enumerate(self.names)
+        }
         return keys // ids.size, ids[keys % ids.size], out
 
 
@@ -426,7 +495,12 @@ def _sum_names(schemes: Sequence[str], plan: _Plan | None = None) -> list[str]:
         if plan is not None and plan.metacal is not None:
             names += [f"{s}:wR:{i}{j}" for i in (1, 2) for j in (1, 2)]
             if plan.select is not None or s == "weighted":
-                names += [f"{s}:{q}:{i}:{kind}" for q in ("sw", "swpre") for i in (1, 2) for kind in SHEARED_TYPES]
+                names += [
+                    f"{s}:{q}:{i}:{kind}"
+                    for q in ("sw", "swpre")
+                    for i in (1, 2)
+                    for kind in SHEARED_TYPES
+                ]
     return names
 
 
@@ -439,11 +513,17 @@ def _row_values(rows: _Rows, schemes: Sequence[str]) -> dict[str, np.ndarray]:
             vals[f"{s}:wpre:{comp}"] = w * rows.pre[comp]
             vals[f"{s}:wtru:{comp}"] = w * rows.tru[comp]
             vals[f"{s}:n:{comp}"] = (w > 0).astype(float)
-        vals[f"{s}:n:both"] = ((rows.weight[(s, "g1")] > 0) & (rows.weight[(s, "g2")] > 0)).astype(float)
+        vals[f"{s}:n:both"] = ((rows.weight[(s, "g1")] > 0) & (rows.weight[(s, "g2")] > 0)).astype(
+            float
+        )
         if rows.response is not None:
             for (i, j), r in rows.response.items():
                 vals[f"{s}:wR:{i}{j}"] = rows.weight[(s, f"g{i}")] * r
-        if rows.sheared_weight is not None and rows.step is not None and (s, "g1", "1p") in rows.sheared_weight:
+        if (
+            rows.sheared_weight is not None
+            and rows.step is not None
+            and (s, "g1", "1p") in rows.sheared_weight
+        ):
             for i in (1, 2):
                 pre = np.nan_to_num(rows.pre_noshear[i])
                 for kind in SHEARED_TYPES:
@@ -457,28 +537,42 @@ def _row_values(rows: _Rows, schemes: Sequence[str]) -> dict[str, np.ndarray]:
 # --------------------------------------------------------------------------- fits
 
 
-def metacal_response(sums: Mapping[str, np.ndarray], scheme: str) -> tuple[np.ndarray, np.ndarray | None]:
+def metacal_response(
+    sums: Mapping[str, np.ndarray], scheme: str
+) -> tuple[np.ndarray, np.ndarray | None]:
     """The mean metacal response ``R[i][j]`` of the rows behind ``sums`` (all keys: axis 0),
     and the selection response (None without a selection or weights), each ``(2, 2, ...)``."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.array([[sums[f"{scheme}:wR:{i}{j}"].sum(axis=0) / sums[f"{scheme}:w:g{i}"].sum(axis=0)
-                          for j in (1, 2)] for i in (1, 2)])
+        mean = np.array(
+            [
+                [
+                    sums[f"{scheme}:wR:{i}{j}"].sum(axis=0) / sums[f"{scheme}:w:g{i}"].sum(axis=0)
+                    for j in (1, 2)
+                ]
+                for i in (1, 2)
+            ]
+        )
         if f"{scheme}:sw:1:1p" not in sums:
             return mean, None
 
         def avg(i: int, kind: str) -> np.ndarray:
-            return sums[f"{scheme}:swpre:{i}:{kind}"].sum(axis=0) / sums[f"{scheme}:sw:{i}:{kind}"].sum(axis=0)
+            return sums[f"{scheme}:swpre:{i}:{kind}"].sum(axis=0) / sums[
+                f"{scheme}:sw:{i}:{kind}"
+            ].sum(axis=0)
 
         selection = np.array([[avg(i, f"{j}p") - avg(i, f"{j}m") for j in (1, 2)] for i in (1, 2)])
     return mean, selection
 
 
-def _calibrate(out: dict[str, dict[str, np.ndarray]], sums: Mapping[str, np.ndarray], scheme: str) -> None:
+def _calibrate(
+    out: dict[str, dict[str, np.ndarray]], sums: Mapping[str, np.ndarray], scheme: str
+) -> None:
     """Replace the per-case estimates by the metacal-calibrated ones, ``(R + R_S)^-1 <g>``."""
     mean, selection = metacal_response(sums, scheme)
     r = mean if selection is None else mean + selection
-    out["g1"]["pre"], out["g2"]["pre"] = calibrate_by_response(r[0, 0], r[0, 1], r[1, 0], r[1, 1],
-                                                               out["g1"]["pre"], out["g2"]["pre"])
+    out["g1"]["pre"], out["g2"]["pre"] = calibrate_by_response(
+        r[0, 0], r[0, 1], r[1, 0], r[1, 1], out["g1"]["pre"], out["g2"]["pre"]
+    )
 
 
 def _case_estimates(
@@ -524,14 +618,20 @@ def _spread(x: np.ndarray) -> bool:
 
 
 def _json_list(a: np.ndarray) -> list[Any]:
-    return [None if not math.isfinite(v) else (int(v) if float(v).is_integer() and abs(v) < 2**53 else float(v))
-            for v in np.asarray(a, dtype=float)]
+    return [
+        None
+        if not math.isfinite(v)
+        else (int(v) if float(v).is_integer() and abs(v) < 2**53 else float(v))
+        for v in np.asarray(a, dtype=float)
+    ]
 
 
 # --------------------------------------------------------------------------- main entry
 
 
-def _iter_path(path: str | os.PathLike, plan: _Plan, chunk_rows: int) -> Iterator[Mapping[str, np.ndarray]]:
+def _iter_path(
+    path: str | os.PathLike, plan: _Plan, chunk_rows: int
+) -> Iterator[Mapping[str, np.ndarray]]:
     for table in iter_catalog(path, chunk_rows, plan.columns):
         yield {c: np.asarray(table[c]) for c in plan.columns}
 
@@ -563,8 +663,16 @@ def evaluate_catalog(
     flags or pipeline keys. See :func:`evaluate_columns`.
     """
     _, colnames, header = catalog_info(path)
-    plan = _make_plan(colnames, str(path), by, select, select_cases,
-                      bootstrap_from_header(header, errors, n_bootstrap, seed), names, header_step(header))
+    plan = _make_plan(
+        colnames,
+        str(path),
+        by,
+        select,
+        select_cases,
+        bootstrap_from_header(header, errors, n_bootstrap, seed),
+        names,
+        header_step(header),
+    )
     _prepare_cases(plan, lambda cols: _read_columns(path, cols))
     result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins, sigma2_min)
     result["input"] = str(path)
@@ -606,8 +714,15 @@ def errors_na_note(result: Mapping[str, Any]) -> str | None:
     leave a fit undefined."""
     schemes = [s for s in ("unweighted", "weighted") if s in result]
     overall = [f for s in schemes for f in (result.get(s) or {}).values() if _no_errors(f)]
-    binned = [b[s][comp] for cond in (result.get("conditional") or {}).values() for b in cond.get("bins", [])
-              for s in schemes if s in b for comp in b[s] if _no_errors(b[s][comp])]
+    binned = [
+        b[s][comp]
+        for cond in (result.get("conditional") or {}).values()
+        for b in cond.get("bins", [])
+        for s in schemes
+        if s in b
+        for comp in b[s]
+        if _no_errors(b[s][comp])
+    ]
     fits = overall or binned
     if not fits:
         return None
@@ -616,11 +731,15 @@ def errors_na_note(result: Mapping[str, Any]) -> str | None:
     have = "the catalog has" if overall else "a bin has"
     boot = result.get("bootstrap")
     if result.get("error") == ERROR_BOOTSTRAP and boot:
-        return (f"errors n/a{where}: the bootstrap over {boot['groups']} galaxy groups leaves the fit undefined "
-                f"in more than half of its resamples (a fit needs at least 2 cases with different true shears; "
-                f"{have} {n})")
-    return (f"errors n/a{where}: errors from the fit need at least {MIN_CASES_FOR_ERRORS} cases (the residual "
-            f"scatter about the line has N - 2 degrees of freedom); {have} {n} usable case{'s' * (n != 1)}")
+        return (
+            f"errors n/a{where}: the bootstrap over {boot['groups']} galaxy groups leaves the fit undefined "
+            f"in more than half of its resamples (a fit needs at least 2 cases with different true shears; "
+            f"{have} {n})"
+        )
+    return (
+        f"errors n/a{where}: errors from the fit need at least {MIN_CASES_FOR_ERRORS} cases (the residual "
+        f"scatter about the line has N - 2 degrees of freedom); {have} {n} usable case{'s' * (n != 1)}"
+    )
 
 
 def evaluation_provenance(path: str | os.PathLike) -> dict[str, Any]:
@@ -630,8 +749,14 @@ def evaluation_provenance(path: str | os.PathLike) -> dict[str, Any]:
     source: dict[str, Any] = {"path": str(path), "sha256": sha256_file(path)}
     if is_fits_file(path):
         header = catalog_info(path)[2]
-        for key, card in (("format", "MLFORMAT"), ("created", "DATE"), ("creator", "CREATOR"),
-                          ("model", "MODEL"), ("model_sha256", "MODELSHA"), ("config_sha256", "CFGSHA")):
+        for key, card in (
+            ("format", "MLFORMAT"),
+            ("created", "DATE"),
+            ("creator", "CREATOR"),
+            ("model", "MODEL"),
+            ("model_sha256", "MODELSHA"),
+            ("config_sha256", "CFGSHA"),
+        ):
             source[key] = header.get(card)
         source["history"] = history_steps(header.get("HISTORY", []))
     return {
@@ -686,12 +811,16 @@ def bootstrap_from_header(
     """The bootstrap of a catalog with this header under ``errors`` (``auto``: only for
     common-random-number sets, ``CRN = T``), or None for errors from the fit."""
     if errors not in ERROR_CHOICES:
-        raise ConfigError(f"errors: unknown value {errors!r} (expected one of {', '.join(ERROR_CHOICES)})")
+        raise ConfigError(
+            f"errors: unknown value {errors!r} (expected one of {', '.join(ERROR_CHOICES)})"
+        )
     crn = header.get("CRN") is True
     if errors == "fit" or (errors == "auto" and not crn):
         if crn:
-            log.warning("the input is a common-random-number set (CRN = T): errors from the fit ignore that its "
-                        "cases share their galaxies and are too small")
+            log.warning(
+                "the input is a common-random-number set (CRN = T): errors from the fit ignore that its "
+                "cases share their galaxies and are too small"
+            )
         return None
     nrea = header.get("NREA")
     gsize = group_size_for(header.get("SNC"), nrea if isinstance(nrea, int) else None)
@@ -735,7 +864,9 @@ def _by_values(chunk: Mapping[str, np.ndarray], plan: _Plan, c: str, n: int) -> 
     return np.where(ids[pos] == case, values[pos], np.nan)
 
 
-def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_SIGMA2_MIN_GROUND) -> dict[str, Any]:
+def _evaluate(
+    chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_SIGMA2_MIN_GROUND
+) -> dict[str, Any]:
     """Two passes over ``chunks()`` when ``plan.by`` (bin edges first), else one."""
     schemes = plan.schemes
     # Pass 1 (conditional biases only): values of the 'by' columns on the rows used.
@@ -770,8 +901,14 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
             g.add(rows.key, vals, assign_bins(_by_values(chunk, plan, c, rows.case.size), edges[c]))
         if psf_sums is not None and rows.psf is not None:
             ok = np.isfinite(rows.psf[0]) & np.isfinite(rows.psf[1])
-            psf_sums.add(rows.case, {"psf1": np.where(ok, rows.psf[0], 0.0), "psf2": np.where(ok, rows.psf[1], 0.0),
-                                     "npsf": ok.astype(float)})
+            psf_sums.add(
+                rows.case,
+                {
+                    "psf1": np.where(ok, rows.psf[0], 0.0),
+                    "psf2": np.where(ok, rows.psf[1], 0.0),
+                    "npsf": ok.astype(float),
+                },
+            )
 
     _check_usable(plan, n_total, n_selected, n_valid)
     bins0, keys, key_sums = overall.result()
@@ -796,8 +933,14 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
 
     per_case = {s: _case_estimates(sums, s, theta) for s in schemes}
     _check_cases(plan, per_case["unweighted"], case_ids)
-    if plan.weighted and not np.any(sums["weighted:w:g1"] > 0) and not np.any(sums["weighted:w:g2"] > 0):
-        raise InputError(f"{plan.source}: the weights {', '.join(WEIGHT_COLUMNS)} are zero on every usable row")
+    if (
+        plan.weighted
+        and not np.any(sums["weighted:w:g1"] > 0)
+        and not np.any(sums["weighted:w:g2"] > 0)
+    ):
+        raise InputError(
+            f"{plan.source}: the weights {', '.join(WEIGHT_COLUMNS)} are zero on every usable row"
+        )
 
     result: dict[str, Any] = {
         "format": JSON_FORMAT,
@@ -816,54 +959,93 @@ def _evaluate(chunks: Any, plan: _Plan, n_bins: int, sigma2_min: float = GREAT3_
     fits = {s: _fit_components(per_case[s]) for s in schemes}
     families: list[_Family] = []
     if groups is not None:
-        families.append(_Family(fits, groups.resampler(np.ones(groups.key_index.size, dtype=bool), case_ids.size,
-                                                       key_sums), theta))
+        families.append(
+            _Family(
+                fits,
+                groups.resampler(
+                    np.ones(groups.key_index.size, dtype=bool), case_ids.size, key_sums
+                ),
+                theta,
+            )
+        )
     cond_out: dict[str, Any] = {}
     for c in plan.by:
         if c not in edges:
             log.warning("%s %s: no usable row has a value", plan.name("by"), c)
             cond_out[c] = {"edges": [], "bins": []}
             continue
-        cond_out[c] = _conditional(conditional[c], edges[c], by_values[c][0], schemes, theta_of,
-                                   families if groups is not None else None, groups)
+        cond_out[c] = _conditional(
+            conditional[c],
+            edges[c],
+            by_values[c][0],
+            schemes,
+            theta_of,
+            families if groups is not None else None,
+            groups,
+        )
     result.update(_bootstrap_errors(families, plan, groups, schemes))
     for s in schemes:
         result[s] = {comp: fits[s][comp].as_dict() for comp in COMPONENTS if comp in fits[s]}
         for comp, f in fits[s].items():
             if not math.isfinite(f.m):
-                log.warning("%s %s: m and c undetermined (%d case(s) with usable rows, or no spread in the "
-                            "true shear)", s, comp, f.n_cases)
+                log.warning(
+                    "%s %s: m and c undetermined (%d case(s) with usable rows, or no spread in the "
+                    "true shear)",
+                    s,
+                    comp,
+                    f.n_cases,
+                )
     result["requirement"] = _requirement(fits, schemes)
     frame = ("plus", "cross") if plan.psf else ("g1", "g2")
     result["q_c"] = {
         "frame": "psf" if plan.psf else "pixel",
         "sigma2_min": float(sigma2_min),
-        **{s: _json_q(q_c(fits[s][frame[0]].m, fits[s][frame[0]].c, fits[s][frame[1]].m, fits[s][frame[1]].c,
-                          sigma2_min=sigma2_min))
-           for s in schemes},
+        **{
+            s: _json_q(
+                q_c(
+                    fits[s][frame[0]].m,
+                    fits[s][frame[0]].c,
+                    fits[s][frame[1]].m,
+                    fits[s][frame[1]].c,
+                    sigma2_min=sigma2_min,
+                )
+            )
+            for s in schemes
+        },
     }
     for cond in cond_out.values():
         for entry in cond["bins"]:
             for scheme in schemes:
-                entry[scheme] = {comp: f.as_dict() for comp, f in entry[scheme].items() if comp in COMPONENTS}
+                entry[scheme] = {
+                    comp: f.as_dict() for comp, f in entry[scheme].items() if comp in COMPONENTS
+                }
     if plan.by:
         result["conditional"] = cond_out
     result["per_case"] = {
         "case": [int(k) for k in case_ids],
         **({"psf_theta": _json_list(theta)} if theta is not None else {}),
-        **{s: {comp: {k: _json_list(v) for k, v in d.items()} for comp, d in per_case[s].items()} for s in schemes},
+        **{
+            s: {comp: {k: _json_list(v) for k, v in d.items()} for comp, d in per_case[s].items()}
+            for s in schemes
+        },
     }
     return result
 
 
 def _metacal_summary(sums: Mapping[str, np.ndarray], plan: _Plan) -> dict[str, Any]:
     """The ``"metacal"`` entry of a result: step, mean and selection responses per scheme."""
-    out: dict[str, Any] = {"step": plan.metacal, "estimate": [f"{c}_noshear" for c in ESTIMATE_COLUMNS],
-                           "response": {}, "selection_response": {}}
+    out: dict[str, Any] = {
+        "step": plan.metacal,
+        "estimate": [f"{c}_noshear" for c in ESTIMATE_COLUMNS],
+        "response": {},
+        "selection_response": {},
+    }
     for s in plan.schemes:
         mean, selection = metacal_response(sums, s)
         out["response"][s] = [_json_list(row) for row in mean]
-        out["selection_response"][s] = None if selection is None else [_json_list(row) for row in selection]
+        out["selection_response"][s] = (
+            None if selection is None else [_json_list(row) for row in selection]
+        )
     return out
 
 
@@ -876,7 +1058,9 @@ class _Groups:
     group: np.ndarray
     n_groups: int
 
-    def resampler(self, entries: np.ndarray, n_keys: int, sums: Mapping[str, np.ndarray]) -> GroupResampler:
+    def resampler(
+        self, entries: np.ndarray, n_keys: int, sums: Mapping[str, np.ndarray]
+    ) -> GroupResampler:
         """A resampler of the selected ``entries`` (bool mask), keys renumbered in order."""
         keys = np.unique(self.key_index[entries])
         index = np.searchsorted(keys, self.key_index[entries])
@@ -888,7 +1072,9 @@ class _Groups:
 class _Family:
     """Fits sharing one set of per-key sums (the overall fit, or one bin of a ``--by``)."""
 
-    fits: dict[str, dict[str, BiasFit]]  # scheme -> component -> fit; errors replaced by the bootstrap
+    fits: dict[
+        str, dict[str, BiasFit]
+    ]  # scheme -> component -> fit; errors replaced by the bootstrap
     resampler: GroupResampler
     theta: np.ndarray | None
 
@@ -938,12 +1124,20 @@ def _bootstrap_errors(
     for fam, values in zip(families, acc):
         for (s, comp), (m, c) in values.items():
             f = fam.fits[s][comp]
-            fam.fits[s][comp] = replace(f, m_err=spread(np.concatenate(m)) if math.isfinite(f.m) else f.m_err,
-                                        c_err=spread(np.concatenate(c)) if math.isfinite(f.c) else f.c_err)
+            fam.fits[s][comp] = replace(
+                f,
+                m_err=spread(np.concatenate(m)) if math.isfinite(f.m) else f.m_err,
+                c_err=spread(np.concatenate(c)) if math.isfinite(f.c) else f.c_err,
+            )
     return {
         "error": ERROR_BOOTSTRAP,
-        "bootstrap": {"resamples": spec.n_resamples, "seed": spec.seed, "group_size": spec.group_size,
-                      "groups": n_groups, "crn": spec.crn},
+        "bootstrap": {
+            "resamples": spec.n_resamples,
+            "seed": spec.seed,
+            "group_size": spec.group_size,
+            "groups": n_groups,
+            "crn": spec.crn,
+        },
     }
 
 
@@ -955,9 +1149,11 @@ def _check_usable(plan: _Plan, n_total: int, n_selected: int, n_valid: int) -> N
     if n_total == 0:
         raise InputError(f"{plan.source}: the catalog has no rows")
     if n_selected == 0:
-        what = " and ".join(f"{plan.name(o)} {e!r}" for o, e in (("select", plan.select),
-                                                                  ("select_cases", plan.select_cases))
-                            if e is not None)
+        what = " and ".join(
+            f"{plan.name(o)} {e!r}"
+            for o, e in (("select", plan.select), ("select_cases", plan.select_cases))
+            if e is not None
+        )
         raise InputError(f"{plan.source}: no row passes {what}")
     if n_valid == 0:
         raise InputError(
@@ -965,7 +1161,9 @@ def _check_usable(plan: _Plan, n_total: int, n_selected: int, n_valid: int) -> N
         )
 
 
-def _check_cases(plan: _Plan, per_case: Mapping[str, Mapping[str, np.ndarray]], case_ids: np.ndarray) -> None:
+def _check_cases(
+    plan: _Plan, per_case: Mapping[str, Mapping[str, np.ndarray]], case_ids: np.ndarray
+) -> None:
     usable = np.isfinite(per_case["g1"]["pre"]) | np.isfinite(per_case["g2"]["pre"])
     if usable.sum() < 2:
         which = f" (case {int(case_ids[usable][0])})" if usable.any() else ""
@@ -982,7 +1180,9 @@ def _check_cases(plan: _Plan, per_case: Mapping[str, Mapping[str, np.ndarray]], 
         )
 
 
-def _requirement(fits: Mapping[str, Mapping[str, BiasFit]], schemes: Sequence[str]) -> dict[str, Any]:
+def _requirement(
+    fits: Mapping[str, Mapping[str, BiasFit]], schemes: Sequence[str]
+) -> dict[str, Any]:
     scheme = schemes[-1]  # weighted when present
     failures = []
     for comp, f in fits[scheme].items():
@@ -993,7 +1193,13 @@ def _requirement(fits: Mapping[str, Mapping[str, BiasFit]], schemes: Sequence[st
             failures.append(f"{comp}: |m| = {abs(f.m):.2e}")
         if abs(f.c) >= STAGE_IV_C:
             failures.append(f"{comp}: |c| = {abs(f.c):.2e}")
-    return {"m": STAGE_IV_M, "c": STAGE_IV_C, "applies_to": scheme, "met": not failures, "failures": failures}
+    return {
+        "m": STAGE_IV_M,
+        "c": STAGE_IV_C,
+        "applies_to": scheme,
+        "met": not failures,
+        "failures": failures,
+    }
 
 
 def _conditional(
@@ -1030,7 +1236,11 @@ def _conditional(
         for scheme in schemes:
             entry[scheme] = fits[scheme]
         if families is not None and groups is not None:
-            families.append(_Family(fits, groups.resampler(sel[groups.key_index], int(sel.sum()), key_sums), theta))
+            families.append(
+                _Family(
+                    fits, groups.resampler(sel[groups.key_index], int(sel.sum()), key_sums), theta
+                )
+            )
         out_bins.append(entry)
     return {"edges": [float(e) for e in edges], "bins": out_bins}
 

@@ -17,14 +17,32 @@ JSON_FORMAT = "megalut.evaluation"
 JSON_FORMAT_VERSION = "1.2"  # 1.1: "provenance"; 1.2: "error", "bootstrap"
 
 EVALUATE_OPTIONS: tuple[Option, ...] = (
-    Option("by", "str_list", [], "Conditional biases in equal-population bins of these columns (true or measured) "
-           "or quantities, e.g. tru_rad,tru_sersicn,snr; 'mean(snr)' bins whole cases by their average S/N (paper "
-           "Fig. 12), 'sqrt(tru_e1**2+tru_e2**2)' bins rows by |e|.", metavar="COL,COL", empty_ok=True),
+    Option(
+        "by",
+        "str_list",
+        [],
+        "Conditional biases in equal-population bins of these columns (true or measured) "
+        "or quantities, e.g. tru_rad,tru_sersicn,snr; 'mean(snr)' bins whole cases by their average S/N (paper "
+        "Fig. 12), 'sqrt(tru_e1**2+tru_e2**2)' bins rows by |e|.",
+        metavar="COL,COL",
+        empty_ok=True,
+    ),
     Option("bins", "int", 5, "Number of bins for --by.", minimum=1, maximum=MAX_BINS),
-    Option("select", "str", None, "Keep only the rows (realizations) where EXPR holds, e.g. \"snr > 10 & "
-           "adamom_sigma > 1.5\" (studies selection biases).", metavar="EXPR"),
-    Option("select_cases", "str", None, "Keep only the cases where EXPR of per-case aggregates holds, e.g. "
-           "\"mean(snr) > 10\".", metavar="EXPR"),
+    Option(
+        "select",
+        "str",
+        None,
+        'Keep only the rows (realizations) where EXPR holds, e.g. "snr > 10 & '
+        'adamom_sigma > 1.5" (studies selection biases).',
+        metavar="EXPR",
+    ),
+    Option(
+        "select_cases",
+        "str",
+        None,
+        'Keep only the cases where EXPR of per-case aggregates holds, e.g. "mean(snr) > 10".',
+        metavar="EXPR",
+    ),
 )
 EVALUATE = {o.name: o for o in EVALUATE_OPTIONS}
 
@@ -35,16 +53,38 @@ N_BOOTSTRAP = 200
 
 #: The options of ``megalut evaluate`` alone (not pipeline keys), files aside.
 EVALUATE_CLI_OPTIONS: tuple[Option, ...] = (
-    Option("fail_above", "bool", False, "Exit with status EXIT when the Stage IV requirement (|m| < 2e-3, "
-           "|c| < 2e-4 for every component) does not hold, on the weighted results when the catalog has weights, "
-           "else on the unweighted ones."),
-    Option("sigma2_min", "float", GREAT3_SIGMA2_MIN_GROUND, "Damping term of the GREAT3 Q_c metric: 4 for ground "
-           "branches, 1 for space.", minimum=0),
-    Option("errors", "choice", ERROR_CHOICES[0], "Where the errors of m and c come from: 'fit' (residual scatter "
-           "over cases), 'bootstrap' (resample galaxies: realization groups, all their cases together; needs the "
-           "'rea' column), 'auto': bootstrap for common-random-number sets (header CRN = T), else fit.",
-           choices=ERROR_CHOICES),
-    Option("bootstrap", "int", N_BOOTSTRAP, "Number of bootstrap resamples.", minimum=10, maximum=100000),
+    Option(
+        "fail_above",
+        "bool",
+        False,
+        "Exit with status EXIT when the Stage IV requirement (|m| < 2e-3, "
+        "|c| < 2e-4 for every component) does not hold, on the weighted results when the catalog has weights, "
+        "else on the unweighted ones.",
+    ),
+    Option(
+        "sigma2_min",
+        "float",
+        GREAT3_SIGMA2_MIN_GROUND,
+        "Damping term of the GREAT3 Q_c metric: 4 for ground branches, 1 for space.",
+        minimum=0,
+    ),
+    Option(
+        "errors",
+        "choice",
+        ERROR_CHOICES[0],
+        "Where the errors of m and c come from: 'fit' (residual scatter "
+        "over cases), 'bootstrap' (resample galaxies: realization groups, all their cases together; needs the "
+        "'rea' column), 'auto': bootstrap for common-random-number sets (header CRN = T), else fit.",
+        choices=ERROR_CHOICES,
+    ),
+    Option(
+        "bootstrap",
+        "int",
+        N_BOOTSTRAP,
+        "Number of bootstrap resamples.",
+        minimum=10,
+        maximum=100000,
+    ),
 )
 EVALUATE_CLI = {o.name: o for o in EVALUATE_CLI_OPTIONS}
 
@@ -53,11 +93,27 @@ MIN_CHUNK_ROWS = 1000
 
 #: The options of ``megalut predict`` with a value (files aside).
 PREDICT_OPTIONS: tuple[Option, ...] = (
-    Option("chunk_rows", "int", 250_000, "Rows per chunk (memory bound and unit of work).", minimum=MIN_CHUNK_ROWS),
-    Option("strict", "bool", False, "Refuse (exit 1, nothing written) a catalog that lies outside the model's "
-           "training domain (skymad, snr, sizes, flux, stamp size, recorded setup) instead of warning; "
-           "docs/model-format.md."),
+    Option(
+        "chunk_rows",
+        "int",
+        250_000,
+        "Rows per chunk (memory bound and unit of work).",
+        minimum=MIN_CHUNK_ROWS,
+    ),
+    Option(
+        "strict",
+        "bool",
+        False,
+        "Refuse (exit 1, nothing written) a catalog that lies outside the model's "
+        "training domain (skymad, snr, sizes, flux, stamp size, recorded setup) instead of warning; "
+        "docs/model-format.md.",
+    ),
 )
 PREDICT = {o.name: o for o in PREDICT_OPTIONS}
 #: Every option of ``megalut predict`` with a value, for the docs table.
-ALL_PREDICT_OPTIONS: tuple[Option, ...] = (*PREDICT_OPTIONS, NPROC_OPTION, SCHEDULER_OPTION, OVERWRITE_OPTION)
+ALL_PREDICT_OPTIONS: tuple[Option, ...] = (
+    *PREDICT_OPTIONS,
+    NPROC_OPTION,
+    SCHEDULER_OPTION,
+    OVERWRITE_OPTION,
+)

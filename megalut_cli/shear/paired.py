@@ -38,8 +38,13 @@ N_BOOTSTRAP = 1000
 
 
 def group_sums(
-    cell: np.ndarray, n_cells: int, g_true: np.ndarray, g_est: np.ndarray, weight: np.ndarray,
-    response: np.ndarray | None = None, sheared_weights: tuple[np.ndarray, np.ndarray, float] | None = None,
+    cell: np.ndarray,
+    n_cells: int,
+    g_true: np.ndarray,
+    g_est: np.ndarray,
+    weight: np.ndarray,
+    response: np.ndarray | None = None,
+    sheared_weights: tuple[np.ndarray, np.ndarray, float] | None = None,
 ) -> np.ndarray:
     """``(3, n_cells)`` sums of ``w``, ``w g_est``, ``w g_true`` per cell (invalid rows: w = 0);
     cell ``case * n_galaxies + galaxy`` for :func:`fit_resamples`. With a metacal
@@ -63,7 +68,9 @@ def group_sums(
     return np.stack([np.bincount(cell, weights=r, minlength=n_cells) for r in rows])
 
 
-def fit_resamples(sums: np.ndarray, counts: np.ndarray, n_cases: int, n_gal: int) -> tuple[np.ndarray, np.ndarray]:
+def fit_resamples(
+    sums: np.ndarray, counts: np.ndarray, n_cases: int, n_gal: int
+) -> tuple[np.ndarray, np.ndarray]:
     """m and c of the per-case means of :func:`group_sums`, one per row of ``counts`` (galaxy
     multiplicities); NaN with fewer than 3 cases. With a response row, the means are divided
     by the mean response of the resample (metacal), plus the weights' selection response
@@ -116,22 +123,49 @@ def paired_bias(
     ones = np.ones(g_true.size)
     wa = ones if weight_a is None else np.asarray(weight_a, dtype=float)
     wb = ones if weight_b is None else np.asarray(weight_b, dtype=float)
-    sums_a = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_a, dtype=float), wa,
-                        None if response_a is None else np.asarray(response_a, dtype=float), sheared_weights_a)
-    sums_b = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_b, dtype=float), wb,
-                        None if response_b is None else np.asarray(response_b, dtype=float), sheared_weights_b)
+    sums_a = group_sums(
+        cell,
+        n_cases * n_gal,
+        g_true,
+        np.asarray(est_a, dtype=float),
+        wa,
+        None if response_a is None else np.asarray(response_a, dtype=float),
+        sheared_weights_a,
+    )
+    sums_b = group_sums(
+        cell,
+        n_cases * n_gal,
+        g_true,
+        np.asarray(est_b, dtype=float),
+        wb,
+        None if response_b is None else np.asarray(response_b, dtype=float),
+        sheared_weights_b,
+    )
     rng = rng_for(seed, STREAM_BOOTSTRAP)
-    counts = np.vstack([np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)])
+    counts = np.vstack(
+        [np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)]
+    )
     m_a, c_a = fit_resamples(sums_a, counts, n_cases, n_gal)
     m_b, c_b = fit_resamples(sums_b, counts, n_cases, n_gal)
     out: dict[str, Any] = {}
-    for name, v in (("m_a", m_a), ("c_a", c_a), ("m_b", m_b), ("c_b", c_b), ("dm", m_a - m_b), ("dc", c_a - c_b)):
+    for name, v in (
+        ("m_a", m_a),
+        ("c_a", c_a),
+        ("m_b", m_b),
+        ("c_b", c_b),
+        ("dm", m_a - m_b),
+        ("dc", c_a - c_b),
+    ):
         boot = v[1:][np.isfinite(v[1:])]
         out[name] = _num(v[0])
         out[f"{name}_err"] = _num(np.std(boot, ddof=1)) if boot.size > 1 else None
-    out.update(n_galaxies=int(n_gal), n_cases=int(n_cases), n_boot=int(n_boot),
-               n_rows_a=int(np.count_nonzero(np.isfinite(est_a) & (wa > 0))),
-               n_rows_b=int(np.count_nonzero(np.isfinite(est_b) & (wb > 0))))
+    out.update(
+        n_galaxies=int(n_gal),
+        n_cases=int(n_cases),
+        n_boot=int(n_boot),
+        n_rows_a=int(np.count_nonzero(np.isfinite(est_a) & (wa > 0))),
+        n_rows_b=int(np.count_nonzero(np.isfinite(est_b) & (wb > 0))),
+    )
     return out
 
 
@@ -140,8 +174,12 @@ def _num(x: float) -> float | None:
     return x if np.isfinite(x) else None
 
 
-def check_pairing(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray], names: tuple[str, str],
-                  galaxy_column: str) -> None:
+def check_pairing(
+    a: Mapping[str, np.ndarray],
+    b: Mapping[str, np.ndarray],
+    names: tuple[str, str],
+    galaxy_column: str,
+) -> None:
     """Raise one :class:`InputError` line unless ``a`` and ``b`` are row-by-row paired."""
     na, nb = len(a["case"]), len(b["case"])
     if na != nb:
@@ -152,11 +190,15 @@ def check_pairing(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray], name
         diff = np.flatnonzero(~same)
         if diff.size:
             r = int(diff[0])
-            raise InputError(f"{names[0]} and {names[1]} are not paired: column {col} differs at row {r} "
-                             f"({x[r]!r} against {y[r]!r}; simulate both from one config and seed)")
+            raise InputError(
+                f"{names[0]} and {names[1]} are not paired: column {col} differs at row {r} "
+                f"({x[r]!r} against {y[r]!r}; simulate both from one config and seed)"
+            )
 
 
-def group_bins(values: np.ndarray, galaxy: np.ndarray, case: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
+def group_bins(
+    values: np.ndarray, galaxy: np.ndarray, case: np.ndarray, n_bins: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Equal-population bins of (case, galaxy) groups by the group mean of ``values``
     (pairs and rotations stay together). Returns ``(bin index per row, bin edges)``;
     rows of groups with no finite value get -1."""
@@ -198,9 +240,12 @@ def paired_evaluation(
     gal, case = np.asarray(a[galaxy_column]), np.asarray(a["case"])
     metacal = all(c in t for c in METACAL_COLUMNS for t in (a, b))
     sfx = "_noshear" if metacal else ""
-    weight_cols = [f"pre_g{i}_w{sfx}" for i in (1, 2)] + ([f"pre_g{i}_w_{i}{s}" for i in (1, 2) for s in "pm"]
-                                                         if metacal else [])
-    schemes = ["unweighted"] + (["weighted"] if all(c in t for t in (a, b) for c in weight_cols) else [])
+    weight_cols = [f"pre_g{i}_w{sfx}" for i in (1, 2)] + (
+        [f"pre_g{i}_w_{i}{s}" for i in (1, 2) for s in "pm"] if metacal else []
+    )
+    schemes = ["unweighted"] + (
+        ["weighted"] if all(c in t for t in (a, b) for c in weight_cols) else []
+    )
     flag_col = "flags_noshear" if metacal else "flags"
 
     def valid(t: Mapping[str, np.ndarray], comp: str) -> np.ndarray:
@@ -210,14 +255,17 @@ def paired_evaluation(
     def response(t: Mapping[str, np.ndarray], comp: str, rows: np.ndarray) -> np.ndarray | None:
         return np.asarray(t[f"mcal_r{comp[1]}{comp[1]}"], dtype=float)[rows] if metacal else None
 
-    def sheared(t: Mapping[str, np.ndarray], comp: str, rows: np.ndarray,
-                scheme: str) -> tuple[np.ndarray, np.ndarray, float] | None:
+    def sheared(
+        t: Mapping[str, np.ndarray], comp: str, rows: np.ndarray, scheme: str
+    ) -> tuple[np.ndarray, np.ndarray, float] | None:
         """The weights of the versions sheared along ``comp`` (the weights' selection response)."""
         if not metacal or scheme != "weighted":
             return None
         ok = valid(t, comp)
-        w_p, w_m = (np.where(ok, np.asarray(t[f"pre_{comp}_w_{comp[1]}{sign}"], dtype=float), 0.0)[rows]
-                    for sign in "pm")
+        w_p, w_m = (
+            np.where(ok, np.asarray(t[f"pre_{comp}_w_{comp[1]}{sign}"], dtype=float), 0.0)[rows]
+            for sign in "pm"
+        )
         return w_p, w_m, metacal_step
 
     def evaluate(rows: np.ndarray) -> dict[str, Any]:
@@ -233,17 +281,31 @@ def paired_evaluation(
                     wa = wa * np.nan_to_num(np.asarray(a[f"pre_{comp}_w{sfx}"], dtype=float))
                     wb = wb * np.nan_to_num(np.asarray(b[f"pre_{comp}_w{sfx}"], dtype=float))
                 res[scheme][comp] = paired_bias(
-                    gal[rows], case[rows], np.asarray(a[f"tru_{comp}"], dtype=float)[rows],
+                    gal[rows],
+                    case[rows],
+                    np.asarray(a[f"tru_{comp}"], dtype=float)[rows],
                     np.asarray(a[f"pre_{comp}{sfx}"], dtype=float)[rows],
                     np.asarray(b[f"pre_{comp}{sfx}"], dtype=float)[rows],
-                    wa[rows], wb[rows], n_boot=n_boot, seed=seed,
-                    response_a=response(a, comp, rows), response_b=response(b, comp, rows),
-                    sheared_weights_a=sheared(a, comp, rows, scheme), sheared_weights_b=sheared(b, comp, rows, scheme))
+                    wa[rows],
+                    wb[rows],
+                    n_boot=n_boot,
+                    seed=seed,
+                    response_a=response(a, comp, rows),
+                    response_b=response(b, comp, rows),
+                    sheared_weights_a=sheared(a, comp, rows, scheme),
+                    sheared_weights_b=sheared(b, comp, rows, scheme),
+                )
         return res
 
-    result: dict[str, Any] = {"names": list(names), "galaxy_column": galaxy_column, "n_boot": int(n_boot),
-                              "metacal": metacal,
-                              "seed": int(seed), "overall": evaluate(np.ones(case.size, dtype=bool)), "by": {}}
+    result: dict[str, Any] = {
+        "names": list(names),
+        "galaxy_column": galaxy_column,
+        "n_boot": int(n_boot),
+        "metacal": metacal,
+        "seed": int(seed),
+        "overall": evaluate(np.ones(case.size, dtype=bool)),
+        "by": {},
+    }
     for label, values in (by or {}).items():
         idx, edges = group_bins(values, gal, case, n_bins)
         result["by"][label] = {
@@ -262,18 +324,30 @@ def _pm(v: float | None, e: float | None) -> str:
 def format_paired(result: Mapping[str, Any]) -> str:
     """Plain-text table of :func:`paired_evaluation`'s result."""
     a, b = result["names"]
-    lines = ["metacal: pre_g*_noshear of each set calibrated by its mean response (mcal_r11, mcal_r22)", ""] \
-        if result.get("metacal") else []
+    lines = (
+        [
+            "metacal: pre_g*_noshear of each set calibrated by its mean response (mcal_r11, mcal_r22)",
+            "",
+        ]
+        if result.get("metacal")
+        else []
+    )
 
     def block(res: Mapping[str, Any], title: str) -> None:
         for scheme, comps in res.items():
             first = next(iter(comps.values()))
-            lines.append(f"{title}{scheme} ({first['n_galaxies']} galaxies, {first['n_cases']} cases, "
-                         f"paired bootstrap of {first['n_boot']})")
-            lines.append(f"{'':6}{'m_' + a:>22}{'m_' + b:>24}{'m_' + a + ' - m_' + b:>24}{'c_' + a + ' - c_' + b:>24}")
+            lines.append(
+                f"{title}{scheme} ({first['n_galaxies']} galaxies, {first['n_cases']} cases, "
+                f"paired bootstrap of {first['n_boot']})"
+            )
+            lines.append(
+                f"{'':6}{'m_' + a:>22}{'m_' + b:>24}{'m_' + a + ' - m_' + b:>24}{'c_' + a + ' - c_' + b:>24}"
+            )
             for comp, r in comps.items():
-                lines.append(f"  {comp:4}{_pm(r['m_a'], r['m_a_err']):>22}{_pm(r['m_b'], r['m_b_err']):>24}"
-                             f"{_pm(r['dm'], r['dm_err']):>24}{_pm(r['dc'], r['dc_err']):>24}")
+                lines.append(
+                    f"  {comp:4}{_pm(r['m_a'], r['m_a_err']):>22}{_pm(r['m_b'], r['m_b_err']):>24}"
+                    f"{_pm(r['dm'], r['dm_err']):>24}{_pm(r['dc'], r['dc_err']):>24}"
+                )
             lines.append("")
 
     block(result["overall"], "")
@@ -287,8 +361,14 @@ def format_paired(result: Mapping[str, Any]) -> str:
 
 
 def evaluate_paired_catalogs(
-    path_a: str, path_b: str, by: Sequence[str] | None = None, n_bins: int = 3, n_boot: int = N_BOOTSTRAP,
-    seed: int = 0, galaxy_column: str = "tru_real_index", names: Names | None = None,
+    path_a: str,
+    path_b: str,
+    by: Sequence[str] | None = None,
+    n_bins: int = 3,
+    n_boot: int = N_BOOTSTRAP,
+    seed: int = 0,
+    galaxy_column: str = "tru_real_index",
+    names: Names | None = None,
 ) -> dict[str, Any]:
     """:func:`paired_evaluation` of two prediction catalogs (e.g. ``real_shears.fits`` and
     ``twin_shears.fits``). ``by`` holds columns or numeric row expressions (e.g.
@@ -301,19 +381,38 @@ def evaluate_paired_catalogs(
     for path, colnames in ((path_a, names_a), (path_b, names_b)):
         missing = [c for c in need if c not in colnames]
         if missing:
-            raise InputError(f"{path}: missing column(s) {', '.join(missing)} (a prediction catalog of a "
-                             "real-galaxy or twin set)")
+            raise InputError(
+                f"{path}: missing column(s) {', '.join(missing)} (a prediction catalog of a "
+                "real-galaxy or twin set)"
+            )
     name = namer(names)  # the caller's names of the arguments
     kinds = check_by(list(by or []), common, name("by"), where=f"both {path_a} and {path_b}")
     if "case" in kinds.values():
         bad = next(c for c, k in kinds.items() if k == "case")
-        raise ConfigError(f"{name('by')}: {bad!r}: per-case aggregates do not apply with {name('twin')} (groups are binned by "
-                          "their mean already)")
-    used = {c for c in kinds if kinds[c] == "column"} | {u for c in kinds if kinds[c] == "row"
-                                                         for u in columns_used(c)}
-    extra = [c for c in ("flags", "pre_g1_w", "pre_g2_w", *METACAL_COLUMNS, "flags_noshear", "pre_g1_w_noshear",
-                         "pre_g2_w_noshear", "pre_g1_w_1p", "pre_g1_w_1m", "pre_g2_w_2p", "pre_g2_w_2m")
-             if c in common]
+        raise ConfigError(
+            f"{name('by')}: {bad!r}: per-case aggregates do not apply with {name('twin')} (groups are binned by "
+            "their mean already)"
+        )
+    used = {c for c in kinds if kinds[c] == "column"} | {
+        u for c in kinds if kinds[c] == "row" for u in columns_used(c)
+    }
+    extra = [
+        c
+        for c in (
+            "flags",
+            "pre_g1_w",
+            "pre_g2_w",
+            *METACAL_COLUMNS,
+            "flags_noshear",
+            "pre_g1_w_noshear",
+            "pre_g2_w_noshear",
+            "pre_g1_w_1p",
+            "pre_g1_w_1m",
+            "pre_g2_w_2p",
+            "pre_g2_w_2m",
+        )
+        if c in common
+    ]
     cols = list(dict.fromkeys(need + extra + sorted(used)))
     ta, tb = read_catalog(path_a, columns=cols), read_catalog(path_b, columns=cols)
     a = {c: np.asarray(ta[c]) for c in cols}
@@ -326,5 +425,14 @@ def evaluate_paired_catalogs(
         vb = evaluate_row_values(c, b, len(tb)) if row_expression else np.asarray(b[c], dtype=float)
         values[c] = 0.5 * (va + vb)
     step = header_step(header_a)
-    return paired_evaluation(a, b, galaxy_column, values, n_bins, n_boot, seed, names=("real", "twin"),
-                             metacal_step=DEFAULT_STEP if step is None else step)
+    return paired_evaluation(
+        a,
+        b,
+        galaxy_column,
+        values,
+        n_bins,
+        n_boot,
+        seed,
+        names=("real", "twin"),
+        metacal_step=DEFAULT_STEP if step is None else step,
+    )

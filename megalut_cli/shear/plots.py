@@ -54,8 +54,10 @@ def check_plot_suffix(path: str | os.PathLike, argument: str = "plot_path") -> N
     """A usage error (:class:`ArgumentValueError`, exit 2) unless ``path`` ends in a
     supported extension; its message names the supported ones."""
     if Path(path).suffix.lower() not in _FORMATS:
-        raise ArgumentValueError(argument, f": {path}: unsupported figure type (use a name ending in "
-                                           f"{', '.join(PLOT_SUFFIXES)})")
+        raise ArgumentValueError(
+            argument,
+            f": {path}: unsupported figure type (use a name ending in {', '.join(PLOT_SUFFIXES)})",
+        )
 
 
 def check_plot_output(path: str | os.PathLike) -> None:
@@ -90,7 +92,9 @@ def _warn_frame(ax: Any) -> None:
         spine.set_linewidth(2.0)
 
 
-def _residual_panel(ax: Any, per_case: Mapping[str, Any], fit: Mapping[str, Any], comp: str, scheme: str) -> None:
+def _residual_panel(
+    ax: Any, per_case: Mapping[str, Any], fit: Mapping[str, Any], comp: str, scheme: str
+) -> None:
     tru, pre = _arr(per_case["tru"]), _arr(per_case["pre"])
     ok = np.isfinite(tru) & np.isfinite(pre)
     tru, res = tru[ok], pre[ok] - tru[ok]
@@ -107,8 +111,10 @@ def _residual_panel(ax: Any, per_case: Mapping[str, Any], fit: Mapping[str, Any]
     lab = _LABELS[comp]
     ax.set_xlabel(f"true shear ${lab}$ (dimensionless)", fontsize=8)
     ax.set_ylabel(rf"$\langle\hat{{{lab}}}\rangle - {lab}$ per case", fontsize=8)
-    title = (f"{scheme} ${lab}$ ({fit['n_cases']} cases)\n"
-             f"m = {_fmt(fit['m'], fit['m_err'])}\nc = {_fmt(fit['c'], fit['c_err'])}")
+    title = (
+        f"{scheme} ${lab}$ ({fit['n_cases']} cases)\n"
+        f"m = {_fmt(fit['m'], fit['m_err'])}\nc = {_fmt(fit['c'], fit['c_err'])}"
+    )
     warn = m_too_large(fit["m"], fit["m_err"])
     if warn:
         title += f"\n|m| > {WARN_M:g}: model untrained or mismatched?"
@@ -131,10 +137,21 @@ def _conditional_panel(
         for k, comp in enumerate(comps):
             y = _arr(b[scheme][comp][key] for b in bins)
             e = _arr(b[scheme][comp][f"{key}_err"] for b in bins)
-            x = center + (k - (len(comps) - 1) / 2) * 0.06 * (hi - lo)  # side by side within the bin
-            ax.errorbar(x, y, yerr=np.where(np.isfinite(e), e, 0.0),
-                        xerr=[np.maximum(x - lo, 0), np.maximum(hi - x, 0)], fmt="o", ms=3, lw=0.8,
-                        elinewidth=0.8, color=_COLORS[comp], label=f"${_LABELS[comp]}$")
+            x = center + (k - (len(comps) - 1) / 2) * 0.06 * (
+                hi - lo
+            )  # side by side within the bin
+            ax.errorbar(
+                x,
+                y,
+                yerr=np.where(np.isfinite(e), e, 0.0),
+                xerr=[np.maximum(x - lo, 0), np.maximum(hi - x, 0)],
+                fmt="o",
+                ms=3,
+                lw=0.8,
+                elinewidth=0.8,
+                color=_COLORS[comp],
+                label=f"${_LABELS[comp]}$",
+            )
     ax.set_xlabel(axis_label(col), fontsize=8)
     ax.set_ylabel("m (multiplicative bias)" if key == "m" else "c (additive bias)", fontsize=8)
     ax.set_title(f"{scheme} {key} by {col}", fontsize=8)
@@ -142,7 +159,9 @@ def _conditional_panel(
     ax.ticklabel_format(axis="y", style="sci", scilimits=(-2, 2))
 
 
-def plot_evaluation(result: Mapping[str, Any], path: str | os.PathLike, overwrite: bool = False) -> Path:
+def plot_evaluation(
+    result: Mapping[str, Any], path: str | os.PathLike, overwrite: bool = False
+) -> Path:
     """Draw the evaluation figure of ``result`` (from :mod:`.evaluate`) into ``path`` (png/pdf/svg)."""
     check_plot_output(path)
     fig = evaluation_figure(result)
@@ -167,8 +186,13 @@ def evaluation_figure(result: Mapping[str, Any]) -> Any:
     fig = Figure(figsize=(3.4 * ncols, 3.3 * nrows + 0.6), layout="constrained")
     axes = fig.subplots(nrows, ncols, squeeze=False)
     for i, (scheme, comp) in enumerate(panels):
-        _residual_panel(axes[i // ncols][i % ncols], result["per_case"][scheme][comp], result[scheme][comp],
-                        comp, scheme)
+        _residual_panel(
+            axes[i // ncols][i % ncols],
+            result["per_case"][scheme][comp],
+            result[scheme][comp],
+            comp,
+            scheme,
+        )
     for i in range(len(panels), res_rows * ncols):
         axes[i // ncols][i % ncols].set_visible(False)
     for r, (col, cond) in enumerate(conditional.items(), start=res_rows):
@@ -180,17 +204,23 @@ def evaluation_figure(result: Mapping[str, Any]) -> Any:
         for j in range(k, ncols):
             axes[r][j].set_visible(False)
     req = result["requirement"]
-    title = (f"{Path(str(result.get('input', ''))).name}: Stage IV |m| < {STAGE_IV_M:.0e}, "
-             f"|c| < {STAGE_IV_C:.0e} ({req['applies_to']}: {'met' if req['met'] else 'NOT met'})")
+    title = (
+        f"{Path(str(result.get('input', ''))).name}: Stage IV |m| < {STAGE_IV_M:.0e}, "
+        f"|c| < {STAGE_IV_C:.0e} ({req['applies_to']}: {'met' if req['met'] else 'NOT met'})"
+    )
     warnings = large_m(result)
     if warnings:
-        title += (f"\nWARNING: |m| > {WARN_M:g} in {len(warnings)} fit(s) ({warnings[0]}"
-                  f"{', ...' if len(warnings) > 1 else ''}): an untrained or mismatched model?")
+        title += (
+            f"\nWARNING: |m| > {WARN_M:g} in {len(warnings)} fit(s) ({warnings[0]}"
+            f"{', ...' if len(warnings) > 1 else ''}): an untrained or mismatched model?"
+        )
     fig.suptitle(title, fontsize=10, color=_WARN_COLOR if warnings else "black")
     handles, labels = axes[0][0].get_legend_handles_labels()
     for r in range(res_rows, nrows):  # the components' markers, from a conditional panel
         h, la = axes[r][0].get_legend_handles_labels()
         handles, labels = handles + h, labels + la
         break
-    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), fontsize=8, frameon=False)
+    fig.legend(
+        handles, labels, loc="outside lower center", ncol=len(labels), fontsize=8, frameon=False
+    )
     return fig

@@ -53,7 +53,10 @@ FORMAT_VERSION = "1.0"
 
 
 def resolve_columns(
-    features: Sequence[str], available: Sequence[str], column_map: Mapping[str, str] | None, where: str,
+    features: Sequence[str],
+    available: Sequence[str],
+    column_map: Mapping[str, str] | None,
+    where: str,
     names: Names | None = None,
 ) -> dict[str, str]:
     """Catalog column of every model feature, checking everything at once.
@@ -71,7 +74,11 @@ def resolve_columns(
         )
     have = set(available)
     resolved = {f: column_map.get(f, f) for f in features}
-    missing = [f if resolved[f] == f else f"{f} ({key} {f}={resolved[f]})" for f in features if resolved[f] not in have]
+    missing = [
+        f if resolved[f] == f else f"{f} ({key} {f}={resolved[f]})"
+        for f in features
+        if resolved[f] not in have
+    ]
     if missing:
         raise InputError(
             f"{where}: missing column(s) for model feature(s) {', '.join(missing)}; "
@@ -97,7 +104,9 @@ def predict_arrays(
     if flags_in is None:
         flags_out = np.zeros(n, dtype=np.int32)
     else:  # at least 16 bits, so that BAD_FEATURES (128) fits
-        flags_out = np.asarray(flags_in).astype(np.promote_types(np.asarray(flags_in).dtype, np.int16))
+        flags_out = np.asarray(flags_in).astype(
+            np.promote_types(np.asarray(flags_in).dtype, np.int16)
+        )
     if flags_in is not None:
         good &= flags_out == 0
     flags_out[~good] |= _flags.BAD_FEATURES
@@ -118,7 +127,9 @@ def predict_arrays(
     return out
 
 
-def metacal_response_columns(preds: Mapping[str, Mapping[str, np.ndarray]], step: float) -> dict[str, np.ndarray]:
+def metacal_response_columns(
+    preds: Mapping[str, Mapping[str, np.ndarray]], step: float
+) -> dict[str, np.ndarray]:
     """``mcal_r<i><j> = (pre_g<i>_<j>p - pre_g<i>_<j>m) / (2 step)`` from the predictions of
     each metacal type (``preds[type]["pre_g1"]``...), for the components present."""
     out = {}
@@ -139,7 +150,9 @@ def predict_metacal(
     """Predictions for the five metacal versions: ``pre_*_<type>`` for every prediction column
     of :func:`predict_arrays`, ``flags_<type>`` (with ``BAD_FEATURES`` where the type's
     features failed) and the per-row responses ``mcal_r11, mcal_r12, mcal_r21, mcal_r22``."""
-    preds = {kind: predict_arrays(model, x_by_type[kind], flags_by_type.get(kind)) for kind in TYPES}
+    preds = {
+        kind: predict_arrays(model, x_by_type[kind], flags_by_type.get(kind)) for kind in TYPES
+    }
     out: dict[str, np.ndarray] = {}
     for kind, pred in preds.items():
         for col, values in pred.items():
@@ -192,8 +205,9 @@ def prediction_columns(model: ShearModel, metacal: bool) -> list[str]:
     return cols
 
 
-def prediction_cards(cards: Mapping[str, Any], model: ShearModel, model_path: str | os.PathLike,
-                     step: float | None) -> dict[str, Any]:
+def prediction_cards(
+    cards: Mapping[str, Any], model: ShearModel, model_path: str | os.PathLike, step: float | None
+) -> dict[str, Any]:
     """The header cards of a predictions catalog: the features catalog's ``cards``, the
     model file's sha256 and name, and the metacal step of the responses (``step``)."""
     out = dict(cards)
@@ -227,7 +241,9 @@ def _predict_unit(unit: tuple[Any, ...]) -> dict[str, np.ndarray]:
 
 
 def predict_rows(
-    model: Any, x: np.ndarray, flg: np.ndarray | None,
+    model: Any,
+    x: np.ndarray,
+    flg: np.ndarray | None,
     metacal: MetacalInputs | None,
 ) -> dict[str, np.ndarray]:
     """The prediction columns of rows with features ``x`` (rows x ``model.features``) and
@@ -257,12 +273,15 @@ def _matrix(table: Any, cols: Sequence[str]) -> np.ndarray:
     return np.column_stack([np.asarray(table[c], dtype=np.float64) for c in cols])
 
 
-def _metacal_inputs(table: Any, colnames: Sequence[str], feature_cols: Sequence[str],
-                    step: float) -> MetacalInputs:
+def _metacal_inputs(
+    table: Any, colnames: Sequence[str], feature_cols: Sequence[str], step: float
+) -> MetacalInputs:
     """The ``metacal`` argument of :func:`predict_rows` for the rows of a metacal table."""
     xs = {kind: _matrix(table, [f"{c}_{kind}" for c in feature_cols]) for kind in TYPES}
-    flgs = {kind: np.asarray(table[f"flags_{kind}"]) if f"flags_{kind}" in colnames else None
-            for kind in TYPES}
+    flgs = {
+        kind: np.asarray(table[f"flags_{kind}"]) if f"flags_{kind}" in colnames else None
+        for kind in TYPES
+    }
     return step, xs, flgs
 
 
@@ -281,7 +300,9 @@ def _check_mode(model: ShearModel, step: float | None, model_path: Any, features
 
 
 #: Where the messages send users for a metacal model.
-METACAL_MODEL_HINT = "megalut info MODEL says its mode; the shipped one is megalut_cli/data/fiducial-metacal.h5"
+METACAL_MODEL_HINT = (
+    "megalut info MODEL says its mode; the shipped one is megalut_cli/data/fiducial-metacal.h5"
+)
 
 
 def _metacal_step(header: Mapping[str, Any], path: str | os.PathLike) -> float | None:
@@ -290,8 +311,10 @@ def _metacal_step(header: Mapping[str, Any], path: str | os.PathLike) -> float |
         return None
     step = header_step(header)
     if step is None or not 0 < step < 1:
-        raise InputError(f"{path}: bad {STEP_CARD} card {header[STEP_CARD]!r}: expected the metacal shear step, "
-                         "e.g. 0.01")
+        raise InputError(
+            f"{path}: bad {STEP_CARD} card {header[STEP_CARD]!r}: expected the metacal shear step, "
+            "e.g. 0.01"
+        )
     return step
 
 
@@ -320,12 +343,17 @@ def _fits_field(name: str, col: np.ndarray) -> tuple:
 
 def _output_dtype(table: Any, new_cols: Sequence[str]) -> np.dtype:
     """Input columns (as FITS stores them), prediction columns as float64, then ``flags``."""
-    fields = [(c, np.float64) if c in new_cols else _fits_field(c, np.asarray(table[c])) for c in table.colnames]
+    fields = [
+        (c, np.float64) if c in new_cols else _fits_field(c, np.asarray(table[c]))
+        for c in table.colnames
+    ]
     fields += [(c, np.float64) for c in new_cols if c not in table.colnames]
     if "flags" not in table.colnames:
         fields.append(("flags", np.int32))
     else:  # as predict_arrays: at least 16 bits for BAD_FEATURES
-        fields = [(c, np.promote_types(f[0], np.int16)) if c == "flags" else (c, *f) for c, *f in fields]
+        fields = [
+            (c, np.promote_types(f[0], np.int16)) if c == "flags" else (c, *f) for c, *f in fields
+        ]
     return np.dtype(fields)
 
 
@@ -344,8 +372,13 @@ def setup_findings(trained: Mapping[str, Any], applied: Mapping[str, Any]) -> li
     diffs = setup_differences(trained, applied)
     if not diffs:
         return []
-    return [Finding("setup", f"recorded setup differs from the model's training set (trained vs here): "
-                             f"{'; '.join(diffs)}")]
+    return [
+        Finding(
+            "setup",
+            f"recorded setup differs from the model's training set (trained vs here): "
+            f"{'; '.join(diffs)}",
+        )
+    ]
 
 
 #: Most rows the domain check reads: a larger catalog is read chunk by chunk, keeping every
@@ -354,8 +387,12 @@ MAX_DOMAIN_ROWS = 1_000_000
 
 
 def domain_columns(
-    features_path: str | os.PathLike, domain: Mapping[str, Any], colnames: Sequence[str],
-    resolved: Mapping[str, str] | None = None, metacal: bool = False, n_rows: int | None = None,
+    features_path: str | os.PathLike,
+    domain: Mapping[str, Any],
+    colnames: Sequence[str],
+    resolved: Mapping[str, str] | None = None,
+    metacal: bool = False,
+    n_rows: int | None = None,
 ) -> dict[str, np.ndarray]:
     """The catalog's columns of the model's ``domain`` and ``flags`` (only those, in one pass;
     every k-th row of a catalog of more than :data:`MAX_DOMAIN_ROWS` rows), by their domain
@@ -386,8 +423,14 @@ def domain_columns(
 
 
 def domain_report(
-    model: ShearModel, features_path: str | os.PathLike, *, colnames: Sequence[str], header: Mapping[str, Any],
-    resolved: Mapping[str, str] | None = None, metacal: bool = False, n_rows: int | None = None,
+    model: ShearModel,
+    features_path: str | os.PathLike,
+    *,
+    colnames: Sequence[str],
+    header: Mapping[str, Any],
+    resolved: Mapping[str, str] | None = None,
+    metacal: bool = False,
+    n_rows: int | None = None,
 ) -> list[Finding]:
     """How the catalog ``features_path`` lies outside ``model``'s domain: the findings of
     :func:`megalut_cli.nn.domain.domain_findings` on its usable rows (``flags == 0``; the
@@ -402,7 +445,9 @@ def domain_report(
             domain["stamp_size"] = trained["stamp_size"]
         stamp = header.get("STAMPSZ")
         columns = domain_columns(features_path, domain, colnames, resolved, metacal, n_rows)
-        findings += domain_findings(domain, columns, int(stamp) if isinstance(stamp, (int, np.integer)) else None)
+        findings += domain_findings(
+            domain, columns, int(stamp) if isinstance(stamp, (int, np.integer)) else None
+        )
         trained.pop("stamp_size", None)
     if trained:
         findings += setup_findings(trained, read_setup(features_path))
@@ -410,26 +455,52 @@ def domain_report(
 
 
 def check_domain(
-    model: ShearModel, model_path: str | os.PathLike, features_path: str | os.PathLike, *,
-    colnames: Sequence[str], header: Mapping[str, Any], resolved: Mapping[str, str] | None = None,
-    metacal: bool = False, n_rows: int | None = None, strict: bool = False, names: Names | None = None,
+    model: ShearModel,
+    model_path: str | os.PathLike,
+    features_path: str | os.PathLike,
+    *,
+    colnames: Sequence[str],
+    header: Mapping[str, Any],
+    resolved: Mapping[str, str] | None = None,
+    metacal: bool = False,
+    n_rows: int | None = None,
+    strict: bool = False,
+    names: Names | None = None,
 ) -> list[Finding]:
     """:func:`domain_report`, told: a warning per finding and one saying what they mean, or
     with ``strict`` an :class:`InputError` listing them (before anything is written)."""
     name = Path(model_path).name
     if model_domain(model.provenance) is None:
-        log.info("%s records no domain (quantiles of its training rows): only its recorded setup is compared "
-                 "with %s", name, features_path)
-    findings = domain_report(model, features_path, colnames=colnames, header=header, resolved=resolved,
-                             metacal=metacal, n_rows=n_rows)
+        log.info(
+            "%s records no domain (quantiles of its training rows): only its recorded setup is compared "
+            "with %s",
+            name,
+            features_path,
+        )
+    findings = domain_report(
+        model,
+        features_path,
+        colnames=colnames,
+        header=header,
+        resolved=resolved,
+        metacal=metacal,
+        n_rows=n_rows,
+    )
     if findings and strict:
-        raise InputError(f"{features_path} lies outside the domain of {name} ({namer(names)('strict')}): "
-                         + "; ".join(map(str, findings)))
+        raise InputError(
+            f"{features_path} lies outside the domain of {name} ({namer(names)('strict')}): "
+            + "; ".join(map(str, findings))
+        )
     for f in findings:
         log.warning("%s: %s", features_path, f)
     if findings:
-        log.warning("%s: %d finding(s) against the training domain of %s: the estimates may be biased "
-                    "(megalut info shows what the model was trained on)", features_path, len(findings), name)
+        log.warning(
+            "%s: %d finding(s) against the training domain of %s: the estimates may be biased "
+            "(megalut info shows what the model was trained on)",
+            features_path,
+            len(findings),
+            name,
+        )
     return findings
 
 
@@ -466,15 +537,29 @@ def predict_catalog(
     step = _metacal_step(header, features_path)
     _check_mode(model, step, model_path, features_path)
     if step is not None:
-        missing = [f"{c}_{kind}" for kind in TYPES for c in [*(resolved[f] for f in model.features), "flags"]
-                   if f"{c}_{kind}" not in colnames]
+        missing = [
+            f"{c}_{kind}"
+            for kind in TYPES
+            for c in [*(resolved[f] for f in model.features), "flags"]
+            if f"{c}_{kind}" not in colnames
+        ]
         if missing:
             raise InputError(
                 f"{features_path}: a metacal catalog ({STEP_CARD} card) without the metacal column(s) "
                 f"{', '.join(missing)}"
             )
-    findings = check_domain(model, model_path, features_path, colnames=colnames, header=header, resolved=resolved,
-                            metacal=step is not None, n_rows=n_rows, strict=strict, names=names)
+    findings = check_domain(
+        model,
+        model_path,
+        features_path,
+        colnames=colnames,
+        header=header,
+        resolved=resolved,
+        metacal=step is not None,
+        n_rows=n_rows,
+        strict=strict,
+        names=names,
+    )
     new_cols = prediction_columns(model, step is not None)
     replaced = [c for c in new_cols if c in colnames]
     if replaced:
@@ -488,15 +573,25 @@ def predict_catalog(
         for table in iter_catalog(features_path, chunk_rows):
             x = _matrix(table, feature_cols)
             flg = np.asarray(table["flags"]) if has_flags else None
-            metacal = None if step is None else _metacal_inputs(table, table.colnames, feature_cols,
-                                                                step)
+            metacal = (
+                None if step is None else _metacal_inputs(table, table.colnames, feature_cols, step)
+            )
             yield table, (abs_model, model.sha256, x, flg, metacal)
 
-    with executor(nproc, scheduler, -(-n_rows // chunk_rows)) as pool, \
-            (progress or no_progress)("predict", n_rows) as update:
+    with (
+        executor(nproc, scheduler, -(-n_rows // chunk_rows)) as pool,
+        (progress or no_progress)("predict", n_rows) as update,
+    ):
         window = 2 * resolve_nproc(nproc) if scheduler is None else 16
-        with catalog_writer(output, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards,
-                            history=header.get("HISTORY"), extra_hdus=extra_hdus) as writer:
+        with catalog_writer(
+            output,
+            fmt=FORMAT,
+            fmt_version=FORMAT_VERSION,
+            overwrite=overwrite,
+            cards=cards,
+            history=header.get("HISTORY"),
+            extra_hdus=extra_hdus,
+        ) as writer:
             dtype = None
             for table, pred in map_ordered(_predict_unit, units(), pool, window):
                 if dtype is None:
@@ -512,5 +607,9 @@ def predict_catalog(
                 writer.append(arr)
                 update(len(table))
     if n_failed:
-        log.info("%d of %d rows have failed features (NaN estimates, flag BAD_FEATURES)", n_failed, n_rows)
+        log.info(
+            "%d of %d rows have failed features (NaN estimates, flag BAD_FEATURES)",
+            n_failed,
+            n_rows,
+        )
     return PredictReport(Path(output), n_rows, n_failed, new_cols, model.sha256, findings)

@@ -15,9 +15,15 @@ def error_note(result: Mapping[str, Any]) -> str:
     boot = result.get("bootstrap")
     if result.get("error") != ERROR_BOOTSTRAP or not boot:
         return "errors: from the fit (residual scatter of the per-case averages about the line)"
-    what = "common-random-number set: the cases share their galaxies" if boot["crn"] else "galaxy groups"
-    return (f"errors: bootstrap over galaxies ({what}; {boot['groups']} groups of {boot['group_size']} "
-            f"realization(s) resampled across all cases, {boot['resamples']} resamples, seed {boot['seed']})")
+    what = (
+        "common-random-number set: the cases share their galaxies"
+        if boot["crn"]
+        else "galaxy groups"
+    )
+    return (
+        f"errors: bootstrap over galaxies ({what}; {boot['groups']} groups of {boot['group_size']} "
+        f"realization(s) resampled across all cases, {boot['resamples']} resamples, seed {boot['seed']})"
+    )
 
 
 def _pm(v: float | None, e: float | None) -> str:
@@ -41,17 +47,26 @@ def _ok(fit: Mapping[str, Any]) -> str:
 
 
 def _matrix(r: Any) -> str:
-    return "[[" + "], [".join(", ".join("n/a" if v is None else f"{v:+.4f}" for v in row) for row in r) + "]]"
+    return (
+        "[["
+        + "], [".join(", ".join("n/a" if v is None else f"{v:+.4f}" for v in row) for row in r)
+        + "]]"
+    )
 
 
 def metacal_lines(mcal: Mapping[str, Any] | None) -> list[str]:
     """The report lines of a metacal evaluation: what is calibrated, by which responses."""
     if not mcal:
         return []
-    lines = [f"metacal: {', '.join(mcal['estimate'])} calibrated by (<R> + R_sel)^-1, step {mcal['step']:g}"]
+    lines = [
+        f"metacal: {', '.join(mcal['estimate'])} calibrated by (<R> + R_sel)^-1, step {mcal['step']:g}"
+    ]
     for scheme, r in mcal["response"].items():
         sel = mcal["selection_response"].get(scheme)
-        lines.append(f"  {scheme}: <R> = {_matrix(r)}" + (f", R_sel = {_matrix(sel)}" if sel is not None else ""))
+        lines.append(
+            f"  {scheme}: <R> = {_matrix(r)}"
+            + (f", R_sel = {_matrix(sel)}" if sel is not None else "")
+        )
     return lines
 
 
@@ -70,7 +85,9 @@ def format_table(result: Mapping[str, Any]) -> str:
     hidden = ("plus", "cross") if round_psf else ()  # identical to g1, g2: kept in JSON only
     if result.get("psf_frame"):
         note = " (round PSF in every case: same as g1, g2, not repeated)" if round_psf else ""
-        lines.append(f"PSF frame (plus, cross) from {', '.join(result['psf_frame']['columns'])}{note}")
+        lines.append(
+            f"PSF frame (plus, cross) from {', '.join(result['psf_frame']['columns'])}{note}"
+        )
     lines.append(f"Stage IV requirement: |m| < {STAGE_IV_M:.0e}, |c| < {STAGE_IV_C:.0e}")
     lines.append(error_note(result))
     lines += metacal_lines(result.get("metacal"))
@@ -78,7 +95,11 @@ def format_table(result: Mapping[str, Any]) -> str:
     for scheme in SCHEMES:
         if scheme not in result:
             continue
-        lines += ["", f"{scheme} (per-case {'weighted ' if scheme == 'weighted' else ''}averages)", header]
+        lines += [
+            "",
+            f"{scheme} (per-case {'weighted ' if scheme == 'weighted' else ''}averages)",
+            header,
+        ]
         for comp, f in result[scheme].items():
             if comp in hidden:
                 continue
@@ -89,7 +110,9 @@ def format_table(result: Mapping[str, Any]) -> str:
     q = result.get("q_c")
     if q:
         frame = "+/x" if q["frame"] == "psf" else "1/2"
-        vals = ", ".join(f"{s} {q[s]:.1f}" if q.get(s) is not None else f"{s} n/a" for s in SCHEMES if s in q)
+        vals = ", ".join(
+            f"{s} {q[s]:.1f}" if q.get(s) is not None else f"{s} n/a" for s in SCHEMES if s in q
+        )
         lines += ["", f"GREAT3 Q_c ({frame} frame, sigma2_min={q['sigma2_min']:g}): {vals}"]
     req = result["requirement"]
     verdict = "met" if req["met"] else "NOT met (" + "; ".join(req["failures"]) + ")"
@@ -99,7 +122,10 @@ def format_table(result: Mapping[str, Any]) -> str:
             if not cond["bins"] or scheme not in cond["bins"][0]:
                 continue
             comps = list(cond["bins"][0][scheme])
-            lines += ["", f"conditional biases by {col} ({len(cond['bins'])} equal-population bins, {scheme})"]
+            lines += [
+                "",
+                f"conditional biases by {col} ({len(cond['bins'])} equal-population bins, {scheme})",
+            ]
             for frame in (comps[:2], comps[2:]):
                 if not frame or frame[0] in hidden:
                     continue

@@ -59,9 +59,21 @@ from megalut_cli.sim.profiles.cosmos_fit import COSMOS_FIT_COLUMNS
 
 #: Public names, with those of the table modules that stay importable from here (as before the split).
 __all__ = [
-    "COSMOS_FIT_COLUMNS", "SERSIC_N_RANGE", "CorrelationSource", "GalaxySpec", "NoiseSpec",
-    "SimConfig", "StructureSpec", "apply_overrides", "is_measured", "load_config", "measured_value",
-    "parse_override", "read_toml", "round_sersicn", "validate_config",
+    "COSMOS_FIT_COLUMNS",
+    "SERSIC_N_RANGE",
+    "CorrelationSource",
+    "GalaxySpec",
+    "NoiseSpec",
+    "SimConfig",
+    "StructureSpec",
+    "apply_overrides",
+    "is_measured",
+    "load_config",
+    "measured_value",
+    "parse_override",
+    "read_toml",
+    "round_sersicn",
+    "validate_config",
 ]
 
 log = logging.getLogger(__name__)
@@ -84,26 +96,61 @@ _TOP_KEYS = {
 }
 #: GalSim GSParams settable in ``[gsparams]`` (accuracy/speed of the rendering), declared once.
 GSPARAMS_OPTIONS: tuple[Option, ...] = tuple(
-    Option(name, "float", None, what, minimum=0.0, maximum=1.0, min_open=True, max_open=True,
-           default_text="GalSim's")
+    Option(
+        name,
+        "float",
+        None,
+        what,
+        minimum=0.0,
+        maximum=1.0,
+        min_open=True,
+        max_open=True,
+        default_text="GalSim's",
+    )
     for name, what in (
-        ("folding_threshold", "fraction of the flux allowed to fold in the FFT (smaller: larger FFTs)"),
+        (
+            "folding_threshold",
+            "fraction of the flux allowed to fold in the FFT (smaller: larger FFTs)",
+        ),
         ("maxk_threshold", "largest Fourier amplitude left out of the FFT"),
         ("kvalue_accuracy", "accuracy of Fourier-space values"),
         ("xvalue_accuracy", "accuracy of real-space values"),
     )
 ) + (
-    Option("stepk_minimum_hlr", "float", None, "smallest FFT field in half-light radii", minimum=0.0,
-           min_open=True, default_text="GalSim's"),
-    Option("minimum_fft_size", "int", None, "smallest FFT size", minimum=16, default_text="GalSim's"),
-    Option("maximum_fft_size", "int", None, "largest FFT size", minimum=16, default_text="GalSim's"),
+    Option(
+        "stepk_minimum_hlr",
+        "float",
+        None,
+        "smallest FFT field in half-light radii",
+        minimum=0.0,
+        min_open=True,
+        default_text="GalSim's",
+    ),
+    Option(
+        "minimum_fft_size", "int", None, "smallest FFT size", minimum=16, default_text="GalSim's"
+    ),
+    Option(
+        "maximum_fft_size", "int", None, "largest FFT size", minimum=16, default_text="GalSim's"
+    ),
 )
 GSPARAMS = {o.name: o for o in GSPARAMS_OPTIONS}
 #: The keys of ``[instrument]``, declared once (needed by magnitudes and CCD noise).
 INSTRUMENT_OPTIONS: tuple[Option, ...] = (
-    Option("pixel_scale", "float", None, "arcsec per pixel (sky level)", minimum=0.0, min_open=True, default_text="—"),
-    Option("exptime", "float", None, "exposure time, s", minimum=0.0, min_open=True, default_text="—"),
-    Option("gain", "float", None, "electrons per ADU", minimum=0.0, min_open=True, default_text="—"),
+    Option(
+        "pixel_scale",
+        "float",
+        None,
+        "arcsec per pixel (sky level)",
+        minimum=0.0,
+        min_open=True,
+        default_text="—",
+    ),
+    Option(
+        "exptime", "float", None, "exposure time, s", minimum=0.0, min_open=True, default_text="—"
+    ),
+    Option(
+        "gain", "float", None, "electrons per ADU", minimum=0.0, min_open=True, default_text="—"
+    ),
     Option("zeropoint", "float", None, "magnitude zero-point Z_p", default_text="—"),
 )
 INSTRUMENT = {o.name: o for o in INSTRUMENT_OPTIONS}
@@ -111,21 +158,54 @@ INSTRUMENT = {o.name: o for o in INSTRUMENT_OPTIONS}
 #: ``simulate --n-cases/--n-realizations``).
 STRUCTURE_OPTIONS: tuple[Option, ...] = (
     Option("n_cases", "int", None, "number of cases", minimum=1, default_text="required"),
-    Option("n_realizations", "int", None, "realizations per case (stamps = n_cases × n_realizations)",
-           minimum=1, default_text="required"),
-    Option("per_realization", "choice_list", ["angle"], "parameter groups redrawn for every realization; the "
-           'others are drawn once per case. Groups: `"shear"` (g1, g2), `"galaxy"` (all of `[galaxy]`, implies '
-           '`"angle"`), `"angle"` (position angle only), `"psf"` (field position and random PSF parameters)',
-           choices=VARY_GROUPS),
-    Option("snc", "choice", "none", 'shape-noise cancellation (below; `"pairs"` needs an even n_realizations)',
-           choices=SNC_MODES),
+    Option(
+        "n_realizations",
+        "int",
+        None,
+        "realizations per case (stamps = n_cases × n_realizations)",
+        minimum=1,
+        default_text="required",
+    ),
+    Option(
+        "per_realization",
+        "choice_list",
+        ["angle"],
+        "parameter groups redrawn for every realization; the "
+        'others are drawn once per case. Groups: `"shear"` (g1, g2), `"galaxy"` (all of `[galaxy]`, implies '
+        '`"angle"`), `"angle"` (position angle only), `"psf"` (field position and random PSF parameters)',
+        choices=VARY_GROUPS,
+    ),
+    Option(
+        "snc",
+        "choice",
+        "none",
+        'shape-noise cancellation (below; `"pairs"` needs an even n_realizations)',
+        choices=SNC_MODES,
+    ),
     Option("stamp_size", "int", 64, "stamp size S in pixels", minimum=8, maximum=4096),
-    Option("offset", "float", 0.5, "the true centre is the stamp centre plus an offset uniform in ±`offset` "
-           "pixels (per realization)", allowed_text="[0, stamp_size/4]"),
-    Option("n_x", "int", None, "stamps per row of the `--stamps` grid image", minimum=1,
-           default_text="ceil(sqrt(N))"),
-    Option("common", "bool", False, "common random numbers: every case draws the **same** realizations "
-           "(galaxies, position angles, offsets, noise); see below"),
+    Option(
+        "offset",
+        "float",
+        0.5,
+        "the true centre is the stamp centre plus an offset uniform in ±`offset` "
+        "pixels (per realization)",
+        allowed_text="[0, stamp_size/4]",
+    ),
+    Option(
+        "n_x",
+        "int",
+        None,
+        "stamps per row of the `--stamps` grid image",
+        minimum=1,
+        default_text="ceil(sqrt(N))",
+    ),
+    Option(
+        "common",
+        "bool",
+        False,
+        "common random numbers: every case draws the **same** realizations "
+        "(galaxies, position angles, offsets, noise); see below",
+    ),
 )
 STRUCTURE = {o.name: o for o in STRUCTURE_OPTIONS}
 _INSTRUMENT_KEYS = {"pixel_scale", "exptime", "gain", "zeropoint"}
@@ -165,7 +245,9 @@ class StructureSpec:
 
     def varies(self, group: str) -> bool:
         """Whether ``group`` is redrawn per realization (``galaxy`` implies ``angle``)."""
-        return group in self.per_realization or (group == "angle" and "galaxy" in self.per_realization)
+        return group in self.per_realization or (
+            group == "angle" and "galaxy" in self.per_realization
+        )
 
 
 @dataclass(frozen=True)
@@ -217,7 +299,9 @@ def load_config(
     ``galaxy.rad: ...``; :func:`keys_as_written` names them as the file writes them)."""
     raw, sha = read_toml(path)
     raw = apply_overrides(raw, overrides)
-    structure = raw.setdefault("structure", {}) if isinstance(raw.get("structure", {}), dict) else None
+    structure = (
+        raw.setdefault("structure", {}) if isinstance(raw.get("structure", {}), dict) else None
+    )
     if structure is None:
         raise ConfigError("structure: expected a table")
     if n_cases is not None:
@@ -228,7 +312,9 @@ def load_config(
 
 
 @contextlib.contextmanager
-def keys_as_written(path: str | os.PathLike, overrides: Sequence[str] = (), **given: Any) -> Iterator[None]:
+def keys_as_written(
+    path: str | os.PathLike, overrides: Sequence[str] = (), **given: Any
+) -> Iterator[None]:
     """Errors of the config file ``path`` raised inside (:func:`load_config`) name their key
     where the user wrote it: the file and its table (``tp.toml: [galaxy] rad: ...``), or the
     dotted key of a ``KEY=VALUE`` override (``galaxy.rad: ...``). ``given``: the structure
@@ -243,7 +329,9 @@ def keys_as_written(path: str | os.PathLike, overrides: Sequence[str] = (), **gi
             raise
         set_by_caller = [f"structure.{k}={v}" for k, v in given.items() if v is not None]
         top = _TOP_KEYS | set(source.raw)
-        raise type(err)(where_written(str(err), [source], [*overrides, *set_by_caller], top)) from None
+        raise type(err)(
+            where_written(str(err), [source], [*overrides, *set_by_caller], top)
+        ) from None
 
 
 # --------------------------------------------------------------------------- validation
@@ -276,7 +364,9 @@ def _check_common(per: frozenset[str], snc: str) -> None:
             "group, the same one in every case)"
         )
     if "shear" in per:
-        raise ConfigError("structure.common: the shear must be drawn per case; remove 'shear' from per_realization")
+        raise ConfigError(
+            "structure.common: the shear must be drawn per case; remove 'shear' from per_realization"
+        )
     if snc == "ring":
         raise ConfigError(
             "structure.common: snc = 'ring' makes one galaxy per case, nothing to share between cases; "
@@ -310,14 +400,18 @@ def _parse_psf(raw: Mapping[str, Any], config_path: str) -> dict[str, Any]:
         t["path"] = str(resolve_beside(t["path"], "psf.path", config_path))
     if t["type"] == "stamp" and t.get("index") == "random":  # one star of the grid per case
         if t.get("stamp_size") is None or "path" not in t:
-            raise ConfigError("psf.index: 'random' needs psf.path and psf.stamp_size (a grid of stars)")
+            raise ConfigError(
+                "psf.index: 'random' needs psf.path and psf.stamp_size (a grid of stars)"
+            )
         from megalut_cli.sim.psf import star_grid_size
 
         t["stamp_size"] = check_int(t["stamp_size"], "psf.stamp_size", 3)
         n = star_grid_size(t["path"], t.get("hdu"), t["stamp_size"])
         t["index"] = {"type": "grid", "values": list(range(n))}
     elif isinstance(t.get("index"), str):
-        raise ConfigError(f"psf.index: expected an integer, a distribution or 'random', got {t['index']!r}")
+        raise ConfigError(
+            f"psf.index: expected an integer, a distribution or 'random', got {t['index']!r}"
+        )
     spec: dict[str, Any] = {}
     for k, v in t.items():
         if k != "type" and is_distribution_table(v) and v.get("type") in DIST_TYPES:
@@ -328,14 +422,19 @@ def _parse_psf(raw: Mapping[str, Any], config_path: str) -> dict[str, Any]:
 
 
 def validate_config(
-    raw: Mapping[str, Any], path: str = "<config>", sha256: str = "", overrides: tuple[str, ...] = ()
+    raw: Mapping[str, Any],
+    path: str = "<config>",
+    sha256: str = "",
+    overrides: tuple[str, ...] = (),
 ) -> SimConfig:
     """Validate a parsed config mapping; return a :class:`SimConfig`."""
     if not isinstance(raw, Mapping):
         raise ConfigError("config: expected a table")
     unknown = sorted(set(raw) - _TOP_KEYS)
     if unknown:
-        raise ConfigError(f"{unknown[0]}: unknown table or key (allowed: {', '.join(sorted(_TOP_KEYS))})")
+        raise ConfigError(
+            f"{unknown[0]}: unknown table or key (allowed: {', '.join(sorted(_TOP_KEYS))})"
+        )
     if "description" in raw and not isinstance(raw["description"], str):
         raise ConfigError("description: expected a string")
     structure = _parse_structure(raw)
@@ -344,7 +443,12 @@ def validate_config(
     shear = parse_distributions(shear_t, "shear", ["g1", "g2"])
     galaxy = parse_galaxy(raw, instrument, path)
     noise = parse_noise(raw, instrument, path)
-    if galaxy.real is not None and galaxy.real["hst_noise"] != "keep" and noise.type in ("ccd", "correlated") and noise.override_sigma is None:
+    if (
+        galaxy.real is not None
+        and galaxy.real["hst_noise"] != "keep"
+        and noise.type in ("ccd", "correlated")
+        and noise.override_sigma is None
+    ):
         raise ConfigError(
             f"galaxy.hst_noise: {galaxy.real['hst_noise']!r} needs noise.type = 'gaussian' (the added noise "
             "makes up the rest of the variance); or set galaxy.hst_noise = 'keep'"
@@ -392,7 +496,11 @@ def validate_config(
     for end in (0, 1):
         spec = {k: (v.bounds()[end] if isinstance(v, Distribution) else v) for k, v in psf.items()}
         psf_mod.validate_psf_config(spec)
-    varies = bool(psf_mod.psf_varies({k: (v.bounds()[0] if isinstance(v, Distribution) else v) for k, v in psf.items()}))
+    varies = bool(
+        psf_mod.psf_varies(
+            {k: (v.bounds()[0] if isinstance(v, Distribution) else v) for k, v in psf.items()}
+        )
+    )
     if varies and field_d is None:
         field_d = {
             "x": parse_distribution({"type": "uniform", "min": 0.0, "max": 1.0}, "field.x"),

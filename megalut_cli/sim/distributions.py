@@ -37,7 +37,9 @@ class Distribution:
 
     key: str
 
-    def sample(self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None) -> np.ndarray:
+    def sample(
+        self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None
+    ) -> np.ndarray:
         raise NotImplementedError
 
     def bounds(self) -> tuple[float, float]:
@@ -54,7 +56,9 @@ class Distribution:
 class Constant(Distribution):
     value: float = 0.0
 
-    def sample(self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None) -> np.ndarray:
+    def sample(
+        self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None
+    ) -> np.ndarray:
         return np.full(n, self.value)
 
     def bounds(self) -> tuple[float, float]:
@@ -66,7 +70,9 @@ class Uniform(Distribution):
     min: float = 0.0
     max: float = 1.0
 
-    def sample(self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None) -> np.ndarray:
+    def sample(
+        self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None
+    ) -> np.ndarray:
         return rng.uniform(self.min, self.max, n)
 
     def bounds(self) -> tuple[float, float]:
@@ -82,7 +88,9 @@ class Normal(Distribution):
     min: float = -math.inf
     max: float = math.inf
 
-    def sample(self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None) -> np.ndarray:
+    def sample(
+        self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None
+    ) -> np.ndarray:
         if self.sigma == 0.0:
             return np.full(n, self.mean)
         if math.isinf(self.min) and math.isinf(self.max):
@@ -109,10 +117,12 @@ class Rayleigh(Distribution):
     min: float = 0.0
     max: float = math.inf
 
-    def sample(self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None) -> np.ndarray:
+    def sample(
+        self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None
+    ) -> np.ndarray:
         s2 = 2.0 * self.mode**2
-        q_lo = math.exp(-self.min**2 / s2)  # survival function at min
-        q_hi = math.exp(-self.max**2 / s2) if math.isfinite(self.max) else 0.0
+        q_lo = math.exp(-(self.min**2) / s2)  # survival function at min
+        q_hi = math.exp(-(self.max**2) / s2) if math.isfinite(self.max) else 0.0
         q = q_lo - rng.random(n) * (q_lo - q_hi)
         q = np.maximum(q, np.finfo(float).tiny)
         return np.clip(np.sqrt(-s2 * np.log(q)), self.min, self.max)
@@ -127,7 +137,9 @@ class Grid(Distribution):
 
     values: tuple[float, ...] = (0.0,)
 
-    def sample(self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None) -> np.ndarray:
+    def sample(
+        self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None
+    ) -> np.ndarray:
         vals = np.asarray(self.values, dtype=float)
         return vals[rng.integers(0, len(vals), n)]
 
@@ -149,7 +161,9 @@ class CatalogColumn(Distribution):
     joint: bool = True
     data: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False, repr=False)
 
-    def sample(self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None) -> np.ndarray:
+    def sample(
+        self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None
+    ) -> np.ndarray:
         if rows is None or not self.joint:
             rows = rng.integers(0, len(self.data), n)
         return self.data[rows]
@@ -245,7 +259,9 @@ def parse_distribution(value: Any, key: str) -> Distribution:
         if lo < 0 or not lo < hi:
             raise ConfigError(f"{key}: rayleigh needs 0 <= min < max, got min={lo}, max={hi}")
         if lo**2 / (2 * mode**2) > 700:
-            raise ConfigError(f"{key}.min: {lo} is too far in the tail of a Rayleigh of mode {mode}")
+            raise ConfigError(
+                f"{key}.min: {lo} is too far in the tail of a Rayleigh of mode {mode}"
+            )
         return Rayleigh(key, mode, lo, hi)
     if kind == "grid":
         return _parse_grid(value, key, num)
@@ -292,7 +308,9 @@ def _parse_catalog(value: Mapping[str, Any], key: str) -> CatalogColumn:
     return CatalogColumn(key, column, element, scale, offset, joint)
 
 
-def parse_distributions(table: Mapping[str, Any], prefix: str, keys: Sequence[str]) -> dict[str, Distribution]:
+def parse_distributions(
+    table: Mapping[str, Any], prefix: str, keys: Sequence[str]
+) -> dict[str, Distribution]:
     """The distributions of those ``keys`` that ``table`` has (keys named ``prefix.key``)."""
     return {k: parse_distribution(table[k], f"{prefix}.{k}") for k in keys if k in table}
 

@@ -52,7 +52,9 @@ class WorkUnit:
     engine: str = DEFAULT_ENGINE
     morphology: bool = False  # with measure: also the morph_* features (measure/morphology.py)
     device: str = DEFAULT_DEVICE  # "cpu" or "gpu" (resolved): where the fast engine runs
-    metacal_step: float | None = None  # with measure: also the metacal features (measure/metacal.py)
+    metacal_step: float | None = (
+        None  # with measure: also the metacal features (measure/metacal.py)
+    )
 
     @property
     def renders_fast(self) -> bool:
@@ -96,7 +98,11 @@ def get_psf(
 
 
 def psf_cache_key(
-    spec: dict[str, Any], field_x: float, field_y: float, varies: bool, gsparams: dict[str, float] | None = None
+    spec: dict[str, Any],
+    field_x: float,
+    field_y: float,
+    varies: bool,
+    gsparams: dict[str, float] | None = None,
 ) -> str:
     """A string that names one PSF: its spec, GSParams and (for a variable PSF) field position."""
     key = json.dumps([spec, gsparams or {}], sort_keys=True, default=str)
@@ -108,7 +114,9 @@ def psf_cache_key(
 def stamp_origins(index: np.ndarray, n_x: int, stamp_size: int) -> np.ndarray:
     """FITS 1-based (x, y) of the lower-left pixel of grid stamps ``index``."""
     index = np.asarray(index, dtype=np.int64)
-    return np.stack([(index % n_x) * stamp_size + 1, (index // n_x) * stamp_size + 1], axis=1).astype(float)
+    return np.stack(
+        [(index % n_x) * stamp_size + 1, (index // n_x) * stamp_size + 1], axis=1
+    ).astype(float)
 
 
 def stamp_centres(index: np.ndarray, n_x: int, stamp_size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -144,14 +152,23 @@ class _Measurer:
         pid = hash((key, method)) & 0x7FFFFFFF
         if self.step is not None and pid not in self.psf_images:
             size = self.size
-            self.psf_images[pid] = psf.drawImage(nx=size, ny=size, scale=1.0, method=method).array.astype(np.float64)
+            self.psf_images[pid] = psf.drawImage(
+                nx=size, ny=size, scale=1.0, method=method
+            ).array.astype(np.float64)
         return pid
 
-    def __call__(self, stamps: np.ndarray, origins: np.ndarray, index: np.ndarray | None = None,
-                 psf_ids: np.ndarray | None = None) -> None:
+    def __call__(
+        self,
+        stamps: np.ndarray,
+        origins: np.ndarray,
+        index: np.ndarray | None = None,
+        psf_ids: np.ndarray | None = None,
+    ) -> None:
         if not len(stamps):
             return
-        feats = self._measure(stamps, origins=origins, gain=self.gain, engine=self.engine, device=self.device)
+        feats = self._measure(
+            stamps, origins=origins, gain=self.gain, engine=self.engine, device=self.device
+        )
         if self.morphology:
             from megalut_cli.measure.morphology import morphology_of_measured
 
@@ -160,8 +177,14 @@ class _Measurer:
             feats.update(self._metacal(stamps, origins, index, psf_ids, feats))
         self.parts.append(feats)
 
-    def _metacal(self, stamps: np.ndarray, origins: np.ndarray, index: np.ndarray, psf_ids: np.ndarray,
-                 feats: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    def _metacal(
+        self,
+        stamps: np.ndarray,
+        origins: np.ndarray,
+        index: np.ndarray,
+        psf_ids: np.ndarray,
+        feats: dict[str, np.ndarray],
+    ) -> dict[str, np.ndarray]:
         from megalut_cli.measure.metacal import (
             fixnoise_seeds,
             metacal_features,
@@ -173,14 +196,25 @@ class _Measurer:
         stack = np.stack([self.psf_images[int(i)] for i in ids])
         keys = index % self.n_rea if self.common else index
         out = metacal_features(
-            stamps, stack, self.step, noise_sigma=feats["skymad"], seeds=fixnoise_seeds(self.seed, keys),
-            metacal_engine=self.engine, psf_index=np.searchsorted(ids, psf_ids), morphology=self.morphology,
-            origins=origins, gain=self.gain, engine=self.engine, device=self.device,
+            stamps,
+            stack,
+            self.step,
+            noise_sigma=feats["skymad"],
+            seeds=fixnoise_seeds(self.seed, keys),
+            metacal_engine=self.engine,
+            psf_index=np.searchsorted(ids, psf_ids),
+            morphology=self.morphology,
+            origins=origins,
+            gain=self.gain,
+            engine=self.engine,
+            device=self.device,
         )
         for i in ids:
             if int(i) not in self._targets:
                 self._targets[int(i)] = target_psf_sigma(self.psf_images[int(i)], self.step)
-        out.update(target_psf_columns(np.array([self._targets[int(i)] for i in psf_ids]), self.size))
+        out.update(
+            target_psf_columns(np.array([self._targets[int(i)] for i in psf_ids]), self.size)
+        )
         return out
 
     def columns(self) -> dict[str, np.ndarray]:
@@ -207,8 +241,17 @@ _MIN_PAD_PIXELS = 200
 
 
 def _process_hst_noise(
-    image: galsim.Image, clean: np.ndarray, d: Any, k: int, t: dict[str, np.ndarray], real: dict[str, Any],
-    psf: galsim.GSObject, psf_sigma: float, method: str, gsp: galsim.GSParams, mode: str,
+    image: galsim.Image,
+    clean: np.ndarray,
+    d: Any,
+    k: int,
+    t: dict[str, np.ndarray],
+    real: dict[str, Any],
+    psf: galsim.GSObject,
+    psf_sigma: float,
+    method: str,
+    gsp: galsim.GSParams,
+    mode: str,
     twin: galsim.GSObject | None = None,
 ) -> float:
     """Symmetrize (order 4) or whiten the HST noise of a drawn real galaxy, then add Gaussian
@@ -224,8 +267,17 @@ def _process_hst_noise(
     seed = int(d.noise_seeds[k])
     index = int(t["tru_real_index"][k])
     kernel = psf if method == "no_pixel" else galsim.Convolve(psf, galsim.Pixel(1.0))
-    cn = real_noise(real, index, t["tru_flux"][k], d.extra["theta"][k],
-                    t["tru_g1"][k], t["tru_g2"][k], kernel, (seed * 69069 + 1) % 2147483647 + 1, gsp)
+    cn = real_noise(
+        real,
+        index,
+        t["tru_flux"][k],
+        d.extra["theta"][k],
+        t["tru_g1"][k],
+        t["tru_g2"][k],
+        kernel,
+        (seed * 69069 + 1) % 2147483647 + 1,
+        gsp,
+    )
     n = image.array.shape[0]
     yy, xx = np.mgrid[:n, :n] - (n - 1) / 2.0
     r_fp = real_footprint(real, index) + 3.0 * psf_sigma + 2.0
@@ -309,8 +361,13 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                 method = "no_pixel" if psf_includes_pixel(spec) else "auto"
                 psf_truths.append(ptruth)
                 last_psf = pi
-                pid = measurer.psf_id(psf, method, psf_cache_key(spec, fx, fy, cfg.psf_varies, cfg.gsparams)) \
-                    if measurer is not None and render else 0
+                pid = (
+                    measurer.psf_id(
+                        psf, method, psf_cache_key(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
+                    )
+                    if measurer is not None and render
+                    else 0
+                )
             if not render:
                 continue
             hst_k = hst_var is not None and d.noise.kind != "none"
@@ -326,15 +383,44 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                     "raise gsparams.maximum_fft_size or gsparams.folding_threshold"
                 ) from None
             except (galsim.GalSimError, MemoryError) as err:
-                raise MegalutError(f"case {case}, realization {k}: GalSim could not draw the stamp ({err})") from None
+                raise MegalutError(
+                    f"case {case}, realization {k}: GalSim could not draw the stamp ({err})"
+                ) from None
             if hst_k:
-                clean = galsim.Convolve(
-                    rotated(base0, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k]), psf, gsparams=conv_gsp
-                ).drawImage(image=scratch, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method).array
-                twin_k = None if twin_base is None else galsim.Convolve(
-                    rotated(twin_base, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k]), psf, gsparams=conv_gsp)
-                hst_var[k] = _process_hst_noise(image, clean, d, k, t, gal.real, psf, psf_truths[-1]["tru_psf_sigma"],
-                                                method, gsp, hst_mode, twin_k)
+                clean = (
+                    galsim.Convolve(
+                        rotated(base0, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k]),
+                        psf,
+                        gsparams=conv_gsp,
+                    )
+                    .drawImage(
+                        image=scratch, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method
+                    )
+                    .array
+                )
+                twin_k = (
+                    None
+                    if twin_base is None
+                    else galsim.Convolve(
+                        rotated(twin_base, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k]),
+                        psf,
+                        gsparams=conv_gsp,
+                    )
+                )
+                hst_var[k] = _process_hst_noise(
+                    image,
+                    clean,
+                    d,
+                    k,
+                    t,
+                    gal.real,
+                    psf,
+                    psf_truths[-1]["tru_psf_sigma"],
+                    method,
+                    gsp,
+                    hst_mode,
+                    twin_k,
+                )
             else:
                 d.noise.add(image, int(d.noise_seeds[k]))
             stamps[fill] = image.array
@@ -360,7 +446,11 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                 measurer(stamps[a:b], stamp_origins(idx[a:b], unit.n_x, S), idx[a:b], psf_ids[a:b])
         else:
             measurer(stamps[:fill], stamp_origins(idx, unit.n_x, S), idx, psf_ids[:fill])
-    columns = {k: np.concatenate([p[k] for p in truth_parts]) for k in truth_parts[0]} if truth_parts else {}
+    columns = (
+        {k: np.concatenate([p[k] for p in truth_parts]) for k in truth_parts[0]}
+        if truth_parts
+        else {}
+    )
     if measurer is not None:
         columns.update(measurer.columns())
     return {"columns": columns, "stamps": stamps[:n_total] if keep else None}
@@ -393,9 +483,15 @@ def stamp_parameters(d: Any, rows: np.ndarray) -> tuple[Any, ...]:
     drawn case ``d``: rad, flux, sersicn (or None), e1, e2, g1, g2, dx, dy."""
     t = d.truth
     return (
-        t["tru_rad"][rows], t["tru_flux"][rows], t["tru_sersicn"][rows] if "tru_sersicn" in t else None,
-        t["tru_e1"][rows], t["tru_e2"][rows], t["tru_g1"][rows], t["tru_g2"][rows],
-        d.offsets[rows, 0], d.offsets[rows, 1],
+        t["tru_rad"][rows],
+        t["tru_flux"][rows],
+        t["tru_sersicn"][rows] if "tru_sersicn" in t else None,
+        t["tru_e1"][rows],
+        t["tru_e2"][rows],
+        t["tru_g1"][rows],
+        t["tru_g2"][rows],
+        d.offsets[rows, 0],
+        d.offsets[rows, 1],
     )
 
 
@@ -468,12 +564,13 @@ def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
             stamps = np.empty((hi - lo, S, S), dtype=np.float32)
             block_psf = np.zeros(hi - lo, dtype=np.int64)
             for p in psfs:
-                rows = p.rows[np.searchsorted(p.rows, lo):np.searchsorted(p.rows, hi)]
+                rows = p.rows[np.searchsorted(p.rows, lo) : np.searchsorted(p.rows, hi)]
                 if not len(rows):
                     continue
                 try:
-                    stamps[rows - lo] = renderer.draw(p.psf, p.key, p.method, gal.profile,
-                                                      *stamp_parameters(d, rows))
+                    stamps[rows - lo] = renderer.draw(
+                        p.psf, p.key, p.method, gal.profile, *stamp_parameters(d, rows)
+                    )
                 except MegalutError as err:
                     raise MegalutError(f"case {case}: {err}") from None
                 if measurer is not None:
@@ -488,7 +585,11 @@ def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
                 if n_pending >= MEASURE_BATCH:
                     measure_pending(final=False)
     measure_pending(final=True)
-    columns = {k: np.concatenate([p[k] for p in truth_parts]) for k in truth_parts[0]} if truth_parts else {}
+    columns = (
+        {k: np.concatenate([p[k] for p in truth_parts]) for k in truth_parts[0]}
+        if truth_parts
+        else {}
+    )
     if measurer is not None:
         columns.update(measurer.columns())
     stamps_out = np.concatenate(kept) if unit.keep_stamps and kept else None

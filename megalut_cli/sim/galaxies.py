@@ -61,11 +61,15 @@ def galaxy_fluxes(
     if flux_mode == "sb":
         return values * np.pi * np.asarray(rad, dtype=float) ** 2
     if flux_mode == "mag":
-        return flux_from_mag(values, instrument["zeropoint"], instrument["exptime"], instrument["gain"])
+        return flux_from_mag(
+            values, instrument["zeropoint"], instrument["exptime"], instrument["gain"]
+        )
     raise ValueError(f"unknown flux mode {flux_mode!r}")
 
 
-def ellipticity_components(modulus: np.ndarray, angle_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def ellipticity_components(
+    modulus: np.ndarray, angle_deg: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """``(e1, e2)`` of ellipticity ``modulus`` at position angle ``angle_deg`` (degrees)."""
     two_theta = np.deg2rad(2.0 * np.asarray(angle_deg, dtype=float))
     m = np.asarray(modulus, dtype=float)
@@ -81,8 +85,9 @@ def round_sersic(
     rad: float, flux: float, sersicn: float | None, gsparams: galsim.GSParams = GSPARAMS
 ) -> galsim.GSObject:
     """A round Sérsic of index ``sersicn``, half-light radius ``rad`` (pixels), ``flux`` (ADU)."""
-    return galsim.Sersic(n=float(sersicn), half_light_radius=float(rad), flux=float(flux),
-                         gsparams=gsparams)
+    return galsim.Sersic(
+        n=float(sersicn), half_light_radius=float(rad), flux=float(flux), gsparams=gsparams
+    )
 
 
 def round_gaussian(
@@ -100,7 +105,11 @@ ROUND_PROFILES: dict[str, RoundProfile] = {"sersic": round_sersic, "gaussian": r
 
 
 def base_profile(
-    profile: str, rad: float, flux: float, sersicn: float | None = None, gsparams: galsim.GSParams = GSPARAMS
+    profile: str,
+    rad: float,
+    flux: float,
+    sersicn: float | None = None,
+    gsparams: galsim.GSParams = GSPARAMS,
 ) -> galsim.GSObject:
     """The round profile of family ``profile`` (:data:`ROUND_PROFILES`): half-light radius
     ``rad`` (pixels), ``flux`` (ADU)."""
@@ -113,8 +122,11 @@ def base_profile(
 def real_galaxy_catalog(path: str, image_dir: str) -> galsim.RealGalaxyCatalog:
     """A GalSim RealGalaxyCatalog, loaded once per process (images preloaded)."""
     _, names, _ = catalog_info(path)
-    missing = [c for c in ("GAL_FILENAME", "PSF_FILENAME", "GAL_HDU", "PSF_HDU", "PIXEL_SCALE")
-               if c.lower() not in {n.lower() for n in names}]
+    missing = [
+        c
+        for c in ("GAL_FILENAME", "PSF_FILENAME", "GAL_HDU", "PSF_HDU", "PIXEL_SCALE")
+        if c.lower() not in {n.lower() for n in names}
+    ]
     if missing:
         raise InputError(
             f"galaxy.real_catalog: {path}: not a readable GalSim RealGalaxyCatalog (no column {', '.join(missing)})"
@@ -125,11 +137,15 @@ def real_galaxy_catalog(path: str, image_dir: str) -> galsim.RealGalaxyCatalog:
         files = set(map(str, rgc.gal_file_name)) | set(map(str, rgc.psf_file_name))
         absent = sorted(f for f in files if not os.path.isfile(f))
         if absent:
-            raise InputError(f"galaxy.real_catalog: {path}: image file {absent[0]} not found (see galaxy.real_dir)")
+            raise InputError(
+                f"galaxy.real_catalog: {path}: image file {absent[0]} not found (see galaxy.real_dir)"
+            )
         rgc.preload()
         return rgc
     except (OSError, ValueError, KeyError, galsim.GalSimError) as err:
-        raise InputError(f"galaxy.real_catalog: {path}: not a readable GalSim RealGalaxyCatalog ({err})") from None
+        raise InputError(
+            f"galaxy.real_catalog: {path}: not a readable GalSim RealGalaxyCatalog ({err})"
+        ) from None
 
 
 #: Fixed seed base of the noise padding of real galaxies (per catalog row: the padding,
@@ -139,16 +155,28 @@ _PAD_SEED = 271828
 
 @functools.lru_cache(maxsize=16)  # noise-padded profiles are big (tens of MB): few of them
 def _real_unit(
-    path: str, image_dir: str, index: int, pixel_scale: float, gsparams: galsim.GSParams, pad_pixels: float = 0.0
+    path: str,
+    image_dir: str,
+    index: int,
+    pixel_scale: float,
+    gsparams: galsim.GSParams,
+    pad_pixels: float = 0.0,
 ) -> tuple[galsim.GSObject, float]:
     """Real galaxy ``index`` (deconvolved from its HST PSF), flux 1, in simulation pixels,
     padded with HST-like correlated noise over ``pad_pixels`` (0: none); and its HST flux."""
     rgc = real_galaxy_catalog(path, image_dir)
     pad = pad_pixels * pixel_scale  # arcsec
-    gal = galsim.RealGalaxy(rgc, index=int(index), noise_pad_size=pad,
-                            rng=galsim.BaseDeviate(_PAD_SEED + int(index)) if pad else None, gsparams=gsparams)
+    gal = galsim.RealGalaxy(
+        rgc,
+        index=int(index),
+        noise_pad_size=pad,
+        rng=galsim.BaseDeviate(_PAD_SEED + int(index)) if pad else None,
+        gsparams=gsparams,
+    )
     flux0 = float(gal.flux)
-    return gal.withFlux(1.0).dilate(1.0 / pixel_scale), flux0  # arcsec -> pixels (dilate keeps the flux)
+    return gal.withFlux(1.0).dilate(
+        1.0 / pixel_scale
+    ), flux0  # arcsec -> pixels (dilate keeps the flux)
 
 
 def real_footprint(real: Mapping[str, Any], index: int) -> float:
@@ -157,16 +185,32 @@ def real_footprint(real: Mapping[str, Any], index: int) -> float:
     rgc = real_galaxy_catalog(real["catalog"], real["dir"])
     img = rgc.getGalImage(int(index))
     ny, nx = img.array.shape
-    return 0.5 * float(np.hypot(nx, ny)) * float(rgc.pixel_scale[int(index)]) / float(real["pixel_scale"])
+    return (
+        0.5
+        * float(np.hypot(nx, ny))
+        * float(rgc.pixel_scale[int(index)])
+        / float(real["pixel_scale"])
+    )
 
 
 def real_profile(
-    real: Mapping[str, Any], index: int, flux: float, gsparams: galsim.GSParams = GSPARAMS, pad_pixels: float = 0.0
+    real: Mapping[str, Any],
+    index: int,
+    flux: float,
+    gsparams: galsim.GSParams = GSPARAMS,
+    pad_pixels: float = 0.0,
 ) -> galsim.GSObject:
     """Real galaxy ``index`` of the catalog described by ``real`` (see ``GalaxySpec.real``),
     with ``flux`` (ADU), in simulation pixels of ``real['pixel_scale']`` arcsec; with
     ``pad_pixels``, its HST noise extends over a square of that size (for symmetrizing)."""
-    unit, _ = _real_unit(real["catalog"], real["dir"], int(index), float(real["pixel_scale"]), gsparams, float(pad_pixels))
+    unit, _ = _real_unit(
+        real["catalog"],
+        real["dir"],
+        int(index),
+        float(real["pixel_scale"]),
+        gsparams,
+        float(pad_pixels),
+    )
     return unit.withFlux(float(flux))
 
 
@@ -175,8 +219,11 @@ def _hst_noise(path: str, image_dir: str, index: int) -> galsim.BaseCorrelatedNo
     """The HST correlated noise of catalog row ``index`` (pixel variance 1 in HST units),
     deconvolved from the HST PSF like the galaxy."""
     rgc = real_galaxy_catalog(path, image_dir)
-    cn = galsim.getCOSMOSNoise(file_name=str(rgc.noise_file_name[index]), cosmos_scale=float(rgc.pixel_scale[index]),
-                               variance=1.0)
+    cn = galsim.getCOSMOSNoise(
+        file_name=str(rgc.noise_file_name[index]),
+        cosmos_scale=float(rgc.pixel_scale[index]),
+        variance=1.0,
+    )
     return cn.convolvedWith(galsim.Deconvolve(rgc.getPSF(index)))
 
 
@@ -207,10 +254,14 @@ def real_noise(
     """
     rgc = real_galaxy_catalog(real["catalog"], real["dir"])
     i = int(index)
-    _, flux0 = _real_unit(real["catalog"], real["dir"], i, float(real["pixel_scale"]), gsparams, 0.0)
+    _, flux0 = _real_unit(
+        real["catalog"], real["dir"], i, float(real["pixel_scale"]), gsparams, 0.0
+    )
     scale = float(rgc.pixel_scale[i])
     var = float(rgc.variance[i]) * (float(flux) / flux0) ** 2 / scale**4
-    cn = _hst_noise(real["catalog"], real["dir"], i).withScaledVariance(var)  # built with variance 1
+    cn = _hst_noise(real["catalog"], real["dir"], i).withScaledVariance(
+        var
+    )  # built with variance 1
     cn = cn.dilate(1.0 / float(real["pixel_scale"])).rotate(float(theta_deg) * galsim.degrees)
     if g1 != 0.0 or g2 != 0.0:
         cn = cn.shear(g1=float(g1), g2=float(g2))
@@ -273,6 +324,7 @@ def galaxy_profile(
     ``tru_bulge_fraction``, ellipticity ``tru_bulge_ell`` at ``tru_bulge_dtheta``
     degrees from the disk's axis, centred at (``tru_bulge_dx``, ``tru_bulge_dy``).
     """
+
     def val(name: str) -> float:
         return float(truth[name][k])
 
@@ -292,8 +344,14 @@ def galaxy_profile(
     if knot_frac < 1.0:
         parts.append(disk_unit.withFlux(disk_flux * (1.0 - knot_frac)))
     if knot_frac > 0.0 and disk_flux > 0.0:
-        parts.append(galsim.RandomKnots(n_knots, profile=disk_unit.withFlux(disk_flux * knot_frac),
-                                        rng=galsim.BaseDeviate(int(truth["tru_knot_seed"][k])), gsparams=gsparams))
+        parts.append(
+            galsim.RandomKnots(
+                n_knots,
+                profile=disk_unit.withFlux(disk_flux * knot_frac),
+                rng=galsim.BaseDeviate(int(truth["tru_knot_seed"][k])),
+                gsparams=gsparams,
+            )
+        )
     disk = parts[0] if len(parts) == 1 else galsim.Add(parts, gsparams=gsparams)
     ell = val("tru_ell")
     if ell > 0.0:
@@ -310,7 +368,9 @@ def galaxy_profile(
     return galsim.Add([disk, bulge], gsparams=gsparams)
 
 
-def oriented(base: galsim.GSObject, truth: Mapping[str, np.ndarray], k: int, theta_deg: float) -> galsim.GSObject:
+def oriented(
+    base: galsim.GSObject, truth: Mapping[str, np.ndarray], k: int, theta_deg: float
+) -> galsim.GSObject:
     """Galaxy ``base`` of row ``k`` (from :func:`galaxy_profile`) at position angle
     ``theta_deg`` (with its intrinsic shape), then lensed by (``tru_g1``, ``tru_g2``)."""
     g1, g2 = float(truth["tru_g1"][k]), float(truth["tru_g2"][k])

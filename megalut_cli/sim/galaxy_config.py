@@ -14,12 +14,19 @@ from megalut_cli.sim.profiles import GALAXY_PROFILES, GalaxyProfile
 from megalut_cli.sim.profiles.base import GalaxySpec
 from megalut_cli.sim.profiles.common import check_modulus
 
-__all__ = ["GALAXY_OPTION", "GalaxySpec", "check_galaxy_ranges", "galaxy_keys", "parse_galaxy",
-           "refusal"]
+__all__ = [
+    "GALAXY_OPTION",
+    "GalaxySpec",
+    "check_galaxy_ranges",
+    "galaxy_keys",
+    "parse_galaxy",
+    "refusal",
+]
 
 #: ``galaxy.profile``, declared once (its choices: the registered profiles).
-GALAXY_OPTION = Option("profile", "choice", "sersic", "the galaxy profile (below)",
-                       choices=tuple(GALAXY_PROFILES))
+GALAXY_OPTION = Option(
+    "profile", "choice", "sersic", "the galaxy profile (below)", choices=tuple(GALAXY_PROFILES)
+)
 
 
 def galaxy_keys() -> set[str]:
@@ -42,12 +49,14 @@ def parse_galaxy(
 ) -> GalaxySpec:
     """The ``[galaxy]`` table of the config ``raw``, parsed by its profile."""
     t = check_table(raw.get("galaxy"), "galaxy", galaxy_keys(), required=True)
-    name = check_choice(t.get("profile", GALAXY_OPTION.default), "galaxy.profile",
-                        tuple(GALAXY_PROFILES))
+    name = check_choice(
+        t.get("profile", GALAXY_OPTION.default), "galaxy.profile", tuple(GALAXY_PROFILES)
+    )
     profile = GALAXY_PROFILES[name]
     given = {k: v for k, v in t.items() if k != "profile"}
-    values = check_params(given, "galaxy", profile.options, profile.rules,
-                          lambda key: refusal(profile, key))
+    values = check_params(
+        given, "galaxy", profile.options, profile.rules, lambda key: refusal(profile, key)
+    )
     return profile.parse(given, values, instrument, config_path)
 
 

@@ -37,12 +37,16 @@ def unit_correlated_noise(source: CorrelationSource) -> galsim.BaseCorrelatedNoi
     (built once per process; its random generator is reset for every stamp)."""
     try:
         if source.kind == "correlation":
-            cn = galsim.getCOSMOSNoise(file_name=source.path, cosmos_scale=source.pixel_scale, variance=1.0)
+            cn = galsim.getCOSMOSNoise(
+                file_name=source.path, cosmos_scale=source.pixel_scale, variance=1.0
+            )
         else:
             image = galsim.fits.read(source.path, hdu=source.hdu)
             cn = galsim.CorrelatedNoise(image, scale=source.pixel_scale, subtract_mean=True)
     except (OSError, ValueError, KeyError, galsim.GalSimError) as err:
-        raise InputError(f"noise.{source.kind}: {source.path}: not a usable {source.kind} image ({err})") from None
+        raise InputError(
+            f"noise.{source.kind}: {source.path}: not a usable {source.kind} image ({err})"
+        ) from None
     if not cn.getVariance() > 0:
         raise InputError(f"noise.{source.kind}: {source.path}: the noise has no variance")
     return cn.withVariance(1.0)
@@ -97,7 +101,9 @@ class StampNoise:
     def add(self, image: galsim.Image, seed: int) -> None:
         if self.kind == "gaussian":
             if self.sigma > 0:
-                image.addNoise(galsim.GaussianNoise(galsim.BaseDeviate(int(seed)), sigma=self.sigma))
+                image.addNoise(
+                    galsim.GaussianNoise(galsim.BaseDeviate(int(seed)), sigma=self.sigma)
+                )
         elif self.kind == "correlated":
             if self.sigma > 0 and self.source is not None:
                 unit = unit_correlated_noise(self.source)
@@ -139,9 +145,13 @@ class StampNoise:
             return
         for stamp, seed in zip(stamps, np.asarray(seeds, dtype=np.int64).tolist()):
             rng = np.random.Generator(np.random.PCG64(seed))
-            if self.kind == "ccd":  # as GalSim's CCDNoise: Poisson(electrons of source + sky) - sky, read noise
+            if (
+                self.kind == "ccd"
+            ):  # as GalSim's CCDNoise: Poisson(electrons of source + sky) - sky, read noise
                 electrons = ((stamp.astype(np.float64) + self.sky) * self.gain).clip(0.0)
-                noisy = rng.poisson(electrons) / self.gain - self.sky if self.gain > 0 else stamp + 0.0
+                noisy = (
+                    rng.poisson(electrons) / self.gain - self.sky if self.gain > 0 else stamp + 0.0
+                )
                 if self.read_noise > 0:
                     noisy += (self.read_noise / self.gain) * rng.standard_normal(stamp.shape)
                 stamp[...] = noisy

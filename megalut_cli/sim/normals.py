@@ -70,8 +70,9 @@ def _seed_state(seed: np.uint64) -> tuple[np.uint64, np.uint64, np.uint64, np.ui
 
 
 @njit(cache=True)
-def _next(s0: np.uint64, s1: np.uint64, s2: np.uint64, s3: np.uint64
-          ) -> tuple[np.uint64, np.uint64, np.uint64, np.uint64, np.uint64]:
+def _next(
+    s0: np.uint64, s1: np.uint64, s2: np.uint64, s3: np.uint64
+) -> tuple[np.uint64, np.uint64, np.uint64, np.uint64, np.uint64]:
     """xoshiro256**: (output, next state)."""
     result = _rotl(s1 * np.uint64(5), 7) * np.uint64(9)
     t = s1 << np.uint64(17)
@@ -85,16 +86,18 @@ def _next(s0: np.uint64, s1: np.uint64, s2: np.uint64, s3: np.uint64
 
 
 @njit(cache=True)
-def _uniform(s0: np.uint64, s1: np.uint64, s2: np.uint64, s3: np.uint64
-             ) -> tuple[float, np.uint64, np.uint64, np.uint64, np.uint64]:
+def _uniform(
+    s0: np.uint64, s1: np.uint64, s2: np.uint64, s3: np.uint64
+) -> tuple[float, np.uint64, np.uint64, np.uint64, np.uint64]:
     """Uniform in (0, 1], and the next state."""
     r, s0, s1, s2, s3 = _next(s0, s1, s2, s3)
     return (np.int64(r >> np.uint64(11)) + 1) * _U53, s0, s1, s2, s3
 
 
 @njit(cache=True)
-def _wedge_or_tail(s0: np.uint64, s1: np.uint64, s2: np.uint64, s3: np.uint64, x: np.ndarray, layer: int, u: float
-                   ) -> tuple[float, np.uint64, np.uint64, np.uint64, np.uint64]:
+def _wedge_or_tail(
+    s0: np.uint64, s1: np.uint64, s2: np.uint64, s3: np.uint64, x: np.ndarray, layer: int, u: float
+) -> tuple[float, np.uint64, np.uint64, np.uint64, np.uint64]:
     """ZIGNOR's rare branches: the tail beyond r (layer 0, Marsaglia 1964) or the wedge of
     ``layer`` at ``u``; NaN when rejected (draw again). Returns the next state too."""
     if layer == 0:
@@ -148,5 +151,7 @@ def add_gaussian_noise(stamps: np.ndarray, seeds: np.ndarray, sigma: float) -> N
         raise MegalutError(f"add_gaussian_noise: {len(seeds)} seeds for {len(stamps)} stamps")
     size = int(np.prod(stamps.shape[1:], dtype=np.int64))
     for a in range(0, len(stamps), _CHUNK):
-        block = stamps[a:a + _CHUNK]
-        block += (np.float32(sigma) * standard_normals(seeds[a:a + _CHUNK], size).astype(np.float32)).reshape(block.shape)
+        block = stamps[a : a + _CHUNK]
+        block += (
+            np.float32(sigma) * standard_normals(seeds[a : a + _CHUNK], size).astype(np.float32)
+        ).reshape(block.shape)

@@ -27,22 +27,45 @@ def _after_measure(option: Option) -> Option:
 
 #: The options of ``megalut simulate`` with a value (files aside), in the order of ``--help``.
 SIMULATE_OPTIONS: tuple[Option, ...] = (
-    Option("measure", "bool", False, "Measure the features right after drawing (no image kept): the way to "
-           "make large training sets."),
+    Option(
+        "measure",
+        "bool",
+        False,
+        "Measure the features right after drawing (no image kept): the way to "
+        "make large training sets.",
+    ),
     _after_measure(MEASURE["morphology"]),
-    replace(MEASURE["metacal"], help="With --measure: also the features of the five metacalibration versions of "
-            "each stamp, deconvolved by the PSF it was drawn with (X_noshear, X_1p, X_1m, X_2p, X_2m for every "
-            "feature X; docs/metacal.md); the fixnoise fields come from --seed."),
+    replace(
+        MEASURE["metacal"],
+        help="With --measure: also the features of the five metacalibration versions of "
+        "each stamp, deconvolved by the PSF it was drawn with (X_noshear, X_1p, X_1m, X_2p, X_2m for every "
+        "feature X; docs/metacal.md); the fixnoise fields come from --seed.",
+    ),
     _after_measure(MEASURE["metacal_step"]),
     replace(STRUCTURE["n_cases"], help="Override structure.n_cases.", default_text=None),
-    replace(STRUCTURE["n_realizations"], help="Override structure.n_realizations.", default_text=None),
-    Option("dry_run", "bool", False, "Check the config and the outputs, say what would be simulated and how long "
-           "it would take (from a tiny calibration draw), and stop."),
-    replace(SEED_OPTION, help="Seed of every random draw; the output is identical for any -j or cluster."),
+    replace(
+        STRUCTURE["n_realizations"], help="Override structure.n_realizations.", default_text=None
+    ),
+    Option(
+        "dry_run",
+        "bool",
+        False,
+        "Check the config and the outputs, say what would be simulated and how long "
+        "it would take (from a tiny calibration draw), and stop.",
+    ),
+    replace(
+        SEED_OPTION,
+        help="Seed of every random draw; the output is identical for any -j or cluster.",
+    ),
 )
 SIMULATE = {o.name: o for o in SIMULATE_OPTIONS}
 
 #: Every option of ``megalut simulate`` with a value, for the docs table.
 ALL_SIMULATE_OPTIONS: tuple[Option, ...] = (
-    *SIMULATE_OPTIONS, ENGINE_OPTION, DEVICE_OPTION, NPROC_OPTION, SCHEDULER_OPTION, OVERWRITE_OPTION,
+    *SIMULATE_OPTIONS,
+    ENGINE_OPTION,
+    DEVICE_OPTION,
+    NPROC_OPTION,
+    SCHEDULER_OPTION,
+    OVERWRITE_OPTION,
 )

@@ -97,8 +97,10 @@ class PsfType:
         """Its required keys, then its exactly-one groups, as :func:`check_params` takes them."""
         need = tuple(Required(k, f"required by PSF type {self.name!r}") for k in self.required)
         return need + tuple(
-            OneOf(group, f"PSF type {self.name!r} needs exactly one of {' or '.join(group)}, "
-                         "got {got}")
+            OneOf(
+                group,
+                f"PSF type {self.name!r} needs exactly one of {' or '.join(group)}, got {{got}}",
+            )
             for group in self.one_of
         )
 
@@ -149,8 +151,13 @@ def validate_psf_config(spec: Mapping[str, Any], where: str = "psf") -> None:
         )
     kind = PSF_REGISTRY[t]
     allowed = ", ".join(sorted(kind.keys))
-    check_params({k: v for k, v in spec.items() if k != "type"}, where, kind.options, kind.rules(),
-                 lambda key: f"unknown key for PSF type {t!r} (allowed: {allowed})")
+    check_params(
+        {k: v for k, v in spec.items() if k != "type"},
+        where,
+        kind.options,
+        kind.rules(),
+        lambda key: f"unknown key for PSF type {t!r} (allowed: {allowed})",
+    )
     kind.check(spec, _full(spec), where)
 
 
@@ -215,11 +222,16 @@ def _star_grid(path: str, hdu: int | None, stamp_size: int | None) -> tuple[int,
     return check_grid(info, stamp_size)
 
 
-def star_grid_size(path: str | os.PathLike, hdu: Any = None, stamp_size: Any = None, where: str = "psf") -> int:
+def star_grid_size(
+    path: str | os.PathLike, hdu: Any = None, stamp_size: Any = None, where: str = "psf"
+) -> int:
     """Number of stars in a ``stamp`` PSF image: 1 without ``stamp_size``, else the grid's."""
     try:
-        n_y, n_x = _star_grid(str(path), None if hdu is None else int(hdu),
-                              None if stamp_size is None else int(stamp_size))
+        n_y, n_x = _star_grid(
+            str(path),
+            None if hdu is None else int(hdu),
+            None if stamp_size is None else int(stamp_size),
+        )
     except InputError as err:
         raise InputError(f"{_key(where, 'path')}: {err}") from None
     return n_y * n_x
@@ -246,7 +258,9 @@ def psf_includes_pixel(spec: Mapping[str, Any]) -> bool:
     return float(spec.get("pixel_scale", 1.0)) == 1.0
 
 
-def field_psf_params(spec: Mapping[str, Any], field_x: float, field_y: float) -> tuple[float, float, float]:
+def field_psf_params(
+    spec: Mapping[str, Any], field_x: float, field_y: float
+) -> tuple[float, float, float]:
     """``(e1, e2, sigma)`` of the Sect. 6 toy PSF at field position ``(x, y)``."""
     s = {**PSF_REGISTRY["field"].keys, **{k: v for k, v in spec.items() if k != "type"}}
     e1 = s["e1_min"] + (s["e1_max"] - s["e1_min"]) * field_x
@@ -264,7 +278,11 @@ def _hsm_truth(image: galsim.Image, scale: float) -> tuple[float, float, float]:
     res = galsim.hsm.FindAdaptiveMom(image, strict=False)
     if res.moments_status != 0:
         raise ConfigError(f"psf: HSM could not measure the PSF ({res.error_message.strip()})")
-    return float(res.observed_shape.g1), float(res.observed_shape.g2), float(res.moments_sigma * scale)
+    return (
+        float(res.observed_shape.g1),
+        float(res.observed_shape.g2),
+        float(res.moments_sigma * scale),
+    )
 
 
 @functools.lru_cache(maxsize=64)
@@ -318,7 +336,9 @@ def blackbody_photons(lam_nm: np.ndarray, temperature: float) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _euclid_cached(key: tuple[tuple[str, Any], ...]) -> tuple[galsim.GSObject, tuple[float, float, float]]:
+def _euclid_cached(
+    key: tuple[tuple[str, Any], ...],
+) -> tuple[galsim.GSObject, tuple[float, float, float]]:
     s = dict(key)
     over = int(s["oversampling"])
     fine = float(s["pixel_scale"]) / over  # arcsec per fine pixel
@@ -351,7 +371,9 @@ def _euclid(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float]]
 
 
 @functools.lru_cache(maxsize=32)
-def _stamp_cached(key: tuple[tuple[str, Any], ...]) -> tuple[galsim.GSObject, tuple[float, float, float]]:
+def _stamp_cached(
+    key: tuple[tuple[str, Any], ...],
+) -> tuple[galsim.GSObject, tuple[float, float, float]]:
     s = dict(key)
     path = str(s["path"])
     info = image_info(path, None if s["hdu"] is None else int(s["hdu"]))
@@ -415,88 +437,173 @@ def make_psf(
 
 #: |g| < 1, as docs tables write it.
 _SHEAR_RANGE = "\\|(g1, g2)\\| < 1"
-_G1 = Option("g1", "float", 0.0, "reduced shear g1 applied to the round profile",
-             allowed_text=_SHEAR_RANGE)
-_G2 = Option("g2", "float", 0.0, "reduced shear g2 applied to the round profile",
-             allowed_text=_SHEAR_RANGE)
+_G1 = Option(
+    "g1", "float", 0.0, "reduced shear g1 applied to the round profile", allowed_text=_SHEAR_RANGE
+)
+_G2 = Option(
+    "g2", "float", 0.0, "reduced shear g2 applied to the round profile", allowed_text=_SHEAR_RANGE
+)
 
 
 def _size(name: str, what: str, other: str) -> Option:
     """A size of which the PSF type takes exactly one of two (``name`` or ``other``)."""
-    return Option(name, "float", None, what, minimum=0.0, min_open=True,
-                  default_text=f"or `{other}`")
+    return Option(
+        name, "float", None, what, minimum=0.0, min_open=True, default_text=f"or `{other}`"
+    )
 
 
 def _positive(name: str, default: float, what: str, allowed: str | None = None) -> Option:
     return Option(name, "float", default, what, minimum=0.0, min_open=True, allowed_text=allowed)
 
 
-register_psf_type(PsfType(
-    "gaussian",
-    (_size("sigma", "standard deviation, pixels", "fwhm"),
-     _size("fwhm", "full width at half maximum, pixels", "sigma"), _G1, _G2),
-    _check_gaussian, lambda spec, x, y: _gaussian(spec), one_of=(("sigma", "fwhm"),),
-    help="Gaussian, sheared by (g1, g2)",
-))
-register_psf_type(PsfType(
-    "moffat",
-    (Option("beta", "float", None, "Moffat index β (> 1.1 without `trunc`)", minimum=0.0,
-            min_open=True, default_text="required"),
-     _size("fwhm", "full width at half maximum, pixels", "half_light_radius"),
-     _size("half_light_radius", "half-light radius, pixels", "fwhm"),
-     Option("trunc", "float", 0.0, "truncation radius, pixels (0 = none; needed if β ≤ 1.1)",
-            allowed_text=">= 0"),
-     _G1, _G2),
-    _check_moffat, lambda spec, x, y: _moffat(spec), required=("beta",),
-    one_of=(("fwhm", "half_light_radius"),), help="Moffat, sheared by (g1, g2)",
-))
-register_psf_type(PsfType(
-    "field",
-    (Option("e1_min", "float", -0.25, "e1 at x = 0: e1 = e1_min + (e1_max − e1_min) x"),
-     Option("e1_max", "float", 0.25, "e1 at x = 1"),
-     Option("e2_min", "float", 0.0, "e2 at y = 0: e2 = e2_min + (e2_max − e2_min) y"),
-     Option("e2_max", "float", 0.25, "e2 at y = 1"),
-     Option("sigma_mean", "float", 2.0,
-            "sigma at x + y = 1: sigma = sigma_mean + sigma_slope (x + y − 1), pixels",
-            allowed_text="sigma > 0 over the field"),
-     Option("sigma_slope", "float", 0.25, "change of sigma with x + y, pixels")),
-    _check_field, _field, varies=True,
-    help="the variable PSF of the paper's Sect. 6, at the case's field position (x, y) in [0, 1] "
-         "(below)",
-))
-register_psf_type(PsfType(
-    "euclid",
-    (_positive("diam", 1.2, "telescope diameter, m"),
-     Option("obscuration", "float", 0.29, "linear obscuration", allowed_text="[0, 1)"),
-     Option("nstruts", "int", 6, "number of struts", minimum=0),
-     _positive("lam_min", 550.0, "shortest wavelength, nm"),
-     _positive("lam_max", 900.0, "longest wavelength, nm", allowed="> 0, >= lam_min"),
-     _positive("lam_step", 50.0, "wavelength step, nm"),
-     _positive("pixel_scale", 0.1, "the VIS pixel, arcsec"),
-     Option("oversampling", "int", 5, "the PSF is drawn this many times finer than the pixel",
-            minimum=1),
-     Option("size", "int", 64, "size of the drawn PSF, pixels", minimum=8),
-     _positive("temperature", 5800.0,
-               "temperature of the blackbody spectrum that weights the wavelengths, K")),
-    _check_euclid, lambda spec, x, y: _euclid(spec),
-    help="the Euclid-VIS-like polychromatic PSF of Sect. 7.1.2 (below)",
-))
-register_psf_type(PsfType(
-    "stamp",
-    (Option("path", "path", None, "FITS image of a star (relative: beside the config file)",
-            default_text="required"),
-     Option("hdu", "int", None, "HDU of the image", minimum=0, default_text="the first image"),
-     Option("stamp_size", "int", None, "the stamp size of a grid of stars", minimum=3,
-            default_text="none: one star"),
-     Option("index", "int", 0, "the star, in grid order from the lower-left (0-based); a *dist* "
-            'or `"random"`: one star per case', minimum=0),
-     _positive("pixel_scale", 1.0, "the star image's pixel in simulation pixels"),
-     Option("interpolant", "choice", "quintic", "GalSim's x interpolant", choices=INTERPOLANTS),
-     Option("includes_pixel", "bool", None,
-            'whether the image holds the pixel response (drawn with `method = "no_pixel"`)',
-            default_text="true if `pixel_scale` = 1")),
-    _check_stamp, lambda spec, x, y: _stamp(spec), required=("path",),
-    help="a star image from a FITS file (below)",
-))
+register_psf_type(
+    PsfType(
+        "gaussian",
+        (
+            _size("sigma", "standard deviation, pixels", "fwhm"),
+            _size("fwhm", "full width at half maximum, pixels", "sigma"),
+            _G1,
+            _G2,
+        ),
+        _check_gaussian,
+        lambda spec, x, y: _gaussian(spec),
+        one_of=(("sigma", "fwhm"),),
+        help="Gaussian, sheared by (g1, g2)",
+    )
+)
+register_psf_type(
+    PsfType(
+        "moffat",
+        (
+            Option(
+                "beta",
+                "float",
+                None,
+                "Moffat index β (> 1.1 without `trunc`)",
+                minimum=0.0,
+                min_open=True,
+                default_text="required",
+            ),
+            _size("fwhm", "full width at half maximum, pixels", "half_light_radius"),
+            _size("half_light_radius", "half-light radius, pixels", "fwhm"),
+            Option(
+                "trunc",
+                "float",
+                0.0,
+                "truncation radius, pixels (0 = none; needed if β ≤ 1.1)",
+                allowed_text=">= 0",
+            ),
+            _G1,
+            _G2,
+        ),
+        _check_moffat,
+        lambda spec, x, y: _moffat(spec),
+        required=("beta",),
+        one_of=(("fwhm", "half_light_radius"),),
+        help="Moffat, sheared by (g1, g2)",
+    )
+)
+register_psf_type(
+    PsfType(
+        "field",
+        (
+            Option("e1_min", "float", -0.25, "e1 at x = 0: e1 = e1_min + (e1_max − e1_min) x"),
+            Option("e1_max", "float", 0.25, "e1 at x = 1"),
+            Option("e2_min", "float", 0.0, "e2 at y = 0: e2 = e2_min + (e2_max − e2_min) y"),
+            Option("e2_max", "float", 0.25, "e2 at y = 1"),
+            Option(
+                "sigma_mean",
+                "float",
+                2.0,
+                "sigma at x + y = 1: sigma = sigma_mean + sigma_slope (x + y − 1), pixels",
+                allowed_text="sigma > 0 over the field",
+            ),
+            Option("sigma_slope", "float", 0.25, "change of sigma with x + y, pixels"),
+        ),
+        _check_field,
+        _field,
+        varies=True,
+        help="the variable PSF of the paper's Sect. 6, at the case's field position (x, y) in [0, 1] "
+        "(below)",
+    )
+)
+register_psf_type(
+    PsfType(
+        "euclid",
+        (
+            _positive("diam", 1.2, "telescope diameter, m"),
+            Option("obscuration", "float", 0.29, "linear obscuration", allowed_text="[0, 1)"),
+            Option("nstruts", "int", 6, "number of struts", minimum=0),
+            _positive("lam_min", 550.0, "shortest wavelength, nm"),
+            _positive("lam_max", 900.0, "longest wavelength, nm", allowed="> 0, >= lam_min"),
+            _positive("lam_step", 50.0, "wavelength step, nm"),
+            _positive("pixel_scale", 0.1, "the VIS pixel, arcsec"),
+            Option(
+                "oversampling",
+                "int",
+                5,
+                "the PSF is drawn this many times finer than the pixel",
+                minimum=1,
+            ),
+            Option("size", "int", 64, "size of the drawn PSF, pixels", minimum=8),
+            _positive(
+                "temperature",
+                5800.0,
+                "temperature of the blackbody spectrum that weights the wavelengths, K",
+            ),
+        ),
+        _check_euclid,
+        lambda spec, x, y: _euclid(spec),
+        help="the Euclid-VIS-like polychromatic PSF of Sect. 7.1.2 (below)",
+    )
+)
+register_psf_type(
+    PsfType(
+        "stamp",
+        (
+            Option(
+                "path",
+                "path",
+                None,
+                "FITS image of a star (relative: beside the config file)",
+                default_text="required",
+            ),
+            Option(
+                "hdu", "int", None, "HDU of the image", minimum=0, default_text="the first image"
+            ),
+            Option(
+                "stamp_size",
+                "int",
+                None,
+                "the stamp size of a grid of stars",
+                minimum=3,
+                default_text="none: one star",
+            ),
+            Option(
+                "index",
+                "int",
+                0,
+                "the star, in grid order from the lower-left (0-based); a *dist* "
+                'or `"random"`: one star per case',
+                minimum=0,
+            ),
+            _positive("pixel_scale", 1.0, "the star image's pixel in simulation pixels"),
+            Option(
+                "interpolant", "choice", "quintic", "GalSim's x interpolant", choices=INTERPOLANTS
+            ),
+            Option(
+                "includes_pixel",
+                "bool",
+                None,
+                'whether the image holds the pixel response (drawn with `method = "no_pixel"`)',
+                default_text="true if `pixel_scale` = 1",
+            ),
+        ),
+        _check_stamp,
+        lambda spec, x, y: _stamp(spec),
+        required=("path",),
+        help="a star image from a FITS file (below)",
+    )
+)
 #: The PSF types, in the order of registration.
 PSF_TYPES = tuple(PSF_REGISTRY)

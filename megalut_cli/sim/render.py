@@ -85,14 +85,29 @@ class RadialProfile:
         """The profile as named arrays (for the disk cache); inverse of :meth:`from_arrays`."""
         scalars = np.array([self.stepk, self.maxk, self.hlr_factor])
         ints = np.array([self.kind, *self.octaves], dtype=np.int64)
-        return {"params": self.params, "coef": self.coef, "fast": self.fast, "scalars": scalars, "ints": ints}
+        return {
+            "params": self.params,
+            "coef": self.coef,
+            "fast": self.fast,
+            "scalars": scalars,
+            "ints": ints,
+        }
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> RadialProfile:
         """The profile stored by :meth:`arrays`."""
         kind, lo, hi = (int(v) for v in arrays["ints"])
         stepk, maxk, hlr_factor = (float(v) for v in arrays["scalars"])
-        return cls(kind, arrays["params"], arrays["coef"], (lo, hi), arrays["fast"], stepk, maxk, hlr_factor)
+        return cls(
+            kind,
+            arrays["params"],
+            arrays["coef"],
+            (lo, hi),
+            arrays["fast"],
+            stepk,
+            maxk,
+            hlr_factor,
+        )
 
     def kvalue(self, q: np.ndarray, fast: bool = False) -> np.ndarray:
         """F(q) as the renderer evaluates it (the fast form with ``fast``)."""
@@ -149,8 +164,10 @@ def sersic_table_key(n: float, gsparams: galsim.GSParams) -> str:
     """Everything a Sersic table depends on: ``n``, the GSParams, GalSim's and numpy's
     versions and the source of this module and its kernels (any change of the code that
     builds it)."""
-    return (f"sersic n={n!r} {gsparams!r} galsim={galsim.__version__} numpy={np.__version__} "
-            f"render={_source_digest()}")
+    return (
+        f"sersic n={n!r} {gsparams!r} galsim={galsim.__version__} numpy={np.__version__} "
+        f"render={_source_digest()}"
+    )
 
 
 def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialProfile:
@@ -194,8 +211,12 @@ def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialProfile:
     asym = (np.abs(vals - linear) <= 1e-11 * np.abs(vals)).all(axis=1)
     tail = np.logical_and.accumulate(asym[::-1])[::-1]
     first = int(np.argmax(tail)) if tail.any() else n_int
-    q_fit = np.array([math.exp(knots[first] + 0.5 * h) if first < n_int else _SERSIC_TABLE_END,
-                      1.5 * _SERSIC_TABLE_END])
+    q_fit = np.array(
+        [
+            math.exp(knots[first] + 0.5 * h) if first < n_int else _SERSIC_TABLE_END,
+            1.5 * _SERSIC_TABLE_END,
+        ]
+    )
     fa = f_q2(q_fit)
     b = (fa[0] - fa[1]) / (1.0 / q_fit[0] - 1.0 / q_fit[1])
     a = fa[1] - b / q_fit[1]
@@ -221,7 +242,9 @@ def gaussian_profile(gsparams: galsim.GSParams, transformed: bool) -> RadialProf
     return RadialProfile(kind, params, coef, (lo, hi), fast)
 
 
-def _fast_cubics(kind: int, params: np.ndarray, coef: np.ndarray, lo: int, hi: int, breaks: list[float]) -> np.ndarray:
+def _fast_cubics(
+    kind: int, params: np.ndarray, coef: np.ndarray, lo: int, hi: int, breaks: list[float]
+) -> np.ndarray:
     """The fast form's cubics (see :class:`RadialProfile`), fitted to the exact form at four
     points of each interval; NaN on the intervals holding a break."""
     per = 1 << FAST_BITS
@@ -289,7 +312,9 @@ class StampRenderer:
             self._psfs.popitem(last=False)
         return info
 
-    def _psf_kimage(self, info: _PsfInfo, psf_key: Hashable, method: str, n_fft: int, n_k: int) -> np.ndarray:
+    def _psf_kimage(
+        self, info: _PsfInfo, psf_key: Hashable, method: str, n_fft: int, n_k: int
+    ) -> np.ndarray:
         key = (psf_key, method, n_fft, n_k)
         hit = self._kimages.get(key)
         if hit is not None:
@@ -302,14 +327,27 @@ class StampRenderer:
         if not kimage.imag.any():  # centrosymmetric PSF: a real k-image (the fill specialises)
             kimage = np.ascontiguousarray(kimage.real)
         self._kimages[key] = kimage
-        while len(self._kimages) > 1 and sum(k.nbytes for k in self._kimages.values()) > _KIMAGE_CACHE_BYTES:
+        while (
+            len(self._kimages) > 1
+            and sum(k.nbytes for k in self._kimages.values()) > _KIMAGE_CACHE_BYTES
+        ):
             self._kimages.popitem(last=False)
         return kimage
 
     # -- geometry ---------------------------------------------------------------------------
-    def _geometry(self, info: _PsfInfo, profile: str, rad: np.ndarray, sersicn: np.ndarray | None,
-                  e1: np.ndarray, e2: np.ndarray, g1: np.ndarray, g2: np.ndarray, dx: np.ndarray, dy: np.ndarray
-                  ) -> tuple[np.ndarray, ...]:
+    def _geometry(
+        self,
+        info: _PsfInfo,
+        profile: str,
+        rad: np.ndarray,
+        sersicn: np.ndarray | None,
+        e1: np.ndarray,
+        e2: np.ndarray,
+        g1: np.ndarray,
+        g2: np.ndarray,
+        dx: np.ndarray,
+        dy: np.ndarray,
+    ) -> tuple[np.ndarray, ...]:
         """Per-stamp arrays: N, Nk, k-transform matrix, radial-profile index, shifts (the
         offset, centring and S // 2, so that the stamp is the FFT's first S x S pixels);
         and the radial profiles."""
@@ -320,9 +358,16 @@ class StampRenderer:
         S = self.stamp_size
         rad = np.atleast_1d(np.asarray(rad, dtype=float))
         m = len(rad)
-        e1, e2, g1, g2, dx, dy = (np.broadcast_to(np.asarray(v, dtype=float), (m,)) for v in (e1, e2, g1, g2, dx, dy))
-        if not (np.all(np.isfinite(rad) & (rad > 0)) and all(np.isfinite(v).all() for v in (e1, e2, g1, g2, dx, dy))):
-            raise MegalutError("renderer: half-light radii must be finite and > 0, shapes and offsets finite")
+        e1, e2, g1, g2, dx, dy = (
+            np.broadcast_to(np.asarray(v, dtype=float), (m,)) for v in (e1, e2, g1, g2, dx, dy)
+        )
+        if not (
+            np.all(np.isfinite(rad) & (rad > 0))
+            and all(np.isfinite(v).all() for v in (e1, e2, g1, g2, dx, dy))
+        ):
+            raise MegalutError(
+                "renderer: half-light radii must be finite and > 0, shapes and offsets finite"
+            )
         family = RADIAL_FAMILIES[GALAXY_PROFILES[profile].fast]
         table, profiles, stepk, maxk, size = family(gsp, rad, sersicn, e1, e2, g1, g2)
         jac = _shear_jacobian(e1, e2, g1, g2)
@@ -349,20 +394,49 @@ class StampRenderer:
         amat[:, 2], amat[:, 3] = jac[:, 0, 1] * size, jac[:, 1, 1] * size
         return n_fft, n_k, amat, table.astype(np.int64), sx + S // 2, sy + S // 2, profiles
 
-    def grid_sizes(self, psf: galsim.GSObject, psf_key: Hashable, method: str, profile: str,
-                   rad, sersicn, e1, e2, g1, g2, dx, dy) -> tuple[np.ndarray, np.ndarray]:
+    def grid_sizes(
+        self,
+        psf: galsim.GSObject,
+        psf_key: Hashable,
+        method: str,
+        profile: str,
+        rad,
+        sersicn,
+        e1,
+        e2,
+        g1,
+        g2,
+        dx,
+        dy,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """GalSim's FFT sizes (N, Nk) for these stamps (``drawFFT_makeKImage``)."""
         info = self._psf_info(psf, psf_key, method)
         n_fft, n_k, *_ = self._geometry(info, profile, rad, sersicn, e1, e2, g1, g2, dx, dy)
         return n_fft, n_k
 
     # -- drawing ----------------------------------------------------------------------------
-    def plan(self, psf: galsim.GSObject, psf_key: Hashable, method: str, profile: str,
-             rad, flux, sersicn, e1, e2, g1, g2, dx, dy) -> RenderPlan:
+    def plan(
+        self,
+        psf: galsim.GSObject,
+        psf_key: Hashable,
+        method: str,
+        profile: str,
+        rad,
+        flux,
+        sersicn,
+        e1,
+        e2,
+        g1,
+        g2,
+        dx,
+        dy,
+    ) -> RenderPlan:
         """What :meth:`draw` computes on the host before filling k-images (arguments as there):
         per-stamp grids, transforms, fluxes, shifts and the radial profiles; checked."""
         info = self._psf_info(psf, psf_key, method)
-        n_fft, n_k, amat, table, shx, shy, profiles = self._geometry(info, profile, rad, sersicn, e1, e2, g1, g2, dx, dy)
+        n_fft, n_k, amat, table, shx, shy, profiles = self._geometry(
+            info, profile, rad, sersicn, e1, e2, g1, g2, dx, dy
+        )
         m = len(n_fft)
         flux = np.broadcast_to(np.asarray(flux, dtype=float), (m,))
         if not np.isfinite(flux).all():
@@ -378,13 +452,31 @@ class StampRenderer:
             )
         return RenderPlan(n_fft, n_k, amat, table, shx, shy, np.array(flux), profiles)
 
-    def psf_kimage(self, psf: galsim.GSObject, psf_key: Hashable, method: str, n_fft: int, n_k: int) -> np.ndarray:
+    def psf_kimage(
+        self, psf: galsim.GSObject, psf_key: Hashable, method: str, n_fft: int, n_k: int
+    ) -> np.ndarray:
         """The PSF (x pixel) k-image on GalSim's (Nk+1) x (Nk/2+1) grid for FFT size N
         (complex64, or float32 when real), cached per renderer."""
-        return self._psf_kimage(self._psf_info(psf, psf_key, method), psf_key, method, int(n_fft), int(n_k))
+        return self._psf_kimage(
+            self._psf_info(psf, psf_key, method), psf_key, method, int(n_fft), int(n_k)
+        )
 
-    def draw(self, psf: galsim.GSObject, psf_key: Hashable, method: str, profile: str,
-             rad, flux, sersicn, e1, e2, g1, g2, dx, dy) -> np.ndarray:
+    def draw(
+        self,
+        psf: galsim.GSObject,
+        psf_key: Hashable,
+        method: str,
+        profile: str,
+        rad,
+        flux,
+        sersicn,
+        e1,
+        e2,
+        g1,
+        g2,
+        dx,
+        dy,
+    ) -> np.ndarray:
         """Noiseless stamps (m, S, S) float32 of ``profile`` galaxies of half-light radius
         ``rad`` (pixels), ``flux``, index ``sersicn`` (None for Gaussians), intrinsic shape
         (e1, e2) then shear (g1, g2), offset (dx, dy) pixels from the stamp centre, convolved
@@ -393,7 +485,15 @@ class StampRenderer:
         ``psf_key`` names the PSF for the caches: pass the same key only for the same PSF.
         """
         p = self.plan(psf, psf_key, method, profile, rad, flux, sersicn, e1, e2, g1, g2, dx, dy)
-        n_fft, n_k, amat, table, shx, shy, flux = p.n_fft, p.n_k, p.amat, p.table, p.shift_x, p.shift_y, p.flux
+        n_fft, n_k, amat, table, shx, shy, flux = (
+            p.n_fft,
+            p.n_k,
+            p.amat,
+            p.table,
+            p.shift_x,
+            p.shift_y,
+            p.flux,
+        )
         m = len(n_fft)
         S = self.stamp_size
         if m == 0:
@@ -408,11 +508,25 @@ class StampRenderer:
             batch = max(1, min(MAX_BATCH, BATCH_BYTES // per))
             buf = np.empty((min(batch, len(idx)), int(n_f), int(n_f) // 2 + 1), dtype=np.complex64)
             for a in range(0, len(idx), batch):
-                sel = idx[a:a + batch]
-                kbuf = buf[:len(sel)]
-                fill_kimages(kbuf, kpsf, kpsf.dtype == np.float32, int(n_f), int(n_kk),
-                             2.0 * np.pi / int(n_f), amat[sel], flux[sel], shx[sel], shy[sel],
-                             table[sel], eparams, eint, coef, fcoef)
+                sel = idx[a : a + batch]
+                kbuf = buf[: len(sel)]
+                fill_kimages(
+                    kbuf,
+                    kpsf,
+                    kpsf.dtype == np.float32,
+                    int(n_f),
+                    int(n_kk),
+                    2.0 * np.pi / int(n_f),
+                    amat[sel],
+                    flux[sel],
+                    shx[sel],
+                    shy[sel],
+                    table[sel],
+                    eparams,
+                    eint,
+                    coef,
+                    fcoef,
+                )
                 stamps[sel] = inverse_fft_window(kbuf, int(n_f), S)
         return stamps
 
@@ -429,8 +543,15 @@ class RadialSet(NamedTuple):
     size: np.ndarray
 
 
-def sersic_radials(gsp: galsim.GSParams, rad: np.ndarray, sersicn: np.ndarray | None,
-                   e1: np.ndarray, e2: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> RadialSet:
+def sersic_radials(
+    gsp: galsim.GSParams,
+    rad: np.ndarray,
+    sersicn: np.ndarray | None,
+    e1: np.ndarray,
+    e2: np.ndarray,
+    g1: np.ndarray,
+    g2: np.ndarray,
+) -> RadialSet:
     """Sersic galaxies of half-light radii ``rad``, indices ``sersicn`` (a table per index)."""
     if sersicn is None:
         raise MegalutError("renderer: Sersic galaxies need sersicn")
@@ -445,15 +566,24 @@ def sersic_radials(gsp: galsim.GSParams, rad: np.ndarray, sersicn: np.ndarray | 
     return RadialSet(table, profiles, stepk, maxk, r0)
 
 
-def gaussian_radials(gsp: galsim.GSParams, rad: np.ndarray, sersicn: np.ndarray | None,
-                     e1: np.ndarray, e2: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> RadialSet:
+def gaussian_radials(
+    gsp: galsim.GSParams,
+    rad: np.ndarray,
+    sersicn: np.ndarray | None,
+    e1: np.ndarray,
+    e2: np.ndarray,
+    g1: np.ndarray,
+    g2: np.ndarray,
+) -> RadialSet:
     """Gaussian galaxies of half-light radii ``rad``: round ones are filled separably (exact
     exp), transformed ones with GalSim's cutoffs."""
     table = np.where((e1 == 0) & (e2 == 0) & (g1 == 0) & (g2 == 0), 1, 0)
     profiles = [gaussian_profile(gsp, True), gaussian_profile(gsp, False)]
     sigma = rad / _GAUSSIAN_HLR_FACTOR
-    r_fold = max(math.sqrt(-2.0 * math.log(gsp.folding_threshold)),
-                 gsp.stepk_minimum_hlr * _GAUSSIAN_HLR_FACTOR)
+    r_fold = max(
+        math.sqrt(-2.0 * math.log(gsp.folding_threshold)),
+        gsp.stepk_minimum_hlr * _GAUSSIAN_HLR_FACTOR,
+    )
     maxk = math.sqrt(-2.0 * math.log(gsp.maxk_threshold)) / sigma
     stepk = math.pi / (r_fold * sigma)
     return RadialSet(table, profiles, stepk, maxk, sigma)
@@ -480,7 +610,9 @@ class RenderPlan:
     profiles: list[RadialProfile]
 
 
-def stack_profiles(profiles: list[RadialProfile]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def stack_profiles(
+    profiles: list[RadialProfile],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Radial profiles as flat arrays: exact params (T, 8), integers (T, 6: kind, first and
     last exact cubic, fast octaves lo and hi, first fast cubic), exact cubics, fast cubics."""
     return _stack(profiles)
@@ -493,8 +625,9 @@ def inverse_fft_window(kimages: np.ndarray, n_fft: int, size: int) -> np.ndarray
     return scipy.fft.irfft(rows, n=n_fft, axis=2, workers=1, overwrite_x=True)[:, :, :size]
 
 
-def fft_grid(stepk: np.ndarray, maxk: np.ndarray, stamp_size: int, gsparams: galsim.GSParams
-             ) -> tuple[np.ndarray, np.ndarray]:
+def fft_grid(
+    stepk: np.ndarray, maxk: np.ndarray, stamp_size: int, gsparams: galsim.GSParams
+) -> tuple[np.ndarray, np.ndarray]:
     """GalSim's FFT sizes (N, Nk) for profiles of ``stepk``, ``maxk`` (pixel scale 1) drawn
     on a ``stamp_size`` image (``GSObject.getGoodImageSize``, ``drawFFT_makeKImage``)."""
     stepk = np.asarray(stepk, dtype=float)
@@ -526,7 +659,9 @@ def _shear_matrix(g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
     """``galsim.Shear(g1=g1, g2=g2).getMatrix()`` for arrays (identity where g = 0)."""
     g = np.abs(g1 + 1j * g2)
     if np.any(g >= 1.0):
-        raise MegalutError(f"renderer: shear or ellipticity modulus must be < 1, got {float(g.max())}")
+        raise MegalutError(
+            f"renderer: shear or ellipticity modulus must be < 1, got {float(g.max())}"
+        )
     norm = np.sqrt(1.0 - g**2)
     mat = np.empty((len(g1), 2, 2))
     mat[:, 0, 0] = (1.0 + g1) / norm
@@ -545,6 +680,16 @@ def _stack(profiles: list[RadialProfile]) -> tuple[np.ndarray, np.ndarray, np.nd
     fsizes = np.array([len(p.fast) for p in profiles])
     first = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     ffirst = np.concatenate([[0], np.cumsum(fsizes)[:-1]])
-    eint = np.array([[p.kind, first[k], first[k] + sizes[k] - 1, p.octaves[0], p.octaves[1], ffirst[k]]
-                     for k, p in enumerate(profiles)], dtype=np.int64)
-    return eparams, eint, np.concatenate([p.coef for p in profiles]), np.concatenate([p.fast for p in profiles])
+    eint = np.array(
+        [
+            [p.kind, first[k], first[k] + sizes[k] - 1, p.octaves[0], p.octaves[1], ffirst[k]]
+            for k, p in enumerate(profiles)
+        ],
+        dtype=np.int64,
+    )
+    return (
+        eparams,
+        eint,
+        np.concatenate([p.coef for p in profiles]),
+        np.concatenate([p.fast for p in profiles]),
+    )

@@ -63,8 +63,9 @@ def _fraction(bits: int) -> float:
 
 
 @njit(cache=True)
-def radial_values(q2: np.ndarray, p: np.ndarray, ei: np.ndarray, coef: np.ndarray,
-                  fcoef: np.ndarray, fast: bool) -> np.ndarray:
+def radial_values(
+    q2: np.ndarray, p: np.ndarray, ei: np.ndarray, coef: np.ndarray, fcoef: np.ndarray, fast: bool
+) -> np.ndarray:
     """F at each ``q2`` (exact or fast form)."""
     out = np.empty(q2.shape[0])
     q2c = np.ascontiguousarray(q2)
@@ -80,8 +81,23 @@ def radial_values(q2: np.ndarray, p: np.ndarray, ei: np.ndarray, coef: np.ndarra
 
 
 @njit(cache=True)
-def fill_kimages(out, kpsf, real_psf, n_fft, n_k, dk, amat, flux, shift_x, shift_y, table, eparams,
-                 eint, coef, fcoef):
+def fill_kimages(
+    out,
+    kpsf,
+    real_psf,
+    n_fft,
+    n_k,
+    dk,
+    amat,
+    flux,
+    shift_x,
+    shift_y,
+    table,
+    eparams,
+    eint,
+    coef,
+    fcoef,
+):
     """Galaxy x PSF x pixel x phase k-values of each stamp, wrapped onto its FFT grid.
 
     ``out[s]`` (N, N/2+1) receives the sum over GalSim's (Nk+1) x (Nk/2+1) k-image (rows

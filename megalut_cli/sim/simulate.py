@@ -86,10 +86,17 @@ CALIBRATION_DRAWS = 5
 CALIBRATION_STAMPS = (4 + CALIBRATION_DRAWS) * CALIBRATION_DRAW_STAMPS
 
 
-def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: bool,
-                      n_stamps: int = CALIBRATION_DRAW_STAMPS, engine: str = DEFAULT_ENGINE,
-                      device: str = DEFAULT_DEVICE, n_draws: int = CALIBRATION_DRAWS,
-                      metacal_step: float | None = None) -> float:
+def stamps_per_second(
+    config: SimConfig,
+    seed: int,
+    measure: bool,
+    keep_stamps: bool,
+    n_stamps: int = CALIBRATION_DRAW_STAMPS,
+    engine: str = DEFAULT_ENGINE,
+    device: str = DEFAULT_DEVICE,
+    n_draws: int = CALIBRATION_DRAWS,
+    metacal_step: float | None = None,
+) -> float:
     """Drawing rate of one worker: the median of ``n_draws`` tiny timed draws of ``n_stamps``.
 
     Cheap (well under a second at the paper's stamp size); per-case setup costs and work
@@ -101,11 +108,25 @@ def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: 
         n = min(s.n_realizations, n)
         if s.snc == "pairs":
             n = max(2, n - n % 2)
-        return dataclasses.replace(config, structure=dataclasses.replace(s, n_cases=1, n_realizations=n))
+        return dataclasses.replace(
+            config, structure=dataclasses.replace(s, n_cases=1, n_realizations=n)
+        )
 
     def draw(case: SimConfig, draw_seed: int) -> None:
-        draw_unit(WorkUnit(case, draw_seed, 0, 1, case.structure.grid_nx, keep_stamps, measure, engine,
-                           device=device, metacal_step=metacal_step if measure else None))
+        draw_unit(
+            WorkUnit(
+                case,
+                draw_seed,
+                0,
+                1,
+                case.structure.grid_nx,
+                keep_stamps,
+                measure,
+                engine,
+                device=device,
+                metacal_step=metacal_step if measure else None,
+            )
+        )
 
     small = first_case(n_stamps)
     n_rea = small.structure.n_realizations
@@ -128,33 +149,58 @@ def stamps_per_second(config: SimConfig, seed: int, measure: bool, keep_stamps: 
 ESTIMATE_MIN_STAMPS = 100 * CALIBRATION_STAMPS
 
 
-def plan_message(config: SimConfig, seed: int, measure: bool, keep_stamps: bool, nproc: int,
-                 scheduler: str | None, engine: str = DEFAULT_ENGINE, device: str = DEFAULT_DEVICE,
-                 metacal_step: float | None = None, estimate: bool | None = None) -> str:
+def plan_message(
+    config: SimConfig,
+    seed: int,
+    measure: bool,
+    keep_stamps: bool,
+    nproc: int,
+    scheduler: str | None,
+    engine: str = DEFAULT_ENGINE,
+    device: str = DEFAULT_DEVICE,
+    metacal_step: float | None = None,
+    estimate: bool | None = None,
+) -> str:
     """What simulating ``config`` will do, with a time estimated from a tiny calibration draw
     (with ``metacal_step``: measured in metacal mode too). ``estimate``: whether to make that
     draw; by default only for runs of ``ESTIMATE_MIN_STAMPS`` or more."""
     s = config.structure
     measured = "measured" + (" (and metacal)" if metacal_step is not None else "")
-    what = " and ".join(w for w, on in (("drawn into an image", keep_stamps), (measured, measure)) if on)
-    head = (f"{s.n_cases} cases x {s.n_realizations} realizations = {s.n_stamps} stamps of "
-            f"{s.stamp_size}x{s.stamp_size} px")
+    what = " and ".join(
+        w for w, on in (("drawn into an image", keep_stamps), (measured, measure)) if on
+    )
+    head = (
+        f"{s.n_cases} cases x {s.n_realizations} realizations = {s.n_stamps} stamps of "
+        f"{s.stamp_size}x{s.stamp_size} px"
+    )
     if not what:
         return f"{head}: truth only, nothing drawn"
     workers = 0 if scheduler else min(resolve_nproc(nproc), n_work_units(config, nproc, scheduler))
     if not (s.n_stamps >= ESTIMATE_MIN_STAMPS if estimate is None else estimate):
-        return f"{head}, {what}, " + ("on the Dask cluster" if scheduler else f"on {workers} worker(s)")
-    rate = stamps_per_second(config, seed, measure, keep_stamps, engine=engine, device=device,
-                             metacal_step=metacal_step)
+        return f"{head}, {what}, " + (
+            "on the Dask cluster" if scheduler else f"on {workers} worker(s)"
+        )
+    rate = stamps_per_second(
+        config, seed, measure, keep_stamps, engine=engine, device=device, metacal_step=metacal_step
+    )
     if scheduler:
-        return (f"{head}, {what}: about {format_duration(s.n_stamps / rate)} of worker time "
-                f"on the Dask cluster ({rate:.0f} stamps/s per worker in a calibration draw)")
-    return (f"{head}, {what}, on {workers} worker(s): about {format_duration(s.n_stamps / rate / workers)} "
-            f"({rate:.0f} stamps/s per worker in a calibration draw)")
+        return (
+            f"{head}, {what}: about {format_duration(s.n_stamps / rate)} of worker time "
+            f"on the Dask cluster ({rate:.0f} stamps/s per worker in a calibration draw)"
+        )
+    return (
+        f"{head}, {what}, on {workers} worker(s): about {format_duration(s.n_stamps / rate / workers)} "
+        f"({rate:.0f} stamps/s per worker in a calibration draw)"
+    )
 
 
 def make_units(
-    config: SimConfig, seed: int, nproc: int, scheduler: str | None, keep_stamps: bool, measure: bool,
+    config: SimConfig,
+    seed: int,
+    nproc: int,
+    scheduler: str | None,
+    keep_stamps: bool,
+    measure: bool,
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
     device: str = DEFAULT_DEVICE,
@@ -167,13 +213,26 @@ def make_units(
     if device == "gpu" and not scheduler:
         n_units = min(s.n_cases, max(1, math.ceil(s.n_stamps / DEVICE_UNIT_STAMPS)))
     return [
-        WorkUnit(config, seed, a, b, s.grid_nx, keep_stamps, measure, engine, morphology, device,
-                 metacal_step if measure else None)
+        WorkUnit(
+            config,
+            seed,
+            a,
+            b,
+            s.grid_nx,
+            keep_stamps,
+            measure,
+            engine,
+            morphology,
+            device,
+            metacal_step if measure else None,
+        )
         for a, b in chunk_ranges(s.n_cases, n_units)
     ]
 
 
-def simulation_cards(config: SimConfig, seed: int, measured: bool, engine: str = DEFAULT_ENGINE) -> dict[str, Any]:
+def simulation_cards(
+    config: SimConfig, seed: int, measured: bool, engine: str = DEFAULT_ENGINE
+) -> dict[str, Any]:
     """Header cards of a simulated catalog: seed, structure and config provenance."""
     s = config.structure
     cards: dict[str, Any] = {
@@ -184,7 +243,10 @@ def simulation_cards(config: SimConfig, seed: int, measured: bool, engine: str =
         "NSTAMPX": (s.grid_nx, "stamps per row of the stamp grid"),
         "SNC": (s.snc, "shape-noise cancellation"),
         "CRN": (s.common, "common random numbers: the same galaxies in every case"),
-        "NOISE": (config.noise.type if config.noise.override_sigma is None else "gaussian", "noise model"),
+        "NOISE": (
+            config.noise.type if config.noise.override_sigma is None else "gaussian",
+            "noise model",
+        ),
         "GAIN": (config.gain, "gain e-/ADU (CCD noise)"),
         "MEASURED": (bool(measured), "the catalog holds measured features"),
         "ENGINE": (engine, "stamp engine (megalut simulate --engine)"),
@@ -209,12 +271,20 @@ def simulation_catalog_writer(
 ) -> contextlib.AbstractContextManager[CatalogWriter]:
     """A streaming writer (:func:`megalut_cli.catalog.catalog_writer`) of a
     ``megalut.simulation`` catalog, the effective configuration in its ``CONFIG`` HDU."""
-    return catalog_writer(path, fmt=CATALOG_FORMAT, cards=cards, overwrite=overwrite,
-                          extra_hdus={"CONFIG": _config_table(config)})
+    return catalog_writer(
+        path,
+        fmt=CATALOG_FORMAT,
+        cards=cards,
+        overwrite=overwrite,
+        extra_hdus={"CONFIG": _config_table(config)},
+    )
 
 
 def write_simulation_catalog(
-    path: str | os.PathLike, columns: dict[str, np.ndarray], config: SimConfig, cards: dict[str, Any]
+    path: str | os.PathLike,
+    columns: dict[str, np.ndarray],
+    config: SimConfig,
+    cards: dict[str, Any],
 ) -> None:
     """Write (replace) a whole ``megalut.simulation`` catalog at ``path``; meant for the
     temporary file of ``atomic_output``."""
@@ -231,7 +301,10 @@ def order_columns(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def check_outputs(
-    config: SimConfig, output: str | os.PathLike, stamps: str | os.PathLike | None, overwrite: bool,
+    config: SimConfig,
+    output: str | os.PathLike,
+    stamps: str | os.PathLike | None,
+    overwrite: bool,
     names: Names | None = None,
 ) -> tuple[Path, Path | None]:
     """Pre-flight of :func:`simulate`: both outputs can be written, and the image is not too big
@@ -294,16 +367,33 @@ def simulate_chunks(
     if device == "gpu" and not scheduler:
         nproc = 1
     s = config.structure
-    units = make_units(config, seed, nproc, scheduler, keep_stamps, measure, engine, morphology and measure, device,
-                       metacal_step)
+    units = make_units(
+        config,
+        seed,
+        nproc,
+        scheduler,
+        keep_stamps,
+        measure,
+        engine,
+        morphology and measure,
+        device,
+        metacal_step,
+    )
     log_engine_fallback(config, engine, keep_stamps or measure)
     log.info(
         "simulating %d cases x %d realizations = %d stamps of %d px in %d work units",
-        s.n_cases, s.n_realizations, s.n_stamps, s.stamp_size, len(units),
+        s.n_cases,
+        s.n_realizations,
+        s.n_stamps,
+        s.stamp_size,
+        len(units),
     )
     window = max(8, 4 * expected_workers(nproc, scheduler))
     names: list[str] | None = None
-    with executor(nproc, scheduler, len(units)) as pool, (progress or no_progress)("simulate", len(units)) as update:
+    with (
+        executor(nproc, scheduler, len(units)) as pool,
+        (progress or no_progress)("simulate", len(units)) as update,
+    ):
         for unit, res in map_ordered(draw_unit, ((u, u) for u in units), pool, window):
             columns = res["columns"]
             if names is None:
@@ -312,13 +402,21 @@ def simulate_chunks(
                 raise MegalutError("internal error: work units returned different columns")
             first = unit.case_start * s.n_realizations
             n = len(columns["case"])
-            columns["x"], columns["y"] = stamp_centres(np.arange(first, first + n), s.grid_nx, s.stamp_size)
+            columns["x"], columns["y"] = stamp_centres(
+                np.arange(first, first + n), s.grid_nx, s.stamp_size
+            )
             update(1)
-            yield SimulatedChunk(first, order_columns(columns), res.get("stamps") if keep_stamps else None)
+            yield SimulatedChunk(
+                first, order_columns(columns), res.get("stamps") if keep_stamps else None
+            )
 
 
 def simulate_table(
-    config: SimConfig, seed: int = SIMULATE["seed"].default, *, keep_stamps: bool = False, **kwargs: Any
+    config: SimConfig,
+    seed: int = SIMULATE["seed"].default,
+    *,
+    keep_stamps: bool = False,
+    **kwargs: Any,
 ) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
     """In memory: the catalog columns of the configured set and, with ``keep_stamps``, the
     stamps (n, S, S); ``kwargs`` as :func:`simulate_chunks`."""
@@ -358,7 +456,11 @@ def simulate(
     s = config.structure
     if st is None and not measure:
         name = namer(names)
-        log.info("neither %s nor %s: writing the truth catalog only (nothing drawn)", name("stamps"), name("measure"))
+        log.info(
+            "neither %s nor %s: writing the truth catalog only (nothing drawn)",
+            name("stamps"),
+            name("measure"),
+        )
     t0 = time.perf_counter()
     image = None
     if st is not None:
@@ -369,9 +471,19 @@ def simulate(
         cards[STEP_CARD] = (float(metacal_step), "metacal shear step (simulate --metacal-step)")
         cards[SEED_CARD] = (int(seed), "seed of the metacal fixnoise fields (simulate --seed)")
     excess = HstNoiseExcess()
-    chunks = simulate_chunks(config, seed, measure=measure, keep_stamps=st is not None, nproc=nproc,
-                             scheduler=scheduler, progress=progress, engine=engine, morphology=morphology, device=device,
-                             metacal_step=float(metacal_step) if metacal and measure else None)
+    chunks = simulate_chunks(
+        config,
+        seed,
+        measure=measure,
+        keep_stamps=st is not None,
+        nproc=nproc,
+        scheduler=scheduler,
+        progress=progress,
+        engine=engine,
+        morphology=morphology,
+        device=device,
+        metacal_step=float(metacal_step) if metacal and measure else None,
+    )
     with contextlib.ExitStack() as stack:
         writer = stack.enter_context(simulation_catalog_writer(out, config, cards, overwrite))
         tmp_st = stack.enter_context(atomic_output(st, overwrite)) if st is not None else None
@@ -388,7 +500,9 @@ def simulate(
         excess.warn()
     seconds = time.perf_counter() - t0
     n = writer.n_rows
-    log.info("%d stamps in %.1f s (%.1f stamps/s)", n, seconds, n / seconds if seconds else math.inf)
+    log.info(
+        "%d stamps in %.1f s (%.1f stamps/s)", n, seconds, n / seconds if seconds else math.inf
+    )
     return SimulationResult(n, s.n_cases, s.n_realizations, seconds, out, st)
 
 
@@ -397,8 +511,11 @@ def log_engine_fallback(config: SimConfig, engine: str, draws: bool) -> None:
     gal = config.galaxy
     if engine == "fast" and draws and not renders_galaxies(config):
         what = f"galaxy profile {gal.profile!r}" + (" with knots" if gal.knots else "")
-        log.info("the fast engine does not render %s: its stamps are drawn by GalSim "
-                 "(features still measured by the fast engine)", what)
+        log.info(
+            "the fast engine does not render %s: its stamps are drawn by GalSim "
+            "(features still measured by the fast engine)",
+            what,
+        )
 
 
 @dataclass
@@ -419,7 +536,9 @@ class HstNoiseExcess:
             log.warning(
                 "%d of %d real-galaxy stamps carry more (symmetrized) HST noise than noise.sigma^2: their noise "
                 "is higher than asked (column tru_hst_noise_var); lower the fluxes, raise noise.sigma or select "
-                "brighter galaxies (galaxy.real_select)", self.over, self.n,
+                "brighter galaxies (galaxy.real_select)",
+                self.over,
+                self.n,
             )
 
 

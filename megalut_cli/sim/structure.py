@@ -56,13 +56,17 @@ class CaseDraw:
     noise: StampNoise
     noise_seeds: np.ndarray
     offsets: np.ndarray  # (n, 2) pixels
-    extra: dict[str, Any] = field(default_factory=dict)  # "theta": position angles (deg, not reduced)
+    extra: dict[str, Any] = field(
+        default_factory=dict
+    )  # "theta": position angles (deg, not reduced)
 
 
 def ring_angles(theta0: np.ndarray, n_rea: int, group_size: int) -> np.ndarray:
     """Position angles (deg) of realizations ``k``: ``theta0[k // gs] + (k % gs) * 180 / gs``."""
     k = np.arange(n_rea)
-    return np.asarray(theta0, dtype=float)[k // group_size] + (k % group_size) * (180.0 / group_size)
+    return np.asarray(theta0, dtype=float)[k // group_size] + (k % group_size) * (
+        180.0 / group_size
+    )
 
 
 def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
@@ -79,7 +83,9 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
         rng_noise = rng_for(seed, STREAM_SIMULATE, case, _NOISE_KEY)
     nrows = config.catalog_rows
 
-    def level(group: str, dists: dict[str, Distribution]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    def level(
+        group: str, dists: dict[str, Distribution]
+    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """Samples per realization and the realization -> draw index map."""
         if not dists:
             return {}, np.zeros(n, dtype=np.int64)
@@ -106,7 +112,10 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     # psf_index is non-decreasing: the first realization of each draw
     firsts = np.searchsorted(psf_index, np.arange(int(psf_index.max()) + 1))
     for k in firsts.tolist():
-        spec = {key: (float(psf_vals[key][k]) if key in psf_vals else val) for key, val in config.psf.items()}
+        spec = {
+            key: (float(psf_vals[key][k]) if key in psf_vals else val)
+            for key, val in config.psf.items()
+        }
         fx = float(field_vals["x"][k]) if config.field else 0.0
         fy = float(field_vals["y"][k]) if config.field else 0.0
         specs.append((spec, fx, fy))
@@ -119,7 +128,11 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     truth.update(galaxy_truth.columns)
     if gal.knots:  # one seed per galaxy draw, from its own stream (the other draws are unchanged)
         n_draws = int(gal_index.max()) + 1
-        knot_rng = rng_for(seed, STREAM_COMMON, _KNOT_KEY) if s.common else rng_for(seed, STREAM_SIMULATE, case, _KNOT_KEY)
+        knot_rng = (
+            rng_for(seed, STREAM_COMMON, _KNOT_KEY)
+            if s.common
+            else rng_for(seed, STREAM_SIMULATE, case, _KNOT_KEY)
+        )
         knot_seeds = knot_rng.integers(1, 2**31 - 1, n_draws)
         truth["tru_knots"] = np.round(gvals["knots"]).astype(np.int64)
         truth["tru_knots_fraction"] = np.where(truth["tru_knots"] > 0, gvals["knots_fraction"], 0.0)
@@ -148,9 +161,17 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     # Noise (per case), offsets and noise seeds (per realization).
     drawn = sample_level(config.noise.params, rng_case, 1, nrows)
     nparams = {k: float(v[0]) for k, v in drawn.items()}
-    noise = make_noise(config.noise.type, nparams, config.instrument, config.noise.override_sigma, config.noise.source)
+    noise = make_noise(
+        config.noise.type,
+        nparams,
+        config.instrument,
+        config.noise.override_sigma,
+        config.noise.source,
+    )
     truth["tru_sky_sigma"] = np.full(n, noise.sky_sigma)
     offsets = rng_noise.uniform(-s.offset, s.offset, (n, 2)) if s.offset > 0 else np.zeros((n, 2))
     truth["tru_dx"], truth["tru_dy"] = offsets[:, 0], offsets[:, 1]
     seeds = rng_noise.integers(1, 2**31 - 1, n)
-    return CaseDraw(case, truth, gal_index, psf_index, specs, noise, seeds, offsets, {"theta": theta})
+    return CaseDraw(
+        case, truth, gal_index, psf_index, specs, noise, seeds, offsets, {"theta": theta}
+    )

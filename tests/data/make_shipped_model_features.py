@@ -22,8 +22,19 @@ from megalut_cli.sim.simulate import simulate_table
 ROOT = Path(__file__).resolve().parents[2]
 OUT = Path(__file__).with_name("shipped_model_features.fits")
 MODELS = ("fiducial", "fiducial-1e6")
-KEEP = ("case", "rea", "tru_g1", "tru_g2", "snr", "flags",
-        "adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4")
+KEEP = (
+    "case",
+    "rea",
+    "tru_g1",
+    "tru_g2",
+    "snr",
+    "flags",
+    "adamom_g1",
+    "adamom_g2",
+    "adamom_sigma",
+    "adamom_flux",
+    "adamom_rho4",
+)
 
 
 def main() -> None:
@@ -37,7 +48,9 @@ def main() -> None:
         for key, values in pred.items():
             if key.startswith("pre_"):
                 cols[f"{name.replace('-', '_')}_{key}"] = values
-        header.append({"name": f"SHA{len(header)}", "value": model.sha256[:64], "comment": f"{name}.h5"})
+        header.append(
+            {"name": f"SHA{len(header)}", "value": model.sha256[:64], "comment": f"{name}.h5"}
+        )
     arr = np.zeros(len(cols["case"]), dtype=[(k, v.dtype, v.shape[1:]) for k, v in cols.items()])
     for k, v in cols.items():
         arr[k] = v

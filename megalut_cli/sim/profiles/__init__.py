@@ -8,6 +8,11 @@ from megalut_cli.sim.profiles.base import GALAXY_PROFILES, GalaxyProfile, regist
 
 __all__ = ["GALAXY_PROFILES", "GalaxyProfile", "register_galaxy_profile"]
 
-for profile in (sersic.PROFILE, gaussian.PROFILE, bulgedisk.PROFILE, cosmos_fit.PROFILE,
-                real.PROFILE):
+for profile in (
+    sersic.PROFILE,
+    gaussian.PROFILE,
+    bulgedisk.PROFILE,
+    cosmos_fit.PROFILE,
+    real.PROFILE,
+):
     register_galaxy_profile(profile)

@@ -37,24 +37,57 @@ from megalut_cli.sim.profiles.common import (
 
 #: The bulge's keys, in their draw order (all but ``bulge_fraction`` have a default).
 BULGE_OPTIONS = (
-    Option("bulge_fraction", "dist", None, "bulge flux / total flux B", default_text="required",
-           allowed_text="*dist*, [0, 1]"),
-    Option("bulge_rad_ratio", "dist", 0.5, "bulge half-light radius / disk half-light radius",
-           allowed_text="*dist*, > 0"),
-    Option("bulge_sersicn", "dist", 4.0, "the bulge's Sérsic index (rounded to `sersicn_step`)",
-           allowed_text="*dist*, GalSim range 0.3–6.2"),
-    Option("bulge_ellipticity", "dist", 0.0, "the bulge's ellipticity modulus",
-           allowed_text="*dist*, [0, 1)"),
-    Option("bulge_angle", "dist", 0.0,
-           "the bulge's position angle **relative to the disk's**, degrees (e.g. "
-           '`{type = "normal", mean = 0, sigma = 10}`: tied to the disk with a small scatter)'),
-    Option("bulge_dx", "dist", 0.0,
-           "the bulge's centroid offset from the disk's along x, pixels, in the galaxy "
-           "frame (x along the disk's major axis)",
-           allowed_text="*dist*, \\|offset\\| ≤ stamp_size/4"),
-    Option("bulge_dy", "dist", 0.0,
-           "the bulge's centroid offset from the disk's along y, pixels, in the galaxy frame",
-           allowed_text="*dist*, \\|offset\\| ≤ stamp_size/4"),
+    Option(
+        "bulge_fraction",
+        "dist",
+        None,
+        "bulge flux / total flux B",
+        default_text="required",
+        allowed_text="*dist*, [0, 1]",
+    ),
+    Option(
+        "bulge_rad_ratio",
+        "dist",
+        0.5,
+        "bulge half-light radius / disk half-light radius",
+        allowed_text="*dist*, > 0",
+    ),
+    Option(
+        "bulge_sersicn",
+        "dist",
+        4.0,
+        "the bulge's Sérsic index (rounded to `sersicn_step`)",
+        allowed_text="*dist*, GalSim range 0.3–6.2",
+    ),
+    Option(
+        "bulge_ellipticity",
+        "dist",
+        0.0,
+        "the bulge's ellipticity modulus",
+        allowed_text="*dist*, [0, 1)",
+    ),
+    Option(
+        "bulge_angle",
+        "dist",
+        0.0,
+        "the bulge's position angle **relative to the disk's**, degrees (e.g. "
+        '`{type = "normal", mean = 0, sigma = 10}`: tied to the disk with a small scatter)',
+    ),
+    Option(
+        "bulge_dx",
+        "dist",
+        0.0,
+        "the bulge's centroid offset from the disk's along x, pixels, in the galaxy "
+        "frame (x along the disk's major axis)",
+        allowed_text="*dist*, \\|offset\\| ≤ stamp_size/4",
+    ),
+    Option(
+        "bulge_dy",
+        "dist",
+        0.0,
+        "the bulge's centroid offset from the disk's along y, pixels, in the galaxy frame",
+        allowed_text="*dist*, \\|offset\\| ≤ stamp_size/4",
+    ),
 )
 OPTIONS = (
     with_help(RAD, "half-light radius of the **composite** (round disk + round bulge), pixels"),
@@ -143,6 +176,13 @@ TRUTH_COLUMNS = (
 )
 
 PROFILE = GalaxyProfile(
-    "bulgedisk", "an exponential disk plus a Sérsic bulge (below)", OPTIONS,
+    "bulgedisk",
+    "an exponential disk plus a Sérsic bulge (below)",
+    OPTIONS,
     (RAD_REQUIRED, ONE_FLUX, Required("bulge_fraction", "fraction of the flux in the bulge, 0-1")),
-    parse, truth, build, truth_columns=TRUTH_COLUMNS, check=check)
+    parse,
+    truth,
+    build,
+    truth_columns=TRUTH_COLUMNS,
+    check=check,
+)

@@ -29,42 +29,84 @@ FLUX_KEYS = ("flux", "sb", "mag")
 #: The default position angle: uniform in [0, 180) degrees.
 ANGLE_DEFAULT = {"type": "uniform", "min": 0.0, "max": 180.0}
 
-SERSICN = Option("sersicn", "dist", None, "Sérsic index (rounded to `sersicn_step`)",
-                 default_text="required", allowed_text="*dist*, GalSim range 0.3–6.2")
+SERSICN = Option(
+    "sersicn",
+    "dist",
+    None,
+    "Sérsic index (rounded to `sersicn_step`)",
+    default_text="required",
+    allowed_text="*dist*, GalSim range 0.3–6.2",
+)
 SERSICN_STEP = Option(
-    "sersicn_step", "float", 0.1,
+    "sersicn_step",
+    "float",
+    0.1,
     "drawn indices are rounded to multiples of this step (0: "
     "continuous), so GalSim reuses its cached Sérsic profiles (the paper grids n, Table 1 note a)",
-    allowed_text=">= 0")
-RAD = Option("rad", "dist", None, "half-light radius in pixels", default_text="required",
-             allowed_text="*dist*, > 0")
+    allowed_text=">= 0",
+)
+RAD = Option(
+    "rad",
+    "dist",
+    None,
+    "half-light radius in pixels",
+    default_text="required",
+    allowed_text="*dist*, > 0",
+)
 FLUX = Option("flux", "dist", None, "flux in ADU", default_text="—", allowed_text="*dist*, >= 0")
-SB = Option("sb", "dist", None, "surface brightness S (ADU/pixel²): flux F = S·π·R² (Sect. 5.1)",
-            default_text="—", allowed_text="*dist*, >= 0")
-MAG = Option("mag", "dist", None,
-             "magnitude: F = t_exp / G · 10^(−0.4 (m − Z_p)) with `[instrument]` `exptime`, "
-             "`gain`, `zeropoint` (Sect. 7.1.2)", default_text="—")
+SB = Option(
+    "sb",
+    "dist",
+    None,
+    "surface brightness S (ADU/pixel²): flux F = S·π·R² (Sect. 5.1)",
+    default_text="—",
+    allowed_text="*dist*, >= 0",
+)
+MAG = Option(
+    "mag",
+    "dist",
+    None,
+    "magnitude: F = t_exp / G · 10^(−0.4 (m − Z_p)) with `[instrument]` `exptime`, "
+    "`gain`, `zeropoint` (Sect. 7.1.2)",
+    default_text="—",
+)
 ELLIPTICITY = Option(
-    "ellipticity", "dist", 0.0,
+    "ellipticity",
+    "dist",
+    0.0,
     "intrinsic ellipticity modulus |e| = (1 − q)/(1 + q) (GalSim reduced-shear convention)",
-    default_text="0", allowed_text="*dist*, [0, 1)")
+    default_text="0",
+    allowed_text="*dist*, [0, 1)",
+)
 ANGLE = Option(
     "angle", "dist", ANGLE_DEFAULT, "position angle θ in degrees", default_text="uniform 0–180"
 )
-KNOTS = Option("knots", "dist", None,
-               "star-forming knots: the number of GalSim `RandomKnots` (rounded to an integer; "
-               "0 = none; below)", default_text="none", allowed_text="*dist*, [0, 10000]")
-KNOTS_FRACTION = Option("knots_fraction", "dist", None,
-                        "the knots' fraction of the **disk's** flux (of the whole "
-                        "galaxy for `sersic`, `gaussian`); goes with `knots`", default_text="none",
-                        allowed_text="*dist*, [0, 1]")
+KNOTS = Option(
+    "knots",
+    "dist",
+    None,
+    "star-forming knots: the number of GalSim `RandomKnots` (rounded to an integer; "
+    "0 = none; below)",
+    default_text="none",
+    allowed_text="*dist*, [0, 10000]",
+)
+KNOTS_FRACTION = Option(
+    "knots_fraction",
+    "dist",
+    None,
+    "the knots' fraction of the **disk's** flux (of the whole "
+    "galaxy for `sersic`, `gaussian`); goes with `knots`",
+    default_text="none",
+    allowed_text="*dist*, [0, 1]",
+)
 #: The keys of a parametric galaxy (Sérsic, Gaussian), in the order of the docs.
 PARAMETRIC_OPTIONS = (RAD, FLUX, SB, MAG, ELLIPTICITY, ANGLE, KNOTS, KNOTS_FRACTION)
 
 RAD_REQUIRED = Required("rad", "half-light radius in pixels")
 ONE_FLUX = OneOf(
     FLUX_KEYS,
-    "give exactly one of galaxy.flux, galaxy.sb (surface brightness) or galaxy.mag (got {got})")
+    "give exactly one of galaxy.flux, galaxy.sb (surface brightness) or galaxy.mag (got {got})",
+)
 
 
 def with_help(option: Option, help: str, **changes: Any) -> Option:

@@ -64,23 +64,35 @@ COSMOS_FIT_COLUMNS: dict[str, dict[str, tuple[str, int | None]]] = {
 }
 
 OPTIONS = (
-    Option("fit", "choice", "auto",
-           '`"sersic"` (every row with `viable_sersic`), `"bulgedisk"` (rows with '
-           "`use_bulgefit`, 36 of the example's 100) or `\"auto\"` (GalSim's choice per row)",
-           choices=COSMOS_FITS),
-    Option("pixel_scale", "float", None,
-           "arcsec per simulation pixel: the fitted sizes (arcsec) are divided by it",
-           default_text="—", allowed_text="> 0"),
+    Option(
+        "fit",
+        "choice",
+        "auto",
+        '`"sersic"` (every row with `viable_sersic`), `"bulgedisk"` (rows with '
+        "`use_bulgefit`, 36 of the example's 100) or `\"auto\"` (GalSim's choice per row)",
+        choices=COSMOS_FITS,
+    ),
+    Option(
+        "pixel_scale",
+        "float",
+        None,
+        "arcsec per simulation pixel: the fitted sizes (arcsec) are divided by it",
+        default_text="—",
+        allowed_text="> 0",
+    ),
     with_help(
         RAD,
         "the composite half-light radius in pixels: the galaxy is dilated to it (the fits then "
-        "set only the morphology)", default_text="—"),
+        "set only the morphology)",
+        default_text="—",
+    ),
     FLUX,
     SB,
     with_help(
         MAG,
         'magnitude, as above; `mag = {type = "catalog", column = "mag_auto"}` takes the row\'s own '
-        "magnitude"),
+        "magnitude",
+    ),
     with_help(ANGLE, "position angle of the disk (or single Sérsic), degrees"),
     with_help(
         SERSICN_STEP, "rounding of the fitted Sérsic index (GalSim's `COSMOSCatalog` uses 0.05)"
@@ -248,18 +260,32 @@ PROFILE = GalaxyProfile(
     "a COSMOS parametric fit (a Sérsic, or a bulge + disk) of a `[catalog]` row (below)",
     OPTIONS,
     (
-        OneOf(("pixel_scale", "rad"),
-              "profile 'cosmos_fit' needs exactly one of galaxy.pixel_scale (arcsec per simulation "
-              "pixel) or galaxy.rad (half-light radius in pixels, the fits then set only the "
-              "morphology)"),
+        OneOf(
+            ("pixel_scale", "rad"),
+            "profile 'cosmos_fit' needs exactly one of galaxy.pixel_scale (arcsec per simulation "
+            "pixel) or galaxy.rad (half-light radius in pixels, the fits then set only the "
+            "morphology)",
+        ),
         ONE_FLUX,
     ),
-    parse, truth, build,
-    truth_columns=("tru_cosmos_ident", "tru_sersicn", "tru_disk_rad", "tru_disk_sersicn",
-                   "tru_bulge_fraction", "tru_bulge_rad", "tru_bulge_sersicn", "tru_bulge_ell",
-                   "tru_bulge_dtheta", "tru_bulge_dx", "tru_bulge_dy"),
+    parse,
+    truth,
+    build,
+    truth_columns=(
+        "tru_cosmos_ident",
+        "tru_sersicn",
+        "tru_disk_rad",
+        "tru_disk_sersicn",
+        "tru_bulge_fraction",
+        "tru_bulge_rad",
+        "tru_bulge_sersicn",
+        "tru_bulge_ell",
+        "tru_bulge_dtheta",
+        "tru_bulge_dx",
+        "tru_bulge_dy",
+    ),
     refuses={"sersicn": FROM_THE_FITS, "ellipticity": FROM_THE_FITS},
     catalog="samples the rows of a [catalog] table (catalog.path = the COSMOS fits file, e.g. "
-            "real_galaxy_catalog_23.5_example_fits.fits)",
+    "real_galaxy_catalog_23.5_example_fits.fits)",
     select_rows=usable_fit_rows,
 )

@@ -44,7 +44,13 @@ def build(
     return galaxies.galaxy_profile(truth, k, gsparams, galaxies.round_gaussian)
 
 
-PROFILE = GalaxyProfile("gaussian",
-                        "a Gaussian galaxy (GalSim `Gaussian`), sheared by its ellipticity",
-                        (SERSICN_STEP, *PARAMETRIC_OPTIONS), (RAD_REQUIRED, ONE_FLUX), parse, truth,
-                        build, fast="gaussian")
+PROFILE = GalaxyProfile(
+    "gaussian",
+    "a Gaussian galaxy (GalSim `Gaussian`), sheared by its ellipticity",
+    (SERSICN_STEP, *PARAMETRIC_OPTIONS),
+    (RAD_REQUIRED, ONE_FLUX),
+    parse,
+    truth,
+    build,
+    fast="gaussian",
+)

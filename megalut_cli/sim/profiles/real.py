@@ -40,46 +40,89 @@ TWIN_MODES = ("none", "sersic")
 REAL_ORDERS = ("random", "each")
 
 OPTIONS = (
-    Option("real_catalog", "path", None,
-           "the GalSim RealGalaxyCatalog FITS file (e.g. "
-           "`examples/data/cosmos/real_galaxy_catalog_26_extension_example.fits`)",
-           default_text="required"),
-    Option("real_dir", "path", None, "the folder of its image files",
-           default_text="the catalog's folder"),
-    Option("pixel_scale", "float", None,
-           "arcsec per simulation pixel (the HST images are dilated to it)",
-           default_text="required", allowed_text="> 0"),
-    Option("index", "dist", "random", 'the catalog rows drawn (0-based), or `"random"`: any row',
-           allowed_text='*dist* of integers, or "random"'),
-    Option("real_select", "expr", None,
-           "instead of `index`: the rows where this expression over the catalog's "
-           'columns holds (e.g. `"MAG < 24"`)', default_text="none"),
     Option(
-        "real_order", "choice", "random",
+        "real_catalog",
+        "path",
+        None,
+        "the GalSim RealGalaxyCatalog FITS file (e.g. "
+        "`examples/data/cosmos/real_galaxy_catalog_26_extension_example.fits`)",
+        default_text="required",
+    ),
+    Option(
+        "real_dir",
+        "path",
+        None,
+        "the folder of its image files",
+        default_text="the catalog's folder",
+    ),
+    Option(
+        "pixel_scale",
+        "float",
+        None,
+        "arcsec per simulation pixel (the HST images are dilated to it)",
+        default_text="required",
+        allowed_text="> 0",
+    ),
+    Option(
+        "index",
+        "dist",
+        "random",
+        'the catalog rows drawn (0-based), or `"random"`: any row',
+        allowed_text='*dist* of integers, or "random"',
+    ),
+    Option(
+        "real_select",
+        "expr",
+        None,
+        "instead of `index`: the rows where this expression over the catalog's "
+        'columns holds (e.g. `"MAG < 24"`)',
+        default_text="none",
+    ),
+    Option(
+        "real_order",
+        "choice",
+        "random",
         '`"random"`: each SNC group draws a galaxy from `index`/`real_select`; `"each"`: SNC '
         "group g of every case shows galaxy g (mod N) of that list (with `per_realization = "
         '["galaxy"]`; else case c shows galaxy c), so that with `n_realizations` = 2N and `snc = '
-        '"pairs"` every galaxy is seen under every shear in a 90° pair', choices=REAL_ORDERS),
-    Option("hst_noise", "choice", "symmetrize",
-           "what becomes of the images' own HST noise: symmetrized (order 4) or whitened, then "
-           "topped up with Gaussian noise to the requested sigma; or kept as it is (below)",
-           choices=HST_NOISE_MODES),
-    Option("twin", "choice", "none",
-           "`\"sersic\"`: draw each galaxy's Sérsic twin (its PSF-convolved Sérsic fit, from "
-           "`twin_catalog`) in its place, with every draw of the real set unchanged: same shear, "
-           "rotation, offset, flux and noise seeds (`docs/realgal.md`)", choices=TWIN_MODES),
+        '"pairs"` every galaxy is seen under every shear in a 90° pair',
+        choices=REAL_ORDERS,
+    ),
     Option(
-        "twin_catalog", "path", None,
+        "hst_noise",
+        "choice",
+        "symmetrize",
+        "what becomes of the images' own HST noise: symmetrized (order 4) or whitened, then "
+        "topped up with Gaussian noise to the requested sigma; or kept as it is (below)",
+        choices=HST_NOISE_MODES,
+    ),
+    Option(
+        "twin",
+        "choice",
+        "none",
+        '`"sersic"`: draw each galaxy\'s Sérsic twin (its PSF-convolved Sérsic fit, from '
+        "`twin_catalog`) in its place, with every draw of the real set unchanged: same shear, "
+        "rotation, offset, flux and noise seeds (`docs/realgal.md`)",
+        choices=TWIN_MODES,
+    ),
+    Option(
+        "twin_catalog",
+        "path",
+        None,
         "FITS table of Sérsic twins (`megalut.sersic-twins`, e.g. "
         "`examples/data/cosmos/real_galaxy_catalog_26_extension_sersic_twins.fits`); required by "
         '`twin = "sersic"`; when given, both sets get the truth columns `tru_twin_rad` (fitted '
         "half-light radius, pixels), `tru_twin_sersicn`, `tru_twin_g1`, `tru_twin_g2`, "
-        "`tru_twin` (1 for twins)", default_text="—"),
+        "`tru_twin` (1 for twins)",
+        default_text="—",
+    ),
     FLUX,
-    with_help(SB,
-              "surface brightness S: F = S·π·R² with R the galaxy's fitted half-light radius "
-              "(`tru_twin_rad`), so that real galaxies follow the size–flux coupling of a Sérsic "
-              "training population; needs `twin_catalog`"),
+    with_help(
+        SB,
+        "surface brightness S: F = S·π·R² with R the galaxy's fitted half-light radius "
+        "(`tru_twin_rad`), so that real galaxies follow the size–flux coupling of a Sérsic "
+        "training population; needs `twin_catalog`",
+    ),
     MAG,
     ANGLE,
 )
@@ -243,11 +286,21 @@ PROFILE = GalaxyProfile(
         Required("pixel_scale", "required by profile 'real': arcsec per simulation pixel"),
         OneOf(
             FLUX_KEYS,
-            "profile 'real' needs exactly one of galaxy.flux, galaxy.sb or galaxy.mag (got {got})"),
+            "profile 'real' needs exactly one of galaxy.flux, galaxy.sb or galaxy.mag (got {got})",
+        ),
     ),
-    parse, truth, build,
-    truth_columns=("tru_real_index", "tru_hst_noise_var", "tru_twin", "tru_twin_rad",
-                   "tru_twin_sersicn", "tru_twin_g1", "tru_twin_g2"),
+    parse,
+    truth,
+    build,
+    truth_columns=(
+        "tru_real_index",
+        "tru_hst_noise_var",
+        "tru_twin",
+        "tru_twin_rad",
+        "tru_twin_sersicn",
+        "tru_twin_g1",
+        "tru_twin_g2",
+    ),
     refuses={k: FROM_THE_IMAGES for k in ("rad", "sersicn", "sersicn_step", "ellipticity")},
     only_own_keys=True,
     summary=summary,

@@ -61,7 +61,15 @@ def summary(table: Mapping[str, Any]) -> str:
 
 
 PROFILE = GalaxyProfile(
-    "sersic", "a Sérsic galaxy (GalSim `Sersic`), sheared by its ellipticity; the paper's galaxies",
+    "sersic",
+    "a Sérsic galaxy (GalSim `Sersic`), sheared by its ellipticity; the paper's galaxies",
     (SERSICN, SERSICN_STEP, *PARAMETRIC_OPTIONS),
-    (RAD_REQUIRED, ONE_FLUX, Required("sersicn", "Sersic index")), parse, truth, build,
-    truth_columns=("tru_sersicn",), fast="sersic", check=check, summary=summary)
+    (RAD_REQUIRED, ONE_FLUX, Required("sersicn", "Sersic index")),
+    parse,
+    truth,
+    build,
+    truth_columns=("tru_sersicn",),
+    fast="sersic",
+    check=check,
+    summary=summary,
+)
