@@ -1,4 +1,5 @@
-"""The ``megalut`` program: the console script (``megalut_cli.__main__:run``) and ``python -m megalut_cli``.
+"""The ``megalut`` program: the console script (``megalut_cli.__main__:run``) and
+``python -m megalut_cli``.
 
 Ctrl-C prints one line and exits with 130 at any moment. The command group handles it while
 a command runs (temporary outputs are removed on the way up); :func:`run` covers the

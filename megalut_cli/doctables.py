@@ -1,4 +1,5 @@
-"""The option tables of ``docs/*.md``, generated from the declarations: ``python -m megalut_cli.doctables``.
+"""The option tables of ``docs/*.md``, generated from the declarations:
+``python -m megalut_cli.doctables``.
 
 A table sits between ``<!-- table: NAME -->`` and ``<!-- end table -->`` lines; NAME is a
 key of :data:`TABLES`. Running this module rewrites them; ``tests/test_schema.py`` checks

@@ -52,8 +52,8 @@ STARS_OPTION = Option(
     "stars",
     "path",
     None,
-    "A star catalog (`megalut measure STARFIELD -o STARS --stars`): the PSF is drafted from its stars' "
-    "psf_adamom_* instead of the catalog's own psf_adamom_* columns.",
+    "A star catalog (`megalut measure STARFIELD -o STARS --stars`): the PSF is drafted from its "
+    "stars' psf_adamom_* instead of the catalog's own psf_adamom_* columns.",
     metavar="STARS.fits",
 )
 
@@ -86,7 +86,8 @@ STRUCTURE, PSF, NOISE, GALAXY = (
 
 @dataclass(frozen=True)
 class Drafted:
-    """A value of the pipeline file set from the data: its table and key, and where it comes from."""
+    """A value of the pipeline file set from the data: its table and key, and where it comes
+    from."""
 
     table: str
     key: str
@@ -242,7 +243,8 @@ def galaxy_moments(
 ) -> tuple[float, float]:
     """``(adamom_flux per unit flux, adamom_sigma)``: HSM of a round Sérsic galaxy (half-light
     radius ``rad``, index ``sersicn``, flux 1) convolved with ``psf`` (a ``[psf]`` table) and
-    drawn with the pixel on a stamp of ``stamp_size``, as the simulation draws it; NaN if HSM fails."""
+    drawn with the pixel on a stamp of ``stamp_size``, as the simulation draws it; NaN if HSM
+    fails."""
     import galsim
 
     gal = galsim.Sersic(n=sersicn, half_light_radius=rad)
@@ -289,8 +291,8 @@ def _stamp_size(
                     Note(
                         STRUCTURE,
                         f"the MEDS box sizes vary ({', '.join(str(int(v)) for v in values[:8])}"
-                        f"{', ...' if values.size > 8 else ''}): the simulation draws every stamp at the "
-                        f"median, {size} px",
+                        f"{', ...' if values.size > 8 else ''}): the simulation draws every stamp "
+                        f"at the median, {size} px",
                         warning=True,
                     )
                 )
@@ -366,8 +368,8 @@ def _draft_psf(
             ok &= np.isfinite(np.asarray(cat[name], dtype=float))
     if not ok.any():
         raise InputError(
-            f"{where}: no usable PSF measurement: every one of the {len(s_all)} {what} is flagged or "
-            "has no finite psf_adamom_sigma"
+            f"{where}: no usable PSF measurement: every one of the {len(s_all)} {what} is flagged "
+            "or has no finite psf_adamom_sigma"
         )
     s = s_all[ok]
     n = int(ok.sum())
@@ -376,8 +378,8 @@ def _draft_psf(
     counted = f"the one PSF of all {n} {what}" if one else f"{n} {what}"
     if s_med**2 <= PIXEL_VARIANCE * 1.5:
         raise InputError(
-            f"{where}: the PSF's median psf_adamom_sigma is {_fmt(s_med)} px: smaller than the pixel "
-            "allows a drafted PSF (undersampled stars); write [simulation.psf] by hand"
+            f"{where}: the PSF's median psf_adamom_sigma is {_fmt(s_med)} px: smaller than the "
+            "pixel allows a drafted PSF (undersampled stars); write [simulation.psf] by hand"
         )
     sigma = math.sqrt(s_med**2 - PIXEL_VARIANCE)
     measured = (
@@ -391,11 +393,11 @@ def _draft_psf(
         notes.append(
             Note(
                 PSF,
-                f"the PSF varies across the field: psf_adamom_sigma 5-95 % spans {_fmt(lo)}-{_fmt(hi)} "
-                f"px, {100 * (hi - lo) / s_med:.0f} % of its median (more than "
-                f"{100 * PSF_SPREAD_VARIES:.0f} %); one PSF cannot train networks for all of it: see "
-                "examples/varpsf (a PSF varying with the field position, PSF features given to the "
-                "networks)",
+                "the PSF varies across the field: psf_adamom_sigma 5-95 % spans "
+                f"{_fmt(lo)}-{_fmt(hi)} px, {100 * (hi - lo) / s_med:.0f} % of its median (more "
+                f"than {100 * PSF_SPREAD_VARIES:.0f} %); one PSF cannot train networks for all of "
+                "it: see examples/varpsf (a PSF varying with the field position, PSF features "
+                "given to the networks)",
                 warning=True,
             )
         )
@@ -412,15 +414,16 @@ def _draft_psf(
         notes.append(
             Note(
                 PSF,
-                f"no psf_adamom_rho4 in {where}: the PSF's profile is not known; a Gaussian is drafted",
+                f"no psf_adamom_rho4 in {where}: the PSF's profile is not known; a Gaussian is "
+                "drafted",
             )
         )
     elif abs(rho4 - gauss_rho4) <= RHO4_TOLERANCE:
         notes.append(
             Note(
                 PSF,
-                f"median psf_adamom_rho4 {_fmt(rho4)}, a Gaussian's of this size {_fmt(gauss_rho4)} "
-                f"(within {RHO4_TOLERANCE}): Gaussian",
+                f"median psf_adamom_rho4 {_fmt(rho4)}, a Gaussian's of this size "
+                f"{_fmt(gauss_rho4)} (within {RHO4_TOLERANCE}): Gaussian",
             )
         )
     else:
@@ -431,9 +434,9 @@ def _draft_psf(
             notes.append(
                 Note(
                     PSF,
-                    f"median psf_adamom_rho4 {_fmt(rho4)}, a Gaussian's of this size {_fmt(gauss_rho4)}: "
-                    f"the PSF has wings; a Moffat of beta {_fmt(beta)} has the measured sigma and rho4 "
-                    f"({_fmt(fit_rho4)}) when drawn with the pixel",
+                    f"median psf_adamom_rho4 {_fmt(rho4)}, a Gaussian's of this size "
+                    f"{_fmt(gauss_rho4)}: the PSF has wings; a Moffat of beta {_fmt(beta)} has the "
+                    f"measured sigma and rho4 ({_fmt(fit_rho4)}) when drawn with the pixel",
                     warning=True,
                 )
             )
@@ -467,9 +470,10 @@ def _draft_psf(
             notes.append(
                 Note(
                     PSF,
-                    f"median psf_adamom_rho4 {_fmt(rho4)}, a Gaussian's of this size {_fmt(gauss_rho4)}: "
-                    f"the PSF is {shape}, which no supported profile matches; a Gaussian of the same size "
-                    'is drafted (a star image, type = "stamp", docs/config.md, would fit better)',
+                    f"median psf_adamom_rho4 {_fmt(rho4)}, a Gaussian's of this size "
+                    f"{_fmt(gauss_rho4)}: the PSF is {shape}, which no supported profile matches; "
+                    'a Gaussian of the same size is drafted (a star image, type = "stamp", '
+                    "docs/config.md, would fit better)",
                     warning=True,
                 )
             )
@@ -491,9 +495,10 @@ def _draft_psf(
             notes.append(
                 Note(
                     PSF,
-                    f"the PSF is elliptical: median psf_adamom_g1, g2 = {_fmt_g(g1m)}, {_fmt_g(g2m)} "
-                    f"(|g| = {_fmt_g(g)} > {PSF_G_SMALL}); the drafted PSF is sheared by them (divided by the "
-                    f"pixel's dilution {_fmt(1 / dilution)})",
+                    "the PSF is elliptical: median psf_adamom_g1, g2 = "
+                    f"{_fmt_g(g1m)}, {_fmt_g(g2m)} (|g| = {_fmt_g(g)} > {PSF_G_SMALL}); the "
+                    "drafted PSF is sheared by them (divided by the pixel's dilution "
+                    f"{_fmt(1 / dilution)})",
                     warning=not one,
                 )
             )
@@ -506,8 +511,8 @@ def _draft_psf(
             notes.append(
                 Note(
                     PSF,
-                    f"the PSF is round: median psf_adamom_g1, g2 = {_fmt_g(g1m)}, {_fmt_g(g2m)} (|g| = "
-                    f"{_fmt_g(g)} <= {PSF_G_SMALL})",
+                    f"the PSF is round: median psf_adamom_g1, g2 = {_fmt_g(g1m)}, {_fmt_g(g2m)} "
+                    f"(|g| = {_fmt_g(g)} <= {PSF_G_SMALL})",
                 )
             )
     return values, removed, psf
@@ -589,10 +594,10 @@ def _draft_galaxies(
     sim_lo = galaxy_moments(r_min, n_max, psf, stamp_size)[1]
     sim_hi = galaxy_moments(r_max, n_min, psf, stamp_size)[1]
     said.append(
-        f"adamom_sigma of the {sizes.size} rows with snr > {SIZE_SNR_MIN:g}: 5-95 % {_fmt(q_lo)}-{_fmt(q_hi)} "
-        f"px; the simulated galaxies, drawn with the drafted PSF on {stamp_size}-px stamps, span "
-        f"{_fmt(sim_lo)} px (rad {_fmt(r_min)}, sersicn {_fmt(n_max)}) to {_fmt(sim_hi)} px (rad {_fmt(r_max)}, "
-        f"sersicn {_fmt(n_min)})"
+        f"adamom_sigma of the {sizes.size} rows with snr > {SIZE_SNR_MIN:g}: 5-95 % "
+        f"{_fmt(q_lo)}-{_fmt(q_hi)} px; the simulated galaxies, drawn with the drafted PSF on "
+        f"{stamp_size}-px stamps, span {_fmt(sim_lo)} px (rad {_fmt(r_min)}, sersicn "
+        f"{_fmt(n_max)}) to {_fmt(sim_hi)} px (rad {_fmt(r_max)}, sersicn {_fmt(n_min)})"
     )
     new_min, new_max = r_min, r_max
     if math.isfinite(sim_hi) and q_hi > sim_hi:
@@ -600,15 +605,16 @@ def _draft_galaxies(
         found = _radius_for(q_hi, n_min, psf, stamp_size, r_max, hi)
         new_max = math.ceil(10 * found) / 10 if found is not None else hi
         said.append(
-            f"rad max raised to {_fmt(new_max)}: a sersicn {_fmt(n_min)} galaxy of that rad has the data's "
-            "95 % size" + ("" if found is not None else " (not reached: the largest tried)")
+            f"rad max raised to {_fmt(new_max)}: a sersicn {_fmt(n_min)} galaxy of that rad has "
+            "the data's 95 % size"
+            + ("" if found is not None else " (not reached: the largest tried)")
         )
     if math.isfinite(sim_lo) and q_lo < sim_lo:
         found = _radius_for(q_lo, n_max, psf, stamp_size, RAD_FLOOR, r_min)
         new_min = max(RAD_FLOOR, math.floor(10 * found) / 10) if found is not None else RAD_FLOOR
         said.append(
-            f"rad min lowered to {_fmt(new_min)}: a sersicn {_fmt(n_max)} galaxy of that rad has the data's "
-            "5 % size"
+            f"rad min lowered to {_fmt(new_min)}: a sersicn {_fmt(n_max)} galaxy of that rad has "
+            "the data's 5 % size"
             + ("" if found is not None else f" (not reached: the smallest allowed, {RAD_FLOOR} px)")
         )
     if (new_min, new_max) != (r_min, r_max):
@@ -617,7 +623,8 @@ def _draft_galaxies(
                 GALAXY,
                 "rad",
                 {"type": "uniform", "min": float(_fmt(new_min)), "max": float(_fmt(new_max))},
-                f"the fiducial {_fmt(r_min)}-{_fmt(r_max)} px widened to the data's sizes (see above)",
+                f"the fiducial {_fmt(r_min)}-{_fmt(r_max)} px widened to the data's sizes "
+                "(see above)",
             )
         )
 
@@ -635,22 +642,23 @@ def _draft_galaxies(
         snr_lo = min(snr_of(sb_min, new_min, x) for x in ends)
         snr_hi = max(snr_of(sb_max, new_max, x) for x in ends)
         said.append(
-            f"snr of the {snrs.size} unflagged rows: 5-95 % {_fmt(s_lo)}-{_fmt(s_hi)}; the simulated galaxies "
-            f"(Eq. 10, noise sigma {_fmt(noise_sigma)}) span {_fmt(snr_lo)} (sb {_fmt(sb_min)}, rad "
-            f"{_fmt(new_min)}) to {_fmt(snr_hi)} (sb {_fmt(sb_max)}, rad {_fmt(new_max)})"
+            f"snr of the {snrs.size} unflagged rows: 5-95 % {_fmt(s_lo)}-{_fmt(s_hi)}; the "
+            f"simulated galaxies (Eq. 10, noise sigma {_fmt(noise_sigma)}) span {_fmt(snr_lo)} "
+            f"(sb {_fmt(sb_min)}, rad {_fmt(new_min)}) to {_fmt(snr_hi)} (sb {_fmt(sb_max)}, rad "
+            f"{_fmt(new_max)})"
         )
         new_sb = [sb_min, sb_max]
         if math.isfinite(snr_hi) and s_hi > snr_hi:
             new_sb[1] = math.ceil(10 * sb_max * s_hi / snr_hi) / 10
             said.append(
-                f"sb max raised to {_fmt(new_sb[1])}: the brightest simulated galaxy then has the data's 95 % "
-                "snr (snr is proportional to sb)"
+                f"sb max raised to {_fmt(new_sb[1])}: the brightest simulated galaxy then has the "
+                "data's 95 % snr (snr is proportional to sb)"
             )
         if math.isfinite(snr_lo) and 0 < s_lo < snr_lo:
             new_sb[0] = max(0.1, math.floor(10 * sb_min * s_lo / snr_lo) / 10)
             said.append(
-                f"sb min lowered to {_fmt(new_sb[0])}: the faintest simulated galaxy then has the data's 5 % "
-                "snr"
+                f"sb min lowered to {_fmt(new_sb[0])}: the faintest simulated galaxy then has the "
+                "data's 5 % snr"
             )
         if new_sb != [sb_min, sb_max]:
             drafted.append(
@@ -662,7 +670,8 @@ def _draft_galaxies(
                         "min": float(_fmt(new_sb[0])),
                         "max": float(_fmt(new_sb[1])),
                     },
-                    f"the fiducial {_fmt(sb_min)}-{_fmt(sb_max)} widened to the data's snr (see above)",
+                    f"the fiducial {_fmt(sb_min)}-{_fmt(sb_max)} widened to the data's snr "
+                    "(see above)",
                 )
             )
     if drafted:
@@ -757,8 +766,8 @@ def draft_setup(
             notes.append(
                 Note(
                     PSF,
-                    f"from the stars of {stars_name}; the psf_adamom_sigma of {features_name}'s own rows: "
-                    f"{_spread(own, ' px')}",
+                    f"from the stars of {stars_name}; the psf_adamom_sigma of {features_name}'s "
+                    f"own rows: {_spread(own, ' px')}",
                 )
             )
     gain = header.get("GAIN")
@@ -766,10 +775,10 @@ def draft_setup(
         notes.append(
             Note(
                 NOISE,
-                f"{features_name} was measured with a gain of {gain} e-/ADU (its snr: Eq. 8, with the "
-                "galaxies' own Poisson noise); the simulated sets' snr, with this Gaussian noise, is Eq. 10: "
-                "compare snr cuts with that in mind (CCD noise with a gain: docs/config.md, noise type "
-                '"ccd")',
+                f"{features_name} was measured with a gain of {gain} e-/ADU (its snr: Eq. 8, with "
+                "the galaxies' own Poisson noise); the simulated sets' snr, with this Gaussian "
+                "noise, is Eq. 10: compare snr cuts with that in mind (CCD noise with a gain: "
+                'docs/config.md, noise type "ccd")',
             )
         )
     base_galaxy = base.get("simulation", {}).get("galaxy", {})
@@ -782,8 +791,8 @@ def draft_setup(
             Note(
                 "reference",
                 f"the shipped model {reference!r} was trained on the fiducial setup (PSF sigma "
-                "2 px, noise sigma 1, 64-px stamps): on this setup its table shows how far off it is; "
-                "remove [reference] to skip it",
+                "2 px, noise sigma 1, 64-px stamps): on this setup its table shows how far off it "
+                "is; remove [reference] to skip it",
             )
         )
     inputs = (features_name,) if stars is None else (features_name, stars_name)
@@ -900,10 +909,11 @@ def render_pipeline(draft: Draft, base_text: str | None = None) -> str:
             break
     head = [
         *_comment(
-            f"Drafted by `megalut draft` from {' and '.join(draft.inputs)}: the default pipeline of `megalut "
-            "run` (below) with the stamp size, PSF and noise measured on your data; each drafted value says "
-            "where it comes from, and the comments above its table what the draft did not decide (WARNING: "
-            "where the setup may need more). Check them, then `megalut run THIS_FILE --dry-run`."
+            f"Drafted by `megalut draft` from {' and '.join(draft.inputs)}: the default pipeline "
+            "of `megalut run` (below) with the stamp size, PSF and noise measured on your data; "
+            "each drafted value says where it comes from, and the comments above its table what "
+            "the draft did not decide (WARNING: where the setup may need more). Check them, then "
+            "`megalut run THIS_FILE --dry-run`."
         ),
         "#",
     ]

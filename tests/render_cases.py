@@ -1,4 +1,5 @@
-"""Render test cases shared by the renderer and device tests: random galaxies, PSFs, a star field."""
+"""Render test cases shared by the renderer and device tests: random galaxies, PSFs, a star
+field."""
 
 from __future__ import annotations
 

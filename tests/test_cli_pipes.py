@@ -1,4 +1,5 @@
-"""Shell pipelines: '-' is stdout for -o and --json, stdin for catalog inputs; logs stay on stderr."""
+"""Shell pipelines: '-' is stdout for -o and --json, stdin for catalog inputs; logs stay on
+stderr."""
 
 from __future__ import annotations
 
@@ -169,7 +170,7 @@ def test_real_shell_pipeline_and_closed_pipe(sim):
     """Through real pipes: stdout carries only FITS bytes, and `| head` ends quietly."""
     env = {**os.environ, "MEGALUT_NPROC": "1"}
     cmd = (
-        f"{' '.join(_megalut('measure', str(sim / 'stamps.fits'), str(sim / 'cat.fits'), '-o', '-'))}"
+        f"{' '.join(_megalut('measure', str(sim / 'stamps.fits'), str(sim / 'cat.fits'), '-o', '-'))}"  # noqa: E501
         f" | {' '.join(_megalut('predict', '-', '--model', str(sim / 'model.h5'), '-o', '-'))}"
         f" | {' '.join(_megalut('evaluate', '-'))}"
     )
@@ -186,7 +187,10 @@ def test_real_shell_pipeline_and_closed_pipe(sim):
     assert "unweighted" in done.stdout
     assert "Traceback" not in done.stderr
 
-    cmd = f"{' '.join(_megalut('measure', str(sim / 'stamps.fits'), '-o', '-'))} | head -c 100 > /dev/null"
+    cmd = (
+        f"{' '.join(_megalut('measure', str(sim / 'stamps.fits'), '-o', '-'))}"
+        " | head -c 100 > /dev/null"
+    )
     done = subprocess.run(
         ["bash", "-o", "pipefail", "-c", cmd],
         capture_output=True,

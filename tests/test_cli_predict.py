@@ -165,7 +165,8 @@ def test_dask_scheduler(runner, cli, setup):
 
 
 def test_identity_model_then_evaluate(runner, cli, tmp_path):
-    """A linear committee returning adamom_g1/adamom_g2 on unbiased features: evaluate finds m, c ~ 0."""
+    """A linear committee returning adamom_g1/adamom_g2 on unbiased features: evaluate finds
+    m, c ~ 0."""
     from megalut_cli.nn.model import Committee, Member
 
     def identity(target: str, k: int) -> Committee:

@@ -61,8 +61,8 @@ def test_crn_error_on_m_is_several_times_smaller_and_both_are_right(tmp_path):
             scatter = float(np.sqrt(np.mean(np.var(m, axis=0, ddof=1))))
             quoted[(kind, scheme)] = float(np.mean(err))
             print(
-                f"{kind:12} {scheme:10} mean m {np.mean(m):+.4f}  scatter of m over {len(runs)} seeds "
-                f"{scatter:.4f}  mean quoted error {np.mean(err):.4f}"
+                f"{kind:12} {scheme:10} mean m {np.mean(m):+.4f}  scatter of m over "
+                f"{len(runs)} seeds {scatter:.4f}  mean quoted error {np.mean(err):.4f}"
             )
             # right within what 6 seeds x 2 components (10 degrees of freedom) can tell
             assert 0.5 < np.mean(err) / scatter < 2.0, (kind, scheme, scatter, np.mean(err))

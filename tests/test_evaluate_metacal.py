@@ -1,4 +1,5 @@
-"""The metacal calibration of ``evaluate`` (shear/evaluate.py, shear/paired.py) on synthetic catalogs."""
+"""The metacal calibration of ``evaluate`` (shear/evaluate.py, shear/paired.py) on synthetic
+catalogs."""
 
 from __future__ import annotations
 

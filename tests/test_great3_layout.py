@@ -24,7 +24,8 @@ def test_names():
 @pytest.mark.parametrize("size", [48, 96])
 def test_grid_centres_and_ids_follow_great3_builder(size):
     """great3sims: x = (xmin + xmax) // 2 with xmin = col S, xmax = (col + 1) S - 1;
-    x_field_pos = (x + 1 + S/2) // S - 1 (= column); ID = 1e6 subfield + 1e3 x_field_pos + y_field_pos."""
+    x_field_pos = (x + 1 + S/2) // S - 1 (= column);
+    ID = 1e6 subfield + 1e3 x_field_pos + y_field_pos."""
     cat = L.galaxy_catalog(17, 5, 3, size)
     col, row = np.arange(15) % 5, np.arange(15) // 5
     xmin, xmax = col * size, (col + 1) * size - 1
@@ -44,7 +45,8 @@ def test_text_catalog_great3_style(tmp_path):
     """GREAT3's writeCatalog: one '# name' line per column, then numpy.savetxt rows (%.18e)."""
     p = tmp_path / "galaxy_catalog-000.txt"
     p.write_text(
-        "# x\n# y\n# ID\n2.300000000000000000e+01 2.300000000000000000e+01 0.000000000000000000e+00\n"
+        "# x\n# y\n# ID\n"
+        "2.300000000000000000e+01 2.300000000000000000e+01 0.000000000000000000e+00\n"
         "7.100000000000000000e+01 2.300000000000000000e+01 1.000000000000000000e+03\n"
     )
     t = catalog.read_text_catalog(p)
@@ -203,7 +205,8 @@ def test_truth_files(tmp_path):
 def test_subfield_files_and_stamp_size(tmp_path):
     with pytest.raises(
         InputError,
-        match="subfield 4: missing image-004-0.fits, galaxy_catalog-004.txt, starfield_image-004-0.fits",
+        match="subfield 4: missing image-004-0.fits, galaxy_catalog-004.txt, "
+        "starfield_image-004-0.fits",
     ):
         L.subfield_files(tmp_path, 4)
     for name in (L.image_name(4), L.galaxy_catalog_name(4, "fits"), L.starfield_name(4)):

@@ -269,7 +269,8 @@ def test_skip_existing_and_refusal(runner, cli, branch, tmp_path):
         )
     )
     assert _ran_at(w) != ran
-    # a work folder of the previous megalut (its own manifest format): refused, one line naming --overwrite
+    # a work folder of the previous megalut (its own manifest format): refused, one line naming
+    # --overwrite
     man = w / P.MANIFEST
     man.write_text(
         json.dumps({"format": "megalut.great3-run", "format_version": "1.0", "subfields": {}})
@@ -304,7 +305,8 @@ def test_keep_going_with_a_corrupted_subfield(runner, cli, branch, tmp_path):
     _error_line(r, 1, "subfield 1", str(image), "NaN")
     for name in (P.SHEARS, P.SUBMISSION, P.EVALUATION):
         assert not (w / name).exists(), name
-    # the engine's manifest records the subfield finished before the failure (--skip-existing resumes)
+    # the engine's manifest records the subfield finished before the failure (--skip-existing
+    # resumes)
     assert {"subfield-000"} == set(json.loads((w / P.MANIFEST).read_text())["steps"])
     assert not (w / P.SUBFIELDS_DIR / "001").exists()
     assert not [

@@ -38,7 +38,8 @@ def test_true_ellipse_gives_exact_values():
     sig, g1, g2, off = 3.0, 0.2, 0.1, (0.25, -0.4)
     stamp = _draw(galsim.Gaussian(sigma=sig).shear(g1=g1, g2=g2), offset=off)[None]
     c = 32.5  # true centre of a 64-pixel stamp, 1-based
-    # GalSim's sigma of a sheared Gaussian is preserved (area-conserving shear): det(M)^(1/4) = sigma
+    # GalSim's sigma of a sheared Gaussian is preserved (area-conserving shear):
+    # det(M)^(1/4) = sigma
     out = morphology_features(stamp, [c + off[0]], [c + off[1]], [sig], [g1], [g2])
     # achieved <= 1.6e-9
     assert out["morph_conc"][0] == pytest.approx(5 / 8, abs=5e-9)

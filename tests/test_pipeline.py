@@ -91,8 +91,9 @@ def test_scaled_size() -> None:
 def test_set_tables_merge_and_typed_tables_replace(tmp_path: Path) -> None:
     text = TINY_PIPELINE.replace(
         'simulation = {structure = {per_realization = ["galaxy"], snc = "pairs"}}\n\n[train_point]',
-        'simulation = {structure = {per_realization = ["galaxy"], snc = "pairs"}, noise = {sigma = 0.5}, '
-        'galaxy = {rad = {type = "constant", value = 2.5}}}\n\n[train_point]',
+        'simulation = {structure = {per_realization = ["galaxy"], snc = "pairs"}, '
+        'noise = {sigma = 0.5}, galaxy = {rad = {type = "constant", value = 2.5}}}\n\n'
+        "[train_point]",
     )
     assert text != TINY_PIPELINE
     pipe = load_pipeline(write_pipeline(tmp_path, text))

@@ -107,7 +107,8 @@ def test_check_workdir_refuses_products_without_a_flag(tmp_path: Path) -> None:
     (tmp_path / "b.txt").write_text("old")
     with pytest.raises(
         MegalutError,
-        match="b.txt exists; use skip_existing=True to reuse the up-to-date products or overwrite=True to redo",
+        match="b.txt exists; use skip_existing=True to reuse the up-to-date products or "
+        "overwrite=True to redo",
     ):
         check_workdir(tmp_path, steps, False, False)
     check_workdir(tmp_path, steps, True, False)
@@ -222,7 +223,8 @@ def test_units_keep_going(tmp_path: Path) -> None:
     wd.mkdir()
     (tmp_path / "src").mkdir()
     (tmp_path / "src" / "2.txt").write_text("bad")
-    # without keep_going the first failure stops the run, naming the unit; earlier units are recorded
+    # without keep_going the first failure stops the run, naming the unit; earlier units are
+    # recorded
     with pytest.raises(MegalutError, match=r"^unit 2: .*2.txt: bad content$"):
         run_steps(toy_units(tmp_path), wd, RUN)
     assert _calls(tmp_path) == [0, 1] and not (wd / "total.txt").exists()

@@ -20,7 +20,9 @@ def _cfg(tmp_path, per, snc, n_rea=8, shear=True, extra=()):
     }
     if not shear:
         replace[
-            '[shear]\ng1 = {type = "uniform", min = -0.1, max = 0.1}\ng2 = {type = "uniform", min = -0.1, max = 0.1}\n'
+            "[shear]\n"
+            'g1 = {type = "uniform", min = -0.1, max = 0.1}\n'
+            'g2 = {type = "uniform", min = -0.1, max = 0.1}\n'
         ] = ""
     return load_config(write(tmp_path, replace=replace), list(extra))
 

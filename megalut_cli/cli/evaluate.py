@@ -22,7 +22,8 @@ EXIT_OUT_OF_TOLERANCE = 3
 
 
 def _plot_suffix(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
-    """``--plot``'s file type, checked while the options are read (a usage error, before any work)."""
+    """``--plot``'s file type, checked while the options are read (a usage error, before any
+    work)."""
     if value is not None:
         from megalut_cli.errors import ArgumentValueError
         from megalut_cli.shear.plots import check_plot_suffix
@@ -80,9 +81,9 @@ def _plot_suffix(ctx: click.Context, param: click.Parameter, value: str | None) 
     "twin_path",
     type=click.Path(exists=True, dir_okay=False),
     default=None,
-    help="Paired evaluation: SHEARS holds real galaxies and TWIN their Sersic twins, simulated from one "
-    "config and seed; prints m, c of both and m_real - m_twin with paired-bootstrap errors over galaxies "
-    "(--bootstrap resamples, --seed; docs/realgal.md).",
+    help="Paired evaluation: SHEARS holds real galaxies and TWIN their Sersic twins, simulated "
+    "from one config and seed; prints m, c of both and m_real - m_twin with paired-bootstrap "
+    "errors over galaxies (--bootstrap resamples, --seed; docs/realgal.md).",
 )
 @schema_option(EVALUATE_CLI["errors"], show_default=True)
 @schema_option(EVALUATE_CLI["bootstrap"], show_default=True)

@@ -82,7 +82,8 @@ def command(
 
     The default is the paper's fiducial setup (Sect. 5) scaled down to under 10 minutes on
     2 cores. Before the first step, every step is logged with its size, the simulations with
-    a time estimated from a tiny calibration draw; --dry-run stops there. KEY=VALUE arguments override pipeline keys (dotted names, TOML values), e.g.
+    a time estimated from a tiny calibration draw; --dry-run stops there. KEY=VALUE arguments
+    override pipeline keys (dotted names, TOML values), e.g.
     scale=0.01 (the fraction of the stamps of every set), sets.vo.seed=7 or
     train_point.iterations=300. The file format is in docs/pipeline.md.
 

@@ -39,7 +39,8 @@ _HIDDEN = POINT_OPTION["hidden"].with_default(
 @schema_option(_FEATURES)
 @schema_option(POINT_OPTION["targets"])
 @validation_options(
-    "Validation catalog (monitoring and member selection). Default: hold out --valid-fraction of the cases."
+    "Validation catalog (monitoring and member selection). Default: hold out --valid-fraction "
+    "of the cases."
 )
 @schema_option(_HIDDEN)
 @committee_options("point")
@@ -71,8 +72,8 @@ def command(
 ) -> None:
     """Train committees of neural networks predicting TARGETS from FEATURES.
 
-    TRAIN is a catalog (FITS; '-': stdin) with one row per realization, grouped into cases by its `case`
-    column; within a case all realizations share the target value. Each committee member
+    TRAIN is a catalog (FITS; '-': stdin) with one row per realization, grouped into cases by
+    its `case` column; within a case all realizations share the target value. Each committee member
     minimises the mean square bias (paper Eq. 3) with BFGS on random mini-batches of cases,
     is monitored on the validation cases after every iteration, and keeps its parameters of
     lowest validation cost; the best half of the members form the committee. Rows with

@@ -24,7 +24,8 @@ def padded_size(n: int, batch: int = BATCH_STAMPS) -> int:
 
 
 def split_measurements(res: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(moments (n, 7), skymad, finite)`` from :func:`megalut_cli.gpu.adamom.measure_batch` rows."""
+    """``(moments (n, 7), skymad, finite)`` from :func:`megalut_cli.gpu.adamom.measure_batch`
+    rows."""
     return res[:, :7], res[:, 9], res[:, 10] > 0
 
 

@@ -130,7 +130,8 @@ def catalog_stamp_size(x: np.ndarray, image_width: int) -> int:
     n = np.unique(np.round(np.asarray(x, dtype=float), 6)).size
     if n < 1 or image_width % n:
         raise InputError(
-            f"cannot infer the stamp size: {n} distinct x centres on a {image_width}-pixel-wide image"
+            f"cannot infer the stamp size: {n} distinct x centres on a {image_width}-pixel-wide "
+            "image"
         )
     return image_width // n
 

@@ -190,8 +190,8 @@ def _metacal_unit(
     if bad.any():
         x, y = stamp_centres(origins[bad][:1], size)[0]
         raise InputError(
-            f"{int(bad.sum())} stamp(s) hold NaN or infinite pixels (the first centred at x={x:g}, y={y:g}); "
-            "metacalibration needs whole stamps: cut those rows from the catalog"
+            f"{int(bad.sum())} stamp(s) hold NaN or infinite pixels (the first centred at x={x:g}, "
+            f"y={y:g}); metacalibration needs whole stamps: cut those rows from the catalog"
         )
     if mc.get("psf") is not None:
         psfs = mc["psf"]
@@ -275,10 +275,11 @@ def _run_units(
     """Measure stamps at ``origins``; stamps off the image get STAMP_OFF_IMAGE and NaN.
     With ``morphology``, the :data:`MORPHOLOGY_COLUMNS` too. On the (resolved) ``device``
     "gpu", the units run in this process. ``metacal``: ``{"step", "seed", "keys" (one per stamp:
-    its fixnoise field's, seeded in the worker), "psf" (one PSF image), "psf_info" (a grid of PSF stamps like the image) or "psf_model"
-    (below)}`` adds the metacal columns ``X_<type>``. ``psf_model``: ``{"path": a PSF model file,
-    "xy": (n, 2) 1-based positions in its exposure}``: the stamps measured are the model's PSFs
-    at those positions (drawn in the worker, :func:`.psf_model.cached_psf_model`), not the image's."""
+    its fixnoise field's, seeded in the worker), "psf" (one PSF image), "psf_info" (a grid of
+    PSF stamps like the image) or "psf_model" (below)}`` adds the metacal columns ``X_<type>``.
+    ``psf_model``: ``{"path": a PSF model file, "xy": (n, 2) 1-based positions in its
+    exposure}``: the stamps measured are the model's PSFs at those positions (drawn in the
+    worker, :func:`.psf_model.cached_psf_model`), not the image's."""
     if device == "gpu" and not scheduler:
         nproc = 1
     n = len(origins)
@@ -409,16 +410,18 @@ def _metacal_psf(
     gal_scale, psf_scale = pixel_scale(gal_info.header), pixel_scale(psf_info.header)
     if gal_scale is not None and psf_scale is not None and abs(psf_scale / gal_scale - 1) > 1e-3:
         raise InputError(
-            f"{psf_path}: PSF pixels of {psf_scale:g} arcsec for galaxy pixels of {gal_scale:g} arcsec "
-            f"({gal_info.path}); {name('metacal')} needs the PSF at the galaxy image's pixel scale"
+            f"{psf_path}: PSF pixels of {psf_scale:g} arcsec for galaxy pixels of {gal_scale:g} "
+            f"arcsec ({gal_info.path}); {name('metacal')} needs the PSF at the galaxy image's "
+            "pixel scale"
         )
     if psf_info.shape == gal_info.shape:
         return {"psf_info": dataclasses.replace(psf_info, path=os.path.abspath(psf_path))}
     stamp = single_psf_stamp(psf_path, size)
     if stamp.shape[0] % 2 != size % 2:
         raise InputError(
-            f"{psf_path}: a {stamp.shape[0]}-pixel PSF stamp for {size}-pixel galaxy stamps: an even and an odd "
-            "size put their centres half a pixel apart; cut the PSF to a size of the same parity"
+            f"{psf_path}: a {stamp.shape[0]}-pixel PSF stamp for {size}-pixel galaxy stamps: an "
+            "even and an odd size put their centres half a pixel apart; cut the PSF to a size of "
+            "the same parity"
         )
     return {"psf": stamp}
 
@@ -469,8 +472,8 @@ def _psf_model_spec(
         model_scale = model.native_scale(*np.median(positions[ok], axis=0))
         if model_scale is not None and abs(model_scale / gal_scale - 1) > PIXEL_SCALE_TOLERANCE:
             log.warning(
-                "%s: the model's pixels are %.4g arcsec, %s's %.4g arcsec: the stamps should be cut "
-                "from the exposure the model was fit on",
+                "%s: the model's pixels are %.4g arcsec, %s's %.4g arcsec: the stamps should be "
+                "cut from the exposure the model was fit on",
                 path,
                 model_scale,
                 gal_info.path,
@@ -496,7 +499,8 @@ def _psf_features(
     psf_model: dict[str, Any] | None = None,
 ) -> dict[str, np.ndarray]:
     """``psf_adamom_*`` and ``flags`` (PSF_FAILED) of each row: from a PSF image ``psf_path``, or
-    with ``psf_model`` (:func:`_run_units`'s) from the PSF model ``psf_path`` at each row's position."""
+    with ``psf_model`` (:func:`_run_units`'s) from the PSF model ``psf_path`` at each row's
+    position."""
     n = len(origins)
     res = None
     if psf_model is not None:
@@ -565,7 +569,8 @@ def check_belongs_together(
     catalog_path: str,
     catalog_header: dict[str, Any],
 ) -> None:
-    """Refuse a catalog whose provenance cards disagree with the stamp image's (another simulation)."""
+    """Refuse a catalog whose provenance cards disagree with the stamp image's (another
+    simulation)."""
 
     def short(value: Any) -> str:
         return (
@@ -581,8 +586,8 @@ def check_belongs_together(
     ]
     if diffs:
         raise InputError(
-            f"{catalog_path} does not belong to {stamps_path} (catalog vs image: {'; '.join(diffs)}); "
-            "pass the catalog written with these stamps"
+            f"{catalog_path} does not belong to {stamps_path} (catalog vs image: "
+            f"{'; '.join(diffs)}); pass the catalog written with these stamps"
         )
 
 
@@ -746,7 +751,8 @@ def measure_file_columns(
         ]
         if wrong:
             raise ConfigError(
-                f"{stamps_path} is a MEDS file (each object has its box_size): leave out {', '.join(wrong)}"
+                f"{stamps_path} is a MEDS file (each object has its box_size): leave out "
+                f"{', '.join(wrong)}"
             )
         options = MedsOptions(
             cutout=cutout,
@@ -782,11 +788,13 @@ def measure_file_columns(
         raise ConfigError(f"{name('origin')} must be 0 or 1, got {origin}")
     if metacal and psf_path is None and psf_model_path is None:
         raise ConfigError(
-            f"{name('metacal')} needs {name('psf_path')} or {name('psf_model_path')}: the PSF to deconvolve each stamp by"
+            f"{name('metacal')} needs {name('psf_path')} or {name('psf_model_path')}: the PSF to "
+            "deconvolve each stamp by"
         )
     if metacal and not 0 < metacal_step <= MEASURE["metacal_step"].maximum:
         raise ConfigError(
-            f"{name('metacal_step')} must be in (0, {MEASURE['metacal_step'].maximum}], got {metacal_step}"
+            f"{name('metacal_step')} must be in (0, {MEASURE['metacal_step'].maximum}], got "
+            f"{metacal_step}"
         )
     stamps_path = str(stamps_path)
     info = image_info(stamps_path)
@@ -811,8 +819,9 @@ def measure_file_columns(
         log.info("%s: no stamp size given: a 3x3 grid of %d-pixel stars", stamps_path, stamp_size)
     if stamp_size is not None and info.header.get("STAMPSZ") not in (None, stamp_size):
         raise InputError(
-            f"{stamps_path}: stamp size {stamp_size} ({name('stamp_size')}) contradicts the image's STAMPSZ = "
-            f"{info.header.get('STAMPSZ')} card; leave {name('stamp_size')} out to use the card"
+            f"{stamps_path}: stamp size {stamp_size} ({name('stamp_size')}) contradicts the "
+            f"image's STAMPSZ = {info.header.get('STAMPSZ')} card; leave {name('stamp_size')} out "
+            "to use the card"
         )
     size = stamp_size_of(info, stamp_size, name("stamp_size"))
     n_y, n_x = check_grid(info, size)

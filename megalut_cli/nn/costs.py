@@ -2,8 +2,9 @@
 
 Data are handled in a compact form: only the valid (unmasked) realizations are kept, one row
 each, with ``case`` giving the index (0..n_cases-1) of the case of every row (an array, or a
-prepared :class:`Groups`) and ``n`` the number of valid rows of each case. Masked realizations (failed measurements, padding of
-unequal case sizes, rows outside a selection) simply are not there. Each function returns
+prepared :class:`Groups`) and ``n`` the number of valid rows of each case. Masked
+realizations (failed measurements, padding of unequal case sizes, rows outside a selection)
+simply are not there. Each function returns
 ``(cost, d cost / d output)`` with the derivative per row, so that a network's backward pass
 turns it into the parameter gradient.
 

@@ -77,7 +77,8 @@ class CaseData:
         )
 
     def padded(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(X, mask, targets)``: X (n_cases, n_rea_max, n_features) zero-padded, mask True = valid."""
+        """``(X, mask, targets)``: X (n_cases, n_rea_max, n_features) zero-padded,
+        mask True = valid."""
         counts = self.counts
         r = int(counts.max()) if len(counts) else 0
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
@@ -157,7 +158,8 @@ def valid_rows(
 def _report_dropped(
     case: np.ndarray, empty: np.ndarray, measured: np.ndarray | None, where: str
 ) -> None:
-    """Log the dropped cases by why: a selection removed them (info), or no row was valid (warning)."""
+    """Log the dropped cases by why: a selection removed them (info), or no row was valid
+    (warning)."""
     if measured is not None:
         had_rows = np.isin(empty, case[np.asarray(measured, bool)])
         deselected, empty = empty[had_rows], empty[~had_rows]
@@ -207,7 +209,8 @@ def build_cases(
         bad = ~np.isfinite(t)
         if np.any(bad):
             raise InputError(
-                f"{where}: target {name} is not finite in {int(bad.sum())} row(s) (e.g. case {case[bad][0]})"
+                f"{where}: target {name} is not finite in {int(bad.sum())} row(s) (e.g. case "
+                f"{case[bad][0]})"
             )
     ids_all = np.unique(case)
     order = np.argsort(case[valid], kind="stable")
@@ -216,13 +219,15 @@ def build_cases(
     n_empty = len(ids_all) - len(ids)
     if len(ids) == 0:
         raise InputError(
-            f"{where}: no valid realization in any case (all rows flagged, non-finite or deselected)"
+            f"{where}: no valid realization in any case (all rows flagged, non-finite or "
+            "deselected)"
         )
     if n_empty:
         _report_dropped(case, np.setdiff1d(ids_all, ids), measured, where)
     if len(ids) < 2:
         raise InputError(
-            f"{where}: fewer than 2 cases with valid realizations ({len(ids)}); MSB training needs several cases"
+            f"{where}: fewer than 2 cases with valid realizations ({len(ids)}); MSB training needs "
+            "several cases"
         )
     index = index.ravel().astype(np.intp)
     counts = np.bincount(index, minlength=len(ids))
@@ -239,8 +244,8 @@ def build_cases(
         if np.any(bad):
             r, j = np.argwhere(bad)[0]
             raise InputError(
-                f"{where}: target {targets[j]} varies within case {ids[index[r]]}; MSB needs one target "
-                "value per case (use the MSE cost, or one case per target value)"
+                f"{where}: target {targets[j]} varies within case {ids[index[r]]}; MSB needs one "
+                "target value per case (use the MSE cost, or one case per target value)"
             )
     x = np.column_stack([np.asarray(columns[f], dtype=np.float64)[rows] for f in features])
     pt = None
@@ -261,7 +266,8 @@ def build_cases(
 def split_cases(
     n_cases: int, fraction: float, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Random ``(train, valid)`` case indices holding out ``fraction`` of the cases (both sorted)."""
+    """Random ``(train, valid)`` case indices holding out ``fraction`` of the cases (both
+    sorted)."""
     n_valid = max(1, int(round(fraction * n_cases)))
     perm = rng.permutation(n_cases)
     return np.sort(perm[n_valid:]), np.sort(perm[:n_valid])

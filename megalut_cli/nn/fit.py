@@ -98,7 +98,8 @@ def _validation_columns(
     columns, valid_mode = training_columns(valid)
     if valid_mode != mode:
         raise InputError(
-            f"{name('valid')} {valid} and {name('train')} {train}: one is a metacal catalog, the other not"
+            f"{name('valid')} {valid} and {name('train')} {train}: one is a metacal catalog, the "
+            "other not"
         )
     return columns
 
@@ -602,7 +603,8 @@ def _run(
     if settings.device == "gpu" and not scheduler:
         nproc = 1  # one process feeds the device
     log.info(
-        "training %d committee(s) x %d members, %d iterations each (%s, batches of %g of the cases x %d iterations)",
+        "training %d committee(s) x %d members, %d iterations each (%s, batches of %g of the "
+        "cases x %d iterations)",
         len(specs),
         specs[0].members,
         settings.iterations,
@@ -725,7 +727,8 @@ def train_weight(
     out = check_output(output, overwrite)
     if Path(out).resolve() == Path(model).resolve():
         raise ConfigError(
-            f"{namer(names)('output')} {output} would replace the input model; choose another output file"
+            f"{namer(names)('output')} {output} would replace the input model; choose another "
+            "output file"
         )
     if spec.select is not None:
         check_expression(spec.select, None, case_mode=False)
@@ -734,7 +737,8 @@ def train_weight(
     valid_columns = _validation_columns(train, valid, mode, namer(names))
     if point_model.shear_mode != mode:
         raise InputError(
-            f"{model} is a {point_model.shear_mode} model and {train} {'a metacal' if mode == 'metacal' else 'a plain'} "
+            f"{model} is a {point_model.shear_mode} model and {train} "
+            f"{'a metacal' if mode == 'metacal' else 'a plain'} "
             "catalog: train the weights on a catalog of the point model's mode"
         )
     result = fit_weight(

@@ -170,7 +170,8 @@ def model_report(model: Any) -> list[str]:
         what = "point estimates" if p.get("command") == "train-point" else "weights"
         if isinstance(pop, Mapping):
             lines.append(
-                f"model {what} trained on: {pop.get('summary') or population_summary(pop)} ({pop.get('config')})"
+                f"model {what} trained on: {pop.get('summary') or population_summary(pop)} "
+                f"({pop.get('config')})"
             )
         elif p.get("command"):
             lines.append(f"model {what}: training population not recorded in the model file")

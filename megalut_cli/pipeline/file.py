@@ -256,8 +256,8 @@ def _pretrain_spec(top: Table, has_set: bool) -> PointSpec | None:
     for k in ("features", "hidden"):
         if k in t.data:
             raise ConfigError(
-                f"pretrain.{k}: the pretraining uses the features and hidden layers of [train_point], "
-                "which continues from it; set them there"
+                f"pretrain.{k}: the pretraining uses the features and hidden layers of "
+                "[train_point], which continues from it; set them there"
             )
     table = Table(t.data, "pretrain", _PRETRAIN_KEYS)
     return read_spec(PointSpec, table, **TRAIN_TABLE_DEFAULTS["pretrain"])
@@ -281,7 +281,8 @@ def parse_pipeline(
     name = top.data.get("name", PIPELINE["name"].default)
     if not isinstance(name, str) or (name and not _NAME_RE.fullmatch(name)):
         raise ConfigError(
-            f"name: expected a folder name (letters, digits, '_', '-'; at most {MAX_NAME}), got {name!r}"
+            f"name: expected a folder name (letters, digits, '_', '-'; at most {MAX_NAME}), got "
+            f"{name!r}"
         )
     scale = top.option(PIPELINE["scale"])
     engine = top.option(PIPELINE["engine"])
@@ -359,7 +360,8 @@ def _reference_spec(
     t = Table(top.data["reference"], "reference", set(REFERENCE_OPTION))
     if t.data.get("model") is None:
         raise ConfigError(
-            f"reference.model: missing (a model file, or a shipped model: {', '.join(SHIPPED_MODELS)})"
+            "reference.model: missing (a model file, or a shipped model: "
+            f"{', '.join(SHIPPED_MODELS)})"
         )
     text = t.option(REFERENCE_OPTION["model"])
     if text in SHIPPED_MODELS:
@@ -375,7 +377,8 @@ def _reference_spec(
 
 
 def _check_pretrain(pre: PointSpec, point: PointSpec, spec: SetSpec) -> None:
-    """The pretrained committees must fit train_point, which starts from them (by name, else by position)."""
+    """The pretrained committees must fit train_point, which starts from them (by name, else by
+    position)."""
     for i, t in enumerate(point.targets):
         if t not in pre.targets and i >= len(pre.targets):
             raise ConfigError(
@@ -391,8 +394,9 @@ def _check_pretrain(pre: PointSpec, point: PointSpec, spec: SetSpec) -> None:
     ]  # change with the angle
     if pre.cost == "msb" and varying and (s.varies("angle") or s.snc != "none"):
         raise ConfigError(
-            f"sets.pretrain: the target {varying[0]} changes within a case (rotated realizations) but the "
-            'MSB cost needs one value per case: use per_realization = [] and snc = "none" (Fig. 6 structure)'
+            f"sets.pretrain: the target {varying[0]} changes within a case (rotated realizations) "
+            "but the MSB cost needs one value per case: use per_realization = [] and "
+            'snc = "none" (Fig. 6 structure)'
         )
 
 
@@ -426,7 +430,8 @@ def _check_columns(pipe: Pipeline) -> None:
     tp, tw, ev = pipe.train_point, pipe.train_weight, pipe.evaluate
     if not {"tru_g1", "tru_g2"} <= set(tp.targets):
         raise ConfigError(
-            "train_point.targets: the pipeline evaluates shear: the targets must include tru_g1, tru_g2"
+            "train_point.targets: the pipeline evaluates shear: the targets must include "
+            "tru_g1, tru_g2"
         )
     needs = [  # (key, columns, the sets that must have them)
         (
@@ -504,7 +509,8 @@ def _rebase_paths(raw: dict[str, Any], base_dir: Path) -> None:
 def read_pipeline_file(
     path: str | os.PathLike, _chain: tuple[Path, ...] = ()
 ) -> tuple[dict[str, Any], str]:
-    """Parse a pipeline file, merged over the file it ``extends`` (recursively); return (raw, sha256).
+    """Parse a pipeline file, merged over the file it ``extends`` (recursively); return
+    (raw, sha256).
 
     The sha256 covers every file of the chain. Relative set configs of an extended file
     stay relative to that file.

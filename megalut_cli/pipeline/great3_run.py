@@ -128,7 +128,8 @@ def as_shear_estimator(model: ShearModel, component: int) -> ShearModel:
             **comm.training,
             "estimates": f"tru_g{component}",
             "trained_on": comm.target,
-            "note": "ellipticity shortcut (paper Sects. 4.3, 8.2): the ellipticity estimate is the shear estimate",
+            "note": "ellipticity shortcut (paper Sects. 4.3, 8.2): the ellipticity estimate is "
+            "the shear estimate",
         }
         comm.target = f"tru_g{component}"
     return ShearModel(point={comm.target: comm}, provenance=model.provenance)
@@ -670,7 +671,7 @@ def format_summary(result: BranchRunResult) -> str:
 
         lines += [format_table(result.evaluation), ""]
     lines.append(
-        f"{len(result.summaries)} subfield(s); products in {result.workdir}/: {', '.join(result.products)} "
-        f"(and {SUBFIELDS_DIR}/SSS/)"
+        f"{len(result.summaries)} subfield(s); products in {result.workdir}/: "
+        f"{', '.join(result.products)} (and {SUBFIELDS_DIR}/SSS/)"
     )
     return "\n".join(lines)

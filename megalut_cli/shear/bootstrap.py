@@ -81,7 +81,8 @@ class GroupResampler:
         )
 
     def sums(self, counts: np.ndarray) -> dict[str, np.ndarray]:
-        """Per-key sums ``{name: (n_keys, b)}`` for the ``b`` resamples of ``counts`` (n_groups, b)."""
+        """Per-key sums ``{name: (n_keys, b)}`` for the ``b`` resamples of
+        ``counts`` (n_groups, b)."""
         total = np.asarray(self.matrix @ counts)
         return {k: total[i * self.n_keys : (i + 1) * self.n_keys] for i, k in enumerate(self.names)}
 

@@ -326,7 +326,8 @@ def format_paired(result: Mapping[str, Any]) -> str:
     a, b = result["names"]
     lines = (
         [
-            "metacal: pre_g*_noshear of each set calibrated by its mean response (mcal_r11, mcal_r22)",
+            "metacal: pre_g*_noshear of each set calibrated by its mean response "
+            "(mcal_r11, mcal_r22)",
             "",
         ]
         if result.get("metacal")
@@ -341,7 +342,8 @@ def format_paired(result: Mapping[str, Any]) -> str:
                 f"paired bootstrap of {first['n_boot']})"
             )
             lines.append(
-                f"{'':6}{'m_' + a:>22}{'m_' + b:>24}{'m_' + a + ' - m_' + b:>24}{'c_' + a + ' - c_' + b:>24}"
+                f"{'':6}{'m_' + a:>22}{'m_' + b:>24}"
+                f"{'m_' + a + ' - m_' + b:>24}{'c_' + a + ' - c_' + b:>24}"
             )
             for comp, r in comps.items():
                 lines.append(
@@ -390,8 +392,8 @@ def evaluate_paired_catalogs(
     if "case" in kinds.values():
         bad = next(c for c, k in kinds.items() if k == "case")
         raise ConfigError(
-            f"{name('by')}: {bad!r}: per-case aggregates do not apply with {name('twin')} (groups are binned by "
-            "their mean already)"
+            f"{name('by')}: {bad!r}: per-case aggregates do not apply with {name('twin')} (groups "
+            "are binned by their mean already)"
         )
     used = {c for c in kinds if kinds[c] == "column"} | {
         u for c in kinds if kinds[c] == "row" for u in columns_used(c)

@@ -379,8 +379,8 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                 obj.drawImage(image=image, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method)
             except galsim.GalSimFFTSizeError as err:
                 raise MegalutError(
-                    f"case {case}, realization {k}: FFT too large for GalSim ({err.size}^2 pixels); "
-                    "raise gsparams.maximum_fft_size or gsparams.folding_threshold"
+                    f"case {case}, realization {k}: FFT too large for GalSim ({err.size}^2 "
+                    "pixels); raise gsparams.maximum_fft_size or gsparams.folding_threshold"
                 ) from None
             except (galsim.GalSimError, MemoryError) as err:
                 raise MegalutError(

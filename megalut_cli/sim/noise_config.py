@@ -112,16 +112,16 @@ NOISE_KINDS: dict[str, NoiseType] = {
                     "image",
                     "path",
                     None,
-                    "a FITS noise image (e.g. a blank-sky cutout of the data; its mean is subtracted), "
-                    "read with GalSim's `CorrelatedNoise(image)`",
+                    "a FITS noise image (e.g. a blank-sky cutout of the data; its mean is "
+                    "subtracted), read with GalSim's `CorrelatedNoise(image)`",
                     default_text="—",
                 ),
                 Option(
                     "correlation",
                     "path",
                     None,
-                    "a FITS image of a correlation function centred on its central pixel, read with "
-                    "GalSim's `getCOSMOSNoise` (e.g. "
+                    "a FITS image of a correlation function centred on its central pixel, read "
+                    "with GalSim's `getCOSMOSNoise` (e.g. "
                     "`examples/data/cosmos/acs_I_unrot_sci_20_cf.fits`, the HST/ACS COSMOS F814W "
                     "coadds)",
                     default_text="—",
@@ -150,8 +150,8 @@ NOISE_KINDS: dict[str, NoiseType] = {
                 OneOf(
                     CORRELATED_SOURCES,
                     "correlated noise needs exactly one of noise.image (a FITS noise image, e.g. a "
-                    "blank-sky cutout) or noise.correlation (a FITS correlation-function image, e.g. "
-                    "GalSim's acs_I_unrot_sci_20_cf.fits) (got {got})",
+                    "blank-sky cutout) or noise.correlation (a FITS correlation-function image, "
+                    "e.g. GalSim's acs_I_unrot_sci_20_cf.fits) (got {got})",
                 ),
             ),
         ),
@@ -199,7 +199,8 @@ def measured_value(value: Mapping[str, Any], key: str, config_path: str) -> floa
     unknown = sorted(set(value) - _MEASURED_KEYS)
     if unknown:
         raise ConfigError(
-            f"{key}.{unknown[0]}: unknown key (allowed: {', '.join(sorted(_MEASURED_KEYS - {'type'}))})"
+            f"{key}.{unknown[0]}: unknown key (allowed: "
+            f"{', '.join(sorted(_MEASURED_KEYS - {'type'}))})"
         )
     path = resolve_beside(value.get("path"), f"{key}.path", config_path)
     column = value.get("column", "skymad")

@@ -68,7 +68,8 @@ class SimulationResult:
 
 
 def expected_workers(nproc: int, scheduler: str | None) -> int:
-    """Workers to plan work units for: -j, or 8 for a Dask scheduler (its size is not known here)."""
+    """Workers to plan work units for: -j, or 8 for a Dask scheduler (its size is not known
+    here)."""
     return 8 if scheduler else resolve_nproc(nproc)
 
 
@@ -189,7 +190,8 @@ def plan_message(
             f"on the Dask cluster ({rate:.0f} stamps/s per worker in a calibration draw)"
         )
     return (
-        f"{head}, {what}, on {workers} worker(s): about {format_duration(s.n_stamps / rate / workers)} "
+        f"{head}, {what}, on {workers} worker(s): about "
+        f"{format_duration(s.n_stamps / rate / workers)} "
         f"({rate:.0f} stamps/s per worker in a calibration draw)"
     )
 
@@ -321,7 +323,8 @@ def check_outputs(
         if pixels > MAX_STAMP_PIXELS:
             raise MegalutError(
                 f"{name('stamps')}: the image would have {pixels:.3g} pixels; lower "
-                f"{name('n_cases')}/{name('n_realizations')} or use {name('measure')} without {name('stamps')}"
+                f"{name('n_cases')}/{name('n_realizations')} or use {name('measure')} without "
+                f"{name('stamps')}"
             )
     return out, st
 
@@ -534,9 +537,9 @@ class HstNoiseExcess:
     def warn(self) -> None:
         if self.over:
             log.warning(
-                "%d of %d real-galaxy stamps carry more (symmetrized) HST noise than noise.sigma^2: their noise "
-                "is higher than asked (column tru_hst_noise_var); lower the fluxes, raise noise.sigma or select "
-                "brighter galaxies (galaxy.real_select)",
+                "%d of %d real-galaxy stamps carry more (symmetrized) HST noise than "
+                "noise.sigma^2: their noise is higher than asked (column tru_hst_noise_var); lower "
+                "the fluxes, raise noise.sigma or select brighter galaxies (galaxy.real_select)",
                 self.over,
                 self.n,
             )
