@@ -75,7 +75,8 @@ def read_toml(path: str | os.PathLike) -> tuple[dict[str, Any], str]:
 # --------------------------------------------------------------------------- where a key is written
 #: A dotted key at the start of a message (``sets.tp``, ``noise.sigam``, ``sets.*.config``).
 MESSAGE_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*(?:\.[A-Za-z0-9_*-]+)*")
-#: A table header line of a TOML file (``[simulation.noise]``); arrays of tables are not headers here.
+#: A table header line of a TOML file (``[simulation.noise]``); arrays of tables are not headers
+#: here.
 _HEADER = re.compile(r"^\s*\[(?!\[)\s*([^\[\]]+?)\s*\]\s*(?:#.*)?$")
 
 

@@ -425,8 +425,8 @@ def format_shipped_models(models: list[dict[str, Any]]) -> str:
         mode = "metacal" if m["shear_mode"] == "metacal" else "plain"
         stamp = f", stamp {m['stamp_size']} px" if m.get("stamp_size") else ""
         lines.append(
-            f"{m['name']:<{width}}  {mode:<7}  {m['trained_on'] or 'training population not recorded'}"
-            f"{stamp}  ({m['file']})"
+            f"{m['name']:<{width}}  {mode:<7}  "
+            f"{m['trained_on'] or 'training population not recorded'}{stamp}  ({m['file']})"
         )
     return "\n".join(lines)
 
@@ -445,7 +445,8 @@ def _model_chain(prov: dict[str, Any]) -> list[str]:
     while isinstance(prov, dict) and prov:
         inputs = prov.get("inputs") or {}
         used = ", ".join(
-            f"{role} {v.get('name') or shown_path(v.get('path', '?'))} (sha256 {str(v.get('sha256', '?'))[:12]})"
+            f"{role} {v.get('name') or shown_path(v.get('path', '?'))} "
+            f"(sha256 {str(v.get('sha256', '?'))[:12]})"
             for role, v in inputs.items()
             if isinstance(v, dict)
         )
@@ -500,7 +501,9 @@ def format_info(info: dict[str, Any]) -> str:
         for c in info["columns"]:
             unit = "?" if c["unit"] is None else (c["unit"] or "-")
             lines.append(
-                f"  {c['name']:<{width}}  {c['type']:<8} {unit:<13} {c['description'] or ''}".rstrip()
+                (
+                    f"  {c['name']:<{width}}  {c['type']:<8} {unit:<13} {c['description'] or ''}"
+                ).rstrip()
             )
         if "flags" in info:
             fl_info = info["flags"]
@@ -512,7 +515,8 @@ def format_info(info: dict[str, Any]) -> str:
         if info.get("config"):
             cfg = info["config"]
             lines.append(
-                f"config: sections {', '.join(cfg.get('sections', []))}; sha256 {cfg.get('sha256', '?')}"
+                f"config: sections {', '.join(cfg.get('sections', []))}; "
+                f"sha256 {cfg.get('sha256', '?')}"
             )
     elif kind == "image":
         shape = "x".join(str(d) for d in info["shape"][::-1])
@@ -544,7 +548,8 @@ def format_info(info: dict[str, Any]) -> str:
             vc = c["valid_cost"]
             cost = f", validation cost {vc[0]:.4g} to {vc[1]:.4g}" if vc else ""
             lines.append(
-                f"  {c['kind']:<6} {c['target']} -> {c['output']}: {c['selected']} of {c['members']} "
+                f"  {c['kind']:<6} {c['target']} -> {c['output']}: "
+                f"{c['selected']} of {c['members']} "
                 f"networks selected, hidden {c['hidden']}, cost {c['cost']}, "
                 f"{c['iterations']} iterations{cost}"
             )
@@ -602,7 +607,11 @@ def _evaluation_lines(info: dict[str, Any], fmt: str) -> list[str]:
         f"({info.get('rows_usable', '?')} of {info.get('rows', '?')} rows usable)"
     ]
     lines.append(
-        f"errors: {'bootstrap over galaxies' if info.get('error') == 'bootstrap-galaxies' else 'from the fit'}"
+        f"""errors: {
+            "bootstrap over galaxies"
+            if info.get("error") == "bootstrap-galaxies"
+            else "from the fit"
+        }"""
     )
     for scheme, comps in info["fits"].items():
         for comp, f in comps.items():
@@ -629,7 +638,8 @@ def _manifest_lines(info: dict[str, Any], fmt: str) -> list[str]:
     pipe = info["pipeline"]
     sha = str(pipe.get("sha256") or "?")[:12]
     lines = [
-        f"{info['path']}: {fmt}, a megalut run's work folder record (megalut {info.get('megalut') or '?'})",
+        f"{info['path']}: {fmt}, a megalut run's work folder record "
+        f"(megalut {info.get('megalut') or '?'})",
         f"pipeline: {pipe.get('path') or '?'} (sha256 {sha}), overrides: "
         + (" ".join(pipe.get("overrides") or []) or "none"),
     ]

@@ -81,7 +81,8 @@ def ignore_interrupt() -> None:
 
 
 def stop_workers(pool: ProcessPoolExecutor) -> None:
-    """Terminate the workers of ``pool`` now (after Ctrl-C) instead of letting them finish their units."""
+    """Terminate the workers of ``pool`` now (after Ctrl-C) instead of letting them finish their
+    units."""
     if hasattr(pool, "terminate_workers"):  # Python >= 3.14
         pool.terminate_workers()
         return
@@ -219,7 +220,8 @@ def map_ordered(
     func: Callable[[Any], T], items: Iterable[tuple[Any, Any]], pool: Executor | None, window: int
 ) -> Iterator[tuple[Any, T]]:
     """``(key, func(unit))`` for the ``(key, unit)`` pairs of ``items``, in their order, with at
-    most ``window`` units in flight: a stream whose memory does not grow with the number of units."""
+    most ``window`` units in flight: a stream whose memory does not grow with the number of
+    units."""
     if pool is None:
         for key, unit in items:
             yield key, func(unit)

@@ -62,12 +62,14 @@ plot = false
 
 #: Appended to TINY_PIPELINE: a low-noise, unsheared pretraining set (Fig. 6 structure) and a
 #: VP set (Fig. 4 structure), for the pipelines of the paper's Sects. 6 and 7.
-PRETRAIN_VP = """
+PRETRAIN_VP = (
+    """
 [sets.pretrain]
 n_cases = 40
 n_realizations = 2
 seed = 4
-simulation = {structure = {per_realization = [], snc = "none"}, noise = {sigma = 0.1}, shear = {g1 = {type = "constant", value = 0.0}, g2 = {type = "constant", value = 0.0}}}
+simulation = {structure = {per_realization = [], snc = "none"}, noise = {sigma = 0.1}, """
+    """shear = {g1 = {type = "constant", value = 0.0}, g2 = {type = "constant", value = 0.0}}}
 
 [sets.vp]  # as TP, more realizations per case
 simulation = {structure = {per_realization = ["angle"], snc = "ring"}}
@@ -85,6 +87,7 @@ members = 2
 iterations = 15
 seed = 10
 """
+)
 
 
 def write_pipeline(folder: Path, text: str = TINY_PIPELINE, name: str = "pipeline.toml") -> Path:

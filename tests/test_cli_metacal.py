@@ -299,7 +299,8 @@ def test_predict_metacal_columns_and_responses(measured):
         assert 0.5 < np.nanmean(r) < 1.5, (c, np.nanmean(r))
     for c in ("mcal_r12", "mcal_r21"):
         assert abs(np.nanmean(_column(s, c))) < 0.3
-    # a step of 0.02 (same fixnoise fields): its card, its finite differences, about the same response
+    # a step of 0.02 (same fixnoise fields): its card, its finite differences, about the same
+    # response
     s2 = read_catalog(measured / "s_morph.fits")
     assert s2.meta["MCALSTEP"] == 0.02
     expected = (_column(s2, "pre_g1_1p") - _column(s2, "pre_g1_1m")) / (2.0 * 0.02)

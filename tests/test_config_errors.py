@@ -22,7 +22,9 @@ ROOT = Path(__file__).resolve().parents[1]
     [
         (
             {
-                'rad = {type = "uniform", min = 1.5, max = 3.0}': 'rad = {type = "uniform", min = -1.5, max = 3.0}'
+                'rad = {type = "uniform", min = 1.5, max = 3.0}': (
+                    'rad = {type = "uniform", min = -1.5, max = 3.0}'
+                )
             },
             [],
             "{file}: [galaxy] rad: the half-light radius must be > 0.0, but values reach -1.5",

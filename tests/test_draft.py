@@ -18,7 +18,8 @@ from sim_configs import write as write_sim_config
 from megalut_cli.configfile import tomllib
 from megalut_cli.errors import InputError
 
-#: A non-fiducial setup, as a survey would have it: 48-px stamps, Gaussian PSF sigma 3, noise sigma 3.
+#: A non-fiducial setup, as a survey would have it: 48-px stamps, Gaussian PSF sigma 3, noise
+#: sigma 3.
 STAMP, PSF_SIGMA, NOISE_SIGMA = 48, 3.0, 3.0
 SETUP = f"""
 [structure]

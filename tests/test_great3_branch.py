@@ -192,7 +192,8 @@ def test_measure_bad_subfields(runner, cli, branch, tmp_path):
         "image-000-0.fits",
         "STAMPSZ = 32",
     )
-    # stamp size not matching the catalog grid, on an image without the card (64 divides the 128-pixel image)
+    # stamp size not matching the catalog grid, on an image without the card (64 divides the
+    # 128-pixel image)
     pixels, _ = read_image(img)
     nocard = tmp_path / "image-nocard.fits"
     write_image(nocard, pixels, fmt="test")
@@ -444,8 +445,10 @@ def test_measure_predict_submit_evaluate(runner, cli, branch, tmp_path):
         .replace('snc = "pairs"', 'snc = "ring"')
         .replace(
             '[psf]\ntype = "moffat"\nbeta = 3.0\nfwhm = {type = "uniform", min = 2.5, max = 3.5}\n'
-            'g1 = {type = "uniform", min = -0.05, max = 0.05}\ng2 = {type = "uniform", min = -0.05, max = 0.05}',
-            f'[psf]\ntype = "stamp"\npath = "{b / L.starfield_name(0)}"\nstamp_size = {S}\nindex = "random"',
+            'g1 = {type = "uniform", min = -0.05, max = 0.05}\n'
+            'g2 = {type = "uniform", min = -0.05, max = 0.05}',
+            f'[psf]\ntype = "stamp"\npath = "{b / L.starfield_name(0)}"\nstamp_size = {S}\n'
+            'index = "random"',
         ),
         "tp.toml",
     )

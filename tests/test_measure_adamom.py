@@ -137,7 +137,8 @@ def galsim_reference(stamps: np.ndarray, guess_sigma: float) -> tuple[np.ndarray
 def assert_same_numbers(
     mine: dict, theirs: dict, kinds: dict, n_iter: np.ndarray, relative=RELATIVE
 ) -> None:
-    """The gates above on outputs measured where both succeed, ``n_iter`` the kernel's iterations."""
+    """The gates above on outputs measured where both succeed, ``n_iter`` the kernel's
+    iterations."""
     settled = n_iter <= SETTLED_ITERATIONS
     outlier = np.zeros(len(n_iter), dtype=bool)
     for name, kind in kinds.items():

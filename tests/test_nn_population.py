@@ -79,8 +79,8 @@ def test_population_summary_real_and_twin():
         }
     )
     assert (
-        s
-        == "Sersic twins of real galaxies of real.fits; moffat PSF fwhm 3.0 beta 3.0; gaussian noise sigma 0.1"
+        s == "Sersic twins of real galaxies of real.fits; moffat PSF fwhm 3.0 beta 3.0; "
+        "gaussian noise sigma 0.1"
     )
 
 

@@ -70,7 +70,8 @@ def test_pretraining_vp_and_skip_existing(tmp_path: Path) -> None:
     assert (
         np.corrcoef(est["pre_e1"][ok], np.asarray(cat["tru_e1"])[ok])[0, 1] > 0.9
     )  # it learned e1
-    # ... then train-point continues those networks on TP with the shear targets (e -> g by position).
+    # ... then train-point continues those networks on TP with the shear targets (e -> g by
+    # position).
     point = ShearModel.load(wd / "point.h5")
     assert list(point.point) == ["tru_g1", "tru_g2"]
     assert point.provenance["inputs"]["init_from"]["sha256"] == pre.sha256
@@ -440,7 +441,8 @@ def test_cli_prints_vp_and_vo_tables(runner, cli, tmp_path: Path) -> None:
 
 
 def test_correlated_noise_pipeline_differs_from_fiducial_1e6_by_its_noise_only() -> None:
-    """The premise of the comparison in docs/realgal.md: same sets, seeds and training, other noise."""
+    """The premise of the comparison in docs/realgal.md: same sets, seeds and training, other
+    noise."""
     white = load_pipeline(EXAMPLES.parent / "models" / "fiducial-1e6-pipeline.toml")
     corr = load_pipeline(EXAMPLES / "realgal" / "pipeline-corrnoise-1e6.toml")
     assert white.train_point == corr.train_point and white.train_weight == corr.train_weight

@@ -14,8 +14,9 @@ numbers the error on m falls with the number of galaxies more than with the numb
 4 shears of 200 000 galaxies measure m to 4.4e-4 with the stamps that 20 shears of 40 000
 measured to 9.2e-4. Errors from a bootstrap over the galaxy pairs, which holds the 4 shears
 fixed: their draw adds a scatter it does not see (about 2e-3 at 10 000 pairs,
-examples/fiducial/crn_shear_draws.py), so the gate below is stricter than the true error. It asserts the Stage IV
-requirement, weighted |m| < 2e-3 and |c| < 2e-4 within 2 sigma, with sigma_m <= 5e-4.
+examples/fiducial/crn_shear_draws.py), so the gate below is stricter than the true error. It
+asserts the Stage IV requirement, weighted |m| < 2e-3 and |c| < 2e-4 within 2 sigma, with
+sigma_m <= 5e-4.
 Issue 12's stricter target |m| < 1e-3 is not met on this set (m1 = -2.70e-3 +- 0.44e-3,
 models/README.md). Run with ``python -m pytest -m slow -s tests/test_shipped_model.py``.
 """

@@ -74,7 +74,9 @@ def test_dotted_overrides(tmp_path):
         ),
         (
             {
-                'rad = {type = "uniform", min = 1.5, max = 3.0}': 'rad = {type = "uniform", min = 0.0, max = 3.0}'
+                'rad = {type = "uniform", min = 1.5, max = 3.0}': (
+                    'rad = {type = "uniform", min = 0.0, max = 3.0}'
+                )
             },
             [],
             "galaxy.rad",
@@ -225,7 +227,9 @@ def test_catalog_errors(tmp_path):
             write(
                 tmp_path,
                 replace={
-                    'sb = {type = "uniform", min = 5.0, max = 15.0}': 'flux = {type = "catalog", column = "flux"}'
+                    'sb = {type = "uniform", min = 5.0, max = 15.0}': (
+                        'flux = {type = "catalog", column = "flux"}'
+                    )
                 },
             )
         )

@@ -1,4 +1,5 @@
-"""`megalut info`: what is inside a catalog, a stamp image, a model, an evaluation or a run manifest."""
+"""`megalut info`: what is inside a catalog, a stamp image, a model, an evaluation or a run
+manifest."""
 
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ from megalut_cli.cli.options import MODEL_FILE
     "--models",
     "list_models",
     is_flag=True,
-    help="List the shipped models (name, shear mode, what they were trained on, file) instead of FILE.",
+    help="List the shipped models (name, shear mode, what they were trained on, file) "
+    "instead of FILE.",
 )
 def command(file: str | None, as_json: bool, list_models: bool) -> None:
     """Show what FILE holds, as fitsinfo and rio info do for theirs.

@@ -22,7 +22,8 @@ log = logging.getLogger(__name__)
 
 
 def parse_column_map(items: tuple[str, ...] | list[str]) -> dict[str, str]:
-    """``--col`` values ``["adamom_g1=E1", ...]`` -> ``{"adamom_g1": "E1"}`` (feature -> catalog column)."""
+    """``--col`` values ``["adamom_g1=E1", ...]`` -> ``{"adamom_g1": "E1"}`` (feature -> catalog
+    column)."""
     out: dict[str, str] = {}
     for item in items:
         feat, sep, col = item.partition("=")

@@ -1,8 +1,9 @@
 """A work unit of the fast engine on the device: render, noise, measure; features back.
 
 :func:`draw_unit_device` is :func:`megalut_cli.sim.draw.draw_unit_fast` with the pixels on the
-device. The host draws the cases (truth, offsets, seeds: :func:`megalut_cli.sim.structure.draw_case`)
-and plans the stamps (:meth:`megalut_cli.sim.render.StampRenderer.plan`); the stamps of the
+device. The host draws the cases (truth, offsets, seeds:
+:func:`megalut_cli.sim.structure.draw_case`) and plans the stamps
+(:meth:`megalut_cli.sim.render.StampRenderer.plan`); the stamps of the
 unit are grouped by PSF and FFT grid into fixed-shape batches, rendered, given their noise
 (Gaussian noise on the device, from the CPU engine's per-stamp stream; CCD and correlated
 noise on the host) and measured there; only the features (and the stamps when they are kept)

@@ -93,7 +93,8 @@ def evaluate_branch(
 ) -> dict[str, Any]:
     """m, c (pixel and PSF frames) and ``Q_c`` of ``shears`` against the truth in ``truth_dir``.
 
-    ``names``: how messages name the arguments (see :func:`~megalut_cli.shear.evaluate.evaluate_catalog`).
+    ``names``: how messages name the arguments (see
+    :func:`~megalut_cli.shear.evaluate.evaluate_catalog`).
     Returns the JSON-ready dict of :func:`megalut_cli.shear.evaluate.evaluate_columns`
     (cases are subfields) with a ``"great3"`` entry naming the truth folder.
     """

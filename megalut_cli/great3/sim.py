@@ -97,7 +97,8 @@ def grid_shape(config: SimConfig) -> tuple[int, int]:
     n_y = n // n_x
     if max(n_x, n_y) > L.MAX_GRID:
         raise ConfigError(
-            f"structure.n_x: a {n_x}x{n_y} grid is too large for GREAT3 IDs (at most {L.MAX_GRID} per side)"
+            f"structure.n_x: a {n_x}x{n_y} grid is too large for GREAT3 IDs "
+            f"(at most {L.MAX_GRID} per side)"
         )
     return n_x, n_y
 
@@ -107,7 +108,8 @@ def check_config(config: SimConfig) -> tuple[int, int]:
     s = config.structure
     if s.n_cases > L.MAX_SUBFIELD + 1:
         raise ConfigError(
-            f"structure.n_cases: at most {L.MAX_SUBFIELD + 1} subfields in the GREAT3 layout, got {s.n_cases}"
+            f"structure.n_cases: at most {L.MAX_SUBFIELD + 1} subfields in the GREAT3 layout, "
+            f"got {s.n_cases}"
         )
     for group, what in (("shear", "one shear"), ("psf", "one PSF")):
         if group in s.per_realization:
@@ -238,7 +240,8 @@ def check_branch_output(
         raise MegalutError(f"{key}: exists and is not a folder")
     if d.is_dir() and any(d.iterdir()) and not overwrite:
         raise MegalutError(
-            f"{key}: the folder exists and is not empty; use {name('overwrite')} to replace its files"
+            f"{key}: the folder exists and is not empty; use {name('overwrite')} to replace "
+            "its files"
         )
     parent = d.resolve().parent
     if not parent.is_dir():

@@ -50,7 +50,8 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         "int",
         0,
         "MEDS input: the cutout of each object to measure (0: the coadd when the file "
-        "has one, else the first epoch; k: the k-th cutout; objects with fewer cutouts are flagged NO_CUTOUT).",
+        "has one, else the first epoch; k: the k-th cutout; objects with fewer cutouts are "
+        "flagged NO_CUTOUT).",
         minimum=0,
         metavar="INDEX",
     ),
@@ -59,7 +60,8 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         "bool",
         None,
         "STAMPS is a star field: one row per star with psf_adamom_flux, psf_adamom_g1, "
-        f"psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4, psf_adamom_x, psf_adamom_y, flags{DEFAULT_MARK}.",
+        "psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4, psf_adamom_x, psf_adamom_y, "
+        f"flags{DEFAULT_MARK}.",
         flag="--stars/--no-stars",
         default_text="for files named starfield_image-*; a square one without "
         "--stamp-size or STAMPSZ card is a 3x3 grid",
@@ -77,9 +79,9 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         "bool",
         False,
         "Also measure the five metacalibration versions of each stamp (noshear, "
-        "1p, 1m, 2p, 2m: deconvolved by the PSF, sheared by +-step along g1 and g2, reconvolved with a round "
-        "target PSF, with fixnoise at the stamp's skymad): every feature column X again as X_noshear, X_1p, "
-        "X_1m, X_2p, X_2m (docs/metacal.md). Needs --psf or --psf-model.",
+        "1p, 1m, 2p, 2m: deconvolved by the PSF, sheared by +-step along g1 and g2, reconvolved "
+        "with a round target PSF, with fixnoise at the stamp's skymad): every feature column X "
+        "again as X_noshear, X_1p, X_1m, X_2p, X_2m (docs/metacal.md). Needs --psf or --psf-model.",
     ),
     Option(
         "metacal_step",

@@ -89,7 +89,8 @@ def _tasks(
 
 
 def select_best(valid_costs: Sequence[float], keep: int) -> np.ndarray:
-    """Boolean mask of the ``keep`` members with the lowest validation cost (NaN last, ties by index)."""
+    """Boolean mask of the ``keep`` members with the lowest validation cost (NaN last, ties by
+    index)."""
     costs = np.array([c if np.isfinite(c) else np.inf for c in valid_costs])
     order = np.argsort(costs, kind="stable")
     mask = np.zeros(len(costs), bool)

@@ -184,7 +184,8 @@ def check_train_values(
     out = {o.name: table.option(o, defaults.get(o.name)) for o in TRAIN_OPTIONS}
     if out["keep"] is not None and out["keep"] > out["members"]:
         raise ConfigError(
-            f"{table.key('keep')}: must be <= {table.key('members')} ({out['members']}), got {out['keep']}"
+            f"{table.key('keep')}: must be <= {table.key('members')} ({out['members']}), "
+            f"got {out['keep']}"
         )
     return out
 

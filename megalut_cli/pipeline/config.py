@@ -86,24 +86,25 @@ PIPELINE_OPTIONS: tuple[Option, ...] = (
     replace(
         ENGINE_OPTION,
         help='stamp engine of the simulations: `"fast"` (batched rendering, compiled '
-        'adaptive moments) or `"galsim"` (the reference); see [engines.md](engines.md). Part of the '
-        "simulation steps' keys: changing it re-runs them",
+        'adaptive moments) or `"galsim"` (the reference); see [engines.md](engines.md). Part of '
+        "the simulation steps' keys: changing it re-runs them",
     ),
     replace(
         DEVICE_OPTION,
         help='where the simulations and trainings run: `"cpu"`, `"gpu"` (the optional '
         'JAX backend; one clear error if none is usable) or `"auto"` (gpu when found); see '
-        "[gpu.md](gpu.md). Not part of the steps' keys (results agree within the tolerances of gpu.md), "
-        "like `-j`",
+        "[gpu.md](gpu.md). Not part of the steps' keys (results agree within the tolerances of "
+        "gpu.md), like `-j`",
     ),
     Option(
         "metacal",
         "bool",
         False,
         "measure every set in metacal mode too (each stamp deconvolved by its PSF, "
-        "sheared by ±0.01, reconvolved; docs/metacal.md): the networks train on the features of the noshear "
-        "versions (a metacal model), the predictions get the responses `mcal_r11`..`mcal_r22` and `evaluate` "
-        "reports the response-calibrated biases; a `[reference]` model must then be a metacal one "
+        "sheared by ±0.01, reconvolved; docs/metacal.md): the networks train on the features of "
+        "the noshear versions (a metacal model), the predictions get the responses "
+        "`mcal_r11`..`mcal_r22` and `evaluate` reports the response-calibrated biases; a "
+        "`[reference]` model must then be a metacal one "
         '(`"fiducial-metacal"`). Part of the simulation steps\' keys',
     ),
     Option(
@@ -117,7 +118,8 @@ PIPELINE_OPTIONS: tuple[Option, ...] = (
         "table",
         None,
         "the simulated sets: `[sets.tp]`, `[sets.tw]`, `[sets.vo]` (required), "
-        "`[sets.pretrain]` (enables `pretrain-point`) and `[sets.vp]` (enables `predict-vp`, `evaluate-vp`)",
+        "`[sets.pretrain]` (enables `pretrain-point`) and `[sets.vp]` (enables `predict-vp`, "
+        "`evaluate-vp`)",
         default_text="required",
     ),
     Option(
@@ -183,8 +185,8 @@ SET_OPTIONS: tuple[Option, ...] = (
         "choice",
         "both",
         'how `scale` shrinks the set: `"both"` multiplies n_cases and '
-        'n_realizations by sqrt(scale), `"cases"` n_cases by scale, `"realizations"` n_realizations by '
-        "scale",
+        'n_realizations by sqrt(scale), `"cases"` n_cases by scale, `"realizations"` '
+        "n_realizations by scale",
         choices=tuple(SCALE_BY),
     ),
 )
@@ -197,9 +199,10 @@ REFERENCE_OPTIONS: tuple[Option, ...] = (
         "path",
         None,
         "a model file (relative to the pipeline file), or the name of a model shipped "
-        'with megalut: `"fiducial"` (`models/fiducial.h5`, the paper-size model) or `"fiducial-1e6"` '
-        "(`models/fiducial-1e6.h5`, the model shipped before it; [models/README.md](../models/README.md)), or "
-        '`"fiducial-metacal"` (the networks of `fiducial` for metacal catalogs, [metacal.md](metacal.md))',
+        'with megalut: `"fiducial"` (`models/fiducial.h5`, the paper-size model) or '
+        '`"fiducial-1e6"` (`models/fiducial-1e6.h5`, the model shipped before it; '
+        '[models/README.md](../models/README.md)), or `"fiducial-metacal"` (the networks of '
+        "`fiducial` for metacal catalogs, [metacal.md](metacal.md))",
         default_text="required",
         allowed_text="a path, or a shipped model's name",
     ),
@@ -231,7 +234,8 @@ class EvaluateSpec:
 
 
 def merge_tables(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
-    """Deep-merge ``over`` into a copy of ``base``; a table with a ``type`` key replaces, not merges."""
+    """Deep-merge ``over`` into a copy of ``base``; a table with a ``type`` key replaces, not
+    merges."""
     out = copy.deepcopy(dict(base))
     for k, v in over.items():
         if isinstance(v, Mapping) and "type" not in v and isinstance(out.get(k), Mapping):
@@ -265,7 +269,8 @@ def read_spec(spec_class: type[TrainSpec], t: Table, **defaults: Any) -> Any:
 
 
 def key_names(table: str) -> dict[str, str]:
-    """How library messages name their arguments: keys of the table ``table`` of the pipeline file."""
+    """How library messages name their arguments: keys of the table ``table`` of the pipeline
+    file."""
     return {
         arg: f"{table}.{arg}"
         for arg in ("select_cases", "select", "hidden", "valid_fraction", "by")

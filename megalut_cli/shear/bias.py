@@ -154,7 +154,8 @@ def calibrate_by_response(
 def rotate_spin2(
     g1: np.ndarray, g2: np.ndarray, theta: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``(g1, g2)`` in the frame turned by the angle ``theta`` (radians): rotated by ``-2 theta``."""
+    """``(g1, g2)`` in the frame turned by the angle ``theta`` (radians): rotated by
+    ``-2 theta``."""
     cos2, sin2 = np.cos(2.0 * theta), np.sin(2.0 * theta)
     g1 = np.asarray(g1, dtype=float)
     g2 = np.asarray(g2, dtype=float)

@@ -137,7 +137,8 @@ class _Plan:
         return SCHEMES if self.weighted else SCHEMES[:1]
 
     def name(self, arg: str) -> str:
-        """How messages name the argument ``arg`` (``by``, ``select``, ``select_cases``, ``errors``)."""
+        """How messages name the argument ``arg`` (``by``, ``select``, ``select_cases``,
+        ``errors``)."""
         return self.names.get(arg, arg)
 
 
@@ -186,7 +187,8 @@ def _make_plan(
     if missing:
         raise InputError(
             f"{source}: evaluate needs the true shear of each case (columns case, tru_g1, tru_g2) "
-            f"and the estimates from 'megalut predict' (pre_g1, pre_g2); missing: {', '.join(missing)}"
+            f"and the estimates from 'megalut predict' (pre_g1, pre_g2); "
+            f"missing: {', '.join(missing)}"
         )
     weighted = all(c in have for c in WEIGHT_COLUMNS)
     if metacal is not None:
@@ -209,8 +211,8 @@ def _make_plan(
     if bootstrap is not None:
         if "rea" not in have:
             raise InputError(
-                f"{source}: bootstrap errors need the realization column 'rea' to resample galaxies "
-                f"(or use fit errors: {given.get('errors', 'errors')} fit)"
+                f"{source}: bootstrap errors need the realization column 'rea' to resample "
+                f"galaxies (or use fit errors: {given.get('errors', 'errors')} fit)"
             )
         if bootstrap.n_resamples < 2 or bootstrap.group_size < 1:
             raise ConfigError("bootstrap: needs at least 2 resamples and a group size >= 1")
@@ -690,7 +692,8 @@ def m_too_large(m: float | None, m_err: float | None) -> bool:
 
 
 def large_m(result: Mapping[str, Any]) -> list[str]:
-    """The fits of ``result`` where :func:`m_too_large`, as ``"unweighted g1: m = -0.53 ± 0.01"``."""
+    """The fits of ``result`` where :func:`m_too_large`, as
+    ``"unweighted g1: m = -0.53 ± 0.01"``."""
     out = []
     for scheme in ("unweighted", "weighted"):
         for comp, fit in (result.get(scheme) or {}).items():
@@ -732,13 +735,14 @@ def errors_na_note(result: Mapping[str, Any]) -> str | None:
     boot = result.get("bootstrap")
     if result.get("error") == ERROR_BOOTSTRAP and boot:
         return (
-            f"errors n/a{where}: the bootstrap over {boot['groups']} galaxy groups leaves the fit undefined "
-            f"in more than half of its resamples (a fit needs at least 2 cases with different true shears; "
-            f"{have} {n})"
+            f"errors n/a{where}: the bootstrap over {boot['groups']} galaxy groups leaves the fit "
+            "undefined in more than half of its resamples (a fit needs at least 2 cases with "
+            f"different true shears; {have} {n})"
         )
     return (
-        f"errors n/a{where}: errors from the fit need at least {MIN_CASES_FOR_ERRORS} cases (the residual "
-        f"scatter about the line has N - 2 degrees of freedom); {have} {n} usable case{'s' * (n != 1)}"
+        f"errors n/a{where}: errors from the fit need at least {MIN_CASES_FOR_ERRORS} cases "
+        "(the residual scatter about the line has N - 2 degrees of freedom); "
+        f"{have} {n} usable case{'s' * (n != 1)}"
     )
 
 
@@ -781,7 +785,8 @@ def evaluate_columns(
     names: Mapping[str, str] | None = None,
     metacal_step: float | None = None,
 ) -> dict[str, Any]:
-    """Evaluate in-memory columns (a dict of arrays or an astropy Table), as :func:`evaluate_catalog`.
+    """Evaluate in-memory columns (a dict of arrays or an astropy Table), as
+    :func:`evaluate_catalog`.
 
     The result holds, for ``"unweighted"`` and (with weight columns) ``"weighted"``, a
     dict per component (``g1, g2`` and ``plus, cross`` with PSF columns) with ``m, m_err,
@@ -818,8 +823,8 @@ def bootstrap_from_header(
     if errors == "fit" or (errors == "auto" and not crn):
         if crn:
             log.warning(
-                "the input is a common-random-number set (CRN = T): errors from the fit ignore that its "
-                "cases share their galaxies and are too small"
+                "the input is a common-random-number set (CRN = T): errors from the fit ignore "
+                "that its cases share their galaxies and are too small"
             )
         return None
     nrea = header.get("NREA")
@@ -849,7 +854,8 @@ def _prepare_cases(plan: _Plan, read: Callable[[list[str]], Mapping[str, np.ndar
 
 
 def _by_values(chunk: Mapping[str, np.ndarray], plan: _Plan, c: str, n: int) -> np.ndarray:
-    """Values of the ``by`` entry ``c`` on the rows of ``chunk`` (a case's value for per-case entries)."""
+    """Values of the ``by`` entry ``c`` on the rows of ``chunk`` (a case's value for per-case
+    entries)."""
     kind = plan.by_kind.get(c, "column")
     chunk = _version_view(chunk, plan, "noshear")
     if kind == "column":
@@ -1103,8 +1109,8 @@ def _bootstrap_errors(
     n_groups = groups.n_groups
     if n_groups < 2:
         raise InputError(
-            f"{plan.source}: the bootstrap over galaxies needs at least 2 galaxy groups, found {n_groups} "
-            f"(group size {spec.group_size}); use {plan.name('errors')} fit"
+            f"{plan.source}: the bootstrap over galaxies needs at least 2 galaxy groups, "
+            f"found {n_groups} (group size {spec.group_size}); use {plan.name('errors')} fit"
         )
     if n_groups < FEW_GROUPS:
         log.warning("only %d galaxy groups: the bootstrap errors are rough", n_groups)
@@ -1157,7 +1163,8 @@ def _check_usable(plan: _Plan, n_total: int, n_selected: int, n_valid: int) -> N
         raise InputError(f"{plan.source}: no row passes {what}")
     if n_valid == 0:
         raise InputError(
-            f"{plan.source}: all {n_selected} rows failed (flags != 0 or NaN estimates); nothing to evaluate"
+            f"{plan.source}: all {n_selected} rows failed (flags != 0 or NaN estimates); "
+            "nothing to evaluate"
         )
 
 
@@ -1175,8 +1182,8 @@ def _check_cases(
         g1 = np.nanmean(per_case["g1"]["tru"])
         g2 = np.nanmean(per_case["g2"]["tru"])
         raise InputError(
-            f"{plan.source}: the true shear is the same in every case (tru_g1={g1:g}, tru_g2={g2:g}); "
-            "no lever arm to fit m"
+            f"{plan.source}: the true shear is the same in every case "
+            f"(tru_g1={g1:g}, tru_g2={g2:g}); no lever arm to fit m"
         )
 
 

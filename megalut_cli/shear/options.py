@@ -22,8 +22,8 @@ EVALUATE_OPTIONS: tuple[Option, ...] = (
         "str_list",
         [],
         "Conditional biases in equal-population bins of these columns (true or measured) "
-        "or quantities, e.g. tru_rad,tru_sersicn,snr; 'mean(snr)' bins whole cases by their average S/N (paper "
-        "Fig. 12), 'sqrt(tru_e1**2+tru_e2**2)' bins rows by |e|.",
+        "or quantities, e.g. tru_rad,tru_sersicn,snr; 'mean(snr)' bins whole cases by their "
+        "average S/N (paper Fig. 12), 'sqrt(tru_e1**2+tru_e2**2)' bins rows by |e|.",
         metavar="COL,COL",
         empty_ok=True,
     ),
@@ -58,8 +58,8 @@ EVALUATE_CLI_OPTIONS: tuple[Option, ...] = (
         "bool",
         False,
         "Exit with status EXIT when the Stage IV requirement (|m| < 2e-3, "
-        "|c| < 2e-4 for every component) does not hold, on the weighted results when the catalog has weights, "
-        "else on the unweighted ones.",
+        "|c| < 2e-4 for every component) does not hold, on the weighted results when the catalog "
+        "has weights, else on the unweighted ones.",
     ),
     Option(
         "sigma2_min",
@@ -73,8 +73,9 @@ EVALUATE_CLI_OPTIONS: tuple[Option, ...] = (
         "choice",
         ERROR_CHOICES[0],
         "Where the errors of m and c come from: 'fit' (residual scatter "
-        "over cases), 'bootstrap' (resample galaxies: realization groups, all their cases together; needs the "
-        "'rea' column), 'auto': bootstrap for common-random-number sets (header CRN = T), else fit.",
+        "over cases), 'bootstrap' (resample galaxies: realization groups, all their cases "
+        "together; needs the 'rea' column), 'auto': bootstrap for common-random-number sets "
+        "(header CRN = T), else fit.",
         choices=ERROR_CHOICES,
     ),
     Option(
@@ -105,8 +106,8 @@ PREDICT_OPTIONS: tuple[Option, ...] = (
         "bool",
         False,
         "Refuse (exit 1, nothing written) a catalog that lies outside the model's "
-        "training domain (skymad, snr, sizes, flux, stamp size, recorded setup) instead of warning; "
-        "docs/model-format.md.",
+        "training domain (skymad, snr, sizes, flux, stamp size, recorded setup) instead of "
+        "warning; docs/model-format.md.",
     ),
 )
 PREDICT = {o.name: o for o in PREDICT_OPTIONS}

@@ -162,7 +162,8 @@ def _conditional_panel(
 def plot_evaluation(
     result: Mapping[str, Any], path: str | os.PathLike, overwrite: bool = False
 ) -> Path:
-    """Draw the evaluation figure of ``result`` (from :mod:`.evaluate`) into ``path`` (png/pdf/svg)."""
+    """Draw the evaluation figure of ``result`` (from :mod:`.evaluate`) into ``path``
+    (png/pdf/svg)."""
     check_plot_output(path)
     fig = evaluation_figure(result)
     fmt = _FORMATS[Path(path).suffix.lower()]

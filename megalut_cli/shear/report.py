@@ -22,7 +22,8 @@ def error_note(result: Mapping[str, Any]) -> str:
     )
     return (
         f"errors: bootstrap over galaxies ({what}; {boot['groups']} groups of {boot['group_size']} "
-        f"realization(s) resampled across all cases, {boot['resamples']} resamples, seed {boot['seed']})"
+        f"realization(s) resampled across all cases, {boot['resamples']} resamples, "
+        f"seed {boot['seed']})"
     )
 
 
@@ -59,7 +60,8 @@ def metacal_lines(mcal: Mapping[str, Any] | None) -> list[str]:
     if not mcal:
         return []
     lines = [
-        f"metacal: {', '.join(mcal['estimate'])} calibrated by (<R> + R_sel)^-1, step {mcal['step']:g}"
+        f"metacal: {', '.join(mcal['estimate'])} calibrated by (<R> + R_sel)^-1, "
+        f"step {mcal['step']:g}"
     ]
     for scheme, r in mcal["response"].items():
         sel = mcal["selection_response"].get(scheme)
@@ -74,8 +76,8 @@ def format_table(result: Mapping[str, Any]) -> str:
     """A readable text report of an evaluation result."""
     lines = [f"shear biases of {result['input']}"]
     lines.append(
-        f"rows: {result['n_rows']} in catalog, {result['n_selected']} selected, {result['n_valid']} usable "
-        "(flags == 0, finite estimates)"
+        f"rows: {result['n_rows']} in catalog, {result['n_selected']} selected, "
+        f"{result['n_valid']} usable (flags == 0, finite estimates)"
     )
     if result.get("select"):
         lines.append(f"row selection: {result['select']}")
@@ -124,7 +126,8 @@ def format_table(result: Mapping[str, Any]) -> str:
             comps = list(cond["bins"][0][scheme])
             lines += [
                 "",
-                f"conditional biases by {col} ({len(cond['bins'])} equal-population bins, {scheme})",
+                f"conditional biases by {col} "
+                f"({len(cond['bins'])} equal-population bins, {scheme})",
             ]
             for frame in (comps[:2], comps[2:]):
                 if not frame or frame[0] in hidden:

@@ -57,7 +57,8 @@ from megalut_cli.sim.profiles import GALAXY_PROFILES
 from megalut_cli.sim.profiles.common import SERSIC_N_RANGE, round_sersicn
 from megalut_cli.sim.profiles.cosmos_fit import COSMOS_FIT_COLUMNS
 
-#: Public names, with those of the table modules that stay importable from here (as before the split).
+#: Public names, with those of the table modules that stay importable from here (as before the
+#: split).
 __all__ = [
     "COSMOS_FIT_COLUMNS",
     "SERSIC_N_RANGE",
@@ -171,8 +172,9 @@ STRUCTURE_OPTIONS: tuple[Option, ...] = (
         "choice_list",
         ["angle"],
         "parameter groups redrawn for every realization; the "
-        'others are drawn once per case. Groups: `"shear"` (g1, g2), `"galaxy"` (all of `[galaxy]`, implies '
-        '`"angle"`), `"angle"` (position angle only), `"psf"` (field position and random PSF parameters)',
+        'others are drawn once per case. Groups: `"shear"` (g1, g2), `"galaxy"` (all of '
+        '`[galaxy]`, implies `"angle"`), `"angle"` (position angle only), `"psf"` (field position '
+        "and random PSF parameters)",
         choices=VARY_GROUPS,
     ),
     Option(
@@ -360,17 +362,18 @@ def _check_common(per: frozenset[str], snc: str) -> None:
     """Refuse common-random-number sets that cannot mean anything."""
     if "galaxy" not in per:
         raise ConfigError(
-            "structure.common: needs per_realization to include 'galaxy' (a new galaxy per realization "
-            "group, the same one in every case)"
+            "structure.common: needs per_realization to include 'galaxy' (a new galaxy per "
+            "realization group, the same one in every case)"
         )
     if "shear" in per:
         raise ConfigError(
-            "structure.common: the shear must be drawn per case; remove 'shear' from per_realization"
+            "structure.common: the shear must be drawn per case; remove 'shear' from "
+            "per_realization"
         )
     if snc == "ring":
         raise ConfigError(
-            "structure.common: snc = 'ring' makes one galaxy per case, nothing to share between cases; "
-            "use snc = 'pairs' or 'none'"
+            "structure.common: snc = 'ring' makes one galaxy per case, nothing to share between "
+            "cases; use snc = 'pairs' or 'none'"
         )
 
 
@@ -450,8 +453,8 @@ def validate_config(
         and noise.override_sigma is None
     ):
         raise ConfigError(
-            f"galaxy.hst_noise: {galaxy.real['hst_noise']!r} needs noise.type = 'gaussian' (the added noise "
-            "makes up the rest of the variance); or set galaxy.hst_noise = 'keep'"
+            f"galaxy.hst_noise: {galaxy.real['hst_noise']!r} needs noise.type = 'gaussian' (the "
+            "added noise makes up the rest of the variance); or set galaxy.hst_noise = 'keep'"
         )
     psf = _parse_psf(raw, path)
     gsparams = _parse_gsparams(raw)

@@ -129,7 +129,8 @@ def real_galaxy_catalog(path: str, image_dir: str) -> galsim.RealGalaxyCatalog:
     ]
     if missing:
         raise InputError(
-            f"galaxy.real_catalog: {path}: not a readable GalSim RealGalaxyCatalog (no column {', '.join(missing)})"
+            f"galaxy.real_catalog: {path}: not a readable GalSim RealGalaxyCatalog "
+            f"(no column {', '.join(missing)})"
         )
     try:
         # An absolute file name is kept as is; ``dir`` is where the images are.
@@ -138,7 +139,8 @@ def real_galaxy_catalog(path: str, image_dir: str) -> galsim.RealGalaxyCatalog:
         absent = sorted(f for f in files if not os.path.isfile(f))
         if absent:
             raise InputError(
-                f"galaxy.real_catalog: {path}: image file {absent[0]} not found (see galaxy.real_dir)"
+                f"galaxy.real_catalog: {path}: image file {absent[0]} not found "
+                "(see galaxy.real_dir)"
             )
         rgc.preload()
         return rgc

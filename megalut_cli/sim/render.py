@@ -445,10 +445,10 @@ class StampRenderer:
         if too_big.any():
             size = int(n_k[too_big].max())
             raise MegalutError(
-                f"drawFFT requires a very large FFT: the required FFT size would be {size} x {size}, "
-                f"which requires {size * size * 24 / 1024**3:.2f} GB of memory; if you can handle the large "
-                f"FFT, you may update gsparams.maximum_fft_size (now {info.gsparams.maximum_fft_size}), "
-                "or raise gsparams.folding_threshold"
+                f"drawFFT requires a very large FFT: the required FFT size would be {size} x "
+                f"{size}, which requires {size * size * 24 / 1024**3:.2f} GB of memory; if you can "
+                "handle the large FFT, you may update gsparams.maximum_fft_size "
+                f"(now {info.gsparams.maximum_fft_size}), or raise gsparams.folding_threshold"
             )
         return RenderPlan(n_fft, n_k, amat, table, shx, shy, np.array(flux), profiles)
 
