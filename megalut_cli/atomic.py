@@ -100,7 +100,8 @@ def replace_folder(tmp: Path, final: Path) -> None:
 
 
 def move_into_folder(tmp: Path, final: Path) -> None:
-    """Move the finished folder ``tmp`` to ``final``, replacing same-named files of an existing one."""
+    """Move the finished folder ``tmp`` to ``final``, replacing same-named files of an existing
+    one."""
     if not final.exists():
         os.replace(tmp, final)
         return

@@ -31,7 +31,10 @@ if TYPE_CHECKING:
 #: Engine name -> one-line description (the CLI's choices and help come from here).
 ENGINES: dict[str, str] = {
     "fast": "batched Fourier-space rendering, numpy noise, compiled adaptive moments",
-    "galsim": "GalSim drawImage, GalSim noise and galsim.hsm.FindAdaptiveMom, stamp by stamp (the reference)",
+    "galsim": (
+        "GalSim drawImage, GalSim noise and galsim.hsm.FindAdaptiveMom, stamp by stamp "
+        "(the reference)"
+    ),
 }
 
 DEFAULT_ENGINE = "fast"

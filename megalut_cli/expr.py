@@ -328,7 +328,8 @@ def _numeric(out: np.ndarray, expr: str) -> np.ndarray:
 
 
 def evaluate_row_values(expr: str, columns: Mapping[str, np.ndarray], n_rows: int) -> np.ndarray:
-    """Value of the numeric row expression ``expr`` (e.g. ``sqrt(tru_e1**2 + tru_e2**2)``) on each row."""
+    """Value of the numeric row expression ``expr`` (e.g. ``sqrt(tru_e1**2 + tru_e2**2)``) on
+    each row."""
     out = _Evaluator(expr, columns, None, 0).eval(_parse(expr))
     return np.broadcast_to(_numeric(out, expr), (n_rows,)).copy()
 
@@ -336,7 +337,8 @@ def evaluate_row_values(expr: str, columns: Mapping[str, np.ndarray], n_rows: in
 def evaluate_case_values(
     expr: str, columns: Mapping[str, np.ndarray], case: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Value of the numeric case expression ``expr`` (e.g. ``mean(snr)``); returns ``(unique_case_ids, values)``."""
+    """Value of the numeric case expression ``expr`` (e.g. ``mean(snr)``); returns
+    ``(unique_case_ids, values)``."""
     ids, out = _eval_per_case(expr, columns, case)
     return ids, np.broadcast_to(_numeric(out, expr), ids.shape).copy()
 
@@ -384,7 +386,8 @@ def check_expression(
                 )
             )
             raise ConfigError(
-                f"selection expression {expr!r}: {describe_syntax(bad)} is not allowed; use {_GRAMMAR}"
+                f"selection expression {expr!r}: {describe_syntax(bad)} is not allowed; "
+                f"use {_GRAMMAR}"
             )
     if available is not None:
         missing = [

@@ -72,7 +72,8 @@ def check_int(value: Any, key: str, minimum: int | None = None, maximum: int | N
 def interval_text(
     lo: float | None, hi: float | None, lo_open: bool = False, hi_open: bool = False
 ) -> str:
-    """``[0, 1)``, ``> 0``, ``<= 1``: the allowed range of a number, as messages and docs write it."""
+    """``[0, 1)``, ``> 0``, ``<= 1``: the allowed range of a number, as messages and docs write
+    it."""
     if lo is not None and hi is not None:
         return f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
     if lo is not None:

@@ -66,7 +66,8 @@ HEAVY = ("astropy", "galsim", "scipy", "numba", "fitsio", "h5py", "matplotlib", 
 
 
 def _modules_after(args: list[str]) -> set[str]:
-    """Top-level packages and megalut_cli.cli modules imported by ``megalut ARGS`` (a fresh process)."""
+    """Top-level packages and megalut_cli.cli modules imported by ``megalut ARGS`` (a fresh
+    process)."""
     import json
     import subprocess
     import sys

@@ -90,7 +90,9 @@ def test_key_value_overrides(runner, cli, tmp_path):
         ({'rad = {type = "uniform", min = 1.5, max = 3.0}': "rad = -1.0"}, [], "[galaxy] rad"),
         (
             {
-                'rad = {type = "uniform", min = 1.5, max = 3.0}': 'rad = {type = "lognormal", mean = 1}'
+                'rad = {type = "uniform", min = 1.5, max = 3.0}': (
+                    'rad = {type = "lognormal", mean = 1}'
+                )
             },
             [],
             "[galaxy] rad.type: unknown distribution",

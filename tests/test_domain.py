@@ -192,7 +192,8 @@ def test_training_records_the_domain_of_its_usable_rows(tmp_path, runner, cli):
         np.testing.assert_allclose(
             dom["columns"][col]["q"], np.quantile(_usable(tp, col), QUANTILES), rtol=1e-12
         )
-    # the recorded inputs name files; the path is never absolute (tmp_path is outside the current folder)
+    # the recorded inputs name files; the path is never absolute (tmp_path is outside the current
+    # folder)
     train = model.provenance["inputs"]["train"]
     assert train["name"] == "tp.fits" and not Path(train["path"]).is_absolute()
     # its own catalog is inside its domain; three times the noise is not

@@ -76,7 +76,8 @@ def _stamps(path: Path, size: int, n: int) -> np.ndarray:
 
 
 def test_noiseless_stamps_equal_with_either_engine(runner, cli, tmp_path: Path) -> None:
-    """Same config, same seed, no noise: the fast engine's stamps are GalSim's to 1e-6 of the peak."""
+    """Same config, same seed, no noise: the fast engine's stamps are GalSim's to 1e-6 of the
+    peak."""
     text = TINY.replace('type = "gaussian"\nsigma = 1.0', 'type = "none"').replace(
         "n_cases = 3", "n_cases = 6"
     )
@@ -135,7 +136,8 @@ def test_fast_engine_noise_has_the_requested_level(runner, cli, tmp_path: Path) 
 
 
 def test_ccd_noise_statistics_match_galsim() -> None:
-    """add_batch's CCD noise has GalSim's CCDNoise mean and variance (Poisson of source + sky, read noise)."""
+    """add_batch's CCD noise has GalSim's CCDNoise mean and variance (Poisson of source + sky,
+    read noise)."""
     import galsim
 
     from megalut_cli.sim.noise import StampNoise
@@ -229,7 +231,8 @@ def test_real_galaxies_fall_back_to_galsim_with_one_log_line(runner, cli, tmp_pa
     )
     text = TINY.replace(
         'profile = "sersic"\nsersicn = {type = "grid", min = 1.0, max = 2.0, step = 0.5}\n'
-        'rad = {type = "uniform", min = 1.5, max = 3.0}\nsb = {type = "uniform", min = 5.0, max = 15.0}\n'
+        'rad = {type = "uniform", min = 1.5, max = 3.0}\n'
+        'sb = {type = "uniform", min = 5.0, max = 15.0}\n'
         'ellipticity = {type = "rayleigh", mode = 0.2, min = 0.0, max = 0.6}\n',
         f'profile = "real"\nreal_catalog = "{rgc}"\npixel_scale = 0.2\nreal_select = "MAG < 22"\n'
         "flux = 100.0\n",

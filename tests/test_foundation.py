@@ -406,7 +406,8 @@ from megalut_cli.provenance import software_versions
 versions = software_versions()
 loaded = [name for name in ("galsim", "astropy", "scipy") if name in sys.modules]
 import astropy, fitsio, galsim, h5py, numpy, scipy
-modules = {"astropy": astropy, "fitsio": fitsio, "galsim": galsim, "h5py": h5py, "numpy": numpy, "scipy": scipy}
+modules = {"astropy": astropy, "fitsio": fitsio, "galsim": galsim, \
+"h5py": h5py, "numpy": numpy, "scipy": scipy}
 print(loaded, all(versions[name] == m.__version__ for name, m in modules.items()))
 """
 

@@ -132,8 +132,8 @@ def test_write_read_round_trip(tmp_path):
 
 def test_features_equal_the_grid_path(grid, tmp_path):
     """Without weights or masks, a MEDS file measures exactly as the same stamps in a grid
-    image (every feature, morphology and flag, centroids in the image's pixels); with weight maps only
-    snr changes, to Eq. 10 with the weight-map noise."""
+    image (every feature, morphology and flag, centroids in the image's pixels); with weight
+    maps only snr changes, to Eq. 10 with the weight-map noise."""
     stamps, image, rows, cols = grid
     ref = measure_image(image, S)
     path = tmp_path / "g.meds.fits"
@@ -440,7 +440,8 @@ def test_meds_with_a_psfex_model_end_to_end(runner, cli, grid, tmp_path):
 
 
 def test_extra_object_columns_are_passed_through(tmp_path):
-    """Scalar object_data columns outside the MEDS layout (a simulation's truth) reach the output."""
+    """Scalar object_data columns outside the MEDS layout (a simulation's truth) reach the
+    output."""
     rng = np.random.default_rng(5)
     images = rng.normal(0.0, 1.0, (6, 24, 24))
     truth = {"tru_g1": np.linspace(-0.05, 0.05, 6), "case": np.arange(6, dtype=np.int32)}

@@ -98,7 +98,8 @@ def test_float32_training_changes_m_less_than_the_training_seed() -> None:
     * The precision moves m less than a new training seed does (benchmarks/training.md at the
       paper's size: 1e-3 against 3.8e-3 and 1.9e-3). Achieved: at most 9.1e-3 against at
       least 1.9e-2 (these committees are small and not converged).
-    * The committees' summed validation costs agree within 15 % (achieved 0.6-8.8 %, float32 lower in all four).
+    * The committees' summed validation costs agree within 15 % (achieved 0.6-8.8 %, float32
+      lower in all four).
     """
     from megalut_cli.shear.evaluate import evaluate_columns
     from megalut_cli.shear.predict import predict_columns

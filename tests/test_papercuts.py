@@ -182,8 +182,8 @@ def test_evaluate_says_why_errors_are_na(runner, cli, tmp_path) -> None:
     assert result.exit_code == 0
     assert "±   n/a" in result.stdout
     assert (
-        "megalut: errors n/a: errors from the fit need at least 3 cases (the residual scatter about the "
-        "line has N - 2 degrees of freedom); the catalog has 2 usable cases"
+        "megalut: errors n/a: errors from the fit need at least 3 cases (the residual scatter "
+        "about the line has N - 2 degrees of freedom); the catalog has 2 usable cases"
     ) in _err(result)
     many = tmp_path / "many.fits"
     write_catalog(many, synthetic(seed=1, n_cases=10, n_rea=5), fmt="megalut.predictions")
@@ -275,7 +275,7 @@ def test_dash_o_to_a_terminal_is_refused_before_any_work(tmp_path) -> None:
     assert "about to simulate" not in res.stderr
 
 
-# --------------------------------------------------------------------------- 8. simulate says what it wrote
+# ------------------------------------------------------------------- 8. simulate says what it wrote
 def test_simulate_logs_what_it_wrote(runner, cli, tmp_path) -> None:
     out, stamps = tmp_path / "cat.fits", tmp_path / "stamps.fits"
     result = runner.invoke(
@@ -297,7 +297,7 @@ def test_simulate_logs_what_it_wrote(runner, cli, tmp_path) -> None:
     assert f"megalut: wrote {out} (8 rows) and {stamps}" in _err(result)
 
 
-# --------------------------------------------------------------------------- 9. info on JSON and text files
+# ------------------------------------------------------------------- 9. info on JSON and text files
 def test_info_reads_an_evaluation(runner, cli, tmp_path) -> None:
     shears, ev = tmp_path / "s.fits", tmp_path / "evaluation.json"
     write_catalog(

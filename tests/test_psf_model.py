@@ -83,7 +83,8 @@ def _write_psfex(
     return path
 
 
-#: The synthetic PSFEx model: Gaussian of SIGMA0 at u = 0 and SIGMA1 at u = 1, u = (x - X0) / XSCALE.
+#: The synthetic PSFEx model: Gaussian of SIGMA0 at u = 0 and SIGMA1 at u = 1,
+#: u = (x - X0) / XSCALE.
 SIGMA0, SIGMA1 = 1.8, 2.6
 X0, XSCALE = 24.5, 3 * S
 
@@ -214,7 +215,8 @@ def _exposure(tmp_path: Path, offsets: bool = True):
 def _psf_grid(
     tmp_path: Path, model_path: Path, xs: np.ndarray, ys: np.ndarray, name: str = "psfgrid.fits"
 ) -> Path:
-    """The PSF of the model at each catalog position, as a grid image like the exposure (float64)."""
+    """The PSF of the model at each catalog position, as a grid image like the exposure
+    (float64)."""
     drawn = load_psf_model(model_path).draw(xs, ys, S)
     grid = np.zeros((NY * S, NX * S))
     for k, stamp in enumerate(drawn):

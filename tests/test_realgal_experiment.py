@@ -1,8 +1,8 @@
 """The real-vs-twin experiment end to end (slow): examples/realgal at a small size.
 
 Real COSMOS galaxies and their Sérsic twins are simulated from one config and seed,
-predicted with both shipped models (fiducial-1e6.h5 is the model of the recorded results) and compared with
-the paired bootstrap. Run with
+predicted with both shipped models (fiducial-1e6.h5 is the model of the recorded results) and
+compared with the paired bootstrap. Run with
 ``python -m pytest -m slow -s tests/test_realgal_experiment.py`` (about 3 minutes on 2 cores).
 """
 

@@ -43,7 +43,8 @@ _STREAM_NAMES: dict[str, str] = {}
 
 
 def user_facing(text: str) -> str:
-    """``text`` with the temporary files of ``-`` named ``stdin``/``stdout`` as the user knows them."""
+    """``text`` with the temporary files of ``-`` named ``stdin``/``stdout`` as the user knows
+    them."""
     for path, name in _STREAM_NAMES.items():
         text = text.replace(path, name)
     return text
@@ -198,7 +199,8 @@ def verbosity(ctx: click.Context) -> int:
 
 
 def verbosity_options() -> list[click.Option]:
-    """``-v/--verbose`` and ``-q/--quiet``, accepted before and after the subcommand (they add up)."""
+    """``-v/--verbose`` and ``-q/--quiet``, accepted before and after the subcommand (they add
+    up)."""
     return [
         click.Option(
             ["-v", "--verbose"],

@@ -58,11 +58,11 @@ def command(
 
     The point committees of MODEL predict their estimates on TRAIN; then, for each target,
     a committee of networks with outputs in (0, 1) learns weights minimising the mean
-    square weighted bias (paper Eq. 5) of every case. TRAIN (FITS; '-': stdin) should mimic the survey's
-    population (many different galaxies per case, no shape-noise cancellation). Rows with
-    flags != 0, non-finite features or estimates, or outside --select are masked (weight 0
-    at prediction time is the user's selection). The output model holds the point and
-    the weight committees.
+    square weighted bias (paper Eq. 5) of every case. TRAIN (FITS; '-': stdin) should mimic
+    the survey's population (many different galaxies per case, no shape-noise cancellation).
+    Rows with flags != 0, non-finite features or estimates, or outside --select are masked
+    (weight 0 at prediction time is the user's selection). The output model holds the point
+    and the weight committees.
 
     \b
     Example:

@@ -51,7 +51,8 @@ def cost(
     t_row: jnp.ndarray,
     point: jnp.ndarray | None,
 ) -> jnp.ndarray:
-    """MSE, MSB or MSWB (``megalut_cli.nn.costs``) of outputs ``out`` on rows grouped by ``case``."""
+    """MSE, MSB or MSWB (``megalut_cli.nn.costs``) of outputs ``out`` on rows grouped by
+    ``case``."""
     c = n.shape[0]
     out = out.astype(jnp.float64)
     seg = functools.partial(

@@ -253,7 +253,8 @@ class MedsFile:
             rows = cols = obj["psf_box_size"]
         else:
             raise InputError(
-                f"{self.path}: PSF cutouts without psf_box_size or psf_row_size, psf_col_size columns"
+                f"{self.path}: PSF cutouts without psf_box_size or psf_row_size, "
+                "psf_col_size columns"
             )
         pick = lambda a: a[:, cutout] if a.ndim == 2 else a  # noqa: E731
         return np.stack([pick(rows), pick(cols)], axis=1).astype(np.int64)
@@ -293,7 +294,8 @@ class MedsFile:
         """Cutout ``cutout`` of object ``index`` as 2-D arrays."""
         if not 0 <= cutout < int(self.objects["ncutout"][index]):
             raise IndexError(
-                f"object {index} has {int(self.objects['ncutout'][index])} cutout(s), not {cutout + 1}"
+                f"object {index} has {int(self.objects['ncutout'][index])} cutout(s), "
+                f"not {cutout + 1}"
             )
         s = self.stamps([index], cutout)
         first = lambda a: None if a is None else a[0]  # noqa: E731
@@ -418,8 +420,8 @@ def _check_inside(path: str, ext: str, starts: np.ndarray, ends: np.ndarray, len
         raise InputError(f"{path}: MEDS object_data has negative start rows into {ext}")
     if ends.max() > length:
         raise InputError(
-            f"{path}: truncated MEDS file: object_data puts cutouts up to pixel {int(ends.max())} of {ext}, "
-            f"which holds {length}"
+            f"{path}: truncated MEDS file: object_data puts cutouts up to pixel "
+            f"{int(ends.max())} of {ext}, which holds {length}"
         )
 
 
@@ -712,7 +714,8 @@ def extra_columns(meds: MedsFile) -> list[str]:
 
 def distinct_psfs(psfs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The distinct images of a PSF stack ``(n, P, P)`` and each stamp's index into them: objects
-    sharing a PSF (a constant PSF, or one cutout per CCD) go through metacal's operation together."""
+    sharing a PSF (a constant PSF, or one cutout per CCD) go through metacal's operation
+    together."""
     flat = np.ascontiguousarray(psfs).reshape(len(psfs), -1)
     _, first, index = np.unique(
         flat.view(np.dtype((np.void, flat.shape[1] * flat.itemsize))).ravel(),
@@ -745,9 +748,9 @@ def _parity_check(psf_size: int, boxes: np.ndarray, what: str, names: Names | No
     odd = boxes % 2 != psf_size % 2
     if odd.any():
         raise InputError(
-            f"{what}: a {psf_size}-pixel PSF for {int(boxes[odd][0])}-pixel MEDS cutouts: an even and an odd size "
-            f"put their centres half a pixel apart, which {name('metacal')} cannot use; cut the PSF to a size of the "
-            "same parity"
+            f"{what}: a {psf_size}-pixel PSF for {int(boxes[odd][0])}-pixel MEDS cutouts: "
+            "an even and an odd size put their centres half a pixel apart, which "
+            f"{name('metacal')} cannot use; cut the PSF to a size of the same parity"
         )
 
 
@@ -814,7 +817,8 @@ def measure_meds(
         )
     if options.metacal and source is None:
         raise ConfigError(
-            f"{name('metacal')} needs a PSF: PSF cutouts in the MEDS file, {name('psf_path')} or {name('psf_model_path')}"
+            f"{name('metacal')} needs a PSF: PSF cutouts in the MEDS file, {name('psf_path')} "
+            f"or {name('psf_model_path')}"
         )
     what = (
         "the coadd"
@@ -859,8 +863,8 @@ def measure_meds(
         far = model.outside(model_xy[has, 0], model_xy[has, 1])
         if far.any():
             log.warning(
-                "%s: %d of %d object(s) lie outside the area of the stars the model was fit to: its PSF "
-                "there is an extrapolation",
+                "%s: %d of %d object(s) lie outside the area of the stars the model was fit to: "
+                "its PSF there is an extrapolation",
                 options.psf_model_path,
                 int(far.sum()),
                 int(has.sum()),
@@ -1178,7 +1182,8 @@ def write_meds(
     clash = sorted(set(extra) & LAYOUT_COLUMNS)
     if clash or any(v.shape != (n,) for v in extra.values()):
         raise ValueError(
-            f"extra columns must be (n,) arrays outside the MEDS layout (got {clash or list(extra)})"
+            "extra columns must be (n,) arrays outside the MEDS layout "
+            f"(got {clash or list(extra)})"
         )
     dtype += [(c, v.dtype.str) for c, v in extra.items()]
     od = np.zeros(n, dtype=dtype)

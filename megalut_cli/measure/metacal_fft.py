@@ -274,7 +274,8 @@ def _fold_x(images: np.ndarray, e: np.ndarray, d: np.ndarray) -> None:
 
 @njit(cache=True, nogil=True)
 def _fold_y(gc: np.ndarray, gs: np.ndarray, size: int, e: np.ndarray, d: np.ndarray) -> None:
-    """:func:`_fold_x` along the rows of ``[gc | gs]`` (m * S, np) into ``e, d`` (c + 1, m, 2 np)."""
+    """:func:`_fold_x` along the rows of ``[gc | gs]`` (m * S, np) into ``e, d`` (c + 1, m,
+    2 np)."""
     n = gc.shape[1]
     c = size // 2
     m = gc.shape[0] // size
@@ -483,9 +484,9 @@ def _slots_sep(
 def _unfold(
     u1: np.ndarray, u2: np.ndarray, u3: np.ndarray, u4: np.ndarray, out: np.ndarray
 ) -> None:
-    """The stamps ``out`` (m, S, S) from the folded products ``(ty, m, tx)``: at ``(c +- ty, c +- tx)``,
-    ``u1 -+ u2 -+ u3 +- u4`` with the signs of the y side on u2 and of the x side on u3
-    (``u1 = A_r Cx``, ``u2 = B_r Cx``, ``u3 = A_i Sx``, ``u4 = B_i Sx``)."""
+    """The stamps ``out`` (m, S, S) from the folded products ``(ty, m, tx)``: at
+    ``(c +- ty, c +- tx)``, ``u1 -+ u2 -+ u3 +- u4`` with the signs of the y side on u2 and of
+    the x side on u3 (``u1 = A_r Cx``, ``u2 = B_r Cx``, ``u3 = A_i Sx``, ``u4 = B_i Sx``)."""
     m, size = out.shape[0], out.shape[1]
     c = size // 2
     for s in range(m):

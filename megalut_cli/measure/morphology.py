@@ -15,7 +15,8 @@ matrix of ``adamom_g1, adamom_g2``). With ``F_k = sum I W_k`` and ``R_k = sum I 
 
 Because the windows follow the adaptive ellipse, these are ratios that do not depend on the
 galaxy's size, flux or orientation, only on its radial profile (and the PSF and noise). For
-an exact Gaussian ``I`` of covariance ``M``, ``F_k = F k^2 / (1 + k^2)`` and ``R_k = 2 k^2 / (1 + k^2)``.
+an exact Gaussian ``I`` of covariance ``M``, ``F_k = F k^2 / (1 + k^2)`` and
+``R_k = 2 k^2 / (1 + k^2)``.
 """
 
 from __future__ import annotations

@@ -93,7 +93,8 @@ class PsfModel:
         return {"file": recorded_path(self.path), "sha256": self.sha256, "type": self.kind}
 
     def header_cards(self) -> dict[str, tuple[str, str]]:
-        """FITS cards recording the model (:data:`CARD_FILE`, :data:`CARD_SHA`, :data:`CARD_TYPE`)."""
+        """FITS cards recording the model (:data:`CARD_FILE`, :data:`CARD_SHA`,
+        :data:`CARD_TYPE`)."""
         return {
             CARD_FILE: (os.path.basename(self.path)[:68], "PSF model file (measure --psf-model)"),
             CARD_SHA: (self.sha256, "sha256 of the PSF model file"),
@@ -172,8 +173,8 @@ class PsfexModel(PsfModel):
     ) -> np.ndarray:
         if pixel_scale is not None:
             raise InputError(
-                f"{self.path}: a PSFEx model is in its exposure's pixels and has no arcsecond scale: "
-                "draw it in those pixels (without pixel_scale)"
+                f"{self.path}: a PSFEx model is in its exposure's pixels and has no arcsecond "
+                "scale: draw it in those pixels (without pixel_scale)"
             )
         drawn = self.resampled_basis(size)
         terms = self.terms(x, y)
@@ -249,7 +250,8 @@ def file_kind(path: str | os.PathLike) -> str | None:
                     return PIFF
     except (OSError, ValueError, IndexError):
         raise InputError(
-            f"{path}: not a PSF model (not a readable FITS file); expected a PSFEx .psf file or a Piff model"
+            f"{path}: not a PSF model (not a readable FITS file); expected a PSFEx .psf file "
+            "or a Piff model"
         ) from None
     return None
 
@@ -262,7 +264,8 @@ def load_psf_model(path: str | os.PathLike) -> PsfModel:
     kind = file_kind(path)
     if kind is None:
         raise InputError(
-            f"{path}: not a PSF model: neither a PSFEx .psf file (a PSF_DATA table) nor a Piff model (a psf table)"
+            f"{path}: not a PSF model: neither a PSFEx .psf file (a PSF_DATA table) "
+            "nor a Piff model (a psf table)"
         )
     sha = sha256_file(path)
     return _load_psfex(path, sha) if kind == PSFEX else _load_piff(path, sha)
@@ -326,12 +329,14 @@ def _load_piff(path: str, sha: str) -> PiffModel:
     chips = list(psf.wcs or {})
     if len(chips) != 1:
         raise InputError(
-            f"{path}: a Piff model of {len(chips)} chips; megalut measures one exposure chip: fit (or split) a single-chip model"
+            f"{path}: a Piff model of {len(chips)} chips; megalut measures one exposure chip: "
+            "fit (or split) a single-chip model"
         )
     extra = [p for p in getattr(psf, "interp_property_names", ()) if p not in ("x", "y", "u", "v")]
     if extra:
         raise InputError(
-            f"{path}: the Piff model interpolates in {', '.join(extra)} besides the position, which megalut cannot give"
+            f"{path}: the Piff model interpolates in {', '.join(extra)} besides the position, "
+            "which megalut cannot give"
         )
     stars = getattr(psf, "stars", None) or []
     bounds = None

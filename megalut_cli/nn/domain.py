@@ -235,7 +235,8 @@ def domain_findings(
                 Finding(
                     c,
                     f"{c} {here}: {100 * outside:.0f} % of the rows outside the model's "
-                    f"{_pct(TAIL_RANGE[0])}–{_pct(TAIL_RANGE[1])} % range {fmt(tlo)}–{fmt(thi)}{unit} "
+                    f"{_pct(TAIL_RANGE[0])}–{_pct(TAIL_RANGE[1])} % range "
+                    f"{fmt(tlo)}–{fmt(thi)}{unit} "
                     f"(median {fmt(model_med)})",
                 )
             )

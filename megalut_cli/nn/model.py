@@ -155,7 +155,8 @@ class Committee:
         self._stack = [(np.ascontiguousarray(w), np.ascontiguousarray(b)) for w, b in stack]
 
     def predict(self, x: np.ndarray) -> np.ndarray:
-        """Committee prediction for rows ``x`` (n x len(features)); NaN where an input is not finite."""
+        """Committee prediction for rows ``x`` (n x len(features)); NaN where an input is not
+        finite."""
         x = np.asarray(x, dtype=np.float64)
         if x.ndim != 2 or x.shape[1] != len(self.features):
             raise ValueError(f"expected an array of shape (n, {len(self.features)}), got {x.shape}")
@@ -321,7 +322,10 @@ class ShearModel:
         return list(self.point)
 
     def __repr__(self) -> str:
-        return f"ShearModel(point={list(self.point)}, weight={list(self.weight)}, features={self.features})"
+        return (
+            f"ShearModel(point={list(self.point)}, weight={list(self.weight)}, "
+            f"features={self.features})"
+        )
 
     def for_mode(self, mode: str, why: str) -> ShearModel:
         """The same networks for catalogs of another shear mode (:data:`SHEAR_MODES`), with the
@@ -375,7 +379,8 @@ class ShearModel:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> ShearModel:
-        """Read a model file; :class:`InputError` if it is not one of ours, truncated, or too new."""
+        """Read a model file; :class:`InputError` if it is not one of ours, truncated, or too
+        new."""
         import h5py
 
         p = Path(path)
@@ -398,7 +403,8 @@ class ShearModel:
                 cur_major, cur_minor = _parse_version(FORMAT_VERSION, p)
                 if major != cur_major:
                     raise InputError(
-                        f"{p}: model format version {version} is not supported (this megalut reads {cur_major}.x)"
+                        f"{p}: model format version {version} is not supported "
+                        f"(this megalut reads {cur_major}.x)"
                     )
                 if minor > cur_minor:
                     log.warning(
@@ -433,7 +439,8 @@ class ShearModel:
                 model.shear_mode = _attr(f, "shear_mode", SHEAR_MODES[0])
                 if model.shear_mode not in SHEAR_MODES:
                     raise InputError(
-                        f"{p}: unknown shear_mode {model.shear_mode!r} (known: {', '.join(SHEAR_MODES)})"
+                        f"{p}: unknown shear_mode {model.shear_mode!r} "
+                        f"(known: {', '.join(SHEAR_MODES)})"
                     )
         except InputError:
             raise

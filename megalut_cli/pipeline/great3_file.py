@@ -1,4 +1,5 @@
-"""The per-subfield pipeline of a GREAT3 constant-shear branch (paper Sect. 8), run by ``megalut run``.
+"""The per-subfield pipeline of a GREAT3 constant-shear branch (paper Sect. 8), run by
+``megalut run``.
 
 A *branch pipeline file* is a TOML file with a top-level ``[branch]`` table (reference:
 ``docs/great3.md``). As the paper does, every subfield is processed on its own, with its
@@ -146,8 +147,8 @@ BRANCH = {o.name: o for o in BRANCH_OPTIONS}
 #: but ``scale_by`` (a branch pipeline has no ``scale``).
 _SET_CHANGES = {
     "config": {
-        "help": "a simulation config file replacing the default set (below), relative to the pipeline "
-        "file",
+        "help": "a simulation config file replacing the default set (below), relative to the "
+        "pipeline file",
         "default_text": "the paper's",
     },
     "seed": {"default_text": "tp 1, tw 2"},
@@ -180,9 +181,9 @@ TOP_OPTIONS: tuple[Option, ...] = (
         "bool",
         False,
         "self-calibrated mode ([metacal.md](metacal.md)): the subfield's galaxies "
-        "are measured with `--metacal` (deconvolved by the star field's first star), the training sets in "
-        "metacal mode (the networks train on the noshear versions' features), and each subfield's shear is "
-        "its mean noshear estimate divided by its mean response",
+        "are measured with `--metacal` (deconvolved by the star field's first star), the training "
+        "sets in metacal mode (the networks train on the noshear versions' features), and each "
+        "subfield's shear is its mean noshear estimate divided by its mean response",
     ),
     Option(
         "branch", "table", None, "the branch and how to read it (above)", default_text="required"
@@ -207,9 +208,10 @@ TOP_OPTIONS: tuple[Option, ...] = (
         None,
         "as in [pipeline.md](pipeline.md): `features` (default "
         '`["adamom_g{i}", "adamom_sigma", "adamom_flux", "adamom_rho4"]`, `{i}` = the component), '
-        '`targets` (`["tru_e1", "tru_e2"]`, or `["tru_g1", "tru_g2"]` with a sheared `tp`), `hidden` '
-        f"({POINT_OPTION['hidden'].default}), `members` ({TRAIN_OPTION['members'].default}), "
-        f"`keep`, `iterations` ({PointSpec().iterations}), `cost`, `select_cases`, `init`, "
+        '`targets` (`["tru_e1", "tru_e2"]`, or `["tru_g1", "tru_g2"]` with a sheared `tp`), '
+        f"`hidden` ({POINT_OPTION['hidden'].default}), "
+        f"`members` ({TRAIN_OPTION['members'].default}), `keep`, "
+        f"`iterations` ({PointSpec().iterations}), `cost`, `select_cases`, `init`, "
         "`normalization`, `optimizer`, `precision`, `valid_fraction`, `batch_fraction`, "
         f"`batch_iterations`, `seed` ({DEFAULT_SEEDS['train_point']})",
         default_text="see meaning",
@@ -284,7 +286,10 @@ def default_set(name: str, kind: str, stamp_size: int) -> dict[str, Any]:
     }
     if name == "tp":
         return {
-            "description": f"GREAT3 {kind} subfield: point-estimate training set (ellipticity shortcut, Table 3 uniform)",
+            "description": (
+                f"GREAT3 {kind} subfield: point-estimate training set "
+                "(ellipticity shortcut, Table 3 uniform)"
+            ),
             "structure": {
                 "n_cases": 1000,
                 "n_realizations": 10,
@@ -298,7 +303,9 @@ def default_set(name: str, kind: str, stamp_size: int) -> dict[str, Any]:
             "noise": {"type": "none"},
         }
     return {
-        "description": f"GREAT3 {kind} subfield: weight training set (90-degree pairs, Table 3 mock)",
+        "description": (
+            f"GREAT3 {kind} subfield: weight training set (90-degree pairs, Table 3 mock)"
+        ),
         "structure": {
             "n_cases": 200,
             "n_realizations": 1000,
@@ -380,7 +387,8 @@ def subfield_seed(seed: int, subfield: int, *keys: int) -> int:
 
 
 def parse_subfields(value: Any, key: str = "branch.subfields") -> list[int] | None:
-    """``"all"`` -> None; a list of indices, an index, or a text like ``"0-19,25"`` -> sorted indices."""
+    """``"all"`` -> None; a list of indices, an index, or a text like ``"0-19,25"`` -> sorted
+    indices."""
     if value is None or value == "all":
         return None
     items: list[int] = []
@@ -403,7 +411,8 @@ def parse_subfields(value: Any, key: str = "branch.subfields") -> list[int] | No
             items += range(a, b + 1)
     else:
         raise ConfigError(
-            f'{key}: expected "all", a list of subfield indices or a text like "0-19", got {value!r}'
+            f'{key}: expected "all", a list of subfield indices or a text like "0-19", '
+            f"got {value!r}"
         )
     if any(v < 0 for v in items):
         raise ConfigError(f"{key}: subfield indices must be >= 0")
@@ -493,7 +502,8 @@ def parse_branch_pipeline(
     overrides: Sequence[str] = (),
     base_dir: Path | None = None,
 ) -> BranchPipeline:
-    """Validate a parsed branch pipeline (after ``key=value`` overrides); check the branch folder."""
+    """Validate a parsed branch pipeline (after ``key=value`` overrides); check the branch
+    folder."""
     from megalut_cli.sim.config import apply_overrides
 
     raw = apply_overrides(dict(raw), overrides)
@@ -516,7 +526,8 @@ def parse_branch_pipeline(
         truth = _find_path(truth_value, "branch.truth", base_dir, want_dir=True)
     elif truth_value is not False:
         raise ConfigError(
-            f"branch.truth: expected a folder, true (the branch's truth/ if any) or false, got {truth_value!r}"
+            "branch.truth: expected a folder, true (the branch's truth/ if any) or false, "
+            f"got {truth_value!r}"
         )
 
     available = L.find_subfields(branch_dir, epoch)
@@ -524,7 +535,8 @@ def parse_branch_pipeline(
     if wanted is None:
         if not available:
             raise InputError(
-                f"{branch_dir}: no {L.image_name(0, epoch).replace('000', 'SSS')} file: not a GREAT3 branch folder"
+                f"{branch_dir}: no {L.image_name(0, epoch).replace('000', 'SSS')} file: "
+                "not a GREAT3 branch folder"
             )
         subfields = available
     else:
@@ -608,7 +620,8 @@ def _check_templates(pipe: BranchPipeline) -> None:
         s = cfg.structure
         if s.stamp_size != pipe.stamp_size:
             raise ConfigError(
-                f"{name}: structure.stamp_size {s.stamp_size} differs from the branch's {pipe.stamp_size}"
+                f"{name}: structure.stamp_size {s.stamp_size} differs from the branch's "
+                f"{pipe.stamp_size}"
             )
         if s.n_cases < 2:
             raise ConfigError(f"{name}.n_cases: at least 2 cases are needed, got {s.n_cases}")

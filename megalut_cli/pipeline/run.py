@@ -129,8 +129,8 @@ def build_steps(
                 **extra,
             },
             action,
-            f"{s.n_cases} cases x {s.n_realizations} realizations = {s.n_stamps} stamps, seed {spec.seed}, "
-            f"snc {s.snc} ({spec.source})",
+            f"{s.n_cases} cases x {s.n_realizations} realizations = {s.n_stamps} stamps, "
+            f"seed {spec.seed}, snc {s.snc} ({spec.source})",
         )
 
     for name in ALL_SETS:
@@ -508,6 +508,7 @@ def format_summary(result: RunResult) -> str:
         names += [EVALUATION_REFERENCE_JSON, EVALUATION_REFERENCE_PNG]
     files = [result.prefix + n for n in names if (result.workdir / (result.prefix + n)).is_file()]
     lines.append(
-        f"products in {result.workdir}/: {', '.join(files)}, {MANIFEST} (and the catalogs and models)"
+        f"products in {result.workdir}/: {', '.join(files)}, {MANIFEST} "
+        "(and the catalogs and models)"
     )
     return "\n".join(lines)

@@ -157,7 +157,8 @@ def fingerprint(path: Path) -> dict[str, Any]:
 
 
 def current_sha(path: Path, record: Any) -> str | None:
-    """The sha256 of ``path`` if it is still the product ``record`` (a :func:`fingerprint`) describes.
+    """The sha256 of ``path`` if it is still the product ``record`` (a :func:`fingerprint`)
+    describes.
 
     Size and modification time unchanged count as unchanged (as make and git assume);
     otherwise the content is hashed again.
@@ -212,7 +213,8 @@ class Manifest:
         )
 
     def same_work(self, step: Step, key: str, workdir: Path) -> tuple[str, dict[str, str]] | None:
-        """Another step with this key whose products are intact: (its name, our product -> its product)."""
+        """Another step with this key whose products are intact: (its name, our product -> its
+        product)."""
         for other, rec in self.steps.items():
             if other == step.name or not isinstance(rec, dict) or rec.get("key") != key:
                 continue
@@ -274,7 +276,8 @@ def _unprefix(name: str, prefix: str) -> str:
 
 
 def step_key(step: Step, input_shas: Mapping[str, str]) -> str:
-    """The identity of a step's work: parameters, input contents, megalut version (no pipeline name)."""
+    """The identity of a step's work: parameters, input contents, megalut version (no pipeline
+    name)."""
     inputs = {_unprefix(n, step.prefix): s for n, s in input_shas.items()}
     return sha_text(
         {
@@ -317,8 +320,8 @@ def check_workdir(
     for name in dict.fromkeys([*products(steps), *also, MANIFEST]):
         if (workdir / name).exists():
             raise HintError(
-                f"{braces_escaped(workdir / name)} exists; use {{skip_existing}} to reuse the up-to-date "
-                "products or {overwrite} to redo every step",
+                f"{braces_escaped(workdir / name)} exists; use {{skip_existing}} to reuse the "
+                "up-to-date products or {overwrite} to redo every step",
                 "skip_existing",
                 "overwrite",
             )

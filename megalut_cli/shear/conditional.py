@@ -43,7 +43,8 @@ def equal_population_edges(
 
 
 def assign_bins(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Bin index of each value: ``edges[k] <= v < edges[k+1]`` (last bin closed); -1 outside or NaN."""
+    """Bin index of each value: ``edges[k] <= v < edges[k+1]`` (last bin closed); -1 outside or
+    NaN."""
     v = np.asarray(values, dtype=float)
     n_bins = edges.size - 1
     idx = np.searchsorted(edges, v, side="right") - 1

@@ -70,7 +70,8 @@ def resolve_columns(
     unknown = [f for f in column_map if f not in features]
     if unknown:
         raise ConfigError(
-            f"{key} {', '.join(unknown)}: not a feature of the model (its features: {', '.join(features)})"
+            f"{key} {', '.join(unknown)}: not a feature of the model "
+            f"(its features: {', '.join(features)})"
         )
     have = set(available)
     resolved = {f: column_map.get(f, f) for f in features}
@@ -255,7 +256,8 @@ def predict_rows(
         return predict_arrays(model, x, flg)
     step, xs, flgs = metacal
     out = predict_metacal(model, xs, flgs, step)
-    # pre_X: the (uncalibrated) noshear estimate; flags: the catalog's, and BAD_FEATURES where it failed
+    # pre_X: the (uncalibrated) noshear estimate; flags: the catalog's, and BAD_FEATURES where it
+    # failed
     for col in list(out):
         if col.endswith("_noshear") and col.startswith("pre_"):
             out[col[: -len("_noshear")]] = out[col]
@@ -286,16 +288,19 @@ def _metacal_inputs(
 
 
 def _check_mode(model: ShearModel, step: float | None, model_path: Any, features_path: Any) -> None:
-    """Refuse a metacal model on a plain catalog and a simulation-calibrated one on a metacal catalog."""
+    """Refuse a metacal model on a plain catalog and a simulation-calibrated one on a metacal
+    catalog."""
     if model.shear_mode == "metacal" and step is None:
         raise InputError(
-            f"{model_path} is a metacal model and {features_path} a plain catalog (no {STEP_CARD} card): measure "
-            "with --metacal (and --psf), or use a simulation-calibrated model"
+            f"{model_path} is a metacal model and {features_path} a plain catalog "
+            f"(no {STEP_CARD} card): measure with --metacal (and --psf), or use a "
+            "simulation-calibrated model"
         )
     if model.shear_mode != "metacal" and step is not None:
         raise InputError(
-            f"{model_path} is a simulation-calibrated model and {features_path} a metacal catalog ({STEP_CARD} card): "
-            f"use a metacal model ({METACAL_MODEL_HINT}), or measure without --metacal"
+            f"{model_path} is a simulation-calibrated model and {features_path} a metacal catalog "
+            f"({STEP_CARD} card): use a metacal model ({METACAL_MODEL_HINT}), or measure without "
+            "--metacal"
         )
 
 
@@ -472,8 +477,8 @@ def check_domain(
     name = Path(model_path).name
     if model_domain(model.provenance) is None:
         log.info(
-            "%s records no domain (quantiles of its training rows): only its recorded setup is compared "
-            "with %s",
+            "%s records no domain (quantiles of its training rows): only its recorded setup is "
+            "compared with %s",
             name,
             features_path,
         )
@@ -545,8 +550,8 @@ def predict_catalog(
         ]
         if missing:
             raise InputError(
-                f"{features_path}: a metacal catalog ({STEP_CARD} card) without the metacal column(s) "
-                f"{', '.join(missing)}"
+                f"{features_path}: a metacal catalog ({STEP_CARD} card) without the metacal "
+                f"column(s) {', '.join(missing)}"
             )
     findings = check_domain(
         model,

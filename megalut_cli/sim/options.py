@@ -38,8 +38,8 @@ SIMULATE_OPTIONS: tuple[Option, ...] = (
     replace(
         MEASURE["metacal"],
         help="With --measure: also the features of the five metacalibration versions of "
-        "each stamp, deconvolved by the PSF it was drawn with (X_noshear, X_1p, X_1m, X_2p, X_2m for every "
-        "feature X; docs/metacal.md); the fixnoise fields come from --seed.",
+        "each stamp, deconvolved by the PSF it was drawn with (X_noshear, X_1p, X_1m, X_2p, X_2m "
+        "for every feature X; docs/metacal.md); the fixnoise fields come from --seed.",
     ),
     _after_measure(MEASURE["metacal_step"]),
     replace(STRUCTURE["n_cases"], help="Override structure.n_cases.", default_text=None),

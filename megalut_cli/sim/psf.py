@@ -30,9 +30,9 @@ parameters (see the "PSF" section of ``docs/config.md``):
     stamps (e.g. a GREAT3 ``starfield_image``, 3x3) and ``index`` (default 0) picks one,
     in grid order from the lower-left; ``index = "random"`` (or any distribution, e.g.
     ``{type = "grid", values = [0, 4, 8]}``) picks one per case (per realization with
-    ``"psf"`` in ``structure.per_realization``), as the paper does for GREAT3 (Sect. 8.2). ``pixel_scale`` is the star image's pixel in
-    simulation pixels (default 1). ``interpolant`` is GalSim's x interpolant (default
-    quintic).
+    ``"psf"`` in ``structure.per_realization``), as the paper does for GREAT3 (Sect. 8.2).
+    ``pixel_scale`` is the star image's pixel in simulation pixels (default 1).
+    ``interpolant`` is GalSim's x interpolant (default quintic).
 
 Truth values ``tru_psf_g1, tru_psf_g2, tru_psf_sigma`` (sigma in pixels) are analytic
 for the Gaussian types; otherwise ``g1, g2`` are analytic (shear applied to a round
@@ -110,7 +110,8 @@ PSF_REGISTRY: dict[str, PsfType] = {}
 
 
 def register_psf_type(psf_type: PsfType) -> None:
-    """Make ``psf_type`` available as ``psf.type = "<name>"`` (the one place a PSF type is added)."""
+    """Make ``psf_type`` available as ``psf.type = "<name>"`` (the one place a PSF type is
+    added)."""
     if psf_type.name in PSF_REGISTRY:
         raise ValueError(f"PSF type {psf_type.name!r} is already registered")
     PSF_REGISTRY[psf_type.name] = psf_type
@@ -523,8 +524,8 @@ register_psf_type(
         _check_field,
         _field,
         varies=True,
-        help="the variable PSF of the paper's Sect. 6, at the case's field position (x, y) in [0, 1] "
-        "(below)",
+        help="the variable PSF of the paper's Sect. 6, at the case's field position (x, y) in "
+        "[0, 1] (below)",
     )
 )
 register_psf_type(
