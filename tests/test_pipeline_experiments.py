@@ -184,7 +184,7 @@ def test_named_pipelines_share_the_sets(tmp_path: Path) -> None:
 
 
 def test_extends_rebases_every_path_key_and_keeps_shipped_names(tmp_path: Path) -> None:
-    """The one rule for the path keys of an extended file (pipeline_config.PATH_TABLES): relative
+    """The one rule for the path keys of an extended file (pipeline.config.PATH_TABLES): relative
     to that file; a shipped model's name is not a path."""
     from megalut_cli.nn.shipped import shipped_model
 

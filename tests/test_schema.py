@@ -332,7 +332,7 @@ def test_evaluation_bins_one_range(cli, runner, tmp_path):
 
 def test_pipeline_keys_are_the_declarations(tmp_path):
     """The top-level and [sets.X] keys a pipeline accepts, their defaults and ranges, are
-    those declared in pipeline_config (unknown keys list them)."""
+    those declared in pipeline.config (unknown keys list them)."""
     from megalut_cli.pipeline.config import DEFAULT_SET_SEEDS, PIPELINE, SET_OPTION
 
     pipe = load_pipeline(write_pipeline(tmp_path))

@@ -1,6 +1,6 @@
 """The step engine of ``megalut run``: a work folder, a list of steps, a manifest.
 
-A pipeline (``pipeline.py``, ``great3/runner.py``) declares its work as :class:`Step`
+A pipeline (``pipeline/run.py``, ``pipeline/great3_run.py``) declares its work as :class:`Step`
 objects — products, inputs (products of earlier steps), parameters and an action — and
 :class:`Units`, a step made of independent work units (each with its own key and
 products, run in parallel on the executor of ``-j``/``--scheduler``); a
