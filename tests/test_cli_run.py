@@ -119,6 +119,22 @@ def test_bad_pipeline_file(runner, cli, tmp_path: Path) -> None:
 
 #: README's Stage IV requirement and the default run's claim: weighted m, c within 2 sigma.
 REQUIREMENT_M, REQUIREMENT_C = 2e-3, 2e-4
+#: The usable rows of README's default-run tables, and the CPU family (``/proc/cpuinfo``)
+#: they were recorded on: numba's kernels are compiled for the host CPU, so the last digits
+#: of stamps, features and float32 trainings depend on it.
+README_ROWS, README_CPU_FAMILY = 386798, "26"
+
+
+def cpu_family() -> str | None:
+    """The ``cpu family`` of ``/proc/cpuinfo`` (None where there is none)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return None
+    for line in text.splitlines():
+        if line.startswith("cpu family"):
+            return line.split(":", 1)[1].strip()
+    return None
 
 
 def readme_default_run_tables() -> dict[str, dict[str, dict[str, float]]]:
@@ -160,6 +176,7 @@ def test_default_run_meets_the_stage_iv_requirement_within_2_sigma(
     assert result.exit_code == 0, _err(result)
     assert "the shipped model fiducial (models/fiducial.h5) on vo" in result.stdout
     readme = readme_default_run_tables()
+    same_cpu = cpu_family() == README_CPU_FAMILY
     for name, products in (("run", "evaluation.json"), ("reference", "evaluation-reference.json")):
         ev = json.loads((wd / products).read_text())
         for comp in ("g1", "g2"):
@@ -182,15 +199,20 @@ def test_default_run_meets_the_stage_iv_requirement_within_2_sigma(
                 name,
                 comp,
             )
-            # README's printed table is this run: within a quarter of its error (training is
-            # deterministic for given seeds; BLAS or compiler changes may move the last digits)
+            # README's printed table is this run: within a quarter of its error on the CPU it
+            # was recorded on (training is deterministic for given seeds). Elsewhere the
+            # compiled kernels and BLAS choose other instructions: a few stamps change flags
+            # and the float32 trainings drift apart (measured on AMD EPYC family 25: the run's
+            # networks 0.4-0.8 sigma from README's table, the shipped model's 0.02 sigma).
             rec = readme[name][comp]
+            tolerance = 0.25 if same_cpu or name == "reference" else 1.5
             for q in ("m", "c"):
-                assert abs(weighted[q] - rec[q]) < 0.25 * rec[f"{q}_err"], (
+                assert abs(weighted[q] - rec[q]) < tolerance * rec[f"{q}_err"], (
                     name,
                     comp,
                     q,
                     weighted[q],
                     rec,
                 )
-        assert ev["weighted"]["g1"]["n_rows"] == 386798
+        rows = ev["weighted"]["g1"]["n_rows"]
+        assert rows == README_ROWS if same_cpu else abs(rows - README_ROWS) <= 20, rows
