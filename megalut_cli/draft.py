@@ -706,7 +706,7 @@ def draft_setup(
     comments name the two catalogs. Every missing column is reported at once (InputError)."""
     header = header or {}
     if base is None:
-        # imported here: it reads FITS (fitsio), which `megalut draft --help` should not load
+        # the pipeline and simulation config modules, ~50 ms: not for `megalut draft --help`
         from megalut_cli.pipeline.config import default_pipeline_text
 
         base = tomllib.loads(default_pipeline_text())
@@ -866,7 +866,7 @@ def render_pipeline(draft: Draft, base_text: str | None = None) -> str:
     ``draft.removed`` removed, the notes as comments above their tables, and a header saying
     what was drafted from what."""
     if base_text is None:
-        # imported here: it reads FITS (fitsio), which `megalut draft --help` should not load
+        # the pipeline and simulation config modules, ~50 ms: not for `megalut draft --help`
         from megalut_cli.pipeline.config import default_pipeline_text
 
         base_text = default_pipeline_text()

@@ -19,6 +19,7 @@ by name, when a unit runs on the device, and never the other way round.
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol, cast
 
 from megalut_cli.errors import ArgumentError
@@ -106,6 +107,10 @@ DEVICE_BACKEND = "megalut_cli.gpu.backend"
 
 class DeviceBackend(Protocol):
     """What the library runs on the device: the entry points of :mod:`megalut_cli.gpu.backend`."""
+
+    #: ``megalut_cli.gpu.train.DeviceObjective``: the interface of
+    #: ``megalut_cli.nn.train.Objective`` (costs and gradients of a training), on the device.
+    DeviceObjective: Callable[..., Any]
 
     def draw_unit(self, unit: Any) -> dict[str, Any]:
         """``megalut_cli.sim.draw.draw_unit`` of a fast-engine ``WorkUnit`` on the device."""

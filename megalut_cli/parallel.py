@@ -241,15 +241,6 @@ def map_ordered(
             fut.cancel()
 
 
-def format_duration(seconds: float) -> str:
-    """``42 s``, ``7.5 min`` or ``3.2 h`` (for time estimates in logs)."""
-    if seconds < 90:
-        return f"{seconds:.0f} s"
-    if seconds < 5400:
-        return f"{seconds / 60:.1f} min"
-    return f"{seconds / 3600:.1f} h"
-
-
 def chunk_ranges(n: int, n_chunks: int) -> list[tuple[int, int]]:
     """Split ``range(n)`` into ``n_chunks`` contiguous (start, stop) ranges of near-equal size."""
     n_chunks = max(1, min(n_chunks, n)) if n else 1

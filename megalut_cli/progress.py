@@ -3,6 +3,7 @@
 A long operation takes ``progress: Progress | None`` and opens it itself, with a label
 and the total it knows: ``with (progress or no_progress)(label, total) as update:
 update(n)``. The command layer passes a terminal bar (``cli.console.progress``).
+:func:`format_duration` writes a time as log and progress lines give it.
 """
 
 from __future__ import annotations
@@ -32,3 +33,12 @@ def relabelled(progress: Progress | None, label: str) -> Progress:
         return bar(label, total)
 
     return opened
+
+
+def format_duration(seconds: float) -> str:
+    """``42 s``, ``7.5 min`` or ``3.2 h`` (for time estimates in logs)."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"

@@ -27,6 +27,8 @@ from pathlib import Path
 
 import click
 
+from megalut_cli.progress import format_duration
+
 #: The package's logger, parent of every module's ``logging.getLogger(__name__)``.
 PACKAGE_LOGGER = "megalut_cli"
 #: The name that stands for stdin (inputs) or stdout (outputs).
@@ -118,8 +120,6 @@ def progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
         elapsed = time.perf_counter() - start
         if not estimated and done < length and done >= step and elapsed >= ESTIMATE_AFTER_SECONDS:
             estimated = True  # one line from the measured pace, for long jobs off a terminal
-            from megalut_cli.parallel import format_duration
-
             log.info(
                 "%s: %d/%d in %s, about %s left",
                 label,

@@ -6,9 +6,11 @@ import logging
 
 import click
 
+from megalut_cli.atomic import atomic_output, check_output
 from megalut_cli.cli.commands import short_help
+from megalut_cli.cli.console import is_stdio
 from megalut_cli.cli.options import output_option, overwrite_option, schema_option
-from megalut_cli.draft import STARS_OPTION
+from megalut_cli.draft import STARS_OPTION, draft_setup, render_pipeline, toml_value
 
 log = logging.getLogger(__name__)
 
@@ -42,10 +44,7 @@ def command(features: str, output: str, stars: str | None, overwrite: bool) -> N
       megalut measure starfield.fits -o stars.fits --stars
       megalut draft features.fits --stars stars.fits -o -
     """
-    from megalut_cli.atomic import atomic_output, check_output
-    from megalut_cli.catalog import read_catalog_columns
-    from megalut_cli.cli.console import is_stdio
-    from megalut_cli.draft import draft_setup, render_pipeline, toml_value
+    from megalut_cli.catalog import read_catalog_columns  # fitsio: not for --help
 
     to_stdout = is_stdio(output)
     if not to_stdout:

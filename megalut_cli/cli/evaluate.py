@@ -7,14 +7,16 @@ from typing import TextIO
 
 import click
 
-from megalut_cli.atomic import write_json
+from megalut_cli.atomic import check_output, write_json
 from megalut_cli.cli.commands import short_help
+from megalut_cli.cli.console import flag_names, is_stdio, stdin_path
 from megalut_cli.cli.options import (
     overwrite_option,
     parse_list,
     schema_option,
     seed_option,
 )
+from megalut_cli.errors import ArgumentValueError
 from megalut_cli.shear.options import EVALUATE, EVALUATE_CLI
 
 #: Exit code of ``--fail-above`` when the Stage IV requirement does not hold.
@@ -25,8 +27,7 @@ def _plot_suffix(ctx: click.Context, param: click.Parameter, value: str | None) 
     """``--plot``'s file type, checked while the options are read (a usage error, before any
     work)."""
     if value is not None:
-        from megalut_cli.errors import ArgumentValueError
-        from megalut_cli.shear.plots import check_plot_suffix
+        from megalut_cli.shear.plots import check_plot_suffix  # SciPy, fitsio: not for --help
 
         try:
             check_plot_suffix(value)
@@ -149,8 +150,7 @@ def command(
       megalut evaluate real-shears.fits --twin twin-shears.fits \\
           --by "tru_twin_rad/tru_psf_sigma,snr"
     """
-    from megalut_cli.atomic import check_output
-    from megalut_cli.cli.console import flag_names, is_stdio, stdin_path
+    # SciPy, fitsio: not for --help
     from megalut_cli.shear.evaluate import (
         WARN_M,
         errors_na_note,
@@ -168,7 +168,7 @@ def command(
     if json_path is not None and plot_path is not None and json_path == plot_path:
         raise click.UsageError("--json and --plot must name different files")
     if plot_path is not None:
-        from megalut_cli.shear.plots import check_plot_output
+        from megalut_cli.shear.plots import check_plot_output  # SciPy, fitsio: not for --help
 
         check_plot_output(plot_path)
 
@@ -199,7 +199,7 @@ def command(
     from_stdin = is_stdio(shears)
     shears = click.get_current_context().with_resource(stdin_path(shears))
     if great3_truth is not None:
-        from megalut_cli.great3.evaluate import evaluate_branch
+        from megalut_cli.great3.evaluate import evaluate_branch  # astropy, SciPy: not for --help
 
         if errors == "bootstrap":
             raise click.UsageError(
@@ -246,7 +246,7 @@ def command(
     elif json_path is not None:
         write_json(json_path, result, overwrite)
     if plot_path is not None:
-        from megalut_cli.shear.plots import plot_evaluation
+        from megalut_cli.shear.plots import plot_evaluation  # SciPy, fitsio: not for --help
 
         plot_evaluation(result, plot_path, overwrite)
     if fail_above and not requirement_met(result):
@@ -269,8 +269,10 @@ def _evaluate_twin(
     other: list[str],
 ) -> None:
     """The paired real-vs-twin evaluation of ``--twin``."""
-    from megalut_cli.cli.console import flag_names, is_stdio
-    from megalut_cli.shear.paired import evaluate_paired_catalogs, format_paired
+    from megalut_cli.shear.paired import (  # SciPy, fitsio: not for --help
+        evaluate_paired_catalogs,
+        format_paired,
+    )
 
     if other:
         raise click.UsageError(f"{other[0]} does not apply with --twin")

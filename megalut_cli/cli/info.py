@@ -53,7 +53,7 @@ def command(file: str | None, as_json: bool, list_models: bool) -> None:
     """
     import json
 
-    from megalut_cli.info import (
+    from megalut_cli.info import (  # fitsio: not for --help
         describe_file,
         describe_shipped_models,
         format_info,

@@ -18,6 +18,7 @@ from pathlib import Path
 import click
 
 from megalut_cli import __release_date__, __version__
+from megalut_cli.cli import main
 
 #: Longest line of an example block: a man page indents it by 7 columns, and an 80-column
 #: terminal must show it whole (long commands continue on the next line after ``\``).
@@ -111,8 +112,6 @@ def man_page(ctx: click.Context) -> str:
 
 def generate(target: str | Path) -> list[Path]:
     """Write ``megalut.1`` and one ``megalut-<command>.1`` per subcommand into ``target``."""
-    from megalut_cli.cli import main
-
     target = Path(target)
     target.mkdir(parents=True, exist_ok=True)
     written = []

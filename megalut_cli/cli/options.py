@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import click
@@ -20,6 +22,7 @@ from megalut_cli.engine import (
     described,
     resolve_device,
 )
+from megalut_cli.errors import InputError
 from megalut_cli.nn.options import (
     COMMITTEE_OPTIONS,
     OPTIMIZER_OPTIONS,
@@ -27,6 +30,7 @@ from megalut_cli.nn.options import (
     TrainSpec,
     train_options,
 )
+from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
 from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION, resolve_nproc, start_worker_server
 from megalut_cli.schema import Option
 from megalut_cli.seeding import SEED_OPTION
@@ -247,12 +251,6 @@ class ModelFile(click.ParamType):
     name = "model"
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
-        import os
-        from pathlib import Path
-
-        from megalut_cli.errors import InputError
-        from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
-
         text = os.fspath(value)
         if Path(text).is_file():
             return text
@@ -275,8 +273,6 @@ MODEL_FILE = ModelFile()
 
 def model_help(help: str) -> str:
     """``help`` of a model option or argument, followed by the shipped models' names."""
-    from megalut_cli.nn.shipped import SHIPPED_MODELS
-
     return (
         f"{help} Or a shipped model by name: {', '.join(SHIPPED_MODELS)} (megalut info --models)."
     )

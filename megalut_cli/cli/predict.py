@@ -7,12 +7,14 @@ import logging
 import click
 
 from megalut_cli.cli.commands import short_help
+from megalut_cli.cli.console import flag_names, stdin_path, stdout_path
 from megalut_cli.cli.options import (
     MODEL_FILE,
     execution_options,
     model_help,
     output_option,
     overwrite_option,
+    progress,
     schema_option,
 )
 from megalut_cli.errors import ConfigError
@@ -96,8 +98,7 @@ def command(
       megalut measure stamps.fits cat.fits -o - \\
           | megalut predict - --model model.h5 -o - | megalut evaluate -
     """
-    from megalut_cli.cli.console import flag_names, stdin_path, stdout_path
-    from megalut_cli.cli.options import progress
+    # fitsio, and ~40 ms of modules (the simulation config ones): not for --help
     from megalut_cli.nn.model import ShearModel
     from megalut_cli.nn.population import model_report
     from megalut_cli.shear.predict import predict_catalog

@@ -10,7 +10,8 @@ from pathlib import Path
 import click
 
 from megalut_cli.cli.commands import short_help
-from megalut_cli.cli.options import execution_options, overwrite_option
+from megalut_cli.cli.options import execution_options, overwrite_option, progress
+from megalut_cli.errors import ConfigError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +112,7 @@ def command(
       megalut run examples/great3/pipeline.toml branch.path=rgc \\
           --workdir rgc-run --keep-going
     """
-    from megalut_cli.cli.options import progress
+    # the pipeline and simulation config modules, ~60 ms: not for --help
     from megalut_cli.pipeline import file as pl
     from megalut_cli.pipeline import run as pipeline_run
     from megalut_cli.pipeline.config import default_pipeline_text
@@ -164,8 +165,7 @@ def command(
 def _keys_as_written(pipeline: str | None, overrides: tuple[str, ...]) -> Iterator[None]:
     """Errors of the pipeline file name its keys where the user wrote them: the file and
     its table (``pipeline.toml: [simulation.noise] sigam: unknown key``) or the override."""
-    from megalut_cli.errors import ConfigError, InputError
-    from megalut_cli.pipeline.config import where_written
+    from megalut_cli.pipeline.config import where_written  # as in command: not for --help
 
     try:
         yield
@@ -176,7 +176,7 @@ def _keys_as_written(pipeline: str | None, overrides: tuple[str, ...]) -> Iterat
 
 
 def _is_branch(pipeline: str) -> bool:
-    from megalut_cli.pipeline import great3_file as g3
+    from megalut_cli.pipeline import great3_file as g3  # astropy: not for --help
 
     return bool(g3.is_branch_pipeline(pipeline))
 
@@ -192,7 +192,7 @@ def _branch_pipeline(
     scheduler: str | None,
 ) -> bool:
     """Run ``pipeline`` if it is a GREAT3 branch pipeline (a [branch] table); False otherwise."""
-    from megalut_cli.cli.options import progress
+    # astropy: not for --help
     from megalut_cli.pipeline import great3_file as g3
     from megalut_cli.pipeline import great3_run as runner
 

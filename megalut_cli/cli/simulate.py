@@ -7,6 +7,7 @@ import logging
 import click
 
 from megalut_cli.cli.commands import short_help
+from megalut_cli.cli.console import flag_names, stdout_path
 from megalut_cli.cli.options import (
     device_option,
     engine_option,
@@ -16,6 +17,8 @@ from megalut_cli.cli.options import (
     progress,
     schema_option,
 )
+from megalut_cli.engine import resolve_device
+from megalut_cli.sim.config import keys_as_written, load_config
 from megalut_cli.sim.options import SIMULATE
 
 log = logging.getLogger(__name__)
@@ -116,9 +119,7 @@ def command(
       megalut simulate examples/fiducial/tp.toml -o tp.fits --measure \\
           --dry-run
     """
-    from megalut_cli.cli.console import flag_names, stdout_path
-    from megalut_cli.engine import resolve_device
-    from megalut_cli.sim.config import keys_as_written, load_config
+    # GalSim, numba, SciPy, astropy, fitsio: not for --help
     from megalut_cli.sim.simulate import check_outputs, plan_message, simulate
 
     device = resolve_device(device)
@@ -139,7 +140,7 @@ def command(
     names = flag_names(branch_dir="--great3")
     check_outputs(cfg, output, stamps, overwrite, names)
     if great3_dir is not None:
-        from megalut_cli.great3.sim import check_branch_output
+        from megalut_cli.great3.sim import check_branch_output  # GalSim: not for --help
 
         check_branch_output(great3_dir, overwrite, names)
     log.info(
@@ -160,7 +161,7 @@ def command(
     if dry_run:
         return
     if great3_dir is not None:
-        from megalut_cli.great3.sim import simulate_branch
+        from megalut_cli.great3.sim import simulate_branch  # GalSim: not for --help
 
         branch = simulate_branch(
             cfg,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from megalut_cli.cli.commands import short_help
+from megalut_cli.cli.console import flag_names, stdin_path
 from megalut_cli.cli.options import (
     MODEL_FILE,
     committee_options,
@@ -89,8 +90,7 @@ def command(
       megalut train-point toy.fits -o toy.h5 --features d \\
           --targets tru_theta --hidden 5
     """
-    from megalut_cli.cli.console import flag_names, stdin_path
-    from megalut_cli.nn.fit import train_point
+    from megalut_cli.nn.fit import train_point  # fitsio: not for --help
 
     train = click.get_current_context().with_resource(stdin_path(train))  # '-': stdin
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from megalut_cli.cli.commands import short_help
+from megalut_cli.cli.console import flag_names, stdin_path
 from megalut_cli.cli.options import (
     MODEL_FILE,
     committee_options,
@@ -69,8 +70,7 @@ def command(
       megalut train-weight tw.fits --model model.h5 -o model_w.h5 \\
           --select "snr > 10" -j 4
     """
-    from megalut_cli.cli.console import flag_names, stdin_path
-    from megalut_cli.nn.fit import train_weight
+    from megalut_cli.nn.fit import train_weight  # fitsio: not for --help
 
     train = click.get_current_context().with_resource(stdin_path(train))  # '-': stdin
 

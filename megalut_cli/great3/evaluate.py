@@ -24,10 +24,11 @@ from typing import Any
 
 import numpy as np
 
-from megalut_cli.catalog import is_fits_file
+from megalut_cli.catalog import is_fits_file, read_catalog, require_columns
 from megalut_cli.errors import InputError
 from megalut_cli.great3 import layout as L
 from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND
+from megalut_cli.shear.evaluate import evaluate_columns, evaluation_provenance
 
 log = logging.getLogger(__name__)
 
@@ -39,11 +40,7 @@ def branch_columns(
     ``shears`` (submission or predictions catalog) joined with the truth of their subfield
     (``case`` = subfield, ``tru_g1, tru_g2``, and ``tru_psf_g1, tru_psf_g2`` when known)."""
     if is_fits_file(shears):
-        from megalut_cli.catalog import read_catalog
-
         table = read_catalog(shears)
-        from megalut_cli.catalog import require_columns
-
         require_columns(table.colnames, ["pre_g1", "pre_g2"], shears)
         sub = L.subfield_column(table, str(shears))
         cols = {c: np.asarray(table[c]) for c in table.colnames if np.ndim(table[c]) == 1}
@@ -98,8 +95,6 @@ def evaluate_branch(
     Returns the JSON-ready dict of :func:`megalut_cli.shear.evaluate.evaluate_columns`
     (cases are subfields) with a ``"great3"`` entry naming the truth folder.
     """
-    from megalut_cli.shear.evaluate import evaluate_columns, evaluation_provenance
-
     cols = branch_columns(shears, truth_dir)
     if len(np.unique(cols["case"])) < 2:
         raise InputError(

@@ -51,11 +51,20 @@ from megalut_cli.catalog import write_catalog, write_image, write_text_catalog
 from megalut_cli.engine import DEFAULT_ENGINE
 from megalut_cli.errors import ConfigError, MegalutError, Names, namer
 from megalut_cli.great3 import layout as L
+from megalut_cli.measure.features import measure_stamps
 from megalut_cli.parallel import executor, map_units
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.seeding import STREAM_SIMULATE, rng_for
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, get_psf, psf_includes_pixel
+from megalut_cli.sim.simulate import (
+    expected_workers,
+    log_engine_fallback,
+    order_columns,
+    simulation_cards,
+    warn_hst_noise,
+    write_simulation_catalog,
+)
 from megalut_cli.sim.structure import draw_case
 
 log = logging.getLogger(__name__)
@@ -165,8 +174,6 @@ def _draw_subfield(job: dict[str, Any]) -> dict[str, Any]:
     g = L.grid_centres(n_x, n_y, size)
     origins = np.column_stack([g["column"] * size + 1, g["row"] * size + 1]).astype(float)
     if job["measure"]:
-        from megalut_cli.measure.features import measure_stamps
-
         cols.update(
             measure_stamps(stamps, origins=origins, gain=unit.config.gain, engine=unit.engine)
         )
@@ -267,15 +274,6 @@ def simulate_branch(
     ``progress`` counts the subfields as they are drawn (``n_cases`` in all); messages name
     the arguments by ``names``.
     """
-    from megalut_cli.sim.simulate import (
-        expected_workers,
-        log_engine_fallback,
-        order_columns,
-        simulation_cards,
-        warn_hst_noise,
-        write_simulation_catalog,
-    )
-
     out = check_output(output, overwrite)
     final = check_branch_output(branch_dir, overwrite, names)
     n_x, n_y = check_config(config)

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from megalut_cli.engine import device_backend
 from megalut_cli.errors import ConfigError
 from megalut_cli.nn import costs
 from megalut_cli.nn.data import CaseData, case_rows
@@ -51,7 +52,7 @@ class TrainSettings:
     valid_every: int = 1
     max_stalls: int = 3
     precision: str = OPTION["precision"].default
-    device: str = "cpu"  # "gpu": costs and gradients on the device (megalut_cli.gpu.train)
+    device: str = "cpu"  # "gpu": costs and gradients on the device (the backend's DeviceObjective)
 
     def __post_init__(self) -> None:
         """Check the settings: the ranges and choices of the declarations of
@@ -285,9 +286,7 @@ def train_member(task: MemberTask) -> MemberResult:
     params = initial_params(task, rng)
     t0, cpu0 = time.perf_counter(), time.process_time()
 
-    objective: Any = Objective
-    if s.device == "gpu":
-        from megalut_cli.gpu.train import DeviceObjective as objective
+    objective: Any = device_backend().DeviceObjective if s.device == "gpu" else Objective
 
     def make(data: CaseData) -> Objective:
         return objective(

@@ -47,15 +47,23 @@ from megalut_cli.engine import DEFAULT_ENGINE, ENGINE_OPTION
 from megalut_cli.errors import ConfigError, InputError, MegalutError
 from megalut_cli.great3 import layout as L
 from megalut_cli.measure.defaults import MIN_STAMP_SIZE
+from megalut_cli.measure.features import FEATURE_COLUMNS
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
 from megalut_cli.nn.options import POINT_OPTION, PointSpec, WeightSpec
-from megalut_cli.pipeline.config import PIPELINE, TRAIN_POINT_KEYS, TRAIN_WEIGHT_KEYS, read_spec
+from megalut_cli.pipeline.config import (
+    PIPELINE,
+    TRAIN_POINT_KEYS,
+    TRAIN_WEIGHT_KEYS,
+    merge_tables,
+    read_spec,
+)
 from megalut_cli.pipeline.config import SET_OPTIONS as PIPELINE_SET_OPTIONS
 from megalut_cli.pipeline.steps import MANIFEST as MANIFEST  # the step engine's manifest.json
 from megalut_cli.pipeline.steps import sha_text
 from megalut_cli.schema import Option, Table, resolve_path
 from megalut_cli.seeding import STREAM_SUBFIELD, int_seed_for
 from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND, GREAT3_SIGMA2_MIN_SPACE
+from megalut_cli.sim.config import apply_overrides, is_measured, read_toml, validate_config
 
 log = logging.getLogger(__name__)
 
@@ -370,8 +378,6 @@ class BranchPipeline:
 
 def is_branch_pipeline(path: str | os.PathLike) -> bool:
     """Whether the TOML file ``path`` is a branch pipeline (has a top-level ``[branch]``)."""
-    from megalut_cli.sim.config import read_toml
-
     raw, _ = read_toml(path)
     return "branch" in raw
 
@@ -427,9 +433,6 @@ def _find_path(text: str, key: str, base_dir: Path | None, want_dir: bool) -> Pa
 def _load_set(
     name: str, top: Any, kind: str, size: int, base_dir: Path | None, pipe_path: str
 ) -> SetTemplate:
-    from megalut_cli.pipeline.config import merge_tables
-    from megalut_cli.sim.config import read_toml
-
     t = Table(top.data.get(name), name, set(SET_OPTION))
     if "config" in t.data:
         cfg = _find_path(t.option(SET_OPTION["config"]), t.key("config"), base_dir, want_dir=False)
@@ -464,8 +467,6 @@ def set_config(
     """The validated simulation config of ``tpl`` for one subfield: a ``stamp`` PSF takes
     the subfield's star field, a ``measured`` noise its features catalog (``None``: a
     stand-in value of 1, to check the config before anything is measured)."""
-    from megalut_cli.sim.config import is_measured, validate_config
-
     raw = copy.deepcopy(tpl.raw)
     psf = raw.get("psf")
     if isinstance(psf, dict) and psf.get("type") == "stamp":
@@ -483,8 +484,6 @@ def set_config(
 
 
 def _check_features(names: Sequence[str], key: str) -> None:
-    from megalut_cli.measure.features import FEATURE_COLUMNS
-
     allowed = [c for c in FEATURE_COLUMNS if c != "flags"]
     for i in (1, 2):
         bad = [f for f in component_features(names, i) if f not in allowed]
@@ -504,8 +503,6 @@ def parse_branch_pipeline(
 ) -> BranchPipeline:
     """Validate a parsed branch pipeline (after ``key=value`` overrides); check the branch
     folder."""
-    from megalut_cli.sim.config import apply_overrides
-
     raw = apply_overrides(dict(raw), overrides)
     top = Table(raw, "", set(TOP))
     description = top.option(TOP["description"])
@@ -638,8 +635,6 @@ def _check_templates(pipe: BranchPipeline) -> None:
 
 def load_branch_pipeline(path: str | os.PathLike, overrides: Sequence[str] = ()) -> BranchPipeline:
     """Read and validate a branch pipeline file."""
-    from megalut_cli.sim.config import read_toml
-
     raw, sha = read_toml(path)
     return parse_branch_pipeline(raw, str(path), sha, overrides, Path(path).resolve().parent)
 

@@ -14,6 +14,10 @@ saved as ``model.h5``, the galaxies' estimates predicted from the tables
 the branch steps, declared once the subfields finished: ``shears.fits``,
 ``submission.txt``, ``evaluation.json`` (with a truth folder); the engine's
 ``manifest.json`` records them all.
+
+The functions import the library modules that load GalSim, numba, SciPy and fitsio where they
+are called (the units, the steps' actions, the summary): importing this module loads none of
+them.
 """
 
 from __future__ import annotations
@@ -35,10 +39,13 @@ import numpy as np
 
 from megalut_cli import __version__
 from megalut_cli import flags as fl
+from megalut_cli.atomic import replace_folder, write_json
 from megalut_cli.errors import InputError, MegalutError
 from megalut_cli.great3 import layout as L
+from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, SEED_CARD, STEP_CARD, header_step
 from megalut_cli.nn.model import ShearModel
 from megalut_cli.nn.options import PointSpec, WeightSpec
+from megalut_cli.pipeline.config import key_names
 from megalut_cli.pipeline.great3_file import (
     EVALUATION,
     MANIFEST,
@@ -72,6 +79,7 @@ from megalut_cli.pipeline.steps import (
     run_steps,
 )
 from megalut_cli.progress import Progress
+from megalut_cli.provenance import command_line, sha256_file, software_versions
 
 if TYPE_CHECKING:
     from megalut_cli.nn.fit import Columns
@@ -150,8 +158,6 @@ def train_subfield(
     ``sources``: the names of ``tp`` and ``tw`` for the logs and the model's provenance.
     """
     from megalut_cli.nn.fit import fit_point, fit_weight
-    from megalut_cli.pipeline.config import key_names
-    from megalut_cli.provenance import command_line, software_versions
 
     point, weight = {}, {}
     for i in (1, 2):
@@ -194,7 +200,6 @@ def simulate_set(
     """A training set of one subfield, simulated and measured in memory (``metacal``: in
     metacal mode); written to ``kept`` too (``output.keep_sets``) as ``megalut simulate
     --measure`` (``--metacal``) writes it."""
-    from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, SEED_CARD, STEP_CARD
     from megalut_cli.sim.simulate import simulate_table, simulation_cards, write_simulation_catalog
 
     t0 = time.perf_counter()
@@ -226,7 +231,6 @@ def predict_subfield(
     ``output`` as ``megalut predict`` writes them: the features catalog's header, carried
     HDUs and history, after the same check against the model's training domain."""
     from megalut_cli.catalog import catalog_info, catalog_writer, read_cards, read_carried_hdus
-    from megalut_cli.measure.metacal_defaults import header_step
     from megalut_cli.shear.predict import (
         FORMAT,
         FORMAT_VERSION,
@@ -293,7 +297,6 @@ def subfield_unit(pipe: BranchPipeline, subfield: int) -> Unit:
 def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
     """Work unit: the whole pipeline of one subfield (``job``: ``pipe``, ``subfield``), written
     into ``subfields/SSS/`` with its record; returns its summary (means, galaxies, noise)."""
-    from megalut_cli.atomic import replace_folder
     from megalut_cli.catalog import VersionColumns
     from megalut_cli.measure.measure import measure_file
 
@@ -494,15 +497,12 @@ def branch_steps(
     truth = pipe.truth
 
     def evaluate(wd: Path, overwrite: bool) -> None:
-        from megalut_cli.atomic import write_json
         from megalut_cli.great3.evaluate import evaluate_branch
 
         with _quiet():
             evaluation = evaluate_branch(wd / SHEARS, truth, sigma2_min=pipe.sigma2_min)
         evaluation["submission"] = {"weighted": pipe.weighted, "path": SUBMISSION}
         write_json(wd / EVALUATION, evaluation, overwrite=True)
-
-    from megalut_cli.provenance import sha256_file
 
     truth_files = {p.name: sha256_file(p) for p in sorted(truth.iterdir()) if p.is_file()}
     return steps + [

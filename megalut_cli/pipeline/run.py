@@ -2,6 +2,10 @@
 :class:`~megalut_cli.pipeline.file.Pipeline` (the file, :mod:`megalut_cli.pipeline.file`) into the
 steps of the engine (:mod:`megalut_cli.pipeline.steps`); :func:`plan_pipeline` and
 :func:`run_pipeline` check the work folder and run them; :func:`format_summary` reports.
+
+The functions import the library modules that load GalSim, numba, SciPy and fitsio where they
+are called (the steps and their actions, the planning, the summary): importing this module
+(``megalut run --help``) loads none of them.
 """
 
 from __future__ import annotations

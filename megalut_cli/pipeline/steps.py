@@ -32,6 +32,7 @@ from typing import Any
 from megalut_cli import __version__
 from megalut_cli.atomic import atomic_output, write_json
 from megalut_cli.errors import ArgumentError, HintError, MegalutError, braces_escaped
+from megalut_cli.parallel import executor, map_units
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.provenance import sha256_file, utc_now
 
@@ -420,8 +421,6 @@ def _run_units(
     progress: Progress | None,
 ) -> list[UnitReport]:
     """Run the units of ``group`` not up to date, on the executor; record each as it finishes."""
-    from megalut_cli.parallel import executor, map_units
-
     n = len(group.units)
     tasks = [
         {

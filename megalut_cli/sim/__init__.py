@@ -16,14 +16,6 @@ Typical use::
 
 from __future__ import annotations
 
-from typing import Any
+from megalut_cli.sim.config import load_config  # no GalSim: sim.config loads it when it must
 
 __all__ = ["load_config"]
-
-
-def __getattr__(name: str) -> Any:  # lazy: importing the package does not import GalSim
-    if name == "load_config":
-        from megalut_cli.sim.config import load_config
-
-        return load_config
-    raise AttributeError(name)

@@ -21,10 +21,20 @@ import numpy as np
 
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, device_backend
 from megalut_cli.errors import MegalutError
+from megalut_cli.measure.features import measure_stamps
+from megalut_cli.measure.metacal import (
+    fixnoise_seeds,
+    metacal_features,
+    target_psf_columns,
+    target_psf_sigma,
+)
+from megalut_cli.measure.morphology import morphology_of_measured
+from megalut_cli.sim import psf as psf_mod
 from megalut_cli.sim import render
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.galaxies import make_gsparams, oriented, real_footprint, real_noise, rotated
 from megalut_cli.sim.profiles import GALAXY_PROFILES
+from megalut_cli.sim.psf import make_psf
 from megalut_cli.sim.structure import draw_case
 from megalut_cli.sim.twins import real_twin, twin_truth
 
@@ -70,8 +80,6 @@ def renders_galaxies(config: SimConfig) -> bool:
 
 def psf_includes_pixel(spec: dict[str, Any]) -> bool:
     """Whether the PSF profile already holds the pixel response (then draw with no_pixel)."""
-    from megalut_cli.sim import psf as psf_mod
-
     return bool(psf_mod.psf_includes_pixel(spec))
 
 
@@ -83,8 +91,6 @@ def get_psf(
     gsparams: dict[str, float] | None = None,
 ) -> tuple[galsim.GSObject, dict[str, float]]:
     """The PSF (pixel units) and its truth, cached per process (PSFs can be costly)."""
-    from megalut_cli.sim.psf import make_psf
-
     key = psf_cache_key(spec, field_x, field_y, varies, gsparams)
     hit = _PSF_CACHE.get(key)
     if hit is None:
@@ -131,8 +137,6 @@ class _Measurer:
     their metacal versions, deconvolved by the PSF image each stamp was drawn with)."""
 
     def __init__(self, unit: WorkUnit):
-        from megalut_cli.measure.features import measure_stamps
-
         self._measure = measure_stamps
         self.gain = unit.config.gain
         self.engine = unit.engine
@@ -170,8 +174,6 @@ class _Measurer:
             stamps, origins=origins, gain=self.gain, engine=self.engine, device=self.device
         )
         if self.morphology:
-            from megalut_cli.measure.morphology import morphology_of_measured
-
             feats.update(morphology_of_measured(stamps, origins, feats))
         if self.step is not None and index is not None and psf_ids is not None:
             feats.update(self._metacal(stamps, origins, index, psf_ids, feats))
@@ -185,13 +187,6 @@ class _Measurer:
         psf_ids: np.ndarray,
         feats: dict[str, np.ndarray],
     ) -> dict[str, np.ndarray]:
-        from megalut_cli.measure.metacal import (
-            fixnoise_seeds,
-            metacal_features,
-            target_psf_columns,
-            target_psf_sigma,
-        )
-
         ids = np.unique(psf_ids)
         stack = np.stack([self.psf_images[int(i)] for i in ids])
         keys = index % self.n_rea if self.common else index

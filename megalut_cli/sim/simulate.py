@@ -35,8 +35,8 @@ from megalut_cli.catalog import CatalogWriter, catalog_writer, write_image
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, check_engine, resolve_device
 from megalut_cli.errors import MegalutError, Names, namer
 from megalut_cli.measure.metacal_defaults import SEED_CARD, STEP_CARD
-from megalut_cli.parallel import chunk_ranges, executor, format_duration, map_ordered, resolve_nproc
-from megalut_cli.progress import Progress, no_progress
+from megalut_cli.parallel import chunk_ranges, executor, map_ordered, resolve_nproc
+from megalut_cli.progress import Progress, format_duration, no_progress
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.draw import WorkUnit, draw_unit, renders_galaxies, stamp_centres
 from megalut_cli.sim.options import SIMULATE
