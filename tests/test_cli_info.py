@@ -9,8 +9,7 @@ import random
 import fitsio
 import numpy as np
 import pytest
-from helpers import make_model
-from helpers import one_line as _one_line_error
+from helpers import make_model, one_line
 
 from megalut_cli import flags
 from megalut_cli.catalog import header_cards, history_steps, write_catalog
@@ -277,23 +276,23 @@ def test_info_bad_inputs(runner, cli, tmp_path, chain):
     r = runner.invoke(cli, ["info", str(text)])
     assert (
         r.exit_code == 1
-        and "not a FITS catalog or image, HDF5 model, megalut JSON file" in _one_line_error(r)
+        and "not a FITS catalog or image, HDF5 model, megalut JSON file" in one_line(r)
     )
     trunc = tmp_path / "trunc.fits"
     trunc.write_bytes(chain["sh"].read_bytes()[:5000])
     r = runner.invoke(cli, ["info", str(trunc)])
-    assert r.exit_code == 1 and "truncated" in _one_line_error(r)
+    assert r.exit_code == 1 and "truncated" in one_line(r)
     trunc_h5 = tmp_path / "trunc.h5"
     trunc_h5.write_bytes(chain["model"].read_bytes()[:3000])
     r = runner.invoke(cli, ["info", str(trunc_h5)])
-    assert r.exit_code == 1 and "truncated" in _one_line_error(r)
+    assert r.exit_code == 1 and "truncated" in one_line(r)
     other_h5 = tmp_path / "other.h5"
     import h5py
 
     with h5py.File(other_h5, "w") as f:
         f["x"] = np.arange(3)
     r = runner.invoke(cli, ["info", str(other_h5)])
-    assert r.exit_code == 1 and "not a megalut model file" in _one_line_error(r)
+    assert r.exit_code == 1 and "not a megalut model file" in one_line(r)
     assert runner.invoke(cli, ["info", str(tmp_path / "missing.fits")]).exit_code == 2
     assert runner.invoke(cli, ["info", str(tmp_path)]).exit_code == 2
     assert runner.invoke(cli, ["info"]).exit_code == 2

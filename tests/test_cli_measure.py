@@ -5,7 +5,7 @@ from __future__ import annotations
 import galsim
 import numpy as np
 import pytest
-from helpers import invoke_fails as _fails
+from helpers import invoke_fails
 
 from megalut_cli.catalog import read_catalog, write_catalog, write_image
 from megalut_cli.measure.features import FEATURE_COLUMNS
@@ -114,13 +114,15 @@ def test_bad_inputs(runner, cli, data):
     out = str(data / "out.fits")
     raw = (data / "stamps.fits").read_bytes()
     (data / "trunc.fits").write_bytes(raw[: len(raw) - 3000])
-    _fails(
+    invoke_fails(
         runner, cli, ["measure", str(data / "trunc.fits"), "-o", out], 1, "trunc.fits", "truncated"
     )
     (data / "junk.fits").write_text("SIMPLE = garbage\n" * 300)
-    _fails(runner, cli, ["measure", str(data / "junk.fits"), "-o", out], 1, "junk.fits", "FITS")
+    invoke_fails(
+        runner, cli, ["measure", str(data / "junk.fits"), "-o", out], 1, "junk.fits", "FITS"
+    )
     write_catalog(data / "noxy.fits", {"ra": np.zeros(3), "dec": np.zeros(3)}, fmt="test")
-    _fails(
+    invoke_fails(
         runner,
         cli,
         ["measure", str(data / "stamps.fits"), str(data / "noxy.fits"), "-o", out],
@@ -128,27 +130,27 @@ def test_bad_inputs(runner, cli, data):
         "noxy.fits",
         "x, y",
     )
-    _fails(
+    invoke_fails(
         runner,
         cli,
         ["measure", str(data / "nocard.fits"), "-o", out, "--stamp-size", "40"],
         1,
         "does not divide",
     )
-    _fails(
+    invoke_fails(
         runner, cli, ["measure", str(data / "nocard.fits"), "-o", out], 2, "STAMPSZ", "--stamp-size"
     )
-    _fails(
+    invoke_fails(
         runner,
         cli,
         ["measure", str(data / "stamps.fits"), str(data / "stamps.fits"), "-o", out],
         1,
         "no table",
     )
-    _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", out, "--gain", "-1"], 2)
-    _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", out, "--origin", "2"], 2)
-    _fails(runner, cli, ["measure", str(data / "missing.fits"), "-o", out], 2)
-    _fails(
+    invoke_fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", out, "--gain", "-1"], 2)
+    invoke_fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", out, "--origin", "2"], 2)
+    invoke_fails(runner, cli, ["measure", str(data / "missing.fits"), "-o", out], 2)
+    invoke_fails(
         runner,
         cli,
         [
@@ -170,7 +172,9 @@ def test_bad_inputs(runner, cli, data):
 def test_refuses_to_overwrite(runner, cli, data):
     out = data / "f.fits"
     out.write_text("precious")
-    _fails(runner, cli, ["measure", str(data / "stamps.fits"), "-o", str(out)], 1, "--overwrite")
+    invoke_fails(
+        runner, cli, ["measure", str(data / "stamps.fits"), "-o", str(out)], 1, "--overwrite"
+    )
     assert out.read_text() == "precious"
     result = runner.invoke(
         cli, ["measure", str(data / "stamps.fits"), "-o", str(out), "--overwrite"]
@@ -181,7 +185,7 @@ def test_refuses_to_overwrite(runner, cli, data):
 
 def test_stamp_size_contradicting_the_card_is_refused(runner, cli, data):
     out = data / "out.fits"
-    text = _fails(
+    text = invoke_fails(
         runner,
         cli,
         ["measure", str(data / "stamps.fits"), "-o", str(out), "--stamp-size", "16"],
@@ -204,7 +208,7 @@ def test_catalog_of_another_simulation_is_refused(runner, cli, data):
         data / "other.fits", xy, fmt="megalut.simulation", cards={**prov, "SEED": 13, "NSTAMPX": 4}
     )
     out = data / "out.fits"
-    text = _fails(
+    text = invoke_fails(
         runner,
         cli,
         ["measure", str(data / "sim.fits"), str(data / "other.fits"), "-o", str(out)],
@@ -259,7 +263,7 @@ def test_library_messages_name_arguments_the_command_line_its_flags(data, runner
         and names["psf_path"] == "--psf"
         and names["output"] == "-o"
     )
-    _fails(
+    invoke_fails(
         runner,
         cli,
         ["measure", str(data / "nocard.fits"), "-o", out],

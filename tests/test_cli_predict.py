@@ -6,8 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers import FEATURES, features_catalog, make_model, manual_predict
-from helpers import one_line as _one_line_error
+from helpers import FEATURES, features_catalog, make_model, manual_predict, one_line
 
 from megalut_cli.catalog import read_catalog, write_catalog
 from megalut_cli.nn.model import ShearModel
@@ -85,7 +84,7 @@ def test_missing_feature_suggests_col(runner, cli, setup):
     out = tmp / "shears.fits"
     result = runner.invoke(cli, ["predict", str(src), "--model", str(model), "-o", str(out)])
     assert result.exit_code == 1
-    msg = _one_line_error(result)
+    msg = one_line(result)
     assert "adamom_g1" in msg and "adamom_flux" in msg and "--col" in msg
     assert not out.exists()
 
@@ -95,9 +94,9 @@ def test_bad_usage_and_files(runner, cli, setup):
     out = tmp / "shears.fits"
     base = ["predict", str(src), "--model", str(model), "-o", str(out)]
     result = runner.invoke(cli, [*base, "--col", "adamom_g1"])
-    assert result.exit_code == 2 and "FEATURE=COLUMN" in _one_line_error(result)
+    assert result.exit_code == 2 and "FEATURE=COLUMN" in one_line(result)
     result = runner.invoke(cli, [*base, "--col", "size=adamom_sigma"])
-    assert result.exit_code == 2 and "not a feature" in _one_line_error(result)
+    assert result.exit_code == 2 and "not a feature" in one_line(result)
     assert runner.invoke(cli, [*base, "-j", "2", "--scheduler", "tcp://x:1"]).exit_code == 2
     assert (
         runner.invoke(cli, ["predict", str(src), "-o", str(out)]).exit_code == 2
@@ -105,11 +104,11 @@ def test_bad_usage_and_files(runner, cli, setup):
     junk = tmp / "junk.h5"
     junk.write_bytes(b"x" * 64)
     result = runner.invoke(cli, ["predict", str(src), "--model", str(junk), "-o", str(out)])
-    assert result.exit_code == 1 and "junk.h5" in _one_line_error(result)
+    assert result.exit_code == 1 and "junk.h5" in one_line(result)
     bad_cat = tmp / "junk.fits"
     bad_cat.write_bytes(b"y" * 64)
     result = runner.invoke(cli, ["predict", str(bad_cat), "--model", str(model), "-o", str(out)])
-    assert result.exit_code == 1 and "junk.fits" in _one_line_error(result)
+    assert result.exit_code == 1 and "junk.fits" in one_line(result)
     assert not out.exists()
 
 
@@ -119,7 +118,7 @@ def test_refuses_to_overwrite(runner, cli, setup):
     out.write_text("keep")
     args = ["predict", str(src), "--model", str(model), "-o", str(out)]
     result = runner.invoke(cli, args)
-    assert result.exit_code == 1 and "--overwrite" in _one_line_error(result)
+    assert result.exit_code == 1 and "--overwrite" in one_line(result)
     assert out.read_text() == "keep"
     assert runner.invoke(cli, [*args, "--overwrite"]).exit_code == 0
     assert len(read_catalog(out)) == 500

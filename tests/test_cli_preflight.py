@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import one_line as _one_line
+from helpers import one_line
 from pipeline_configs import write_pipeline
 from sim_configs import write
 
@@ -53,7 +53,7 @@ def test_missing_output_folder_fails_before_any_work(runner, cli, inputs, tmp_pa
     out = str(tmp_path / "nowhere" / "out.fits")
     result = runner.invoke(cli, _commands(inputs, out)[command])
     assert result.exit_code == 1
-    text = _one_line(result)
+    text = one_line(result)
     assert out in text and "does not exist" in text
     assert not (tmp_path / "c.fits").exists()
 
@@ -74,7 +74,7 @@ def test_unwritable_output_folder_is_named_before_any_work(
     out = str(ro / "out.fits")
     result = runner.invoke(cli, _commands(inputs, out)[command])
     assert result.exit_code == 1
-    text = _one_line(result)
+    text = one_line(result)
     assert out in text and "not writable" in text and ".tmp" not in text
     assert list(ro.iterdir()) == []
 
@@ -101,7 +101,7 @@ def test_folder_that_takes_no_file_is_named_before_any_work(
     out = str(ro / "out.fits")
     result = runner.invoke(cli, _commands(inputs, out)[command])
     assert result.exit_code == 1
-    text = _one_line(result)
+    text = one_line(result)
     assert out in text and "Read-only file system" in text
     assert list(ro.iterdir()) == []
 
@@ -110,7 +110,7 @@ def test_virtual_file_system_is_refused_before_any_work(runner, cli, inputs):
     """The case of issue 24 itself: /sys takes no new file, for root either."""
     result = runner.invoke(cli, _commands(inputs, "/sys/megalut-test.h5")["train-point"])
     assert result.exit_code == 1
-    assert "/sys/megalut-test.h5" in _one_line(result)
+    assert "/sys/megalut-test.h5" in one_line(result)
 
 
 def test_simulate_dry_run_says_what_and_how_long_and_writes_nothing(runner, cli, inputs, tmp_path):
@@ -224,7 +224,7 @@ def test_run_unwritable_workdir_fails_first(runner, cli, tmp_path):
     wd = tmp_path / "afile" / "wd"
     result = runner.invoke(cli, ["run", str(write_pipeline(tmp_path)), "--workdir", str(wd)])
     assert result.exit_code == 1
-    assert str(wd) in _one_line(result)
+    assert str(wd) in one_line(result)
 
 
 def test_verbosity_before_and_after_the_subcommand(runner, cli, inputs, tmp_path):

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from helpers import error_text as _err
+from helpers import error_text
 from pipeline_configs import write_pipeline
 
 from megalut_cli.pipeline.config import default_pipeline_text
@@ -48,13 +48,13 @@ def test_run_prints_table_and_writes_products(runner, cli, tmp_path: Path) -> No
     wd = tmp_path / "wd"
     args = ["run", str(path), "evaluate.plot=true", "--workdir", str(wd)]
     result = runner.invoke(cli, args)
-    assert result.exit_code == 0, result.output + _err(result)
+    assert result.exit_code == 0, result.output + error_text(result)
     out = result.stdout
     assert "unweighted" in out and "weighted" in out
     assert out.count("  g1 ") >= 2 and out.count("  g2 ") >= 2  # m and c rows of both schemes
     for step in ("simulate-tp", "train-point", "train-weight", "predict", "evaluate"):
-        assert f"{step}: done in" in _err(result)
-    assert "pipeline finished in" in _err(result)
+        assert f"{step}: done in" in error_text(result)
+    assert "pipeline finished in" in error_text(result)
     ev = json.loads((wd / "evaluation.json").read_text())
     png = (wd / "evaluation.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
@@ -74,14 +74,15 @@ def test_run_prints_table_and_writes_products(runner, cli, tmp_path: Path) -> No
     again = runner.invoke(cli, args)
     assert again.exit_code == 1
     assert (
-        "exists; use --skip-existing" in _err(again) and len(_err(again).strip().splitlines()) == 1
+        "exists; use --skip-existing" in error_text(again)
+        and len(error_text(again).strip().splitlines()) == 1
     )
     assert (wd / "model.h5").stat().st_mtime_ns == mtime
 
     # --skip-existing: all up to date, the same table
     skipped = runner.invoke(cli, [*args, "--skip-existing", "-j", "2"])
-    assert skipped.exit_code == 0, _err(skipped)
-    assert _err(skipped).count("up to date, skipped") == 7
+    assert skipped.exit_code == 0, error_text(skipped)
+    assert error_text(skipped).count("up to date, skipped") == 7
     assert skipped.stdout == out
     assert (wd / "model.h5").stat().st_mtime_ns == mtime
 
@@ -99,7 +100,7 @@ def test_run_prints_table_and_writes_products(runner, cli, tmp_path: Path) -> No
 def test_bad_input(runner, cli, tmp_path: Path, args: list[str], code: int, message: str) -> None:
     result = runner.invoke(cli, ["run", *args, "--workdir", str(tmp_path / "wd")])
     assert result.exit_code == code
-    err = _err(result)
+    err = error_text(result)
     assert message in err
     assert "Traceback" not in err
     assert not (tmp_path / "wd").exists()
@@ -110,7 +111,9 @@ def test_bad_pipeline_file(runner, cli, tmp_path: Path) -> None:
     bad.write_text("[sets.tp\n")
     result = runner.invoke(cli, ["run", str(bad), "--workdir", str(tmp_path / "wd")])
     assert result.exit_code == 2
-    assert "invalid TOML" in _err(result) and len(_err(result).strip().splitlines()) == 1
+    assert (
+        "invalid TOML" in error_text(result) and len(error_text(result).strip().splitlines()) == 1
+    )
     path = write_pipeline(tmp_path)
     (tmp_path / "file").write_text("")
     result = runner.invoke(cli, ["run", str(path), "--workdir", str(tmp_path / "file")])
@@ -173,7 +176,7 @@ def test_default_run_meets_the_stage_iv_requirement_within_2_sigma(
     reproduces the tables README prints (same seeds, results independent of -j)."""
     wd = tmp_path / "wd"
     result = runner.invoke(cli, ["run", "--workdir", str(wd), "-j", "2"])
-    assert result.exit_code == 0, _err(result)
+    assert result.exit_code == 0, error_text(result)
     assert "the shipped model fiducial (models/fiducial.h5) on vo" in result.stdout
     readme = readme_default_run_tables()
     same_cpu = cpu_family() == README_CPU_FAMILY
@@ -207,7 +210,7 @@ def test_default_run_meets_the_stage_iv_requirement_within_2_sigma(
             rec = readme[name][comp]
             tolerance = 0.25 if same_cpu or name == "reference" else 1.5
             for q in ("m", "c"):
-                assert abs(weighted[q] - rec[q]) < tolerance * rec[f"{q}_err"], (
+                assert abs(weighted[q] - rec[q]) < tolerance * rec[f"{q}error_text"], (
                     name,
                     comp,
                     q,

@@ -9,8 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from helpers import error_text as _err
-from helpers import one_line as _one_line
+from helpers import error_text, one_line
 from sim_configs import write as write_sim_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,8 +51,8 @@ def test_simulate_config_errors_name_the_file_and_table_as_written(
     result = runner.invoke(
         cli, ["simulate", str(path), *overrides, "-o", str(tmp_path / "out.fits"), "--dry-run"]
     )
-    assert result.exit_code == 2, _err(result)
-    assert _one_line(result).startswith("Error: " + expected.format(file=path)), _err(result)
+    assert result.exit_code == 2, error_text(result)
+    assert one_line(result).startswith("Error: " + expected.format(file=path)), error_text(result)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sim.toml"]
 
 
@@ -65,7 +64,7 @@ def test_simulate_structure_flags_are_not_blamed_on_the_file(runner, cli, tmp_pa
     )
     assert result.exit_code == 2
     assert (
-        _one_line(result)
+        one_line(result)
         == "Error: structure.n_realizations: snc = 'pairs' needs an even number, got 3"
     )
 

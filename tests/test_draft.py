@@ -11,8 +11,7 @@ import galsim
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from helpers import error_text as _err
-from helpers import one_line as _one_line
+from helpers import error_text, one_line
 from sim_configs import write as write_sim_config
 
 from megalut_cli.configfile import tomllib
@@ -100,7 +99,7 @@ def measured(tmp_path_factory) -> dict[str, Path]:
         ],
     ):
         result = runner.invoke(main, args)
-        assert result.exit_code == 0, _err(result)
+        assert result.exit_code == 0, error_text(result)
     return {name: d / f"{name}.fits" for name in ("feats", "nopsf", "stars")}
 
 
@@ -109,7 +108,7 @@ def test_draft_recovers_the_setup_and_megalut_run_accepts_it(
 ) -> None:
     out = tmp_path / "draft.toml"
     result = runner.invoke(cli, ["draft", str(measured["feats"]), "-o", str(out)])
-    assert result.exit_code == 0, _err(result)
+    assert result.exit_code == 0, error_text(result)
     text = out.read_text()
     sim = tomllib.loads(text)["simulation"]
     assert sim["structure"]["stamp_size"] == STAMP
@@ -126,10 +125,10 @@ def test_draft_recovers_the_setup_and_megalut_run_accepts_it(
     assert (
         "adamom_sigma" in text and "snr" in text and "adamom_flux" in text
     )  # the data's quantiles reported
-    assert "wrote" in _err(result)
+    assert "wrote" in error_text(result)
     dry = runner.invoke(cli, ["run", str(out), "--dry-run", "--workdir", str(tmp_path / "wd")])
-    assert dry.exit_code == 0, _err(dry)
-    assert "48x48 px" in _err(dry)
+    assert dry.exit_code == 0, error_text(dry)
+    assert "48x48 px" in error_text(dry)
     again = runner.invoke(
         cli, ["draft", str(measured["feats"]), "-o", "-"]
     )  # -o -: the same file on stdout
@@ -246,7 +245,7 @@ def test_errors_say_what_is_missing_and_how_to_get_it(
         cli, ["draft", names[which], *(a.format(**names) for a in extra), "-o", str(out)]
     )
     assert result.exit_code == 1
-    assert _one_line(result) == "Error: " + expected.format(**names)
+    assert one_line(result) == "Error: " + expected.format(**names)
     assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
@@ -255,7 +254,7 @@ def test_every_missing_column_at_once_and_no_overwrite(runner, cli, measured, tm
     fitsio.write(str(bare), np.zeros(3, dtype=[("adamom_sigma", "f8")]))
     result = runner.invoke(cli, ["draft", str(bare), "-o", str(tmp_path / "d.toml")])
     assert result.exit_code == 1
-    line = _one_line(result)
+    line = one_line(result)
     assert all(
         f"no {what}" in line
         for what in (
@@ -267,7 +266,7 @@ def test_every_missing_column_at_once_and_no_overwrite(runner, cli, measured, tm
     out = tmp_path / "d.toml"
     out.write_text("mine\n")
     result = runner.invoke(cli, ["draft", str(measured["feats"]), "-o", str(out)])
-    assert result.exit_code == 1 and "use --overwrite" in _one_line(result)
+    assert result.exit_code == 1 and "use --overwrite" in one_line(result)
     assert out.read_text() == "mine\n"
     result = runner.invoke(cli, ["draft", str(measured["feats"]), "-o", str(out), "--overwrite"])
     assert result.exit_code == 0 and out.read_text().startswith("# Drafted by `megalut draft`")

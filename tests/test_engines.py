@@ -14,7 +14,7 @@ from pathlib import Path
 import fitsio
 import numpy as np
 import pytest
-from helpers import assert_ok as _ok
+from helpers import assert_ok
 from sim_configs import TINY, write
 
 from megalut_cli.catalog import read_catalog
@@ -55,7 +55,7 @@ CORRELATED_TOLERANCE = 5e-7
 
 
 def _simulate(runner, cli, cfg: Path, out: Path, engine: str, *extra: str) -> None:
-    _ok(
+    assert_ok(
         runner.invoke(
             cli, ["simulate", str(cfg), "-o", str(out), "--engine", engine, "--seed", "7", *extra]
         )
@@ -190,7 +190,7 @@ def test_measure_engines_agree_on_a_stamp_grid(runner, cli, tmp_path: Path) -> N
         runner, cli, cfg, tmp_path / "cat.fits", "fast", "--stamps", str(tmp_path / "st.fits")
     )
     for engine in ("fast", "galsim"):
-        _ok(
+        assert_ok(
             runner.invoke(
                 cli,
                 [
@@ -244,7 +244,7 @@ def test_real_galaxies_fall_back_to_galsim_with_one_log_line(runner, cli, tmp_pa
     r = runner.invoke(
         cli, ["simulate", str(cfg), "-o", str(tmp_path / "r.fits"), "--measure", "--seed", "7"]
     )
-    _ok(r)
+    assert_ok(r)
     lines = [line for line in r.stderr.splitlines() if "drawn by GalSim" in line]
     assert len(lines) == 1 and "'real'" in lines[0]
     assert (read_catalog(tmp_path / "r.fits")["flags"] == 0).all()
@@ -285,7 +285,7 @@ def test_training_on_either_engine_gives_the_same_biases(runner, cli, tmp_path: 
       each quoted at 5e-4.)
     """
     for engine in ("fast", "galsim"):
-        _ok(
+        assert_ok(
             runner.invoke(
                 cli,
                 [
@@ -303,7 +303,7 @@ def test_training_on_either_engine_gives_the_same_biases(runner, cli, tmp_path: 
     for model in ("fast", "galsim"):
         for data in ("fast", "galsim"):
             stem = tmp_path / f"{model}-on-{data}"
-            _ok(
+            assert_ok(
                 runner.invoke(
                     cli,
                     [
@@ -316,7 +316,7 @@ def test_training_on_either_engine_gives_the_same_biases(runner, cli, tmp_path: 
                     ],
                 )
             )
-            _ok(runner.invoke(cli, ["evaluate", f"{stem}.fits", "--json", f"{stem}.json"]))
+            assert_ok(runner.invoke(cli, ["evaluate", f"{stem}.fits", "--json", f"{stem}.json"]))
             ev[model, data] = json.loads(Path(f"{stem}.json").read_text())
 
     def close(a: dict, b: dict, q: str) -> bool:
@@ -389,9 +389,9 @@ def test_knots_fall_back_to_galsim(runner, cli, tmp_path: Path) -> None:
             "3",
         ],
     )
-    _ok(r)
+    assert_ok(r)
     assert "with knots" in r.stderr
-    _ok(
+    assert_ok(
         runner.invoke(
             cli,
             [

@@ -11,8 +11,7 @@ import galsim
 import numpy as np
 import pytest
 from helpers import GREAT3_BRANCH as BRANCH
-from helpers import assert_ok as _ok
-from helpers import error_line as _fails
+from helpers import assert_ok, error_line
 from sim_configs import write
 
 from megalut_cli import catalog
@@ -45,7 +44,7 @@ def branch(tmp_path_factory):
             "11",
         ],
     )
-    _ok(r)
+    assert_ok(r)
     return d
 
 
@@ -119,7 +118,7 @@ def test_starfield_lower_left_star_is_centred(branch):
 def test_measure_reads_subfields(runner, cli, branch, tmp_path, catalog):
     b = branch / "b"
     out = tmp_path / "f.fits"
-    _ok(
+    assert_ok(
         runner.invoke(
             cli,
             [
@@ -145,7 +144,7 @@ def test_measure_reads_subfields(runner, cli, branch, tmp_path, catalog):
     assert f.meta["XYORIGIN"] == 0
     # the PSF features are those of the lower-left star, measured on its own
     stars = tmp_path / "stars.fits"
-    _ok(
+    assert_ok(
         runner.invoke(
             cli, ["measure", str(b / L.starfield_name(1)), "-o", str(stars), "--stamp-size", str(S)]
         )
@@ -158,7 +157,7 @@ def test_measure_reads_subfields(runner, cli, branch, tmp_path, catalog):
         [st["psf_adamom_x"][0], st["psf_adamom_y"][0]], (S + 1) / 2, atol=1e-4
     )
     # a square star field without any stamp size is GREAT3's 3x3 grid
-    _ok(
+    assert_ok(
         runner.invoke(
             cli, ["measure", str(b / L.starfield_name(1)), "-o", str(tmp_path / "s2.fits")]
         )
@@ -173,7 +172,7 @@ def test_measure_bad_subfields(runner, cli, branch, tmp_path):
     img = str(b / L.image_name(0))
     out = str(tmp_path / "f.fits")
     # a --stamp-size that contradicts the image's STAMPSZ card
-    _fails(
+    error_line(
         runner.invoke(
             cli,
             [
@@ -197,7 +196,7 @@ def test_measure_bad_subfields(runner, cli, branch, tmp_path):
     pixels, _ = read_image(img)
     nocard = tmp_path / "image-nocard.fits"
     write_image(nocard, pixels, fmt="test")
-    _fails(
+    error_line(
         runner.invoke(
             cli,
             [
@@ -221,7 +220,7 @@ def test_measure_bad_subfields(runner, cli, branch, tmp_path):
     catalog.write_text_catalog(
         far, {"x": np.array([1000.0, 2000.0]), "y": np.array([15.0, 15.0]), "ID": np.array([0, 1])}
     )
-    _fails(
+    error_line(
         runner.invoke(
             cli, ["measure", img, str(far), "-o", out, "--origin", "0", "--stamp-size", str(S)]
         ),
@@ -232,7 +231,7 @@ def test_measure_bad_subfields(runner, cli, branch, tmp_path):
     # a broken text catalog
     bad = tmp_path / "bad.txt"
     bad.write_text("# x\n# y\n15 15\n47\n")
-    _fails(
+    error_line(
         runner.invoke(
             cli, ["measure", img, str(bad), "-o", out, "--origin", "0", "--stamp-size", str(S)]
         ),
@@ -243,13 +242,13 @@ def test_measure_bad_subfields(runner, cli, branch, tmp_path):
     # a star field without stars, and one with NaN pixels
     empty = tmp_path / "starfield_image-009-0.fits"
     write_image(empty, np.zeros((3 * S, 3 * S)), fmt="test")
-    _fails(
+    error_line(
         runner.invoke(cli, ["measure", str(empty), "-o", out, "--stamp-size", str(S)]),
         1,
         "starfield_image-009-0.fits",
         "no star",
     )
-    _fails(
+    error_line(
         runner.invoke(
             cli,
             [
@@ -272,7 +271,7 @@ def test_measure_bad_subfields(runner, cli, branch, tmp_path):
     stars[3, 3] = np.nan
     nan = tmp_path / "nanstars.fits"
     write_image(nan, stars, fmt="test")
-    _fails(
+    error_line(
         runner.invoke(
             cli,
             [
@@ -297,7 +296,7 @@ def test_measure_bad_subfields(runner, cli, branch, tmp_path):
     gal[S + 3, 3] = np.nan  # stamp (column 0, row 1) = galaxy 4
     nanimg = tmp_path / "image-000-0.fits"
     write_image(nanimg, gal, fmt="test")
-    _ok(
+    assert_ok(
         runner.invoke(
             cli,
             [
@@ -322,13 +321,13 @@ def test_measure_bad_subfields(runner, cli, branch, tmp_path):
 def test_simulate_great3_errors(runner, cli, branch, tmp_path):
     cfg = str(write(tmp_path, BRANCH, "b.toml"))
     out = str(tmp_path / "c.fits")
-    _fails(
+    error_line(
         runner.invoke(cli, ["simulate", cfg, "-o", out, "--great3", str(branch / "b")]),
         1,
         "not empty",
         "--overwrite",
     )
-    _fails(
+    error_line(
         runner.invoke(
             cli,
             [
@@ -345,7 +344,7 @@ def test_simulate_great3_errors(runner, cli, branch, tmp_path):
         2,
         "--stamps",
     )
-    _fails(
+    error_line(
         runner.invoke(
             cli,
             ["simulate", cfg, "-o", out, "--great3", str(tmp_path / "x"), "--n-realizations", "12"],
@@ -353,7 +352,7 @@ def test_simulate_great3_errors(runner, cli, branch, tmp_path):
         2,
         "structure.n_x",
     )
-    _fails(
+    error_line(
         runner.invoke(
             cli,
             [
@@ -369,7 +368,7 @@ def test_simulate_great3_errors(runner, cli, branch, tmp_path):
         2,
         "one shear per subfield",
     )
-    _fails(
+    error_line(
         runner.invoke(
             cli, ["simulate", cfg, "-o", out, "--great3", str(tmp_path / "x"), "structure.n_x=5"]
         ),
@@ -381,7 +380,7 @@ def test_simulate_great3_errors(runner, cli, branch, tmp_path):
 
 def test_simulate_great3_is_reproducible_with_workers(runner, cli, branch, tmp_path):
     cfg = str(write(tmp_path, BRANCH, "b.toml"))
-    _ok(
+    assert_ok(
         runner.invoke(
             cli,
             [
@@ -421,7 +420,7 @@ def test_measure_predict_submit_evaluate(runner, cli, branch, tmp_path):
     feats = []
     for s in (0, 1):
         f = tmp_path / f"f{s}.fits"
-        _ok(
+        assert_ok(
             runner.invoke(
                 cli,
                 [
@@ -452,7 +451,7 @@ def test_measure_predict_submit_evaluate(runner, cli, branch, tmp_path):
         ),
         "tp.toml",
     )
-    _ok(
+    assert_ok(
         runner.invoke(
             cli,
             [
@@ -472,7 +471,7 @@ def test_measure_predict_submit_evaluate(runner, cli, branch, tmp_path):
     )
     tpc = read_catalog(tmp_path / "tp.fits")
     assert len(np.unique(tpc["tru_psf_g1"])) > 1  # a random star of the field per case
-    _ok(
+    assert_ok(
         runner.invoke(
             cli,
             [
@@ -496,7 +495,7 @@ def test_measure_predict_submit_evaluate(runner, cli, branch, tmp_path):
         {c: np.concatenate([np.asarray(f[c]) for f in feats]) for c in feats[0].colnames},
         fmt="megalut.features",
     )
-    _ok(
+    assert_ok(
         runner.invoke(
             cli,
             [
@@ -529,7 +528,7 @@ def test_measure_predict_submit_evaluate(runner, cli, branch, tmp_path):
             str(tmp_path / "e.json"),
         ],
     )
-    _ok(out)
+    assert_ok(out)
     assert "plus" in out.output and "Q_c" in out.output
     res = json.loads((tmp_path / "e.json").read_text())
     assert res["great3"]["n_subfields"] == 2 and res["unweighted"]["g1"]["n_cases"] == 2
@@ -545,7 +544,7 @@ def test_measure_predict_submit_evaluate(runner, cli, branch, tmp_path):
 
 
 def _json_of(runner, cli, shears, truth, path):
-    _ok(
+    assert_ok(
         runner.invoke(
             cli, ["evaluate", str(shears), "--great3-truth", str(truth), "--json", str(path)]
         )

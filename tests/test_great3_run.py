@@ -13,8 +13,7 @@ import fitsio
 import numpy as np
 import pytest
 from helpers import GREAT3_BRANCH as G3BRANCH
-from helpers import assert_ok as _ok
-from helpers import error_line as _error_line
+from helpers import assert_ok, error_line
 
 from megalut_cli import catalog
 from megalut_cli.catalog import read_catalog
@@ -77,7 +76,7 @@ def branch(tmp_path_factory) -> Path:
             "11",
         ],
     )
-    _ok(r)
+    assert_ok(r)
     return d / "b"
 
 
@@ -91,7 +90,7 @@ def first_run(branch, tmp_path_factory):
     d = tmp_path_factory.mktemp("run")
     pipe = _pipeline(d, branch)
     r = CliRunner().invoke(main, ["run", str(pipe), "--workdir", str(d / "w")])
-    _ok(r)
+    assert_ok(r)
     return pipe, d / "w", r.output
 
 
@@ -191,7 +190,7 @@ def test_per_subfield_products(first_run, branch):
 def test_subfields_do_not_depend_on_workers(runner, cli, first_run, tmp_path):
     """Subfields as work units on 2 processes: the same products as in one."""
     pipe, w, _ = first_run
-    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(tmp_path / "j2"), "-j", "2"]))
+    assert_ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(tmp_path / "j2"), "-j", "2"]))
     assert (tmp_path / "j2" / P.SUBMISSION).read_text() == (w / P.SUBMISSION).read_text()
     a, b = read_catalog(tmp_path / "j2" / P.SHEARS), read_catalog(w / P.SHEARS)
     for c in ("pre_g1", "pre_g2", "pre_g1_w", "pre_g2_w"):
@@ -201,7 +200,7 @@ def test_subfields_do_not_depend_on_workers(runner, cli, first_run, tmp_path):
 def test_subfields_do_not_depend_on_the_selection(runner, cli, first_run, tmp_path):
     """A subfield's result depends on its index and the seeds only: the same run alone."""
     pipe, w, _ = first_run
-    _ok(
+    assert_ok(
         runner.invoke(
             cli, ["run", str(pipe), "--workdir", str(tmp_path / "one"), "branch.subfields=[1]"]
         )
@@ -220,9 +219,9 @@ def _ran_at(w: Path, step: str = "subfield-000") -> tuple:
 def test_skip_existing_and_refusal(runner, cli, branch, tmp_path):
     pipe = _pipeline(tmp_path, branch)
     w = tmp_path / "w"
-    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]"]))
+    assert_ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]"]))
     first, ran = (w / P.SUBMISSION).read_text(), _ran_at(w)
-    _error_line(
+    error_line(
         runner.invoke(cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]"]),
         1,
         "exists",
@@ -231,12 +230,12 @@ def test_skip_existing_and_refusal(runner, cli, branch, tmp_path):
     r = runner.invoke(
         cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]
     )
-    _ok(r)
+    assert_ok(r)
     assert _ran_at(w) == ran and _ran_at(w, "shears") is not None
     assert (w / P.SUBMISSION).read_text() == first
     # a product touched but unchanged is still up to date (content hashes, the step engine's rule)
     os.utime(w / P.SUBFIELDS_DIR / "000" / "shears.fits", ns=(0, 0))
-    _ok(
+    assert_ok(
         runner.invoke(
             cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]
         )
@@ -245,7 +244,7 @@ def test_skip_existing_and_refusal(runner, cli, branch, tmp_path):
     # a product changed: the subfield is redone, the same
     model = w / P.SUBFIELDS_DIR / "000" / "model.h5"
     model.write_bytes(model.read_bytes() + b"x")
-    _ok(
+    assert_ok(
         runner.invoke(
             cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]
         )
@@ -254,7 +253,7 @@ def test_skip_existing_and_refusal(runner, cli, branch, tmp_path):
     assert (w / P.SUBMISSION).read_text() == first
     # a changed training setting re-runs the subfield
     ran = _ran_at(w)
-    _ok(
+    assert_ok(
         runner.invoke(
             cli,
             [
@@ -275,7 +274,7 @@ def test_skip_existing_and_refusal(runner, cli, branch, tmp_path):
     man.write_text(
         json.dumps({"format": "megalut.great3-run", "format_version": "1.0", "subfields": {}})
     )
-    _error_line(
+    error_line(
         runner.invoke(
             cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--skip-existing"]
         ),
@@ -284,7 +283,7 @@ def test_skip_existing_and_refusal(runner, cli, branch, tmp_path):
         "older megalut",
         "--overwrite",
     )
-    _ok(
+    assert_ok(
         runner.invoke(
             cli, ["run", str(pipe), "--workdir", str(w), "branch.subfields=[0]", "--overwrite"]
         )
@@ -302,7 +301,7 @@ def test_keep_going_with_a_corrupted_subfield(runner, cli, branch, tmp_path):
     pipe = _pipeline(tmp_path, b)
     w = tmp_path / "w"
     r = runner.invoke(cli, ["run", str(pipe), "--workdir", str(w)])
-    _error_line(r, 1, "subfield 1", str(image), "NaN")
+    error_line(r, 1, "subfield 1", str(image), "NaN")
     for name in (P.SHEARS, P.SUBMISSION, P.EVALUATION):
         assert not (w / name).exists(), name
     # the engine's manifest records the subfield finished before the failure (--skip-existing
@@ -314,14 +313,14 @@ def test_keep_going_with_a_corrupted_subfield(runner, cli, branch, tmp_path):
     ]  # no temporary left
     w2 = tmp_path / "w2"
     r = runner.invoke(cli, ["run", str(pipe), "--workdir", str(w2), "--keep-going"])
-    _error_line(r, 1, "1 of 2 subfield(s) failed", "image-001-0.fits")
+    error_line(r, 1, "1 of 2 subfield(s) failed", "image-001-0.fits")
     sub = np.loadtxt(w2 / P.SUBMISSION, ndmin=2)
     assert sub.shape == (1, 3) and sub[0, 0] == 0
     assert len(read_catalog(w2 / P.SHEARS)) == 16
     man = json.loads((w2 / P.MANIFEST).read_text())
     assert list(man["failed"]) == ["subfield-001"] and "NaN" in man["failed"]["subfield-001"]
     # the non-strict mode flags the bad stamp and completes the subfield
-    _ok(
+    assert_ok(
         runner.invoke(
             cli, ["run", str(pipe), "--workdir", str(tmp_path / "w3"), "branch.strict=false"]
         )
@@ -389,7 +388,7 @@ def test_bad_branch_input(runner, cli, branch, tmp_path, corrupt, extra, words):
     name = corrupt(b) if corrupt else L.galaxy_catalog_name(0)
     w = tmp_path / "w"
     r = runner.invoke(cli, ["run", str(_pipeline(tmp_path, b)), "--workdir", str(w), *extra])
-    _error_line(r, 1, name, *words)
+    error_line(r, 1, name, *words)
     assert not (w / P.SUBMISSION).exists() and not (w / P.SHEARS).exists()
 
 
@@ -413,7 +412,7 @@ def test_bad_pipeline_settings(runner, cli, branch, tmp_path, override, words):
     r = runner.invoke(
         cli, ["run", str(_pipeline(tmp_path, branch)), "--workdir", str(tmp_path / "w"), override]
     )
-    _error_line(r, 2, *words)
+    error_line(r, 2, *words)
     assert not (tmp_path / "w").exists()
 
 
@@ -422,7 +421,7 @@ def test_missing_branch_folder(runner, cli, tmp_path):
         cli,
         ["run", str(_pipeline(tmp_path, tmp_path / "nowhere")), "--workdir", str(tmp_path / "w")],
     )
-    _error_line(
+    error_line(
         r, 1, "pipe.toml: [branch] path", "nowhere"
     )  # the file and table as written (issue 24)
 
@@ -497,7 +496,7 @@ def test_branch_shear_recovered(runner, cli, tmp_path):
     (Unweighted: weights from a tiny tw break the pairs' shape-noise cancellation; the
     scatter of the weighted means is 4x larger at this size.)"""
     (tmp_path / "branch.toml").write_text(BRIGHT)
-    _ok(
+    assert_ok(
         runner.invoke(
             cli,
             [
@@ -528,7 +527,7 @@ def test_branch_shear_recovered(runner, cli, tmp_path):
             1,
         )
     )
-    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(tmp_path / "w")]))
+    assert_ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(tmp_path / "w")]))
     ev = json.loads((tmp_path / "w" / P.EVALUATION).read_text())
     for comp in ("g1", "g2"):
         f = ev["unweighted"][comp]
@@ -548,7 +547,7 @@ def test_metacal_branch(runner, cli, branch, tmp_path):
         )
     )
     w = tmp_path / "w"
-    _ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w)]))
+    assert_ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w)]))
     shears = read_catalog(w / P.SHEARS)
     for c in ("adamom_g1_noshear", "adamom_g1_1p", "pre_g1_noshear", "mcal_r11", "mcal_r22"):
         assert c in shears.colnames, c

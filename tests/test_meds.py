@@ -7,7 +7,7 @@ import fitsio
 import galsim
 import numpy as np
 import pytest
-from helpers import invoke_fails as _fails
+from helpers import invoke_fails
 from numpy.lib import recfunctions
 
 from megalut_cli import flags as fl
@@ -374,23 +374,25 @@ def test_cli_contract(runner, cli, grid, tmp_path):
     assert "cutout 0 (the coadd) of each of 6 objects" in (
         result.stderr if hasattr(result, "stderr") else result.output
     )
-    _fails(runner, cli, ["measure", str(meds), "-o", str(out)], 1, "--overwrite")
+    invoke_fails(runner, cli, ["measure", str(meds), "-o", str(out)], 1, "--overwrite")
 
     bad = tmp_path / "bad.fits"
     cat = tmp_path / "cat.fits"
     fitsio.write(str(cat), np.zeros(2, dtype=[("x", "f8"), ("y", "f8")]))
-    _fails(runner, cli, ["measure", str(meds), str(cat), "-o", str(bad)], 2, "MEDS", "no catalog")
-    _fails(
+    invoke_fails(
+        runner, cli, ["measure", str(meds), str(cat), "-o", str(bad)], 2, "MEDS", "no catalog"
+    )
+    invoke_fails(
         runner, cli, ["measure", str(meds), "-o", str(bad), "--stamp-size", "32"], 2, "--stamp-size"
     )
     trunc = tmp_path / "t.meds.fits"
     rewrite(meds, trunc, truncate={"image_cutouts": 5 * S * S + 10})
-    _fails(runner, cli, ["measure", str(trunc), "-o", str(bad)], 1, "truncated MEDS")
+    invoke_fails(runner, cli, ["measure", str(trunc), "-o", str(bad)], 1, "truncated MEDS")
     even = tmp_path / "even.fits"
     fitsio.write(str(even), psf_image(PSF_SIGMA, 32) + 0 * np.zeros(1))
     odd_meds = tmp_path / "odd.meds.fits"
     write_meds(odd_meds, [s[:31, :31] for s in stamps])
-    _fails(
+    invoke_fails(
         runner,
         cli,
         ["measure", str(odd_meds), "-o", str(bad), "--psf", str(even), "--metacal"],
@@ -399,7 +401,7 @@ def test_cli_contract(runner, cli, grid, tmp_path):
     )
     grid_image = tmp_path / "stamps.fits"
     fitsio.write(str(grid_image), image, header={"STAMPSZ": S})
-    _fails(
+    invoke_fails(
         runner,
         cli,
         ["measure", str(grid_image), "-o", str(bad), "--cutout", "1"],

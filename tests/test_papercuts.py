@@ -13,9 +13,7 @@ from pathlib import Path
 
 import click
 import pytest
-from helpers import error_text as _err
-from helpers import make_model, synthetic
-from helpers import one_line as _one_line
+from helpers import error_text, make_model, one_line, synthetic
 from pipeline_configs import TINY_PIPELINE, write_pipeline
 from sim_configs import write as write_sim_config
 
@@ -58,7 +56,7 @@ def test_matplotlib_hint_is_a_command_that_works(runner, cli, tmp_path, monkeypa
     write_catalog(path, synthetic(seed=1, n_cases=10, n_rea=5), fmt="megalut.predictions")
     result = runner.invoke(cli, ["evaluate", str(path), "--plot", str(tmp_path / "e.png")])
     assert result.exit_code == 1
-    assert _one_line(result).endswith("figures need matplotlib: pip install matplotlib")
+    assert one_line(result).endswith("figures need matplotlib: pip install matplotlib")
     for doc in [README, *sorted((ROOT / "docs").glob("*.md"))]:
         assert "megalut-cli[plot]" not in doc.read_text(), doc
 
@@ -135,7 +133,7 @@ def test_pipeline_errors_name_the_file_and_table_as_written(
         cli, ["run", str(path), *overrides, "--workdir", str(tmp_path / "wd"), "--dry-run"]
     )
     assert result.exit_code == 2
-    assert _one_line(result).startswith("Error: " + expected.format(file=path)), _err(result)
+    assert one_line(result).startswith("Error: " + expected.format(file=path)), error_text(result)
     assert not (tmp_path / "wd").exists()
 
 
@@ -154,8 +152,8 @@ def test_pipeline_errors_in_a_set_config_file_name_that_file(
     monkeypatch.chdir(tmp_path)  # the config file is named relative to the current folder
     result = runner.invoke(cli, ["run", str(path), "--workdir", str(tmp_path / "wd"), "--dry-run"])
     assert result.exit_code == 2
-    assert _one_line(result).startswith("Error: tp-sim.toml: [noise] sigam: unknown key"), _err(
-        result
+    assert one_line(result).startswith("Error: tp-sim.toml: [noise] sigam: unknown key"), (
+        error_text(result)
     )
 
 
@@ -184,11 +182,11 @@ def test_evaluate_says_why_errors_are_na(runner, cli, tmp_path) -> None:
     assert (
         "megalut: errors n/a: errors from the fit need at least 3 cases (the residual scatter "
         "about the line has N - 2 degrees of freedom); the catalog has 2 usable cases"
-    ) in _err(result)
+    ) in error_text(result)
     many = tmp_path / "many.fits"
     write_catalog(many, synthetic(seed=1, n_cases=10, n_rea=5), fmt="megalut.predictions")
     result = runner.invoke(cli, ["evaluate", str(many)])
-    assert result.exit_code == 0 and "errors n/a" not in _err(result)
+    assert result.exit_code == 0 and "errors n/a" not in error_text(result)
     result = runner.invoke(
         cli, ["evaluate", str(many), "--by", "tru_rad", "--bins", "5", "--json", "-"]
     )
@@ -221,7 +219,7 @@ def test_plot_with_an_unsupported_extension_is_a_usage_error_before_any_work(
         ],
     )
     assert result.exit_code == 2
-    err = _err(result)
+    err = error_text(result)
     assert "Invalid value for '--plot'" in err and ".png, .pdf, .svg" in err and "e.jpg" in err
     assert not (tmp_path / "e.json").exists()
 
@@ -293,8 +291,8 @@ def test_simulate_logs_what_it_wrote(runner, cli, tmp_path) -> None:
             "4",
         ],
     )
-    assert result.exit_code == 0, _err(result)
-    assert f"megalut: wrote {out} (8 rows) and {stamps}" in _err(result)
+    assert result.exit_code == 0, error_text(result)
+    assert f"megalut: wrote {out} (8 rows) and {stamps}" in error_text(result)
 
 
 # ------------------------------------------------------------------- 9. info on JSON and text files
@@ -305,7 +303,7 @@ def test_info_reads_an_evaluation(runner, cli, tmp_path) -> None:
     )
     assert runner.invoke(cli, ["evaluate", str(shears), "--json", str(ev)]).exit_code == 0
     result = runner.invoke(cli, ["info", str(ev)])
-    assert result.exit_code == 0, _err(result)
+    assert result.exit_code == 0, error_text(result)
     lines = result.stdout.splitlines()
     assert (
         lines[0] == f"{ev}: megalut.evaluation 1.2, the biases of {shears} (50 of 50 rows usable)"
@@ -329,7 +327,7 @@ def test_info_reads_a_run_manifest(runner, cli, tmp_path) -> None:
         step, "k", {}, {"tp.fits": {"sha256": "cd" * 32, "size": 1, "mtime_ns": 0}}, 6.25
     )
     result = runner.invoke(cli, ["info", str(path)])
-    assert result.exit_code == 0, _err(result)
+    assert result.exit_code == 0, error_text(result)
     lines = result.stdout.splitlines()
     assert lines[0].startswith(f"{path}: megalut.run-manifest")
     assert lines[1] == "pipeline: pipeline.toml (sha256 abababababab), overrides: scale=0.02"
@@ -344,7 +342,7 @@ def test_info_reads_a_great3_text_catalog(runner, cli, tmp_path) -> None:
     path = tmp_path / "galaxy_catalog-003.txt"
     write_text_catalog(path, galaxy_catalog(3, 4, 4, 48))
     result = runner.invoke(cli, ["info", str(path)])
-    assert result.exit_code == 0, _err(result)
+    assert result.exit_code == 0, error_text(result)
     assert result.stdout.splitlines() == [
         f"{path}: GREAT3 galaxy catalog (text), 16 rows, 3 columns: x, y, ID",
         "subfields (ID // 10^6): 3",
@@ -359,7 +357,7 @@ def test_info_refuses_other_json_and_text_in_one_line(runner, cli, tmp_path) -> 
     for name in ("x.json", "x.txt"):
         result = runner.invoke(cli, ["info", str(tmp_path / name)])
         assert result.exit_code == 1
-        _one_line(result)
+        one_line(result)
 
 
 # --------------------------------------------------------------------------- 10. no absolute paths
@@ -390,7 +388,7 @@ def test_info_shows_no_absolute_path_of_the_machine_a_model_was_made_on(
         ShearModel.load(path).provenance["inputs"]["train"]["path"].startswith("/work/exp12")
     )  # as recorded
     result = runner.invoke(cli, ["info", str(path)])
-    assert result.exit_code == 0, _err(result)
+    assert result.exit_code == 0, error_text(result)
     assert "inputs: train tp.fits (sha256 abababababab)" in result.stdout
     assert "/work/exp12" not in result.stdout
     shipped = runner.invoke(cli, ["info", str(ROOT / "models" / "fiducial.h5")])
