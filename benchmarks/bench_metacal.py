@@ -44,6 +44,7 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 from megalut_cli.measure import metacal_fft as mf  # noqa: E402
+from megalut_cli.measure import metacal_fft_nb as mf_nb  # noqa: E402
 from megalut_cli.measure.metacal import (  # noqa: E402
     DEFAULT_STEP,
     metacal_features,
@@ -101,24 +102,24 @@ def stage_times(plan: mf.Plan, images: np.ndarray) -> dict[str, float]:
             acc[name] += t1 - t
             t = t1
 
-        mf._fold_x(images[b : b + m], ws.ex, ws.dx)
+        mf_nb.fold_x(images[b : b + m], ws.ex, ws.dx)
         lap("fold x (stamps, f64 -> f32)")
         np.matmul(ws.ex.reshape(m * size, h), plan.in_xc, out=ws.gc)
         np.matmul(ws.dx.reshape(m * size, h), plan.in_xs, out=ws.gs)
         lap("GEMM in, x")
-        mf._fold_y(ws.gc, ws.gs, size, ws.ey, ws.dy)
+        mf_nb.fold_y(ws.gc, ws.gs, size, ws.ey, ws.dy)
         lap("fold y")
         np.matmul(plan.in_yc, ws.ey.reshape(h, -1), out=ws.top.reshape(plan.ry + 1, -1))
         np.matmul(plan.in_ys, ws.dy.reshape(h, -1), out=ws.bottom.reshape(plan.ry + 1, -1))
         lap("GEMM in, y")
-        mf._padded_dft(ws.top, ws.bottom, ws.f)
+        mf_nb.padded_dft(ws.top, ws.bottom, ws.f)
         lap("assemble padded DFT")
         a2, b2 = ws.a.reshape(h * m, -1), ws.b.reshape(h * m, -1)
         for v, ver in enumerate(plan.versions):
             if ver.sep:
-                mf._slots_sep(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, ver.wr, ver.wi, ws.q, ws.work)
+                mf_nb.slots_sep(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, ver.wr, ver.wi, ws.q, ws.work)
             else:
-                mf._slots_full(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, ver.wr, ver.wi, ws.q)
+                mf_nb.slots_full(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, None, ver.wr, ver.wi, ws.q)
             lap(f"Quintic taps x weights, {mf.TYPES[v]}")
             np.matmul(plan.out_yc, ws.q[:ky1].reshape(ky1, -1), out=ws.a.reshape(h, -1))
             np.matmul(plan.out_ys, ws.q[ky1:].reshape(ky1, -1), out=ws.b.reshape(h, -1))
@@ -129,7 +130,7 @@ def stage_times(plan: mf.Plan, images: np.ndarray) -> dict[str, float]:
                 cols = slice(None, kx1) if k < 2 else slice(kx1, None)
                 np.matmul(src[:, cols], mat, out=ws.u[k].reshape(h * m, h))
             lap("GEMM out, x (5 versions)")
-            mf._unfold(ws.u[0], ws.u[1], ws.u[2], ws.u[3], out[v])
+            mf_nb.unfold(ws.u[0], ws.u[1], ws.u[2], ws.u[3], out[v])
             lap("unfold (f32 -> f64 stamps)")
     return acc
 

@@ -57,7 +57,7 @@ def _next(s: tuple[jnp.ndarray, ...]) -> tuple[jnp.ndarray, tuple[jnp.ndarray, .
 
 
 def _uniform(r: jnp.ndarray) -> jnp.ndarray:
-    """Uniform in (0, 1] from one 64-bit draw (as ``normals._uniform``)."""
+    """Uniform in (0, 1] from one 64-bit draw (as ``normals_nb._uniform``)."""
     return ((r >> _u(11)).astype(jnp.int64) + 1).astype(jnp.float64) * _U53
 
 

@@ -15,6 +15,9 @@ matrix products over the stack instead of an FFT per stamp and version:
 
 The transforms are split into even and odd parts (half the work). What depends on the PSF,
 the step and the sizes is built once and cached. The arithmetic is float32 by default.
+
+This module is the Python API; its compiled kernels (shared with :mod:`.metacal_fft_multi`)
+are in :mod:`.metacal_fft_nb`.
 """
 
 from __future__ import annotations
@@ -25,9 +28,16 @@ from dataclasses import dataclass
 
 import galsim
 import numpy as np
-from numba import njit
 
 from megalut_cli.measure.metacal_defaults import INTERPOLANT, SHEARS, TYPES
+from megalut_cli.measure.metacal_fft_nb import (
+    fold_x,
+    fold_y,
+    padded_dft,
+    slots_full,
+    slots_sep,
+    unfold,
+)
 
 _SHEARS = tuple(SHEARS[kind] for kind in TYPES)
 _QUINTIC = galsim.Quintic()
@@ -253,257 +263,6 @@ def _plan(
     )  # fmt: skip
 
 
-@njit(cache=True, nogil=True)
-def _fold_x(images: np.ndarray, e: np.ndarray, d: np.ndarray) -> None:
-    """Even and odd parts of each row about the centre pixel ``c``: ``e[..., t] = I(c + t) +
-    I(c - t)``, ``d[..., t] = I(c + t) - I(c - t)`` (``e[..., 0] = I(c)``, ``d[..., 0] = 0``,
-    pixels beyond the stamp are 0)."""
-    m, size = images.shape[0], images.shape[2]
-    c = size // 2
-    for s in range(m):
-        for y in range(size):
-            row = images[s, y]
-            e[s, y, 0] = row[c]
-            d[s, y, 0] = 0.0
-            for t in range(1, c + 1):
-                a = row[c + t] if c + t < size else 0.0
-                b = row[c - t]
-                e[s, y, t] = a + b
-                d[s, y, t] = a - b
-
-
-@njit(cache=True, nogil=True)
-def _fold_y(gc: np.ndarray, gs: np.ndarray, size: int, e: np.ndarray, d: np.ndarray) -> None:
-    """:func:`_fold_x` along the rows of ``[gc | gs]`` (m * S, np) into ``e, d`` (c + 1, m,
-    2 np)."""
-    n = gc.shape[1]
-    c = size // 2
-    m = gc.shape[0] // size
-    for s in range(m):
-        o = s * size + c
-        for k in range(n):
-            e[0, s, k] = gc[o, k]
-            e[0, s, n + k] = gs[o, k]
-            d[0, s, k] = 0.0
-            d[0, s, n + k] = 0.0
-        for t in range(1, c + 1):
-            lo = o - t
-            if c + t < size:
-                hi = o + t
-                for k in range(n):
-                    e[t, s, k] = gc[hi, k] + gc[lo, k]
-                    d[t, s, k] = gc[hi, k] - gc[lo, k]
-                    e[t, s, n + k] = gs[hi, k] + gs[lo, k]
-                    d[t, s, n + k] = gs[hi, k] - gs[lo, k]
-            else:
-                for k in range(n):
-                    e[t, s, k] = gc[lo, k]
-                    d[t, s, k] = -gc[lo, k]
-                    e[t, s, n + k] = gs[lo, k]
-                    d[t, s, n + k] = -gs[lo, k]
-
-
-@njit(cache=True, nogil=True)
-def _padded_dft(top: np.ndarray, bottom: np.ndarray, f: np.ndarray) -> None:
-    """The padded DFT ``F[r, p]`` (r = -ry..ry) of each stamp ``s`` into ``f[:, :, s]`` (real
-    part) and ``f[:, :, m + s]`` (imaginary part), from ``top = [CC | CS]`` and
-    ``bottom = [SC | SS]`` (ry + 1, m, 2 np): products of the stamp with cos / sin (r y) on
-    the left and cos / sin (p x) on the right, r >= 0."""
-    r1, m, n2 = top.shape
-    n = n2 // 2
-    ry = r1 - 1
-    for r in range(r1):
-        for s in range(m):
-            for p in range(n):
-                cc = top[r, s, p]
-                cs = top[r, s, n + p]
-                sc = bottom[r, s, p]
-                ss = bottom[r, s, n + p]
-                f[ry + r, p, s] = cc - ss
-                f[ry + r, p, m + s] = -(cs + sc)
-                f[ry - r, p, s] = cc + ss
-                f[ry - r, p, m + s] = sc - cs
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _store(
-    ap: np.ndarray, am: np.ndarray, wr: np.ndarray, wi: np.ndarray, j: int, i: int, q: np.ndarray
-) -> None:
-    """Slot ``(j, i)``: the k values ``O+- = acc+- * w+-`` of the points ``(+-j, i)`` into
-    ``q[:, s] = [[Oe_r, Oe_i], [Oo_i, -Oo_r]]`` (``Oe = O+ + O-``, ``Oo = O+ - O-``)."""
-    m = q.shape[1]
-    kyh = q.shape[0] // 2
-    kxh = q.shape[2] // 2
-    c0, d0, c1, d1 = wr[0, j, i], wi[0, j, i], wr[1, j, i], wi[1, j, i]
-    for s in range(m):
-        pr = ap[s] * c0 - ap[m + s] * d0
-        pi = ap[s] * d0 + ap[m + s] * c0
-        mr = am[s] * c1 - am[m + s] * d1
-        mi = am[s] * d1 + am[m + s] * c1
-        q[j, s, i] = pr + mr
-        q[j, s, kxh + i] = pi + mi
-        q[kyh + j, s, i] = pi - mi
-        q[kyh + j, s, kxh + i] = mr - pr
-
-
-@njit(cache=True, nogil=True, fastmath=True)
-def _slots_full(
-    f: np.ndarray,
-    p0: np.ndarray,
-    wx: np.ndarray,
-    r0: np.ndarray,
-    wy: np.ndarray,
-    wr: np.ndarray,
-    wi: np.ndarray,
-    q: np.ndarray,
-) -> None:
-    """Each slot's two k values by six by six Quintic taps of ``f``, into ``q``."""
-    m2 = f.shape[2]
-    acc = np.empty((2, m2), f.dtype)
-    for j in range(wr.shape[1]):
-        for i in range(wr.shape[2]):
-            for h in range(2):
-                a = acc[h]
-                a[:] = 0.0
-                if wr[h, j, i] == 0.0 and wi[h, j, i] == 0.0:
-                    continue
-                p = p0[h, j, i]
-                w0, w1, w2 = wx[h, j, i, 0], wx[h, j, i, 1], wx[h, j, i, 2]
-                w3, w4, w5 = wx[h, j, i, 3], wx[h, j, i, 4], wx[h, j, i, 5]
-                for t in range(6):
-                    src = f[r0[h, j, i] + t]
-                    wt = wy[h, j, i, t]
-                    s0, s1, s2, s3, s4, s5 = (
-                        src[p],
-                        src[p + 1],
-                        src[p + 2],
-                        src[p + 3],
-                        src[p + 4],
-                        src[p + 5],
-                    )
-                    for s in range(m2):
-                        a[s] += wt * (
-                            w0 * s0[s]
-                            + w1 * s1[s]
-                            + w2 * s2[s]
-                            + w3 * s3[s]
-                            + w4 * s4[s]
-                            + w5 * s5[s]
-                        )
-            _store(acc[0], acc[1], wr, wi, j, i, q)
-
-
-@njit(cache=True, nogil=True, fastmath=True)
-def _slots_sep(
-    f: np.ndarray,
-    p0: np.ndarray,
-    wx: np.ndarray,
-    r0: np.ndarray,
-    wy: np.ndarray,
-    wr: np.ndarray,
-    wi: np.ndarray,
-    q: np.ndarray,
-    work: np.ndarray,
-) -> None:
-    """Each slot's two k values by separable Quintic taps (six along kx into ``work``, then
-    six along ky; or a single tap of weight 1 in both), into ``q``."""
-    m2 = f.shape[2]
-    ky = wr.shape[1] - 1
-    n_col = p0.shape[0]
-    acc = np.empty((2, m2), f.dtype)
-    if wx.shape[1] == 1:  # the k points are nodes of the padded grid
-        for j in range(ky + 1):
-            fp, fm = f[r0[ky + j]], f[r0[ky - j]]
-            for i in range(n_col):
-                _store(fp[p0[i]], fm[p0[i]], wr, wi, j, i, q)
-        return
-    r_lo = r0.min()
-    for r in range(r_lo, r0.max() + 6):
-        src = f[r]
-        wk = work[r - r_lo]
-        for i in range(n_col):
-            p = p0[i]
-            w0, w1, w2, w3, w4, w5 = wx[i, 0], wx[i, 1], wx[i, 2], wx[i, 3], wx[i, 4], wx[i, 5]
-            s0, s1, s2, s3, s4, s5 = (
-                src[p],
-                src[p + 1],
-                src[p + 2],
-                src[p + 3],
-                src[p + 4],
-                src[p + 5],
-            )
-            d = wk[i]
-            for s in range(m2):
-                d[s] = w0 * s0[s] + w1 * s1[s] + w2 * s2[s] + w3 * s3[s] + w4 * s4[s] + w5 * s5[s]
-    a0, a1 = acc[0], acc[1]
-    for j in range(ky + 1):
-        rp, rm = r0[ky + j] - r_lo, r0[ky - j] - r_lo
-        v0, v1, v2, v3, v4, v5 = (
-            wy[ky + j, 0],
-            wy[ky + j, 1],
-            wy[ky + j, 2],
-            wy[ky + j, 3],
-            wy[ky + j, 4],
-            wy[ky + j, 5],
-        )
-        w0, w1, w2, w3, w4, w5 = (
-            wy[ky - j, 0],
-            wy[ky - j, 1],
-            wy[ky - j, 2],
-            wy[ky - j, 3],
-            wy[ky - j, 4],
-            wy[ky - j, 5],
-        )
-        t0, t1, t2, t3, t4, t5 = (
-            work[rp],
-            work[rp + 1],
-            work[rp + 2],
-            work[rp + 3],
-            work[rp + 4],
-            work[rp + 5],
-        )
-        u0, u1, u2, u3, u4, u5 = (
-            work[rm],
-            work[rm + 1],
-            work[rm + 2],
-            work[rm + 3],
-            work[rm + 4],
-            work[rm + 5],
-        )
-        for i in range(n_col):
-            b0, b1, b2, b3, b4, b5 = t0[i], t1[i], t2[i], t3[i], t4[i], t5[i]
-            for s in range(m2):
-                a0[s] = v0 * b0[s] + v1 * b1[s] + v2 * b2[s] + v3 * b3[s] + v4 * b4[s] + v5 * b5[s]
-            b0, b1, b2, b3, b4, b5 = u0[i], u1[i], u2[i], u3[i], u4[i], u5[i]
-            for s in range(m2):
-                a1[s] = w0 * b0[s] + w1 * b1[s] + w2 * b2[s] + w3 * b3[s] + w4 * b4[s] + w5 * b5[s]
-            _store(a0, a1, wr, wi, j, i, q)
-
-
-@njit(cache=True, nogil=True)
-def _unfold(
-    u1: np.ndarray, u2: np.ndarray, u3: np.ndarray, u4: np.ndarray, out: np.ndarray
-) -> None:
-    """The stamps ``out`` (m, S, S) from the folded products ``(ty, m, tx)``: at
-    ``(c +- ty, c +- tx)``, ``u1 -+ u2 -+ u3 +- u4`` with the signs of the y side on u2 and of
-    the x side on u3 (``u1 = A_r Cx``, ``u2 = B_r Cx``, ``u3 = A_i Sx``, ``u4 = B_i Sx``)."""
-    m, size = out.shape[0], out.shape[1]
-    c = size // 2
-    for s in range(m):
-        for ty in range(c + 1):
-            for tx in range(c + 1):
-                a, b, e, g = u1[ty, s, tx], u2[ty, s, tx], u3[ty, s, tx], u4[ty, s, tx]
-                lo_y, lo_x = c - ty, c - tx
-                hi_y, hi_x = c + ty, c + tx
-                out[s, lo_y, lo_x] = a + b + e + g
-                if hi_x < size:
-                    out[s, lo_y, hi_x] = a + b - e - g
-                if hi_y < size:
-                    out[s, hi_y, lo_x] = a - b + e - g
-                    if hi_x < size:
-                        out[s, hi_y, hi_x] = a - b - e + g
-
-
 class Workspace:
     """Work arrays for blocks of up to ``m`` stamps (allocated once per call)."""
 
@@ -532,13 +291,13 @@ def stack_dft(plan: Plan, images: np.ndarray, ws: Workspace) -> None:
     """The padded DFTs of the stamps ``images`` (m, S, S) into ``ws.f`` (``ws.m == m``)."""
     m, size = images.shape[0], plan.size
     h = size // 2 + 1
-    _fold_x(images, ws.ex, ws.dx)
+    fold_x(images, ws.ex, ws.dx)
     np.matmul(ws.ex.reshape(m * size, h), plan.in_xc, out=ws.gc)
     np.matmul(ws.dx.reshape(m * size, h), plan.in_xs, out=ws.gs)
-    _fold_y(ws.gc, ws.gs, size, ws.ey, ws.dy)
+    fold_y(ws.gc, ws.gs, size, ws.ey, ws.dy)
     np.matmul(plan.in_yc, ws.ey.reshape(h, -1), out=ws.top.reshape(plan.ry + 1, -1))
     np.matmul(plan.in_ys, ws.dy.reshape(h, -1), out=ws.bottom.reshape(plan.ry + 1, -1))
-    _padded_dft(ws.top, ws.bottom, ws.f)
+    padded_dft(ws.top, ws.bottom, ws.f)
 
 
 def draw_slots(plan: Plan, ws: Workspace, out: np.ndarray) -> None:
@@ -553,7 +312,7 @@ def draw_slots(plan: Plan, ws: Workspace, out: np.ndarray) -> None:
     np.matmul(b2[:, :kx1], plan.out_xc, out=u[1].reshape(h * m, h))
     np.matmul(a2[:, kx1:], plan.out_xs, out=u[2].reshape(h * m, h))
     np.matmul(b2[:, kx1:], plan.out_xs, out=u[3].reshape(h * m, h))
-    _unfold(u[0], u[1], u[2], u[3], out)
+    unfold(u[0], u[1], u[2], u[3], out)
 
 
 def _run(
@@ -566,9 +325,9 @@ def _run(
     for v in which:
         ver = plan.versions[v]
         if ver.sep:
-            _slots_sep(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, ver.wr, ver.wi, ws.q, ws.work)
+            slots_sep(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, ver.wr, ver.wi, ws.q, ws.work)
         else:
-            _slots_full(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, ver.wr, ver.wi, ws.q)
+            slots_full(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, None, ver.wr, ver.wi, ws.q)
         draw_slots(plan, ws, out[v])
 
 
@@ -641,6 +400,20 @@ def grid_jobs(grids: np.ndarray) -> dict[int, list[tuple[np.ndarray, tuple[int, 
     return jobs
 
 
+def versions_out(out: np.ndarray | None, n: int, size: int) -> np.ndarray:
+    """The array ``(5, n, S, S)`` the versions of ``n`` stamps of side ``size`` go into: a new
+    one, or ``out`` (checked: C-contiguous float64 of that shape)."""
+    if out is None:
+        return np.empty((len(TYPES), n, size, size))
+    if (
+        out.shape != (len(TYPES), n, size, size)
+        or out.dtype != np.float64
+        or not out.flags.c_contiguous
+    ):
+        raise ValueError(f"out must be a C-contiguous float64 array {(len(TYPES), n, size, size)}")
+    return out
+
+
 def fft_versions(
     images: np.ndarray,
     psf_image: np.ndarray,
@@ -666,14 +439,7 @@ def fft_versions(
         images = images.astype(np.float64)
     images = np.ascontiguousarray(images)
     n, size = images.shape[:2]
-    if out is None:
-        out = np.empty((len(TYPES), n, size, size))
-    elif (
-        out.shape != (len(TYPES), n, size, size)
-        or out.dtype != np.float64
-        or not out.flags.c_contiguous
-    ):
-        raise ValueError(f"out must be a C-contiguous float64 array {(len(TYPES), n, size, size)}")
+    out = versions_out(out, n, size)
     if n:
         key = (psf.tobytes(), psf.shape[0])
         psf_stepk = psf_params(*key)[2]

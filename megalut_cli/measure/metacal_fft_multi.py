@@ -15,6 +15,9 @@ Here the stamps of up to ``chunk`` PSFs (of one PSF size, on one k grid ``N``) s
 
 Same arithmetic as :mod:`.metacal_fft` but for the longer float32 sums of the union's
 tables: the versions agree with the one-PSF path to ~1e-8 of the peak.
+
+This module is the Python API; its compiled kernels (the slot kernels of :mod:`.metacal_fft`,
+here with per-stamp weights; the PSFs' Quintic sums and weights) are in :mod:`.metacal_fft_nb`.
 """
 
 from __future__ import annotations
@@ -26,7 +29,6 @@ from dataclasses import dataclass
 
 import galsim
 import numpy as np
-from numba import njit
 
 from megalut_cli.measure.metacal_defaults import SHEARS, TYPES
 from megalut_cli.measure.metacal_fft import (
@@ -45,220 +47,14 @@ from megalut_cli.measure.metacal_fft import (
     shear_matrix,
     sheared_k2,
     stack_dft,
+    versions_out,
 )
+from megalut_cli.measure.metacal_fft_nb import fill_weights, gather36, slots_full, slots_sep
 
 #: PSFs per :class:`MultiPlan`: bounds its memory (weights ~0.35 MB per PSF at N = 128,
 #: float32; the PSFs' k values ~0.5 MB per PSF while it is built).
 PSF_CHUNK = 64
 _KVALUE_ACCURACY = galsim.GSParams().kvalue_accuracy
-
-# --------------------------------------------------------------------------------------------
-# numba kernels
-
-
-@njit(cache=True, nogil=True)
-def _gather36(
-    nodes: np.ndarray,
-    idx: np.ndarray,
-    px: np.ndarray,
-    wx: np.ndarray,
-    py: np.ndarray,
-    wy: np.ndarray,
-    out: np.ndarray,
-) -> None:
-    """``out[n, k] = sum_ty sum_tx wy[i, ty] wx[i, tx] nodes[py[i] + ty, px[i] + tx, k]``
-    (``i = idx[n]``): six by six Quintic taps of the PSFs' padded DFTs ``nodes`` (rows,
-    columns, PSFs; complex values as float pairs) at the points ``idx``."""
-    n_k = nodes.shape[2]
-    for n in range(idx.shape[0]):
-        i = idx[n]
-        p, r = px[i], py[i]
-        o = out[n]
-        o[:] = 0.0
-        for ty in range(6):
-            row = nodes[r + ty]
-            v = wy[i, ty]
-            for tx in range(6):
-                w = v * wx[i, tx]
-                src = row[p + tx]
-                for k in range(n_k):
-                    o[k] += src[k] * w
-
-
-@njit(cache=True, nogil=True)
-def _fill_weights(
-    g: np.ndarray, idx: np.ndarray, psf_factor: np.ndarray, shared: np.ndarray, r2: np.ndarray,
-    gauss: np.ndarray, maxk2: np.ndarray, min_acc: float, jj: np.ndarray, ii: np.ndarray,
-    wr: np.ndarray, wi: np.ndarray,
-) -> None:  # fmt: skip
-    """The weights of the points ``idx`` into their slots ``wr, wi (2, ky + 1, kx + 1, K)``:
-    ``w = T * shared / P`` (GalSim's ``Deconvolve``: ``1 / min_acc`` where ``|P| < min_acc``),
-    ``P = g[n, k] * psf_factor`` (PSF ``k``'s Quintic sum times its half-pixel phase and
-    Lanczos factor), ``T = gauss[k, i] * gauss[k, |j|]`` (the target); 0 where
-    ``r2 > maxk2[k]`` (outside PSF ``k``'s maxk)."""
-    for n in range(idx.shape[0]):
-        p = idx[n]
-        jv, iv = jj[p], ii[p]
-        h = 1 if jv < 0 else 0
-        ja = -jv if jv < 0 else jv
-        sr, si = shared[p].real, shared[p].imag
-        f = psf_factor[p]
-        for k in range(g.shape[1]):
-            if r2[p] > maxk2[k]:
-                continue
-            a = g[n, k] * f
-            if abs(a) < min_acc:
-                dr, di = 1.0 / min_acc, 0.0
-            else:
-                d = 1.0 / a
-                dr, di = d.real, d.imag
-            e = gauss[k, iv] * gauss[k, ja]
-            wr[h, ja, iv, k] = e * (sr * dr - si * di)
-            wi[h, ja, iv, k] = e * (sr * di + si * dr)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _store_multi(
-    ap: np.ndarray, am: np.ndarray, wr: np.ndarray, wi: np.ndarray, j: int, i: int, q: np.ndarray
-) -> None:
-    """:mod:`.metacal_fft`'s slot store with the weights of stamp ``s`` in ``wr[:, j, i, s]``."""
-    m = q.shape[1]
-    kyh = q.shape[0] // 2
-    kxh = q.shape[2] // 2
-    w0r, w0i, w1r, w1i = wr[0, j, i], wi[0, j, i], wr[1, j, i], wi[1, j, i]
-    for s in range(m):
-        c0, d0, c1, d1 = w0r[s], w0i[s], w1r[s], w1i[s]
-        pr = ap[s] * c0 - ap[m + s] * d0
-        pi = ap[s] * d0 + ap[m + s] * c0
-        mr = am[s] * c1 - am[m + s] * d1
-        mi = am[s] * d1 + am[m + s] * c1
-        q[j, s, i] = pr + mr
-        q[j, s, kxh + i] = pi + mi
-        q[kyh + j, s, i] = pi - mi
-        q[kyh + j, s, kxh + i] = mr - pr
-
-
-@njit(cache=True, nogil=True, fastmath=True)
-def _slots_full_multi(
-    f: np.ndarray, p0: np.ndarray, wx: np.ndarray, r0: np.ndarray, wy: np.ndarray,
-    live: np.ndarray, wr: np.ndarray, wi: np.ndarray, q: np.ndarray,
-) -> None:  # fmt: skip
-    """Each slot's two k values by six by six Quintic taps of ``f`` with per-stamp weights
-    ``wr, wi (2, ky + 1, kx + 1, m)`` (``live``: the slots some PSF uses), into ``q``."""
-    m2 = f.shape[2]
-    acc = np.empty((2, m2), f.dtype)
-    for j in range(live.shape[1]):
-        for i in range(live.shape[2]):
-            for h in range(2):
-                a = acc[h]
-                a[:] = 0.0
-                if live[h, j, i] == 0:
-                    continue
-                p = p0[h, j, i]
-                w0, w1, w2 = wx[h, j, i, 0], wx[h, j, i, 1], wx[h, j, i, 2]
-                w3, w4, w5 = wx[h, j, i, 3], wx[h, j, i, 4], wx[h, j, i, 5]
-                for t in range(6):
-                    src = f[r0[h, j, i] + t]
-                    wt = wy[h, j, i, t]
-                    s0, s1, s2, s3, s4, s5 = (
-                        src[p],
-                        src[p + 1],
-                        src[p + 2],
-                        src[p + 3],
-                        src[p + 4],
-                        src[p + 5],
-                    )
-                    for s in range(m2):
-                        a[s] += wt * (
-                            w0 * s0[s]
-                            + w1 * s1[s]
-                            + w2 * s2[s]
-                            + w3 * s3[s]
-                            + w4 * s4[s]
-                            + w5 * s5[s]
-                        )
-            _store_multi(acc[0], acc[1], wr, wi, j, i, q)
-
-
-@njit(cache=True, nogil=True, fastmath=True)
-def _slots_sep_multi(
-    f: np.ndarray, p0: np.ndarray, wx: np.ndarray, r0: np.ndarray, wy: np.ndarray,
-    wr: np.ndarray, wi: np.ndarray, q: np.ndarray, work: np.ndarray,
-) -> None:  # fmt: skip
-    """Each slot's two k values by separable Quintic taps (or a single tap of weight 1) with
-    per-stamp weights ``wr, wi (2, ky + 1, kx + 1, m)``, into ``q``."""
-    m2 = f.shape[2]
-    ky = wr.shape[1] - 1
-    n_col = p0.shape[0]
-    acc = np.empty((2, m2), f.dtype)
-    if wx.shape[1] == 1:  # the k points are nodes of the padded grid
-        for j in range(ky + 1):
-            fp, fm = f[r0[ky + j]], f[r0[ky - j]]
-            for i in range(n_col):
-                _store_multi(fp[p0[i]], fm[p0[i]], wr, wi, j, i, q)
-        return
-    r_lo = r0.min()
-    for r in range(r_lo, r0.max() + 6):
-        src = f[r]
-        wk = work[r - r_lo]
-        for i in range(n_col):
-            p = p0[i]
-            w0, w1, w2, w3, w4, w5 = wx[i, 0], wx[i, 1], wx[i, 2], wx[i, 3], wx[i, 4], wx[i, 5]
-            s0, s1, s2, s3, s4, s5 = (
-                src[p],
-                src[p + 1],
-                src[p + 2],
-                src[p + 3],
-                src[p + 4],
-                src[p + 5],
-            )
-            d = wk[i]
-            for s in range(m2):
-                d[s] = w0 * s0[s] + w1 * s1[s] + w2 * s2[s] + w3 * s3[s] + w4 * s4[s] + w5 * s5[s]
-    a0, a1 = acc[0], acc[1]
-    for j in range(ky + 1):
-        rp, rm = r0[ky + j] - r_lo, r0[ky - j] - r_lo
-        v0, v1, v2, v3, v4, v5 = (
-            wy[ky + j, 0],
-            wy[ky + j, 1],
-            wy[ky + j, 2],
-            wy[ky + j, 3],
-            wy[ky + j, 4],
-            wy[ky + j, 5],
-        )
-        w0, w1, w2, w3, w4, w5 = (
-            wy[ky - j, 0],
-            wy[ky - j, 1],
-            wy[ky - j, 2],
-            wy[ky - j, 3],
-            wy[ky - j, 4],
-            wy[ky - j, 5],
-        )
-        t0, t1, t2, t3, t4, t5 = (
-            work[rp],
-            work[rp + 1],
-            work[rp + 2],
-            work[rp + 3],
-            work[rp + 4],
-            work[rp + 5],
-        )
-        u0, u1, u2, u3, u4, u5 = (
-            work[rm],
-            work[rm + 1],
-            work[rm + 2],
-            work[rm + 3],
-            work[rm + 4],
-            work[rm + 5],
-        )
-        for i in range(n_col):
-            b0, b1, b2, b3, b4, b5 = t0[i], t1[i], t2[i], t3[i], t4[i], t5[i]
-            for s in range(m2):
-                a0[s] = v0 * b0[s] + v1 * b1[s] + v2 * b2[s] + v3 * b3[s] + v4 * b4[s] + v5 * b5[s]
-            b0, b1, b2, b3, b4, b5 = u0[i], u1[i], u2[i], u3[i], u4[i], u5[i]
-            for s in range(m2):
-                a1[s] = w0 * b0[s] + w1 * b1[s] + w2 * b2[s] + w3 * b3[s] + w4 * b4[s] + w5 * b5[s]
-            _store_multi(a0, a1, wr, wi, j, i, q)
-
 
 # --------------------------------------------------------------------------------------------
 # the PSF-independent geometry
@@ -452,12 +248,12 @@ def multi_plan(
     for vg, idx in zip(geo.versions, points):
         g = np.empty((len(idx), len(psfs)), complex)  # the PSFs' Quintic sums (real weights)
         px, py = vg.p_px - geo.p_lo, vg.p_py - geo.r_lo
-        _gather36(nodes.view(np.float64), idx, px, vg.p_wx, py, vg.p_wy, g.view(np.float64))
+        gather36(nodes.view(np.float64), idx, px, vg.p_wx, py, vg.p_wy, g.view(np.float64))
         wr = np.zeros((2, ky_n + 1, kx_n + 1, len(psfs)), dt)
         wi = np.zeros_like(wr)
         shared = geo.base0 * vg.lanczos * vg.gal_phase
         psf_factor = vg.psf_phase * vg.lanczos
-        _fill_weights(
+        fill_weights(
             g,
             idx,
             psf_factor,
@@ -509,9 +305,9 @@ def _run_multi(
         ver = plan.versions[v]
         wr, wi = (np.ascontiguousarray(w[..., col]) for w in mp.weights[v])  # the block's
         if ver.sep:
-            _slots_sep_multi(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, wr, wi, ws.q, ws.work)
+            slots_sep(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, wr, wi, ws.q, ws.work)
         else:
-            _slots_full_multi(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, mp.live[v], wr, wi, ws.q)
+            slots_full(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, mp.live[v], wr, wi, ws.q)
         draw_slots(plan, ws, out[v])
 
 
@@ -556,14 +352,7 @@ def fft_versions_multi(
     if images.dtype not in (np.float32, np.float64):
         images = images.astype(np.float64)
     images = np.ascontiguousarray(images)
-    if out is None:
-        out = np.empty((len(TYPES), n, size, size))
-    elif (
-        out.shape != (len(TYPES), n, size, size)
-        or out.dtype != np.float64
-        or not out.flags.c_contiguous
-    ):
-        raise ValueError(f"out must be a C-contiguous float64 array {(len(TYPES), n, size, size)}")
+    out = versions_out(out, n, size)
     if not n:
         return {kind: out[v] for v, kind in enumerate(TYPES)}
     used = np.unique(psf_index)
