@@ -210,7 +210,7 @@ def test_default_run_meets_the_stage_iv_requirement_within_2_sigma(
             rec = readme[name][comp]
             tolerance = 0.25 if same_cpu or name == "reference" else 1.5
             for q in ("m", "c"):
-                assert abs(weighted[q] - rec[q]) < tolerance * rec[f"{q}error_text"], (
+                assert abs(weighted[q] - rec[q]) < tolerance * rec[f"{q}_err"], (
                     name,
                     comp,
                     q,
