@@ -69,7 +69,7 @@ from megalut_cli.measure.features import (
     warn_if_mostly_flagged,
 )
 from megalut_cli.measure.meds import MedsOptions, is_meds, measure_meds_file
-from megalut_cli.measure.metacal_defaults import SEED_CARD, STEP_CARD, TYPES, metacal_columns
+from megalut_cli.measure.metacal_defaults import TYPES, metacal_cards, metacal_columns
 from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS, morphology_of_measured
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.psf_model import cached_psf_model
@@ -962,8 +962,7 @@ def measure_file_columns(
         }
     )
     if mc is not None:
-        cards[STEP_CARD] = (float(metacal_step), "metacal shear step (measure --metacal-step)")
-        cards[SEED_CARD] = (int(seed), "seed of the metacal fixnoise fields (measure --seed)")
+        cards.update(metacal_cards(metacal_step, seed, "measure"))
     if "MEASURED" in cards:  # a simulation's card: the features are now measured
         cards["MEASURED"] = (True, "the catalog holds measured features")
     write_catalog(

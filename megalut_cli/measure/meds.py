@@ -65,9 +65,8 @@ from megalut_cli.measure.features import (
 )
 from megalut_cli.measure.metacal_defaults import (
     INTERPOLANT,
-    SEED_CARD,
-    STEP_CARD,
     TYPES,
+    metacal_cards,
     metacal_columns,
 )
 from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS, morphology_of_measured
@@ -1055,14 +1054,7 @@ def measure_meds_file(
     if options.psf_model_path is not None:
         cards.update(cached_psf_model(str(options.psf_model_path)).header_cards())
     if options.metacal:
-        cards[STEP_CARD] = (
-            float(options.metacal_step),
-            "metacal shear step (measure --metacal-step)",
-        )
-        cards[SEED_CARD] = (
-            int(options.seed),
-            "seed of the metacal fixnoise fields (measure --seed)",
-        )
+        cards.update(metacal_cards(options.metacal_step, options.seed, "measure"))
     write_catalog(
         output, columns, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards
     )

@@ -30,6 +30,15 @@ def metacal_columns(names: tuple[str, ...] | list[str]) -> list[str]:
     return [f"{name}_{kind}" for kind in TYPES for name in names]
 
 
+def metacal_cards(step: float, seed: int, command: str) -> dict[str, tuple[float | int, str]]:
+    """The header cards of a catalog measured in metacal mode by ``command`` (``simulate``,
+    ``measure``): the shear step and the seed of the fixnoise fields."""
+    return {
+        STEP_CARD: (float(step), f"metacal shear step ({command} --metacal-step)"),
+        SEED_CARD: (int(seed), f"seed of the metacal fixnoise fields ({command} --seed)"),
+    }
+
+
 def header_step(header: dict) -> float | None:  # type: ignore[type-arg]
     """The number of a header's ``MCALSTEP`` card, or None (no card, or not a number)."""
     step = header.get(STEP_CARD)

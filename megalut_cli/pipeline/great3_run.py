@@ -42,7 +42,7 @@ from megalut_cli import flags as fl
 from megalut_cli.atomic import replace_folder, write_json
 from megalut_cli.errors import InputError, MegalutError
 from megalut_cli.great3 import layout as L
-from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, SEED_CARD, STEP_CARD, header_step
+from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, header_step, metacal_cards
 from megalut_cli.nn.model import ShearModel
 from megalut_cli.nn.options import PointSpec, WeightSpec
 from megalut_cli.pipeline.config import key_names
@@ -213,8 +213,7 @@ def simulate_set(
     if kept is not None:
         cards = simulation_cards(cfg, seed, True, engine)
         if metacal:
-            cards[STEP_CARD] = (float(DEFAULT_STEP), "metacal shear step (simulate --metacal-step)")
-            cards[SEED_CARD] = (int(seed), "seed of the metacal fixnoise fields (simulate --seed)")
+            cards.update(metacal_cards(DEFAULT_STEP, seed, "simulate"))
         write_simulation_catalog(kept, columns, cfg, cards)
     n, seconds = len(columns["case"]), time.perf_counter() - t0
     log.info(

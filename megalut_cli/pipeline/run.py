@@ -22,7 +22,6 @@ from typing import Any
 from megalut_cli.atomic import write_json
 from megalut_cli.engine import resolve_device
 from megalut_cli.measure.metacal_defaults import DEFAULT_STEP
-from megalut_cli.nn.options import PointSpec, WeightSpec
 from megalut_cli.pipeline.config import (
     EvaluateSpec,
     key_names,
@@ -141,8 +140,8 @@ def build_steps(
         if name in pipe.sets:
             steps.append(sim_step(pipe.sets[name]))
 
-    # A training step's parameters are its spec's dict; the step trains with the spec rebuilt
-    # from them. Where it runs (the device, like -j) is not a parameter: the results agree
+    # A training step's parameters are its spec's dict (its key); the step trains with that
+    # spec. Where it runs (the device, like -j) is not a parameter: the results agree
     # within the tolerances of docs/gpu.md.
     tp, pre = pipe.train_point, pipe.pretrain
     if pre is not None:
@@ -154,7 +153,7 @@ def build_steps(
             train_point(
                 wd / "pretrain.fits",
                 wd / out("pretrain.h5"),
-                PointSpec(**pre_params),
+                pre,
                 device=resolve_device(pipe.device),
                 nproc=nproc,
                 scheduler=scheduler,
@@ -183,7 +182,7 @@ def build_steps(
         train_point(
             wd / "tp.fits",
             wd / out("point.h5"),
-            PointSpec(**tp_params),
+            tp,
             init_from=init_from,
             device=resolve_device(pipe.device),
             nproc=nproc,
@@ -296,7 +295,7 @@ def build_steps(
             wd / "tw.fits",
             wd / out("point.h5"),
             wd / out("model.h5"),
-            WeightSpec(**tw_params),
+            tw,
             device=resolve_device(pipe.device),
             nproc=nproc,
             scheduler=scheduler,

@@ -182,12 +182,11 @@ def predict_columns(
     names = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
     resolved = resolve_columns(model.features, names, column_map, "catalog")
     feature_cols = [resolved[f] for f in model.features]
-    x = _matrix(columns, feature_cols)
     flags = np.asarray(columns["flags"]) if "flags" in names else None
     if metacal_step is None:
-        return predict_arrays(model, x, flags)
+        return predict_arrays(model, _matrix(columns, feature_cols), flags)
     metacal = _metacal_inputs(columns, names, feature_cols, metacal_step)
-    pred = predict_rows(model, x, flags, metacal)
+    pred = predict_rows(model, None, flags, metacal)
     order = [*prediction_columns(model, True), *(c for c in pred if c.startswith("flags"))]
     return {c: pred[c] for c in order}
 
@@ -243,15 +242,15 @@ def _predict_unit(unit: tuple[Any, ...]) -> dict[str, np.ndarray]:
 
 def predict_rows(
     model: Any,
-    x: np.ndarray,
+    x: np.ndarray | None,
     flg: np.ndarray | None,
     metacal: MetacalInputs | None,
 ) -> dict[str, np.ndarray]:
     """The prediction columns of rows with features ``x`` (rows x ``model.features``) and
-    ``flg``: :func:`predict_arrays`, or for a metacal catalog (``metacal``: ``(step, {type:
-    X}, {type: flags})``) :func:`predict_metacal` plus ``pre_X`` (the noshear estimate,
-    uncalibrated) and ``flags`` (``flg`` with ``BAD_FEATURES`` where the noshear version
-    failed)."""
+    ``flg``: :func:`predict_arrays`; or, for a metacal catalog (``metacal``: ``(step, {type:
+    X}, {type: flags})``, ``x`` unused: None), :func:`predict_metacal` plus ``pre_X`` (the
+    noshear estimate, uncalibrated) and ``flags`` (``flg`` with ``BAD_FEATURES`` where the
+    noshear version failed)."""
     if metacal is None:
         return predict_arrays(model, x, flg)
     step, xs, flgs = metacal
@@ -576,7 +575,7 @@ def predict_catalog(
 
     def units() -> Iterator[tuple[Any, tuple]]:
         for table in iter_catalog(features_path, chunk_rows):
-            x = _matrix(table, feature_cols)
+            x = _matrix(table, feature_cols) if step is None else None
             flg = np.asarray(table["flags"]) if has_flags else None
             metacal = (
                 None if step is None else _metacal_inputs(table, table.colnames, feature_cols, step)

@@ -34,7 +34,7 @@ from megalut_cli.atomic import atomic_output, check_output
 from megalut_cli.catalog import CatalogWriter, catalog_writer, write_image
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, check_engine, resolve_device
 from megalut_cli.errors import MegalutError, Names, namer
-from megalut_cli.measure.metacal_defaults import SEED_CARD, STEP_CARD
+from megalut_cli.measure.metacal_defaults import metacal_cards
 from megalut_cli.parallel import chunk_ranges, executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, format_duration, no_progress
 from megalut_cli.sim.config import SimConfig
@@ -471,8 +471,7 @@ def simulate(
         image = np.zeros((n_y * s.stamp_size, s.grid_nx * s.stamp_size), dtype=np.float32)
     cards = simulation_cards(config, seed, measure, engine)
     if metacal and measure:
-        cards[STEP_CARD] = (float(metacal_step), "metacal shear step (simulate --metacal-step)")
-        cards[SEED_CARD] = (int(seed), "seed of the metacal fixnoise fields (simulate --seed)")
+        cards.update(metacal_cards(metacal_step, seed, "simulate"))
     excess = HstNoiseExcess()
     chunks = simulate_chunks(
         config,

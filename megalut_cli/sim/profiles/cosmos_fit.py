@@ -14,6 +14,7 @@ import numpy as np
 from megalut_cli.errors import ConfigError
 from megalut_cli.schema import OneOf, Option
 from megalut_cli.sim.distributions import CatalogColumn, parse_distributions
+from megalut_cli.sim.profiles import bulgedisk
 from megalut_cli.sim.profiles.base import GalaxyProfile, GalaxySpec, ProfileTruth
 from megalut_cli.sim.profiles.common import (
     ANGLE,
@@ -271,19 +272,7 @@ PROFILE = GalaxyProfile(
     parse,
     truth,
     build,
-    truth_columns=(
-        "tru_cosmos_ident",
-        "tru_sersicn",
-        "tru_disk_rad",
-        "tru_disk_sersicn",
-        "tru_bulge_fraction",
-        "tru_bulge_rad",
-        "tru_bulge_sersicn",
-        "tru_bulge_ell",
-        "tru_bulge_dtheta",
-        "tru_bulge_dx",
-        "tru_bulge_dy",
-    ),
+    truth_columns=("tru_cosmos_ident", "tru_sersicn", *bulgedisk.TRUTH_COLUMNS),
     refuses={"sersicn": FROM_THE_FITS, "ellipticity": FROM_THE_FITS},
     catalog="samples the rows of a [catalog] table (catalog.path = the COSMOS fits file, e.g. "
     "real_galaxy_catalog_23.5_example_fits.fits)",
