@@ -5,7 +5,10 @@
 #
 # EXPERIMENT: e1-symmetrized | e1-footprint (100 galaxies, N_CASES = 100 x rings per galaxy,
 # default 100) or e2-noise (30 galaxies, N_CASES = 30 x rings per galaxy, default 300).
-# Outputs under $W (default /tmp/mcx/EXPERIMENT-sSEED-nN_CASES); -j $J (default 2).
+# Outputs under $W (default /tmp/mcx/EXPERIMENT-sSEED-nN_CASES); -j $J (default 2); the
+# engine $ENGINE (default galsim; "fast" measures and metacal-measures with the fast engine,
+# the real galaxies are drawn by GalSim either way); the sets $SETS (default "real twin";
+# "real" alone skips the twins and the paired evaluations).
 # For each set (real galaxies, Sersic twins) and each shear (g1, g2) in {+0.02, -0.02}^2 one
 # simulate run with the same seed (common random numbers), merged into one catalog of 4
 # cases, then three estimators on the same stamps:
@@ -28,6 +31,8 @@ EX=examples/metacal
 CFG=$EX/$EXP.toml
 T="python $EX/mcal_tools.py"
 J=${J:-2}
+ENGINE=${ENGINE:-galsim}
+SETS=${SETS:-real twin}
 W=${W:-/tmp/mcx/$EXP-s$SEED-n$NC}
 mkdir -p "$W"
 LOG=$W/times.log
@@ -37,12 +42,12 @@ timed() {  # timed LABEL COMMAND...: wall and CPU (user+sys, children included) 
 }
 
 SHEARS=("0.02 0.02" "0.02 -0.02" "-0.02 0.02" "-0.02 -0.02")
-for set in real twin; do
+for set in $SETS; do
   twin=none; [ $set = twin ] && twin=sersic
   for k in 0 1 2 3; do
     read -r g1 g2 <<<"${SHEARS[$k]}"
     timed "simulate $set shear $k" megalut simulate "$CFG" shear.g1=$g1 shear.g2=$g2 galaxy.twin=$twin \
-      -o "$W/$set-s$k.fits" --n-cases "$NC" --seed "$SEED" --measure --metacal --engine galsim -j "$J" --overwrite -q
+      -o "$W/$set-s$k.fits" --n-cases "$NC" --seed "$SEED" --measure --metacal --engine "$ENGINE" -j "$J" --overwrite -q
   done
   $T merge "$W/$set.fits" "$W/$set-s0.fits" "$W/$set-s1.fits" "$W/$set-s2.fits" "$W/$set-s3.fits"
   # (a) the shipped networks in metacal mode
@@ -57,5 +62,7 @@ for set in real twin; do
 done
 
 # paired real-vs-twin evaluations of (a), (b), (c) (and each set alone), table.md
-examples/metacal/evaluate_all.sh "$W" $([[ $EXP == e1-* ]] && echo 30)
+if [[ $SETS == "real twin" ]]; then
+  examples/metacal/evaluate_all.sh "$W" $([[ $EXP == e1-* ]] && echo 30)
+fi
 cat "$LOG"

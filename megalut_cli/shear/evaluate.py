@@ -136,6 +136,12 @@ class _Plan:
     def schemes(self) -> tuple[str, ...]:
         return SCHEMES if self.weighted else SCHEMES[:1]
 
+    @property
+    def binned_selection(self) -> bool:
+        """Whether ``--by`` bins are a selection whose response is taken on the sheared
+        versions: metacal catalogs with a per-row ``by`` entry (per-case ones bin whole cases)."""
+        return self.metacal is not None and any(k != "case" for k in self.by_kind.values())
+
     def name(self, arg: str) -> str:
         """How messages name the argument ``arg`` (``by``, ``select``, ``select_cases``,
         ``errors``)."""
@@ -378,7 +384,7 @@ def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> 
             rows.response[(i, j)] = np.where(
                 ok, np.asarray(chunk[f"mcal_r{i}{j}"], dtype=float), 0.0
             )
-    if plan.select is None and not plan.weighted:
+    if plan.select is None and not plan.weighted and not plan.binned_selection:
         return
     # The rows usable whatever the selection: flags_noshear == 0 and finite estimates and
     # responses (which needs every sheared version measured): failures are not a selection.
@@ -397,7 +403,7 @@ def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> 
         if plan.select is not None:
             sel &= _expr.evaluate_rows(plan.select, _version_view(chunk, plan, kind), n)
         for s in plan.schemes:
-            if s == "unweighted" and plan.select is None:
+            if s == "unweighted" and plan.select is None and not plan.binned_selection:
                 continue
             for i in (1, 2):
                 if s == "weighted":
@@ -444,8 +450,23 @@ class _GroupSums:
         self._sums: list[np.ndarray] = []
 
     def add(
-        self, case: np.ndarray, values: Mapping[str, np.ndarray], bin_idx: np.ndarray | None = None
+        self,
+        case: np.ndarray,
+        values: Mapping[str, np.ndarray],
+        bin_idx: np.ndarray | None = None,
+        name_bins: Mapping[str, np.ndarray] | None = None,
     ) -> None:
+        """Add the rows' ``values`` to the sums of their (bin, case); ``name_bins`` gives some
+        names their own bin of each row (a metacal version's bin, for the selection response)."""
+        if name_bins:
+            by_bins: dict[int, tuple[np.ndarray, list[str]]] = {}
+            for name in self.names:
+                b = name_bins.get(name, bin_idx)
+                by_bins.setdefault(id(b), (b, []))[1].append(name)
+            for b, names in by_bins.values():
+                zeros = np.zeros(case.size)
+                self.add(case, {k: values[k] if k in names else zeros for k in self.names}, b)
+            return
         if bin_idx is not None:
             keep = bin_idx >= 0
             case, bin_idx = case[keep], bin_idx[keep]
@@ -488,7 +509,10 @@ class _GroupSums:
         return keys // ids.size, ids[keys % ids.size], out
 
 
-def _sum_names(schemes: Sequence[str], plan: _Plan | None = None) -> list[str]:
+def _sum_names(
+    schemes: Sequence[str], plan: _Plan | None = None, binned: bool = False
+) -> list[str]:
+    """Names of the per-(bin, case) sums; ``binned``: of ``--by`` bins (their selection)."""
     names = []
     for s in schemes:
         for comp in ("g1", "g2"):
@@ -496,7 +520,7 @@ def _sum_names(schemes: Sequence[str], plan: _Plan | None = None) -> list[str]:
         names.append(f"{s}:n:both")
         if plan is not None and plan.metacal is not None:
             names += [f"{s}:wR:{i}{j}" for i in (1, 2) for j in (1, 2)]
-            if plan.select is not None or s == "weighted":
+            if plan.select is not None or s == "weighted" or (binned and plan.binned_selection):
                 names += [
                     f"{s}:{q}:{i}:{kind}"
                     for q in ("sw", "swpre")
@@ -853,11 +877,13 @@ def _prepare_cases(plan: _Plan, read: Callable[[list[str]], Mapping[str, np.ndar
         plan.case_by[c] = _expr.evaluate_case_values(c, cols, case)
 
 
-def _by_values(chunk: Mapping[str, np.ndarray], plan: _Plan, c: str, n: int) -> np.ndarray:
+def _by_values(
+    chunk: Mapping[str, np.ndarray], plan: _Plan, c: str, n: int, version: str = "noshear"
+) -> np.ndarray:
     """Values of the ``by`` entry ``c`` on the rows of ``chunk`` (a case's value for per-case
-    entries)."""
+    entries), as the metacal ``version`` sees them."""
     kind = plan.by_kind.get(c, "column")
-    chunk = _version_view(chunk, plan, "noshear")
+    chunk = _version_view(chunk, plan, version)
     if kind == "column":
         return np.asarray(chunk[c], dtype=float)
     if kind == "row":
@@ -868,6 +894,24 @@ def _by_values(chunk: Mapping[str, np.ndarray], plan: _Plan, c: str, n: int) -> 
     case = np.asarray(chunk["case"])
     pos = np.clip(np.searchsorted(ids, case), 0, ids.size - 1)
     return np.where(ids[pos] == case, values[pos], np.nan)
+
+
+def _sheared_bins(
+    chunk: Mapping[str, np.ndarray],
+    plan: _Plan,
+    c: str,
+    n: int,
+    edges: np.ndarray,
+    names: Sequence[str],
+) -> dict[str, np.ndarray] | None:
+    """The bins of the rows under each sheared version's values of the ``by`` entry ``c``,
+    for the sums of that version's selection (metacal, per-row entries only)."""
+    if not plan.binned_selection or plan.by_kind.get(c) == "case":
+        return None
+    bins = {kind: assign_bins(_by_values(chunk, plan, c, n, kind), edges) for kind in SHEARED_TYPES}
+    return {
+        name: bins[name.rsplit(":", 1)[1]] for name in names if ":sw:" in name or ":swpre:" in name
+    }
 
 
 def _evaluate(
@@ -893,7 +937,7 @@ def _evaluate(
     # Pass 2: per-(bin, case) sums.
     names = _sum_names(schemes, plan)
     overall = _GroupSums(names)
-    conditional = {c: _GroupSums(names) for c in edges}
+    conditional = {c: _GroupSums(_sum_names(schemes, plan, binned=True)) for c in edges}
     psf_sums = _GroupSums(["psf1", "psf2", "npsf"]) if plan.psf else None
     n_total = n_selected = n_valid = 0
     for chunk in chunks():
@@ -904,7 +948,13 @@ def _evaluate(
         vals = _row_values(rows, schemes)
         overall.add(rows.key, vals)
         for c, g in conditional.items():
-            g.add(rows.key, vals, assign_bins(_by_values(chunk, plan, c, rows.case.size), edges[c]))
+            n = rows.case.size
+            g.add(
+                rows.key,
+                vals,
+                assign_bins(_by_values(chunk, plan, c, n), edges[c]),
+                _sheared_bins(chunk, plan, c, n, edges[c], g.names),
+            )
         if psf_sums is not None and rows.psf is not None:
             ok = np.isfinite(rows.psf[0]) & np.isfinite(rows.psf[1])
             psf_sums.add(
@@ -1242,6 +1292,14 @@ def _conditional(
         fits = {scheme: _fit_components(_case_estimates(sub, scheme, theta)) for scheme in schemes}
         for scheme in schemes:
             entry[scheme] = fits[scheme]
+        if f"{schemes[0]}:wR:11" in sub:  # metacal: this bin's responses
+            entry["metacal"] = {"response": {}, "selection_response": {}}
+            for scheme in schemes:
+                mean, selection = metacal_response(sub, scheme)
+                entry["metacal"]["response"][scheme] = [_json_list(row) for row in mean]
+                entry["metacal"]["selection_response"][scheme] = (
+                    None if selection is None else [_json_list(row) for row in selection]
+                )
         if families is not None and groups is not None:
             families.append(
                 _Family(

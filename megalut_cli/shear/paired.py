@@ -16,6 +16,7 @@ shears and noise give the two sets.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -25,14 +26,23 @@ from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.expr import columns_used, evaluate_row_values
 from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, header_step
 from megalut_cli.seeding import STREAM_BOOTSTRAP, rng_for
+from megalut_cli.shear.bias import calibrate_by_response
 from megalut_cli.shear.bootstrap import fit_columns
 from megalut_cli.shear.evaluate import check_by
 
 #: Columns that must agree row by row between paired catalogs.
 PAIRING_COLUMNS = ("case", "rea", "tru_g1", "tru_g2")
-#: Columns of a metacal prediction catalog that the paired evaluation calibrates with
-#: (the diagonal responses; the mean off-diagonal ones are zero for an isotropic set).
-METACAL_COLUMNS = ("pre_g1_noshear", "pre_g2_noshear", "mcal_r11", "mcal_r22")
+#: Columns of a metacal prediction catalog that the paired evaluation calibrates with.
+METACAL_COLUMNS = (
+    "pre_g1_noshear",
+    "pre_g2_noshear",
+    "mcal_r11",
+    "mcal_r12",
+    "mcal_r21",
+    "mcal_r22",
+)
+#: The weights of the sheared versions (the weights' selection response).
+SHEARED_WEIGHT_COLUMNS = tuple(f"pre_g{i}_w_{j}{sign}" for i in "12" for j in "12" for sign in "pm")
 #: Default bootstrap resamples.
 N_BOOTSTRAP = 1000
 
@@ -43,28 +53,12 @@ def group_sums(
     g_true: np.ndarray,
     g_est: np.ndarray,
     weight: np.ndarray,
-    response: np.ndarray | None = None,
-    sheared_weights: tuple[np.ndarray, np.ndarray, float] | None = None,
 ) -> np.ndarray:
     """``(3, n_cells)`` sums of ``w``, ``w g_est``, ``w g_true`` per cell (invalid rows: w = 0);
-    cell ``case * n_galaxies + galaxy`` for :func:`fit_resamples`. With a metacal
-    ``response`` (per row, this component's), a fourth row ``w R`` (rows need a finite R);
-    with ``sheared_weights`` ``(w_p, w_m, step)`` (the weights of the +step and -step
-    versions along this component), four more: ``w_p``, ``w_p g / 2 step``, ``w_m``,
-    ``w_m g / 2 step``, for the weights' selection response."""
+    cell ``case * n_galaxies + galaxy`` for :func:`fit_resamples`."""
     ok = np.isfinite(g_est) & np.isfinite(weight) & (weight > 0)
-    if response is not None:
-        ok &= np.isfinite(response)
     w = np.where(ok, weight, 0.0)
     rows = [w, np.where(ok, w * g_est, 0.0), np.where(ok, w * g_true, 0.0)]
-    if response is not None:
-        rows.append(np.where(ok, w * response, 0.0))
-        if sheared_weights is not None:
-            w_p, w_m, step = sheared_weights
-            usable = np.isfinite(g_est) & np.isfinite(response)
-            for ws in (w_p, w_m):
-                ws = np.where(usable & np.isfinite(ws) & (ws > 0), ws, 0.0)
-                rows += [ws, np.where(ws > 0, ws * g_est / (2.0 * step), 0.0)]
     return np.stack([np.bincount(cell, weights=r, minlength=n_cells) for r in rows])
 
 
@@ -72,19 +66,10 @@ def fit_resamples(
     sums: np.ndarray, counts: np.ndarray, n_cases: int, n_gal: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """m and c of the per-case means of :func:`group_sums`, one per row of ``counts`` (galaxy
-    multiplicities); NaN with fewer than 3 cases. With a response row, the means are divided
-    by the mean response of the resample (metacal), plus the weights' selection response
-    when the sums hold the sheared weights."""
+    multiplicities); NaN with fewer than 3 cases."""
     s = sums.reshape(len(sums), n_cases, n_gal) @ counts.T  # (rows, n_cases, B)
     with np.errstate(invalid="ignore", divide="ignore"):
-        est = s[1] / s[0]
-        if len(sums) >= 4:
-            total = s.sum(axis=1)  # over the cases: (rows, B)
-            response = total[3] / total[0]
-            if len(sums) == 8:
-                response = response + total[5] / total[4] - total[7] / total[6]
-            est = est / response
-        m, c = fit_columns(s[2] / s[0], est)
+        m, c = fit_columns(s[2] / s[0], s[1] / s[0])
     few = (s[0] > 0).sum(axis=0) < 3
     return np.where(few, np.nan, m), np.where(few, np.nan, c)
 
@@ -99,17 +84,10 @@ def paired_bias(
     weight_b: np.ndarray | None = None,
     n_boot: int = N_BOOTSTRAP,
     seed: int = 0,
-    response_a: np.ndarray | None = None,
-    response_b: np.ndarray | None = None,
-    sheared_weights_a: tuple[np.ndarray, np.ndarray, float] | None = None,
-    sheared_weights_b: tuple[np.ndarray, np.ndarray, float] | None = None,
 ) -> dict[str, Any]:
     """m, c of sets ``a`` and ``b`` (one shear component, rows paired) and ``m_a - m_b``,
-    ``c_a - c_b``, with 1-sigma errors from a paired bootstrap over galaxies. With per-row
-    metacal responses (``response_a``, ``response_b``: ``mcal_r11`` or ``mcal_r22``), each
-    set's estimates are calibrated by its mean response, recomputed in every resample, plus
-    the selection response of its weights with ``sheared_weights_a`` and ``_b`` (see
-    :func:`group_sums`).
+    ``c_a - c_b``, with 1-sigma errors from a paired bootstrap over galaxies (metacal sets:
+    :func:`paired_metacal_bias`).
 
     ``galaxy`` and ``case`` are the ids shared by the paired rows. Returns a JSON-ready dict:
     ``m_a, m_a_err, c_a, c_a_err, m_b, ..., dm, dm_err, dc, dc_err, n_galaxies, n_cases,
@@ -123,30 +101,35 @@ def paired_bias(
     ones = np.ones(g_true.size)
     wa = ones if weight_a is None else np.asarray(weight_a, dtype=float)
     wb = ones if weight_b is None else np.asarray(weight_b, dtype=float)
-    sums_a = group_sums(
-        cell,
-        n_cases * n_gal,
-        g_true,
-        np.asarray(est_a, dtype=float),
-        wa,
-        None if response_a is None else np.asarray(response_a, dtype=float),
-        sheared_weights_a,
-    )
-    sums_b = group_sums(
-        cell,
-        n_cases * n_gal,
-        g_true,
-        np.asarray(est_b, dtype=float),
-        wb,
-        None if response_b is None else np.asarray(response_b, dtype=float),
-        sheared_weights_b,
-    )
+    sums_a = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_a, dtype=float), wa)
+    sums_b = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_b, dtype=float), wb)
     rng = rng_for(seed, STREAM_BOOTSTRAP)
     counts = np.vstack(
         [np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)]
     )
     m_a, c_a = fit_resamples(sums_a, counts, n_cases, n_gal)
     m_b, c_b = fit_resamples(sums_b, counts, n_cases, n_gal)
+    return _paired_result(
+        (m_a, c_a, m_b, c_b),
+        n_gal,
+        n_cases,
+        n_boot,
+        int(np.count_nonzero(np.isfinite(est_a) & (wa > 0))),
+        int(np.count_nonzero(np.isfinite(est_b) & (wb > 0))),
+    )
+
+
+def _paired_result(
+    fits: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    n_gal: int,
+    n_cases: int,
+    n_boot: int,
+    n_rows_a: int,
+    n_rows_b: int,
+) -> dict[str, Any]:
+    """The JSON-ready result of :func:`paired_bias` from ``(m_a, c_a, m_b, c_b)`` (the full
+    sample first, then one per resample)."""
+    m_a, c_a, m_b, c_b = fits
     out: dict[str, Any] = {}
     for name, v in (
         ("m_a", m_a),
@@ -163,10 +146,131 @@ def paired_bias(
         n_galaxies=int(n_gal),
         n_cases=int(n_cases),
         n_boot=int(n_boot),
-        n_rows_a=int(np.count_nonzero(np.isfinite(est_a) & (wa > 0))),
-        n_rows_b=int(np.count_nonzero(np.isfinite(est_b) & (wb > 0))),
+        n_rows_a=n_rows_a,
+        n_rows_b=n_rows_b,
     )
     return out
+
+
+@dataclass(frozen=True)
+class MetacalSet:
+    """One set of a paired metacal evaluation, per row: the noshear estimates ``est`` and
+    weights ``weight`` (``(g1, g2)``; 0 where not used), the responses ``response[i][j]``
+    (``mcal_r<i+1><j+1>``), ``usable`` (the rows whose every version was measured) and, for
+    the weights' selection response, ``sheared[(i, j, sign)]``: the weight of component
+    ``i`` on the version sheared by ``sign`` (``"p"``, ``"m"``) along ``j`` (None: no
+    weights)."""
+
+    est: tuple[np.ndarray, np.ndarray]
+    weight: tuple[np.ndarray, np.ndarray]
+    response: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+    usable: np.ndarray
+    sheared: Mapping[tuple[int, int, str], np.ndarray] | None = None
+
+    def used(self, i: int) -> np.ndarray:
+        """The rows that component ``i`` (0 or 1) uses: a finite estimate and responses and a
+        positive weight."""
+        g_est, w, r = self.est[i], self.weight[i], self.response[i]
+        return np.isfinite(g_est) & np.isfinite(w) & (w > 0) & np.isfinite(r[0]) & np.isfinite(r[1])
+
+    def rows(self, keep: np.ndarray) -> MetacalSet:
+        """The set restricted to the rows ``keep``."""
+        return MetacalSet(
+            (self.est[0][keep], self.est[1][keep]),
+            (self.weight[0][keep], self.weight[1][keep]),
+            tuple(tuple(r[keep] for r in row) for row in self.response),  # type: ignore[arg-type]
+            self.usable[keep],
+            None if self.sheared is None else {k: v[keep] for k, v in self.sheared.items()},
+        )
+
+
+def metacal_group_sums(
+    cell: np.ndarray, n_cells: int, g_true: np.ndarray, data: MetacalSet, i: int, step: float
+) -> np.ndarray:
+    """Sums per cell for component ``i`` (0 or 1) of a metacal set: ``w``, ``w g_est``,
+    ``w g_true``, ``w R_i1``, ``w R_i2`` and, with sheared weights, ``w_s`` and
+    ``w_s g_est / 2 step`` for the versions 1p, 1m, 2p, 2m (the single-set evaluation's
+    sums, per cell)."""
+    g_est, r = data.est[i], data.response[i]
+    ok = data.used(i)
+    w = np.where(ok, data.weight[i], 0.0)
+    rows = [w, np.where(ok, w * g_est, 0.0), np.where(ok, w * g_true, 0.0)]
+    rows += [np.where(ok, w * rj, 0.0) for rj in r]
+    if data.sheared is not None:
+        pre = np.nan_to_num(g_est)
+        for j in (1, 2):
+            for sign in "pm":
+                ws = data.sheared[(i + 1, j, sign)]
+                ws = np.where(data.usable & np.isfinite(ws) & (ws > 0), ws, 0.0)
+                rows += [ws, ws * pre / (2.0 * step)]
+    return np.stack([np.bincount(cell, weights=x, minlength=n_cells) for x in rows])
+
+
+def fit_metacal_resamples(
+    sums: tuple[np.ndarray, np.ndarray], counts: np.ndarray, n_cases: int, n_gal: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``m1, c1, m2, c2`` of the per-case means of :func:`metacal_group_sums` (``sums``: one
+    per component), one per row of ``counts``, calibrated by the resample's 2x2 mean response
+    plus the weights' selection response, as the single-set evaluation does."""
+    s = [x.reshape(len(x), n_cases, n_gal) @ counts.T for x in sums]  # (rows, n_cases, B)
+    total = [x.sum(axis=1) for x in s]  # (rows, B)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = [[total[i][3 + j] / total[i][0] for j in (0, 1)] for i in (0, 1)]
+        if len(sums[0]) > 5:
+            for i in (0, 1):
+                for j in (0, 1):
+                    t = total[i][5 + 4 * j : 9 + 4 * j]  # w_p, w_p g, w_m, w_m g
+                    r[i][j] = r[i][j] + t[1] / t[0] - t[3] / t[2]
+        est = [x[1] / x[0] for x in s]
+        g1, g2 = calibrate_by_response(r[0][0], r[0][1], r[1][0], r[1][1], est[0], est[1])
+        out = []
+        for x, g in zip(s, (g1, g2)):
+            m, c = fit_columns(x[2] / x[0], g)
+            few = (x[0] > 0).sum(axis=0) < 3
+            out += [np.where(few, np.nan, m), np.where(few, np.nan, c)]
+    return out[0], out[1], out[2], out[3]
+
+
+def paired_metacal_bias(
+    galaxy: np.ndarray,
+    case: np.ndarray,
+    g_true: tuple[np.ndarray, np.ndarray],
+    set_a: MetacalSet,
+    set_b: MetacalSet,
+    step: float = DEFAULT_STEP,
+    n_boot: int = N_BOOTSTRAP,
+    seed: int = 0,
+) -> dict[str, dict[str, Any]]:
+    """:func:`paired_bias` of both components of two metacal sets, each calibrated by its
+    full 2x2 mean response (plus its weights' selection response), recomputed in every
+    resample: ``{"g1": {...}, "g2": {...}}``."""
+    gal_ids, gi = np.unique(np.asarray(galaxy), return_inverse=True)
+    case_ids, ci = np.unique(np.asarray(case), return_inverse=True)
+    n_gal, n_cases = gal_ids.size, case_ids.size
+    cell = ci.ravel() * n_gal + gi.ravel()
+    sums_a = tuple(
+        metacal_group_sums(cell, n_cases * n_gal, g_true[i], set_a, i, step) for i in (0, 1)
+    )
+    sums_b = tuple(
+        metacal_group_sums(cell, n_cases * n_gal, g_true[i], set_b, i, step) for i in (0, 1)
+    )
+    rng = rng_for(seed, STREAM_BOOTSTRAP)
+    counts = np.vstack(
+        [np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)]
+    )
+    fa = fit_metacal_resamples(sums_a, counts, n_cases, n_gal)  # type: ignore[arg-type]
+    fb = fit_metacal_resamples(sums_b, counts, n_cases, n_gal)  # type: ignore[arg-type]
+    return {
+        comp: _paired_result(
+            (fa[2 * i], fa[2 * i + 1], fb[2 * i], fb[2 * i + 1]),
+            n_gal,
+            n_cases,
+            n_boot,
+            int(set_a.used(i).sum()),
+            int(set_b.used(i).sum()),
+        )
+        for i, comp in enumerate(("g1", "g2"))
+    }
 
 
 def _num(x: float) -> float | None:
@@ -241,7 +345,7 @@ def paired_evaluation(
     metacal = all(c in t for c in METACAL_COLUMNS for t in (a, b))
     sfx = "_noshear" if metacal else ""
     weight_cols = [f"pre_g{i}_w{sfx}" for i in (1, 2)] + (
-        [f"pre_g{i}_w_{i}{s}" for i in (1, 2) for s in "pm"] if metacal else []
+        list(SHEARED_WEIGHT_COLUMNS) if metacal else []
     )
     schemes = ["unweighted"] + (
         ["weighted"] if all(c in t for t in (a, b) for c in weight_cols) else []
@@ -252,34 +356,63 @@ def paired_evaluation(
         ok = np.isfinite(np.asarray(t[f"pre_{comp}{sfx}"], dtype=float))
         return ok & (np.asarray(t[flag_col]) == 0) if flag_col in t else ok
 
-    def response(t: Mapping[str, np.ndarray], comp: str, rows: np.ndarray) -> np.ndarray | None:
-        return np.asarray(t[f"mcal_r{comp[1]}{comp[1]}"], dtype=float)[rows] if metacal else None
+    def weight(t: Mapping[str, np.ndarray], comp: str, scheme: str) -> np.ndarray:
+        w = valid(t, comp).astype(float)
+        if scheme == "weighted":
+            w = w * np.nan_to_num(np.asarray(t[f"pre_{comp}_w{sfx}"], dtype=float))
+        return w
 
-    def sheared(
-        t: Mapping[str, np.ndarray], comp: str, rows: np.ndarray, scheme: str
-    ) -> tuple[np.ndarray, np.ndarray, float] | None:
-        """The weights of the versions sheared along ``comp`` (the weights' selection response)."""
-        if not metacal or scheme != "weighted":
-            return None
-        ok = valid(t, comp)
-        w_p, w_m = (
-            np.where(ok, np.asarray(t[f"pre_{comp}_w_{comp[1]}{sign}"], dtype=float), 0.0)[rows]
-            for sign in "pm"
+    def metacal_set(t: Mapping[str, np.ndarray], scheme: str) -> MetacalSet:
+        """The set as the single-set evaluation sees it (its ``usable`` rows: flags_noshear
+        == 0 and every version measured)."""
+        est = tuple(np.asarray(t[f"pre_g{i}_noshear"], dtype=float) for i in (1, 2))
+        resp = tuple(
+            tuple(np.asarray(t[f"mcal_r{i}{j}"], dtype=float) for j in (1, 2)) for i in (1, 2)
         )
-        return w_p, w_m, metacal_step
+        usable = np.ones(len(est[0]), dtype=bool) if flag_col not in t else t[flag_col] == 0
+        usable = usable & np.isfinite(est[0]) & np.isfinite(est[1])
+        usable &= np.all(np.isfinite(np.asarray(resp)), axis=(0, 1))
+        sheared = (
+            {
+                (i, j, sign): np.asarray(t[f"pre_g{i}_w_{j}{sign}"], dtype=float)
+                for i in (1, 2)
+                for j in (1, 2)
+                for sign in "pm"
+            }
+            if scheme == "weighted"
+            else None
+        )
+        return MetacalSet(
+            est,  # type: ignore[arg-type]
+            (weight(t, "g1", scheme), weight(t, "g2", scheme)),
+            resp,  # type: ignore[arg-type]
+            usable,
+            sheared,
+        )
 
     def evaluate(rows: np.ndarray) -> dict[str, Any]:
         res: dict[str, Any] = {}
         if not rows.any():
             return res
         for scheme in schemes:
+            if metacal:
+                res[scheme] = paired_metacal_bias(
+                    gal[rows],
+                    case[rows],
+                    (
+                        np.asarray(a["tru_g1"], dtype=float)[rows],
+                        np.asarray(a["tru_g2"], dtype=float)[rows],
+                    ),
+                    metacal_set(a, scheme).rows(rows),
+                    metacal_set(b, scheme).rows(rows),
+                    metacal_step,
+                    n_boot,
+                    seed,
+                )
+                continue
             res[scheme] = {}
             for comp in ("g1", "g2"):
-                wa = valid(a, comp).astype(float)
-                wb = valid(b, comp).astype(float)
-                if scheme == "weighted":
-                    wa = wa * np.nan_to_num(np.asarray(a[f"pre_{comp}_w{sfx}"], dtype=float))
-                    wb = wb * np.nan_to_num(np.asarray(b[f"pre_{comp}_w{sfx}"], dtype=float))
+                wa, wb = weight(a, comp, scheme), weight(b, comp, scheme)
                 res[scheme][comp] = paired_bias(
                     gal[rows],
                     case[rows],
@@ -290,10 +423,6 @@ def paired_evaluation(
                     wb[rows],
                     n_boot=n_boot,
                     seed=seed,
-                    response_a=response(a, comp, rows),
-                    response_b=response(b, comp, rows),
-                    sheared_weights_a=sheared(a, comp, rows, scheme),
-                    sheared_weights_b=sheared(b, comp, rows, scheme),
                 )
         return res
 
@@ -408,10 +537,7 @@ def evaluate_paired_catalogs(
             "flags_noshear",
             "pre_g1_w_noshear",
             "pre_g2_w_noshear",
-            "pre_g1_w_1p",
-            "pre_g1_w_1m",
-            "pre_g2_w_2p",
-            "pre_g2_w_2m",
+            *SHEARED_WEIGHT_COLUMNS,
         )
         if c in common
     ]
