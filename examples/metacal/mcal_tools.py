@@ -11,6 +11,8 @@ more rings
 CONFIG's index
     python mcal_tools.py paired OUT.json REAL.fits TWIN.fits [N_BOOT] [SEED]  # --twin, \
 weights with R_sel
+    python mcal_tools.py single OUT.json SHEARS.fits [N_BOOT] [SEED]  # one set, bootstrap \
+over galaxies
     python mcal_tools.py table RESULTS.json ...                # the README tables from --json files
     python mcal_tools.py responses SHEARS.fits ...             # mean and scatter of the responses
     python mcal_tools.py failures SHEARS.fits ... [--groups 2]  # failures as a selection \
@@ -32,7 +34,13 @@ on metacal catalogs (same resamples for the same seed), the weighted scheme cali
 ``<R> + R_sel`` with the selection response of the weights, ``R_sel,ii = (<g_i>_{w_ip} -
 <g_i>_{w_im}) / (2 step)`` (``<g_i>_{w}``: the mean of ``pre_g<i>_noshear`` weighted by
 ``pre_g<i>_w_<type>``), as the single-set ``megalut evaluate`` does. ``evaluate --twin`` left
-R_sel out before commit c4e8e7c (README.md, "Bug"); since then both agree to all digits.
+R_sel out before commit c4e8e7c (README.md, "Bug"); from then on both agreed to all digits,
+until ``evaluate --twin`` took the full 2x2 responses (2026-11-28): ``paired`` keeps the
+diagonal ones, so the two now differ by the off-diagonal terms (zero in expectation).
+
+``single``: m and c of one metacal set (no twins) with errors from a bootstrap over
+galaxies (``tru_real_index``), as ``megalut evaluate --twin`` computes them for each set
+(the set paired with itself: ``m_a``; ``m_a - m_b`` is then zero).
 
 ``failures`` (on a ``megalut predict`` metacal catalog of a common-random-number set):
 m of two estimators with a paired bootstrap over galaxy groups (``rea // groups``; 200
@@ -447,6 +455,26 @@ def failures(paths: list[str], groups: int = 2, n_boot: int = 200, seed: int = 1
             )
 
 
+def single(out: str, path: str, n_boot: int = 1000, seed: int = 1) -> None:
+    from megalut_cli.shear.paired import paired_evaluation
+
+    t = read_catalog(path)
+    columns = {c: np.asarray(t[c]) for c in t.colnames}
+    step = float(read_cards(path)[STEP_CARD][0])
+    res = paired_evaluation(
+        columns, columns, n_boot=n_boot, seed=seed, names=("real", "real"), metacal_step=step
+    )
+    with open(out, "w") as f:
+        json.dump(res, f, indent=1)
+    for scheme, comps in res["overall"].items():
+        cells = [
+            f"m_{comp} {_f(r['m_a'], r['m_a_err'])} e-3, c_{comp} "
+            f"{_f(r['c_a'], r['c_a_err'], 1e4)} e-4"
+            for comp, r in comps.items()
+        ]
+        print(f"{path} {scheme}: {'; '.join(cells)} ({comps['g1']['n_galaxies']} galaxies)")
+
+
 def table(paths: list[str]) -> None:
     """One row per JSON file (megalut evaluate --twin --json) and scheme: m in units of
     1e-3, c in units of 1e-4."""
@@ -482,6 +510,8 @@ if __name__ == "__main__":
         subset(args[0], args[1], args[2])
     elif cmd == "paired":
         paired(args[0], args[1], args[2], *(int(x) for x in args[3:5]))
+    elif cmd == "single":
+        single(args[0], args[1], *(int(x) for x in args[2:4]))
     elif cmd == "table":
         table(args)
     elif cmd == "responses":
