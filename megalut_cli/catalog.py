@@ -201,6 +201,44 @@ def read_catalog_columns(
     return {name: data[name] for name in data.dtype.names}, header
 
 
+#: Bytes of rows :func:`read_columns_by_rows` reads at once (all columns of a block of rows).
+ROW_BLOCK_BYTES = 4 << 20
+
+
+def read_columns_by_rows(path: str | os.PathLike, columns: Sequence[str]) -> dict[str, np.ndarray]:
+    """The arrays of ``read_catalog_columns(path, columns)[0]``, read in one pass over the
+    rows: whole rows by blocks of :data:`ROW_BLOCK_BYTES`, the columns copied out (fitsio reads
+    a subset of columns one column at a time, each a pass over the file: 8 of a 500 000-row
+    catalog take 6 times as long)."""
+    _check_exists(path)
+    try:
+        with fitsio.FITS(str(path)) as f:
+            hdu = f[_table_ext(f, path)]
+            require_columns(hdu.get_colnames(), columns, path)
+            n_rows = hdu.get_nrows()
+            if not n_rows:
+                return read_catalog_columns(path, columns)[0]
+            step = max(1, ROW_BLOCK_BYTES // max(1, hdu.get_rec_dtype()[0].itemsize))
+            out: dict[str, np.ndarray] = {}
+            for start in range(0, n_rows, step):
+                block = hdu[start : min(start + step, n_rows)]
+                if not out:
+                    out = {
+                        name: np.empty(
+                            (n_rows, *block.dtype[name].shape),
+                            block.dtype[name].base.newbyteorder("="),
+                        )
+                        for name in columns
+                    }
+                for name in columns:
+                    out[name][start : start + len(block)] = block[name]
+    except InputError:
+        raise
+    except (OSError, ValueError) as err:
+        raise _open_error(path, err) from None
+    return out
+
+
 def iter_catalog(
     path: str | os.PathLike, chunk_rows: int, columns: Sequence[str] | None = None
 ) -> Iterator[Table]:
@@ -247,6 +285,13 @@ class CatalogColumns(Mapping[str, np.ndarray]):
             self._read[name] = read_catalog_columns(self.path, [name])[0][name]
         return self._read[name]
 
+    def load(self, names: Iterable[str]) -> None:
+        """Read the columns ``names`` of the catalog not read yet, in one pass over the file
+        (:func:`read_columns_by_rows`; a name the catalog lacks is left for ``[]`` to report)."""
+        wanted = [n for n in dict.fromkeys(names) if n in self.names and n not in self._read]
+        if len(wanted) > 1:
+            self._read.update(read_columns_by_rows(self.path, wanted))
+
     def __iter__(self) -> Iterator[str]:
         return iter(self.names)
 
@@ -264,8 +309,18 @@ class VersionColumns(Mapping[str, np.ndarray]):
         self._names = set(getattr(columns, "names", None) or list(columns))
 
     def __getitem__(self, name: str) -> np.ndarray:
+        return self.columns[self.own_name(name)]
+
+    def own_name(self, name: str) -> str:
+        """The column that ``name`` reads: ``name_<version>`` where that exists, else ``name``."""
         own = f"{name}_{self.version}"
-        return self.columns[own] if own in self._names else self.columns[name]
+        return own if own in self._names else name
+
+    def load(self, names: Iterable[str]) -> None:
+        """Read the columns ``names`` in one pass, when the columns are a
+        :class:`CatalogColumns` (other mappings hold theirs already)."""
+        if isinstance(self.columns, CatalogColumns):
+            self.columns.load(self.own_name(n) for n in names)
 
     def __iter__(self) -> Iterator[str]:
         return iter(self.columns)

@@ -45,6 +45,55 @@ def test_catalog_chunks_and_columns(tmp_path):
         catalog.read_catalog(path, columns=["x", "zz", "yy"])
 
 
+def test_columns_read_by_rows_are_those_read_one_by_one(tmp_path, monkeypatch):
+    """read_columns_by_rows (CatalogColumns.load) gives the arrays of the one-column reads:
+    every column type, several blocks of rows, a metacal catalog's version names."""
+    import fitsio
+
+    n = 23
+    rng = np.random.default_rng(5)
+    data = np.zeros(
+        n,
+        dtype=[
+            ("case", "i8"),
+            ("flags", "i4"),
+            ("small", "i2"),
+            ("byte", "u1"),
+            ("big", "u4"),
+            ("ok", "?"),
+            ("f32", "f4"),
+            ("x", "f8"),
+            ("x_noshear", "f8"),
+            ("v", "f8", (3,)),
+            ("name", "S5"),
+        ],
+    )
+    for name in data.dtype.names:
+        data[name] = rng.integers(0, 200, size=data[name].shape).astype(data.dtype[name].base)
+    data["big"][0] = 4_000_000_000
+    data["x"] = rng.normal(size=n)
+    path = tmp_path / "c.fits"
+    fitsio.write(str(path), data)
+    monkeypatch.setattr(catalog, "ROW_BLOCK_BYTES", 5 * data.dtype.itemsize)  # 5 blocks
+    names = list(data.dtype.names)
+    by_rows = catalog.read_columns_by_rows(path, names)
+    for name in names:
+        one = catalog.read_catalog_columns(path, [name])[0][name]
+        assert by_rows[name].dtype == one.dtype and by_rows[name].shape == one.shape
+        assert by_rows[name].tobytes() == one.tobytes(), name
+    columns = catalog.CatalogColumns(path)
+    columns.load(["x", "case", "nope"])
+    assert set(columns._read) == {"x", "case"}
+    with pytest.raises(KeyError):
+        columns["nope"]
+    version = catalog.VersionColumns(catalog.CatalogColumns(path), "noshear")
+    version.load(["x", "flags"])
+    assert set(version.columns._read) == {"x_noshear", "flags"}
+    np.testing.assert_array_equal(version["x"], data["x_noshear"])
+    with pytest.raises(InputError, match="missing column.*zz"):
+        catalog.read_columns_by_rows(path, ["x", "zz"])
+
+
 def test_catalog_refuses_overwrite_and_bad_files(tmp_path):
     path = tmp_path / "c.fits"
     catalog.write_catalog(path, _table(), fmt="megalut.test")

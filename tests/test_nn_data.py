@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from megalut_cli.errors import InputError
-from megalut_cli.nn.data import CaseData, build_cases, split_cases, valid_rows
-from megalut_cli.nn.normalization import apply, fit
+from megalut_cli.nn.data import CaseData, build_cases, sorted_unique, split_cases, valid_rows
+from megalut_cli.nn.normalization import apply, column_extremes, fit
 
 
 def _columns() -> dict[str, np.ndarray]:
@@ -88,3 +88,43 @@ def test_split_and_normalization() -> None:
     assert np.all(np.abs(np.percentile(xn[1:], [1, 99], axis=0)) < 1.05)
     loc, scale = fit(np.ones((5, 1)))
     assert scale[0] == 1.0
+
+
+@pytest.mark.parametrize("dtype", [np.int64, np.int16, np.uint8, bool])
+def test_sorted_unique_is_numpy_unique(dtype) -> None:
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 2, 50):
+        values = np.sort(rng.integers(0, 2 if dtype is bool else 9, n).astype(dtype))
+        ids, inverse = sorted_unique(values)
+        want_ids, want_inverse = np.unique(values, return_inverse=True)
+        assert ids.dtype == want_ids.dtype and ids.tobytes() == want_ids.tobytes()
+        assert inverse.dtype == np.intp
+        np.testing.assert_array_equal(inverse, want_inverse)
+
+
+def test_build_cases_rows_in_order_or_not() -> None:
+    """Rows already grouped by case are taken as they are; shuffled rows are grouped by case
+    in their catalog order."""
+    rng = np.random.default_rng(4)
+    case = np.repeat(np.arange(6), 5)
+    cols = {"case": case, "a": rng.normal(size=30), "t": np.repeat(rng.normal(size=6), 5)}
+    ordered = build_cases(cols, ["a"], ["t"], np.ones(30, bool))
+    np.testing.assert_array_equal(ordered.x[:, 0], cols["a"])
+    np.testing.assert_array_equal(ordered.case, case)
+    perm = rng.permutation(30)
+    shuffled = build_cases({k: v[perm] for k, v in cols.items()}, ["a"], ["t"], np.ones(30, bool))
+    rows = np.argsort(case[perm], kind="stable")
+    np.testing.assert_array_equal(shuffled.x[:, 0], cols["a"][perm][rows])
+    np.testing.assert_array_equal(shuffled.case, case)
+    np.testing.assert_array_equal(shuffled.targets, ordered.targets)
+
+
+def test_column_extremes_are_numpys_axis_reduction() -> None:
+    rng = np.random.default_rng(6)
+    x = rng.normal(size=(1000, 4))
+    x[::7, 1] = 0.0
+    x[::5, 1] = -0.0  # a zero minimum of either sign: numpy's own reduction decides
+    for arr in (x, np.asfortranarray(x), x[:, 2:3]):
+        lo, hi = column_extremes(arr)
+        assert lo.tobytes() == arr.min(axis=0).tobytes()
+        assert hi.tobytes() == arr.max(axis=0).tobytes()

@@ -143,6 +143,19 @@ def case_rows(counts: np.ndarray, cases: np.ndarray) -> np.ndarray:
     return np.arange(int(sel_counts.sum())) + offsets
 
 
+def sorted_unique(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(values, return_inverse=True)`` of sorted integers ``values`` (the inverse
+    as ``intp``), without sorting them again (nor importing ``numpy.ma``, as ``np.unique``
+    does)."""
+    inverse = np.zeros(len(values), dtype=np.intp)
+    if not len(values):
+        return values[:0].copy(), inverse
+    starts = np.flatnonzero(values[1:] != values[:-1]) + 1
+    inverse[starts] = 1
+    np.cumsum(inverse, out=inverse)
+    return values[np.concatenate([[0], starts])], inverse
+
+
 def valid_rows(
     columns: Mapping[str, np.ndarray], features: Sequence[str], n_rows: int
 ) -> np.ndarray:
@@ -212,10 +225,16 @@ def build_cases(
                 f"{where}: target {name} is not finite in {int(bad.sum())} row(s) (e.g. case "
                 f"{case[bad][0]})"
             )
-    ids_all = np.unique(case)
-    order = np.argsort(case[valid], kind="stable")
-    rows = np.flatnonzero(valid)[order]
-    ids, index = np.unique(case[rows], return_inverse=True)
+    if case.dtype.kind in "biu":  # sorted once (the same rows, ids and index)
+        order = np.argsort(case, kind="stable")
+        rows = order[valid[order]]
+        ids, index = sorted_unique(case[rows])
+        ids_all = ids if len(rows) == n else sorted_unique(case[order])[0]
+    else:
+        ids_all = np.unique(case)
+        order = np.argsort(case[valid], kind="stable")
+        rows = np.flatnonzero(valid)[order]
+        ids, index = np.unique(case[rows], return_inverse=True)
     n_empty = len(ids_all) - len(ids)
     if len(ids) == 0:
         raise InputError(
@@ -231,7 +250,14 @@ def build_cases(
         )
     index = index.ravel().astype(np.intp)
     counts = np.bincount(index, minlength=len(ids))
-    row_t = np.column_stack([np.asarray(columns[t], dtype=np.float64)[rows] for t in targets])
+    in_order = len(rows) == n and bool(np.array_equal(rows, np.arange(n)))
+
+    def gathered(values: np.ndarray) -> np.ndarray:
+        """The rows ``rows`` of a column in float64 (no copy when they are all, in order)."""
+        values = np.asarray(values, dtype=np.float64)
+        return values if in_order else values[rows]
+
+    row_t = np.column_stack([gathered(columns[t]) for t in targets])
     tsum = np.stack(
         [np.bincount(index, weights=row_t[:, j], minlength=len(ids)) for j in range(len(targets))],
         axis=1,
@@ -247,10 +273,10 @@ def build_cases(
                 f"{where}: target {targets[j]} varies within case {ids[index[r]]}; MSB needs one "
                 "target value per case (use the MSE cost, or one case per target value)"
             )
-    x = np.column_stack([np.asarray(columns[f], dtype=np.float64)[rows] for f in features])
+    x = np.column_stack([gathered(columns[f]) for f in features])
     pt = None
     if point is not None:
-        pt = np.column_stack([np.asarray(point[t], dtype=np.float64)[rows] for t in targets])
+        pt = np.column_stack([gathered(point[t]) for t in targets])
     return CaseData(
         x=x,
         case=index,

@@ -125,6 +125,8 @@ def _take_columns(
     names = column_names(table)
     require_columns(names, required, where)
     use = list(dict.fromkeys([*required, *(c for c in optional if c in names)]))
+    if isinstance(table, (CatalogColumns, VersionColumns)):
+        table.load(use)  # one pass over the file
     return {c: np.asarray(table[c]) for c in use}
 
 
@@ -153,9 +155,11 @@ def _load_cases(
     select_rows: str | None = None,
     point_model: ShearModel | None = None,
     name: Callable[[str], str] | None = None,
-) -> tuple[CaseData, dict[str, Any]]:
+    with_domain: bool = True,
+) -> tuple[CaseData, dict[str, Any] | None]:
     """Group a table's rows into cases (see the module docstring for masking); and the
-    domain of its usable rows (:func:`megalut_cli.nn.domain.domain_record`)."""
+    domain of its usable rows (:func:`megalut_cli.nn.domain.domain_record`; ``None``
+    without ``with_domain``)."""
     name = name or namer(None)
     names = column_names(table)
     extra = []
@@ -165,7 +169,8 @@ def _load_cases(
             extra += columns_used(expr)
     point_features = point_model.features if point_model is not None else []
     required = list(dict.fromkeys(["case", *features, *point_features, *targets]))
-    columns = _take_columns(table, where, required, ["flags", *extra, *DOMAIN_COLUMNS])
+    domain_columns = DOMAIN_COLUMNS if with_domain else ()
+    columns = _take_columns(table, where, required, ["flags", *extra, *domain_columns])
     n = len(columns["case"])
     ok = valid_rows(columns, list(dict.fromkeys([*features, *point_features])), n)
     point = None
@@ -195,14 +200,15 @@ def _load_cases(
         point=point,
         measured=measured,
     )
+    in_cases = np.isin(columns["case"], data.case_ids)
     log.info(
         "%s: %d cases, %d valid realizations (%d masked)",
         where,
         data.n_cases,
         data.n_rows,
-        int(np.isin(columns["case"], data.case_ids).sum()) - data.n_rows,
+        int(in_cases.sum()) - data.n_rows,
     )
-    return data, domain_record(columns, ok & np.isin(columns["case"], data.case_ids))
+    return data, domain_record(columns, ok & in_cases) if with_domain else None
 
 
 def _load_split(
@@ -223,7 +229,7 @@ def _load_split(
     if valid is not None:
         return (
             data,
-            _load_cases(valid, valid_name, features, targets, **load)[0],
+            _load_cases(valid, valid_name, features, targets, with_domain=False, **load)[0],
             valid_name,
             domain,
         )
