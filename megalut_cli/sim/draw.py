@@ -16,6 +16,7 @@ a PSF kept in the disk cache (:mod:`megalut_cli.sim.psf_store`) does not load th
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -493,20 +494,14 @@ def case_psfs(cfg: Any, d: Any) -> list[CasePsf]:
     for pi, (spec, fx, fy) in enumerate(d.psf_specs):
         key = psf_cache_key(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
         if stored:
-            psf = stored_psf(key, _builder(spec, fx, fy, cfg.psf_varies, cfg.gsparams))
+            build = functools.partial(get_psf, spec, fx, fy, cfg.psf_varies, cfg.gsparams)
+            psf = stored_psf(key, build)
             ptruth = psf.truth()
         else:
             psf, ptruth = get_psf(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
         method = "no_pixel" if psf_includes_pixel(spec) else "auto"
         out.append(CasePsf(psf, key, method, np.flatnonzero(d.psf_index == pi), ptruth))
     return out
-
-
-def _builder(
-    spec: dict[str, Any], field_x: float, field_y: float, varies: bool, gsparams: dict[str, float]
-) -> Any:
-    """``build()`` of a :class:`StoredPsf`: :func:`get_psf` of these arguments."""
-    return lambda: get_psf(spec, field_x, field_y, varies, gsparams)
 
 
 def stamp_parameters(d: Any, rows: np.ndarray) -> tuple[Any, ...]:
