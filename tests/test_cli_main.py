@@ -65,9 +65,9 @@ def test_man_pages_are_current(tmp_path):
 HEAVY = ("astropy", "galsim", "scipy", "numba", "fitsio", "h5py", "matplotlib", "jax", "dask")
 
 
-def _modules_after(args: list[str]) -> set[str]:
+def _modules_after(args: list[str], all_names: bool = False) -> set[str]:
     """Top-level packages and megalut_cli.cli modules imported by ``megalut ARGS`` (a fresh
-    process)."""
+    process; ``all_names``: every module)."""
     import json
     import subprocess
     import sys
@@ -79,6 +79,8 @@ def _modules_after(args: list[str]) -> set[str]:
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     names = json.loads(done.stderr.strip().splitlines()[-1])
+    if all_names:
+        return set(names)
     return {n.split(".")[0] for n in names} | {n for n in names if n.startswith("megalut_cli.cli.")}
 
 
@@ -95,6 +97,33 @@ def test_version_and_group_help_load_no_subcommand():
 def test_command_help_needs_no_heavy_package(command):
     loaded = _modules_after([command, "--help"])
     assert not loaded & set(HEAVY), loaded & set(HEAVY)
+
+
+#: What a plain (non-metacal) fast-engine simulate or measure does not use (issue 26): GalSim
+#: with astropy (the Sersic tables and the fixed PSF's k-images come from the disk cache), and
+#: the metacal modules.
+NOT_ON_THE_PLAIN_PATH = ("galsim", "astropy", "megalut_cli.measure.metacal")
+
+
+def test_plain_simulate_and_measure_load_neither_galsim_nor_metacal(tmp_path, monkeypatch):
+    """After a first run has filled the disk cache, ``simulate --measure`` and ``measure``
+    of the fiducial configuration import no GalSim, astropy or metacal module."""
+    from pathlib import Path
+
+    monkeypatch.setenv("MEGALUT_CACHE", str(tmp_path / "cache"))
+    tp = str(Path(__file__).resolve().parent.parent / "examples" / "fiducial" / "tp.toml")
+    grid = str(tmp_path / "grid.fits")
+    simulate = ["simulate", tp, "--n-cases", "2", "--n-realizations", "4", "--measure", "-q"]
+    first = _modules_after([*simulate, "-o", str(tmp_path / "a.fits"), "--stamps", grid], True)
+    assert "galsim" in first  # the cold cache: GalSim builds the tables and the PSF
+    for args in (
+        [*simulate, "-o", str(tmp_path / "b.fits")],
+        ["measure", grid, "-o", str(tmp_path / "m.fits"), "-q"],
+    ):
+        loaded = _modules_after(args, True)
+        assert "megalut_cli.sim.draw" in loaded or "megalut_cli.measure.measure" in loaded
+        assert not loaded & set(NOT_ON_THE_PLAIN_PATH), (args, loaded & set(NOT_ON_THE_PLAIN_PATH))
+    assert (tmp_path / "b.fits").is_file() and (tmp_path / "m.fits").is_file()
 
 
 def test_registry_names_each_module_command(cli):

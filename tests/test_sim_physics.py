@@ -11,7 +11,7 @@ from sim_configs import write
 
 from megalut_cli.catalog import read_catalog
 from megalut_cli.sim.config import load_config
-from megalut_cli.sim.galaxies import flux_from_mag, mag_from_flux
+from megalut_cli.sim.intrinsic import flux_from_mag, mag_from_flux
 from megalut_cli.sim.noise import sky_level
 from megalut_cli.sim.simulate import simulate
 

@@ -402,7 +402,7 @@ def _check_pretrain(pre: PointSpec, point: PointSpec, spec: SetSpec) -> None:
 
 def _probe_columns(spec: SetSpec) -> list[str]:
     """The columns the set's catalog will have: draw and measure its first case once."""
-    from megalut_cli.sim.draw import WorkUnit, draw_unit  # GalSim: only when a pipeline is checked
+    from megalut_cli.sim.draw import WorkUnit, draw_unit  # numba, SciPy: when a pipeline is checked
 
     s = spec.config.structure
     small = spec.config.with_structure(n_cases=1, n_realizations=2 if s.snc == "pairs" else 1)

@@ -406,7 +406,7 @@ def _parse_psf(raw: Mapping[str, Any], config_path: str) -> dict[str, Any]:
             raise ConfigError(
                 "psf.index: 'random' needs psf.path and psf.stamp_size (a grid of stars)"
             )
-        from megalut_cli.sim.psf import star_grid_size  # GalSim: not for --help
+        from megalut_cli.sim.psf import star_grid_size  # fitsio: not for --help
 
         t["stamp_size"] = check_int(t["stamp_size"], "psf.stamp_size", 3)
         n = star_grid_size(t["path"], t.get("hdu"), t["stamp_size"])
@@ -494,7 +494,7 @@ def validate_config(
         check_bounds(noise.params["read_noise"], 0.0, None, "the read noise")
 
     # PSF: validated by the PSF module on both ends of every distribution.
-    from megalut_cli.sim import psf as psf_mod  # GalSim: not for --help
+    from megalut_cli.sim import psf as psf_mod  # fitsio: not for --help
 
     for end in (0, 1):
         spec = {k: (v.bounds()[end] if isinstance(v, Distribution) else v) for k, v in psf.items()}

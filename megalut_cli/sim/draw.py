@@ -8,35 +8,36 @@ returns the truth columns, plus the measured features (``measure``) and/or the s
 (:mod:`megalut_cli.sim.render`) and the noise is added with numpy; with ``galsim`` (and for
 galaxies the fast renderer does not cover) GalSim draws them one by one, reusing profiles
 within a case and image buffers between stamps.
+
+GalSim, and the modules that load it (galaxies, twins, metacal), are imported by the
+functions of the GalSim engine and of metacal, not with this module: a fast-engine run with
+a PSF kept in the disk cache (:mod:`megalut_cli.sim.psf_store`) does not load them.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import galsim
 import numpy as np
 
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, device_backend
 from megalut_cli.errors import MegalutError
 from megalut_cli.measure.features import measure_stamps
-from megalut_cli.measure.metacal import (
-    fixnoise_seeds,
-    metacal_features,
-    target_psf_columns,
-    target_psf_sigma,
-)
 from megalut_cli.measure.morphology import morphology_of_measured
 from megalut_cli.sim import psf as psf_mod
 from megalut_cli.sim import render
 from megalut_cli.sim.config import SimConfig
-from megalut_cli.sim.galaxies import make_gsparams, oriented, real_footprint, real_noise, rotated
+from megalut_cli.sim.gsparams import GsParams
 from megalut_cli.sim.profiles import GALAXY_PROFILES
 from megalut_cli.sim.psf import make_psf
+from megalut_cli.sim.psf_store import StoredPsf, stored_psf, stores_psf
 from megalut_cli.sim.structure import draw_case
-from megalut_cli.sim.twins import real_twin, twin_truth
+
+if TYPE_CHECKING:
+    import galsim
 
 #: Stamps measured at once when the images are not kept (bounds the memory of a unit).
 MEASURE_BATCH = 1024
@@ -96,9 +97,10 @@ def get_psf(
     if hit is None:
         if len(_PSF_CACHE) >= _PSF_CACHE_MAX:
             _PSF_CACHE.clear()
+        _single_threaded_galsim()
         psf, truth = make_psf(spec, field_x, field_y)
         if gsparams:
-            psf = psf.withGSParams(make_gsparams(gsparams))
+            psf = psf.withGSParams(GsParams(**gsparams).galsim())
         hit = _PSF_CACHE[key] = (psf, dict(truth))
     return hit
 
@@ -152,10 +154,13 @@ class _Measurer:
         self._targets: dict[int, float] = {}  # PSF id -> target sigma
 
     def psf_id(self, psf: Any, method: str, key: Any) -> int:
-        """An id of the PSF ``psf`` (drawn with ``method``), its image stored for metacal."""
+        """An id of the PSF ``psf`` (drawn with ``method``; a GalSim profile or a
+        :class:`StoredPsf`), its image stored for metacal."""
         pid = hash((key, method)) & 0x7FFFFFFF
         if self.step is not None and pid not in self.psf_images:
             size = self.size
+            if isinstance(psf, StoredPsf):
+                psf = psf.profile()
             self.psf_images[pid] = psf.drawImage(
                 nx=size, ny=size, scale=1.0, method=method
             ).array.astype(np.float64)
@@ -187,6 +192,13 @@ class _Measurer:
         psf_ids: np.ndarray,
         feats: dict[str, np.ndarray],
     ) -> dict[str, np.ndarray]:
+        from megalut_cli.measure.metacal import (
+            fixnoise_seeds,
+            metacal_features,
+            target_psf_columns,
+            target_psf_sigma,
+        )
+
         ids = np.unique(psf_ids)
         stack = np.stack([self.psf_images[int(i)] for i in ids])
         keys = index % self.n_rea if self.common else index
@@ -220,10 +232,13 @@ class _Measurer:
 
 
 def _single_threaded_galsim() -> None:
-    """GalSim's OpenMP threads only slow small stamps down (busy waiting on shared
-    cores: noise generation measured 10-50x slower); parallelism is across work units."""
+    """Import GalSim with one OpenMP thread: its threads only slow small stamps down (busy
+    waiting on shared cores: noise generation measured 10-50x slower); parallelism is
+    across work units."""
     global _THREADS_SET
     if not _THREADS_SET:
+        import galsim
+
         galsim.set_omp_threads(1)
         _THREADS_SET = True
 
@@ -259,6 +274,10 @@ def _process_hst_noise(
     With ``twin`` (its Sérsic twin, PSF-convolved), the twin replaces the galaxy and gets a
     fresh realization of that noise model before the same symmetrization and Gaussian noise.
     """
+    import galsim
+
+    from megalut_cli.sim.galaxies import real_footprint, real_noise
+
     seed = int(d.noise_seeds[k])
     index = int(t["tru_real_index"][k])
     kernel = psf if method == "no_pixel" else galsim.Convolve(psf, galsim.Pixel(1.0))
@@ -297,9 +316,14 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     Returns ``{"columns": {name: array}, "stamps": array (n, S, S) or None}`` with one
     row per stamp, ordered by case then realization.
     """
-    _single_threaded_galsim()
     if unit.renders_fast and (unit.keep_stamps or unit.measure):
         return draw_unit_fast(unit)
+    _single_threaded_galsim()
+    import galsim
+
+    from megalut_cli.sim.galaxies import make_gsparams, oriented, rotated
+    from megalut_cli.sim.twins import real_twin, twin_truth
+
     cfg = unit.config
     s = cfg.structure
     S, n_rea = s.stamp_size, s.n_realizations
@@ -455,7 +479,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
 class CasePsf:
     """One PSF of a drawn case, as the batched renderers take it."""
 
-    psf: Any  # the GalSim object
+    psf: Any  # the GalSim object, or a StoredPsf
     key: str  # psf_cache_key: the renderer's cache of PSF k-images
     method: str  # GalSim drawing method ("no_pixel" when the PSF includes the pixel)
     rows: np.ndarray  # the realizations of the case drawn with it
@@ -463,11 +487,18 @@ class CasePsf:
 
 
 def case_psfs(cfg: Any, d: Any) -> list[CasePsf]:
-    """The PSFs of the drawn case ``d``, in ``d.psf_index`` order."""
+    """The PSFs of the drawn case ``d``, in ``d.psf_index`` order: :class:`StoredPsf` where
+    the run's PSF is kept in the disk cache (:func:`stores_psf`), else GalSim profiles."""
     out = []
+    stored = stores_psf(cfg.psf, cfg.psf_varies)
     for pi, (spec, fx, fy) in enumerate(d.psf_specs):
-        psf, ptruth = get_psf(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
         key = psf_cache_key(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
+        if stored:
+            build = functools.partial(get_psf, spec, fx, fy, cfg.psf_varies, cfg.gsparams)
+            psf = stored_psf(key, build)
+            ptruth = psf.truth()
+        else:
+            psf, ptruth = get_psf(spec, fx, fy, cfg.psf_varies, cfg.gsparams)
         method = "no_pixel" if psf_includes_pixel(spec) else "auto"
         out.append(CasePsf(psf, key, method, np.flatnonzero(d.psf_index == pi), ptruth))
     return out
@@ -524,6 +555,8 @@ def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
     s = cfg.structure
     S, n_rea = s.stamp_size, s.n_realizations
     gal = cfg.galaxy
+    if cfg.noise.type == "correlated":  # GalSim draws it (StampNoise.add_batch)
+        _single_threaded_galsim()
     renderer = stamp_renderer(S, dict(cfg.gsparams))
     measurer = _Measurer(unit) if unit.measure else None
     kept: list[np.ndarray] = []

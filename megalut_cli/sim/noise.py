@@ -15,6 +15,10 @@
 
 ``override_sigma`` replaces any of these by Gaussian noise of that sigma (low-noise
 pretraining sets, Sect. 6 of the paper).
+
+GalSim is imported by the functions that use it (correlated noise, the GalSim engine's
+:meth:`StampNoise.add`), not with this module: the fast engine's Gaussian and CCD noise do
+not load it.
 """
 
 from __future__ import annotations
@@ -22,19 +26,24 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
-import galsim
 import numpy as np
 
 from megalut_cli.errors import InputError
 from megalut_cli.sim.noise_source import CorrelationSource
 from megalut_cli.sim.normals import add_gaussian_noise
 
+if TYPE_CHECKING:
+    import galsim
+
 
 @functools.lru_cache(maxsize=8)
 def unit_correlated_noise(source: CorrelationSource) -> galsim.BaseCorrelatedNoise:
     """The correlated-noise model of ``source`` in simulation pixels, pixel variance 1
     (built once per process; its random generator is reset for every stamp)."""
+    import galsim
+
     try:
         if source.kind == "correlation":
             cn = galsim.getCOSMOSNoise(
@@ -54,6 +63,8 @@ def unit_correlated_noise(source: CorrelationSource) -> galsim.BaseCorrelatedNoi
 
 def source_variance(source: CorrelationSource) -> float:
     """Pixel variance of the noise of a noise image."""
+    import galsim
+
     image = galsim.fits.read(source.path, hdu=source.hdu)
     cn = galsim.CorrelatedNoise(image, scale=source.pixel_scale, subtract_mean=True)
     return float(cn.getVariance())
@@ -99,6 +110,9 @@ class StampNoise:
         return 0.0
 
     def add(self, image: galsim.Image, seed: int) -> None:
+        """Add a realization seeded by ``seed`` to the GalSim ``image``."""
+        import galsim
+
         if self.kind == "gaussian":
             if self.sigma > 0:
                 image.addNoise(
@@ -138,6 +152,8 @@ class StampNoise:
                 add_gaussian_noise(stamps, np.asarray(seeds, dtype=np.int64), self.sigma)
             return
         if self.kind == "correlated":
+            import galsim
+
             for stamp, seed in zip(stamps, np.asarray(seeds, dtype=np.int64).tolist()):
                 image = galsim.ImageF(stamp.copy(), scale=1.0)
                 self.add(image, seed)

@@ -263,7 +263,7 @@ def parse_noise(
                 raise ConfigError(
                     "noise.sigma: missing (pixel standard deviation in ADU of the correlated noise)"
                 )
-            from megalut_cli.sim.noise import source_variance  # GalSim: not needed for --help
+            from megalut_cli.sim.noise import source_variance  # numba, GalSim: not for --help
 
             given["sigma"] = math.sqrt(source_variance(source))
             log.info(
@@ -306,7 +306,7 @@ def _correlation_source(
             "from its first HDU)"
         )
     source = CorrelationSource(kind, str(path), hdu, scale)
-    from megalut_cli.sim.noise import unit_correlated_noise  # GalSim: not needed for --help
+    from megalut_cli.sim.noise import unit_correlated_noise  # numba, GalSim: not for --help
 
     try:
         unit_correlated_noise(source)  # fail now, with one line, on an unusable file

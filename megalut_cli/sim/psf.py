@@ -41,6 +41,10 @@ profile without pixel response; the ``euclid`` and ``stamp`` truths are HSM meas
 on the 5x oversampled image and on the star image.
 
 Star images already contain the pixel response: see :func:`psf_includes_pixel`.
+
+GalSim is imported by the functions that build or measure profiles, not with this module:
+reading a config, and the fast engine with a PSF in the disk cache
+(:mod:`megalut_cli.sim.psf_store`), do not load it.
 """
 
 from __future__ import annotations
@@ -50,14 +54,16 @@ import math
 import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import galsim
 import numpy as np
 
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.measure.stamps import check_grid, image_info, read_rows
 from megalut_cli.schema import OneOf, Option, Required, check_params
+
+if TYPE_CHECKING:
+    import galsim
 
 #: Truth columns returned by :func:`make_psf`.
 TRUTH_COLUMNS = ("tru_psf_g1", "tru_psf_g2", "tru_psf_sigma")
@@ -276,6 +282,8 @@ def _hashable(spec: Mapping[str, Any]) -> tuple[tuple[str, Any], ...]:
 
 def _hsm_truth(image: galsim.Image, scale: float) -> tuple[float, float, float]:
     """``(g1, g2, sigma)`` from HSM on ``image``, sigma converted by ``scale`` to pixels."""
+    import galsim
+
     res = galsim.hsm.FindAdaptiveMom(image, strict=False)
     if res.moments_status != 0:
         raise ConfigError(f"psf: HSM could not measure the PSF ({res.error_message.strip()})")
@@ -289,6 +297,8 @@ def _hsm_truth(image: galsim.Image, scale: float) -> tuple[float, float, float]:
 @functools.lru_cache(maxsize=64)
 def _moffat_sigma(beta: float, fwhm: float | None, hlr: float | None, trunc: float) -> float:
     """Adaptive-moment sigma (pixels) of a round Moffat, on a 10x oversampled image."""
+    import galsim
+
     prof = galsim.Moffat(beta=beta, fwhm=fwhm, half_light_radius=hlr, trunc=trunc)
     scale = prof.calculateFWHM() / 10.0
     img = prof.drawImage(nx=256, ny=256, scale=scale, method="no_pixel")
@@ -296,6 +306,8 @@ def _moffat_sigma(beta: float, fwhm: float | None, hlr: float | None, trunc: flo
 
 
 def _gaussian(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float]]:
+    import galsim
+
     s = _full(spec)
     prof = galsim.Gaussian(sigma=s["sigma"], fwhm=s["fwhm"])
     sigma = float(prof.sigma)
@@ -306,6 +318,8 @@ def _gaussian(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float
 
 
 def _moffat(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float]]:
+    import galsim
+
     s = _full(spec)
     beta, trunc = float(s["beta"]), float(s["trunc"])
     fwhm = None if s["fwhm"] is None else float(s["fwhm"])
@@ -319,6 +333,8 @@ def _moffat(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float]]
 
 
 def _field(spec: Mapping[str, Any], x: float, y: float) -> tuple[galsim.GSObject, dict[str, float]]:
+    import galsim
+
     e1, e2, sigma = field_psf_params(spec, x, y)
     if sigma <= 0 or math.hypot(e1, e2) >= 1:
         raise ConfigError(
@@ -340,6 +356,8 @@ def blackbody_photons(lam_nm: np.ndarray, temperature: float) -> np.ndarray:
 def _euclid_cached(
     key: tuple[tuple[str, Any], ...],
 ) -> tuple[galsim.GSObject, tuple[float, float, float]]:
+    import galsim
+
     s = dict(key)
     over = int(s["oversampling"])
     fine = float(s["pixel_scale"]) / over  # arcsec per fine pixel
@@ -375,6 +393,8 @@ def _euclid(spec: Mapping[str, Any]) -> tuple[galsim.GSObject, dict[str, float]]
 def _stamp_cached(
     key: tuple[tuple[str, Any], ...],
 ) -> tuple[galsim.GSObject, tuple[float, float, float]]:
+    import galsim
+
     s = dict(key)
     path = str(s["path"])
     info = image_info(path, None if s["hdu"] is None else int(s["hdu"]))
@@ -412,6 +432,8 @@ def measured_psf_sigma(spec: Mapping[str, Any], stamp_size: int) -> float | None
     with the pixel response on a ``stamp_size`` stamp; None for a PSF that varies (over the field,
     or with parameters drawn from distributions) or that cannot be built here (a star file
     that is not at hand)."""
+    import galsim
+
     if psf_varies(spec) or any(isinstance(v, Mapping) for v in spec.values()):
         return None
     try:

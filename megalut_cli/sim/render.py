@@ -7,6 +7,11 @@ does: same FFT grid (N, Nk) per stamp, same k-values, same wrapping, same centri
 only skips GalSim's per-stamp Python objects and per-stamp FFTs: the galaxy k-values come
 from a table of GalSim's own radial k-profile, the PSF x pixel k-image is cached per grid,
 and one inverse FFT runs per batch of stamps sharing a grid. See ``docs/render.md``.
+
+GalSim is imported only where it builds what the disk cache (:mod:`megalut_cli.cache`) does
+not hold: a Sersic table, a PSF's summary or k-image (fixed PSFs:
+:mod:`megalut_cli.sim.psf_store`); GSParams are plain numbers
+(:mod:`megalut_cli.sim.gsparams`). A warm fast-engine run with a fixed PSF does not load it.
 """
 
 from __future__ import annotations
@@ -18,16 +23,17 @@ from collections import OrderedDict
 from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
-import galsim
 import numpy as np
 import scipy.fft
 
 from megalut_cli.cache import load_arrays, store_arrays
 from megalut_cli.errors import MegalutError
 from megalut_cli.sim import render_nb
+from megalut_cli.sim.gsparams import GsParams, galsim_version, good_fft_size
 from megalut_cli.sim.profiles import GALAXY_PROFILES
+from megalut_cli.sim.psf_store import StoredPsf
 from megalut_cli.sim.render_nb import FAST_BITS, fill_kimages, radial_values
 
 #: Most bytes of complex k-images per FFT batch: small enough that a batch filled stays in
@@ -121,18 +127,19 @@ class RadialProfile:
 _FAST_MAX_OCTAVE = 30
 
 
-_SERSIC_TABLES: OrderedDict[tuple[float, galsim.GSParams], RadialProfile] = OrderedDict()
+_SERSIC_TABLES: OrderedDict[tuple[float, GsParams], RadialProfile] = OrderedDict()
 
 
-def sersic_table(n: float, gsparams: galsim.GSParams) -> RadialProfile:
+def sersic_table(n: float, gsparams: GsParams | Any) -> RadialProfile:
     """The :class:`RadialProfile` of Sersic index ``n`` (cached per process, LRU, and on disk).
 
     A new ``n`` costs what it costs GalSim (0.03-0.3 s, growing with n: its SersicInfo
     Hankel transforms) plus ~10-20 ms of samples and fits. Indices with at most four
     decimals (grids) are kept in the disk cache (:mod:`megalut_cli.cache`), so processes
     and later runs load them in about a millisecond; others (continuous draws, fits) once
-    per process, as in GalSim.
+    per process, as in GalSim. ``gsparams``: a :class:`GsParams` or a ``galsim.GSParams``.
     """
+    gsparams = GsParams.of(gsparams)
     key = (float(n), gsparams)
     hit = _SERSIC_TABLES.get(key)
     if hit is not None:
@@ -160,23 +167,27 @@ def _source_digest() -> str:
     return hashlib.sha256(source).hexdigest()[:16]
 
 
-def sersic_table_key(n: float, gsparams: galsim.GSParams) -> str:
+def sersic_table_key(n: float, gsparams: GsParams | Any) -> str:
     """Everything a Sersic table depends on: ``n``, the GSParams, GalSim's and numpy's
     versions and the source of this module and its kernels (any change of the code that
     builds it)."""
     return (
-        f"sersic n={n!r} {gsparams!r} galsim={galsim.__version__} numpy={np.__version__} "
+        f"sersic n={n!r} {GsParams.of(gsparams)!r} galsim={galsim_version()} "
+        f"numpy={np.__version__} "
         f"render={_source_digest()}"
     )
 
 
-def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialProfile:
+def _build_sersic_table(n: float, gsp: GsParams) -> RadialProfile:
+    import galsim
+
+    gsp_g = gsp.galsim()
     try:
-        unit = galsim.Sersic(n, scale_radius=1.0, gsparams=gsp)
+        unit = galsim.Sersic(n, scale_radius=1.0, gsparams=gsp_g)
         stepk, maxk = float(unit.stepk), float(unit.maxk)
     except (galsim.GalSimError, RuntimeError) as err:
         raise MegalutError(f"Sersic n={n}: GalSim cannot build the profile ({err})") from None
-    hlr_factor = float(galsim.Sersic(n, half_light_radius=1.0, gsparams=gsp).calculateHLRFactor())
+    hlr_factor = float(galsim.Sersic(n, half_light_radius=1.0, gsparams=gsp_g).calculateHLRFactor())
 
     def f_q2(q: np.ndarray) -> np.ndarray:  # F(q) q^2, as GalSim evaluates it
         return np.array([unit.kValue(float(x), 0.0).real for x in q]) * q * q
@@ -230,7 +241,7 @@ def _build_sersic_table(n: float, gsp: galsim.GSParams) -> RadialProfile:
 
 
 @functools.lru_cache(maxsize=8)
-def gaussian_profile(gsparams: galsim.GSParams, transformed: bool) -> RadialProfile:
+def gaussian_profile(gsparams: GsParams, transformed: bool) -> RadialProfile:
     """The :class:`RadialProfile` of a Gaussian of sigma 1 (``transformed``: sheared)."""
     params = np.zeros(8)
     params[0] = (gsparams.kvalue_accuracy * 48.0) ** (1.0 / 3.0)  # SBGaussian.cpp
@@ -265,12 +276,28 @@ def _fast_cubics(
 
 @dataclass
 class _PsfInfo:
-    profile: galsim.GSObject  # PSF (x pixel unless "no_pixel"), with the drawing GSParams
-    gsparams: galsim.GSParams
+    psf: Any  # the GalSim profile, or a StoredPsf (built only for a k-image not on disk)
+    gsparams: GsParams  # those of the drawing
     stepk: float  # of the PSF alone
     maxk: float
     pixel_stepk: float  # 0 for "no_pixel"
     pixel_maxk: float
+    drawn: Any = None  # the PSF (x pixel unless "no_pixel") with the drawing GSParams, or None
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The summary as named arrays (for the disk cache); see :meth:`from_arrays`."""
+        scalars = [self.stepk, self.maxk, self.pixel_stepk, self.pixel_maxk]
+        return {
+            "gsparams": np.array(self.gsparams.values(), dtype=np.float64),
+            "scalars": np.array(scalars, dtype=np.float64),
+        }
+
+    @classmethod
+    def from_arrays(cls, psf: Any, arrays: Mapping[str, np.ndarray]) -> _PsfInfo:
+        """The summary of ``psf`` stored by :meth:`arrays` (its drawn profile not built)."""
+        stepk, maxk, pixel_stepk, pixel_maxk = (float(v) for v in arrays["scalars"])
+        gsp = GsParams.from_values(arrays["gsparams"])
+        return cls(psf, gsp, stepk, maxk, pixel_stepk, pixel_maxk)
 
 
 class StampRenderer:
@@ -278,6 +305,8 @@ class StampRenderer:
 
     ``gsparams`` is the config's ``[gsparams]`` table (GSParams keyword arguments); empty
     or None: GalSim's defaults combined with the PSF's own, as ``galsim.Convolve`` does.
+    A PSF is a GalSim profile, or a :class:`~megalut_cli.sim.psf_store.StoredPsf` whose
+    summary and k-images come from the disk cache (GalSim builds it on a miss).
     """
 
     def __init__(self, stamp_size: int, gsparams: dict[str, float] | None = None):
@@ -285,12 +314,12 @@ class StampRenderer:
             raise MegalutError(f"stamp size must be >= 1, got {stamp_size}")
         self.stamp_size = int(stamp_size)
         self.gsparams = dict(gsparams or {})
-        self._gsp = galsim.GSParams(**self.gsparams) if self.gsparams else None
+        self._gsp = GsParams(**self.gsparams) if self.gsparams else None
         self._psfs: OrderedDict[tuple[Hashable, str], _PsfInfo] = OrderedDict()
         self._kimages: OrderedDict[tuple[Hashable, str, int, int], np.ndarray] = OrderedDict()
 
     # -- PSF --------------------------------------------------------------------------------
-    def _psf_info(self, psf: galsim.GSObject, psf_key: Hashable, method: str) -> _PsfInfo:
+    def _psf_info(self, psf: Any, psf_key: Hashable, method: str) -> _PsfInfo:
         key = (psf_key, method)
         hit = self._psfs.get(key)
         if hit is not None:
@@ -298,19 +327,52 @@ class StampRenderer:
             return hit
         if method not in ("auto", "no_pixel"):
             raise MegalutError(f"renderer: unknown drawing method {method!r} (auto or no_pixel)")
-        gsp = self._gsp or galsim.GSParams.combine([galsim.GSParams(), psf.gsparams])
-        psf_g = psf.withGSParams(gsp)
-        if method == "auto":
-            pixel = galsim.Pixel(1.0, gsparams=gsp)
-            profile = galsim.Convolve(psf_g, pixel, gsparams=gsp)
-            pix_stepk, pix_maxk = float(pixel.stepk), float(pixel.maxk)
+        if isinstance(psf, StoredPsf):
+            stored = psf.load(self._stored_name(method))
+            if stored is not None:
+                info = _PsfInfo.from_arrays(psf, stored)
+            else:
+                info = self._build_psf_info(psf, method)
+                psf.store(self._stored_name(method), info.arrays())
         else:
-            profile, pix_stepk, pix_maxk = psf_g, 0.0, math.inf
-        info = _PsfInfo(profile, gsp, float(psf_g.stepk), float(psf_g.maxk), pix_stepk, pix_maxk)
+            info = self._build_psf_info(psf, method)
         self._psfs[key] = info
         while len(self._psfs) > _PSF_CACHE_MAX:
             self._psfs.popitem(last=False)
         return info
+
+    def _stored_name(self, method: str, n_fft: int | None = None, n_k: int | None = None) -> str:
+        """What a stored PSF's entry holds: its summary, or its k-image on grid (N, Nk), for
+        ``method`` and this renderer's GSParams."""
+        what = f"renderer {self._gsp!r} {method}"
+        return what if n_fft is None else f"{what} kimage {n_fft} {n_k}"
+
+    def _build_psf_info(self, psf: Any, method: str) -> _PsfInfo:
+        """The summary of ``psf`` (a GalSim profile or a StoredPsf, then built), with GalSim."""
+        import galsim
+
+        profile = psf.profile() if isinstance(psf, StoredPsf) else psf
+        gsp = (
+            self._gsp.galsim()
+            if self._gsp is not None
+            else galsim.GSParams.combine([galsim.GSParams(), profile.gsparams])
+        )
+        psf_g = profile.withGSParams(gsp)
+        if method == "auto":
+            pixel = galsim.Pixel(1.0, gsparams=gsp)
+            drawn = galsim.Convolve(psf_g, pixel, gsparams=gsp)
+            pix_stepk, pix_maxk = float(pixel.stepk), float(pixel.maxk)
+        else:
+            drawn, pix_stepk, pix_maxk = psf_g, 0.0, math.inf
+        return _PsfInfo(
+            psf,
+            GsParams.of(gsp),
+            float(psf_g.stepk),
+            float(psf_g.maxk),
+            pix_stepk,
+            pix_maxk,
+            drawn,
+        )
 
     def _psf_kimage(
         self, info: _PsfInfo, psf_key: Hashable, method: str, n_fft: int, n_k: int
@@ -320,18 +382,35 @@ class StampRenderer:
         if hit is not None:
             self._kimages.move_to_end(key)
             return hit
-        half = n_k // 2
-        image = galsim.ImageCD(galsim.BoundsI(0, half, -half, half), scale=2.0 * np.pi / n_fft)
-        info.profile.drawKImage(image=image, recenter=False)
-        kimage = np.ascontiguousarray(image.array, dtype=np.complex64)  # GalSim's own precision
-        if not kimage.imag.any():  # centrosymmetric PSF: a real k-image (the fill specialises)
-            kimage = np.ascontiguousarray(kimage.real)
+        stored = info.psf if isinstance(info.psf, StoredPsf) else None
+        name = self._stored_name(method, n_fft, n_k)
+        arrays = stored.load(name) if stored is not None else None
+        if arrays is not None:
+            kimage = arrays["kimage"]
+        else:
+            kimage = self._draw_psf_kimage(info, method, n_fft, n_k)
+            if stored is not None:
+                stored.store(name, {"kimage": kimage})
         self._kimages[key] = kimage
         while (
             len(self._kimages) > 1
             and sum(k.nbytes for k in self._kimages.values()) > _KIMAGE_CACHE_BYTES
         ):
             self._kimages.popitem(last=False)
+        return kimage
+
+    def _draw_psf_kimage(self, info: _PsfInfo, method: str, n_fft: int, n_k: int) -> np.ndarray:
+        """The PSF (x pixel) k-image on grid (N, Nk), drawn by GalSim."""
+        import galsim
+
+        if info.drawn is None:  # a summary from the disk cache
+            info.drawn = self._build_psf_info(info.psf, method).drawn
+        half = n_k // 2
+        image = galsim.ImageCD(galsim.BoundsI(0, half, -half, half), scale=2.0 * np.pi / n_fft)
+        info.drawn.drawKImage(image=image, recenter=False)
+        kimage = np.ascontiguousarray(image.array, dtype=np.complex64)  # GalSim's own precision
+        if not kimage.imag.any():  # centrosymmetric PSF: a real k-image (the fill specialises)
+            kimage = np.ascontiguousarray(kimage.real)
         return kimage
 
     # -- geometry ---------------------------------------------------------------------------
@@ -396,7 +475,7 @@ class StampRenderer:
 
     def grid_sizes(
         self,
-        psf: galsim.GSObject,
+        psf: Any,
         psf_key: Hashable,
         method: str,
         profile: str,
@@ -417,7 +496,7 @@ class StampRenderer:
     # -- drawing ----------------------------------------------------------------------------
     def plan(
         self,
-        psf: galsim.GSObject,
+        psf: Any,
         psf_key: Hashable,
         method: str,
         profile: str,
@@ -453,7 +532,7 @@ class StampRenderer:
         return RenderPlan(n_fft, n_k, amat, table, shx, shy, np.array(flux), profiles)
 
     def psf_kimage(
-        self, psf: galsim.GSObject, psf_key: Hashable, method: str, n_fft: int, n_k: int
+        self, psf: Any, psf_key: Hashable, method: str, n_fft: int, n_k: int
     ) -> np.ndarray:
         """The PSF (x pixel) k-image on GalSim's (Nk+1) x (Nk/2+1) grid for FFT size N
         (complex64, or float32 when real), cached per renderer."""
@@ -463,7 +542,7 @@ class StampRenderer:
 
     def draw(
         self,
-        psf: galsim.GSObject,
+        psf: Any,
         psf_key: Hashable,
         method: str,
         profile: str,
@@ -544,7 +623,7 @@ class RadialSet(NamedTuple):
 
 
 def sersic_radials(
-    gsp: galsim.GSParams,
+    gsp: GsParams,
     rad: np.ndarray,
     sersicn: np.ndarray | None,
     e1: np.ndarray,
@@ -567,7 +646,7 @@ def sersic_radials(
 
 
 def gaussian_radials(
-    gsp: galsim.GSParams,
+    gsp: GsParams,
     rad: np.ndarray,
     sersicn: np.ndarray | None,
     e1: np.ndarray,
@@ -626,7 +705,7 @@ def inverse_fft_window(kimages: np.ndarray, n_fft: int, size: int) -> np.ndarray
 
 
 def fft_grid(
-    stepk: np.ndarray, maxk: np.ndarray, stamp_size: int, gsparams: galsim.GSParams
+    stepk: np.ndarray, maxk: np.ndarray, stamp_size: int, gsparams: GsParams | Any
 ) -> tuple[np.ndarray, np.ndarray]:
     """GalSim's FFT sizes (N, Nk) for profiles of ``stepk``, ``maxk`` (pixel scale 1) drawn
     on a ``stamp_size`` image (``GSObject.getGoodImageSize``, ``drawFFT_makeKImage``)."""
@@ -635,7 +714,7 @@ def fft_grid(
     n_good = 2 * ((n_good + 1) // 2)
     n_good = np.maximum(n_good, stamp_size)  # the image itself: 2 max|bounds| or its size
     uniq, inv = np.unique(n_good, return_inverse=True)
-    good = np.array([galsim.Image.good_fft_size(int(v)) for v in uniq], dtype=np.int64)
+    good = np.array([good_fft_size(int(v)) for v in uniq], dtype=np.int64)
     n_fft = np.maximum(good[inv], int(gsparams.minimum_fft_size))
     dk = 2.0 * np.pi / n_fft
     maxk = np.broadcast_to(np.asarray(maxk, dtype=float), n_fft.shape)

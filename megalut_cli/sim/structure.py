@@ -36,7 +36,7 @@ import numpy as np
 from megalut_cli.seeding import STREAM_COMMON, STREAM_SIMULATE, rng_for
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.distributions import Distribution, sample_level
-from megalut_cli.sim.galaxies import ellipticity_components, galaxy_fluxes, mag_from_flux
+from megalut_cli.sim.intrinsic import ellipticity_components, galaxy_fluxes, mag_from_flux
 from megalut_cli.sim.noise import StampNoise, make_noise
 from megalut_cli.sim.profiles import GALAXY_PROFILES
 
