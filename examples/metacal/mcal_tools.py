@@ -13,6 +13,7 @@ CONFIG's index
 weights with R_sel
     python mcal_tools.py single OUT.json SHEARS.fits [N_BOOT] [SEED]  # one set, bootstrap \
 over galaxies
+    python mcal_tools.py pergalaxy SHEARS.fits                 # m of each galaxy and their scatter
     python mcal_tools.py table RESULTS.json ...                # the README tables from --json files
     python mcal_tools.py responses SHEARS.fits ...             # mean and scatter of the responses
     python mcal_tools.py failures SHEARS.fits ... [--groups 2]  # failures as a selection \
@@ -42,6 +43,11 @@ diagonal ones, so the two now differ by the off-diagonal terms (zero in expectat
 galaxies (``tru_real_index``), as ``megalut evaluate --twin`` computes them for each set
 (the set paired with itself: ``m_a``; ``m_a - m_b`` is then zero).
 
+``pergalaxy`` (on a merged metacal catalog with ``tru_real_index``): for each galaxy, m1, m2
+of its rows alone (its per-case means calibrated by its own mean 2x2 response, then the
+least-squares line over the cases), its mean R11 and median ``snr``; then the scatter of m
+over the galaxies, their mean and the correlation of m1 and m2.
+
 ``failures`` (on a ``megalut predict`` metacal catalog of a common-random-number set):
 m of two estimators with a paired bootstrap over galaxy groups (``rea // groups``; 200
 resamples, seed 1). *evaluate*: what ``megalut evaluate`` reports (rows with every version
@@ -63,7 +69,7 @@ import sys
 import numpy as np
 
 from megalut_cli.catalog import read_cards, read_carried_hdus, read_catalog, write_catalog
-from megalut_cli.measure.metacal_defaults import SEED_CARD, STEP_CARD, TYPES
+from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, SEED_CARD, STEP_CARD, TYPES
 
 SAME = ("tru_real_index", "tru_theta", "tru_dx", "tru_dy", "tru_flux", "rea")
 
@@ -460,7 +466,7 @@ def single(out: str, path: str, n_boot: int = 1000, seed: int = 1) -> None:
 
     t = read_catalog(path)
     columns = {c: np.asarray(t[c]) for c in t.colnames}
-    step = float(read_cards(path)[STEP_CARD][0])
+    step = float(read_cards(path).get(STEP_CARD, [DEFAULT_STEP])[0])
     res = paired_evaluation(
         columns, columns, n_boot=n_boot, seed=seed, names=("real", "real"), metacal_step=step
     )
@@ -473,6 +479,38 @@ def single(out: str, path: str, n_boot: int = 1000, seed: int = 1) -> None:
             for comp, r in comps.items()
         ]
         print(f"{path} {scheme}: {'; '.join(cells)} ({comps['g1']['n_galaxies']} galaxies)")
+
+
+def pergalaxy(path: str) -> None:
+    from megalut_cli.shear.bias import calibrate_by_response
+
+    t = read_catalog(path)
+    col = {c: np.asarray(t[c], dtype=float) for c in t.colnames if c != "flags_noshear"}
+    gal, case = np.asarray(t["tru_real_index"]), np.asarray(t["case"])
+    ok = np.asarray(t["flags_noshear"]) == 0
+    for c in ("pre_g1_noshear", "pre_g2_noshear", "mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22"):
+        ok &= np.isfinite(col[c])
+    cases = np.unique(case)
+    rows = []
+    print("| galaxy | m1 (%) | m2 (%) | R11 | median snr |")
+    print("|---|---|---|---|---|")
+    for g in np.unique(gal):
+        sel = ok & (gal == g)
+        r = [[col[f"mcal_r{i}{j}"][sel].mean() for j in (1, 2)] for i in (1, 2)]
+        per = [sel & (case == k) for k in cases]
+        tru = [np.array([col[f"tru_g{i}"][p].mean() for p in per]) for i in (1, 2)]
+        est = [np.array([col[f"pre_g{i}_noshear"][p].mean() for p in per]) for i in (1, 2)]
+        cal = calibrate_by_response(r[0][0], r[0][1], r[1][0], r[1][1], est[0], est[1])
+        m = [np.polyfit(tru[i], cal[i], 1)[0] - 1.0 for i in (0, 1)]
+        rows.append(m)
+        snr = np.nanmedian(col["snr"][sel]) if "snr" in col else np.nan
+        print(f"| {int(g)} | {100 * m[0]:+.2f} | {100 * m[1]:+.2f} | {r[0][0]:.3f} | {snr:.1f} |")
+    a = np.array(rows)
+    print(
+        f"\n{len(a)} galaxies: sd of m1, m2 {100 * a[:, 0].std(ddof=1):.2f} %, "
+        f"{100 * a[:, 1].std(ddof=1):.2f} %; mean {100 * a[:, 0].mean():+.3f} %, "
+        f"{100 * a[:, 1].mean():+.3f} %; corr(m1, m2) {np.corrcoef(a[:, 0], a[:, 1])[0, 1]:+.2f}"
+    )
 
 
 def table(paths: list[str]) -> None:
@@ -510,6 +548,8 @@ if __name__ == "__main__":
         subset(args[0], args[1], args[2])
     elif cmd == "paired":
         paired(args[0], args[1], args[2], *(int(x) for x in args[3:5]))
+    elif cmd == "pergalaxy":
+        pergalaxy(args[0])
     elif cmd == "single":
         single(args[0], args[1], *(int(x) for x in args[2:4]))
     elif cmd == "table":

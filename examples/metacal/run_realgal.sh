@@ -4,7 +4,8 @@
 #   examples/metacal/run_realgal.sh EXPERIMENT [N_CASES] [SEED]
 #
 # EXPERIMENT: e1-symmetrized | e1-footprint (100 galaxies, N_CASES = 100 x rings per galaxy,
-# default 100) or e2-noise (30 galaxies, N_CASES = 30 x rings per galaxy, default 300).
+# default 100), e2-noise (30 galaxies, N_CASES = 30 x rings per galaxy, default 300) or
+# e2-noise-100 (all 100 galaxies, N_CASES = 100 x rings per galaxy, default 1000).
 # Outputs under $W (default /tmp/mcx/EXPERIMENT-sSEED-nN_CASES); -j $J (default 2); the
 # engine $ENGINE (default galsim; "fast" measures and metacal-measures with the fast engine,
 # the real galaxies are drawn by GalSim either way); the sets $SETS (default "real twin";
@@ -20,9 +21,10 @@
 # with e1-*, also on the 30 galaxies of ../realgal/fiducial.toml. More rings: run again with
 # other seeds and combine_seeds.sh.
 set -euo pipefail
-EXP=${1:?usage: run_realgal.sh e1-symmetrized|e1-footprint|e2-noise [N_CASES] [SEED]}
+EXP=${1:?usage: run_realgal.sh e1-symmetrized|e1-footprint|e2-noise|e2-noise-100 [N_CASES] [SEED]}
 case $EXP in
   e1-*) NC=${2:-100} ;;
+  e2-noise-100) NC=${2:-1000} ;;
   e2-*) NC=${2:-300} ;;
   *) echo "unknown experiment $EXP" >&2; exit 2 ;;
 esac
