@@ -13,7 +13,7 @@ CONFIG's index
 weights with R_sel
     python mcal_tools.py single OUT.json SHEARS.fits [N_BOOT] [SEED]  # one set, bootstrap \
 over galaxies
-    python mcal_tools.py pergalaxy SHEARS.fits                 # m of each galaxy and their scatter
+    python mcal_tools.py pergalaxy SHEARS.fits [OTHER.fits]    # m of each galaxy, their scatter
     python mcal_tools.py table RESULTS.json ...                # the README tables from --json files
     python mcal_tools.py responses SHEARS.fits ...             # mean and scatter of the responses
     python mcal_tools.py failures SHEARS.fits ... [--groups 2]  # failures as a selection \
@@ -45,8 +45,12 @@ galaxies (``tru_real_index``), as ``megalut evaluate --twin`` computes them for 
 
 ``pergalaxy`` (on a merged metacal catalog with ``tru_real_index``): for each galaxy, m1, m2
 of its rows alone (its per-case means calibrated by its own mean 2x2 response, then the
-least-squares line over the cases), its mean R11 and median ``snr``; then the scatter of m
-over the galaxies, their mean and the correlation of m1 and m2.
+least-squares line over the cases), its mean R11, median ``snr`` and the relative change of
+its mean ``skymad`` between the cases of positive and negative g1; then the scatter of m over
+the galaxies, their mean and the correlation of m1 and m2. With ``OTHER.fits`` (an
+independent run of the same galaxies, e.g. another seed): the correlation of each galaxy's m
+between the two runs, the noise per galaxy (half the scatter of their differences) and the
+scatter of their means.
 
 ``failures`` (on a ``megalut predict`` metacal catalog of a common-random-number set):
 m of two estimators with a paired bootstrap over galaxy groups (``rea // groups``; 200
@@ -481,7 +485,8 @@ def single(out: str, path: str, n_boot: int = 1000, seed: int = 1) -> None:
         print(f"{path} {scheme}: {'; '.join(cells)} ({comps['g1']['n_galaxies']} galaxies)")
 
 
-def pergalaxy(path: str) -> None:
+def _pergalaxy_m(path: str) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Galaxy ids, per-galaxy ``(m1, m2)`` and the table lines of :func:`pergalaxy`."""
     from megalut_cli.shear.bias import calibrate_by_response
 
     t = read_catalog(path)
@@ -491,10 +496,12 @@ def pergalaxy(path: str) -> None:
     for c in ("pre_g1_noshear", "pre_g2_noshear", "mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22"):
         ok &= np.isfinite(col[c])
     cases = np.unique(case)
-    rows = []
-    print("| galaxy | m1 (%) | m2 (%) | R11 | median snr |")
-    print("|---|---|---|---|---|")
-    for g in np.unique(gal):
+    ids, rows = np.unique(gal), []
+    lines = [
+        "| galaxy | m1 (%) | m2 (%) | R11 | median snr | skymad, g1 > 0 against < 0 (%) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for g in ids:
         sel = ok & (gal == g)
         r = [[col[f"mcal_r{i}{j}"][sel].mean() for j in (1, 2)] for i in (1, 2)]
         per = [sel & (case == k) for k in cases]
@@ -504,13 +511,36 @@ def pergalaxy(path: str) -> None:
         m = [np.polyfit(tru[i], cal[i], 1)[0] - 1.0 for i in (0, 1)]
         rows.append(m)
         snr = np.nanmedian(col["snr"][sel]) if "snr" in col else np.nan
-        print(f"| {int(g)} | {100 * m[0]:+.2f} | {100 * m[1]:+.2f} | {r[0][0]:.3f} | {snr:.1f} |")
-    a = np.array(rows)
+        sky = col.get("skymad", np.full(gal.size, np.nan))
+        g1 = col["tru_g1"]
+        dsky = (sky[sel & (g1 > 0)].mean() / sky[sel & (g1 < 0)].mean() - 1.0) * 100
+        lines.append(
+            f"| {int(g)} | {100 * m[0]:+.2f} | {100 * m[1]:+.2f} | {r[0][0]:.3f} | {snr:.1f} | "
+            f"{dsky:+.2f} |"
+        )
+    return ids, np.array(rows), lines
+
+
+def pergalaxy(paths: list[str]) -> None:
+    ids, a, lines = _pergalaxy_m(paths[0])
+    print("\n".join(lines))
     print(
         f"\n{len(a)} galaxies: sd of m1, m2 {100 * a[:, 0].std(ddof=1):.2f} %, "
         f"{100 * a[:, 1].std(ddof=1):.2f} %; mean {100 * a[:, 0].mean():+.3f} %, "
         f"{100 * a[:, 1].mean():+.3f} %; corr(m1, m2) {np.corrcoef(a[:, 0], a[:, 1])[0, 1]:+.2f}"
     )
+    if len(paths) > 1:  # an independent run of the same galaxies: intrinsic or noise?
+        ids_b, b, _ = _pergalaxy_m(paths[1])
+        if not np.array_equal(ids, ids_b):
+            raise SystemExit(f"{paths[0]} and {paths[1]} hold other galaxies")
+        for k in (0, 1):
+            corr = np.corrcoef(a[:, k], b[:, k])[0, 1]
+            noise = (a[:, k] - b[:, k]).std(ddof=1) / 2  # per galaxy, of the mean of the two
+            print(
+                f"m{k + 1} against {paths[1]}: corr {corr:+.2f}; noise per galaxy of the mean "
+                f"of both {100 * noise:.2f} %, scatter of that mean "
+                f"{100 * ((a[:, k] + b[:, k]) / 2).std(ddof=1):.2f} %"
+            )
 
 
 def table(paths: list[str]) -> None:
@@ -549,7 +579,7 @@ if __name__ == "__main__":
     elif cmd == "paired":
         paired(args[0], args[1], args[2], *(int(x) for x in args[3:5]))
     elif cmd == "pergalaxy":
-        pergalaxy(args[0])
+        pergalaxy(args)
     elif cmd == "single":
         single(args[0], args[1], *(int(x) for x in args[2:4]))
     elif cmd == "table":

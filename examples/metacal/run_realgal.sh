@@ -9,7 +9,8 @@
 # Outputs under $W (default /tmp/mcx/EXPERIMENT-sSEED-nN_CASES); -j $J (default 2); the
 # engine $ENGINE (default galsim; "fast" measures and metacal-measures with the fast engine,
 # the real galaxies are drawn by GalSim either way); the sets $SETS (default "real twin";
-# "real" alone skips the twins and the paired evaluations).
+# "real" alone skips the twins and the paired evaluations); $EXTRA: more KEY=VALUE overrides
+# of the config for every simulate run (e.g. EXTRA="galaxy.hst_noise=whiten").
 # For each set (real galaxies, Sersic twins) and each shear (g1, g2) in {+0.02, -0.02}^2 one
 # simulate run with the same seed (common random numbers), merged into one catalog of 4
 # cases, then three estimators on the same stamps:
@@ -48,7 +49,8 @@ for set in $SETS; do
   twin=none; [ $set = twin ] && twin=sersic
   for k in 0 1 2 3; do
     read -r g1 g2 <<<"${SHEARS[$k]}"
-    timed "simulate $set shear $k" megalut simulate "$CFG" shear.g1=$g1 shear.g2=$g2 galaxy.twin=$twin \
+    # shellcheck disable=SC2086  # EXTRA: words, one override each
+    timed "simulate $set shear $k" megalut simulate "$CFG" shear.g1=$g1 shear.g2=$g2 galaxy.twin=$twin ${EXTRA:-} \
       -o "$W/$set-s$k.fits" --n-cases "$NC" --seed "$SEED" --measure --metacal --engine "$ENGINE" -j "$J" --overwrite -q
   done
   $T merge "$W/$set.fits" "$W/$set-s0.fits" "$W/$set-s1.fits" "$W/$set-s2.fits" "$W/$set-s3.fits"
