@@ -10,6 +10,7 @@ entries. Any failure (unwritable folder, damaged entry) only costs the recomputa
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import logging
 import os
@@ -38,6 +39,14 @@ def cache_dir() -> Path | None:
         return None if value.strip().lower() in ("", "none", "off") else Path(value).expanduser()
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "megalut"
+
+
+@functools.lru_cache(maxsize=16)
+def source_digest(*paths: str | os.PathLike) -> str:
+    """A short digest of the files ``paths`` (the code that builds an entry), for its key:
+    any change of that code names other entries."""
+    source = b"".join(Path(p).read_bytes() for p in paths)
+    return hashlib.sha256(source).hexdigest()[:16]
 
 
 def entry_path(kind: str, key: str, folder: Path) -> Path:

@@ -13,8 +13,6 @@ position or draw) are built with GalSim as before.
 
 from __future__ import annotations
 
-import functools
-import hashlib
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -22,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from megalut_cli.cache import load_arrays, store_arrays
+from megalut_cli.cache import load_arrays, source_digest, store_arrays
 from megalut_cli.sim.distributions import Distribution
 from megalut_cli.sim.gsparams import galsim_version
 
@@ -43,21 +41,19 @@ def stores_psf(psf_config: Mapping[str, Any], varies: bool) -> bool:
     )
 
 
-@functools.lru_cache(maxsize=1)
-def _source_digest() -> str:
-    """The digest of the code that builds, summarises and draws a stored PSF: this module,
-    the PSF builders, GSParams and the renderer (its neighbours in this folder)."""
-    folder = Path(__file__).parent
-    names = ("psf_store.py", "psf.py", "gsparams.py", "render.py")
-    source = b"".join((folder / name).read_bytes() for name in names)
-    return hashlib.sha256(source).hexdigest()[:16]
+#: The code that builds, summarises and draws a stored PSF: this module, the PSF builders,
+#: GSParams and the renderer.
+_CODE = tuple(
+    Path(__file__).parent / name for name in ("psf_store.py", "psf.py", "gsparams.py", "render.py")
+)
 
 
 def stored_psf_key(psf_key: str) -> str:
     """Everything a stored PSF depends on: its spec and GSParams (``psf_key``, as
     :func:`megalut_cli.sim.draw.psf_cache_key` writes them), GalSim's and numpy's versions
     and the source of the code that builds and draws it."""
-    return f"psf {psf_key} galsim={galsim_version()} numpy={np.__version__} code={_source_digest()}"
+    code = source_digest(*_CODE)
+    return f"psf {psf_key} galsim={galsim_version()} numpy={np.__version__} code={code}"
 
 
 class StoredPsf:

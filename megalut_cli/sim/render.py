@@ -17,18 +17,16 @@ not hold: a Sersic table, a PSF's summary or k-image (fixed PSFs:
 from __future__ import annotations
 
 import functools
-import hashlib
 import math
 from collections import OrderedDict
 from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.fft
 
-from megalut_cli.cache import load_arrays, store_arrays
+from megalut_cli.cache import load_arrays, source_digest, store_arrays
 from megalut_cli.errors import MegalutError
 from megalut_cli.sim import render_nb
 from megalut_cli.sim.gsparams import GsParams, galsim_version, good_fft_size
@@ -160,13 +158,6 @@ def sersic_table(n: float, gsparams: GsParams | Any) -> RadialProfile:
     return table
 
 
-@functools.lru_cache(maxsize=1)
-def _source_digest() -> str:
-    """The digest of the code that builds a table: this module and its kernels'."""
-    source = Path(__file__).read_bytes() + Path(render_nb.__file__).read_bytes()
-    return hashlib.sha256(source).hexdigest()[:16]
-
-
 def sersic_table_key(n: float, gsparams: GsParams | Any) -> str:
     """Everything a Sersic table depends on: ``n``, the GSParams, GalSim's and numpy's
     versions and the source of this module and its kernels (any change of the code that
@@ -174,7 +165,7 @@ def sersic_table_key(n: float, gsparams: GsParams | Any) -> str:
     return (
         f"sersic n={n!r} {GsParams.of(gsparams)!r} galsim={galsim_version()} "
         f"numpy={np.__version__} "
-        f"render={_source_digest()}"
+        f"render={source_digest(__file__, render_nb.__file__)}"
     )
 
 
