@@ -4,8 +4,13 @@
 Ctrl-C is the command's to handle (one line, exit 130), so the server and its workers ignore
 it. A worker that cannot start because the command has already gone (interrupted while its
 workers started: the pool's pipes and semaphores are gone) exits without a traceback.
+When the command has gone, the server leaves at once, without Python's teardown of the
+modules it preloaded (0.15-0.25 s, during which it kept the command's stdout and stderr open:
+a reader of the command's output waited for it).
 """
 
+import atexit
+import os
 import signal
 import sys
 from types import TracebackType
@@ -24,3 +29,17 @@ def _quiet_when_orphaned(
 
 
 sys.excepthook = _quiet_when_orphaned
+
+
+def _leave_now() -> None:
+    """The server's last exit handler (it runs first): flush and leave without teardown. Its
+    workers never run it (they leave through ``os._exit``)."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe or stream: nothing more to write
+            pass
+    os._exit(0)
+
+
+atexit.register(_leave_now)

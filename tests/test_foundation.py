@@ -213,6 +213,54 @@ def test_workers_are_forked_warm_from_one_server(tmp_path):
     assert out.stdout.strip() == "[(True, True), (True, True)]"
 
 
+_TEARDOWN_PROBE = """
+import os
+
+MARKER = os.environ["TEARDOWN_MARKER"]
+
+
+class Teardown:  # Python's teardown would call this; the server skips it
+    def __del__(self, write=open):
+        write(MARKER, "w").write("torn down")
+
+
+kept = Teardown()
+"""
+
+_SERVER_EXIT_SCRIPT = """
+from megalut_cli import parallel
+parallel.start_worker_server(["teardown_probe"])  # the server only: this process exits as usual
+import probe
+with parallel.executor(nproc=2) as pool:
+    print(parallel.map_units(probe.state, ["teardown_probe"], pool))
+"""
+
+
+def test_the_worker_server_leaves_without_teardown(tmp_path):
+    """Once the command has gone, the server leaves without Python's teardown of what it
+    preloaded (0.15-0.25 s during which a reader of the command's output, which the server
+    holds open too, waited); ``capture_output`` reads until the server has closed it."""
+    import os
+    import subprocess
+    import sys
+
+    if parallel.START_METHOD != "forkserver":
+        pytest.skip("no fork server on this platform")  # not on Linux, where CI runs
+    (tmp_path / "teardown_probe.py").write_text(_TEARDOWN_PROBE)
+    (tmp_path / "probe.py").write_text(_PROBE)
+    marker = tmp_path / "server.teardown"
+    out = subprocess.run(
+        [sys.executable, "-c", _SERVER_EXIT_SCRIPT],  # the server finds the probes on PYTHONPATH
+        env={**os.environ, "TEARDOWN_MARKER": str(marker), "PYTHONPATH": str(tmp_path)},
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[(True, True)]"  # the workers came from that server
+    assert not marker.exists()
+
+
 def test_every_command_with_workers_names_their_modules():
     import importlib
 

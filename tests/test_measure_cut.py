@@ -112,6 +112,22 @@ def test_checks_equal_isfinite_and_sky_mad_exactly(size):
     assert _same(cut.skymad, expected)
 
 
+def test_edge_mad_equals_numpy_median_with_ties_and_sorted_edges():
+    """The compiled selection gives numpy's order statistics on edges with many ties (counts
+    quantized to a few values), already sorted or reversed, and plain noise."""
+    rng = np.random.default_rng(11)
+    size = 64
+    stamps = [np.round(rng.normal(0, s, (size, size))) for s in (0.3, 1.0, 3.0) for _ in range(40)]
+    stamps += [rng.normal(0, 1, (size, size)) for _ in range(200)]
+    ramp = np.add.outer(np.arange(size), np.arange(size)).astype(float)
+    stamps += [ramp, -ramp, ramp.T, np.abs(ramp - size)]
+    stamps = np.array(stamps)
+    n = len(stamps)
+    origins = np.column_stack([np.ones(n), 1 + size * np.arange(n)]).astype(np.int64)
+    cut = cut_stamps_checked(stamps.reshape(n * size, size), 0, origins, size)
+    assert _same(cut.skymad, sky_mad(stamps))
+
+
 def test_checks_on_float32_rows_equal_those_of_float64_stamps():
     rng = np.random.default_rng(3)
     rows = rng.normal(0, 1, (48, 96)).astype(np.float32)
