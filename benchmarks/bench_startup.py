@@ -11,11 +11,16 @@ drifts; medians are quoted. Compared:
 * ``before`` (with ``--before COMMIT``): the same commands on a git worktree of COMMIT, run
   with ``PYTHONPATH`` pointing at it;
 * ``galsim``: the plain GalSim loops of ``benchmarks/galsim_loops.py`` as a process
-  (draw + noise + ``FindAdaptiveMom`` per stamp; ``FindAdaptiveMom`` on a stamp grid).
+  (draw + noise + ``FindAdaptiveMom`` per stamp; ``FindAdaptiveMom`` on a stamp grid);
+* the floors (``--floors``): processes that only start the libraries a command cannot do
+  without (numpy; numba with one cached kernel, the fast engine's SciPy FFT; SciPy's BFGS
+  and h5py for training), then what the issue's targets would need of a command's own
+  fixed cost, from the times measured in the same run.
 
 Run from the repository root (about 15 minutes with the defaults)::
 
-    python benchmarks/bench_startup.py --before c20cfea [--repeats 3] [--skip-30k]
+    python benchmarks/bench_startup.py --before c20cfea [--repeats 3] [--skip-30k] [--floors]
+        [--large-j]
 """
 
 from __future__ import annotations
@@ -35,6 +40,28 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 TP = str(ROOT / "examples" / "fiducial" / "tp.toml")
+
+#: A module with one cached numba kernel: what any process running our compiled kernels
+#: pays (numba's import, its CPU target's set-up at the first call, loading the cache).
+FLOOR_KERNEL = """
+from numba import njit
+
+
+@njit(cache=True)
+def total(a):
+    s = 0.0
+    for v in a:
+        s += v
+    return s
+"""
+#: The floor processes: the libraries a command cannot start without, nothing of megalut's.
+FLOORS = {
+    "python": "pass",
+    "numpy": "import numpy",
+    "numba": "import numpy, floor_kernel; floor_kernel.total(numpy.zeros(3))",
+    "numba+fft": "import numpy, scipy.fft, floor_kernel; floor_kernel.total(numpy.zeros(3))",
+    "bfgs+h5py": "import numpy, scipy.optimize, h5py",
+}
 ONE_THREAD = {v: "1" for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
 
@@ -60,9 +87,9 @@ def run(cmd: Sequence[str], env: dict[str, str]) -> tuple[float, float]:
 
 def compare(
     title: str, commands: dict[str, tuple[list[str], dict[str, str]]], repeats: int
-) -> None:
+) -> dict[str, float]:
     """Run ``commands`` in turn ``repeats`` times after a warm-up; print medians and ratios to
-    the first."""
+    the first; return the median wall seconds of each."""
     for cmd, env in commands.values():
         run(cmd, env)
     times: dict[str, list[tuple[float, float]]] = {name: [] for name in commands}
@@ -78,6 +105,45 @@ def compare(
         rw = statistics.median(s[0] / f[0] for s, f in zip(samples, times[first]))
         rc = statistics.median(s[1] / f[1] for s, f in zip(samples, times[first]))
         print(f"  {name:10s} {wall:8.2f} {cpu:8.2f} {rw:11.2f} {rc:10.2f}")
+    return {name: statistics.median(w for w, _ in samples) for name, samples in times.items()}
+
+
+def print_target_arithmetic(floors: dict[str, float], medians: dict[str, dict[str, float]]) -> None:
+    """What each target of issue 26 needs, from this run's medians: the least a command could
+    take is its floor process plus its work (its time beyond the one-stamp command)."""
+    fft, kernel = floors["numba+fft"], floors["numba"]
+    one = medians["1"]["now"]
+    print("\nwhat the targets need (medians of this run, seconds)")
+    print(f"  simulate's own fixed cost: 1-stamp command {one:.2f} - floor numba+fft {fft:.2f}")
+    print(f"    = {one - fft:.2f}")
+    for label, factor in (("3000", 5.0), ("30 000", 8.0)):
+        if label not in medians:
+            continue
+        m = medians[label]
+        work = m["now"] - one
+        allowed = m["galsim"] / factor
+        least = fft + work
+        print(
+            f"  {label} stamps >= {factor:g}x: allowed {allowed:.2f}; work {work:.2f} + floor "
+            f"{fft:.2f} = {least:.2f} (best ratio {m['galsim'] / least:.2f}x at no fixed cost "
+            f"of ours; the work alone {m['galsim'] / work:.2f}x)"
+        )
+    j = medians.get("-j now")
+    if j:
+        work = j["-j 1"] - one
+        least = fft + work / 2
+        print(
+            f"  -j 2 >= 1.8x at 4000 stamps: -j 1 {j['-j 1']:.2f} needs -j 2 <= "
+            f"{j['-j 1'] / 1.8:.2f}; floor {fft:.2f} + work {work:.2f} / 2 = {least:.2f} "
+            f"(best ratio {j['-j 1'] / least:.2f}, perfectly split, no fixed cost of ours)"
+        )
+    m = medians["measure"]
+    allowed = m["galsim"] / 5.0
+    print(
+        f"  measure >= 5x: allowed {allowed:.2f}; the command {m['now']:.2f} is the floor numba "
+        f"{kernel:.2f} + {m['now'] - kernel:.2f} (reading, cutting, kernel, writing, imports)"
+    )
+    print(f"  train-point (bench_training.py --cli): floor bfgs+h5py {floors['bfgs+h5py']:.2f}")
 
 
 def main() -> None:
@@ -88,6 +154,14 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument(
         "--skip-30k", action="store_true", help="leave out the 30 000-stamp comparison"
+    )
+    parser.add_argument(
+        "--large-j", action="store_true", help="also compare -j 1 and -j 2 on 40 000 stamps"
+    )
+    parser.add_argument(
+        "--floors",
+        action="store_true",
+        help="also time the floor processes and print what each target needs of a command",
     )
     args = parser.parse_args()
 
@@ -137,9 +211,23 @@ def main() -> None:
             "-q",
         ]
 
+    floors: dict[str, float] = {}
+    if args.floors:
+        folder = work / "floors"
+        folder.mkdir()
+        (folder / "floor_kernel.py").write_text(FLOOR_KERNEL)
+        env = {**base, "PYTHONPATH": str(folder)}
+        floors = compare(
+            "floors: processes that only start what a command needs (nothing of megalut's)",
+            {name: ([py, "-c", code], env) for name, code in FLOORS.items()},
+            args.repeats,
+        )
+    medians: dict[str, dict[str, float]] = {}
     compare("megalut --version", versions([*cli, "--version"]), args.repeats)
     compare("megalut simulate --help", versions([*cli, "simulate", "--help"]), args.repeats)
-    compare("simulate --measure -j 1, 1 stamp", versions(sim(1, 1, 1, "one")), args.repeats)
+    medians["1"] = compare(
+        "simulate --measure -j 1, 1 stamp", versions(sim(1, 1, 1, "one")), args.repeats
+    )
     for n_cases, label in ((30, "3000"),) + (() if args.skip_30k else ((300, "30 000"),)):
         n = n_cases * 100
         cmds = {
@@ -148,18 +236,24 @@ def main() -> None:
         }
         if before_env:
             cmds["before"] = (sim(n_cases, 100, 1, f"s{n}b"), before_env)
-        compare(
+        medians[label] = compare(
             f"simulate --measure -j 1, {label} stamps, against the plain GalSim loop",
             cmds,
             args.repeats,
         )
-    for name, env in (("now", now_env), ("before", before_env)):
-        if env is not None:
-            compare(
-                f"-j 1 against -j 2, 4000 stamps ({name})",
-                {"-j 1": (sim(40, 100, 1, "j1"), env), "-j 2": (sim(40, 100, 2, "j2"), env)},
-                args.repeats,
-            )
+    for n_cases in (40, 400) if args.large_j else (40,):
+        for name, env in (("now", now_env), ("before", before_env)):
+            if env is not None:
+                times = compare(
+                    f"-j 1 against -j 2, {n_cases * 100} stamps ({name})",
+                    {
+                        "-j 1": (sim(n_cases, 100, 1, "j1"), env),
+                        "-j 2": (sim(n_cases, 100, 2, "j2"), env),
+                    },
+                    args.repeats,
+                )
+                if n_cases == 40:
+                    medians[f"-j {name}"] = times
     grid = work / "grid.fits"
     subprocess.run(
         [
@@ -188,7 +282,11 @@ def main() -> None:
     cmds = {"now": (meas, now_env), "galsim": ([*loops, "measure", str(grid)], base)}
     if before_env:
         cmds["before"] = (meas, before_env)
-    compare("measure -j 1, 20 000 stamps, against a FindAdaptiveMom loop", cmds, args.repeats)
+    medians["measure"] = compare(
+        "measure -j 1, 20 000 stamps, against a FindAdaptiveMom loop", cmds, args.repeats
+    )
+    if floors:
+        print_target_arithmetic(floors, medians)
     if args.before:
         subprocess.run(
             ["git", "worktree", "remove", "--force", str(work / "before")], cwd=ROOT, check=False

@@ -21,7 +21,9 @@
    process, timed to its best validation MSB. The command is given the iterations it needs
    to reach that MSB (the first hit of an in-process analytic run of the same member; at
    most 10x the baseline's). Runs alternate; medians are reported, and the command's member
-   must reach the baseline's best validation MSB (read from the model file).
+   must reach the baseline's best validation MSB (read from the model file). The floor: a
+   process importing only numpy, SciPy's BFGS and h5py, plus the in-process training loop's
+   time to the MSB, is the least any command could take.
 
 Run from the repository root (single process; results go to stdout):
 
@@ -196,6 +198,11 @@ def _child_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
+#: The floor of a training command: a process that only imports what training cannot do
+#: without (numpy, SciPy's BFGS, h5py for the model file), nothing of megalut's.
+FLOOR = "import numpy, scipy.optimize, h5py"
+
+
 def _run_cli(
     tp: Path, vp: Path, out: Path, iterations: int, precision: str | None, tree: str | None = None
 ) -> tuple[float, float]:
@@ -278,6 +285,7 @@ def bench_cli(
     # Iterations the command needs to reach the target: the first hit of an in-process analytic
     # run of the same member (the command's member follows the same trajectory).
     needed: dict[str | None, int] = {}
+    train_time: dict[str | None, float] = {}  # the analytic run's seconds to the target
     for p in precisions:
         an_settings = TrainSettings(
             cost="msb", iterations=fd_iterations * MAX_FACTOR, precision=p or "float64"
@@ -300,6 +308,7 @@ def bench_cli(
         )
         hit = np.flatnonzero(an.history[:, 1] <= target * (1 + 1e-12))
         needed[p] = int(hit[0]) + 1 if len(hit) else fd_iterations * MAX_FACTOR
+        train_time[p] = _time_to(an, target)
     print(
         f"  FD baseline: best validation MSB {target:.4e} at iteration {fd.best_iter}; "
         "the command reaches it at "
@@ -310,7 +319,7 @@ def bench_cli(
         tp, vp = Path(tmp) / "tp.fits", Path(tmp) / "vp.fits"
         write_catalog(tp, train_cols, fmt="megalut.toy")
         write_catalog(vp, valid_cols, fmt="megalut.toy")
-        t_fd, cpu_fd = [], []
+        t_fd, cpu_fd, t_floor = [], [], []
         trees = {"": None, **({f" [{tree}]": tree} if tree else {})}
         runs = [(p, t) for t in trees for p in precisions]
         cli: dict[tuple[str | None, str], list[tuple[float, float, float]]] = {k: [] for k in runs}
@@ -321,6 +330,9 @@ def bench_cli(
                 _time_to(fd, target) if fd.best_iter else 0.0
             )  # 0: no iteration improved on the start
             cpu_fd.append(_time_to(fd, target, cpu=True) if fd.best_iter else 0.0)
+            t = time.perf_counter()
+            subprocess.run([sys.executable, "-c", FLOOR], check=True)
+            t_floor.append(time.perf_counter() - t)
             line = f"  run {r + 1}: FD {t_fd[-1]:.2f} s (CPU {cpu_fd[-1]:.2f} s)"
             for p, t in runs:
                 out = Path(tmp) / f"m-{p}.h5"
@@ -350,6 +362,14 @@ def bench_cli(
             f"  train-point{t} --iterations {needed[p]}, precision {p or 'float64 (default)'}: "
             f"whole process wall {wall:.2f} s, CPU {cpu:.2f} s -> {med_fd / wall:.1f}x (wall), "
             f"{med_cpu_fd / cpu:.1f}x (CPU); baseline's validation MSB {ok}"
+        )
+    floor = float(np.median(t_floor))
+    for p in precisions:
+        least = floor + train_time[p]
+        print(
+            f"  the least a command could take, {p or 'float64'}: the floor process "
+            f"({FLOOR!r}) {floor:.2f} s + the training loop to the MSB (in-process) "
+            f"{train_time[p]:.2f} s = {least:.2f} s -> at most {med_fd / least:.1f}x"
         )
 
 

@@ -45,8 +45,9 @@ log = logging.getLogger(__name__)
 
 CATALOG_FORMAT = "megalut.simulation"
 STAMPS_FORMAT = "megalut.stamps"
-#: Stamps per work unit aimed at (a unit holds whole cases).
-UNIT_STAMPS = 2048
+#: Stamps per work unit aimed at (a unit holds whole cases): about 0.2 s of work, small
+#: enough that -j N workers finish together (benchmarks/startup.md).
+UNIT_STAMPS = 1024
 #: Stamps per work unit on the device (one process feeds it; bigger batches fill it better).
 DEVICE_UNIT_STAMPS = 32768
 #: Largest image written with --stamps (pixels; 4 GiB in float32): fail early, not out of memory.
