@@ -54,13 +54,18 @@ def total(a):
         s += v
     return s
 """
-#: The floor processes: the libraries a command cannot start without, nothing of megalut's.
+#: The floor processes: the libraries a command cannot start without, nothing of megalut's;
+#: each leaves without Python's teardown, as ``megalut`` does (``LEAVE``).
+LEAVE = "; import os; os._exit(0)"
 FLOORS = {
-    "python": "pass",
-    "numpy": "import numpy",
-    "numba": "import numpy, floor_kernel; floor_kernel.total(numpy.zeros(3))",
-    "numba+fft": "import numpy, scipy.fft, floor_kernel; floor_kernel.total(numpy.zeros(3))",
-    "bfgs+h5py": "import numpy, scipy.optimize, h5py",
+    name: code + LEAVE
+    for name, code in {
+        "python": "pass",
+        "numpy": "import numpy",
+        "numba": "import numpy, floor_kernel; floor_kernel.total(numpy.zeros(3))",
+        "numba+fft": "import numpy, scipy.fft, floor_kernel; floor_kernel.total(numpy.zeros(3))",
+        "bfgs+h5py": "import numpy, scipy.optimize, h5py",
+    }.items()
 }
 ONE_THREAD = {v: "1" for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 

@@ -8,9 +8,7 @@ around the imports and around each function of the path (reading, cases, normali
 objectives, cost + gradient, validation passes, the optimiser, provenance, writing). Prints
 the median CPU milliseconds of each part over ``--repeat`` processes. ``--tree DIR`` also
 runs the command of another source tree (e.g. ``git archive 5126f68 | tar -x -C DIR``),
-alternating with this one; a tree
-without ``megalut_cli.nn.optimize`` imports ``scipy.optimize`` whole. Run from the
-repository root::
+alternating with this one. Run from the repository root::
 
     PYTHONPATH=. python benchmarks/profile_train_point.py [--repeat 5] [--tree DIR]
 
@@ -80,17 +78,11 @@ def child(data: Path, precision: str | None, iterations: int) -> None:
     from megalut_cli.nn import fit, model, train
 
     timers.add("import the training modules", time.process_time() - start)
-    try:
-        from megalut_cli.nn import optimize
-    except ImportError:  # an older tree: train_member imports scipy.optimize whole
-        start = time.process_time()
-        import scipy.optimize
+    start = time.process_time()
+    import scipy.optimize  # what train_member imports where it is used
 
-        timers.add("import scipy's BFGS", time.process_time() - start)
-        timers.wrap(scipy.optimize, "minimize", "optimiser (with its evaluations)")
-    else:
-        timers.wrap(train, "minimize", "optimiser (with its evaluations)")
-        timers.wrap(optimize, "_scipy_solver", "import scipy's BFGS")
+    timers.add("import scipy's BFGS", time.process_time() - start)
+    timers.wrap(scipy.optimize, "minimize", "optimiser (with its evaluations)")
     timers.wrap(fit, "training_columns", "opening the catalogs")
     timers.wrap(fit, "_load_cases", "reading, cases, domain")
     timers.wrap(fit.norm, "fit", "normalisation")
