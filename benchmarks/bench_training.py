@@ -50,6 +50,7 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from bench_startup import FLOORS  # noqa: E402  (this folder, first on the path of a script)
 
 from megalut_cli.nn import normalization  # noqa: E402
 from megalut_cli.nn.data import build_cases, valid_rows  # noqa: E402
@@ -198,10 +199,10 @@ def _child_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-#: The floor of a training command: a process that only imports what training cannot do
-#: without (numpy, SciPy's BFGS, h5py for the model file), nothing of megalut's, and leaves
+#: The floor of a training command (bench_startup.py's): a process that only imports what
+#: training cannot do without (numpy, SciPy's BFGS, h5py for the model file) and leaves
 #: without Python's teardown, as ``megalut`` does.
-FLOOR = "import numpy, scipy.optimize, h5py, os; os._exit(0)"
+FLOOR = FLOORS["bfgs+h5py"]
 
 
 def _run_cli(

@@ -10,10 +10,11 @@ a reader of the command's output waited for it).
 """
 
 import atexit
-import os
 import signal
 import sys
 from types import TracebackType
+
+from megalut_cli.leave import leave_now
 
 signal.signal(signal.SIGINT, signal.SIG_IGN)
 
@@ -31,15 +32,4 @@ def _quiet_when_orphaned(
 sys.excepthook = _quiet_when_orphaned
 
 
-def _leave_now() -> None:
-    """The server's last exit handler (it runs first): flush and leave without teardown. Its
-    workers never run it (they leave through ``os._exit``)."""
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):  # a closed pipe or stream: nothing more to write
-            pass
-    os._exit(0)
-
-
-atexit.register(_leave_now)
+atexit.register(leave_now, 0)  # the last handler, so it runs first; workers use os._exit

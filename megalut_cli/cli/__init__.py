@@ -28,6 +28,7 @@ from megalut_cli.cli.console import (
     verbosity_options,
 )
 from megalut_cli.errors import ArgumentError, HintError, MegalutError, OutputExistsError
+from megalut_cli.leave import leave_now
 from megalut_cli.provenance import set_command_line
 
 log = logging.getLogger(__name__)
@@ -45,12 +46,7 @@ def _exit_now() -> None:
     Python's teardown of every module and object: 0.3–0.8 s after a command that imported
     GalSim and numba (benchmarks/startup.md). Outputs are closed and renamed by then."""
     logging.shutdown()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):  # a closed pipe or stream: nothing more to write
-            pass
-    os._exit(_exit_status[0] if _exit_status else 1)
+    leave_now(_exit_status[0] if _exit_status else 1)
 
 
 class MegalutGroup(click.Group):
