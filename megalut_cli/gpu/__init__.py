@@ -14,6 +14,7 @@ CPU-mode benchmark do).
 from __future__ import annotations
 
 import functools
+import importlib.util
 import os
 from typing import Any
 
@@ -48,9 +49,30 @@ def device_problem() -> str | None:
     return _problem(platform())
 
 
+#: Bytes of compiled device kernels kept in the cache folder's ``jax/`` (JAX drops the least
+#: recently used beyond it).
+COMPILED_CACHE_BYTES = 512 * 2**20
+
+
 def jax_device() -> Any:
-    """The JAX device that runs the backend (the first of :func:`platform`), float64 enabled."""
+    """The JAX device that runs the backend (the first of :func:`platform`), float64 enabled,
+    its compiled kernels kept in the cache folder (``megalut_cli.cache``) for later runs."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    _use_compilation_cache(jax)
     return jax.devices(platform())[0]
+
+
+@functools.lru_cache(maxsize=1)
+def _use_compilation_cache(jax: Any) -> None:
+    from megalut_cli.cache import cache_dir
+
+    folder = cache_dir()
+    if folder is None or jax.config.values.get("jax_compilation_cache_dir"):
+        return  # cache off, or the user's own JAX cache
+    if importlib.util.find_spec("filelock") is None:
+        return  # JAX bounds its cache's size only with filelock (the 'gpu' extra has it)
+    jax.config.update("jax_compilation_cache_dir", str(folder / "jax"))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_compilation_cache_max_size", COMPILED_CACHE_BYTES)

@@ -283,12 +283,25 @@ def adaptive_moments(
     left = np.flatnonzero(np.asarray(state[-1]))
     if len(left):
         size = 1 << int(math.ceil(math.log2(len(left))))
-        idx = jnp.asarray(np.concatenate([left, np.full(size - len(left), left[0])]))
-        sub = tuple(v[idx] for v in state)
-        sub = _iterate(img[idx], bounds[idx], sub, float(precision), params, 1 << 30)
-        keep = jnp.asarray(left)
-        state = tuple(v.at[keep].set(w[: len(left)]) for v, w in zip(state, sub))
+        # padded to a power of two: gathered as copies of the first, scattered nowhere (m)
+        take = jnp.asarray(np.concatenate([left, np.full(size - len(left), left[0])]))
+        put = jnp.asarray(np.concatenate([left, np.full(size - len(left), m)]))
+        sub_img, sub_bounds, sub = _gather(img, bounds, state, take)
+        sub = _iterate(sub_img, sub_bounds, sub, float(precision), params, 1 << 30)
+        state = _scatter(state, sub, put)
     return state[9], state[8], _results(state)
+
+
+@jax.jit
+def _gather(img, bounds, state, take):
+    """The stamps ``take`` of a batch: one compiled kernel per (batch, sub-batch) shape."""
+    return img[take], bounds[take], tuple(v[take] for v in state)
+
+
+@jax.jit
+def _scatter(state, sub, put):
+    """``state`` with rows ``put`` replaced by ``sub`` (rows at index m, the padding, dropped)."""
+    return tuple(v.at[put].set(w, mode="drop") for v, w in zip(state, sub))
 
 
 def sky_mad(stamps: jnp.ndarray) -> jnp.ndarray:

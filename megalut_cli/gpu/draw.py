@@ -20,8 +20,9 @@ import numpy as np
 
 from megalut_cli.errors import MegalutError
 from megalut_cli.gpu import jax_device
+from megalut_cli.gpu import measure as gmeasure
 from megalut_cli.gpu import render as grender
-from megalut_cli.gpu.measure import BATCH_STAMPS, measure_on_device, padded_size, split_measurements
+from megalut_cli.gpu.measure import measure_on_device, padded_size, split_measurements
 from megalut_cli.gpu.noise import add_gaussian_noise
 from megalut_cli.measure.features import (
     default_guess_sigma,
@@ -50,6 +51,13 @@ def _padded(a: np.ndarray, size: int, fill: float = 0.0) -> np.ndarray:
     out = np.full((size, *a.shape[1:]), fill, dtype=a.dtype)
     out[: len(a)] = a
     return out
+
+
+@jax.jit
+def _place(stamps: jnp.ndarray, block: jnp.ndarray, rows: jnp.ndarray) -> jnp.ndarray:
+    """``stamps`` with ``block`` written at ``rows`` (rows past the end dropped): fixed shapes,
+    so one compiled kernel per batch size rather than one per group's remainder."""
+    return stamps.at[rows].set(block, mode="drop")
 
 
 def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
@@ -131,42 +139,40 @@ def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
     host_noise = np.array([nz.kind not in ("gaussian", "none") for nz in noises])[noise_of]
     guess = default_guess_sigma(S)
 
-    pieces, piece_rows = [], []
+    stamps = jnp.zeros((n_total, S, S), jnp.float32, device=dev)
     for (key, nf, nk), parts in groups.items():
         rows = np.concatenate(parts)[:, 2]
         psf, method = psfs[key]
         kpsf = jax.device_put(renderer.psf_kimage(psf, key, method, nf, nk), dev)
         dest, weight, conj = (jax.device_put(a, dev) for a in grender.fold_indices(nf, nk))
-        for a in range(0, len(rows), BATCH_STAMPS):
-            sel = rows[a : a + BATCH_STAMPS]
+        for a in range(0, len(rows), gmeasure.BATCH_STAMPS):
+            sel = rows[a : a + gmeasure.BATCH_STAMPS]
             size = padded_size(len(sel))
             pad_amat = _padded(amat[sel], size)
             pad_amat[len(sel) :, 0] = pad_amat[len(sel) :, 3] = (
                 1.0  # padding: zero flux, identity transform
             )
-            pieces.append(
-                grender.render_batch(
-                    kpsf,
-                    pad_amat,
-                    _padded(flux[sel], size),
-                    _padded(shx[sel], size),
-                    _padded(shy[sel], size),
-                    _padded(table[sel], size),
-                    eparams,
-                    eint,
-                    coef,
-                    dest,
-                    weight,
-                    conj,
-                    n_fft=nf,
-                    n_k=nk,
-                    size=S,
-                )[: len(sel)]
+            rendered = grender.render_batch(
+                kpsf,
+                pad_amat,
+                _padded(flux[sel], size),
+                _padded(shx[sel], size),
+                _padded(shy[sel], size),
+                _padded(table[sel], size),
+                eparams,
+                eint,
+                coef,
+                dest,
+                weight,
+                conj,
+                n_fft=nf,
+                n_k=nk,
+                size=S,
             )
-            piece_rows.append(sel)
-    # The unit's stamps in row order, then the noise over large batches (its generator loops
-    # over the pixels: the loop's cost per step hardly depends on the batch size).
-    stamps = jnp.concatenate(pieces)[jnp.asarray(np.argsort(np.concatenate(piece_rows)))]
+            put = _padded(sel, size, fill=n_total)  # the padding goes nowhere
+            stamps = _place(stamps, rendered, jnp.asarray(put))
+    # The noise over large batches (its generator loops over the pixels: the loop's cost per
+    # step hardly depends on the batch size).
     if gaussian.any():
         noisy = []
         for a in range(0, n_total, NOISE_STAMPS):

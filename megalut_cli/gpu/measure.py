@@ -17,9 +17,10 @@ BATCH_STAMPS = 4096
 MIN_BATCH = 8
 
 
-def padded_size(n: int, batch: int = BATCH_STAMPS) -> int:
+def padded_size(n: int, batch: int | None = None) -> int:
     """Batch shape for ``n`` stamps: the next power of two (at least :data:`MIN_BATCH`, at
-    most ``batch``), so that few shapes are compiled."""
+    most ``batch``, default :data:`BATCH_STAMPS`), so that few shapes are compiled."""
+    batch = BATCH_STAMPS if batch is None else batch
     return min(batch, max(MIN_BATCH, 1 << math.ceil(math.log2(max(n, 1)))))
 
 

@@ -177,6 +177,9 @@ def plan_message(
     )
     if not what:
         return f"{head}: truth only, nothing drawn"
+    if resolve_device(device) == "gpu" and not scheduler and metacal_step is None:
+        # one process feeds the device; a tiny draw there would time its compilation
+        return f"{head}, {what}, on the device (one process; no time estimate)"
     workers = 0 if scheduler else min(resolve_nproc(nproc), n_work_units(config, nproc, scheduler))
     if not (s.n_stamps >= ESTIMATE_MIN_STAMPS if estimate is None else estimate):
         return f"{head}, {what}, " + (
