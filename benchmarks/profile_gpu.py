@@ -59,12 +59,12 @@ def timed(name, fn, stage=None):
 def instrument() -> None:
     """Wrap the stages where the device backend looks them up."""
     grender.render_batch = timed("render", grender.render_batch)
-    gdraw._place = timed("place", gdraw._place)
+    gdraw.place_rows = timed("place", gdraw.place_rows)
     gdraw.add_gaussian_noise = timed("noise", gdraw.add_gaussian_noise)
     gdraw.measure_on_device = timed("measure", gdraw.measure_on_device)
-    adamom._iterate = timed(
+    adamom.iterate_moments = timed(
         "moments",
-        adamom._iterate,
+        adamom.iterate_moments,
         lambda *a, **k: "moments: first steps" if a[5] < 1000 else "moments: slow stamps",
     )
 

@@ -93,7 +93,7 @@ def _start(img: jnp.ndarray, guess: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
 
 
 @functools.partial(jax.jit, static_argnames=("precision", "params", "max_steps"))
-def _iterate(
+def iterate_moments(
     img: jnp.ndarray,
     bounds: jnp.ndarray,
     state: tuple[jnp.ndarray, ...],
@@ -279,7 +279,7 @@ def adaptive_moments(
     m = img.shape[0]
     guess = jnp.broadcast_to(jnp.asarray(guess_sigma, jnp.float64), (m,))
     bounds, state = _start(img, guess)
-    state = _iterate(img, bounds, state, float(precision), params, FIRST_STEPS)
+    state = iterate_moments(img, bounds, state, float(precision), params, FIRST_STEPS)
     left = np.flatnonzero(np.asarray(state[-1]))
     if len(left):
         size = 1 << int(math.ceil(math.log2(len(left))))
@@ -287,7 +287,7 @@ def adaptive_moments(
         take = jnp.asarray(np.concatenate([left, np.full(size - len(left), left[0])]))
         put = jnp.asarray(np.concatenate([left, np.full(size - len(left), m)]))
         sub_img, sub_bounds, sub = _gather(img, bounds, state, take)
-        sub = _iterate(sub_img, sub_bounds, sub, float(precision), params, 1 << 30)
+        sub = iterate_moments(sub_img, sub_bounds, sub, float(precision), params, 1 << 30)
         state = _scatter(state, sub, put)
     return state[9], state[8], _results(state)
 

@@ -54,7 +54,7 @@ def _padded(a: np.ndarray, size: int, fill: float = 0.0) -> np.ndarray:
 
 
 @jax.jit
-def _place(stamps: jnp.ndarray, block: jnp.ndarray, rows: jnp.ndarray) -> jnp.ndarray:
+def place_rows(stamps: jnp.ndarray, block: jnp.ndarray, rows: jnp.ndarray) -> jnp.ndarray:
     """``stamps`` with ``block`` written at ``rows`` (rows past the end dropped): fixed shapes,
     so one compiled kernel per batch size rather than one per group's remainder."""
     return stamps.at[rows].set(block, mode="drop")
@@ -170,7 +170,7 @@ def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
                 size=S,
             )
             put = _padded(sel, size, fill=n_total)  # the padding goes nowhere
-            stamps = _place(stamps, rendered, jnp.asarray(put))
+            stamps = place_rows(stamps, rendered, jnp.asarray(put))
     # The noise over large batches (its generator loops over the pixels: the loop's cost per
     # step hardly depends on the batch size).
     if gaussian.any():
