@@ -74,5 +74,6 @@ def _use_compilation_cache(jax: Any) -> None:
     if importlib.util.find_spec("filelock") is None:
         return  # JAX bounds its cache's size only with filelock (the 'gpu' extra has it)
     jax.config.update("jax_compilation_cache_dir", str(folder / "jax"))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     jax.config.update("jax_compilation_cache_max_size", COMPILED_CACHE_BYTES)
