@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # One device session's checks (benchmarks/gpu.md), run in the repository root of a GPU
 # machine that has Python, JAX with CUDA, numba, numpy, scipy and h5py but not GalSim,
-# astropy or fitsio: those come in a folder of unpacked wheels named by SITE (default .site).
+# astropy or fitsio: those come in a folder of unpacked wheels named by SITE (default .site),
+# built here by benchmarks/gpu_site.sh and carried (device tool: carry [".site"]).
 # Stages, most important first, each under its own time limit; logs go to OUT (default .):
 #   1. benchmarks/bench_gpu.py at the documented size (stamps/s and rows/s, device vs 1 core)
 #   2. tests/test_gpu.py, slow tests included, on the GPU
