@@ -6,7 +6,7 @@
 # Stages, most important first, each under its own time limit; logs go to OUT (default .):
 #   1. benchmarks/bench_gpu.py at the documented size (stamps/s and rows/s, device vs 1 core)
 #   2. tests/test_gpu.py, slow tests included, on the GPU
-#   3. benchmarks/profile_gpu.py: where a unit's time goes, for three batch sizes
+#   3. benchmarks/profile_gpu.py: where a unit's time goes, for two batch and noise sizes
 #   4. `megalut simulate --measure` end to end: --device gpu (twice: the second run finds the
 #      compiled kernels in the cache) against --device cpu -j 0 (all cores)
 # STAGES (default "bench tests profile cli") picks stages.
@@ -50,8 +50,8 @@ fi
 
 if [[ $STAGES == *" profile "* ]]; then
 stamp "profile_gpu.py"
-timeout "${PROFILE_S:-150}" $PY benchmarks/profile_gpu.py --cases 40 --realizations 2000 \
-    --batch 4096 16384 32768 --noise 32768 131072 2>&1 | tee "$OUT/profile_gpu.log"
+timeout "${PROFILE_S:-200}" $PY benchmarks/profile_gpu.py --cases 40 --realizations 2000 \
+    --batch 4096 32768 --noise 32768 131072 --repeats 1 2>&1 | tee "$OUT/profile_gpu.log"
 fi
 
 if [[ $STAGES == *" cli "* ]]; then
