@@ -13,7 +13,7 @@ drifts; medians are quoted. Compared:
 * ``galsim``: the plain GalSim loops of ``benchmarks/galsim_loops.py`` as a process
   (draw + noise + ``FindAdaptiveMom`` per stamp; ``FindAdaptiveMom`` on a stamp grid);
 * the floors (``--floors``): processes that only start the libraries a command cannot do
-  without (numpy; numba with one cached kernel, the fast engine's SciPy FFT; SciPy's BFGS
+  without (numpy, whose FFT the fast engine uses; numba with one cached kernel; SciPy's BFGS
   and h5py for training), then what the issue's targets would need of a command's own
   fixed cost, from the times measured in the same run.
 
@@ -63,7 +63,6 @@ FLOORS = {
         "python": "pass",
         "numpy": "import numpy",
         "numba": "import numpy, floor_kernel; floor_kernel.total(numpy.zeros(3))",
-        "numba+fft": "import numpy, scipy.fft, floor_kernel; floor_kernel.total(numpy.zeros(3))",
         "bfgs+h5py": "import numpy, scipy.optimize, h5py",
     }.items()
 }
@@ -116,30 +115,30 @@ def compare(
 def print_target_arithmetic(floors: dict[str, float], medians: dict[str, dict[str, float]]) -> None:
     """What each target of issue 26 needs, from this run's medians: the least a command could
     take is its floor process plus its work (its time beyond the one-stamp command)."""
-    fft, kernel = floors["numba+fft"], floors["numba"]
+    floor = kernel = floors["numba"]  # numpy's FFT comes with numpy
     one = medians["1"]["now"]
     print("\nwhat the targets need (medians of this run, seconds)")
-    print(f"  simulate's own fixed cost: 1-stamp command {one:.2f} - floor numba+fft {fft:.2f}")
-    print(f"    = {one - fft:.2f}")
+    print(f"  simulate's own fixed cost: 1-stamp command {one:.2f} - floor numba {floor:.2f}")
+    print(f"    = {one - floor:.2f}")
     for label, factor in (("3000", 5.0), ("30 000", 8.0)):
         if label not in medians:
             continue
         m = medians[label]
         work = m["now"] - one
         allowed = m["galsim"] / factor
-        least = fft + work
+        least = floor + work
         print(
             f"  {label} stamps >= {factor:g}x: allowed {allowed:.2f}; work {work:.2f} + floor "
-            f"{fft:.2f} = {least:.2f} (best ratio {m['galsim'] / least:.2f}x at no fixed cost "
+            f"{floor:.2f} = {least:.2f} (best ratio {m['galsim'] / least:.2f}x at no fixed cost "
             f"of ours; the work alone {m['galsim'] / work:.2f}x)"
         )
     j = medians.get("-j now")
     if j:
         work = j["-j 1"] - one
-        least = fft + work / 2
+        least = floor + work / 2
         print(
             f"  -j 2 >= 1.8x at 4000 stamps: -j 1 {j['-j 1']:.2f} needs -j 2 <= "
-            f"{j['-j 1'] / 1.8:.2f}; floor {fft:.2f} + work {work:.2f} / 2 = {least:.2f} "
+            f"{j['-j 1'] / 1.8:.2f}; floor {floor:.2f} + work {work:.2f} / 2 = {least:.2f} "
             f"(best ratio {j['-j 1'] / least:.2f}, perfectly split, no fixed cost of ours)"
         )
     m = medians["measure"]

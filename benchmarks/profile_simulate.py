@@ -27,8 +27,7 @@ CONFIG = Path(__file__).resolve().parent.parent / "examples" / "fiducial" / "tp.
 #: Component name -> predicate on a cProfile (file, line, function) key.
 COMPONENTS = {
     "k-image fill": lambda k: k[2] == "fill_kimages",
-    "inverse FFT (c2c)": lambda k: "pypocketfft.c2c" in k[2],
-    "inverse FFT (c2r)": lambda k: "pypocketfft.c2r" in k[2],
+    "inverse FFTs": lambda k: "numpy/fft" in k[0] and k[2] == "_raw_fft",
     "adaptive moments": lambda k: k[2] == "adaptive_moments_stack",
     "noise": lambda k: k[2] == "add_batch",
 }
