@@ -71,8 +71,11 @@ def _use_compilation_cache(jax: Any) -> None:
     folder = cache_dir()
     if folder is None or jax.config.values.get("jax_compilation_cache_dir"):
         return  # cache off, or the user's own JAX cache
-    if importlib.util.find_spec("filelock") is None:
-        return  # JAX bounds its cache's size only with filelock (the 'gpu' extra has it)
+    if (
+        importlib.util.find_spec("filelock") is None
+        or "jax_compilation_cache_max_size" not in jax.config.values
+    ):
+        return  # JAX bounds its cache's size only with filelock (the 'gpu' extra), if at all
     jax.config.update("jax_compilation_cache_dir", str(folder / "jax"))
     if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
