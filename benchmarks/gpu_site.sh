@@ -7,8 +7,9 @@
 set -eu
 SITE=${SITE:-.site}
 PYVER=${PYVER:-3.12}
-grep -qx "/$SITE/" .git/info/exclude 2>/dev/null || echo "/$SITE/" >> .git/info/exclude
-grep -qx "/.whl/" .git/info/exclude 2>/dev/null || echo "/.whl/" >> .git/info/exclude
+EXCLUDE=$(git rev-parse --git-path info/exclude)
+mkdir -p "$(dirname "$EXCLUDE")"
+for d in "/$SITE/" "/.whl/"; do grep -qx "$d" "$EXCLUDE" 2>/dev/null || echo "$d" >> "$EXCLUDE"; done
 python3 -m pip download -q --no-deps --only-binary=:all: --python-version "$PYVER" \
     --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 \
     --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .whl \
