@@ -79,7 +79,7 @@ def bench_simulate(cases: int, realizations: int, repeats: int) -> None:
     n = cases * realizations
     f_cpu, f_gpu = r_cpu["columns"]["flags"], r_gpu["columns"]["flags"]
     differ = np.flatnonzero(f_cpu != f_gpu)
-    same = f"{len(differ)} of {len(f_cpu)} stamps" + (
+    flag_diff = f"{len(differ)} of {len(f_cpu)} stamps" + (
         f" (bits {sorted(set(np.bitwise_xor(f_cpu[differ], f_gpu[differ]).tolist()))})"
         if len(differ)
         else ""
@@ -94,7 +94,7 @@ def bench_simulate(cases: int, realizations: int, repeats: int) -> None:
         f"  device                   : {t_gpu:8.3f} s  {n / t_gpu:12.0f} stamps/s  "
         f"(x{t_cpu / t_gpu:.2f}; first call with compilation {compile_s:.1f} s)"
     )
-    print(f"  flags differ on {same}; max |adamom_g1 difference| {dg:.2e}")
+    print(f"  flags differ on {flag_diff}; max |adamom_g1 difference| {dg:.2e}")
 
 
 def bench_training(rows: int, repeats: int) -> None:

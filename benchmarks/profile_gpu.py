@@ -42,18 +42,26 @@ SECONDS: collections.Counter = collections.Counter()
 CALLS: collections.Counter = collections.Counter()
 
 
-def timed(name, fn, stage=None):
-    """``fn`` with its time to completion on the device added to ``SECONDS[name]``."""
+def timed(stage, fn):
+    """``fn`` with its time to completion on the device added to ``SECONDS[stage]``
+    (``stage``: a name, or a function of ``fn``'s arguments giving it)."""
 
     def wrapper(*args, **kwargs):
         t0 = time.perf_counter()
         out = jax.block_until_ready(fn(*args, **kwargs))
-        label = stage(*args, **kwargs) if stage else name
+        label = stage(*args) if callable(stage) else stage
         SECONDS[label] += time.perf_counter() - t0
         CALLS[label] += 1
         return out
 
     return wrapper
+
+
+def moments_stage(*args) -> str:
+    """The first steps every stamp takes (``max_steps``, the sixth argument, is
+    ``FIRST_STEPS``), or the tail of the slow stamps."""
+    first = args[5] == adamom.FIRST_STEPS
+    return "moments: first steps" if first else "moments: slow stamps"
 
 
 def instrument() -> None:
@@ -62,11 +70,7 @@ def instrument() -> None:
     gdraw.place_rows = timed("place", gdraw.place_rows)
     gdraw.add_gaussian_noise = timed("noise", gdraw.add_gaussian_noise)
     gdraw.measure_on_device = timed("measure", gdraw.measure_on_device)
-    adamom.iterate_moments = timed(
-        "moments",
-        adamom.iterate_moments,
-        lambda *a, **k: "moments: first steps" if a[5] < 1000 else "moments: slow stamps",
-    )
+    adamom.iterate_moments = timed(moments_stage, adamom.iterate_moments)
 
 
 def main() -> None:

@@ -60,12 +60,15 @@ def jax_device() -> Any:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    _use_compilation_cache(jax)
+    _use_compilation_cache()
     return jax.devices(platform())[0]
 
 
 @functools.lru_cache(maxsize=1)
-def _use_compilation_cache(jax: Any) -> None:
+def _use_compilation_cache() -> None:
+    """Once per process: JAX's persistent cache in ``jax/`` of megalut's cache folder."""
+    import jax
+
     from megalut_cli.cache import cache_dir
 
     folder = cache_dir()
