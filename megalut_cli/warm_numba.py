@@ -1,10 +1,7 @@
-"""Imported by the worker server of commands whose workers run numba kernels.
+"""Imported by the worker server of commands whose workers run numba kernels: what those
+kernels need before their first call is set up once in the server, so the workers forked
+from it start with it done (:data:`megalut_cli.cli.commands.WORKER_MODULES`)."""
 
-numba sets up its CPU target (the registries of its typing and lowering, about 0.2 s of
-CPU) at a process's first kernel call; done once in the server, the workers forked from it
-start with it done (:data:`megalut_cli.cli.commands.WORKER_MODULES`).
-"""
+from megalut_cli.jit import prepare_runtime
 
-from numba.core.registry import cpu_target
-
-cpu_target.target_context.refresh()
+prepare_runtime()

@@ -100,14 +100,21 @@ def test_command_help_needs_no_heavy_package(command):
 
 
 #: What a plain (non-metacal) fast-engine simulate or measure does not use (issue 26): GalSim
-#: with astropy (the Sersic tables and the fixed PSF's k-images come from the disk cache), and
-#: the metacal modules.
-NOT_ON_THE_PLAIN_PATH = ("galsim", "astropy", "megalut_cli.measure.metacal")
+#: with astropy (the Sersic tables and the fixed PSF's k-images come from the disk cache), the
+#: metacal modules, and numba's CPU-target refresh.
+NOT_ON_THE_PLAIN_PATH = (
+    "galsim",
+    "astropy",
+    "megalut_cli.measure.metacal",
+    "numba.np.arraymath",  # numba's target refresh: cached kernels load lightly (jit.py)
+    "scipy.linalg",  # which that refresh imports
+)
 
 
 def test_plain_simulate_and_measure_load_neither_galsim_nor_metacal(tmp_path, monkeypatch):
     """After a first run has filled the disk cache, ``simulate --measure`` and ``measure``
-    of the fiducial configuration import no GalSim, astropy or metacal module."""
+    of the fiducial configuration import no GalSim, astropy or metacal module, and load their
+    cached kernels without numba's target refresh."""
     from pathlib import Path
 
     monkeypatch.setenv("MEGALUT_CACHE", str(tmp_path / "cache"))
@@ -116,6 +123,7 @@ def test_plain_simulate_and_measure_load_neither_galsim_nor_metacal(tmp_path, mo
     simulate = ["simulate", tp, "--n-cases", "2", "--n-realizations", "4", "--measure", "-q"]
     first = _modules_after([*simulate, "-o", str(tmp_path / "a.fits"), "--stamps", grid], True)
     assert "galsim" in first  # the cold cache: GalSim builds the tables and the PSF
+    _modules_after(["measure", grid, "-o", str(tmp_path / "w.fits"), "-q"])  # its kernels cached
     for args in (
         [*simulate, "-o", str(tmp_path / "b.fits")],
         ["measure", grid, "-o", str(tmp_path / "m.fits"), "-q"],

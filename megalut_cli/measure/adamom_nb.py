@@ -9,7 +9,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, uint64
+from numba import uint64
+
+from megalut_cli.jit import njit
 
 #: Status codes of :func:`megalut_cli.measure.adamom.adaptive_moments` (0 is success), one per
 #: failure of GalSim.

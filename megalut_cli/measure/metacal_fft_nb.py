@@ -15,7 +15,8 @@ sums of the PSFs' padded DFTs (:func:`gather36`) and its per-PSF weights
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from megalut_cli.jit import njit
 
 
 @njit(cache=True, nogil=True)

@@ -9,7 +9,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from megalut_cli.jit import njit
 
 #: Cubics per octave of q^2 in the fast form (relative width 2^-8 of q^2).
 FAST_BITS = 8

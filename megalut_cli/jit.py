@@ -1,0 +1,63 @@
+"""numba's ``njit`` for megalut's kernels: a kernel found in numba's cache loads without
+numba's CPU-target refresh (docs/engines.md, "Compilation").
+
+Before loading a cached kernel, numba refreshes its CPU target: it imports every module of
+its typing and lowering registries, and SciPy's BLAS for its ``numpy.linalg``, about 0.15 s
+of every command's start. A cached kernel needs only numba's runtime (NRT), which is what
+the loaders installed here set up; compiling a kernel (a cache miss) still refreshes the
+target, in numba's compiler. ``MEGALUT_NUMBA_FULL_SETUP=1`` restores numba's own loading,
+as does a numba whose cache lacks the methods used here.
+"""
+
+from __future__ import annotations
+
+import os
+import types
+from collections.abc import Callable
+from typing import Any
+
+import numba
+from numba.core.runtime import rtsys
+
+#: Environment variable: set to 1 to load cached kernels with numba's full target refresh.
+FULL_SETUP_VARIABLE = "MEGALUT_NUMBA_FULL_SETUP"
+#: The methods of numba's function cache that :func:`load_cached_overload` relies on.
+CACHE_METHODS = ("load_overload", "_load_overload", "_guard_against_spurious_io_errors")
+
+
+def light_loading() -> bool:
+    """Whether megalut's cached kernels load with numba's runtime alone (the default)."""
+    return os.environ.get(FULL_SETUP_VARIABLE, "") in ("", "0")
+
+
+def load_cached_overload(cache: Any, sig: Any, target_context: Any) -> Any:
+    """numba's ``Cache.load_overload`` with the target refresh replaced by the runtime's
+    initialisation (idempotent): the cached compile result, or None."""
+    rtsys.initialize(target_context)
+    with cache._guard_against_spurious_io_errors():
+        return cache._load_overload(sig, target_context)
+
+
+def njit(**options: Any) -> Callable[[Callable[..., Any]], Any]:
+    """``numba.njit(**options)`` whose dispatcher loads its cached overloads lightly."""
+
+    def decorate(func: Callable[..., Any]) -> Any:
+        dispatcher = numba.njit(**options)(func)
+        cache = getattr(dispatcher, "_cache", None)
+        if light_loading() and all(hasattr(cache, name) for name in CACHE_METHODS):
+            cache.load_overload = types.MethodType(load_cached_overload, cache)
+        return dispatcher
+
+    return decorate
+
+
+def prepare_runtime() -> None:
+    """Set up, in this process, what its cached kernels need before their first call: the
+    runtime, or the whole CPU target under ``MEGALUT_NUMBA_FULL_SETUP`` (worker servers
+    call it once, before they fork workers)."""
+    from numba.core.registry import cpu_target
+
+    if light_loading():
+        rtsys.initialize(cpu_target.target_context)
+    else:
+        cpu_target.target_context.refresh()
