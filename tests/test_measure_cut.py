@@ -9,9 +9,16 @@ import numpy as np
 import pytest
 
 from megalut_cli.catalog import read_catalog, read_catalog_columns, write_catalog
-from megalut_cli.measure.features import measure_stamps, sky_mad
+from megalut_cli.measure.features import (
+    default_guess_sigma,
+    default_max_shift,
+    features_from_moments,
+    measure_stamps,
+    sky_mad,
+)
 from megalut_cli.measure.measure import measure_file, measure_file_columns
 from megalut_cli.measure.stamps import (
+    cut_and_measure,
     cut_stamps,
     cut_stamps_checked,
     grid_origins,
@@ -189,6 +196,72 @@ def test_measure_stamps_with_the_checks_given_equals_without():
         measure_stamps(stamps, finite=cut.finite)
     with pytest.raises(ValueError, match="one value per stamp"):
         measure_stamps(stamps, finite=cut.finite[:2], skymad=cut.skymad[:2])
+
+
+def _galaxy_stamps(size: int, n: int, seed: int) -> np.ndarray:
+    """Noisy elliptical Gaussians of random size, shape, offset and flux (some too faint to
+    measure), with the awkward stamps of :func:`_awkward_stamps` among them."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[:size, :size] + 1.0
+    stamps = []
+    for _ in range(n):
+        s = rng.uniform(1.0, size / 6)
+        e1, e2 = rng.uniform(-0.5, 0.5, 2)
+        cx, cy = (size + 1) / 2 + rng.uniform(-3, 3, 2)
+        dx, dy = x - cx, y - cy
+        q = ((1 - e1) * dx * dx + (1 + e1) * dy * dy - 2 * e2 * dx * dy) / (s * s)
+        flux = 10 ** rng.uniform(0, 3)
+        stamps.append(flux * np.exp(-0.5 * q) + rng.normal(0, 1.0, (size, size)))
+    stamps = np.concatenate([np.array(stamps), _awkward_stamps(size)])
+    return stamps[rng.permutation(len(stamps))]
+
+
+@pytest.mark.parametrize("size, dtype", [(16, np.float64), (48, np.float32), (64, np.float32)])
+def test_cut_and_measure_equals_the_cut_then_the_moments(size, dtype):
+    """The one-pass kernel gives, bit for bit, what cutting the stack and measuring it gives:
+    finite, skymad, moments (NaN where HSM fails or a pixel is not finite), features, flags."""
+    stamps = _galaxy_stamps(size, 300, seed=size).astype(dtype)
+    n = len(stamps)
+    per_row = 7  # stamps on a grid of 7 columns, in rows from row0 = 5 of a taller image
+    rows = np.zeros(((n + per_row - 1) // per_row * size + 5 + 3, per_row * size + 2), dtype)
+    origins = np.zeros((n, 2), dtype=np.int64)
+    for k, stamp in enumerate(stamps):
+        oy, ox = 5 + 1 + (k // per_row) * size, 2 + (k % per_row) * size
+        rows[oy - 1 : oy - 1 + size, ox - 1 : ox - 1 + size] = stamp
+        origins[k] = ox, oy
+    band = rows[5:]
+    guess = default_guess_sigma(size)
+    found = cut_and_measure(band, 5, origins, size, guess)
+    cut = cut_stamps_checked(band, 5, origins, size)
+    assert _same(found.finite, cut.finite) and _same(found.skymad, cut.skymad)
+    with np.errstate(invalid="ignore"):
+        expected = measure_stamps(
+            cut.stamps,
+            origins,
+            2.5,
+            max_shift=default_max_shift(size),
+            finite=cut.finite,
+            skymad=cut.skymad,
+        )
+    got = features_from_moments(
+        found.moments,
+        found.skymad,
+        found.finite,
+        origins.astype(float),
+        size,
+        2.5,
+        default_max_shift(size),
+    )
+    assert got.keys() == expected.keys()
+    for column in got:
+        assert _same(got[column], expected[column]), column
+    measured = np.isfinite(found.moments).all(axis=1)
+    assert 0.5 * n < measured.sum() < n  # most measured, some failed or not finite
+    assert not measured[~found.finite].any()
+    with pytest.raises(ValueError, match="inside"):
+        cut_and_measure(band, 5, origins + [0, 10_000], size, guess)
+    empty = cut_and_measure(band, 5, np.zeros((0, 2), np.int64), size, guess)
+    assert empty.moments.shape == (0, 7) and empty.finite.shape == (0,)
 
 
 def test_read_catalog_columns_reads_what_read_catalog_reads(tmp_path):

@@ -103,6 +103,44 @@ class AdaptiveMoments:
     n_iter: np.ndarray
 
 
+def guess_sigmas(guess_sigma: float | np.ndarray, n: int) -> np.ndarray:
+    """HSM's initial sigma of each of ``n`` stamps (one value or one per stamp), checked."""
+    guess = np.broadcast_to(np.asarray(guess_sigma, dtype=np.float64), (n,)).copy()
+    if not (np.isfinite(guess).all() and (guess > 0).all()):
+        raise ValueError("guess_sigma must be finite and positive")
+    return guess
+
+
+def kernel_settings(
+    nx: int,
+    ny: int,
+    *,
+    precision: float = 1.0e-6,
+    params: HSMParams | None = None,
+    exact_exp: bool = False,
+) -> tuple[float, float, float, float, float, float, float, int, bool]:
+    """The scalar arguments of the compiled kernels for ``ny x nx`` stamps, in their order
+    (``x_guess`` .. ``exact_exp`` of :func:`adaptive_moments_stack`), checked."""
+    params = HSMParams() if params is None else params
+    if not (math.isfinite(precision) and 0 < precision < 1):
+        raise ValueError(f"precision must be in (0, 1), got {precision}")
+    if not (0 < params.convergence_threshold < 1):
+        raise ValueError(
+            f"convergence_threshold must be in (0, 1), got {params.convergence_threshold}"
+        )
+    return (
+        (nx + 1) / 2.0,
+        (ny + 1) / 2.0,
+        float(precision),
+        -2.0 * math.log(params.convergence_threshold / 10.0),
+        float(params.bound_correct_wt),
+        float(params.max_amoment),
+        float(params.max_ashift),
+        int(params.max_mom2_iter),
+        bool(exact_exp),
+    )
+
+
 def adaptive_moments(
     stamps: np.ndarray,
     guess_sigma: float | np.ndarray = 5.0,
@@ -128,40 +166,16 @@ def adaptive_moments(
     Returns:
         An :class:`AdaptiveMoments` of arrays of length ``n``.
     """
-    params = HSMParams() if params is None else params
     stamps = np.ascontiguousarray(stamps, dtype=np.float64)
     if stamps.ndim != 3:
         raise ValueError(f"stamps must have shape (n, ny, nx), got {stamps.shape}")
     n, ny, nx = stamps.shape
-    guess = np.broadcast_to(np.asarray(guess_sigma, dtype=np.float64), (n,)).copy()
-    if not (np.isfinite(guess).all() and (guess > 0).all()):
-        raise ValueError("guess_sigma must be finite and positive")
-    if not (math.isfinite(precision) and 0 < precision < 1):
-        raise ValueError(f"precision must be in (0, 1), got {precision}")
-    if not (0 < params.convergence_threshold < 1):
-        raise ValueError(
-            f"convergence_threshold must be in (0, 1), got {params.convergence_threshold}"
-        )
-    nsig2 = -2.0 * math.log(params.convergence_threshold / 10.0)
+    guess = guess_sigmas(guess_sigma, n)
+    settings = kernel_settings(nx, ny, precision=precision, params=params, exact_exp=exact_exp)
     status = np.zeros(n, dtype=np.int32)
     n_iter = np.zeros(n, dtype=np.int32)
     results = np.full((n, 7), np.nan)
     if n:
-        adaptive_moments_stack(
-            stamps,
-            guess,
-            (nx + 1) / 2.0,
-            (ny + 1) / 2.0,
-            float(precision),
-            nsig2,
-            float(params.bound_correct_wt),
-            float(params.max_amoment),
-            float(params.max_ashift),
-            int(params.max_mom2_iter),
-            bool(exact_exp),
-            status,
-            n_iter,
-            results,
-        )
+        adaptive_moments_stack(stamps, guess, *settings, status, n_iter, results)
     results[status != SUCCESS] = np.nan
     return AdaptiveMoments(status, *results.T.copy(), n_iter)

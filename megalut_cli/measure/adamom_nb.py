@@ -312,7 +312,7 @@ def _ellipmom_1(
 
 
 @njit(cache=True, error_model="numpy")
-def _adaptive_moments_one(
+def adaptive_moments_one(
     image: np.ndarray,
     guess_sigma: float,
     x_guess: float,
@@ -457,14 +457,14 @@ def adaptive_moments_stack(
     n_iter: np.ndarray,
     results: np.ndarray,
 ) -> None:
-    """Runs :func:`_adaptive_moments_one` on every stamp of ``stamps``."""
+    """Runs :func:`adaptive_moments_one` on every stamp of ``stamps``."""
     tables = np.empty((5, stamps.shape[2]))
     cross = np.empty(stamps.shape[2])
     step = np.empty(stamps.shape[2])
     segments = np.empty((2, stamps.shape[1]), dtype=np.int64)
     sums = np.empty(7)
     for k in range(stamps.shape[0]):
-        status[k], n_iter[k] = _adaptive_moments_one(
+        status[k], n_iter[k] = adaptive_moments_one(
             stamps[k],
             guess_sigma[k],
             x_guess,

@@ -64,7 +64,9 @@ from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.measure.defaults import FORMAT, FORMAT_VERSION, PSF_COLUMNS
 from megalut_cli.measure.features import (
     FEATURE_COLUMNS,
+    default_guess_sigma,
     default_max_shift,
+    features_from_moments,
     measure_stamps,
     warn_if_mostly_flagged,
 )
@@ -78,6 +80,7 @@ from megalut_cli.measure.stamps import (
     ImageInfo,
     catalog_origins,
     check_grid,
+    cut_and_measure,
     cut_stamps,
     cut_stamps_checked,
     grid_origins,
@@ -146,6 +149,19 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
         stamps = cut_stamps(rows, y0, origins, size)
         feats = measure_stamps(
             stamps, origins, unit["gain"], max_shift=unit["max_shift"], engine="fast", device=device
+        )
+    elif (
+        unit["engine"] == "fast" and not unit.get("morphology") and unit.get("metacal") is None
+    ):  # the features alone: each stamp cut, checked and measured in one compiled pass
+        found = cut_and_measure(rows, y0, origins, size, default_guess_sigma(size))
+        return features_from_moments(
+            found.moments,
+            found.skymad,
+            found.finite,
+            np.asarray(origins, dtype=np.float64),
+            size,
+            unit["gain"],
+            unit["max_shift"],
         )
     else:  # one pass over the pixels: float64 stamps, whether they are finite, skymad
         cut = cut_stamps_checked(rows, y0, origins, size)

@@ -190,21 +190,20 @@ class CheckedStamps:
     skymad: np.ndarray
 
 
-def _cut(
+def _checked_cut_arguments(
     rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int, checks: bool
-) -> CheckedStamps:
-    from megalut_cli.measure.stamps_nb import cut_stack  # numba: loaded where stamps are cut
-
+) -> tuple[np.ndarray, np.ndarray]:
+    """``rows`` as a float array and ``origins`` as ``(n, 2)`` int64, checked: every stamp
+    inside the rows, and (``checks``) large enough for the edge statistic."""
     rows = pixel_rows(rows)
     if rows.ndim != 2:
         raise ValueError(f"rows must be 2-d, got shape {rows.shape}")
     origins = np.ascontiguousarray(np.asarray(origins).reshape(-1, 2), dtype=np.int64)
-    n = len(origins)
     if checks and stamp_size < MIN_STAMP_SIZE:  # the edge statistic needs an inside
         raise ValueError(f"stamps must be at least {MIN_STAMP_SIZE} pixels, got {stamp_size}")
     x0, y0 = origins[:, 0] - 1, origins[:, 1] - 1 - row0
     if (
-        n
+        len(origins)
         and not (
             (x0 >= 0)
             & (y0 >= 0)
@@ -213,6 +212,16 @@ def _cut(
         ).all()
     ):
         raise ValueError("stamps must lie inside the rows they are cut from")
+    return rows, origins
+
+
+def _cut(
+    rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int, checks: bool
+) -> CheckedStamps:
+    from megalut_cli.measure.stamps_nb import cut_stack  # numba: loaded where stamps are cut
+
+    rows, origins = _checked_cut_arguments(rows, row0, origins, stamp_size, checks)
+    n = len(origins)
     out = np.empty((n, stamp_size, stamp_size), dtype=np.float64)
     finite = np.zeros(n if checks else 0, dtype=np.bool_)
     mad = np.zeros(n if checks else 0, dtype=np.float64)
@@ -233,6 +242,55 @@ def cut_stamps_checked(
     """:func:`cut_stamps`, and in the same pass over the pixels whether every pixel of each
     stamp is finite and its ``skymad`` (:func:`megalut_cli.measure.features.sky_mad`, exactly)."""
     return _cut(rows, row0, origins, stamp_size, True)
+
+
+@dataclass(frozen=True)
+class MeasuredStamps:
+    """What :func:`cut_and_measure` finds on each stamp: whether all its pixels are finite,
+    the sky MAD of its edge pixels and its adaptive ``moments`` ``(n, 7)``: ``amp, g1, g2,
+    sigma, rho4, x, y``, NaN rows where a pixel is not finite or HSM failed (the input of
+    :func:`megalut_cli.measure.features.features_from_moments`)."""
+
+    finite: np.ndarray
+    skymad: np.ndarray
+    moments: np.ndarray
+
+
+def cut_and_measure(
+    rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int, guess_sigma: float
+) -> MeasuredStamps:
+    """:func:`cut_stamps_checked`, then the adaptive moments of each finite stamp
+    (:func:`megalut_cli.measure.adamom.adaptive_moments` from ``guess_sigma``), in one
+    compiled pass that keeps each stamp in the core's cache: the same values as the two
+    calls, without the stack of float64 stamps."""
+    from megalut_cli.measure.adamom import SUCCESS, guess_sigmas, kernel_settings
+    from megalut_cli.measure.stamps_nb import cut_measure_stack  # numba
+
+    rows, origins = _checked_cut_arguments(rows, row0, origins, stamp_size, True)
+    n = len(origins)
+    finite = np.zeros(n, dtype=np.bool_)
+    mad = np.zeros(n, dtype=np.float64)
+    status = np.full(n, -1, dtype=np.int32)  # -1: not measured (a pixel is not finite)
+    n_iter = np.zeros(n, dtype=np.int32)
+    moments = np.full((n, 7), np.nan)
+    if n:
+        settings = kernel_settings(stamp_size, stamp_size)
+        guess = guess_sigmas(guess_sigma, n)
+        cut_measure_stack(
+            rows,
+            int(row0),
+            origins,
+            stamp_size,
+            guess,
+            *settings,
+            finite,
+            mad,
+            status,
+            n_iter,
+            moments,
+        )
+    moments[status != SUCCESS] = np.nan
+    return MeasuredStamps(finite, MAD_TO_SIGMA * mad, moments)
 
 
 def stamp_centres(origins: np.ndarray, stamp_size: int) -> np.ndarray:

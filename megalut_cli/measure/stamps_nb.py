@@ -1,6 +1,8 @@
 """Compiled kernels of :mod:`.stamps`: cutting a stack of stamps out of a band of image rows
-in one call, with each stamp's pixel checks (the Python API is
-:func:`megalut_cli.measure.stamps.cut_stamps_checked`).
+in one call, with each stamp's pixel checks, and (:func:`cut_measure_stack`) measuring each
+stamp's adaptive moments as it is cut (the Python API is
+:func:`megalut_cli.measure.stamps.cut_stamps_checked` and
+:func:`megalut_cli.measure.stamps.cut_and_measure`).
 
 The edge statistic is ``numpy.median``'s arithmetic exactly: the mean ``(a + b) / 2`` of the
 two middle order statistics of the ``4 S - 4`` edge pixels (an even count), then the same of
@@ -14,6 +16,7 @@ import math
 import numpy as np
 
 from megalut_cli.jit import njit
+from megalut_cli.measure.adamom_nb import adaptive_moments_one
 
 
 @njit(cache=True, error_model="numpy")
@@ -94,6 +97,23 @@ def _edge_mad(stamp: np.ndarray, edges: np.ndarray, work: np.ndarray) -> float:
     return _median_even(work)
 
 
+@njit(cache=True, error_model="numpy")
+def _cut_one(rows: np.ndarray, y0: int, x0: int, stamp: np.ndarray) -> bool:
+    """Copy the stamp at 0-based ``(x0, y0)`` of ``rows`` into ``stamp`` (float64); whether
+    all its pixels are finite (``v * 0`` is 0 for a finite ``v``, NaN otherwise: no branch,
+    so the copy vectorises)."""
+    s = stamp.shape[0]
+    bad = 0.0
+    for y in range(s):
+        src = rows[y0 + y]
+        dst = stamp[y]
+        for x in range(s):
+            v = np.float64(src[x0 + x])
+            dst[x] = v
+            bad += v * 0.0
+    return bad == 0.0
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def cut_stack(
     rows: np.ndarray,
@@ -112,17 +132,67 @@ def cut_stack(
     edges = np.empty(4 * s - 4)
     work = np.empty(4 * s - 4)
     for k in range(out.shape[0]):
-        y0 = origins[k, 1] - 1 - row0
-        x0 = origins[k, 0] - 1
-        stamp = out[k]
-        ok = True
-        for y in range(s):
-            src = rows[y0 + y]
-            dst = stamp[y]
-            for x in range(s):
-                v = np.float64(src[x0 + x])
-                dst[x] = v
-                ok &= math.isfinite(v)
+        ok = _cut_one(rows, origins[k, 1] - 1 - row0, origins[k, 0] - 1, out[k])
         if checks:
             finite[k] = ok
-            mad[k] = _edge_mad(stamp, edges, work)
+            mad[k] = _edge_mad(out[k], edges, work)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def cut_measure_stack(
+    rows: np.ndarray,
+    row0: int,
+    origins: np.ndarray,
+    stamp_size: int,
+    guess_sigma: np.ndarray,
+    x_guess: float,
+    y_guess: float,
+    precision: float,
+    nsig2: float,
+    bound: float,
+    max_amoment: float,
+    max_ashift: float,
+    max_iter: int,
+    exact_exp: bool,
+    finite: np.ndarray,
+    mad: np.ndarray,
+    status: np.ndarray,
+    n_iter: np.ndarray,
+    results: np.ndarray,
+) -> None:
+    """:func:`cut_stack` with checks, then :func:`adaptive_moments_stack`'s moments of each
+    finite stamp, one stamp at a time: each stamp is cut into one float64 buffer that stays
+    in the core's cache while it is measured, instead of a stack of them written to memory
+    and read back. The same functions on the same float64 stamp: the same bits."""
+    s = stamp_size
+    stamp = np.empty((s, s))
+    edges = np.empty(4 * s - 4)
+    work = np.empty(4 * s - 4)
+    tables = np.empty((5, s))
+    cross = np.empty(s)
+    step = np.empty(s)
+    segments = np.empty((2, s), dtype=np.int64)
+    sums = np.empty(7)
+    for k in range(origins.shape[0]):
+        finite[k] = _cut_one(rows, origins[k, 1] - 1 - row0, origins[k, 0] - 1, stamp)
+        mad[k] = _edge_mad(stamp, edges, work)
+        if finite[k]:
+            status[k], n_iter[k] = adaptive_moments_one(
+                stamp,
+                guess_sigma[k],
+                x_guess,
+                y_guess,
+                precision,
+                nsig2,
+                bound,
+                max_amoment,
+                max_ashift,
+                max_iter,
+                exact_exp,
+                tables,
+                cross,
+                step,
+                segments,
+                sums,
+                results[k],
+            )
