@@ -32,10 +32,16 @@ def light_loading() -> bool:
 
 def load_cached_overload(cache: Any, sig: Any, target_context: Any) -> Any:
     """numba's ``Cache.load_overload`` with the target refresh replaced by the runtime's
-    initialisation (idempotent): the cached compile result, or None."""
+    initialisation (idempotent): the cached compile result, or None. Should the light load
+    fail (a kernel needing what only the refresh sets up), numba's own loading is done."""
     rtsys.initialize(target_context)
-    with cache._guard_against_spurious_io_errors():
-        return cache._load_overload(sig, target_context)
+    try:
+        with cache._guard_against_spurious_io_errors():
+            return cache._load_overload(sig, target_context)
+    except Exception:  # numba's own loading, which raises what is really wrong, if anything
+        target_context.refresh()
+        with cache._guard_against_spurious_io_errors():
+            return cache._load_overload(sig, target_context)
 
 
 def njit(**options: Any) -> Callable[[Callable[..., Any]], Any]:

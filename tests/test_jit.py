@@ -94,3 +94,36 @@ def test_cached_kernels_load_without_the_target_refresh_and_compile_after(tmp_pa
     assert compiled["refreshed"]
     assert abs(compiled["det"] - 5.0) < 1e-12
     assert abs(compiled["sum32"] - float(np.dot(x, x))) < 1e-4
+
+
+def test_a_failed_light_load_falls_back_on_numbas_loading(monkeypatch):
+    """Should a cached kernel need what only numba's target refresh sets up, its light load
+    fails and the loader refreshes the target and loads again (numba's own loading)."""
+    import contextlib
+
+    from megalut_cli import jit
+
+    events = []
+
+    class Context:
+        def refresh(self):
+            events.append("refresh")
+
+    class Cache:
+        @contextlib.contextmanager
+        def _guard_against_spurious_io_errors(self):
+            yield
+
+        def _load_overload(self, sig, target_context):
+            events.append("load")
+            if "refresh" not in events:
+                raise RuntimeError("symbol not found")
+            return "compile result"
+
+    class Runtime:
+        def initialize(self, target_context):
+            events.append("runtime")
+
+    monkeypatch.setattr(jit, "rtsys", Runtime())
+    assert jit.load_cached_overload(Cache(), (), Context()) == "compile result"
+    assert events == ["runtime", "load", "refresh", "load"]
