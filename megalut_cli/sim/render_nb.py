@@ -50,11 +50,14 @@ _FRACTION_SCALE = 1.0 / (1 << _MANTISSA_SHIFT)
 
 @njit(cache=True)
 def _fast_index(bits: int, lo: int, hi: int, first: int) -> int:
-    """Row of the fast cubic for ``q^2`` of IEEE-754 bit pattern ``bits`` (-1: none)."""
-    e = (bits >> 52) - 1023
-    if e < lo or e >= hi:
+    """Row of the fast cubic for ``q^2`` of IEEE-754 bit pattern ``bits`` (-1: none): the
+    octave ``e - lo`` (``e`` the unbiased exponent, ``lo <= e < hi``) times 2^FAST_BITS plus
+    the first FAST_BITS bits of the mantissa, which for a positive ``q^2`` are one shift of
+    ``bits`` minus a constant (a negative ``q^2`` or a NaN falls outside)."""
+    u = (bits >> _MANTISSA_SHIFT) - ((1023 + lo) << FAST_BITS)
+    if u < 0 or u >= (hi - lo) << FAST_BITS:
         return -1
-    return first + ((e - lo) << FAST_BITS) + ((bits >> _MANTISSA_SHIFT) & ((1 << FAST_BITS) - 1))
+    return first + u
 
 
 @njit(cache=True)
