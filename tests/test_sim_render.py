@@ -220,3 +220,37 @@ def test_sersic_k_profile_matches_galsim_kvalue():
         # the fast form (cubics per 1/256 octave of q^2, no logarithm): achieved 8.7e-12
         np.testing.assert_allclose(table.kvalue(q, fast=True), theirs, rtol=0, atol=4e-11)
         assert table.stepk == unit.stepk and table.maxk == unit.maxk
+
+
+def test_fast_form_takes_the_cubic_of_the_octave_and_leading_mantissa_bits():
+    """The fast form evaluates, at q^2 in octave ``e`` (``lo <= e < hi``), the cubic of row
+    ``first + 256 (e - lo) + m`` (``m`` the first 8 mantissa bits of q^2) at the rest of the
+    mantissa, and the exact form elsewhere (outside the octaves, and on rows marked NaN): bit
+    for bit, on q^2 at the edges of every octave and of every row, 0, and far outside."""
+    from megalut_cli.sim.render import sersic_table, stack_profiles
+    from megalut_cli.sim.render_nb import FAST_BITS, radial_values
+
+    gsp = galsim.GSParams()
+    for n in (0.5, 2.0, 4.567):
+        eparams, eint, coef, fcoef = stack_profiles([sersic_table(n, gsp)])
+        kind, _, _, lo, hi, first = (int(v) for v in eint[0])
+        octaves = np.arange(lo - 3, hi + 3, dtype=float)
+        rows = np.arange(1 << FAST_BITS) / (1 << FAST_BITS)
+        q2 = np.ldexp(1.0 + rows, octaves[:, None].astype(int)).ravel()
+        q2 = np.concatenate([[0.0, 5e-324], q2, np.nextafter(q2, 0), np.nextafter(q2, np.inf)])
+        bits = q2.view(np.int64)
+        e = (bits >> 52) - 1023
+        row = first + ((e - lo) << FAST_BITS) + ((bits >> (52 - FAST_BITS)) & 255)
+        inside = (e >= lo) & (e < hi)
+        row = np.where(inside, row, 0)
+        fast = inside & ~np.isnan(fcoef[row, 0])
+        t = (bits & ((1 << (52 - FAST_BITS)) - 1)) * 2.0 ** -(52 - FAST_BITS)
+        c = fcoef[row]
+        expected = np.where(
+            fast,
+            c[:, 0] + t * (c[:, 1] + t * (c[:, 2] + t * c[:, 3])),
+            radial_values(q2, eparams[0], eint[0], coef, fcoef, False),
+        )
+        got = radial_values(q2, eparams[0], eint[0], coef, fcoef, True)
+        assert kind == 0 and fast.sum() > 1000 and (~fast).sum() > 1000
+        assert got.tobytes() == expected.tobytes(), n
