@@ -208,6 +208,17 @@ def measure_stamps(
     if engine == "fast" and device == "gpu" and n:
         moments, skymad, finite = device_backend().pixel_measurements(stamps, guess)
         return features_from_moments(moments, skymad, finite, origins, size, gain, limit)
+    if finite is None and engine == "fast" and n:  # checks and moments in one compiled pass
+        from megalut_cli.measure.stamps import cut_and_measure
+
+        column = np.ascontiguousarray(stamps).reshape(
+            n * size, size
+        )  # the stamps one above another
+        tops = np.column_stack([np.ones(n, np.int64), 1 + size * np.arange(n, dtype=np.int64)])
+        found = cut_and_measure(column, 0, tops, size, guess)
+        return features_from_moments(
+            found.moments, found.skymad, found.finite, origins, size, gain, limit
+        )
     if finite is None or skymad is None:
         finite = np.isfinite(stamps).all(axis=(1, 2)) if n else np.zeros(0, bool)
         skymad = sky_mad(stamps) if n else np.zeros(0)
