@@ -119,8 +119,9 @@ def kernel_settings(
     params: HSMParams | None = None,
     exact_exp: bool = False,
 ) -> tuple[float, float, float, float, float, float, float, int, bool]:
-    """The scalar arguments of the compiled kernels for ``ny x nx`` stamps, in their order
-    (``x_guess`` .. ``exact_exp`` of :func:`adaptive_moments_stack`), checked."""
+    """The scalar arguments of the compiled kernels for ``ny x nx`` stamps (``settings`` of
+    :func:`adaptive_moments_stack`: ``x_guess, y_guess, precision, nsig2, bound,
+    max_amoment, max_ashift, max_iter, exact_exp``), checked."""
     params = HSMParams() if params is None else params
     if not (math.isfinite(precision) and 0 < precision < 1):
         raise ValueError(f"precision must be in (0, 1), got {precision}")
@@ -176,6 +177,6 @@ def adaptive_moments(
     n_iter = np.zeros(n, dtype=np.int32)
     results = np.full((n, 7), np.nan)
     if n:
-        adaptive_moments_stack(stamps, guess, *settings, status, n_iter, results)
+        adaptive_moments_stack(stamps, guess, settings, status, n_iter, results)
     results[status != SUCCESS] = np.nan
     return AdaptiveMoments(status, *results.T.copy(), n_iter)

@@ -441,45 +441,68 @@ def adaptive_moments_one(
 
 
 @njit(cache=True, error_model="numpy")
-def adaptive_moments_stack(
-    stamps: np.ndarray,
+def moments_workspace(ny: int, nx: int) -> tuple:
+    """The buffers :func:`adaptive_moments_one` works in, for stamps of ``ny x nx`` pixels:
+    ``tables, cross, step, segments, sums``."""
+    return (
+        np.empty((5, nx)),
+        np.empty(nx),
+        np.empty(nx),
+        np.empty((2, ny), dtype=np.int64),
+        np.empty(7),
+    )
+
+
+@njit(cache=True, error_model="numpy")
+def measure_into(
+    image: np.ndarray,
+    k: int,
     guess_sigma: np.ndarray,
-    x_guess: float,
-    y_guess: float,
-    precision: float,
-    nsig2: float,
-    bound: float,
-    max_amoment: float,
-    max_ashift: float,
-    max_iter: int,
-    exact_exp: bool,
+    settings: tuple,
+    work: tuple,
     status: np.ndarray,
     n_iter: np.ndarray,
     results: np.ndarray,
 ) -> None:
-    """Runs :func:`adaptive_moments_one` on every stamp of ``stamps``."""
-    tables = np.empty((5, stamps.shape[2]))
-    cross = np.empty(stamps.shape[2])
-    step = np.empty(stamps.shape[2])
-    segments = np.empty((2, stamps.shape[1]), dtype=np.int64)
-    sums = np.empty(7)
+    """:func:`adaptive_moments_one` of ``image`` from ``guess_sigma[k]``, into row ``k`` of
+    ``status``, ``n_iter`` and ``results``. ``settings``: the scalar arguments (``x_guess`` to
+    ``exact_exp``, :func:`megalut_cli.measure.adamom.kernel_settings`); ``work``:
+    :func:`moments_workspace`."""
+    x_guess, y_guess, precision, nsig2, bound, max_amoment, max_ashift, max_iter, exact_exp = (
+        settings
+    )
+    tables, cross, step, segments, sums = work
+    status[k], n_iter[k] = adaptive_moments_one(
+        image,
+        guess_sigma[k],
+        x_guess,
+        y_guess,
+        precision,
+        nsig2,
+        bound,
+        max_amoment,
+        max_ashift,
+        max_iter,
+        exact_exp,
+        tables,
+        cross,
+        step,
+        segments,
+        sums,
+        results[k],
+    )
+
+
+@njit(cache=True, error_model="numpy")
+def adaptive_moments_stack(
+    stamps: np.ndarray,
+    guess_sigma: np.ndarray,
+    settings: tuple,
+    status: np.ndarray,
+    n_iter: np.ndarray,
+    results: np.ndarray,
+) -> None:
+    """Runs :func:`adaptive_moments_one` on every stamp of ``stamps`` (:func:`measure_into`)."""
+    work = moments_workspace(stamps.shape[1], stamps.shape[2])
     for k in range(stamps.shape[0]):
-        status[k], n_iter[k] = adaptive_moments_one(
-            stamps[k],
-            guess_sigma[k],
-            x_guess,
-            y_guess,
-            precision,
-            nsig2,
-            bound,
-            max_amoment,
-            max_ashift,
-            max_iter,
-            exact_exp,
-            tables,
-            cross,
-            step,
-            segments,
-            sums,
-            results[k],
-        )
+        measure_into(stamps[k], k, guess_sigma, settings, work, status, n_iter, results)

@@ -282,7 +282,7 @@ def cut_and_measure(
             origins,
             stamp_size,
             guess,
-            *settings,
+            settings,
             finite,
             mad,
             status,

@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 from megalut_cli.jit import njit
-from megalut_cli.measure.adamom_nb import adaptive_moments_one
+from megalut_cli.measure.adamom_nb import measure_into, moments_workspace
 
 
 @njit(cache=True, error_model="numpy")
@@ -145,15 +145,7 @@ def cut_measure_stack(
     origins: np.ndarray,
     stamp_size: int,
     guess_sigma: np.ndarray,
-    x_guess: float,
-    y_guess: float,
-    precision: float,
-    nsig2: float,
-    bound: float,
-    max_amoment: float,
-    max_ashift: float,
-    max_iter: int,
-    exact_exp: bool,
+    settings: tuple,
     finite: np.ndarray,
     mad: np.ndarray,
     status: np.ndarray,
@@ -168,31 +160,9 @@ def cut_measure_stack(
     stamp = np.empty((s, s))
     edges = np.empty(4 * s - 4)
     work = np.empty(4 * s - 4)
-    tables = np.empty((5, s))
-    cross = np.empty(s)
-    step = np.empty(s)
-    segments = np.empty((2, s), dtype=np.int64)
-    sums = np.empty(7)
+    moments_work = moments_workspace(s, s)
     for k in range(origins.shape[0]):
         finite[k] = _cut_one(rows, origins[k, 1] - 1 - row0, origins[k, 0] - 1, stamp)
         mad[k] = _edge_mad(stamp, edges, work)
         if finite[k]:
-            status[k], n_iter[k] = adaptive_moments_one(
-                stamp,
-                guess_sigma[k],
-                x_guess,
-                y_guess,
-                precision,
-                nsig2,
-                bound,
-                max_amoment,
-                max_ashift,
-                max_iter,
-                exact_exp,
-                tables,
-                cross,
-                step,
-                segments,
-                sums,
-                results[k],
-            )
+            measure_into(stamp, k, guess_sigma, settings, moments_work, status, n_iter, results)
