@@ -1,13 +1,6 @@
-"""numba's ``njit`` for megalut's kernels: a kernel found in numba's cache loads without
-numba's CPU-target refresh (docs/engines.md, "Compilation").
-
-Before loading a cached kernel, numba refreshes its CPU target: it imports every module of
-its typing and lowering registries, and SciPy's BLAS for its ``numpy.linalg``, about 0.15 s
-of every command's start. A cached kernel needs only numba's runtime (NRT), which is what
-the loaders installed here set up; compiling a kernel (a cache miss) still refreshes the
-target, in numba's compiler. ``MEGALUT_NUMBA_FULL_SETUP=1`` restores numba's own loading,
-as does a numba whose cache lacks the methods used here.
-"""
+"""numba's ``njit`` for megalut's kernels: a kernel found in numba's cache loads with numba's
+runtime alone, without the CPU-target refresh numba does first (~0.15 s of each command;
+docs/engines.md, "Compilation"). ``MEGALUT_NUMBA_FULL_SETUP=1`` restores numba's loading."""
 
 from __future__ import annotations
 
