@@ -209,12 +209,10 @@ def measure_stamps(
         moments, skymad, finite = device_backend().pixel_measurements(stamps, guess)
         return features_from_moments(moments, skymad, finite, origins, size, gain, limit)
     if finite is None and engine == "fast" and n:  # checks and moments in one compiled pass
-        from megalut_cli.measure.stamps import cut_and_measure
+        from megalut_cli.measure.stamps import cut_and_measure, grid_origins
 
-        column = np.ascontiguousarray(stamps).reshape(
-            n * size, size
-        )  # the stamps one above another
-        tops = np.column_stack([np.ones(n, np.int64), 1 + size * np.arange(n, dtype=np.int64)])
+        column = np.ascontiguousarray(stamps).reshape(n * size, size)  # a grid of one column
+        tops = grid_origins(n, 1, size)
         found = cut_and_measure(column, 0, tops, size, guess)
         return features_from_moments(
             found.moments, found.skymad, found.finite, origins, size, gain, limit
