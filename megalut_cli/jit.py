@@ -10,7 +10,11 @@ from collections.abc import Callable
 from typing import Any
 
 import numba
+from llvmlite import ir
+from numba import types as nbtypes
+from numba.core import cgutils
 from numba.core.runtime import rtsys
+from numba.extending import intrinsic
 
 #: Environment variable: set to 1 to load cached kernels with numba's full target refresh.
 FULL_SETUP_VARIABLE = "MEGALUT_NUMBA_FULL_SETUP"
@@ -60,3 +64,35 @@ def prepare_runtime() -> None:
         rtsys.initialize(cpu_target.target_context)
     else:
         cpu_target.target_context.refresh()
+
+
+@intrinsic
+def prefetch(typingctx: Any, array: Any, row: Any, column: Any) -> Any:
+    """Ask the CPU to bring ``array[row, column]`` (a 2-d array) into its caches without
+    waiting for it (LLVM's ``prefetch``: a read, kept in every cache level): no effect on
+    any value, and never a fault, even for an index outside the array."""
+    if not isinstance(array, nbtypes.Array) or array.ndim != 2:
+        return None
+    sig = nbtypes.void(array, nbtypes.intp, nbtypes.intp)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        array_type = signature.args[0]
+        data = context.make_array(array_type)(context, builder, args[0])
+        address = cgutils.get_item_pointer(
+            context, builder, array_type, data, [args[1], args[2]], wraparound=False
+        )
+        byte_pointer = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        function = cgutils.get_or_insert_function(
+            builder.module,
+            ir.FunctionType(ir.VoidType(), [byte_pointer, i32, i32, i32]),
+            "llvm.prefetch.p0i8",
+        )
+        # read (0), highest locality (3), data cache (1)
+        builder.call(
+            function,
+            [builder.bitcast(address, byte_pointer), i32(0), i32(3), i32(1)],
+        )
+        return context.get_dummy_value()
+
+    return sig, codegen

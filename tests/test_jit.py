@@ -127,3 +127,31 @@ def test_a_failed_light_load_falls_back_on_numbas_loading(monkeypatch):
     monkeypatch.setattr(jit, "rtsys", Runtime())
     assert jit.load_cached_overload(Cache(), (), Context()) == "compile result"
     assert events == ["runtime", "load", "refresh", "load"]
+
+
+def test_prefetch_asks_the_cpu_for_the_line_and_changes_no_value():
+    """``prefetch`` compiles to LLVM's prefetch of the element's address, for any 2-d array
+    (a read-only memory map's uint32 view included), and leaves every value as it was."""
+    import numba
+
+    from megalut_cli.jit import prefetch
+
+    @numba.njit
+    def prefetched_sum(rows):
+        total = 0.0
+        for y in range(rows.shape[0]):
+            prefetch(rows, y, rows.shape[1] - 1)
+            for x in range(rows.shape[1]):
+                total += rows[y, x]
+        return total
+
+    for rows in (
+        np.arange(12.0).reshape(3, 4),
+        np.arange(12, dtype=np.float32).reshape(4, 3),
+        np.arange(12, dtype=np.uint32).reshape(2, 6)[:, ::2],
+    ):
+        rows.flags.writeable = False
+        assert prefetched_sum(rows) == rows.sum()
+        assert rows.tolist() == np.asarray(rows).tolist()
+    ir = "".join(prefetched_sum.inspect_llvm().values())
+    assert "@llvm.prefetch" in ir

@@ -44,6 +44,18 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
     return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
+def _same_values(a: np.ndarray, b: np.ndarray) -> bool:
+    """:func:`_same`, except that NaNs match whatever their payload (cfitsio's reads give
+    NaN pixels its own)."""
+    a, b = np.asarray(a), np.asarray(b)
+    nan_a, nan_b = np.isnan(a), np.isnan(b)
+    return (
+        a.dtype == b.dtype
+        and (nan_a == nan_b).all()
+        and _same(np.where(nan_a, 0, a).astype(a.dtype), np.where(nan_b, 0, b).astype(b.dtype))
+    )
+
+
 def _random_origins(
     rng: np.random.Generator, n: int, size: int, shape: tuple[int, int], row0: int
 ) -> np.ndarray:
@@ -52,7 +64,7 @@ def _random_origins(
     return np.column_stack([x, y]).astype(np.int64)
 
 
-@pytest.mark.parametrize("dtype", [np.float32, np.float64, ">f4", np.int16, np.int32])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, ">f4", ">f8", np.int16, np.int32])
 @pytest.mark.parametrize("size", [3, 8, 13])
 def test_batched_cut_equals_the_per_stamp_cut(dtype, size):
     rng = np.random.default_rng(size)
@@ -178,6 +190,51 @@ def test_read_band_reads_the_rows_of_read_rows(tmp_path, dtype):
     assert _same(read_rows(info, 3, 9), data[3:9].astype(np.float64))
 
 
+@pytest.mark.parametrize("dtype", ["f4", "f8"])
+@pytest.mark.parametrize("ext", [0, 1])
+def test_read_band_maps_a_float_image_as_stored(tmp_path, dtype, ext):
+    """An uncompressed float image's rows, mapped from the file, are its bytes as stored
+    (big-endian, no copy), with the values that reading them gives, in any HDU."""
+    data = np.random.default_rng(1).normal(0, 10, (12, 10)).astype(dtype)
+    data[4, 2] = np.nan
+    path = tmp_path / "img.fits"
+    with fitsio.FITS(str(path), "rw", clobber=True) as f:
+        if ext:
+            f.write(np.zeros((3, 5), np.int16))
+        f.write(data)
+    info = image_info(path, ext)
+    assert info.stored_offset is not None and np.dtype(info.stored_dtype).byteorder == ">"
+    mapped = read_band(info, 3, 9, mapped=True)
+    assert not mapped.dtype.isnative and not mapped.flags.writeable
+    assert _same_values(mapped.astype(data.dtype), data[3:9])
+    assert _same_values(read_band(info, 3, 9), data[3:9])
+    origins = np.array([[1, 4], [4, 5], [2, 4]], np.int64)
+    for mapped_cut, read_cut in zip(
+        cut_stamps_checked(mapped, 3, origins, 5).__dict__.values(),
+        cut_stamps_checked(read_band(info, 3, 9), 3, origins, 5).__dict__.values(),
+        strict=True,
+    ):
+        assert _same_values(mapped_cut, read_cut)
+
+
+def test_read_band_reads_what_cannot_be_used_as_stored(tmp_path):
+    """Integer, scaled and compressed images are read (and converted) as before."""
+    data = np.arange(12 * 10, dtype=np.float32).reshape(12, 10)
+    cases = {
+        "int.fits": (data.astype(np.int16), {}),
+        "scaled.fits": (data, {"header": {"BSCALE": 2.0, "BZERO": 1.0}}),
+        "compressed.fits": (data, {"compress": "gzip"}),
+    }
+    for name, (pixels, options) in cases.items():
+        path = tmp_path / name
+        fitsio.write(str(path), pixels, clobber=True, **options)
+        info = image_info(path)
+        assert info.stored_offset is None, name
+        band = read_band(info, 3, 9, mapped=True)
+        assert band.dtype.isnative, name
+        assert _same(band, read_band(info, 3, 9)), name
+
+
 def test_measure_stamps_with_the_checks_given_equals_without():
     stamps = _awkward_stamps(16)
     cut = cut_stamps_checked(
@@ -232,6 +289,9 @@ def test_cut_and_measure_equals_the_cut_then_the_moments(size, dtype):
     band = rows[5:]
     guess = default_guess_sigma(size)
     found = cut_and_measure(band, 5, origins, size, guess)
+    stored = cut_and_measure(band.astype(band.dtype.newbyteorder(">")), 5, origins, size, guess)
+    for a, b in zip(found.__dict__.values(), stored.__dict__.values(), strict=True):
+        assert _same(a, b)  # FITS's big-endian rows, as mapped from a file: the same bits
     cut = cut_stamps_checked(band, 5, origins, size)
     assert _same(found.finite, cut.finite) and _same(found.skymad, cut.skymad)
     with np.errstate(invalid="ignore"):

@@ -144,7 +144,7 @@ def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
             device=device,
         )
     y0, y1 = _row_band(origins, size)
-    rows = unit["rows"] if "rows" in unit else read_band(unit["info"], y0, y1)
+    rows = unit["rows"] if "rows" in unit else read_band(unit["info"], y0, y1, mapped=True)
     if unit["engine"] == "fast" and device == "gpu":  # the device measures the pixel checks itself
         stamps = cut_stamps(rows, y0, origins, size)
         feats = measure_stamps(

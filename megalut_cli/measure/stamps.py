@@ -42,12 +42,21 @@ _EPS = 1e-6
 
 @dataclass(frozen=True)
 class ImageInfo:
-    """Where an image lives in a FITS file, its shape ``(ny, nx)`` and header."""
+    """Where an image lives in a FITS file, its shape ``(ny, nx)`` and header; and, for an
+    uncompressed and unscaled float image (BITPIX -32 or -64), the byte offset of its pixels
+    in the file and their type as stored (big-endian), so that they can be mapped rather
+    than read (None otherwise)."""
 
     path: str
     ext: int
     shape: tuple[int, int]
     header: dict[str, Any]
+    stored_offset: int | None = None
+    stored_dtype: str | None = None
+
+
+#: The numpy types of the FITS float images that can be used as stored, by BITPIX.
+STORED_FLOAT_TYPES = {-32: ">f4", -64: ">f8"}
 
 
 def _unreadable(path: str | os.PathLike) -> InputError:
@@ -70,7 +79,9 @@ def image_info(path: str | os.PathLike, ext: int | None = None) -> ImageInfo:
             dims = hdu.get_dims()
             if len(dims) != 2:
                 raise InputError(f"{path}: expected a 2-D image, got {len(dims)} dimension(s)")
-            header = header_dict(hdu.read_header())
+            cards = hdu.read_header()
+            header = header_dict(cards)
+            scaled = cards.get("BSCALE", 1) != 1 or cards.get("BZERO", 0) != 0
             hinfo = hdu.get_info()
             nbytes = abs(int(hinfo["img_type"])) // 8 * int(dims[0]) * int(dims[1])
             data_end = int(hinfo["data_start"]) + nbytes
@@ -81,7 +92,17 @@ def image_info(path: str | os.PathLike, ext: int | None = None) -> ImageInfo:
         raise _unreadable(path) from None
     if not compressed and data_end > os.path.getsize(path):
         raise InputError(f"{path}: truncated FITS file (image data incomplete)")
-    return ImageInfo(str(path), int(ext), (int(dims[0]), int(dims[1])), header)
+    stored = STORED_FLOAT_TYPES.get(int(hinfo["img_type"]))
+    if compressed or scaled:
+        stored = None
+    return ImageInfo(
+        str(path),
+        int(ext),
+        (int(dims[0]), int(dims[1])),
+        header,
+        int(hinfo["data_start"]) if stored else None,
+        stored,
+    )
 
 
 def pixel_rows(rows: np.ndarray) -> np.ndarray:
@@ -93,9 +114,41 @@ def pixel_rows(rows: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(rows, dtype=np.float64)
 
 
-def read_band(info: ImageInfo, y0: int, y1: int) -> np.ndarray:
+def kernel_rows(rows: np.ndarray) -> np.ndarray:
+    """``rows`` as the cutting kernels of :mod:`.stamps_nb` take them: :func:`pixel_rows`,
+    except that C-ordered big-endian float32 or float64 rows (FITS's bytes, as
+    :func:`read_band` maps them) are given as the uint32 or uint64 view of their bytes,
+    which the kernels swap as they read each pixel (``stamps_nb.pixel_value``): no copy."""
+    rows = np.asarray(rows)
+    if (
+        rows.dtype.type in (np.float32, np.float64)
+        and not rows.dtype.isnative
+        and rows.flags.c_contiguous
+    ):
+        return rows.view(np.uint32 if rows.dtype.itemsize == 4 else np.uint64)
+    return pixel_rows(rows)
+
+
+def _mapped_band(info: ImageInfo, y0: int, y1: int) -> np.ndarray:
+    """Rows ``y0 .. y1 - 1`` of an image whose pixels can be used as stored, mapped from the
+    file (big-endian, read-only)."""
+    assert info.stored_offset is not None and info.stored_dtype is not None
+    dtype = np.dtype(info.stored_dtype)
+    nx = info.shape[1]
+    offset = info.stored_offset + y0 * nx * dtype.itemsize
+    return np.asarray(np.memmap(info.path, dtype, "r", offset, (y1 - y0, nx)))
+
+
+def read_band(info: ImageInfo, y0: int, y1: int, mapped: bool = False) -> np.ndarray:
     """Read image rows ``y0 .. y1 - 1`` (0-based numpy indices) in one read, as
-    :func:`pixel_rows` (float32 pixels are not converted)."""
+    :func:`pixel_rows` (float32 pixels are not converted). With ``mapped``, an uncompressed,
+    unscaled float image's rows are mapped from the file instead, as stored (big-endian
+    float: pass them to the cutting functions, which read them without a copy)."""
+    if mapped and info.stored_offset is not None and y1 > y0:
+        try:
+            return _mapped_band(info, y0, y1)
+        except (OSError, ValueError):
+            raise _unreadable(info.path) from None
     try:
         with fitsio.FITS(info.path) as f:
             data = f[info.ext][y0:y1, :]
@@ -193,9 +246,9 @@ class CheckedStamps:
 def _checked_cut_arguments(
     rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int, checks: bool
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``rows`` as a float array and ``origins`` as ``(n, 2)`` int64, checked: every stamp
+    """``rows`` as :func:`kernel_rows` and ``origins`` as ``(n, 2)`` int64, checked: every stamp
     inside the rows, and (``checks``) large enough for the edge statistic."""
-    rows = pixel_rows(rows)
+    rows = kernel_rows(rows)
     if rows.ndim != 2:
         raise ValueError(f"rows must be 2-d, got shape {rows.shape}")
     origins = np.ascontiguousarray(np.asarray(origins).reshape(-1, 2), dtype=np.int64)

@@ -14,9 +14,56 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import types
+from numba.extending import overload
 
-from megalut_cli.jit import njit
+from megalut_cli.jit import njit, prefetch
 from megalut_cli.measure.adamom_nb import measure_into, moments_workspace
+
+#: Bytes of a cache line, for :func:`_prefetch_stamp`.
+LINE_BYTES = 64
+
+
+def pixel_value(row: np.ndarray, x: int) -> float:
+    """Pixel ``x`` of an image row as float64: a float row's value, or the float32 (uint32
+    row) or float64 (uint64 row) whose big-endian bytes (FITS's) the row holds."""
+    value = row[x]
+    if row.dtype == np.uint32:
+        return float(value.byteswap().view(np.float32))
+    if row.dtype == np.uint64:
+        return float(value.byteswap().view(np.float64))
+    return float(value)
+
+
+@njit(cache=True, inline="always")
+def _byteswap32(u: np.uint64) -> np.uint32:
+    """The 4 low bytes of ``u`` in reverse order."""
+    return np.uint32(
+        ((u & 0xFF) << 24) | ((u & 0xFF00) << 8) | ((u >> 8) & 0xFF00) | ((u >> 24) & 0xFF)
+    )
+
+
+@overload(pixel_value)
+def _pixel_value_compiled(row, x):  # type: ignore[no-untyped-def]  # noqa: ANN001, ANN202
+    """The compiled :func:`pixel_value`, chosen by the row's type."""
+    if row.dtype == types.uint32:
+
+        def big_endian_float32(row, x):  # type: ignore[no-untyped-def]
+            return np.float64(_byteswap32(np.uint64(row[x])).view(np.float32))
+
+        return big_endian_float32
+    if row.dtype == types.uint64:
+
+        def big_endian_float64(row, x):  # type: ignore[no-untyped-def]
+            u = np.uint64(row[x])
+            low = np.uint64(_byteswap32(u & np.uint64(0xFFFFFFFF)))
+            high = np.uint64(_byteswap32(u >> np.uint64(32)))
+            return np.float64(np.uint64((low << np.uint64(32)) | high).view(np.float64))
+
+        return big_endian_float64
+    if isinstance(row.dtype, types.Float):
+        return lambda row, x: np.float64(row[x])
+    return None
 
 
 @njit(cache=True, error_model="numpy")
@@ -108,10 +155,21 @@ def _cut_one(rows: np.ndarray, y0: int, x0: int, stamp: np.ndarray) -> bool:
         src = rows[y0 + y]
         dst = stamp[y]
         for x in range(s):
-            v = np.float64(src[x0 + x])
+            v = pixel_value(src, x0 + x)
             dst[x] = v
             bad += v * 0.0
     return bad == 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _prefetch_stamp(rows: np.ndarray, y0: int, x0: int, s: int) -> None:
+    """Prefetch the cache lines of the ``s``-pixel stamp at 0-based ``(x0, y0)`` of ``rows``:
+    its rows are far apart in the image, too far for the CPU's own prefetching to follow."""
+    step = max(1, LINE_BYTES // rows.itemsize)
+    for y in range(y0, y0 + s):
+        for x in range(x0, x0 + s, step):
+            prefetch(rows, y, x)
+        prefetch(rows, y, x0 + s - 1)
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -132,6 +190,8 @@ def cut_stack(
     edges = np.empty(4 * s - 4)
     work = np.empty(4 * s - 4)
     for k in range(out.shape[0]):
+        if k + 1 < out.shape[0]:
+            _prefetch_stamp(rows, origins[k + 1, 1] - 1 - row0, origins[k + 1, 0] - 1, s)
         ok = _cut_one(rows, origins[k, 1] - 1 - row0, origins[k, 0] - 1, out[k])
         if checks:
             finite[k] = ok
@@ -161,7 +221,10 @@ def cut_measure_stack(
     edges = np.empty(4 * s - 4)
     work = np.empty(4 * s - 4)
     moments_work = moments_workspace(s, s)
-    for k in range(origins.shape[0]):
+    n = origins.shape[0]
+    for k in range(n):
+        if k + 1 < n:  # brought in while this stamp is measured
+            _prefetch_stamp(rows, origins[k + 1, 1] - 1 - row0, origins[k + 1, 0] - 1, s)
         finite[k] = _cut_one(rows, origins[k, 1] - 1 - row0, origins[k, 0] - 1, stamp)
         mad[k] = _edge_mad(stamp, edges, work)
         if finite[k]:
