@@ -28,7 +28,9 @@ CONFIG = Path(__file__).resolve().parent.parent / "examples" / "fiducial" / "tp.
 COMPONENTS = {
     "k-image fill": lambda k: k[2] == "fill_kimages",
     "inverse FFTs": lambda k: "numpy/fft" in k[0] and k[2] == "_raw_fft",
-    "adaptive moments": lambda k: k[2] == "adaptive_moments_stack",
+    "cut, sky MAD, adaptive moments": lambda k: (
+        k[2] in ("adaptive_moments_stack", "cut_measure_stack")
+    ),
     "noise": lambda k: k[2] == "add_batch",
 }
 
@@ -37,6 +39,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n-cases", type=int, default=50)
     parser.add_argument("--n-realizations", type=int, default=40)
+    parser.add_argument(
+        "--top", type=int, default=0, help="also list the N functions of most own time"
+    )
     args = parser.parse_args()
     cfg = load_config(CONFIG, n_cases=args.n_cases, n_realizations=args.n_realizations)
     n = args.n_cases * args.n_realizations
@@ -59,6 +64,11 @@ def main() -> None:
     )
     for name, seconds in parts.items():
         print(f"  {name:<34} {seconds / n * 1e3:7.3f} ms/stamp  {seconds / total:6.1%}")
+    if args.top:
+        print(f"the {args.top} functions of most own time:")
+        for k, v in sorted(stats.items(), key=lambda kv: -kv[1][2])[: args.top]:
+            where = f"{k[2]} ({Path(k[0]).name}:{k[1]})"
+            print(f"  {v[2] / n * 1e3:7.4f} ms/stamp  {v[0]:7d} calls  {where}")
 
 
 if __name__ == "__main__":

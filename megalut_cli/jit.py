@@ -1,6 +1,7 @@
 """numba's ``njit`` for megalut's kernels: a kernel found in numba's cache loads with numba's
 runtime alone, without the CPU-target refresh numba does first (~0.15 s of each command;
-docs/engines.md, "Compilation"). ``MEGALUT_NUMBA_FULL_SETUP=1`` restores numba's loading."""
+docs/engines.md, "Compilation"). ``MEGALUT_NUMBA_FULL_SETUP=1`` restores numba's loading.
+:func:`prefetch`: LLVM's cache prefetch, for kernels."""
 
 from __future__ import annotations
 

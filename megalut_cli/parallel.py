@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import queue
 import signal
 import threading
 from collections import deque
@@ -124,6 +125,148 @@ def _interrupt_ignored_by_children() -> Iterator[None]:
         signal.signal(signal.SIGINT, old)
 
 
+class LocalPool(ProcessPoolExecutor):
+    """The local workers of ``-j N``: N - 1 processes, since this process runs units too
+    (:func:`map_units` and :func:`map_ordered` hand each unit to whichever is free first)."""
+
+
+class _SharedUnits:
+    """Units handed out in order to a :class:`LocalPool`'s workers and to this process.
+
+    Only this process's main thread advances ``items``, into ``buffer``. A worker that
+    finishes takes the next buffered unit at once (its future's callback, in the pool's
+    thread); this process runs one itself whenever no worker is free. The workers' first
+    units are handed out by a short-lived thread, since starting a worker waits for the
+    server it is forked from, and this process starts on its own units meanwhile. At most
+    ``window`` units are taken ahead of the first not yet delivered in order.
+    """
+
+    def __init__(
+        self, func: Callable[[Any], Any], items: Iterable[Any], pool: LocalPool, window: int
+    ) -> None:
+        self.func = func
+        self.items = iter(items)
+        self.pool = pool
+        self.workers = pool._max_workers
+        self.window = max(window, 2 * self.workers + 1)
+        self.lock = threading.RLock()  # a callback may run at once, in the thread adding it
+        self.buffer: deque[tuple[int, Any]] = deque()
+        self.finished: queue.SimpleQueue[tuple[int, Future | None]] = queue.SimpleQueue()
+        self.running = 0  # units given to workers whose futures are not in ``finished`` yet
+        self.futures: set[Future] = set()
+        self.taken = 0  # units taken from ``items``
+        self.delivered = 0  # units delivered in order (the window's start)
+        self.exhausted = False
+        self.closed = False
+
+    def _fill(self) -> None:
+        """Take units from ``items`` into ``buffer``, as the window allows (main thread)."""
+        while not self.exhausted and self.taken < self.delivered + self.window:
+            with self.lock:  # enough for this process and, while it runs one, the workers
+                if len(self.buffer) > 2 * self.workers:
+                    return
+            try:
+                unit = next(self.items)
+            except StopIteration:
+                self.exhausted = True
+                return
+            with self.lock:
+                self.buffer.append((self.taken, unit))
+            self.taken += 1
+
+    def _dispatch(self) -> None:
+        """Give buffered units to the free workers (any thread)."""
+        while True:
+            with self.lock:
+                if self.closed or self.running >= self.workers or not self.buffer:
+                    return
+                index, unit = self.buffer.popleft()
+                self.running += 1
+            if not self._submit(index, unit):
+                return
+
+    def _submit(self, index: int, unit: Any) -> bool:
+        """Run unit ``index`` on a worker (counted in ``running``); False if the pool is
+        shutting down or broken, the unit then buffered again for this process."""
+        try:
+            future = self.pool.submit(self.func, unit)
+        except RuntimeError:
+            with self.lock:
+                self.buffer.appendleft((index, unit))
+                self.running -= 1
+                self.closed = True
+            self.finished.put((-1, None))  # wakes this process up, should it wait for a worker
+            return False
+        with self.lock:
+            self.futures.add(future)
+        future.add_done_callback(lambda f: self._worker_done(index, f))
+        return True
+
+    def _start(self, first: list[tuple[int, Any]]) -> None:
+        """The workers' first units (thread ``megalut-start``)."""
+        for k, (index, unit) in enumerate(first):
+            if not self._submit(index, unit):  # the others back to the buffer too
+                with self.lock:
+                    self.buffer.extendleft(reversed(first[k + 1 :]))
+                    self.running -= len(first) - k - 1
+                return
+        self._dispatch()
+
+    def _worker_done(self, index: int, future: Future) -> None:
+        with self.lock:
+            self.finished.put((index, future))
+            self.futures.discard(future)
+            self.running -= 1
+        self._dispatch()
+
+    def results(self) -> Iterator[tuple[int, Any]]:
+        """``(index, result)`` of every unit, as units finish."""
+        self._fill()
+        with self.lock:  # the first units go to the workers, the next to this process
+            first = [self.buffer.popleft() for _ in range(min(self.workers, len(self.buffer)))]
+            self.running += len(first)
+        starter = threading.Thread(
+            target=self._start, args=(first,), name="megalut-start", daemon=True
+        )
+        starter.start()
+        try:
+            while True:
+                self._fill()
+                if not starter.is_alive():  # the workers have started: handing out is quick
+                    self._dispatch()
+                with self.lock:
+                    mine = self.buffer.popleft() if self.buffer else None
+                    waiting = self.running > 0 or not self.finished.empty()
+                if mine is not None:
+                    yield mine[0], self.func(mine[1])
+                elif waiting:
+                    index, future = self.finished.get()
+                    if future is not None:
+                        yield index, future.result()
+                elif self.exhausted:
+                    return
+                else:  # the first unit not delivered is always buffered, running or finished
+                    raise MegalutError("internal error: no unit to run")
+                while not self.finished.empty():
+                    index, future = self.finished.get()
+                    if future is not None:
+                        yield index, future.result()
+        finally:
+            with self.lock:
+                self.closed = True
+                for future in self.futures:
+                    future.cancel()
+
+    def ordered(self) -> Iterator[tuple[int, Any]]:
+        """:meth:`results` in unit order (a unit finished early waits for those before it)."""
+        early: dict[int, Any] = {}
+        for index, result in self.results():
+            early[index] = result
+            while self.delivered in early:
+                yield self.delivered, early.pop(self.delivered)
+                self.delivered += 1
+
+
 def _dask_client(scheduler: str) -> Any:
     try:
         from distributed import Client
@@ -148,8 +291,9 @@ def executor(
     """An executor for ``-j nproc`` or ``--scheduler``; ``None`` means run in this process.
 
     Local workers are forked from a warm server (:func:`start_worker_server`; ``spawn``
-    where the platform has no fork server), with one BLAS thread each; never more than
-    ``n_units`` (when given), so that a small job does not pay for idle workers.
+    where the platform has no fork server), with one BLAS thread each; ``-j N`` is this
+    process and N - 1 workers (a :class:`LocalPool`), never more than ``n_units`` processes
+    (when given), so that a small job does not pay for idle workers.
     """
     if scheduler:
         client = _dask_client(scheduler)
@@ -167,11 +311,11 @@ def executor(
     # set while it lives, so that every worker starts with one BLAS thread.
     start_worker_server(())  # where the command did not start it already
     with _single_threaded_children():
-        pool = ProcessPoolExecutor(
-            max_workers=n, mp_context=get_context(START_METHOD), initializer=ignore_interrupt
+        pool = LocalPool(
+            max_workers=n - 1, mp_context=get_context(START_METHOD), initializer=ignore_interrupt
         )
         try:
-            log.info("running on %d local worker processes", n)
+            log.info("running on %d local worker processes (this one and %d more)", n, n - 1)
             yield pool
         except KeyboardInterrupt:
             stop_workers(pool)
@@ -193,6 +337,14 @@ def map_units(
     with each result as it arrives (in the order of completion).
     """
     results: list[Any] = [None] * len(units)
+    if isinstance(pool, LocalPool):
+        for i, result in _SharedUnits(func, units, pool, len(units) + 1).results():
+            results[i] = result
+            if finished:
+                finished(i, result)
+            if progress:
+                progress(1)
+        return results
     if pool is None:
         for i, unit in enumerate(units):
             results[i] = func(unit)
@@ -225,6 +377,17 @@ def map_ordered(
     if pool is None:
         for key, unit in items:
             yield key, func(unit)
+        return
+    if isinstance(pool, LocalPool):
+        keys: dict[int, Any] = {}
+
+        def units() -> Iterator[Any]:
+            for index, (key, unit) in enumerate(items):
+                keys[index] = key
+                yield unit
+
+        for index, result in _SharedUnits(func, units(), pool, window).ordered():
+            yield keys.pop(index), result
         return
     pending: deque[tuple[Any, Future]] = deque()
     try:

@@ -157,29 +157,98 @@ def test_process_pool_gives_ordered_results():
         assert pool is None
 
 
-def _blas_threads(_: int) -> str | None:
+def _pid_and_blas_threads(_: int) -> tuple[int, str | None]:
     import os
+    import time
 
-    return os.environ.get("OPENBLAS_NUM_THREADS")
+    time.sleep(0.02)  # long enough for the worker to take some units
+    return os.getpid(), os.environ.get("OPENBLAS_NUM_THREADS")
 
 
 def test_workers_start_with_one_blas_thread(monkeypatch):
     """The pool starts its workers on the first submit: they must still see one BLAS thread
     (they did not: the variables were restored before any worker started)."""
-    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
-    with parallel.executor(nproc=2) as pool:
-        assert parallel.map_units(_blas_threads, [0, 1], pool) == ["1", "1"]
     import os
 
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    with parallel.executor(nproc=2) as pool:
+        found = parallel.map_units(_pid_and_blas_threads, list(range(8)), pool)
+    on_workers = [threads for pid, threads in found if pid != os.getpid()]
+    assert on_workers and set(on_workers) == {"1"}
     assert "OPENBLAS_NUM_THREADS" not in os.environ
 
 
+def _slow_pid(x: int) -> tuple[int, int]:
+    import os
+    import time
+
+    time.sleep(0.01 * (x % 3))
+    if x == 13:
+        raise ValueError("unit 13 failed")
+    return x * x, os.getpid()
+
+
+def test_local_pool_shares_the_units_with_this_process():
+    """``-j 2`` is this process and one worker: both run units (the worker its first at
+    once, this process the next), results in unit order either way; the pool's size."""
+    import os
+
+    with parallel.executor(nproc=2) as pool:
+        assert isinstance(pool, parallel.LocalPool) and pool._max_workers == 1
+        found = parallel.map_units(_slow_pid, list(range(12)), pool)
+        assert [v for v, _ in found] == [i * i for i in range(12)]
+        pids = [pid for _, pid in found]
+        assert pids[0] != os.getpid() and pids[1] == os.getpid()  # worker first, then here
+        streamed = list(parallel.map_ordered(_slow_pid, ((f"k{i}", i) for i in range(12)), pool, 3))
+        assert [(k, v) for k, (v, _) in streamed] == [(f"k{i}", i * i) for i in range(12)]
+        assert len({pid for _, (_, pid) in streamed}) == 2
+    with parallel.executor(nproc=3) as pool:
+        assert pool._max_workers == 2
+        assert [v for v, _ in parallel.map_units(_slow_pid, list(range(7)), pool)] == [
+            i * i for i in range(7)
+        ]
+
+
+@pytest.mark.parametrize("ordered", [False, True])
+def test_a_failed_unit_fails_the_map_here_or_on_a_worker(ordered):
+    """Unit 13 fails wherever it runs; the error reaches the caller and the pool ends."""
+    with pytest.raises(ValueError, match="unit 13"), parallel.executor(nproc=2) as pool:
+        if ordered:
+            list(parallel.map_ordered(_slow_pid, ((i, i) for i in range(20)), pool, 4))
+        else:
+            parallel.map_units(_slow_pid, list(range(20)), pool)
+
+
+def test_local_pool_takes_at_most_a_window_of_units_ahead():
+    """map_ordered on a local pool takes units from its iterator at most ``window`` ahead of
+    the first result not yet delivered (a stream of bounded memory)."""
+    taken = []
+
+    def units():
+        for i in range(30):
+            taken.append(i)
+            yield i, 100 + i
+
+    with parallel.executor(nproc=2) as pool:
+        for n_delivered, (key, (value, _)) in enumerate(
+            parallel.map_ordered(_slow_pid, units(), pool, window=4)
+        ):
+            assert value == (100 + key) ** 2
+            assert len(taken) <= n_delivered + 4
+    assert len(taken) == 30
+
+
 _PROBE = """
-import signal, sys
+import os, signal, sys, time
 
 
 def state(name):
-    return name in sys.modules, signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    time.sleep(0.02)  # long enough for the worker to take some units
+    return os.getpid(), name in sys.modules, signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+
+
+def on_workers(states):  # the units run by the workers (this process runs some too)
+    return sorted({tuple(s[1:]) for s in states if s[0] != os.getpid()})
 """
 
 _WARM_SCRIPT = """
@@ -189,7 +258,7 @@ from megalut_cli import parallel
 parallel.start_worker_server(["json.tool"])  # imported by nothing else here
 import probe
 with parallel.executor(nproc=2) as pool:
-    print(parallel.map_units(probe.state, ["json.tool", "megalut_cli.worker_server"], pool))
+    print(probe.on_workers(parallel.map_units(probe.state, ["json.tool"] * 4, pool)))
 """
 
 
@@ -210,7 +279,7 @@ def test_workers_are_forked_warm_from_one_server(tmp_path):
         timeout=120,
     )
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[(True, True), (True, True)]"
+    assert out.stdout.strip() == "[(True, True)]"
 
 
 _TEARDOWN_PROBE = """
@@ -232,7 +301,7 @@ from megalut_cli import parallel
 parallel.start_worker_server(["teardown_probe"])  # the server only: this process exits as usual
 import probe
 with parallel.executor(nproc=2) as pool:
-    print(parallel.map_units(probe.state, ["teardown_probe"], pool))
+    print(probe.on_workers(parallel.map_units(probe.state, ["teardown_probe"] * 4, pool)))
 """
 
 

@@ -144,7 +144,7 @@ def _edge_mad(stamp: np.ndarray, edges: np.ndarray, work: np.ndarray) -> float:
     return _median_even(work)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", fastmath={"reassoc"})
 def _cut_one(rows: np.ndarray, y0: int, x0: int, stamp: np.ndarray) -> bool:
     """Copy the stamp at 0-based ``(x0, y0)`` of ``rows`` into ``stamp`` (float64); whether
     all its pixels are finite (``v * 0`` is 0 for a finite ``v``, NaN otherwise: no branch,
