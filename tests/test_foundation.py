@@ -511,7 +511,11 @@ def test_ordered_window_bounds_work_in_flight():
     assert peak <= 3
 
 
-def test_catalog_written_in_chunks_equals_one_write(tmp_path):
+@pytest.mark.parametrize("block_bytes", [catalog.CatalogWriter.BLOCK_BYTES, 3000])
+def test_catalog_written_in_chunks_equals_one_write(tmp_path, monkeypatch, block_bytes):
+    """Chunks held and appended in blocks (one block, or one per ~3000 bytes) give the file
+    one write gives."""
+    monkeypatch.setattr(catalog.CatalogWriter, "BLOCK_BYTES", block_bytes)
     rng = np.random.default_rng(2)
     cols = {
         "a": rng.normal(size=1000),
