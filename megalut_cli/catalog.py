@@ -477,7 +477,7 @@ class CatalogWriter:
     size; :meth:`flush` writes what is held)."""
 
     #: Rows held before they are appended to the file, in bytes.
-    BLOCK_BYTES = 4 << 20
+    BLOCK_BYTES = 1 << 20
 
     def __init__(self, fits: fitsio.FITS, header: Any, extname: str) -> None:
         self._fits = fits
