@@ -129,6 +129,10 @@ class LocalPool(ProcessPoolExecutor):
     """The local workers of ``-j N``: N - 1 processes, since this process runs units too
     (:func:`map_units` and :func:`map_ordered` hand each unit to whichever is free first)."""
 
+    def __init__(self, workers: int, **options: Any) -> None:
+        super().__init__(max_workers=workers, **options)
+        self.workers = workers
+
 
 class _SharedUnits:
     """Units handed out in order to a :class:`LocalPool`'s workers and to this process.
@@ -147,7 +151,7 @@ class _SharedUnits:
         self.func = func
         self.items = iter(items)
         self.pool = pool
-        self.workers = pool._max_workers
+        self.workers = pool.workers
         self.window = max(window, 2 * self.workers + 1)
         self.lock = threading.RLock()  # a callback may run at once, in the thread adding it
         self.buffer: deque[tuple[int, Any]] = deque()
@@ -311,9 +315,7 @@ def executor(
     # set while it lives, so that every worker starts with one BLAS thread.
     start_worker_server(())  # where the command did not start it already
     with _single_threaded_children():
-        pool = LocalPool(
-            max_workers=n - 1, mp_context=get_context(START_METHOD), initializer=ignore_interrupt
-        )
+        pool = LocalPool(n - 1, mp_context=get_context(START_METHOD), initializer=ignore_interrupt)
         try:
             log.info("running on %d local worker processes (this one and %d more)", n, n - 1)
             yield pool

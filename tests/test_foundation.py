@@ -194,7 +194,7 @@ def test_local_pool_shares_the_units_with_this_process():
     import os
 
     with parallel.executor(nproc=2) as pool:
-        assert isinstance(pool, parallel.LocalPool) and pool._max_workers == 1
+        assert isinstance(pool, parallel.LocalPool) and pool.workers == 1
         found = parallel.map_units(_slow_pid, list(range(12)), pool)
         assert [v for v, _ in found] == [i * i for i in range(12)]
         pids = [pid for _, pid in found]
@@ -203,7 +203,7 @@ def test_local_pool_shares_the_units_with_this_process():
         assert [(k, v) for k, (v, _) in streamed] == [(f"k{i}", i * i) for i in range(12)]
         assert len({pid for _, (_, pid) in streamed}) == 2
     with parallel.executor(nproc=3) as pool:
-        assert pool._max_workers == 2
+        assert pool.workers == 2
         assert [v for v, _ in parallel.map_units(_slow_pid, list(range(7)), pool)] == [
             i * i for i in range(7)
         ]
