@@ -142,17 +142,22 @@ class _SharedUnits:
     thread); this process runs one itself whenever no worker is free. The workers' first
     units are handed out by a short-lived thread, since starting a worker waits for the
     server it is forked from, and this process starts on its own units meanwhile. At most
-    ``window`` units are taken ahead of the first not yet delivered in order.
+    ``window`` units (None: any number) are taken ahead of the first not yet delivered in
+    order.
     """
 
     def __init__(
-        self, func: Callable[[Any], Any], items: Iterable[Any], pool: LocalPool, window: int
+        self,
+        func: Callable[[Any], Any],
+        items: Iterable[Any],
+        pool: LocalPool,
+        window: int | None,
     ) -> None:
         self.func = func
         self.items = iter(items)
         self.pool = pool
         self.workers = pool.workers
-        self.window = max(window, 2 * self.workers + 1)
+        self.window = None if window is None else max(window, 2 * self.workers + 1)
         self.lock = threading.RLock()  # a callback may run at once, in the thread adding it
         self.buffer: deque[tuple[int, Any]] = deque()
         self.finished: queue.SimpleQueue[tuple[int, Future | None]] = queue.SimpleQueue()
@@ -165,7 +170,9 @@ class _SharedUnits:
 
     def _fill(self) -> None:
         """Take units from ``items`` into ``buffer``, as the window allows (main thread)."""
-        while not self.exhausted and self.taken < self.delivered + self.window:
+        while not self.exhausted and (
+            self.window is None or self.taken < self.delivered + self.window
+        ):
             with self.lock:  # enough for this process and, while it runs one, the workers
                 if len(self.buffer) > 2 * self.workers:
                     return
@@ -223,6 +230,13 @@ class _SharedUnits:
             self.running -= 1
         self._dispatch()
 
+    @staticmethod
+    def _from_workers(item: tuple[int, Future | None]) -> Iterator[tuple[int, Any]]:
+        """The result of a finished worker unit (none for a wake-up after a failed submit)."""
+        index, future = item
+        if future is not None:
+            yield index, future.result()
+
     def results(self) -> Iterator[tuple[int, Any]]:
         """``(index, result)`` of every unit, as units finish."""
         self._fill()
@@ -244,17 +258,13 @@ class _SharedUnits:
                 if mine is not None:
                     yield mine[0], self.func(mine[1])
                 elif waiting:
-                    index, future = self.finished.get()
-                    if future is not None:
-                        yield index, future.result()
+                    yield from self._from_workers(self.finished.get())
                 elif self.exhausted:
                     return
                 else:  # the first unit not delivered is always buffered, running or finished
                     raise MegalutError("internal error: no unit to run")
                 while not self.finished.empty():
-                    index, future = self.finished.get()
-                    if future is not None:
-                        yield index, future.result()
+                    yield from self._from_workers(self.finished.get())
         finally:
             with self.lock:
                 self.closed = True
@@ -326,6 +336,26 @@ def executor(
             pool.shutdown(wait=True, cancel_futures=True)
 
 
+def _as_finished(
+    func: Callable[..., T], units: Sequence[Any], pool: Executor | None
+) -> Iterator[tuple[int, T]]:
+    """``(i, func(units[i]))`` for every unit, as units finish: in this process, on a
+    :class:`LocalPool` with this process, or on any other executor."""
+    if pool is None:
+        for i, unit in enumerate(units):
+            yield i, func(unit)
+    elif isinstance(pool, LocalPool):
+        yield from _SharedUnits(func, units, pool, None).results()
+    else:
+        futures = {pool.submit(func, unit): i for i, unit in enumerate(units)}
+        try:
+            for fut in as_completed(futures):
+                yield futures[fut], fut.result()
+        finally:
+            for fut in futures:
+                fut.cancel()
+
+
 def map_units(
     func: Callable[..., T],
     units: Sequence[Any],
@@ -339,34 +369,12 @@ def map_units(
     with each result as it arrives (in the order of completion).
     """
     results: list[Any] = [None] * len(units)
-    if isinstance(pool, LocalPool):
-        for i, result in _SharedUnits(func, units, pool, len(units) + 1).results():
-            results[i] = result
-            if finished:
-                finished(i, result)
-            if progress:
-                progress(1)
-        return results
-    if pool is None:
-        for i, unit in enumerate(units):
-            results[i] = func(unit)
-            if finished:
-                finished(i, results[i])
-            if progress:
-                progress(1)
-        return results
-    futures = {pool.submit(func, unit): i for i, unit in enumerate(units)}
-    try:
-        for fut in as_completed(futures):
-            results[futures[fut]] = fut.result()
-            if finished:
-                finished(futures[fut], results[futures[fut]])
-            if progress:
-                progress(1)
-    except BaseException:
-        for fut in futures:
-            fut.cancel()
-        raise
+    for i, result in _as_finished(func, units, pool):
+        results[i] = result
+        if finished:
+            finished(i, result)
+        if progress:
+            progress(1)
     return results
 
 

@@ -162,9 +162,14 @@ def _cut_one(rows: np.ndarray, y0: int, x0: int, stamp: np.ndarray) -> bool:
 
 
 @njit(cache=True, error_model="numpy")
-def _prefetch_stamp(rows: np.ndarray, y0: int, x0: int, s: int) -> None:
-    """Prefetch the cache lines of the ``s``-pixel stamp at 0-based ``(x0, y0)`` of ``rows``:
-    its rows are far apart in the image, too far for the CPU's own prefetching to follow."""
+def _prefetch_stamp(rows: np.ndarray, row0: int, origins: np.ndarray, k: int, s: int) -> None:
+    """Prefetch the cache lines of stamp ``k`` (if any) of ``origins`` (as in :func:`cut_stack`)
+    in ``rows``: a stamp's rows are far apart in the image, too far for the CPU's own
+    prefetching to follow."""
+    if k >= origins.shape[0]:
+        return
+    y0 = origins[k, 1] - 1 - row0
+    x0 = origins[k, 0] - 1
     step = max(1, LINE_BYTES // rows.itemsize)
     for y in range(y0, y0 + s):
         for x in range(x0, x0 + s, step):
@@ -190,8 +195,7 @@ def cut_stack(
     edges = np.empty(4 * s - 4)
     work = np.empty(4 * s - 4)
     for k in range(out.shape[0]):
-        if k + 1 < out.shape[0]:
-            _prefetch_stamp(rows, origins[k + 1, 1] - 1 - row0, origins[k + 1, 0] - 1, s)
+        _prefetch_stamp(rows, row0, origins, k + 1, s)
         ok = _cut_one(rows, origins[k, 1] - 1 - row0, origins[k, 0] - 1, out[k])
         if checks:
             finite[k] = ok
@@ -221,10 +225,8 @@ def cut_measure_stack(
     edges = np.empty(4 * s - 4)
     work = np.empty(4 * s - 4)
     moments_work = moments_workspace(s, s)
-    n = origins.shape[0]
-    for k in range(n):
-        if k + 1 < n:  # brought in while this stamp is measured
-            _prefetch_stamp(rows, origins[k + 1, 1] - 1 - row0, origins[k + 1, 0] - 1, s)
+    for k in range(origins.shape[0]):
+        _prefetch_stamp(rows, row0, origins, k + 1, s)  # brought in while stamp k is measured
         finite[k] = _cut_one(rows, origins[k, 1] - 1 - row0, origins[k, 0] - 1, stamp)
         mad[k] = _edge_mad(stamp, edges, work)
         if finite[k]:
