@@ -246,6 +246,47 @@ def _single_threaded_galsim() -> None:
 _THREADS_SET = False
 
 
+def real_pad_pixels(stamp_size: int) -> float:
+    """Side (pixels) over which a real galaxy's HST noise is padded in a stamp of
+    ``stamp_size``: the stamp's diagonal, whatever the galaxy's rotation, plus a margin."""
+    return 1.5 * stamp_size + 4.0
+
+
+def wide_draw_size(stamp_size: int, padded_side: float, shear: float, psf: galsim.GSObject) -> int:
+    """Side of the image a real galaxy padded over a square of ``padded_side`` pixels is drawn
+    into, so that the FFT's period keeps the padding's periodic copies out of the stamp: the
+    padding rotated (at most its half-diagonal), sheared by ``shear`` and blurred by the PSF
+    (the radius GalSim folds it at) reaches ``reach``; its copy one period away must stay
+    beyond the stamp's half side (and the sub-pixel offset)."""
+    import galsim
+
+    reach = padded_side / np.sqrt(2.0) / (1.0 - abs(shear)) + np.pi / psf.stepk
+    return galsim.Image.good_fft_size(int(np.ceil(reach + 0.5 * stamp_size + 1.0)))
+
+
+def draw_wide(
+    obj: galsim.GSObject,
+    image: galsim.Image,
+    offset: tuple[float, float],
+    method: str,
+    size: int,
+) -> galsim.Image:
+    """``obj.drawImage(image=image, offset=offset, method=method)``, but with an FFT period of
+    at least ``size`` pixels: drawn into a ``size``-wide image around the same centre, whose
+    middle is copied into ``image``. GalSim chooses the period from the profile's ``stepk``,
+    which for a noise-padded real galaxy is that of the unpadded cutout (issue 39)."""
+    import galsim
+
+    b = image.bounds
+    grow = max(0, (size - min(b.xmax - b.xmin + 1, b.ymax - b.ymin + 1) + 1) // 2)
+    if not grow:
+        return obj.drawImage(image=image, offset=offset, method=method)
+    wide = galsim.ImageF(b.withBorder(grow), scale=image.scale)
+    obj.drawImage(image=wide, offset=offset, method=method, center=image.true_center)
+    image.copyFrom(wide[b])
+    return image
+
+
 #: Fewest padding-only pixels of a stamp to measure the variance of its HST noise on.
 _MIN_PAD_PIXELS = 200
 
@@ -321,7 +362,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     _single_threaded_galsim()
     import galsim
 
-    from megalut_cli.sim.galaxies import make_gsparams, oriented, rotated
+    from megalut_cli.sim.galaxies import make_gsparams, oriented, real_padded_side, rotated
     from megalut_cli.sim.twins import real_twin, twin_truth
 
     cfg = unit.config
@@ -349,9 +390,10 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     hst_mode = gal.real.get("hst_noise", "keep") if gal.real is not None and render else "keep"
     if cfg.noise.type == "none" and cfg.noise.override_sigma is None:
         hst_mode = "keep"  # noiseless stamps: the HST noise stays in the galaxy's own footprint
-    pad = S * 1.5 + 4.0 if hst_mode != "keep" else 0.0
+    pad = real_pad_pixels(S) if hst_mode != "keep" else 0.0
     scratch = galsim.ImageF(S, S, scale=1.0)
     base0 = twin_base = None
+    padded = 0.0  # side of the current real galaxy's noise padding (pixels)
     twin_mode = gal.real is not None and render and gal.real.get("twin", "none") != "none"
     fill = 0  # stamps in the buffer
     buf_first = first  # global index of stamps[0]
@@ -368,6 +410,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                 base = profile.build(gal, t, k, gsp, pad)
                 if pad:  # the same galaxy without its noise padding
                     base0 = profile.build(gal, t, k, gsp, 0.0)
+                    padded = real_padded_side(gal.real, int(t["tru_real_index"][k]), pad)
                 if twin_mode:  # its Sersic twin, drawn in its place (docs/realgal.md)
                     index = int(t["tru_real_index"][k])
                     twin_base = real_twin(gal.real, index, t["tru_flux"][k], gsp)
@@ -394,8 +437,15 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
             shown = twin_base if twin_mode and not hst_k else base
             gal_k = oriented(shown, t, k, d.extra["theta"][k])
             obj = galsim.Convolve(gal_k, psf, gsparams=conv_gsp)
+            offset = (d.offsets[k, 0], d.offsets[k, 1])
+            # a noise-padded galaxy: an FFT period wide enough for its padding
+            wide = (
+                wide_draw_size(S, padded, np.hypot(t["tru_g1"][k], t["tru_g2"][k]), psf)
+                if pad and shown is base
+                else S
+            )
             try:
-                obj.drawImage(image=image, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method)
+                draw_wide(obj, image, offset, method, wide)
             except galsim.GalSimFFTSizeError as err:
                 raise MegalutError(
                     f"case {case}, realization {k}: FFT too large for GalSim ({err.size}^2 "
@@ -406,17 +456,17 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                     f"case {case}, realization {k}: GalSim could not draw the stamp ({err})"
                 ) from None
             if hst_k:
-                clean = (
+                clean = draw_wide(  # drawn like the padded galaxy
                     galsim.Convolve(
                         rotated(base0, d.extra["theta"][k], t["tru_g1"][k], t["tru_g2"][k]),
                         psf,
                         gsparams=conv_gsp,
-                    )
-                    .drawImage(
-                        image=scratch, offset=(d.offsets[k, 0], d.offsets[k, 1]), method=method
-                    )
-                    .array
-                )
+                    ),
+                    scratch,
+                    offset,
+                    method,
+                    wide,
+                ).array
                 twin_k = (
                     None
                     if twin_base is None

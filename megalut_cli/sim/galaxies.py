@@ -112,9 +112,27 @@ def real_galaxy_catalog(path: str, image_dir: str) -> galsim.RealGalaxyCatalog:
 #: Fixed seed base of the noise padding of real galaxies (per catalog row: the padding,
 #: like the HST noise inside the postage stamp, belongs to the galaxy image).
 _PAD_SEED = 271828
+#: The zero-padded image that GalSim interpolates (in Fourier space) is made at least this
+#: many times the side of the noise padding. GalSim pads only to the larger of the two, so a
+#: small cutout's padding filled the whole interpolated image, whose periodic copies leaked
+#: into the stamp (issue 39; ``examples/realgal/probe_padding.py``).
+PAD_ZEROS = 4.0
 
 
-@functools.lru_cache(maxsize=16)  # noise-padded profiles are big (tens of MB): few of them
+def real_padded_side(real: Mapping[str, Any], index: int, pad_pixels: float) -> float:
+    """Side (simulation pixels) of the square of HST noise around real galaxy ``index`` padded
+    over ``pad_pixels``: GalSim rounds the padding up to an FFT size in HST pixels."""
+    if not pad_pixels:
+        return 0.0
+    rgc = real_galaxy_catalog(real["catalog"], real["dir"])
+    hst_scale = float(rgc.pixel_scale[int(index)])
+    side = galsim.Image.good_fft_size(
+        int(np.ceil(float(pad_pixels) * float(real["pixel_scale"]) / hst_scale))
+    )
+    return side * hst_scale / float(real["pixel_scale"])
+
+
+@functools.lru_cache(maxsize=4)  # padded profiles are big (32 MB at 0.06"/px, 64 px; 10x at 0.2")
 def _real_unit(
     path: str,
     image_dir: str,
@@ -127,10 +145,17 @@ def _real_unit(
     padded with HST-like correlated noise over ``pad_pixels`` (0: none); and its HST flux."""
     rgc = real_galaxy_catalog(path, image_dir)
     pad = pad_pixels * pixel_scale  # arcsec
+    pad_factor = 4.0  # GalSim's default
+    if pad:
+        real = {"catalog": path, "dir": image_dir, "pixel_scale": pixel_scale}
+        padded = real_padded_side(real, index, pad_pixels) * pixel_scale / rgc.pixel_scale[index]
+        cutout = max(rgc.getGalImage(int(index)).array.shape)
+        pad_factor = max(pad_factor, PAD_ZEROS * padded / cutout)
     gal = galsim.RealGalaxy(
         rgc,
         index=int(index),
         noise_pad_size=pad,
+        pad_factor=pad_factor,
         rng=galsim.BaseDeviate(_PAD_SEED + int(index)) if pad else None,
         gsparams=gsparams,
     )
@@ -209,9 +234,9 @@ def real_noise(
     (GalSim issue 1071): the variance of an HST pixel value ``v`` is ``v / s**4`` in
     surface-brightness units of an ``s``-arcsec pixel, which is what is used here. The
     correlation *shape* of this model matches the noise-padded stamps; its variance is
-    within ~20% at 0.2"/pixel but ~40% low at 0.05"/pixel (high-frequency noise boosted by
-    the HST-PSF deconvolution), so the simulator rescales it to the variance measured on
-    the stamp's own padding (``draw._process_hst_noise``; ``tests/test_great3_sim.py``).
+    within ~15% of the padding's (12% high at 0.2"/pixel, 8% low at 0.05"/pixel), so the
+    simulator rescales it to the variance measured on the stamp's own padding
+    (``draw._process_hst_noise``; ``tests/test_great3_sim.py``).
     """
     rgc = real_galaxy_catalog(real["catalog"], real["dir"])
     i = int(index)
