@@ -138,15 +138,23 @@ CRN_M_TRUE, CRN_C_TRUE = 0.05, 1e-3
 
 
 def crn_synthetic(
-    seed: int, crn: bool, n_cases: int = 10, n_groups: int = 300, group_size: int = 2
+    seed: int,
+    crn: bool,
+    n_cases: int = 10,
+    n_groups: int = 300,
+    group_size: int = 2,
+    case_response_scatter: float = 0.0,
 ) -> dict:
-    """Estimates ``pre = e + (1 + m + d) g + c + n + eps`` of ``n_groups`` galaxies (90-degree
-    pairs: ``e`` opposite within a pair) per case. Per galaxy: intrinsic ``e``, response
-    scatter ``d`` and pixel noise ``n``, the same in every case when ``crn`` (else new per
-    case); ``eps`` is a small independent per-row noise."""
+    """Estimates ``pre = e + (1 + m + d + mu) g + c + n + eps`` of ``n_groups`` galaxies
+    (90-degree pairs: ``e`` opposite within a pair) per case. Per galaxy: intrinsic ``e``,
+    response scatter ``d`` and pixel noise ``n``, the same in every case when ``crn`` (else
+    new per case); ``eps`` is a small independent per-row noise; ``mu`` a response common to
+    the galaxies of a case, N(0, ``case_response_scatter``): what a response that varies with
+    the drawn shear does to a set."""
     rng = np.random.default_rng(seed)
     n_rea = n_groups * group_size
     g = rng.uniform(-0.1, 0.1, (2, n_cases))
+    mu = rng.normal(0.0, case_response_scatter, (2, n_cases)) if case_response_scatter else None
 
     def galaxies() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         e = rng.normal(0, 0.25, (2, n_groups))
@@ -167,7 +175,11 @@ def crn_synthetic(
         for i in (0, 1):
             cols[f"tru_g{i + 1}"].append(np.full(n_rea, g[i, k]))
             cols[f"pre_g{i + 1}"].append(
-                e[i] + (1 + CRN_M_TRUE + d[i]) * g[i, k] + CRN_C_TRUE + noise[i] + eps[i]
+                e[i]
+                + (1 + CRN_M_TRUE + d[i] + (mu[i, k] if mu is not None else 0.0)) * g[i, k]
+                + CRN_C_TRUE
+                + noise[i]
+                + eps[i]
             )
     return {k: np.concatenate(v) for k, v in cols.items()}
 

@@ -13,7 +13,12 @@ from helpers import crn_synthetic as synthetic
 from megalut_cli.catalog import write_catalog
 from megalut_cli.errors import InputError
 from megalut_cli.shear.bias import fit_bias
-from megalut_cli.shear.bootstrap import GroupResampler, fit_columns, resample_counts
+from megalut_cli.shear.bootstrap import (
+    GroupResampler,
+    fit_columns,
+    resample_counts,
+    shear_draw_variance,
+)
 from megalut_cli.shear.evaluate import (
     BootstrapSpec,
     evaluate_catalog,
@@ -53,6 +58,43 @@ def test_bootstrap_error_matches_scatter_over_seeds_crn(crn_bootstrap):
     assert np.mean(c_err) == pytest.approx(np.std(c, ddof=1), rel=0.2)
     assert abs(np.mean(m) - M_TRUE) < 4 * np.std(m, ddof=1) / np.sqrt(m.size)
     assert abs(np.mean(c) - C_TRUE) < 4 * np.std(c, ddof=1) / np.sqrt(c.size)
+
+
+def test_shear_draw_term_restores_the_error_of_few_shears():
+    """A response that varies from one drawn shear to the next (5 % per case, as a weighted
+    estimate's does) moves m from set to set far beyond the bootstrap over galaxies, which
+    holds the drawn shears fixed; the shear-draw term restores the error. 150 CRN sets of 10
+    shears; achieved: galaxies alone 0.27 of the scatter, with the term 0.87 (rms 0.92), 2-sigma
+    coverage 0.87 against 0.41."""
+    out = []
+    for seed in range(150):
+        data = synthetic(seed, True, n_groups=300, case_response_scatter=0.05)
+        f = evaluate_columns(data, bootstrap=BootstrapSpec(2, 100, seed + 1000, True))[
+            "unweighted"
+        ]["g1"]
+        out.append((f["m"], f["m_err"], f["m_err_galaxies"], f["m_err_shears"]))
+    m, m_err, m_gal, m_shear = np.array(out).T
+    scatter = np.std(m, ddof=1)
+    assert np.mean(m_gal) < 0.4 * scatter
+    assert np.mean(m_err) == pytest.approx(scatter, rel=0.2)
+    np.testing.assert_allclose(m_err, np.hypot(m_gal, m_shear), rtol=1e-12)
+    assert np.mean(np.abs(m - M_TRUE) < 2 * m_err) > 0.8
+
+
+def test_shear_draw_variance_recovers_a_known_response_scatter():
+    rng = np.random.default_rng(4)
+    g = rng.uniform(-0.05, 0.05, 4000)
+    tau, m, c = 0.03, 0.01, 2e-4
+    est = g + m * g + c + rng.normal(0, tau, g.size) * g + rng.normal(0, 1e-5, g.size)
+    fm, fc = fit_columns(g[:, None], est[:, None])
+    var_m, var_c = shear_draw_variance(g, est, fm[0], fc[0], np.full(g.size, 1e-10))
+    dx = g - g.mean()
+    expected_m = tau**2 * np.sum(dx**2 * g**2) / np.sum(dx**2) ** 2
+    assert var_m == pytest.approx(expected_m, rel=0.1)
+    assert var_c > 0
+    # galaxies that explain the residuals leave nothing; two cases cannot say anything
+    assert shear_draw_variance(g, est, fm[0], fc[0], np.full(g.size, 1.0)) == (0.0, 0.0)
+    assert np.isnan(shear_draw_variance(g[:2], est[:2], fm[0], fc[0], np.zeros(2))[0])
 
 
 def test_fit_errors_are_wrong_on_crn_sets(crn_bootstrap):
@@ -146,6 +188,7 @@ def test_catalog_header_selects_the_bootstrap(tmp_path):
         "group_size": 2,
         "groups": 60,
         "crn": True,
+        "shear_term": "excess-residuals",
     }
     assert "bootstrap over galaxies" in format_table(a) and "common-random-number" in format_table(
         a

@@ -42,17 +42,26 @@ def main(workdir: Path) -> None:
     ]
     whole = evaluate_catalog(shears, seed=SEED)
     for scheme in ("unweighted", "weighted"):
-        m = np.array([[r[scheme][c]["m"] for c in ("g1", "g2")] for r in groups])
-        err = np.array([[r[scheme][c]["m_err"] for c in ("g1", "g2")] for r in groups])
+        fits = [[r[scheme][c] for c in ("g1", "g2")] for r in groups]
+
+        def col(key: str, i: int, fits=fits) -> np.ndarray:
+            return np.array([f[i][key] if f[i][key] is not None else np.nan for f in fits])
+
         for i, comp in enumerate(("g1", "g2")):
+            m = col("m", i)
+            w = whole[scheme][comp]
             print(
                 f"{scheme:10s} {comp}: m over {N_GROUPS} draws of {GROUP} shears "
-                f"{' '.join(f'{v:+.2e}' for v in m[:, i])}"
+                f"{' '.join(f'{v:+.2e}' for v in m)}"
             )
+            # The draws share their galaxies: their scatter is the drawn shears' part alone.
             print(
-                f"{'':10s} {comp}: scatter {m[:, i].std(ddof=1):.1e}, "
-                f"mean bootstrap error {err[:, i].mean():.1e}; all {N_GROUPS * GROUP} shears: "
-                f"m = {whole[scheme][comp]['m']:+.2e} ± {whole[scheme][comp]['m_err']:.1e}"
+                f"{'':10s} {comp}: scatter {m.std(ddof=1):.1e}; mean error: shears' part "
+                f"{np.nanmean(col('m_err_shears', i)):.1e} (rms "
+                f"{np.sqrt(np.nanmean(col('m_err_shears', i) ** 2)):.1e}), galaxies' "
+                f"{col('m_err_galaxies', i).mean():.1e}, total {col('m_err', i).mean():.1e}; "
+                f"all {N_GROUPS * GROUP} shears: m = {w['m']:+.2e} ± {w['m_err']:.1e} "
+                f"(galaxies {w['m_err_galaxies']:.1e}, shears {w['m_err_shears']:.1e})"
             )
 
 

@@ -54,10 +54,15 @@ class BiasFit:
     c_err: float
     n_cases: int
     n_rows: int
+    #: With bootstrap errors: the parts of ``m_err`` and ``c_err`` (galaxies, drawn shears)
+    #: as ``(m_galaxies, m_shears, c_galaxies, c_shears)``, added in quadrature.
+    error_parts: tuple[float, float, float, float] | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        """JSON-ready dict with keys ``m, m_err, c, c_err, n_cases, n_rows`` (NaN as None)."""
-        return {
+        """JSON-ready dict with keys ``m, m_err, c, c_err, n_cases, n_rows`` (NaN as None),
+        plus ``m_err_galaxies, m_err_shears, c_err_galaxies, c_err_shears`` with bootstrap
+        errors."""
+        out = {
             "m": _json_float(self.m),
             "m_err": _json_float(self.m_err),
             "c": _json_float(self.c),
@@ -65,6 +70,10 @@ class BiasFit:
             "n_cases": int(self.n_cases),
             "n_rows": int(self.n_rows),
         }
+        if self.error_parts is not None:
+            names = ("m_err_galaxies", "m_err_shears", "c_err_galaxies", "c_err_shears")
+            out.update({k: _json_float(v) for k, v in zip(names, self.error_parts)})
+        return out
 
     def meets(self, m_tol: float = STAGE_IV_M, c_tol: float = STAGE_IV_C) -> bool:
         """Whether ``|m| < m_tol`` and ``|c| < c_tol`` (False when either is undetermined)."""

@@ -12,6 +12,7 @@ so that a block of resamples is one sparse-dense product with the count matrix.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -22,6 +23,8 @@ from megalut_cli.seeding import STREAM_BOOTSTRAP, rng_for
 #: Name of the error model in ``megalut evaluate`` results.
 ERROR_BOOTSTRAP = "bootstrap-galaxies"
 ERROR_FIT = "fit"
+#: How the bootstrap's errors get the part of the drawn shears (:func:`shear_draw_variance`).
+SHEAR_TERM = "excess-residuals"
 #: Largest count matrix of one block of resamples (groups x resamples entries).
 BLOCK_ENTRIES = 2**24
 
@@ -105,6 +108,69 @@ def fit_columns(g_true: np.ndarray, g_est: np.ndarray) -> tuple[np.ndarray, np.n
         scale = np.where(ok, np.abs(x), 0.0).max(axis=0)
     bad = (n < 2) | ~(span > 1e-12 + 1e-9 * scale)
     return np.where(bad, np.nan, m), np.where(bad, np.nan, c)
+
+
+def residuals(g_true: np.ndarray, g_est: np.ndarray, m: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Residuals ``(g_est - g_true) - (m g_true + c)`` of per-case averages ``(cases, b)``
+    about the fitted lines of ``m, c`` (one per column)."""
+    return (np.asarray(g_est, float) - np.asarray(g_true, float)) - (
+        np.asarray(m, float) * np.asarray(g_true, float) + np.asarray(c, float)
+    )
+
+
+class ResidualMoments:
+    """Running mean and variance, per case, of the residuals of the resampled fits: how much
+    of each case's residual the galaxies alone explain."""
+
+    def __init__(self) -> None:
+        self.n: np.ndarray | None = None
+        self.s1: np.ndarray | None = None
+        self.s2: np.ndarray | None = None
+
+    def add(self, r: np.ndarray) -> None:
+        """Add the residuals ``(cases, b)`` of ``b`` resamples (NaN: a case left out)."""
+        ok = np.isfinite(r)
+        v = np.where(ok, r, 0.0)
+        n, s1, s2 = ok.sum(axis=1), v.sum(axis=1), (v * v).sum(axis=1)
+        if self.n is None:
+            self.n, self.s1, self.s2 = n, s1, s2
+        else:
+            self.n, self.s1, self.s2 = self.n + n, self.s1 + s1, self.s2 + s2
+
+    def variance(self) -> np.ndarray:
+        """Per-case variance (ddof = 1) of the residuals over the resamples."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = self.s1 / self.n
+            return (self.s2 - self.n * mean * mean) / (self.n - 1)
+
+
+def shear_draw_variance(
+    g_true: np.ndarray, g_est: np.ndarray, m: float, c: float, galaxy_variance: np.ndarray
+) -> tuple[float, float]:
+    """Variances of ``m`` and ``c`` from a response that varies from one drawn shear to
+    another, which a bootstrap over galaxies holding the cases fixed does not see.
+
+    Model: each case adds ``mu_k g_k`` to its average, ``mu_k`` independent with variance
+    ``tau^2``. The OLS residuals then have ``E[sum r_k^2] = tau^2 sum (1 - h_k) g_k^2`` plus
+    their galaxy part, whose variance ``galaxy_variance`` the bootstrap gives (``h_k``: the
+    case's leverage), so ``tau^2 = sum(r_k^2 - galaxy_variance_k) / sum((1 - h_k) g_k^2)``,
+    clipped at 0, and propagated through the OLS weights of ``m`` and ``c``. NaN with fewer
+    than three usable cases (an exact fit has no residual)."""
+    x = np.asarray(g_true, float)
+    y = np.asarray(g_est, float) - x
+    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(galaxy_variance)
+    k = int(ok.sum())
+    if k < 3 or not (math.isfinite(m) and math.isfinite(c)):
+        return float("nan"), float("nan")
+    x, y, gv = x[ok], y[ok], np.asarray(galaxy_variance, float)[ok]
+    dx = x - x.mean()
+    sxx = float(dx @ dx)
+    w_m = dx / sxx
+    w_c = 1.0 / k - x.mean() * w_m
+    h = 1.0 / k + dx * dx / sxx
+    r = y - (m * x + c)
+    tau2 = max(0.0, float((r * r - gv).sum()) / float(((1.0 - h) * x * x).sum()))
+    return tau2 * float(w_m * w_m @ (x * x)), tau2 * float(w_c * w_c @ (x * x))
 
 
 def spread(values: Sequence[float]) -> float:

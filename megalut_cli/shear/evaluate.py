@@ -63,10 +63,14 @@ from megalut_cli.shear.bias import (
 from megalut_cli.shear.bootstrap import (
     ERROR_BOOTSTRAP,
     ERROR_FIT,
+    SHEAR_TERM,
     GroupResampler,
+    ResidualMoments,
     fit_columns,
     group_size_for,
     resample_counts,
+    residuals,
+    shear_draw_variance,
     spread,
 )
 from megalut_cli.shear.conditional import assign_bins, equal_population_edges
@@ -1164,26 +1168,44 @@ def _bootstrap_errors(
         )
     if n_groups < FEW_GROUPS:
         log.warning("only %d galaxy groups: the bootstrap errors are rough", n_groups)
-    acc: list[dict[tuple[str, str], tuple[list[np.ndarray], list[np.ndarray]]]] = [
-        {(s, comp): ([], []) for s in schemes for comp in f.fits[s]} for f in families
+    acc: list[dict[tuple[str, str], tuple[list[np.ndarray], list[np.ndarray], ResidualMoments]]]
+    acc = [
+        {(s, comp): ([], [], ResidualMoments()) for s in schemes for comp in f.fits[s]}
+        for f in families
     ]
+
+    def estimates(fam: _Family, counts: np.ndarray, s: str) -> dict[str, dict[str, np.ndarray]]:
+        zeros = np.zeros((fam.resampler.n_keys, counts.shape[1]))
+        sums = {**{k: zeros for k in _sum_names(schemes)}, **fam.resampler.sums(counts)}
+        return _case_estimates(sums, s, fam.theta[:, None] if fam.theta is not None else None)
+
     for counts in resample_counts(spec.seed, n_groups, spec.n_resamples):
         for fam, values in zip(families, acc):
-            zeros = np.zeros((fam.resampler.n_keys, counts.shape[1]))
-            sums = {**{k: zeros for k in _sum_names(schemes)}, **fam.resampler.sums(counts)}
-            theta = fam.theta[:, None] if fam.theta is not None else None
             for s in schemes:
-                for comp, d in _case_estimates(sums, s, theta).items():
+                for comp, d in estimates(fam, counts, s).items():
                     m, c = fit_columns(d["tru"], d["pre"])
                     values[(s, comp)][0].append(m)
                     values[(s, comp)][1].append(c)
+                    values[(s, comp)][2].add(residuals(d["tru"], d["pre"], m, c))
+    everything = np.ones((n_groups, 1))  # the catalog itself: every group once
     for fam, values in zip(families, acc):
-        for (s, comp), (m, c) in values.items():
+        full = {s: estimates(fam, everything, s) for s in schemes}
+        for (s, comp), (m, c, moments) in values.items():
             f = fam.fits[s][comp]
+            m_gal = spread(np.concatenate(m)) if math.isfinite(f.m) else f.m_err
+            c_gal = spread(np.concatenate(c)) if math.isfinite(f.c) else f.c_err
+            d = full[s][comp]
+            var_m, var_c = (
+                shear_draw_variance(d["tru"][:, 0], d["pre"][:, 0], f.m, f.c, moments.variance())
+                if spec.crn  # independent cases: each case's residual is its own galaxies'
+                else (math.nan, math.nan)
+            )
+            m_shear, c_shear = math.sqrt(var_m), math.sqrt(var_c)  # NaN: not estimable
             fam.fits[s][comp] = replace(
                 f,
-                m_err=spread(np.concatenate(m)) if math.isfinite(f.m) else f.m_err,
-                c_err=spread(np.concatenate(c)) if math.isfinite(f.c) else f.c_err,
+                m_err=math.hypot(m_gal, m_shear) if math.isfinite(m_shear) else m_gal,
+                c_err=math.hypot(c_gal, c_shear) if math.isfinite(c_shear) else c_gal,
+                error_parts=(m_gal, m_shear, c_gal, c_shear),
             )
     return {
         "error": ERROR_BOOTSTRAP,
@@ -1193,6 +1215,7 @@ def _bootstrap_errors(
             "group_size": spec.group_size,
             "groups": n_groups,
             "crn": spec.crn,
+            "shear_term": SHEAR_TERM if spec.crn else None,
         },
     }
 

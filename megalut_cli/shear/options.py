@@ -14,7 +14,7 @@ from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND
 MAX_BINS = 1000
 #: Format name of the JSON written by ``megalut evaluate --json``.
 JSON_FORMAT = "megalut.evaluation"
-JSON_FORMAT_VERSION = "1.2"  # 1.1: "provenance"; 1.2: "error", "bootstrap"
+JSON_FORMAT_VERSION = "1.3"  # 1.1: "provenance"; 1.2: "error", "bootstrap"; 1.3: shear term
 
 EVALUATE_OPTIONS: tuple[Option, ...] = (
     Option(

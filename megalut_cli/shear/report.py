@@ -20,10 +20,15 @@ def error_note(result: Mapping[str, Any]) -> str:
         if boot["crn"]
         else "galaxy groups"
     )
+    shears = (
+        " + the drawn shears' term from the excess residuals (docs/evaluate.md)"
+        if boot.get("shear_term")
+        else ""
+    )
     return (
         f"errors: bootstrap over galaxies ({what}; {boot['groups']} groups of {boot['group_size']} "
         f"realization(s) resampled across all cases, {boot['resamples']} resamples, "
-        f"seed {boot['seed']})"
+        f"seed {boot['seed']}){shears}"
     )
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 import os
+from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -132,7 +133,13 @@ def real_padded_side(real: Mapping[str, Any], index: int, pad_pixels: float) -> 
     return side * hst_scale / float(real["pixel_scale"])
 
 
-@functools.lru_cache(maxsize=4)  # padded profiles are big (32 MB at 0.06"/px, 64 px; 10x at 0.2")
+#: Memory for the real galaxies kept built in one process (bytes). A padded galaxy holds
+#: its zero-padded HST image and that image's transform: 24 MB for a 64-px stamp at
+#: 0.06"/pixel, ten times more at 0.2"; building one costs 25-130 ms, drawing it 2-6 ms.
+REAL_CACHE_BYTES = 768 << 20
+_REAL_CACHE: OrderedDict[tuple[Any, ...], tuple[galsim.GSObject, float, int]] = OrderedDict()
+
+
 def _real_unit(
     path: str,
     image_dir: str,
@@ -142,14 +149,20 @@ def _real_unit(
     pad_pixels: float = 0.0,
 ) -> tuple[galsim.GSObject, float]:
     """Real galaxy ``index`` (deconvolved from its HST PSF), flux 1, in simulation pixels,
-    padded with HST-like correlated noise over ``pad_pixels`` (0: none); and its HST flux."""
+    padded with HST-like correlated noise over ``pad_pixels`` (0: none); and its HST flux.
+    The most recently used ones are kept, up to :data:`REAL_CACHE_BYTES`."""
+    key = (path, image_dir, int(index), float(pixel_scale), gsparams, float(pad_pixels))
+    if key in _REAL_CACHE:
+        _REAL_CACHE.move_to_end(key)
+        unit, flux0, _ = _REAL_CACHE[key]
+        return unit, flux0
     rgc = real_galaxy_catalog(path, image_dir)
     pad = pad_pixels * pixel_scale  # arcsec
+    cutout = max(rgc.getGalImage(int(index)).array.shape)
     pad_factor = 4.0  # GalSim's default
     if pad:
         real = {"catalog": path, "dir": image_dir, "pixel_scale": pixel_scale}
         padded = real_padded_side(real, index, pad_pixels) * pixel_scale / rgc.pixel_scale[index]
-        cutout = max(rgc.getGalImage(int(index)).array.shape)
         pad_factor = max(pad_factor, PAD_ZEROS * padded / cutout)
     gal = galsim.RealGalaxy(
         rgc,
@@ -160,9 +173,12 @@ def _real_unit(
         gsparams=gsparams,
     )
     flux0 = float(gal.flux)
-    return gal.withFlux(1.0).dilate(
-        1.0 / pixel_scale
-    ), flux0  # arcsec -> pixels (dilate keeps the flux)
+    unit = gal.withFlux(1.0).dilate(1.0 / pixel_scale)  # arcsec -> pixels (keeps the flux)
+    side = galsim.Image.good_fft_size(int(np.ceil(pad_factor * cutout)))
+    _REAL_CACHE[key] = (unit, flux0, 24 * side * side)  # the image and its transform
+    while sum(v[2] for v in _REAL_CACHE.values()) > REAL_CACHE_BYTES and len(_REAL_CACHE) > 1:
+        _REAL_CACHE.popitem(last=False)
+    return unit, flux0
 
 
 def real_footprint(real: Mapping[str, Any], index: int) -> float:
