@@ -359,6 +359,7 @@ def _describe_model(p: Path) -> dict[str, Any]:
         "targets": model.targets,
         "features": model.features,
         "shear_mode": model.shear_mode,
+        "symmetry": model.symmetry,
         "committees": committees,
         "training_sets": _training_sets(model.provenance),
         "domain": model_domain(model.provenance),
@@ -409,6 +410,7 @@ def describe_shipped_models() -> list[dict[str, Any]]:
                 "name": name,
                 "file": str(path),
                 "shear_mode": model.shear_mode,
+                "symmetry": model.symmetry,
                 "trained_on": next((t["summary"] for t in sets if t["summary"]), None),
                 "stamp_size": (domain or {}).get("stamp_size") or setup.get("stamp_size"),
                 "domain": domain_summary(domain) if domain else None,
@@ -423,6 +425,8 @@ def format_shipped_models(models: list[dict[str, Any]]) -> str:
     lines = []
     for m in models:
         mode = "metacal" if m["shear_mode"] == "metacal" else "plain"
+        if m.get("symmetry", "none") != "none":
+            mode += f"+{m['symmetry']}"
         stamp = f", stamp {m['stamp_size']} px" if m.get("stamp_size") else ""
         lines.append(
             f"{m['name']:<{width}}  {mode:<7}  "
@@ -540,6 +544,15 @@ def format_info(info: dict[str, Any]) -> str:
                 "the response; docs/metacal.md)"
                 if mode == "metacal"
                 else "simulation-calibrated (for catalogs measured without --metacal)"
+            )
+        )
+        lines.append(
+            "symmetry: "
+            + (
+                "d4 (the networks averaged over the stamp's 90-degree rotations and reflections: "
+                "no additive bias of their own; docs/metacal.md)"
+                if info.get("symmetry") == "d4"
+                else "none (the networks as trained)"
             )
         )
         lines.append(f"features: {', '.join(info['features'])}")

@@ -23,12 +23,16 @@ import numpy as np
 from megalut_cli.atomic import atomic_output
 from megalut_cli.errors import InputError
 from megalut_cli.nn.network import Network, sigmoid4
+from megalut_cli.nn.symmetry import SYMMETRIES, feature_signs, output_signs
 from megalut_cli.provenance import CREATOR, sha256_file, utc_now
 
 log = logging.getLogger(__name__)
 
 FORMAT = "megalut.model"
-FORMAT_VERSION = "1.0"
+#: The newest layout this megalut reads and writes; a model without ``symmetry`` is written
+#: in the 1.0 layout (1.1 added the ``symmetry`` attribute).
+FORMAT_VERSION = "1.1"
+FORMAT_VERSION_PLAIN = "1.0"
 KINDS = ("point", "weight")
 HISTORY_COLUMNS = ["train", "valid"]
 
@@ -308,6 +312,9 @@ class ShearModel:
         self.format_version = FORMAT_VERSION
         #: One of :data:`SHEAR_MODES`: the catalogs ``predict`` applies the model to.
         self.shear_mode = SHEAR_MODES[0]
+        #: One of :data:`megalut_cli.nn.symmetry.SYMMETRIES`: the networks as trained, or
+        #: averaged over the pixel grid's rotations and reflections.
+        self.symmetry = SYMMETRIES[0]
 
     @property
     def features(self) -> list[str]:
@@ -341,6 +348,29 @@ class ShearModel:
             "why": why,
         }
         out.shear_mode = mode
+        out.symmetry = self.symmetry
+        return out
+
+    def with_symmetry(self, symmetry: str, why: str) -> ShearModel:
+        """The same networks evaluated with ``symmetry`` (:data:`SYMMETRIES`), with the source
+        model's sha256 and ``why`` in the provenance (``symmetry_from``)."""
+        if symmetry not in SYMMETRIES:
+            raise ValueError(f"unknown symmetry {symmetry!r} (known: {', '.join(SYMMETRIES)})")
+        if symmetry != SYMMETRIES[0]:
+            for kind, comms in (("point", self.point), ("weight", self.weight)):
+                for comm in comms.values():
+                    feature_signs(comm.features)
+                    output_signs(comm.target, kind)
+        out = ShearModel(self.point, self.weight, self.provenance)
+        out.validation = dict(self.validation)
+        out.shear_mode = self.shear_mode
+        out.provenance["symmetry_from"] = {
+            "symmetry": self.symmetry,
+            "sha256": self.sha256,
+            "uuid": self.uuid,
+            "why": why,
+        }
+        out.symmetry = symmetry
         return out
 
     # ------------------------------------------------------------------ I/O
@@ -357,11 +387,15 @@ class ShearModel:
         with atomic_output(path, overwrite) as tmp:
             with h5py.File(tmp, "w") as f:
                 f.attrs["format"] = FORMAT
-                f.attrs["format_version"] = FORMAT_VERSION
+                f.attrs["format_version"] = (
+                    FORMAT_VERSION if self.symmetry != SYMMETRIES[0] else FORMAT_VERSION_PLAIN
+                )
                 f.attrs["creator"] = CREATOR
                 f.attrs["created"] = self.created
                 f.attrs["uuid"] = self.uuid
                 f.attrs["shear_mode"] = self.shear_mode
+                if self.symmetry != SYMMETRIES[0]:
+                    f.attrs["symmetry"] = self.symmetry
                 for kind, comms in (("point", self.point), ("weight", self.weight)):
                     kg = f.create_group(kind)
                     for target, comm in comms.items():
@@ -437,6 +471,11 @@ class ShearModel:
                 model.uuid = _attr(f, "uuid", "")
                 model.created = _attr(f, "created", "")
                 model.shear_mode = _attr(f, "shear_mode", SHEAR_MODES[0])
+                model.symmetry = _attr(f, "symmetry", SYMMETRIES[0])
+                if model.symmetry not in SYMMETRIES:
+                    raise InputError(
+                        f"{p}: unknown symmetry {model.symmetry!r} (known: {', '.join(SYMMETRIES)})"
+                    )
                 if model.shear_mode not in SHEAR_MODES:
                     raise InputError(
                         f"{p}: unknown shear_mode {model.shear_mode!r} "
