@@ -323,7 +323,9 @@ def test_models_by_name(runner, cli, cats):
     )
     assert (
         r.exit_code == 2
-        and "nor a shipped model (shipped: fiducial, fiducial-1e6, fiducial-metacal)" in r.stderr
+        and "nor a shipped model (shipped: fiducial, fiducial-1e6, fiducial-metacal, "
+        "fiducial-metacal-d4)"
+        in r.stderr
     )
     r = runner.invoke(cli, ["info", "fidutial"])
     assert r.exit_code == 2 and "fiducial-metacal" in r.stderr
@@ -334,6 +336,7 @@ def test_models_by_name(runner, cli, cats):
         ["fiducial", "plain"],
         ["fiducial-1e6", "plain"],
         ["fiducial-metacal", "metacal"],
+        ["fiducial-metacal-d4", "metacal+d4"],
     ]
     assert all(
         "gaussian PSF sigma 2.0; gaussian noise sigma 1.0, stamp 64 px" in line for line in lines
@@ -377,6 +380,9 @@ NETWORK_DIGESTS = {
     "fiducial": "7cc8d36c94d9d2e7c6634883631db4a23641b4fafb6765be9326918377fdb477",
     "fiducial-1e6": "8f3d82f9ace8d0c0858c181e7f39823701f25d72809245ee9021b05927b0e848",
     "fiducial-metacal": "52c121f414cdca3c06a72aefeb6ec430fce52fdd723b354cdceb2bbf6a65d20b",
+    # the networks of fiducial-metacal (the same datasets), averaged over the pixel grid's
+    # symmetries (root attribute symmetry = "d4")
+    "fiducial-metacal-d4": "a387416a1941f5e72c8f85c67ecf2f391835470a121a0eeb7957f57ecf9f6d96",
 }
 
 

@@ -12,6 +12,7 @@ SHIPPED_MODELS = {
     "fiducial": "fiducial.h5",
     "fiducial-1e6": "fiducial-1e6.h5",
     "fiducial-metacal": "fiducial-metacal.h5",
+    "fiducial-metacal-d4": "fiducial-metacal-d4.h5",
 }
 
 
