@@ -14,6 +14,7 @@ weights with R_sel
     python mcal_tools.py single OUT.json SHEARS.fits [N_BOOT] [SEED]  # one set, bootstrap \
 over galaxies
     python mcal_tools.py pergalaxy SHEARS.fits [OTHER.fits]    # m of each galaxy, their scatter
+    python mcal_tools.py chi2 SHEARS.fits [N_BOOT] [SEED]      # per-galaxy m with errors, chi^2
     python mcal_tools.py table RESULTS.json ...                # the README tables from --json files
     python mcal_tools.py responses SHEARS.fits ...             # mean and scatter of the responses
     python mcal_tools.py failures SHEARS.fits ... [--groups 2]  # failures as a selection \
@@ -543,6 +544,86 @@ def pergalaxy(paths: list[str]) -> None:
             )
 
 
+def _ring_m(weights: np.ndarray, sums: dict, n: np.ndarray) -> np.ndarray:
+    """(m1, m2) of one galaxy from its per-(ring, case) ``sums`` and counts ``n``, each ring
+    counted ``weights`` times, calibrated by its mean response."""
+    from megalut_cli.shear.bias import calibrate_by_response
+
+    cnt = weights @ n
+    mean = {c: (weights @ v) / cnt for c, v in sums.items()}
+    r = [[(weights @ sums[f"mcal_r{i}{j}"]).sum() / cnt.sum() for j in (1, 2)] for i in (1, 2)]
+    cal = calibrate_by_response(
+        r[0][0], r[0][1], r[1][0], r[1][1], mean["pre_g1_noshear"], mean["pre_g2_noshear"]
+    )
+    return np.array([np.polyfit(mean[f"tru_g{i + 1}"], cal[i], 1)[0] - 1.0 for i in (0, 1)])
+
+
+def chi2(path: str, n_boot: int = 200, seed: int = 1) -> None:
+    """Per-galaxy m (calibrated by the galaxy's own mean response) with its error from a
+    bootstrap over the galaxy's rings, and the chi^2 of the galaxies about their mean: is the
+    scatter between galaxies what their noise explains? (issue 39)"""
+    t = read_catalog(path)
+    nrea = int(read_cards(path)["NREA"][0])
+    gal, case = np.asarray(t["tru_real_index"]), np.asarray(t["case"])
+    ring = np.asarray(t["rea"]) // nrea
+    cols = ("pre_g1_noshear", "pre_g2_noshear", "mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22")
+    val = {c: np.asarray(t[c], dtype=float) for c in (*cols, "tru_g1", "tru_g2")}
+    ok = np.asarray(t["flags_noshear"]) == 0
+    for c in cols:
+        ok &= np.isfinite(val[c])
+    cases = np.unique(case)
+    rng = np.random.default_rng(seed)
+    out = []
+    for g in np.unique(gal):
+        sel = ok & (gal == g)
+        rings, r_idx = np.unique(ring[sel], return_inverse=True)
+        c_idx = np.searchsorted(cases, case[sel])
+        # per (ring, case) sums of every column and the counts
+        shape = (rings.size, cases.size)
+        flat = r_idx * cases.size + c_idx
+        sums = {
+            c: np.bincount(flat, weights=val[c][sel], minlength=rings.size * cases.size).reshape(
+                shape
+            )
+            for c in val
+        }
+        n = np.bincount(flat, minlength=rings.size * cases.size).reshape(shape).astype(float)
+
+        m = _ring_m(np.ones(rings.size), sums, n)
+        boot = np.array(
+            [
+                _ring_m(
+                    np.bincount(rng.integers(0, rings.size, rings.size), minlength=rings.size),
+                    sums,
+                    n,
+                )
+                for _ in range(n_boot)
+            ]
+        )
+        out.append((int(g), rings.size, *m, *boot.std(axis=0, ddof=1)))
+    a = np.array(out)
+    print("| galaxy | rings | m1 (%) | m2 (%) |")
+    print("|---|---|---|---|")
+    for row in a:
+        print(
+            f"| {int(row[0])} | {int(row[1])} | {100 * row[2]:+.2f} ± {100 * row[4]:.2f} | "
+            f"{100 * row[3]:+.2f} ± {100 * row[5]:.2f} |"
+        )
+    for k, comp in ((0, "m1"), (1, "m2")):
+        m, e = a[:, 2 + k], a[:, 4 + k]
+        w = 1.0 / e**2
+        mean = (w * m).sum() / w.sum()
+        pull = (m - mean) / e
+        chi = (pull**2).sum()
+        worst = int(a[np.argmax(np.abs(pull)), 0])
+        print(
+            f"{comp}: {len(m)} galaxies, scatter {100 * m.std(ddof=1):.2f} %, median noise "
+            f"{100 * np.median(e):.2f} %, chi2 {chi:.1f} for {len(m) - 1} dof "
+            f"(chi2/dof {chi / (len(m) - 1):.2f}); largest |pull| "
+            f"{np.abs(pull).max():.1f} (galaxy {worst})"
+        )
+
+
 def table(paths: list[str]) -> None:
     """One row per JSON file (megalut evaluate --twin --json) and scheme: m in units of
     1e-3, c in units of 1e-4."""
@@ -580,6 +661,8 @@ if __name__ == "__main__":
         paired(args[0], args[1], args[2], *(int(x) for x in args[3:5]))
     elif cmd == "pergalaxy":
         pergalaxy(args)
+    elif cmd == "chi2":
+        chi2(args[0], *(int(x) for x in args[1:3]))
     elif cmd == "single":
         single(args[0], args[1], *(int(x) for x in args[2:4]))
     elif cmd == "table":

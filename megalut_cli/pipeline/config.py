@@ -202,7 +202,9 @@ REFERENCE_OPTIONS: tuple[Option, ...] = (
         'with megalut: `"fiducial"` (`models/fiducial.h5`, the paper-size model) or '
         '`"fiducial-1e6"` (`models/fiducial-1e6.h5`, the model shipped before it; '
         '[models/README.md](../models/README.md)), or `"fiducial-metacal"` (the networks of '
-        "`fiducial` for metacal catalogs, [metacal.md](metacal.md))",
+        "`fiducial` for metacal catalogs, [metacal.md](metacal.md)), or "
+        '`"fiducial-metacal-d4"` (the same averaged over the stamp\'s rotations and '
+        "reflections: no additive bias of their own)",
         default_text="required",
         allowed_text="a path, or a shipped model's name",
     ),
