@@ -169,3 +169,23 @@ def test_output_safety(runner, cli, setup, tmp_path: Path) -> None:
     assert res.exit_code == 2 and "would replace the input model" in res.stderr
     res = runner.invoke(cli, ["train-weight", str(setup["tw"]), "-o", str(out)])
     assert res.exit_code == 2 and "--model" in res.stderr
+
+
+def test_weights_of_a_d4_model_are_trained_for_its_symmetrized_estimates(
+    runner, cli, setup, tmp_path: Path
+) -> None:
+    """A point model with symmetry d4 keeps it through train-weight, and the weights learn
+    from its symmetrized point estimates (so they differ from those of the same networks
+    as trained)."""
+    d4 = tmp_path / "d4.h5"
+    ShearModel.load(setup["model"]).with_symmetry("d4", "test").save(d4)
+    outs = {}
+    for name, model in (("plain", setup["model"]), ("d4", d4)):
+        outs[name] = tmp_path / f"w-{name}.h5"
+        res = _run(runner, cli, setup["tw"], "--model", model, "-o", outs[name], *FAST)
+        assert res.exit_code == 0, res.output
+    plain, sym = ShearModel.load(outs["plain"]), ShearModel.load(outs["d4"])
+    assert sym.symmetry == "d4" and plain.symmetry == "none"
+    assert not np.array_equal(
+        sym.weight["tru_g1"].member_params(0), plain.weight["tru_g1"].member_params(0)
+    )

@@ -55,6 +55,7 @@ from megalut_cli.nn.model import Committee, ShearModel, component_name
 from megalut_cli.nn.network import Network
 from megalut_cli.nn.options import POINT_OPTION, WEIGHT_OPTION, PointSpec, TrainSpec, WeightSpec
 from megalut_cli.nn.population import training_population
+from megalut_cli.nn.symmetry import symmetrized
 from megalut_cli.nn.train import TrainSettings
 from megalut_cli.parallel import executor
 from megalut_cli.progress import Progress, no_progress
@@ -179,7 +180,12 @@ def _load_cases(
         for t in targets:
             comm = point_model.point[t]
             x = np.column_stack([np.asarray(columns[f], dtype=np.float64) for f in comm.features])
-            point[t] = comm.predict(x)
+            # the point estimates the weights will multiply: symmetrized if the model is
+            point[t] = (
+                symmetrized(comm.predict, x, comm.features, t, "point")
+                if point_model.symmetry == "d4"
+                else comm.predict(x)
+            )
             ok &= np.isfinite(point[t])
     measured = ok.copy()
     if select_rows:
@@ -709,7 +715,9 @@ def fit_weight(
     committees = _run(committee_specs, settings, spec.seed, nproc, scheduler, progress)
     domain.update(source=src_names["train"], selection=spec.select)
     prov = _provenance("train-weight", {}, spec.seed, point_model.provenance, domain=domain)
-    return ShearModel(point=point_model.point, weight=committees, provenance=prov)
+    out = ShearModel(point=point_model.point, weight=committees, provenance=prov)
+    out.symmetry = point_model.symmetry  # the weights are trained for these point estimates
+    return out
 
 
 def train_weight(
@@ -773,6 +781,7 @@ def train_weight(
         _file_domain(result.provenance, train, setup, mode, population),
     )
     result.shear_mode = mode
+    result.symmetry = point_model.symmetry
     result.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, result.sha256[:12])
     return result
