@@ -378,7 +378,7 @@ def test_info_shows_the_population_and_the_domain(runner, cli):
 #: their domains were added (commit 6a47fb0): the networks did not change.
 NETWORK_DIGESTS = {
     "fiducial": "e2b709eb3525818f379ac613722afce73854b12f14d051289d791ebff7d01165",
-    "fiducial-1e6": "8f3d82f9ace8d0c0858c181e7f39823701f25d72809245ee9021b05927b0e848",
+    "fiducial-1e6": "a56e2ec5c490e4f4b8f4b200d38118eb0ebd4c10b956e3bd78bd7a5792d4364c",
     "fiducial-metacal": "52c121f414cdca3c06a72aefeb6ec430fce52fdd723b354cdceb2bbf6a65d20b",
     # the networks of fiducial-metacal (the same datasets), averaged over the pixel grid's
     # symmetries (root attribute symmetry = "d4")
