@@ -324,7 +324,7 @@ def test_models_by_name(runner, cli, cats):
     assert (
         r.exit_code == 2
         and "nor a shipped model (shipped: fiducial, fiducial-1e6, fiducial-metacal, "
-        "fiducial-metacal-d4)"
+        "fiducial-metacal-d4, fiducial-d4)"
         in r.stderr
     )
     r = runner.invoke(cli, ["info", "fidutial"])
@@ -337,6 +337,7 @@ def test_models_by_name(runner, cli, cats):
         ["fiducial-1e6", "plain"],
         ["fiducial-metacal", "metacal"],
         ["fiducial-metacal-d4", "metacal+d4"],
+        ["fiducial-d4", "plain+d4"],
     ]
     assert all(
         "gaussian PSF sigma 2.0; gaussian noise sigma 1.0, stamp 64 px" in line for line in lines
@@ -382,7 +383,8 @@ NETWORK_DIGESTS = {
     "fiducial-metacal": "52c121f414cdca3c06a72aefeb6ec430fce52fdd723b354cdceb2bbf6a65d20b",
     # the networks of fiducial-metacal (the same datasets), averaged over the pixel grid's
     # symmetries (root attribute symmetry = "d4")
-    "fiducial-metacal-d4": "a387416a1941f5e72c8f85c67ecf2f391835470a121a0eeb7957f57ecf9f6d96",
+    "fiducial-metacal-d4": "3a9753cf4d9f040856ef6fbbd565399c2dbb5f708fe915b675e7113d32b0b424",
+    "fiducial-d4": "f4b85fafc7d88fcd1cff7cf3886d650b8431f52d6948fcec2c32d2cfcc1e9c6b",
 }
 
 

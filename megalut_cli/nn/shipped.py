@@ -13,6 +13,7 @@ SHIPPED_MODELS = {
     "fiducial-1e6": "fiducial-1e6.h5",
     "fiducial-metacal": "fiducial-metacal.h5",
     "fiducial-metacal-d4": "fiducial-metacal-d4.h5",
+    "fiducial-d4": "fiducial-d4.h5",
 }
 
 

@@ -203,8 +203,8 @@ REFERENCE_OPTIONS: tuple[Option, ...] = (
         '`"fiducial-1e6"` (`models/fiducial-1e6.h5`, the model shipped before it; '
         '[models/README.md](../models/README.md)), or `"fiducial-metacal"` (the networks of '
         "`fiducial` for metacal catalogs, [metacal.md](metacal.md)), or "
-        '`"fiducial-metacal-d4"` (the same averaged over the stamp\'s rotations and '
-        "reflections: no additive bias of their own)",
+        '`"fiducial-metacal-d4"` and `"fiducial-d4"` (those networks averaged over the '
+        "stamp's rotations and reflections: no additive bias of their own)",
         default_text="required",
         allowed_text="a path, or a shipped model's name",
     ),
