@@ -420,16 +420,21 @@ def describe_shipped_models() -> list[dict[str, Any]]:
 
 
 def format_shipped_models(models: list[dict[str, Any]]) -> str:
-    """One line per shipped model: name, mode, training population and stamp size, file."""
+    """One line per shipped model: name, mode (and symmetry), training population and stamp
+    size, file."""
     width = max(len(m["name"]) for m in models)
-    lines = []
+    modes = []
     for m in models:
         mode = "metacal" if m["shear_mode"] == "metacal" else "plain"
         if m.get("symmetry", "none") != "none":
             mode += f"+{m['symmetry']}"
+        modes.append(mode)
+    mode_width = max(len(x) for x in modes)
+    lines = []
+    for m, mode in zip(models, modes):
         stamp = f", stamp {m['stamp_size']} px" if m.get("stamp_size") else ""
         lines.append(
-            f"{m['name']:<{width}}  {mode:<7}  "
+            f"{m['name']:<{width}}  {mode:<{mode_width}}  "
             f"{m['trained_on'] or 'training population not recorded'}{stamp}  ({m['file']})"
         )
     return "\n".join(lines)
