@@ -339,17 +339,7 @@ class ShearModel:
         source model's sha256 and ``why`` in the provenance (``mode_from``)."""
         if mode not in SHEAR_MODES:
             raise ValueError(f"unknown shear mode {mode!r} (known: {', '.join(SHEAR_MODES)})")
-        out = ShearModel(self.point, self.weight, self.provenance)
-        out.validation = dict(self.validation)
-        out.provenance["mode_from"] = {
-            "shear_mode": self.shear_mode,
-            "sha256": self.sha256,
-            "uuid": self.uuid,
-            "why": why,
-        }
-        out.shear_mode = mode
-        out.symmetry = self.symmetry
-        return out
+        return self._derived("shear_mode", mode, "mode_from", why)
 
     def with_symmetry(self, symmetry: str, why: str) -> ShearModel:
         """The same networks evaluated with ``symmetry`` (:data:`SYMMETRIES`), with the source
@@ -361,16 +351,21 @@ class ShearModel:
                 for comm in comms.values():
                     feature_signs(comm.features)
                     output_signs(comm.target, kind)
+        return self._derived("symmetry", symmetry, "symmetry_from", why)
+
+    def _derived(self, attr: str, value: str, record: str, why: str) -> ShearModel:
+        """A copy with ``attr`` set to ``value``; the source's ``attr``, sha256 and uuid and
+        ``why`` in the provenance under ``record``."""
         out = ShearModel(self.point, self.weight, self.provenance)
         out.validation = dict(self.validation)
-        out.shear_mode = self.shear_mode
-        out.provenance["symmetry_from"] = {
-            "symmetry": self.symmetry,
+        out.shear_mode, out.symmetry = self.shear_mode, self.symmetry
+        out.provenance[record] = {
+            attr: getattr(self, attr),
             "sha256": self.sha256,
             "uuid": self.uuid,
             "why": why,
         }
-        out.symmetry = symmetry
+        setattr(out, attr, value)
         return out
 
     # ------------------------------------------------------------------ I/O
