@@ -43,7 +43,10 @@ SHIPPED_SHA256 = {
     "fiducial": "3bdb52452b37b390d85694c915f23e4365118e726878f7ba728dab9d31aef7a2",
     "fiducial-1e6": "14ff239704736fb344097bad201995cad231d2afa2a67b3f2c428d6afa032e93",
 }
-REQUIREMENT_M, REQUIREMENT_C, MAX_M_ERR = 2e-3, 2e-4, 5e-4
+REQUIREMENT_M, REQUIREMENT_C = 2e-3, 2e-4
+#: The error of m on the test's 4-shear set includes the drawn shears' term since issue 39
+#: (docs/evaluate.md): the galaxies' part alone was 4.1-4.4e-4, the whole 6.4e-4 in g1.
+MAX_M_ERR = 8e-4
 
 
 @pytest.mark.parametrize("name", sorted(SHIPPED_SHA256))
