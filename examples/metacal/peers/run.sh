@@ -59,6 +59,8 @@ measure_all() {
     step "measure-metacal:$s" "$W/$s-mcal.fits" megalut measure "$W/$s-stamps.fits" "$W/$s.fits" -o "$W/$s-mcal.fits" \
         --psf "$W/psf.fits" --metacal --engine "$MCAL_ENGINE" --seed 3 -j "$J" -q
     step "predict-metacal:$s" "$W/$s-mcal-nn.fits" megalut predict "$W/$s-mcal.fits" --model "$MCAL_MODEL" -o "$W/$s-mcal-nn.fits" -j 1 -q
+    # (2') the same networks averaged over the stamp's rotations and reflections (issue 39)
+    step "predict-metacal-d4:$s" "$W/$s-mcal-nn4.fits" megalut predict "$W/$s-mcal.fits" --model fiducial-metacal-d4 -o "$W/$s-mcal-nn4.fits" -j 1 -q
     # (3) metacal on plain adaptive moments
     step "adamom-metacal:$s" "$W/$s-mcal-am.fits" python "$EX/adamom_metacal.py" "$W/$s-mcal.fits" -o "$W/$s-mcal-am.fits"
     # (4) AnaCal at the adaptive-moment centroid of the plain measurement
@@ -82,7 +84,7 @@ fi
 
 if has A; then
     measure_all A
-    for e in sc mcal-nn mcal-am anacal; do
+    for e in sc mcal-nn mcal-nn4 mcal-am anacal; do
         step "evaluate:A-$e" "$W/A-$e.json" sh -c 'megalut evaluate "$1" --bootstrap 500 --json "$2" -q > "$3"' _ \
             "$W/A-$e.fits" "$W/A-$e.json" "$W/A-$e.txt"
     done
@@ -91,7 +93,7 @@ fi
 if has B; then
     measure_all B-real
     measure_all B-twin
-    for e in sc mcal-nn mcal-am anacal; do
+    for e in sc mcal-nn mcal-nn4 mcal-am anacal; do
         for t in real twin; do  # each set alone (the definitions of the single-set evaluation, for compare.py)
             step "evaluate:B-$t-$e" "$W/B-$t-$e.json" sh -c 'megalut evaluate "$1" --errors fit --json "$2" -q > "$3"' _ \
                 "$W/B-$t-$e.fits" "$W/B-$t-$e.json" "$W/B-$t-$e.txt"

@@ -29,6 +29,7 @@ from megalut_cli.shear.bias import fit_bias
 EST = [
     ("sc", "(1) megalut, simulation-calibrated"),
     ("mcal-nn", "(2) megalut + metacal"),
+    ("mcal-nn4", "(2') megalut + metacal, networks averaged (d4)"),
     ("mcal-am", "(3) metacal, adaptive moments"),
     ("anacal", "(4) AnaCal"),
 ]
