@@ -380,10 +380,10 @@ def test_info_shows_the_population_and_the_domain(runner, cli):
 NETWORK_DIGESTS = {
     "fiducial": "e2b709eb3525818f379ac613722afce73854b12f14d051289d791ebff7d01165",
     "fiducial-1e6": "a56e2ec5c490e4f4b8f4b200d38118eb0ebd4c10b956e3bd78bd7a5792d4364c",
-    "fiducial-metacal": "52c121f414cdca3c06a72aefeb6ec430fce52fdd723b354cdceb2bbf6a65d20b",
+    "fiducial-metacal": "6f4acc532a3cf8709d9bebfcad87cd0494869bbe6250fc5825598142a331310a",
     # the networks of fiducial-metacal (the same datasets), averaged over the pixel grid's
     # symmetries (root attribute symmetry = "d4")
-    "fiducial-metacal-d4": "3a9753cf4d9f040856ef6fbbd565399c2dbb5f708fe915b675e7113d32b0b424",
+    "fiducial-metacal-d4": "6322d9ea6a9cf11e18c8c24196194d2e54d20d520bf871a99074c8cae8523f46",
     "fiducial-d4": "f4b85fafc7d88fcd1cff7cf3886d650b8431f52d6948fcec2c32d2cfcc1e9c6b",
 }
 

@@ -117,6 +117,10 @@ def test_predict_logs_population_and_recorded_bias(trained):
     assert "m_real - m_twin = -2.20e-02 ± 4.0e-03 (g1), -2.30e-02 ± 5.0e-03 (g2)" in text
     with pytest.raises(InputError, match="missing dm_g2"):
         record_real_bias(model, {k: v for k, v in RECORD.items() if k != "dm_g2"})
+    # a metacal model records m_real itself (no twins), and says so
+    record_real_bias(model, {**RECORD, "quantity": "m_real", "dm_g1": 5e-5})
+    (line,) = [x for x in model_report(ShearModel.load(model)) if "real galaxies" in x]
+    assert "m_real = +5.00e-05 ± 4.0e-03 (g1)" in line and "m_twin" not in line
 
 
 def test_old_model_without_population(tmp_path):

@@ -7,6 +7,10 @@ HST noise" \
 
 Stores the weighted m_real - m_twin (unweighted when the catalogs had no weights) as the
 model's ``/validation`` ``real_galaxy_bias`` (docs/model-format.md); ``megalut predict`` logs it.
+
+With ``--m-real``, RESULT.json is a single-set result (``examples/metacal/mcal_tools.py
+single``: real galaxies alone, as for a metacal model, which needs no twins) and m_real itself
+is recorded, with ``quantity = "m_real"``.
 """
 
 from __future__ import annotations
@@ -17,8 +21,9 @@ import sys
 from megalut_cli.nn.population import record_real_bias
 
 
-def main(model: str, result_json: str, setup: str, command: str) -> None:
-    """Record the overall paired result of ``result_json`` in ``model``."""
+def main(model: str, result_json: str, setup: str, command: str, m_real: bool = False) -> None:
+    """Record the overall paired result of ``result_json`` in ``model`` (``m_real``: the
+    real set's own m of a single-set result)."""
     with open(result_json) as f:
         result = json.load(f)
     scheme = "weighted" if "weighted" in result["overall"] else "unweighted"
@@ -30,13 +35,17 @@ def main(model: str, result_json: str, setup: str, command: str) -> None:
         "n_galaxies": res["g1"]["n_galaxies"],
         "n_cases": res["g1"]["n_cases"],
     }
+    if m_real:
+        record["quantity"] = "m_real"
     for comp in ("g1", "g2"):
-        record[f"dm_{comp}"] = res[comp]["dm"]
-        record[f"dm_{comp}_err"] = res[comp]["dm_err"]
+        key = "m_a" if m_real else "dm"
+        record[f"dm_{comp}"] = res[comp][key]
+        record[f"dm_{comp}_err"] = res[comp][f"{key}_err"]
     record_real_bias(model, record)
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 5:
-        sys.exit("usage: record_bias.py MODEL.h5 PAIRED.json SETUP COMMAND")
-    main(*sys.argv[1:])
+    args = [a for a in sys.argv[1:] if a != "--m-real"]
+    if len(args) != 4:
+        sys.exit("usage: record_bias.py [--m-real] MODEL.h5 RESULT.json SETUP COMMAND")
+    main(*args, m_real="--m-real" in sys.argv[1:])

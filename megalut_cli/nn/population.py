@@ -30,6 +30,9 @@ from megalut_cli.sim.profiles import GALAXY_PROFILES
 REAL_BIAS_ATTR = "real_galaxy_bias"
 #: Keys a real-galaxy bias record must hold.
 REAL_BIAS_KEYS = ("dm_g1", "dm_g1_err", "dm_g2", "dm_g2_err", "scheme", "setup", "command")
+#: What ``dm_g1, dm_g2`` of a record are unless it says (optional key ``quantity``): the paired
+#: real-vs-twin difference (docs/realgal.md); a metacal model records ``m_real`` itself.
+REAL_BIAS_QUANTITY = "m_real - m_twin"
 
 
 def training_population(catalog: str | os.PathLike) -> dict[str, Any] | None:
@@ -186,7 +189,8 @@ def model_report(model: Any) -> list[str]:
     if isinstance(rec, Mapping):
         lines.append(
             f"recorded model bias on real galaxies ({rec.get('setup')}, {rec.get('scheme')}): "
-            f"m_real - m_twin = {rec.get('dm_g1'):+.2e} ± {rec.get('dm_g1_err'):.1e} (g1), "
+            f"{rec.get('quantity', REAL_BIAS_QUANTITY)} = "
+            f"{rec.get('dm_g1'):+.2e} ± {rec.get('dm_g1_err'):.1e} (g1), "
             f"{rec.get('dm_g2'):+.2e} ± {rec.get('dm_g2_err'):.1e} (g2)"
         )
     else:
