@@ -55,7 +55,7 @@ from megalut_cli.nn.model import Committee, ShearModel, component_name
 from megalut_cli.nn.network import Network
 from megalut_cli.nn.options import POINT_OPTION, WEIGHT_OPTION, PointSpec, TrainSpec, WeightSpec
 from megalut_cli.nn.population import training_population
-from megalut_cli.nn.symmetry import symmetrized
+from megalut_cli.nn.symmetry import predict_with_symmetry
 from megalut_cli.nn.train import TrainSettings
 from megalut_cli.parallel import executor
 from megalut_cli.progress import Progress, no_progress
@@ -180,11 +180,9 @@ def _load_cases(
         for t in targets:
             comm = point_model.point[t]
             x = np.column_stack([np.asarray(columns[f], dtype=np.float64) for f in comm.features])
-            # the point estimates the weights will multiply: symmetrized if the model is
-            point[t] = (
-                symmetrized(comm.predict, x, comm.features, t, "point")
-                if point_model.symmetry == "d4"
-                else comm.predict(x)
+            # the point estimates the weights will multiply, as predict makes them
+            point[t] = predict_with_symmetry(
+                point_model.symmetry, comm.predict, x, comm.features, t, "point"
             )
             ok &= np.isfinite(point[t])
     measured = ok.copy()
@@ -781,7 +779,6 @@ def train_weight(
         _file_domain(result.provenance, train, setup, mode, population),
     )
     result.shear_mode = mode
-    result.symmetry = point_model.symmetry
     result.save(out, overwrite=overwrite)
     log.info("wrote %s (sha256 %s)", out, result.sha256[:12])
     return result

@@ -40,7 +40,7 @@ from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.measure.metacal_defaults import STEP_CARD, TYPES, header_step
 from megalut_cli.nn.domain import Finding, domain_findings, model_domain
 from megalut_cli.nn.model import ShearModel, prediction_column
-from megalut_cli.nn.symmetry import symmetrized
+from megalut_cli.nn.symmetry import predict_with_symmetry
 from megalut_cli.parallel import executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.shear.options import PREDICT
@@ -120,16 +120,14 @@ def predict_arrays(
             cols = [index[f] for f in committee.features]
             sub = xg if cols == list(range(x.shape[1])) else xg[:, cols]
             values = np.full(n, 0.0 if is_weight else np.nan)
-            if model.symmetry == "d4":
-                pred = symmetrized(
-                    committee.predict,
-                    sub,
-                    committee.features,
-                    committee.target,
-                    "weight" if is_weight else "point",
-                )
-            else:
-                pred = np.asarray(committee.predict(np.ascontiguousarray(sub)), dtype=np.float64)
+            pred = predict_with_symmetry(
+                model.symmetry,
+                committee.predict,
+                sub,
+                committee.features,
+                committee.target,
+                "weight" if is_weight else "point",
+            )
             if is_weight:
                 pred = np.where(np.isfinite(pred), pred, 0.0)
             values[good] = pred
