@@ -3,7 +3,8 @@ identical?
 
 Runs one fixed, small workflow (every subcommand and its main modes: ``simulate`` with the fast
 engine, the galsim engine, a stamp grid and metacal; ``measure`` plain, ``--psf`` and
-``--metacal``; ``train-point``; ``train-weight``; ``predict`` plain and metacal; ``evaluate``;
+``--metacal``, a GREAT3 subfield and star field, MEDS files with and without PSF cutouts
+and ``--metacal``; ``train-point``; ``train-weight``; ``predict`` plain and metacal; ``evaluate``;
 ``megalut run`` on a tiny pipeline; ``info``) with ``python -m megalut_cli`` in two trees, a
 ``git worktree`` of ``--before`` and the current working tree (or ``--after``), then compares
 every product: FITS HDUs (data exactly, header cards but the provenance ones), HDF5 datasets
@@ -126,6 +127,7 @@ TREE_INPUTS = [
     ("examples/fiducial/tw.toml", "in/tw.toml"),
     ("examples/fiducial/vo.toml", "in/vo.toml"),
     ("examples/fiducial/vo-crn.toml", "in/vo-crn.toml"),
+    ("examples/great3/branch.toml", "in/branch.toml"),
     ("megalut_cli/data/fiducial-metacal.h5", "in/fiducial-metacal.h5"),
 ]
 
@@ -206,6 +208,65 @@ WORKFLOW: list[Step] = [
             "--metacal",
             "--seed",
             "7",
+            "-j",
+            "1",
+        ],
+    ),
+    Step(
+        "simulate GREAT3 branch (--great3)",
+        _sim("branch.toml", "g3.fits", 2, 100, 8, "--great3", "g3"),
+    ),
+    Step(
+        "measure GREAT3 subfield (--origin 0, star field PSF)",
+        [
+            "measure",
+            "g3/image-001-0.fits",
+            "g3/galaxy_catalog-001.txt",
+            "-o",
+            "g3-features.fits",
+            "--stamp-size",
+            "48",
+            "--origin",
+            "0",
+            "--psf",
+            "g3/starfield_image-001-0.fits",
+            "-j",
+            "1",
+        ],
+    ),
+    Step(
+        "measure GREAT3 star field",
+        ["measure", "g3/starfield_image-001-0.fits", "-o", "g3-stars.fits", "-j", "1"],
+    ),
+    Step(
+        "measure MEDS (PSF cutouts, masks, weights)",
+        ["measure", "in/objects.meds.fits", "-o", "meds.fits", "-j", "1"],
+    ),
+    Step(
+        "measure MEDS --metacal --morphology (odd PSF cutouts)",
+        [
+            "measure",
+            "in/objects.meds.fits",
+            "-o",
+            "meds-mcal.fits",
+            "--metacal",
+            "--morphology",
+            "--seed",
+            "9",
+            "-j",
+            "2",
+        ],
+    ),
+    Step(
+        "measure MEDS --psf --metacal (one PSF)",
+        [
+            "measure",
+            "in/nopsf.meds.fits",
+            "-o",
+            "meds-psf.fits",
+            "--psf",
+            "in/psf.fits",
+            "--metacal",
             "-j",
             "1",
         ],
@@ -407,6 +468,41 @@ def _write_psf(path: Path, size: int = 64) -> None:
     galsim.Gaussian(sigma=2.0).drawImage(nx=size, ny=size, scale=1.0).write(str(path))
 
 
+def _write_meds(folder: Path) -> None:
+    """The MEDS files of the MEDS steps (written once, by this tree, copied into both runs):
+    120 noisy Sersic galaxies in 48-px boxes with weights, a few masked pixels and per-object
+    PSF cutouts of 25 px (two PSFs, as two CCDs; odd, so redrawn for metacal), and the same
+    galaxies without PSF cutouts."""
+    import galsim
+
+    from megalut_cli.measure.meds import write_meds
+
+    rng = np.random.default_rng(2026)
+    n, size = 120, 48
+    psfs = [
+        galsim.Moffat(beta=3.0, fwhm=fwhm).shear(g1=g1) for fwhm, g1 in ((4.0, 0.0), (4.6, 0.03))
+    ]
+    images = np.empty((n, size, size), np.float32)
+    psf_images = np.empty((n, 25, 25), np.float32)
+    for i in range(n):
+        psf = psfs[i % 2]
+        gal = galsim.Sersic(n=1.0 + 2.0 * rng.random(), half_light_radius=2.0 + 2.0 * rng.random())
+        gal = gal.withFlux(2000.0 + 4000.0 * rng.random()).shear(
+            g1=0.3 * rng.random() - 0.15, g2=0.3 * rng.random() - 0.15
+        )
+        img = galsim.Convolve(gal, psf).drawImage(
+            nx=size, ny=size, scale=1.0, offset=rng.uniform(-0.5, 0.5, 2)
+        )
+        images[i] = img.array + rng.normal(0.0, 1.5, (size, size))
+        psf_images[i] = psf.drawImage(nx=25, ny=25, scale=1.0).array
+    weights = np.full_like(images, 1.0 / 1.5**2)
+    bmasks = np.zeros(images.shape, np.int32)
+    bmasks[::7, 3:6, 30:33] = 1  # a small defect off centre
+    bmasks[5, 20:28, 20:28] = 1  # one masked at the centre: MASKED_PIXELS
+    write_meds(folder / "objects.meds.fits", images, weights, bmasks, psf_images)
+    write_meds(folder / "nopsf.meds.fits", images, weights, bmasks)
+
+
 def _prepare(tree: Tree, psf: Path) -> None:
     (tree.run / "in").mkdir(parents=True)
     (tree.run / "logs").mkdir()
@@ -414,6 +510,8 @@ def _prepare(tree: Tree, psf: Path) -> None:
         if (tree.path / src).is_file():
             shutil.copyfile(tree.path / src, tree.run / dst)
     shutil.copyfile(psf, tree.run / "in" / "psf.fits")
+    for name in ("objects.meds.fits", "nopsf.meds.fits"):
+        shutil.copyfile(psf.parent / name, tree.run / "in" / name)
     (tree.run / "in" / "pipeline.toml").write_text(PIPELINE)
 
 
@@ -812,6 +910,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         psf = root / "psf.fits"
         _write_psf(psf)
+        _write_meds(root)
         for label, ref in (("before", args.before), ("after", args.after)):
             trees.append(_make_tree(label, ref, root))
         before, after = trees

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import re
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -21,6 +20,7 @@ import numpy as np
 from megalut_cli.atomic import atomic_output
 from megalut_cli.columns import column_cards, column_units
 from megalut_cli.errors import InputError
+from megalut_cli.fits_header import STRUCTURAL_KEYWORDS, header_dict, image_ext
 from megalut_cli.provenance import CREATOR, command_line, utc_now
 
 if TYPE_CHECKING:  # astropy.table costs ~0.4 s to import: loaded where a Table is made
@@ -53,18 +53,6 @@ def _table_ext(fits: fitsio.FITS, path: str | os.PathLike) -> int:
     raise InputError(f"{path}: no table extension (is this a catalog?)")
 
 
-def image_ext(fits: fitsio.FITS, path: str | os.PathLike, ext: int | None = None) -> int:
-    """``ext``, or else the index of the first image HDU of ``fits`` that holds data."""
-    if ext is not None:
-        return ext
-    found = next(
-        (i for i, h in enumerate(fits) if h.get_exttype() == "IMAGE_HDU" and h.has_data()), None
-    )
-    if found is None:
-        raise InputError(f"{path}: no image in this FITS file")
-    return found
-
-
 def _native(arr: np.ndarray) -> np.ndarray:
     """Convert a (big-endian) structured array read from FITS to native byte order."""
     if arr.dtype.names is None:
@@ -87,26 +75,6 @@ def catalog_info(path: str | os.PathLike) -> tuple[int, list[str], dict[str, Any
         raise _open_error(path, err) from None
 
 
-_STRUCTURAL = re.compile(
-    r"^(XTENSION|SIMPLE|EXTEND|BITPIX|NAXIS\d*|PCOUNT|GCOUNT|TFIELDS|BZERO|BSCALE|T(TYPE|FORM|UNIT|COMM|DIM|NULL|SCAL|ZERO)\d+"
-    r"|FLAGBIT\d+)$"
-)
-
-
-def header_dict(hdr: fitsio.FITSHDR) -> dict[str, Any]:
-    """Header as a dict of user-level cards (structural keywords left out)."""
-    out: dict[str, Any] = {}
-    for rec in hdr.records():
-        name = rec.get("name")
-        if not name or name in ("COMMENT", "CONTINUE") or _STRUCTURAL.match(name):
-            continue
-        if name == "HISTORY":
-            out.setdefault("HISTORY", []).append(str(rec.get("value", "")))
-        else:
-            out[name] = rec.get("value")
-    return out
-
-
 def read_cards(path: str | os.PathLike, ext: int | None = None) -> dict[str, Any]:
     """User-level cards of a catalog's table header (or of HDU ``ext``, e.g. a stamp image)
     as ``(value, comment)`` pairs, to carry into a catalog made from it; ``COMMENT`` cards
@@ -126,7 +94,7 @@ def read_cards(path: str | os.PathLike, ext: int | None = None) -> dict[str, Any
     out: dict[str, Any] = {}
     for rec in hdr.records():
         name = rec.get("name")
-        if not name or name in _MANAGED or name == "CONTINUE" or _STRUCTURAL.match(name):
+        if not name or name in _MANAGED or name == "CONTINUE" or STRUCTURAL_KEYWORDS.match(name):
             continue
         if name == "COMMENT":
             out.setdefault("COMMENT", []).append(str(rec.get("value", "")))
@@ -393,7 +361,7 @@ def header_cards(
     comments: list[str] = []
     for key, val in (cards or {}).items():
         key = key.upper()
-        if key in _MANAGED or _STRUCTURAL.match(key):
+        if key in _MANAGED or STRUCTURAL_KEYWORDS.match(key):
             continue
         if key == "COMMENT":
             comments.extend(str(v) for v in ([val] if isinstance(val, str) else val))

@@ -13,8 +13,10 @@ from collections.abc import Sequence
 from typing import Any
 
 from megalut_cli import flags
+from megalut_cli.measure.feature_sets import column_descriptions
+from megalut_cli.measure.metacal_defaults import TYPES
 
-#: (unit, comment) of the columns megalut writes.
+#: (unit, comment) of the columns megalut writes, the feature sets' declared with them.
 COLUMNS: dict[str, tuple[str, str]] = {
     "case": ("", "case index (one galaxy/shear per case)"),
     "rea": ("", "realization index within the case"),
@@ -33,7 +35,6 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "orig_col": ("pixel", "MEDS object column in the measured cutout's image (0-based)"),
     "noise_weight": ("adu", "pixel noise from the weight map: 1/sqrt(median weight)"),
     "n_masked": ("", "masked pixels of the stamp (bmask != 0 or weight 0; -1: no cutout)"),
-    "flags": ("", "bitmask of failures, see FLAGBITn cards (0: good)"),
     "tru_g1": ("", "true reduced shear g1"),
     "tru_g2": ("", "true reduced shear g2"),
     "tru_e1": ("", "true intrinsic ellipticity e1"),
@@ -60,22 +61,10 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "tru_twin_sersicn": ("", "Sersic index of the real galaxy's Sersic fit"),
     "tru_twin_g1": ("", "intrinsic shape g1 of the Sersic fit (HST frame)"),
     "tru_twin_g2": ("", "intrinsic shape g2 of the Sersic fit (HST frame)"),
-    "morph_conc": ("", "light in the adaptive Gaussian window over that in 2x it"),
-    "morph_conc_inner": ("", "light in 0.5x the adaptive Gaussian window over 1x"),
-    "morph_size_ratio": ("", "sqrt of mean rho^2 in a 2x adaptive window over 1x"),
-    "adamom_flux": ("adu", "HSM adaptive-moment amplitude (moments_amp)"),
-    "adamom_g1": ("", "HSM adaptive-moment shape g1"),
-    "adamom_g2": ("", "HSM adaptive-moment shape g2"),
-    "adamom_sigma": ("pixel", "HSM adaptive-moment size (moments_sigma)"),
-    "adamom_rho4": ("", "HSM adaptive-moment radial kurtosis (moments_rho4)"),
-    "adamom_x": ("pixel", "HSM adaptive-moment centroid x (FITS 1-based)"),
-    "adamom_y": ("pixel", "HSM adaptive-moment centroid y (FITS 1-based)"),
-    "adamom_logflux": ("", "log10 of adamom_flux in ADU"),
-    "skymad": ("adu", "sky noise: 1.4826 MAD of the stamp-edge pixels"),
-    "snr": ("", "signal-to-noise ratio (paper Eq. 8 or 10)"),
+    **column_descriptions(),
 }
 
-_METACAL = re.compile(r"^(?P<base>.+)_(?P<kind>noshear|1p|1m|2p|2m)$")
+_METACAL = re.compile(rf"^(?P<base>.+)_(?P<kind>{'|'.join(TYPES)})$")
 _RESPONSE = re.compile(r"^mcal_r(?P<i>[12])(?P<j>[12])$")
 _PRE_WEIGHT = re.compile(r"^pre_(?P<base>.+)_w$")
 _PRE = re.compile(r"^pre_(?P<base>.+)$")
@@ -91,7 +80,7 @@ def describe(name: str) -> tuple[str, str] | None:
     if m := _METACAL.match(name):
         base = describe(m["base"])
         return None if base is None else (base[0], f"metacal {m['kind']}: {base[1]}"[:68])
-    if name.startswith("flags_") and name[len("flags_") :] in ("noshear", "1p", "1m", "2p", "2m"):
+    if name.startswith("flags_") and name[len("flags_") :] in TYPES:
         return ("", f"flags of the metacal {name[len('flags_') :]} version")
     if m := _PSF.match(name):
         base = describe(m["base"])

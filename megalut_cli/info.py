@@ -17,8 +17,9 @@ import fitsio
 import numpy as np
 
 from megalut_cli import flags as fl
-from megalut_cli.catalog import header_dict, history_steps, read_text_catalog
+from megalut_cli.catalog import history_steps, read_text_catalog
 from megalut_cli.errors import InputError
+from megalut_cli.fits_header import header_dict
 from megalut_cli.nn.domain import domain_summary, model_domain
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.nn.population import domain_line, population_lines, population_summary

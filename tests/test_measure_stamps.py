@@ -9,7 +9,8 @@ import pytest
 from megalut_cli import flags as fl
 from megalut_cli.catalog import read_catalog, read_image, write_catalog, write_image
 from megalut_cli.errors import ConfigError, InputError
-from megalut_cli.measure.measure import PSF_COLUMNS, measure_file
+from megalut_cli.measure.defaults import PSF_COLUMNS
+from megalut_cli.measure.measure import measure_file
 from megalut_cli.measure.stamps import (
     ImageInfo,
     catalog_origins,

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from megalut_cli.catalog import read_catalog, write_catalog, write_image
+from megalut_cli.measure.defaults import PSF_COLUMNS
 from megalut_cli.measure.features import measure_stamps
-from megalut_cli.measure.measure import PSF_COLUMNS
 from megalut_cli.measure.psf_model import PIFF, PSFEX, file_kind, load_psf_model
 from megalut_cli.provenance import sha256_file
 

@@ -10,12 +10,14 @@ from megalut_cli.cli.options import (
     device_option,
     engine_option,
     execution_options,
+    feature_set_options,
     output_option,
     overwrite_option,
     progress,
     schema_option,
 )
 from megalut_cli.engine import resolve_device
+from megalut_cli.measure.feature_sets import requested_sets
 from megalut_cli.measure.options import MEASURE
 
 
@@ -52,7 +54,7 @@ from megalut_cli.measure.options import MEASURE
 )
 @schema_option(MEASURE["cutout"], show_default=True)
 @schema_option(MEASURE["stars"])
-@schema_option(MEASURE["morphology"])
+@feature_set_options(MEASURE)
 @schema_option(MEASURE["metacal"])
 @schema_option(MEASURE["metacal_step"], show_default=True)
 @schema_option(MEASURE["seed"], show_default=True)
@@ -71,7 +73,6 @@ def command(
     psf_model: str | None,
     cutout: int,
     stars: bool | None,
-    morphology: bool,
     metacal: bool,
     metacal_step: float,
     seed: int,
@@ -80,6 +81,7 @@ def command(
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
+    **feature_flags: bool,
 ) -> None:
     """Measure the paper's features (Sect. 4) on each stamp of STAMPS.
 
@@ -156,7 +158,7 @@ def command(
             progress=progress,
             stars=stars,
             engine=engine,
-            morphology=morphology,
+            feature_sets=requested_sets(feature_flags),
             device=device,
             names=flag_names(psf_path="--psf", psf_model_path="--psf-model"),
             metacal=metacal,

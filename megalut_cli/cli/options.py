@@ -23,6 +23,7 @@ from megalut_cli.engine import (
     resolve_device,
 )
 from megalut_cli.errors import InputError
+from megalut_cli.measure.feature_sets import set_options
 from megalut_cli.nn.options import (
     COMMITTEE_OPTIONS,
     OPTIMIZER_OPTIONS,
@@ -106,6 +107,19 @@ def execution_options(f: F) -> F:
         return f(*args, **kwargs)
 
     return wrapper
+
+
+def feature_set_options(declared: dict[str, Option]) -> Callable[[F], F]:
+    """The click options of the optional feature sets (``--morphology``, ...;
+    :mod:`megalut_cli.measure.feature_sets`) as a command ``declared`` them, in registration
+    order; the command takes them as ``**feature_flags``."""
+
+    def decorate(f: F) -> F:
+        for option in reversed(set_options()):
+            f = schema_option(declared[option.name])(f)
+        return f
+
+    return decorate
 
 
 def schema_option(

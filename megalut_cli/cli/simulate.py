@@ -12,12 +12,14 @@ from megalut_cli.cli.options import (
     device_option,
     engine_option,
     execution_options,
+    feature_set_options,
     output_option,
     overwrite_option,
     progress,
     schema_option,
 )
 from megalut_cli.engine import resolve_device
+from megalut_cli.measure.feature_sets import requested_sets
 from megalut_cli.sim.config import keys_as_written, load_config
 from megalut_cli.sim.options import SIMULATE
 
@@ -38,7 +40,7 @@ log = logging.getLogger(__name__)
     help="Also write the stamps as a FITS image grid (stamp k at column k mod n_x, row k div n_x).",
 )
 @schema_option(SIMULATE["measure"])
-@schema_option(SIMULATE["morphology"])
+@feature_set_options(SIMULATE)
 @schema_option(SIMULATE["metacal"])
 @schema_option(SIMULATE["metacal_step"], show_default=True)
 @click.option(
@@ -64,7 +66,6 @@ def command(
     output: str,
     stamps: str | None,
     measure: bool,
-    morphology: bool,
     metacal: bool,
     metacal_step: float,
     great3_dir: str | None,
@@ -77,6 +78,7 @@ def command(
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
+    **feature_flags: bool,
 ) -> None:
     """Simulate the stamps described by CONFIG (a TOML file, see docs/config.md).
 
@@ -131,8 +133,10 @@ def command(
         config, overrides, n_cases=n_cases, n_realizations=n_realizations
     ):  # [table] key of FILE
         cfg = load_config(config, overrides, n_cases=n_cases, n_realizations=n_realizations)
-    if morphology and (not measure or great3_dir is not None):
-        raise click.UsageError("--morphology needs --measure (and not --great3)")
+    feature_sets = requested_sets(feature_flags)
+    if feature_sets and (not measure or great3_dir is not None):
+        flag = SIMULATE[feature_sets[0]].cli_flag
+        raise click.UsageError(f"{flag} needs --measure (and not --great3)")
     if metacal and (not measure or great3_dir is not None):
         raise click.UsageError("--metacal needs --measure (and not --great3)")
     if great3_dir is not None and stamps is not None:
@@ -185,7 +189,7 @@ def command(
         output,
         stamps=stamps,
         measure=measure,
-        morphology=morphology,
+        feature_sets=feature_sets,
         seed=seed,
         nproc=nproc,
         scheduler=scheduler,

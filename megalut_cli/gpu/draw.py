@@ -24,12 +24,12 @@ from megalut_cli.gpu import measure as gmeasure
 from megalut_cli.gpu import render as grender
 from megalut_cli.gpu.measure import measure_on_device, padded_size, split_measurements
 from megalut_cli.gpu.noise import add_gaussian_noise
+from megalut_cli.measure.feature_sets import compute_extra
 from megalut_cli.measure.features import (
     default_guess_sigma,
     default_max_shift,
     features_from_moments,
 )
-from megalut_cli.measure.morphology import morphology_of_measured
 from megalut_cli.sim.draw import (
     WorkUnit,
     case_columns,
@@ -193,8 +193,8 @@ def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
             noises[noise_of[k]].add_batch(host[k : k + 1], seeds[k : k + 1])
         stamps = jax.device_put(host, dev)
     keep = unit.keep_stamps or (
-        unit.measure and unit.morphology
-    )  # morphology is measured on the host
+        unit.measure and bool(unit.feature_sets)
+    )  # the optional feature sets are measured on the host
     kept = np.asarray(stamps) if keep else None
     results = measure_on_device(stamps, guess) if unit.measure else None
 
@@ -211,6 +211,6 @@ def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
                 moments, skymad, finite, origins, S, cfg.gain, default_max_shift(S)
             )
         )
-        if unit.morphology:
-            columns.update(morphology_of_measured(kept, origins, columns))
+        if unit.feature_sets:
+            columns.update(compute_extra(unit.feature_sets, kept, origins, columns))
     return {"columns": columns, "stamps": kept if unit.keep_stamps else None}

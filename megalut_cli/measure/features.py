@@ -36,6 +36,7 @@ from megalut_cli import flags as fl
 from megalut_cli.engine import ENGINES, device_backend
 from megalut_cli.errors import Names, namer
 from megalut_cli.measure.defaults import MAD_TO_SIGMA
+from megalut_cli.measure.feature_registry import Column, FeatureSet, register_feature_set
 
 log = logging.getLogger(__name__)
 
@@ -43,23 +44,41 @@ log = logging.getLogger(__name__)
 #: HSM (:mod:`.adamom`), and GalSim's ``FindAdaptiveMom`` stamp by stamp (the reference).
 MEASURE_ENGINES: tuple[str, ...] = tuple(ENGINES)
 
-#: Feature columns added by :func:`measure_stamps`, in this order.
-FEATURE_COLUMNS: tuple[str, ...] = (
-    "adamom_flux",
-    "adamom_g1",
-    "adamom_g2",
-    "adamom_sigma",
-    "adamom_rho4",
-    "adamom_x",
-    "adamom_y",
-    "adamom_logflux",
-    "skymad",
-    "snr",
-    "flags",
+#: The base feature set (:func:`measure_stamps`): the adaptive moments, the sky and the flags.
+ADAMOM_SET = register_feature_set(
+    FeatureSet(
+        "adamom",
+        (
+            Column("adamom_flux", "adu", "HSM adaptive-moment amplitude (moments_amp)"),
+            Column("adamom_g1", "", "HSM adaptive-moment shape g1"),
+            Column("adamom_g2", "", "HSM adaptive-moment shape g2"),
+            Column("adamom_sigma", "pixel", "HSM adaptive-moment size (moments_sigma)"),
+            Column("adamom_rho4", "", "HSM adaptive-moment radial kurtosis (moments_rho4)"),
+            Column("adamom_x", "pixel", "HSM adaptive-moment centroid x (FITS 1-based)"),
+            Column("adamom_y", "pixel", "HSM adaptive-moment centroid y (FITS 1-based)"),
+            Column("adamom_logflux", "", "log10 of adamom_flux in ADU"),
+            Column("skymad", "adu", "sky noise: 1.4826 MAD of the stamp-edge pixels"),
+            Column("snr", "", "signal-to-noise ratio (paper Eq. 8 or 10)"),
+            Column("flags", "", "bitmask of failures, see FLAGBITn cards (0: good)"),
+        ),
+        # skymad describes the sky, not the source: kept on flagged rows
+        nan_when_flagged=(
+            "adamom_flux",
+            "adamom_g1",
+            "adamom_g2",
+            "adamom_sigma",
+            "adamom_rho4",
+            "adamom_x",
+            "adamom_y",
+            "adamom_logflux",
+            "snr",
+        ),
+    )
 )
-
+#: Feature columns added by :func:`measure_stamps`, in this order.
+FEATURE_COLUMNS: tuple[str, ...] = ADAMOM_SET.names
 #: Columns set to NaN when a stamp is flagged.
-SOURCE_COLUMNS: tuple[str, ...] = tuple(c for c in FEATURE_COLUMNS if c not in ("skymad", "flags"))
+SOURCE_COLUMNS: tuple[str, ...] = ADAMOM_SET.nan_when_flagged
 
 #: Initial sigma guess of HSM (pixels): GalSim's default, also used by the original
 #: MegaLUT; capped to ``S/8`` on small stamps.

@@ -36,10 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import os
-import time
-import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
@@ -48,33 +45,41 @@ import fitsio
 import numpy as np
 
 from megalut_cli import flags as fl
-from megalut_cli.atomic import atomic_output, check_output
-from megalut_cli.catalog import is_fits_file, write_catalog
-from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE
+from megalut_cli.atomic import atomic_output
+from megalut_cli.catalog import is_fits_file
+from megalut_cli.engine import DEFAULT_ENGINE
 from megalut_cli.errors import ConfigError, InputError, Names, namer
-from megalut_cli.measure.defaults import FORMAT, FORMAT_VERSION, MAD_TO_SIGMA, PSF_COLUMNS
-from megalut_cli.measure.features import (
-    FEATURE_COLUMNS,
-    SOURCE_COLUMNS,
-    default_max_shift,
-    edge_pixels,
-    measure_stamps,
-    signal_to_noise,
-    sky_mad,
-    warn_if_mostly_flagged,
+from megalut_cli.measure.defaults import FORMAT, PSF_COLUMNS
+from megalut_cli.measure.feature_sets import column_descriptions, optional_columns
+from megalut_cli.measure.features import FEATURE_COLUMNS, warn_if_mostly_flagged
+from megalut_cli.measure.masks import (
+    CENTRAL_MASK_RADIUS,
+    MASKED_COLUMN,
+    MAX_MASKED_FRACTION,
+    NOISE_COLUMN,
+    masked_pixels,
 )
-from megalut_cli.measure.metacal_defaults import (
-    INTERPOLANT,
-    TYPES,
-    metacal_cards,
-    metacal_columns,
+from megalut_cli.measure.measurer import (
+    Measurer,
+    MeasureSettings,
+    MetacalSettings,
+    PsfImages,
+    StampBatch,
+    distinct_psfs,
+    measure_cards,
 )
-from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS, morphology_of_measured
+from megalut_cli.measure.metacal_defaults import metacal_cards, metacal_columns
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.psf_model import cached_psf_model
 from megalut_cli.measure.single_psf import single_psf_features, single_psf_stamp
-from megalut_cli.parallel import executor, map_units, resolve_nproc
-from megalut_cli.progress import Progress, no_progress
+from megalut_cli.measure.source_registry import (
+    Measured,
+    MeasureRequest,
+    StampSourceType,
+    register_stamp_source,
+)
+from megalut_cli.measure.units import empty_columns, measure_units, n_units, workers
+from megalut_cli.progress import Progress
 from megalut_cli.provenance import CREATOR
 
 log = logging.getLogger(__name__)
@@ -128,19 +133,8 @@ LAYOUT_COLUMNS: frozenset[str] = frozenset(
     )
 )
 
-#: A stamp with more than this fraction of its pixels masked is flagged MASKED_PIXELS.
-MAX_MASKED_FRACTION = 0.25
-#: A masked pixel closer than this (pixels) to the object's position in its cutout
-#: (``cutout_row, cutout_col``) flags the stamp MASKED_PIXELS: it takes a large share of the
-#: light that the moments weigh most.
-CENTRAL_MASK_RADIUS = 2.0
-#: Objects per work unit.
-CHUNK_OBJECTS = 1000
 #: Value of ``n_masked`` for an object without the measured cutout.
 NO_CUTOUT_MASKED = -1
-#: Columns added to the features by MEDS input.
-NOISE_COLUMN = "noise_weight"
-MASKED_COLUMN = "n_masked"
 
 #: Header cards of a catalog measured from a MEDS file.
 CUTOUT_CARD = "MEDSCUT"
@@ -472,72 +466,46 @@ def read_stamps(layout: Layout) -> Stamps:
     return Stamps(maps["image"], maps["weight"], maps["bmask"], maps["seg"], psfs)
 
 
-def masked_pixels(
-    weights: np.ndarray | None, bmasks: np.ndarray | None, shape: tuple[int, ...]
-) -> np.ndarray:
-    """Bad pixels: ``bmask != 0``, or a weight that is not positive (or not finite)."""
-    masked = np.zeros(shape, dtype=bool)
-    if bmasks is not None:
-        masked |= np.asarray(bmasks) != 0
-    if weights is not None:
-        w = np.asarray(weights)
-        masked |= ~(w > 0)  # NaN weights too
-    return masked
+@dataclasses.dataclass(frozen=True)
+class MedsUnit:
+    """Cutout ``layout`` of the objects ``rows`` (one box size and PSF size): their
+    ``origins`` in their images, ``centres`` in their cutouts, and their PSF: ``psf_source``
+    ``file`` (the file's PSF cutouts), ``model`` (``psf_model`` in this process, else the file
+    ``psf_model_path``, drawn at ``model_xy``) or ``single`` (one image)."""
 
+    rows: np.ndarray
+    layout: Layout
+    origins: np.ndarray
+    centres: np.ndarray
+    psf_source: str | None = None
+    single: np.ndarray | None = None
+    psf_model_path: str | None = None
+    psf_model: PsfDrawer | None = None
+    model_xy: np.ndarray | None = None
 
-def masked_sky_mad(stamps: np.ndarray, masked: np.ndarray) -> np.ndarray:
-    """:func:`~megalut_cli.measure.features.sky_mad` of the edge pixels that are not masked
-    (NaN where all are)."""
-    if not edge_pixels(masked).any():
-        return sky_mad(stamps)
-    edges = edge_pixels(np.where(masked, np.nan, np.asarray(stamps, dtype=np.float64)))
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: NaN
-        med = np.nanmedian(edges, axis=1, keepdims=True)
-        return MAD_TO_SIGMA * np.nanmedian(np.abs(edges - med), axis=1)
-
-
-def weight_noise(weights: np.ndarray, masked: np.ndarray) -> np.ndarray:
-    """Per-stamp noise from a weight (inverse-variance) map: ``1 / sqrt(median w)`` over
-    the pixels not masked with ``w > 0`` (NaN where none)."""
-    w = np.where(masked | ~(weights > 0), np.nan, np.asarray(weights, dtype=np.float64))
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: NaN
-        return 1.0 / np.sqrt(np.nanmedian(w.reshape(len(w), -1), axis=1))
-
-
-def clean_stamps(
-    images: np.ndarray, weights: np.ndarray | None = None, bmasks: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(stamps with masked pixels set to 0, mask)``: what GalSim's ``FindAdaptiveMom``
-    measures of an image with a ``badpix`` map (:func:`masked_pixels`)."""
-    images = np.asarray(images, dtype=np.float64)
-    masked = masked_pixels(weights, bmasks, images.shape)
-    return (np.where(masked, 0.0, images) if masked.any() else images), masked
-
-
-def too_masked(masked: np.ndarray, centres: np.ndarray | None = None) -> np.ndarray:
-    """Stamps whose measurement the mask makes unusable: more than
-    :data:`MAX_MASKED_FRACTION` of the pixels masked, or a masked pixel within
-    :data:`CENTRAL_MASK_RADIUS` of ``centres`` (``(n, 2)`` 0-based ``(col, row)`` of the object
-    in its stamp; default the stamp centre)."""
-    n, ny, nx = masked.shape
-    if centres is None:
-        centres = np.tile([(nx - 1) / 2.0, (ny - 1) / 2.0], (n, 1))
-    centres = np.asarray(centres, dtype=np.float64).reshape(n, 2)
-    frac = masked.reshape(n, -1).mean(axis=1) if n else np.zeros(0)
-    yy, xx = np.mgrid[0:ny, 0:nx]
-    near = (xx[None] - centres[:, 0, None, None]) ** 2 + (yy[None] - centres[:, 1, None, None]) ** 2
-    central = (masked & (near <= CENTRAL_MASK_RADIUS**2)).any(axis=(1, 2))
-    return (frac > MAX_MASKED_FRACTION) | central
-
-
-def nan_flagged(columns: dict[str, np.ndarray], flags: np.ndarray, names: Sequence[str]) -> None:
-    """Set ``names`` to NaN on the rows with ``flags != 0`` (in place)."""
-    bad = flags != 0
-    for c in names:
-        if c in columns:
-            columns[c][bad] = np.nan
+    def batch(self, settings: MeasureSettings) -> StampBatch:
+        """The unit's cutouts with their masks, weights and PSFs."""
+        stamps = read_stamps(self.layout)
+        masked = masked_pixels(stamps.weights, stamps.bmasks, stamps.images.shape)
+        psfs = None
+        if self.psf_source == "file" and stamps.psfs is not None:
+            psfs = PsfImages(*distinct_psfs(stamps.psfs))
+        elif self.psf_source == "model" and self.model_xy is not None:
+            model = self.psf_model or cached_psf_model(str(self.psf_model_path))
+            xy, size = self.model_xy, self.layout.box_size
+            drawn = np.asarray(model.draw(xy[:, 0], xy[:, 1], size), dtype=np.float64)
+            psfs = PsfImages(drawn, np.arange(len(drawn)))
+        elif self.psf_source == "single" and self.single is not None:
+            psfs = PsfImages(self.single[None], np.zeros(len(self.rows), dtype=np.int64))
+        return StampBatch(
+            stamps.images,
+            self.origins,
+            masked=masked,
+            centres=self.centres,
+            weights=stamps.weights,
+            psfs=psfs,
+            fixnoise_keys=self.rows.astype(np.int64),
+        )
 
 
 def measure_cutouts(
@@ -550,196 +518,38 @@ def measure_cutouts(
     gain: float | None = None,
     engine: str = DEFAULT_ENGINE,
     morphology: bool = False,
+    feature_sets: Sequence[str] = (),
 ) -> dict[str, np.ndarray]:
     """The features of a stack of cutouts ``(n, S, S)`` with their optional weight and
-    bad-mask maps: the :data:`FEATURE_COLUMNS` of
-    :func:`~megalut_cli.measure.features.measure_stamps` on the stamps with masked pixels
-    set to 0 (GalSim's badpix), ``skymad`` from the unmasked edge pixels, ``n_masked``,
-    and with weights ``noise_weight`` (:func:`weight_noise`), which then gives ``snr``.
-    Stamps :func:`too_masked` get MASKED_PIXELS. ``origins``: ``(n, 2)`` FITS 1-based
-    ``(x, y)`` of each stamp's lower-left pixel in its image; ``centres``: the objects'
-    0-based ``(col, row)`` in their stamps.
-    """
+    bad-mask maps (:class:`~.measurer.Measurer` with a mask): the :data:`FEATURE_COLUMNS`
+    with masked pixels set to 0 (GalSim's badpix), ``skymad`` from the unmasked edge pixels,
+    ``n_masked``, and with weights ``noise_weight``, which then gives ``snr``; stamps too
+    masked get MASKED_PIXELS. ``origins``: ``(n, 2)`` FITS 1-based ``(x, y)`` of each stamp's
+    lower-left pixel in its image; ``centres``: the objects' 0-based ``(col, row)`` in their
+    stamps."""
     images = np.asarray(images, dtype=np.float64)
     n = len(images)
-    clean, masked = clean_stamps(images, weights, bmasks)
-    finite = np.isfinite(clean).all(axis=(1, 2)) if n else np.zeros(0, bool)
-    skymad = masked_sky_mad(images, masked) if n else np.zeros(0)
-    size = images.shape[1]
-    feats = measure_stamps(
-        clean,
-        origins,
-        gain,
-        max_shift=default_max_shift(size),
-        engine=engine,
-        finite=finite,
-        skymad=skymad,
+    sets = tuple(feature_sets) + (("morphology",) if morphology else ())
+    settings = MeasureSettings(gain, engine, feature_sets=sets)
+    batch = StampBatch(
+        images,
+        np.ones((n, 2)) if origins is None else np.asarray(origins, dtype=np.float64),
+        masked=masked_pixels(weights, bmasks, images.shape),
+        centres=centres,
+        weights=weights,
     )
-    feats[MASKED_COLUMN] = masked.reshape(n, -1).sum(axis=1).astype(np.int32)
-    bad = too_masked(masked, centres)
-    feats["flags"][bad] |= fl.MASKED_PIXELS
-    nan_flagged(feats, feats["flags"], SOURCE_COLUMNS)
-    if weights is not None:
-        noise = weight_noise(np.asarray(weights), masked)
-        feats[NOISE_COLUMN] = noise
-        use = (feats["flags"] == 0) & np.isfinite(noise)
-        feats["snr"][use] = signal_to_noise(
-            feats["adamom_flux"][use], feats["adamom_sigma"][use], noise[use], gain
-        )
-    if morphology:
-        feats.update(morphology_of_measured(clean, origins, feats))
-    return feats
-
-
-def psf_features(psfs: np.ndarray, engine: str = DEFAULT_ENGINE) -> dict[str, np.ndarray]:
-    """``psf_adamom_g1, psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4`` of each PSF image
-    ``(n, P, P)`` and ``flags`` (PSF_FAILED where it cannot be measured)."""
-    psfs = np.asarray(psfs, dtype=np.float64)
-    n = len(psfs)
-    if psfs.ndim != 3 or psfs.shape[1] != psfs.shape[2]:
-        raise InputError(f"PSF cutouts must be square, got {psfs.shape[1]}x{psfs.shape[2]}")
-    res = measure_stamps(psfs, engine=engine) if n else {c: np.zeros(0) for c in FEATURE_COLUMNS}
-    out = {p: np.asarray(res[p[len("psf_") :]], dtype=np.float64) for p in PSF_COLUMNS}
-    out["flags"] = np.where(np.asarray(res["flags"]) != 0, fl.PSF_FAILED, 0).astype(np.int32)
-    return out
-
-
-def _measure_unit(unit: dict[str, Any]) -> dict[str, np.ndarray]:
-    """Worker: read a unit's cutouts and measure them (features, PSF, metacal)."""
-    layout: Layout = unit["layout"]
-    stamps = read_stamps(layout)
-    feats = measure_cutouts(
-        stamps.images,
-        stamps.weights,
-        stamps.bmasks,
-        origins=unit["origins"],
-        centres=unit["centres"],
-        gain=unit["gain"],
-        engine=unit["engine"],
-        morphology=unit["morphology"],
-    )
-    psfs = None
-    if stamps.psfs is not None and unit.get("psf_source") == "file":
-        psfs = stamps.psfs
-    elif unit.get("psf_model_path") is not None or unit.get("psf_model") is not None:
-        model = unit.get("psf_model") or cached_psf_model(unit["psf_model_path"])
-        xy = unit["model_xy"]
-        psfs = np.asarray(model.draw(xy[:, 0], xy[:, 1], layout.box_size), dtype=np.float64)
-    if psfs is not None:
-        psf = psf_features(psfs, unit["engine"])
-        feats["flags"] |= psf.pop("flags")
-        nan_flagged(feats, feats["flags"], SOURCE_COLUMNS + MORPHOLOGY_COLUMNS)
-        feats.update(psf)
-    mc = unit.get("metacal")
-    if mc is not None:
-        clean, _ = clean_stamps(stamps.images, stamps.weights, stamps.bmasks)
-        feats.update(_metacal(unit, mc, clean, feats, psfs))
-    return feats
-
-
-def _metacal(
-    unit: dict[str, Any],
-    mc: dict[str, Any],
-    clean: np.ndarray,
-    feats: dict[str, np.ndarray],
-    psfs: np.ndarray | None,
-) -> dict[str, np.ndarray]:
-    """The metacal columns ``X_<type>`` of a unit's cleaned stamps, with the unit's PSFs."""
-    from megalut_cli.measure.metacal import (  # GalSim: metacal only
-        dilated_sigma,
-        fixnoise_seeds,
-        metacal_features,
-        target_psf_columns,
-    )
-
-    n, size = len(clean), unit["layout"].box_size
-    names = list(FEATURE_COLUMNS) + (list(MORPHOLOGY_COLUMNS) if unit["morphology"] else [])
-    out = {c: np.full(n, np.nan) for c in metacal_columns(names) if not c.startswith("flags_")}
-    for kind in TYPES:
-        out[f"flags_{kind}"] = np.zeros(n, dtype=np.int32)
-    base = feats["flags"] & (fl.MASKED_PIXELS | fl.PSF_FAILED | fl.BAD_PIXELS)
-    ok = base == 0
-    noise = feats.get(NOISE_COLUMN, np.full(n, np.nan))
-    noise = np.where(np.isfinite(noise), noise, feats["skymad"])
-    if ok.any():
-        if psfs is None:
-            psf_images, index, sigma_t = mc["psf"], None, np.full(n, mc["target_sigma"])
-        else:
-            psf_images, index = distinct_psfs(same_parity_psfs(psfs[ok], size))
-            sigma_t = dilated_sigma(feats["psf_adamom_sigma"], mc["step"])
-        res = metacal_features(
-            clean[ok],
-            psf_images,
-            mc["step"],
-            noise_sigma=noise[ok],
-            seeds=fixnoise_seeds(mc["seed"], unit["keys"][ok]),
-            metacal_engine=unit["engine"],
-            psf_index=index,
-            morphology=unit["morphology"],
-            origins=unit["origins"][ok],
-            gain=unit["gain"],
-            max_shift=default_max_shift(size),
-            engine=unit["engine"],
-        )
-        for c, v in res.items():
-            out[c][ok] = v
-    else:
-        sigma_t = np.full(n, np.nan)
-    for kind in TYPES:
-        out[f"flags_{kind}"] |= base
-        nan_flagged(
-            out, out[f"flags_{kind}"], [f"{c}_{kind}" for c in SOURCE_COLUMNS + MORPHOLOGY_COLUMNS]
-        )
-    if psfs is not None:  # per-object PSFs (one PSF for all: the caller adds its columns)
-        out.update(target_psf_columns(np.where(ok, sigma_t, np.nan), size))
-    return out
+    return Measurer(settings).measure(batch)
 
 
 def extra_columns(meds: MedsFile) -> list[str]:
     """The scalar ``object_data`` columns outside the MEDS layout, passed through to the output
     (those named like a feature column are left out)."""
-    own = (
-        set(FEATURE_COLUMNS)
-        | set(PSF_COLUMNS)
-        | set(MORPHOLOGY_COLUMNS)
-        | {MASKED_COLUMN, NOISE_COLUMN}
-    )
+    own = set(column_descriptions()) | set(PSF_COLUMNS) | {MASKED_COLUMN, NOISE_COLUMN}
     return [
         c
         for c, v in meds.objects.items()
         if c not in LAYOUT_COLUMNS and c not in own and v.ndim == 1
     ]
-
-
-def distinct_psfs(psfs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct images of a PSF stack ``(n, P, P)`` and each stamp's index into them: objects
-    sharing a PSF (a constant PSF, or one cutout per CCD) go through metacal's operation
-    together."""
-    flat = np.ascontiguousarray(psfs).reshape(len(psfs), -1)
-    _, first, index = np.unique(
-        flat.view(np.dtype((np.void, flat.shape[1] * flat.itemsize))).ravel(),
-        return_index=True,
-        return_inverse=True,
-    )
-    return psfs[first], index.ravel()
-
-
-def same_parity_psfs(psfs: np.ndarray, size: int) -> np.ndarray:
-    """PSF images ``(n, P, P)`` for stamps of ``size`` pixels: as they are when ``P`` has the
-    parity of ``size``, else each redrawn (``lanczos15`` interpolation, no further pixel) on
-    ``P + 1`` pixels with its profile's centre kept at the image's true centre, where metacal
-    expects it (MEDS PSF cutouts are often odd-sized, boxes even)."""
-    psfs = np.asarray(psfs, dtype=np.float64)
-    if psfs.shape[1] % 2 == size % 2:
-        return psfs
-    import galsim
-
-    p = psfs.shape[1] + 1
-    out = np.empty((len(psfs), p, p))
-    for i, img in enumerate(psfs):
-        prof = galsim.InterpolatedImage(galsim.ImageD(img, scale=1.0), x_interpolant=INTERPOLANT)
-        out[i] = prof.drawImage(nx=p, ny=p, scale=1.0, method="no_pixel").array
-    return out
 
 
 def _parity_check(psf_size: int, boxes: np.ndarray, what: str, names: Names | None) -> None:
@@ -767,6 +577,7 @@ class MedsOptions:
     metacal: bool = MEASURE["metacal"].default
     metacal_step: float = MEASURE["metacal_step"].default
     seed: int = MEASURE["seed"].default
+    feature_sets: tuple[str, ...] = ()
 
 
 def measure_meds(
@@ -870,27 +681,22 @@ def measure_meds(
             )
 
     single = None
-    mc: dict[str, Any] | None = None
     if source == "single":  # checked and measured before the long work
         single = single_psf_stamp(str(options.psf_path), int(box[has][0]))
-        single_values = single_psf_features(str(options.psf_path), int(box[has][0]), options.engine)
+        single_psf_features(str(options.psf_path), int(box[has][0]), options.engine)
     if options.metacal:
         top = MEASURE["metacal_step"].maximum
         if not 0 < options.metacal_step <= top:
             raise ConfigError(
                 f"{name('metacal_step')} must be in (0, {top}], got {options.metacal_step}"
             )
-        mc = {"step": float(options.metacal_step), "seed": int(options.seed)}
         if single is not None:
-            from megalut_cli.measure.metacal import target_psf_sigma  # GalSim: metacal only
-
             _parity_check(single.shape[0], np.unique(box[has]), str(options.psf_path), names)
-            mc["psf"] = single
-            mc["target_sigma"] = target_psf_sigma(single, options.metacal_step)
         elif source == "file":
             shapes = meds.psf_shapes(k)[has]
             if np.any(shapes[:, 0] != shapes[:, 1]):
                 raise InputError(f"{meds.path}: PSF cutouts must be square for {name('metacal')}")
+    settings = meds_settings(options)
 
     # work units: objects with the cutout, grouped by box size (and PSF cutout size)
     psf_shape = meds.psf_shapes(k) if source == "file" else np.zeros((n, 2), np.int64)
@@ -898,44 +704,53 @@ def measure_meds(
     groups: list[np.ndarray] = []
     for key in np.unique(keys[has], axis=0):
         groups.append(rows_all[has & np.all(keys == key, axis=1)])
-    workers = 2 if scheduler else resolve_nproc(nproc)
-    n_units = max(
-        -(-int(has.sum()) // CHUNK_OBJECTS), min(4 * workers, int(has.sum())) if workers > 1 else 1
-    )
+    n_has = int(has.sum())
+    total_units = n_units(n_has, workers(nproc, scheduler))
     pieces: list[np.ndarray] = []
     for g in groups:
-        share = max(1, round(n_units * len(g) / max(int(has.sum()), 1)))
+        share = max(1, round(total_units * len(g) / max(n_has, 1)))
         pieces += [p for p in np.array_split(g, min(share, len(g))) if len(p)]
     file_meds = dataclasses.replace(meds, path=os.path.abspath(meds.path))
-    units = []
-    for p in pieces:
-        unit: dict[str, Any] = {
-            "layout": file_meds.layout(p, options.cutout, psf=source == "file"),
-            "origins": origins[p],
-            "centres": centres[p],
-            "gain": options.gain,
-            "engine": options.engine,
-            "morphology": options.morphology,
-            "keys": p.astype(np.int64),
-            "psf_source": source,
-        }
-        if source == "model":
-            if psf_model is not None:
-                unit["psf_model"] = psf_model
-            else:
-                unit["psf_model_path"] = os.path.abspath(str(options.psf_model_path))
-            unit["model_xy"] = model_xy[p]
-        if mc is not None:
-            unit["metacal"] = mc
-        units.append(unit)
+    model_path = (
+        os.path.abspath(str(options.psf_model_path))
+        if source == "model" and psf_model is None
+        else None
+    )
+    units = [
+        MedsUnit(
+            p,
+            file_meds.layout(p, options.cutout, psf=source == "file"),
+            origins[p],
+            centres[p],
+            source,
+            single,
+            model_path,
+            psf_model,
+            model_xy[p] if source == "model" else None,
+        )
+        for p in pieces
+    ]
     if source == "model" and psf_model is not None and (nproc != 1 or scheduler):
         nproc, scheduler = 1, None  # an object in memory: measured in this process
 
-    names_out = (
-        list(FEATURE_COLUMNS) + [MASKED_COLUMN] + ([NOISE_COLUMN] if meds.has("weight") else [])
-    )
-    names_out += list(MORPHOLOGY_COLUMNS) if options.morphology else []
+    names_out = list(FEATURE_COLUMNS) + [MASKED_COLUMN]
+    names_out += [NOISE_COLUMN] if meds.has("weight") else []
+    names_out += list(optional_columns(settings.feature_sets))
     psf_cols = list(PSF_COLUMNS) if source is not None else []
+    names_out += psf_cols
+    if settings.metacal is not None:
+        names_out += metacal_columns(settings.feature_columns) + metacal_columns(psf_cols)
+    cols = empty_columns(n, names_out, np.where(has, 0, fl.NO_CUTOUT))
+    cols[MASKED_COLUMN] = np.full(n, NO_CUTOUT_MASKED, dtype=np.int32)
+    measure_units(
+        units,
+        settings,
+        cols,
+        nproc=nproc,
+        scheduler=scheduler,
+        progress=progress,
+        label="measuring MEDS objects",
+    )
     out: dict[str, np.ndarray] = {}
     for c in PASSED_COLUMNS:
         if c in obj:
@@ -945,108 +760,92 @@ def measure_meds(
             out[c] = np.where(has, obj[c][:, k].astype(np.float64), np.nan)
     for c in extra_columns(meds):
         out[c] = obj[c]
-    cols: dict[str, np.ndarray] = {}
-    for c in names_out + psf_cols:
-        if c == "flags":
-            cols[c] = np.where(has, 0, fl.NO_CUTOUT).astype(np.int32)
-        elif c == MASKED_COLUMN:
-            cols[c] = np.full(n, NO_CUTOUT_MASKED, dtype=np.int32)
-        else:
-            cols[c] = np.full(n, np.nan)
-    if mc is not None:
-        morph = list(MORPHOLOGY_COLUMNS) if options.morphology else []
-        for c in metacal_columns(names_out[: len(FEATURE_COLUMNS)] + morph):
-            cols[c] = (
-                np.where(has, 0, fl.NO_CUTOUT).astype(np.int32)
-                if c.startswith("flags_")
-                else np.full(n, np.nan)
-            )
-        for c in metacal_columns(psf_cols):
-            cols[c] = np.full(n, np.nan)
-
-    t0 = time.perf_counter()
-    with (
-        executor(nproc, scheduler, len(units)) as pool,
-        (progress or no_progress)("measuring MEDS objects", int(has.sum())) as update,
-    ):
-        sizes = iter([len(p) for p in pieces])
-        results = map_units(_measure_unit, units, pool, lambda _n: update(next(sizes)))
-    dt = time.perf_counter() - t0
-    if has.any():
-        log.info(
-            "measured %d objects in %.1f s (%.2f ms/object)",
-            int(has.sum()),
-            dt,
-            1e3 * dt / int(has.sum()),
-        )
-    for piece, res in zip(pieces, results):
-        for c, v in res.items():
-            if c in cols:
-                cols[c][piece] = v
-    if single is not None:
-        for c in PSF_COLUMNS:
-            cols[c][:] = single_values[c]
-        if mc is not None:
-            from megalut_cli.measure.metacal import target_psf_columns  # GalSim: metacal only
-
-            for b in np.unique(box[has]):
-                rows = has & (box == b)
-                for c, v in target_psf_columns(
-                    np.full(int(rows.sum()), mc["target_sigma"]), int(b)
-                ).items():
-                    cols[c][rows] = v
     out.update(cols)
     return out
 
 
-def measure_meds_file(
-    meds_path: str | os.PathLike,
-    output: str | os.PathLike,
-    options: MedsOptions | None = None,
-    *,
-    nproc: int = 1,
-    scheduler: str | None = None,
-    overwrite: bool = False,
-    progress: Progress | None = None,
-    device: str = DEFAULT_DEVICE,
-    names: Names | None = None,
-) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """Measure the objects of the MEDS file ``meds_path`` (:func:`measure_meds`) and write
-    the features catalog ``output`` (format ``megalut.features``, one row per object).
-    Returns the columns written and the header cards added."""
-    options = options or MedsOptions()
-    name = namer(names)
-    check_output(output, overwrite)
-    if options.gain is not None and not (math.isfinite(options.gain) and options.gain > 0):
-        raise ConfigError(f"{name('gain')} must be a positive number, got {options.gain}")
-    if device == "gpu":
+def meds_settings(options: MedsOptions) -> MeasureSettings:
+    """What is measured of a MEDS file's objects, on the CPU (masked stamps)."""
+    return MeasureSettings(
+        options.gain,
+        options.engine,
+        "cpu",
+        tuple(options.feature_sets) + (("morphology",) if options.morphology else ()),
+        MetacalSettings(float(options.metacal_step), int(options.seed))
+        if options.metacal
+        else None,
+    )
+
+
+def check_request(request: MeasureRequest) -> None:
+    """The arguments that apply to a MEDS file (it carries its own objects and box sizes)."""
+    name = namer(request.names)
+    if request.catalog_path is not None:
+        raise ConfigError(
+            f"{request.stamps_path} is a MEDS file, which carries its own objects: give it no "
+            "catalog"
+        )
+    wrong = [
+        name(k)
+        for k, given in (
+            ("stamp_size", request.stamp_size is not None),
+            ("origin", request.origin != 1),
+            ("stars", bool(request.stars)),
+        )
+        if given
+    ]
+    if wrong:
+        raise ConfigError(
+            f"{request.stamps_path} is a MEDS file (each object has its box_size): leave out "
+            f"{', '.join(wrong)}"
+        )
+
+
+def measure_request(request: MeasureRequest) -> Measured:
+    """Measure the objects of a MEDS file (:func:`measure_meds`) into a features catalog
+    (format ``megalut.features``, one row per object)."""
+    settings = request.settings
+    options = MedsOptions(
+        cutout=request.cutout,
+        gain=settings.gain,
+        psf_path=request.psf_path,
+        psf_model_path=request.psf_model_path,
+        engine=settings.engine,
+        metacal=settings.metacal is not None,
+        metacal_step=settings.metacal.step if settings.metacal else MEASURE["metacal_step"].default,
+        seed=settings.metacal.seed if settings.metacal else MEASURE["seed"].default,
+        feature_sets=settings.feature_sets,
+    )
+    if settings.device == "gpu":
         log.info(
             "MEDS input is measured on the CPU (masked stamps); %s gpu is not used here",
-            name("device"),
+            namer(request.names)("device"),
         )
-    meds = read_meds(meds_path)
+    meds = read_meds(request.stamps_path)
     columns = measure_meds(
-        meds, options, nproc=nproc, scheduler=scheduler, progress=progress, names=names
+        meds,
+        options,
+        nproc=request.nproc,
+        scheduler=request.scheduler,
+        progress=request.progress,
+        names=request.names,
     )
     flags = columns["flags"]
     log.info("%d of %d objects flagged (features NaN)", int((flags != 0).sum()), len(flags))
-    warn_if_mostly_flagged(flags, str(meds_path), names)
+    warn_if_mostly_flagged(flags, request.stamps_path, request.names)
     boxes = np.unique(meds.objects["box_size"])
     cards: dict[str, Any] = {
-        FILE_CARD: (os.path.basename(str(meds_path)), "MEDS file measured"),
+        FILE_CARD: (os.path.basename(request.stamps_path), "MEDS file measured"),
         CUTOUT_CARD: (int(options.cutout), "MEDS cutout index measured (0: coadd or first)"),
         COADD_CARD: (
             bool(options.cutout == 0 and meds.first_is_coadd()),
             "the measured cutouts are coadds",
         ),
         "STAMPSZ": (int(boxes[0]), "stamp size [pixels]") if len(boxes) == 1 else None,
-        "GAIN": (options.gain, "gain [e-/ADU] of the S/N (Eq. 8)")
-        if options.gain is not None
-        else None,
-        "MAXSHIFT": (default_max_shift(int(boxes[0])), "centroid shift limit [pixels]")
-        if len(boxes) == 1
-        else None,
-        "MENGINE": (options.engine, "engine of the adaptive moments (megalut --engine)"),
+        **measure_cards(
+            dataclasses.replace(meds_settings(options), metacal=None),
+            int(boxes[0]) if len(boxes) == 1 else None,
+        ),
         "NOISEWT": (meds.has("weight"), "snr from the weight-map noise (noise_weight)"),
         "MASKFRAC": (MAX_MASKED_FRACTION, "masked fraction above which MASKED_PIXELS"),
         "MASKRAD": (CENTRAL_MASK_RADIUS, "masked pixel this close to centre: MASKED_PIXELS"),
@@ -1055,11 +854,17 @@ def measure_meds_file(
         cards.update(cached_psf_model(str(options.psf_model_path)).header_cards())
     if options.metacal:
         cards.update(metacal_cards(options.metacal_step, options.seed, "measure"))
-    write_catalog(
-        output, columns, fmt=FORMAT, fmt_version=FORMAT_VERSION, overwrite=overwrite, cards=cards
-    )
-    log.info("wrote %s (%d rows)", output, len(flags))
-    return columns, cards
+    return Measured(columns, cards, FORMAT)
+
+
+def recognises(path: str) -> bool:
+    """Whether ``path`` is a MEDS file (:func:`is_meds`)."""
+    return is_meds(path)
+
+
+MEDS_SOURCE = register_stamp_source(
+    StampSourceType("meds", recognises, check_request, measure_request)
+)
 
 
 def _as_cutout_lists(stamps: Any, n: int | None, what: str) -> list[list[np.ndarray]] | None:

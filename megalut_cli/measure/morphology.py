@@ -23,8 +23,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from megalut_cli.measure.feature_registry import Column, FeatureSet, register_feature_set
+from megalut_cli.schema import Option
+
+#: The columns of :func:`morphology_features`, in this order.
+COLUMNS = (
+    Column("morph_conc", "", "light in the adaptive Gaussian window over that in 2x it"),
+    Column("morph_conc_inner", "", "light in 0.5x the adaptive Gaussian window over 1x"),
+    Column("morph_size_ratio", "", "sqrt of mean rho^2 in a 2x adaptive window over 1x"),
+)
 #: Columns added by :func:`morphology_features`, in this order.
-MORPHOLOGY_COLUMNS: tuple[str, ...] = ("morph_conc", "morph_conc_inner", "morph_size_ratio")
+MORPHOLOGY_COLUMNS: tuple[str, ...] = tuple(c.name for c in COLUMNS)
 #: Window sizes in units of the adaptive ellipse.
 WINDOW_SCALES = (0.5, 1.0, 2.0)
 #: Stamps processed at once (bounds the temporaries: CHUNK x S x S floats).
@@ -107,3 +116,22 @@ def morphology_of_measured(
         features["adamom_g1"],
         features["adamom_g2"],
     )
+
+
+#: The morphology feature set, asked for by ``--morphology``.
+MORPHOLOGY_SET = register_feature_set(
+    FeatureSet(
+        "morphology",
+        COLUMNS,
+        compute=morphology_of_measured,
+        option=Option(
+            "morphology",
+            "bool",
+            False,
+            "Also the morphology features morph_conc, morph_conc_inner, "
+            "morph_size_ratio (light inside Gaussian windows of 0.5, 1, 2 times the adaptive "
+            "ellipse; docs/realgal.md).",
+        ),
+        nan_when_flagged=MORPHOLOGY_COLUMNS,
+    )
+)

@@ -14,6 +14,7 @@ from dataclasses import replace
 from megalut_cli.atomic import OVERWRITE_OPTION
 from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION
 from megalut_cli.measure.defaults import MIN_STAMP_SIZE, ORIGINS
+from megalut_cli.measure.feature_sets import set_options
 from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, MAX_STEP
 from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION
 from megalut_cli.schema import DEFAULT_MARK, Option
@@ -66,14 +67,7 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         default_text="for files named starfield_image-*; a square one without "
         "--stamp-size or STAMPSZ card is a 3x3 grid",
     ),
-    Option(
-        "morphology",
-        "bool",
-        False,
-        "Also the morphology features morph_conc, morph_conc_inner, "
-        "morph_size_ratio (light inside Gaussian windows of 0.5, 1, 2 times the adaptive ellipse; "
-        "docs/realgal.md).",
-    ),
+    *set_options(),  # --morphology and every other optional feature set
     Option(
         "metacal",
         "bool",

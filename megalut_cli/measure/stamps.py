@@ -29,8 +29,8 @@ from typing import Any
 import fitsio
 import numpy as np
 
-from megalut_cli.catalog import header_dict, image_ext
 from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.fits_header import header_dict, image_ext
 from megalut_cli.measure.defaults import MAD_TO_SIGMA, MIN_STAMP_SIZE, ORIGINS
 
 #: Header card holding the stamp size of an image of stamps.

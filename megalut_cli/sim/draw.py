@@ -25,8 +25,13 @@ import numpy as np
 
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, device_backend
 from megalut_cli.errors import MegalutError
-from megalut_cli.measure.features import measure_stamps
-from megalut_cli.measure.morphology import morphology_of_measured
+from megalut_cli.measure.measurer import (
+    Measurer,
+    MeasureSettings,
+    MetacalSettings,
+    PsfImages,
+    StampBatch,
+)
 from megalut_cli.sim import psf as psf_mod
 from megalut_cli.sim import render
 from megalut_cli.sim.config import SimConfig
@@ -61,7 +66,7 @@ class WorkUnit:
     keep_stamps: bool = False
     measure: bool = False
     engine: str = DEFAULT_ENGINE
-    morphology: bool = False  # with measure: also the morph_* features (measure/morphology.py)
+    feature_sets: tuple[str, ...] = ()  # with measure: the optional feature sets measured too
     device: str = DEFAULT_DEVICE  # "cpu" or "gpu" (resolved): where the fast engine runs
     metacal_step: float | None = (
         None  # with measure: also the metacal features (measure/metacal.py)
@@ -135,29 +140,28 @@ def stamp_centres(index: np.ndarray, n_x: int, stamp_size: int) -> tuple[np.ndar
 
 
 class _Measurer:
-    """Accumulates stamps and measures them in batches (with ``unit.metacal_step``, also
-    their metacal versions, deconvolved by the PSF image each stamp was drawn with)."""
+    """Accumulates stamps and measures them in batches (:class:`~megalut_cli.measure.measurer.
+    Measurer`; with ``unit.metacal_step``, also their metacal versions, deconvolved by the PSF
+    image each stamp was drawn with)."""
 
     def __init__(self, unit: WorkUnit):
-        self._measure = measure_stamps
-        self.gain = unit.config.gain
-        self.engine = unit.engine
-        self.morphology = unit.morphology
-        self.device = unit.device
-        self.step = unit.metacal_step
-        self.seed = unit.seed
+        metacal = (
+            None if unit.metacal_step is None else MetacalSettings(unit.metacal_step, unit.seed)
+        )
+        self.measurer = Measurer(
+            MeasureSettings(unit.config.gain, unit.engine, unit.device, unit.feature_sets, metacal)
+        )
         s = unit.config.structure
         self.common, self.n_rea = bool(s.common), s.n_realizations
         self.size = s.stamp_size
         self.parts: list[dict[str, np.ndarray]] = []
         self.psf_images: dict[int, np.ndarray] = {}  # id -> PSF image (with the pixel, as drawn)
-        self._targets: dict[int, float] = {}  # PSF id -> target sigma
 
     def psf_id(self, psf: Any, method: str, key: Any) -> int:
         """An id of the PSF ``psf`` (drawn with ``method``; a GalSim profile or a
         :class:`StoredPsf`), its image stored for metacal."""
         pid = hash((key, method)) & 0x7FFFFFFF
-        if self.step is not None and pid not in self.psf_images:
+        if self.measurer.settings.metacal is not None and pid not in self.psf_images:
             size = self.size
             if isinstance(psf, StoredPsf):
                 psf = psf.profile()
@@ -175,54 +179,15 @@ class _Measurer:
     ) -> None:
         if not len(stamps):
             return
-        feats = self._measure(
-            stamps, origins=origins, gain=self.gain, engine=self.engine, device=self.device
+        psfs = keys = None
+        if self.measurer.settings.metacal is not None and index is not None and psf_ids is not None:
+            ids = np.unique(psf_ids)
+            images = np.stack([self.psf_images[int(i)] for i in ids])
+            psfs = PsfImages(images, np.searchsorted(ids, psf_ids), columns=False)
+            keys = index % self.n_rea if self.common else index
+        self.parts.append(
+            self.measurer.measure(StampBatch(stamps, origins, psfs=psfs, fixnoise_keys=keys))
         )
-        if self.morphology:
-            feats.update(morphology_of_measured(stamps, origins, feats))
-        if self.step is not None and index is not None and psf_ids is not None:
-            feats.update(self._metacal(stamps, origins, index, psf_ids, feats))
-        self.parts.append(feats)
-
-    def _metacal(
-        self,
-        stamps: np.ndarray,
-        origins: np.ndarray,
-        index: np.ndarray,
-        psf_ids: np.ndarray,
-        feats: dict[str, np.ndarray],
-    ) -> dict[str, np.ndarray]:
-        from megalut_cli.measure.metacal import (
-            fixnoise_seeds,
-            metacal_features,
-            target_psf_columns,
-            target_psf_sigma,
-        )
-
-        ids = np.unique(psf_ids)
-        stack = np.stack([self.psf_images[int(i)] for i in ids])
-        keys = index % self.n_rea if self.common else index
-        out = metacal_features(
-            stamps,
-            stack,
-            self.step,
-            noise_sigma=feats["skymad"],
-            seeds=fixnoise_seeds(self.seed, keys),
-            metacal_engine=self.engine,
-            psf_index=np.searchsorted(ids, psf_ids),
-            morphology=self.morphology,
-            origins=origins,
-            gain=self.gain,
-            engine=self.engine,
-            device=self.device,
-        )
-        for i in ids:
-            if int(i) not in self._targets:
-                self._targets[int(i)] = target_psf_sigma(self.psf_images[int(i)], self.step)
-        out.update(
-            target_psf_columns(np.array([self._targets[int(i)] for i in psf_ids]), self.size)
-        )
-        return out
 
     def columns(self) -> dict[str, np.ndarray]:
         if not self.parts:

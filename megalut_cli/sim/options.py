@@ -1,10 +1,11 @@
 """The options of ``megalut simulate``, declared once: its click options, the defaults of
 :func:`megalut_cli.sim.simulate.simulate` and the table of ``docs/config.md``.
 
-``--morphology`` is the declaration of :mod:`megalut_cli.measure.options` (simulate
-measures as ``megalut measure`` does); ``--n-cases``/``--n-realizations`` are the
-``[structure]`` keys of :mod:`megalut_cli.sim.config`; ``--engine``, ``--device``,
-``--seed``, ``-j``, ``--scheduler`` and ``--overwrite`` are the shared declarations.
+``--morphology`` (every optional feature set, :mod:`megalut_cli.measure.feature_sets`) is
+declared by its set (simulate measures as ``megalut measure`` does);
+``--n-cases``/``--n-realizations`` are the ``[structure]`` keys of
+:mod:`megalut_cli.sim.config`; ``--engine``, ``--device``, ``--seed``, ``-j``,
+``--scheduler`` and ``--overwrite`` are the shared declarations.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from dataclasses import replace
 
 from megalut_cli.atomic import OVERWRITE_OPTION
 from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION
+from megalut_cli.measure.feature_sets import set_options
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION
 from megalut_cli.schema import Option
@@ -34,7 +36,7 @@ SIMULATE_OPTIONS: tuple[Option, ...] = (
         "Measure the features right after drawing (no image kept): the way to "
         "make large training sets.",
     ),
-    _after_measure(MEASURE["morphology"]),
+    *(_after_measure(o) for o in set_options()),  # --morphology, every optional feature set
     replace(
         MEASURE["metacal"],
         help="With --measure: also the features of the five metacalibration versions of "

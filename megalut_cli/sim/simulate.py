@@ -23,7 +23,7 @@ import math
 import os
 import statistics
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -208,7 +208,7 @@ def make_units(
     keep_stamps: bool,
     measure: bool,
     engine: str = DEFAULT_ENGINE,
-    morphology: bool = False,
+    feature_sets: tuple[str, ...] = (),
     device: str = DEFAULT_DEVICE,
     metacal_step: float | None = None,
 ) -> list[WorkUnit]:
@@ -228,7 +228,7 @@ def make_units(
             keep_stamps,
             measure,
             engine,
-            morphology,
+            feature_sets if measure else (),
             device,
             metacal_step if measure else None,
         )
@@ -357,6 +357,7 @@ def simulate_chunks(
     morphology: bool = SIMULATE["morphology"].default,
     device: str = DEFAULT_DEVICE,
     metacal_step: float | None = None,
+    feature_sets: Sequence[str] = (),
 ) -> Iterator[SimulatedChunk]:
     """Draw the configured stamps (and measure them), yielding the catalog in order, one
     work unit at a time, with a bounded number of units in flight: the memory does not grow
@@ -365,6 +366,8 @@ def simulate_chunks(
     ``engine`` is ``fast`` or ``galsim``, ``device`` ``cpu``, ``gpu`` or ``auto``
     (:mod:`megalut_cli.engine`); on the device the units run in this process.
     ``metacal_step`` (with ``measure``): also the metacal features (on the CPU).
+    ``feature_sets`` (with ``measure``; ``morphology`` is one): the optional feature sets
+    (:mod:`megalut_cli.measure.feature_sets`) measured too.
     """
     check_engine(engine)
     device = resolve_device(device)
@@ -382,7 +385,7 @@ def simulate_chunks(
         keep_stamps,
         measure,
         engine,
-        morphology and measure,
+        tuple(feature_sets) + (("morphology",) if morphology else ()),
         device,
         metacal_step,
     )
@@ -450,10 +453,12 @@ def simulate(
     names: Names | None = None,
     metacal: bool = SIMULATE["metacal"].default,
     metacal_step: float = SIMULATE["metacal_step"].default,
+    feature_sets: Sequence[str] = (),
 ) -> SimulationResult:
     """Simulate the configured stamps into files: the catalog, streamed as the work units
     finish (:func:`simulate_chunks`), and the stamp grid image ``stamps``. With ``measure``
-    and ``morphology``, the ``morph_*`` features are measured too; with ``measure`` and
+    and ``morphology`` (or any set of ``feature_sets``), the ``morph_*`` features are
+    measured too; with ``measure`` and
     ``metacal``, the metacal features of :func:`megalut_cli.measure.measure.measure_file`
     (each stamp deconvolved by the PSF image it was drawn with, fixnoise seeded by ``seed``).
     Messages name the arguments by ``names``.
@@ -489,6 +494,7 @@ def simulate(
         morphology=morphology,
         device=device,
         metacal_step=float(metacal_step) if metacal and measure else None,
+        feature_sets=feature_sets,
     )
     with contextlib.ExitStack() as stack:
         writer = stack.enter_context(simulation_catalog_writer(out, config, cards, overwrite))

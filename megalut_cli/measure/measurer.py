@@ -1,0 +1,299 @@
+"""One measurer for every stamp source: a :class:`StampBatch` in, its catalog columns out.
+
+It owns the base features, the optional feature sets (:mod:`.feature_sets`), masked
+pixels, the PSF features, the metacal versions and every flag; sources (a grid image, a
+MEDS file, simulated stamps) only cut or draw the stamps and say where they lie.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from megalut_cli import flags as fl
+from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE
+from megalut_cli.errors import InputError
+from megalut_cli.measure.defaults import PSF_COLUMNS
+from megalut_cli.measure.feature_sets import compute_extra, nan_when_flagged, optional_columns
+from megalut_cli.measure.features import (
+    FEATURE_COLUMNS,
+    default_max_shift,
+    measure_stamps,
+    signal_to_noise,
+)
+from megalut_cli.measure.masks import (
+    MASKED_COLUMN,
+    NOISE_COLUMN,
+    masked_sky_mad,
+    nan_flagged,
+    too_masked,
+    weight_noise,
+)
+from megalut_cli.measure.metacal_defaults import INTERPOLANT, TYPES, metacal_cards, metacal_columns
+
+#: Flags of a stamp that metacal leaves out (its versions get the same flags).
+METACAL_SKIPPED = fl.MASKED_PIXELS | fl.PSF_FAILED | fl.BAD_PIXELS
+
+
+@dataclass(frozen=True)
+class MetacalSettings:
+    """The metacal operation: its shear step and the seed of the fixnoise fields."""
+
+    step: float
+    seed: int
+
+
+@dataclass(frozen=True)
+class MeasureSettings:
+    """What is measured of every stamp: the gain of the S/N, the moments' engine and device,
+    the optional feature sets (names), and the metacal operation (None: none)."""
+
+    gain: float | None = None
+    engine: str = DEFAULT_ENGINE
+    device: str = DEFAULT_DEVICE
+    feature_sets: tuple[str, ...] = ()
+    metacal: MetacalSettings | None = None
+
+    @property
+    def feature_columns(self) -> tuple[str, ...]:
+        """The feature columns of a stamp: the base set's, then the optional sets'."""
+        return FEATURE_COLUMNS + optional_columns(self.feature_sets)
+
+    @property
+    def needs_pixels(self) -> bool:
+        """Whether more than the base features are measured on the pixels (else a source may
+        cut and measure in one compiled pass)."""
+        return bool(self.feature_sets) or self.metacal is not None
+
+
+@dataclass(frozen=True)
+class PsfImages:
+    """The PSFs of a batch: distinct images ``(m, P, P)`` and each stamp's ``index`` into
+    them; ``columns``: whether the PSF features ``psf_adamom_*`` are measured (a simulation
+    knows its PSFs and keeps them for metacal only)."""
+
+    images: np.ndarray
+    index: np.ndarray
+    columns: bool = True
+
+
+@dataclass(frozen=True)
+class StampBatch:
+    """Stamps to measure, ``(n, S, S)``, with what their source knows of them.
+
+    ``origins``: FITS 1-based ``(x, y)`` of each stamp's lower-left pixel in its image;
+    ``finite``, ``skymad``: when the source computed them while cutting; ``masked``: bad
+    pixels (left out of the moments, counted, flagged when too many or central, see
+    :mod:`.masks`) with ``centres`` (0-based ``(col, row)`` of the object in its stamp) and
+    ``weights`` (the noise of the S/N); ``psfs``; ``fixnoise_keys``: the key of each
+    stamp's metacal fixnoise field; ``base``: the base features, when the source measured
+    them while cutting (then ``stamps`` may be None: nothing else is measured on the pixels).
+    """
+
+    stamps: np.ndarray | None
+    origins: np.ndarray
+    finite: np.ndarray | None = None
+    skymad: np.ndarray | None = None
+    masked: np.ndarray | None = None
+    centres: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    psfs: PsfImages | None = None
+    fixnoise_keys: np.ndarray | None = None
+    base: dict[str, np.ndarray] | None = None
+
+
+def measure_cards(settings: MeasureSettings, size: int | None) -> dict[str, Any]:
+    """Header cards of what was measured: the gain, the centroid limit (one stamp ``size``),
+    the moments' engine and the metacal step and seed."""
+    cards: dict[str, Any] = {
+        "GAIN": (settings.gain, "gain [e-/ADU] of the S/N (Eq. 8)")
+        if settings.gain is not None
+        else None,
+        "MAXSHIFT": (default_max_shift(size), "centroid shift limit [pixels]")
+        if size is not None
+        else None,
+        "MENGINE": (settings.engine, "engine of the adaptive moments (megalut --engine)"),
+    }
+    if settings.metacal is not None:
+        cards.update(metacal_cards(settings.metacal.step, settings.metacal.seed, "measure"))
+    return cards
+
+
+def distinct_psfs(psfs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct images of a PSF stack ``(n, P, P)`` and each stamp's index into them:
+    objects sharing a PSF (a constant PSF, or one cutout per CCD) go through metacal's
+    operation together."""
+    flat = np.ascontiguousarray(psfs).reshape(len(psfs), -1)
+    _, first, index = np.unique(
+        flat.view(np.dtype((np.void, flat.shape[1] * flat.itemsize))).ravel(),
+        return_index=True,
+        return_inverse=True,
+    )
+    return psfs[first], index.ravel()
+
+
+def same_parity_psfs(psfs: np.ndarray, size: int) -> np.ndarray:
+    """PSF images ``(n, P, P)`` for stamps of ``size`` pixels: as they are when ``P`` has the
+    parity of ``size``, else each redrawn (``lanczos15`` interpolation, no further pixel) on
+    ``P + 1`` pixels with its profile's centre kept at the image's true centre, where metacal
+    expects it (MEDS PSF cutouts are often odd-sized, boxes even)."""
+    psfs = np.asarray(psfs, dtype=np.float64)
+    if psfs.shape[1] % 2 == size % 2:
+        return psfs
+    import galsim
+
+    p = psfs.shape[1] + 1
+    out = np.empty((len(psfs), p, p))
+    for i, img in enumerate(psfs):
+        prof = galsim.InterpolatedImage(galsim.ImageD(img, scale=1.0), x_interpolant=INTERPOLANT)
+        out[i] = prof.drawImage(nx=p, ny=p, scale=1.0, method="no_pixel").array
+    return out
+
+
+def psf_features(psfs: np.ndarray, engine: str = DEFAULT_ENGINE) -> dict[str, np.ndarray]:
+    """``psf_adamom_g1, psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4`` of each PSF image
+    ``(n, P, P)`` and ``flags`` (PSF_FAILED where it cannot be measured)."""
+    psfs = np.asarray(psfs, dtype=np.float64)
+    n = len(psfs)
+    if psfs.ndim != 3 or psfs.shape[1] != psfs.shape[2]:
+        raise InputError(f"PSF cutouts must be square, got {psfs.shape[1]}x{psfs.shape[2]}")
+    res = measure_stamps(psfs, engine=engine) if n else {c: np.zeros(0) for c in FEATURE_COLUMNS}
+    out = {p: np.asarray(res[p[len("psf_") :]], dtype=np.float64) for p in PSF_COLUMNS}
+    out["flags"] = np.where(np.asarray(res["flags"]) != 0, fl.PSF_FAILED, 0).astype(np.int32)
+    return out
+
+
+class Measurer:
+    """Measures batches of stamps as :class:`MeasureSettings` say."""
+
+    def __init__(self, settings: MeasureSettings):
+        self.settings = settings
+
+    def features(
+        self, stamps: np.ndarray, origins: np.ndarray | None, **pixels: np.ndarray | None
+    ) -> dict[str, np.ndarray]:
+        """The base and optional features of ``stamps`` (``pixels``: ``finite``, ``skymad``
+        when known)."""
+        s = self.settings
+        feats = measure_stamps(
+            stamps,
+            origins,
+            s.gain,
+            max_shift=default_max_shift(stamps.shape[-1]),
+            engine=s.engine,
+            device=s.device,
+            **pixels,
+        )
+        if s.feature_sets:
+            feats.update(compute_extra(s.feature_sets, stamps, origins, feats))
+        return feats
+
+    def measure(self, batch: StampBatch) -> dict[str, np.ndarray]:
+        """The columns of a batch: features, then ``n_masked`` and ``noise_weight`` (with a
+        mask), ``psf_adamom_*`` (with PSFs), the metacal columns (with metacal and PSFs)."""
+        s = self.settings
+        if batch.base is not None:
+            feats = dict(batch.base)
+            self._psfs(batch, feats)
+            return feats
+        assert batch.stamps is not None
+        stamps, n = batch.stamps, len(batch.stamps)
+        finite, skymad = batch.finite, batch.skymad
+        if batch.masked is not None:  # GalSim's badpix: masked pixels are 0 for the moments
+            stamps = np.where(batch.masked, 0.0, stamps) if batch.masked.any() else stamps
+            finite = np.isfinite(stamps).all(axis=(1, 2)) if n else np.zeros(0, bool)
+            skymad = masked_sky_mad(batch.stamps, batch.masked) if n else np.zeros(0)
+        feats = measure_stamps(
+            stamps,
+            batch.origins,
+            s.gain,
+            max_shift=default_max_shift(stamps.shape[-1]),
+            engine=s.engine,
+            device=s.device,
+            finite=finite,
+            skymad=skymad,
+        )
+        if batch.masked is not None:
+            self._masks(batch, feats)
+        if s.feature_sets:
+            feats.update(compute_extra(s.feature_sets, stamps, batch.origins, feats))
+        self._psfs(batch, feats)
+        if s.metacal is not None and batch.psfs is not None:
+            feats.update(self._metacal(batch, stamps, feats))
+        return feats
+
+    def _psfs(self, batch: StampBatch, feats: dict[str, np.ndarray]) -> None:
+        """``psf_adamom_*`` of each stamp's PSF; PSF_FAILED (and NaN features) where it fails."""
+        if batch.psfs is None or not batch.psfs.columns:
+            return
+        psf = psf_features(batch.psfs.images, self.settings.engine)
+        feats["flags"] |= psf.pop("flags")[batch.psfs.index]
+        nan_flagged(feats, feats["flags"], nan_when_flagged(self.settings.feature_sets))
+        feats.update({c: v[batch.psfs.index] for c, v in psf.items()})
+
+    def _masks(self, batch: StampBatch, feats: dict[str, np.ndarray]) -> None:
+        """``n_masked``, MASKED_PIXELS, and with weights ``noise_weight`` and its ``snr``."""
+        assert batch.masked is not None
+        masked, n = batch.masked, len(batch.masked)
+        feats[MASKED_COLUMN] = masked.reshape(n, -1).sum(axis=1).astype(np.int32)
+        feats["flags"][too_masked(masked, batch.centres)] |= fl.MASKED_PIXELS
+        nan_flagged(feats, feats["flags"], nan_when_flagged(()))
+        if batch.weights is not None:
+            noise = weight_noise(np.asarray(batch.weights), masked)
+            feats[NOISE_COLUMN] = noise
+            use = (feats["flags"] == 0) & np.isfinite(noise)
+            feats["snr"][use] = signal_to_noise(
+                feats["adamom_flux"][use],
+                feats["adamom_sigma"][use],
+                noise[use],
+                self.settings.gain,
+            )
+
+    def _metacal(
+        self, batch: StampBatch, stamps: np.ndarray, feats: dict[str, np.ndarray]
+    ) -> dict[str, np.ndarray]:
+        """``X_<type>`` of the five metacal versions and ``psf_adamom_*_<type>`` of the target
+        PSF; stamps flagged :data:`METACAL_SKIPPED` are left out, with those flags."""
+        from megalut_cli.measure.metacal import (  # GalSim: metacal only
+            fixnoise_seeds,
+            metacal_versions,
+            target_psf_columns,
+        )
+
+        s, psfs = self.settings, batch.psfs
+        assert s.metacal is not None and psfs is not None
+        n, size = len(stamps), stamps.shape[-1]
+        names = s.feature_columns
+        out = {
+            c: np.zeros(n, dtype=np.int32) if c.startswith("flags_") else np.full(n, np.nan)
+            for c in metacal_columns(names)
+        }
+        skipped = feats["flags"] & METACAL_SKIPPED
+        ok = skipped == 0
+        target = np.full(n, np.nan)
+        if ok.any():
+            used, index = np.unique(psfs.index[ok], return_inverse=True)
+            noise = feats.get(NOISE_COLUMN, np.full(n, np.nan))
+            noise = np.where(np.isfinite(noise), noise, feats["skymad"])
+            keys = np.arange(n) if batch.fixnoise_keys is None else batch.fixnoise_keys
+            origins = batch.origins[ok]
+            versions, target[ok] = metacal_versions(
+                stamps[ok],
+                same_parity_psfs(psfs.images[used], size),
+                s.metacal.step,
+                noise[ok],
+                fixnoise_seeds(s.metacal.seed, keys[ok]),
+                s.engine,
+                index.ravel(),
+            )
+            for kind in TYPES:
+                for c, v in self.features(versions[kind], origins).items():
+                    out[f"{c}_{kind}"][ok] = v
+        nan_names = nan_when_flagged(s.feature_sets)
+        for kind in TYPES:
+            out[f"flags_{kind}"] |= skipped
+            nan_flagged(out, out[f"flags_{kind}"], tuple(f"{c}_{kind}" for c in nan_names))
+        out.update(target_psf_columns(target, size))
+        return out

@@ -1,0 +1,102 @@
+"""The registry of stamp sources: the input formats of ``megalut measure``.
+
+A :class:`StampSourceType` says whether it recognises a file, checks the arguments that
+apply to it, and measures a :class:`MeasureRequest` into a :class:`Measured` catalog (its
+stamps cut into work units, :mod:`.units`, measured by :mod:`.measurer`). Modules that
+define a source call :func:`register_stamp_source`; :mod:`.sources` imports them all.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from megalut_cli.errors import Names
+from megalut_cli.measure.measurer import MeasureSettings
+from megalut_cli.progress import Progress
+
+
+@dataclass(frozen=True)
+class MeasureRequest:
+    """What ``megalut measure`` is asked: the input files, what to measure
+    (:class:`~.measurer.MeasureSettings`), the options of the input formats, and how to run."""
+
+    stamps_path: str
+    catalog_path: str | None
+    output: str
+    settings: MeasureSettings
+    stamp_size: int | None = None
+    origin: int = 1
+    psf_path: str | None = None
+    psf_model_path: str | None = None
+    stars: bool | None = None
+    cutout: int = 0
+    nproc: int = 1
+    scheduler: str | None = None
+    progress: Progress | None = None
+    names: Names | None = None
+
+
+@dataclass
+class Measured:
+    """A measured catalog to write: its columns (in order), header cards, HISTORY lines,
+    HDUs carried from the input, format name, and the input catalog's header (``meta``)."""
+
+    columns: dict[str, np.ndarray]
+    cards: dict[str, Any]
+    fmt: str
+    history: list[str] | None = None
+    extra_hdus: dict[str, np.ndarray] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StampSourceType:
+    """An input format: ``recognises(path)``, ``check(request)`` (its arguments, before any
+    output is touched: a ConfigError names the one that does not apply) and
+    ``measure(request)``. A ``fallback`` type takes what no other recognises."""
+
+    name: str
+    recognises: Callable[[str], bool]
+    check: Callable[[MeasureRequest], None]
+    measure: Callable[[MeasureRequest], Measured]
+    fallback: bool = False
+
+
+_REGISTRY: dict[str, StampSourceType] = {}
+
+
+def register_stamp_source(source: StampSourceType) -> StampSourceType:
+    """Register ``source`` under its name (once) and return it."""
+    if source.name in _REGISTRY:
+        raise ValueError(f"stamp source {source.name!r} is registered already")
+    if source.fallback and any(s.fallback for s in _REGISTRY.values()):
+        raise ValueError("only one stamp source can be the fallback")
+    _REGISTRY[source.name] = source
+    return source
+
+
+def registered_stamp_sources() -> tuple[StampSourceType, ...]:
+    """Every registered source, in registration order."""
+    return tuple(_REGISTRY.values())
+
+
+def stamp_source_for(path: str) -> StampSourceType:
+    """The source that recognises ``path``, else the fallback."""
+    for source in _REGISTRY.values():
+        if not source.fallback and source.recognises(path):
+            return source
+    for source in _REGISTRY.values():
+        if source.fallback:
+            return source
+    raise ValueError(f"{path}: no stamp source recognises it")
+
+
+def unregister_stamp_source(name: str) -> None:
+    """Remove the source registered as ``name`` (a plug-in's or a test's)."""
+    if name not in _REGISTRY:
+        raise ValueError(f"no stamp source {name!r} is registered")
+    del _REGISTRY[name]

@@ -1,0 +1,26 @@
+"""The stamp sources of ``megalut measure`` (:mod:`.source_registry`): importing this module
+registers them all. A new input format is a module that calls ``register_stamp_source`` and
+one import line here."""
+
+from __future__ import annotations
+
+from megalut_cli.measure import grid, meds
+from megalut_cli.measure.source_registry import (
+    Measured,
+    MeasureRequest,
+    StampSourceType,
+    registered_stamp_sources,
+    stamp_source_for,
+)
+
+#: The sources registered by the modules imported above.
+BUILTIN_SOURCES: tuple[StampSourceType, ...] = (meds.MEDS_SOURCE, grid.GRID_SOURCE)
+
+__all__ = [
+    "BUILTIN_SOURCES",
+    "MeasureRequest",
+    "Measured",
+    "StampSourceType",
+    "registered_stamp_sources",
+    "stamp_source_for",
+]
