@@ -166,3 +166,39 @@ def test_cli_twin(tmp_path, runner, cli):
     assert res.exit_code == 2 and "--plot does not apply with --twin" in res.output
     res = runner.invoke(cli, [*args, "--by", "mean(snr)"])
     assert res.exit_code == 2
+
+
+def test_paired_evaluation_of_a_set_with_itself_is_the_single_set_bootstrap():
+    """One core for both evaluations: a set paired with itself gets the single-set m, c and
+    bootstrap errors (the same draw of the same galaxies: groups = 90-degree pairs), plain and
+    metacal (mean and selection response of each resample), unweighted and weighted; the
+    differences vanish. Both default to the same number of resamples."""
+    import inspect
+
+    from helpers import crn_synthetic
+    from test_evaluate_metacal import _catalog, _weighted
+
+    from megalut_cli.shear.evaluate import BootstrapSpec, evaluate_columns
+    from megalut_cli.shear.options import EVALUATE_CLI
+
+    plain = crn_synthetic(2, True, n_cases=6, n_groups=50)
+    plain["pre_g1_w"] = plain["pre_g2_w"] = np.linspace(0.5, 1.0, plain["case"].size)
+    metacal = _weighted(_catalog(400, 0.7, seed=3))
+    metacal["mcal_r11"] = metacal["mcal_r11"] + np.linspace(-0.1, 0.1, metacal["case"].size)
+    for cols, step in ((plain, None), (metacal, 0.01)):
+        cols["gal"] = cols["rea"] // 2
+        single = evaluate_columns(cols, bootstrap=BootstrapSpec(2, 40, 5), metacal_step=step)
+        paired = paired_evaluation(
+            cols, cols, galaxy_column="gal", n_boot=40, seed=5, metacal_step=step or 0.01
+        )
+        assert paired["metacal"] is (step is not None)
+        for scheme in ("unweighted", "weighted"):
+            for comp in ("g1", "g2"):
+                s, p = single[scheme][comp], paired["overall"][scheme][comp]
+                for key in ("m", "c", "m_err", "c_err"):
+                    assert p[f"{key[0]}_a{key[1:]}"] == pytest.approx(s[key], rel=1e-9), key
+                assert p["dm"] == 0.0 and p["dm_err"] == 0.0
+    defaults = {
+        inspect.signature(f).parameters["n_boot"].default for f in (paired_bias, paired_evaluation)
+    }
+    assert defaults == {EVALUATE_CLI["bootstrap"].default}

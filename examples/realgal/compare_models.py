@@ -19,27 +19,19 @@ import numpy as np
 
 from megalut_cli.catalog import read_catalog
 from megalut_cli.nn.model import ShearModel
-from megalut_cli.shear.paired import fit_resamples, group_sums
+from megalut_cli.shear.paired import Resampling, set_values
 from megalut_cli.shear.predict import predict_columns
 
 
-def slopes(
-    table,
-    pred,
-    scheme: str,
-    comp: int,
-    cell: np.ndarray,
-    n_cases: int,
-    n_gal: int,
-    counts: np.ndarray,
-) -> np.ndarray:
-    """m of one set for each row of ``counts`` (galaxy multiplicities), as ``megalut evaluate
-    --twin`` fits it (:mod:`megalut_cli.shear.paired`); flagged rows have no weight."""
+def slopes(table, pred, scheme: str, comp: int, resampling: Resampling) -> np.ndarray:
+    """m of one set, the full sample then one per resample of ``resampling``, as ``megalut
+    evaluate --twin`` fits it (:mod:`megalut_cli.shear.paired`); flagged rows have no weight."""
     est = np.asarray(pred[f"pre_g{comp}"], float)
     w = np.ones_like(est) if scheme == "unweighted" else np.asarray(pred[f"pre_g{comp}_w"], float)
     w = np.where(np.asarray(pred["flags"]) == 0, w, 0.0)
-    sums = group_sums(cell, n_cases * n_gal, np.asarray(table[f"tru_g{comp}"], float), est, w)
-    return fit_resamples(sums, counts, n_cases, n_gal)[0]
+    c = f"g{comp}"
+    values = set_values(scheme, {c: np.asarray(table[f"tru_{c}"], float)}, {c: est}, {c: w})
+    return resampling.fits(values, scheme)[c][0]
 
 
 def main() -> None:
@@ -60,24 +52,14 @@ def main() -> None:
             raise SystemExit(
                 f"error: {args.real} and {args.twin} differ in column {c}: not a real/twin pair"
             )
-    galaxies, gi = np.unique(np.asarray(real["tru_real_index"]), return_inverse=True)
-    cases, ci = np.unique(np.asarray(real["case"]), return_inverse=True)
-    cell = ci.ravel() * len(galaxies) + gi.ravel()
-    rng = np.random.default_rng(args.seed)
-    draws = rng.integers(0, len(galaxies), (args.bootstrap, len(galaxies)))
-    counts = np.vstack(
-        [
-            np.ones(len(galaxies)),
-            np.apply_along_axis(np.bincount, 1, draws, minlength=len(galaxies)),
-        ]
-    )
+    resampling = Resampling.draw(real["tru_real_index"], real["case"], args.bootstrap, args.seed)
     names = [m.split("=", 1)[0] for m in args.models]
     ref = args.reference or names[0]
     result: dict = {
         "real": args.real,
         "twin": args.twin,
-        "n_galaxies": len(galaxies),
-        "n_cases": len(cases),
+        "n_galaxies": resampling.n_gal,
+        "n_cases": resampling.n_cases,
         "n_boot": args.bootstrap,
         "seed": args.seed,
         "reference": ref,
@@ -93,9 +75,7 @@ def main() -> None:
             for comp in (1, 2):
                 ms = {}
                 for k, t in (("real", real), ("twin", twin)):
-                    ms[k] = slopes(
-                        t, preds[k], scheme, comp, cell, len(cases), len(galaxies), counts
-                    )
+                    ms[k] = slopes(t, preds[k], scheme, comp, resampling)
                 dm = ms["real"] - ms["twin"]
                 dms[(name, scheme, comp)] = dm
                 res[f"{scheme}_g{comp}"] = {
@@ -115,8 +95,8 @@ def main() -> None:
                     {"ddm_vs_ref": d[0], "ddm_vs_ref_err": d[1:].std(ddof=1)}
                 )
     print(
-        f"{len(galaxies)} galaxies x {len(cases)} shears; errors: {args.bootstrap} bootstrap "
-        "resamples of the galaxies, shared by all models"
+        f"{resampling.n_gal} galaxies x {resampling.n_cases} shears; errors: {args.bootstrap} "
+        "bootstrap resamples of the galaxies, shared by all models"
     )
     print(
         f"{'model':28s} {'scheme':10s} {'comp':4s} {'m_real':>18s} {'m_twin':>18s} "

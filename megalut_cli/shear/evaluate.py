@@ -54,11 +54,9 @@ from megalut_cli.shear.bias import (
     STAGE_IV_C,
     STAGE_IV_M,
     BiasFit,
-    calibrate_by_response,
     fit_bias,
     psf_angle,
     q_c,
-    rotate_spin2,
 )
 from megalut_cli.shear.bootstrap import (
     ERROR_BOOTSTRAP,
@@ -75,6 +73,7 @@ from megalut_cli.shear.bootstrap import (
 )
 from megalut_cli.shear.conditional import assign_bins, equal_population_edges
 from megalut_cli.shear.options import ERROR_CHOICES, JSON_FORMAT, JSON_FORMAT_VERSION, N_BOOTSTRAP
+from megalut_cli.shear.response import case_estimates, metacal_response, row_values
 
 log = logging.getLogger(__name__)
 
@@ -301,10 +300,10 @@ class _Rows:
     key: (
         np.ndarray
     )  # what sums are grouped by: the case, or (case, galaxy group) when bootstrapping
-    # metacal: per-row responses (0 where not valid) and, per scheme, component and sheared
+    # metacal: per-row responses (0 where not valid) and, per scheme, component i and sheared
     # type, the weight of the row under that type's selection and weights
     response: dict[tuple[int, int], np.ndarray] | None = None
-    sheared_weight: dict[tuple[str, str, str], np.ndarray] | None = None
+    sheared_weight: dict[str, dict[tuple[int, str], np.ndarray]] | None = None
     pre_noshear: dict[int, np.ndarray] | None = None
     step: float | None = None
 
@@ -410,13 +409,9 @@ def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> 
             if s == "unweighted" and plan.select is None and not plan.binned_selection:
                 continue
             for i in (1, 2):
-                if s == "weighted":
-                    w = np.asarray(chunk[f"pre_g{i}_w_{kind}"], dtype=float)
-                    rows.sheared_weight[(s, f"g{i}", kind)] = np.where(
-                        sel & np.isfinite(w) & (w > 0), w, 0.0
-                    )
-                else:
-                    rows.sheared_weight[(s, f"g{i}", kind)] = sel.astype(float)
+                w = np.asarray(chunk[f"pre_g{i}_w_{kind}"], dtype=float) if s == "weighted" else 1.0
+                ok = sel & np.isfinite(w) & (w > 0)
+                rows.sheared_weight.setdefault(s, {})[(i, kind)] = np.where(ok, w, 0.0)
 
 
 def _case_group_key(case: np.ndarray, rea: np.ndarray, group_size: int, source: str) -> np.ndarray:
@@ -537,101 +532,17 @@ def _sum_names(
 def _row_values(rows: _Rows, schemes: Sequence[str]) -> dict[str, np.ndarray]:
     vals: dict[str, np.ndarray] = {}
     for s in schemes:
-        for comp in ("g1", "g2"):
-            w = rows.weight[(s, comp)]
-            vals[f"{s}:w:{comp}"] = w
-            vals[f"{s}:wpre:{comp}"] = w * rows.pre[comp]
-            vals[f"{s}:wtru:{comp}"] = w * rows.tru[comp]
-            vals[f"{s}:n:{comp}"] = (w > 0).astype(float)
-        vals[f"{s}:n:both"] = ((rows.weight[(s, "g1")] > 0) & (rows.weight[(s, "g2")] > 0)).astype(
-            float
+        weight = {comp: rows.weight[(s, comp)] for comp in ("g1", "g2")}
+        sheared = (rows.sheared_weight or {}).get(s)
+        vals.update(
+            row_values(
+                s, weight, rows.tru, rows.pre, rows.response, sheared, rows.pre_noshear, rows.step
+            )
         )
-        if rows.response is not None:
-            for (i, j), r in rows.response.items():
-                vals[f"{s}:wR:{i}{j}"] = rows.weight[(s, f"g{i}")] * r
-        if (
-            rows.sheared_weight is not None
-            and rows.step is not None
-            and (s, "g1", "1p") in rows.sheared_weight
-        ):
-            for i in (1, 2):
-                pre = np.nan_to_num(rows.pre_noshear[i])
-                for kind in SHEARED_TYPES:
-                    w = rows.sheared_weight[(s, f"g{i}", kind)]
-                    vals[f"{s}:sw:{i}:{kind}"] = w
-                    # divided by 2 step here, so that a ratio of sums is the response term
-                    vals[f"{s}:swpre:{i}:{kind}"] = w * pre / (2.0 * rows.step)
     return vals
 
 
 # --------------------------------------------------------------------------- fits
-
-
-def metacal_response(
-    sums: Mapping[str, np.ndarray], scheme: str
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """The mean metacal response ``R[i][j]`` of the rows behind ``sums`` (all keys: axis 0),
-    and the selection response (None without a selection or weights), each ``(2, 2, ...)``."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.array(
-            [
-                [
-                    sums[f"{scheme}:wR:{i}{j}"].sum(axis=0) / sums[f"{scheme}:w:g{i}"].sum(axis=0)
-                    for j in (1, 2)
-                ]
-                for i in (1, 2)
-            ]
-        )
-        if f"{scheme}:sw:1:1p" not in sums:
-            return mean, None
-
-        def avg(i: int, kind: str) -> np.ndarray:
-            return sums[f"{scheme}:swpre:{i}:{kind}"].sum(axis=0) / sums[
-                f"{scheme}:sw:{i}:{kind}"
-            ].sum(axis=0)
-
-        selection = np.array([[avg(i, f"{j}p") - avg(i, f"{j}m") for j in (1, 2)] for i in (1, 2)])
-    return mean, selection
-
-
-def _calibrate(
-    out: dict[str, dict[str, np.ndarray]], sums: Mapping[str, np.ndarray], scheme: str
-) -> None:
-    """Replace the per-case estimates by the metacal-calibrated ones, ``(R + R_S)^-1 <g>``."""
-    mean, selection = metacal_response(sums, scheme)
-    r = mean if selection is None else mean + selection
-    out["g1"]["pre"], out["g2"]["pre"] = calibrate_by_response(
-        r[0, 0], r[0, 1], r[1, 0], r[1, 1], out["g1"]["pre"], out["g2"]["pre"]
-    )
-
-
-def _case_estimates(
-    sums: Mapping[str, np.ndarray], scheme: str, theta: np.ndarray | None
-) -> dict[str, dict[str, np.ndarray]]:
-    """Per-case true and estimated averages (NaN where the case has no usable row) and row
-    counts; with metacal sums, the estimates calibrated by the mean response of all the rows."""
-    out: dict[str, dict[str, np.ndarray]] = {}
-    with np.errstate(invalid="ignore", divide="ignore"):
-        for comp in ("g1", "g2"):
-            w = sums[f"{scheme}:w:{comp}"]
-            use = w > 0
-            out[comp] = {
-                "tru": np.where(use, sums[f"{scheme}:wtru:{comp}"] / w, np.nan),
-                "pre": np.where(use, sums[f"{scheme}:wpre:{comp}"] / w, np.nan),
-                "n_rows": np.where(use, sums[f"{scheme}:n:{comp}"], 0.0),
-            }
-    if f"{scheme}:wR:11" in sums:
-        _calibrate(out, sums, scheme)
-    if theta is not None:
-        n_both = sums[f"{scheme}:n:both"]
-        for kind in ("tru", "pre"):
-            plus, cross = rotate_spin2(out["g1"][kind], out["g2"][kind], theta)
-            out.setdefault("plus", {})[kind] = plus
-            out.setdefault("cross", {})[kind] = cross
-        use = np.isfinite(out["plus"]["pre"])
-        out["plus"]["n_rows"] = np.where(use, n_both, 0.0)
-        out["cross"]["n_rows"] = out["plus"]["n_rows"]
-    return out
 
 
 def _fit_components(per_case: Mapping[str, Mapping[str, np.ndarray]]) -> dict[str, BiasFit]:
@@ -991,7 +902,7 @@ def _evaluate(
         if psf_round:
             log.info("the PSF is round in every case: the PSF frame is the pixel frame")
 
-    per_case = {s: _case_estimates(sums, s, theta) for s in schemes}
+    per_case = {s: case_estimates(sums, s, theta) for s in schemes}
     _check_cases(plan, per_case["unweighted"], case_ids)
     if (
         plan.weighted
@@ -1177,7 +1088,7 @@ def _bootstrap_errors(
     def estimates(fam: _Family, counts: np.ndarray, s: str) -> dict[str, dict[str, np.ndarray]]:
         zeros = np.zeros((fam.resampler.n_keys, counts.shape[1]))
         sums = {**{k: zeros for k in _sum_names(schemes)}, **fam.resampler.sums(counts)}
-        return _case_estimates(sums, s, fam.theta[:, None] if fam.theta is not None else None)
+        return case_estimates(sums, s, fam.theta[:, None] if fam.theta is not None else None)
 
     for counts in resample_counts(spec.seed, n_groups, spec.n_resamples):
         for fam, values in zip(families, acc):
@@ -1312,7 +1223,7 @@ def _conditional(
             "center": float(np.median(in_bin)) if in_bin.size else None,
             "n_rows": int(in_bin.size),
         }
-        fits = {scheme: _fit_components(_case_estimates(sub, scheme, theta)) for scheme in schemes}
+        fits = {scheme: _fit_components(case_estimates(sub, scheme, theta)) for scheme in schemes}
         for scheme in schemes:
             entry[scheme] = fits[scheme]
         if f"{schemes[0]}:wR:11" in sub:  # metacal: this bin's responses

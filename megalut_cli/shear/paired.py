@@ -3,11 +3,14 @@ their Sérsic twins): m and c of each, and their difference with errors from a p
 bootstrap over galaxies.
 
 Both sets hold the same rows (same case = shear, galaxy, rotation, offset, noise seeds).
-Each set is reduced to sums per (case, galaxy) of ``w``, ``w * g_est`` and ``w * g_true``
+Each set is reduced to the named sums of the single-set evaluation
+(:mod:`megalut_cli.shear.response`) per (case, galaxy): ``w``, ``w * g_est``, ``w * g_true``
 (``w`` = 1, or the predicted weight; rows with a non-finite estimate or a non-zero flag
-count with ``w = 0``). A resample draws galaxies with replacement; a galaxy drawn ``k``
-times counts ``k`` times in every case, in both sets. Per resample and set, the per-case
-means give m and c by the same ordinary least squares over cases as
+count with ``w = 0``) and, for metacal sets, the responses and the sheared versions' weights.
+A resample draws galaxies with replacement (:func:`megalut_cli.shear.bootstrap.resample_counts`);
+a galaxy drawn ``k`` times counts ``k`` times in every case, in both sets. Per resample and
+set, the per-case means (metacal: calibrated by the resample's mean and selection response)
+give m and c by the same ordinary least squares over cases as
 :func:`megalut_cli.shear.bias.fit_bias`; the spread of ``m_a - m_b`` over resamples is the
 error of the difference, which therefore keeps the correlation that the common galaxies,
 shears and noise give the two sets.
@@ -25,10 +28,10 @@ from megalut_cli.catalog import catalog_info, read_catalog
 from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.expr import columns_used, evaluate_row_values
 from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, header_step
-from megalut_cli.seeding import STREAM_BOOTSTRAP, rng_for
-from megalut_cli.shear.bias import calibrate_by_response
-from megalut_cli.shear.bootstrap import fit_columns
+from megalut_cli.shear.bootstrap import fit_columns, resample_counts
 from megalut_cli.shear.evaluate import check_by
+from megalut_cli.shear.options import N_BOOTSTRAP
+from megalut_cli.shear.response import case_estimates, row_values
 
 #: Columns that must agree row by row between paired catalogs.
 PAIRING_COLUMNS = ("case", "rea", "tru_g1", "tru_g2")
@@ -43,35 +46,115 @@ METACAL_COLUMNS = (
 )
 #: The weights of the sheared versions (the weights' selection response).
 SHEARED_WEIGHT_COLUMNS = tuple(f"pre_g{i}_w_{j}{sign}" for i in "12" for j in "12" for sign in "pm")
-#: Default bootstrap resamples.
-N_BOOTSTRAP = 1000
+#: Scheme name of the sums of :func:`paired_bias` (one component, named ``g1``).
+ONE_COMPONENT = "component"
 
 
-def group_sums(
-    cell: np.ndarray,
-    n_cells: int,
-    g_true: np.ndarray,
-    g_est: np.ndarray,
-    weight: np.ndarray,
-) -> np.ndarray:
-    """``(3, n_cells)`` sums of ``w``, ``w g_est``, ``w g_true`` per cell (invalid rows: w = 0);
-    cell ``case * n_galaxies + galaxy`` for :func:`fit_resamples`."""
-    ok = np.isfinite(g_est) & np.isfinite(weight) & (weight > 0)
-    w = np.where(ok, weight, 0.0)
-    rows = [w, np.where(ok, w * g_est, 0.0), np.where(ok, w * g_true, 0.0)]
-    return np.stack([np.bincount(cell, weights=r, minlength=n_cells) for r in rows])
+@dataclass(frozen=True)
+class Resampling:
+    """The (case, galaxy) ``cell`` of each paired row and the galaxy multiplicities ``counts``
+    ``(1 + n_boot, n_gal)``: the full sample, then the resamples."""
+
+    cell: np.ndarray
+    n_cases: int
+    n_gal: int
+    counts: np.ndarray
+
+    @classmethod
+    def draw(cls, galaxy: np.ndarray, case: np.ndarray, n_boot: int, seed: int) -> Resampling:
+        """Cells of the rows' ``galaxy`` and ``case`` ids; ``n_boot`` resamples from ``seed``
+        (the draw of the single-set bootstrap)."""
+        gal_ids, gi = np.unique(np.asarray(galaxy), return_inverse=True)
+        case_ids, ci = np.unique(np.asarray(case), return_inverse=True)
+        n_gal = gal_ids.size
+        counts = np.vstack([np.ones(n_gal), *(b.T for b in resample_counts(seed, n_gal, n_boot))])
+        return cls(ci.ravel() * n_gal + gi.ravel(), case_ids.size, n_gal, counts)
+
+    def fits(
+        self, values: Mapping[str, np.ndarray], scheme: str
+    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """``(m, c)`` of each component of the per-row ``values`` of ``scheme``
+        (:func:`set_values`), one per row of ``counts``; NaN with fewer than 3 cases."""
+        n = self.n_cases * self.n_gal
+        sums = {
+            k: np.bincount(self.cell, weights=v, minlength=n).reshape(self.n_cases, self.n_gal)
+            @ self.counts.T
+            for k, v in values.items()
+        }
+        out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        with np.errstate(invalid="ignore", divide="ignore"):
+            for comp, d in case_estimates(sums, scheme).items():
+                m, c = fit_columns(d["tru"], d["pre"])
+                few = (sums[f"{scheme}:w:{comp}"] > 0).sum(axis=0) < 3
+                out[comp] = (np.where(few, np.nan, m), np.where(few, np.nan, c))
+        return out
 
 
-def fit_resamples(
-    sums: np.ndarray, counts: np.ndarray, n_cases: int, n_gal: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """m and c of the per-case means of :func:`group_sums`, one per row of ``counts`` (galaxy
-    multiplicities); NaN with fewer than 3 cases."""
-    s = sums.reshape(len(sums), n_cases, n_gal) @ counts.T  # (rows, n_cases, B)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        m, c = fit_columns(s[2] / s[0], s[1] / s[0])
-    few = (s[0] > 0).sum(axis=0) < 3
-    return np.where(few, np.nan, m), np.where(few, np.nan, c)
+def set_values(
+    scheme: str,
+    g_true: Mapping[str, np.ndarray],
+    est: Mapping[str, np.ndarray],
+    weight: Mapping[str, np.ndarray],
+    response: Mapping[tuple[int, int], np.ndarray] | None = None,
+    sheared: Mapping[tuple[int, str], np.ndarray] | None = None,
+    step: float = DEFAULT_STEP,
+) -> dict[str, np.ndarray]:
+    """:func:`megalut_cli.shear.response.row_values` of one set, per component (``g1``,
+    ``g2``): a row is used where its estimate, weight (and metacal ``response[(i, j)]``) are
+    finite and its weight positive; ``sheared[(i, kind)]``: the sheared versions' weights."""
+    ok: dict[str, np.ndarray] = {}
+    w: dict[str, np.ndarray] = {}
+    t: dict[str, np.ndarray] = {}
+    p: dict[str, np.ndarray] = {}
+    for comp, e in est.items():
+        ok[comp] = np.isfinite(e) & np.isfinite(weight[comp]) & (weight[comp] > 0)
+        for j in (1, 2) if response is not None else ():
+            ok[comp] &= np.isfinite(response[(int(comp[1]), j)])
+        w[comp], t[comp], p[comp] = (
+            np.where(ok[comp], x, 0.0) for x in (weight[comp], g_true[comp], e)
+        )
+    r = (
+        None
+        if response is None
+        else {k: np.where(ok[f"g{k[0]}"], x, 0.0) for k, x in response.items()}
+    )
+    pre = {int(comp[1]): e for comp, e in est.items()}
+    return row_values(scheme, w, t, p, r, sheared, pre, step)
+
+
+def paired_fits(
+    values_a: Mapping[str, np.ndarray],
+    values_b: Mapping[str, np.ndarray],
+    scheme: str,
+    resampling: Resampling,
+) -> dict[str, dict[str, Any]]:
+    """The JSON-ready result of each component of the sets of :func:`set_values`: m, c of
+    both and their differences, with 1-sigma errors from the spread over the resamples."""
+    fa, fb = resampling.fits(values_a, scheme), resampling.fits(values_b, scheme)
+    out: dict[str, dict[str, Any]] = {}
+    for comp in fa:
+        (m_a, c_a), (m_b, c_b) = fa[comp], fb[comp]
+        res: dict[str, Any] = {}
+        for name, v in (
+            ("m_a", m_a),
+            ("c_a", c_a),
+            ("m_b", m_b),
+            ("c_b", c_b),
+            ("dm", m_a - m_b),
+            ("dc", c_a - c_b),
+        ):
+            boot = v[1:][np.isfinite(v[1:])]
+            res[name] = _num(v[0])
+            res[f"{name}_err"] = _num(np.std(boot, ddof=1)) if boot.size > 1 else None
+        res.update(
+            n_galaxies=resampling.n_gal,
+            n_cases=resampling.n_cases,
+            n_boot=len(resampling.counts) - 1,
+            n_rows_a=int(values_a[f"{scheme}:n:{comp}"].sum()),
+            n_rows_b=int(values_b[f"{scheme}:n:{comp}"].sum()),
+        )
+        out[comp] = res
+    return out
 
 
 def paired_bias(
@@ -86,191 +169,24 @@ def paired_bias(
     seed: int = 0,
 ) -> dict[str, Any]:
     """m, c of sets ``a`` and ``b`` (one shear component, rows paired) and ``m_a - m_b``,
-    ``c_a - c_b``, with 1-sigma errors from a paired bootstrap over galaxies (metacal sets:
-    :func:`paired_metacal_bias`).
+    ``c_a - c_b``, with 1-sigma errors from a paired bootstrap over galaxies.
 
     ``galaxy`` and ``case`` are the ids shared by the paired rows. Returns a JSON-ready dict:
     ``m_a, m_a_err, c_a, c_a_err, m_b, ..., dm, dm_err, dc, dc_err, n_galaxies, n_cases,
     n_rows_a, n_rows_b, n_boot``. Values that cannot be determined are None.
     """
-    gal_ids, gi = np.unique(np.asarray(galaxy), return_inverse=True)
-    case_ids, ci = np.unique(np.asarray(case), return_inverse=True)
-    n_gal, n_cases = gal_ids.size, case_ids.size
-    cell = ci.ravel() * n_gal + gi.ravel()
-    g_true = np.asarray(g_true, dtype=float)
-    ones = np.ones(g_true.size)
-    wa = ones if weight_a is None else np.asarray(weight_a, dtype=float)
-    wb = ones if weight_b is None else np.asarray(weight_b, dtype=float)
-    sums_a = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_a, dtype=float), wa)
-    sums_b = group_sums(cell, n_cases * n_gal, g_true, np.asarray(est_b, dtype=float), wb)
-    rng = rng_for(seed, STREAM_BOOTSTRAP)
-    counts = np.vstack(
-        [np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)]
-    )
-    m_a, c_a = fit_resamples(sums_a, counts, n_cases, n_gal)
-    m_b, c_b = fit_resamples(sums_b, counts, n_cases, n_gal)
-    return _paired_result(
-        (m_a, c_a, m_b, c_b),
-        n_gal,
-        n_cases,
-        n_boot,
-        int(np.count_nonzero(np.isfinite(est_a) & (wa > 0))),
-        int(np.count_nonzero(np.isfinite(est_b) & (wb > 0))),
-    )
-
-
-def _paired_result(
-    fits: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-    n_gal: int,
-    n_cases: int,
-    n_boot: int,
-    n_rows_a: int,
-    n_rows_b: int,
-) -> dict[str, Any]:
-    """The JSON-ready result of :func:`paired_bias` from ``(m_a, c_a, m_b, c_b)`` (the full
-    sample first, then one per resample)."""
-    m_a, c_a, m_b, c_b = fits
-    out: dict[str, Any] = {}
-    for name, v in (
-        ("m_a", m_a),
-        ("c_a", c_a),
-        ("m_b", m_b),
-        ("c_b", c_b),
-        ("dm", m_a - m_b),
-        ("dc", c_a - c_b),
-    ):
-        boot = v[1:][np.isfinite(v[1:])]
-        out[name] = _num(v[0])
-        out[f"{name}_err"] = _num(np.std(boot, ddof=1)) if boot.size > 1 else None
-    out.update(
-        n_galaxies=int(n_gal),
-        n_cases=int(n_cases),
-        n_boot=int(n_boot),
-        n_rows_a=n_rows_a,
-        n_rows_b=n_rows_b,
-    )
-    return out
-
-
-@dataclass(frozen=True)
-class MetacalSet:
-    """One set of a paired metacal evaluation, per row: the noshear estimates ``est`` and
-    weights ``weight`` (``(g1, g2)``; 0 where not used), the responses ``response[i][j]``
-    (``mcal_r<i+1><j+1>``), ``usable`` (the rows whose every version was measured) and, for
-    the weights' selection response, ``sheared[(i, j, sign)]``: the weight of component
-    ``i`` on the version sheared by ``sign`` (``"p"``, ``"m"``) along ``j`` (None: no
-    weights)."""
-
-    est: tuple[np.ndarray, np.ndarray]
-    weight: tuple[np.ndarray, np.ndarray]
-    response: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
-    usable: np.ndarray
-    sheared: Mapping[tuple[int, int, str], np.ndarray] | None = None
-
-    def used(self, i: int) -> np.ndarray:
-        """The rows that component ``i`` (0 or 1) uses: a finite estimate and responses and a
-        positive weight."""
-        g_est, w, r = self.est[i], self.weight[i], self.response[i]
-        return np.isfinite(g_est) & np.isfinite(w) & (w > 0) & np.isfinite(r[0]) & np.isfinite(r[1])
-
-    def rows(self, keep: np.ndarray) -> MetacalSet:
-        """The set restricted to the rows ``keep``."""
-        return MetacalSet(
-            (self.est[0][keep], self.est[1][keep]),
-            (self.weight[0][keep], self.weight[1][keep]),
-            tuple(tuple(r[keep] for r in row) for row in self.response),  # type: ignore[arg-type]
-            self.usable[keep],
-            None if self.sheared is None else {k: v[keep] for k, v in self.sheared.items()},
+    tru = {"g1": np.asarray(g_true, dtype=float)}
+    values = [
+        set_values(
+            ONE_COMPONENT,
+            tru,
+            {"g1": np.asarray(est, dtype=float)},
+            {"g1": np.ones(tru["g1"].size) if w is None else np.asarray(w, dtype=float)},
         )
-
-
-def metacal_group_sums(
-    cell: np.ndarray, n_cells: int, g_true: np.ndarray, data: MetacalSet, i: int, step: float
-) -> np.ndarray:
-    """Sums per cell for component ``i`` (0 or 1) of a metacal set: ``w``, ``w g_est``,
-    ``w g_true``, ``w R_i1``, ``w R_i2`` and, with sheared weights, ``w_s`` and
-    ``w_s g_est / 2 step`` for the versions 1p, 1m, 2p, 2m (the single-set evaluation's
-    sums, per cell)."""
-    g_est, r = data.est[i], data.response[i]
-    ok = data.used(i)
-    w = np.where(ok, data.weight[i], 0.0)
-    rows = [w, np.where(ok, w * g_est, 0.0), np.where(ok, w * g_true, 0.0)]
-    rows += [np.where(ok, w * rj, 0.0) for rj in r]
-    if data.sheared is not None:
-        pre = np.nan_to_num(g_est)
-        for j in (1, 2):
-            for sign in "pm":
-                ws = data.sheared[(i + 1, j, sign)]
-                ws = np.where(data.usable & np.isfinite(ws) & (ws > 0), ws, 0.0)
-                rows += [ws, ws * pre / (2.0 * step)]
-    return np.stack([np.bincount(cell, weights=x, minlength=n_cells) for x in rows])
-
-
-def fit_metacal_resamples(
-    sums: tuple[np.ndarray, np.ndarray], counts: np.ndarray, n_cases: int, n_gal: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``m1, c1, m2, c2`` of the per-case means of :func:`metacal_group_sums` (``sums``: one
-    per component), one per row of ``counts``, calibrated by the resample's 2x2 mean response
-    plus the weights' selection response, as the single-set evaluation does."""
-    s = [x.reshape(len(x), n_cases, n_gal) @ counts.T for x in sums]  # (rows, n_cases, B)
-    total = [x.sum(axis=1) for x in s]  # (rows, B)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        r = [[total[i][3 + j] / total[i][0] for j in (0, 1)] for i in (0, 1)]
-        if len(sums[0]) > 5:
-            for i in (0, 1):
-                for j in (0, 1):
-                    t = total[i][5 + 4 * j : 9 + 4 * j]  # w_p, w_p g, w_m, w_m g
-                    r[i][j] = r[i][j] + t[1] / t[0] - t[3] / t[2]
-        est = [x[1] / x[0] for x in s]
-        g1, g2 = calibrate_by_response(r[0][0], r[0][1], r[1][0], r[1][1], est[0], est[1])
-        out = []
-        for x, g in zip(s, (g1, g2)):
-            m, c = fit_columns(x[2] / x[0], g)
-            few = (x[0] > 0).sum(axis=0) < 3
-            out += [np.where(few, np.nan, m), np.where(few, np.nan, c)]
-    return out[0], out[1], out[2], out[3]
-
-
-def paired_metacal_bias(
-    galaxy: np.ndarray,
-    case: np.ndarray,
-    g_true: tuple[np.ndarray, np.ndarray],
-    set_a: MetacalSet,
-    set_b: MetacalSet,
-    step: float = DEFAULT_STEP,
-    n_boot: int = N_BOOTSTRAP,
-    seed: int = 0,
-) -> dict[str, dict[str, Any]]:
-    """:func:`paired_bias` of both components of two metacal sets, each calibrated by its
-    full 2x2 mean response (plus its weights' selection response), recomputed in every
-    resample: ``{"g1": {...}, "g2": {...}}``."""
-    gal_ids, gi = np.unique(np.asarray(galaxy), return_inverse=True)
-    case_ids, ci = np.unique(np.asarray(case), return_inverse=True)
-    n_gal, n_cases = gal_ids.size, case_ids.size
-    cell = ci.ravel() * n_gal + gi.ravel()
-    sums_a = tuple(
-        metacal_group_sums(cell, n_cases * n_gal, g_true[i], set_a, i, step) for i in (0, 1)
-    )
-    sums_b = tuple(
-        metacal_group_sums(cell, n_cases * n_gal, g_true[i], set_b, i, step) for i in (0, 1)
-    )
-    rng = rng_for(seed, STREAM_BOOTSTRAP)
-    counts = np.vstack(
-        [np.ones(n_gal), rng.multinomial(n_gal, np.full(n_gal, 1.0 / n_gal), size=n_boot)]
-    )
-    fa = fit_metacal_resamples(sums_a, counts, n_cases, n_gal)  # type: ignore[arg-type]
-    fb = fit_metacal_resamples(sums_b, counts, n_cases, n_gal)  # type: ignore[arg-type]
-    return {
-        comp: _paired_result(
-            (fa[2 * i], fa[2 * i + 1], fb[2 * i], fb[2 * i + 1]),
-            n_gal,
-            n_cases,
-            n_boot,
-            int(set_a.used(i).sum()),
-            int(set_b.used(i).sum()),
-        )
-        for i, comp in enumerate(("g1", "g2"))
-    }
+        for est, w in ((est_a, weight_a), (est_b, weight_b))
+    ]
+    resampling = Resampling.draw(galaxy, case, n_boot, seed)
+    return paired_fits(values[0], values[1], ONE_COMPONENT, resampling)["g1"]
 
 
 def _num(x: float) -> float | None:
@@ -356,75 +272,39 @@ def paired_evaluation(
         ok = np.isfinite(np.asarray(t[f"pre_{comp}{sfx}"], dtype=float))
         return ok & (np.asarray(t[flag_col]) == 0) if flag_col in t else ok
 
-    def weight(t: Mapping[str, np.ndarray], comp: str, scheme: str) -> np.ndarray:
-        w = valid(t, comp).astype(float)
+    def values_of(t: Mapping[str, np.ndarray], scheme: str) -> dict[str, np.ndarray]:
+        """The set's per-row values; metacal: its sheared versions' weights on the rows that the
+        single-set evaluation finds usable (flags_noshear == 0 and every version measured)."""
+        comps = ("g1", "g2")
+        est = {c: np.asarray(t[f"pre_{c}{sfx}"], dtype=float) for c in comps}
+        weight = {c: valid(t, c).astype(float) for c in comps}
         if scheme == "weighted":
-            w = w * np.nan_to_num(np.asarray(t[f"pre_{comp}_w{sfx}"], dtype=float))
-        return w
+            for c in comps:
+                weight[c] = weight[c] * np.nan_to_num(np.asarray(t[f"pre_{c}_w{sfx}"], dtype=float))
+        tru = {c: np.asarray(a[f"tru_{c}"], dtype=float) for c in comps}
+        if not metacal:
+            return set_values(scheme, tru, est, weight)
+        resp = {(i, j): np.asarray(t[f"mcal_r{i}{j}"], dtype=float) for i in (1, 2) for j in (1, 2)}
+        sheared = None
+        if scheme == "weighted":
+            usable = np.ones(len(est["g1"]), dtype=bool) if flag_col not in t else t[flag_col] == 0
+            usable = usable & np.isfinite(est["g1"]) & np.isfinite(est["g2"])
+            usable &= np.all(np.isfinite(np.asarray(list(resp.values()))), axis=0)
+            sheared = {}
+            for i in (1, 2):
+                for kind in (f"{j}{sign}" for j in (1, 2) for sign in "pm"):
+                    ws = np.asarray(t[f"pre_g{i}_w_{kind}"], dtype=float)
+                    sheared[(i, kind)] = np.where(usable & np.isfinite(ws) & (ws > 0), ws, 0.0)
+        return set_values(scheme, tru, est, weight, resp, sheared, metacal_step)
 
-    def metacal_set(t: Mapping[str, np.ndarray], scheme: str) -> MetacalSet:
-        """The set as the single-set evaluation sees it (its ``usable`` rows: flags_noshear
-        == 0 and every version measured)."""
-        est = tuple(np.asarray(t[f"pre_g{i}_noshear"], dtype=float) for i in (1, 2))
-        resp = tuple(
-            tuple(np.asarray(t[f"mcal_r{i}{j}"], dtype=float) for j in (1, 2)) for i in (1, 2)
-        )
-        usable = np.ones(len(est[0]), dtype=bool) if flag_col not in t else t[flag_col] == 0
-        usable = usable & np.isfinite(est[0]) & np.isfinite(est[1])
-        usable &= np.all(np.isfinite(np.asarray(resp)), axis=(0, 1))
-        sheared = (
-            {
-                (i, j, sign): np.asarray(t[f"pre_g{i}_w_{j}{sign}"], dtype=float)
-                for i in (1, 2)
-                for j in (1, 2)
-                for sign in "pm"
-            }
-            if scheme == "weighted"
-            else None
-        )
-        return MetacalSet(
-            est,  # type: ignore[arg-type]
-            (weight(t, "g1", scheme), weight(t, "g2", scheme)),
-            resp,  # type: ignore[arg-type]
-            usable,
-            sheared,
-        )
+    per_set = {(t_name, s): values_of(t, s) for t_name, t in (("a", a), ("b", b)) for s in schemes}
 
     def evaluate(rows: np.ndarray) -> dict[str, Any]:
-        res: dict[str, Any] = {}
         if not rows.any():
-            return res
-        for scheme in schemes:
-            if metacal:
-                res[scheme] = paired_metacal_bias(
-                    gal[rows],
-                    case[rows],
-                    (
-                        np.asarray(a["tru_g1"], dtype=float)[rows],
-                        np.asarray(a["tru_g2"], dtype=float)[rows],
-                    ),
-                    metacal_set(a, scheme).rows(rows),
-                    metacal_set(b, scheme).rows(rows),
-                    metacal_step,
-                    n_boot,
-                    seed,
-                )
-                continue
-            res[scheme] = {}
-            for comp in ("g1", "g2"):
-                wa, wb = weight(a, comp, scheme), weight(b, comp, scheme)
-                res[scheme][comp] = paired_bias(
-                    gal[rows],
-                    case[rows],
-                    np.asarray(a[f"tru_{comp}"], dtype=float)[rows],
-                    np.asarray(a[f"pre_{comp}{sfx}"], dtype=float)[rows],
-                    np.asarray(b[f"pre_{comp}{sfx}"], dtype=float)[rows],
-                    wa[rows],
-                    wb[rows],
-                    n_boot=n_boot,
-                    seed=seed,
-                )
-        return res
+            return {}
+        resampling = Resampling.draw(gal[rows], case[rows], n_boot, seed)
+        sub = {k: {name: v[rows] for name, v in vals.items()} for k, vals in per_set.items()}
+        return {s: paired_fits(sub[("a", s)], sub[("b", s)], s, resampling) for s in schemes}
 
     result: dict[str, Any] = {
         "names": list(names),

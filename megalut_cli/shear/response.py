@@ -1,0 +1,114 @@
+"""Named sums of a shear evaluation and what comes out of them: per-case averages and the
+metacal mean and selection responses (Sheldon & Huff 2017, Sect. 5) that calibrate them.
+
+One representation for the single-set (:mod:`megalut_cli.shear.evaluate`) and the paired
+(:mod:`megalut_cli.shear.paired`) evaluations: per scheme ``s`` and component ``c`` the
+sums ``s:w:c``, ``s:wpre:c``, ``s:wtru:c``, ``s:n:c`` (rows used), ``s:n:both``; with
+metacal responses ``s:wR:ij``; with a selection or weights, per sheared version ``kind``
+(``1p, 1m, 2p, 2m``), ``s:sw:i:kind`` and ``s:swpre:i:kind``. Sums are arrays whose axis 0
+runs over the cases (further axes: e.g. bootstrap resamples).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from megalut_cli.shear.bias import calibrate_by_response, rotate_spin2
+
+
+def row_values(
+    scheme: str,
+    weight: Mapping[str, np.ndarray],
+    tru: Mapping[str, np.ndarray],
+    pre: Mapping[str, np.ndarray],
+    response: Mapping[tuple[int, int], np.ndarray] | None = None,
+    sheared: Mapping[tuple[int, str], np.ndarray] | None = None,
+    pre_noshear: Mapping[int, np.ndarray] | None = None,
+    step: float | None = None,
+) -> dict[str, np.ndarray]:
+    """Per-row values of the sums of ``scheme``: ``weight``, ``tru`` and ``pre`` per
+    component (``g1``, ``g2``; weight, truth and estimate 0 on unused rows), the metacal
+    ``response[(i, j)]`` (0 on unused rows) and the weights ``sheared[(i, kind)]`` of the rows
+    under each sheared version's selection, with the noshear estimates and the ``step``."""
+    vals: dict[str, np.ndarray] = {}
+    for comp, w in weight.items():
+        vals[f"{scheme}:w:{comp}"] = w
+        vals[f"{scheme}:wpre:{comp}"] = w * pre[comp]
+        vals[f"{scheme}:wtru:{comp}"] = w * tru[comp]
+        vals[f"{scheme}:n:{comp}"] = (w > 0).astype(float)
+    if len(weight) == 2:
+        vals[f"{scheme}:n:both"] = ((weight["g1"] > 0) & (weight["g2"] > 0)).astype(float)
+    for (i, j), r in (response or {}).items():
+        vals[f"{scheme}:wR:{i}{j}"] = weight[f"g{i}"] * r
+    if sheared and pre_noshear is not None and step is not None:
+        for (i, kind), w in sheared.items():
+            vals[f"{scheme}:sw:{i}:{kind}"] = w
+            # divided by 2 step here, so that a ratio of sums is the response term
+            vals[f"{scheme}:swpre:{i}:{kind}"] = w * np.nan_to_num(pre_noshear[i]) / (2.0 * step)
+    return vals
+
+
+def metacal_response(
+    sums: Mapping[str, np.ndarray], scheme: str
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The mean metacal response ``R[i][j]`` of the rows behind ``sums`` (all cases: axis 0),
+    and the selection response (None without a selection or weights), each ``(2, 2, ...)``."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.array(
+            [
+                [
+                    sums[f"{scheme}:wR:{i}{j}"].sum(axis=0) / sums[f"{scheme}:w:g{i}"].sum(axis=0)
+                    for j in (1, 2)
+                ]
+                for i in (1, 2)
+            ]
+        )
+        if f"{scheme}:sw:1:1p" not in sums:
+            return mean, None
+
+        def avg(i: int, kind: str) -> np.ndarray:
+            return sums[f"{scheme}:swpre:{i}:{kind}"].sum(axis=0) / sums[
+                f"{scheme}:sw:{i}:{kind}"
+            ].sum(axis=0)
+
+        selection = np.array([[avg(i, f"{j}p") - avg(i, f"{j}m") for j in (1, 2)] for i in (1, 2)])
+    return mean, selection
+
+
+def case_estimates(
+    sums: Mapping[str, np.ndarray], scheme: str, theta: np.ndarray | None = None
+) -> dict[str, dict[str, np.ndarray]]:
+    """Per-case true and estimated averages (NaN where the case has no usable row) and row
+    counts of each component summed; with metacal sums, the estimates calibrated by the mean
+    response plus the selection response of all the cases, ``(R + R_S)^-1 <g>``; with the PSF
+    angles ``theta`` of the cases, also the ``plus`` and ``cross`` components."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for comp in ("g1", "g2"):
+            w = sums.get(f"{scheme}:w:{comp}")
+            if w is None:
+                continue
+            use = w > 0
+            out[comp] = {
+                "tru": np.where(use, sums[f"{scheme}:wtru:{comp}"] / w, np.nan),
+                "pre": np.where(use, sums[f"{scheme}:wpre:{comp}"] / w, np.nan),
+                "n_rows": np.where(use, sums[f"{scheme}:n:{comp}"], 0.0),
+            }
+    if f"{scheme}:wR:11" in sums:
+        mean, selection = metacal_response(sums, scheme)
+        r = mean if selection is None else mean + selection
+        out["g1"]["pre"], out["g2"]["pre"] = calibrate_by_response(
+            r[0, 0], r[0, 1], r[1, 0], r[1, 1], out["g1"]["pre"], out["g2"]["pre"]
+        )
+    if theta is not None:
+        n_both = sums[f"{scheme}:n:both"]
+        for kind in ("tru", "pre"):
+            plus, cross = rotate_spin2(out["g1"][kind], out["g2"][kind], theta)
+            out.setdefault("plus", {})[kind] = plus
+            out.setdefault("cross", {})[kind] = cross
+        use = np.isfinite(out["plus"]["pre"])
+        out["plus"]["n_rows"] = np.where(use, n_both, 0.0)
+        out["cross"]["n_rows"] = out["plus"]["n_rows"]
+    return out
