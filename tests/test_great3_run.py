@@ -110,7 +110,7 @@ def test_run_writes_submission_and_catalog(first_run, branch):
     sub = np.loadtxt(w / P.SUBMISSION)  # what GREAT3's evaluate.py does
     assert sub.shape == (2, 3) and list(sub[:, 0]) == [0, 1]
     assert np.all(np.isfinite(sub[:, 1:])) and np.all(np.abs(sub[:, 1:]) < 1)
-    shears = read_catalog(w / P.SHEARS)
+    shears = read_catalog(w / P.SHEARS_FILE)
     assert len(shears) == 32
     for c in (
         "subfield",
@@ -192,7 +192,7 @@ def test_subfields_do_not_depend_on_workers(runner, cli, first_run, tmp_path):
     pipe, w, _ = first_run
     assert_ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(tmp_path / "j2"), "-j", "2"]))
     assert (tmp_path / "j2" / P.SUBMISSION).read_text() == (w / P.SUBMISSION).read_text()
-    a, b = read_catalog(tmp_path / "j2" / P.SHEARS), read_catalog(w / P.SHEARS)
+    a, b = read_catalog(tmp_path / "j2" / P.SHEARS_FILE), read_catalog(w / P.SHEARS_FILE)
     for c in ("pre_g1", "pre_g2", "pre_g1_w", "pre_g2_w"):
         np.testing.assert_array_equal(a[c], b[c])
 
@@ -302,7 +302,7 @@ def test_keep_going_with_a_corrupted_subfield(runner, cli, branch, tmp_path):
     w = tmp_path / "w"
     r = runner.invoke(cli, ["run", str(pipe), "--workdir", str(w)])
     error_line(r, 1, "subfield 1", str(image), "NaN")
-    for name in (P.SHEARS, P.SUBMISSION, P.EVALUATION):
+    for name in (P.SHEARS_FILE, P.SUBMISSION, P.EVALUATION):
         assert not (w / name).exists(), name
     # the engine's manifest records the subfield finished before the failure (--skip-existing
     # resumes)
@@ -316,7 +316,7 @@ def test_keep_going_with_a_corrupted_subfield(runner, cli, branch, tmp_path):
     error_line(r, 1, "1 of 2 subfield(s) failed", "image-001-0.fits")
     sub = np.loadtxt(w2 / P.SUBMISSION, ndmin=2)
     assert sub.shape == (1, 3) and sub[0, 0] == 0
-    assert len(read_catalog(w2 / P.SHEARS)) == 16
+    assert len(read_catalog(w2 / P.SHEARS_FILE)) == 16
     man = json.loads((w2 / P.MANIFEST).read_text())
     assert list(man["failed"]) == ["subfield-001"] and "NaN" in man["failed"]["subfield-001"]
     # the non-strict mode flags the bad stamp and completes the subfield
@@ -325,7 +325,7 @@ def test_keep_going_with_a_corrupted_subfield(runner, cli, branch, tmp_path):
             cli, ["run", str(pipe), "--workdir", str(tmp_path / "w3"), "branch.strict=false"]
         )
     )
-    shears = read_catalog(tmp_path / "w3" / P.SHEARS)
+    shears = read_catalog(tmp_path / "w3" / P.SHEARS_FILE)
     assert np.count_nonzero(np.asarray(shears["flags"])[np.asarray(shears["subfield"]) == 1]) == 1
 
 
@@ -389,7 +389,7 @@ def test_bad_branch_input(runner, cli, branch, tmp_path, corrupt, extra, words):
     w = tmp_path / "w"
     r = runner.invoke(cli, ["run", str(_pipeline(tmp_path, b)), "--workdir", str(w), *extra])
     error_line(r, 1, name, *words)
-    assert not (w / P.SUBMISSION).exists() and not (w / P.SHEARS).exists()
+    assert not (w / P.SUBMISSION).exists() and not (w / P.SHEARS_FILE).exists()
 
 
 @pytest.mark.parametrize(
@@ -451,7 +451,7 @@ def test_parse_helpers(branch):
     assert P.parse_subfields([5, 2, 5]) == [2, 5]
     with pytest.raises(ConfigError):
         P.parse_subfields("a-b")
-    assert P.component_features(P.DEFAULT_FEATURES, 2) == [
+    assert P.component_features(P.FEATURE_TEMPLATES, 2) == [
         "adamom_g2",
         "adamom_sigma",
         "adamom_flux",
@@ -548,7 +548,7 @@ def test_metacal_branch(runner, cli, branch, tmp_path):
     )
     w = tmp_path / "w"
     assert_ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w)]))
-    shears = read_catalog(w / P.SHEARS)
+    shears = read_catalog(w / P.SHEARS_FILE)
     for c in ("adamom_g1_noshear", "adamom_g1_1p", "pre_g1_noshear", "mcal_r11", "mcal_r22"):
         assert c in shears.colnames, c
     assert ShearModel.load(w / "subfields" / "000" / "model.h5").shear_mode == "metacal"

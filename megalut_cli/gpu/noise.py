@@ -18,13 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from megalut_cli.sim.normals import ziggurat_table
+from megalut_cli.sim.normals_nb import SPLITMIX_GOLDEN, SPLITMIX_M1, SPLITMIX_M2, U53
 
 jax.config.update("jax_enable_x64", True)
-
-_M1 = np.uint64(0xBF58476D1CE4E5B9)
-_M2 = np.uint64(0x94D049BB133111EB)
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_U53 = 1.0 / 9007199254740992.0  # 2^-53
 
 
 def _u(v: int) -> jnp.ndarray:
@@ -32,10 +28,10 @@ def _u(v: int) -> jnp.ndarray:
 
 
 def _splitmix(state: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    state = state + _GOLDEN
+    state = state + SPLITMIX_GOLDEN
     z = state
-    z = (z ^ (z >> _u(30))) * _M1
-    z = (z ^ (z >> _u(27))) * _M2
+    z = (z ^ (z >> _u(30))) * SPLITMIX_M1
+    z = (z ^ (z >> _u(27))) * SPLITMIX_M2
     return state, z ^ (z >> _u(31))
 
 
@@ -58,7 +54,7 @@ def _next(s: tuple[jnp.ndarray, ...]) -> tuple[jnp.ndarray, tuple[jnp.ndarray, .
 
 def _uniform(r: jnp.ndarray) -> jnp.ndarray:
     """Uniform in (0, 1] from one 64-bit draw (as ``normals_nb._uniform``)."""
-    return ((r >> _u(11)).astype(jnp.int64) + 1).astype(jnp.float64) * _U53
+    return ((r >> _u(11)).astype(jnp.int64) + 1).astype(jnp.float64) * U53
 
 
 @functools.partial(jax.jit, static_argnums=(1,))
@@ -96,7 +92,7 @@ def standard_normals(seeds: jnp.ndarray, size: int) -> jnp.ndarray:
         state = tuple(jnp.where(active, n, o) for n, o in zip(new_state, state))
         # mode 0
         lay0 = (r & _u(0xFF)).astype(jnp.int32)
-        u0 = 2.0 * ((r >> _u(11)).astype(jnp.int64).astype(jnp.float64) * _U53) - 1.0
+        u0 = 2.0 * ((r >> _u(11)).astype(jnp.int64).astype(jnp.float64) * U53) - 1.0
         quick = jnp.abs(u0) < ratio[lay0]
         z0 = u0 * x[lay0]
         # mode 1: the wedge of ``layer`` at ``u``

@@ -43,7 +43,7 @@ from megalut_cli.measure.metacal_defaults import STEP_CARD
 from megalut_cli.nn import normalization as norm
 from megalut_cli.nn.committee import CommitteeSpec, train_committees
 from megalut_cli.nn.data import CaseData, build_cases, split_cases, valid_rows
-from megalut_cli.nn.defaults import INIT_SCHEMES, POINT_COSTS, WEIGHT_COST
+from megalut_cli.nn.defaults import DEFAULT_FEATURES, INIT_SCHEMES, POINT_COSTS, WEIGHT_COST
 from megalut_cli.nn.domain import (
     DOMAIN_COLUMNS,
     DOMAIN_KEY,
@@ -66,7 +66,6 @@ log = logging.getLogger(__name__)
 
 #: The declared defaults of a point training's features, targets and hidden layers and of a
 #: weight training's hidden layers.
-DEFAULT_FEATURES = list(POINT_OPTION["features"].default)
 DEFAULT_TARGETS = list(POINT_OPTION["targets"].default)
 DEFAULT_POINT_HIDDEN = tuple(POINT_OPTION["hidden"].default)
 DEFAULT_WEIGHT_HIDDEN = tuple(WEIGHT_OPTION["hidden"].default)
@@ -441,7 +440,9 @@ def fit_point(
             init_comms[t] = src
     features = spec.features
     if features is None:
-        features = next(iter(init_comms.values())).features if init_comms else DEFAULT_FEATURES
+        features = (
+            next(iter(init_comms.values())).features if init_comms else list(DEFAULT_FEATURES)
+        )
     features = _unique(features, "features")
     for src in init_comms.values():
         if src.features != features:

@@ -72,7 +72,7 @@ SET_NAMES = ("tp", "tw")
 #: Pipeline seeds when the file gives none (all different).
 DEFAULT_SEEDS = {"tp": 1, "tw": 2, "train_point": 3, "train_weight": 4}
 #: The paper's four features per component (Sect. 8.2); ``{i}`` is the component, 1 or 2.
-DEFAULT_FEATURES = ["adamom_g{i}", "adamom_sigma", "adamom_flux", "adamom_rho4"]
+FEATURE_TEMPLATES = ["adamom_g{i}", "adamom_sigma", "adamom_flux", "adamom_rho4"]
 #: Targets of the point committees: the ellipticity shortcut, or a shear-structured ``tp``.
 TARGET_CHOICES = (("tru_e1", "tru_e2"), ("tru_g1", "tru_g2"))
 #: Hidden layers of the weight networks: those of the point networks, "for all estimators
@@ -80,7 +80,7 @@ TARGET_CHOICES = (("tru_e1", "tru_e2"), ("tru_g1", "tru_g2"))
 WEIGHT_HIDDEN = POINT_OPTION["hidden"].default
 
 SUBFIELDS_DIR = "subfields"
-SHEARS = "shears.fits"
+SHEARS_FILE = "shears.fits"
 SUBMISSION = "submission.txt"
 EVALUATION = "evaluation.json"
 UNIT_RECORD = "subfield.json"
@@ -557,7 +557,7 @@ def parse_branch_pipeline(
         point_table,
         seed=DEFAULT_SEEDS["train_point"],
         targets=list(TARGET_CHOICES[0]),
-        features=DEFAULT_FEATURES,
+        features=FEATURE_TEMPLATES,
     )
     targets = point.targets
     if tuple(targets) not in TARGET_CHOICES:

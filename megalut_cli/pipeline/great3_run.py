@@ -50,7 +50,7 @@ from megalut_cli.pipeline.great3_file import (
     EVALUATION,
     MANIFEST,
     SET_NAMES,
-    SHEARS,
+    SHEARS_FILE,
     SHEARS_FORMAT,
     SUBFIELDS_DIR,
     SUBMISSION,
@@ -454,7 +454,7 @@ def branch_steps(
     scheme = "weighted" if pipe.weighted else "unweighted"
 
     def write_shears(wd: Path, overwrite: bool) -> None:
-        _write_shears(wd / SHEARS, wd, subs, overwrite=True)
+        _write_shears(wd / SHEARS_FILE, wd, subs, overwrite=True)
 
     def write_submission(wd: Path, overwrite: bool) -> None:
         L.write_submission(
@@ -468,7 +468,7 @@ def branch_steps(
     steps = [
         Step(
             "shears",
-            [SHEARS],
+            [SHEARS_FILE],
             their_shears,
             {"subfields": subs},
             write_shears,
@@ -499,7 +499,7 @@ def branch_steps(
         from megalut_cli.great3.evaluate import evaluate_branch
 
         with _quiet():
-            evaluation = evaluate_branch(wd / SHEARS, truth, sigma2_min=pipe.sigma2_min)
+            evaluation = evaluate_branch(wd / SHEARS_FILE, truth, sigma2_min=pipe.sigma2_min)
         evaluation["submission"] = {"weighted": pipe.weighted, "path": SUBMISSION}
         write_json(wd / EVALUATION, evaluation, overwrite=True)
 
@@ -508,7 +508,7 @@ def branch_steps(
         Step(
             "evaluation",
             [EVALUATION],
-            [SHEARS],
+            [SHEARS_FILE],
             {
                 "truth": str(truth),
                 "truth_sha256": truth_files,
@@ -587,7 +587,7 @@ def run_branch(
     """
     wd = Path(workdir)
     steps = build_steps(pipe, wd)
-    check_workdir(wd, steps, skip_existing, overwrite, [SHEARS, SUBMISSION, EVALUATION])
+    check_workdir(wd, steps, skip_existing, overwrite, [SHEARS_FILE, SUBMISSION, EVALUATION])
     if pipe.problems and not keep_going:
         s = next(iter(pipe.problems))
         raise InputError(about(f"subfield {s}", pipe.problems[s]))
@@ -630,7 +630,7 @@ def run_branch(
     n_skipped = sum(u.status == "skipped" for u in finished_units(reports))
     ran = {r.name for r in reports}
     evaluation = None
-    products = [SHEARS, SUBMISSION]
+    products = [SHEARS_FILE, SUBMISSION]
     if "evaluation" in ran and (wd / EVALUATION).is_file():
         evaluation = json.loads((wd / EVALUATION).read_text())
         products.append(EVALUATION)
@@ -642,7 +642,7 @@ def run_branch(
         n_skipped,
         len(failures),
         sum(r["n_galaxies"] for r in done),
-        SHEARS,
+        SHEARS_FILE,
         seconds,
     )
     return BranchRunResult(wd, done, failures, evaluation, seconds, products, n_skipped)

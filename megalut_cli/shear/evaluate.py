@@ -81,7 +81,7 @@ TRUTH_COLUMNS = ("case", "tru_g1", "tru_g2")
 ESTIMATE_COLUMNS = ("pre_g1", "pre_g2")
 WEIGHT_COLUMNS = ("pre_g1_w", "pre_g2_w")
 #: PSF ellipticity columns, in order of preference.
-PSF_COLUMNS = (("tru_psf_g1", "tru_psf_g2"), ("psf_adamom_g1", "psf_adamom_g2"))
+PSF_SHAPE_COLUMNS = (("tru_psf_g1", "tru_psf_g2"), ("psf_adamom_g1", "psf_adamom_g2"))
 COMPONENTS = ("g1", "g2", "plus", "cross")
 SCHEMES = ("unweighted", "weighted")
 #: Rows read at a time.
@@ -210,7 +210,7 @@ def _make_plan(
             source,
             ", ".join(WEIGHT_COLUMNS),
         )
-    psf = next((pair for pair in PSF_COLUMNS if all(c in have for c in pair)), None)
+    psf = next((pair for pair in PSF_SHAPE_COLUMNS if all(c in have for c in pair)), None)
     by = list(dict.fromkeys(by or []))
     by_kind = check_by(by, list(colnames), given.get("by", "by"), source)
     if select is not None:

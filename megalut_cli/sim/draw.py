@@ -132,7 +132,9 @@ def stamp_origins(index: np.ndarray, n_x: int, stamp_size: int) -> np.ndarray:
     ).astype(float)
 
 
-def stamp_centres(index: np.ndarray, n_x: int, stamp_size: int) -> tuple[np.ndarray, np.ndarray]:
+def grid_stamp_centres(
+    index: np.ndarray, n_x: int, stamp_size: int
+) -> tuple[np.ndarray, np.ndarray]:
     """FITS 1-based (x, y) centres of grid stamps ``index``."""
     o = stamp_origins(index, n_x, stamp_size)
     half = (stamp_size - 1) / 2.0

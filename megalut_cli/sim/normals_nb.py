@@ -10,19 +10,21 @@ import numpy as np
 
 from megalut_cli.jit import njit
 
-_M1 = np.uint64(0xBF58476D1CE4E5B9)
-_M2 = np.uint64(0x94D049BB133111EB)
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_U53 = 1.0 / 9007199254740992.0  # 2^-53
+#: SplitMix64's multipliers and increment (the golden ratio), and 2^-53: the generator's
+#: constants, read by these kernels and by the device port (``megalut_cli.gpu.noise``).
+SPLITMIX_M1 = np.uint64(0xBF58476D1CE4E5B9)
+SPLITMIX_M2 = np.uint64(0x94D049BB133111EB)
+SPLITMIX_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+U53 = 1.0 / 9007199254740992.0  # 2^-53
 
 
 @njit(cache=True)
 def _splitmix(state: np.uint64) -> tuple[np.uint64, np.uint64]:
     """SplitMix64: (next state, output)."""
-    state = state + _GOLDEN
+    state = state + SPLITMIX_GOLDEN
     z = state
-    z = (z ^ (z >> np.uint64(30))) * _M1
-    z = (z ^ (z >> np.uint64(27))) * _M2
+    z = (z ^ (z >> np.uint64(30))) * SPLITMIX_M1
+    z = (z ^ (z >> np.uint64(27))) * SPLITMIX_M2
     return state, z ^ (z >> np.uint64(31))
 
 
@@ -63,7 +65,7 @@ def _uniform(
 ) -> tuple[float, np.uint64, np.uint64, np.uint64, np.uint64]:
     """Uniform in (0, 1], and the next state."""
     r, s0, s1, s2, s3 = _next(s0, s1, s2, s3)
-    return (np.int64(r >> np.uint64(11)) + 1) * _U53, s0, s1, s2, s3
+    return (np.int64(r >> np.uint64(11)) + 1) * U53, s0, s1, s2, s3
 
 
 @njit(cache=True)
@@ -97,7 +99,7 @@ def fill_normals(out: np.ndarray, seeds: np.ndarray, x: np.ndarray, ratio: np.nd
             while True:
                 bits, s0, s1, s2, s3 = _next(s0, s1, s2, s3)
                 layer = np.int64(bits & np.uint64(0xFF))
-                u = 2.0 * (np.int64(bits >> np.uint64(11)) * _U53) - 1.0
+                u = 2.0 * (np.int64(bits >> np.uint64(11)) * U53) - 1.0
                 if abs(u) < ratio[layer]:
                     z = u * x[layer]
                     break

@@ -38,7 +38,7 @@ from megalut_cli.measure.metacal_defaults import metacal_cards
 from megalut_cli.parallel import chunk_ranges, executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, format_duration, no_progress
 from megalut_cli.sim.config import SimConfig
-from megalut_cli.sim.draw import WorkUnit, draw_unit, renders_galaxies, stamp_centres
+from megalut_cli.sim.draw import WorkUnit, draw_unit, grid_stamp_centres, renders_galaxies
 from megalut_cli.sim.options import SIMULATE
 
 log = logging.getLogger(__name__)
@@ -412,7 +412,7 @@ def simulate_chunks(
                 raise MegalutError("internal error: work units returned different columns")
             first = unit.case_start * s.n_realizations
             n = len(columns["case"])
-            columns["x"], columns["y"] = stamp_centres(
+            columns["x"], columns["y"] = grid_stamp_centres(
                 np.arange(first, first + n), s.grid_nx, s.stamp_size
             )
             update(1)
