@@ -24,12 +24,12 @@ from megalut_cli.gpu import measure as gmeasure
 from megalut_cli.gpu import render as grender
 from megalut_cli.gpu.measure import measure_on_device, padded_size, split_measurements
 from megalut_cli.gpu.noise import add_gaussian_noise
-from megalut_cli.measure.feature_sets import compute_extra
 from megalut_cli.measure.features import (
     default_guess_sigma,
     default_max_shift,
     features_from_moments,
 )
+from megalut_cli.measure.measurer import Measurer, MeasureSettings, StampBatch
 from megalut_cli.sim.draw import (
     WorkUnit,
     case_columns,
@@ -206,11 +206,9 @@ def draw_unit_device(unit: WorkUnit) -> dict[str, Any]:
     if unit.measure:
         origins = stamp_origins(np.arange(first, first + n_total), unit.n_x, S)
         moments, skymad, finite = split_measurements(results)
-        columns.update(
-            features_from_moments(
-                moments, skymad, finite, origins, S, cfg.gain, default_max_shift(S)
-            )
+        base = features_from_moments(
+            moments, skymad, finite, origins, S, cfg.gain, default_max_shift(S)
         )
-        if unit.feature_sets:
-            columns.update(compute_extra(unit.feature_sets, kept, origins, columns))
+        settings = MeasureSettings(cfg.gain, unit.engine, unit.device, unit.feature_sets)
+        columns.update(Measurer(settings).measure(StampBatch(kept, origins, base=base)))
     return {"columns": columns, "stamps": kept if unit.keep_stamps else None}

@@ -1,5 +1,13 @@
-"""Grid images as a stamp source: stamps located by a catalog's centres or in grid order, and
-their PSFs (one image, a grid like the stamps', or a PSF model at each row's position).
+"""Grid images as a stamp source: stamps located by a catalog's centres ``x, y`` (FITS, or
+text with ``# name`` lines such as GREAT3's; every column passed through) or in grid order,
+star fields measured star by star, and the PSF of each stamp:
+
+* ``--psf`` an image of the galaxy image's shape: a grid of PSF stamps, one per stamp;
+* ``--psf`` another image: one PSF for every row (the whole square image, or the first
+  stamp of a grid of ``STAMPSZ`` stamps such as GREAT3's star field); one that cannot be
+  measured is an error;
+* ``--psf-model`` (:mod:`.psf_model`): the model's PSF at each row's position (the
+  catalog's ``x, y``, else the stamp centre), drawn in the work unit.
 
 Work units are chunks of stamps sorted by their position in the image; each worker reads
 only the band of image rows its stamps cover, so memory stays bounded for big images.

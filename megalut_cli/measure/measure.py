@@ -1,40 +1,8 @@
-"""``megalut measure``: features of every stamp of a FITS image of stamps.
+"""``megalut measure``: the features of every stamp of an input file.
 
-The stamps are located by a catalog's centres ``x, y`` or, without a catalog, in grid
-order (see :mod:`.stamps`). All catalog columns are passed through, and the features of
-:mod:`.features` are added; with a PSF image, the PSF features ``psf_adamom_g1,
-psf_adamom_g2, psf_adamom_sigma, psf_adamom_rho4`` too.
-
-Work units are chunks of stamps sorted by their position in the image; each worker reads
-only the band of image rows its stamps cover, so memory stays bounded for big images
-(with ``--scheduler``, the workers must see the input files under the same paths).
-
-PSF images (``--psf``):
-
-* an image of the same shape as the galaxy image is a grid of PSF stamps with the same
-  layout: each row gets the PSF stamp at its own galaxy stamp's position;
-* otherwise, an image that is a grid of several stamps (stamp size from its ``STAMPSZ``
-  card, else the galaxies') is a star field, e.g. GREAT3's 3x3 ``starfield_image``: its
-  first (lower-left) stamp is measured;
-* otherwise the whole (square) image is one PSF stamp.
-
-In the last two cases every row gets the same PSF features. A per-row PSF stamp that
-cannot be measured sets the ``PSF_FAILED`` flag; a single PSF that cannot be measured is
-an error.
-
-A PSF model (``--psf-model``, :mod:`.psf_model`: PSFEx or Piff) gives each row the model's
-PSF at its position (the catalog's ``x, y``; in grid order the stamp centre, meaningful only
-when the stamps image is the exposure the model was fit on), drawn by the work unit on a
-stamp like the galaxy's and measured as a per-row PSF stamp of a grid would be.
-
-Catalogs may be FITS tables or text files with ``# name`` header lines (GREAT3's
-``galaxy_catalog-SSS.txt``; :func:`megalut_cli.catalog.read_text_catalog`). A
-catalog whose centres form a regular grid with a spacing that is not a multiple of the
-stamp size, or whose centres all fall off the image, is an error naming the file.
-
-Star fields (``stars``, automatic for images named ``starfield_image-*``, e.g. GREAT3's
-3x3 grids of PSF stamps) are measured star by star into ``psf_adamom_*`` columns (see
-:data:`STAR_COLUMNS`); a star field without any measurable star is an error.
+:func:`measure_file_columns` finds the file's stamp source (:mod:`.sources`: a grid image
+with an optional catalog of centres, :mod:`.grid`; a MEDS file, :mod:`.meds`), checks the
+arguments, has the source measure its stamps (:mod:`.measurer`) and writes the catalog.
 """
 
 from __future__ import annotations

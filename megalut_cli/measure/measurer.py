@@ -89,7 +89,8 @@ class StampBatch:
     :mod:`.masks`) with ``centres`` (0-based ``(col, row)`` of the object in its stamp) and
     ``weights`` (the noise of the S/N); ``psfs``; ``fixnoise_keys``: the key of each
     stamp's metacal fixnoise field; ``base``: the base features, when the source measured
-    them while cutting (then ``stamps`` may be None: nothing else is measured on the pixels).
+    them itself (while cutting, or on the device; ``stamps`` may then be None when nothing
+    else is measured on the pixels).
     """
 
     stamps: np.ndarray | None
@@ -194,29 +195,31 @@ class Measurer:
         """The columns of a batch: features, then ``n_masked`` and ``noise_weight`` (with a
         mask), ``psf_adamom_*`` (with PSFs), the metacal columns (with metacal and PSFs)."""
         s = self.settings
+        stamps = batch.stamps
         if batch.base is not None:
             feats = dict(batch.base)
+        else:
+            assert stamps is not None
+            n, finite, skymad = len(stamps), batch.finite, batch.skymad
+            if batch.masked is not None:  # GalSim's badpix: masked pixels are 0 for the moments
+                stamps = np.where(batch.masked, 0.0, stamps) if batch.masked.any() else stamps
+                finite = np.isfinite(stamps).all(axis=(1, 2)) if n else np.zeros(0, bool)
+                skymad = masked_sky_mad(batch.stamps, batch.masked) if n else np.zeros(0)
+            feats = measure_stamps(
+                stamps,
+                batch.origins,
+                s.gain,
+                max_shift=default_max_shift(stamps.shape[-1]),
+                engine=s.engine,
+                device=s.device,
+                finite=finite,
+                skymad=skymad,
+            )
+            if batch.masked is not None:
+                self._masks(batch, feats)
+        if stamps is None:  # the base features only, measured by the source
             self._psfs(batch, feats)
             return feats
-        assert batch.stamps is not None
-        stamps, n = batch.stamps, len(batch.stamps)
-        finite, skymad = batch.finite, batch.skymad
-        if batch.masked is not None:  # GalSim's badpix: masked pixels are 0 for the moments
-            stamps = np.where(batch.masked, 0.0, stamps) if batch.masked.any() else stamps
-            finite = np.isfinite(stamps).all(axis=(1, 2)) if n else np.zeros(0, bool)
-            skymad = masked_sky_mad(batch.stamps, batch.masked) if n else np.zeros(0)
-        feats = measure_stamps(
-            stamps,
-            batch.origins,
-            s.gain,
-            max_shift=default_max_shift(stamps.shape[-1]),
-            engine=s.engine,
-            device=s.device,
-            finite=finite,
-            skymad=skymad,
-        )
-        if batch.masked is not None:
-            self._masks(batch, feats)
         if s.feature_sets:
             feats.update(compute_extra(s.feature_sets, stamps, batch.origins, feats))
         self._psfs(batch, feats)
