@@ -1,10 +1,11 @@
 """Metacalibration image operation (issue 23): the GalSim reference and the engine dispatch.
 
 Each stamp is deconvolved by its PSF image, sheared by ``±step`` along g1 and g2, and
-reconvolved with a round Gaussian target PSF slightly wider than the PSF, giving the five
-versions :data:`TYPES`. With ``noise_sigma``, metacal's fixnoise is applied: a noise field of
-that level, rotated by 90 degrees, goes through the same operation, is rotated back and added
-to every version, so that the noise the operation shears and correlates no longer depends on
+reconvolved with a target PSF slightly wider than the PSF (chosen by name among
+:mod:`.metacal_targets`; by default a round Gaussian), giving the five versions
+:data:`TYPES`. With ``noise_sigma``, metacal's fixnoise is applied: a noise field of that
+level, rotated by 90 degrees, goes through the same operation, is rotated back and added to
+every version, so that the noise the operation shears and correlates no longer depends on
 the applied shear (to first order), at the cost of twice the noise variance.
 Arrays in and out; pixel units (scale 1).
 """
@@ -29,6 +30,8 @@ from megalut_cli.measure.metacal_defaults import (
     TYPES,
 )
 from megalut_cli.measure.metacal_fft import fft_versions
+from megalut_cli.measure.metacal_targets import DEFAULT_TARGET, MetacalTarget, gauss, metacal_target
+from megalut_cli.measure.metacal_targets.gauss import GaussTarget
 from megalut_cli.measure.morphology import morphology_of_measured
 from megalut_cli.seeding import STREAM_METACAL, int_seed_for
 
@@ -36,7 +39,7 @@ from megalut_cli.seeding import STREAM_METACAL, int_seed_for
 @dataclass(frozen=True)
 class MetacalImages:
     """The five versions of one stamp (``images[type]``, float64, the stamp's shape) and the
-    sigma (pixels) of the round Gaussian target PSF they are convolved with."""
+    sigma (pixels) of the target PSF they are convolved with."""
 
     images: dict[str, np.ndarray]
     target_sigma: float
@@ -48,25 +51,23 @@ class _Operation:
     reconvolve with, and the step (built once per PSF)."""
 
     psf: galsim.GSObject
-    target: galsim.Gaussian
+    target: MetacalTarget
     step: float
 
 
-def target_psf_sigma(psf_image: np.ndarray, step: float = DEFAULT_STEP) -> float:
-    """Sigma of the round Gaussian target PSF: the adaptive-moment sigma of ``psf_image``
-    (which holds the pixel), dilated by ``1 + 2|step|`` so that the sheared, deconvolved
-    galaxy's high frequencies stay under the target."""
-    res = galsim.hsm.FindAdaptiveMom(
-        galsim.ImageD(np.asarray(psf_image, dtype=np.float64), scale=1.0)
-    )
-    # the round-equivalent size of an elliptical PSF: sigma = det(M)^(1/4)
-    return float(dilated_sigma(res.moments_sigma, step))
+def target_psf_sigma(
+    psf_image: np.ndarray, step: float = DEFAULT_STEP, target: str = DEFAULT_TARGET
+) -> float:
+    """Sigma of the target PSF of ``psf_image`` (which holds the pixel); for the round
+    Gaussian: the PSF's adaptive-moment sigma dilated by ``1 + 2|step|`` so that the sheared,
+    deconvolved galaxy's high frequencies stay under the target."""
+    return float(metacal_target(target, np.asarray(psf_image), step).sigma)
 
 
 def dilated_sigma(psf_sigma: float | np.ndarray, step: float = DEFAULT_STEP) -> float | np.ndarray:
-    """The target PSF's sigma from the PSF's adaptive-moment sigma (e.g. the ``psf_adamom_sigma``
-    column): dilated by ``1 + 2|step|``, as :func:`target_psf_sigma`."""
-    return psf_sigma * (1.0 + 2.0 * abs(step))
+    """The round Gaussian target's sigma from the PSF's adaptive-moment sigma (e.g. the
+    ``psf_adamom_sigma`` column): dilated by ``1 + 2|step|``, as :func:`target_psf_sigma`."""
+    return gauss.dilated_sigma(psf_sigma, step)
 
 
 def _finite_2d(image: np.ndarray, what: str) -> None:
@@ -85,13 +86,13 @@ def _check_psf(psf_image: np.ndarray, step: float) -> None:
         raise ValueError(f"metacal step {step}: expected 0 < step <= {MAX_STEP}")
 
 
-def _operation(psf_image: np.ndarray, step: float) -> _Operation:
-    """The operation for one PSF image (checked) and step."""
+def _operation(psf_image: np.ndarray, step: float, target: str) -> _Operation:
+    """The operation for one PSF image (checked), step and target name."""
     _check_psf(psf_image, step)
     psf = galsim.InterpolatedImage(
         galsim.ImageD(psf_image / psf_image.sum(), scale=1.0), x_interpolant=INTERPOLANT
     )
-    return _Operation(psf, galsim.Gaussian(sigma=target_psf_sigma(psf_image, step)), step)
+    return _Operation(psf, metacal_target(target, psf_image, step), step)
 
 
 def _versions(image: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
@@ -99,6 +100,7 @@ def _versions(image: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
     ny, nx = image.shape
     obj = galsim.InterpolatedImage(galsim.ImageD(image, scale=1.0), x_interpolant=INTERPOLANT)
     deconvolved = galsim.Convolve(obj, galsim.Deconvolve(op.psf))
+    target = op.target.gsobject()
     out = {}
     for kind in TYPES:
         s1, s2 = SHEARS[kind]
@@ -107,7 +109,7 @@ def _versions(image: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
             if kind == "noshear"
             else deconvolved.shear(g1=s1 * op.step, g2=s2 * op.step)
         )
-        drawn = galsim.Convolve(sheared, op.target).drawImage(
+        drawn = galsim.Convolve(sheared, target).drawImage(
             nx=nx, ny=ny, scale=1.0, method="no_pixel"
         )
         out[kind] = drawn.array.astype(np.float64)
@@ -124,7 +126,7 @@ def _linear_versions(
 ) -> dict[str, np.ndarray]:
     """The operation (linear in the image) on a stack ``(n, S, S)`` that shares one PSF."""
     if engine == "fast":
-        return fft_versions(images, psf_image, op.step, op.target.sigma)
+        return fft_versions(images, psf_image, op.step, op.target)
     out = {kind: np.empty_like(images) for kind in TYPES}
     for i, image in enumerate(images):
         for kind, version in _versions(image, op).items():
@@ -165,15 +167,18 @@ def _fast_several_psfs(
     step: float,
     sigmas: np.ndarray,
     seeds: np.ndarray,
+    target: str,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """:func:`metacal_versions` with the fast engine and several PSFs: every stamp and its
     fixnoise field through one :func:`~.metacal_fft_multi.fft_versions_multi` call (the
     stamps in PSF order, each followed by its rotated field: a PSF's rows are contiguous)."""
     n, shape = len(stamps), stamps.shape[1:]
-    target = np.full(len(psfs), np.nan)
+    targets: list[MetacalTarget | None] = [None] * len(psfs)
+    sigma = np.full(len(psfs), np.nan)
     for j in np.unique(psf_index):
         _check_psf(psfs[j], step)
-        target[j] = target_psf_sigma(psfs[j], step)
+        targets[j] = metacal_target(target, psfs[j], step)
+        sigma[j] = targets[j].sigma
     order = np.argsort(psf_index, kind="stable")
     noisy = sigmas[order] > 0
     rows = np.cumsum(1 + noisy) - (1 + noisy)  # each stamp's row; its field's is the next
@@ -184,7 +189,7 @@ def _fast_several_psfs(
     index = np.empty(len(stack), np.int64)
     index[rows] = psf_index[order]
     index[rows[noisy] + 1] = psf_index[order][noisy]
-    versions = metacal_fft_multi.fft_versions_multi(stack, psfs, index, step, target)
+    versions = metacal_fft_multi.fft_versions_multi(stack, psfs, index, step, targets)
     out = {}
     for kind in TYPES:
         v = versions[kind]
@@ -193,7 +198,7 @@ def _fast_several_psfs(
         res = np.empty((n, *shape))
         res[order] = v[rows]
         out[kind] = res
-    return out, target[psf_index]
+    return out, sigma[psf_index]
 
 
 def metacal_versions(
@@ -204,6 +209,7 @@ def metacal_versions(
     seeds: Sequence[int] | np.ndarray | None = None,
     engine: str = "galsim",
     psf_index: Sequence[int] | np.ndarray | None = None,
+    target: str = DEFAULT_TARGET,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The five metacal versions of a stack of stamps ``(n, S, S)``, as ``({type: (n, S, S)},
     target_sigma (n,))``.
@@ -215,6 +221,8 @@ def metacal_versions(
     on, each stamp's field drawn from its ``seeds`` entry (default: the stamp index).
     ``engine``: ``"galsim"`` (the reference, stamp by stamp) or ``"fast"`` (FFTs over the
     stack, :mod:`.metacal_fft`; with several PSFs, in one pass: :mod:`.metacal_fft_multi`).
+    ``target``: the target PSF's name (:mod:`.metacal_targets`); the second array holds its
+    sigma for each stamp.
     """
     stamps = np.asarray(stamps, dtype=np.float64)
     psfs = np.asarray(psf_images, dtype=np.float64)
@@ -243,22 +251,22 @@ def metacal_versions(
     seeds = np.arange(n, dtype=np.int64) if seeds is None else np.asarray(seeds, dtype=np.int64)
     groups = np.unique(psf_index)
     if len(groups) == 1:  # one PSF (the usual case): no copy into a new stack
-        op = _operation(psfs[groups[0]], step)
+        op = _operation(psfs[groups[0]], step, target)
         return _with_fixnoise(stamps, psfs[groups[0]], op, sigmas, seeds, engine), np.full(
             n, op.target.sigma
         )
     if engine == "fast":
-        return _fast_several_psfs(stamps, psfs, psf_index, step, sigmas, seeds)
+        return _fast_several_psfs(stamps, psfs, psf_index, step, sigmas, seeds, target)
     versions = {kind: np.empty_like(stamps) for kind in TYPES}
-    target = np.empty(n)
+    sigma_t = np.empty(n)
     for j in groups:
         rows = np.flatnonzero(psf_index == j)
-        op = _operation(psfs[j], step)
+        op = _operation(psfs[j], step, target)
         group = _with_fixnoise(stamps[rows], psfs[j], op, sigmas[rows], seeds[rows], engine)
         for kind in TYPES:
             versions[kind][rows] = group[kind]
-        target[rows] = op.target.sigma
-    return versions, target
+        sigma_t[rows] = op.target.sigma
+    return versions, sigma_t
 
 
 def fixnoise_seeds(seed: int, keys: Sequence[int] | np.ndarray) -> np.ndarray:
@@ -269,12 +277,9 @@ def fixnoise_seeds(seed: int, keys: Sequence[int] | np.ndarray) -> np.ndarray:
 
 
 def target_psf_image(target_sigma: float, size: int) -> np.ndarray:
-    """The round Gaussian target PSF as the versions hold it (no pixel), ``size`` pixels."""
-    return (
-        galsim.Gaussian(sigma=target_sigma)
-        .drawImage(nx=size, ny=size, scale=1.0, method="no_pixel")
-        .array
-    )
+    """The round Gaussian target PSF of sigma ``target_sigma`` as the versions hold it (no
+    pixel), ``size`` pixels (:meth:`.MetacalTarget.image` of any target)."""
+    return GaussTarget(target_sigma).image(size)
 
 
 def metacal_images(
@@ -284,17 +289,25 @@ def metacal_images(
     noise_sigma: float | None = None,
     seed: int = 0,
     engine: str = "galsim",
+    target: str = DEFAULT_TARGET,
 ) -> MetacalImages:
     """The five metacal versions of ``stamp`` with the PSF image ``psf_image`` (both centred
     like GalSim's images: the true centre of an even-sized image is between pixels).
 
     ``noise_sigma``: the stamp's noise level; when given, fixnoise adds the operation's image
-    of a rotated noise field of that level, drawn from ``seed``.
+    of a rotated noise field of that level, drawn from ``seed``. ``target``: the target
+    PSF's name.
     """
     stamp = np.asarray(stamp, dtype=np.float64)
     _finite_2d(stamp, "stamp")
     versions, target = metacal_versions(
-        stamp[None], psf_image, step, None if noise_sigma is None else [noise_sigma], [seed], engine
+        stamp[None],
+        psf_image,
+        step,
+        None if noise_sigma is None else [noise_sigma],
+        [seed],
+        engine,
+        target=target,
     )
     return MetacalImages({kind: v[0] for kind, v in versions.items()}, float(target[0]))
 
@@ -308,6 +321,7 @@ def metacal_features(
     metacal_engine: str = "galsim",
     psf_index: Sequence[int] | np.ndarray | None = None,
     morphology: bool = False,
+    target: str = DEFAULT_TARGET,
     **measure_kw: Any,
 ) -> dict[str, np.ndarray]:
     """Features of the five metacal versions of a stack of stamps ``(n, S, S)``: every column
@@ -318,7 +332,7 @@ def metacal_features(
     ``measure_kw`` go to ``measure_stamps``.
     """
     versions, _ = metacal_versions(
-        stamps, psf_images, step, noise_sigma, seeds, metacal_engine, psf_index
+        stamps, psf_images, step, noise_sigma, seeds, metacal_engine, psf_index, target
     )
     out: dict[str, np.ndarray] = {}
     for kind in TYPES:
@@ -330,11 +344,17 @@ def metacal_features(
     return out
 
 
-def target_psf_features(target_sigma: float, size: int, engine: str = "fast") -> dict[str, float]:
-    """``adamom_g1, adamom_g2, adamom_sigma, adamom_rho4`` of the target PSF (what the
-    ``psf_adamom_*_<type>`` columns of a metacal catalog hold)."""
-    res = measure_stamps(target_psf_image(target_sigma, size)[None], engine=engine)
+def target_features(target: MetacalTarget, size: int, engine: str = "fast") -> dict[str, float]:
+    """``adamom_g1, adamom_g2, adamom_sigma, adamom_rho4`` of ``target``'s image on a
+    ``size``-pixel stamp (what the ``psf_adamom_*_<type>`` columns of a metacal catalog
+    hold)."""
+    res = measure_stamps(target.image(size)[None], engine=engine)
     return {c: float(res[c][0]) for c in TARGET_PSF_COLUMNS}
+
+
+def target_psf_features(target_sigma: float, size: int, engine: str = "fast") -> dict[str, float]:
+    """:func:`target_features` of the round Gaussian target of sigma ``target_sigma``."""
+    return target_features(GaussTarget(target_sigma), size, engine)
 
 
 def target_psf_columns(target_sigma: np.ndarray, size: int) -> dict[str, np.ndarray]:

@@ -8,10 +8,11 @@ matrix products over the stack instead of an FFT per stamp and version:
   the PSF's): that padded DFT is computed where the 6x6 Quintic taps reach, then
   interpolated at the sheared k points ``S k`` (``S`` the symmetric shear matrix);
 * ``Deconvolve`` is ``1 / P`` inside the PSF image's ``maxk``, 0 outside;
-* ``drawImage`` samples ``T(k) I(S k) / P(S k)`` on GalSim's k grid of spacing ``2 pi / N``
-  (``N`` from the profile's ``stepk``, at least 128, so per stamp: from its flux radius)
-  and transforms back with wrap-around at period ``N`` (on noise, ``N`` changes the result
-  by up to ~10 % of the rms): the same grid, only the stamp's pixels.
+* ``drawImage`` samples ``T(k) I(S k) / P(S k)`` (``T`` the target's Fourier kernel,
+  :meth:`~.metacal_targets.MetacalTarget.kvalue_shifted`) on GalSim's k grid of spacing
+  ``2 pi / N`` (``N`` from the profile's ``stepk``, at least 128, so per stamp: from its
+  flux radius) and transforms back with wrap-around at period ``N`` (on noise, ``N``
+  changes the result by up to ~10 % of the rms): the same grid, only the stamp's pixels.
 
 The transforms are split into even and odd parts (half the work). What depends on the PSF,
 the step and the sizes is built once and cached. The arithmetic is float32 by default.
@@ -38,6 +39,8 @@ from megalut_cli.measure.metacal_fft_nb import (
     slots_sep,
     unfold,
 )
+from megalut_cli.measure.metacal_targets import MetacalTarget
+from megalut_cli.measure.metacal_targets.gauss import GaussTarget
 
 _SHEARS = tuple(SHEARS[kind] for kind in TYPES)
 _QUINTIC = galsim.Quintic()
@@ -168,7 +171,7 @@ def _plan(
     size: int,
     n_grid: int,
     step: float,
-    target_sigma: float,
+    target: MetacalTarget,
     dtype: str,
 ) -> Plan:
     """The plan (cached on the PSF's bytes and the parameters), in ``dtype``."""
@@ -184,7 +187,7 @@ def _plan(
     shift = 0.5 if size % 2 == 0 else 0.0
     # the target, the half-pixel recentring of drawImage for even sizes, the irfft's 1 / N^2
     # and the doubling of kx > 0 (GalSim's Hermitian wrap doubles the kx = N/2 column too)
-    base = np.exp(-0.5 * target_sigma**2 * (kx * kx + ky * ky) + 1j * shift * (kx + ky)) / n_grid**2
+    base = target.kvalue_shifted(kx, ky, shift) / n_grid**2
     base = base * np.where(ii == 0, 1.0, 2.0)
     points = []
     for s1, s2 in _SHEARS:
@@ -414,21 +417,26 @@ def versions_out(out: np.ndarray | None, n: int, size: int) -> np.ndarray:
     return out
 
 
+def as_target(target: float | MetacalTarget) -> MetacalTarget:
+    """``target``, or the round Gaussian of sigma ``target`` (pixels)."""
+    return target if isinstance(target, MetacalTarget) else GaussTarget(float(target))
+
+
 def fft_versions(
     images: np.ndarray,
     psf_image: np.ndarray,
     step: float,
-    target_sigma: float,
+    target: float | MetacalTarget,
     dtype: str = "float32",
     out: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """The five metacal versions ``{type: (n, S, S) float64}`` of a stack ``(n, S, S)`` of
     stamps sharing ``psf_image`` ``(P, P)``: deconvolved by it, sheared by ``step``,
-    reconvolved with a round Gaussian of sigma ``target_sigma`` (pixels), as GalSim draws
-    them. ``dtype``: the arithmetic, ``"float32"`` or ``"float64"``. ``out``: a C-contiguous
-    float64 array ``(5, n, S, S)`` to write the versions into (in :data:`TYPES` order; the
-    result's arrays are its views), e.g. reused from call to call: fresh output pages cost
-    about as much as the operation."""
+    reconvolved with ``target`` (a :class:`~.metacal_targets.MetacalTarget`, or the sigma in
+    pixels of a round Gaussian), as GalSim draws them. ``dtype``: the arithmetic,
+    ``"float32"`` or ``"float64"``. ``out``: a C-contiguous float64 array ``(5, n, S, S)``
+    to write the versions into (in :data:`TYPES` order; the result's arrays are its views),
+    e.g. reused from call to call: fresh output pages cost about as much as the operation."""
     images = np.asarray(images)
     psf = np.ascontiguousarray(psf_image, dtype=np.float64)
     if images.ndim != 3 or images.shape[1] != images.shape[2]:
@@ -443,10 +451,10 @@ def fft_versions(
     if n:
         key = (psf.tobytes(), psf.shape[0])
         psf_stepk = psf_params(*key)[2]
-        target_stepk = galsim.Gaussian(sigma=float(target_sigma)).stepk
-        jobs = grid_jobs(grid_sizes(images, psf_stepk, target_stepk, step))
+        target = as_target(target)
+        jobs = grid_jobs(grid_sizes(images, psf_stepk, target.stepk, step))
         for n_grid, todo in jobs.items():
-            plan = _plan(*key, size, n_grid, float(step), float(target_sigma), np.dtype(dtype).name)
+            plan = _plan(*key, size, n_grid, float(step), target, np.dtype(dtype).name)
             ws = Workspace(plan, min(BLOCK, n))
             for sel, which in todo:
                 for b in range(0, len(sel), BLOCK):

@@ -345,13 +345,13 @@ def gather36(
 @njit(cache=True, nogil=True)
 def fill_weights(
     g: np.ndarray, idx: np.ndarray, psf_factor: np.ndarray, shared: np.ndarray, r2: np.ndarray,
-    gauss: np.ndarray, maxk2: np.ndarray, min_acc: float, jj: np.ndarray, ii: np.ndarray,
+    kernel: np.ndarray, maxk2: np.ndarray, min_acc: float, jj: np.ndarray, ii: np.ndarray,
     wr: np.ndarray, wi: np.ndarray,
 ) -> None:  # fmt: skip
     """The weights of the points ``idx`` into their slots ``wr, wi (2, ky + 1, kx + 1, K)``:
     ``w = T * shared / P`` (GalSim's ``Deconvolve``: ``1 / min_acc`` where ``|P| < min_acc``),
     ``P = g[n, k] * psf_factor`` (PSF ``k``'s Quintic sum times its half-pixel phase and
-    Lanczos factor), ``T = gauss[k, i] * gauss[k, |j|]`` (the target); 0 where
+    Lanczos factor), ``T = kernel[k, |j|, i]`` (PSF ``k``'s target); 0 where
     ``r2 > maxk2[k]`` (outside PSF ``k``'s maxk)."""
     for n in range(idx.shape[0]):
         p = idx[n]
@@ -369,6 +369,6 @@ def fill_weights(
             else:
                 d = 1.0 / a
                 dr, di = d.real, d.imag
-            e = gauss[k, iv] * gauss[k, ja]
+            e = kernel[k, ja, iv]
             wr[h, ja, iv, k] = e * (sr * dr - si * di)
             wi[h, ja, iv, k] = e * (sr * di + si * dr)
