@@ -12,6 +12,8 @@ Arrays in and out; pixel units (scale 1).
 
 from __future__ import annotations
 
+import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -29,7 +31,8 @@ from megalut_cli.measure.metacal_defaults import (
     TARGET_PSF_COLUMNS,
     TYPES,
 )
-from megalut_cli.measure.metacal_fft import fft_versions
+from megalut_cli.measure.metacal_fft import fft_versions_fixnoise, versions_out
+from megalut_cli.measure.metacal_fft_nb import gather_fixnoise
 from megalut_cli.measure.metacal_targets import DEFAULT_TARGET, MetacalTarget, gauss, metacal_target
 from megalut_cli.measure.metacal_targets.gauss import GaussTarget
 from megalut_cli.measure.morphology import morphology_of_measured
@@ -121,12 +124,27 @@ def noise_field(sigma: float, seed: int, shape: tuple[int, int]) -> np.ndarray:
     return np.random.default_rng(int(seed)).normal(0.0, sigma, shape)
 
 
-def _linear_versions(
-    images: np.ndarray, psf_image: np.ndarray, op: _Operation, engine: str
-) -> dict[str, np.ndarray]:
-    """The operation (linear in the image) on a stack ``(n, S, S)`` that shares one PSF."""
-    if engine == "fast":
-        return fft_versions(images, psf_image, op.step, op.target)
+_SCRATCH = threading.local()
+#: The largest work array (float64 elements, 512 MB) kept from call to call.
+SCRATCH_MAX = 1 << 26
+
+
+def _scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """A float64 work array of ``shape``, this thread's, reused from call to call (grown as
+    needed, up to :data:`SCRATCH_MAX`): fresh pages cost about as much as the operation
+    writing them (page faults)."""
+    need = math.prod(shape)
+    if need > SCRATCH_MAX:
+        return np.empty(shape)
+    buf = getattr(_SCRATCH, name, None)
+    if buf is None or buf.size < need:
+        buf = np.empty(need)
+        setattr(_SCRATCH, name, buf)
+    return buf[:need].reshape(shape)
+
+
+def _galsim_versions(images: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
+    """The GalSim reference operation on a stack ``(n, S, S)`` that shares one PSF."""
     out = {kind: np.empty_like(images) for kind in TYPES}
     for i, image in enumerate(images):
         for kind, version in _versions(image, op).items():
@@ -141,23 +159,26 @@ def _with_fixnoise(
     sigmas: np.ndarray,
     seeds: np.ndarray,
     engine: str,
+    out: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """The five versions of stamps sharing one PSF; where ``sigmas > 0``, with fixnoise: the
     operation's image of a 90-degree rotated noise field, rotated back, added (its applied
-    shear is the opposite of the stamp's)."""
+    shear is the opposite of the stamp's). ``out``: as :func:`metacal_versions`'s."""
     noisy = np.flatnonzero(sigmas > 0)
     n, shape = len(stamps), stamps.shape[1:]
-    stack = np.empty((n + len(noisy), *shape))  # the stamps, then their rotated fields
+    stack = _scratch("stack", (n + len(noisy), *shape))  # the stamps, then their rotated fields
     stack[:n] = stamps
     for k, i in enumerate(noisy):
         stack[n + k] = np.rot90(noise_field(sigmas[i], seeds[i], shape), 1)
-    versions = _linear_versions(stack, psf_image, op, engine)
-    out = {}
-    for kind in TYPES:
-        out[kind] = versions[kind][:n]  # a view: the fields' rows are dropped with the dict
+    if engine == "fast":  # the fields' versions added block by block
+        return fft_versions_fixnoise(stack, n, noisy, psf_image, op.step, op.target, out=out)
+    versions = _galsim_versions(stack, op)
+    out = versions_out(out, n, shape[0])
+    for v, kind in enumerate(TYPES):
+        out[v] = versions[kind][:n]
         if len(noisy):
-            out[kind][noisy] += np.rot90(versions[kind][n:], -1, axes=(1, 2))
-    return out
+            out[v, noisy] += np.rot90(versions[kind][n:], -1, axes=(1, 2))
+    return {kind: out[v] for v, kind in enumerate(TYPES)}
 
 
 def _fast_several_psfs(
@@ -168,10 +189,12 @@ def _fast_several_psfs(
     sigmas: np.ndarray,
     seeds: np.ndarray,
     target: str,
+    out: np.ndarray,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """:func:`metacal_versions` with the fast engine and several PSFs: every stamp and its
     fixnoise field through one :func:`~.metacal_fft_multi.fft_versions_multi` call (the
-    stamps in PSF order, each followed by its rotated field: a PSF's rows are contiguous)."""
+    stamps in PSF order, each followed by its rotated field: a PSF's rows are contiguous),
+    into ``out`` ``(5, n, S, S)``."""
     n, shape = len(stamps), stamps.shape[1:]
     targets: list[MetacalTarget | None] = [None] * len(psfs)
     sigma = np.full(len(psfs), np.nan)
@@ -182,23 +205,17 @@ def _fast_several_psfs(
     order = np.argsort(psf_index, kind="stable")
     noisy = sigmas[order] > 0
     rows = np.cumsum(1 + noisy) - (1 + noisy)  # each stamp's row; its field's is the next
-    stack = np.empty((n + int(noisy.sum()), *shape))
+    stack = _scratch("stack", (n + int(noisy.sum()), *shape))
     stack[rows] = stamps[order]
     for r, i in zip(rows[noisy], order[noisy]):
         stack[r + 1] = np.rot90(noise_field(sigmas[i], seeds[i], shape), 1)
     index = np.empty(len(stack), np.int64)
     index[rows] = psf_index[order]
     index[rows[noisy] + 1] = psf_index[order][noisy]
-    versions = metacal_fft_multi.fft_versions_multi(stack, psfs, index, step, targets)
-    out = {}
-    for kind in TYPES:
-        v = versions[kind]
-        if noisy.any():
-            v[rows[noisy]] += np.rot90(v[rows[noisy] + 1], -1, axes=(1, 2))
-        res = np.empty((n, *shape))
-        res[order] = v[rows]
-        out[kind] = res
-    return out, sigma[psf_index]
+    work = _scratch("multi", (len(TYPES), len(stack), *shape))
+    metacal_fft_multi.fft_versions_multi(stack, psfs, index, step, targets, out=work)
+    gather_fixnoise(work, rows, noisy, order, out)  # each stamp's versions plus its field's
+    return {kind: out[k] for k, kind in enumerate(TYPES)}, sigma[psf_index]
 
 
 def metacal_versions(
@@ -210,6 +227,7 @@ def metacal_versions(
     engine: str = "galsim",
     psf_index: Sequence[int] | np.ndarray | None = None,
     target: str = DEFAULT_TARGET,
+    out: np.ndarray | None = None,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The five metacal versions of a stack of stamps ``(n, S, S)``, as ``({type: (n, S, S)},
     target_sigma (n,))``.
@@ -222,7 +240,9 @@ def metacal_versions(
     ``engine``: ``"galsim"`` (the reference, stamp by stamp) or ``"fast"`` (FFTs over the
     stack, :mod:`.metacal_fft`; with several PSFs, in one pass: :mod:`.metacal_fft_multi`).
     ``target``: the target PSF's name (:mod:`.metacal_targets`); the second array holds its
-    sigma for each stamp.
+    sigma for each stamp. ``out``: a C-contiguous float64 array ``(5, n, S, S)`` the
+    versions are written into (in :data:`TYPES` order; the result holds its views), e.g. a
+    buffer reused from call to call.
     """
     stamps = np.asarray(stamps, dtype=np.float64)
     psfs = np.asarray(psf_images, dtype=np.float64)
@@ -252,12 +272,12 @@ def metacal_versions(
     groups = np.unique(psf_index)
     if len(groups) == 1:  # one PSF (the usual case): no copy into a new stack
         op = _operation(psfs[groups[0]], step, target)
-        return _with_fixnoise(stamps, psfs[groups[0]], op, sigmas, seeds, engine), np.full(
-            n, op.target.sigma
-        )
+        versions = _with_fixnoise(stamps, psfs[groups[0]], op, sigmas, seeds, engine, out)
+        return versions, np.full(n, op.target.sigma)
+    out = versions_out(out, n, stamps.shape[1])
     if engine == "fast":
-        return _fast_several_psfs(stamps, psfs, psf_index, step, sigmas, seeds, target)
-    versions = {kind: np.empty_like(stamps) for kind in TYPES}
+        return _fast_several_psfs(stamps, psfs, psf_index, step, sigmas, seeds, target, out)
+    versions = {kind: out[v] for v, kind in enumerate(TYPES)}
     sigma_t = np.empty(n)
     for j in groups:
         rows = np.flatnonzero(psf_index == j)
@@ -331,8 +351,10 @@ def metacal_features(
     Arguments as :func:`metacal_versions` (``metacal_engine`` is its ``engine``);
     ``measure_kw`` go to ``measure_stamps``.
     """
+    stamps = np.asarray(stamps)
+    work = _scratch("versions", (len(TYPES), *stamps.shape)) if stamps.ndim == 3 else None
     versions, _ = metacal_versions(
-        stamps, psf_images, step, noise_sigma, seeds, metacal_engine, psf_index, target
+        stamps, psf_images, step, noise_sigma, seeds, metacal_engine, psf_index, target, work
     )
     out: dict[str, np.ndarray] = {}
     for kind in TYPES:
@@ -344,12 +366,21 @@ def metacal_features(
     return out
 
 
-def target_features(target: MetacalTarget, size: int, engine: str = "fast") -> dict[str, float]:
-    """``adamom_g1, adamom_g2, adamom_sigma, adamom_rho4`` of ``target``'s image on a
+def target_columns(
+    targets: Sequence[MetacalTarget], size: int, engine: str = "fast"
+) -> dict[str, np.ndarray]:
+    """``adamom_g1, adamom_g2, adamom_sigma, adamom_rho4`` of each target's image on a
     ``size``-pixel stamp (what the ``psf_adamom_*_<type>`` columns of a metacal catalog
-    hold)."""
-    res = measure_stamps(target.image(size)[None], engine=engine)
-    return {c: float(res[c][0]) for c in TARGET_PSF_COLUMNS}
+    hold), the images measured in one call."""
+    if not len(targets):
+        return {c: np.zeros(0) for c in TARGET_PSF_COLUMNS}
+    res = measure_stamps(np.array([t.image(size) for t in targets]), engine=engine)
+    return {c: np.asarray(res[c], dtype=np.float64) for c in TARGET_PSF_COLUMNS}
+
+
+def target_features(target: MetacalTarget, size: int, engine: str = "fast") -> dict[str, float]:
+    """:func:`target_columns` of one target."""
+    return {c: float(v[0]) for c, v in target_columns([target], size, engine).items()}
 
 
 def target_psf_features(target_sigma: float, size: int, engine: str = "fast") -> dict[str, float]:
@@ -358,18 +389,16 @@ def target_psf_features(target_sigma: float, size: int, engine: str = "fast") ->
 
 
 def target_psf_columns(target_sigma: np.ndarray, size: int) -> dict[str, np.ndarray]:
-    """``psf_<X>_<type>`` of each row from its target PSF sigma (NaN where not finite; the same
-    for the five types), each distinct sigma measured once."""
+    """``psf_<X>_<type>`` of each row from its round Gaussian target's sigma (NaN where not
+    finite; the same for the five types), each distinct sigma (to 1e-6 px) measured once."""
     sigma = np.asarray(target_sigma, dtype=np.float64)
     out = {
         f"psf_{c}_{kind}": np.full(len(sigma), np.nan) for kind in TYPES for c in TARGET_PSF_COLUMNS
     }
     finite = np.isfinite(sigma)
-    rounded = np.round(sigma, 6)
-    for value in np.unique(rounded[finite]):
-        rows = finite & (rounded == value)
-        values = target_psf_features(float(value), size)
-        for kind in TYPES:
-            for c in TARGET_PSF_COLUMNS:
-                out[f"psf_{c}_{kind}"][rows] = values[c]
+    values, inverse = np.unique(np.round(sigma[finite], 6), return_inverse=True)
+    feats = target_columns([GaussTarget(float(v)) for v in values], size)
+    for kind in TYPES:
+        for c in TARGET_PSF_COLUMNS:
+            out[f"psf_{c}_{kind}"][finite] = feats[c][inverse.ravel()]
     return out

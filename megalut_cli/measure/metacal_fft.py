@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import galsim
@@ -32,6 +33,7 @@ import numpy as np
 
 from megalut_cli.measure.metacal_defaults import INTERPOLANT, SHEARS, TYPES
 from megalut_cli.measure.metacal_fft_nb import (
+    add_versions,
     fold_x,
     fold_y,
     padded_dft,
@@ -437,6 +439,23 @@ def fft_versions(
     ``"float32"`` or ``"float64"``. ``out``: a C-contiguous float64 array ``(5, n, S, S)``
     to write the versions into (in :data:`TYPES` order; the result's arrays are its views),
     e.g. reused from call to call: fresh output pages cost about as much as the operation."""
+    images, psf = _checked(images, psf_image)
+    n, size = images.shape[:2]
+    out = versions_out(out, n, size)
+    for plan, ws, idx, which in _blocks(images, psf, step, target, dtype):
+        i0, i1 = int(idx[0]), int(idx[-1]) + 1
+        if i1 - i0 == len(idx):  # a contiguous run: in place
+            _run(plan, images[i0:i1], out[:, i0:i1], which, ws)
+        else:
+            tmp = np.empty((len(TYPES), len(idx), size, size))
+            _run(plan, images[idx], tmp, which, ws)
+            for v in which:
+                out[v, idx] = tmp[v]
+    return {kind: out[v] for v, kind in enumerate(TYPES)}
+
+
+def _checked(images: np.ndarray, psf_image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stack (float32 or float64, C-contiguous) and the PSF image (float64), checked."""
     images = np.asarray(images)
     psf = np.ascontiguousarray(psf_image, dtype=np.float64)
     if images.ndim != 3 or images.shape[1] != images.shape[2]:
@@ -445,26 +464,70 @@ def fft_versions(
         raise ValueError(f"expected a square PSF image (P, P), got shape {psf.shape}")
     if images.dtype not in (np.float32, np.float64):
         images = images.astype(np.float64)
-    images = np.ascontiguousarray(images)
+    return np.ascontiguousarray(images), psf
+
+
+def _blocks(
+    images: np.ndarray,
+    psf: np.ndarray,
+    step: float,
+    target: float | MetacalTarget,
+    dtype: str,
+) -> Iterator[tuple[Plan, Workspace, np.ndarray, tuple[int, ...]]]:
+    """The work of :func:`fft_versions`: ``(plan, workspace, rows, versions)`` per block of up
+    to :data:`BLOCK` rows of ``images`` sharing a k grid. The blocks (which rows, in which
+    order) fix the float32 sums' order: the versions of an image are bit for bit the same
+    only within the same block."""
     n, size = images.shape[:2]
+    if not n:
+        return
+    key = (psf.tobytes(), psf.shape[0])
+    psf_stepk = psf_params(*key)[2]
+    target = as_target(target)
+    jobs = grid_jobs(grid_sizes(images, psf_stepk, target.stepk, step))
+    for n_grid, todo in jobs.items():
+        plan = _plan(*key, size, n_grid, float(step), target, np.dtype(dtype).name)
+        ws = Workspace(plan, min(BLOCK, n))
+        for sel, which in todo:
+            for b in range(0, len(sel), BLOCK):
+                yield plan, ws, sel[b : b + BLOCK], which
+
+
+def fft_versions_fixnoise(
+    stack: np.ndarray,
+    n: int,
+    field_rows: np.ndarray,
+    psf_image: np.ndarray,
+    step: float,
+    target: float | MetacalTarget,
+    dtype: str = "float32",
+    out: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
+    """Metacal's fixnoise on a stack ``(n + f, S, S)``: ``n`` stamps, then ``f`` noise fields
+    rotated by 90 degrees, field ``k`` that of stamp ``field_rows[k]`` (distinct rows). The
+    versions of each stamp (``{type: (n, S, S)}``, views of ``out`` as in
+    :func:`fft_versions`) plus the versions of its field rotated back: bit for bit
+    ``fft_versions(stack)``'s first ``n`` rows with ``np.rot90(v[n + k], -1)`` added to row
+    ``field_rows[k]``, the fields' versions added block by block instead of held."""
+    stack, psf = _checked(stack, psf_image)
+    size = stack.shape[1]
+    field_rows = np.asarray(field_rows, dtype=np.int64)
+    if len(field_rows) != len(stack) - n or (
+        len(field_rows) and (field_rows.min() < 0 or field_rows.max() >= n)
+    ):
+        raise ValueError("field_rows must give each noise field one of the n stamps")
     out = versions_out(out, n, size)
-    if n:
-        key = (psf.tobytes(), psf.shape[0])
-        psf_stepk = psf_params(*key)[2]
-        target = as_target(target)
-        jobs = grid_jobs(grid_sizes(images, psf_stepk, target.stepk, step))
-        for n_grid, todo in jobs.items():
-            plan = _plan(*key, size, n_grid, float(step), target, np.dtype(dtype).name)
-            ws = Workspace(plan, min(BLOCK, n))
-            for sel, which in todo:
-                for b in range(0, len(sel), BLOCK):
-                    idx = sel[b : b + BLOCK]
-                    i0, i1 = int(idx[0]), int(idx[-1]) + 1
-                    if i1 - i0 == len(idx):  # a contiguous run: in place
-                        _run(plan, images[i0:i1], out[:, i0:i1], which, ws)
-                    else:
-                        tmp = np.empty((len(TYPES), len(idx), size, size))
-                        _run(plan, images[idx], tmp, which, ws)
-                        for v in which:
-                            out[v, idx] = tmp[v]
+    dest = np.concatenate([np.arange(n, dtype=np.int64), field_rows])  # each row's stamp
+    done = np.zeros((len(TYPES), n), dtype=np.bool_)  # version v of stamp i holds a part
+    tmp = np.empty((len(TYPES), min(BLOCK, len(stack)), size, size))
+    for plan, ws, idx, which in _blocks(stack, psf, step, target, dtype):
+        i0, i1 = int(idx[0]), int(idx[-1]) + 1
+        rows = stack[i0:i1] if i1 - i0 == len(idx) else stack[idx]
+        if i1 <= n and i1 - i0 == len(idx) and not done[list(which), i0:i1].any():
+            _run(plan, rows, out[:, i0:i1], which, ws)  # stamps alone: in place
+            done[list(which), i0:i1] = True
+            continue
+        block = tmp[:, : len(idx)]
+        _run(plan, rows, block, which, ws)
+        add_versions(block, np.array(which, dtype=np.int64), idx, n, dest, out, done)
     return {kind: out[v] for v, kind in enumerate(TYPES)}

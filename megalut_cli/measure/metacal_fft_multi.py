@@ -50,7 +50,13 @@ from megalut_cli.measure.metacal_fft import (
     stack_dft,
     versions_out,
 )
-from megalut_cli.measure.metacal_fft_nb import fill_weights, gather36, slots_full, slots_sep
+from megalut_cli.measure.metacal_fft_nb import (
+    fill_weights,
+    gather36,
+    slots_full,
+    slots_sep,
+    take_columns,
+)
 from megalut_cli.measure.metacal_targets import MetacalTarget
 
 #: PSFs per :class:`MultiPlan`: bounds its memory (weights ~0.35 MB per PSF at N = 128,
@@ -301,9 +307,13 @@ def _run_multi(
     if images.shape[0] != ws.m:
         ws = Workspace(plan, images.shape[0])
     stack_dft(plan, images, ws)
+    shape = (*mp.weights[0][0].shape[:3], len(col))
+    wr, wi = np.empty(shape, plan.in_xc.dtype), np.empty(shape, plan.in_xc.dtype)
+    col = np.ascontiguousarray(col, dtype=np.int64)
     for v in which:
         ver = plan.versions[v]
-        wr, wi = (np.ascontiguousarray(w[..., col]) for w in mp.weights[v])  # the block's
+        take_columns(mp.weights[v][0], col, wr)  # the block's weights
+        take_columns(mp.weights[v][1], col, wi)
         if ver.sep:
             slots_sep(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, wr, wi, ws.q, ws.work)
         else:
