@@ -31,7 +31,7 @@ from megalut_cli.measure.metacal_defaults import (
     TARGET_PSF_COLUMNS,
     TYPES,
 )
-from megalut_cli.measure.metacal_fft import fft_versions_fixnoise, versions_out
+from megalut_cli.measure.metacal_fft import fft_versions_fixnoise
 from megalut_cli.measure.metacal_fft_nb import gather_fixnoise
 from megalut_cli.measure.metacal_targets import DEFAULT_TARGET, MetacalTarget, gauss, metacal_target
 from megalut_cli.measure.metacal_targets.gauss import GaussTarget
@@ -143,6 +143,23 @@ def _scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
     return buf[:need].reshape(shape)
 
 
+def versions_buffer(n: int, size: int) -> np.ndarray:
+    """A ``(5, n, size, size)`` float64 array for :func:`metacal_versions`'s ``out``, this
+    thread's, reused from call to call: its contents last until the next call in this
+    thread (for versions measured and dropped, as :func:`metacal_features` does)."""
+    return _scratch("versions", (len(TYPES), n, size, size))
+
+
+def _versions_array(out: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
+    """The array ``(5, *shape)`` the versions of stamps of ``shape`` go into: a new one, or
+    ``out`` (checked: C-contiguous float64 of that shape)."""
+    if out is None:
+        return np.empty((len(TYPES), *shape))
+    if out.shape != (len(TYPES), *shape) or out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float64 array {(len(TYPES), *shape)}")
+    return out
+
+
 def _galsim_versions(images: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
     """The GalSim reference operation on a stack ``(n, S, S)`` that shares one PSF."""
     out = {kind: np.empty_like(images) for kind in TYPES}
@@ -173,7 +190,7 @@ def _with_fixnoise(
     if engine == "fast":  # the fields' versions added block by block
         return fft_versions_fixnoise(stack, n, noisy, psf_image, op.step, op.target, out=out)
     versions = _galsim_versions(stack, op)
-    out = versions_out(out, n, shape[0])
+    out = _versions_array(out, stamps.shape)
     for v, kind in enumerate(TYPES):
         out[v] = versions[kind][:n]
         if len(noisy):
@@ -274,7 +291,7 @@ def metacal_versions(
         op = _operation(psfs[groups[0]], step, target)
         versions = _with_fixnoise(stamps, psfs[groups[0]], op, sigmas, seeds, engine, out)
         return versions, np.full(n, op.target.sigma)
-    out = versions_out(out, n, stamps.shape[1])
+    out = _versions_array(out, stamps.shape)
     if engine == "fast":
         return _fast_several_psfs(stamps, psfs, psf_index, step, sigmas, seeds, target, out)
     versions = {kind: out[v] for v, kind in enumerate(TYPES)}
@@ -352,7 +369,8 @@ def metacal_features(
     ``measure_kw`` go to ``measure_stamps``.
     """
     stamps = np.asarray(stamps)
-    work = _scratch("versions", (len(TYPES), *stamps.shape)) if stamps.ndim == 3 else None
+    square = stamps.ndim == 3 and stamps.shape[1] == stamps.shape[2]
+    work = versions_buffer(len(stamps), stamps.shape[1]) if square else None
     versions, _ = metacal_versions(
         stamps, psf_images, step, noise_sigma, seeds, metacal_engine, psf_index, target, work
     )
