@@ -1,26 +1,27 @@
-"""Throughput of the metacal operation: the batched engine against GalSim's, side by side, per core.
+"""Throughput of the metacal route: the ``measure --metacal`` commands on the stamps a user
+measures, side by side with another tree, and the batched engine against GalSim's, per core.
 
-On fiducial-like 64-px stamps simulated here with GalSim (Sérsic n 1-4, hlr 2-8 px,
-surface brightness 1-15, ellipticity up to 0.6, sub-pixel offsets, Gaussian PSF sigma 2 px,
-unit noise), interleaved in one run and repeated, timing CPU time of this process (one
-core; BLAS and numba on one thread; the machine may be busy):
+The stamps are the fiducial population as ``megalut simulate`` draws it
+(``examples/fiducial/vo.toml``, 64-px stamps; ``--n-cases`` x ``--n-realizations``, seed 5)
+with a 64-px Gaussian PSF image of sigma 2 px, and a MEDS file of the same stamps, each
+object with its own PSF image (48 px, Gaussian sigma 1.9-2.1 px, |g| < 0.03). Timed, one core
+(BLAS and numba on one thread), CPU seconds (the machine may be busy; interleaved, repeated):
 
-* ``fast``: ``metacal_versions(stamps, psf, noise_sigma=1, engine="fast")``: the five
-  versions with fixnoise (the stack of stamps and rotated noise fields through
-  :func:`megalut_cli.measure.metacal_fft.fft_versions`, the fixnoise bookkeeping of
-  ``metacal.py``);
-* ``fast+measure``: ``metacal_features(..., metacal_engine="fast")``: the same plus
-  ``measure_stamps`` (fast engine) of the five versions;
-* ``fft_versions``: the linear operation alone on the stack of 2n stamps and fields;
-* ``galsim``: ``metacal_versions(..., engine="galsim")``, the reference (``--ref-n``
-  stamps, default all).
+* ``measure``: ``megalut measure stamps.fits cat.fits -o f.fits --psf psf.fits --metacal -j 1``
+  and ``megalut measure meds.fits -o m.fits --metacal -j 1``, each tree in its own
+  subprocess (its own numba cache, warmed first), with ``--before DIR`` also that tree's,
+  interleaved; the CPU of the command and its logged per-stamp line;
+* in this process, on the first ``--n`` stamps: ``fast`` (``metacal_versions(...,
+  engine="fast")`` with fixnoise), ``fast+measure`` (``metacal_features``: the same plus the
+  features of the five versions), ``operation`` (``fft_versions_fixnoise`` on the stamps and
+  their rotated fields), ``galsim`` (the reference on ``--ref-n`` stamps);
 
-Then where ``fft_versions``'s time goes (each stage of ``metacal_fft._run``, timed
-separately on the same stack), the floor (matrix-product FLOPs at this machine's sgemm
-rate, interpolation FMAs, bytes) and the first-call costs in fresh processes (numba
-cache cold and warm). Run::
+then where the operation's time goes (each stage of ``metacal_fft._run``), the floor
+(matrix-product FLOPs at this machine's sgemm rate, interpolation FMAs, bytes) and the
+first-call costs in fresh processes (numba cache cold and warm). Run::
 
-    PYTHONPATH=. python benchmarks/bench_metacal.py [--n 1024] [--repeat 3] [--ref-n N]
+    PYTHONPATH=. python benchmarks/bench_metacal.py [--n 1024] [--repeat 3] [--ref-n N] \
+        [--n-cases 10 --n-realizations 300] [--before DIR]
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_
 
 import argparse  # noqa: E402
 import platform  # noqa: E402
+import re  # noqa: E402
+import resource  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -45,36 +48,110 @@ import numpy as np  # noqa: E402
 
 from megalut_cli.measure import metacal_fft as mf  # noqa: E402
 from megalut_cli.measure import metacal_fft_nb as mf_nb  # noqa: E402
+from megalut_cli.measure.features import measure_stamps  # noqa: E402
 from megalut_cli.measure.metacal import (  # noqa: E402
     DEFAULT_STEP,
+    fixnoise_seeds,
     metacal_features,
     metacal_versions,
     noise_field,
     target_psf_sigma,
 )
+from megalut_cli.measure.metacal_targets.gauss import GaussTarget  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SIZE, PSF_SIGMA = 64, 2.0
 
 
-def simulate(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` fiducial-like stamps (float32, as read from a FITS grid) and the PSF image."""
-    rng = np.random.default_rng(seed)
-    psf = galsim.Gaussian(sigma=PSF_SIGMA)
-    stamps = np.empty((n, SIZE, SIZE), dtype=np.float32)
-    for i in range(n):
-        n_s = np.round(rng.uniform(1.0, 4.0), 1)
-        hlr = rng.uniform(2.0, 8.0)
-        flux = 2.0 * np.pi * hlr**2 * rng.uniform(1.0, 15.0)  # mean surface brightness in the hlr
-        e = min(rng.rayleigh(0.2), 0.6)
-        gal = galsim.Sersic(n_s, half_light_radius=hlr, flux=flux, trunc=0.0)
-        gal = gal.shear(e=e, beta=rng.uniform(0, np.pi) * galsim.radians)
-        gal = gal.shear(g1=rng.uniform(-0.1, 0.1), g2=rng.uniform(-0.1, 0.1)).shift(
-            *rng.uniform(-0.5, 0.5, 2)
-        )
-        img = galsim.Convolve(gal, psf).drawImage(nx=SIZE, ny=SIZE, scale=1.0).array
-        stamps[i] = img + rng.normal(0.0, 1.0, img.shape)
-    return stamps, psf.drawImage(nx=SIZE, ny=SIZE, scale=1.0).array.astype(np.float64)
+def megalut(tree: Path, args: list[str], cwd: Path, cache: Path) -> tuple[float, str]:
+    """Run ``python -m megalut_cli ARGS`` with ``tree``'s code, one thread: (CPU seconds of
+    the command, its stderr)."""
+    env = dict(os.environ, PYTHONPATH=str(tree), NUMBA_CACHE_DIR=str(cache))
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    done = subprocess.run(
+        [sys.executable, "-m", "megalut_cli", *args], cwd=cwd, env=env, capture_output=True,
+        text=True, check=True,
+    )  # fmt: skip
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return cpu, done.stderr
+
+
+def fiducial_inputs(work: Path, n_cases: int, n_rea: int) -> tuple[np.ndarray, np.ndarray]:
+    """``megalut simulate`` of the fiducial population (stamps.fits, cat.fits), psf.fits
+    (Gaussian sigma 2 px, 64 px) and meds.fits (the stamps, each with its own PSF) in
+    ``work``: ``(stamps (n, 64, 64) float64, psf image)``."""
+    from astropy.io import fits
+
+    from megalut_cli.measure.meds import write_meds
+
+    subprocess.run(
+        [
+            sys.executable, "-m", "megalut_cli", "simulate",
+            str(ROOT / "examples/fiducial/vo.toml"), "-o", "cat.fits", "--stamps",
+            "stamps.fits", "--n-cases", str(n_cases), "--n-realizations", str(n_rea),
+            "--seed", "5",
+        ],
+        cwd=work, env=dict(os.environ, PYTHONPATH=str(ROOT)), check=True, capture_output=True,
+    )  # fmt: skip
+    psf = galsim.Gaussian(sigma=PSF_SIGMA).drawImage(nx=SIZE, ny=SIZE, scale=1.0).array
+    fits.writeto(work / "psf.fits", psf, overwrite=True)
+    grid = fits.getdata(work / "stamps.fits").astype(np.float64)
+    side = grid.shape[1] // SIZE
+    stamps = grid.reshape(-1, SIZE, side, SIZE).transpose(0, 2, 1, 3).reshape(-1, SIZE, SIZE)
+    stamps = stamps[: n_cases * n_rea]
+    rng = np.random.default_rng(7)
+    psfs = np.array(
+        [
+            galsim.Gaussian(sigma=rng.uniform(1.9, 2.1))
+            .shear(g1=rng.uniform(-0.02, 0.02), g2=rng.uniform(-0.02, 0.02))
+            .drawImage(nx=48, ny=48, scale=1.0)
+            .array
+            for _ in range(len(stamps))
+        ]
+    )
+    write_meds(work / "meds.fits", stamps, weights=np.ones_like(stamps), psfs=psfs)
+    return stamps, psf.astype(np.float64)
+
+
+def logged_ms(stderr: str) -> float:
+    """The per-stamp milliseconds of the command's ``measured N stamps in T s`` line."""
+    m = re.search(r"measured (\d+) (?:stamps|objects) in ([\d.]+) s", stderr)
+    return float(m.group(2)) / int(m.group(1)) * 1e3 if m else float("nan")
+
+
+def command_times(work: Path, trees: dict[str, Path], n: int, repeat: int) -> None:
+    """The two ``measure --metacal`` commands, each tree interleaved, best and median CPU."""
+    commands = {
+        "grid, one PSF": ["measure", "stamps.fits", "cat.fits", "-o", "f.fits", "--psf",
+                          "psf.fits", "--metacal", "-j", "1", "--overwrite"],
+        "MEDS, per-object PSFs": ["measure", "meds.fits", "-o", "m.fits", "--metacal", "-j",
+                                  "1", "--overwrite"],
+    }  # fmt: skip
+    caches = {label: work / f"numba-{label}" for label in trees}
+    for label, tree in trees.items():  # compile or load each tree's kernels once
+        megalut(tree, commands["grid, one PSF"], work, caches[label])
+        megalut(tree, commands["MEDS, per-object PSFs"], work, caches[label])
+    print(f"\nmeasure --metacal, {n} stamps, CPU ms per stamp (best / median of {repeat}; "
+          "the command's logged ms per stamp, wall, best):")  # fmt: skip
+    for name, cmd in commands.items():
+        cpu: dict[str, list[float]] = {label: [] for label in trees}
+        logged: dict[str, list[float]] = {label: [] for label in trees}
+        for _ in range(repeat):
+            for label, tree in trees.items():
+                t, err = megalut(tree, cmd, work, caches[label])
+                cpu[label].append(t / n * 1e3)
+                logged[label].append(logged_ms(err))
+        for label in trees:
+            print(
+                f"  {name:22s} {label:6s} {min(cpu[label]):6.2f} / {np.median(cpu[label]):6.2f}"
+                f"   (logged {min(logged[label]):.2f})"
+            )
+        if len(trees) == 2:
+            ratios = np.array(cpu["before"]) / np.array(cpu["after"])
+            print(
+                f"  {name:22s} before / after: median of per-repeat ratios {np.median(ratios):.2f}x"
+            )
 
 
 def cpu_time(func) -> float:
@@ -245,12 +322,17 @@ def first_call_costs(repeat: int) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--n", type=int, default=1024, help="stamps to simulate")
+    ap.add_argument("--n", type=int, default=1024, help="stamps timed in this process")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument(
         "--ref-n", type=int, default=None, help="stamps for the GalSim reference (default all)"
     )
-    ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--n-cases", type=int, default=10, help="megalut simulate --n-cases")
+    ap.add_argument("--n-realizations", type=int, default=300, help="--n-realizations")
+    ap.add_argument(
+        "--before", type=Path, default=None, help="another source tree, timed side by side"
+    )
+    ap.add_argument("--no-commands", action="store_true", help="skip the commands' timings")
     ap.add_argument("--first-call-only", action="store_true", help="only the compile/cache costs")
     args = ap.parse_args()
     if args.first_call_only:
@@ -258,41 +340,55 @@ def main() -> None:
         return
 
     t0 = time.perf_counter()
-    stamps, psf = simulate(args.n, args.seed)
-    n, ref_n = len(stamps), min(args.ref_n or args.n, args.n)
+    work = Path(tempfile.mkdtemp(prefix="bench-metacal-"))
+    stamps, psf = fiducial_inputs(work, args.n_cases, args.n_realizations)
     print(
         f"{platform.machine()} {platform.python_version()}, numpy {np.__version__}, "
-        f"numba {numba.__version__}, galsim {galsim.__version__}; "
-        f"{n} stamps of {SIZE} px (simulated in {time.perf_counter() - t0:.0f} s)"
+        f"numba {numba.__version__}, galsim {galsim.__version__}; {len(stamps)} fiducial "
+        f"stamps of {SIZE} px (simulated in {time.perf_counter() - t0:.0f} s, in {work})"
     )
-    ones = np.ones(n)
-    sigma = target_psf_sigma(psf, DEFAULT_STEP)
-    fields = np.array([np.rot90(noise_field(1.0, i, (SIZE, SIZE)), 1) for i in range(n)])
-    stack = np.concatenate([stamps.astype(np.float64), fields])
-    c0 = time.process_time()
-    metacal_features(stamps[:4], psf, noise_sigma=ones[:4], metacal_engine="fast")
-    print(
-        f"first call (numba cache load or compile, PSF plan): {time.process_time() - c0:.2f} s CPU"
-    )
+    if not args.no_commands:
+        trees = {"after": ROOT} | ({"before": args.before.resolve()} if args.before else {})
+        command_times(work, trees, len(stamps), args.repeat)
 
+    stamps = stamps[: args.n]
+    n, ref_n = len(stamps), min(args.ref_n or args.n, len(stamps))
+    origins = np.ones((n, 2))
+    noise = measure_stamps(stamps, origins)["skymad"]  # the command's fixnoise level
+    seeds = fixnoise_seeds(5, np.arange(n))
+    sigma = target_psf_sigma(psf, DEFAULT_STEP)
+    fields = np.array(
+        [np.rot90(noise_field(noise[i], seeds[i], (SIZE, SIZE)), 1) for i in range(n)]
+    )
+    stack = np.concatenate([stamps, fields])
+    buf = np.empty((5, n, SIZE, SIZE))
+    c0 = time.process_time()
+    metacal_features(stamps[:4], psf, noise_sigma=noise[:4], metacal_engine="fast")
+    print(
+        f"\nfirst call (numba cache load or compile, PSF plan): {time.process_time() - c0:.2f} s "
+        "CPU"
+    )
+    kw = {"noise_sigma": noise, "seeds": seeds}
     runs = {
-        "fast": lambda: metacal_versions(stamps, psf, noise_sigma=ones, engine="fast"),
+        "fast": lambda: metacal_versions(stamps, psf, engine="fast", **kw),
         "fast+measure": lambda: metacal_features(
-            stamps, psf, noise_sigma=ones, metacal_engine="fast"
+            stamps, psf, metacal_engine="fast", origins=origins, engine="fast", **kw
         ),
-        "fft_versions": lambda: mf.fft_versions(stack, psf, DEFAULT_STEP, sigma),
+        "operation": lambda: mf.fft_versions_fixnoise(
+            stack, n, np.arange(n), psf, DEFAULT_STEP, sigma, out=buf
+        ),
         "galsim": lambda: metacal_versions(
-            stamps[:ref_n], psf, noise_sigma=ones[:ref_n], engine="galsim"
+            stamps[:ref_n], psf, noise_sigma=noise[:ref_n], seeds=seeds[:ref_n], engine="galsim"
         ),
     }
-    per = {"fast": n, "fast+measure": n, "fft_versions": n, "galsim": ref_n}  # per input stamp
+    per = {"fast": n, "fast+measure": n, "operation": n, "galsim": ref_n}  # per input stamp
     times: dict[str, list[float]] = {k: [] for k in runs}
     for _ in range(args.repeat):
         for name, func in runs.items():  # interleaved
             times[name].append(cpu_time(func) / per[name])
     print(
-        f"\nCPU per input stamp (best / median of {args.repeat}, interleaved; fft_versions: "
-        "its 2 images):"
+        f"\nCPU per input stamp (best / median of {args.repeat}, interleaved; operation: the "
+        "stamp and its field):"
     )
     for name, ts in times.items():
         print(f"  {name:13s} {min(ts) * 1e6:9.1f} us  {np.median(ts) * 1e6:9.1f} us")
@@ -303,7 +399,8 @@ def main() -> None:
     )
 
     # Where fft_versions's time goes, on the same stack of 2n images.
-    plan = mf._plan(psf.tobytes(), SIZE, SIZE, 128, float(DEFAULT_STEP), float(sigma), "float32")
+    target = GaussTarget(float(sigma))
+    plan = mf._plan(psf.tobytes(), SIZE, SIZE, 128, float(DEFAULT_STEP), target, "float32")
     stages = None
     for _ in range(args.repeat):
         st = stage_times(plan, stack)
@@ -315,12 +412,13 @@ def main() -> None:
     for name, t in stages.items():
         print(f"  {name:38s} {t / len(stack) * 1e6:6.1f} us  {t / total:5.1%}")
     print(f"  {'sum':38s} {total / len(stack) * 1e6:6.1f} us")
-    fast, lin, meas = min(times["fast"]), min(times["fft_versions"]), min(times["fast+measure"])
+    fast, lin, meas = min(times["fast"]), min(times["operation"]), min(times["fast+measure"])
     print(
-        f"  fft_versions call (grid sizes, blocks, output arrays): {lin / 2 * 1e6:.1f} us per image"
+        "  the operation's call (grid sizes, blocks, the fields' rotated adds): "
+        f"{lin / 2 * 1e6:.1f} us per image"
     )
     print(
-        "  metacal.py around it (noise fields, stack, copies, rot90 + add): "
+        "  metacal.py around it (noise fields, the stack, output pages): "
         f"{(fast - lin) * 1e6:.1f} us per stamp"
     )
     print(f"  measure_stamps of the five versions: {(meas - fast) * 1e6:.1f} us per stamp")

@@ -1,16 +1,19 @@
 """Metacalibration image operation (issue 23): the GalSim reference and the engine dispatch.
 
 Each stamp is deconvolved by its PSF image, sheared by ``±step`` along g1 and g2, and
-reconvolved with a round Gaussian target PSF slightly wider than the PSF, giving the five
-versions :data:`TYPES`. With ``noise_sigma``, metacal's fixnoise is applied: a noise field of
-that level, rotated by 90 degrees, goes through the same operation, is rotated back and added
-to every version, so that the noise the operation shears and correlates no longer depends on
+reconvolved with a target PSF slightly wider than the PSF (chosen by name among
+:mod:`.metacal_targets`; by default a round Gaussian), giving the five versions
+:data:`TYPES`. With ``noise_sigma``, metacal's fixnoise is applied: a noise field of that
+level, rotated by 90 degrees, goes through the same operation, is rotated back and added to
+every version, so that the noise the operation shears and correlates no longer depends on
 the applied shear (to first order), at the cost of twice the noise variance.
 Arrays in and out; pixel units (scale 1).
 """
 
 from __future__ import annotations
 
+import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -28,7 +31,10 @@ from megalut_cli.measure.metacal_defaults import (
     TARGET_PSF_COLUMNS,
     TYPES,
 )
-from megalut_cli.measure.metacal_fft import fft_versions
+from megalut_cli.measure.metacal_fft import fft_versions_fixnoise
+from megalut_cli.measure.metacal_fft_nb import gather_fixnoise
+from megalut_cli.measure.metacal_targets import DEFAULT_TARGET, MetacalTarget, gauss, metacal_target
+from megalut_cli.measure.metacal_targets.gauss import GaussTarget
 from megalut_cli.measure.morphology import morphology_of_measured
 from megalut_cli.seeding import STREAM_METACAL, int_seed_for
 
@@ -36,7 +42,7 @@ from megalut_cli.seeding import STREAM_METACAL, int_seed_for
 @dataclass(frozen=True)
 class MetacalImages:
     """The five versions of one stamp (``images[type]``, float64, the stamp's shape) and the
-    sigma (pixels) of the round Gaussian target PSF they are convolved with."""
+    sigma (pixels) of the target PSF they are convolved with."""
 
     images: dict[str, np.ndarray]
     target_sigma: float
@@ -48,25 +54,23 @@ class _Operation:
     reconvolve with, and the step (built once per PSF)."""
 
     psf: galsim.GSObject
-    target: galsim.Gaussian
+    target: MetacalTarget
     step: float
 
 
-def target_psf_sigma(psf_image: np.ndarray, step: float = DEFAULT_STEP) -> float:
-    """Sigma of the round Gaussian target PSF: the adaptive-moment sigma of ``psf_image``
-    (which holds the pixel), dilated by ``1 + 2|step|`` so that the sheared, deconvolved
-    galaxy's high frequencies stay under the target."""
-    res = galsim.hsm.FindAdaptiveMom(
-        galsim.ImageD(np.asarray(psf_image, dtype=np.float64), scale=1.0)
-    )
-    # the round-equivalent size of an elliptical PSF: sigma = det(M)^(1/4)
-    return float(dilated_sigma(res.moments_sigma, step))
+def target_psf_sigma(
+    psf_image: np.ndarray, step: float = DEFAULT_STEP, target: str = DEFAULT_TARGET
+) -> float:
+    """Sigma of the target PSF of ``psf_image`` (which holds the pixel); for the round
+    Gaussian: the PSF's adaptive-moment sigma dilated by ``1 + 2|step|`` so that the sheared,
+    deconvolved galaxy's high frequencies stay under the target."""
+    return float(metacal_target(target, np.asarray(psf_image), step).sigma)
 
 
 def dilated_sigma(psf_sigma: float | np.ndarray, step: float = DEFAULT_STEP) -> float | np.ndarray:
-    """The target PSF's sigma from the PSF's adaptive-moment sigma (e.g. the ``psf_adamom_sigma``
-    column): dilated by ``1 + 2|step|``, as :func:`target_psf_sigma`."""
-    return psf_sigma * (1.0 + 2.0 * abs(step))
+    """The round Gaussian target's sigma from the PSF's adaptive-moment sigma (e.g. the
+    ``psf_adamom_sigma`` column): dilated by ``1 + 2|step|``, as :func:`target_psf_sigma`."""
+    return gauss.dilated_sigma(psf_sigma, step)
 
 
 def _finite_2d(image: np.ndarray, what: str) -> None:
@@ -85,13 +89,13 @@ def _check_psf(psf_image: np.ndarray, step: float) -> None:
         raise ValueError(f"metacal step {step}: expected 0 < step <= {MAX_STEP}")
 
 
-def _operation(psf_image: np.ndarray, step: float) -> _Operation:
-    """The operation for one PSF image (checked) and step."""
+def _operation(psf_image: np.ndarray, step: float, target: str) -> _Operation:
+    """The operation for one PSF image (checked), step and target name."""
     _check_psf(psf_image, step)
     psf = galsim.InterpolatedImage(
         galsim.ImageD(psf_image / psf_image.sum(), scale=1.0), x_interpolant=INTERPOLANT
     )
-    return _Operation(psf, galsim.Gaussian(sigma=target_psf_sigma(psf_image, step)), step)
+    return _Operation(psf, metacal_target(target, psf_image, step), step)
 
 
 def _versions(image: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
@@ -99,6 +103,7 @@ def _versions(image: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
     ny, nx = image.shape
     obj = galsim.InterpolatedImage(galsim.ImageD(image, scale=1.0), x_interpolant=INTERPOLANT)
     deconvolved = galsim.Convolve(obj, galsim.Deconvolve(op.psf))
+    target = op.target.gsobject()
     out = {}
     for kind in TYPES:
         s1, s2 = SHEARS[kind]
@@ -107,7 +112,7 @@ def _versions(image: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
             if kind == "noshear"
             else deconvolved.shear(g1=s1 * op.step, g2=s2 * op.step)
         )
-        drawn = galsim.Convolve(sheared, op.target).drawImage(
+        drawn = galsim.Convolve(sheared, target).drawImage(
             nx=nx, ny=ny, scale=1.0, method="no_pixel"
         )
         out[kind] = drawn.array.astype(np.float64)
@@ -119,12 +124,44 @@ def noise_field(sigma: float, seed: int, shape: tuple[int, int]) -> np.ndarray:
     return np.random.default_rng(int(seed)).normal(0.0, sigma, shape)
 
 
-def _linear_versions(
-    images: np.ndarray, psf_image: np.ndarray, op: _Operation, engine: str
-) -> dict[str, np.ndarray]:
-    """The operation (linear in the image) on a stack ``(n, S, S)`` that shares one PSF."""
-    if engine == "fast":
-        return fft_versions(images, psf_image, op.step, op.target.sigma)
+_SCRATCH = threading.local()
+#: The largest work array (float64 elements, 512 MB) kept from call to call.
+SCRATCH_MAX = 1 << 26
+
+
+def _scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """A float64 work array of ``shape``, this thread's, reused from call to call (grown as
+    needed, up to :data:`SCRATCH_MAX`): fresh pages cost about as much as the operation
+    writing them (page faults)."""
+    need = math.prod(shape)
+    if need > SCRATCH_MAX:
+        return np.empty(shape)
+    buf = getattr(_SCRATCH, name, None)
+    if buf is None or buf.size < need:
+        buf = np.empty(need)
+        setattr(_SCRATCH, name, buf)
+    return buf[:need].reshape(shape)
+
+
+def versions_buffer(n: int, size: int) -> np.ndarray:
+    """A ``(5, n, size, size)`` float64 array for :func:`metacal_versions`'s ``out``, this
+    thread's, reused from call to call: its contents last until the next call in this
+    thread (for versions measured and dropped, as :func:`metacal_features` does)."""
+    return _scratch("versions", (len(TYPES), n, size, size))
+
+
+def _versions_array(out: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
+    """The array ``(5, *shape)`` the versions of stamps of ``shape`` go into: a new one, or
+    ``out`` (checked: C-contiguous float64 of that shape)."""
+    if out is None:
+        return np.empty((len(TYPES), *shape))
+    if out.shape != (len(TYPES), *shape) or out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float64 array {(len(TYPES), *shape)}")
+    return out
+
+
+def _galsim_versions(images: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
+    """The GalSim reference operation on a stack ``(n, S, S)`` that shares one PSF."""
     out = {kind: np.empty_like(images) for kind in TYPES}
     for i, image in enumerate(images):
         for kind, version in _versions(image, op).items():
@@ -139,23 +176,26 @@ def _with_fixnoise(
     sigmas: np.ndarray,
     seeds: np.ndarray,
     engine: str,
+    out: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """The five versions of stamps sharing one PSF; where ``sigmas > 0``, with fixnoise: the
     operation's image of a 90-degree rotated noise field, rotated back, added (its applied
-    shear is the opposite of the stamp's)."""
+    shear is the opposite of the stamp's). ``out``: as :func:`metacal_versions`'s."""
     noisy = np.flatnonzero(sigmas > 0)
     n, shape = len(stamps), stamps.shape[1:]
-    stack = np.empty((n + len(noisy), *shape))  # the stamps, then their rotated fields
+    stack = _scratch("stack", (n + len(noisy), *shape))  # the stamps, then their rotated fields
     stack[:n] = stamps
     for k, i in enumerate(noisy):
         stack[n + k] = np.rot90(noise_field(sigmas[i], seeds[i], shape), 1)
-    versions = _linear_versions(stack, psf_image, op, engine)
-    out = {}
-    for kind in TYPES:
-        out[kind] = versions[kind][:n]  # a view: the fields' rows are dropped with the dict
+    if engine == "fast":  # the fields' versions added block by block
+        return fft_versions_fixnoise(stack, n, noisy, psf_image, op.step, op.target, out=out)
+    versions = _galsim_versions(stack, op)
+    out = _versions_array(out, stamps.shape)
+    for v, kind in enumerate(TYPES):
+        out[v] = versions[kind][:n]
         if len(noisy):
-            out[kind][noisy] += np.rot90(versions[kind][n:], -1, axes=(1, 2))
-    return out
+            out[v, noisy] += np.rot90(versions[kind][n:], -1, axes=(1, 2))
+    return {kind: out[v] for v, kind in enumerate(TYPES)}
 
 
 def _fast_several_psfs(
@@ -165,35 +205,34 @@ def _fast_several_psfs(
     step: float,
     sigmas: np.ndarray,
     seeds: np.ndarray,
+    target: str,
+    out: np.ndarray,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """:func:`metacal_versions` with the fast engine and several PSFs: every stamp and its
     fixnoise field through one :func:`~.metacal_fft_multi.fft_versions_multi` call (the
-    stamps in PSF order, each followed by its rotated field: a PSF's rows are contiguous)."""
+    stamps in PSF order, each followed by its rotated field: a PSF's rows are contiguous),
+    into ``out`` ``(5, n, S, S)``."""
     n, shape = len(stamps), stamps.shape[1:]
-    target = np.full(len(psfs), np.nan)
+    targets: list[MetacalTarget | None] = [None] * len(psfs)
+    sigma = np.full(len(psfs), np.nan)
     for j in np.unique(psf_index):
         _check_psf(psfs[j], step)
-        target[j] = target_psf_sigma(psfs[j], step)
+        targets[j] = metacal_target(target, psfs[j], step)
+        sigma[j] = targets[j].sigma
     order = np.argsort(psf_index, kind="stable")
     noisy = sigmas[order] > 0
     rows = np.cumsum(1 + noisy) - (1 + noisy)  # each stamp's row; its field's is the next
-    stack = np.empty((n + int(noisy.sum()), *shape))
+    stack = _scratch("stack", (n + int(noisy.sum()), *shape))
     stack[rows] = stamps[order]
     for r, i in zip(rows[noisy], order[noisy]):
         stack[r + 1] = np.rot90(noise_field(sigmas[i], seeds[i], shape), 1)
     index = np.empty(len(stack), np.int64)
     index[rows] = psf_index[order]
     index[rows[noisy] + 1] = psf_index[order][noisy]
-    versions = metacal_fft_multi.fft_versions_multi(stack, psfs, index, step, target)
-    out = {}
-    for kind in TYPES:
-        v = versions[kind]
-        if noisy.any():
-            v[rows[noisy]] += np.rot90(v[rows[noisy] + 1], -1, axes=(1, 2))
-        res = np.empty((n, *shape))
-        res[order] = v[rows]
-        out[kind] = res
-    return out, target[psf_index]
+    work = _scratch("multi", (len(TYPES), len(stack), *shape))
+    metacal_fft_multi.fft_versions_multi(stack, psfs, index, step, targets, out=work)
+    gather_fixnoise(work, rows, noisy, order, out)  # each stamp's versions plus its field's
+    return {kind: out[k] for k, kind in enumerate(TYPES)}, sigma[psf_index]
 
 
 def metacal_versions(
@@ -204,6 +243,8 @@ def metacal_versions(
     seeds: Sequence[int] | np.ndarray | None = None,
     engine: str = "galsim",
     psf_index: Sequence[int] | np.ndarray | None = None,
+    target: str = DEFAULT_TARGET,
+    out: np.ndarray | None = None,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The five metacal versions of a stack of stamps ``(n, S, S)``, as ``({type: (n, S, S)},
     target_sigma (n,))``.
@@ -215,6 +256,10 @@ def metacal_versions(
     on, each stamp's field drawn from its ``seeds`` entry (default: the stamp index).
     ``engine``: ``"galsim"`` (the reference, stamp by stamp) or ``"fast"`` (FFTs over the
     stack, :mod:`.metacal_fft`; with several PSFs, in one pass: :mod:`.metacal_fft_multi`).
+    ``target``: the target PSF's name (:mod:`.metacal_targets`); the second array holds its
+    sigma for each stamp. ``out``: a C-contiguous float64 array ``(5, n, S, S)`` the
+    versions are written into (in :data:`TYPES` order; the result holds its views), e.g. a
+    buffer reused from call to call.
     """
     stamps = np.asarray(stamps, dtype=np.float64)
     psfs = np.asarray(psf_images, dtype=np.float64)
@@ -243,22 +288,22 @@ def metacal_versions(
     seeds = np.arange(n, dtype=np.int64) if seeds is None else np.asarray(seeds, dtype=np.int64)
     groups = np.unique(psf_index)
     if len(groups) == 1:  # one PSF (the usual case): no copy into a new stack
-        op = _operation(psfs[groups[0]], step)
-        return _with_fixnoise(stamps, psfs[groups[0]], op, sigmas, seeds, engine), np.full(
-            n, op.target.sigma
-        )
+        op = _operation(psfs[groups[0]], step, target)
+        versions = _with_fixnoise(stamps, psfs[groups[0]], op, sigmas, seeds, engine, out)
+        return versions, np.full(n, op.target.sigma)
+    out = _versions_array(out, stamps.shape)
     if engine == "fast":
-        return _fast_several_psfs(stamps, psfs, psf_index, step, sigmas, seeds)
-    versions = {kind: np.empty_like(stamps) for kind in TYPES}
-    target = np.empty(n)
+        return _fast_several_psfs(stamps, psfs, psf_index, step, sigmas, seeds, target, out)
+    versions = {kind: out[v] for v, kind in enumerate(TYPES)}
+    sigma_t = np.empty(n)
     for j in groups:
         rows = np.flatnonzero(psf_index == j)
-        op = _operation(psfs[j], step)
+        op = _operation(psfs[j], step, target)
         group = _with_fixnoise(stamps[rows], psfs[j], op, sigmas[rows], seeds[rows], engine)
         for kind in TYPES:
             versions[kind][rows] = group[kind]
-        target[rows] = op.target.sigma
-    return versions, target
+        sigma_t[rows] = op.target.sigma
+    return versions, sigma_t
 
 
 def fixnoise_seeds(seed: int, keys: Sequence[int] | np.ndarray) -> np.ndarray:
@@ -269,12 +314,9 @@ def fixnoise_seeds(seed: int, keys: Sequence[int] | np.ndarray) -> np.ndarray:
 
 
 def target_psf_image(target_sigma: float, size: int) -> np.ndarray:
-    """The round Gaussian target PSF as the versions hold it (no pixel), ``size`` pixels."""
-    return (
-        galsim.Gaussian(sigma=target_sigma)
-        .drawImage(nx=size, ny=size, scale=1.0, method="no_pixel")
-        .array
-    )
+    """The round Gaussian target PSF of sigma ``target_sigma`` as the versions hold it (no
+    pixel), ``size`` pixels (:meth:`.MetacalTarget.image` of any target)."""
+    return GaussTarget(target_sigma).image(size)
 
 
 def metacal_images(
@@ -284,17 +326,25 @@ def metacal_images(
     noise_sigma: float | None = None,
     seed: int = 0,
     engine: str = "galsim",
+    target: str = DEFAULT_TARGET,
 ) -> MetacalImages:
     """The five metacal versions of ``stamp`` with the PSF image ``psf_image`` (both centred
     like GalSim's images: the true centre of an even-sized image is between pixels).
 
     ``noise_sigma``: the stamp's noise level; when given, fixnoise adds the operation's image
-    of a rotated noise field of that level, drawn from ``seed``.
+    of a rotated noise field of that level, drawn from ``seed``. ``target``: the target
+    PSF's name.
     """
     stamp = np.asarray(stamp, dtype=np.float64)
     _finite_2d(stamp, "stamp")
     versions, target = metacal_versions(
-        stamp[None], psf_image, step, None if noise_sigma is None else [noise_sigma], [seed], engine
+        stamp[None],
+        psf_image,
+        step,
+        None if noise_sigma is None else [noise_sigma],
+        [seed],
+        engine,
+        target=target,
     )
     return MetacalImages({kind: v[0] for kind, v in versions.items()}, float(target[0]))
 
@@ -308,6 +358,7 @@ def metacal_features(
     metacal_engine: str = "galsim",
     psf_index: Sequence[int] | np.ndarray | None = None,
     morphology: bool = False,
+    target: str = DEFAULT_TARGET,
     **measure_kw: Any,
 ) -> dict[str, np.ndarray]:
     """Features of the five metacal versions of a stack of stamps ``(n, S, S)``: every column
@@ -317,8 +368,11 @@ def metacal_features(
     Arguments as :func:`metacal_versions` (``metacal_engine`` is its ``engine``);
     ``measure_kw`` go to ``measure_stamps``.
     """
+    stamps = np.asarray(stamps)
+    square = stamps.ndim == 3 and stamps.shape[1] == stamps.shape[2]
+    work = versions_buffer(len(stamps), stamps.shape[1]) if square else None
     versions, _ = metacal_versions(
-        stamps, psf_images, step, noise_sigma, seeds, metacal_engine, psf_index
+        stamps, psf_images, step, noise_sigma, seeds, metacal_engine, psf_index, target, work
     )
     out: dict[str, np.ndarray] = {}
     for kind in TYPES:
@@ -330,26 +384,39 @@ def metacal_features(
     return out
 
 
+def target_columns(
+    targets: Sequence[MetacalTarget], size: int, engine: str = "fast"
+) -> dict[str, np.ndarray]:
+    """``adamom_g1, adamom_g2, adamom_sigma, adamom_rho4`` of each target's image on a
+    ``size``-pixel stamp (what the ``psf_adamom_*_<type>`` columns of a metacal catalog
+    hold), the images measured in one call."""
+    if not len(targets):
+        return {c: np.zeros(0) for c in TARGET_PSF_COLUMNS}
+    res = measure_stamps(np.array([t.image(size) for t in targets]), engine=engine)
+    return {c: np.asarray(res[c], dtype=np.float64) for c in TARGET_PSF_COLUMNS}
+
+
+def target_features(target: MetacalTarget, size: int, engine: str = "fast") -> dict[str, float]:
+    """:func:`target_columns` of one target."""
+    return {c: float(v[0]) for c, v in target_columns([target], size, engine).items()}
+
+
 def target_psf_features(target_sigma: float, size: int, engine: str = "fast") -> dict[str, float]:
-    """``adamom_g1, adamom_g2, adamom_sigma, adamom_rho4`` of the target PSF (what the
-    ``psf_adamom_*_<type>`` columns of a metacal catalog hold)."""
-    res = measure_stamps(target_psf_image(target_sigma, size)[None], engine=engine)
-    return {c: float(res[c][0]) for c in TARGET_PSF_COLUMNS}
+    """:func:`target_features` of the round Gaussian target of sigma ``target_sigma``."""
+    return target_features(GaussTarget(target_sigma), size, engine)
 
 
 def target_psf_columns(target_sigma: np.ndarray, size: int) -> dict[str, np.ndarray]:
-    """``psf_<X>_<type>`` of each row from its target PSF sigma (NaN where not finite; the same
-    for the five types), each distinct sigma measured once."""
+    """``psf_<X>_<type>`` of each row from its round Gaussian target's sigma (NaN where not
+    finite; the same for the five types), each distinct sigma (to 1e-6 px) measured once."""
     sigma = np.asarray(target_sigma, dtype=np.float64)
     out = {
         f"psf_{c}_{kind}": np.full(len(sigma), np.nan) for kind in TYPES for c in TARGET_PSF_COLUMNS
     }
     finite = np.isfinite(sigma)
-    rounded = np.round(sigma, 6)
-    for value in np.unique(rounded[finite]):
-        rows = finite & (rounded == value)
-        values = target_psf_features(float(value), size)
-        for kind in TYPES:
-            for c in TARGET_PSF_COLUMNS:
-                out[f"psf_{c}_{kind}"][rows] = values[c]
+    values, inverse = np.unique(np.round(sigma[finite], 6), return_inverse=True)
+    feats = target_columns([GaussTarget(float(v)) for v in values], size)
+    for kind in TYPES:
+        for c in TARGET_PSF_COLUMNS:
+            out[f"psf_{c}_{kind}"][finite] = feats[c][inverse.ravel()]
     return out

@@ -8,10 +8,11 @@ matrix products over the stack instead of an FFT per stamp and version:
   the PSF's): that padded DFT is computed where the 6x6 Quintic taps reach, then
   interpolated at the sheared k points ``S k`` (``S`` the symmetric shear matrix);
 * ``Deconvolve`` is ``1 / P`` inside the PSF image's ``maxk``, 0 outside;
-* ``drawImage`` samples ``T(k) I(S k) / P(S k)`` on GalSim's k grid of spacing ``2 pi / N``
-  (``N`` from the profile's ``stepk``, at least 128, so per stamp: from its flux radius)
-  and transforms back with wrap-around at period ``N`` (on noise, ``N`` changes the result
-  by up to ~10 % of the rms): the same grid, only the stamp's pixels.
+* ``drawImage`` samples ``T(k) I(S k) / P(S k)`` (``T`` the target's Fourier kernel,
+  :meth:`~.metacal_targets.MetacalTarget.kvalue_shifted`) on GalSim's k grid of spacing
+  ``2 pi / N`` (``N`` from the profile's ``stepk``, at least 128, so per stamp: from its
+  flux radius) and transforms back with wrap-around at period ``N`` (on noise, ``N``
+  changes the result by up to ~10 % of the rms): the same grid, only the stamp's pixels.
 
 The transforms are split into even and odd parts (half the work). What depends on the PSF,
 the step and the sizes is built once and cached. The arithmetic is float32 by default.
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import galsim
@@ -31,6 +33,7 @@ import numpy as np
 
 from megalut_cli.measure.metacal_defaults import INTERPOLANT, SHEARS, TYPES
 from megalut_cli.measure.metacal_fft_nb import (
+    add_versions,
     fold_x,
     fold_y,
     padded_dft,
@@ -38,6 +41,8 @@ from megalut_cli.measure.metacal_fft_nb import (
     slots_sep,
     unfold,
 )
+from megalut_cli.measure.metacal_targets import MetacalTarget
+from megalut_cli.measure.metacal_targets.gauss import GaussTarget
 
 _SHEARS = tuple(SHEARS[kind] for kind in TYPES)
 _QUINTIC = galsim.Quintic()
@@ -168,7 +173,7 @@ def _plan(
     size: int,
     n_grid: int,
     step: float,
-    target_sigma: float,
+    target: MetacalTarget,
     dtype: str,
 ) -> Plan:
     """The plan (cached on the PSF's bytes and the parameters), in ``dtype``."""
@@ -184,7 +189,7 @@ def _plan(
     shift = 0.5 if size % 2 == 0 else 0.0
     # the target, the half-pixel recentring of drawImage for even sizes, the irfft's 1 / N^2
     # and the doubling of kx > 0 (GalSim's Hermitian wrap doubles the kx = N/2 column too)
-    base = np.exp(-0.5 * target_sigma**2 * (kx * kx + ky * ky) + 1j * shift * (kx + ky)) / n_grid**2
+    base = target.kvalue_shifted(kx, ky, shift) / n_grid**2
     base = base * np.where(ii == 0, 1.0, 2.0)
     points = []
     for s1, s2 in _SHEARS:
@@ -414,21 +419,43 @@ def versions_out(out: np.ndarray | None, n: int, size: int) -> np.ndarray:
     return out
 
 
+def as_target(target: float | MetacalTarget) -> MetacalTarget:
+    """``target``, or the round Gaussian of sigma ``target`` (pixels)."""
+    return target if isinstance(target, MetacalTarget) else GaussTarget(float(target))
+
+
 def fft_versions(
     images: np.ndarray,
     psf_image: np.ndarray,
     step: float,
-    target_sigma: float,
+    target: float | MetacalTarget,
     dtype: str = "float32",
     out: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """The five metacal versions ``{type: (n, S, S) float64}`` of a stack ``(n, S, S)`` of
     stamps sharing ``psf_image`` ``(P, P)``: deconvolved by it, sheared by ``step``,
-    reconvolved with a round Gaussian of sigma ``target_sigma`` (pixels), as GalSim draws
-    them. ``dtype``: the arithmetic, ``"float32"`` or ``"float64"``. ``out``: a C-contiguous
-    float64 array ``(5, n, S, S)`` to write the versions into (in :data:`TYPES` order; the
-    result's arrays are its views), e.g. reused from call to call: fresh output pages cost
-    about as much as the operation."""
+    reconvolved with ``target`` (a :class:`~.metacal_targets.MetacalTarget`, or the sigma in
+    pixels of a round Gaussian), as GalSim draws them. ``dtype``: the arithmetic,
+    ``"float32"`` or ``"float64"``. ``out``: a C-contiguous float64 array ``(5, n, S, S)``
+    to write the versions into (in :data:`TYPES` order; the result's arrays are its views),
+    e.g. reused from call to call: fresh output pages cost about as much as the operation."""
+    images, psf = _checked(images, psf_image)
+    n, size = images.shape[:2]
+    out = versions_out(out, n, size)
+    for plan, ws, idx, which in _blocks(images, psf, step, target, dtype):
+        i0, i1 = int(idx[0]), int(idx[-1]) + 1
+        if i1 - i0 == len(idx):  # a contiguous run: in place
+            _run(plan, images[i0:i1], out[:, i0:i1], which, ws)
+        else:
+            tmp = np.empty((len(TYPES), len(idx), size, size))
+            _run(plan, images[idx], tmp, which, ws)
+            for v in which:
+                out[v, idx] = tmp[v]
+    return {kind: out[v] for v, kind in enumerate(TYPES)}
+
+
+def _checked(images: np.ndarray, psf_image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stack (float32 or float64, C-contiguous) and the PSF image (float64), checked."""
     images = np.asarray(images)
     psf = np.ascontiguousarray(psf_image, dtype=np.float64)
     if images.ndim != 3 or images.shape[1] != images.shape[2]:
@@ -437,26 +464,70 @@ def fft_versions(
         raise ValueError(f"expected a square PSF image (P, P), got shape {psf.shape}")
     if images.dtype not in (np.float32, np.float64):
         images = images.astype(np.float64)
-    images = np.ascontiguousarray(images)
+    return np.ascontiguousarray(images), psf
+
+
+def _blocks(
+    images: np.ndarray,
+    psf: np.ndarray,
+    step: float,
+    target: float | MetacalTarget,
+    dtype: str,
+) -> Iterator[tuple[Plan, Workspace, np.ndarray, tuple[int, ...]]]:
+    """The work of :func:`fft_versions`: ``(plan, workspace, rows, versions)`` per block of up
+    to :data:`BLOCK` rows of ``images`` sharing a k grid. The blocks (which rows, in which
+    order) fix the float32 sums' order: the versions of an image are bit for bit the same
+    only within the same block."""
     n, size = images.shape[:2]
+    if not n:
+        return
+    key = (psf.tobytes(), psf.shape[0])
+    psf_stepk = psf_params(*key)[2]
+    target = as_target(target)
+    jobs = grid_jobs(grid_sizes(images, psf_stepk, target.stepk, step))
+    for n_grid, todo in jobs.items():
+        plan = _plan(*key, size, n_grid, float(step), target, np.dtype(dtype).name)
+        ws = Workspace(plan, min(BLOCK, n))
+        for sel, which in todo:
+            for b in range(0, len(sel), BLOCK):
+                yield plan, ws, sel[b : b + BLOCK], which
+
+
+def fft_versions_fixnoise(
+    stack: np.ndarray,
+    n: int,
+    field_rows: np.ndarray,
+    psf_image: np.ndarray,
+    step: float,
+    target: float | MetacalTarget,
+    dtype: str = "float32",
+    out: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
+    """Metacal's fixnoise on a stack ``(n + f, S, S)``: ``n`` stamps, then ``f`` noise fields
+    rotated by 90 degrees, field ``k`` that of stamp ``field_rows[k]`` (distinct rows). The
+    versions of each stamp (``{type: (n, S, S)}``, views of ``out`` as in
+    :func:`fft_versions`) plus the versions of its field rotated back: bit for bit
+    ``fft_versions(stack)``'s first ``n`` rows with ``np.rot90(v[n + k], -1)`` added to row
+    ``field_rows[k]``, the fields' versions added block by block instead of held."""
+    stack, psf = _checked(stack, psf_image)
+    size = stack.shape[1]
+    field_rows = np.asarray(field_rows, dtype=np.int64)
+    if len(field_rows) != len(stack) - n or (
+        len(field_rows) and (field_rows.min() < 0 or field_rows.max() >= n)
+    ):
+        raise ValueError("field_rows must give each noise field one of the n stamps")
     out = versions_out(out, n, size)
-    if n:
-        key = (psf.tobytes(), psf.shape[0])
-        psf_stepk = psf_params(*key)[2]
-        target_stepk = galsim.Gaussian(sigma=float(target_sigma)).stepk
-        jobs = grid_jobs(grid_sizes(images, psf_stepk, target_stepk, step))
-        for n_grid, todo in jobs.items():
-            plan = _plan(*key, size, n_grid, float(step), float(target_sigma), np.dtype(dtype).name)
-            ws = Workspace(plan, min(BLOCK, n))
-            for sel, which in todo:
-                for b in range(0, len(sel), BLOCK):
-                    idx = sel[b : b + BLOCK]
-                    i0, i1 = int(idx[0]), int(idx[-1]) + 1
-                    if i1 - i0 == len(idx):  # a contiguous run: in place
-                        _run(plan, images[i0:i1], out[:, i0:i1], which, ws)
-                    else:
-                        tmp = np.empty((len(TYPES), len(idx), size, size))
-                        _run(plan, images[idx], tmp, which, ws)
-                        for v in which:
-                            out[v, idx] = tmp[v]
+    dest = np.concatenate([np.arange(n, dtype=np.int64), field_rows])  # each row's stamp
+    done = np.zeros((len(TYPES), n), dtype=np.bool_)  # version v of stamp i holds a part
+    tmp = np.empty((len(TYPES), min(BLOCK, len(stack)), size, size))
+    for plan, ws, idx, which in _blocks(stack, psf, step, target, dtype):
+        i0, i1 = int(idx[0]), int(idx[-1]) + 1
+        rows = stack[i0:i1] if i1 - i0 == len(idx) else stack[idx]
+        if i1 <= n and i1 - i0 == len(idx) and not done[list(which), i0:i1].any():
+            _run(plan, rows, out[:, i0:i1], which, ws)  # stamps alone: in place
+            done[list(which), i0:i1] = True
+            continue
+        block = tmp[:, : len(idx)]
+        _run(plan, rows, block, which, ws)
+        add_versions(block, np.array(which, dtype=np.int64), idx, n, dest, out, done)
     return {kind: out[v] for v, kind in enumerate(TYPES)}

@@ -36,6 +36,7 @@ from megalut_cli.measure.metacal_fft import (
     Plan,
     Version,
     Workspace,
+    as_target,
     axis_taps,
     draw_slots,
     grid_jobs,
@@ -49,7 +50,14 @@ from megalut_cli.measure.metacal_fft import (
     stack_dft,
     versions_out,
 )
-from megalut_cli.measure.metacal_fft_nb import fill_weights, gather36, slots_full, slots_sep
+from megalut_cli.measure.metacal_fft_nb import (
+    fill_weights,
+    gather36,
+    slots_full,
+    slots_sep,
+    take_columns,
+)
+from megalut_cli.measure.metacal_targets import MetacalTarget
 
 #: PSFs per :class:`MultiPlan`: bounds its memory (weights ~0.35 MB per PSF at N = 128,
 #: float32; the PSFs' k values ~0.5 MB per PSF while it is built).
@@ -222,14 +230,14 @@ def _version_table(
 def multi_plan(
     psfs: np.ndarray,
     maxk: np.ndarray,
-    target_sigma: np.ndarray,
+    targets: Sequence[MetacalTarget],
     size: int,
     n_grid: int,
     step: float,
     dtype: str,
 ) -> MultiPlan:
     """The plan of the unit-sum PSF images ``psfs`` (K, P, P) with their GalSim ``maxk`` (K,)
-    and targets ``target_sigma`` (K,), for stamps of side ``size`` on the k grid ``n_grid``."""
+    and ``targets`` (K), for stamps of side ``size`` on the k grid ``n_grid``."""
     geo = geometry(size, psfs.shape[1], n_grid, float(step))
     dkp = 2.0 * math.pi / pad_size(size)
     dt = np.dtype(dtype)
@@ -238,9 +246,7 @@ def multi_plan(
     )
     maxk2 = np.asarray(maxk, dtype=np.float64) ** 2
     k1 = np.arange(n_grid // 2 + 1) * (2.0 * math.pi / n_grid)
-    gauss = np.exp(
-        -0.5 * np.asarray(target_sigma, dtype=np.float64)[:, None] ** 2 * (k1 * k1)[None, :]
-    )
+    kernel = np.ascontiguousarray([t.grid_kvalue(k1) for t in targets], dtype=np.float64)
     points = [np.flatnonzero(~(vg.r2 > maxk2.max())) for vg in geo.versions]  # the union
     ky_n = int(max(np.abs(geo.jj[idx]).max() for idx in points))
     kx_n = int(max(geo.ii[idx].max() for idx in points))
@@ -259,7 +265,7 @@ def multi_plan(
             psf_factor,
             shared,
             vg.r2,
-            gauss,
+            kernel,
             maxk2,
             _KVALUE_ACCURACY,
             geo.jj,
@@ -301,9 +307,13 @@ def _run_multi(
     if images.shape[0] != ws.m:
         ws = Workspace(plan, images.shape[0])
     stack_dft(plan, images, ws)
+    shape = (*mp.weights[0][0].shape[:3], len(col))
+    wr, wi = np.empty(shape, plan.in_xc.dtype), np.empty(shape, plan.in_xc.dtype)
+    col = np.ascontiguousarray(col, dtype=np.int64)
     for v in which:
         ver = plan.versions[v]
-        wr, wi = (np.ascontiguousarray(w[..., col]) for w in mp.weights[v])  # the block's
+        take_columns(mp.weights[v][0], col, wr)  # the block's weights
+        take_columns(mp.weights[v][1], col, wi)
         if ver.sep:
             slots_sep(ws.f, ver.p0, ver.wx, ver.r0, ver.wy, wr, wi, ws.q, ws.work)
         else:
@@ -324,16 +334,17 @@ def fft_versions_multi(
     psf_images: Sequence[np.ndarray] | np.ndarray,
     psf_index: Sequence[int] | np.ndarray,
     step: float,
-    target_sigma: Sequence[float] | np.ndarray,
+    targets: Sequence[float | MetacalTarget | None] | np.ndarray,
     dtype: str = "float32",
     out: np.ndarray | None = None,
     chunk: int = PSF_CHUNK,
 ) -> dict[str, np.ndarray]:
     """:func:`.metacal_fft.fft_versions` of a stack ``(n, S, S)`` whose stamp ``i`` has the PSF
-    image ``psf_images[psf_index[i]]`` (square, of any sizes) and the target sigma
-    ``target_sigma[psf_index[i]]``. The stamps of up to ``chunk`` PSFs of one size on one k
-    grid go through one pass together; a PSF's stamps in a contiguous run are computed in
-    place (so order the stack by PSF)."""
+    image ``psf_images[psf_index[i]]`` (square, of any sizes) and the target
+    ``targets[psf_index[i]]`` (a :class:`~.metacal_targets.MetacalTarget`, or the sigma of a
+    round Gaussian; unused PSFs' may be None or NaN). The stamps of up to ``chunk`` PSFs of
+    one size on one k grid go through one pass together; a PSF's stamps in a contiguous run
+    are computed in place (so order the stack by PSF)."""
     images = np.asarray(images)
     if images.ndim != 3 or images.shape[1] != images.shape[2]:
         raise ValueError(f"expected a stack of square stamps (n, S, S), got shape {images.shape}")
@@ -341,12 +352,11 @@ def fft_versions_multi(
     if any(p.ndim != 2 or p.shape[0] != p.shape[1] for p in psfs):
         raise ValueError("expected square PSF images (P, P)")
     psf_index = np.asarray(psf_index, dtype=np.int64)
-    target_sigma = np.asarray(target_sigma, dtype=np.float64)
     n, size = images.shape[:2]
     if psf_index.shape != (n,) or (n and (psf_index.min() < 0 or psf_index.max() >= len(psfs))):
         raise ValueError("psf_index must give each stamp one of the PSF images")
-    if target_sigma.shape != (len(psfs),):
-        raise ValueError(f"expected one target sigma per PSF image ({len(psfs)})")
+    if len(targets) != len(psfs):
+        raise ValueError(f"expected one target per PSF image ({len(psfs)})")
     if chunk < 1:
         raise ValueError("chunk must be at least 1")
     if images.dtype not in (np.float32, np.float64):
@@ -359,9 +369,11 @@ def fft_versions_multi(
     psf_sizes = np.array([p.shape[0] for p in psfs])
     unit = [np.empty((0, 0))] * len(psfs)
     maxk, psf_stepk, target_stepk = (np.full(len(psfs), np.nan) for _ in range(3))
+    target: list[MetacalTarget | None] = [None] * len(psfs)
     for j in used:
         unit[j], maxk[j], psf_stepk[j] = psf_params(psfs[j].tobytes(), psfs[j].shape[0])
-        target_stepk[j] = galsim.Gaussian(sigma=float(target_sigma[j])).stepk
+        target[j] = t = as_target(targets[j])
+        target_stepk[j] = t.stepk
     grids = grid_sizes(images, psf_stepk[psf_index], target_stepk[psf_index], step)
     col_of = np.full(len(psfs), -1, np.int64)
     for n_grid, todo in grid_jobs(grids).items():
@@ -372,7 +384,7 @@ def fft_versions_multi(
                 mp = multi_plan(
                     stack,
                     maxk[psf_chunk],
-                    target_sigma[psf_chunk],
+                    [target[j] for j in psf_chunk],
                     size,
                     n_grid,
                     step,

@@ -113,6 +113,75 @@ def unfold(u1: np.ndarray, u2: np.ndarray, u3: np.ndarray, u4: np.ndarray, out: 
                         out[s, hi_y, hi_x] = a - b - e + g
 
 
+@njit(cache=True, nogil=True)
+def add_versions(
+    block: np.ndarray, which: np.ndarray, rows: np.ndarray, n: int, dest: np.ndarray,
+    out: np.ndarray, done: np.ndarray,
+) -> None:  # fmt: skip
+    """The versions ``which`` of a block ``(V, m, S, S)`` of stack rows ``rows`` into their
+    stamps' ``out`` ``(V, n, S, S)``: a stamp's (row ``< n``) as they are, a noise field's
+    (rotated by 90 degrees) rotated back (``np.rot90(., -1)``: ``[y, x]`` from ``[S - 1 - x,
+    y]``), stored where ``done[v, stamp]`` is False, else added (the sum of the two parts
+    does not depend on their order)."""
+    size = out.shape[2]
+    for v in which:
+        for s in range(rows.shape[0]):
+            r = rows[s]
+            i = dest[r]
+            src = block[v, s]
+            dst = out[v, i]
+            if r < n:
+                if done[v, i]:
+                    for y in range(size):
+                        for x in range(size):
+                            dst[y, x] += src[y, x]
+                else:
+                    dst[:, :] = src
+            elif done[v, i]:
+                for y in range(size):
+                    for x in range(size):
+                        dst[y, x] += src[size - 1 - x, y]
+            else:
+                for y in range(size):
+                    for x in range(size):
+                        dst[y, x] = src[size - 1 - x, y]
+            done[v, i] = True
+
+
+@njit(cache=True, nogil=True)
+def take_columns(w: np.ndarray, col: np.ndarray, out: np.ndarray) -> None:
+    """``out[..., s] = w[..., col[s]]`` for ``(2, ky + 1, kx + 1, K)`` weights: a block's
+    per-stamp weights from its PSFs'."""
+    for h in range(w.shape[0]):
+        for j in range(w.shape[1]):
+            for i in range(w.shape[2]):
+                row = w[h, j, i]
+                o = out[h, j, i]
+                for s in range(col.shape[0]):
+                    o[s] = row[col[s]]
+
+
+@njit(cache=True, nogil=True)
+def gather_fixnoise(
+    versions: np.ndarray, rows: np.ndarray, field: np.ndarray, order: np.ndarray, out: np.ndarray
+) -> None:
+    """``out[v, order[i]] = versions[v, rows[i]]``, plus ``np.rot90(versions[v, rows[i] + 1],
+    -1)`` (a fixnoise field's versions rotated back: ``[y, x]`` from ``[S - 1 - x, y]``) where
+    ``field[i]``."""
+    size = out.shape[2]
+    for v in range(versions.shape[0]):
+        for i in range(rows.shape[0]):
+            src = versions[v, rows[i]]
+            dst = out[v, order[i]]
+            if field[i]:
+                f = versions[v, rows[i] + 1]
+                for y in range(size):
+                    for x in range(size):
+                        dst[y, x] = src[y, x] + f[size - 1 - x, y]
+            else:
+                dst[:, :] = src
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _store_stamp(
     ap: np.ndarray, am: np.ndarray, c0: float, d0: float, c1: float, d1: float, j: int, i: int,
@@ -345,13 +414,13 @@ def gather36(
 @njit(cache=True, nogil=True)
 def fill_weights(
     g: np.ndarray, idx: np.ndarray, psf_factor: np.ndarray, shared: np.ndarray, r2: np.ndarray,
-    gauss: np.ndarray, maxk2: np.ndarray, min_acc: float, jj: np.ndarray, ii: np.ndarray,
+    kernel: np.ndarray, maxk2: np.ndarray, min_acc: float, jj: np.ndarray, ii: np.ndarray,
     wr: np.ndarray, wi: np.ndarray,
 ) -> None:  # fmt: skip
     """The weights of the points ``idx`` into their slots ``wr, wi (2, ky + 1, kx + 1, K)``:
     ``w = T * shared / P`` (GalSim's ``Deconvolve``: ``1 / min_acc`` where ``|P| < min_acc``),
     ``P = g[n, k] * psf_factor`` (PSF ``k``'s Quintic sum times its half-pixel phase and
-    Lanczos factor), ``T = gauss[k, i] * gauss[k, |j|]`` (the target); 0 where
+    Lanczos factor), ``T = kernel[k, |j|, i]`` (PSF ``k``'s target); 0 where
     ``r2 > maxk2[k]`` (outside PSF ``k``'s maxk)."""
     for n in range(idx.shape[0]):
         p = idx[n]
@@ -369,6 +438,6 @@ def fill_weights(
             else:
                 d = 1.0 / a
                 dr, di = d.real, d.imag
-            e = gauss[k, iv] * gauss[k, ja]
+            e = kernel[k, ja, iv]
             wr[h, ja, iv, k] = e * (sr * dr - si * di)
             wi[h, ja, iv, k] = e * (sr * di + si * dr)
