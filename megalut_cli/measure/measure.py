@@ -21,6 +21,7 @@ from megalut_cli.errors import ConfigError, Names, namer
 from megalut_cli.measure.defaults import FORMAT_VERSION
 from megalut_cli.measure.grid import measure_grid
 from megalut_cli.measure.measurer import MeasureSettings, MetacalSettings
+from megalut_cli.measure.metacal_defaults import DEFAULT_TARGET
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.sources import MeasureRequest, stamp_source_for
 from megalut_cli.measure.stamps import grid_origins
@@ -93,6 +94,7 @@ def measure_file_columns(
     cutout: int = MEASURE["cutout"].default,
     psf_model_path: str | os.PathLike | None = None,
     feature_sets: Sequence[str] = (),
+    metacal_target: str = DEFAULT_TARGET,
 ) -> tuple[Columns, dict[str, Any]]:
     """Measure every stamp of ``stamps_path`` and write the features catalog ``output``.
 
@@ -138,6 +140,9 @@ def measure_file_columns(
             ``metacal``; header cards ``PSFMODEL``, ``PSFMSHA``, ``PSFMTYPE``.
         feature_sets: the optional feature sets to measure too, by name
             (:mod:`megalut_cli.measure.feature_sets`).
+        metacal_target: the target PSF of ``metacal`` by name
+            (:mod:`megalut_cli.measure.metacal_targets`; header card ``MCALTARG`` when not
+            the default round Gaussian).
 
     Returns:
         The columns written (name -> array, in order) and the input catalog's header (empty
@@ -154,7 +159,7 @@ def measure_file_columns(
         engine,
         device,
         sets,
-        MetacalSettings(float(metacal_step), int(seed)) if metacal else None,
+        MetacalSettings(float(metacal_step), int(seed), metacal_target) if metacal else None,
     )
     request = MeasureRequest(
         str(stamps_path),

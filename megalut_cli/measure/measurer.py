@@ -31,7 +31,14 @@ from megalut_cli.measure.masks import (
     too_masked,
     weight_noise,
 )
-from megalut_cli.measure.metacal_defaults import INTERPOLANT, TYPES, metacal_cards, metacal_columns
+from megalut_cli.measure.metacal_defaults import (
+    DEFAULT_TARGET,
+    INTERPOLANT,
+    TARGET_CARD,
+    TYPES,
+    metacal_cards,
+    metacal_columns,
+)
 
 #: Flags of a stamp that metacal leaves out (its versions get the same flags).
 METACAL_SKIPPED = fl.MASKED_PIXELS | fl.PSF_FAILED | fl.BAD_PIXELS
@@ -39,10 +46,12 @@ METACAL_SKIPPED = fl.MASKED_PIXELS | fl.PSF_FAILED | fl.BAD_PIXELS
 
 @dataclass(frozen=True)
 class MetacalSettings:
-    """The metacal operation: its shear step and the seed of the fixnoise fields."""
+    """The metacal operation: its shear step, the seed of the fixnoise fields and the target
+    PSF's name (:mod:`.metacal_targets`)."""
 
     step: float
     seed: int
+    target: str = DEFAULT_TARGET
 
 
 @dataclass(frozen=True)
@@ -119,6 +128,8 @@ def measure_cards(settings: MeasureSettings, size: int | None) -> dict[str, Any]
     }
     if settings.metacal is not None:
         cards.update(metacal_cards(settings.metacal.step, settings.metacal.seed, "measure"))
+        if settings.metacal.target != DEFAULT_TARGET:
+            cards[TARGET_CARD] = (settings.metacal.target, "metacal target PSF")
     return cards
 
 
@@ -262,7 +273,8 @@ class Measurer:
         from megalut_cli.measure.metacal import (  # GalSim: metacal only
             fixnoise_seeds,
             metacal_versions,
-            target_psf_columns,
+            stamp_target_columns,
+            versions_buffer,
         )
 
         s, psfs = self.settings, batch.psfs
@@ -276,20 +288,25 @@ class Measurer:
         skipped = feats["flags"] & METACAL_SKIPPED
         ok = skipped == 0
         target = np.full(n, np.nan)
+        index = np.full(n, -1)
+        images = psfs.images[:0]
         if ok.any():
-            used, index = np.unique(psfs.index[ok], return_inverse=True)
+            used, index[ok] = np.unique(psfs.index[ok], return_inverse=True)
+            images = same_parity_psfs(psfs.images[used], size)
             noise = feats.get(NOISE_COLUMN, np.full(n, np.nan))
             noise = np.where(np.isfinite(noise), noise, feats["skymad"])
             keys = np.arange(n) if batch.fixnoise_keys is None else batch.fixnoise_keys
             origins = batch.origins[ok]
             versions, target[ok] = metacal_versions(
                 stamps[ok],
-                same_parity_psfs(psfs.images[used], size),
+                images,
                 s.metacal.step,
                 noise[ok],
                 fixnoise_seeds(s.metacal.seed, keys[ok]),
                 s.engine,
-                index.ravel(),
+                index[ok],
+                s.metacal.target,
+                versions_buffer(int(ok.sum()), size) if stamps.shape[1] == size else None,
             )
             for kind in TYPES:
                 for c, v in self.features(versions[kind], origins).items():
@@ -298,5 +315,6 @@ class Measurer:
         for kind in TYPES:
             out[f"flags_{kind}"] |= skipped
             nan_flagged(out, out[f"flags_{kind}"], tuple(f"{c}_{kind}" for c in nan_names))
-        out.update(target_psf_columns(target, size))
+        step = s.metacal.step
+        out.update(stamp_target_columns(s.metacal.target, images, index, target, step, size))
         return out

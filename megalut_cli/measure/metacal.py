@@ -22,6 +22,7 @@ import galsim
 import numpy as np
 
 from megalut_cli.measure import metacal_fft_multi
+from megalut_cli.measure.feature_sets import compute_extra
 from megalut_cli.measure.features import measure_stamps
 from megalut_cli.measure.metacal_defaults import (
     DEFAULT_STEP,
@@ -35,7 +36,6 @@ from megalut_cli.measure.metacal_fft import fft_versions_fixnoise
 from megalut_cli.measure.metacal_fft_nb import gather_fixnoise
 from megalut_cli.measure.metacal_targets import DEFAULT_TARGET, MetacalTarget, gauss, metacal_target
 from megalut_cli.measure.metacal_targets.gauss import GaussTarget
-from megalut_cli.measure.morphology import morphology_of_measured
 from megalut_cli.seeding import STREAM_METACAL, int_seed_for
 
 
@@ -357,13 +357,13 @@ def metacal_features(
     seeds: Sequence[int] | np.ndarray | None = None,
     metacal_engine: str = "galsim",
     psf_index: Sequence[int] | np.ndarray | None = None,
-    morphology: bool = False,
+    feature_sets: Sequence[str] = (),
     target: str = DEFAULT_TARGET,
     **measure_kw: Any,
 ) -> dict[str, np.ndarray]:
     """Features of the five metacal versions of a stack of stamps ``(n, S, S)``: every column
-    ``X`` of :func:`~megalut_cli.measure.features.measure_stamps` (and with ``morphology``
-    of :mod:`.morphology`) as ``X_<type>``.
+    ``X`` of :func:`~megalut_cli.measure.features.measure_stamps` (and of the optional
+    ``feature_sets``, :mod:`.feature_sets`) as ``X_<type>``.
 
     Arguments as :func:`metacal_versions` (``metacal_engine`` is its ``engine``);
     ``measure_kw`` go to ``measure_stamps``.
@@ -377,8 +377,9 @@ def metacal_features(
     out: dict[str, np.ndarray] = {}
     for kind in TYPES:
         feats = measure_stamps(versions[kind], **measure_kw)
-        if morphology:
-            feats.update(morphology_of_measured(versions[kind], measure_kw.get("origins"), feats))
+        if feature_sets:
+            origins = measure_kw.get("origins")
+            feats.update(compute_extra(feature_sets, versions[kind], origins, feats))
         for name, values in feats.items():
             out[f"{name}_{kind}"] = values
     return out
@@ -419,4 +420,29 @@ def target_psf_columns(target_sigma: np.ndarray, size: int) -> dict[str, np.ndar
     for kind in TYPES:
         for c in TARGET_PSF_COLUMNS:
             out[f"psf_{c}_{kind}"][finite] = feats[c][inverse.ravel()]
+    return out
+
+
+def stamp_target_columns(
+    target: str,
+    psf_images: np.ndarray,
+    psf_index: np.ndarray,
+    target_sigma: np.ndarray,
+    step: float,
+    size: int,
+) -> dict[str, np.ndarray]:
+    """``psf_<X>_<type>`` of each stamp's target ``target`` (NaN where ``psf_index < 0``:
+    no versions): the round Gaussian by the sigma :func:`metacal_versions` gave
+    (:func:`target_psf_columns`), another target built from the stamp's PSF image."""
+    if target == gauss.NAME:
+        return target_psf_columns(np.where(psf_index >= 0, target_sigma, np.nan), size)
+    used = np.unique(psf_index[psf_index >= 0])
+    feats = target_columns([metacal_target(target, psf_images[j], step) for j in used], size)
+    rows = psf_index >= 0
+    where = np.searchsorted(used, psf_index[rows])
+    out = {}
+    for kind in TYPES:
+        for c in TARGET_PSF_COLUMNS:
+            out[f"psf_{c}_{kind}"] = np.full(len(psf_index), np.nan)
+            out[f"psf_{c}_{kind}"][rows] = feats[c][where]
     return out

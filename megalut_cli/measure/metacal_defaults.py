@@ -20,6 +20,10 @@ STEP_CARD = "MCALSTEP"
 SEED_CARD = "MCALSEED"
 #: The features of the target PSF that a metacal catalog holds as ``psf_<X>_<type>``.
 TARGET_PSF_COLUMNS = ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_rho4")
+#: The metacal target PSF when none is named (:mod:`.metacal_targets`): the round Gaussian.
+DEFAULT_TARGET = "gauss"
+#: Header card of a catalog whose metacal target is not the default: the target's name.
+TARGET_CARD = "MCALTARG"
 #: The interpolant of the stamp and PSF images (ngmix's choice; lanczos15 keeps the
 #: interpolation error of a sheared, deconvolved image at the 1e-4 level).
 INTERPOLANT = "lanczos15"

@@ -3,18 +3,15 @@ registered here (:mod:`.base`): a new target is a module and a line below."""
 
 from __future__ import annotations
 
+from megalut_cli.measure.metacal_defaults import DEFAULT_TARGET, TARGET_CARD
 from megalut_cli.measure.metacal_targets import gauss
 from megalut_cli.measure.metacal_targets.base import (
     METACAL_TARGETS,
-    TARGET_CARD,
     MetacalTarget,
     TargetFactory,
     metacal_target,
     register_metacal_target,
 )
-
-#: The target of ``metacal`` when none is named: the round Gaussian.
-DEFAULT_TARGET = gauss.NAME
 
 __all__ = [
     "DEFAULT_TARGET",

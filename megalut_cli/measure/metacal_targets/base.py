@@ -16,8 +16,7 @@ from typing import Any
 
 import numpy as np
 
-#: Header card of a catalog whose metacal target is not the default: the target's name.
-TARGET_CARD = "MCALTARG"
+from megalut_cli.measure.metacal_defaults import TARGET_CARD
 
 #: A target's factory: the target for one PSF image (pixel included, scale 1) and step.
 TargetFactory = Callable[[np.ndarray, float], "MetacalTarget"]
@@ -72,7 +71,7 @@ class MetacalTarget(abc.ABC):
 
     def cards(self) -> dict[str, tuple[Any, str]]:
         """The header cards of a catalog measured with it: its name."""
-        return {TARGET_CARD: (self.name, "metacal target PSF (measure --metacal-target)")}
+        return {TARGET_CARD: (self.name, "metacal target PSF")}
 
 
 def register_metacal_target(name: str, factory: TargetFactory) -> None:

@@ -10,9 +10,10 @@ from typing import Any
 import galsim
 import numpy as np
 
+from megalut_cli.measure.metacal_defaults import DEFAULT_TARGET
 from megalut_cli.measure.metacal_targets.base import MetacalTarget
 
-NAME = "gauss"
+NAME = DEFAULT_TARGET
 
 
 def dilated_sigma(psf_sigma: float | np.ndarray, step: float) -> float | np.ndarray:
