@@ -13,8 +13,8 @@ from megalut_cli.measure.measurer import (
     MetacalSettings,
     PsfImages,
     StampBatch,
+    metacal_columns,
 )
-from megalut_cli.measure.metacal_defaults import metacal_columns
 
 S = 32
 STEP = 0.01

@@ -34,10 +34,10 @@ from megalut_cli.measure.masks import (
 from megalut_cli.measure.metacal_defaults import (
     DEFAULT_TARGET,
     INTERPOLANT,
+    SEED_CARD,
+    STEP_CARD,
     TARGET_CARD,
     TYPES,
-    metacal_cards,
-    metacal_columns,
 )
 
 #: Flags of a stamp that metacal leaves out (its versions get the same flags).
@@ -112,6 +112,20 @@ class StampBatch:
     psfs: PsfImages | None = None
     fixnoise_keys: np.ndarray | None = None
     base: dict[str, np.ndarray] | None = None
+
+
+def metacal_columns(names: tuple[str, ...] | list[str]) -> list[str]:
+    """The metacal column names ``X_<type>`` of the columns ``names``, type by type."""
+    return [f"{name}_{kind}" for kind in TYPES for name in names]
+
+
+def metacal_cards(step: float, seed: int, command: str) -> dict[str, tuple[float | int, str]]:
+    """The header cards of a catalog measured in metacal mode by ``command`` (``simulate``,
+    ``measure``): the shear step and the seed of the fixnoise fields."""
+    return {
+        STEP_CARD: (float(step), f"metacal shear step ({command} --metacal-step)"),
+        SEED_CARD: (int(seed), f"seed of the metacal fixnoise fields ({command} --seed)"),
+    }
 
 
 def measure_cards(settings: MeasureSettings, size: int | None) -> dict[str, Any]:

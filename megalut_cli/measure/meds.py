@@ -67,8 +67,9 @@ from megalut_cli.measure.measurer import (
     StampBatch,
     distinct_psfs,
     measure_cards,
+    metacal_cards,
+    metacal_columns,
 )
-from megalut_cli.measure.metacal_defaults import metacal_cards, metacal_columns
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.psf_model import cached_psf_model
 from megalut_cli.measure.single_psf import single_psf_features, single_psf_stamp

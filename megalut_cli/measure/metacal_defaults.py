@@ -27,23 +27,3 @@ TARGET_CARD = "MCALTARG"
 #: The interpolant of the stamp and PSF images (ngmix's choice; lanczos15 keeps the
 #: interpolation error of a sheared, deconvolved image at the 1e-4 level).
 INTERPOLANT = "lanczos15"
-
-
-def metacal_columns(names: tuple[str, ...] | list[str]) -> list[str]:
-    """The metacal column names ``X_<type>`` of the columns ``names``, type by type."""
-    return [f"{name}_{kind}" for kind in TYPES for name in names]
-
-
-def metacal_cards(step: float, seed: int, command: str) -> dict[str, tuple[float | int, str]]:
-    """The header cards of a catalog measured in metacal mode by ``command`` (``simulate``,
-    ``measure``): the shear step and the seed of the fixnoise fields."""
-    return {
-        STEP_CARD: (float(step), f"metacal shear step ({command} --metacal-step)"),
-        SEED_CARD: (int(seed), f"seed of the metacal fixnoise fields ({command} --seed)"),
-    }
-
-
-def header_step(header: dict) -> float | None:  # type: ignore[type-arg]
-    """The number of a header's ``MCALSTEP`` card, or None (no card, or not a number)."""
-    step = header.get(STEP_CARD)
-    return float(step) if isinstance(step, (int, float)) and not isinstance(step, bool) else None

@@ -42,7 +42,8 @@ from megalut_cli import flags as fl
 from megalut_cli.atomic import replace_folder, write_json
 from megalut_cli.errors import InputError, MegalutError
 from megalut_cli.great3 import layout as L
-from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, header_step, metacal_cards
+from megalut_cli.measure.measurer import metacal_cards
+from megalut_cli.measure.metacal_defaults import DEFAULT_STEP
 from megalut_cli.nn.model import ShearModel
 from megalut_cli.nn.options import PointSpec, WeightSpec
 from megalut_cli.pipeline.config import key_names
@@ -80,6 +81,7 @@ from megalut_cli.pipeline.steps import (
 )
 from megalut_cli.progress import Progress
 from megalut_cli.provenance import command_line, sha256_file, software_versions
+from megalut_cli.shear.response import header_step
 
 if TYPE_CHECKING:
     from megalut_cli.nn.fit import Columns

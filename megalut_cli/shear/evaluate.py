@@ -47,7 +47,7 @@ from megalut_cli.catalog import (
     read_catalog,
 )
 from megalut_cli.errors import ConfigError, InputError, MegalutError
-from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, TYPES, header_step
+from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, TYPES
 from megalut_cli.provenance import CREATOR, command_line, sha256_file, software_versions, utc_now
 from megalut_cli.shear.bias import (
     GREAT3_SIGMA2_MIN_GROUND,
@@ -73,7 +73,7 @@ from megalut_cli.shear.bootstrap import (
 )
 from megalut_cli.shear.conditional import assign_bins, equal_population_edges
 from megalut_cli.shear.options import ERROR_CHOICES, JSON_FORMAT, JSON_FORMAT_VERSION, N_BOOTSTRAP
-from megalut_cli.shear.response import case_estimates, metacal_response, row_values
+from megalut_cli.shear.response import case_estimates, header_step, metacal_response, row_values
 
 log = logging.getLogger(__name__)
 

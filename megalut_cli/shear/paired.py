@@ -27,11 +27,11 @@ import numpy as np
 from megalut_cli.catalog import catalog_info, read_catalog
 from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.expr import columns_used, evaluate_row_values
-from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, header_step
+from megalut_cli.measure.metacal_defaults import DEFAULT_STEP
 from megalut_cli.shear.bootstrap import fit_columns, resample_counts
 from megalut_cli.shear.evaluate import check_by
 from megalut_cli.shear.options import N_BOOTSTRAP
-from megalut_cli.shear.response import case_estimates, row_values
+from megalut_cli.shear.response import case_estimates, header_step, row_values
 
 #: Columns that must agree row by row between paired catalogs.
 PAIRING_COLUMNS = ("case", "rea", "tru_g1", "tru_g2")

@@ -37,13 +37,14 @@ from megalut_cli.catalog import (
     setup_differences,
 )
 from megalut_cli.errors import ConfigError, InputError, Names, namer
-from megalut_cli.measure.metacal_defaults import STEP_CARD, TYPES, header_step
+from megalut_cli.measure.metacal_defaults import STEP_CARD, TYPES
 from megalut_cli.nn.domain import Finding, domain_findings, model_domain
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.nn.symmetry import predict_with_symmetry
 from megalut_cli.parallel import executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
 from megalut_cli.shear.options import PREDICT
+from megalut_cli.shear.response import header_step
 
 log = logging.getLogger(__name__)
 

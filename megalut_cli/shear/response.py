@@ -12,9 +12,11 @@ runs over the cases (further axes: e.g. bootstrap resamples).
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
+from megalut_cli.measure.metacal_defaults import STEP_CARD
 from megalut_cli.shear.bias import calibrate_by_response, rotate_spin2
 
 
@@ -112,3 +114,9 @@ def case_estimates(
         out["plus"]["n_rows"] = np.where(use, n_both, 0.0)
         out["cross"]["n_rows"] = out["plus"]["n_rows"]
     return out
+
+
+def header_step(header: Mapping[str, Any]) -> float | None:
+    """The number of a header's ``MCALSTEP`` card, or None (no card, or not a number)."""
+    step = header.get(STEP_CARD)
+    return float(step) if isinstance(step, (int, float)) and not isinstance(step, bool) else None
