@@ -35,6 +35,17 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "orig_col": ("pixel", "MEDS object column in the measured cutout's image (0-based)"),
     "noise_weight": ("adu", "pixel noise from the weight map: 1/sqrt(median weight)"),
     "n_masked": ("", "masked pixels of the stamp (bmask != 0 or weight 0; -1: no cutout)"),
+    "g1": ("", "calibrated shear estimate g1 (megalut calibrate; for averages, not one object)"),
+    "g2": ("", "calibrated shear estimate g2 (megalut calibrate; for averages, not one object)"),
+    "weight": ("", "weight of the object: mean of weight_g1 and weight_g2"),
+    "weight_g1": ("", "weight of g1 (pre_g1_w, or 1 unweighted)"),
+    "weight_g2": ("", "weight of g2 (pre_g2_w, or 1 unweighted)"),
+    "bin": ("", "calibration bin of the object (megalut calibrate --by; -1: none)"),
+    **{
+        f"R{i}{j}": ("", f"total response R{i}{j} of the object's bin (mean + selection)")
+        for i in "12"
+        for j in "12"
+    },
     "tru_g1": ("", "true reduced shear g1"),
     "tru_g2": ("", "true reduced shear g2"),
     "tru_e1": ("", "true intrinsic ellipticity e1"),

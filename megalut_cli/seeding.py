@@ -22,6 +22,8 @@ STREAM_COMMON = 5
 STREAM_BOOTSTRAP = 6
 #: The fixnoise fields of metacalibration (``measure --metacal``), one per stamp.
 STREAM_METACAL = 7
+#: The bootstrap over objects of ``megalut calibrate``.
+STREAM_CALIBRATE = 8
 
 #: The ``--seed`` of the commands (each gives its own default and help).
 SEED_OPTION = Option("seed", "int", 1, "Seed of every random draw of this step.")

@@ -126,6 +126,69 @@ def synthetic(
     return d
 
 
+def metacal_predictions(
+    n: int = 4000,
+    g: tuple[float, float] = (0.02, -0.01),
+    seed: int = 1,
+    step: float = 0.01,
+    weights: bool = False,
+    sigma_e: float = 0.25,
+    positions: bool = True,
+    ring: int = 2,
+) -> dict[str, np.ndarray]:
+    """A synthetic metacal prediction catalog (the columns of ``megalut predict`` on a metacal
+    catalog) under the constant shear ``g``: each object's estimate under the shear ``s`` is
+    ``e + R s`` (a per-object response ``R``; the intrinsic ``e`` in rings of ``ring``
+    orientations sharing everything else, 2: 90-degree pairs), the sheared versions at
+    ``g +- step``; ``size_<type> = u + |estimate|^2`` (``u`` uniform) is a measured column
+    whose cut (``size > 0.5``) has a selection response; ``weights``:
+    ``pre_g*_w_<type> = 1 / (0.1 + |estimate|^2)`` (a weight response too)."""
+    rng = np.random.default_rng(seed)
+    m = n // ring
+    n = m * ring
+    e0 = rng.normal(0.0, sigma_e, (2, m))
+    angle = np.repeat(2.0 * np.pi * np.arange(ring) / ring, m)  # spin-2 angle of each member
+    e0 = np.tile(e0, ring)
+    cos, sin = np.cos(angle), np.sin(angle)
+    e = np.array([cos * e0[0] - sin * e0[1], sin * e0[0] + cos * e0[1]])
+    r = np.empty((2, 2, m))
+    r[0, 0] = rng.uniform(0.6, 1.0, m)
+    r[1, 1] = rng.uniform(0.6, 1.0, m)
+    r[0, 1] = rng.normal(0.0, 0.05, m)
+    r[1, 0] = rng.normal(0.0, 0.05, m)
+    r = np.tile(r, ring)
+    u = np.tile(rng.uniform(0.0, 1.0, m), ring)
+    shears = {
+        "noshear": np.array(g),
+        "1p": np.array(g) + (step, 0.0),
+        "1m": np.array(g) - (step, 0.0),
+        "2p": np.array(g) + (0.0, step),
+        "2m": np.array(g) - (0.0, step),
+    }
+    out: dict[str, np.ndarray] = {"id": np.arange(n, dtype=np.int64)}
+    if positions:
+        out["ra"] = rng.uniform(-1.0, 1.0, n) % 360.0
+        out["dec"] = rng.uniform(-1.0, 1.0, n)
+    for kind, s in shears.items():
+        est = e + np.einsum("ijn,j->in", r, s)
+        for i in (0, 1):
+            out[f"pre_g{i + 1}_{kind}"] = est[i]
+        out[f"size_{kind}"] = u + est[0] ** 2 + est[1] ** 2
+        out[f"flags_{kind}"] = np.zeros(n, dtype=np.int32)
+        if weights:
+            w = 1.0 / (0.1 + est[0] ** 2 + est[1] ** 2)
+            out[f"pre_g1_w_{kind}"] = w
+            out[f"pre_g2_w_{kind}"] = w
+    for i in (1, 2):
+        for j in (1, 2):
+            jp, jm = f"{j}p", f"{j}m"
+            out[f"mcal_r{i}{j}"] = (out[f"pre_g{i}_{jp}"] - out[f"pre_g{i}_{jm}"]) / (2 * step)
+    out["pre_g1"], out["pre_g2"] = out["pre_g1_noshear"], out["pre_g2_noshear"]
+    out["flags"] = out["flags_noshear"]
+    out["size"] = out["size_noshear"]  # as a metacal catalog's base features
+    return out
+
+
 def png_size(path) -> tuple[int, int]:
     with open(path, "rb") as f:
         head = f.read(24)

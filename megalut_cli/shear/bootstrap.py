@@ -39,12 +39,14 @@ def group_size_for(snc: str | None, n_realizations: int | None) -> int:
     return 1
 
 
-def resample_counts(seed: int, n_groups: int, n_resamples: int) -> list[np.ndarray]:
+def resample_counts(
+    seed: int, n_groups: int, n_resamples: int, stream: int = STREAM_BOOTSTRAP
+) -> list[np.ndarray]:
     """Multiplicities of the groups in each resample, as ``(n_groups, b)`` blocks.
 
     Resample ``r`` draws ``n_groups`` groups uniformly with replacement from the generator
-    of ``seed`` (the same sequence whatever the block size)."""
-    rng = rng_for(seed, STREAM_BOOTSTRAP)
+    of ``seed`` and ``stream`` (the same sequence whatever the block size)."""
+    rng = rng_for(seed, stream)
     per_block = max(1, min(n_resamples, BLOCK_ENTRIES // max(n_groups, 1)))
     blocks = []
     for start in range(0, n_resamples, per_block):

@@ -8,6 +8,7 @@ from __future__ import annotations
 from megalut_cli.atomic import OVERWRITE_OPTION
 from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION
 from megalut_cli.schema import Option
+from megalut_cli.seeding import SEED_OPTION
 from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND
 
 #: Most bins of a conditional bias (``--by``).
@@ -118,3 +119,70 @@ ALL_PREDICT_OPTIONS: tuple[Option, ...] = (
     SCHEDULER_OPTION,
     OVERWRITE_OPTION,
 )
+
+#: Format name of the JSON written by ``megalut calibrate --json``.
+CALIBRATION_FORMAT = "megalut.calibration"
+CALIBRATION_FORMAT_VERSION = "1.0"
+#: Where the errors of ``megalut calibrate`` come from (``--errors``).
+CALIBRATE_ERROR_CHOICES = ("auto", "jackknife", "bootstrap")
+#: Jackknife patches of ``megalut calibrate`` by default.
+N_PATCHES = 100
+
+#: The options of ``megalut calibrate`` with a value (files aside).
+CALIBRATE_OPTIONS: tuple[Option, ...] = (
+    Option(
+        "select",
+        "str",
+        None,
+        'Keep only the objects where EXPR holds, e.g. "snr > 10 & adamom_sigma > 1.5" '
+        "(metacal: on the noshear features, its selection response from the sheared ones).",
+        metavar="EXPR",
+    ),
+    Option(
+        "by",
+        "str",
+        None,
+        "Calibrate in bins of this column or quantity as well: an integer column (e.g. a "
+        "tomographic bin) value by value, else --bins equal-population bins (metacal: a "
+        "measured column's bins are a selection, with its response).",
+        metavar="COL",
+    ),
+    Option(
+        "bins", "int", 5, "Number of bins for --by (a float column).", minimum=1, maximum=MAX_BINS
+    ),
+    Option(
+        "unweighted",
+        "bool",
+        False,
+        "Ignore the weights pre_g1_w, pre_g2_w (every object counts the same).",
+    ),
+    Option(
+        "errors",
+        "choice",
+        CALIBRATE_ERROR_CHOICES[0],
+        "Where the errors come from: 'jackknife' over patches of the sky (ra, dec; else the "
+        "image x, y), 'bootstrap' over objects (--bootstrap, --seed), 'auto': the jackknife "
+        "when the catalog has positions, else the bootstrap.",
+        choices=CALIBRATE_ERROR_CHOICES,
+    ),
+    Option(
+        "patches",
+        "int",
+        N_PATCHES,
+        "Jackknife patches: a regular grid of about this many cells over (ra cos dec, dec) "
+        "or (x, y); empty cells are dropped.",
+        minimum=2,
+        maximum=100000,
+    ),
+    Option(
+        "bootstrap",
+        "int",
+        N_BOOTSTRAP,
+        "Number of bootstrap resamples.",
+        minimum=10,
+        maximum=100000,
+    ),
+)
+CALIBRATE = {o.name: o for o in CALIBRATE_OPTIONS}
+#: Every option of ``megalut calibrate`` with a value, for the docs table.
+ALL_CALIBRATE_OPTIONS: tuple[Option, ...] = (*CALIBRATE_OPTIONS, SEED_OPTION, OVERWRITE_OPTION)
