@@ -26,6 +26,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "megalut_cli.cli.evaluate",
         "Measure shear biases m and c, overall and conditional.",
     ),
+    "calibrate": (
+        "megalut_cli.cli.calibrate",
+        "Calibrated mean shear (and PSF leakage) of a catalog without truth.",
+    ),
     "run": ("megalut_cli.cli.run", "Run a whole pipeline: simulate, train, predict, evaluate."),
     "draft": (
         "megalut_cli.cli.draft",
