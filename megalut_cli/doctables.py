@@ -19,7 +19,11 @@ from megalut_cli.pipeline.config import PIPELINE_OPTIONS, REFERENCE_OPTIONS, SET
 from megalut_cli.pipeline.great3_file import BRANCH_OPTIONS, OUTPUT_OPTIONS, TOP_OPTIONS
 from megalut_cli.pipeline.great3_file import SET_OPTIONS as GREAT3_SET_OPTIONS
 from megalut_cli.schema import Option, docs_table, kinds_table
-from megalut_cli.shear.options import ALL_PREDICT_OPTIONS, EVALUATE_OPTIONS
+from megalut_cli.shear.options import (
+    ALL_CALIBRATE_OPTIONS,
+    ALL_PREDICT_OPTIONS,
+    EVALUATE_OPTIONS,
+)
 from megalut_cli.sim.config import GSPARAMS_OPTIONS, INSTRUMENT_OPTIONS, STRUCTURE_OPTIONS
 from megalut_cli.sim.galaxy_config import GALAXY_OPTION
 from megalut_cli.sim.noise_config import NOISE_KINDS, NOISE_OPTIONS
@@ -85,6 +89,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "great3-output": lambda: docs_table(OUTPUT_OPTIONS, cli=False, prefix="output."),
     "measure": lambda: docs_table(ALL_MEASURE_OPTIONS, keys=False),
     "predict": lambda: docs_table(ALL_PREDICT_OPTIONS, keys=False),
+    "calibrate": lambda: docs_table(ALL_CALIBRATE_OPTIONS, keys=False),
     "simulate": lambda: docs_table(ALL_SIMULATE_OPTIONS, keys=False),
 }
 
