@@ -258,6 +258,8 @@ def test_bad_inputs():
         calibrate_columns(cat, by="nosuch")
     with pytest.raises(ConfigError, match="per-case"):
         calibrate_columns(cat, by="mean(size)")
+    with pytest.raises(ConfigError, match="not a numeric column"):
+        calibrate_columns(dict(cat, name=np.array(["a"] * 500)), by="name")
     no_pos = {k: v for k, v in cat.items() if k not in ("ra", "dec")}
     with pytest.raises(InputError, match="needs positions"):
         calibrate_columns(no_pos, errors="jackknife")

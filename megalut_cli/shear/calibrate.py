@@ -540,6 +540,8 @@ def _binning(
     used = obj.valid[1] | obj.valid[2]
     v0 = values("noshear")
     key = plan.name("by")
+    if v0.dtype.kind not in "iubf":
+        raise ConfigError(f"{key} {by}: not a numeric column")
     if v0.dtype.kind in "iub":  # value by value (e.g. a tomographic bin)
         levels = np.unique(v0[used])
         if levels.size > MAX_BINS:
