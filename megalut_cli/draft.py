@@ -45,6 +45,7 @@ from megalut_cli import flags as fl
 from megalut_cli.configfile import tomllib
 from megalut_cli.errors import InputError
 from megalut_cli.measure.features import signal_to_noise
+from megalut_cli.measure.metacal_defaults import STEP_CARD
 from megalut_cli.schema import Option
 
 #: The options of ``megalut draft`` beyond its input, output and ``--overwrite``.
@@ -785,6 +786,18 @@ def draft_setup(
     galaxy = _draft_galaxies(
         features, features_name, base_galaxy, psf, int(stamp.value), float(noise.value), gain, notes
     )
+    if header.get(STEP_CARD) is not None or "adamom_g1_noshear" in features:
+        notes.append(
+            Note(
+                "reference",
+                f"{features_name} was measured in metacal mode ({STEP_CARD} card or X_noshear "
+                "columns): set `metacal = true` at the top of this file and `model = "
+                '"fiducial-metacal"` here, so that the sets are measured, the networks trained and '
+                "the predictions made as metacal ones; as drafted, the pipeline trains "
+                "simulation-calibrated networks, which `predict` refuses on a metacal catalog",
+                warning=True,
+            )
+        )
     reference = base.get("reference", {}).get("model")
     if reference:
         notes.append(

@@ -426,7 +426,7 @@ def format_shipped_models(models: list[dict[str, Any]]) -> str:
     width = max(len(m["name"]) for m in models)
     modes = []
     for m in models:
-        mode = "metacal" if m["shear_mode"] == "metacal" else "plain"
+        mode = str(m["shear_mode"])  # "simulation" or "metacal", as the docs name them
         if m.get("symmetry", "none") != "none":
             mode += f"+{m['symmetry']}"
         modes.append(mode)

@@ -333,11 +333,11 @@ def test_models_by_name(runner, cli, cats):
     assert r.exit_code == 0, r.stderr
     lines = r.stdout.splitlines()
     assert [line.split()[:2] for line in lines] == [
-        ["fiducial", "plain"],
-        ["fiducial-1e6", "plain"],
+        ["fiducial", "simulation"],
+        ["fiducial-1e6", "simulation"],
         ["fiducial-metacal", "metacal"],
         ["fiducial-metacal-d4", "metacal+d4"],
-        ["fiducial-d4", "plain+d4"],
+        ["fiducial-d4", "simulation+d4"],
     ]
     assert all(
         "gaussian PSF sigma 2.0; gaussian noise sigma 1.0, stamp 64 px" in line for line in lines

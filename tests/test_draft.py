@@ -189,6 +189,20 @@ def test_a_psf_varying_across_the_field_is_a_warning_pointing_to_varpsf() -> Non
         draft_setup(flagged, {"STAMPSZ": 48})
 
 
+def test_a_metacal_catalog_is_a_warning_naming_the_metacal_key() -> None:
+    """A catalog measured with --metacal is not drafted silently into a plain pipeline."""
+    from megalut_cli.draft import draft_setup, render_pipeline
+
+    rng = np.random.default_rng(3)
+    cols = _psf_columns(rng.normal(3.0, 0.02, 200))
+    plain = draft_setup(cols, {"STAMPSZ": 48}, features_name="f.fits")
+    assert not any("metacal" in n.text for n in plain.notes)
+    mcal = draft_setup(cols, {"STAMPSZ": 48, "MCALSTEP": 0.01}, features_name="f.fits")
+    warned = [n for n in mcal.notes if "metacal mode" in n.text]
+    assert len(warned) == 1 and warned[0].warning and "metacal = true" in warned[0].text
+    assert "fiducial-metacal" in render_pipeline(mcal)
+
+
 def test_the_rad_range_is_widened_to_cover_the_data_and_never_narrowed() -> None:
     """Galaxies larger than the fiducial range makes with this PSF: rad max grows until a
     Sersic n = 1 galaxy of that radius has the data's 95 % size; the lower end stays."""

@@ -512,3 +512,36 @@ def test_your_data_example_makes_a_meds_file_measure_reads(runner, cli, tmp_path
     np.testing.assert_allclose(table["psf_adamom_sigma"], expected, rtol=1e-5)
     np.testing.assert_allclose(table["noise_weight"], 2.0, rtol=1e-6)
     assert np.all(table["n_masked"] >= 0) and table["n_masked"].sum() == 2  # 2 % of 100 objects
+
+
+def test_incomplete_files_a_wrong_box_size_and_an_all_flagged_file(
+    runner, cli, grid, tmp_path, caplog
+):
+    """A MEDS file missing either extension is named an incomplete MEDS file (not an image); a
+    box_size that runs into the next cutout is refused; an all-flagged MEDS file's warning
+    names what may be wrong with a MEDS file, not --stamp-size or --origin."""
+    stamps = grid[0]
+    meds, bad = tmp_path / "o.meds.fits", tmp_path / "bad.fits"
+    write_meds(meds, stamps)
+    for ext in ("image_cutouts", "object_data"):
+        partial = tmp_path / f"no-{ext}.meds.fits"
+        rewrite(meds, partial, drop=(ext,))
+        invoke_fails(
+            runner, cli, ["measure", str(partial), "-o", str(bad)], 1, "incomplete MEDS", ext
+        )
+    with fitsio.FITS(str(meds)) as f:
+        od = f["object_data"].read()
+    od["box_size"][2] = S + 2
+    wrong = tmp_path / "box.meds.fits"
+    rewrite(meds, wrong, object_data=od)
+    invoke_fails(runner, cli, ["measure", str(wrong), "-o", str(bad)], 1, "box_size disagrees")
+    assert not bad.exists()
+
+    empty = tmp_path / "empty.meds.fits"
+    write_meds(empty, np.zeros_like(stamps))
+    with caplog.at_level("WARNING"):
+        result = runner.invoke(cli, ["measure", str(empty), "-o", str(tmp_path / "e.fits")])
+    assert result.exit_code == 0, result.output
+    text = result.output + caplog.text
+    assert "6 of 6 stamps flagged" in text and "--cutout" in text
+    assert "--stamp-size" not in text and "--origin" not in text

@@ -107,8 +107,8 @@ def command(
     each stamp is also deconvolved by its PSF, sheared by +-step along g1 and g2 and
     reconvolved with a round target PSF, with fixnoise (docs/metacal.md): every feature
     column X (and psf_adamom_*, of the target PSF) is written again as X_noshear, X_1p,
-    X_1m, X_2p, X_2m, and the header gets MCALSTEP, MCALSEED; a stamp with NaN pixels is
-    then an error.
+    X_1m, X_2p, X_2m, and the header gets MCALSTEP, MCALSEED; in an image of stamps, a stamp
+    with NaN pixels is then an error (a MEDS object with masked or NaN pixels is flagged).
 
     A MEDS cutout file as STAMPS (recognised by its object_data and image_cutouts
     extensions; no CATALOG) gives one row per object: its id, number, box_size,
@@ -122,7 +122,7 @@ def command(
     (docs/catalogs.md, MEDS input).
 
     \b
-    Example (200 stamps: 25 s to simulate, 10 s to measure, 2 busy cores):
+    Example (200 stamps):
       megalut simulate examples/fiducial/vp.toml -o cat.fits \\
           --stamps stamps.fits --n-cases 2 --n-realizations 100
       megalut measure stamps.fits cat.fits -o features.fits

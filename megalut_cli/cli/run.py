@@ -98,7 +98,7 @@ def command(
 
     \b
     Examples:
-      # the default: 1.45e6 stamps, 7 min on 2 cores (all cores used)
+      # the default pipeline: 1.45e6 stamps (all cores used)
       megalut run
       megalut run --print-default > my-pipeline.toml
       # each step's size and simulation time (10^5 stamps here); no run

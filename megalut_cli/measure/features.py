@@ -298,9 +298,12 @@ def features_from_moments(
 MOSTLY_FLAGGED = 0.5
 
 
-def warn_if_mostly_flagged(flags: np.ndarray, where: str, names: Names | None = None) -> None:
-    """Warn when more than :data:`MOSTLY_FLAGGED` of the stamps are flagged, saying why
-    (and which arguments may be wrong, named by ``names``)."""
+def warn_if_mostly_flagged(
+    flags: np.ndarray, where: str, names: Names | None = None, suspects: str | None = None
+) -> None:
+    """Warn when more than :data:`MOSTLY_FLAGGED` of the stamps are flagged, saying why and
+    what may be wrong: ``suspects``, else the stamp size, origin or catalog (of a grid image;
+    the arguments named by ``names``)."""
     name = namer(names)
     bad = flags != 0
     if len(flags) == 0 or bad.mean() <= MOSTLY_FLAGGED:
@@ -308,12 +311,8 @@ def warn_if_mostly_flagged(flags: np.ndarray, where: str, names: Names | None = 
     reasons = {name: int(np.sum((flags & value) != 0)) for value, name in fl.FLAG_NAMES.items()}
     ranked = sorted(reasons.items(), key=lambda kv: -kv[1])
     why = ", ".join(f"{name} {n}" for name, n in ranked if n)
+    if suspects is None:
+        suspects = f"wrong {name('stamp_size')}, {name('origin')} or catalog"
     log.warning(
-        "%s: %d of %d stamps flagged (%s): wrong %s, %s or catalog?",
-        where,
-        int(bad.sum()),
-        len(flags),
-        why,
-        name("stamp_size"),
-        name("origin"),
+        "%s: %d of %d stamps flagged (%s): %s?", where, int(bad.sum()), len(flags), why, suspects
     )

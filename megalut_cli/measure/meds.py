@@ -332,7 +332,9 @@ def read_meds(path: str | os.PathLike) -> MedsFile:
         with fitsio.FITS(path) as f:
             missing = [e for e in MEDS_EXTENSIONS if e not in f]
             if missing:
-                raise InputError(f"{path}: not a MEDS file (no {', '.join(missing)} extension)")
+                raise InputError(
+                    f"{path}: an incomplete MEDS file (no {', '.join(missing)} extension)"
+                )
             hdu = f["object_data"]
             names = hdu.get_colnames()
             absent = [c for c in REQUIRED_COLUMNS if c not in names]
@@ -396,6 +398,14 @@ def _check_layout(meds: MedsFile) -> None:
         raise InputError(f"{path}: MEDS box_size below 3 pixels")
     starts = obj["start_row"].astype(np.int64)
     ends = starts + (box * box)[:, None]
+    order = np.argsort(starts[used], kind="stable")
+    overlap = np.flatnonzero(starts[used][order][1:] < ends[used][order][:-1])
+    if len(overlap):
+        row = int(np.nonzero(used)[0][order][overlap[0]])
+        raise InputError(
+            f"{path}: MEDS box_size disagrees with the cutout layout: object {row}'s "
+            f"{int(box[row])}x{int(box[row])} cutout runs into the next cutout's start_row"
+        )
     for ext in CUTOUT_EXTENSIONS.values():
         if ext not in meds.extensions:
             continue
@@ -833,7 +843,12 @@ def measure_request(request: MeasureRequest) -> Measured:
     )
     flags = columns["flags"]
     log.info("%d of %d objects flagged (features NaN)", int((flags != 0).sum()), len(flags))
-    warn_if_mostly_flagged(flags, request.stamps_path, request.names)
+    warn_if_mostly_flagged(
+        flags,
+        request.stamps_path,
+        request.names,
+        f"masks, weights or PSFs of the file, or {namer(request.names)('cutout')}",
+    )
     boxes = np.unique(meds.objects["box_size"])
     cards: dict[str, Any] = {
         FILE_CARD: (os.path.basename(request.stamps_path), "MEDS file measured"),
@@ -859,8 +874,16 @@ def measure_request(request: MeasureRequest) -> Measured:
 
 
 def recognises(path: str) -> bool:
-    """Whether ``path`` is a MEDS file (:func:`is_meds`)."""
-    return is_meds(path)
+    """Whether ``path`` is meant as a MEDS file: a FITS file with either extension of
+    :data:`MEDS_EXTENSIONS` (one without the other is then said to be an incomplete MEDS
+    file, not an image)."""
+    try:
+        if not is_fits_file(path):
+            return False
+        with fitsio.FITS(str(path)) as f:
+            return any(ext in f for ext in MEDS_EXTENSIONS)
+    except (InputError, OSError, ValueError):  # missing or unreadable: the image reader says why
+        return False
 
 
 MEDS_SOURCE = register_stamp_source(

@@ -74,8 +74,9 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         False,
         "Also measure the five metacalibration versions of each stamp (noshear, "
         "1p, 1m, 2p, 2m: deconvolved by the PSF, sheared by +-step along g1 and g2, reconvolved "
-        "with a round target PSF, with fixnoise at the stamp's skymad): every feature column X "
-        "again as X_noshear, X_1p, X_1m, X_2p, X_2m (docs/metacal.md). Needs --psf or --psf-model.",
+        "with a round target PSF, with fixnoise at the stamp's noise: skymad, or a MEDS file's "
+        "noise_weight): every feature column X again as X_noshear, X_1p, X_1m, X_2p, X_2m "
+        "(docs/metacal.md). Needs --psf or --psf-model (a MEDS file may use its PSF cutouts).",
     ),
     Option(
         "metacal_step",
