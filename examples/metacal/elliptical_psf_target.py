@@ -18,6 +18,8 @@ import numpy as np
 
 from megalut_cli.measure import metacal
 from megalut_cli.measure.features import measure_stamps
+from megalut_cli.measure.metacal_targets import METACAL_TARGETS, register_metacal_target
+from megalut_cli.measure.metacal_targets.gauss import GaussTarget
 
 SIZE, N_RING, STEP, SHEAR = 48, 64, 0.01, 0.02
 
@@ -39,21 +41,25 @@ def major_axis_sigma(psf_image: np.ndarray, step: float = STEP) -> float:
     return float(res.moments_sigma) * np.sqrt((1.0 + g) / (1.0 - g)) * (1.0 + 2.0 * abs(step))
 
 
+def major_axis_target(psf_image: np.ndarray, step: float) -> GaussTarget:
+    """The round Gaussian target of :func:`major_axis_sigma` (a metacal target factory)."""
+    return GaussTarget(major_axis_sigma(psf_image, step))
+
+
 def main() -> None:
     g_psf = float(sys.argv[1]) if len(sys.argv) > 1 else 0.05
     psf = galsim.Moffat(beta=3.0, fwhm=5.0).shear(g1=g_psf, g2=0.0)
     psf_img = psf.drawImage(nx=SIZE, ny=SIZE, scale=1.0).array
     shears = {"1+": (SHEAR, 0.0), "1-": (-SHEAR, 0.0), "2+": (0.0, SHEAR), "2-": (0.0, -SHEAR)}
     images = {k: stamps(psf, *g) for k, g in shears.items()}
-    megalut_target = metacal.target_psf_sigma
-    for name, target in (
-        ("round-equivalent (megalut)", megalut_target),
-        ("major axis", major_axis_sigma),
-    ):
-        metacal.target_psf_sigma = target  # the operation builds its target through this function
+    if "major-axis" not in METACAL_TARGETS:
+        register_metacal_target("major-axis", major_axis_target)  # the one line a target needs
+    for name, target in (("round-equivalent (megalut)", "gauss"), ("major axis", "major-axis")):
         res = {}
         for k in shears:
-            versions, _ = metacal.metacal_versions(images[k], psf_img, STEP, engine="fast")
+            versions, sigma = metacal.metacal_versions(
+                images[k], psf_img, STEP, engine="fast", target=target
+            )
             f = {t: measure_stamps(v, engine="fast") for t, v in versions.items()}
             r11 = np.mean((f["1p"]["adamom_g1"] - f["1m"]["adamom_g1"]) / (2 * STEP))
             r22 = np.mean((f["2p"]["adamom_g2"] - f["2m"]["adamom_g2"]) / (2 * STEP))
@@ -68,10 +74,9 @@ def main() -> None:
         c1 = 0.5 * (res["1+"][0] + res["1-"][0]) / res["1+"][2]
         c2 = 0.5 * (res["2+"][1] + res["2-"][1]) / res["2+"][3]
         print(
-            f"PSF g1 = {g_psf}: {name:27s} target sigma {target(psf_img):.4f} px: "
+            f"PSF g1 = {g_psf}: {name:27s} target sigma {sigma[0]:.4f} px: "
             f"m1 {m1:+.2e}  m2 {m2:+.2e}  c1 {c1:+.2e}  c2 {c2:+.2e}"
         )
-    metacal.target_psf_sigma = megalut_target
 
 
 if __name__ == "__main__":

@@ -44,6 +44,11 @@ log = logging.getLogger(__name__)
 #: HSM (:mod:`.adamom`), and GalSim's ``FindAdaptiveMom`` stamp by stamp (the reference).
 MEASURE_ENGINES: tuple[str, ...] = tuple(ENGINES)
 
+#: Columns set to NaN when a stamp is flagged: all of the base set but the sky and the flags.
+SOURCE_COLUMNS: tuple[str, ...] = (
+    *(f"adamom_{q}" for q in ("flux", "g1", "g2", "sigma", "rho4", "x", "y", "logflux")),
+    "snr",
+)
 #: The base feature set (:func:`measure_stamps`): the adaptive moments, the sky and the flags.
 ADAMOM_SET = register_feature_set(
     FeatureSet(
@@ -61,24 +66,12 @@ ADAMOM_SET = register_feature_set(
             Column("snr", "", "signal-to-noise ratio (paper Eq. 8 or 10)"),
             Column("flags", "", "bitmask of failures, see FLAGBITn cards (0: good)"),
         ),
-        # skymad describes the sky, not the source: kept on flagged rows
-        nan_when_flagged=(
-            "adamom_flux",
-            "adamom_g1",
-            "adamom_g2",
-            "adamom_sigma",
-            "adamom_rho4",
-            "adamom_x",
-            "adamom_y",
-            "adamom_logflux",
-            "snr",
-        ),
+        # skymad describes the sky, not the source: kept on flagged rows, as the flags
+        nan_when_flagged=SOURCE_COLUMNS,
     )
 )
 #: Feature columns added by :func:`measure_stamps`, in this order.
 FEATURE_COLUMNS: tuple[str, ...] = ADAMOM_SET.names
-#: Columns set to NaN when a stamp is flagged.
-SOURCE_COLUMNS: tuple[str, ...] = ADAMOM_SET.nan_when_flagged
 
 #: Initial sigma guess of HSM (pixels): GalSim's default, also used by the original
 #: MegaLUT; capped to ``S/8`` on small stamps.

@@ -56,16 +56,6 @@ def weight_noise(weights: np.ndarray, masked: np.ndarray) -> np.ndarray:
         return 1.0 / np.sqrt(np.nanmedian(w.reshape(len(w), -1), axis=1))
 
 
-def clean_stamps(
-    images: np.ndarray, weights: np.ndarray | None = None, bmasks: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(stamps with masked pixels set to 0, mask)``: what GalSim's ``FindAdaptiveMom``
-    measures of an image with a ``badpix`` map (:func:`masked_pixels`)."""
-    images = np.asarray(images, dtype=np.float64)
-    masked = masked_pixels(weights, bmasks, images.shape)
-    return (np.where(masked, 0.0, images) if masked.any() else images), masked
-
-
 def too_masked(masked: np.ndarray, centres: np.ndarray | None = None) -> np.ndarray:
     """Stamps whose measurement the mask makes unusable: more than
     :data:`MAX_MASKED_FRACTION` of the pixels masked, or a masked pixel within

@@ -402,11 +402,6 @@ def target_features(target: MetacalTarget, size: int, engine: str = "fast") -> d
     return {c: float(v[0]) for c, v in target_columns([target], size, engine).items()}
 
 
-def target_psf_features(target_sigma: float, size: int, engine: str = "fast") -> dict[str, float]:
-    """:func:`target_features` of the round Gaussian target of sigma ``target_sigma``."""
-    return target_features(GaussTarget(target_sigma), size, engine)
-
-
 def target_psf_columns(target_sigma: np.ndarray, size: int) -> dict[str, np.ndarray]:
     """``psf_<X>_<type>`` of each row from its round Gaussian target's sigma (NaN where not
     finite; the same for the five types), each distinct sigma (to 1e-6 px) measured once."""
