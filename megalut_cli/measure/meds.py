@@ -296,16 +296,22 @@ class MedsFile:
         return Cutout(s.images[0], first(s.weights), first(s.bmasks), first(s.segs), first(s.psfs))
 
 
+def meds_extensions(path: str | os.PathLike) -> int:
+    """How many of the :data:`MEDS_EXTENSIONS` the FITS file ``path`` has (0 for a file that
+    is missing, unreadable or not FITS: the image reader then says why)."""
+    try:
+        if not is_fits_file(path):
+            return 0
+        with fitsio.FITS(str(path)) as f:
+            return sum(ext in f for ext in MEDS_EXTENSIONS)
+    except (InputError, OSError, ValueError):
+        return 0
+
+
 def is_meds(path: str | os.PathLike) -> bool:
     """Whether ``path`` is a MEDS file: a FITS file with ``object_data`` and ``image_cutouts``
     extensions."""
-    try:
-        if not is_fits_file(path):
-            return False
-        with fitsio.FITS(str(path)) as f:
-            return all(ext in f for ext in MEDS_EXTENSIONS)
-    except (InputError, OSError, ValueError):  # missing or unreadable: the image reader says why
-        return False
+    return meds_extensions(path) == len(MEDS_EXTENSIONS)
 
 
 def _native(arr: np.ndarray) -> np.ndarray:
@@ -877,13 +883,7 @@ def recognises(path: str) -> bool:
     """Whether ``path`` is meant as a MEDS file: a FITS file with either extension of
     :data:`MEDS_EXTENSIONS` (one without the other is then said to be an incomplete MEDS
     file, not an image)."""
-    try:
-        if not is_fits_file(path):
-            return False
-        with fitsio.FITS(str(path)) as f:
-            return any(ext in f for ext in MEDS_EXTENSIONS)
-    except (InputError, OSError, ValueError):  # missing or unreadable: the image reader says why
-        return False
+    return meds_extensions(path) > 0
 
 
 MEDS_SOURCE = register_stamp_source(

@@ -51,7 +51,15 @@ EVALUATE = {o.name: o for o in EVALUATE_OPTIONS}
 ERROR_CHOICES = ("auto", "fit", "bootstrap")
 #: Bootstrap resamples of ``megalut evaluate`` by default.
 N_BOOTSTRAP = 200
-
+#: The number of bootstrap resamples, of ``evaluate`` and ``calibrate`` alike.
+BOOTSTRAP_OPTION = Option(
+    "bootstrap",
+    "int",
+    N_BOOTSTRAP,
+    "Number of bootstrap resamples.",
+    minimum=10,
+    maximum=100000,
+)
 #: The options of ``megalut evaluate`` alone (not pipeline keys), files aside.
 EVALUATE_CLI_OPTIONS: tuple[Option, ...] = (
     Option(
@@ -79,14 +87,7 @@ EVALUATE_CLI_OPTIONS: tuple[Option, ...] = (
         "(header CRN = T), else fit.",
         choices=ERROR_CHOICES,
     ),
-    Option(
-        "bootstrap",
-        "int",
-        N_BOOTSTRAP,
-        "Number of bootstrap resamples.",
-        minimum=10,
-        maximum=100000,
-    ),
+    BOOTSTRAP_OPTION,
 )
 EVALUATE_CLI = {o.name: o for o in EVALUATE_CLI_OPTIONS}
 
@@ -174,14 +175,7 @@ CALIBRATE_OPTIONS: tuple[Option, ...] = (
         minimum=2,
         maximum=100000,
     ),
-    Option(
-        "bootstrap",
-        "int",
-        N_BOOTSTRAP,
-        "Number of bootstrap resamples.",
-        minimum=10,
-        maximum=100000,
-    ),
+    BOOTSTRAP_OPTION,
 )
 CALIBRATE = {o.name: o for o in CALIBRATE_OPTIONS}
 #: Every option of ``megalut calibrate`` with a value, for the docs table.
