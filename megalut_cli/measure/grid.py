@@ -497,14 +497,34 @@ def check_request(request: MeasureRequest) -> None:
         )
 
 
-def measure_request(request: MeasureRequest) -> Measured:
-    """Measure the stamps of a grid image (module docstring of :mod:`.measure`)."""
-    name, names = namer(request.names), request.names
-    settings = request.settings
+@dataclass
+class GridInput:
+    """The stamps of a grid image as its catalog (or the grid) gives them: the image, the stamp
+    size, whether it is a star field, each row's stamp ``origins`` and 1-based ``positions``
+    in the exposure, the catalog's columns, header, cards, HISTORY and carried HDUs, and the
+    coordinate of the first pixel its ``x, y`` use."""
+
+    info: ImageInfo
+    size: int
+    stars: bool
+    origins: np.ndarray
+    positions: np.ndarray
+    table: Columns
+    meta: dict[str, Any]
+    cards: dict[str, Any]
+    history: list[str] | None
+    extra_hdus: dict[str, np.ndarray]
+    xy_origin: int
+
+
+def read_grid_input(request: MeasureRequest) -> GridInput:
+    """The image, its stamp size and the rows to measure (a catalog's centres, else the grid),
+    with every argument checked against them."""
+    name = namer(request.names)
     stamps_path, catalog_path = request.stamps_path, request.catalog_path
     stamp_size, origin, stars = request.stamp_size, request.origin, request.stars
     psf_path, psf_model_path = request.psf_path, request.psf_model_path
-    metacal = settings.metacal is not None
+    metacal = request.settings.metacal is not None
     if origin not in (0, 1):
         raise ConfigError(f"{name('origin')} must be 0 or 1, got {origin}")
     if metacal and psf_path is None and psf_model_path is None:
@@ -522,6 +542,10 @@ def measure_request(request: MeasureRequest) -> Measured:
     for key, given in (("psf_path", psf_path), ("psf_model_path", psf_model_path)):
         if stars and given is not None:
             raise ConfigError(f"{name(key)} does not apply to a star field (its stars are the PSF)")
+    if stars and request.settings.feature_sets:
+        raise ConfigError(
+            f"{name(request.settings.feature_sets[0])} does not apply to a star field"
+        )
     if psf_model_path is not None:
         cached_psf_model(psf_model_path)  # fail early on a file that is no PSF model
     if (
@@ -553,6 +577,7 @@ def measure_request(request: MeasureRequest) -> Measured:
                 f"{catalog_path}: no stamp centre falls on {stamps_path} ({n_x}x{n_y} stamps of "
                 f"{size} pixels; wrong {name('origin')} or {name('stamp_size')}?)"
             )
+        positions = np.column_stack([x, y]) + (1 - origin)
         history = meta.get("HISTORY")
         if is_fits_file(catalog_path):  # carried with their comments, and the CONFIG HDU
             cards = read_cards(catalog_path)
@@ -561,13 +586,13 @@ def measure_request(request: MeasureRequest) -> Measured:
             cards = {k: v for k, v in meta.items() if k not in ("HISTORY", "COMMENT")}
     else:
         origins = grid_origins(n_y, n_x, size)[: n_grid_stamps(info, n_y * n_x)]
-        centres = stamp_centres(origins, size)
-        table, meta = {"x": centres[:, 0].copy(), "y": centres[:, 1].copy()}, {}
+        positions = stamp_centres(origins, size)
+        table, meta = {"x": positions[:, 0].copy(), "y": positions[:, 1].copy()}, {}
         history = info.header.get("HISTORY")
         cards = read_cards(stamps_path, ext=info.ext)  # the image's provenance (seed, config)
     log.info("%s: %d stamps of %dx%d pixels", stamps_path, len(origins), size, size)
     header_gain = card_value(cards.get("GAIN", info.header.get("GAIN")))
-    if settings.gain is None and header_gain is not None:
+    if request.settings.gain is None and header_gain is not None:
         log.warning(
             "the input header has GAIN=%s but no %s was given: snr uses Eq. 10 "
             "(sky-limited); pass %s %s for Eq. 8",
@@ -576,44 +601,63 @@ def measure_request(request: MeasureRequest) -> Measured:
             name("gain"),
             header_gain,
         )
+    xy_origin = origin if catalog_path is not None else 1
+    return GridInput(
+        info, size, stars, origins, positions, table, meta, cards, history, extra_hdus, xy_origin
+    )
 
-    psf: GridPsf | None = None
-    keys = None
-    if psf_model_path is not None:  # each row's position in the exposure, 1-based
-        positions = (
-            (np.column_stack([x, y]) + (1 - origin)) if catalog_path is not None else centres
-        )
-        psf = model_psf(psf_model_path, positions, origins, size, info)
-        cards.update(cached_psf_model(psf_model_path).header_cards())
-        log.info("%s: the PSF model's PSF at each row's position", psf_model_path)
-    elif psf_path is not None:
-        psf = image_psf(psf_path, info, size, settings.engine)
-        if metacal:
-            check_metacal_psf(psf_path, info, psf, size, names)
-    if metacal:
-        common = bool(card_value(cards.get("CRN", False))) and "rea" in table
-        # the fields' keys: the realization in a common-random-number set, else the row
-        keys = np.asarray(table["rea"], dtype=np.int64) if common else np.arange(len(origins))
 
-    if stars and settings.feature_sets:
-        raise ConfigError(f"{name(settings.feature_sets[0])} does not apply to a star field")
+def grid_psf(request: MeasureRequest, grid: GridInput) -> GridPsf | None:
+    """The PSF of each row: a model at its position, a PSF image or grid, or none."""
+    if request.psf_model_path is not None:  # each row's position in the exposure, 1-based
+        path = request.psf_model_path
+        psf = model_psf(path, grid.positions, grid.origins, grid.size, grid.info)
+        grid.cards.update(cached_psf_model(path).header_cards())
+        log.info("%s: the PSF model's PSF at each row's position", path)
+        return psf
+    if request.psf_path is None:
+        return None
+    psf = image_psf(request.psf_path, grid.info, grid.size, request.settings.engine)
+    if request.settings.metacal is not None:
+        check_metacal_psf(request.psf_path, grid.info, psf, grid.size, request.names)
+    return psf
+
+
+def fixnoise_keys(grid: GridInput) -> np.ndarray:
+    """The key of each row's metacal fixnoise field: its realization in a common-random-number
+    set (so that its cases share their fields), else the row."""
+    if bool(card_value(grid.cards.get("CRN", False))) and "rea" in grid.table:
+        return np.asarray(grid.table["rea"], dtype=np.int64)
+    return np.arange(len(grid.origins))
+
+
+def measure_request(request: MeasureRequest) -> Measured:
+    """Measure the stamps of a grid image (module docstring)."""
+    grid = read_grid_input(request)
+    psf = grid_psf(request, grid)
     feats = measure_grid(
-        info,
-        origins,
-        size,
-        settings,
+        grid.info,
+        grid.origins,
+        grid.size,
+        request.settings,
         psf=psf,
-        fixnoise_keys=keys,
+        fixnoise_keys=fixnoise_keys(grid) if request.settings.metacal is not None else None,
         nproc=request.nproc,
         scheduler=request.scheduler,
         progress=request.progress,
     )
-    xy_origin = origin if catalog_path is not None else 1
-    if stars:
-        return stars_catalog(
-            stamps_path, table, feats, size, xy_origin, cards, history, extra_hdus, meta
-        )
-    new_cols = grid_columns(settings, psf is not None)
+    if grid.stars:
+        return stars_catalog(request.stamps_path, grid, feats)
+    return features_catalog(request, grid, feats, psf is not None)
+
+
+def features_catalog(
+    request: MeasureRequest, grid: GridInput, feats: dict[str, np.ndarray], psf: bool
+) -> Measured:
+    """The catalog's columns with the features added (replacing any of the same name), and the
+    cards of the measurement."""
+    table, cards = grid.table, grid.cards
+    new_cols = grid_columns(request.settings, psf)
     replaced = [c for c in new_cols if c in table]
     if replaced:
         log.warning("replacing existing column(s) %s", ", ".join(replaced))
@@ -622,32 +666,23 @@ def measure_request(request: MeasureRequest) -> Measured:
     for c in new_cols:
         table[c] = feats[c]
     nflag = int((feats["flags"] != 0).sum())
-    log.info("%d of %d stamps flagged (features NaN)", nflag, len(origins))
-    warn_if_mostly_flagged(feats["flags"], stamps_path, names)
+    log.info("%d of %d stamps flagged (features NaN)", nflag, len(grid.origins))
+    warn_if_mostly_flagged(feats["flags"], request.stamps_path, request.names)
     cards.update(
         {
-            "STAMPSZ": (size, "stamp size [pixels]"),
-            "XYORIGIN": (xy_origin, "coordinate of the first pixel in x, y"),
-            **measure_cards(settings, size),
+            "STAMPSZ": (grid.size, "stamp size [pixels]"),
+            "XYORIGIN": (grid.xy_origin, "coordinate of the first pixel in x, y"),
+            **measure_cards(request.settings, grid.size),
         }
     )
     if "MEASURED" in cards:  # a simulation's card: the features are now measured
         cards["MEASURED"] = (True, "the catalog holds measured features")
-    return Measured(table, cards, FORMAT, history, extra_hdus, meta)
+    return Measured(table, cards, FORMAT, grid.history, grid.extra_hdus, grid.meta)
 
 
-def stars_catalog(
-    path: str,
-    table: Columns,
-    feats: dict[str, np.ndarray],
-    size: int,
-    origin: int,
-    cards: dict[str, Any],
-    history: list[str] | None,
-    extra_hdus: dict[str, np.ndarray],
-    meta: dict[str, Any],
-) -> Measured:
+def stars_catalog(path: str, grid: GridInput, feats: dict[str, np.ndarray]) -> Measured:
     """The star-by-star PSF features of a star field (format ``megalut.stars``)."""
+    table, cards = grid.table, grid.cards
     good = feats["flags"] == 0
     if not good.any():
         raise InputError(f"{path}: no star could be measured (a star field without stars?)")
@@ -670,13 +705,13 @@ def stars_catalog(
         )
     cards.update(
         {
-            "STAMPSZ": (size, "stamp size [pixels]"),
-            "XYORIGIN": (origin, "coordinate of the first pixel in x, y"),
+            "STAMPSZ": (grid.size, "stamp size [pixels]"),
+            "XYORIGIN": (grid.xy_origin, "coordinate of the first pixel in x, y"),
             "NSTARS": (int(good.sum()), "stars measured"),
         }
     )
     cards.pop("MEASURED", None)
-    return Measured(table, cards, STARS_FORMAT, history, extra_hdus, meta)
+    return Measured(table, cards, STARS_FORMAT, grid.history, grid.extra_hdus, grid.meta)
 
 
 def any_file(path: str) -> bool:

@@ -67,12 +67,6 @@ def target_psf_sigma(
     return float(metacal_target(target, np.asarray(psf_image), step).sigma)
 
 
-def dilated_sigma(psf_sigma: float | np.ndarray, step: float = DEFAULT_STEP) -> float | np.ndarray:
-    """The round Gaussian target's sigma from the PSF's adaptive-moment sigma (e.g. the
-    ``psf_adamom_sigma`` column): dilated by ``1 + 2|step|``, as :func:`target_psf_sigma`."""
-    return gauss.dilated_sigma(psf_sigma, step)
-
-
 def _finite_2d(image: np.ndarray, what: str) -> None:
     if image.ndim != 2:
         raise ValueError(f"the {what} must be a 2-d array")
@@ -395,11 +389,6 @@ def target_columns(
         return {c: np.zeros(0) for c in TARGET_PSF_COLUMNS}
     res = measure_stamps(np.array([t.image(size) for t in targets]), engine=engine)
     return {c: np.asarray(res[c], dtype=np.float64) for c in TARGET_PSF_COLUMNS}
-
-
-def target_features(target: MetacalTarget, size: int, engine: str = "fast") -> dict[str, float]:
-    """:func:`target_columns` of one target."""
-    return {c: float(v[0]) for c, v in target_columns([target], size, engine).items()}
 
 
 def target_psf_columns(target_sigma: np.ndarray, size: int) -> dict[str, np.ndarray]:
