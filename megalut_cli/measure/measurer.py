@@ -221,8 +221,10 @@ class Measurer:
         mask), ``psf_adamom_*`` (with PSFs), the metacal columns (with metacal and PSFs)."""
         s = self.settings
         stamps = batch.stamps
-        if batch.base is not None:
+        if batch.base is not None:  # measured by the source; the optional sets on its stamps
             feats = dict(batch.base)
+            if stamps is not None and s.feature_sets:
+                feats.update(compute_extra(s.feature_sets, stamps, batch.origins, feats))
         else:
             assert stamps is not None
             n, finite, skymad = len(stamps), batch.finite, batch.skymad
@@ -230,24 +232,12 @@ class Measurer:
                 stamps = np.where(batch.masked, 0.0, stamps) if batch.masked.any() else stamps
                 finite = np.isfinite(stamps).all(axis=(1, 2)) if n else np.zeros(0, bool)
                 skymad = masked_sky_mad(batch.stamps, batch.masked) if n else np.zeros(0)
-            feats = measure_stamps(
-                stamps,
-                batch.origins,
-                s.gain,
-                max_shift=default_max_shift(stamps.shape[-1]),
-                engine=s.engine,
-                device=s.device,
-                finite=finite,
-                skymad=skymad,
-            )
+            feats = self.features(stamps, batch.origins, finite=finite, skymad=skymad)
             if batch.masked is not None:
                 self._masks(batch, feats)
-        if stamps is None:  # the base features only, measured by the source
-            self._psfs(batch, feats)
-            return feats
-        if s.feature_sets:
-            feats.update(compute_extra(s.feature_sets, stamps, batch.origins, feats))
         self._psfs(batch, feats)
+        if stamps is None:
+            return feats
         if s.metacal is not None and batch.psfs is not None:
             feats.update(self._metacal(batch, stamps, feats))
         return feats
@@ -267,7 +257,7 @@ class Measurer:
         masked, n = batch.masked, len(batch.masked)
         feats[MASKED_COLUMN] = masked.reshape(n, -1).sum(axis=1).astype(np.int32)
         feats["flags"][too_masked(masked, batch.centres)] |= fl.MASKED_PIXELS
-        nan_flagged(feats, feats["flags"], nan_when_flagged(()))
+        nan_flagged(feats, feats["flags"], nan_when_flagged(self.settings.feature_sets))
         if batch.weights is not None:
             noise = weight_noise(np.asarray(batch.weights), masked)
             feats[NOISE_COLUMN] = noise

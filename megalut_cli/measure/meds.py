@@ -865,8 +865,7 @@ def measure_request(request: MeasureRequest) -> Measured:
         ),
         "STAMPSZ": (int(boxes[0]), "stamp size [pixels]") if len(boxes) == 1 else None,
         **measure_cards(
-            dataclasses.replace(meds_settings(options), metacal=None),
-            int(boxes[0]) if len(boxes) == 1 else None,
+            dataclasses.replace(settings, metacal=None), int(boxes[0]) if len(boxes) == 1 else None
         ),
         "NOISEWT": (meds.has("weight"), "snr from the weight-map noise (noise_weight)"),
         "MASKFRAC": (MAX_MASKED_FRACTION, "masked fraction above which MASKED_PIXELS"),

@@ -103,7 +103,7 @@ def measure_units(
         for c, v in res.items():
             if c not in columns:
                 continue
-            if columns[c].dtype.kind == "i" and c.startswith("flags"):
+            if c.startswith("flags"):
                 columns[c][unit.rows] |= v
             else:
                 columns[c][unit.rows] = v
