@@ -33,6 +33,16 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "dec": ("deg", "declination"),
     "orig_row": ("pixel", "MEDS object row in the measured cutout's image (0-based)"),
     "orig_col": ("pixel", "MEDS object column in the measured cutout's image (0-based)"),
+    **{
+        f"d{w}d{p}": (
+            "",
+            f"Jacobian d{w}/d{p} of the measured stamp (world units per pixel; u west, v north)",
+        )
+        for w in "uv"
+        for p in ("col", "row")
+    },
+    "psf_g1": ("", "PSF ellipticity g1 at the object, in the frame of g1, g2 (SHFRAME)"),
+    "psf_g2": ("", "PSF ellipticity g2 at the object, in the frame of g1, g2 (SHFRAME)"),
     "noise_weight": ("adu", "pixel noise from the weight map: 1/sqrt(median weight)"),
     "n_masked": ("", "masked pixels of the stamp (bmask != 0 or weight 0; -1: no cutout)"),
     "g1": ("", "calibrated shear estimate g1 (megalut calibrate; for averages, not one object)"),

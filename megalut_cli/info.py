@@ -26,6 +26,7 @@ from megalut_cli.nn.population import domain_line, population_lines, population_
 from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
 from megalut_cli.pipeline.steps import MANIFEST_FORMAT
 from megalut_cli.provenance import sha256_file, shown_command, shown_path
+from megalut_cli.shear.frame import FRAME_CARD, FRAME_TEXT, PIXEL_FRAME, WORLD_FRAME, has_jacobian
 from megalut_cli.shear.options import JSON_FORMAT as EVALUATION_FORMAT
 
 _FITS_MAGIC = b"SIMPLE  ="
@@ -264,6 +265,9 @@ def _describe_fits(p: Path) -> dict[str, Any]:
                 out["extensions"] = [e for i, _, e in hdus if i != table and e]
                 if "CONFIG" in f:
                     out["config"] = _config_summary(f["CONFIG"].read())
+                frame = _shear_frame(hdu.get_colnames(), header)
+                if frame is not None:
+                    out["frame"] = frame
             elif image is not None:
                 hdu = f[image]
                 header = header_dict(hdu.read_header())
@@ -289,6 +293,22 @@ def _describe_fits(p: Path) -> dict[str, Any]:
         "cards": {k: v for k, v in header.items() if k not in _PROVENANCE_CARDS and k != "EXTNAME"},
         "provenance": _provenance_from_header(header),
     }
+
+
+#: Columns that make a catalog's shapes or shears worth naming a frame for.
+_SPIN2_COLUMNS = ("adamom_g1", "adamom_g1_noshear", "pre_g1", "pre_g1_noshear", "g1")
+
+
+def _shear_frame(colnames: list[str], header: dict[str, Any]) -> str | None:
+    """What frame a catalog's shapes and shears are in (None for a catalog without any)."""
+    frame = str(header.get(FRAME_CARD, "")).strip()
+    if frame in FRAME_TEXT:
+        return frame
+    if not any(c in colnames for c in _SPIN2_COLUMNS):
+        return None
+    if has_jacobian(colnames):
+        return f"{PIXEL_FRAME}, with per-object Jacobians (calibrate gives the {WORLD_FRAME} frame)"
+    return PIXEL_FRAME
 
 
 def _image_dtype(hdu: Any) -> np.dtype:
@@ -520,6 +540,9 @@ def format_info(info: dict[str, Any]) -> str:
             lines.append(f"flags: {fl_info['rows_flagged']} of {info['rows']} rows flagged")
             for name, b in fl_info["bits"].items():
                 lines.append(f"  {name:<16} {b['value']:>4}  {b['rows']} rows")
+        if info.get("frame"):
+            frame = info["frame"]
+            lines.append(f"frame: {frame}: {FRAME_TEXT[frame.split(',')[0]]}")
         if info.get("extensions"):
             lines.append(f"extensions: {', '.join(info['extensions'])}")
         if info.get("config"):

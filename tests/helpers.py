@@ -135,6 +135,7 @@ def metacal_predictions(
     sigma_e: float = 0.25,
     positions: bool = True,
     ring: int = 2,
+    jacobians: bool = False,
 ) -> dict[str, np.ndarray]:
     """A synthetic metacal prediction catalog (the columns of ``megalut predict`` on a metacal
     catalog) under the constant shear ``g``: each object's estimate under the shear ``s`` is
@@ -142,7 +143,10 @@ def metacal_predictions(
     orientations sharing everything else, 2: 90-degree pairs), the sheared versions at
     ``g +- step``; ``size_<type> = u + |estimate|^2`` (``u`` uniform) is a measured column
     whose cut (``size > 0.5``) has a selection response; ``weights``:
-    ``pre_g*_w_<type> = 1 / (0.1 + |estimate|^2)`` (a weight response too)."""
+    ``pre_g*_w_<type> = 1 / (0.1 + |estimate|^2)`` (a weight response too). With
+    ``jacobians``, ``g`` is a world-frame shear seen through a random Jacobian per ring
+    (any angle, a flip for half, a residual shear eta of 0.02 rms; columns ``dudcol`` ..
+    ``dvdrow``): each object's estimates are those of its pixel-frame shear ``Q^T g - eta``."""
     rng = np.random.default_rng(seed)
     m = n // ring
     n = m * ring
@@ -158,19 +162,38 @@ def metacal_predictions(
     r[1, 0] = rng.normal(0.0, 0.05, m)
     r = np.tile(r, ring)
     u = np.tile(rng.uniform(0.0, 1.0, m), ring)
-    shears = {
-        "noshear": np.array(g),
-        "1p": np.array(g) + (step, 0.0),
-        "1m": np.array(g) - (step, 0.0),
-        "2p": np.array(g) + (0.0, step),
-        "2m": np.array(g) - (0.0, step),
-    }
+    pixel_g = np.repeat(np.asarray(g, dtype=float)[:, None], n, axis=1)
     out: dict[str, np.ndarray] = {"id": np.arange(n, dtype=np.int64)}
+    if jacobians:
+        phi = np.tile(rng.uniform(0.0, 2.0 * np.pi, m), ring)
+        flip = np.tile(rng.random(m) < 0.5, ring)
+        eta = np.tile(rng.normal(0.0, 0.02, (2, m)), ring)
+        c, s_ = np.cos(phi), np.sin(phi)
+        rot = np.array([[c, -s_], [s_, c]])  # (2, 2, n)
+        par = np.array([[np.ones(n), np.zeros(n)], [np.zeros(n), np.where(flip, -1.0, 1.0)]])
+        dist = np.array([[1.0 + eta[0], eta[1]], [eta[1], 1.0 - eta[0]]])
+        jac = 0.2 * np.einsum("ijn,jkn,kln->iln", rot, par, dist)
+        out["dudcol"], out["dudrow"], out["dvdcol"], out["dvdrow"] = (
+            jac[0, 0],
+            jac[0, 1],
+            jac[1, 0],
+            jac[1, 1],
+        )
+        c2, s2 = np.cos(2 * phi), np.sin(2 * phi)
+        q = np.array([[c2, np.where(flip, s2, -s2)], [s2, np.where(flip, -c2, c2)]])
+        pixel_g = np.einsum("jin,j->in", q, np.asarray(g, dtype=float)) - eta
+    shears = {
+        "noshear": pixel_g,
+        "1p": pixel_g + np.array([[step], [0.0]]),
+        "1m": pixel_g - np.array([[step], [0.0]]),
+        "2p": pixel_g + np.array([[0.0], [step]]),
+        "2m": pixel_g - np.array([[0.0], [step]]),
+    }
     if positions:
         out["ra"] = rng.uniform(-1.0, 1.0, n) % 360.0
         out["dec"] = rng.uniform(-1.0, 1.0, n)
     for kind, s in shears.items():
-        est = e + np.einsum("ijn,j->in", r, s)
+        est = e + np.einsum("ijn,jn->in", r, s)
         for i in (0, 1):
             out[f"pre_g{i + 1}_{kind}"] = est[i]
         out[f"size_{kind}"] = u + est[0] ** 2 + est[1] ** 2

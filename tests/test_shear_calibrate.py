@@ -198,7 +198,8 @@ def test_bins_of_an_integer_column_and_of_quantiles():
     assert [b["n_objects"] for b in res["bins"]] == [3000, 3000, 3000]
     assert res["bins"][0]["lo"] < res["bins"][0]["center"] < res["bins"][0]["hi"]
     table = format_calibration(res)
-    assert "all" in table.splitlines()[2] and len(table.splitlines()) == 7
+    assert "all" in table.splitlines()[2] and len(table.splitlines()) == 8
+    assert table.splitlines()[-1].startswith("frame: pixel")
 
 
 def test_metacal_bins_of_a_measured_column_have_a_selection_response():

@@ -80,6 +80,7 @@ from megalut_cli.measure.units import (
     workers,
 )
 from megalut_cli.progress import Progress
+from megalut_cli.shear.frame import JACOBIAN_COLUMNS, celestial_jacobians, is_celestial
 
 log = logging.getLogger(__name__)
 
@@ -665,6 +666,12 @@ def features_catalog(
             del table[c]
     for c in new_cols:
         table[c] = feats[c]
+    if is_celestial(grid.info.header):  # the world frame of each stamp, and its sky position
+        sky = celestial_jacobians(grid.info.header, grid.positions[:, 0], grid.positions[:, 1])
+        for c, values in sky.items():
+            if c in JACOBIAN_COLUMNS or c not in table:
+                table[c] = values
+        log.info("%s: a celestial WCS: each stamp's Jacobian (world frame) added", grid.info.path)
     nflag = int((feats["flags"] != 0).sum())
     log.info("%d of %d stamps flagged (features NaN)", nflag, len(grid.origins))
     warn_if_mostly_flagged(feats["flags"], request.stamps_path, request.names)

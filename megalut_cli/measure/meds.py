@@ -82,6 +82,7 @@ from megalut_cli.measure.source_registry import (
 from megalut_cli.measure.units import empty_columns, measure_units, n_units, workers
 from megalut_cli.progress import Progress
 from megalut_cli.provenance import CREATOR
+from megalut_cli.shear.frame import JACOBIAN_COLUMNS
 
 log = logging.getLogger(__name__)
 
@@ -113,11 +114,13 @@ OBJECT_COLUMNS: tuple[str, ...] = (
     "psf_box_size",
     "psf_row_size",
     "psf_col_size",
+    *JACOBIAN_COLUMNS,
 )
 #: Per-object columns copied to the output when the file has them.
 PASSED_COLUMNS: tuple[str, ...] = ("id", "number", "box_size", "ncutout", "ra", "dec")
-#: Per-cutout columns copied to the output (the measured cutout's value; NaN without one).
-PASSED_CUTOUT_COLUMNS: tuple[str, ...] = ("orig_row", "orig_col")
+#: Per-cutout columns copied to the output (the measured cutout's value; NaN without one):
+#: its position and the Jacobian that turns its shears to the world frame.
+PASSED_CUTOUT_COLUMNS: tuple[str, ...] = ("orig_row", "orig_col", *JACOBIAN_COLUMNS)
 #: The ``object_data`` columns of the MEDS layout (esheldon/meds README); any other scalar
 #: column (a survey's own ids, a simulation's truth) is passed through to the output.
 LAYOUT_COLUMNS: frozenset[str] = frozenset(
@@ -125,10 +128,6 @@ LAYOUT_COLUMNS: frozenset[str] = frozenset(
         *OBJECT_COLUMNS,
         "orig_start_row",
         "orig_start_col",
-        "dudrow",
-        "dudcol",
-        "dvdrow",
-        "dvdcol",
         "psf_cutout_row",
         "psf_cutout_col",
     )
@@ -375,6 +374,7 @@ def read_meds(path: str | os.PathLike) -> MedsFile:
         "cutout_col",
         "file_id",
         "psf_start_row",
+        *JACOBIAN_COLUMNS,
     ):
         if c in objects and objects[c].ndim == 1:
             objects[c] = objects[c].reshape(n, 1)
@@ -775,10 +775,48 @@ def measure_meds(
     for c in PASSED_CUTOUT_COLUMNS:
         if c in obj:
             out[c] = np.where(has, obj[c][:, k].astype(np.float64), np.nan)
+    _check_jacobians(out, has, meds.path)
     for c in extra_columns(meds):
         out[c] = obj[c]
     out.update(cols)
     return out
+
+
+def _check_jacobians(out: dict[str, np.ndarray], has: np.ndarray, path: str) -> None:
+    """Keep the measured cutouts' Jacobians where they are usable: a degenerate one
+    (determinant near 0, non-finite, or the meds package's -9999 fill) becomes NaN, and
+    without any usable one the columns are dropped (shears stay in the pixel frame)."""
+    if not all(c in out for c in JACOBIAN_COLUMNS):
+        for c in JACOBIAN_COLUMNS:
+            out.pop(c, None)
+        return
+    j = np.stack([out[c] for c in JACOBIAN_COLUMNS], axis=1)
+    with np.errstate(invalid="ignore"):
+        det = j[:, 0] * j[:, 3] - j[:, 1] * j[:, 2]
+        ok = (
+            np.all(np.isfinite(j), axis=1)
+            & np.all(j > -9999.0, axis=1)
+            & (np.abs(det) > 1e-6 * np.sum(j * j, axis=1))
+        )
+    bad = has & ~ok
+    if not (has & ok).any():
+        log.warning(
+            "%s: no measured cutout has a usable Jacobian (dudrow .. dvdcol): the columns are "
+            "left out and shears stay in the cutouts' pixel frame",
+            path,
+        )
+        for c in JACOBIAN_COLUMNS:
+            out.pop(c)
+        return
+    if bad.any():
+        log.warning(
+            "%s: %d object(s) with a degenerate Jacobian: NaN (their world-frame shears "
+            "cannot be computed)",
+            path,
+            int(bad.sum()),
+        )
+        for c in JACOBIAN_COLUMNS:
+            out[c] = np.where(ok, out[c], np.nan)
 
 
 def meds_settings(options: MedsOptions) -> MeasureSettings:
@@ -921,6 +959,7 @@ def write_meds(
     first_is_coadd: bool = True,
     pixel_scale: float = 1.0,
     extra: Mapping[str, Any] | None = None,
+    jacobians: Any = None,
     overwrite: bool = False,
 ) -> Path:
     """Write the subset of MEDS megalut reads, for tests and examples.
@@ -932,8 +971,9 @@ def write_meds(
     0-based position of each object in the image of each cutout, ``(n,)`` or ``(n, NMAX)``
     (default: the cutout centre, i.e. the cutout is the image); ``ra``, ``dec`` (degrees)
     are written when given, and ``extra`` scalar columns (name -> ``(n,)`` values, e.g. a
-    simulation's truth) after the layout's. The jacobian is
-    ``pixel_scale`` on the diagonal (``dudcol = dvdrow``); ``metadata`` records
+    simulation's truth) after the layout's. ``jacobians``: each cutout's Jacobian
+    ``[[dudcol, dudrow], [dvdcol, dvdrow]]``, ``(n, 2, 2)`` or ``(n, NMAX, 2, 2)``; by
+    default ``pixel_scale`` on the diagonal (``dudcol = dvdrow``); ``metadata`` records
     ``first_is_coadd`` and ``image_info`` one image per cutout slot (0: ``coadd``).
     Written atomically; an existing ``path`` is refused without ``overwrite``.
     """
@@ -1018,6 +1058,14 @@ def write_meds(
     if ra is not None and dec is not None:
         od["ra"], od["dec"] = np.asarray(ra), np.asarray(dec)
     centre = np.repeat(((boxes - 1) / 2.0)[:, None], nmax, axis=1)
+    jac = np.broadcast_to(pixel_scale * np.eye(2), (n, nmax, 2, 2))
+    if jacobians is not None:
+        given = np.asarray(jacobians, dtype=np.float64)
+        if given.ndim == 3:
+            given = given[:, None]
+        if given.shape[0] != n or given.shape[-2:] != (2, 2):
+            raise ValueError(f"jacobians must be (n, 2, 2) or (n, NMAX, 2, 2), got {given.shape}")
+        jac = np.broadcast_to(given, (n, nmax, 2, 2)) if given.shape[1] == 1 else given
     orow, ocol = slots(orig_rows, centre), slots(orig_cols, centre)
     start, pstart = 0, 0
     for i, cuts in enumerate(imgs):
@@ -1030,8 +1078,8 @@ def write_meds(
             od["orig_row"][i, k], od["orig_col"][i, k] = orow[i, k], ocol[i, k]
             od["orig_start_row"][i, k] = int(round(orow[i, k] - (b - 1) / 2.0))
             od["orig_start_col"][i, k] = int(round(ocol[i, k] - (b - 1) / 2.0))
-            od["dudrow"][i, k] = od["dvdcol"][i, k] = 0.0
-            od["dudcol"][i, k] = od["dvdrow"][i, k] = pixel_scale
+            od["dudcol"][i, k], od["dudrow"][i, k] = jac[i, k, 0]
+            od["dvdcol"][i, k], od["dvdrow"][i, k] = jac[i, k, 1]
             if psf_lists is not None:
                 p = psf_lists[i][k]
                 od["psf_row_size"][i, k], od["psf_col_size"][i, k] = p.shape

@@ -15,6 +15,10 @@ is recomputed in every jackknife sample and resample. PSF leakage: the calibrate
 estimates regressed on the PSF ellipticity ``psf_adamom_g1, psf_adamom_g2`` of each object,
 ``g_i = alpha_i e_psf,i + c_i`` (weighted least squares), with errors from the same samples.
 
+Frame: with the per-object Jacobian columns (``dudcol`` .. ``dvdrow``, from MEDS or an
+image's WCS) every estimate, response, weight and PSF ellipticity is turned to the world
+frame (u, v) first (:mod:`megalut_cli.shear.frame`); without them the pixel frame stays.
+
 The per-object catalog (:func:`calibrated_catalog`) holds each object's estimate multiplied by
 the inverse total response of its bin: valid for averages over many objects, not for one.
 """
@@ -44,6 +48,20 @@ from megalut_cli.shear.evaluate import (
     WEIGHT_COLUMNS,
     check_by,
 )
+from megalut_cli.shear.frame import (
+    FRAME_CARD,
+    FRAME_TEXT,
+    JACOBIAN_COLUMNS,
+    PIXEL_FRAME,
+    WORLD_FRAME,
+    catalog_frames,
+    has_jacobian,
+    response_offset,
+    response_to_world,
+    spin2_to_world,
+    versions_to_world,
+    weights_to_world,
+)
 from megalut_cli.shear.options import (
     CALIBRATE,
     CALIBRATE_ERROR_CHOICES,
@@ -59,6 +77,8 @@ ROUTE_METACAL = "metacal"
 ROUTE_SIMULATION = "simulation"
 #: The PSF ellipticity of each object (measured: real data has no true PSF).
 PSF_COLUMNS = ("psf_adamom_g1", "psf_adamom_g2")
+#: Smallest rms PSF ellipticity about its mean for a leakage fit (below: alpha undetermined).
+MIN_PSF_SPREAD = 1e-4
 #: Position columns, in order of preference: on the sky (degrees), else on the image.
 POSITION_COLUMNS = (("ra", "dec"), ("x", "y"))
 #: Columns passed through to the per-object catalog when the input has them.
@@ -87,6 +107,7 @@ class CalibrationPlan:
     positions: tuple[str, str] | None
     errors: str
     has_flags: bool
+    frame: str  # WORLD_FRAME with the per-object Jacobian columns, else PIXEL_FRAME
     columns: tuple[str, ...]
     pass_through: tuple[str, ...]
     names: dict[str, str] = field(default_factory=dict)
@@ -179,7 +200,8 @@ def plan_calibration(
             f"use {given.get('errors', 'errors')} bootstrap"
         )
     has_flags = "flags" in have
-    cols: list[str] = []
+    frame = WORLD_FRAME if has_jacobian(have) else PIXEL_FRAME
+    cols: list[str] = list(JACOBIAN_COLUMNS) if frame == WORLD_FRAME else []
     if route == ROUTE_METACAL:
         cols += [*RESPONSE_COLUMNS, "flags_noshear"]
         cols += [f"{c}_{kind}" for kind in TYPES for c in ESTIMATE_COLUMNS]
@@ -210,6 +232,7 @@ def plan_calibration(
         positions,
         errors,
         has_flags,
+        frame,
         tuple(dict.fromkeys(c for c in cols if c in have)),
         passed,
         given,
@@ -346,7 +369,73 @@ def _objects(columns: Mapping[str, np.ndarray], plan: CalibrationPlan) -> _Objec
     psf = None
     if plan.psf is not None:
         psf = tuple(np.asarray(columns[c], dtype=float) for c in plan.psf)  # type: ignore[assignment]
-    return _Objects(n, selected, valid, pre, weight, response, sheared, pre_noshear, psf)
+    obj = _Objects(n, selected, valid, pre, weight, response, sheared, pre_noshear, psf)
+    return _to_world(obj, columns, plan) if plan.frame == WORLD_FRAME else obj
+
+
+def _to_world(obj: _Objects, columns: Mapping[str, np.ndarray], plan: CalibrationPlan) -> _Objects:
+    """The pixel-frame quantities of ``obj`` in the world frame of each object's Jacobian
+    (:mod:`megalut_cli.shear.frame`): estimates ``Q (g + R eta)`` (``R = 1`` on the
+    simulation route), responses ``Q R Q^T``, weights and sheared versions mixed as the
+    components are; an object is used in both components or in neither."""
+    frames = catalog_frames(columns)
+    known = np.isfinite(frames.rotation).all(axis=(1, 2)) & np.isfinite(frames.distortion).all(
+        axis=1
+    )
+    if not known.any():
+        raise InputError(
+            f"{plan.source}: no object has a usable Jacobian ({', '.join(JACOBIAN_COLUMNS)})"
+        )
+    both = obj.valid[1] & obj.valid[2] & known
+    if not both.any():
+        raise InputError(
+            f"{plan.source}: no selected object is usable in both components with a Jacobian"
+        )
+    zero = lambda a: np.where(both, np.nan_to_num(a), 0.0)  # noqa: E731
+    offset = None
+    response = None
+    if obj.response is not None:
+        pixel_r = {k: zero(r) for k, r in obj.response.items()}
+        offset = response_offset(frames, pixel_r)
+        response = {k: zero(r) for k, r in response_to_world(frames, pixel_r).items()}
+    g1, g2 = spin2_to_world(frames, zero(obj.pre[1]), zero(obj.pre[2]), offset)
+    weight = {i: zero(w) for i, w in weights_to_world(frames, obj.weight).items()}
+    sheared = pre_noshear = None
+    if obj.sheared is not None and obj.pre_noshear is not None and obj.response is not None:
+        usable = known & np.isfinite(obj.pre_noshear[1]) & np.isfinite(obj.pre_noshear[2])
+        full_r = {k: np.where(usable, np.nan_to_num(r), 0.0) for k, r in obj.response.items()}
+        n1, n2 = spin2_to_world(
+            frames,
+            np.where(usable, obj.pre_noshear[1], 0.0),
+            np.where(usable, obj.pre_noshear[2], 0.0),
+            response_offset(frames, full_r),
+        )
+        pre_noshear = {1: np.where(usable, n1, np.nan), 2: np.where(usable, n2, np.nan)}
+        per_kind = {
+            kind: weights_to_world(
+                frames, {i: np.where(usable, obj.sheared[(i, kind)], 0.0) for i in (1, 2)}
+            )
+            for kind in SHEARED_TYPES
+        }
+        sheared = {}
+        for i in (1, 2):
+            world = versions_to_world(frames, {kind: per_kind[kind][i] for kind in SHEARED_TYPES})
+            for kind in SHEARED_TYPES:
+                sheared[(i, kind)] = np.where(usable, world[kind], 0.0)
+    psf = None
+    if obj.psf is not None:
+        psf = spin2_to_world(frames, obj.psf[0], obj.psf[1])
+    return _Objects(
+        obj.n,
+        obj.selected,
+        {1: both, 2: both},
+        {1: g1, 2: g2},
+        weight,
+        response,
+        sheared,
+        pre_noshear,
+        psf,
+    )
 
 
 def _row_sums(obj: _Objects, plan: CalibrationPlan) -> dict[str, np.ndarray]:
@@ -420,7 +509,7 @@ def _estimates(t: Mapping[str, np.ndarray], plan: CalibrationPlan) -> dict[str, 
                     gj = t[f"L:wg:{i}{j}"][0] / w
                     gbar = gbar + inv[i - 1, j - 1] * gj
                     cov = cov + inv[i - 1, j - 1] * (t[f"L:wge:{i}{j}"][0] / w - gj * ebar)
-                a = np.where(var > 0, cov / var, np.nan)
+                a = np.where(var > MIN_PSF_SPREAD**2, cov / var, np.nan)
                 alpha.append(a)
                 add.append(gbar - a * ebar)
             out["alpha"] = np.array(alpha)
@@ -456,11 +545,12 @@ def _jackknife_error(samples: np.ndarray, used: np.ndarray) -> np.ndarray:
     """Delete-one jackknife error over the last axis, counting the ``used`` samples (a
     patch holding objects of the bin); NaN with fewer than 2."""
     n = used.sum(axis=-1)
+    finite = used & np.isfinite(samples)
     with np.errstate(invalid="ignore", divide="ignore"):
-        x = np.where(used, samples, np.nan)
-        mean = np.nanmean(x, axis=-1, keepdims=True)
-        var = (n - 1) / n * np.nansum((x - mean) ** 2, axis=-1)
-    return np.where(n >= 2, np.sqrt(var), np.nan)
+        x = np.where(finite, samples, 0.0)
+        mean = x.sum(axis=-1, keepdims=True) / finite.sum(axis=-1, keepdims=True)
+        var = (n - 1) / n * np.where(finite, (x - mean) ** 2, 0.0).sum(axis=-1)
+    return np.where((n >= 2) & (finite.sum(axis=-1) == n), np.sqrt(var), np.nan)
 
 
 def _sample_errors(
@@ -590,6 +680,7 @@ class Calibration:
     bin_of: np.ndarray  # each object's (noshear) bin, -1 without one
     estimates: dict[int, np.ndarray]  # uncalibrated estimate per component (0 where unusable)
     weights: dict[int, np.ndarray]
+    psf: tuple[np.ndarray, np.ndarray] | None = None  # PSF ellipticity, in the plan's frame
 
 
 def _json(x: Any) -> Any:
@@ -699,6 +790,8 @@ def calibrate_columns(
             if plan.weighted
             else None
         ),
+        "frame": plan.frame,
+        "frame_convention": FRAME_TEXT[plan.frame],
         "n_rows": obj.n,
         "n_selected": int(obj.selected.sum()),
         "select": plan.select,
@@ -719,6 +812,7 @@ def calibrate_columns(
         bin_of,
         obj.pre,
         obj.weight,
+        obj.psf,
     )
 
 
@@ -729,8 +823,9 @@ def calibrated_catalog(
     in both components, the input's id and position columns, ``g1, g2`` (each estimate
     times the inverse total response of its bin, of the whole catalog outside any bin),
     ``weight`` (the mean of the two components' weights) and ``weight_g1, weight_g2``,
-    ``bin`` and the total response ``R11 .. R22`` of the object's bin. Valid for averages
-    over many objects, not for one object."""
+    ``bin`` and the total response ``R11 .. R22`` of the object's bin, and with PSF columns
+    ``psf_g1, psf_g2``, all in the calibration's frame (``SHFRAME``). Valid for averages over
+    many objects, not for one object."""
     keep = cal.rows
     bin_of = cal.bin_of[keep]
     resp = cal.responses[np.where(bin_of >= 0, bin_of + 1, 0)] if cal.plan.by else None
@@ -759,7 +854,10 @@ def calibrated_catalog(
     for i in (1, 2):
         for j in (1, 2):
             out[f"R{i}{j}"] = resp[:, i - 1, j - 1].astype(float)
+    if cal.psf is not None:
+        out["psf_g1"], out["psf_g2"] = cal.psf[0][keep], cal.psf[1][keep]
     cards: dict[str, Any] = {
+        FRAME_CARD: (cal.plan.frame, "frame of g1, g2, R, psf_g: world (u, v) or pixel"),
         "CALROUTE": (cal.plan.route, "calibration: metacal responses or simulation-trained"),
         "CALSCHEM": (cal.plan.scheme, "weighted or unweighted means"),
         "CALNOTE": ("averages", "g1, g2 are valid for averages, not for one object"),
@@ -834,6 +932,7 @@ def format_calibration(result: Mapping[str, Any]) -> str:
         lines.append(
             f"errors: bootstrap over objects ({err['resamples']} resamples, seed {err['seed']})"
         )
+    lines.append(f"frame: {FRAME_TEXT[result.get('frame', PIXEL_FRAME)]}")
     if result["calibration"] == ROUTE_METACAL:
         lines.append("R = <R> + R_sel (mean and selection responses; --json has both)")
     return "\n".join(lines)
