@@ -201,6 +201,14 @@ def plan_calibration(
         )
     has_flags = "flags" in have
     frame = WORLD_FRAME if has_jacobian(have) else PIXEL_FRAME
+    if frame == WORLD_FRAME and by_versioned:
+        log.warning(
+            "%s: the bins of %s change between the sheared versions, which are pixel-frame "
+            "shears: the bins' selection responses are exact for cutouts turned by multiples "
+            "of 45 degrees or flipped only",
+            source,
+            by,
+        )
     cols: list[str] = list(JACOBIAN_COLUMNS) if frame == WORLD_FRAME else []
     if route == ROUTE_METACAL:
         cols += [*RESPONSE_COLUMNS, "flags_noshear"]
