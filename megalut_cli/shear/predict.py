@@ -38,11 +38,21 @@ from megalut_cli.catalog import (
 )
 from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.measure.metacal_defaults import STEP_CARD, TYPES
-from megalut_cli.nn.domain import Finding, domain_findings, model_domain
+from megalut_cli.nn.domain import (
+    METACAL_ITEMS,
+    PSF_COLUMNS,
+    Finding,
+    domain_findings,
+    fmt,
+    mode_domain,
+    model_domain,
+)
 from megalut_cli.nn.model import ShearModel, prediction_column
+from megalut_cli.nn.population import REAL_BIAS_ATTR, SIMULATED_BIAS_ATTR
 from megalut_cli.nn.symmetry import predict_with_symmetry
 from megalut_cli.parallel import executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
+from megalut_cli.shear.bias import STAGE_IV_M
 from megalut_cli.shear.options import PREDICT
 from megalut_cli.shear.response import header_step
 
@@ -406,14 +416,15 @@ def domain_columns(
     resolved: Mapping[str, str] | None = None,
     metacal: bool = False,
     n_rows: int | None = None,
+    extra: Sequence[str] = (),
 ) -> dict[str, np.ndarray]:
-    """The catalog's columns of the model's ``domain`` and ``flags`` (only those, in one pass;
-    every k-th row of a catalog of more than :data:`MAX_DOMAIN_ROWS` rows), by their domain
-    names: a model feature through its ``resolved`` column, and for a metacal catalog the
-    ``noshear`` version's column where there is one."""
+    """The catalog's columns of the model's ``domain``, ``flags`` and ``extra`` (only those, in
+    one pass; every k-th row of a catalog of more than :data:`MAX_DOMAIN_ROWS` rows), by their
+    domain names: a model feature through its ``resolved`` column, and for a metacal catalog
+    the ``noshear`` version's column where there is one."""
     have = set(colnames)
     wanted = {}
-    for c in [*domain.get("columns", {}), "flags"]:
+    for c in dict.fromkeys([*domain.get("columns", {}), "flags", *extra]):
         base = (resolved or {}).get(c, c)
         column = f"{base}_noshear" if metacal and f"{base}_noshear" in have else base
         if column in have:
@@ -435,6 +446,144 @@ def domain_columns(
     return {c: np.concatenate(parts[column]) for c, column in wanted.items()}
 
 
+def _training_population(model: ShearModel) -> Mapping[str, Any] | None:
+    """The population the model records (its own training set's, else its parent's)."""
+    for prov in (model.provenance, model.provenance.get("parent")):
+        if isinstance(prov, Mapping) and isinstance(prov.get("population"), Mapping):
+            return prov["population"]
+    return None
+
+
+def applied_domain(model: ShearModel) -> tuple[dict[str, Any] | None, list[str]]:
+    """The domain ``predict`` compares catalogs with, and the recorded items it leaves out:
+    the model's (:func:`megalut_cli.nn.domain.model_domain`), with the stamp size of its setup
+    when the domain has none and, for a simulation-calibrated model trained on a constant PSF,
+    that PSF's measured size and ellipticity when the domain does not record them (models
+    recorded before); restricted to the items of the model's shear mode
+    (:func:`megalut_cli.nn.domain.mode_domain`)."""
+    domain = model_domain(model.provenance)
+    if domain is None:
+        return None, []
+    trained = _trained_setup(model)
+    if domain.get("stamp_size") is None and trained.get("stamp_size") is not None:
+        domain["stamp_size"] = trained["stamp_size"]
+    psf = (_training_population(model) or {}).get("psf")
+    recorded = domain.get("columns", {})
+    if (
+        model.shear_mode != "metacal"
+        and domain.get("stamp_size")
+        and isinstance(psf, Mapping)
+        and psf
+        and not all(c in recorded for c in PSF_COLUMNS)
+    ):
+        from megalut_cli.nn.fit import config_psf_domain  # GalSim: only to draw the PSF
+
+        domain = config_psf_domain(domain, psf, int(domain["stamp_size"]))
+    return mode_domain(domain, model.shear_mode)
+
+
+def _all_nan(columns: Mapping[str, np.ndarray], names: Sequence[str], rows: np.ndarray) -> bool:
+    """Whether none of ``names`` has a finite value in the rows ``rows`` (absent: none)."""
+    return not any(
+        np.isfinite(np.asarray(columns[c], dtype=np.float64)[rows]).any()
+        for c in names
+        if c in columns
+    )
+
+
+def usable_findings(
+    columns: Mapping[str, np.ndarray], features: Sequence[str], n_rows: int
+) -> tuple[np.ndarray, list[Finding]]:
+    """The rows predict estimates (``flags == 0`` and every model feature finite) and, when
+    there is none, the finding (item ``rows``) saying why: flagged rows, and the features
+    that are not finite in any unflagged row (a model that needs PSF measurements given a
+    catalog measured without a PSF)."""
+    n = len(next(iter(columns.values()))) if columns else n_rows
+    flagged = np.asarray(columns["flags"]) != 0 if "flags" in columns else np.zeros(n, bool)
+    good = ~flagged
+    for f in features:
+        if f in columns:
+            good &= np.isfinite(np.asarray(columns[f], dtype=np.float64))
+    if not n:
+        return good, [Finding("rows", "no usable row: the catalog has no row")]
+    if good.any():
+        return good, []
+    nan = [f for f in features if _all_nan(columns, [f], ~flagged)] if (~flagged).any() else []
+    why = f"{int(flagged.sum())} flagged (flags != 0)"
+    if (~flagged).any():
+        why += f", {int((~flagged).sum())} with a non-finite model feature"
+    if nan:
+        why += f" ({', '.join(nan)} not finite in any unflagged row"
+        if any(f in PSF_COLUMNS for f in nan):
+            why += ": measure with a PSF"
+        why += ")"
+    rows = f"all {n} sampled rows" if n != n_rows else f"all {n} rows"
+    return good, [Finding("rows", f"no usable row: of {rows}, {why}; nothing to estimate")]
+
+
+def psf_findings(
+    domain: Mapping[str, Any],
+    columns: Mapping[str, np.ndarray],
+    rows: np.ndarray,
+    setup: Mapping[str, Any],
+) -> list[Finding]:
+    """One finding (item ``psf``) when the model's domain records the training PSF but the
+    catalog carries no PSF measurement (no finite ``psf_adamom_*`` in its usable rows) and
+    records no PSF in its setup: nothing shows that its PSF is the model's."""
+    recorded = [c for c in PSF_COLUMNS if c in domain.get("columns", {})]
+    if not recorded or "psf" in setup or not _all_nan(columns, PSF_COLUMNS, rows):
+        return []
+    trained = ", ".join(
+        f"{c} {fmt(domain['columns'][c]['q'][3])}{' px' if c.endswith('sigma') else ''}"
+        for c in recorded
+    )
+    return [
+        Finding(
+            "psf",
+            f"no PSF measurement ({', '.join(PSF_COLUMNS)} missing or NaN) and no recorded PSF: "
+            f"nothing shows the PSF is the model's (trained at {trained}); measure with a PSF "
+            "(--psf, --psf-model or the MEDS file's PSF cutouts)",
+        )
+    ]
+
+
+def validation_findings(validation: Mapping[str, Any]) -> list[Finding]:
+    """One finding (item ``validation``) per record of the model's own bias (its simulated
+    validation, :data:`megalut_cli.nn.population.SIMULATED_BIAS_ATTR`; a real-galaxy record
+    of the model's m, quantity ``m_real``) whose |m| of a component exceeds the Stage IV
+    requirement :data:`megalut_cli.shear.bias.STAGE_IV_M` (a real-galaxy record of ``m_real -
+    m_twin`` is a difference, not the model's m: not judged here, ``info`` tells it)."""
+    out = []
+    sim = validation.get(SIMULATED_BIAS_ATTR)
+    if isinstance(sim, Mapping):
+        m = {g: (sim.get(f"m_{g}"), sim.get(f"m_{g}_err")) for g in ("g1", "g2")}
+        what = f"simulated validation ({sim.get('scheme')}, {sim.get('input')})"
+        out += _stage_iv(m, what)
+    real = validation.get(REAL_BIAS_ATTR)
+    if isinstance(real, Mapping) and real.get("quantity") == "m_real":
+        m = {g: (real.get(f"dm_{g}"), real.get(f"dm_{g}_err")) for g in ("g1", "g2")}
+        out += _stage_iv(m, f"real galaxies ({real.get('scheme')})")
+    return out
+
+
+def _stage_iv(m: Mapping[str, tuple[Any, Any]], what: str) -> list[Finding]:
+    values = {
+        g: (float(v), float(e) if e is not None else float("nan"))
+        for g, (v, e) in m.items()
+        if isinstance(v, (int, float))
+    }
+    if not any(abs(v) > STAGE_IV_M for v, _ in values.values()):
+        return []
+    parts = ", ".join(f"m{g[1]} = {v:+.2e} ± {e:.1e}" for g, (v, e) in values.items())
+    return [
+        Finding(
+            "validation",
+            f"the model's recorded bias on its {what}: {parts}, outside the Stage IV "
+            f"requirement |m| < {STAGE_IV_M:.0e}",
+        )
+    ]
+
+
 def domain_report(
     model: ShearModel,
     features_path: str | os.PathLike,
@@ -445,26 +594,38 @@ def domain_report(
     metacal: bool = False,
     n_rows: int | None = None,
 ) -> list[Finding]:
-    """How the catalog ``features_path`` lies outside ``model``'s domain: the findings of
-    :func:`megalut_cli.nn.domain.domain_findings` on its usable rows (``flags == 0``; the
-    ``noshear`` columns of a metacal catalog) and stamp size (``STAMPSZ``; the model's from
-    its domain, else its recorded setup), and those of :func:`setup_findings` on the setups
-    both record (the stamp size once)."""
+    """How the catalog ``features_path`` lies outside ``model``'s domain
+    (:func:`applied_domain`, the items of its shear mode): no usable row (``flags == 0`` and
+    finite model features; the ``noshear`` columns of a metacal catalog) is one finding and
+    the only one of the catalog; else the findings of
+    :func:`megalut_cli.nn.domain.domain_findings` on its usable rows and stamp size
+    (``STAMPSZ``, else the ``box_size`` column), a missing PSF (:func:`psf_findings`) and,
+    for a simulation-calibrated model, those of :func:`setup_findings` on the setups both
+    record (the stamp size once). The model's own recorded bias
+    (:func:`validation_findings`) is judged in any case."""
     trained = _trained_setup(model)
-    domain = model_domain(model.provenance)
-    findings: list[Finding] = []
+    domain, _ = applied_domain(model)
+    stamp = header.get("STAMPSZ")
+    extra = [*model.features, "box_size", *PSF_COLUMNS]
+    columns = domain_columns(
+        features_path, domain or {}, colnames, resolved, metacal, n_rows, extra
+    )
+    rows, findings = usable_findings(columns, model.features, n_rows or 0)
+    if findings:  # nothing to compare
+        return findings + validation_findings(model.validation)
+    setup = read_setup(features_path) if model.shear_mode != "metacal" else {}
     if domain is not None:
-        if domain.get("stamp_size") is None and trained.get("stamp_size") is not None:
-            domain["stamp_size"] = trained["stamp_size"]
-        stamp = header.get("STAMPSZ")
-        columns = domain_columns(features_path, domain, colnames, resolved, metacal, n_rows)
         findings += domain_findings(
-            domain, columns, int(stamp) if isinstance(stamp, (int, np.integer)) else None
+            domain,
+            columns,
+            int(stamp) if isinstance(stamp, (int, np.integer)) else None,
+            usable=rows,
         )
+        findings += psf_findings(domain, columns, rows, setup)
         trained.pop("stamp_size", None)
-    if trained:
-        findings += setup_findings(trained, read_setup(features_path))
-    return findings
+    if trained and model.shear_mode != "metacal":
+        findings += setup_findings(trained, setup)
+    return findings + validation_findings(model.validation)
 
 
 def check_domain(
@@ -489,6 +650,15 @@ def check_domain(
             "compared with %s",
             name,
             features_path,
+        )
+    _, dropped = applied_domain(model)
+    if dropped:
+        log.info(
+            "%s is a metacal model: its response absorbs the PSF and the noise to first order, "
+            "so only %s are compared (not %s, nor the stamp size and the recorded setup)",
+            name,
+            " and ".join(METACAL_ITEMS),
+            ", ".join(d for d in dropped if d != "stamp_size"),
         )
     findings = domain_report(
         model,
