@@ -286,6 +286,14 @@ def fmt(x: float) -> str:
     return f"{x:.3g}"
 
 
+def shown(entry: Mapping[str, Any], x: float) -> str:
+    """A recorded value as findings show it: :func:`fmt`, and 0 for a value of an entry with an
+    absolute margin (``atol``) that is 0 to within its rounding (a round PSF's ellipticity)."""
+    if "atol" in entry and abs(x) < float(entry["atol"]) / 100:
+        return "0"
+    return fmt(x)
+
+
 def _pct(p: float) -> str:
     return f"{100 * p:g}"
 
@@ -322,7 +330,7 @@ def _margin(entry: Mapping[str, Any], lo: float, hi: float) -> float:
 def _trained_text(entry: Mapping[str, Any], lo: float, hi: float, med: float, unit: str) -> str:
     if lo == hi:  # a constant of the training config (a fixed PSF)
         if "atol" in entry:
-            return f"model trained at {fmt(lo)}{unit} (±{fmt(float(entry['atol']))})"
+            return f"model trained at {shown(entry, lo)}{unit} (±{fmt(float(entry['atol']))})"
         rel = max(TOLERANCE, float(entry.get("tolerance", 0.0)))
         return f"model trained at {fmt(lo)}{unit} (±{100 * rel:g} %)"
     return (
@@ -365,7 +373,7 @@ def column_findings(
         outside = float(np.mean((v < tlo - tol) | (v > thi + tol)))
         if outside > OUTSIDE_FRACTION:
             if constant:  # a fixed training PSF: the catalog's varies over the rows
-                where = f"model trained at {fmt(tlo)}{unit} (±{fmt(tol)}{unit})"
+                where = f"model trained at {shown(entry, tlo)}{unit} (±{fmt(tol)}{unit})"
             else:
                 where = (
                     f"model's {_pct(TAIL_RANGE[0])}–{_pct(TAIL_RANGE[1])} % range "

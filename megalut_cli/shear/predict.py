@@ -41,11 +41,12 @@ from megalut_cli.measure.metacal_defaults import STEP_CARD, TYPES
 from megalut_cli.nn.domain import (
     METACAL_ITEMS,
     PSF_COLUMNS,
+    UNITS,
     Finding,
     domain_findings,
-    fmt,
     mode_domain,
     model_domain,
+    shown,
 )
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.nn.population import REAL_BIAS_ATTR, SIMULATED_BIAS_ATTR
@@ -521,6 +522,33 @@ def usable_findings(
     return good, [Finding("rows", f"no usable row: of {rows}, {why}; nothing to estimate")]
 
 
+def setup_psf_columns(
+    domain: Mapping[str, Any],
+    columns: Mapping[str, np.ndarray],
+    rows: np.ndarray,
+    setup: Mapping[str, Any],
+) -> dict[str, np.ndarray]:
+    """For a catalog without PSF measurements whose setup records a constant PSF (a simulated
+    catalog's ``[psf]``): that PSF's ``psf_adamom_sigma, _g1, _g2`` as ``measure --psf`` would
+    find them on its stamp (every row), so that they are compared with the model's as measured
+    ones would be (the setup comparison ignores a key one side leaves to its default, such as
+    the ellipticity of a PSF sheared by ``g2``). Empty when the catalog measures its PSF, the
+    model records none or the setup has no drawable PSF."""
+    psf, stamp = setup.get("psf"), setup.get("stamp_size")
+    recorded = [c for c in PSF_COLUMNS if c in domain.get("columns", {})]
+    if not recorded or not isinstance(psf, Mapping) or not stamp:
+        return {}
+    if not _all_nan(columns, PSF_COLUMNS, rows):
+        return {}
+    from megalut_cli.sim.psf import measured_psf_shape  # GalSim: only to draw the PSF
+
+    shape = measured_psf_shape(psf, int(stamp))
+    if shape is None:
+        return {}
+    n = len(rows)
+    return {c: np.full(n, value) for c, value in zip(PSF_COLUMNS, shape)}
+
+
 def psf_findings(
     domain: Mapping[str, Any],
     columns: Mapping[str, np.ndarray],
@@ -534,7 +562,7 @@ def psf_findings(
     if not recorded or "psf" in setup or not _all_nan(columns, PSF_COLUMNS, rows):
         return []
     trained = ", ".join(
-        f"{c} {fmt(domain['columns'][c]['q'][3])}{' px' if c.endswith('sigma') else ''}"
+        f"{c} {shown(domain['columns'][c], domain['columns'][c]['q'][3])}{UNITS.get(c, '')}"
         for c in recorded
     )
     return [
@@ -614,6 +642,8 @@ def domain_report(
     if findings:  # nothing to compare
         return findings + validation_findings(model.validation)
     setup = read_setup(features_path) if model.shear_mode != "metacal" else {}
+    if domain is not None and model.shear_mode != "metacal":
+        columns = {**columns, **setup_psf_columns(domain, columns, rows, setup)}
     if domain is not None:
         findings += domain_findings(
             domain,
@@ -644,6 +674,20 @@ def check_domain(
     """:func:`domain_report`, told: a warning per finding and one saying what they mean, or
     with ``strict`` an :class:`InputError` listing them (before anything is written)."""
     name = Path(model_path).name
+    findings = domain_report(
+        model,
+        features_path,
+        colnames=colnames,
+        header=header,
+        resolved=resolved,
+        metacal=metacal,
+        n_rows=n_rows,
+    )
+    if findings and strict:
+        raise InputError(
+            f"{features_path} lies outside the domain of {name} ({namer(names)('strict')}): "
+            + "; ".join(map(str, findings))
+        )
     if model_domain(model.provenance) is None:
         log.info(
             "%s records no domain (quantiles of its training rows): only its recorded setup is "
@@ -659,20 +703,6 @@ def check_domain(
             name,
             " and ".join(METACAL_ITEMS),
             ", ".join(d for d in dropped if d != "stamp_size"),
-        )
-    findings = domain_report(
-        model,
-        features_path,
-        colnames=colnames,
-        header=header,
-        resolved=resolved,
-        metacal=metacal,
-        n_rows=n_rows,
-    )
-    if findings and strict:
-        raise InputError(
-            f"{features_path} lies outside the domain of {name} ({namer(names)('strict')}): "
-            + "; ".join(map(str, findings))
         )
     for f in findings:
         log.warning("%s: %s", features_path, f)
