@@ -423,12 +423,10 @@ def domain_columns(
     one pass; every k-th row of a catalog of more than :data:`MAX_DOMAIN_ROWS` rows), by their
     domain names: a model feature through its ``resolved`` column, and for a metacal catalog
     the ``noshear`` version's column where there is one."""
-    have = set(colnames)
     wanted = {}
     for c in dict.fromkeys([*domain.get("columns", {}), "flags", *extra]):
-        base = (resolved or {}).get(c, c)
-        column = f"{base}_noshear" if metacal and f"{base}_noshear" in have else base
-        if column in have:
+        column = catalog_column(c, colnames, None if c == "flags" else resolved, metacal)
+        if column is not None:
             wanted[c] = column
     if not wanted:
         return {}
@@ -492,34 +490,88 @@ def _all_nan(columns: Mapping[str, np.ndarray], names: Sequence[str], rows: np.n
     )
 
 
-def usable_findings(
-    columns: Mapping[str, np.ndarray], features: Sequence[str], n_rows: int
-) -> tuple[np.ndarray, list[Finding]]:
-    """The rows predict estimates (``flags == 0`` and every model feature finite) and, when
-    there is none, the finding (item ``rows``) saying why: flagged rows, and the features
-    that are not finite in any unflagged row (a model that needs PSF measurements given a
-    catalog measured without a PSF)."""
-    n = len(next(iter(columns.values()))) if columns else n_rows
-    flagged = np.asarray(columns["flags"]) != 0 if "flags" in columns else np.zeros(n, bool)
-    good = ~flagged
+def catalog_column(
+    name: str, colnames: Sequence[str], resolved: Mapping[str, str] | None, metacal: bool
+) -> str | None:
+    """The catalog column of a domain item or model feature ``name``: through its
+    ``resolved`` column, the ``noshear`` version's in a metacal catalog; None when absent."""
+    base = (resolved or {}).get(name, name)
+    column = f"{base}_noshear" if metacal and f"{base}_noshear" in colnames else base
+    return column if column in colnames else None
+
+
+#: Rows per chunk of :func:`count_rows` (a few columns: small chunks keep its memory below
+#: predict's own).
+COUNT_CHUNK_ROWS = 10_000
+
+
+@dataclass
+class RowCounts:
+    """How many rows a catalog has, how many are flagged and how many usable (unflagged, every
+    model feature finite); the features not finite in any unflagged row."""
+
+    n_rows: int
+    n_flagged: int
+    n_usable: int
+    never_finite: list[str]
+
+
+def count_rows(
+    features_path: str | os.PathLike,
+    features: Sequence[str],
+    colnames: Sequence[str],
+    resolved: Mapping[str, str] | None = None,
+    metacal: bool = False,
+) -> RowCounts:
+    """:class:`RowCounts` of a catalog, read chunk by chunk (the flags and the features only)."""
+    flags = catalog_column("flags", colnames, None, metacal)
+    cols = {f: catalog_column(f, colnames, resolved, metacal) for f in features}
+    read = list(dict.fromkeys([*(c for c in cols.values() if c), *([flags] if flags else [])]))
+    n = flagged = usable = 0
+    seen = dict.fromkeys(features, False)
+    for table in iter_catalog(features_path, COUNT_CHUNK_ROWS, columns=read or None):
+        m = len(table)
+        bad = np.asarray(table[flags]) != 0 if flags else np.zeros(m, dtype=bool)
+        good = ~bad
+        for f, c in cols.items():
+            finite = np.isfinite(np.asarray(table[c], dtype=np.float64)) if c else np.zeros(m, bool)
+            seen[f] |= bool((finite & ~bad).any())
+            good &= finite
+        n, flagged, usable = n + m, flagged + int(bad.sum()), usable + int(good.sum())
+    never = [f for f, ok in seen.items() if not ok] if n > flagged else []
+    return RowCounts(n, flagged, usable, never)
+
+
+def usable_findings(counts: RowCounts) -> list[Finding]:
+    """The finding (item ``rows``) of a catalog without a usable row, saying why: its flagged
+    rows, and the model features not finite in any unflagged row (a model that needs PSF
+    measurements given a catalog measured without a PSF); none when a row is usable."""
+    if counts.n_usable:
+        return []
+    if not counts.n_rows:
+        return [Finding("rows", "no usable row: the catalog has no row")]
+    why = f"{counts.n_flagged} flagged (flags != 0)"
+    rest = counts.n_rows - counts.n_flagged
+    if rest:
+        why += f", {rest} with a non-finite model feature"
+    if counts.never_finite:
+        why += f" ({', '.join(counts.never_finite)} not finite in any unflagged row"
+        if any(f in PSF_COLUMNS for f in counts.never_finite):
+            why += ": measure with a PSF"
+        why += ")"
+    return [
+        Finding("rows", f"no usable row: of all {counts.n_rows} rows, {why}; nothing to estimate")
+    ]
+
+
+def _usable(columns: Mapping[str, np.ndarray], features: Sequence[str]) -> np.ndarray:
+    """``flags == 0`` and every model feature finite, over the (sampled) domain columns."""
+    n = len(next(iter(columns.values()))) if columns else 0
+    good = np.asarray(columns["flags"]) == 0 if "flags" in columns else np.ones(n, dtype=bool)
     for f in features:
         if f in columns:
             good &= np.isfinite(np.asarray(columns[f], dtype=np.float64))
-    if not n:
-        return good, [Finding("rows", "no usable row: the catalog has no row")]
-    if good.any():
-        return good, []
-    nan = [f for f in features if _all_nan(columns, [f], ~flagged)] if (~flagged).any() else []
-    why = f"{int(flagged.sum())} flagged (flags != 0)"
-    if (~flagged).any():
-        why += f", {int((~flagged).sum())} with a non-finite model feature"
-    if nan:
-        why += f" ({', '.join(nan)} not finite in any unflagged row"
-        if any(f in PSF_COLUMNS for f in nan):
-            why += ": measure with a PSF"
-        why += ")"
-    rows = f"all {n} sampled rows" if n != n_rows else f"all {n} rows"
-    return good, [Finding("rows", f"no usable row: of {rows}, {why}; nothing to estimate")]
+    return good
 
 
 def setup_psf_columns(
@@ -633,25 +685,27 @@ def domain_report(
     (:func:`validation_findings`) is judged in any case."""
     trained = _trained_setup(model)
     domain, _ = applied_domain(model)
-    stamp = header.get("STAMPSZ")
-    extra = [*model.features, "box_size", *PSF_COLUMNS]
-    columns = domain_columns(
-        features_path, domain or {}, colnames, resolved, metacal, n_rows, extra
+    findings = usable_findings(
+        count_rows(features_path, model.features, colnames, resolved, metacal)
     )
-    rows, findings = usable_findings(columns, model.features, n_rows or 0)
     if findings:  # nothing to compare
         return findings + validation_findings(model.validation)
     setup = read_setup(features_path) if model.shear_mode != "metacal" else {}
-    if domain is not None and model.shear_mode != "metacal":
-        columns = {**columns, **setup_psf_columns(domain, columns, rows, setup)}
     if domain is not None:
-        findings += domain_findings(
-            domain,
-            columns,
-            int(stamp) if isinstance(stamp, (int, np.integer)) else None,
-            usable=rows,
-        )
-        findings += psf_findings(domain, columns, rows, setup)
+        extra = [*model.features, "box_size", *PSF_COLUMNS]
+        columns = domain_columns(features_path, domain, colnames, resolved, metacal, n_rows, extra)
+        rows = _usable(columns, model.features)
+        if model.shear_mode != "metacal":
+            columns = {**columns, **setup_psf_columns(domain, columns, rows, setup)}
+        if rows.any():  # (a sample of a large catalog may hold none)
+            stamp = header.get("STAMPSZ")
+            findings += domain_findings(
+                domain,
+                columns,
+                int(stamp) if isinstance(stamp, (int, np.integer)) else None,
+                usable=rows,
+            )
+            findings += psf_findings(domain, columns, rows, setup)
         trained.pop("stamp_size", None)
     if trained and model.shear_mode != "metacal":
         findings += setup_findings(trained, setup)
