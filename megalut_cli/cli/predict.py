@@ -80,14 +80,19 @@ def command(
     (MODELSHA). FEATURES '-' reads the catalog from stdin, -o - writes to stdout.
 
     Before predicting, the catalog is compared with the model's training domain: a
-    warning with the numbers for each of skymad, snr, adamom_sigma, adamom_flux,
-    psf_adamom_sigma (usable rows; noshear columns of a metacal catalog) whose median
-    lies outside the model's 1-99 % range or of which more than 10 % of the rows lie
-    outside its 0.5-99.5 % range, for a stamp size (STAMPSZ) other than the model's, and
-    for every item of the recorded setup (PSF, noise, gain) that differs; --strict
-    refuses such a catalog (exit 1, nothing written). The model's training population,
-    domain and recorded bias on real galaxies (when it carries one) are logged at info
-    level. MODEL may name a shipped model (--model fiducial).
+    warning with the numbers for each of skymad, snr, adamom_sigma, adamom_flux and the
+    PSF's psf_adamom_sigma, g1, g2 (usable rows; noshear columns of a metacal catalog)
+    whose median lies outside the model's 1-99 % range or of which more than 10 % of the
+    rows lie outside its 0.5-99.5 % range (a constant training PSF: its size within 1 %,
+    its ellipticity within 2e-4), for rows in (size, flux) cells the model has no training
+    rows in, for a stamp size (STAMPSZ, else MEDS box_size) other than the model's, for a
+    catalog without PSF measurement or without usable row, for a model whose recorded m is
+    outside the Stage IV requirement, and for every item of the recorded setup (PSF, noise,
+    gain) that differs. A metacal model is judged on snr and the size relative to the PSF
+    only (its response absorbs the PSF and the noise). --strict refuses such a catalog
+    (exit 1, one line, nothing written). The model's training population, domain and
+    recorded bias on real galaxies (when it carries one) are logged at info level. MODEL
+    may name a shipped model (--model fiducial).
 
     \b
     Example:

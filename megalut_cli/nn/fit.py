@@ -47,6 +47,8 @@ from megalut_cli.nn.defaults import DEFAULT_FEATURES, INIT_SCHEMES, POINT_COSTS,
 from megalut_cli.nn.domain import (
     DOMAIN_COLUMNS,
     DOMAIN_KEY,
+    PSF_COLUMNS,
+    PSF_G_TOLERANCE,
     PSF_SIZE_TOLERANCE,
     domain_record,
     with_constant_column,
@@ -369,7 +371,7 @@ def _file_domain(
         domain["source"] = Path(train).name
         if mode == "metacal":
             domain["version"] = "noshear"
-        if domain["stamp_size"] and "psf_adamom_sigma" not in domain.get("columns", {}):
+        if domain["stamp_size"] and not all(c in domain.get("columns", {}) for c in PSF_COLUMNS):
             psf = (population or {}).get("psf")
             if isinstance(psf, Mapping) and psf:
                 domain = config_psf_domain(domain, psf, int(domain["stamp_size"]))
@@ -379,20 +381,19 @@ def _file_domain(
 def config_psf_domain(
     domain: Mapping[str, Any], psf: Mapping[str, Any], stamp_size: int
 ) -> dict[str, Any]:
-    """``domain`` with the ``psf_adamom_sigma`` of a constant training PSF (the ``[psf]`` table
-    drawn as ``measure --psf`` sees it), when the training rows carry no PSF measurement."""
-    from megalut_cli.sim.psf import measured_psf_sigma  # GalSim: only when a PSF must be drawn
+    """``domain`` with the ``psf_adamom_sigma, psf_adamom_g1, psf_adamom_g2`` of a constant
+    training PSF (the ``[psf]`` table drawn as ``measure --psf`` sees it), for those the
+    training rows do not measure."""
+    from megalut_cli.sim.psf import measured_psf_shape  # GalSim: only when a PSF must be drawn
 
-    sigma = measured_psf_sigma(psf, stamp_size)
-    if sigma is None:
+    shape = measured_psf_shape(psf, stamp_size)
+    if shape is None:
         return dict(domain)
-    return with_constant_column(
-        domain,
-        "psf_adamom_sigma",
-        sigma,
-        PSF_SIZE_TOLERANCE,
-        "the training config's [psf], drawn with the pixel on the stamp and measured",
-    )
+    source = "the training config's [psf], drawn with the pixel on the stamp and measured"
+    out = with_constant_column(domain, "psf_adamom_sigma", shape[0], PSF_SIZE_TOLERANCE, source)
+    for column, value in zip(("psf_adamom_g1", "psf_adamom_g2"), shape[1:]):
+        out = with_constant_column(out, column, value, PSF_G_TOLERANCE, source, absolute=True)
+    return out
 
 
 def fit_point(

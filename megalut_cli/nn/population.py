@@ -30,6 +30,9 @@ from megalut_cli.sim.profiles import GALAXY_PROFILES
 REAL_BIAS_ATTR = "real_galaxy_bias"
 #: Keys a real-galaxy bias record must hold.
 REAL_BIAS_KEYS = ("dm_g1", "dm_g1_err", "dm_g2", "dm_g2_err", "scheme", "setup", "command")
+#: Attribute of ``/validation`` holding the model's own bias on a simulated validation set
+#: (JSON, :func:`record_simulated_bias`): ``m_g1, m_g1_err, m_g2, m_g2_err, c_g1, c_g2``...
+SIMULATED_BIAS_ATTR = "simulated_bias"
 #: What ``dm_g1, dm_g2`` of a record are unless it says (optional key ``quantity``): the paired
 #: real-vs-twin difference (docs/realgal.md); a metacal model records ``m_real`` itself.
 REAL_BIAS_QUANTITY = "m_real - m_twin"
@@ -218,6 +221,35 @@ def record_real_bias(model_path: str | os.PathLike, record: Mapping[str, Any]) -
     if missing:
         raise InputError(f"real-galaxy bias record: missing {', '.join(missing)}")
     _set_json_attr(model_path, "validation", REAL_BIAS_ATTR, dict(record))
+
+
+def simulated_bias_record(
+    evaluation: Mapping[str, Any], scheme: str = "weighted"
+) -> dict[str, Any]:
+    """The :data:`SIMULATED_BIAS_ATTR` record of an evaluation (the JSON of ``megalut evaluate
+    --json``, a run's ``evaluation.json``): m and c of each component with ``scheme``
+    (``weighted``, else ``unweighted``), its input's file name and rows."""
+    fits = evaluation.get(scheme) or evaluation.get("unweighted")
+    if not isinstance(fits, Mapping) or not all(
+        isinstance(fits.get(g), Mapping) for g in ("g1", "g2")
+    ):
+        raise InputError(f"evaluation: no m, c of g1 and g2 ({scheme} or unweighted)")
+    used = scheme if evaluation.get(scheme) else "unweighted"
+    record: dict[str, Any] = {"scheme": used}
+    for g in ("g1", "g2"):
+        for key in ("m", "c"):
+            record[f"{key}_{g}"] = float(fits[g][key])
+            record[f"{key}_{g}_err"] = float(fits[g][f"{key}_err"])
+    record["input"] = Path(str(evaluation.get("input", ""))).name
+    record["n_rows"] = evaluation.get("n_valid", evaluation.get("n_rows"))
+    return record
+
+
+def record_simulated_bias(model_path: str | os.PathLike, evaluation: Mapping[str, Any]) -> None:
+    """Store the model's bias on a simulated validation set (:func:`simulated_bias_record` of
+    ``evaluation``), in place but atomically; ``megalut predict`` reports a model whose
+    recorded |m| exceeds the Stage IV requirement."""
+    _set_json_attr(model_path, "validation", SIMULATED_BIAS_ATTR, simulated_bias_record(evaluation))
 
 
 def record_population(model_path: str | os.PathLike, population: Mapping[str, Any]) -> None:

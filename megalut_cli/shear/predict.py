@@ -38,11 +38,22 @@ from megalut_cli.catalog import (
 )
 from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.measure.metacal_defaults import STEP_CARD, TYPES
-from megalut_cli.nn.domain import Finding, domain_findings, model_domain
+from megalut_cli.nn.domain import (
+    METACAL_ITEMS,
+    PSF_COLUMNS,
+    UNITS,
+    Finding,
+    domain_findings,
+    mode_domain,
+    model_domain,
+    shown,
+)
 from megalut_cli.nn.model import ShearModel, prediction_column
+from megalut_cli.nn.population import REAL_BIAS_ATTR, SIMULATED_BIAS_ATTR
 from megalut_cli.nn.symmetry import predict_with_symmetry
 from megalut_cli.parallel import executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
+from megalut_cli.shear.bias import STAGE_IV_M
 from megalut_cli.shear.options import PREDICT
 from megalut_cli.shear.response import header_step
 
@@ -406,17 +417,16 @@ def domain_columns(
     resolved: Mapping[str, str] | None = None,
     metacal: bool = False,
     n_rows: int | None = None,
+    extra: Sequence[str] = (),
 ) -> dict[str, np.ndarray]:
-    """The catalog's columns of the model's ``domain`` and ``flags`` (only those, in one pass;
-    every k-th row of a catalog of more than :data:`MAX_DOMAIN_ROWS` rows), by their domain
-    names: a model feature through its ``resolved`` column, and for a metacal catalog the
-    ``noshear`` version's column where there is one."""
-    have = set(colnames)
+    """The catalog's columns of the model's ``domain``, ``flags`` and ``extra`` (only those, in
+    one pass; every k-th row of a catalog of more than :data:`MAX_DOMAIN_ROWS` rows), by their
+    domain names: a model feature through its ``resolved`` column, and for a metacal catalog
+    the ``noshear`` version's column where there is one."""
     wanted = {}
-    for c in [*domain.get("columns", {}), "flags"]:
-        base = (resolved or {}).get(c, c)
-        column = f"{base}_noshear" if metacal and f"{base}_noshear" in have else base
-        if column in have:
+    for c in dict.fromkeys([*domain.get("columns", {}), "flags", *extra]):
+        column = catalog_column(c, colnames, None if c == "flags" else resolved, metacal)
+        if column is not None:
             wanted[c] = column
     if not wanted:
         return {}
@@ -435,6 +445,225 @@ def domain_columns(
     return {c: np.concatenate(parts[column]) for c, column in wanted.items()}
 
 
+def _training_population(model: ShearModel) -> Mapping[str, Any] | None:
+    """The population the model records (its own training set's, else its parent's)."""
+    for prov in (model.provenance, model.provenance.get("parent")):
+        if isinstance(prov, Mapping) and isinstance(prov.get("population"), Mapping):
+            return prov["population"]
+    return None
+
+
+def applied_domain(model: ShearModel) -> tuple[dict[str, Any] | None, list[str]]:
+    """The domain ``predict`` compares catalogs with, and the recorded items it leaves out:
+    the model's (:func:`megalut_cli.nn.domain.model_domain`), with the stamp size of its setup
+    when the domain has none and, for a simulation-calibrated model trained on a constant PSF,
+    that PSF's measured size and ellipticity when the domain does not record them (models
+    recorded before); restricted to the items of the model's shear mode
+    (:func:`megalut_cli.nn.domain.mode_domain`)."""
+    domain = model_domain(model.provenance)
+    if domain is None:
+        return None, []
+    trained = _trained_setup(model)
+    if domain.get("stamp_size") is None and trained.get("stamp_size") is not None:
+        domain["stamp_size"] = trained["stamp_size"]
+    psf = (_training_population(model) or {}).get("psf")
+    recorded = domain.get("columns", {})
+    if (
+        model.shear_mode != "metacal"
+        and domain.get("stamp_size")
+        and isinstance(psf, Mapping)
+        and psf
+        and not all(c in recorded for c in PSF_COLUMNS)
+    ):
+        from megalut_cli.nn.fit import config_psf_domain  # GalSim: only to draw the PSF
+
+        domain = config_psf_domain(domain, psf, int(domain["stamp_size"]))
+    return mode_domain(domain, model.shear_mode)
+
+
+def _all_nan(columns: Mapping[str, np.ndarray], names: Sequence[str], rows: np.ndarray) -> bool:
+    """Whether none of ``names`` has a finite value in the rows ``rows`` (absent: none)."""
+    return not any(
+        np.isfinite(np.asarray(columns[c], dtype=np.float64)[rows]).any()
+        for c in names
+        if c in columns
+    )
+
+
+def catalog_column(
+    name: str, colnames: Sequence[str], resolved: Mapping[str, str] | None, metacal: bool
+) -> str | None:
+    """The catalog column of a domain item or model feature ``name``: through its
+    ``resolved`` column, the ``noshear`` version's in a metacal catalog; None when absent."""
+    base = (resolved or {}).get(name, name)
+    column = f"{base}_noshear" if metacal and f"{base}_noshear" in colnames else base
+    return column if column in colnames else None
+
+
+#: Rows per chunk of :func:`count_rows` (a few columns: small chunks keep its memory below
+#: predict's own).
+COUNT_CHUNK_ROWS = 10_000
+
+
+@dataclass
+class RowCounts:
+    """How many rows a catalog has, how many are flagged and how many usable (unflagged, every
+    model feature finite); the features not finite in any unflagged row."""
+
+    n_rows: int
+    n_flagged: int
+    n_usable: int
+    never_finite: list[str]
+
+
+def count_rows(
+    features_path: str | os.PathLike,
+    features: Sequence[str],
+    colnames: Sequence[str],
+    resolved: Mapping[str, str] | None = None,
+    metacal: bool = False,
+) -> RowCounts:
+    """:class:`RowCounts` of a catalog, read chunk by chunk (the flags and the features only)."""
+    flags = catalog_column("flags", colnames, None, metacal)
+    cols = {f: catalog_column(f, colnames, resolved, metacal) for f in features}
+    read = list(dict.fromkeys([*(c for c in cols.values() if c), *([flags] if flags else [])]))
+    n = flagged = usable = 0
+    seen = dict.fromkeys(features, False)
+    for table in iter_catalog(features_path, COUNT_CHUNK_ROWS, columns=read or None):
+        m = len(table)
+        bad = np.asarray(table[flags]) != 0 if flags else np.zeros(m, dtype=bool)
+        good = ~bad
+        for f, c in cols.items():
+            finite = np.isfinite(np.asarray(table[c], dtype=np.float64)) if c else np.zeros(m, bool)
+            seen[f] |= bool((finite & ~bad).any())
+            good &= finite
+        n, flagged, usable = n + m, flagged + int(bad.sum()), usable + int(good.sum())
+    never = [f for f, ok in seen.items() if not ok] if n > flagged else []
+    return RowCounts(n, flagged, usable, never)
+
+
+def usable_findings(counts: RowCounts) -> list[Finding]:
+    """The finding (item ``rows``) of a catalog without a usable row, saying why: its flagged
+    rows, and the model features not finite in any unflagged row (a model that needs PSF
+    measurements given a catalog measured without a PSF); none when a row is usable."""
+    if counts.n_usable:
+        return []
+    if not counts.n_rows:
+        return [Finding("rows", "no usable row: the catalog has no row")]
+    why = f"{counts.n_flagged} flagged (flags != 0)"
+    rest = counts.n_rows - counts.n_flagged
+    if rest:
+        why += f", {rest} with a non-finite model feature"
+    if counts.never_finite:
+        why += f" ({', '.join(counts.never_finite)} not finite in any unflagged row"
+        if any(f in PSF_COLUMNS for f in counts.never_finite):
+            why += ": measure with a PSF"
+        why += ")"
+    return [
+        Finding("rows", f"no usable row: of all {counts.n_rows} rows, {why}; nothing to estimate")
+    ]
+
+
+def _usable(columns: Mapping[str, np.ndarray], features: Sequence[str]) -> np.ndarray:
+    """``flags == 0`` and every model feature finite, over the (sampled) domain columns."""
+    n = len(next(iter(columns.values()))) if columns else 0
+    good = np.asarray(columns["flags"]) == 0 if "flags" in columns else np.ones(n, dtype=bool)
+    for f in features:
+        if f in columns:
+            good &= np.isfinite(np.asarray(columns[f], dtype=np.float64))
+    return good
+
+
+def setup_psf_columns(
+    domain: Mapping[str, Any],
+    columns: Mapping[str, np.ndarray],
+    rows: np.ndarray,
+    setup: Mapping[str, Any],
+) -> dict[str, np.ndarray]:
+    """For a catalog without PSF measurements whose setup records a constant PSF (a simulated
+    catalog's ``[psf]``): that PSF's ``psf_adamom_sigma, _g1, _g2`` as ``measure --psf`` would
+    find them on its stamp (every row), so that they are compared with the model's as measured
+    ones would be (the setup comparison ignores a key one side leaves to its default, such as
+    the ellipticity of a PSF sheared by ``g2``). Empty when the catalog measures its PSF, the
+    model records none or the setup has no drawable PSF."""
+    psf, stamp = setup.get("psf"), setup.get("stamp_size")
+    recorded = [c for c in PSF_COLUMNS if c in domain.get("columns", {})]
+    if not recorded or not isinstance(psf, Mapping) or not stamp:
+        return {}
+    if not _all_nan(columns, PSF_COLUMNS, rows):
+        return {}
+    from megalut_cli.sim.psf import measured_psf_shape  # GalSim: only to draw the PSF
+
+    shape = measured_psf_shape(psf, int(stamp))
+    if shape is None:
+        return {}
+    n = len(rows)
+    return {c: np.full(n, value) for c, value in zip(PSF_COLUMNS, shape)}
+
+
+def psf_findings(
+    domain: Mapping[str, Any],
+    columns: Mapping[str, np.ndarray],
+    rows: np.ndarray,
+    setup: Mapping[str, Any],
+) -> list[Finding]:
+    """One finding (item ``psf``) when the model's domain records the training PSF but the
+    catalog carries no PSF measurement (no finite ``psf_adamom_*`` in its usable rows) and
+    records no PSF in its setup: nothing shows that its PSF is the model's."""
+    recorded = [c for c in PSF_COLUMNS if c in domain.get("columns", {})]
+    if not recorded or "psf" in setup or not _all_nan(columns, PSF_COLUMNS, rows):
+        return []
+    trained = ", ".join(
+        f"{c} {shown(domain['columns'][c], domain['columns'][c]['q'][3])}{UNITS.get(c, '')}"
+        for c in recorded
+    )
+    return [
+        Finding(
+            "psf",
+            f"no PSF measurement ({', '.join(PSF_COLUMNS)} missing or NaN) and no recorded PSF: "
+            f"nothing shows the PSF is the model's (trained at {trained}); measure with a PSF "
+            "(--psf, --psf-model or the MEDS file's PSF cutouts)",
+        )
+    ]
+
+
+def validation_findings(validation: Mapping[str, Any]) -> list[Finding]:
+    """One finding (item ``validation``) per record of the model's own bias (its simulated
+    validation, :data:`megalut_cli.nn.population.SIMULATED_BIAS_ATTR`; a real-galaxy record
+    of the model's m, quantity ``m_real``) whose |m| of a component exceeds the Stage IV
+    requirement :data:`megalut_cli.shear.bias.STAGE_IV_M` (a real-galaxy record of ``m_real -
+    m_twin`` is a difference, not the model's m: not judged here, ``info`` tells it)."""
+    out = []
+    sim = validation.get(SIMULATED_BIAS_ATTR)
+    if isinstance(sim, Mapping):
+        m = {g: (sim.get(f"m_{g}"), sim.get(f"m_{g}_err")) for g in ("g1", "g2")}
+        what = f"simulated validation ({sim.get('scheme')}, {sim.get('input')})"
+        out += _stage_iv(m, what)
+    real = validation.get(REAL_BIAS_ATTR)
+    if isinstance(real, Mapping) and real.get("quantity") == "m_real":
+        m = {g: (real.get(f"dm_{g}"), real.get(f"dm_{g}_err")) for g in ("g1", "g2")}
+        out += _stage_iv(m, f"real galaxies ({real.get('scheme')})")
+    return out
+
+
+def _stage_iv(m: Mapping[str, tuple[Any, Any]], what: str) -> list[Finding]:
+    values = {
+        g: (float(v), float(e) if e is not None else float("nan"))
+        for g, (v, e) in m.items()
+        if isinstance(v, (int, float))
+    }
+    if not any(abs(v) > STAGE_IV_M for v, _ in values.values()):
+        return []
+    parts = ", ".join(f"m{g[1]} = {v:+.2e} ± {e:.1e}" for g, (v, e) in values.items())
+    return [
+        Finding(
+            "validation",
+            f"the model's recorded bias on its {what}: {parts}, outside the Stage IV "
+            f"requirement |m| < {STAGE_IV_M:.0e}",
+        )
+    ]
+
+
 def domain_report(
     model: ShearModel,
     features_path: str | os.PathLike,
@@ -445,26 +674,42 @@ def domain_report(
     metacal: bool = False,
     n_rows: int | None = None,
 ) -> list[Finding]:
-    """How the catalog ``features_path`` lies outside ``model``'s domain: the findings of
-    :func:`megalut_cli.nn.domain.domain_findings` on its usable rows (``flags == 0``; the
-    ``noshear`` columns of a metacal catalog) and stamp size (``STAMPSZ``; the model's from
-    its domain, else its recorded setup), and those of :func:`setup_findings` on the setups
-    both record (the stamp size once)."""
+    """How the catalog ``features_path`` lies outside ``model``'s domain
+    (:func:`applied_domain`, the items of its shear mode): no usable row (``flags == 0`` and
+    finite model features; the ``noshear`` columns of a metacal catalog) is one finding and
+    the only one of the catalog; else the findings of
+    :func:`megalut_cli.nn.domain.domain_findings` on its usable rows and stamp size
+    (``STAMPSZ``, else the ``box_size`` column), a missing PSF (:func:`psf_findings`) and,
+    for a simulation-calibrated model, those of :func:`setup_findings` on the setups both
+    record (the stamp size once). The model's own recorded bias
+    (:func:`validation_findings`) is judged in any case."""
     trained = _trained_setup(model)
-    domain = model_domain(model.provenance)
-    findings: list[Finding] = []
+    domain, _ = applied_domain(model)
+    findings = usable_findings(
+        count_rows(features_path, model.features, colnames, resolved, metacal)
+    )
+    if findings:  # nothing to compare
+        return findings + validation_findings(model.validation)
+    setup = read_setup(features_path) if model.shear_mode != "metacal" else {}
     if domain is not None:
-        if domain.get("stamp_size") is None and trained.get("stamp_size") is not None:
-            domain["stamp_size"] = trained["stamp_size"]
-        stamp = header.get("STAMPSZ")
-        columns = domain_columns(features_path, domain, colnames, resolved, metacal, n_rows)
-        findings += domain_findings(
-            domain, columns, int(stamp) if isinstance(stamp, (int, np.integer)) else None
-        )
+        extra = [*model.features, "box_size", *PSF_COLUMNS]
+        columns = domain_columns(features_path, domain, colnames, resolved, metacal, n_rows, extra)
+        rows = _usable(columns, model.features)
+        if model.shear_mode != "metacal":
+            columns = {**columns, **setup_psf_columns(domain, columns, rows, setup)}
+        if rows.any():  # (a sample of a large catalog may hold none)
+            stamp = header.get("STAMPSZ")
+            findings += domain_findings(
+                domain,
+                columns,
+                int(stamp) if isinstance(stamp, (int, np.integer)) else None,
+                usable=rows,
+            )
+            findings += psf_findings(domain, columns, rows, setup)
         trained.pop("stamp_size", None)
-    if trained:
-        findings += setup_findings(trained, read_setup(features_path))
-    return findings
+    if trained and model.shear_mode != "metacal":
+        findings += setup_findings(trained, setup)
+    return findings + validation_findings(model.validation)
 
 
 def check_domain(
@@ -483,13 +728,6 @@ def check_domain(
     """:func:`domain_report`, told: a warning per finding and one saying what they mean, or
     with ``strict`` an :class:`InputError` listing them (before anything is written)."""
     name = Path(model_path).name
-    if model_domain(model.provenance) is None:
-        log.info(
-            "%s records no domain (quantiles of its training rows): only its recorded setup is "
-            "compared with %s",
-            name,
-            features_path,
-        )
     findings = domain_report(
         model,
         features_path,
@@ -503,6 +741,22 @@ def check_domain(
         raise InputError(
             f"{features_path} lies outside the domain of {name} ({namer(names)('strict')}): "
             + "; ".join(map(str, findings))
+        )
+    if model_domain(model.provenance) is None:
+        log.info(
+            "%s records no domain (quantiles of its training rows): only its recorded setup is "
+            "compared with %s",
+            name,
+            features_path,
+        )
+    _, dropped = applied_domain(model)
+    if dropped:
+        log.info(
+            "%s is a metacal model: its response absorbs the PSF and the noise to first order, "
+            "so only %s are compared (not %s, nor the stamp size and the recorded setup)",
+            name,
+            " and ".join(METACAL_ITEMS),
+            ", ".join(d for d in dropped if d != "stamp_size"),
         )
     for f in findings:
         log.warning("%s: %s", features_path, f)

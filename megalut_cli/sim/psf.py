@@ -432,6 +432,15 @@ def measured_psf_sigma(spec: Mapping[str, Any], stamp_size: int) -> float | None
     with the pixel response on a ``stamp_size`` stamp; None for a PSF that varies (over the field,
     or with parameters drawn from distributions) or that cannot be built here (a star file
     that is not at hand)."""
+    shape = measured_psf_shape(spec, stamp_size)
+    return None if shape is None else shape[0]
+
+
+def measured_psf_shape(
+    spec: Mapping[str, Any], stamp_size: int
+) -> tuple[float, float, float] | None:
+    """``(sigma, g1, g2)``: the adaptive moments ``megalut measure --psf`` finds on this PSF
+    (``psf_adamom_sigma, psf_adamom_g1, psf_adamom_g2``), as :func:`measured_psf_sigma`."""
     import galsim
 
     if psf_varies(spec) or any(isinstance(v, Mapping) for v in spec.values()):
@@ -443,7 +452,10 @@ def measured_psf_sigma(spec: Mapping[str, Any], stamp_size: int) -> float | None
     method = "no_pixel" if psf_includes_pixel(spec) else "auto"
     image = prof.drawImage(nx=int(stamp_size), ny=int(stamp_size), scale=1.0, method=method)
     res = galsim.hsm.FindAdaptiveMom(image, strict=False)
-    return float(res.moments_sigma) if res.moments_status == 0 else None
+    if res.moments_status != 0:
+        return None
+    shape = res.observed_shape
+    return float(res.moments_sigma), float(shape.g1), float(shape.g2)
 
 
 def make_psf(
