@@ -43,6 +43,8 @@ COLUMNS: dict[str, tuple[str, str]] = {
     },
     "psf_g1": ("", "PSF ellipticity g1 at the object, in the frame of g1, g2 (SHFRAME)"),
     "psf_g2": ("", "PSF ellipticity g2 at the object, in the frame of g1, g2 (SHFRAME)"),
+    "n_epochs": ("", "epochs combined into the row (calibrate -o of measure --epochs)"),
+    "cutout": ("", "MEDS cutout index of the row (measure --epochs: one row per epoch)"),
     "noise_weight": ("adu", "pixel noise from the weight map: 1/sqrt(median weight)"),
     "n_masked": ("", "masked pixels of the stamp (bmask != 0 or weight 0; -1: no cutout)"),
     "g1": ("", "calibrated shear estimate g1 (megalut calibrate; for averages, not one object)"),

@@ -20,13 +20,22 @@ from megalut_cli import flags as fl
 from megalut_cli.catalog import history_steps, read_text_catalog
 from megalut_cli.errors import InputError
 from megalut_cli.fits_header import header_dict
+from megalut_cli.measure.meds import extra_columns, meds_extensions, read_meds
 from megalut_cli.nn.domain import domain_summary, model_domain
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.nn.population import domain_line, population_lines, population_summary
 from megalut_cli.nn.shipped import SHIPPED_MODELS, shipped_model
 from megalut_cli.pipeline.steps import MANIFEST_FORMAT
 from megalut_cli.provenance import sha256_file, shown_command, shown_path
-from megalut_cli.shear.frame import FRAME_CARD, FRAME_TEXT, PIXEL_FRAME, WORLD_FRAME, has_jacobian
+from megalut_cli.shear.frame import (
+    FRAME_CARD,
+    FRAME_TEXT,
+    JACOBIAN_COLUMNS,
+    PIXEL_FRAME,
+    WORLD_FRAME,
+    has_jacobian,
+    jacobian_frames,
+)
 from megalut_cli.shear.options import JSON_FORMAT as EVALUATION_FORMAT
 
 _FITS_MAGIC = b"SIMPLE  ="
@@ -60,6 +69,8 @@ def describe_file(path: str | os.PathLike) -> dict[str, Any]:
     with open(p, "rb") as f:
         magic = f.read(8)
     if magic == _FITS_MAGIC[:8]:
+        if meds_extensions(p):  # a MEDS file (or an incomplete one: read_meds says why)
+            return _describe_meds(p)
         return _describe_fits(p)
     if magic == _HDF5_MAGIC:
         return _describe_model(p)
@@ -311,6 +322,85 @@ def _shear_frame(colnames: list[str], header: dict[str, Any]) -> str | None:
     return PIXEL_FRAME
 
 
+def _describe_meds(p: Path) -> dict[str, Any]:
+    """A MEDS file, checked as ``measure`` reads it (:func:`megalut_cli.measure.meds.read_meds`:
+    required columns, every cutout inside its extensions): objects, cutouts, box and PSF
+    sizes, the maps it holds and what its Jacobians say about the frame."""
+    meds = read_meds(p)
+    obj = meds.objects
+    ncut = np.asarray(obj["ncutout"], dtype=np.int64)
+    used = np.arange(meds.n_max)[None, :] < ncut[:, None]
+    out: dict[str, Any] = {
+        "path": str(p),
+        "format": "MEDS cutout file",
+        "format_version": None,
+        "kind": "meds",
+        "objects": len(meds),
+        "cutouts": int(ncut.sum()),
+        "cutouts_per_object": {str(k): int(np.sum(ncut == k)) for k in np.unique(ncut)},
+        "first_is_coadd": meds.first_is_coadd(),
+        "box_sizes": {
+            str(int(b)): int(np.sum(obj["box_size"] == b)) for b in np.unique(obj["box_size"])
+        },
+        "maps": [k for k in ("weight", "bmask", "seg", "psf") if meds.has(k)],
+        "passed_columns": extra_columns(meds),
+        "cards": {},
+        "provenance": {"steps": []},
+    }
+    if meds.has("psf"):
+        shapes = np.stack([meds.psf_shapes(k) for k in range(meds.n_max)], axis=1)[used]
+        out["psf_sizes"] = sorted({f"{int(r)}x{int(c)}" for r, c in shapes})
+    if all(c in obj for c in JACOBIAN_COLUMNS):
+        jac = [np.asarray(obj[c], dtype=float)[used] for c in JACOBIAN_COLUMNS]
+        ok = np.all([np.isfinite(j) & (j > -9999.0) for j in jac], axis=0)
+        det = jac[0] * jac[3] - jac[1] * jac[2]
+        ok &= np.abs(det) > 1e-6 * sum(j * j for j in jac)
+        frames = jacobian_frames(*(j[ok] for j in jac)) if ok.any() else None
+        out["jacobians"] = {
+            "usable": int(ok.sum()),
+            "of": int(used.sum()),
+            **(
+                {
+                    "scale": [float(frames.scale.min()), float(frames.scale.max())],
+                    "turned": int(np.sum(np.abs(np.sin(frames.angle)) > 1e-6)),
+                    "flipped": int(np.sum(frames.parity < 0)),
+                    "max_distortion": float(np.hypot(*frames.distortion.T).max()),
+                }
+                if frames is not None
+                else {}
+            ),
+        }
+    return out
+
+
+def _meds_lines(info: dict[str, Any], fmt: str) -> list[str]:
+    per = ", ".join(f"{n} with {k}" for k, n in info["cutouts_per_object"].items())
+    boxes = ", ".join(f"{n} of {b} px" for b, n in info["box_sizes"].items())
+    lines = [
+        f"{info['path']}: {fmt}, {info['objects']} objects, {info['cutouts']} cutouts ({per})",
+        "cutout 0: " + ("the coadd" if info["first_is_coadd"] else "a single epoch (no coadd)"),
+        f"boxes: {boxes}",
+        f"maps: {', '.join(info['maps']) or 'images only'}"
+        + (f"; PSF cutouts {', '.join(info['psf_sizes'])}" if info.get("psf_sizes") else ""),
+    ]
+    jac = info.get("jacobians")
+    if jac is None:
+        lines.append("frame: no Jacobian columns: shears stay in the cutouts' pixel frame")
+    elif not jac["usable"]:
+        lines.append(f"frame: none of the {jac['of']} Jacobians is usable: pixel frame")
+    else:
+        lines.append(
+            f"frame: {jac['usable']} of {jac['of']} cutouts with a usable Jacobian "
+            f"(scale {jac['scale'][0]:.4g}–{jac['scale'][1]:.4g} per pixel, {jac['turned']} "
+            f"turned, {jac['flipped']} flipped, residual shear up to "
+            f"{jac['max_distortion']:.3g}): calibrate gives world-frame shears"
+        )
+    if info["passed_columns"]:
+        lines.append(f"passed through by measure: {', '.join(info['passed_columns'])}")
+    lines.append("valid: measure reads every cutout of it")
+    return lines
+
+
 def _image_dtype(hdu: Any) -> np.dtype:
     bitpix = {
         8: np.uint8,
@@ -560,7 +650,7 @@ def format_info(info: dict[str, Any]) -> str:
                 f"stamps: {info['stamps']} of {info['stamp_size']}x{info['stamp_size']} pixels "
                 f"in a {gx}x{gy} grid"
             )
-    elif kind in ("evaluation", "manifest", "text_catalog"):
+    elif kind in _OTHER_FORMATS:
         lines += _OTHER_FORMATS[kind](info, fmt)
         return "\n".join(lines)
     else:
@@ -720,6 +810,7 @@ def _text_catalog_lines(info: dict[str, Any], fmt: str) -> list[str]:
 
 
 _OTHER_FORMATS = {
+    "meds": _meds_lines,
     "evaluation": _evaluation_lines,
     "manifest": _manifest_lines,
     "text_catalog": _text_catalog_lines,

@@ -545,3 +545,30 @@ def test_incomplete_files_a_wrong_box_size_and_an_all_flagged_file(
     text = result.output + caplog.text
     assert "6 of 6 stamps flagged" in text and "--cutout" in text
     assert "--stamp-size" not in text and "--origin" not in text
+
+
+def test_info_validates_a_meds_file(runner, cli, tmp_path):
+    """``megalut info`` on a MEDS file: objects, cutouts, maps, PSF sizes and what the
+    Jacobians say (turned, flipped); an incomplete one is refused with one line (exit 1)."""
+    stamps, _ = galaxy_stamps(4)
+    turn = 0.2 * np.array([[0.0, -1.0], [1.0, 0.0]])
+    flip = 0.2 * np.diag([1.0, -1.0])
+    path = tmp_path / "j.meds.fits"
+    write_meds(
+        path,
+        [[s, s] for s in stamps],
+        weights=[[np.ones_like(s)] * 2 for s in stamps],
+        psfs=[[psf_image(), psf_image()]] * 4,
+        jacobians=[[0.2 * np.eye(2), turn], [0.2 * np.eye(2), flip]] * 2,
+        extra={"tru_g1": np.zeros(4)},
+    )
+    result = runner.invoke(cli, ["info", str(path)])
+    assert result.exit_code == 0, result.output
+    out = result.output
+    assert "4 objects, 8 cutouts" in out and "cutout 0: the coadd" in out
+    assert "maps: weight, psf; PSF cutouts 32x32" in out
+    assert "8 of 8 cutouts with a usable Jacobian" in out and "2 turned, 2 flipped" in out
+    assert "passed through by measure: tru_g1" in out
+    bad = tmp_path / "half.fits"
+    fitsio.write(str(bad), np.zeros(3, dtype=[("id", "i8")]), extname="object_data")
+    invoke_fails(runner, cli, ["info", str(bad)], 1, "incomplete MEDS file")

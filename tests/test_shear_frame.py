@@ -269,3 +269,98 @@ def test_grid_image_with_a_celestial_wcs(runner, cli, tmp_path):
     world = np.array(spin2_to_world(fr, cols["adamom_g1"], cols["adamom_g2"]))
     np.testing.assert_allclose(world, np.repeat(np.array(g)[:, None], 6, axis=1), atol=1e-5)
     assert np.abs(cols["adamom_g1"] - g[0]).max() > 0.01  # the pixel frame is not the world's
+
+
+def test_epochs_are_measured_and_combined(runner, cli, tmp_path):
+    """``measure --epochs`` on a MEDS file of a coadd and two epochs (the same galaxies,
+    the second epoch turned by a quarter turn and flipped, with its Jacobian): one row per
+    object and epoch with its own Jacobian; ``calibrate -o`` combines them into one row per
+    object, whose world-frame shear is the weighted mean of the epochs' (the two epochs agree
+    to rounding, d4 networks); the refusals of misused options."""
+    from helpers import invoke_fails
+
+    from megalut_cli.catalog import read_catalog_columns
+    from megalut_cli.measure.meds import write_meds
+
+    rng = np.random.default_rng(4)
+    n, size = 10, 32
+    psf = galsim.Gaussian(sigma=1.5)
+    stamps = np.empty((n, size, size))
+    for i in range(n):
+        gal = galsim.Exponential(half_light_radius=2.0, flux=3000.0).shear(
+            g1=rng.uniform(-0.3, 0.3), g2=rng.uniform(-0.3, 0.3)
+        )
+        stamps[i] = galsim.Convolve(gal, psf).drawImage(nx=size, ny=size, scale=1.0).array
+    stamps += rng.normal(0.0, 1.0, stamps.shape)
+    psf_stamp = psf.drawImage(nx=size, ny=size, scale=1.0).array
+    t = dihedral()[3]  # a quarter turn and a flip
+    turned = transformed(stamps, t)
+    turned_psf = transformed(psf_stamp[None], t)[0]
+    j0 = 0.2 * np.eye(2)
+    jac = np.array([[j0, j0, j0 @ np.linalg.inv(t)]] * n)
+    path = tmp_path / "ep.meds.fits"
+    write_meds(
+        path,
+        [[s, s, u] for s, u in zip(stamps, turned)],
+        weights=[[np.ones((size, size))] * 3] * n,
+        psfs=[[psf_stamp, psf_stamp, turned_psf]] * n,
+        jacobians=jac,
+        ra=rng.uniform(10, 11, n),
+        dec=rng.uniform(0, 1, n),
+    )
+    feats = tmp_path / "f.fits"
+    result = runner.invoke(cli, ["measure", str(path), "--epochs", "-o", str(feats)])
+    assert result.exit_code == 0, result.output
+    cols, header = read_catalog_columns(feats)
+    assert header["MEDSCUT"] == -1 and not header["MEDSCOAD"]
+    np.testing.assert_array_equal(cols["cutout"], np.tile([1, 2], n))
+    np.testing.assert_array_equal(cols["id"], np.repeat(np.arange(1, n + 1), 2))
+    np.testing.assert_allclose(cols["dudrow"][1::2], jac[:, 2, 0, 1])
+    pred = tmp_path / "p.fits"
+    result = runner.invoke(cli, ["predict", str(feats), "--model", "fiducial-d4", "-o", str(pred)])
+    assert result.exit_code == 0, result.output
+    cal = tmp_path / "c.fits"
+    result = runner.invoke(cli, ["calibrate", str(pred), "--errors", "bootstrap", "-o", str(cal)])
+    assert result.exit_code == 0, result.output
+    assert "epochs of" in result.output
+    out, _ = read_catalog_columns(cal)
+    usable = np.isin(np.arange(1, n + 1), out["id"])
+    assert usable.sum() >= n - 1 and np.all(out["n_epochs"] == 2)
+    rows, _ = read_catalog_columns(pred)
+    fr = jacobian_frames(*(rows[c] for c in ("dudcol", "dudrow", "dvdcol", "dvdrow")))
+    world = np.array(spin2_to_world(fr, rows["pre_g1"], rows["pre_g2"]))
+    np.testing.assert_allclose(world[:, 0::2], world[:, 1::2], atol=1e-5)  # the two epochs
+    keep = np.isin(rows["id"][0::2], out["id"])
+    np.testing.assert_allclose(out["g1"], world[0, 0::2][keep], atol=1e-5)
+
+    invoke_fails(
+        runner,
+        cli,
+        ["measure", str(path), "--epochs", "--cutout", "1", "-o", str(tmp_path / "x.fits")],
+        2,
+        "--cutout",
+        "--epochs",
+    )
+    grid = tmp_path / "grid.fits"
+    import fitsio
+
+    fitsio.write(str(grid), stamps[0].astype(np.float32))
+    invoke_fails(
+        runner,
+        cli,
+        ["measure", str(grid), "--stamp-size", "32", "--epochs", "-o", str(tmp_path / "y.fits")],
+        2,
+        "--epochs",
+        "MEDS",
+    )
+    coadd_only = tmp_path / "coadd.meds.fits"
+    write_meds(coadd_only, stamps.astype(np.float32))
+    invoke_fails(
+        runner,
+        cli,
+        ["measure", str(coadd_only), "--epochs", "-o", str(tmp_path / "z.fits")],
+        1,
+        "no single-epoch cutout",
+    )
+    for p in ("x.fits", "y.fits", "z.fits"):
+        assert not (tmp_path / p).exists()

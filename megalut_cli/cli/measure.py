@@ -53,6 +53,7 @@ from megalut_cli.measure.options import MEASURE
     "and --metacal.",
 )
 @schema_option(MEASURE["cutout"], show_default=True)
+@schema_option(MEASURE["epochs"])
 @schema_option(MEASURE["stars"])
 @feature_set_options(MEASURE)
 @schema_option(MEASURE["metacal"])
@@ -72,6 +73,7 @@ def command(
     psf: str | None,
     psf_model: str | None,
     cutout: int,
+    epochs: bool,
     stars: bool | None,
     metacal: bool,
     metacal_step: float,
@@ -119,7 +121,9 @@ def command(
     MASKED_PIXELS; noise_weight = 1/sqrt(median weight) gives the snr when the file
     has weight maps. The PSF: --psf (one for all objects), --psf-model (at each
     object's orig_col + 1, orig_row + 1), else the file's PSF cutouts
-    (docs/catalogs.md, MEDS input).
+    (docs/catalogs.md, MEDS input). The Jacobian of the measured cutout (dudcol, dudrow,
+    dvdcol, dvdrow) is passed through, so that megalut calibrate gives world-frame shears;
+    --epochs measures every single-epoch cutout, one row per object and epoch.
 
     \b
     Example (200 stamps):
@@ -165,5 +169,6 @@ def command(
             metacal_step=metacal_step,
             seed=seed,
             cutout=cutout,
+            epochs=epochs,
             psf_model_path=psf_model,
         )

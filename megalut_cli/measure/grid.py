@@ -491,11 +491,15 @@ def image_psf(psf_path: str, gal_info: ImageInfo, size: int, engine: str) -> Gri
 def check_request(request: MeasureRequest) -> None:
     """The arguments that apply to a grid image."""
     name = namer(request.names)
-    if request.cutout != MEASURE["cutout"].default:
-        raise ConfigError(
-            f"{name('cutout')} applies to MEDS files only; {request.stamps_path} is an image of "
-            "stamps"
-        )
+    for key, given in (
+        ("cutout", request.cutout != MEASURE["cutout"].default),
+        ("epochs", request.epochs),
+    ):
+        if given:
+            raise ConfigError(
+                f"{name(key)} applies to MEDS files only; {request.stamps_path} is an image of "
+                "stamps"
+            )
 
 
 @dataclass

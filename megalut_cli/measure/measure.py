@@ -92,6 +92,7 @@ def measure_file_columns(
     metacal_step: float = MEASURE["metacal_step"].default,
     seed: int = MEASURE["seed"].default,
     cutout: int = MEASURE["cutout"].default,
+    epochs: bool = MEASURE["epochs"].default,
     psf_model_path: str | os.PathLike | None = None,
     feature_sets: Sequence[str] = (),
     metacal_target: str = DEFAULT_TARGET,
@@ -133,6 +134,8 @@ def measure_file_columns(
         metacal_step: the shear step of ``metacal``.
         seed: seed of the fixnoise fields of ``metacal``.
         cutout: MEDS input: the cutout index measured.
+        epochs: MEDS input: every single-epoch cutout instead, one row per object and epoch
+            (column ``cutout``).
         psf_model_path: a PSF model of the exposure the stamps are cut from (a PSFEx ``.psf``
             file or a Piff model, :mod:`.psf_model`; not with ``psf_path``): each row's PSF is
             the model's at its position (the catalog's ``x, y``, else the stamp centre), drawn
@@ -176,6 +179,7 @@ def measure_file_columns(
         scheduler,
         progress,
         names,
+        epochs,
     )
     source = stamp_source_for(request.stamps_path)
     source.check(request)

@@ -81,7 +81,7 @@ from megalut_cli.measure.source_registry import (
 )
 from megalut_cli.measure.units import empty_columns, measure_units, n_units, workers
 from megalut_cli.progress import Progress
-from megalut_cli.provenance import CREATOR
+from megalut_cli.provenance import CREATOR, sha256_file
 from megalut_cli.shear.frame import JACOBIAN_COLUMNS
 
 log = logging.getLogger(__name__)
@@ -140,6 +140,7 @@ NO_CUTOUT_MASKED = -1
 CUTOUT_CARD = "MEDSCUT"
 COADD_CARD = "MEDSCOAD"
 FILE_CARD = "MEDSFILE"
+FILE_SHA_CARD = "MEDSSHA"
 
 
 class PsfDrawer(Protocol):
@@ -499,6 +500,7 @@ class MedsUnit:
     psf_model_path: str | None = None
     psf_model: PsfDrawer | None = None
     model_xy: np.ndarray | None = None
+    key_offset: int = 0
 
     def batch(self, settings: MeasureSettings) -> StampBatch:
         """The unit's cutouts with their masks, weights and PSFs."""
@@ -521,7 +523,7 @@ class MedsUnit:
             centres=self.centres,
             weights=stamps.weights,
             psfs=psfs,
-            fixnoise_keys=self.rows.astype(np.int64),
+            fixnoise_keys=self.rows.astype(np.int64) + self.key_offset,
         )
 
 
@@ -595,6 +597,47 @@ class MedsOptions:
     metacal_step: float = MEASURE["metacal_step"].default
     seed: int = MEASURE["seed"].default
     feature_sets: tuple[str, ...] = ()
+    epochs: bool = MEASURE["epochs"].default
+
+
+def epoch_cutouts(meds: MedsFile) -> list[int]:
+    """The single-epoch cutout indices some object has: all but cutout 0 when the file marks
+    it as a coadd."""
+    first = 1 if meds.first_is_coadd() else 0
+    ncut = np.asarray(meds.objects["ncutout"])
+    return [k for k in range(first, meds.n_max) if np.any(ncut > k)]
+
+
+def measure_epochs(
+    meds: MedsFile, options: MedsOptions | None = None, **kwargs: Any
+) -> dict[str, np.ndarray]:
+    """Every single-epoch cutout of every object (:func:`epoch_cutouts`), each measured by
+    :func:`measure_meds` with its own PSF, weight map and Jacobian: one row per object and
+    epoch, in object order then cutout order, with the cutout index in ``cutout``; objects
+    without any epoch have no row. ``kwargs``: those of :func:`measure_meds`."""
+    options = options or MedsOptions()
+    ks = epoch_cutouts(meds)
+    if not ks:
+        raise InputError(
+            f"{meds.path}: no single-epoch cutout to measure (each object has only "
+            f"{'the coadd' if meds.first_is_coadd() else 'no cutout'})"
+        )
+    ncut = np.asarray(meds.objects["ncutout"])
+    log.info("%s: measuring %d single-epoch cutout slot(s): %s", meds.path, len(ks), ks)
+    parts: list[dict[str, np.ndarray]] = []
+    rows: list[np.ndarray] = []
+    for k in ks:
+        has = ncut > k
+        cols = measure_meds(
+            meds, dataclasses.replace(options, cutout=k, epochs=False), missing="drop", **kwargs
+        )
+        part = {c: v[has] for c, v in cols.items()}
+        part["cutout"] = np.full(int(has.sum()), k, dtype=np.int32)
+        parts.append(part)
+        rows.append(np.flatnonzero(has))
+    order = np.argsort(np.concatenate(rows), kind="stable")  # object order, then cutout order
+    names = list(parts[0])
+    return {c: np.concatenate([p[c] for p in parts])[order] for c in names}
 
 
 def measure_meds(
@@ -606,6 +649,7 @@ def measure_meds(
     scheduler: str | None = None,
     progress: Progress | None = None,
     names: Names | None = None,
+    missing: str = "flag",
 ) -> dict[str, np.ndarray]:
     """The output columns of a MEDS file's objects, one row per object in file order: the
     :data:`PASSED_COLUMNS` and :data:`PASSED_CUTOUT_COLUMNS` it has, the features of its
@@ -614,7 +658,8 @@ def measure_meds(
     the model file ``options.psf_model_path`` (loaded in each worker), else the single PSF
     image ``options.psf_path``; with ``options.metacal``, the metacal columns (per-object PSF,
     fixnoise at ``noise_weight`` where there are weights, else ``skymad``). Objects without
-    the cutout get NO_CUTOUT and NaN features. ``options``: default :class:`MedsOptions`.
+    the cutout get NO_CUTOUT and NaN features (``missing="drop"``: the caller drops them,
+    and they are not reported). ``options``: default :class:`MedsOptions`.
     """
     options = options or MedsOptions()
     name = namer(names)
@@ -663,7 +708,7 @@ def measure_meds(
         what,
         int(has.sum()),
     )
-    if (~has).any():
+    if (~has).any() and missing == "flag":
         log.warning(
             "%s: %d object(s) without cutout %d: flagged NO_CUTOUT",
             meds.path,
@@ -744,6 +789,7 @@ def measure_meds(
             model_path,
             psf_model,
             model_xy[p] if source == "model" else None,
+            k * n,  # one fixnoise field per object and cutout
         )
         for p in pieces
     ]
@@ -854,6 +900,11 @@ def check_request(request: MeasureRequest) -> None:
             f"{request.stamps_path} is a MEDS file (each object has its box_size): leave out "
             f"{', '.join(wrong)}"
         )
+    if request.epochs and request.cutout != MEASURE["cutout"].default:
+        raise ConfigError(
+            f"give {name('cutout')} (one cutout) or {name('epochs')} (every single-epoch "
+            "cutout), not both"
+        )
 
 
 def measure_request(request: MeasureRequest) -> Measured:
@@ -870,6 +921,7 @@ def measure_request(request: MeasureRequest) -> Measured:
         metacal_step=settings.metacal.step if settings.metacal else MEASURE["metacal_step"].default,
         seed=settings.metacal.seed if settings.metacal else MEASURE["seed"].default,
         feature_sets=settings.feature_sets,
+        epochs=request.epochs,
     )
     if settings.device == "gpu":
         log.info(
@@ -877,7 +929,7 @@ def measure_request(request: MeasureRequest) -> Measured:
             namer(request.names)("device"),
         )
     meds = read_meds(request.stamps_path)
-    columns = measure_meds(
+    columns = (measure_epochs if options.epochs else measure_meds)(
         meds,
         options,
         nproc=request.nproc,
@@ -886,7 +938,8 @@ def measure_request(request: MeasureRequest) -> Measured:
         names=request.names,
     )
     flags = columns["flags"]
-    log.info("%d of %d objects flagged (features NaN)", int((flags != 0).sum()), len(flags))
+    what = "object cutouts" if options.epochs else "objects"
+    log.info("%d of %d %s flagged (features NaN)", int((flags != 0).sum()), len(flags), what)
     warn_if_mostly_flagged(
         flags,
         request.stamps_path,
@@ -896,9 +949,14 @@ def measure_request(request: MeasureRequest) -> Measured:
     boxes = np.unique(meds.objects["box_size"])
     cards: dict[str, Any] = {
         FILE_CARD: (os.path.basename(request.stamps_path), "MEDS file measured"),
-        CUTOUT_CARD: (int(options.cutout), "MEDS cutout index measured (0: coadd or first)"),
+        FILE_SHA_CARD: (sha256_file(request.stamps_path), "sha256 of the MEDS file"),
+        CUTOUT_CARD: (
+            (-1, "every single-epoch cutout (--epochs): column cutout")
+            if options.epochs
+            else (int(options.cutout), "MEDS cutout index measured (0: coadd or first)")
+        ),
         COADD_CARD: (
-            bool(options.cutout == 0 and meds.first_is_coadd()),
+            bool(not options.epochs and options.cutout == 0 and meds.first_is_coadd()),
             "the measured cutouts are coadds",
         ),
         "STAMPSZ": (int(boxes[0]), "stamp size [pixels]") if len(boxes) == 1 else None,

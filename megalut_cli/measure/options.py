@@ -57,6 +57,15 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         metavar="INDEX",
     ),
     Option(
+        "epochs",
+        "bool",
+        False,
+        "MEDS input: measure every single-epoch cutout of each object instead of one "
+        "(all but the coadd when the file has one), each with its own PSF, weight map and "
+        "Jacobian: one row per object and epoch, its index in the column cutout; megalut "
+        "calibrate combines them in the world frame.",
+    ),
+    Option(
         "stars",
         "bool",
         None,

@@ -38,6 +38,7 @@ class MeasureRequest:
     scheduler: str | None = None
     progress: Progress | None = None
     names: Names | None = None
+    epochs: bool = False
 
 
 @dataclass

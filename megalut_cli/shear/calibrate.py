@@ -83,6 +83,8 @@ MIN_PSF_SPREAD = 1e-4
 POSITION_COLUMNS = (("ra", "dec"), ("x", "y"))
 #: Columns passed through to the per-object catalog when the input has them.
 PASS_COLUMNS = ("id", "object_id", "number", "subfield", "case", "rea", "ra", "dec", "x", "y")
+#: The columns that make each row an epoch of an object (``measure --epochs``).
+EPOCH_COLUMNS = ("id", "cutout")
 #: Format of the per-object catalog of ``megalut calibrate -o``.
 CATALOG_FORMAT = "megalut.calibrated"
 #: Error methods.
@@ -108,6 +110,7 @@ class CalibrationPlan:
     errors: str
     has_flags: bool
     frame: str  # WORLD_FRAME with the per-object Jacobian columns, else PIXEL_FRAME
+    epochs: bool  # rows are epochs of objects (columns id and cutout, measure --epochs)
     columns: tuple[str, ...]
     pass_through: tuple[str, ...]
     names: dict[str, str] = field(default_factory=dict)
@@ -201,6 +204,7 @@ def plan_calibration(
         )
     has_flags = "flags" in have
     frame = WORLD_FRAME if has_jacobian(have) else PIXEL_FRAME
+    epochs = all(c in have for c in EPOCH_COLUMNS)
     if frame == WORLD_FRAME and by_versioned:
         log.warning(
             "%s: the bins of %s change between the sheared versions, which are pixel-frame "
@@ -210,6 +214,7 @@ def plan_calibration(
             by,
         )
     cols: list[str] = list(JACOBIAN_COLUMNS) if frame == WORLD_FRAME else []
+    cols += list(EPOCH_COLUMNS) if epochs else []
     if route == ROUTE_METACAL:
         cols += [*RESPONSE_COLUMNS, "flags_noshear"]
         cols += [f"{c}_{kind}" for kind in TYPES for c in ESTIMATE_COLUMNS]
@@ -241,6 +246,7 @@ def plan_calibration(
         errors,
         has_flags,
         frame,
+        epochs,
         tuple(dict.fromkeys(c for c in cols if c in have)),
         passed,
         given,
@@ -570,10 +576,12 @@ def _sample_errors(
     patches: np.ndarray | None,
     n_bootstrap: int,
     seed: int,
+    objects: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Errors of ``g``, ``alpha`` and ``additive`` per bin: the jackknife over ``patches``
     (``totals``: the sums of every object; objects without a patch are never left out) or
-    the bootstrap over objects (the response recomputed in every sample)."""
+    the bootstrap over objects (the response recomputed in every sample; ``objects``: the
+    object of each row, whose rows are drawn together)."""
     keys = ("g", "alpha", "additive") if plan.psf is not None else ("g",)
     if patches is not None:
         n_units = int(patches.max()) + 1 if patches.size and patches.max() >= 0 else 0
@@ -595,7 +603,11 @@ def _sample_errors(
                 sub = np.stack([vals[names[r]][involved[inside]] for r in rows])
                 parts.append((rows, k, inside, sub))
     boot: dict[str, list[np.ndarray]] = {k: [] for k in names}
-    for counts in resample_counts(seed, involved.size, n_bootstrap, STREAM_CALIBRATE):
+    group = np.arange(involved.size)
+    if objects is not None and involved.size:
+        group = np.unique(objects[involved], return_inverse=True)[1].ravel()
+    for drawn in resample_counts(seed, int(group.max()) + 1, n_bootstrap, STREAM_CALIBRATE):
+        counts = drawn[group]
         block = {k: np.zeros((n_bins, counts.shape[1])) for k in names}
         for rows, k, inside, sub in parts:
             # einsum: no BLAS threads, whose spinning costs more than it gains on busy cores
@@ -732,6 +744,9 @@ def calibrate_columns(
         raise ConfigError("calibrate needs at least 2 patches and 2 bootstrap resamples")
     obj = _objects(columns, plan)
     vals = _row_sums(obj, plan)
+    objects = None
+    if plan.epochs:
+        objects = np.unique(np.asarray(columns["id"]), return_inverse=True)[1].ravel()
     patches = None
     if plan.errors == JACKKNIFE and plan.positions is not None:
         a, b = (np.asarray(columns[c]) for c in plan.positions)
@@ -751,7 +766,9 @@ def calibrate_columns(
         n_b = len(binning.entries)
         totals = _totals(vals, binning.bins, n_b)
         est = _estimates({k: v[None] for k, v in totals.items()}, plan)
-        err = _sample_errors(vals, totals, binning.bins, n_b, plan, patches, n_bootstrap, seed)
+        err = _sample_errors(
+            vals, totals, binning.bins, n_b, plan, patches, n_bootstrap, seed, objects
+        )
         with_sel = est["R_sel"] is not None and (has_selection or (index > 0 and plan.by_versioned))
         for k in range(n_b):
             mean = est["R"][:, :, k]
@@ -808,6 +825,13 @@ def calibrate_columns(
         "psf_columns": list(plan.psf) if plan.psf is not None else None,
         "all": out_entries[0],
     }
+    if objects is not None:
+        usable = obj.valid[1] | obj.valid[2]
+        result["epochs"] = {
+            "rows": int(usable.sum()),
+            "objects": int(np.unique(objects[usable]).size),
+            "note": "rows are epochs of objects (measure --epochs): n_objects counts rows",
+        }
     if plan.by is not None:
         result["by"] = {"quantity": plan.by, "binning": binnings[1].kind}
         result["bins"] = out_entries[1:]
@@ -864,6 +888,8 @@ def calibrated_catalog(
             out[f"R{i}{j}"] = resp[:, i - 1, j - 1].astype(float)
     if cal.psf is not None:
         out["psf_g1"], out["psf_g2"] = cal.psf[0][keep], cal.psf[1][keep]
+    if cal.plan.epochs:
+        out = combine_epochs(out)
     cards: dict[str, Any] = {
         FRAME_CARD: (cal.plan.frame, "frame of g1, g2, R, psf_g: world (u, v) or pixel"),
         "CALROUTE": (cal.plan.route, "calibration: metacal responses or simulation-trained"),
@@ -883,6 +909,33 @@ def calibrated_catalog(
                         f"total response, {where}",
                     )
     return out, cards
+
+
+def combine_epochs(rows: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """One row per object (``id``) from the calibrated rows of its epochs: ``g1, g2`` and
+    ``psf_g1, psf_g2`` averaged with each component's weights, the weights summed (so that
+    averages over objects equal those over the epochs), ``n_epochs``; the other columns
+    (positions, the bin and its responses) from the object's first epoch."""
+    ids = np.asarray(rows["id"])
+    uniq, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    n = len(uniq)
+
+    def total(values: np.ndarray) -> np.ndarray:
+        return np.bincount(inverse, weights=values, minlength=n)
+
+    out = {c: np.asarray(v)[first] for c, v in rows.items() if c != "cutout"}
+    w = {i: np.asarray(rows[f"weight_g{i}"], dtype=float) for i in (1, 2)}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for i in (1, 2):
+            wi = total(w[i])
+            for c in (f"g{i}", f"psf_g{i}"):
+                if c in rows:
+                    out[c] = np.where(wi > 0, total(w[i] * rows[c]) / wi, np.nan)
+            out[f"weight_g{i}"] = wi
+    out["weight"] = 0.5 * (out["weight_g1"] + out["weight_g2"])
+    out["n_epochs"] = np.bincount(inverse, minlength=n).astype(np.int32)
+    return out
 
 
 def _pm(v: float | None, e: float | None) -> str:
@@ -941,6 +994,12 @@ def format_calibration(result: Mapping[str, Any]) -> str:
             f"errors: bootstrap over objects ({err['resamples']} resamples, seed {err['seed']})"
         )
     lines.append(f"frame: {FRAME_TEXT[result.get('frame', PIXEL_FRAME)]}")
+    if result.get("epochs"):
+        ep = result["epochs"]
+        lines.append(
+            f"rows: {ep['rows']} epochs of {ep['objects']} objects (measure --epochs), "
+            "combined in the world frame"
+        )
     if result["calibration"] == ROUTE_METACAL:
         lines.append("R = <R> + R_sel (mean and selection responses; --json has both)")
     return "\n".join(lines)
