@@ -108,8 +108,10 @@ PREDICT_OPTIONS: tuple[Option, ...] = (
         "bool",
         False,
         "Refuse (exit 1, nothing written) a catalog that lies outside the model's "
-        "training domain (skymad, snr, sizes, flux, stamp size, recorded setup) instead of "
-        "warning; docs/model-format.md.",
+        "training domain instead of warning: noise, snr, sizes, flux and their joint "
+        "coverage, the PSF's size and ellipticity, stamp sizes, recorded setup, no usable "
+        "row, no PSF measurement, a recorded bias beyond the Stage IV requirement (metacal "
+        "models: snr, resolution, usable rows and recorded bias only); docs/model-format.md.",
     ),
 )
 PREDICT = {o.name: o for o in PREDICT_OPTIONS}
