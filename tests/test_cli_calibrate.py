@@ -160,3 +160,22 @@ def test_a_real_process_reports_one_line(metacal, tmp_path):
     )
     assert proc.returncode == 1 and proc.stderr.strip().count("\n") == 0, proc.stderr
     assert proc.stderr.startswith("Error:") and proc.stdout == ""
+
+
+def test_plot(runner, cli, metacal, tmp_path):
+    """--plot draws the leakage and per-bin panels (a PNG of the expected size); a bad suffix
+    is a usage error before any work, and names clashing with --json are refused."""
+    from helpers import png_size
+
+    pytest.importorskip("matplotlib")
+    png = tmp_path / "cal.png"
+    result = runner.invoke(cli, ["calibrate", str(metacal), "--by", "tomo", "--plot", str(png)])
+    assert_ok(result)
+    assert png_size(png) == (1200, 360)
+    bad = runner.invoke(cli, ["calibrate", str(metacal), "--plot", str(tmp_path / "x.gif")])
+    assert bad.exit_code == 2 and "unsupported figure type" in bad.output
+    same = tmp_path / "same.png"
+    clash = runner.invoke(
+        cli, ["calibrate", str(metacal), "--json", str(same), "--plot", str(same)]
+    )
+    assert clash.exit_code == 2 and not same.exists()

@@ -268,3 +268,19 @@ def test_bad_inputs():
     flagged = dict(cat, flags_noshear=np.ones(500, dtype=np.int32))
     with pytest.raises(InputError, match="nothing to calibrate"):
         calibrate_columns(flagged)
+
+
+def test_psf_profile_follows_the_leakage():
+    """The binned calibrated shear against the PSF ellipticity (``psf_profile``, what
+    ``--plot`` draws) rises with the slope of a known leakage alpha = 0.5, and is flat
+    without leakage."""
+    for alpha in (0.5, 0.0):
+        cat = simulation_catalog(n=40_000, alpha=alpha, sigma=0.05, seed=4)
+        prof = calibrate_columns(cat).result["psf_profile"]
+        for comp in ("g1", "g2"):
+            e, g = np.array(prof[comp]["e_psf"]), np.array(prof[comp]["g"])
+            assert len(e) == 8 and sum(prof[comp]["n"]) == 40_000
+            slope = np.polyfit(e, g, 1)[0]
+            assert abs(slope - alpha) < 0.05, (alpha, comp, slope)
+            assert np.all(np.array(prof[comp]["g_err"]) < 1e-3)
+    assert "psf_profile" not in calibrate_columns(simulation_catalog(psf=False)).result

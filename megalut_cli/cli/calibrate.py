@@ -10,7 +10,7 @@ import click
 from megalut_cli.atomic import check_output, write_json
 from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.console import flag_names, is_stdio, stdin_path
-from megalut_cli.cli.options import overwrite_option, schema_option, seed_option
+from megalut_cli.cli.options import overwrite_option, plot_option, schema_option, seed_option
 from megalut_cli.shear.options import CALIBRATE
 
 
@@ -42,6 +42,10 @@ from megalut_cli.shear.options import CALIBRATE
     "calibrated g1, g2, weight, bin and its response R11 .. R22 (valid for averages, "
     "not for one object).",
 )
+@plot_option(
+    "the diagnostics: the calibrated shear in bins of the PSF ellipticity with the fitted "
+    "leakage, and the mean shear of each --by bin"
+)
 @overwrite_option
 def command(
     predictions: str,
@@ -55,6 +59,7 @@ def command(
     seed: int,
     json_path: str | None,
     output: str | None,
+    plot_path: str | None,
     overwrite: bool,
 ) -> None:
     """The calibrated mean shear of PREDICTIONS.fits, a catalog without truth.
@@ -71,7 +76,11 @@ def command(
     Errors: a delete-one jackknife over patches of the sky (ra, dec; else the image x, y),
     or a bootstrap over objects when the catalog has no positions; the response is
     recomputed in every sample. With the PSF ellipticity columns psf_adamom_g1,
-    psf_adamom_g2 the PSF leakage alpha is fitted too: calibrated g_i = alpha_i e_psf,i + c_i.
+    psf_adamom_g2 the PSF leakage alpha is fitted too: calibrated g_i = alpha_i e_psf,i + c_i
+    (--plot draws it). With each object's Jacobian (dudcol, dudrow, dvdcol, dvdrow: a MEDS
+    file's, or an image's celestial WCS) every estimate, response, weight and PSF ellipticity
+    is first turned to the world frame (u west, v north; header card SHFRAME); rows that are
+    epochs of one object (id and cutout: measure --epochs) are combined.
 
     The table goes to stdout (to stderr with --json -); -o writes the per-object catalog,
     each estimate calibrated by the response of its bin: valid for averages, not for one
@@ -82,7 +91,7 @@ def command(
     Example:
       megalut calibrate shears.fits
       megalut calibrate shears.fits --by snr --bins 3 --json cal.json
-      megalut calibrate shears.fits --by tomo_bin -o cal.fits
+      megalut calibrate shears.fits --by tomo_bin -o cal.fits --plot cal.png
       megalut calibrate shears.fits --select "snr > 10" \\
           --errors bootstrap --seed 2
     """
@@ -101,11 +110,16 @@ def command(
         raise click.BadParameter(
             "the catalog cannot go to stdout ('-'); name a file", param_hint="-o"
         )
-    for path in (json_path, output):
+    for path in (json_path, output, plot_path):
         if path is not None and not is_stdio(path):
             check_output(path, overwrite)
-    if json_path is not None and output is not None and json_path == output:
-        raise click.UsageError("--json and -o must name different files")
+    named = [p for p in (json_path, output, plot_path) if p is not None]
+    if len(set(named)) < len(named):
+        raise click.UsageError("--json, -o and --plot must name different files")
+    if plot_path is not None:
+        from megalut_cli.shear.plots import check_plot_output  # matplotlib: checked up front
+
+        check_plot_output(plot_path)
     from_stdin = is_stdio(predictions)
     path = click.get_current_context().with_resource(stdin_path(predictions))
     names = flag_names()
@@ -136,6 +150,10 @@ def command(
         sys.stdout.flush()
     elif json_path is not None:
         write_json(json_path, result, overwrite)
+    if plot_path is not None:
+        from megalut_cli.shear.plots import plot_calibration
+
+        plot_calibration(result, plot_path, overwrite)
     if output is not None:
         table, cards = calibrated_catalog(columns, cal)
         carried = {k: v for k, v in read_cards(path).items() if k != STEP_CARD}

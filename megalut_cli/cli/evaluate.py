@@ -13,27 +13,14 @@ from megalut_cli.cli.console import flag_names, is_stdio, stdin_path
 from megalut_cli.cli.options import (
     overwrite_option,
     parse_list,
+    plot_option,
     schema_option,
     seed_option,
 )
-from megalut_cli.errors import ArgumentValueError
 from megalut_cli.shear.options import EVALUATE, EVALUATE_CLI
 
 #: Exit code of ``--fail-above`` when the Stage IV requirement does not hold.
 EXIT_OUT_OF_TOLERANCE = 3
-
-
-def _plot_suffix(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
-    """``--plot``'s file type, checked while the options are read (a usage error, before any
-    work)."""
-    if value is not None:
-        from megalut_cli.shear.plots import check_plot_suffix  # SciPy, fitsio: not for --help
-
-        try:
-            check_plot_suffix(value)
-        except ArgumentValueError as err:
-            raise click.BadParameter(err.rest.lstrip(": "), ctx, param) from None
-    return value
 
 
 @click.command(
@@ -53,15 +40,7 @@ def _plot_suffix(ctx: click.Context, param: click.Parameter, value: str | None) 
     help="Write all results (and per-case averages) to this JSON file (layout: docs/evaluate.md); "
     "'-': stdout, the table then goes to stderr.",
 )
-@click.option(
-    "--plot",
-    "plot_path",
-    type=click.Path(dir_okay=False),
-    default=None,
-    callback=_plot_suffix,
-    help="Draw residual and conditional-bias panels into this .png/.pdf/.svg (needs matplotlib: "
-    "pip install matplotlib).",
-)
+@plot_option("residual and conditional-bias panels")
 @schema_option(
     EVALUATE_CLI["fail_above"],
     help=EVALUATE_CLI["fail_above"].help.replace("EXIT", str(EXIT_OUT_OF_TOLERANCE)),

@@ -87,6 +87,32 @@ def output_option(help: str = "Output file.", dash: bool = False) -> Callable[[F
     )
 
 
+def _plot_suffix(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
+    """``--plot``'s file type, checked while the options are read (a usage error, before any
+    work)."""
+    if value is not None:
+        from megalut_cli.errors import ArgumentValueError
+        from megalut_cli.shear.plots import check_plot_suffix  # SciPy, fitsio: not for --help
+
+        try:
+            check_plot_suffix(value)
+        except ArgumentValueError as err:
+            raise click.BadParameter(err.rest.lstrip(": "), ctx, param) from None
+    return value
+
+
+def plot_option(what: str) -> Callable[[F], F]:
+    """``--plot PATH``: draw ``what`` into a .png/.pdf/.svg (its type checked up front)."""
+    return click.option(
+        "--plot",
+        "plot_path",
+        type=click.Path(dir_okay=False),
+        default=None,
+        callback=_plot_suffix,
+        help=f"Draw {what} into this .png/.pdf/.svg (needs matplotlib: pip install matplotlib).",
+    )
+
+
 def execution_options(f: F) -> F:
     """``-j/--nproc`` and ``--scheduler`` (mutually exclusive; :mod:`megalut_cli.parallel`)."""
     f = schema_option(SCHEDULER_OPTION)(f)

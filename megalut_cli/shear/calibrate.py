@@ -825,6 +825,20 @@ def calibrate_columns(
         "psf_columns": list(plan.psf) if plan.psf is not None else None,
         "all": out_entries[0],
     }
+    bin_of = binnings[-1].bins["noshear"] if plan.by is not None else np.zeros(obj.n, np.int64)
+    cal = Calibration(
+        result,
+        plan,
+        np.array(responses),
+        obj.valid[1] & obj.valid[2],
+        bin_of,
+        obj.pre,
+        obj.weight,
+        obj.psf,
+    )
+    profile = psf_profile(cal)
+    if profile is not None:
+        result["psf_profile"] = profile
     if objects is not None:
         usable = obj.valid[1] | obj.valid[2]
         result["epochs"] = {
@@ -835,17 +849,7 @@ def calibrate_columns(
     if plan.by is not None:
         result["by"] = {"quantity": plan.by, "binning": binnings[1].kind}
         result["bins"] = out_entries[1:]
-    bin_of = binnings[-1].bins["noshear"] if plan.by is not None else np.zeros(obj.n, np.int64)
-    return Calibration(
-        result,
-        plan,
-        np.array(responses),
-        obj.valid[1] & obj.valid[2],
-        bin_of,
-        obj.pre,
-        obj.weight,
-        obj.psf,
-    )
+    return cal
 
 
 def calibrated_catalog(
@@ -909,6 +913,45 @@ def calibrated_catalog(
                         f"total response, {where}",
                     )
     return out, cards
+
+
+#: Equal-population bins of the PSF ellipticity in the leakage profile.
+PROFILE_BINS = 8
+
+
+def psf_profile(cal: Calibration, n_bins: int = PROFILE_BINS) -> dict[str, Any] | None:
+    """The calibrated mean shear in equal-population bins of the PSF ellipticity, per
+    component (the picture behind ``alpha``): each bin's weighted mean ``e_psf``, ``g`` (the
+    estimates times the whole catalog's inverse total response), its error (the weighted
+    scatter over sqrt of the effective count) and its objects; None without PSF columns."""
+    if cal.psf is None:
+        return None
+    r = cal.responses[0]
+    if not np.all(np.isfinite(r)) or abs(np.linalg.det(r)) == 0:
+        return None
+    g = np.linalg.solve(r, np.stack([cal.estimates[1], cal.estimates[2]]))
+    out: dict[str, Any] = {}
+    for i in (1, 2):
+        e, w = np.asarray(cal.psf[i - 1], dtype=float), cal.weights[i]
+        use = cal.rows & np.isfinite(e) & (w > 0)
+        if not use.any() or np.std(e[use]) <= MIN_PSF_SPREAD:
+            return None
+        b = np.full(len(e), -1)
+        b[use] = assign_bins(e[use], equal_population_edges(e[use], n_bins))
+        entry: dict[str, list[Any]] = {"e_psf": [], "g": [], "g_err": [], "n": []}
+        for k in range(int(b.max()) + 1):
+            inside = b == k
+            wk, gk = w[inside], g[i - 1][inside]
+            total = wk.sum()
+            mean = float(np.sum(wk * gk) / total)
+            n_eff = total**2 / np.sum(wk * wk)
+            scatter = np.sqrt(np.sum(wk * (gk - mean) ** 2) / total)
+            entry["e_psf"].append(float(np.sum(wk * e[inside]) / total))
+            entry["g"].append(mean)
+            entry["g_err"].append(float(scatter / np.sqrt(n_eff)))
+            entry["n"].append(int(inside.sum()))
+        out[f"g{i}"] = entry
+    return out
 
 
 def combine_epochs(rows: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -225,3 +225,73 @@ def evaluation_figure(result: Mapping[str, Any]) -> Any:
         handles, labels, loc="outside lower center", ncol=len(labels), fontsize=8, frameon=False
     )
     return fig
+
+
+def plot_calibration(
+    result: Mapping[str, Any], path: str | os.PathLike, overwrite: bool = False
+) -> Path:
+    """Draw the diagnostics of a calibration (from :mod:`.calibrate`) into ``path``."""
+    check_plot_output(path)
+    fig = calibration_figure(result)
+    fmt = _FORMATS[Path(path).suffix.lower()]
+    with atomic_output(path, overwrite) as tmp:
+        fig.savefig(tmp, format=fmt, dpi=100)
+    return Path(path)
+
+
+def calibration_figure(result: Mapping[str, Any]) -> Any:
+    """The diagnostics of a calibration without truth: per component the calibrated mean
+    shear in bins of the PSF ellipticity with the fitted leakage ``g = alpha e_psf + c``
+    (with PSF columns), and the mean shear of each ``--by`` bin (with ``--by``)."""
+    Figure = _figure_class()
+    profile = result.get("psf_profile")
+    bins = result.get("bins") or []
+    panels = (2 if profile else 0) + (1 if bins else 0) or 1
+    fig = Figure(figsize=(4.0 * panels, 3.6), layout="constrained")
+    axes = fig.subplots(1, panels, squeeze=False)[0]
+    whole = result["all"]
+    k = 0
+    if profile:
+        for i, comp in enumerate(("g1", "g2")):
+            ax, p = axes[k], profile[comp]
+            e = _arr(p["e_psf"])
+            ax.errorbar(e, _arr(p["g"]), yerr=_arr(p["g_err"]), fmt="o", ms=4, label="binned")
+            alpha, add = whole["alpha"][i], whole["additive"][i]
+            if alpha is not None and add is not None:
+                xs = np.linspace(e.min(), e.max(), 2)
+                a_err = whole["alpha_err"][i]
+                ax.plot(xs, add + alpha * xs, "-", label=f"alpha = {_fmt(alpha, a_err)}")
+            ax.axhline(whole[comp], color="0.5", lw=0.8, ls="--", label="mean")
+            ax.set_xlabel(f"PSF e{i + 1} ({result.get('frame', 'pixel')} frame)")
+            ax.set_ylabel(f"calibrated {comp}")
+            ax.legend(fontsize=7)
+            k += 1
+    if bins or not profile:
+        ax = axes[k]
+        entries = bins or [whole]
+        x = np.arange(len(entries))
+        for j, comp in enumerate(("g1", "g2")):
+            ax.errorbar(
+                x + (j - 0.5) * 0.15,
+                _arr([b[comp] for b in entries]),
+                yerr=_arr([b[f"{comp}_err"] for b in entries]),
+                fmt="o",
+                ms=4,
+                label=comp,
+            )
+        labels = [
+            str(b["value"]) if "value" in b else (f"{b['center']:.3g}" if "center" in b else "all")
+            for b in entries
+        ]
+        ax.set_xticks(x, labels, fontsize=7)
+        by = (result.get("by") or {}).get("quantity")
+        ax.set_xlabel(f"bin of {by}" if by else "whole catalog")
+        ax.set_ylabel("calibrated mean shear")
+        ax.axhline(0.0, color="0.5", lw=0.8)
+        ax.legend(fontsize=7)
+    fig.suptitle(
+        f"{Path(str(result.get('input', ''))).name}: {result['calibration']} route, "
+        f"{result['scheme']}, {result.get('frame', 'pixel')} frame",
+        fontsize=10,
+    )
+    return fig
