@@ -572,3 +572,25 @@ def test_info_validates_a_meds_file(runner, cli, tmp_path):
     bad = tmp_path / "half.fits"
     fitsio.write(str(bad), np.zeros(3, dtype=[("id", "i8")]), extname="object_data")
     invoke_fails(runner, cli, ["info", str(bad)], 1, "incomplete MEDS file")
+
+
+def test_meds_and_info_read_stdin(runner, cli, tmp_path):
+    """A MEDS file piped into ``measure -`` and ``info -`` is read as from a file; STAMPS and
+    CATALOG cannot both be stdin."""
+    stamps, _ = galaxy_stamps(3)
+    path = tmp_path / "s.meds.fits"
+    write_meds(path, stamps, weights=np.ones_like(stamps))
+    data = path.read_bytes()
+    info = runner.invoke(cli, ["info", "-"], input=data)
+    assert info.exit_code == 0, info.output
+    assert info.output.startswith("stdin: MEDS cutout file, 3 objects")
+    measured = runner.invoke(cli, ["measure", "-", "-o", "-"], input=data)
+    assert measured.exit_code == 0, measured.output
+    direct = tmp_path / "f.fits"
+    assert runner.invoke(cli, ["measure", str(path), "-o", str(direct)]).exit_code == 0
+    piped = tmp_path / "p.fits"
+    piped.write_bytes(measured.stdout_bytes)
+    a, _ = read_catalog_columns(piped)
+    b, _ = read_catalog_columns(direct)
+    np.testing.assert_array_equal(a["adamom_g1"], b["adamom_g1"])
+    invoke_fails(runner, cli, ["measure", "-", "-", "-o", str(tmp_path / "x.fits")], 2, "stdin")

@@ -6,11 +6,12 @@ from __future__ import annotations
 import click
 
 from megalut_cli.cli.commands import short_help
-from megalut_cli.cli.options import MODEL_FILE
+from megalut_cli.cli.console import is_stdio, stdin_path
+from megalut_cli.cli.options import MODEL_FILE_OR_STDIN
 
 
 @click.command("info", short_help=short_help("info"))
-@click.argument("file", type=MODEL_FILE, required=False)
+@click.argument("file", type=MODEL_FILE_OR_STDIN, required=False)
 @click.option(
     "--json", "as_json", is_flag=True, help="Print the summary as JSON (layout: docs/catalogs.md)."
 )
@@ -39,6 +40,9 @@ def command(file: str | None, as_json: bool, list_models: bool) -> None:
     requirement. A run's manifest.json: the pipeline file and overrides, every finished
     step with its time and products. A text catalog (GREAT3's galaxy_catalog-SSS.txt,
     star_catalog-SSS.txt; '# name' header lines): rows, columns, subfields, x/y ranges.
+    A MEDS file: checked as measure reads it (every cutout inside its extensions), with
+    its objects, cutouts per object, box and PSF sizes, maps, and its Jacobians (turned,
+    flipped, residual shear: the frame calibrate will give). FILE '-' reads stdin.
 
     \b
     Example:
@@ -50,6 +54,8 @@ def command(file: str | None, as_json: bool, list_models: bool) -> None:
       megalut info megalut-run/manifest.json
       megalut info megalut-run/evaluation.json
       megalut info galaxy_catalog-000.txt
+      megalut info objects.meds.fits
+      megalut measure stamps.fits cat.fits -o - | megalut info -
     """
     import json
 
@@ -66,5 +72,9 @@ def command(file: str | None, as_json: bool, list_models: bool) -> None:
         models = describe_shipped_models()
         click.echo(json.dumps(models, indent=1) if as_json else format_shipped_models(models))
         return
-    info = describe_file(file)
+    with stdin_path(file, "file") as path:
+        assert path is not None
+        info = describe_file(path)
+    if is_stdio(file):
+        info["path"] = "stdin"
     click.echo(json.dumps(info, indent=1, default=str) if as_json else format_info(info))

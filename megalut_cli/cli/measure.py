@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from megalut_cli.cli.commands import short_help
-from megalut_cli.cli.console import flag_names, stdin_path, stdout_path
+from megalut_cli.cli.console import flag_names, is_stdio, stdin_path, stdout_path
 from megalut_cli.cli.options import (
     device_option,
     engine_option,
@@ -25,7 +25,7 @@ from megalut_cli.measure.options import MEASURE
     "measure",
     short_help=short_help("measure"),
 )
-@click.argument("stamps", type=click.Path(exists=True, dir_okay=False))
+@click.argument("stamps", type=click.Path(exists=True, dir_okay=False, allow_dash=True))
 @click.argument(
     "catalog", required=False, type=click.Path(exists=True, dir_okay=False, allow_dash=True)
 )
@@ -100,7 +100,8 @@ def command(
     from the stamp centre, non-positive flux, stamp off the image, NaN pixels) have NaN
     features. A CATALOG whose provenance cards (SEED, CFGSHA, NCASES, NREA, NSTAMPX, STAMPSZ)
     disagree with the image's, or a --stamp-size that contradicts its STAMPSZ card, is
-    refused. CATALOG '-' reads a FITS catalog from stdin; -o - writes to stdout. With --morphology,
+    refused. CATALOG '-' reads a FITS catalog from stdin (or STAMPS '-' a stamp image or a
+    MEDS file); -o - writes to stdout. With --morphology,
     morph_conc, morph_conc_inner and morph_size_ratio are added. With --psf-model (a PSFEx
     .psf file or a Piff model of the exposure STAMPS is, or is cut from, pixel for pixel),
     each row's PSF is the model's at its position, drawn in the exposure's pixels on a stamp
@@ -147,9 +148,16 @@ def command(
 
     device = resolve_device(device)
 
-    with stdin_path(catalog) as catalog_path, stdout_path(output) as output_path:
+    if is_stdio(stamps) and is_stdio(catalog):
+        raise click.UsageError("STAMPS and CATALOG cannot both be read from stdin ('-')")
+    with (
+        stdin_path(stamps, "stamps file") as stamps_path,
+        stdin_path(catalog) as catalog_path,
+        stdout_path(output) as output_path,
+    ):
+        assert stamps_path is not None
         measure_file_columns(
-            stamps,
+            stamps_path,
             catalog_path,
             output_path,
             stamp_size=stamp_size,

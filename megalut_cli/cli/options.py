@@ -290,9 +290,12 @@ class ModelFile(click.ParamType):
 
     name = "model"
 
+    def __init__(self, allow_dash: bool = False) -> None:
+        self.allow_dash = allow_dash
+
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
         text = os.fspath(value)
-        if Path(text).is_file():
+        if Path(text).is_file() or (self.allow_dash and text == "-"):
             return text
         if text in SHIPPED_MODELS:
             try:
@@ -309,6 +312,8 @@ class ModelFile(click.ParamType):
 
 #: The click type of a model argument: a file or a shipped model's name.
 MODEL_FILE = ModelFile()
+#: The same, or ``-`` for stdin (``megalut info``).
+MODEL_FILE_OR_STDIN = ModelFile(allow_dash=True)
 
 
 def model_help(help: str) -> str:
