@@ -30,6 +30,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "megalut_cli.cli.calibrate",
         "Calibrated mean shear (and PSF leakage) of a catalog without truth.",
     ),
+    "concat": (
+        "megalut_cli.cli.concat",
+        "Concatenate the catalogs of many tiles, their provenance checked.",
+    ),
     "run": ("megalut_cli.cli.run", "Run a whole pipeline: simulate, train, predict, evaluate."),
     "draft": (
         "megalut_cli.cli.draft",

@@ -35,6 +35,7 @@ import numpy as np
 
 from megalut_cli import expr
 from megalut_cli.catalog import VersionColumns
+from megalut_cli.concat import TILE_COLUMN
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, TYPES
 from megalut_cli.seeding import STREAM_CALIBRATE
@@ -82,7 +83,19 @@ MIN_PSF_SPREAD = 1e-4
 #: Position columns, in order of preference: on the sky (degrees), else on the image.
 POSITION_COLUMNS = (("ra", "dec"), ("x", "y"))
 #: Columns passed through to the per-object catalog when the input has them.
-PASS_COLUMNS = ("id", "object_id", "number", "subfield", "case", "rea", "ra", "dec", "x", "y")
+PASS_COLUMNS = (
+    "tile",
+    "id",
+    "object_id",
+    "number",
+    "subfield",
+    "case",
+    "rea",
+    "ra",
+    "dec",
+    "x",
+    "y",
+)
 #: The columns that make each row an epoch of an object (``measure --epochs``).
 EPOCH_COLUMNS = ("id", "cutout")
 #: Format of the per-object catalog of ``megalut calibrate -o``.
@@ -214,7 +227,7 @@ def plan_calibration(
             by,
         )
     cols: list[str] = list(JACOBIAN_COLUMNS) if frame == WORLD_FRAME else []
-    cols += list(EPOCH_COLUMNS) if epochs else []
+    cols += [*EPOCH_COLUMNS, TILE_COLUMN] if epochs else []
     if route == ROUTE_METACAL:
         cols += [*RESPONSE_COLUMNS, "flags_noshear"]
         cols += [f"{c}_{kind}" for kind in TYPES for c in ESTIMATE_COLUMNS]
@@ -744,9 +757,7 @@ def calibrate_columns(
         raise ConfigError("calibrate needs at least 2 patches and 2 bootstrap resamples")
     obj = _objects(columns, plan)
     vals = _row_sums(obj, plan)
-    objects = None
-    if plan.epochs:
-        objects = np.unique(np.asarray(columns["id"]), return_inverse=True)[1].ravel()
+    objects = object_index(columns) if plan.epochs else None
     patches = None
     if plan.errors == JACKKNIFE and plan.positions is not None:
         a, b = (np.asarray(columns[c]) for c in plan.positions)
@@ -954,15 +965,25 @@ def psf_profile(cal: Calibration, n_bins: int = PROFILE_BINS) -> dict[str, Any] 
     return out
 
 
+def object_index(columns: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Each row's object, numbered from 0: its ``id``, within its ``tile`` when the catalog
+    has one (``megalut concat``)."""
+    keys = [np.asarray(columns["id"])]
+    if TILE_COLUMN in columns:
+        keys.insert(0, np.asarray(columns[TILE_COLUMN]))
+    stacked = np.stack([k.astype(np.int64) for k in keys], axis=1)
+    return np.unique(stacked, axis=0, return_inverse=True)[1].ravel()
+
+
 def combine_epochs(rows: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """One row per object (``id``) from the calibrated rows of its epochs: ``g1, g2`` and
     ``psf_g1, psf_g2`` averaged with each component's weights, the weights summed (so that
     averages over objects equal those over the epochs), ``n_epochs``; the other columns
     (positions, the bin and its responses) from the object's first epoch."""
-    ids = np.asarray(rows["id"])
-    uniq, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
-    inverse = inverse.ravel()
-    n = len(uniq)
+    inverse = object_index(rows)
+    n = int(inverse.max()) + 1 if inverse.size else 0
+    first = np.full(n, len(inverse))
+    np.minimum.at(first, inverse, np.arange(len(inverse)))
 
     def total(values: np.ndarray) -> np.ndarray:
         return np.bincount(inverse, weights=values, minlength=n)
