@@ -284,3 +284,22 @@ def test_psf_profile_follows_the_leakage():
             assert abs(slope - alpha) < 0.05, (alpha, comp, slope)
             assert np.all(np.array(prof[comp]["g_err"]) < 1e-3)
     assert "psf_profile" not in calibrate_columns(simulation_catalog(psf=False)).result
+
+
+def test_bins_of_sky_patches():
+    """``--by patch``: about --bins patches of the sky, each with its bootstrap error and
+    its median position; every patch's shear within 4 sigma of the truth; a jackknife or a
+    catalog without positions refused."""
+    cat = metacal_predictions(n=20_000, seed=8, ring=1)
+    res = calibrate_columns(cat, by="patch", bins=4, n_bootstrap=50).result
+    assert res["by"]["binning"] == "patch" and res["errors"]["method"] == "bootstrap"
+    assert len(res["bins"]) == 4 and sum(b["n_objects"] for b in res["bins"]) == 20_000
+    for b in res["bins"]:
+        assert {"value", "ra", "dec"} <= set(b)
+        assert abs(b["g1"] - 0.02) < 4 * b["g1_err"] and abs(b["g2"] + 0.01) < 4 * b["g2_err"]
+    assert "patch 0 (" in format_calibration(res)
+    with pytest.raises(ConfigError, match="jackknife"):
+        calibrate_columns(cat, by="patch", errors="jackknife")
+    nopos = {k: v for k, v in cat.items() if k not in ("ra", "dec")}
+    with pytest.raises(InputError, match="positions"):
+        calibrate_columns(nopos, by="patch")

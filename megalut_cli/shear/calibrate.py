@@ -96,6 +96,9 @@ PASS_COLUMNS = (
     "x",
     "y",
 )
+#: ``--by patch``: bins that are patches of the sky (about ``--bins`` of them), unless the
+#: catalog has a column of that name.
+PATCH_BY = "patch"
 #: The columns that make each row an epoch of an object (``measure --epochs``).
 EPOCH_COLUMNS = ("id", "cutout")
 #: Format of the per-object catalog of ``megalut calibrate -o``.
@@ -116,7 +119,7 @@ class CalibrationPlan:
     step: float | None
     select: str | None
     by: str | None
-    by_kind: str | None  # "column" or "row" (a numeric expression)
+    by_kind: str | None  # "column", "row" (a numeric expression) or "patch" (sky patches)
     by_versioned: bool  # metacal: the sheared versions have their own values of ``by``
     psf: tuple[str, str] | None
     positions: tuple[str, str] | None
@@ -199,7 +202,9 @@ def plan_calibration(
     by_kind = None
     by_versioned = False
     by_used: list[str] = []
-    if by is not None:
+    if by == PATCH_BY and PATCH_BY not in have:
+        by_kind = "patch"
+    elif by is not None:
         key = given.get("by", "by")
         by_kind = check_by([by], list(colnames), key, source)[by]
         if by_kind == "case":
@@ -208,6 +213,17 @@ def plan_calibration(
         by_versioned = route == ROUTE_METACAL and any(f"{c}_1p" in have for c in by_used)
     psf = PSF_COLUMNS if all(c in have for c in PSF_COLUMNS) else None
     positions = next((p for p in POSITION_COLUMNS if all(c in have for c in p)), None)
+    if by_kind == "patch":
+        if positions is None:
+            raise InputError(
+                f"{source}: {given.get('by', 'by')} {PATCH_BY} needs positions (ra, dec or x, y)"
+            )
+        if errors == JACKKNIFE:
+            raise ConfigError(
+                f"{given.get('by', 'by')} {PATCH_BY}: a jackknife over the patches cannot give "
+                f"one patch's error; use {given.get('errors', 'errors')} bootstrap"
+            )
+        errors = BOOTSTRAP
     if errors == "auto":
         errors = JACKKNIFE if positions is not None else BOOTSTRAP
     elif errors == JACKKNIFE and positions is None:
@@ -242,7 +258,7 @@ def plan_calibration(
     cols += (expr.columns_used(select) if select is not None else []) + by_used
     cols += [*(psf or ()), *(positions or ())]
     passed = tuple(c for c in PASS_COLUMNS if c in have)
-    if by_kind == "column" and by not in passed:
+    if by_kind == "column" and by is not None and by not in passed:
         passed += (by,)
     cols += passed
     return CalibrationPlan(
@@ -653,6 +669,22 @@ def _binning(
         zero = np.zeros(obj.n, dtype=np.int64)
         return _Binning({v: zero for v in versions}, [{}], "all")
     by = plan.by
+    if plan.by_kind == "patch":
+        assert plan.positions is not None
+        a, b = (np.asarray(columns[c], dtype=float) for c in plan.positions)
+        sky = plan.positions == POSITION_COLUMNS[0]
+        patch = sky_patches(a, b, n_bins, sky=sky)
+        entries = []
+        for k in range(int(patch.max()) + 1):
+            inside = patch == k
+            entries.append(
+                {
+                    "value": k,
+                    plan.positions[0]: float(np.median(a[inside])),
+                    plan.positions[1]: float(np.median(b[inside])),
+                }
+            )
+        return _Binning({v: patch for v in versions}, entries, "patch")
 
     def values(version: str) -> np.ndarray:
         view = VersionColumns(columns, version) if metacal else columns
@@ -1009,6 +1041,9 @@ def _pm(v: float | None, e: float | None) -> str:
 
 
 def _label(entry: Mapping[str, Any], by: str | None) -> str:
+    where = [f"{entry[c]:.4g}" for pair in POSITION_COLUMNS for c in pair if c in entry]
+    if "value" in entry and by == PATCH_BY and where:
+        return f"{by} {entry['value']} ({', '.join(where)})"
     if "value" in entry:
         return f"{by} = {entry['value']}"
     if "lo" in entry:

@@ -147,11 +147,17 @@ CALIBRATE_OPTIONS: tuple[Option, ...] = (
         None,
         "Calibrate in bins of this column or quantity as well: an integer column (e.g. a "
         "tomographic bin) value by value, else --bins equal-population bins (metacal: a "
-        "measured column's bins are a selection, with its response).",
+        "measured column's bins are a selection, with its response); 'patch': about --bins "
+        "patches of the sky (ra, dec; else x, y), each with its bootstrap error.",
         metavar="COL",
     ),
     Option(
-        "bins", "int", 5, "Number of bins for --by (a float column).", minimum=1, maximum=MAX_BINS
+        "bins",
+        "int",
+        5,
+        "Number of bins for --by (a float column, or sky patches).",
+        minimum=1,
+        maximum=MAX_BINS,
     ),
     Option(
         "unweighted",
