@@ -786,19 +786,24 @@ def draft_setup(
     galaxy = _draft_galaxies(
         features, features_name, base_galaxy, psf, int(stamp.value), float(noise.value), gain, notes
     )
+    metacal_values: list[Drafted] = []
     if header.get(STEP_CARD) is not None or "adamom_g1_noshear" in features:
+        source = (
+            f"{features_name} was measured in metacal mode ({STEP_CARD} card or X_noshear columns)"
+        )
+        metacal_values = [Drafted(TOP, "metacal", True, source)]
+        if base.get("reference", {}).get("model"):
+            metacal_values.append(Drafted("reference", "model", METACAL_REFERENCE, source))
         notes.append(
             Note(
                 "reference",
-                f"{features_name} was measured in metacal mode ({STEP_CARD} card or X_noshear "
-                "columns): set `metacal = true` at the top of this file and `model = "
-                '"fiducial-metacal"` here, so that the sets are measured, the networks trained and '
-                "the predictions made as metacal ones; as drafted, the pipeline trains "
-                "simulation-calibrated networks, which `predict` refuses on a metacal catalog",
-                warning=True,
+                f"{source}: the sets are measured, the networks trained and the predictions "
+                "made as metacal ones (`metacal = true`), so that the model fits the catalog; "
+                "drafted networks in metacal mode are calibrated by the response, and their "
+                "simulations matter for the response's precision, not for its bias",
             )
         )
-    reference = base.get("reference", {}).get("model")
+    reference = METACAL_REFERENCE if metacal_values else base.get("reference", {}).get("model")
     if reference:
         notes.append(
             Note(
@@ -811,7 +816,7 @@ def draft_setup(
     inputs = (features_name,) if stars is None else (features_name, stars_name)
     description = f"drafted by megalut draft from {' and '.join(inputs)}"
     return Draft(
-        tuple([stamp, *psf_values, noise, *galaxy]),
+        tuple([*metacal_values, stamp, *psf_values, noise, *galaxy]),
         tuple(notes),
         tuple(removed),
         description,
@@ -821,6 +826,10 @@ def draft_setup(
 
 # --------------------------------------------------------------------------- rendering
 
+#: The table of a pipeline file's top-level keys (``description``, ``metacal``).
+TOP = ""
+#: The reference model of a drafted metacal pipeline.
+METACAL_REFERENCE = "fiducial-metacal"
 _HEADER_LINE = re.compile(r"^\s*\[\s*([^\[\]]+?)\s*\]\s*(?:#.*)?$")
 _KEY_LINE = re.compile(r"^\s*([A-Za-z0-9_-]+)\s*=")
 #: Width of the drafted comments.
@@ -856,7 +865,14 @@ def _comment(text: str, indent: str = "# ") -> list[str]:
 
 
 def _section(lines: list[str], table: str) -> tuple[int, int]:
-    """``(header index, end index)`` of ``[table]`` in ``lines``: its key lines are between."""
+    """``(header index, end index)`` of ``[table]`` in ``lines``: its key lines are between;
+    for :data:`TOP`, the lines before the first table (header index -1)."""
+    if table == TOP:
+        first = next((i for i, ln in enumerate(lines) if _HEADER_LINE.match(ln)), len(lines))
+        end = first
+        while end > 0 and not _KEY_LINE.match(lines[end - 1]):
+            end -= 1
+        return -1, end
     start = next(
         (i for i, ln in enumerate(lines) if (m := _HEADER_LINE.match(ln)) and m.group(1) == table),
         None,

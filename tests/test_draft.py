@@ -189,18 +189,24 @@ def test_a_psf_varying_across_the_field_is_a_warning_pointing_to_varpsf() -> Non
         draft_setup(flagged, {"STAMPSZ": 48})
 
 
-def test_a_metacal_catalog_is_a_warning_naming_the_metacal_key() -> None:
-    """A catalog measured with --metacal is not drafted silently into a plain pipeline."""
+def test_a_metacal_catalog_drafts_a_metacal_pipeline() -> None:
+    """A catalog measured with --metacal drafts a metacal pipeline: `metacal = true` at the
+    top (before any table), the metacal reference model, a note saying why; a plain one
+    does not."""
+    import tomllib
+
     from megalut_cli.draft import draft_setup, render_pipeline
 
     rng = np.random.default_rng(3)
     cols = _psf_columns(rng.normal(3.0, 0.02, 200))
     plain = draft_setup(cols, {"STAMPSZ": 48}, features_name="f.fits")
     assert not any("metacal" in n.text for n in plain.notes)
+    assert "metacal" not in tomllib.loads(render_pipeline(plain))
     mcal = draft_setup(cols, {"STAMPSZ": 48, "MCALSTEP": 0.01}, features_name="f.fits")
-    warned = [n for n in mcal.notes if "metacal mode" in n.text]
-    assert len(warned) == 1 and warned[0].warning and "metacal = true" in warned[0].text
-    assert "fiducial-metacal" in render_pipeline(mcal)
+    noted = [n for n in mcal.notes if "metacal mode" in n.text]
+    assert len(noted) == 1 and "metacal = true" in noted[0].text
+    parsed = tomllib.loads(render_pipeline(mcal))
+    assert parsed["metacal"] is True and parsed["reference"]["model"] == "fiducial-metacal"
 
 
 def test_the_rad_range_is_widened_to_cover_the_data_and_never_narrowed() -> None:
