@@ -165,7 +165,11 @@ def plot_evaluation(
     """Draw the evaluation figure of ``result`` (from :mod:`.evaluate`) into ``path``
     (png/pdf/svg)."""
     check_plot_output(path)
-    fig = evaluation_figure(result)
+    return save_figure(evaluation_figure(result), path, overwrite)
+
+
+def save_figure(fig: Any, path: str | os.PathLike, overwrite: bool = False) -> Path:
+    """Write a matplotlib ``Figure`` atomically, its type from the suffix of ``path``."""
     fmt = _FORMATS[Path(path).suffix.lower()]
     with atomic_output(path, overwrite) as tmp:
         fig.savefig(tmp, format=fmt, dpi=100)
@@ -232,11 +236,7 @@ def plot_calibration(
 ) -> Path:
     """Draw the diagnostics of a calibration (from :mod:`.calibrate`) into ``path``."""
     check_plot_output(path)
-    fig = calibration_figure(result)
-    fmt = _FORMATS[Path(path).suffix.lower()]
-    with atomic_output(path, overwrite) as tmp:
-        fig.savefig(tmp, format=fmt, dpi=100)
-    return Path(path)
+    return save_figure(calibration_figure(result), path, overwrite)
 
 
 def calibration_figure(result: Mapping[str, Any]) -> Any:
