@@ -24,6 +24,8 @@ STREAM_BOOTSTRAP = 6
 STREAM_METACAL = 7
 #: The bootstrap over objects of ``megalut calibrate``.
 STREAM_CALIBRATE = 8
+#: The fields of ``megalut simulate --scene`` (counts, galaxies, positions, noise; per field).
+STREAM_SCENE = 9
 
 #: The ``--seed`` of the commands (each gives its own default and help).
 SEED_OPTION = Option("seed", "int", 1, "Seed of every random draw of this step.")

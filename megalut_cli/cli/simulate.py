@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import logging
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
+import numpy as np
 
 from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.console import flag_names, stdout_path
@@ -23,6 +26,10 @@ from megalut_cli.measure.feature_sets import requested_sets
 from megalut_cli.sim.config import keys_as_written, load_config
 from megalut_cli.sim.options import SIMULATE
 
+if TYPE_CHECKING:
+    from megalut_cli.sim.config import SimConfig
+    from megalut_cli.sim.scene import Scenes
+
 log = logging.getLogger(__name__)
 
 
@@ -39,6 +46,17 @@ log = logging.getLogger(__name__)
     default=None,
     help="Also write the stamps as a FITS image grid (stamp k at column k mod n_x, row k div n_x).",
 )
+@click.option(
+    "--scene",
+    "scene_path",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Draw scenes instead of stamps: fields of galaxies at random positions "
+    "([scene] of CONFIG; docs/scenes.md), written here as cubes (SCI, WGT, MSK, PSF and an "
+    "IMAGES table); -o then gets the truth, one row per galaxy per image. Not with --stamps, "
+    "--measure, --great3, --n-cases, --n-realizations.",
+)
+@schema_option(SIMULATE["pairs"])
 @schema_option(SIMULATE["measure"])
 @feature_set_options(SIMULATE)
 @schema_option(SIMULATE["metacal"])
@@ -65,6 +83,8 @@ def command(
     overrides: tuple[str, ...],
     output: str,
     stamps: str | None,
+    scene_path: str | None,
+    pairs: bool,
     measure: bool,
     metacal: bool,
     metacal_step: float,
@@ -124,11 +144,30 @@ def command(
     # GalSim, numba, SciPy, astropy, fitsio: not for --help
     from megalut_cli.sim.simulate import check_outputs, plan_message, simulate
 
-    device = resolve_device(device)
-
     output = click.get_current_context().with_resource(
         stdout_path(output)
     )  # -o -: to stdout at the end
+    if scene_path is not None or pairs:
+        given = {
+            "--stamps": stamps is not None,
+            "--measure": measure,
+            "--metacal": metacal,
+            "--great3": great3_dir is not None,
+            "--n-cases": n_cases is not None,
+            "--n-realizations": n_realizations is not None,
+        }
+        if scene_path is None:
+            raise click.UsageError("--pairs needs --scene (the pairs are scene fields)")
+        clash = [flag for flag, on in given.items() if on] + [
+            SIMULATE[name].cli_flag for name in requested_sets(feature_flags)
+        ]
+        if clash:
+            raise click.UsageError(f"--scene draws fields, not stamps: do not give {clash[0]}")
+        simulate_scenes(
+            config, overrides, output, scene_path, pairs, dry_run, seed, nproc, scheduler, overwrite
+        )
+        return
+    device = resolve_device(device)
     with keys_as_written(
         config, overrides, n_cases=n_cases, n_realizations=n_realizations
     ):  # [table] key of FILE
@@ -207,3 +246,91 @@ def command(
         result.n_stamps,
         f" and {result.stamps}" if result.stamps is not None else "",
     )
+
+
+def simulate_scenes(
+    config: str,
+    overrides: tuple[str, ...],
+    output: str,
+    scene_path: str,
+    pairs: bool,
+    dry_run: bool,
+    seed: int,
+    nproc: int,
+    scheduler: str | None,
+    overwrite: bool,
+) -> None:
+    """``simulate --scene``: draw the fields of CONFIG's ``[scene]``, write the images to
+    ``scene_path`` and the truth to ``output`` (both or neither)."""
+    import time  # noqa: I001
+
+    from megalut_cli.atomic import check_output
+    from megalut_cli.errors import MegalutError
+    from megalut_cli.sim.scene import check_scene_size, draw_scenes, plan_text
+
+    if pairs:
+        overrides = (*overrides, "scene.pairs=true")
+    with keys_as_written(config, overrides):
+        cfg = load_config(config, overrides, scene=True)
+    out = check_output(output, overwrite)
+    images = check_output(scene_path, overwrite)
+    if images.resolve() == out.resolve():
+        raise MegalutError("--scene and --output must be different files")
+    check_scene_size(cfg)
+    log.info("about to simulate %s", plan_text(cfg, seed))
+    if dry_run:
+        return
+    t0 = time.perf_counter()
+    scenes = draw_scenes(cfg, seed, nproc, scheduler)
+    write_scenes(cfg, seed, scenes, out, images, overwrite)
+    log.info(
+        "wrote %s (%d images) and %s (%d rows) in %.1f s",
+        images,
+        len(scenes.images),
+        out,
+        len(scenes.truth["image"]),
+        time.perf_counter() - t0,
+    )
+
+
+def write_scenes(
+    cfg: SimConfig, seed: int, scenes: Scenes, truth_path: Path, images_path: Path, overwrite: bool
+) -> None:
+    """The scene products, each written whole or not at all: the images (``SCI``, ``WGT``,
+    ``MSK``, ``PSF`` cubes and the ``IMAGES`` table) and the truth table (``CONFIG`` HDU)."""
+    import contextlib
+
+    import fitsio
+
+    from megalut_cli.atomic import atomic_output
+    from megalut_cli.catalog import catalog_writer, header_cards
+    from megalut_cli.columns import column_units
+    from megalut_cli.sim.scene import SCENE_TRUTH_FORMAT, SCENES_FORMAT, scene_cards
+    from megalut_cli.sim.simulate import config_table
+
+    cards = scene_cards(cfg, seed)
+    table = scenes.image_table
+    rows = np.zeros(len(table["image"]), dtype=[(k, v.dtype) for k, v in table.items()])
+    for k, v in table.items():
+        rows[k] = v
+    with contextlib.ExitStack() as stack:
+        writer = stack.enter_context(
+            catalog_writer(
+                truth_path,
+                fmt=SCENE_TRUTH_FORMAT,
+                cards=cards,
+                overwrite=overwrite,
+                extra_hdus={"CONFIG": config_table(cfg)},
+            )
+        )
+        writer.append(scenes.truth)
+        tmp = stack.enter_context(atomic_output(images_path, overwrite))
+        with fitsio.FITS(str(tmp), "rw", clobber=True) as fits:
+            fits.write(
+                scenes.images, header=header_cards(SCENES_FORMAT, cards=cards), extname="SCI"
+            )
+            fits.write(scenes.weights, extname="WGT")
+            fits.write(scenes.masks, extname="MSK")
+            fits.write(scenes.psfs, extname="PSF")
+            recs = header_cards(SCENES_FORMAT, cards=cards, columns=rows.dtype.names)
+            fits.write(rows, header=recs, extname="IMAGES", units=column_units(rows.dtype.names))

@@ -56,6 +56,7 @@ from megalut_cli.sim.noise_config import (
 from megalut_cli.sim.profiles import GALAXY_PROFILES
 from megalut_cli.sim.profiles.common import SERSIC_N_RANGE, round_sersicn
 from megalut_cli.sim.profiles.cosmos_fit import COSMOS_FIT_COLUMNS
+from megalut_cli.sim.scene_config import SceneSpec, parse_scene
 
 #: Public names, with those of the table modules that stay importable from here (as before the
 #: split).
@@ -94,6 +95,7 @@ _TOP_KEYS = {
     "field",
     "catalog",
     "gsparams",
+    "scene",
 }
 #: GalSim GSParams settable in ``[gsparams]`` (accuracy/speed of the rendering), declared once.
 GSPARAMS_OPTIONS: tuple[Option, ...] = tuple(
@@ -272,6 +274,8 @@ class SimConfig:
     catalog_path: str | None = None
     gsparams: dict[str, float] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
+    #: ``[scene]`` (fields of galaxies, ``simulate --scene``), None when the config has none.
+    scene: SceneSpec | None = None
 
     def to_json(self) -> str:
         """The effective configuration (overrides applied) as JSON text."""
@@ -296,9 +300,13 @@ def load_config(
     overrides: Sequence[str] = (),
     n_cases: int | None = None,
     n_realizations: int | None = None,
+    scene: bool = False,
 ) -> SimConfig:
     """Read, override and validate a simulation config file (errors name the keys dotted:
-    ``galaxy.rad: ...``; :func:`keys_as_written` names them as the file writes them)."""
+    ``galaxy.rad: ...``; :func:`keys_as_written` names them as the file writes them).
+    With ``scene`` (fields of galaxies, :mod:`megalut_cli.sim.scene`), ``[structure]`` may
+    leave out ``n_cases`` and ``n_realizations`` (they are not used) and ``[scene]`` is
+    parsed even when absent (its defaults)."""
     raw, sha = read_toml(path)
     raw = apply_overrides(raw, overrides)
     structure = (
@@ -310,6 +318,10 @@ def load_config(
         structure["n_cases"] = int(n_cases)
     if n_realizations is not None:
         structure["n_realizations"] = int(n_realizations)
+    if scene:
+        for key in ("n_cases", "n_realizations"):
+            structure.setdefault(key, 1)
+        raw.setdefault("scene", {})
     return validate_config(raw, path=str(path), sha256=sha, overrides=tuple(overrides))
 
 
@@ -442,6 +454,7 @@ def validate_config(
         raise ConfigError("description: expected a string")
     structure = _parse_structure(raw)
     instrument = _parse_instrument(raw)
+    scene = parse_scene(raw, instrument) if "scene" in raw else None
     shear_t = check_table(raw.get("shear"), "shear", {"g1", "g2"})
     shear = parse_distributions(shear_t, "shear", ["g1", "g2"])
     galaxy = parse_galaxy(raw, instrument, path)
@@ -526,4 +539,5 @@ def validate_config(
         catalog_rows=n_rows,
         catalog_path=cat_path,
         gsparams=gsparams,
+        scene=scene,
     )

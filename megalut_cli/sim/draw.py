@@ -102,7 +102,7 @@ def get_psf(
     if hit is None:
         if len(_PSF_CACHE) >= _PSF_CACHE_MAX:
             _PSF_CACHE.clear()
-        _single_threaded_galsim()
+        single_threaded_galsim()
         psf, truth = make_psf(spec, field_x, field_y)
         if gsparams:
             psf = psf.withGSParams(GsParams(**gsparams).galsim())
@@ -198,7 +198,7 @@ class _Measurer:
         return {k: np.concatenate([p[k] for p in self.parts]) for k in names}
 
 
-def _single_threaded_galsim() -> None:
+def single_threaded_galsim() -> None:
     """Import GalSim with one OpenMP thread: its threads only slow small stamps down (busy
     waiting on shared cores: noise generation measured 10-50x slower); parallelism is
     across work units."""
@@ -326,7 +326,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     """
     if unit.renders_fast and (unit.keep_stamps or unit.measure):
         return draw_unit_fast(unit)
-    _single_threaded_galsim()
+    single_threaded_galsim()
     import galsim
 
     from megalut_cli.sim.galaxies import make_gsparams, oriented, real_padded_side, rotated
@@ -573,7 +573,7 @@ def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
     S, n_rea = s.stamp_size, s.n_realizations
     gal = cfg.galaxy
     if cfg.noise.type == "correlated":  # GalSim draws it (StampNoise.add_batch)
-        _single_threaded_galsim()
+        single_threaded_galsim()
     renderer = stamp_renderer(S, dict(cfg.gsparams))
     measurer = _Measurer(unit) if unit.measure else None
     kept: list[np.ndarray] = []

@@ -49,6 +49,13 @@ SIMULATE_OPTIONS: tuple[Option, ...] = (
         STRUCTURE["n_realizations"], help="Override structure.n_realizations.", default_text=None
     ),
     Option(
+        "pairs",
+        "bool",
+        False,
+        "With --scene: draw every field at +g and -g with the same galaxies and the same "
+        "noise (scene.pairs = true; docs/scenes.md).",
+    ),
+    Option(
         "dry_run",
         "bool",
         False,

@@ -264,7 +264,8 @@ def simulation_cards(
     return cards
 
 
-def _config_table(config: SimConfig) -> np.ndarray:
+def config_table(config: SimConfig) -> np.ndarray:
+    """The ``CONFIG`` HDU of a catalog: the effective configuration as JSON, its sha256."""
     text = config.to_json()
     arr = np.zeros(1, dtype=[("config_json", f"S{max(len(text), 1)}"), ("config_sha256", "S64")])
     arr["config_json"] = text.encode("ascii", "backslashreplace")
@@ -282,7 +283,7 @@ def simulation_catalog_writer(
         fmt=CATALOG_FORMAT,
         cards=cards,
         overwrite=overwrite,
-        extra_hdus={"CONFIG": _config_table(config)},
+        extra_hdus={"CONFIG": config_table(config)},
     )
 
 

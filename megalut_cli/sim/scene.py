@@ -1,0 +1,394 @@
+"""Scenes: square fields of galaxies at random positions (``megalut simulate --scene``).
+
+Each field holds a Poisson number of galaxies (mean ``scene.density`` × the area inside
+``scene.border``) at uniform random positions, drawn from the config's ``[galaxy]`` table
+by its registered profile, all lensed by one constant shear per field (``[shear]``, drawn
+per field), convolved with the config's PSF (``[psf]``, one per field, at a field position
+of ``[field]`` when it varies) and drawn by GalSim on a float32 image; then the config's
+noise is added as one field of noise (``[noise]``: Gaussian, correlated, or CCD without the
+sources' own Poisson noise). With ``scene.pairs`` every field is drawn at +g and −g with the
+same galaxies and the very same noise pixels (the metadetect test recipe).
+
+Field ``f`` draws everything from generators seeded by ``(seed, STREAM_SCENE, f, key)``
+(:func:`megalut_cli.seeding.rng_for`), so a field never depends on the others nor on the
+worker that draws it. Returns arrays; the command layer writes the files (docs/scenes.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from megalut_cli.errors import MegalutError
+from megalut_cli.parallel import executor, map_ordered
+from megalut_cli.seeding import STREAM_SCENE, rng_for
+from megalut_cli.sim.config import SimConfig
+from megalut_cli.sim.distributions import Distribution, sample_level
+from megalut_cli.sim.draw import get_psf, psf_includes_pixel, single_threaded_galsim
+from megalut_cli.sim.intrinsic import ellipticity_components, galaxy_fluxes, mag_from_flux
+from megalut_cli.sim.noise import StampNoise, make_noise
+from megalut_cli.sim.profiles import GALAXY_PROFILES
+from megalut_cli.sim.scene_config import SceneSpec
+
+#: Sub-keys of rng_for(seed, STREAM_SCENE, field, KEY).
+_COUNT_KEY, _FIELD_KEY, _GALAXY_KEY, _POSITION_KEY, _NOISE_KEY, _KNOT_KEY = range(6)
+#: Largest science cube (pixels of all images together; 1 GiB in float32): fail early.
+MAX_SCENE_PIXELS = 2**28
+
+
+def scene_spec(config: SimConfig) -> SceneSpec:
+    """The config's ``[scene]`` (load it with ``load_config(..., scene=True)``)."""
+    if config.scene is None:
+        raise MegalutError("the config has no [scene] table (load it for a scene)")
+    return config.scene
+
+
+def field_counts(config: SimConfig, seed: int) -> np.ndarray:
+    """The number of galaxies of every field (Poisson, mean density × area)."""
+    s = scene_spec(config)
+    return np.array(
+        [
+            int(rng_for(seed, STREAM_SCENE, f, _COUNT_KEY).poisson(s.mean_count))
+            for f in range(s.n_fields)
+        ],
+        dtype=np.int64,
+    )
+
+
+def check_scene_size(config: SimConfig) -> None:
+    """Refuse scenes whose images would not fit in memory."""
+    s = scene_spec(config)
+    pixels = s.n_images * s.size**2
+    if pixels > MAX_SCENE_PIXELS:
+        raise MegalutError(
+            f"scene: {s.n_images} images of {s.size}² pixels ({pixels:.3g} pixels) would not fit "
+            f"in memory (at most {MAX_SCENE_PIXELS:.3g}); lower scene.n_fields or scene.size"
+        )
+
+
+@dataclass(frozen=True)
+class FieldUnit:
+    """Plain, picklable description of one field to draw."""
+
+    config: SimConfig
+    seed: int
+    field: int
+    n_galaxies: int
+    #: the place of the field's first galaxy in the run (real galaxies in turn: ``"each"``)
+    sequence_start: int = 0
+
+
+@dataclass
+class DrawnField:
+    """One drawn field: its images (one per sign), weight, mask, PSF image and truth."""
+
+    field: int
+    signs: tuple[int, ...]  # +1 (and -1 with pairs)
+    images: np.ndarray  # (n_signs, N, N) float32, noise included
+    weight: np.ndarray  # (N, N) float32: inverse noise variance (1 when noiseless)
+    mask: np.ndarray  # (N, N) int32, zeros
+    psf: np.ndarray  # (P, P) float32, sums to 1, centred on the central pixel
+    noise: np.ndarray  # (N, N) float32: the noise added to every image of the field
+    g1: float
+    g2: float
+    sky_sigma: float
+    #: one row per galaxy: ``x, y`` (FITS 1-based), its truth (``tru_*``, shear of sign +1)
+    truth: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the flux of each galaxy on the field's pixels, per sign (n_signs, n_galaxies)
+    flux_drawn: np.ndarray = field(default_factory=lambda: np.zeros((1, 0)))
+
+
+def _scalar(values: dict[str, np.ndarray]) -> dict[str, float]:
+    return {k: float(v[0]) for k, v in values.items()}
+
+
+@dataclass(frozen=True)
+class FieldDraw:
+    """The random draws of one field (before any drawing of pixels)."""
+
+    psf_spec: dict[str, Any]  # scalar PSF parameters
+    position: tuple[float, float]  # field position of the PSF (0, 0 without [field])
+    noise: StampNoise
+    noise_seed: int
+    g1: float  # the field's shear (sign +1)
+    g2: float
+    #: one row per galaxy: ``x, y`` (FITS 1-based) and its truth (``tru_*``)
+    truth: dict[str, np.ndarray]
+    theta: np.ndarray  # position angles (degrees, not reduced to [0, 180))
+
+
+def field_parameters(
+    config: SimConfig, seed: int, fld: int, n: int, sequence_start: int = 0
+) -> FieldDraw:
+    """The draws of field ``fld`` with ``n`` galaxies (``sequence_start``: the place of its
+    first galaxy in the run)."""
+    s = scene_spec(config)
+    nrows = config.catalog_rows
+    rng_f = rng_for(seed, STREAM_SCENE, fld, _FIELD_KEY)
+    shear = _scalar(sample_level(config.shear, rng_f, 1, nrows))
+    psf_dists = {k: v for k, v in config.psf.items() if isinstance(v, Distribution)}
+    psf_vals = _scalar(sample_level(psf_dists, rng_f, 1, nrows))
+    fpos = _scalar(sample_level(config.field or {}, rng_f, 1, nrows))
+    spec = {k: psf_vals.get(k, v) for k, v in config.psf.items()}
+    noise = make_noise(
+        config.noise.type,
+        _scalar(sample_level(config.noise.params, rng_f, 1, nrows)),
+        config.instrument,
+        config.noise.override_sigma,
+        config.noise.source,
+    )
+    noise_seed = int(rng_for(seed, STREAM_SCENE, fld, _NOISE_KEY).integers(1, 2**31 - 1))
+
+    gal = config.galaxy
+    rng_g = rng_for(seed, STREAM_SCENE, fld, _GALAXY_KEY)
+    gvals = sample_level(gal.params, rng_g, n, nrows)
+    sequence = sequence_start + np.arange(n)
+    galaxy_truth = GALAXY_PROFILES[gal.profile].truth(gal, gvals, sequence)
+    theta = gal.angle.sample(rng_g, n) if n else np.zeros(0)
+    rng_p = rng_for(seed, STREAM_SCENE, fld, _POSITION_KEY)
+    lo, hi = 0.5 + s.border, s.size + 0.5 - s.border
+    xy = rng_p.uniform(lo, hi, (n, 2))
+    t: dict[str, np.ndarray] = {"x": xy[:, 0], "y": xy[:, 1]}
+    t["tru_g1"] = np.full(n, shear.get("g1", 0.0))
+    t["tru_g2"] = np.full(n, shear.get("g2", 0.0))
+    t.update(galaxy_truth.columns)
+    if gal.knots:
+        knot_rng = rng_for(seed, STREAM_SCENE, fld, _KNOT_KEY)
+        t["tru_knots"] = np.round(gvals["knots"]).astype(np.int64)
+        t["tru_knots_fraction"] = np.where(t["tru_knots"] > 0, gvals["knots_fraction"], 0.0)
+        t["tru_knot_seed"] = knot_rng.integers(1, 2**31 - 1, n)
+    flux = galaxy_fluxes(
+        gal.flux_mode, gvals[gal.flux_mode], galaxy_truth.flux_rad, config.instrument
+    )
+    t["tru_flux"] = flux
+    inst = config.instrument
+    if gal.flux_mode == "mag":
+        t["tru_mag"] = gvals["mag"]
+    elif all(k in inst for k in ("zeropoint", "exptime", "gain")):
+        t["tru_mag"] = mag_from_flux(flux, inst["zeropoint"], inst["exptime"], inst["gain"])
+    e1, e2 = ellipticity_components(galaxy_truth.ellipticity, theta)
+    t["tru_e1"], t["tru_e2"] = e1, e2
+    t["tru_ell"], t["tru_theta"] = galaxy_truth.ellipticity, np.mod(theta, 180.0)
+    t["tru_sky_sigma"] = np.full(n, noise.sky_sigma)
+    if config.field:
+        t["tru_field_x"] = np.full(n, fpos["x"])
+        t["tru_field_y"] = np.full(n, fpos["y"])
+    position = (fpos.get("x", 0.0), fpos.get("y", 0.0))
+    g1, g2 = shear.get("g1", 0.0), shear.get("g2", 0.0)
+    return FieldDraw(spec, position, noise, noise_seed, g1, g2, t, theta)
+
+
+def draw_field(unit: FieldUnit) -> DrawnField:
+    """Draw field ``unit.field``: every galaxy convolved with the PSF, drawn by GalSim on a
+    stamp around its position (side: GalSim's good size, at most ``structure.stamp_size``),
+    whose overlap with the field is added to it; then the noise field."""
+    single_threaded_galsim()
+    import galsim
+
+    from megalut_cli.sim.galaxies import make_gsparams, oriented
+
+    cfg, s = unit.config, scene_spec(unit.config)
+    d = field_parameters(cfg, unit.seed, unit.field, unit.n_galaxies, unit.sequence_start)
+    spec, noise, t = d.psf_spec, d.noise, d.truth
+    psf, psf_truth = get_psf(spec, *d.position, cfg.psf_varies, cfg.gsparams)
+    method = "no_pixel" if psf_includes_pixel(spec) else "auto"
+    gsp = make_gsparams(cfg.gsparams)
+    conv_gsp = gsp if cfg.gsparams else None
+    profile = GALAXY_PROFILES[cfg.galaxy.profile]
+    signs = (1, -1) if s.pairs else (1,)
+    n = unit.n_galaxies
+    for name, value in psf_truth.items():
+        t[name] = np.full(n, value)
+    fields = [galsim.ImageF(s.size, s.size, scale=1.0) for _ in signs]
+    flux_drawn = np.zeros((len(signs), n))
+    max_stamp = cfg.structure.stamp_size
+    lensed = [{**t, "tru_g1": sign * t["tru_g1"], "tru_g2": sign * t["tru_g2"]} for sign in signs]
+    for k in range(n):
+        base = profile.build(cfg.galaxy, t, k, gsp, 0.0)
+        where = galsim.PositionD(float(t["x"][k]), float(t["y"][k]))
+        ix, iy = int(np.floor(where.x + 0.5)), int(np.floor(where.y + 0.5))
+        side = 0
+        for j in range(len(signs)):
+            gal_k = oriented(base, lensed[j], k, d.theta[k])
+            obj = galsim.Convolve(gal_k, psf, gsparams=conv_gsp)
+            if not side:  # the same stamp for both signs
+                side = min(obj.getGoodImageSize(1.0), max_stamp)
+                half = side // 2
+                bounds = galsim.BoundsI(
+                    ix - half, ix - half + side - 1, iy - half, iy - half + side - 1
+                )
+                overlap = bounds & fields[0].bounds
+            if not overlap.isDefined():
+                continue
+            stamp = galsim.ImageF(bounds, scale=1.0)
+            try:
+                obj.drawImage(image=stamp, center=where, method=method)
+            except (galsim.GalSimError, MemoryError) as err:
+                raise MegalutError(
+                    f"scene field {unit.field}, galaxy {k}: GalSim could not draw it ({err})"
+                ) from None
+            fields[j][overlap] += stamp[overlap]
+            flux_drawn[j, k] = float(np.sum(stamp[overlap].array, dtype=np.float64))
+    noise_image = galsim.ImageF(s.size, s.size, scale=1.0)
+    noise.add(noise_image, d.noise_seed)  # on an empty field: the same pixels for every sign
+    images = np.stack([f.array + noise_image.array for f in fields]).astype(np.float32)
+    sigma = noise.sky_sigma
+    weight = np.full((s.size, s.size), 1.0 / sigma**2 if sigma > 0 else 1.0, dtype=np.float32)
+    psf_image = psf.drawImage(nx=s.psf_size, ny=s.psf_size, scale=1.0, method=method).array
+    psf_image = (psf_image / np.sum(psf_image, dtype=np.float64)).astype(np.float32)
+    return DrawnField(
+        unit.field,
+        signs,
+        images,
+        weight,
+        np.zeros((s.size, s.size), dtype=np.int32),
+        psf_image,
+        noise_image.array.astype(np.float32),
+        d.g1,
+        d.g2,
+        sigma,
+        t,
+        flux_drawn,
+    )
+
+
+def field_units(config: SimConfig, seed: int) -> list[FieldUnit]:
+    """One unit per field, with its galaxy count and place in the run."""
+    counts = field_counts(config, seed)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    return [
+        FieldUnit(config, seed, f, int(c), int(a)) for f, (c, a) in enumerate(zip(counts, starts))
+    ]
+
+
+def iter_fields(
+    config: SimConfig, seed: int, nproc: int = 1, scheduler: str | None = None
+) -> Iterator[DrawnField]:
+    """Draw the fields in order, over ``nproc`` local workers or a Dask ``scheduler``
+    (the same pixels for any of them)."""
+    units = field_units(config, seed)
+    with executor(nproc, scheduler, len(units)) as pool:
+        for _, drawn in map_ordered(draw_field, ((u.field, u) for u in units), pool, 8):
+            yield drawn
+
+
+@dataclass
+class Scenes:
+    """Every drawn image of a scene set, in order: field 0 (+g, then −g with pairs), field 1..."""
+
+    images: np.ndarray  # (n_images, N, N) float32
+    weights: np.ndarray  # (n_images, N, N) float32
+    masks: np.ndarray  # (n_images, N, N) int32
+    psfs: np.ndarray  # (n_images, P, P) float32
+    #: one row per image: image, field, pair_sign, n_gal, tru_g1, tru_g2, tru_sky_sigma
+    image_table: dict[str, np.ndarray]
+    #: one row per galaxy per image: image, field, pair_sign, galaxy, x, y, tru_*, tru_flux_drawn
+    truth: dict[str, np.ndarray]
+
+
+def truth_rows(drawn: DrawnField, first_image: int) -> dict[str, np.ndarray]:
+    """The truth table rows of a drawn field: its galaxies once per image (sign)."""
+    n = len(drawn.truth["x"])
+    parts = []
+    for j, sign in enumerate(drawn.signs):
+        cols: dict[str, np.ndarray] = {
+            "image": np.full(n, first_image + j, dtype=np.int64),
+            "field": np.full(n, drawn.field, dtype=np.int64),
+            "pair_sign": np.full(n, sign, dtype=np.int64),
+            "galaxy": np.arange(n, dtype=np.int64),
+        }
+        for name, values in drawn.truth.items():
+            cols[name] = sign * values if name in ("tru_g1", "tru_g2") else values
+        cols["tru_flux_drawn"] = drawn.flux_drawn[j]
+        parts.append(cols)
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def draw_scenes(
+    config: SimConfig, seed: int, nproc: int = 1, scheduler: str | None = None
+) -> Scenes:
+    """All the fields of ``config.scene``, in memory (:func:`check_scene_size` first)."""
+    check_scene_size(config)
+    s = scene_spec(config)
+    shape = (s.n_images, s.size, s.size)
+    images = np.empty(shape, dtype=np.float32)
+    weights = np.empty(shape, dtype=np.float32)
+    masks = np.zeros(shape, dtype=np.int32)
+    psfs = np.empty((s.n_images, s.psf_size, s.psf_size), dtype=np.float32)
+    table: dict[str, list[Any]] = {
+        k: [] for k in ("image", "field", "pair_sign", "n_gal", "tru_g1", "tru_g2", "tru_sky_sigma")
+    }
+    truths = []
+    for drawn in iter_fields(config, seed, nproc, scheduler):
+        first = drawn.field * s.n_signs
+        for j, sign in enumerate(drawn.signs):
+            i = first + j
+            images[i], weights[i], masks[i], psfs[i] = (
+                drawn.images[j],
+                drawn.weight,
+                drawn.mask,
+                drawn.psf,
+            )
+            for key, value in (
+                ("image", i),
+                ("field", drawn.field),
+                ("pair_sign", sign),
+                ("n_gal", len(drawn.truth["x"])),
+                ("tru_g1", sign * drawn.g1),
+                ("tru_g2", sign * drawn.g2),
+                ("tru_sky_sigma", drawn.sky_sigma),
+            ):
+                table[key].append(value)
+        truths.append(truth_rows(drawn, first))
+    image_table = {
+        k: np.asarray(v, dtype=np.int64 if k in ("image", "field", "pair_sign", "n_gal") else float)
+        for k, v in table.items()
+    }
+    truth = {k: np.concatenate([t[k] for t in truths]) for k in truths[0]}
+    return Scenes(images, weights, masks, psfs, image_table, truth)
+
+
+#: File formats (``MLFORMAT``) of the scene images and of their truth table.
+SCENES_FORMAT = "megalut.scenes"
+SCENE_TRUTH_FORMAT = "megalut.scene_truth"
+
+
+def scene_cards(config: SimConfig, seed: int) -> dict[str, Any]:
+    """Header cards of the scene products: seed, the ``[scene]`` keys, noise and provenance."""
+    s = scene_spec(config)
+    cards: dict[str, Any] = {
+        "SEED": (seed, "seed of every random draw (megalut simulate --seed)"),
+        "NFIELDS": (s.n_fields, "number of fields"),
+        "NIMAGES": (s.n_images, "number of images (fields x signs)"),
+        "PAIRS": (s.pairs, "every field at +g and -g, same galaxies and noise"),
+        "FIELDSZ": (s.size, "side of a field, pixels"),
+        "PIXSCALE": (s.pixel_scale, "arcsec per pixel"),
+        "DENSITY": (s.density, "mean galaxies per arcmin2"),
+        "BORDER": (s.border, "galaxy centres at least this far from the edges, px"),
+        "PSFSZ": (s.psf_size, "side of the PSF images, pixels"),
+        "XYORIGIN": (1, "x, y are FITS 1-based pixel coordinates"),
+        "NOISE": (
+            config.noise.type if config.noise.override_sigma is None else "gaussian",
+            "noise model",
+        ),
+        "CFGFILE": (config.path.rsplit("/", 1)[-1], "simulation config file"),
+        "CFGSHA": (config.sha256, "sha256 of the config file"),
+    }
+    if config.overrides:
+        cards["CFGOVR"] = (" ".join(config.overrides), "config overrides (full set in CONFIG HDU)")
+    return cards
+
+
+def plan_text(config: SimConfig, seed: int) -> str:
+    """What drawing the scenes of ``config`` will do, in one line."""
+    s = scene_spec(config)
+    counts = field_counts(config, seed)
+    return (
+        f'{s.n_fields} field(s) of {s.size}x{s.size} px at {s.pixel_scale:g}"/px'
+        + (" drawn at +g and -g" if s.pairs else "")
+        + f" ({s.n_images} images), {s.density:g} galaxies/arcmin² = {s.mean_count:.1f} per "
+        f"field on average ({int(counts.sum())} in all)"
+    )

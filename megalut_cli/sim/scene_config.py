@@ -1,0 +1,124 @@
+"""The ``[scene]`` table of a simulation config: fields of galaxies at random positions
+(``megalut simulate --scene``; drawn by :mod:`megalut_cli.sim.scene`, docs/scenes.md).
+
+Every key is declared once here (:data:`SCENE_OPTIONS`: checks, docs table); the table is
+optional, its keys have defaults, and ``pixel_scale`` falls back on
+``instrument.pixel_scale``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from megalut_cli.errors import ConfigError
+from megalut_cli.schema import Option, Table
+
+#: The keys of ``[scene]``, declared once (checks, the table of docs/scenes.md).
+SCENE_OPTIONS: tuple[Option, ...] = (
+    Option(
+        "density",
+        "float",
+        20.0,
+        "galaxies per arcmin²: each field holds a Poisson number of mean density × area "
+        "(the area inside `border`)",
+        minimum=0.0,
+        min_open=True,
+        maximum=1e5,
+    ),
+    Option("size", "int", 200, "side of a (square) field, pixels", minimum=16, maximum=8192),
+    Option(
+        "pixel_scale",
+        "float",
+        None,
+        "arcsec per pixel (sets the area of a field in arcmin²; galaxy and PSF sizes stay "
+        "in pixels)",
+        minimum=0.0,
+        min_open=True,
+        default_text="instrument.pixel_scale",
+    ),
+    Option("n_fields", "int", 1, "number of fields (one constant shear each)", minimum=1),
+    Option(
+        "pairs",
+        "bool",
+        False,
+        "draw every field at +g and −g with the same galaxies and the same noise "
+        "(`simulate --pairs`)",
+    ),
+    Option(
+        "border",
+        "int",
+        0,
+        "galaxy centres stay at least this many pixels from the field's edges",
+        minimum=0,
+        allowed_text="[0, size/2)",
+    ),
+    Option(
+        "psf_size",
+        "int",
+        33,
+        "side of the PSF image at the field centre (odd: the PSF centred on a pixel)",
+        minimum=5,
+        maximum=1025,
+        allowed_text="odd, [5, 1025]",
+    ),
+)
+SCENE = {o.name: o for o in SCENE_OPTIONS}
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """The ``[scene]`` table, checked (plain, picklable)."""
+
+    density: float
+    size: int
+    pixel_scale: float
+    n_fields: int
+    pairs: bool
+    border: int
+    psf_size: int
+
+    @property
+    def n_signs(self) -> int:
+        """Images per field: 2 with ``pairs`` (+g, −g), else 1."""
+        return 2 if self.pairs else 1
+
+    @property
+    def n_images(self) -> int:
+        return self.n_fields * self.n_signs
+
+    @property
+    def area_arcmin2(self) -> float:
+        """The area galaxy centres are drawn in (inside the border), arcmin²."""
+        side = (self.size - 2 * self.border) * self.pixel_scale / 60.0
+        return side * side
+
+    @property
+    def mean_count(self) -> float:
+        """Mean number of galaxies per field."""
+        return self.density * self.area_arcmin2
+
+
+def parse_scene(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> SceneSpec:
+    """The ``[scene]`` table of the config ``raw`` (defaults where absent)."""
+    t = Table(raw.get("scene"), "scene", set(SCENE))
+    density, size, scale, n_fields, pairs, border, psf_size = (t.option(o) for o in SCENE_OPTIONS)
+    inst_scale = instrument.get("pixel_scale")
+    if scale is None:
+        if inst_scale is None:
+            raise ConfigError(
+                "scene.pixel_scale: missing (arcsec per pixel; or give instrument.pixel_scale)"
+            )
+        scale = float(inst_scale)
+    elif inst_scale is not None and not math.isclose(scale, inst_scale, rel_tol=1e-9):
+        raise ConfigError(
+            f"scene.pixel_scale: {scale:g} differs from instrument.pixel_scale = {inst_scale:g}; "
+            "give one of them"
+        )
+    if not 0 <= border < size / 2:
+        raise ConfigError(f"scene.border: must be in [0, size/2) = [0, {size / 2:g}), got {border}")
+    if psf_size % 2 == 0:
+        raise ConfigError(f"scene.psf_size: must be odd (centred on a pixel), got {psf_size}")
+    return SceneSpec(float(density), size, float(scale), n_fields, pairs, border, psf_size)
