@@ -1,0 +1,299 @@
+"""Scenes (``megalut simulate --scene``, ``sim/scene.py`` and ``sim/scene_config.py``):
+galaxy counts and positions, fluxes, ±g pairs with the same noise, the PSF image, a shear
+seen by adaptive moments, determinism, the products and bad input."""
+
+from __future__ import annotations
+
+import fitsio
+import galsim
+import numpy as np
+import pytest
+from helpers import error_line, one_line
+from sim_configs import BULGEDISK, CF_FILE, COSMOSFIT, NOISE_ONLY, write
+
+from megalut_cli.errors import ConfigError
+from megalut_cli.sim.config import load_config
+from megalut_cli.sim.scene import (
+    draw_field,
+    draw_scenes,
+    field_counts,
+    field_units,
+)
+
+#: Round exponential galaxies, a Gaussian PSF, white noise; a constant shear.
+SCENE = """
+[structure]
+stamp_size = 48
+
+[shear]
+g1 = 0.04
+g2 = -0.02
+
+[galaxy]
+profile = "sersic"
+sersicn = 1.0
+rad = {type = "uniform", min = 1.5, max = 3.0}
+flux = {type = "uniform", min = 100.0, max = 300.0}
+ellipticity = {type = "uniform", min = 0.0, max = 0.4}
+
+[psf]
+type = "gaussian"
+sigma = 1.5
+
+[noise]
+type = "gaussian"
+sigma = 1.0
+
+[scene]
+density = 100
+size = 96
+pixel_scale = 0.2
+n_fields = 2
+pairs = true
+"""
+
+
+def scene_config(tmp_path, text: str = SCENE, **replace: str):
+    return load_config(write(tmp_path, text, replace=replace or None), scene=True)
+
+
+def test_galaxy_counts_follow_the_density(tmp_path):
+    cfg = scene_config(tmp_path, **{"n_fields = 2": "n_fields = 400\nborder = 8"})
+    s = cfg.scene
+    area = ((96 - 16) * 0.2 / 60.0) ** 2  # arcmin², inside the border
+    mean = 100 * area * 400
+    counts = field_counts(cfg, seed=5)
+    assert abs(counts.sum() - mean) < 5 * np.sqrt(mean), (counts.sum(), mean)
+    assert s.mean_count == pytest.approx(100 * area)
+    # a field holds as many galaxies as counted, all inside the border (FITS 1-based pixels)
+    unit = field_units(cfg, 5)[3]
+    drawn = draw_field(unit)
+    x, y = drawn.truth["x"], drawn.truth["y"]
+    assert len(x) == counts[3] > 0
+    assert np.all((x >= 8.5) & (x <= 88.5) & (y >= 8.5) & (y <= 88.5))
+
+
+def test_fluxes_and_noise_add_up(tmp_path):
+    cfg = scene_config(tmp_path, **{"density = 100": "density = 40"})
+    unit = next(u for u in field_units(cfg, 2) if u.n_galaxies > 3)
+    drawn = draw_field(unit)
+    for j in range(2):
+        clean = drawn.images[j].astype(np.float64) - drawn.noise
+        # the image is the galaxies' drawn flux plus the noise field
+        assert clean.sum() == pytest.approx(drawn.flux_drawn[j].sum(), rel=1e-4)
+        # and the truth flux, within the noise (sigma 1 per pixel) and what edges cut
+        assert abs(drawn.images[j].sum() - drawn.truth["tru_flux"].sum()) < (
+            5 * 96 + (drawn.truth["tru_flux"] - drawn.flux_drawn[j]).sum() + 1.0
+        )
+    inside = (np.minimum(drawn.truth["x"], drawn.truth["y"]) > 24) & (
+        np.maximum(drawn.truth["x"], drawn.truth["y"]) < 72
+    )
+    np.testing.assert_allclose(
+        drawn.flux_drawn[0][inside], drawn.truth["tru_flux"][inside], rtol=0.01
+    )
+    assert np.std(drawn.noise) == pytest.approx(1.0, rel=0.05)
+    np.testing.assert_array_equal(drawn.weight, 1.0)
+    np.testing.assert_array_equal(drawn.mask, 0)
+
+
+def test_pairs_share_galaxies_and_noise(tmp_path):
+    cfg = scene_config(tmp_path)
+    scenes = draw_scenes(cfg, seed=3)
+    t, table = scenes.truth, scenes.image_table
+    np.testing.assert_array_equal(table["pair_sign"], [1, -1, 1, -1])
+    np.testing.assert_array_equal(table["field"], [0, 0, 1, 1])
+    np.testing.assert_allclose(table["tru_g1"], [0.04, -0.04, 0.04, -0.04])
+    for f in (0, 1):
+        plus = (t["field"] == f) & (t["pair_sign"] == 1)
+        minus = (t["field"] == f) & (t["pair_sign"] == -1)
+        for name in ("x", "y", "tru_flux", "tru_rad", "tru_e1", "tru_e2"):
+            np.testing.assert_array_equal(t[name][plus], t[name][minus])
+        np.testing.assert_array_equal(t["tru_g1"][minus], -t["tru_g1"][plus])
+        np.testing.assert_array_equal(t["tru_g2"][minus], -t["tru_g2"][plus])
+        assert np.all(t["tru_g1"][plus] == 0.04)
+        # the images differ only where galaxies are: far from all of them, not at all
+        diff = scenes.images[2 * f] - scenes.images[2 * f + 1]
+        yy, xx = np.mgrid[1:97, 1:97]
+        far = np.ones(diff.shape, bool)
+        for x, y in zip(t["x"][plus], t["y"][plus]):
+            far &= np.maximum(abs(xx - x), abs(yy - y)) > 25  # beyond half a 48-px stamp
+        assert far.any()
+        assert np.all(diff[far] == 0.0)
+        assert np.abs(diff).max() > 0.01
+    # the noise of the two images of a field is the same field of noise (to float32 rounding
+    # where galaxies are; exactly elsewhere, above)
+    drawn = draw_field(field_units(cfg, 3)[0])
+    clean = drawn.images.astype(np.float64) - drawn.noise
+    np.testing.assert_allclose(drawn.images[0] - clean[0], drawn.noise, atol=2e-5, rtol=0)
+    np.testing.assert_allclose(drawn.images[1] - clean[1], drawn.noise, atol=2e-5, rtol=0)
+
+
+def test_psf_image_at_the_field_centre(tmp_path):
+    scenes = draw_scenes(scene_config(tmp_path), seed=1)
+    psf = scenes.psfs[0]
+    assert psf.shape == (33, 33)
+    assert psf.sum() == pytest.approx(1.0, abs=1e-6)
+    assert np.unravel_index(np.argmax(psf), psf.shape) == (16, 16)
+    mom = galsim.hsm.FindAdaptiveMom(galsim.ImageF(psf, scale=1.0))
+    assert mom.moments_centroid.x == pytest.approx(17.0, abs=1e-3)  # 1-based centre
+    # the Gaussian PSF of sigma 1.5 px, convolved with the pixel
+    assert mom.moments_sigma == pytest.approx(np.sqrt(1.5**2 + 1 / 12), rel=0.02)
+
+
+def test_a_known_shear_is_seen_by_adaptive_moments(tmp_path):
+    """Noiseless round galaxies at low density: the mean adaptive-moment shape of cutouts
+    around the true positions moves with +g and -g by about the expected amount."""
+    g = 0.05
+    cfg = scene_config(
+        tmp_path,
+        **{
+            "g1 = 0.04\ng2 = -0.02": f"g1 = {g}\ng2 = 0.0",
+            'ellipticity = {type = "uniform", min = 0.0, max = 0.4}': "ellipticity = 0.0",
+            'rad = {type = "uniform", min = 1.5, max = 3.0}': "rad = 2.5",
+            'type = "gaussian"\nsigma = 1.0': 'type = "none"',
+            "density = 100": "density = 30",
+            "size = 96": "size = 256\nborder = 16",
+            "n_fields = 2": "n_fields = 3",
+        },
+    )
+    scenes = draw_scenes(cfg, seed=7)
+    t = scenes.truth
+    psf_sigma = galsim.hsm.FindAdaptiveMom(galsim.ImageF(scenes.psfs[0])).moments_sigma
+    shapes = {1: [], -1: []}
+    sigmas = []
+    for i in range(len(scenes.images)):
+        rows = np.flatnonzero(t["image"] == i)
+        x, y = t["x"][rows], t["y"][rows]
+        for k in range(len(rows)):
+            others = np.hypot(x - x[k], y - y[k])
+            if np.sort(others)[1:2].min(initial=1e9) < 24:  # a neighbour: left out
+                continue
+            ix, iy = int(round(x[k])), int(round(y[k]))
+            cut = scenes.images[i][iy - 1 - 12 : iy - 1 + 12, ix - 1 - 12 : ix - 1 + 12]
+            mom = galsim.hsm.FindAdaptiveMom(galsim.ImageF(np.ascontiguousarray(cut)))
+            shapes[int(t["pair_sign"][rows[k]])].append(
+                (mom.observed_shape.g1, mom.observed_shape.g2)
+            )
+            sigmas.append(mom.moments_sigma)
+    plus, minus = np.mean(shapes[1], axis=0), np.mean(shapes[-1], axis=0)
+    assert len(shapes[1]) >= 10
+    # the PSF dilutes the shear by about the resolution 1 - sigma_psf² / sigma_obs²
+    expected = g * (1.0 - psf_sigma**2 / np.mean(sigmas) ** 2)
+    response = (plus[0] - minus[0]) / 2.0
+    assert response > 0
+    assert response == pytest.approx(expected, rel=0.15), (response, expected)
+    assert abs(plus[1]) < 0.002 and abs(minus[1]) < 0.002
+
+
+def test_the_seed_decides_every_pixel(tmp_path):
+    cfg = scene_config(tmp_path)
+    a, b = draw_scenes(cfg, seed=4), draw_scenes(cfg, seed=4)
+    np.testing.assert_array_equal(a.images, b.images)
+    np.testing.assert_array_equal(a.truth["x"], b.truth["x"])
+    c = draw_scenes(cfg, seed=5)
+    assert not np.array_equal(a.truth["x"][:3], c.truth["x"][:3])
+    # a field is the same drawn alone or among others
+    more = load_config(write(tmp_path, SCENE.replace("n_fields = 2", "n_fields = 3")), scene=True)
+    np.testing.assert_array_equal(draw_scenes(more, seed=4).images[:4], a.images)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [BULGEDISK, COSMOSFIT, NOISE_ONLY.replace("SOURCE", f'correlation = "{CF_FILE}"\nsigma = 1.5')],
+    ids=["bulgedisk", "cosmos_fit", "correlated-noise"],
+)
+def test_other_profiles_and_noises(tmp_path, text):
+    text += "\n[scene]\ndensity = 60\nsize = 64\npixel_scale = 0.2\npairs = true\n"
+    cfg = load_config(write(tmp_path, text), scene=True)
+    scenes = draw_scenes(cfg, seed=2)
+    assert scenes.images.shape == (2, 64, 64)
+    assert np.all(np.isfinite(scenes.images))
+    n = int(scenes.image_table["n_gal"][0])
+    assert len(scenes.truth["x"]) == 2 * n
+    drawn = draw_field(field_units(cfg, 2)[0])
+    np.testing.assert_array_equal(
+        drawn.images[0] - drawn.images[1] == 0, drawn.images[0] == drawn.images[1]
+    )
+    if "correlated" in text:  # noise-only galaxies (flux 0): the pair is identical
+        np.testing.assert_array_equal(drawn.images[0], drawn.images[1])
+        assert np.std(drawn.noise) == pytest.approx(1.5, rel=0.2)
+        # correlated: neighbouring pixels covary
+        r = np.corrcoef(drawn.noise[:, :-1].ravel(), drawn.noise[:, 1:].ravel())[0, 1]
+        assert r > 0.1
+
+
+@pytest.mark.parametrize(
+    "replace, key",
+    [
+        ({"density = 100": "density = 0"}, "scene.density"),
+        ({"size = 96": "size = 8"}, "scene.size"),
+        ({"n_fields = 2": "n_fields = 2\nborder = 48"}, "scene.border"),
+        ({"n_fields = 2": "n_fields = 2\npsf_size = 32"}, "scene.psf_size"),
+        ({"pixel_scale = 0.2": ""}, "scene.pixel_scale"),
+        ({"pixel_scale = 0.2": "pixel_scale = 0.2\ncolour = 1"}, "scene.colour"),
+        ({"[scene]": "[instrument]\npixel_scale = 0.1\n[scene]"}, "scene.pixel_scale"),
+    ],
+)
+def test_bad_scene_keys_are_refused(tmp_path, replace, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        scene_config(tmp_path, **replace)
+
+
+def test_the_command_writes_both_products(runner, cli, tmp_path):
+    cfg = write(tmp_path, SCENE.replace("pairs = true", "pairs = false"))
+    truth, images = tmp_path / "truth.fits", tmp_path / "scenes.fits"
+    args = ["simulate", str(cfg), "-o", str(truth), "--scene", str(images), "--pairs", "-j", "1"]
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    with fitsio.FITS(str(images)) as f:
+        assert [h.get_extname() for h in f] == ["SCI", "WGT", "MSK", "PSF", "IMAGES"]
+        sci = f["SCI"].read()
+        assert sci.shape == (4, 96, 96) and sci.dtype == np.float32
+        assert f["WGT"].read().shape == (4, 96, 96)
+        assert f["MSK"].read().shape == (4, 96, 96)
+        assert f["PSF"].read().shape == (4, 33, 33)
+        table = f["IMAGES"].read()
+        assert f["SCI"].read_header()["PAIRS"] is True
+    np.testing.assert_array_equal(table["pair_sign"], [1, -1, 1, -1])
+    rows = fitsio.read(str(truth), ext="CATALOG")
+    assert len(rows) == table["n_gal"].sum()
+    for name in ("field", "pair_sign", "x", "y", "tru_flux", "tru_rad", "tru_g1", "tru_g2"):
+        assert name in rows.dtype.names
+    # the same pixels from two workers; an existing output is refused, nothing replaced
+    before = images.stat().st_mtime_ns
+    result = runner.invoke(cli, args)
+    error_line(result, 1, "exists")
+    assert images.stat().st_mtime_ns == before
+    other = tmp_path / "j2.fits"
+    args2 = ["simulate", str(cfg), "-o", str(tmp_path / "t2.fits"), "--scene", str(other)]
+    result = runner.invoke(cli, [*args2, "--pairs", "-j", "2"])
+    assert result.exit_code == 0, result.output
+    np.testing.assert_array_equal(fitsio.read(str(other), ext="SCI"), sci)
+
+
+@pytest.mark.parametrize(
+    "extra, code, words",
+    [
+        (["--pairs"], 2, ("--pairs needs --scene",)),
+        (["--scene", "S.fits", "--measure"], 2, ("--measure",)),
+        (["--scene", "S.fits", "--n-cases", "3"], 2, ("--n-cases",)),
+        (["--scene", "S.fits", "scene.density=-1"], 2, ("density",)),
+        (["--scene", "S.fits", "scene.n_fields=100000", "scene.size=4096"], 1, ("memory",)),
+    ],
+)
+def test_bad_input_one_line_and_nothing_written(runner, cli, tmp_path, extra, code, words):
+    cfg = write(tmp_path, SCENE)
+    out = tmp_path / "t.fits"
+    extra = [str(tmp_path / e) if e == "S.fits" else e for e in extra]
+    result = runner.invoke(cli, ["simulate", str(cfg), "-o", str(out), *extra])
+    error_line(result, code, *words)
+    assert not out.exists() and not (tmp_path / "S.fits").exists()
+
+
+def test_a_missing_table_key_names_the_file(runner, cli, tmp_path):
+    cfg = write(tmp_path, SCENE.replace("pixel_scale = 0.2", ""))
+    result = runner.invoke(
+        cli, ["simulate", str(cfg), "-o", str(tmp_path / "t.fits"), "--scene", "s.fits"]
+    )
+    assert result.exit_code == 2
+    assert "pixel_scale" in one_line(result)
