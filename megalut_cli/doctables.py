@@ -30,6 +30,7 @@ from megalut_cli.sim.noise_config import NOISE_KINDS, NOISE_OPTIONS
 from megalut_cli.sim.options import ALL_SIMULATE_OPTIONS
 from megalut_cli.sim.profiles import GALAXY_PROFILES
 from megalut_cli.sim.psf import PSF_REGISTRY, PSF_TYPES
+from megalut_cli.sim.scene_config import SCENE_OPTIONS
 
 
 def models_table(
@@ -67,6 +68,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "structure": lambda: docs_table(STRUCTURE_OPTIONS, cli=False),
     "instrument": lambda: docs_table(INSTRUMENT_OPTIONS, cli=False),
     "gsparams": lambda: docs_table(GSPARAMS_OPTIONS, cli=False),
+    "scene": lambda: docs_table(SCENE_OPTIONS, cli=False, prefix="scene."),
     "galaxy-profiles": galaxy_profiles_table,
     "galaxy": lambda: kinds_table(
         (GALAXY_OPTION,), {n: p.options for n, p in GALAXY_PROFILES.items()}, "profiles"

@@ -243,10 +243,14 @@ SIM_EXAMPLES = sorted(
 def test_examples_are_valid(path, monkeypatch):
     """Every example simulation config (not pipeline files) loads at its paper size
     (realgal/ and metacal/: the real-galaxy experiments, which have no paper size: their
-    galaxies are the 100 COSMOS ones; your-data/: the worked example's stand-in survey)."""
+    galaxies are the 100 COSMOS ones; your-data/: the worked example's stand-in survey;
+    scenes/: fields of galaxies, no stamps)."""
     from megalut_cli.sim.config import load_config
 
     monkeypatch.chdir(EXAMPLES.parent)
+    if path.parts[0] == "scenes":
+        assert load_config(Path("examples") / path, scene=True).scene is not None
+        return
     cfg = load_config(Path("examples") / path)
     assert cfg.structure.n_stamps >= {"realgal": 10**2, "metacal": 10**2, "your-data": 10**4}.get(
         path.parts[0], 10**6
