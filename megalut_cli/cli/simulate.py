@@ -114,6 +114,12 @@ def command(
     grid of its image (n_x per row, default sqrt(n_realizations)); the catalog then also
     has `subfield` and the GREAT3 `ID`, and `x, y` are centres in the subfield images.
 
+    With --scene SCENES.fits, fields of galaxies at random positions are drawn instead
+    ([scene] of CONFIG: density per arcmin², size, pixel scale, number of fields; one shear
+    per field; docs/scenes.md): the images go to SCENES.fits, their truth (one row per galaxy
+    per image, `x, y` FITS 1-based) to -o; --pairs draws each field at +g and -g with the
+    same galaxies and noise.
+
     KEY=VALUE arguments override config keys (dotted names, TOML values), e.g.
     `noise.sigma=0.1` or `galaxy.rad='{type="uniform", min=1, max=4}'`.
     --n-cases and --n-realizations scale a paper-sized config down.
@@ -137,6 +143,9 @@ def command(
       # a GREAT3-layout branch: 4 subfields of 10x10 stamps (30 s)
       megalut simulate examples/great3/branch.toml -o branch.fits \\
           --great3 branch/ --n-cases 4 --n-realizations 100
+      # 10 fields of 250x250 px at +g and -g, 166 galaxies (3 s)
+      megalut simulate examples/scenes/metadetect.toml -o truth.fits \\
+          --scene scenes.fits
       # what the paper-sized config (10^7 stamps) would do, and how long
       megalut simulate examples/fiducial/tp.toml -o tp.fits --measure \\
           --dry-run
