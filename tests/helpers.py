@@ -392,3 +392,43 @@ def invoke_fails(runner, cli, args, code: int, *words: str) -> str:
     for w in words:
         assert w in text, text
     return text
+
+
+def metadetect_predictions(
+    n: int = 40_000,
+    g: tuple[float, float] = (0.02, -0.01),
+    seed: int = 1,
+    step: float = 0.01,
+    n_fields: int = 100,
+) -> dict[str, np.ndarray]:
+    """A synthetic predicted metadetection catalog (``measure --metadetect`` then
+    ``predict``): objects in ``n_fields`` fields (in 90-degree pairs), each with a response
+    ``R`` and an estimate ``e + R s`` under the shear ``s`` of each version (``g``, and
+    ``g +- step`` along each axis); a version keeps the objects it detects,
+    ``u + |estimate|^2 > 0.5`` (``u`` uniform), so that detection responds to the shear."""
+    rng = np.random.default_rng(seed)
+    m = n // 2
+    e0 = rng.normal(0.0, 0.25, (2, m))
+    e = np.concatenate([e0, np.array([-e0[0], -e0[1]])], axis=1)
+    r = np.tile(rng.uniform(0.6, 1.0, m), 2)
+    u = np.tile(rng.uniform(0.0, 1.0, m), 2)
+    field = np.tile(rng.integers(0, n_fields, m), 2)
+    shears = {
+        "noshear": (0.0, 0.0),
+        "1p": (step, 0.0),
+        "1m": (-step, 0.0),
+        "2p": (0.0, step),
+        "2m": (0.0, -step),
+    }
+    parts: dict[str, list[np.ndarray]] = {
+        c: [] for c in ("mdet_step", "field", "pre_g1", "pre_g2", "flags")
+    }
+    for kind, s in shears.items():
+        est = e + r * (np.asarray(g)[:, None] + np.asarray(s)[:, None])
+        det = u + est[0] ** 2 + est[1] ** 2 > 0.5
+        parts["mdet_step"].append(np.full(int(det.sum()), kind))
+        parts["field"].append(field[det])
+        parts["pre_g1"].append(est[0][det])
+        parts["pre_g2"].append(est[1][det])
+        parts["flags"].append(np.zeros(int(det.sum()), dtype=np.int32))
+    return {c: np.concatenate(v) for c, v in parts.items()}

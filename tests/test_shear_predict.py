@@ -190,3 +190,44 @@ def test_narrow_flags_column_is_widened(tmp_path, model_path):
     f = np.asarray(read_catalog(out)["flags"])
     assert f.dtype.itemsize >= 2
     assert f[2] == flags.CENTROID_SHIFT | flags.BAD_FEATURES and f[3] == flags.BAD_FEATURES
+
+
+def test_a_metadetection_catalog_is_predicted_row_by_row(runner, cli, tmp_path):
+    """A metadetection catalog (``mdet_step``, ``MDETSTEP``): a metacal model predicts each
+    detection's row from its plain features (the same numbers as a plain catalog of those
+    rows), the card rides along; a simulation-calibrated model is refused (exit 1)."""
+    from helpers import features_catalog, invoke_fails
+
+    from megalut_cli.catalog import read_catalog_columns, write_catalog
+    from megalut_cli.nn.model import ShearModel
+    from megalut_cli.nn.shipped import shipped_model
+    from megalut_cli.shear.predict import predict_arrays
+
+    cols = features_catalog(n=50, seed=3)
+    cols.pop("vec"), cols.pop("name")
+    cols["psf_adamom_g1"] = np.zeros(50)
+    cols["psf_adamom_g2"] = np.zeros(50)
+    cols["psf_adamom_sigma"] = np.full(50, 2.5)
+    cols["psf_adamom_rho4"] = np.full(50, 2.0)
+    cols["skymad"] = np.full(50, 0.6)
+    cols["mdet_step"] = np.array(["noshear", "1p", "1m", "2p", "2m"] * 10)
+    path = tmp_path / "det.fits"
+    write_catalog(path, cols, fmt="megalut.metadetect", cards={"MDETSTEP": (0.01, "step")})
+    out = tmp_path / "p.fits"
+    result = runner.invoke(
+        cli, ["predict", str(path), "--model", "fiducial-metacal", "-o", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    pred, header = read_catalog_columns(out)
+    assert header["MDETSTEP"] == 0.01 and list(pred["mdet_step"][:2]) == ["noshear", "1p"]
+    model = ShearModel.load(shipped_model("fiducial-metacal"))
+    x = np.column_stack([cols[f] for f in model.features])
+    direct = predict_arrays(model, x, cols["flags"])
+    np.testing.assert_allclose(pred["pre_g1"], direct["pre_g1"], rtol=1e-12)
+    invoke_fails(
+        runner,
+        cli,
+        ["predict", str(path), "--model", "fiducial", "-o", str(tmp_path / "x.fits")],
+        1,
+        "metadetection",
+    )

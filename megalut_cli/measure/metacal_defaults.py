@@ -27,3 +27,7 @@ TARGET_CARD = "MCALTARG"
 #: The interpolant of the stamp and PSF images (ngmix's choice; lanczos15 keeps the
 #: interpolation error of a sheared, deconvolved image at the 1e-4 level).
 INTERPOLANT = "lanczos15"
+#: Metadetection catalogs (``measure --metadetect``): the column naming each detection's
+#: version, and the header card of the step.
+MDET_COLUMN = "mdet_step"
+MDET_STEP_CARD = "MDETSTEP"

@@ -7,6 +7,9 @@ Input: the output of ``megalut predict``. Two routes:
   response ``<R>`` of the objects used and the selection response ``R_sel`` of the
   selection, the weights and the bin (taken on the sheared versions; Sheldon & Huff 2017,
   Sect. 5), through the sums of :mod:`megalut_cli.shear.response`;
+- metadetection catalogs (``mdet_step``, header ``MDETSTEP``): one row per detection per
+  version; ``g = R^-1 <g_est>_noshear`` with ``R`` from each sheared version's own
+  detections, detection included (the same sums, each version's rows its "selection");
 - simulation-calibrated catalogs: the (weighted) means of ``pre_g1, pre_g2``.
 
 Errors: a delete-one jackknife over patches of the sky (a regular grid over
@@ -37,7 +40,7 @@ from megalut_cli import expr
 from megalut_cli.catalog import VersionColumns
 from megalut_cli.concat import TILE_COLUMN
 from megalut_cli.errors import ConfigError, InputError
-from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, TYPES
+from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, MDET_COLUMN, MDET_STEP_CARD, TYPES
 from megalut_cli.seeding import STREAM_CALIBRATE
 from megalut_cli.shear.bias import calibrate_by_response
 from megalut_cli.shear.bootstrap import resample_counts, spread
@@ -75,6 +78,11 @@ from megalut_cli.shear.response import header_step, metacal_response, row_values
 log = logging.getLogger(__name__)
 
 ROUTE_METACAL = "metacal"
+#: Metadetection catalogs (``measure --metadetect``): one row per detection per version.
+ROUTE_METADETECT = "metadetect"
+#: The columns whose values are the independent units of a metadetection catalog's errors
+#: (a field's images share galaxies and noise), in order of preference.
+MDET_UNIT_COLUMNS = ("field", "image")
 ROUTE_SIMULATION = "simulation"
 #: The PSF ellipticity of each object (measured: real data has no true PSF).
 PSF_COLUMNS = ("psf_adamom_g1", "psf_adamom_g2")
@@ -127,6 +135,7 @@ class CalibrationPlan:
     has_flags: bool
     frame: str  # WORLD_FRAME with the per-object Jacobian columns, else PIXEL_FRAME
     epochs: bool  # rows are epochs of objects (columns id and cutout, measure --epochs)
+    unit: str | None  # metadetection: the column of the independent units (cells)
     columns: tuple[str, ...]
     pass_through: tuple[str, ...]
     names: dict[str, str] = field(default_factory=dict)
@@ -163,7 +172,16 @@ def plan_calibration(
             f"(expected one of {', '.join(CALIBRATE_ERROR_CHOICES)})"
         )
     metacal = [c for c in RESPONSE_COLUMNS if c in have]
-    if metacal:
+    if MDET_COLUMN in have:
+        route = ROUTE_METADETECT
+        missing = [c for c in (*ESTIMATE_COLUMNS, "flags") if c not in have]
+        if missing:
+            raise InputError(
+                f"{source}: a metadetection catalog ({MDET_COLUMN}) lacks {', '.join(missing)}: "
+                "predict it first"
+            )
+        weight_cols = list(WEIGHT_COLUMNS)
+    elif metacal:
         route = ROUTE_METACAL
         needed = [
             *RESPONSE_COLUMNS,
@@ -197,6 +215,10 @@ def plan_calibration(
     step = None
     if route == ROUTE_METACAL:
         step = header_step(header) or DEFAULT_STEP
+    elif route == ROUTE_METADETECT:
+        step = header_step(header, MDET_STEP_CARD)
+        if step is None:
+            raise InputError(f"{source}: a metadetection catalog without its {MDET_STEP_CARD} card")
     if select is not None:
         expr.check_expression(select, list(colnames))
     by_kind = None
@@ -213,6 +235,22 @@ def plan_calibration(
         by_versioned = route == ROUTE_METACAL and any(f"{c}_1p" in have for c in by_used)
     psf = PSF_COLUMNS if all(c in have for c in PSF_COLUMNS) else None
     positions = next((p for p in POSITION_COLUMNS if all(c in have for c in p)), None)
+    unit = None
+    if route == ROUTE_METADETECT:
+        psf = None  # its PSF columns are the round target's
+        positions = None  # x, y are within each cell: the cells are the units
+        unit = next((c for c in MDET_UNIT_COLUMNS if c in have), None)
+        if by_kind == "patch":
+            raise ConfigError(
+                f"{given.get('by', 'by')} {PATCH_BY}: not for a metadetection catalog"
+            )
+        if errors == JACKKNIFE and unit is None:
+            raise InputError(
+                f"{source}: a jackknife over cells needs a {' or '.join(MDET_UNIT_COLUMNS)} "
+                f"column; use {given.get('errors', 'errors')} bootstrap"
+            )
+        if errors == "auto":
+            errors = JACKKNIFE if unit is not None else BOOTSTRAP
     if by_kind == "patch":
         if positions is None:
             raise InputError(
@@ -226,7 +264,7 @@ def plan_calibration(
         errors = BOOTSTRAP
     if errors == "auto":
         errors = JACKKNIFE if positions is not None else BOOTSTRAP
-    elif errors == JACKKNIFE and positions is None:
+    elif errors == JACKKNIFE and positions is None and unit is None:
         raise InputError(
             f"{source}: a jackknife over patches needs positions (ra, dec or x, y); "
             f"use {given.get('errors', 'errors')} bootstrap"
@@ -244,7 +282,9 @@ def plan_calibration(
         )
     cols: list[str] = list(JACOBIAN_COLUMNS) if frame == WORLD_FRAME else []
     cols += [*EPOCH_COLUMNS, TILE_COLUMN] if epochs else []
-    if route == ROUTE_METACAL:
+    if route == ROUTE_METADETECT:
+        cols += [MDET_COLUMN, *ESTIMATE_COLUMNS, "flags", *([unit] if unit else [])]
+    elif route == ROUTE_METACAL:
         cols += [*RESPONSE_COLUMNS, "flags_noshear"]
         cols += [f"{c}_{kind}" for kind in TYPES for c in ESTIMATE_COLUMNS]
         used = (expr.columns_used(select) if select is not None else []) + by_used
@@ -276,6 +316,7 @@ def plan_calibration(
         has_flags,
         frame,
         epochs,
+        unit,
         tuple(dict.fromkeys(c for c in cols if c in have)),
         passed,
         given,
@@ -335,7 +376,57 @@ class _Objects:
     psf: tuple[np.ndarray, np.ndarray] | None
 
 
+def _metadetect_objects(columns: Mapping[str, np.ndarray], plan: CalibrationPlan) -> _Objects:
+    """The rows of a metadetection catalog as the sums of :mod:`.response` take them: the
+    noshear detections' estimates and weights; no per-row response; under each sheared
+    version its own detections' weights and estimates, so that the "selection" response of
+    the sums, ``(<g_i>_jp - <g_i>_jm) / (2 step)`` over each version's detections, is the
+    whole response (detection included)."""
+    n = len(np.asarray(columns[MDET_COLUMN]))
+    if n == 0:
+        raise InputError(f"{plan.source}: the catalog has no rows")
+    version = np.char.strip(np.asarray(columns[MDET_COLUMN]).astype("U"))
+    unknown = sorted(set(np.unique(version)) - set(TYPES))
+    if unknown:
+        raise InputError(
+            f"{plan.source}: {MDET_COLUMN} holds {', '.join(unknown[:3])}: expected "
+            f"{', '.join(TYPES)}"
+        )
+    selected = np.ones(n, dtype=bool)
+    if plan.select is not None:
+        selected = expr.evaluate_rows(plan.select, columns, n)
+    raw = {i: np.asarray(columns[f"pre_g{i}"], dtype=float) for i in (1, 2)}
+    ok = selected & (np.asarray(columns["flags"]) == 0)
+    ok &= np.isfinite(raw[1]) & np.isfinite(raw[2])
+    w = {i: np.ones(n) for i in (1, 2)}
+    if plan.weighted:
+        for i in (1, 2):
+            w[i] = np.asarray(columns[f"pre_g{i}_w"], dtype=float)
+            if np.any(ok & (w[i] < 0)):
+                raise InputError(f"{plan.source}: column pre_g{i}_w has negative weights")
+    usable = {i: ok & np.isfinite(w[i]) & (w[i] > 0) for i in (1, 2)}
+    noshear = version == "noshear"
+    valid = {i: usable[i] & noshear for i in (1, 2)}
+    if not (valid[1] | valid[2]).any():
+        raise InputError(f"{plan.source}: no usable noshear detection (flags, NaN, selection)")
+    missing = [k for k in SHEARED_TYPES if not np.any(usable[1] & (version == k))]
+    if missing:
+        raise InputError(f"{plan.source}: no usable detection of version {', '.join(missing)}")
+    pre = {i: np.where(valid[i], raw[i], 0.0) for i in (1, 2)}
+    weight = {i: np.where(valid[i], w[i], 0.0) for i in (1, 2)}
+    response = {(i, j): np.zeros(n) for i in (1, 2) for j in (1, 2)}
+    sheared = {
+        (i, kind): np.where(usable[i] & (version == kind), w[i], 0.0)
+        for i in (1, 2)
+        for kind in SHEARED_TYPES
+    }
+    own = {i: np.where(ok, raw[i], 0.0) for i in (1, 2)}
+    return _Objects(n, selected, valid, pre, weight, response, sheared, own, None)
+
+
 def _objects(columns: Mapping[str, np.ndarray], plan: CalibrationPlan) -> _Objects:
+    if plan.route == ROUTE_METADETECT:
+        return _metadetect_objects(columns, plan)
     n = len(np.asarray(columns[plan.columns[0]]))
     if n == 0:
         raise InputError(f"{plan.source}: the catalog has no rows")
@@ -531,7 +622,7 @@ def _estimates(t: Mapping[str, np.ndarray], plan: CalibrationPlan) -> dict[str, 
         raw = [t[f"{s}:wpre:g{i}"][0] / t[f"{s}:w:g{i}"][0] for i in (1, 2)]
         shape = raw[0].shape
         selection = None
-        if plan.route == ROUTE_METACAL:
+        if plan.route != ROUTE_SIMULATION:
             mean, selection = metacal_response(t, s)
             r = mean if selection is None else mean + selection
         else:
@@ -664,7 +755,7 @@ def _binning(
     columns: Mapping[str, np.ndarray], obj: _Objects, plan: CalibrationPlan, n_bins: int
 ) -> _Binning:
     metacal = plan.route == ROUTE_METACAL
-    versions = ("noshear", *SHEARED_TYPES) if metacal else ("noshear",)
+    versions = ("noshear", *SHEARED_TYPES) if plan.route != ROUTE_SIMULATION else ("noshear",)
     if plan.by is None:
         zero = np.zeros(obj.n, dtype=np.int64)
         return _Binning({v: zero for v in versions}, [{}], "all")
@@ -799,7 +890,16 @@ def calibrate_columns(
                 f"{plan.source}: the positions {', '.join(plan.positions)} fall in a single "
                 f"patch; use {plan.name('errors')} bootstrap"
             )
-    versions = ("noshear", *SHEARED_TYPES) if plan.route == ROUTE_METACAL else ("noshear",)
+    if plan.errors == JACKKNIFE and plan.unit is not None:  # metadetection: cell by cell
+        patches = np.unique(np.asarray(columns[plan.unit]), return_inverse=True)[1].ravel()
+        if patches.max() < 1:
+            raise InputError(
+                f"{plan.source}: one {plan.unit} only; use {plan.name('errors')} bootstrap"
+            )
+    groups = objects  # what the bootstrap draws together: an object's epochs, or a cell
+    if plan.route == ROUTE_METADETECT and plan.errors == BOOTSTRAP and plan.unit is not None:
+        groups = np.unique(np.asarray(columns[plan.unit]), return_inverse=True)[1].ravel()
+    versions = ("noshear", *SHEARED_TYPES) if plan.route != ROUTE_SIMULATION else ("noshear",)
     whole = _Binning({v: np.zeros(obj.n, dtype=np.int64) for v in versions}, [{}], "all")
     binnings = [whole] + ([_binning(columns, obj, plan, bins)] if plan.by is not None else [])
     has_selection = plan.select is not None or plan.weighted
@@ -810,12 +910,14 @@ def calibrate_columns(
         totals = _totals(vals, binning.bins, n_b)
         est = _estimates({k: v[None] for k, v in totals.items()}, plan)
         err = _sample_errors(
-            vals, totals, binning.bins, n_b, plan, patches, n_bootstrap, seed, objects
+            vals, totals, binning.bins, n_b, plan, patches, n_bootstrap, seed, groups
         )
         with_sel = est["R_sel"] is not None and (has_selection or (index > 0 and plan.by_versioned))
         for k in range(n_b):
             mean = est["R"][:, :, k]
             sel = est["R_sel"][:, :, k] if with_sel else None
+            if plan.route == ROUTE_METADETECT:  # the detections' response is the whole one
+                mean, sel = est["R_sel"][:, :, k], None
             total = mean + sel if sel is not None else mean
             responses.append(total)
             entry: dict[str, Any] = {
@@ -840,11 +942,17 @@ def calibrate_columns(
         {
             "method": JACKKNIFE,
             "positions": list(plan.positions or ()),
+            **({"units": plan.unit} if plan.unit is not None else {}),
             "patches": int(patches.max()) + 1 if patches is not None else 0,
             "patches_asked": int(n_patches),
         }
         if patches is not None
-        else {"method": BOOTSTRAP, "resamples": int(n_bootstrap), "seed": int(seed)}
+        else {
+            "method": BOOTSTRAP,
+            "resamples": int(n_bootstrap),
+            "seed": int(seed),
+            **({"units": plan.unit} if plan.unit is not None else {}),
+        }
     )
     result: dict[str, Any] = {
         "format": CALIBRATION_FORMAT,
@@ -1084,13 +1192,16 @@ def format_calibration(result: Mapping[str, Any]) -> str:
             line += f"  {_pm(a[0], ae[0])}  {_pm(a[1], ae[1])}"
         lines.append(line)
     err = result["errors"]
-    if err["method"] == JACKKNIFE:
+    if err["method"] == JACKKNIFE and err.get("units"):
+        lines.append(f"errors: jackknife over {err['patches']} values of {err['units']}")
+    elif err["method"] == JACKKNIFE:
         lines.append(
             f"errors: jackknife over {err['patches']} patches of ({', '.join(err['positions'])})"
         )
     else:
+        over = f"values of {err['units']}" if err.get("units") else "objects"
         lines.append(
-            f"errors: bootstrap over objects ({err['resamples']} resamples, seed {err['seed']})"
+            f"errors: bootstrap over {over} ({err['resamples']} resamples, seed {err['seed']})"
         )
     lines.append(f"frame: {FRAME_TEXT[result.get('frame', PIXEL_FRAME)]}")
     if result.get("epochs"):
@@ -1098,6 +1209,10 @@ def format_calibration(result: Mapping[str, Any]) -> str:
         lines.append(
             f"rows: {ep['rows']} epochs of {ep['objects']} objects (measure --epochs), "
             "combined in the world frame"
+        )
+    if result["calibration"] == ROUTE_METADETECT:
+        lines.append(
+            "R = (<g>_jp - <g>_jm) / (2 step) over each version's own detections (metadetection)"
         )
     if result["calibration"] == ROUTE_METACAL:
         lines.append("R = <R> + R_sel (mean and selection responses; --json has both)")

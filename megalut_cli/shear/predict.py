@@ -37,7 +37,7 @@ from megalut_cli.catalog import (
     setup_differences,
 )
 from megalut_cli.errors import ConfigError, InputError, Names, namer
-from megalut_cli.measure.metacal_defaults import STEP_CARD, TYPES
+from megalut_cli.measure.metacal_defaults import MDET_COLUMN, MDET_STEP_CARD, STEP_CARD, TYPES
 from megalut_cli.nn.domain import (
     METACAL_ITEMS,
     PSF_COLUMNS,
@@ -306,9 +306,23 @@ def _metacal_inputs(
     return step, xs, flgs
 
 
-def _check_mode(model: ShearModel, step: float | None, model_path: Any, features_path: Any) -> None:
+def _check_mode(
+    model: ShearModel,
+    step: float | None,
+    model_path: Any,
+    features_path: Any,
+    metadetect: bool = False,
+) -> None:
     """Refuse a metacal model on a plain catalog and a simulation-calibrated one on a metacal
-    catalog."""
+    or metadetection catalog (whose rows a metacal model predicts one by one)."""
+    if metadetect:
+        if model.shear_mode != "metacal":
+            raise InputError(
+                f"{model_path} is a simulation-calibrated model and {features_path} a "
+                f"metadetection catalog ({MDET_STEP_CARD} card): use a metacal model "
+                f"({METACAL_MODEL_HINT})"
+            )
+        return
     if model.shear_mode == "metacal" and step is None:
         raise InputError(
             f"{model_path} is a metacal model and {features_path} a plain catalog "
@@ -802,7 +816,13 @@ def predict_catalog(
     resolved = resolve_columns(model.features, colnames, column_map, str(features_path), names)
     has_flags = "flags" in colnames
     step = _metacal_step(header, features_path)
-    _check_mode(model, step, model_path, features_path)
+    metadetect = header.get(MDET_STEP_CARD) is not None or MDET_COLUMN in colnames
+    if metadetect and step is not None:
+        raise InputError(
+            f"{features_path}: both a metacal ({STEP_CARD}) and a metadetection "
+            f"({MDET_STEP_CARD}) catalog"
+        )
+    _check_mode(model, step, model_path, features_path, metadetect)
     if step is not None:
         missing = [
             f"{c}_{kind}"

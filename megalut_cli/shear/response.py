@@ -116,7 +116,8 @@ def case_estimates(
     return out
 
 
-def header_step(header: Mapping[str, Any]) -> float | None:
-    """The number of a header's ``MCALSTEP`` card, or None (no card, or not a number)."""
-    step = header.get(STEP_CARD)
+def header_step(header: Mapping[str, Any], card: str = STEP_CARD) -> float | None:
+    """The number of a header's ``MCALSTEP`` card (or ``card``), or None (no card, or not a
+    number)."""
+    step = header.get(card)
     return float(step) if isinstance(step, (int, float)) and not isinstance(step, bool) else None
