@@ -297,9 +297,12 @@ def metadetect_cell(
         # a noiseless cell: a threshold in units of the faintest pixels worth a detection
         floor = noise if noise > 0 else 1e-3 * float(np.abs(version).max() or 1.0)
         x, y = detect(version, floor, detection, bad)
-        stamps, masked, origins, centres = cut_around(version, bad, x, y, stamp_size)
-        feats = measurer.measure(StampBatch(stamps, origins, masked=masked, centres=centres))
         n = len(x)
+        # no detection: the columns of one blank stamp, none of its rows
+        at_x, at_y = (x, y) if n else (np.zeros(1), np.zeros(1))
+        stamps, masked, origins, centres = cut_around(version, bad, at_x, at_y, stamp_size)
+        feats = measurer.measure(StampBatch(stamps, origins, masked=masked, centres=centres))
+        feats = {c: v[:n] for c, v in feats.items()}
         row = {"mdet_step": np.full(n, kind), "x": x + 1.0, "y": y + 1.0, **feats}
         for c in TARGET_PSF_COLUMNS:
             row[f"psf_{c}"] = np.full(n, target[f"psf_{c}_{kind}"][0])
