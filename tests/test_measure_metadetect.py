@@ -212,9 +212,7 @@ def test_the_same_seed_the_same_rows_and_workers_agree(runner, cli, tmp_path):
     outs = []
     for name, extra in (("a", ["-j", "1"]), ("b", ["-j", "2"]), ("c", ["--seed", "5"])):
         out = tmp_path / f"{name}.fits"
-        result = runner.invoke(
-            cli, ["measure", str(cells), "--metadetect", "-o", str(out), *extra]
-        )
+        result = runner.invoke(cli, ["measure", str(cells), "--metadetect", "-o", str(out), *extra])
         assert result.exit_code == 0, result.output
         outs.append(fitsio.read(str(out)))
     assert outs[0].dtype == outs[1].dtype and (outs[0] == outs[1]).all()
