@@ -103,7 +103,7 @@ def recognises(path: str) -> bool:
     """Whether ``path`` is a cells file: its MLFORMAT is :data:`CELLS_FORMAT`, or it has a
     ``SCI`` extension and a ``PSF`` or ``WGT`` one (one without a PSF is then refused as an
     incomplete cells file, not read as an image of stamps)."""
-    if not is_fits_file(path):
+    if not os.path.isfile(path) or not is_fits_file(path):
         return False
     try:
         names = _extnames(path)
