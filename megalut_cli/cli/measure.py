@@ -58,6 +58,11 @@ from megalut_cli.measure.options import MEASURE
 @feature_set_options(MEASURE)
 @schema_option(MEASURE["metacal"])
 @schema_option(MEASURE["metacal_step"], show_default=True)
+@schema_option(MEASURE["metadetect"])
+@schema_option(MEASURE["detect_thresh"], show_default=True)
+@schema_option(MEASURE["detect_minarea"], show_default=True)
+@schema_option(MEASURE["deblend_nthresh"], show_default=True)
+@schema_option(MEASURE["deblend_cont"], show_default=True)
 @schema_option(MEASURE["seed"], show_default=True)
 @engine_option("the adaptive moments are measured")
 @device_option("the fast engine measures")
@@ -77,6 +82,11 @@ def command(
     stars: bool | None,
     metacal: bool,
     metacal_step: float,
+    metadetect: bool,
+    detect_thresh: float,
+    detect_minarea: int,
+    deblend_nthresh: int,
+    deblend_cont: float,
     seed: int,
     engine: str,
     device: str,
@@ -126,6 +136,14 @@ def command(
     dvdcol, dvdrow) is passed through, so that megalut calibrate gives world-frame shears;
     --epochs measures every single-epoch cutout, one row per object and epoch.
 
+    A cells file as STAMPS (SCI, WGT, MSK and PSF cubes, what megalut simulate --scene
+    writes; docs/metadetect.md) is measured with --metadetect: per cell, the five metacal
+    versions of the whole cell (fixnoise from the weight map), detection with sep on each
+    version (--detect-thresh, --detect-minarea, --deblend-nthresh, --deblend-cont), and the
+    features of a stamp (--stamp-size, default 48) cut around each detection, neighbours
+    left in: one row per detection per version (mdet_step, image, field, pair_sign, x, y,
+    inner, the features, psf_adamom_* of the target PSF), format megalut.metadetect.
+
     \b
     Example (200 stamps):
       megalut simulate examples/fiducial/vp.toml -o cat.fits \\
@@ -142,6 +160,7 @@ def command(
       megalut measure starfield_image-000-0.fits -o stars.fits \\
           --stamp-size 48
       megalut measure objects.meds.fits -o f.fits
+      megalut measure scenes.fits --metadetect -o det.fits
     """
     # fitsio: not for --help; measure_file_columns: no astropy Table (~0.4 s less)
     from megalut_cli.measure.measure import measure_file_columns
@@ -179,4 +198,9 @@ def command(
             cutout=cutout,
             epochs=epochs,
             psf_model_path=psf_model,
+            metadetect=metadetect,
+            detect_thresh=detect_thresh,
+            detect_minarea=detect_minarea,
+            deblend_nthresh=deblend_nthresh,
+            deblend_cont=deblend_cont,
         )

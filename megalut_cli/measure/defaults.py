@@ -18,3 +18,15 @@ PSF_COLUMNS: tuple[str, ...] = (
     "psf_adamom_sigma",
     "psf_adamom_rho4",
 )
+
+#: Output format name of ``megalut measure --metadetect`` catalogs.
+MDET_FORMAT = "megalut.metadetect"
+#: Stamp cut around each detection of ``--metadetect`` when no stamp size is given.
+MDET_STAMP_SIZE = 48
+#: ``--metadetect`` detection defaults (sep): threshold in noise sigmas, the fewest pixels,
+#: deblending sub-thresholds and the minimum contrast of a deblended branch (Source
+#: Extractor's defaults for the last two).
+DETECT_THRESH = 5.0
+DETECT_MINAREA = 4
+DEBLEND_NTHRESH = 32
+DEBLEND_CONT = 0.005

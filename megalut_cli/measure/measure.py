@@ -23,7 +23,7 @@ from megalut_cli.measure.grid import measure_grid
 from megalut_cli.measure.measurer import MeasureSettings, MetacalSettings
 from megalut_cli.measure.metacal_defaults import DEFAULT_TARGET
 from megalut_cli.measure.options import MEASURE
-from megalut_cli.measure.sources import MeasureRequest, stamp_source_for
+from megalut_cli.measure.sources import DetectSettings, MeasureRequest, stamp_source_for
 from megalut_cli.measure.stamps import grid_origins
 from megalut_cli.progress import Progress
 
@@ -96,6 +96,11 @@ def measure_file_columns(
     psf_model_path: str | os.PathLike | None = None,
     feature_sets: Sequence[str] = (),
     metacal_target: str = DEFAULT_TARGET,
+    metadetect: bool = MEASURE["metadetect"].default,
+    detect_thresh: float = MEASURE["detect_thresh"].default,
+    detect_minarea: int = MEASURE["detect_minarea"].default,
+    deblend_nthresh: int = MEASURE["deblend_nthresh"].default,
+    deblend_cont: float = MEASURE["deblend_cont"].default,
 ) -> tuple[Columns, dict[str, Any]]:
     """Measure every stamp of ``stamps_path`` and write the features catalog ``output``.
 
@@ -146,6 +151,13 @@ def measure_file_columns(
         metacal_target: the target PSF of ``metacal`` by name
             (:mod:`megalut_cli.measure.metacal_targets`; header card ``MCALTARG`` when not
             the default round Gaussian).
+        metadetect: ``stamps_path`` is a cells file (:mod:`.cells`, docs/metadetect.md):
+            metacal on each whole cell, detection on each version, features of a stamp
+            around each detection (``stamp_size``, default 48); format
+            ``megalut.metadetect``, one row per detection per version.
+        detect_thresh, detect_minarea, deblend_nthresh, deblend_cont: the detection of
+            ``metadetect`` (sep): threshold in noise sigmas, the fewest pixels, the
+            deblending sub-thresholds and minimum contrast.
 
     Returns:
         The columns written (name -> array, in order) and the input catalog's header (empty
@@ -156,13 +168,26 @@ def measure_file_columns(
         raise ConfigError(
             f"{name('psf_path')} and {name('psf_model_path')} exclude each other: give one PSF"
         )
+    if metacal and metadetect:
+        raise ConfigError(
+            f"{name('metacal')} (stamps) and {name('metadetect')} (cells) exclude each other"
+        )
     sets = tuple(feature_sets) + (("morphology",) if morphology else ())
     settings = MeasureSettings(
         gain,
         engine,
         device,
         sets,
-        MetacalSettings(float(metacal_step), int(seed), metacal_target) if metacal else None,
+        MetacalSettings(float(metacal_step), int(seed), metacal_target)
+        if metacal or metadetect
+        else None,
+    )
+    detect = (
+        DetectSettings(
+            float(detect_thresh), int(detect_minarea), int(deblend_nthresh), float(deblend_cont)
+        )
+        if metadetect
+        else None
     )
     request = MeasureRequest(
         str(stamps_path),
@@ -180,13 +205,15 @@ def measure_file_columns(
         progress,
         names,
         epochs,
+        metadetect,
+        detect,
     )
     source = stamp_source_for(request.stamps_path)
     source.check(request)
     check_output(output, overwrite)
     if gain is not None and not (np.isfinite(gain) and gain > 0):
         raise ConfigError(f"{name('gain')} must be a positive number, got {gain}")
-    if metacal and not 0 < metacal_step <= MEASURE["metacal_step"].maximum:
+    if (metacal or metadetect) and not 0 < metacal_step <= MEASURE["metacal_step"].maximum:
         raise ConfigError(
             f"{name('metacal_step')} must be in (0, {MEASURE['metacal_step'].maximum}], got "
             f"{metacal_step}"

@@ -881,6 +881,11 @@ def meds_settings(options: MedsOptions) -> MeasureSettings:
 def check_request(request: MeasureRequest) -> None:
     """The arguments that apply to a MEDS file (it carries its own objects and box sizes)."""
     name = namer(request.names)
+    if request.metadetect:
+        raise ConfigError(
+            f"{name('metadetect')} measures a cells file (SCI, WGT, PSF cubes, "
+            f"docs/metadetect.md); {request.stamps_path} is a MEDS file"
+        )
     if request.catalog_path is not None:
         raise ConfigError(
             f"{request.stamps_path} is a MEDS file, which carries its own objects: give it no "

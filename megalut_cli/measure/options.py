@@ -13,7 +13,15 @@ from dataclasses import replace
 
 from megalut_cli.atomic import OVERWRITE_OPTION
 from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION
-from megalut_cli.measure.defaults import MIN_STAMP_SIZE, ORIGINS
+from megalut_cli.measure.defaults import (
+    DEBLEND_CONT,
+    DEBLEND_NTHRESH,
+    DETECT_MINAREA,
+    DETECT_THRESH,
+    MDET_STAMP_SIZE,
+    MIN_STAMP_SIZE,
+    ORIGINS,
+)
 from megalut_cli.measure.feature_sets import set_options
 from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, MAX_STEP
 from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION
@@ -96,10 +104,52 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         min_open=True,
         maximum=MAX_STEP,
     ),
+    Option(
+        "metadetect",
+        "bool",
+        False,
+        "STAMPS is a cells file (docs/metadetect.md: SCI, WGT, MSK, PSF cubes): per cell, the "
+        "five metacal versions of the whole cell (fixnoise from the weight map), detection on "
+        "each version with sep, and the features of a stamp cut around each detection, "
+        "neighbours left in (stamp size --stamp-size, default "
+        f"{MDET_STAMP_SIZE}): one row per detection per version, format megalut.metadetect.",
+    ),
+    Option(
+        "detect_thresh",
+        "float",
+        DETECT_THRESH,
+        "--metadetect: detection threshold, in units of the noise of each version (from the "
+        "weight map, through the metacal operation and fixnoise).",
+        minimum=0,
+        min_open=True,
+    ),
+    Option(
+        "detect_minarea",
+        "int",
+        DETECT_MINAREA,
+        "--metadetect: the fewest connected pixels above the threshold that make a detection.",
+        minimum=1,
+    ),
+    Option(
+        "deblend_nthresh",
+        "int",
+        DEBLEND_NTHRESH,
+        "--metadetect: number of deblending sub-thresholds.",
+        minimum=1,
+        maximum=256,
+    ),
+    Option(
+        "deblend_cont",
+        "float",
+        DEBLEND_CONT,
+        "--metadetect: minimum flux fraction of a deblended branch (1: no deblending).",
+        minimum=0,
+        maximum=1,
+    ),
     replace(
         SEED_OPTION,
         help="Seed of the fixnoise fields of --metacal (one field per stamp; per realization "
-        "in a common-random-number set).",
+        "in a common-random-number set) and of --metadetect (one per field of cells).",
     ),
 )
 MEASURE = {o.name: o for o in MEASURE_OPTIONS}

@@ -39,6 +39,19 @@ class MeasureRequest:
     progress: Progress | None = None
     names: Names | None = None
     epochs: bool = False
+    metadetect: bool = False
+    detect: DetectSettings | None = None
+
+
+@dataclass(frozen=True)
+class DetectSettings:
+    """The detection of ``--metadetect`` (sep): threshold in noise sigmas, the fewest pixels
+    of a detection, the deblending sub-thresholds and minimum contrast."""
+
+    thresh: float
+    minarea: int
+    nthresh: int
+    cont: float
 
 
 @dataclass

@@ -4,8 +4,9 @@ one import line here."""
 
 from __future__ import annotations
 
-from megalut_cli.measure import grid, meds
+from megalut_cli.measure import cells, grid, meds
 from megalut_cli.measure.source_registry import (
+    DetectSettings,
     Measured,
     MeasureRequest,
     StampSourceType,
@@ -14,10 +15,15 @@ from megalut_cli.measure.source_registry import (
 )
 
 #: The sources registered by the modules imported above.
-BUILTIN_SOURCES: tuple[StampSourceType, ...] = (meds.MEDS_SOURCE, grid.GRID_SOURCE)
+BUILTIN_SOURCES: tuple[StampSourceType, ...] = (
+    meds.MEDS_SOURCE,
+    cells.CELLS_SOURCE,
+    grid.GRID_SOURCE,
+)
 
 __all__ = [
     "BUILTIN_SOURCES",
+    "DetectSettings",
     "MeasureRequest",
     "Measured",
     "StampSourceType",

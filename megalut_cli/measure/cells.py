@@ -1,0 +1,471 @@
+"""Cells input of ``megalut measure --metadetect``: detection inside the calibration.
+
+A cells file (docs/metadetect.md; what ``megalut simulate --scene`` writes, format
+``megalut.scenes``) holds square cells of one size: the cubes ``SCI`` (the images), ``WGT``
+(inverse variance, 0 where a pixel is bad), optionally ``MSK`` (mask bits, non-zero bad) and
+``PSF`` (the PSF image at each cell's centre, unit sum, pixel included), and optionally an
+``IMAGES`` table (``image``, ``field``, ``pair_sign``, ...).
+
+Per cell (metadetection, Sheldon et al. 2020): the metacal operation of :mod:`.metacal` on the
+whole cell (the five versions, the round target PSF, fixnoise at the noise of the weight
+map), detection with ``sep`` on each version independently, and the features of a stamp cut
+around each detection in that version, neighbours left in, measured by the one
+:class:`~.measurer.Measurer`. One row per detection per version (:func:`metadetect_cell`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import fitsio
+import numpy as np
+
+from megalut_cli.catalog import is_fits_file
+from megalut_cli.errors import ConfigError, InputError, namer
+from megalut_cli.measure.defaults import MDET_FORMAT, MDET_STAMP_SIZE, PSF_COLUMNS
+from megalut_cli.measure.features import warn_if_mostly_flagged
+from megalut_cli.measure.measurer import (
+    Measurer,
+    MeasureSettings,
+    StampBatch,
+    measure_cards,
+    same_parity_psfs,
+)
+from megalut_cli.measure.metacal_defaults import STEP_CARD, TARGET_PSF_COLUMNS, TYPES
+from megalut_cli.measure.source_registry import (
+    DetectSettings,
+    Measured,
+    MeasureRequest,
+    StampSourceType,
+    register_stamp_source,
+)
+from megalut_cli.parallel import executor, map_units
+from megalut_cli.progress import no_progress
+from megalut_cli.provenance import sha256_file
+
+log = logging.getLogger(__name__)
+
+#: The format name of a cells file written by ``megalut simulate --scene``.
+CELLS_FORMAT = "megalut.scenes"
+#: The image cubes of a cells file (``MSK`` optional, ``WGT`` optional: then unit weights).
+CELL_EXTENSIONS: tuple[str, ...] = ("SCI", "WGT", "MSK", "PSF")
+#: Columns of the ``IMAGES`` table copied to every row of their cell.
+IMAGE_COLUMNS: tuple[str, ...] = ("image", "field", "pair_sign")
+#: Header card of a cells file (and of the catalog): the width of the border (pixels) outside
+#: each cell's inner region (overlapping cells); 0 or absent: the whole cell is inner.
+INNER_CARD = "INNERBRD"
+#: Header card of a metadetect catalog: the shear step (the same as ``MCALSTEP``).
+MDET_STEP_CARD = "MDETSTEP"
+#: The GalSim engine does the operation on a whole cell: FFTs of the cell (the fast engine's
+#: matrix transforms are made for small stamps: 10 times slower at 250 pixels).
+CELL_ENGINE = "galsim"
+
+
+@dataclass(frozen=True)
+class CellsLayout:
+    """What a cells file holds: ``n`` cells of ``size`` pixels, the PSF size, which optional
+    cubes it has, its ``IMAGES`` columns (or None) and its primary header cards."""
+
+    path: str
+    n: int
+    size: int
+    psf_size: int
+    has_weight: bool
+    has_mask: bool
+    images: dict[str, np.ndarray] | None
+    cards: dict[str, Any]
+
+    @property
+    def inner_border(self) -> int:
+        """The border outside the inner region (card :data:`INNER_CARD`, default 0)."""
+        return int(self.cards.get(INNER_CARD, 0) or 0)
+
+    def keys(self) -> np.ndarray:
+        """The fixnoise key of each cell: its field (the +g and -g images of a pair share
+        their fixnoise field, as they share their noise), else its index."""
+        if self.images is not None and "field" in self.images:
+            return np.asarray(self.images["field"], dtype=np.int64)
+        return np.arange(self.n, dtype=np.int64)
+
+
+def _extnames(path: str) -> list[str]:
+    """The upper-case extension names of a FITS file (the primary's EXTNAME too)."""
+    with fitsio.FITS(path) as f:
+        return [str(h.get_extname()).upper() for h in f]
+
+
+def recognises(path: str) -> bool:
+    """Whether ``path`` is a cells file: its MLFORMAT is :data:`CELLS_FORMAT`, or it has a
+    ``SCI`` extension and a ``PSF`` or ``WGT`` one (one without a PSF is then refused as an
+    incomplete cells file, not read as an image of stamps)."""
+    if not os.path.isfile(path) or not is_fits_file(path):
+        return False
+    try:
+        names = _extnames(path)
+        fmt = str(fitsio.read_header(path, 0).get("MLFORMAT", "")).strip()
+    except OSError:
+        return False
+    return fmt == CELLS_FORMAT or ("SCI" in names and ("PSF" in names or "WGT" in names))
+
+
+def read_layout(path: str) -> CellsLayout:
+    """The layout of a cells file, checked (one line per problem: a missing PSF, cubes of
+    different shapes, non-square cells)."""
+    names = _extnames(path)
+    if "SCI" not in names and names and names[0] in ("", "PRIMARY"):
+        names[0] = "SCI"  # the primary holds the images when unnamed
+    if "PSF" not in names:
+        raise InputError(
+            f"{path}: a cells file needs a PSF cube (the PSF image at each cell's centre); it has "
+            f"{', '.join(n for n in names if n) or 'no named extension'}"
+        )
+    with fitsio.FITS(path) as f:
+        sci = f[names.index("SCI")]
+        dims = tuple(int(d) for d in sci.get_dims())
+        cards = {k: sci.read_header()[k] for k in sci.read_header().keys()}
+        if len(dims) == 2:
+            dims = (1, *dims)
+        if len(dims) != 3 or dims[1] != dims[2]:
+            raise InputError(f"{path}: SCI must hold square cells (n, S, S), got shape {dims}")
+        for ext in ("WGT", "MSK"):
+            if ext in names:
+                d = tuple(int(x) for x in f[names.index(ext)].get_dims())
+                if (d if len(d) == 3 else (1, *d)) != dims:
+                    raise InputError(f"{path}: {ext} has shape {d}, SCI {dims}: they must agree")
+        pd = tuple(int(x) for x in f[names.index("PSF")].get_dims())
+        pd = pd if len(pd) == 3 else (1, *pd)
+        if pd[0] != dims[0] or pd[1] != pd[2]:
+            raise InputError(
+                f"{path}: PSF must hold one square image per cell ({dims[0]}), got shape {pd}"
+            )
+        images = None
+        if "IMAGES" in names:
+            table = f[names.index("IMAGES")].read()
+            images = {c: np.asarray(table[c]) for c in IMAGE_COLUMNS if c in table.dtype.names}
+            if len(table) != dims[0]:
+                raise InputError(f"{path}: IMAGES has {len(table)} rows for {dims[0]} cells")
+    layout = CellsLayout(
+        path, dims[0], dims[1], pd[1], "WGT" in names, "MSK" in names, images, cards
+    )
+    if not 0 <= layout.inner_border < layout.size / 2:
+        raise InputError(
+            f"{path}: {INNER_CARD} must be in [0, {layout.size / 2}), got {layout.inner_border}"
+        )
+    return layout
+
+
+def read_cell(path: str, index: int) -> dict[str, np.ndarray]:
+    """Cell ``index`` of a cells file: ``image``, ``bad`` (WGT <= 0, MSK != 0), ``weight``
+    (None-free: ones without WGT) and ``psf``, float64."""
+    names = _extnames(path)
+    if "SCI" not in names:
+        names[0] = "SCI"
+
+    def cube(f: Any, ext: str) -> np.ndarray:
+        hdu = f[names.index(ext)]
+        arr = hdu.read() if len(hdu.get_dims()) == 2 else hdu[index : index + 1, :, :][0]
+        return np.asarray(arr, dtype=np.float64)
+
+    with fitsio.FITS(path) as f:
+        image = cube(f, "SCI")
+        psf = cube(f, "PSF")
+        weight = cube(f, "WGT") if "WGT" in names else np.ones_like(image)
+        bad = ~(weight > 0)
+        if "MSK" in names:
+            bad |= cube(f, "MSK") != 0
+    return {"image": image, "weight": weight, "bad": bad, "psf": psf}
+
+
+def cell_noise(weight: np.ndarray, bad: np.ndarray) -> float:
+    """The noise sigma of a cell from its weight map: ``1 / sqrt(median w)`` over the good
+    pixels (NaN when there are none)."""
+    w = weight[~bad]
+    return float(1.0 / np.sqrt(np.median(w))) if w.size else float("nan")
+
+
+@functools.lru_cache(maxsize=64)
+def _noise_gain(psf_bytes: bytes, psf_size: int, step: float, target: str) -> float:
+    """The rms of the noshear version of unit white noise (no fixnoise) for this PSF."""
+    from megalut_cli.measure.metacal import metacal_versions  # GalSim: metadetect only
+
+    psf = np.frombuffer(psf_bytes).reshape(psf_size, psf_size)
+    size = 96
+    noise = np.random.default_rng(0).normal(0.0, 1.0, (1, size, size))
+    versions, _ = metacal_versions(noise, psf, step, engine=CELL_ENGINE, target=target)
+    centre = versions["noshear"][0, size // 4 : -size // 4, size // 4 : -size // 4]
+    return float(centre.std())
+
+
+def version_noise(psf: np.ndarray, sigma: float, step: float, target: str) -> float:
+    """The noise sigma of a metacal version of a cell of noise ``sigma``: the operation's
+    gain on white noise, times sqrt(2) for fixnoise."""
+    psf = np.ascontiguousarray(psf, dtype=np.float64)
+    return float(sigma * np.sqrt(2.0) * _noise_gain(psf.tobytes(), psf.shape[0], step, target))
+
+
+def detect(
+    image: np.ndarray, noise: float, settings: DetectSettings, bad: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Detections of sep on ``image`` (background 0) at ``settings.thresh`` times ``noise``:
+    their 0-based ``x`` (column) and ``y`` (row), sep's windowless barycentres."""
+    import sep
+
+    data = np.ascontiguousarray(image, dtype=np.float64)
+    mask = None if bad is None or not bad.any() else np.ascontiguousarray(bad, dtype=np.uint8)
+    objects = sep.extract(
+        data,
+        settings.thresh,
+        err=noise,
+        mask=mask,
+        minarea=settings.minarea,
+        deblend_nthresh=settings.nthresh,
+        deblend_cont=settings.cont,
+    )
+    return np.asarray(objects["x"], dtype=np.float64), np.asarray(objects["y"], dtype=np.float64)
+
+
+def cut_around(
+    image: np.ndarray, bad: np.ndarray, x: np.ndarray, y: np.ndarray, size: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Stamps of ``size`` pixels around 0-based positions ``x, y`` of ``image``: the stamps
+    (0 outside the image), their masked pixels (``bad`` or outside), their FITS 1-based
+    lower-left ``origins`` and the objects' 0-based ``(col, row)`` in them."""
+    n, (ny, nx) = len(x), image.shape
+    x0 = np.floor(x - (size - 1) / 2.0 + 0.5).astype(np.int64)  # the centre within 0.5 px
+    y0 = np.floor(y - (size - 1) / 2.0 + 0.5).astype(np.int64)
+    padded = np.zeros((ny + 2 * size, nx + 2 * size))
+    padded[size:-size, size:-size] = image
+    off = np.ones_like(padded, dtype=bool)
+    off[size:-size, size:-size] = bad
+    rows = (y0 + size)[:, None] + np.arange(size)[None, :]
+    cols = (x0 + size)[:, None] + np.arange(size)[None, :]
+    stamps = padded[rows[:, :, None], cols[:, None, :]]
+    masked = off[rows[:, :, None], cols[:, None, :]]
+    origins = np.stack([x0 + 1, y0 + 1], axis=1)
+    centres = np.stack([x - x0, y - y0], axis=1)
+    return stamps.reshape(n, size, size), masked.reshape(n, size, size), origins, centres
+
+
+def metadetect_cell(
+    image: np.ndarray,
+    psf: np.ndarray,
+    noise_sigma: float,
+    seed: int,
+    settings: MeasureSettings,
+    detection: DetectSettings,
+    stamp_size: int = MDET_STAMP_SIZE,
+    bad: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
+    """Metadetection on one cell ``image`` (S, S) with its ``psf`` (P, P): the five versions
+    (``settings.metacal``: step, target; fixnoise of ``noise_sigma`` from ``seed``; ``bad``
+    pixels set to 0 first), sep's detections on each at ``detection.thresh`` times its noise,
+    and the features of a ``stamp_size`` stamp around each detection. Returns the columns
+    ``mdet_step``, ``x``, ``y`` (1-based), the features, ``psf_adamom_*`` (the target
+    PSF's) and ``n_masked``, one row per detection per version, version by version."""
+    from megalut_cli.measure.metacal import (  # GalSim: metadetect only
+        metacal_versions,
+        stamp_target_columns,
+    )
+
+    mc = settings.metacal
+    if mc is None:
+        raise ValueError("metadetect needs settings.metacal (the step, seed and target)")
+    image = np.asarray(image, dtype=np.float64)
+    bad = np.zeros(image.shape, bool) if bad is None else np.asarray(bad, dtype=bool)
+    if not np.isfinite(image[~bad]).all():
+        raise InputError("the cell holds NaN or infinite pixels that are not masked")
+    image = np.where(bad, 0.0, image)
+    size = image.shape[0]
+    psfs = same_parity_psfs(np.asarray(psf, dtype=np.float64)[None], size)
+    sigma = noise_sigma if np.isfinite(noise_sigma) and noise_sigma > 0 else 0.0
+    versions, target_sigma = metacal_versions(
+        image[None], psfs[0], mc.step, [sigma], [seed], CELL_ENGINE, target=mc.target
+    )
+    noise = version_noise(psfs[0], sigma, mc.step, mc.target) if sigma > 0 else 0.0
+    target = stamp_target_columns(
+        mc.target, psfs, np.zeros(1, np.int64), target_sigma, mc.step, stamp_size
+    )
+    measurer = Measurer(dataclasses.replace(settings, metacal=None))
+    parts: list[dict[str, np.ndarray]] = []
+    for kind in TYPES:
+        version = versions[kind][0]
+        # a noiseless cell: a threshold in units of the faintest pixels worth a detection
+        floor = noise if noise > 0 else 1e-3 * float(np.abs(version).max() or 1.0)
+        x, y = detect(version, floor, detection, bad)
+        n = len(x)
+        # no detection: the columns of one blank stamp, none of its rows
+        at_x, at_y = (x, y) if n else (np.zeros(1), np.zeros(1))
+        stamps, masked, origins, centres = cut_around(version, bad, at_x, at_y, stamp_size)
+        feats = measurer.measure(StampBatch(stamps, origins, masked=masked, centres=centres))
+        feats = {c: v[:n] for c, v in feats.items()}
+        row = {"mdet_step": np.full(n, kind), "x": x + 1.0, "y": y + 1.0, **feats}
+        for c in TARGET_PSF_COLUMNS:
+            row[f"psf_{c}"] = np.full(n, target[f"psf_{c}_{kind}"][0])
+        parts.append(row)
+    return {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+
+
+@dataclass(frozen=True)
+class CellJob:
+    """One cell of a file to measure (picklable: read in the worker)."""
+
+    path: str
+    index: int
+    seed: int
+    settings: MeasureSettings
+    detection: DetectSettings
+    stamp_size: int
+
+
+def measure_cell(job: CellJob) -> dict[str, np.ndarray]:
+    """Worker: read one cell and run :func:`metadetect_cell` on it."""
+    cell = read_cell(job.path, job.index)
+    try:
+        return metadetect_cell(
+            cell["image"],
+            cell["psf"],
+            cell_noise(cell["weight"], cell["bad"]),
+            job.seed,
+            job.settings,
+            job.detection,
+            job.stamp_size,
+            cell["bad"],
+        )
+    except InputError as err:
+        raise InputError(f"{job.path}: cell {job.index}: {err}") from None
+
+
+def check_request(request: MeasureRequest) -> None:
+    """The arguments that apply to a cells file: ``--metadetect`` and its options."""
+    name = namer(request.names)
+    if not request.metadetect:
+        raise ConfigError(
+            f"{request.stamps_path} is a cells file (SCI, PSF cubes): measure it with "
+            f"{name('metadetect')}"
+        )
+    if request.catalog_path is not None:
+        raise ConfigError(f"{request.stamps_path} is a cells file: give it no catalog")
+    wrong = [
+        name(k)
+        for k, given in (
+            ("psf_path", request.psf_path is not None),
+            ("psf_model_path", request.psf_model_path is not None),
+            ("origin", request.origin != 1),
+            ("stars", bool(request.stars)),
+            ("epochs", request.epochs),
+            ("cutout", request.cutout != 0),
+        )
+        if given
+    ]
+    if wrong:
+        raise ConfigError(
+            f"{request.stamps_path} is a cells file (each cell has its PSF): leave out "
+            f"{', '.join(wrong)}"
+        )
+    read_layout(request.stamps_path)
+
+
+def metadetect_columns(
+    layout: CellsLayout, results: list[dict[str, np.ndarray]]
+) -> dict[str, np.ndarray]:
+    """The catalog's columns from each cell's :func:`metadetect_cell` result, in the order of
+    the contract (docs/metadetect.md): ``mdet_step``, ``image``, ``field``, ``pair_sign``
+    (with an IMAGES table), ``x``, ``y``, ``inner``, then the features."""
+    counts = np.array([len(r["x"]) for r in results], dtype=np.int64)
+    cell = np.repeat(np.arange(layout.n), counts)
+    merged = {c: np.concatenate([r[c] for r in results]) for c in results[0]}
+    out: dict[str, np.ndarray] = {"mdet_step": merged.pop("mdet_step").astype("U7")}
+    images = layout.images or {}
+    out["image"] = np.asarray(images.get("image", np.arange(layout.n)))[cell].astype(np.int64)
+    out["field"] = np.asarray(images.get("field", np.arange(layout.n)))[cell].astype(np.int64)
+    if "pair_sign" in images:
+        out["pair_sign"] = np.asarray(images["pair_sign"])[cell].astype(np.int16)
+    x, y = merged.pop("x"), merged.pop("y")
+    b = layout.inner_border
+    out["x"], out["y"] = x, y
+    out["inner"] = (x > b + 0.5) & (x <= layout.size - b + 0.5) & (y > b + 0.5)
+    out["inner"] &= y <= layout.size - b + 0.5
+    features = [c for c in merged if c not in PSF_COLUMNS and c != "flags"]
+    for c in (*features, *PSF_COLUMNS, "flags"):
+        out[c] = merged[c]
+    return out
+
+
+def measure_request(request: MeasureRequest) -> Measured:
+    """Metadetection on every cell of a cells file (module docstring) into a catalog of
+    format ``megalut.metadetect``."""
+    settings, detection = request.settings, request.detect
+    assert settings.metacal is not None and detection is not None
+    layout = read_layout(request.stamps_path)
+    size = request.stamp_size or MDET_STAMP_SIZE
+    if size > layout.size:
+        raise ConfigError(
+            f"{namer(request.names)('stamp_size')} {size} is larger than the cells "
+            f"({layout.size} pixels)"
+        )
+    from megalut_cli.measure.metacal import fixnoise_seeds  # GalSim: metadetect only
+
+    seeds = fixnoise_seeds(settings.metacal.seed, layout.keys())
+    jobs = [
+        CellJob(request.stamps_path, i, int(seeds[i]), settings, detection, size)
+        for i in range(layout.n)
+    ]
+    with (
+        executor(request.nproc, request.scheduler, len(jobs)) as pool,
+        (request.progress or no_progress)("metadetection on cells", len(jobs)) as update,
+    ):
+        results = map_units(measure_cell, jobs, pool, update)
+    columns = metadetect_columns(layout, results)
+    empty = [i for i, r in enumerate(results) if not len(r["x"])]
+    if empty:
+        log.info("%d of %d cells have no detection in any version", len(empty), layout.n)
+    log.info(
+        "%d detections in %d cells (%s)",
+        len(columns["x"]),
+        layout.n,
+        ", ".join(f"{k} {int((columns['mdet_step'] == k).sum())}" for k in TYPES),
+    )
+    if len(columns["x"]):
+        warn_if_mostly_flagged(
+            columns["flags"], request.stamps_path, request.names, "the detection settings"
+        )
+    return Measured(columns, metadetect_cards(request, layout, size), MDET_FORMAT)
+
+
+def metadetect_cards(request: MeasureRequest, layout: CellsLayout, size: int) -> dict[str, Any]:
+    """Header cards of a metadetect catalog: the input, the step (``MDETSTEP``, as
+    ``MCALSTEP``), the seed, the target, the detection settings and the stamp size."""
+    settings, detection = request.settings, request.detect
+    assert settings.metacal is not None and detection is not None
+    cards: dict[str, Any] = {
+        "CELLFILE": (os.path.basename(request.stamps_path), "cells file measured"),
+        "CELLSHA": (sha256_file(request.stamps_path), "sha256 of the cells file"),
+        "NCELLS": (layout.n, "number of cells"),
+        "CELLSZ": (layout.size, "side of a cell [pixels]"),
+        INNER_CARD: (layout.inner_border, "border outside the inner region [pixels]"),
+        MDET_STEP_CARD: (float(settings.metacal.step), "metadetect shear step"),
+        **measure_cards(settings, size),
+        "MCALTARG": (settings.metacal.target, "metacal target PSF"),
+        "MCALENG": (CELL_ENGINE, "engine of the metacal operation on the cells"),
+        "STAMPSZ": (size, "stamp cut around each detection [pixels]"),
+        "DETTHRSH": (float(detection.thresh), "detection threshold [noise sigma]"),
+        "DETMINAR": (int(detection.minarea), "detection minimum area [pixels]"),
+        "DBNTHRSH": (int(detection.nthresh), "deblending sub-thresholds"),
+        "DBCONT": (float(detection.cont), "deblending minimum contrast"),
+        "DETECTOR": ("sep", "detection code (Source Extractor as a library)"),
+    }
+    for key, card in (("PIXSCALE", "PIXSCALE"), ("SEED", "CELLSEED"), ("PAIRS", "PAIRS")):
+        if key in layout.cards:
+            cards[card] = (layout.cards[key], f"the cells file's {key}")
+    assert cards[MDET_STEP_CARD][0] == cards[STEP_CARD][0]
+    return cards
+
+
+CELLS_SOURCE = register_stamp_source(
+    StampSourceType("cells", recognises, check_request, measure_request)
+)

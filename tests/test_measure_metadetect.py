@@ -1,0 +1,257 @@
+"""``megalut measure CELLS --metadetect`` (``measure/cells.py``): detection on each metacal
+version of whole cells, the detection count against the truth, independent detections per
+version, the shear response of the detections against metacal on stamps, the output
+contract, determinism and bad input."""
+
+from __future__ import annotations
+
+import fitsio
+import numpy as np
+import pytest
+from helpers import invoke_fails
+from sim_configs import write
+
+from megalut_cli.catalog import read_catalog
+from megalut_cli.measure.cells import cut_around, detect, metadetect_cell, read_cell
+from megalut_cli.measure.measurer import MeasureSettings, MetacalSettings
+from megalut_cli.measure.meds import write_meds
+from megalut_cli.measure.metacal import metacal_features
+from megalut_cli.measure.metacal_defaults import TYPES
+from megalut_cli.measure.source_registry import DetectSettings
+
+#: Round exponential galaxies (half-light radius 2 px), a round Gaussian PSF (FWHM 3.6 px),
+#: sparse enough that none overlap, almost no noise; paired at g1 = +-0.02.
+CELLS = """
+[structure]
+stamp_size = 48
+
+[shear]
+g1 = 0.02
+g2 = 0.0
+
+[galaxy]
+profile = "sersic"
+sersicn = 1.0
+rad = 2.0
+flux = 400.0
+ellipticity = 0.0
+
+[psf]
+type = "gaussian"
+fwhm = 3.6
+
+[noise]
+type = "gaussian"
+sigma = {sigma}
+
+[instrument]
+pixel_scale = 0.25
+
+[scene]
+density = 14
+size = 160
+n_fields = 6
+pairs = true
+border = 24
+"""
+
+STEP = 0.01
+
+
+def scenes(runner, cli, tmp_path, sigma: float = 0.01, name: str = "scenes") -> tuple:
+    """A cells file and its truth (``simulate --scene --pairs``)."""
+    config = write(tmp_path, CELLS, replace={"{sigma}": str(sigma)})
+    cells, truth = tmp_path / f"{name}.fits", tmp_path / f"{name}_truth.fits"
+    args = ["simulate", str(config), "-o", str(truth), "--scene", str(cells), "--pairs"]
+    result = runner.invoke(cli, [*args, "--seed", "3", "-j", "1"])
+    assert result.exit_code == 0, result.output
+    return cells, read_catalog(truth)
+
+
+@pytest.fixture(scope="module")
+def measured(tmp_path_factory):
+    """A nearly noiseless cells file, its truth and its metadetect catalog."""
+    from click.testing import CliRunner
+
+    from megalut_cli.cli import main
+
+    tmp_path = tmp_path_factory.mktemp("mdet")
+    runner = CliRunner()
+    cells, truth = scenes(runner, main, tmp_path)
+    out = tmp_path / "det.fits"
+    result = runner.invoke(main, ["measure", str(cells), "--metadetect", "-o", str(out), "-j", "1"])
+    assert result.exit_code == 0, result.output
+    return cells, truth, read_catalog(out), fitsio.read_header(str(out), 1)
+
+
+def min_separation(truth, image: int) -> float:
+    x = np.asarray(truth["x"][truth["image"] == image])
+    y = np.asarray(truth["y"][truth["image"] == image])
+    d = np.hypot(x[:, None] - x[None, :], y[:, None] - y[None, :]) + np.eye(len(x)) * 1e9
+    return float(d.min()) if len(x) > 1 else np.inf
+
+
+def test_the_detections_of_isolated_galaxies_are_the_truth(measured):
+    _, truth, det, _ = measured
+    ns = det[det["mdet_step"] == "noshear"]
+    isolated = [i for i in np.unique(truth["image"]) if min_separation(truth, i) > 20]
+    assert len(isolated) >= 4 and len(truth[np.isin(truth["image"], isolated)]) >= 12
+    for image in isolated:
+        t = truth[truth["image"] == image]
+        d = ns[ns["image"] == image]
+        assert len(d) == len(t) > 0
+        dist = np.hypot(
+            np.asarray(d["x"])[:, None] - np.asarray(t["x"])[None, :],
+            np.asarray(d["y"])[:, None] - np.asarray(t["y"])[None, :],
+        )
+        assert dist.min(axis=1).max() < 0.5  # each detection is a galaxy, within half a pixel
+        assert dist.min(axis=0).max() < 0.5  # each galaxy is found
+    assert (ns["flags"] == 0).all() and ns["inner"].all()
+    assert len(ns) <= len(truth)  # blended neighbours may be one detection, never more
+
+
+def test_each_version_is_detected_on_its_own(measured):
+    _, truth, det, _ = measured
+    counts = [int((det["mdet_step"] == kind).sum()) for kind in TYPES]
+    assert min(counts) > 0 and len(set(counts)) == 1  # the same galaxies, found in each
+    ns, p1 = det[det["mdet_step"] == "noshear"], det[det["mdet_step"] == "1p"]
+    # the 1p image is sheared about the cell's centre: its detections move (not forced photometry)
+    dx = np.asarray(p1["x"]) - np.asarray(ns["x"])
+    centre = (160 + 1) / 2.0
+    expected = STEP * (np.asarray(ns["x"]) - centre)  # x' = (1 + g1) x about the centre, roughly
+    assert np.abs(dx).max() > 0.3
+    assert np.corrcoef(dx, expected)[0, 1] > 0.95
+
+
+def test_the_response_of_the_detections_is_metacal_s(measured):
+    cells, truth, all_rows, header = measured
+    isolated = [i for i in np.unique(truth["image"]) if min_separation(truth, i) > 20]
+    det = all_rows[np.isin(all_rows["image"], isolated)]
+    g1 = {k: np.mean(det["adamom_g1"][det["mdet_step"] == k]) for k in TYPES}
+    g2 = {k: np.mean(det["adamom_g2"][det["mdet_step"] == k]) for k in TYPES}
+    assert g1["1p"] > g1["noshear"] > g1["1m"]
+    assert g2["2p"] > g2["noshear"] > g2["2m"]
+    r11 = (g1["1p"] - g1["1m"]) / (2 * STEP)
+    r22 = (g2["2p"] - g2["2m"]) / (2 * STEP)
+    # metacal on stamps cut at the true positions of the same galaxies, without fixnoise
+    stamps, psfs = [], []
+    for image in isolated:
+        cell = read_cell(str(cells), int(image))
+        t = truth[truth["image"] == image]
+        cut, _, _, _ = cut_around(
+            cell["image"], cell["bad"], np.asarray(t["x"]) - 1, np.asarray(t["y"]) - 1, 48
+        )
+        stamps.append(cut)
+        psfs += [cell["psf"]] * len(t)
+    stack = np.concatenate(stamps)
+    feats = metacal_features(stack, np.array(psfs)[:1], STEP, psf_index=np.zeros(len(stack), int))
+    r11_stamps = np.mean(feats["adamom_g1_1p"] - feats["adamom_g1_1m"]) / (2 * STEP)
+    assert r11 > 0.2 and r22 > 0.2
+    assert r11 == pytest.approx(r11_stamps, rel=0.05)
+    assert r22 == pytest.approx(r11_stamps, rel=0.05)
+    # the shear of the scenes is seen: +g and -g images differ by about 2 g R
+    both = [f for f in np.unique(det["field"]) if (det["field"] == f).sum() and 2 * f in isolated]
+    both = [f for f in both if 2 * f + 1 in isolated]
+    noshear = (det["mdet_step"] == "noshear") & np.isin(det["field"], both)
+    plus, minus = noshear & (det["pair_sign"] == 1), noshear & (det["pair_sign"] == -1)
+    assert plus.sum() == minus.sum() > 4
+    g = (np.mean(det["adamom_g1"][plus]) - np.mean(det["adamom_g1"][minus])) / 2 / r11
+    assert g == pytest.approx(0.02, rel=0.05)
+    assert header["MDETSTEP"] == header["MCALSTEP"] == STEP
+
+
+def test_the_catalog_contract(measured):
+    _, _, det, header = measured
+    names = list(det.colnames)
+    assert names[:7] == ["mdet_step", "image", "field", "pair_sign", "x", "y", "inner"]
+    for c in (
+        "adamom_flux",
+        "adamom_g1",
+        "adamom_g2",
+        "adamom_sigma",
+        "adamom_rho4",
+        "skymad",
+        "snr",
+        "psf_adamom_g1",
+        "psf_adamom_g2",
+        "psf_adamom_sigma",
+        "psf_adamom_rho4",
+        "flags",
+    ):
+        assert c in names
+    assert set(np.unique(det["mdet_step"])) == set(TYPES)
+    assert header["MLFORMAT"] == "megalut.metadetect"
+    for card in ("DETTHRSH", "DETMINAR", "DBNTHRSH", "DBCONT", "MCALSEED", "STAMPSZ"):
+        assert card in header
+    # the target PSF: round, one size for every row
+    assert np.abs(det["psf_adamom_g1"]).max() < 1e-6
+    assert np.ptp(det["psf_adamom_sigma"]) == 0
+    assert set(np.unique(det["field"])) == set(range(6))
+
+
+def test_noise_detection_threshold_and_library_call(tmp_path):
+    """A cell of pure noise: no detection at 5 sigma, many at 1 sigma (the noise of the
+    versions is propagated from the weight map's); the library call takes arrays."""
+    rng = np.random.default_rng(1)
+    image = rng.normal(0.0, 1.0, (128, 128))
+    import galsim
+
+    psf = galsim.Gaussian(fwhm=3.6).drawImage(nx=33, ny=33, scale=1.0).array
+    settings = MeasureSettings(metacal=MetacalSettings(STEP, 4))
+    counts = []
+    for thresh in (5.0, 1.0):
+        out = metadetect_cell(image, psf, 1.0, 7, settings, DetectSettings(thresh, 4, 32, 0.005))
+        counts.append(len(out["x"]))
+    assert counts[0] == 0 and counts[1] > 100  # five versions
+    x, y = detect(np.zeros((32, 32)), 1.0, DetectSettings(5.0, 4, 32, 0.005))
+    assert len(x) == len(y) == 0
+
+
+def test_the_same_seed_the_same_rows_and_workers_agree(runner, cli, tmp_path):
+    cells, _ = scenes(runner, cli, tmp_path, sigma=1.0)
+    outs = []
+    for name, extra in (("a", ["-j", "1"]), ("b", ["-j", "2"]), ("c", ["--seed", "5"])):
+        out = tmp_path / f"{name}.fits"
+        result = runner.invoke(cli, ["measure", str(cells), "--metadetect", "-o", str(out), *extra])
+        assert result.exit_code == 0, result.output
+        outs.append(fitsio.read(str(out)))
+    assert outs[0].dtype == outs[1].dtype and (outs[0] == outs[1]).all()
+    assert len(outs[2]) != len(outs[0]) or not np.array_equal(
+        outs[2]["adamom_g1"], outs[0]["adamom_g1"], equal_nan=True
+    )
+
+
+def test_bad_input_is_one_line(runner, cli, tmp_path):
+    cells, _ = scenes(runner, cli, tmp_path)
+    out = tmp_path / "out.fits"
+    # a grid image of stamps, a MEDS file: not cells
+    grid = tmp_path / "grid.fits"
+    fitsio.write(str(grid), np.zeros((64, 64), np.float32))
+    invoke_fails(runner, cli, ["measure", str(grid), "--metadetect", "-o", str(out)], 2, "cells")
+    meds = tmp_path / "o.meds.fits"
+    write_meds(meds, np.zeros((2, 16, 16)))
+    invoke_fails(runner, cli, ["measure", str(meds), "--metadetect", "-o", str(out)], 2, "cells")
+    # a cells file without PSF
+    nopsf = tmp_path / "nopsf.fits"
+    with fitsio.FITS(str(cells)) as f:
+        sci, wgt = f["SCI"].read(), f["WGT"].read()
+    with fitsio.FITS(str(nopsf), "rw", clobber=True) as f:
+        f.write(sci, extname="SCI")
+        f.write(wgt, extname="WGT")
+    invoke_fails(runner, cli, ["measure", str(nopsf), "--metadetect", "-o", str(out)], 1, "PSF")
+    # a cells file without --metadetect; with --metacal too; a catalog
+    invoke_fails(runner, cli, ["measure", str(cells), "-o", str(out)], 2, "--metadetect")
+    args = ["measure", str(cells), "--metadetect", "--metacal", "-o", str(out)]
+    invoke_fails(runner, cli, args, 2, "--metacal")
+    args = ["measure", str(cells), "--metadetect", "--stamp-size", "400", "-o", str(out)]
+    invoke_fails(runner, cli, args, 2, "--stamp-size")
+    # NaN pixels that are not masked
+    nan = tmp_path / "nan.fits"
+    with fitsio.FITS(str(cells)) as f:
+        hdus = {n: f[n].read() for n in ("SCI", "WGT", "PSF")}
+    hdus["SCI"][1, 50, 50] = np.nan
+    with fitsio.FITS(str(nan), "rw", clobber=True) as f:
+        for n, arr in hdus.items():
+            f.write(arr, extname=n)
+    invoke_fails(runner, cli, ["measure", str(nan), "--metadetect", "-o", str(out)], 1, "cell 1")
+    assert not out.exists()
