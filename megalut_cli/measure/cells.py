@@ -36,7 +36,13 @@ from megalut_cli.measure.measurer import (
     measure_cards,
     same_parity_psfs,
 )
-from megalut_cli.measure.metacal_defaults import STEP_CARD, TARGET_PSF_COLUMNS, TYPES
+from megalut_cli.measure.metacal_defaults import (
+    MDET_COLUMN,
+    MDET_STEP_CARD,
+    STEP_CARD,
+    TARGET_PSF_COLUMNS,
+    TYPES,
+)
 from megalut_cli.measure.source_registry import (
     DetectSettings,
     Measured,
@@ -59,8 +65,6 @@ IMAGE_COLUMNS: tuple[str, ...] = ("image", "field", "pair_sign")
 #: Header card of a cells file (and of the catalog): the width of the border (pixels) outside
 #: each cell's inner region (overlapping cells); 0 or absent: the whole cell is inner.
 INNER_CARD = "INNERBRD"
-#: Header card of a metadetect catalog: the shear step (the same as ``MCALSTEP``).
-MDET_STEP_CARD = "MDETSTEP"
 #: The GalSim engine does the operation on a whole cell: FFTs of the cell (the fast engine's
 #: matrix transforms are made for small stamps: 10 times slower at 250 pixels).
 CELL_ENGINE = "galsim"
@@ -303,7 +307,7 @@ def metadetect_cell(
         stamps, masked, origins, centres = cut_around(version, bad, at_x, at_y, stamp_size)
         feats = measurer.measure(StampBatch(stamps, origins, masked=masked, centres=centres))
         feats = {c: v[:n] for c, v in feats.items()}
-        row = {"mdet_step": np.full(n, kind), "x": x + 1.0, "y": y + 1.0, **feats}
+        row = {MDET_COLUMN: np.full(n, kind), "x": x + 1.0, "y": y + 1.0, **feats}
         for c in TARGET_PSF_COLUMNS:
             row[f"psf_{c}"] = np.full(n, target[f"psf_{c}_{kind}"][0])
         parts.append(row)
@@ -379,7 +383,7 @@ def metadetect_columns(
     counts = np.array([len(r["x"]) for r in results], dtype=np.int64)
     cell = np.repeat(np.arange(layout.n), counts)
     merged = {c: np.concatenate([r[c] for r in results]) for c in results[0]}
-    out: dict[str, np.ndarray] = {"mdet_step": merged.pop("mdet_step").astype("U7")}
+    out: dict[str, np.ndarray] = {MDET_COLUMN: merged.pop(MDET_COLUMN).astype("U7")}
     images = layout.images or {}
     out["image"] = np.asarray(images.get("image", np.arange(layout.n)))[cell].astype(np.int64)
     out["field"] = np.asarray(images.get("field", np.arange(layout.n)))[cell].astype(np.int64)
@@ -438,8 +442,9 @@ def measure_request(request: MeasureRequest) -> Measured:
 
 
 def metadetect_cards(request: MeasureRequest, layout: CellsLayout, size: int) -> dict[str, Any]:
-    """Header cards of a metadetect catalog: the input, the step (``MDETSTEP``, as
-    ``MCALSTEP``), the seed, the target, the detection settings and the stamp size."""
+    """Header cards of a metadetect catalog: the input, the step (``MDETSTEP``; no
+    ``MCALSTEP``: its rows are not a metacal catalog's), the seed, the target, the detection
+    settings and the stamp size."""
     settings, detection = request.settings, request.detect
     assert settings.metacal is not None and detection is not None
     cards: dict[str, Any] = {
@@ -462,7 +467,7 @@ def metadetect_cards(request: MeasureRequest, layout: CellsLayout, size: int) ->
     for key, card in (("PIXSCALE", "PIXSCALE"), ("SEED", "CELLSEED"), ("PAIRS", "PAIRS")):
         if key in layout.cards:
             cards[card] = (layout.cards[key], f"the cells file's {key}")
-    assert cards[MDET_STEP_CARD][0] == cards[STEP_CARD][0]
+    cards.pop(STEP_CARD, None)  # not a metacal catalog: the step is MDETSTEP
     return cards
 
 
