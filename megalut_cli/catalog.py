@@ -384,7 +384,9 @@ def header_cards(
     return recs
 
 
-def _to_structured(table: Table | Mapping[str, np.ndarray]) -> np.ndarray:
+def to_structured(table: Table | Mapping[str, np.ndarray]) -> np.ndarray:
+    """A table (an astropy Table or a mapping of equal-length columns) as a structured array
+    fitsio writes (text columns as ASCII bytes)."""
     if hasattr(table, "colnames"):  # an astropy Table
         cols = {name: np.asarray(table[name]) for name in table.colnames}
     else:
@@ -423,7 +425,7 @@ def write_catalog(
     """Write a catalog atomically as a FITS binary table with provenance cards, column
     units and descriptions; ``extra_hdus`` (EXTNAME -> structured array, e.g. the
     ``CONFIG`` of :func:`read_carried_hdus`) follow as further table HDUs."""
-    arr = _to_structured(table)
+    arr = to_structured(table)
     with catalog_writer(
         path,
         fmt=fmt,
@@ -458,9 +460,7 @@ class CatalogWriter:
 
     def append(self, table: Table | Mapping[str, np.ndarray] | np.ndarray) -> None:
         """Append the rows of ``table`` (columns as in the first chunk, in any order)."""
-        arr = (
-            table if isinstance(table, np.ndarray) and table.dtype.names else _to_structured(table)
-        )
+        arr = table if isinstance(table, np.ndarray) and table.dtype.names else to_structured(table)
         if self._dtype is None:
             self._dtype = arr.dtype
             write_table_hdu(self._fits, arr, self._header(arr.dtype.names), self._extname)

@@ -35,6 +35,7 @@ from megalut_cli.shear.frame import (
     WORLD_FRAME,
     has_jacobian,
     jacobian_frames,
+    usable_jacobians,
 )
 from megalut_cli.shear.options import JSON_FORMAT as EVALUATION_FORMAT
 
@@ -352,9 +353,7 @@ def _describe_meds(p: Path) -> dict[str, Any]:
         out["psf_sizes"] = sorted({f"{int(r)}x{int(c)}" for r, c in shapes})
     if all(c in obj for c in JACOBIAN_COLUMNS):
         jac = [np.asarray(obj[c], dtype=float)[used] for c in JACOBIAN_COLUMNS]
-        ok = np.all([np.isfinite(j) & (j > -9999.0) for j in jac], axis=0)
-        det = jac[0] * jac[3] - jac[1] * jac[2]
-        ok &= np.abs(det) > 1e-6 * sum(j * j for j in jac)
+        ok = usable_jacobians(*jac)
         frames = jacobian_frames(*(j[ok] for j in jac)) if ok.any() else None
         out["jacobians"] = {
             "usable": int(ok.sum()),

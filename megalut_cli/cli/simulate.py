@@ -7,7 +7,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import click
-import numpy as np
 
 from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.console import flag_names, stdout_path
@@ -312,16 +311,12 @@ def write_scenes(
     import fitsio
 
     from megalut_cli.atomic import atomic_output
-    from megalut_cli.catalog import catalog_writer, header_cards
-    from megalut_cli.columns import column_units
+    from megalut_cli.catalog import catalog_writer, header_cards, to_structured, write_table_hdu
     from megalut_cli.sim.scene import SCENE_TRUTH_FORMAT, SCENES_FORMAT, scene_cards
     from megalut_cli.sim.simulate import config_table
 
     cards = scene_cards(cfg, seed)
-    table = scenes.image_table
-    rows = np.zeros(len(table["image"]), dtype=[(k, v.dtype) for k, v in table.items()])
-    for k, v in table.items():
-        rows[k] = v
+    rows = to_structured(scenes.image_table)
     with contextlib.ExitStack() as stack:
         writer = stack.enter_context(
             catalog_writer(
@@ -342,4 +337,4 @@ def write_scenes(
             fits.write(scenes.masks, extname="MSK")
             fits.write(scenes.psfs, extname="PSF")
             recs = header_cards(SCENES_FORMAT, cards=cards, columns=rows.dtype.names)
-            fits.write(rows, header=recs, extname="IMAGES", units=column_units(rows.dtype.names))
+            write_table_hdu(fits, rows, recs, "IMAGES")

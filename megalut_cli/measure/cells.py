@@ -27,7 +27,8 @@ import numpy as np
 
 from megalut_cli.catalog import is_fits_file
 from megalut_cli.errors import ConfigError, InputError, namer
-from megalut_cli.measure.defaults import MDET_FORMAT, MDET_STAMP_SIZE, PSF_COLUMNS
+from megalut_cli.fits_header import header_dict
+from megalut_cli.measure.defaults import CELLS_FORMAT, MDET_FORMAT, MDET_STAMP_SIZE, PSF_COLUMNS
 from megalut_cli.measure.features import warn_if_mostly_flagged
 from megalut_cli.measure.measurer import (
     Measurer,
@@ -39,10 +40,12 @@ from megalut_cli.measure.measurer import (
 from megalut_cli.measure.metacal_defaults import (
     MDET_COLUMN,
     MDET_STEP_CARD,
-    STEP_CARD,
+    SEED_CARD,
+    TARGET_CARD,
     TARGET_PSF_COLUMNS,
     TYPES,
 )
+from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.source_registry import (
     DetectSettings,
     Measured,
@@ -56,10 +59,6 @@ from megalut_cli.provenance import sha256_file
 
 log = logging.getLogger(__name__)
 
-#: The format name of a cells file written by ``megalut simulate --scene``.
-CELLS_FORMAT = "megalut.scenes"
-#: The image cubes of a cells file (``MSK`` optional, ``WGT`` optional: then unit weights).
-CELL_EXTENSIONS: tuple[str, ...] = ("SCI", "WGT", "MSK", "PSF")
 #: Columns of the ``IMAGES`` table copied to every row of their cell.
 IMAGE_COLUMNS: tuple[str, ...] = ("image", "field", "pair_sign")
 #: Header card of a cells file (and of the catalog): the width of the border (pixels) outside
@@ -131,7 +130,7 @@ def read_layout(path: str) -> CellsLayout:
     with fitsio.FITS(path) as f:
         sci = f[names.index("SCI")]
         dims = tuple(int(d) for d in sci.get_dims())
-        cards = {k: sci.read_header()[k] for k in sci.read_header().keys()}
+        cards = header_dict(sci.read_header())
         if len(dims) == 2:
             dims = (1, *dims)
         if len(dims) != 3 or dims[1] != dims[2]:
@@ -362,7 +361,7 @@ def check_request(request: MeasureRequest) -> None:
             ("origin", request.origin != 1),
             ("stars", bool(request.stars)),
             ("epochs", request.epochs),
-            ("cutout", request.cutout != 0),
+            ("cutout", request.cutout != MEASURE["cutout"].default),
         )
         if given
     ]
@@ -454,8 +453,9 @@ def metadetect_cards(request: MeasureRequest, layout: CellsLayout, size: int) ->
         "CELLSZ": (layout.size, "side of a cell [pixels]"),
         INNER_CARD: (layout.inner_border, "border outside the inner region [pixels]"),
         MDET_STEP_CARD: (float(settings.metacal.step), "metadetect shear step"),
-        **measure_cards(settings, size),
-        "MCALTARG": (settings.metacal.target, "metacal target PSF"),
+        **measure_cards(dataclasses.replace(settings, metacal=None), size),
+        SEED_CARD: (int(settings.metacal.seed), "seed of the fixnoise fields (measure --seed)"),
+        TARGET_CARD: (settings.metacal.target, "metacal target PSF"),
         "MCALENG": (CELL_ENGINE, "engine of the metacal operation on the cells"),
         "STAMPSZ": (size, "stamp cut around each detection [pixels]"),
         "DETTHRSH": (float(detection.thresh), "detection threshold [noise sigma]"),
@@ -467,7 +467,6 @@ def metadetect_cards(request: MeasureRequest, layout: CellsLayout, size: int) ->
     for key, card in (("PIXSCALE", "PIXSCALE"), ("SEED", "CELLSEED"), ("PAIRS", "PAIRS")):
         if key in layout.cards:
             cards[card] = (layout.cards[key], f"the cells file's {key}")
-    cards.pop(STEP_CARD, None)  # not a metacal catalog: the step is MDETSTEP
     return cards
 
 

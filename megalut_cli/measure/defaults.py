@@ -21,6 +21,8 @@ PSF_COLUMNS: tuple[str, ...] = (
 
 #: Output format name of ``megalut measure --metadetect`` catalogs.
 MDET_FORMAT = "megalut.metadetect"
+#: Format of a cells file (``megalut simulate --scene``; the input of ``measure --metadetect``).
+CELLS_FORMAT = "megalut.scenes"
 #: Stamp cut around each detection of ``--metadetect`` when no stamp size is given.
 MDET_STAMP_SIZE = 48
 #: ``--metadetect`` detection defaults (sep): threshold in noise sigmas, the fewest pixels,

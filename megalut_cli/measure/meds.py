@@ -82,7 +82,7 @@ from megalut_cli.measure.source_registry import (
 from megalut_cli.measure.units import empty_columns, measure_units, n_units, workers
 from megalut_cli.progress import Progress
 from megalut_cli.provenance import CREATOR, sha256_file
-from megalut_cli.shear.frame import JACOBIAN_COLUMNS
+from megalut_cli.shear.frame import JACOBIAN_COLUMNS, usable_jacobians
 
 log = logging.getLogger(__name__)
 
@@ -836,14 +836,7 @@ def _check_jacobians(out: dict[str, np.ndarray], has: np.ndarray, path: str) -> 
         for c in JACOBIAN_COLUMNS:
             out.pop(c, None)
         return
-    j = np.stack([out[c] for c in JACOBIAN_COLUMNS], axis=1)
-    with np.errstate(invalid="ignore"):
-        det = j[:, 0] * j[:, 3] - j[:, 1] * j[:, 2]
-        ok = (
-            np.all(np.isfinite(j), axis=1)
-            & np.all(j > -9999.0, axis=1)
-            & (np.abs(det) > 1e-6 * np.sum(j * j, axis=1))
-        )
+    ok = usable_jacobians(*(out[c] for c in JACOBIAN_COLUMNS))
     bad = has & ~ok
     if not (has & ok).any():
         log.warning(

@@ -371,22 +371,24 @@ def _file_domain(
         domain["source"] = Path(train).name
         if mode == "metacal":
             domain["version"] = "noshear"
-        if domain["stamp_size"] and not all(c in domain.get("columns", {}) for c in PSF_COLUMNS):
-            psf = (population or {}).get("psf")
-            if isinstance(psf, Mapping) and psf:
-                domain = config_psf_domain(domain, psf, int(domain["stamp_size"]))
+        domain = config_psf_domain(domain, (population or {}).get("psf"))
     return domain
 
 
-def config_psf_domain(
-    domain: Mapping[str, Any], psf: Mapping[str, Any], stamp_size: int
-) -> dict[str, Any]:
+def config_psf_domain(domain: Mapping[str, Any], psf: Any) -> dict[str, Any]:
     """``domain`` with the ``psf_adamom_sigma, psf_adamom_g1, psf_adamom_g2`` of a constant
-    training PSF (the ``[psf]`` table drawn as ``measure --psf`` sees it), for those the
-    training rows do not measure."""
+    training PSF (the ``[psf]`` table drawn as ``measure --psf`` sees it on a stamp of the
+    domain's ``stamp_size``), for those the training rows do not measure; ``domain`` as it is
+    without a stamp size, without a ``psf`` table, or when it records them all."""
+    stamp_size = domain.get("stamp_size")
+    recorded = domain.get("columns", {})
+    if not stamp_size or not isinstance(psf, Mapping) or not psf:
+        return dict(domain)
+    if all(c in recorded for c in PSF_COLUMNS):
+        return dict(domain)
     from megalut_cli.sim.psf import measured_psf_shape  # GalSim: only when a PSF must be drawn
 
-    shape = measured_psf_shape(psf, stamp_size)
+    shape = measured_psf_shape(psf, int(stamp_size))
     if shape is None:
         return dict(domain)
     source = "the training config's [psf], drawn with the pixel on the stamp and measured"

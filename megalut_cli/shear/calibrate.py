@@ -725,7 +725,7 @@ def _sample_errors(
     boot: dict[str, list[np.ndarray]] = {k: [] for k in names}
     group = np.arange(involved.size)
     if objects is not None and involved.size:
-        group = np.unique(objects[involved], return_inverse=True)[1].ravel()
+        group = codes(objects[involved])
     for drawn in resample_counts(seed, int(group.max()) + 1, n_bootstrap, STREAM_CALIBRATE):
         counts = drawn[group]
         block = {k: np.zeros((n_bins, counts.shape[1])) for k in names}
@@ -890,15 +890,17 @@ def calibrate_columns(
                 f"{plan.source}: the positions {', '.join(plan.positions)} fall in a single "
                 f"patch; use {plan.name('errors')} bootstrap"
             )
-    if plan.errors == JACKKNIFE and plan.unit is not None:  # metadetection: cell by cell
-        patches = np.unique(np.asarray(columns[plan.unit]), return_inverse=True)[1].ravel()
-        if patches.max() < 1:
-            raise InputError(
-                f"{plan.source}: one {plan.unit} only; use {plan.name('errors')} bootstrap"
-            )
     groups = objects  # what the bootstrap draws together: an object's epochs, or a cell
-    if plan.route == ROUTE_METADETECT and plan.errors == BOOTSTRAP and plan.unit is not None:
-        groups = np.unique(np.asarray(columns[plan.unit]), return_inverse=True)[1].ravel()
+    if plan.unit is not None:  # metadetection: cell by cell
+        cells = codes(np.asarray(columns[plan.unit]))
+        if plan.errors == JACKKNIFE:
+            patches = cells
+            if patches.max() < 1:
+                raise InputError(
+                    f"{plan.source}: one {plan.unit} only; use {plan.name('errors')} bootstrap"
+                )
+        else:
+            groups = cells
     versions = ("noshear", *SHEARED_TYPES) if plan.route != ROUTE_SIMULATION else ("noshear",)
     whole = _Binning({v: np.zeros(obj.n, dtype=np.int64) for v in versions}, [{}], "all")
     binnings = [whole] + ([_binning(columns, obj, plan, bins)] if plan.by is not None else [])
@@ -1111,8 +1113,12 @@ def object_index(columns: Mapping[str, np.ndarray]) -> np.ndarray:
     keys = [np.asarray(columns["id"])]
     if TILE_COLUMN in columns:
         keys.insert(0, np.asarray(columns[TILE_COLUMN]))
-    stacked = np.stack([k.astype(np.int64) for k in keys], axis=1)
-    return np.unique(stacked, axis=0, return_inverse=True)[1].ravel()
+    return codes(np.stack([k.astype(np.int64) for k in keys], axis=1))
+
+
+def codes(values: np.ndarray) -> np.ndarray:
+    """Each row's value numbered from 0 in sorted order (rows of a 2-D array as keys)."""
+    return np.unique(values, axis=0, return_inverse=True)[1].ravel()
 
 
 def combine_epochs(rows: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -1121,9 +1127,8 @@ def combine_epochs(rows: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     averages over objects equal those over the epochs), ``n_epochs``; the other columns
     (positions, the bin and its responses) from the object's first epoch."""
     inverse = object_index(rows)
-    n = int(inverse.max()) + 1 if inverse.size else 0
-    first = np.full(n, len(inverse))
-    np.minimum.at(first, inverse, np.arange(len(inverse)))
+    first = np.unique(inverse, return_index=True)[1]
+    n = len(first)
 
     def total(values: np.ndarray) -> np.ndarray:
         return np.bincount(inverse, weights=values, minlength=n)

@@ -31,8 +31,10 @@ FRAME_TEXT: dict[str, str] = {
     PIXEL_FRAME: "pixel frame of each stamp (g1 > 0 along x, the columns)",
     WORLD_FRAME: "world frame (u, v): g1 > 0 along u (west), g2 > 0 along u = v (north-west)",
 }
-#: Smallest |det J| / (scale of J)^2 accepted: a degenerate Jacobian is an input error.
+#: Smallest |det J| / (sum of J's squared entries) accepted: below, the Jacobian is degenerate.
 MIN_DETERMINANT = 1e-6
+#: The meds package's fill of unset ``object_data`` entries.
+MEDS_FILL = -9999.0
 
 
 @dataclass(frozen=True)
@@ -58,19 +60,18 @@ def jacobian_frames(
     """The :class:`Frames` of per-object Jacobians (arrays of one length; NaN entries give
     NaN maps). A degenerate Jacobian (determinant near 0) is an :class:`InputError`."""
     j00, j01, j10, j11 = (np.asarray(a, dtype=float) for a in (dudcol, dudrow, dvdcol, dvdrow))
-    # J = A + B: A = [[a, -b], [b, a]] conformal, B = [[c, e], [e, -c]] anti-conformal
-    a, b = 0.5 * (j00 + j11), 0.5 * (j10 - j01)
-    c, e = 0.5 * (j00 - j11), 0.5 * (j01 + j10)
-    conformal, anti = a * a + b * b, c * c + e * e
-    with np.errstate(invalid="ignore"):
-        det = j00 * j11 - j01 * j10
-        bad = np.abs(det) <= MIN_DETERMINANT * (conformal + anti)
+    finite = np.isfinite(j00) & np.isfinite(j01) & np.isfinite(j10) & np.isfinite(j11)
+    bad = finite & ~usable_jacobians(j00, j01, j10, j11)
     if np.any(bad):
         raise InputError(
             f"{int(bad.sum())} object(s) with a degenerate Jacobian (dudcol dvdrow - dudrow "
             "dvdcol near 0): no world frame"
         )
-    flip = det < 0
+    # J = A + B: A = [[a, -b], [b, a]] conformal, B = [[c, e], [e, -c]] anti-conformal
+    a, b = 0.5 * (j00 + j11), 0.5 * (j10 - j01)
+    c, e = 0.5 * (j00 - j11), 0.5 * (j01 + j10)
+    conformal, anti = a * a + b * b, c * c + e * e
+    flip = j00 * j11 - j01 * j10 < 0
     # the conformal part C (A, or B for a flip) and eta = C^-1 (J - C) = [[p, q], [q, -p]]
     x, y = np.where(flip, c, a), np.where(flip, e, b)
     u, w = np.where(flip, a, c), np.where(flip, b, e)
@@ -92,6 +93,20 @@ def jacobian_frames(
         angle,
         np.sqrt(norm),
     )
+
+
+def usable_jacobians(
+    dudcol: np.ndarray, dudrow: np.ndarray, dvdcol: np.ndarray, dvdrow: np.ndarray
+) -> np.ndarray:
+    """Which Jacobians are usable: finite, not the meds package's fill, and not degenerate
+    (|det J| above :data:`MIN_DETERMINANT` times the sum of its squared entries)."""
+    j = [np.asarray(a, dtype=float) for a in (dudcol, dudrow, dvdcol, dvdrow)]
+    with np.errstate(invalid="ignore"):
+        det = j[0] * j[3] - j[1] * j[2]
+        ok = np.abs(det) > MIN_DETERMINANT * sum(x * x for x in j)
+        for x in j:
+            ok &= np.isfinite(x) & (x > MEDS_FILL)
+    return ok
 
 
 def has_jacobian(colnames: object) -> bool:

@@ -47,6 +47,7 @@ from megalut_cli.nn.domain import (
     mode_domain,
     model_domain,
     shown,
+    usable_rows,
 )
 from megalut_cli.nn.model import ShearModel, prediction_column
 from megalut_cli.nn.population import REAL_BIAS_ATTR, SIMULATED_BIAS_ATTR
@@ -480,18 +481,10 @@ def applied_domain(model: ShearModel) -> tuple[dict[str, Any] | None, list[str]]
     trained = _trained_setup(model)
     if domain.get("stamp_size") is None and trained.get("stamp_size") is not None:
         domain["stamp_size"] = trained["stamp_size"]
-    psf = (_training_population(model) or {}).get("psf")
-    recorded = domain.get("columns", {})
-    if (
-        model.shear_mode != "metacal"
-        and domain.get("stamp_size")
-        and isinstance(psf, Mapping)
-        and psf
-        and not all(c in recorded for c in PSF_COLUMNS)
-    ):
+    if model.shear_mode != "metacal":
         from megalut_cli.nn.fit import config_psf_domain  # GalSim: only to draw the PSF
 
-        domain = config_psf_domain(domain, psf, int(domain["stamp_size"]))
+        domain = config_psf_domain(domain, (_training_population(model) or {}).get("psf"))
     return mode_domain(domain, model.shear_mode)
 
 
@@ -580,8 +573,7 @@ def usable_findings(counts: RowCounts) -> list[Finding]:
 
 def _usable(columns: Mapping[str, np.ndarray], features: Sequence[str]) -> np.ndarray:
     """``flags == 0`` and every model feature finite, over the (sampled) domain columns."""
-    n = len(next(iter(columns.values()))) if columns else 0
-    good = np.asarray(columns["flags"]) == 0 if "flags" in columns else np.ones(n, dtype=bool)
+    good = usable_rows(columns, len(next(iter(columns.values()))) if columns else 0)
     for f in features:
         if f in columns:
             good &= np.isfinite(np.asarray(columns[f], dtype=np.float64))
@@ -687,10 +679,12 @@ def domain_report(
     resolved: Mapping[str, str] | None = None,
     metacal: bool = False,
     n_rows: int | None = None,
+    applied: tuple[dict[str, Any] | None, list[str]] | None = None,
 ) -> list[Finding]:
     """How the catalog ``features_path`` lies outside ``model``'s domain
-    (:func:`applied_domain`, the items of its shear mode): no usable row (``flags == 0`` and
-    finite model features; the ``noshear`` columns of a metacal catalog) is one finding and
+    (:func:`applied_domain`, the items of its shear mode; ``applied`` when already known):
+    no usable row (``flags == 0`` and finite model features; the ``noshear`` columns of a
+    metacal catalog) is one finding and
     the only one of the catalog; else the findings of
     :func:`megalut_cli.nn.domain.domain_findings` on its usable rows and stamp size
     (``STAMPSZ``, else the ``box_size`` column), a missing PSF (:func:`psf_findings`) and,
@@ -698,7 +692,7 @@ def domain_report(
     record (the stamp size once). The model's own recorded bias
     (:func:`validation_findings`) is judged in any case."""
     trained = _trained_setup(model)
-    domain, _ = applied_domain(model)
+    domain, _ = applied if applied is not None else applied_domain(model)
     findings = usable_findings(
         count_rows(features_path, model.features, colnames, resolved, metacal)
     )
@@ -742,6 +736,7 @@ def check_domain(
     """:func:`domain_report`, told: a warning per finding and one saying what they mean, or
     with ``strict`` an :class:`InputError` listing them (before anything is written)."""
     name = Path(model_path).name
+    applied = applied_domain(model)  # once: it may draw the training PSF
     findings = domain_report(
         model,
         features_path,
@@ -750,6 +745,7 @@ def check_domain(
         resolved=resolved,
         metacal=metacal,
         n_rows=n_rows,
+        applied=applied,
     )
     if findings and strict:
         raise InputError(
@@ -763,7 +759,7 @@ def check_domain(
             name,
             features_path,
         )
-    _, dropped = applied_domain(model)
+    dropped = applied[1]
     if dropped:
         log.info(
             "%s is a metacal model: its response absorbs the PSF and the noise to first order, "

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.errors import MegalutError
+from megalut_cli.measure.defaults import CELLS_FORMAT
 from megalut_cli.parallel import executor, map_ordered
 from megalut_cli.seeding import STREAM_SCENE, rng_for
 from megalut_cli.sim.config import SimConfig
@@ -352,7 +353,7 @@ def draw_scenes(
 
 
 #: File formats (``MLFORMAT``) of the scene images and of their truth table.
-SCENES_FORMAT = "megalut.scenes"
+SCENES_FORMAT = CELLS_FORMAT
 SCENE_TRUTH_FORMAT = "megalut.scene_truth"
 
 
