@@ -115,12 +115,16 @@ def test_each_version_is_detected_on_its_own(measured):
     counts = [int((det["mdet_step"] == kind).sum()) for kind in TYPES]
     assert min(counts) > 0 and len(set(counts)) == 1  # the same galaxies, found in each
     ns, p1 = det[det["mdet_step"] == "noshear"], det[det["mdet_step"] == "1p"]
-    # the 1p image is sheared about the cell's centre: its detections move (not forced photometry)
-    dx = np.asarray(p1["x"]) - np.asarray(ns["x"])
+    # the 1p image is sheared about the cell's centre: its objects move there (not forced
+    # photometry: each version's centroid is its own) ...
+    dx = np.asarray(p1["adamom_x"]) - np.asarray(ns["adamom_x"])
     centre = (160 + 1) / 2.0
     expected = STEP * (np.asarray(ns["x"]) - centre)  # x' = (1 + g1) x about the centre, roughly
     assert np.abs(dx).max() > 0.3
     assert np.corrcoef(dx, expected)[0, 1] > 0.95
+    # ... and x, y are its detections taken back to the unsheared cell: the same place
+    back = np.hypot(np.asarray(p1["x"]) - ns["x"], np.asarray(p1["y"]) - ns["y"])
+    assert np.median(back) < 0.02 and back.max() < 0.5  # blends: a barycentre moves a little
 
 
 def test_the_response_of_the_detections_is_metacal_s(measured):
@@ -254,4 +258,23 @@ def test_bad_input_is_one_line(runner, cli, tmp_path):
         for n, arr in hdus.items():
             f.write(arr, extname=n)
     invoke_fails(runner, cli, ["measure", str(nan), "--metadetect", "-o", str(out)], 1, "cell 1")
+    # a cell whose every pixel is masked; a PSF cube of another pixel scale
+    masked = tmp_path / "masked.fits"
+    hdus["SCI"][1, 50, 50] = 0.0
+    weights = hdus["WGT"].copy()
+    weights[2] = 0.0
+    with fitsio.FITS(str(masked), "rw", clobber=True) as f:
+        f.write(hdus["SCI"], extname="SCI", header={"PIXSCALE": 0.25})
+        f.write(weights, extname="WGT")
+        f.write(hdus["PSF"], extname="PSF")
+    args = ["measure", str(masked), "--metadetect", "-o", str(out)]
+    invoke_fails(runner, cli, args, 1, "cell 2", "every pixel is masked")
+    scale = tmp_path / "scale.fits"
+    with fitsio.FITS(str(scale), "rw", clobber=True) as f:
+        f.write(hdus["SCI"], extname="SCI", header={"PIXSCALE": 0.25})
+        f.write(hdus["PSF"], extname="PSF", header={"PIXSCALE": 0.2})
+    invoke_fails(runner, cli, ["measure", str(scale), "--metadetect", "-o", str(out)], 1, "0.2")
+    # a coadd image's options on a cells file
+    args = ["measure", str(cells), "--metadetect", "--weight", str(cells), "-o", str(out)]
+    invoke_fails(runner, cli, args, 2, "--weight")
     assert not out.exists()

@@ -52,6 +52,32 @@ from megalut_cli.measure.options import MEASURE
     "position (CATALOG's x, y; without CATALOG the stamp centre in STAMPS), for psf_adamom_* "
     "and --metacal.",
 )
+@click.option(
+    "--weight",
+    "weight",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="--metadetect on a coadd image: its weight map (inverse noise variance per pixel, "
+    "0 where bad), an image of the same shape.",
+)
+@click.option(
+    "--mask",
+    "mask",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="--metadetect on a coadd image: its mask (integer bits, non-zero bad), an image of "
+    "the same shape.",
+)
+@click.option(
+    "--noise-image",
+    "noise_image",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="--metadetect on a coadd image: a realization of its noise (same shape, same "
+    "correlations), used as the fixnoise field instead of white noise from the weight map.",
+)
+@schema_option(MEASURE["cell_size"], show_default=True)
+@schema_option(MEASURE["cell_border"], show_default=True)
 @schema_option(MEASURE["cutout"], show_default=True)
 @schema_option(MEASURE["epochs"])
 @schema_option(MEASURE["stars"])
@@ -77,6 +103,11 @@ def command(
     gain: float | None,
     psf: str | None,
     psf_model: str | None,
+    weight: str | None,
+    mask: str | None,
+    noise_image: str | None,
+    cell_size: int,
+    cell_border: int,
     cutout: int,
     epochs: bool,
     stars: bool | None,
@@ -143,6 +174,11 @@ def command(
     features of a stamp (--stamp-size, default 48) cut around each detection, neighbours
     left in: one row per detection per version (mdet_step, image, field, pair_sign, x, y,
     inner, the features, psf_adamom_* of the target PSF), format megalut.metadetect.
+    A plain coadd image as STAMPS with --metadetect needs --weight and one PSF (--psf, one
+    PSF image in the image's pixels, or --psf-model, drawn at each cell's centre); it is cut
+    into cells of --cell-size pixels overlapping by twice --cell-border, whose inner regions
+    tile the image (each object is inner in one cell), with --mask and --noise-image
+    optional: rows get cell, x, y in the image's pixels and ra, dec from a celestial WCS.
 
     \b
     Example (200 stamps):
@@ -161,6 +197,8 @@ def command(
           --stamp-size 48
       megalut measure objects.meds.fits -o f.fits
       megalut measure scenes.fits --metadetect -o det.fits
+      megalut measure coadd.fits --weight weight.fits --psf psf.fits \\
+          --metadetect -o det.fits
     """
     # fitsio: not for --help; measure_file_columns: no astropy Table (~0.4 s less)
     from megalut_cli.measure.measure import measure_file_columns
@@ -191,7 +229,13 @@ def command(
             engine=engine,
             feature_sets=requested_sets(feature_flags),
             device=device,
-            names=flag_names(psf_path="--psf", psf_model_path="--psf-model"),
+            names=flag_names(
+                psf_path="--psf",
+                psf_model_path="--psf-model",
+                weight_path="--weight",
+                mask_path="--mask",
+                noise_path="--noise-image",
+            ),
             metacal=metacal,
             metacal_step=metacal_step,
             seed=seed,
@@ -203,4 +247,9 @@ def command(
             detect_minarea=detect_minarea,
             deblend_nthresh=deblend_nthresh,
             deblend_cont=deblend_cont,
+            weight_path=weight,
+            mask_path=mask,
+            noise_path=noise_image,
+            cell_size=cell_size,
+            cell_border=cell_border,
         )

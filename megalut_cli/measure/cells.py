@@ -30,6 +30,7 @@ from megalut_cli.errors import ConfigError, InputError, namer
 from megalut_cli.fits_header import header_dict
 from megalut_cli.measure.defaults import CELLS_FORMAT, MDET_FORMAT, MDET_STAMP_SIZE, PSF_COLUMNS
 from megalut_cli.measure.features import warn_if_mostly_flagged
+from megalut_cli.measure.grid import pixel_scale
 from megalut_cli.measure.measurer import (
     Measurer,
     MeasureSettings,
@@ -41,6 +42,7 @@ from megalut_cli.measure.metacal_defaults import (
     MDET_COLUMN,
     MDET_STEP_CARD,
     SEED_CARD,
+    SHEARS,
     TARGET_CARD,
     TARGET_PSF_COLUMNS,
     TYPES,
@@ -67,6 +69,8 @@ INNER_CARD = "INNERBRD"
 #: The GalSim engine does the operation on a whole cell: FFTs of the cell (the fast engine's
 #: matrix transforms are made for small stamps: 10 times slower at 250 pixels).
 CELL_ENGINE = "galsim"
+#: Relative difference of the cells' and the PSF's pixel scales beyond which they disagree.
+SCALE_TOLERANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -80,6 +84,7 @@ class CellsLayout:
     psf_size: int
     has_weight: bool
     has_mask: bool
+    has_noise: bool
     images: dict[str, np.ndarray] | None
     cards: dict[str, Any]
 
@@ -135,7 +140,7 @@ def read_layout(path: str) -> CellsLayout:
             dims = (1, *dims)
         if len(dims) != 3 or dims[1] != dims[2]:
             raise InputError(f"{path}: SCI must hold square cells (n, S, S), got shape {dims}")
-        for ext in ("WGT", "MSK"):
+        for ext in ("WGT", "MSK", "NOISE"):
             if ext in names:
                 d = tuple(int(x) for x in f[names.index(ext)].get_dims())
                 if (d if len(d) == 3 else (1, *d)) != dims:
@@ -146,6 +151,12 @@ def read_layout(path: str) -> CellsLayout:
             raise InputError(
                 f"{path}: PSF must hold one square image per cell ({dims[0]}), got shape {pd}"
             )
+        scales = [pixel_scale(c) for c in (cards, header_dict(f[names.index("PSF")].read_header()))]
+        if None not in scales and abs(scales[1] / scales[0] - 1.0) > SCALE_TOLERANCE:
+            raise InputError(
+                f"{path}: the PSF cube's pixels are {scales[1]:.4g} arcsec, the cells' "
+                f"{scales[0]:.4g}: give the PSF in the cells' pixels"
+            )
         images = None
         if "IMAGES" in names:
             table = f[names.index("IMAGES")].read()
@@ -153,7 +164,15 @@ def read_layout(path: str) -> CellsLayout:
             if len(table) != dims[0]:
                 raise InputError(f"{path}: IMAGES has {len(table)} rows for {dims[0]} cells")
     layout = CellsLayout(
-        path, dims[0], dims[1], pd[1], "WGT" in names, "MSK" in names, images, cards
+        path,
+        dims[0],
+        dims[1],
+        pd[1],
+        "WGT" in names,
+        "MSK" in names,
+        "NOISE" in names,
+        images,
+        cards,
     )
     if not 0 <= layout.inner_border < layout.size / 2:
         raise InputError(
@@ -162,9 +181,10 @@ def read_layout(path: str) -> CellsLayout:
     return layout
 
 
-def read_cell(path: str, index: int) -> dict[str, np.ndarray]:
+def read_cell(path: str, index: int) -> dict[str, np.ndarray | None]:
     """Cell ``index`` of a cells file: ``image``, ``bad`` (WGT <= 0, MSK != 0), ``weight``
-    (None-free: ones without WGT) and ``psf``, float64."""
+    (ones without WGT), ``psf`` and ``noise`` (the NOISE cube's realization, else None),
+    float64."""
     names = _extnames(path)
     if "SCI" not in names:
         names[0] = "SCI"
@@ -181,7 +201,8 @@ def read_cell(path: str, index: int) -> dict[str, np.ndarray]:
         bad = ~(weight > 0)
         if "MSK" in names:
             bad |= cube(f, "MSK") != 0
-    return {"image": image, "weight": weight, "bad": bad, "psf": psf}
+        noise = cube(f, "NOISE") if "NOISE" in names else None
+    return {"image": image, "weight": weight, "bad": bad, "psf": psf, "noise": noise}
 
 
 def cell_noise(weight: np.ndarray, bad: np.ndarray) -> float:
@@ -211,6 +232,50 @@ def version_noise(psf: np.ndarray, sigma: float, step: float, target: str) -> fl
     return float(sigma * np.sqrt(2.0) * _noise_gain(psf.tobytes(), psf.shape[0], step, target))
 
 
+#: Side of the central cut of a noise image whose noshear version gives the detection noise.
+NOISE_CUT = 96
+
+
+def field_version_noise(psf: np.ndarray, field: np.ndarray, step: float, target: str) -> float:
+    """The noise sigma of a metacal version of a cell whose noise is like ``field`` (a noise
+    image with the data's correlations): the rms of the centre of the noshear version of the
+    field's central cut, times sqrt(2) for fixnoise (the field itself, rotated)."""
+    from megalut_cli.measure.metacal import metacal_versions  # GalSim: metadetect only
+
+    ny, nx = field.shape
+    size = min(ny, nx, NOISE_CUT)
+    y0, x0 = (ny - size) // 2, (nx - size) // 2
+    cut = np.asarray(field[y0 : y0 + size, x0 : x0 + size], dtype=np.float64)
+    versions, _ = metacal_versions(cut[None], psf, step, engine=CELL_ENGINE, target=target)
+    q = size // 4
+    return float(np.sqrt(2.0) * versions["noshear"][0, q : size - q, q : size - q].std())
+
+
+#: The farthest a PSF image's centroid may lie from the image's true centre (pixels).
+PSF_CENTRE_TOLERANCE = 0.25
+
+
+def check_psf(psf: np.ndarray, where: str) -> None:
+    """Refuse a cell's PSF image that is not finite, has no flux, or whose centroid lies more
+    than :data:`PSF_CENTRE_TOLERANCE` pixels from the image's true centre (e.g. an even-sized
+    image centred on a pixel: the operation would shift every object)."""
+    from megalut_cli.measure.features import measure_stamps
+
+    if not np.isfinite(psf).all() or not psf.sum() > 0:
+        raise InputError(f"{where}: the PSF image has NaN pixels or no flux")
+    res = measure_stamps(np.asarray(psf, dtype=np.float64)[None], engine="fast")
+    if res["flags"][0]:
+        raise InputError(f"{where}: the PSF image could not be measured (adaptive moments)")
+    centre = (psf.shape[0] + 1) / 2.0
+    dx, dy = float(res["adamom_x"][0]) - centre, float(res["adamom_y"][0]) - centre
+    if max(abs(dx), abs(dy)) > PSF_CENTRE_TOLERANCE:
+        raise InputError(
+            f"{where}: the PSF's centroid lies ({dx:+.2f}, {dy:+.2f}) pixels from the centre of "
+            f"its {psf.shape[0]}-pixel image; it must be centred on the image's true centre "
+            "(odd size: the central pixel; even size: between the four central pixels)"
+        )
+
+
 def detect(
     image: np.ndarray, noise: float, settings: DetectSettings, bad: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -230,6 +295,19 @@ def detect(
         deblend_cont=settings.cont,
     )
     return np.asarray(objects["x"], dtype=np.float64), np.asarray(objects["y"], dtype=np.float64)
+
+
+def unsheared(
+    x: np.ndarray, y: np.ndarray, size: int, direction: tuple[float, float], step: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The 0-based positions ``x, y`` of a version of a ``size``-pixel cell sheared by
+    ``step`` along ``direction`` about the cell's true centre, taken back to the unsheared
+    cell: the same place in every version (and in every cell over it)."""
+    g1, g2 = direction[0] * step, direction[1] * step
+    c = (size - 1) / 2.0
+    dx, dy = x - c, y - c
+    k = 1.0 / np.sqrt(1.0 - g1 * g1 - g2 * g2)  # the inverse of GalSim's shear matrix
+    return c + k * ((1.0 - g1) * dx - g2 * dy), c + k * (-g2 * dx + (1.0 + g1) * dy)
 
 
 def cut_around(
@@ -263,11 +341,15 @@ def metadetect_cell(
     detection: DetectSettings,
     stamp_size: int = MDET_STAMP_SIZE,
     bad: np.ndarray | None = None,
+    noise_field: np.ndarray | None = None,
+    white_field: bool = False,
 ) -> dict[str, np.ndarray]:
     """Metadetection on one cell ``image`` (S, S) with its ``psf`` (P, P): the five versions
     (``settings.metacal``: step, target; fixnoise of ``noise_sigma`` from ``seed``; ``bad``
-    pixels set to 0 first), sep's detections on each at ``detection.thresh`` times its noise,
-    and the features of a ``stamp_size`` stamp around each detection. Returns the columns
+    pixels set to 0 first; or ``noise_field``: a noise image of the cell's correlations, or
+    with ``white_field`` white noise of about ``noise_sigma``),
+    sep's detections on each at ``detection.thresh`` times its noise, and the features of a
+    ``stamp_size`` stamp around each detection. Returns the columns
     ``mdet_step``, ``x``, ``y`` (1-based), the features, ``psf_adamom_*`` (the target
     PSF's) and ``n_masked``, one row per detection per version, version by version."""
     from megalut_cli.measure.metacal import (  # GalSim: metadetect only
@@ -286,10 +368,25 @@ def metadetect_cell(
     size = image.shape[0]
     psfs = same_parity_psfs(np.asarray(psf, dtype=np.float64)[None], size)
     sigma = noise_sigma if np.isfinite(noise_sigma) and noise_sigma > 0 else 0.0
+    fields = None
+    if noise_field is not None:
+        fields = np.where(bad, 0.0, np.asarray(noise_field, dtype=np.float64))[None]
+        if fields.shape != image[None].shape or not np.isfinite(fields).all():
+            raise InputError("the noise image must be finite and of the cell's shape")
     versions, target_sigma = metacal_versions(
-        image[None], psfs[0], mc.step, [sigma], [seed], CELL_ENGINE, target=mc.target
+        image[None],
+        psfs[0],
+        mc.step,
+        [sigma],
+        [seed],
+        CELL_ENGINE,
+        target=mc.target,
+        noise_fields=fields,
     )
-    noise = version_noise(psfs[0], sigma, mc.step, mc.target) if sigma > 0 else 0.0
+    if fields is not None and not white_field:
+        noise = field_version_noise(psfs[0], fields[0], mc.step, mc.target)
+    else:
+        noise = version_noise(psfs[0], sigma, mc.step, mc.target) if sigma > 0 else 0.0
     target = stamp_target_columns(
         mc.target, psfs, np.zeros(1, np.int64), target_sigma, mc.step, stamp_size
     )
@@ -306,7 +403,8 @@ def metadetect_cell(
         stamps, masked, origins, centres = cut_around(version, bad, at_x, at_y, stamp_size)
         feats = measurer.measure(StampBatch(stamps, origins, masked=masked, centres=centres))
         feats = {c: v[:n] for c, v in feats.items()}
-        row = {MDET_COLUMN: np.full(n, kind), "x": x + 1.0, "y": y + 1.0, **feats}
+        ux, uy = unsheared(x, y, size, SHEARS[kind], mc.step)
+        row = {MDET_COLUMN: np.full(n, kind), "x": ux + 1.0, "y": uy + 1.0, **feats}
         for c in TARGET_PSF_COLUMNS:
             row[f"psf_{c}"] = np.full(n, target[f"psf_{c}_{kind}"][0])
         parts.append(row)
@@ -329,6 +427,9 @@ def measure_cell(job: CellJob) -> dict[str, np.ndarray]:
     """Worker: read one cell and run :func:`metadetect_cell` on it."""
     cell = read_cell(job.path, job.index)
     try:
+        if cell["bad"].all():
+            raise InputError("every pixel is masked (WGT 0 or MSK bits)")
+        check_psf(cell["psf"], "its PSF")
         return metadetect_cell(
             cell["image"],
             cell["psf"],
@@ -338,6 +439,7 @@ def measure_cell(job: CellJob) -> dict[str, np.ndarray]:
             job.detection,
             job.stamp_size,
             cell["bad"],
+            cell["noise"],
         )
     except InputError as err:
         raise InputError(f"{job.path}: cell {job.index}: {err}") from None
@@ -362,15 +464,34 @@ def check_request(request: MeasureRequest) -> None:
             ("stars", bool(request.stars)),
             ("epochs", request.epochs),
             ("cutout", request.cutout != MEASURE["cutout"].default),
+            *(
+                (k, request.cells is not None and getattr(request.cells, attr) != default)
+                for k, attr, default in (
+                    ("weight_path", "weight_path", None),
+                    ("mask_path", "mask_path", None),
+                    ("noise_path", "noise_path", None),
+                    ("cell_size", "size", MEASURE["cell_size"].default),
+                    ("cell_border", "border", MEASURE["cell_border"].default),
+                )
+            ),
         )
         if given
     ]
     if wrong:
         raise ConfigError(
-            f"{request.stamps_path} is a cells file (each cell has its PSF): leave out "
+            f"{request.stamps_path} is a cells file (each cell has its PSF, weight, mask and "
+            f"size): leave out "
             f"{', '.join(wrong)}"
         )
     read_layout(request.stamps_path)
+
+
+def inner_region(x: np.ndarray, y: np.ndarray, size: int, border: int) -> np.ndarray:
+    """Whether the 1-based cell positions ``x, y`` lie in the inner region of a cell of
+    ``size`` pixels: ``border < x - 0.5 <= size - border``, likewise ``y`` (half-open, so
+    that the inner regions of cells ``size - 2 border`` apart tile a plane)."""
+    lo, hi = border + 0.5, size - border + 0.5
+    return (x > lo) & (x <= hi) & (y > lo) & (y <= hi)
 
 
 def metadetect_columns(
@@ -388,11 +509,8 @@ def metadetect_columns(
     out["field"] = np.asarray(images.get("field", np.arange(layout.n)))[cell].astype(np.int64)
     if "pair_sign" in images:
         out["pair_sign"] = np.asarray(images["pair_sign"])[cell].astype(np.int16)
-    x, y = merged.pop("x"), merged.pop("y")
-    b = layout.inner_border
-    out["x"], out["y"] = x, y
-    out["inner"] = (x > b + 0.5) & (x <= layout.size - b + 0.5) & (y > b + 0.5)
-    out["inner"] &= y <= layout.size - b + 0.5
+    out["x"], out["y"] = merged.pop("x"), merged.pop("y")
+    out["inner"] = inner_region(out["x"], out["y"], layout.size, layout.inner_border)
     features = [c for c in merged if c not in PSF_COLUMNS and c != "flags"]
     for c in (*features, *PSF_COLUMNS, "flags"):
         out[c] = merged[c]
@@ -437,21 +555,33 @@ def measure_request(request: MeasureRequest) -> Measured:
         warn_if_mostly_flagged(
             columns["flags"], request.stamps_path, request.names, "the detection settings"
         )
-    return Measured(columns, metadetect_cards(request, layout, size), MDET_FORMAT)
+    return Measured(columns, cells_file_cards(request, layout, size), MDET_FORMAT)
 
 
-def metadetect_cards(request: MeasureRequest, layout: CellsLayout, size: int) -> dict[str, Any]:
-    """Header cards of a metadetect catalog: the input, the step (``MDETSTEP``; no
-    ``MCALSTEP``: its rows are not a metacal catalog's), the seed, the target, the detection
-    settings and the stamp size."""
-    settings, detection = request.settings, request.detect
-    assert settings.metacal is not None and detection is not None
+def cells_file_cards(request: MeasureRequest, layout: CellsLayout, size: int) -> dict[str, Any]:
+    """Header cards of a cells file's metadetect catalog: the file, its cells, the cards of
+    every metadetect catalog (:func:`metadetect_cards`) and the simulation's."""
     cards: dict[str, Any] = {
         "CELLFILE": (os.path.basename(request.stamps_path), "cells file measured"),
         "CELLSHA": (sha256_file(request.stamps_path), "sha256 of the cells file"),
         "NCELLS": (layout.n, "number of cells"),
         "CELLSZ": (layout.size, "side of a cell [pixels]"),
         INNER_CARD: (layout.inner_border, "border outside the inner region [pixels]"),
+        **metadetect_cards(request, size),
+    }
+    for key, card in (("PIXSCALE", "PIXSCALE"), ("SEED", "CELLSEED"), ("PAIRS", "PAIRS")):
+        if key in layout.cards:
+            cards[card] = (layout.cards[key], f"the cells file's {key}")
+    return cards
+
+
+def metadetect_cards(request: MeasureRequest, size: int) -> dict[str, Any]:
+    """Header cards of every metadetect catalog: the step (``MDETSTEP``; no ``MCALSTEP``: its
+    rows are not a metacal catalog's), the seed, the target, the detection settings and the
+    stamp size."""
+    settings, detection = request.settings, request.detect
+    assert settings.metacal is not None and detection is not None
+    return {
         MDET_STEP_CARD: (float(settings.metacal.step), "metadetect shear step"),
         **measure_cards(dataclasses.replace(settings, metacal=None), size),
         SEED_CARD: (int(settings.metacal.seed), "seed of the fixnoise fields (measure --seed)"),
@@ -464,10 +594,6 @@ def metadetect_cards(request: MeasureRequest, layout: CellsLayout, size: int) ->
         "DBCONT": (float(detection.cont), "deblending minimum contrast"),
         "DETECTOR": ("sep", "detection code (Source Extractor as a library)"),
     }
-    for key, card in (("PIXSCALE", "PIXSCALE"), ("SEED", "CELLSEED"), ("PAIRS", "PAIRS")):
-        if key in layout.cards:
-            cards[card] = (layout.cards[key], f"the cells file's {key}")
-    return cards
 
 
 CELLS_SOURCE = register_stamp_source(

@@ -32,3 +32,7 @@ DETECT_THRESH = 5.0
 DETECT_MINAREA = 4
 DEBLEND_NTHRESH = 32
 DEBLEND_CONT = 0.005
+#: ``--metadetect`` on a coadd image: the side of the cells it is cut into and the border
+#: outside each cell's inner region (Rubin's cell coadds: 250-pixel cells, inner 150).
+CELL_SIZE = 250
+CELL_BORDER = 50

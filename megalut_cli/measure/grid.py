@@ -491,11 +491,6 @@ def image_psf(psf_path: str, gal_info: ImageInfo, size: int, engine: str) -> Gri
 def check_request(request: MeasureRequest) -> None:
     """The arguments that apply to a grid image."""
     name = namer(request.names)
-    if request.metadetect:
-        raise ConfigError(
-            f"{name('metadetect')} measures a cells file (SCI, WGT, PSF cubes, "
-            f"docs/metadetect.md); {request.stamps_path} is an image of stamps"
-        )
     for key, given in (
         ("cutout", request.cutout != MEASURE["cutout"].default),
         ("epochs", request.epochs),

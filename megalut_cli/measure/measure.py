@@ -23,7 +23,12 @@ from megalut_cli.measure.grid import measure_grid
 from megalut_cli.measure.measurer import MeasureSettings, MetacalSettings
 from megalut_cli.measure.metacal_defaults import DEFAULT_TARGET
 from megalut_cli.measure.options import MEASURE
-from megalut_cli.measure.sources import DetectSettings, MeasureRequest, stamp_source_for
+from megalut_cli.measure.sources import (
+    CellSettings,
+    DetectSettings,
+    MeasureRequest,
+    stamp_source_for,
+)
 from megalut_cli.measure.stamps import grid_origins
 from megalut_cli.progress import Progress
 
@@ -101,6 +106,11 @@ def measure_file_columns(
     detect_minarea: int = MEASURE["detect_minarea"].default,
     deblend_nthresh: int = MEASURE["deblend_nthresh"].default,
     deblend_cont: float = MEASURE["deblend_cont"].default,
+    weight_path: str | os.PathLike | None = None,
+    mask_path: str | os.PathLike | None = None,
+    noise_path: str | os.PathLike | None = None,
+    cell_size: int = MEASURE["cell_size"].default,
+    cell_border: int = MEASURE["cell_border"].default,
 ) -> tuple[Columns, dict[str, Any]]:
     """Measure every stamp of ``stamps_path`` and write the features catalog ``output``.
 
@@ -158,6 +168,10 @@ def measure_file_columns(
         detect_thresh, detect_minarea, deblend_nthresh, deblend_cont: the detection of
             ``metadetect`` (sep): threshold in noise sigmas, the fewest pixels, the
             deblending sub-thresholds and minimum contrast.
+        weight_path, mask_path, noise_path, cell_size, cell_border: ``metadetect`` on one
+            coadd image (:mod:`.coadd`): its inverse-variance map (required), mask bits and
+            a noise realization (optional, for correlated noise), and the cells it is cut
+            into: their side and the border outside each cell's inner region.
 
     Returns:
         The columns written (name -> array, in order) and the input catalog's header (empty
@@ -189,6 +203,28 @@ def measure_file_columns(
         if metadetect
         else None
     )
+    cell_settings = CellSettings(
+        *(None if p is None else str(p) for p in (weight_path, mask_path, noise_path)),
+        int(cell_size),
+        int(cell_border),
+    )
+    if not metadetect:
+        given = [
+            name(k)
+            for k, v in (
+                ("weight_path", weight_path),
+                ("mask_path", mask_path),
+                ("noise_path", noise_path),
+            )
+            if v is not None
+        ]
+        given += [
+            name(k)
+            for k, v in (("cell_size", cell_size), ("cell_border", cell_border))
+            if v != MEASURE[k].default
+        ]
+        if given:
+            raise ConfigError(f"{', '.join(given)}: for {name('metadetect')} on a coadd image only")
     request = MeasureRequest(
         str(stamps_path),
         None if catalog_path is None else str(catalog_path),
@@ -207,8 +243,9 @@ def measure_file_columns(
         epochs,
         metadetect,
         detect,
+        cell_settings,
     )
-    source = stamp_source_for(request.stamps_path)
+    source = stamp_source_for(request.stamps_path, request)
     source.check(request)
     check_output(output, overwrite)
     if gain is not None and not (np.isfinite(gain) and gain > 0):

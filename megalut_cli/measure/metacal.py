@@ -171,16 +171,19 @@ def _with_fixnoise(
     seeds: np.ndarray,
     engine: str,
     out: np.ndarray | None = None,
+    fields: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
-    """The five versions of stamps sharing one PSF; where ``sigmas > 0``, with fixnoise: the
-    operation's image of a 90-degree rotated noise field, rotated back, added (its applied
-    shear is the opposite of the stamp's). ``out``: as :func:`metacal_versions`'s."""
-    noisy = np.flatnonzero(sigmas > 0)
+    """The five versions of stamps sharing one PSF; where ``sigmas > 0`` (or for every stamp
+    with its given ``fields``), with fixnoise: the operation's image of a 90-degree rotated
+    noise field, rotated back, added (its applied shear is the opposite of the stamp's).
+    ``out``: as :func:`metacal_versions`'s."""
     n, shape = len(stamps), stamps.shape[1:]
+    noisy = np.arange(n) if fields is not None else np.flatnonzero(sigmas > 0)
     stack = _scratch("stack", (n + len(noisy), *shape))  # the stamps, then their rotated fields
     stack[:n] = stamps
     for k, i in enumerate(noisy):
-        stack[n + k] = np.rot90(noise_field(sigmas[i], seeds[i], shape), 1)
+        field = fields[i] if fields is not None else noise_field(sigmas[i], seeds[i], shape)
+        stack[n + k] = np.rot90(field, 1)
     if engine == "fast":  # the fields' versions added block by block
         return fft_versions_fixnoise(stack, n, noisy, psf_image, op.step, op.target, out=out)
     versions = _galsim_versions(stack, op)
@@ -239,6 +242,7 @@ def metacal_versions(
     psf_index: Sequence[int] | np.ndarray | None = None,
     target: str = DEFAULT_TARGET,
     out: np.ndarray | None = None,
+    noise_fields: np.ndarray | None = None,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The five metacal versions of a stack of stamps ``(n, S, S)``, as ``({type: (n, S, S)},
     target_sigma (n,))``.
@@ -253,7 +257,9 @@ def metacal_versions(
     ``target``: the target PSF's name (:mod:`.metacal_targets`); the second array holds its
     sigma for each stamp. ``out``: a C-contiguous float64 array ``(5, n, S, S)`` the
     versions are written into (in :data:`TYPES` order; the result holds its views), e.g. a
-    buffer reused from call to call.
+    buffer reused from call to call. ``noise_fields`` ``(n, S, S)``: the fixnoise fields
+    themselves (e.g. a noise image with the data's correlations) instead of fields drawn
+    from ``noise_sigma`` and ``seeds``; one PSF only.
     """
     stamps = np.asarray(stamps, dtype=np.float64)
     psfs = np.asarray(psf_images, dtype=np.float64)
@@ -281,9 +287,17 @@ def metacal_versions(
     )
     seeds = np.arange(n, dtype=np.int64) if seeds is None else np.asarray(seeds, dtype=np.int64)
     groups = np.unique(psf_index)
+    if noise_fields is not None:
+        noise_fields = np.asarray(noise_fields, dtype=np.float64)
+        if noise_fields.shape != stamps.shape or len(groups) > 1:
+            raise ValueError("noise_fields must be one field per stamp, all under one PSF")
+        if not np.isfinite(noise_fields).all():
+            raise ValueError("noise_fields hold NaN or infinite pixels")
     if len(groups) == 1:  # one PSF (the usual case): no copy into a new stack
         op = _operation(psfs[groups[0]], step, target)
-        versions = _with_fixnoise(stamps, psfs[groups[0]], op, sigmas, seeds, engine, out)
+        versions = _with_fixnoise(
+            stamps, psfs[groups[0]], op, sigmas, seeds, engine, out, noise_fields
+        )
         return versions, np.full(n, op.target.sigma)
     out = _versions_array(out, stamps.shape)
     if engine == "fast":

@@ -14,6 +14,8 @@ from dataclasses import replace
 from megalut_cli.atomic import OVERWRITE_OPTION
 from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION
 from megalut_cli.measure.defaults import (
+    CELL_BORDER,
+    CELL_SIZE,
     DEBLEND_CONT,
     DEBLEND_NTHRESH,
     DETECT_MINAREA,
@@ -108,7 +110,8 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         "metadetect",
         "bool",
         False,
-        "STAMPS is a cells file (docs/metadetect.md: SCI, WGT, MSK, PSF cubes): per cell, the "
+        "STAMPS is a cells file (docs/metadetect.md: SCI, WGT, MSK, PSF cubes), or a coadd "
+        "image with --weight and --psf or --psf-model, cut into cells: per cell, the "
         "five metacal versions of the whole cell (fixnoise from the weight map), detection on "
         "each version with sep, and the features of a stamp cut around each detection, "
         "neighbours left in (stamp size --stamp-size, default "
@@ -145,6 +148,23 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         "--metadetect: minimum flux fraction of a deblended branch (1: no deblending).",
         minimum=0,
         maximum=1,
+    ),
+    Option(
+        "cell_size",
+        "int",
+        CELL_SIZE,
+        "--metadetect on a coadd image: side of the square cells it is cut into (pixels).",
+        minimum=32,
+        maximum=4096,
+    ),
+    Option(
+        "cell_border",
+        "int",
+        CELL_BORDER,
+        "--metadetect on a coadd image: the border outside each cell's inner region "
+        "(pixels); cells overlap by twice this and their inner regions tile the image, so "
+        "each object counts in one cell (inner = 1).",
+        minimum=0,
     ),
     replace(
         SEED_OPTION,

@@ -41,6 +41,20 @@ class MeasureRequest:
     epochs: bool = False
     metadetect: bool = False
     detect: DetectSettings | None = None
+    cells: CellSettings | None = None
+
+
+@dataclass(frozen=True)
+class CellSettings:
+    """A coadd image measured with ``--metadetect``: its weight map (inverse variance), mask
+    and noise image files (or None), and how it is cut into cells: their side and the border
+    outside each cell's inner region (the inner regions tile the image)."""
+
+    weight_path: str | None
+    mask_path: str | None
+    noise_path: str | None
+    size: int
+    border: int
 
 
 @dataclass(frozen=True)
@@ -71,13 +85,16 @@ class Measured:
 class StampSourceType:
     """An input format: ``recognises(path)``, ``check(request)`` (its arguments, before any
     output is touched: a ConfigError names the one that does not apply) and
-    ``measure(request)``. A ``fallback`` type takes what no other recognises."""
+    ``measure(request)``. A ``fallback`` type takes what no other recognises or ``claims``."""
 
     name: str
     recognises: Callable[[str], bool]
     check: Callable[[MeasureRequest], None]
     measure: Callable[[MeasureRequest], Measured]
     fallback: bool = False
+    #: Takes a request no source recognises by its file, by what it asks (e.g. a plain image
+    #: with ``--metadetect``), before the fallback.
+    claims: Callable[[MeasureRequest], bool] | None = None
 
 
 _REGISTRY: dict[str, StampSourceType] = {}
@@ -98,11 +115,16 @@ def registered_stamp_sources() -> tuple[StampSourceType, ...]:
     return tuple(_REGISTRY.values())
 
 
-def stamp_source_for(path: str) -> StampSourceType:
-    """The source that recognises ``path``, else the fallback."""
+def stamp_source_for(path: str, request: MeasureRequest | None = None) -> StampSourceType:
+    """The source that recognises ``path``, else one that claims ``request``, else the
+    fallback."""
     for source in _REGISTRY.values():
         if not source.fallback and source.recognises(path):
             return source
+    if request is not None:
+        for source in _REGISTRY.values():
+            if source.claims is not None and source.claims(request):
+                return source
     for source in _REGISTRY.values():
         if source.fallback:
             return source

@@ -4,8 +4,9 @@ one import line here."""
 
 from __future__ import annotations
 
-from megalut_cli.measure import cells, grid, meds
+from megalut_cli.measure import cells, coadd, grid, meds
 from megalut_cli.measure.source_registry import (
+    CellSettings,
     DetectSettings,
     Measured,
     MeasureRequest,
@@ -18,11 +19,13 @@ from megalut_cli.measure.source_registry import (
 BUILTIN_SOURCES: tuple[StampSourceType, ...] = (
     meds.MEDS_SOURCE,
     cells.CELLS_SOURCE,
+    coadd.COADD_SOURCE,
     grid.GRID_SOURCE,
 )
 
 __all__ = [
     "BUILTIN_SOURCES",
+    "CellSettings",
     "DetectSettings",
     "MeasureRequest",
     "Measured",

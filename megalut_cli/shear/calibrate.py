@@ -82,7 +82,10 @@ ROUTE_METACAL = "metacal"
 ROUTE_METADETECT = "metadetect"
 #: The columns whose values are the independent units of a metadetection catalog's errors
 #: (a field's images share galaxies and noise), in order of preference.
-MDET_UNIT_COLUMNS = ("field", "image")
+MDET_UNIT_COLUMNS = ("field", "image", "cell")
+#: A metadetection catalog's column saying whether a detection lies in its cell's inner
+#: region: only those rows count (each object of overlapping cells once).
+INNER_COLUMN = "inner"
 ROUTE_SIMULATION = "simulation"
 #: The PSF ellipticity of each object (measured: real data has no true PSF).
 PSF_COLUMNS = ("psf_adamom_g1", "psf_adamom_g2")
@@ -284,6 +287,7 @@ def plan_calibration(
     cols += [*EPOCH_COLUMNS, TILE_COLUMN] if epochs else []
     if route == ROUTE_METADETECT:
         cols += [MDET_COLUMN, *ESTIMATE_COLUMNS, "flags", *([unit] if unit else [])]
+        cols += [INNER_COLUMN] if INNER_COLUMN in have else []
     elif route == ROUTE_METACAL:
         cols += [*RESPONSE_COLUMNS, "flags_noshear"]
         cols += [f"{c}_{kind}" for kind in TYPES for c in ESTIMATE_COLUMNS]
@@ -398,6 +402,8 @@ def _metadetect_objects(columns: Mapping[str, np.ndarray], plan: CalibrationPlan
     raw = {i: np.asarray(columns[f"pre_g{i}"], dtype=float) for i in (1, 2)}
     ok = selected & (np.asarray(columns["flags"]) == 0)
     ok &= np.isfinite(raw[1]) & np.isfinite(raw[2])
+    if INNER_COLUMN in columns:  # overlapping cells: each object in its one inner region
+        ok &= np.asarray(columns[INNER_COLUMN]) != 0
     w = {i: np.ones(n) for i in (1, 2)}
     if plan.weighted:
         for i in (1, 2):
