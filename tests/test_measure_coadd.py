@@ -204,3 +204,28 @@ def test_bad_input_is_one_line(runner, cli, tmp_path):
     args = ["measure", str(nan), "--metadetect", "-o", str(out), "--weight", str(paths["weight"])]
     invoke_fails(runner, cli, [*args, "--psf", str(paths["psf"])], 1, "NaN")
     assert not out.exists()
+
+
+def test_a_psf_model_and_workers(runner, cli, tmp_path):
+    """A PSFEx model drawn at each cell's centre; the same rows with one or two workers."""
+    from pathlib import Path
+
+    decam = Path(__file__).with_name("data") / "DECam_00154912_12_psfcat.psf"
+    paths, _, _ = write_coadd(tmp_path, shape=(150, 150))
+    outs = []
+    for j in ("1", "2"):
+        out = tmp_path / f"det{j}.fits"
+        args = ["measure", str(paths["coadd"]), "--weight", str(paths["weight"])]
+        args += ["--psf-model", str(decam), "--metadetect", "-o", str(out), "-j", j]
+        result = runner.invoke(cli, [*args, "--cell-size", str(SIZE), "--cell-border", "16"])
+        assert result.exit_code == 0, result.output
+        outs.append(fitsio.read(str(out)))
+    assert outs[0].dtype == outs[1].dtype
+    for name in outs[0].dtype.names:
+        same = np.array_equal(
+            outs[0][name], outs[1][name], equal_nan=outs[0][name].dtype.kind == "f"
+        )
+        assert same, name
+    header = fitsio.read_header(str(tmp_path / "det1.fits"), 1)
+    assert header["PSFMTYPE"] == "psfex" and "PSFFILE" not in header
+    assert (outs[0]["inner"] == 1).sum() >= 5 * 9  # five versions of nine galaxies at least
