@@ -278,3 +278,35 @@ def test_bad_input_is_one_line(runner, cli, tmp_path):
     args = ["measure", str(cells), "--metadetect", "--weight", str(cells), "-o", str(out)]
     invoke_fails(runner, cli, args, 2, "--weight")
     assert not out.exists()
+
+
+def test_correlated_noise_scenes_carry_a_noise_cube_for_fixnoise(runner, cli, tmp_path):
+    """Scenes with correlated noise write NOISE: another realization, independent of the
+    images' noise, with its correlations; metadetection takes it as the fixnoise field."""
+    from pathlib import Path
+
+    cf = Path(__file__).parents[1] / "examples" / "data" / "cosmos" / "acs_I_unrot_sci_20_cf.fits"
+    config = write(tmp_path, CELLS, replace={"{sigma}": "1.0"})
+    noise = f'[noise]\ntype = "correlated"\nsigma = 1.0\ncorrelation = "{cf}"\npixel_scale = 1.0\n'
+    text = config.read_text().replace('[noise]\ntype = "gaussian"\nsigma = 1.0\n', noise)
+    config.write_text(text)
+    cells, truth = tmp_path / "c.fits", tmp_path / "t.fits"
+    args = ["simulate", str(config), "-o", str(truth), "--scene", str(cells), "--pairs"]
+    result = runner.invoke(cli, [*args, "scene.n_fields=2", "scene.size=128"])
+    assert result.exit_code == 0, result.output
+    with fitsio.FITS(str(cells)) as f:
+        sci, twin = f["SCI"].read(), f["NOISE"].read()
+    assert twin.shape == sci.shape
+    np.testing.assert_array_equal(twin[0], twin[1])  # a pair shares it, as its noise
+    blank = np.abs(sci[0] - sci[1]) < 1e-6  # no galaxy there: the images' noise alone
+    assert blank.mean() > 0.5
+    assert abs(np.corrcoef(sci[0][blank], twin[0][blank])[0, 1]) < 0.05  # independent
+
+    def neighbour_corr(a: np.ndarray) -> float:
+        return float(np.corrcoef(a[:, :-1].ravel(), a[:, 1:].ravel())[0, 1])
+
+    assert neighbour_corr(twin[0]) > 0.1  # correlated, as the images' noise
+    out = tmp_path / "det.fits"
+    result = runner.invoke(cli, ["measure", str(cells), "--metadetect", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert fitsio.read_header(str(out), 1)["MDETFIX"].strip() == "NOISE"

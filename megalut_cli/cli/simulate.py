@@ -305,7 +305,8 @@ def write_scenes(
     cfg: SimConfig, seed: int, scenes: Scenes, truth_path: Path, images_path: Path, overwrite: bool
 ) -> None:
     """The scene products, each written whole or not at all: the images (``SCI``, ``WGT``,
-    ``MSK``, ``PSF`` cubes and the ``IMAGES`` table) and the truth table (``CONFIG`` HDU)."""
+    ``MSK``, ``PSF`` cubes, ``NOISE`` for correlated noise, and the ``IMAGES`` table) and the
+    truth table (``CONFIG`` HDU)."""
     import contextlib
 
     import fitsio
@@ -336,5 +337,7 @@ def write_scenes(
             fits.write(scenes.weights, extname="WGT")
             fits.write(scenes.masks, extname="MSK")
             fits.write(scenes.psfs, extname="PSF")
+            if scenes.noise is not None:
+                fits.write(scenes.noise, extname="NOISE")
             recs = header_cards(SCENES_FORMAT, cards=cards, columns=rows.dtype.names)
             write_table_hdu(fits, rows, recs, "IMAGES")

@@ -69,6 +69,10 @@ INNER_CARD = "INNERBRD"
 #: The GalSim engine does the operation on a whole cell: FFTs of the cell (the fast engine's
 #: matrix transforms are made for small stamps: 10 times slower at 250 pixels).
 CELL_ENGINE = "galsim"
+#: Header card: the fixnoise field of a metadetect catalog, a noise image (``NOISE``) or
+#: white noise of the weight map (``white``).
+FIXNOISE_CARD = "MDETFIX"
+FIXNOISE_TEXT = "fixnoise field: the NOISE image, or white from WGT"
 #: Relative difference of the cells' and the PSF's pixel scales beyond which they disagree.
 SCALE_TOLERANCE = 1e-3
 
@@ -567,6 +571,7 @@ def cells_file_cards(request: MeasureRequest, layout: CellsLayout, size: int) ->
         "NCELLS": (layout.n, "number of cells"),
         "CELLSZ": (layout.size, "side of a cell [pixels]"),
         INNER_CARD: (layout.inner_border, "border outside the inner region [pixels]"),
+        FIXNOISE_CARD: ("NOISE" if layout.has_noise else "white", FIXNOISE_TEXT),
         **metadetect_cards(request, size),
     }
     for key, card in (("PIXSCALE", "PIXSCALE"), ("SEED", "CELLSEED"), ("PAIRS", "PAIRS")):

@@ -360,6 +360,8 @@ def coadd_cards(
     cards["NCELLS"] = (n_cells, "number of cells the image is cut into")
     cards["CELLSZ"] = (coadd.size, "side of a cell [pixels]")
     cards[cells.INNER_CARD] = (coadd.border, "border outside the inner region [pixels]")
+    fixnoise = "white" if coadd.noise is None else "NOISE"
+    cards[cells.FIXNOISE_CARD] = (fixnoise, cells.FIXNOISE_TEXT)
     cards.update(cells.metadetect_cards(request, size))
     return cards
 

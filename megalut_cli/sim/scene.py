@@ -35,7 +35,7 @@ from megalut_cli.sim.profiles import GALAXY_PROFILES
 from megalut_cli.sim.scene_config import SceneSpec
 
 #: Sub-keys of rng_for(seed, STREAM_SCENE, field, KEY).
-_COUNT_KEY, _FIELD_KEY, _GALAXY_KEY, _POSITION_KEY, _NOISE_KEY, _KNOT_KEY = range(6)
+_COUNT_KEY, _FIELD_KEY, _GALAXY_KEY, _POSITION_KEY, _NOISE_KEY, _KNOT_KEY, _TWIN_KEY = range(7)
 #: Largest science cube (pixels of all images together; 1 GiB in float32): fail early.
 MAX_SCENE_PIXELS = 2**28
 
@@ -100,6 +100,9 @@ class DrawnField:
     truth: dict[str, np.ndarray] = field(default_factory=dict)
     #: the flux of each galaxy on the field's pixels, per sign (n_signs, n_galaxies)
     flux_drawn: np.ndarray = field(default_factory=lambda: np.zeros((1, 0)))
+    #: correlated noise: another realization of it, independent of ``noise`` (the cells'
+    #: ``NOISE`` cube, for metadetection's fixnoise); None otherwise
+    noise_twin: np.ndarray | None = None
 
 
 def _scalar(values: dict[str, np.ndarray]) -> dict[str, float]:
@@ -236,6 +239,14 @@ def draw_field(unit: FieldUnit) -> DrawnField:
     noise_image = galsim.ImageF(s.size, s.size, scale=1.0)
     noise.add(noise_image, d.noise_seed)  # on an empty field: the same pixels for every sign
     images = np.stack([f.array + noise_image.array for f in fields]).astype(np.float32)
+    twin = None
+    if noise.kind == "correlated":
+        twin_seed = int(
+            rng_for(unit.seed, STREAM_SCENE, unit.field, _TWIN_KEY).integers(1, 2**31 - 1)
+        )
+        twin_image = galsim.ImageF(s.size, s.size, scale=1.0)
+        noise.add(twin_image, twin_seed)
+        twin = twin_image.array.astype(np.float32)
     sigma = noise.sky_sigma
     weight = np.full((s.size, s.size), 1.0 / sigma**2 if sigma > 0 else 1.0, dtype=np.float32)
     psf_image = psf.drawImage(nx=s.psf_size, ny=s.psf_size, scale=1.0, method=method).array
@@ -253,6 +264,7 @@ def draw_field(unit: FieldUnit) -> DrawnField:
         sigma,
         t,
         flux_drawn,
+        twin,
     )
 
 
@@ -288,6 +300,8 @@ class Scenes:
     image_table: dict[str, np.ndarray]
     #: one row per galaxy per image: image, field, pair_sign, galaxy, x, y, tru_*, tru_flux_drawn
     truth: dict[str, np.ndarray]
+    #: correlated noise: an independent realization per image (n_images, N, N), else None
+    noise: np.ndarray | None = None
 
 
 def truth_rows(drawn: DrawnField, first_image: int) -> dict[str, np.ndarray]:
@@ -323,10 +337,15 @@ def draw_scenes(
         k: [] for k in ("image", "field", "pair_sign", "n_gal", "tru_g1", "tru_g2", "tru_sky_sigma")
     }
     truths = []
+    noise = None
     for drawn in iter_fields(config, seed, nproc, scheduler):
         first = drawn.field * s.n_signs
+        if drawn.noise_twin is not None and noise is None:
+            noise = np.empty(shape, dtype=np.float32)
         for j, sign in enumerate(drawn.signs):
             i = first + j
+            if noise is not None and drawn.noise_twin is not None:
+                noise[i] = drawn.noise_twin  # the signs of a pair share it, as their noise
             images[i], weights[i], masks[i], psfs[i] = (
                 drawn.images[j],
                 drawn.weight,
@@ -349,7 +368,7 @@ def draw_scenes(
         for k, v in table.items()
     }
     truth = {k: np.concatenate([t[k] for t in truths]) for k in truths[0]}
-    return Scenes(images, weights, masks, psfs, image_table, truth)
+    return Scenes(images, weights, masks, psfs, image_table, truth, noise)
 
 
 #: File formats (``MLFORMAT``) of the scene images and of their truth table.
