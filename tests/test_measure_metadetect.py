@@ -310,3 +310,35 @@ def test_correlated_noise_scenes_carry_a_noise_cube_for_fixnoise(runner, cli, tm
     result = runner.invoke(cli, ["measure", str(cells), "--metadetect", "-o", str(out)])
     assert result.exit_code == 0, result.output
     assert fitsio.read_header(str(out), 1)["MDETFIX"].strip() == "NOISE"
+
+
+def test_detect_is_the_stamp_route_on_the_same_cells(measured, runner, cli, tmp_path):
+    """--detect: one row per detection on the cells themselves (no versions); with
+    --metacal, each stamp's metacal versions: a metacal catalog, whose per-object response
+    on these noiseless isolated galaxies is the metadetection response."""
+    cells, truth, det, _ = measured
+    out = tmp_path / "stamps.fits"
+    args = ["measure", str(cells), "--detect", "--metacal", "-o", str(out), "-j", "1"]
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    rows, header = read_catalog(out), fitsio.read_header(str(out), 1)
+    assert header["MLFORMAT"] == "megalut.features" and header["MCALSTEP"] == STEP
+    assert "mdet_step" not in rows.colnames and "adamom_g1_1p" in rows.colnames
+    ns = det[det["mdet_step"] == "noshear"]
+    assert len(rows) == len(ns)
+    near = np.hypot(
+        np.asarray(rows["x"])[:, None] - np.asarray(ns["x"])[None, :],
+        np.asarray(rows["y"])[:, None] - np.asarray(ns["y"])[None, :],
+    )
+    assert near.min(axis=1).max() < 0.5
+    ok = (rows["flags"] == 0) & (rows["flags_1p"] == 0) & (rows["flags_1m"] == 0)
+    r11 = (np.asarray(rows["adamom_g1_1p"]) - rows["adamom_g1_1m"])[ok].mean() / (2 * STEP)
+    p1, m1 = det[det["mdet_step"] == "1p"], det[det["mdet_step"] == "1m"]
+    r11_mdet = (p1["adamom_g1"].mean() - m1["adamom_g1"].mean()) / (2 * STEP)
+    assert r11 == pytest.approx(r11_mdet, rel=0.05)
+    # without --metacal: the features only; --detect and --metadetect exclude each other
+    result = runner.invoke(cli, ["measure", str(cells), "--detect", "-o", str(tmp_path / "d.fits")])
+    assert result.exit_code == 0, result.output
+    assert "adamom_g1_1p" not in read_catalog(tmp_path / "d.fits").colnames
+    args = ["measure", str(cells), "--detect", "--metadetect", "-o", str(tmp_path / "x.fits")]
+    invoke_fails(runner, cli, args, 2, "--detect", "--metadetect")

@@ -85,6 +85,7 @@ from megalut_cli.measure.options import MEASURE
 @schema_option(MEASURE["metacal"])
 @schema_option(MEASURE["metacal_step"], show_default=True)
 @schema_option(MEASURE["metadetect"])
+@schema_option(MEASURE["detect"])
 @schema_option(MEASURE["detect_thresh"], show_default=True)
 @schema_option(MEASURE["detect_minarea"], show_default=True)
 @schema_option(MEASURE["deblend_nthresh"], show_default=True)
@@ -114,6 +115,7 @@ def command(
     metacal: bool,
     metacal_step: float,
     metadetect: bool,
+    detect: bool,
     detect_thresh: float,
     detect_minarea: int,
     deblend_nthresh: int,
@@ -179,6 +181,9 @@ def command(
     into cells of --cell-size pixels overlapping by twice --cell-border, whose inner regions
     tile the image (each object is inner in one cell), with --mask and --noise-image
     optional: rows get cell, x, y in the image's pixels and ra, dec from a celestial WCS.
+    --detect instead detects on the cells themselves (no sheared versions): one row per
+    detection with the features of its stamp and the cell's PSF (format megalut.features);
+    with --metacal, each stamp's metacal versions, the stamp route on the same cells.
 
     \b
     Example (200 stamps):
@@ -243,6 +248,7 @@ def command(
             epochs=epochs,
             psf_model_path=psf_model,
             metadetect=metadetect,
+            detect=detect,
             detect_thresh=detect_thresh,
             detect_minarea=detect_minarea,
             deblend_nthresh=deblend_nthresh,

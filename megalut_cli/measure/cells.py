@@ -29,11 +29,13 @@ from megalut_cli.catalog import is_fits_file
 from megalut_cli.errors import ConfigError, InputError, namer
 from megalut_cli.fits_header import header_dict
 from megalut_cli.measure.defaults import CELLS_FORMAT, MDET_FORMAT, MDET_STAMP_SIZE, PSF_COLUMNS
+from megalut_cli.measure.defaults import FORMAT as FEATURES_FORMAT
 from megalut_cli.measure.features import warn_if_mostly_flagged
 from megalut_cli.measure.grid import pixel_scale
 from megalut_cli.measure.measurer import (
     Measurer,
     MeasureSettings,
+    PsfImages,
     StampBatch,
     measure_cards,
     same_parity_psfs,
@@ -415,9 +417,57 @@ def metadetect_cell(
     return {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
 
 
+#: The fixnoise keys of the stamps of ``--detect --metacal``: the cell's key times this plus
+#: the detection's index.
+KEY_STRIDE = 1 << 20
+
+
+def detect_cell(
+    image: np.ndarray,
+    psf: np.ndarray,
+    noise_sigma: float,
+    key: int,
+    settings: MeasureSettings,
+    detection: DetectSettings,
+    stamp_size: int = MDET_STAMP_SIZE,
+    bad: np.ndarray | None = None,
+    weight: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
+    """Plain detection on one cell ``image`` (``--detect``): sep's detections at
+    ``detection.thresh`` times ``noise_sigma`` and the features of a ``stamp_size`` stamp
+    around each (neighbours left in), the PSF's features, and with ``settings.metacal`` the
+    stamps' metacal versions (fixnoise keys ``key * KEY_STRIDE + i``): the stamp route on the
+    cell. Returns ``x``, ``y`` (1-based) and the Measurer's columns, one row per detection."""
+    image = np.asarray(image, dtype=np.float64)
+    bad = np.zeros(image.shape, bool) if bad is None else np.asarray(bad, dtype=bool)
+    if not np.isfinite(image[~bad]).all():
+        raise InputError("the cell holds NaN or infinite pixels that are not masked")
+    image = np.where(bad, 0.0, image)
+    floor = noise_sigma if noise_sigma > 0 else 1e-3 * float(np.abs(image).max() or 1.0)
+    x, y = detect(image, floor, detection, bad)
+    n = len(x)
+    at_x, at_y = (x, y) if n else (np.zeros(1), np.zeros(1))
+    stamps, masked, origins, centres = cut_around(image, bad, at_x, at_y, stamp_size)
+    weights = None
+    if weight is not None:
+        weights = cut_around(np.where(bad, 0.0, weight), bad, at_x, at_y, stamp_size)[0]
+    batch = StampBatch(
+        stamps,
+        origins,
+        masked=masked,
+        centres=centres,
+        weights=weights,
+        psfs=PsfImages(np.asarray(psf, dtype=np.float64)[None], np.zeros(len(stamps), np.int64)),
+        fixnoise_keys=int(key) * KEY_STRIDE + np.arange(len(stamps)),
+    )
+    feats = Measurer(settings).measure(batch)
+    return {"x": x + 1.0, "y": y + 1.0, **{c: v[:n] for c, v in feats.items()}}
+
+
 @dataclass(frozen=True)
 class CellJob:
-    """One cell of a file to measure (picklable: read in the worker)."""
+    """One cell of a file to measure (picklable: read in the worker): metadetection, or
+    with ``detect_only`` plain detection (``key``: the cell's fixnoise key)."""
 
     path: str
     index: int
@@ -425,19 +475,34 @@ class CellJob:
     settings: MeasureSettings
     detection: DetectSettings
     stamp_size: int
+    detect_only: bool = False
+    key: int = 0
 
 
 def measure_cell(job: CellJob) -> dict[str, np.ndarray]:
-    """Worker: read one cell and run :func:`metadetect_cell` on it."""
+    """Worker: read one cell and run :func:`metadetect_cell` (or :func:`detect_cell`) on it."""
     cell = read_cell(job.path, job.index)
     try:
         if cell["bad"].all():
             raise InputError("every pixel is masked (WGT 0 or MSK bits)")
         check_psf(cell["psf"], "its PSF")
+        noise = cell_noise(cell["weight"], cell["bad"])
+        if job.detect_only:
+            return detect_cell(
+                cell["image"],
+                cell["psf"],
+                noise,
+                job.key,
+                job.settings,
+                job.detection,
+                job.stamp_size,
+                cell["bad"],
+                cell["weight"],
+            )
         return metadetect_cell(
             cell["image"],
             cell["psf"],
-            cell_noise(cell["weight"], cell["bad"]),
+            noise,
             job.seed,
             job.settings,
             job.detection,
@@ -452,10 +517,10 @@ def measure_cell(job: CellJob) -> dict[str, np.ndarray]:
 def check_request(request: MeasureRequest) -> None:
     """The arguments that apply to a cells file: ``--metadetect`` and its options."""
     name = namer(request.names)
-    if not request.metadetect:
+    if not request.detects:
         raise ConfigError(
             f"{request.stamps_path} is a cells file (SCI, PSF cubes): measure it with "
-            f"{name('metadetect')}"
+            f"{name('metadetect')} (or {name('detect')})"
         )
     if request.catalog_path is not None:
         raise ConfigError(f"{request.stamps_path} is a cells file: give it no catalog")
@@ -507,7 +572,9 @@ def metadetect_columns(
     counts = np.array([len(r["x"]) for r in results], dtype=np.int64)
     cell = np.repeat(np.arange(layout.n), counts)
     merged = {c: np.concatenate([r[c] for r in results]) for c in results[0]}
-    out: dict[str, np.ndarray] = {MDET_COLUMN: merged.pop(MDET_COLUMN).astype("U7")}
+    out: dict[str, np.ndarray] = {}
+    if MDET_COLUMN in merged:
+        out[MDET_COLUMN] = merged.pop(MDET_COLUMN).astype("U7")
     images = layout.images or {}
     out["image"] = np.asarray(images.get("image", np.arange(layout.n)))[cell].astype(np.int64)
     out["field"] = np.asarray(images.get("field", np.arange(layout.n)))[cell].astype(np.int64)
@@ -515,17 +582,25 @@ def metadetect_columns(
         out["pair_sign"] = np.asarray(images["pair_sign"])[cell].astype(np.int16)
     out["x"], out["y"] = merged.pop("x"), merged.pop("y")
     out["inner"] = inner_region(out["x"], out["y"], layout.size, layout.inner_border)
-    features = [c for c in merged if c not in PSF_COLUMNS and c != "flags"]
-    for c in (*features, *PSF_COLUMNS, "flags"):
-        out[c] = merged[c]
+    out.update(ordered_features(merged))
     return out
+
+
+def ordered_features(merged: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The measured columns in the contract's order: the features, the PSF's, ``flags``, then
+    the metacal versions' of ``--detect --metacal``."""
+    versioned = tuple(f"_{kind}" for kind in TYPES)
+    own = [c for c in merged if not c.endswith(versioned)]
+    first = [c for c in own if c not in PSF_COLUMNS and c != "flags"]
+    order = [*first, *(c for c in PSF_COLUMNS if c in merged), "flags"]
+    return {c: merged[c] for c in (*order, *(c for c in merged if c not in order))}
 
 
 def measure_request(request: MeasureRequest) -> Measured:
     """Metadetection on every cell of a cells file (module docstring) into a catalog of
-    format ``megalut.metadetect``."""
+    format ``megalut.metadetect`` (``--detect``: plain detection, ``megalut.features``)."""
     settings, detection = request.settings, request.detect
-    assert settings.metacal is not None and detection is not None
+    assert detection is not None
     layout = read_layout(request.stamps_path)
     size = request.stamp_size or MDET_STAMP_SIZE
     if size > layout.size:
@@ -533,11 +608,24 @@ def measure_request(request: MeasureRequest) -> Measured:
             f"{namer(request.names)('stamp_size')} {size} is larger than the cells "
             f"({layout.size} pixels)"
         )
-    from megalut_cli.measure.metacal import fixnoise_seeds  # GalSim: metadetect only
+    keys = layout.keys()
+    seeds = np.zeros(layout.n, np.int64)
+    if request.metadetect:
+        from megalut_cli.measure.metacal import fixnoise_seeds  # GalSim: metadetect only
 
-    seeds = fixnoise_seeds(settings.metacal.seed, layout.keys())
+        assert settings.metacal is not None
+        seeds = fixnoise_seeds(settings.metacal.seed, keys)
     jobs = [
-        CellJob(request.stamps_path, i, int(seeds[i]), settings, detection, size)
+        CellJob(
+            request.stamps_path,
+            i,
+            int(seeds[i]),
+            settings,
+            detection,
+            size,
+            request.detect_only,
+            int(keys[i]),
+        )
         for i in range(layout.n)
     ]
     with (
@@ -548,18 +636,28 @@ def measure_request(request: MeasureRequest) -> Measured:
     columns = metadetect_columns(layout, results)
     empty = [i for i, r in enumerate(results) if not len(r["x"])]
     if empty:
-        log.info("%d of %d cells have no detection in any version", len(empty), layout.n)
-    log.info(
-        "%d detections in %d cells (%s)",
-        len(columns["x"]),
-        layout.n,
-        ", ".join(f"{k} {int((columns['mdet_step'] == k).sum())}" for k in TYPES),
-    )
+        log.info("%d of %d cells have no detection", len(empty), layout.n)
+    log_detections(request, columns, f"{layout.n} cells")
+    return Measured(columns, cells_file_cards(request, layout, size), output_format(request))
+
+
+def output_format(request: MeasureRequest) -> str:
+    """The format of the catalog: ``megalut.metadetect``, or ``megalut.features`` for
+    ``--detect`` (one row per detection, a stamp catalog)."""
+    return FEATURES_FORMAT if request.detect_only else MDET_FORMAT
+
+
+def log_detections(request: MeasureRequest, columns: dict[str, np.ndarray], where: str) -> None:
+    """Log the detections (per version) and warn when most rows are flagged."""
+    per = ""
+    if MDET_COLUMN in columns:
+        counts = (f"{k} {int((columns[MDET_COLUMN] == k).sum())}" for k in TYPES)
+        per = f" ({', '.join(counts)})"
+    log.info("%d detections in %s%s", len(columns["x"]), where, per)
     if len(columns["x"]):
         warn_if_mostly_flagged(
             columns["flags"], request.stamps_path, request.names, "the detection settings"
         )
-    return Measured(columns, cells_file_cards(request, layout, size), MDET_FORMAT)
 
 
 def cells_file_cards(request: MeasureRequest, layout: CellsLayout, size: int) -> dict[str, Any]:
@@ -571,9 +669,10 @@ def cells_file_cards(request: MeasureRequest, layout: CellsLayout, size: int) ->
         "NCELLS": (layout.n, "number of cells"),
         "CELLSZ": (layout.size, "side of a cell [pixels]"),
         INNER_CARD: (layout.inner_border, "border outside the inner region [pixels]"),
-        FIXNOISE_CARD: ("NOISE" if layout.has_noise else "white", FIXNOISE_TEXT),
         **metadetect_cards(request, size),
     }
+    if request.metadetect:
+        cards[FIXNOISE_CARD] = ("NOISE" if layout.has_noise else "white", FIXNOISE_TEXT)
     for key, card in (("PIXSCALE", "PIXSCALE"), ("SEED", "CELLSEED"), ("PAIRS", "PAIRS")):
         if key in layout.cards:
             cards[card] = (layout.cards[key], f"the cells file's {key}")
@@ -583,15 +682,23 @@ def cells_file_cards(request: MeasureRequest, layout: CellsLayout, size: int) ->
 def metadetect_cards(request: MeasureRequest, size: int) -> dict[str, Any]:
     """Header cards of every metadetect catalog: the step (``MDETSTEP``; no ``MCALSTEP``: its
     rows are not a metacal catalog's), the seed, the target, the detection settings and the
-    stamp size."""
+    stamp size; of a ``--detect`` catalog, what was measured and the detection settings."""
     settings, detection = request.settings, request.detect
-    assert settings.metacal is not None and detection is not None
+    assert detection is not None
+    if request.detect_only:  # a stamp catalog: its metacal cards (MCALSTEP...) with --metacal
+        cards = {"DETMODE": ("detect", "detection on the cells themselves (--detect)")}
+        cards.update(measure_cards(settings, size))
+    else:
+        assert settings.metacal is not None
+        cards = {
+            MDET_STEP_CARD: (float(settings.metacal.step), "metadetect shear step"),
+            **measure_cards(dataclasses.replace(settings, metacal=None), size),
+            SEED_CARD: (int(settings.metacal.seed), "seed of the fixnoise fields (measure --seed)"),
+            TARGET_CARD: (settings.metacal.target, "metacal target PSF"),
+            "MCALENG": (CELL_ENGINE, "engine of the metacal operation on the cells"),
+        }
     return {
-        MDET_STEP_CARD: (float(settings.metacal.step), "metadetect shear step"),
-        **measure_cards(dataclasses.replace(settings, metacal=None), size),
-        SEED_CARD: (int(settings.metacal.seed), "seed of the fixnoise fields (measure --seed)"),
-        TARGET_CARD: (settings.metacal.target, "metacal target PSF"),
-        "MCALENG": (CELL_ENGINE, "engine of the metacal operation on the cells"),
+        **cards,
         "STAMPSZ": (size, "stamp cut around each detection [pixels]"),
         "DETTHRSH": (float(detection.thresh), "detection threshold [noise sigma]"),
         "DETMINAR": (int(detection.minarea), "detection minimum area [pixels]"),

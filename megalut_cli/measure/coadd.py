@@ -20,11 +20,10 @@ import numpy as np
 
 from megalut_cli.errors import ConfigError, InputError, namer
 from megalut_cli.measure import cells
-from megalut_cli.measure.defaults import MDET_FORMAT, MDET_STAMP_SIZE
-from megalut_cli.measure.features import warn_if_mostly_flagged
+from megalut_cli.measure.defaults import MDET_STAMP_SIZE
 from megalut_cli.measure.grid import pixel_scale
 from megalut_cli.measure.measurer import MeasureSettings
-from megalut_cli.measure.metacal_defaults import MDET_COLUMN, TYPES
+from megalut_cli.measure.metacal_defaults import MDET_COLUMN
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.psf_model import cached_psf_model
 from megalut_cli.measure.single_psf import single_psf_stamp
@@ -174,6 +173,7 @@ class CoaddCellJob:
     settings: MeasureSettings
     detection: DetectSettings
     stamp_size: int
+    detect_only: bool = False
 
 
 def cell_psf(coadd: CoaddInput, x0: int, y0: int) -> np.ndarray:
@@ -204,6 +204,26 @@ def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
         bad |= read_region(co.mask, job.x0, job.y0, size)[0] != 0
     if bad.all():
         return None
+    psf = cell_psf(co, job.x0, job.y0)
+    sigma = cells.cell_noise(weight, bad)
+    if job.detect_only:
+        try:
+            result = cells.detect_cell(
+                image,
+                psf,
+                sigma,
+                job.index,
+                job.settings,
+                job.detection,
+                job.stamp_size,
+                bad,
+                weight,
+            )
+        except InputError as err:
+            raise InputError(
+                f"{co.image.path}: the cell at x {job.x0 + 1}, y {job.y0 + 1}: {err}"
+            ) from None
+        return located(result, job)
     if co.noise is not None:
         noise = read_region(co.noise, job.x0, job.y0, size)[0]
     else:  # white, of each pixel's variance, the same pixels in every cell over them
@@ -213,8 +233,8 @@ def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
     try:
         result = cells.metadetect_cell(
             image,
-            cell_psf(co, job.x0, job.y0),
-            cells.cell_noise(weight, bad),
+            psf,
+            sigma,
             job.seed,
             job.settings,
             job.detection,
@@ -227,7 +247,13 @@ def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
         raise InputError(
             f"{co.image.path}: the cell at x {job.x0 + 1}, y {job.y0 + 1}: {err}"
         ) from None
-    result["inner"] = cells.inner_region(result["x"], result["y"], size, co.border)
+    return located(result, job)
+
+
+def located(result: dict[str, np.ndarray], job: CoaddCellJob) -> dict[str, np.ndarray]:
+    """A cell's rows with ``inner`` (from the cell's inner region) and their positions in the
+    image's pixels."""
+    result["inner"] = cells.inner_region(result["x"], result["y"], job.coadd.size, job.coadd.border)
     result["x"] = result["x"] + job.x0
     result["y"] = result["y"] + job.y0
     return result
@@ -243,39 +269,44 @@ def coadd_columns(
         raise InputError(f"{coadd.image.path}: every pixel is bad (weight 0 or masked)")
     counts = np.array([len(r["x"]) for _, r in kept], dtype=np.int64)
     merged = {c: np.concatenate([r[c] for _, r in kept]) for c in kept[0][1]}
-    out: dict[str, np.ndarray] = {MDET_COLUMN: merged.pop(MDET_COLUMN).astype("U7")}
+    out: dict[str, np.ndarray] = {}
+    if MDET_COLUMN in merged:
+        out[MDET_COLUMN] = merged.pop(MDET_COLUMN).astype("U7")
     out["cell"] = np.repeat([job.index for job, _ in kept], counts).astype(np.int64)
     out["x"], out["y"] = merged.pop("x"), merged.pop("y")
     if is_celestial(coadd.image.header) and len(out["x"]):
         sky = celestial_jacobians(coadd.image.header, out["x"], out["y"])
         out["ra"], out["dec"] = sky["ra"], sky["dec"]
     out["inner"] = merged.pop("inner")
-    out.update(merged)
+    out.update(cells.ordered_features(merged))
     return out
 
 
 def claims(request: MeasureRequest) -> bool:
-    """``--metadetect`` on a file no other source recognises: a coadd image."""
-    return request.metadetect
+    """``--metadetect`` (or ``--detect``) on a file no other source recognises: a coadd."""
+    return request.detects
 
 
 def check_request(request: MeasureRequest) -> None:
     """The arguments of a coadd image: ``--weight``, one PSF, no catalog nor stamp options."""
     name = namer(request.names)
+    flag = name("metadetect" if request.metadetect else "detect")
     c = request.cells
     if c is None or c.weight_path is None:
         raise ConfigError(
-            f"{name('metadetect')} on an image ({request.stamps_path}) needs "
+            f"{flag} on an image ({request.stamps_path}) needs "
             f"{name('weight_path')}, its inverse-variance map (or give a cells file, "
             "docs/metadetect.md)"
         )
     if request.catalog_path is not None:
-        raise ConfigError(f"{name('metadetect')} finds the objects itself: give no catalog")
+        raise ConfigError(f"{flag} finds the objects itself: give no catalog")
     if (request.psf_path is None) == (request.psf_model_path is None):
         raise ConfigError(
-            f"{name('metadetect')} on an image needs one PSF: {name('psf_path')} (one PSF "
+            f"{flag} on an image needs one PSF: {name('psf_path')} (one PSF "
             f"image) or {name('psf_model_path')}"
         )
+    if request.detect_only and c.noise_path is not None:
+        raise ConfigError(f"{name('noise_path')} is the fixnoise field of {name('metadetect')}")
     wrong = [
         name(k)
         for k, given in (
@@ -287,7 +318,7 @@ def check_request(request: MeasureRequest) -> None:
         if given
     ]
     if wrong:
-        raise ConfigError(f"{', '.join(wrong)}: not for {name('metadetect')} on an image")
+        raise ConfigError(f"{', '.join(wrong)}: not for {flag} on an image")
     if 2 * c.border >= c.size:
         raise ConfigError(
             f"{name('cell_border')} {c.border} leaves no inner region in cells of "
@@ -302,15 +333,19 @@ def measure_request(request: MeasureRequest) -> Measured:
     """Metadetection on every cell of a coadd image (module docstring) into a catalog of
     format ``megalut.metadetect``."""
     settings, detection = request.settings, request.detect
-    assert settings.metacal is not None and detection is not None
+    assert detection is not None
     coadd = read_coadd_input(request)
     size = request.stamp_size or MDET_STAMP_SIZE
     from megalut_cli.measure.metacal import fixnoise_seeds  # GalSim: metadetect only
 
     origins = cell_origins(coadd.image.shape, coadd.size, coadd.border)
-    seed = int(fixnoise_seeds(settings.metacal.seed, [0])[0])  # one field over the image
+    seed = 0
+    if settings.metacal is not None:  # one fixnoise field over the image
+        seed = int(fixnoise_seeds(settings.metacal.seed, [0])[0])
     jobs = [
-        CoaddCellJob(coadd, i, int(x0), int(y0), seed, settings, detection, size)
+        CoaddCellJob(
+            coadd, i, int(x0), int(y0), seed, settings, detection, size, request.detect_only
+        )
         for i, (x0, y0) in enumerate(origins)
     ]
     with (
@@ -322,18 +357,10 @@ def measure_request(request: MeasureRequest) -> Measured:
     skipped = sum(r is None for r in results)
     if skipped:
         log.info("%d of %d cells lie wholly on bad pixels: skipped", skipped, len(jobs))
-    log.info(
-        "%d detections in %d cells of %d pixels (%s)",
-        len(columns["x"]),
-        len(jobs) - skipped,
-        coadd.size,
-        ", ".join(f"{k} {int((columns[MDET_COLUMN] == k).sum())}" for k in TYPES),
-    )
-    if len(columns["x"]):
-        warn_if_mostly_flagged(
-            columns["flags"], request.stamps_path, request.names, "the detection settings"
-        )
-    return Measured(columns, coadd_cards(request, coadd, len(jobs), size), MDET_FORMAT)
+    where = f"{len(jobs) - skipped} cells of {coadd.size} pixels"
+    cells.log_detections(request, columns, where)
+    cards = coadd_cards(request, coadd, len(jobs), size)
+    return Measured(columns, cards, cells.output_format(request))
 
 
 def coadd_cards(
@@ -360,8 +387,9 @@ def coadd_cards(
     cards["NCELLS"] = (n_cells, "number of cells the image is cut into")
     cards["CELLSZ"] = (coadd.size, "side of a cell [pixels]")
     cards[cells.INNER_CARD] = (coadd.border, "border outside the inner region [pixels]")
-    fixnoise = "white" if coadd.noise is None else "NOISE"
-    cards[cells.FIXNOISE_CARD] = (fixnoise, cells.FIXNOISE_TEXT)
+    if request.metadetect:
+        fixnoise = "white" if coadd.noise is None else "NOISE"
+        cards[cells.FIXNOISE_CARD] = (fixnoise, cells.FIXNOISE_TEXT)
     cards.update(cells.metadetect_cards(request, size))
     return cards
 

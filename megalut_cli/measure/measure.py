@@ -102,6 +102,7 @@ def measure_file_columns(
     feature_sets: Sequence[str] = (),
     metacal_target: str = DEFAULT_TARGET,
     metadetect: bool = MEASURE["metadetect"].default,
+    detect: bool = MEASURE["detect"].default,
     detect_thresh: float = MEASURE["detect_thresh"].default,
     detect_minarea: int = MEASURE["detect_minarea"].default,
     deblend_nthresh: int = MEASURE["deblend_nthresh"].default,
@@ -165,8 +166,11 @@ def measure_file_columns(
             metacal on each whole cell, detection on each version, features of a stamp
             around each detection (``stamp_size``, default 48); format
             ``megalut.metadetect``, one row per detection per version.
+        detect: like ``metadetect``, but detection on each cell itself, one row per
+            detection (format ``megalut.features``); with ``metacal``, the metacal versions
+            of each detection's stamp.
         detect_thresh, detect_minarea, deblend_nthresh, deblend_cont: the detection of
-            ``metadetect`` (sep): threshold in noise sigmas, the fewest pixels, the
+            ``metadetect`` and ``detect`` (sep): threshold in noise sigmas, the fewest pixels, the
             deblending sub-thresholds and minimum contrast.
         weight_path, mask_path, noise_path, cell_size, cell_border: ``metadetect`` on one
             coadd image (:mod:`.coadd`): its inverse-variance map (required), mask bits and
@@ -186,6 +190,8 @@ def measure_file_columns(
         raise ConfigError(
             f"{name('metacal')} (stamps) and {name('metadetect')} (cells) exclude each other"
         )
+    if detect and metadetect:
+        raise ConfigError(f"{name('detect')} and {name('metadetect')} exclude each other")
     sets = tuple(feature_sets) + (("morphology",) if morphology else ())
     settings = MeasureSettings(
         gain,
@@ -196,11 +202,11 @@ def measure_file_columns(
         if metacal or metadetect
         else None,
     )
-    detect = (
+    detection = (
         DetectSettings(
             float(detect_thresh), int(detect_minarea), int(deblend_nthresh), float(deblend_cont)
         )
-        if metadetect
+        if metadetect or detect
         else None
     )
     cell_settings = CellSettings(
@@ -208,7 +214,7 @@ def measure_file_columns(
         int(cell_size),
         int(cell_border),
     )
-    if not metadetect:
+    if not (metadetect or detect):
         given = [
             name(k)
             for k, v in (
@@ -242,8 +248,9 @@ def measure_file_columns(
         names,
         epochs,
         metadetect,
-        detect,
+        detection,
         cell_settings,
+        detect,
     )
     source = stamp_source_for(request.stamps_path, request)
     source.check(request)

@@ -118,6 +118,15 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         f"{MDET_STAMP_SIZE}): one row per detection per version, format megalut.metadetect.",
     ),
     Option(
+        "detect",
+        "bool",
+        False,
+        "Like --metadetect, but detection on each cell itself (no sheared versions): one row "
+        "per detection with the features of its stamp and the cell's PSF, format "
+        "megalut.features; with --metacal, each stamp's metacal versions (the stamp route on "
+        "the same cells, for comparison).",
+    ),
+    Option(
         "detect_thresh",
         "float",
         DETECT_THRESH,

@@ -42,6 +42,12 @@ class MeasureRequest:
     metadetect: bool = False
     detect: DetectSettings | None = None
     cells: CellSettings | None = None
+    detect_only: bool = False
+
+    @property
+    def detects(self) -> bool:
+        """Whether the objects are found in the images (``--metadetect`` or ``--detect``)."""
+        return self.metadetect or self.detect_only
 
 
 @dataclass(frozen=True)

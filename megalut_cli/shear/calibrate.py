@@ -83,8 +83,9 @@ ROUTE_METADETECT = "metadetect"
 #: The columns whose values are the independent units of a metadetection catalog's errors
 #: (a field's images share galaxies and noise), in order of preference.
 MDET_UNIT_COLUMNS = ("field", "image", "cell")
-#: A metadetection catalog's column saying whether a detection lies in its cell's inner
-#: region: only those rows count (each object of overlapping cells once).
+#: The column of catalogs detected in cells (``measure --metadetect``, ``--detect``) saying
+#: whether a detection lies in its cell's inner region: only those rows count (each object
+#: of overlapping cells once).
 INNER_COLUMN = "inner"
 ROUTE_SIMULATION = "simulation"
 #: The PSF ellipticity of each object (measured: real data has no true PSF).
@@ -284,10 +285,10 @@ def plan_calibration(
             by,
         )
     cols: list[str] = list(JACOBIAN_COLUMNS) if frame == WORLD_FRAME else []
+    cols += [INNER_COLUMN] if INNER_COLUMN in have else []
     cols += [*EPOCH_COLUMNS, TILE_COLUMN] if epochs else []
     if route == ROUTE_METADETECT:
         cols += [MDET_COLUMN, *ESTIMATE_COLUMNS, "flags", *([unit] if unit else [])]
-        cols += [INNER_COLUMN] if INNER_COLUMN in have else []
     elif route == ROUTE_METACAL:
         cols += [*RESPONSE_COLUMNS, "flags_noshear"]
         cols += [f"{c}_{kind}" for kind in TYPES for c in ESTIMATE_COLUMNS]
@@ -443,6 +444,8 @@ def _objects(columns: Mapping[str, np.ndarray], plan: CalibrationPlan) -> _Objec
         selected = expr.evaluate_rows(plan.select, view, n)
         if not selected.any():
             raise InputError(f"{plan.source}: no row passes {plan.name('select')} {plan.select!r}")
+    if INNER_COLUMN in columns:  # overlapping cells: each object in its one inner region
+        selected &= np.asarray(columns[INNER_COLUMN]) != 0
     suffix = "_noshear" if metacal else ""
     base = selected.copy()
     if metacal:
