@@ -207,19 +207,32 @@ def test_bad_input_is_one_line(runner, cli, tmp_path):
 
 
 def test_a_psf_model_and_workers(runner, cli, tmp_path):
-    """A PSFEx model drawn at each cell's centre; the same rows with one or two workers."""
+    """A PSFEx model drawn at each cell's centre; the same rows with one or two workers and
+    a Dask cluster."""
     from pathlib import Path
+
+    import distributed
 
     decam = Path(__file__).with_name("data") / "DECam_00154912_12_psfcat.psf"
     paths, _, _ = write_coadd(tmp_path, shape=(150, 150))
     outs = []
-    for j in ("1", "2"):
-        out = tmp_path / f"det{j}.fits"
-        args = ["measure", str(paths["coadd"]), "--weight", str(paths["weight"])]
-        args += ["--psf-model", str(decam), "--metadetect", "-o", str(out), "-j", j]
-        result = runner.invoke(cli, [*args, "--cell-size", str(SIZE), "--cell-border", "16"])
-        assert result.exit_code == 0, result.output
-        outs.append(fitsio.read(str(out)))
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
+        for j, run in (("1", ["-j", "1"]), ("2", ["-j", "2"]), ("d", ["--scheduler"])):
+            out = tmp_path / f"det{j}.fits"
+            args = ["measure", str(paths["coadd"]), "--weight", str(paths["weight"])]
+            args += ["--psf-model", str(decam), "--metadetect", "-o", str(out), *run]
+            if j == "d":
+                args.append(cluster.scheduler_address)
+            result = runner.invoke(cli, [*args, "--cell-size", str(SIZE), "--cell-border", "16"])
+            assert result.exit_code == 0, result.output
+            outs.append(fitsio.read(str(out)))
+    for other in outs[2:]:
+        assert other.dtype == outs[0].dtype
+        for name in outs[0].dtype.names:
+            kind = outs[0][name].dtype.kind == "f"
+            assert np.array_equal(outs[0][name], other[name], equal_nan=kind), name
     assert outs[0].dtype == outs[1].dtype
     for name in outs[0].dtype.names:
         same = np.array_equal(

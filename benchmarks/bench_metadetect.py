@@ -1,0 +1,216 @@
+"""Cost of metadetection per detected object, where it goes, and memory on a large coadd.
+
+One core (BLAS and numba on one thread), CPU seconds, on the scenes of
+``examples/scenes/metadetect.toml`` (250-px cells, about 17 galaxies each):
+
+* per cell, in this process: the metacal operation on the cell and its fixnoise field
+  (GalSim's FFTs), sep's detection on the five versions, the features of the stamps around
+  the detections; and the networks (``predict`` with ``fiducial-metacal``) per row;
+* coadds of ``--coadd-sizes`` pixels (the scenes' galaxies at the same density, written as
+  one image with its weight map) measured with ``-j 2``: the peak memory of the command and
+  of its workers, against the image's size.
+
+Run::
+
+    PYTHONPATH=. python benchmarks/bench_metadetect.py [--cells 20] [--coadd-sizes 1000 3000]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    os.environ[_v] = "1"
+
+import argparse  # noqa: E402
+import resource  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import fitsio  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / "examples" / "scenes" / "metadetect.toml"
+
+
+def run(args: list[str]) -> None:
+    subprocess.run([sys.executable, "-m", "megalut_cli", *args], check=True, cwd=ROOT)
+
+
+def cells_profile(path: Path, n: int) -> dict[str, float]:
+    """CPU per cell of each stage of :func:`metadetect_cell` (stages timed by wrapping)."""
+    from megalut_cli.measure import cells, metacal
+    from megalut_cli.measure.measurer import Measurer, MeasureSettings, MetacalSettings
+    from megalut_cli.measure.source_registry import DetectSettings
+
+    spent = {"operation": 0.0, "detection": 0.0, "features": 0.0}
+
+    def timed(fn, key):
+        def wrapper(*a, **k):
+            t = time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                spent[key] += time.process_time() - t
+
+        return wrapper
+
+    originals = (cells.detect, Measurer.measure, metacal.metacal_versions)
+    cells.detect = timed(cells.detect, "detection")
+    Measurer.measure = timed(Measurer.measure, "features")
+    metacal.metacal_versions = timed(metacal.metacal_versions, "operation")
+    settings = MeasureSettings(metacal=MetacalSettings(0.01, 1))
+    detection = DetectSettings(5.0, 4, 32, 0.005)
+    cell = cells.read_cell(str(path), 0)
+    cells.metadetect_cell(  # first call: caches, numba
+        cell["image"], cell["psf"], 1.0, 0, settings, detection, 48, cell["bad"]
+    )
+    spent.update({k: 0.0 for k in spent})
+    rows, t0 = 0, time.process_time()
+    for i in range(1, n + 1):
+        cell = cells.read_cell(str(path), i)
+        noise = cells.cell_noise(cell["weight"], cell["bad"])
+        out = cells.metadetect_cell(
+            cell["image"], cell["psf"], noise, i, settings, detection, 48, cell["bad"]
+        )
+        rows += len(out["x"])
+    total = time.process_time() - t0
+    cells.detect, Measurer.measure, metacal.metacal_versions = originals
+    return {"cells": n, "rows": rows, "total": total, **spent}
+
+
+def predict_per_row(det: Path, tmp: Path) -> float:
+    """CPU per row of ``predict --model fiducial-metacal`` (fixed start-up removed: two
+    sizes)."""
+    times = []
+    rows = fitsio.read(str(det))
+    for k, n in enumerate((len(rows) // 4, len(rows))):
+        part = tmp / f"part{k}.fits"
+        fitsio.write(str(part), rows[:n], header=fitsio.read_header(str(det), 1), clobber=True)
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        run(
+            [
+                "predict",
+                str(part),
+                "--model",
+                "fiducial-metacal",
+                "-o",
+                str(tmp / "p.fits"),
+                "--overwrite",
+                "-q",
+            ]
+        )
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        times.append((after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime, n))
+    (t0, n0), (t1, n1) = times
+    return (t1 - t0) / (n1 - n0)
+
+
+def coadd_memory(size: int, tmp: Path) -> dict[str, float]:
+    """Peak RSS (MB) of ``measure --metadetect`` on a coadd of ``size`` pixels with -j 2."""
+    scenes = tmp / "big.fits"
+    run(
+        [
+            "simulate",
+            str(CONFIG),
+            "-o",
+            str(tmp / "bt.fits"),
+            "--scene",
+            str(scenes),
+            "scene.n_fields=1",
+            "scene.pairs=false",
+            f"scene.size={size}",
+            "--overwrite",
+            "-q",
+        ]
+    )
+    sci = fitsio.read(str(scenes), ext="SCI")[0]
+    wgt = fitsio.read(str(scenes), ext="WGT")[0]
+    psf = fitsio.read(str(scenes), ext="PSF")[0]
+    fitsio.write(str(tmp / "img.fits"), sci, clobber=True)
+    fitsio.write(str(tmp / "wgt.fits"), wgt, clobber=True)
+    fitsio.write(str(tmp / "psf.fits"), psf, clobber=True)
+    cmd = [
+        "/usr/bin/time",
+        "-v",
+        sys.executable,
+        "-m",
+        "megalut_cli",
+        "measure",
+        str(tmp / "img.fits"),
+        "--weight",
+        str(tmp / "wgt.fits"),
+        "--psf",
+        str(tmp / "psf.fits"),
+        "--metadetect",
+        "-o",
+        str(tmp / "bdet.fits"),
+        "-j",
+        "2",
+        "--overwrite",
+        "-q",
+    ]
+    t = time.perf_counter()
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, check=True)
+    wall = time.perf_counter() - t
+    peak = next(
+        float(line.split(":")[1]) / 1024.0
+        for line in res.stderr.splitlines()
+        if "Maximum resident set size" in line
+    )
+    return {
+        "image_mb": sci.nbytes * 3 / 1e6,
+        "peak_mb": peak,
+        "wall": wall,
+        "rows": len(fitsio.read(str(tmp / "bdet.fits"), columns=["x"])),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cells", type=int, default=20)
+    parser.add_argument("--coadd-sizes", type=int, nargs="+", default=[1000, 3000])
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        scenes = tmp / "scenes.fits"
+        run(
+            [
+                "simulate",
+                str(CONFIG),
+                "-o",
+                str(tmp / "t.fits"),
+                "--scene",
+                str(scenes),
+                f"scene.n_fields={(args.cells + 2) // 2}",
+                "--overwrite",
+                "-q",
+            ]
+        )
+        p = cells_profile(scenes, args.cells)
+        objects = p["rows"] / 5.0
+        print(f"{p['cells']} cells, {p['rows']} rows ({objects:.0f} objects x 5 versions)")
+        print(f"CPU per detected object, whole cell route: {1e3 * p['total'] / objects:.2f} ms")
+        for k in ("operation", "detection", "features"):
+            print(f"  {k:10s} {1e3 * p[k] / objects:6.2f} ms  ({100 * p[k] / p['total']:.0f} %)")
+        det = tmp / "det.fits"
+        run(["measure", str(scenes), "--metadetect", "-o", str(det), "-j", "1", "-q"])
+        per_row = predict_per_row(det, tmp)
+        print(
+            f"predict (fiducial-metacal), per row: {1e3 * per_row:.3f} ms; per object "
+            f"(5 rows): {5e3 * per_row:.2f} ms"
+        )
+        for size in args.coadd_sizes:
+            m = coadd_memory(size, tmp)
+            print(
+                f"coadd {size}^2 px (image, weight, PSF: {m['image_mb']:.0f} MB as float32): "
+                f"peak RSS {m['peak_mb']:.0f} MB with -j 2, {m['rows']} rows, "
+                f"{m['wall']:.0f} s wall"
+            )
+
+
+if __name__ == "__main__":
+    main()
