@@ -82,9 +82,18 @@ def test_run_prints_table_and_writes_products(runner, cli, tmp_path: Path) -> No
     # --skip-existing: all up to date, the same table
     skipped = runner.invoke(cli, [*args, "--skip-existing", "-j", "2"])
     assert skipped.exit_code == 0, error_text(skipped)
-    assert error_text(skipped).count("up to date, skipped") == 7
+    assert error_text(skipped).count("up to date, skipped") == 8
     assert skipped.stdout == out
     assert (wd / "model.h5").stat().st_mtime_ns == mtime
+
+    # the product carries its own validation: predict reports a bias beyond Stage IV
+    m = max(abs(ev["weighted"][g]["m"]) for g in ("g1", "g2"))
+    pred = runner.invoke(
+        cli, ["predict", str(wd / "vo.fits"), "--model", str(wd / "model.h5"), "-o", "-"]
+    )
+    assert pred.exit_code == 0
+    said = "recorded bias on its simulated validation (weighted, vo-shears.fits)"
+    assert (said in error_text(pred)) == (m > 2e-3), error_text(pred)
 
 
 @pytest.mark.parametrize(

@@ -202,6 +202,7 @@ def test_run_end_to_end_and_skip_existing(tmp_path: Path) -> None:
         "tw.fits",
         "vo.fits",
         "point.h5",
+        "trained.h5",
         "model.h5",
         "vo-shears.fits",
         "evaluation.json",
@@ -218,6 +219,13 @@ def test_run_end_to_end_and_skip_existing(tmp_path: Path) -> None:
     assert set(manifest["steps"]) == set(_statuses(res))
     assert manifest["steps"]["simulate-vo"]["params"]["seed"] == 3
     assert manifest["steps"]["train-weight"]["inputs"].keys() == {"tw.fits", "point.h5"}
+    # the product: the trained networks with their own validation recorded (predict reports it)
+    from megalut_cli.nn.model import ShearModel
+    from megalut_cli.nn.population import SIMULATED_BIAS_ATTR
+
+    recorded = ShearModel.load(wd / "model.h5").validation[SIMULATED_BIAS_ATTR]
+    assert recorded["m_g1"] == ev["weighted"]["g1"]["m"] and recorded["input"] == "vo-shears.fits"
+    assert SIMULATED_BIAS_ATTR not in ShearModel.load(wd / "trained.h5").validation
 
     # Refuses to touch existing products without a flag, before doing anything.
     with pytest.raises(
@@ -259,6 +267,7 @@ def test_run_end_to_end_and_skip_existing(tmp_path: Path) -> None:
         "train-weight": "ran",
         "predict": "ran",
         "evaluate": "ran",
+        "model": "ran",
     }
     # A new VO seed: the VO simulation and what depends on it.
     reseeded = run_pipeline(
@@ -270,6 +279,7 @@ def test_run_end_to_end_and_skip_existing(tmp_path: Path) -> None:
         "simulate-vo",
         "predict",
         "evaluate",
+        "model",
     ]
     assert (
         reseeded.evaluation["unweighted"]["g1"]["m"] != changed.evaluation["unweighted"]["g1"]["m"]
@@ -289,6 +299,7 @@ def test_run_end_to_end_and_skip_existing(tmp_path: Path) -> None:
         "train-weight",
         "predict",
         "evaluate",
+        "model",
     ]
 
     # --overwrite redoes everything; the simulations are reproducible from the file.

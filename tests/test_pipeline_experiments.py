@@ -29,6 +29,7 @@ OLD_STEPS = [
     "train-weight",
     "predict",
     "evaluate",
+    "model",
 ]
 NEW_STEPS = [
     "simulate-pretrain",
@@ -43,6 +44,7 @@ NEW_STEPS = [
     "train-weight",
     "predict",
     "evaluate",
+    "model",
 ]
 
 
@@ -154,7 +156,12 @@ def test_named_pipelines_share_the_sets(tmp_path: Path) -> None:
         "select/predict-vp",
         "select/evaluate-vp",
     ]
-    assert _ran(res) == ["select/train-weight", "select/predict", "select/evaluate"]
+    assert _ran(res) == [
+        "select/train-weight",
+        "select/predict",
+        "select/evaluate",
+        "select/model",
+    ]
     assert (wd / "point.h5").read_bytes() == (wd / "select" / "point.h5").read_bytes()
     model = ShearModel.load(wd / "select" / "model.h5")
     assert next(iter(model.weight.values())).training["select"] == "snr > 20"
@@ -326,7 +333,7 @@ def test_old_pipelines_parse_with_the_same_steps_and_keys() -> None:
             "tw.fits",
             "vo.fits",
             "point.h5",
-            "model.h5",
+            "trained.h5",
             "vo-shears.fits",
         ]
         shas = {"tp.fits": "a" * 64, "tw.fits": "b" * 64, "point.h5": "c" * 64}
@@ -336,7 +343,8 @@ def test_old_pipelines_parse_with_the_same_steps_and_keys() -> None:
                 {"step": step.name, "params": step.params, "inputs": inputs, "megalut": __version__}
             )
             assert step_key(step, inputs) == old, step.name  # manifests written before stay valid
-        assert step.params.keys() == {"by", "bins", "select", "select_cases", "plot"}
+        evaluate = next(s for s in steps if s.name == "evaluate")
+        assert evaluate.params.keys() == {"by", "bins", "select", "select_cases", "plot"}
 
 
 def test_fiducial_example_validates_point_estimates_on_vp_as_fig_12() -> None:

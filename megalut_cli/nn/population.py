@@ -252,6 +252,21 @@ def record_simulated_bias(model_path: str | os.PathLike, evaluation: Mapping[str
     _set_json_attr(model_path, "validation", SIMULATED_BIAS_ATTR, simulated_bias_record(evaluation))
 
 
+def record_validated_model(
+    trained: str | os.PathLike,
+    evaluation: Mapping[str, Any],
+    output: str | os.PathLike,
+    overwrite: bool = False,
+) -> None:
+    """Write ``output``: the model ``trained`` with its simulated validation ``evaluation``
+    recorded (:func:`record_simulated_bias`), whole or not at all."""
+    from megalut_cli.atomic import atomic_output
+
+    with atomic_output(output, overwrite) as tmp:
+        shutil.copyfile(trained, tmp)
+        record_simulated_bias(tmp, evaluation)
+
+
 def record_population(model_path: str | os.PathLike, population: Mapping[str, Any]) -> None:
     """Store ``population`` as the training population of a model that lacks one, for its
     weights and its point estimates alike (``/provenance`` ``population`` and the

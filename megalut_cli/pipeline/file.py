@@ -17,9 +17,11 @@ step                  does                                writes
                       continuing ``pretrain.h5`` if any
 ``predict-vp``        point estimates on VP               ``vp-shears.fits``
 ``evaluate-vp``       m, c of the point estimates         ``evaluation-vp.json``
-``train-weight``      weight committees (MSWB) on TW      ``model.h5``
+``train-weight``      weight committees (MSWB) on TW      ``trained.h5``
 ``predict``           estimates and weights on VO         ``vo-shears.fits``
 ``evaluate``          m, c unweighted and weighted        ``evaluation.json`` (+ ``.png``)
+``model``             ``trained.h5`` with its validation  ``model.h5``
+                      recorded (``predict`` reports it)
 ====================  ==================================  =========================
 
 A pipeline with a ``name`` writes the products of every step after the simulations to
@@ -84,6 +86,10 @@ log = logging.getLogger(__name__)
 
 DEFAULT_WORKDIR = "megalut-run"
 EVALUATION_JSON = "evaluation.json"
+#: The weight step's model, validated on VO; then the pipeline's product, the same networks
+#: with that validation recorded (``predict`` reports it, ``--strict`` refuses a bias).
+TRAINED_MODEL = "trained.h5"
+MODEL = "model.h5"
 EVALUATION_PNG = "evaluation.png"
 EVALUATION_VP_JSON = "evaluation-vp.json"
 EVALUATION_VP_PNG = "evaluation-vp.png"

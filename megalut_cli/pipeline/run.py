@@ -35,7 +35,9 @@ from megalut_cli.pipeline.file import (
     EVALUATION_REFERENCE_PNG,
     EVALUATION_VP_JSON,
     EVALUATION_VP_PNG,
+    MODEL,
     REFERENCE_SHEARS,
+    TRAINED_MODEL,
     Pipeline,
     ReferenceSpec,
     SetSpec,
@@ -294,7 +296,7 @@ def build_steps(
         train_weight(
             wd / "tw.fits",
             wd / out("point.h5"),
-            wd / out("model.h5"),
+            wd / out(TRAINED_MODEL),
             tw,
             device=resolve_device(pipe.device),
             nproc=nproc,
@@ -306,7 +308,7 @@ def build_steps(
 
     add(
         "train-weight",
-        [out("model.h5")],
+        [out(TRAINED_MODEL)],
         ["tw.fits", out("point.h5")],
         tw_params,
         train_weight_action,
@@ -314,7 +316,11 @@ def build_steps(
         f"select {tw.select!r}, seed {tw.seed}",
     )
     predict_step(
-        "predict", "vo.fits", "model.h5", "vo-shears.fits", "point estimates and weights on vo.fits"
+        "predict",
+        "vo.fits",
+        TRAINED_MODEL,
+        "vo-shears.fits",
+        "point estimates and weights on vo.fits",
     )
     evaluate_step(
         "evaluate",
@@ -324,6 +330,21 @@ def build_steps(
         EVALUATION_JSON,
         EVALUATION_PNG,
         "m, c",
+    )
+
+    def model_action(wd: Path, overwrite: bool) -> None:
+        from megalut_cli.nn.population import record_validated_model
+
+        evaluation = json.loads((wd / out(EVALUATION_JSON)).read_text())
+        record_validated_model(wd / out(TRAINED_MODEL), evaluation, wd / out(MODEL), overwrite)
+
+    add(
+        "model",
+        [out(MODEL)],
+        [out(TRAINED_MODEL), out(EVALUATION_JSON)],
+        {},
+        model_action,
+        f"{TRAINED_MODEL} with its own validation recorded ({EVALUATION_JSON}, weighted m, c)",
     )
     ref = pipe.reference
     if ref is not None:
