@@ -194,9 +194,10 @@ def test_run_dry_run_lists_steps_and_creates_nothing(runner, cli, tmp_path):
     )
     assert result.exit_code == 0, result.stderr
     for line in (
-        "[1/7] simulate-tp: 24 cases x 8 realizations = 192 stamps",
-        "[4/7] train-point",
-        "[7/7] evaluate",
+        "[1/8] simulate-tp: 24 cases x 8 realizations = 192 stamps",
+        "[4/8] train-point",
+        "[7/8] evaluate",
+        "[8/8] model",
     ):
         assert line in result.stderr
     assert "calibration draw" in result.stderr
