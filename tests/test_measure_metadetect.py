@@ -167,7 +167,8 @@ def test_the_response_of_the_detections_is_metacal_s(measured):
 def test_the_catalog_contract(measured):
     _, _, det, header = measured
     names = list(det.colnames)
-    assert names[:7] == ["mdet_step", "image", "field", "pair_sign", "x", "y", "inner"]
+    head = ["mdet_step", "image", "field", "pair_sign", "tru_g1", "tru_g2", "x", "y", "inner"]
+    assert names[:9] == head
     for c in (
         "adamom_flux",
         "adamom_g1",

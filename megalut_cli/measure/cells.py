@@ -64,7 +64,7 @@ from megalut_cli.provenance import sha256_file
 log = logging.getLogger(__name__)
 
 #: Columns of the ``IMAGES`` table copied to every row of their cell.
-IMAGE_COLUMNS: tuple[str, ...] = ("image", "field", "pair_sign")
+IMAGE_COLUMNS: tuple[str, ...] = ("image", "field", "pair_sign", "tru_g1", "tru_g2")
 #: Header card of a cells file (and of the catalog): the width of the border (pixels) outside
 #: each cell's inner region (overlapping cells); 0 or absent: the whole cell is inner.
 INNER_CARD = "INNERBRD"
@@ -580,6 +580,9 @@ def metadetect_columns(
     out["field"] = np.asarray(images.get("field", np.arange(layout.n)))[cell].astype(np.int64)
     if "pair_sign" in images:
         out["pair_sign"] = np.asarray(images["pair_sign"])[cell].astype(np.int16)
+    for c in ("tru_g1", "tru_g2"):  # a simulated file's shears: for evaluate, not the estimate
+        if c in images:
+            out[c] = np.asarray(images[c], dtype=np.float64)[cell]
     out["x"], out["y"] = merged.pop("x"), merged.pop("y")
     out["inner"] = inner_region(out["x"], out["y"], layout.size, layout.inner_border)
     out.update(ordered_features(merged))
