@@ -103,6 +103,12 @@ def command(
     groups, a 90-degree pair together, across all cases; --seed). The report says which
     errors it quotes.
 
+    A metadetection catalog of simulated scenes (measure --metadetect, predicted or not;
+    docs/metadetect.md) is evaluated by the responses of each version's means over the
+    whole catalog, one estimate per image (field and sign), m and c from a fit against the
+    images' tru_g1, tru_g2 (the ±g pairs' difference and mean), errors from a bootstrap
+    over fields; --select applies to every version's rows.
+
     With --great3-truth, SHEARS is evaluated against a GREAT3 constant-shear branch:
     a submission file (one 'subfield g1 g2' line per subfield) or a predictions catalog
     whose rows carry a subfield (column subfield, or GREAT3 ID = 1e6 subfield + ...);
@@ -177,6 +183,29 @@ def command(
         return
     from_stdin = is_stdio(shears)
     shears = click.get_current_context().with_resource(stdin_path(shears))
+    from megalut_cli.shear.metadetect import is_metadetect_catalog  # fitsio: not for --help
+
+    if great3_truth is None and is_metadetect_catalog(shears):
+        _evaluate_metadetect(
+            shears,
+            select,
+            bootstrap,
+            seed,
+            json_path,
+            overwrite,
+            fail_above,
+            other=[
+                name
+                for name, v in (
+                    ("--by", by_cols),
+                    ("--select-cases", select_cases),
+                    ("--plot", plot_path),
+                    ("--errors fit", errors == "fit"),
+                )
+                if v
+            ],
+        )
+        return
     if great3_truth is not None:
         from megalut_cli.great3.evaluate import evaluate_branch  # astropy, SciPy: not for --help
 
@@ -229,6 +258,37 @@ def command(
 
         plot_evaluation(result, plot_path, overwrite)
     if fail_above and not requirement_met(result):
+        click.echo(
+            f"megalut: bias out of tolerance ({'; '.join(result['requirement']['failures'])})",
+            err=True,
+        )
+        click.get_current_context().exit(EXIT_OUT_OF_TOLERANCE)
+
+
+def _evaluate_metadetect(
+    shears: str,
+    select: str | None,
+    n_boot: int,
+    seed: int,
+    json_path: str | None,
+    overwrite: bool,
+    fail_above: bool,
+    other: list[str],
+) -> None:
+    """A metadetection catalog of simulated scenes: m, c from the images' true shears."""
+    from megalut_cli.shear.metadetect import evaluate_metadetect_file, format_metadetect
+
+    if other:
+        raise click.UsageError(f"{other[0]} does not apply to a metadetection catalog")
+    result = evaluate_metadetect_file(
+        shears, select=select, n_bootstrap=n_boot, seed=seed, names=flag_names()
+    )
+    click.echo(format_metadetect(result), err=is_stdio(json_path))
+    if is_stdio(json_path):
+        _dump_json(result, sys.stdout)
+    elif json_path is not None:
+        write_json(json_path, result, overwrite)
+    if fail_above and not result["requirement"]["met"]:
         click.echo(
             f"megalut: bias out of tolerance ({'; '.join(result['requirement']['failures'])})",
             err=True,
