@@ -36,9 +36,10 @@ RESPONSE_VERSIONS = {0: ("1p", "1m"), 1: ("2p", "2m")}
 
 @dataclass(frozen=True)
 class ImageSums:
-    """Per field (axis 0) and sign slot (axis 1: +g or no pair, -g): the true shear ``(F, 2,
-    2)``, and per version (axis 2, :data:`TYPES`) and component (axis 3) the weighted sums
-    of the estimates and of the weights."""
+    """Per field (axis 0; with a ``tile`` column, per tile and field) and sign slot (axis 1:
+    +g or no pair, -g): the true shear ``(F, 2, 2)``, and per version (axis 2,
+    :data:`TYPES`) and component (axis 3) the weighted sums of the estimates and of the
+    weights."""
 
     fields: np.ndarray
     true: np.ndarray
@@ -54,7 +55,11 @@ def image_sums(
 ) -> ImageSums:
     """The :class:`ImageSums` of the rows ``keep`` of a metadetection catalog."""
     version = np.char.strip(np.asarray(columns[MDET_COLUMN]).astype("U"))
-    fields, f_index = np.unique(np.asarray(columns["field"]), return_inverse=True)
+    key = np.asarray(columns["field"], dtype=np.int64)
+    if "tile" in columns:  # catalogs of several runs (megalut concat): a field per run
+        key = np.stack([np.asarray(columns["tile"], dtype=np.int64), key], axis=1)
+    fields, f_index = np.unique(key, axis=0, return_inverse=True)
+    f_index = f_index.ravel()
     sign = np.asarray(columns["pair_sign"]) if "pair_sign" in columns else np.ones(len(keep))
     s_index = (sign < 0).astype(np.int64)
     n_f = len(fields)
@@ -130,7 +135,7 @@ def evaluate_metadetect_file(
     step = header_step(header, MDET_STEP_CARD)
     if step is None:
         raise InputError(f"{path}: a metadetection catalog without its {MDET_STEP_CARD} card")
-    wanted = {MDET_COLUMN, "field", "pair_sign", "tru_g1", "tru_g2", "flags", "inner"}
+    wanted = {MDET_COLUMN, "field", "tile", "pair_sign", "tru_g1", "tru_g2", "flags", "inner"}
     wanted |= {c for e in ESTIMATES for c in (*e, f"{e[0]}_w", f"{e[1]}_w")}
     if select is not None:
         wanted |= set(expr.columns_used(select))
