@@ -265,13 +265,16 @@ def metadetect_cell(
     bad: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Metadetection on one cell ``image`` (S, S) with its ``psf`` (P, P): the five versions
-    (``settings.metacal``: step, target; fixnoise of ``noise_sigma`` from ``seed``; ``bad``
-    pixels set to 0 first), sep's detections on each at ``detection.thresh`` times its noise,
-    and the features of a ``stamp_size`` stamp around each detection. Returns the columns
-    ``mdet_step``, ``x``, ``y`` (1-based), the features, ``psf_adamom_*`` (the target
-    PSF's) and ``n_masked``, one row per detection per version, version by version."""
+    (``settings.metacal``: step, target; ``bad`` pixels set to 0 first; fixnoise of
+    ``noise_sigma`` from ``seed`` that moves with the image, :mod:`.cell_fixnoise`), sep's
+    detections on each at ``detection.thresh`` times its noise, and the features of a
+    ``stamp_size`` stamp around each detection. Returns the columns ``mdet_step``, ``x``,
+    ``y`` (1-based), the features, ``psf_adamom_*`` (the target PSF's) and ``n_masked``, one
+    row per detection per version, version by version."""
+    from megalut_cli.measure.cell_fixnoise import moving_fixnoise  # GalSim: metadetect only
     from megalut_cli.measure.metacal import (  # GalSim: metadetect only
         metacal_versions,
+        noise_field,
         stamp_target_columns,
     )
 
@@ -287,8 +290,12 @@ def metadetect_cell(
     psfs = same_parity_psfs(np.asarray(psf, dtype=np.float64)[None], size)
     sigma = noise_sigma if np.isfinite(noise_sigma) and noise_sigma > 0 else 0.0
     versions, target_sigma = metacal_versions(
-        image[None], psfs[0], mc.step, [sigma], [seed], CELL_ENGINE, target=mc.target
+        image[None], psfs[0], mc.step, engine=CELL_ENGINE, target=mc.target
     )
+    if sigma > 0:  # fixnoise that moves with the image (measure/cell_fixnoise.py)
+        fields = moving_fixnoise(noise_field(sigma, seed, image.shape), psfs[0], mc.step, mc.target)
+        for kind, fixnoise in fields.items():
+            versions[kind][0] += fixnoise
     noise = version_noise(psfs[0], sigma, mc.step, mc.target) if sigma > 0 else 0.0
     target = stamp_target_columns(
         mc.target, psfs, np.zeros(1, np.int64), target_sigma, mc.step, stamp_size
