@@ -11,13 +11,15 @@ import pytest
 from helpers import error_line, one_line
 from sim_configs import BULGEDISK, CF_FILE, COSMOSFIT, NOISE_ONLY, write
 
-from megalut_cli.errors import ConfigError
+from megalut_cli.errors import ConfigError, MegalutError
 from megalut_cli.sim.config import load_config
 from megalut_cli.sim.scene import (
     draw_field,
     draw_scenes,
     field_counts,
     field_units,
+    scene_cards,
+    separated_positions,
 )
 
 #: Round exponential galaxies, a Gaussian PSF, white noise; a constant shear.
@@ -71,6 +73,41 @@ def test_galaxy_counts_follow_the_density(tmp_path):
     x, y = drawn.truth["x"], drawn.truth["y"]
     assert len(x) == counts[3] > 0
     assert np.all((x >= 8.5) & (x <= 88.5) & (y >= 8.5) & (y <= 88.5))
+
+
+def test_min_separation_keeps_galaxies_apart(tmp_path):
+    """``scene.min_separation``: every pair of a field at least that far apart, inside the
+    border, as many galaxies as counted; 0 draws the very same pixels as no key."""
+    d = 20.0
+    cfg = scene_config(
+        tmp_path,
+        **{
+            "n_fields = 2": f"n_fields = 40\nborder = 8\nmin_separation = {d}",
+            "density = 100": "density = 60",
+        },
+    )
+    assert cfg.scene.min_separation == d and cfg.scene.coverage < 0.3
+    counts = field_counts(cfg, seed=5)
+    closest = []
+    for unit in field_units(cfg, 5):
+        t = draw_field(unit).truth
+        x, y = t["x"], t["y"]
+        assert len(x) == counts[unit.field]
+        assert np.all((x >= 8.5) & (x <= 88.5) & (y >= 8.5) & (y <= 88.5))
+        if len(x) > 1:
+            dist = np.hypot(x[:, None] - x[None, :], y[:, None] - y[None, :])
+            closest.append(dist[np.triu_indices(len(x), 1)].min())
+    assert min(closest) >= d and min(closest) < 1.5 * d  # apart, yet packed
+    assert scene_cards(cfg, 5)["MINSEP"][0] == d
+    # the default: independent positions, the same pixels with min_separation = 0
+    plain = scene_config(tmp_path)
+    zero = scene_config(tmp_path, **{"n_fields = 2": "n_fields = 2\nmin_separation = 0"})
+    np.testing.assert_array_equal(draw_scenes(zero, 3).images, draw_scenes(plain, 3).images)
+    assert "MINSEP" not in scene_cards(zero, 3)
+    # no place left: one line naming the keys to lower
+    xy = np.zeros((3, 2))
+    with pytest.raises(MegalutError, match="scene.min_separation"):
+        separated_positions(xy, np.random.default_rng(0), 0.0, 1.0, 5.0, 7)
 
 
 def test_fluxes_and_noise_add_up(tmp_path):
@@ -232,6 +269,12 @@ def test_other_profiles_and_noises(tmp_path, text):
         ({"pixel_scale = 0.2": ""}, "scene.pixel_scale"),
         ({"pixel_scale = 0.2": "pixel_scale = 0.2\ncolour = 1"}, "scene.colour"),
         ({"[scene]": "[instrument]\npixel_scale = 0.1\n[scene]"}, "scene.pixel_scale"),
+        ({"n_fields = 2": "n_fields = 2\nmin_separation = -1"}, "scene.min_separation"),
+        (
+            {"n_fields = 2": "n_fields = 2\nborder = 20\nmin_separation = 60"},
+            "scene.min_separation",
+        ),
+        ({"n_fields = 2": "n_fields = 2\nmin_separation = 30"}, "scene.min_separation"),
     ],
 )
 def test_bad_scene_keys_are_refused(tmp_path, replace, key):

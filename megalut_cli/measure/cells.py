@@ -351,17 +351,20 @@ def metadetect_cell(
     white_field: bool = False,
 ) -> dict[str, np.ndarray]:
     """Metadetection on one cell ``image`` (S, S) with its ``psf`` (P, P): the five versions
-    (``settings.metacal``: step, target; fixnoise of ``noise_sigma`` from ``seed``; ``bad``
-    pixels set to 0 first; or ``noise_field``: a noise image of the cell's correlations, or
-    with ``white_field`` white noise of about ``noise_sigma``),
-    sep's detections on each at ``detection.thresh`` times its noise, and the features of a
-    ``stamp_size`` stamp around each detection. Returns the columns
-    ``mdet_step``, ``x``, ``y`` (1-based), the features, ``psf_adamom_*`` (the target
-    PSF's) and ``n_masked``, one row per detection per version, version by version."""
+    (``settings.metacal``: step, target; ``bad`` pixels set to 0 first), sep's detections on
+    each at ``detection.thresh`` times its noise, and the features of a ``stamp_size`` stamp
+    around each detection. Fixnoise: white noise moves with the image
+    (:mod:`.cell_fixnoise`): a field of ``noise_sigma`` from ``seed``, or ``noise_field``
+    with ``white_field`` (white noise of each pixel's variance); a ``noise_field`` of the
+    data's correlations (a noise image) takes metacal's rotated fixnoise. Returns the columns
+    ``mdet_step``, ``x``, ``y`` (1-based), the features, ``psf_adamom_*`` (the target PSF's)
+    and ``n_masked``, one row per detection per version, version by version."""
+    from megalut_cli.measure.cell_fixnoise import moving_fixnoise  # GalSim: metadetect only
     from megalut_cli.measure.metacal import (  # GalSim: metadetect only
         metacal_versions,
         stamp_target_columns,
     )
+    from megalut_cli.measure.metacal import noise_field as drawn_noise
 
     mc = settings.metacal
     if mc is None:
@@ -383,15 +386,17 @@ def metadetect_cell(
         image[None],
         psfs[0],
         mc.step,
-        [sigma],
-        [seed],
-        CELL_ENGINE,
+        engine=CELL_ENGINE,
         target=mc.target,
-        noise_fields=fields,
+        noise_fields=None if fields is None or white_field else fields,
     )
-    if fields is not None and not white_field:
+    if fields is not None and not white_field:  # a noise image: rotated fixnoise
         noise = field_version_noise(psfs[0], fields[0], mc.step, mc.target)
     else:
+        if sigma > 0 or fields is not None:  # white: fixnoise that moves with the image
+            white = fields[0] if fields is not None else drawn_noise(sigma, seed, image.shape)
+            for kind, fixnoise in moving_fixnoise(white, psfs[0], mc.step, mc.target).items():
+                versions[kind][0] += fixnoise
         noise = version_noise(psfs[0], sigma, mc.step, mc.target) if sigma > 0 else 0.0
     target = stamp_target_columns(
         mc.target, psfs, np.zeros(1, np.int64), target_sigma, mc.step, stamp_size

@@ -1,7 +1,8 @@
 """Scenes: square fields of galaxies at random positions (``megalut simulate --scene``).
 
 Each field holds a Poisson number of galaxies (mean ``scene.density`` × the area inside
-``scene.border``) at uniform random positions, drawn from the config's ``[galaxy]`` table
+``scene.border``) at uniform random positions (with ``scene.min_separation``, each redrawn
+until it lies that far from those placed before it), drawn from the config's ``[galaxy]`` table
 by its registered profile, all lensed by one constant shear per field (``[shear]``, drawn
 per field), convolved with the config's PSF (``[psf]``, one per field, at a field position
 of ``[field]`` when it varies) and drawn by GalSim on a float32 image; then the config's
@@ -38,6 +39,8 @@ from megalut_cli.sim.scene_config import SceneSpec
 _COUNT_KEY, _FIELD_KEY, _GALAXY_KEY, _POSITION_KEY, _NOISE_KEY, _KNOT_KEY, _TWIN_KEY = range(7)
 #: Largest science cube (pixels of all images together; 1 GiB in float32): fail early.
 MAX_SCENE_PIXELS = 2**28
+#: With ``scene.min_separation``: the most draws of one galaxy's position before giving up.
+MAX_PLACEMENT_DRAWS = 10_000
 
 
 def scene_spec(config: SimConfig) -> SceneSpec:
@@ -45,6 +48,37 @@ def scene_spec(config: SimConfig) -> SceneSpec:
     if config.scene is None:
         raise MegalutError("the config has no [scene] table (load it for a scene)")
     return config.scene
+
+
+def separated_positions(
+    xy: np.ndarray, rng: np.random.Generator, lo: float, hi: float, distance: float, fld: int
+) -> np.ndarray:
+    """Random sequential placement: each position of ``xy`` (n, 2), in turn, redrawn
+    uniformly in ``[lo, hi)²`` from ``rng`` until it lies at least ``distance`` from every
+    position placed before it (a grid of cells of side ``distance`` finds the neighbours)."""
+    xy = xy.copy()
+    placed: dict[tuple[int, int], list[int]] = {}
+    d2 = distance * distance
+    for k in range(len(xy)):
+        for draw in range(MAX_PLACEMENT_DRAWS + 1):
+            cx, cy = (int((c - lo) // distance) for c in xy[k])
+            near = [
+                j
+                for i in (cx - 1, cx, cx + 1)
+                for jj in (cy - 1, cy, cy + 1)
+                for j in placed.get((i, jj), ())
+            ]
+            if not near or np.min(np.sum((xy[near] - xy[k]) ** 2, axis=1)) >= d2:
+                placed.setdefault((cx, cy), []).append(k)
+                break
+            if draw == MAX_PLACEMENT_DRAWS:
+                raise MegalutError(
+                    f"scene field {fld}: galaxy {k + 1} of {len(xy)} found no place "
+                    f"{distance:g} px from the others in {MAX_PLACEMENT_DRAWS} draws; lower "
+                    "scene.density or scene.min_separation"
+                )
+            xy[k] = rng.uniform(lo, hi, 2)
+    return xy
 
 
 def field_counts(config: SimConfig, seed: int) -> np.ndarray:
@@ -155,6 +189,8 @@ def field_parameters(
     rng_p = rng_for(seed, STREAM_SCENE, fld, _POSITION_KEY)
     lo, hi = 0.5 + s.border, s.size + 0.5 - s.border
     xy = rng_p.uniform(lo, hi, (n, 2))
+    if s.min_separation > 0:
+        xy = separated_positions(xy, rng_p, lo, hi, s.min_separation, fld)
     t: dict[str, np.ndarray] = {"x": xy[:, 0], "y": xy[:, 1]}
     t["tru_g1"] = np.full(n, shear.get("g1", 0.0))
     t["tru_g2"] = np.full(n, shear.get("g2", 0.0))
@@ -389,6 +425,11 @@ def scene_cards(config: SimConfig, seed: int) -> dict[str, Any]:
         "DENSITY": (s.density, "mean galaxies per arcmin2"),
         "BORDER": (s.border, "galaxy centres at least this far from the edges, px"),
         "PSFSZ": (s.psf_size, "side of the PSF images, pixels"),
+        **(
+            {"MINSEP": (s.min_separation, "galaxy centres at least this far apart, px")}
+            if s.min_separation > 0
+            else {}
+        ),
         "XYORIGIN": (1, "x, y are FITS 1-based pixel coordinates"),
         "NOISE": (
             config.noise.type if config.noise.override_sigma is None else "gaussian",

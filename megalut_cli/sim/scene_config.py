@@ -16,6 +16,10 @@ from typing import Any
 from megalut_cli.errors import ConfigError
 from megalut_cli.schema import Option, Table
 
+#: Largest mean fraction of the placement square (side size - 2 border + min_separation)
+#: covered by disks of diameter ``min_separation`` around the galaxies: random sequential
+#: placement jams near 55 %, and a field's Poisson count may well exceed the mean.
+MAX_COVERAGE = 0.3
 #: The keys of ``[scene]``, declared once (checks, the table of docs/scenes.md).
 SCENE_OPTIONS: tuple[Option, ...] = (
     Option(
@@ -64,6 +68,17 @@ SCENE_OPTIONS: tuple[Option, ...] = (
         maximum=1025,
         allowed_text="odd, [5, 1025]",
     ),
+    Option(
+        "min_separation",
+        "float",
+        0.0,
+        "galaxy centres lie at least this many pixels apart: each galaxy is redrawn until it "
+        "does from those placed before it (isolated galaxies; coverage: the mean fraction of "
+        "the centres' square, widened by it, under disks of this diameter); 0: independent "
+        "uniform positions",
+        minimum=0.0,
+        allowed_text=f"[0, size − 2 border]; mean coverage ≤ {100 * MAX_COVERAGE:g} %",
+    ),
 )
 SCENE = {o.name: o for o in SCENE_OPTIONS}
 
@@ -79,6 +94,7 @@ class SceneSpec:
     pairs: bool
     border: int
     psf_size: int
+    min_separation: float = 0.0
 
     @property
     def n_signs(self) -> int:
@@ -100,11 +116,21 @@ class SceneSpec:
         """Mean number of galaxies per field."""
         return self.density * self.area_arcmin2
 
+    @property
+    def coverage(self) -> float:
+        """The mean fraction of the placement square (the centres' square, widened by
+        ``min_separation``) covered by disks of diameter ``min_separation`` (0 without)."""
+        d = self.min_separation
+        side = self.size - 2 * self.border + d
+        return self.mean_count * math.pi * d * d / 4.0 / (side * side)
+
 
 def parse_scene(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> SceneSpec:
     """The ``[scene]`` table of the config ``raw`` (defaults where absent)."""
     t = Table(raw.get("scene"), "scene", set(SCENE))
-    density, size, scale, n_fields, pairs, border, psf_size = (t.option(o) for o in SCENE_OPTIONS)
+    density, size, scale, n_fields, pairs, border, psf_size, min_sep = (
+        t.option(o) for o in SCENE_OPTIONS
+    )
     inst_scale = instrument.get("pixel_scale")
     if scale is None:
         if inst_scale is None:
@@ -121,4 +147,19 @@ def parse_scene(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> Scen
         raise ConfigError(f"scene.border: must be in [0, size/2) = [0, {size / 2:g}), got {border}")
     if psf_size % 2 == 0:
         raise ConfigError(f"scene.psf_size: must be odd (centred on a pixel), got {psf_size}")
-    return SceneSpec(float(density), size, float(scale), n_fields, pairs, border, psf_size)
+    if min_sep > size - 2 * border:
+        raise ConfigError(
+            f"scene.min_separation: must be at most size - 2 border = {size - 2 * border} "
+            f"(the side of the square holding the centres), got {min_sep:g}"
+        )
+    spec = SceneSpec(
+        float(density), size, float(scale), n_fields, pairs, border, psf_size, float(min_sep)
+    )
+    if spec.coverage > MAX_COVERAGE:
+        raise ConfigError(
+            f"scene.min_separation: {spec.mean_count:.1f} galaxies per field on average, "
+            f"{min_sep:g} px apart, would cover {100 * spec.coverage:.0f} % of the "
+            f"placement square (at most {100 * MAX_COVERAGE:g} %); lower scene.density or "
+            "scene.min_separation, or widen scene.size"
+        )
+    return spec
