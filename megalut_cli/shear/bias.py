@@ -80,6 +80,30 @@ class BiasFit:
         return bool(abs(self.m) < m_tol and abs(self.c) < c_tol)
 
 
+def stage_iv_requirement(
+    fits: dict[str, tuple[float | None, float | None]], scheme: str, undetermined: str = "fails"
+) -> dict[str, Any]:
+    """Whether the m, c of each component (``{comp: (m, c)}``, of ``scheme``) meet the
+    Stage IV requirement, with the failures as lines; a value that is None or not finite
+    fails (``undetermined = "fails"``) or is not judged (``"skip"``: an m without lever arm)."""
+    failures = []
+    for comp, (m, c) in fits.items():
+        known = {k: v for k, v in (("m", m), ("c", c)) if v is not None and math.isfinite(v)}
+        if len(known) < 2 and undetermined == "fails":
+            failures.append(f"{comp}: m, c undetermined")
+            continue
+        for key, limit in (("m", STAGE_IV_M), ("c", STAGE_IV_C)):
+            if key in known and abs(known[key]) >= limit:
+                failures.append(f"{comp}: |{key}| = {abs(known[key]):.2e}")
+    return {
+        "m": STAGE_IV_M,
+        "c": STAGE_IV_C,
+        "applies_to": scheme,
+        "met": not failures,
+        "failures": failures,
+    }
+
+
 def fit_bias(g_true: np.ndarray, g_est: np.ndarray, n_rows: int = 0) -> BiasFit:
     """Fit ``g_est - g_true = m g_true + c`` by ordinary least squares over cases.
 

@@ -51,12 +51,11 @@ from megalut_cli.measure.metacal_defaults import DEFAULT_STEP, TYPES
 from megalut_cli.provenance import CREATOR, command_line, sha256_file, software_versions, utc_now
 from megalut_cli.shear.bias import (
     GREAT3_SIGMA2_MIN_GROUND,
-    STAGE_IV_C,
-    STAGE_IV_M,
     BiasFit,
     fit_bias,
     psf_angle,
     q_c,
+    stage_iv_requirement,
 )
 from megalut_cli.shear.bootstrap import (
     ERROR_BOOTSTRAP,
@@ -1175,22 +1174,7 @@ def _requirement(
     fits: Mapping[str, Mapping[str, BiasFit]], schemes: Sequence[str]
 ) -> dict[str, Any]:
     scheme = schemes[-1]  # weighted when present
-    failures = []
-    for comp, f in fits[scheme].items():
-        if not (math.isfinite(f.m) and math.isfinite(f.c)):
-            failures.append(f"{comp}: m, c undetermined")
-            continue
-        if abs(f.m) >= STAGE_IV_M:
-            failures.append(f"{comp}: |m| = {abs(f.m):.2e}")
-        if abs(f.c) >= STAGE_IV_C:
-            failures.append(f"{comp}: |c| = {abs(f.c):.2e}")
-    return {
-        "m": STAGE_IV_M,
-        "c": STAGE_IV_C,
-        "applies_to": scheme,
-        "met": not failures,
-        "failures": failures,
-    }
+    return stage_iv_requirement({comp: (f.m, f.c) for comp, f in fits[scheme].items()}, scheme)
 
 
 def _conditional(

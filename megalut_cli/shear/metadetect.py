@@ -23,7 +23,7 @@ from megalut_cli import expr
 from megalut_cli.catalog import catalog_info, read_catalog_columns
 from megalut_cli.errors import InputError, namer
 from megalut_cli.measure.metacal_defaults import MDET_COLUMN, MDET_STEP_CARD, TYPES
-from megalut_cli.shear.bias import STAGE_IV_C, STAGE_IV_M
+from megalut_cli.shear.bias import stage_iv_requirement
 from megalut_cli.shear.bootstrap import resample_counts
 from megalut_cli.shear.response import header_step
 
@@ -241,19 +241,9 @@ def _num(x: float) -> float | None:
 
 
 def _requirement(result: Mapping[str, Any], schemes: Sequence[str]) -> dict[str, Any]:
-    scheme = schemes[-1]
-    failures = []
-    for comp, f in result[scheme].items():
-        for key, limit in (("m", STAGE_IV_M), ("c", STAGE_IV_C)):
-            if f[key] is not None and abs(f[key]) >= limit:
-                failures.append(f"{comp}: |{key}| = {abs(f[key]):.2e}")
-    return {
-        "m": STAGE_IV_M,
-        "c": STAGE_IV_C,
-        "applies_to": scheme,
-        "met": not failures,
-        "failures": failures,
-    }
+    scheme = schemes[-1]  # weighted when present; an m without lever arm is not judged
+    fits = {comp: (f["m"], f["c"]) for comp, f in result[scheme].items()}
+    return stage_iv_requirement(fits, scheme, undetermined="skip")
 
 
 def format_metadetect(result: Mapping[str, Any]) -> str:
