@@ -4,8 +4,9 @@ One core (BLAS and numba on one thread), CPU seconds, on the scenes of
 ``examples/scenes/metadetect.toml`` (250-px cells, about 17 galaxies each):
 
 * per cell, in this process: the metacal operation on the cell and its fixnoise (the white
-  field moved with each version, GalSim's FFTs), sep's detection on the five versions, the features of the stamps around
-  the detections; and the networks (``predict`` with ``fiducial-metacal``) per row;
+  field moved with each version, GalSim's FFTs), sep's detection on the five versions, the
+  features of the stamps around the detections; and the networks (``predict`` with
+  ``fiducial-metacal``) per row;
 * coadds of ``--coadd-sizes`` pixels (the scenes' galaxies at the same density, written as
   one image with its weight map) measured with ``-j 2``: the peak memory of the command and
   of its workers, against the image's size.
