@@ -303,6 +303,16 @@ def detect(
     return np.asarray(objects["x"], dtype=np.float64), np.asarray(objects["y"], dtype=np.float64)
 
 
+def cleaned_cell(image: np.ndarray, bad: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """A cell as float64 with its bad pixels (None: none) set to 0, and its bad-pixel mask;
+    unmasked NaN or infinite pixels are an InputError."""
+    image = np.asarray(image, dtype=np.float64)
+    bad = np.zeros(image.shape, bool) if bad is None else np.asarray(bad, dtype=bool)
+    if not np.isfinite(image[~bad]).all():
+        raise InputError("the cell holds NaN or infinite pixels that are not masked")
+    return np.where(bad, 0.0, image), bad
+
+
 def unsheared(
     x: np.ndarray, y: np.ndarray, size: int, direction: tuple[float, float], step: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -369,11 +379,7 @@ def metadetect_cell(
     mc = settings.metacal
     if mc is None:
         raise ValueError("metadetect needs settings.metacal (the step, seed and target)")
-    image = np.asarray(image, dtype=np.float64)
-    bad = np.zeros(image.shape, bool) if bad is None else np.asarray(bad, dtype=bool)
-    if not np.isfinite(image[~bad]).all():
-        raise InputError("the cell holds NaN or infinite pixels that are not masked")
-    image = np.where(bad, 0.0, image)
+    image, bad = cleaned_cell(image, bad)
     size = image.shape[0]
     psfs = same_parity_psfs(np.asarray(psf, dtype=np.float64)[None], size)
     sigma = noise_sigma if np.isfinite(noise_sigma) and noise_sigma > 0 else 0.0
@@ -443,11 +449,7 @@ def detect_cell(
     around each (neighbours left in), the PSF's features, and with ``settings.metacal`` the
     stamps' metacal versions (fixnoise keys ``key * KEY_STRIDE + i``): the stamp route on the
     cell. Returns ``x``, ``y`` (1-based) and the Measurer's columns, one row per detection."""
-    image = np.asarray(image, dtype=np.float64)
-    bad = np.zeros(image.shape, bool) if bad is None else np.asarray(bad, dtype=bool)
-    if not np.isfinite(image[~bad]).all():
-        raise InputError("the cell holds NaN or infinite pixels that are not masked")
-    image = np.where(bad, 0.0, image)
+    image, bad = cleaned_cell(image, bad)
     floor = noise_sigma if noise_sigma > 0 else 1e-3 * float(np.abs(image).max() or 1.0)
     x, y = detect(image, floor, detection, bad)
     n = len(x)

@@ -206,8 +206,8 @@ def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
         return None
     psf = cell_psf(co, job.x0, job.y0)
     sigma = cells.cell_noise(weight, bad)
-    if job.detect_only:
-        try:
+    try:
+        if job.detect_only:
             result = cells.detect_cell(
                 image,
                 psf,
@@ -219,35 +219,36 @@ def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
                 bad,
                 weight,
             )
-        except InputError as err:
-            raise InputError(
-                f"{co.image.path}: the cell at x {job.x0 + 1}, y {job.y0 + 1}: {err}"
-            ) from None
-        return located(result, job)
-    if co.noise is not None:
-        noise = read_region(co.noise, job.x0, job.y0, size)[0]
-    else:  # white, of each pixel's variance, the same pixels in every cell over them
-        with np.errstate(divide="ignore"):
-            scale = np.where(bad, 0.0, 1.0 / np.sqrt(np.where(bad, 1.0, weight)))
-        noise = tiled_normals(job.seed, job.x0, job.y0, size) * scale
-    try:
-        result = cells.metadetect_cell(
-            image,
-            psf,
-            sigma,
-            job.seed,
-            job.settings,
-            job.detection,
-            job.stamp_size,
-            bad,
-            noise,
-            white_field=co.noise is None,
-        )
+        else:
+            result = cells.metadetect_cell(
+                image,
+                psf,
+                sigma,
+                job.seed,
+                job.settings,
+                job.detection,
+                job.stamp_size,
+                bad,
+                cell_fixnoise_field(co, job, weight, bad),
+                white_field=co.noise is None,
+            )
     except InputError as err:
         raise InputError(
             f"{co.image.path}: the cell at x {job.x0 + 1}, y {job.y0 + 1}: {err}"
         ) from None
     return located(result, job)
+
+
+def cell_fixnoise_field(
+    co: CoaddInput, job: CoaddCellJob, weight: np.ndarray, bad: np.ndarray
+) -> np.ndarray:
+    """The fixnoise field of a coadd's cell: the noise image's region, else white noise of
+    each pixel's variance, the same pixels in every cell over them (:func:`tiled_normals`)."""
+    if co.noise is not None:
+        return read_region(co.noise, job.x0, job.y0, co.size)[0]
+    with np.errstate(divide="ignore"):
+        scale = np.where(bad, 0.0, 1.0 / np.sqrt(np.where(bad, 1.0, weight)))
+    return tiled_normals(job.seed, job.x0, job.y0, co.size) * scale
 
 
 def located(result: dict[str, np.ndarray], job: CoaddCellJob) -> dict[str, np.ndarray]:
