@@ -7,7 +7,9 @@ import hashlib
 import os
 import shlex
 import sys
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from megalut_cli import __version__
 
@@ -57,6 +59,16 @@ def software_versions() -> dict[str, str]:
         except importlib.metadata.PackageNotFoundError:  # pragma: no cover - all are dependencies
             continue
     return versions
+
+
+def own_or_parent(provenance: Mapping[str, Any], key: str) -> Mapping[str, Any] | None:
+    """The non-empty mapping a provenance record holds under ``key`` (a model's: what its own
+    training recorded), else its ``parent``'s (a weight-trained model's: its point
+    training's); None when neither holds one."""
+    for record in (provenance, provenance.get("parent")):
+        if isinstance(record, Mapping) and isinstance(record.get(key), Mapping) and record[key]:
+            return record[key]
+    return None
 
 
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:

@@ -441,17 +441,52 @@ def test_megalut_run_logs_the_findings_of_its_predict_steps(tmp_path, caplog):
 
 
 def test_a_large_catalog_is_sampled_chunk_by_chunk(cats, monkeypatch):
-    """Above MAX_DOMAIN_ROWS rows the check keeps every k-th row, read chunk by chunk."""
+    """Above MAX_DOMAIN_ROWS rows the check keeps every k-th row, read chunk by chunk, and
+    counts every row in the same pass."""
     from megalut_cli.catalog import catalog_info
     from megalut_cli.shear import predict
 
     monkeypatch.setattr(predict, "MAX_DOMAIN_ROWS", 7)
-    monkeypatch.setattr(predict, "CHUNK_ROWS", 13)
+    monkeypatch.setattr(predict, "DOMAIN_CHUNK_ROWS", 13)
     domain = model_domain(ShearModel.load(shipped_model("fiducial")).provenance)
     n, names, _ = catalog_info(cats["trap"])
-    got = predict.domain_columns(cats["trap"], domain, names, n_rows=n)
+    features = ["adamom_g1", "adamom_sigma"]
+    read = predict.domain_rows(cats["trap"], features, names, domain=domain, n_rows=n)
     table = fitsio.read(str(cats["trap"]))
     step = -(-n // 7)
+    got = read.columns
     assert sorted(got) == ["adamom_flux", "adamom_sigma", "flags", "skymad", "snr"]
     for c, values in got.items():
         assert np.array_equal(values, table[c][::step], equal_nan=True), c
+    flagged = table["flags"] != 0
+    usable = ~flagged & np.isfinite(table["adamom_g1"]) & np.isfinite(table["adamom_sigma"])
+    assert (read.counts.n_rows, read.counts.n_flagged) == (n, flagged.sum()) and n > 13
+    assert read.counts.n_usable == usable.sum()
+    whole = predict.domain_rows(cats["trap"], features, names, domain=domain, n_rows=n - 1)
+    assert whole.counts == read.counts  # counts never sampled
+    without = predict.domain_rows(cats["trap"], features, names)
+    assert without.counts == read.counts and without.columns == {}
+
+
+def test_predict_reads_the_catalogs_rows_once_before_predicting(cats, monkeypatch, tmp_path):
+    """The domain check counts the rows and takes the domain's columns in one pass; the
+    prediction is the second and last pass over the rows."""
+    from megalut_cli import catalog
+    from megalut_cli.shear import predict
+
+    passes = []
+
+    def chunks(path, *args, **kwargs):
+        passes.append(kwargs.get("columns"))
+        return catalog.iter_catalog(path, *args, **kwargs)
+
+    def whole(path, columns=None, *args, **kwargs):
+        passes.append(columns)
+        return catalog.read_catalog_columns(path, columns, *args, **kwargs)
+
+    monkeypatch.setattr(predict, "iter_catalog", chunks)
+    monkeypatch.setattr(predict, "read_catalog_columns", whole, raising=False)
+    out = tmp_path / "shears.fits"
+    predict.predict_catalog(cats["own"], shipped_model("fiducial"), out)
+    assert len(passes) == 2 and passes[1] is None, passes
+    assert {"adamom_g1", "flags", "skymad", "snr"} <= set(passes[0])

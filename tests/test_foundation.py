@@ -593,3 +593,18 @@ def test_software_versions_are_the_modules_without_importing_them():
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[] True"
+
+
+def test_a_record_is_the_models_own_else_its_parents():
+    """own_or_parent: the record a model's own training made, else its parent's (a weight
+    training's point training); an empty or non-mapping record is none."""
+    from megalut_cli.provenance import own_or_parent
+
+    parent = {"setup": {"stamp_size": 48}, "domain": {"columns": {}}, "population": {"a": 1}}
+    prov = {"setup": {}, "domain": {"source": "own"}, "population": "?", "parent": parent}
+    assert own_or_parent(prov, "domain") == {"source": "own"}
+    assert own_or_parent(prov, "setup") == {"stamp_size": 48}
+    assert own_or_parent(prov, "population") == {"a": 1}
+    assert own_or_parent(prov, "nothing") is None
+    assert own_or_parent({"setup": {"gain": 2}, "parent": "not a record"}, "setup") == {"gain": 2}
+    assert own_or_parent({"parent": {"setup": {}}}, "setup") is None

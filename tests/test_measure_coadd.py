@@ -206,6 +206,37 @@ def test_bad_input_is_one_line(runner, cli, tmp_path):
     assert not out.exists()
 
 
+def test_the_coadds_images_are_named_by_their_flags(runner, cli, tmp_path):
+    """--weight, --mask and --noise-image: each refused by its flag where it does not apply,
+    each checked against the image's shape; every option of the table reaches the library
+    argument whose messages name it."""
+    from megalut_cli.cli.measure import COADD_IMAGE_OPTIONS, command
+    from megalut_cli.measure.source_registry import COADD_IMAGES
+
+    assert [arg for _, arg, _ in COADD_IMAGE_OPTIONS] == [i.field for i in COADD_IMAGES]
+    options = {p.name: p.opts for p in command.params}
+    for flag, arg, _ in COADD_IMAGE_OPTIONS:
+        assert options[arg] == [flag]
+    paths, _, _ = write_coadd(tmp_path, shape=(120, 120))
+    out = tmp_path / "out.fits"
+    image = ["measure", str(paths["coadd"]), "-o", str(out)]
+    given = [
+        *(x for f in ("--weight", "--mask", "--noise-image") for x in (f, str(paths["weight"])))
+    ]
+    invoke_fails(
+        runner, cli, [*image, *given], 2, "--weight, --mask, --noise-image: for --metadetect"
+    )
+    psf = ["--psf", str(paths["psf"])]
+    args = [*image, "--detect", *psf, "--weight", str(paths["weight"])]
+    invoke_fails(runner, cli, [*args, "--noise-image", str(paths["weight"])], 2, "--noise-image")
+    small = tmp_path / "small.fits"
+    fitsio.write(str(small), np.ones((60, 60), np.float32))
+    args = [*image, "--metadetect", *psf, "--weight", str(paths["weight"])]
+    for flag, what in (("--mask", "the mask image"), ("--noise-image", "the noise image")):
+        invoke_fails(runner, cli, [*args, flag, str(small)], 1, "small.fits", what, "agree")
+    assert not out.exists()
+
+
 def test_a_psf_model_and_workers(runner, cli, tmp_path):
     """A PSFEx model drawn at each cell's centre; the same rows with one or two workers and
     a Dask cluster."""

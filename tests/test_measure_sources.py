@@ -14,6 +14,8 @@ from megalut_cli.measure.defaults import FORMAT
 from megalut_cli.measure.measure import measure_file_columns, measure_image
 from megalut_cli.measure.measurer import MeasureSettings, StampBatch, measure_cards
 from megalut_cli.measure.source_registry import (
+    COADD_IMAGES,
+    CellSettings,
     Measured,
     MeasureRequest,
     StampSourceType,
@@ -68,6 +70,25 @@ def test_the_builtin_sources_and_the_fallback():
     assert stamp_source_for("anything.fits").name == "grid"
     with pytest.raises(ValueError, match="registered already"):
         register_stamp_source(registered_stamp_sources()[0])
+
+
+def test_a_coadds_given_arguments_in_order():
+    """The images given with a coadd are the path fields of CellSettings, in the order of the
+    arguments; cell_size and cell_border count as given where not their defaults."""
+    from dataclasses import fields
+
+    from megalut_cli.measure.options import MEASURE
+
+    paths = [f.name for f in fields(CellSettings) if f.name.endswith("_path")]
+    assert [i.field for i in COADD_IMAGES] == paths == ["weight_path", "mask_path", "noise_path"]
+    size, border = MEASURE["cell_size"].default, MEASURE["cell_border"].default
+    assert CellSettings(None, None, None, size, border).given() == []
+    assert CellSettings(None, "m", "n", size, border + 1).given() == [
+        "mask_path",
+        "noise_path",
+        "cell_border",
+    ]
+    assert CellSettings("w", None, None, size + 2, border).given() == ["weight_path", "cell_size"]
 
 
 def test_a_toy_source_measures_as_the_grid_does(tmp_path, npy_source):

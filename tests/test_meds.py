@@ -3,6 +3,8 @@ GalSim stamps with known shapes, noise and PSFs (the layout of esheldon/meds, wi
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import fitsio
 import galsim
 import numpy as np
@@ -20,6 +22,7 @@ from megalut_cli.measure.meds import (
     extra_columns,
     is_meds,
     measure_cutouts,
+    measure_epochs,
     measure_meds,
     read_meds,
     write_meds,
@@ -311,6 +314,48 @@ def test_psf_model_at_each_objects_position(grid, tmp_path):
     np.testing.assert_allclose(
         out["psf_adamom_sigma"], np.sqrt(model.sigma(cols + 1) ** 2 + 1 / 12), rtol=0.01
     )
+
+
+def test_epochs_are_each_cutout_measured_with_one_setup(tmp_path, monkeypatch):
+    """measure_epochs gives, row for row, what measure_meds gives for each single-epoch cutout
+    (the same features and metacal versions, with the fixnoise of each object and cutout), in
+    object then cutout order; the single PSF is read and measured once per box size and the
+    work units of every epoch run together (one executor)."""
+    from megalut_cli.measure import meds as meds_module
+
+    stamps, _ = galaxy_stamps(5, seed=3)
+    epoch, _ = galaxy_stamps(5, seed=4)
+    later, _ = galaxy_stamps(5, seed=5)
+    cuts = [[stamps[0], epoch[0], later[0]], [stamps[1], epoch[1]], [stamps[2]]]
+    cuts += [[stamps[3], epoch[3], later[3]], [stamps[4], epoch[4]]]
+    path = tmp_path / "ep.meds.fits"
+    write_meds(path, cuts, weights=[[np.full((S, S), 1 / NOISE**2)] * len(c) for c in cuts])
+    psf_file = tmp_path / "psf.fits"
+    fitsio.write(str(psf_file), psf_image(PSF_SIGMA, S))
+    meds = read_meds(path)
+    options = MedsOptions(metacal=True, seed=3, psf_path=psf_file)
+    calls = {"single_psf_features": 0, "measure_units": 0}
+
+    def counted(name):
+        function = getattr(meds_module, name)
+
+        def call(*args, **kwargs):
+            calls[name] += 1
+            return function(*args, **kwargs)
+
+        return call
+
+    for name in calls:
+        monkeypatch.setattr(meds_module, name, counted(name))
+    out = measure_epochs(meds, options, nproc=2)
+    assert calls == {"single_psf_features": 1, "measure_units": 1}
+    assert list(out["id"]) == [1, 1, 2, 4, 4, 5] and list(out["cutout"]) == [1, 2, 1, 1, 2, 1]
+    # the same work units (-j 2): metacal's FFTs of one batch are not bit for bit another's
+    each = {k: measure_meds(meds, replace(options, cutout=k), nproc=2) for k in (1, 2)}
+    for i, (row, k) in enumerate(zip(out["id"] - 1, out["cutout"])):
+        for c in ("adamom_g1", "adamom_sigma_1p", "adamom_g2_2m", "flags_noshear", "n_masked"):
+            assert each[k][c][row] == out[c][i], (c, row, k)
+    assert out["adamom_g1_1p"][0] != out["adamom_g1_1p"][1]  # each cutout its own pixels
 
 
 def test_metacal_on_meds(tmp_path):

@@ -7,6 +7,7 @@ import click
 from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.console import flag_names, is_stdio, stdin_path, stdout_path
 from megalut_cli.cli.options import (
+    F,
     device_option,
     engine_option,
     execution_options,
@@ -19,6 +20,37 @@ from megalut_cli.cli.options import (
 from megalut_cli.engine import resolve_device
 from megalut_cli.measure.feature_sets import requested_sets
 from megalut_cli.measure.options import MEASURE
+
+#: The images given with a coadd image (--metadetect): flag, library argument (the name of
+#: the command's parameter, so that messages name it by its flag) and what it is.
+COADD_IMAGE_OPTIONS: tuple[tuple[str, str, str], ...] = (
+    (
+        "--weight",
+        "weight_path",
+        "its weight map (inverse noise variance per pixel, 0 where bad), an image of the same "
+        "shape.",
+    ),
+    ("--mask", "mask_path", "its mask (integer bits, non-zero bad), an image of the same shape."),
+    (
+        "--noise-image",
+        "noise_path",
+        "a realization of its noise (same shape, same correlations), used as the fixnoise "
+        "field instead of white noise from the weight map.",
+    ),
+)
+
+
+def coadd_image_options(command: F) -> F:
+    """The options of :data:`COADD_IMAGE_OPTIONS`, in that order: each an existing file."""
+    for flag, name, what in reversed(COADD_IMAGE_OPTIONS):
+        command = click.option(
+            flag,
+            name,
+            type=click.Path(exists=True, dir_okay=False),
+            default=None,
+            help=f"--metadetect on a coadd image: {what}",
+        )(command)
+    return command
 
 
 @click.command(
@@ -52,30 +84,7 @@ from megalut_cli.measure.options import MEASURE
     "position (CATALOG's x, y; without CATALOG the stamp centre in STAMPS), for psf_adamom_* "
     "and --metacal.",
 )
-@click.option(
-    "--weight",
-    "weight",
-    type=click.Path(exists=True, dir_okay=False),
-    default=None,
-    help="--metadetect on a coadd image: its weight map (inverse noise variance per pixel, "
-    "0 where bad), an image of the same shape.",
-)
-@click.option(
-    "--mask",
-    "mask",
-    type=click.Path(exists=True, dir_okay=False),
-    default=None,
-    help="--metadetect on a coadd image: its mask (integer bits, non-zero bad), an image of "
-    "the same shape.",
-)
-@click.option(
-    "--noise-image",
-    "noise_image",
-    type=click.Path(exists=True, dir_okay=False),
-    default=None,
-    help="--metadetect on a coadd image: a realization of its noise (same shape, same "
-    "correlations), used as the fixnoise field instead of white noise from the weight map.",
-)
+@coadd_image_options
 @schema_option(MEASURE["cell_size"], show_default=True)
 @schema_option(MEASURE["cell_border"], show_default=True)
 @schema_option(MEASURE["cutout"], show_default=True)
@@ -104,9 +113,9 @@ def command(
     gain: float | None,
     psf: str | None,
     psf_model: str | None,
-    weight: str | None,
-    mask: str | None,
-    noise_image: str | None,
+    weight_path: str | None,
+    mask_path: str | None,
+    noise_path: str | None,
     cell_size: int,
     cell_border: int,
     cutout: int,
@@ -237,9 +246,6 @@ def command(
             names=flag_names(
                 psf_path="--psf",
                 psf_model_path="--psf-model",
-                weight_path="--weight",
-                mask_path="--mask",
-                noise_path="--noise-image",
             ),
             metacal=metacal,
             metacal_step=metacal_step,
@@ -253,9 +259,9 @@ def command(
             detect_minarea=detect_minarea,
             deblend_nthresh=deblend_nthresh,
             deblend_cont=deblend_cont,
-            weight_path=weight,
-            mask_path=mask,
-            noise_path=noise_image,
+            weight_path=weight_path,
+            mask_path=mask_path,
+            noise_path=noise_path,
             cell_size=cell_size,
             cell_border=cell_border,
         )

@@ -540,19 +540,10 @@ def check_request(request: MeasureRequest) -> None:
             ("stars", bool(request.stars)),
             ("epochs", request.epochs),
             ("cutout", request.cutout != MEASURE["cutout"].default),
-            *(
-                (k, request.cells is not None and getattr(request.cells, attr) != default)
-                for k, attr, default in (
-                    ("weight_path", "weight_path", None),
-                    ("mask_path", "mask_path", None),
-                    ("noise_path", "noise_path", None),
-                    ("cell_size", "size", MEASURE["cell_size"].default),
-                    ("cell_border", "border", MEASURE["cell_border"].default),
-                )
-            ),
         )
         if given
     ]
+    wrong += [name(k) for k in (request.cells.given() if request.cells is not None else [])]
     if wrong:
         raise ConfigError(
             f"{request.stamps_path} is a cells file (each cell has its PSF, weight, mask and "

@@ -28,6 +28,7 @@ from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.psf_model import cached_psf_model
 from megalut_cli.measure.single_psf import single_psf_stamp
 from megalut_cli.measure.source_registry import (
+    COADD_IMAGES,
     DetectSettings,
     Measured,
     MeasureRequest,
@@ -132,28 +133,28 @@ def read_coadd_input(request: MeasureRequest) -> CoaddInput:
     c = request.cells
     assert c is not None and c.weight_path is not None
     image = image_info(request.stamps_path)
-    parts = {}
-    for what, path in (("weight", c.weight_path), ("mask", c.mask_path), ("noise", c.noise_path)):
-        if path is None:
-            parts[what] = None
-            continue
-        info = image_info(path)
-        if info.shape != image.shape:
+    parts: dict[str, ImageInfo | None] = {}
+    for companion in COADD_IMAGES:
+        path = getattr(c, companion.field)
+        info = None if path is None else image_info(path)
+        if info is not None and info.shape != image.shape:
             raise InputError(
-                f"{path}: the {what} image is {info.shape[1]}x{info.shape[0]} pixels, "
+                f"{path}: the {companion.label} image is {info.shape[1]}x{info.shape[0]} pixels, "
                 f"{request.stamps_path} {image.shape[1]}x{image.shape[0]}: they must agree"
             )
-        parts[what] = info
+        parts[companion.field] = info
     psf = None
     if request.psf_path is not None:
         check_scales(image, request.psf_path)
         psf = single_psf_stamp(request.psf_path, MODEL_PSF_SIZE)
         cells.check_psf(psf, request.psf_path)
+    weight = parts["weight_path"]
+    assert weight is not None
     return CoaddInput(
         image,
-        parts["weight"],
-        parts["mask"],
-        parts["noise"],
+        weight,
+        parts["mask_path"],
+        parts["noise_path"],
         psf,
         request.psf_model_path,
         c.size,
@@ -370,11 +371,10 @@ def coadd_cards(
     """Header cards: the input files and their sha256, the cells, then those of every
     metadetect catalog (:func:`.cells.metadetect_cards`)."""
     cards: dict[str, Any] = {}
+    assert request.cells is not None
     for key, what, path in (
         ("IMG", "coadd image", request.stamps_path),
-        ("WGT", "weight map", coadd.weight.path),
-        ("MSK", "mask", None if coadd.mask is None else coadd.mask.path),
-        ("NOI", "noise image", None if coadd.noise is None else coadd.noise.path),
+        *((i.card, i.what, getattr(request.cells, i.field)) for i in COADD_IMAGES),
         ("PSF", "PSF image", request.psf_path),
     ):
         if path is not None:

@@ -215,20 +215,7 @@ def measure_file_columns(
         int(cell_border),
     )
     if not (metadetect or detect):
-        given = [
-            name(k)
-            for k, v in (
-                ("weight_path", weight_path),
-                ("mask_path", mask_path),
-                ("noise_path", noise_path),
-            )
-            if v is not None
-        ]
-        given += [
-            name(k)
-            for k, v in (("cell_size", cell_size), ("cell_border", cell_border))
-            if v != MEASURE[k].default
-        ]
+        given = [name(k) for k in cell_settings.given()]
         if given:
             raise ConfigError(f"{', '.join(given)}: for {name('metadetect')} on a coadd image only")
     request = MeasureRequest(

@@ -486,10 +486,11 @@ def read_stamps(layout: Layout) -> Stamps:
 
 @dataclasses.dataclass(frozen=True)
 class MedsUnit:
-    """Cutout ``layout`` of the objects ``rows`` (one box size and PSF size): their
-    ``origins`` in their images, ``centres`` in their cutouts, and their PSF: ``psf_source``
-    ``file`` (the file's PSF cutouts), ``model`` (``psf_model`` in this process, else the file
-    ``psf_model_path``, drawn at ``model_xy``) or ``single`` (one image)."""
+    """Cutout ``layout`` of some objects (one box size and PSF size) measured into the output
+    ``rows``: their ``origins`` in their images, ``centres`` in their cutouts, their PSF:
+    ``psf_source`` ``file`` (the file's PSF cutouts), ``model`` (``psf_model`` in this
+    process, else the file ``psf_model_path``, drawn at ``model_xy``) or ``single`` (one
+    image), and the keys of their fixnoise fields (one per object and cutout)."""
 
     rows: np.ndarray
     layout: Layout
@@ -500,7 +501,7 @@ class MedsUnit:
     psf_model_path: str | None = None
     psf_model: PsfDrawer | None = None
     model_xy: np.ndarray | None = None
-    key_offset: int = 0
+    fixnoise_keys: np.ndarray | None = None
 
     def batch(self, settings: MeasureSettings) -> StampBatch:
         """The unit's cutouts with their masks, weights and PSFs."""
@@ -516,6 +517,7 @@ class MedsUnit:
             psfs = PsfImages(drawn, np.arange(len(drawn)))
         elif self.psf_source == "single" and self.single is not None:
             psfs = PsfImages(self.single[None], np.zeros(len(self.rows), dtype=np.int64))
+        keys = self.rows if self.fixnoise_keys is None else self.fixnoise_keys
         return StampBatch(
             stamps.images,
             self.origins,
@@ -523,7 +525,7 @@ class MedsUnit:
             centres=self.centres,
             weights=stamps.weights,
             psfs=psfs,
-            fixnoise_keys=self.rows.astype(np.int64) + self.key_offset,
+            fixnoise_keys=keys.astype(np.int64),
         )
 
 
@@ -609,12 +611,20 @@ def epoch_cutouts(meds: MedsFile) -> list[int]:
 
 
 def measure_epochs(
-    meds: MedsFile, options: MedsOptions | None = None, **kwargs: Any
+    meds: MedsFile,
+    options: MedsOptions | None = None,
+    *,
+    psf_model: PsfDrawer | None = None,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    progress: Progress | None = None,
+    names: Names | None = None,
 ) -> dict[str, np.ndarray]:
-    """Every single-epoch cutout of every object (:func:`epoch_cutouts`), each measured by
-    :func:`measure_meds` with its own PSF, weight map and Jacobian: one row per object and
-    epoch, in object order then cutout order, with the cutout index in ``cutout``; objects
-    without any epoch have no row. ``kwargs``: those of :func:`measure_meds`."""
+    """Every single-epoch cutout of every object (:func:`epoch_cutouts`), each measured as
+    :func:`measure_meds` measures one cutout, with its own PSF, weight map and Jacobian: one
+    row per object and epoch, in object order then cutout order, with the cutout index in
+    ``cutout``; objects without any epoch have no row. The setup that does not depend on the
+    cutout is done once (:func:`meds_plan`), and the epochs' work units run together."""
     options = options or MedsOptions()
     ks = epoch_cutouts(meds)
     if not ks:
@@ -624,20 +634,31 @@ def measure_epochs(
         )
     ncut = np.asarray(meds.objects["ncutout"])
     log.info("%s: measuring %d single-epoch cutout slot(s): %s", meds.path, len(ks), ks)
-    parts: list[dict[str, np.ndarray]] = []
-    rows: list[np.ndarray] = []
+    plan = meds_plan(meds, options, ks, psf_model=psf_model, names=names)
+    n_workers = workers(nproc, scheduler)
+    units: list[MedsUnit] = []
+    blocks: list[slice] = []  # each epoch's output rows, one block after the other
+    start = 0
     for k in ks:
         has = ncut > k
-        cols = measure_meds(
-            meds, dataclasses.replace(options, cutout=k, epochs=False), missing="drop", **kwargs
-        )
-        part = {c: v[has] for c, v in cols.items()}
+        rows = np.full(len(meds), -1, dtype=np.int64)  # each object's output row
+        rows[has] = start + np.arange(int(has.sum()))
+        units += cutout_units(plan, k, has, rows, n_workers, names)
+        blocks.append(slice(start, start + int(has.sum())))
+        start = blocks[-1].stop
+    measured = _measured_columns(plan, units, start, None, nproc, scheduler, progress)
+    parts: list[dict[str, np.ndarray]] = []
+    objects: list[np.ndarray] = []
+    for k, block in zip(ks, blocks):
+        has = ncut > k
+        part = {c: v[has] for c, v in passed_columns(meds, has, k).items()}
+        part.update({c: v[block] for c, v in measured.items()})
         part["cutout"] = np.full(int(has.sum()), k, dtype=np.int32)
         parts.append(part)
-        rows.append(np.flatnonzero(has))
-    order = np.argsort(np.concatenate(rows), kind="stable")  # object order, then cutout order
-    names = list(parts[0])
-    return {c: np.concatenate([p[c] for p in parts])[order] for c in names}
+        objects.append(np.flatnonzero(has))
+    order = np.argsort(np.concatenate(objects), kind="stable")  # object order, then cutout order
+    names_out = list(parts[0])
+    return {c: np.concatenate([p[c] for p in parts])[order] for c in names_out}
 
 
 def measure_meds(
@@ -649,7 +670,6 @@ def measure_meds(
     scheduler: str | None = None,
     progress: Progress | None = None,
     names: Names | None = None,
-    missing: str = "flag",
 ) -> dict[str, np.ndarray]:
     """The output columns of a MEDS file's objects, one row per object in file order: the
     :data:`PASSED_COLUMNS` and :data:`PASSED_CUTOUT_COLUMNS` it has, the features of its
@@ -658,20 +678,65 @@ def measure_meds(
     the model file ``options.psf_model_path`` (loaded in each worker), else the single PSF
     image ``options.psf_path``; with ``options.metacal``, the metacal columns (per-object PSF,
     fixnoise at ``noise_weight`` where there are weights, else ``skymad``). Objects without
-    the cutout get NO_CUTOUT and NaN features (``missing="drop"``: the caller drops them,
-    and they are not reported). ``options``: default :class:`MedsOptions`.
+    the cutout get NO_CUTOUT and NaN features. ``options``: default :class:`MedsOptions`.
     """
     options = options or MedsOptions()
     name = namer(names)
-    obj, n = meds.objects, len(meds)
-    if options.cutout < 0:
-        raise ConfigError(f"{name('cutout')} must be 0 or more, got {options.cutout}")
-    has = np.asarray(obj["ncutout"]) > options.cutout
-    if options.cutout >= meds.n_max or not has.any():
+    n, k = len(meds), options.cutout
+    if k < 0:
+        raise ConfigError(f"{name('cutout')} must be 0 or more, got {k}")
+    has = np.asarray(meds.objects["ncutout"]) > k
+    if k >= meds.n_max or not has.any():
         raise InputError(
-            f"{meds.path}: no object has a cutout {options.cutout} ({name('cutout')}; "
+            f"{meds.path}: no object has a cutout {k} ({name('cutout')}; "
             f"at most {meds.n_max} per object)"
         )
+    plan = meds_plan(meds, options, [k], psf_model=psf_model, names=names)
+    units = cutout_units(plan, k, has, np.arange(n), workers(nproc, scheduler), names)
+    if (~has).any():
+        log.warning(
+            "%s: %d object(s) without cutout %d: flagged NO_CUTOUT",
+            meds.path,
+            int((~has).sum()),
+            k,
+        )
+    out = passed_columns(meds, has, k)
+    out.update(_measured_columns(plan, units, n, has, nproc, scheduler, progress))
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class MedsPlan:
+    """What measuring cutouts of a MEDS file sets up once, whichever the cutout
+    (:func:`meds_plan`): the file as given and with its path absolute (as the workers open
+    it), the options, where the PSFs come from (``source``: the file's PSF cutouts ``file``,
+    a ``model``, one ``single`` image, or None), the model in this process (``psf_model``) or
+    its file for the workers (``model_path``), the single PSF image by the box size it was
+    cut for, what is measured and the columns measured."""
+
+    meds: MedsFile
+    worker_meds: MedsFile
+    options: MedsOptions
+    source: str | None
+    psf_model: PsfDrawer | None
+    model_path: str | None
+    singles: dict[int, np.ndarray]
+    settings: MeasureSettings
+    columns: list[str]
+
+
+def meds_plan(
+    meds: MedsFile,
+    options: MedsOptions,
+    cutouts: Sequence[int],
+    *,
+    psf_model: PsfDrawer | None = None,
+    names: Names | None = None,
+) -> MedsPlan:
+    """The :class:`MedsPlan` of measuring the ``cutouts`` (indices) of ``meds``, checked: one
+    PSF source, a PSF for ``metacal`` and its step, the single PSF image read and measured
+    (for the box size of the first object with each cutout) before the long work."""
+    name = namer(names)
     model_given = psf_model is not None or options.psf_model_path is not None
     if options.psf_path is not None and model_given:
         raise ConfigError(f"give {name('psf_path')} or {name('psf_model_path')}, not both")
@@ -692,33 +757,80 @@ def measure_meds(
             f"{name('metacal')} needs a PSF: PSF cutouts in the MEDS file, {name('psf_path')} "
             f"or {name('psf_model_path')}"
         )
+    singles: dict[int, np.ndarray] = {}
+    if source == "single":  # checked and measured before the long work
+        box = meds.objects["box_size"].astype(np.int64)
+        ncut = np.asarray(meds.objects["ncutout"])
+        for k in cutouts:
+            size = int(box[ncut > k][0])
+            if size not in singles:
+                singles[size] = single_psf_stamp(str(options.psf_path), size)
+                single_psf_features(str(options.psf_path), size, options.engine)
+    if options.metacal:
+        top = MEASURE["metacal_step"].maximum
+        if not 0 < options.metacal_step <= top:
+            raise ConfigError(
+                f"{name('metacal_step')} must be in (0, {top}], got {options.metacal_step}"
+            )
+    settings = meds_settings(options)
+    columns = list(FEATURE_COLUMNS) + [MASKED_COLUMN]
+    columns += [NOISE_COLUMN] if meds.has("weight") else []
+    columns += list(optional_columns(settings.feature_sets))
+    psf_cols = list(PSF_COLUMNS) if source is not None else []
+    columns += psf_cols
+    if settings.metacal is not None:
+        columns += metacal_columns(settings.feature_columns) + metacal_columns(psf_cols)
+    model_path = (
+        os.path.abspath(str(options.psf_model_path))
+        if source == "model" and psf_model is None
+        else None
+    )
+    return MedsPlan(
+        meds,
+        dataclasses.replace(meds, path=os.path.abspath(meds.path)),
+        options,
+        source,
+        psf_model,
+        model_path,
+        singles,
+        settings,
+        columns,
+    )
+
+
+def cutout_units(
+    plan: MedsPlan,
+    k: int,
+    has: np.ndarray,
+    rows: np.ndarray,
+    n_workers: int,
+    names: Names | None = None,
+) -> list[MedsUnit]:
+    """The work units of cutout ``k`` of the objects that have it (``has``), measured into
+    the output ``rows`` (one per object), for ``n_workers``: objects grouped by box size (and
+    PSF cutout size), each group cut into its share of the units. Checks what depends on the
+    cutout: the PSF model's area, the parity of a single PSF and the squareness of the
+    file's PSF cutouts for ``metacal``."""
+    name = namer(names)
+    meds, options, source = plan.meds, plan.options, plan.source
+    obj, n = meds.objects, len(meds)
     what = (
         "the coadd"
-        if options.cutout == 0 and meds.first_is_coadd()
+        if k == 0 and meds.first_is_coadd()
         else (
             "the first cutout; the file does not mark it as a coadd"
-            if options.cutout == 0
+            if k == 0
             else "a single-epoch cutout"
         )
     )
     log.info(
         "%s: measuring cutout %d (%s) of each of %d objects",
         meds.path,
-        options.cutout,
+        k,
         what,
         int(has.sum()),
     )
-    if (~has).any() and missing == "flag":
-        log.warning(
-            "%s: %d object(s) without cutout %d: flagged NO_CUTOUT",
-            meds.path,
-            int((~has).sum()),
-            options.cutout,
-        )
-
-    rows_all = np.arange(n)
     box = obj["box_size"].astype(np.int64)
-    k = options.cutout
 
     def per_cutout(c: str, default: np.ndarray) -> np.ndarray:
         return obj[c][:, k].astype(np.float64) if c in obj else default
@@ -741,79 +853,75 @@ def measure_meds(
                 int(far.sum()),
                 int(has.sum()),
             )
-
-    single = None
-    if source == "single":  # checked and measured before the long work
-        single = single_psf_stamp(str(options.psf_path), int(box[has][0]))
-        single_psf_features(str(options.psf_path), int(box[has][0]), options.engine)
+    single = plan.singles[int(box[has][0])] if source == "single" else None
     if options.metacal:
-        top = MEASURE["metacal_step"].maximum
-        if not 0 < options.metacal_step <= top:
-            raise ConfigError(
-                f"{name('metacal_step')} must be in (0, {top}], got {options.metacal_step}"
-            )
         if single is not None:
             _parity_check(single.shape[0], np.unique(box[has]), str(options.psf_path), names)
         elif source == "file":
             shapes = meds.psf_shapes(k)[has]
             if np.any(shapes[:, 0] != shapes[:, 1]):
                 raise InputError(f"{meds.path}: PSF cutouts must be square for {name('metacal')}")
-    settings = meds_settings(options)
 
     # work units: objects with the cutout, grouped by box size (and PSF cutout size)
     psf_shape = meds.psf_shapes(k) if source == "file" else np.zeros((n, 2), np.int64)
     keys = np.stack([box, psf_shape[:, 0], psf_shape[:, 1]], axis=1)
-    groups: list[np.ndarray] = []
-    for key in np.unique(keys[has], axis=0):
-        groups.append(rows_all[has & np.all(keys == key, axis=1)])
+    rows_all = np.arange(n)
+    groups = [rows_all[has & np.all(keys == key, axis=1)] for key in np.unique(keys[has], axis=0)]
     n_has = int(has.sum())
-    total_units = n_units(n_has, workers(nproc, scheduler))
+    total_units = n_units(n_has, n_workers)
     pieces: list[np.ndarray] = []
     for g in groups:
         share = max(1, round(total_units * len(g) / max(n_has, 1)))
         pieces += [p for p in np.array_split(g, min(share, len(g))) if len(p)]
-    file_meds = dataclasses.replace(meds, path=os.path.abspath(meds.path))
-    model_path = (
-        os.path.abspath(str(options.psf_model_path))
-        if source == "model" and psf_model is None
-        else None
-    )
-    units = [
+    return [
         MedsUnit(
-            p,
-            file_meds.layout(p, options.cutout, psf=source == "file"),
+            rows[p],
+            plan.worker_meds.layout(p, k, psf=source == "file"),
             origins[p],
             centres[p],
             source,
             single,
-            model_path,
-            psf_model,
+            plan.model_path,
+            plan.psf_model,
             model_xy[p] if source == "model" else None,
-            k * n,  # one fixnoise field per object and cutout
+            p + k * n,  # one fixnoise field per object and cutout
         )
         for p in pieces
     ]
-    if source == "model" and psf_model is not None and (nproc != 1 or scheduler):
-        nproc, scheduler = 1, None  # an object in memory: measured in this process
 
-    names_out = list(FEATURE_COLUMNS) + [MASKED_COLUMN]
-    names_out += [NOISE_COLUMN] if meds.has("weight") else []
-    names_out += list(optional_columns(settings.feature_sets))
-    psf_cols = list(PSF_COLUMNS) if source is not None else []
-    names_out += psf_cols
-    if settings.metacal is not None:
-        names_out += metacal_columns(settings.feature_columns) + metacal_columns(psf_cols)
-    cols = empty_columns(n, names_out, np.where(has, 0, fl.NO_CUTOUT))
-    cols[MASKED_COLUMN] = np.full(n, NO_CUTOUT_MASKED, dtype=np.int32)
-    measure_units(
+
+def _measured_columns(
+    plan: MedsPlan,
+    units: Sequence[MedsUnit],
+    n_rows: int,
+    has: np.ndarray | None,
+    nproc: int,
+    scheduler: str | None,
+    progress: Progress | None,
+) -> dict[str, np.ndarray]:
+    """The measured columns of ``n_rows`` output rows (NO_CUTOUT where not ``has``): the
+    ``units`` run on the workers, or in this process for a PSF model object in memory."""
+    flags = None if has is None else np.where(has, 0, fl.NO_CUTOUT)
+    cols = empty_columns(n_rows, plan.columns, flags)
+    cols[MASKED_COLUMN] = np.full(n_rows, NO_CUTOUT_MASKED, dtype=np.int32)
+    if plan.source == "model" and plan.psf_model is not None and (nproc != 1 or scheduler):
+        nproc, scheduler = 1, None  # an object in memory: measured in this process
+    return measure_units(
         units,
-        settings,
+        plan.settings,
         cols,
         nproc=nproc,
         scheduler=scheduler,
         progress=progress,
         label="measuring MEDS objects",
     )
+
+
+def passed_columns(meds: MedsFile, has: np.ndarray, k: int) -> dict[str, np.ndarray]:
+    """The columns of the file carried into the output, one row per object: the
+    :data:`PASSED_COLUMNS`, the :data:`PASSED_CUTOUT_COLUMNS` of cutout ``k`` (NaN where not
+    ``has``; unusable Jacobians checked, :func:`_check_jacobians`) and :func:`extra_columns`."""
+    obj = meds.objects
     out: dict[str, np.ndarray] = {}
     for c in PASSED_COLUMNS:
         if c in obj:
@@ -824,7 +932,6 @@ def measure_meds(
     _check_jacobians(out, has, meds.path)
     for c in extra_columns(meds):
         out[c] = obj[c]
-    out.update(cols)
     return out
 
 

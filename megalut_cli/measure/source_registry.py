@@ -16,6 +16,7 @@ import numpy as np
 
 from megalut_cli.errors import Names
 from megalut_cli.measure.measurer import MeasureSettings
+from megalut_cli.measure.options import MEASURE
 from megalut_cli.progress import Progress
 
 
@@ -51,16 +52,47 @@ class MeasureRequest:
 
 
 @dataclass(frozen=True)
+class CoaddImage:
+    """An image given with a coadd measured in cells: the :class:`CellSettings` field (and
+    argument of :func:`.measure.measure_file_columns`) holding its path, its name in
+    messages (``the weight image``), what it is in header comments, and the prefix of its
+    header cards (``<card>FILE``, ``<card>SHA``)."""
+
+    field: str
+    label: str
+    what: str
+    card: str
+
+
+#: The images given with a coadd besides the coadd itself, in the order of their arguments,
+#: messages and header cards: the weight map (required), the mask and a noise realization.
+COADD_IMAGES: tuple[CoaddImage, ...] = (
+    CoaddImage("weight_path", "weight", "weight map", "WGT"),
+    CoaddImage("mask_path", "mask", "mask", "MSK"),
+    CoaddImage("noise_path", "noise", "noise image", "NOI"),
+)
+
+
+@dataclass(frozen=True)
 class CellSettings:
     """A coadd image measured with ``--metadetect``: its weight map (inverse variance), mask
-    and noise image files (or None), and how it is cut into cells: their side and the border
-    outside each cell's inner region (the inner regions tile the image)."""
+    and noise image files (or None; :data:`COADD_IMAGES`), and how it is cut into cells: their
+    side and the border outside each cell's inner region (the inner regions tile the image)."""
 
     weight_path: str | None
     mask_path: str | None
     noise_path: str | None
     size: int
     border: int
+
+    def given(self) -> list[str]:
+        """The arguments given for a coadd, in order: the images' paths that are not None,
+        then ``cell_size`` and ``cell_border`` where not their defaults."""
+        out = [image.field for image in COADD_IMAGES if getattr(self, image.field) is not None]
+        for arg, value in (("cell_size", self.size), ("cell_border", self.border)):
+            if value != MEASURE[arg].default:
+                out.append(arg)
+        return out
 
 
 @dataclass(frozen=True)

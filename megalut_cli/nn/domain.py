@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from megalut_cli.provenance import own_or_parent
+
 #: Provenance key of the record.
 DOMAIN_KEY = "domain"
 #: The measured quantities whose training distribution a model records (those present).
@@ -260,10 +262,8 @@ def mode_domain(domain: Mapping[str, Any], shear_mode: str) -> tuple[dict[str, A
 def model_domain(provenance: Mapping[str, Any]) -> dict[str, Any] | None:
     """The domain a model records: its own training set's, else (an older weight-trained
     model) its point training set's; None when it records none."""
-    for prov in (provenance, provenance.get("parent")):
-        if isinstance(prov, Mapping) and isinstance(prov.get(DOMAIN_KEY), Mapping):
-            return dict(prov[DOMAIN_KEY])
-    return None
+    domain = own_or_parent(provenance, DOMAIN_KEY)
+    return None if domain is None else dict(domain)
 
 
 def recorded_columns(domain: Mapping[str, Any]) -> list[str]:

@@ -32,7 +32,6 @@ from megalut_cli.catalog import (
     iter_catalog,
     read_cards,
     read_carried_hdus,
-    read_catalog_columns,
     read_setup,
     setup_differences,
 )
@@ -54,6 +53,7 @@ from megalut_cli.nn.population import REAL_BIAS_ATTR, SIMULATED_BIAS_ATTR
 from megalut_cli.nn.symmetry import predict_with_symmetry
 from megalut_cli.parallel import executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, no_progress
+from megalut_cli.provenance import own_or_parent
 from megalut_cli.shear.bias import STAGE_IV_M
 from megalut_cli.shear.options import PREDICT
 from megalut_cli.shear.response import header_step
@@ -398,10 +398,7 @@ def _output_dtype(table: Any, new_cols: Sequence[str]) -> np.dtype:
 
 def _trained_setup(model: ShearModel) -> dict[str, Any]:
     """The setup the model records (its own training set's, else its point training set's)."""
-    for prov in (model.provenance, model.provenance.get("parent")):
-        if isinstance(prov, Mapping) and isinstance(prov.get("setup"), Mapping) and prov["setup"]:
-            return dict(prov["setup"])
-    return {}
+    return dict(own_or_parent(model.provenance, "setup") or {})
 
 
 def setup_findings(trained: Mapping[str, Any], applied: Mapping[str, Any]) -> list[Finding]:
@@ -420,54 +417,6 @@ def setup_findings(trained: Mapping[str, Any], applied: Mapping[str, Any]) -> li
     ]
 
 
-#: Most rows the domain check reads: a larger catalog is read chunk by chunk, keeping every
-#: k-th row (a systematic sample; memory stays bounded as predict's own).
-MAX_DOMAIN_ROWS = 1_000_000
-
-
-def domain_columns(
-    features_path: str | os.PathLike,
-    domain: Mapping[str, Any],
-    colnames: Sequence[str],
-    resolved: Mapping[str, str] | None = None,
-    metacal: bool = False,
-    n_rows: int | None = None,
-    extra: Sequence[str] = (),
-) -> dict[str, np.ndarray]:
-    """The catalog's columns of the model's ``domain``, ``flags`` and ``extra`` (only those, in
-    one pass; every k-th row of a catalog of more than :data:`MAX_DOMAIN_ROWS` rows), by their
-    domain names: a model feature through its ``resolved`` column, and for a metacal catalog
-    the ``noshear`` version's column where there is one."""
-    wanted = {}
-    for c in dict.fromkeys([*domain.get("columns", {}), "flags", *extra]):
-        column = catalog_column(c, colnames, None if c == "flags" else resolved, metacal)
-        if column is not None:
-            wanted[c] = column
-    if not wanted:
-        return {}
-    read = list(dict.fromkeys(wanted.values()))
-    if n_rows is None or n_rows <= MAX_DOMAIN_ROWS:
-        data, _ = read_catalog_columns(features_path, read)
-        return {c: data[column] for c, column in wanted.items()}
-    step = -(-n_rows // MAX_DOMAIN_ROWS)
-    parts: dict[str, list[np.ndarray]] = {column: [] for column in read}
-    start = 0
-    for table in iter_catalog(features_path, CHUNK_ROWS, columns=read):
-        first = (-start) % step  # the chunk's first row whose index is a multiple of step
-        for column in read:
-            parts[column].append(np.asarray(table[column])[first::step])
-        start += len(table)
-    return {c: np.concatenate(parts[column]) for c, column in wanted.items()}
-
-
-def _training_population(model: ShearModel) -> Mapping[str, Any] | None:
-    """The population the model records (its own training set's, else its parent's)."""
-    for prov in (model.provenance, model.provenance.get("parent")):
-        if isinstance(prov, Mapping) and isinstance(prov.get("population"), Mapping):
-            return prov["population"]
-    return None
-
-
 def applied_domain(model: ShearModel) -> tuple[dict[str, Any] | None, list[str]]:
     """The domain ``predict`` compares catalogs with, and the recorded items it leaves out:
     the model's (:func:`megalut_cli.nn.domain.model_domain`), with the stamp size of its setup
@@ -484,7 +433,8 @@ def applied_domain(model: ShearModel) -> tuple[dict[str, Any] | None, list[str]]
     if model.shear_mode != "metacal":
         from megalut_cli.nn.fit import config_psf_domain  # GalSim: only to draw the PSF
 
-        domain = config_psf_domain(domain, (_training_population(model) or {}).get("psf"))
+        population = own_or_parent(model.provenance, "population") or {}
+        domain = config_psf_domain(domain, population.get("psf"))
     return mode_domain(domain, model.shear_mode)
 
 
@@ -507,9 +457,14 @@ def catalog_column(
     return column if column in colnames else None
 
 
-#: Rows per chunk of :func:`count_rows` (a few columns: small chunks keep its memory below
+#: Most rows the domain check keeps: of a larger catalog, every k-th row (a systematic
+#: sample; memory stays bounded as predict's own).
+MAX_DOMAIN_ROWS = 1_000_000
+
+
+#: Rows per chunk of :func:`domain_rows` (a few columns: small chunks keep its memory below
 #: predict's own).
-COUNT_CHUNK_ROWS = 10_000
+DOMAIN_CHUNK_ROWS = 10_000
 
 
 @dataclass
@@ -523,20 +478,47 @@ class RowCounts:
     never_finite: list[str]
 
 
-def count_rows(
+@dataclass
+class DomainRows:
+    """What the domain check reads of a catalog (:func:`domain_rows`): the counts of its rows
+    and its columns of the model's domain, by their domain names (empty without a domain)."""
+
+    counts: RowCounts
+    columns: dict[str, np.ndarray]
+
+
+def domain_rows(
     features_path: str | os.PathLike,
     features: Sequence[str],
     colnames: Sequence[str],
     resolved: Mapping[str, str] | None = None,
     metacal: bool = False,
-) -> RowCounts:
-    """:class:`RowCounts` of a catalog, read chunk by chunk (the flags and the features only)."""
+    domain: Mapping[str, Any] | None = None,
+    n_rows: int | None = None,
+    extra: Sequence[str] = (),
+) -> DomainRows:
+    """The catalog's rows as the domain check sees them, in one pass chunk by chunk over the
+    columns it needs: the :class:`RowCounts` of every row (``flags`` and the model's
+    ``features``) and, with a ``domain``, the columns of the domain, ``flags`` and ``extra``
+    (every row; every k-th of a catalog of more than :data:`MAX_DOMAIN_ROWS` rows ``n_rows``).
+    A model feature is read through its ``resolved`` column, and for a metacal catalog the
+    ``noshear`` version's column where there is one."""
     flags = catalog_column("flags", colnames, None, metacal)
     cols = {f: catalog_column(f, colnames, resolved, metacal) for f in features}
-    read = list(dict.fromkeys([*(c for c in cols.values() if c), *([flags] if flags else [])]))
+    wanted: dict[str, str] = {}
+    if domain is not None:
+        for c in dict.fromkeys([*domain.get("columns", {}), "flags", *extra]):
+            column = catalog_column(c, colnames, None if c == "flags" else resolved, metacal)
+            if column is not None:
+                wanted[c] = column
+    kept = list(dict.fromkeys(wanted.values()))
+    counted = [*(c for c in cols.values() if c), *([flags] if flags else [])]
+    read = list(dict.fromkeys([*counted, *kept]))
+    step = 1 if n_rows is None or n_rows <= MAX_DOMAIN_ROWS else -(-n_rows // MAX_DOMAIN_ROWS)
+    parts: dict[str, list[np.ndarray]] = {column: [] for column in kept}
     n = flagged = usable = 0
     seen = dict.fromkeys(features, False)
-    for table in iter_catalog(features_path, COUNT_CHUNK_ROWS, columns=read or None):
+    for table in iter_catalog(features_path, DOMAIN_CHUNK_ROWS, columns=read or None):
         m = len(table)
         bad = np.asarray(table[flags]) != 0 if flags else np.zeros(m, dtype=bool)
         good = ~bad
@@ -544,9 +526,13 @@ def count_rows(
             finite = np.isfinite(np.asarray(table[c], dtype=np.float64)) if c else np.zeros(m, bool)
             seen[f] |= bool((finite & ~bad).any())
             good &= finite
+        first = (-n) % step  # the chunk's first row whose index is a multiple of step
+        for column in kept:
+            parts[column].append(np.asarray(table[column])[first::step])
         n, flagged, usable = n + m, flagged + int(bad.sum()), usable + int(good.sum())
     never = [f for f, ok in seen.items() if not ok] if n > flagged else []
-    return RowCounts(n, flagged, usable, never)
+    columns = {c: np.concatenate(parts[column]) for c, column in wanted.items()}
+    return DomainRows(RowCounts(n, flagged, usable, never), columns)
 
 
 def usable_findings(counts: RowCounts) -> list[Finding]:
@@ -693,15 +679,16 @@ def domain_report(
     (:func:`validation_findings`) is judged in any case."""
     trained = _trained_setup(model)
     domain, _ = applied if applied is not None else applied_domain(model)
-    findings = usable_findings(
-        count_rows(features_path, model.features, colnames, resolved, metacal)
+    extra = [*model.features, "box_size", *PSF_COLUMNS]
+    read = domain_rows(
+        features_path, model.features, colnames, resolved, metacal, domain, n_rows, extra
     )
+    findings = usable_findings(read.counts)
     if findings:  # nothing to compare
         return findings + validation_findings(model.validation)
     setup = read_setup(features_path) if model.shear_mode != "metacal" else {}
     if domain is not None:
-        extra = [*model.features, "box_size", *PSF_COLUMNS]
-        columns = domain_columns(features_path, domain, colnames, resolved, metacal, n_rows, extra)
+        columns = read.columns
         rows = _usable(columns, model.features)
         if model.shear_mode != "metacal":
             columns = {**columns, **setup_psf_columns(domain, columns, rows, setup)}
