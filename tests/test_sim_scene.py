@@ -11,6 +11,7 @@ import pytest
 from helpers import error_line, one_line
 from sim_configs import BULGEDISK, CF_FILE, COSMOSFIT, NOISE_ONLY, write
 
+import megalut_cli.sim.scene as scene_module
 from megalut_cli.errors import ConfigError, MegalutError
 from megalut_cli.sim.config import load_config
 from megalut_cli.sim.scene import (
@@ -104,10 +105,32 @@ def test_min_separation_keeps_galaxies_apart(tmp_path):
     zero = scene_config(tmp_path, **{"n_fields = 2": "n_fields = 2\nmin_separation = 0"})
     np.testing.assert_array_equal(draw_scenes(zero, 3).images, draw_scenes(plain, 3).images)
     assert "MINSEP" not in scene_cards(zero, 3)
-    # no place left: one line naming the keys to lower
-    xy = np.zeros((3, 2))
-    with pytest.raises(MegalutError, match="scene.min_separation"):
-        separated_positions(xy, np.random.default_rng(0), 0.0, 1.0, 5.0, 7)
+
+
+def test_a_jammed_placement_starts_again(monkeypatch):
+    """A count in the Poisson tail that jams the square (25 galaxies 34 px apart in the
+    isolated recipe's 186-px square: random sequential placement stops at galaxy 24 for
+    this draw) is placed by starting the field again; a field that does not jam draws what
+    one start draws; no place at all is still one line naming the keys to lower."""
+    lo, hi, d = 32.5, 218.5, 34.0
+
+    def place(seed: int) -> np.ndarray:
+        rng = np.random.default_rng(seed)
+        return separated_positions(rng.uniform(lo, hi, (25, 2)), rng, lo, hi, d, 0)
+
+    xy = place(0)
+    dist = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+    assert len(xy) == 25 and dist[np.triu_indices(25, 1)].min() >= d
+    assert np.all((xy >= lo) & (xy < hi))
+    unjammed = place(1)
+    monkeypatch.setattr(scene_module, "MAX_PLACEMENT_STARTS", 1)  # one start: as before
+    with pytest.raises(MegalutError, match="galaxy 24 of 25 found no place"):
+        place(0)
+    np.testing.assert_array_equal(place(1), unjammed)
+    monkeypatch.setattr(scene_module, "MAX_PLACEMENT_DRAWS", 50)
+    monkeypatch.setattr(scene_module, "MAX_PLACEMENT_STARTS", 3)
+    with pytest.raises(MegalutError, match="each of 3 placements .* scene.min_separation"):
+        separated_positions(np.zeros((3, 2)), np.random.default_rng(0), 0.0, 1.0, 5.0, 7)
 
 
 def test_fluxes_and_noise_add_up(tmp_path):

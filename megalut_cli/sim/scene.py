@@ -39,8 +39,11 @@ from megalut_cli.sim.scene_config import SceneSpec
 _COUNT_KEY, _FIELD_KEY, _GALAXY_KEY, _POSITION_KEY, _NOISE_KEY, _KNOT_KEY, _TWIN_KEY = range(7)
 #: Largest science cube (pixels of all images together; 1 GiB in float32): fail early.
 MAX_SCENE_PIXELS = 2**28
-#: With ``scene.min_separation``: the most draws of one galaxy's position before giving up.
+#: With ``scene.min_separation``: the most draws of one galaxy's position before the field's
+#: placement starts again.
 MAX_PLACEMENT_DRAWS = 10_000
+#: ... and the most fresh starts of a field's placement before giving up.
+MAX_PLACEMENT_STARTS = 100
 
 
 def scene_spec(config: SimConfig) -> SceneSpec:
@@ -55,8 +58,30 @@ def separated_positions(
 ) -> np.ndarray:
     """Random sequential placement: each position of ``xy`` (n, 2), in turn, redrawn
     uniformly in ``[lo, hi)²`` from ``rng`` until it lies at least ``distance`` from every
-    position placed before it (a grid of cells of side ``distance`` finds the neighbours)."""
+    position placed before it (a grid of cells of side ``distance`` finds the neighbours).
+    A galaxy that finds no place in :data:`MAX_PLACEMENT_DRAWS` draws (a count in the
+    Poisson tail can jam the square) starts the field's placement again from fresh uniform
+    positions, at most :data:`MAX_PLACEMENT_STARTS` times; a field that never jams draws
+    exactly what it drew before the restarts existed."""
     xy = xy.copy()
+    for _ in range(MAX_PLACEMENT_STARTS):
+        jammed = _place(xy, rng, lo, hi, distance)
+        if jammed is None:
+            return xy
+        xy = rng.uniform(lo, hi, xy.shape)
+    raise MegalutError(
+        f"scene field {fld}: galaxy {jammed + 1} of {len(xy)} found no place "
+        f"{distance:g} px from the others in {MAX_PLACEMENT_DRAWS} draws, in each of "
+        f"{MAX_PLACEMENT_STARTS} placements of the field; lower scene.density or "
+        "scene.min_separation"
+    )
+
+
+def _place(
+    xy: np.ndarray, rng: np.random.Generator, lo: float, hi: float, distance: float
+) -> int | None:
+    """One random sequential placement of ``xy`` in place; the index of the galaxy that
+    found no place (the placement is then incomplete), or None."""
     placed: dict[tuple[int, int], list[int]] = {}
     d2 = distance * distance
     for k in range(len(xy)):
@@ -72,13 +97,9 @@ def separated_positions(
                 placed.setdefault((cx, cy), []).append(k)
                 break
             if draw == MAX_PLACEMENT_DRAWS:
-                raise MegalutError(
-                    f"scene field {fld}: galaxy {k + 1} of {len(xy)} found no place "
-                    f"{distance:g} px from the others in {MAX_PLACEMENT_DRAWS} draws; lower "
-                    "scene.density or scene.min_separation"
-                )
+                return k
             xy[k] = rng.uniform(lo, hi, 2)
-    return xy
+    return None
 
 
 def field_counts(config: SimConfig, seed: int) -> np.ndarray:
