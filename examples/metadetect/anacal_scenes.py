@@ -3,8 +3,9 @@
     megalut simulate examples/scenes/metadetect.toml -o truth.fits --scene scenes.fits \\
         --pairs scene.n_fields=200
     python examples/metadetect/anacal_scenes.py scenes.fits --truth truth.fits [-o cat.fits]
-        [--sigma-arcsec 0.40] [--snr-min 5] [--omega-f 0.417] [--omega-v 0.0208] [--c0 2.30]
-        [--image-bound 0] [--seed 1] [--n-boot 500] [--fields N] [--no-noise-array]
+        [--sigma-arcsec 0.40 | --kernel-psf-ratio 1.2] [--snr-min 5] [--omega-f 0.417]
+        [--omega-v 0.0208] [--c0 2.30] [--image-bound 0] [--seed 1] [--n-boot 500]
+        [--fields N] [--no-noise-array]
 
 SCENES is a paired `megalut simulate --scene --pairs` file (docs/scenes.md): image 2k is
 field k at +g, image 2k+1 the same galaxies and noise at -g. Every image is one cell for
@@ -30,6 +31,10 @@ variance of each image is 1 / median(WGT). The thresholds (sigma_det, sigma(M_0)
 for the file from the median variance and the first image's PSF. The PSF (odd side,
 centred on the central pixel) is padded to 64 px, centred on pixel (32, 32) as AnaCal wants.
 One AnaCal cell per image, padded by at least the background kernel's reach.
+``--kernel-psf-ratio R`` sets the kernel to R times the PSF's sigma instead (the adaptive
+moments' sigma of the first image's PSF; xlens' kernel is 1.18 times its PSF's sigma); a
+kernel not above the PSF's sigma is warned about (the deconvolution blows up, anacal.md run
+(i)).
 
 Output (stdout): m (g_true = IMAGES.tru_g1 of the + image), c1, c2, from the pairs: m = sum_f
 (E1+ - E1-) / sum_f g_f (R1+ + R1-) - 1, c_i = sum (Ei+ + Ei-) / sum (Ri+ + Ri-) (E, R: a
@@ -66,9 +71,13 @@ import argparse  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 
-import anacal  # noqa: E402
 import fitsio  # noqa: E402
 import numpy as np  # noqa: E402
+
+try:  # an experiment-only import: not a megalut dependency
+    import anacal
+except ImportError:
+    raise SystemExit("anacal_scenes.py needs anacal: pip install anacal==0.8.3") from None
 
 PSF_NPIX = 64  # AnaCal's stamp size (even); the PSF is centred on pixel PSF_NPIX // 2
 SIGMA_REF = 0.26  # shape noise per component for n_eff
@@ -105,6 +114,25 @@ def padded_psf(psf: np.ndarray, npix: int = PSF_NPIX) -> np.ndarray:
     lo = npix // 2 - side // 2
     out[lo : lo + side, lo : lo + side] = p
     return out / out.sum()
+
+
+def psf_sigma(psf: np.ndarray, iterations: int = 50) -> float:
+    """The adaptive moments' sigma (pixels) of a PSF image: the Gaussian weight matched to
+    the profile, sigma^2 = (Mxx + Myy) / 2 of the weighted moments times 2, iterated."""
+    p = np.asarray(psf, dtype=np.float64)
+    yy, xx = np.indices(p.shape, dtype=np.float64)
+    f = p.sum()
+    xc, yc = (p * xx).sum() / f, (p * yy).sum() / f
+    s2 = 4.0
+    for _ in range(iterations):
+        w = p * np.exp(-((xx - xc) ** 2 + (yy - yc) ** 2) / (2.0 * s2))
+        xc, yc = (w * xx).sum() / w.sum(), (w * yy).sum() / w.sum()
+        m = (w * ((xx - xc) ** 2 + (yy - yc) ** 2)).sum() / w.sum() / 2.0
+        s2_new = 2.0 * m
+        if abs(s2_new - s2) < 1e-10 * s2:
+            break
+        s2 = s2_new
+    return float(np.sqrt(s2))
 
 
 def noise_levels(psf: np.ndarray, variance: float, sigma: float, scale: float, renoise: bool):
@@ -199,6 +227,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--truth", help="its truth table (-o of simulate): match the detections")
     ap.add_argument("-o", "--output", help="write the detections here (FITS table)")
     ap.add_argument("--sigma-arcsec", type=float, default=0.40, help="kernel sigma (arcsec)")
+    ap.add_argument(
+        "--kernel-psf-ratio",
+        type=float,
+        default=None,
+        help="kernel sigma = this times the PSF's sigma (instead of --sigma-arcsec)",
+    )
     ap.add_argument("--snr-min", type=float, default=5.0, help="peak threshold, sigma_det")
     ap.add_argument("--omega-f", type=float, default=0.417, help="flux step width, sigma_det")
     ap.add_argument("--omega-v", type=float, default=0.0208, help="peak step width, sigma_det")
@@ -231,6 +265,15 @@ def main(argv: list[str] | None = None) -> int:
     variances = np.array([1.0 / np.median(read("WGT", int(i))) for i in idx.ravel()])
     variance_ref = float(np.median(variances))
     psf_ref = padded_psf(read("PSF", int(idx[0, 0])))
+    sigma_psf = psf_sigma(psf_ref) * scale  # arcsec
+    if a.kernel_psf_ratio is not None:
+        a.sigma_arcsec = round(a.kernel_psf_ratio * sigma_psf, 4)
+    if a.sigma_arcsec <= 1.01 * sigma_psf:
+        print(
+            f'warning: kernel {a.sigma_arcsec}" is {a.sigma_arcsec / sigma_psf:.2f} times the '
+            f"PSF's sigma {sigma_psf:.3f}\": the deconvolution blows up",
+            file=sys.stderr,
+        )
     std_det, std_m0 = noise_levels(psf_ref, variance_ref, a.sigma_arcsec, scale, renoise)
     omega_f, omega_v, c0 = a.omega_f * std_det, a.omega_v * std_det, a.c0 * std_m0
     task = anacal.task.Task(
@@ -250,7 +293,8 @@ def main(argv: list[str] | None = None) -> int:
     cells = one_cell(n, scale)
     print(
         f'anacal {anacal.__version__}: {len(ids)} paired fields of {n} px at {scale}"/px; '
-        f'kernel {a.sigma_arcsec}" (detection {a.sigma_arcsec * np.sqrt(2):.3f}"), '
+        f'kernel {a.sigma_arcsec}" (detection {a.sigma_arcsec * np.sqrt(2):.3f}"; PSF sigma '
+        f'{sigma_psf:.4f}"), '
         f"snr_min {a.snr_min}, noise variance {variance_ref:.4g} (median over images), "
         f"sigma_det {std_det:.4g}, omega_f {omega_f:.4g}, omega_v {omega_v:.4g}, "
         f"sigma(M0) {std_m0:.4g}, c0 {c0:.4g}, renoising "
