@@ -188,6 +188,7 @@ def test_the_catalog_contract(measured):
     assert header["MLFORMAT"] == "megalut.metadetect"
     for card in ("DETTHRSH", "DETMINAR", "DBNTHRSH", "DBCONT", "MCALSEED", "STAMPSZ"):
         assert card in header
+    assert header["DBCLEAN"] is True  # sep's cleaning, its default
     # the target PSF: round, one size for every row
     assert np.abs(det["psf_adamom_g1"]).max() < 1e-6
     assert np.ptp(det["psf_adamom_sigma"]) == 0
@@ -210,6 +211,33 @@ def test_noise_detection_threshold_and_library_call(tmp_path):
     assert counts[0] == 0 and counts[1] > 100  # five versions
     x, y = detect(np.zeros((32, 32)), 1.0, DetectSettings(5.0, 4, 32, 0.005))
     assert len(x) == len(y) == 0
+
+
+def test_no_clean_reaches_sep(monkeypatch, runner, cli, tmp_path):
+    """``--no-clean``: sep.extract is called with clean=False (True by default), and the
+    catalog says so (DBCLEAN)."""
+    import sep
+
+    calls = []
+    extract = sep.extract
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs["clean"])
+        return extract(*args, **kwargs)
+
+    monkeypatch.setattr(sep, "extract", spy)
+    image = np.zeros((32, 32))
+    detect(image, 1.0, DetectSettings(5.0, 4, 32, 0.005))
+    detect(image, 1.0, DetectSettings(5.0, 4, 32, 0.005, clean=False))
+    assert calls == [True, False]
+    cells, _ = scenes(runner, cli, tmp_path, sigma=1.0)
+    out = tmp_path / "noclean.fits"
+    result = runner.invoke(
+        cli, ["measure", str(cells), "--metadetect", "--no-clean", "-j", "1", "-o", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    assert fitsio.read_header(str(out), 1)["DBCLEAN"] is False
+    assert calls[2:] and not any(calls[2:])
 
 
 def test_the_same_seed_the_same_rows_and_workers_agree(runner, cli, tmp_path):

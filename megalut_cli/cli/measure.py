@@ -99,6 +99,7 @@ def coadd_image_options(command: F) -> F:
 @schema_option(MEASURE["detect_minarea"], show_default=True)
 @schema_option(MEASURE["deblend_nthresh"], show_default=True)
 @schema_option(MEASURE["deblend_cont"], show_default=True)
+@schema_option(MEASURE["no_clean"])
 @schema_option(MEASURE["seed"], show_default=True)
 @engine_option("the adaptive moments are measured")
 @device_option("the fast engine measures")
@@ -129,6 +130,7 @@ def command(
     detect_minarea: int,
     deblend_nthresh: int,
     deblend_cont: float,
+    no_clean: bool,
     seed: int,
     engine: str,
     device: str,
@@ -181,7 +183,8 @@ def command(
     A cells file as STAMPS (SCI, WGT, MSK and PSF cubes, what megalut simulate --scene
     writes; docs/metadetect.md) is measured with --metadetect: per cell, the five metacal
     versions of the whole cell (fixnoise from the weight map), detection with sep on each
-    version (--detect-thresh, --detect-minarea, --deblend-nthresh, --deblend-cont), and the
+    version (--detect-thresh, --detect-minarea, --deblend-nthresh, --deblend-cont,
+    --no-clean), and the
     features of a stamp (--stamp-size, default 48) cut around each detection, neighbours
     left in: one row per detection per version (mdet_step, image, field, pair_sign, x, y,
     inner, the features, psf_adamom_* of the target PSF), format megalut.metadetect.
@@ -259,6 +262,7 @@ def command(
             detect_minarea=detect_minarea,
             deblend_nthresh=deblend_nthresh,
             deblend_cont=deblend_cont,
+            no_clean=no_clean,
             weight_path=weight_path,
             mask_path=mask_path,
             noise_path=noise_path,

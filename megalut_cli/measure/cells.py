@@ -299,6 +299,7 @@ def detect(
         minarea=settings.minarea,
         deblend_nthresh=settings.nthresh,
         deblend_cont=settings.cont,
+        clean=settings.clean,
     )
     return np.asarray(objects["x"], dtype=np.float64), np.asarray(objects["y"], dtype=np.float64)
 
@@ -705,6 +706,7 @@ def metadetect_cards(request: MeasureRequest, size: int) -> dict[str, Any]:
         "DETMINAR": (int(detection.minarea), "detection minimum area [pixels]"),
         "DBNTHRSH": (int(detection.nthresh), "deblending sub-thresholds"),
         "DBCONT": (float(detection.cont), "deblending minimum contrast"),
+        "DBCLEAN": (bool(detection.clean), "sep's cleaning of the detections"),
         "DETECTOR": ("sep", "detection code (Source Extractor as a library)"),
     }
 

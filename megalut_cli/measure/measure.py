@@ -107,6 +107,7 @@ def measure_file_columns(
     detect_minarea: int = MEASURE["detect_minarea"].default,
     deblend_nthresh: int = MEASURE["deblend_nthresh"].default,
     deblend_cont: float = MEASURE["deblend_cont"].default,
+    no_clean: bool = MEASURE["no_clean"].default,
     weight_path: str | os.PathLike | None = None,
     mask_path: str | os.PathLike | None = None,
     noise_path: str | os.PathLike | None = None,
@@ -169,9 +170,10 @@ def measure_file_columns(
         detect: like ``metadetect``, but detection on each cell itself, one row per
             detection (format ``megalut.features``); with ``metacal``, the metacal versions
             of each detection's stamp.
-        detect_thresh, detect_minarea, deblend_nthresh, deblend_cont: the detection of
-            ``metadetect`` and ``detect`` (sep): threshold in noise sigmas, the fewest pixels, the
-            deblending sub-thresholds and minimum contrast.
+        detect_thresh, detect_minarea, deblend_nthresh, deblend_cont, no_clean: the
+            detection of ``metadetect`` and ``detect`` (sep): threshold in noise sigmas, the
+            fewest pixels, the deblending sub-thresholds and minimum contrast, sep's cleaning
+            switched off.
         weight_path, mask_path, noise_path, cell_size, cell_border: ``metadetect`` on one
             coadd image (:mod:`.coadd`): its inverse-variance map (required), mask bits and
             a noise realization (optional, for correlated noise), and the cells it is cut
@@ -204,7 +206,11 @@ def measure_file_columns(
     )
     detection = (
         DetectSettings(
-            float(detect_thresh), int(detect_minarea), int(deblend_nthresh), float(deblend_cont)
+            float(detect_thresh),
+            int(detect_minarea),
+            int(deblend_nthresh),
+            float(deblend_cont),
+            not no_clean,
         )
         if metadetect or detect
         else None

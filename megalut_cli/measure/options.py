@@ -159,6 +159,14 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         maximum=1,
     ),
     Option(
+        "no_clean",
+        "bool",
+        False,
+        "--metadetect: switch off sep's cleaning (Source Extractor's CLEAN, which merges "
+        "detections it takes for spurious wings of brighter ones; on blended scenes it also "
+        "removes real neighbours, docs/metadetect.md).",
+    ),
+    Option(
         "cell_size",
         "int",
         CELL_SIZE,

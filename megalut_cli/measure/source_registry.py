@@ -98,12 +98,14 @@ class CellSettings:
 @dataclass(frozen=True)
 class DetectSettings:
     """The detection of ``--metadetect`` (sep): threshold in noise sigmas, the fewest pixels
-    of a detection, the deblending sub-thresholds and minimum contrast."""
+    of a detection, the deblending sub-thresholds and minimum contrast, and whether sep
+    cleans the detections (its default)."""
 
     thresh: float
     minarea: int
     nthresh: int
     cont: float
+    clean: bool = True
 
 
 @dataclass
