@@ -204,9 +204,9 @@ def main() -> None:
         f"(noshear {int(sums['n_noshear'].sum())}), min edge {min_edge:g} px ({args.edge_frame})"
     )
     print(f"R11 = {r11:.4f} +- {err[3]:.4f}, R22 = {r22:.4f} +- {err[4]:.4f}")
-    print(f"m  = {m:+.2e} +- {err[0]:.1e}")
-    print(f"c1 = {c1:+.2e} +- {err[1]:.1e}")
-    print(f"c2 = {c2:+.2e} +- {err[2]:.1e}")
+    print(f"m  = {m:+.2e} +- {err[0]:.2e}")
+    print(f"c1 = {c1:+.2e} +- {err[1]:.2e}")
+    print(f"c2 = {c2:+.2e} +- {err[2]:.2e}")
     for k in range(args.subsets - 1, 0, -1):
         n = n_fields >> k
         if n < 2:
