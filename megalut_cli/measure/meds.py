@@ -637,20 +637,19 @@ def measure_epochs(
     plan = meds_plan(meds, options, ks, psf_model=psf_model, names=names)
     n_workers = workers(nproc, scheduler)
     units: list[MedsUnit] = []
-    blocks: list[slice] = []  # each epoch's output rows, one block after the other
+    epochs: list[tuple[int, np.ndarray, slice]] = []  # cutout, who has it, its output rows
     start = 0
     for k in ks:
         has = ncut > k
         rows = np.full(len(meds), -1, dtype=np.int64)  # each object's output row
         rows[has] = start + np.arange(int(has.sum()))
         units += cutout_units(plan, k, has, rows, n_workers, names)
-        blocks.append(slice(start, start + int(has.sum())))
-        start = blocks[-1].stop
+        epochs.append((k, has, slice(start, start + int(has.sum()))))
+        start = epochs[-1][2].stop
     measured = _measured_columns(plan, units, start, None, nproc, scheduler, progress)
     parts: list[dict[str, np.ndarray]] = []
     objects: list[np.ndarray] = []
-    for k, block in zip(ks, blocks):
-        has = ncut > k
+    for k, has, block in epochs:
         part = {c: v[has] for c, v in passed_columns(meds, has, k).items()}
         part.update({c: v[block] for c, v in measured.items()})
         part["cutout"] = np.full(int(has.sum()), k, dtype=np.int32)
