@@ -122,11 +122,16 @@ def test_each_galaxy_counts_once_in_every_version(measured):
 def test_the_catalog_holds_sky_positions_and_its_cards(measured):
     paths, _, _, det, header = measured
     names = list(det.colnames)
-    assert names[:7] == ["mdet_step", "cell", "x", "y", "ra", "dec", "inner"]
+    jacobian = ["dudcol", "dudrow", "dvdcol", "dvdrow"]
+    assert names[:11] == ["mdet_step", "cell", "x", "y", "ra", "dec", *jacobian, "inner"]
     wcs = galsim.FitsWCS(str(paths["coadd"]))
     ra, dec = wcs.xyToradec(np.asarray(det["x"]), np.asarray(det["y"]), units="deg")
     np.testing.assert_allclose(det["ra"], ra, atol=1e-9)
     np.testing.assert_allclose(det["dec"], dec, atol=1e-9)
+    for row in det[:5]:  # the WCS's local Jacobian (arcsec per pixel): calibrate's world frame
+        local = wcs.jacobian(galsim.PositionD(float(row["x"]), float(row["y"])))
+        expect = [local.dudx, local.dudy, local.dvdx, local.dvdy]
+        np.testing.assert_allclose([row[c] for c in jacobian], expect, rtol=1e-6, atol=1e-9)
     assert header["MLFORMAT"] == "megalut.metadetect"
     assert (header["CELLSZ"], header["INNERBRD"], header["NCELLS"]) == (SIZE, BORDER, 16)
     assert header["IMGFILE"] == "coadd.fits" and header["WGTFILE"] == "weight.fits"

@@ -329,3 +329,35 @@ def test_metadetection_catalog_is_calibrated_by_its_detections_response():
     bad = dict(cat, mdet_step=np.where(noshear, "noshear", "3p"))
     with pytest.raises(InputError, match="3p"):
         calibrate_columns(bad, header={"MDETSTEP": 0.01})
+
+
+@pytest.mark.parametrize("angle, flip", [(30.0, False), (-75.0, True)])
+def test_metadetection_shears_come_out_in_the_world_frame(angle, flip):
+    """A coadd's metadetection catalog with the image's local Jacobian (``dudcol`` ...,
+    written by ``measure IMAGE --metadetect`` for a celestial WCS), its pixels turned by
+    ``angle`` degrees from the sky (and flipped): the galaxies' world shear, seen in the
+    pixel frame as Q^T g, is calibrated back to the world frame to 1e-3."""
+    from helpers import metadetect_predictions
+
+    from megalut_cli.shear.frame import jacobian_frames
+
+    phi = np.deg2rad(angle)
+    jac = 0.2 * np.array([[np.cos(phi), -np.sin(phi)], [np.sin(phi), np.cos(phi)]])
+    if flip:
+        jac = jac @ np.diag([-1.0, 1.0])
+    q = jacobian_frames(*(np.array([v]) for v in jac.ravel())).rotation[0]
+    g_world = np.array([0.02, -0.01])
+    cat = metadetect_predictions(n=200_000, seed=3, g=tuple(q.T @ g_world))
+    n = len(cat["pre_g1"])
+    for name, value in zip(("dudcol", "dudrow", "dvdcol", "dvdrow"), jac.ravel()):
+        cat[name] = np.full(n, value)
+    res = calibrate_columns(cat, header={"MDETSTEP": 0.01}).result
+    a = res["all"]
+    assert res["frame"] == "world"
+    g = np.array([a["g1"], a["g2"]])
+    assert np.all(np.abs(g - g_world) < 1e-3), g
+    pixel = calibrate_columns(
+        {k: v for k, v in cat.items() if not k.startswith("dud") and not k.startswith("dvd")},
+        header={"MDETSTEP": 0.01},
+    ).result["all"]
+    assert abs(pixel["g1"] - g_world[0]) > 5e-3  # the pixel frame is another frame here

@@ -39,7 +39,7 @@ from megalut_cli.measure.stamps import ImageInfo, image_info
 from megalut_cli.parallel import executor, map_units
 from megalut_cli.progress import no_progress
 from megalut_cli.provenance import sha256_file
-from megalut_cli.shear.frame import celestial_jacobians, is_celestial
+from megalut_cli.shear.frame import JACOBIAN_COLUMNS, celestial_jacobians, is_celestial
 
 log = logging.getLogger(__name__)
 
@@ -265,7 +265,8 @@ def coadd_columns(
     coadd: CoaddInput, jobs: list[CoaddCellJob], results: list[dict[str, np.ndarray] | None]
 ) -> dict[str, np.ndarray]:
     """The catalog's columns in the order of the contract: ``mdet_step``, ``cell``, ``x``,
-    ``y`` (``ra``, ``dec``), ``inner``, then the features."""
+    ``y`` (``ra``, ``dec``, ``dudcol``, ``dudrow``, ``dvdcol``, ``dvdrow``), ``inner``, then
+    the features."""
     kept = [(job, r) for job, r in zip(jobs, results) if r is not None]
     if not kept:
         raise InputError(f"{coadd.image.path}: every pixel is bad (weight 0 or masked)")
@@ -278,7 +279,8 @@ def coadd_columns(
     out["x"], out["y"] = merged.pop("x"), merged.pop("y")
     if is_celestial(coadd.image.header) and len(out["x"]):
         sky = celestial_jacobians(coadd.image.header, out["x"], out["y"])
-        out["ra"], out["dec"] = sky["ra"], sky["dec"]
+        # the sky position and the local Jacobian (calibrate's world frame)
+        out.update({c: sky[c] for c in ("ra", "dec", *JACOBIAN_COLUMNS)})
     out["inner"] = merged.pop("inner")
     out.update(cells.ordered_features(merged))
     return out

@@ -433,7 +433,8 @@ def _metadetect_objects(columns: Mapping[str, np.ndarray], plan: CalibrationPlan
 
 def _objects(columns: Mapping[str, np.ndarray], plan: CalibrationPlan) -> _Objects:
     if plan.route == ROUTE_METADETECT:
-        return _metadetect_objects(columns, plan)
+        obj = _metadetect_objects(columns, plan)
+        return _to_world(obj, columns, plan) if plan.frame == WORLD_FRAME else obj
     n = len(np.asarray(columns[plan.columns[0]]))
     if n == 0:
         raise InputError(f"{plan.source}: the catalog has no rows")
