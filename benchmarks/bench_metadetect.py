@@ -3,10 +3,11 @@
 One core (BLAS and numba on one thread), CPU seconds, on the scenes of
 ``examples/scenes/metadetect.toml`` (250-px cells, about 17 galaxies each):
 
-* per cell, in this process: the metacal operation on the cell and its fixnoise (the white
-  field moved with each version, GalSim's FFTs), sep's detection on the five versions, the
-  features of the stamps around the detections; and the networks (``predict`` with
-  ``fiducial-metacal``) per row;
+* per cell, in this process, for the cell engine (the default, :mod:`megalut_cli.measure.
+  cell_metacal`) and GalSim's reference (``--engine galsim``) on the same cells: the metacal
+  operation on the cell with its fixnoise (the white field moved with each version; for
+  GalSim apart), sep's detection on the five versions, the features of the stamps around
+  the detections; and the networks (``predict`` with ``fiducial-metacal``) per row;
 * coadds of ``--coadd-sizes`` pixels (the scenes' galaxies at the same density, written as
   one image with its weight map) measured with ``-j 2``: the peak memory of the command and
   of its workers, against the image's size.
@@ -41,9 +42,10 @@ def run(args: list[str]) -> None:
     subprocess.run([sys.executable, "-m", "megalut_cli", *args], check=True, cwd=ROOT)
 
 
-def cells_profile(path: Path, n: int) -> dict[str, float]:
-    """CPU per cell of each stage of :func:`metadetect_cell` (stages timed by wrapping)."""
-    from megalut_cli.measure import cell_fixnoise, cells, metacal
+def cells_profile(path: Path, n: int, engine: str) -> dict[str, float]:
+    """CPU per cell of each stage of :func:`metadetect_cell` with ``engine`` (stages timed
+    by wrapping; ``operation`` holds ``fixnoise``)."""
+    from megalut_cli.measure import cell_fixnoise, cells
     from megalut_cli.measure.measurer import Measurer, MeasureSettings, MetacalSettings
     from megalut_cli.measure.source_registry import DetectSettings
 
@@ -62,14 +64,14 @@ def cells_profile(path: Path, n: int) -> dict[str, float]:
     originals = (
         cells.detect,
         Measurer.measure,
-        metacal.metacal_versions,
+        cells.cell_operation,
         cell_fixnoise.moving_fixnoise,
     )
     cell_fixnoise.moving_fixnoise = timed(cell_fixnoise.moving_fixnoise, "fixnoise")
     cells.detect = timed(cells.detect, "detection")
     Measurer.measure = timed(Measurer.measure, "features")
-    metacal.metacal_versions = timed(metacal.metacal_versions, "operation")
-    settings = MeasureSettings(metacal=MetacalSettings(0.01, 1))
+    cells.cell_operation = timed(cells.cell_operation, "operation")
+    settings = MeasureSettings(engine=engine, metacal=MetacalSettings(0.01, 1))
     detection = DetectSettings(5.0, 4, 32, 0.005)
     cell = cells.read_cell(str(path), 0)
     cells.metadetect_cell(  # first call: caches, numba
@@ -85,12 +87,9 @@ def cells_profile(path: Path, n: int) -> dict[str, float]:
         )
         rows += len(out["x"])
     total = time.process_time() - t0
-    (
-        cells.detect,
-        Measurer.measure,
-        metacal.metacal_versions,
-        cell_fixnoise.moving_fixnoise,
-    ) = originals
+    (cells.detect, Measurer.measure, cells.cell_operation, cell_fixnoise.moving_fixnoise) = (
+        originals
+    )
     return {"cells": n, "rows": rows, "total": total, **spent}
 
 
@@ -202,12 +201,17 @@ def main() -> None:
                 "-q",
             ]
         )
-        p = cells_profile(scenes, args.cells)
-        objects = p["rows"] / 5.0
-        print(f"{p['cells']} cells, {p['rows']} rows ({objects:.0f} objects x 5 versions)")
-        print(f"CPU per detected object, whole cell route: {1e3 * p['total'] / objects:.2f} ms")
-        for k in ("operation", "fixnoise", "detection", "features"):
-            print(f"  {k:10s} {1e3 * p[k] / objects:6.2f} ms  ({100 * p[k] / p['total']:.0f} %)")
+        for engine in ("fast", "galsim"):
+            p = cells_profile(scenes, args.cells, engine)
+            objects = p["rows"] / 5.0
+            print(
+                f"engine {engine}: {p['cells']} cells, {p['rows']} rows ({objects:.0f} objects "
+                f"x 5 versions); CPU per detected object, whole cell route: "
+                f"{1e3 * p['total'] / objects:.2f} ms"
+            )
+            for k in ("operation", "fixnoise", "detection", "features"):
+                share = 100 * p[k] / p["total"]
+                print(f"  {k:10s} {1e3 * p[k] / objects:6.2f} ms  ({share:.0f} %)")
         det = tmp / "det.fits"
         run(["measure", str(scenes), "--metadetect", "-o", str(det), "-j", "1", "-q"])
         per_row = predict_per_row(det, tmp)

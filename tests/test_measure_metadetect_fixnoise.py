@@ -1,4 +1,5 @@
-"""The fixnoise of metadetection on whole cells (``measure/cell_fixnoise.py``): it moves with
+"""The fixnoise of metadetection on whole cells (``measure/cell_fixnoise.py``, and the cell
+engine's, ``measure/cell_metacal.py``): it moves with
 the image (a pixel of the noise field lands where the version's shear about the cell's
 centre takes it), has the response of metacal's rotated field (its power spectrum), and so
 leaves the response of an object far from the centre nearly independent of its seed."""
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 from megalut_cli.measure.cell_fixnoise import kernel_size, moving_fixnoise
+from megalut_cli.measure.cell_metacal import cell_versions
 from megalut_cli.measure.cells import metadetect_cell
 from megalut_cli.measure.measurer import MeasureSettings, MetacalSettings
 from megalut_cli.measure.metacal import metacal_versions
@@ -25,8 +27,9 @@ def centroid(image: np.ndarray, x0: float, y0: float, half: int = 10) -> np.ndar
     return np.array([(box * xx).sum(), (box * yy).sum()]) / box.sum()
 
 
+@pytest.mark.parametrize("engine", ["fast", "galsim"])
 @pytest.mark.parametrize("psf_shear", [(0.0, 0.0), (0.03, -0.02)], ids=["round", "elliptical"])
-def test_a_pixel_of_noise_moves_with_the_image(psf_shear):
+def test_a_pixel_of_noise_moves_with_the_image(psf_shear, engine):
     """One pixel of noise about 30 px from the cell's centre along each axis: in every version
     it lands at the image's sheared position (metacal's rotated field: the other way), and
     the amplitude of its Fourier transform (the field's power spectrum) is the rotated
@@ -37,7 +40,10 @@ def test_a_pixel_of_noise_moves_with_the_image(psf_shear):
     field = np.zeros((size, size))
     px, py = 80, 20
     field[py, px] = 1.0
-    moving = moving_fixnoise(field, psf_image, step, target)
+    if engine == "galsim":
+        moving = moving_fixnoise(field, psf_image, step, target)
+    else:  # the cell engine: the field's part of the versions of an empty cell
+        moving, _ = cell_versions(np.zeros_like(field), psf_image, step, target, moving_field=field)
     rotated, _ = metacal_versions(np.rot90(field, 1)[None].copy(), psf_image, step, target=target)
     standard = {kind: np.rot90(rotated[kind][0], -1) for kind in TYPES}
     centre = (size - 1) / 2.0

@@ -100,8 +100,8 @@ def sep_positions(
     image: np.ndarray, noise: float, settings: DetectSettings, bad: np.ndarray
 ) -> np.ndarray:
     """megalut's detection (sep) of one cell: the 0-based positions, shape (n, 2)."""
-    x, y = detect(image, noise, settings, bad)
-    return np.c_[x, y]
+    found = detect(image, noise, settings, bad)
+    return np.c_[found.x, found.y]
 
 
 def photutils_segments(

@@ -17,7 +17,8 @@ the cut between 1p and 1m; optionally ``|g| < --max-g``, ``snr > --min-snr`` and
 ``(adamom_sigma / psf_adamom_sigma)^2 < --max-size-ratio`` (3 keeps every isolated galaxy
 of examples/scenes/isolated.toml and drops the blends of examples/scenes/metadetect.toml).
 
-Estimate: per field and sign, the sums of ``adamom_g1``, ``adamom_g2`` over each version's
+Estimate: per field and sign, the sums of ``adamom_g1``, ``adamom_g2`` (``--estimator pre``:
+the networks' ``pre_g1``, ``pre_g2``, after ``megalut predict``) over each version's
 kept rows and their counts; over the fields, per sign, R11 = (<g1>_1p - <g1>_1m) / (2 step),
 R22 alike, one response for both signs (their mean; ``--per-sign-response``: each sign its
 own), g = <g>_noshear / R; m and c from the
@@ -86,9 +87,9 @@ def selection(
     return keep
 
 
-def field_sums(rows: np.ndarray, keep: np.ndarray) -> dict[str, np.ndarray]:
-    """Per field and sign (axes 0, 1: fields, + and -), per version: the sums of g1, g2 and
-    the counts of the kept rows."""
+def field_sums(rows: np.ndarray, keep: np.ndarray, prefix: str = "adamom") -> dict[str, np.ndarray]:
+    """Per field and sign (axes 0, 1: fields, + and -), per version: the sums of g1, g2 (the
+    columns ``<prefix>_g1``, ``<prefix>_g2``) and the counts of the kept rows."""
     fields = np.unique(rows["field"])
     step_col = np.char.strip(rows["mdet_step"].astype(str))
     f_index = np.searchsorted(fields, rows["field"])
@@ -96,7 +97,8 @@ def field_sums(rows: np.ndarray, keep: np.ndarray) -> dict[str, np.ndarray]:
     out = {}
     for kind in TYPES:
         sel = keep & (step_col == kind)
-        for name, values in (("g1", rows["adamom_g1"]), ("g2", rows["adamom_g2"]), ("n", None)):
+        g1, g2 = rows[f"{prefix}_g1"], rows[f"{prefix}_g2"]
+        for name, values in (("g1", g1), ("g2", g2), ("n", None)):
             acc = np.zeros((len(fields), 2))
             w = np.ones(sel.sum()) if values is None else values[sel]
             np.add.at(acc, (f_index[sel], s_index[sel]), w)
@@ -172,6 +174,12 @@ def main() -> None:
         help="calibrate each sign by its own response (default: their mean for both)",
     )
     parser.add_argument("--subsets", type=int, default=1, help="sigma_m of 1/2^k of the fields")
+    parser.add_argument(
+        "--estimator",
+        default="adamom",
+        help="the shear columns <estimator>_g1, <estimator>_g2: adamom (default) or pre (the "
+        "networks' unweighted predictions, after megalut predict)",
+    )
     args = parser.parse_args()
     parts, steps, n_rows, n_kept = [], set(), 0, 0
     for path in args.catalog:  # runs of other seeds: their fields are other fields
@@ -189,7 +197,7 @@ def main() -> None:
             args.max_size_ratio,
             args.edge_frame,
         )
-        parts.append(field_sums(rows, keep))
+        parts.append(field_sums(rows, keep, args.estimator))
         steps.add(step)
         n_rows, n_kept = n_rows + len(rows), n_kept + int(keep.sum())
     if len(steps) != 1:

@@ -100,6 +100,7 @@ def coadd_image_options(command: F) -> F:
 @schema_option(MEASURE["deblend_nthresh"], show_default=True)
 @schema_option(MEASURE["deblend_cont"], show_default=True)
 @schema_option(MEASURE["no_clean"])
+@schema_option(MEASURE["mask_neighbours"])
 @schema_option(MEASURE["seed"], show_default=True)
 @engine_option("the adaptive moments are measured")
 @device_option("the fast engine measures")
@@ -131,6 +132,7 @@ def command(
     deblend_nthresh: int,
     deblend_cont: float,
     no_clean: bool,
+    mask_neighbours: bool,
     seed: int,
     engine: str,
     device: str,
@@ -186,8 +188,9 @@ def command(
     version (--detect-thresh, --detect-minarea, --deblend-nthresh, --deblend-cont,
     --no-clean), and the
     features of a stamp (--stamp-size, default 48) cut around each detection, neighbours
-    left in: one row per detection per version (mdet_step, image, field, pair_sign, x, y,
-    inner, the features, psf_adamom_* of the target PSF), format megalut.metadetect.
+    left in (--mask-neighbours: their segments masked): one row per detection per version
+    (mdet_step, image, field, pair_sign, x, y, inner, the features, psf_adamom_* of the
+    target PSF), format megalut.metadetect.
     A plain coadd image as STAMPS with --metadetect needs --weight and one PSF (--psf, one
     PSF image in the image's pixels, or --psf-model, drawn at each cell's centre); it is cut
     into cells of --cell-size pixels overlapping by twice --cell-border, whose inner regions
@@ -263,6 +266,7 @@ def command(
             deblend_nthresh=deblend_nthresh,
             deblend_cont=deblend_cont,
             no_clean=no_clean,
+            mask_neighbours=mask_neighbours,
             weight_path=weight_path,
             mask_path=mask_path,
             noise_path=noise_path,

@@ -26,6 +26,7 @@ import fitsio
 import numpy as np
 
 from megalut_cli.catalog import is_fits_file
+from megalut_cli.engine import DEFAULT_ENGINE
 from megalut_cli.errors import ConfigError, InputError, namer
 from megalut_cli.fits_header import header_dict
 from megalut_cli.measure.defaults import CELLS_FORMAT, MDET_FORMAT, MDET_STAMP_SIZE, PSF_COLUMNS
@@ -68,9 +69,6 @@ IMAGE_COLUMNS: tuple[str, ...] = ("image", "field", "pair_sign", "tru_g1", "tru_
 #: Header card of a cells file (and of the catalog): the width of the border (pixels) outside
 #: each cell's inner region (overlapping cells); 0 or absent: the whole cell is inner.
 INNER_CARD = "INNERBRD"
-#: The GalSim engine does the operation on a whole cell: FFTs of the cell (the fast engine's
-#: matrix transforms are made for small stamps: 10 times slower at 250 pixels).
-CELL_ENGINE = "galsim"
 #: Header card: the fixnoise field of a metadetect catalog, a noise image (``NOISE``) or
 #: white noise of the weight map (``white``).
 FIXNOISE_CARD = "MDETFIX"
@@ -218,43 +216,79 @@ def cell_noise(weight: np.ndarray, bad: np.ndarray) -> float:
     return float(1.0 / np.sqrt(np.median(w))) if w.size else float("nan")
 
 
-@functools.lru_cache(maxsize=64)
-def _noise_gain(psf_bytes: bytes, psf_size: int, step: float, target: str) -> float:
-    """The rms of the noshear version of unit white noise (no fixnoise) for this PSF."""
-    from megalut_cli.measure.metacal import metacal_versions  # GalSim: metadetect only
+def cell_operation(
+    image: np.ndarray,
+    psf: np.ndarray,
+    step: float,
+    target: str,
+    engine: str = DEFAULT_ENGINE,
+    moving_field: np.ndarray | None = None,
+    rotated_field: np.ndarray | None = None,
+) -> tuple[dict[str, np.ndarray], float]:
+    """The five metacal versions of a cell and the target's sigma, as
+    :func:`~.cell_metacal.cell_versions` (the default engine), or with ``engine="galsim"``
+    by GalSim's reference operation (:mod:`.metacal`, :mod:`.cell_fixnoise`)."""
+    # GalSim, FFTs: metadetect only
+    from megalut_cli.measure.cell_fixnoise import moving_fixnoise
+    from megalut_cli.measure.cell_metacal import cell_versions
+    from megalut_cli.measure.metacal import metacal_versions
 
+    if engine != "galsim":
+        return cell_versions(image, psf, step, target, moving_field, rotated_field)
+    fields = None if rotated_field is None else np.asarray(rotated_field, np.float64)[None]
+    versions, sigma = metacal_versions(
+        np.asarray(image, np.float64)[None],
+        psf,
+        step,
+        engine="galsim",
+        target=target,
+        noise_fields=fields,
+    )
+    out = {kind: v[0] for kind, v in versions.items()}
+    if moving_field is not None:
+        for kind, fixnoise in moving_fixnoise(moving_field, psf, step, target).items():
+            out[kind] += fixnoise
+    return out, float(sigma[0])
+
+
+@functools.lru_cache(maxsize=64)
+def _noise_gain(psf_bytes: bytes, psf_size: int, step: float, target: str, engine: str) -> float:
+    """The rms of the noshear version of unit white noise (no fixnoise) for this PSF."""
     psf = np.frombuffer(psf_bytes).reshape(psf_size, psf_size)
     size = 96
-    noise = np.random.default_rng(0).normal(0.0, 1.0, (1, size, size))
-    versions, _ = metacal_versions(noise, psf, step, engine=CELL_ENGINE, target=target)
-    centre = versions["noshear"][0, size // 4 : -size // 4, size // 4 : -size // 4]
+    noise = np.random.default_rng(0).normal(0.0, 1.0, (size, size))
+    versions, _ = cell_operation(noise, psf, step, target, engine)
+    centre = versions["noshear"][size // 4 : -size // 4, size // 4 : -size // 4]
     return float(centre.std())
 
 
-def version_noise(psf: np.ndarray, sigma: float, step: float, target: str) -> float:
+def version_noise(
+    psf: np.ndarray, sigma: float, step: float, target: str, engine: str = DEFAULT_ENGINE
+) -> float:
     """The noise sigma of a metacal version of a cell of noise ``sigma``: the operation's
     gain on white noise, times sqrt(2) for fixnoise."""
     psf = np.ascontiguousarray(psf, dtype=np.float64)
-    return float(sigma * np.sqrt(2.0) * _noise_gain(psf.tobytes(), psf.shape[0], step, target))
+    gain = _noise_gain(psf.tobytes(), psf.shape[0], step, target, engine)
+    return float(sigma * np.sqrt(2.0) * gain)
 
 
 #: Side of the central cut of a noise image whose noshear version gives the detection noise.
 NOISE_CUT = 96
 
 
-def field_version_noise(psf: np.ndarray, field: np.ndarray, step: float, target: str) -> float:
+def field_version_noise(
+    psf: np.ndarray, field: np.ndarray, step: float, target: str, engine: str = DEFAULT_ENGINE
+) -> float:
     """The noise sigma of a metacal version of a cell whose noise is like ``field`` (a noise
     image with the data's correlations): the rms of the centre of the noshear version of the
     field's central cut, times sqrt(2) for fixnoise (the field itself, rotated)."""
-    from megalut_cli.measure.metacal import metacal_versions  # GalSim: metadetect only
-
     ny, nx = field.shape
     size = min(ny, nx, NOISE_CUT)
     y0, x0 = (ny - size) // 2, (nx - size) // 2
     cut = np.asarray(field[y0 : y0 + size, x0 : x0 + size], dtype=np.float64)
-    versions, _ = metacal_versions(cut[None], psf, step, engine=CELL_ENGINE, target=target)
+    versions, _ = cell_operation(cut, psf, step, target, engine)
     q = size // 4
-    return float(np.sqrt(2.0) * versions["noshear"][0, q : size - q, q : size - q].std())
+    return float(np.sqrt(2.0) * versions["noshear"][q : size - q, q : size - q].std())
 
 
 #: The farthest a PSF image's centroid may lie from the image's true centre (pixels).
@@ -282,16 +316,26 @@ def check_psf(psf: np.ndarray, where: str) -> None:
         )
 
 
+@dataclass(frozen=True)
+class Detections:
+    """sep's detections on one image: 0-based ``x`` (column), ``y`` (row), its windowless
+    barycentres, and with ``mask_neighbours`` its segmentation map (detection ``i`` owns the
+    pixels holding ``i + 1``; 0: none)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    segments: np.ndarray | None = None
+
+
 def detect(
     image: np.ndarray, noise: float, settings: DetectSettings, bad: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Detections of sep on ``image`` (background 0) at ``settings.thresh`` times ``noise``:
-    their 0-based ``x`` (column) and ``y`` (row), sep's windowless barycentres."""
+) -> Detections:
+    """Detections of sep on ``image`` (background 0) at ``settings.thresh`` times ``noise``."""
     import sep
 
     data = np.ascontiguousarray(image, dtype=np.float64)
     mask = None if bad is None or not bad.any() else np.ascontiguousarray(bad, dtype=np.uint8)
-    objects = sep.extract(
+    found = sep.extract(
         data,
         settings.thresh,
         err=noise,
@@ -300,8 +344,11 @@ def detect(
         deblend_nthresh=settings.nthresh,
         deblend_cont=settings.cont,
         clean=settings.clean,
+        segmentation_map=settings.mask_neighbours,
     )
-    return np.asarray(objects["x"], dtype=np.float64), np.asarray(objects["y"], dtype=np.float64)
+    objects, segments = found if settings.mask_neighbours else (found, None)
+    x = np.asarray(objects["x"], dtype=np.float64)
+    return Detections(x, np.asarray(objects["y"], dtype=np.float64), segments)
 
 
 def cleaned_cell(image: np.ndarray, bad: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -328,11 +375,17 @@ def unsheared(
 
 
 def cut_around(
-    image: np.ndarray, bad: np.ndarray, x: np.ndarray, y: np.ndarray, size: int
+    image: np.ndarray,
+    bad: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    size: int,
+    segments: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Stamps of ``size`` pixels around 0-based positions ``x, y`` of ``image``: the stamps
-    (0 outside the image), their masked pixels (``bad`` or outside), their FITS 1-based
-    lower-left ``origins`` and the objects' 0-based ``(col, row)`` in them."""
+    (0 outside the image), their masked pixels (``bad`` or outside; with ``segments``, the
+    detections' segmentation map, also the pixels of the other detections), their FITS
+    1-based lower-left ``origins`` and the objects' 0-based ``(col, row)`` in them."""
     n, (ny, nx) = len(x), image.shape
     x0 = np.floor(x - (size - 1) / 2.0 + 0.5).astype(np.int64)  # the centre within 0.5 px
     y0 = np.floor(y - (size - 1) / 2.0 + 0.5).astype(np.int64)
@@ -344,6 +397,12 @@ def cut_around(
     cols = (x0 + size)[:, None] + np.arange(size)[None, :]
     stamps = padded[rows[:, :, None], cols[:, None, :]]
     masked = off[rows[:, :, None], cols[:, None, :]]
+    if segments is not None:  # the other detections' pixels
+        owner = np.zeros_like(padded, dtype=np.int64)
+        owner[size:-size, size:-size] = segments
+        stamp_owner = owner[rows[:, :, None], cols[:, None, :]]
+        own = np.arange(1, n + 1)[:, None, None]
+        masked = masked | ((stamp_owner != 0) & (stamp_owner != own))
     origins = np.stack([x0 + 1, y0 + 1], axis=1)
     centres = np.stack([x - x0, y - y0], axis=1)
     return stamps.reshape(n, size, size), masked.reshape(n, size, size), origins, centres
@@ -370,12 +429,9 @@ def metadetect_cell(
     data's correlations (a noise image) takes metacal's rotated fixnoise. Returns the columns
     ``mdet_step``, ``x``, ``y`` (1-based), the features, ``psf_adamom_*`` (the target PSF's)
     and ``n_masked``, one row per detection per version, version by version."""
-    from megalut_cli.measure.cell_fixnoise import moving_fixnoise  # GalSim: metadetect only
-    from megalut_cli.measure.metacal import (  # GalSim: metadetect only
-        metacal_versions,
-        stamp_target_columns,
-    )
+    # GalSim: metadetect only
     from megalut_cli.measure.metacal import noise_field as drawn_noise
+    from megalut_cli.measure.metacal import stamp_target_columns
 
     mc = settings.metacal
     if mc is None:
@@ -389,36 +445,35 @@ def metadetect_cell(
         fields = np.where(bad, 0.0, np.asarray(noise_field, dtype=np.float64))[None]
         if fields.shape != image[None].shape or not np.isfinite(fields).all():
             raise InputError("the noise image must be finite and of the cell's shape")
-    versions, target_sigma = metacal_versions(
-        image[None],
-        psfs[0],
-        mc.step,
-        engine=CELL_ENGINE,
-        target=mc.target,
-        noise_fields=None if fields is None or white_field else fields,
-    )
+    engine = settings.engine
+    moving = rotated = None
     if fields is not None and not white_field:  # a noise image: rotated fixnoise
-        noise = field_version_noise(psfs[0], fields[0], mc.step, mc.target)
+        rotated = fields[0]
+        noise = field_version_noise(psfs[0], fields[0], mc.step, mc.target, engine)
     else:
         if sigma > 0 or fields is not None:  # white: fixnoise that moves with the image
-            white = fields[0] if fields is not None else drawn_noise(sigma, seed, image.shape)
-            for kind, fixnoise in moving_fixnoise(white, psfs[0], mc.step, mc.target).items():
-                versions[kind][0] += fixnoise
-        noise = version_noise(psfs[0], sigma, mc.step, mc.target) if sigma > 0 else 0.0
+            moving = fields[0] if fields is not None else drawn_noise(sigma, seed, image.shape)
+        noise = version_noise(psfs[0], sigma, mc.step, mc.target, engine) if sigma > 0 else 0.0
+    versions, target_sigma = cell_operation(
+        image, psfs[0], mc.step, mc.target, engine, moving, rotated
+    )
     target = stamp_target_columns(
-        mc.target, psfs, np.zeros(1, np.int64), target_sigma, mc.step, stamp_size
+        mc.target, psfs, np.zeros(1, np.int64), np.array([target_sigma]), mc.step, stamp_size
     )
     measurer = Measurer(dataclasses.replace(settings, metacal=None))
     parts: list[dict[str, np.ndarray]] = []
     for kind in TYPES:
-        version = versions[kind][0]
+        version = versions[kind]
         # a noiseless cell: a threshold in units of the faintest pixels worth a detection
         floor = noise if noise > 0 else 1e-3 * float(np.abs(version).max() or 1.0)
-        x, y = detect(version, floor, detection, bad)
-        n = len(x)
+        found = detect(version, floor, detection, bad)
+        x, y, n = found.x, found.y, len(found.x)
         # no detection: the columns of one blank stamp, none of its rows
         at_x, at_y = (x, y) if n else (np.zeros(1), np.zeros(1))
-        stamps, masked, origins, centres = cut_around(version, bad, at_x, at_y, stamp_size)
+        segments = found.segments if n else None
+        stamps, masked, origins, centres = cut_around(
+            version, bad, at_x, at_y, stamp_size, segments
+        )
         feats = measurer.measure(StampBatch(stamps, origins, masked=masked, centres=centres))
         feats = {c: v[:n] for c, v in feats.items()}
         ux, uy = unsheared(x, y, size, SHEARS[kind], mc.step)
@@ -452,10 +507,11 @@ def detect_cell(
     cell. Returns ``x``, ``y`` (1-based) and the Measurer's columns, one row per detection."""
     image, bad = cleaned_cell(image, bad)
     floor = noise_sigma if noise_sigma > 0 else 1e-3 * float(np.abs(image).max() or 1.0)
-    x, y = detect(image, floor, detection, bad)
-    n = len(x)
+    found = detect(image, floor, detection, bad)
+    x, y, n = found.x, found.y, len(found.x)
     at_x, at_y = (x, y) if n else (np.zeros(1), np.zeros(1))
-    stamps, masked, origins, centres = cut_around(image, bad, at_x, at_y, stamp_size)
+    segments = found.segments if n else None
+    stamps, masked, origins, centres = cut_around(image, bad, at_x, at_y, stamp_size, segments)
     weights = None
     if weight is not None:
         weights = cut_around(np.where(bad, 0.0, weight), bad, at_x, at_y, stamp_size)[0]
@@ -697,7 +753,7 @@ def metadetect_cards(request: MeasureRequest, size: int) -> dict[str, Any]:
             **measure_cards(dataclasses.replace(settings, metacal=None), size),
             SEED_CARD: (int(settings.metacal.seed), "seed of the fixnoise fields (measure --seed)"),
             TARGET_CARD: (settings.metacal.target, "metacal target PSF"),
-            "MCALENG": (CELL_ENGINE, "engine of the metacal operation on the cells"),
+            "MCALENG": (settings.engine, "engine of the metacal operation on the cells"),
         }
     return {
         **cards,
@@ -707,6 +763,7 @@ def metadetect_cards(request: MeasureRequest, size: int) -> dict[str, Any]:
         "DBNTHRSH": (int(detection.nthresh), "deblending sub-thresholds"),
         "DBCONT": (float(detection.cont), "deblending minimum contrast"),
         "DBCLEAN": (bool(detection.clean), "sep's cleaning of the detections"),
+        "MASKNBR": (bool(detection.mask_neighbours), "other detections masked in the stamps"),
         "DETECTOR": ("sep", "detection code (Source Extractor as a library)"),
     }
 

@@ -108,6 +108,7 @@ def measure_file_columns(
     deblend_nthresh: int = MEASURE["deblend_nthresh"].default,
     deblend_cont: float = MEASURE["deblend_cont"].default,
     no_clean: bool = MEASURE["no_clean"].default,
+    mask_neighbours: bool = MEASURE["mask_neighbours"].default,
     weight_path: str | os.PathLike | None = None,
     mask_path: str | os.PathLike | None = None,
     noise_path: str | os.PathLike | None = None,
@@ -174,6 +175,8 @@ def measure_file_columns(
             detection of ``metadetect`` and ``detect`` (sep): threshold in noise sigmas, the
             fewest pixels, the deblending sub-thresholds and minimum contrast, sep's cleaning
             switched off.
+        mask_neighbours: ``metadetect`` and ``detect``: the other detections' segments
+            masked in each detection's stamp.
         weight_path, mask_path, noise_path, cell_size, cell_border: ``metadetect`` on one
             coadd image (:mod:`.coadd`): its inverse-variance map (required), mask bits and
             a noise realization (optional, for correlated noise), and the cells it is cut
@@ -211,6 +214,7 @@ def measure_file_columns(
             int(deblend_nthresh),
             float(deblend_cont),
             not no_clean,
+            bool(mask_neighbours),
         )
         if metadetect or detect
         else None

@@ -167,6 +167,14 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         "removes real neighbours, docs/metadetect.md).",
     ),
     Option(
+        "mask_neighbours",
+        "bool",
+        False,
+        "--metadetect, --detect: mask the pixels of the other detections (sep's segmentation "
+        "of the version) in each detection's stamp: on blends, fewer HSM failures and "
+        "centroid shifts (docs/metadetect.md).",
+    ),
+    Option(
         "cell_size",
         "int",
         CELL_SIZE,

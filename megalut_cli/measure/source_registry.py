@@ -99,13 +99,15 @@ class CellSettings:
 class DetectSettings:
     """The detection of ``--metadetect`` (sep): threshold in noise sigmas, the fewest pixels
     of a detection, the deblending sub-thresholds and minimum contrast, and whether sep
-    cleans the detections (its default)."""
+    cleans the detections (its default); whether the other detections' segments are masked
+    in each detection's stamp."""
 
     thresh: float
     minarea: int
     nthresh: int
     cont: float
     clean: bool = True
+    mask_neighbours: bool = False
 
 
 @dataclass

@@ -1,0 +1,243 @@
+"""The metacal operation on a whole cell (metadetection) on the cell's own FFT grid.
+
+Version ``v`` of shear matrix ``A`` (:func:`~.metacal_fft.shear_matrix`) is, about the
+cell's true centre, ``J(x) = H(A^-1 x)`` where ``H`` has the transform
+``T(A^-1 q) I(q) / P(q)`` on the grid of the zero-padded cell: the target ``T`` at the
+unsheared frequencies (analytic), the cell ``I`` and the PSF ``P`` where they were sampled,
+zero beyond the PSF's ``maxk`` (as GalSim's ``Deconvolve``). The change of coordinates
+``A^-1`` is made by 1-D Fourier shifts of rows and columns (three shears, four for a
+diagonal matrix): exact for a band-limited image. The white fixnoise that moves with the
+image (:mod:`.cell_fixnoise`) enters ``H`` with its own filter, so a version costs one
+inverse FFT and the shifts. GalSim's operation (:mod:`.metacal`) stays the reference
+(``measure --engine galsim``); docs/metadetect.md compares the two.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+import scipy.ndimage
+
+from megalut_cli.measure.metacal_defaults import SHEARS, TYPES
+from megalut_cli.measure.metacal_fft import psf_params, shear_matrix
+from megalut_cli.measure.metacal_targets import MetacalTarget, metacal_target
+
+#: Pixels of zero padding each side of the cell beyond the largest shift of the passes:
+#: room for the tails of the deconvolution and fixnoise kernels.
+HALO = 24
+#: The 90-degree rotation of the fixnoise (``np.rot90(a, -1)``) acting on ``(x, y)``.
+ROTATION = np.array([[0.0, -1.0], [1.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class Pass:
+    """One 1-D Fourier shift: along ``axis`` (1: rows shifted along x, 0: columns along y),
+    the transform multiplied by ``phase``."""
+
+    axis: int
+    phase: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class CellGeometry:
+    """What a cell of ``size`` pixels needs for one step, whatever its PSF: the grid side,
+    the cell's offset in it, each version's inverse shear matrix and its shifts (hashed by
+    identity: one per size and step, :func:`cell_geometry`)."""
+
+    size: int
+    grid: int
+    offset: int
+    inverses: tuple[np.ndarray, ...]
+    passes: tuple[tuple[Pass, ...], ...]
+
+
+@dataclass(frozen=True)
+class CellFilters:
+    """Per version, the filters (``rfft2`` layout) of the cell's transform and of the moving
+    fixnoise field's, under one PSF, step and target."""
+
+    image: tuple[np.ndarray, ...]
+    noise: tuple[np.ndarray, ...]
+    target_sigma: float
+
+
+def shear_passes(matrix: np.ndarray) -> list[tuple[int, float]]:
+    """``matrix`` (determinant 1, acting on ``(x, y)``) as 1-D shears ``(axis, s)`` to apply
+    in order: axis 1 maps ``F(x, y) -> F(x + s y, y)``, axis 0 ``F(x, y) -> F(x, y + s x)``;
+    applying them to ``H`` gives ``H(matrix @ (x, y))``. Identity: none; else the first is
+    along axis 1 (it is merged with the inverse FFT)."""
+    (a, b), (c, d) = matrix
+    if abs(b) < 1e-15 and abs(c) < 1e-15 and abs(a - 1) < 1e-15 and abs(d - 1) < 1e-15:
+        return []
+    last: list[tuple[int, float]] = []
+    if abs(c) < 1e-12:  # diagonal-like: matrix @ Y(-u), then Y(u) last (u balances the rest)
+        u = math.sqrt(max(abs(a - 1.0), abs(d - 1.0), abs(b), 1e-12))
+        last = [(0, u)]
+        a, c = a - u * b, c - u * d
+    return [(1, (a - 1.0) / c), (0, c), (1, (d - 1.0) / c), *last]
+
+
+def _margin(size: int, steps: list[list[tuple[int, float]]]) -> int:
+    """The padding each side: the largest shift of any pass at the cell's corners, plus
+    :data:`HALO`."""
+    largest = max((abs(s) for passes in steps for _, s in passes), default=0.0)
+    return int(math.ceil(largest * size / math.sqrt(2.0))) + HALO
+
+
+def _grid_k(grid: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``rfft2`` frequencies (radians per pixel): ``qx`` (1, grid//2+1), ``qy`` (grid, 1)."""
+    qx = 2.0 * math.pi * np.fft.rfftfreq(grid)[None, :]
+    qy = 2.0 * math.pi * np.fft.fftfreq(grid)[:, None]
+    return qx, qy
+
+
+def _apply(matrix: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``matrix @ (qx, qy)``, broadcast."""
+    return matrix[0, 0] * qx + matrix[0, 1] * qy, matrix[1, 0] * qx + matrix[1, 1] * qy
+
+
+def _pass(axis: int, s: float, grid: int, centre: float) -> Pass:
+    """The phase of one shear pass: a line at ``(coordinate - centre)`` shifted by ``s`` times
+    it, ``exp(i k s (c - centre))``."""
+    k = 2.0 * math.pi * np.fft.rfftfreq(grid)
+    c = np.arange(grid) - centre
+    phase = np.exp(1j * s * np.multiply.outer(c, k)).astype(np.complex64)  # (line, k)
+    return Pass(axis, phase if axis == 1 else np.ascontiguousarray(phase.T))
+
+
+def _psf_dft(psf: np.ndarray, grid: int) -> np.ndarray:
+    """The PSF image's DFT on the grid (``fft2`` layout, the whole plane), its true centre
+    the origin."""
+    p = psf.shape[0]
+    padded = np.zeros((grid, grid))
+    padded[:p, :p] = psf
+    q = 2.0 * math.pi * np.fft.fftfreq(grid)
+    return scipy.fft.fft2(padded) * np.exp(0.5j * (p - 1) * (q[None, :] + q[:, None]))
+
+
+def _psf_at(spline: dict[str, np.ndarray], ux: np.ndarray, uy: np.ndarray) -> np.ndarray:
+    """The PSF's transform at ``(ux, uy)`` (radians per pixel): the quintic spline (its
+    coefficients ``spline["re"]``, ``spline["im"]``) of its DFT on the grid
+    (:func:`_psf_dft`), which samples it finely (the grid is several times the PSF image;
+    1e-9 of the exact sum where it exceeds 1e-3)."""
+    grid = spline["re"].shape[0]
+    where = np.array([uy, ux]) * (grid / (2.0 * math.pi))
+    re, im = (
+        scipy.ndimage.map_coordinates(
+            spline[part], where, order=5, mode="grid-wrap", prefilter=False
+        )
+        for part in ("re", "im")
+    )
+    return re + 1j * im
+
+
+@functools.lru_cache(maxsize=8)
+def cell_geometry(size: int, step: float) -> CellGeometry:
+    """The grid and shifts of a ``size``-pixel cell for the shear ``step`` (cached)."""
+    matrices = [shear_matrix(s1 * step, s2 * step) for s1, s2 in (SHEARS[k] for k in TYPES)]
+    inverses = tuple(np.linalg.inv(m) for m in matrices)
+    steps = [shear_passes(inv) for inv in inverses]
+    grid = scipy.fft.next_fast_len(size + 2 * _margin(size, steps), real=True)
+    offset = (grid - size) // 2
+    centre = offset + 0.5 * (size - 1)
+    passes = tuple(tuple(_pass(axis, s, grid, centre) for axis, s in st) for st in steps)
+    return CellGeometry(size, grid, offset, inverses, passes)
+
+
+@functools.lru_cache(maxsize=16)
+def cell_filters(
+    psf_bytes: bytes, psf_size: int, target: MetacalTarget, geometry: CellGeometry
+) -> CellFilters:
+    """The filters of one PSF image (its bytes and side) and target on ``geometry``
+    (cached)."""
+    psf, maxk, _ = psf_params(psf_bytes, psf_size)
+    grid = geometry.grid
+    qx, qy = _grid_k(grid)
+    inside = qx * qx + qy * qy <= maxk * maxk
+    psf_k = _psf_dft(psf, grid)
+    psf_half = np.where(inside, psf_k[:, : grid // 2 + 1], 1.0)
+    psf_spline = {  # the spline coefficients of the PSF's transform, for _psf_at
+        part: scipy.ndimage.spline_filter(values, order=5, mode="grid-wrap")
+        for part, values in (("re", psf_k.real), ("im", psf_k.imag))
+    }
+    image, noise = [], []
+    for inv in geometry.inverses:
+        tx, ty = _apply(inv, qx, qy)
+        image.append(np.where(inside, target.kvalue(tx, ty) / psf_half, 0).astype(np.complex64))
+        # the fixnoise: the white field sheared like the image, convolved with the rotated
+        # response of the operation: T(R A^-1 q) / P(R A^-2 q), zero beyond maxk there
+        rx, ry = (np.broadcast_to(a, inside.shape) for a in _apply(ROTATION @ inv, qx, qy))
+        ux, uy = (np.broadcast_to(a, inside.shape) for a in _apply(ROTATION @ inv @ inv, qx, qy))
+        keep = ux * ux + uy * uy <= maxk * maxk
+        filt = np.zeros(inside.shape, dtype=np.complex64)
+        filt[keep] = target.kvalue(rx[keep], ry[keep]) / _psf_at(psf_spline, ux[keep], uy[keep])
+        noise.append(filt)
+    return CellFilters(tuple(image), tuple(noise), float(target.sigma))
+
+
+def _shifted(image: np.ndarray, passes: tuple[Pass, ...]) -> np.ndarray:
+    """``image`` (grid, grid) through the 1-D Fourier shifts ``passes``, in order."""
+    n = image.shape[0]
+    for p in passes:
+        spec = scipy.fft.rfft(image, axis=p.axis)
+        spec *= p.phase
+        image = scipy.fft.irfft(spec, n=n, axis=p.axis)
+    return image
+
+
+def _version(spec: np.ndarray, passes: tuple[Pass, ...], geometry: CellGeometry) -> np.ndarray:
+    """One version's cell from its transform ``spec`` (``rfft2`` layout, overwritten)."""
+    o, g, size = geometry.offset, geometry.grid, geometry.size
+    if passes:  # the first shift (axis 1) between the inverse FFT's two axes
+        mixed = scipy.fft.ifft(spec, axis=0, overwrite_x=True)
+        mixed *= passes[0].phase
+        h = _shifted(scipy.fft.irfft(mixed, n=g, axis=1), passes[1:])
+    else:
+        h = scipy.fft.irfft2(spec, s=(g, g))
+    return h[o : o + size, o : o + size].astype(np.float64)
+
+
+def cell_versions(
+    image: np.ndarray,
+    psf_image: np.ndarray,
+    step: float,
+    target: str,
+    moving_field: np.ndarray | None = None,
+    rotated_field: np.ndarray | None = None,
+) -> tuple[dict[str, np.ndarray], float]:
+    """The five metacal versions ``{type: (S, S)}`` of a cell ``image`` (S, S) under
+    ``psf_image`` (pixel included, centred on its true centre), and the target's sigma.
+    Fixnoise: ``moving_field`` (S, S), white noise, moves with the image
+    (:mod:`.cell_fixnoise`); ``rotated_field`` (S, S), e.g. a noise image with the data's
+    correlations, is metacal's: rotated by 90 degrees, through the operation, rotated back."""
+    image = np.asarray(image, dtype=np.float64)
+    size = image.shape[0]
+    if image.shape != (size, size):
+        raise ValueError(f"a cell must be square, got shape {image.shape}")
+    psf = np.ascontiguousarray(psf_image, dtype=np.float64)
+    geometry = cell_geometry(size, float(step))
+    filters = cell_filters(psf.tobytes(), psf.shape[0], metacal_target(target, psf, step), geometry)
+    o, g = geometry.offset, geometry.grid
+    padded = np.zeros((g, g), dtype=np.float32)
+
+    def transform(cell: np.ndarray) -> np.ndarray:
+        padded[o : o + size, o : o + size] = cell
+        return scipy.fft.rfft2(padded)
+
+    image_k = transform(image)
+    moving_k = None if moving_field is None else transform(moving_field)
+    rotated_k = None if rotated_field is None else transform(np.rot90(rotated_field, 1))
+    out = {}
+    for v, kind in enumerate(TYPES):
+        spec = image_k * filters.image[v]
+        if moving_k is not None:
+            spec += moving_k * filters.noise[v]
+        out[kind] = _version(spec, geometry.passes[v], geometry)
+        if rotated_k is not None:
+            spec = rotated_k * filters.image[v]
+            out[kind] += np.rot90(_version(spec, geometry.passes[v], geometry), -1)
+    return out, filters.target_sigma
