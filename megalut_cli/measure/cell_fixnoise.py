@@ -1,4 +1,6 @@
-"""Fixnoise of metacal on a whole cell (metadetection): a noise field that moves with the image.
+"""Fixnoise of metacal on a whole cell (metadetection): a noise field that moves with the image,
+drawn by GalSim for the reference engine (``--engine galsim``; the cell engine,
+:mod:`.cell_metacal`, puts the same field in its own transforms).
 
 Metacal's fixnoise (:mod:`.metacal`) adds to every version the operation's image of a noise
 field rotated by 90 degrees and rotated back, so that the noise the operation shears is
