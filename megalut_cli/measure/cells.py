@@ -389,23 +389,21 @@ def cut_around(
     n, (ny, nx) = len(x), image.shape
     x0 = np.floor(x - (size - 1) / 2.0 + 0.5).astype(np.int64)  # the centre within 0.5 px
     y0 = np.floor(y - (size - 1) / 2.0 + 0.5).astype(np.int64)
-    padded = np.zeros((ny + 2 * size, nx + 2 * size))
-    padded[size:-size, size:-size] = image
-    off = np.ones_like(padded, dtype=bool)
-    off[size:-size, size:-size] = bad
-    rows = (y0 + size)[:, None] + np.arange(size)[None, :]
-    cols = (x0 + size)[:, None] + np.arange(size)[None, :]
-    stamps = padded[rows[:, :, None], cols[:, None, :]]
-    masked = off[rows[:, :, None], cols[:, None, :]]
+    rows = (y0 + size)[:, None, None] + np.arange(size)[None, :, None]
+    cols = (x0 + size)[:, None, None] + np.arange(size)[None, None, :]
+
+    def cut(values: np.ndarray, outside: Any) -> np.ndarray:
+        padded = np.full((ny + 2 * size, nx + 2 * size), outside, dtype=values.dtype)
+        padded[size:-size, size:-size] = values
+        return padded[rows, cols]
+
+    stamps, masked = cut(np.asarray(image, dtype=np.float64), 0.0), cut(bad, True)
     if segments is not None:  # the other detections' pixels
-        owner = np.zeros_like(padded, dtype=np.int64)
-        owner[size:-size, size:-size] = segments
-        stamp_owner = owner[rows[:, :, None], cols[:, None, :]]
-        own = np.arange(1, n + 1)[:, None, None]
-        masked = masked | ((stamp_owner != 0) & (stamp_owner != own))
+        owner = cut(segments, 0)
+        masked |= (owner != 0) & (owner != np.arange(1, n + 1)[:, None, None])
     origins = np.stack([x0 + 1, y0 + 1], axis=1)
     centres = np.stack([x - x0, y - y0], axis=1)
-    return stamps.reshape(n, size, size), masked.reshape(n, size, size), origins, centres
+    return stamps, masked, origins, centres
 
 
 def metadetect_cell(
@@ -470,9 +468,8 @@ def metadetect_cell(
         x, y, n = found.x, found.y, len(found.x)
         # no detection: the columns of one blank stamp, none of its rows
         at_x, at_y = (x, y) if n else (np.zeros(1), np.zeros(1))
-        segments = found.segments if n else None
         stamps, masked, origins, centres = cut_around(
-            version, bad, at_x, at_y, stamp_size, segments
+            version, bad, at_x, at_y, stamp_size, found.segments
         )
         feats = measurer.measure(StampBatch(stamps, origins, masked=masked, centres=centres))
         feats = {c: v[:n] for c, v in feats.items()}
@@ -510,8 +507,9 @@ def detect_cell(
     found = detect(image, floor, detection, bad)
     x, y, n = found.x, found.y, len(found.x)
     at_x, at_y = (x, y) if n else (np.zeros(1), np.zeros(1))
-    segments = found.segments if n else None
-    stamps, masked, origins, centres = cut_around(image, bad, at_x, at_y, stamp_size, segments)
+    stamps, masked, origins, centres = cut_around(
+        image, bad, at_x, at_y, stamp_size, found.segments
+    )
     weights = None
     if weight is not None:
         weights = cut_around(np.where(bad, 0.0, weight), bad, at_x, at_y, stamp_size)[0]
