@@ -10,11 +10,17 @@ One core (BLAS and numba on one thread), CPU seconds, on the scenes of
   the detections; and the networks (``predict`` with ``fiducial-metacal``) per row;
 * coadds of ``--coadd-sizes`` pixels (the scenes' galaxies at the same density, written as
   one image with its weight map) measured with ``-j 2``: the peak memory of the command and
-  of its workers, against the image's size.
+  of its workers, against the image's size;
+* with ``--psf-model-size N``, a coadd of N pixels measured with ``-j 1`` with one PSF image
+  (``--psf``) and with the PSFEx model of ``tests/data`` drawn at each cell's centre
+  (``--psf-model``), alternated ``--repeat`` times: CPU per cell and per detection of each,
+  with each tree of ``--trees`` (default this one; e.g. an export of an earlier commit).
 
 Run::
 
     PYTHONPATH=. python benchmarks/bench_metadetect.py [--cells 20] [--coadd-sizes 1000 3000]
+    PYTHONPATH=. python benchmarks/bench_metadetect.py --cells 0 --coadd-sizes \
+        --psf-model-size 1500 --repeat 3 --trees . /tmp/before
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_
 
 import argparse  # noqa: E402
 import resource  # noqa: E402
+import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -180,45 +187,136 @@ def coadd_memory(size: int, tmp: Path) -> dict[str, float]:
     }
 
 
+def cell_costs(tmp: Path, n_cells: int) -> None:
+    """The cell route's stages per detected object with both engines, and the networks'
+    cost per row, on ``n_cells`` cells of the scenes."""
+    scenes = tmp / "scenes.fits"
+    run(
+        [
+            "simulate",
+            str(CONFIG),
+            "-o",
+            str(tmp / "t.fits"),
+            "--scene",
+            str(scenes),
+            f"scene.n_fields={(n_cells + 2) // 2}",
+            "--overwrite",
+            "-q",
+        ]
+    )
+    for engine in ("fast", "galsim"):
+        p = cells_profile(scenes, n_cells, engine)
+        objects = p["rows"] / 5.0
+        print(
+            f"engine {engine}: {p['cells']} cells, {p['rows']} rows ({objects:.0f} objects "
+            f"x 5 versions); CPU per detected object, whole cell route: "
+            f"{1e3 * p['total'] / objects:.2f} ms"
+        )
+        for k in ("operation", "fixnoise", "detection", "features"):
+            share = 100 * p[k] / p["total"]
+            print(f"  {k:10s} {1e3 * p[k] / objects:6.2f} ms  ({share:.0f} %)")
+    det = tmp / "det.fits"
+    run(["measure", str(scenes), "--metadetect", "-o", str(det), "-j", "1", "-q"])
+    per_row = predict_per_row(det, tmp)
+    print(
+        f"predict (fiducial-metacal), per row: {1e3 * per_row:.3f} ms; per object "
+        f"(5 rows): {5e3 * per_row:.2f} ms"
+    )
+
+
+def psf_model_coadd(size: int, tmp: Path, trees: list[Path], repeat: int) -> None:
+    """CPU of ``measure --metadetect -j 1`` on a coadd of ``size`` pixels with one PSF image
+    and with a PSFEx model, each tree in turn, ``repeat`` times; prints the medians."""
+    run(
+        [
+            "simulate",
+            str(CONFIG),
+            "-o",
+            str(tmp / "pt.fits"),
+            "--scene",
+            str(tmp / "ps.fits"),
+            "scene.n_fields=1",
+            "scene.pairs=false",
+            f"scene.size={size}",
+            "--overwrite",
+            "-q",
+        ]
+    )
+    scale = 0.263 / 3600.0  # the PSFEx model's native pixel scale (DECam), in degrees
+    header = {"CTYPE1": "RA---TAN", "CTYPE2": "DEC--TAN", "CRVAL1": 150.0, "CRVAL2": 2.0}
+    header.update({"CRPIX1": size / 2, "CRPIX2": size / 2, "CD1_1": -scale, "CD2_2": scale})
+    header.update({"CD1_2": 0.0, "CD2_1": 0.0})
+    for ext, name in (("SCI", "img"), ("WGT", "wgt")):
+        fitsio.write(
+            str(tmp / f"{name}.fits"),
+            fitsio.read(str(tmp / "ps.fits"), ext=ext)[0],
+            header=header,
+            clobber=True,
+        )
+    fitsio.write(
+        str(tmp / "p1.fits"), fitsio.read(str(tmp / "ps.fits"), ext="PSF")[0], clobber=True
+    )
+    model = ROOT / "tests" / "data" / "DECam_00154912_12_psfcat.psf"
+    spent: dict[tuple[str, str], list[float]] = {}
+    rows = {}
+    for _ in range(repeat):
+        for tree in trees:
+            for label, psf in (
+                ("--psf", ["--psf", str(tmp / "p1.fits")]),
+                ("--psf-model", ["--psf-model", str(model)]),
+            ):
+                args = [
+                    "measure",
+                    str(tmp / "img.fits"),
+                    "--weight",
+                    str(tmp / "wgt.fits"),
+                    *psf,
+                    "--metadetect",
+                    "-o",
+                    str(tmp / "pdet.fits"),
+                    "-j",
+                    "1",
+                    "--overwrite",
+                    "-q",
+                ]
+                before = resource.getrusage(resource.RUSAGE_CHILDREN)
+                subprocess.run(
+                    [sys.executable, "-m", "megalut_cli", *args],
+                    check=True,
+                    cwd=tree,
+                    env={**os.environ, "PYTHONPATH": str(tree)},
+                )
+                after = resource.getrusage(resource.RUSAGE_CHILDREN)
+                cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+                spent.setdefault((str(tree), label), []).append(cpu)
+                rows[label] = len(fitsio.read(str(tmp / "pdet.fits"), columns=["x"]))
+    cells = int(fitsio.read_header(str(tmp / "pdet.fits"), 1).get("NCELLS", 0)) or None
+    for (tree, label), times in spent.items():
+        med = statistics.median(times)
+        per = f", {1e3 * med / cells:.1f} ms per cell" if cells else ""
+        print(
+            f"coadd {size}^2, {label:12s} tree {tree}: CPU median {med:.2f} s (of "
+            f"{', '.join(f'{t:.2f}' for t in times)}){per}, {rows[label]} rows, "
+            f"{5e3 * med / rows[label]:.2f} ms per detection"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cells", type=int, default=20)
-    parser.add_argument("--coadd-sizes", type=int, nargs="+", default=[1000, 3000])
+    parser.add_argument("--coadd-sizes", type=int, nargs="*", default=[1000, 3000])
+    parser.add_argument("--psf-model-size", type=int, default=0)
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--trees", type=Path, nargs="+", default=[ROOT])
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        scenes = tmp / "scenes.fits"
-        run(
-            [
-                "simulate",
-                str(CONFIG),
-                "-o",
-                str(tmp / "t.fits"),
-                "--scene",
-                str(scenes),
-                f"scene.n_fields={(args.cells + 2) // 2}",
-                "--overwrite",
-                "-q",
-            ]
-        )
-        for engine in ("fast", "galsim"):
-            p = cells_profile(scenes, args.cells, engine)
-            objects = p["rows"] / 5.0
-            print(
-                f"engine {engine}: {p['cells']} cells, {p['rows']} rows ({objects:.0f} objects "
-                f"x 5 versions); CPU per detected object, whole cell route: "
-                f"{1e3 * p['total'] / objects:.2f} ms"
+        if args.cells:
+            cell_costs(tmp, args.cells)
+        if args.psf_model_size:
+            psf_model_coadd(
+                args.psf_model_size, tmp, [t.resolve() for t in args.trees], args.repeat
             )
-            for k in ("operation", "fixnoise", "detection", "features"):
-                share = 100 * p[k] / p["total"]
-                print(f"  {k:10s} {1e3 * p[k] / objects:6.2f} ms  ({share:.0f} %)")
-        det = tmp / "det.fits"
-        run(["measure", str(scenes), "--metadetect", "-o", str(det), "-j", "1", "-q"])
-        per_row = predict_per_row(det, tmp)
-        print(
-            f"predict (fiducial-metacal), per row: {1e3 * per_row:.3f} ms; per object "
-            f"(5 rows): {5e3 * per_row:.2f} ms"
-        )
         for size in args.coadd_sizes:
             m = coadd_memory(size, tmp)
             print(

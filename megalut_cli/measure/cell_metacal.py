@@ -25,6 +25,7 @@ import scipy.ndimage
 from megalut_cli.measure.metacal_defaults import SHEARS, TYPES
 from megalut_cli.measure.metacal_fft import psf_params, shear_matrix
 from megalut_cli.measure.metacal_targets import MetacalTarget, metacal_target
+from megalut_cli.measure.spline_nb import quintic_wrap
 
 #: Pixels of zero padding each side of the cell beyond the largest shift of the passes:
 #: room for the tails of the deconvolution and fixnoise kernels.
@@ -119,20 +120,15 @@ def _psf_dft(psf: np.ndarray, grid: int) -> np.ndarray:
     return scipy.fft.fft2(padded) * np.exp(0.5j * (p - 1) * (q[None, :] + q[:, None]))
 
 
-def _psf_at(spline: dict[str, np.ndarray], ux: np.ndarray, uy: np.ndarray) -> np.ndarray:
-    """The PSF's transform at ``(ux, uy)`` (radians per pixel): the quintic spline (its
-    coefficients ``spline["re"]``, ``spline["im"]``) of its DFT on the grid
-    (:func:`_psf_dft`), which samples it finely (the grid is several times the PSF image;
-    1e-9 of the exact sum where it exceeds 1e-3)."""
-    grid = spline["re"].shape[0]
-    where = np.array([uy, ux]) * (grid / (2.0 * math.pi))
-    re, im = (
-        scipy.ndimage.map_coordinates(
-            spline[part], where, order=5, mode="grid-wrap", prefilter=False
-        )
-        for part in ("re", "im")
-    )
-    return re + 1j * im
+def _psf_at(coefficients: np.ndarray, ux: np.ndarray, uy: np.ndarray) -> np.ndarray:
+    """The PSF's transform at ``(ux, uy)`` (radians per pixel): the periodic quintic spline
+    (its complex ``coefficients``) of its DFT on the grid (:func:`_psf_dft`), which samples
+    it finely (the grid is several times the PSF image; 1e-9 of the exact sum where it
+    exceeds 1e-3)."""
+    scale = coefficients.shape[0] / (2.0 * math.pi)
+    out = np.empty(ux.shape, dtype=np.complex128)
+    quintic_wrap(coefficients, np.ravel(uy * scale), np.ravel(ux * scale), out.reshape(-1))
+    return out
 
 
 @functools.lru_cache(maxsize=8)
@@ -150,31 +146,39 @@ def cell_geometry(size: int, step: float) -> CellGeometry:
 
 @functools.lru_cache(maxsize=16)
 def cell_filters(
-    psf_bytes: bytes, psf_size: int, target: MetacalTarget, geometry: CellGeometry
+    psf_bytes: bytes,
+    psf_size: int,
+    target: MetacalTarget,
+    geometry: CellGeometry,
+    moving: bool = True,
 ) -> CellFilters:
     """The filters of one PSF image (its bytes and side) and target on ``geometry``
-    (cached)."""
+    (cached); without ``moving``, none for the moving fixnoise (``noise`` empty)."""
     psf, maxk, _ = psf_params(psf_bytes, psf_size)
     grid = geometry.grid
     qx, qy = _grid_k(grid)
     inside = qx * qx + qy * qy <= maxk * maxk
     psf_k = _psf_dft(psf, grid)
     psf_half = np.where(inside, psf_k[:, : grid // 2 + 1], 1.0)
-    psf_spline = {  # the spline coefficients of the PSF's transform, for _psf_at
-        part: scipy.ndimage.spline_filter(values, order=5, mode="grid-wrap")
-        for part, values in (("re", psf_k.real), ("im", psf_k.imag))
-    }
-    image, noise = [], []
+    image = []
     for inv in geometry.inverses:
         tx, ty = _apply(inv, qx, qy)
         image.append(np.where(inside, target.kvalue(tx, ty) / psf_half, 0).astype(np.complex64))
+    if not moving:
+        return CellFilters(tuple(image), (), float(target.sigma))
+    # the spline coefficients of the PSF's transform, for _psf_at
+    spline = scipy.ndimage.spline_filter(psf_k.real, order=5, mode="grid-wrap") + 1j * (
+        scipy.ndimage.spline_filter(psf_k.imag, order=5, mode="grid-wrap")
+    )
+    noise = []
+    for inv in geometry.inverses:
         # the fixnoise: the white field sheared like the image, convolved with the rotated
         # response of the operation: T(R A^-1 q) / P(R A^-2 q), zero beyond maxk there
         rx, ry = (np.broadcast_to(a, inside.shape) for a in _apply(ROTATION @ inv, qx, qy))
         ux, uy = (np.broadcast_to(a, inside.shape) for a in _apply(ROTATION @ inv @ inv, qx, qy))
         keep = ux * ux + uy * uy <= maxk * maxk
         filt = np.zeros(inside.shape, dtype=np.complex64)
-        filt[keep] = target.kvalue(rx[keep], ry[keep]) / _psf_at(psf_spline, ux[keep], uy[keep])
+        filt[keep] = target.kvalue(rx[keep], ry[keep]) / _psf_at(spline, ux[keep], uy[keep])
         noise.append(filt)
     return CellFilters(tuple(image), tuple(noise), float(target.sigma))
 
@@ -208,10 +212,11 @@ def cell_versions(
     target: str,
     moving_field: np.ndarray | None = None,
     rotated_field: np.ndarray | None = None,
+    kinds: tuple[str, ...] = TYPES,
 ) -> tuple[dict[str, np.ndarray], float]:
-    """The five metacal versions ``{type: (S, S)}`` of a cell ``image`` (S, S) under
-    ``psf_image`` (pixel included, centred on its true centre), and the target's sigma.
-    Fixnoise: ``moving_field`` (S, S), white noise, moves with the image
+    """The metacal versions ``kinds`` (default all five), ``{type: (S, S)}``, of a cell
+    ``image`` (S, S) under ``psf_image`` (pixel included, centred on its true centre), and
+    the target's sigma. Fixnoise: ``moving_field`` (S, S), white noise, moves with the image
     (:mod:`.cell_fixnoise`); ``rotated_field`` (S, S), e.g. a noise image with the data's
     correlations, is metacal's: rotated by 90 degrees, through the operation, rotated back."""
     image = np.asarray(image, dtype=np.float64)
@@ -220,7 +225,13 @@ def cell_versions(
         raise ValueError(f"a cell must be square, got shape {image.shape}")
     psf = np.ascontiguousarray(psf_image, dtype=np.float64)
     geometry = cell_geometry(size, float(step))
-    filters = cell_filters(psf.tobytes(), psf.shape[0], metacal_target(target, psf, step), geometry)
+    filters = cell_filters(
+        psf.tobytes(),
+        psf.shape[0],
+        metacal_target(target, psf, step),
+        geometry,
+        moving_field is not None,
+    )
     o, g = geometry.offset, geometry.grid
     padded = np.zeros((g, g), dtype=np.float32)
 
@@ -233,6 +244,8 @@ def cell_versions(
     rotated_k = None if rotated_field is None else transform(np.rot90(rotated_field, 1))
     out = {}
     for v, kind in enumerate(TYPES):
+        if kind not in kinds:
+            continue
         spec = image_k * filters.image[v]
         if moving_k is not None:
             spec += moving_k * filters.noise[v]

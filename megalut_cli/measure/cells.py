@@ -224,17 +224,19 @@ def cell_operation(
     engine: str = DEFAULT_ENGINE,
     moving_field: np.ndarray | None = None,
     rotated_field: np.ndarray | None = None,
+    kinds: tuple[str, ...] = TYPES,
 ) -> tuple[dict[str, np.ndarray], float]:
-    """The five metacal versions of a cell and the target's sigma, as
-    :func:`~.cell_metacal.cell_versions` (the default engine), or with ``engine="galsim"``
-    by GalSim's reference operation (:mod:`.metacal`, :mod:`.cell_fixnoise`)."""
+    """The metacal versions ``kinds`` (default all five) of a cell and the target's sigma,
+    as :func:`~.cell_metacal.cell_versions` (the default engine), or with
+    ``engine="galsim"`` by GalSim's reference operation (:mod:`.metacal`,
+    :mod:`.cell_fixnoise`; all five made)."""
     # GalSim, FFTs: metadetect only
     from megalut_cli.measure.cell_fixnoise import moving_fixnoise
     from megalut_cli.measure.cell_metacal import cell_versions
     from megalut_cli.measure.metacal import metacal_versions
 
     if engine != "galsim":
-        return cell_versions(image, psf, step, target, moving_field, rotated_field)
+        return cell_versions(image, psf, step, target, moving_field, rotated_field, kinds)
     fields = None if rotated_field is None else np.asarray(rotated_field, np.float64)[None]
     versions, sigma = metacal_versions(
         np.asarray(image, np.float64)[None],
@@ -244,10 +246,11 @@ def cell_operation(
         target=target,
         noise_fields=fields,
     )
-    out = {kind: v[0] for kind, v in versions.items()}
+    out = {kind: v[0] for kind, v in versions.items() if kind in kinds}
     if moving_field is not None:
         for kind, fixnoise in moving_fixnoise(moving_field, psf, step, target).items():
-            out[kind] += fixnoise
+            if kind in out:
+                out[kind] += fixnoise
     return out, float(sigma[0])
 
 
@@ -257,7 +260,7 @@ def _noise_gain(psf_bytes: bytes, psf_size: int, step: float, target: str, engin
     psf = np.frombuffer(psf_bytes).reshape(psf_size, psf_size)
     size = 96
     noise = np.random.default_rng(0).normal(0.0, 1.0, (size, size))
-    versions, _ = cell_operation(noise, psf, step, target, engine)
+    versions, _ = cell_operation(noise, psf, step, target, engine, kinds=("noshear",))
     centre = versions["noshear"][size // 4 : -size // 4, size // 4 : -size // 4]
     return float(centre.std())
 
@@ -286,7 +289,7 @@ def field_version_noise(
     size = min(ny, nx, NOISE_CUT)
     y0, x0 = (ny - size) // 2, (nx - size) // 2
     cut = np.asarray(field[y0 : y0 + size, x0 : x0 + size], dtype=np.float64)
-    versions, _ = cell_operation(cut, psf, step, target, engine)
+    versions, _ = cell_operation(cut, psf, step, target, engine, kinds=("noshear",))
     q = size // 4
     return float(np.sqrt(2.0) * versions["noshear"][q : size - q, q : size - q].std())
 
