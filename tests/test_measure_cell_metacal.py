@@ -159,3 +159,20 @@ def test_the_response_on_noise_is_that_of_an_accurate_galsim():
     diff = response["cell"] - response["galsim"]
     assert np.all(np.abs(diff.mean(axis=1)) < 2e-5), diff
     assert np.all(np.abs(response["cell"].mean(axis=1) - 0.5) < 0.15)
+
+
+@pytest.mark.parametrize("engine", ["fast", "galsim"])
+def test_asking_for_some_versions_gives_those_versions_bit_for_bit(engine):
+    """``kinds`` (what the detection noise's gain asks: the noshear version alone) returns
+    those versions, the same bits as in the whole operation, with and without fixnoise."""
+    rng = np.random.default_rng(8)
+    image = rng.normal(size=(64, 64))
+    field = rng.normal(size=(64, 64))
+    for extra in ({}, {"moving_field": field}):
+        whole, sigma = cell_operation(image, PSF_IMAGE, STEP, "gauss", engine, **extra)
+        some, some_sigma = cell_operation(
+            image, PSF_IMAGE, STEP, "gauss", engine, kinds=("noshear", "2m"), **extra
+        )
+        assert sorted(some) == ["2m", "noshear"] and some_sigma == sigma
+        for kind, version in some.items():
+            assert np.array_equal(version, whole[kind]), kind
