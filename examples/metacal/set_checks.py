@@ -1,0 +1,131 @@
+"""Checks of one CRN set's weighted metacal m (issue 39: why independent 10^6-stamp sets disagree).
+
+For each component of a ``megalut predict`` catalog of a CRN set (``examples/fiducial/
+vo-crn.toml`` in metacal mode), on the rows ``megalut evaluate`` uses (noshear measured, every response finite),
+weighted by the networks' weights with their selection response:
+
+* m from the cases' calibrated means (evaluate's estimator), and its delete-group jackknife
+  error over 1000 groups of galaxy pairs (all shears of a pair in one group), the largest
+  influence of one group and the kurtosis of the influences: is the bootstrap's error right,
+  and is m carried by a few galaxies?
+* m with a cubic term, <g> = (1 + m) g + c + beta g |g|^2, and the range of m when one case
+  (shear) is left out: does the set's m depend on which shears were drawn?
+* the cases' mean response against |g|^2.
+
+    python examples/metacal/set_checks.py vo-3901-a.fits [vo-3902-a.fits ...]
+"""
+
+from __future__ import annotations
+
+import sys
+
+import fitsio
+import numpy as np
+
+VERSIONS = ("noshear", "1p", "1m", "2p", "2m")
+GROUPS = 1000
+
+
+def per_group_sums(t: np.ndarray, step: float) -> tuple[dict, np.ndarray]:
+    """Per (case, group) sums of the rows ``megalut evaluate`` uses (noshear measured, every
+    response finite; weights finite and positive): weights, weighted estimates and responses,
+    and the sheared versions' weights with the weighted noshear estimates; the cases' true
+    shears ``(n_cases, 2)``."""
+
+    def col(name: str) -> np.ndarray:
+        return np.asarray(t[name], dtype=float)
+
+    every = (
+        (t["flags_noshear"] == 0)
+        & np.isfinite(col("pre_g1_noshear"))
+        & np.isfinite(col("pre_g2_noshear"))
+        & np.all([np.isfinite(col(f"mcal_r{i}{j}")) for i in (1, 2) for j in (1, 2)], axis=0)
+    )
+    cases, case = np.unique(t["case"], return_inverse=True)
+    pair = t["rea"] // 2
+    group = np.random.default_rng(0).permutation(pair.max() + 1)[pair] % GROUPS
+    key = case * GROUPS + group
+
+    def total(v: np.ndarray) -> np.ndarray:
+        return np.bincount(key, weights=v, minlength=cases.size * GROUPS).reshape(cases.size, -1)
+
+    def weight(kind: str, i: int) -> np.ndarray:
+        w = col(f"pre_g{i}_w_{kind}")
+        return np.where(every & np.isfinite(w) & (w > 0), w, 0.0)
+
+    sums = {}
+    for i in (1, 2):
+        g = np.nan_to_num(col(f"pre_g{i}_noshear"))
+        w = weight("noshear", i)
+        sums[f"w{i}"], sums[f"wg{i}"] = total(w), total(w * g)
+        for j in (1, 2):
+            sums[f"wr{i}{j}"] = total(w * np.nan_to_num(col(f"mcal_r{i}{j}")))
+        for kind in VERSIONS[1:]:
+            wk = weight(kind, i)
+            sums[f"w{i}{kind}"], sums[f"wg{i}{kind}"] = total(wk), total(wk * g) / (2 * step)
+    shears = np.array([[col(f"tru_g{i}")[case == c][0] for i in (1, 2)] for c in range(cases.size)])
+    return sums, shears
+
+
+def calibrated(sums: dict, drop: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The cases' calibrated means ``(n_cases, 2)`` by the mean response plus the weights'
+    selection response, and the cases' mean responses ``R_ii``, group ``drop`` left out."""
+
+    def f(a: np.ndarray) -> np.ndarray:
+        return a.sum(axis=1) - (a[:, drop] if drop is not None else 0.0)
+
+    resp = np.zeros((2, 2))
+    for i in (1, 2):
+        for j in (1, 2):
+            resp[i - 1, j - 1] = f(sums[f"wr{i}{j}"]).sum() / f(sums[f"w{i}"]).sum() + (
+                f(sums[f"wg{i}{j}p"]).sum() / f(sums[f"w{i}{j}p"]).sum()
+                - f(sums[f"wg{i}{j}m"]).sum() / f(sums[f"w{i}{j}m"]).sum()
+            )
+    means = np.stack([f(sums[f"wg{i}"]) / f(sums[f"w{i}"]) for i in (1, 2)], axis=1)
+    cases_r = np.stack([f(sums[f"wr{i}{i}"]) / f(sums[f"w{i}"]) for i in (1, 2)], axis=1)
+    return np.linalg.solve(resp, means.T).T, cases_r
+
+
+def main(paths: list[str]) -> None:
+    print(
+        "| catalog | comp. | m | jackknife | largest influence; kurtosis | m, cubic fit | beta "
+        "| m, one case left out | R against abs(g)^2 |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for path in paths:
+        step = float(fitsio.read_header(path, 1).get("MCALSTEP", 0.01))
+        names = ["case", "rea", "tru_g1", "tru_g2", "mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22"]
+        names += [f"flags_{k}" for k in VERSIONS]
+        names += [f"pre_g{c}{w}_{k}" for c in (1, 2) for w in ("", "_w") for k in VERSIONS]
+        t = fitsio.read(path, columns=names)
+        sums, both = per_group_sums(t, step)
+        abs2 = (both**2).sum(axis=1)
+        cal_all, resp_all = calibrated(sums)
+        jacks = [calibrated(sums, d)[0] for d in range(GROUPS)]
+        for i in (1, 2):
+            shears, cal, resp = both[:, i - 1], cal_all[:, i - 1], resp_all[:, i - 1]
+            m = np.polyfit(shears, cal, 1)[0] - 1
+            jack = np.array([np.polyfit(shears, c[:, i - 1], 1)[0] - 1 for c in jacks])
+            influence = (GROUPS - 1) * (jack - jack.mean())
+            sigma = np.sqrt((GROUPS - 1) / GROUPS * ((jack - jack.mean()) ** 2).sum())
+            kurt = ((influence - influence.mean()) ** 4).mean() / influence.var() ** 2
+            design = np.vstack([shears, np.ones_like(shears), shears * abs2]).T
+            cubic = np.linalg.lstsq(design, cal, rcond=None)[0]
+            keep = np.ones(len(shears), bool)
+            loo = []
+            for c in range(len(shears)):
+                keep[:] = True
+                keep[c] = False
+                loo.append(np.polyfit(shears[keep], cal[keep], 1)[0] - 1)
+            slope = np.polyfit(abs2, resp, 1)
+            print(
+                f"| {path.rsplit('/', 1)[-1]} | g{i} | {1e3 * m:+.2f}e-3 | {1e3 * sigma:.2f}e-3 | "
+                f"{1e3 * np.abs(influence).max():.0f}e-3; {kurt:.1f} | "
+                f"{1e3 * (cubic[0] - 1):+.2f}e-3 | "
+                f"{cubic[2]:+.2f} | {1e3 * min(loo):+.2f} to {1e3 * max(loo):+.2f}e-3 | "
+                f"{slope[1]:.4f} {slope[0]:+.3f} abs(g)^2 |"
+            )
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
