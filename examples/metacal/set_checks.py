@@ -1,8 +1,8 @@
 """Checks of one CRN set's weighted metacal m (issue 39: why independent 10^6-stamp sets disagree).
 
 For each component of a ``megalut predict`` catalog of a CRN set (``examples/fiducial/
-vo-crn.toml`` in metacal mode), on the rows ``megalut evaluate`` uses (noshear measured, every response finite),
-weighted by the networks' weights with their selection response:
+vo-crn.toml`` in metacal mode), on the rows ``megalut evaluate`` uses (noshear measured,
+every response finite), weighted by the networks' weights with their selection response:
 
 * m from the cases' calibrated means (evaluate's estimator), and its delete-group jackknife
   error over 1000 groups of galaxy pairs (all shears of a pair in one group), the largest
