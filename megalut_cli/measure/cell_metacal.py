@@ -171,14 +171,15 @@ def cell_filters(
         scipy.ndimage.spline_filter(psf_k.imag, order=5, mode="grid-wrap")
     )
     noise = []
+    grid_qx, grid_qy = np.broadcast_arrays(qx, qy)
     for inv in geometry.inverses:
         # the fixnoise: the white field sheared like the image, convolved with the rotated
         # response of the operation: T(R A^-1 q) / P(R A^-2 q), zero beyond maxk there
-        rx, ry = (np.broadcast_to(a, inside.shape) for a in _apply(ROTATION @ inv, qx, qy))
-        ux, uy = (np.broadcast_to(a, inside.shape) for a in _apply(ROTATION @ inv @ inv, qx, qy))
+        ux, uy = _apply(ROTATION @ inv @ inv, grid_qx, grid_qy)
         keep = ux * ux + uy * uy <= maxk * maxk
+        rx, ry = _apply(ROTATION @ inv, grid_qx[keep], grid_qy[keep])
         filt = np.zeros(inside.shape, dtype=np.complex64)
-        filt[keep] = target.kvalue(rx[keep], ry[keep]) / _psf_at(spline, ux[keep], uy[keep])
+        filt[keep] = target.kvalue(rx, ry) / _psf_at(spline, ux[keep], uy[keep])
         noise.append(filt)
     return CellFilters(tuple(image), tuple(noise), float(target.sigma))
 
