@@ -127,8 +127,10 @@ def predict_per_row(det: Path, tmp: Path) -> float:
     return (t1 - t0) / (n1 - n0)
 
 
-def coadd_memory(size: int, tmp: Path) -> dict[str, float]:
-    """Peak RSS (MB) of ``measure --metadetect`` on a coadd of ``size`` pixels with -j 2."""
+def write_coadd(size: int, tmp: Path, header: dict | None = None) -> int:
+    """One unpaired scene field of ``size`` pixels written as a coadd: ``img.fits``,
+    ``wgt.fits`` (with ``header``) and its PSF image ``psf.fits`` in ``tmp``; the image's
+    bytes."""
     scenes = tmp / "big.fits"
     run(
         [
@@ -146,11 +148,16 @@ def coadd_memory(size: int, tmp: Path) -> dict[str, float]:
         ]
     )
     sci = fitsio.read(str(scenes), ext="SCI")[0]
+    fitsio.write(str(tmp / "img.fits"), sci, header=header, clobber=True)
     wgt = fitsio.read(str(scenes), ext="WGT")[0]
-    psf = fitsio.read(str(scenes), ext="PSF")[0]
-    fitsio.write(str(tmp / "img.fits"), sci, clobber=True)
-    fitsio.write(str(tmp / "wgt.fits"), wgt, clobber=True)
-    fitsio.write(str(tmp / "psf.fits"), psf, clobber=True)
+    fitsio.write(str(tmp / "wgt.fits"), wgt, header=header, clobber=True)
+    fitsio.write(str(tmp / "psf.fits"), fitsio.read(str(scenes), ext="PSF")[0], clobber=True)
+    return sci.nbytes
+
+
+def coadd_memory(size: int, tmp: Path) -> dict[str, float]:
+    """Peak RSS (MB) of ``measure --metadetect`` on a coadd of ``size`` pixels with -j 2."""
+    image_bytes = write_coadd(size, tmp)
     cmd = [
         "/usr/bin/time",
         "-v",
@@ -180,7 +187,7 @@ def coadd_memory(size: int, tmp: Path) -> dict[str, float]:
         if "Maximum resident set size" in line
     )
     return {
-        "image_mb": sci.nbytes * 3 / 1e6,
+        "image_mb": image_bytes * 3 / 1e6,
         "peak_mb": peak,
         "wall": wall,
         "rows": len(fitsio.read(str(tmp / "bdet.fits"), columns=["x"])),
@@ -227,42 +234,18 @@ def cell_costs(tmp: Path, n_cells: int) -> None:
 def psf_model_coadd(size: int, tmp: Path, trees: list[Path], repeat: int) -> None:
     """CPU of ``measure --metadetect -j 1`` on a coadd of ``size`` pixels with one PSF image
     and with a PSFEx model, each tree in turn, ``repeat`` times; prints the medians."""
-    run(
-        [
-            "simulate",
-            str(CONFIG),
-            "-o",
-            str(tmp / "pt.fits"),
-            "--scene",
-            str(tmp / "ps.fits"),
-            "scene.n_fields=1",
-            "scene.pairs=false",
-            f"scene.size={size}",
-            "--overwrite",
-            "-q",
-        ]
-    )
     scale = 0.263 / 3600.0  # the PSFEx model's native pixel scale (DECam), in degrees
     header = {"CTYPE1": "RA---TAN", "CTYPE2": "DEC--TAN", "CRVAL1": 150.0, "CRVAL2": 2.0}
     header.update({"CRPIX1": size / 2, "CRPIX2": size / 2, "CD1_1": -scale, "CD2_2": scale})
     header.update({"CD1_2": 0.0, "CD2_1": 0.0})
-    for ext, name in (("SCI", "img"), ("WGT", "wgt")):
-        fitsio.write(
-            str(tmp / f"{name}.fits"),
-            fitsio.read(str(tmp / "ps.fits"), ext=ext)[0],
-            header=header,
-            clobber=True,
-        )
-    fitsio.write(
-        str(tmp / "p1.fits"), fitsio.read(str(tmp / "ps.fits"), ext="PSF")[0], clobber=True
-    )
+    write_coadd(size, tmp, header)
     model = ROOT / "tests" / "data" / "DECam_00154912_12_psfcat.psf"
     spent: dict[tuple[str, str], list[float]] = {}
     rows = {}
     for _ in range(repeat):
         for tree in trees:
             for label, psf in (
-                ("--psf", ["--psf", str(tmp / "p1.fits")]),
+                ("--psf", ["--psf", str(tmp / "psf.fits")]),
                 ("--psf-model", ["--psf-model", str(model)]),
             ):
                 args = [

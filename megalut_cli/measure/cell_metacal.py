@@ -121,13 +121,13 @@ def _psf_dft(psf: np.ndarray, grid: int) -> np.ndarray:
 
 
 def _psf_at(coefficients: np.ndarray, ux: np.ndarray, uy: np.ndarray) -> np.ndarray:
-    """The PSF's transform at ``(ux, uy)`` (radians per pixel): the periodic quintic spline
-    (its complex ``coefficients``) of its DFT on the grid (:func:`_psf_dft`), which samples
-    it finely (the grid is several times the PSF image; 1e-9 of the exact sum where it
-    exceeds 1e-3)."""
+    """The PSF's transform at the points ``(ux, uy)`` (1-D, radians per pixel): the
+    periodic quintic spline (its complex ``coefficients``) of its DFT on the grid
+    (:func:`_psf_dft`), which samples it finely (the grid is several times the PSF image;
+    1e-9 of the exact sum where it exceeds 1e-3)."""
     scale = coefficients.shape[0] / (2.0 * math.pi)
-    out = np.empty(ux.shape, dtype=np.complex128)
-    quintic_wrap(coefficients, np.ravel(uy * scale), np.ravel(ux * scale), out.reshape(-1))
+    out = np.empty(len(ux), dtype=np.complex128)
+    quintic_wrap(coefficients, uy * scale, ux * scale, out)
     return out
 
 

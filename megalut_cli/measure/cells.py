@@ -260,9 +260,16 @@ def _noise_gain(psf_bytes: bytes, psf_size: int, step: float, target: str, engin
     psf = np.frombuffer(psf_bytes).reshape(psf_size, psf_size)
     size = 96
     noise = np.random.default_rng(0).normal(0.0, 1.0, (size, size))
-    versions, _ = cell_operation(noise, psf, step, target, engine, kinds=("noshear",))
-    centre = versions["noshear"][size // 4 : -size // 4, size // 4 : -size // 4]
-    return float(centre.std())
+    return noshear_centre_rms(noise, psf, step, target, engine)
+
+
+def noshear_centre_rms(
+    image: np.ndarray, psf: np.ndarray, step: float, target: str, engine: str
+) -> float:
+    """The rms of the central half (in each axis) of ``image``'s noshear version."""
+    versions, _ = cell_operation(image, psf, step, target, engine, kinds=("noshear",))
+    q = image.shape[0] // 4
+    return float(versions["noshear"][q:-q, q:-q].std())
 
 
 def version_noise(
@@ -289,9 +296,7 @@ def field_version_noise(
     size = min(ny, nx, NOISE_CUT)
     y0, x0 = (ny - size) // 2, (nx - size) // 2
     cut = np.asarray(field[y0 : y0 + size, x0 : x0 + size], dtype=np.float64)
-    versions, _ = cell_operation(cut, psf, step, target, engine, kinds=("noshear",))
-    q = size // 4
-    return float(np.sqrt(2.0) * versions["noshear"][q : size - q, q : size - q].std())
+    return float(np.sqrt(2.0) * noshear_centre_rms(cut, psf, step, target, engine))
 
 
 #: The farthest a PSF image's centroid may lie from the image's true centre (pixels).
