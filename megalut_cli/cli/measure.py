@@ -34,8 +34,8 @@ COADD_IMAGE_OPTIONS: tuple[tuple[str, str, str], ...] = (
     (
         "--noise-image",
         "noise_path",
-        "a realization of its noise (same shape, same correlations), used as the fixnoise "
-        "field instead of white noise from the weight map.",
+        "a realization of its noise (same shape, same correlations), whose correlation "
+        "colours the fixnoise instead of white noise from the weight map.",
     ),
 )
 

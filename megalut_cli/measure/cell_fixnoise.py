@@ -18,6 +18,11 @@ by 90 degrees and sheared the other way), drawn on :data:`KERNEL_SIZE` pixels. E
 version's fixnoise then has the power spectrum of the rotated field's (the shear of the
 pixel positions keeps white noise white; the kernels are drawn by the same operation, with
 its band limit), so the correction is metacal's, while under each object it is one field.
+
+Correlated noise of spectrum ``S`` (a noise image's correlation,
+:mod:`.noise_correlation`): ``W`` is unit white noise and ``K_v`` is also convolved with
+the kernel of transform ``sqrt(S(A^-1 k))``, the noise's colour sheared the other way, as
+metacal's rotated field carries it (docs/metadetect.md, "A noise image").
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ import galsim
 import numpy as np
 
 from megalut_cli.measure.metacal_defaults import INTERPOLANT, SHEARS
+from megalut_cli.measure.metacal_fft import shear_matrix
+from megalut_cli.measure.noise_correlation import spectrum_at
 
 #: Side (pixels) of the drawn response of the operation to one pixel (its tails come from the
 #: band limit of the target: for the Gaussian PSF of examples/scenes/isolated.toml, its power
@@ -55,13 +62,37 @@ def kernel_size(cell_size: int) -> int:
     return min(KERNEL_SIZE, cell_size - 1 + cell_size % 2)
 
 
+def coloured(kernel: np.ndarray, correlation: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """``kernel`` (odd square) convolved with the kernel of transform ``sqrt(S(M^-1 k))``
+    (``S`` the spectrum of ``correlation``, ``M`` = ``matrix``), on a grid padded by the
+    correlation's lags and cut back to the kernel's side."""
+    n, pad = kernel.shape[0], correlation.shape[0]
+    grid = n + 2 * pad
+    padded = np.zeros((grid, grid))
+    padded[pad : pad + n, pad : pad + n] = kernel
+    k = 2.0 * np.pi * np.fft.fftfreq(grid)
+    kx, ky = np.meshgrid(k, k)
+    inv = np.linalg.inv(matrix)
+    ux, uy = inv[0, 0] * kx + inv[0, 1] * ky, inv[1, 0] * kx + inv[1, 1] * ky
+    spectrum = spectrum_at(correlation, ux, uy)
+    # the colour's kernel centred on pixel 0: its phases cancel, as a real even transform's
+    out = np.fft.ifft2(np.fft.fft2(padded) * np.sqrt(np.maximum(spectrum, 0.0))).real
+    return out[pad : pad + n, pad : pad + n]
+
+
 def moving_fixnoise(
-    field: np.ndarray, psf_image: np.ndarray, step: float, target: str
+    field: np.ndarray,
+    psf_image: np.ndarray,
+    step: float,
+    target: str,
+    correlation: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """The fixnoise of each metacal version (``{type: (S, S)}``) of a cell, from its noise
     ``field`` (S, S) (e.g. :func:`~.metacal.noise_field`): ``field`` sheared like the image
     by that version's shear, about the cell's centre, convolved with the rotated response
-    of the operation (``psf_image``, ``step``, ``target``: as the cell's operation)."""
+    of the operation (``psf_image``, ``step``, ``target``: as the cell's operation), and
+    with ``correlation`` (a noise's, :func:`~.noise_correlation.noise_correlation`; the
+    field then unit white noise) the noise's colour sheared the other way."""
     field = np.asarray(field, dtype=np.float64)
     ny, nx = field.shape
     psf = np.ascontiguousarray(psf_image, dtype=np.float64)
@@ -70,6 +101,8 @@ def moving_fixnoise(
     out = {}
     for kind, kernel in kernels.items():
         s1, s2 = SHEARS[kind]
+        if correlation is not None:
+            kernel = coloured(kernel, correlation, shear_matrix(s1 * step, s2 * step))
         moved = noise.shear(g1=s1 * step, g2=s2 * step) if kind != "noshear" else noise
         k_obj = galsim.InterpolatedImage(
             galsim.ImageD(kernel, scale=1.0), x_interpolant=INTERPOLANT

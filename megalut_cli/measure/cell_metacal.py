@@ -6,10 +6,11 @@ cell's true centre, ``J(x) = H(A^-1 x)`` where ``H`` has the transform
 unsheared frequencies (analytic), the cell ``I`` and the PSF ``P`` where they were sampled,
 zero beyond the PSF's ``maxk`` (as GalSim's ``Deconvolve``). The change of coordinates
 ``A^-1`` is made by 1-D Fourier shifts of rows and columns (three shears, four for a
-diagonal matrix): exact for a band-limited image. The white fixnoise that moves with the
-image (:mod:`.cell_fixnoise`) enters ``H`` with its own filter, so a version costs one
-inverse FFT and the shifts. GalSim's operation (:mod:`.metacal`) stays the reference
-(``measure --engine galsim``); docs/metadetect.md compares the two.
+diagonal matrix): exact for a band-limited image. The fixnoise that moves with the image
+(:mod:`.cell_fixnoise`; white, or coloured by a noise correlation) enters ``H`` with its own
+filter, so a version costs one inverse FFT and the shifts. GalSim's operation
+(:mod:`.metacal`) stays the reference (``measure --engine galsim``); docs/metadetect.md
+compares the two.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import scipy.ndimage
 from megalut_cli.measure.metacal_defaults import SHEARS, TYPES
 from megalut_cli.measure.metacal_fft import psf_params, shear_matrix
 from megalut_cli.measure.metacal_targets import MetacalTarget, metacal_target
+from megalut_cli.measure.noise_correlation import spectrum_on_grid
 from megalut_cli.measure.spline_nb import quintic_wrap
 
 #: Pixels of zero padding each side of the cell beyond the largest shift of the passes:
@@ -120,11 +122,11 @@ def _psf_dft(psf: np.ndarray, grid: int) -> np.ndarray:
     return scipy.fft.fft2(padded) * np.exp(0.5j * (p - 1) * (q[None, :] + q[:, None]))
 
 
-def _psf_at(coefficients: np.ndarray, ux: np.ndarray, uy: np.ndarray) -> np.ndarray:
-    """The PSF's transform at the points ``(ux, uy)`` (1-D, radians per pixel): the
-    periodic quintic spline (its complex ``coefficients``) of its DFT on the grid
-    (:func:`_psf_dft`), which samples it finely (the grid is several times the PSF image;
-    1e-9 of the exact sum where it exceeds 1e-3)."""
+def _spline_at(coefficients: np.ndarray, ux: np.ndarray, uy: np.ndarray) -> np.ndarray:
+    """A transform sampled on the grid (the PSF's DFT, :func:`_psf_dft`, or a noise
+    spectrum) at the points ``(ux, uy)`` (1-D, radians per pixel): its periodic quintic
+    spline (complex ``coefficients``), fine where the grid samples it finely (the PSF: the
+    grid is several times its image, 1e-9 of the exact sum where it exceeds 1e-3)."""
     scale = coefficients.shape[0] / (2.0 * math.pi)
     out = np.empty(len(ux), dtype=np.complex128)
     quintic_wrap(coefficients, uy * scale, ux * scale, out)
@@ -151,9 +153,12 @@ def cell_filters(
     target: MetacalTarget,
     geometry: CellGeometry,
     moving: bool = True,
+    correlation_bytes: bytes | None = None,
 ) -> CellFilters:
     """The filters of one PSF image (its bytes and side) and target on ``geometry``
-    (cached); without ``moving``, none for the moving fixnoise (``noise`` empty)."""
+    (cached); without ``moving``, none for the moving fixnoise (``noise`` empty). With
+    ``correlation_bytes`` (a noise correlation, :func:`~.noise_correlation.noise_correlation`,
+    as float64 bytes) the fixnoise filters colour a unit white field to that noise."""
     psf, maxk, _ = psf_params(psf_bytes, psf_size)
     grid = geometry.grid
     qx, qy = _grid_k(grid)
@@ -166,20 +171,32 @@ def cell_filters(
         image.append(np.where(inside, target.kvalue(tx, ty) / psf_half, 0).astype(np.complex64))
     if not moving:
         return CellFilters(tuple(image), (), float(target.sigma))
-    # the spline coefficients of the PSF's transform, for _psf_at
+    # the spline coefficients of the PSF's transform, for _spline_at
     spline = scipy.ndimage.spline_filter(psf_k.real, order=5, mode="grid-wrap") + 1j * (
         scipy.ndimage.spline_filter(psf_k.imag, order=5, mode="grid-wrap")
     )
+    colour = None
+    if correlation_bytes is not None:
+        correlation = np.frombuffer(correlation_bytes)
+        side = math.isqrt(correlation.size)
+        spectrum = spectrum_on_grid(correlation.reshape(side, side), grid)
+        colour = scipy.ndimage.spline_filter(spectrum, order=5, mode="grid-wrap") + 0j
     noise = []
     grid_qx, grid_qy = np.broadcast_arrays(qx, qy)
     for inv in geometry.inverses:
         # the fixnoise: the white field sheared like the image, convolved with the rotated
-        # response of the operation: T(R A^-1 q) / P(R A^-2 q), zero beyond maxk there
+        # response of the operation: T(R A^-1 q) / P(R A^-2 q), zero beyond maxk there;
+        # a noise correlation of spectrum S adds sqrt(S(A^-2 q)): metacal's rotated field
+        # is that noise sheared the other way
         ux, uy = _apply(ROTATION @ inv @ inv, grid_qx, grid_qy)
         keep = ux * ux + uy * uy <= maxk * maxk
         rx, ry = _apply(ROTATION @ inv, grid_qx[keep], grid_qy[keep])
         filt = np.zeros(inside.shape, dtype=np.complex64)
-        filt[keep] = target.kvalue(rx, ry) / _psf_at(spline, ux[keep], uy[keep])
+        values = target.kvalue(rx, ry) / _spline_at(spline, ux[keep], uy[keep])
+        if colour is not None:
+            sx, sy = _apply(inv @ inv, grid_qx[keep], grid_qy[keep])
+            values *= np.sqrt(np.maximum(_spline_at(colour, sx, sy).real, 0.0))
+        filt[keep] = values
         noise.append(filt)
     return CellFilters(tuple(image), tuple(noise), float(target.sigma))
 
@@ -214,12 +231,15 @@ def cell_versions(
     moving_field: np.ndarray | None = None,
     rotated_field: np.ndarray | None = None,
     kinds: tuple[str, ...] = TYPES,
+    moving_correlation: np.ndarray | None = None,
 ) -> tuple[dict[str, np.ndarray], float]:
     """The metacal versions ``kinds`` (default all five), ``{type: (S, S)}``, of a cell
     ``image`` (S, S) under ``psf_image`` (pixel included, centred on its true centre), and
     the target's sigma. Fixnoise: ``moving_field`` (S, S), white noise, moves with the image
-    (:mod:`.cell_fixnoise`); ``rotated_field`` (S, S), e.g. a noise image with the data's
-    correlations, is metacal's: rotated by 90 degrees, through the operation, rotated back."""
+    (:mod:`.cell_fixnoise`), coloured by ``moving_correlation`` when given (a noise's
+    correlation, :func:`~.noise_correlation.noise_correlation`; the field then unit white
+    noise); ``rotated_field`` (S, S), e.g. a noise image with the data's correlations, is
+    metacal's: rotated by 90 degrees, through the operation, rotated back."""
     image = np.asarray(image, dtype=np.float64)
     size = image.shape[0]
     if image.shape != (size, size):
@@ -232,6 +252,9 @@ def cell_versions(
         metacal_target(target, psf, step),
         geometry,
         moving_field is not None,
+        None
+        if moving_correlation is None
+        else np.ascontiguousarray(moving_correlation, dtype=np.float64).tobytes(),
     )
     o, g = geometry.offset, geometry.grid
     padded = np.zeros((g, g), dtype=np.float32)

@@ -50,6 +50,7 @@ from megalut_cli.measure.metacal_defaults import (
     TARGET_PSF_COLUMNS,
     TYPES,
 )
+from megalut_cli.measure.noise_correlation import noise_correlation
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.source_registry import (
     DetectSettings,
@@ -69,10 +70,10 @@ IMAGE_COLUMNS: tuple[str, ...] = ("image", "field", "pair_sign", "tru_g1", "tru_
 #: Header card of a cells file (and of the catalog): the width of the border (pixels) outside
 #: each cell's inner region (overlapping cells); 0 or absent: the whole cell is inner.
 INNER_CARD = "INNERBRD"
-#: Header card: the fixnoise field of a metadetect catalog, a noise image (``NOISE``) or
-#: white noise of the weight map (``white``).
+#: Header card: the fixnoise of a metadetect catalog, coloured by a noise image's
+#: correlation (``NOISE``) or white noise of the weight map (``white``).
 FIXNOISE_CARD = "MDETFIX"
-FIXNOISE_TEXT = "fixnoise field: the NOISE image, or white from WGT"
+FIXNOISE_TEXT = "fixnoise colour: the NOISE image's, or white from WGT"
 #: Relative difference of the cells' and the PSF's pixel scales beyond which they disagree.
 SCALE_TOLERANCE = 1e-3
 
@@ -225,6 +226,7 @@ def cell_operation(
     moving_field: np.ndarray | None = None,
     rotated_field: np.ndarray | None = None,
     kinds: tuple[str, ...] = TYPES,
+    moving_correlation: np.ndarray | None = None,
 ) -> tuple[dict[str, np.ndarray], float]:
     """The metacal versions ``kinds`` (default all five) of a cell and the target's sigma,
     as :func:`~.cell_metacal.cell_versions` (the default engine), or with
@@ -236,7 +238,9 @@ def cell_operation(
     from megalut_cli.measure.metacal import metacal_versions
 
     if engine != "galsim":
-        return cell_versions(image, psf, step, target, moving_field, rotated_field, kinds)
+        return cell_versions(
+            image, psf, step, target, moving_field, rotated_field, kinds, moving_correlation
+        )
     fields = None if rotated_field is None else np.asarray(rotated_field, np.float64)[None]
     versions, sigma = metacal_versions(
         np.asarray(image, np.float64)[None],
@@ -248,7 +252,9 @@ def cell_operation(
     )
     out = {kind: v[0] for kind, v in versions.items() if kind in kinds}
     if moving_field is not None:
-        for kind, fixnoise in moving_fixnoise(moving_field, psf, step, target).items():
+        for kind, fixnoise in moving_fixnoise(
+            moving_field, psf, step, target, moving_correlation
+        ).items():
             if kind in out:
                 out[kind] += fixnoise
     return out, float(sigma[0])
@@ -425,14 +431,16 @@ def metadetect_cell(
     bad: np.ndarray | None = None,
     noise_field: np.ndarray | None = None,
     white_field: bool = False,
+    unit_field: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Metadetection on one cell ``image`` (S, S) with its ``psf`` (P, P): the five versions
     (``settings.metacal``: step, target; ``bad`` pixels set to 0 first), sep's detections on
     each at ``detection.thresh`` times its noise, and the features of a ``stamp_size`` stamp
-    around each detection. Fixnoise: white noise moves with the image
-    (:mod:`.cell_fixnoise`): a field of ``noise_sigma`` from ``seed``, or ``noise_field``
-    with ``white_field`` (white noise of each pixel's variance); a ``noise_field`` of the
-    data's correlations (a noise image) takes metacal's rotated fixnoise. Returns the columns
+    around each detection. Fixnoise moves with the image (:mod:`.cell_fixnoise`): white
+    noise of ``noise_sigma`` from ``seed``, or ``noise_field`` with ``white_field`` (white
+    noise of each pixel's variance); a ``noise_field`` of the data's correlations (a noise
+    image) gives its correlation (:mod:`.noise_correlation`), which colours unit white
+    noise (``unit_field``, else drawn from ``seed``). Returns the columns
     ``mdet_step``, ``x``, ``y`` (1-based), the features, ``psf_adamom_*`` (the target PSF's)
     and ``n_masked``, one row per detection per version, version by version."""
     # GalSim: metadetect only
@@ -452,16 +460,17 @@ def metadetect_cell(
         if fields.shape != image[None].shape or not np.isfinite(fields).all():
             raise InputError("the noise image must be finite and of the cell's shape")
     engine = settings.engine
-    moving = rotated = None
-    if fields is not None and not white_field:  # a noise image: rotated fixnoise
-        rotated = fields[0]
+    moving = correlation = None
+    if fields is not None and not white_field:  # a noise image: its colour on white noise
+        correlation = noise_correlation(fields[0], bad)
+        moving = drawn_noise(1.0, seed, image.shape) if unit_field is None else unit_field
         noise = field_version_noise(psfs[0], fields[0], mc.step, mc.target, engine)
     else:
         if sigma > 0 or fields is not None:  # white: fixnoise that moves with the image
             moving = fields[0] if fields is not None else drawn_noise(sigma, seed, image.shape)
         noise = version_noise(psfs[0], sigma, mc.step, mc.target, engine) if sigma > 0 else 0.0
     versions, target_sigma = cell_operation(
-        image, psfs[0], mc.step, mc.target, engine, moving, rotated
+        image, psfs[0], mc.step, mc.target, engine, moving, moving_correlation=correlation
     )
     target = stamp_target_columns(
         mc.target, psfs, np.zeros(1, np.int64), np.array([target_sigma]), mc.step, stamp_size

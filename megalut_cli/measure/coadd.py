@@ -232,6 +232,9 @@ def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
                 bad,
                 cell_fixnoise_field(co, job, weight, bad),
                 white_field=co.noise is None,
+                unit_field=None
+                if co.noise is None
+                else tiled_normals(job.seed, job.x0, job.y0, size),
             )
     except InputError as err:
         raise InputError(
@@ -243,8 +246,9 @@ def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
 def cell_fixnoise_field(
     co: CoaddInput, job: CoaddCellJob, weight: np.ndarray, bad: np.ndarray
 ) -> np.ndarray:
-    """The fixnoise field of a coadd's cell: the noise image's region, else white noise of
-    each pixel's variance, the same pixels in every cell over them (:func:`tiled_normals`)."""
+    """The fixnoise field of a coadd's cell: the noise image's region (its correlation
+    colours the cell's unit white field, :func:`tiled_normals`), else white noise of each
+    pixel's variance, the same pixels in every cell over them."""
     if co.noise is not None:
         return read_region(co.noise, job.x0, job.y0, co.size)[0]
     with np.errstate(divide="ignore"):
