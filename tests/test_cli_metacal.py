@@ -19,6 +19,7 @@ from click.testing import CliRunner
 
 from megalut_cli.catalog import read_catalog
 from megalut_cli.cli import main as megalut
+from megalut_cli.measure.defaults import PSF_COLUMNS
 from megalut_cli.measure.features import FEATURE_COLUMNS
 from megalut_cli.measure.metacal_defaults import TYPES
 from megalut_cli.measure.morphology import MORPHOLOGY_COLUMNS
@@ -30,7 +31,6 @@ MODEL = ROOT / "megalut_cli" / "data" / "fiducial.h5"
 MCAL_MODEL = ROOT / "megalut_cli" / "data" / "fiducial-metacal.h5"
 N_CASES, N_REA, SIZE = 4, 8, 64
 ENV = {"MEGALUT_NPROC": "1"}  # module fixtures run before conftest's autouse monkeypatch
-PSF_COLUMNS = ("psf_adamom_g1", "psf_adamom_g2", "psf_adamom_sigma", "psf_adamom_rho4")
 GALSIM = ["--engine", "galsim"]
 
 

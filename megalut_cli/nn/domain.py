@@ -50,8 +50,8 @@ DOMAIN_COLUMNS: tuple[str, ...] = (
     "psf_adamom_g1",
     "psf_adamom_g2",
 )
-#: The PSF measurements of a catalog (``measure`` with a PSF).
-PSF_COLUMNS: tuple[str, ...] = ("psf_adamom_sigma", "psf_adamom_g1", "psf_adamom_g2")
+#: The PSF measurements a model records in its domain (``measure`` with a PSF).
+DOMAIN_PSF_COLUMNS: tuple[str, ...] = ("psf_adamom_sigma", "psf_adamom_g1", "psf_adamom_g2")
 #: The galaxy's size relative to the PSF's: ``adamom_sigma / psf_adamom_sigma`` (derived).
 RESOLUTION = "resolution"
 #: Quantiles recorded (fractions).

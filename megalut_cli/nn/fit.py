@@ -47,7 +47,7 @@ from megalut_cli.nn.defaults import DEFAULT_FEATURES, INIT_SCHEMES, POINT_COSTS,
 from megalut_cli.nn.domain import (
     DOMAIN_COLUMNS,
     DOMAIN_KEY,
-    PSF_COLUMNS,
+    DOMAIN_PSF_COLUMNS,
     PSF_G_TOLERANCE,
     PSF_SIZE_TOLERANCE,
     domain_record,
@@ -384,7 +384,7 @@ def config_psf_domain(domain: Mapping[str, Any], psf: Any) -> dict[str, Any]:
     recorded = domain.get("columns", {})
     if not stamp_size or not isinstance(psf, Mapping) or not psf:
         return dict(domain)
-    if all(c in recorded for c in PSF_COLUMNS):
+    if all(c in recorded for c in DOMAIN_PSF_COLUMNS):
         return dict(domain)
     from megalut_cli.sim.psf import measured_psf_shape  # GalSim: only when a PSF must be drawn
 

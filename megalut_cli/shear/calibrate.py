@@ -89,7 +89,7 @@ MDET_UNIT_COLUMNS = ("field", "image", "cell")
 INNER_COLUMN = "inner"
 ROUTE_SIMULATION = "simulation"
 #: The PSF ellipticity of each object (measured: real data has no true PSF).
-PSF_COLUMNS = ("psf_adamom_g1", "psf_adamom_g2")
+PSF_SHAPE_COLUMNS = ("psf_adamom_g1", "psf_adamom_g2")
 #: Smallest rms PSF ellipticity about its mean for a leakage fit (below: alpha undetermined).
 MIN_PSF_SPREAD = 1e-4
 #: Position columns, in order of preference: on the sky (degrees), else on the image.
@@ -237,7 +237,7 @@ def plan_calibration(
             raise ConfigError(f"{key} {by}: per-case aggregates do not apply to calibrate")
         by_used = [by] if by_kind == "column" else expr.columns_used(by)
         by_versioned = route == ROUTE_METACAL and any(f"{c}_1p" in have for c in by_used)
-    psf = PSF_COLUMNS if all(c in have for c in PSF_COLUMNS) else None
+    psf = PSF_SHAPE_COLUMNS if all(c in have for c in PSF_SHAPE_COLUMNS) else None
     positions = next((p for p in POSITION_COLUMNS if all(c in have for c in p)), None)
     unit = None
     if route == ROUTE_METADETECT:

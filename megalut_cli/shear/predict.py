@@ -38,8 +38,8 @@ from megalut_cli.catalog import (
 from megalut_cli.errors import ConfigError, InputError, Names, namer
 from megalut_cli.measure.metacal_defaults import MDET_COLUMN, MDET_STEP_CARD, STEP_CARD, TYPES
 from megalut_cli.nn.domain import (
+    DOMAIN_PSF_COLUMNS,
     METACAL_ITEMS,
-    PSF_COLUMNS,
     UNITS,
     Finding,
     domain_findings,
@@ -549,7 +549,7 @@ def usable_findings(counts: RowCounts) -> list[Finding]:
         why += f", {rest} with a non-finite model feature"
     if counts.never_finite:
         why += f" ({', '.join(counts.never_finite)} not finite in any unflagged row"
-        if any(f in PSF_COLUMNS for f in counts.never_finite):
+        if any(f in DOMAIN_PSF_COLUMNS for f in counts.never_finite):
             why += ": measure with a PSF"
         why += ")"
     return [
@@ -579,10 +579,10 @@ def setup_psf_columns(
     the ellipticity of a PSF sheared by ``g2``). Empty when the catalog measures its PSF, the
     model records none or the setup has no drawable PSF."""
     psf, stamp = setup.get("psf"), setup.get("stamp_size")
-    recorded = [c for c in PSF_COLUMNS if c in domain.get("columns", {})]
+    recorded = [c for c in DOMAIN_PSF_COLUMNS if c in domain.get("columns", {})]
     if not recorded or not isinstance(psf, Mapping) or not stamp:
         return {}
-    if not _all_nan(columns, PSF_COLUMNS, rows):
+    if not _all_nan(columns, DOMAIN_PSF_COLUMNS, rows):
         return {}
     from megalut_cli.sim.psf import measured_psf_shape  # GalSim: only to draw the PSF
 
@@ -590,7 +590,7 @@ def setup_psf_columns(
     if shape is None:
         return {}
     n = len(rows)
-    return {c: np.full(n, value) for c, value in zip(PSF_COLUMNS, shape)}
+    return {c: np.full(n, value) for c, value in zip(DOMAIN_PSF_COLUMNS, shape)}
 
 
 def psf_findings(
@@ -602,8 +602,8 @@ def psf_findings(
     """One finding (item ``psf``) when the model's domain records the training PSF but the
     catalog carries no PSF measurement (no finite ``psf_adamom_*`` in its usable rows) and
     records no PSF in its setup: nothing shows that its PSF is the model's."""
-    recorded = [c for c in PSF_COLUMNS if c in domain.get("columns", {})]
-    if not recorded or "psf" in setup or not _all_nan(columns, PSF_COLUMNS, rows):
+    recorded = [c for c in DOMAIN_PSF_COLUMNS if c in domain.get("columns", {})]
+    if not recorded or "psf" in setup or not _all_nan(columns, DOMAIN_PSF_COLUMNS, rows):
         return []
     trained = ", ".join(
         f"{c} {shown(domain['columns'][c], domain['columns'][c]['q'][3])}{UNITS.get(c, '')}"
@@ -612,9 +612,9 @@ def psf_findings(
     return [
         Finding(
             "psf",
-            f"no PSF measurement ({', '.join(PSF_COLUMNS)} missing or NaN) and no recorded PSF: "
-            f"nothing shows the PSF is the model's (trained at {trained}); measure with a PSF "
-            "(--psf, --psf-model or the MEDS file's PSF cutouts)",
+            f"no PSF measurement ({', '.join(DOMAIN_PSF_COLUMNS)} missing or NaN) and no "
+            f"recorded PSF: nothing shows the PSF is the model's (trained at {trained}); "
+            "measure with a PSF (--psf, --psf-model or the MEDS file's PSF cutouts)",
         )
     ]
 
@@ -679,7 +679,7 @@ def domain_report(
     (:func:`validation_findings`) is judged in any case."""
     trained = _trained_setup(model)
     domain, _ = applied if applied is not None else applied_domain(model)
-    extra = [*model.features, "box_size", *PSF_COLUMNS]
+    extra = [*model.features, "box_size", *DOMAIN_PSF_COLUMNS]
     read = domain_rows(
         features_path, model.features, colnames, resolved, metacal, domain, n_rows, extra
     )
