@@ -12,7 +12,19 @@ every response finite), weighted by the networks' weights with their selection r
   (shear) is left out: does the set's m depend on which shears were drawn?
 * the cases' mean response against |g|^2.
 
+With ``--matrix``: the whole 2x2 matrix of each set, ``<g_i> = (delta_ij + m_ij) g_j + c_i``,
+as its isotropic part ``(m11 + m22) / 2``, its two spin-4 parts ``(m11 - m22) / 2`` and
+``(m12 + m21) / 2`` and its rotation ``(m12 - m21) / 2``, with jackknife errors and each
+part's chi^2 of the sets about their weighted mean.
+
+With ``--by COLUMN`` (a truth column, e.g. ``tru_rad``, ``tru_sersicn``, ``tru_flux``): m of
+each set in the quartiles of that column (edges from the first catalog; each bin calibrated by
+its own response: the truth does not respond to the shear), its jackknife error, and each
+bin's chi^2 of the sets about their weighted mean: where in the population the sets differ.
+
     python examples/metacal/set_checks.py vo-3901-a.fits [vo-3902-a.fits ...]
+    python examples/metacal/set_checks.py --by tru_rad vo-3901-a.fits vo-3902-a.fits ...
+    python examples/metacal/set_checks.py --matrix vo-3901-a.fits vo-3902-a.fits ...
 """
 
 from __future__ import annotations
@@ -86,6 +98,93 @@ def calibrated(sums: dict, drop: int | None = None) -> tuple[np.ndarray, np.ndar
     return np.linalg.solve(resp, means.T).T, cases_r
 
 
+def read_set(path: str, extra: tuple[str, ...] = ()) -> tuple[np.ndarray, float]:
+    """The columns the checks read, and the set's metacal step."""
+    step = float(fitsio.read_header(path, 1).get("MCALSTEP", 0.01))
+    names = ["case", "rea", "tru_g1", "tru_g2", "mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22"]
+    names += [f"flags_{k}" for k in VERSIONS]
+    names += [f"pre_g{c}{w}_{k}" for c in (1, 2) for w in ("", "_w") for k in VERSIONS]
+    return fitsio.read(path, columns=names + list(extra)), step
+
+
+def m_and_jackknife(t: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """m of both components and their delete-group jackknife errors."""
+    sums, both = per_group_sums(t, step)
+    cal = calibrated(sums)[0]
+    jacks = [calibrated(sums, d)[0] for d in range(GROUPS)]
+    m = np.array([np.polyfit(both[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)])
+    jack = np.array([[np.polyfit(both[:, i], c[:, i], 1)[0] - 1 for i in (0, 1)] for c in jacks])
+    return m, np.sqrt((GROUPS - 1) / GROUPS * ((jack - jack.mean(axis=0)) ** 2).sum(axis=0))
+
+
+MATRIX_PARTS = ("(m11 + m22) / 2", "(m11 - m22) / 2", "(m12 + m21) / 2", "(m12 - m21) / 2")
+
+
+def matrix_parts(shears: np.ndarray, cal: np.ndarray) -> np.ndarray:
+    """The four parts (:data:`MATRIX_PARTS`) of the fitted 2x2 matrix ``m_ij``."""
+    design = np.column_stack([shears, np.ones(len(shears))])
+    fit = np.linalg.lstsq(design, cal, rcond=None)[0]
+    m = fit[:2].T - np.eye(2)
+    return np.array(
+        [
+            (m[0, 0] + m[1, 1]) / 2,
+            (m[0, 0] - m[1, 1]) / 2,
+            (m[0, 1] + m[1, 0]) / 2,
+            (m[0, 1] - m[1, 0]) / 2,
+        ]
+    )
+
+
+def chi2_about_mean(values: np.ndarray, errors: np.ndarray) -> tuple[float, float, float]:
+    """The weighted mean, its error and the chi^2 of ``values`` about it."""
+    w = 1 / errors**2
+    mean = float((w * values).sum() / w.sum())
+    return mean, float(1 / np.sqrt(w.sum())), float((w * (values - mean) ** 2).sum())
+
+
+def by_matrix(paths: list[str]) -> None:
+    """The parts of each set's 2x2 matrix, their jackknife errors and chi^2 across sets."""
+    values, errors = [], []
+    for path in paths:
+        t, step = read_set(path)
+        sums, shears = per_group_sums(t, step)
+        values.append(matrix_parts(shears, calibrated(sums)[0]))
+        jack = np.array([matrix_parts(shears, calibrated(sums, d)[0]) for d in range(GROUPS)])
+        errors.append(np.sqrt((GROUPS - 1) / GROUPS * ((jack - jack.mean(0)) ** 2).sum(0)))
+    names = " | ".join(p.rsplit("/", 1)[-1] for p in paths)
+    print(f"| part of m_ij (1e-3) | {names} | weighted mean | chi^2 |")
+    print("|---|" + "---|" * (len(paths) + 2))
+    for k, part in enumerate(MATRIX_PARTS):
+        v = np.array([a[k] for a in values])
+        e = np.array([a[k] for a in errors])
+        mean, err, chi2 = chi2_about_mean(v, e)
+        cells = " | ".join(f"{1e3 * a:+.2f} +- {1e3 * b:.2f}" for a, b in zip(v, e))
+        print(f"| {part} | {cells} | {1e3 * mean:+.2f} +- {1e3 * err:.2f} | {chi2:.1f} |")
+
+
+def by_column(column: str, paths: list[str], bins: int = 4) -> None:
+    """m of each set in the quantile bins of a truth ``column``, and each bin's chi^2."""
+    edges = None
+    results = []
+    for path in paths:
+        t, step = read_set(path, (column,))
+        if edges is None:
+            edges = np.quantile(t[column], np.linspace(0, 1, bins + 1))
+            edges[-1] = np.inf
+        which = np.digitize(t[column], edges[1:-1])
+        results.append([m_and_jackknife(t[which == b], step) for b in range(bins)])
+    names = " | ".join(p.rsplit("/", 1)[-1] for p in paths)
+    print(f"| {column} bin | comp. | {names} | chi^2 |")
+    print("|---|---|" + "---|" * (len(paths) + 1))
+    for b in range(bins):
+        for i in (0, 1):
+            m = np.array([r[b][0][i] for r in results])
+            err = np.array([r[b][1][i] for r in results])
+            chi2 = chi2_about_mean(m, err)[2]
+            cells = " | ".join(f"{1e3 * a:+.1f} +- {1e3 * e:.1f}" for a, e in zip(m, err))
+            print(f"| {edges[b]:.3g} to {edges[b + 1]:.3g} | g{i + 1} | {cells} | {chi2:.1f} |")
+
+
 def main(paths: list[str]) -> None:
     print(
         "| catalog | comp. | m | jackknife | largest influence; kurtosis | m, cubic fit | beta "
@@ -93,11 +192,7 @@ def main(paths: list[str]) -> None:
     )
     print("|---|---|---|---|---|---|---|---|---|")
     for path in paths:
-        step = float(fitsio.read_header(path, 1).get("MCALSTEP", 0.01))
-        names = ["case", "rea", "tru_g1", "tru_g2", "mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22"]
-        names += [f"flags_{k}" for k in VERSIONS]
-        names += [f"pre_g{c}{w}_{k}" for c in (1, 2) for w in ("", "_w") for k in VERSIONS]
-        t = fitsio.read(path, columns=names)
+        t, step = read_set(path)
         sums, both = per_group_sums(t, step)
         abs2 = (both**2).sum(axis=1)
         cal_all, resp_all = calibrated(sums)
@@ -128,4 +223,9 @@ def main(paths: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    if len(sys.argv) > 2 and sys.argv[1] == "--by":
+        by_column(sys.argv[2], sys.argv[3:])
+    elif len(sys.argv) > 1 and sys.argv[1] == "--matrix":
+        by_matrix(sys.argv[2:])
+    else:
+        main(sys.argv[1:])
