@@ -463,7 +463,8 @@ def metadetect_cell(
     moving = correlation = None
     if fields is not None and not white_field:  # a noise image: its colour on white noise
         correlation = noise_correlation(fields[0], bad)
-        moving = drawn_noise(1.0, seed, image.shape) if unit_field is None else unit_field
+        unit = drawn_noise(1.0, seed, image.shape) if unit_field is None else unit_field
+        moving = np.where(bad, 0.0, unit)  # as the noise image, none on bad pixels
         noise = field_version_noise(psfs[0], fields[0], mc.step, mc.target, engine)
     else:
         if sigma > 0 or fields is not None:  # white: fixnoise that moves with the image
