@@ -98,6 +98,11 @@ def calibrated(sums: dict, drop: int | None = None) -> tuple[np.ndarray, np.ndar
     return np.linalg.solve(resp, means.T).T, cases_r
 
 
+def jackknife_sigma(jack: np.ndarray) -> np.ndarray:
+    """The delete-group jackknife error of the replicates ``jack`` (groups along axis 0)."""
+    return np.sqrt((GROUPS - 1) / GROUPS * ((jack - jack.mean(axis=0)) ** 2).sum(axis=0))
+
+
 def read_set(path: str, extra: tuple[str, ...] = ()) -> tuple[np.ndarray, float]:
     """The columns the checks read, and the set's metacal step."""
     step = float(fitsio.read_header(path, 1).get("MCALSTEP", 0.01))
@@ -114,7 +119,7 @@ def m_and_jackknife(t: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]
     jacks = [calibrated(sums, d)[0] for d in range(GROUPS)]
     m = np.array([np.polyfit(both[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)])
     jack = np.array([[np.polyfit(both[:, i], c[:, i], 1)[0] - 1 for i in (0, 1)] for c in jacks])
-    return m, np.sqrt((GROUPS - 1) / GROUPS * ((jack - jack.mean(axis=0)) ** 2).sum(axis=0))
+    return m, jackknife_sigma(jack)
 
 
 MATRIX_PARTS = ("(m11 + m22) / 2", "(m11 - m22) / 2", "(m12 + m21) / 2", "(m12 - m21) / 2")
@@ -150,7 +155,7 @@ def by_matrix(paths: list[str]) -> None:
         sums, shears = per_group_sums(t, step)
         values.append(matrix_parts(shears, calibrated(sums)[0]))
         jack = np.array([matrix_parts(shears, calibrated(sums, d)[0]) for d in range(GROUPS)])
-        errors.append(np.sqrt((GROUPS - 1) / GROUPS * ((jack - jack.mean(0)) ** 2).sum(0)))
+        errors.append(jackknife_sigma(jack))
     names = " | ".join(p.rsplit("/", 1)[-1] for p in paths)
     print(f"| part of m_ij (1e-3) | {names} | weighted mean | chi^2 |")
     print("|---|" + "---|" * (len(paths) + 2))
@@ -202,7 +207,7 @@ def main(paths: list[str]) -> None:
             m = np.polyfit(shears, cal, 1)[0] - 1
             jack = np.array([np.polyfit(shears, c[:, i - 1], 1)[0] - 1 for c in jacks])
             influence = (GROUPS - 1) * (jack - jack.mean())
-            sigma = np.sqrt((GROUPS - 1) / GROUPS * ((jack - jack.mean()) ** 2).sum())
+            sigma = jackknife_sigma(jack)
             kurt = ((influence - influence.mean()) ** 4).mean() / influence.var() ** 2
             design = np.vstack([shears, np.ones_like(shears), shears * abs2]).T
             cubic = np.linalg.lstsq(design, cal, rcond=None)[0]
