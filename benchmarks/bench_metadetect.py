@@ -82,7 +82,7 @@ def cells_profile(path: Path, n: int, engine: str) -> dict[str, float]:
     detection = DetectSettings(5.0, 4, 32, 0.005)
     cell = cells.read_cell(str(path), 0)
     cells.metadetect_cell(  # first call: caches, numba
-        cell["image"], cell["psf"], 1.0, 0, settings, detection, 48, cell["bad"]
+        cell["image"], cell["psf"], cells.CellNoise(1.0, 0), settings, detection, 48, cell["bad"]
     )
     spent.update({k: 0.0 for k in spent})
     rows, t0 = 0, time.process_time()
@@ -90,7 +90,13 @@ def cells_profile(path: Path, n: int, engine: str) -> dict[str, float]:
         cell = cells.read_cell(str(path), i)
         noise = cells.cell_noise(cell["weight"], cell["bad"])
         out = cells.metadetect_cell(
-            cell["image"], cell["psf"], noise, i, settings, detection, 48, cell["bad"]
+            cell["image"],
+            cell["psf"],
+            cells.CellNoise(noise, i),
+            settings,
+            detection,
+            48,
+            cell["bad"],
         )
         rows += len(out["x"])
     total = time.process_time() - t0

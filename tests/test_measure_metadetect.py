@@ -13,7 +13,7 @@ from helpers import invoke_fails
 from sim_configs import write
 
 from megalut_cli.catalog import read_catalog
-from megalut_cli.measure.cells import cut_around, detect, metadetect_cell, read_cell
+from megalut_cli.measure.cells import CellNoise, cut_around, detect, metadetect_cell, read_cell
 from megalut_cli.measure.measurer import MeasureSettings, MetacalSettings
 from megalut_cli.measure.meds import write_meds
 from megalut_cli.measure.metacal import metacal_features
@@ -207,7 +207,9 @@ def test_noise_detection_threshold_and_library_call(tmp_path):
     settings = MeasureSettings(metacal=MetacalSettings(STEP, 4))
     counts = []
     for thresh in (5.0, 1.0):
-        out = metadetect_cell(image, psf, 1.0, 7, settings, DetectSettings(thresh, 4, 32, 0.005))
+        out = metadetect_cell(
+            image, psf, CellNoise(1.0, 7), settings, DetectSettings(thresh, 4, 32, 0.005)
+        )
         counts.append(len(out["x"]))
     assert counts[0] == 0 and counts[1] > 100  # five versions
     found = detect(np.zeros((32, 32)), 1.0, DetectSettings(5.0, 4, 32, 0.005))
@@ -394,7 +396,7 @@ def test_mask_neighbours_keeps_a_neighbour_out_of_the_moments(runner, cli, tmp_p
     near = {}
     for mask, cell in ((False, image.array), (True, image.array), (None, alone.array)):
         detection = DetectSettings(3.0, 4, 32, 0.005, mask_neighbours=bool(mask))
-        out = metadetect_cell(cell, psf_image, 1.0, 7, settings, detection, 48)
+        out = metadetect_cell(cell, psf_image, CellNoise(1.0, 7), settings, detection, 48)
         centre = (size + 1) / 2.0 - 6.0  # 1-based x of the fainter galaxy
         rows = np.flatnonzero(np.hypot(out["x"] - centre, out["y"] - (size + 1) / 2.0) < 2.0)
         assert sorted(out["mdet_step"][rows]) == sorted(TYPES), (mask, out["mdet_step"][rows])

@@ -12,7 +12,7 @@ import pytest
 
 from megalut_cli.measure.cell_fixnoise import kernel_size, moving_fixnoise
 from megalut_cli.measure.cell_metacal import cell_versions
-from megalut_cli.measure.cells import metadetect_cell
+from megalut_cli.measure.cells import CellNoise, metadetect_cell
 from megalut_cli.measure.measurer import MeasureSettings, MetacalSettings
 from megalut_cli.measure.metacal import metacal_versions
 from megalut_cli.measure.metacal_defaults import SHEARS, TYPES
@@ -89,7 +89,7 @@ def test_an_object_far_from_the_centre_keeps_its_response():
     responses = []
     for seed in range(6):
         settings = MeasureSettings(metacal=MetacalSettings(step, seed))
-        out = metadetect_cell(image, psf, 1.0, seed, settings, detection)
+        out = metadetect_cell(image, psf, CellNoise(1.0, seed), settings, detection)
         g1 = {}
         for kind in ("1p", "1m"):
             rows = np.flatnonzero(out["mdet_step"] == kind)

@@ -420,29 +420,38 @@ def cut_around(
     return stamps, masked, origins, centres
 
 
+@dataclass(frozen=True, eq=False)
+class CellNoise:
+    """A cell's noise, from which its fixnoise and detection threshold are made: white of
+    ``sigma`` (the weight map's, :func:`cell_noise`), its fixnoise drawn from ``seed``
+    unless ``field`` (white noise of each pixel's variance) is given; a ``correlated``
+    ``field`` (a noise image with the data's correlations) gives its correlation
+    (:mod:`.noise_correlation`), which colours unit white noise (``unit``, else drawn from
+    ``seed``)."""
+
+    sigma: float
+    seed: int
+    field: np.ndarray | None = None
+    correlated: bool = False
+    unit: np.ndarray | None = None
+
+
 def metadetect_cell(
     image: np.ndarray,
     psf: np.ndarray,
-    noise_sigma: float,
-    seed: int,
+    noise: CellNoise,
     settings: MeasureSettings,
     detection: DetectSettings,
     stamp_size: int = MDET_STAMP_SIZE,
     bad: np.ndarray | None = None,
-    noise_field: np.ndarray | None = None,
-    white_field: bool = False,
-    unit_field: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
-    """Metadetection on one cell ``image`` (S, S) with its ``psf`` (P, P): the five versions
-    (``settings.metacal``: step, target; ``bad`` pixels set to 0 first), sep's detections on
-    each at ``detection.thresh`` times its noise, and the features of a ``stamp_size`` stamp
-    around each detection. Fixnoise moves with the image (:mod:`.cell_fixnoise`): white
-    noise of ``noise_sigma`` from ``seed``, or ``noise_field`` with ``white_field`` (white
-    noise of each pixel's variance); a ``noise_field`` of the data's correlations (a noise
-    image) gives its correlation (:mod:`.noise_correlation`), which colours unit white
-    noise (``unit_field``, else drawn from ``seed``). Returns the columns
-    ``mdet_step``, ``x``, ``y`` (1-based), the features, ``psf_adamom_*`` (the target PSF's)
-    and ``n_masked``, one row per detection per version, version by version."""
+    """Metadetection on one cell ``image`` (S, S) with its ``psf`` (P, P) and ``noise``:
+    the five versions (``settings.metacal``: step, target; ``bad`` pixels set to 0 first;
+    fixnoise that moves with the image, :mod:`.cell_fixnoise`), sep's detections on each at
+    ``detection.thresh`` times its noise, and the features of a ``stamp_size`` stamp around
+    each detection. Returns the columns ``mdet_step``, ``x``, ``y`` (1-based), the
+    features, ``psf_adamom_*`` (the target PSF's) and ``n_masked``, one row per detection
+    per version, version by version."""
     # GalSim: metadetect only
     from megalut_cli.measure.metacal import noise_field as drawn_noise
     from megalut_cli.measure.metacal import stamp_target_columns
@@ -453,23 +462,25 @@ def metadetect_cell(
     image, bad = cleaned_cell(image, bad)
     size = image.shape[0]
     psfs = same_parity_psfs(np.asarray(psf, dtype=np.float64)[None], size)
-    sigma = noise_sigma if np.isfinite(noise_sigma) and noise_sigma > 0 else 0.0
-    fields = None
-    if noise_field is not None:
-        fields = np.where(bad, 0.0, np.asarray(noise_field, dtype=np.float64))[None]
-        if fields.shape != image[None].shape or not np.isfinite(fields).all():
+    sigma = noise.sigma if np.isfinite(noise.sigma) and noise.sigma > 0 else 0.0
+    field = None
+    if noise.field is not None:
+        field = np.where(bad, 0.0, np.asarray(noise.field, dtype=np.float64))
+        if field.shape != image.shape or not np.isfinite(field).all():
             raise InputError("the noise image must be finite and of the cell's shape")
     engine = settings.engine
     moving = correlation = None
-    if fields is not None and not white_field:  # a noise image: its colour on white noise
-        correlation = noise_correlation(fields[0], bad)
-        unit = drawn_noise(1.0, seed, image.shape) if unit_field is None else unit_field
+    if field is not None and noise.correlated:  # a noise image: its colour on white noise
+        correlation = noise_correlation(field, bad)
+        unit = drawn_noise(1.0, noise.seed, image.shape) if noise.unit is None else noise.unit
         moving = np.where(bad, 0.0, unit)  # as the noise image, none on bad pixels
-        noise = field_version_noise(psfs[0], fields[0], mc.step, mc.target, engine)
+        version_sigma = field_version_noise(psfs[0], field, mc.step, mc.target, engine)
     else:
-        if sigma > 0 or fields is not None:  # white: fixnoise that moves with the image
-            moving = fields[0] if fields is not None else drawn_noise(sigma, seed, image.shape)
-        noise = version_noise(psfs[0], sigma, mc.step, mc.target, engine) if sigma > 0 else 0.0
+        if sigma > 0 or field is not None:  # white: fixnoise that moves with the image
+            moving = field if field is not None else drawn_noise(sigma, noise.seed, image.shape)
+        version_sigma = (
+            version_noise(psfs[0], sigma, mc.step, mc.target, engine) if sigma > 0 else 0.0
+        )
     versions, target_sigma = cell_operation(
         image, psfs[0], mc.step, mc.target, engine, moving, moving_correlation=correlation
     )
@@ -481,7 +492,7 @@ def metadetect_cell(
     for kind in TYPES:
         version = versions[kind]
         # a noiseless cell: a threshold in units of the faintest pixels worth a detection
-        floor = noise if noise > 0 else 1e-3 * float(np.abs(version).max() or 1.0)
+        floor = version_sigma if version_sigma > 0 else 1e-3 * float(np.abs(version).max() or 1.0)
         found = detect(version, floor, detection, bad)
         x, y, n = found.x, found.y, len(found.x)
         # no detection: the columns of one blank stamp, none of its rows
@@ -582,13 +593,11 @@ def measure_cell(job: CellJob) -> dict[str, np.ndarray]:
         return metadetect_cell(
             cell["image"],
             cell["psf"],
-            noise,
-            job.seed,
+            CellNoise(noise, job.seed, cell["noise"], correlated=True),
             job.settings,
             job.detection,
             job.stamp_size,
             cell["bad"],
-            cell["noise"],
         )
     except InputError as err:
         raise InputError(f"{job.path}: cell {job.index}: {err}") from None

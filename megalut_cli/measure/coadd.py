@@ -224,17 +224,11 @@ def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
             result = cells.metadetect_cell(
                 image,
                 psf,
-                sigma,
-                job.seed,
+                coadd_cell_noise(co, job, sigma, weight, bad),
                 job.settings,
                 job.detection,
                 job.stamp_size,
                 bad,
-                cell_fixnoise_field(co, job, weight, bad),
-                white_field=co.noise is None,
-                unit_field=None
-                if co.noise is None
-                else tiled_normals(job.seed, job.x0, job.y0, size),
             )
     except InputError as err:
         raise InputError(
@@ -243,17 +237,19 @@ def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
     return located(result, job)
 
 
-def cell_fixnoise_field(
-    co: CoaddInput, job: CoaddCellJob, weight: np.ndarray, bad: np.ndarray
-) -> np.ndarray:
-    """The fixnoise field of a coadd's cell: the noise image's region (its correlation
-    colours the cell's unit white field, :func:`tiled_normals`), else white noise of each
-    pixel's variance, the same pixels in every cell over them."""
+def coadd_cell_noise(
+    co: CoaddInput, job: CoaddCellJob, sigma: float, weight: np.ndarray, bad: np.ndarray
+) -> cells.CellNoise:
+    """The noise of a coadd's cell (``sigma`` from its weight map): the noise image's region,
+    whose correlation colours the cell's unit white field (:func:`tiled_normals`), else
+    white noise of each pixel's variance, the same pixels in every cell over them."""
+    normals = tiled_normals(job.seed, job.x0, job.y0, co.size)
     if co.noise is not None:
-        return read_region(co.noise, job.x0, job.y0, co.size)[0]
+        field = read_region(co.noise, job.x0, job.y0, co.size)[0]
+        return cells.CellNoise(sigma, job.seed, field, correlated=True, unit=normals)
     with np.errstate(divide="ignore"):
         scale = np.where(bad, 0.0, 1.0 / np.sqrt(np.where(bad, 1.0, weight)))
-    return tiled_normals(job.seed, job.x0, job.y0, co.size) * scale
+    return cells.CellNoise(sigma, job.seed, normals * scale)
 
 
 def located(result: dict[str, np.ndarray], job: CoaddCellJob) -> dict[str, np.ndarray]:
