@@ -52,7 +52,7 @@ def run(args: list[str]) -> None:
 def cells_profile(path: Path, n: int, engine: str) -> dict[str, float]:
     """CPU per cell of each stage of :func:`metadetect_cell` with ``engine`` (stages timed
     by wrapping; ``operation`` holds ``fixnoise``)."""
-    from megalut_cli.measure import cell_fixnoise, cells
+    from megalut_cli.measure import cell_detect, cell_fixnoise, cells
     from megalut_cli.measure.measurer import Measurer, MeasureSettings, MetacalSettings
     from megalut_cli.measure.source_registry import DetectSettings
 
@@ -69,30 +69,36 @@ def cells_profile(path: Path, n: int, engine: str) -> dict[str, float]:
         return wrapper
 
     originals = (
-        cells.detect,
+        cell_detect.detect,
         Measurer.measure,
-        cells.cell_operation,
+        cell_detect.cell_operation,
         cell_fixnoise.moving_fixnoise,
     )
     cell_fixnoise.moving_fixnoise = timed(cell_fixnoise.moving_fixnoise, "fixnoise")
-    cells.detect = timed(cells.detect, "detection")
+    cell_detect.detect = timed(cell_detect.detect, "detection")
     Measurer.measure = timed(Measurer.measure, "features")
-    cells.cell_operation = timed(cells.cell_operation, "operation")
+    cell_detect.cell_operation = timed(cell_detect.cell_operation, "operation")
     settings = MeasureSettings(engine=engine, metacal=MetacalSettings(0.01, 1))
     detection = DetectSettings(5.0, 4, 32, 0.005)
     cell = cells.read_cell(str(path), 0)
-    cells.metadetect_cell(  # first call: caches, numba
-        cell["image"], cell["psf"], cells.CellNoise(1.0, 0), settings, detection, 48, cell["bad"]
+    cell_detect.metadetect_cell(  # first call: caches, numba
+        cell["image"],
+        cell["psf"],
+        cell_detect.CellNoise(1.0, 0),
+        settings,
+        detection,
+        48,
+        cell["bad"],
     )
     spent.update({k: 0.0 for k in spent})
     rows, t0 = 0, time.process_time()
     for i in range(1, n + 1):
         cell = cells.read_cell(str(path), i)
-        noise = cells.cell_noise(cell["weight"], cell["bad"])
-        out = cells.metadetect_cell(
+        noise = cell_detect.cell_noise(cell["weight"], cell["bad"])
+        out = cell_detect.metadetect_cell(
             cell["image"],
             cell["psf"],
-            cells.CellNoise(noise, i),
+            cell_detect.CellNoise(noise, i),
             settings,
             detection,
             48,
@@ -100,9 +106,12 @@ def cells_profile(path: Path, n: int, engine: str) -> dict[str, float]:
         )
         rows += len(out["x"])
     total = time.process_time() - t0
-    (cells.detect, Measurer.measure, cells.cell_operation, cell_fixnoise.moving_fixnoise) = (
-        originals
-    )
+    (
+        cell_detect.detect,
+        Measurer.measure,
+        cell_detect.cell_operation,
+        cell_fixnoise.moving_fixnoise,
+    ) = originals
     return {"cells": n, "rows": rows, "total": total, **spent}
 
 

@@ -9,8 +9,8 @@ import galsim
 import numpy as np
 import pytest
 
+from megalut_cli.measure.cell_detect import cell_operation
 from megalut_cli.measure.cell_metacal import cell_versions, shear_passes
-from megalut_cli.measure.cells import cell_operation
 from megalut_cli.measure.metacal_defaults import SHEARS, TYPES
 from megalut_cli.measure.metacal_fft import shear_matrix
 

@@ -12,7 +12,8 @@ import pytest
 from helpers import invoke_fails
 
 from megalut_cli.catalog import read_catalog
-from megalut_cli.measure.cells import field_version_noise, inner_region, version_noise
+from megalut_cli.measure.cell_catalog import inner_region
+from megalut_cli.measure.cell_detect import field_version_noise, version_noise
 from megalut_cli.measure.coadd import cell_origins, tiled_normals
 from megalut_cli.measure.metacal_defaults import TYPES
 

@@ -13,7 +13,8 @@ from helpers import invoke_fails
 from sim_configs import write
 
 from megalut_cli.catalog import read_catalog
-from megalut_cli.measure.cells import CellNoise, cut_around, detect, metadetect_cell, read_cell
+from megalut_cli.measure.cell_detect import CellNoise, cut_around, detect, metadetect_cell
+from megalut_cli.measure.cells import read_cell
 from megalut_cli.measure.measurer import MeasureSettings, MetacalSettings
 from megalut_cli.measure.meds import write_meds
 from megalut_cli.measure.metacal import metacal_features

@@ -10,9 +10,9 @@ import galsim
 import numpy as np
 import pytest
 
+from megalut_cli.measure.cell_detect import CellNoise, metadetect_cell
 from megalut_cli.measure.cell_fixnoise import kernel_size, moving_fixnoise
 from megalut_cli.measure.cell_metacal import cell_versions
-from megalut_cli.measure.cells import CellNoise, metadetect_cell
 from megalut_cli.measure.measurer import MeasureSettings, MetacalSettings
 from megalut_cli.measure.metacal import metacal_versions
 from megalut_cli.measure.metacal_defaults import SHEARS, TYPES

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import scipy.signal
 
+from megalut_cli.measure.cell_detect import cell_operation
 from megalut_cli.measure.cell_metacal import cell_versions
-from megalut_cli.measure.cells import cell_operation
 from megalut_cli.measure.metacal_defaults import TYPES
 from megalut_cli.measure.noise_correlation import (
     MAX_LAG,

@@ -11,7 +11,7 @@ and masked, as ``measure --detect`` sees them; no metacal version), the noise of
 ``1 / sqrt(median WGT)`` (megalut's ``cell_noise``). Every detector gets the same settings
 (megalut's ``--metadetect`` defaults unless given):
 
-- sep (megalut's call): megalut's own ``megalut_cli.measure.cells.detect`` (``sep.extract``
+- sep (megalut's call): megalut's own ``megalut_cli.measure.cell_detect.detect`` (``sep.extract``
   with ``err`` = the noise, sep's default 3x3 kernel, ``minarea``, ``deblend_nthresh``,
   ``deblend_cont``, sep's cleaning on by default), positions sep's barycentres ``x``, ``y``.
 - sep, cleaning off: the same call replicated here with ``clean=False`` (what makes sep's
@@ -64,7 +64,8 @@ import numpy as np  # noqa: E402
 import sep  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from megalut_cli.measure.cells import cell_noise, cleaned_cell, detect, read_cell  # noqa: E402
+from megalut_cli.measure.cell_detect import cell_noise, cleaned_cell, detect  # noqa: E402
+from megalut_cli.measure.cells import read_cell  # noqa: E402
 from megalut_cli.measure.defaults import (  # noqa: E402
     DEBLEND_CONT,
     DEBLEND_NTHRESH,
@@ -159,7 +160,7 @@ def photutils_centroids(
 def sep_extract(
     image: np.ndarray, noise: float, settings: DetectSettings, bad: np.ndarray, clean: bool
 ) -> tuple[np.ndarray, np.ndarray]:
-    """megalut's ``sep.extract`` call (``cells.detect``) replicated, with sep's cleaning on
+    """megalut's ``sep.extract`` call (``cell_detect.detect``) replicated, with sep's cleaning on
     or off: its objects and segmentation map."""
     return sep.extract(
         np.ascontiguousarray(image, dtype=np.float64),

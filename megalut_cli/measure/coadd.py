@@ -3,7 +3,7 @@
 The image, its weight map (and optionally a mask and a noise image) are cut into square
 cells that overlap by twice the border, so that their inner regions tile the image; each
 cell is read in its worker and measured as a cell of a cells file
-(:func:`.cells.metadetect_cell`). Positions are the image's 1-based pixels, with ``ra, dec``
+(:func:`.cell_detect.metadetect_cell`). Positions are the image's 1-based pixels, with ``ra, dec``
 when it has a celestial WCS (docs/metadetect.md, "A coadd image").
 """
 
@@ -19,7 +19,7 @@ import fitsio
 import numpy as np
 
 from megalut_cli.errors import ConfigError, InputError, namer
-from megalut_cli.measure import cells
+from megalut_cli.measure import cell_catalog, cell_detect, cells
 from megalut_cli.measure.defaults import MDET_STAMP_SIZE
 from megalut_cli.measure.grid import pixel_scale
 from megalut_cli.measure.measurer import MeasureSettings
@@ -147,7 +147,7 @@ def read_coadd_input(request: MeasureRequest) -> CoaddInput:
     if request.psf_path is not None:
         check_scales(image, request.psf_path)
         psf = single_psf_stamp(request.psf_path, MODEL_PSF_SIZE)
-        cells.check_psf(psf, request.psf_path)
+        cell_detect.check_psf(psf, request.psf_path)
     weight = parts["weight_path"]
     assert weight is not None
     return CoaddInput(
@@ -194,7 +194,7 @@ def cell_psf(coadd: CoaddInput, x0: int, y0: int) -> np.ndarray:
 
 
 def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
-    """Worker: read one cell of the coadd and run :func:`.cells.metadetect_cell` on it; None
+    """Worker: read one cell of the coadd and run :func:`.cell_detect.metadetect_cell` on it; None
     when every pixel of the cell is bad or off the image. Positions in the image's pixels,
     ``inner`` from the cell's inner region."""
     co, size = job.coadd, job.coadd.size
@@ -206,10 +206,10 @@ def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
     if bad.all():
         return None
     psf = cell_psf(co, job.x0, job.y0)
-    sigma = cells.cell_noise(weight, bad)
+    sigma = cell_detect.cell_noise(weight, bad)
     try:
         if job.detect_only:
-            result = cells.detect_cell(
+            result = cell_detect.detect_cell(
                 image,
                 psf,
                 sigma,
@@ -221,7 +221,7 @@ def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
                 weight,
             )
         else:
-            result = cells.metadetect_cell(
+            result = cell_detect.metadetect_cell(
                 image,
                 psf,
                 coadd_cell_noise(co, job, sigma, weight, bad),
@@ -239,23 +239,25 @@ def measure_coadd_cell(job: CoaddCellJob) -> dict[str, np.ndarray] | None:
 
 def coadd_cell_noise(
     co: CoaddInput, job: CoaddCellJob, sigma: float, weight: np.ndarray, bad: np.ndarray
-) -> cells.CellNoise:
+) -> cell_detect.CellNoise:
     """The noise of a coadd's cell (``sigma`` from its weight map): the noise image's region,
     whose correlation colours the cell's unit white field (:func:`tiled_normals`), else
     white noise of each pixel's variance, the same pixels in every cell over them."""
     normals = tiled_normals(job.seed, job.x0, job.y0, co.size)
     if co.noise is not None:
         field = read_region(co.noise, job.x0, job.y0, co.size)[0]
-        return cells.CellNoise(sigma, job.seed, field, correlated=True, unit=normals)
+        return cell_detect.CellNoise(sigma, job.seed, field, correlated=True, unit=normals)
     with np.errstate(divide="ignore"):
         scale = np.where(bad, 0.0, 1.0 / np.sqrt(np.where(bad, 1.0, weight)))
-    return cells.CellNoise(sigma, job.seed, normals * scale)
+    return cell_detect.CellNoise(sigma, job.seed, normals * scale)
 
 
 def located(result: dict[str, np.ndarray], job: CoaddCellJob) -> dict[str, np.ndarray]:
     """A cell's rows with ``inner`` (from the cell's inner region) and their positions in the
     image's pixels."""
-    result["inner"] = cells.inner_region(result["x"], result["y"], job.coadd.size, job.coadd.border)
+    result["inner"] = cell_catalog.inner_region(
+        result["x"], result["y"], job.coadd.size, job.coadd.border
+    )
     result["x"] = result["x"] + job.x0
     result["y"] = result["y"] + job.y0
     return result
@@ -282,7 +284,7 @@ def coadd_columns(
         # the sky position and the local Jacobian (calibrate's world frame)
         out.update({c: sky[c] for c in ("ra", "dec", *JACOBIAN_COLUMNS)})
     out["inner"] = merged.pop("inner")
-    out.update(cells.ordered_features(merged))
+    out.update(cell_catalog.ordered_features(merged))
     return out
 
 
@@ -362,16 +364,16 @@ def measure_request(request: MeasureRequest) -> Measured:
     if skipped:
         log.info("%d of %d cells lie wholly on bad pixels: skipped", skipped, len(jobs))
     where = f"{len(jobs) - skipped} cells of {coadd.size} pixels"
-    cells.log_detections(request, columns, where)
+    cell_catalog.log_detections(request, columns, where)
     cards = coadd_cards(request, coadd, len(jobs), size)
-    return Measured(columns, cards, cells.output_format(request))
+    return Measured(columns, cards, cell_catalog.output_format(request))
 
 
 def coadd_cards(
     request: MeasureRequest, coadd: CoaddInput, n_cells: int, size: int
 ) -> dict[str, Any]:
     """Header cards: the input files and their sha256, the cells, then those of every
-    metadetect catalog (:func:`.cells.metadetect_cards`)."""
+    metadetect catalog (:func:`.cell_catalog.metadetect_cards`)."""
     cards: dict[str, Any] = {}
     assert request.cells is not None
     for key, what, path in (
@@ -389,11 +391,11 @@ def coadd_cards(
         cards["PIXSCALE"] = (scale, "pixel scale of the image [arcsec]")
     cards["NCELLS"] = (n_cells, "number of cells the image is cut into")
     cards["CELLSZ"] = (coadd.size, "side of a cell [pixels]")
-    cards[cells.INNER_CARD] = (coadd.border, "border outside the inner region [pixels]")
+    cards[cell_catalog.INNER_CARD] = (coadd.border, "border outside the inner region [pixels]")
     if request.metadetect:
         fixnoise = "white" if coadd.noise is None else "NOISE"
-        cards[cells.FIXNOISE_CARD] = (fixnoise, cells.FIXNOISE_TEXT)
-    cards.update(cells.metadetect_cards(request, size))
+        cards[cell_catalog.FIXNOISE_CARD] = (fixnoise, cell_catalog.FIXNOISE_TEXT)
+    cards.update(cell_catalog.metadetect_cards(request, size))
     return cards
 
 
