@@ -17,6 +17,14 @@ as its isotropic part ``(m11 + m22) / 2``, its two spin-4 parts ``(m11 - m22) / 
 ``(m12 + m21) / 2`` and its rotation ``(m12 - m21) / 2``, with jackknife errors and each
 part's chi^2 of the sets about their weighted mean.
 
+With ``--swap A.fits B.fits X0.fits ... X19.fits``: the shears experiment. ``X*`` are set A's
+stamps drawn again under set B's shears, one single-case run per shear, in B's case order
+(``megalut simulate CONFIG --seed SEED_A --n-cases 1 shear.g1=G1 shear.g2=G2``, all of A's
+realizations: the common-random-number galaxies, noise and fixnoise do not depend on the
+case), predicted like A and B. The parts of A, of X and of B, and the paired differences
+A - X (the same stamps, other shears: what the drawn shears do) with their jackknife over
+the same galaxy groups, and X - B (the same shears, other galaxies and noise).
+
 With ``--by COLUMN`` (a truth column, e.g. ``tru_rad``, ``tru_sersicn``, ``tru_flux``): m of
 each set in the quartiles of that column (edges from the first catalog; each bin calibrated by
 its own response: the truth does not respond to the shear), its jackknife error, and each
@@ -25,6 +33,7 @@ bin's chi^2 of the sets about their weighted mean: where in the population the s
     python examples/metacal/set_checks.py vo-3901-a.fits [vo-3902-a.fits ...]
     python examples/metacal/set_checks.py --by tru_rad vo-3901-a.fits vo-3902-a.fits ...
     python examples/metacal/set_checks.py --matrix vo-3901-a.fits vo-3902-a.fits ...
+    python examples/metacal/set_checks.py --swap vo-3901-a.fits vo-3902-a.fits x-{0..19}.fits
 """
 
 from __future__ import annotations
@@ -167,6 +176,45 @@ def by_matrix(paths: list[str]) -> None:
         print(f"| {part} | {cells} | {1e3 * mean:+.2f} +- {1e3 * err:.2f} | {chi2:.1f} |")
 
 
+def read_cases(paths: list[str]) -> tuple[np.ndarray, float]:
+    """Single-case catalogs of one common-random-number set as the cases of one set (``case``
+    = the file's position), and the metacal step."""
+    parts = []
+    for k, path in enumerate(paths):
+        t, step = read_set(path)
+        t["case"] = k
+        parts.append(t)
+    return np.concatenate(parts), step
+
+
+def swap(path_a: str, path_b: str, case_paths: list[str]) -> None:
+    """The parts of sets A, X (A's stamps under B's shears) and B, and the differences A - X
+    (jackknife over the same galaxy groups) and X - B."""
+    parts = {}
+    for name, (t, step) in (
+        ("A", read_set(path_a)),
+        ("X", read_cases(case_paths)),
+        ("B", read_set(path_b)),
+    ):
+        sums, shears = per_group_sums(t, step)
+        jack = np.array([matrix_parts(shears, calibrated(sums, d)[0]) for d in range(GROUPS)])
+        parts[name] = matrix_parts(shears, calibrated(sums)[0]), jack
+    print("| part of m_ij (1e-3) | A | X: A's stamps, B's shears | B | A - X | X - B |")
+    print("|---|---|---|---|---|---|")
+    diff = parts["A"][1] - parts["X"][1]
+    for k, part in enumerate(MATRIX_PARTS):
+        cells = [
+            f"{1e3 * parts[n][0][k]:+.2f} +- {1e3 * jackknife_sigma(parts[n][1])[k]:.2f}"
+            for n in "AXB"
+        ]
+        a_x = parts["A"][0][k] - parts["X"][0][k]
+        x_b = parts["X"][0][k] - parts["B"][0][k]
+        print(
+            f"| {part} | {' | '.join(cells)} | {1e3 * a_x:+.2f} +- "
+            f"{1e3 * jackknife_sigma(diff)[k]:.2f} | {1e3 * x_b:+.2f} |"
+        )
+
+
 def by_column(column: str, paths: list[str], bins: int = 4) -> None:
     """m of each set in the quantile bins of a truth ``column``, and each bin's chi^2."""
     edges = None
@@ -230,6 +278,8 @@ def main(paths: list[str]) -> None:
 if __name__ == "__main__":
     if len(sys.argv) > 2 and sys.argv[1] == "--by":
         by_column(sys.argv[2], sys.argv[3:])
+    elif len(sys.argv) > 4 and sys.argv[1] == "--swap":
+        swap(sys.argv[2], sys.argv[3], sys.argv[4:])
     elif len(sys.argv) > 1 and sys.argv[1] == "--matrix":
         by_matrix(sys.argv[2:])
     else:
