@@ -25,6 +25,10 @@ case), predicted like A and B. The parts of A, of X and of B, and the paired dif
 A - X (the same stamps, other shears: what the drawn shears do) with their jackknife over
 the same galaxy groups, and X - B (the same shears, other galaxies and noise).
 
+With ``--paired A.fits B.fits``: two catalogs of the same stamps (e.g. measured two ways),
+weighted and unweighted (every row alike, no selection response): m₁, m₂ and the isotropic
+part of each, and the difference A - B with its jackknife over the same galaxy groups.
+
 With ``--by COLUMN`` (a truth column, e.g. ``tru_rad``, ``tru_sersicn``, ``tru_flux``): m of
 each set in the quartiles of that column (edges from the first catalog; each bin calibrated by
 its own response: the truth does not respond to the shear), its jackknife error, and each
@@ -33,6 +37,7 @@ bin's chi^2 of the sets about their weighted mean: where in the population the s
     python examples/metacal/set_checks.py vo-3901-a.fits [vo-3902-a.fits ...]
     python examples/metacal/set_checks.py --by tru_rad vo-3901-a.fits vo-3902-a.fits ...
     python examples/metacal/set_checks.py --matrix vo-3901-a.fits vo-3902-a.fits ...
+    python examples/metacal/set_checks.py --paired fallback-3904-a.fits vo-3904-a.fits
     python examples/metacal/set_checks.py --swap vo-3901-a.fits vo-3902-a.fits x-{0..19}.fits
 """
 
@@ -47,7 +52,7 @@ VERSIONS = ("noshear", "1p", "1m", "2p", "2m")
 GROUPS = 1000
 
 
-def per_group_sums(t: np.ndarray, step: float) -> tuple[dict, np.ndarray]:
+def per_group_sums(t: np.ndarray, step: float, weighted: bool = True) -> tuple[dict, np.ndarray]:
     """Per (case, group) sums of the rows ``megalut evaluate`` uses (noshear measured, every
     response finite; weights finite and positive): weights, weighted estimates and responses,
     and the sheared versions' weights with the weighted noshear estimates; the cases' true
@@ -71,6 +76,8 @@ def per_group_sums(t: np.ndarray, step: float) -> tuple[dict, np.ndarray]:
         return np.bincount(key, weights=v, minlength=cases.size * GROUPS).reshape(cases.size, -1)
 
     def weight(kind: str, i: int) -> np.ndarray:
+        if not weighted:  # every row alike: no selection response
+            return every.astype(float)
         w = col(f"pre_g{i}_w_{kind}")
         return np.where(every & np.isfinite(w) & (w > 0), w, 0.0)
 
@@ -215,6 +222,41 @@ def swap(path_a: str, path_b: str, case_paths: list[str]) -> None:
         )
 
 
+def paired(path_a: str, path_b: str) -> None:
+    """m of two sets of the same stamps (e.g. measured two ways), weighted and not: each set's
+    (evaluate's estimator, and the isotropic part of its matrix) and their difference A - B
+    with its jackknife over the same galaxy groups."""
+    sets = [read_set(p) for p in (path_a, path_b)]
+    print(f"A = {path_a}, B = {path_b}; rows used (noshear measured, every response finite):")
+    for name, (t, _) in zip("AB", sets):
+        every = (t["flags_noshear"] == 0) & np.all(
+            [np.isfinite(t[f"mcal_r{i}{j}"]) for i in (1, 2) for j in (1, 2)], axis=0
+        )
+        print(f"  {name}: {every.mean():.4f} of {len(t)}")
+    print("| estimator | quantity (1e-3) | A | B | A - B |")
+    print("|---|---|---|---|---|")
+    for weighted in (True, False):
+        values, jacks = [], []
+        for t, step in sets:
+            sums, shears = per_group_sums(t, step, weighted)
+
+            def stats(cal: np.ndarray, shears: np.ndarray = shears) -> np.ndarray:
+                m = [np.polyfit(shears[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)]
+                return np.array([*m, matrix_parts(shears, cal)[0]])
+
+            values.append(stats(calibrated(sums)[0]))
+            jacks.append(np.array([stats(calibrated(sums, d)[0]) for d in range(GROUPS)]))
+        errs = [jackknife_sigma(j) for j in jacks]
+        diff = jackknife_sigma(jacks[0] - jacks[1])
+        for k, q in enumerate(("m1", "m2", "(m11 + m22) / 2")):
+            print(
+                f"| {'weighted' if weighted else 'unweighted'} | {q} | "
+                f"{1e3 * values[0][k]:+.2f} +- {1e3 * errs[0][k]:.2f} | "
+                f"{1e3 * values[1][k]:+.2f} +- {1e3 * errs[1][k]:.2f} | "
+                f"{1e3 * (values[0][k] - values[1][k]):+.2f} +- {1e3 * diff[k]:.2f} |"
+            )
+
+
 def by_column(column: str, paths: list[str], bins: int = 4) -> None:
     """m of each set in the quantile bins of a truth ``column``, and each bin's chi^2."""
     edges = None
@@ -278,6 +320,8 @@ def main(paths: list[str]) -> None:
 if __name__ == "__main__":
     if len(sys.argv) > 2 and sys.argv[1] == "--by":
         by_column(sys.argv[2], sys.argv[3:])
+    elif len(sys.argv) == 4 and sys.argv[1] == "--paired":
+        paired(sys.argv[2], sys.argv[3])
     elif len(sys.argv) > 4 and sys.argv[1] == "--swap":
         swap(sys.argv[2], sys.argv[3], sys.argv[4:])
     elif len(sys.argv) > 1 and sys.argv[1] == "--matrix":
