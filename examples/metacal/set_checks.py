@@ -25,6 +25,13 @@ case), predicted like A and B. The parts of A, of X and of B, and the paired dif
 A - X (the same stamps, other shears: what the drawn shears do) with their jackknife over
 the same galaxy groups, and X - B (the same shears, other galaxies and noise).
 
+With ``--matrix --zero-shear``: the same at zero shear. A case's response depends on its shear
+(metacal's step composes with the case's shear: the spin-4 parts of R go as -R0 (g1^2 - g2^2)
+and -R0 2 g1 g2), so the mean response over a set's drawn shears, which calibrates every
+case, depends on the draw. Here the cases' means are calibrated by the response at zero
+shear (the intercept of a fit of each case's response against 1, g1, g2, abs(g)^2 and the
+spin-4 pair) and the parts fitted beside every quadratic and cubic term of the shear.
+
 With ``--paired A.fits B.fits``: two catalogs of the same stamps (e.g. measured two ways),
 weighted and unweighted (every row alike, no selection response): m₁, m₂ and the isotropic
 part of each, and the difference A - B with its jackknife over the same galaxy groups.
@@ -37,6 +44,7 @@ bin's chi^2 of the sets about their weighted mean: where in the population the s
     python examples/metacal/set_checks.py vo-3901-a.fits [vo-3902-a.fits ...]
     python examples/metacal/set_checks.py --by tru_rad vo-3901-a.fits vo-3902-a.fits ...
     python examples/metacal/set_checks.py --matrix vo-3901-a.fits vo-3902-a.fits ...
+    python examples/metacal/set_checks.py --matrix --zero-shear vo-3901-a.fits vo-3902-a.fits ...
     python examples/metacal/set_checks.py --paired fallback-3904-a.fits vo-3904-a.fits
     python examples/metacal/set_checks.py --swap vo-3901-a.fits vo-3902-a.fits x-{0..19}.fits
 """
@@ -114,6 +122,46 @@ def calibrated(sums: dict, drop: int | None = None) -> tuple[np.ndarray, np.ndar
     return np.linalg.solve(resp, means.T).T, cases_r
 
 
+def case_responses(sums: dict, drop: int | None = None) -> np.ndarray:
+    """Each case's own mean response ``(n_cases, 2, 2)``, the weights' selection response
+    included, group ``drop`` left out."""
+
+    def f(a: np.ndarray) -> np.ndarray:
+        return a.sum(axis=1) - (a[:, drop] if drop is not None else 0.0)
+
+    resp = np.zeros((sums["w1"].shape[0], 2, 2))
+    for i in (1, 2):
+        for j in (1, 2):
+            resp[:, i - 1, j - 1] = f(sums[f"wr{i}{j}"]) / f(sums[f"w{i}"]) + (
+                f(sums[f"wg{i}{j}p"]) / f(sums[f"w{i}{j}p"])
+                - f(sums[f"wg{i}{j}m"]) / f(sums[f"w{i}{j}m"])
+            )
+    return resp
+
+
+def response_design(shears: np.ndarray) -> np.ndarray:
+    """The terms of a case's response against its shear: 1, g1, g2, abs(g)^2 and the spin-4
+    pair g1^2 - g2^2, 2 g1 g2 (shear composition: metacal's step adds to the case's shear)."""
+    g1, g2 = shears[:, 0], shears[:, 1]
+    return np.column_stack([np.ones_like(g1), g1, g2, g1**2 + g2**2, g1**2 - g2**2, 2 * g1 * g2])
+
+
+def zero_shear_calibrated(
+    sums: dict, shears: np.ndarray, drop: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The cases' means calibrated by the response at zero shear (the intercept of a fit of the
+    cases' responses, :func:`response_design`) rather than by their mean over the drawn
+    shears; and that response."""
+
+    def f(a: np.ndarray) -> np.ndarray:
+        return a.sum(axis=1) - (a[:, drop] if drop is not None else 0.0)
+
+    resp = case_responses(sums, drop).reshape(len(shears), 4)
+    zero = np.linalg.lstsq(response_design(shears), resp, rcond=None)[0][0].reshape(2, 2)
+    means = np.stack([f(sums[f"wg{i}"]) / f(sums[f"w{i}"]) for i in (1, 2)], axis=1)
+    return np.linalg.solve(zero, means.T).T, zero
+
+
 def jackknife_sigma(jack: np.ndarray) -> np.ndarray:
     """The delete-group jackknife error of the replicates ``jack`` (groups along axis 0)."""
     return np.sqrt((GROUPS - 1) / GROUPS * ((jack - jack.mean(axis=0)) ** 2).sum(axis=0))
@@ -141,9 +189,14 @@ def m_and_jackknife(t: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]
 MATRIX_PARTS = ("(m11 + m22) / 2", "(m11 - m22) / 2", "(m12 + m21) / 2", "(m12 - m21) / 2")
 
 
-def matrix_parts(shears: np.ndarray, cal: np.ndarray) -> np.ndarray:
-    """The four parts (:data:`MATRIX_PARTS`) of the fitted 2x2 matrix ``m_ij``."""
-    design = np.column_stack([shears, np.ones(len(shears))])
+def matrix_parts(shears: np.ndarray, cal: np.ndarray, cubic: bool = False) -> np.ndarray:
+    """The four parts (:data:`MATRIX_PARTS`) of the fitted 2x2 matrix ``m_ij``; with
+    ``cubic``, fitted beside every quadratic and cubic term of (g1, g2): m at zero shear."""
+    g1, g2 = shears[:, 0], shears[:, 1]
+    terms = [g1, g2, np.ones(len(shears))]
+    if cubic:
+        terms += [g1 * g1, g1 * g2, g2 * g2, g1**3, g1 * g1 * g2, g1 * g2 * g2, g2**3]
+    design = np.column_stack(terms)
     fit = np.linalg.lstsq(design, cal, rcond=None)[0]
     m = fit[:2].T - np.eye(2)
     return np.array(
@@ -163,14 +216,21 @@ def chi2_about_mean(values: np.ndarray, errors: np.ndarray) -> tuple[float, floa
     return mean, float(1 / np.sqrt(w.sum())), float((w * (values - mean) ** 2).sum())
 
 
-def by_matrix(paths: list[str]) -> None:
-    """The parts of each set's 2x2 matrix, their jackknife errors and chi^2 across sets."""
+def by_matrix(paths: list[str], zero_shear: bool = False) -> None:
+    """The parts of each set's 2x2 matrix, their jackknife errors and chi^2 across sets; with
+    ``zero_shear``, at zero shear (:func:`zero_shear_calibrated`, cubic terms fitted)."""
+
+    def parts(sums: dict, shears: np.ndarray, drop: int | None = None) -> np.ndarray:
+        if zero_shear:
+            return matrix_parts(shears, zero_shear_calibrated(sums, shears, drop)[0], True)
+        return matrix_parts(shears, calibrated(sums, drop)[0])
+
     values, errors = [], []
     for path in paths:
         t, step = read_set(path)
         sums, shears = per_group_sums(t, step)
-        values.append(matrix_parts(shears, calibrated(sums)[0]))
-        jack = np.array([matrix_parts(shears, calibrated(sums, d)[0]) for d in range(GROUPS)])
+        values.append(parts(sums, shears))
+        jack = np.array([parts(sums, shears, d) for d in range(GROUPS)])
         errors.append(jackknife_sigma(jack))
     names = " | ".join(p.rsplit("/", 1)[-1] for p in paths)
     print(f"| part of m_ij (1e-3) | {names} | weighted mean | chi^2 |")
@@ -324,6 +384,8 @@ if __name__ == "__main__":
         paired(sys.argv[2], sys.argv[3])
     elif len(sys.argv) > 4 and sys.argv[1] == "--swap":
         swap(sys.argv[2], sys.argv[3], sys.argv[4:])
+    elif len(sys.argv) > 2 and sys.argv[1:3] == ["--matrix", "--zero-shear"]:
+        by_matrix(sys.argv[3:], zero_shear=True)
     elif len(sys.argv) > 1 and sys.argv[1] == "--matrix":
         by_matrix(sys.argv[2:])
     else:
