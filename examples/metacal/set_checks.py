@@ -25,6 +25,8 @@ case), predicted like A and B. The parts of A, of X and of B, and the paired dif
 A - X (the same stamps, other shears: what the drawn shears do) with their jackknife over
 the same galaxy groups, and X - B (the same shears, other galaxies and noise).
 
+With ``--matrix --unweighted``: the same with every row alike (no selection response).
+
 With ``--matrix --zero-shear``: the same at zero shear. A case's response depends on its shear
 (metacal's step composes with the case's shear: the spin-4 parts of R go as -R0 (g1^2 - g2^2)
 and -R0 2 g1 g2), so the mean response over a set's drawn shears, which calibrates every
@@ -216,7 +218,7 @@ def chi2_about_mean(values: np.ndarray, errors: np.ndarray) -> tuple[float, floa
     return mean, float(1 / np.sqrt(w.sum())), float((w * (values - mean) ** 2).sum())
 
 
-def by_matrix(paths: list[str], zero_shear: bool = False) -> None:
+def by_matrix(paths: list[str], zero_shear: bool = False, weighted: bool = True) -> None:
     """The parts of each set's 2x2 matrix, their jackknife errors and chi^2 across sets; with
     ``zero_shear``, at zero shear (:func:`zero_shear_calibrated`, cubic terms fitted)."""
 
@@ -228,7 +230,7 @@ def by_matrix(paths: list[str], zero_shear: bool = False) -> None:
     values, errors = [], []
     for path in paths:
         t, step = read_set(path)
-        sums, shears = per_group_sums(t, step)
+        sums, shears = per_group_sums(t, step, weighted)
         values.append(parts(sums, shears))
         jack = np.array([parts(sums, shears, d) for d in range(GROUPS)])
         errors.append(jackknife_sigma(jack))
@@ -384,9 +386,12 @@ if __name__ == "__main__":
         paired(sys.argv[2], sys.argv[3])
     elif len(sys.argv) > 4 and sys.argv[1] == "--swap":
         swap(sys.argv[2], sys.argv[3], sys.argv[4:])
-    elif len(sys.argv) > 2 and sys.argv[1:3] == ["--matrix", "--zero-shear"]:
-        by_matrix(sys.argv[3:], zero_shear=True)
     elif len(sys.argv) > 1 and sys.argv[1] == "--matrix":
-        by_matrix(sys.argv[2:])
+        flags = {"--zero-shear", "--unweighted"}
+        by_matrix(
+            [a for a in sys.argv[2:] if a not in flags],
+            zero_shear="--zero-shear" in sys.argv,
+            weighted="--unweighted" not in sys.argv,
+        )
     else:
         main(sys.argv[1:])
