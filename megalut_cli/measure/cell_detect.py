@@ -256,6 +256,23 @@ class CellNoise:
     unit: np.ndarray | None = None
 
 
+def detected_stamps(
+    image: np.ndarray,
+    noise: float,
+    detection: DetectSettings,
+    bad: np.ndarray,
+    stamp_size: int,
+) -> tuple[Detections, tuple[np.ndarray, np.ndarray], tuple[np.ndarray, ...]]:
+    """sep's detections on ``image`` at ``detection.thresh`` times ``noise`` (0: a noiseless
+    image, the threshold in units of a thousandth of its peak), the positions cut around
+    (one blank place when there is no detection: the stamps' columns, none of their rows)
+    and :func:`cut_around`'s stamps, masks, origins and centres there."""
+    floor = noise if noise > 0 else 1e-3 * float(np.abs(image).max() or 1.0)
+    found = detect(image, floor, detection, bad)
+    at = (found.x, found.y) if len(found.x) else (np.zeros(1), np.zeros(1))
+    return found, at, cut_around(image, bad, *at, stamp_size, found.segments)
+
+
 def metadetect_cell(
     image: np.ndarray,
     psf: np.ndarray,
@@ -310,16 +327,10 @@ def metadetect_cell(
     measurer = Measurer(dataclasses.replace(settings, metacal=None))
     parts: list[dict[str, np.ndarray]] = []
     for kind in TYPES:
-        version = versions[kind]
-        # a noiseless cell: a threshold in units of the faintest pixels worth a detection
-        floor = version_sigma if version_sigma > 0 else 1e-3 * float(np.abs(version).max() or 1.0)
-        found = detect(version, floor, detection, bad)
-        x, y, n = found.x, found.y, len(found.x)
-        # no detection: the columns of one blank stamp, none of its rows
-        at_x, at_y = (x, y) if n else (np.zeros(1), np.zeros(1))
-        stamps, masked, origins, centres = cut_around(
-            version, bad, at_x, at_y, stamp_size, found.segments
+        found, _, (stamps, masked, origins, centres) = detected_stamps(
+            versions[kind], version_sigma, detection, bad, stamp_size
         )
+        x, y, n = found.x, found.y, len(found.x)
         feats = measurer.measure(StampBatch(stamps, origins, masked=masked, centres=centres))
         feats = {c: v[:n] for c, v in feats.items()}
         ux, uy = unsheared(x, y, size, SHEARS[kind], mc.step)
@@ -352,13 +363,10 @@ def detect_cell(
     stamps' metacal versions (fixnoise keys ``key * KEY_STRIDE + i``): the stamp route on the
     cell. Returns ``x``, ``y`` (1-based) and the Measurer's columns, one row per detection."""
     image, bad = cleaned_cell(image, bad)
-    floor = noise_sigma if noise_sigma > 0 else 1e-3 * float(np.abs(image).max() or 1.0)
-    found = detect(image, floor, detection, bad)
-    x, y, n = found.x, found.y, len(found.x)
-    at_x, at_y = (x, y) if n else (np.zeros(1), np.zeros(1))
-    stamps, masked, origins, centres = cut_around(
-        image, bad, at_x, at_y, stamp_size, found.segments
+    found, (at_x, at_y), (stamps, masked, origins, centres) = detected_stamps(
+        image, noise_sigma, detection, bad, stamp_size
     )
+    x, y, n = found.x, found.y, len(found.x)
     weights = None
     if weight is not None:
         weights = cut_around(np.where(bad, 0.0, weight), bad, at_x, at_y, stamp_size)[0]
