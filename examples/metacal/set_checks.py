@@ -62,6 +62,17 @@ VERSIONS = ("noshear", "1p", "1m", "2p", "2m")
 GROUPS = 1000
 
 
+def used_rows(t: np.ndarray) -> np.ndarray:
+    """The rows ``megalut evaluate`` uses: noshear measured, its estimates and every
+    response finite."""
+    return (
+        (t["flags_noshear"] == 0)
+        & np.isfinite(t["pre_g1_noshear"])
+        & np.isfinite(t["pre_g2_noshear"])
+        & np.all([np.isfinite(t[f"mcal_r{i}{j}"]) for i in (1, 2) for j in (1, 2)], axis=0)
+    )
+
+
 def per_group_sums(t: np.ndarray, step: float, weighted: bool = True) -> tuple[dict, np.ndarray]:
     """Per (case, group) sums of the rows ``megalut evaluate`` uses (noshear measured, every
     response finite; weights finite and positive): weights, weighted estimates and responses,
@@ -71,12 +82,7 @@ def per_group_sums(t: np.ndarray, step: float, weighted: bool = True) -> tuple[d
     def col(name: str) -> np.ndarray:
         return np.asarray(t[name], dtype=float)
 
-    every = (
-        (t["flags_noshear"] == 0)
-        & np.isfinite(col("pre_g1_noshear"))
-        & np.isfinite(col("pre_g2_noshear"))
-        & np.all([np.isfinite(col(f"mcal_r{i}{j}")) for i in (1, 2) for j in (1, 2)], axis=0)
-    )
+    every = used_rows(t)
     cases, case = np.unique(t["case"], return_inverse=True)
     pair = t["rea"] // 2
     group = np.random.default_rng(0).permutation(pair.max() + 1)[pair] % GROUPS
@@ -105,40 +111,52 @@ def per_group_sums(t: np.ndarray, step: float, weighted: bool = True) -> tuple[d
     return sums, shears
 
 
+def _totals(a: np.ndarray, drop: int | None) -> np.ndarray:
+    """Per-case totals of per-(case, group) sums, group ``drop`` left out."""
+    return a.sum(axis=1) - (a[:, drop] if drop is not None else 0.0)
+
+
+def _responses(sums: dict, drop: int | None, per_case: bool) -> np.ndarray:
+    """The mean response plus the weights' selection response, ``(2, 2)`` over all cases or
+    ``(n_cases, 2, 2)`` each case's own, group ``drop`` left out."""
+
+    def ratio(num: str, den: str) -> np.ndarray:
+        a, b = _totals(sums[num], drop), _totals(sums[den], drop)
+        return a / b if per_case else a.sum() / b.sum()
+
+    parts = [
+        [
+            ratio(f"wr{i}{j}", f"w{i}") + ratio(f"wg{i}{j}p", f"w{i}{j}p")
+            - ratio(f"wg{i}{j}m", f"w{i}{j}m")
+            for j in (1, 2)
+        ]
+        for i in (1, 2)
+    ]  # fmt: skip
+    resp = np.array(parts)  # (2, 2) or (2, 2, n_cases)
+    return np.moveaxis(resp, -1, 0) if per_case else resp
+
+
+def _case_means(sums: dict, drop: int | None) -> np.ndarray:
+    """The cases' weighted mean estimates ``(n_cases, 2)``, group ``drop`` left out."""
+    return np.stack(
+        [_totals(sums[f"wg{i}"], drop) / _totals(sums[f"w{i}"], drop) for i in (1, 2)], axis=1
+    )
+
+
 def calibrated(sums: dict, drop: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The cases' calibrated means ``(n_cases, 2)`` by the mean response plus the weights'
     selection response, and the cases' mean responses ``R_ii``, group ``drop`` left out."""
-
-    def f(a: np.ndarray) -> np.ndarray:
-        return a.sum(axis=1) - (a[:, drop] if drop is not None else 0.0)
-
-    resp = np.zeros((2, 2))
-    for i in (1, 2):
-        for j in (1, 2):
-            resp[i - 1, j - 1] = f(sums[f"wr{i}{j}"]).sum() / f(sums[f"w{i}"]).sum() + (
-                f(sums[f"wg{i}{j}p"]).sum() / f(sums[f"w{i}{j}p"]).sum()
-                - f(sums[f"wg{i}{j}m"]).sum() / f(sums[f"w{i}{j}m"]).sum()
-            )
-    means = np.stack([f(sums[f"wg{i}"]) / f(sums[f"w{i}"]) for i in (1, 2)], axis=1)
-    cases_r = np.stack([f(sums[f"wr{i}{i}"]) / f(sums[f"w{i}"]) for i in (1, 2)], axis=1)
-    return np.linalg.solve(resp, means.T).T, cases_r
+    means = _case_means(sums, drop)
+    cases_r = np.stack(
+        [_totals(sums[f"wr{i}{i}"], drop) / _totals(sums[f"w{i}"], drop) for i in (1, 2)], axis=1
+    )
+    return np.linalg.solve(_responses(sums, drop, False), means.T).T, cases_r
 
 
 def case_responses(sums: dict, drop: int | None = None) -> np.ndarray:
     """Each case's own mean response ``(n_cases, 2, 2)``, the weights' selection response
     included, group ``drop`` left out."""
-
-    def f(a: np.ndarray) -> np.ndarray:
-        return a.sum(axis=1) - (a[:, drop] if drop is not None else 0.0)
-
-    resp = np.zeros((sums["w1"].shape[0], 2, 2))
-    for i in (1, 2):
-        for j in (1, 2):
-            resp[:, i - 1, j - 1] = f(sums[f"wr{i}{j}"]) / f(sums[f"w{i}"]) + (
-                f(sums[f"wg{i}{j}p"]) / f(sums[f"w{i}{j}p"])
-                - f(sums[f"wg{i}{j}m"]) / f(sums[f"w{i}{j}m"])
-            )
-    return resp
+    return _responses(sums, drop, True)
 
 
 def response_design(shears: np.ndarray) -> np.ndarray:
@@ -154,14 +172,9 @@ def zero_shear_calibrated(
     """The cases' means calibrated by the response at zero shear (the intercept of a fit of the
     cases' responses, :func:`response_design`) rather than by their mean over the drawn
     shears; and that response."""
-
-    def f(a: np.ndarray) -> np.ndarray:
-        return a.sum(axis=1) - (a[:, drop] if drop is not None else 0.0)
-
     resp = case_responses(sums, drop).reshape(len(shears), 4)
     zero = np.linalg.lstsq(response_design(shears), resp, rcond=None)[0][0].reshape(2, 2)
-    means = np.stack([f(sums[f"wg{i}"]) / f(sums[f"w{i}"]) for i in (1, 2)], axis=1)
-    return np.linalg.solve(zero, means.T).T, zero
+    return np.linalg.solve(zero, _case_means(sums, drop).T).T, zero
 
 
 def jackknife_sigma(jack: np.ndarray) -> np.ndarray:
@@ -270,17 +283,15 @@ def swap(path_a: str, path_b: str, case_paths: list[str]) -> None:
         parts[name] = matrix_parts(shears, calibrated(sums)[0]), jack
     print("| part of m_ij (1e-3) | A | X: A's stamps, B's shears | B | A - X | X - B |")
     print("|---|---|---|---|---|---|")
-    diff = parts["A"][1] - parts["X"][1]
+    errors = {n: jackknife_sigma(jack) for n, (_, jack) in parts.items()}
+    diff_error = jackknife_sigma(parts["A"][1] - parts["X"][1])
     for k, part in enumerate(MATRIX_PARTS):
-        cells = [
-            f"{1e3 * parts[n][0][k]:+.2f} +- {1e3 * jackknife_sigma(parts[n][1])[k]:.2f}"
-            for n in "AXB"
-        ]
+        cells = [f"{1e3 * parts[n][0][k]:+.2f} +- {1e3 * errors[n][k]:.2f}" for n in "AXB"]
         a_x = parts["A"][0][k] - parts["X"][0][k]
         x_b = parts["X"][0][k] - parts["B"][0][k]
         print(
             f"| {part} | {' | '.join(cells)} | {1e3 * a_x:+.2f} +- "
-            f"{1e3 * jackknife_sigma(diff)[k]:.2f} | {1e3 * x_b:+.2f} |"
+            f"{1e3 * diff_error[k]:.2f} | {1e3 * x_b:+.2f} |"
         )
 
 
@@ -291,10 +302,7 @@ def paired(path_a: str, path_b: str) -> None:
     sets = [read_set(p) for p in (path_a, path_b)]
     print(f"A = {path_a}, B = {path_b}; rows used (noshear measured, every response finite):")
     for name, (t, _) in zip("AB", sets):
-        every = (t["flags_noshear"] == 0) & np.all(
-            [np.isfinite(t[f"mcal_r{i}{j}"]) for i in (1, 2) for j in (1, 2)], axis=0
-        )
-        print(f"  {name}: {every.mean():.4f} of {len(t)}")
+        print(f"  {name}: {used_rows(t).mean():.4f} of {len(t)}")
     print("| estimator | quantity (1e-3) | A | B | A - B |")
     print("|---|---|---|---|---|")
     for weighted in (True, False):
