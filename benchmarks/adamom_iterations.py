@@ -1,12 +1,12 @@
 """Where the adaptive moments' time goes: HSM's iterations per stamp on the fiducial stamps.
 
-The stamps of ``benchmarks/bench_metacal.py`` (``megalut simulate examples/fiducial/vo.toml
---stamps ... --n-cases 10 --n-realizations 300 --seed 5``: 3000 fiducial 64-px stamps, noise
-sigma 1), measured by ``measure.adamom.adaptive_moments`` (GalSim's ``FindAdaptiveMom``,
-compiled) on one core: CPU per stamp (best of 3), the iterations per stamp, the share of all
-iterations spent on stamps that take more than 100, and what a lower iteration cap than
-GalSim's 400 (``HSMParams(max_mom2_iter=...)``) would save and cost (stamps whose status
-changes, failures). Run::
+The stamps of ``benchmarks/bench_metacal.py`` (its ``fiducial_inputs``: ``megalut simulate
+examples/fiducial/vo.toml --stamps ... --n-cases 10 --n-realizations 300 --seed 5``, 3000
+fiducial 64-px stamps, noise sigma 1), measured by ``measure.adamom.adaptive_moments``
+(GalSim's ``FindAdaptiveMom``, compiled) on one core: CPU per stamp (best of 3), the
+iterations per stamp, the share of all iterations spent on stamps that take more than 100,
+and what a lower iteration cap than GalSim's 400 (``HSMParams(max_mom2_iter=...)``) would
+save and cost (stamps whose status changes, failures). Run::
 
     PYTHONPATH=. python benchmarks/adamom_iterations.py [--caps 400 200 100 60]
 """
@@ -19,40 +19,16 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ[_v] = "1"
 
 import argparse  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-import fitsio  # noqa: E402
 import galsim  # noqa: E402
 import numpy as np  # noqa: E402
 
+from benchmarks.bench_metacal import fiducial_inputs  # noqa: E402
 from megalut_cli.measure.adamom import adaptive_moments  # noqa: E402
 from megalut_cli.measure.adamom_nb import TOO_MANY_ITERATIONS  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
-SIZE = 64
-#: The stamps simulated (10 cases x 300 realizations).
-N_STAMPS = 3000
-
-
-def fiducial_stamps(work: Path) -> np.ndarray:
-    """The 3000 stamps of the benchmark's recipe, ``(n, 64, 64)`` float64."""
-    subprocess.run(
-        [
-            sys.executable, "-m", "megalut_cli", "simulate",
-            str(ROOT / "examples" / "fiducial" / "vo.toml"),
-            "-o", str(work / "cat.fits"), "--stamps", str(work / "stamps.fits"),
-            "--n-cases", "10", "--n-realizations", "300", "--seed", "5", "-q",
-        ],
-        check=True,
-    )  # fmt: skip
-    image = fitsio.read(str(work / "stamps.fits")).astype(np.float64)
-    ny, nx = image.shape
-    grid = image.reshape(ny // SIZE, SIZE, nx // SIZE, SIZE).transpose(0, 2, 1, 3)
-    return np.ascontiguousarray(grid.reshape(-1, SIZE, SIZE)[:N_STAMPS])  # the grid's blanks out
 
 
 def main() -> None:
@@ -60,7 +36,7 @@ def main() -> None:
     ap.add_argument("--caps", type=int, nargs="+", default=[400, 200, 100, 60])
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        stamps = fiducial_stamps(Path(tmp))
+        stamps = fiducial_inputs(Path(tmp), 10, 300)[0]
     adaptive_moments(stamps[:8])  # compile / load the cache
     reference = None
     for cap in args.caps:
