@@ -709,3 +709,20 @@ def test_simulate_metacal_equals_measure_on_the_written_stamps(tmp_path):
         _column(meas, "psf_adamom_sigma_noshear"),
         rtol=1e-6,
     )
+
+
+def test_evaluate_response_at_zero_shear_needs_a_metacal_set_of_10_cases(measured, tmp_path):
+    """--response zero-shear: one error line and exit 1 on 4 cases or a plain catalog; the
+    default falls back to the mean response and says so in the table."""
+    result = _runner().invoke(megalut, ["evaluate", str(measured / "s_mc5.fits")], env=ENV)
+    assert result.exit_code == 0
+    assert "calibrated by (<R> + R_sel)^-1" in result.stdout
+    for name, message in (("s_mc5", "at least 10 cases"), ("s_plain", "metacal catalog")):
+        result = _runner().invoke(
+            megalut,
+            ["evaluate", str(measured / f"{name}.fits"), "--response", "zero-shear", "-q"],
+            env=ENV,
+        )
+        assert result.exit_code == 1, result.stderr
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and message in lines[0] and "--response" in lines[0], lines

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from megalut_cli.shear.evaluate import evaluate_columns
+from megalut_cli.errors import InputError
+from megalut_cli.shear.evaluate import BootstrapSpec, evaluate_columns
 from megalut_cli.shear.paired import paired_evaluation
 
 STEP = 0.01
@@ -156,3 +157,92 @@ def test_by_bins_of_a_measured_quantity_get_their_selection_response():
         assert np.all(sel == 0.0)
     # without a binned selection, the overall result has no selection response
     assert res["metacal"]["selection_response"]["unweighted"] is None
+
+
+def _composed_catalog(
+    shears: np.ndarray, n_rea: int = 2000, seed: int = 3
+) -> dict[str, np.ndarray]:
+    """As :func:`_catalog`, but each sheared version sees metacal's step composed with the
+    case's shear as on an image, ``Shear(step) + Shear(g)`` (GalSim): its response is
+    ``R (1 - S4(g))``, not ``R``."""
+    import galsim
+
+    rng = np.random.default_rng(seed)
+    n_cases = len(shears)
+    case = np.repeat(np.arange(n_cases), n_rea)
+    half = rng.normal(0.0, 0.25, (n_rea // 2, 2))
+    e_int = np.tile(np.stack([half, -half], axis=1).reshape(-1, 2), (n_cases, 1))
+    r_row = np.tile(0.8 + rng.normal(0.0, 0.2, n_rea), n_cases)
+    cols: dict[str, np.ndarray] = {
+        "case": case,
+        "rea": np.tile(np.arange(n_rea), n_cases),
+        "tru_g1": shears[case, 0],
+        "tru_g2": shears[case, 1],
+    }
+    steps = {"noshear": (0, 0), "1p": (1, 0), "1m": (-1, 0), "2p": (0, 1), "2m": (0, -1)}
+    for kind, (s1, s2) in steps.items():
+        seen = np.array(
+            [
+                (galsim.Shear(g1=STEP * s1, g2=STEP * s2) + galsim.Shear(g1=g1, g2=g2)).g1
+                for g1, g2 in shears
+            ]
+        )
+        seen2 = np.array(
+            [
+                (galsim.Shear(g1=STEP * s1, g2=STEP * s2) + galsim.Shear(g1=g1, g2=g2)).g2
+                for g1, g2 in shears
+            ]
+        )
+        e = e_int + r_row[:, None] * np.stack([seen[case], seen2[case]], axis=1)
+        cols[f"pre_g1_{kind}"], cols[f"pre_g2_{kind}"] = e[:, 0], e[:, 1]
+        cols[f"flags_{kind}"] = np.zeros(len(case), dtype=np.int32)
+    cols["pre_g1"], cols["pre_g2"] = cols["pre_g1_noshear"], cols["pre_g2_noshear"]
+    for i in "12":
+        for j in "12":
+            cols[f"mcal_r{i}{j}"] = (cols[f"pre_g{i}_{j}p"] - cols[f"pre_g{i}_{j}m"]) / (2 * STEP)
+    return cols
+
+
+def test_zero_shear_response_removes_the_drawn_shears_spin4_term():
+    """20 shears drawn uniformly in |g_i| < 0.1: the mean response over the cases is
+    ``R (1 - <S4(g)>)``, so calibrated by it the cases read ``(1 - <S4>)^-1 g``, and m takes
+    the draw's <g1^2 - g2^2> (here -1.7e-3) and <2 g1 g2>: m = -0.68e-3 and +2.41e-3, as
+    predicted to 1e-4 of their values; the response at zero shear (the default for a CRN
+    set) calibrates |m| < 1e-7 (achieved 4e-9) and |c| < 1e-9."""
+    shears = np.random.default_rng(5).uniform(-0.1, 0.1, (20, 2))
+    g1, g2 = shears[:, 0], shears[:, 1]
+    d, e = np.mean(g1**2 - g2**2), np.mean(2 * g1 * g2)
+    s4 = np.array([[d, e], [e, -d]])
+    assert abs(d) > 1e-3  # a draw that shows the effect
+    predicted = np.linalg.solve(np.eye(2) - s4, shears.T).T
+    cols = _composed_catalog(shears)
+    mean = evaluate_columns(cols, metacal_step=STEP, response="mean")
+    assert mean["metacal"]["response_at"] == "mean"
+    for i, comp in enumerate(("g1", "g2")):
+        m_predicted = np.polyfit(shears[:, i], predicted[:, i], 1)[0] - 1
+        assert abs(m_predicted) > 5e-4
+        assert mean["unweighted"][comp]["m"] == pytest.approx(m_predicted, rel=1e-3)
+    zero = evaluate_columns(cols, metacal_step=STEP, crn=True)  # auto: zero shear
+    assert zero["metacal"]["response_at"] == "zero-shear"
+    r0 = np.array(zero["metacal"]["calibration_response"]["unweighted"])
+    assert r0 == pytest.approx(np.diag([np.mean(cols["mcal_r11"][:2000])] * 2), abs=2e-4)
+    for comp in ("g1", "g2"):
+        assert abs(zero["unweighted"][comp]["m"]) < 1e-7, zero["unweighted"][comp]
+        assert abs(zero["unweighted"][comp]["c"]) < 1e-9
+    # the bootstrap redoes the fit in every resample: its errors stay finite
+    boot = evaluate_columns(
+        cols, metacal_step=STEP, crn=True, bootstrap=BootstrapSpec(2, 20, 1, True)
+    )
+    assert boot["unweighted"]["g1"]["m"] == pytest.approx(zero["unweighted"]["g1"]["m"])
+    assert np.isfinite(boot["unweighted"]["g1"]["m_err"])
+
+
+def test_zero_shear_response_needs_enough_cases():
+    """Fewer than 10 cases: 'auto' falls back to the mean response, 'zero-shear' refuses."""
+    cols = _catalog(200)
+    assert evaluate_columns(cols, metacal_step=STEP, crn=True)["metacal"]["response_at"] == "mean"
+    with pytest.raises(InputError, match="at least 10 cases"):
+        evaluate_columns(cols, metacal_step=STEP, response="zero-shear")
+    plain = {k: v for k, v in cols.items() if not k.startswith("mcal_r")}
+    with pytest.raises(InputError, match="metacal catalog"):
+        evaluate_columns(plain, response="zero-shear")

@@ -306,7 +306,7 @@ def test_info_reads_an_evaluation(runner, cli, tmp_path) -> None:
     assert result.exit_code == 0, error_text(result)
     lines = result.stdout.splitlines()
     assert (
-        lines[0] == f"{ev}: megalut.evaluation 1.3, the biases of {shears} (50 of 50 rows usable)"
+        lines[0] == f"{ev}: megalut.evaluation 1.4, the biases of {shears} (50 of 50 rows usable)"
     )
     assert any(
         re.match(r"  weighted   g2    m = [-+]\d\.\d\de[-+]\d\d ± \d\.\de[-+]\d\d .* 10 cases$", x)

@@ -71,8 +71,25 @@ from megalut_cli.shear.bootstrap import (
     spread,
 )
 from megalut_cli.shear.conditional import assign_bins, equal_population_edges
-from megalut_cli.shear.options import ERROR_CHOICES, JSON_FORMAT, JSON_FORMAT_VERSION, N_BOOTSTRAP
-from megalut_cli.shear.response import case_estimates, header_step, metacal_response, row_values
+from megalut_cli.shear.options import (
+    ERROR_CHOICES,
+    JSON_FORMAT,
+    JSON_FORMAT_VERSION,
+    N_BOOTSTRAP,
+    RESPONSE_CHOICES,
+)
+from megalut_cli.shear.response import (
+    MIN_ZERO_SHEAR_CASES,
+    RESPONSE_MEAN,
+    RESPONSE_ZERO_SHEAR,
+    calibration_response,
+    case_estimates,
+    case_shears,
+    header_step,
+    metacal_response,
+    row_values,
+    zero_shear_weights,
+)
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +149,10 @@ class _Plan:
     )  # expr -> (case ids, values)
     bootstrap: BootstrapSpec | None = None
     names: dict[str, str] = field(default_factory=dict)  # how messages name the arguments
-    metacal: float | None = None  # the metacal step: calibrate pre_*_noshear by the mean response
+    metacal: float | None = None  # the metacal step: calibrate pre_*_noshear by the response
+    response: str = "auto"  # --response: "auto", "mean" or "zero-shear"
+    crn: bool = False  # a common-random-number set (header CRN = T)
+    zero_shear: bool = False  # decided from the cases: calibrate by the response at zero shear
 
     @property
     def schemes(self) -> tuple[str, ...]:
@@ -182,10 +202,22 @@ def _make_plan(
     bootstrap: BootstrapSpec | None = None,
     names: Mapping[str, str] | None = None,
     metacal_step: float | None = None,
+    response: str = "auto",
+    crn: bool = False,
 ) -> _Plan:
     given = dict(names or {})
     have = set(colnames)
     metacal = _metacal_mode(have, source, metacal_step)
+    if response not in RESPONSE_CHOICES:
+        raise ConfigError(
+            f"{given.get('response', 'response')}: unknown value {response!r} "
+            f"(expected one of {', '.join(RESPONSE_CHOICES)})"
+        )
+    if response == RESPONSE_ZERO_SHEAR and metacal is None:
+        raise InputError(
+            f"{source}: {given.get('response', 'response')} {response} calibrates a metacal "
+            "catalog (columns mcal_r11 .. mcal_r22 from 'megalut predict' on metacal features)"
+        )
     estimates = (
         [f"{c}_noshear" for c in ESTIMATE_COLUMNS]
         if metacal is not None
@@ -236,6 +268,8 @@ def _make_plan(
         bootstrap=bootstrap,
         names=given,
         metacal=metacal,
+        response=response,
+        crn=crn,
     )
     cols = [*TRUTH_COLUMNS, *(ESTIMATE_COLUMNS if metacal is None else ())]
     if metacal is not None:
@@ -589,6 +623,7 @@ def evaluate_catalog(
     n_bootstrap: int = N_BOOTSTRAP,
     seed: int = 1,
     names: Mapping[str, str] | None = None,
+    response: str = "auto",
 ) -> dict[str, Any]:
     """Evaluate the shear biases of the catalog at ``path``; returns a JSON-ready dict.
 
@@ -598,9 +633,11 @@ def evaluate_catalog(
     e.g. ``"mean(snr) > 10"`` as in paper Fig. 12; ``sigma2_min``: the ``Q_c`` damping
     term (4 ground, 1 space). ``errors``: ``"auto"`` (a bootstrap over galaxies when the
     header says ``CRN = T``, else from the fit), ``"fit"`` or ``"bootstrap"``; the galaxy
-    groups follow the header's ``SNC`` (pairs: 2 realizations). ``names``: how messages name
-    the arguments (``by``, ``select``, ``select_cases``, ``errors``), e.g. as command-line
-    flags or pipeline keys. See :func:`evaluate_columns`.
+    groups follow the header's ``SNC`` (pairs: 2 realizations). ``response`` (metacal
+    catalogs): ``"auto"`` (at zero shear when the header says ``CRN = T``), ``"mean"`` or
+    ``"zero-shear"``, see :func:`evaluate_columns`. ``names``: how messages name the
+    arguments (``by``, ``select``, ``select_cases``, ``errors``, ``response``), e.g. as
+    command-line flags or pipeline keys.
     """
     _, colnames, header = catalog_info(path)
     plan = _make_plan(
@@ -612,6 +649,8 @@ def evaluate_catalog(
         bootstrap_from_header(header, errors, n_bootstrap, seed),
         names,
         header_step(header),
+        response,
+        header.get("CRN") is True,
     )
     _prepare_cases(plan, lambda cols: _read_columns(path, cols))
     result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins, sigma2_min)
@@ -722,6 +761,8 @@ def evaluate_columns(
     bootstrap: BootstrapSpec | None = None,
     names: Mapping[str, str] | None = None,
     metacal_step: float | None = None,
+    response: str = "auto",
+    crn: bool = False,
 ) -> dict[str, Any]:
     """Evaluate in-memory columns (a dict of arrays or an astropy Table), as
     :func:`evaluate_catalog`.
@@ -734,13 +775,29 @@ def evaluate_columns(
     ``bootstrap`` given (then ``"bootstrap"`` holds its settings; needs the ``rea`` column).
 
     A metacal catalog (``megalut predict`` on ``measure --metacal`` features: columns
-    ``mcal_r11 .. mcal_r22``) is evaluated on ``pre_g*_noshear`` calibrated by the mean
-    response of the rows used, plus the selection response of ``select`` and the weights
+    ``mcal_r11 .. mcal_r22``) is evaluated on ``pre_g*_noshear`` calibrated by the
+    response of the rows used plus the selection response of ``select`` and the weights
     (each computed on the sheared versions; ``metacal_step``, default 0.01, is the catalog's
-    ``MCALSTEP``); ``"metacal"`` then holds the responses.
+    ``MCALSTEP``): with ``response="mean"`` their mean over all the cases, with
+    ``"zero-shear"`` the response at zero shear, the intercept of a fit of each case's own
+    response against its true shear (:func:`megalut_cli.shear.response.calibration_response`;
+    at least 10 cases), ``"auto"``: zero-shear for a common-random-number set (``crn``) with
+    enough cases, else the mean. ``"metacal"`` then holds the responses and which one
+    calibrated.
     """
     colnames = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
-    plan = _make_plan(colnames, source, by, select, select_cases, bootstrap, names, metacal_step)
+    plan = _make_plan(
+        colnames,
+        source,
+        by,
+        select,
+        select_cases,
+        bootstrap,
+        names,
+        metacal_step,
+        response,
+        crn,
+    )
     data = {c: np.asarray(columns[c]) for c in plan.columns}
     _prepare_cases(plan, lambda cols: {c: np.asarray(columns[c]) for c in cols})
     result = _evaluate(lambda: iter([data]), plan, bins, sigma2_min)
@@ -901,7 +958,9 @@ def _evaluate(
         if psf_round:
             log.info("the PSF is round in every case: the PSF frame is the pixel frame")
 
-    per_case = {s: case_estimates(sums, s, theta) for s in schemes}
+    if plan.metacal is not None:
+        plan.zero_shear = _zero_shear_decision(plan, case_estimates(sums, schemes[0]))
+    per_case = {s: case_estimates(sums, s, theta, plan.zero_shear) for s in schemes}
     _check_cases(plan, per_case["unweighted"], case_ids)
     if (
         plan.weighted
@@ -925,7 +984,11 @@ def _evaluate(
         "weights": list(WEIGHT_COLUMNS) if plan.weighted else None,
     }
     if plan.metacal is not None:
-        result["metacal"] = _metacal_summary(sums, plan)
+        result["metacal"] = {
+            "step": plan.metacal,
+            "estimate": [f"{c}_noshear" for c in ESTIMATE_COLUMNS],
+            **metacal_summary(sums, schemes, plan.zero_shear),
+        }
     fits = {s: _fit_components(per_case[s]) for s in schemes}
     families: list[_Family] = []
     if groups is not None:
@@ -952,6 +1015,7 @@ def _evaluate(
             theta_of,
             families if groups is not None else None,
             groups,
+            plan.zero_shear,
         )
     result.update(_bootstrap_errors(families, plan, groups, schemes))
     for s in schemes:
@@ -1002,21 +1066,54 @@ def _evaluate(
     return result
 
 
-def _metacal_summary(sums: Mapping[str, np.ndarray], plan: _Plan) -> dict[str, Any]:
-    """The ``"metacal"`` entry of a result: step, mean and selection responses per scheme."""
+def metacal_summary(
+    sums: Mapping[str, np.ndarray], schemes: Sequence[str], zero_shear: bool = False
+) -> dict[str, Any]:
+    """The responses of the cases behind ``sums`` per scheme: the mean and selection
+    responses over all the cases, the response that calibrates them and how it was taken
+    (``response_at``: ``"mean"`` or ``"zero-shear"``, :func:`calibration_response`)."""
     out: dict[str, Any] = {
-        "step": plan.metacal,
-        "estimate": [f"{c}_noshear" for c in ESTIMATE_COLUMNS],
         "response": {},
         "selection_response": {},
+        "calibration_response": {},
+        "response_at": RESPONSE_MEAN,
     }
-    for s in plan.schemes:
+    shears = case_shears(case_estimates(sums, schemes[0])) if zero_shear else None
+    for s in schemes:
         mean, selection = metacal_response(sums, s)
         out["response"][s] = [_json_list(row) for row in mean]
         out["selection_response"][s] = (
             None if selection is None else [_json_list(row) for row in selection]
         )
+        r, how = calibration_response(sums, s, shears)
+        out["calibration_response"][s] = [_json_list(row) for row in r]
+        out["response_at"] = how
     return out
+
+
+def _zero_shear_decision(plan: _Plan, per_case: Mapping[str, Mapping[str, np.ndarray]]) -> bool:
+    """Whether a metacal set is calibrated at zero shear (``plan.response``; ``auto``: a
+    common-random-number set whose cases determine the fit); says which in the log."""
+    wanted = plan.response == RESPONSE_ZERO_SHEAR or (plan.response == "auto" and plan.crn)
+    if not wanted:
+        log.info("metacal: the cases are calibrated by their mean response")
+        return False
+    shears = case_shears(per_case)
+    if zero_shear_weights(shears) is None:
+        why = (
+            f"the response at zero shear needs at least {MIN_ZERO_SHEAR_CASES} cases with "
+            f"usable rows and shears that spread in g1 and g2 (found "
+            f"{int(np.all(np.isfinite(shears), axis=1).sum())} cases)"
+        )
+        if plan.response == RESPONSE_ZERO_SHEAR:
+            raise InputError(f"{plan.source}: {plan.name('response')} {plan.response}: {why}")
+        log.info("metacal: %s; the cases are calibrated by their mean response", why)
+        return False
+    log.info(
+        "metacal: the cases are calibrated by the response at zero shear (a fit of each "
+        "case's response against its true shear)"
+    )
+    return True
 
 
 @dataclass
@@ -1087,7 +1184,8 @@ def _bootstrap_errors(
     def estimates(fam: _Family, counts: np.ndarray, s: str) -> dict[str, dict[str, np.ndarray]]:
         zeros = np.zeros((fam.resampler.n_keys, counts.shape[1]))
         sums = {**{k: zeros for k in _sum_names(schemes)}, **fam.resampler.sums(counts)}
-        return case_estimates(sums, s, fam.theta[:, None] if fam.theta is not None else None)
+        theta = fam.theta[:, None] if fam.theta is not None else None
+        return case_estimates(sums, s, theta, plan.zero_shear)
 
     for counts in resample_counts(spec.seed, n_groups, spec.n_resamples):
         for fam, values in zip(families, acc):
@@ -1185,9 +1283,11 @@ def _conditional(
     theta_of: Mapping[int, float],
     families: list[_Family] | None = None,
     overall: _Groups | None = None,
+    zero_shear: bool = False,
 ) -> dict[str, Any]:
     """Fits per bin (``BiasFit`` objects, turned into dicts by the caller once the bootstrap,
-    when ``families`` is given, has set their errors)."""
+    when ``families`` is given, has set their errors); metacal bins calibrated at zero shear
+    with ``zero_shear`` where the bin's cases determine it, else by the bin's mean."""
     bins, keys, key_sums = sums.result()
     groups = None
     if overall is not None:
@@ -1207,17 +1307,14 @@ def _conditional(
             "center": float(np.median(in_bin)) if in_bin.size else None,
             "n_rows": int(in_bin.size),
         }
-        fits = {scheme: _fit_components(case_estimates(sub, scheme, theta)) for scheme in schemes}
+        fits = {
+            scheme: _fit_components(case_estimates(sub, scheme, theta, zero_shear))
+            for scheme in schemes
+        }
         for scheme in schemes:
             entry[scheme] = fits[scheme]
         if f"{schemes[0]}:wR:11" in sub:  # metacal: this bin's responses
-            entry["metacal"] = {"response": {}, "selection_response": {}}
-            for scheme in schemes:
-                mean, selection = metacal_response(sub, scheme)
-                entry["metacal"]["response"][scheme] = [_json_list(row) for row in mean]
-                entry["metacal"]["selection_response"][scheme] = (
-                    None if selection is None else [_json_list(row) for row in selection]
-                )
+            entry["metacal"] = metacal_summary(sub, schemes, zero_shear)
         if families is not None and groups is not None:
             families.append(
                 _Family(

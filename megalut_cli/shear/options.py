@@ -15,7 +15,8 @@ from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND
 MAX_BINS = 1000
 #: Format name of the JSON written by ``megalut evaluate --json``.
 JSON_FORMAT = "megalut.evaluation"
-JSON_FORMAT_VERSION = "1.3"  # 1.1: "provenance"; 1.2: "error", "bootstrap"; 1.3: shear term
+JSON_FORMAT_VERSION = "1.4"  # 1.1: "provenance"; 1.2: "error", "bootstrap"; 1.3: shear term;
+# 1.4: metacal "response_at", "calibration_response"
 
 EVALUATE_OPTIONS: tuple[Option, ...] = (
     Option(
@@ -49,6 +50,8 @@ EVALUATE = {o.name: o for o in EVALUATE_OPTIONS}
 
 #: Where the errors of m and c come from (``--errors``).
 ERROR_CHOICES = ("auto", "fit", "bootstrap")
+#: The response that calibrates a metacal set's cases (``--response``).
+RESPONSE_CHOICES = ("auto", "mean", "zero-shear")
 #: Bootstrap resamples of ``megalut evaluate`` by default.
 N_BOOTSTRAP = 200
 #: The number of bootstrap resamples, of ``evaluate`` and ``calibrate`` alike.
@@ -88,6 +91,17 @@ EVALUATE_CLI_OPTIONS: tuple[Option, ...] = (
         choices=ERROR_CHOICES,
     ),
     BOOTSTRAP_OPTION,
+    Option(
+        "response",
+        "choice",
+        RESPONSE_CHOICES[0],
+        "Metacal catalogs: the response that calibrates the cases: 'mean' over all of them, "
+        "'zero-shear' (the intercept of a fit of each case's own response against its true "
+        "shear; metacal's step composes with the case's shear, so the mean carries the drawn "
+        "shears' spin-4 moments into m; needs 10 cases), 'auto': zero-shear for "
+        "common-random-number sets (header CRN = T) with 10 cases or more, else mean.",
+        choices=RESPONSE_CHOICES,
+    ),
 )
 EVALUATE_CLI = {o.name: o for o in EVALUATE_CLI_OPTIONS}
 

@@ -64,15 +64,17 @@ def metacal_lines(mcal: Mapping[str, Any] | None) -> list[str]:
     """The report lines of a metacal evaluation: what is calibrated, by which responses."""
     if not mcal:
         return []
+    zero = mcal.get("response_at") == "zero-shear"
+    how = "R(0) + R_sel(0), at zero shear" if zero else "<R> + R_sel"
     lines = [
-        f"metacal: {', '.join(mcal['estimate'])} calibrated by (<R> + R_sel)^-1, "
-        f"step {mcal['step']:g}"
+        f"metacal: {', '.join(mcal['estimate'])} calibrated by ({how})^-1, step {mcal['step']:g}"
     ]
     for scheme, r in mcal["response"].items():
         sel = mcal["selection_response"].get(scheme)
         lines.append(
             f"  {scheme}: <R> = {_matrix(r)}"
             + (f", R_sel = {_matrix(sel)}" if sel is not None else "")
+            + (f"; at zero shear {_matrix(mcal['calibration_response'][scheme])}" if zero else "")
         )
     return lines
 
