@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import galsim
 import numpy as np
 import pytest
+from helpers import FLOAT64_SUMS, assert_same_column
 
 from megalut_cli.catalog import read_catalog_columns
 from megalut_cli.measure.defaults import FORMAT
@@ -112,5 +113,5 @@ def test_a_toy_source_measures_as_the_grid_does(tmp_path, npy_source):
     grid = measure_image(np.concatenate(stamps, axis=1), 24, morphology=True)
     np.testing.assert_array_equal(written["index"], np.arange(7))
     for c in ("adamom_g1", "adamom_g2", "adamom_sigma", "skymad", "snr", "morph_conc", "flags"):
-        np.testing.assert_array_equal(written[c], grid[c], err_msg=c)
+        assert_same_column(written[c], grid[c], c, FLOAT64_SUMS)  # morph_conc: 1 ulp on AMD
     assert header["MENGINE"].strip() == "fast" and header["MAXSHIFT"] == 6.0

@@ -14,6 +14,7 @@ import galsim
 import galsim.des
 import numpy as np
 import pytest
+from helpers import FLOAT32_SUMS, assert_same_column
 
 from megalut_cli.catalog import read_catalog, write_catalog, write_image
 from megalut_cli.measure.defaults import PSF_COLUMNS
@@ -292,7 +293,8 @@ def test_grid_order_uses_the_stamp_centres(runner, cli, tmp_path, synthetic):
 
 def test_metacal_with_psf_model_equals_metacal_with_the_grid(runner, cli, tmp_path):
     """--metacal --psf-model deconvolves each stamp by the model's PSF at its position: every
-    column equals --metacal --psf with the grid of those PSFs, bit for bit."""
+    column equals --metacal --psf with the grid of those PSFs, bit for bit on an AVX-512 Xeon,
+    to float32 rounding elsewhere (the operation's sums take other shapes); flags equal."""
     xs, ys = _exposure(tmp_path)
     grid = _psf_grid(tmp_path, DECAM, xs, ys)
     common = [tmp_path / "exposure.fits", tmp_path / "cat.fits", "--metacal", "--seed", "7"]
@@ -305,7 +307,7 @@ def test_metacal_with_psf_model_equals_metacal_with_the_grid(runner, cli, tmp_pa
         and "psf_adamom_sigma_noshear" in b.colnames
     )
     for col in a.colnames:
-        np.testing.assert_array_equal(np.asarray(a[col]), np.asarray(b[col]), err_msg=col)
+        assert_same_column(b[col], a[col], col, FLOAT32_SUMS)
     assert (b["flags_1p"] == 0).all()
 
 

@@ -38,6 +38,13 @@ With ``--paired A.fits B.fits``: two catalogs of the same stamps (e.g. measured 
 weighted and unweighted (every row alike, no selection response): m₁, m₂ and the isotropic
 part of each, and the difference A - B with its jackknife over the same galaxy groups.
 
+With ``--failures A.fits [B.fits ...]``: each set at zero shear (as ``--zero-shear``), on the
+rows ``megalut evaluate`` uses (every version measured) and with the sheared versions'
+failures as a selection (every row whose noshear version is measured; a row is selected on
+a sheared version when that version is measured, and the selection response of those
+selections corrects the rows that fail on one version and not another), weighted and not:
+m1, m2 and the isotropic part, and the difference with its jackknife.
+
 With ``--by COLUMN`` (a truth column, e.g. ``tru_rad``, ``tru_sersicn``, ``tru_flux``): m of
 each set in the quartiles of that column (edges from the first catalog; each bin calibrated by
 its own response: the truth does not respond to the shear), its jackknife error, and each
@@ -48,6 +55,7 @@ bin's chi^2 of the sets about their weighted mean: where in the population the s
     python examples/metacal/set_checks.py --matrix vo-3901-a.fits vo-3902-a.fits ...
     python examples/metacal/set_checks.py --matrix --zero-shear vo-3901-a.fits vo-3902-a.fits ...
     python examples/metacal/set_checks.py --paired fallback-3904-a.fits vo-3904-a.fits
+    python examples/metacal/set_checks.py --failures vo-3901-a.fits vo-3902-a.fits ...
     python examples/metacal/set_checks.py --swap vo-3901-a.fits vo-3902-a.fits x-{0..19}.fits
 """
 
@@ -73,16 +81,27 @@ def used_rows(t: np.ndarray) -> np.ndarray:
     )
 
 
-def per_group_sums(t: np.ndarray, step: float, weighted: bool = True) -> tuple[dict, np.ndarray]:
+def per_group_sums(
+    t: np.ndarray, step: float, weighted: bool = True, failures: bool = False
+) -> tuple[dict, np.ndarray]:
     """Per (case, group) sums of the rows ``megalut evaluate`` uses (noshear measured, every
     response finite; weights finite and positive): weights, weighted estimates and responses,
     and the sheared versions' weights with the weighted noshear estimates; the cases' true
-    shears ``(n_cases, 2)``."""
+    shears ``(n_cases, 2)``. With ``failures``, the sheared versions' failures as a selection
+    instead: every row whose noshear version is measured counts, the mean response is taken
+    over those whose responses are finite, and a row is selected on a sheared version when
+    that version is measured (its selection response corrects the failures)."""
 
     def col(name: str) -> np.ndarray:
         return np.asarray(t[name], dtype=float)
 
     every = used_rows(t)
+    if failures:
+        every = (
+            (t["flags_noshear"] == 0)
+            & np.isfinite(t["pre_g1_noshear"])
+            & np.isfinite(t["pre_g2_noshear"])
+        )
     cases, case = np.unique(t["case"], return_inverse=True)
     pair = t["rea"] // 2
     group = np.random.default_rng(0).permutation(pair.max() + 1)[pair] % GROUPS
@@ -92,18 +111,21 @@ def per_group_sums(t: np.ndarray, step: float, weighted: bool = True) -> tuple[d
         return np.bincount(key, weights=v, minlength=cases.size * GROUPS).reshape(cases.size, -1)
 
     def weight(kind: str, i: int) -> np.ndarray:
-        if not weighted:  # every row alike: no selection response
-            return every.astype(float)
+        seen = every & (t[f"flags_{kind}"] == 0) if failures else every
+        if not weighted:  # every row alike: a selection response from failures alone
+            return seen.astype(float)
         w = col(f"pre_g{i}_w_{kind}")
-        return np.where(every & np.isfinite(w) & (w > 0), w, 0.0)
+        return np.where(seen & np.isfinite(w) & (w > 0), w, 0.0)
 
     sums = {}
     for i in (1, 2):
         g = np.nan_to_num(col(f"pre_g{i}_noshear"))
         w = weight("noshear", i)
         sums[f"w{i}"], sums[f"wg{i}"] = total(w), total(w * g)
+        responded = np.isfinite(col(f"mcal_r{i}1")) & np.isfinite(col(f"mcal_r{i}2"))
+        sums[f"wn{i}"] = total(np.where(responded, w, 0.0))  # the mean response's rows
         for j in (1, 2):
-            sums[f"wr{i}{j}"] = total(w * np.nan_to_num(col(f"mcal_r{i}{j}")))
+            sums[f"wr{i}{j}"] = total(np.where(responded, w * col(f"mcal_r{i}{j}"), 0.0))
         for kind in VERSIONS[1:]:
             wk = weight(kind, i)
             sums[f"w{i}{kind}"], sums[f"wg{i}{kind}"] = total(wk), total(wk * g) / (2 * step)
@@ -126,7 +148,7 @@ def _responses(sums: dict, drop: int | None, per_case: bool) -> np.ndarray:
 
     parts = [
         [
-            ratio(f"wr{i}{j}", f"w{i}") + ratio(f"wg{i}{j}p", f"w{i}{j}p")
+            ratio(f"wr{i}{j}", f"wn{i}") + ratio(f"wg{i}{j}p", f"w{i}{j}p")
             - ratio(f"wg{i}{j}m", f"w{i}{j}m")
             for j in (1, 2)
         ]
@@ -148,7 +170,7 @@ def calibrated(sums: dict, drop: int | None = None) -> tuple[np.ndarray, np.ndar
     selection response, and the cases' mean responses ``R_ii``, group ``drop`` left out."""
     means = _case_means(sums, drop)
     cases_r = np.stack(
-        [_totals(sums[f"wr{i}{i}"], drop) / _totals(sums[f"w{i}"], drop) for i in (1, 2)], axis=1
+        [_totals(sums[f"wr{i}{i}"], drop) / _totals(sums[f"wn{i}"], drop) for i in (1, 2)], axis=1
     )
     return np.linalg.solve(_responses(sums, drop, False), means.T).T, cases_r
 
@@ -327,6 +349,56 @@ def paired(path_a: str, path_b: str) -> None:
             )
 
 
+def failures_check(paths: list[str]) -> None:
+    """Each set at zero shear two ways, on the same stamps: as ``evaluate`` takes its rows
+    (every version measured) and with the sheared versions' failures as a selection
+    (:func:`per_group_sums` ``failures``); m1, m2 (a line) and the isotropic part (cubic
+    terms fitted), the difference with its jackknife over the same galaxy groups, and the
+    sets' weighted means."""
+
+    def stats(sums: dict, shears: np.ndarray, drop: int | None = None) -> np.ndarray:
+        cal = zero_shear_calibrated(sums, shears, drop)[0]
+        m = [np.polyfit(shears[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)]
+        return np.array([*m, matrix_parts(shears, cal, True)[0]])
+
+    names = ("m1", "m2", "(m11 + m22) / 2")
+    rows: dict[tuple[str, int], list[tuple[float, float, float, float, float, float]]] = {}
+    print(
+        "| set | estimator | quantity (1e-3) | every version measured | failures as a selection "
+        "| difference |"
+    )
+    print("|---|---|---|---|---|---|")
+    for path in paths:
+        t, step = read_set(path)
+        for weighted in (True, False):
+            scheme = "weighted" if weighted else "unweighted"
+            both = [per_group_sums(t, step, weighted, failures) for failures in (False, True)]
+            values = [stats(sums, shears) for sums, shears in both]
+            jacks = [
+                np.array([stats(sums, shears, d) for d in range(GROUPS)]) for sums, shears in both
+            ]
+            errs = [jackknife_sigma(j) for j in jacks]
+            diff = jackknife_sigma(jacks[1] - jacks[0])
+            for k, q in enumerate(names):
+                a, b = values[0][k], values[1][k]
+                rows.setdefault((scheme, k), []).append(
+                    (a, errs[0][k], b, errs[1][k], b - a, diff[k])
+                )
+                print(
+                    f"| {path.rsplit('/', 1)[-1]} | {scheme} | {q} | {1e3 * a:+.2f} +- "
+                    f"{1e3 * errs[0][k]:.2f} | {1e3 * b:+.2f} +- {1e3 * errs[1][k]:.2f} | "
+                    f"{1e3 * (b - a):+.2f} +- {1e3 * diff[k]:.2f} |"
+                )
+    print("| all sets: weighted mean, chi^2 | | | | | |")
+    for (scheme, k), vals in rows.items():
+        v = np.array(vals)
+        cells = []
+        for col in (0, 2, 4):
+            mean, err, chi2 = chi2_about_mean(v[:, col], v[:, col + 1])
+            cells.append(f"{1e3 * mean:+.2f} +- {1e3 * err:.2f} ({chi2:.1f})")
+        print(f"| {len(paths)} sets | {scheme} | {names[k]} | {' | '.join(cells)} |")
+
+
 def by_column(column: str, paths: list[str], bins: int = 4) -> None:
     """m of each set in the quantile bins of a truth ``column``, and each bin's chi^2."""
     edges = None
@@ -390,6 +462,8 @@ def main(paths: list[str]) -> None:
 if __name__ == "__main__":
     if len(sys.argv) > 2 and sys.argv[1] == "--by":
         by_column(sys.argv[2], sys.argv[3:])
+    elif len(sys.argv) > 2 and sys.argv[1] == "--failures":
+        failures_check(sys.argv[2:])
     elif len(sys.argv) == 4 and sys.argv[1] == "--paired":
         paired(sys.argv[2], sys.argv[3])
     elif len(sys.argv) > 4 and sys.argv[1] == "--swap":

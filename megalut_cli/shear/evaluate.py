@@ -987,7 +987,7 @@ def _evaluate(
         result["metacal"] = {
             "step": plan.metacal,
             "estimate": [f"{c}_noshear" for c in ESTIMATE_COLUMNS],
-            **metacal_summary(sums, schemes, plan.zero_shear),
+            **_metacal_summary(sums, schemes, plan.zero_shear),
         }
     fits = {s: _fit_components(per_case[s]) for s in schemes}
     families: list[_Family] = []
@@ -1066,7 +1066,7 @@ def _evaluate(
     return result
 
 
-def metacal_summary(
+def _metacal_summary(
     sums: Mapping[str, np.ndarray], schemes: Sequence[str], zero_shear: bool = False
 ) -> dict[str, Any]:
     """The responses of the cases behind ``sums`` per scheme: the mean and selection
@@ -1314,7 +1314,7 @@ def _conditional(
         for scheme in schemes:
             entry[scheme] = fits[scheme]
         if f"{schemes[0]}:wR:11" in sub:  # metacal: this bin's responses
-            entry["metacal"] = metacal_summary(sub, schemes, zero_shear)
+            entry["metacal"] = _metacal_summary(sub, schemes, zero_shear)
         if families is not None and groups is not None:
             families.append(
                 _Family(
