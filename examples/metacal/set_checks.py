@@ -66,6 +66,8 @@ import sys
 import fitsio
 import numpy as np
 
+from megalut_cli.shear.response import response_design
+
 VERSIONS = ("noshear", "1p", "1m", "2p", "2m")
 GROUPS = 1000
 
@@ -179,13 +181,6 @@ def case_responses(sums: dict, drop: int | None = None) -> np.ndarray:
     """Each case's own mean response ``(n_cases, 2, 2)``, the weights' selection response
     included, group ``drop`` left out."""
     return _responses(sums, drop, True)
-
-
-def response_design(shears: np.ndarray) -> np.ndarray:
-    """The terms of a case's response against its shear: 1, g1, g2, abs(g)^2 and the spin-4
-    pair g1^2 - g2^2, 2 g1 g2 (shear composition: metacal's step adds to the case's shear)."""
-    g1, g2 = shears[:, 0], shears[:, 1]
-    return np.column_stack([np.ones_like(g1), g1, g2, g1**2 + g2**2, g1**2 - g2**2, 2 * g1 * g2])
 
 
 def zero_shear_calibrated(

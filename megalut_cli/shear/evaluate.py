@@ -958,8 +958,10 @@ def _evaluate(
         if psf_round:
             log.info("the PSF is round in every case: the PSF frame is the pixel frame")
 
+    shears = None  # the cases' true shears, where they set the metacal response
     if plan.metacal is not None:
-        plan.zero_shear = _zero_shear_decision(plan, case_estimates(sums, schemes[0]))
+        shears = case_shears(case_estimates(sums, schemes[0]))
+        plan.zero_shear = _zero_shear_decision(plan, shears)
     per_case = {s: case_estimates(sums, s, theta, plan.zero_shear) for s in schemes}
     _check_cases(plan, per_case["unweighted"], case_ids)
     if (
@@ -987,7 +989,7 @@ def _evaluate(
         result["metacal"] = {
             "step": plan.metacal,
             "estimate": [f"{c}_noshear" for c in ESTIMATE_COLUMNS],
-            **_metacal_summary(sums, schemes, plan.zero_shear),
+            **_metacal_summary(sums, schemes, shears if plan.zero_shear else None),
         }
     fits = {s: _fit_components(per_case[s]) for s in schemes}
     families: list[_Family] = []
@@ -1067,18 +1069,18 @@ def _evaluate(
 
 
 def _metacal_summary(
-    sums: Mapping[str, np.ndarray], schemes: Sequence[str], zero_shear: bool = False
+    sums: Mapping[str, np.ndarray], schemes: Sequence[str], shears: np.ndarray | None = None
 ) -> dict[str, Any]:
     """The responses of the cases behind ``sums`` per scheme: the mean and selection
-    responses over all the cases, the response that calibrates them and how it was taken
-    (``response_at``: ``"mean"`` or ``"zero-shear"``, :func:`calibration_response`)."""
+    responses over all the cases, the response that calibrates them (at zero shear with the
+    cases' true ``shears`` where they determine it) and how it was taken (``response_at``:
+    ``"mean"`` or ``"zero-shear"``, :func:`calibration_response`)."""
     out: dict[str, Any] = {
         "response": {},
         "selection_response": {},
         "calibration_response": {},
         "response_at": RESPONSE_MEAN,
     }
-    shears = case_shears(case_estimates(sums, schemes[0])) if zero_shear else None
     for s in schemes:
         mean, selection = metacal_response(sums, s)
         out["response"][s] = [_json_list(row) for row in mean]
@@ -1091,14 +1093,14 @@ def _metacal_summary(
     return out
 
 
-def _zero_shear_decision(plan: _Plan, per_case: Mapping[str, Mapping[str, np.ndarray]]) -> bool:
+def _zero_shear_decision(plan: _Plan, shears: np.ndarray) -> bool:
     """Whether a metacal set is calibrated at zero shear (``plan.response``; ``auto``: a
-    common-random-number set whose cases determine the fit); says which in the log."""
+    common-random-number set whose cases' true ``shears`` determine the fit); says which in
+    the log."""
     wanted = plan.response == RESPONSE_ZERO_SHEAR or (plan.response == "auto" and plan.crn)
     if not wanted:
         log.info("metacal: the cases are calibrated by their mean response")
         return False
-    shears = case_shears(per_case)
     if zero_shear_weights(shears) is None:
         why = (
             f"the response at zero shear needs at least {MIN_ZERO_SHEAR_CASES} cases with "
@@ -1307,14 +1309,13 @@ def _conditional(
             "center": float(np.median(in_bin)) if in_bin.size else None,
             "n_rows": int(in_bin.size),
         }
-        fits = {
-            scheme: _fit_components(case_estimates(sub, scheme, theta, zero_shear))
-            for scheme in schemes
-        }
+        per_case = {scheme: case_estimates(sub, scheme, theta, zero_shear) for scheme in schemes}
+        fits = {scheme: _fit_components(per_case[scheme]) for scheme in schemes}
         for scheme in schemes:
             entry[scheme] = fits[scheme]
         if f"{schemes[0]}:wR:11" in sub:  # metacal: this bin's responses
-            entry["metacal"] = _metacal_summary(sub, schemes, zero_shear)
+            shears = case_shears(per_case[schemes[0]]) if zero_shear else None
+            entry["metacal"] = _metacal_summary(sub, schemes, shears)
         if families is not None and groups is not None:
             families.append(
                 _Family(
