@@ -27,12 +27,13 @@ the same galaxy groups, and X - B (the same shears, other galaxies and noise).
 
 With ``--matrix --unweighted``: the same with every row alike (no selection response).
 
-With ``--matrix --zero-shear``: the same at zero shear. A case's response depends on its shear
-(metacal's step composes with the case's shear: the spin-4 parts of R go as -R0 (g1^2 - g2^2)
-and -R0 2 g1 g2), so the mean response over a set's drawn shears, which calibrates every
-case, depends on the draw. Here the cases' means are calibrated by the response at zero
+With ``--matrix --zero-shear [--line]``: the same at zero shear. A case's response depends on
+its shear (metacal's step composes with the case's shear: the spin-4 parts of R go as -R0
+(g1^2-g2^2) and -R0 2 g1 g2), so the mean response over a set's drawn shears, which calibrates
+every case, depends on the draw. Here the cases' means are calibrated by the response at zero
 shear (the intercept of a fit of each case's response against 1, g1, g2, abs(g)^2 and the
-spin-4 pair) and the parts fitted beside every quadratic and cubic term of the shear.
+spin-4 pair) and the parts fitted beside every quadratic and cubic term of the shear (with
+``--line``, a line alone, as ``megalut evaluate`` fits).
 
 With ``--paired A.fits B.fits``: two catalogs of the same stamps (e.g. measured two ways),
 weighted and unweighted (every row alike, no selection response): m₁, m₂ and the isotropic
@@ -54,6 +55,7 @@ bin's chi^2 of the sets about their weighted mean: where in the population the s
     python examples/metacal/set_checks.py --by tru_rad vo-3901-a.fits vo-3902-a.fits ...
     python examples/metacal/set_checks.py --matrix vo-3901-a.fits vo-3902-a.fits ...
     python examples/metacal/set_checks.py --matrix --zero-shear vo-3901-a.fits vo-3902-a.fits ...
+    python examples/metacal/set_checks.py --matrix --zero-shear --line vo-3901-a.fits ...
     python examples/metacal/set_checks.py --paired fallback-3904-a.fits vo-3904-a.fits
     python examples/metacal/set_checks.py --failures vo-3901-a.fits vo-3902-a.fits ...
     python examples/metacal/set_checks.py --swap vo-3901-a.fits vo-3902-a.fits x-{0..19}.fits
@@ -248,13 +250,16 @@ def chi2_about_mean(values: np.ndarray, errors: np.ndarray) -> tuple[float, floa
     return mean, float(1 / np.sqrt(w.sum())), float((w * (values - mean) ** 2).sum())
 
 
-def by_matrix(paths: list[str], zero_shear: bool = False, weighted: bool = True) -> None:
+def by_matrix(
+    paths: list[str], zero_shear: bool = False, weighted: bool = True, cubic: bool = True
+) -> None:
     """The parts of each set's 2x2 matrix, their jackknife errors and chi^2 across sets; with
-    ``zero_shear``, at zero shear (:func:`zero_shear_calibrated`, cubic terms fitted)."""
+    ``zero_shear``, at zero shear (:func:`zero_shear_calibrated`; the cubic terms fitted
+    beside the line unless ``cubic`` is false, as in ``megalut evaluate``)."""
 
     def parts(sums: dict, shears: np.ndarray, drop: int | None = None) -> np.ndarray:
         if zero_shear:
-            return matrix_parts(shears, zero_shear_calibrated(sums, shears, drop)[0], True)
+            return matrix_parts(shears, zero_shear_calibrated(sums, shears, drop)[0], cubic)
         return matrix_parts(shears, calibrated(sums, drop)[0])
 
     values, errors = [], []
@@ -464,11 +469,12 @@ if __name__ == "__main__":
     elif len(sys.argv) > 4 and sys.argv[1] == "--swap":
         swap(sys.argv[2], sys.argv[3], sys.argv[4:])
     elif len(sys.argv) > 1 and sys.argv[1] == "--matrix":
-        flags = {"--zero-shear", "--unweighted"}
+        flags = {"--zero-shear", "--unweighted", "--line"}
         by_matrix(
             [a for a in sys.argv[2:] if a not in flags],
             zero_shear="--zero-shear" in sys.argv,
             weighted="--unweighted" not in sys.argv,
+            cubic="--line" not in sys.argv,
         )
     else:
         main(sys.argv[1:])
