@@ -123,6 +123,8 @@ def describe_value(v: Any, unit: str = "") -> str:
             else ""
         )
         return f"grid {_num(lo)} to {_num(hi)}{u}{step}"
+    if t == "sequence" and "values" in v:
+        return f"in turn {describe_value(list(v['values']), unit)}"
     if t == "catalog":
         return f"column {v.get('column')} of the catalog"
     return ", ".join(f"{k} {describe_value(x)}" for k, x in v.items())

@@ -7,11 +7,14 @@ A parameter is a plain number (a constant) or an inline table with a ``type``::
     g1 = {type = "normal", mean = 0.0, sigma = 0.05, min = -0.1, max = 0.1}
     ellipticity = {type = "rayleigh", mode = 0.2, min = 0.0, max = 0.6}
     sersicn = {type = "grid", min = 1.0, max = 4.0, step = 0.1}   # or values = [...]
+    g1 = {type = "sequence", values = [0.03, -0.03, 0.0, 0.0]}  # draw k takes values[k % 4]
     rad = {type = "catalog", column = "hlr", element = 0, scale = 10.0}
 
 ``min``/``max`` of ``normal`` and ``rayleigh`` truncate the distribution (no sample falls
 outside, the shape inside is unchanged; sampled exactly by inverse CDF, as the paper's
-"clipped" distributions). ``catalog`` parameters sample rows of the ``[catalog]`` table;
+"clipped" distributions). ``sequence`` takes its values in order, not at random: draw k
+(case k at the case level, galaxy group k at the realization level) gets ``values[k % len]``,
+for designed shears. ``catalog`` parameters sample rows of the ``[catalog]`` table;
 all ``catalog`` parameters drawn at the same level share one row (joint sampling, as the
 paper does with GEMS) unless ``joint = false``.
 """
@@ -28,7 +31,7 @@ import numpy as np
 from megalut_cli.errors import ConfigError
 from megalut_cli.schema import check_bool, check_float, check_int
 
-DIST_TYPES = ("constant", "uniform", "normal", "rayleigh", "grid", "catalog")
+DIST_TYPES = ("constant", "uniform", "normal", "rayleigh", "grid", "sequence", "catalog")
 
 
 @dataclass(frozen=True)
@@ -148,6 +151,26 @@ class Grid(Distribution):
 
 
 @dataclass(frozen=True)
+class InOrder(Distribution):
+    """The values in order, draw ``k`` taking ``values[k % len(values)]`` (no random number)."""
+
+    values: tuple[float, ...] = (0.0,)
+
+    def sample(
+        self, rng: np.random.Generator, n: int, rows: np.ndarray | None = None
+    ) -> np.ndarray:
+        return self.at(np.arange(n))
+
+    def at(self, positions: np.ndarray) -> np.ndarray:
+        """The values of the draws at ``positions`` (their places in the run)."""
+        vals = np.asarray(self.values, dtype=float)
+        return vals[np.asarray(positions, dtype=np.int64) % len(vals)]
+
+    def bounds(self) -> tuple[float, float]:
+        return min(self.values), max(self.values)
+
+
+@dataclass(frozen=True)
 class CatalogColumn(Distribution):
     """Values of a column of the input catalog (after selection and unit scaling).
 
@@ -195,6 +218,7 @@ _ALLOWED = {
     "normal": {"mean", "sigma", "min", "max"},
     "rayleigh": {"mode", "min", "max"},
     "grid": {"values", "min", "max", "step", "n"},
+    "sequence": {"values"},
     "catalog": {"column", "element", "scale", "offset", "joint"},
 }
 
@@ -265,6 +289,11 @@ def parse_distribution(value: Any, key: str) -> Distribution:
         return Rayleigh(key, mode, lo, hi)
     if kind == "grid":
         return _parse_grid(value, key, num)
+    if kind == "sequence":
+        vals = value.get("values")
+        if not isinstance(vals, list) or not vals:
+            raise ConfigError(f"{key}.values: expected a non-empty list of numbers")
+        return InOrder(key, tuple(check_float(v, f"{key}.values") for v in vals))
     return _parse_catalog(value, key)
 
 
@@ -329,16 +358,26 @@ def check_bounds(
 
 
 def sample_level(
-    dists: Mapping[str, Distribution], rng: np.random.Generator, n: int, n_catalog_rows: int
+    dists: Mapping[str, Distribution],
+    rng: np.random.Generator,
+    n: int,
+    n_catalog_rows: int,
+    positions: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Draw ``n`` values of each distribution (in the mapping's order).
 
     Joint catalog parameters share one row index per draw (drawn first, only if any).
+    ``positions``: the draws' places in the run (e.g. ``[case]``), which a ``sequence``
+    follows (default ``0 .. n-1``); the other distributions draw from ``rng``.
     """
     rows = None
     if any(isinstance(d, CatalogColumn) and d.joint for d in dists.values()):
         rows = rng.integers(0, n_catalog_rows, n)
-    return {name: d.sample(rng, n, rows) for name, d in dists.items()}
+    where = np.arange(n) if positions is None else np.asarray(positions)
+    return {
+        name: d.at(where) if isinstance(d, InOrder) else d.sample(rng, n, rows)
+        for name, d in dists.items()
+    }
 
 
 def short_text(value: Any) -> str:

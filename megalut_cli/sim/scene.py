@@ -187,14 +187,15 @@ def field_parameters(
     s = scene_spec(config)
     nrows = config.catalog_rows
     rng_f = rng_for(seed, STREAM_SCENE, fld, _FIELD_KEY)
-    shear = _scalar(sample_level(config.shear, rng_f, 1, nrows))
+    here = np.array([fld])  # a sequence's place: the field
+    shear = _scalar(sample_level(config.shear, rng_f, 1, nrows, here))
     psf_dists = {k: v for k, v in config.psf.items() if isinstance(v, Distribution)}
-    psf_vals = _scalar(sample_level(psf_dists, rng_f, 1, nrows))
-    fpos = _scalar(sample_level(config.field or {}, rng_f, 1, nrows))
+    psf_vals = _scalar(sample_level(psf_dists, rng_f, 1, nrows, here))
+    fpos = _scalar(sample_level(config.field or {}, rng_f, 1, nrows, here))
     spec = {k: psf_vals.get(k, v) for k, v in config.psf.items()}
     noise = make_noise(
         config.noise.type,
-        _scalar(sample_level(config.noise.params, rng_f, 1, nrows)),
+        _scalar(sample_level(config.noise.params, rng_f, 1, nrows, here)),
         config.instrument,
         config.noise.override_sigma,
         config.noise.source,

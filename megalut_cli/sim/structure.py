@@ -35,7 +35,7 @@ import numpy as np
 
 from megalut_cli.seeding import STREAM_COMMON, STREAM_SIMULATE, rng_for
 from megalut_cli.sim.config import SimConfig
-from megalut_cli.sim.distributions import Distribution, sample_level
+from megalut_cli.sim.distributions import Distribution, InOrder, sample_level
 from megalut_cli.sim.intrinsic import ellipticity_components, galaxy_fluxes, mag_from_flux
 from megalut_cli.sim.noise import StampNoise, make_noise
 from megalut_cli.sim.profiles import GALAXY_PROFILES
@@ -92,7 +92,7 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
         if s.varies(group):
             vals = sample_level(dists, rng_rea, ng, nrows)
             return {k: v[group_of] for k, v in vals.items()}, group_of
-        vals = sample_level(dists, rng_case, 1, nrows)
+        vals = sample_level(dists, rng_case, 1, nrows, positions=np.array([case]))
         return {k: np.repeat(v, n) for k, v in vals.items()}, np.zeros(n, dtype=np.int64)
 
     truth: dict[str, np.ndarray] = {}
@@ -150,6 +150,8 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     # Position angle: per group (with SNC rotations within the group) or per case.
     if s.varies("angle"):
         theta0 = gal.angle.sample(rng_rea, ng)
+    elif isinstance(gal.angle, InOrder):  # a sequence of angles: case k takes the k-th
+        theta0 = np.repeat(gal.angle.at(np.array([case])), ng)
     else:
         theta0 = np.repeat(gal.angle.sample(rng_case, 1), ng)
     theta = ring_angles(theta0, n, gs)
@@ -159,7 +161,7 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     truth["tru_ell"], truth["tru_theta"] = ell, np.mod(theta, 180.0)
 
     # Noise (per case), offsets and noise seeds (per realization).
-    drawn = sample_level(config.noise.params, rng_case, 1, nrows)
+    drawn = sample_level(config.noise.params, rng_case, 1, nrows, positions=np.array([case]))
     nparams = {k: float(v[0]) for k, v in drawn.items()}
     noise = make_noise(
         config.noise.type,
