@@ -9,6 +9,7 @@ from megalut_cli.errors import InputError
 from megalut_cli.nn.model import ShearModel
 from megalut_cli.nn.population import (
     REAL_BIAS_ATTR,
+    describe_value,
     model_report,
     population_summary,
     record_real_bias,
@@ -170,3 +171,9 @@ def test_population_of_a_weight_trained_model_and_its_parent(tmp_path):
         "model weights trained on: Sersic galaxies (n grid, rad U(2.0, 8.0) px)"
     )
     assert lines[1].startswith("model point estimates trained on: Sersic galaxies")
+
+
+def test_distributions_in_plain_words():
+    assert describe_value({"type": "uniform", "min": 2, "max": 8}, "px") == "uniform 2 to 8 px"
+    assert describe_value({"type": "grid", "values": [1, 2]}) == "one of 1, 2"
+    assert describe_value({"type": "sequence", "values": [0.05, -0.05]}) == "in turn 0.05, -0.05"

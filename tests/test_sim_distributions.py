@@ -13,6 +13,7 @@ from megalut_cli.sim.distributions import (
     CatalogColumn,
     Constant,
     Grid,
+    InOrder,
     parse_distribution,
     sample_level,
 )
@@ -95,6 +96,17 @@ def test_grid_values_and_step():
     assert d3.values == (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
+def test_sequence_takes_its_values_in_turn():
+    d = parse_distribution({"type": "sequence", "values": [0.05, -0.05, 0.0]}, "shear.g1")
+    assert isinstance(d, InOrder) and d.bounds() == (-0.05, 0.05) and not d.is_constant
+    assert np.array_equal(d.sample(_rng(), 7), [0.05, -0.05, 0.0, 0.05, -0.05, 0.0, 0.05])
+    assert np.array_equal(d.at(np.array([4, 2])), [-0.05, 0.0])
+    # a level of draws follows its positions; the other distributions still draw from rng
+    u = parse_distribution({"type": "uniform", "min": 0, "max": 1}, "u")
+    out = sample_level({"g": d, "u": u}, _rng(3), 1, 0, positions=np.array([5]))
+    assert out["g"][0] == 0.0 and out["u"][0] == _rng(3).uniform(0, 1, 1)[0]
+
+
 def test_catalog_joint_rows_share_the_row():
     base = CatalogColumn("a", column="a")
     a = base.with_data(np.arange(100.0))
@@ -121,6 +133,9 @@ def test_catalog_joint_rows_share_the_row():
         ({"type": "rayleigh", "mode": 0}, "k.mode: must be > 0"),
         ({"type": "grid", "values": []}, "k.values: expected a non-empty list"),
         ({"type": "grid", "min": 0, "max": 1}, "k: a grid needs"),
+        ({"type": "sequence", "values": []}, "k.values: expected a non-empty list"),
+        ({"type": "sequence", "values": [0.1, "x"]}, "k.values: expected a number"),
+        ({"type": "sequence", "values": [0.1], "n": 2}, "k.n: unknown key"),
         ({"type": "catalog"}, "k.column: missing"),
         ({"type": "catalog", "column": "x", "element": -1}, "k.element"),
         (float("inf"), "k: must be a finite number"),

@@ -188,6 +188,16 @@ def test_pairs_share_galaxies_and_noise(tmp_path):
     np.testing.assert_allclose(drawn.images[1] - clean[1], drawn.noise, atol=2e-5, rtol=0)
 
 
+def test_a_sequence_of_shears_goes_field_by_field(tmp_path):
+    """``{type = "sequence"}``: field k takes the k-th value (cycling), whatever the seed."""
+    text = SCENE.replace("g1 = 0.04", 'g1 = {type = "sequence", values = [0.04, 0.0, -0.02]}')
+    text = text.replace("n_fields = 2", "n_fields = 4")
+    cfg = scene_config(tmp_path, text)
+    for seed in (1, 2):
+        g1 = [draw_field(u).g1 for u in field_units(cfg, seed)]
+        assert g1 == [0.04, 0.0, -0.02, 0.04]
+
+
 def test_psf_image_at_the_field_centre(tmp_path):
     scenes = draw_scenes(scene_config(tmp_path), seed=1)
     psf = scenes.psfs[0]

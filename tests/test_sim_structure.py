@@ -100,6 +100,29 @@ def test_shear_per_realization(tmp_path):
     assert _constant(t["tru_rad"])
 
 
+def test_designed_shears_in_turn_over_common_galaxies(tmp_path):
+    """A ``sequence`` of shears gives case k the k-th pair (cycling), and a common-random-
+    number set keeps its galaxies, angles and noise seeds whatever the shear."""
+    seq = {
+        'g1 = {type = "uniform", min = -0.1, max = 0.1}': (
+            'g1 = {type = "sequence", values = [0.05, -0.05, 0.0]}'
+        ),
+        'g2 = {type = "uniform", min = -0.1, max = 0.1}': (
+            'g2 = {type = "sequence", values = [0.0, 0.0, 0.05]}'
+        ),
+        'per_realization = ["angle"]': 'per_realization = ["galaxy"]',
+        'snc = "ring"': 'snc = "pairs"\ncommon = true',
+    }
+    cfg = load_config(write(tmp_path, replace=seq), [])
+    cases = [draw_case(cfg, 11, k).truth for k in range(5)]
+    shears = [(t["tru_g1"][0], t["tru_g2"][0]) for t in cases]
+    assert shears == [(0.05, 0.0), (-0.05, 0.0), (0.0, 0.05), (0.05, 0.0), (-0.05, 0.0)]
+    for t in cases:
+        assert _constant(t["tru_g1"]) and _constant(t["tru_g2"])
+        for k in (*GAL_KEYS, "tru_theta", "tru_dx"):
+            assert np.array_equal(t[k], cases[0][k])
+
+
 def test_offsets_within_half_pixel(tmp_path):
     cfg = _cfg(tmp_path, '["angle"]', "ring", 2000)
     t = draw_case(cfg, 1, 0).truth

@@ -46,6 +46,13 @@ a sheared version when that version is measured, and the selection response of t
 selections corrects the rows that fail on one version and not another), weighted and not:
 m1, m2 and the isotropic part, and the difference with its jackknife.
 
+With ``--complete A.fits [B.fits ...]``: each set as ``megalut evaluate --response auto``
+calibrates it (at zero shear with 10 cases or more, else by the mean response), on the rows
+``evaluate`` uses and on the galaxies measured in every case only (a selection on the truth,
+for diagnosis), weighted and not: m1, m2 and the isotropic part of a line, and the difference
+with its jackknife. A galaxy measured under some shears and not others enters the cases'
+means through a selection on the true shear, which no metacal response sees.
+
 With ``--by COLUMN`` (a truth column, e.g. ``tru_rad``, ``tru_sersicn``, ``tru_flux``): m of
 each set in the quartiles of that column (edges from the first catalog; each bin calibrated by
 its own response: the truth does not respond to the shear), its jackknife error, and each
@@ -58,6 +65,7 @@ bin's chi^2 of the sets about their weighted mean: where in the population the s
     python examples/metacal/set_checks.py --matrix --zero-shear --line vo-3901-a.fits ...
     python examples/metacal/set_checks.py --paired fallback-3904-a.fits vo-3904-a.fits
     python examples/metacal/set_checks.py --failures vo-3901-a.fits vo-3902-a.fits ...
+    python examples/metacal/set_checks.py --complete vo-3901-a.fits vo-cross-a.fits ...
     python examples/metacal/set_checks.py --swap vo-3901-a.fits vo-3902-a.fits x-{0..19}.fits
 """
 
@@ -85,8 +93,19 @@ def used_rows(t: np.ndarray) -> np.ndarray:
     )
 
 
+def complete_galaxies(t: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The rows of galaxies (realizations) that ``rows`` holds in every case."""
+    n_cases = len(np.unique(t["case"]))
+    counts = np.bincount(t["rea"][rows], minlength=int(t["rea"].max()) + 1)
+    return counts[t["rea"]] == n_cases
+
+
 def per_group_sums(
-    t: np.ndarray, step: float, weighted: bool = True, failures: bool = False
+    t: np.ndarray,
+    step: float,
+    weighted: bool = True,
+    failures: bool = False,
+    complete: bool = False,
 ) -> tuple[dict, np.ndarray]:
     """Per (case, group) sums of the rows ``megalut evaluate`` uses (noshear measured, every
     response finite; weights finite and positive): weights, weighted estimates and responses,
@@ -94,7 +113,9 @@ def per_group_sums(
     shears ``(n_cases, 2)``. With ``failures``, the sheared versions' failures as a selection
     instead: every row whose noshear version is measured counts, the mean response is taken
     over those whose responses are finite, and a row is selected on a sheared version when
-    that version is measured (its selection response corrects the failures)."""
+    that version is measured (its selection response corrects the failures). With
+    ``complete``, only the galaxies whose rows are used in every case (a selection on the
+    truth: a diagnostic of simulations, not an estimator for data)."""
 
     def col(name: str) -> np.ndarray:
         return np.asarray(t[name], dtype=float)
@@ -106,6 +127,8 @@ def per_group_sums(
             & np.isfinite(t["pre_g1_noshear"])
             & np.isfinite(t["pre_g2_noshear"])
         )
+    if complete:
+        every = every & complete_galaxies(t, every)
     cases, case = np.unique(t["case"], return_inverse=True)
     pair = t["rea"] // 2
     group = np.random.default_rng(0).permutation(pair.max() + 1)[pair] % GROUPS
@@ -350,13 +373,18 @@ def paired(path_a: str, path_b: str) -> None:
 
 
 def failures_check(paths: list[str]) -> None:
-    """Each set at zero shear two ways, on the same stamps: as ``evaluate`` takes its rows
-    (every version measured) and with the sheared versions' failures as a selection
+    """Each set at zero shear two ways, on the same stamps: as ``evaluate`` takes its rows (every
+    version measured) and with the sheared versions' failures as a selection
     (:func:`per_group_sums` ``failures``); m1, m2 (a line) and the isotropic part (cubic
-    terms fitted), the difference with its jackknife over the same galaxy groups, and the
-    sets' weighted means."""
+    terms fitted; with fewer than 10 cases, by the mean response and a line), the
+    difference with its jackknife over the same galaxy groups, and the sets' weighted
+    means."""
 
     def stats(sums: dict, shears: np.ndarray, drop: int | None = None) -> np.ndarray:
+        if len(shears) < 10:  # too few cases for the response at zero shear (evaluate's auto)
+            cal = calibrated(sums, drop)[0]
+            m = [np.polyfit(shears[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)]
+            return np.array([*m, matrix_parts(shears, cal)[0]])
         cal = zero_shear_calibrated(sums, shears, drop)[0]
         m = [np.polyfit(shears[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)]
         return np.array([*m, matrix_parts(shears, cal, True)[0]])
@@ -373,6 +401,60 @@ def failures_check(paths: list[str]) -> None:
         for weighted in (True, False):
             scheme = "weighted" if weighted else "unweighted"
             both = [per_group_sums(t, step, weighted, failures) for failures in (False, True)]
+            values = [stats(sums, shears) for sums, shears in both]
+            jacks = [
+                np.array([stats(sums, shears, d) for d in range(GROUPS)]) for sums, shears in both
+            ]
+            errs = [jackknife_sigma(j) for j in jacks]
+            diff = jackknife_sigma(jacks[1] - jacks[0])
+            for k, q in enumerate(names):
+                a, b = values[0][k], values[1][k]
+                rows.setdefault((scheme, k), []).append(
+                    (a, errs[0][k], b, errs[1][k], b - a, diff[k])
+                )
+                print(
+                    f"| {path.rsplit('/', 1)[-1]} | {scheme} | {q} | {1e3 * a:+.2f} +- "
+                    f"{1e3 * errs[0][k]:.2f} | {1e3 * b:+.2f} +- {1e3 * errs[1][k]:.2f} | "
+                    f"{1e3 * (b - a):+.2f} +- {1e3 * diff[k]:.2f} |"
+                )
+    print("| all sets: weighted mean, chi^2 | | | | | |")
+    for (scheme, k), vals in rows.items():
+        v = np.array(vals)
+        cells = []
+        for col in (0, 2, 4):
+            mean, err, chi2 = chi2_about_mean(v[:, col], v[:, col + 1])
+            cells.append(f"{1e3 * mean:+.2f} +- {1e3 * err:.2f} ({chi2:.1f})")
+        print(f"| {len(paths)} sets | {scheme} | {names[k]} | {' | '.join(cells)} |")
+
+
+def complete_check(paths: list[str]) -> None:
+    """Each set two ways, on the same stamps: as ``evaluate`` takes its rows, and with only the
+    galaxies measured in every case (:func:`per_group_sums` ``complete``); calibrated as
+    ``evaluate --response auto`` does (at zero shear with 10 cases or more, else by the mean
+    response), m1, m2 and the isotropic part of a line, the difference with its jackknife
+    over the same galaxy groups, and the sets' weighted means. A galaxy measured under some
+    shears and not others enters the cases' means through a selection on the true shear,
+    which no metacal response sees."""
+
+    def stats(sums: dict, shears: np.ndarray, drop: int | None = None) -> np.ndarray:
+        if len(shears) >= 10:
+            cal = zero_shear_calibrated(sums, shears, drop)[0]
+        else:
+            cal = calibrated(sums, drop)[0]
+        m = [np.polyfit(shears[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)]
+        return np.array([*m, matrix_parts(shears, cal)[0]])
+
+    names = ("m1", "m2", "(m11 + m22) / 2")
+    rows: dict[tuple[str, int], list[tuple[float, float, float, float, float, float]]] = {}
+    print(
+        "| set | estimator | quantity (1e-3) | evaluate's rows | complete galaxies | difference |"
+    )
+    print("|---|---|---|---|---|---|")
+    for path in paths:
+        t, step = read_set(path)
+        for weighted in (True, False):
+            scheme = "weighted" if weighted else "unweighted"
+            both = [per_group_sums(t, step, weighted, complete=c) for c in (False, True)]
             values = [stats(sums, shears) for sums, shears in both]
             jacks = [
                 np.array([stats(sums, shears, d) for d in range(GROUPS)]) for sums, shears in both
@@ -464,6 +546,8 @@ if __name__ == "__main__":
         by_column(sys.argv[2], sys.argv[3:])
     elif len(sys.argv) > 2 and sys.argv[1] == "--failures":
         failures_check(sys.argv[2:])
+    elif len(sys.argv) > 2 and sys.argv[1] == "--complete":
+        complete_check(sys.argv[2:])
     elif len(sys.argv) == 4 and sys.argv[1] == "--paired":
         paired(sys.argv[2], sys.argv[3])
     elif len(sys.argv) > 4 and sys.argv[1] == "--swap":
