@@ -372,38 +372,35 @@ def paired(path_a: str, path_b: str) -> None:
             )
 
 
-def failures_check(paths: list[str]) -> None:
-    """Each set at zero shear two ways, on the same stamps: as ``evaluate`` takes its rows (every
-    version measured) and with the sheared versions' failures as a selection
-    (:func:`per_group_sums` ``failures``); m1, m2 (a line) and the isotropic part (cubic
-    terms fitted; with fewer than 10 cases, by the mean response and a line), the
-    difference with its jackknife over the same galaxy groups, and the sets' weighted
-    means."""
-
-    def stats(sums: dict, shears: np.ndarray, drop: int | None = None) -> np.ndarray:
-        if len(shears) < 10:  # too few cases for the response at zero shear (evaluate's auto)
-            cal = calibrated(sums, drop)[0]
-            m = [np.polyfit(shears[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)]
-            return np.array([*m, matrix_parts(shears, cal)[0]])
+def _line_stats(sums: dict, shears: np.ndarray, drop: int | None, cubic: bool) -> np.ndarray:
+    """m1, m2 (a line) and the isotropic part, calibrated as ``evaluate --response auto`` does
+    (at zero shear with 10 cases or more, the isotropic part then with the cubic terms if
+    ``cubic``; else by the mean response and a line)."""
+    if len(shears) < 10:
+        cal, cubic = calibrated(sums, drop)[0], False
+    else:
         cal = zero_shear_calibrated(sums, shears, drop)[0]
-        m = [np.polyfit(shears[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)]
-        return np.array([*m, matrix_parts(shears, cal, True)[0]])
+    m = [np.polyfit(shears[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)]
+    return np.array([*m, matrix_parts(shears, cal, cubic)[0]])
 
+
+def compare_rows(paths: list[str], labels: tuple[str, str], variants: list[dict], cubic: bool):
+    """Each set two ways on the same stamps (``variants``: the :func:`per_group_sums` keywords
+    of each), weighted and not: m1, m2 and the isotropic part (:func:`_line_stats`), the
+    difference with its jackknife over the same galaxy groups, and the sets' weighted means."""
     names = ("m1", "m2", "(m11 + m22) / 2")
     rows: dict[tuple[str, int], list[tuple[float, float, float, float, float, float]]] = {}
-    print(
-        "| set | estimator | quantity (1e-3) | every version measured | failures as a selection "
-        "| difference |"
-    )
+    print(f"| set | estimator | quantity (1e-3) | {labels[0]} | {labels[1]} | difference |")
     print("|---|---|---|---|---|---|")
     for path in paths:
         t, step = read_set(path)
         for weighted in (True, False):
             scheme = "weighted" if weighted else "unweighted"
-            both = [per_group_sums(t, step, weighted, failures) for failures in (False, True)]
-            values = [stats(sums, shears) for sums, shears in both]
+            both = [per_group_sums(t, step, weighted, **kw) for kw in variants]
+            values = [_line_stats(sums, shears, None, cubic) for sums, shears in both]
             jacks = [
-                np.array([stats(sums, shears, d) for d in range(GROUPS)]) for sums, shears in both
+                np.array([_line_stats(sums, shears, d, cubic) for d in range(GROUPS)])
+                for sums, shears in both
             ]
             errs = [jackknife_sigma(j) for j in jacks]
             diff = jackknife_sigma(jacks[1] - jacks[0])
@@ -425,60 +422,23 @@ def failures_check(paths: list[str]) -> None:
             mean, err, chi2 = chi2_about_mean(v[:, col], v[:, col + 1])
             cells.append(f"{1e3 * mean:+.2f} +- {1e3 * err:.2f} ({chi2:.1f})")
         print(f"| {len(paths)} sets | {scheme} | {names[k]} | {' | '.join(cells)} |")
+
+
+def failures_check(paths: list[str]) -> None:
+    """:func:`compare_rows`: as ``evaluate`` takes its rows (every version measured) against
+    the sheared versions' failures as a selection (:func:`per_group_sums` ``failures``); the
+    isotropic part with the cubic terms at zero shear."""
+    labels = ("every version measured", "failures as a selection")
+    compare_rows(paths, labels, [{"failures": False}, {"failures": True}], cubic=True)
 
 
 def complete_check(paths: list[str]) -> None:
-    """Each set two ways, on the same stamps: as ``evaluate`` takes its rows, and with only the
-    galaxies measured in every case (:func:`per_group_sums` ``complete``); calibrated as
-    ``evaluate --response auto`` does (at zero shear with 10 cases or more, else by the mean
-    response), m1, m2 and the isotropic part of a line, the difference with its jackknife
-    over the same galaxy groups, and the sets' weighted means. A galaxy measured under some
-    shears and not others enters the cases' means through a selection on the true shear,
-    which no metacal response sees."""
-
-    def stats(sums: dict, shears: np.ndarray, drop: int | None = None) -> np.ndarray:
-        if len(shears) >= 10:
-            cal = zero_shear_calibrated(sums, shears, drop)[0]
-        else:
-            cal = calibrated(sums, drop)[0]
-        m = [np.polyfit(shears[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)]
-        return np.array([*m, matrix_parts(shears, cal)[0]])
-
-    names = ("m1", "m2", "(m11 + m22) / 2")
-    rows: dict[tuple[str, int], list[tuple[float, float, float, float, float, float]]] = {}
-    print(
-        "| set | estimator | quantity (1e-3) | evaluate's rows | complete galaxies | difference |"
-    )
-    print("|---|---|---|---|---|---|")
-    for path in paths:
-        t, step = read_set(path)
-        for weighted in (True, False):
-            scheme = "weighted" if weighted else "unweighted"
-            both = [per_group_sums(t, step, weighted, complete=c) for c in (False, True)]
-            values = [stats(sums, shears) for sums, shears in both]
-            jacks = [
-                np.array([stats(sums, shears, d) for d in range(GROUPS)]) for sums, shears in both
-            ]
-            errs = [jackknife_sigma(j) for j in jacks]
-            diff = jackknife_sigma(jacks[1] - jacks[0])
-            for k, q in enumerate(names):
-                a, b = values[0][k], values[1][k]
-                rows.setdefault((scheme, k), []).append(
-                    (a, errs[0][k], b, errs[1][k], b - a, diff[k])
-                )
-                print(
-                    f"| {path.rsplit('/', 1)[-1]} | {scheme} | {q} | {1e3 * a:+.2f} +- "
-                    f"{1e3 * errs[0][k]:.2f} | {1e3 * b:+.2f} +- {1e3 * errs[1][k]:.2f} | "
-                    f"{1e3 * (b - a):+.2f} +- {1e3 * diff[k]:.2f} |"
-                )
-    print("| all sets: weighted mean, chi^2 | | | | | |")
-    for (scheme, k), vals in rows.items():
-        v = np.array(vals)
-        cells = []
-        for col in (0, 2, 4):
-            mean, err, chi2 = chi2_about_mean(v[:, col], v[:, col + 1])
-            cells.append(f"{1e3 * mean:+.2f} +- {1e3 * err:.2f} ({chi2:.1f})")
-        print(f"| {len(paths)} sets | {scheme} | {names[k]} | {' | '.join(cells)} |")
+    """:func:`compare_rows`: as ``evaluate`` takes its rows against only the galaxies measured
+    in every case (:func:`per_group_sums` ``complete``), a line throughout. A galaxy measured
+    under some shears and not others enters the cases' means through a selection on the true
+    shear, which no metacal response sees."""
+    labels = ("evaluate's rows", "complete galaxies")
+    compare_rows(paths, labels, [{"complete": False}, {"complete": True}], cubic=False)
 
 
 def by_column(column: str, paths: list[str], bins: int = 4) -> None:
