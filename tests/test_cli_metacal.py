@@ -726,3 +726,31 @@ def test_evaluate_response_at_zero_shear_needs_a_metacal_set_of_10_cases(measure
         assert result.exit_code == 1, result.stderr
         lines = result.stderr.strip().splitlines()
         assert len(lines) == 1 and message in lines[0] and "--response" in lines[0], lines
+
+
+def test_evaluate_failures_as_a_selection(measured, tmp_path):
+    """--failures selection: the response of the versions' means (the table says so, the JSON
+    records it); on a plain catalog, or with --great3-truth, one error line."""
+    js = tmp_path / "sel.json"
+    result = _runner().invoke(
+        megalut,
+        ["evaluate", str(measured / "s_mc5.fits"), "--failures", "selection", "--json", str(js)],
+        env=ENV,
+    )
+    assert result.exit_code == 0, (result.output, result.stderr)
+    assert "each version's failures a selection" in result.stdout
+    mc = json.loads(js.read_text())["metacal"]
+    assert mc["failures"] == "selection" and mc["selection_response"]["unweighted"] is None
+    assert np.all(np.isfinite(np.array(mc["response"]["unweighted"], dtype=float)))
+    result = _runner().invoke(
+        megalut,
+        ["evaluate", str(measured / "s_plain.fits"), "--failures", "selection", "-q"],
+        env=ENV,
+    )
+    assert result.exit_code == 1, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "metacal catalog" in lines[0] and "--failures" in lines[0], lines
+    bad = _runner().invoke(
+        megalut, ["evaluate", str(measured / "s_mc5.fits"), "--failures", "drop"], env=ENV
+    )
+    assert bad.exit_code == 2

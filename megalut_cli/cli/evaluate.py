@@ -68,6 +68,7 @@ EXIT_OUT_OF_TOLERANCE = 3
 @schema_option(EVALUATE_CLI["errors"], show_default=True)
 @schema_option(EVALUATE_CLI["bootstrap"], show_default=True)
 @schema_option(EVALUATE_CLI["response"], show_default=True)
+@schema_option(EVALUATE_CLI["failures"], show_default=True)
 @seed_option(help="Seed of the bootstrap resampling.")
 @overwrite_option
 def command(
@@ -84,6 +85,7 @@ def command(
     errors: str,
     bootstrap: int,
     response: str,
+    failures: str,
     twin_path: str | None,
     seed: int,
     overwrite: bool,
@@ -187,6 +189,7 @@ def command(
                     ("--fail-above", fail_above),
                     ("--errors", errors != "auto"),
                     ("--response", response != "auto"),
+                    ("--failures", failures != "exclude"),
                 )
                 if v
             ],
@@ -213,6 +216,7 @@ def command(
                     ("--plot", plot_path),
                     ("--errors fit", errors == "fit"),
                     ("--response", response != "auto"),
+                    ("--failures", failures != "exclude"),
                 )
                 if v
             ],
@@ -227,6 +231,8 @@ def command(
             )
         if response != "auto":
             raise click.UsageError("--response does not apply to --great3-truth")
+        if failures != "exclude":
+            raise click.UsageError("--failures does not apply to --great3-truth")
         result = evaluate_branch(
             shears,
             great3_truth,
@@ -250,6 +256,7 @@ def command(
             seed=seed,
             names=flag_names(),
             response=response,
+            failures=failures,
         )
     if from_stdin:
         result["input"] = "stdin"

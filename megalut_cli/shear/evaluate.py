@@ -73,6 +73,7 @@ from megalut_cli.shear.bootstrap import (
 from megalut_cli.shear.conditional import assign_bins, equal_population_edges
 from megalut_cli.shear.options import (
     ERROR_CHOICES,
+    FAILURES_CHOICES,
     JSON_FORMAT,
     JSON_FORMAT_VERSION,
     N_BOOTSTRAP,
@@ -151,12 +152,18 @@ class _Plan:
     names: dict[str, str] = field(default_factory=dict)  # how messages name the arguments
     metacal: float | None = None  # the metacal step: calibrate pre_*_noshear by the response
     response: str = "auto"  # --response: "auto", "mean" or "zero-shear"
+    failures: str = "exclude"  # --failures: "exclude" or "selection"
     crn: bool = False  # a common-random-number set (header CRN = T)
     zero_shear: bool = False  # decided from the cases: calibrate by the response at zero shear
 
     @property
     def schemes(self) -> tuple[str, ...]:
         return SCHEMES if self.weighted else SCHEMES[:1]
+
+    @property
+    def failures_select(self) -> bool:
+        """Whether a metacal evaluation counts each version's failures as a selection."""
+        return self.metacal is not None and self.failures == "selection"
 
     @property
     def binned_selection(self) -> bool:
@@ -204,6 +211,7 @@ def _make_plan(
     metacal_step: float | None = None,
     response: str = "auto",
     crn: bool = False,
+    failures: str = "exclude",
 ) -> _Plan:
     given = dict(names or {})
     have = set(colnames)
@@ -212,6 +220,16 @@ def _make_plan(
         raise ConfigError(
             f"{given.get('response', 'response')}: unknown value {response!r} "
             f"(expected one of {', '.join(RESPONSE_CHOICES)})"
+        )
+    if failures not in FAILURES_CHOICES:
+        raise ConfigError(
+            f"{given.get('failures', 'failures')}: unknown value {failures!r} "
+            f"(expected one of {', '.join(FAILURES_CHOICES)})"
+        )
+    if failures == "selection" and metacal is None:
+        raise InputError(
+            f"{source}: {given.get('failures', 'failures')} selection applies to a metacal "
+            "catalog (columns mcal_r11 .. mcal_r22 from 'megalut predict' on metacal features)"
         )
     if response == RESPONSE_ZERO_SHEAR and metacal is None:
         raise InputError(
@@ -269,11 +287,21 @@ def _make_plan(
         names=given,
         metacal=metacal,
         response=response,
+        failures=failures,
         crn=crn,
     )
     cols = [*TRUTH_COLUMNS, *(ESTIMATE_COLUMNS if metacal is None else ())]
     if metacal is not None:
         cols += [*RESPONSE_COLUMNS, *(f"{c}_noshear" for c in ESTIMATE_COLUMNS), "flags_noshear"]
+        if failures == "selection":
+            per_version = [f"{c}_{k}" for k in SHEARED_TYPES for c in ("flags", *ESTIMATE_COLUMNS)]
+            missing = [c for c in per_version if c not in have]
+            if missing:
+                raise InputError(
+                    f"{source}: {given.get('failures', 'failures')} selection needs each "
+                    f"version's flags and estimates; missing: {', '.join(missing)}"
+                )
+            cols += per_version
         if weighted:
             cols += [f"{c}_{kind}" for c in WEIGHT_COLUMNS for kind in ("noshear", *SHEARED_TYPES)]
         used = list(_expr.columns_used(select)) if select is not None else []
@@ -339,6 +367,8 @@ class _Rows:
     sheared_weight: dict[str, dict[tuple[int, str], np.ndarray]] | None = None
     pre_noshear: dict[int, np.ndarray] | None = None
     step: float | None = None
+    # failures as a selection: the sheared versions' own estimates (component i, type)
+    version_pre: dict[tuple[int, str], np.ndarray] | None = None
 
 
 def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
@@ -365,7 +395,7 @@ def _rows(chunk: Mapping[str, np.ndarray], plan: _Plan) -> _Rows:
         t = np.asarray(chunk[f"tru_{comp}"], dtype=float)
         p = np.asarray(chunk[f"pre_{comp}{suffix}"], dtype=float)
         ok = base & np.isfinite(t) & np.isfinite(p)
-        if plan.metacal is not None:  # a row needs its response too
+        if plan.metacal is not None and not plan.failures_select:  # its response too
             ok &= np.isfinite(np.asarray(chunk[f"mcal_r{comp[1]}1"], dtype=float))
             ok &= np.isfinite(np.asarray(chunk[f"mcal_r{comp[1]}2"], dtype=float))
         valid[comp] = ok
@@ -416,35 +446,60 @@ def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> 
     rows.response = {}
     for i in (1, 2):
         ok = rows.valid[f"g{i}"]
+        if plan.failures_select:  # the response of the versions' means instead (below)
+            ok = np.zeros_like(ok)
         for j in (1, 2):
             rows.response[(i, j)] = np.where(
                 ok, np.asarray(chunk[f"mcal_r{i}{j}"], dtype=float), 0.0
             )
-    if plan.select is None and not plan.weighted and not plan.binned_selection:
+    if (
+        plan.select is None
+        and not plan.weighted
+        and not plan.binned_selection
+        and not plan.failures_select
+    ):
         return
     # The rows usable whatever the selection: flags_noshear == 0 and finite estimates and
-    # responses (which needs every sheared version measured): failures are not a selection.
-    usable = np.asarray(chunk["flags_noshear"]) == 0
+    # responses (which needs every sheared version measured). With failures as a selection,
+    # each version's mean is over its own measured rows, whatever the noshear version did.
+    usable = (
+        np.ones(n, dtype=bool) if plan.failures_select else np.asarray(chunk["flags_noshear"]) == 0
+    )
     if plan.selected_cases is not None:
         usable &= np.isin(rows.case, plan.selected_cases)
+    if plan.failures_select:
+        rows.version_pre = {}
     for i in (1, 2):
-        usable &= np.isfinite(rows.pre_noshear[i]) & np.isfinite(
-            np.asarray(chunk[f"tru_g{i}"], dtype=float)
-        )
+        usable &= np.isfinite(np.asarray(chunk[f"tru_g{i}"], dtype=float))
+        if plan.failures_select:
+            for kind in SHEARED_TYPES:
+                rows.version_pre[(i, kind)] = np.asarray(chunk[f"pre_g{i}_{kind}"], dtype=float)
+            continue
+        usable &= np.isfinite(rows.pre_noshear[i])
         for j in (1, 2):
             usable &= np.isfinite(np.asarray(chunk[f"mcal_r{i}{j}"], dtype=float))
     rows.sheared_weight = {}
     for kind in SHEARED_TYPES:
         sel = usable.copy()
+        if plan.failures_select:
+            sel &= np.asarray(chunk[f"flags_{kind}"]) == 0
         if plan.select is not None:
             sel &= _expr.evaluate_rows(plan.select, _version_view(chunk, plan, kind), n)
         for s in plan.schemes:
-            if s == "unweighted" and plan.select is None and not plan.binned_selection:
+            if s == "unweighted" and not _unweighted_selection(plan):
                 continue
             for i in (1, 2):
                 w = np.asarray(chunk[f"pre_g{i}_w_{kind}"], dtype=float) if s == "weighted" else 1.0
                 ok = sel & np.isfinite(w) & (w > 0)
+                if plan.failures_select:  # the version's own estimate is averaged
+                    ok &= np.isfinite(rows.version_pre[(i, kind)])
                 rows.sheared_weight.setdefault(s, {})[(i, kind)] = np.where(ok, w, 0.0)
+
+
+def _unweighted_selection(plan: _Plan, binned: bool = True) -> bool:
+    """Whether the unweighted scheme has a selection whose response the sheared versions give:
+    ``select``, the failures (``failures_select``) or, for ``binned`` sums, ``--by`` bins."""
+    return plan.select is not None or plan.failures_select or (binned and plan.binned_selection)
 
 
 def _case_group_key(case: np.ndarray, rea: np.ndarray, group_size: int, source: str) -> np.ndarray:
@@ -552,10 +607,10 @@ def _sum_names(
         names.append(f"{s}:n:both")
         if plan is not None and plan.metacal is not None:
             names += [f"{s}:wR:{i}{j}" for i in (1, 2) for j in (1, 2)]
-            if plan.select is not None or s == "weighted" or (binned and plan.binned_selection):
+            if s == "weighted" or _unweighted_selection(plan, binned):
                 names += [
                     f"{s}:{q}:{i}:{kind}"
-                    for q in ("sw", "swpre")
+                    for q in (("vw", "vwpre") if plan.failures_select else ("sw", "swpre"))
                     for i in (1, 2)
                     for kind in SHEARED_TYPES
                 ]
@@ -569,7 +624,15 @@ def _row_values(rows: _Rows, schemes: Sequence[str]) -> dict[str, np.ndarray]:
         sheared = (rows.sheared_weight or {}).get(s)
         vals.update(
             row_values(
-                s, weight, rows.tru, rows.pre, rows.response, sheared, rows.pre_noshear, rows.step
+                s,
+                weight,
+                rows.tru,
+                rows.pre,
+                rows.response,
+                sheared,
+                rows.pre_noshear,
+                rows.step,
+                rows.version_pre,
             )
         )
     return vals
@@ -624,6 +687,7 @@ def evaluate_catalog(
     seed: int = 1,
     names: Mapping[str, str] | None = None,
     response: str = "auto",
+    failures: str = "exclude",
 ) -> dict[str, Any]:
     """Evaluate the shear biases of the catalog at ``path``; returns a JSON-ready dict.
 
@@ -635,9 +699,9 @@ def evaluate_catalog(
     header says ``CRN = T``, else from the fit), ``"fit"`` or ``"bootstrap"``; the galaxy
     groups follow the header's ``SNC`` (pairs: 2 realizations). ``response`` (metacal
     catalogs): ``"auto"`` (at zero shear when the header says ``CRN = T``), ``"mean"`` or
-    ``"zero-shear"``, see :func:`evaluate_columns`. ``names``: how messages name the
-    arguments (``by``, ``select``, ``select_cases``, ``errors``, ``response``), e.g. as
-    command-line flags or pipeline keys.
+    ``"zero-shear"``, and ``failures``, see :func:`evaluate_columns`. ``names``: how
+    messages name the arguments (``by``, ``select``, ``select_cases``, ``errors``,
+    ``response``, ``failures``), e.g. as command-line flags or pipeline keys.
     """
     _, colnames, header = catalog_info(path)
     plan = _make_plan(
@@ -651,6 +715,7 @@ def evaluate_catalog(
         header_step(header),
         response,
         header.get("CRN") is True,
+        failures,
     )
     _prepare_cases(plan, lambda cols: _read_columns(path, cols))
     result = _evaluate(lambda: _iter_path(path, plan, chunk_rows), plan, bins, sigma2_min)
@@ -763,6 +828,7 @@ def evaluate_columns(
     metacal_step: float | None = None,
     response: str = "auto",
     crn: bool = False,
+    failures: str = "exclude",
 ) -> dict[str, Any]:
     """Evaluate in-memory columns (a dict of arrays or an astropy Table), as
     :func:`evaluate_catalog`.
@@ -782,8 +848,11 @@ def evaluate_columns(
     ``"zero-shear"`` the response at zero shear, the intercept of a fit of each case's own
     response against its true shear (:func:`megalut_cli.shear.response.calibration_response`;
     at least 10 cases), ``"auto"``: zero-shear for a common-random-number set (``crn``) with
-    enough cases, else the mean. ``"metacal"`` then holds the responses and which one
-    calibrated.
+    enough cases, else the mean. ``failures``: ``"exclude"`` uses the rows with every
+    version measured; ``"selection"`` every row whose noshear version is measured, the mean
+    response over those that have one, and each sheared version's failures as a selection
+    whose response is added (a row counts on a version when that version is measured).
+    ``"metacal"`` then holds the responses, which one calibrated and ``"failures"``.
     """
     colnames = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
     plan = _make_plan(
@@ -797,6 +866,7 @@ def evaluate_columns(
         metacal_step,
         response,
         crn,
+        failures,
     )
     data = {c: np.asarray(columns[c]) for c in plan.columns}
     _prepare_cases(plan, lambda cols: {c: np.asarray(columns[c]) for c in cols})
@@ -988,6 +1058,7 @@ def _evaluate(
     if plan.metacal is not None:
         result["metacal"] = {
             "step": plan.metacal,
+            "failures": plan.failures,
             "estimate": [f"{c}_noshear" for c in ESTIMATE_COLUMNS],
             **_metacal_summary(sums, schemes, shears if plan.zero_shear else None),
         }

@@ -15,8 +15,8 @@ from megalut_cli.shear.bias import GREAT3_SIGMA2_MIN_GROUND
 MAX_BINS = 1000
 #: Format name of the JSON written by ``megalut evaluate --json``.
 JSON_FORMAT = "megalut.evaluation"
-JSON_FORMAT_VERSION = "1.4"  # 1.1: "provenance"; 1.2: "error", "bootstrap"; 1.3: shear term;
-# 1.4: metacal "response_at", "calibration_response"
+JSON_FORMAT_VERSION = "1.5"  # 1.1: "provenance"; 1.2: "error", "bootstrap"; 1.3: shear term;
+# 1.4: metacal "response_at", "calibration_response"; 1.5: metacal "failures"
 
 EVALUATE_OPTIONS: tuple[Option, ...] = (
     Option(
@@ -52,6 +52,8 @@ EVALUATE = {o.name: o for o in EVALUATE_OPTIONS}
 ERROR_CHOICES = ("auto", "fit", "bootstrap")
 #: The response that calibrates a metacal set's cases (``--response``).
 RESPONSE_CHOICES = ("auto", "mean", "zero-shear")
+#: How a metacal evaluation takes the rows measured on some versions only (``--failures``).
+FAILURES_CHOICES = ("exclude", "selection")
 #: Bootstrap resamples of ``megalut evaluate`` by default.
 N_BOOTSTRAP = 200
 #: The number of bootstrap resamples, of ``evaluate`` and ``calibrate`` alike.
@@ -101,6 +103,16 @@ EVALUATE_CLI_OPTIONS: tuple[Option, ...] = (
         "shears' spin-4 moments into m; needs 10 cases), 'auto': zero-shear for "
         "common-random-number sets (header CRN = T) with 10 cases or more, else mean.",
         choices=RESPONSE_CHOICES,
+    ),
+    Option(
+        "failures",
+        "choice",
+        FAILURES_CHOICES[0],
+        "Metacal catalogs: the rows whose noshear version is measured and a sheared one is "
+        "not: 'exclude' them (every version measured), or count each version's failures as "
+        "a selection, with its selection response ('selection': removes the bias of failures "
+        "that depend on the shear; docs/evaluate.md).",
+        choices=FAILURES_CHOICES,
     ),
 )
 EVALUATE_CLI = {o.name: o for o in EVALUATE_CLI_OPTIONS}

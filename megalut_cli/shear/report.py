@@ -65,14 +65,20 @@ def metacal_lines(mcal: Mapping[str, Any] | None) -> list[str]:
     if not mcal:
         return []
     zero = mcal.get("response_at") == "zero-shear"
-    how = "R(0) + R_sel(0), at zero shear" if zero else "<R> + R_sel"
+    means = mcal.get("failures") == "selection"  # the response of the versions' means
+    how = (
+        ("R(0) of the versions' means, at zero shear" if zero else "R of the versions' means")
+        if means
+        else ("R(0) + R_sel(0), at zero shear" if zero else "<R> + R_sel")
+    )
     lines = [
         f"metacal: {', '.join(mcal['estimate'])} calibrated by ({how})^-1, step {mcal['step']:g}"
+        + ("; each version's failures a selection" if means else "")
     ]
     for scheme, r in mcal["response"].items():
         sel = mcal["selection_response"].get(scheme)
         lines.append(
-            f"  {scheme}: <R> = {_matrix(r)}"
+            f"  {scheme}: {'R' if means else '<R>'} = {_matrix(r)}"
             + (f", R_sel = {_matrix(sel)}" if sel is not None else "")
             + (f"; at zero shear {_matrix(mcal['calibration_response'][scheme])}" if zero else "")
         )

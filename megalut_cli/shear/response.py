@@ -36,11 +36,15 @@ def row_values(
     sheared: Mapping[tuple[int, str], np.ndarray] | None = None,
     pre_noshear: Mapping[int, np.ndarray] | None = None,
     step: float | None = None,
+    version_pre: Mapping[tuple[int, str], np.ndarray] | None = None,
 ) -> dict[str, np.ndarray]:
     """Per-row values of the sums of ``scheme``: ``weight``, ``tru`` and ``pre`` per
     component (``g1``, ``g2``; weight, truth and estimate 0 on unused rows), the metacal
     ``response[(i, j)]`` (0 on unused rows) and the weights ``sheared[(i, kind)]`` of the rows
-    under each sheared version's selection, with the noshear estimates and the ``step``."""
+    under each sheared version's selection, with the noshear estimates and the ``step``.
+    With ``version_pre[(i, kind)]``, each sheared version's own estimates, the sums are
+    those of the versions' means instead (``vw``, ``vwpre``): the response of the means,
+    selection included, as metadetection takes it."""
     vals: dict[str, np.ndarray] = {}
     for comp, w in weight.items():
         vals[f"{scheme}:w:{comp}"] = w
@@ -51,7 +55,13 @@ def row_values(
         vals[f"{scheme}:n:both"] = ((weight["g1"] > 0) & (weight["g2"] > 0)).astype(float)
     for (i, j), r in (response or {}).items():
         vals[f"{scheme}:wR:{i}{j}"] = weight[f"g{i}"] * r
-    if sheared and pre_noshear is not None and step is not None:
+    if sheared and version_pre is not None and step is not None:
+        for (i, kind), w in sheared.items():
+            vals[f"{scheme}:vw:{i}:{kind}"] = w
+            vals[f"{scheme}:vwpre:{i}:{kind}"] = (
+                w * np.nan_to_num(version_pre[(i, kind)]) / (2.0 * step)
+            )
+    elif sheared and pre_noshear is not None and step is not None:
         for (i, kind), w in sheared.items():
             vals[f"{scheme}:sw:{i}:{kind}"] = w
             # divided by 2 step here, so that a ratio of sums is the response term
@@ -64,13 +74,25 @@ def metacal_response(
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """The mean metacal response ``R[i][j]`` of the rows behind ``sums`` (all cases: axis 0
     summed; with ``per_case``, each case's own), and the selection response (None without a
-    selection or weights), each ``(2, 2, ...)``."""
+    selection or weights), each ``(2, 2, ...)``. With the versions' means in ``sums``
+    (:func:`row_values` ``version_pre``), the response of the means, selection included,
+    and None: ``(<g_i>_jp - <g_i>_jm) / (2 step)``, each mean over its own version's rows."""
 
     def ratio(num: str, den: str) -> np.ndarray:
         a, b = sums[num], sums[den]
         return a / b if per_case else a.sum(axis=0) / b.sum(axis=0)
 
     with np.errstate(invalid="ignore", divide="ignore"):
+        if f"{scheme}:vw:1:1p" in sums:
+
+            def version_mean(i: int, kind: str) -> np.ndarray:
+                return ratio(f"{scheme}:vwpre:{i}:{kind}", f"{scheme}:vw:{i}:{kind}")
+
+            means = [
+                [version_mean(i, f"{j}p") - version_mean(i, f"{j}m") for j in (1, 2)]
+                for i in (1, 2)
+            ]
+            return np.array(means), None
         mean = np.array(
             [[ratio(f"{scheme}:wR:{i}{j}", f"{scheme}:w:g{i}") for j in (1, 2)] for i in (1, 2)]
         )
