@@ -950,8 +950,11 @@ def _sheared_bins(
     if not plan.binned_selection or plan.by_kind.get(c) == "case":
         return None
     bins = {kind: assign_bins(_by_values(chunk, plan, c, n, kind), edges) for kind in SHEARED_TYPES}
+    version_sums = (":sw:", ":swpre:", ":vw:", ":vwpre:")  # each version's selection or mean
     return {
-        name: bins[name.rsplit(":", 1)[1]] for name in names if ":sw:" in name or ":swpre:" in name
+        name: bins[name.rsplit(":", 1)[1]]
+        for name in names
+        if any(part in name for part in version_sums)
     }
 
 
