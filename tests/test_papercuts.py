@@ -18,6 +18,7 @@ from pipeline_configs import TINY_PIPELINE, write_pipeline
 from sim_configs import write as write_sim_config
 
 from megalut_cli.catalog import write_catalog
+from megalut_cli.shear.options import JSON_FORMAT_VERSION
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -306,7 +307,8 @@ def test_info_reads_an_evaluation(runner, cli, tmp_path) -> None:
     assert result.exit_code == 0, error_text(result)
     lines = result.stdout.splitlines()
     assert (
-        lines[0] == f"{ev}: megalut.evaluation 1.4, the biases of {shears} (50 of 50 rows usable)"
+        lines[0] == f"{ev}: megalut.evaluation {JSON_FORMAT_VERSION}, the biases of {shears} "
+        "(50 of 50 rows usable)"
     )
     assert any(
         re.match(r"  weighted   g2    m = [-+]\d\.\d\de[-+]\d\d ± \d\.\de[-+]\d\d .* 10 cases$", x)
