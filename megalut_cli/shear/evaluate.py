@@ -445,12 +445,12 @@ def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> 
     rows.pre_noshear = {i: np.asarray(chunk[f"pre_g{i}_noshear"], dtype=float) for i in (1, 2)}
     rows.response = {}
     for i in (1, 2):
-        ok = rows.valid[f"g{i}"]
-        if plan.failures_select:  # the response of the versions' means instead (below)
-            ok = np.zeros_like(ok)
         for j in (1, 2):
+            if plan.failures_select:  # the response of the versions' means instead (below)
+                rows.response[(i, j)] = np.zeros(n)
+                continue
             rows.response[(i, j)] = np.where(
-                ok, np.asarray(chunk[f"mcal_r{i}{j}"], dtype=float), 0.0
+                rows.valid[f"g{i}"], np.asarray(chunk[f"mcal_r{i}{j}"], dtype=float), 0.0
             )
     if (
         plan.select is None
@@ -467,17 +467,18 @@ def _metacal_rows(rows: _Rows, chunk: Mapping[str, np.ndarray], plan: _Plan) -> 
     )
     if plan.selected_cases is not None:
         usable &= np.isin(rows.case, plan.selected_cases)
-    if plan.failures_select:
-        rows.version_pre = {}
     for i in (1, 2):
         usable &= np.isfinite(np.asarray(chunk[f"tru_g{i}"], dtype=float))
-        if plan.failures_select:
-            for kind in SHEARED_TYPES:
-                rows.version_pre[(i, kind)] = np.asarray(chunk[f"pre_g{i}_{kind}"], dtype=float)
-            continue
-        usable &= np.isfinite(rows.pre_noshear[i])
-        for j in (1, 2):
-            usable &= np.isfinite(np.asarray(chunk[f"mcal_r{i}{j}"], dtype=float))
+        if not plan.failures_select:
+            usable &= np.isfinite(rows.pre_noshear[i])
+            for j in (1, 2):
+                usable &= np.isfinite(np.asarray(chunk[f"mcal_r{i}{j}"], dtype=float))
+    if plan.failures_select:
+        rows.version_pre = {
+            (i, kind): np.asarray(chunk[f"pre_g{i}_{kind}"], dtype=float)
+            for i in (1, 2)
+            for kind in SHEARED_TYPES
+        }
     rows.sheared_weight = {}
     for kind in SHEARED_TYPES:
         sel = usable.copy()
@@ -849,9 +850,9 @@ def evaluate_columns(
     response against its true shear (:func:`megalut_cli.shear.response.calibration_response`;
     at least 10 cases), ``"auto"``: zero-shear for a common-random-number set (``crn``) with
     enough cases, else the mean. ``failures``: ``"exclude"`` uses the rows with every
-    version measured; ``"selection"`` every row whose noshear version is measured, the mean
-    response over those that have one, and each sheared version's failures as a selection
-    whose response is added (a row counts on a version when that version is measured).
+    version measured; ``"selection"`` every row whose noshear version is measured, and the
+    response of the versions' means instead, each sheared version's own estimates over its
+    own measured rows (selection and failures included, as metadetection takes it).
     ``"metacal"`` then holds the responses, which one calibrated and ``"failures"``.
     """
     colnames = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
@@ -950,11 +951,9 @@ def _sheared_bins(
     if not plan.binned_selection or plan.by_kind.get(c) == "case":
         return None
     bins = {kind: assign_bins(_by_values(chunk, plan, c, n, kind), edges) for kind in SHEARED_TYPES}
-    version_sums = (":sw:", ":swpre:", ":vw:", ":vwpre:")  # each version's selection or mean
+    per_version = {"sw", "swpre", "vw", "vwpre"}  # each version's selection or mean
     return {
-        name: bins[name.rsplit(":", 1)[1]]
-        for name in names
-        if any(part in name for part in version_sums)
+        name: bins[name.rsplit(":", 1)[1]] for name in names if name.split(":")[1] in per_version
     }
 
 

@@ -373,11 +373,21 @@ def sample_level(
     rows = None
     if any(isinstance(d, CatalogColumn) and d.joint for d in dists.values()):
         rows = rng.integers(0, n_catalog_rows, n)
-    where = np.arange(n) if positions is None else np.asarray(positions)
-    return {
-        name: d.at(where) if isinstance(d, InOrder) else d.sample(rng, n, rows)
-        for name, d in dists.items()
-    }
+    return {name: draw(d, rng, n, rows, positions) for name, d in dists.items()}
+
+
+def draw(
+    d: Distribution,
+    rng: np.random.Generator,
+    n: int,
+    rows: np.ndarray | None = None,
+    positions: np.ndarray | None = None,
+) -> np.ndarray:
+    """``n`` values of ``d``: a ``sequence`` follows ``positions`` (the draws' places in the
+    run, default ``0 .. n-1``), the others draw from ``rng`` (``rows``: joint catalog rows)."""
+    if isinstance(d, InOrder):
+        return d.at(np.arange(n) if positions is None else np.asarray(positions))
+    return d.sample(rng, n, rows)
 
 
 def short_text(value: Any) -> str:

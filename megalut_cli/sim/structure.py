@@ -35,7 +35,7 @@ import numpy as np
 
 from megalut_cli.seeding import STREAM_COMMON, STREAM_SIMULATE, rng_for
 from megalut_cli.sim.config import SimConfig
-from megalut_cli.sim.distributions import Distribution, InOrder, sample_level
+from megalut_cli.sim.distributions import Distribution, draw, sample_level
 from megalut_cli.sim.intrinsic import ellipticity_components, galaxy_fluxes, mag_from_flux
 from megalut_cli.sim.noise import StampNoise, make_noise
 from megalut_cli.sim.profiles import GALAXY_PROFILES
@@ -150,10 +150,8 @@ def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
     # Position angle: per group (with SNC rotations within the group) or per case.
     if s.varies("angle"):
         theta0 = gal.angle.sample(rng_rea, ng)
-    elif isinstance(gal.angle, InOrder):  # a sequence of angles: case k takes the k-th
-        theta0 = np.repeat(gal.angle.at(np.array([case])), ng)
     else:
-        theta0 = np.repeat(gal.angle.sample(rng_case, 1), ng)
+        theta0 = np.repeat(draw(gal.angle, rng_case, 1, positions=np.array([case])), ng)
     theta = ring_angles(theta0, n, gs)
     ell = galaxy_truth.ellipticity
     e1, e2 = ellipticity_components(ell, theta)
