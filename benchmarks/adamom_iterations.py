@@ -6,9 +6,11 @@ fiducial 64-px stamps, noise sigma 1), measured by ``measure.adamom.adaptive_mom
 (GalSim's ``FindAdaptiveMom``, compiled) on one core: CPU per stamp (best of 3), the
 iterations per stamp, the share of all iterations spent on stamps that take more than 100,
 and what a lower iteration cap than GalSim's 400 (``HSMParams(max_mom2_iter=...)``) would
-save and cost (stamps whose status changes, failures). Run::
+save and cost (stamps whose status changes, failures); then, at GalSim's cap, the damped
+retry of the failed iterations (``adaptive_moments(..., retry_step=...)``, ``measure
+--moments-retry``): the failures it leaves, by status, and what it costs. Run::
 
-    PYTHONPATH=. python benchmarks/adamom_iterations.py [--caps 400 200 100 60]
+    PYTHONPATH=. python benchmarks/adamom_iterations.py [--caps 400 200 100 60] [--retry 0.5]
 """
 
 from __future__ import annotations
@@ -27,16 +29,18 @@ import galsim  # noqa: E402
 import numpy as np  # noqa: E402
 
 from benchmarks.bench_metacal import fiducial_inputs  # noqa: E402
-from megalut_cli.measure.adamom import adaptive_moments  # noqa: E402
+from megalut_cli.measure.adamom import STATUS_NAMES, adaptive_moments  # noqa: E402
 from megalut_cli.measure.adamom_nb import TOO_MANY_ITERATIONS  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--caps", type=int, nargs="+", default=[400, 200, 100, 60])
+    ap.add_argument("--retry", type=float, nargs="*", default=[0.5, 0.7, 0.3])
+    ap.add_argument("--n-realizations", type=int, default=300, help="per case, 10 cases")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        stamps = fiducial_inputs(Path(tmp), 10, 300)[0]
+        stamps = fiducial_inputs(Path(tmp), 10, args.n_realizations)[0]
     adaptive_moments(stamps[:8])  # compile / load the cache
     reference = None
     for cap in args.caps:
@@ -58,6 +62,24 @@ def main() -> None:
             f"({capped:.2f} % at the cap); status changed from "
             f"cap {args.caps[0]}: {int((result.status != reference.status).sum())} of "
             f"{len(stamps)}; successes' most iterations {it[ok].max()}"
+        )
+    plain = adaptive_moments(stamps)
+    for step in args.retry:
+        spent = []
+        for _ in range(3):
+            t0 = time.process_time()
+            result = adaptive_moments(stamps, retry_step=step)
+            spent.append(time.process_time() - t0)
+        failed, before = result.status != 0, plain.status != 0
+        kinds = ", ".join(
+            f"{STATUS_NAMES[k]} {int((result.status == k).sum())}"
+            for k in np.unique(result.status[failed])
+        )
+        print(
+            f"retry {step}: {1e6 * min(spent) / len(stamps):.1f} us per stamp, iterations mean "
+            f"{result.n_iter.mean():.1f}; failures {int(failed.sum())} of {len(stamps)} "
+            f"({100 * failed.mean():.2f} %; {kinds}) against {int(before.sum())}: "
+            f"{int((before & ~failed).sum())} settled by the retry"
         )
 
 

@@ -19,13 +19,14 @@ from megalut_cli.provenance import sha256_file
 log = logging.getLogger(__name__)
 
 #: Header cards that must agree between the catalogs: the format, the model, the metacal
-#: step and target PSF, the measuring engine and the frame.
+#: step and target PSF, the measuring engine and its retry, and the frame.
 MUST_AGREE: tuple[str, ...] = (
     "MLFORMAT",
     "MODELSHA",
     "MCALSTEP",
     "MCALTARG",
     "MENGINE",
+    "HSMRETRY",
     "SHFRAME",
 )
 #: Formats that can be concatenated (a calibrated catalog's responses belong to its whole

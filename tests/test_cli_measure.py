@@ -271,3 +271,42 @@ def test_library_messages_name_arguments_the_command_line_its_flags(data, runner
         "give --stamp-size or a STAMPSZ",
     )
     assert not (data / "out.fits").exists()
+
+
+def test_moments_retry(runner, cli, tmp_path):
+    """``--moments-retry``: fewer HSM failures, every other row as without it, the card."""
+    from test_measure_adamom import fiducial_stamps
+
+    from megalut_cli import flags as fl
+
+    stamps = fiducial_stamps(400, size=S, seed=21).astype(np.float32)
+    image = stamps.reshape(20, 20, S, S).transpose(0, 2, 1, 3).reshape(20 * S, 20 * S)
+    write_image(tmp_path / "s.fits", image, fmt="megalut.stamps", cards={"STAMPSZ": S})
+    out = {}
+    for name, extra in (("plain", []), ("retry", ["--moments-retry", "0.5"])):
+        args = ["measure", str(tmp_path / "s.fits"), "-o", str(tmp_path / f"{name}.fits")]
+        result = runner.invoke(cli, args + extra)
+        assert result.exit_code == 0, result.output
+        out[name] = read_catalog(tmp_path / f"{name}.fits")
+    plain, retry = out["plain"], out["retry"]
+    failed = (plain["flags"] & fl.HSM_FAILED) != 0
+    assert failed.sum() >= 4
+    assert ((retry["flags"] & fl.HSM_FAILED) != 0).sum() < failed.sum()
+    assert (retry["flags"][~failed] == plain["flags"][~failed]).all()
+    np.testing.assert_array_equal(retry["adamom_g1"][~failed], plain["adamom_g1"][~failed])
+    assert retry.meta["HSMRETRY"] == 0.5 and "HSMRETRY" not in plain.meta
+    invoke_fails(
+        runner,
+        cli,
+        [
+            "measure",
+            str(tmp_path / "s.fits"),
+            "-o",
+            str(tmp_path / "x.fits"),
+            "--moments-retry",
+            "1",
+        ],
+        2,
+        "--moments-retry",
+    )
+    assert not (tmp_path / "x.fits").exists()

@@ -284,3 +284,36 @@ def test_varpsf_example_runs(runner, cli, tmp_path, monkeypatch):
     np.testing.assert_allclose(
         t["tru_psf_sigma"], 2 + 0.25 * (np.asarray(t["tru_field_x"]) + t["tru_field_y"] - 1)
     )
+
+
+def test_moments_retry_as_measure_has_it(runner, cli, tmp_path):
+    """``simulate --measure --moments-retry`` gives measure's columns on the same stamps, with
+    fewer HSM failures than without it; it needs --measure."""
+    from megalut_cli import flags as fl
+
+    cfg = str(Path(__file__).parent.parent / "examples" / "fiducial" / "vo.toml")
+    sim = ["simulate", cfg, "--n-cases", "2", "--n-realizations", "300", "--seed", "3"]
+    retry = ["--moments-retry", "0.5"]
+    for args in (
+        ["-o", str(tmp_path / "m.fits"), "--measure", *retry],
+        ["-o", str(tmp_path / "p.fits"), "--measure"],
+        ["-o", str(tmp_path / "c.fits"), "--stamps", str(tmp_path / "s.fits")],
+        [
+            "measure",
+            str(tmp_path / "s.fits"),
+            str(tmp_path / "c.fits"),
+            "-o",
+            str(tmp_path / "f.fits"),
+            *retry,
+        ],
+    ):
+        result = runner.invoke(cli, args if args[0] == "measure" else [*sim, *args])
+        assert result.exit_code == 0, _err(result)
+    m, p, f = (read_catalog(tmp_path / f"{k}.fits") for k in "mpf")
+    np.testing.assert_array_equal(m["flags"], f["flags"])
+    np.testing.assert_array_equal(m["adamom_g1"], f["adamom_g1"])
+    assert m.meta["HSMRETRY"] == 0.5 and "HSMRETRY" not in p.meta
+    n_p, n_m = (int(((t["flags"] & fl.HSM_FAILED) != 0).sum()) for t in (p, m))
+    assert n_m < n_p, (n_m, n_p)
+    r = runner.invoke(cli, [*sim, "-o", str(tmp_path / "x.fits"), *retry])
+    assert r.exit_code == 2 and "--moments-retry needs --measure" in _err(r)

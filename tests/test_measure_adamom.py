@@ -16,6 +16,13 @@ from megalut_cli.measure.adamom import (
     SUCCESS,
     HSMParams,
     adaptive_moments,
+    kernel_settings,
+)
+from megalut_cli.measure.adamom_nb import (
+    RETRIED,
+    SINGULAR,
+    adaptive_moments_one,
+    moments_workspace,
 )
 from megalut_cli.measure.features import (
     FEATURE_COLUMNS,
@@ -414,3 +421,89 @@ def test_measure_engines_are_the_cli_engines():
 def test_measure_stamps_rejects_unknown_engine():
     with pytest.raises(ValueError, match="engine"):
         measure_stamps(fiducial_stamps(2), engine="ngmix")
+
+
+def _damped(stamps: np.ndarray, step_factor: float) -> tuple[np.ndarray, np.ndarray]:
+    """Status and ``amp, g1, g2, sigma, rho4, x, y`` of the kernel's iteration with its updates
+    scaled by ``step_factor`` (1: GalSim's), from the default start."""
+    n, size = len(stamps), stamps.shape[1]
+    settings = kernel_settings(size, size)[:-1]  # x_guess ... exact_exp
+    work = moments_workspace(size, size)
+    status = np.zeros(n, dtype=int)
+    out = np.full((n, 7), np.nan)
+    guess = default_guess_sigma(size)
+    for k in range(n):
+        status[k], _ = adaptive_moments_one(stamps[k], guess, *settings, step_factor, *work, out[k])
+    out[status != SUCCESS] = np.nan
+    return status, out
+
+
+#: The damped iteration's fixed points are GalSim's: on the stamps both iterations settle,
+#: g1, g2 within this (absolute) and sigma within this (relative) of GalSim's iteration's,
+#: but on at most DAMPED_OTHER_ROOT of them (stamps with two adaptive-moments solutions, each
+#: iteration stopping at |update| < 1e-6: 2 of 9698 fiducial stamps of `megalut simulate`).
+#: Achieved: all 1941 within 5.8e-7; the damped iteration settles on 29 of the 59 stamps
+#: GalSim's gives up on, and gives up on 1 it settles.
+DAMPED_TOLERANCE = 1e-5
+DAMPED_OTHER_ROOT = 0.002
+
+
+def test_damped_iteration_settles_on_galsims_moments():
+    stamps = fiducial_stamps(2000, seed=11)
+    plain, a = _damped(stamps, 1.0)
+    damped, b = _damped(stamps, 0.5)
+    ours = adaptive_moments(stamps)
+    np.testing.assert_array_equal(plain, ours.status)  # factor 1: the default iteration
+    np.testing.assert_array_equal(a[:, 1], ours.g1)
+    both = (plain == SUCCESS) & (damped == SUCCESS)
+    assert both.sum() > 0.95 * len(stamps)
+    far = (np.abs(b[both, 1:3] - a[both, 1:3]).max(axis=1) > DAMPED_TOLERANCE) | (
+        np.abs(b[both, 3] / a[both, 3] - 1) > DAMPED_TOLERANCE
+    )
+    assert far.mean() <= DAMPED_OTHER_ROOT, far.sum()
+    # and it settles where GalSim's iteration gives up, more often than it fails where it settles
+    cured = (plain != SUCCESS) & (damped == SUCCESS)
+    lost = (plain == SUCCESS) & (damped != SUCCESS)
+    assert cured.sum() > 3 * max(lost.sum(), 1), (cured.sum(), lost.sum())
+
+
+def test_retry_cures_failures_and_keeps_galsims_successes():
+    stamps = fiducial_stamps(2000, seed=11)
+    first = adaptive_moments(stamps)
+    retried = adaptive_moments(stamps, retry_step=0.5)
+    ok = first.status == SUCCESS
+    for f in FIELDS:  # bit for bit where GalSim's iteration succeeds
+        np.testing.assert_array_equal(getattr(retried, f)[ok], getattr(first, f)[ok], err_msg=f)
+    np.testing.assert_array_equal(retried.n_iter[ok], first.n_iter[ok])
+    np.testing.assert_array_equal(retried.status[ok], SUCCESS)
+    # only the iteration's own failures are retried; an object too small stays one
+    kept = ~ok & ~np.isin(first.status, RETRIED)
+    np.testing.assert_array_equal(retried.status[kept], first.status[kept])
+    assert (first.status == SINGULAR).sum() >= 1
+    # GalSim's iteration fails on 58 of these 2000 stamps (55 at the iteration cap); the
+    # retry at 0.5 settles 29 of them (achieved), each on moments of its own
+    n_first, n_retried = (first.status != SUCCESS).sum(), (retried.status != SUCCESS).sum()
+    assert 0.01 < n_first / len(stamps) < 0.1
+    assert n_retried <= 0.6 * n_first, (n_first, n_retried)
+    cured = ~ok & (retried.status == SUCCESS)
+    assert (retried.n_iter[cured] > first.n_iter[cured]).all()  # both runs counted
+    assert np.isfinite(retried.g1[cured]).all() and (retried.sigma[cured] > 0).all()
+    # the same as the damped iteration alone on those stamps
+    _, damped = _damped(stamps[cured], 0.5)
+    np.testing.assert_array_equal(damped[:, 1], retried.g1[cured])
+
+
+def test_retry_step_is_checked():
+    for bad in (-0.1, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="retry_step"):
+            adaptive_moments(fiducial_stamps(2), retry_step=bad)
+
+
+def test_measure_stamps_engines_agree_with_the_retry():
+    stamps = fiducial_stamps(300, seed=12)
+    fast = measure_stamps(stamps, engine="fast", moments_retry=0.5)
+    ref = measure_stamps(stamps, engine="galsim", moments_retry=0.5)
+    plain = measure_stamps(stamps, engine="fast")
+    _assert_same_features(stamps, fast, ref)
+    failed = (fast["flags"] & fl.HSM_FAILED) != 0
+    assert failed.sum() < ((plain["flags"] & fl.HSM_FAILED) != 0).sum()

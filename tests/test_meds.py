@@ -420,6 +420,14 @@ def test_cli_contract(runner, cli, grid, tmp_path):
         result.stderr if hasattr(result, "stderr") else result.output
     )
     invoke_fails(runner, cli, ["measure", str(meds), "-o", str(out)], 1, "--overwrite")
+    retried = tmp_path / "r.fits"  # the moments' retry reaches the MEDS route: same rows here
+    result = runner.invoke(
+        cli, ["measure", str(meds), "-o", str(retried), "--moments-retry", "0.5"]
+    )
+    assert result.exit_code == 0, result.output
+    again, cards = read_catalog_columns(retried)
+    assert cards["HSMRETRY"] == 0.5 and "HSMRETRY" not in header
+    np.testing.assert_array_equal(again["adamom_g1"], table["adamom_g1"])
 
     bad = tmp_path / "bad.fits"
     cat = tmp_path / "cat.fits"

@@ -317,3 +317,20 @@ def _same_catalog(a: bytes, b: bytes) -> None:
         return re.sub(rb"DATE    = '[^']*'", b"DATE", x)
 
     assert strip(a) == strip(b)
+
+
+def test_moments_retry_key_reaches_the_simulations() -> None:
+    """``moments_retry`` is part of the simulation steps' keys when set, absent otherwise (the
+    work folders of earlier runs stay up to date)."""
+    from megalut_cli.pipeline.run import build_steps
+
+    def sims(pipe):
+        return [s for s in build_steps(pipe, nproc=1) if s.name.startswith("simulate-")]
+
+    plain = load_pipeline(None, ["scale=0.01"])
+    retry = load_pipeline(None, ["scale=0.01", "moments_retry=0.5"])
+    assert plain.moments_retry == 0.0 and retry.moments_retry == 0.5
+    assert all("moments_retry" not in s.params for s in sims(plain))
+    assert all(s.params["moments_retry"] == 0.5 for s in sims(retry))
+    with pytest.raises(ConfigError, match="moments_retry"):
+        load_pipeline(None, ["moments_retry=1.5"])

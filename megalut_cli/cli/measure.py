@@ -93,6 +93,7 @@ def coadd_image_options(command: F) -> F:
 @feature_set_options(MEASURE)
 @schema_option(MEASURE["metacal"])
 @schema_option(MEASURE["metacal_step"], show_default=True)
+@schema_option(MEASURE["moments_retry"], show_default=True)
 @schema_option(MEASURE["metadetect"])
 @schema_option(MEASURE["detect"])
 @schema_option(MEASURE["detect_thresh"], show_default=True)
@@ -125,6 +126,7 @@ def command(
     stars: bool | None,
     metacal: bool,
     metacal_step: float,
+    moments_retry: float,
     metadetect: bool,
     detect: bool,
     detect_thresh: float,
@@ -255,6 +257,7 @@ def command(
             ),
             metacal=metacal,
             metacal_step=metacal_step,
+            moments_retry=moments_retry,
             seed=seed,
             cutout=cutout,
             epochs=epochs,

@@ -60,6 +60,7 @@ log = logging.getLogger(__name__)
 @feature_set_options(SIMULATE)
 @schema_option(SIMULATE["metacal"])
 @schema_option(SIMULATE["metacal_step"], show_default=True)
+@schema_option(SIMULATE["moments_retry"], show_default=True)
 @click.option(
     "--great3",
     "great3_dir",
@@ -87,6 +88,7 @@ def command(
     measure: bool,
     metacal: bool,
     metacal_step: float,
+    moments_retry: float,
     great3_dir: str | None,
     n_cases: int | None,
     n_realizations: int | None,
@@ -186,6 +188,8 @@ def command(
         raise click.UsageError(f"{flag} needs --measure (and not --great3)")
     if metacal and (not measure or great3_dir is not None):
         raise click.UsageError("--metacal needs --measure (and not --great3)")
+    if moments_retry and (not measure or great3_dir is not None):
+        raise click.UsageError("--moments-retry needs --measure (and not --great3)")
     if great3_dir is not None and stamps is not None:
         raise click.UsageError("--great3 writes the subfield images itself: do not give --stamps")
     names = flag_names(branch_dir="--great3")
@@ -247,6 +251,7 @@ def command(
         names=names,
         metacal=metacal,
         metacal_step=metacal_step,
+        moments_retry=moments_retry,
     )
     log.info(
         "wrote %s (%d rows)%s",

@@ -118,11 +118,14 @@ def kernel_settings(
     precision: float = 1.0e-6,
     params: HSMParams | None = None,
     exact_exp: bool = False,
-) -> tuple[float, float, float, float, float, float, float, int, bool]:
+    retry_step: float = 0.0,
+) -> tuple[float, float, float, float, float, float, float, int, bool, float]:
     """The scalar arguments of the compiled kernels for ``ny x nx`` stamps (``settings`` of
     :func:`adaptive_moments_stack`: ``x_guess, y_guess, precision, nsig2, bound,
-    max_amoment, max_ashift, max_iter, exact_exp``), checked."""
+    max_amoment, max_ashift, max_iter, exact_exp, retry_step``), checked."""
     params = HSMParams() if params is None else params
+    if not (math.isfinite(retry_step) and 0 <= retry_step < 1):
+        raise ValueError(f"retry_step must be in [0, 1), got {retry_step}")
     if not (math.isfinite(precision) and 0 < precision < 1):
         raise ValueError(f"precision must be in (0, 1), got {precision}")
     if not (0 < params.convergence_threshold < 1):
@@ -139,6 +142,7 @@ def kernel_settings(
         float(params.max_ashift),
         int(params.max_mom2_iter),
         bool(exact_exp),
+        float(retry_step),
     )
 
 
@@ -149,6 +153,7 @@ def adaptive_moments(
     precision: float = 1.0e-6,
     params: HSMParams | None = None,
     exact_exp: bool = False,
+    retry_step: float = 0.0,
 ) -> AdaptiveMoments:
     """HSM adaptive moments of every stamp of ``stamps``, as ``galsim.hsm.FindAdaptiveMom``.
 
@@ -163,6 +168,12 @@ def adaptive_moments(
             ``precision``).
         params: the HSM parameters (default GalSim's defaults).
         exact_exp: evaluate the weight with ``exp`` at every pixel, as GalSim does.
+        retry_step: 0 (GalSim's behaviour), or the factor in (0, 1) that scales the updates
+            of a second iteration from the same start on the stamps whose first one fails
+            by itself (``adamom_nb.RETRIED``: too many iterations, moments out of range,
+            NaN): a damped iteration with the same fixed points, which settles where
+            GalSim's oscillates. GalSim has no such retry: those stamps' moments are
+            megalut's own (its iteration's test of convergence, on the undamped update).
 
     Returns:
         An :class:`AdaptiveMoments` of arrays of length ``n``.
@@ -172,7 +183,9 @@ def adaptive_moments(
         raise ValueError(f"stamps must have shape (n, ny, nx), got {stamps.shape}")
     n, ny, nx = stamps.shape
     guess = guess_sigmas(guess_sigma, n)
-    settings = kernel_settings(nx, ny, precision=precision, params=params, exact_exp=exact_exp)
+    settings = kernel_settings(
+        nx, ny, precision=precision, params=params, exact_exp=exact_exp, retry_step=retry_step
+    )
     status = np.zeros(n, dtype=np.int32)
     n_iter = np.zeros(n, dtype=np.int32)
     results = np.full((n, 7), np.nan)

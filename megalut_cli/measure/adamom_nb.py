@@ -26,6 +26,9 @@ SINGULAR = 7
 TOO_MANY_ITERATIONS = 8
 NAN = 9
 
+#: The failures of the iteration itself, which a damped retry may cure (``retry_step``).
+RETRIED = (OUT_OF_RANGE, TOO_MANY_ITERATIONS, NAN)
+
 
 @njit(cache=True, inline="always")
 def _cpp_max(a: float, b: float) -> float:
@@ -324,6 +327,7 @@ def adaptive_moments_one(
     max_ashift: float,
     max_iter: int,
     exact_exp: bool,
+    step_factor: float,
     tables: np.ndarray,
     cross: np.ndarray,
     step: np.ndarray,
@@ -333,7 +337,9 @@ def adaptive_moments_one(
 ) -> tuple[int, int]:
     """``FindAdaptiveMomView`` + ``find_ellipmom_2`` on one stamp: ``(status, n_iter)``.
 
-    On success ``result`` holds ``amp, g1, g2, sigma, rho4, x, y``.
+    ``step_factor`` scales every update of the centroid and moments: 1 is GalSim's iteration
+    (bit for bit: the product by 1.0 is exact); below 1 a damped one, whose fixed points are
+    the same. On success ``result`` holds ``amp, g1, g2, sigma, rho4, x, y``.
     """
     xmin, xmax, ymin, ymax = _nonzero_bounds(image)
     if xmin > xmax:
@@ -393,11 +399,11 @@ def adaptive_moments_one(
         convergence = _cpp_max(abs(dyy), convergence)
         if shiftscale < shiftscale0:
             convergence *= shiftscale0 / shiftscale
-        x0 += dx * shiftscale
-        y0 += dy * shiftscale
-        mxx += dxx * semi_b2
-        mxy += dxy * semi_b2
-        myy += dyy * semi_b2
+        x0 += step_factor * dx * shiftscale
+        y0 += step_factor * dy * shiftscale
+        mxx += step_factor * dxx * semi_b2
+        mxy += step_factor * dxy * semi_b2
+        myy += step_factor * dyy * semi_b2
         if (
             abs(mxx) > max_amoment
             or abs(mxy) > max_amoment
@@ -466,11 +472,22 @@ def measure_into(
 ) -> None:
     """:func:`adaptive_moments_one` of ``image`` from ``guess_sigma[k]``, into row ``k`` of
     ``status``, ``n_iter`` and ``results``. ``settings``: the scalar arguments (``x_guess`` to
-    ``exact_exp``, :func:`megalut_cli.measure.adamom.kernel_settings`); ``work``:
-    :func:`moments_workspace`."""
-    x_guess, y_guess, precision, nsig2, bound, max_amoment, max_ashift, max_iter, exact_exp = (
-        settings
-    )
+    ``exact_exp``, then ``retry_step``, :func:`megalut_cli.measure.adamom.kernel_settings`);
+    ``work``: :func:`moments_workspace`. When ``retry_step`` > 0 a stamp whose iteration
+    fails (:data:`RETRIED`) is measured again from the same start with its updates scaled by
+    ``retry_step``; ``n_iter`` then counts both runs."""
+    (
+        x_guess,
+        y_guess,
+        precision,
+        nsig2,
+        bound,
+        max_amoment,
+        max_ashift,
+        max_iter,
+        exact_exp,
+        retry_step,
+    ) = settings
     tables, cross, step, segments, sums = work
     status[k], n_iter[k] = adaptive_moments_one(
         image,
@@ -484,6 +501,7 @@ def measure_into(
         max_ashift,
         max_iter,
         exact_exp,
+        1.0,
         tables,
         cross,
         step,
@@ -491,6 +509,31 @@ def measure_into(
         sums,
         results[k],
     )
+    if retry_step > 0 and (
+        status[k] == TOO_MANY_ITERATIONS or status[k] == NAN or status[k] == OUT_OF_RANGE
+    ):
+        first = n_iter[k]
+        status[k], n_iter[k] = adaptive_moments_one(
+            image,
+            guess_sigma[k],
+            x_guess,
+            y_guess,
+            precision,
+            nsig2,
+            bound,
+            max_amoment,
+            max_ashift,
+            max_iter,
+            exact_exp,
+            retry_step,
+            tables,
+            cross,
+            step,
+            segments,
+            sums,
+            results[k],
+        )
+        n_iter[k] += first
 
 
 @njit(cache=True, error_model="numpy")

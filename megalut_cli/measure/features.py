@@ -159,11 +159,13 @@ def galsim_moments(stamps: np.ndarray, guess_sigma: float) -> np.ndarray:
     return moments
 
 
-def fast_moments(stamps: np.ndarray, guess_sigma: float) -> np.ndarray:
-    """The same as :func:`galsim_moments`, by the compiled batch port of :mod:`.adamom`."""
+def fast_moments(stamps: np.ndarray, guess_sigma: float, retry_step: float = 0.0) -> np.ndarray:
+    """The same as :func:`galsim_moments`, by the compiled batch port of :mod:`.adamom`
+    (``retry_step``: its damped retry of the failed iterations,
+    :func:`~megalut_cli.measure.adamom.adaptive_moments`)."""
     from megalut_cli.measure.adamom import adaptive_moments  # imports numba
 
-    res = adaptive_moments(stamps, guess_sigma)
+    res = adaptive_moments(stamps, guess_sigma, retry_step=retry_step)
     return np.stack([res.amp, res.g1, res.g2, res.sigma, res.rho4, res.x, res.y], axis=1)
 
 
@@ -178,6 +180,7 @@ def measure_stamps(
     device: str = "cpu",
     finite: np.ndarray | None = None,
     skymad: np.ndarray | None = None,
+    moments_retry: float = 0.0,
 ) -> dict[str, np.ndarray]:
     """Measure the features of a stack of stamps.
 
@@ -195,6 +198,10 @@ def measure_stamps(
         finite, skymad: whether all pixels of each stamp are finite and its :func:`sky_mad`,
             when the caller has them already (e.g. from
             :func:`megalut_cli.measure.stamps.cut_stamps_checked`); both or neither.
+        moments_retry: 0, or the step factor of the damped second iteration on stamps whose
+            HSM iteration fails (:func:`megalut_cli.measure.adamom.adaptive_moments`'s
+            ``retry_step``; with the ``galsim`` engine or the device, the failed stamps are
+            measured again by the compiled port).
 
     Returns:
         A dict of :data:`FEATURE_COLUMNS` arrays of length ``n`` (float64; ``flags`` int32).
@@ -219,13 +226,14 @@ def measure_stamps(
         raise ValueError("give both finite and skymad, or neither")
     if engine == "fast" and device == "gpu" and n:
         moments, skymad, finite = device_backend().pixel_measurements(stamps, guess)
+        retry_failed(stamps, moments, finite, guess, moments_retry)
         return features_from_moments(moments, skymad, finite, origins, size, gain, limit)
     if finite is None and engine == "fast" and n:  # checks and moments in one compiled pass
         from megalut_cli.measure.stamps import cut_and_measure, grid_origins
 
         column = np.ascontiguousarray(stamps).reshape(n * size, size)  # a grid of one column
         tops = grid_origins(n, 1, size)
-        found = cut_and_measure(column, 0, tops, size, guess)
+        found = cut_and_measure(column, 0, tops, size, guess, moments_retry)
         return features_from_moments(
             found.moments, found.skymad, found.finite, origins, size, gain, limit
         )
@@ -235,13 +243,30 @@ def measure_stamps(
     elif np.shape(finite) != (n,) or np.shape(skymad) != (n,):
         raise ValueError(f"finite and skymad must have one value per stamp ({n})")
     moments = np.full((n, 7), np.nan)
-    if finite.any():
-        measure = fast_moments if engine == "fast" else galsim_moments
+    if finite.any() and engine == "fast":
         if finite.all():  # no copy of the stack
-            moments[:] = measure(stamps, guess)
+            moments[:] = fast_moments(stamps, guess, moments_retry)
         else:
-            moments[finite] = measure(stamps[finite], guess)
+            moments[finite] = fast_moments(stamps[finite], guess, moments_retry)
+    elif finite.any():
+        moments[finite] = galsim_moments(stamps[finite], guess)
+        retry_failed(stamps, moments, finite, guess, moments_retry)
     return features_from_moments(moments, skymad, finite, origins, size, gain, limit)
+
+
+def retry_failed(
+    stamps: np.ndarray,
+    moments: np.ndarray,
+    finite: np.ndarray,
+    guess_sigma: float,
+    retry_step: float,
+) -> None:
+    """With ``retry_step`` > 0, the moments (in place) of the finite stamps another engine
+    failed on, by the compiled port with its damped retry (which repeats GalSim's iteration
+    first, so a stamp keeps GalSim's failure unless the damped iteration converges)."""
+    failed = np.asarray(finite, dtype=bool) & ~np.isfinite(moments).all(axis=1)
+    if retry_step > 0 and failed.any():
+        moments[failed] = fast_moments(stamps[failed], guess_sigma, retry_step)
 
 
 def features_from_moments(

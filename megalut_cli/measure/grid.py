@@ -129,7 +129,9 @@ class GridUnit:
                 self.check_whole(np.isfinite(stamps).all(axis=(1, 2)))
             return StampBatch(stamps, origins, psfs=psfs, fixnoise_keys=keys)
         if settings.engine == "fast" and not settings.needs_pixels:
-            found = cut_and_measure(rows, y0, origins, size, default_guess_sigma(size))
+            found = cut_and_measure(
+                rows, y0, origins, size, default_guess_sigma(size), settings.moments_retry
+            )
             base = features_from_moments(
                 found.moments,
                 found.skymad,

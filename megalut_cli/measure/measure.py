@@ -101,6 +101,7 @@ def measure_file_columns(
     psf_model_path: str | os.PathLike | None = None,
     feature_sets: Sequence[str] = (),
     metacal_target: str = DEFAULT_TARGET,
+    moments_retry: float = MEASURE["moments_retry"].default,
     metadetect: bool = MEASURE["metadetect"].default,
     detect: bool = MEASURE["detect"].default,
     detect_thresh: float = MEASURE["detect_thresh"].default,
@@ -164,6 +165,9 @@ def measure_file_columns(
         metacal_target: the target PSF of ``metacal`` by name
             (:mod:`megalut_cli.measure.metacal_targets`; header card ``MCALTARG`` when not
             the default round Gaussian).
+        moments_retry: 0, or the step factor of the adaptive moments' damped retry on the
+            stamps whose iteration fails (every stamp and metacal version; header card
+            ``HSMRETRY``; :func:`megalut_cli.measure.adamom.adaptive_moments`).
         metadetect: ``stamps_path`` is a cells file (:mod:`.cells`, docs/metadetect.md):
             metacal on each whole cell, detection on each version, features of a stamp
             around each detection (``stamp_size``, default 48); format
@@ -206,6 +210,7 @@ def measure_file_columns(
         MetacalSettings(float(metacal_step), int(seed), metacal_target)
         if metacal or metadetect
         else None,
+        float(moments_retry),
     )
     detection = (
         DetectSettings(
@@ -259,6 +264,7 @@ def measure_file_columns(
             f"{name('metacal_step')} must be in (0, {MEASURE['metacal_step'].maximum}], got "
             f"{metacal_step}"
         )
+    MEASURE["moments_retry"].check(moments_retry, name("moments_retry"))
     measured = source.measure(request)
     n_rows = len(measured.columns["flags"]) if "flags" in measured.columns else 0
     write_catalog(

@@ -40,6 +40,9 @@ from megalut_cli.measure.metacal_defaults import (
     TYPES,
 )
 
+#: Header card of the step factor of the moments' damped retry (``--moments-retry``).
+RETRY_CARD = "HSMRETRY"
+
 #: Flags of a stamp that metacal leaves out (its versions get the same flags).
 METACAL_SKIPPED = fl.MASKED_PIXELS | fl.PSF_FAILED | fl.BAD_PIXELS
 
@@ -57,13 +60,15 @@ class MetacalSettings:
 @dataclass(frozen=True)
 class MeasureSettings:
     """What is measured of every stamp: the gain of the S/N, the moments' engine and device,
-    the optional feature sets (names), and the metacal operation (None: none)."""
+    the optional feature sets (names), the metacal operation (None: none) and the step
+    factor of the moments' damped retry (0: none, GalSim's failures)."""
 
     gain: float | None = None
     engine: str = DEFAULT_ENGINE
     device: str = DEFAULT_DEVICE
     feature_sets: tuple[str, ...] = ()
     metacal: MetacalSettings | None = None
+    moments_retry: float = 0.0
 
     @property
     def feature_columns(self) -> tuple[str, ...]:
@@ -139,6 +144,9 @@ def measure_cards(settings: MeasureSettings, size: int | None) -> dict[str, Any]
         if size is not None
         else None,
         "MENGINE": (settings.engine, "engine of the adaptive moments (megalut --engine)"),
+        RETRY_CARD: (settings.moments_retry, "step factor of the damped moments retry")
+        if settings.moments_retry > 0
+        else None,
     }
     if settings.metacal is not None:
         cards.update(metacal_cards(settings.metacal.step, settings.metacal.seed, "measure"))
@@ -210,6 +218,7 @@ class Measurer:
             max_shift=default_max_shift(stamps.shape[-1]),
             engine=s.engine,
             device=s.device,
+            moments_retry=s.moments_retry,
             **pixels,
         )
         if s.feature_sets:

@@ -600,6 +600,7 @@ class MedsOptions:
     seed: int = MEASURE["seed"].default
     feature_sets: tuple[str, ...] = ()
     epochs: bool = MEASURE["epochs"].default
+    moments_retry: float = MEASURE["moments_retry"].default
 
 
 def epoch_cutouts(meds: MedsFile) -> list[int]:
@@ -974,6 +975,7 @@ def meds_settings(options: MedsOptions) -> MeasureSettings:
         MetacalSettings(float(options.metacal_step), int(options.seed))
         if options.metacal
         else None,
+        float(options.moments_retry),
     )
 
 
@@ -1026,6 +1028,7 @@ def measure_request(request: MeasureRequest) -> Measured:
         seed=settings.metacal.seed if settings.metacal else MEASURE["seed"].default,
         feature_sets=settings.feature_sets,
         epochs=request.epochs,
+        moments_retry=settings.moments_retry,
     )
     if settings.device == "gpu":
         log.info(

@@ -310,10 +310,16 @@ class MeasuredStamps:
 
 
 def cut_and_measure(
-    rows: np.ndarray, row0: int, origins: np.ndarray, stamp_size: int, guess_sigma: float
+    rows: np.ndarray,
+    row0: int,
+    origins: np.ndarray,
+    stamp_size: int,
+    guess_sigma: float,
+    retry_step: float = 0.0,
 ) -> MeasuredStamps:
     """:func:`cut_stamps_checked`, then the adaptive moments of each finite stamp
-    (:func:`megalut_cli.measure.adamom.adaptive_moments` from ``guess_sigma``), in one
+    (:func:`megalut_cli.measure.adamom.adaptive_moments` from ``guess_sigma``, with its
+    ``retry_step``), in one
     compiled pass that keeps each stamp in the core's cache: the same values as the two
     calls, without the stack of float64 stamps."""
     from megalut_cli.measure.adamom import SUCCESS, guess_sigmas, kernel_settings
@@ -327,7 +333,7 @@ def cut_and_measure(
     n_iter = np.zeros(n, dtype=np.int32)
     moments = np.full((n, 7), np.nan)
     if n:
-        settings = kernel_settings(stamp_size, stamp_size)
+        settings = kernel_settings(stamp_size, stamp_size, retry_step=retry_step)
         guess = guess_sigmas(guess_sigma, n)
         cut_measure_stack(
             rows,

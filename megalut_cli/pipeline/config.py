@@ -108,6 +108,17 @@ PIPELINE_OPTIONS: tuple[Option, ...] = (
         '(`"fiducial-metacal"`). Part of the simulation steps\' keys',
     ),
     Option(
+        "moments_retry",
+        "float",
+        0.0,
+        "step factor of the adaptive moments' damped retry on the stamps whose iteration "
+        "fails (`measure --moments-retry`, [catalogs.md](catalogs.md)); 0: none. Part of the "
+        "simulation steps' keys when set",
+        minimum=0,
+        maximum=1,
+        max_open=True,
+    ),
+    Option(
         "simulation",
         "table",
         None,

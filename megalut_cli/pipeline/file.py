@@ -165,6 +165,7 @@ class Pipeline:
     device: str = DEFAULT_DEVICE  # where simulations and trainings run; not in the steps' keys
     reference: ReferenceSpec | None = None  # [reference]: a fixed model evaluated on a set
     metacal: bool = False  # the validation sets measured in metacal mode too (docs/metacal.md)
+    moments_retry: float = 0.0  # the moments' damped retry of every set's measurement (0: none)
 
     def product(self, base: str) -> str:
         """Where a product of a training, prediction or evaluation step goes in the work folder."""
@@ -294,6 +295,7 @@ def parse_pipeline(
     engine = top.option(PIPELINE["engine"])
     device = top.option(PIPELINE["device"])
     metacal = top.option(PIPELINE["metacal"])
+    moments_retry = top.option(PIPELINE["moments_retry"])
     base_sim = top.option(PIPELINE["simulation"])
     sets_t = Table(top.option(PIPELINE["sets"]), "sets", set(ALL_SETS))
     missing = [n for n in SET_NAMES if n not in sets_t.data]
@@ -352,6 +354,7 @@ def parse_pipeline(
         device=device,
         reference=_reference_spec(top, sets, base_dir),
         metacal=bool(metacal),
+        moments_retry=float(moments_retry),
     )
     _check_columns(pipe)
     return pipe

@@ -113,10 +113,13 @@ def build_steps(
                 engine=pipe.engine,
                 device=pipe.device,
                 metacal=metacal,
+                moments_retry=pipe.moments_retry,
             )
 
         s = spec.config.structure
         extra: dict[str, Any] = {"metacal": True} if metacal else {}
+        if pipe.moments_retry > 0:  # absent when unset: the keys of earlier runs stay valid
+            extra["moments_retry"] = pipe.moments_retry
         if spec.config.catalog_path:
             extra["catalog_sha256"] = sha256_file(spec.config.catalog_path)
         psf_path = spec.config.psf.get("path")

@@ -71,6 +71,7 @@ class WorkUnit:
     metacal_step: float | None = (
         None  # with measure: also the metacal features (measure/metacal.py)
     )
+    moments_retry: float = 0.0  # with measure: the moments' damped retry (0: none)
 
     @property
     def renders_fast(self) -> bool:
@@ -151,7 +152,14 @@ class _Measurer:
             None if unit.metacal_step is None else MetacalSettings(unit.metacal_step, unit.seed)
         )
         self.measurer = Measurer(
-            MeasureSettings(unit.config.gain, unit.engine, unit.device, unit.feature_sets, metacal)
+            MeasureSettings(
+                unit.config.gain,
+                unit.engine,
+                unit.device,
+                unit.feature_sets,
+                metacal,
+                unit.moments_retry,
+            )
         )
         s = unit.config.structure
         self.common, self.n_rea = bool(s.common), s.n_realizations

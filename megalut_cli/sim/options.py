@@ -44,6 +44,7 @@ SIMULATE_OPTIONS: tuple[Option, ...] = (
         "for every feature X; docs/metacal.md); the fixnoise fields come from --seed.",
     ),
     _after_measure(MEASURE["metacal_step"]),
+    _after_measure(MEASURE["moments_retry"]),
     replace(STRUCTURE["n_cases"], help="Override structure.n_cases.", default_text=None),
     replace(
         STRUCTURE["n_realizations"], help="Override structure.n_realizations.", default_text=None

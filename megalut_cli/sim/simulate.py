@@ -34,7 +34,7 @@ from megalut_cli.atomic import atomic_output, check_output
 from megalut_cli.catalog import CatalogWriter, catalog_writer, write_image
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, check_engine, resolve_device
 from megalut_cli.errors import MegalutError, Names, namer
-from megalut_cli.measure.measurer import metacal_cards
+from megalut_cli.measure.measurer import RETRY_CARD, metacal_cards
 from megalut_cli.parallel import chunk_ranges, executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, format_duration, no_progress
 from megalut_cli.sim.config import SimConfig
@@ -211,6 +211,7 @@ def make_units(
     feature_sets: tuple[str, ...] = (),
     device: str = DEFAULT_DEVICE,
     metacal_step: float | None = None,
+    moments_retry: float = 0.0,
 ) -> list[WorkUnit]:
     """Split the cases into work units of about ``UNIT_STAMPS`` stamps (whole cases;
     ``DEVICE_UNIT_STAMPS`` on the device, ``device`` being resolved)."""
@@ -231,6 +232,7 @@ def make_units(
             feature_sets if measure else (),
             device,
             metacal_step if measure else None,
+            moments_retry if measure else 0.0,
         )
         for a, b in chunk_ranges(s.n_cases, n_units)
     ]
@@ -359,6 +361,7 @@ def simulate_chunks(
     device: str = DEFAULT_DEVICE,
     metacal_step: float | None = None,
     feature_sets: Sequence[str] = (),
+    moments_retry: float = 0.0,
 ) -> Iterator[SimulatedChunk]:
     """Draw the configured stamps (and measure them), yielding the catalog in order, one
     work unit at a time, with a bounded number of units in flight: the memory does not grow
@@ -368,12 +371,16 @@ def simulate_chunks(
     (:mod:`megalut_cli.engine`); on the device the units run in this process.
     ``metacal_step`` (with ``measure``): also the metacal features (on the CPU).
     ``feature_sets`` (with ``measure``; ``morphology`` is one): the optional feature sets
-    (:mod:`megalut_cli.measure.feature_sets`) measured too.
+    (:mod:`megalut_cli.measure.feature_sets`) measured too. ``moments_retry`` (with
+    ``measure``): the step factor of the moments' damped retry (0: none; on the CPU).
     """
     check_engine(engine)
     device = resolve_device(device)
     if metacal_step is not None and measure and device == "gpu":
         log.info("metacal runs on the CPU: drawing and measuring there")
+        device = "cpu"
+    if moments_retry > 0 and measure and device == "gpu":
+        log.info("the moments' retry runs on the CPU: drawing and measuring there")
         device = "cpu"
     if device == "gpu" and not scheduler:
         nproc = 1
@@ -389,6 +396,7 @@ def simulate_chunks(
         tuple(feature_sets) + (("morphology",) if morphology else ()),
         device,
         metacal_step,
+        moments_retry,
     )
     log_engine_fallback(config, engine, keep_stamps or measure)
     log.info(
@@ -455,6 +463,7 @@ def simulate(
     metacal: bool = SIMULATE["metacal"].default,
     metacal_step: float = SIMULATE["metacal_step"].default,
     feature_sets: Sequence[str] = (),
+    moments_retry: float = SIMULATE["moments_retry"].default,
 ) -> SimulationResult:
     """Simulate the configured stamps into files: the catalog, streamed as the work units
     finish (:func:`simulate_chunks`), and the stamp grid image ``stamps``. With ``measure``
@@ -462,9 +471,12 @@ def simulate(
     measured too; with ``measure`` and
     ``metacal``, the metacal features of :func:`megalut_cli.measure.measure.measure_file`
     (each stamp deconvolved by the PSF image it was drawn with, fixnoise seeded by ``seed``).
+    ``moments_retry`` (with ``measure``): the step factor of the adaptive moments' damped
+    retry (:func:`megalut_cli.measure.adamom.adaptive_moments`; header card ``HSMRETRY``).
     Messages name the arguments by ``names``.
     """
     check_engine(engine)
+    SIMULATE["moments_retry"].check(moments_retry, namer(names)("moments_retry"))
     out, st = check_outputs(config, output, stamps, overwrite, names)
     s = config.structure
     if st is None and not measure:
@@ -482,6 +494,8 @@ def simulate(
     cards = simulation_cards(config, seed, measure, engine)
     if metacal and measure:
         cards.update(metacal_cards(metacal_step, seed, "simulate"))
+    if moments_retry > 0 and measure:
+        cards[RETRY_CARD] = (float(moments_retry), "step factor of the damped moments retry")
     excess = HstNoiseExcess()
     chunks = simulate_chunks(
         config,
@@ -496,6 +510,7 @@ def simulate(
         device=device,
         metacal_step=float(metacal_step) if metacal and measure else None,
         feature_sets=feature_sets,
+        moments_retry=float(moments_retry),
     )
     with contextlib.ExitStack() as stack:
         writer = stack.enter_context(simulation_catalog_writer(out, config, cards, overwrite))
