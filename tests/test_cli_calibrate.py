@@ -89,6 +89,30 @@ def test_table_json_and_catalog(runner, cli, metacal, tmp_path):
     assert int(np.sum(cat["bin"] == 1)) == res["bins"][1]["n_objects"]
 
 
+def test_failures_as_a_selection(runner, cli, metacal, tmp_path):
+    """``--failures selection``: the response of the versions' means, with --by bins and
+    --select per version, the same per-object catalog columns; the JSON records the choice;
+    a catalog without metacal versions is refused (exit 1, nothing written)."""
+    js, out = tmp_path / "cal.json", tmp_path / "cal.fits"
+    args = ["calibrate", str(metacal), "--by", "tomo", "--select", "size > 0.5"]
+    result = runner.invoke(
+        cli, [*args, "--failures", "selection", "--json", str(js), "-o", str(out)]
+    )
+    assert_ok(result)
+    assert "each version's mean over its own measured objects" in result.output
+    res = json.loads(js.read_text())
+    assert res["failures"] == "selection" and res["all"]["selection_response"] is None
+    assert len(res["bins"]) == 3 and read_catalog(out)["R11"].size == res["all"]["n_objects"]
+    plain = tmp_path / "sim.fits"
+    write_catalog(plain, {"pre_g1": np.zeros(9), "pre_g2": np.zeros(9)}, fmt="megalut.predictions")
+    bad = tmp_path / "bad.json"
+    result = runner.invoke(
+        cli, ["calibrate", str(plain), "--failures", "selection", "--json", str(bad)]
+    )
+    error_line(result, 1, "metacal catalog of stamps")
+    assert not bad.exists()
+
+
 def test_json_to_stdout_and_simulation_route(runner, cli, tmp_path):
     rng = np.random.default_rng(0)
     path = tmp_path / "sim.fits"

@@ -23,6 +23,7 @@ from megalut_cli.shear.options import CALIBRATE
 @schema_option(CALIBRATE["errors"], show_default=True)
 @schema_option(CALIBRATE["patches"], show_default=True)
 @schema_option(CALIBRATE["bootstrap"], show_default=True)
+@schema_option(CALIBRATE["failures"], show_default=True)
 @seed_option(help="Seed of the bootstrap resampling.")
 @click.option(
     "--json",
@@ -56,6 +57,7 @@ def command(
     errors: str,
     patches: int,
     bootstrap: int,
+    failures: str,
     seed: int,
     json_path: str | None,
     output: str | None,
@@ -71,7 +73,9 @@ def command(
     column, each taken on the sheared versions. On a simulation-calibrated catalog the
     estimates are averaged. Weighted by pre_g1_w, pre_g2_w when the catalog has them (metacal:
     every version's), unless --unweighted. Rows with flags != 0 (metacal: flags_noshear) or
-    NaN estimates are left out.
+    NaN estimates are left out; with --failures selection a metacal catalog is calibrated by
+    the response of the versions' means instead, each over its own measured objects, so that
+    failures that depend on the shear are a selection too.
 
     Errors: a delete-one jackknife over patches of the sky (ra, dec; else the image x, y),
     or a bootstrap over objects when the catalog has no positions; the response is
@@ -124,7 +128,13 @@ def command(
     path = click.get_current_context().with_resource(stdin_path(predictions))
     names = flag_names()
     _, colnames, header = catalog_info(path)
-    options = {"select": select, "by": by, "unweighted": unweighted, "errors": errors}
+    options = {
+        "select": select,
+        "by": by,
+        "unweighted": unweighted,
+        "errors": errors,
+        "failures": failures,
+    }
     plan = plan_calibration(colnames, header, source=predictions, names=names, **options)
     columns, _ = read_catalog_columns(path, list(plan.columns))
     cal = calibrate_columns(

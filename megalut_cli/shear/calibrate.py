@@ -58,6 +58,7 @@ from megalut_cli.shear.frame import (
     JACOBIAN_COLUMNS,
     PIXEL_FRAME,
     WORLD_FRAME,
+    Frames,
     catalog_frames,
     has_jacobian,
     response_offset,
@@ -71,6 +72,7 @@ from megalut_cli.shear.options import (
     CALIBRATE_ERROR_CHOICES,
     CALIBRATION_FORMAT,
     CALIBRATION_FORMAT_VERSION,
+    FAILURES_CHOICES,
     MAX_BINS,
 )
 from megalut_cli.shear.response import header_step, metacal_response, row_values
@@ -143,10 +145,17 @@ class CalibrationPlan:
     columns: tuple[str, ...]
     pass_through: tuple[str, ...]
     names: dict[str, str] = field(default_factory=dict)
+    failures: str = "exclude"  # metacal: "exclude", or "selection" (--failures)
 
     @property
     def scheme(self) -> str:
         return "weighted" if self.weighted else "unweighted"
+
+    @property
+    def failures_select(self) -> bool:
+        """Whether each metacal version's failures are a selection (the response of the
+        versions' means)."""
+        return self.route == ROUTE_METACAL and self.failures == "selection"
 
     def name(self, arg: str) -> str:
         """How messages name the argument ``arg``."""
@@ -163,6 +172,7 @@ def plan_calibration(
     errors: str = CALIBRATE["errors"].default,
     source: str = "catalog",
     names: Mapping[str, str] | None = None,
+    failures: str = CALIBRATE["failures"].default,
 ) -> CalibrationPlan:
     """Check a catalog's columns (and header) against what is asked; raise
     :class:`InputError` for a catalog that cannot be calibrated, :class:`ConfigError` for
@@ -174,6 +184,11 @@ def plan_calibration(
         raise ConfigError(
             f"{given.get('errors', 'errors')}: unknown value {errors!r} "
             f"(expected one of {', '.join(CALIBRATE_ERROR_CHOICES)})"
+        )
+    if failures not in FAILURES_CHOICES:
+        raise ConfigError(
+            f"{given.get('failures', 'failures')}: unknown value {failures!r} "
+            f"(expected one of {', '.join(FAILURES_CHOICES)})"
         )
     metacal = [c for c in RESPONSE_COLUMNS if c in have]
     if MDET_COLUMN in have:
@@ -209,6 +224,16 @@ def plan_calibration(
                 f"missing: {', '.join(missing)}"
             )
         weight_cols = list(WEIGHT_COLUMNS)
+    if failures == "selection" and route != ROUTE_METACAL:
+        raise InputError(
+            f"{source}: {given.get('failures', 'failures')} selection applies to a metacal "
+            "catalog of stamps (mcal_r11 .. mcal_r22 and each version's estimates)"
+            + (
+                ": a metadetection catalog's response counts each version's own detections already"
+                if route == ROUTE_METADETECT
+                else ""
+            )
+        )
     weighted = not unweighted and all(c in have for c in weight_cols)
     if not unweighted and not weighted and any(c in have for c in weight_cols):
         log.warning(
@@ -292,6 +317,8 @@ def plan_calibration(
     elif route == ROUTE_METACAL:
         cols += [*RESPONSE_COLUMNS, "flags_noshear"]
         cols += [f"{c}_{kind}" for kind in TYPES for c in ESTIMATE_COLUMNS]
+        if failures == "selection":  # a version is measured where its flags are 0
+            cols += [f"flags_{kind}" for kind in SHEARED_TYPES]
         used = (expr.columns_used(select) if select is not None else []) + by_used
         cols += [f"{c}_{kind}" for kind in TYPES for c in used if f"{c}_{kind}" in have]
     else:
@@ -325,6 +352,7 @@ def plan_calibration(
         tuple(dict.fromkeys(c for c in cols if c in have)),
         passed,
         given,
+        failures,
     )
 
 
@@ -379,6 +407,8 @@ class _Objects:
     sheared: dict[tuple[int, str], np.ndarray] | None  # weight under each version's selection
     pre_noshear: dict[int, np.ndarray] | None
     psf: tuple[np.ndarray, np.ndarray] | None
+    # failures as a selection: each sheared version's own estimate (weights in ``sheared``)
+    version_pre: dict[tuple[int, str], np.ndarray] | None = None
 
 
 def _metadetect_objects(columns: Mapping[str, np.ndarray], plan: CalibrationPlan) -> _Objects:
@@ -464,7 +494,7 @@ def _objects(columns: Mapping[str, np.ndarray], plan: CalibrationPlan) -> _Objec
     valid, pre, weight = {}, {}, {}
     for i in (1, 2):
         ok = base & np.isfinite(raw[i])
-        if resp is not None:
+        if resp is not None and not plan.failures_select:
             ok &= np.isfinite(resp[(i, 1)]) & np.isfinite(resp[(i, 2)])
         valid[i] = ok
         pre[i] = np.where(ok, raw[i], 0.0)
@@ -489,6 +519,13 @@ def _objects(columns: Mapping[str, np.ndarray], plan: CalibrationPlan) -> _Objec
             f"{plan.source}: the weights {', '.join(WEIGHT_COLUMNS)} are zero on every usable row"
         )
     response = sheared = pre_noshear = None
+    psf = None
+    if plan.psf is not None:
+        psf = tuple(np.asarray(columns[c], dtype=float) for c in plan.psf)  # type: ignore[assignment]
+    if plan.failures_select:
+        sheared, version_pre = _version_selections(columns, plan, n)
+        obj = _Objects(n, selected, valid, pre, weight, None, sheared, None, psf, version_pre)
+        return _to_world(obj, columns, plan) if plan.frame == WORLD_FRAME else obj
     if resp is not None:
         response = {k: np.where(valid[k[0]], r, 0.0) for k, r in resp.items()}
         pre_noshear = raw
@@ -510,11 +547,35 @@ def _objects(columns: Mapping[str, np.ndarray], plan: CalibrationPlan) -> _Objec
                     else np.ones(n)
                 )
                 sheared[(i, kind)] = np.where(sel & np.isfinite(w) & (w > 0), w, 0.0)
-    psf = None
-    if plan.psf is not None:
-        psf = tuple(np.asarray(columns[c], dtype=float) for c in plan.psf)  # type: ignore[assignment]
     obj = _Objects(n, selected, valid, pre, weight, response, sheared, pre_noshear, psf)
     return _to_world(obj, columns, plan) if plan.frame == WORLD_FRAME else obj
+
+
+def _version_selections(
+    columns: Mapping[str, np.ndarray], plan: CalibrationPlan, n: int
+) -> tuple[dict[tuple[int, str], np.ndarray], dict[tuple[int, str], np.ndarray]]:
+    """With each version's failures a selection: the weight of every object under each
+    sheared version (0 where that version failed, has a NaN estimate or fails the selection
+    taken on its own features) and that version's own estimates."""
+    inside = np.ones(n, dtype=bool)
+    if INNER_COLUMN in columns:
+        inside = np.asarray(columns[INNER_COLUMN]) != 0
+    weights, estimates = {}, {}
+    for kind in SHEARED_TYPES:
+        sel = inside.copy()
+        if plan.select is not None:
+            sel &= expr.evaluate_rows(plan.select, VersionColumns(columns, kind), n)
+        if f"flags_{kind}" in columns:
+            sel &= np.asarray(columns[f"flags_{kind}"]) == 0
+        for i in (1, 2):
+            est = np.asarray(columns[f"pre_g{i}_{kind}"], dtype=float)
+            w = np.ones(n)
+            if plan.weighted:
+                w = np.asarray(columns[f"pre_g{i}_w_{kind}"], dtype=float)
+            ok = sel & np.isfinite(est) & np.isfinite(w) & (w > 0)
+            weights[(i, kind)] = np.where(ok, w, 0.0)
+            estimates[(i, kind)] = np.where(ok, est, 0.0)
+    return weights, estimates
 
 
 def _to_world(obj: _Objects, columns: Mapping[str, np.ndarray], plan: CalibrationPlan) -> _Objects:
@@ -536,6 +597,8 @@ def _to_world(obj: _Objects, columns: Mapping[str, np.ndarray], plan: Calibratio
             f"{plan.source}: no selected object is usable in both components with a Jacobian"
         )
     zero = lambda a: np.where(both, np.nan_to_num(a), 0.0)  # noqa: E731
+    if obj.version_pre is not None:
+        return _versions_to_world(obj, columns, frames, both, known)
     offset = None
     response = None
     if obj.response is not None:
@@ -582,6 +645,74 @@ def _to_world(obj: _Objects, columns: Mapping[str, np.ndarray], plan: Calibratio
     )
 
 
+def _versions_to_world(
+    obj: _Objects,
+    columns: Mapping[str, np.ndarray],
+    frames: Frames,
+    both: np.ndarray,
+    known: np.ndarray,
+) -> _Objects:
+    """:func:`_to_world` with each version's failures a selection: the noshear estimates of
+    the objects usable in ``both`` components, every sheared version's own estimates on its
+    own measured objects with a ``known`` frame, ``Q (g_v + R eta)`` (``R`` the object's
+    response, or the mean one where a version failed), their component weights, and the world
+    versions' weights and weighted estimates, both linear in the pixel versions'
+    (:func:`versions_to_world`)."""
+    assert obj.version_pre is not None and obj.sheared is not None
+    resp = {
+        (i, j): np.asarray(columns[f"mcal_r{i}{j}"], dtype=float) for i in (1, 2) for j in (1, 2)
+    }
+    measured = np.all([np.isfinite(r) for r in resp.values()], axis=0) & known
+    if measured.any():
+        resp = {k: np.where(measured, r, np.mean(r[measured])) for k, r in resp.items()}
+    else:  # no object with every version: the grid's residual shear left uncorrected
+        resp = {k: np.zeros(obj.n) for k in resp}
+
+    def world(use: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        offset = response_offset(frames, {k: np.where(use, r, 0.0) for k, r in resp.items()})
+        zero = [np.where(use, np.nan_to_num(g), 0.0) for g in (g1, g2)]
+        w1, w2 = spin2_to_world(frames, zero[0], zero[1], offset)
+        return np.where(use, w1, 0.0), np.where(use, w2, 0.0)
+
+    g1, g2 = world(both, obj.pre[1], obj.pre[2])
+    zeroed = {i: np.where(both, w, 0.0) for i, w in obj.weight.items()}
+    weight = weights_to_world(frames, zeroed)
+    weights: dict[int, dict[str, np.ndarray]] = {1: {}, 2: {}}
+    weighted: dict[int, dict[str, np.ndarray]] = {1: {}, 2: {}}
+    for kind in SHEARED_TYPES:
+        use = known & (obj.sheared[(1, kind)] > 0) & (obj.sheared[(2, kind)] > 0)
+        est = world(use, obj.version_pre[(1, kind)], obj.version_pre[(2, kind)])
+        w = weights_to_world(
+            frames, {i: np.where(use, obj.sheared[(i, kind)], 0.0) for i in (1, 2)}
+        )
+        for i in (1, 2):
+            weights[i][kind] = w[i]
+            weighted[i][kind] = w[i] * est[i - 1]
+    sheared, version_pre = {}, {}
+    for i in (1, 2):
+        total = versions_to_world(frames, weights[i])
+        products = versions_to_world(frames, weighted[i])
+        for kind in SHEARED_TYPES:
+            sheared[(i, kind)] = total[kind]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                version_pre[(i, kind)] = np.where(
+                    total[kind] != 0, products[kind] / total[kind], 0.0
+                )
+    psf = None if obj.psf is None else spin2_to_world(frames, obj.psf[0], obj.psf[1])
+    return _Objects(
+        obj.n,
+        obj.selected,
+        {1: both, 2: both},
+        {1: g1, 2: g2},
+        weight,
+        None,
+        sheared,
+        None,
+        psf,
+        version_pre,
+    )
+
+
 def _row_sums(obj: _Objects, plan: CalibrationPlan) -> dict[str, np.ndarray]:
     """Per-object values whose sums give every estimate: those of
     :func:`megalut_cli.shear.response.row_values` and the PSF-leakage moments."""
@@ -596,6 +727,7 @@ def _row_sums(obj: _Objects, plan: CalibrationPlan) -> dict[str, np.ndarray]:
         obj.sheared,
         obj.pre_noshear,
         plan.step,
+        version_pre=obj.version_pre,
     )
     vals = {k: v for k, v in vals.items() if ":wtru:" not in k}
     vals["n"] = (obj.valid[1] | obj.valid[2]).astype(float)
@@ -616,7 +748,7 @@ def _row_sums(obj: _Objects, plan: CalibrationPlan) -> dict[str, np.ndarray]:
 
 def _version_of(name: str) -> str:
     """The metacal version whose selection a sum belongs to (``noshear`` for most)."""
-    if ":sw:" in name or ":swpre:" in name:
+    if any(f":{q}:" in name for q in ("sw", "swpre", "vw", "vwpre")):
         return name.rsplit(":", 1)[1]
     return "noshear"
 
@@ -870,11 +1002,15 @@ def calibrate_columns(
     seed: int = 1,
     source: str = "catalog",
     names: Mapping[str, str] | None = None,
+    failures: str = CALIBRATE["failures"].default,
 ) -> Calibration:
     """Calibrate the estimates of ``columns`` (a mapping of arrays, e.g. read from the output
     of ``megalut predict``; ``header`` its header, for ``MCALSTEP``), for the whole catalog
     and, with ``by``, for each bin. See the module's docstring; ``names``: how messages name
-    the arguments (``select``, ``by``, ``errors``)."""
+    the arguments (``select``, ``by``, ``errors``, ``failures``). ``failures`` (metacal):
+    ``"exclude"`` uses the objects with every version measured, each with its own response;
+    ``"selection"`` the noshear estimates of the objects whose noshear version is measured,
+    calibrated by the response of the versions' means, each over its own measured objects."""
     colnames = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
     plan = plan_calibration(
         colnames,
@@ -885,6 +1021,7 @@ def calibrate_columns(
         errors=errors,
         source=source,
         names=names,
+        failures=failures,
     )
     if n_patches < 2 or n_bootstrap < 2:
         raise ConfigError("calibrate needs at least 2 patches and 2 bootstrap resamples")
@@ -972,6 +1109,7 @@ def calibrate_columns(
         "input": plan.source,
         "calibration": plan.route,
         "metacal_step": plan.step,
+        "failures": plan.failures if plan.route == ROUTE_METACAL else None,
         "scheme": plan.scheme,
         "weights": (
             [f"{c}_noshear" if plan.route == ROUTE_METACAL else c for c in WEIGHT_COLUMNS]
@@ -1229,7 +1367,12 @@ def format_calibration(result: Mapping[str, Any]) -> str:
         lines.append(
             "R = (<g>_jp - <g>_jm) / (2 step) over each version's own detections (metadetection)"
         )
-    if result["calibration"] == ROUTE_METACAL:
+    if result["calibration"] == ROUTE_METACAL and result.get("failures") == "selection":
+        lines.append(
+            "R = (<g>_jp - <g>_jm) / (2 step), each version's mean over its own measured "
+            "objects (failures a selection)"
+        )
+    elif result["calibration"] == ROUTE_METACAL:
         lines.append("R = <R> + R_sel (mean and selection responses; --json has both)")
     return "\n".join(lines)
 

@@ -5,6 +5,8 @@ and those of ``megalut predict`` (its click options, the defaults of
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from megalut_cli.atomic import OVERWRITE_OPTION
 from megalut_cli.parallel import NPROC_OPTION, SCHEDULER_OPTION
 from megalut_cli.schema import Option
@@ -151,7 +153,7 @@ ALL_PREDICT_OPTIONS: tuple[Option, ...] = (
 
 #: Format name of the JSON written by ``megalut calibrate --json``.
 CALIBRATION_FORMAT = "megalut.calibration"
-CALIBRATION_FORMAT_VERSION = "1.0"
+CALIBRATION_FORMAT_VERSION = "1.1"  # 1.1: "failures"
 #: Where the errors of ``megalut calibrate`` come from (``--errors``).
 CALIBRATE_ERROR_CHOICES = ("auto", "jackknife", "bootstrap")
 #: Jackknife patches of ``megalut calibrate`` by default.
@@ -210,6 +212,13 @@ CALIBRATE_OPTIONS: tuple[Option, ...] = (
         maximum=100000,
     ),
     BOOTSTRAP_OPTION,
+    replace(
+        EVALUATE_CLI["failures"],
+        help="Metacal catalogs: the objects whose noshear version is measured and a sheared "
+        "one is not: 'exclude' them (every version measured), or count each version's "
+        "failures as a selection ('selection': the response of the versions' means, each "
+        "over its own measured objects, as metadetection takes it; docs/calibrate.md).",
+    ),
 )
 CALIBRATE = {o.name: o for o in CALIBRATE_OPTIONS}
 #: Every option of ``megalut calibrate`` with a value, for the docs table.
