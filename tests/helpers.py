@@ -212,6 +212,26 @@ def metacal_predictions(
     return out
 
 
+def with_failures(cat: dict, limit: float = 0.6) -> dict:
+    """A metacal catalog ``cat`` where a version fails (flag set, estimates NaN) when its
+    ``|estimate| > limit``, as elongated galaxies do: which objects a version keeps depends
+    on the shear, and an object's responses (NaN then) need every version."""
+    types = ("noshear", "1p", "1m", "2p", "2m")
+    out = dict(cat)
+    for k in types:
+        bad = np.hypot(cat[f"pre_g1_{k}"], cat[f"pre_g2_{k}"]) > limit
+        out[f"flags_{k}"] = bad.astype(np.int32)
+        for i in "12":
+            out[f"pre_g{i}_{k}"] = np.where(bad, np.nan, cat[f"pre_g{i}_{k}"])
+    failed = np.any([out[f"flags_{k}"] > 0 for k in types], axis=0)
+    for i in "12":
+        for j in "12":
+            out[f"mcal_r{i}{j}"] = np.where(failed, np.nan, cat[f"mcal_r{i}{j}"])
+    out["flags"] = out["flags_noshear"]
+    out["pre_g1"], out["pre_g2"] = out["pre_g1_noshear"], out["pre_g2_noshear"]
+    return out
+
+
 def png_size(path) -> tuple[int, int]:
     with open(path, "rb") as f:
         head = f.read(24)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import with_failures
 
 from megalut_cli.errors import InputError
 from megalut_cli.shear.evaluate import BootstrapSpec, evaluate_columns
@@ -92,31 +93,12 @@ def test_selection_response_removes_the_selection_bias():
         assert (1 + m) * (mean[i, i] + sel[i, i]) / mean[i, i] - 1 > 0.05
 
 
-def _with_failures(cols: dict[str, np.ndarray], limit: float = 0.6) -> dict[str, np.ndarray]:
-    """``cols`` where a version fails (flag set, estimates NaN) when its ``q = |e| > limit``,
-    as elongated galaxies do (about 6 % here): which rows fail depends on the shear, and a
-    row's responses need every version."""
-    out = dict(cols)
-    for kind in ("noshear", "1p", "1m", "2p", "2m"):
-        bad = cols[f"q_{kind}"] > limit
-        out[f"flags_{kind}"] = bad.astype(np.int32)
-        for i in "12":
-            out[f"pre_g{i}_{kind}"] = np.where(bad, np.nan, cols[f"pre_g{i}_{kind}"])
-    failed = np.any([out[f"flags_{k}"] > 0 for k in ("noshear", "1p", "1m", "2p", "2m")], axis=0)
-    for i in "12":
-        for j in "12":
-            out[f"mcal_r{i}{j}"] = np.where(failed, np.nan, cols[f"mcal_r{i}{j}"])
-    out["flags"] = out["flags_noshear"]
-    out["pre_g1"], out["pre_g2"] = out["pre_g1_noshear"], out["pre_g2_noshear"]
-    return out
-
-
 def test_failures_as_a_selection_remove_their_bias():
     """Versions fail where ``|e| > 0.6``: which rows a case keeps depends on its shear. With
     the rows that have every version measured (``failures="exclude"``), m is about -0.16;
     with each version's mean over its own measured rows (``"selection"``: the response of the
     means, selection included), |m| < 0.02 (achieved +3.7e-3 +- 5.0e-3, +1.2e-3 +- 2.4e-3)."""
-    cols = _with_failures(_catalog(40000))
+    cols = with_failures(_catalog(40000))
     excluded = evaluate_columns(cols, metacal_step=STEP)
     selected = evaluate_columns(cols, metacal_step=STEP, failures="selection")
     assert excluded["metacal"]["failures"] == "exclude"

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import metacal_predictions
+from helpers import metacal_predictions, with_failures
 
 from megalut_cli.errors import ConfigError, InputError
 from megalut_cli.shear.calibrate import (
@@ -363,26 +363,6 @@ def test_metadetection_shears_come_out_in_the_world_frame(angle, flip):
     assert abs(pixel["g1"] - g_world[0]) > 5e-3  # the pixel frame is another frame here
 
 
-def _with_failures(cat: dict, limit: float = 0.6) -> dict:
-    """``cat`` where a version fails (flag set, estimates NaN) when its ``|estimate| > limit``
-    (about 6 % of the objects here): which objects a version keeps depends on the shear, and
-    an object's responses need every version."""
-    types = ("noshear", "1p", "1m", "2p", "2m")
-    out = dict(cat)
-    for k in types:
-        bad = np.hypot(cat[f"pre_g1_{k}"], cat[f"pre_g2_{k}"]) > limit
-        out[f"flags_{k}"] = bad.astype(np.int32)
-        for i in "12":
-            out[f"pre_g{i}_{k}"] = np.where(bad, np.nan, cat[f"pre_g{i}_{k}"])
-    failed = np.any([out[f"flags_{k}"] > 0 for k in types], axis=0)
-    for i in "12":
-        for j in "12":
-            out[f"mcal_r{i}{j}"] = np.where(failed, np.nan, cat[f"mcal_r{i}{j}"])
-    out["flags"] = out["flags_noshear"]
-    out["pre_g1"], out["pre_g2"] = out["pre_g1_noshear"], out["pre_g2_noshear"]
-    return out
-
-
 @pytest.mark.parametrize("jacobians", [False, True])
 def test_failures_as_a_selection_recover_the_shear(jacobians):
     """Failures that depend on the shear bias the objects with every version measured (g1
@@ -391,7 +371,7 @@ def test_failures_as_a_selection_recover_the_shear(jacobians):
     within 3 sigma, in the pixel frame and through each object's Jacobian in the world frame
     (achieved within 0.2 sigma)."""
     g = np.array([0.02, -0.01])
-    cat = _with_failures(
+    cat = with_failures(
         metacal_predictions(n=200_000, g=tuple(g), seed=4, weights=True, jacobians=jacobians)
     )
     header = {"MCALSTEP": 0.01}

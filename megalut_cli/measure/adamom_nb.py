@@ -476,64 +476,18 @@ def measure_into(
     ``work``: :func:`moments_workspace`. When ``retry_step`` > 0 a stamp whose iteration
     fails (:data:`RETRIED`) is measured again from the same start with its updates scaled by
     ``retry_step``; ``n_iter`` then counts both runs."""
-    (
-        x_guess,
-        y_guess,
-        precision,
-        nsig2,
-        bound,
-        max_amoment,
-        max_ashift,
-        max_iter,
-        exact_exp,
-        retry_step,
-    ) = settings
-    tables, cross, step, segments, sums = work
-    status[k], n_iter[k] = adaptive_moments_one(
-        image,
-        guess_sigma[k],
-        x_guess,
-        y_guess,
-        precision,
-        nsig2,
-        bound,
-        max_amoment,
-        max_ashift,
-        max_iter,
-        exact_exp,
-        1.0,
-        tables,
-        cross,
-        step,
-        segments,
-        sums,
-        results[k],
-    )
-    if retry_step > 0 and (
-        status[k] == TOO_MANY_ITERATIONS or status[k] == NAN or status[k] == OUT_OF_RANGE
-    ):
-        first = n_iter[k]
-        status[k], n_iter[k] = adaptive_moments_one(
-            image,
-            guess_sigma[k],
-            x_guess,
-            y_guess,
-            precision,
-            nsig2,
-            bound,
-            max_amoment,
-            max_ashift,
-            max_iter,
-            exact_exp,
-            retry_step,
-            tables,
-            cross,
-            step,
-            segments,
-            sums,
-            results[k],
+    scalars, retry_step = settings[:9], settings[9]  # x_guess ... exact_exp, retry_step
+    factor, done = 1.0, 0
+    while True:
+        status[k], n = adaptive_moments_one(
+            image, guess_sigma[k], *scalars, factor, *work, results[k]
         )
-        n_iter[k] += first
+        n_iter[k] = done + n
+        # the iteration's own failures (RETRIED)
+        failed = status[k] == OUT_OF_RANGE or status[k] == TOO_MANY_ITERATIONS or status[k] == NAN
+        if factor != 1.0 or retry_step <= 0 or not failed:
+            return
+        factor, done = retry_step, n_iter[k]
 
 
 @njit(cache=True, error_model="numpy")

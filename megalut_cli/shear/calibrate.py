@@ -597,17 +597,17 @@ def _to_world(obj: _Objects, columns: Mapping[str, np.ndarray], plan: Calibratio
             f"{plan.source}: no selected object is usable in both components with a Jacobian"
         )
     zero = lambda a: np.where(both, np.nan_to_num(a), 0.0)  # noqa: E731
-    if obj.version_pre is not None:
-        return _versions_to_world(obj, columns, frames, both, known)
-    offset = None
-    response = None
-    if obj.response is not None:
+    offset = response = sheared = pre_noshear = version_pre = None
+    if obj.version_pre is not None:  # failures a selection: no per-object response needed
+        filled = _filled_responses(columns, known)
+        offset = response_offset(frames, {k: zero(r) for k, r in filled.items()})
+        sheared, version_pre = _versions_to_world(obj, frames, known, filled)
+    elif obj.response is not None:
         pixel_r = {k: zero(r) for k, r in obj.response.items()}
         offset = response_offset(frames, pixel_r)
         response = {k: zero(r) for k, r in response_to_world(frames, pixel_r).items()}
     g1, g2 = spin2_to_world(frames, zero(obj.pre[1]), zero(obj.pre[2]), offset)
     weight = {i: zero(w) for i, w in weights_to_world(frames, obj.weight).items()}
-    sheared = pre_noshear = None
     if obj.sheared is not None and obj.pre_noshear is not None and obj.response is not None:
         usable = known & np.isfinite(obj.pre_noshear[1]) & np.isfinite(obj.pre_noshear[2])
         full_r = {k: np.where(usable, np.nan_to_num(r), 0.0) for k, r in obj.response.items()}
@@ -642,46 +642,47 @@ def _to_world(obj: _Objects, columns: Mapping[str, np.ndarray], plan: Calibratio
         sheared,
         pre_noshear,
         psf,
+        version_pre,
     )
 
 
-def _versions_to_world(
-    obj: _Objects,
-    columns: Mapping[str, np.ndarray],
-    frames: Frames,
-    both: np.ndarray,
-    known: np.ndarray,
-) -> _Objects:
-    """:func:`_to_world` with each version's failures a selection: the noshear estimates of
-    the objects usable in ``both`` components, every sheared version's own estimates on its
-    own measured objects with a ``known`` frame, ``Q (g_v + R eta)`` (``R`` the object's
-    response, or the mean one where a version failed), their component weights, and the world
-    versions' weights and weighted estimates, both linear in the pixel versions'
-    (:func:`versions_to_world`)."""
-    assert obj.version_pre is not None and obj.sheared is not None
+def _filled_responses(
+    columns: Mapping[str, np.ndarray], known: np.ndarray
+) -> dict[tuple[int, int], np.ndarray]:
+    """Each object's metacal response, the mean one (over the objects with a ``known`` frame
+    and every version measured) where a version failed; zero when none has them all."""
     resp = {
         (i, j): np.asarray(columns[f"mcal_r{i}{j}"], dtype=float) for i in (1, 2) for j in (1, 2)
     }
     measured = np.all([np.isfinite(r) for r in resp.values()], axis=0) & known
-    if measured.any():
-        resp = {k: np.where(measured, r, np.mean(r[measured])) for k, r in resp.items()}
-    else:  # no object with every version: the grid's residual shear left uncorrected
-        resp = {k: np.zeros(obj.n) for k in resp}
+    if not measured.any():  # the grid's residual shear then left uncorrected
+        return {k: np.zeros(len(known)) for k in resp}
+    return {k: np.where(measured, r, np.mean(r[measured])) for k, r in resp.items()}
 
-    def world(use: np.ndarray, g1: np.ndarray, g2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        offset = response_offset(frames, {k: np.where(use, r, 0.0) for k, r in resp.items()})
-        zero = [np.where(use, np.nan_to_num(g), 0.0) for g in (g1, g2)]
-        w1, w2 = spin2_to_world(frames, zero[0], zero[1], offset)
-        return np.where(use, w1, 0.0), np.where(use, w2, 0.0)
 
-    g1, g2 = world(both, obj.pre[1], obj.pre[2])
-    zeroed = {i: np.where(both, w, 0.0) for i, w in obj.weight.items()}
-    weight = weights_to_world(frames, zeroed)
+def _versions_to_world(
+    obj: _Objects,
+    frames: Frames,
+    known: np.ndarray,
+    responses: Mapping[tuple[int, int], np.ndarray],
+) -> tuple[dict[tuple[int, str], np.ndarray], dict[tuple[int, str], np.ndarray]]:
+    """With each version's failures a selection: the world versions' weights and estimates
+    (``sheared``, ``version_pre`` of :class:`_Objects`). Each sheared version's own estimates,
+    on the objects it measured with a ``known`` frame, become ``Q (g_v + R eta)`` with the
+    object's ``responses``; the world versions' weights and weighted estimates are linear in
+    the pixel versions' (:func:`versions_to_world`), and their ratio is the estimate."""
+    assert obj.version_pre is not None and obj.sheared is not None
     weights: dict[int, dict[str, np.ndarray]] = {1: {}, 2: {}}
     weighted: dict[int, dict[str, np.ndarray]] = {1: {}, 2: {}}
     for kind in SHEARED_TYPES:
         use = known & (obj.sheared[(1, kind)] > 0) & (obj.sheared[(2, kind)] > 0)
-        est = world(use, obj.version_pre[(1, kind)], obj.version_pre[(2, kind)])
+        offset = response_offset(frames, {k: np.where(use, r, 0.0) for k, r in responses.items()})
+        est = spin2_to_world(
+            frames,
+            np.where(use, obj.version_pre[(1, kind)], 0.0),
+            np.where(use, obj.version_pre[(2, kind)], 0.0),
+            offset,
+        )
         w = weights_to_world(
             frames, {i: np.where(use, obj.sheared[(i, kind)], 0.0) for i in (1, 2)}
         )
@@ -698,19 +699,7 @@ def _versions_to_world(
                 version_pre[(i, kind)] = np.where(
                     total[kind] != 0, products[kind] / total[kind], 0.0
                 )
-    psf = None if obj.psf is None else spin2_to_world(frames, obj.psf[0], obj.psf[1])
-    return _Objects(
-        obj.n,
-        obj.selected,
-        {1: both, 2: both},
-        {1: g1, 2: g2},
-        weight,
-        None,
-        sheared,
-        None,
-        psf,
-        version_pre,
-    )
+    return sheared, version_pre
 
 
 def _row_sums(obj: _Objects, plan: CalibrationPlan) -> dict[str, np.ndarray]:
