@@ -133,6 +133,13 @@ def metacal_cards(step: float, seed: int, command: str) -> dict[str, tuple[float
     }
 
 
+def retry_cards(retry_step: float) -> dict[str, tuple[float, str]]:
+    """The header card of the moments' damped retry (none without one)."""
+    if retry_step <= 0:
+        return {}
+    return {RETRY_CARD: (float(retry_step), "step factor of the damped moments retry")}
+
+
 def measure_cards(settings: MeasureSettings, size: int | None) -> dict[str, Any]:
     """Header cards of what was measured: the gain, the centroid limit (one stamp ``size``),
     the moments' engine and the metacal step and seed."""
@@ -144,9 +151,7 @@ def measure_cards(settings: MeasureSettings, size: int | None) -> dict[str, Any]
         if size is not None
         else None,
         "MENGINE": (settings.engine, "engine of the adaptive moments (megalut --engine)"),
-        RETRY_CARD: (settings.moments_retry, "step factor of the damped moments retry")
-        if settings.moments_retry > 0
-        else None,
+        **retry_cards(settings.moments_retry),
     }
     if settings.metacal is not None:
         cards.update(metacal_cards(settings.metacal.step, settings.metacal.seed, "measure"))

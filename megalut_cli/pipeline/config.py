@@ -33,6 +33,7 @@ from megalut_cli.configfile import where_written as config_where_written
 from megalut_cli.engine import DEVICE_OPTION, ENGINE_OPTION
 from megalut_cli.errors import ConfigError, MegalutError
 from megalut_cli.expr import check_expression
+from megalut_cli.measure.options import MEASURE
 from megalut_cli.nn.options import OPTION as TRAIN_OPTION
 from megalut_cli.nn.options import SELECTIONS, PointSpec, TrainSpec, WeightSpec
 from megalut_cli.schema import Option, Table
@@ -107,16 +108,11 @@ PIPELINE_OPTIONS: tuple[Option, ...] = (
         "`[reference]` model must then be a metacal one "
         '(`"fiducial-metacal"`). Part of the simulation steps\' keys',
     ),
-    Option(
-        "moments_retry",
-        "float",
-        0.0,
-        "step factor of the adaptive moments' damped retry on the stamps whose iteration "
+    replace(
+        MEASURE["moments_retry"],
+        help="step factor of the adaptive moments' damped retry on the stamps whose iteration "
         "fails (`measure --moments-retry`, [catalogs.md](catalogs.md)); 0: none. Part of the "
         "simulation steps' keys when set",
-        minimum=0,
-        maximum=1,
-        max_open=True,
     ),
     Option(
         "simulation",

@@ -34,7 +34,7 @@ from megalut_cli.atomic import atomic_output, check_output
 from megalut_cli.catalog import CatalogWriter, catalog_writer, write_image
 from megalut_cli.engine import DEFAULT_DEVICE, DEFAULT_ENGINE, check_engine, resolve_device
 from megalut_cli.errors import MegalutError, Names, namer
-from megalut_cli.measure.measurer import RETRY_CARD, metacal_cards
+from megalut_cli.measure.measurer import metacal_cards, retry_cards
 from megalut_cli.parallel import chunk_ranges, executor, map_ordered, resolve_nproc
 from megalut_cli.progress import Progress, format_duration, no_progress
 from megalut_cli.sim.config import SimConfig
@@ -494,8 +494,8 @@ def simulate(
     cards = simulation_cards(config, seed, measure, engine)
     if metacal and measure:
         cards.update(metacal_cards(metacal_step, seed, "simulate"))
-    if moments_retry > 0 and measure:
-        cards[RETRY_CARD] = (float(moments_retry), "step factor of the damped moments retry")
+    if measure:
+        cards.update(retry_cards(moments_retry))
     excess = HstNoiseExcess()
     chunks = simulate_chunks(
         config,
