@@ -86,6 +86,10 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "n_gal": ("", "number of galaxies in the scene field"),
     "mdet_step": ("", "metadetect version the row was detected on (noshear, 1p, 1m, 2p, 2m)"),
     "inner": ("", "1: the detection lies in its cell's inner region (metadetect)"),
+    "mask_dist": (
+        "pixel",
+        "distance from the detection (unsheared) to its cell's nearest masked pixel (inf: none)",
+    ),
     "cell": ("", "metadetection of a coadd: the cell the row was detected in (row by row)"),
     "tru_hst_noise_var": ("adu2", "variance of the HST noise left in the stamp"),
     "tru_twin": ("", "1: the real galaxy's Sersic twin was drawn, 0: the real galaxy"),

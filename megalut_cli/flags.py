@@ -28,6 +28,9 @@ NO_CUTOUT = 1 << 8
 #: more than ``meds.MAX_MASKED_FRACTION`` (25 %) of the stamp, or one within
 #: ``meds.CENTRAL_MASK_RADIUS`` (2 pixels) of the object's position.
 MASKED_PIXELS = 1 << 9
+#: Metadetection: a masked pixel of the cell within ``--mask-margin`` pixels of the
+#: detection's unsheared position (the same place in every metacal version).
+NEAR_MASK = 1 << 10
 
 FLAG_NAMES: dict[int, str] = {
     HSM_FAILED: "HSM_FAILED",
@@ -40,6 +43,7 @@ FLAG_NAMES: dict[int, str] = {
     BAD_FEATURES: "BAD_FEATURES",
     NO_CUTOUT: "NO_CUTOUT",
     MASKED_PIXELS: "MASKED_PIXELS",
+    NEAR_MASK: "NEAR_MASK",
 }
 
 FLAG_DESCRIPTIONS: dict[int, str] = {
@@ -53,6 +57,7 @@ FLAG_DESCRIPTIONS: dict[int, str] = {
     BAD_FEATURES: "model input features missing or not finite",
     NO_CUTOUT: "MEDS object without the cutout measured",
     MASKED_PIXELS: "masked pixels: over 25 % of the stamp, or within 2 px of the centre",
+    NEAR_MASK: "a masked pixel of the cell within --mask-margin of the detection",
 }
 
 

@@ -432,3 +432,52 @@ def test_the_galsim_engine_is_the_reference_route(measured, runner, cli, tmp_pat
         np.testing.assert_allclose(a["x"], b["x"], atol=0.01)
         np.testing.assert_allclose(a["adamom_g1"], b["adamom_g1"], atol=1e-3)
         np.testing.assert_allclose(a["adamom_g2"], b["adamom_g2"], atol=1e-3)
+
+
+def test_masked_pixels_are_interpolated_and_near_detections_flagged():
+    """Masked pixels (a saturated star's core, a bad column of NaN): filled by the harmonic
+    interpolation of their neighbours before the metacal operation; a detection whose
+    unsheared position lies within ``mask_margin`` of a masked pixel is flagged NEAR_MASK
+    with NaN features, ``mask_dist`` its distance; a galaxy beyond the margin is measured
+    as without the masks, in every version."""
+    from megalut_cli import flags as fl
+
+    size = 128
+    psf = galsim.Gaussian(fwhm=3.6)
+    gal = galsim.Convolve(galsim.Exponential(half_light_radius=2.0, flux=3000.0), psf)
+    clean = galsim.ImageD(size, size, scale=1.0)
+    gal.drawImage(image=clean, offset=(-30.0, 10.0))
+    noise = np.random.default_rng(5).normal(0.0, 1.0, (size, size))
+    plain = clean.array + noise
+    starry = galsim.ImageD(size, size, scale=1.0)
+    psf.withFlux(2e5).drawImage(image=starry, offset=(25.0, -20.0))
+    image = plain + starry.array
+    bad = image > 2000.0  # the star's saturated core
+    bad[:, 100] = True  # a bad column
+    image = np.where(bad, np.nan, image)
+    psf_image = psf.drawImage(nx=33, ny=33, scale=1.0).array
+    settings = MeasureSettings(metacal=MetacalSettings(STEP, 4))
+    detection = DetectSettings(5.0, 4, 32, 0.005)
+    with pytest.raises(Exception, match="not masked"):
+        metadetect_cell(image, psf_image, CellNoise(1.0, 7), settings, detection, 48)
+    out = metadetect_cell(image, psf_image, CellNoise(1.0, 7), settings, detection, 48, bad)
+    ref = metadetect_cell(plain, psf_image, CellNoise(1.0, 7), settings, detection, 48)
+    yy, xx = np.nonzero(bad)
+    brute = np.min(np.hypot(out["x"][:, None] - 1 - xx, out["y"][:, None] - 1 - yy), axis=1)
+    near = out["mask_dist"] <= detection.mask_margin
+    assert near.any() and np.all((out["flags"][near] & fl.NEAR_MASK) != 0)
+    assert np.isnan(out["adamom_g1"][near]).all()
+    np.testing.assert_allclose(out["mask_dist"], brute, atol=0.75)  # the pixel holding it
+    assert np.isinf(ref["mask_dist"]).all() and np.all((ref["flags"] & fl.NEAR_MASK) == 0)
+    centre = ((size + 1) / 2.0 - 30.0, (size + 1) / 2.0 + 10.0)
+    for kind in TYPES:
+        ours = (out["mdet_step"] == kind) & (
+            np.hypot(out["x"] - centre[0], out["y"] - centre[1]) < 2
+        )
+        theirs = (ref["mdet_step"] == kind) & (
+            np.hypot(ref["x"] - centre[0], ref["y"] - centre[1]) < 2
+        )
+        assert ours.sum() == theirs.sum() == 1, kind
+        assert out["flags"][ours][0] == 0 and out["mask_dist"][ours][0] > 30
+        for c in ("adamom_g1", "adamom_g2", "adamom_sigma"):
+            assert abs(out[c][ours][0] - ref[c][theirs][0]) < 1e-5, (kind, c)

@@ -9,6 +9,7 @@ import galsim
 import numpy as np
 import pytest
 from helpers import error_line, one_line
+from scipy.stats import norm
 from sim_configs import BULGEDISK, CF_FILE, COSMOSFIT, NOISE_ONLY, write
 
 import megalut_cli.sim.scene as scene_module
@@ -22,6 +23,7 @@ from megalut_cli.sim.scene import (
     scene_cards,
     separated_positions,
 )
+from megalut_cli.sim.scene_config import MASK_BAD_COLUMN, MASK_SATURATED
 
 #: Round exponential galaxies, a Gaussian PSF, white noise; a constant shear.
 SCENE = """
@@ -188,6 +190,50 @@ def test_pairs_share_galaxies_and_noise(tmp_path):
     np.testing.assert_allclose(drawn.images[1] - clean[1], drawn.noise, atol=2e-5, rtol=0)
 
 
+def test_stars_saturation_and_bad_columns(tmp_path):
+    """Stars are the PSF times their flux, unsheared (the same pixels in both images of a
+    pair); saturated pixels are clipped and masked per image; bad columns are NaN and masked
+    in both; galaxies and noise are those of the scene without them."""
+    extra = "n_fields = 2\nstar_density = 300\nstar_flux_min = 2e3\nstar_flux_max = 2e5"
+    cfg = scene_config(tmp_path, **{"n_fields = 2": extra + "\nbad_columns = 2"})
+    plain = draw_field(field_units(scene_config(tmp_path), 5)[1])
+    unit = field_units(cfg, 5)[1]
+    drawn = draw_field(unit)
+    n_stars = len(drawn.stars["x"])
+    assert 0 < n_stars < 3 * 300 * (96 * 0.2 / 60) ** 2
+    assert np.all((2e3 <= drawn.stars["flux"]) & (drawn.stars["flux"] <= 2e5))
+    columns = np.flatnonzero(drawn.mask[0].any(axis=0))
+    assert 1 <= len(columns) and np.all(drawn.mask[:, :, columns] == MASK_BAD_COLUMN)
+    assert np.isnan(drawn.images[:, :, columns]).all()
+    good = np.setdiff1d(np.arange(96), columns)
+    starlight = drawn.images[:, :, good].astype(np.float64) - plain.images[:, :, good]
+    # the same starlight in both images, and its flux that of the stars (each a Gaussian
+    # of sigma 1.5 px: its integral over the field's good pixels)
+    np.testing.assert_allclose(starlight[0], starlight[1], atol=0.05)
+
+    def within(lo, hi, centre):
+        return norm.cdf((hi - centre) / 1.5) - norm.cdf((lo - centre) / 1.5)
+
+    fraction = within(0.5, 96.5, drawn.stars["x"]) - sum(
+        within(c + 0.5, c + 1.5, drawn.stars["x"]) for c in columns
+    )
+    expected = np.sum(drawn.stars["flux"] * fraction * within(0.5, 96.5, drawn.stars["y"]))
+    assert starlight[0].sum() == pytest.approx(expected, rel=1e-3)
+    assert np.all(starlight[0] > -0.05)
+    # saturation: clipped at the level and masked, per image
+    level = float(np.nanmax(drawn.images)) / 2
+    cfg = scene_config(tmp_path, **{"n_fields = 2": f"{extra}\nsaturation = {level}"})
+    sat = draw_field(field_units(cfg, 5)[1])
+    assert sat.stars["x"].tolist() == drawn.stars["x"].tolist()
+    clipped = sat.mask == MASK_SATURATED
+    assert clipped.any() and np.all(sat.images[clipped] == np.float32(level))
+    np.testing.assert_array_equal(sat.mask[~clipped], 0)
+    assert np.nanmax(sat.images) == np.float32(level)
+    full = drawn.images.copy()
+    full[:, :, columns] = sat.images[:, :, columns]
+    np.testing.assert_array_equal(sat.images[~clipped], full[~clipped])
+
+
 def test_a_sequence_of_shears_goes_field_by_field(tmp_path):
     """``{type = "sequence"}``: field k takes the k-th value (cycling), whatever the seed."""
     text = SCENE.replace("g1 = 0.04", 'g1 = {type = "sequence", values = [0.04, 0.0, -0.02]}')
@@ -308,6 +354,10 @@ def test_other_profiles_and_noises(tmp_path, text):
             "scene.min_separation",
         ),
         ({"n_fields = 2": "n_fields = 2\nmin_separation = 30"}, "scene.min_separation"),
+        ({"n_fields = 2": "n_fields = 2\nstar_flux_max = 10"}, "scene.star_flux_max"),
+        ({"n_fields = 2": "n_fields = 2\nstar_flux_min = 0"}, "scene.star_flux_min"),
+        ({"n_fields = 2": "n_fields = 2\nsaturation = -1"}, "scene.saturation"),
+        ({"n_fields = 2": "n_fields = 2\nbad_columns = -1"}, "scene.bad_columns"),
     ],
 )
 def test_bad_scene_keys_are_refused(tmp_path, replace, key):
@@ -345,6 +395,22 @@ def test_the_command_writes_both_products(runner, cli, tmp_path):
     result = runner.invoke(cli, [*args2, "--pairs", "-j", "2"])
     assert result.exit_code == 0, result.output
     np.testing.assert_array_equal(fitsio.read(str(other), ext="SCI"), sci)
+
+
+def test_the_stars_table_and_cards(runner, cli, tmp_path):
+    cfg = write(tmp_path, SCENE)
+    truth, images = tmp_path / "truth.fits", tmp_path / "scenes.fits"
+    extra = ["scene.star_density=200", "scene.saturation=500", "scene.bad_columns=3"]
+    args = ["simulate", str(cfg), "-o", str(truth), "--scene", str(images), *extra]
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    stars = fitsio.read(str(truth), ext="STARS")
+    assert set(stars.dtype.names) == {"image", "field", "pair_sign", "x", "y", "flux"}
+    np.testing.assert_array_equal(np.unique(stars["image"]), [0, 1, 2, 3])
+    header = fitsio.read_header(str(images), ext="SCI")
+    assert (header["STARDENS"], header["SATURATE"], header["BADCOLS"]) == (200.0, 500.0, 3.0)
+    masks = fitsio.read(str(images), ext="MSK")
+    assert np.any(masks & MASK_BAD_COLUMN) and np.any(masks & MASK_SATURATED)
 
 
 @pytest.mark.parametrize(

@@ -102,6 +102,8 @@ def coadd_image_options(command: F) -> F:
 @schema_option(MEASURE["deblend_cont"], show_default=True)
 @schema_option(MEASURE["no_clean"])
 @schema_option(MEASURE["mask_neighbours"])
+@schema_option(MEASURE["mask_margin"], show_default=True)
+@schema_option(MEASURE["mask_fill"], show_default=True)
 @schema_option(MEASURE["seed"], show_default=True)
 @engine_option("the adaptive moments are measured")
 @device_option("the fast engine measures")
@@ -135,6 +137,8 @@ def command(
     deblend_cont: float,
     no_clean: bool,
     mask_neighbours: bool,
+    mask_margin: float,
+    mask_fill: str,
     seed: int,
     engine: str,
     device: str,
@@ -270,6 +274,8 @@ def command(
             deblend_cont=deblend_cont,
             no_clean=no_clean,
             mask_neighbours=mask_neighbours,
+            mask_margin=mask_margin,
+            mask_fill=mask_fill,
             weight_path=weight_path,
             mask_path=mask_path,
             noise_path=noise_path,

@@ -311,7 +311,7 @@ def write_scenes(
 ) -> None:
     """The scene products, each written whole or not at all: the images (``SCI``, ``WGT``,
     ``MSK``, ``PSF`` cubes, ``NOISE`` for correlated noise, and the ``IMAGES`` table) and the
-    truth table (``CONFIG`` HDU)."""
+    truth table (``CONFIG`` HDU; ``STARS`` with stars)."""
     import contextlib
 
     import fitsio
@@ -330,7 +330,10 @@ def write_scenes(
                 fmt=SCENE_TRUTH_FORMAT,
                 cards=cards,
                 overwrite=overwrite,
-                extra_hdus={"CONFIG": config_table(cfg)},
+                extra_hdus={
+                    "CONFIG": config_table(cfg),
+                    **({} if scenes.stars is None else {"STARS": to_structured(scenes.stars)}),
+                },
             )
         )
         writer.append(scenes.truth)

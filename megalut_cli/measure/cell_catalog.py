@@ -104,5 +104,7 @@ def metadetect_cards(request: MeasureRequest, size: int) -> dict[str, Any]:
         "DBCONT": (float(detection.cont), "deblending minimum contrast"),
         "DBCLEAN": (bool(detection.clean), "sep's cleaning of the detections"),
         "MASKNBR": (bool(detection.mask_neighbours), "other detections masked in the stamps"),
+        "MASKMRGN": (float(detection.mask_margin), "NEAR_MASK within this of a masked pixel [px]"),
+        "MASKFILL": (detection.mask_fill, "what the masked pixels hold (measure --mask-fill)"),
         "DETECTOR": ("sep", "detection code (Source Extractor as a library)"),
     }

@@ -15,9 +15,17 @@ from typing import Any
 
 import numpy as np
 
+from megalut_cli import flags as fl
 from megalut_cli.engine import DEFAULT_ENGINE
 from megalut_cli.errors import InputError
-from megalut_cli.measure.defaults import MDET_STAMP_SIZE
+from megalut_cli.measure.defaults import MASK_FILLS, MDET_STAMP_SIZE
+from megalut_cli.measure.feature_sets import nan_when_flagged
+from megalut_cli.measure.masks import (
+    MASK_DISTANCE_COLUMN,
+    inpainted,
+    mask_distance,
+    nan_flagged,
+)
 from megalut_cli.measure.measurer import (
     Measurer,
     MeasureSettings,
@@ -185,14 +193,17 @@ def detect(
     return Detections(x, np.asarray(objects["y"], dtype=np.float64), segments)
 
 
-def cleaned_cell(image: np.ndarray, bad: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """A cell as float64 with its bad pixels (None: none) set to 0, and its bad-pixel mask;
-    unmasked NaN or infinite pixels are an InputError."""
+def cleaned_cell(
+    image: np.ndarray, bad: np.ndarray | None, fill: str = MASK_FILLS[0]
+) -> tuple[np.ndarray, np.ndarray]:
+    """A cell as float64 with its bad pixels (None: none) filled (``fill``: "interpolate",
+    the harmonic interpolation of the good pixels, :func:`~.masks.inpainted`; "zero"), and
+    its bad-pixel mask; unmasked NaN or infinite pixels are an InputError."""
     image = np.asarray(image, dtype=np.float64)
     bad = np.zeros(image.shape, bool) if bad is None else np.asarray(bad, dtype=bool)
     if not np.isfinite(image[~bad]).all():
         raise InputError("the cell holds NaN or infinite pixels that are not masked")
-    return np.where(bad, 0.0, image), bad
+    return (inpainted(image, bad) if fill == "interpolate" else np.where(bad, 0.0, image)), bad
 
 
 def unsheared(
@@ -273,6 +284,20 @@ def detected_stamps(
     return found, at, cut_around(image, bad, *at, stamp_size, found.segments)
 
 
+def flag_near_mask(
+    feats: dict[str, np.ndarray],
+    distance: np.ndarray,
+    margin: float,
+    settings: MeasureSettings,
+) -> None:
+    """Add ``mask_dist`` (``distance``: each row's to the nearest masked pixel of its cell)
+    to the columns ``feats`` and flag NEAR_MASK, with NaN features, the rows within
+    ``margin`` (in place)."""
+    feats[MASK_DISTANCE_COLUMN] = distance.astype(np.float32)
+    feats["flags"][distance <= margin] |= fl.NEAR_MASK
+    nan_flagged(feats, feats["flags"], nan_when_flagged(settings.feature_sets))
+
+
 def metadetect_cell(
     image: np.ndarray,
     psf: np.ndarray,
@@ -287,8 +312,9 @@ def metadetect_cell(
     fixnoise that moves with the image, :mod:`.cell_fixnoise`), sep's detections on each at
     ``detection.thresh`` times its noise, and the features of a ``stamp_size`` stamp around
     each detection. Returns the columns ``mdet_step``, ``x``, ``y`` (1-based), the
-    features, ``psf_adamom_*`` (the target PSF's) and ``n_masked``, one row per detection
-    per version, version by version."""
+    features, ``psf_adamom_*`` (the target PSF's), ``n_masked`` and ``mask_dist`` (NEAR_MASK
+    within ``detection.mask_margin``), one row per detection per version, version by
+    version."""
     # GalSim: metadetect only
     from megalut_cli.measure.metacal import noise_field as drawn_noise
     from megalut_cli.measure.metacal import stamp_target_columns
@@ -296,7 +322,7 @@ def metadetect_cell(
     mc = settings.metacal
     if mc is None:
         raise ValueError("metadetect needs settings.metacal (the step, seed and target)")
-    image, bad = cleaned_cell(image, bad)
+    image, bad = cleaned_cell(image, bad, detection.mask_fill)
     size = image.shape[0]
     psfs = same_parity_psfs(np.asarray(psf, dtype=np.float64)[None], size)
     sigma = noise.sigma if np.isfinite(noise.sigma) and noise.sigma > 0 else 0.0
@@ -334,6 +360,7 @@ def metadetect_cell(
         feats = measurer.measure(StampBatch(stamps, origins, masked=masked, centres=centres))
         feats = {c: v[:n] for c, v in feats.items()}
         ux, uy = unsheared(x, y, size, SHEARS[kind], mc.step)
+        flag_near_mask(feats, mask_distance(bad, ux, uy), detection.mask_margin, settings)
         row = {MDET_COLUMN: np.full(n, kind), "x": ux + 1.0, "y": uy + 1.0, **feats}
         for c in TARGET_PSF_COLUMNS:
             row[f"psf_{c}"] = np.full(n, target[f"psf_{c}_{kind}"][0])
@@ -362,7 +389,7 @@ def detect_cell(
     around each (neighbours left in), the PSF's features, and with ``settings.metacal`` the
     stamps' metacal versions (fixnoise keys ``key * KEY_STRIDE + i``): the stamp route on the
     cell. Returns ``x``, ``y`` (1-based) and the Measurer's columns, one row per detection."""
-    image, bad = cleaned_cell(image, bad)
+    image, bad = cleaned_cell(image, bad, detection.mask_fill)
     found, (at_x, at_y), (stamps, masked, origins, centres) = detected_stamps(
         image, noise_sigma, detection, bad, stamp_size
     )
@@ -379,5 +406,6 @@ def detect_cell(
         psfs=PsfImages(np.asarray(psf, dtype=np.float64)[None], np.zeros(len(stamps), np.int64)),
         fixnoise_keys=int(key) * KEY_STRIDE + np.arange(len(stamps)),
     )
-    feats = Measurer(settings).measure(batch)
-    return {"x": x + 1.0, "y": y + 1.0, **{c: v[:n] for c, v in feats.items()}}
+    feats = {c: v[:n] for c, v in Measurer(settings).measure(batch).items()}
+    flag_near_mask(feats, mask_distance(bad, x, y), detection.mask_margin, settings)
+    return {"x": x + 1.0, "y": y + 1.0, **feats}

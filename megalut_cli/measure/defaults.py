@@ -32,6 +32,12 @@ DETECT_THRESH = 5.0
 DETECT_MINAREA = 4
 DEBLEND_NTHRESH = 32
 DEBLEND_CONT = 0.005
+#: ``--metadetect``, ``--detect``: a detection whose unsheared position lies within this
+#: many pixels of a masked pixel of its cell is flagged NEAR_MASK (docs/metadetect.md).
+MASK_MARGIN = 10.0
+#: ``--metadetect``, ``--detect``: what the masked pixels of a cell hold before the metacal
+#: operation and detection: the harmonic interpolation of their good neighbours, or 0.
+MASK_FILLS = ("interpolate", "zero")
 #: ``--metadetect`` on a coadd image: the side of the cells it is cut into and the border
 #: outside each cell's inner region (Rubin's cell coadds: 250-pixel cells, inner 150).
 CELL_SIZE = 250

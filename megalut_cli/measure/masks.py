@@ -20,6 +20,10 @@ CENTRAL_MASK_RADIUS = 2.0
 MASKED_COLUMN = "n_masked"
 #: Column of the noise from the weight map.
 NOISE_COLUMN = "noise_weight"
+#: Largest region of connected masked pixels :func:`inpainted` interpolates (larger: 0).
+MAX_INTERPOLATED_REGION = 4096
+#: Column of a detection's distance to the nearest masked pixel of its cell (metadetection).
+MASK_DISTANCE_COLUMN = "mask_dist"
 
 
 def masked_pixels(
@@ -78,3 +82,73 @@ def nan_flagged(columns: dict[str, np.ndarray], flags: np.ndarray, names: tuple[
     for c in names:
         if c in columns:
             columns[c][bad] = np.nan
+
+
+def mask_distance(bad: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The distance (pixels) from the 0-based positions ``x, y`` of an image to its nearest
+    ``bad`` pixel (centre to centre, from the pixel holding the position; inf when the image
+    has none)."""
+    if not bad.any():
+        return np.full(len(x), np.inf)
+    from scipy import ndimage  # SciPy: cells with masked pixels only
+
+    distance = ndimage.distance_transform_edt(~bad)
+    ny, nx = bad.shape
+    col = np.clip(np.floor(np.asarray(x) + 0.5).astype(np.int64), 0, nx - 1)
+    row = np.clip(np.floor(np.asarray(y) + 0.5).astype(np.int64), 0, ny - 1)
+    return distance[row, col]
+
+
+def inpainted(image: np.ndarray, bad: np.ndarray) -> np.ndarray:
+    """``image`` with its ``bad`` pixels replaced by the harmonic interpolation of the good
+    ones: each bad pixel the mean of its neighbours in the image (Laplace's equation, the
+    good pixels its boundary). A region of bad pixels larger than
+    :data:`MAX_INTERPOLATED_REGION` pixels (the part of a coadd's edge cell off the image),
+    or touching no good pixel, is 0."""
+    out = np.where(bad, 0.0, np.asarray(image, dtype=np.float64))
+    if not bad.any():
+        return out
+    from scipy import ndimage, sparse  # SciPy: cells with masked pixels only
+    from scipy.sparse.linalg import spsolve
+
+    labels, n_regions = ndimage.label(bad)  # 4-connected regions
+    small = np.bincount(labels.ravel()) <= MAX_INTERPOLATED_REGION
+    small[0] = False
+    bad = small[labels]
+    if not bad.any():
+        return out
+    ny, nx = bad.shape
+    bordered = np.zeros(n_regions + 1, dtype=bool)
+    rows, cols = np.nonzero(bad)
+    n = len(rows)
+    index = np.full(bad.shape, -1, dtype=np.int64)
+    index[rows, cols] = np.arange(n)
+    diagonal, rhs = np.zeros(n), np.zeros(n)
+    at_row, at_col, values = [], [], []
+    for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        r, c = rows + dr, cols + dc
+        k = np.flatnonzero((r >= 0) & (r < ny) & (c >= 0) & (c < nx))
+        diagonal[k] += 1.0
+        neighbour = index[r[k], c[k]]
+        unknown = neighbour >= 0
+        at_row.append(k[unknown])
+        at_col.append(neighbour[unknown])
+        values.append(np.full(int(unknown.sum()), -1.0))
+        good = k[~unknown]
+        rhs[good] += out[r[good], c[good]]
+        bordered[labels[rows[good], cols[good]]] = True
+    alone = ~bordered[labels[rows, cols]]  # a region with no good neighbour: 0
+    keep = [~alone[r_] for r_ in at_row]
+    diagonal[alone] = 1.0
+    matrix = sparse.csr_matrix(
+        (
+            np.concatenate([diagonal, *(v[m] for v, m in zip(values, keep))]),
+            (
+                np.concatenate([np.arange(n), *(a[m] for a, m in zip(at_row, keep))]),
+                np.concatenate([np.arange(n), *(a[m] for a, m in zip(at_col, keep))]),
+            ),
+        ),
+        shape=(n, n),
+    )
+    out[rows, cols] = spsolve(matrix, np.where(alone, 0.0, rhs))
+    return out

@@ -110,6 +110,8 @@ def measure_file_columns(
     deblend_cont: float = MEASURE["deblend_cont"].default,
     no_clean: bool = MEASURE["no_clean"].default,
     mask_neighbours: bool = MEASURE["mask_neighbours"].default,
+    mask_margin: float = MEASURE["mask_margin"].default,
+    mask_fill: str = MEASURE["mask_fill"].default,
     weight_path: str | os.PathLike | None = None,
     mask_path: str | os.PathLike | None = None,
     noise_path: str | os.PathLike | None = None,
@@ -180,7 +182,9 @@ def measure_file_columns(
             fewest pixels, the deblending sub-thresholds and minimum contrast, sep's cleaning
             switched off.
         mask_neighbours: ``metadetect`` and ``detect``: the other detections' segments
-            masked in each detection's stamp.
+            masked in each detection's stamp; ``mask_margin``: detections whose unsheared
+            position lies that close to a masked pixel of the cell are flagged NEAR_MASK;
+            ``mask_fill``: what the masked pixels hold ("interpolate" or "zero").
         weight_path, mask_path, noise_path, cell_size, cell_border: ``metadetect`` on one
             coadd image (:mod:`.coadd`): its inverse-variance map (required), mask bits and
             a noise realization (optional, for correlated noise), and the cells it is cut
@@ -220,6 +224,8 @@ def measure_file_columns(
             float(deblend_cont),
             not no_clean,
             bool(mask_neighbours),
+            float(mask_margin),
+            str(mask_fill),
         )
         if metadetect or detect
         else None

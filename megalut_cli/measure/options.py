@@ -20,6 +20,8 @@ from megalut_cli.measure.defaults import (
     DEBLEND_NTHRESH,
     DETECT_MINAREA,
     DETECT_THRESH,
+    MASK_FILLS,
+    MASK_MARGIN,
     MDET_STAMP_SIZE,
     MIN_STAMP_SIZE,
     ORIGINS,
@@ -185,6 +187,24 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         "--metadetect, --detect: mask the pixels of the other detections (sep's segmentation "
         "of the version) in each detection's stamp: on blends, fewer HSM failures and "
         "centroid shifts (docs/metadetect.md).",
+    ),
+    Option(
+        "mask_margin",
+        "float",
+        MASK_MARGIN,
+        "--metadetect, --detect: flag NEAR_MASK (NaN features) on detections whose unsheared "
+        "position lies within this many pixels of a masked pixel of the cell; the column "
+        "mask_dist holds that distance (docs/metadetect.md).",
+        minimum=0,
+    ),
+    Option(
+        "mask_fill",
+        "choice",
+        MASK_FILLS[0],
+        "--metadetect, --detect: what the cell's masked pixels hold before the metacal "
+        "operation and detection: 'interpolate' (each the mean of its neighbours: a smooth "
+        "fill from the good pixels around) or 'zero' (docs/metadetect.md).",
+        choices=MASK_FILLS,
     ),
     Option(
         "cell_size",

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.errors import Names
+from megalut_cli.measure.defaults import MASK_FILLS, MASK_MARGIN
 from megalut_cli.measure.measurer import MeasureSettings
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.progress import Progress
@@ -100,7 +101,9 @@ class DetectSettings:
     """The detection of ``--metadetect`` (sep): threshold in noise sigmas, the fewest pixels
     of a detection, the deblending sub-thresholds and minimum contrast, and whether sep
     cleans the detections (its default); whether the other detections' segments are masked
-    in each detection's stamp."""
+    in each detection's stamp; how close to a masked pixel of the cell a detection's
+    unsheared position may lie before it is flagged NEAR_MASK (pixels); what the masked
+    pixels hold (``MASK_FILLS``)."""
 
     thresh: float
     minarea: int
@@ -108,6 +111,8 @@ class DetectSettings:
     cont: float
     clean: bool = True
     mask_neighbours: bool = False
+    mask_margin: float = MASK_MARGIN
+    mask_fill: str = MASK_FILLS[0]
 
 
 @dataclass

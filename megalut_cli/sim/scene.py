@@ -33,10 +33,11 @@ from megalut_cli.sim.draw import get_psf, psf_includes_pixel, single_threaded_ga
 from megalut_cli.sim.intrinsic import ellipticity_components, galaxy_fluxes, mag_from_flux
 from megalut_cli.sim.noise import StampNoise, make_noise
 from megalut_cli.sim.profiles import GALAXY_PROFILES
-from megalut_cli.sim.scene_config import SceneSpec
+from megalut_cli.sim.scene_config import MASK_BAD_COLUMN, MASK_SATURATED, SceneSpec
 
 #: Sub-keys of rng_for(seed, STREAM_SCENE, field, KEY).
 _COUNT_KEY, _FIELD_KEY, _GALAXY_KEY, _POSITION_KEY, _NOISE_KEY, _KNOT_KEY, _TWIN_KEY = range(7)
+_STAR_KEY, _DEFECT_KEY = 7, 8
 #: Largest science cube (pixels of all images together; 1 GiB in float32): fail early.
 MAX_SCENE_PIXELS = 2**28
 #: With ``scene.min_separation``: the most draws of one galaxy's position before the field's
@@ -145,7 +146,7 @@ class DrawnField:
     signs: tuple[int, ...]  # +1 (and -1 with pairs)
     images: np.ndarray  # (n_signs, N, N) float32, noise included
     weight: np.ndarray  # (N, N) float32: inverse noise variance (1 when noiseless)
-    mask: np.ndarray  # (N, N) int32, zeros
+    mask: np.ndarray  # (n_signs, N, N) int32: MASK_SATURATED, MASK_BAD_COLUMN bits
     psf: np.ndarray  # (P, P) float32, sums to 1, centred on the central pixel
     noise: np.ndarray  # (N, N) float32: the noise added to every image of the field
     g1: float
@@ -158,6 +159,8 @@ class DrawnField:
     #: correlated noise: another realization of it, independent of ``noise`` (the cells'
     #: ``NOISE`` cube, for metadetection's fixnoise); None otherwise
     noise_twin: np.ndarray | None = None
+    #: the field's stars: ``x, y`` (FITS 1-based), ``flux`` (the same in every image)
+    stars: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def _scalar(values: dict[str, np.ndarray]) -> dict[str, float]:
@@ -177,6 +180,27 @@ class FieldDraw:
     #: one row per galaxy: ``x, y`` (FITS 1-based) and its truth (``tru_*``)
     truth: dict[str, np.ndarray]
     theta: np.ndarray  # position angles (degrees, not reduced to [0, 180))
+    #: the stars: ``x, y`` (FITS 1-based) and ``flux``; empty arrays without stars
+    stars: dict[str, np.ndarray]
+    #: the bad columns' x (FITS 1-based)
+    bad_columns: np.ndarray
+
+
+def field_defects(s: SceneSpec, seed: int, fld: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The stars (``x, y``, ``flux``) and bad columns of field ``fld``, from their own
+    generators (a scene without them draws nothing more)."""
+    stars = {k: np.zeros(0) for k in ("x", "y", "flux")}
+    if s.star_density > 0:
+        rng = rng_for(seed, STREAM_SCENE, fld, _STAR_KEY)
+        n = int(rng.poisson(s.mean_stars))
+        xy = rng.uniform(0.5, s.size + 0.5, (n, 2))
+        log_flux = rng.uniform(np.log(s.star_flux_min), np.log(s.star_flux_max), n)
+        stars = {"x": xy[:, 0], "y": xy[:, 1], "flux": np.exp(log_flux)}
+    columns = np.zeros(0, dtype=np.int64)
+    if s.bad_columns > 0:
+        rng = rng_for(seed, STREAM_SCENE, fld, _DEFECT_KEY)
+        columns = np.unique(rng.integers(1, s.size + 1, int(rng.poisson(s.bad_columns))))
+    return stars, columns
 
 
 def field_parameters(
@@ -240,7 +264,8 @@ def field_parameters(
         t["tru_field_y"] = np.full(n, fpos["y"])
     position = (fpos.get("x", 0.0), fpos.get("y", 0.0))
     g1, g2 = shear.get("g1", 0.0), shear.get("g2", 0.0)
-    return FieldDraw(spec, position, noise, noise_seed, g1, g2, t, theta)
+    stars, columns = field_defects(s, seed, fld)
+    return FieldDraw(spec, position, noise, noise_seed, g1, g2, t, theta, stars, columns)
 
 
 def draw_field(unit: FieldUnit) -> DrawnField:
@@ -294,9 +319,23 @@ def draw_field(unit: FieldUnit) -> DrawnField:
                 ) from None
             fields[j][overlap] += stamp[overlap]
             flux_drawn[j, k] = float(np.sum(stamp[overlap].array, dtype=np.float64))
+    if len(d.stars["x"]):
+        starlight = galsim.ImageF(s.size, s.size, scale=1.0)
+        for x, y, flux in zip(d.stars["x"], d.stars["y"], d.stars["flux"]):
+            _add_star(starlight, psf.withFlux(float(flux)), x, y, max_stamp, method)
+        for f in fields:
+            f += starlight
     noise_image = galsim.ImageF(s.size, s.size, scale=1.0)
     noise.add(noise_image, d.noise_seed)  # on an empty field: the same pixels for every sign
     images = np.stack([f.array + noise_image.array for f in fields]).astype(np.float32)
+    mask = np.zeros(images.shape, dtype=np.int32)
+    if s.saturation > 0:
+        saturated = images >= s.saturation
+        images[saturated] = s.saturation
+        mask[saturated] |= MASK_SATURATED
+    if len(d.bad_columns):
+        images[:, :, d.bad_columns - 1] = np.nan
+        mask[:, :, d.bad_columns - 1] |= MASK_BAD_COLUMN
     twin = None
     if noise.kind == "correlated":
         twin_seed = int(
@@ -314,7 +353,7 @@ def draw_field(unit: FieldUnit) -> DrawnField:
         signs,
         images,
         weight,
-        np.zeros((s.size, s.size), dtype=np.int32),
+        mask,
         psf_image,
         noise_image.array.astype(np.float32),
         d.g1,
@@ -323,7 +362,24 @@ def draw_field(unit: FieldUnit) -> DrawnField:
         t,
         flux_drawn,
         twin,
+        d.stars,
     )
+
+
+def _add_star(image: Any, star: Any, x: float, y: float, max_stamp: int, method: str) -> None:
+    """Add the PSF ``star`` (a GalSim object with its flux) at ``(x, y)`` (FITS 1-based) to
+    ``image``, drawn on a stamp of GalSim's good size (at most ``max_stamp``) around it."""
+    import galsim
+
+    side = min(star.getGoodImageSize(1.0), max_stamp)
+    ix, iy = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))
+    half = side // 2
+    bounds = galsim.BoundsI(ix - half, ix - half + side - 1, iy - half, iy - half + side - 1)
+    overlap = bounds & image.bounds
+    if overlap.isDefined():
+        stamp = galsim.ImageF(bounds, scale=1.0)
+        star.drawImage(image=stamp, center=galsim.PositionD(x, y), method=method)
+        image[overlap] += stamp[overlap]
 
 
 def field_units(config: SimConfig, seed: int) -> list[FieldUnit]:
@@ -360,6 +416,24 @@ class Scenes:
     truth: dict[str, np.ndarray]
     #: correlated noise: an independent realization per image (n_images, N, N), else None
     noise: np.ndarray | None = None
+    #: with ``scene.star_density``: one row per star per image (image, field, pair_sign,
+    #: x, y, flux), else None
+    stars: dict[str, np.ndarray] | None = None
+
+
+def star_rows(drawn: DrawnField, first_image: int) -> dict[str, np.ndarray]:
+    """The star table rows of a drawn field: its stars once per image (sign)."""
+    n = len(drawn.stars["x"])
+    parts = [
+        {
+            "image": np.full(n, first_image + j, dtype=np.int64),
+            "field": np.full(n, drawn.field, dtype=np.int64),
+            "pair_sign": np.full(n, sign, dtype=np.int64),
+            **{k: drawn.stars[k] for k in ("x", "y", "flux")},
+        }
+        for j, sign in enumerate(drawn.signs)
+    ]
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
 def truth_rows(drawn: DrawnField, first_image: int) -> dict[str, np.ndarray]:
@@ -395,6 +469,7 @@ def draw_scenes(
         k: [] for k in ("image", "field", "pair_sign", "n_gal", "tru_g1", "tru_g2", "tru_sky_sigma")
     }
     truths = []
+    stars = []
     noise = None
     for drawn in iter_fields(config, seed, nproc, scheduler):
         first = drawn.field * s.n_signs
@@ -407,7 +482,7 @@ def draw_scenes(
             images[i], weights[i], masks[i], psfs[i] = (
                 drawn.images[j],
                 drawn.weight,
-                drawn.mask,
+                drawn.mask[j],
                 drawn.psf,
             )
             for key, value in (
@@ -421,12 +496,15 @@ def draw_scenes(
             ):
                 table[key].append(value)
         truths.append(truth_rows(drawn, first))
+        if s.star_density > 0:
+            stars.append(star_rows(drawn, first))
     image_table = {
         k: np.asarray(v, dtype=np.int64 if k in ("image", "field", "pair_sign", "n_gal") else float)
         for k, v in table.items()
     }
     truth = {k: np.concatenate([t[k] for t in truths]) for k in truths[0]}
-    return Scenes(images, weights, masks, psfs, image_table, truth, noise)
+    star_table = {k: np.concatenate([t[k] for t in stars]) for k in stars[0]} if stars else None
+    return Scenes(images, weights, masks, psfs, image_table, truth, noise, star_table)
 
 
 #: File formats (``MLFORMAT``) of the scene images and of their truth table.
@@ -452,6 +530,7 @@ def scene_cards(config: SimConfig, seed: int) -> dict[str, Any]:
             if s.min_separation > 0
             else {}
         ),
+        **_defect_cards(s),
         "XYORIGIN": (1, "x, y are FITS 1-based pixel coordinates"),
         "NOISE": (
             config.noise.type if config.noise.override_sigma is None else "gaussian",
@@ -465,6 +544,23 @@ def scene_cards(config: SimConfig, seed: int) -> dict[str, Any]:
     return cards
 
 
+def _defect_cards(s: SceneSpec) -> dict[str, Any]:
+    """The cards of the stars, saturation and bad columns that are set."""
+    cards: dict[str, Any] = {}
+    if s.star_density > 0:
+        cards["STARDENS"] = (s.star_density, "mean stars per arcmin2 (not sheared)")
+        cards["STARFMIN"] = (s.star_flux_min, "smallest star flux (log-uniform)")
+        cards["STARFMAX"] = (s.star_flux_max, "largest star flux")
+    if s.saturation > 0:
+        cards["SATURATE"] = (s.saturation, f"saturation level (MSK bit {MASK_SATURATED})")
+    if s.bad_columns > 0:
+        cards["BADCOLS"] = (
+            s.bad_columns,
+            f"mean bad columns per field (MSK bit {MASK_BAD_COLUMN})"[:68],
+        )
+    return cards
+
+
 def plan_text(config: SimConfig, seed: int) -> str:
     """What drawing the scenes of ``config`` will do, in one line."""
     s = scene_spec(config)
@@ -474,4 +570,7 @@ def plan_text(config: SimConfig, seed: int) -> str:
         + (" drawn at +g and -g" if s.pairs else "")
         + f" ({s.n_images} images), {s.density:g} galaxies/arcmin² = {s.mean_count:.1f} per "
         f"field on average ({int(counts.sum())} in all)"
+        + (f", {s.star_density:g} stars/arcmin²" if s.star_density > 0 else "")
+        + (f", saturation at {s.saturation:g}" if s.saturation > 0 else "")
+        + (f", {s.bad_columns:g} bad columns per field" if s.bad_columns > 0 else "")
     )

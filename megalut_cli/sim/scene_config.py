@@ -20,6 +20,9 @@ from megalut_cli.schema import Option, Table
 #: covered by disks of diameter ``min_separation`` around the galaxies: random sequential
 #: placement jams near 55 %, and a field's Poisson count may well exceed the mean.
 MAX_COVERAGE = 0.3
+#: Bits of the scenes' ``MSK`` cube: a saturated pixel, a pixel of a bad column.
+MASK_SATURATED = 1
+MASK_BAD_COLUMN = 2
 #: The keys of ``[scene]``, declared once (checks, the table of docs/scenes.md).
 SCENE_OPTIONS: tuple[Option, ...] = (
     Option(
@@ -79,6 +82,50 @@ SCENE_OPTIONS: tuple[Option, ...] = (
         minimum=0.0,
         allowed_text=f"[0, size − 2 border]; mean coverage ≤ {100 * MAX_COVERAGE:g} %",
     ),
+    Option(
+        "star_density",
+        "float",
+        0.0,
+        "stars per arcmin²: each field holds a Poisson number of mean star_density × the "
+        "field's area, at uniform positions, not sheared (the same in every image of a pair): "
+        "the PSF times a flux drawn log-uniformly in [star_flux_min, star_flux_max]; 0: none",
+        minimum=0.0,
+        maximum=1e5,
+    ),
+    Option(
+        "star_flux_min",
+        "float",
+        1e3,
+        "smallest star flux (the stars' fluxes are log-uniform)",
+        minimum=0.0,
+        min_open=True,
+    ),
+    Option(
+        "star_flux_max",
+        "float",
+        1e6,
+        "largest star flux",
+        minimum=0.0,
+        min_open=True,
+        allowed_text="≥ star_flux_min",
+    ),
+    Option(
+        "saturation",
+        "float",
+        0.0,
+        "pixels above this value (noise included) are set to it and masked "
+        f"(`MSK` bit {MASK_SATURATED}, per image); 0: no saturation",
+        minimum=0.0,
+    ),
+    Option(
+        "bad_columns",
+        "float",
+        0.0,
+        "mean number of bad columns per field (Poisson; the same in every image of a "
+        f"pair): whole columns set to NaN and masked (`MSK` bit {MASK_BAD_COLUMN}); 0: none",
+        minimum=0.0,
+        maximum=1e4,
+    ),
 )
 SCENE = {o.name: o for o in SCENE_OPTIONS}
 
@@ -95,6 +142,11 @@ class SceneSpec:
     border: int
     psf_size: int
     min_separation: float = 0.0
+    star_density: float = 0.0
+    star_flux_min: float = 1e3
+    star_flux_max: float = 1e6
+    saturation: float = 0.0
+    bad_columns: float = 0.0
 
     @property
     def n_signs(self) -> int:
@@ -117,6 +169,17 @@ class SceneSpec:
         return self.density * self.area_arcmin2
 
     @property
+    def mean_stars(self) -> float:
+        """Mean number of stars per field (over the whole field)."""
+        side = self.size * self.pixel_scale / 60.0
+        return self.star_density * side * side
+
+    @property
+    def has_defects(self) -> bool:
+        """Whether the images get stars, saturation or bad columns (masks not all zero)."""
+        return self.star_density > 0 or self.saturation > 0 or self.bad_columns > 0
+
+    @property
     def coverage(self) -> float:
         """The mean fraction of the placement square (the centres' square, widened by
         ``min_separation``) covered by disks of diameter ``min_separation`` (0 without)."""
@@ -128,9 +191,10 @@ class SceneSpec:
 def parse_scene(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> SceneSpec:
     """The ``[scene]`` table of the config ``raw`` (defaults where absent)."""
     t = Table(raw.get("scene"), "scene", set(SCENE))
-    density, size, scale, n_fields, pairs, border, psf_size, min_sep = (
+    density, size, scale, n_fields, pairs, border, psf_size, min_sep, *defects = (
         t.option(o) for o in SCENE_OPTIONS
     )
+    star_density, flux_min, flux_max, saturation, bad_columns = (float(v) for v in defects)
     inst_scale = instrument.get("pixel_scale")
     if scale is None:
         if inst_scale is None:
@@ -152,8 +216,24 @@ def parse_scene(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> Scen
             f"scene.min_separation: must be at most size - 2 border = {size - 2 * border} "
             f"(the side of the square holding the centres), got {min_sep:g}"
         )
+    if flux_max < flux_min:
+        raise ConfigError(
+            f"scene.star_flux_max: must be at least star_flux_min = {flux_min:g}, got {flux_max:g}"
+        )
     spec = SceneSpec(
-        float(density), size, float(scale), n_fields, pairs, border, psf_size, float(min_sep)
+        float(density),
+        size,
+        float(scale),
+        n_fields,
+        pairs,
+        border,
+        psf_size,
+        float(min_sep),
+        star_density,
+        flux_min,
+        flux_max,
+        saturation,
+        bad_columns,
     )
     if spec.coverage > MAX_COVERAGE:
         raise ConfigError(
