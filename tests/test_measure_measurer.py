@@ -98,3 +98,35 @@ def test_psf_grouping_changes_nothing_but_rounding():
     assert list(a) == list(b)
     for c in a:
         assert_same_column(a[c], b[c], c, FLOAT32_SUMS)
+
+
+def test_masked_stamps_near_mask_and_filled_metacal():
+    """``mask_margin``: a masked pixel of the stamp within it flags NEAR_MASK (NaN features,
+    every version skipped), ``mask_dist`` its distance. Metacal takes the masked pixels
+    filled from their neighbours (what they held never reaches the operation) and leaves
+    them out of every version's moments: a masked column 11 px from a galaxy leaves its
+    response within 1e-4 of the unmasked one (1e-5 measured)."""
+    stamps, psf = galaxies(3, noise=1e-4)
+    masked = np.zeros(stamps.shape, bool)
+    masked[0, :, 15 + 6] = True  # a column 5.5 px from the centre (15.5, 15.5): flagged
+    masked[1, :, 15 + 12] = True  # 11.5 px: measured
+    psfs = PsfImages(psf[None], np.zeros(3, np.int64))
+    settings = MeasureSettings(metacal=MetacalSettings(STEP, 5), mask_margin=10.0)
+    garbage = np.where(masked, 1e4, stamps)
+    cols = Measurer(settings).measure(
+        StampBatch(garbage, np.ones((3, 2)), masked=masked, psfs=psfs)
+    )
+    np.testing.assert_allclose(cols["mask_dist"][:2], [np.hypot(5.5, 0.5), np.hypot(11.5, 0.5)])
+    assert np.isinf(cols["mask_dist"][2])
+    assert cols["flags"][0] & fl.NEAR_MASK and cols["flags"][1] == 0 == cols["flags"][2]
+    for kind in ("noshear", "1p"):
+        assert cols[f"flags_{kind}"][0] & fl.NEAR_MASK and np.isnan(cols[f"adamom_g1_{kind}"][0])
+    clean = Measurer(settings).measure(
+        StampBatch(stamps, np.ones((3, 2)), masked=np.where(masked, False, masked), psfs=psfs)
+    )
+    same = Measurer(settings).measure(StampBatch(stamps, np.ones((3, 2)), masked=masked, psfs=psfs))
+    for c in ("adamom_g1_1p", "adamom_g1_1m", "adamom_sigma_noshear"):
+        assert same[c][1] == cols[c][1], c  # the masked pixels' values never matter
+    response = (cols["adamom_g1_1p"] - cols["adamom_g1_1m"]) / (2 * STEP)
+    unmasked = (clean["adamom_g1_1p"] - clean["adamom_g1_1m"]) / (2 * STEP)
+    assert abs(response[1] / unmasked[1] - 1) < 1e-4, (response[1], unmasked[1])

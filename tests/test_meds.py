@@ -465,6 +465,37 @@ def test_cli_contract(runner, cli, grid, tmp_path):
     assert not bad.exists() and not list(tmp_path.glob(".bad.fits*"))
 
 
+def test_a_masked_pixel_near_the_object_flags_near_mask(runner, cli, tmp_path):
+    """``--mask-margin`` (default 10) on MEDS input: an object with a masked pixel of its
+    cutout within 10 px is flagged NEAR_MASK with NaN features (every metacal version too),
+    ``mask_dist`` holds the distance (inf without masked pixels); ``--mask-margin 0`` flags
+    nothing and writes no ``mask_dist``."""
+    stamps, _ = galaxy_stamps(3, seed=7)
+    bmask = np.zeros(stamps.shape, np.int32)
+    bmask[0, :, 16 + 6] = 1  # a bad column 6 px from the centre (16, 16): flagged
+    bmask[1, :, 16 + 13] = 1  # 13 px: measured
+    meds = tmp_path / "m.meds.fits"
+    write_meds(meds, stamps, bmasks=bmask, psfs=np.stack([psf_image()] * 3))
+    out, off = tmp_path / "f.fits", tmp_path / "off.fits"
+    result = runner.invoke(cli, ["measure", str(meds), "-o", str(out), "--metacal"])
+    assert result.exit_code == 0, result.output
+    table, header = read_catalog_columns(out)
+    assert header["MASKMRGN"] == 10.0
+    np.testing.assert_allclose(table["mask_dist"][:2], [6.0, 13.0], atol=0.75)
+    assert np.isinf(table["mask_dist"][2])
+    assert table["flags"][0] & fl.NEAR_MASK and table["flags"][1] == 0 == table["flags"][2]
+    assert table["flags_1p"][0] & fl.NEAR_MASK and np.isnan(table["adamom_g1_1p"][0])
+    assert np.isfinite(table["adamom_g1_1p"][1:]).all()
+    args = ["measure", str(meds), "-o", str(off), "--metacal", "--mask-margin", "0"]
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    again, header = read_catalog_columns(off)
+    assert "mask_dist" not in again and header["MASKMRGN"] == 0.0
+    assert (again["flags"] == 0).all()
+    # the other objects as before (to the float32 sums of a metacal block of other size)
+    np.testing.assert_allclose(again["adamom_g1_1p"][1:], table["adamom_g1_1p"][1:], atol=1e-6)
+
+
 def test_meds_with_a_psfex_model_end_to_end(runner, cli, grid, tmp_path):
     """`megalut measure X.meds.fits --psf-model DECam.psf [--metacal]`: each object's
     psf_adamom_* are those of the real DECam PSFEx model drawn at (orig_col + 1,

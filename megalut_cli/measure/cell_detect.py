@@ -350,7 +350,7 @@ def metadetect_cell(
     target = stamp_target_columns(
         mc.target, psfs, np.zeros(1, np.int64), np.array([target_sigma]), mc.step, stamp_size
     )
-    measurer = Measurer(dataclasses.replace(settings, metacal=None))
+    measurer = Measurer(dataclasses.replace(settings, metacal=None, mask_margin=0.0))
     parts: list[dict[str, np.ndarray]] = []
     for kind in TYPES:
         found, _, (stamps, masked, origins, centres) = detected_stamps(
@@ -406,6 +406,7 @@ def detect_cell(
         psfs=PsfImages(np.asarray(psf, dtype=np.float64)[None], np.zeros(len(stamps), np.int64)),
         fixnoise_keys=int(key) * KEY_STRIDE + np.arange(len(stamps)),
     )
-    feats = {c: v[:n] for c, v in Measurer(settings).measure(batch).items()}
+    cell_measurer = Measurer(dataclasses.replace(settings, mask_margin=0.0))  # the cell's below
+    feats = {c: v[:n] for c, v in cell_measurer.measure(batch).items()}
     flag_near_mask(feats, mask_distance(bad, x, y), detection.mask_margin, settings)
     return {"x": x + 1.0, "y": y + 1.0, **feats}

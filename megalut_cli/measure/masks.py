@@ -76,12 +76,36 @@ def too_masked(masked: np.ndarray, centres: np.ndarray | None = None) -> np.ndar
     return (frac > MAX_MASKED_FRACTION) | central
 
 
+def stamp_mask_distance(masked: np.ndarray, centres: np.ndarray | None = None) -> np.ndarray:
+    """The distance (pixels) from each object's position in its stamp (``centres``, ``(n,
+    2)`` 0-based ``(col, row)``; default the stamp centre) to the stamp's nearest masked
+    pixel (inf where none)."""
+    n, ny, nx = masked.shape
+    if centres is None:
+        centres = np.tile([(nx - 1) / 2.0, (ny - 1) / 2.0], (n, 1))
+    centres = np.asarray(centres, dtype=np.float64).reshape(n, 2)
+    out = np.full(n, np.inf)
+    for i in np.flatnonzero(masked.reshape(n, -1).any(axis=1)):
+        rows, cols = np.nonzero(masked[i])
+        out[i] = np.sqrt(np.min((cols - centres[i, 0]) ** 2 + (rows - centres[i, 1]) ** 2))
+    return out
+
+
 def nan_flagged(columns: dict[str, np.ndarray], flags: np.ndarray, names: tuple[str, ...]) -> None:
     """Set ``names`` to NaN on the rows with ``flags != 0`` (in place)."""
     bad = flags != 0
     for c in names:
         if c in columns:
             columns[c][bad] = np.nan
+
+
+def filled_stamps(stamps: np.ndarray, masked: np.ndarray) -> np.ndarray:
+    """``stamps`` (n, S, S) with their ``masked`` pixels filled by :func:`inpainted` (the
+    stamps without masked pixels as they are)."""
+    out = np.array(stamps, dtype=np.float64)
+    for i in np.flatnonzero(masked.reshape(len(masked), -1).any(axis=1)):
+        out[i] = inpainted(out[i], masked[i])
+    return out
 
 
 def mask_distance(bad: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:

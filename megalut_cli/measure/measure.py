@@ -215,6 +215,7 @@ def measure_file_columns(
         if metacal or metadetect
         else None,
         float(moments_retry),
+        float(mask_margin),
     )
     detection = (
         DetectSettings(

@@ -24,10 +24,13 @@ from megalut_cli.measure.features import (
     signal_to_noise,
 )
 from megalut_cli.measure.masks import (
+    MASK_DISTANCE_COLUMN,
     MASKED_COLUMN,
     NOISE_COLUMN,
+    filled_stamps,
     masked_sky_mad,
     nan_flagged,
+    stamp_mask_distance,
     too_masked,
     weight_noise,
 )
@@ -44,7 +47,7 @@ from megalut_cli.measure.metacal_defaults import (
 RETRY_CARD = "HSMRETRY"
 
 #: Flags of a stamp that metacal leaves out (its versions get the same flags).
-METACAL_SKIPPED = fl.MASKED_PIXELS | fl.PSF_FAILED | fl.BAD_PIXELS
+METACAL_SKIPPED = fl.MASKED_PIXELS | fl.NEAR_MASK | fl.PSF_FAILED | fl.BAD_PIXELS
 
 
 @dataclass(frozen=True)
@@ -60,8 +63,10 @@ class MetacalSettings:
 @dataclass(frozen=True)
 class MeasureSettings:
     """What is measured of every stamp: the gain of the S/N, the moments' engine and device,
-    the optional feature sets (names), the metacal operation (None: none) and the step
-    factor of the moments' damped retry (0: none, GalSim's failures)."""
+    the optional feature sets (names), the metacal operation (None: none), the step
+    factor of the moments' damped retry (0: none, GalSim's failures), and how close to the
+    object a masked pixel of its stamp may lie before it is flagged NEAR_MASK (pixels; 0:
+    never)."""
 
     gain: float | None = None
     engine: str = DEFAULT_ENGINE
@@ -69,6 +74,7 @@ class MeasureSettings:
     feature_sets: tuple[str, ...] = ()
     metacal: MetacalSettings | None = None
     moments_retry: float = 0.0
+    mask_margin: float = 0.0
 
     @property
     def feature_columns(self) -> tuple[str, ...]:
@@ -230,6 +236,17 @@ class Measurer:
             feats.update(compute_extra(s.feature_sets, stamps, origins, feats))
         return feats
 
+    def masked_features(
+        self, stamps: np.ndarray, masked: np.ndarray, origins: np.ndarray | None
+    ) -> dict[str, np.ndarray]:
+        """:meth:`features` of ``stamps`` whose ``masked`` pixels are left out (GalSim's
+        badpix: 0 for the moments, out of the edge pixels of ``skymad``)."""
+        n = len(stamps)
+        zeroed = np.where(masked, 0.0, stamps) if masked.any() else stamps
+        finite = np.isfinite(zeroed).all(axis=(1, 2)) if n else np.zeros(0, bool)
+        skymad = masked_sky_mad(stamps, masked) if n else np.zeros(0)
+        return self.features(zeroed, origins, finite=finite, skymad=skymad)
+
     def measure(self, batch: StampBatch) -> dict[str, np.ndarray]:
         """The columns of a batch: features, then ``n_masked`` and ``noise_weight`` (with a
         mask), ``psf_adamom_*`` (with PSFs), the metacal columns (with metacal and PSFs)."""
@@ -241,12 +258,13 @@ class Measurer:
                 feats.update(compute_extra(s.feature_sets, stamps, batch.origins, feats))
         else:
             assert stamps is not None
-            n, finite, skymad = len(stamps), batch.finite, batch.skymad
             if batch.masked is not None:  # GalSim's badpix: masked pixels are 0 for the moments
+                feats = self.masked_features(stamps, batch.masked, batch.origins)
                 stamps = np.where(batch.masked, 0.0, stamps) if batch.masked.any() else stamps
-                finite = np.isfinite(stamps).all(axis=(1, 2)) if n else np.zeros(0, bool)
-                skymad = masked_sky_mad(batch.stamps, batch.masked) if n else np.zeros(0)
-            feats = self.features(stamps, batch.origins, finite=finite, skymad=skymad)
+            else:
+                feats = self.features(
+                    stamps, batch.origins, finite=batch.finite, skymad=batch.skymad
+                )
             if batch.masked is not None:
                 self._masks(batch, feats)
         self._psfs(batch, feats)
@@ -271,6 +289,10 @@ class Measurer:
         masked, n = batch.masked, len(batch.masked)
         feats[MASKED_COLUMN] = masked.reshape(n, -1).sum(axis=1).astype(np.int32)
         feats["flags"][too_masked(masked, batch.centres)] |= fl.MASKED_PIXELS
+        if self.settings.mask_margin > 0:
+            distance = stamp_mask_distance(masked, batch.centres)
+            feats[MASK_DISTANCE_COLUMN] = distance.astype(np.float32)
+            feats["flags"][distance <= self.settings.mask_margin] |= fl.NEAR_MASK
         nan_flagged(feats, feats["flags"], nan_when_flagged(self.settings.feature_sets))
         if batch.weights is not None:
             noise = weight_noise(np.asarray(batch.weights), masked)
@@ -287,7 +309,10 @@ class Measurer:
         self, batch: StampBatch, stamps: np.ndarray, feats: dict[str, np.ndarray]
     ) -> dict[str, np.ndarray]:
         """``X_<type>`` of the five metacal versions and ``psf_adamom_*_<type>`` of the target
-        PSF; stamps flagged :data:`METACAL_SKIPPED` are left out, with those flags."""
+        PSF; stamps flagged :data:`METACAL_SKIPPED` are left out, with those flags. Masked
+        pixels are filled (:func:`~.masks.filled_stamps`) before the operation and left out
+        of each version's moments, as of the stamp's: the mask stays where it is while the
+        versions shear the object, as a real shear would."""
         from megalut_cli.measure.metacal import (  # GalSim: metacal only
             fixnoise_seeds,
             metacal_versions,
@@ -308,6 +333,7 @@ class Measurer:
         target = np.full(n, np.nan)
         index = np.full(n, -1)
         images = psfs.images[:0]
+        masked = None if batch.masked is None or not batch.masked[ok].any() else batch.masked[ok]
         if ok.any():
             used, index[ok] = np.unique(psfs.index[ok], return_inverse=True)
             images = same_parity_psfs(psfs.images[used], size)
@@ -316,7 +342,7 @@ class Measurer:
             keys = np.arange(n) if batch.fixnoise_keys is None else batch.fixnoise_keys
             origins = batch.origins[ok]
             versions, target[ok] = metacal_versions(
-                stamps[ok],
+                stamps[ok] if masked is None else filled_stamps(batch.stamps[ok], masked),
                 images,
                 s.metacal.step,
                 noise[ok],
@@ -327,7 +353,12 @@ class Measurer:
                 versions_buffer(int(ok.sum()), size) if stamps.shape[1] == size else None,
             )
             for kind in TYPES:
-                for c, v in self.features(versions[kind], origins).items():
+                measured = (
+                    self.features(versions[kind], origins)
+                    if masked is None
+                    else self.masked_features(versions[kind], masked, origins)
+                )
+                for c, v in measured.items():
                     out[f"{c}_{kind}"][ok] = v
         nan_names = nan_when_flagged(s.feature_sets)
         for kind in TYPES:

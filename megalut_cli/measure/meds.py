@@ -54,6 +54,7 @@ from megalut_cli.measure.feature_sets import column_descriptions, optional_colum
 from megalut_cli.measure.features import FEATURE_COLUMNS, warn_if_mostly_flagged
 from megalut_cli.measure.masks import (
     CENTRAL_MASK_RADIUS,
+    MASK_DISTANCE_COLUMN,
     MASKED_COLUMN,
     MAX_MASKED_FRACTION,
     NOISE_COLUMN,
@@ -565,7 +566,8 @@ def measure_cutouts(
 def extra_columns(meds: MedsFile) -> list[str]:
     """The scalar ``object_data`` columns outside the MEDS layout, passed through to the output
     (those named like a feature column are left out)."""
-    own = set(column_descriptions()) | set(PSF_COLUMNS) | {MASKED_COLUMN, NOISE_COLUMN}
+    own = set(column_descriptions()) | set(PSF_COLUMNS)
+    own |= {MASKED_COLUMN, NOISE_COLUMN, MASK_DISTANCE_COLUMN}
     return [
         c
         for c, v in meds.objects.items()
@@ -601,6 +603,8 @@ class MedsOptions:
     feature_sets: tuple[str, ...] = ()
     epochs: bool = MEASURE["epochs"].default
     moments_retry: float = MEASURE["moments_retry"].default
+    #: a masked pixel of the stamp this close to the object flags NEAR_MASK (0: never)
+    mask_margin: float = 0.0
 
 
 def epoch_cutouts(meds: MedsFile) -> list[int]:
@@ -774,6 +778,7 @@ def meds_plan(
             )
     settings = meds_settings(options)
     columns = list(FEATURE_COLUMNS) + [MASKED_COLUMN]
+    columns += [MASK_DISTANCE_COLUMN] if settings.mask_margin > 0 else []
     columns += [NOISE_COLUMN] if meds.has("weight") else []
     columns += list(optional_columns(settings.feature_sets))
     psf_cols = list(PSF_COLUMNS) if source is not None else []
@@ -976,6 +981,7 @@ def meds_settings(options: MedsOptions) -> MeasureSettings:
         if options.metacal
         else None,
         float(options.moments_retry),
+        float(options.mask_margin),
     )
 
 
@@ -1029,6 +1035,7 @@ def measure_request(request: MeasureRequest) -> Measured:
         feature_sets=settings.feature_sets,
         epochs=request.epochs,
         moments_retry=settings.moments_retry,
+        mask_margin=settings.mask_margin,
     )
     if settings.device == "gpu":
         log.info(
@@ -1073,6 +1080,7 @@ def measure_request(request: MeasureRequest) -> Measured:
         "NOISEWT": (meds.has("weight"), "snr from the weight-map noise (noise_weight)"),
         "MASKFRAC": (MAX_MASKED_FRACTION, "masked fraction above which MASKED_PIXELS"),
         "MASKRAD": (CENTRAL_MASK_RADIUS, "masked pixel this close to centre: MASKED_PIXELS"),
+        "MASKMRGN": (float(options.mask_margin), "masked pixel this close: NEAR_MASK [px]"),
     }
     if options.psf_model_path is not None:
         cards.update(cached_psf_model(str(options.psf_model_path)).header_cards())

@@ -192,9 +192,10 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         "mask_margin",
         "float",
         MASK_MARGIN,
-        "--metadetect, --detect: flag NEAR_MASK (NaN features) on detections whose unsheared "
-        "position lies within this many pixels of a masked pixel of the cell; the column "
-        "mask_dist holds that distance (docs/metadetect.md).",
+        "Flag NEAR_MASK (NaN features) on objects within this many pixels of a masked pixel: "
+        "of the cell for --metadetect and --detect (from the detection's unsheared position), "
+        "of the stamp for MEDS input; the column mask_dist holds that distance; 0: no flag "
+        "(docs/metadetect.md, docs/catalogs.md).",
         minimum=0,
     ),
     Option(
