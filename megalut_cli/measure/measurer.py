@@ -260,13 +260,11 @@ class Measurer:
             assert stamps is not None
             if batch.masked is not None:  # GalSim's badpix: masked pixels are 0 for the moments
                 feats = self.masked_features(stamps, batch.masked, batch.origins)
-                stamps = np.where(batch.masked, 0.0, stamps) if batch.masked.any() else stamps
+                self._masks(batch, feats)
             else:
                 feats = self.features(
                     stamps, batch.origins, finite=batch.finite, skymad=batch.skymad
                 )
-            if batch.masked is not None:
-                self._masks(batch, feats)
         self._psfs(batch, feats)
         if stamps is None:
             return feats
