@@ -88,7 +88,8 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "inner": ("", "1: the detection lies in its cell's inner region (metadetect)"),
     "mask_dist": (
         "pixel",
-        "distance from the detection (unsheared) to its cell's nearest masked pixel (inf: none)",
+        "distance to the nearest masked pixel of the cell (from the unsheared detection) or "
+        "of the stamp (MEDS); inf: none",
     ),
     "cell": ("", "metadetection of a coadd: the cell the row was detected in (row by row)"),
     "tru_hst_noise_var": ("adu2", "variance of the HST noise left in the stamp"),

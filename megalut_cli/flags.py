@@ -28,8 +28,9 @@ NO_CUTOUT = 1 << 8
 #: more than ``meds.MAX_MASKED_FRACTION`` (25 %) of the stamp, or one within
 #: ``meds.CENTRAL_MASK_RADIUS`` (2 pixels) of the object's position.
 MASKED_PIXELS = 1 << 9
-#: Metadetection: a masked pixel of the cell within ``--mask-margin`` pixels of the
-#: detection's unsheared position (the same place in every metacal version).
+#: A masked pixel within ``--mask-margin`` pixels of the object: of its cell, from the
+#: detection's unsheared position (metadetection: the same place in every version), or of
+#: its stamp (MEDS input).
 NEAR_MASK = 1 << 10
 
 FLAG_NAMES: dict[int, str] = {
@@ -57,7 +58,7 @@ FLAG_DESCRIPTIONS: dict[int, str] = {
     BAD_FEATURES: "model input features missing or not finite",
     NO_CUTOUT: "MEDS object without the cutout measured",
     MASKED_PIXELS: "masked pixels: over 25 % of the stamp, or within 2 px of the centre",
-    NEAR_MASK: "a masked pixel of the cell within --mask-margin of the detection",
+    NEAR_MASK: "a masked pixel of the cell or stamp within --mask-margin of the object",
 }
 
 

@@ -60,19 +60,20 @@ def weight_noise(weights: np.ndarray, masked: np.ndarray) -> np.ndarray:
         return 1.0 / np.sqrt(np.nanmedian(w.reshape(len(w), -1), axis=1))
 
 
-def too_masked(masked: np.ndarray, centres: np.ndarray | None = None) -> np.ndarray:
+def too_masked(
+    masked: np.ndarray, centres: np.ndarray | None = None, distance: np.ndarray | None = None
+) -> np.ndarray:
     """Stamps whose measurement the mask makes unusable: more than
     :data:`MAX_MASKED_FRACTION` of the pixels masked, or a masked pixel within
     :data:`CENTRAL_MASK_RADIUS` of ``centres`` (``(n, 2)`` 0-based ``(col, row)`` of the object
-    in its stamp; default the stamp centre)."""
-    n, ny, nx = masked.shape
-    if centres is None:
-        centres = np.tile([(nx - 1) / 2.0, (ny - 1) / 2.0], (n, 1))
-    centres = np.asarray(centres, dtype=np.float64).reshape(n, 2)
+    in its stamp; default the stamp centre); ``distance``: :func:`stamp_mask_distance`, when
+    known."""
+    n = len(masked)
     frac = masked.reshape(n, -1).mean(axis=1) if n else np.zeros(0)
-    yy, xx = np.mgrid[0:ny, 0:nx]
-    near = (xx[None] - centres[:, 0, None, None]) ** 2 + (yy[None] - centres[:, 1, None, None]) ** 2
-    central = (masked & (near <= CENTRAL_MASK_RADIUS**2)).any(axis=(1, 2))
+    if distance is None:
+        central = _nearest_masked_squared(masked, centres) <= CENTRAL_MASK_RADIUS**2
+    else:
+        central = distance <= CENTRAL_MASK_RADIUS
     return (frac > MAX_MASKED_FRACTION) | central
 
 
@@ -80,6 +81,12 @@ def stamp_mask_distance(masked: np.ndarray, centres: np.ndarray | None = None) -
     """The distance (pixels) from each object's position in its stamp (``centres``, ``(n,
     2)`` 0-based ``(col, row)``; default the stamp centre) to the stamp's nearest masked
     pixel (inf where none)."""
+    return np.sqrt(_nearest_masked_squared(masked, centres))
+
+
+def _nearest_masked_squared(masked: np.ndarray, centres: np.ndarray | None) -> np.ndarray:
+    """The squared distance from each stamp's ``centres`` (default its centre) to its nearest
+    masked pixel (inf where none)."""
     n, ny, nx = masked.shape
     if centres is None:
         centres = np.tile([(nx - 1) / 2.0, (ny - 1) / 2.0], (n, 1))
@@ -87,7 +94,7 @@ def stamp_mask_distance(masked: np.ndarray, centres: np.ndarray | None = None) -
     out = np.full(n, np.inf)
     for i in np.flatnonzero(masked.reshape(n, -1).any(axis=1)):
         rows, cols = np.nonzero(masked[i])
-        out[i] = np.sqrt(np.min((cols - centres[i, 0]) ** 2 + (rows - centres[i, 1]) ** 2))
+        out[i] = np.min((cols - centres[i, 0]) ** 2 + (rows - centres[i, 1]) ** 2)
     return out
 
 

@@ -269,7 +269,7 @@ class Measurer:
         if stamps is None:
             return feats
         if s.metacal is not None and batch.psfs is not None:
-            feats.update(self._metacal(batch, stamps, feats))
+            feats.update(self._metacal(batch, feats))
         return feats
 
     def _psfs(self, batch: StampBatch, feats: dict[str, np.ndarray]) -> None:
@@ -286,11 +286,12 @@ class Measurer:
         assert batch.masked is not None
         masked, n = batch.masked, len(batch.masked)
         feats[MASKED_COLUMN] = masked.reshape(n, -1).sum(axis=1).astype(np.int32)
-        feats["flags"][too_masked(masked, batch.centres)] |= fl.MASKED_PIXELS
+        distance = None
         if self.settings.mask_margin > 0:
             distance = stamp_mask_distance(masked, batch.centres)
             feats[MASK_DISTANCE_COLUMN] = distance.astype(np.float32)
             feats["flags"][distance <= self.settings.mask_margin] |= fl.NEAR_MASK
+        feats["flags"][too_masked(masked, batch.centres, distance)] |= fl.MASKED_PIXELS
         nan_flagged(feats, feats["flags"], nan_when_flagged(self.settings.feature_sets))
         if batch.weights is not None:
             noise = weight_noise(np.asarray(batch.weights), masked)
@@ -303,9 +304,7 @@ class Measurer:
                 self.settings.gain,
             )
 
-    def _metacal(
-        self, batch: StampBatch, stamps: np.ndarray, feats: dict[str, np.ndarray]
-    ) -> dict[str, np.ndarray]:
+    def _metacal(self, batch: StampBatch, feats: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``X_<type>`` of the five metacal versions and ``psf_adamom_*_<type>`` of the target
         PSF; stamps flagged :data:`METACAL_SKIPPED` are left out, with those flags. Masked
         pixels are filled (:func:`~.masks.filled_stamps`) before the operation and left out
@@ -318,8 +317,8 @@ class Measurer:
             versions_buffer,
         )
 
-        s, psfs = self.settings, batch.psfs
-        assert s.metacal is not None and psfs is not None
+        s, psfs, stamps = self.settings, batch.psfs, batch.stamps
+        assert s.metacal is not None and psfs is not None and stamps is not None
         n, size = len(stamps), stamps.shape[-1]
         names = s.feature_columns
         out = {
@@ -340,7 +339,7 @@ class Measurer:
             keys = np.arange(n) if batch.fixnoise_keys is None else batch.fixnoise_keys
             origins = batch.origins[ok]
             versions, target[ok] = metacal_versions(
-                stamps[ok] if masked is None else filled_stamps(batch.stamps[ok], masked),
+                stamps[ok] if masked is None else filled_stamps(stamps[ok], masked),
                 images,
                 s.metacal.step,
                 noise[ok],
