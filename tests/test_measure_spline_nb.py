@@ -1,9 +1,9 @@
-"""The periodic quintic spline kernel against SciPy's ``map_coordinates``."""
+"""The periodic quintic spline kernels against SciPy's ``map_coordinates``."""
 
 import numpy as np
 import scipy.ndimage
 
-from megalut_cli.measure.spline_nb import quintic_wrap
+from megalut_cli.measure.spline_nb import PeriodicQuintic
 
 
 def scipy_spline(coefficients: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -23,9 +23,22 @@ def test_the_spline_is_scipys_at_any_point_wrapped_or_not():
     coefficients = rng.normal(size=(40, 52)) + 1j * rng.normal(size=(40, 52))
     rows = np.concatenate([rng.uniform(0, 40, 500), rng.uniform(-90, 130, 500), [0, 39.999, -2.5]])
     cols = np.concatenate([rng.uniform(0, 52, 500), rng.uniform(-110, 160, 500), [51.5, 0, -0.25]])
-    out = np.empty(len(rows), dtype=np.complex128)
-    quintic_wrap(coefficients, rows, cols, out)
+    out = PeriodicQuintic.from_coefficients(coefficients).at(rows, cols)
     ref = scipy_spline(coefficients, rows, cols)
+    assert np.abs(out - ref).max() < 1e-13 * np.abs(ref).max()
+
+
+def test_the_outer_form_is_the_spline_at_every_pair():
+    """``outer`` on a set of rows and a set of columns (across the edges, not square) is the
+    spline at each pair, as SciPy evaluates it, to 1e-13 of its scale."""
+    rng = np.random.default_rng(5)
+    coefficients = rng.normal(size=(36, 30)) + 1j * rng.normal(size=(36, 30))
+    rows = np.concatenate([rng.uniform(-50, 80, 23), [0.0, 35.5]])
+    cols = np.concatenate([rng.uniform(-40, 70, 17), [29.999, -0.5]])
+    out = PeriodicQuintic.from_coefficients(coefficients).outer(rows, cols)
+    r, c = np.meshgrid(rows, cols, indexing="ij")
+    ref = scipy_spline(coefficients, r.ravel(), c.ravel()).reshape(r.shape)
+    assert out.shape == (25, 19)
     assert np.abs(out - ref).max() < 1e-13 * np.abs(ref).max()
 
 
@@ -38,11 +51,9 @@ def test_the_spline_interpolates_its_samples():
     coefficients = scipy.ndimage.spline_filter(
         values.real, order=5, mode="grid-wrap"
     ) + 1j * scipy.ndimage.spline_filter(values.imag, order=5, mode="grid-wrap")
-    out = np.empty(n * n, dtype=np.complex128)
-    quintic_wrap(coefficients, y.ravel().astype(float), x.ravel().astype(float), out)
+    spline = PeriodicQuintic.from_coefficients(coefficients)
+    out = spline.at(y.ravel().astype(float), x.ravel().astype(float))
     assert np.abs(out - values.ravel()).max() < 1e-12
     rows, cols = np.array([10.3, 40.71]), np.array([5.5, 63.2])
-    between = np.empty(2, dtype=np.complex128)
-    quintic_wrap(coefficients, rows, cols, between)
     exact = np.exp(2j * np.pi * (3 * cols + 2 * rows) / n)
-    assert np.abs(between - exact).max() < 1e-5
+    assert np.abs(spline.at(rows, cols) - exact).max() < 1e-5

@@ -27,7 +27,7 @@ from megalut_cli.measure.metacal_defaults import SHEARS, TYPES
 from megalut_cli.measure.metacal_fft import psf_params, shear_matrix
 from megalut_cli.measure.metacal_targets import MetacalTarget, metacal_target
 from megalut_cli.measure.noise_correlation import spectrum_on_grid
-from megalut_cli.measure.spline_nb import quintic_wrap
+from megalut_cli.measure.spline_nb import PeriodicQuintic
 
 #: Pixels of zero padding each side of the cell beyond the largest shift of the passes:
 #: room for the tails of the deconvolution and fixnoise kernels.
@@ -61,10 +61,10 @@ class CellGeometry:
 @dataclass(frozen=True)
 class CellFilters:
     """Per version, the filters (``rfft2`` layout) of the cell's transform and of the moving
-    fixnoise field's, under one PSF, step and target."""
+    fixnoise field's, under one PSF, step and target (``None``: a version not made)."""
 
-    image: tuple[np.ndarray, ...]
-    noise: tuple[np.ndarray, ...]
+    image: tuple[np.ndarray | None, ...]
+    noise: tuple[np.ndarray | None, ...]
     target_sigma: float
 
 
@@ -103,6 +103,14 @@ def _apply(matrix: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> tuple[np.ndarr
     return matrix[0, 0] * qx + matrix[0, 1] * qy, matrix[1, 0] * qx + matrix[1, 1] * qy
 
 
+def _within(matrix: np.ndarray, grid: int, maxk: float) -> np.ndarray:
+    """Where ``|matrix @ q| <= maxk`` on the grid's frequencies ``q`` (``rfft2`` layout), from
+    the quadratic form of ``matrix``."""
+    qx, qy = _grid_k(grid)
+    (a, b), (_, d) = matrix.T @ matrix
+    return a * (qx * qx) + (2.0 * b * qx) * qy + d * (qy * qy) <= maxk * maxk
+
+
 def _pass(axis: int, s: float, grid: int, centre: float) -> Pass:
     """The phase of one shear pass: a line at ``(coordinate - centre)`` shifted by ``s`` times
     it, ``exp(i k s (c - centre))``."""
@@ -112,24 +120,75 @@ def _pass(axis: int, s: float, grid: int, centre: float) -> Pass:
     return Pass(axis, phase if axis == 1 else np.ascontiguousarray(phase.T))
 
 
-def _psf_dft(psf: np.ndarray, grid: int) -> np.ndarray:
-    """The PSF image's DFT on the grid (``fft2`` layout, the whole plane), its true centre
-    the origin."""
+def _quintic_dual(grid: int) -> np.ndarray:
+    """The transform of the quintic B-spline's samples (1, 26, 66, 26, 1) / 120 at each of
+    the grid's indices: what the periodic prefilter divides by, axis by axis."""
+    t = 2.0 * math.pi * np.arange(grid) / grid
+    return (66.0 + 52.0 * np.cos(t) + 2.0 * np.cos(2.0 * t)) / 120.0
+
+
+@dataclass(frozen=True)
+class PsfTransform:
+    """A PSF image's DFT on a grid, its true centre the origin: ``half`` its values on the
+    grid (``rfft2`` layout); ``spline`` the periodic quintic spline of the DFT of the image
+    rolled by whole pixels to the origin (``None`` when not asked), ``shift`` the half pixel
+    left (0 for an odd size, 0.5 for an even one): at any ``u`` the DFT is
+    ``exp(i shift (u_x + u_y))`` times the spline's value."""
+
+    half: np.ndarray
+    spline: PeriodicQuintic | None
+    shift: float
+
+
+def psf_transform(psf: np.ndarray, grid: int, spline: bool) -> PsfTransform:
+    """The :class:`PsfTransform` of ``psf`` on a ``grid``-sided grid, its spline when asked:
+    SciPy's ``spline_filter(mode="grid-wrap")`` of the rolled image's DFT, made as a
+    division of its dual (the rolled image) by the spline's transform."""
     p = psf.shape[0]
-    padded = np.zeros((grid, grid))
-    padded[:p, :p] = psf
-    q = 2.0 * math.pi * np.fft.fftfreq(grid)
-    return scipy.fft.fft2(padded) * np.exp(0.5j * (p - 1) * (q[None, :] + q[:, None]))
+    whole = (p - 1) // 2
+    shift = 0.5 * (p - 1) - whole
+    rolled = np.zeros((grid, grid))
+    at = (np.arange(p) - whole) % grid
+    rolled[np.ix_(at, at)] = psf
+    half = scipy.fft.rfft2(rolled)
+    if shift:
+        qx, qy = _grid_k(grid)
+        half *= np.exp(1j * shift * qy) * np.exp(1j * shift * qx)
+    if not spline:
+        return PsfTransform(half, None, shift)
+    beta = _quintic_dual(grid)
+    coefficients = scipy.fft.fft2(rolled / np.multiply.outer(beta, beta))
+    return PsfTransform(half, PeriodicQuintic.from_coefficients(coefficients), shift)
 
 
-def _spline_at(coefficients: np.ndarray, ux: np.ndarray, uy: np.ndarray) -> np.ndarray:
-    """A transform sampled on the grid (the PSF's DFT, :func:`_psf_dft`, or a noise
-    spectrum) at the points ``(ux, uy)`` (1-D, radians per pixel): its periodic quintic
-    spline (complex ``coefficients``), fine where the grid samples it finely (the PSF: the
-    grid is several times its image, 1e-9 of the exact sum where it exceeds 1e-3)."""
-    scale = coefficients.shape[0] / (2.0 * math.pi)
-    out = np.empty(len(ux), dtype=np.complex128)
-    quintic_wrap(coefficients, uy * scale, ux * scale, out)
+def _spline_on_grid(
+    spline: PeriodicQuintic, matrix: np.ndarray, keep: np.ndarray, shift: float = 0.0
+) -> np.ndarray:
+    """A transform sampled on the grid (a PSF's DFT, :func:`psf_transform`, or a noise
+    spectrum), read from its periodic quintic ``spline`` at ``matrix @ q`` for the grid's
+    frequencies ``q`` where ``keep`` (``rfft2`` layout), times ``exp(i shift (u_x + u_y))``
+    at ``u = matrix @ q``: fine where the grid samples it finely (the PSF: the grid is
+    several times its image, 1e-9 of the exact sum where it exceeds 1e-3). On the outer
+    product of the axes' frequencies when ``matrix`` is diagonal or anti-diagonal (each of
+    ``u``'s components then comes from one axis of ``q``), point by point otherwise."""
+    grid = keep.shape[0]
+    scale = grid / (2.0 * math.pi)
+    qx, qy = (k.ravel() for k in _grid_k(grid))
+    (a, b), (c, d) = matrix
+    if (b == 0.0 and c == 0.0) or (a == 0.0 and d == 0.0):
+        diagonal = b == 0.0
+        uy, ux = (d * qy, a * qx) if diagonal else (c * qx, b * qy)
+        out = spline.outer(uy * scale, ux * scale)
+        out = out[keep] if diagonal else out.T[keep]
+    else:
+        fx, fy = np.broadcast_arrays(qx[None, :], qy[:, None])
+        ux, uy = _apply(matrix, fx[keep], fy[keep])
+        out = spline.at(uy * scale, ux * scale)
+    if shift:  # u_x + u_y = (a + c) q_x + (b + d) q_y: one phase per axis
+        phase = np.multiply.outer(
+            np.exp(1j * shift * (b + d) * qy), np.exp(1j * shift * (a + c) * qx)
+        )
+        out *= phase[keep]
     return out
 
 
@@ -154,48 +213,54 @@ def cell_filters(
     geometry: CellGeometry,
     moving: bool = True,
     correlation_bytes: bytes | None = None,
+    kinds: tuple[str, ...] = TYPES,
 ) -> CellFilters:
     """The filters of one PSF image (its bytes and side) and target on ``geometry``
-    (cached); without ``moving``, none for the moving fixnoise (``noise`` empty). With
-    ``correlation_bytes`` (a noise correlation, :func:`~.noise_correlation.noise_correlation`,
-    as float64 bytes) the fixnoise filters colour a unit white field to that noise."""
+    (cached), for the versions ``kinds`` (``None`` for the others); without ``moving``, none
+    for the moving fixnoise (``noise`` empty). With ``correlation_bytes`` (a noise
+    correlation, :func:`~.noise_correlation.noise_correlation`, as float64 bytes) the
+    fixnoise filters colour a unit white field to that noise."""
     psf, maxk, _ = psf_params(psf_bytes, psf_size)
     grid = geometry.grid
-    qx, qy = _grid_k(grid)
-    inside = qx * qx + qy * qy <= maxk * maxk
-    psf_k = _psf_dft(psf, grid)
-    psf_half = np.where(inside, psf_k[:, : grid // 2 + 1], 1.0)
-    image = []
-    for inv in geometry.inverses:
-        tx, ty = _apply(inv, qx, qy)
-        image.append(np.where(inside, target.kvalue(tx, ty) / psf_half, 0).astype(np.complex64))
-    if not moving:
+    qx, qy = np.broadcast_arrays(*_grid_k(grid))
+    within = _within(np.eye(2), grid, maxk)
+    psf_k = psf_transform(psf, grid, moving)
+    reciprocal = 1.0 / psf_k.half[within]
+    wanted = [kind in kinds for kind in TYPES]
+    image: list[np.ndarray | None] = []
+    for inv, want in zip(geometry.inverses, wanted):
+        if not want:
+            image.append(None)
+            continue
+        filt = np.zeros(within.shape, dtype=np.complex64)
+        filt[within] = target.kvalue(*_apply(inv, qx[within], qy[within])) * reciprocal
+        image.append(filt)
+    if psf_k.spline is None:
         return CellFilters(tuple(image), (), float(target.sigma))
-    # the spline coefficients of the PSF's transform, for _spline_at
-    spline = scipy.ndimage.spline_filter(psf_k.real, order=5, mode="grid-wrap") + 1j * (
-        scipy.ndimage.spline_filter(psf_k.imag, order=5, mode="grid-wrap")
-    )
     colour = None
     if correlation_bytes is not None:
         correlation = np.frombuffer(correlation_bytes)
         side = math.isqrt(correlation.size)
         spectrum = spectrum_on_grid(correlation.reshape(side, side), grid)
-        colour = scipy.ndimage.spline_filter(spectrum, order=5, mode="grid-wrap") + 0j
-    noise = []
-    grid_qx, grid_qy = np.broadcast_arrays(qx, qy)
-    for inv in geometry.inverses:
+        colour = PeriodicQuintic.from_coefficients(
+            scipy.ndimage.spline_filter(spectrum, order=5, mode="grid-wrap") + 0j
+        )
+    noise: list[np.ndarray | None] = []
+    for inv, want in zip(geometry.inverses, wanted):
+        if not want:
+            noise.append(None)
+            continue
         # the fixnoise: the white field sheared like the image, convolved with the rotated
         # response of the operation: T(R A^-1 q) / P(R A^-2 q), zero beyond maxk there;
         # a noise correlation of spectrum S adds sqrt(S(A^-2 q)): metacal's rotated field
         # is that noise sheared the other way
-        ux, uy = _apply(ROTATION @ inv @ inv, grid_qx, grid_qy)
-        keep = ux * ux + uy * uy <= maxk * maxk
-        rx, ry = _apply(ROTATION @ inv, grid_qx[keep], grid_qy[keep])
-        filt = np.zeros(inside.shape, dtype=np.complex64)
-        values = target.kvalue(rx, ry) / _spline_at(spline, ux[keep], uy[keep])
+        keep = _within(ROTATION @ inv @ inv, grid, maxk)
+        filt = np.zeros(keep.shape, dtype=np.complex64)
+        values = target.kvalue(*_apply(ROTATION @ inv, qx[keep], qy[keep])) / _spline_on_grid(
+            psf_k.spline, ROTATION @ inv @ inv, keep, psf_k.shift
+        )
         if colour is not None:
-            sx, sy = _apply(inv @ inv, grid_qx[keep], grid_qy[keep])
-            values *= np.sqrt(np.maximum(_spline_at(colour, sx, sy).real, 0.0))
+            values *= np.sqrt(np.maximum(_spline_on_grid(colour, inv @ inv, keep).real, 0.0))
         filt[keep] = values
         noise.append(filt)
     return CellFilters(tuple(image), tuple(noise), float(target.sigma))
@@ -255,6 +320,7 @@ def cell_versions(
         None
         if moving_correlation is None
         else np.ascontiguousarray(moving_correlation, dtype=np.float64).tobytes(),
+        tuple(kind for kind in TYPES if kind in kinds),
     )
     o, g = geometry.offset, geometry.grid
     padded = np.zeros((g, g), dtype=np.float32)
