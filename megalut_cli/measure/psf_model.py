@@ -15,10 +15,12 @@ deconvolves.
   and every PSF is drawn at its stamp's centre, so the basis images are resampled once per
   stamp size with GalSim's own Lanczos(3) kernel (as ``DES_PSFEx.getPSF`` interpolates:
   one separable matrix product) and each position costs one polynomial combination of
-  those (vectorised over all positions). It agrees with
+  those (vectorised over all positions). On an odd stamp it agrees with
   ``DES_PSFEx.getPSF(pos).drawImage(method='no_pixel')`` to ~1e-7 of the peak
-  (``tests/test_psf_model.py``; GalSim combines the basis in float32). The model is in
-  image pixels: it has no arcsecond scale of its own.
+  (``tests/test_psf_model.py``; GalSim combines the basis in float32); on an even one it is
+  that drawing on a pixel fewer moved half a pixel by lanczos15 (GalSim's there is 1 %
+  too narrow: docs/catalogs.md, PSF models). The model is in image pixels: it has no
+  arcsecond scale of its own.
 * Piff (``pip install 'megalut-cli[piff]'``; ``piff.read``): a single-chip model, drawn by
   Piff itself (``PSF.draw``, which chooses the drawing method of the model: with the pixel
   for a ``GSObjectModel``, without for a ``PixelGrid``), one position at a time, on the
@@ -148,19 +150,30 @@ class PsfexModel(PsfModel):
     def resampled_basis(self, size: int) -> np.ndarray:
         """The basis images ``(k, size, size)`` drawn as ``DES_PSFEx.getPSF`` draws a PSF
         (``InterpolatedImage`` with a Lanczos(3) kernel, no pixel) centred on the stamp's true
-        centre, in image pixels; cached per size."""
+        centre, in image pixels; for an even ``size``, drawn so on ``size - 1`` pixels and
+        moved half a pixel to the even stamp's centre by GalSim's ``lanczos15`` (as
+        ``measurer.same_parity_psfs`` redraws a PSF image; docs/catalogs.md, PSF models):
+        Lanczos(3) read half a pixel off a basis sampled every image pixel narrows the PSF
+        by about 1 %. Cached per size."""
         if size not in self._resampled:
             import galsim
 
             kernel = galsim.Lanczos(3)  # DES_PSFEx.getPSF's x_interpolant (with conserve_dc)
+            odd = size - 1 + size % 2
 
             def weights(n_in: int) -> np.ndarray:
-                # output pixel i at (i - (size-1)/2) image pixels from the centre, i.e. at
+                # output pixel i at (i - (odd-1)/2) image pixels from the centre, i.e. at
                 # that / sample_scale basis pixels from the basis's true centre (n_in-1)/2
-                u = (np.arange(size) - (size - 1) / 2.0) / self.sample_scale + (n_in - 1) / 2.0
-                return np.asarray(
-                    kernel.xval((u[:, None] - np.arange(n_in)[None, :]).ravel())
-                ).reshape(size, n_in)
+                u = (np.arange(odd) - (odd - 1) / 2.0) / self.sample_scale + (n_in - 1) / 2.0
+                w = np.asarray(kernel.xval((u[:, None] - np.arange(n_in)[None, :]).ravel()))
+                w = w.reshape(odd, n_in)
+                if odd == size:
+                    return w
+                # the even stamp's pixel i lies at i - 1/2 on the odd one's
+                shift = galsim.Lanczos(15)  # metacal_defaults.INTERPOLANT
+                v = np.arange(size) - 0.5
+                moved = np.asarray(shift.xval((v[:, None] - np.arange(odd)[None, :]).ravel()))
+                return moved.reshape(size, odd) @ w
 
             wy, wx = weights(self.basis.shape[1]), weights(self.basis.shape[2])
             self._resampled[size] = np.ascontiguousarray(
