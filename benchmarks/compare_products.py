@@ -129,6 +129,8 @@ TREE_INPUTS = [
     ("examples/fiducial/vo-crn.toml", "in/vo-crn.toml"),
     ("examples/great3/branch.toml", "in/branch.toml"),
     ("megalut_cli/data/fiducial-metacal.h5", "in/fiducial-metacal.h5"),
+    ("tests/data/DECam_00154912_12_psfcat.psf", "in/decam.psf"),
+    ("examples/scenes/isolated.toml", "in/isolated.toml"),
 ]
 
 
@@ -212,6 +214,40 @@ WORKFLOW: list[Step] = [
             "1",
         ],
     ),
+    Step(
+        "measure --metacal --psf-model (PSFEx, even stamps)",
+        [
+            "measure",
+            "stamps.fits",
+            "cat.fits",
+            "-o",
+            "features-model.fits",
+            "--psf-model",
+            "in/decam.psf",
+            "--metacal",
+            "--seed",
+            "7",
+            "-j",
+            "1",
+        ],
+    ),
+    Step(
+        "simulate scenes (isolated, --scene)",
+        [
+            "simulate",
+            "in/isolated.toml",
+            "-o",
+            "scene-truth.fits",
+            "--scene",
+            "scenes.fits",
+            "scene.n_fields=4",
+            "--seed",
+            "3",
+            "-j",
+            "1",
+        ],
+    ),
+    Step("measure --metadetect", ["measure", "scenes.fits", "--metadetect", "-o", "mdet.fits"]),
     Step(
         "simulate GREAT3 branch (--great3)",
         _sim("branch.toml", "g3.fits", 2, 100, 8, "--great3", "g3"),
