@@ -91,10 +91,13 @@ def _margin(size: int, steps: list[list[tuple[int, float]]]) -> int:
     return int(math.ceil(largest * size / math.sqrt(2.0))) + HALO
 
 
+@functools.lru_cache(maxsize=8)
 def _grid_k(grid: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``rfft2`` frequencies (radians per pixel): ``qx`` (1, grid//2+1), ``qy`` (grid, 1)."""
+    """The ``rfft2`` frequencies (radians per pixel): ``qx`` (1, grid//2+1), ``qy`` (grid, 1)
+    (cached, read-only)."""
     qx = 2.0 * math.pi * np.fft.rfftfreq(grid)[None, :]
     qy = 2.0 * math.pi * np.fft.fftfreq(grid)[:, None]
+    qx.flags.writeable = qy.flags.writeable = False
     return qx, qy
 
 
@@ -254,10 +257,11 @@ def cell_filters(
         # response of the operation: T(R A^-1 q) / P(R A^-2 q), zero beyond maxk there;
         # a noise correlation of spectrum S adds sqrt(S(A^-2 q)): metacal's rotated field
         # is that noise sheared the other way
-        keep = _within(ROTATION @ inv @ inv, grid, maxk)
+        psf_at = ROTATION @ inv @ inv
+        keep = _within(psf_at, grid, maxk)
         filt = np.zeros(keep.shape, dtype=np.complex64)
         values = target.kvalue(*_apply(ROTATION @ inv, qx[keep], qy[keep])) / _spline_on_grid(
-            psf_k.spline, ROTATION @ inv @ inv, keep, psf_k.shift
+            psf_k.spline, psf_at, keep, psf_k.shift
         )
         if colour is not None:
             values *= np.sqrt(np.maximum(_spline_on_grid(colour, inv @ inv, keep).real, 0.0))

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.errors import InputError
+from megalut_cli.measure.metacal_defaults import INTERPOLANT
 from megalut_cli.provenance import recorded_path, sha256_file
 
 #: The model types, as :attr:`PsfModel.kind` names them.
@@ -124,6 +125,13 @@ def _unit_sum(stamps: np.ndarray) -> np.ndarray:
     return stamps
 
 
+def _kernel_matrix(kernel: Any, positions: np.ndarray, n_in: int) -> np.ndarray:
+    """``(len(positions), n_in)``: the weight of input pixel ``j`` at each output position (in
+    input pixels) under the GalSim interpolant ``kernel``."""
+    offsets = positions[:, None] - np.arange(n_in)[None, :]
+    return np.asarray(kernel.xval(offsets.ravel())).reshape(offsets.shape)
+
+
 @dataclass
 class PsfexModel(PsfModel):
     """A PSFEx model (:class:`galsim.des.DES_PSFEx`): a polynomial of ``fit_order`` in
@@ -165,15 +173,12 @@ class PsfexModel(PsfModel):
                 # output pixel i at (i - (odd-1)/2) image pixels from the centre, i.e. at
                 # that / sample_scale basis pixels from the basis's true centre (n_in-1)/2
                 u = (np.arange(odd) - (odd - 1) / 2.0) / self.sample_scale + (n_in - 1) / 2.0
-                w = np.asarray(kernel.xval((u[:, None] - np.arange(n_in)[None, :]).ravel()))
-                w = w.reshape(odd, n_in)
+                w = _kernel_matrix(kernel, u, n_in)
                 if odd == size:
                     return w
                 # the even stamp's pixel i lies at i - 1/2 on the odd one's
-                shift = galsim.Lanczos(15)  # metacal_defaults.INTERPOLANT
-                v = np.arange(size) - 0.5
-                moved = np.asarray(shift.xval((v[:, None] - np.arange(odd)[None, :]).ravel()))
-                return moved.reshape(size, odd) @ w
+                shift = galsim.Interpolant.from_name(INTERPOLANT)
+                return _kernel_matrix(shift, np.arange(size) - 0.5, odd) @ w
 
             wy, wx = weights(self.basis.shape[1]), weights(self.basis.shape[2])
             self._resampled[size] = np.ascontiguousarray(
