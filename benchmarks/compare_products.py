@@ -164,6 +164,11 @@ def _sim(
     ]
 
 
+def _grid(out: str, *extra: str) -> list[str]:
+    """``measure`` of the simulated stamp grid into ``out``, one process."""
+    return ["measure", "stamps.fits", "cat.fits", "-o", out, *extra, "-j", "1"]
+
+
 WORKFLOW: list[Step] = [
     Step("simulate tp (fast, --measure)", _sim("tp.toml", "tp.fits", 40, 20, 1, "--measure")),
     Step(
@@ -182,54 +187,15 @@ WORKFLOW: list[Step] = [
         "simulate vo-crn (--measure --metacal)",
         _sim("vo-crn.toml", "mcal.fits", 2, 10, 6, "--measure", "--metacal"),
     ),
-    Step("measure", ["measure", "stamps.fits", "cat.fits", "-o", "features.fits", "-j", "1"]),
-    Step(
-        "measure --psf",
-        [
-            "measure",
-            "stamps.fits",
-            "cat.fits",
-            "-o",
-            "features-psf.fits",
-            "--psf",
-            "in/psf.fits",
-            "-j",
-            "1",
-        ],
-    ),
+    Step("measure", _grid("features.fits")),
+    Step("measure --psf", _grid("features-psf.fits", "--psf", "in/psf.fits")),
     Step(
         "measure --metacal --psf",
-        [
-            "measure",
-            "stamps.fits",
-            "cat.fits",
-            "-o",
-            "features-mcal.fits",
-            "--psf",
-            "in/psf.fits",
-            "--metacal",
-            "--seed",
-            "7",
-            "-j",
-            "1",
-        ],
+        _grid("features-mcal.fits", "--psf", "in/psf.fits", "--metacal", "--seed", "7"),
     ),
     Step(
         "measure --metacal --psf-model (PSFEx, even stamps)",
-        [
-            "measure",
-            "stamps.fits",
-            "cat.fits",
-            "-o",
-            "features-model.fits",
-            "--psf-model",
-            "in/decam.psf",
-            "--metacal",
-            "--seed",
-            "7",
-            "-j",
-            "1",
-        ],
+        _grid("features-model.fits", "--psf-model", "in/decam.psf", "--metacal", "--seed", "7"),
     ),
     Step(
         "simulate scenes (isolated, --scene)",
