@@ -134,65 +134,69 @@ def _quintic_dual(grid: int) -> np.ndarray:
 class PsfTransform:
     """A PSF image's DFT on a grid, its true centre the origin: ``half`` its values on the
     grid (``rfft2`` layout); ``spline`` the periodic quintic spline of the DFT of the image
-    rolled by whole pixels to the origin (``None`` when not asked), ``shift`` the half pixel
-    left (0 for an odd size, 0.5 for an even one): at any ``u`` the DFT is
-    ``exp(i shift (u_x + u_y))`` times the spline's value."""
+    rolled by whole pixels to the origin, the x frequency its first axis (``None`` when not
+    asked), ``shift`` the half pixel left (0 for an odd size, 0.5 for an even one): at any
+    ``u`` the DFT is ``exp(i shift (u_x + u_y))`` times the spline's value at
+    ``(u_x, u_y)``."""
 
     half: np.ndarray
     spline: PeriodicQuintic | None
     shift: float
 
 
+def _rfft2_of_support(image: np.ndarray, at: np.ndarray, grid: int) -> np.ndarray:
+    """``scipy.fft.rfft2`` of a ``grid``-sided zero image holding ``image`` at rows and
+    columns ``at``: its rows' transforms only where the image is, then the columns'."""
+    rows = np.zeros((image.shape[0], grid))
+    rows[:, at] = image
+    half = np.zeros((grid, grid // 2 + 1), dtype=np.complex128)
+    half[at] = scipy.fft.rfft(rows, axis=1)
+    return scipy.fft.fft(half, axis=0, overwrite_x=True)
+
+
 def psf_transform(psf: np.ndarray, grid: int, spline: bool) -> PsfTransform:
     """The :class:`PsfTransform` of ``psf`` on a ``grid``-sided grid, its spline when asked:
     SciPy's ``spline_filter(mode="grid-wrap")`` of the rolled image's DFT, made as a
-    division of its dual (the rolled image) by the spline's transform."""
+    division of its dual (the rolled image) by the spline's transform. The spline's axes are
+    swapped (x first) because the moving fixnoise reads it at a nearly anti-diagonal map of
+    the grid's frequencies (:data:`ROTATION`): ``u_y`` then changes along a grid row, and
+    :meth:`~.spline_nb.PeriodicQuintic.on_grid` contracts whole lines of coefficients."""
     p = psf.shape[0]
     whole = (p - 1) // 2
     shift = 0.5 * (p - 1) - whole
-    rolled = np.zeros((grid, grid))
     at = (np.arange(p) - whole) % grid
-    rolled[np.ix_(at, at)] = psf
-    half = scipy.fft.rfft2(rolled)
+    half = _rfft2_of_support(psf, at, grid)
     if shift:
         qx, qy = _grid_k(grid)
         half *= np.exp(1j * shift * qy) * np.exp(1j * shift * qx)
     if not spline:
         return PsfTransform(half, None, shift)
-    beta = _quintic_dual(grid)
-    coefficients = scipy.fft.fft2(rolled / np.multiply.outer(beta, beta))
-    return PsfTransform(half, PeriodicQuintic.from_coefficients(coefficients), shift)
+    beta = 1.0 / _quintic_dual(grid)[at]
+    dual = _rfft2_of_support(psf.T * np.multiply.outer(beta, beta), at, grid)
+    return PsfTransform(half, PeriodicQuintic.from_half_spectrum(dual, grid), shift)
 
 
 def _spline_on_grid(
-    spline: PeriodicQuintic, matrix: np.ndarray, keep: np.ndarray, shift: float = 0.0
+    spline: PeriodicQuintic,
+    matrix: np.ndarray,
+    keep: np.ndarray,
+    shift: float = 0.0,
+    x_first: bool = False,
 ) -> np.ndarray:
     """A transform sampled on the grid (a PSF's DFT, :func:`psf_transform`, or a noise
-    spectrum), read from its periodic quintic ``spline`` at ``matrix @ q`` for the grid's
-    frequencies ``q`` where ``keep`` (``rfft2`` layout), times ``exp(i shift (u_x + u_y))``
-    at ``u = matrix @ q``: fine where the grid samples it finely (the PSF: the grid is
-    several times its image, 1e-9 of the exact sum where it exceeds 1e-3). On the outer
-    product of the axes' frequencies when ``matrix`` is diagonal or anti-diagonal (each of
-    ``u``'s components then comes from one axis of ``q``), point by point otherwise."""
-    grid = keep.shape[0]
-    scale = grid / (2.0 * math.pi)
-    qx, qy = (k.ravel() for k in _grid_k(grid))
+    spectrum), read from its periodic quintic ``spline`` (axes ``(u_y, u_x)``, or
+    ``(u_x, u_y)`` when ``x_first``) at ``u = matrix @ q`` for the grid's frequencies ``q``
+    where ``keep`` (``rfft2`` layout, values in ``keep``'s order), times
+    ``exp(i shift (u_x + u_y))``: fine where the grid samples it finely (the PSF: the grid
+    is several times its image, 1e-9 of the exact sum where it exceeds 1e-3). The phase is
+    one factor per axis: ``u_x + u_y = (a + c) q_x + (b + d) q_y``."""
+    scale = keep.shape[0] / (2.0 * math.pi)
+    qx, qy = (k.ravel() for k in _grid_k(keep.shape[0]))
     (a, b), (c, d) = matrix
-    if (b == 0.0 and c == 0.0) or (a == 0.0 and d == 0.0):
-        diagonal = b == 0.0
-        uy, ux = (d * qy, a * qx) if diagonal else (c * qx, b * qy)
-        out = spline.outer(uy * scale, ux * scale)
-        out = out[keep] if diagonal else out.T[keep]
-    else:
-        fx, fy = np.broadcast_arrays(qx[None, :], qy[:, None])
-        ux, uy = _apply(matrix, fx[keep], fy[keep])
-        out = spline.at(uy * scale, ux * scale)
-    if shift:  # u_x + u_y = (a + c) q_x + (b + d) q_y: one phase per axis
-        phase = np.multiply.outer(
-            np.exp(1j * shift * (b + d) * qy), np.exp(1j * shift * (a + c) * qx)
-        )
-        out *= phase[keep]
-    return out
+    phase_x = np.exp(1j * shift * (a + c) * qx) if shift else None
+    phase_y = np.exp(1j * shift * (b + d) * qy) if shift else None
+    to_nodes = matrix[::-1] if x_first else matrix
+    return spline.on_grid(to_nodes, qx * scale, qy * scale, keep, phase_x, phase_y)
 
 
 @functools.lru_cache(maxsize=8)
@@ -227,6 +231,7 @@ def cell_filters(
     grid = geometry.grid
     qx, qy = np.broadcast_arrays(*_grid_k(grid))
     within = _within(np.eye(2), grid, maxk)
+    q_within = qx[within], qy[within]
     psf_k = psf_transform(psf, grid, moving)
     reciprocal = 1.0 / psf_k.half[within]
     wanted = [kind in kinds for kind in TYPES]
@@ -236,7 +241,7 @@ def cell_filters(
             image.append(None)
             continue
         filt = np.zeros(within.shape, dtype=np.complex64)
-        filt[within] = target.kvalue(*_apply(inv, qx[within], qy[within])) * reciprocal
+        filt[within] = target.kvalue(*_apply(inv, *q_within)) * reciprocal
         image.append(filt)
     if psf_k.spline is None:
         return CellFilters(tuple(image), (), float(target.sigma))
@@ -261,7 +266,7 @@ def cell_filters(
         keep = _within(psf_at, grid, maxk)
         filt = np.zeros(keep.shape, dtype=np.complex64)
         values = target.kvalue(*_apply(ROTATION @ inv, qx[keep], qy[keep])) / _spline_on_grid(
-            psf_k.spline, psf_at, keep, psf_k.shift
+            psf_k.spline, psf_at, keep, psf_k.shift, x_first=True
         )
         if colour is not None:
             values *= np.sqrt(np.maximum(_spline_on_grid(colour, inv @ inv, keep).real, 0.0))

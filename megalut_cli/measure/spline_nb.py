@@ -1,5 +1,5 @@
 """Compiled kernels (numba): a periodic quintic B-spline of complex coefficients evaluated at
-scattered points or on the outer product of two sets of coordinates.
+scattered points or at a linear map of a grid's frequencies.
 
 :class:`PeriodicQuintic` is ``scipy.ndimage.map_coordinates(c, (rows, cols), order=5,
 mode="grid-wrap", prefilter=False)`` for complex coefficients ``c``, both parts in one pass
@@ -68,38 +68,119 @@ def _at_points(
 
 
 @njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
-def _on_outer(
-    block: np.ndarray, ny: int, nx: int, rows: np.ndarray, cols: np.ndarray, out: np.ndarray
+def _on_grid(
+    block: np.ndarray,
+    ny: int,
+    nx: int,
+    matrix: np.ndarray,
+    kx: np.ndarray,
+    ky: np.ndarray,
+    keep: np.ndarray,
+    phase_x: np.ndarray,
+    phase_y: np.ndarray,
+    out: np.ndarray,
 ) -> None:
-    """The spline of :func:`_at_points` at every ``(rows[a], cols[b])`` into ``out[a, b]``:
-    the rows' six nodes contracted first (whole lines), then the columns' (12 products per
-    point where :func:`_at_points` makes 36)."""
-    w = np.empty(6)
-    line = np.empty(block.shape[1])
-    wx = np.empty((cols.shape[0], 6))
-    cx = np.empty(cols.shape[0], dtype=np.int64)
-    for b in range(cols.shape[0]):
-        fc = math.floor(cols[b])
-        _weights(cols[b] - fc, wx[b])
-        cx[b] = 2 * ((int(fc) - 2) % nx)
-    for a in range(rows.shape[0]):
-        fr = math.floor(rows[a])
-        _weights(rows[a] - fr, w)
-        r0 = (int(fr) - 2) % ny
-        line[:] = 0.0
-        for j in range(6):
-            wj = w[j]
-            source = block[r0 + j]
-            for c in range(line.shape[0]):
-                line[c] += wj * source[c]
-        for b in range(cols.shape[0]):
+    """The spline of :func:`_at_points` at ``(u_y, u_x)``, ``(u_x, u_y) = matrix @
+    (kx[ix], ky[iy])``, for every grid point where ``keep[iy, ix]``, in C order, times
+    ``phase_y[iy] * phase_x[ix]``, into ``out``. Where ``u_y`` is constant along a grid row
+    (``matrix[1, 0] == 0``) the six lines are contracted once per row (and where ``u_x`` is
+    a column's alone, its weights made once per column), where ``u_x`` is
+    (``matrix[0, 0] == 0``) the six columns: 12 products per point then, not 36."""
+    (m00, m01), (m10, m11) = (matrix[0, 0], matrix[0, 1]), (matrix[1, 0], matrix[1, 1])
+    height, width = block.shape
+    wa = np.empty(6)
+    wb = np.empty(6)
+    line = np.empty(max(width, 2 * height))
+    # u_x a function of the column alone: its weights and first node once per column
+    by_column = m10 == 0.0 and m01 == 0.0
+    column_weights = np.empty((keep.shape[1] if by_column else 0, 6))
+    column_first = np.empty(keep.shape[1] if by_column else 0, dtype=np.int64)
+    for ix in range(column_first.shape[0]):
+        ux = m00 * kx[ix]
+        fc = math.floor(ux)
+        _weights(ux - fc, column_weights[ix])
+        column_first[ix] = 2 * ((int(fc) - 2) % nx)
+    n = 0
+    for iy in range(keep.shape[0]):
+        first = -1
+        for ix in range(keep.shape[1]):
+            if keep[iy, ix]:
+                first = ix
+                break
+        if first < 0:
+            continue
+        mode = 0  # 1: a fixed u_y along the row, 2: a fixed u_x, 0: neither
+        if m10 == 0.0:
+            mode = 1
+            uy = m11 * ky[iy]
+            fr = math.floor(uy)
+            _weights(uy - fr, wa)
+            r0 = (int(fr) - 2) % ny
+            line[:width] = 0.0
+            for j in range(6):
+                wj = wa[j]
+                source = block[r0 + j]
+                for c in range(width):
+                    line[c] += wj * source[c]
+        elif m00 == 0.0:
+            mode = 2
+            ux = m01 * ky[iy]
+            fc = math.floor(ux)
+            _weights(ux - fc, wb)
+            c0 = 2 * ((int(fc) - 2) % nx)
+            for r in range(height):
+                re = 0.0
+                im = 0.0
+                for j in range(6):
+                    re += wb[j] * block[r, c0 + 2 * j]
+                    im += wb[j] * block[r, c0 + 2 * j + 1]
+                line[2 * r] = re
+                line[2 * r + 1] = im
+        for ix in range(first, keep.shape[1]):
+            if not keep[iy, ix]:
+                continue
             re = 0.0
             im = 0.0
-            c0 = cx[b]
-            for j in range(6):
-                re += wx[b, j] * line[c0 + 2 * j]
-                im += wx[b, j] * line[c0 + 2 * j + 1]
-            out[a, b] = complex(re, im)
+            if by_column:
+                c0 = column_first[ix]
+                for j in range(6):
+                    re += column_weights[ix, j] * line[c0 + 2 * j]
+                    im += column_weights[ix, j] * line[c0 + 2 * j + 1]
+            elif mode == 1:
+                ux = m00 * kx[ix] + m01 * ky[iy]
+                fc = math.floor(ux)
+                _weights(ux - fc, wb)
+                c0 = 2 * ((int(fc) - 2) % nx)
+                for j in range(6):
+                    re += wb[j] * line[c0 + 2 * j]
+                    im += wb[j] * line[c0 + 2 * j + 1]
+            elif mode == 2:
+                uy = m10 * kx[ix] + m11 * ky[iy]
+                fr = math.floor(uy)
+                _weights(uy - fr, wa)
+                r0 = 2 * ((int(fr) - 2) % ny)
+                for j in range(6):
+                    re += wa[j] * line[r0 + 2 * j]
+                    im += wa[j] * line[r0 + 2 * j + 1]
+            else:
+                ux = m00 * kx[ix] + m01 * ky[iy]
+                uy = m10 * kx[ix] + m11 * ky[iy]
+                fr = math.floor(uy)
+                fc = math.floor(ux)
+                _weights(uy - fr, wa)
+                _weights(ux - fc, wb)
+                r0 = (int(fr) - 2) % ny
+                c0 = 2 * ((int(fc) - 2) % nx)
+                for a in range(6):
+                    part_re = 0.0
+                    part_im = 0.0
+                    for b in range(6):
+                        part_re += wb[b] * block[r0 + a, c0 + 2 * b]
+                        part_im += wb[b] * block[r0 + a, c0 + 2 * b + 1]
+                    re += wa[a] * part_re
+                    im += wa[a] * part_im
+            out[n] = complex(re, im) * (phase_y[iy] * phase_x[ix])
+            n += 1
 
 
 @dataclass(frozen=True)
@@ -121,6 +202,21 @@ class PeriodicQuintic:
         wrapped[ny:] = wrapped[:WRAP]
         return cls(wrapped.view(np.float64), (ny, nx))
 
+    @classmethod
+    def from_half_spectrum(cls, half: np.ndarray, nx: int) -> PeriodicQuintic:
+        """The spline of the whole DFT of a real image ``nx`` wide, given as its ``rfft2``
+        ``half`` (ny, nx // 2 + 1): the other columns by Hermitian symmetry, written in
+        place."""
+        ny, nh = half.shape
+        wrapped = np.empty((ny + WRAP, nx + WRAP), dtype=np.complex128)
+        wrapped[:ny, :nh] = half
+        # column nx - j of row (-r) mod ny is the conjugate of column j of row r
+        np.conjugate(half[0, nx - nh : 0 : -1], out=wrapped[0, nh:nx])
+        np.conjugate(half[ny - 1 : 0 : -1, nx - nh : 0 : -1], out=wrapped[1:ny, nh:nx])
+        wrapped[:ny, nx:] = wrapped[:ny, :WRAP]
+        wrapped[ny:] = wrapped[:WRAP]
+        return cls(wrapped.view(np.float64), (ny, nx))
+
     def at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """The spline at the points ``(rows[k], cols[k])`` (grid units, any real value)."""
         rows = np.ascontiguousarray(rows, dtype=np.float64)
@@ -128,10 +224,32 @@ class PeriodicQuintic:
         _at_points(self.block, *self.shape, rows, np.ascontiguousarray(cols, np.float64), out)
         return out
 
-    def outer(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """The spline at every ``(rows[a], cols[b])``: (len(rows), len(cols))."""
-        rows = np.ascontiguousarray(rows, dtype=np.float64)
-        cols = np.ascontiguousarray(cols, dtype=np.float64)
-        out = np.empty((rows.shape[0], cols.shape[0]), dtype=np.complex128)
-        _on_outer(self.block, *self.shape, rows, cols, out)
+    def on_grid(
+        self,
+        matrix: np.ndarray,
+        kx: np.ndarray,
+        ky: np.ndarray,
+        keep: np.ndarray,
+        phase_x: np.ndarray | None = None,
+        phase_y: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """The spline at ``(u_y, u_x)`` (its rows, its columns), ``(u_x, u_y) = matrix @
+        (kx[ix], ky[iy])`` (grid units), for every ``(iy, ix)`` where ``keep`` (2-D
+        boolean), in ``keep``'s C order (as ``values[keep]``), times
+        ``phase_y[iy] * phase_x[ix]`` when given (complex)."""
+        keep = np.ascontiguousarray(keep, dtype=np.bool_)
+        ny, nx = keep.shape
+        ones = np.ones(max(ny, nx), dtype=np.complex128)
+        out = np.empty(int(np.count_nonzero(keep)), dtype=np.complex128)
+        _on_grid(
+            self.block,
+            *self.shape,
+            np.ascontiguousarray(matrix, dtype=np.float64),
+            np.ascontiguousarray(kx, dtype=np.float64),
+            np.ascontiguousarray(ky, dtype=np.float64),
+            keep,
+            ones[:nx] if phase_x is None else np.ascontiguousarray(phase_x, np.complex128),
+            ones[:ny] if phase_y is None else np.ascontiguousarray(phase_y, np.complex128),
+            out,
+        )
         return out
