@@ -186,6 +186,34 @@ def test_per_subfield_products(first_run, branch):
     )
 
 
+def test_moments_retry_branch(runner, cli, first_run, branch, tmp_path):
+    """`moments_retry = 0.5`: every measurement of a subfield has the damped retry (the
+    galaxies', the stars' and the kept training sets' headers say so), the subfields' keys
+    hold it (absent without it), and every galaxy that GalSim's iteration settles is measured
+    as without it: the retry only touches the failures."""
+    _, first, _ = first_run
+    pipe = tmp_path / "pipe.toml"
+    pipe.write_text(
+        "moments_retry = 0.5\n" + PIPELINE.format(path=branch) + "\n[output]\nkeep_sets = true\n"
+    )
+    assert P.load_branch_pipeline(pipe).moments_retry == 0.5
+    w = tmp_path / "w"
+    assert_ok(runner.invoke(cli, ["run", str(pipe), "--workdir", str(w)]))
+    d = w / P.SUBFIELDS_DIR / "000"
+    for name in ("features.fits", "stars.fits", "tp.fits", "tw.fits"):
+        assert fitsio.read_header(str(d / name), 1)["HSMRETRY"] == 0.5, name
+    record = json.loads((d / P.UNIT_RECORD).read_text())
+    assert record["params"]["moments_retry"] == 0.5
+    plain = json.loads((first / P.SUBFIELDS_DIR / "000" / P.UNIT_RECORD).read_text())
+    assert "moments_retry" not in plain["params"]
+    before = fitsio.read(str(first / P.SUBFIELDS_DIR / "000" / "features.fits"))
+    after = fitsio.read(str(d / "features.fits"))
+    settled = before["flags"] == 0
+    assert settled.sum() >= 8
+    for column in ("adamom_g1", "adamom_g2", "adamom_sigma", "adamom_flux", "adamom_rho4"):
+        assert np.array_equal(before[column][settled], after[column][settled]), column
+
+
 @pytest.mark.slow
 def test_subfields_do_not_depend_on_workers(runner, cli, first_run, tmp_path):
     """Subfields as work units on 2 processes: the same products as in one."""
@@ -406,6 +434,7 @@ def test_bad_branch_input(runner, cli, branch, tmp_path, corrupt, extra, words):
         ("branch.sigma2_min=0", ["branch.sigma2_min: must be > 0"]),
         ("branch.stamp_size=2", ["branch.stamp_size: must be >= 3"]),
         ("branch.epoch=-1", ["branch.epoch: must be >= 0"]),
+        ("moments_retry=1.5", ["moments_retry"]),
     ],
 )
 def test_bad_pipeline_settings(runner, cli, branch, tmp_path, override, words):

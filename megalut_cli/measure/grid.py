@@ -48,6 +48,7 @@ from megalut_cli.measure.measurer import (
     distinct_psfs,
     measure_cards,
     metacal_columns,
+    retry_cards,
 )
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.psf_model import cached_psf_model
@@ -654,7 +655,7 @@ def measure_request(request: MeasureRequest) -> Measured:
         progress=request.progress,
     )
     if grid.stars:
-        return stars_catalog(request.stamps_path, grid, feats)
+        return stars_catalog(request.stamps_path, grid, feats, request.settings.moments_retry)
     return features_catalog(request, grid, feats, psf is not None)
 
 
@@ -693,8 +694,11 @@ def features_catalog(
     return Measured(table, cards, FORMAT, grid.history, grid.extra_hdus, grid.meta)
 
 
-def stars_catalog(path: str, grid: GridInput, feats: dict[str, np.ndarray]) -> Measured:
-    """The star-by-star PSF features of a star field (format ``megalut.stars``)."""
+def stars_catalog(
+    path: str, grid: GridInput, feats: dict[str, np.ndarray], moments_retry: float = 0.0
+) -> Measured:
+    """The star-by-star PSF features of a star field (format ``megalut.stars``), measured with
+    the moments' damped retry ``moments_retry`` (0: none; its card when set)."""
     table, cards = grid.table, grid.cards
     good = feats["flags"] == 0
     if not good.any():
@@ -721,6 +725,7 @@ def stars_catalog(path: str, grid: GridInput, feats: dict[str, np.ndarray]) -> M
             "STAMPSZ": (grid.size, "stamp size [pixels]"),
             "XYORIGIN": (grid.xy_origin, "coordinate of the first pixel in x, y"),
             "NSTARS": (int(good.sum()), "stars measured"),
+            **retry_cards(moments_retry),
         }
     )
     cards.pop("MEASURED", None)

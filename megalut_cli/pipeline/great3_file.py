@@ -193,6 +193,13 @@ TOP_OPTIONS: tuple[Option, ...] = (
         "sets in metacal mode (the networks train on the noshear versions' features), and each "
         "subfield's shear is its mean noshear estimate divided by its mean response",
     ),
+    replace(
+        PIPELINE["moments_retry"],
+        help="step factor of the adaptive moments' damped retry on the stamps whose iteration "
+        "fails (`measure --moments-retry`, [catalogs.md](catalogs.md)) in every measurement "
+        "of a subfield (its galaxies and stars, the training sets); 0: none. Part of the "
+        "subfields' keys when set",
+    ),
     Option(
         "branch", "table", None, "the branch and how to read it (above)", default_text="required"
     ),
@@ -374,6 +381,7 @@ class BranchPipeline:
     problems: dict[int, str] = field(default_factory=dict)  # subfields with missing files
     engine: str = DEFAULT_ENGINE  # stamp engine of measure and simulate (megalut_cli.engine)
     metacal: bool = False  # the self-calibrated mode (docs/metacal.md)
+    moments_retry: float = 0.0  # the moments' damped retry of every measurement (0: none)
 
 
 def is_branch_pipeline(path: str | os.PathLike) -> bool:
@@ -598,6 +606,7 @@ def parse_branch_pipeline(
         problems=problems,
         engine=top.option(TOP["engine"]),
         metacal=bool(top.option(TOP["metacal"])),
+        moments_retry=float(top.option(TOP["moments_retry"])),
     )
     _check_templates(pipe)
     return pipe
@@ -655,4 +664,6 @@ def unit_params(pipe: BranchPipeline, subfield: int) -> dict[str, Any]:
         "train_weight": asdict(pipe.weight),
         "engine": pipe.engine,
         **({"metacal": True} if pipe.metacal else {}),
+        # absent when unset: the keys of earlier runs stay valid
+        **({"moments_retry": pipe.moments_retry} if pipe.moments_retry > 0 else {}),
     }

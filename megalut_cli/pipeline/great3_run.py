@@ -42,7 +42,7 @@ from megalut_cli import flags as fl
 from megalut_cli.atomic import replace_folder, write_json
 from megalut_cli.errors import InputError, MegalutError
 from megalut_cli.great3 import layout as L
-from megalut_cli.measure.measurer import metacal_cards
+from megalut_cli.measure.measurer import metacal_cards, retry_cards
 from megalut_cli.measure.metacal_defaults import DEFAULT_STEP
 from megalut_cli.nn.model import ShearModel
 from megalut_cli.nn.options import PointSpec, WeightSpec
@@ -197,11 +197,17 @@ def train_subfield(
 
 
 def simulate_set(
-    cfg: Any, seed: int, engine: str, metacal: bool, kept: Path | None
+    cfg: Any,
+    seed: int,
+    engine: str,
+    metacal: bool,
+    kept: Path | None,
+    moments_retry: float = 0.0,
 ) -> dict[str, np.ndarray]:
     """A training set of one subfield, simulated and measured in memory (``metacal``: in
-    metacal mode); written to ``kept`` too (``output.keep_sets``) as ``megalut simulate
-    --measure`` (``--metacal``) writes it."""
+    metacal mode; ``moments_retry``: the moments' damped retry); written to ``kept`` too
+    (``output.keep_sets``) as ``megalut simulate --measure`` (``--metacal``,
+    ``--moments-retry``) writes it."""
     from megalut_cli.sim.simulate import simulate_table, simulation_cards, write_simulation_catalog
 
     t0 = time.perf_counter()
@@ -211,9 +217,11 @@ def simulate_set(
         measure=True,
         engine=engine,
         metacal_step=float(DEFAULT_STEP) if metacal else None,
+        moments_retry=moments_retry,
     )
     if kept is not None:
         cards = simulation_cards(cfg, seed, True, engine)
+        cards.update(retry_cards(moments_retry))
         if metacal:
             cards.update(metacal_cards(DEFAULT_STEP, seed, "simulate"))
         write_simulation_catalog(kept, columns, cfg, cards)
@@ -330,6 +338,7 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
                 psf_path=files["starfield"],
                 engine=pipe.engine,
                 metacal=pipe.metacal,
+                moments_retry=pipe.moments_retry,
             )
             _check_measurement(feats, files, pipe.strict)
             measure_file(
@@ -339,6 +348,7 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
                 stamp_size=pipe.stamp_size,
                 stars=True,
                 engine=pipe.engine,
+                moments_retry=pipe.moments_retry,
             )
             lap("measure", t)
             sets, noise_sigma = {}, None
@@ -347,7 +357,9 @@ def run_subfield(job: Mapping[str, Any], work: UnitWork) -> dict[str, Any]:
                 cfg = set_config(tpl, files["starfield"], tmp / "features.fits")
                 kept = tmp / f"{name}.fits" if pipe.keep_sets else None
                 seed = params["sets"][name]["seed"]
-                sets[name] = simulate_set(cfg, seed, pipe.engine, pipe.metacal, kept)
+                sets[name] = simulate_set(
+                    cfg, seed, pipe.engine, pipe.metacal, kept, pipe.moments_retry
+                )
                 if name == "tw":
                     noise_sigma = (
                         float(cfg.noise.params["sigma"].bounds()[0])
