@@ -298,6 +298,32 @@ def flag_near_mask(
     nan_flagged(feats, feats["flags"], nan_when_flagged(settings.feature_sets))
 
 
+@functools.lru_cache(maxsize=8)
+def _cell_psfs(psf_bytes: bytes, psf_size: int, cell_size: int) -> np.ndarray:
+    """The PSF image (its bytes and side) as :func:`~.measurer.same_parity_psfs` gives it for
+    cells of ``cell_size`` pixels, ``(1, P, P)`` (cached, read-only: one PSF image for every
+    cell is redrawn once)."""
+    psf = np.frombuffer(psf_bytes).reshape(1, psf_size, psf_size)
+    psfs = same_parity_psfs(psf, cell_size)
+    psfs.flags.writeable = False
+    return psfs
+
+
+@functools.lru_cache(maxsize=8)
+def _target_psf_values(
+    target: str, psf_bytes: bytes, psf_size: int, target_sigma: float, step: float, size: int
+) -> dict[str, float]:
+    """``psf_<X>_<type>``: the metacal target's features on a ``size``-pixel stamp, from the
+    PSF image (its bytes and side) and the target's sigma (cached)."""
+    from megalut_cli.measure.metacal import stamp_target_columns
+
+    psf = np.frombuffer(psf_bytes).reshape(1, psf_size, psf_size)
+    columns = stamp_target_columns(
+        target, psf, np.zeros(1, np.int64), np.array([target_sigma]), step, size
+    )
+    return {c: float(v[0]) for c, v in columns.items()}
+
+
 def metadetect_cell(
     image: np.ndarray,
     psf: np.ndarray,
@@ -317,14 +343,14 @@ def metadetect_cell(
     version."""
     # GalSim: metadetect only
     from megalut_cli.measure.metacal import noise_field as drawn_noise
-    from megalut_cli.measure.metacal import stamp_target_columns
 
     mc = settings.metacal
     if mc is None:
         raise ValueError("metadetect needs settings.metacal (the step, seed and target)")
     image, bad = cleaned_cell(image, bad, detection.mask_fill)
     size = image.shape[0]
-    psfs = same_parity_psfs(np.asarray(psf, dtype=np.float64)[None], size)
+    psf = np.ascontiguousarray(psf, dtype=np.float64)
+    psfs = _cell_psfs(psf.tobytes(), psf.shape[0], size)
     sigma = noise.sigma if np.isfinite(noise.sigma) and noise.sigma > 0 else 0.0
     field = None
     if noise.field is not None:
@@ -347,8 +373,8 @@ def metadetect_cell(
     versions, target_sigma = cell_operation(
         image, psfs[0], mc.step, mc.target, engine, moving, moving_correlation=correlation
     )
-    target = stamp_target_columns(
-        mc.target, psfs, np.zeros(1, np.int64), np.array([target_sigma]), mc.step, stamp_size
+    target = _target_psf_values(
+        mc.target, psfs[0].tobytes(), psfs.shape[1], target_sigma, mc.step, stamp_size
     )
     measurer = Measurer(dataclasses.replace(settings, metacal=None, mask_margin=0.0))
     parts: list[dict[str, np.ndarray]] = []
@@ -363,7 +389,7 @@ def metadetect_cell(
         flag_near_mask(feats, mask_distance(bad, ux, uy), detection.mask_margin, settings)
         row = {MDET_COLUMN: np.full(n, kind), "x": ux + 1.0, "y": uy + 1.0, **feats}
         for c in TARGET_PSF_COLUMNS:
-            row[f"psf_{c}"] = np.full(n, target[f"psf_{c}_{kind}"][0])
+            row[f"psf_{c}"] = np.full(n, target[f"psf_{c}_{kind}"])
         parts.append(row)
     return {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
 
