@@ -27,6 +27,8 @@ def test_the_spline_is_scipys_at_any_point_wrapped_or_not():
     out = PeriodicQuintic.from_coefficients(coefficients).at(rows, cols)
     ref = scipy_spline(coefficients, rows, cols)
     assert np.abs(out - ref).max() < 1e-13 * np.abs(ref).max()
+    with pytest.raises(ValueError, match="one length"):
+        PeriodicQuintic.from_coefficients(coefficients).at(rows, cols[:-1])
 
 
 @pytest.mark.parametrize(
@@ -61,6 +63,12 @@ def test_on_grid_is_the_spline_at_the_mapped_frequencies(matrix):
     phased = spline.on_grid(matrix, kx, ky, keep, phase_x, phase_y)
     expected = ref * np.multiply.outer(phase_y, phase_x)[keep]
     assert np.abs(phased - expected).max() < 1e-13 * np.abs(ref).max()
+    # the kernel reads without bounds checks: mismatched axes are refused before it
+    for bad in ((matrix, kx[:-1], ky), (matrix, kx, ky[1:]), (matrix[:1], kx, ky)):
+        with pytest.raises(ValueError, match="on_grid"):
+            spline.on_grid(*bad, keep)
+    with pytest.raises(ValueError, match="on_grid"):
+        spline.on_grid(matrix, kx, ky, keep, phase_x[:-1], phase_y)
 
 
 def test_the_spline_interpolates_its_samples():

@@ -220,8 +220,11 @@ class PeriodicQuintic:
     def at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """The spline at the points ``(rows[k], cols[k])`` (grid units, any real value)."""
         rows = np.ascontiguousarray(rows, dtype=np.float64)
+        cols = np.ascontiguousarray(cols, dtype=np.float64)
+        if rows.ndim != 1 or cols.shape != rows.shape:  # the kernel does not check indices
+            raise ValueError(f"at: rows and cols of one length, got {rows.shape}, {cols.shape}")
         out = np.empty(rows.shape[0], dtype=np.complex128)
-        _at_points(self.block, *self.shape, rows, np.ascontiguousarray(cols, np.float64), out)
+        _at_points(self.block, *self.shape, rows, cols, out)
         return out
 
     def on_grid(
@@ -239,17 +242,26 @@ class PeriodicQuintic:
         ``phase_y[iy] * phase_x[ix]`` when given (complex)."""
         keep = np.ascontiguousarray(keep, dtype=np.bool_)
         ny, nx = keep.shape
-        ones = np.ones(max(ny, nx), dtype=np.complex128)
+        matrix = np.ascontiguousarray(matrix, dtype=np.float64)
+        kx = np.ascontiguousarray(kx, dtype=np.float64)
+        ky = np.ascontiguousarray(ky, dtype=np.float64)
+        phase_x = np.ones(nx, np.complex128) if phase_x is None else np.asarray(phase_x)
+        phase_y = np.ones(ny, np.complex128) if phase_y is None else np.asarray(phase_y)
+        # the kernel does not check its indices
+        if matrix.shape != (2, 2) or kx.shape != (nx,) or phase_x.shape != (nx,):
+            raise ValueError(f"on_grid: a 2x2 matrix and {nx} x frequencies and phases")
+        if ky.shape != (ny,) or phase_y.shape != (ny,):
+            raise ValueError(f"on_grid: {ny} y frequencies and phases")
         out = np.empty(int(np.count_nonzero(keep)), dtype=np.complex128)
         _on_grid(
             self.block,
             *self.shape,
-            np.ascontiguousarray(matrix, dtype=np.float64),
-            np.ascontiguousarray(kx, dtype=np.float64),
-            np.ascontiguousarray(ky, dtype=np.float64),
+            matrix,
+            kx,
+            ky,
             keep,
-            ones[:nx] if phase_x is None else np.ascontiguousarray(phase_x, np.complex128),
-            ones[:ny] if phase_y is None else np.ascontiguousarray(phase_y, np.complex128),
+            np.ascontiguousarray(phase_x, np.complex128),
+            np.ascontiguousarray(phase_y, np.complex128),
             out,
         )
         return out
