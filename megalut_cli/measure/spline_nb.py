@@ -39,6 +39,32 @@ def _weights(t: float, w: np.ndarray) -> None:
     w[5] = t5 / 120.0
 
 
+@njit(cache=True, inline="always")
+def _point_at(
+    block: np.ndarray, ny: int, nx: int, row: float, col: float, wy: np.ndarray, wx: np.ndarray
+) -> tuple[float, float]:
+    """The spline of the wrapped, interleaved coefficients ``block`` (``ny`` by ``nx`` nodes)
+    at ``(row, col)``: its real and imaginary parts (``wy``, ``wx`` the weights' work
+    arrays)."""
+    fr = math.floor(row)
+    fc = math.floor(col)
+    _weights(row - fr, wy)
+    _weights(col - fc, wx)
+    r0 = (int(fr) - 2) % ny
+    c0 = 2 * ((int(fc) - 2) % nx)
+    re = 0.0
+    im = 0.0
+    for a in range(6):
+        part_re = 0.0
+        part_im = 0.0
+        for b in range(6):
+            part_re += wx[b] * block[r0 + a, c0 + 2 * b]
+            part_im += wx[b] * block[r0 + a, c0 + 2 * b + 1]
+        re += wy[a] * part_re
+        im += wy[a] * part_im
+    return re, im
+
+
 @njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
 def _at_points(
     block: np.ndarray, ny: int, nx: int, rows: np.ndarray, cols: np.ndarray, out: np.ndarray
@@ -48,23 +74,23 @@ def _at_points(
     wy = np.empty(6)
     wx = np.empty(6)
     for k in range(rows.shape[0]):
-        fr = math.floor(rows[k])
-        fc = math.floor(cols[k])
-        _weights(rows[k] - fr, wy)
-        _weights(cols[k] - fc, wx)
-        r0 = (int(fr) - 2) % ny
-        c0 = 2 * ((int(fc) - 2) % nx)
-        re = 0.0
-        im = 0.0
-        for a in range(6):
-            part_re = 0.0
-            part_im = 0.0
-            for b in range(6):
-                part_re += wx[b] * block[r0 + a, c0 + 2 * b]
-                part_im += wx[b] * block[r0 + a, c0 + 2 * b + 1]
-            re += wy[a] * part_re
-            im += wy[a] * part_im
+        re, im = _point_at(block, ny, nx, rows[k], cols[k], wy, wx)
         out[k] = complex(re, im)
+
+
+@njit(cache=True, inline="always")
+def _line_at(line: np.ndarray, u: float, n: int, w: np.ndarray) -> tuple[float, float]:
+    """The spline of one interleaved, wrapped line of coefficients (``n`` nodes) at ``u``:
+    its real and imaginary parts (``w`` the weights' work array)."""
+    f = math.floor(u)
+    _weights(u - f, w)
+    first = 2 * ((int(f) - 2) % n)
+    re = 0.0
+    im = 0.0
+    for j in range(6):
+        re += w[j] * line[first + 2 * j]
+        im += w[j] * line[first + 2 * j + 1]
+    return re, im
 
 
 @njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
@@ -147,38 +173,12 @@ def _on_grid(
                     re += column_weights[ix, j] * line[c0 + 2 * j]
                     im += column_weights[ix, j] * line[c0 + 2 * j + 1]
             elif mode == 1:
-                ux = m00 * kx[ix] + m01 * ky[iy]
-                fc = math.floor(ux)
-                _weights(ux - fc, wb)
-                c0 = 2 * ((int(fc) - 2) % nx)
-                for j in range(6):
-                    re += wb[j] * line[c0 + 2 * j]
-                    im += wb[j] * line[c0 + 2 * j + 1]
+                re, im = _line_at(line, m00 * kx[ix] + m01 * ky[iy], nx, wb)
             elif mode == 2:
-                uy = m10 * kx[ix] + m11 * ky[iy]
-                fr = math.floor(uy)
-                _weights(uy - fr, wa)
-                r0 = 2 * ((int(fr) - 2) % ny)
-                for j in range(6):
-                    re += wa[j] * line[r0 + 2 * j]
-                    im += wa[j] * line[r0 + 2 * j + 1]
+                re, im = _line_at(line, m10 * kx[ix] + m11 * ky[iy], ny, wa)
             else:
-                ux = m00 * kx[ix] + m01 * ky[iy]
                 uy = m10 * kx[ix] + m11 * ky[iy]
-                fr = math.floor(uy)
-                fc = math.floor(ux)
-                _weights(uy - fr, wa)
-                _weights(ux - fc, wb)
-                r0 = (int(fr) - 2) % ny
-                c0 = 2 * ((int(fc) - 2) % nx)
-                for a in range(6):
-                    part_re = 0.0
-                    part_im = 0.0
-                    for b in range(6):
-                        part_re += wb[b] * block[r0 + a, c0 + 2 * b]
-                        part_im += wb[b] * block[r0 + a, c0 + 2 * b + 1]
-                    re += wa[a] * part_re
-                    im += wa[a] * part_im
+                re, im = _point_at(block, ny, nx, uy, m00 * kx[ix] + m01 * ky[iy], wa, wb)
             out[n] = complex(re, im) * (phase_y[iy] * phase_x[ix])
             n += 1
 
