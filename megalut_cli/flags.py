@@ -32,6 +32,11 @@ MASKED_PIXELS = 1 << 9
 #: detection's unsheared position (metadetection: the same place in every version), or of
 #: its stamp (MEDS input).
 NEAR_MASK = 1 << 10
+#: Detections (``--metadetect``, ``--detect``): the adaptive-moment centroid lies within
+#: ``--duplicate-radius`` of another detection's of the same image and version, the same
+#: light measured twice (a galaxy split by the deblending, or a neighbour's light taken
+#: over); the detection nearest that centroid keeps it.
+DUPLICATE = 1 << 11
 
 FLAG_NAMES: dict[int, str] = {
     HSM_FAILED: "HSM_FAILED",
@@ -45,6 +50,7 @@ FLAG_NAMES: dict[int, str] = {
     NO_CUTOUT: "NO_CUTOUT",
     MASKED_PIXELS: "MASKED_PIXELS",
     NEAR_MASK: "NEAR_MASK",
+    DUPLICATE: "DUPLICATE",
 }
 
 FLAG_DESCRIPTIONS: dict[int, str] = {
@@ -59,6 +65,7 @@ FLAG_DESCRIPTIONS: dict[int, str] = {
     NO_CUTOUT: "MEDS object without the cutout measured",
     MASKED_PIXELS: "masked pixels: over 25 % of the stamp, or within 2 px of the centre",
     NEAR_MASK: "a masked pixel of the cell or stamp within --mask-margin of the object",
+    DUPLICATE: "centroid within --duplicate-radius of another detection's: the same light",
 }
 
 

@@ -87,10 +87,13 @@ def selection(
     return keep
 
 
-def field_sums(rows: np.ndarray, keep: np.ndarray, prefix: str = "adamom") -> dict[str, np.ndarray]:
+def field_sums(
+    rows: np.ndarray, keep: np.ndarray, prefix: str = "adamom", fields: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
     """Per field and sign (axes 0, 1: fields, + and -), per version: the sums of g1, g2 (the
-    columns ``<prefix>_g1``, ``<prefix>_g2``) and the counts of the kept rows."""
-    fields = np.unique(rows["field"])
+    columns ``<prefix>_g1``, ``<prefix>_g2``) and the counts of the kept rows; ``fields``
+    (sorted, holding every row's field): the fields' order, default those of the rows."""
+    fields = np.unique(rows["field"]) if fields is None else fields
     step_col = np.char.strip(rows["mdet_step"].astype(str))
     f_index = np.searchsorted(fields, rows["field"])
     s_index = (rows["pair_sign"] < 0).astype(int)
@@ -130,14 +133,20 @@ def bootstrap(
     n_boot: int,
     seed: int,
     per_sign: bool = False,
+    minus: dict[str, np.ndarray] | None = None,
 ) -> np.ndarray:
-    """The standard deviation of :func:`estimate` over a bootstrap of the fields."""
+    """The standard deviation of :func:`estimate` over a bootstrap of the fields; with
+    ``minus`` (the sums of the same fields under a change), of the difference of the two
+    estimates, both resampled with the same fields."""
     rng = np.random.default_rng(seed)
     n_fields = len(next(iter(s.values())))
     boot = []
     for _ in range(n_boot):
         pick = rng.integers(0, n_fields, n_fields)  # the same fields for every sum
-        boot.append(estimate({k: v[pick] for k, v in s.items()}, step, g_true, per_sign))
+        value = estimate({k: v[pick] for k, v in s.items()}, step, g_true, per_sign)
+        if minus is not None:
+            value = value - estimate({k: v[pick] for k, v in minus.items()}, step, g_true, per_sign)
+        boot.append(value)
     return np.std(boot, axis=0)
 
 
@@ -173,6 +182,13 @@ def main() -> None:
         action="store_true",
         help="calibrate each sign by its own response (default: their mean for both)",
     )
+    parser.add_argument(
+        "--minus",
+        nargs="+",
+        default=None,
+        help="catalogs of the same fields under a change (one per catalog, in the same order): "
+        "the difference of the estimates, errors from one bootstrap of the fields for both",
+    )
     parser.add_argument("--subsets", type=int, default=1, help="sigma_m of 1/2^k of the fields")
     parser.add_argument(
         "--estimator",
@@ -181,8 +197,11 @@ def main() -> None:
         "networks' unweighted predictions, after megalut predict)",
     )
     args = parser.parse_args()
-    parts, steps, n_rows, n_kept = [], set(), 0, 0
-    for path in args.catalog:  # runs of other seeds: their fields are other fields
+    if args.minus and len(args.minus) != len(args.catalog):
+        parser.error("--minus takes as many catalogs as are given, in the same order")
+
+    def read(path: str) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """A catalog's rows, the rows kept, its step and its min edge."""
         rows = fitsio.read(path)
         header = fitsio.read_header(path, 1)
         step, cell_size = float(header["MDETSTEP"]), int(header["CELLSZ"])
@@ -197,12 +216,26 @@ def main() -> None:
             args.max_size_ratio,
             args.edge_frame,
         )
-        parts.append(field_sums(rows, keep, args.estimator))
+        return rows, keep, step, min_edge
+
+    parts, minus_parts, steps, n_rows, n_kept = [], [], set(), 0, 0
+    for i, path in enumerate(args.catalog):  # runs of other seeds: their fields are other fields
+        rows, keep, step, min_edge = read(path)
+        fields = None
+        if args.minus:  # the same fields under a change: one field order for both
+            other, other_keep, other_step, _ = read(args.minus[i])
+            fields = np.union1d(rows["field"], other["field"])
+            minus_parts.append(field_sums(other, other_keep, args.estimator, fields))
+            steps.add(other_step)
+        parts.append(field_sums(rows, keep, args.estimator, fields))
         steps.add(step)
         n_rows, n_kept = n_rows + len(rows), n_kept + int(keep.sum())
     if len(steps) != 1:
         parser.error(f"the catalogs have different steps (MDETSTEP): {sorted(steps)}")
     sums = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    minus = None
+    if args.minus:
+        minus = {k: np.concatenate([p[k] for p in minus_parts]) for k in parts[0]}
     per_sign = args.per_sign_response
     m, c1, c2, r11, r22 = estimate(sums, step, args.g_true, per_sign)
     err = bootstrap(sums, step, args.g_true, args.n_boot, args.seed, per_sign)
@@ -215,6 +248,14 @@ def main() -> None:
     print(f"m  = {m:+.2e} +- {err[0]:.2e}")
     print(f"c1 = {c1:+.2e} +- {err[1]:.2e}")
     print(f"c2 = {c2:+.2e} +- {err[2]:.2e}")
+    if minus is not None:
+        other = estimate(minus, step, args.g_true, per_sign)
+        diff = np.array([m, c1, c2, r11, r22]) - other
+        d_err = bootstrap(sums, step, args.g_true, args.n_boot, args.seed, per_sign, minus)
+        print(f"minus (the --minus catalogs, the same fields): m = {other[0]:+.2e}, "
+              f"c1 = {other[1]:+.2e}, c2 = {other[2]:+.2e}")  # fmt: skip
+        for name, value, e in zip(("m", "c1", "c2", "R11", "R22"), diff, d_err):
+            print(f"difference {name:3s} = {value:+.2e} +- {e:.2e}")
     for k in range(args.subsets - 1, 0, -1):
         n = n_fields >> k
         if n < 2:

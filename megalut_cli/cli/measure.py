@@ -104,6 +104,7 @@ def coadd_image_options(command: F) -> F:
 @schema_option(MEASURE["mask_neighbours"])
 @schema_option(MEASURE["mask_margin"], show_default=True)
 @schema_option(MEASURE["mask_fill"], show_default=True)
+@schema_option(MEASURE["duplicate_radius"], show_default=True)
 @schema_option(MEASURE["seed"], show_default=True)
 @engine_option("the adaptive moments are measured")
 @device_option("the fast engine measures")
@@ -139,6 +140,7 @@ def command(
     mask_neighbours: bool,
     mask_margin: float,
     mask_fill: str,
+    duplicate_radius: float,
     seed: int,
     engine: str,
     device: str,
@@ -276,6 +278,7 @@ def command(
             mask_neighbours=mask_neighbours,
             mask_margin=mask_margin,
             mask_fill=mask_fill,
+            duplicate_radius=duplicate_radius,
             weight_path=weight_path,
             mask_path=mask_path,
             noise_path=noise_path,

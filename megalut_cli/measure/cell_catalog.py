@@ -106,5 +106,6 @@ def metadetect_cards(request: MeasureRequest, size: int) -> dict[str, Any]:
         "MASKNBR": (bool(detection.mask_neighbours), "other detections masked in the stamps"),
         "MASKMRGN": (float(detection.mask_margin), "NEAR_MASK within this of a masked pixel [px]"),
         "MASKFILL": (detection.mask_fill, "what the masked pixels hold (measure --mask-fill)"),
+        "DUPRAD": (float(detection.duplicate_radius), "DUPLICATE within this of a centroid [px]"),
         "DETECTOR": ("sep", "detection code (Source Extractor as a library)"),
     }

@@ -298,6 +298,35 @@ def flag_near_mask(
     nan_flagged(feats, feats["flags"], nan_when_flagged(settings.feature_sets))
 
 
+def flag_duplicates(
+    feats: dict[str, np.ndarray],
+    x: np.ndarray,
+    y: np.ndarray,
+    radius: float,
+    settings: MeasureSettings,
+) -> None:
+    """Flag DUPLICATE, with NaN features, the detections (1-based positions ``x, y``) whose
+    adaptive-moment centroid (``adamom_x``, ``adamom_y``: the same frame) lies within
+    ``radius`` pixels of another's: the same light measured twice, kept by the detection
+    nearest that centroid (the first of a tie); rows without a centroid take no part (in
+    place)."""
+    n = len(x)
+    cx, cy = feats["adamom_x"][:n].astype(np.float64), feats["adamom_y"][:n].astype(np.float64)
+    measured = np.flatnonzero(np.isfinite(cx) & np.isfinite(cy))
+    if radius <= 0 or len(measured) < 2:
+        return
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(np.c_[cx[measured], cy[measured]]).query_pairs(radius, output_type="ndarray")
+    if not len(pairs):
+        return
+    first, second = measured[pairs[:, 0]], measured[pairs[:, 1]]  # first < second
+    offset = np.hypot(x - cx, y - cy)
+    farther = np.where(offset[first] <= offset[second], second, first)
+    feats["flags"][farther] |= fl.DUPLICATE
+    nan_flagged(feats, feats["flags"], nan_when_flagged(settings.feature_sets))
+
+
 @functools.lru_cache(maxsize=8)
 def _cell_psfs(psf_bytes: bytes, psf_size: int, cell_size: int) -> np.ndarray:
     """The PSF image (its bytes and side) as :func:`~.measurer.same_parity_psfs` gives it for
@@ -385,6 +414,7 @@ def metadetect_cell(
         x, y, n = found.x, found.y, len(found.x)
         feats = measurer.measure(StampBatch(stamps, origins, masked=masked, centres=centres))
         feats = {c: v[:n] for c, v in feats.items()}
+        flag_duplicates(feats, x + 1.0, y + 1.0, detection.duplicate_radius, settings)
         ux, uy = unsheared(x, y, size, SHEARS[kind], mc.step)
         flag_near_mask(feats, mask_distance(bad, ux, uy), detection.mask_margin, settings)
         row = {MDET_COLUMN: np.full(n, kind), "x": ux + 1.0, "y": uy + 1.0, **feats}
@@ -434,5 +464,6 @@ def detect_cell(
     )
     cell_measurer = Measurer(dataclasses.replace(settings, mask_margin=0.0))  # the cell's below
     feats = {c: v[:n] for c, v in cell_measurer.measure(batch).items()}
+    flag_duplicates(feats, x + 1.0, y + 1.0, detection.duplicate_radius, settings)
     flag_near_mask(feats, mask_distance(bad, x, y), detection.mask_margin, settings)
     return {"x": x + 1.0, "y": y + 1.0, **feats}

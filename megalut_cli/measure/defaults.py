@@ -35,6 +35,10 @@ DEBLEND_CONT = 0.005
 #: ``--metadetect``, ``--detect``: a detection whose unsheared position lies within this
 #: many pixels of a masked pixel of its cell is flagged NEAR_MASK (docs/metadetect.md).
 MASK_MARGIN = 10.0
+#: ``--metadetect``, ``--detect``: detections whose adaptive-moment centroids lie within
+#: this many pixels of each other measured the same light; all but one are flagged
+#: DUPLICATE (docs/metadetect.md).
+DUPLICATE_RADIUS = 0.25
 #: ``--metadetect``, ``--detect``: what the masked pixels of a cell hold before the metacal
 #: operation and detection: the harmonic interpolation of their good neighbours, or 0.
 MASK_FILLS = ("interpolate", "zero")

@@ -112,6 +112,7 @@ def measure_file_columns(
     mask_neighbours: bool = MEASURE["mask_neighbours"].default,
     mask_margin: float = MEASURE["mask_margin"].default,
     mask_fill: str = MEASURE["mask_fill"].default,
+    duplicate_radius: float = MEASURE["duplicate_radius"].default,
     weight_path: str | os.PathLike | None = None,
     mask_path: str | os.PathLike | None = None,
     noise_path: str | os.PathLike | None = None,
@@ -184,7 +185,9 @@ def measure_file_columns(
         mask_neighbours: ``metadetect`` and ``detect``: the other detections' segments
             masked in each detection's stamp; ``mask_margin``: detections whose unsheared
             position lies that close to a masked pixel of the cell are flagged NEAR_MASK;
-            ``mask_fill``: what the masked pixels hold ("interpolate" or "zero").
+            ``mask_fill``: what the masked pixels hold ("interpolate" or "zero");
+            ``duplicate_radius``: detections whose adaptive-moment centroids lie that close
+            to another's of the same version are flagged DUPLICATE (one kept).
         weight_path, mask_path, noise_path, cell_size, cell_border: ``metadetect`` on one
             coadd image (:mod:`.coadd`): its inverse-variance map (required), mask bits and
             a noise realization (optional, for correlated noise), and the cells it is cut
@@ -227,6 +230,7 @@ def measure_file_columns(
             bool(mask_neighbours),
             float(mask_margin),
             str(mask_fill),
+            float(duplicate_radius),
         )
         if metadetect or detect
         else None

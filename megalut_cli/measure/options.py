@@ -20,6 +20,7 @@ from megalut_cli.measure.defaults import (
     DEBLEND_NTHRESH,
     DETECT_MINAREA,
     DETECT_THRESH,
+    DUPLICATE_RADIUS,
     MASK_FILLS,
     MASK_MARGIN,
     MDET_STAMP_SIZE,
@@ -196,6 +197,17 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         "of the cell for --metadetect and --detect (from the detection's unsheared position), "
         "of the stamp for MEDS input; the column mask_dist holds that distance; 0: no flag "
         "(docs/metadetect.md, docs/catalogs.md).",
+        minimum=0,
+    ),
+    Option(
+        "duplicate_radius",
+        "float",
+        DUPLICATE_RADIUS,
+        "--metadetect, --detect: flag DUPLICATE (NaN features) on a detection whose "
+        "adaptive-moment centroid lies within this many pixels of another detection's in the "
+        "same version: the same light measured twice (a galaxy split by the deblending, or a "
+        "neighbour's light taken over); the detection nearest that centroid is kept; 0: no "
+        "flag (docs/metadetect.md).",
         minimum=0,
     ),
     Option(

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from megalut_cli.errors import Names
-from megalut_cli.measure.defaults import MASK_FILLS, MASK_MARGIN
+from megalut_cli.measure.defaults import DUPLICATE_RADIUS, MASK_FILLS, MASK_MARGIN
 from megalut_cli.measure.measurer import MeasureSettings
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.progress import Progress
@@ -103,7 +103,8 @@ class DetectSettings:
     cleans the detections (its default); whether the other detections' segments are masked
     in each detection's stamp; how close to a masked pixel of the cell a detection's
     unsheared position may lie before it is flagged NEAR_MASK (pixels); what the masked
-    pixels hold (``MASK_FILLS``)."""
+    pixels hold (``MASK_FILLS``); how close two detections' adaptive-moment centroids lie
+    before one is flagged DUPLICATE (pixels)."""
 
     thresh: float
     minarea: int
@@ -113,6 +114,7 @@ class DetectSettings:
     mask_neighbours: bool = False
     mask_margin: float = MASK_MARGIN
     mask_fill: str = MASK_FILLS[0]
+    duplicate_radius: float = DUPLICATE_RADIUS
 
 
 @dataclass
