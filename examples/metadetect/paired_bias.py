@@ -134,10 +134,12 @@ def bootstrap(
     seed: int,
     per_sign: bool = False,
     minus: dict[str, np.ndarray] | None = None,
+    minus_step: float | None = None,
 ) -> np.ndarray:
     """The standard deviation of :func:`estimate` over a bootstrap of the fields; with
-    ``minus`` (the sums of the same fields under a change), of the difference of the two
-    estimates, both resampled with the same fields."""
+    ``minus`` (the sums of the same fields under a change, their step ``minus_step``,
+    default ``step``), of the difference of the two estimates, both resampled with the
+    same fields."""
     rng = np.random.default_rng(seed)
     n_fields = len(next(iter(s.values())))
     boot = []
@@ -145,7 +147,8 @@ def bootstrap(
         pick = rng.integers(0, n_fields, n_fields)  # the same fields for every sum
         value = estimate({k: v[pick] for k, v in s.items()}, step, g_true, per_sign)
         if minus is not None:
-            value = value - estimate({k: v[pick] for k, v in minus.items()}, step, g_true, per_sign)
+            other = {k: v[pick] for k, v in minus.items()}
+            value = value - estimate(other, minus_step or step, g_true, per_sign)
         boot.append(value)
     return np.std(boot, axis=0)
 
@@ -218,7 +221,7 @@ def main() -> None:
         )
         return rows, keep, step, min_edge
 
-    parts, minus_parts, steps, n_rows, n_kept = [], [], set(), 0, 0
+    parts, minus_parts, steps, minus_steps, n_rows, n_kept = [], [], set(), set(), 0, 0
     for i, path in enumerate(args.catalog):  # runs of other seeds: their fields are other fields
         rows, keep, step, min_edge = read(path)
         fields = None
@@ -226,12 +229,14 @@ def main() -> None:
             other, other_keep, other_step, _ = read(args.minus[i])
             fields = np.union1d(rows["field"], other["field"])
             minus_parts.append(field_sums(other, other_keep, args.estimator, fields))
-            steps.add(other_step)
+            minus_steps.add(other_step)
         parts.append(field_sums(rows, keep, args.estimator, fields))
         steps.add(step)
         n_rows, n_kept = n_rows + len(rows), n_kept + int(keep.sum())
-    if len(steps) != 1:
-        parser.error(f"the catalogs have different steps (MDETSTEP): {sorted(steps)}")
+    for kind, found in (("catalogs", steps), ("--minus catalogs", minus_steps)):
+        if len(found) > 1:
+            parser.error(f"the {kind} have different steps (MDETSTEP): {sorted(found)}")
+    minus_step = minus_steps.pop() if minus_steps else None
     sums = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     minus = None
     if args.minus:
@@ -249,9 +254,11 @@ def main() -> None:
     print(f"c1 = {c1:+.2e} +- {err[1]:.2e}")
     print(f"c2 = {c2:+.2e} +- {err[2]:.2e}")
     if minus is not None:
-        other = estimate(minus, step, args.g_true, per_sign)
+        other = estimate(minus, minus_step, args.g_true, per_sign)
         diff = np.array([m, c1, c2, r11, r22]) - other
-        d_err = bootstrap(sums, step, args.g_true, args.n_boot, args.seed, per_sign, minus)
+        d_err = bootstrap(
+            sums, step, args.g_true, args.n_boot, args.seed, per_sign, minus, minus_step
+        )
         print(f"minus (the --minus catalogs, the same fields): m = {other[0]:+.2e}, "
               f"c1 = {other[1]:+.2e}, c2 = {other[2]:+.2e}")  # fmt: skip
         for name, value, e in zip(("m", "c1", "c2", "R11", "R22"), diff, d_err):
