@@ -310,8 +310,7 @@ def flag_duplicates(
     ``radius`` pixels of another's: the same light measured twice, kept by the detection
     nearest that centroid (the first of a tie); rows without a centroid take no part (in
     place)."""
-    n = len(x)
-    cx, cy = feats["adamom_x"][:n].astype(np.float64), feats["adamom_y"][:n].astype(np.float64)
+    cx, cy = feats["adamom_x"], feats["adamom_y"]  # one row per detection
     measured = np.flatnonzero(np.isfinite(cx) & np.isfinite(cy))
     if radius <= 0 or len(measured) < 2:
         return
