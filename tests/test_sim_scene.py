@@ -168,8 +168,10 @@ def test_pairs_share_galaxies_and_noise(tmp_path):
     for f in (0, 1):
         plus = (t["field"] == f) & (t["pair_sign"] == 1)
         minus = (t["field"] == f) & (t["pair_sign"] == -1)
-        for name in ("x", "y", "tru_flux", "tru_rad", "tru_e1", "tru_e2"):
+        for name in ("galaxy", "tru_flux", "tru_rad", "tru_e1", "tru_e2"):
             np.testing.assert_array_equal(t[name][plus], t[name][minus])
+        # the positions are lensed by each image's own shear (scene.shear_positions)
+        assert not np.array_equal(t["x"][plus], t["x"][minus])
         np.testing.assert_array_equal(t["tru_g1"][minus], -t["tru_g1"][plus])
         np.testing.assert_array_equal(t["tru_g2"][minus], -t["tru_g2"][plus])
         assert np.all(t["tru_g1"][plus] == 0.04)
@@ -177,7 +179,7 @@ def test_pairs_share_galaxies_and_noise(tmp_path):
         diff = scenes.images[2 * f] - scenes.images[2 * f + 1]
         yy, xx = np.mgrid[1:97, 1:97]
         far = np.ones(diff.shape, bool)
-        for x, y in zip(t["x"][plus], t["y"][plus]):
+        for x, y in zip(t["x"][plus | minus], t["y"][plus | minus]):
             far &= np.maximum(abs(xx - x), abs(yy - y)) > 25  # beyond half a 48-px stamp
         assert far.any()
         assert np.all(diff[far] == 0.0)
@@ -299,6 +301,97 @@ def test_a_known_shear_is_seen_by_adaptive_moments(tmp_path):
     assert response > 0
     assert response == pytest.approx(expected, rel=0.15), (response, expected)
     assert abs(plus[1]) < 0.002 and abs(minus[1]) < 0.002
+
+
+@pytest.mark.parametrize("shear_positions", [True, False])
+def test_positions_are_lensed_about_the_field_centre(tmp_path, shear_positions):
+    """With ``shear_positions`` (the default) each image's galaxies sit where the image's
+    shear takes them about the field's centre, as on the sky: the light's centroids
+    (adaptive moments, noiseless, no neighbour within 20 px) at the truth table's ``x, y``,
+    which are the source positions moved by (g1, g2) for +g and (-g1, -g2) for -g; without
+    it, at the source positions in both images."""
+    g1, g2, size = 0.06, -0.04, 256
+    flag = str(shear_positions).lower()
+    cfg = scene_config(
+        tmp_path,
+        **{
+            "g1 = 0.04\ng2 = -0.02": f"g1 = {g1}\ng2 = {g2}",
+            'type = "gaussian"\nsigma = 1.0': 'type = "none"',
+            "density = 100": "density = 30",
+            "size = 96": f"size = {size}\nborder = 16\nshear_positions = {flag}",
+        },
+    )
+    scenes = draw_scenes(cfg, seed=11)
+    t = scenes.truth
+    plus, minus = t["pair_sign"] == 1, t["pair_sign"] == -1
+    c = (size + 1) / 2.0
+    dx, dy = t["x"][plus] - c, t["y"][plus] - c
+    # the -g image's positions are the +g image's moved by -g twice over: undo both
+    ux, uy = t["x"][minus] - c, t["y"][minus] - c
+    norm = np.sqrt(1 - g1**2 - g2**2)
+    if shear_positions:
+        # the source positions: +g's positions with the inverse of the shear matrix
+        sx, sy = ((1 - g1) * dx - g2 * dy) / norm, (-g2 * dx + (1 + g1) * dy) / norm
+        np.testing.assert_allclose(((1 - g1) * sx - g2 * sy) / norm, ux, atol=1e-9)
+        np.testing.assert_allclose((-g2 * sx + (1 + g1) * sy) / norm, uy, atol=1e-9)
+        assert np.max(np.hypot(ux - dx, uy - dy)) > 0.5
+    else:
+        np.testing.assert_array_equal(ux, dx)
+        np.testing.assert_array_equal(uy, dy)
+    offsets = []
+    for i in range(len(scenes.images)):
+        rows = np.flatnonzero(t["image"] == i)
+        x, y = t["x"][rows], t["y"][rows]
+        for k in range(len(rows)):
+            if np.sort(np.hypot(x - x[k], y - y[k]))[1:2].min(initial=1e9) < 20:
+                continue
+            ix, iy = int(round(x[k])), int(round(y[k]))
+            if min(ix, iy) < 13 or max(ix, iy) > size - 12:
+                continue
+            cut = scenes.images[i][iy - 13 : iy + 11, ix - 13 : ix + 11]
+            mom = galsim.hsm.FindAdaptiveMom(galsim.ImageF(np.ascontiguousarray(cut)))
+            # the cut's pixel (1, 1) is the image's (ix - 12, iy - 12)
+            offsets.append(
+                (mom.moments_centroid.x + ix - 13 - x[k], mom.moments_centroid.y + iy - 13 - y[k])
+            )
+    offsets = np.array(offsets)
+    assert len(offsets) >= 20
+    assert np.max(np.abs(offsets)) < 0.02, np.max(np.abs(offsets))
+    assert scene_cards(cfg, 11)["SHEARPOS"][0] is shear_positions
+
+
+def test_a_lensed_scene_is_the_unlensed_scene_sheared_as_a_whole(tmp_path):
+    """Noiseless, a nearly point-like PSF: the scene drawn at shear g is GalSim's shear of
+    the whole unsheared scene about the field's centre (an InterpolatedImage of it), to the
+    PSF's and the pixel's own shear (4.9 % of the peak at most); shearing the profiles
+    only leaves the neighbours where they were, and the images differ by the galaxies
+    (85 %)."""
+    g1, g2, size = 0.1, 0.05, 128
+
+    def image(g1: float, g2: float, lensed: bool) -> np.ndarray:
+        cfg = scene_config(
+            tmp_path,
+            **{
+                "g1 = 0.04\ng2 = -0.02": f"g1 = {g1}\ng2 = {g2}",
+                'type = "gaussian"\nsigma = 1.0': 'type = "none"',
+                "sigma = 1.5": "sigma = 0.5",
+                "size = 96": f"size = {size}\nborder = 24\nshear_positions = {str(lensed).lower()}",
+                "n_fields = 2": "n_fields = 1",
+                "pairs = true": "pairs = false",
+            },
+        )
+        return draw_scenes(cfg, seed=5).images[0].astype(np.float64)
+
+    whole = galsim.InterpolatedImage(galsim.ImageD(image(0.0, 0.0, True), scale=1.0))
+    sheared = whole.shear(g1=g1, g2=g2).drawImage(nx=size, ny=size, scale=1.0, method="no_pixel")
+    inner = slice(16, size - 16)
+    for lensed, within in ((True, 0.07), (False, None)):
+        drawn = image(g1, g2, lensed)
+        diff = np.abs(drawn - sheared.array)[inner, inner].max() / drawn.max()
+        if within:
+            assert diff < within, diff
+        else:
+            assert diff > 0.3, diff
 
 
 def test_the_seed_decides_every_pixel(tmp_path):

@@ -4,7 +4,9 @@
 
 Diagnostics only: rows are matched to each other and to the truth by position, which the
 estimate (paired_bias.py) never does. Rows are kept by paired_bias.py's selection (the same
-options). Positions are compared with each version's shear about the cell's centre undone.
+options). Positions are compared with each version's shear about the cell's centre undone, and
+between the +g and -g images of a lensed scene (truth card ``SHEARPOS``) with the image's
+own shear undone too (the source positions).
 
 1. Rows that enter or leave the selection between 1p and 1m (R11) and between the +g and
    -g images (noshear): how many, why (the other version's row at that place is flagged,
@@ -27,7 +29,17 @@ from paired_bias import TYPES, selection, unsheared, version_positions
 from scipy.spatial import cKDTree
 
 
-def load(path: str, args: argparse.Namespace) -> dict:
+def source_positions(
+    x: np.ndarray, y: np.ndarray, g1: np.ndarray, g2: np.ndarray, size: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Positions with a lensed scene image's shear (g1, g2) about the cell's centre undone."""
+    c = (size + 1) / 2.0
+    k = 1.0 / np.sqrt(1.0 - g1 * g1 - g2 * g2)
+    dx, dy = x - c, y - c
+    return c + k * ((1.0 - g1) * dx - g2 * dy), c + k * (-g2 * dx + (1.0 + g1) * dy)
+
+
+def load(path: str, args: argparse.Namespace, lensed: bool) -> dict:
     rows = fitsio.read(path)
     header = fitsio.read_header(path, 1)
     step, size = float(header["MDETSTEP"]), int(header["CELLSZ"])
@@ -46,16 +58,28 @@ def load(path: str, args: argparse.Namespace) -> dict:
         "size": (rows["adamom_sigma"] / rows["psf_adamom_sigma"]) ** 2 < args.max_size_ratio,
         "|g|": np.hypot(rows["adamom_g1"], rows["adamom_g2"]) < args.max_g,
     }
+    sx, sy = source_positions(x, y, rows["tru_g1"], rows["tru_g2"], size) if lensed else (x, y)
     return dict(
-        rows=rows, keep=keep, x=x, y=y, kind=kind, step=step, size=size, edge=edge, cuts=cuts
+        rows=rows,
+        keep=keep,
+        x=x,
+        y=y,
+        sx=sx,
+        sy=sy,
+        kind=kind,
+        step=step,
+        size=size,
+        edge=edge,
+        cuts=cuts,
     )
 
 
 def nearest(d: dict, a: np.ndarray, b: np.ndarray, radius: float) -> np.ndarray:
-    """For rows ``a``: the index of the nearest row of ``b`` within ``radius``, else -1."""
+    """For rows ``a``: the index of the nearest row of ``b`` within ``radius`` (at their
+    source positions), else -1."""
     if len(a) == 0 or len(b) == 0:
         return np.full(len(a), -1)
-    dist, j = cKDTree(np.c_[d["x"][b], d["y"][b]]).query(np.c_[d["x"][a], d["y"][a]])
+    dist, j = cKDTree(np.c_[d["sx"][b], d["sy"][b]]).query(np.c_[d["sx"][a], d["sy"][a]])
     return np.where(dist < radius, b[np.minimum(j, len(b) - 1)], -1)
 
 
@@ -163,7 +187,8 @@ def main() -> None:
     parser.add_argument("--max-size-ratio", type=float, default=np.inf)
     parser.add_argument("--n-boot", type=int, default=300)
     args = parser.parse_args()
-    d = load(args.catalog, args)
+    lensed = bool(fitsio.read_header(args.truth, 1).get("SHEARPOS", False))
+    d = load(args.catalog, args, lensed)
     rows = d["rows"]
     images = rows["image"]
     sign = {int(i): int(s) for i, s in zip(images, rows["pair_sign"])}

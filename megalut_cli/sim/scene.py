@@ -161,10 +161,27 @@ class DrawnField:
     noise_twin: np.ndarray | None = None
     #: the field's stars: ``x, y`` (FITS 1-based), ``flux`` (the same in every image)
     stars: dict[str, np.ndarray] = field(default_factory=dict)
+    #: each image's galaxy centres (n_signs, n_galaxies, 2), FITS 1-based: ``truth``'s
+    #: ``x, y`` lensed by the image's shear with ``scene.shear_positions``, else those
+    positions: np.ndarray = field(default_factory=lambda: np.zeros((1, 0, 2)))
 
 
 def _scalar(values: dict[str, np.ndarray]) -> dict[str, float]:
     return {k: float(v[0]) for k, v in values.items()}
+
+
+def lensed_positions(
+    x: np.ndarray, y: np.ndarray, g1: float, g2: float, size: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Positions ``x, y`` (FITS 1-based) moved by the shear (g1, g2) about the field's centre
+    ``(size + 1)/2``: GalSim's shear matrix, the one that shears the profiles (area kept)."""
+    centre = (size + 1) / 2.0
+    norm = np.sqrt(1.0 - g1 * g1 - g2 * g2)
+    dx, dy = x - centre, y - centre
+    return (
+        centre + ((1.0 + g1) * dx + g2 * dy) / norm,
+        centre + (g2 * dx + (1.0 - g1) * dy) / norm,
+    )
 
 
 @dataclass(frozen=True)
@@ -293,21 +310,28 @@ def draw_field(unit: FieldUnit) -> DrawnField:
     flux_drawn = np.zeros((len(signs), n))
     max_stamp = cfg.structure.stamp_size
     lensed = [{**t, "tru_g1": sign * t["tru_g1"], "tru_g2": sign * t["tru_g2"]} for sign in signs]
+    positions = np.zeros((len(signs), n, 2))
+    for j, sign in enumerate(signs):
+        if s.shear_positions:
+            xy = lensed_positions(t["x"], t["y"], sign * d.g1, sign * d.g2, s.size)
+        else:
+            xy = (t["x"], t["y"])
+        positions[j, :, 0], positions[j, :, 1] = xy
     for k in range(n):
         base = profile.build(cfg.galaxy, t, k, gsp, 0.0)
-        where = galsim.PositionD(float(t["x"][k]), float(t["y"][k]))
-        ix, iy = int(np.floor(where.x + 0.5)), int(np.floor(where.y + 0.5))
         side = 0
         for j in range(len(signs)):
             gal_k = oriented(base, lensed[j], k, d.theta[k])
             obj = galsim.Convolve(gal_k, psf, gsparams=conv_gsp)
-            if not side:  # the same stamp for both signs
+            if not side:  # the same stamp size for both signs
                 side = min(obj.getGoodImageSize(1.0), max_stamp)
                 half = side // 2
-                bounds = galsim.BoundsI(
-                    ix - half, ix - half + side - 1, iy - half, iy - half + side - 1
-                )
-                overlap = bounds & fields[0].bounds
+            where = galsim.PositionD(*positions[j, k])
+            ix, iy = int(np.floor(where.x + 0.5)), int(np.floor(where.y + 0.5))
+            bounds = galsim.BoundsI(
+                ix - half, ix - half + side - 1, iy - half, iy - half + side - 1
+            )
+            overlap = bounds & fields[j].bounds
             if not overlap.isDefined():
                 continue
             stamp = galsim.ImageF(bounds, scale=1.0)
@@ -363,6 +387,7 @@ def draw_field(unit: FieldUnit) -> DrawnField:
         flux_drawn,
         twin,
         d.stars,
+        positions,
     )
 
 
@@ -449,6 +474,7 @@ def truth_rows(drawn: DrawnField, first_image: int) -> dict[str, np.ndarray]:
         }
         for name, values in drawn.truth.items():
             cols[name] = sign * values if name in ("tru_g1", "tru_g2") else values
+        cols["x"], cols["y"] = drawn.positions[j, :, 0], drawn.positions[j, :, 1]
         cols["tru_flux_drawn"] = drawn.flux_drawn[j]
         parts.append(cols)
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
@@ -524,6 +550,7 @@ def scene_cards(config: SimConfig, seed: int) -> dict[str, Any]:
         "PIXSCALE": (s.pixel_scale, "arcsec per pixel"),
         "DENSITY": (s.density, "mean galaxies per arcmin2"),
         "BORDER": (s.border, "galaxy centres at least this far from the edges, px"),
+        "SHEARPOS": (s.shear_positions, "galaxy positions lensed about the field centre"),
         "PSFSZ": (s.psf_size, "side of the PSF images, pixels"),
         **(
             {"MINSEP": (s.min_separation, "galaxy centres at least this far apart, px")}

@@ -58,9 +58,19 @@ SCENE_OPTIONS: tuple[Option, ...] = (
         "border",
         "int",
         0,
-        "galaxy centres stay at least this many pixels from the field's edges",
+        "galaxy centres stay at least this many pixels from the field's edges (before "
+        "`shear_positions` moves them)",
         minimum=0,
         allowed_text="[0, size/2)",
+    ),
+    Option(
+        "shear_positions",
+        "bool",
+        True,
+        "lens the galaxies' positions as well as their profiles: each centre moves by the "
+        "field's shear about the field's centre, (size + 1)/2, the point metadetection "
+        "shears a cell about, so neighbours' separations respond to the shear as on the sky; "
+        "false: only the profiles are sheared (every scene drawn before this key)",
     ),
     Option(
         "psf_size",
@@ -75,10 +85,10 @@ SCENE_OPTIONS: tuple[Option, ...] = (
         "min_separation",
         "float",
         0.0,
-        "galaxy centres lie at least this many pixels apart: each galaxy is redrawn until it "
-        "does from those placed before it (isolated galaxies; coverage: the mean fraction of "
-        "the centres' square, widened by it, under disks of this diameter); 0: independent "
-        "uniform positions",
+        "galaxy centres lie at least this many pixels apart (before `shear_positions`): each "
+        "galaxy is redrawn until it does from those placed before it (isolated galaxies; "
+        "coverage: the mean fraction of the centres' square, widened by it, under disks of "
+        "this diameter); 0: independent uniform positions",
         minimum=0.0,
         allowed_text=f"[0, size − 2 border]; mean coverage ≤ {100 * MAX_COVERAGE:g} %",
     ),
@@ -141,6 +151,7 @@ class SceneSpec:
     pairs: bool
     border: int
     psf_size: int
+    shear_positions: bool = True
     min_separation: float = 0.0
     star_density: float = 0.0
     star_flux_min: float = 1e3
@@ -191,7 +202,7 @@ class SceneSpec:
 def parse_scene(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> SceneSpec:
     """The ``[scene]`` table of the config ``raw`` (defaults where absent)."""
     t = Table(raw.get("scene"), "scene", set(SCENE))
-    density, size, scale, n_fields, pairs, border, psf_size, min_sep, *defects = (
+    density, size, scale, n_fields, pairs, border, shear_pos, psf_size, min_sep, *defects = (
         t.option(o) for o in SCENE_OPTIONS
     )
     star_density, flux_min, flux_max, saturation, bad_columns = (float(v) for v in defects)
@@ -228,6 +239,7 @@ def parse_scene(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> Scen
         pairs,
         border,
         psf_size,
+        bool(shear_pos),
         float(min_sep),
         star_density,
         flux_min,
