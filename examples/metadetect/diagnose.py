@@ -28,15 +28,19 @@ import numpy as np
 from paired_bias import TYPES, selection, unsheared, version_positions
 from scipy.spatial import cKDTree
 
+from megalut_cli.sim.scene import lensed_positions
+
 
 def source_positions(
     x: np.ndarray, y: np.ndarray, g1: np.ndarray, g2: np.ndarray, size: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Positions with a lensed scene image's shear (g1, g2) about the cell's centre undone."""
-    c = (size + 1) / 2.0
-    k = 1.0 / np.sqrt(1.0 - g1 * g1 - g2 * g2)
-    dx, dy = x - c, y - c
-    return c + k * ((1.0 - g1) * dx - g2 * dy), c + k * (-g2 * dx + (1.0 + g1) * dy)
+    """Positions with each row's lensed scene image's shear (g1, g2) about the cell's centre
+    undone: the scene's lensing by (-g1, -g2)."""
+    sx, sy = x.astype(float), y.astype(float)
+    for s1, s2 in set(zip(g1.tolist(), g2.tolist())):
+        at = (g1 == s1) & (g2 == s2)
+        sx[at], sy[at] = lensed_positions(x[at], y[at], -s1, -s2, size)
+    return sx, sy
 
 
 def load(path: str, args: argparse.Namespace, lensed: bool) -> dict:

@@ -174,14 +174,14 @@ def lensed_positions(
     x: np.ndarray, y: np.ndarray, g1: float, g2: float, size: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Positions ``x, y`` (FITS 1-based) moved by the shear (g1, g2) about the field's centre
-    ``(size + 1)/2``: GalSim's shear matrix, the one that shears the profiles (area kept)."""
+    ``(size + 1)/2``: GalSim's shear matrix, the one that shears the profiles (area kept;
+    the shear by (-g1, -g2) is its inverse)."""
+    import galsim
+
     centre = (size + 1) / 2.0
-    norm = np.sqrt(1.0 - g1 * g1 - g2 * g2)
+    (a, b), (c, d) = galsim.Shear(g1=g1, g2=g2).getMatrix()
     dx, dy = x - centre, y - centre
-    return (
-        centre + ((1.0 + g1) * dx + g2 * dy) / norm,
-        centre + (g2 * dx + (1.0 - g1) * dy) / norm,
-    )
+    return centre + a * dx + b * dy, centre + c * dx + d * dy
 
 
 @dataclass(frozen=True)
