@@ -67,6 +67,19 @@ def _galsim_grid(
     return n_fft, kimage.array.shape[0] - 1
 
 
+def _galsim_good_size(psf: galsim.GSObject, gsparams: dict, g: dict) -> int:
+    """``getGoodImageSize(1)`` of the galaxy convolved with the PSF (a scene's stamp side)."""
+    gsp = make_gsparams(gsparams)
+    gal = shaped(
+        base_profile(g["profile"], g["rad"], g["flux"], g["sersicn"], gsp),
+        g["e1"],
+        g["e2"],
+        g["g1"],
+        g["g2"],
+    )
+    return galsim.Convolve(gal, psf, gsparams=gsp if gsparams else None).getGoodImageSize(1.0)
+
+
 @pytest.fixture(scope="module")
 def starfield(tmp_path_factory):
     return str(write_starfield(tmp_path_factory.mktemp("render") / "stars.fits"))
@@ -84,10 +97,13 @@ def test_stamps_and_grids_equal_galsim(case, profile, starfield):
     n_fft, n_k = renderer.grid_sizes(
         psf, ("psf", case), method, **{f: gals[f] for f in FIELDS if f != "flux"}
     )
+    shapes = {f: gals[f] for f in ("profile", "rad", "sersicn", "e1", "e2", "g1", "g2")}
+    good = renderer.good_image_sizes(psf, ("psf", case), method, **shapes)
     assert stamps.shape == (m, size, size) and stamps.dtype == np.float32
     for k in range(m):
         g = _one(gals, k)
         assert (int(n_fft[k]), int(n_k[k])) == _galsim_grid(size, psf, method, gsparams, g), g
+        assert good[k] == _galsim_good_size(psf, gsparams, g), g
         ref = _galsim_stamp(size, psf, method, gsparams, g)
         err = np.abs(stamps[k] - ref).max() / ref.max()
         assert err <= TOLERANCE, (k, g, err)

@@ -62,20 +62,30 @@ def scene_config(tmp_path, text: str = SCENE, **replace: str):
     return load_config(write(tmp_path, text, replace=replace or None), scene=True)
 
 
-def test_galaxy_counts_follow_the_density(tmp_path):
-    cfg = scene_config(tmp_path, **{"n_fields = 2": "n_fields = 400\nborder = 8"})
+@pytest.mark.parametrize("border", [8, -12])
+def test_galaxy_counts_follow_the_density(tmp_path, border):
+    """Counts of mean density × the square inside ``border``; a negative border puts
+    centres beyond the edges, whose light reaches into the field."""
+    cfg = scene_config(tmp_path, **{"n_fields = 2": f"n_fields = 400\nborder = {border}"})
     s = cfg.scene
-    area = ((96 - 16) * 0.2 / 60.0) ** 2  # arcmin², inside the border
+    area = ((96 - 2 * border) * 0.2 / 60.0) ** 2  # arcmin², inside the border
     mean = 100 * area * 400
     counts = field_counts(cfg, seed=5)
     assert abs(counts.sum() - mean) < 5 * np.sqrt(mean), (counts.sum(), mean)
     assert s.mean_count == pytest.approx(100 * area)
     # a field holds as many galaxies as counted, all inside the border (FITS 1-based pixels)
-    unit = field_units(cfg, 5)[3]
-    drawn = draw_field(unit)
-    x, y = drawn.truth["x"], drawn.truth["y"]
-    assert len(x) == counts[3] > 0
-    assert np.all((x >= 8.5) & (x <= 88.5) & (y >= 8.5) & (y <= 88.5))
+    lo, hi = 0.5 + border, 96.5 - border
+    outside, light_in = 0, 0.0
+    for unit in field_units(cfg, 5)[:4]:
+        drawn = draw_field(unit)
+        x, y = drawn.truth["x"], drawn.truth["y"]
+        assert len(x) == counts[unit.field] > 0
+        assert np.all((x >= lo) & (x <= hi) & (y >= lo) & (y <= hi))
+        beyond = (x < 0.5) | (x > 96.5) | (y < 0.5) | (y > 96.5)
+        outside += int(beyond.sum())
+        light_in += float(drawn.flux_drawn[0][beyond].sum())
+        assert np.all(drawn.flux_drawn[0][beyond] < drawn.truth["tru_flux"][beyond])
+    assert (outside > 0 and light_in > 0) == (border < 0)
 
 
 def test_min_separation_keeps_galaxies_apart(tmp_path):
@@ -407,6 +417,49 @@ def test_the_seed_decides_every_pixel(tmp_path):
 
 
 @pytest.mark.parametrize(
+    "replace",
+    [
+        {"n_fields = 2": "n_fields = 3\nborder = -20"},  # light from beyond the edges too
+        {
+            "sersicn = 1.0": 'sersicn = {type = "uniform", min = 0.8, max = 4.0}',
+            'rad = {type = "uniform", min = 1.5, max = 3.0}': "rad = 7.0",  # capped stamps
+            "n_fields = 2": "n_fields = 1\nshear_positions = false",
+        },
+        {'profile = "sersic"\nsersicn = 1.0': 'profile = "gaussian"'},
+    ],
+    ids=["exponential", "sersic", "gaussian"],
+)
+def test_the_fast_engine_draws_galsims_scenes(tmp_path, replace):
+    """The batched renderer's scenes are GalSim's within 1e-6 of the peak pixel (docs/
+    engines.md's tolerance), galaxy by galaxy on the field's pixels (``tru_flux_drawn``);
+    the noise, positions and truth identical."""
+    cfg = scene_config(tmp_path, **replace)
+    fast, ref = draw_scenes(cfg, seed=6, engine="fast"), draw_scenes(cfg, seed=6, engine="galsim")
+    for name in ref.truth:
+        if name != "tru_flux_drawn":
+            np.testing.assert_array_equal(fast.truth[name], ref.truth[name], err_msg=name)
+    np.testing.assert_allclose(
+        fast.truth["tru_flux_drawn"], ref.truth["tru_flux_drawn"], rtol=1e-6, atol=1e-4
+    )
+    noise = np.stack([draw_field(u).noise for u in field_units(cfg, 6, "galsim")])
+    clean = ref.images - np.repeat(noise, 2, axis=0)
+    assert np.abs(clean).max() > 1  # galaxies, not noise
+    assert np.abs(fast.images - ref.images).max() <= 1e-6 * np.abs(clean).max()
+    assert scene_cards(cfg, 6, "fast")["ENGINE"][0] == "fast"
+
+
+def test_profiles_the_renderer_cannot_draw_go_through_galsim(tmp_path):
+    """Knots (or any profile but a single Sersic or Gaussian): GalSim's pixels whatever the
+    engine, and the ENGINE card says so."""
+    cfg = scene_config(
+        tmp_path, **{"sersicn = 1.0": "sersicn = 1.0\nknots = 5\nknots_fraction = 0.3"}
+    )
+    fast, ref = draw_scenes(cfg, seed=6, engine="fast"), draw_scenes(cfg, seed=6, engine="galsim")
+    np.testing.assert_array_equal(fast.images, ref.images)
+    assert scene_cards(cfg, 6, "fast")["ENGINE"][0] == "galsim"
+
+
+@pytest.mark.parametrize(
     "text",
     [BULGEDISK, COSMOSFIT, NOISE_ONLY.replace("SOURCE", f'correlation = "{CF_FILE}"\nsigma = 1.5')],
     ids=["bulgedisk", "cosmos_fit", "correlated-noise"],
@@ -437,6 +490,7 @@ def test_other_profiles_and_noises(tmp_path, text):
         ({"density = 100": "density = 0"}, "scene.density"),
         ({"size = 96": "size = 8"}, "scene.size"),
         ({"n_fields = 2": "n_fields = 2\nborder = 48"}, "scene.border"),
+        ({"n_fields = 2": "n_fields = 2\nborder = -48"}, "scene.border"),
         ({"n_fields = 2": "n_fields = 2\npsf_size = 32"}, "scene.psf_size"),
         ({"pixel_scale = 0.2": ""}, "scene.pixel_scale"),
         ({"pixel_scale = 0.2": "pixel_scale = 0.2\ncolour = 1"}, "scene.colour"),

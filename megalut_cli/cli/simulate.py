@@ -74,7 +74,7 @@ log = logging.getLogger(__name__)
 @schema_option(SIMULATE["n_realizations"])
 @schema_option(SIMULATE["dry_run"])
 @schema_option(SIMULATE["seed"], show_default=True)
-@engine_option("stamps are drawn, noised and measured")
+@engine_option("stamps (and scene galaxies) are drawn, noised and measured")
 @device_option("the fast engine draws, noises and measures")
 @execution_options
 @overwrite_option
@@ -127,8 +127,9 @@ def command(
 
     The fast engine (default) gives the same noiseless pixels and features as GalSim
     (docs/engines.md); its noise realizations differ from the galsim engine's, both drawn
-    from the same per-stamp seeds. Galaxies it cannot draw (profile "real") go through
-    GalSim whatever the engine.
+    from the same per-stamp seeds. Galaxies it cannot draw (profile "real", knots) go
+    through GalSim whatever the engine; with --scene it draws the galaxies (the noise is
+    GalSim's for both).
 
     \b
     Examples (sizes as given; times measured on a busy 2-core machine):
@@ -174,7 +175,17 @@ def command(
         if clash:
             raise click.UsageError(f"--scene draws fields, not stamps: do not give {clash[0]}")
         simulate_scenes(
-            config, overrides, output, scene_path, pairs, dry_run, seed, nproc, scheduler, overwrite
+            config,
+            overrides,
+            output,
+            scene_path,
+            pairs,
+            dry_run,
+            seed,
+            nproc,
+            scheduler,
+            overwrite,
+            engine,
         )
         return
     device = resolve_device(device)
@@ -272,9 +283,10 @@ def simulate_scenes(
     nproc: int,
     scheduler: str | None,
     overwrite: bool,
+    engine: str,
 ) -> None:
-    """``simulate --scene``: draw the fields of CONFIG's ``[scene]``, write the images to
-    ``scene_path`` and the truth to ``output`` (both or neither)."""
+    """``simulate --scene``: draw the fields of CONFIG's ``[scene]`` with ``engine``, write
+    the images to ``scene_path`` and the truth to ``output`` (both or neither)."""
     import time  # noqa: I001
 
     from megalut_cli.atomic import check_output
@@ -294,8 +306,8 @@ def simulate_scenes(
     if dry_run:
         return
     t0 = time.perf_counter()
-    scenes = draw_scenes(cfg, seed, nproc, scheduler)
-    write_scenes(cfg, seed, scenes, out, images, overwrite)
+    scenes = draw_scenes(cfg, seed, nproc, scheduler, engine)
+    write_scenes(cfg, seed, scenes, out, images, overwrite, engine)
     log.info(
         "wrote %s (%d images) and %s (%d rows) in %.1f s",
         images,
@@ -307,7 +319,13 @@ def simulate_scenes(
 
 
 def write_scenes(
-    cfg: SimConfig, seed: int, scenes: Scenes, truth_path: Path, images_path: Path, overwrite: bool
+    cfg: SimConfig,
+    seed: int,
+    scenes: Scenes,
+    truth_path: Path,
+    images_path: Path,
+    overwrite: bool,
+    engine: str,
 ) -> None:
     """The scene products, each written whole or not at all: the images (``SCI``, ``WGT``,
     ``MSK``, ``PSF`` cubes, ``NOISE`` for correlated noise, and the ``IMAGES`` table) and the
@@ -321,7 +339,7 @@ def write_scenes(
     from megalut_cli.sim.scene import SCENE_TRUTH_FORMAT, SCENES_FORMAT, scene_cards
     from megalut_cli.sim.simulate import config_table
 
-    cards = scene_cards(cfg, seed)
+    cards = scene_cards(cfg, seed, engine)
     rows = to_structured(scenes.image_table)
     with contextlib.ExitStack() as stack:
         writer = stack.enter_context(

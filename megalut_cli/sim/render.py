@@ -404,6 +404,47 @@ class StampRenderer:
         return kimage
 
     # -- geometry ---------------------------------------------------------------------------
+    def _convolved(
+        self,
+        info: _PsfInfo,
+        profile: str,
+        rad: np.ndarray,
+        sersicn: np.ndarray | None,
+        e1: np.ndarray,
+        e2: np.ndarray,
+        g1: np.ndarray,
+        g2: np.ndarray,
+    ) -> tuple[Any, ...]:
+        """Per-galaxy stepk and maxk of the sheared galaxy convolved with the PSF (no offset,
+        no pixel), its Jacobian, and the radial profiles (table, profiles, size)."""
+        if not can_render(profile):
+            only = ", ".join(fast_profiles())
+            raise MegalutError(f"renderer: cannot draw galaxy profile {profile!r} (only {only})")
+        rad = np.atleast_1d(np.asarray(rad, dtype=float))
+        m = len(rad)
+        e1, e2, g1, g2 = (
+            np.broadcast_to(np.asarray(v, dtype=float), (m,)) for v in (e1, e2, g1, g2)
+        )
+        if not (
+            np.all(np.isfinite(rad) & (rad > 0))
+            and all(np.isfinite(v).all() for v in (e1, e2, g1, g2))
+        ):
+            raise MegalutError(
+                "renderer: half-light radii must be finite and > 0, shapes and offsets finite"
+            )
+        family = RADIAL_FAMILIES[GALAXY_PROFILES[profile].fast]
+        table, profiles, stepk, maxk, size = family(info.gsparams, rad, sersicn, e1, e2, g1, g2)
+        jac = _shear_jacobian(e1, e2, g1, g2)
+        # Transformation: maxk / minor, stepk / major (galsim/transform.py).
+        h1 = np.hypot(jac[:, 0, 0] + jac[:, 1, 1], jac[:, 0, 1] - jac[:, 1, 0])
+        h2 = np.hypot(jac[:, 0, 0] - jac[:, 1, 1], jac[:, 0, 1] + jac[:, 1, 0])
+        major, minor = 0.5 * np.abs(h1 + h2), 0.5 * np.abs(h1 - h2)
+        gal_stepk, gal_maxk = stepk / major, maxk / minor
+        # Convolution with the PSF.
+        stepk_c = (gal_stepk**-2 + info.stepk**-2) ** -0.5
+        maxk_c = np.minimum(gal_maxk, info.maxk)
+        return stepk_c, maxk_c, jac, table, profiles, size
+
     def _geometry(
         self,
         info: _PsfInfo,
@@ -420,34 +461,17 @@ class StampRenderer:
         """Per-stamp arrays: N, Nk, k-transform matrix, radial-profile index, shifts (the
         offset, centring and S // 2, so that the stamp is the FFT's first S x S pixels);
         and the radial profiles."""
-        if not can_render(profile):
-            only = ", ".join(fast_profiles())
-            raise MegalutError(f"renderer: cannot draw galaxy profile {profile!r} (only {only})")
-        gsp = info.gsparams
         S = self.stamp_size
-        rad = np.atleast_1d(np.asarray(rad, dtype=float))
-        m = len(rad)
-        e1, e2, g1, g2, dx, dy = (
-            np.broadcast_to(np.asarray(v, dtype=float), (m,)) for v in (e1, e2, g1, g2, dx, dy)
+        m = len(np.atleast_1d(rad))
+        stepk_c, maxk_c, jac, table, profiles, size = self._convolved(
+            info, profile, rad, sersicn, e1, e2, g1, g2
         )
-        if not (
-            np.all(np.isfinite(rad) & (rad > 0))
-            and all(np.isfinite(v).all() for v in (e1, e2, g1, g2, dx, dy))
-        ):
+        dx, dy = (np.broadcast_to(np.asarray(v, dtype=float), (m,)) for v in (dx, dy))
+        if not (np.isfinite(dx).all() and np.isfinite(dy).all()):
             raise MegalutError(
                 "renderer: half-light radii must be finite and > 0, shapes and offsets finite"
             )
-        family = RADIAL_FAMILIES[GALAXY_PROFILES[profile].fast]
-        table, profiles, stepk, maxk, size = family(gsp, rad, sersicn, e1, e2, g1, g2)
-        jac = _shear_jacobian(e1, e2, g1, g2)
-        # Transformation: maxk / minor, stepk / major (galsim/transform.py).
-        h1 = np.hypot(jac[:, 0, 0] + jac[:, 1, 1], jac[:, 0, 1] - jac[:, 1, 0])
-        h2 = np.hypot(jac[:, 0, 0] - jac[:, 1, 1], jac[:, 0, 1] + jac[:, 1, 0])
-        major, minor = 0.5 * np.abs(h1 + h2), 0.5 * np.abs(h1 - h2)
-        gal_stepk, gal_maxk = stepk / major, maxk / minor
-        # Convolution with the PSF, shift by the offset (+ centring), convolution with the pixel.
-        stepk_c = (gal_stepk**-2 + info.stepk**-2) ** -0.5
-        maxk_c = np.minimum(gal_maxk, info.maxk)
+        # Shift by the offset (+ centring), convolution with the pixel.
         sx = dx - 0.5 if S % 2 == 0 else dx.copy()
         sy = dy - 0.5 if S % 2 == 0 else dy.copy()
         dr = np.hypot(sx, sy)
@@ -456,12 +480,22 @@ class StampRenderer:
         if info.pixel_stepk > 0:
             stepk_c = (stepk_c**-2 + info.pixel_stepk**-2) ** -0.5
             maxk_c = np.minimum(maxk_c, info.pixel_maxk)
-        n_fft, n_k = fft_grid(stepk_c, maxk_c, S, gsp)
+        n_fft, n_k = fft_grid(stepk_c, maxk_c, S, info.gsparams)
         # q = |A k| in units of the profile's radius: A = size J^T.
         amat = np.empty((m, 4))
         amat[:, 0], amat[:, 1] = jac[:, 0, 0] * size, jac[:, 1, 0] * size
         amat[:, 2], amat[:, 3] = jac[:, 0, 1] * size, jac[:, 1, 1] * size
         return n_fft, n_k, amat, table.astype(np.int64), sx + S // 2, sy + S // 2, profiles
+
+    def good_image_sizes(
+        self, psf: Any, psf_key: Hashable, method: str, profile: str, rad, sersicn, e1, e2, g1, g2
+    ) -> np.ndarray:
+        """GalSim's ``getGoodImageSize(1)`` of each sheared galaxy convolved with ``psf``
+        (no pixel, no offset): the side of the stamp a scene draws it on."""
+        info = self._psf_info(psf, psf_key, method)
+        stepk_c = self._convolved(info, profile, rad, sersicn, e1, e2, g1, g2)[0]
+        n_good = np.ceil(2.0 * np.pi / stepk_c * (1.0 - 1.0e-12)).astype(np.int64)
+        return n_good + n_good % 2
 
     def grid_sizes(
         self,

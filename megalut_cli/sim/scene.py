@@ -1,7 +1,8 @@
 """Scenes: square fields of galaxies at random positions (``megalut simulate --scene``).
 
-Each field holds a Poisson number of galaxies (mean ``scene.density`` × the area inside
-``scene.border``) at uniform random positions (with ``scene.min_separation``, each redrawn
+Each field holds a Poisson number of galaxies (mean ``scene.density`` × the square inside
+``scene.border``, which reaches beyond the field's edges when it is negative) at uniform
+random positions (with ``scene.min_separation``, each redrawn
 until it lies that far from those placed before it), drawn from the config's ``[galaxy]`` table
 by its registered profile, all lensed by one constant shear per field (``[shear]``, drawn
 per field), convolved with the config's PSF (``[psf]``, one per field, at a field position
@@ -23,13 +24,21 @@ from typing import Any
 
 import numpy as np
 
+from megalut_cli.engine import DEFAULT_ENGINE
 from megalut_cli.errors import MegalutError
 from megalut_cli.measure.defaults import CELLS_FORMAT
 from megalut_cli.parallel import executor, map_ordered
 from megalut_cli.seeding import STREAM_SCENE, rng_for
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.distributions import Distribution, sample_level
-from megalut_cli.sim.draw import get_psf, psf_includes_pixel, single_threaded_galsim
+from megalut_cli.sim.draw import (
+    get_psf,
+    psf_cache_key,
+    psf_includes_pixel,
+    renders_galaxies,
+    single_threaded_galsim,
+    stamp_renderer,
+)
 from megalut_cli.sim.intrinsic import ellipticity_components, galaxy_fluxes, mag_from_flux
 from megalut_cli.sim.noise import StampNoise, make_noise
 from megalut_cli.sim.profiles import GALAXY_PROFILES
@@ -136,6 +145,9 @@ class FieldUnit:
     n_galaxies: int
     #: the place of the field's first galaxy in the run (real galaxies in turn: ``"each"``)
     sequence_start: int = 0
+    #: ``fast``: Sersic and Gaussian galaxies through the batched renderer (GalSim's pixels
+    #: to ~1e-7 of the peak); ``galsim``: one ``drawImage`` per galaxy
+    engine: str = DEFAULT_ENGINE
 
 
 @dataclass
@@ -286,22 +298,18 @@ def field_parameters(
 
 
 def draw_field(unit: FieldUnit) -> DrawnField:
-    """Draw field ``unit.field``: every galaxy convolved with the PSF, drawn by GalSim on a
-    stamp around its position (side: GalSim's good size, at most ``structure.stamp_size``),
-    whose overlap with the field is added to it; then the noise field."""
+    """Draw field ``unit.field``: every galaxy convolved with the PSF, drawn on a stamp
+    around its position (side: GalSim's good size, at most ``structure.stamp_size``;
+    by the batched renderer with the fast engine where it can, else by GalSim), whose
+    overlap with the field is added to it; then the noise field."""
     single_threaded_galsim()
     import galsim
-
-    from megalut_cli.sim.galaxies import make_gsparams, oriented
 
     cfg, s = unit.config, scene_spec(unit.config)
     d = field_parameters(cfg, unit.seed, unit.field, unit.n_galaxies, unit.sequence_start)
     spec, noise, t = d.psf_spec, d.noise, d.truth
     psf, psf_truth = get_psf(spec, *d.position, cfg.psf_varies, cfg.gsparams)
     method = "no_pixel" if psf_includes_pixel(spec) else "auto"
-    gsp = make_gsparams(cfg.gsparams)
-    conv_gsp = gsp if cfg.gsparams else None
-    profile = GALAXY_PROFILES[cfg.galaxy.profile]
     signs = (1, -1) if s.pairs else (1,)
     n = unit.n_galaxies
     for name, value in psf_truth.items():
@@ -317,32 +325,15 @@ def draw_field(unit: FieldUnit) -> DrawnField:
         else:
             xy = (t["x"], t["y"])
         positions[j, :, 0], positions[j, :, 1] = xy
-    for k in range(n):
-        base = profile.build(cfg.galaxy, t, k, gsp, 0.0)
-        side = 0
-        for j in range(len(signs)):
-            gal_k = oriented(base, lensed[j], k, d.theta[k])
-            obj = galsim.Convolve(gal_k, psf, gsparams=conv_gsp)
-            if not side:  # the same stamp size for both signs
-                side = min(obj.getGoodImageSize(1.0), max_stamp)
-                half = side // 2
-            where = galsim.PositionD(*positions[j, k])
-            ix, iy = int(np.floor(where.x + 0.5)), int(np.floor(where.y + 0.5))
-            bounds = galsim.BoundsI(
-                ix - half, ix - half + side - 1, iy - half, iy - half + side - 1
-            )
-            overlap = bounds & fields[j].bounds
-            if not overlap.isDefined():
-                continue
-            stamp = galsim.ImageF(bounds, scale=1.0)
-            try:
-                obj.drawImage(image=stamp, center=where, method=method)
-            except (galsim.GalSimError, MemoryError) as err:
-                raise MegalutError(
-                    f"scene field {unit.field}, galaxy {k}: GalSim could not draw it ({err})"
-                ) from None
-            fields[j][overlap] += stamp[overlap]
-            flux_drawn[j, k] = float(np.sum(stamp[overlap].array, dtype=np.float64))
+    if unit.engine == "fast" and renders_galaxies(cfg):
+        key = psf_cache_key(spec, *d.position, cfg.psf_varies, cfg.gsparams)
+        stamps = rendered_galaxies(cfg, psf, key, method, t, positions, signs, d.g1, d.g2)
+        for k in range(n):  # added in the galaxies' order, as GalSim's loop does
+            for j, (x0, y0, stamp) in enumerate(stamps[k]):
+                if stamp is not None:
+                    flux_drawn[j, k] = add_overlap(fields[j].array, stamp, x0, y0)
+    else:
+        draw_galsim_galaxies(unit, psf, method, d.theta, lensed, positions, fields, flux_drawn)
     if len(d.stars["x"]):
         starlight = galsim.ImageF(s.size, s.size, scale=1.0)
         for x, y, flux in zip(d.stars["x"], d.stars["y"], d.stars["flux"]):
@@ -391,6 +382,139 @@ def draw_field(unit: FieldUnit) -> DrawnField:
     )
 
 
+def draw_galsim_galaxies(
+    unit: FieldUnit,
+    psf: Any,
+    method: str,
+    theta: np.ndarray,
+    lensed: list[dict[str, np.ndarray]],
+    positions: np.ndarray,
+    fields: list[Any],
+    flux_drawn: np.ndarray,
+) -> None:
+    """The galaxies of a field drawn by GalSim one by one (any profile; ``lensed``: their
+    truth per image), each on a stamp of GalSim's good size (at most
+    ``structure.stamp_size``) around its ``positions``, added to ``fields``."""
+    import galsim
+
+    from megalut_cli.sim.galaxies import make_gsparams, oriented
+
+    cfg = unit.config
+    gsp = make_gsparams(cfg.gsparams)
+    conv_gsp = gsp if cfg.gsparams else None
+    profile = GALAXY_PROFILES[cfg.galaxy.profile]
+    t = lensed[0]
+    max_stamp = cfg.structure.stamp_size
+    for k in range(len(theta)):
+        base = profile.build(cfg.galaxy, t, k, gsp, 0.0)
+        side = 0
+        for j in range(len(lensed)):
+            gal_k = oriented(base, lensed[j], k, theta[k])
+            obj = galsim.Convolve(gal_k, psf, gsparams=conv_gsp)
+            if not side:  # the same stamp size for both signs
+                side = min(obj.getGoodImageSize(1.0), max_stamp)
+                half = side // 2
+            where = galsim.PositionD(*positions[j, k])
+            ix, iy = int(np.floor(where.x + 0.5)), int(np.floor(where.y + 0.5))
+            bounds = galsim.BoundsI(
+                ix - half, ix - half + side - 1, iy - half, iy - half + side - 1
+            )
+            overlap = bounds & fields[j].bounds
+            if not overlap.isDefined():
+                continue
+            stamp = galsim.ImageF(bounds, scale=1.0)
+            try:
+                obj.drawImage(image=stamp, center=where, method=method)
+            except (galsim.GalSimError, MemoryError) as err:
+                raise MegalutError(
+                    f"scene field {unit.field}, galaxy {k}: GalSim could not draw it ({err})"
+                ) from None
+            fields[j][overlap] += stamp[overlap]
+            flux_drawn[j, k] = float(np.sum(stamp[overlap].array, dtype=np.float64))
+
+
+def galaxy_stamp_origins(
+    positions: np.ndarray, side: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Lower-left pixel (FITS 1-based) of each galaxy's stamp of ``side`` around
+    ``positions`` (n, 2), as the GalSim loop places it, and the offset of each centre
+    from the stamp's true centre: x0, y0, dx, dy."""
+    ix = np.floor(positions[:, 0] + 0.5).astype(np.int64)
+    iy = np.floor(positions[:, 1] + 0.5).astype(np.int64)
+    x0, y0 = ix - side // 2, iy - side // 2
+    return x0, y0, positions[:, 0] - x0 - (side - 1) / 2.0, positions[:, 1] - y0 - (side - 1) / 2.0
+
+
+def rendered_galaxies(
+    cfg: SimConfig,
+    psf: Any,
+    psf_key: str,
+    method: str,
+    truth: dict[str, np.ndarray],
+    positions: np.ndarray,
+    signs: tuple[int, ...],
+    g1: float,
+    g2: float,
+) -> list[list[tuple[int, int, np.ndarray | None]]]:
+    """Each galaxy's stamp in each image (x0, y0, pixels; None where it misses the field),
+    rendered in batches of one stamp side by :class:`~megalut_cli.sim.render.StampRenderer`:
+    the stamps the GalSim loop draws (its side from the +g galaxy, at most
+    ``structure.stamp_size``), to ~1e-7 of their peak."""
+    size = scene_spec(cfg).size
+    profile = cfg.galaxy.profile
+    rad, flux, e1, e2 = (truth[c] for c in ("tru_rad", "tru_flux", "tru_e1", "tru_e2"))
+    sersicn = truth.get("tru_sersicn")
+    n = len(rad)
+    out: list[list[tuple[int, int, np.ndarray | None]]] = [
+        [(0, 0, None)] * len(signs) for _ in range(n)
+    ]
+    if not n:
+        return out
+    any_size = stamp_renderer(cfg.structure.stamp_size, dict(cfg.gsparams))
+    good = any_size.good_image_sizes(
+        psf, psf_key, method, profile, rad, sersicn, e1, e2, signs[0] * g1, signs[0] * g2
+    )
+    side = np.minimum(good, cfg.structure.stamp_size)
+    for j, sign in enumerate(signs):
+        x0, y0, dx, dy = galaxy_stamp_origins(positions[j], side)
+        hits = (x0 <= size) & (x0 + side > 1) & (y0 <= size) & (y0 + side > 1)
+        for s_k in np.unique(side[hits]):
+            idx = np.flatnonzero(hits & (side == s_k))
+            renderer = stamp_renderer(int(s_k), dict(cfg.gsparams))
+            stamps = renderer.draw(
+                psf,
+                psf_key,
+                method,
+                profile,
+                rad[idx],
+                flux[idx],
+                None if sersicn is None else sersicn[idx],
+                e1[idx],
+                e2[idx],
+                sign * g1,
+                sign * g2,
+                dx[idx],
+                dy[idx],
+            )
+            for i, k in enumerate(idx):
+                out[k][j] = (int(x0[k]), int(y0[k]), stamps[i])
+    return out
+
+
+def add_overlap(image: np.ndarray, stamp: np.ndarray, x0: int, y0: int) -> float:
+    """Add the part of ``stamp`` (lower-left pixel ``x0, y0``, FITS 1-based) that lies on
+    ``image`` to it; the flux added (float64 sum)."""
+    ny, nx = image.shape
+    sy, sx = stamp.shape
+    a_x, b_x = max(x0, 1), min(x0 + sx - 1, nx)
+    a_y, b_y = max(y0, 1), min(y0 + sy - 1, ny)
+    if a_x > b_x or a_y > b_y:
+        return 0.0
+    part = stamp[a_y - y0 : b_y - y0 + 1, a_x - x0 : b_x - x0 + 1]
+    image[a_y - 1 : b_y, a_x - 1 : b_x] += part
+    return float(np.sum(part, dtype=np.float64))
+
+
 def _add_star(image: Any, star: Any, x: float, y: float, max_stamp: int, method: str) -> None:
     """Add the PSF ``star`` (a GalSim object with its flux) at ``(x, y)`` (FITS 1-based) to
     ``image``, drawn on a stamp of GalSim's good size (at most ``max_stamp``) around it."""
@@ -407,21 +531,26 @@ def _add_star(image: Any, star: Any, x: float, y: float, max_stamp: int, method:
         image[overlap] += stamp[overlap]
 
 
-def field_units(config: SimConfig, seed: int) -> list[FieldUnit]:
+def field_units(config: SimConfig, seed: int, engine: str = DEFAULT_ENGINE) -> list[FieldUnit]:
     """One unit per field, with its galaxy count and place in the run."""
     counts = field_counts(config, seed)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     return [
-        FieldUnit(config, seed, f, int(c), int(a)) for f, (c, a) in enumerate(zip(counts, starts))
+        FieldUnit(config, seed, f, int(c), int(a), engine)
+        for f, (c, a) in enumerate(zip(counts, starts))
     ]
 
 
 def iter_fields(
-    config: SimConfig, seed: int, nproc: int = 1, scheduler: str | None = None
+    config: SimConfig,
+    seed: int,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    engine: str = DEFAULT_ENGINE,
 ) -> Iterator[DrawnField]:
     """Draw the fields in order, over ``nproc`` local workers or a Dask ``scheduler``
-    (the same pixels for any of them)."""
-    units = field_units(config, seed)
+    (the same pixels for any of them), with ``engine`` (:class:`FieldUnit`)."""
+    units = field_units(config, seed, engine)
     with executor(nproc, scheduler, len(units)) as pool:
         for _, drawn in map_ordered(draw_field, ((u.field, u) for u in units), pool, 8):
             yield drawn
@@ -481,9 +610,14 @@ def truth_rows(drawn: DrawnField, first_image: int) -> dict[str, np.ndarray]:
 
 
 def draw_scenes(
-    config: SimConfig, seed: int, nproc: int = 1, scheduler: str | None = None
+    config: SimConfig,
+    seed: int,
+    nproc: int = 1,
+    scheduler: str | None = None,
+    engine: str = DEFAULT_ENGINE,
 ) -> Scenes:
-    """All the fields of ``config.scene``, in memory (:func:`check_scene_size` first)."""
+    """All the fields of ``config.scene``, in memory (:func:`check_scene_size` first),
+    drawn with ``engine`` (:class:`FieldUnit`)."""
     check_scene_size(config)
     s = scene_spec(config)
     shape = (s.n_images, s.size, s.size)
@@ -497,7 +631,7 @@ def draw_scenes(
     truths = []
     stars = []
     noise = None
-    for drawn in iter_fields(config, seed, nproc, scheduler):
+    for drawn in iter_fields(config, seed, nproc, scheduler, engine):
         first = drawn.field * s.n_signs
         if drawn.noise_twin is not None and noise is None:
             noise = np.empty(shape, dtype=np.float32)
@@ -538,18 +672,21 @@ SCENES_FORMAT = CELLS_FORMAT
 SCENE_TRUTH_FORMAT = "megalut.scene_truth"
 
 
-def scene_cards(config: SimConfig, seed: int) -> dict[str, Any]:
-    """Header cards of the scene products: seed, the ``[scene]`` keys, noise and provenance."""
+def scene_cards(config: SimConfig, seed: int, engine: str = DEFAULT_ENGINE) -> dict[str, Any]:
+    """Header cards of the scene products: seed, engine, the ``[scene]`` keys, noise and
+    provenance."""
     s = scene_spec(config)
+    drawn_by = engine if renders_galaxies(config) else "galsim"
     cards: dict[str, Any] = {
         "SEED": (seed, "seed of every random draw (megalut simulate --seed)"),
+        "ENGINE": (drawn_by, "galaxies drawn by (megalut simulate --engine)"),
         "NFIELDS": (s.n_fields, "number of fields"),
         "NIMAGES": (s.n_images, "number of images (fields x signs)"),
         "PAIRS": (s.pairs, "every field at +g and -g, same galaxies and noise"),
         "FIELDSZ": (s.size, "side of a field, pixels"),
         "PIXSCALE": (s.pixel_scale, "arcsec per pixel"),
         "DENSITY": (s.density, "mean galaxies per arcmin2"),
-        "BORDER": (s.border, "galaxy centres at least this far from the edges, px"),
+        "BORDER": (s.border, "centres at least this far inside edges (<0 out)"),
         "SHEARPOS": (s.shear_positions, "galaxy positions lensed about the field centre"),
         "PSFSZ": (s.psf_size, "side of the PSF images, pixels"),
         **(

@@ -30,7 +30,7 @@ SCENE_OPTIONS: tuple[Option, ...] = (
         "float",
         20.0,
         "galaxies per arcmin²: each field holds a Poisson number of mean density × area "
-        "(the area inside `border`)",
+        "(the square inside `border`, or beyond the edges where it is negative)",
         minimum=0.0,
         min_open=True,
         maximum=1e5,
@@ -58,10 +58,11 @@ SCENE_OPTIONS: tuple[Option, ...] = (
         "border",
         "int",
         0,
-        "galaxy centres stay at least this many pixels from the field's edges (before "
-        "`shear_positions` moves them)",
-        minimum=0,
-        allowed_text="[0, size/2)",
+        "galaxy centres stay at least this many pixels inside the field's edges (before "
+        "`shear_positions` moves them); negative: they reach this many pixels beyond them, "
+        "so the sky goes on past the field (neighbours' light at its edges, lensed positions "
+        "bringing galaxies in as they take others out)",
+        allowed_text="(−size/2, size/2)",
     ),
     Option(
         "shear_positions",
@@ -170,7 +171,7 @@ class SceneSpec:
 
     @property
     def area_arcmin2(self) -> float:
-        """The area galaxy centres are drawn in (inside the border), arcmin²."""
+        """The area galaxy centres are drawn in (the square inside the border), arcmin²."""
         side = (self.size - 2 * self.border) * self.pixel_scale / 60.0
         return side * side
 
@@ -218,8 +219,11 @@ def parse_scene(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> Scen
             f"scene.pixel_scale: {scale:g} differs from instrument.pixel_scale = {inst_scale:g}; "
             "give one of them"
         )
-    if not 0 <= border < size / 2:
-        raise ConfigError(f"scene.border: must be in [0, size/2) = [0, {size / 2:g}), got {border}")
+    if not -size / 2 < border < size / 2:
+        raise ConfigError(
+            f"scene.border: must be in (-size/2, size/2) = ({-size / 2:g}, {size / 2:g}), "
+            f"got {border}"
+        )
     if psf_size % 2 == 0:
         raise ConfigError(f"scene.psf_size: must be odd (centred on a pixel), got {psf_size}")
     if min_sep > size - 2 * border:
