@@ -14,16 +14,20 @@ import numpy as np
 
 from megalut_cli.catalog import catalog_info, catalog_writer, iter_catalog, read_cards
 from megalut_cli.errors import ConfigError, InputError
+from megalut_cli.measure.defaults import MDET_FORMAT
+from megalut_cli.measure.metacal_defaults import MDET_STEP_CARD
 from megalut_cli.provenance import sha256_file
 
 log = logging.getLogger(__name__)
 
 #: Header cards that must agree between the catalogs: the format, the model, the metacal
-#: step and target PSF, the measuring engine and its retry, and the frame.
+#: step (of stamps or of metadetection) and target PSF, the measuring engine and its retry,
+#: and the frame.
 MUST_AGREE: tuple[str, ...] = (
     "MLFORMAT",
     "MODELSHA",
     "MCALSTEP",
+    MDET_STEP_CARD,
     "MCALTARG",
     "MENGINE",
     "HSMRETRY",
@@ -31,7 +35,7 @@ MUST_AGREE: tuple[str, ...] = (
 )
 #: Formats that can be concatenated (a calibrated catalog's responses belong to its whole
 #: catalog: calibrate the concatenated predictions instead).
-CONCAT_FORMATS: tuple[str, ...] = ("megalut.features", "megalut.predictions")
+CONCAT_FORMATS: tuple[str, ...] = ("megalut.features", "megalut.predictions", MDET_FORMAT)
 #: The column holding each row's tile (its input's index, from 0).
 TILE_COLUMN = "tile"
 #: Rows read and written at a time.

@@ -4,6 +4,8 @@ shape noise, the bootstrap errors match the spread of independent sets, and bad 
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from helpers import invoke_fails
@@ -100,3 +102,36 @@ def test_evaluate_command_and_bad_input(runner, cli, tmp_path):
     )
     invoke_fails(runner, cli, ["evaluate", str(notruth)], 1, "tru_g1")
     assert set(TYPES) == set(SHEARS)
+
+
+def test_runs_concatenated_count_their_fields_apart(runner, cli, tmp_path):
+    """``megalut concat`` joins the metadetection catalogs of several runs (whose fields are
+    numbered from 0 in each); ``evaluate`` then takes (tile, field) as the field: the same m,
+    c and errors as one catalog whose second run's fields are renumbered. A run measured at
+    another metacal step is refused."""
+    a, b = scenes(5, n_fields=40), scenes(6, n_fields=40)
+    paths = [tmp_path / "a.fits", tmp_path / "b.fits"]
+    for path, cols in zip(paths, (a, b)):
+        write_catalog(path, cols, fmt="megalut.metadetect", cards={"MDETSTEP": STEP})
+    joined = tmp_path / "ab.fits"
+    result = runner.invoke(cli, ["concat", *map(str, paths), "-o", str(joined)])
+    assert result.exit_code == 0, result.output
+    renumbered = {k: np.concatenate([a[k], b[k]]) for k in a}
+    renumbered["field"][len(a["field"]) :] += 40
+    ref = evaluate_metadetect(renumbered, STEP, n_bootstrap=50)["unweighted"]["g1"]
+    result = runner.invoke(cli, ["evaluate", str(joined), "--json", str(tmp_path / "e.json")])
+    assert result.exit_code == 0, result.output
+    got = json.loads((tmp_path / "e.json").read_text())
+    g1 = got["unweighted"]["g1"]
+    assert got["n_fields"] == 80
+    assert g1["m"] == pytest.approx(ref["m"], rel=1e-9) and g1["R"] == pytest.approx(ref["R"])
+    assert g1["m_err"] == pytest.approx(ref["m_err"], rel=0.5)  # bootstrap draws differ
+    other = tmp_path / "c.fits"
+    write_catalog(other, a, fmt="megalut.metadetect", cards={"MDETSTEP": 2 * STEP})
+    invoke_fails(
+        runner,
+        cli,
+        ["concat", str(paths[0]), str(other), "-o", str(tmp_path / "x.fits")],
+        1,
+        "MDETSTEP",
+    )
