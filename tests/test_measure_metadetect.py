@@ -267,6 +267,26 @@ def test_the_same_seed_the_same_rows_and_workers_agree(runner, cli, tmp_path):
     )
 
 
+def test_a_scene_inner_border_marks_the_edge_rows(runner, cli, tmp_path):
+    """``scene.inner_border`` writes ``INNERBRD`` into the cells file: the detections whose
+    (unsheared) position lies that close to an edge are ``inner = 0``, the others 1."""
+    config = write(tmp_path, CELLS, replace={"{sigma}": "0.01", "border = 24": "border = 4"})
+    config.write_text(config.read_text() + "inner_border = 30\n")
+    cells, truth = tmp_path / "s.fits", tmp_path / "t.fits"
+    args = ["simulate", str(config), "-o", str(truth), "--scene", str(cells), "--seed", "3"]
+    assert runner.invoke(cli, [*args, "-j", "1"]).exit_code == 0
+    assert fitsio.read_header(str(cells), 0)["INNERBRD"] == 30
+    out = tmp_path / "det.fits"
+    result = runner.invoke(cli, ["measure", str(cells), "--metadetect", "-o", str(out), "-j", "1"])
+    assert result.exit_code == 0, result.output
+    det = read_catalog(out)
+    x, y = np.asarray(det["x"]), np.asarray(det["y"])
+    inside = (x > 30.5) & (x <= 130.5) & (y > 30.5) & (y <= 130.5)
+    assert inside.any() and (~inside).any()
+    np.testing.assert_array_equal(np.asarray(det["inner"]) != 0, inside)
+    assert fitsio.read_header(str(out), 1)["INNERBRD"] == 30
+
+
 def test_bad_input_is_one_line(runner, cli, tmp_path):
     cells, _ = scenes(runner, cli, tmp_path)
     out = tmp_path / "out.fits"

@@ -491,6 +491,8 @@ def test_other_profiles_and_noises(tmp_path, text):
         ({"size = 96": "size = 8"}, "scene.size"),
         ({"n_fields = 2": "n_fields = 2\nborder = 48"}, "scene.border"),
         ({"n_fields = 2": "n_fields = 2\nborder = -48"}, "scene.border"),
+        ({"n_fields = 2": "n_fields = 2\ninner_border = 48"}, "scene.inner_border"),
+        ({"n_fields = 2": "n_fields = 2\ninner_border = -1"}, "scene.inner_border"),
         ({"n_fields = 2": "n_fields = 2\npsf_size = 32"}, "scene.psf_size"),
         ({"pixel_scale = 0.2": ""}, "scene.pixel_scale"),
         ({"pixel_scale = 0.2": "pixel_scale = 0.2\ncolour = 1"}, "scene.colour"),

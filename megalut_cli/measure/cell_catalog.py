@@ -27,11 +27,6 @@ from megalut_cli.measure.source_registry import MeasureRequest
 log = logging.getLogger(__name__)
 
 
-#: Header card of a cells file (and of the catalog): the width of the border (pixels) outside
-#: each cell's inner region (overlapping cells); 0 or absent: the whole cell is inner.
-INNER_CARD = "INNERBRD"
-
-
 #: Header card: the fixnoise of a metadetect catalog, coloured by a noise image's
 #: correlation (``NOISE``) or white noise of the weight map (``white``).
 FIXNOISE_CARD = "MDETFIX"

@@ -26,7 +26,6 @@ from megalut_cli.fits_header import header_dict
 from megalut_cli.measure.cell_catalog import (
     FIXNOISE_CARD,
     FIXNOISE_TEXT,
-    INNER_CARD,
     inner_region,
     log_detections,
     metadetect_cards,
@@ -40,7 +39,7 @@ from megalut_cli.measure.cell_detect import (
     detect_cell,
     metadetect_cell,
 )
-from megalut_cli.measure.defaults import CELLS_FORMAT, MDET_STAMP_SIZE
+from megalut_cli.measure.defaults import CELLS_FORMAT, INNER_CARD, MDET_STAMP_SIZE
 from megalut_cli.measure.grid import pixel_scale
 from megalut_cli.measure.measurer import MeasureSettings
 from megalut_cli.measure.metacal_defaults import MDET_COLUMN

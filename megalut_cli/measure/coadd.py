@@ -20,7 +20,7 @@ import numpy as np
 
 from megalut_cli.errors import ConfigError, InputError, namer
 from megalut_cli.measure import cell_catalog, cell_detect, cells
-from megalut_cli.measure.defaults import MDET_STAMP_SIZE
+from megalut_cli.measure.defaults import INNER_CARD, MDET_STAMP_SIZE
 from megalut_cli.measure.grid import pixel_scale
 from megalut_cli.measure.measurer import MeasureSettings
 from megalut_cli.measure.metacal_defaults import MDET_COLUMN
@@ -391,7 +391,7 @@ def coadd_cards(
         cards["PIXSCALE"] = (scale, "pixel scale of the image [arcsec]")
     cards["NCELLS"] = (n_cells, "number of cells the image is cut into")
     cards["CELLSZ"] = (coadd.size, "side of a cell [pixels]")
-    cards[cell_catalog.INNER_CARD] = (coadd.border, "border outside the inner region [pixels]")
+    cards[INNER_CARD] = (coadd.border, "border outside the inner region [pixels]")
     if request.metadetect:
         fixnoise = "white" if coadd.noise is None else "NOISE"
         cards[cell_catalog.FIXNOISE_CARD] = (fixnoise, cell_catalog.FIXNOISE_TEXT)

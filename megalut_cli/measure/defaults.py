@@ -23,6 +23,9 @@ PSF_COLUMNS: tuple[str, ...] = (
 MDET_FORMAT = "megalut.metadetect"
 #: Format of a cells file (``megalut simulate --scene``; the input of ``measure --metadetect``).
 CELLS_FORMAT = "megalut.scenes"
+#: Header card of a cells file (and of the catalog): the width of the border (pixels) outside
+#: each cell's inner region (overlapping cells, scenes); 0 or absent: the whole cell is inner.
+INNER_CARD = "INNERBRD"
 #: Stamp cut around each detection of ``--metadetect`` when no stamp size is given.
 MDET_STAMP_SIZE = 48
 #: ``--metadetect`` detection defaults (sep): threshold in noise sigmas, the fewest pixels,

@@ -26,7 +26,7 @@ import numpy as np
 
 from megalut_cli.engine import DEFAULT_ENGINE
 from megalut_cli.errors import MegalutError
-from megalut_cli.measure.defaults import CELLS_FORMAT
+from megalut_cli.measure.defaults import CELLS_FORMAT, INNER_CARD
 from megalut_cli.parallel import executor, map_ordered
 from megalut_cli.seeding import STREAM_SCENE, rng_for
 from megalut_cli.sim.config import SimConfig
@@ -688,6 +688,11 @@ def scene_cards(config: SimConfig, seed: int, engine: str = DEFAULT_ENGINE) -> d
         "DENSITY": (s.density, "mean galaxies per arcmin2"),
         "BORDER": (s.border, "centres at least this far inside edges (<0 out)"),
         "SHEARPOS": (s.shear_positions, "galaxy positions lensed about the field centre"),
+        **(
+            {INNER_CARD: (s.inner_border, "border outside the inner region [pixels]")}
+            if s.inner_border > 0
+            else {}
+        ),
         "PSFSZ": (s.psf_size, "side of the PSF images, pixels"),
         **(
             {"MINSEP": (s.min_separation, "galaxy centres at least this far apart, px")}

@@ -65,6 +65,17 @@ SCENE_OPTIONS: tuple[Option, ...] = (
         allowed_text="(−size/2, size/2)",
     ),
     Option(
+        "inner_border",
+        "int",
+        0,
+        "pixels at each edge outside the fields' inner region (card `INNERBRD`, as for "
+        "overlapping coadd cells): `measure --metadetect` marks the detections whose "
+        "unsheared position lies there `inner = 0`, and `evaluate` and `calibrate` leave "
+        "them out; 0: every detection is inner",
+        minimum=0,
+        allowed_text="[0, size/2)",
+    ),
+    Option(
         "shear_positions",
         "bool",
         True,
@@ -153,6 +164,7 @@ class SceneSpec:
     border: int
     psf_size: int
     shear_positions: bool = True
+    inner_border: int = 0
     min_separation: float = 0.0
     star_density: float = 0.0
     star_flux_min: float = 1e3
@@ -203,7 +215,7 @@ class SceneSpec:
 def parse_scene(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> SceneSpec:
     """The ``[scene]`` table of the config ``raw`` (defaults where absent)."""
     t = Table(raw.get("scene"), "scene", set(SCENE))
-    density, size, scale, n_fields, pairs, border, shear_pos, psf_size, min_sep, *defects = (
+    density, size, scale, n_fields, pairs, border, inner, shear_pos, psf_size, min_sep, *defects = (
         t.option(o) for o in SCENE_OPTIONS
     )
     star_density, flux_min, flux_max, saturation, bad_columns = (float(v) for v in defects)
@@ -223,6 +235,10 @@ def parse_scene(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> Scen
         raise ConfigError(
             f"scene.border: must be in (-size/2, size/2) = ({-size / 2:g}, {size / 2:g}), "
             f"got {border}"
+        )
+    if not inner < size / 2:
+        raise ConfigError(
+            f"scene.inner_border: must be in [0, size/2) = [0, {size / 2:g}), got {inner}"
         )
     if psf_size % 2 == 0:
         raise ConfigError(f"scene.psf_size: must be odd (centred on a pixel), got {psf_size}")
@@ -244,6 +260,7 @@ def parse_scene(raw: Mapping[str, Any], instrument: Mapping[str, float]) -> Scen
         border,
         psf_size,
         bool(shear_pos),
+        inner,
         float(min_sep),
         star_density,
         flux_min,
