@@ -23,10 +23,8 @@ def _one(gals: dict, k: int) -> dict:
     return {f: (gals[f] if f == "profile" or gals[f] is None else gals[f][k]) for f in FIELDS}
 
 
-def _galsim_stamp(
-    size: int, psf: galsim.GSObject, method: str, gsparams: dict, g: dict
-) -> np.ndarray:
-    """The stamp as ``megalut_cli/sim/draw.py`` draws it."""
+def _galsim_object(psf: galsim.GSObject, gsparams: dict, g: dict) -> galsim.GSObject:
+    """The galaxy ``g`` convolved with ``psf``, as ``megalut_cli/sim/draw.py`` builds it."""
     gsp = make_gsparams(gsparams)
     gal = shaped(
         base_profile(g["profile"], g["rad"], g["flux"], g["sersicn"], gsp),
@@ -35,8 +33,15 @@ def _galsim_stamp(
         g["g1"],
         g["g2"],
     )
+    return galsim.Convolve(gal, psf, gsparams=gsp if gsparams else None)
+
+
+def _galsim_stamp(
+    size: int, psf: galsim.GSObject, method: str, gsparams: dict, g: dict
+) -> np.ndarray:
+    """The stamp as ``megalut_cli/sim/draw.py`` draws it."""
     image = galsim.ImageF(size, size, scale=1.0)
-    galsim.Convolve(gal, psf, gsparams=gsp if gsparams else None).drawImage(
+    _galsim_object(psf, gsparams, g).drawImage(
         image=image, offset=(g["dx"], g["dy"]), method=method
     )
     return image.array.copy()
@@ -46,15 +51,7 @@ def _galsim_grid(
     size: int, psf: galsim.GSObject, method: str, gsparams: dict, g: dict
 ) -> tuple[int, int]:
     """(N, Nk) of GalSim's drawFFT_makeKImage for that stamp, built as drawImage builds it."""
-    gsp = make_gsparams(gsparams)
-    gal = shaped(
-        base_profile(g["profile"], g["rad"], g["flux"], g["sersicn"], gsp),
-        g["e1"],
-        g["e2"],
-        g["g1"],
-        g["g2"],
-    )
-    obj = galsim.Convolve(gal, psf, gsparams=gsp if gsparams else None)
+    obj = _galsim_object(psf, gsparams, g)
     centring = -0.5 if size % 2 == 0 else 0.0
     prof = obj.shift(g["dx"] + centring, g["dy"] + centring)
     if method == "auto":
@@ -65,19 +62,6 @@ def _galsim_grid(
     view.setCenter(0, 0)
     kimage, n_fft = prof.drawFFT_makeKImage(view)
     return n_fft, kimage.array.shape[0] - 1
-
-
-def _galsim_good_size(psf: galsim.GSObject, gsparams: dict, g: dict) -> int:
-    """``getGoodImageSize(1)`` of the galaxy convolved with the PSF (a scene's stamp side)."""
-    gsp = make_gsparams(gsparams)
-    gal = shaped(
-        base_profile(g["profile"], g["rad"], g["flux"], g["sersicn"], gsp),
-        g["e1"],
-        g["e2"],
-        g["g1"],
-        g["g2"],
-    )
-    return galsim.Convolve(gal, psf, gsparams=gsp if gsparams else None).getGoodImageSize(1.0)
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +87,7 @@ def test_stamps_and_grids_equal_galsim(case, profile, starfield):
     for k in range(m):
         g = _one(gals, k)
         assert (int(n_fft[k]), int(n_k[k])) == _galsim_grid(size, psf, method, gsparams, g), g
-        assert good[k] == _galsim_good_size(psf, gsparams, g), g
+        assert good[k] == _galsim_object(psf, gsparams, g).getGoodImageSize(1.0), g
         ref = _galsim_stamp(size, psf, method, gsparams, g)
         err = np.abs(stamps[k] - ref).max() / ref.max()
         assert err <= TOLERANCE, (k, g, err)
