@@ -14,7 +14,7 @@ from pathlib import Path
 import fitsio
 import numpy as np
 import pytest
-from helpers import assert_ok
+from helpers import assert_ok, error_line
 from sim_configs import TINY, write
 
 from megalut_cli.catalog import read_catalog
@@ -258,6 +258,19 @@ def test_bad_engine_is_a_usage_error(runner, cli, tmp_path: Path) -> None:
         r.output + getattr(r, "stderr", "")
     )
     assert not (tmp_path / "x.fits").exists()
+
+
+@pytest.mark.parametrize("engine", ["fast", "galsim"])
+def test_an_fft_beyond_the_cap_stops_either_engine(runner, cli, tmp_path: Path, engine) -> None:
+    """gsparams.maximum_fft_size is a cap in both engines (GalSim 2.7+ alone would warn and
+    draw): one line naming the case, exit 1, nothing written."""
+    cfg = write(tmp_path, replace={"[psf]": "[gsparams]\nmaximum_fft_size = 16\n\n[psf]"})
+    out, stamps = tmp_path / "c.fits", tmp_path / "s.fits"
+    r = runner.invoke(
+        cli, ["simulate", str(cfg), "-o", str(out), "--stamps", str(stamps), "--engine", engine]
+    )
+    error_line(r, 1, "case 0", "maximum_fft_size")
+    assert not out.exists() and not stamps.exists()
 
 
 def test_pipeline_engine_key_is_validated() -> None:

@@ -460,6 +460,19 @@ def test_profiles_the_renderer_cannot_draw_go_through_galsim(tmp_path):
 
 
 @pytest.mark.parametrize(
+    "engine, message",
+    [("fast", "scene field 0: drawFFT requires"), ("galsim", "scene field 0, galaxy 0: FFT too")],
+)
+def test_an_fft_beyond_the_cap_stops_either_engine_naming_the_field(tmp_path, engine, message):
+    """An FFT beyond gsparams.maximum_fft_size: one line naming the scene field, whichever
+    engine draws (GalSim 2.7+ would only warn and draw)."""
+    cfg = scene_config(tmp_path, **{"[psf]": "[gsparams]\nmaximum_fft_size = 32\n\n[psf]"})
+    with pytest.raises(MegalutError, match="^" + message) as err:
+        draw_scenes(cfg, seed=6, engine=engine)
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize(
     "text",
     [BULGEDISK, COSMOSFIT, NOISE_ONLY.replace("SOURCE", f'correlation = "{CF_FILE}"\nsigma = 1.5')],
     ids=["bulgedisk", "cosmos_fit", "correlated-noise"],

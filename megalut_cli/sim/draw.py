@@ -103,7 +103,7 @@ def get_psf(
     if hit is None:
         if len(_PSF_CACHE) >= _PSF_CACHE_MAX:
             _PSF_CACHE.clear()
-        single_threaded_galsim()
+        set_up_galsim()
         psf, truth = make_psf(spec, field_x, field_y)
         if gsparams:
             psf = psf.withGSParams(GsParams(**gsparams).galsim())
@@ -206,16 +206,26 @@ class _Measurer:
         return {k: np.concatenate([p[k] for p in self.parts]) for k in names}
 
 
-def single_threaded_galsim() -> None:
-    """Import GalSim with one OpenMP thread: its threads only slow small stamps down (busy
-    waiting on shared cores: noise generation measured 10-50x slower); parallelism is
-    across work units."""
+def set_up_galsim() -> None:
+    """Import GalSim with one OpenMP thread (its threads only slow small stamps down: busy
+    waiting on shared cores, noise generation measured 10-50x slower; parallelism is across
+    work units), and with FFTs beyond ``gsparams.maximum_fft_size`` an error, as they were
+    before GalSim 2.7 and are in the fast engine (GalSim 2.7+ only warns, and draws)."""
     global _THREADS_SET
     if not _THREADS_SET:
         import galsim
 
         galsim.set_omp_threads(1)
+        galsim.errors.raise_fft_size_error = True
         _THREADS_SET = True
+
+
+def fft_too_large(err: Any) -> str:
+    """One line for GalSim's ``GalSimFFTSizeError`` ``err``, with the fix."""
+    return (
+        f"FFT too large for GalSim ({err.size}^2 pixels); raise gsparams.maximum_fft_size "
+        "or gsparams.folding_threshold"
+    )
 
 
 _THREADS_SET = False
@@ -334,7 +344,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
     """
     if unit.renders_fast and (unit.keep_stamps or unit.measure):
         return draw_unit_fast(unit)
-    single_threaded_galsim()
+    set_up_galsim()
     import galsim
 
     from megalut_cli.sim.galaxies import make_gsparams, oriented, real_padded_side, rotated
@@ -422,10 +432,7 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
             try:
                 draw_wide(obj, image, offset, method, wide)
             except galsim.GalSimFFTSizeError as err:
-                raise MegalutError(
-                    f"case {case}, realization {k}: FFT too large for GalSim ({err.size}^2 "
-                    "pixels); raise gsparams.maximum_fft_size or gsparams.folding_threshold"
-                ) from None
+                raise MegalutError(f"case {case}, realization {k}: {fft_too_large(err)}") from None
             except (galsim.GalSimError, MemoryError) as err:
                 raise MegalutError(
                     f"case {case}, realization {k}: GalSim could not draw the stamp ({err})"
@@ -581,7 +588,7 @@ def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
     S, n_rea = s.stamp_size, s.n_realizations
     gal = cfg.galaxy
     if cfg.noise.type == "correlated":  # GalSim draws it (StampNoise.add_batch)
-        single_threaded_galsim()
+        set_up_galsim()
     renderer = stamp_renderer(S, dict(cfg.gsparams))
     measurer = _Measurer(unit) if unit.measure else None
     kept: list[np.ndarray] = []

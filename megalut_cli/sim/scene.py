@@ -32,11 +32,12 @@ from megalut_cli.seeding import STREAM_SCENE, rng_for
 from megalut_cli.sim.config import SimConfig
 from megalut_cli.sim.distributions import Distribution, sample_level
 from megalut_cli.sim.draw import (
+    fft_too_large,
     get_psf,
     psf_cache_key,
     psf_includes_pixel,
     renders_galaxies,
-    single_threaded_galsim,
+    set_up_galsim,
     stamp_renderer,
 )
 from megalut_cli.sim.intrinsic import ellipticity_components, galaxy_fluxes, mag_from_flux
@@ -302,7 +303,7 @@ def draw_field(unit: FieldUnit) -> DrawnField:
     around its position (side: GalSim's good size, at most ``structure.stamp_size``;
     by the batched renderer with the fast engine where it can, else by GalSim), whose
     overlap with the field is added to it; then the noise field."""
-    single_threaded_galsim()
+    set_up_galsim()
     import galsim
 
     cfg, s = unit.config, scene_spec(unit.config)
@@ -327,7 +328,10 @@ def draw_field(unit: FieldUnit) -> DrawnField:
         positions[j, :, 0], positions[j, :, 1] = xy
     if unit.engine == "fast" and renders_galaxies(cfg):
         key = psf_cache_key(spec, *d.position, cfg.psf_varies, cfg.gsparams)
-        stamps = rendered_galaxies(cfg, psf, key, method, t, positions, signs, d.g1, d.g2)
+        try:
+            stamps = rendered_galaxies(cfg, psf, key, method, t, positions, signs, d.g1, d.g2)
+        except MegalutError as err:
+            raise MegalutError(f"scene field {unit.field}: {err}") from None
         for k in range(n):  # added in the galaxies' order, as GalSim's loop does
             for j, (x0, y0, stamp) in enumerate(stamps[k]):
                 if stamp is not None:
@@ -425,6 +429,10 @@ def draw_galsim_galaxies(
             stamp = galsim.ImageF(bounds, scale=1.0)
             try:
                 obj.drawImage(image=stamp, center=where, method=method)
+            except galsim.GalSimFFTSizeError as err:
+                raise MegalutError(
+                    f"scene field {unit.field}, galaxy {k}: {fft_too_large(err)}"
+                ) from None
             except (galsim.GalSimError, MemoryError) as err:
                 raise MegalutError(
                     f"scene field {unit.field}, galaxy {k}: GalSim could not draw it ({err})"
