@@ -3,9 +3,17 @@ interpolate`` and the distance to the nearest masked pixel of ``--mask-margin``.
 
 from __future__ import annotations
 
-import numpy as np
+import warnings
 
-from megalut_cli.measure.masks import MAX_INTERPOLATED_REGION, inpainted, mask_distance
+import numpy as np
+import pytest
+
+from megalut_cli.measure.masks import (
+    MAX_INTERPOLATED_REGION,
+    inpainted,
+    mask_distance,
+    nanmedian_rows,
+)
 
 
 def test_the_fill_is_harmonic():
@@ -47,3 +55,22 @@ def test_the_distance_to_the_nearest_masked_pixel():
     brute = np.min(np.hypot(col[:, None] - cc, row[:, None] - rr), axis=1)
     np.testing.assert_allclose(mask_distance(bad, x, y), brute)
     assert np.isinf(mask_distance(np.zeros((4, 4), bool), x[:3], y[:3])).all()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_nanmedian_rows_is_numpys_bit_for_bit(seed):
+    """Odd and even counts, ties, all-NaN rows, infinities, scales: np.nanmedian's values."""
+    rng = np.random.default_rng(seed)
+    for _ in range(40):
+        m, k = int(rng.integers(1, 30)), int(rng.integers(1, 250))
+        values = rng.normal(size=(m, k)) * rng.choice([1e-3, 1.0, 1e5])
+        if rng.random() < 0.5:
+            values = np.round(values, 1)
+        values[rng.random((m, k)) < rng.random()] = np.nan
+        values[0] = np.nan
+        if k > 2 and m > 1:
+            values[1, :2] = np.inf, -np.inf
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            expected = np.nanmedian(values, axis=1)
+        np.testing.assert_array_equal(nanmedian_rows(values), expected)

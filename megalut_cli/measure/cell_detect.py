@@ -24,6 +24,7 @@ from megalut_cli.measure.masks import (
     MASK_DISTANCE_COLUMN,
     inpainted,
     mask_distance,
+    mask_distance_map,
     nan_flagged,
 )
 from megalut_cli.measure.measurer import (
@@ -405,6 +406,7 @@ def metadetect_cell(
         mc.target, psfs[0].tobytes(), psfs.shape[1], target_sigma, mc.step, stamp_size
     )
     measurer = Measurer(dataclasses.replace(settings, metacal=None, mask_margin=0.0))
+    distance = mask_distance_map(bad)  # the versions share the cell's mask
     parts: list[dict[str, np.ndarray]] = []
     for kind in TYPES:
         found, _, (stamps, masked, origins, centres) = detected_stamps(
@@ -415,7 +417,7 @@ def metadetect_cell(
         feats = {c: v[:n] for c, v in feats.items()}
         flag_duplicates(feats, x + 1.0, y + 1.0, detection.duplicate_radius, settings)
         ux, uy = unsheared(x, y, size, SHEARS[kind], mc.step)
-        flag_near_mask(feats, mask_distance(bad, ux, uy), detection.mask_margin, settings)
+        flag_near_mask(feats, mask_distance(bad, ux, uy, distance), detection.mask_margin, settings)
         row = {MDET_COLUMN: np.full(n, kind), "x": ux + 1.0, "y": uy + 1.0, **feats}
         for c in TARGET_PSF_COLUMNS:
             row[f"psf_{c}"] = np.full(n, target[f"psf_{c}_{kind}"])

