@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from megalut_cli import flags as fl
 from megalut_cli.engine import DEFAULT_ENGINE
@@ -235,13 +236,11 @@ def cut_around(
     n, (ny, nx) = len(x), image.shape
     x0 = np.floor(x - (size - 1) / 2.0 + 0.5).astype(np.int64)  # the centre within 0.5 px
     y0 = np.floor(y - (size - 1) / 2.0 + 0.5).astype(np.int64)
-    rows = (y0 + size)[:, None, None] + np.arange(size)[None, :, None]
-    cols = (x0 + size)[:, None, None] + np.arange(size)[None, None, :]
 
     def cut(values: np.ndarray, outside: Any) -> np.ndarray:
         padded = np.full((ny + 2 * size, nx + 2 * size), outside, dtype=values.dtype)
         padded[size:-size, size:-size] = values
-        return padded[rows, cols]
+        return sliding_window_view(padded, (size, size))[y0 + size, x0 + size]
 
     stamps, masked = cut(np.asarray(image, dtype=np.float64), 0.0), cut(bad, True)
     if segments is not None:  # the other detections' pixels

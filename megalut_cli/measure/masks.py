@@ -105,10 +105,18 @@ def _nearest_masked_squared(masked: np.ndarray, centres: np.ndarray | None) -> n
         centres = np.tile([(nx - 1) / 2.0, (ny - 1) / 2.0], (n, 1))
     centres = np.asarray(centres, dtype=np.float64).reshape(n, 2)
     out = np.full(n, np.inf)
-    for i in np.flatnonzero(masked.reshape(n, -1).any(axis=1)):
-        rows, cols = np.nonzero(masked[i])
-        out[i] = np.min((cols - centres[i, 0]) ** 2 + (rows - centres[i, 1]) ** 2)
+    some = np.flatnonzero(masked.reshape(n, -1).any(axis=1))
+    for start in range(0, len(some), _CHUNK):  # (chunk, ny, nx) float64 at a time
+        idx = some[start : start + _CHUNK]
+        dx2 = (np.arange(nx)[None, :] - centres[idx, :1]) ** 2
+        dy2 = (np.arange(ny)[None, :] - centres[idx, 1:]) ** 2
+        squared = dx2[:, None, :] + dy2[:, :, None]
+        out[idx] = np.where(masked[idx], squared, np.inf).min(axis=(1, 2))
     return out
+
+
+#: Stamps per pass of :func:`_nearest_masked_squared`.
+_CHUNK = 256
 
 
 def nan_flagged(columns: dict[str, np.ndarray], flags: np.ndarray, names: tuple[str, ...]) -> None:
