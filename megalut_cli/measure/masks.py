@@ -24,6 +24,8 @@ NOISE_COLUMN = "noise_weight"
 MAX_INTERPOLATED_REGION = 4096
 #: Column of a detection's distance to the nearest masked pixel of its cell (metadetection).
 MASK_DISTANCE_COLUMN = "mask_dist"
+#: Stamps per pass of :func:`_nearest_masked_squared`.
+_CHUNK = 256
 
 
 def masked_pixels(
@@ -56,10 +58,11 @@ def nanmedian_rows(values: np.ndarray) -> np.ndarray:
     ordered = np.sort(values, axis=1)  # NaN last
     n = np.count_nonzero(~np.isnan(values), axis=1)
     half = n // 2
-    low = np.take_along_axis(ordered, np.maximum(half - 1 + n % 2, 0)[:, None], axis=1)[:, 0]
-    high = np.take_along_axis(ordered, np.minimum(half, ordered.shape[1] - 1)[:, None], axis=1)
+    rows = np.arange(len(ordered))
+    low = ordered[rows, np.maximum(half - 1 + n % 2, 0)]  # the middle one or two
+    high = ordered[rows, np.minimum(half, ordered.shape[1] - 1)]
     with np.errstate(invalid="ignore"):  # inf - inf: NaN, as NumPy's
-        median = (low + high[:, 0]) / 2.0
+        median = (low + high) / 2.0
     median[n == 0] = np.nan
     return median
 
@@ -113,10 +116,6 @@ def _nearest_masked_squared(masked: np.ndarray, centres: np.ndarray | None) -> n
         squared = dx2[:, None, :] + dy2[:, :, None]
         out[idx] = np.where(masked[idx], squared, np.inf).min(axis=(1, 2))
     return out
-
-
-#: Stamps per pass of :func:`_nearest_masked_squared`.
-_CHUNK = 256
 
 
 def nan_flagged(columns: dict[str, np.ndarray], flags: np.ndarray, names: tuple[str, ...]) -> None:
