@@ -48,8 +48,11 @@ def test_help(runner, cli):
 
 
 def test_table_json_and_catalog(runner, cli, metacal, tmp_path):
+    """``--failures exclude``: the mean response plus the selection response, each in the
+    JSON, their sum in the per-object catalog's header."""
     js, out = tmp_path / "cal.json", tmp_path / "cal.fits"
     args = ["calibrate", str(metacal), "--by", "tomo", "--select", "size > 0.5"]
+    args += ["--failures", "exclude"]
     result = runner.invoke(cli, [*args, "--json", str(js), "-o", str(out)])
     assert_ok(result)
     lines = result.output.splitlines()
@@ -90,21 +93,27 @@ def test_table_json_and_catalog(runner, cli, metacal, tmp_path):
 
 
 def test_failures_as_a_selection(runner, cli, metacal, tmp_path):
-    """``--failures selection``: the response of the versions' means, with --by bins and
-    --select per version, the same per-object catalog columns; the JSON records the choice;
-    a catalog without metacal versions is refused (exit 1, nothing written)."""
+    """``--failures selection``, the default: the response of the versions' means, with --by
+    bins and --select per version, the same per-object catalog columns; the JSON records the
+    choice, the same whether asked or by default; a catalog without metacal versions is
+    calibrated without it by default and refused when it is asked (exit 1, nothing
+    written)."""
     js, out = tmp_path / "cal.json", tmp_path / "cal.fits"
     args = ["calibrate", str(metacal), "--by", "tomo", "--select", "size > 0.5"]
-    result = runner.invoke(
-        cli, [*args, "--failures", "selection", "--json", str(js), "-o", str(out)]
-    )
+    result = runner.invoke(cli, [*args, "--json", str(js), "-o", str(out)])
     assert_ok(result)
     assert "each version's mean over its own measured objects" in result.output
     res = json.loads(js.read_text())
     assert res["failures"] == "selection" and res["all"]["selection_response"] is None
     assert len(res["bins"]) == 3 and read_catalog(out)["R11"].size == res["all"]["n_objects"]
+    asked = tmp_path / "asked.json"
+    result = runner.invoke(cli, [*args, "--failures", "selection", "--json", str(asked)])
+    assert_ok(result)
+    assert json.loads(asked.read_text())["all"] == res["all"]
     plain = tmp_path / "sim.fits"
     write_catalog(plain, {"pre_g1": np.zeros(9), "pre_g2": np.zeros(9)}, fmt="megalut.predictions")
+    result = runner.invoke(cli, ["calibrate", str(plain), "-q"])
+    assert_ok(result)
     bad = tmp_path / "bad.json"
     result = runner.invoke(
         cli, ["calibrate", str(plain), "--failures", "selection", "--json", str(bad)]

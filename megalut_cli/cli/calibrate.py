@@ -67,15 +67,17 @@ def command(
     """The calibrated mean shear of PREDICTIONS.fits, a catalog without truth.
 
     PREDICTIONS.fits is the output of 'megalut predict'. On a metacal catalog (pre_g1_noshear
-    ..., mcal_r11 .. mcal_r22 and the sheared versions' pre_*_<type>) the mean estimate is
-    calibrated by the mean response plus the selection response, g = (<R> + R_sel)^-1 <g>,
-    R_sel coming from the selection (--select), the weights and a --by bin of a measured
-    column, each taken on the sheared versions. On a simulation-calibrated catalog the
-    estimates are averaged. Weighted by pre_g1_w, pre_g2_w when the catalog has them (metacal:
-    every version's), unless --unweighted. Rows with flags != 0 (metacal: flags_noshear) or
-    NaN estimates are left out; with --failures selection a metacal catalog is calibrated by
-    the response of the versions' means instead, each over its own measured objects, so that
-    failures that depend on the shear are a selection too.
+    ..., mcal_r11 .. mcal_r22 and the sheared versions' pre_*_<type>) the mean noshear
+    estimate is calibrated by the response of the versions' means,
+    R = (<g>_jp - <g>_jm) / (2 step), each version's estimates averaged over the objects that
+    version measured, with the selection (--select), the weights and a --by bin of a measured
+    column taken on that version: failures that depend on the shear are a selection like
+    any other (--failures selection, the default). --failures exclude keeps the objects with
+    every version measured and calibrates by the mean response plus the selection response,
+    g = (<R> + R_sel)^-1 <g> (biased where failures depend on the shear). On a
+    simulation-calibrated catalog the estimates are averaged. Weighted by pre_g1_w, pre_g2_w
+    when the catalog has them (metacal: every version's), unless --unweighted. Rows with
+    flags != 0 (metacal: the noshear version's) or NaN estimates are left out.
 
     Errors: a delete-one jackknife over patches of the sky (ra, dec; else the image x, y),
     or a bootstrap over objects when the catalog has no positions; the response is
@@ -133,7 +135,11 @@ def command(
         "by": by,
         "unweighted": unweighted,
         "errors": errors,
-        "failures": failures,
+        # not given: None, the metacal route's default (refused elsewhere only when asked)
+        "failures": failures
+        if click.get_current_context().get_parameter_source("failures")
+        == click.core.ParameterSource.COMMANDLINE
+        else None,
     }
     plan = plan_calibration(colnames, header, source=predictions, names=names, **options)
     columns, _ = read_catalog_columns(path, list(plan.columns))

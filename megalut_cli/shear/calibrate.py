@@ -145,7 +145,7 @@ class CalibrationPlan:
     columns: tuple[str, ...]
     pass_through: tuple[str, ...]
     names: dict[str, str] = field(default_factory=dict)
-    failures: str = "exclude"  # metacal: "exclude", or "selection" (--failures)
+    failures: str = "selection"  # metacal: "selection" or "exclude" (--failures)
 
     @property
     def scheme(self) -> str:
@@ -172,11 +172,13 @@ def plan_calibration(
     errors: str = CALIBRATE["errors"].default,
     source: str = "catalog",
     names: Mapping[str, str] | None = None,
-    failures: str = CALIBRATE["failures"].default,
+    failures: str | None = None,
 ) -> CalibrationPlan:
     """Check a catalog's columns (and header) against what is asked; raise
     :class:`InputError` for a catalog that cannot be calibrated, :class:`ConfigError` for
-    an argument that does not fit it."""
+    an argument that does not fit it. ``failures`` None: the default of a metacal catalog
+    (each version's failures a selection); a value asks for it, and ``"selection"`` is
+    refused on other catalogs."""
     given = dict(names or {})
     have = set(colnames)
     header = header or {}
@@ -185,7 +187,7 @@ def plan_calibration(
             f"{given.get('errors', 'errors')}: unknown value {errors!r} "
             f"(expected one of {', '.join(CALIBRATE_ERROR_CHOICES)})"
         )
-    if failures not in FAILURES_CHOICES:
+    if failures is not None and failures not in FAILURES_CHOICES:
         raise ConfigError(
             f"{given.get('failures', 'failures')}: unknown value {failures!r} "
             f"(expected one of {', '.join(FAILURES_CHOICES)})"
@@ -234,6 +236,8 @@ def plan_calibration(
                 else ""
             )
         )
+    if failures is None:
+        failures = CALIBRATE["failures"].default
     weighted = not unweighted and all(c in have for c in weight_cols)
     if not unweighted and not weighted and any(c in have for c in weight_cols):
         log.warning(
@@ -991,15 +995,16 @@ def calibrate_columns(
     seed: int = 1,
     source: str = "catalog",
     names: Mapping[str, str] | None = None,
-    failures: str = CALIBRATE["failures"].default,
+    failures: str | None = None,
 ) -> Calibration:
     """Calibrate the estimates of ``columns`` (a mapping of arrays, e.g. read from the output
     of ``megalut predict``; ``header`` its header, for ``MCALSTEP``), for the whole catalog
     and, with ``by``, for each bin. See the module's docstring; ``names``: how messages name
     the arguments (``select``, ``by``, ``errors``, ``failures``). ``failures`` (metacal):
-    ``"exclude"`` uses the objects with every version measured, each with its own response;
-    ``"selection"`` the noshear estimates of the objects whose noshear version is measured,
-    calibrated by the response of the versions' means, each over its own measured objects."""
+    ``"selection"`` (None, the default) the noshear estimates of the objects whose noshear
+    version is measured, calibrated by the response of the versions' means, each over its own
+    measured objects; ``"exclude"`` the objects with every version measured, each with its
+    own response."""
     colnames = list(columns.colnames) if hasattr(columns, "colnames") else list(columns)
     plan = plan_calibration(
         colnames,

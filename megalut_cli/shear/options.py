@@ -113,7 +113,8 @@ EVALUATE_CLI_OPTIONS: tuple[Option, ...] = (
         "Metacal catalogs: the rows whose noshear version is measured and a sheared one is "
         "not: 'exclude' them (every version measured), or count each version's failures as "
         "a selection, with its selection response ('selection': removes the bias of failures "
-        "that depend on the shear; docs/evaluate.md).",
+        "that depend on the shear, at up to twice the error of a common-random-number set; "
+        "megalut calibrate's default; docs/evaluate.md).",
         choices=FAILURES_CHOICES,
     ),
 )
@@ -214,10 +215,12 @@ CALIBRATE_OPTIONS: tuple[Option, ...] = (
     BOOTSTRAP_OPTION,
     replace(
         EVALUATE_CLI["failures"],
+        default=FAILURES_CHOICES[1],
         help="Metacal catalogs: the objects whose noshear version is measured and a sheared "
-        "one is not: 'exclude' them (every version measured), or count each version's "
-        "failures as a selection ('selection': the response of the versions' means, each "
-        "over its own measured objects, as metadetection takes it; docs/calibrate.md).",
+        "one is not: count each version's failures as a selection ('selection': the response "
+        "of the versions' means, each over its own measured objects, as metadetection takes "
+        "it), or 'exclude' them (every version measured; biased where failures depend on the "
+        "shear; docs/calibrate.md).",
     ),
 )
 CALIBRATE = {o.name: o for o in CALIBRATE_OPTIONS}

@@ -73,7 +73,12 @@ def metacal_lines(mcal: Mapping[str, Any] | None) -> list[str]:
     )
     lines = [
         f"metacal: {', '.join(mcal['estimate'])} calibrated by ({how})^-1, step {mcal['step']:g}"
-        + ("; each version's failures a selection" if means else "")
+        + (
+            "; each version's failures a selection"
+            if means
+            else "; rows failing on a sheared version excluded (calibrate's default counts "
+            "them as a selection: --failures selection)"
+        )
     ]
     for scheme, r in mcal["response"].items():
         sel = mcal["selection_response"].get(scheme)
