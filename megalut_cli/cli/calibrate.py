@@ -10,7 +10,13 @@ import click
 from megalut_cli.atomic import check_output, write_json
 from megalut_cli.cli.commands import short_help
 from megalut_cli.cli.console import flag_names, is_stdio, stdin_path
-from megalut_cli.cli.options import overwrite_option, plot_option, schema_option, seed_option
+from megalut_cli.cli.options import (
+    given_on_command_line,
+    overwrite_option,
+    plot_option,
+    schema_option,
+    seed_option,
+)
 from megalut_cli.shear.options import CALIBRATE
 
 
@@ -136,10 +142,7 @@ def command(
         "unweighted": unweighted,
         "errors": errors,
         # not given: None, the metacal route's default (refused elsewhere only when asked)
-        "failures": failures
-        if click.get_current_context().get_parameter_source("failures")
-        == click.core.ParameterSource.COMMANDLINE
-        else None,
+        "failures": failures if given_on_command_line("failures") else None,
     }
     plan = plan_calibration(colnames, header, source=predictions, names=names, **options)
     columns, _ = read_catalog_columns(path, list(plan.columns))

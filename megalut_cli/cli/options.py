@@ -113,6 +113,12 @@ def plot_option(what: str) -> Callable[[F], F]:
     )
 
 
+def given_on_command_line(name: str) -> bool:
+    """Whether the current command's option ``name`` was typed, not left to its default."""
+    source = click.get_current_context().get_parameter_source(name)
+    return source == click.core.ParameterSource.COMMANDLINE
+
+
 def execution_options(f: F) -> F:
     """``-j/--nproc`` and ``--scheduler`` (mutually exclusive; :mod:`megalut_cli.parallel`)."""
     f = schema_option(SCHEDULER_OPTION)(f)
@@ -121,8 +127,7 @@ def execution_options(f: F) -> F:
     @functools.wraps(f)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         ctx = click.get_current_context()
-        nproc_given = ctx.get_parameter_source("nproc") == click.core.ParameterSource.COMMANDLINE
-        if kwargs.get("scheduler") and nproc_given:
+        if kwargs.get("scheduler") and given_on_command_line("nproc"):
             raise click.UsageError("-j/--nproc and --scheduler are mutually exclusive")
         if (
             not kwargs.get("scheduler")

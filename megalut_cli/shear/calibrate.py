@@ -145,7 +145,7 @@ class CalibrationPlan:
     columns: tuple[str, ...]
     pass_through: tuple[str, ...]
     names: dict[str, str] = field(default_factory=dict)
-    failures: str = "selection"  # metacal: "selection" or "exclude" (--failures)
+    failures: str = CALIBRATE["failures"].default  # metacal: "selection" or "exclude"
 
     @property
     def scheme(self) -> str:
