@@ -53,6 +53,14 @@ for diagnosis), weighted and not: m1, m2 and the isotropic part of a line, and t
 with its jackknife. A galaxy measured under some shears and not others enters the cases'
 means through a selection on the true shear, which no metacal response sees.
 
+With ``--curvature A.fits [B.fits ...]`` (``vo-cross`` sets): m of the axis cases split into the
+curvature of the mean estimate in the shear, p (the response along the shear against the
+secant across the cases), and q (across it), on the complete galaxies: m is about
+-(p + q) / 2, and p goes as g^2 (:func:`curvature`).
+
+With ``--cut COLUMN LO HI`` before any mode: only the rows with LO <= COLUMN < HI (a truth
+column that the shear does not change, e.g. ``tru_flux``: the same galaxies in every case).
+
 With ``--by COLUMN`` (a truth column, e.g. ``tru_rad``, ``tru_sersicn``, ``tru_flux``): m of
 each set in the quartiles of that column (edges from the first catalog; each bin calibrated by
 its own response: the truth does not respond to the shear), its jackknife error, and each
@@ -66,6 +74,8 @@ bin's chi^2 of the sets about their weighted mean: where in the population the s
     python examples/metacal/set_checks.py --paired fallback-3904-a.fits vo-3904-a.fits
     python examples/metacal/set_checks.py --failures vo-3901-a.fits vo-3902-a.fits ...
     python examples/metacal/set_checks.py --complete vo-3901-a.fits vo-cross-a.fits ...
+    python examples/metacal/set_checks.py --curvature vx-4304-a.fits vx-4305-a.fits ...
+    python examples/metacal/set_checks.py --cut tru_flux 344 inf --complete vx-4304-a.fits ...
     python examples/metacal/set_checks.py --swap vo-3901-a.fits vo-3902-a.fits x-{0..19}.fits
 """
 
@@ -219,18 +229,26 @@ def zero_shear_calibrated(
     return np.linalg.solve(zero, _case_means(sums, drop).T).T, zero
 
 
-def jackknife_sigma(jack: np.ndarray) -> np.ndarray:
+def jackknife_sigma(jack: np.ndarray, groups: int = GROUPS) -> np.ndarray:
     """The delete-group jackknife error of the replicates ``jack`` (groups along axis 0)."""
-    return np.sqrt((GROUPS - 1) / GROUPS * ((jack - jack.mean(axis=0)) ** 2).sum(axis=0))
+    return np.sqrt((groups - 1) / groups * ((jack - jack.mean(axis=0)) ** 2).sum(axis=0))
+
+
+TRUTH_CUT: list[tuple[str, float, float]] = []  # --cut COLUMN LO HI: (column, lo, hi)
 
 
 def read_set(path: str, extra: tuple[str, ...] = ()) -> tuple[np.ndarray, float]:
-    """The columns the checks read, and the set's metacal step."""
+    """The columns the checks read (the rows within :data:`TRUTH_CUT`), and the set's metacal
+    step."""
     step = float(fitsio.read_header(path, 1).get("MCALSTEP", 0.01))
     names = ["case", "rea", "tru_g1", "tru_g2", "mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22"]
     names += [f"flags_{k}" for k in VERSIONS]
     names += [f"pre_g{c}{w}_{k}" for c in (1, 2) for w in ("", "_w") for k in VERSIONS]
-    return fitsio.read(path, columns=names + list(extra)), step
+    cut = [c for c, _, _ in TRUTH_CUT if c not in names + list(extra)]
+    t = fitsio.read(path, columns=names + list(extra) + cut)
+    for column, lo, hi in TRUTH_CUT:
+        t = t[(t[column] >= lo) & (t[column] < hi)]
+    return t, step
 
 
 def m_and_jackknife(t: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
@@ -441,6 +459,98 @@ def complete_check(paths: list[str]) -> None:
     compare_rows(paths, labels, [{"complete": False}, {"complete": True}], cubic=False)
 
 
+CURVATURE = ("m", "p = 2 b g^2", "q")
+CURVATURE_GROUPS = 200
+
+
+def _version_sums(
+    t: np.ndarray, rows: np.ndarray, group: np.ndarray, weighted: bool, c: int, kind: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-group sums of the weights and weighted estimates of component ``c`` of version
+    ``kind`` on ``rows`` (every row alike unless ``weighted``)."""
+    e = np.nan_to_num(np.asarray(t[f"pre_g{c}_{kind}"], dtype=float))
+    w = np.nan_to_num(np.asarray(t[f"pre_g{c}_w_{kind}"], dtype=float)) if weighted else 1.0
+    w = np.where(rows, w, 0.0)
+    return (
+        np.bincount(group, w * e, CURVATURE_GROUPS),
+        np.bincount(group, w, CURVATURE_GROUPS),
+    )
+
+
+def _curvature_stats(table: dict, i: int, g: float, step: float, drop: int | None) -> np.ndarray:
+    """m, p and q (:func:`curvature`) of axis ``i`` from the per-group sums ``table``, group
+    ``drop`` left out."""
+
+    def mean(key: tuple[int, int, str]) -> float:
+        a, b = (x.sum() - (x[drop] if drop is not None else 0.0) for x in table[key])
+        return a / b
+
+    s = (mean((1, i, "noshear")) - mean((-1, i, "noshear"))) / (2 * g)
+    r_par, r_perp = (
+        np.mean([mean((sign, c, f"{c}p")) - mean((sign, c, f"{c}m")) for sign in (1, -1)])
+        / (2 * step)
+        for c in (i, 3 - i)
+    )
+    m = 2 * s / (r_par + r_perp) - 1
+    return np.array([m, r_par / (1 - g * g) / s - 1, r_perp / (1 + g * g) / s - 1])
+
+
+def axis_curvature(
+    t: np.ndarray, step: float, weighted: bool, i: int
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """abs(g) of the axis cases of component ``i``, and m, p, q (:func:`curvature`) with their
+    jackknife errors over galaxy-pair groups, on the complete galaxies."""
+    every = used_rows(t) & np.all([t[f"flags_{k}"] == 0 for k in VERSIONS], axis=0)
+    every &= complete_galaxies(t, every)
+    pair = t["rea"] // 2
+    group = np.random.default_rng(0).permutation(pair.max() + 1)[pair] % CURVATURE_GROUPS
+    j = 3 - i
+    along, across = np.asarray(t[f"tru_g{i}"]), np.asarray(t[f"tru_g{j}"])
+    g = float(np.abs(along[np.isclose(across, 0) & (np.abs(along) > 0)]).max())
+    table = {}
+    for sign in (1, -1):
+        rows = every & np.isclose(along, sign * g) & np.isclose(across, 0)
+        for c, kind in [(i, "noshear"), (i, f"{i}p"), (i, f"{i}m"), (j, f"{j}p"), (j, f"{j}m")]:
+            table[(sign, c, kind)] = _version_sums(t, rows, group, weighted, c, kind)
+    value = _curvature_stats(table, i, g, step, None)
+    jack = np.array([_curvature_stats(table, i, g, step, d) for d in range(CURVATURE_GROUPS)])
+    return g, value, jackknife_sigma(jack, CURVATURE_GROUPS)
+
+
+def curvature(paths: list[str]) -> None:
+    """m of a ``vo-cross`` set's axis cases split by the curvature of the mean estimate in the
+    shear. On the complete galaxies (every version measured in every case), each version with
+    its own weights: the secant ``s`` of the noshear means across the cases (+g, 0) and (-g, 0),
+    and the metacal responses along the shear, ``R_par = (<e_i>_ip - <e_i>_im) / 2 step``, and
+    across it, ``R_perp`` from the other component's versions, averaged over the two cases.
+    For ``<e> = A g (1 + b abs(g)^2)`` the composition of shears gives ``R_par = A (1 + 3 b
+    g^2)(1 - g^2)`` and ``R_perp = A (1 + b g^2)(1 + g^2)``, so with ``p = R_par / (1 - g^2) /
+    s - 1`` (= 2 b g^2) and ``q = R_perp / (1 + g^2) / s - 1`` (0 for an equivariant
+    estimator), ``m = s / ((R_par + R_perp) / 2) - 1`` is about ``-(p + q) / 2``: the
+    curvature's part of m goes as g^2 and vanishes at zero shear."""
+    found: dict[bool, list[tuple[np.ndarray, np.ndarray]]] = {True: [], False: []}
+    print("| set | estimator | axis | abs(g) | " + " | ".join(CURVATURE) + " |")
+    print("|---|---|---|---|---|---|---|")
+    for path in paths:
+        t, step = read_set(path)
+        for weighted in (True, False):
+            scheme = "weighted" if weighted else "unweighted"
+            for i in (1, 2):
+                g, value, error = axis_curvature(t, step, weighted, i)
+                found[weighted].append((value, error))
+                cells = " | ".join(f"{1e3 * a:+.2f} +- {1e3 * b:.2f}" for a, b in zip(value, error))
+                print(f"| {path.rsplit('/', 1)[-1]} | {scheme} | g{i} | {g:.4g} | {cells} |")
+    print("| all sets and axes: weighted mean (chi^2) | | | | | | |")
+    for weighted, both in found.items():
+        values, errors = np.array([v for v, _ in both]), np.array([e for _, e in both])
+        cells = []
+        for k in range(len(CURVATURE)):
+            mean, err, chi2 = chi2_about_mean(values[:, k], errors[:, k])
+            cells.append(f"{1e3 * mean:+.2f} +- {1e3 * err:.2f} ({chi2:.1f})")
+        scheme = "weighted" if weighted else "unweighted"
+        print(f"| {len(both)} axes | {scheme} | | | {' | '.join(cells)} |")
+
+
 def by_column(column: str, paths: list[str], bins: int = 4) -> None:
     """m of each set in the quantile bins of a truth ``column``, and each bin's chi^2."""
     edges = None
@@ -502,10 +612,15 @@ def main(paths: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) > 4 and sys.argv[1] == "--cut":  # a truth cut before any mode
+        TRUTH_CUT.append((sys.argv[2], float(sys.argv[3]), float(sys.argv[4])))
+        del sys.argv[1:5]
     if len(sys.argv) > 2 and sys.argv[1] == "--by":
         by_column(sys.argv[2], sys.argv[3:])
     elif len(sys.argv) > 2 and sys.argv[1] == "--failures":
         failures_check(sys.argv[2:])
+    elif len(sys.argv) > 2 and sys.argv[1] == "--curvature":
+        curvature(sys.argv[2:])
     elif len(sys.argv) > 2 and sys.argv[1] == "--complete":
         complete_check(sys.argv[2:])
     elif len(sys.argv) == 4 and sys.argv[1] == "--paired":
