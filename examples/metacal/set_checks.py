@@ -35,9 +35,11 @@ shear (the intercept of a fit of each case's response against 1, g1, g2, abs(g)^
 spin-4 pair) and the parts fitted beside every quadratic and cubic term of the shear (with
 ``--line``, a line alone, as ``megalut evaluate`` fits).
 
-With ``--paired A.fits B.fits``: two catalogs of the same stamps (e.g. measured two ways),
-weighted and unweighted (every row alike, no selection response): m₁, m₂ and the isotropic
-part of each, and the difference A - B with its jackknife over the same galaxy groups.
+With ``--paired A.fits B.fits``: two catalogs of the same galaxies and noise (the same stamps
+measured two ways, or one seed's galaxies under other shears, noise or metacal step),
+weighted and unweighted (every row alike, no selection response), on evaluate's rows and on
+the complete galaxies: m₁, m₂ and the isotropic part of each, and the difference A - B with
+its jackknife over the same galaxy groups.
 
 With ``--failures A.fits [B.fits ...]``: each set at zero shear (as ``--zero-shear``), on the
 rows ``megalut evaluate`` uses (every version measured) and with the sheared versions'
@@ -61,6 +63,10 @@ secant across the cases), and q (across it), on the complete galaxies: m is abou
 With ``--cut COLUMN LO HI`` before any mode: only the rows with LO <= COLUMN < HI (a truth
 column that the shear does not change, e.g. ``tru_flux``: the same galaxies in every case).
 
+With ``--adamom`` before any mode (after ``--cut``): the adaptive moments' own metacal in place
+of the networks' (``adamom_g`` of each version, weighted by ``1 / (0.3^2 + (2 / snr)^2)`` of
+that version's S/N).
+
 With ``--by COLUMN`` (a truth column, e.g. ``tru_rad``, ``tru_sersicn``, ``tru_flux``): m of
 each set in the quartiles of that column (edges from the first catalog; each bin calibrated by
 its own response: the truth does not respond to the shear), its jackknife error, and each
@@ -76,6 +82,7 @@ bin's chi^2 of the sets about their weighted mean: where in the population the s
     python examples/metacal/set_checks.py --complete vo-3901-a.fits vo-cross-a.fits ...
     python examples/metacal/set_checks.py --curvature vx-4304-a.fits vx-4305-a.fits ...
     python examples/metacal/set_checks.py --cut tru_flux 344 inf --complete vx-4304-a.fits ...
+    python examples/metacal/set_checks.py --adamom --complete vx-4304-a.fits ...
     python examples/metacal/set_checks.py --swap vo-3901-a.fits vo-3902-a.fits x-{0..19}.fits
 """
 
@@ -235,17 +242,47 @@ def jackknife_sigma(jack: np.ndarray, groups: int = GROUPS) -> np.ndarray:
 
 
 TRUTH_CUT: list[tuple[str, float, float]] = []  # --cut COLUMN LO HI: (column, lo, hi)
+ADAMOM: list[bool] = []  # --adamom: adaptive moments' own metacal instead of the networks
+
+
+def _adamom_as_estimates(raw: np.ndarray, step: float, extra: tuple[str, ...]) -> np.ndarray:
+    """The columns :func:`read_set` gives, from the adaptive moments of each version: ``pre_g``
+    = ``adamom_g``, the weights ``1 / (0.3^2 + (2 / snr)^2)`` of that version's S/N, and the
+    responses their finite differences."""
+    names = ["case", "rea", "tru_g1", "tru_g2", *extra] + [f"flags_{k}" for k in VERSIONS]
+    dtype = [(n, raw[n].dtype) for n in names]
+    dtype += [(f"pre_g{c}{w}_{k}", "f8") for c in (1, 2) for w in ("", "_w") for k in VERSIONS]
+    dtype += [(f"mcal_r{i}{j}", "f8") for i in (1, 2) for j in (1, 2)]
+    t = np.zeros(len(raw), dtype=dtype)
+    for n in names:
+        t[n] = raw[n]
+    for k in VERSIONS:
+        measured = raw[f"flags_{k}"] == 0
+        weight = 1.0 / (0.3**2 + (2.0 / raw[f"snr_{k}"]) ** 2)
+        for c in (1, 2):
+            t[f"pre_g{c}_{k}"] = np.where(measured, raw[f"adamom_g{c}_{k}"], np.nan)
+            t[f"pre_g{c}_w_{k}"] = np.where(measured & np.isfinite(weight), weight, np.nan)
+    for i in (1, 2):
+        for j in (1, 2):
+            t[f"mcal_r{i}{j}"] = (t[f"pre_g{i}_{j}p"] - t[f"pre_g{i}_{j}m"]) / (2 * step)
+    return t
 
 
 def read_set(path: str, extra: tuple[str, ...] = ()) -> tuple[np.ndarray, float]:
-    """The columns the checks read (the rows within :data:`TRUTH_CUT`), and the set's metacal
-    step."""
+    """The columns the checks read (the rows within :data:`TRUTH_CUT`; with :data:`ADAMOM`, the
+    adaptive moments' estimates in place of the networks'), and the set's metacal step."""
     step = float(fitsio.read_header(path, 1).get("MCALSTEP", 0.01))
-    names = ["case", "rea", "tru_g1", "tru_g2", "mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22"]
-    names += [f"flags_{k}" for k in VERSIONS]
-    names += [f"pre_g{c}{w}_{k}" for c in (1, 2) for w in ("", "_w") for k in VERSIONS]
-    cut = [c for c, _, _ in TRUTH_CUT if c not in names + list(extra)]
-    t = fitsio.read(path, columns=names + list(extra) + cut)
+    names = ["case", "rea", "tru_g1", "tru_g2"] + [f"flags_{k}" for k in VERSIONS]
+    if ADAMOM:
+        names += [f"adamom_g{c}_{k}" for c in (1, 2) for k in VERSIONS]
+        names += [f"snr_{k}" for k in VERSIONS]
+    else:
+        names += ["mcal_r11", "mcal_r12", "mcal_r21", "mcal_r22"]
+        names += [f"pre_g{c}{w}_{k}" for c in (1, 2) for w in ("", "_w") for k in VERSIONS]
+    extra = tuple(extra) + tuple(c for c, _, _ in TRUTH_CUT if c not in names + list(extra))
+    t = fitsio.read(path, columns=names + list(extra))
+    if ADAMOM:
+        t = _adamom_as_estimates(t, step, extra)
     for column, lo, hi in TRUTH_CUT:
         t = t[(t[column] >= lo) & (t[column] < hi)]
     return t, step
@@ -359,35 +396,41 @@ def swap(path_a: str, path_b: str, case_paths: list[str]) -> None:
 
 
 def paired(path_a: str, path_b: str) -> None:
-    """m of two sets of the same stamps (e.g. measured two ways), weighted and not: each set's
-    (evaluate's estimator, and the isotropic part of its matrix) and their difference A - B
-    with its jackknife over the same galaxy groups."""
+    """m of two sets of the same galaxies and noise (the same stamps measured two ways, or one
+    seed's galaxies under other shears, noise level or metacal step), weighted and not, on the
+    rows ``evaluate`` uses and on the galaxies measured in every case: each set's (evaluate's
+    estimator, and the isotropic part of its matrix) and their difference A - B with its
+    jackknife over the same galaxy groups."""
     sets = [read_set(p) for p in (path_a, path_b)]
+    if not np.array_equal(sets[0][0]["rea"], sets[1][0]["rea"]):
+        sys.exit("--paired: the two sets do not hold the same realizations row by row")
     print(f"A = {path_a}, B = {path_b}; rows used (noshear measured, every response finite):")
     for name, (t, _) in zip("AB", sets):
         print(f"  {name}: {used_rows(t).mean():.4f} of {len(t)}")
-    print("| estimator | quantity (1e-3) | A | B | A - B |")
-    print("|---|---|---|---|---|")
-    for weighted in (True, False):
-        values, jacks = [], []
-        for t, step in sets:
-            sums, shears = per_group_sums(t, step, weighted)
+    print("| rows | estimator | quantity (1e-3) | A | B | A - B |")
+    print("|---|---|---|---|---|---|")
+    for complete in (False, True):
+        rows = "complete galaxies" if complete else "evaluate's"
+        for weighted in (True, False):
+            values, jacks = [], []
+            for t, step in sets:
+                sums, shears = per_group_sums(t, step, weighted, complete=complete)
 
-            def stats(cal: np.ndarray, shears: np.ndarray = shears) -> np.ndarray:
-                m = [np.polyfit(shears[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)]
-                return np.array([*m, matrix_parts(shears, cal)[0]])
+                def stats(cal: np.ndarray, shears: np.ndarray = shears) -> np.ndarray:
+                    m = [np.polyfit(shears[:, i], cal[:, i], 1)[0] - 1 for i in (0, 1)]
+                    return np.array([*m, matrix_parts(shears, cal)[0]])
 
-            values.append(stats(calibrated(sums)[0]))
-            jacks.append(np.array([stats(calibrated(sums, d)[0]) for d in range(GROUPS)]))
-        errs = [jackknife_sigma(j) for j in jacks]
-        diff = jackknife_sigma(jacks[0] - jacks[1])
-        for k, q in enumerate(("m1", "m2", "(m11 + m22) / 2")):
-            print(
-                f"| {'weighted' if weighted else 'unweighted'} | {q} | "
-                f"{1e3 * values[0][k]:+.2f} +- {1e3 * errs[0][k]:.2f} | "
-                f"{1e3 * values[1][k]:+.2f} +- {1e3 * errs[1][k]:.2f} | "
-                f"{1e3 * (values[0][k] - values[1][k]):+.2f} +- {1e3 * diff[k]:.2f} |"
-            )
+                values.append(stats(calibrated(sums)[0]))
+                jacks.append(np.array([stats(calibrated(sums, d)[0]) for d in range(GROUPS)]))
+            errs = [jackknife_sigma(j) for j in jacks]
+            diff = jackknife_sigma(jacks[0] - jacks[1])
+            for k, q in enumerate(("m1", "m2", "(m11 + m22) / 2")):
+                print(
+                    f"| {rows} | {'weighted' if weighted else 'unweighted'} | {q} | "
+                    f"{1e3 * values[0][k]:+.2f} +- {1e3 * errs[0][k]:.2f} | "
+                    f"{1e3 * values[1][k]:+.2f} +- {1e3 * errs[1][k]:.2f} | "
+                    f"{1e3 * (values[0][k] - values[1][k]):+.2f} +- {1e3 * diff[k]:.2f} |"
+                )
 
 
 def _line_stats(sums: dict, shears: np.ndarray, drop: int | None, cubic: bool) -> np.ndarray:
@@ -615,6 +658,9 @@ if __name__ == "__main__":
     if len(sys.argv) > 4 and sys.argv[1] == "--cut":  # a truth cut before any mode
         TRUTH_CUT.append((sys.argv[2], float(sys.argv[3]), float(sys.argv[4])))
         del sys.argv[1:5]
+    if len(sys.argv) > 1 and sys.argv[1] == "--adamom":  # adaptive moments' own metacal
+        ADAMOM.append(True)
+        del sys.argv[1]
     if len(sys.argv) > 2 and sys.argv[1] == "--by":
         by_column(sys.argv[2], sys.argv[3:])
     elif len(sys.argv) > 2 and sys.argv[1] == "--failures":
