@@ -58,7 +58,7 @@ means through a selection on the true shear, which no metacal response sees.
 With ``--curvature A.fits [B.fits ...]`` (``vo-cross`` sets): m of the axis cases split into the
 curvature of the mean estimate in the shear, p (the response along the shear against the
 secant across the cases), and q (across it), on the complete galaxies: m is about
--(p + q) / 2, and p goes as g^2 (:func:`curvature`).
+-(p + q) / 2, and a mean estimate curved in the shear puts 2 b g^2 into p (:func:`curvature`).
 
 With ``--cut COLUMN LO HI`` before any mode: only the rows with LO <= COLUMN < HI (a truth
 column that the shear does not change, e.g. ``tru_flux``: the same galaxies in every case).
