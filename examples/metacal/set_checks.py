@@ -117,6 +117,13 @@ def complete_galaxies(t: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return counts[t["rea"]] == n_cases
 
 
+def pair_groups(t: np.ndarray, groups: int = GROUPS) -> np.ndarray:
+    """Each row's jackknife group: galaxy pairs (every shear of a pair together) spread over
+    ``groups`` groups by a fixed permutation."""
+    pair = t["rea"] // 2
+    return np.random.default_rng(0).permutation(pair.max() + 1)[pair] % groups
+
+
 def per_group_sums(
     t: np.ndarray,
     step: float,
@@ -147,8 +154,7 @@ def per_group_sums(
     if complete:
         every = every & complete_galaxies(t, every)
     cases, case = np.unique(t["case"], return_inverse=True)
-    pair = t["rea"] // 2
-    group = np.random.default_rng(0).permutation(pair.max() + 1)[pair] % GROUPS
+    group = pair_groups(t)
     key = case * GROUPS + group
 
     def total(v: np.ndarray) -> np.ndarray:
@@ -539,14 +545,10 @@ def _curvature_stats(table: dict, i: int, g: float, step: float, drop: int | Non
 
 
 def axis_curvature(
-    t: np.ndarray, step: float, weighted: bool, i: int
+    t: np.ndarray, every: np.ndarray, group: np.ndarray, step: float, weighted: bool, i: int
 ) -> tuple[float, np.ndarray, np.ndarray]:
-    """abs(g) of the axis cases of component ``i``, and m, p, q (:func:`curvature`) with their
-    jackknife errors over galaxy-pair groups, on the complete galaxies."""
-    every = used_rows(t) & np.all([t[f"flags_{k}"] == 0 for k in VERSIONS], axis=0)
-    every &= complete_galaxies(t, every)
-    pair = t["rea"] // 2
-    group = np.random.default_rng(0).permutation(pair.max() + 1)[pair] % CURVATURE_GROUPS
+    """abs(g) of the axis cases of component ``i``, and m, p, q (:func:`curvature`) on the rows
+    ``every`` with their jackknife errors over the galaxy-pair groups ``group``."""
     j = 3 - i
     along, across = np.asarray(t[f"tru_g{i}"]), np.asarray(t[f"tru_g{j}"])
     g = float(np.abs(along[np.isclose(across, 0) & (np.abs(along) > 0)]).max())
@@ -576,10 +578,13 @@ def curvature(paths: list[str]) -> None:
     print("|---|---|---|---|---|---|---|")
     for path in paths:
         t, step = read_set(path)
+        every = used_rows(t) & np.all([t[f"flags_{k}"] == 0 for k in VERSIONS], axis=0)
+        every &= complete_galaxies(t, every)
+        group = pair_groups(t, CURVATURE_GROUPS)
         for weighted in (True, False):
             scheme = "weighted" if weighted else "unweighted"
             for i in (1, 2):
-                g, value, error = axis_curvature(t, step, weighted, i)
+                g, value, error = axis_curvature(t, every, group, step, weighted, i)
                 found[weighted].append((value, error))
                 cells = " | ".join(f"{1e3 * a:+.2f} +- {1e3 * b:.2f}" for a, b in zip(value, error))
                 print(f"| {path.rsplit('/', 1)[-1]} | {scheme} | g{i} | {g:.4g} | {cells} |")
