@@ -370,3 +370,21 @@ def test_progress_off_a_terminal_estimates_the_time_left_once(monkeypatch, caplo
             update(1)
     infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
     assert infos == ["units: 2/10 in 30 s, about 2.0 min left"]
+
+
+def test_progress_estimate_waits_for_every_unit_running_at_once(monkeypatch, caplog):
+    """Units that ran at once finish together: the estimate waits for all of them, else the
+    first alone (8 units on 2 workers, the second done 4 s later) gives twice the time left."""
+    from megalut_cli.cli import console
+
+    clock = iter([0.0, 84.0, 88.0, 168.0])
+    monkeypatch.setattr(console.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(console, "interactive", lambda: False)
+    with (
+        caplog.at_level(logging.INFO, logger="megalut_cli"),
+        console.progress("simulate", 8, parallel=2) as update,
+    ):
+        for _ in range(3):
+            update(1)
+    infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+    assert infos == ["simulate: 2/8 in 88 s, about 4.4 min left"]

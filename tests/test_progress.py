@@ -23,7 +23,7 @@ class Recorder:
         self.bars: list[tuple[str, int, int]] = []
 
     @contextlib.contextmanager
-    def __call__(self, label: str, total: int) -> Iterator[Update]:
+    def __call__(self, label: str, total: int, parallel: int = 1) -> Iterator[Update]:
         done: list[int] = []
         yield done.append
         self.bars.append((label, total, sum(done)))

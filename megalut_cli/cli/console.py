@@ -34,8 +34,9 @@ PACKAGE_LOGGER = "megalut_cli"
 #: The name that stands for stdin (inputs) or stdout (outputs).
 STDIO = "-"
 
-#: Off a terminal, one info line estimates the time left once a tenth of the work is done,
-#: if that took at least this long (the bar shows its own estimate on a terminal).
+#: Off a terminal, one info line estimates the time left once a tenth of the work is done
+#: (and every unit running at once has reported), if that took at least this long (the bar
+#: shows its own estimate on a terminal).
 ESTIMATE_AFTER_SECONDS = 20.0
 
 log = logging.getLogger(__name__)
@@ -93,8 +94,10 @@ def interactive() -> bool:
 
 
 @contextlib.contextmanager
-def progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
-    """A progress callback: a bar on an interactive terminal; elsewhere debug lines only."""
+def progress(label: str, length: int, parallel: int = 1) -> Iterator[Callable[[int], None]]:
+    """A progress callback: a bar on an interactive terminal; elsewhere debug lines and one
+    estimate of the time left, made once ``parallel`` updates have arrived (units that ran at
+    once finish together: the first alone would give a pace ``parallel`` times too slow)."""
     global _bar_shown
     if interactive() and length > 0:
         with click.progressbar(
@@ -110,15 +113,23 @@ def progress(label: str, length: int) -> Iterator[Callable[[int], None]]:
     step = max(1, length // 10)
     start = time.perf_counter()
     estimated = False
+    updates = 0
 
     def update(n: int) -> None:
-        nonlocal done, estimated
+        nonlocal done, estimated, updates
         before = done
         done += n
+        updates += 1
         if done // step != before // step or done == length:
             log.debug("%s: %d/%d", label, done, length)
         elapsed = time.perf_counter() - start
-        if not estimated and done < length and done >= step and elapsed >= ESTIMATE_AFTER_SECONDS:
+        if (
+            not estimated
+            and done < length
+            and done >= step
+            and updates >= parallel
+            and elapsed >= ESTIMATE_AFTER_SECONDS
+        ):
             estimated = True  # one line from the measured pace, for long jobs off a terminal
             log.info(
                 "%s: %d/%d in %s, about %s left",

@@ -87,7 +87,9 @@ def measure_units(
     t0 = time.perf_counter()
     with (
         executor(nproc, scheduler, len(units)) as pool,
-        (progress or no_progress)(label, total) as update,
+        (progress or no_progress)(
+            label, total, min(len(units), workers(nproc, scheduler))
+        ) as update,
     ):
         done = iter(sizes)
         # completion order: stamp counts are close enough for a progress display

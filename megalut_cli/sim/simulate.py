@@ -411,7 +411,9 @@ def simulate_chunks(
     names: list[str] | None = None
     with (
         executor(nproc, scheduler, len(units)) as pool,
-        (progress or no_progress)("simulate", len(units)) as update,
+        (progress or no_progress)(
+            "simulate", len(units), min(len(units), expected_workers(nproc, scheduler))
+        ) as update,
     ):
         for unit, res in map_ordered(draw_unit, ((u, u) for u in units), pool, window):
             columns = res["columns"]
