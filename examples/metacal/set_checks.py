@@ -110,17 +110,34 @@ def used_rows(t: np.ndarray) -> np.ndarray:
     )
 
 
+#: --antithetic: the realization offset of a pooled set's second twin (empty: no twins).
+TWIN_PERIOD: list[int] = []
+
+
+def galaxy_ids(t: np.ndarray) -> np.ndarray:
+    """Each row's galaxy: its realization, or in a pooled antithetic set (:data:`TWIN_PERIOD`)
+    the realization both twins share."""
+    return t["rea"] % TWIN_PERIOD[0] if TWIN_PERIOD else t["rea"]
+
+
 def complete_galaxies(t: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """The rows of galaxies (realizations) that ``rows`` holds in every case."""
-    n_cases = len(np.unique(t["case"]))
-    counts = np.bincount(t["rea"][rows], minlength=int(t["rea"].max()) + 1)
-    return counts[t["rea"]] == n_cases
+    """The rows of galaxies (realizations) that ``rows`` holds in every case (and in a pooled
+    antithetic set, in both twins)."""
+    n_cases = len(np.unique(t["case"])) * (2 if TWIN_PERIOD else 1)
+    ids = galaxy_ids(t)
+    counts = np.bincount(ids[rows], minlength=int(ids.max()) + 1)
+    return counts[ids] == n_cases
+
+
+#: Realizations per galaxy pair: 2, or 4 in a set of antithetic twins (header ANTITHET = T).
+PAIR_REALIZATIONS = [2]
 
 
 def pair_groups(t: np.ndarray, groups: int = GROUPS) -> np.ndarray:
-    """Each row's jackknife group: galaxy pairs (every shear of a pair together) spread over
-    ``groups`` groups by a fixed permutation."""
-    pair = t["rea"] // 2
+    """Each row's jackknife group: galaxy pairs (every shear of a pair together, and both
+    twins of an antithetic set or of a pooled one) spread over ``groups`` groups by a fixed
+    permutation."""
+    pair = galaxy_ids(t) // PAIR_REALIZATIONS[0]
     return np.random.default_rng(0).permutation(pair.max() + 1)[pair] % groups
 
 
@@ -277,7 +294,9 @@ def _adamom_as_estimates(raw: np.ndarray, step: float, extra: tuple[str, ...]) -
 def read_set(path: str, extra: tuple[str, ...] = ()) -> tuple[np.ndarray, float]:
     """The columns the checks read (the rows within :data:`TRUTH_CUT`; with :data:`ADAMOM`, the
     adaptive moments' estimates in place of the networks'), and the set's metacal step."""
-    step = float(fitsio.read_header(path, 1).get("MCALSTEP", 0.01))
+    header = fitsio.read_header(path, 1)
+    step = float(header.get("MCALSTEP", 0.01))
+    PAIR_REALIZATIONS[0] = 4 if header.get("ANTITHET", False) is True else 2
     names = ["case", "rea", "tru_g1", "tru_g2"] + [f"flags_{k}" for k in VERSIONS]
     if ADAMOM:
         names += [f"adamom_g{c}_{k}" for c in (1, 2) for k in VERSIONS]
@@ -437,6 +456,81 @@ def paired(path_a: str, path_b: str) -> None:
                     f"{1e3 * values[1][k]:+.2f} +- {1e3 * errs[1][k]:.2f} | "
                     f"{1e3 * (values[0][k] - values[1][k]):+.2f} +- {1e3 * diff[k]:.2f} |"
                 )
+
+
+ANTITHETIC_QUANTITIES = ("m1", "m2", "(m11 + m22) / 2", "c1", "c2")
+
+
+def pooled_twins(plus: np.ndarray, minus: np.ndarray) -> np.ndarray:
+    """One set of two antithetic twins (the same galaxies with noise and fixnoise n and -n):
+    ``minus``'s realizations shifted by :data:`TWIN_PERIOD` (set here), so that each galaxy's
+    twins count as one galaxy in :func:`complete_galaxies` and :func:`pair_groups`."""
+    if not np.array_equal(plus["rea"], minus["rea"]) or plus.dtype != minus.dtype:
+        sys.exit("--antithetic: the twins do not hold the same realizations row by row")
+    period = int(plus["rea"].max()) + 1
+    TWIN_PERIOD[:] = [period + period % 2]
+    shifted = minus.copy()
+    shifted["rea"] = shifted["rea"] + TWIN_PERIOD[0]
+    return np.concatenate([plus, shifted])
+
+
+def antithetic(paths: list[str]) -> None:
+    """Antithetic twins: ``PLUS MINUS`` are one seed's galaxies with noise n and fixnoise f,
+    and with -n and -f (``noise.override_sigma`` of both signs; the fixnoise sign from a patched
+    tree: docs/metacal.md). Pooled, a galaxy's estimates lose every term odd in the noise, its
+    noise bias (even) stays. On the complete galaxies (both twins measured in every case):
+    m1, m2 and the isotropic part of each twin and of the pool, weighted and not, jackknife
+    errors over galaxy pairs; with ``REF_PLUS REF_MINUS`` (the same galaxies at low noise),
+    the pool's difference from the reference's pool with its paired jackknife: the noise
+    part of m."""
+    pools = []
+    for a, b in zip(paths[::2], paths[1::2]):
+        (ta, step), (tb, _) = read_set(a), read_set(b)
+        TWIN_PERIOD.clear()
+        singles = [(ta, step), (tb, step)]
+        stats_single = [_complete_stats(t, st) for t, st in singles]
+        pooled = pooled_twins(ta, tb)
+        pools.append(_complete_stats(pooled, step))
+        TWIN_PERIOD.clear()
+        print(f"{a} | {b}: complete galaxies, m in 1e-3, c in 1e-4")
+        print("| estimator | quantity | plus | minus | pooled |")
+        print("|---|---|---|---|---|")
+        for w, scheme in enumerate(("weighted", "unweighted")):
+            for k, q in enumerate(ANTITHETIC_QUANTITIES):
+                unit = 1e4 if q.startswith("c") else 1e3
+                cells = [
+                    f"{unit * v[w][0][k]:+.2f} +- {unit * jackknife_sigma(v[w][1])[k]:.2f}"
+                    for v in (*stats_single, pools[-1])
+                ]
+                print(f"| {scheme} | {q} | {' | '.join(cells)} |")
+    if len(pools) == 2:
+        print(f"pooled difference, {paths[0]} pair - {paths[2]} pair (paired jackknife):")
+        for w, scheme in enumerate(("weighted", "unweighted")):
+            diff = pools[0][w][0] - pools[1][w][0]
+            err = jackknife_sigma(pools[0][w][1] - pools[1][w][1])
+            cells = [
+                f"{q} {(1e4 if q.startswith('c') else 1e3) * d:+.2f} +- "
+                f"{(1e4 if q.startswith('c') else 1e3) * e:.2f}"
+                for q, d, e in zip(ANTITHETIC_QUANTITIES, diff, err)
+            ]
+            print(f"  {scheme}: {', '.join(cells)}")
+
+
+def _complete_stats(t: np.ndarray, step: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """m1, m2 and the isotropic part on the complete galaxies, weighted and unweighted, each
+    with its jackknife replicates over :func:`pair_groups`."""
+    out = []
+    for weighted in (True, False):
+        sums, shears = per_group_sums(t, step, weighted, complete=True)
+
+        def stats(cal: np.ndarray, shears: np.ndarray = shears) -> np.ndarray:
+            lines = [np.polyfit(shears[:, i], cal[:, i], 1) for i in (0, 1)]
+            m, c = [a - 1 for a, _ in lines], [b for _, b in lines]
+            return np.array([*m, matrix_parts(shears, cal)[0], *c])
+
+        jack = np.array([stats(calibrated(sums, d)[0]) for d in range(GROUPS)])
+        out.append((stats(calibrated(sums)[0]), jack))
+    return out
 
 
 def _line_stats(sums: dict, shears: np.ndarray, drop: int | None, cubic: bool) -> np.ndarray:
@@ -674,6 +768,8 @@ if __name__ == "__main__":
         curvature(sys.argv[2:])
     elif len(sys.argv) > 2 and sys.argv[1] == "--complete":
         complete_check(sys.argv[2:])
+    elif len(sys.argv) in (4, 6) and sys.argv[1] == "--antithetic":
+        antithetic(sys.argv[2:])
     elif len(sys.argv) == 4 and sys.argv[1] == "--paired":
         paired(sys.argv[2], sys.argv[3])
     elif len(sys.argv) > 4 and sys.argv[1] == "--swap":

@@ -115,6 +115,7 @@ class GridUnit:
     band: np.ndarray | None = None
     psf: GridPsf | None = None
     fixnoise_keys: np.ndarray | None = None
+    fixnoise_signs: np.ndarray | None = None
 
     def batch(self, settings: MeasureSettings) -> StampBatch:
         """The unit's stamps; with the fast engine on the CPU and nothing asked beyond the base
@@ -123,12 +124,12 @@ class GridUnit:
         y0, y1 = row_band(origins, size)
         rows = self.band if self.band is not None else read_band(self.image, y0, y1, mapped=True)  # type: ignore[arg-type]
         psfs = self.psf_images(y0, y1, settings)
-        keys = self.fixnoise_keys
+        keys, signs = self.fixnoise_keys, self.fixnoise_signs
         if settings.engine == "fast" and settings.device == "gpu":  # the device checks the pixels
             stamps = cut_stamps(rows, y0, origins, size)
             if settings.metacal is not None:
                 self.check_whole(np.isfinite(stamps).all(axis=(1, 2)))
-            return StampBatch(stamps, origins, psfs=psfs, fixnoise_keys=keys)
+            return StampBatch(stamps, origins, psfs=psfs, fixnoise_keys=keys, fixnoise_signs=signs)
         if settings.engine == "fast" and not settings.needs_pixels:
             found = cut_and_measure(
                 rows, y0, origins, size, default_guess_sigma(size), settings.moments_retry
@@ -147,7 +148,13 @@ class GridUnit:
         if settings.metacal is not None:
             self.check_whole(cut.finite)
         return StampBatch(
-            cut.stamps, origins, cut.finite, cut.skymad, psfs=psfs, fixnoise_keys=keys
+            cut.stamps,
+            origins,
+            cut.finite,
+            cut.skymad,
+            psfs=psfs,
+            fixnoise_keys=keys,
+            fixnoise_signs=signs,
         )
 
     def check_whole(self, finite: np.ndarray) -> None:
@@ -203,6 +210,7 @@ def measure_grid(
     *,
     psf: GridPsf | None = None,
     fixnoise_keys: np.ndarray | None = None,
+    fixnoise_signs: np.ndarray | None = None,
     nproc: int = 1,
     scheduler: str | None = None,
     progress: Progress | None = None,
@@ -249,6 +257,7 @@ def measure_grid(
                 band,
                 unit_psf,
                 None if fixnoise_keys is None else fixnoise_keys[rows],
+                None if fixnoise_signs is None else fixnoise_signs[rows],
             )
         )
     measure_units(units, settings, columns, nproc=nproc, scheduler=scheduler, progress=progress)
@@ -631,25 +640,32 @@ def grid_psf(request: MeasureRequest, grid: GridInput) -> GridPsf | None:
     return psf
 
 
-def fixnoise_keys(grid: GridInput) -> np.ndarray:
+def fixnoise_keys(grid: GridInput) -> tuple[np.ndarray, np.ndarray | None]:
     """The key of each row's metacal fixnoise field: its realization in a common-random-number
-    set (so that its cases share their fields), else the row."""
-    if bool(card_value(grid.cards.get("CRN", False))) and "rea" in grid.table:
-        return np.asarray(grid.table["rea"], dtype=np.int64)
-    return np.arange(len(grid.origins))
+    set (so that its cases share their fields), else the row; and its sign in a set of
+    antithetic twins (``ANTITHET = T``: realizations ``2k, 2k+1`` share key ``k``, the second
+    with the opposite field, as ``simulate --metacal`` makes them), else None."""
+    crn = bool(card_value(grid.cards.get("CRN", False))) and "rea" in grid.table
+    keys = np.asarray(grid.table["rea"], dtype=np.int64) if crn else np.arange(len(grid.origins))
+    if not (bool(card_value(grid.cards.get("ANTITHET", False))) and "rea" in grid.table):
+        return keys, None
+    signs = 1.0 - 2.0 * (np.asarray(grid.table["rea"], dtype=np.int64) % 2)
+    return keys // 2, signs
 
 
 def measure_request(request: MeasureRequest) -> Measured:
     """Measure the stamps of a grid image (module docstring)."""
     grid = read_grid_input(request)
     psf = grid_psf(request, grid)
+    keys, signs = fixnoise_keys(grid) if request.settings.metacal is not None else (None, None)
     feats = measure_grid(
         grid.info,
         grid.origins,
         grid.size,
         request.settings,
         psf=psf,
-        fixnoise_keys=fixnoise_keys(grid) if request.settings.metacal is not None else None,
+        fixnoise_keys=keys,
+        fixnoise_signs=signs,
         nproc=request.nproc,
         scheduler=request.scheduler,
         progress=request.progress,

@@ -108,7 +108,8 @@ class StampBatch:
     pixels (left out of the moments, counted, flagged when too many or central, see
     :mod:`.masks`) with ``centres`` (0-based ``(col, row)`` of the object in its stamp) and
     ``weights`` (the noise of the S/N); ``psfs``; ``fixnoise_keys``: the key of each
-    stamp's metacal fixnoise field; ``base``: the base features, when the source measured
+    stamp's metacal fixnoise field, ``fixnoise_signs``: its sign (+1, or -1 for the second
+    of antithetic twins; None: all +1); ``base``: the base features, when the source measured
     them itself (while cutting, or on the device; ``stamps`` may then be None when nothing
     else is measured on the pixels).
     """
@@ -122,6 +123,7 @@ class StampBatch:
     weights: np.ndarray | None = None
     psfs: PsfImages | None = None
     fixnoise_keys: np.ndarray | None = None
+    fixnoise_signs: np.ndarray | None = None
     base: dict[str, np.ndarray] | None = None
 
 
@@ -348,6 +350,7 @@ class Measurer:
                 index[ok],
                 s.metacal.target,
                 versions_buffer(int(ok.sum()), size) if stamps.shape[1] == size else None,
+                fixnoise_signs=None if batch.fixnoise_signs is None else batch.fixnoise_signs[ok],
             )
             for kind in TYPES:
                 measured = (

@@ -114,8 +114,9 @@ def _versions(image: np.ndarray, op: _Operation) -> dict[str, np.ndarray]:
 
 
 def noise_field(sigma: float, seed: int, shape: tuple[int, int]) -> np.ndarray:
-    """The fixnoise field of one stamp: Gaussian, of standard deviation ``sigma``, from ``seed``."""
-    return np.random.default_rng(int(seed)).normal(0.0, sigma, shape)
+    """The fixnoise field of one stamp: Gaussian, of standard deviation ``abs(sigma)``, from
+    ``seed``; a negative ``sigma`` gives the opposite field (antithetic twins)."""
+    return sigma * np.random.default_rng(int(seed)).standard_normal(shape)
 
 
 _SCRATCH = threading.local()
@@ -173,12 +174,12 @@ def _with_fixnoise(
     out: np.ndarray | None = None,
     fields: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
-    """The five versions of stamps sharing one PSF; where ``sigmas > 0`` (or for every stamp
+    """The five versions of stamps sharing one PSF; where ``sigmas != 0`` (or for every stamp
     with its given ``fields``), with fixnoise: the operation's image of a 90-degree rotated
     noise field, rotated back, added (its applied shear is the opposite of the stamp's).
     ``out``: as :func:`metacal_versions`'s."""
     n, shape = len(stamps), stamps.shape[1:]
-    noisy = np.arange(n) if fields is not None else np.flatnonzero(sigmas > 0)
+    noisy = np.arange(n) if fields is not None else np.flatnonzero(sigmas != 0)
     stack = _scratch("stack", (n + len(noisy), *shape))  # the stamps, then their rotated fields
     stack[:n] = stamps
     for k, i in enumerate(noisy):
@@ -217,7 +218,7 @@ def _fast_several_psfs(
         targets[j] = metacal_target(target, psfs[j], step)
         sigma[j] = targets[j].sigma
     order = np.argsort(psf_index, kind="stable")
-    noisy = sigmas[order] > 0
+    noisy = sigmas[order] != 0
     rows = np.cumsum(1 + noisy) - (1 + noisy)  # each stamp's row; its field's is the next
     stack = _scratch("stack", (n + int(noisy.sum()), *shape))
     stack[rows] = stamps[order]
@@ -243,6 +244,7 @@ def metacal_versions(
     target: str = DEFAULT_TARGET,
     out: np.ndarray | None = None,
     noise_fields: np.ndarray | None = None,
+    fixnoise_signs: np.ndarray | None = None,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The five metacal versions of a stack of stamps ``(n, S, S)``, as ``({type: (n, S, S)},
     target_sigma (n,))``.
@@ -259,7 +261,8 @@ def metacal_versions(
     versions are written into (in :data:`TYPES` order; the result holds its views), e.g. a
     buffer reused from call to call. ``noise_fields`` ``(n, S, S)``: the fixnoise fields
     themselves (e.g. a noise image with the data's correlations) instead of fields drawn
-    from ``noise_sigma`` and ``seeds``; one PSF only.
+    from ``noise_sigma`` and ``seeds``; one PSF only. ``fixnoise_signs`` (per stamp, +1 or
+    -1): -1 adds the opposite of the stamp's field (the second of antithetic twins).
     """
     stamps = np.asarray(stamps, dtype=np.float64)
     psfs = np.asarray(psf_images, dtype=np.float64)
@@ -285,6 +288,8 @@ def metacal_versions(
         if noise_sigma is None
         else np.nan_to_num(np.asarray(noise_sigma, dtype=np.float64), nan=0.0)
     )
+    if fixnoise_signs is not None:  # the sign rides on the field's sigma (noise_field)
+        sigmas = np.abs(sigmas) * np.asarray(fixnoise_signs, dtype=np.float64)
     seeds = np.arange(n, dtype=np.int64) if seeds is None else np.asarray(seeds, dtype=np.int64)
     groups = np.unique(psf_index)
     if noise_fields is not None:

@@ -29,14 +29,12 @@ SHEAR_TERM = "excess-residuals"
 BLOCK_ENTRIES = 2**24
 
 
-def group_size_for(snc: str | None, n_realizations: int | None) -> int:
+def group_size_for(snc: str | None, n_realizations: int | None, antithetic: bool = False) -> int:
     """Realizations per galaxy group of a simulated set: 2 for ``pairs``, all of a case for
-    ``ring``, else 1."""
-    if snc == "pairs":
-        return 2
+    ``ring``, else 1; twice that with ``antithetic`` twins (but for ``ring``)."""
     if snc == "ring" and n_realizations:
         return int(n_realizations)
-    return 1
+    return (2 if snc == "pairs" else 1) * (2 if antithetic else 1)
 
 
 def resample_counts(

@@ -894,7 +894,9 @@ def bootstrap_from_header(
             )
         return None
     nrea = header.get("NREA")
-    gsize = group_size_for(header.get("SNC"), nrea if isinstance(nrea, int) else None)
+    gsize = group_size_for(
+        header.get("SNC"), nrea if isinstance(nrea, int) else None, header.get("ANTITHET") is True
+    )
     return BootstrapSpec(gsize, int(n_bootstrap), int(seed), crn)
 
 

@@ -210,6 +210,14 @@ STRUCTURE_OPTIONS: tuple[Option, ...] = (
         "common random numbers: every case draws the **same** realizations "
         "(galaxies, position angles, offsets, noise); see below",
     ),
+    Option(
+        "antithetic",
+        "bool",
+        False,
+        "antithetic noise: realizations come in twins `2k, 2k+1` alike in everything but "
+        "the sign of their noise (and of metacal's fixnoise), so that every term odd in the "
+        "noise cancels within a twin; see below",
+    ),
 )
 STRUCTURE = {o.name: o for o in STRUCTURE_OPTIONS}
 _INSTRUMENT_KEYS = {"pixel_scale", "exptime", "gain", "zeropoint"}
@@ -228,6 +236,13 @@ class StructureSpec:
     n_x: int | None = None
     #: Common random numbers: every case draws the same galaxies, offsets and noise.
     common: bool = False
+    #: Antithetic noise: realizations ``2k, 2k+1`` are twins with opposite noise.
+    antithetic: bool = False
+
+    @property
+    def twins(self) -> int:
+        """Realizations per draw: 2 with antithetic noise (the twins), else 1."""
+        return 2 if self.antithetic else 1
 
     @property
     def group_size(self) -> int:
@@ -358,16 +373,24 @@ def _parse_structure(raw: Mapping[str, Any]) -> StructureSpec:
     for k in ("n_cases", "n_realizations"):
         if k not in t.data:
             raise ConfigError(f"structure.{k}: missing")
-    n_cases, n_rea, per, snc, stamp, offset, n_x, common = (t.option(o) for o in STRUCTURE_OPTIONS)
-    if snc == "pairs" and n_rea % 2:
+    n_cases, n_rea, per, snc, stamp, offset, n_x, common, antithetic = (
+        t.option(o) for o in STRUCTURE_OPTIONS
+    )
+    multiple = (2 if snc == "pairs" else 1) * (2 if antithetic else 1)
+    if n_rea % multiple:
+        why = " and ".join(
+            w for w, on in (("snc = 'pairs'", snc == "pairs"), ("antithetic", antithetic)) if on
+        )
         raise ConfigError(
-            f"structure.n_realizations: snc = 'pairs' needs an even number, got {n_rea}"
+            f"structure.n_realizations: {why} needs a multiple of {multiple}, got {n_rea}"
         )
     if offset < 0 or offset > stamp / 4:
         raise ConfigError(f"structure.offset: must be in [0, stamp_size/4], got {offset}")
     if common:
         _check_common(frozenset(per), snc)
-    return StructureSpec(n_cases, n_rea, frozenset(per), snc, stamp, offset, n_x, common)
+    return StructureSpec(
+        n_cases, n_rea, frozenset(per), snc, stamp, offset, n_x, common, antithetic
+    )
 
 
 def _check_common(per: frozenset[str], snc: str) -> None:
@@ -386,6 +409,21 @@ def _check_common(per: frozenset[str], snc: str) -> None:
         raise ConfigError(
             "structure.common: snc = 'ring' makes one galaxy per case, nothing to share between "
             "cases; use snc = 'pairs' or 'none'"
+        )
+
+
+def _check_antithetic(galaxy: GalaxySpec, noise: NoiseSpec) -> None:
+    """Refuse antithetic twins where a stamp's noise has no opposite."""
+    kind = "gaussian" if noise.override_sigma is not None else noise.type
+    if kind not in ("gaussian", "correlated"):
+        raise ConfigError(
+            f"structure.antithetic: needs Gaussian noise (noise.type 'gaussian' or 'correlated', "
+            f"or noise.override_sigma); {kind!r} noise has no opposite"
+        )
+    if galaxy.real is not None and galaxy.real["hst_noise"] != "keep":
+        raise ConfigError(
+            "structure.antithetic: the HST noise of real galaxies is not negated; set "
+            "galaxy.hst_noise = 'keep' or leave antithetic out"
         )
 
 
@@ -469,6 +507,10 @@ def validate_config(
             f"galaxy.hst_noise: {galaxy.real['hst_noise']!r} needs noise.type = 'gaussian' (the "
             "added noise makes up the rest of the variance); or set galaxy.hst_noise = 'keep'"
         )
+    if structure.antithetic:
+        _check_antithetic(galaxy, noise)
+        if scene is not None:
+            raise ConfigError("structure.antithetic: stamps only, not fields of galaxies ([scene])")
     psf = _parse_psf(raw, path)
     gsparams = _parse_gsparams(raw)
     field_t = check_table(raw.get("field"), "field", {"x", "y"})

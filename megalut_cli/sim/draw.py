@@ -163,6 +163,7 @@ class _Measurer:
         )
         s = unit.config.structure
         self.common, self.n_rea = bool(s.common), s.n_realizations
+        self.antithetic = bool(s.antithetic)
         self.size = s.stamp_size
         self.parts: list[dict[str, np.ndarray]] = []
         self.psf_images: dict[int, np.ndarray] = {}  # id -> PSF image (with the pixel, as drawn)
@@ -189,14 +190,19 @@ class _Measurer:
     ) -> None:
         if not len(stamps):
             return
-        psfs = keys = None
+        psfs = keys = signs = None
         if self.measurer.settings.metacal is not None and index is not None and psf_ids is not None:
             ids = np.unique(psf_ids)
             images = np.stack([self.psf_images[int(i)] for i in ids])
             psfs = PsfImages(images, np.searchsorted(ids, psf_ids), columns=False)
             keys = index % self.n_rea if self.common else index
+            if self.antithetic:  # twins 2k, 2k+1: the field of the half-size set's k, signed
+                signs = 1.0 - 2.0 * (keys % 2)
+                keys = keys // 2
         self.parts.append(
-            self.measurer.measure(StampBatch(stamps, origins, psfs=psfs, fixnoise_keys=keys))
+            self.measurer.measure(
+                StampBatch(stamps, origins, psfs=psfs, fixnoise_keys=keys, fixnoise_signs=signs)
+            )
         )
 
     def columns(self) -> dict[str, np.ndarray]:
@@ -473,7 +479,9 @@ def draw_unit(unit: WorkUnit) -> dict[str, Any]:
                     twin_k,
                 )
             else:
-                d.noise.add(image, int(d.noise_seeds[k]))
+                d.noise.add(
+                    image, int(d.noise_seeds[k]), 1.0 if d.noise_signs is None else d.noise_signs[k]
+                )
             stamps[fill] = image.array
             psf_ids[fill] = pid
             fill += 1
@@ -635,7 +643,11 @@ def draw_unit_fast(unit: WorkUnit) -> dict[str, Any]:
                     raise MegalutError(f"case {case}: {err}") from None
                 if measurer is not None:
                     block_psf[rows - lo] = measurer.psf_id(p.psf, p.method, p.key)
-            d.noise.add_batch(stamps, d.noise_seeds[lo:hi])
+            d.noise.add_batch(
+                stamps,
+                d.noise_seeds[lo:hi],
+                None if d.noise_signs is None else d.noise_signs[lo:hi],
+            )
             if unit.keep_stamps:
                 kept.append(stamps)
             if measurer is not None:

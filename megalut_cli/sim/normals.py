@@ -50,15 +50,21 @@ def standard_normals(seeds: np.ndarray, size: int) -> np.ndarray:
     return out
 
 
-def add_gaussian_noise(stamps: np.ndarray, seeds: np.ndarray, sigma: float) -> None:
+def add_gaussian_noise(
+    stamps: np.ndarray, seeds: np.ndarray, sigma: float, signs: np.ndarray | None = None
+) -> None:
     """Add ``sigma`` times :func:`standard_normals` (in float32) to the float32 ``stamps``
-    ``(n, ...)`` in place, stamp ``k``'s from ``seeds[k]``."""
+    ``(n, ...)`` in place, stamp ``k``'s from ``seeds[k]`` (times ``signs[k]``, +1 or -1:
+    antithetic twins)."""
     seeds = np.atleast_1d(np.asarray(seeds)).astype(np.uint64)
     if len(seeds) != len(stamps):
         raise MegalutError(f"add_gaussian_noise: {len(seeds)} seeds for {len(stamps)} stamps")
     size = int(np.prod(stamps.shape[1:], dtype=np.int64))
     for a in range(0, len(stamps), _CHUNK):
         block = stamps[a : a + _CHUNK]
-        block += (
-            np.float32(sigma) * standard_normals(seeds[a : a + _CHUNK], size).astype(np.float32)
-        ).reshape(block.shape)
+        scale: np.ndarray | np.float32 = np.float32(sigma)
+        if signs is not None:
+            scale = (np.float32(sigma) * np.asarray(signs[a : a + _CHUNK], np.float32))[:, None]
+        block += (scale * standard_normals(seeds[a : a + _CHUNK], size).astype(np.float32)).reshape(
+            block.shape
+        )

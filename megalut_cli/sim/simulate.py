@@ -251,6 +251,7 @@ def simulation_cards(
         "NSTAMPX": (s.grid_nx, "stamps per row of the stamp grid"),
         "SNC": (s.snc, "shape-noise cancellation"),
         "CRN": (s.common, "common random numbers: the same galaxies in every case"),
+        "ANTITHET": (s.antithetic, "antithetic noise: realizations 2k, 2k+1 are twins"),
         "NOISE": (
             config.noise.type if config.noise.override_sigma is None else "gaussian",
             "noise model",
@@ -381,6 +382,9 @@ def simulate_chunks(
         device = "cpu"
     if moments_retry > 0 and measure and device == "gpu":
         log.info("the moments' retry runs on the CPU: drawing and measuring there")
+        device = "cpu"
+    if config.structure.antithetic and device == "gpu":
+        log.info("antithetic noise is drawn on the CPU")
         device = "cpu"
     if device == "gpu" and not scheduler:
         nproc = 1

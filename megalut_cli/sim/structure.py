@@ -7,6 +7,10 @@ per-realization parameters and one for offsets and noise seeds. The result there
 never depends on how cases are split into work units, and lowering ``n_realizations``
 keeps the galaxies of each case.
 
+Antithetic noise (``structure.antithetic = true``): realizations ``2k, 2k+1`` are twins, drawn
+as realization ``k`` of a set of half the size, the second with its noise and metacal fixnoise
+negated.
+
 Common random numbers (``structure.common = true``): the per-realization generator and the
 offset/noise-seed generator are seeded by ``seed`` alone (stream ``STREAM_COMMON``), not by
 the case, so realization ``k`` has the same galaxy, position angle, offset and noise seed in
@@ -59,6 +63,31 @@ class CaseDraw:
     extra: dict[str, Any] = field(
         default_factory=dict
     )  # "theta": position angles (deg, not reduced)
+    #: The sign of each realization's noise (and fixnoise): -1 for the second of antithetic
+    #: twins; None: all +1.
+    noise_signs: np.ndarray | None = None
+
+
+def antithetic_twins(d: CaseDraw) -> CaseDraw:
+    """The draw of ``d``'s realizations each doubled into twins ``2k, 2k+1`` that share every
+    parameter and noise seed, the second with its noise negated (``noise_signs``)."""
+
+    def twice(a: np.ndarray) -> np.ndarray:
+        return np.repeat(np.asarray(a), 2, axis=0)
+
+    n = len(d.noise_seeds)
+    return CaseDraw(
+        d.case,
+        {k: twice(v) for k, v in d.truth.items()},
+        twice(d.galaxy_index),
+        twice(d.psf_index),
+        d.psf_specs,
+        d.noise,
+        twice(d.noise_seeds),
+        twice(d.offsets),
+        {k: twice(v) for k, v in d.extra.items()},
+        np.tile(np.array([1.0, -1.0]), n),
+    )
 
 
 def ring_angles(theta0: np.ndarray, n_rea: int, group_size: int) -> np.ndarray:
@@ -70,8 +99,12 @@ def ring_angles(theta0: np.ndarray, n_rea: int, group_size: int) -> np.ndarray:
 
 
 def draw_case(config: SimConfig, seed: int, case: int) -> CaseDraw:
-    """Draw all parameters of case ``case``."""
+    """Draw all parameters of case ``case`` (with antithetic noise: those of half as many
+    realizations, each doubled into twins, :func:`antithetic_twins`)."""
     s = config.structure
+    if s.antithetic:
+        half = config.with_structure(n_realizations=s.n_realizations // 2, antithetic=False)
+        return antithetic_twins(draw_case(half, seed, case))
     n, gs, ng = s.n_realizations, s.group_size, s.n_groups
     group_of = np.arange(n) // gs
     rng_case = rng_for(seed, STREAM_SIMULATE, case, _CASE_KEY)
