@@ -60,6 +60,13 @@ curvature of the mean estimate in the shear, p (the response along the shear aga
 secant across the cases), and q (across it), on the complete galaxies: m is about
 -(p + q) / 2, and a mean estimate curved in the shear puts 2 b g^2 into p (:func:`curvature`).
 
+With ``--antithetic PLUS MINUS [REF_PLUS REF_MINUS]``: antithetic twins as two catalogs (one
+seed's galaxies with noise and fixnoise n, f and -n, -f; docs/metacal.md, "Antithetic twins"),
+each and pooled, on the galaxies measured in every case of both: m1, m2, the isotropic part,
+c1, c2; with a low-noise pair of the same galaxies, the pools' paired difference (the noise
+part). A single catalog of ``simulate`` with ``structure.antithetic = true`` (header
+``ANTITHET = T``) needs no pooling: every mode keeps its twins in one jackknife group.
+
 With ``--cut COLUMN LO HI`` before any mode: only the rows with LO <= COLUMN < HI (a truth
 column that the shear does not change, e.g. ``tru_flux``: the same galaxies in every case).
 
@@ -84,6 +91,7 @@ bin's chi^2 of the sets about their weighted mean: where in the population the s
     python examples/metacal/set_checks.py --cut tru_flux 344 inf --complete vx-4304-a.fits ...
     python examples/metacal/set_checks.py --adamom --complete vx-4304-a.fits ...
     python examples/metacal/set_checks.py --swap vo-3901-a.fits vo-3902-a.fits x-{0..19}.fits
+    python examples/metacal/set_checks.py --antithetic p-1.fits p--1.fits p-0.05.fits p--0.05.fits
 """
 
 from __future__ import annotations
