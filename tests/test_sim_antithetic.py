@@ -42,7 +42,7 @@ def test_twins_are_the_half_size_set_doubled_with_opposite_noise(tmp_path):
     ("overrides", "message"),
     [
         ([*TWINS], "multiple of 4"),  # pairs of twins: 4 realizations per galaxy pair
-        (["structure.antithetic=true"], "multiple of 2"),
+        (["structure.antithetic=true"], "an even number"),
         (
             [
                 *TWINS,
@@ -57,7 +57,7 @@ def test_twins_are_the_half_size_set_doubled_with_opposite_noise(tmp_path):
     ],
 )
 def test_refusals(tmp_path, overrides, message):
-    n_rea = 6 if "multiple of 4" in message else 7 if "multiple of 2" in message else 8
+    n_rea = 6 if "multiple of 4" in message else 7 if "even" in message else 8
     with pytest.raises(ConfigError, match=message):
         _cfg(tmp_path, overrides, n_rea)
 

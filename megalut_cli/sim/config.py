@@ -381,9 +381,8 @@ def _parse_structure(raw: Mapping[str, Any]) -> StructureSpec:
         why = " and ".join(
             w for w, on in (("snc = 'pairs'", snc == "pairs"), ("antithetic", antithetic)) if on
         )
-        raise ConfigError(
-            f"structure.n_realizations: {why} needs a multiple of {multiple}, got {n_rea}"
-        )
+        needs = "an even number" if multiple == 2 else f"a multiple of {multiple}"
+        raise ConfigError(f"structure.n_realizations: {why} needs {needs}, got {n_rea}")
     if offset < 0 or offset > stamp / 4:
         raise ConfigError(f"structure.offset: must be in [0, stamp_size/4], got {offset}")
     if common:
