@@ -49,6 +49,7 @@ from megalut_cli.measure.measurer import (
     measure_cards,
     metacal_columns,
     retry_cards,
+    twin_fixnoise,
 )
 from megalut_cli.measure.options import MEASURE
 from megalut_cli.measure.psf_model import cached_psf_model
@@ -649,8 +650,7 @@ def fixnoise_keys(grid: GridInput) -> tuple[np.ndarray, np.ndarray | None]:
     keys = np.asarray(grid.table["rea"], dtype=np.int64) if crn else np.arange(len(grid.origins))
     if not (bool(card_value(grid.cards.get("ANTITHET", False))) and "rea" in grid.table):
         return keys, None
-    signs = 1.0 - 2.0 * (np.asarray(grid.table["rea"], dtype=np.int64) % 2)
-    return keys // 2, signs
+    return twin_fixnoise(keys, np.asarray(grid.table["rea"]))
 
 
 def measure_request(request: MeasureRequest) -> Measured:

@@ -127,6 +127,13 @@ class StampBatch:
     base: dict[str, np.ndarray] | None = None
 
 
+def twin_fixnoise(keys: np.ndarray, realizations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The fixnoise keys and signs of antithetic twins (realizations ``2k, 2k+1``): both share
+    the key of the half-size set (``keys // 2``), the second has the opposite field."""
+    keys, realizations = np.asarray(keys, dtype=np.int64), np.asarray(realizations, np.int64)
+    return keys // 2, 1.0 - 2.0 * (realizations % 2)
+
+
 def metacal_columns(names: tuple[str, ...] | list[str]) -> list[str]:
     """The metacal column names ``X_<type>`` of the columns ``names``, type by type."""
     return [f"{name}_{kind}" for kind in TYPES for name in names]

@@ -240,11 +240,6 @@ class StructureSpec:
     antithetic: bool = False
 
     @property
-    def twins(self) -> int:
-        """Realizations per draw: 2 with antithetic noise (the twins), else 1."""
-        return 2 if self.antithetic else 1
-
-    @property
     def group_size(self) -> int:
         """Realizations sharing their per-realization parameters (an SNC group)."""
         return {"ring": self.n_realizations, "pairs": 2, "none": 1}[self.snc]

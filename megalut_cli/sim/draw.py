@@ -31,6 +31,7 @@ from megalut_cli.measure.measurer import (
     MetacalSettings,
     PsfImages,
     StampBatch,
+    twin_fixnoise,
 )
 from megalut_cli.sim import psf as psf_mod
 from megalut_cli.sim import render
@@ -197,8 +198,7 @@ class _Measurer:
             psfs = PsfImages(images, np.searchsorted(ids, psf_ids), columns=False)
             keys = index % self.n_rea if self.common else index
             if self.antithetic:  # twins 2k, 2k+1: the field of the half-size set's k, signed
-                signs = 1.0 - 2.0 * (keys % 2)
-                keys = keys // 2
+                keys, signs = twin_fixnoise(keys, index % self.n_rea)
         self.parts.append(
             self.measurer.measure(
                 StampBatch(stamps, origins, psfs=psfs, fixnoise_keys=keys, fixnoise_signs=signs)
