@@ -21,6 +21,7 @@ import os
 import shutil
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -97,15 +98,22 @@ def interactive() -> bool:
 def progress(label: str, length: int, parallel: int = 1) -> Iterator[Callable[[int], None]]:
     """A progress callback: a bar on an interactive terminal; elsewhere debug lines and one
     estimate of the time left, made once ``parallel`` updates have arrived (units that ran at
-    once finish together: the first alone would give a pace ``parallel`` times too slow)."""
+    once finish together: the first alone would give a pace ``parallel`` times too slow).
+    The callback may be called from several threads (units finishing on workers)."""
     global _bar_shown
+    lock = threading.Lock()
     if interactive() and length > 0:
         with click.progressbar(
             length=length, label=label, file=sys.stderr, show_pos=True, show_eta=True
         ) as bar:
+
+            def advance(n: int) -> None:
+                with lock:
+                    bar.update(n)
+
             _bar_shown = True
             try:
-                yield bar.update
+                yield advance
             finally:
                 _bar_shown = False
         return
@@ -116,6 +124,10 @@ def progress(label: str, length: int, parallel: int = 1) -> Iterator[Callable[[i
     updates = 0
 
     def update(n: int) -> None:
+        with lock:
+            count(n)
+
+    def count(n: int) -> None:
         nonlocal done, estimated, updates
         before = done
         done += n
