@@ -70,9 +70,13 @@ part). A single catalog of ``simulate`` with ``structure.antithetic = true`` (he
 With ``--cut COLUMN LO HI`` before any mode: only the rows with LO <= COLUMN < HI (a truth
 column that the shear does not change, e.g. ``tru_flux``: the same galaxies in every case).
 
-With ``--adamom`` before any mode (after ``--cut``): the adaptive moments' own metacal in place
-of the networks' (``adamom_g`` of each version, weighted by ``1 / (0.3^2 + (2 / snr)^2)`` of
-that version's S/N).
+With ``--twin 0`` (or ``1``) before any mode (after ``--cut``): in a set of antithetic twins,
+only the first (second) twin of each galaxy, ``rea % 2``; the first twins are, bit for bit,
+the plain set of half the size.
+
+With ``--adamom`` before any mode (after ``--cut`` and ``--twin``): the adaptive moments' own
+metacal in place of the networks' (``adamom_g`` of each version, weighted by
+``1 / (0.3^2 + (2 / snr)^2)`` of that version's S/N).
 
 With ``--by COLUMN`` (a truth column, e.g. ``tru_rad``, ``tru_sersicn``, ``tru_flux``): m of
 each set in the quartiles of that column (edges from the first catalog; each bin calibrated by
@@ -90,6 +94,7 @@ bin's chi^2 of the sets about their weighted mean: where in the population the s
     python examples/metacal/set_checks.py --curvature vx-4304-a.fits vx-4305-a.fits ...
     python examples/metacal/set_checks.py --cut tru_flux 344 inf --complete vx-4304-a.fits ...
     python examples/metacal/set_checks.py --adamom --complete vx-4304-a.fits ...
+    python examples/metacal/set_checks.py --twin 0 --complete tw-4401-a.fits tw-4402-a.fits ...
     python examples/metacal/set_checks.py --swap vo-3901-a.fits vo-3902-a.fits x-{0..19}.fits
     python examples/metacal/set_checks.py --antithetic p-1.fits p--1.fits p-0.05.fits p--0.05.fits
 """
@@ -273,6 +278,7 @@ def jackknife_sigma(jack: np.ndarray, groups: int = GROUPS) -> np.ndarray:
 
 
 TRUTH_CUT: list[tuple[str, float, float]] = []  # --cut COLUMN LO HI: (column, lo, hi)
+ONE_TWIN: list[int] = []  # --twin 0|1: the realizations with rea % 2 of that value
 ADAMOM: list[bool] = []  # --adamom: adaptive moments' own metacal instead of the networks
 
 
@@ -318,6 +324,10 @@ def read_set(path: str, extra: tuple[str, ...] = ()) -> tuple[np.ndarray, float]
         t = _adamom_as_estimates(t, step, extra)
     for column, lo, hi in TRUTH_CUT:
         t = t[(t[column] >= lo) & (t[column] < hi)]
+    if ONE_TWIN:
+        if PAIR_REALIZATIONS[0] != 4:
+            sys.exit(f"{path}: --twin needs a set of antithetic twins (header ANTITHET = T)")
+        t = t[t["rea"] % 2 == ONE_TWIN[0]]
     return t, step
 
 
@@ -765,6 +775,9 @@ if __name__ == "__main__":
     if len(sys.argv) > 4 and sys.argv[1] == "--cut":  # a truth cut before any mode
         TRUTH_CUT.append((sys.argv[2], float(sys.argv[3]), float(sys.argv[4])))
         del sys.argv[1:5]
+    if len(sys.argv) > 2 and sys.argv[1] == "--twin" and sys.argv[2] in ("0", "1"):
+        ONE_TWIN.append(int(sys.argv[2]))
+        del sys.argv[1:3]
     if len(sys.argv) > 1 and sys.argv[1] == "--adamom":  # adaptive moments' own metacal
         ADAMOM.append(True)
         del sys.argv[1]
