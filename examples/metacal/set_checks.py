@@ -772,6 +772,9 @@ def main(paths: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) < 2 or sys.argv[1] in ("-h", "--help"):
+        print(__doc__)
+        sys.exit(0 if len(sys.argv) > 1 else 2)
     if len(sys.argv) > 4 and sys.argv[1] == "--cut":  # a truth cut before any mode
         TRUTH_CUT.append((sys.argv[2], float(sys.argv[3]), float(sys.argv[4])))
         del sys.argv[1:5]
