@@ -143,8 +143,7 @@ class _SharedUnits:
     units are handed out by a short-lived thread, since starting a worker waits for the
     server it is forked from, and this process starts on its own units meanwhile. At most
     ``window`` units (None: any number) are taken ahead of the first not yet delivered in
-    order. ``progress(1)`` is called as each unit finishes (a worker's from the pool's thread),
-    not when it is delivered: this process, busy with a unit of its own, delivers late.
+    order.
     """
 
     def __init__(
@@ -153,10 +152,8 @@ class _SharedUnits:
         items: Iterable[Any],
         pool: LocalPool,
         window: int | None,
-        progress: Callable[[int], None] | None = None,
     ) -> None:
         self.func = func
-        self.progress = progress
         self.items = iter(items)
         self.pool = pool
         self.workers = pool.workers
@@ -232,8 +229,6 @@ class _SharedUnits:
             self.futures.discard(future)
             self.running -= 1
         self._dispatch()
-        if self.progress and not future.cancelled() and future.exception() is None:
-            self.progress(1)
 
     @staticmethod
     def _from_workers(item: tuple[int, Future | None]) -> Iterator[tuple[int, Any]]:
@@ -261,10 +256,7 @@ class _SharedUnits:
                     mine = self.buffer.popleft() if self.buffer else None
                     waiting = self.running > 0 or not self.finished.empty()
                 if mine is not None:
-                    result = self.func(mine[1])
-                    if self.progress:
-                        self.progress(1)
-                    yield mine[0], result
+                    yield mine[0], self.func(mine[1])
                 elif waiting:
                     yield from self._from_workers(self.finished.get())
                 elif self.exhausted:
@@ -345,29 +337,20 @@ def executor(
 
 
 def _as_finished(
-    func: Callable[..., T],
-    units: Sequence[Any],
-    pool: Executor | None,
-    progress: Callable[[int], None] | None = None,
+    func: Callable[..., T], units: Sequence[Any], pool: Executor | None
 ) -> Iterator[tuple[int, T]]:
     """``(i, func(units[i]))`` for every unit, as units finish: in this process, on a
-    :class:`LocalPool` with this process, or on any other executor; ``progress(1)`` as each
-    finishes."""
-    report = progress or (lambda n: None)
+    :class:`LocalPool` with this process, or on any other executor."""
     if pool is None:
         for i, unit in enumerate(units):
-            result = func(unit)
-            report(1)
-            yield i, result
+            yield i, func(unit)
     elif isinstance(pool, LocalPool):
-        yield from _SharedUnits(func, units, pool, None, progress).results()
+        yield from _SharedUnits(func, units, pool, None).results()
     else:
         futures = {pool.submit(func, unit): i for i, unit in enumerate(units)}
         try:
             for fut in as_completed(futures):
-                result = fut.result()
-                report(1)
-                yield futures[fut], result
+                yield futures[fut], fut.result()
         finally:
             for fut in futures:
                 fut.cancel()
@@ -382,35 +365,28 @@ def map_units(
 ) -> list[T]:
     """Apply ``func`` to every unit, in this process or on ``pool``; results in unit order.
 
-    ``progress(1)`` is called as each unit finishes (possibly from another thread: see
-    :class:`_SharedUnits`); ``finished(i, result)`` with each result as it arrives (in the
-    order of completion).
+    ``progress(n)`` is called with the number of units just finished; ``finished(i, result)``
+    with each result as it arrives (in the order of completion).
     """
     results: list[Any] = [None] * len(units)
-    for i, result in _as_finished(func, units, pool, progress):
+    for i, result in _as_finished(func, units, pool):
         results[i] = result
         if finished:
             finished(i, result)
+        if progress:
+            progress(1)
     return results
 
 
 def map_ordered(
-    func: Callable[[Any], T],
-    items: Iterable[tuple[Any, Any]],
-    pool: Executor | None,
-    window: int,
-    progress: Callable[[int], None] | None = None,
+    func: Callable[[Any], T], items: Iterable[tuple[Any, Any]], pool: Executor | None, window: int
 ) -> Iterator[tuple[Any, T]]:
     """``(key, func(unit))`` for the ``(key, unit)`` pairs of ``items``, in their order, with at
     most ``window`` units in flight: a stream whose memory does not grow with the number of
-    units. ``progress(1)`` is called as each unit finishes, which may be well before it is
-    delivered (possibly from another thread)."""
-    report = progress or (lambda n: None)
+    units."""
     if pool is None:
         for key, unit in items:
-            result = func(unit)
-            report(1)
-            yield key, result
+            yield key, func(unit)
         return
     if isinstance(pool, LocalPool):
         keys: dict[int, Any] = {}
@@ -420,18 +396,13 @@ def map_ordered(
                 keys[index] = key
                 yield unit
 
-        for index, result in _SharedUnits(func, units(), pool, window, progress).ordered():
+        for index, result in _SharedUnits(func, units(), pool, window).ordered():
             yield keys.pop(index), result
         return
     pending: deque[tuple[Any, Future]] = deque()
     try:
         for key, unit in items:
-            future = pool.submit(func, unit)
-            if progress:
-                future.add_done_callback(
-                    lambda f: None if f.cancelled() or f.exception() else report(1)
-                )
-            pending.append((key, future))
+            pending.append((key, pool.submit(func, unit)))
             if len(pending) >= window:
                 k, fut = pending.popleft()
                 yield k, fut.result()

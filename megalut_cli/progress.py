@@ -21,8 +21,7 @@ Update = Callable[[int], None]
 class Progress(Protocol):
     """``progress(label, total, parallel=1)``: a context manager yielding the :data:`Update` of
     one operation; ``parallel``: how many updates may arrive together (work units running at
-    once), so that a time estimate waits for the first of them all. The update is called as
-    units finish, from whichever thread learns of it: it must be thread-safe."""
+    once), so that a time estimate waits for the first of them all."""
 
     def __call__(
         self, label: str, total: int, parallel: int = 1

@@ -209,42 +209,6 @@ def test_local_pool_shares_the_units_with_this_process():
         ]
 
 
-#: Set by the progress callback of the test below (this process's unit waits for it).
-_REPORTED = threading.Event()
-
-
-def _waits_for_report(x: int) -> bool:
-    """Unit 0 (a worker's) returns at once; unit 1 (this process's) waits, at most 20 s, for
-    the progress callback to have counted a finished unit."""
-    return True if x == 0 else _REPORTED.wait(timeout=20)
-
-
-@pytest.mark.parametrize("ordered", [False, True])
-def test_progress_counts_a_worker_unit_while_this_process_runs_its_own(ordered):
-    """A unit finished on a worker is counted as it finishes, not when this process, busy
-    with its own unit, gets round to delivering it (the time-left line of a long simulate
-    was 2x high for that)."""
-    _REPORTED.clear()
-    counted: list[int] = []
-
-    def progress(n: int) -> None:
-        counted.append(n)
-        _REPORTED.set()
-
-    with parallel.executor(nproc=2) as pool:
-        if ordered:
-            found = [
-                v
-                for _, v in parallel.map_ordered(
-                    _waits_for_report, ((i, i) for i in range(2)), pool, 4, progress
-                )
-            ]
-        else:
-            found = parallel.map_units(_waits_for_report, [0, 1], pool, progress)
-    assert found == [True, True]  # this process's unit saw the worker's counted
-    assert counted == [1, 1]
-
-
 @pytest.mark.parametrize("ordered", [False, True])
 def test_a_failed_unit_fails_the_map_here_or_on_a_worker(ordered):
     """Unit 13 fails wherever it runs; the error reaches the caller and the pool ends."""

@@ -21,7 +21,6 @@ import os
 import shutil
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -101,22 +100,15 @@ def progress(label: str, length: int, parallel: int = 1) -> Iterator[Callable[[i
     estimate of the time left, made once ``parallel`` updates have arrived (units that ran at
     once finish together: the first alone would give a pace ``parallel`` times too slow), or,
     where the work has three such rounds or more, from the pace of the second round (the first
-    carries the start-up: 9.3 min for the first 2 of 8 units of a 23-min simulate).
-    The callback may be called from several threads (units finishing on workers)."""
+    carries the start-up: 9.3 min for the first 2 of 8 units of a 23-min simulate)."""
     global _bar_shown
-    lock = threading.Lock()
     if interactive() and length > 0:
         with click.progressbar(
             length=length, label=label, file=sys.stderr, show_pos=True, show_eta=True
         ) as bar:
-
-            def advance(n: int) -> None:
-                with lock:
-                    bar.update(n)
-
             _bar_shown = True
             try:
-                yield advance
+                yield bar.update
             finally:
                 _bar_shown = False
         return
@@ -128,10 +120,6 @@ def progress(label: str, length: int, parallel: int = 1) -> Iterator[Callable[[i
     first_round: tuple[float, int] | None = None  # (elapsed, done) when ``parallel`` updates came
 
     def update(n: int) -> None:
-        with lock:
-            count(n)
-
-    def count(n: int) -> None:
         nonlocal done, estimated, updates, first_round
         before = done
         done += n

@@ -419,7 +419,7 @@ def simulate_chunks(
             "simulate", len(units), min(len(units), expected_workers(nproc, scheduler))
         ) as update,
     ):
-        for unit, res in map_ordered(draw_unit, ((u, u) for u in units), pool, window, update):
+        for unit, res in map_ordered(draw_unit, ((u, u) for u in units), pool, window):
             columns = res["columns"]
             if names is None:
                 names = list(columns)
@@ -430,6 +430,7 @@ def simulate_chunks(
             columns["x"], columns["y"] = grid_stamp_centres(
                 np.arange(first, first + n), s.grid_nx, s.stamp_size
             )
+            update(1)
             yield SimulatedChunk(
                 first, order_columns(columns), res.get("stamps") if keep_stamps else None
             )
