@@ -355,44 +355,36 @@ def test_progress_bar_gets_its_own_line(monkeypatch, capsys):
     assert not console.interactive()
 
 
-def _time_left_lines(
-    monkeypatch, caplog, label: str, total: int, parallel: int, times: list[float]
-) -> list[str]:
-    """The info lines of ``console.progress`` off a terminal, one unit finishing at each of
-    ``times`` (seconds from the start)."""
+def test_progress_off_a_terminal_estimates_the_time_left_once(monkeypatch, caplog):
+    """Silent per step; one info line from the measured pace once a tenth is done, on long jobs."""
     from megalut_cli.cli import console
 
-    clock = iter([0.0, *times])
+    clock = iter([0.0, 5.0, 30.0, 31.0, 32.0, 60.0])
     monkeypatch.setattr(console.time, "perf_counter", lambda: next(clock))
     monkeypatch.setattr(console, "interactive", lambda: False)
     with (
         caplog.at_level(logging.INFO, logger="megalut_cli"),
-        console.progress(label, total, parallel=parallel) as update,
+        console.progress("units", 10) as update,
     ):
-        for _ in times:
+        for _ in range(5):
             update(1)
-    return [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
-
-
-def test_progress_off_a_terminal_estimates_the_time_left_once(monkeypatch, caplog):
-    """Silent per step; one info line from the measured pace once a tenth is done, on long
-    jobs (25 s a unit after the first)."""
-    lines = _time_left_lines(monkeypatch, caplog, "units", 10, 1, [5.0, 30.0, 31.0, 32.0, 60.0])
-    assert lines == ["units: 2/10 in 30 s, about 3.3 min left"]
+    infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+    assert infos == ["units: 2/10 in 30 s, about 2.0 min left"]
 
 
 def test_progress_estimate_waits_for_every_unit_running_at_once(monkeypatch, caplog):
     """Units that ran at once finish together: the estimate waits for all of them, else the
-    first alone (4 units on 2 workers, the second done 4 s later) gives twice the time left."""
-    lines = _time_left_lines(monkeypatch, caplog, "simulate", 4, 2, [84.0, 88.0, 168.0])
-    assert lines == ["simulate: 2/4 in 88 s, about 88 s left"]
+    first alone (8 units on 2 workers, the second done 4 s later) gives twice the time left."""
+    from megalut_cli.cli import console
 
-
-def test_progress_estimate_takes_the_pace_of_the_second_round(monkeypatch, caplog):
-    """The first round of units carries the start-up: 8 units on 2 workers as a 10^6-stamp
-    simulate ran them (the first two done at 9.2 and 9.3 min, the next two 4.6 min later, 23 min
-    in all), the estimate is made at 4/8 from the second round's pace (the first round's pace
-    said 28 min left at 9.3 min, with 13.7 left)."""
-    times = [552.0, 558.0, 830.0, 834.0, 1100.0]
-    lines = _time_left_lines(monkeypatch, caplog, "simulate", 8, 2, times)
-    assert lines == ["simulate: 4/8 in 13.9 min, about 9.2 min left"]
+    clock = iter([0.0, 84.0, 88.0, 168.0])
+    monkeypatch.setattr(console.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(console, "interactive", lambda: False)
+    with (
+        caplog.at_level(logging.INFO, logger="megalut_cli"),
+        console.progress("simulate", 8, parallel=2) as update,
+    ):
+        for _ in range(3):
+            update(1)
+    infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+    assert infos == ["simulate: 2/8 in 88 s, about 4.4 min left"]

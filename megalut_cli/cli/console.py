@@ -35,9 +35,8 @@ PACKAGE_LOGGER = "megalut_cli"
 STDIO = "-"
 
 #: Off a terminal, one info line estimates the time left once a tenth of the work is done
-#: and every unit running at once has reported (twice, the pace from the second round, where
-#: the work has three rounds or more), if that took at least this long (the bar shows its
-#: own estimate on a terminal).
+#: (and every unit running at once has reported), if that took at least this long (the bar
+#: shows its own estimate on a terminal).
 ESTIMATE_AFTER_SECONDS = 20.0
 
 log = logging.getLogger(__name__)
@@ -98,9 +97,7 @@ def interactive() -> bool:
 def progress(label: str, length: int, parallel: int = 1) -> Iterator[Callable[[int], None]]:
     """A progress callback: a bar on an interactive terminal; elsewhere debug lines and one
     estimate of the time left, made once ``parallel`` updates have arrived (units that ran at
-    once finish together: the first alone would give a pace ``parallel`` times too slow), or,
-    where the work has three such rounds or more, from the pace of the second round (the first
-    carries the start-up: 9.3 min for the first 2 of 8 units of a 23-min simulate)."""
+    once finish together: the first alone would give a pace ``parallel`` times too slow)."""
     global _bar_shown
     if interactive() and length > 0:
         with click.progressbar(
@@ -117,40 +114,31 @@ def progress(label: str, length: int, parallel: int = 1) -> Iterator[Callable[[i
     start = time.perf_counter()
     estimated = False
     updates = 0
-    first_round: tuple[float, int] | None = None  # (elapsed, done) when ``parallel`` updates came
 
     def update(n: int) -> None:
-        nonlocal done, estimated, updates, first_round
+        nonlocal done, estimated, updates
         before = done
         done += n
         updates += 1
         if done // step != before // step or done == length:
             log.debug("%s: %d/%d", label, done, length)
         elapsed = time.perf_counter() - start
-        if first_round is None and updates >= parallel:
-            first_round = (elapsed, done)
-        if estimated or first_round is None or done >= length or done < step:
-            return
-        # The first round of units carries the workers' start-up (and per-process caches
-        # warming up): where three rounds or more remain, the pace comes from the second.
-        round_time, round_done = first_round
-        if 3 * round_done > length:
-            seconds_per_unit = elapsed / done
-        elif updates >= 2 * parallel and done > round_done:
-            seconds_per_unit = (elapsed - round_time) / (done - round_done)
-        else:
-            return
-        if elapsed < ESTIMATE_AFTER_SECONDS:
-            return
-        estimated = True  # one line from the measured pace, for long jobs off a terminal
-        log.info(
-            "%s: %d/%d in %s, about %s left",
-            label,
-            done,
-            length,
-            format_duration(elapsed),
-            format_duration(seconds_per_unit * (length - done)),
-        )
+        if (
+            not estimated
+            and done < length
+            and done >= step
+            and updates >= parallel
+            and elapsed >= ESTIMATE_AFTER_SECONDS
+        ):
+            estimated = True  # one line from the measured pace, for long jobs off a terminal
+            log.info(
+                "%s: %d/%d in %s, about %s left",
+                label,
+                done,
+                length,
+                format_duration(elapsed),
+                format_duration(elapsed / done * (length - done)),
+            )
 
     yield update
 
