@@ -313,6 +313,21 @@ class Measurer:
                 self.settings.gain,
             )
 
+    def _common_sky(self, measured: dict[str, np.ndarray], sky: np.ndarray) -> None:
+        """A sheared version's ``skymad`` and ``snr`` (in place) on the noshear version's sky
+        noise ``sky``: the operation resamples the noise along a stamp's edges differently in
+        each version (their edge MADs 1p and 1m differ by ~7 %, the shear moves the S/N by
+        ~0.3 %), which would make an S/N cut's selection response noise (docs/metacal.md)."""
+        use = np.isfinite(sky)
+        measured["skymad"] = np.where(use, sky, measured["skymad"])
+        use &= measured["flags"] == 0
+        measured["snr"][use] = signal_to_noise(
+            measured["adamom_flux"][use],
+            measured["adamom_sigma"][use],
+            sky[use],
+            self.settings.gain,
+        )
+
     def _metacal(self, batch: StampBatch, feats: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``X_<type>`` of the five metacal versions and ``psf_adamom_*_<type>`` of the target
         PSF; stamps flagged :data:`METACAL_SKIPPED` are left out, with those flags. Masked
@@ -359,12 +374,17 @@ class Measurer:
                 versions_buffer(int(ok.sum()), size) if stamps.shape[1] == size else None,
                 fixnoise_signs=None if batch.fixnoise_signs is None else batch.fixnoise_signs[ok],
             )
-            for kind in TYPES:
+            sky: np.ndarray | None = None
+            for kind in TYPES:  # noshear first: its sky noise is every version's
                 measured = (
                     self.features(versions[kind], origins)
                     if masked is None
                     else self.masked_features(versions[kind], masked, origins)
                 )
+                if sky is None:
+                    sky = measured["skymad"]
+                else:
+                    self._common_sky(measured, sky)
                 for c, v in measured.items():
                     out[f"{c}_{kind}"][ok] = v
         nan_names = nan_when_flagged(s.feature_sets)

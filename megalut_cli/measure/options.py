@@ -97,7 +97,8 @@ MEASURE_OPTIONS: tuple[Option, ...] = (
         "Also measure the five metacalibration versions of each stamp (noshear, "
         "1p, 1m, 2p, 2m: deconvolved by the PSF, sheared by +-step along g1 and g2, reconvolved "
         "with a round target PSF, with fixnoise at the stamp's noise: skymad, or a MEDS file's "
-        "noise_weight): every feature column X again as X_noshear, X_1p, X_1m, X_2p, X_2m "
+        "noise_weight): every feature column X again as X_noshear, X_1p, X_1m, X_2p, X_2m, "
+        "every version's skymad and snr on the noshear version's sky noise "
         "(docs/metacal.md). Needs --psf or --psf-model (a MEDS file may use its PSF cutouts).",
     ),
     Option(
