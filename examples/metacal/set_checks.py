@@ -778,7 +778,12 @@ if __name__ == "__main__":
     if len(sys.argv) > 4 and sys.argv[1] == "--cut":  # a truth cut before any mode
         TRUTH_CUT.append((sys.argv[2], float(sys.argv[3]), float(sys.argv[4])))
         del sys.argv[1:5]
-    if len(sys.argv) > 2 and sys.argv[1] == "--twin" and sys.argv[2] in ("0", "1"):
+    if len(sys.argv) > 1 and sys.argv[1] == "--twin":
+        if len(sys.argv) < 3 or sys.argv[2] not in ("0", "1"):
+            print(
+                "--twin takes 0 (the first twin of each galaxy) or 1 (the second)", file=sys.stderr
+            )
+            sys.exit(2)
         ONE_TWIN.append(int(sys.argv[2]))
         del sys.argv[1:3]
     if len(sys.argv) > 1 and sys.argv[1] == "--adamom":  # adaptive moments' own metacal
