@@ -305,28 +305,22 @@ class Measurer:
         if batch.weights is not None:
             noise = weight_noise(np.asarray(batch.weights), masked)
             feats[NOISE_COLUMN] = noise
-            use = (feats["flags"] == 0) & np.isfinite(noise)
-            feats["snr"][use] = signal_to_noise(
-                feats["adamom_flux"][use],
-                feats["adamom_sigma"][use],
-                noise[use],
-                self.settings.gain,
-            )
+            self._snr_on(feats, noise)
+
+    def _snr_on(self, feats: dict[str, np.ndarray], noise: np.ndarray) -> None:
+        """``snr`` (in place) of the measured rows on the per-stamp ``noise`` where it is finite."""
+        use = (feats["flags"] == 0) & np.isfinite(noise)
+        feats["snr"][use] = signal_to_noise(
+            feats["adamom_flux"][use], feats["adamom_sigma"][use], noise[use], self.settings.gain
+        )
 
     def _common_sky(self, measured: dict[str, np.ndarray], sky: np.ndarray) -> None:
         """A sheared version's ``skymad`` and ``snr`` (in place) on the noshear version's sky
         noise ``sky``: the operation resamples the noise along a stamp's edges differently in
         each version (their edge MADs 1p and 1m differ by ~7 %, the shear moves the S/N by
         ~0.3 %), which would make an S/N cut's selection response noise (docs/metacal.md)."""
-        use = np.isfinite(sky)
-        measured["skymad"] = np.where(use, sky, measured["skymad"])
-        use &= measured["flags"] == 0
-        measured["snr"][use] = signal_to_noise(
-            measured["adamom_flux"][use],
-            measured["adamom_sigma"][use],
-            sky[use],
-            self.settings.gain,
-        )
+        measured["skymad"] = np.where(np.isfinite(sky), sky, measured["skymad"])
+        self._snr_on(measured, sky)
 
     def _metacal(self, batch: StampBatch, feats: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``X_<type>`` of the five metacal versions and ``psf_adamom_*_<type>`` of the target
