@@ -15,6 +15,7 @@ from sim_configs import write
 from megalut_cli.catalog import read_catalog
 from megalut_cli.measure.cell_detect import CellNoise, cut_around, detect, metadetect_cell
 from megalut_cli.measure.cells import read_cell
+from megalut_cli.measure.features import effective_area
 from megalut_cli.measure.measurer import MeasureSettings, MetacalSettings
 from megalut_cli.measure.meds import write_meds
 from megalut_cli.measure.metacal import metacal_features
@@ -575,3 +576,41 @@ def test_masked_pixels_are_interpolated_and_near_detections_flagged():
         assert out["flags"][ours][0] == 0 and out["mask_dist"][ours][0] > 30
         for c in ("adamom_g1", "adamom_g2", "adamom_sigma"):
             assert abs(out[c][ours][0] - ref[c][theirs][0]) < 1e-5, (kind, c)
+
+
+def test_the_versions_share_the_known_noise_in_their_snr(runner, cli, tmp_path):
+    """Each version's ``snr`` is on the cell's known noise through the operation (the
+    detection's noise, the same in the five versions), not on its stamp's edge MAD, which the
+    operation resamples differently in each version: an S/N cut would otherwise select on
+    noise the shear does not make (docs/metadetect.md)."""
+    cells, _ = scenes(runner, cli, tmp_path, sigma=0.5)
+    out = tmp_path / "det.fits"
+    result = runner.invoke(cli, ["measure", str(cells), "--metadetect", "-o", str(out), "-j", "1"])
+    assert result.exit_code == 0, result.output
+    det = read_catalog(out)
+    p, m = det[det["mdet_step"] == "1p"], det[det["mdet_step"] == "1m"]
+    pairs = []
+    for image in np.unique(p["image"]):
+        a, b = p[p["image"] == image], m[m["image"] == image]
+        if len(a) and len(b):
+            d = np.hypot(
+                np.asarray(a["x"])[:, None] - np.asarray(b["x"])[None, :],
+                np.asarray(a["y"])[:, None] - np.asarray(b["y"])[None, :],
+            )
+            j = d.argmin(axis=1)
+            good = (d[np.arange(len(a)), j] < 0.5) & (a["flags"] == 0) & (b["flags"][j] == 0)
+            pairs += [(a[i], b[j[i]]) for i in np.flatnonzero(good)]
+    assert len(pairs) >= 20
+    snr = np.array([(x["snr"], y["snr"]) for x, y in pairs])
+    sky = np.array([(x["skymad"], y["skymad"]) for x, y in pairs])
+    flux = np.array([(x["adamom_flux"], y["adamom_flux"]) for x, y in pairs])
+    moved = np.median(np.abs(np.log(snr[:, 0] / snr[:, 1])))
+    # the edge MADs differ by a few per cent between versions, the fluxes by far less
+    assert np.median(np.abs(np.log(sky[:, 0] / sky[:, 1]))) > 0.02
+    assert moved < 2 * np.median(np.abs(np.log(flux[:, 0] / flux[:, 1]))) + 2e-3
+    # the known noise is the level of the edge MADs (Eq. 10: snr = flux / (sqrt(area) noise));
+    # neighbours' light raises a MAD (on pure noise the two agree within 2.5 %)
+    size = np.array([(x["adamom_sigma"], y["adamom_sigma"]) for x, y in pairs])
+    noise = flux / (snr * np.sqrt(effective_area(size)))
+    assert 0.97 < np.median(sky) / np.median(noise) < 1.12
+    assert np.ptp(noise) < 1e-6 * np.median(noise)  # one cell noise: the scenes share it

@@ -412,7 +412,10 @@ def metadetect_cell(
             versions[kind], version_sigma, detection, bad, stamp_size
         )
         x, y, n = found.x, found.y, len(found.x)
-        feats = measurer.measure(StampBatch(stamps, origins, masked=masked, centres=centres))
+        known = np.full(len(stamps), version_sigma) if version_sigma > 0 else None
+        feats = measurer.measure(
+            StampBatch(stamps, origins, masked=masked, centres=centres, noise=known)
+        )
         feats = {c: v[:n] for c, v in feats.items()}
         flag_duplicates(feats, x + 1.0, y + 1.0, detection.duplicate_radius, settings)
         ux, uy = unsheared(x, y, size, SHEARS[kind], mc.step)

@@ -107,11 +107,12 @@ class StampBatch:
     ``finite``, ``skymad``: when the source computed them while cutting; ``masked``: bad
     pixels (left out of the moments, counted, flagged when too many or central, see
     :mod:`.masks`) with ``centres`` (0-based ``(col, row)`` of the object in its stamp) and
-    ``weights`` (the noise of the S/N); ``psfs``; ``fixnoise_keys``: the key of each
-    stamp's metacal fixnoise field, ``fixnoise_signs``: its sign (+1, or -1 for the second
-    of antithetic twins; None: all +1); ``base``: the base features, when the source measured
-    them itself (while cutting, or on the device; ``stamps`` may then be None when nothing
-    else is measured on the pixels).
+    ``weights`` (the noise of the S/N); ``noise``: the known pixel noise of each stamp (a
+    metadetection version's), on which ``snr`` is computed instead of ``skymad``; ``psfs``;
+    ``fixnoise_keys``: the key of each stamp's metacal fixnoise field, ``fixnoise_signs``: its
+    sign (+1, or -1 for the second of antithetic twins; None: all +1); ``base``: the base
+    features, when the source measured them itself (while cutting, or on the device;
+    ``stamps`` may then be None when nothing else is measured on the pixels).
     """
 
     stamps: np.ndarray | None
@@ -121,6 +122,7 @@ class StampBatch:
     masked: np.ndarray | None = None
     centres: np.ndarray | None = None
     weights: np.ndarray | None = None
+    noise: np.ndarray | None = None
     psfs: PsfImages | None = None
     fixnoise_keys: np.ndarray | None = None
     fixnoise_signs: np.ndarray | None = None
@@ -274,6 +276,8 @@ class Measurer:
                 feats = self.features(
                     stamps, batch.origins, finite=batch.finite, skymad=batch.skymad
                 )
+            if batch.noise is not None:
+                self._snr_on(feats, np.asarray(batch.noise, dtype=np.float64))
         self._psfs(batch, feats)
         if stamps is None:
             return feats
