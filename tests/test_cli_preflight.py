@@ -355,8 +355,9 @@ def test_progress_bar_gets_its_own_line(monkeypatch, capsys):
     assert not console.interactive()
 
 
-def test_progress_off_a_terminal_estimates_the_time_left_once(monkeypatch, caplog):
-    """Silent per step; one info line from the measured pace once a tenth is done, on long jobs."""
+def test_progress_off_a_terminal_estimates_the_time_left(monkeypatch, caplog):
+    """Silent per step; an info line from the measured pace once a tenth is done, on long jobs,
+    and again from the pace since then a quarter further on (not sooner than 20 s later)."""
     from megalut_cli.cli import console
 
     clock = iter([0.0, 5.0, 30.0, 31.0, 32.0, 60.0])
@@ -369,7 +370,10 @@ def test_progress_off_a_terminal_estimates_the_time_left_once(monkeypatch, caplo
         for _ in range(5):
             update(1)
     infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
-    assert infos == ["units: 2/10 in 30 s, about 2.0 min left"]
+    assert infos == [
+        "units: 2/10 in 30 s, about 2.0 min left",
+        "units: 5/10 in 60 s, about 50 s left",
+    ]
 
 
 def test_progress_estimate_waits_for_every_unit_running_at_once(monkeypatch, caplog):
@@ -388,3 +392,27 @@ def test_progress_estimate_waits_for_every_unit_running_at_once(monkeypatch, cap
             update(1)
     infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
     assert infos == ["simulate: 2/8 in 88 s, about 4.4 min left"]
+
+
+def test_progress_later_estimates_take_the_pace_since_the_last(monkeypatch, caplog):
+    """A first round slowed by warm-up: set 4408's units (8 on 2 processes, measured on
+    completion) finished at 9.3, 13.9, 18.5 and 23.0 min, two at a time. The first line says
+    27.9 min left (13.7 true); the later ones take the pace since the line before."""
+    from megalut_cli.cli import console
+
+    minutes = [9.3, 9.3, 13.9, 13.9, 18.5, 18.5, 23.0, 23.0]
+    clock = iter([0.0] + [60.0 * t for t in minutes])
+    monkeypatch.setattr(console.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(console, "interactive", lambda: False)
+    with (
+        caplog.at_level(logging.INFO, logger="megalut_cli"),
+        console.progress("simulate", 8, parallel=2) as update,
+    ):
+        for _ in minutes:
+            update(1)
+    infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+    assert infos == [
+        "simulate: 2/8 in 9.3 min, about 27.9 min left",
+        "simulate: 4/8 in 13.9 min, about 9.2 min left",
+        "simulate: 6/8 in 18.5 min, about 4.6 min left",
+    ]

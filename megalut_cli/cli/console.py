@@ -34,9 +34,10 @@ PACKAGE_LOGGER = "megalut_cli"
 #: The name that stands for stdin (inputs) or stdout (outputs).
 STDIO = "-"
 
-#: Off a terminal, one info line estimates the time left once a tenth of the work is done
+#: Off a terminal, an info line estimates the time left once a tenth of the work is done
 #: (and every unit running at once has reported), if that took at least this long (the bar
-#: shows its own estimate on a terminal).
+#: shows its own estimate on a terminal); it is redone from the pace since the last line once
+#: each further quarter is done and at least this long has passed.
 ESTIMATE_AFTER_SECONDS = 20.0
 
 log = logging.getLogger(__name__)
@@ -95,9 +96,12 @@ def interactive() -> bool:
 
 @contextlib.contextmanager
 def progress(label: str, length: int, parallel: int = 1) -> Iterator[Callable[[int], None]]:
-    """A progress callback: a bar on an interactive terminal; elsewhere debug lines and one
-    estimate of the time left, made once ``parallel`` updates have arrived (units that ran at
-    once finish together: the first alone would give a pace ``parallel`` times too slow)."""
+    """A progress callback: a bar on an interactive terminal; elsewhere debug lines and a few
+    estimates of the time left. The first waits for ``parallel`` updates (units that ran at
+    once finish together: the first alone would give a pace ``parallel`` times too slow) and
+    takes the pace since the start; each later one, a quarter of the work further on, takes
+    the pace since the line before, so that a first round slowed by warm-up (per-process
+    caches: twice as long as the next on 10^6-stamp CRN sets) does not carry over."""
     global _bar_shown
     if interactive() and length > 0:
         with click.progressbar(
@@ -112,32 +116,37 @@ def progress(label: str, length: int, parallel: int = 1) -> Iterator[Callable[[i
     done = 0
     step = max(1, length // 10)
     start = time.perf_counter()
-    estimated = False
     updates = 0
+    last: tuple[int, float] | None = None  # (done, elapsed) at the last estimate
 
     def update(n: int) -> None:
-        nonlocal done, estimated, updates
+        nonlocal done, updates, last
         before = done
         done += n
         updates += 1
         if done // step != before // step or done == length:
             log.debug("%s: %d/%d", label, done, length)
         elapsed = time.perf_counter() - start
-        if (
-            not estimated
-            and done < length
-            and done >= step
-            and updates >= parallel
-            and elapsed >= ESTIMATE_AFTER_SECONDS
-        ):
-            estimated = True  # one line from the measured pace, for long jobs off a terminal
+        if done >= length or updates < parallel:
+            return
+        if last is None:
+            due = done >= step and elapsed >= ESTIMATE_AFTER_SECONDS
+            pace = elapsed / done
+        else:
+            due = (
+                done - last[0] >= max(parallel, length // 4)
+                and elapsed - last[1] >= ESTIMATE_AFTER_SECONDS
+            )
+            pace = (elapsed - last[1]) / (done - last[0])
+        if due:  # for long jobs off a terminal
+            last = (done, elapsed)
             log.info(
                 "%s: %d/%d in %s, about %s left",
                 label,
                 done,
                 length,
                 format_duration(elapsed),
-                format_duration(elapsed / done * (length - done)),
+                format_duration(pace * (length - done)),
             )
 
     yield update
