@@ -100,8 +100,8 @@ def progress(label: str, length: int, parallel: int = 1) -> Iterator[Callable[[i
     estimates of the time left. The first waits for ``parallel`` updates (units that ran at
     once finish together: the first alone would give a pace ``parallel`` times too slow) and
     takes the pace since the start; each later one, a quarter of the work further on, takes
-    the pace since the line before, so that a first round slowed by warm-up (per-process
-    caches: twice as long as the next on 10^6-stamp CRN sets) does not carry over."""
+    the pace since the line before, so that a slow first round (twice as long as the next
+    on 10^6-stamp CRN sets, measured) does not carry over."""
     global _bar_shown
     if interactive() and length > 0:
         with click.progressbar(
