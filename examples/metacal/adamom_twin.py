@@ -20,7 +20,8 @@ import sys
 import fitsio
 import numpy as np
 
-TYPES = ("noshear", "1p", "1m", "2p", "2m")
+from megalut_cli.measure.metacal_defaults import TYPES
+
 #: Header cards carried over (what ``evaluate`` reads of the set's design).
 CARDS = (
     "MLFORMAT", "MLFMTVER", "SEED", "NCASES", "NREA", "STAMPSZ", "SNC", "CRN", "ANTITHET",

@@ -129,17 +129,11 @@ def progress(label: str, length: int, parallel: int = 1) -> Iterator[Callable[[i
         elapsed = time.perf_counter() - start
         if done >= length or updates < parallel:
             return
-        if last is None:
-            due = done >= step and elapsed >= ESTIMATE_AFTER_SECONDS
-            pace = elapsed / done
-        else:
-            due = (
-                done - last[0] >= max(parallel, length // 4)
-                and elapsed - last[1] >= ESTIMATE_AFTER_SECONDS
-            )
-            pace = (elapsed - last[1]) / (done - last[0])
-        if due:  # for long jobs off a terminal
-            last = (done, elapsed)
+        since_done, since = last or (0, 0.0)  # the pace since the start, then the last line
+        gap = step if last is None else max(parallel, length // 4)
+        if done - since_done >= gap and elapsed - since >= ESTIMATE_AFTER_SECONDS:
+            last = (done, elapsed)  # for long jobs off a terminal
+            pace = (elapsed - since) / (done - since_done)
             log.info(
                 "%s: %d/%d in %s, about %s left",
                 label,
